@@ -1,0 +1,484 @@
+//! The instrument config: which back-end runs the instrument, the poses and limits of
+//! the two galvo pairs, the laser, the SPAD and the TDC.
+//!
+//! Units in the file carry their unit in the key (`bin-width-ps`, `power-mw`) so a lab
+//! user never has to guess; the validated types hold SI units (metres, seconds, watts,
+//! radians), as the rest of the code base does.
+use std::path::Path;
+use std::time::Duration;
+
+use glam::DVec3;
+use periscope_drivers::{AngleLimits, GalvoPose, UsbSelector};
+use serde::Deserialize;
+
+use super::{ConfigError, TomlSource};
+
+/// Which implementation drives the instrument.
+#[derive(Clone, Debug, PartialEq)]
+pub enum Backend {
+    /// The simulated galvos and TDC from `periscope-sim`.
+    Sim(SimSettings),
+    /// Real galvos on serial ports and a real TDC on USB.
+    Hardware,
+}
+
+/// Settings only the simulated instrument uses.
+#[derive(Clone, Debug, PartialEq)]
+pub struct SimSettings {
+    /// Seed for every random draw of the simulation (noise, sampling).
+    pub seed: u64,
+}
+
+/// A validated instrument config.
+#[derive(Clone, Debug, PartialEq)]
+pub struct InstrumentConfig {
+    /// Human-readable instrument name.
+    pub name: String,
+    /// The back-end that drives it.
+    pub backend: Backend,
+    /// The galvo pair that steers the laser.
+    pub laser_arm: GalvoArm,
+    /// The galvo pair that steers the SPAD's field of view.
+    pub spad_arm: GalvoArm,
+    /// The pulsed laser.
+    pub laser: LaserSettings,
+    /// The single-photon detector.
+    pub spad: SpadSettings,
+    /// The time-to-digital converter / histogrammer.
+    pub tdc: TdcSettings,
+}
+
+/// One galvo pair.
+#[derive(Clone, Debug, PartialEq)]
+pub struct GalvoArm {
+    /// Pose of the pair (pivot and frame), world frame.
+    pub pose: GalvoPose,
+    /// Optical angle limits, radians.
+    pub limits: AngleLimits,
+    /// Time to wait after a move before the position counts as settled.
+    pub settle: Duration,
+    /// The serial link to its controller (required for the hardware back-end).
+    pub serial: Option<SerialLink>,
+}
+
+/// A serial link to a galvo controller.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct SerialLink {
+    /// Device path, e.g. `/dev/ttyUSB0`.
+    pub port: String,
+    /// Baud rate.
+    pub baud: u32,
+    /// How long to wait for a reply.
+    pub timeout: Duration,
+}
+
+/// The pulsed laser.
+#[derive(Clone, Debug, PartialEq)]
+pub struct LaserSettings {
+    /// Wavelength, metres.
+    pub wavelength: f64,
+    /// Average power, watts.
+    pub power: f64,
+    /// Pulse repetition rate, hertz.
+    pub repetition_rate: f64,
+}
+
+/// The single-photon avalanche diode.
+#[derive(Clone, Debug, PartialEq)]
+pub struct SpadSettings {
+    /// Photon detection efficiency, in (0, 1].
+    pub efficiency: f64,
+    /// Dark count rate, hertz.
+    pub dark_count_rate: f64,
+    /// Dead time after a detection, seconds.
+    pub dead_time: f64,
+    /// Full width at half maximum of the timing jitter (laser, SPAD and TDC), seconds.
+    pub jitter_fwhm: f64,
+}
+
+/// The time-to-digital converter.
+#[derive(Clone, Debug, PartialEq)]
+pub struct TdcSettings {
+    /// Histogram bin width, seconds.
+    pub bin_width: f64,
+    /// Number of bins per histogram.
+    pub bins: u32,
+    /// Time of the first bin's start after the sync pulse, seconds.
+    pub offset: f64,
+    /// Sync divider (1 = every laser pulse).
+    pub sync_divider: u32,
+    /// Fixed system delay (cables, electronics), seconds; subtracted as `c0·t_sys`.
+    pub system_delay: f64,
+    /// The USB device (required for the hardware back-end).
+    pub usb: Option<UsbSelector>,
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields, rename_all = "kebab-case")]
+struct RawInstrument {
+    name: String,
+    backend: RawBackend,
+    galvo: RawGalvos,
+    laser: RawLaser,
+    spad: RawSpad,
+    tdc: RawTdc,
+    sim: Option<RawSim>,
+}
+
+#[derive(Deserialize, Clone, Copy, PartialEq)]
+#[serde(rename_all = "kebab-case")]
+enum RawBackend {
+    Sim,
+    Hardware,
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields, rename_all = "kebab-case")]
+struct RawGalvos {
+    laser: RawGalvo,
+    spad: RawGalvo,
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields, rename_all = "kebab-case")]
+struct RawGalvo {
+    origin: [f64; 3],
+    boresight: [f64; 3],
+    #[serde(default = "default_up")]
+    up: [f64; 3],
+    angle_limits_deg: RawLimits,
+    #[serde(default)]
+    settle_us: f64,
+    serial: Option<RawSerial>,
+}
+
+fn default_up() -> [f64; 3] {
+    [0.0, 1.0, 0.0]
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields, rename_all = "kebab-case")]
+struct RawLimits {
+    x: [f64; 2],
+    y: [f64; 2],
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields, rename_all = "kebab-case")]
+struct RawSerial {
+    port: String,
+    #[serde(default = "default_baud")]
+    baud: u32,
+    #[serde(default = "default_timeout_ms")]
+    timeout_ms: u64,
+}
+
+fn default_baud() -> u32 {
+    115_200
+}
+
+fn default_timeout_ms() -> u64 {
+    200
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields, rename_all = "kebab-case")]
+struct RawLaser {
+    wavelength_nm: f64,
+    power_mw: f64,
+    rep_rate_mhz: f64,
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields, rename_all = "kebab-case")]
+struct RawSpad {
+    efficiency: f64,
+    #[serde(default)]
+    dark_count_rate_hz: f64,
+    #[serde(default)]
+    dead_time_ns: f64,
+    #[serde(default)]
+    jitter_fwhm_ps: f64,
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields, rename_all = "kebab-case")]
+struct RawTdc {
+    bin_width_ps: f64,
+    bins: u32,
+    #[serde(default)]
+    offset_ns: f64,
+    #[serde(default = "default_sync_divider")]
+    sync_divider: u32,
+    #[serde(default)]
+    system_delay_ns: f64,
+    usb: Option<String>,
+}
+
+fn default_sync_divider() -> u32 {
+    1
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields, rename_all = "kebab-case")]
+struct RawSim {
+    #[serde(default)]
+    seed: u64,
+}
+
+/// Checks one numeric field against a range and reports it against its key.
+struct Check<'a> {
+    src: &'a TomlSource,
+}
+
+impl Check<'_> {
+    fn range(&self, key: &str, value: f64, lo: f64, hi: f64, unit: &str) -> Result<f64, ConfigError> {
+        if value.is_finite() && (lo..=hi).contains(&value) {
+            Ok(value)
+        } else {
+            Err(self.src.invalid(
+                key,
+                format!("{value} is out of range: it must lie between {lo} and {hi} {unit}"),
+            ))
+        }
+    }
+
+    fn positive(&self, key: &str, value: f64, hi: f64, unit: &str) -> Result<f64, ConfigError> {
+        if value.is_finite() && value > 0.0 && value <= hi {
+            Ok(value)
+        } else {
+            Err(self.src.invalid(
+                key,
+                format!("{value} is out of range: it must be above 0 and at most {hi} {unit}"),
+            ))
+        }
+    }
+
+    fn finite3(&self, key: &str, v: [f64; 3]) -> Result<DVec3, ConfigError> {
+        match v.iter().position(|c| !c.is_finite()) {
+            Some(i) => Err(self
+                .src
+                .invalid(&format!("{key}[{i}]"), "must be a finite number")),
+            None => Ok(DVec3::from_array(v)),
+        }
+    }
+}
+
+impl InstrumentConfig {
+    /// Loads and validates the instrument config at `path`.
+    pub fn load(path: &Path) -> Result<Self, ConfigError> {
+        Self::from_source(&TomlSource::load(path)?)
+    }
+
+    /// Validates an instrument config held in memory.
+    pub fn from_source(src: &TomlSource) -> Result<Self, ConfigError> {
+        let raw: RawInstrument = src.parse()?;
+        let check = Check { src };
+        if raw.name.trim().is_empty() {
+            return Err(src.invalid("name", "must not be empty: give the instrument a name"));
+        }
+        let hardware = raw.backend == RawBackend::Hardware;
+        let laser_arm = galvo_arm(&check, "galvo.laser", raw.galvo.laser, hardware)?;
+        let spad_arm = galvo_arm(&check, "galvo.spad", raw.galvo.spad, hardware)?;
+        let laser = LaserSettings {
+            wavelength: check.range(
+                "laser.wavelength-nm",
+                raw.laser.wavelength_nm,
+                200.0,
+                2500.0,
+                "nm",
+            )? * 1e-9,
+            power: check.positive("laser.power-mw", raw.laser.power_mw, 1e5, "mW")? * 1e-3,
+            repetition_rate: check.positive("laser.rep-rate-mhz", raw.laser.rep_rate_mhz, 1e4, "MHz")? * 1e6,
+        };
+        let spad = SpadSettings {
+            efficiency: check.positive("spad.efficiency", raw.spad.efficiency, 1.0, "(a fraction)")?,
+            dark_count_rate: check.range(
+                "spad.dark-count-rate-hz",
+                raw.spad.dark_count_rate_hz,
+                0.0,
+                1e8,
+                "Hz",
+            )?,
+            dead_time: check.range("spad.dead-time-ns", raw.spad.dead_time_ns, 0.0, 1e6, "ns")? * 1e-9,
+            jitter_fwhm: check.range("spad.jitter-fwhm-ps", raw.spad.jitter_fwhm_ps, 0.0, 1e5, "ps")? * 1e-12,
+        };
+        let tdc = tdc_settings(&check, raw.tdc, hardware)?;
+        let backend = match raw.backend {
+            RawBackend::Hardware => Backend::Hardware,
+            RawBackend::Sim => Backend::Sim(SimSettings {
+                seed: raw.sim.map_or(0, |s| s.seed),
+            }),
+        };
+        Ok(Self {
+            name: raw.name,
+            backend,
+            laser_arm,
+            spad_arm,
+            laser,
+            spad,
+            tdc,
+        })
+    }
+
+    /// One line describing the instrument, for logs and `--help`-style summaries.
+    pub fn summary(&self) -> String {
+        let backend = match &self.backend {
+            Backend::Sim(sim) => format!("simulated (seed {})", sim.seed),
+            Backend::Hardware => "hardware".to_owned(),
+        };
+        format!(
+            "instrument `{}`: {backend}, {} bins of {:.1} ps",
+            self.name,
+            self.tdc.bins,
+            self.tdc.bin_width * 1e12
+        )
+    }
+}
+
+fn galvo_arm(check: &Check<'_>, key: &str, raw: RawGalvo, hardware: bool) -> Result<GalvoArm, ConfigError> {
+    let src = check.src;
+    let origin = check.finite3(&format!("{key}.origin"), raw.origin)?;
+    let boresight = check.finite3(&format!("{key}.boresight"), raw.boresight)?;
+    let up = check.finite3(&format!("{key}.up"), raw.up)?;
+    let pose = GalvoPose::looking(origin, boresight, up).ok_or_else(|| {
+        src.invalid(
+            &format!("{key}.boresight"),
+            "must be a non-zero direction that is not parallel to `up`",
+        )
+    })?;
+    let mut limits = [[0.0; 2]; 2];
+    for (axis, name, range) in [(0, "x", raw.angle_limits_deg.x), (1, "y", raw.angle_limits_deg.y)] {
+        let k = format!("{key}.angle-limits-deg.{name}");
+        let lo = check.range(&format!("{k}[0]"), range[0], -89.0, 89.0, "degrees")?;
+        let hi = check.range(&format!("{k}[1]"), range[1], -89.0, 89.0, "degrees")?;
+        if lo >= hi {
+            return Err(src.invalid(
+                &k,
+                format!("[{lo}, {hi}] is empty: write [min, max] with min < max"),
+            ));
+        }
+        limits[axis] = [lo.to_radians(), hi.to_radians()];
+    }
+    let settle_us = check.range(&format!("{key}.settle-us"), raw.settle_us, 0.0, 1e6, "µs")?;
+    let serial = raw
+        .serial
+        .map(|s| {
+            if s.port.trim().is_empty() {
+                return Err(src.invalid(
+                    &format!("{key}.serial.port"),
+                    "must name a serial device, e.g. /dev/ttyUSB0",
+                ));
+            }
+            if s.timeout_ms == 0 {
+                return Err(src.invalid(&format!("{key}.serial.timeout-ms"), "must be at least 1 ms"));
+            }
+            Ok(SerialLink {
+                port: s.port,
+                baud: s.baud,
+                timeout: Duration::from_millis(s.timeout_ms),
+            })
+        })
+        .transpose()?;
+    if hardware && serial.is_none() {
+        return Err(src.invalid(
+            key,
+            format!("backend = \"hardware\" needs a [{key}.serial] table with the controller's `port`"),
+        ));
+    }
+    Ok(GalvoArm {
+        pose,
+        limits: AngleLimits {
+            x: limits[0],
+            y: limits[1],
+        },
+        settle: Duration::from_secs_f64(settle_us * 1e-6),
+        serial,
+    })
+}
+
+fn tdc_settings(check: &Check<'_>, raw: RawTdc, hardware: bool) -> Result<TdcSettings, ConfigError> {
+    let src = check.src;
+    if !(1..=65_536).contains(&raw.bins) {
+        return Err(src.invalid(
+            "tdc.bins",
+            format!("{} is out of range: it must lie between 1 and 65536", raw.bins),
+        ));
+    }
+    if raw.sync_divider == 0 {
+        return Err(src.invalid("tdc.sync-divider", "must be at least 1"));
+    }
+    let usb = raw
+        .usb
+        .map(|text| {
+            text.parse::<UsbSelector>()
+                .map_err(|err| src.invalid("tdc.usb", err.to_string()))
+        })
+        .transpose()?;
+    if hardware && usb.is_none() {
+        return Err(src.invalid(
+            "tdc",
+            "backend = \"hardware\" needs `usb = \"VID:PID\"` naming the histogrammer; `periscope devices` lists what is plugged in",
+        ));
+    }
+    Ok(TdcSettings {
+        bin_width: check.positive("tdc.bin-width-ps", raw.bin_width_ps, 1e6, "ps")? * 1e-12,
+        bins: raw.bins,
+        offset: check.range("tdc.offset-ns", raw.offset_ns, 0.0, 1e6, "ns")? * 1e-9,
+        sync_divider: raw.sync_divider,
+        system_delay: check.range("tdc.system-delay-ns", raw.system_delay_ns, -1e3, 1e3, "ns")? * 1e-9,
+        usb,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const SIM: &str = include_str!("../../../configs/instrument/sim.toml");
+    const LAB: &str = include_str!("../../../configs/instrument/lab.example.toml");
+
+    fn load(text: &str) -> Result<InstrumentConfig, ConfigError> {
+        InstrumentConfig::from_source(&TomlSource::from_text("test.toml", text))
+    }
+
+    #[test]
+    fn shipped_configs_are_valid() {
+        let sim = load(SIM).unwrap();
+        assert!(matches!(sim.backend, Backend::Sim(_)));
+        let lab = load(LAB).unwrap();
+        assert_eq!(lab.backend, Backend::Hardware);
+        assert!(lab.tdc.usb.is_some() && lab.laser_arm.serial.is_some());
+    }
+
+    #[test]
+    fn units_are_converted_to_si() {
+        let sim = load(SIM).unwrap();
+        assert!(sim.tdc.bin_width > 1e-12 && sim.tdc.bin_width < 1e-9);
+        assert!(sim.laser.wavelength > 1e-7 && sim.laser.wavelength < 3e-6);
+        assert!(sim.laser_arm.limits.x[1] < 1.6);
+    }
+
+    #[test]
+    fn out_of_range_values_name_their_key_and_line() {
+        let text = SIM.replace("efficiency = 0.3", "efficiency = 1.5");
+        let line = text.lines().position(|l| l.starts_with("efficiency")).unwrap() + 1;
+        let err = load(&text).unwrap_err();
+        assert_eq!(err.key(), Some("spad.efficiency"), "{err}");
+        assert_eq!(err.line(), Some(line), "{err}");
+    }
+
+    #[test]
+    fn hardware_backend_requires_links() {
+        let text = SIM.replace("backend = \"sim\"", "backend = \"hardware\"");
+        let err = load(&text).unwrap_err().to_string();
+        assert!(err.contains("galvo.laser") && err.contains("serial"), "{err}");
+    }
+
+    #[test]
+    fn empty_angle_ranges_are_rejected() {
+        let text = SIM.replacen("x = [-20.0, 20.0]", "x = [20.0, -20.0]", 1);
+        let err = load(&text).unwrap_err();
+        assert_eq!(err.key(), Some("galvo.laser.angle-limits-deg.x"), "{err}");
+    }
+}

@@ -1,0 +1,16 @@
+//! Configuration files: loading, two-stage validation and error reporting.
+//!
+//! Every file goes through the same two stages: a raw serde structure that mirrors the
+//! TOML exactly (`deny_unknown_fields`, kebab-case keys), then a validated type that
+//! cannot hold an invalid value. Both stages report problems through [`ConfigError`],
+//! which names the file, the line and the dotted key, and says what to do.
+mod instrument;
+mod source;
+
+pub use instrument::{
+    Backend, GalvoArm, InstrumentConfig, LaserSettings, SerialLink, SimSettings, SpadSettings, TdcSettings,
+};
+pub use source::{ConfigError, TomlSource};
+
+/// The instrument config used when none is given: the simulated instrument.
+pub const DEFAULT_INSTRUMENT: &str = "configs/instrument/sim.toml";

@@ -1,0 +1,266 @@
+//! A TOML file held in memory with the helpers to report errors against it.
+use std::fmt;
+use std::path::{Path, PathBuf};
+
+use serde::de::DeserializeOwned;
+use toml::de::{DeTable, DeValue};
+
+/// A problem with a configuration file, located as precisely as the file allows.
+#[derive(Debug, thiserror::Error)]
+pub enum ConfigError {
+    /// The file could not be read at all.
+    #[error("cannot read {}: {source}; check the path (relative paths are taken from the current directory)", path.display())]
+    Read {
+        /// The file that was asked for.
+        path: PathBuf,
+        /// Why reading failed.
+        source: std::io::Error,
+    },
+    /// The file was read but its content is wrong.
+    #[error("{location}: {message}")]
+    Invalid {
+        /// File, line and key.
+        location: Location,
+        /// What is wrong and what to do.
+        message: String,
+    },
+}
+
+impl ConfigError {
+    /// The dotted key the error is about, when it is about one.
+    pub fn key(&self) -> Option<&str> {
+        match self {
+            Self::Invalid { location, .. } => location.key.as_deref(),
+            Self::Read { .. } => None,
+        }
+    }
+
+    /// The 1-based line the error points at, when known.
+    pub fn line(&self) -> Option<usize> {
+        match self {
+            Self::Invalid { location, .. } => location.line,
+            Self::Read { .. } => None,
+        }
+    }
+}
+
+/// Where in a file a problem is.
+#[derive(Debug, Clone)]
+pub struct Location {
+    /// The file.
+    pub path: PathBuf,
+    /// 1-based line, when known.
+    pub line: Option<usize>,
+    /// Dotted key path such as `galvo.laser.origin[2]`, when known.
+    pub key: Option<String>,
+}
+
+impl fmt::Display for Location {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        write!(f, "{}", self.path.display())?;
+        if let Some(line) = self.line {
+            write!(f, ":{line}")?;
+        }
+        if let Some(key) = &self.key {
+            write!(f, ": key `{key}`")?;
+        }
+        Ok(())
+    }
+}
+
+/// The text of a TOML file and where it came from.
+#[derive(Debug, Clone)]
+pub struct TomlSource {
+    path: PathBuf,
+    text: String,
+}
+
+impl TomlSource {
+    /// Reads `path` into memory.
+    pub fn load(path: &Path) -> Result<Self, ConfigError> {
+        let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Read {
+            path: path.to_owned(),
+            source,
+        })?;
+        Ok(Self::from_text(path, text))
+    }
+
+    /// Wraps text that did not come from disk (an HTTP body, a test); `path` is what
+    /// error messages will call it.
+    pub fn from_text(path: impl Into<PathBuf>, text: impl Into<String>) -> Self {
+        Self {
+            path: path.into(),
+            text: text.into(),
+        }
+    }
+
+    /// The file's path, as given.
+    pub fn path(&self) -> &Path {
+        &self.path
+    }
+
+    /// The file's text.
+    pub fn text(&self) -> &str {
+        &self.text
+    }
+
+    /// Stage one: deserialise the raw structure, reporting syntax errors, unknown keys
+    /// and type mismatches with their line and key path.
+    pub fn parse<T: DeserializeOwned>(&self) -> Result<T, ConfigError> {
+        let deserializer =
+            toml::de::Deserializer::parse(&self.text).map_err(|err| self.toml_error(&err, None))?;
+        serde_path_to_error::deserialize(deserializer).map_err(|err| {
+            let key = err.path().to_string();
+            let key = (key != ".").then_some(key);
+            self.toml_error(err.inner(), key)
+        })
+    }
+
+    /// Stage two helper: an error about `key` (dotted, with `[i]` for array items),
+    /// located at the line where that key is written, or where its table starts.
+    pub fn invalid(&self, key: &str, message: impl Into<String>) -> ConfigError {
+        ConfigError::Invalid {
+            location: Location {
+                path: self.path.clone(),
+                line: self.locate(key).map(|offset| self.line_of(offset)),
+                key: Some(key.to_owned()),
+            },
+            message: message.into(),
+        }
+    }
+
+    fn toml_error(&self, err: &toml::de::Error, key: Option<String>) -> ConfigError {
+        let line = err.span().map(|span| self.line_of(span.start));
+        let mut message = err.message().trim_end().to_owned();
+        if message.starts_with("unknown field") {
+            message.push_str("; remove it or check its spelling (keys are kebab-case)");
+        } else if message.starts_with("missing field") {
+            message.push_str("; add it (see the example files in configs/)");
+        }
+        ConfigError::Invalid {
+            location: Location {
+                path: self.path.clone(),
+                line,
+                key,
+            },
+            message,
+        }
+    }
+
+    fn line_of(&self, offset: usize) -> usize {
+        let offset = offset.min(self.text.len());
+        self.text.as_bytes()[..offset]
+            .iter()
+            .filter(|&&b| b == b'\n')
+            .count()
+            + 1
+    }
+
+    /// Byte offset of the deepest part of `key` that exists in the document.
+    fn locate(&self, key: &str) -> Option<usize> {
+        let table = DeTable::parse(&self.text).ok()?;
+        let mut best = None;
+        let mut current: Option<&DeValue<'_>> = None;
+        let mut root = Some(table.get_ref());
+        for part in split_key(key) {
+            let found = match (part, root.take(), current) {
+                (KeyPart::Name(name), Some(table), _) => table
+                    .iter()
+                    .find(|(k, _)| k.get_ref().as_ref() == name)
+                    .map(|(k, v)| (k.span().start, v)),
+                (KeyPart::Name(name), None, Some(DeValue::Table(table))) => table
+                    .iter()
+                    .find(|(k, _)| k.get_ref().as_ref() == name)
+                    .map(|(k, v)| (k.span().start, v)),
+                (KeyPart::Index(i), None, Some(DeValue::Array(items))) => {
+                    items.get(i).map(|v| (v.span().start, v))
+                }
+                _ => None,
+            };
+            let Some((offset, value)) = found else { break };
+            best = Some(offset);
+            current = Some(value.get_ref());
+        }
+        best
+    }
+}
+
+enum KeyPart<'a> {
+    Name(&'a str),
+    Index(usize),
+}
+
+fn split_key(key: &str) -> impl Iterator<Item = KeyPart<'_>> {
+    key.split('.').flat_map(|segment| {
+        let (name, rest) = segment.split_once('[').unwrap_or((segment, ""));
+        let indices = rest
+            .split('[')
+            .filter_map(|i| i.trim_end_matches(']').parse().ok())
+            .map(KeyPart::Index);
+        (!name.is_empty())
+            .then_some(KeyPart::Name(name))
+            .into_iter()
+            .chain(indices)
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[derive(Debug, serde::Deserialize)]
+    #[serde(deny_unknown_fields, rename_all = "kebab-case")]
+    #[allow(dead_code)]
+    struct Raw {
+        top: u32,
+        inner: Inner,
+    }
+
+    #[derive(Debug, serde::Deserialize)]
+    #[serde(deny_unknown_fields, rename_all = "kebab-case")]
+    #[allow(dead_code)]
+    struct Inner {
+        pair: [f64; 2],
+        bin_width: f64,
+    }
+
+    const GOOD: &str = "top = 1\n\n[inner]\npair = [1.0, 2.0]\nbin-width = 3.0\n";
+
+    #[test]
+    fn type_errors_name_line_and_key() {
+        let src = TomlSource::from_text("x.toml", GOOD.replace("bin-width = 3.0", "bin-width = \"a\""));
+        let err = src.parse::<Raw>().unwrap_err();
+        assert_eq!(err.line(), Some(5), "{err}");
+        assert_eq!(err.key(), Some("inner.bin-width"), "{err}");
+        assert!(
+            err.to_string().starts_with("x.toml:5: key `inner.bin-width`"),
+            "{err}"
+        );
+    }
+
+    #[test]
+    fn unknown_keys_say_what_to_do() {
+        let src = TomlSource::from_text("x.toml", format!("{GOOD}bogus = 1\n"));
+        let err = src.parse::<Raw>().unwrap_err().to_string();
+        assert!(err.contains("bogus") && err.contains("remove it"), "{err}");
+        assert!(err.contains("x.toml:6"), "{err}");
+    }
+
+    #[test]
+    fn syntax_errors_have_a_line() {
+        let src = TomlSource::from_text("x.toml", "top = 1\n[inner\n");
+        let err = src.parse::<Raw>().unwrap_err();
+        assert_eq!(err.line(), Some(2), "{err}");
+    }
+
+    #[test]
+    fn validation_errors_find_nested_keys_and_array_items() {
+        let src = TomlSource::from_text("x.toml", GOOD);
+        assert_eq!(src.invalid("inner.pair[1]", "m").line(), Some(4));
+        assert_eq!(src.invalid("inner.bin-width", "m").line(), Some(5));
+        assert_eq!(src.invalid("top", "m").line(), Some(1));
+        // A key that is absent points at its nearest existing parent.
+        assert_eq!(src.invalid("inner.missing", "m").line(), Some(3));
+        assert_eq!(src.invalid("nowhere", "m").line(), None);
+    }
+}

@@ -1,0 +1,11 @@
+//! Periscope's daemon: capture plans, the pipeline that runs them, run storage, the
+//! HTTP API and the `periscope` command line.
+//!
+//! The `periscope` binary is a thin shell over this library: it parses arguments with
+//! [`cli::Cli`], sets up logging with [`logging`], and hands over to [`cli::execute`].
+//! Everything it does can therefore be driven from tests without a process.
+#![warn(missing_docs)]
+
+pub mod cli;
+pub mod config;
+pub mod logging;

@@ -1,0 +1,16 @@
+//! Hardware side of Periscope: the traits the daemon drives, the real drivers behind
+//! them, and the pieces of the instrument model that the driver side and the simulated
+//! devices must share exactly (the galvo calibration model, device selectors).
+//!
+//! The calibration model lives here rather than in `sim` because both directions of it
+//! are needed: the driver computes the optical angles that aim a galvo pair at a relay
+//! point, and the simulator computes the ray that a pair at given angles emits. Using
+//! one piece of code for both means a simulated capture exercises the same geometry a
+//! real one does.
+#![warn(missing_docs)]
+
+pub mod geometry;
+pub mod selector;
+
+pub use geometry::{AngleLimits, GalvoPose, OpticalAngles};
+pub use selector::{SelectorError, UsbSelector};

@@ -1,0 +1,7 @@
+//! Reconstruction for Periscope: 3D Gaussian Transient Rendering (3D-GTR), relay
+//! geometry, virtual confocal synthesis and the conventional solvers.
+//!
+//! This crate depends on no other crate of the workspace: it works in hidden path
+//! length on transients whose first and last legs the daemon has already removed, so
+//! it can reconstruct stored or public captures as well as live ones.
+#![warn(missing_docs)]

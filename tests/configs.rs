@@ -1,0 +1,69 @@
+//! Every file in `configs/` is loaded by a test, and the binary reports broken configs
+//! with file, line and key.
+use std::path::Path;
+
+use periscope_daemon::config::InstrumentConfig;
+use periscope_tests::{config_files, periscope, repo_path};
+
+#[test]
+fn every_config_file_loads() {
+    let files = config_files();
+    assert!(!files.is_empty(), "configs/ is empty");
+    for file in &files {
+        let kind = file.iter().nth(1).and_then(|s| s.to_str()).unwrap_or_default();
+        let full = repo_path(&file.to_string_lossy());
+        match kind {
+            "instrument" => {
+                InstrumentConfig::load(&full).unwrap_or_else(|err| panic!("{err}"));
+            }
+            _ => panic!(
+                "{}: no loader is known for configs/{kind}/; add one to this test so the file is checked",
+                file.display()
+            ),
+        }
+    }
+}
+
+#[test]
+fn shipped_instruments_are_accepted_by_the_binary() {
+    // `serve` loads the instrument before anything else, so a valid config gets as far
+    // as the "not available yet" exit (69) and an invalid one stops at exit 2.
+    for file in [
+        "configs/instrument/sim.toml",
+        "configs/instrument/lab.example.toml",
+    ] {
+        let out = periscope(&["devices", "--instrument", file]);
+        assert_ne!(out.code, Some(2), "{file}: {}", out.stderr);
+    }
+}
+
+#[test]
+fn a_broken_instrument_names_file_line_and_key() {
+    let dir = tempfile::tempdir().unwrap();
+    let text = std::fs::read_to_string(repo_path("configs/instrument/sim.toml"))
+        .unwrap()
+        .replace("bins = 1024", "bins = 0");
+    let line = text.lines().position(|l| l.starts_with("bins")).unwrap() + 1;
+    let bad = dir.path().join("broken.toml");
+    std::fs::write(&bad, text).unwrap();
+    let out = periscope(&["devices", "--instrument", bad.to_str().unwrap()]);
+    assert_eq!(out.code, Some(2), "{out:?}");
+    let expected = format!("broken.toml:{line}: key `tdc.bins`");
+    assert!(
+        out.stderr.contains(&expected),
+        "expected `{expected}` in:\n{}",
+        out.stderr
+    );
+}
+
+#[test]
+fn a_missing_instrument_file_is_named() {
+    let out = periscope(&["devices", "--instrument", "configs/instrument/nope.toml"]);
+    assert_eq!(out.code, Some(2), "{out:?}");
+    assert!(
+        out.stderr.contains("nope.toml") && out.stderr.contains("check the path"),
+        "{}",
+        out.stderr
+    );
+    assert!(Path::new(&repo_path("configs/instrument/sim.toml")).is_file());
+}

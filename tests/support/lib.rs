@@ -1,0 +1,114 @@
+//! Shared helpers for Periscope's end-to-end tests: find the built `periscope` binary
+//! and the repository's files, and run the binary with a bounded run time.
+//!
+//! `cargo test --workspace` builds the binary (the daemon crate has integration tests,
+//! which makes Cargo build its binaries), next to this crate's test executables. Set
+//! `PERISCOPE_BIN` to test another build.
+#![warn(missing_docs)]
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output, Stdio};
+use std::time::{Duration, Instant};
+
+/// The repository root.
+pub fn repo_root() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .parent()
+        .expect("tests/ has a parent")
+        .to_owned()
+}
+
+/// A path inside the repository.
+pub fn repo_path(relative: &str) -> PathBuf {
+    repo_root().join(relative)
+}
+
+/// The `periscope` binary under test.
+pub fn periscope_bin() -> PathBuf {
+    if let Some(path) = std::env::var_os("PERISCOPE_BIN") {
+        return PathBuf::from(path);
+    }
+    let exe = std::env::current_exe().expect("the test knows its own path");
+    // target/<profile>/deps/<test>-<hash> → target/<profile>/periscope
+    let dir = exe
+        .parent()
+        .and_then(Path::parent)
+        .expect("test executables live in target/<profile>/deps");
+    let bin = dir.join(format!("periscope{}", std::env::consts::EXE_SUFFIX));
+    assert!(
+        bin.is_file(),
+        "{} is missing: run the tests with `cargo test --workspace` (which builds it) or set PERISCOPE_BIN",
+        bin.display()
+    );
+    bin
+}
+
+/// What a finished `periscope` process left behind.
+#[derive(Debug)]
+pub struct Finished {
+    /// Exit code (`None` when killed by a signal).
+    pub code: Option<i32>,
+    /// Standard output, lossily decoded.
+    pub stdout: String,
+    /// Standard error, lossily decoded.
+    pub stderr: String,
+}
+
+/// Runs `periscope ARGS` in the repository root with no standard input, killing it if
+/// it runs longer than `limit`.
+pub fn periscope_with_limit(args: &[&str], limit: Duration) -> Finished {
+    let mut child = Command::new(periscope_bin())
+        .args(args)
+        .current_dir(repo_root())
+        .env("RUST_LOG", "warn")
+        .stdin(Stdio::null())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("periscope starts");
+    let start = Instant::now();
+    while child.try_wait().expect("wait on periscope").is_none() {
+        if start.elapsed() > limit {
+            let _ = child.kill();
+            panic!("periscope {args:?} ran longer than {limit:?}");
+        }
+        std::thread::sleep(Duration::from_millis(10));
+    }
+    let Output {
+        status,
+        stdout,
+        stderr,
+    } = child.wait_with_output().expect("collect periscope output");
+    Finished {
+        code: status.code(),
+        stdout: String::from_utf8_lossy(&stdout).into_owned(),
+        stderr: String::from_utf8_lossy(&stderr).into_owned(),
+    }
+}
+
+/// Runs `periscope ARGS` with a 60 s limit.
+pub fn periscope(args: &[&str]) -> Finished {
+    periscope_with_limit(args, Duration::from_secs(60))
+}
+
+/// Every file under `configs/`, sorted, as paths relative to the repository root.
+pub fn config_files() -> Vec<PathBuf> {
+    fn walk(dir: &Path, out: &mut Vec<PathBuf>) {
+        for entry in std::fs::read_dir(dir).expect("configs/ is readable") {
+            let path = entry.expect("directory entry").path();
+            if path.is_dir() {
+                walk(&path, out);
+            } else {
+                out.push(path);
+            }
+        }
+    }
+    let root = repo_root();
+    let mut files = Vec::new();
+    walk(&root.join("configs"), &mut files);
+    files.sort();
+    files
+        .into_iter()
+        .map(|p| p.strip_prefix(&root).expect("under the root").to_owned())
+        .collect()
+}
