@@ -5,3 +5,11 @@
 //! length on transients whose first and last legs the daemon has already removed, so
 //! it can reconstruct stored or public captures as well as live ones.
 #![warn(missing_docs)]
+
+pub mod gtr;
+pub mod roi;
+pub mod special;
+pub mod transient;
+
+pub use roi::RoiBox;
+pub use transient::{C0, Pair, TimeAxis, TransientError, TransientSet};

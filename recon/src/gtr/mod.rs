@@ -1,0 +1,15 @@
+//! 3D Gaussian Transient Rendering: the forward model, its analytic gradient, and the
+//! optimiser that fits primitives to measured transients.
+pub mod init;
+pub mod kernel;
+pub mod model;
+pub mod optim;
+pub mod render;
+pub mod train;
+
+pub use init::Init;
+pub use kernel::{Kernel, PhysicalGrad, RenderOptions, render_pair};
+pub use model::{GaussianCloud, ModelError, Primitive, RawGrads, ScaleBounds};
+pub use optim::{AdamW, AdamWSettings, GroupSettings, Schedule};
+pub use render::{batch_loss, batch_loss_grad, render_set};
+pub use train::{CancelToken, PruneSettings, TrainConfig, TrainError, TrainEvent, TrainSummary, Trainer};

@@ -1,0 +1,305 @@
+//! The Gaussian cloud as the optimiser sees it: unconstrained raw parameters stored
+//! structure-of-arrays, one flat array per optimiser group, and the smooth maps that
+//! turn them into valid physical primitives.
+//!
+//! | group    | raw (per primitive)  | physical                                        |
+//! |----------|----------------------|-------------------------------------------------|
+//! | centres  | θx ∈ ℝ³              | x = c + h ⊙ tanh(θx): always inside the ROI box |
+//! | scales   | θs ∈ ℝ³              | ln s = ln s_min + (ln s_max − ln s_min)·sigmoid(θs) |
+//! | rotations| r ∈ ℝ⁴ (w, x, y, z)  | unit quaternion q = r/‖r‖ → R(q)                |
+//! | albedo   | θρ ∈ ℝ               | ρ = softplus(θρ) ≥ 0                            |
+//!
+//! Bounded log-scales keep every primitive between a size the time axis can resolve
+//! and one that still fits the ROI, so no optimiser step can produce a zero or
+//! infinite covariance.
+use glam::{DMat3, DQuat, DVec3};
+
+use super::kernel::{Kernel, PhysicalGrad};
+use crate::roi::RoiBox;
+
+/// The range of primitive scales (standard deviations), metres.
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct ScaleBounds {
+    /// Smallest scale.
+    pub min: f64,
+    /// Largest scale.
+    pub max: f64,
+}
+
+/// Unconstrained parameters of K primitives, one flat array per group.
+#[derive(Clone, Debug, PartialEq)]
+pub struct GaussianCloud {
+    roi: RoiBox,
+    scale_bounds: ScaleBounds,
+    /// θx, 3 per primitive.
+    pub centres: Vec<f64>,
+    /// θs, 3 per primitive.
+    pub scales: Vec<f64>,
+    /// Raw quaternions (w, x, y, z), 4 per primitive.
+    pub rotations: Vec<f64>,
+    /// θρ, 1 per primitive.
+    pub albedo: Vec<f64>,
+}
+
+/// Gradients with the same layout as [`GaussianCloud`]'s raw arrays.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct RawGrads {
+    /// ∂L/∂θx.
+    pub centres: Vec<f64>,
+    /// ∂L/∂θs.
+    pub scales: Vec<f64>,
+    /// ∂L/∂r.
+    pub rotations: Vec<f64>,
+    /// ∂L/∂θρ.
+    pub albedo: Vec<f64>,
+}
+
+impl RawGrads {
+    /// Zeroed gradients for `n` primitives.
+    pub fn zeros(n: usize) -> Self {
+        Self {
+            centres: vec![0.0; 3 * n],
+            scales: vec![0.0; 3 * n],
+            rotations: vec![0.0; 4 * n],
+            albedo: vec![0.0; n],
+        }
+    }
+}
+
+/// Why a cloud could not be built.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum ModelError {
+    /// The scale bounds are not `0 < min < max`, finite.
+    #[error("invalid scale bounds {min} .. {max} m: they need 0 < min < max")]
+    ScaleBounds {
+        /// Lower bound.
+        min: f64,
+        /// Upper bound.
+        max: f64,
+    },
+    /// A physical value cannot be represented (outside the ROI, the scale bounds, ...).
+    #[error("primitive {index}: {reason}")]
+    Value {
+        /// Index of the primitive.
+        index: usize,
+        /// What is wrong.
+        reason: String,
+    },
+}
+
+fn sigmoid(x: f64) -> f64 {
+    if x >= 0.0 {
+        1.0 / (1.0 + (-x).exp())
+    } else {
+        let e = x.exp();
+        e / (1.0 + e)
+    }
+}
+
+fn softplus(x: f64) -> f64 {
+    if x > 30.0 { x } else { x.exp().ln_1p() }
+}
+
+fn inv_softplus(y: f64) -> f64 {
+    if y > 30.0 { y } else { y.exp_m1().ln() }
+}
+
+/// The physical description of one primitive.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Primitive {
+    /// Centre, metres.
+    pub centre: DVec3,
+    /// Scales (standard deviations), metres.
+    pub scale: DVec3,
+    /// Orientation.
+    pub rotation: DQuat,
+    /// Albedo ρ.
+    pub albedo: f64,
+}
+
+impl GaussianCloud {
+    /// An empty cloud.
+    pub fn new(roi: RoiBox, scale_bounds: ScaleBounds) -> Result<Self, ModelError> {
+        let ScaleBounds { min, max } = scale_bounds;
+        if !(min.is_finite() && max.is_finite() && min > 0.0 && min < max) {
+            return Err(ModelError::ScaleBounds { min, max });
+        }
+        Ok(Self {
+            roi,
+            scale_bounds,
+            centres: Vec::new(),
+            scales: Vec::new(),
+            rotations: Vec::new(),
+            albedo: Vec::new(),
+        })
+    }
+
+    /// Appends a primitive given physically; fails if it is outside the ROI, its scales
+    /// outside the bounds, its albedo not positive or its rotation not finite.
+    pub fn push(&mut self, p: Primitive) -> Result<(), ModelError> {
+        let index = self.len();
+        let bad = |reason: String| ModelError::Value { index, reason };
+        let rel = (p.centre - self.roi.centre) / self.roi.half;
+        if !rel.is_finite() || rel.abs().max_element() >= 1.0 {
+            return Err(bad(format!("centre {} is not strictly inside the ROI", p.centre)));
+        }
+        let (lmin, lspan) = self.log_scale_map();
+        let mut raw_s = [0.0; 3];
+        for (j, s) in p.scale.to_array().into_iter().enumerate() {
+            let t = (s.ln() - lmin) / lspan;
+            if !(t > 0.0 && t < 1.0) {
+                return Err(bad(format!(
+                    "scale {s} m is outside ({}, {}) m",
+                    self.scale_bounds.min, self.scale_bounds.max
+                )));
+            }
+            raw_s[j] = (t / (1.0 - t)).ln();
+        }
+        if !(p.albedo.is_finite() && p.albedo > 0.0) {
+            return Err(bad(format!("albedo {} must be positive", p.albedo)));
+        }
+        let q = p.rotation;
+        if !q.is_finite() || q.length() < 1e-12 {
+            return Err(bad("rotation is not a finite, non-zero quaternion".into()));
+        }
+        let q = q.normalize();
+        self.centres.extend(rel.to_array().map(f64::atanh));
+        self.scales.extend(raw_s);
+        self.rotations.extend([q.w, q.x, q.y, q.z]);
+        self.albedo.push(inv_softplus(p.albedo));
+        Ok(())
+    }
+
+    /// Number of primitives.
+    pub fn len(&self) -> usize {
+        self.albedo.len()
+    }
+
+    /// Whether the cloud is empty.
+    pub fn is_empty(&self) -> bool {
+        self.albedo.is_empty()
+    }
+
+    /// The ROI the centres are confined to.
+    pub fn roi(&self) -> &RoiBox {
+        &self.roi
+    }
+
+    /// The scale bounds.
+    pub fn scale_bounds(&self) -> ScaleBounds {
+        self.scale_bounds
+    }
+
+    fn log_scale_map(&self) -> (f64, f64) {
+        let lmin = self.scale_bounds.min.ln();
+        (lmin, self.scale_bounds.max.ln() - lmin)
+    }
+
+    fn raw_quat(&self, k: usize) -> DQuat {
+        let r = &self.rotations[4 * k..4 * k + 4];
+        DQuat::from_xyzw(r[1], r[2], r[3], r[0])
+    }
+
+    /// The physical parameters of primitive `k`.
+    pub fn primitive(&self, k: usize) -> Primitive {
+        let t = DVec3::from_slice(&self.centres[3 * k..3 * k + 3]);
+        let (lmin, lspan) = self.log_scale_map();
+        let s = DVec3::from_slice(&self.scales[3 * k..3 * k + 3]);
+        Primitive {
+            centre: self.roi.centre + self.roi.half * DVec3::new(t.x.tanh(), t.y.tanh(), t.z.tanh()),
+            scale: DVec3::new(
+                (lmin + lspan * sigmoid(s.x)).exp(),
+                (lmin + lspan * sigmoid(s.y)).exp(),
+                (lmin + lspan * sigmoid(s.z)).exp(),
+            ),
+            rotation: self.raw_quat(k).normalize(),
+            albedo: softplus(self.albedo[k]),
+        }
+    }
+
+    /// The render kernel of primitive `k`.
+    pub fn kernel(&self, k: usize) -> Kernel {
+        let p = self.primitive(k);
+        Kernel::new(p.centre, DMat3::from_quat(p.rotation), p.scale, p.albedo)
+    }
+
+    /// Render kernels of all primitives.
+    pub fn kernels(&self) -> Vec<Kernel> {
+        (0..self.len()).map(|k| self.kernel(k)).collect()
+    }
+
+    /// Writes the raw-parameter gradient of primitive `k` given the gradient with
+    /// respect to its physical parameters.
+    pub fn chain(
+        &self,
+        k: usize,
+        g: &PhysicalGrad,
+        out_c: &mut [f64],
+        out_s: &mut [f64],
+        out_r: &mut [f64],
+    ) -> f64 {
+        // Centres: x = c + h tanh θ.
+        for j in 0..3 {
+            let t = self.centres[3 * k + j].tanh();
+            out_c[j] = g.x[j] * self.roi.half[j] * (1.0 - t * t);
+        }
+        // Scales: s = exp(lmin + lspan σ(θ)) → ds/dθ = s lspan σ (1 − σ).
+        let (lmin, lspan) = self.log_scale_map();
+        for j in 0..3 {
+            let sg = sigmoid(self.scales[3 * k + j]);
+            let s = (lmin + lspan * sg).exp();
+            out_s[j] = g.s[j] * s * lspan * sg * (1.0 - sg);
+        }
+        // Rotations: R(q) with q = r/‖r‖.
+        let raw = self.raw_quat(k);
+        let norm = raw.length();
+        let q = raw / norm;
+        let dq = quat_grad(q, &g.r);
+        let radial = dq.dot(q);
+        let dr = (dq - q * radial) / norm;
+        out_r.copy_from_slice(&[dr.w, dr.x, dr.y, dr.z]);
+        // Albedo: ρ = softplus(θ) → dρ/dθ = σ(θ).
+        g.rho * sigmoid(self.albedo[k])
+    }
+
+    /// Renormalises the raw quaternions to unit length (after an optimiser step), and
+    /// resets any that collapsed to zero to the identity.
+    pub fn renormalise_rotations(&mut self) {
+        for r in self.rotations.chunks_exact_mut(4) {
+            let n = r.iter().map(|v| v * v).sum::<f64>().sqrt();
+            if n.is_finite() && n > 1e-12 {
+                r.iter_mut().for_each(|v| *v /= n);
+            } else {
+                r.copy_from_slice(&[1.0, 0.0, 0.0, 0.0]);
+            }
+        }
+    }
+
+    /// Keeps only the primitives for which `keep(k)` is true.
+    pub fn retain(&mut self, keep: impl Fn(usize) -> bool) {
+        let kept: Vec<usize> = (0..self.len()).filter(|&k| keep(k)).collect();
+        let gather = |v: &[f64], n: usize| kept.iter().flat_map(|&k| v[n * k..n * k + n].to_vec()).collect();
+        self.centres = gather(&self.centres, 3);
+        self.scales = gather(&self.scales, 3);
+        self.rotations = gather(&self.rotations, 4);
+        self.albedo = gather(&self.albedo, 1);
+    }
+}
+
+/// ∂L/∂q (as a quaternion w, x, y, z) from ∂L/∂R for R = R(q), q unit.
+fn quat_grad(q: DQuat, g: &DMat3) -> DQuat {
+    let (w, x, y, z) = (q.w, q.x, q.y, q.z);
+    // G[m][j]: row m, column j.
+    let gm = |m: usize, j: usize| g.col(j)[m];
+    let (g00, g01, g02) = (gm(0, 0), gm(0, 1), gm(0, 2));
+    let (g10, g11, g12) = (gm(1, 0), gm(1, 1), gm(1, 2));
+    let (g20, g21, g22) = (gm(2, 0), gm(2, 1), gm(2, 2));
+    let dw = 2.0 * (-z * g01 + y * g02 + z * g10 - x * g12 - y * g20 + x * g21);
+    let dx =
+        2.0 * (y * g01 + z * g02 + y * g10 - 2.0 * x * g11 - w * g12 + z * g20 + w * g21 - 2.0 * x * g22);
+    let dy =
+        2.0 * (-2.0 * y * g00 + x * g01 + w * g02 + x * g10 + z * g12 - w * g20 + z * g21 - 2.0 * y * g22);
+    let dz =
+        2.0 * (-2.0 * z * g00 - w * g01 + x * g02 + w * g10 - 2.0 * z * g11 + y * g12 + x * g20 + y * g21);
+    DQuat::from_xyzw(dx, dy, dz, dw)
+}

@@ -1,0 +1,191 @@
+//! AdamW (Loshchilov & Hutter) with one learning rate and weight decay per parameter
+//! group, and a step/epoch schedule: linear warm-up, then milestone decay.
+use serde::{Deserialize, Serialize};
+
+use super::model::{GaussianCloud, RawGrads};
+
+/// Learning rate and decoupled weight decay of one parameter group.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct GroupSettings {
+    /// Learning rate (step size in raw-parameter units).
+    pub lr: f64,
+    /// Decoupled weight decay coefficient (0 = plain Adam).
+    pub weight_decay: f64,
+}
+
+/// Settings of every group plus Adam's constants.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct AdamWSettings {
+    /// Centres (θx).
+    pub centres: GroupSettings,
+    /// Scales (θs).
+    pub scales: GroupSettings,
+    /// Rotations (raw quaternions).
+    pub rotations: GroupSettings,
+    /// Albedo (θρ).
+    pub albedo: GroupSettings,
+    /// First-moment decay β1.
+    pub beta1: f64,
+    /// Second-moment decay β2.
+    pub beta2: f64,
+    /// Denominator guard ε.
+    pub eps: f64,
+}
+
+impl Default for AdamWSettings {
+    fn default() -> Self {
+        let g = |lr| GroupSettings {
+            lr,
+            weight_decay: 0.0,
+        };
+        Self {
+            centres: g(0.01),
+            scales: g(0.01),
+            rotations: g(0.005),
+            albedo: g(0.02),
+            beta1: 0.9,
+            beta2: 0.999,
+            eps: 1e-12,
+        }
+    }
+}
+
+/// Learning-rate schedule: a multiplier on every group's rate.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Schedule {
+    /// Steps over which the rate rises linearly from 0 to its full value.
+    pub warmup_steps: usize,
+    /// Epochs at which the rate is multiplied by `gamma`.
+    pub milestones: Vec<usize>,
+    /// The decay factor at each milestone.
+    pub gamma: f64,
+}
+
+impl Default for Schedule {
+    fn default() -> Self {
+        Self {
+            warmup_steps: 20,
+            milestones: Vec::new(),
+            gamma: 0.5,
+        }
+    }
+}
+
+impl Schedule {
+    /// The multiplier at optimiser step `step` (counted from 0) during epoch `epoch`.
+    pub fn factor(&self, step: usize, epoch: usize) -> f64 {
+        let warm = if self.warmup_steps == 0 {
+            1.0
+        } else {
+            ((step + 1) as f64 / self.warmup_steps as f64).min(1.0)
+        };
+        let passed = self.milestones.iter().filter(|&&m| epoch >= m).count();
+        warm * self.gamma.powi(passed as i32)
+    }
+}
+
+#[derive(Clone, Debug, Default)]
+struct Moments {
+    m: Vec<f64>,
+    v: Vec<f64>,
+}
+
+/// The optimiser state for one cloud.
+#[derive(Clone, Debug)]
+pub struct AdamW {
+    settings: AdamWSettings,
+    moments: [Moments; 4],
+    t: u64,
+}
+
+impl AdamW {
+    /// A fresh optimiser.
+    pub fn new(settings: AdamWSettings) -> Self {
+        Self {
+            settings,
+            moments: Default::default(),
+            t: 0,
+        }
+    }
+
+    /// The settings.
+    pub fn settings(&self) -> &AdamWSettings {
+        &self.settings
+    }
+
+    /// Applies one update with learning-rate multiplier `factor`. Gradients that are
+    /// not finite are treated as zero for that entry, so a degenerate pair can never
+    /// poison the parameters; returns how many such entries were skipped.
+    pub fn step(&mut self, cloud: &mut GaussianCloud, grads: &RawGrads, factor: f64) -> usize {
+        self.t += 1;
+        let s = self.settings;
+        let bc1 = 1.0 - s.beta1.powi(self.t.min(i32::MAX as u64) as i32);
+        let bc2 = 1.0 - s.beta2.powi(self.t.min(i32::MAX as u64) as i32);
+        let groups = [
+            (&mut cloud.centres, &grads.centres, s.centres),
+            (&mut cloud.scales, &grads.scales, s.scales),
+            (&mut cloud.rotations, &grads.rotations, s.rotations),
+            (&mut cloud.albedo, &grads.albedo, s.albedo),
+        ];
+        let mut skipped = 0;
+        for ((params, grad, group), moments) in groups.into_iter().zip(self.moments.iter_mut()) {
+            if moments.m.len() != params.len() {
+                moments.m = vec![0.0; params.len()];
+                moments.v = vec![0.0; params.len()];
+            }
+            let lr = group.lr * factor;
+            for i in 0..params.len() {
+                let g = grad[i];
+                if !g.is_finite() {
+                    skipped += 1;
+                    continue;
+                }
+                let m = &mut moments.m[i];
+                let v = &mut moments.v[i];
+                *m = s.beta1 * *m + (1.0 - s.beta1) * g;
+                *v = s.beta2 * *v + (1.0 - s.beta2) * g * g;
+                let update = (*m / bc1) / ((*v / bc2).sqrt() + s.eps);
+                params[i] -= lr * (update + group.weight_decay * params[i]);
+            }
+        }
+        cloud.renormalise_rotations();
+        skipped
+    }
+
+    /// Drops the moments of primitives removed by `keep` (same rule as
+    /// [`GaussianCloud::retain`]), so optimisation can continue after pruning.
+    pub fn retain(&mut self, n: usize, keep: impl Fn(usize) -> bool) {
+        let kept: Vec<usize> = (0..n).filter(|&k| keep(k)).collect();
+        for (moments, width) in self.moments.iter_mut().zip([3, 3, 4, 1]) {
+            if moments.m.len() != n * width {
+                continue;
+            }
+            let gather = |v: &[f64]| {
+                kept.iter()
+                    .flat_map(|&k| v[width * k..width * (k + 1)].to_vec())
+                    .collect()
+            };
+            moments.m = gather(&moments.m);
+            moments.v = gather(&moments.v);
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn schedule_warms_up_then_decays_at_milestones() {
+        let s = Schedule {
+            warmup_steps: 4,
+            milestones: vec![2, 5],
+            gamma: 0.1,
+        };
+        assert_eq!(s.factor(0, 0), 0.25);
+        assert_eq!(s.factor(3, 0), 1.0);
+        assert_eq!(s.factor(100, 1), 1.0);
+        assert!((s.factor(100, 2) - 0.1).abs() < 1e-15);
+        assert!((s.factor(100, 7) - 0.01).abs() < 1e-15);
+    }
+}

@@ -1,0 +1,145 @@
+//! Batched rendering and the fused loss/gradient of a mini-batch.
+//!
+//! Full renders parallelise over pairs (each thread owns whole histograms). A training
+//! step parallelises over fixed-size chunks of primitives instead: each chunk renders
+//! the batch into its own small buffer, the buffers are summed in chunk order, and the
+//! backward pass writes each primitive's gradient in place. Chunk boundaries do not
+//! depend on the thread count, so results are bit-identical however many threads run.
+use rayon::prelude::*;
+
+use super::kernel::{Kernel, PhysicalGrad, RenderOptions, evaluate, render_pair};
+use super::model::{GaussianCloud, RawGrads};
+use crate::transient::TransientSet;
+
+/// Primitives per parallel work item in a training step.
+const CHUNK: usize = 128;
+
+/// Renders every pair of `set` (its histograms are ignored) from `kernels`; returns the
+/// histograms concatenated, `set.axis().bins` per pair.
+pub fn render_set(kernels: &[Kernel], set: &TransientSet, opt: &RenderOptions) -> Vec<f64> {
+    let bins = set.axis().bins;
+    let mut out = vec![0.0; bins * set.len()];
+    out.par_chunks_mut(bins)
+        .zip(set.pairs().par_iter())
+        .for_each(|(hist, pair)| render_pair(kernels, pair, set.axis(), opt, hist));
+    out
+}
+
+/// Loss of a mini-batch: `(1/B) Σ_p w_p ‖τ̂_p − τ_p‖²` over the pairs `batch` of `set`.
+/// Also returns the rendered histograms (B × bins).
+pub fn batch_loss(
+    kernels: &[Kernel],
+    set: &TransientSet,
+    batch: &[usize],
+    opt: &RenderOptions,
+) -> (f64, Vec<f64>) {
+    let rendered = forward_batch(kernels, set, batch, opt);
+    let (loss, _) = residuals(&rendered, set, batch);
+    (loss, rendered)
+}
+
+fn forward_batch(kernels: &[Kernel], set: &TransientSet, batch: &[usize], opt: &RenderOptions) -> Vec<f64> {
+    let axis = set.axis();
+    let bins = axis.bins;
+    let partial: Vec<Vec<f64>> = kernels
+        .par_chunks(CHUNK)
+        .map(|chunk| {
+            let mut local = vec![0.0; bins * batch.len()];
+            for (slot, &p) in batch.iter().enumerate() {
+                let pair = &set.pairs()[p];
+                let out = &mut local[slot * bins..(slot + 1) * bins];
+                for k in chunk {
+                    if let Some(e) = evaluate(k, pair, axis, opt) {
+                        e.accumulate(axis, out);
+                    }
+                }
+            }
+            local
+        })
+        .collect();
+    let mut total = vec![0.0; bins * batch.len()];
+    for part in &partial {
+        total.iter_mut().zip(part).for_each(|(t, p)| *t += p);
+    }
+    total
+}
+
+/// The loss and ∂L/∂τ̂ for a rendered batch.
+fn residuals(rendered: &[f64], set: &TransientSet, batch: &[usize]) -> (f64, Vec<f64>) {
+    let bins = set.axis().bins;
+    let scale = 1.0 / batch.len().max(1) as f64;
+    let mut loss = 0.0;
+    let mut dl = vec![0.0; rendered.len()];
+    for (slot, &p) in batch.iter().enumerate() {
+        let w = set.weight(p) as f64 * scale;
+        let measured = set.histogram(p);
+        for b in 0..bins {
+            let r = rendered[slot * bins + b] - measured[b] as f64;
+            loss += w * r * r;
+            dl[slot * bins + b] = 2.0 * w * r;
+        }
+    }
+    (loss, dl)
+}
+
+/// Loss of a mini-batch and its gradient with respect to every raw parameter of
+/// `cloud` (written into `grads`, which is resized). `kernels` must be
+/// `cloud.kernels()`.
+pub fn batch_loss_grad(
+    cloud: &GaussianCloud,
+    kernels: &[Kernel],
+    set: &TransientSet,
+    batch: &[usize],
+    opt: &RenderOptions,
+    grads: &mut RawGrads,
+) -> f64 {
+    let n = cloud.len();
+    if grads.albedo.len() != n {
+        *grads = RawGrads::zeros(n);
+    }
+    if batch.is_empty() {
+        grads.centres.fill(0.0);
+        grads.scales.fill(0.0);
+        grads.rotations.fill(0.0);
+        grads.albedo.fill(0.0);
+        return 0.0;
+    }
+    let rendered = forward_batch(kernels, set, batch, opt);
+    let (loss, dl) = residuals(&rendered, set, batch);
+    let axis = set.axis();
+    let bins = axis.bins;
+    grads
+        .centres
+        .par_chunks_mut(3 * CHUNK)
+        .zip(grads.scales.par_chunks_mut(3 * CHUNK))
+        .zip(grads.rotations.par_chunks_mut(4 * CHUNK))
+        .zip(grads.albedo.par_chunks_mut(CHUNK))
+        .enumerate()
+        .for_each(|(c, (((gc, gs), gr), ga))| {
+            for (i, k) in (c * CHUNK..(c * CHUNK + ga.len())).enumerate() {
+                let kernel = &kernels[k];
+                let mut g = PhysicalGrad::default();
+                for (slot, &p) in batch.iter().enumerate() {
+                    let pair = &set.pairs()[p];
+                    if let Some(e) = evaluate(kernel, pair, axis, opt) {
+                        e.backward(
+                            kernel,
+                            pair,
+                            axis,
+                            opt,
+                            &dl[slot * bins..(slot + 1) * bins],
+                            &mut g,
+                        );
+                    }
+                }
+                ga[i] = cloud.chain(
+                    k,
+                    &g,
+                    &mut gc[3 * i..3 * i + 3],
+                    &mut gs[3 * i..3 * i + 3],
+                    &mut gr[4 * i..4 * i + 4],
+                );
+            }
+        });
+    loss
+}

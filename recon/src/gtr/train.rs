@@ -1,0 +1,503 @@
+//! Fitting primitives to transients: gain matching, shuffled mini-batches, AdamW, a
+//! cancel token, typed progress events, streaming input and pruning.
+//!
+//! Streaming: [`Trainer::run`] takes an optional channel of new transients. While the
+//! channel is open (the capture is still running) every epoch trains on whatever has
+//! arrived; these "live" epochs do not count towards `epochs`. Once the sender hangs up,
+//! exactly `epochs` more epochs run on the complete data, so a reconstruction finishes
+//! a fixed time after the capture does.
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::mpsc::{Receiver, TryRecvError};
+
+use rand::SeedableRng;
+use rand::seq::SliceRandom;
+use rand_chacha::ChaCha8Rng;
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+
+use super::init::{Init, initial_cloud};
+use super::kernel::{Kernel, RenderOptions};
+use super::model::{GaussianCloud, ModelError, RawGrads, ScaleBounds};
+use super::optim::{AdamW, AdamWSettings, Schedule};
+use super::render::{batch_loss_grad, render_set};
+use crate::roi::RoiBox;
+use crate::transient::{TransientError, TransientSet};
+
+/// Which primitives pruning removes.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct PruneSettings {
+    /// Remove primitives whose centre lies within this fraction of the ROI half extent
+    /// of a face (the tanh map pins escaping primitives there).
+    pub boundary_margin: f64,
+    /// Remove primitives with albedo below this fraction of the largest albedo.
+    pub min_albedo_fraction: f64,
+    /// Remove primitives whose centre moved less than this (metres) from where it
+    /// started: the data never touched them.
+    pub min_motion: f64,
+}
+
+impl Default for PruneSettings {
+    fn default() -> Self {
+        Self {
+            boundary_margin: 0.02,
+            min_albedo_fraction: 0.02,
+            min_motion: 1e-5,
+        }
+    }
+}
+
+/// Everything that controls a fit.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct TrainConfig {
+    /// Number of primitives K at initialisation.
+    pub primitives: usize,
+    /// Placement of the initial primitives.
+    pub init: Init,
+    /// Shared initial isotropic scale, metres; `None`: half the mean spacing.
+    pub initial_scale: Option<f64>,
+    /// Shared initial albedo (the gain absorbs the absolute scale).
+    pub initial_albedo: f64,
+    /// Scale bounds; `None`: 0.5 mm to half the smallest ROI half extent.
+    pub scale_bounds: Option<ScaleBounds>,
+    /// Counted epochs (after the input is complete).
+    pub epochs: usize,
+    /// Pairs per mini-batch.
+    pub batch_size: usize,
+    /// Optimiser settings per group.
+    pub adam: AdamWSettings,
+    /// Learning-rate schedule (milestones in counted epochs).
+    pub schedule: Schedule,
+    /// Forward-model switches; its `gain` is replaced by the matched gain.
+    pub render: RenderOptions,
+    /// Pruning after the last epoch.
+    pub prune: PruneSettings,
+    /// Pairs used to match the gain at initialisation, at most.
+    pub gain_pairs: usize,
+    /// Seed of initialisation and shuffling.
+    pub seed: u64,
+}
+
+impl Default for TrainConfig {
+    fn default() -> Self {
+        Self {
+            primitives: 2000,
+            init: Init::Uniform,
+            initial_scale: None,
+            initial_albedo: 1.0,
+            scale_bounds: None,
+            epochs: 10,
+            batch_size: 4,
+            adam: AdamWSettings::default(),
+            schedule: Schedule::default(),
+            render: RenderOptions::default(),
+            prune: PruneSettings::default(),
+            gain_pairs: 512,
+            seed: 0,
+        }
+    }
+}
+
+/// Progress of a fit, for the CLI, the HTTP event stream and the logs alike.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+#[serde(tag = "event", rename_all = "kebab-case")]
+pub enum TrainEvent {
+    /// The gain was matched and optimisation starts.
+    Initialised {
+        /// Primitives K.
+        primitives: usize,
+        /// Transients available.
+        pairs: usize,
+        /// The matched global gain g.
+        gain: f64,
+    },
+    /// New transients arrived from the capture.
+    DataAdded {
+        /// Transients now available.
+        pairs: usize,
+    },
+    /// An epoch finished.
+    Epoch {
+        /// Counted epoch index (1-based), or 0 for a live epoch during capture.
+        epoch: usize,
+        /// Optimiser steps so far.
+        step: usize,
+        /// Mean mini-batch loss over the epoch.
+        loss: f64,
+        /// Transients the epoch trained on.
+        pairs: usize,
+        /// Primitives in the cloud.
+        primitives: usize,
+    },
+    /// Pruning ran.
+    Pruned {
+        /// Primitives before.
+        before: usize,
+        /// Primitives kept.
+        kept: usize,
+    },
+    /// The fit stopped because it was cancelled.
+    Cancelled {
+        /// Optimiser steps done.
+        step: usize,
+    },
+}
+
+/// A token that stops a running fit at the next optimiser step.
+#[derive(Clone, Debug, Default)]
+pub struct CancelToken(Arc<AtomicBool>);
+
+impl CancelToken {
+    /// A token that is not cancelled.
+    pub fn new() -> Self {
+        Self::default()
+    }
+
+    /// Requests cancellation.
+    pub fn cancel(&self) {
+        self.0.store(true, Ordering::SeqCst);
+    }
+
+    /// Whether cancellation was requested.
+    pub fn is_cancelled(&self) -> bool {
+        self.0.load(Ordering::SeqCst)
+    }
+}
+
+/// Why a fit could not run.
+#[derive(Debug, thiserror::Error)]
+pub enum TrainError {
+    /// The configuration cannot work.
+    #[error("invalid reconstruction settings: {0}")]
+    Config(String),
+    /// Building the cloud failed.
+    #[error(transparent)]
+    Model(#[from] ModelError),
+    /// Transients were rejected.
+    #[error(transparent)]
+    Transient(#[from] TransientError),
+    /// No primitive is visible from any pair, so the gain cannot be matched.
+    #[error(
+        "no primitive in the region of interest is visible from any pair: check that the ROI lies in front of the relay surface (on the side its normals point to) and within the time axis"
+    )]
+    NothingVisible,
+}
+
+/// How a fit ended.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct TrainSummary {
+    /// Counted epochs completed.
+    pub epochs: usize,
+    /// Optimiser steps taken.
+    pub steps: usize,
+    /// Loss of the last epoch.
+    pub final_loss: f64,
+    /// Whether the fit was cancelled.
+    pub cancelled: bool,
+}
+
+/// A fit in progress.
+pub struct Trainer {
+    config: TrainConfig,
+    data: TransientSet,
+    cloud: GaussianCloud,
+    start_centres: Vec<f64>,
+    adam: AdamW,
+    options: RenderOptions,
+    gain_set: bool,
+    rng: ChaCha8Rng,
+    step: usize,
+    epochs_done: usize,
+    kernels: Vec<Kernel>,
+    grads: RawGrads,
+}
+
+impl Trainer {
+    /// Validates the settings and places the primitives. `data` may be empty when
+    /// transients will be streamed in; the gain is matched once data is there.
+    pub fn new(config: TrainConfig, roi: RoiBox, data: TransientSet) -> Result<Self, TrainError> {
+        if config.primitives == 0 {
+            return Err(TrainError::Config(
+                "the number of primitives must be at least 1".into(),
+            ));
+        }
+        if config.batch_size == 0 {
+            return Err(TrainError::Config("the batch size must be at least 1".into()));
+        }
+        let min_half = roi.half.min_element();
+        let bounds = config.scale_bounds.unwrap_or(ScaleBounds {
+            min: 5e-4,
+            max: (0.5 * min_half).max(1e-3),
+        });
+        let spacing = (roi.volume() / config.primitives as f64).cbrt();
+        let scale = config
+            .initial_scale
+            .unwrap_or(0.5 * spacing)
+            .clamp(bounds.min * 1.01, bounds.max * 0.99);
+        if !(config.initial_albedo.is_finite() && config.initial_albedo > 0.0) {
+            return Err(TrainError::Config("the initial albedo must be positive".into()));
+        }
+        let cloud = initial_cloud(
+            roi,
+            bounds,
+            config.primitives,
+            scale,
+            config.initial_albedo,
+            &config.init,
+            &data,
+            config.seed,
+        )?;
+        let options = config.render;
+        let mut trainer = Self {
+            adam: AdamW::new(config.adam),
+            rng: ChaCha8Rng::seed_from_u64(config.seed),
+            start_centres: cloud.centres.clone(),
+            cloud,
+            data,
+            options,
+            gain_set: false,
+            step: 0,
+            epochs_done: 0,
+            kernels: Vec::new(),
+            grads: RawGrads::default(),
+            config,
+        };
+        trainer.match_gain()?;
+        Ok(trainer)
+    }
+
+    /// Matches the gain g so the rendering's total equals the data's, once there is
+    /// data. Zero data leaves g = 1 (nothing to fit).
+    fn match_gain(&mut self) -> Result<(), TrainError> {
+        if self.gain_set || self.data.is_empty() {
+            return Ok(());
+        }
+        let step = (self.data.len() / self.config.gain_pairs.max(1)).max(1);
+        let mut sample = TransientSet::new(*self.data.axis())?;
+        for i in (0..self.data.len()).step_by(step) {
+            sample.push_weighted(self.data.pairs()[i], self.data.histogram(i), self.data.weight(i))?;
+        }
+        let unit = RenderOptions {
+            gain: 1.0,
+            ..self.options
+        };
+        let rendered: f64 = render_set(&self.cloud.kernels(), &sample, &unit)
+            .chunks(sample.axis().bins)
+            .enumerate()
+            .map(|(i, h)| sample.weight(i) as f64 * h.iter().sum::<f64>())
+            .sum();
+        let measured = sample.total_counts();
+        if rendered <= 0.0 || !rendered.is_finite() {
+            return Err(TrainError::NothingVisible);
+        }
+        self.options.gain = if measured > 0.0 { measured / rendered } else { 1.0 };
+        self.gain_set = true;
+        Ok(())
+    }
+
+    /// Adds transients (same time axis) to the data being fitted.
+    pub fn add(&mut self, more: &TransientSet) -> Result<(), TrainError> {
+        self.data.extend(more)?;
+        self.match_gain()
+    }
+
+    /// The current primitives.
+    pub fn cloud(&self) -> &GaussianCloud {
+        &self.cloud
+    }
+
+    /// The render options in force, including the matched gain.
+    pub fn render_options(&self) -> &RenderOptions {
+        &self.options
+    }
+
+    /// The data being fitted.
+    pub fn data(&self) -> &TransientSet {
+        &self.data
+    }
+
+    /// Optimiser steps taken.
+    pub fn steps(&self) -> usize {
+        self.step
+    }
+
+    /// One pass over the data in shuffled mini-batches; returns the mean batch loss, or
+    /// `None` when cancelled part-way (the cloud is valid either way).
+    pub fn epoch(&mut self, cancel: &CancelToken) -> Option<f64> {
+        let mut order: Vec<usize> = (0..self.data.len()).collect();
+        order.shuffle(&mut self.rng);
+        let mut total = 0.0;
+        let mut batches = 0usize;
+        for batch in order.chunks(self.config.batch_size) {
+            if cancel.is_cancelled() {
+                return None;
+            }
+            self.refresh_kernels();
+            let loss = batch_loss_grad(
+                &self.cloud,
+                &self.kernels,
+                &self.data,
+                batch,
+                &self.options,
+                &mut self.grads,
+            );
+            let factor = self.config.schedule.factor(self.step, self.epochs_done);
+            let skipped = self.adam.step(&mut self.cloud, &self.grads, factor);
+            if skipped > 0 {
+                tracing::warn!(
+                    skipped,
+                    step = self.step,
+                    "non-finite gradient entries were skipped"
+                );
+            }
+            self.step += 1;
+            total += loss;
+            batches += 1;
+        }
+        Some(if batches == 0 { 0.0 } else { total / batches as f64 })
+    }
+
+    fn refresh_kernels(&mut self) {
+        let cloud = &self.cloud;
+        self.kernels.resize(
+            cloud.len(),
+            Kernel::new(Default::default(), Default::default(), Default::default(), 0.0),
+        );
+        self.kernels
+            .par_iter_mut()
+            .enumerate()
+            .for_each(|(k, out)| *out = cloud.kernel(k));
+    }
+
+    /// Runs the fit to completion: live epochs while `feed` is open, then `epochs`
+    /// counted epochs, then pruning. Events go to `on_event`.
+    pub fn run(
+        &mut self,
+        feed: Option<Receiver<TransientSet>>,
+        cancel: &CancelToken,
+        on_event: &mut dyn FnMut(&TrainEvent),
+    ) -> Result<TrainSummary, TrainError> {
+        let mut feed = feed;
+        let mut announced = false;
+        let mut live_epochs_on_same_data = 0usize;
+        let mut final_loss = f64::NAN;
+        loop {
+            // Take in whatever the capture has produced.
+            let mut grew = false;
+            if let Some(rx) = &feed {
+                loop {
+                    // Block only when there is nothing at all to train on yet, or when
+                    // the current data has already been trained on enough.
+                    let must_wait =
+                        self.data.is_empty() || live_epochs_on_same_data >= self.config.epochs.max(1);
+                    let next = if must_wait && !grew {
+                        rx.recv().map_err(|_| TryRecvError::Disconnected)
+                    } else {
+                        rx.try_recv()
+                    };
+                    match next {
+                        Ok(more) => {
+                            self.add(&more)?;
+                            grew = true;
+                        }
+                        Err(TryRecvError::Empty) => break,
+                        Err(TryRecvError::Disconnected) => {
+                            feed = None;
+                            break;
+                        }
+                    }
+                }
+                if grew {
+                    live_epochs_on_same_data = 0;
+                    on_event(&TrainEvent::DataAdded {
+                        pairs: self.data.len(),
+                    });
+                }
+            }
+            if cancel.is_cancelled() {
+                on_event(&TrainEvent::Cancelled { step: self.step });
+                return Ok(self.summary(final_loss, true));
+            }
+            if self.data.is_empty() {
+                if feed.is_none() {
+                    return Err(TrainError::Config(
+                        "there are no transients to reconstruct from".into(),
+                    ));
+                }
+                continue;
+            }
+            if !announced {
+                on_event(&TrainEvent::Initialised {
+                    primitives: self.cloud.len(),
+                    pairs: self.data.len(),
+                    gain: self.options.gain,
+                });
+                announced = true;
+            }
+            if feed.is_none() && self.epochs_done >= self.config.epochs {
+                break;
+            }
+            let Some(loss) = self.epoch(cancel) else {
+                on_event(&TrainEvent::Cancelled { step: self.step });
+                return Ok(self.summary(final_loss, true));
+            };
+            final_loss = loss;
+            let counted = feed.is_none();
+            if counted {
+                self.epochs_done += 1;
+            } else {
+                live_epochs_on_same_data += 1;
+            }
+            on_event(&TrainEvent::Epoch {
+                epoch: if counted { self.epochs_done } else { 0 },
+                step: self.step,
+                loss,
+                pairs: self.data.len(),
+                primitives: self.cloud.len(),
+            });
+        }
+        let before = self.cloud.len();
+        let kept = self.prune();
+        on_event(&TrainEvent::Pruned { before, kept });
+        Ok(self.summary(final_loss, false))
+    }
+
+    fn summary(&self, final_loss: f64, cancelled: bool) -> TrainSummary {
+        TrainSummary {
+            epochs: self.epochs_done,
+            steps: self.step,
+            final_loss,
+            cancelled,
+        }
+    }
+
+    /// Removes primitives at the ROI boundary, with negligible albedo, or never moved;
+    /// returns how many remain.
+    pub fn prune(&mut self) -> usize {
+        let s = self.config.prune;
+        let cloud = &self.cloud;
+        let prims: Vec<_> = (0..cloud.len()).map(|k| cloud.primitive(k)).collect();
+        let max_albedo = prims.iter().map(|p| p.albedo).fold(0.0, f64::max);
+        let roi = *cloud.roi();
+        let start = &self.start_centres;
+        let keep = |k: usize| {
+            let p = &prims[k];
+            let rel = ((p.centre - roi.centre) / roi.half).abs().max_element();
+            let t0 = glam::DVec3::from_slice(&start[3 * k..3 * k + 3]);
+            let c0 = roi.centre + roi.half * glam::DVec3::new(t0.x.tanh(), t0.y.tanh(), t0.z.tanh());
+            rel <= 1.0 - s.boundary_margin
+                && p.albedo >= s.min_albedo_fraction * max_albedo
+                && p.centre.distance(c0) >= s.min_motion
+        };
+        let keep_mask: Vec<bool> = (0..prims.len()).map(keep).collect();
+        let n = self.cloud.len();
+        self.adam.retain(n, |k| keep_mask[k]);
+        self.cloud.retain(|k| keep_mask[k]);
+        let kept_start: Vec<f64> = (0..n)
+            .filter(|&k| keep_mask[k])
+            .flat_map(|k| self.start_centres[3 * k..3 * k + 3].to_vec())
+            .collect();
+        self.start_centres = kept_start;
+        self.cloud.len()
+    }
+}
