@@ -9,7 +9,7 @@
 //! with `v = ui + ud`; bin `b` receives `A (Φ(z_{b+1}) − Φ(z_b))`, `z = (edge − μ)/σ`.
 use glam::{DMat3, DVec3};
 
-use crate::special::{norm_cdf, norm_pdf};
+use crate::special::NORMAL;
 use crate::transient::{Pair, TimeAxis};
 
 /// A primitive's physical parameters, derived once per optimiser step.
@@ -117,8 +117,9 @@ pub fn evaluate(k: &Kernel, pair: &Pair, axis: &TimeAxis, opt: &RenderOptions) -
     if di < opt.min_distance || dd < opt.min_distance {
         return None;
     }
-    let ui = to_i / di;
-    let ud = to_d / dd;
+    let (inv_di, inv_dd) = (1.0 / di, 1.0 / dd);
+    let ui = to_i * inv_di;
+    let ud = to_d * inv_dd;
     let gi = if opt.use_ni { pair.ni.dot(ui) } else { 1.0 };
     let gd = if opt.use_nd { pair.nd.dot(ud) } else { 1.0 };
     if gi <= 0.0 || gd <= 0.0 {
@@ -130,7 +131,7 @@ pub fn evaluate(k: &Kernel, pair: &Pair, axis: &TimeAxis, opt: &RenderOptions) -
     let wv = wi + wd;
     let ai = (k.pi * wi).length();
     let ad = (k.pi * wd).length();
-    let base = opt.gain * ai * ad / (di * di * dd * dd);
+    let base = opt.gain * ai * ad * (inv_di * inv_di) * (inv_dd * inv_dd);
     let amplitude = base * k.rho * gi * gd;
     let floor = SIGMA_FLOOR_BINS * axis.width;
     let sigma = ((k.s * wv).length_squared() + opt.sigma_sys * opt.sigma_sys + floor * floor).sqrt();
@@ -168,11 +169,14 @@ impl Evaluation {
     /// Adds the primitive's contribution to `out` (the full histogram of the pair).
     #[inline]
     pub fn accumulate(&self, axis: &TimeAxis, out: &mut [f64]) {
+        let table = &*NORMAL;
         let inv = 1.0 / self.sigma;
-        let mut prev = norm_cdf((axis.edge(self.lo as isize) - self.mu) * inv);
-        for b in self.lo..self.hi {
-            let next = norm_cdf((axis.edge(b as isize + 1) - self.mu) * inv);
-            out[b] += self.amplitude * (next - prev);
+        let z0 = (axis.edge(self.lo as isize) - self.mu) * inv;
+        let dz = axis.width * inv;
+        let mut prev = table.cdf(z0);
+        for (i, o) in out[self.lo..self.hi].iter_mut().enumerate() {
+            let next = table.cdf(z0 + (i + 1) as f64 * dz);
+            *o += self.amplitude * (next - prev);
             prev = next;
         }
     }
@@ -189,17 +193,19 @@ impl Evaluation {
         dl: &[f64],
         grad: &mut PhysicalGrad,
     ) {
+        let table = &*NORMAL;
         let inv = 1.0 / self.sigma;
-        // Σ_b dl_b ΔΦ_b, Σ_b dl_b Δφ_b and Σ_b dl_b Δ(zφ)_b over the window.
+        // Σ_b dl_b ΔΦ_b, Σ_b dl_b Δφ_b and Σ_b dl_b Δ(zφ)_b over the window, with φ the
+        // slope of the tabulated Φ so the gradient is that of the rendered values.
         let (mut s_cdf, mut s_pdf, mut s_zpdf) = (0.0, 0.0, 0.0);
         let z0 = (axis.edge(self.lo as isize) - self.mu) * inv;
-        let (mut c0, mut p0) = (norm_cdf(z0), norm_pdf(z0));
+        let dz = axis.width * inv;
+        let (mut c0, mut p0) = table.cdf_and_slope(z0);
         let mut zp0 = z0 * p0;
-        for b in self.lo..self.hi {
-            let z1 = (axis.edge(b as isize + 1) - self.mu) * inv;
-            let (c1, p1) = (norm_cdf(z1), norm_pdf(z1));
+        for (i, &r) in dl[self.lo..self.hi].iter().enumerate() {
+            let z1 = z0 + (i + 1) as f64 * dz;
+            let (c1, p1) = table.cdf_and_slope(z1);
             let zp1 = z1 * p1;
-            let r = dl[b];
             s_cdf += r * (c1 - c0);
             s_pdf += r * (p1 - p0);
             s_zpdf += r * (zp1 - zp0);

@@ -4,6 +4,7 @@ pub mod init;
 pub mod kernel;
 pub mod model;
 pub mod optim;
+pub mod ply;
 pub mod render;
 pub mod train;
 
@@ -11,5 +12,6 @@ pub use init::Init;
 pub use kernel::{Kernel, PhysicalGrad, RenderOptions, render_pair};
 pub use model::{GaussianCloud, ModelError, Primitive, RawGrads, ScaleBounds};
 pub use optim::{AdamW, AdamWSettings, GroupSettings, Schedule};
+pub use ply::write_ply;
 pub use render::{batch_loss, batch_loss_grad, render_set};
 pub use train::{CancelToken, PruneSettings, TrainConfig, TrainError, TrainEvent, TrainSummary, Trainer};

@@ -1,8 +1,12 @@
 //! AdamW (Loshchilov & Hutter) with one learning rate and weight decay per parameter
 //! group, and a step/epoch schedule: linear warm-up, then milestone decay.
+use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use super::model::{GaussianCloud, RawGrads};
+
+/// Parameters per parallel work item of an update.
+const PARALLEL_CHUNK: usize = 8192;
 
 /// Learning rate and decoupled weight decay of one parameter group.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
@@ -134,19 +138,28 @@ impl AdamW {
                 moments.v = vec![0.0; params.len()];
             }
             let lr = group.lr * factor;
-            for i in 0..params.len() {
-                let g = grad[i];
-                if !g.is_finite() {
-                    skipped += 1;
-                    continue;
-                }
-                let m = &mut moments.m[i];
-                let v = &mut moments.v[i];
-                *m = s.beta1 * *m + (1.0 - s.beta1) * g;
-                *v = s.beta2 * *v + (1.0 - s.beta2) * g * g;
-                let update = (*m / bc1) / ((*v / bc2).sqrt() + s.eps);
-                params[i] -= lr * (update + group.weight_decay * params[i]);
-            }
+            // Element-wise, so the parallel split cannot change the result.
+            skipped += params
+                .par_chunks_mut(PARALLEL_CHUNK)
+                .zip(grad.par_chunks(PARALLEL_CHUNK))
+                .zip(moments.m.par_chunks_mut(PARALLEL_CHUNK))
+                .zip(moments.v.par_chunks_mut(PARALLEL_CHUNK))
+                .map(|(((params, grad), m), v)| {
+                    let mut skipped = 0;
+                    for i in 0..params.len() {
+                        let g = grad[i];
+                        if !g.is_finite() {
+                            skipped += 1;
+                            continue;
+                        }
+                        m[i] = s.beta1 * m[i] + (1.0 - s.beta1) * g;
+                        v[i] = s.beta2 * v[i] + (1.0 - s.beta2) * g * g;
+                        let update = (m[i] / bc1) / ((v[i] / bc2).sqrt() + s.eps);
+                        params[i] -= lr * (update + group.weight_decay * params[i]);
+                    }
+                    skipped
+                })
+                .sum::<usize>();
         }
         cloud.renormalise_rotations();
         skipped
