@@ -30,11 +30,12 @@ const NODES_PER_UNIT: f64 = 64.0;
 /// Φ is tabulated on [−Z_MAX, Z_MAX]; beyond, it is 0 or 1 (Φ(−12) ≈ 2e-33).
 const Z_MAX: f64 = 12.0;
 
-/// Tabulated Φ with its slope, for fast bin integrals.
+/// Tabulated Φ as one cubic per cell, for fast bin integrals.
 #[derive(Debug)]
 pub struct NormalTable {
-    /// (Φ, φ·h) at each node.
-    nodes: Vec<[f64; 2]>,
+    /// Per cell, the Hermite cubic through (Φ, φ) at its two nodes, in powers of the
+    /// local coordinate t ∈ [0, 1): Φ ≈ c0 + t (c1 + t (c2 + t c3)).
+    cells: Vec<[f64; 4]>,
 }
 
 /// The shared table, built on first use (about 1,500 `erfc` calls).
@@ -44,21 +45,26 @@ impl NormalTable {
     fn new() -> Self {
         let n = (2.0 * Z_MAX * NODES_PER_UNIT) as usize;
         let h = 1.0 / NODES_PER_UNIT;
-        let nodes = (0..=n)
+        let node = |j: usize| {
+            let z = -Z_MAX + j as f64 * h;
+            (norm_cdf(z), norm_pdf(z) * h)
+        };
+        let cells = (0..n)
             .map(|j| {
-                let z = -Z_MAX + j as f64 * h;
-                [norm_cdf(z), norm_pdf(z) * h]
+                let ((y0, m0), (y1, m1)) = (node(j), node(j + 1));
+                let d = y1 - y0;
+                [y0, m0, 3.0 * d - 2.0 * m0 - m1, m0 + m1 - 2.0 * d]
             })
             .collect();
-        Self { nodes }
+        Self { cells }
     }
 
     #[inline]
-    fn locate(&self, z: f64) -> Option<(usize, f64)> {
+    fn locate(&self, z: f64) -> Option<(&[f64; 4], f64)> {
         let u = (z + Z_MAX) * NODES_PER_UNIT;
-        if u >= 0.0 && u < (self.nodes.len() - 1) as f64 {
+        if u >= 0.0 {
             let j = u as usize;
-            Some((j, u - j as f64))
+            self.cells.get(j).map(|c| (c, u - j as f64))
         } else {
             None
         }
@@ -68,13 +74,7 @@ impl NormalTable {
     #[inline]
     pub fn cdf(&self, z: f64) -> f64 {
         match self.locate(z) {
-            Some((j, t)) => {
-                let [y0, m0] = self.nodes[j];
-                let [y1, m1] = self.nodes[j + 1];
-                // Hermite basis in Horner-friendly form.
-                let d = y1 - y0;
-                y0 + t * (m0 + t * ((3.0 * d - 2.0 * m0 - m1) + t * (m0 + m1 - 2.0 * d)))
-            }
+            Some((c, t)) => c[0] + t * (c[1] + t * (c[2] + t * c[3])),
             None => {
                 if z > 0.0 {
                     1.0
@@ -89,14 +89,9 @@ impl NormalTable {
     #[inline]
     pub fn cdf_and_slope(&self, z: f64) -> (f64, f64) {
         match self.locate(z) {
-            Some((j, t)) => {
-                let [y0, m0] = self.nodes[j];
-                let [y1, m1] = self.nodes[j + 1];
-                let d = y1 - y0;
-                let c2 = 3.0 * d - 2.0 * m0 - m1;
-                let c3 = m0 + m1 - 2.0 * d;
-                let value = y0 + t * (m0 + t * (c2 + t * c3));
-                let slope = (m0 + t * (2.0 * c2 + t * 3.0 * c3)) * NODES_PER_UNIT;
+            Some((c, t)) => {
+                let value = c[0] + t * (c[1] + t * (c[2] + t * c[3]));
+                let slope = (c[1] + t * (2.0 * c[2] + t * 3.0 * c[3])) * NODES_PER_UNIT;
                 (value, slope)
             }
             None => (if z > 0.0 { 1.0 } else { 0.0 }, 0.0),

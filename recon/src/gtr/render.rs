@@ -12,7 +12,7 @@ use super::model::{GaussianCloud, RawGrads};
 use crate::transient::TransientSet;
 
 /// Primitives per parallel work item in a training step.
-const CHUNK: usize = 128;
+const CHUNK: usize = 512;
 
 /// Renders every pair of `set` (its histograms are ignored) from `kernels`; returns the
 /// histograms concatenated, `set.axis().bins` per pair.
