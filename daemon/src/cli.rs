@@ -32,7 +32,7 @@ pub struct Cli {
 pub enum Command {
     /// Run a capture plan end to end: LOS relay scan, pair planning, NLOS capture and
     /// 3D-GTR reconstruction, on the simulated instrument unless --instrument says
-    /// otherwise. Results go to --out (default runs/<id>/).
+    /// otherwise. Results go to --out (default `runs/<id>/`).
     Run {
         /// The capture plan (TOML), e.g. configs/plans/demo.toml.
         plan: PathBuf,

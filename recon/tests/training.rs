@@ -255,3 +255,34 @@ fn backprojection_seeds_primitives_near_the_object() {
         "backprojection put {seeded} primitives near the object, uniform {uniform}"
     );
 }
+
+#[test]
+fn pruning_drops_primitives_the_data_never_moved() {
+    // With zero epochs nothing moves, so every primitive is pruned as untouched.
+    let mut idle = Trainer::new(config(80, 0), roi(), data(40, 8)).unwrap();
+    let mut pruned = None;
+    idle.run(None, &CancelToken::new(), &mut |e| {
+        if let TrainEvent::Pruned { before, kept } = e {
+            pruned = Some((*before, *kept))
+        }
+    })
+    .unwrap();
+    assert_eq!(pruned, Some((80, 0)));
+    assert!(idle.cloud().is_empty());
+
+    // After training, primitives that moved and carry albedo are kept.
+    let mut trained = Trainer::new(config(80, 3), roi(), data(40, 8)).unwrap();
+    trained.run(None, &CancelToken::new(), &mut |_| {}).unwrap();
+    let kept = trained.cloud().len();
+    assert!(kept > 0 && kept <= 80, "kept {kept}");
+    let roi = roi();
+    for k in 0..kept {
+        let rel = ((trained.cloud().primitive(k).centre - roi.centre) / roi.half)
+            .abs()
+            .max_element();
+        assert!(
+            rel <= 0.98,
+            "primitive {k} at the boundary survived pruning ({rel})"
+        );
+    }
+}
