@@ -200,13 +200,18 @@ impl GaussianCloud {
         DQuat::from_xyzw(r[1], r[2], r[3], r[0])
     }
 
+    /// The centre that raw centre parameters `raw` (θx) map to.
+    pub fn centre_of_raw(&self, raw: &[f64]) -> DVec3 {
+        let t = DVec3::from_slice(raw);
+        self.roi.centre + self.roi.half * DVec3::new(t.x.tanh(), t.y.tanh(), t.z.tanh())
+    }
+
     /// The physical parameters of primitive `k`.
     pub fn primitive(&self, k: usize) -> Primitive {
-        let t = DVec3::from_slice(&self.centres[3 * k..3 * k + 3]);
         let (lmin, lspan) = self.log_scale_map();
         let s = DVec3::from_slice(&self.scales[3 * k..3 * k + 3]);
         Primitive {
-            centre: self.roi.centre + self.roi.half * DVec3::new(t.x.tanh(), t.y.tanh(), t.z.tanh()),
+            centre: self.centre_of_raw(&self.centres[3 * k..3 * k + 3]),
             scale: DVec3::new(
                 (lmin + lspan * sigmoid(s.x)).exp(),
                 (lmin + lspan * sigmoid(s.y)).exp(),

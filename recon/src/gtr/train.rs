@@ -489,8 +489,7 @@ impl Trainer {
         let keep = |k: usize| {
             let p = &prims[k];
             let rel = ((p.centre - roi.centre) / roi.half).abs().max_element();
-            let t0 = glam::DVec3::from_slice(&start[3 * k..3 * k + 3]);
-            let c0 = roi.centre + roi.half * glam::DVec3::new(t0.x.tanh(), t0.y.tanh(), t0.z.tanh());
+            let c0 = cloud.centre_of_raw(&start[3 * k..3 * k + 3]);
             rel <= 1.0 - s.boundary_margin
                 && p.albedo >= s.min_albedo_fraction * max_albedo
                 && p.centre.distance(c0) >= s.min_motion
