@@ -7,9 +7,16 @@
 #![warn(missing_docs)]
 
 pub mod gtr;
+pub mod io;
+pub mod linalg;
+pub mod relay;
 pub mod roi;
+pub mod solver;
 pub mod special;
+pub mod synth;
 pub mod transient;
+pub mod volume;
 
 pub use roi::RoiBox;
 pub use transient::{C0, Pair, TimeAxis, TransientError, TransientSet};
+pub use volume::{DepthMap, Volume, VolumeGrid};

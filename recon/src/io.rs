@@ -1,0 +1,198 @@
+//! Files the reconstruction writes and reads: numpy `.npy` arrays (via `npyz`) and PNG
+//! images (via `png`).
+//!
+//! Images share one orientation with the arrays, documented in docs/recon.md: column
+//! `ix` runs along +x left to right, and row 0 is the *largest* y, so y points up. That
+//! is `np.flipud(array)` of the `[ny, nx]` array, what `plt.imshow(a, origin="lower")`
+//! shows. Files are written to a temporary name and renamed, so a crash never leaves a
+//! half-written output under the final name.
+use std::fs::File;
+use std::io::{BufReader, BufWriter, Write};
+use std::path::{Path, PathBuf};
+
+use npyz::WriterBuilder;
+
+use crate::volume::{DepthMap, Volume};
+
+/// Why a file could not be written or read.
+#[derive(Debug, thiserror::Error)]
+pub enum IoError {
+    /// The operating system refused.
+    #[error("{path}: {source}")]
+    Io {
+        /// The file.
+        path: PathBuf,
+        /// The cause.
+        source: std::io::Error,
+    },
+    /// An `.npy` file that is not a float array of the expected kind.
+    #[error("{path}: {message}")]
+    Format {
+        /// The file.
+        path: PathBuf,
+        /// What is wrong.
+        message: String,
+    },
+}
+
+fn io_err(path: &Path) -> impl FnOnce(std::io::Error) -> IoError + '_ {
+    move |source| IoError::Io {
+        path: path.to_path_buf(),
+        source,
+    }
+}
+
+/// Writes through `write` into `path.tmp`, syncs, then renames over `path`.
+fn write_atomically(
+    path: &Path,
+    write: impl FnOnce(&mut BufWriter<File>) -> std::io::Result<()>,
+) -> Result<(), IoError> {
+    let mut tmp = path.as_os_str().to_owned();
+    tmp.push(".tmp");
+    let tmp = PathBuf::from(tmp);
+    let file = File::create(&tmp).map_err(io_err(&tmp))?;
+    let mut out = BufWriter::new(file);
+    write(&mut out).map_err(io_err(&tmp))?;
+    let file = out.into_inner().map_err(|e| io_err(&tmp)(e.into_error()))?;
+    file.sync_all().map_err(io_err(&tmp))?;
+    std::fs::rename(&tmp, path).map_err(io_err(path))
+}
+
+/// Writes a float32 array of `shape` (C order) as `.npy`.
+pub fn write_npy(path: &Path, shape: &[usize], data: &[f32]) -> Result<(), IoError> {
+    let want: usize = shape.iter().product();
+    if want != data.len() {
+        return Err(IoError::Format {
+            path: path.to_path_buf(),
+            message: format!("{} values do not fill shape {shape:?}", data.len()),
+        });
+    }
+    let shape: Vec<u64> = shape.iter().map(|&n| n as u64).collect();
+    write_atomically(path, |out| {
+        let mut writer = npyz::WriteOptions::new()
+            .default_dtype()
+            .shape(&shape)
+            .writer(out)
+            .begin_nd()?;
+        writer.extend(data.iter().copied())?;
+        writer.finish()
+    })
+}
+
+/// Reads a C-order float32 or float64 `.npy` array: its shape and values as f32.
+pub fn read_npy(path: &Path) -> Result<(Vec<usize>, Vec<f32>), IoError> {
+    let format = |message: String| IoError::Format {
+        path: path.to_path_buf(),
+        message,
+    };
+    let file = File::open(path).map_err(io_err(path))?;
+    let npy = npyz::NpyFile::new(BufReader::new(file)).map_err(|e| format(format!("not an .npy file: {e}")))?;
+    if npy.order() != npyz::Order::C && npy.shape().len() > 1 {
+        return Err(format("Fortran-order arrays are not supported; save with C order".into()));
+    }
+    let shape: Vec<usize> = npy.shape().iter().map(|&n| n as usize).collect();
+    let dtype = npy.dtype().descr();
+    let data = match dtype.as_str() {
+        "'<f4'" => npy.into_vec::<f32>().map_err(io_err(path))?,
+        "'<f8'" => npy.into_vec::<f64>().map_err(io_err(path))?.into_iter().map(|v| v as f32).collect(),
+        other => return Err(format(format!("dtype {other} is not little-endian float32 or float64"))),
+    };
+    Ok((shape, data))
+}
+
+/// Writes a volume as `.npy` of shape `[nz, ny, nx]`.
+pub fn write_volume(path: &Path, volume: &Volume) -> Result<(), IoError> {
+    let [nx, ny, nz] = volume.grid.shape;
+    write_npy(path, &[nz, ny, nx], &volume.data)
+}
+
+/// Viridis, sampled at nine evenly spaced points (linear interpolation in between).
+const VIRIDIS: [[u8; 3]; 9] = [
+    [68, 1, 84],
+    [71, 44, 122],
+    [59, 81, 139],
+    [44, 113, 142],
+    [33, 144, 141],
+    [39, 173, 129],
+    [92, 200, 99],
+    [170, 220, 50],
+    [253, 231, 37],
+];
+
+/// The colour of `t` in [0, 1] on the depth colour map.
+pub fn colour(t: f64) -> [u8; 3] {
+    let t = if t.is_nan() { 0.0 } else { t.clamp(0.0, 1.0) } * (VIRIDIS.len() - 1) as f64;
+    let i = (t.floor() as usize).min(VIRIDIS.len() - 2);
+    let f = t - i as f64;
+    std::array::from_fn(|c| (VIRIDIS[i][c] as f64 * (1.0 - f) + VIRIDIS[i + 1][c] as f64 * f).round() as u8)
+}
+
+fn write_png(path: &Path, size: [usize; 2], colour_type: png::ColorType, pixels: &[u8]) -> Result<(), IoError> {
+    write_atomically(path, |out| {
+        let mut encoder = png::Encoder::new(&mut *out, size[0] as u32, size[1] as u32);
+        encoder.set_color(colour_type);
+        encoder.set_depth(png::BitDepth::Eight);
+        let mut writer = encoder.write_header().map_err(std::io::Error::other)?;
+        writer.write_image_data(pixels).map_err(std::io::Error::other)?;
+        writer.finish().map_err(std::io::Error::other)?;
+        out.flush()
+    })
+}
+
+/// Depth PNG: near (small z) is dark purple, far is yellow, masked pixels black.
+pub fn write_depth_png(path: &Path, map: &DepthMap) -> Result<(), IoError> {
+    let [nx, ny] = map.shape;
+    let span = (map.z[1] - map.z[0]).max(f64::MIN_POSITIVE);
+    let mut pixels = Vec::with_capacity(nx * ny * 3);
+    for row in (0..ny).rev() {
+        for ix in 0..nx {
+            let d = map.depth[row * nx + ix];
+            if d.is_finite() {
+                pixels.extend(colour((d as f64 - map.z[0]) / span));
+            } else {
+                pixels.extend([0, 0, 0]);
+            }
+        }
+    }
+    write_png(path, [nx, ny], png::ColorType::Rgb, &pixels)
+}
+
+/// Albedo PNG: the max projection, grey, scaled so the brightest pixel is white.
+pub fn write_albedo_png(path: &Path, map: &DepthMap) -> Result<(), IoError> {
+    let [nx, ny] = map.shape;
+    let max = map.peak.iter().copied().fold(0.0f32, f32::max);
+    let scale = if max > 0.0 { 255.0 / max } else { 0.0 };
+    let mut pixels = Vec::with_capacity(nx * ny);
+    for row in (0..ny).rev() {
+        for ix in 0..nx {
+            pixels.push((map.peak[row * nx + ix] * scale).round().clamp(0.0, 255.0) as u8);
+        }
+    }
+    write_png(path, [nx, ny], png::ColorType::Grayscale, &pixels)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn npy_round_trip() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("a.npy");
+        let data: Vec<f32> = (0..24).map(|i| i as f32 * 0.5).collect();
+        write_npy(&path, &[2, 3, 4], &data).unwrap();
+        let bytes = std::fs::read(&path).unwrap();
+        assert_eq!(&bytes[..6], b"\x93NUMPY");
+        let header = String::from_utf8_lossy(&bytes[10..80]);
+        assert!(header.contains("'descr': '<f4'") && header.contains("(2, 3, 4"), "{header}");
+        assert_eq!(read_npy(&path).unwrap(), (vec![2, 3, 4], data));
+        assert!(write_npy(&path, &[5], &[1.0]).is_err());
+    }
+
+    #[test]
+    fn colour_map_ends() {
+        assert_eq!(colour(0.0), VIRIDIS[0]);
+        assert_eq!(colour(1.0), VIRIDIS[8]);
+        assert_eq!(colour(f64::NAN), VIRIDIS[0]);
+    }
+}

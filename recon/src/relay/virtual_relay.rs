@@ -1,0 +1,142 @@
+//! The virtual relay: a plane on which the optimised Gaussians are rendered as a dense
+//! confocal scan, for solvers that need a planar grid (LCT, RSD).
+use glam::DVec3;
+
+use super::{GeometryError, check_finite};
+use crate::linalg::fit_plane;
+
+/// A rectangular grid of points on a plane, with a normal facing the hidden scene.
+///
+/// Grid point `(ix, iy)` sits at `centre + u·x[ix] + v·y[iy]`, with cell-centred
+/// coordinates `x[i] = −size[0]/2 + (i + ½)·size[0]/resolution[0]` (likewise y).
+/// Points are listed row by row: index `iy·resolution[0] + ix`.
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct VirtualRelay {
+    /// Centre of the grid, metres.
+    pub centre: DVec3,
+    /// Unit normal toward the hidden scene.
+    pub normal: DVec3,
+    /// Unit in-plane axis of the grid's columns.
+    pub u: DVec3,
+    /// Unit in-plane axis of the grid's rows (`normal × u`).
+    pub v: DVec3,
+    /// Extent along u and v, metres.
+    pub size: [f64; 2],
+    /// Points along u and v.
+    pub resolution: [usize; 2],
+}
+
+impl VirtualRelay {
+    /// A plane through `centre` with `normal`; `u_hint` is projected into the plane to
+    /// give the column axis (any vector not parallel to the normal).
+    pub fn new(
+        centre: DVec3,
+        normal: DVec3,
+        u_hint: DVec3,
+        size: [f64; 2],
+        resolution: [usize; 2],
+    ) -> Result<Self, GeometryError> {
+        let bad = |name: &'static str, value: String, expected: &'static str| GeometryError::OutOfRange {
+            name,
+            value,
+            expected,
+        };
+        if !centre.is_finite() {
+            return Err(bad("centre", format!("{centre:?}"), "a finite position"));
+        }
+        let normal = normal.try_normalize().ok_or_else(|| {
+            bad("normal", format!("{normal:?}"), "a finite, non-zero direction")
+        })?;
+        let u = (u_hint - normal * u_hint.dot(normal)).try_normalize().ok_or_else(|| {
+            bad("u", format!("{u_hint:?}"), "a direction not parallel to the normal")
+        })?;
+        if !size.iter().all(|s| s.is_finite() && *s > 0.0) {
+            return Err(bad("size", format!("{size:?}"), "two positive lengths in metres"));
+        }
+        if resolution.iter().any(|&r| r < 2) {
+            return Err(bad("resolution", format!("{resolution:?}"), "at least 2 points per axis"));
+        }
+        Ok(Self {
+            centre,
+            normal,
+            u,
+            v: normal.cross(u),
+            size,
+            resolution,
+        })
+    }
+
+    /// The plane fitted to measured relay points, its normal facing `viewpoint`, its
+    /// columns along the world x axis projected into the plane (world y if the plane
+    /// is normal to x). With no `size`, the grid spans the points' projected extent.
+    pub fn fitted(
+        points: &[DVec3],
+        viewpoint: DVec3,
+        size: Option<[f64; 2]>,
+        resolution: [usize; 2],
+    ) -> Result<Self, GeometryError> {
+        check_finite(points)?;
+        let plane = fit_plane(points).ok_or(GeometryError::NoPlane {
+            points: points.len(),
+        })?;
+        let mut normal = plane.normal;
+        if normal.dot(viewpoint - plane.centre) < 0.0 {
+            normal = -normal;
+        }
+        let hint = if normal.x.abs() < 0.9 { DVec3::X } else { DVec3::Y };
+        let provisional = Self::new(plane.centre, normal, hint, [1.0, 1.0], [2, 2])?;
+        let (mut lo, mut hi) = ([f64::INFINITY; 2], [f64::NEG_INFINITY; 2]);
+        for p in points {
+            let d = *p - plane.centre;
+            for (a, axis) in [provisional.u, provisional.v].iter().enumerate() {
+                let t = d.dot(*axis);
+                lo[a] = lo[a].min(t);
+                hi[a] = hi[a].max(t);
+            }
+        }
+        let centre = plane.centre + provisional.u * 0.5 * (lo[0] + hi[0]) + provisional.v * 0.5 * (lo[1] + hi[1]);
+        let size = size.unwrap_or([hi[0] - lo[0], hi[1] - lo[1]]);
+        Self::new(centre, normal, provisional.u, size, resolution)
+    }
+
+    /// Grid spacing along u and v, metres.
+    pub fn spacing(&self) -> [f64; 2] {
+        [
+            self.size[0] / self.resolution[0] as f64,
+            self.size[1] / self.resolution[1] as f64,
+        ]
+    }
+
+    /// In-plane coordinate of column `ix` (along u) and row `iy` (along v).
+    pub fn coords(&self, ix: usize, iy: usize) -> (f64, f64) {
+        let s = self.spacing();
+        (
+            -0.5 * self.size[0] + (ix as f64 + 0.5) * s[0],
+            -0.5 * self.size[1] + (iy as f64 + 0.5) * s[1],
+        )
+    }
+
+    /// Grid point `(ix, iy)`.
+    pub fn point(&self, ix: usize, iy: usize) -> DVec3 {
+        let (x, y) = self.coords(ix, iy);
+        self.centre + self.u * x + self.v * y
+    }
+
+    /// All grid points, row by row.
+    pub fn points(&self) -> Vec<DVec3> {
+        (0..self.resolution[1])
+            .flat_map(|iy| (0..self.resolution[0]).map(move |ix| (ix, iy)))
+            .map(|(ix, iy)| self.point(ix, iy))
+            .collect()
+    }
+
+    /// Number of grid points.
+    pub fn len(&self) -> usize {
+        self.resolution[0] * self.resolution[1]
+    }
+
+    /// Always false (a relay has at least 2×2 points); for clippy's `len` rule.
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+}

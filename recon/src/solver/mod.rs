@@ -1,0 +1,135 @@
+//! Conventional NLOS solvers: LCT for confocal grids, RSD / phasor-field propagation for
+//! planar (also non-confocal) data, and filtered backprojection for any pairs on any
+//! relay. Each takes a [`TransientSet`] in hidden path length, measured or synthesised,
+//! and returns a [`Volume`] on the user's world-frame grid.
+//!
+//! LCT and RSD work in the relay plane's own frame (columns along u, rows along v, depth
+//! along the normal) because their speed comes from shift invariance in that frame;
+//! their result is resampled trilinearly onto the world grid ([`FrameVolume`]).
+mod fbp;
+mod fft;
+mod frame;
+mod lct;
+mod rsd;
+mod scan;
+
+pub use fbp::{FbpFilter, FbpSettings, fbp};
+pub use frame::FrameVolume;
+pub use lct::{LctSettings, lct, lct_frame};
+pub use rsd::{RsdSettings, rsd, rsd_frame};
+pub use scan::PlanarScan;
+
+use crate::relay::GeometryError;
+use crate::volume::VolumeError;
+
+/// Which conventional solver turns transients into a volume.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum SolverKind {
+    /// Light-cone transform (confocal grids on a plane).
+    Lct,
+    /// Rayleigh–Sommerfeld diffraction / phasor field (planar detection grid).
+    Rsd,
+    /// Filtered backprojection (any pairs, any relay).
+    Fbp,
+}
+
+impl std::fmt::Display for SolverKind {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            SolverKind::Lct => "lct",
+            SolverKind::Rsd => "rsd",
+            SolverKind::Fbp => "fbp",
+        })
+    }
+}
+
+/// Why a solver could not run on the given data.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum SolverError {
+    /// No transients.
+    #[error("the capture has no transients to reconstruct")]
+    Empty,
+    /// Points that should lie on a plane do not.
+    #[error(
+        "the {what} points are not planar (rms distance from the fitted plane {rms_mm:.1} mm > {tolerance_mm:.1} mm): \
+         use the fbp solver, or method = \"gtr\" to synthesise a planar virtual scan"
+    )]
+    NotPlanar {
+        /// Which points.
+        what: &'static str,
+        /// Their rms distance from the plane, mm.
+        rms_mm: f64,
+        /// The tolerance, mm.
+        tolerance_mm: f64,
+    },
+    /// Points on a plane that are not on a regular grid.
+    #[error(
+        "the {what} points are not on a regular grid ({detail}): use the fbp solver, or method = \"gtr\" \
+         to synthesise a gridded virtual scan"
+    )]
+    NotGrid {
+        /// Which points.
+        what: &'static str,
+        /// What went wrong.
+        detail: String,
+    },
+    /// LCT got a non-confocal pair.
+    #[error(
+        "pair {pair} is not confocal (illumination and detection {distance_mm:.1} mm apart): LCT needs confocal data; \
+         use rsd or fbp"
+    )]
+    NotConfocal {
+        /// Index of the pair.
+        pair: usize,
+        /// Distance between its points, mm.
+        distance_mm: f64,
+    },
+    /// The time axis does not suit the solver.
+    #[error("time axis: {0}")]
+    Axis(String),
+    /// A setting outside its valid range.
+    #[error("solver setting `{name}` = {value} is out of range: {expected}")]
+    Setting {
+        /// The setting.
+        name: &'static str,
+        /// Its value.
+        value: String,
+        /// What would be valid.
+        expected: &'static str,
+    },
+    /// The working arrays would exceed the memory cap.
+    #[error(
+        "the {solver} working arrays would need {needed_mib} MiB, above the {limit_mib} MiB cap: \
+         use a coarser grid or fewer bins"
+    )]
+    TooLarge {
+        /// Solver name.
+        solver: &'static str,
+        /// MiB needed.
+        needed_mib: usize,
+        /// MiB allowed.
+        limit_mib: usize,
+    },
+    /// Geometry failure.
+    #[error(transparent)]
+    Geometry(#[from] GeometryError),
+    /// Output grid failure.
+    #[error(transparent)]
+    Volume(#[from] VolumeError),
+}
+
+/// Working memory a solver may allocate, MiB.
+pub const MEMORY_CAP_MIB: usize = 8 * 1024;
+
+fn check_memory(solver: &'static str, bytes: usize) -> Result<(), SolverError> {
+    let needed_mib = bytes.div_ceil(1 << 20);
+    if needed_mib > MEMORY_CAP_MIB {
+        return Err(SolverError::TooLarge {
+            solver,
+            needed_mib,
+            limit_mib: MEMORY_CAP_MIB,
+        });
+    }
+    Ok(())
+}

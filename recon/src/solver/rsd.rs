@@ -1,0 +1,250 @@
+//! Rayleigh–Sommerfeld diffraction of phasor fields (Liu et al. 2019, 2020).
+//!
+//! The transients are filtered by a virtual wave (a Gaussian-windowed carrier of
+//! wavelength λ): in the Fourier domain that is a weight W(k) on the spectral lines
+//! k near 2π/λ. For each line the detection side is propagated to every depth slice by
+//! a 2-D convolution with the RSD kernel e^{ikr}/r (an FFT convolution on the padded
+//! detection grid), the illumination side by the phase e^{ik|x − x_i|} of each
+//! illumination point, and the complex fields are summed over lines and illumination
+//! points before taking the magnitude. Confocal data use ℓ = 2r: the kernel e^{2ikr}/r²
+//! and no illumination term.
+//!
+//! Detection points must lie on a planar grid; illumination points may be anywhere,
+//! and any number (each distinct one costs one more set of propagations).
+use std::f64::consts::PI;
+
+use glam::DVec3;
+use rayon::prelude::*;
+use realfft::RealFftPlanner;
+use rustfft::num_complex::{Complex, Complex32};
+
+use super::fft::Fft2;
+use super::scan::gather_cube;
+use super::{FrameVolume, PlanarScan, SolverError, check_memory};
+use crate::transient::TransientSet;
+use crate::volume::{Volume, VolumeGrid};
+
+/// RSD settings.
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(default, deny_unknown_fields, rename_all = "kebab-case")]
+pub struct RsdSettings {
+    /// Virtual wavelength, metres; `None` = 4 × the coarser of grid spacing and bin
+    /// width (sharper waves alias on the detection grid).
+    pub wavelength: Option<f64>,
+    /// Cycles of the virtual wave within its Gaussian window (the envelope's standard
+    /// deviation is cycles·λ/6).
+    pub cycles: f64,
+    /// Spectral lines whose weight is below this fraction of the peak are skipped.
+    pub spectral_cutoff: f64,
+    /// Grid/plane tolerance and illumination grouping distance, metres.
+    pub grid_tolerance: f64,
+}
+
+impl Default for RsdSettings {
+    fn default() -> Self {
+        Self {
+            wavelength: None,
+            cycles: 4.0,
+            spectral_cutoff: 1e-3,
+            grid_tolerance: 2e-3,
+        }
+    }
+}
+
+impl RsdSettings {
+    fn validate(&self) -> Result<(), SolverError> {
+        let bad = |name, value: f64, expected| SolverError::Setting {
+            name,
+            value: value.to_string(),
+            expected,
+        };
+        if let Some(l) = self.wavelength
+            && !(l.is_finite() && l > 0.0)
+        {
+            return Err(bad("wavelength", l, "a positive length in metres"));
+        }
+        if !(self.cycles.is_finite() && self.cycles >= 1.0) {
+            return Err(bad("cycles", self.cycles, "at least 1"));
+        }
+        if !(self.spectral_cutoff > 0.0 && self.spectral_cutoff < 1.0) {
+            return Err(bad("spectral-cutoff", self.spectral_cutoff, "between 0 and 1, exclusive"));
+        }
+        if !(self.grid_tolerance.is_finite() && self.grid_tolerance > 0.0) {
+            return Err(bad("grid-tolerance", self.grid_tolerance, "a positive length in metres"));
+        }
+        Ok(())
+    }
+}
+
+/// RSD reconstruction resampled onto `grid` (depth slices spaced by the grid's
+/// smallest voxel edge, covering the grid's extent along the relay normal).
+pub fn rsd(set: &TransientSet, grid: &VolumeGrid, settings: &RsdSettings) -> Result<Volume, SolverError> {
+    settings.validate()?;
+    if set.is_empty() {
+        return Err(SolverError::Empty);
+    }
+    let points: Vec<DVec3> = set.pairs().iter().map(|p| p.xd).collect();
+    let hint = set.pairs().iter().map(|p| p.nd).sum();
+    let scan = PlanarScan::detect("detection", &points, hint, settings.grid_tolerance)?;
+    let (mut lo, mut hi) = (f64::INFINITY, f64::NEG_INFINITY);
+    for corner in 0..8 {
+        let c = DVec3::new(
+            grid.x[corner & 1],
+            grid.y[(corner >> 1) & 1],
+            grid.z[(corner >> 2) & 1],
+        );
+        let d = (c - scan.relay.centre).dot(scan.relay.normal);
+        lo = lo.min(d);
+        hi = hi.max(d);
+    }
+    let step = grid.voxel().min_element();
+    if hi <= 0.0 {
+        return Err(SolverError::Axis(
+            "the volume lies behind the relay plane (against its normal); move it in front".into(),
+        ));
+    }
+    let start = lo.max(0.5 * step);
+    let depths = ((hi - start) / step).ceil() as usize + 1;
+    Ok(rsd_frame(set, &scan, start, step, depths, settings)?.to_world(grid))
+}
+
+/// RSD on the scan's grid at depths `start + k·step`, `k < depths`.
+pub fn rsd_frame(
+    set: &TransientSet,
+    scan: &PlanarScan,
+    start: f64,
+    step: f64,
+    depths: usize,
+    settings: &RsdSettings,
+) -> Result<FrameVolume, SolverError> {
+    settings.validate()?;
+    if set.is_empty() {
+        return Err(SolverError::Empty);
+    }
+    if !(start > 0.0 && step > 0.0 && depths > 0 && start.is_finite() && step.is_finite()) {
+        return Err(SolverError::Setting {
+            name: "depths",
+            value: format!("start {start}, step {step}, count {depths}"),
+            expected: "positive start and step, at least one slice",
+        });
+    }
+    let axis = *set.axis();
+    let relay = scan.relay;
+    let [nx, ny] = relay.resolution;
+    let [sx, sy] = relay.spacing();
+    let lambda = settings.wavelength.unwrap_or(4.0 * sx.max(sy).max(axis.width));
+
+    // Spectral lines of the virtual wave.
+    let bins = axis.bins;
+    let sigma = settings.cycles * lambda / 6.0;
+    let kc = 2.0 * PI / lambda;
+    let lines: Vec<(usize, f64, f64)> = (0..=bins / 2)
+        .map(|j| (j, 2.0 * PI * j as f64 / (bins as f64 * axis.width)))
+        .map(|(j, k)| (j, k, (-(k - kc).powi(2) * sigma * sigma / 2.0).exp()))
+        .filter(|(_, _, w)| *w >= settings.spectral_cutoff)
+        .collect();
+    if lines.is_empty() {
+        return Err(SolverError::Setting {
+            name: "wavelength",
+            value: lambda.to_string(),
+            expected: "a wavelength the time axis resolves (longer than two bins, shorter than the axis)",
+        });
+    }
+
+    let confocal = set.pairs().iter().all(|p| p.xi.distance(p.xd) <= settings.grid_tolerance);
+    // Illumination groups (one for confocal data: its phase lives in the kernel).
+    let mut groups: Vec<(DVec3, Vec<usize>)> = Vec::new();
+    for (i, p) in set.pairs().iter().enumerate() {
+        let key = if confocal { DVec3::ZERO } else { p.xi };
+        match groups.iter_mut().find(|(x, _)| x.distance(key) <= settings.grid_tolerance) {
+            Some((_, members)) => members.push(i),
+            None => groups.push((key, vec![i])),
+        }
+    }
+
+    let (px, py) = (2 * nx, 2 * ny);
+    let plane = px * py;
+    check_memory("RSD", lines.len() * plane * 8 + depths * nx * ny * 8 + plane * 8 * 4 * rayon::current_num_threads())?;
+    let fft = Fft2::new(py, px);
+    let mut planner = RealFftPlanner::<f64>::new();
+    let r2c = planner.plan_fft_forward(bins);
+    // Phase of bin centres: ℓ_b = start + (b + ½)·w.
+    let centre0 = axis.start + 0.5 * axis.width;
+    let wave_factor = if confocal { 2.0 } else { 1.0 };
+    let mut field = vec![Complex::<f64>::default(); depths * nx * ny];
+
+    for (xi, members) in &groups {
+        let cube = gather_cube(set, members, &scan.cells, nx * ny, axis.start, bins);
+        // Spectra of every cell's transient at the selected lines, as padded planes.
+        let per_cell: Vec<Vec<Complex<f64>>> = cube
+            .par_chunks(bins)
+            .map(|h| {
+                let mut input: Vec<f64> = h.iter().map(|&v| v as f64).collect();
+                let mut out = r2c.make_output_vec();
+                r2c.process(&mut input, &mut out).expect("buffer lengths match the plan");
+                lines
+                    .iter()
+                    .map(|&(j, k, _)| out[j] * Complex::from_polar(1.0, -k * centre0))
+                    .collect()
+            })
+            .collect();
+        let spectra: Vec<Vec<Complex32>> = (0..lines.len())
+            .into_par_iter()
+            .map(|l| {
+                let mut buf = vec![Complex32::default(); plane];
+                for cell in 0..nx * ny {
+                    let v = per_cell[cell][l];
+                    buf[(cell / nx) * px + cell % nx] = Complex32::new(v.re as f32, v.im as f32);
+                }
+                let mut scratch = vec![Complex32::default(); fft.scratch_len()];
+                fft.forward_transposed(&mut buf, &mut scratch);
+                buf
+            })
+            .collect();
+        drop(per_cell);
+
+        field.par_chunks_mut(nx * ny).enumerate().for_each(|(iz, slice)| {
+            let z = start + iz as f64 * step;
+            let mut kernel = vec![Complex32::default(); plane];
+            let mut scratch = vec![Complex32::default(); fft.scratch_len()];
+            let norm = 1.0 / plane as f64;
+            for (l, &(_, k, weight)) in lines.iter().enumerate() {
+                let kk = wave_factor * k;
+                for iy in 0..py {
+                    let dy = if iy < ny { iy as f64 } else { iy as f64 - py as f64 } * sy;
+                    for ix in 0..px {
+                        let dx = if ix < nx { ix as f64 } else { ix as f64 - px as f64 } * sx;
+                        let r = (dx * dx + dy * dy + z * z).sqrt();
+                        let amp = if confocal { 1.0 / (r * r) } else { 1.0 / r };
+                        let (s, c) = (kk * r).sin_cos();
+                        kernel[iy * px + ix] = Complex32::new((amp * c) as f32, (amp * s) as f32);
+                    }
+                }
+                fft.forward_transposed(&mut kernel, &mut scratch);
+                for (g, h) in kernel.iter_mut().zip(&spectra[l]) {
+                    *g *= *h;
+                }
+                fft.inverse_from_transposed(&mut kernel, &mut scratch);
+                for iy in 0..ny {
+                    for ix in 0..nx {
+                        let v = kernel[iy * px + ix];
+                        let mut v = Complex::new(v.re as f64, v.im as f64) * (weight * norm);
+                        if !confocal {
+                            let (u, w) = relay.coords(ix, iy);
+                            let x = relay.centre + relay.u * u + relay.v * w + relay.normal * z;
+                            v *= Complex::from_polar(1.0, k * x.distance(*xi));
+                        }
+                        slice[iy * nx + ix] += v;
+                    }
+                }
+            }
+        });
+    }
+    Ok(FrameVolume {
+        relay,
+        depth_start: start,
+        depth_step: step,
+        depths,
+        data: field.iter().map(|v| v.norm() as f32).collect(),
+    })
+}

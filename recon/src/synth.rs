@@ -1,0 +1,75 @@
+//! Virtual confocal synthesis: the optimised Gaussians rendered, with the same forward
+//! model they were fitted with, as a dense confocal scan of a virtual planar relay, so a
+//! conventional solver (LCT, RSD) can turn them into a volume.
+use rayon::prelude::*;
+
+use crate::gtr::{Kernel, RenderOptions, render_pair};
+use crate::relay::VirtualRelay;
+use crate::solver::PlanarScan;
+use crate::transient::{Pair, TimeAxis, TransientError, TransientSet};
+use crate::volume::VolumeGrid;
+
+/// A synthesised confocal scan and the grid it lies on.
+#[derive(Clone, Debug)]
+pub struct VirtualScan {
+    /// One confocal transient per grid point, row by row.
+    pub set: TransientSet,
+    /// The grid (cells in pair order).
+    pub scan: PlanarScan,
+}
+
+/// A time axis for synthesis on `relay` that starts at path length 0 and reaches twice
+/// the distance from the relay to the farthest corner of `volume` (plus 5 %), in `bins`
+/// bins.
+pub fn default_axis(relay: &VirtualRelay, volume: &VolumeGrid, bins: usize) -> TimeAxis {
+    let mut far: f64 = 0.0;
+    for corner in 0..8 {
+        let c = glam::DVec3::new(
+            volume.x[corner & 1],
+            volume.y[(corner >> 1) & 1],
+            volume.z[(corner >> 2) & 1],
+        );
+        for (ix, iy) in [(0, 0), (relay.resolution[0] - 1, 0), (0, relay.resolution[1] - 1)] {
+            far = far.max(c.distance(relay.point(ix, iy)));
+        }
+        far = far.max(c.distance(relay.point(relay.resolution[0] - 1, relay.resolution[1] - 1)));
+    }
+    TimeAxis {
+        start: 0.0,
+        width: 2.0 * far * 1.05 / bins.max(1) as f64,
+        bins: bins.max(1),
+    }
+}
+
+/// Renders confocal transients at every point of `relay` from `kernels`, in parallel
+/// over grid points.
+pub fn synthesise(
+    kernels: &[Kernel],
+    relay: &VirtualRelay,
+    axis: TimeAxis,
+    opt: &RenderOptions,
+) -> Result<VirtualScan, TransientError> {
+    let pairs: Vec<Pair> = relay.points().into_iter().map(|x| Pair::confocal(x, relay.normal)).collect();
+    let bins = axis.bins;
+    let mut histograms = vec![0.0f32; pairs.len() * bins];
+    histograms.par_chunks_mut(bins).zip(pairs.par_iter()).for_each_init(
+        || vec![0.0f64; bins],
+        |buf, (out, pair)| {
+            render_pair(kernels, pair, &axis, opt, buf);
+            for (o, v) in out.iter_mut().zip(buf.iter()) {
+                *o = *v as f32;
+            }
+        },
+    );
+    let mut set = TransientSet::new(axis)?;
+    for (pair, h) in pairs.iter().zip(histograms.chunks(bins)) {
+        set.push(*pair, h)?;
+    }
+    Ok(VirtualScan {
+        set,
+        scan: PlanarScan {
+            relay: *relay,
+            cells: (0..relay.len()).collect(),
+        },
+    })
+}

@@ -1,0 +1,248 @@
+//! Solvers on analytic scenes: a point scatterer must come back within one voxel of
+//! where it is, for every solver, confocal and non-confocal; a planar patch must give
+//! a flat depth map at its depth. The transients are written analytically here (a
+//! Gaussian pulse at the exact path length with 1/(di² dd²) falloff and both cosines),
+//! not by the 3D-GTR renderer, so the solvers are not judged by the model they serve.
+use glam::DVec3;
+use periscope_recon::gtr::{Kernel, RenderOptions};
+use periscope_recon::relay::VirtualRelay;
+use periscope_recon::solver::{
+    FbpSettings, LctSettings, PlanarScan, RsdSettings, SolverError, fbp, lct, lct_frame, rsd,
+};
+use periscope_recon::special::norm_cdf;
+use periscope_recon::synth::{default_axis, synthesise};
+use periscope_recon::{Pair, TimeAxis, TransientSet, Volume, VolumeGrid};
+
+/// The hidden point every localisation test looks for.
+const POINT: DVec3 = DVec3::new(0.08, -0.12, 0.5);
+
+fn wall(n: usize) -> VirtualRelay {
+    VirtualRelay::new(DVec3::ZERO, DVec3::Z, DVec3::X, [1.0, 1.0], [n, n]).unwrap()
+}
+
+fn axis() -> TimeAxis {
+    TimeAxis {
+        start: 0.0,
+        width: 0.008,
+        bins: 320,
+    }
+}
+
+fn grid() -> VolumeGrid {
+    VolumeGrid::new([-0.4, 0.4], [-0.4, 0.4], [0.25, 0.75], [32, 32, 20]).unwrap()
+}
+
+/// Adds the pulse of a point scatterer of strength `a` at `x` to each pair.
+fn scatter(set: &mut TransientSet, pairs: &[Pair], points: &[(DVec3, f64)]) {
+    let axis = *set.axis();
+    let sigma = axis.width;
+    for pair in pairs {
+        let mut h = vec![0.0f32; axis.bins];
+        for &(x, a) in points {
+            let (di, dd) = (x.distance(pair.xi), x.distance(pair.xd));
+            let gi = pair.ni.dot((x - pair.xi) / di).max(0.0);
+            let gd = pair.nd.dot((x - pair.xd) / dd).max(0.0);
+            let amp = a * gi * gd / (di * di * dd * dd);
+            let mu = di + dd;
+            for (b, v) in h.iter_mut().enumerate() {
+                let lo = axis.edge(b as isize);
+                *v += (amp * (norm_cdf((lo + axis.width - mu) / sigma) - norm_cdf((lo - mu) / sigma))) as f32;
+            }
+        }
+        set.push(*pair, &h).unwrap();
+    }
+}
+
+fn confocal_pairs(relay: &VirtualRelay) -> Vec<Pair> {
+    relay.points().into_iter().map(|x| Pair::confocal(x, relay.normal)).collect()
+}
+
+fn assert_peak_at(volume: &Volume, truth: DVec3, who: &str) {
+    let (at, value) = volume.argmax();
+    let voxel = volume.grid.voxel();
+    let off = ((at - truth) / voxel).abs();
+    assert!(
+        value > 0.0 && off.max_element() <= 1.0,
+        "{who}: peak at {at:?} (value {value}), truth {truth:?}, off by {off:?} voxels (tolerance 1)"
+    );
+}
+
+fn confocal_point_set(axis: TimeAxis) -> TransientSet {
+    let relay = wall(32);
+    let mut set = TransientSet::new(axis).unwrap();
+    scatter(&mut set, &confocal_pairs(&relay), &[(POINT, 1.0)]);
+    set
+}
+
+#[test]
+fn lct_finds_a_point_scatterer() {
+    let set = confocal_point_set(axis());
+    assert_peak_at(&lct(&set, &grid(), &LctSettings::default()).unwrap(), POINT, "LCT");
+}
+
+#[test]
+fn lct_handles_an_offset_time_axis() {
+    // Histograms starting at 0.3037 m (not a whole number of bins) are shifted onto an
+    // axis from 0 by the solver.
+    let mut a = axis();
+    a.start = 0.3037;
+    a.bins = 280;
+    let set = confocal_point_set(a);
+    assert_peak_at(&lct(&set, &grid(), &LctSettings::default()).unwrap(), POINT, "LCT, offset axis");
+}
+
+#[test]
+fn rsd_finds_a_point_scatterer_confocal() {
+    let set = confocal_point_set(axis());
+    assert_peak_at(&rsd(&set, &grid(), &RsdSettings::default()).unwrap(), POINT, "RSD confocal");
+}
+
+#[test]
+fn rsd_finds_a_point_scatterer_non_confocal() {
+    // Two laser spots, a 32 × 32 detection grid.
+    let relay = wall(32);
+    let mut pairs = Vec::new();
+    for xi in [DVec3::new(-0.3, 0.25, 0.0), DVec3::new(0.2, -0.35, 0.0)] {
+        pairs.extend(relay.points().into_iter().map(|xd| Pair {
+            xi,
+            ni: DVec3::Z,
+            xd,
+            nd: DVec3::Z,
+        }));
+    }
+    let mut set = TransientSet::new(axis()).unwrap();
+    scatter(&mut set, &pairs, &[(POINT, 1.0)]);
+    assert_peak_at(&rsd(&set, &grid(), &RsdSettings::default()).unwrap(), POINT, "RSD non-confocal");
+}
+
+/// Random non-confocal pairs on an S-shaped relay z = 0.06·sin(2πx).
+fn curved_pairs(n: usize) -> Vec<Pair> {
+    let surface = |x: f64, y: f64| {
+        let p = DVec3::new(x, y, 0.06 * (2.0 * std::f64::consts::PI * x).sin());
+        let slope = 0.06 * 2.0 * std::f64::consts::PI * (2.0 * std::f64::consts::PI * x).cos();
+        (p, DVec3::new(-slope, 0.0, 1.0).normalize())
+    };
+    let mut state = 12345u64;
+    let mut rand = move || {
+        state = state.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+        ((state >> 11) as f64 / (1u64 << 53) as f64) - 0.5
+    };
+    (0..n)
+        .map(|_| {
+            let (xi, ni) = surface(rand(), rand());
+            let (xd, nd) = surface(rand(), rand());
+            Pair { xi, ni, xd, nd }
+        })
+        .collect()
+}
+
+#[test]
+fn fbp_finds_a_point_scatterer_on_a_curved_relay() {
+    let mut set = TransientSet::new(axis()).unwrap();
+    scatter(&mut set, &curved_pairs(1500), &[(POINT, 1.0)]);
+    assert_peak_at(&fbp(&set, &grid(), &FbpSettings::default()).unwrap(), POINT, "FBP non-confocal");
+}
+
+#[test]
+fn fbp_finds_a_point_scatterer_confocal() {
+    let set = confocal_point_set(axis());
+    assert_peak_at(&fbp(&set, &grid(), &FbpSettings::default()).unwrap(), POINT, "FBP confocal");
+}
+
+/// A 24 × 24 cm square of point scatterers 1 cm apart at z = `depth`.
+fn patch(depth: f64) -> Vec<(DVec3, f64)> {
+    (0..25)
+        .flat_map(|i| (0..25).map(move |j| (i, j)))
+        .map(|(i, j)| (DVec3::new(-0.12 + 0.01 * i as f64, -0.12 + 0.01 * j as f64, depth), 1.0))
+        .collect()
+}
+
+#[test]
+fn planar_patch_gives_a_flat_depth_map() {
+    // Tolerance: one voxel of the output grid (2.5 cm) on every pixel of the patch's
+    // interior, and the median within a third of a voxel.
+    let depth = 0.45;
+    let relay = wall(32);
+    let mut set = TransientSet::new(axis()).unwrap();
+    scatter(&mut set, &confocal_pairs(&relay), &patch(depth));
+    let g = grid();
+    for (who, volume) in [
+        ("LCT", lct(&set, &g, &LctSettings::default()).unwrap()),
+        ("FBP", fbp(&set, &g, &FbpSettings::default()).unwrap()),
+    ] {
+        let map = volume.depth_map(0.2);
+        let voxel = g.voxel();
+        let mut errors = Vec::new();
+        for iy in 0..32 {
+            for ix in 0..32 {
+                let c = g.centre(ix, iy, 0);
+                if c.x.abs() < 0.09 && c.y.abs() < 0.09 {
+                    let d = map.depth[iy * 32 + ix];
+                    assert!(d.is_finite(), "{who}: patch pixel ({ix}, {iy}) masked");
+                    errors.push((d as f64 - depth).abs());
+                }
+            }
+        }
+        errors.sort_by(f64::total_cmp);
+        let (median, worst) = (errors[errors.len() / 2], errors[errors.len() - 1]);
+        assert!(worst <= voxel.z, "{who}: worst depth error {worst:.4} m > {:.4} m", voxel.z);
+        assert!(median <= voxel.z / 3.0, "{who}: median depth error {median:.4} m > {:.4} m", voxel.z / 3.0);
+        // Far from the patch, the map is masked.
+        assert!(map.depth[0].is_nan(), "{who}: corner pixel should be masked");
+    }
+}
+
+#[test]
+fn synthesis_then_lct_finds_a_small_gaussian() {
+    let relay = wall(32);
+    let g = grid();
+    let kernels = [Kernel::new(POINT, glam::DMat3::IDENTITY, DVec3::splat(0.004), 1.0)];
+    let axis = default_axis(&relay, &g, 256);
+    let scan = synthesise(&kernels, &relay, axis, &RenderOptions::default()).unwrap();
+    let frame = lct_frame(&scan.set, &scan.scan, &LctSettings::default()).unwrap();
+    assert_peak_at(&frame.to_world(&g), POINT, "synthesis + LCT");
+}
+
+#[test]
+fn solvers_reject_unsuitable_data() {
+    let mut set = TransientSet::new(axis()).unwrap();
+    scatter(&mut set, &curved_pairs(200), &[(POINT, 1.0)]);
+    let g = grid();
+    assert!(matches!(lct(&set, &g, &LctSettings::default()), Err(SolverError::NotConfocal { .. })));
+    assert!(matches!(rsd(&set, &g, &RsdSettings::default()), Err(SolverError::NotPlanar { .. })));
+    let empty = TransientSet::new(axis()).unwrap();
+    assert_eq!(fbp(&empty, &g, &FbpSettings::default()), Err(SolverError::Empty));
+    let bad = LctSettings {
+        snr: -1.0,
+        ..LctSettings::default()
+    };
+    let err = lct(&confocal_point_set(axis()), &g, &bad).unwrap_err();
+    assert!(err.to_string().contains("snr"), "{err}");
+    // Points on a plane but scattered randomly: not a grid.
+    let random: Vec<DVec3> = curved_pairs(50).iter().map(|p| DVec3::new(p.xd.x, p.xd.y, 0.0)).collect();
+    let err = PlanarScan::detect("test", &random, DVec3::Z, 1e-3).unwrap_err();
+    assert!(matches!(err, SolverError::NotGrid { .. }), "{err}");
+}
+
+#[test]
+fn detected_grid_matches_the_relay() {
+    let relay = VirtualRelay::new(
+        DVec3::new(0.1, 0.2, 0.3),
+        DVec3::new(0.0, 0.3, 1.0),
+        DVec3::X,
+        [0.8, 0.6],
+        [16, 12],
+    )
+    .unwrap();
+    let mut points = relay.points();
+    points.swap(3, 100);
+    let scan = PlanarScan::detect("test", &points, relay.normal, 1e-4).unwrap();
+    assert_eq!(scan.relay.resolution, [16, 12]);
+    assert!((scan.relay.size[0] - 0.8).abs() < 1e-9 && (scan.relay.size[1] - 0.6).abs() < 1e-9);
+    assert!(scan.relay.centre.distance(relay.centre) < 1e-9);
+    assert!(scan.relay.normal.dot(relay.normal) > 1.0 - 1e-12);
+    for (i, p) in points.iter().enumerate() {
+        let cell = scan.cells[i];
+        assert!(scan.relay.point(cell % 16, cell / 16).distance(*p) < 1e-9, "point {i}");
+    }
+}
