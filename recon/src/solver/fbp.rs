@@ -13,6 +13,9 @@ use super::SolverError;
 use crate::transient::TransientSet;
 use crate::volume::{Volume, VolumeGrid};
 
+/// Pairs whose histograms are swept together over a slice (64 × 2 KiB fits in L2).
+const PAIR_TILE: usize = 64;
+
 /// The filter applied after backprojection.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
 #[serde(rename_all = "kebab-case")]
@@ -55,35 +58,50 @@ pub fn fbp(set: &TransientSet, grid: &VolumeGrid, settings: &FbpSettings) -> Res
     let inv_w = (1.0 / axis.width) as f32;
     let offset = (axis.start / axis.width + 0.5) as f32;
     let bins = axis.bins;
+    // Histograms padded with one zero before and two after, so the interpolation below
+    // needs no bounds checks: indices are clamped into the padding instead.
+    let padded: Vec<Vec<f32>> = (0..set.len())
+        .map(|p| {
+            let w = set.weight(p);
+            let mut h = Vec::with_capacity(bins + 3);
+            h.push(0.0);
+            h.extend(set.histogram(p).iter().map(|v| v * w));
+            h.extend([0.0, 0.0]);
+            h
+        })
+        .collect();
+    let top = (bins + 1) as f32;
     let mut data = vec![0.0f32; grid.len()];
     data.par_chunks_mut(nx * ny).enumerate().for_each(|(iz, slice)| {
-        let z = min.z + (iz as f64 + 0.5) * voxel.z;
-        for (p, pair) in set.pairs().iter().enumerate() {
-            let h = set.histogram(p);
-            let weight = set.weight(p);
-            let (xi, xd) = (pair.xi.as_vec3(), pair.xd.as_vec3());
-            let (dzi, dzd) = ((z as f32 - xi.z).powi(2), (z as f32 - xd.z).powi(2));
+        let z = (min.z + (iz as f64 + 0.5) * voxel.z) as f32;
+        let mut index = vec![0.0f32; nx];
+        let mut gain = vec![1.0f32; nx];
+        // Pairs in tiles whose histograms stay in L2 while every row of the slice
+        // visits them; the row being summed stays in L1.
+        for (pairs, hists) in set.pairs().chunks(PAIR_TILE).zip(padded.chunks(PAIR_TILE)) {
             for iy in 0..ny {
                 let y = (min.y + (iy as f64 + 0.5) * voxel.y) as f32;
-                let (byi, byd) = (dzi + (y - xi.y).powi(2), dzd + (y - xd.y).powi(2));
                 let row = &mut slice[iy * nx..(iy + 1) * nx];
-                for (out, &x) in row.iter_mut().zip(&xs) {
-                    let ri2 = byi + (x - xi.x).powi(2);
-                    let rd2 = byd + (x - xd.x).powi(2);
-                    // Fractional bin index relative to bin centres.
-                    let f = (ri2.sqrt() + rd2.sqrt()) * inv_w - offset;
-                    if f < -1.0 || f >= bins as f32 {
-                        continue;
+                for (pair, h) in pairs.iter().zip(hists) {
+                    let (xi, xd) = (pair.xi.as_vec3(), pair.xd.as_vec3());
+                    let byi = (z - xi.z) * (z - xi.z) + (y - xi.y) * (y - xi.y);
+                    let byd = (z - xd.z) * (z - xd.z) + (y - xd.y) * (y - xd.y);
+                    // Vectorisable pass: fractional bin index (shifted by the leading pad).
+                    for ((f, g), &x) in index.iter_mut().zip(gain.iter_mut()).zip(&xs) {
+                        let ri2 = byi + (x - xi.x) * (x - xi.x);
+                        let rd2 = byd + (x - xd.x) * (x - xd.x);
+                        *f = ((ri2.sqrt() + rd2.sqrt()) * inv_w - offset + 1.0).max(0.0).min(top);
+                        *g = ri2 * rd2;
                     }
-                    let b = f.floor();
-                    let t = f - b;
-                    let b = b as isize;
-                    let at = |i: isize| if i >= 0 && (i as usize) < bins { h[i as usize] } else { 0.0 };
-                    let mut v = (1.0 - t) * at(b) + t * at(b + 1);
-                    if settings.compensate_falloff {
-                        v *= ri2 * rd2;
+                    if !settings.compensate_falloff {
+                        gain.fill(1.0);
                     }
-                    *out += weight * v;
+                    // Gather pass.
+                    for ((out, &f), &g) in row.iter_mut().zip(&index).zip(&gain) {
+                        let b = f as usize;
+                        let t = f - b as f32;
+                        *out += g * ((1.0 - t) * h[b] + t * h[b + 1]);
+                    }
                 }
             }
         }
