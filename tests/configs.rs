@@ -2,7 +2,7 @@
 //! with file, line and key.
 use std::path::Path;
 
-use periscope_daemon::config::InstrumentConfig;
+use periscope_daemon::config::{InstrumentConfig, load_scene};
 use periscope_tests::{config_files, periscope, repo_path};
 
 #[test]
@@ -15,6 +15,10 @@ fn every_config_file_loads() {
         match kind {
             "instrument" => {
                 InstrumentConfig::load(&full).unwrap_or_else(|err| panic!("{err}"));
+            }
+            "scenes" => {
+                let scene = load_scene(&full).unwrap_or_else(|err| panic!("{err}"));
+                assert!(!scene.hidden.is_empty() && !scene.relay.mesh.triangles.is_empty());
             }
             _ => panic!(
                 "{}: no loader is known for configs/{kind}/; add one to this test so the file is checked",
@@ -66,4 +70,19 @@ fn a_missing_instrument_file_is_named() {
         out.stderr
     );
     assert!(Path::new(&repo_path("configs/instrument/sim.toml")).is_file());
+}
+
+#[test]
+fn a_broken_scene_names_file_line_and_key() {
+    let dir = tempfile::tempdir().unwrap();
+    let text = std::fs::read_to_string(repo_path("configs/scenes/wall-letter.toml"))
+        .unwrap()
+        .replace("stroke = 0.07", "stroke = 0.3");
+    let line = text.lines().position(|l| l.starts_with("stroke")).unwrap() + 1;
+    let bad = dir.path().join("scene.toml");
+    std::fs::write(&bad, text).unwrap();
+    let err = load_scene(&bad).unwrap_err().to_string();
+    let expected = format!("scene.toml:{line}: key `hidden[0].stroke`");
+    assert!(err.contains(&expected), "expected `{expected}` in: {err}");
+    assert!(err.contains("too wide"), "{err}");
 }

@@ -77,7 +77,10 @@ fn noise_scan(relay: &VirtualRelay, bins: usize, rng: &mut ChaCha8Rng) -> (Trans
 }
 
 fn main() {
-    let reps: usize = std::env::var("SOLVER_BENCH_REPS").ok().and_then(|v| v.parse().ok()).unwrap_or(3);
+    let reps: usize = std::env::var("SOLVER_BENCH_REPS")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(3);
     let only = std::env::var("SOLVER_BENCH_ONLY").unwrap_or_default();
     let run = |name: &str| only.is_empty() || only.split(',').any(|o| o == name);
     let mut rng = ChaCha8Rng::seed_from_u64(7);
@@ -87,7 +90,9 @@ fn main() {
         let points: Vec<DVec3> = (0..100_000)
             .map(|_| curved(rng.random_range(-0.5..0.5), rng.random_range(-0.5..0.5)).0)
             .collect();
-        let t = time(reps, || estimate_normals(&points, 16, DVec3::new(0.0, 0.0, 2.0)).unwrap());
+        let t = time(reps, || {
+            estimate_normals(&points, 16, DVec3::new(0.0, 0.0, 2.0)).unwrap()
+        });
         println!("normals, 100k points, k = 16:            {t:8.3} s");
     }
     let settings = LctSettings::default();
@@ -96,7 +101,10 @@ fn main() {
             let relay = VirtualRelay::new(DVec3::ZERO, DVec3::Z, DVec3::X, [1.0, 1.0], [n, n]).unwrap();
             let (set, scan) = noise_scan(&relay, 512, &mut rng);
             let t = time(reps, || lct_frame(&set, &scan, &settings).unwrap());
-            println!("LCT {n} × {n} × 512:                    {t:8.3} s   (peak RSS so far {:.0} MiB)", peak_rss_mib());
+            println!(
+                "LCT {n} × {n} × 512:                    {t:8.3} s   (peak RSS so far {:.0} MiB)",
+                peak_rss_mib()
+            );
         }
     }
     if run("fbp") {

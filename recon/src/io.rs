@@ -86,16 +86,28 @@ pub fn read_npy(path: &Path) -> Result<(Vec<usize>, Vec<f32>), IoError> {
         message,
     };
     let file = File::open(path).map_err(io_err(path))?;
-    let npy = npyz::NpyFile::new(BufReader::new(file)).map_err(|e| format(format!("not an .npy file: {e}")))?;
+    let npy =
+        npyz::NpyFile::new(BufReader::new(file)).map_err(|e| format(format!("not an .npy file: {e}")))?;
     if npy.order() != npyz::Order::C && npy.shape().len() > 1 {
-        return Err(format("Fortran-order arrays are not supported; save with C order".into()));
+        return Err(format(
+            "Fortran-order arrays are not supported; save with C order".into(),
+        ));
     }
     let shape: Vec<usize> = npy.shape().iter().map(|&n| n as usize).collect();
     let dtype = npy.dtype().descr();
     let data = match dtype.as_str() {
         "'<f4'" => npy.into_vec::<f32>().map_err(io_err(path))?,
-        "'<f8'" => npy.into_vec::<f64>().map_err(io_err(path))?.into_iter().map(|v| v as f32).collect(),
-        other => return Err(format(format!("dtype {other} is not little-endian float32 or float64"))),
+        "'<f8'" => npy
+            .into_vec::<f64>()
+            .map_err(io_err(path))?
+            .into_iter()
+            .map(|v| v as f32)
+            .collect(),
+        other => {
+            return Err(format(format!(
+                "dtype {other} is not little-endian float32 or float64"
+            )));
+        }
     };
     Ok((shape, data))
 }
@@ -127,7 +139,12 @@ pub fn colour(t: f64) -> [u8; 3] {
     std::array::from_fn(|c| (VIRIDIS[i][c] as f64 * (1.0 - f) + VIRIDIS[i + 1][c] as f64 * f).round() as u8)
 }
 
-fn write_png(path: &Path, size: [usize; 2], colour_type: png::ColorType, pixels: &[u8]) -> Result<(), IoError> {
+fn write_png(
+    path: &Path,
+    size: [usize; 2],
+    colour_type: png::ColorType,
+    pixels: &[u8],
+) -> Result<(), IoError> {
     write_atomically(path, |out| {
         let mut encoder = png::Encoder::new(&mut *out, size[0] as u32, size[1] as u32);
         encoder.set_color(colour_type);
@@ -184,7 +201,10 @@ mod tests {
         let bytes = std::fs::read(&path).unwrap();
         assert_eq!(&bytes[..6], b"\x93NUMPY");
         let header = String::from_utf8_lossy(&bytes[10..80]);
-        assert!(header.contains("'descr': '<f4'") && header.contains("(2, 3, 4"), "{header}");
+        assert!(
+            header.contains("'descr': '<f4'") && header.contains("(2, 3, 4"),
+            "{header}"
+        );
         assert_eq!(read_npy(&path).unwrap(), (vec![2, 3, 4], data));
         assert!(write_npy(&path, &[5], &[1.0]).is_err());
     }

@@ -118,32 +118,6 @@ pub fn covariance(offsets: impl Iterator<Item = DVec3>) -> DMat3 {
     )
 }
 
-#[cfg(test)]
-mod tests {
-    use super::*;
-    use glam::DQuat;
-
-    #[test]
-    fn eigen_of_a_rotated_diagonal_matrix() {
-        let r = DMat3::from_quat(DQuat::from_euler(glam::EulerRot::XYZ, 0.3, -1.1, 0.7));
-        let d = DMat3::from_diagonal(DVec3::new(2.0, 1e-9, 0.5));
-        let e = sym_eigen(r * d * r.transpose());
-        let want = [1e-9, 0.5, 2.0];
-        for k in 0..3 {
-            assert!((e.values[k] - want[k]).abs() < 1e-12, "λ{k}: {} vs {}", e.values[k], want[k]);
-        }
-        assert!(e.vectors[0].dot(r.col(1)).abs() > 1.0 - 1e-12);
-        assert!(e.vectors[2].dot(r.col(0)).abs() > 1.0 - 1e-12);
-    }
-
-    #[test]
-    fn plane_fit_rejects_collinear_points() {
-        let line: Vec<DVec3> = (0..10).map(|i| DVec3::splat(i as f64)).collect();
-        assert!(fit_plane(&line).is_none());
-        assert!(fit_plane(&line[..2]).is_none());
-    }
-}
-
 /// Solves the `N × N` system `a · x = b` by Gaussian elimination with partial pivoting;
 /// `None` when a pivot is below `rel_tol` times the largest entry (near singular).
 pub fn solve<const N: usize>(mut a: [[f64; N]; N], mut b: [f64; N], rel_tol: f64) -> Option<[f64; N]> {
@@ -172,4 +146,35 @@ pub fn solve<const N: usize>(mut a: [[f64; N]; N], mut b: [f64; N], rel_tol: f64
         x[row] = (b[row] - s) / a[row][row];
     }
     x.iter().all(|v| v.is_finite()).then_some(x)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use glam::DQuat;
+
+    #[test]
+    fn eigen_of_a_rotated_diagonal_matrix() {
+        let r = DMat3::from_quat(DQuat::from_euler(glam::EulerRot::XYZ, 0.3, -1.1, 0.7));
+        let d = DMat3::from_diagonal(DVec3::new(2.0, 1e-9, 0.5));
+        let e = sym_eigen(r * d * r.transpose());
+        let want = [1e-9, 0.5, 2.0];
+        for k in 0..3 {
+            assert!(
+                (e.values[k] - want[k]).abs() < 1e-12,
+                "λ{k}: {} vs {}",
+                e.values[k],
+                want[k]
+            );
+        }
+        assert!(e.vectors[0].dot(r.col(1)).abs() > 1.0 - 1e-12);
+        assert!(e.vectors[2].dot(r.col(0)).abs() > 1.0 - 1e-12);
+    }
+
+    #[test]
+    fn plane_fit_rejects_collinear_points() {
+        let line: Vec<DVec3> = (0..10).map(|i| DVec3::splat(i as f64)).collect();
+        assert!(fit_plane(&line).is_none());
+        assert!(fit_plane(&line[..2]).is_none());
+    }
 }

@@ -49,18 +49,25 @@ pub fn synthesise(
     axis: TimeAxis,
     opt: &RenderOptions,
 ) -> Result<VirtualScan, TransientError> {
-    let pairs: Vec<Pair> = relay.points().into_iter().map(|x| Pair::confocal(x, relay.normal)).collect();
+    let pairs: Vec<Pair> = relay
+        .points()
+        .into_iter()
+        .map(|x| Pair::confocal(x, relay.normal))
+        .collect();
     let bins = axis.bins;
     let mut histograms = vec![0.0f32; pairs.len() * bins];
-    histograms.par_chunks_mut(bins).zip(pairs.par_iter()).for_each_init(
-        || vec![0.0f64; bins],
-        |buf, (out, pair)| {
-            render_pair(kernels, pair, &axis, opt, buf);
-            for (o, v) in out.iter_mut().zip(buf.iter()) {
-                *o = *v as f32;
-            }
-        },
-    );
+    histograms
+        .par_chunks_mut(bins)
+        .zip(pairs.par_iter())
+        .for_each_init(
+            || vec![0.0f64; bins],
+            |buf, (out, pair)| {
+                render_pair(kernels, pair, &axis, opt, buf);
+                for (o, v) in out.iter_mut().zip(buf.iter()) {
+                    *o = *v as f32;
+                }
+            },
+        );
     let mut set = TransientSet::new(axis)?;
     for (pair, h) in pairs.iter().zip(histograms.chunks(bins)) {
         set.push(*pair, h)?;

@@ -29,7 +29,9 @@ pub enum VolumeError {
         range: [f64; 2],
     },
     /// A voxel count is zero or absurdly large.
-    #[error("volume shape {shape:?} is out of range: each count must be 1..=4096 and the total at most 2^30 voxels")]
+    #[error(
+        "volume shape {shape:?} is out of range: each count must be 1..=4096 and the total at most 2^30 voxels"
+    )]
     Shape {
         /// The shape.
         shape: [usize; 3],

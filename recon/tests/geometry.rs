@@ -3,7 +3,9 @@
 //! removed; thresholds, regions and the fitted virtual relay.
 use glam::{DVec2, DVec3};
 use periscope_recon::linalg::fit_plane;
-use periscope_recon::relay::{GeometryError, Region, Thresholds, VirtualRelay, estimate_normals, reject_isolated};
+use periscope_recon::relay::{
+    GeometryError, Region, Thresholds, VirtualRelay, estimate_normals, reject_isolated,
+};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
@@ -27,11 +29,21 @@ fn check_normals(name: &str, points: &[DVec3], truth: &[DVec3]) {
         let est = est.unwrap_or_else(|| panic!("{name}: point {i} has no normal"));
         let angle = est.normal.dot(*t).abs().min(1.0).acos().to_degrees();
         worst = worst.max(angle);
-        assert!(angle <= MAX_ANGLE_DEG, "{name}: point {i} at {:?}: {angle:.2}° > {MAX_ANGLE_DEG}°", points[i]);
+        assert!(
+            angle <= MAX_ANGLE_DEG,
+            "{name}: point {i} at {:?}: {angle:.2}° > {MAX_ANGLE_DEG}°",
+            points[i]
+        );
         // Orientation: toward the instrument.
-        assert!(est.normal.dot(VIEW - points[i]) > 0.0, "{name}: point {i} faces away from the instrument");
+        assert!(
+            est.normal.dot(VIEW - points[i]) > 0.0,
+            "{name}: point {i} faces away from the instrument"
+        );
     }
-    assert!(worst > 0.0 || name == "plane", "{name}: a curved surface cannot be exact");
+    assert!(
+        worst > 0.0 || name == "plane",
+        "{name}: a curved surface cannot be exact"
+    );
 }
 
 #[test]
@@ -69,9 +81,20 @@ fn cylinder_normals() {
 #[test]
 fn collinear_neighbourhoods_have_no_normal() {
     let line: Vec<DVec3> = (0..40).map(|i| DVec3::new(i as f64 * 0.01, 0.0, 0.0)).collect();
-    assert!(estimate_normals(&line, 8, VIEW).unwrap().iter().all(|n| n.is_none()));
-    assert!(matches!(estimate_normals(&line[..4], 8, VIEW), Err(GeometryError::TooFewPoints { .. })));
-    assert!(matches!(estimate_normals(&line, 2, VIEW), Err(GeometryError::OutOfRange { .. })));
+    assert!(
+        estimate_normals(&line, 8, VIEW)
+            .unwrap()
+            .iter()
+            .all(|n| n.is_none())
+    );
+    assert!(matches!(
+        estimate_normals(&line[..4], 8, VIEW),
+        Err(GeometryError::TooFewPoints { .. })
+    ));
+    assert!(matches!(
+        estimate_normals(&line, 2, VIEW),
+        Err(GeometryError::OutOfRange { .. })
+    ));
     let mut bad = line.clone();
     bad[7].y = f64::NAN;
     assert_eq!(
@@ -86,19 +109,31 @@ fn collinear_neighbourhoods_have_no_normal() {
 #[test]
 fn isolated_points_are_rejected() {
     let (mut points, _) = sample(3000, 4, |a, b| (DVec3::new(a - 0.5, b - 0.5, 0.0), DVec3::Z));
-    let outliers = [DVec3::new(0.0, 0.0, 0.4), DVec3::new(2.0, 0.0, 0.0), DVec3::new(-0.3, 0.3, -0.5)];
+    let outliers = [
+        DVec3::new(0.0, 0.0, 0.4),
+        DVec3::new(2.0, 0.0, 0.0),
+        DVec3::new(-0.3, 0.3, -0.5),
+    ];
     points.extend(outliers);
     let keep = reject_isolated(&points, 8, 3.0).unwrap();
     let n = points.len();
     assert!(keep[n - 3..].iter().all(|k| !k), "outliers kept");
     let dropped = keep[..n - 3].iter().filter(|k| !**k).count();
-    assert!(dropped <= 30, "{dropped} surface points of 3000 dropped (allowed 1 %)");
+    assert!(
+        dropped <= 30,
+        "{dropped} surface points of 3000 dropped (allowed 1 %)"
+    );
 }
 
 #[test]
 fn thresholds_and_regions_select_points() {
     let origin = DVec3::new(0.0, 0.0, 2.0);
-    let points = [DVec3::ZERO, DVec3::new(0.0, 0.0, -5.0), DVec3::new(0.1, 0.0, 0.0), DVec3::splat(f64::NAN)];
+    let points = [
+        DVec3::ZERO,
+        DVec3::new(0.0, 0.0, -5.0),
+        DVec3::new(0.1, 0.0, 0.0),
+        DVec3::splat(f64::NAN),
+    ];
     let intensity = [1.0, 1.0, 0.01, 1.0];
     let t = Thresholds {
         min_depth: 1.0,
@@ -109,7 +144,11 @@ fn thresholds_and_regions_select_points() {
     let plane = fit_plane(&[DVec3::ZERO, DVec3::X, DVec3::Y, DVec3::ONE.with_z(0.0)]).unwrap();
     let tri = Region::Polygon {
         plane,
-        vertices: vec![DVec2::new(-1.0, -1.0), DVec2::new(1.0, -1.0), DVec2::new(0.0, 1.0)],
+        vertices: vec![
+            DVec2::new(-1.0, -1.0),
+            DVec2::new(1.0, -1.0),
+            DVec2::new(0.0, 1.0),
+        ],
     };
     assert!(tri.contains(0, plane.centre));
     assert!(!tri.contains(0, plane.centre + plane.u * 0.9 + plane.v * 0.9));
@@ -121,15 +160,28 @@ fn virtual_relay_fits_a_tilted_wall() {
     let u = DVec3::X;
     let v = n.cross(u);
     let centre = DVec3::new(0.05, 0.1, -0.02);
-    let (points, _) = sample(2000, 5, |a, b| (centre + u * (a - 0.5) * 1.2 + v * (b - 0.5) * 0.8, n));
+    let (points, _) = sample(2000, 5, |a, b| {
+        (centre + u * (a - 0.5) * 1.2 + v * (b - 0.5) * 0.8, n)
+    });
     let relay = VirtualRelay::fitted(&points, VIEW, None, [64, 48]).unwrap();
-    assert!(relay.normal.dot(n) > (0.1f64).to_radians().cos(), "normal {:?}", relay.normal);
+    assert!(
+        relay.normal.dot(n) > (0.1f64).to_radians().cos(),
+        "normal {:?}",
+        relay.normal
+    );
     assert!(relay.u.dot(DVec3::X) > 0.999, "columns along x: {:?}", relay.u);
     assert!(relay.centre.distance(centre) < 0.02, "centre {:?}", relay.centre);
-    assert!((relay.size[0] - 1.2).abs() < 0.02 && (relay.size[1] - 0.8).abs() < 0.02, "size {:?}", relay.size);
+    assert!(
+        (relay.size[0] - 1.2).abs() < 0.02 && (relay.size[1] - 0.8).abs() < 0.02,
+        "size {:?}",
+        relay.size
+    );
     let grid = relay.points();
     assert_eq!(grid.len(), 64 * 48);
-    assert!(grid.iter().all(|p| (*p - relay.centre).dot(relay.normal).abs() < 1e-12));
+    assert!(
+        grid.iter()
+            .all(|p| (*p - relay.centre).dot(relay.normal).abs() < 1e-12)
+    );
     // Facing the viewpoint even when the fit's sign comes out the other way.
     let behind = VirtualRelay::fitted(&points, -VIEW, None, [4, 4]).unwrap();
     assert!(behind.normal.dot(n) < -0.999);
@@ -150,7 +202,10 @@ fn noisy_plane_normals() {
         }
     }
     let normals = estimate_normals(&points, NEIGHBOURS, VIEW).unwrap();
-    let mut angles: Vec<f64> = normals.iter().map(|n| n.unwrap().normal.dot(DVec3::Z).min(1.0).acos().to_degrees()).collect();
+    let mut angles: Vec<f64> = normals
+        .iter()
+        .map(|n| n.unwrap().normal.dot(DVec3::Z).min(1.0).acos().to_degrees())
+        .collect();
     angles.sort_by(f64::total_cmp);
     let (p95, worst) = (angles[angles.len() * 95 / 100], angles[angles.len() - 1]);
     eprintln!("noisy plane: p95 {p95:.2}°, worst {worst:.2}°");

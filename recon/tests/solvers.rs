@@ -54,7 +54,11 @@ fn scatter(set: &mut TransientSet, pairs: &[Pair], points: &[(DVec3, f64)]) {
 }
 
 fn confocal_pairs(relay: &VirtualRelay) -> Vec<Pair> {
-    relay.points().into_iter().map(|x| Pair::confocal(x, relay.normal)).collect()
+    relay
+        .points()
+        .into_iter()
+        .map(|x| Pair::confocal(x, relay.normal))
+        .collect()
 }
 
 fn assert_peak_at(volume: &Volume, truth: DVec3, who: &str) {
@@ -77,7 +81,11 @@ fn confocal_point_set(axis: TimeAxis) -> TransientSet {
 #[test]
 fn lct_finds_a_point_scatterer() {
     let set = confocal_point_set(axis());
-    assert_peak_at(&lct(&set, &grid(), &LctSettings::default()).unwrap(), POINT, "LCT");
+    assert_peak_at(
+        &lct(&set, &grid(), &LctSettings::default()).unwrap(),
+        POINT,
+        "LCT",
+    );
 }
 
 #[test]
@@ -88,13 +96,21 @@ fn lct_handles_an_offset_time_axis() {
     a.start = 0.3037;
     a.bins = 280;
     let set = confocal_point_set(a);
-    assert_peak_at(&lct(&set, &grid(), &LctSettings::default()).unwrap(), POINT, "LCT, offset axis");
+    assert_peak_at(
+        &lct(&set, &grid(), &LctSettings::default()).unwrap(),
+        POINT,
+        "LCT, offset axis",
+    );
 }
 
 #[test]
 fn rsd_finds_a_point_scatterer_confocal() {
     let set = confocal_point_set(axis());
-    assert_peak_at(&rsd(&set, &grid(), &RsdSettings::default()).unwrap(), POINT, "RSD confocal");
+    assert_peak_at(
+        &rsd(&set, &grid(), &RsdSettings::default()).unwrap(),
+        POINT,
+        "RSD confocal",
+    );
 }
 
 #[test]
@@ -112,7 +128,11 @@ fn rsd_finds_a_point_scatterer_non_confocal() {
     }
     let mut set = TransientSet::new(axis()).unwrap();
     scatter(&mut set, &pairs, &[(POINT, 1.0)]);
-    assert_peak_at(&rsd(&set, &grid(), &RsdSettings::default()).unwrap(), POINT, "RSD non-confocal");
+    assert_peak_at(
+        &rsd(&set, &grid(), &RsdSettings::default()).unwrap(),
+        POINT,
+        "RSD non-confocal",
+    );
 }
 
 /// Random non-confocal pairs on an S-shaped relay z = 0.06·sin(2πx).
@@ -124,7 +144,9 @@ fn curved_pairs(n: usize) -> Vec<Pair> {
     };
     let mut state = 12345u64;
     let mut rand = move || {
-        state = state.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+        state = state
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
         ((state >> 11) as f64 / (1u64 << 53) as f64) - 0.5
     };
     (0..n)
@@ -140,20 +162,33 @@ fn curved_pairs(n: usize) -> Vec<Pair> {
 fn fbp_finds_a_point_scatterer_on_a_curved_relay() {
     let mut set = TransientSet::new(axis()).unwrap();
     scatter(&mut set, &curved_pairs(1500), &[(POINT, 1.0)]);
-    assert_peak_at(&fbp(&set, &grid(), &FbpSettings::default()).unwrap(), POINT, "FBP non-confocal");
+    assert_peak_at(
+        &fbp(&set, &grid(), &FbpSettings::default()).unwrap(),
+        POINT,
+        "FBP non-confocal",
+    );
 }
 
 #[test]
 fn fbp_finds_a_point_scatterer_confocal() {
     let set = confocal_point_set(axis());
-    assert_peak_at(&fbp(&set, &grid(), &FbpSettings::default()).unwrap(), POINT, "FBP confocal");
+    assert_peak_at(
+        &fbp(&set, &grid(), &FbpSettings::default()).unwrap(),
+        POINT,
+        "FBP confocal",
+    );
 }
 
 /// A 24 × 24 cm square of point scatterers 1 cm apart at z = `depth`.
 fn patch(depth: f64) -> Vec<(DVec3, f64)> {
     (0..25)
         .flat_map(|i| (0..25).map(move |j| (i, j)))
-        .map(|(i, j)| (DVec3::new(-0.12 + 0.01 * i as f64, -0.12 + 0.01 * j as f64, depth), 1.0))
+        .map(|(i, j)| {
+            (
+                DVec3::new(-0.12 + 0.01 * i as f64, -0.12 + 0.01 * j as f64, depth),
+                1.0,
+            )
+        })
         .collect()
 }
 
@@ -185,8 +220,16 @@ fn planar_patch_gives_a_flat_depth_map() {
         }
         errors.sort_by(f64::total_cmp);
         let (median, worst) = (errors[errors.len() / 2], errors[errors.len() - 1]);
-        assert!(worst <= voxel.z, "{who}: worst depth error {worst:.4} m > {:.4} m", voxel.z);
-        assert!(median <= voxel.z / 3.0, "{who}: median depth error {median:.4} m > {:.4} m", voxel.z / 3.0);
+        assert!(
+            worst <= voxel.z,
+            "{who}: worst depth error {worst:.4} m > {:.4} m",
+            voxel.z
+        );
+        assert!(
+            median <= voxel.z / 3.0,
+            "{who}: median depth error {median:.4} m > {:.4} m",
+            voxel.z / 3.0
+        );
         // Far from the patch, the map is masked.
         assert!(map.depth[0].is_nan(), "{who}: corner pixel should be masked");
     }
@@ -196,7 +239,12 @@ fn planar_patch_gives_a_flat_depth_map() {
 fn synthesis_then_lct_finds_a_small_gaussian() {
     let relay = wall(32);
     let g = grid();
-    let kernels = [Kernel::new(POINT, glam::DMat3::IDENTITY, DVec3::splat(0.004), 1.0)];
+    let kernels = [Kernel::new(
+        POINT,
+        glam::DMat3::IDENTITY,
+        DVec3::splat(0.004),
+        1.0,
+    )];
     let axis = default_axis(&relay, &g, 256);
     let scan = synthesise(&kernels, &relay, axis, &RenderOptions::default()).unwrap();
     let frame = lct_frame(&scan.set, &scan.scan, &LctSettings::default()).unwrap();
@@ -208,8 +256,14 @@ fn solvers_reject_unsuitable_data() {
     let mut set = TransientSet::new(axis()).unwrap();
     scatter(&mut set, &curved_pairs(200), &[(POINT, 1.0)]);
     let g = grid();
-    assert!(matches!(lct(&set, &g, &LctSettings::default()), Err(SolverError::NotConfocal { .. })));
-    assert!(matches!(rsd(&set, &g, &RsdSettings::default()), Err(SolverError::NotPlanar { .. })));
+    assert!(matches!(
+        lct(&set, &g, &LctSettings::default()),
+        Err(SolverError::NotConfocal { .. })
+    ));
+    assert!(matches!(
+        rsd(&set, &g, &RsdSettings::default()),
+        Err(SolverError::NotPlanar { .. })
+    ));
     let empty = TransientSet::new(axis()).unwrap();
     assert_eq!(fbp(&empty, &g, &FbpSettings::default()), Err(SolverError::Empty));
     let bad = LctSettings {
@@ -219,7 +273,10 @@ fn solvers_reject_unsuitable_data() {
     let err = lct(&confocal_point_set(axis()), &g, &bad).unwrap_err();
     assert!(err.to_string().contains("snr"), "{err}");
     // Points on a plane but scattered randomly: not a grid.
-    let random: Vec<DVec3> = curved_pairs(50).iter().map(|p| DVec3::new(p.xd.x, p.xd.y, 0.0)).collect();
+    let random: Vec<DVec3> = curved_pairs(50)
+        .iter()
+        .map(|p| DVec3::new(p.xd.x, p.xd.y, 0.0))
+        .collect();
     let err = PlanarScan::detect("test", &random, DVec3::Z, 1e-3).unwrap_err();
     assert!(matches!(err, SolverError::NotGrid { .. }), "{err}");
 }
@@ -243,6 +300,9 @@ fn detected_grid_matches_the_relay() {
     assert!(scan.relay.normal.dot(relay.normal) > 1.0 - 1e-12);
     for (i, p) in points.iter().enumerate() {
         let cell = scan.cells[i];
-        assert!(scan.relay.point(cell % 16, cell / 16).distance(*p) < 1e-9, "point {i}");
+        assert!(
+            scan.relay.point(cell % 16, cell / 16).distance(*p) < 1e-9,
+            "point {i}"
+        );
     }
 }

@@ -6,3 +6,16 @@
 //! `periscope-recon`, so reconstructions judged on simulated data are not the model
 //! tested against itself.
 #![warn(missing_docs)]
+
+pub mod bvh;
+pub mod detector;
+pub mod mesh;
+pub mod scene;
+pub mod shapes;
+pub mod transport;
+pub mod truth;
+
+pub use detector::{Detector, sample_counts};
+pub use mesh::Mesh;
+pub use scene::{RawScene, Scene, SceneError};
+pub use transport::{Instrument, SpotPair, SurfaceHit, World};

@@ -22,11 +22,31 @@ pub enum Backend {
     Hardware,
 }
 
-/// Settings only the simulated instrument uses.
+/// Settings only the simulated instrument uses: the scene it images and the optics a
+/// real instrument has physically (aperture, spot size, losses, ambient light).
 #[derive(Clone, Debug, PartialEq)]
 pub struct SimSettings {
     /// Seed for every random draw of the simulation (noise, sampling).
     pub seed: u64,
+    /// The scene file, resolved against the instrument config's folder; `None` uses
+    /// the built-in planar wall + letter scene.
+    pub scene: Option<std::path::PathBuf>,
+    /// Collection aperture diameter, metres.
+    pub aperture: f64,
+    /// Diameter of the laser and SPAD spots on the relay, metres.
+    pub spot: f64,
+    /// Optical transmission, 0..1.
+    pub transmission: f64,
+    /// Detected ambient background rate, Hz.
+    pub ambient_rate: f64,
+    /// Half angle of the LOS diffuser's cone, radians.
+    pub diffuser_half_angle: f64,
+    /// Gate opening after the direct path, path length in metres; `None` = ungated.
+    pub gate_margin: Option<f64>,
+    /// Model pile-up and dead time.
+    pub pile_up: bool,
+    /// Spacing of the hidden-surface samples, metres.
+    pub sample_spacing: f64,
 }
 
 /// A validated instrument config.
@@ -224,6 +244,97 @@ fn default_sync_divider() -> u32 {
 struct RawSim {
     #[serde(default)]
     seed: u64,
+    scene: Option<std::path::PathBuf>,
+    #[serde(default = "default_aperture_mm")]
+    aperture_mm: f64,
+    #[serde(default = "default_spot_mm")]
+    spot_mm: f64,
+    #[serde(default = "default_transmission")]
+    transmission: f64,
+    #[serde(default)]
+    ambient_rate_hz: f64,
+    #[serde(default = "default_diffuser_deg")]
+    diffuser_half_angle_deg: f64,
+    #[serde(default = "default_true")]
+    gate: bool,
+    #[serde(default = "default_gate_mm")]
+    gate_margin_mm: f64,
+    #[serde(default)]
+    pile_up: bool,
+    #[serde(default = "default_spacing_mm")]
+    sample_spacing_mm: f64,
+}
+
+fn default_aperture_mm() -> f64 {
+    10.0
+}
+fn default_spot_mm() -> f64 {
+    5.0
+}
+fn default_transmission() -> f64 {
+    0.5
+}
+fn default_diffuser_deg() -> f64 {
+    25.0
+}
+fn default_gate_mm() -> f64 {
+    100.0
+}
+fn default_true() -> bool {
+    true
+}
+fn default_spacing_mm() -> f64 {
+    5.0
+}
+
+impl Default for RawSim {
+    fn default() -> Self {
+        toml::from_str("").expect("every [sim] key has a default")
+    }
+}
+
+fn sim_settings(check: &Check<'_>, raw: RawSim) -> Result<SimSettings, ConfigError> {
+    let base = check.src.path().parent().unwrap_or(Path::new("."));
+    let mut scene = raw.scene.map(|p| base.join(p));
+    // A config held in memory (the built-in default) has no folder to resolve against:
+    // a scene that cannot be found there means the built-in scene.
+    if !check.src.path().is_file() && scene.as_ref().is_some_and(|p| !p.is_file()) {
+        scene = None;
+    }
+    if let Some(path) = &scene
+        && !path.is_file()
+    {
+        return Err(check.src.invalid(
+            "sim.scene",
+            format!(
+                "scene file {} does not exist: give a path relative to this config",
+                path.display()
+            ),
+        ));
+    }
+    Ok(SimSettings {
+        seed: raw.seed,
+        scene,
+        aperture: check.positive("sim.aperture-mm", raw.aperture_mm, 1e3, "mm")? * 1e-3,
+        spot: check.positive("sim.spot-mm", raw.spot_mm, 1e3, "mm")? * 1e-3,
+        transmission: check.positive("sim.transmission", raw.transmission, 1.0, "(a fraction)")?,
+        ambient_rate: check.range("sim.ambient-rate-hz", raw.ambient_rate_hz, 0.0, 1e9, "Hz")?,
+        diffuser_half_angle: check
+            .range(
+                "sim.diffuser-half-angle-deg",
+                raw.diffuser_half_angle_deg,
+                0.1,
+                90.0,
+                "degrees",
+            )?
+            .to_radians(),
+        gate_margin: match raw.gate {
+            true => Some(check.range("sim.gate-margin-mm", raw.gate_margin_mm, 0.0, 1e5, "mm")? * 1e-3),
+            false => None,
+        },
+        pile_up: raw.pile_up,
+        sample_spacing: check.range("sim.sample-spacing-mm", raw.sample_spacing_mm, 0.5, 100.0, "mm")? * 1e-3,
+    })
 }
 
 /// Checks one numeric field against a range and reports it against its key.
@@ -306,9 +417,7 @@ impl InstrumentConfig {
         let tdc = tdc_settings(&check, raw.tdc, hardware)?;
         let backend = match raw.backend {
             RawBackend::Hardware => Backend::Hardware,
-            RawBackend::Sim => Backend::Sim(SimSettings {
-                seed: raw.sim.map_or(0, |s| s.seed),
-            }),
+            RawBackend::Sim => Backend::Sim(sim_settings(&check, raw.sim.unwrap_or_default())?),
         };
         Ok(Self {
             name: raw.name,

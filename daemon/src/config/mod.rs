@@ -5,11 +5,13 @@
 //! cannot hold an invalid value. Both stages report problems through [`ConfigError`],
 //! which names the file, the line and the dotted key, and says what to do.
 mod instrument;
+mod scene;
 mod source;
 
 pub use instrument::{
     Backend, GalvoArm, InstrumentConfig, LaserSettings, SerialLink, SimSettings, SpadSettings, TdcSettings,
 };
+pub use scene::{DEFAULT_SCENE, load_scene, scene_from_source, sim_scene};
 pub use source::{ConfigError, TomlSource};
 
 /// The instrument config used when none is given: the simulated instrument.

@@ -17,7 +17,9 @@ pub use virtual_relay::VirtualRelay;
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum GeometryError {
     /// Too few points for the requested neighbourhood size.
-    #[error("{points} relay points are too few for {needed} neighbours: lower the neighbour count or scan more points")]
+    #[error(
+        "{points} relay points are too few for {needed} neighbours: lower the neighbour count or scan more points"
+    )]
     TooFewPoints {
         /// Points available.
         points: usize,

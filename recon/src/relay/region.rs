@@ -91,9 +91,16 @@ mod tests {
         // An L shape.
         let l = Region::Polygon {
             plane,
-            vertices: [(0.0, 0.0), (2.0, 0.0), (2.0, 1.0), (1.0, 1.0), (1.0, 2.0), (0.0, 2.0)]
-                .map(|(x, y)| DVec2::new(x, y))
-                .to_vec(),
+            vertices: [
+                (0.0, 0.0),
+                (2.0, 0.0),
+                (2.0, 1.0),
+                (1.0, 1.0),
+                (1.0, 2.0),
+                (0.0, 2.0),
+            ]
+            .map(|(x, y)| DVec2::new(x, y))
+            .to_vec(),
         };
         assert!(l.contains(0, DVec3::new(0.5, 1.5, 3.0)));
         assert!(!l.contains(0, DVec3::new(1.5, 1.5, 0.0)));

@@ -44,17 +44,27 @@ impl VirtualRelay {
         if !centre.is_finite() {
             return Err(bad("centre", format!("{centre:?}"), "a finite position"));
         }
-        let normal = normal.try_normalize().ok_or_else(|| {
-            bad("normal", format!("{normal:?}"), "a finite, non-zero direction")
-        })?;
-        let u = (u_hint - normal * u_hint.dot(normal)).try_normalize().ok_or_else(|| {
-            bad("u", format!("{u_hint:?}"), "a direction not parallel to the normal")
-        })?;
+        let normal = normal
+            .try_normalize()
+            .ok_or_else(|| bad("normal", format!("{normal:?}"), "a finite, non-zero direction"))?;
+        let u = (u_hint - normal * u_hint.dot(normal))
+            .try_normalize()
+            .ok_or_else(|| {
+                bad(
+                    "u",
+                    format!("{u_hint:?}"),
+                    "a direction not parallel to the normal",
+                )
+            })?;
         if !size.iter().all(|s| s.is_finite() && *s > 0.0) {
             return Err(bad("size", format!("{size:?}"), "two positive lengths in metres"));
         }
         if resolution.iter().any(|&r| r < 2) {
-            return Err(bad("resolution", format!("{resolution:?}"), "at least 2 points per axis"));
+            return Err(bad(
+                "resolution",
+                format!("{resolution:?}"),
+                "at least 2 points per axis",
+            ));
         }
         Ok(Self {
             centre,
@@ -76,9 +86,7 @@ impl VirtualRelay {
         resolution: [usize; 2],
     ) -> Result<Self, GeometryError> {
         check_finite(points)?;
-        let plane = fit_plane(points).ok_or(GeometryError::NoPlane {
-            points: points.len(),
-        })?;
+        let plane = fit_plane(points).ok_or(GeometryError::NoPlane { points: points.len() })?;
         let mut normal = plane.normal;
         if normal.dot(viewpoint - plane.centre) < 0.0 {
             normal = -normal;
@@ -94,7 +102,8 @@ impl VirtualRelay {
                 hi[a] = hi[a].max(t);
             }
         }
-        let centre = plane.centre + provisional.u * 0.5 * (lo[0] + hi[0]) + provisional.v * 0.5 * (lo[1] + hi[1]);
+        let centre =
+            plane.centre + provisional.u * 0.5 * (lo[0] + hi[0]) + provisional.v * 0.5 * (lo[1] + hi[1]);
         let size = size.unwrap_or([hi[0] - lo[0], hi[1] - lo[1]]);
         Self::new(centre, normal, provisional.u, size, resolution)
     }

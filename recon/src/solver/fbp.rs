@@ -54,7 +54,9 @@ pub fn fbp(set: &TransientSet, grid: &VolumeGrid, settings: &FbpSettings) -> Res
     let [nx, ny, _] = grid.shape;
     let voxel = grid.voxel();
     let min = grid.min();
-    let xs: Vec<f32> = (0..nx).map(|i| (min.x + (i as f64 + 0.5) * voxel.x) as f32).collect();
+    let xs: Vec<f32> = (0..nx)
+        .map(|i| (min.x + (i as f64 + 0.5) * voxel.x) as f32)
+        .collect();
     let inv_w = (1.0 / axis.width) as f32;
     let offset = (axis.start / axis.width + 0.5) as f32;
     let bins = axis.bins;
@@ -90,7 +92,9 @@ pub fn fbp(set: &TransientSet, grid: &VolumeGrid, settings: &FbpSettings) -> Res
                     for ((f, g), &x) in index.iter_mut().zip(gain.iter_mut()).zip(&xs) {
                         let ri2 = byi + (x - xi.x) * (x - xi.x);
                         let rd2 = byd + (x - xd.x) * (x - xd.x);
-                        *f = ((ri2.sqrt() + rd2.sqrt()) * inv_w - offset + 1.0).max(0.0).min(top);
+                        *f = ((ri2.sqrt() + rd2.sqrt()) * inv_w - offset + 1.0)
+                            .max(0.0)
+                            .min(top);
                         *g = ri2 * rd2;
                     }
                     if !settings.compensate_falloff {
@@ -124,9 +128,19 @@ fn negative_laplacian(v: &Volume) -> Volume {
             for ix in 0..nx {
                 let c = v.at(ix, iy, iz);
                 let pair = |a: f32, b: f32, w: f32| (2.0 * c - a - b) * w;
-                let lap = pair(v.at(ix.saturating_sub(1), iy, iz), v.at((ix + 1).min(nx - 1), iy, iz), inv[0])
-                    + pair(v.at(ix, iy.saturating_sub(1), iz), v.at(ix, (iy + 1).min(ny - 1), iz), inv[1])
-                    + pair(v.at(ix, iy, iz.saturating_sub(1)), v.at(ix, iy, (iz + 1).min(nz - 1)), inv[2]);
+                let lap = pair(
+                    v.at(ix.saturating_sub(1), iy, iz),
+                    v.at((ix + 1).min(nx - 1), iy, iz),
+                    inv[0],
+                ) + pair(
+                    v.at(ix, iy.saturating_sub(1), iz),
+                    v.at(ix, (iy + 1).min(ny - 1), iz),
+                    inv[1],
+                ) + pair(
+                    v.at(ix, iy, iz.saturating_sub(1)),
+                    v.at(ix, iy, (iz + 1).min(nz - 1)),
+                    inv[2],
+                );
                 slice[iy * nx + ix] = lap.max(0.0);
             }
         }

@@ -83,7 +83,9 @@ mod tests {
         let (ny, nx) = (6, 10);
         let fft = Fft2::new(ny, nx);
         let mut scratch = vec![Complex32::default(); fft.scratch_len()];
-        let original: Vec<Complex32> = (0..ny * nx).map(|i| Complex32::new(i as f32, -(i as f32) * 0.5)).collect();
+        let original: Vec<Complex32> = (0..ny * nx)
+            .map(|i| Complex32::new(i as f32, -(i as f32) * 0.5))
+            .collect();
         let mut buf = original.clone();
         fft.forward_transposed(&mut buf, &mut scratch);
         fft.inverse_from_transposed(&mut buf, &mut scratch);

@@ -101,7 +101,11 @@ fn confocal_scan(set: &TransientSet, tolerance: f64) -> Result<PlanarScan, Solve
 }
 
 /// LCT on the scan's own grid: a volume with one slice per bin, depth `(t + ½)·w/2`.
-pub fn lct_frame(set: &TransientSet, scan: &PlanarScan, settings: &LctSettings) -> Result<FrameVolume, SolverError> {
+pub fn lct_frame(
+    set: &TransientSet,
+    scan: &PlanarScan,
+    settings: &LctSettings,
+) -> Result<FrameVolume, SolverError> {
     settings.validate()?;
     let axis = *set.axis();
     let [nx, ny] = scan.relay.resolution;
@@ -141,7 +145,8 @@ pub fn lct_frame(set: &TransientSet, scan: &PlanarScan, settings: &LctSettings) 
             let mut input = vec![0.0f32; pt];
             input[..m].copy_from_slice(line);
             let mut out = r2c.make_output_vec();
-            r2c.process(&mut input, &mut out).expect("buffer lengths match the plan");
+            r2c.process(&mut input, &mut out)
+                .expect("buffer lengths match the plan");
             out
         })
         .collect();
@@ -208,7 +213,8 @@ pub fn lct_frame(set: &TransientSet, scan: &PlanarScan, settings: &LctSettings) 
             spectrum[0].im = 0.0;
             spectrum[m].im = 0.0;
             let mut out = c2r.make_output_vec();
-            c2r.process(&mut spectrum, &mut out).expect("buffer lengths match the plan");
+            c2r.process(&mut spectrum, &mut out)
+                .expect("buffer lengths match the plan");
             let q: Vec<f32> = out[..m].iter().map(|v| v * scale).collect();
             resample.inverse(&q).into_iter().map(|v| v.max(0.0)).collect()
         })

@@ -67,10 +67,18 @@ impl RsdSettings {
             return Err(bad("cycles", self.cycles, "at least 1"));
         }
         if !(self.spectral_cutoff > 0.0 && self.spectral_cutoff < 1.0) {
-            return Err(bad("spectral-cutoff", self.spectral_cutoff, "between 0 and 1, exclusive"));
+            return Err(bad(
+                "spectral-cutoff",
+                self.spectral_cutoff,
+                "between 0 and 1, exclusive",
+            ));
         }
         if !(self.grid_tolerance.is_finite() && self.grid_tolerance > 0.0) {
-            return Err(bad("grid-tolerance", self.grid_tolerance, "a positive length in metres"));
+            return Err(bad(
+                "grid-tolerance",
+                self.grid_tolerance,
+                "a positive length in metres",
+            ));
         }
         Ok(())
     }
@@ -151,12 +159,18 @@ pub fn rsd_frame(
         });
     }
 
-    let confocal = set.pairs().iter().all(|p| p.xi.distance(p.xd) <= settings.grid_tolerance);
+    let confocal = set
+        .pairs()
+        .iter()
+        .all(|p| p.xi.distance(p.xd) <= settings.grid_tolerance);
     // Illumination groups (one for confocal data: its phase lives in the kernel).
     let mut groups: Vec<(DVec3, Vec<usize>)> = Vec::new();
     for (i, p) in set.pairs().iter().enumerate() {
         let key = if confocal { DVec3::ZERO } else { p.xi };
-        match groups.iter_mut().find(|(x, _)| x.distance(key) <= settings.grid_tolerance) {
+        match groups
+            .iter_mut()
+            .find(|(x, _)| x.distance(key) <= settings.grid_tolerance)
+        {
             Some((_, members)) => members.push(i),
             None => groups.push((key, vec![i])),
         }
@@ -164,7 +178,10 @@ pub fn rsd_frame(
 
     let (px, py) = (2 * nx, 2 * ny);
     let plane = px * py;
-    check_memory("RSD", lines.len() * plane * 8 + depths * nx * ny * 8 + plane * 8 * 4 * rayon::current_num_threads())?;
+    check_memory(
+        "RSD",
+        lines.len() * plane * 8 + depths * nx * ny * 8 + plane * 8 * 4 * rayon::current_num_threads(),
+    )?;
     let fft = Fft2::new(py, px);
     let mut planner = RealFftPlanner::<f64>::new();
     let r2c = planner.plan_fft_forward(bins);
@@ -181,7 +198,8 @@ pub fn rsd_frame(
             .map(|h| {
                 let mut input: Vec<f64> = h.iter().map(|&v| v as f64).collect();
                 let mut out = r2c.make_output_vec();
-                r2c.process(&mut input, &mut out).expect("buffer lengths match the plan");
+                r2c.process(&mut input, &mut out)
+                    .expect("buffer lengths match the plan");
                 lines
                     .iter()
                     .map(|&(j, k, _)| out[j] * Complex::from_polar(1.0, -k * centre0))

@@ -40,12 +40,15 @@ impl PlanarScan {
                 tolerance_mm: tolerance * 1e3,
             });
         }
-        let normal = if plane.normal.dot(normal_hint) < 0.0 { -plane.normal } else { plane.normal };
+        let normal = if plane.normal.dot(normal_hint) < 0.0 {
+            -plane.normal
+        } else {
+            plane.normal
+        };
         let hint = if normal.x.abs() < 0.9 { DVec3::X } else { DVec3::Y };
         let frame = VirtualRelay::new(plane.centre, normal, hint, [1.0, 1.0], [2, 2])?;
-        let coords: [Vec<f64>; 2] = [frame.u, frame.v].map(|axis| {
-            points.iter().map(|p| (*p - plane.centre).dot(axis)).collect()
-        });
+        let coords: [Vec<f64>; 2] =
+            [frame.u, frame.v].map(|axis| points.iter().map(|p| (*p - plane.centre).dot(axis)).collect());
         let mut index = [vec![0usize; points.len()], vec![0usize; points.len()]];
         let mut lines = [(0.0, 0.0, 0usize); 2];
         for a in 0..2 {
@@ -55,7 +58,10 @@ impl PlanarScan {
                 if (f - f.round()).abs() > 0.25 {
                     return Err(SolverError::NotGrid {
                         what,
-                        detail: format!("point {i} is {:.2} spacings off the nearest grid line", (f - f.round()).abs()),
+                        detail: format!(
+                            "point {i} is {:.2} spacings off the nearest grid line",
+                            (f - f.round()).abs()
+                        ),
                     });
                 }
                 index[a][i] = f.round() as usize;
@@ -63,9 +69,19 @@ impl PlanarScan {
             lines[a] = (first, spacing, count);
         }
         let [(x0, sx, nx), (y0, sy, ny)] = lines;
-        let centre = plane.centre + frame.u * (x0 + 0.5 * (nx - 1) as f64 * sx) + frame.v * (y0 + 0.5 * (ny - 1) as f64 * sy);
-        let relay = VirtualRelay::new(centre, normal, frame.u, [nx as f64 * sx, ny as f64 * sy], [nx, ny])?;
-        let cells = (0..points.len()).map(|i| index[1][i] * nx + index[0][i]).collect();
+        let centre = plane.centre
+            + frame.u * (x0 + 0.5 * (nx - 1) as f64 * sx)
+            + frame.v * (y0 + 0.5 * (ny - 1) as f64 * sy);
+        let relay = VirtualRelay::new(
+            centre,
+            normal,
+            frame.u,
+            [nx as f64 * sx, ny as f64 * sy],
+            [nx, ny],
+        )?;
+        let cells = (0..points.len())
+            .map(|i| index[1][i] * nx + index[0][i])
+            .collect();
         Ok(Self { relay, cells })
     }
 }
@@ -128,7 +144,13 @@ pub(crate) fn gather_cube(
         let h = set.histogram(p);
         let w = set.weight(p);
         let row = &mut cube[cell * bins..(cell + 1) * bins];
-        let src = |b: isize| if b >= 0 && (b as usize) < h.len() { h[b as usize] } else { 0.0 };
+        let src = |b: isize| {
+            if b >= 0 && (b as usize) < h.len() {
+                h[b as usize]
+            } else {
+                0.0
+            }
+        };
         for (t, out) in row.iter_mut().enumerate() {
             let b = t as isize + whole;
             *out += w * ((1.0 - frac) * src(b) + frac * src(b + 1));
@@ -137,7 +159,9 @@ pub(crate) fn gather_cube(
     }
     for (cell, &n) in count.iter().enumerate() {
         if n > 1 {
-            cube[cell * bins..(cell + 1) * bins].iter_mut().for_each(|v| *v /= n as f32);
+            cube[cell * bins..(cell + 1) * bins]
+                .iter_mut()
+                .for_each(|v| *v /= n as f32);
         }
     }
     cube

@@ -1,0 +1,165 @@
+//! The detector model: photon budget, timing jitter, dark counts and ambient light,
+//! gating, pile-up and dead time, and Poisson noise. Turns the transport's photon
+//! arrivals (per pulse, in TDC time) into the histogram a TDC would report.
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
+use rand_distr::{Distribution, Poisson};
+
+/// Speed of light, m/s.
+pub const C0: f64 = 299_792_458.0;
+
+/// Photon energy constant h·c, J·m.
+const HC: f64 = 6.626_070_15e-34 * C0;
+
+/// Oversampling of the arrival histogram before the jitter convolution.
+pub(crate) const OVERSAMPLE: usize = 4;
+
+/// Everything that sets what a pixel's histogram looks like besides the scene.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Detector {
+    /// TDC bin width, seconds.
+    pub bin_width: f64,
+    /// Number of bins.
+    pub bins: usize,
+    /// TDC time of the start of bin 0, seconds.
+    pub offset: f64,
+    /// Fixed delay added to every arrival (cables, electronics), seconds.
+    pub system_delay: f64,
+    /// Combined timing jitter (laser, SPAD, TDC), full width at half maximum, seconds.
+    pub jitter_fwhm: f64,
+    /// SPAD photon detection efficiency, 0..1.
+    pub efficiency: f64,
+    /// Dark count rate, Hz.
+    pub dark_count_rate: f64,
+    /// Ambient background count rate at the detector (already detected), Hz.
+    pub ambient_rate: f64,
+    /// Dead time, seconds (non-paralysable, applied with pile-up).
+    pub dead_time: f64,
+    /// Laser average power, W.
+    pub laser_power: f64,
+    /// Laser wavelength, m.
+    pub wavelength: f64,
+    /// Pulse repetition rate, Hz.
+    pub repetition_rate: f64,
+    /// Collection aperture area, m².
+    pub aperture_area: f64,
+    /// Area of the relay spot the SPAD sees (and the laser spot's size), m².
+    pub spot_area: f64,
+    /// Solid angle the LOS diffuser spreads the laser into, sr.
+    pub diffuser_solid_angle: f64,
+    /// Overall optical transmission (filters, lenses, galvo mirrors), 0..1.
+    pub transmission: f64,
+    /// Gate: photons arriving before the pair's direct path plus this path-length
+    /// margin (metres) are blocked; `None` = no gating.
+    pub gate_margin: Option<f64>,
+    /// Model pile-up (Coates) and dead time.
+    pub pile_up: bool,
+}
+
+impl Detector {
+    /// Photons per laser pulse.
+    pub fn photons_per_pulse(&self) -> f64 {
+        self.laser_power / self.repetition_rate / (HC / self.wavelength)
+    }
+
+    /// Pulses during `dwell` seconds.
+    pub fn pulses(&self, dwell: f64) -> f64 {
+        dwell * self.repetition_rate
+    }
+
+    /// Fractional bin of an arrival with total path length `path` (metres).
+    pub fn bin_of_path(&self, path: f64) -> f64 {
+        (path / C0 + self.system_delay - self.offset) / self.bin_width
+    }
+
+    /// Jitter standard deviation in bins.
+    fn sigma_bins(&self) -> f64 {
+        self.jitter_fwhm / (2.0 * (2.0 * std::f64::consts::LN_2).sqrt()) / self.bin_width
+    }
+
+    /// Convolves an oversampled arrival histogram (photons per pulse, `OVERSAMPLE`
+    /// sub-bins per bin) with the Gaussian jitter integrated over each output bin.
+    pub(crate) fn blur(&self, fine: &[f64]) -> Vec<f64> {
+        let mut out = vec![0.0; self.bins];
+        let sigma = self.sigma_bins().max(1e-6);
+        let reach = (5.0 * sigma).ceil() as isize + 1;
+        // Kernel weight for a sub-bin centred at offset `d` (bins) from an output bin's
+        // lower edge: Φ((1 − d)/σ) − Φ(−d/σ).
+        let cdf = |z: f64| 0.5 * libm::erfc(-z / std::f64::consts::SQRT_2);
+        let taps: Vec<f64> = (-(reach * OVERSAMPLE as isize)..=(reach * OVERSAMPLE as isize))
+            .map(|k| {
+                let d = (k as f64 + 0.5) / OVERSAMPLE as f64;
+                cdf((1.0 - d) / sigma) - cdf(-d / sigma)
+            })
+            .collect();
+        let half = reach * OVERSAMPLE as isize;
+        for (j, &v) in fine.iter().enumerate() {
+            if v == 0.0 {
+                continue;
+            }
+            // Sub-bin j sits at d = j/OVERSAMPLE − b (+ half a sub-bin) from bin b.
+            let sub = j as isize;
+            let b_lo = (sub - half).div_euclid(OVERSAMPLE as isize).max(0);
+            let b_hi = ((sub + half).div_euclid(OVERSAMPLE as isize) + 1).min(self.bins as isize - 1);
+            for b in b_lo..=b_hi {
+                let k = sub - b * OVERSAMPLE as isize;
+                if let Some(w) = taps.get((k + half) as usize) {
+                    out[b as usize] += v * w;
+                }
+            }
+        }
+        out
+    }
+
+    /// Expected counts per bin over `dwell`, from the signal photons per pulse arriving
+    /// in each bin (before efficiency) and the bin where the gate opens.
+    pub fn expected_counts(&self, signal: &[f64], gate_bin: Option<f64>, dwell: f64) -> Vec<f64> {
+        let noise = (self.dark_count_rate + self.ambient_rate) * self.bin_width;
+        let mut rate: Vec<f64> = signal
+            .iter()
+            .map(|s| self.efficiency * self.transmission * s + noise)
+            .collect();
+        if let Some(g) = gate_bin {
+            for (b, r) in rate.iter_mut().enumerate() {
+                // Fraction of the bin after the gate opens.
+                *r *= (b as f64 + 1.0 - g).clamp(0.0, 1.0);
+            }
+        }
+        let pulses = self.pulses(dwell);
+        if !self.pile_up {
+            return rate.iter().map(|r| r * pulses).collect();
+        }
+        // Coates: the first detection in a cycle is the one recorded.
+        let mut survive = 1.0;
+        let mut out: Vec<f64> = rate
+            .iter()
+            .map(|&r| {
+                let p = survive * (1.0 - (-r).exp());
+                survive *= (-r).exp();
+                p * pulses
+            })
+            .collect();
+        // Non-paralysable dead time on the total count rate.
+        let total_rate: f64 = out.iter().sum::<f64>() / dwell.max(1e-12);
+        let loss = 1.0 / (1.0 + total_rate * self.dead_time);
+        out.iter_mut().for_each(|v| *v *= loss);
+        out
+    }
+}
+
+/// Poisson draws of `expected`, reproducible from `seed` and `stream` (e.g. the pair
+/// index), independent of thread count.
+pub fn sample_counts(expected: &[f64], seed: u64, stream: u64) -> Vec<u32> {
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    rng.set_stream(stream);
+    expected
+        .iter()
+        .map(|&l| {
+            if l > 0.0 && l.is_finite() {
+                Poisson::new(l).map_or(0, |p| p.sample(&mut rng).min(u32::MAX as f64) as u32)
+            } else {
+                0
+            }
+        })
+        .collect()
+}

@@ -1,0 +1,247 @@
+//! The simulator's physics against closed-form expectations: a small patch's return
+//! sits at its path length with the 1/(di² dd²) falloff and all four cosines, mirror
+//! scenes give mirror transients, noise is Poisson, seeds reproduce, the LOS return
+//! locates the relay, the gate removes the direct return, pile-up only removes counts.
+use glam::DVec3;
+use periscope_sim::detector::C0;
+use periscope_sim::scene::ShapeKind;
+use periscope_sim::scene::Surface;
+use periscope_sim::{Detector, Instrument, Mesh, Scene, SpotPair, SurfaceHit, World, sample_counts, shapes};
+
+fn detector() -> Detector {
+    Detector {
+        bin_width: 16e-12,
+        bins: 1024,
+        offset: 10e-9,
+        system_delay: 0.0,
+        jitter_fwhm: 60e-12,
+        efficiency: 0.3,
+        dark_count_rate: 100.0,
+        ambient_rate: 0.0,
+        dead_time: 50e-9,
+        laser_power: 0.4,
+        wavelength: 532e-9,
+        repetition_rate: 10e6,
+        aperture_area: 2e-4,
+        spot_area: 2e-5,
+        diffuser_solid_angle: 0.6,
+        transmission: 0.5,
+        gate_margin: Some(0.1),
+        pile_up: false,
+    }
+}
+
+const INST: Instrument = Instrument {
+    laser: DVec3::new(-0.1, 0.0, 2.0),
+    spad: DVec3::new(0.1, 0.0, 2.0),
+};
+
+fn scene(hidden: Vec<Mesh>) -> Scene {
+    Scene {
+        name: "test".into(),
+        relay: Surface {
+            label: "relay".into(),
+            shape: ShapeKind::Plane,
+            mesh: shapes::plane([2.0, 2.0]),
+            albedo: 0.8,
+        },
+        hidden: hidden
+            .into_iter()
+            .enumerate()
+            .map(|(i, mesh)| Surface {
+                label: format!("hidden[{i}]"),
+                shape: ShapeKind::Mesh,
+                mesh,
+                albedo: 0.9,
+            })
+            .collect(),
+    }
+}
+
+fn spot(x: f64, y: f64) -> SurfaceHit {
+    SurfaceHit {
+        point: DVec3::new(x, y, 0.0),
+        normal: DVec3::Z,
+        albedo: 0.8,
+        distance: 2.0,
+        on_relay: true,
+    }
+}
+
+/// A 1 cm patch at `centre`, facing −z (toward the relay).
+fn patch(centre: DVec3) -> Mesh {
+    Mesh::rectangle([-0.005, 0.005], [-0.005, 0.005]).transformed(glam::DMat3::IDENTITY, centre)
+}
+
+fn hidden_only(det: &Detector) -> Detector {
+    Detector {
+        dark_count_rate: 0.0,
+        ambient_rate: 0.0,
+        ..*det
+    }
+}
+
+#[test]
+fn a_small_patch_returns_at_its_path_length_with_the_expected_falloff() {
+    let centre = DVec3::new(0.1, -0.05, 0.6);
+    let world = World::new(scene(vec![patch(centre)]), 0.001, 1);
+    let det = hidden_only(&detector());
+    let pairs = [
+        SpotPair {
+            illumination: spot(-0.2, 0.1),
+            detection: spot(0.3, -0.2),
+        },
+        SpotPair {
+            illumination: spot(0.5, 0.4),
+            detection: spot(-0.4, 0.3),
+        },
+    ];
+    let counts = world.third_bounce(&INST, &pairs, &det, 1.0);
+    let mut totals = Vec::new();
+    for (pair, h) in pairs.iter().zip(&counts) {
+        let (xi, xd) = (pair.illumination.point, pair.detection.point);
+        let path =
+            INST.laser.distance(xi) + xi.distance(centre) + centre.distance(xd) + xd.distance(INST.spad);
+        let total: f64 = h.iter().sum();
+        let mean_bin = h
+            .iter()
+            .enumerate()
+            .map(|(b, v)| (b as f64 + 0.5) * v)
+            .sum::<f64>()
+            / total;
+        let mean_path = (mean_bin * det.bin_width + det.offset) * C0;
+        assert!(total > 0.0, "no hidden return");
+        // The patch is 1 cm wide, so its own spread of path lengths is < 1 mm about the
+        // centre's; the detector keeps the mean arrival exactly.
+        assert!((mean_path - path).abs() < 1e-3, "mean path {mean_path} vs {path}");
+        let (a, b) = (centre - xi, centre - xd);
+        let geometry = a.z / a.length() * b.z / b.length() * (a.z / a.length()) * (b.z / b.length())
+            / (a.length_squared() * b.length_squared());
+        totals.push((total, geometry, xd));
+    }
+    // Ratio of totals = ratio of geometry × the SPAD collection at each detection spot.
+    let collect = |xd: DVec3| {
+        let s = INST.spad - xd;
+        s.z / s.length() / s.length_squared()
+    };
+    let measured = totals[0].0 / totals[1].0;
+    let expected = totals[0].1 * collect(totals[0].2) / (totals[1].1 * collect(totals[1].2));
+    assert!(
+        (measured / expected - 1.0).abs() < 0.02,
+        "falloff ratio {measured} vs {expected} (2 % tolerance)"
+    );
+}
+
+#[test]
+fn mirror_symmetric_scenes_give_mirror_transients() {
+    let world = World::new(
+        scene(vec![
+            shapes::bars(3, 0.02, 0.3, 0.02).transformed(glam::DMat3::IDENTITY, DVec3::new(0.0, 0.0, 0.5)),
+        ]),
+        0.002,
+        3,
+    );
+    let inst = Instrument {
+        laser: DVec3::new(0.0, 0.3, 2.0),
+        spad: DVec3::new(0.0, -0.3, 2.0),
+    };
+    let det = hidden_only(&detector());
+    let pair = |s: f64| SpotPair {
+        illumination: spot(0.25 * s, 0.1),
+        detection: spot(-0.15 * s, -0.2),
+    };
+    let h = world.third_bounce(&inst, &[pair(1.0), pair(-1.0)], &det, 1.0);
+    let total: f64 = h[0].iter().sum();
+    let diff: f64 = h[0].iter().zip(&h[1]).map(|(a, b)| (a - b).abs()).sum();
+    // Stratified jitter makes the two sample sets differ slightly; 3 % in L1.
+    assert!(
+        total > 0.0 && diff / total < 0.03,
+        "L1 asymmetry {}",
+        diff / total
+    );
+}
+
+#[test]
+fn noise_is_poisson_and_reproducible() {
+    let lambda = vec![3.7; 20_000];
+    let a = sample_counts(&lambda, 11, 5);
+    assert_eq!(a, sample_counts(&lambda, 11, 5));
+    assert_ne!(a, sample_counts(&lambda, 11, 6));
+    assert_ne!(a, sample_counts(&lambda, 12, 5));
+    let n = a.len() as f64;
+    let mean = a.iter().map(|&v| v as f64).sum::<f64>() / n;
+    let var = a.iter().map(|&v| (v as f64 - mean).powi(2)).sum::<f64>() / (n - 1.0);
+    // Standard errors: mean √(λ/n) ≈ 0.014, variance ≈ λ√(2/n) ≈ 0.04 (plus excess
+    // kurtosis); bounds at about 5 standard errors.
+    assert!((mean - 3.7).abs() < 0.07, "mean {mean}");
+    assert!((var - 3.7).abs() < 0.25, "variance {var}");
+    // P(0) = e^{−λ}.
+    let zeros = a.iter().filter(|&&v| v == 0).count() as f64 / n;
+    assert!((zeros - (-3.7f64).exp()).abs() < 0.005, "zero fraction {zeros}");
+    assert_eq!(sample_counts(&[0.0, f64::NAN, -1.0], 1, 1), vec![0, 0, 0]);
+}
+
+#[test]
+fn first_bounce_locates_the_relay() {
+    let world = World::new(scene(vec![patch(DVec3::new(0.0, 0.0, 0.6))]), 0.005, 1);
+    let det = hidden_only(&detector());
+    let target = DVec3::new(0.3, -0.2, 0.0);
+    let dir = (target - INST.spad).normalize();
+    let (hit, h) = world.first_bounce(&INST, dir, &det, 1e-3).unwrap();
+    assert!(hit.on_relay && hit.point.distance(target) < 1e-9, "{hit:?}");
+    let path = target.distance(INST.laser) + target.distance(INST.spad);
+    let peak = h.iter().enumerate().max_by(|a, b| a.1.total_cmp(b.1)).unwrap().0;
+    let expected = det.bin_of_path(path);
+    assert!(
+        (peak as f64 + 0.5 - expected).abs() <= 1.0,
+        "peak bin {peak}, expected {expected}"
+    );
+    assert!(h[peak] > 100.0, "a LOS return should be strong: {}", h[peak]);
+}
+
+#[test]
+fn the_gate_removes_the_direct_return_of_a_confocal_pair() {
+    let world = World::new(scene(vec![patch(DVec3::new(0.0, 0.0, 0.6))]), 0.002, 1);
+    let pair = SpotPair {
+        illumination: spot(0.1, 0.1),
+        detection: spot(0.1, 0.1),
+    };
+    let det = hidden_only(&detector());
+    let ungated = Detector {
+        gate_margin: None,
+        ..det
+    };
+    let gated = world.third_bounce(&INST, &[pair], &det, 1.0);
+    let open = world.third_bounce(&INST, &[pair], &ungated, 1.0);
+    let direct_bin = det.bin_of_path(
+        INST.laser.distance(pair.illumination.point) + pair.illumination.point.distance(INST.spad),
+    ) as usize;
+    assert!(
+        open[0][direct_bin] > 1e3 * gated[0].iter().sum::<f64>().max(1e-30),
+        "direct return present without gate"
+    );
+    assert_eq!(gated[0][direct_bin], 0.0);
+    // The hidden return (1.2 m further) survives the gate.
+    assert!(gated[0].iter().sum::<f64>() > 0.0);
+}
+
+#[test]
+fn pile_up_only_removes_counts_and_weighs_on_late_bins() {
+    let det = Detector {
+        pile_up: true,
+        ..detector()
+    };
+    let mut signal = vec![0.0; det.bins];
+    signal[100] = 2.0;
+    signal[600] = 2.0;
+    let with = det.expected_counts(&signal, None, 1e-3);
+    let without = Detector {
+        pile_up: false,
+        ..det
+    }
+    .expected_counts(&signal, None, 1e-3);
+    assert!(with.iter().zip(&without).all(|(a, b)| *a <= *b + 1e-9));
+    // The later peak is shadowed by the earlier one.
+    assert!(with[600] < 0.9 * with[100], "{} vs {}", with[600], with[100]);
+    assert!(with.iter().sum::<f64>() <= det.pulses(1e-3));
+}
