@@ -5,7 +5,13 @@
 //!
 //! Independent of the 3D-GTR renderer by construction: surfaces are triangles, the
 //! integral is a sum over area samples, visibility is ray cast, and time is binned by
-//! the detector model. Interreflections within the relay and fourth and later bounces
+//! the detector model.
+//!
+//! Visibility between a relay point and the hidden scene is decided per hidden
+//! triangle (one shadow ray to its centroid) and shared by that triangle's samples:
+//! shadow edges are resolved to the triangle size (centimetres for the shipped
+//! shapes), and the cost no longer grows with the sampling density. Scenes that cannot
+//! occlude (a planar relay and one planar hidden object) cast no shadow rays. Interreflections within the relay and fourth and later bounces
 //! are not modelled.
 use std::collections::HashMap;
 
@@ -29,6 +35,8 @@ struct Sample {
     n: DVec3,
     /// ρ/π · patch area, m².
     weight: f64,
+    /// Index of its hidden triangle (visibility is decided per triangle).
+    tri: u32,
 }
 
 /// Where a ray met the scene.
@@ -75,6 +83,11 @@ pub struct World {
     hidden_bvh: Bvh,
     hidden_owner: Vec<usize>,
     samples: Vec<Sample>,
+    /// Centroid and normal of every hidden triangle.
+    centroids: Vec<(DVec3, DVec3)>,
+    /// What can block light between the relay and the hidden scene; `None` when
+    /// nothing can (a planar relay and a single planar hidden object).
+    occluders: Option<Bvh>,
 }
 
 impl World {
@@ -93,9 +106,12 @@ impl World {
         }
         let mut rng = ChaCha8Rng::seed_from_u64(seed ^ 0x05A3_B1E5);
         let mut samples = Vec::new();
+        let mut centroids = Vec::new();
         for s in &scene.hidden {
             for t in 0..s.mesh.triangles.len() {
                 let [a, b, c] = s.mesh.corners(t);
+                let tri = centroids.len() as u32;
+                centroids.push(((a + b + c) / 3.0, s.mesh.normal(t)));
                 let area = s.mesh.area(t);
                 if area <= 0.0 {
                     continue;
@@ -110,12 +126,24 @@ impl World {
                         let v = (j as f64 + rng.random::<f64>()) / m as f64;
                         let su = u.sqrt();
                         let p = a * (1.0 - su) + b * (su * (1.0 - v)) + c * (su * v);
-                        samples.push(Sample { p, n, weight: w });
+                        samples.push(Sample { p, n, weight: w, tri });
                     }
                 }
             }
         }
+        let relay_planar = is_planar(&scene.relay.mesh);
+        let occluders = if relay_planar && scene.hidden.len() == 1 && is_planar(&scene.hidden[0].mesh) {
+            None
+        } else {
+            let mut m = hidden_mesh.clone();
+            if !relay_planar {
+                m.append(&scene.relay.mesh);
+            }
+            Some(Bvh::new(&m))
+        };
         World {
+            centroids,
+            occluders,
             bvh: Bvh::new(&mesh),
             hidden_bvh: Bvh::new(&hidden_mesh),
             scene,
@@ -271,8 +299,8 @@ impl World {
         let scale =
             det.photons_per_pulse() * xi.albedo / std::f64::consts::PI * self.collection(&xd, inst.spad, det);
         let mut fine = vec![0.0; det.bins * OVERSAMPLE];
-        for (k, s) in self.samples.iter().enumerate() {
-            if !(vis_i[k] && vis_d[k]) {
+        for s in &self.samples {
+            if !(vis_i[s.tri as usize] && vis_d[s.tri as usize]) {
                 continue;
             }
             let a = s.p - xi.point;
@@ -313,6 +341,15 @@ impl World {
             .map(|m| det.bin_of_path(first_leg + separation + last_leg + m));
         det.expected_counts(&signal, gate, dwell)
     }
+}
+
+/// Whether every vertex lies on the plane of the first non-degenerate triangle.
+fn is_planar(mesh: &Mesh) -> bool {
+    let Some(t) = (0..mesh.triangles.len()).find(|&t| mesh.area(t) > 0.0) else {
+        return true;
+    };
+    let (p, n) = (mesh.corners(t)[0], mesh.normal(t));
+    mesh.vertices.iter().all(|v| (*v - p).dot(n).abs() < 1e-9)
 }
 
 /// Adds `value` at fractional bin `f` into the oversampled histogram, split linearly
