@@ -10,6 +10,9 @@
 //! workload for quick looks; the defaults are the paper-scale numbers.
 use std::time::Instant;
 
+mod support;
+use support::{median, peak_rss_mib};
+
 use glam::{DQuat, DVec3};
 use periscope_recon::gtr::{
     CancelToken, GaussianCloud, Init, Primitive, RenderOptions, ScaleBounds, TrainConfig, Trainer, render_set,
@@ -23,22 +26,6 @@ fn env(name: &str, default: usize) -> usize {
         .ok()
         .and_then(|v| v.parse().ok())
         .unwrap_or(default)
-}
-
-fn median(mut v: Vec<f64>) -> f64 {
-    v.sort_by(f64::total_cmp);
-    v[v.len() / 2]
-}
-
-fn peak_rss_mib() -> f64 {
-    std::fs::read_to_string("/proc/self/status")
-        .ok()
-        .and_then(|s| {
-            s.lines()
-                .find(|l| l.starts_with("VmHWM:"))
-                .and_then(|l| l.split_whitespace().nth(1)?.parse::<f64>().ok())
-        })
-        .map_or(f64::NAN, |kib| kib / 1024.0)
 }
 
 /// A curved 1 m × 1 m relay: z = 0.1 sin(πx) (a C/S-shaped panel), normals +z-ish.

@@ -13,6 +13,9 @@
 //! normals,lct64,lct128,fbp,synth,synth_lct) runs a subset.
 use std::time::Instant;
 
+mod support;
+use support::{median, peak_rss_mib};
+
 use glam::{DMat3, DQuat, DVec3};
 use periscope_recon::gtr::{Kernel, RenderOptions};
 use periscope_recon::relay::{VirtualRelay, estimate_normals};
@@ -21,22 +24,6 @@ use periscope_recon::synth::synthesise;
 use periscope_recon::{Pair, TimeAxis, TransientSet, VolumeGrid};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
-
-fn median(mut v: Vec<f64>) -> f64 {
-    v.sort_by(f64::total_cmp);
-    v[v.len() / 2]
-}
-
-fn peak_rss_mib() -> f64 {
-    std::fs::read_to_string("/proc/self/status")
-        .ok()
-        .and_then(|s| {
-            s.lines()
-                .find(|l| l.starts_with("VmHWM:"))
-                .and_then(|l| l.split_whitespace().nth(1)?.parse::<f64>().ok())
-        })
-        .map_or(f64::NAN, |kib| kib / 1024.0)
-}
 
 fn time<T>(reps: usize, mut f: impl FnMut() -> T) -> f64 {
     std::hint::black_box(f());

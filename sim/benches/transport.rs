@@ -29,11 +29,20 @@ fn spot(x: f64, y: f64) -> SurfaceHit {
 }
 
 fn main() {
-    let reps: usize = std::env::var("SIM_BENCH_REPS").ok().and_then(|v| v.parse().ok()).unwrap_or(3);
+    let reps: usize = std::env::var("SIM_BENCH_REPS")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(3);
     let mut hidden = shapes::mannequin(1.0);
     // Finer limbs bring the figure to about 2,000 triangles.
-    hidden.append(&Mesh::ellipsoid(DVec3::new(0.05, 0.05, 0.05), 24).transformed(glam::DMat3::IDENTITY, DVec3::new(0.25, 0.9, 0.0)));
-    hidden.append(&Mesh::ellipsoid(DVec3::new(0.05, 0.05, 0.05), 16).transformed(glam::DMat3::IDENTITY, DVec3::new(-0.25, 0.9, 0.0)));
+    hidden.append(
+        &Mesh::ellipsoid(DVec3::new(0.05, 0.05, 0.05), 24)
+            .transformed(glam::DMat3::IDENTITY, DVec3::new(0.25, 0.9, 0.0)),
+    );
+    hidden.append(
+        &Mesh::ellipsoid(DVec3::new(0.05, 0.05, 0.05), 16)
+            .transformed(glam::DMat3::IDENTITY, DVec3::new(-0.25, 0.9, 0.0)),
+    );
     let hidden = hidden.transformed(glam::DMat3::IDENTITY, DVec3::new(0.0, -0.5, 0.7));
     let triangles = hidden.triangles.len();
     let scene = Scene {
@@ -94,8 +103,14 @@ fn main() {
             }
         })
         .collect();
-    println!("threads: {}, hidden triangles: {triangles}", rayon::current_num_threads());
-    for (name, pairs) in [("80 lasers × 100 detectors", &scanned), ("8,000 confocal spots", &confocal)] {
+    println!(
+        "threads: {}, hidden triangles: {triangles}",
+        rayon::current_num_threads()
+    );
+    for (name, pairs) in [
+        ("80 lasers × 100 detectors", &scanned),
+        ("8,000 confocal spots", &confocal),
+    ] {
         let mut samples = 0;
         let mut counts = 0u64;
         let t = median(
@@ -108,12 +123,19 @@ fn main() {
                     counts = expected
                         .iter()
                         .enumerate()
-                        .map(|(i, e)| sample_counts(e, 7, i as u64).iter().map(|&c| c as u64).sum::<u64>())
+                        .map(|(i, e)| {
+                            sample_counts(e, 7, i as u64)
+                                .iter()
+                                .map(|&c| c as u64)
+                                .sum::<u64>()
+                        })
                         .sum();
                     start.elapsed().as_secs_f64()
                 })
                 .collect(),
         );
-        println!("{name}: {t:.3} s for 8,000 pairs × 512 bins ({samples} hidden samples, {counts} counts, target < 10 s)");
+        println!(
+            "{name}: {t:.3} s for 8,000 pairs × 512 bins ({samples} hidden samples, {counts} counts, target < 10 s)"
+        );
     }
 }

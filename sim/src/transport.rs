@@ -263,19 +263,18 @@ impl World {
             .iter()
             .map(|p| (key_of(p.illumination.point), key_of(p.detection.point)))
             .collect();
-        let visible: Vec<Vec<bool>> = points
-            .par_iter()
-            .map(|&x| {
-                self.samples
-                    .iter()
-                    .map(|s| {
-                        !self
-                            .bvh
-                            .occluded(s.p + s.n * EPS * (s.n.dot(x - s.p)).signum(), x, 1e-5)
-                    })
-                    .collect()
-            })
-            .collect();
+        let visible: Vec<Vec<bool>> = match &self.occluders {
+            None => vec![vec![true; self.centroids.len()]; points.len()],
+            Some(occluders) => points
+                .par_iter()
+                .map(|&x| {
+                    self.centroids
+                        .iter()
+                        .map(|&(c, n)| !occluders.occluded(c + n * EPS * n.dot(x - c).signum(), x, 1e-5))
+                        .collect()
+                })
+                .collect(),
+        };
         pairs
             .par_iter()
             .zip(&pair_points)

@@ -245,3 +245,28 @@ fn pile_up_only_removes_counts_and_weighs_on_late_bins() {
     assert!(with[600] < 0.9 * with[100], "{} vs {}", with[600], with[100]);
     assert!(with.iter().sum::<f64>() <= det.pulses(1e-3));
 }
+
+#[test]
+fn a_plate_in_front_shadows_the_patch_behind_it() {
+    let behind = DVec3::new(0.0, 0.0, 0.9);
+    let plate = Mesh::rectangle([-0.3, 0.3], [-0.3, 0.3])
+        .transformed(glam::DMat3::IDENTITY, DVec3::new(0.0, 0.0, 0.45));
+    let det = hidden_only(&detector());
+    let pair = SpotPair {
+        illumination: spot(-0.05, 0.02),
+        detection: spot(0.04, -0.03),
+    };
+    let (xi, xd) = (pair.illumination.point, pair.detection.point);
+    let path = INST.laser.distance(xi) + xi.distance(behind) + behind.distance(xd) + xd.distance(INST.spad);
+    let bin = det.bin_of_path(path) as usize;
+    let window = |h: &[f64]| h[bin - 3..=bin + 3].iter().sum::<f64>();
+    let open = World::new(scene(vec![patch(behind)]), 0.002, 1).third_bounce(&INST, &[pair], &det, 1.0);
+    let shadowed =
+        World::new(scene(vec![patch(behind), plate]), 0.002, 1).third_bounce(&INST, &[pair], &det, 1.0);
+    assert!(window(&open[0]) > 0.0, "the patch alone returns light");
+    assert_eq!(
+        window(&shadowed[0]),
+        0.0,
+        "the plate must block the patch behind it"
+    );
+}
