@@ -1,7 +1,7 @@
 //! Conventional NLOS solvers: LCT for confocal grids, RSD / phasor-field propagation for
 //! planar (also non-confocal) data, and filtered backprojection for any pairs on any
-//! relay. Each takes a [`TransientSet`] in hidden path length, measured or synthesised,
-//! and returns a [`Volume`] on the user's world-frame grid.
+//! relay. Each takes a [`TransientSet`](crate::TransientSet) in hidden path length, measured or synthesised,
+//! and returns a [`Volume`](crate::Volume) on the user's world-frame grid.
 //!
 //! LCT and RSD work in the relay plane's own frame (columns along u, rows along v, depth
 //! along the normal) because their speed comes from shift invariance in that frame;
