@@ -1,5 +1,6 @@
-//! Hardware side of Periscope: the traits the daemon drives, the real drivers behind
-//! them, and the pieces of the instrument model that the driver side and the simulated
+//! Hardware side of Periscope: the traits the daemon drives ([`traits`]), the real
+//! drivers behind them (a serial galvo controller in [`galvo`], a USB histogrammer in
+//! [`tdc`]), their wire protocols (shared with the simulated devices), and the pieces of the instrument model that the driver side and the simulated
 //! devices must share exactly (the galvo calibration model, device selectors).
 //!
 //! The calibration model lives here rather than in `sim` because both directions of it
@@ -9,8 +10,18 @@
 //! real one does.
 #![warn(missing_docs)]
 
+pub mod error;
+pub mod galvo;
 pub mod geometry;
+pub mod ports;
 pub mod selector;
+pub mod tdc;
+pub mod traits;
 
+pub use error::{Error, ErrorKind, ErrorType};
 pub use geometry::{AngleLimits, GalvoPose, OpticalAngles};
 pub use selector::{SelectorError, UsbSelector};
+pub use traits::{
+    CountRates, DeviceInfo, GalvoPair, GalvoStatus, Histogram, HistogramFlags, Histogrammer, Laser, LaserState,
+    TdcConfig, TdcState, TdcStatus,
+};

@@ -1,0 +1,381 @@
+//! The serial galvo driver: one request, one reply, checked and retried.
+//!
+//! Every exchange discards stale input, sends a tagged, checksummed line and reads
+//! lines until the reply with its tag arrives. Lines with a bad checksum or another
+//! tag (noise, a late reply to an earlier request) are dropped, which is how the
+//! driver re-synchronises after garbage. All commands set absolute states (a target
+//! angle, emission on or off), so repeating one is harmless: a timed-out or corrupted
+//! exchange is retried once, and a broken link is reopened once before the retry.
+//! A second failure is reported with its kind.
+use std::time::{Duration, Instant};
+
+use tracing::{debug, instrument, warn};
+
+use super::error::GalvoError;
+use super::link::{Connector, Link};
+use super::protocol::{self, ErrorCode, LineError, MotionState, Reply, Request};
+use crate::error::{Error, ErrorKind, ErrorType};
+use crate::geometry::{AngleLimits, OpticalAngles};
+use crate::traits::{DeviceInfo, GalvoPair, GalvoStatus, Laser, LaserState};
+
+/// How far the settled position may be from the target before the driver refuses it,
+/// radians (10 µrad: 20 µm at 2 m, a tenth of a typical spot).
+pub const POSITION_TOLERANCE: f64 = 1e-5;
+
+/// Driver settings.
+#[derive(Clone, Debug)]
+pub struct SerialGalvoSettings {
+    /// The arm's name for messages (`laser`, `spad`).
+    pub name: String,
+    /// Limits from the instrument config, enforced before anything is sent.
+    pub limits: AngleLimits,
+    /// How long to wait for a reply.
+    pub timeout: Duration,
+    /// Nominal settling time after a move (the controller also reports its own).
+    pub settle: Duration,
+}
+
+/// A galvo pair (and, on the laser arm, the laser) behind a serial controller.
+pub struct SerialGalvo {
+    settings: SerialGalvoSettings,
+    connector: Box<dyn Connector>,
+    port: String,
+    link: Option<Box<dyn Link>>,
+    tag: u8,
+    rx: Vec<u8>,
+    target: Option<OpticalAngles>,
+    /// When the controller said the last move would be settled.
+    settle_hint: Option<Instant>,
+}
+
+impl ErrorType for SerialGalvo {
+    type Error = GalvoError;
+}
+
+impl SerialGalvo {
+    /// A driver that connects on first use.
+    pub fn new(settings: SerialGalvoSettings, connector: Box<dyn Connector>) -> SerialGalvo {
+        let port = connector.describe();
+        SerialGalvo {
+            settings,
+            connector,
+            port,
+            link: None,
+            tag: 0,
+            rx: Vec::with_capacity(protocol::MAX_LINE),
+            target: None,
+            settle_hint: None,
+        }
+    }
+
+    /// Connects now (and identifies the controller), instead of on first use.
+    pub fn open(settings: SerialGalvoSettings, connector: Box<dyn Connector>) -> Result<SerialGalvo, GalvoError> {
+        let mut galvo = SerialGalvo::new(settings, connector);
+        galvo.identify()?;
+        Ok(galvo)
+    }
+
+    /// The arm's name.
+    pub fn name(&self) -> &str {
+        &self.settings.name
+    }
+
+    fn err(&self, kind: ErrorKind, message: impl Into<String>) -> GalvoError {
+        GalvoError::new(&self.settings.name, &self.port, kind, message)
+    }
+
+    /// One request, its reply fields; retried once where that is safe (always: every
+    /// command is idempotent).
+    fn request(&mut self, req: Request) -> Result<Vec<String>, GalvoError> {
+        match self.exchange(req) {
+            Ok(fields) => Ok(fields),
+            Err(e) if matches!(e.kind(), ErrorKind::Timeout | ErrorKind::Protocol | ErrorKind::Disconnected) => {
+                warn!(arm = %self.settings.name, error = %e, "retrying galvo exchange once");
+                self.exchange(req)
+            }
+            Err(e) => Err(e),
+        }
+    }
+
+    fn connect(&mut self) -> Result<(), GalvoError> {
+        if self.link.is_none() {
+            let link = self.connector.connect().map_err(|e| {
+                self.err(
+                    ErrorKind::Disconnected,
+                    "cannot open the port: check that the controller is plugged in and powered, and the port path in the instrument config",
+                )
+                .with_source(e)
+            })?;
+            debug!(arm = %self.settings.name, port = %self.port, "connected");
+            self.link = Some(link);
+            self.rx.clear();
+        }
+        Ok(())
+    }
+
+    fn broken(&mut self, e: std::io::Error) -> GalvoError {
+        self.link = None;
+        self.err(
+            ErrorKind::Disconnected,
+            "the link broke (unplugged or powered off?); the driver reconnects on the next command",
+        )
+        .with_source(e)
+    }
+
+    #[instrument(level = "trace", skip(self), fields(arm = %self.settings.name))]
+    fn exchange(&mut self, req: Request) -> Result<Vec<String>, GalvoError> {
+        self.connect()?;
+        self.tag = self.tag.wrapping_add(1);
+        let tag = self.tag;
+        let line = protocol::encode_line(tag, &req.body());
+        let timeout = self.settings.timeout;
+        let link = self.link.as_mut().expect("connected above");
+        let sent = link.discard_input().and_then(|()| link.send(line.as_bytes()));
+        if let Err(e) = sent {
+            return Err(self.broken(e));
+        }
+        self.rx.clear();
+        let deadline = Instant::now() + timeout;
+        let mut corrupted = false;
+        let mut chunk = [0u8; 128];
+        loop {
+            // Complete lines first.
+            while let Some(end) = self.rx.iter().position(|&b| b == b'\n') {
+                let raw: Vec<u8> = self.rx.drain(..=end).collect();
+                match protocol::decode_line(&raw[..raw.len() - 1]) {
+                    Ok((t, body)) if t == tag => return self.interpret(req, body),
+                    Ok((t, _)) => debug!(tag = t, expected = tag, "dropping a stale reply"),
+                    Err(LineError::Checksum(_)) => corrupted = true,
+                    Err(LineError::Malformed) => debug!(line = ?String::from_utf8_lossy(&raw), "dropping garbage"),
+                }
+            }
+            if self.rx.len() > protocol::MAX_LINE {
+                self.rx.clear();
+            }
+            let now = Instant::now();
+            if now >= deadline {
+                return Err(if corrupted {
+                    self.err(
+                        ErrorKind::Protocol,
+                        format!("the reply to `{}` failed its checksum: check the cable and its shielding", req.body()),
+                    )
+                } else {
+                    self.err(
+                        ErrorKind::Timeout,
+                        format!(
+                            "no reply to `{}` within {} ms: check the cable, the baud rate and that the controller is powered",
+                            req.body(),
+                            timeout.as_millis()
+                        ),
+                    )
+                });
+            }
+            let link = self.link.as_mut().expect("connected above");
+            match link.receive(&mut chunk, deadline - now) {
+                Ok(n) => self.rx.extend_from_slice(&chunk[..n]),
+                Err(e) => return Err(self.broken(e)),
+            }
+        }
+    }
+
+    fn interpret(&self, req: Request, body: &str) -> Result<Vec<String>, GalvoError> {
+        match Reply::parse(body) {
+            Some(Reply::Ok(fields)) => Ok(fields.into_iter().map(str::to_owned).collect()),
+            Some(Reply::Err(code, text)) => {
+                let (kind, hint) = match code {
+                    Some(ErrorCode::BadChecksum) => (ErrorKind::Protocol, "the controller received a corrupted line"),
+                    Some(ErrorCode::OutOfRange) => (ErrorKind::OutOfRange, "the target is outside the controller's hard limits"),
+                    Some(ErrorCode::Busy) => (ErrorKind::Busy, "the controller is busy; try again when it has settled"),
+                    Some(ErrorCode::InterlockOpen) => {
+                        (ErrorKind::Interlock, "the laser interlock is open: close the enclosure door or key switch")
+                    }
+                    Some(ErrorCode::NoLaser) => {
+                        (ErrorKind::Device, "this controller has no laser: check which arm the config calls `laser`")
+                    }
+                    Some(ErrorCode::Fault) => (ErrorKind::Device, "the controller reports a fault: power-cycle it"),
+                    Some(ErrorCode::UnknownCommand | ErrorCode::BadArgument) | None => {
+                        (ErrorKind::Protocol, "the controller's firmware does not understand this protocol version")
+                    }
+                };
+                Err(self.err(kind, format!("`{}` refused (ERR {text}): {hint}", req.body())))
+            }
+            None => Err(self.err(ErrorKind::Protocol, format!("malformed reply `{body}` to `{}`", req.body()))),
+        }
+    }
+
+    fn malformed(&self, req: Request, fields: &[String]) -> GalvoError {
+        self.err(ErrorKind::Protocol, format!("unexpected reply fields {fields:?} to `{}`", req.body()))
+    }
+
+    /// The controller's hard limits.
+    pub fn hard_limits(&mut self) -> Result<AngleLimits, GalvoError> {
+        let fields = self.request(Request::Limits)?;
+        let refs: Vec<&str> = fields.iter().map(String::as_str).collect();
+        protocol::parse_limits(&refs).ok_or_else(|| self.malformed(Request::Limits, &fields))
+    }
+
+    fn on_off(&mut self, req: Request, i: usize, yes: &str, no: &str, fields: &[String]) -> Result<bool, GalvoError> {
+        match fields.get(i).map(String::as_str) {
+            Some(w) if w == yes => Ok(true),
+            Some(w) if w == no => Ok(false),
+            _ => Err(self.malformed(req, fields)),
+        }
+    }
+}
+
+impl GalvoPair for SerialGalvo {
+    fn identify(&mut self) -> Result<DeviceInfo, GalvoError> {
+        let fields = self.request(Request::Identify)?;
+        match fields.as_slice() {
+            [model, firmware, protocol, serial, ..] => {
+                let protocol: u32 = protocol.parse().map_err(|_| self.malformed(Request::Identify, &fields))?;
+                if protocol != protocol::PROTOCOL_VERSION {
+                    return Err(self.err(
+                        ErrorKind::Protocol,
+                        format!(
+                            "controller speaks protocol {protocol}, this driver speaks {}: update the firmware or Periscope",
+                            protocol::PROTOCOL_VERSION
+                        ),
+                    ));
+                }
+                Ok(DeviceInfo {
+                    model: model.clone(),
+                    firmware: firmware.clone(),
+                    serial: serial.clone(),
+                    protocol,
+                })
+            }
+            _ => Err(self.malformed(Request::Identify, &fields)),
+        }
+    }
+
+    fn limits(&self) -> AngleLimits {
+        self.settings.limits
+    }
+
+    fn move_to(&mut self, target: OpticalAngles) -> Result<(), GalvoError> {
+        if !self.settings.limits.contains(target) {
+            let l = self.settings.limits;
+            return Err(self.err(
+                ErrorKind::OutOfRange,
+                format!(
+                    "target ({:.3}°, {:.3}°) is outside the limits x [{:.3}°, {:.3}°], y [{:.3}°, {:.3}°]; nothing was moved",
+                    target.x.to_degrees(),
+                    target.y.to_degrees(),
+                    l.x[0].to_degrees(),
+                    l.x[1].to_degrees(),
+                    l.y[0].to_degrees(),
+                    l.y[1].to_degrees()
+                ),
+            ));
+        }
+        let req = Request::Move(target);
+        let fields = self.request(req)?;
+        let settle_us: f64 = match fields.first().map(|f| f.parse::<f64>()) {
+            Some(Ok(us)) if us.is_finite() && us >= 0.0 => us,
+            _ => return Err(self.malformed(req, &fields)),
+        };
+        self.target = Some(target);
+        self.settle_hint = Some(Instant::now() + Duration::from_secs_f64(settle_us * 1e-6));
+        Ok(())
+    }
+
+    fn wait_settled(&mut self, timeout: Duration) -> Result<OpticalAngles, GalvoError> {
+        let start = Instant::now();
+        if let Some(hint) = self.settle_hint.take() {
+            let now = Instant::now();
+            if hint > now {
+                std::thread::sleep((hint - now).min(timeout));
+            }
+        }
+        loop {
+            let status = self.status()?;
+            match status.state {
+                MotionState::Settled | MotionState::Parked => {
+                    if let Some(target) = self.target {
+                        let off = (status.position.x - target.x).abs().max((status.position.y - target.y).abs());
+                        if !(off <= POSITION_TOLERANCE) {
+                            return Err(self.err(
+                                ErrorKind::Device,
+                                format!(
+                                    "settled at ({:.7}, {:.7}) rad instead of the target ({:.7}, {:.7}): the position was not accepted; check the servo tuning",
+                                    status.position.x, status.position.y, target.x, target.y
+                                ),
+                            ));
+                        }
+                    }
+                    return Ok(status.position);
+                }
+                MotionState::Fault => {
+                    return Err(self.err(ErrorKind::Device, "servo fault while settling: power-cycle the controller"));
+                }
+                MotionState::Moving => {}
+            }
+            if start.elapsed() >= timeout {
+                return Err(self.err(
+                    ErrorKind::Timeout,
+                    format!(
+                        "still moving after {} ms: raise settle-us in the instrument config or check the mirrors",
+                        timeout.as_millis()
+                    ),
+                ));
+            }
+            std::thread::sleep((self.settings.settle / 10).clamp(Duration::from_micros(20), Duration::from_millis(5)));
+        }
+    }
+
+    fn position(&mut self) -> Result<OpticalAngles, GalvoError> {
+        let fields = self.request(Request::Position)?;
+        let refs: Vec<&str> = fields.iter().map(String::as_str).collect();
+        protocol::parse_angles(&refs).ok_or_else(|| self.malformed(Request::Position, &fields))
+    }
+
+    fn status(&mut self) -> Result<GalvoStatus, GalvoError> {
+        let fields = self.request(Request::Status)?;
+        let refs: Vec<&str> = fields.iter().map(String::as_str).collect();
+        match refs.as_slice() {
+            [state, rest @ ..] => {
+                let state = MotionState::from_word(state);
+                let position = protocol::parse_angles(rest);
+                match (state, position) {
+                    (Some(state), Some(position)) => Ok(GalvoStatus { state, position }),
+                    _ => Err(self.malformed(Request::Status, &fields)),
+                }
+            }
+            _ => Err(self.malformed(Request::Status, &fields)),
+        }
+    }
+
+    fn park(&mut self) -> Result<(), GalvoError> {
+        self.request(Request::Park)?;
+        self.target = Some(OpticalAngles { x: 0.0, y: 0.0 });
+        self.settle_hint = None;
+        Ok(())
+    }
+}
+
+impl Laser for SerialGalvo {
+    fn set_emission(&mut self, on: bool) -> Result<(), GalvoError> {
+        self.request(Request::Laser(on)).map(drop)
+    }
+
+    fn laser_state(&mut self) -> Result<LaserState, GalvoError> {
+        let req = Request::LaserStatus;
+        let fields = self.request(req)?;
+        Ok(LaserState {
+            emission: self.on_off(req, 0, "ON", "OFF", &fields)?,
+            interlock_closed: self.on_off(req, 1, "CLOSED", "OPEN", &fields)?,
+            diffuser_in: self.on_off(req, 2, "IN", "OUT", &fields)?,
+        })
+    }
+
+    fn interlock_closed(&mut self) -> Result<bool, GalvoError> {
+        let req = Request::Interlock;
+        let fields = self.request(req)?;
+        self.on_off(req, 0, "CLOSED", "OPEN", &fields)
+    }
+
+    fn set_diffuser(&mut self, inserted: bool) -> Result<(), GalvoError> {
+        self.request(Request::Diffuser(inserted)).map(drop)
+    }
+}

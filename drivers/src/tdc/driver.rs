@@ -1,0 +1,299 @@
+//! The USB histogrammer driver.
+//!
+//! An acquisition is a `START` control request carrying a fresh sequence number and a
+//! bulk-in frame carrying it back. The driver accepts a frame only when its CRC holds,
+//! its sequence number is the one just requested (older frames are drained and
+//! dropped) and its settings are the ones in force; anything else is never returned as
+//! a histogram. A timed-out, short or corrupted acquisition is repeated once (an
+//! acquisition has no side effect but its dwell). A disconnect is met by reopening the
+//! device, restoring the settings, and repeating the acquisition once.
+use std::time::{Duration, Instant};
+
+use tracing::{debug, instrument, warn};
+
+use super::error::TdcError;
+use super::protocol::{self, ControlRequest, FrameError, WireConfig, WireInfo, WireStatus};
+use super::transport::{TransportError, UsbTransport};
+use crate::error::{Error, ErrorKind, ErrorType};
+use crate::traits::{CountRates, DeviceInfo, Histogram, Histogrammer, TdcConfig, TdcState, TdcStatus};
+
+/// The histogrammer behind a [`UsbTransport`].
+pub struct UsbTdc<T: UsbTransport> {
+    transport: T,
+    device: String,
+    /// Timeout for control transfers, and slack added to the acquisition time for the
+    /// frame to arrive.
+    timeout: Duration,
+    config: Option<TdcConfig>,
+    sequence: u32,
+    rx: Vec<u8>,
+    chunk: Vec<u8>,
+}
+
+impl<T: UsbTransport> ErrorType for UsbTdc<T> {
+    type Error = TdcError;
+}
+
+fn to_wire(c: &TdcConfig) -> Option<WireConfig> {
+    let ps = |s: f64| {
+        let v = (s * 1e12).round();
+        (v.is_finite() && (0.0..=u32::MAX as f64).contains(&v)).then_some(v as u32)
+    };
+    let us = c.acquisition.as_micros();
+    Some(WireConfig {
+        bin_width_ps: ps(c.bin_width).filter(|&p| p > 0)?,
+        bins: c.bins,
+        offset_ps: ps(c.offset)?,
+        sync_divider: c.sync_divider,
+        acquisition_us: u32::try_from(us).ok().filter(|&u| u > 0)?,
+    })
+}
+
+impl<T: UsbTransport> UsbTdc<T> {
+    /// A driver over an open transport.
+    pub fn new(transport: T, timeout: Duration) -> UsbTdc<T> {
+        let device = transport.describe();
+        UsbTdc {
+            transport,
+            device,
+            timeout,
+            config: None,
+            sequence: 0,
+            rx: Vec::new(),
+            chunk: vec![0; 1 << 16],
+        }
+    }
+
+    /// The transport (for tests and the simulator's fault injection).
+    pub fn transport_mut(&mut self) -> &mut T {
+        &mut self.transport
+    }
+
+    fn err(&self, kind: ErrorKind, message: impl Into<String>) -> TdcError {
+        TdcError::new(&self.device, kind, message)
+    }
+
+    fn transport_err(&self, what: &str, e: TransportError) -> TdcError {
+        match e {
+            TransportError::Timeout => self.err(
+                ErrorKind::Timeout,
+                format!("{what} timed out: check the USB cable and that the device is powered"),
+            ),
+            TransportError::Disconnected(why) => self.err(
+                ErrorKind::Disconnected,
+                format!("{what}: the device is gone ({why}); plug it in, check `periscope devices` and the `usb` selector in the instrument config"),
+            ),
+            TransportError::Stall => self.err(ErrorKind::Busy, format!("{what}: the device stalled the request")),
+            TransportError::Other(why) => self.err(ErrorKind::Device, format!("{what}: {why}")),
+        }
+    }
+
+    /// Runs `f`; on a disconnect, reopens the device, restores the settings and runs
+    /// it once more. Also retries once on the kinds listed in `retry_on`.
+    fn with_recovery<R>(
+        &mut self,
+        retry_on: &[ErrorKind],
+        mut f: impl FnMut(&mut Self) -> Result<R, TdcError>,
+    ) -> Result<R, TdcError> {
+        match f(self) {
+            Ok(r) => Ok(r),
+            Err(e) if e.kind() == ErrorKind::Disconnected => {
+                warn!(device = %self.device, error = %e, "reconnecting to the histogrammer");
+                self.transport.reopen().map_err(|e| self.transport_err("reconnecting", e))?;
+                if let Some(config) = self.config {
+                    self.send_config(&config)?;
+                }
+                f(self)
+            }
+            Err(e) if retry_on.contains(&e.kind()) => {
+                warn!(device = %self.device, error = %e, "repeating the request once");
+                f(self)
+            }
+            Err(e) => Err(e),
+        }
+    }
+
+    fn control_in(&mut self, req: ControlRequest, len: usize) -> Result<Vec<u8>, TdcError> {
+        let mut buf = vec![0u8; len];
+        let n = self
+            .transport
+            .control_in(req as u8, 0, 0, &mut buf, self.timeout)
+            .map_err(|e| self.transport_err(&format!("{req:?}"), e))?;
+        if n < len {
+            return Err(self.err(
+                ErrorKind::Protocol,
+                format!("{req:?} returned {n} of {len} bytes: the firmware does not speak this protocol version"),
+            ));
+        }
+        Ok(buf)
+    }
+
+    fn send_config(&mut self, config: &TdcConfig) -> Result<(), TdcError> {
+        let wire = to_wire(config).ok_or_else(|| {
+            self.err(
+                ErrorKind::OutOfRange,
+                format!("settings {config:?} cannot be expressed in whole picoseconds and microseconds (1 µs to 71 min)"),
+            )
+        })?;
+        self.transport
+            .control_out(ControlRequest::SetConfig as u8, 0, 0, &wire.encode(), self.timeout)
+            .map_err(|e| match e {
+                TransportError::Stall => self.err(
+                    ErrorKind::OutOfRange,
+                    format!("the device refused the settings {wire:?} (bins, bin width or acquisition time outside its range)"),
+                ),
+                e => self.transport_err("SetConfig", e),
+            })?;
+        let back = self.control_in(ControlRequest::GetConfig, WireConfig::LEN)?;
+        if WireConfig::decode(&back) != Some(wire) {
+            return Err(self.err(
+                ErrorKind::Protocol,
+                format!("the device reports settings {:?} after being sent {wire:?}", WireConfig::decode(&back)),
+            ));
+        }
+        Ok(())
+    }
+
+    /// One attempt at an acquisition: start, then read until our frame arrives.
+    #[instrument(level = "trace", skip(self))]
+    fn acquire_once(&mut self, config: TdcConfig) -> Result<Histogram, TdcError> {
+        self.sequence = self.sequence.wrapping_add(1);
+        let seq = self.sequence;
+        self.rx.clear();
+        self.transport
+            .control_out(ControlRequest::Start as u8, seq as u16, (seq >> 16) as u16, &[], self.timeout)
+            .map_err(|e| self.transport_err("Start", e))?;
+        let deadline = Instant::now() + config.acquisition + self.timeout;
+        let expected = to_wire(&config).expect("validated when configured");
+        loop {
+            // Parse what we have.
+            loop {
+                match protocol::decode_frame(&self.rx) {
+                    Ok((header, counts, len)) => {
+                        self.rx.drain(..len);
+                        if header.sequence != seq {
+                            debug!(got = header.sequence, want = seq, "dropping a stale frame");
+                            continue;
+                        }
+                        let got = WireConfig {
+                            sync_divider: expected.sync_divider,
+                            ..header.config
+                        };
+                        if got != expected {
+                            return Err(self.err(
+                                ErrorKind::Protocol,
+                                format!("frame {seq} was acquired with {got:?}, not the settings in force {expected:?}"),
+                            ));
+                        }
+                        return Ok(Histogram {
+                            sequence: seq,
+                            counts,
+                            flags: header.histogram_flags(),
+                            config,
+                        });
+                    }
+                    Err(FrameError::Incomplete { .. }) => break,
+                    Err(FrameError::BadHeader) => {
+                        // Re-synchronise: skip to the next possible frame start.
+                        let skip = self.rx[1..]
+                            .windows(4)
+                            .position(|w| w == protocol::MAGIC)
+                            .map_or(self.rx.len(), |p| p + 1);
+                        self.rx.drain(..skip);
+                    }
+                    Err(FrameError::BadCrc) => {
+                        return Err(self.err(
+                            ErrorKind::Protocol,
+                            format!("frame {seq} failed its CRC: check the USB cable; the histogram was discarded"),
+                        ));
+                    }
+                }
+            }
+            let now = Instant::now();
+            if now >= deadline {
+                return Err(if self.rx.is_empty() {
+                    self.err(
+                        ErrorKind::Timeout,
+                        format!("no histogram frame {} ms after the acquisition should have ended", self.timeout.as_millis()),
+                    )
+                } else {
+                    self.err(
+                        ErrorKind::Protocol,
+                        format!("frame {seq} arrived incomplete ({} bytes); the histogram was discarded", self.rx.len()),
+                    )
+                });
+            }
+            match self.transport.bulk_in(protocol::BULK_IN_ENDPOINT, &mut self.chunk, deadline - now) {
+                Ok(n) => {
+                    let (rx, chunk) = (&mut self.rx, &self.chunk);
+                    rx.extend_from_slice(&chunk[..n]);
+                }
+                Err(TransportError::Timeout) => {}
+                Err(e) => return Err(self.transport_err("reading a histogram frame", e)),
+            }
+        }
+    }
+}
+
+impl<T: UsbTransport> Histogrammer for UsbTdc<T> {
+    fn identify(&mut self) -> Result<DeviceInfo, TdcError> {
+        self.with_recovery(&[ErrorKind::Timeout], |d| {
+            let b = d.control_in(ControlRequest::GetInfo, WireInfo::LEN)?;
+            let info = WireInfo::decode(&b).expect("length checked");
+            if info.protocol != protocol::PROTOCOL_VERSION {
+                return Err(d.err(
+                    ErrorKind::Protocol,
+                    format!(
+                        "device speaks protocol {}, this driver {}: update the firmware or Periscope",
+                        info.protocol,
+                        protocol::PROTOCOL_VERSION
+                    ),
+                ));
+            }
+            Ok(DeviceInfo {
+                model: info.model,
+                firmware: format!("{}.{}", info.firmware.0, info.firmware.1),
+                serial: info.serial,
+                protocol: u32::from(info.protocol),
+            })
+        })
+    }
+
+    fn configure(&mut self, config: &TdcConfig) -> Result<(), TdcError> {
+        let c = *config;
+        self.with_recovery(&[ErrorKind::Timeout, ErrorKind::Protocol], |d| d.send_config(&c))?;
+        self.config = Some(c);
+        Ok(())
+    }
+
+    fn config(&self) -> Option<TdcConfig> {
+        self.config
+    }
+
+    fn acquire(&mut self) -> Result<Histogram, TdcError> {
+        let config = self.config.ok_or_else(|| {
+            self.err(ErrorKind::Device, "acquire called before configure: the driver has no settings to acquire with")
+        })?;
+        self.with_recovery(&[ErrorKind::Timeout, ErrorKind::Protocol], |d| d.acquire_once(config))
+    }
+
+    fn status(&mut self) -> Result<TdcStatus, TdcError> {
+        self.with_recovery(&[ErrorKind::Timeout], |d| {
+            let b = d.control_in(ControlRequest::GetStatus, WireStatus::LEN)?;
+            let s = WireStatus::decode(&b).expect("length checked");
+            let state = match s.state {
+                protocol::state::IDLE => TdcState::Idle,
+                protocol::state::ACQUIRING => TdcState::Acquiring,
+                _ => TdcState::Error,
+            };
+            Ok(TdcStatus {
+                state,
+                rates: CountRates {
+                    sync: f64::from(s.sync_rate_hz),
+                    detector: f64::from(s.input_rate_hz),
+                },
+                acquisitions: s.frames,
+            })
+        })
+    }
+}

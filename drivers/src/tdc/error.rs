@@ -1,0 +1,33 @@
+//! Errors of the USB histogrammer driver.
+use crate::error::{Error, ErrorKind};
+
+/// A histogrammer error: which device, what happened, what to do.
+#[derive(Debug, thiserror::Error)]
+#[error("histogrammer on {device}: {message}")]
+pub struct TdcError {
+    /// The device, as the transport describes it.
+    pub device: String,
+    kind: ErrorKind,
+    message: String,
+}
+
+impl TdcError {
+    pub(crate) fn new(device: &str, kind: ErrorKind, message: impl Into<String>) -> Self {
+        TdcError {
+            device: device.to_owned(),
+            kind,
+            message: message.into(),
+        }
+    }
+
+    /// What the driver said, without the device prefix.
+    pub fn message(&self) -> &str {
+        &self.message
+    }
+}
+
+impl Error for TdcError {
+    fn kind(&self) -> ErrorKind {
+        self.kind
+    }
+}

@@ -1,0 +1,173 @@
+//! The device traits the daemon drives: a galvo pair, the laser (on the laser arm's
+//! controller) and a histogrammer. Small traits with one associated error type each,
+//! so the pipeline is written once against them and runs the real drivers, whatever
+//! transport sits under those drivers (a serial port or the simulator's
+//! pseudo-terminal; libusb or the simulator's USB transport).
+use std::time::Duration;
+
+use serde::Serialize;
+
+use crate::error::ErrorType;
+use crate::galvo::protocol::MotionState;
+use crate::geometry::{AngleLimits, OpticalAngles};
+
+/// What a device says about itself.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize)]
+pub struct DeviceInfo {
+    /// Model name.
+    pub model: String,
+    /// Firmware version.
+    pub firmware: String,
+    /// Serial number.
+    pub serial: String,
+    /// Protocol revision the device speaks.
+    pub protocol: u32,
+}
+
+/// A galvo pair's motion state and measured position.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+pub struct GalvoStatus {
+    /// Settled, moving, parked or faulted.
+    pub state: MotionState,
+    /// Measured optical angles.
+    pub position: OpticalAngles,
+}
+
+/// A two-axis galvo scanner.
+pub trait GalvoPair: ErrorType {
+    /// Model, firmware and serial number.
+    fn identify(&mut self) -> Result<DeviceInfo, Self::Error>;
+    /// The optical-angle range this driver lets through; targets outside it are
+    /// refused before anything is sent.
+    fn limits(&self) -> AngleLimits;
+    /// Starts a move to `target`; returns once the controller has accepted it.
+    fn move_to(&mut self, target: OpticalAngles) -> Result<(), Self::Error>;
+    /// Waits until the pair reports itself settled at the last commanded target, and
+    /// returns the measured position.
+    fn wait_settled(&mut self, timeout: Duration) -> Result<OpticalAngles, Self::Error>;
+    /// The measured position.
+    fn position(&mut self) -> Result<OpticalAngles, Self::Error>;
+    /// Motion state and position.
+    fn status(&mut self) -> Result<GalvoStatus, Self::Error>;
+    /// Moves to the park position and holds there.
+    fn park(&mut self) -> Result<(), Self::Error>;
+
+    /// Moves to `target` and waits until settled there.
+    fn move_settled(&mut self, target: OpticalAngles, timeout: Duration) -> Result<OpticalAngles, Self::Error> {
+        self.move_to(target)?;
+        self.wait_settled(timeout)
+    }
+}
+
+/// Laser emission state, as the laser arm's controller reports it.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
+pub struct LaserState {
+    /// Whether the laser is emitting.
+    pub emission: bool,
+    /// Whether the interlock loop is closed (emission allowed).
+    pub interlock_closed: bool,
+    /// Whether the LOS diffuser is in the beam.
+    pub diffuser_in: bool,
+}
+
+/// Laser emission control with interlock, and the LOS diffuser.
+pub trait Laser: ErrorType {
+    /// Turns emission on or off. Turning on fails with kind `Interlock` while the
+    /// interlock loop is open; turning off always reaches the controller.
+    fn set_emission(&mut self, on: bool) -> Result<(), Self::Error>;
+    /// Emission, interlock and diffuser state.
+    fn laser_state(&mut self) -> Result<LaserState, Self::Error>;
+    /// Whether the interlock loop is closed.
+    fn interlock_closed(&mut self) -> Result<bool, Self::Error> {
+        Ok(self.laser_state()?.interlock_closed)
+    }
+    /// Puts the LOS diffuser into the beam (first-bounce scan) or takes it out.
+    fn set_diffuser(&mut self, inserted: bool) -> Result<(), Self::Error>;
+}
+
+/// Histogrammer settings, SI units.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+pub struct TdcConfig {
+    /// Bin width, seconds.
+    pub bin_width: f64,
+    /// Number of bins.
+    pub bins: u32,
+    /// TDC time of bin 0's start after the sync, seconds.
+    pub offset: f64,
+    /// Sync divider (1 = every laser pulse starts a cycle).
+    pub sync_divider: u32,
+    /// Acquisition time per histogram.
+    pub acquisition: Duration,
+}
+
+/// Flags a histogram frame carries.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, serde::Deserialize)]
+pub struct HistogramFlags {
+    /// A bin counter or the device FIFO overflowed: counts are a lower bound.
+    pub overflow: bool,
+    /// The detector count rate was above the pile-up threshold during acquisition.
+    pub saturated: bool,
+}
+
+/// One acquired histogram.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct Histogram {
+    /// Device sequence number of the acquisition.
+    pub sequence: u32,
+    /// Photon counts per bin.
+    pub counts: Vec<u32>,
+    /// Frame flags.
+    pub flags: HistogramFlags,
+    /// The settings it was acquired with.
+    pub config: TdcConfig,
+}
+
+/// Count rates, Hz.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize)]
+pub struct CountRates {
+    /// Sync (laser) rate after the divider.
+    pub sync: f64,
+    /// Detector input rate.
+    pub detector: f64,
+}
+
+/// Histogrammer state.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum TdcState {
+    /// Ready for an acquisition.
+    Idle,
+    /// Acquiring.
+    Acquiring,
+    /// Reporting an internal error.
+    Error,
+}
+
+/// Histogrammer status.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+pub struct TdcStatus {
+    /// State.
+    pub state: TdcState,
+    /// Count rates.
+    pub rates: CountRates,
+    /// Histograms acquired since power-up.
+    pub acquisitions: u32,
+}
+
+/// A time-correlated histogrammer (TDC + SPAD).
+pub trait Histogrammer: ErrorType {
+    /// Model, firmware and serial number.
+    fn identify(&mut self) -> Result<DeviceInfo, Self::Error>;
+    /// Applies settings; they stay in force (and are restored after a reconnect).
+    fn configure(&mut self, config: &TdcConfig) -> Result<(), Self::Error>;
+    /// The settings in force, if configured.
+    fn config(&self) -> Option<TdcConfig>;
+    /// Acquires one histogram with the settings in force.
+    fn acquire(&mut self) -> Result<Histogram, Self::Error>;
+    /// Count rates.
+    fn count_rates(&mut self) -> Result<CountRates, Self::Error> {
+        Ok(self.status()?.rates)
+    }
+    /// State, rates and counters.
+    fn status(&mut self) -> Result<TdcStatus, Self::Error>;
+}
