@@ -9,6 +9,7 @@
 
 pub mod bvh;
 pub mod detector;
+pub mod devices;
 pub mod mesh;
 pub mod scene;
 pub mod shapes;

@@ -145,6 +145,8 @@ impl SerialGalvo {
                 match protocol::decode_line(&raw[..raw.len() - 1]) {
                     Ok((t, body)) if t == tag => return self.interpret(req, body),
                     Ok((t, _)) => debug!(tag = t, expected = tag, "dropping a stale reply"),
+                    // Our reply, corrupted: no point waiting out the timeout.
+                    Err(LineError::Checksum(Some(t))) if t == tag => return Err(self.corrupted(req)),
                     Err(LineError::Checksum(_)) => corrupted = true,
                     Err(LineError::Malformed) => debug!(line = ?String::from_utf8_lossy(&raw), "dropping garbage"),
                 }
@@ -155,10 +157,7 @@ impl SerialGalvo {
             let now = Instant::now();
             if now >= deadline {
                 return Err(if corrupted {
-                    self.err(
-                        ErrorKind::Protocol,
-                        format!("the reply to `{}` failed its checksum: check the cable and its shielding", req.body()),
-                    )
+                    self.corrupted(req)
                 } else {
                     self.err(
                         ErrorKind::Timeout,
@@ -176,6 +175,13 @@ impl SerialGalvo {
                 Err(e) => return Err(self.broken(e)),
             }
         }
+    }
+
+    fn corrupted(&self, req: Request) -> GalvoError {
+        self.err(
+            ErrorKind::Protocol,
+            format!("the reply to `{}` failed its checksum: check the cable and its shielding", req.body()),
+        )
     }
 
     fn interpret(&self, req: Request, body: &str) -> Result<Vec<String>, GalvoError> {

@@ -1,0 +1,231 @@
+//! The shared state of the simulated instrument: mirror positions, laser and
+//! interlock, pending faults, and the physics that turns a pointing into counts.
+use std::collections::VecDeque;
+use std::sync::{Arc, Mutex, MutexGuard};
+use std::time::{Duration, Instant};
+
+use glam::DVec3;
+use periscope_drivers::{AngleLimits, GalvoPose, OpticalAngles};
+
+use crate::detector::Detector;
+use crate::transport::{Instrument, World};
+
+/// Which galvo controller.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub enum Arm {
+    /// The laser arm (its controller also switches the laser and the diffuser).
+    Laser,
+    /// The SPAD arm.
+    Spad,
+}
+
+impl Arm {
+    pub(crate) fn index(self) -> usize {
+        match self {
+            Arm::Laser => 0,
+            Arm::Spad => 1,
+        }
+    }
+}
+
+/// A one-shot galvo controller fault, applied to the next request it receives.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum GalvoFault {
+    /// Read the request, never answer.
+    DropReply,
+    /// Answer with one character flipped (so the checksum fails).
+    CorruptChecksum,
+    /// Answer after this long.
+    Stall(Duration),
+    /// Send a line of noise before the answer.
+    Garbage,
+    /// Drop the link without answering (an unplug); refuse this many reconnects.
+    Disconnect {
+        /// Connection attempts refused before the device is back.
+        refused_connects: u32,
+    },
+}
+
+/// A one-shot histogrammer fault, applied to the next acquisition.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum TdcFault {
+    /// Accept `START`, never send the frame.
+    Stall,
+    /// Send the frame with one bit flipped.
+    CorruptCrc,
+    /// Deliver the frame in small pieces over several bulk transfers.
+    ShortRead,
+    /// Deliver only the first half of the frame; the rest is lost.
+    Truncated,
+    /// Set the overflow flag.
+    Overflow,
+    /// Send a frame with an old sequence number first.
+    StaleFrame,
+    /// Vanish from the bus (every transfer fails); refuse this many reopens.
+    Disconnect {
+        /// Reopen attempts refused before the device is back.
+        refused_reopens: u32,
+    },
+}
+
+/// A fault for one device.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Fault {
+    /// For a galvo controller.
+    Galvo(Arm, GalvoFault),
+    /// For the histogrammer.
+    Tdc(TdcFault),
+}
+
+/// What the simulated devices are built from.
+#[derive(Clone, Debug)]
+pub struct RigSettings {
+    /// Laser arm pose (calibration model shared with the driver side).
+    pub laser_pose: GalvoPose,
+    /// SPAD arm pose.
+    pub spad_pose: GalvoPose,
+    /// Firmware hard limits, laser arm then SPAD arm.
+    pub limits: [AngleLimits; 2],
+    /// Settling time after a move, per arm.
+    pub settle: [Duration; 2],
+    /// Detector model; the TDC's bins, bin width and offset replace its own.
+    pub detector: Detector,
+    /// Real seconds per simulated second for settling and dwell (0 = instant).
+    pub time_scale: f64,
+    /// Seed of the Poisson draws.
+    pub seed: u64,
+    /// Whether the interlock starts closed.
+    pub interlock_closed: bool,
+}
+
+#[derive(Debug)]
+pub(crate) struct ArmState {
+    pub target: OpticalAngles,
+    pub settled_at: Instant,
+    pub parked: bool,
+    /// Bumped on every (re)connection; firmware threads of older generations exit.
+    pub generation: u64,
+    pub refused_connects: u32,
+    pub faults: VecDeque<GalvoFault>,
+}
+
+#[derive(Debug)]
+pub(crate) struct RigState {
+    pub arms: [ArmState; 2],
+    pub emission: bool,
+    pub interlock_closed: bool,
+    pub diffuser_in: bool,
+    pub tdc_faults: VecDeque<TdcFault>,
+    pub tdc_refused_reopens: u32,
+}
+
+pub(crate) struct Shared {
+    pub settings: RigSettings,
+    pub world: Option<World>,
+    pub state: Mutex<RigState>,
+}
+
+impl Shared {
+    pub(crate) fn lock(&self) -> MutexGuard<'_, RigState> {
+        // A panicking firmware thread must not take the whole rig down with it.
+        self.state.lock().unwrap_or_else(|p| p.into_inner())
+    }
+
+    pub(crate) fn instrument(&self) -> Instrument {
+        Instrument {
+            laser: self.settings.laser_pose.origin,
+            spad: self.settings.spad_pose.origin,
+        }
+    }
+
+    pub(crate) fn scaled(&self, d: Duration) -> Duration {
+        d.mul_f64(self.settings.time_scale.max(0.0))
+    }
+}
+
+/// The simulated instrument. Cheap to clone; all clones share one state.
+#[derive(Clone)]
+pub struct Rig {
+    pub(crate) shared: Arc<Shared>,
+}
+
+impl Rig {
+    /// A rig over a scene (`None`: the histogrammer reports dark and ambient counts
+    /// only, which costs nothing to compute; benchmarks use it to time the software).
+    pub fn new(world: Option<World>, settings: RigSettings) -> Rig {
+        let now = Instant::now();
+        let arm = || ArmState {
+            target: OpticalAngles { x: 0.0, y: 0.0 },
+            settled_at: now,
+            parked: true,
+            generation: 0,
+            refused_connects: 0,
+            faults: VecDeque::new(),
+        };
+        let state = RigState {
+            arms: [arm(), arm()],
+            emission: false,
+            interlock_closed: settings.interlock_closed,
+            diffuser_in: false,
+            tdc_faults: VecDeque::new(),
+            tdc_refused_reopens: 0,
+        };
+        Rig {
+            shared: Arc::new(Shared {
+                settings,
+                world,
+                state: Mutex::new(state),
+            }),
+        }
+    }
+
+    /// Queues a one-shot fault.
+    pub fn inject(&self, fault: Fault) {
+        let mut s = self.shared.lock();
+        match fault {
+            Fault::Galvo(arm, f) => s.arms[arm.index()].faults.push_back(f),
+            Fault::Tdc(f) => s.tdc_faults.push_back(f),
+        }
+    }
+
+    /// Opens or closes the interlock loop; opening it stops emission at once.
+    pub fn set_interlock(&self, closed: bool) {
+        let mut s = self.shared.lock();
+        s.interlock_closed = closed;
+        if !closed {
+            s.emission = false;
+        }
+    }
+
+    /// Where each arm is commanded to point (laser, SPAD).
+    pub fn pointing(&self) -> (OpticalAngles, OpticalAngles) {
+        let s = self.shared.lock();
+        (s.arms[0].target, s.arms[1].target)
+    }
+
+    /// Whether the laser is emitting.
+    pub fn emission(&self) -> bool {
+        self.shared.lock().emission
+    }
+
+    /// The galvo origins.
+    pub fn origins(&self) -> (DVec3, DVec3) {
+        (self.shared.settings.laser_pose.origin, self.shared.settings.spad_pose.origin)
+    }
+
+    /// The scene physics, if any.
+    pub fn world(&self) -> Option<&World> {
+        self.shared.world.as_ref()
+    }
+
+    /// A connector that hands out pseudo-terminals with this arm's firmware on the far
+    /// end (what the driver opens in place of `/dev/ttyUSB0`).
+    pub fn galvo_connector(&self, arm: Arm) -> crate::devices::PtyConnector {
+        crate::devices::PtyConnector::new(self.clone(), arm)
+    }
+
+    /// The histogrammer behind a USB transport.
+    pub fn tdc_transport(&self) -> crate::devices::SimTdcTransport {
+        crate::devices::SimTdcTransport::new(self.clone())
+    }
+}

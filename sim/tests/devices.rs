@@ -1,0 +1,385 @@
+//! The real drivers against the simulated devices, through the real wire code: the
+//! galvo firmware on a pseudo-terminal and the histogrammer behind the USB transport.
+//! One test per injected fault shows the documented behaviour: a retry that recovers,
+//! or an error of the documented kind, and never a wrong position or histogram
+//! accepted.
+use std::time::{Duration, Instant};
+
+use glam::DVec3;
+use periscope_drivers::galvo::{SerialGalvo, SerialGalvoSettings};
+use periscope_drivers::tdc::UsbTdc;
+use periscope_drivers::{
+    AngleLimits, Error, ErrorKind, GalvoPair, GalvoPose, Histogrammer, Laser, OpticalAngles, TdcConfig,
+};
+use periscope_sim::detector::C0;
+use periscope_sim::devices::{Arm, Fault, GalvoFault, Rig, RigSettings, SimTdcTransport, TdcFault};
+use periscope_sim::scene::{ShapeKind, Surface};
+use periscope_sim::{Detector, Mesh, Scene, World, shapes};
+
+const TIMEOUT: Duration = Duration::from_millis(100);
+
+fn limits(deg: f64) -> AngleLimits {
+    let r = deg.to_radians();
+    AngleLimits { x: [-r, r], y: [-r, r] }
+}
+
+fn detector() -> Detector {
+    Detector {
+        bin_width: 16e-12,
+        bins: 512,
+        offset: 12e-9,
+        system_delay: 0.0,
+        jitter_fwhm: 60e-12,
+        efficiency: 0.3,
+        dark_count_rate: 100.0,
+        ambient_rate: 0.0,
+        dead_time: 50e-9,
+        laser_power: 0.4,
+        wavelength: 532e-9,
+        repetition_rate: 10e6,
+        aperture_area: 7.85e-5,
+        spot_area: 2e-5,
+        diffuser_solid_angle: 0.6,
+        transmission: 0.5,
+        gate_margin: Some(0.1),
+        pile_up: false,
+    }
+}
+
+fn rig() -> Rig {
+    let patch = Mesh::rectangle([-0.05, 0.05], [-0.05, 0.05]).transformed(glam::DMat3::IDENTITY, DVec3::new(0.0, 0.0, 0.5));
+    let scene = Scene {
+        name: "devices".into(),
+        relay: Surface {
+            label: "relay".into(),
+            shape: ShapeKind::Plane,
+            mesh: shapes::plane([2.0, 2.0]),
+            albedo: 0.8,
+        },
+        hidden: vec![Surface {
+            label: "patch".into(),
+            shape: ShapeKind::Mesh,
+            mesh: patch,
+            albedo: 0.9,
+        }],
+    };
+    let pose = |x: f64| GalvoPose::looking(DVec3::new(x, 0.0, 2.0), -DVec3::Z, DVec3::Y).unwrap();
+    Rig::new(
+        Some(World::new(scene, 0.01, 1)),
+        RigSettings {
+            laser_pose: pose(-0.1),
+            spad_pose: pose(0.1),
+            limits: [limits(20.0), limits(20.0)],
+            settle: [Duration::from_micros(300); 2],
+            detector: detector(),
+            time_scale: 1.0,
+            seed: 3,
+            interlock_closed: true,
+        },
+    )
+}
+
+fn galvo(rig: &Rig, arm: Arm, driver_limits_deg: f64) -> SerialGalvo {
+    SerialGalvo::new(
+        SerialGalvoSettings {
+            name: format!("{arm:?}").to_lowercase(),
+            limits: limits(driver_limits_deg),
+            timeout: TIMEOUT,
+            settle: Duration::from_micros(300),
+        },
+        Box::new(rig.galvo_connector(arm)),
+    )
+}
+
+fn tdc(rig: &Rig) -> UsbTdc<SimTdcTransport> {
+    let mut tdc = UsbTdc::new(rig.tdc_transport(), TIMEOUT);
+    tdc.configure(&TdcConfig {
+        bin_width: 16e-12,
+        bins: 512,
+        offset: 12e-9,
+        sync_divider: 1,
+        acquisition: Duration::from_millis(50),
+    })
+    .unwrap();
+    tdc
+}
+
+fn angles(x: f64, y: f64) -> OpticalAngles {
+    OpticalAngles { x, y }
+}
+
+#[test]
+fn controllers_identify_and_move_through_the_pty() {
+    let rig = rig();
+    let mut laser = galvo(&rig, Arm::Laser, 20.0);
+    let info = laser.identify().unwrap();
+    assert_eq!((info.model.as_str(), info.protocol), ("PGC-2", 1));
+    let target = angles(0.05, -0.02);
+    let start = Instant::now();
+    let settled = laser.move_settled(target, Duration::from_secs(1)).unwrap();
+    assert!(start.elapsed() >= Duration::from_micros(300), "returned before the settling time");
+    assert!((settled.x - target.x).abs() < 1e-7 && (settled.y - target.y).abs() < 1e-7);
+    assert_eq!(rig.pointing().0, target);
+    assert_eq!(laser.position().unwrap(), target);
+    laser.park().unwrap();
+    assert_eq!(laser.wait_settled(Duration::from_secs(1)).unwrap(), angles(0.0, 0.0));
+}
+
+#[test]
+fn targets_outside_the_limits_never_move_the_mirrors() {
+    let rig = rig();
+    // The driver's own limits: refused before anything is sent.
+    let mut spad = galvo(&rig, Arm::Spad, 10.0);
+    let err = spad.move_to(angles(0.3, 0.0)).unwrap_err();
+    assert_eq!(err.kind(), ErrorKind::OutOfRange);
+    assert!(err.to_string().contains("outside the limits"), "{err}");
+    assert_eq!(rig.pointing().1, angles(0.0, 0.0));
+    // A driver configured wider than the firmware: the controller refuses.
+    let mut wide = galvo(&rig, Arm::Spad, 40.0);
+    let err = wide.move_to(angles(0.5, 0.0)).unwrap_err();
+    assert_eq!(err.kind(), ErrorKind::OutOfRange);
+    assert_eq!(rig.pointing().1, angles(0.0, 0.0));
+    // NaN is never a target.
+    assert_eq!(spad.move_to(angles(f64::NAN, 0.0)).unwrap_err().kind(), ErrorKind::OutOfRange);
+}
+
+#[test]
+fn the_interlock_gates_the_laser() {
+    let rig = rig();
+    let mut laser = galvo(&rig, Arm::Laser, 20.0);
+    rig.set_interlock(false);
+    let err = laser.set_emission(true).unwrap_err();
+    assert_eq!(err.kind(), ErrorKind::Interlock);
+    assert!(!laser.interlock_closed().unwrap());
+    assert!(!rig.emission());
+    rig.set_interlock(true);
+    laser.set_emission(true).unwrap();
+    assert!(laser.laser_state().unwrap().emission);
+    // Opening the loop stops emission at once.
+    rig.set_interlock(false);
+    assert!(!laser.laser_state().unwrap().emission);
+    // The SPAD arm's controller has no laser.
+    let mut spad = galvo(&rig, Arm::Spad, 20.0);
+    assert_eq!(spad.set_emission(true).unwrap_err().kind(), ErrorKind::Device);
+}
+
+#[test]
+fn the_los_histogram_peaks_at_the_first_bounce_path() {
+    let rig = rig();
+    let mut laser = galvo(&rig, Arm::Laser, 20.0);
+    let mut spad = galvo(&rig, Arm::Spad, 20.0);
+    let mut tdc = tdc(&rig);
+    laser.set_diffuser(true).unwrap();
+    laser.set_emission(true).unwrap();
+    let (l, s) = rig.origins();
+    let p = DVec3::new(0.2, -0.1, 0.0);
+    let pose = GalvoPose::looking(s, -DVec3::Z, DVec3::Y).unwrap();
+    spad.move_settled(pose.angles_for(p).unwrap(), Duration::from_secs(1)).unwrap();
+    let h = tdc.acquire().unwrap();
+    let peak = (0..h.counts.len()).max_by_key(|&b| h.counts[b]).unwrap();
+    let path = p.distance(l) + p.distance(s);
+    let expected_bin = (path / C0 - 12e-9) / 16e-12;
+    assert!((peak as f64 + 0.5 - expected_bin).abs() < 2.0, "peak {peak}, expected {expected_bin:.1}");
+    // Laser off: only dark counts.
+    laser.set_emission(false).unwrap();
+    let dark: u64 = tdc.acquire().unwrap().counts.iter().map(|&c| u64::from(c)).sum();
+    assert!(dark < 50, "dark counts {dark}");
+}
+
+#[test]
+fn an_nlos_pair_sees_the_hidden_patch() {
+    let rig = rig();
+    let mut laser = galvo(&rig, Arm::Laser, 20.0);
+    let mut spad = galvo(&rig, Arm::Spad, 20.0);
+    let mut tdc = tdc(&rig);
+    laser.set_emission(true).unwrap();
+    let (l, s) = rig.origins();
+    let (xi, xd) = (DVec3::new(-0.1, 0.0, 0.0), DVec3::new(0.1, 0.0, 0.0));
+    let look = |o| GalvoPose::looking(o, -DVec3::Z, DVec3::Y).unwrap();
+    laser.move_settled(look(l).angles_for(xi).unwrap(), Duration::from_secs(1)).unwrap();
+    spad.move_settled(look(s).angles_for(xd).unwrap(), Duration::from_secs(1)).unwrap();
+    let h = tdc.acquire().unwrap();
+    // The hidden return: the patch at z = 0.5 is 2 × ~0.51 m of hidden path.
+    let path = xi.distance(l) + xd.distance(s) + 2.0 * DVec3::new(0.1, 0.0, 0.5).length();
+    let bin = ((path / C0 - 12e-9) / 16e-12) as usize;
+    let near: u32 = h.counts[bin.saturating_sub(8)..bin + 8].iter().sum();
+    assert!(near > 20, "only {near} counts near bin {bin}");
+}
+
+// ---- Galvo faults -------------------------------------------------------------
+
+fn moved_ok_after(fault: GalvoFault) -> (SerialGalvo, Rig) {
+    let rig = rig();
+    let mut spad = galvo(&rig, Arm::Spad, 20.0);
+    spad.identify().unwrap();
+    rig.inject(Fault::Galvo(Arm::Spad, fault));
+    let target = angles(0.1, 0.05);
+    let got = spad.move_settled(target, Duration::from_secs(1)).unwrap();
+    assert_eq!(got, target, "after {fault:?}");
+    assert_eq!(rig.pointing().1, target);
+    (spad, rig)
+}
+
+#[test]
+fn a_dropped_reply_is_retried_once() {
+    moved_ok_after(GalvoFault::DropReply);
+    let rig = rig();
+    let mut spad = galvo(&rig, Arm::Spad, 20.0);
+    rig.inject(Fault::Galvo(Arm::Spad, GalvoFault::DropReply));
+    rig.inject(Fault::Galvo(Arm::Spad, GalvoFault::DropReply));
+    let err = spad.position().unwrap_err();
+    assert_eq!(err.kind(), ErrorKind::Timeout);
+    assert!(err.to_string().contains("no reply to `POS`"), "{err}");
+}
+
+#[test]
+fn a_corrupted_reply_is_retried_once_and_never_accepted() {
+    moved_ok_after(GalvoFault::CorruptChecksum);
+    let rig = rig();
+    let mut spad = galvo(&rig, Arm::Spad, 20.0);
+    spad.move_settled(angles(0.02, 0.01), Duration::from_secs(1)).unwrap();
+    rig.inject(Fault::Galvo(Arm::Spad, GalvoFault::CorruptChecksum));
+    rig.inject(Fault::Galvo(Arm::Spad, GalvoFault::CorruptChecksum));
+    let err = spad.position().unwrap_err();
+    assert_eq!(err.kind(), ErrorKind::Protocol);
+    assert!(err.to_string().contains("checksum"), "{err}");
+}
+
+#[test]
+fn garbage_on_the_line_is_skipped() {
+    moved_ok_after(GalvoFault::Garbage);
+}
+
+#[test]
+fn a_stalled_controller_is_retried_and_its_late_reply_ignored() {
+    let (mut spad, _rig) = moved_ok_after(GalvoFault::Stall(TIMEOUT + Duration::from_millis(30)));
+    // The late reply to the first MOVE must not be taken as a later command's reply.
+    std::thread::sleep(Duration::from_millis(50));
+    assert_eq!(spad.position().unwrap(), angles(0.1, 0.05));
+}
+
+#[test]
+fn an_unplugged_controller_is_reconnected() {
+    moved_ok_after(GalvoFault::Disconnect { refused_connects: 0 });
+    // Still gone after the retry: a Disconnected error, then back once it is.
+    let rig = rig();
+    let mut spad = galvo(&rig, Arm::Spad, 20.0);
+    spad.identify().unwrap();
+    rig.inject(Fault::Galvo(Arm::Spad, GalvoFault::Disconnect { refused_connects: 1 }));
+    let err = spad.position().unwrap_err();
+    assert_eq!(err.kind(), ErrorKind::Disconnected);
+    assert!(err.to_string().contains("plugged in"), "{err}");
+    assert_eq!(spad.position().unwrap(), angles(0.0, 0.0));
+}
+
+#[test]
+fn an_unplugged_laser_controller_comes_back_with_the_laser_off() {
+    let rig = rig();
+    let mut laser = galvo(&rig, Arm::Laser, 20.0);
+    laser.set_emission(true).unwrap();
+    rig.inject(Fault::Galvo(Arm::Laser, GalvoFault::Disconnect { refused_connects: 0 }));
+    let state = laser.laser_state().unwrap();
+    assert!(!state.emission, "a power-cycled controller must not report emission");
+}
+
+// ---- Histogrammer faults ------------------------------------------------------
+
+fn acquire_after(fault: TdcFault) -> (UsbTdc<SimTdcTransport>, periscope_drivers::Histogram) {
+    let rig = rig();
+    let mut tdc = tdc(&rig);
+    rig.inject(Fault::Tdc(fault));
+    let h = tdc.acquire().unwrap();
+    let sent = tdc.transport_mut().sent_counts(h.sequence).expect("a frame with that sequence was sent").to_vec();
+    assert_eq!(h.counts, sent, "after {fault:?} the driver returned other counts than the device produced");
+    (tdc, h)
+}
+
+#[test]
+fn a_stalled_acquisition_is_repeated() {
+    let (_, h) = acquire_after(TdcFault::Stall);
+    assert_eq!(h.sequence, 2, "the first acquisition never produced a frame");
+}
+
+#[test]
+fn a_corrupted_frame_is_discarded_and_reacquired() {
+    let (_, h) = acquire_after(TdcFault::CorruptCrc);
+    assert_eq!(h.sequence, 2);
+    let rig = rig();
+    let mut tdc = tdc(&rig);
+    rig.inject(Fault::Tdc(TdcFault::CorruptCrc));
+    rig.inject(Fault::Tdc(TdcFault::CorruptCrc));
+    let err = tdc.acquire().unwrap_err();
+    assert_eq!(err.kind(), ErrorKind::Protocol);
+    assert!(err.to_string().contains("CRC"), "{err}");
+}
+
+#[test]
+fn a_frame_split_over_short_reads_is_reassembled() {
+    let (_, h) = acquire_after(TdcFault::ShortRead);
+    assert_eq!(h.sequence, 1, "a split frame needs no second acquisition");
+}
+
+#[test]
+fn a_truncated_frame_is_reacquired() {
+    let (_, h) = acquire_after(TdcFault::Truncated);
+    assert_eq!(h.sequence, 2);
+}
+
+#[test]
+fn a_stale_frame_is_dropped() {
+    let rig = rig();
+    let mut tdc = tdc(&rig);
+    tdc.acquire().unwrap();
+    rig.inject(Fault::Tdc(TdcFault::StaleFrame));
+    let h = tdc.acquire().unwrap();
+    assert_eq!(h.sequence, 2);
+    assert_eq!(h.counts, tdc.transport_mut().sent_counts(2).unwrap());
+}
+
+#[test]
+fn overflow_is_flagged_not_hidden() {
+    let (_, h) = acquire_after(TdcFault::Overflow);
+    assert!(h.flags.overflow);
+    let (_, clean) = acquire_after(TdcFault::ShortRead);
+    assert!(!clean.flags.overflow);
+}
+
+#[test]
+fn an_unplugged_histogrammer_is_reopened_and_reconfigured() {
+    let (mut tdc, h) = acquire_after(TdcFault::Disconnect { refused_reopens: 0 });
+    assert_eq!(h.config.bins, 512);
+    // Settings were restored on the device, not just remembered by the driver.
+    assert_eq!(tdc.status().unwrap().rates.sync, 10e6);
+    let rig = rig();
+    let mut tdc = tdc_fresh(&rig);
+    rig.inject(Fault::Tdc(TdcFault::Disconnect { refused_reopens: 1 }));
+    let err = tdc.acquire().unwrap_err();
+    assert_eq!(err.kind(), ErrorKind::Disconnected);
+    assert!(err.to_string().contains("periscope devices"), "{err}");
+    // Plugged back in: the next acquisition reopens, reconfigures and succeeds.
+    let h = tdc.acquire().unwrap();
+    assert_eq!(h.counts.len(), 512);
+}
+
+fn tdc_fresh(rig: &Rig) -> UsbTdc<SimTdcTransport> {
+    tdc(rig)
+}
+
+#[test]
+fn acquiring_unconfigured_or_with_bad_settings_is_refused() {
+    let rig = rig();
+    let mut tdc = UsbTdc::new(rig.tdc_transport(), TIMEOUT);
+    assert_eq!(tdc.acquire().unwrap_err().kind(), ErrorKind::Device);
+    let bad = TdcConfig {
+        bin_width: 16e-12,
+        bins: 0,
+        offset: 0.0,
+        sync_divider: 1,
+        acquisition: Duration::from_millis(1),
+    };
+    assert_eq!(tdc.configure(&bad).unwrap_err().kind(), ErrorKind::OutOfRange);
+    let negative = TdcConfig { bins: 16, offset: -1e-9, ..bad };
+    assert_eq!(tdc.configure(&negative).unwrap_err().kind(), ErrorKind::OutOfRange);
+    let info = tdc.identify().unwrap();
+    assert_eq!(info.model, "PTDC-SIM");
+}
