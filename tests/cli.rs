@@ -83,3 +83,22 @@ fn json_logs_are_json() {
         assert!(line.ends_with('}') && line.contains("\"level\""), "{line}");
     }
 }
+
+#[test]
+fn devices_identifies_the_simulated_instrument_through_the_real_drivers() {
+    let out = periscope(&["devices"]);
+    assert_eq!(out.code, Some(0), "{out:?}");
+    for want in ["laser arm  PGC-2", "spad arm   PGC-2", "histogrammer PTDC-SIM", "interlock closed"] {
+        assert!(out.stdout.contains(want), "missing `{want}` in:\n{}", out.stdout);
+    }
+}
+
+#[test]
+fn devices_names_the_missing_hardware() {
+    let out = periscope(&["devices", "--instrument", "configs/instrument/lab.example.toml"]);
+    assert_eq!(out.code, Some(1), "{out:?}");
+    // Either libusb is unavailable here or the device is not plugged in: the message
+    // names the device and says what to check.
+    assert!(out.stderr.contains("histogrammer 1d50:6189"), "{}", out.stderr);
+    assert!(out.stderr.contains("tdc.usb"), "{}", out.stderr);
+}

@@ -185,14 +185,7 @@ pub fn execute(cli: Cli) -> anyhow::Result<()> {
             }
             .into())
         }
-        Command::Devices { instrument } => {
-            instrument.load()?;
-            Err(NotAvailable {
-                command: "devices",
-                what: "device listing has not landed (issue: drivers)",
-            }
-            .into())
-        }
+        Command::Devices { instrument } => devices(&instrument.load()?),
     }
 }
 
@@ -205,4 +198,74 @@ pub fn exit_code(err: &anyhow::Error) -> ExitCode {
     } else {
         ExitCode::FAILURE
     }
+}
+
+/// `periscope devices`: what this host has plugged in, then the configured
+/// instrument's devices opened, identified and queried.
+fn devices(config: &InstrumentConfig) -> anyhow::Result<()> {
+    use periscope_drivers::{ports, tdc};
+    println!("Serial ports on this host:");
+    match ports::list_serial_ports() {
+        Ok(list) if list.is_empty() => println!("  (none)"),
+        Ok(list) => {
+            for p in list {
+                let usb = p.usb.map(|u| format!("  USB {u}")).unwrap_or_default();
+                let product = p.product.map(|u| format!("  {u}")).unwrap_or_default();
+                println!("  {}{usb}{product}", p.path);
+            }
+        }
+        Err(e) => println!("  (cannot list: {e})"),
+    }
+    println!("USB devices on this host (select one in the config as tdc.usb = \"VID:PID[:SERIAL]\"):");
+    match tdc::list_usb_devices() {
+        Ok(list) if list.is_empty() => println!("  (none)"),
+        Ok(list) => {
+            for d in list {
+                let serial = d.serial.map(|s| format!(":{s}")).unwrap_or_default();
+                let product = d.product.unwrap_or_default();
+                println!(
+                    "  {:04x}:{:04x}{serial}  bus {:03} address {:03}  {product}",
+                    d.vendor_id, d.product_id, d.bus, d.address
+                );
+            }
+        }
+        Err(e) => println!("  (cannot list: {e})"),
+    }
+    println!("Instrument: {}", config.summary());
+    let mut devices = crate::devices::Devices::open(config)?;
+    let r = devices.report()?;
+    let deg = |a: periscope_drivers::OpticalAngles| format!("({:.3}°, {:.3}°)", a.x.to_degrees(), a.y.to_degrees());
+    println!(
+        "  laser arm  {} {} serial {} (protocol {})  at {}",
+        r.laser_arm.model,
+        r.laser_arm.firmware,
+        r.laser_arm.serial,
+        r.laser_arm.protocol,
+        deg(r.laser_position)
+    );
+    println!(
+        "    laser {}  interlock {}  diffuser {}",
+        if r.laser.emission { "ON" } else { "off" },
+        if r.laser.interlock_closed { "closed" } else { "OPEN" },
+        if r.laser.diffuser_in { "in" } else { "out" }
+    );
+    println!(
+        "  spad arm   {} {} serial {} (protocol {})  at {}",
+        r.spad_arm.model,
+        r.spad_arm.firmware,
+        r.spad_arm.serial,
+        r.spad_arm.protocol,
+        deg(r.spad_position)
+    );
+    println!(
+        "  histogrammer {} {} serial {}  {:?}, sync {:.0} Hz, detector {:.0} Hz, {} histograms since power-up",
+        r.tdc.model,
+        r.tdc.firmware,
+        r.tdc.serial,
+        r.tdc_status.state,
+        r.tdc_status.rates.sync,
+        r.tdc_status.rates.detector,
+        r.tdc_status.acquisitions
+    );
+    Ok(())
 }

@@ -40,10 +40,13 @@ pub trait GalvoPair: ErrorType {
     /// The optical-angle range this driver lets through; targets outside it are
     /// refused before anything is sent.
     fn limits(&self) -> AngleLimits;
-    /// Starts a move to `target`; returns once the controller has accepted it.
+    /// Starts a move to `target` and returns without waiting for it, so that two pairs
+    /// can move at once. A target outside [`GalvoPair::limits`] is refused here; the
+    /// controller's own answer (settled, or a refusal) is collected by
+    /// [`GalvoPair::wait_settled`] or, failing that, by the next command.
     fn move_to(&mut self, target: OpticalAngles) -> Result<(), Self::Error>;
-    /// Waits until the pair reports itself settled at the last commanded target, and
-    /// returns the measured position.
+    /// Waits until the pair is settled at the last commanded target (never accepting
+    /// another position) and returns the measured position.
     fn wait_settled(&mut self, timeout: Duration) -> Result<OpticalAngles, Self::Error>;
     /// The measured position.
     fn position(&mut self) -> Result<OpticalAngles, Self::Error>;

@@ -147,18 +147,47 @@ impl Detector {
     }
 }
 
+/// Below this mean, draws use sequential inversion (one uniform, about λ + 1 steps);
+/// most histogram bins hold a small fraction of a count, where building a general
+/// Poisson sampler per bin would cost far more than the draw.
+const SMALL_MEAN: f64 = 10.0;
+
+/// One Poisson(λ) draw by inversion of the CDF, for small λ.
+fn small_poisson(l: f64, p0: f64, rng: &mut ChaCha8Rng) -> u32 {
+    use rand::Rng;
+    let u: f64 = rng.random();
+    let mut p = p0;
+    let mut cdf = p;
+    let mut k = 0u32;
+    // The loop ends by k ≈ λ + 10√λ + 20 in all but floating-point pathologies; the
+    // bound only guards against rounding leaving `cdf` just below `u`.
+    while u > cdf && k < 200 {
+        k += 1;
+        p *= l / f64::from(k);
+        cdf += p;
+    }
+    k
+}
+
 /// Poisson draws of `expected`, reproducible from `seed` and `stream` (e.g. the pair
 /// index), independent of thread count.
 pub fn sample_counts(expected: &[f64], seed: u64, stream: u64) -> Vec<u32> {
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
     rng.set_stream(stream);
+    // exp(−λ) of the previous bin: background bins share one mean.
+    let mut last = (f64::NAN, 0.0);
     expected
         .iter()
         .map(|&l| {
-            if l > 0.0 && l.is_finite() {
-                Poisson::new(l).map_or(0, |p| p.sample(&mut rng).min(u32::MAX as f64) as u32)
-            } else {
+            if !(l > 0.0 && l.is_finite()) {
                 0
+            } else if l < SMALL_MEAN {
+                if l != last.0 {
+                    last = (l, (-l).exp());
+                }
+                small_poisson(l, last.1, &mut rng)
+            } else {
+                Poisson::new(l).map_or(0, |p| p.sample(&mut rng).min(u32::MAX as f64) as u32)
             }
         })
         .collect()

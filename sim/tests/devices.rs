@@ -136,7 +136,8 @@ fn targets_outside_the_limits_never_move_the_mirrors() {
     assert_eq!(rig.pointing().1, angles(0.0, 0.0));
     // A driver configured wider than the firmware: the controller refuses.
     let mut wide = galvo(&rig, Arm::Spad, 40.0);
-    let err = wide.move_to(angles(0.5, 0.0)).unwrap_err();
+    wide.move_to(angles(0.5, 0.0)).unwrap();
+    let err = wide.wait_settled(Duration::from_secs(1)).unwrap_err();
     assert_eq!(err.kind(), ErrorKind::OutOfRange);
     assert_eq!(rig.pointing().1, angles(0.0, 0.0));
     // NaN is never a target.

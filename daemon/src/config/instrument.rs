@@ -47,6 +47,11 @@ pub struct SimSettings {
     pub pile_up: bool,
     /// Spacing of the hidden-surface samples, metres.
     pub sample_spacing: f64,
+    /// Real seconds per simulated second of galvo settling and TDC dwell: 0 runs as
+    /// fast as the physics computes, 1 in real time.
+    pub time_scale: f64,
+    /// Whether the simulated interlock loop starts closed.
+    pub interlock_closed: bool,
 }
 
 /// A validated instrument config.
@@ -263,6 +268,10 @@ struct RawSim {
     pile_up: bool,
     #[serde(default = "default_spacing_mm")]
     sample_spacing_mm: f64,
+    #[serde(default)]
+    time_scale: f64,
+    #[serde(default = "default_true")]
+    interlock_closed: bool,
 }
 
 fn default_aperture_mm() -> f64 {
@@ -334,6 +343,8 @@ fn sim_settings(check: &Check<'_>, raw: RawSim) -> Result<SimSettings, ConfigErr
         },
         pile_up: raw.pile_up,
         sample_spacing: check.range("sim.sample-spacing-mm", raw.sample_spacing_mm, 0.5, 100.0, "mm")? * 1e-3,
+        time_scale: check.range("sim.time-scale", raw.time_scale, 0.0, 100.0, "(real seconds per simulated second)")?,
+        interlock_closed: raw.interlock_closed,
     })
 }
 

@@ -43,9 +43,11 @@ pub struct SerialGalvo {
     link: Option<Box<dyn Link>>,
     tag: u8,
     rx: Vec<u8>,
+    /// Target of the last park, for the settled check of a STAT poll.
     target: Option<OpticalAngles>,
-    /// When the controller said the last move would be settled.
-    settle_hint: Option<Instant>,
+    /// A `MOVE` sent whose reply (sent by the controller once settled) is not yet read:
+    /// its tag and target.
+    pending: Option<(u8, OpticalAngles)>,
 }
 
 impl ErrorType for SerialGalvo {
@@ -64,7 +66,7 @@ impl SerialGalvo {
             tag: 0,
             rx: Vec::with_capacity(protocol::MAX_LINE),
             target: None,
-            settle_hint: None,
+            pending: None,
         }
     }
 
@@ -87,6 +89,9 @@ impl SerialGalvo {
     /// One request, its reply fields; retried once where that is safe (always: every
     /// command is idempotent).
     fn request(&mut self, req: Request) -> Result<Vec<String>, GalvoError> {
+        if self.pending.is_some() {
+            self.finish_move(self.settings.settle * 4)?;
+        }
         match self.exchange(req) {
             Ok(fields) => Ok(fields),
             Err(e) if matches!(e.kind(), ErrorKind::Timeout | ErrorKind::Protocol | ErrorKind::Disconnected) => {
@@ -124,17 +129,28 @@ impl SerialGalvo {
 
     #[instrument(level = "trace", skip(self), fields(arm = %self.settings.name))]
     fn exchange(&mut self, req: Request) -> Result<Vec<String>, GalvoError> {
+        let tag = self.send(req)?;
+        self.receive(req, tag, self.settings.timeout)
+    }
+
+    /// Sends `req` with a fresh tag after dropping stale input; returns the tag.
+    fn send(&mut self, req: Request) -> Result<u8, GalvoError> {
         self.connect()?;
         self.tag = self.tag.wrapping_add(1);
         let tag = self.tag;
         let line = protocol::encode_line(tag, &req.body());
-        let timeout = self.settings.timeout;
         let link = self.link.as_mut().expect("connected above");
         let sent = link.discard_input().and_then(|()| link.send(line.as_bytes()));
         if let Err(e) = sent {
             return Err(self.broken(e));
         }
         self.rx.clear();
+        Ok(tag)
+    }
+
+    /// Reads lines until the reply tagged `tag` arrives, within `timeout`.
+    fn receive(&mut self, req: Request, tag: u8, timeout: Duration) -> Result<Vec<String>, GalvoError> {
+        self.connect()?;
         let deadline = Instant::now() + timeout;
         let mut corrupted = false;
         let mut chunk = [0u8; 128];
@@ -173,6 +189,60 @@ impl SerialGalvo {
             match link.receive(&mut chunk, deadline - now) {
                 Ok(n) => self.rx.extend_from_slice(&chunk[..n]),
                 Err(e) => return Err(self.broken(e)),
+            }
+        }
+    }
+
+    /// Collects the reply to an outstanding `MOVE` (sent by `move_to`), retrying the
+    /// move once on a timeout, a corrupted reply or a broken link, and checks that the
+    /// pair settled where it was sent.
+    fn finish_move(&mut self, timeout: Duration) -> Result<OpticalAngles, GalvoError> {
+        let Some((tag, target)) = self.pending.take() else {
+            return Err(self.err(ErrorKind::Device, "no move is outstanding"));
+        };
+        let req = Request::Move(target);
+        let wait = timeout + self.settings.timeout;
+        let fields = match self.receive(req, tag, wait) {
+            Ok(f) => f,
+            Err(e) if matches!(e.kind(), ErrorKind::Timeout | ErrorKind::Protocol | ErrorKind::Disconnected) => {
+                warn!(arm = %self.settings.name, error = %e, "repeating the move once");
+                let tag = self.send(req)?;
+                self.receive(req, tag, wait)?
+            }
+            Err(e) => return Err(e),
+        };
+        let status = self.parse_status(req, &fields)?;
+        self.check_settled(status, target)
+    }
+
+    fn parse_status(&self, req: Request, fields: &[String]) -> Result<GalvoStatus, GalvoError> {
+        let refs: Vec<&str> = fields.iter().map(String::as_str).collect();
+        match refs.as_slice() {
+            [state, rest @ ..] => match (MotionState::from_word(state), protocol::parse_angles(rest)) {
+                (Some(state), Some(position)) => Ok(GalvoStatus { state, position }),
+                _ => Err(self.malformed(req, fields)),
+            },
+            _ => Err(self.malformed(req, fields)),
+        }
+    }
+
+    /// Accepts a settled status only at the target.
+    fn check_settled(&self, status: GalvoStatus, target: OpticalAngles) -> Result<OpticalAngles, GalvoError> {
+        match status.state {
+            MotionState::Fault => Err(self.err(ErrorKind::Device, "servo fault while settling: power-cycle the controller")),
+            MotionState::Moving => Err(self.err(ErrorKind::Device, "the controller reported a move done while still moving")),
+            MotionState::Settled | MotionState::Parked => {
+                let off = (status.position.x - target.x).abs().max((status.position.y - target.y).abs());
+                if !(off <= POSITION_TOLERANCE) {
+                    return Err(self.err(
+                        ErrorKind::Device,
+                        format!(
+                            "settled at ({:.7}, {:.7}) rad instead of the target ({:.7}, {:.7}): the position was not accepted; check the servo tuning",
+                            status.position.x, status.position.y, target.x, target.y
+                        ),
+                    ));
+                }
+                Ok(status.position)
             }
         }
     }
@@ -275,47 +345,35 @@ impl GalvoPair for SerialGalvo {
                 ),
             ));
         }
+        if self.pending.is_some() {
+            self.finish_move(self.settings.settle * 4)?;
+        }
         let req = Request::Move(target);
-        let fields = self.request(req)?;
-        let settle_us: f64 = match fields.first().map(|f| f.parse::<f64>()) {
-            Some(Ok(us)) if us.is_finite() && us >= 0.0 => us,
-            _ => return Err(self.malformed(req, &fields)),
+        let tag = match self.send(req) {
+            Ok(tag) => tag,
+            Err(e) if e.kind() == ErrorKind::Disconnected => {
+                warn!(arm = %self.settings.name, error = %e, "reconnecting to send the move again");
+                self.send(req)?
+            }
+            Err(e) => return Err(e),
         };
-        self.target = Some(target);
-        self.settle_hint = Some(Instant::now() + Duration::from_secs_f64(settle_us * 1e-6));
+        self.pending = Some((tag, target));
         Ok(())
     }
 
     fn wait_settled(&mut self, timeout: Duration) -> Result<OpticalAngles, GalvoError> {
-        let start = Instant::now();
-        if let Some(hint) = self.settle_hint.take() {
-            let now = Instant::now();
-            if hint > now {
-                std::thread::sleep((hint - now).min(timeout));
-            }
+        if self.pending.is_some() {
+            return self.finish_move(timeout);
         }
+        // After a park (or with nothing commanded): poll.
+        let start = Instant::now();
         loop {
             let status = self.status()?;
-            match status.state {
-                MotionState::Settled | MotionState::Parked => {
-                    if let Some(target) = self.target {
-                        let off = (status.position.x - target.x).abs().max((status.position.y - target.y).abs());
-                        if !(off <= POSITION_TOLERANCE) {
-                            return Err(self.err(
-                                ErrorKind::Device,
-                                format!(
-                                    "settled at ({:.7}, {:.7}) rad instead of the target ({:.7}, {:.7}): the position was not accepted; check the servo tuning",
-                                    status.position.x, status.position.y, target.x, target.y
-                                ),
-                            ));
-                        }
-                    }
-                    return Ok(status.position);
-                }
-                MotionState::Fault => {
-                    return Err(self.err(ErrorKind::Device, "servo fault while settling: power-cycle the controller"));
-                }
-                MotionState::Moving => {}
+            if status.state != MotionState::Moving {
+                return match self.target {
+                    Some(target) => self.check_settled(status, target),
+                    None => Ok(status.position),
+                };
             }
             if start.elapsed() >= timeout {
                 return Err(self.err(
@@ -338,24 +396,12 @@ impl GalvoPair for SerialGalvo {
 
     fn status(&mut self) -> Result<GalvoStatus, GalvoError> {
         let fields = self.request(Request::Status)?;
-        let refs: Vec<&str> = fields.iter().map(String::as_str).collect();
-        match refs.as_slice() {
-            [state, rest @ ..] => {
-                let state = MotionState::from_word(state);
-                let position = protocol::parse_angles(rest);
-                match (state, position) {
-                    (Some(state), Some(position)) => Ok(GalvoStatus { state, position }),
-                    _ => Err(self.malformed(Request::Status, &fields)),
-                }
-            }
-            _ => Err(self.malformed(Request::Status, &fields)),
-        }
+        self.parse_status(Request::Status, &fields)
     }
 
     fn park(&mut self) -> Result<(), GalvoError> {
         self.request(Request::Park)?;
         self.target = Some(OpticalAngles { x: 0.0, y: 0.0 });
-        self.settle_hint = None;
         Ok(())
     }
 }

@@ -3,6 +3,8 @@
 //! a device model behind it, so the driver code above is the same in the lab and in CI.
 use std::time::Duration;
 
+use rusb::UsbContext;
+
 use super::protocol::{INTERFACE, REQUEST_TYPE_IN, REQUEST_TYPE_OUT};
 use crate::selector::UsbSelector;
 
@@ -73,7 +75,13 @@ impl<T: UsbTransport + ?Sized> UsbTransport for Box<T> {
 /// libusb, through `rusb`: the device chosen by a `VID:PID[:SERIAL]` selector.
 pub struct RusbTransport {
     selector: UsbSelector,
-    handle: Option<rusb::DeviceHandle<rusb::GlobalContext>>,
+    handle: Option<rusb::DeviceHandle<rusb::Context>>,
+}
+
+/// A libusb context; fails (rather than panicking, as rusb's global context does) on
+/// hosts without USB support, such as containers without `/dev/bus/usb`.
+fn context() -> Result<rusb::Context, TransportError> {
+    rusb::Context::new().map_err(|e| TransportError::Other(format!("libusb cannot start ({e}): this host has no usable USB support")))
 }
 
 fn map(e: rusb::Error) -> TransportError {
@@ -93,7 +101,7 @@ impl RusbTransport {
         Ok(t)
     }
 
-    fn handle(&mut self) -> Result<&mut rusb::DeviceHandle<rusb::GlobalContext>, TransportError> {
+    fn handle(&mut self) -> Result<&mut rusb::DeviceHandle<rusb::Context>, TransportError> {
         if self.handle.is_none() {
             self.reopen()?;
         }
@@ -120,7 +128,7 @@ pub struct UsbDeviceInfo {
 
 /// Lists the USB devices libusb can see (descriptors only; strings where readable).
 pub fn list_usb_devices() -> Result<Vec<UsbDeviceInfo>, TransportError> {
-    let devices = rusb::devices().map_err(map)?;
+    let devices = context()?.devices().map_err(map)?;
     let mut out = Vec::new();
     for dev in devices.iter() {
         let Ok(desc) = dev.device_descriptor() else { continue };
@@ -166,7 +174,7 @@ impl UsbTransport for RusbTransport {
 
     fn reopen(&mut self) -> Result<(), TransportError> {
         self.handle = None;
-        let devices = rusb::devices().map_err(map)?;
+        let devices = context()?.devices().map_err(map)?;
         for dev in devices.iter() {
             let Ok(desc) = dev.device_descriptor() else { continue };
             if desc.vendor_id() != self.selector.vendor_id || desc.product_id() != self.selector.product_id {

@@ -106,7 +106,14 @@ enum Outcome {
 fn answer(rig: &Shared, arm: Arm, line: &[u8]) -> Outcome {
     let fault = rig.lock().arms[arm.index()].faults.pop_front();
     let (tag, body) = match protocol::decode_line(line) {
-        Ok((tag, body)) => (tag, handle(rig, arm, body)),
+        Ok((tag, body)) => {
+            let (reply, settle) = handle(rig, arm, body);
+            // A move is answered once the pair has settled.
+            if !settle.is_zero() {
+                std::thread::sleep(settle);
+            }
+            (tag, reply)
+        }
         Err(LineError::Checksum(Some(tag))) => (tag, ErrorCode::BadChecksum.reply()),
         Err(_) => {
             debug!(?arm, "firmware ignoring garbage");
@@ -141,11 +148,29 @@ fn answer(rig: &Shared, arm: Arm, line: &[u8]) -> Outcome {
     Outcome::Reply(reply)
 }
 
-fn handle(rig: &Shared, arm: Arm, body: &str) -> String {
+/// The reply to a request, and how long to wait before sending it.
+fn handle(rig: &Shared, arm: Arm, body: &str) -> (String, Duration) {
     let req = match Request::parse(body) {
         Ok(r) => r,
-        Err(code) => return code.reply(),
+        Err(code) => return (code.reply(), Duration::ZERO),
     };
+    if let Request::Move(target) = req {
+        if !rig.settings.limits[arm.index()].contains(target) {
+            return (ErrorCode::OutOfRange.reply(), Duration::ZERO);
+        }
+        let settle = rig.scaled(rig.settings.settle[arm.index()]);
+        let mut s = rig.lock();
+        let a = &mut s.arms[arm.index()];
+        a.target = target;
+        a.parked = false;
+        a.settled_at = Instant::now() + settle;
+        let reply = format!("OK {} {}", MotionState::Settled.word(), protocol::fmt_angles(target));
+        return (reply, settle);
+    }
+    (handle_immediate(rig, arm, req), Duration::ZERO)
+}
+
+fn handle_immediate(rig: &Shared, arm: Arm, req: Request) -> String {
     let settings = &rig.settings;
     let mut s = rig.lock();
     let now = Instant::now();
@@ -158,17 +183,7 @@ fn handle(rig: &Shared, arm: Arm, body: &str) -> String {
             if is_laser { "LASER" } else { "NOLASER" }
         ),
         Request::Limits => format!("OK {}", protocol::fmt_limits(settings.limits[arm.index()])),
-        Request::Move(target) => {
-            if !settings.limits[arm.index()].contains(target) {
-                return ErrorCode::OutOfRange.reply();
-            }
-            let settle = rig.scaled(settings.settle[arm.index()]);
-            let a = &mut s.arms[arm.index()];
-            a.target = target;
-            a.parked = false;
-            a.settled_at = now + settle;
-            format!("OK {}", settle.as_micros())
-        }
+        Request::Move(_) => unreachable!("moves are answered by `handle`"),
         Request::Position => format!("OK {}", protocol::fmt_angles(s.arms[arm.index()].target)),
         Request::Status => {
             let a = &s.arms[arm.index()];

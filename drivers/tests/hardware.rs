@@ -1,0 +1,58 @@
+//! Tests against real devices, excluded by default: they need the lab instrument.
+//! Run on the lab machine, serialised (they share the hardware):
+//!
+//! ```text
+//! PERISCOPE_GALVO_PORT=/dev/ttyUSB1 PERISCOPE_TDC_USB=1d50:6189 \
+//!   cargo test -p periscope-drivers --features hardware-tests -- --test-threads=1
+//! ```
+//!
+//! The galvo test moves the SPAD arm (never the laser arm, and never switches the
+//! laser) within ±2°, and parks it.
+#![cfg(feature = "hardware-tests")]
+
+use std::time::Duration;
+
+use periscope_drivers::galvo::{PortConnector, SerialGalvo, SerialGalvoSettings};
+use periscope_drivers::tdc::{RusbTransport, UsbTdc};
+use periscope_drivers::{AngleLimits, GalvoPair, Histogrammer, OpticalAngles, TdcConfig};
+
+fn env(name: &str) -> String {
+    std::env::var(name).unwrap_or_else(|_| panic!("set {name} to run the hardware tests"))
+}
+
+#[test]
+fn spad_arm_moves_and_settles() {
+    let lim = 2f64.to_radians();
+    let mut g = SerialGalvo::open(
+        SerialGalvoSettings {
+            name: "spad".into(),
+            limits: AngleLimits { x: [-lim, lim], y: [-lim, lim] },
+            timeout: Duration::from_millis(200),
+            settle: Duration::from_micros(400),
+        },
+        Box::new(PortConnector { path: env("PERISCOPE_GALVO_PORT"), baud: 115_200 }),
+    )
+    .unwrap();
+    for target in [OpticalAngles { x: lim / 2.0, y: 0.0 }, OpticalAngles { x: 0.0, y: -lim / 2.0 }] {
+        let at = g.move_settled(target, Duration::from_millis(100)).unwrap();
+        assert!((at.x - target.x).abs() < 1e-5 && (at.y - target.y).abs() < 1e-5);
+    }
+    g.park().unwrap();
+}
+
+#[test]
+fn histogrammer_acquires() {
+    let transport = RusbTransport::open(env("PERISCOPE_TDC_USB").parse().unwrap()).unwrap();
+    let mut tdc = UsbTdc::new(transport, Duration::from_millis(500));
+    tdc.identify().unwrap();
+    tdc.configure(&TdcConfig {
+        bin_width: 16e-12,
+        bins: 1024,
+        offset: 0.0,
+        sync_divider: 1,
+        acquisition: Duration::from_millis(100),
+    })
+    .unwrap();
+    let h = tdc.acquire().unwrap();
+    assert_eq!(h.counts.len(), 1024);
+}

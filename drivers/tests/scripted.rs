@@ -1,0 +1,356 @@
+//! Byte-exact exchanges for every galvo command and every histogrammer request,
+//! against scripted fakes (PyMeasure's `expected_protocol`, probe-rs's `FakeProbe`):
+//! the driver must send exactly these bytes and read exactly these replies. The lines
+//! are the examples of `docs/protocols/galvo-serial.md`, CRCs computed independently.
+use std::collections::VecDeque;
+use std::io;
+use std::sync::{Arc, Mutex};
+use std::time::Duration;
+
+use periscope_drivers::galvo::protocol::MotionState;
+use periscope_drivers::galvo::{Connector, Link, SerialGalvo, SerialGalvoSettings};
+use periscope_drivers::tdc::protocol::{self, FrameHeader, WireConfig, WireInfo, WireStatus};
+use periscope_drivers::tdc::{TransportError, UsbTdc, UsbTransport};
+use periscope_drivers::{AngleLimits, Error, ErrorKind, GalvoPair, Histogrammer, Laser, OpticalAngles, TdcConfig};
+
+type Script = Arc<Mutex<VecDeque<(&'static str, &'static str)>>>;
+
+/// A link that expects exactly the scripted requests and answers each with its reply.
+struct ScriptedLink {
+    script: Script,
+    rx: VecDeque<u8>,
+}
+
+impl Link for ScriptedLink {
+    fn send(&mut self, bytes: &[u8]) -> io::Result<()> {
+        let (want, reply) = self.script.lock().unwrap().pop_front().expect("an unexpected request was sent");
+        assert_eq!(String::from_utf8_lossy(bytes), want, "request bytes");
+        self.rx.extend(reply.as_bytes());
+        Ok(())
+    }
+
+    fn receive(&mut self, buf: &mut [u8], timeout: Duration) -> io::Result<usize> {
+        if self.rx.is_empty() {
+            std::thread::sleep(timeout.min(Duration::from_millis(1)));
+            return Ok(0);
+        }
+        let n = buf.len().min(self.rx.len());
+        for (dst, src) in buf.iter_mut().zip(self.rx.drain(..n)) {
+            *dst = src;
+        }
+        Ok(n)
+    }
+
+    fn discard_input(&mut self) -> io::Result<()> {
+        self.rx.clear();
+        Ok(())
+    }
+}
+
+struct ScriptedConnector(Script);
+
+impl Connector for ScriptedConnector {
+    fn connect(&mut self) -> io::Result<Box<dyn Link>> {
+        Ok(Box::new(ScriptedLink {
+            script: self.0.clone(),
+            rx: VecDeque::new(),
+        }))
+    }
+
+    fn describe(&self) -> String {
+        "scripted".into()
+    }
+}
+
+fn galvo_with(limit: f64, script: &[(&'static str, &'static str)]) -> (SerialGalvo, Script) {
+    let script: Script = Arc::new(Mutex::new(script.iter().copied().collect()));
+    let settings = SerialGalvoSettings {
+        name: "laser".into(),
+        limits: AngleLimits {
+            x: [-limit, limit],
+            y: [-limit, limit],
+        },
+        timeout: Duration::from_millis(20),
+        settle: Duration::from_micros(100),
+    };
+    (SerialGalvo::new(settings, Box::new(ScriptedConnector(script.clone()))), script)
+}
+
+fn galvo(script: &[(&'static str, &'static str)]) -> (SerialGalvo, Script) {
+    galvo_with(0.3, script)
+}
+
+fn done(script: &Script) {
+    let left = script.lock().unwrap();
+    assert!(left.is_empty(), "scripted requests never sent: {left:?}");
+}
+
+#[test]
+fn identify() {
+    let (mut g, s) = galvo(&[("01 IDN*01\n", "01 OK PGC-2 1.0.0 1 SN123 LASER*9B\n")]);
+    let info = g.identify().unwrap();
+    assert_eq!((info.model.as_str(), info.firmware.as_str(), info.serial.as_str()), ("PGC-2", "1.0.0", "SN123"));
+    done(&s);
+}
+
+#[test]
+fn identify_refuses_another_protocol_version() {
+    let (mut g, s) = galvo(&[("01 IDN*01\n", "01 OK PGC-2 1.0.0 2 SN123 LASER*20\n")]);
+    let err = g.identify().unwrap_err();
+    assert_eq!(err.kind(), ErrorKind::Protocol);
+    assert!(err.to_string().contains("protocol 2"), "{err}");
+    done(&s);
+}
+
+#[test]
+fn move_then_settle() {
+    // The controller answers a move once the pair has settled.
+    let (mut g, s) = galvo(&[("01 MOVE 0.1000000 -0.0500000*15\n", "01 OK SETTLED 0.1000000 -0.0500000*06\n")]);
+    let pos = g.move_settled(OpticalAngles { x: 0.1, y: -0.05 }, Duration::from_secs(1)).unwrap();
+    assert_eq!(pos, OpticalAngles { x: 0.1, y: -0.05 });
+    done(&s);
+}
+
+#[test]
+fn a_command_after_an_unawaited_move_collects_its_reply_first() {
+    let (mut g, s) = galvo(&[
+        ("01 MOVE 0.1000000 -0.0500000*15\n", "01 OK SETTLED 0.1000000 -0.0500000*06\n"),
+        ("02 STAT*4D\n", "02 OK SETTLED 0.1000000 -0.0500000*22\n"),
+    ]);
+    g.move_to(OpticalAngles { x: 0.1, y: -0.05 }).unwrap();
+    assert_eq!(g.status().unwrap().state, MotionState::Settled);
+    done(&s);
+}
+
+#[test]
+fn settling_after_a_park_polls_while_moving() {
+    let (mut g, s) = galvo(&[
+        ("01 PARK*5B\n", "01 OK*C4\n"),
+        ("02 STAT*4D\n", "02 OK MOVING 0.0000000 0.0000000*A3\n"),
+        ("03 STAT*64\n", "03 OK PARKED 0.0000000 0.0000000*8F\n"),
+    ]);
+    g.park().unwrap();
+    g.wait_settled(Duration::from_secs(1)).unwrap();
+    done(&s);
+}
+
+#[test]
+fn a_settled_position_off_target_is_refused() {
+    let (mut g, s) = galvo(&[("01 MOVE 0.1000000 -0.0500000*15\n", "01 OK SETTLED 0.1000000 -0.0400000*2F\n")]);
+    let err = g.move_settled(OpticalAngles { x: 0.1, y: -0.05 }, Duration::from_secs(1)).unwrap_err();
+    assert_eq!(err.kind(), ErrorKind::Device);
+    assert!(err.to_string().contains("instead of the target"), "{err}");
+    done(&s);
+}
+
+#[test]
+fn position_status_park_limits() {
+    let (mut g, s) = galvo(&[
+        ("01 POS*5D\n", "01 OK 0.0100000 0.0200000*25\n"),
+        ("02 STAT*4D\n", "02 OK SETTLED 0.1000000 -0.0500000*22\n"),
+    ]);
+    assert_eq!(g.position().unwrap(), OpticalAngles { x: 0.01, y: 0.02 });
+    assert_eq!(g.status().unwrap().state, MotionState::Settled);
+    done(&s);
+    let (mut g, s) = galvo(&[
+        ("01 PARK*5B\n", "01 OK*C4\n"),
+        ("02 IDN*A7\n", "02 OK PGC-2 1.0.0 1 SN123 LASER*CB\n"),
+    ]);
+    g.park().unwrap();
+    g.identify().unwrap();
+    done(&s);
+    let (mut g, s) = galvo(&[("01 LIM*21\n", "01 OK -0.3490659 0.3490659 -0.2617994 0.2617994*C1\n")]);
+    let l = g.hard_limits().unwrap();
+    assert_eq!((l.x, l.y), ([-0.3490659, 0.3490659], [-0.2617994, 0.2617994]));
+    done(&s);
+}
+
+#[test]
+fn laser_commands() {
+    let (mut g, s) = galvo(&[("01 LASER ON*08\n", "01 ERR 6 interlock open*87\n")]);
+    let err = g.set_emission(true).unwrap_err();
+    assert_eq!(err.kind(), ErrorKind::Interlock);
+    assert!(err.to_string().contains("interlock is open"), "{err}");
+    done(&s);
+    let (mut g, s) = galvo(&[
+        ("01 LSTAT*3D\n", "01 OK ON CLOSED OUT*40\n"),
+        ("02 IDN*A7\n", "02 OK PGC-2 1.0.0 1 SN123 LASER*CB\n"),
+    ]);
+    let st = g.laser_state().unwrap();
+    assert!(st.emission && st.interlock_closed && !st.diffuser_in);
+    g.identify().unwrap();
+    done(&s);
+    let (mut g, s) = galvo(&[("01 ILK*B2\n", "01 OK CLOSED*59\n")]);
+    assert!(g.interlock_closed().unwrap());
+    done(&s);
+    let (mut g, s) = galvo(&[("01 DIFF IN*2A\n", "01 OK*C4\n")]);
+    g.set_diffuser(true).unwrap();
+    done(&s);
+    let (mut g, s) = galvo(&[("01 LASER OFF*45\n", "01 OK*C4\n")]);
+    g.set_emission(false).unwrap();
+    done(&s);
+}
+
+#[test]
+fn a_stale_reply_is_skipped_for_the_right_one() {
+    // The reply to an earlier request (tag 01) arrives first and must be dropped.
+    let (mut g, s) = galvo(&[("01 IDN*01\n", "02 OK PGC-2 1.0.0 1 SN123 LASER*CB\n01 OK PGC-2 1.0.0 1 SN123 LASER*9B\n")]);
+    g.identify().unwrap();
+    done(&s);
+}
+
+#[test]
+fn the_controllers_out_of_range_reply_maps_to_its_kind() {
+    // Inside the driver's limits (1 rad), outside the controller's.
+    let (mut g, s) = galvo_with(1.0, &[("01 MOVE 0.5000000 0.0000000*0C\n", "01 ERR 4 out of range*B8\n")]);
+    g.move_to(OpticalAngles { x: 0.5, y: 0.0 }).unwrap();
+    let err = g.wait_settled(Duration::from_millis(10)).unwrap_err();
+    assert_eq!(err.kind(), ErrorKind::OutOfRange);
+    done(&s);
+}
+
+// ---- USB ------------------------------------------------------------------------
+
+#[derive(Debug, PartialEq)]
+enum Xfer {
+    In(u8, u16, u16),
+    Out(u8, u16, u16, Vec<u8>),
+    Bulk(u8),
+}
+
+struct ScriptedUsb {
+    script: VecDeque<(Xfer, Vec<u8>)>,
+}
+
+impl ScriptedUsb {
+    fn next(&mut self, got: Xfer) -> Vec<u8> {
+        let (want, reply) = self.script.pop_front().unwrap_or_else(|| panic!("unexpected transfer {got:?}"));
+        assert_eq!(got, want, "transfer");
+        reply
+    }
+}
+
+impl UsbTransport for ScriptedUsb {
+    fn control_in(&mut self, r: u8, v: u16, i: u16, buf: &mut [u8], _t: Duration) -> Result<usize, TransportError> {
+        let reply = self.next(Xfer::In(r, v, i));
+        buf[..reply.len()].copy_from_slice(&reply);
+        Ok(reply.len())
+    }
+    fn control_out(&mut self, r: u8, v: u16, i: u16, data: &[u8], _t: Duration) -> Result<(), TransportError> {
+        self.next(Xfer::Out(r, v, i, data.to_vec()));
+        Ok(())
+    }
+    fn bulk_in(&mut self, ep: u8, buf: &mut [u8], _t: Duration) -> Result<usize, TransportError> {
+        let reply = self.next(Xfer::Bulk(ep));
+        buf[..reply.len()].copy_from_slice(&reply);
+        Ok(reply.len())
+    }
+    fn reopen(&mut self) -> Result<(), TransportError> {
+        Ok(())
+    }
+    fn describe(&self) -> String {
+        "scripted USB".into()
+    }
+}
+
+/// The documented SET_CONFIG payload for 16 ps × 4 bins, offset 12 ns, divider 1,
+/// 1 ms: five little-endian u32.
+const CONFIG_BYTES: [u8; 20] = [16, 0, 0, 0, 4, 0, 0, 0, 0xE0, 0x2E, 0, 0, 1, 0, 0, 0, 0xE8, 0x03, 0, 0];
+
+fn config() -> TdcConfig {
+    TdcConfig {
+        bin_width: 16e-12,
+        bins: 4,
+        offset: 12e-9,
+        sync_divider: 1,
+        acquisition: Duration::from_millis(1),
+    }
+}
+
+fn frame(bin_width_ps: u32) -> Vec<u8> {
+    let wire = WireConfig::decode(&CONFIG_BYTES).unwrap();
+    protocol::encode_frame(
+        &FrameHeader {
+            sequence: 1,
+            flags: 0,
+            config: WireConfig {
+                sync_divider: 0,
+                bin_width_ps,
+                ..wire
+            },
+        },
+        &[5, 6, 7, 8],
+    )
+}
+
+#[test]
+fn usb_configure_acquire_status_identify() {
+    let frame = frame(16);
+    // The frame layout, byte for byte: magic, version, header length, sequence.
+    assert_eq!(&frame[..12], b"PTDC\x01\x00\x20\x00\x01\x00\x00\x00");
+    let info = WireInfo {
+        protocol: 1,
+        firmware: (2, 1),
+        max_bins: 65536,
+        min_bin_width_ps: 1,
+        model: "PTDC-1".into(),
+        serial: "A1".into(),
+    };
+    let status = WireStatus {
+        state: 0,
+        error: 0,
+        sync_rate_hz: 10_000_000,
+        input_rate_hz: 2500,
+        frames: 1,
+    };
+    let mut tdc = UsbTdc::new(
+        ScriptedUsb {
+            script: [
+                (Xfer::Out(0x02, 0, 0, CONFIG_BYTES.to_vec()), vec![]),
+                (Xfer::In(0x03, 0, 0), CONFIG_BYTES.to_vec()),
+                (Xfer::Out(0x04, 1, 0, vec![]), vec![]),
+                (Xfer::Bulk(0x81), frame[..10].to_vec()),
+                (Xfer::Bulk(0x81), frame[10..].to_vec()),
+                (Xfer::In(0x05, 0, 0), status.encode().to_vec()),
+                (Xfer::In(0x01, 0, 0), info.encode().to_vec()),
+            ]
+            .into_iter()
+            .collect(),
+        },
+        Duration::from_millis(20),
+    );
+    tdc.configure(&config()).unwrap();
+    let h = tdc.acquire().unwrap();
+    assert_eq!((h.sequence, h.counts.as_slice()), (1, &[5, 6, 7, 8][..]));
+    let st = tdc.status().unwrap();
+    assert_eq!((st.rates.sync, st.rates.detector), (10e6, 2500.0));
+    let id = tdc.identify().unwrap();
+    assert_eq!((id.model.as_str(), id.firmware.as_str(), id.serial.as_str()), ("PTDC-1", "2.1", "A1"));
+    assert!(tdc.transport_mut().script.is_empty());
+}
+
+#[test]
+fn usb_frame_with_other_settings_is_refused() {
+    let wrong = frame(32);
+    let mut second = wrong.clone();
+    second[8] = 2; // sequence 2 for the retry (the CRC no longer holds: refused too)
+    let mut tdc = UsbTdc::new(
+        ScriptedUsb {
+            script: [
+                (Xfer::Out(0x02, 0, 0, CONFIG_BYTES.to_vec()), vec![]),
+                (Xfer::In(0x03, 0, 0), CONFIG_BYTES.to_vec()),
+                (Xfer::Out(0x04, 1, 0, vec![]), vec![]),
+                (Xfer::Bulk(0x81), wrong),
+                (Xfer::Out(0x04, 2, 0, vec![]), vec![]),
+                (Xfer::Bulk(0x81), second),
+            ]
+            .into_iter()
+            .collect(),
+        },
+        Duration::from_millis(20),
+    );
+    tdc.configure(&config()).unwrap();
+    let err = tdc.acquire().unwrap_err();
+    assert_eq!(err.kind(), ErrorKind::Protocol);
+    assert!(tdc.transport_mut().script.is_empty());
+}
