@@ -9,4 +9,6 @@
 pub mod cli;
 pub mod config;
 pub mod devices;
+pub mod plan;
+pub mod store;
 pub mod logging;

@@ -1,0 +1,279 @@
+//! Capture plans (`configs/plans/*.toml`): what to scan, which pairs to measure, how
+//! long, and how to reconstruct. Two stages like every config: a raw serde mirror of
+//! the file, then a validated [`Plan`] whose errors name file, line and key.
+mod pairs;
+mod recon;
+
+use std::path::Path;
+use std::time::Duration;
+
+use glam::DVec3;
+use periscope_recon::relay::Region;
+use serde::Deserialize;
+
+pub use pairs::{PairMode, PlannedPair, plan_pairs};
+pub use recon::{Method, ReconSettings, default_recon, load_recon};
+
+use crate::config::{ConfigError, InstrumentConfig, TomlSource};
+
+/// A validated capture plan.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Plan {
+    /// Name, for run ids and summaries.
+    pub name: String,
+    /// The LOS first-bounce scan.
+    pub los: LosStage,
+    /// Turning LOS points into the relay.
+    pub relay: RelayStage,
+    /// Which pairs to measure.
+    pub pairs: PairMode,
+    /// How each pair is measured.
+    pub acquisition: Acquisition,
+    /// How the hidden scene is reconstructed.
+    pub recon: ReconSettings,
+}
+
+/// The LOS scan: the SPAD arm sweeps a grid of optical angles under the diffused laser.
+#[derive(Clone, Debug, PartialEq)]
+pub struct LosStage {
+    /// θx range, radians.
+    pub x: [f64; 2],
+    /// θy range, radians.
+    pub y: [f64; 2],
+    /// Points along θx and θy.
+    pub grid: [usize; 2],
+    /// Dwell per point.
+    pub dwell: Duration,
+}
+
+/// Relay extraction.
+#[derive(Clone, Debug, PartialEq)]
+pub struct RelayStage {
+    /// Depth window along the SPAD ray, metres.
+    pub depth: [f64; 2],
+    /// Intensity floor as a fraction of the brightest LOS return.
+    pub min_intensity: f64,
+    /// Neighbours for normals.
+    pub neighbours: usize,
+    /// Where the laser may point.
+    pub illumination: Region,
+    /// Where the SPAD may look.
+    pub detection: Region,
+}
+
+/// Per-pair acquisition.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Acquisition {
+    /// Dwell per histogram.
+    pub dwell: Duration,
+    /// Bins (default: the instrument's).
+    pub bins: u32,
+    /// Bin width, seconds.
+    pub bin_width: f64,
+    /// TDC offset, seconds.
+    pub offset: f64,
+    /// Histograms summed per pair.
+    pub repeats: u32,
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields, rename_all = "kebab-case")]
+struct RawPlan {
+    name: String,
+    los: RawLos,
+    #[serde(default)]
+    relay: RawRelay,
+    pairs: pairs::RawPairs,
+    acquisition: RawAcquisition,
+    recon: recon::RawRecon,
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields, rename_all = "kebab-case")]
+struct RawLos {
+    angles_deg: RawAngles,
+    grid: [usize; 2],
+    dwell_ms: f64,
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawAngles {
+    x: [f64; 2],
+    y: [f64; 2],
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields, rename_all = "kebab-case")]
+struct RawRelay {
+    #[serde(default = "default_depth")]
+    depth_m: [f64; 2],
+    #[serde(default = "default_intensity")]
+    min_intensity: f64,
+    #[serde(default = "default_neighbours")]
+    neighbours: usize,
+    illumination: Option<RawRegion>,
+    detection: Option<RawRegion>,
+}
+
+impl Default for RawRelay {
+    fn default() -> Self {
+        RawRelay {
+            depth_m: default_depth(),
+            min_intensity: default_intensity(),
+            neighbours: default_neighbours(),
+            illumination: None,
+            detection: None,
+        }
+    }
+}
+
+fn default_depth() -> [f64; 2] {
+    [0.2, 10.0]
+}
+fn default_intensity() -> f64 {
+    0.05
+}
+fn default_neighbours() -> usize {
+    16
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawRegion {
+    min: [f64; 3],
+    max: [f64; 3],
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields, rename_all = "kebab-case")]
+struct RawAcquisition {
+    dwell_ms: f64,
+    bins: Option<u32>,
+    bin_width_ps: Option<f64>,
+    offset_ns: Option<f64>,
+    #[serde(default = "default_repeats")]
+    repeats: u32,
+}
+
+fn default_repeats() -> u32 {
+    1
+}
+
+impl Plan {
+    /// Loads and validates a plan for an instrument.
+    pub fn load(path: &Path, instrument: &InstrumentConfig) -> Result<Plan, ConfigError> {
+        Self::from_source(&TomlSource::load(path)?, instrument)
+    }
+
+    /// Validates a plan held in memory.
+    pub fn from_source(src: &TomlSource, instrument: &InstrumentConfig) -> Result<Plan, ConfigError> {
+        let raw: RawPlan = src.parse()?;
+        if raw.name.trim().is_empty() || raw.name.len() > 64 {
+            return Err(src.invalid("name", "must be 1 to 64 characters"));
+        }
+        let los = {
+            let l = &raw.los;
+            for (k, r) in [("los.angles-deg.x", l.angles_deg.x), ("los.angles-deg.y", l.angles_deg.y)] {
+                if !(r[0].is_finite() && r[1].is_finite() && r[1] > r[0]) {
+                    return Err(src.invalid(k, format!("must be [min, max] in degrees with max > min, got {r:?}")));
+                }
+            }
+            if l.grid.iter().any(|&n| !(2..=1024).contains(&n)) {
+                return Err(src.invalid("los.grid", "must be two counts, 2 to 1024"));
+            }
+            LosStage {
+                x: l.angles_deg.x.map(f64::to_radians),
+                y: l.angles_deg.y.map(f64::to_radians),
+                grid: l.grid,
+                dwell: dwell(src, "los.dwell-ms", l.dwell_ms)?,
+            }
+        };
+        let region = |key: &str, r: &Option<RawRegion>| -> Result<Region, ConfigError> {
+            match r {
+                None => Ok(Region::All),
+                Some(r) => {
+                    let (min, max) = (DVec3::from_array(r.min), DVec3::from_array(r.max));
+                    if !(min.is_finite() && max.is_finite() && min.cmplt(max).all()) {
+                        return Err(src.invalid(key, "must be a box with min < max on every axis, in metres"));
+                    }
+                    Ok(Region::Box { min, max })
+                }
+            }
+        };
+        let relay = RelayStage {
+            depth: {
+                let d = raw.relay.depth_m;
+                if !(d[0] >= 0.0 && d[1] > d[0] && d[1].is_finite()) {
+                    return Err(src.invalid("relay.depth-m", "must be [near, far] in metres with 0 ≤ near < far"));
+                }
+                d
+            },
+            min_intensity: {
+                let v = raw.relay.min_intensity;
+                if !(0.0..1.0).contains(&v) {
+                    return Err(src.invalid("relay.min-intensity", "must be a fraction in [0, 1) of the brightest return"));
+                }
+                v
+            },
+            neighbours: {
+                let k = raw.relay.neighbours;
+                if !(3..=256).contains(&k) {
+                    return Err(src.invalid("relay.neighbours", "must be 3 to 256"));
+                }
+                k
+            },
+            illumination: region("relay.illumination", &raw.relay.illumination)?,
+            detection: region("relay.detection", &raw.relay.detection)?,
+        };
+        let pairs = pairs::pair_mode(src, raw.pairs)?;
+        let a = raw.acquisition;
+        let acquisition = Acquisition {
+            dwell: dwell(src, "acquisition.dwell-ms", a.dwell_ms)?,
+            bins: match a.bins {
+                None => instrument.tdc.bins,
+                Some(b) if (16..=65_536).contains(&b) => b,
+                Some(_) => return Err(src.invalid("acquisition.bins", "must be 16 to 65,536")),
+            },
+            bin_width: match a.bin_width_ps {
+                None => instrument.tdc.bin_width,
+                Some(w) if w >= 1.0 && w <= 1e6 && w.fract() == 0.0 => w * 1e-12,
+                Some(_) => {
+                    return Err(src.invalid("acquisition.bin-width-ps", "must be a whole number of picoseconds, 1 to 1,000,000"));
+                }
+            },
+            offset: match a.offset_ns {
+                None => instrument.tdc.offset,
+                Some(o) if (0.0..=1e6).contains(&o) => o * 1e-9,
+                Some(_) => return Err(src.invalid("acquisition.offset-ns", "must be 0 to 1,000,000 ns")),
+            },
+            repeats: match a.repeats {
+                r @ 1..=1000 => r,
+                _ => return Err(src.invalid("acquisition.repeats", "must be 1 to 1000")),
+            },
+        };
+        let recon = recon::recon_settings(src, "recon.", raw.recon, None)?;
+        Ok(Plan {
+            name: raw.name,
+            los,
+            relay,
+            pairs,
+            acquisition,
+            recon,
+        })
+    }
+
+    /// Hidden path length covered by the histograms' last bin for a pair whose two
+    /// legs sum to `legs`, metres.
+    pub fn window_end(&self, legs: f64, system_delay: f64) -> f64 {
+        periscope_recon::C0 * (self.acquisition.offset + self.acquisition.bins as f64 * self.acquisition.bin_width - system_delay)
+            - legs
+    }
+}
+
+fn dwell(src: &TomlSource, key: &str, ms: f64) -> Result<Duration, ConfigError> {
+    if !(ms >= 0.001 && ms <= 3_600_000.0) {
+        return Err(src.invalid(key, "must be 0.001 ms to 1 hour, in milliseconds"));
+    }
+    Ok(Duration::from_secs_f64(ms * 1e-3))
+}

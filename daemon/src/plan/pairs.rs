@@ -1,0 +1,302 @@
+//! Pair planning: which illumination and detection points to measure, chosen among the
+//! relay points the LOS scan found, so every pair has a measured position and normal.
+use glam::DVec3;
+use periscope_drivers::{AngleLimits, GalvoPose, OpticalAngles};
+use periscope_recon::linalg::fit_plane;
+use periscope_recon::relay::Region;
+use rand::SeedableRng;
+use rand::seq::index::sample;
+use rand_chacha::ChaCha8Rng;
+use serde::{Deserialize, Serialize};
+
+use crate::config::{ConfigError, TomlSource};
+
+/// How pairs are laid out.
+#[derive(Clone, Debug, PartialEq)]
+pub enum PairMode {
+    /// Laser and SPAD on the same grid of relay points, the SPAD `offset` metres away
+    /// along the relay (against pile-up from the direct return).
+    Confocal {
+        /// Grid points across the detection region.
+        grid: [usize; 2],
+        /// Detection offset, metres.
+        offset: f64,
+    },
+    /// One laser point (the relay point nearest `laser`), a grid of detection points.
+    FixedLaser {
+        /// Where to aim the laser, metres.
+        laser: DVec3,
+        /// Detection grid.
+        grid: [usize; 2],
+    },
+    /// A grid of laser points × a grid of detection points.
+    Scanned {
+        /// Laser grid.
+        laser_grid: [usize; 2],
+        /// Detection grid.
+        grid: [usize; 2],
+    },
+    /// `count` pairs drawn without replacement from the scanned layout.
+    Random {
+        /// Laser grid.
+        laser_grid: [usize; 2],
+        /// Detection grid.
+        grid: [usize; 2],
+        /// Pairs to draw.
+        count: usize,
+        /// Seed of the draw.
+        seed: u64,
+    },
+    /// A confocal grid with a structured mask: one string per row, `#` measured,
+    /// `.` skipped (rows from +v down, columns along +u).
+    Mask {
+        /// The rows.
+        rows: Vec<String>,
+        /// Detection offset, metres.
+        offset: f64,
+    },
+}
+
+impl PairMode {
+    /// Most pairs this layout can produce.
+    pub fn max_pairs(&self) -> usize {
+        match self {
+            PairMode::Confocal { grid, .. } | PairMode::FixedLaser { grid, .. } => grid[0] * grid[1],
+            PairMode::Scanned { laser_grid, grid } => laser_grid[0] * laser_grid[1] * grid[0] * grid[1],
+            PairMode::Random { count, .. } => *count,
+            PairMode::Mask { rows, .. } => rows.iter().map(|r| r.chars().filter(|&c| c == '#').count()).sum(),
+        }
+    }
+
+    /// A short description.
+    pub fn describe(&self) -> String {
+        match self {
+            PairMode::Confocal { grid, offset } => {
+                format!("confocal {}×{} grid, detection offset {:.1} mm", grid[0], grid[1], offset * 1e3)
+            }
+            PairMode::FixedLaser { laser, grid } => format!("fixed laser at {laser:?}, {}×{} detection grid", grid[0], grid[1]),
+            PairMode::Scanned { laser_grid, grid } => format!(
+                "scanned: {}×{} laser points × {}×{} detection points",
+                laser_grid[0], laser_grid[1], grid[0], grid[1]
+            ),
+            PairMode::Random { laser_grid, grid, count, .. } => format!(
+                "{count} random pairs from {}×{} laser × {}×{} detection points",
+                laser_grid[0], laser_grid[1], grid[0], grid[1]
+            ),
+            PairMode::Mask { rows, .. } => format!("masked confocal grid of {} rows", rows.len()),
+        }
+    }
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields, rename_all = "kebab-case")]
+pub(crate) struct RawPairs {
+    mode: String,
+    grid: Option<[usize; 2]>,
+    laser_grid: Option<[usize; 2]>,
+    #[serde(default)]
+    offset_mm: f64,
+    laser: Option<[f64; 3]>,
+    count: Option<usize>,
+    #[serde(default)]
+    seed: u64,
+    mask: Option<Vec<String>>,
+}
+
+pub(crate) fn pair_mode(src: &TomlSource, raw: RawPairs) -> Result<PairMode, ConfigError> {
+    let grid = |key: &str, g: Option<[usize; 2]>| -> Result<[usize; 2], ConfigError> {
+        let g = g.ok_or_else(|| src.invalid(key, "is required for this mode: give [nx, ny]"))?;
+        if g.iter().any(|&n| !(1..=512).contains(&n)) {
+            return Err(src.invalid(key, "must be two counts, 1 to 512"));
+        }
+        Ok(g)
+    };
+    if !(0.0..=100.0).contains(&raw.offset_mm) {
+        return Err(src.invalid("pairs.offset-mm", "must be 0 to 100 mm"));
+    }
+    let offset = raw.offset_mm * 1e-3;
+    match raw.mode.as_str() {
+        "confocal" => Ok(PairMode::Confocal {
+            grid: grid("pairs.grid", raw.grid)?,
+            offset,
+        }),
+        "fixed-laser" => {
+            let laser = raw
+                .laser
+                .map(DVec3::from_array)
+                .filter(|l| l.is_finite())
+                .ok_or_else(|| src.invalid("pairs.laser", "is required for mode \"fixed-laser\": the point [x, y, z] in metres to aim the laser at"))?;
+            Ok(PairMode::FixedLaser {
+                laser,
+                grid: grid("pairs.grid", raw.grid)?,
+            })
+        }
+        "scanned" => Ok(PairMode::Scanned {
+            laser_grid: grid("pairs.laser-grid", raw.laser_grid)?,
+            grid: grid("pairs.grid", raw.grid)?,
+        }),
+        "random" => {
+            let laser_grid = grid("pairs.laser-grid", raw.laser_grid)?;
+            let g = grid("pairs.grid", raw.grid)?;
+            let most = laser_grid[0] * laser_grid[1] * g[0] * g[1];
+            let count = raw.count.ok_or_else(|| src.invalid("pairs.count", "is required for mode \"random\""))?;
+            if !(1..=most).contains(&count) {
+                return Err(src.invalid("pairs.count", format!("must be 1 to {most} (laser grid × detection grid)")));
+            }
+            Ok(PairMode::Random {
+                laser_grid,
+                grid: g,
+                count,
+                seed: raw.seed,
+            })
+        }
+        "mask" => {
+            let rows = raw.mask.ok_or_else(|| src.invalid("pairs.mask", "is required for mode \"mask\": rows of `#` (measure) and `.` (skip)"))?;
+            let width = rows.first().map_or(0, |r| r.chars().count());
+            let valid = !rows.is_empty()
+                && rows.len() <= 512
+                && width >= 1
+                && rows.iter().all(|r| r.chars().count() == width && r.chars().all(|c| c == '#' || c == '.'))
+                && rows.iter().any(|r| r.contains('#'));
+            if !valid {
+                return Err(src.invalid(
+                    "pairs.mask",
+                    "must be rows of equal length made of `#` (measure) and `.` (skip), with at least one `#`",
+                ));
+            }
+            Ok(PairMode::Mask { rows, offset })
+        }
+        other => Err(src.invalid(
+            "pairs.mode",
+            format!("`{other}` is not a mode: use \"confocal\", \"fixed-laser\", \"scanned\", \"random\" or \"mask\""),
+        )),
+    }
+}
+
+/// One planned measurement.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct PlannedPair {
+    /// Illumination point and normal.
+    pub xi: DVec3,
+    /// Normal at `xi`.
+    pub ni: DVec3,
+    /// Detection point.
+    pub xd: DVec3,
+    /// Normal at `xd`.
+    pub nd: DVec3,
+    /// Laser arm angles.
+    pub laser: OpticalAngles,
+    /// SPAD arm angles.
+    pub spad: OpticalAngles,
+}
+
+/// The relay as the LOS scan measured it.
+pub struct RelayView<'a> {
+    /// Points.
+    pub points: &'a [DVec3],
+    /// Unit normals, toward the instrument.
+    pub normals: &'a [DVec3],
+}
+
+/// Picks up to `grid` points of `candidates` on a regular grid over their extent in
+/// the relay's fitted plane: in each cell, the point nearest the cell centre. Returns
+/// (row-major cell index, point index), rows from +v down.
+fn grid_sample(relay: &RelayView<'_>, candidates: &[usize], grid: [usize; 2]) -> Vec<(usize, usize)> {
+    let pts: Vec<DVec3> = candidates.iter().map(|&i| relay.points[i]).collect();
+    let Some(plane) = fit_plane(&pts) else { return Vec::new() };
+    let uv: Vec<(f64, f64)> = pts.iter().map(|p| ((*p - plane.centre).dot(plane.u), (*p - plane.centre).dot(plane.v))).collect();
+    let (mut lo, mut hi) = ([f64::INFINITY; 2], [f64::NEG_INFINITY; 2]);
+    for &(u, v) in &uv {
+        lo = [lo[0].min(u), lo[1].min(v)];
+        hi = [hi[0].max(u), hi[1].max(v)];
+    }
+    let cell = [(hi[0] - lo[0]) / grid[0] as f64, (hi[1] - lo[1]) / grid[1] as f64];
+    let mut best: Vec<Option<(f64, usize)>> = vec![None; grid[0] * grid[1]];
+    for (k, &(u, v)) in uv.iter().enumerate() {
+        let cx = (((u - lo[0]) / cell[0].max(1e-12)) as usize).min(grid[0] - 1);
+        let cy = (((hi[1] - v) / cell[1].max(1e-12)) as usize).min(grid[1] - 1);
+        let centre = (lo[0] + (cx as f64 + 0.5) * cell[0], hi[1] - (cy as f64 + 0.5) * cell[1]);
+        let d = (u - centre.0).hypot(v - centre.1);
+        let slot = &mut best[cy * grid[0] + cx];
+        if slot.is_none_or(|(bd, _)| d < bd) {
+            *slot = Some((d, candidates[k]));
+        }
+    }
+    best.iter().enumerate().filter_map(|(c, b)| b.map(|(_, i)| (c, i))).collect()
+}
+
+/// Plans the pairs on a measured relay: positions and normals from the relay, angles
+/// from the calibration model. Pairs whose angles fall outside either arm's limits are
+/// left out and counted in the second return value.
+pub fn plan_pairs(
+    mode: &PairMode,
+    relay: &RelayView<'_>,
+    illumination: &Region,
+    detection: &Region,
+    arms: [(&GalvoPose, &AngleLimits); 2],
+) -> (Vec<PlannedPair>, usize) {
+    let ill: Vec<usize> = illumination.select(relay.points);
+    let det: Vec<usize> = detection.select(relay.points);
+    let both: Vec<usize> = {
+        let d: std::collections::HashSet<usize> = det.iter().copied().collect();
+        ill.iter().copied().filter(|i| d.contains(i)).collect()
+    };
+    let mut raw: Vec<(DVec3, DVec3, DVec3, DVec3)> = Vec::new();
+    let confocal = |raw: &mut Vec<_>, cells: Vec<(usize, usize)>, keep: &dyn Fn(usize) -> bool, offset: f64| {
+        let pts: Vec<DVec3> = both.iter().map(|&i| relay.points[i]).collect();
+        let u = fit_plane(&pts).map_or(DVec3::X, |p| p.u);
+        for (cell, i) in cells {
+            if !keep(cell) {
+                continue;
+            }
+            let (x, n) = (relay.points[i], relay.normals[i]);
+            let along = (u - n * u.dot(n)).normalize_or_zero();
+            raw.push((x, n, x + along * offset, n));
+        }
+    };
+    match mode {
+        PairMode::Confocal { grid, offset } => {
+            confocal(&mut raw, grid_sample(relay, &both, *grid), &|_| true, *offset);
+        }
+        PairMode::Mask { rows, offset } => {
+            let width = rows[0].chars().count();
+            let flags: Vec<bool> = rows.iter().flat_map(|r| r.chars().map(|c| c == '#')).collect();
+            confocal(&mut raw, grid_sample(relay, &both, [width, rows.len()]), &|c| flags[c], *offset);
+        }
+        PairMode::FixedLaser { laser, grid } => {
+            if let Some(&li) = ill.iter().min_by(|&&a, &&b| relay.points[a].distance(*laser).total_cmp(&relay.points[b].distance(*laser))) {
+                for (_, d) in grid_sample(relay, &det, *grid) {
+                    raw.push((relay.points[li], relay.normals[li], relay.points[d], relay.normals[d]));
+                }
+            }
+        }
+        PairMode::Scanned { laser_grid, grid } | PairMode::Random { laser_grid, grid, .. } => {
+            let lasers = grid_sample(relay, &ill, *laser_grid);
+            let dets = grid_sample(relay, &det, *grid);
+            for &(_, l) in &lasers {
+                for &(_, d) in &dets {
+                    raw.push((relay.points[l], relay.normals[l], relay.points[d], relay.normals[d]));
+                }
+            }
+            if let PairMode::Random { count, seed, .. } = mode {
+                let mut rng = ChaCha8Rng::seed_from_u64(*seed);
+                let n = (*count).min(raw.len());
+                let mut picked: Vec<usize> = sample(&mut rng, raw.len(), n).into_vec();
+                picked.sort_unstable();
+                raw = picked.into_iter().map(|k| raw[k]).collect();
+            }
+        }
+    }
+    let [(lpose, llim), (spose, slim)] = arms;
+    let mut out = Vec::with_capacity(raw.len());
+    let mut unreachable = 0;
+    for (xi, ni, xd, nd) in raw {
+        match (lpose.angles_for(xi), spose.angles_for(xd)) {
+            (Some(laser), Some(spad)) if llim.contains(laser) && slim.contains(spad) => {
+                out.push(PlannedPair { xi, ni, xd, nd, laser, spad })
+            }
+            _ => unreachable += 1,
+        }
+    }
+    (out, unreachable)
+}

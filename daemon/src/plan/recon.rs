@@ -1,0 +1,254 @@
+//! Reconstruction settings: the `[recon]` table of a capture plan and the whole of a
+//! `RECON.toml` for `periscope recon` share this format.
+use periscope_recon::VolumeGrid;
+use periscope_recon::gtr::{Init, TrainConfig};
+use periscope_recon::solver::SolverKind;
+use serde::Deserialize;
+
+use crate::config::{ConfigError, TomlSource};
+
+/// How the hidden scene is reconstructed.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Method {
+    /// 3D-GTR fit, virtual confocal synthesis, then `solver`.
+    Gtr,
+    /// Filtered backprojection of the measured pairs.
+    Fbp,
+    /// LCT of the measured pairs (confocal planar grids only).
+    Lct,
+    /// RSD/phasor field of the measured pairs (planar detection grid).
+    Rsd,
+}
+
+/// Validated reconstruction settings.
+#[derive(Clone, Debug, PartialEq)]
+pub struct ReconSettings {
+    /// Method.
+    pub method: Method,
+    /// The reconstructed volume, also the 3D-GTR region of interest.
+    pub volume: VolumeGrid,
+    /// 3D-GTR fit settings.
+    pub train: TrainConfig,
+    /// Virtual confocal grid (points per axis) for `gtr`.
+    pub virtual_resolution: [usize; 2],
+    /// Virtual relay size (metres); `None`: the measured relay's extent.
+    pub virtual_size: Option<[f64; 2]>,
+    /// Solver run on the virtual confocal scan for `gtr`.
+    pub solver: SolverKind,
+    /// Depth-map threshold, as a fraction of the volume's maximum.
+    pub depth_threshold: f64,
+}
+
+#[derive(Deserialize, Default)]
+#[serde(deny_unknown_fields, rename_all = "kebab-case")]
+pub(crate) struct RawRecon {
+    #[serde(default)]
+    method: Option<String>,
+    volume: Option<RawVolume>,
+    #[serde(default)]
+    gtr: RawGtr,
+    #[serde(default)]
+    solver: Option<String>,
+    #[serde(default)]
+    depth_threshold: Option<f64>,
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields, rename_all = "kebab-case")]
+pub(crate) struct RawVolume {
+    x: [f64; 2],
+    y: [f64; 2],
+    z: [f64; 2],
+    shape: [usize; 3],
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields, rename_all = "kebab-case")]
+struct RawGtr {
+    #[serde(default = "default_primitives")]
+    primitives: usize,
+    #[serde(default = "default_epochs")]
+    epochs: usize,
+    #[serde(default = "default_batch")]
+    batch: usize,
+    #[serde(default = "default_lr_scale")]
+    lr_scale: f64,
+    #[serde(default)]
+    seed: u64,
+    #[serde(default = "default_init")]
+    init: String,
+    #[serde(default = "default_virtual")]
+    virtual_grid: [usize; 2],
+    virtual_size: Option<[f64; 2]>,
+}
+
+impl Default for RawGtr {
+    fn default() -> Self {
+        RawGtr {
+            primitives: default_primitives(),
+            epochs: default_epochs(),
+            batch: default_batch(),
+            lr_scale: default_lr_scale(),
+            seed: 0,
+            init: default_init(),
+            virtual_grid: default_virtual(),
+            virtual_size: None,
+        }
+    }
+}
+
+fn default_primitives() -> usize {
+    2000
+}
+fn default_epochs() -> usize {
+    8
+}
+fn default_batch() -> usize {
+    4
+}
+fn default_lr_scale() -> f64 {
+    1.0
+}
+fn default_init() -> String {
+    "backprojection".into()
+}
+fn default_virtual() -> [usize; 2] {
+    [64, 64]
+}
+
+/// Validates a `[recon]` table (keys under `prefix`, e.g. `recon.`, or `` for a
+/// RECON.toml). `default_volume` supplies the volume when the table has none.
+pub(crate) fn recon_settings(
+    src: &TomlSource,
+    prefix: &str,
+    raw: RawRecon,
+    default_volume: Option<VolumeGrid>,
+) -> Result<ReconSettings, ConfigError> {
+    let key = |k: &str| format!("{prefix}{k}");
+    let method = match raw.method.as_deref().unwrap_or("gtr") {
+        "gtr" => Method::Gtr,
+        "fbp" => Method::Fbp,
+        "lct" => Method::Lct,
+        "rsd" => Method::Rsd,
+        other => {
+            return Err(src.invalid(
+                &key("method"),
+                format!("`{other}` is not a method: use \"gtr\", \"fbp\", \"lct\" or \"rsd\""),
+            ));
+        }
+    };
+    let solver = match raw.solver.as_deref().unwrap_or("lct") {
+        "lct" => SolverKind::Lct,
+        "rsd" => SolverKind::Rsd,
+        "fbp" => SolverKind::Fbp,
+        other => {
+            return Err(src.invalid(
+                &key("solver"),
+                format!("`{other}` is not a solver: use \"lct\", \"rsd\" or \"fbp\""),
+            ));
+        }
+    };
+    let volume = match raw.volume {
+        Some(v) => {
+            for (name, r) in [("x", v.x), ("y", v.y), ("z", v.z)] {
+                if !(r[0].is_finite() && r[1].is_finite() && r[1] > r[0]) {
+                    return Err(src.invalid(
+                        &key(&format!("volume.{name}")),
+                        format!("must be [min, max] in metres with max > min, got {r:?}"),
+                    ));
+                }
+            }
+            if v.shape.iter().any(|&n| !(2..=1024).contains(&n)) {
+                return Err(src.invalid(
+                    &key("volume.shape"),
+                    format!("must be [nx, ny, nz], each 2 to 1024 voxels, got {:?}", v.shape),
+                ));
+            }
+            VolumeGrid::new(v.x, v.y, v.z, v.shape).map_err(|e| src.invalid(&key("volume"), e.to_string()))?
+        }
+        None => default_volume.ok_or_else(|| {
+            src.invalid(
+                &key("volume"),
+                "is required: give x, y, z ranges in metres and shape = [nx, ny, nz]",
+            )
+        })?,
+    };
+    let g = raw.gtr;
+    if !(1..=1_000_000).contains(&g.primitives) {
+        return Err(src.invalid(&key("gtr.primitives"), "must be 1 to 1,000,000"));
+    }
+    if !(1..=10_000).contains(&g.epochs) {
+        return Err(src.invalid(&key("gtr.epochs"), "must be 1 to 10,000"));
+    }
+    if !(1..=65_536).contains(&g.batch) {
+        return Err(src.invalid(&key("gtr.batch"), "must be 1 to 65,536 pairs"));
+    }
+    if !(g.lr_scale > 0.0 && g.lr_scale <= 100.0) {
+        return Err(src.invalid(&key("gtr.lr-scale"), "must be in (0, 100]: it multiplies every learning rate"));
+    }
+    if g.virtual_grid.iter().any(|&n| !(2..=1024).contains(&n)) {
+        return Err(src.invalid(&key("gtr.virtual-grid"), "must be two counts, 2 to 1024"));
+    }
+    if let Some(s) = g.virtual_size
+        && !s.iter().all(|v| v.is_finite() && *v > 0.0)
+    {
+        return Err(src.invalid(&key("gtr.virtual-size"), "must be two positive lengths in metres"));
+    }
+    let init = match g.init.as_str() {
+        "uniform" => Init::Uniform,
+        "backprojection" => Init::Backprojection {
+            grid: [32, 32, 16],
+            uniform_fraction: 0.2,
+        },
+        other => {
+            return Err(src.invalid(
+                &key("gtr.init"),
+                format!("`{other}` is not an initialisation: use \"backprojection\" or \"uniform\""),
+            ));
+        }
+    };
+    let mut train = TrainConfig {
+        primitives: g.primitives,
+        init,
+        epochs: g.epochs,
+        batch_size: g.batch,
+        seed: g.seed,
+        ..TrainConfig::default()
+    };
+    let third = (g.epochs / 3).max(1);
+    train.schedule.milestones = vec![third, 2 * third];
+    for group in [
+        &mut train.adam.centres,
+        &mut train.adam.scales,
+        &mut train.adam.rotations,
+        &mut train.adam.albedo,
+    ] {
+        group.lr *= g.lr_scale;
+    }
+    let depth_threshold = raw.depth_threshold.unwrap_or(0.3);
+    if !(depth_threshold > 0.0 && depth_threshold < 1.0) {
+        return Err(src.invalid(&key("depth-threshold"), "must be a fraction in (0, 1) of the volume's maximum"));
+    }
+    Ok(ReconSettings {
+        method,
+        volume,
+        train,
+        virtual_resolution: g.virtual_grid,
+        virtual_size: g.virtual_size,
+        solver,
+        depth_threshold,
+    })
+}
+
+/// Loads a `RECON.toml`.
+pub fn load_recon(src: &TomlSource, default_volume: Option<VolumeGrid>) -> Result<ReconSettings, ConfigError> {
+    let raw: RawRecon = src.parse()?;
+    recon_settings(src, "", raw, default_volume)
+}
+
+/// The default reconstruction settings for a capture with no `RECON.toml`.
+pub fn default_recon(volume: VolumeGrid) -> ReconSettings {
+    let src = TomlSource::from_text("<defaults>", "");
+    recon_settings(&src, "", RawRecon::default(), Some(volume)).expect("the defaults are valid")
+}
