@@ -59,7 +59,7 @@ fn usage_mistakes_exit_with_2() {
 
 #[test]
 fn unbuilt_machinery_is_reported_not_faked() {
-    let out = periscope(&["run", "configs/plans/demo.toml"]);
+    let out = periscope(&["serve"]);
     assert_eq!(out.code, Some(69), "{out:?}");
     assert!(out.stderr.contains("not available yet"), "{}", out.stderr);
     assert!(
@@ -88,7 +88,12 @@ fn json_logs_are_json() {
 fn devices_identifies_the_simulated_instrument_through_the_real_drivers() {
     let out = periscope(&["devices"]);
     assert_eq!(out.code, Some(0), "{out:?}");
-    for want in ["laser arm  PGC-2", "spad arm   PGC-2", "histogrammer PTDC-SIM", "interlock closed"] {
+    for want in [
+        "laser arm  PGC-2",
+        "spad arm   PGC-2",
+        "histogrammer PTDC-SIM",
+        "interlock closed",
+    ] {
         assert!(out.stdout.contains(want), "missing `{want}` in:\n{}", out.stdout);
     }
 }

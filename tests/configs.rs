@@ -3,6 +3,7 @@
 use std::path::Path;
 
 use periscope_daemon::config::{InstrumentConfig, load_scene};
+use periscope_daemon::plan::Plan;
 use periscope_tests::{config_files, periscope, repo_path};
 
 #[test]
@@ -19,6 +20,11 @@ fn every_config_file_loads() {
             "scenes" => {
                 let scene = load_scene(&full).unwrap_or_else(|err| panic!("{err}"));
                 assert!(!scene.hidden.is_empty() && !scene.relay.mesh.triangles.is_empty());
+            }
+            "plans" => {
+                let sim = InstrumentConfig::load(&repo_path("configs/instrument/sim.toml")).unwrap();
+                let plan = Plan::load(&full, &sim).unwrap_or_else(|err| panic!("{err}"));
+                assert!(plan.pairs.max_pairs() > 0);
             }
             _ => panic!(
                 "{}: no loader is known for configs/{kind}/; add one to this test so the file is checked",
@@ -85,4 +91,65 @@ fn a_broken_scene_names_file_line_and_key() {
     let expected = format!("scene.toml:{line}: key `hidden[0].stroke`");
     assert!(err.contains(&expected), "expected `{expected}` in: {err}");
     assert!(err.contains("too wide"), "{err}");
+}
+
+#[test]
+fn check_summarises_the_demo_and_moves_nothing() {
+    let out = periscope(&["check", "configs/plans/demo.toml"]);
+    assert_eq!(out.code, Some(0), "{out:?}");
+    for want in [
+        "plan `demo`",
+        "confocal 24×24",
+        "estimated duration",
+        "within the galvo limits",
+    ] {
+        assert!(out.stdout.contains(want), "missing `{want}`:\n{}", out.stdout);
+    }
+}
+
+#[test]
+fn check_lists_targets_outside_the_limits() {
+    let dir = tempfile::tempdir().unwrap();
+    let text = std::fs::read_to_string(repo_path("configs/plans/demo.toml")).unwrap();
+    let wide = text.replace(
+        "x = [-12.0, 12.0], y = [-12.0, 12.0]",
+        "x = [-30.0, 12.0], y = [-12.0, 12.0]",
+    );
+    assert_ne!(wide, text);
+    let plan = dir.path().join("wide.toml");
+    std::fs::write(&plan, wide).unwrap();
+    let out = periscope(&["check", plan.to_str().unwrap()]);
+    assert_eq!(out.code, Some(0), "{out:?}");
+    assert!(
+        out.stdout
+            .contains("los.angles-deg: the SPAD arm cannot reach (-30.00°"),
+        "{}",
+        out.stdout
+    );
+}
+
+#[test]
+fn a_broken_plan_names_file_line_and_key() {
+    let dir = tempfile::tempdir().unwrap();
+    let text = std::fs::read_to_string(repo_path("configs/plans/demo.toml")).unwrap();
+    for (from, to, key) in [
+        ("mode = \"confocal\"", "mode = \"spiral\"", "pairs.mode"),
+        ("dwell-ms = 20.0", "dwell-ms = -1.0", "acquisition.dwell-ms"),
+        (
+            "shape = [64, 64, 32]",
+            "shape = [64, 64, 1]",
+            "recon.volume.shape",
+        ),
+        ("neighbours = 16", "neighbours = 2", "relay.neighbours"),
+    ] {
+        let bad = dir.path().join("bad.toml");
+        std::fs::write(&bad, text.replace(from, to)).unwrap();
+        let out = periscope(&["check", bad.to_str().unwrap()]);
+        assert_eq!(out.code, Some(2), "{key}: {out:?}");
+        assert!(
+            out.stderr.contains("bad.toml:") && out.stderr.contains(key),
+            "{key}: {}",
+            out.stderr
+        );
+    }
 }

@@ -11,6 +11,9 @@ use clap::{Parser, Subcommand};
 
 use crate::config::{ConfigError, DEFAULT_INSTRUMENT, InstrumentConfig, TomlSource};
 use crate::logging::LogFormat;
+use crate::pipeline::{self, Control, PipelineError, Run};
+use crate::plan::Plan;
+use crate::{check, offline};
 
 /// Periscope: non-line-of-sight imaging, from galvo scan to reconstructed volume.
 #[derive(Debug, Parser)]
@@ -106,12 +109,16 @@ impl InstrumentArg {
 
 /// Loads the instrument config at `path`, or the default simulated instrument.
 pub fn load_instrument(path: Option<&Path>) -> Result<InstrumentConfig, ConfigError> {
+    InstrumentConfig::from_source(&instrument_source(path)?)
+}
+
+/// The instrument config's text: the given file, else `configs/instrument/sim.toml`,
+/// else the copy built into the binary.
+pub fn instrument_source(path: Option<&Path>) -> Result<TomlSource, ConfigError> {
     match path {
-        Some(path) => InstrumentConfig::load(path),
-        None if Path::new(DEFAULT_INSTRUMENT).is_file() => {
-            InstrumentConfig::load(Path::new(DEFAULT_INSTRUMENT))
-        }
-        None => InstrumentConfig::from_source(&TomlSource::from_text(
+        Some(path) => TomlSource::load(path),
+        None if Path::new(DEFAULT_INSTRUMENT).is_file() => TomlSource::load(Path::new(DEFAULT_INSTRUMENT)),
+        None => Ok(TomlSource::from_text(
             format!("{DEFAULT_INSTRUMENT} (built in)"),
             include_str!("../../configs/instrument/sim.toml"),
         )),
@@ -132,51 +139,47 @@ pub struct NotAvailable {
 pub fn execute(cli: Cli) -> anyhow::Result<()> {
     match cli.command {
         Command::Run {
-            plan: _,
+            plan,
             instrument,
-            out: _,
+            out,
         } => {
-            let instrument = instrument.load()?;
-            tracing::info!("{}", instrument.summary());
-            Err(NotAvailable {
-                command: "run",
-                what: "the capture pipeline has not landed (issue: daemon capture pipeline)",
-            }
-            .into())
+            let instrument_src = instrument_source(instrument.instrument.as_deref())?;
+            let plan_src = TomlSource::load(&plan)?;
+            let (dir, plan, config) = pipeline::prepare(&plan_src, &instrument_src, out.as_deref())?;
+            eprintln!(
+                "run `{}` on {}\n  run directory: {}",
+                plan.name,
+                config.summary(),
+                dir.display()
+            );
+            execute_run(&dir)
         }
-        Command::Check { plan: _, instrument } => {
-            let instrument = instrument.load()?;
-            tracing::info!("{}", instrument.summary());
-            Err(NotAvailable {
-                command: "check",
-                what: "capture plans have not landed (issue: daemon capture pipeline)",
-            }
-            .into())
+        Command::Check { plan, instrument } => {
+            let config = instrument.load()?;
+            let plan = Plan::load(&plan, &config)?;
+            print!("{}", check::report(&plan, &config));
+            Ok(())
         }
         Command::Resume { run_dir } => {
             anyhow::ensure!(
-                run_dir.is_dir(),
-                "{} is not a run directory: give the path of a directory under runs/",
+                run_dir.join("run.json").is_file(),
+                "{} is not a run directory (no run.json): give the path of a directory under runs/",
                 run_dir.display()
             );
-            Err(NotAvailable {
-                command: "resume",
-                what: "run storage has not landed (issue: daemon capture pipeline)",
-            }
-            .into())
-        }
-        Command::Recon { capture, .. } => {
+            let info = crate::store::RunInfo::load(&run_dir)?;
             anyhow::ensure!(
-                capture.exists(),
-                "capture {} does not exist: give a run directory or a y-tal .hdf5/.h5 file",
-                capture.display()
+                info.state != crate::store::RunState::Completed,
+                "run {} is already complete; its outputs are in {}",
+                info.id,
+                run_dir.display()
             );
-            Err(NotAvailable {
-                command: "recon",
-                what: "offline reconstruction has not landed (issues: recon engine, solvers)",
-            }
-            .into())
+            eprintln!(
+                "resuming run {} ({} of {} pairs stored, last stage {})",
+                info.id, info.pairs_done, info.pairs_total, info.stage
+            );
+            execute_run(&run_dir)
         }
+        Command::Recon { capture, config, out } => offline::recon(&capture, config.as_deref(), &out),
         Command::Serve { instrument, .. } => {
             instrument.load()?;
             Err(NotAvailable {
@@ -193,7 +196,12 @@ pub fn execute(cli: Cli) -> anyhow::Result<()> {
 pub fn exit_code(err: &anyhow::Error) -> ExitCode {
     if err.downcast_ref::<NotAvailable>().is_some() {
         ExitCode::from(69)
-    } else if err.downcast_ref::<ConfigError>().is_some() {
+    } else if err.downcast_ref::<ConfigError>().is_some()
+        || matches!(
+            err.downcast_ref::<PipelineError>(),
+            Some(PipelineError::Config(_))
+        )
+    {
         ExitCode::from(2)
     } else {
         ExitCode::FAILURE
@@ -234,7 +242,8 @@ fn devices(config: &InstrumentConfig) -> anyhow::Result<()> {
     println!("Instrument: {}", config.summary());
     let mut devices = crate::devices::Devices::open(config)?;
     let r = devices.report()?;
-    let deg = |a: periscope_drivers::OpticalAngles| format!("({:.3}°, {:.3}°)", a.x.to_degrees(), a.y.to_degrees());
+    let deg =
+        |a: periscope_drivers::OpticalAngles| format!("({:.3}°, {:.3}°)", a.x.to_degrees(), a.y.to_degrees());
     println!(
         "  laser arm  {} {} serial {} (protocol {})  at {}",
         r.laser_arm.model,
@@ -246,7 +255,11 @@ fn devices(config: &InstrumentConfig) -> anyhow::Result<()> {
     println!(
         "    laser {}  interlock {}  diffuser {}",
         if r.laser.emission { "ON" } else { "off" },
-        if r.laser.interlock_closed { "closed" } else { "OPEN" },
+        if r.laser.interlock_closed {
+            "closed"
+        } else {
+            "OPEN"
+        },
         if r.laser.diffuser_in { "in" } else { "out" }
     );
     println!(
@@ -267,5 +280,36 @@ fn devices(config: &InstrumentConfig) -> anyhow::Result<()> {
         r.tdc_status.rates.detector,
         r.tdc_status.acquisitions
     );
+    Ok(())
+}
+
+/// Runs (or resumes) the run in `dir` with a progress display and prints the summary.
+fn execute_run(dir: &Path) -> anyhow::Result<()> {
+    let run = Run::open(dir, Control::new(), None)?;
+    crate::progress::attach(run.events());
+    let summary = run.execute()?;
+    println!("run complete: {}", summary.dir.display());
+    println!("  pairs measured: {}", summary.pairs);
+    for (stage, secs) in &summary.timings {
+        println!("  {stage:<15} {secs:>8.1} s");
+    }
+    let o = &summary.outputs;
+    for (step, secs) in &o.timings {
+        println!("    {step:<20} {secs:>6.1} s");
+    }
+    if let Some(k) = o.primitives {
+        println!(
+            "  Gaussians: {k}, final loss {:.4e}",
+            o.final_loss.unwrap_or(f64::NAN)
+        );
+    }
+    println!(
+        "  depth map: {} of {} pixels with a surface",
+        o.depth_pixels, o.pixels
+    );
+    println!("  outputs:");
+    for f in &o.files {
+        println!("    {}", summary.dir.join(f).display());
+    }
     Ok(())
 }

@@ -35,7 +35,9 @@ pub enum OpenError {
     #[error(transparent)]
     Tdc(#[from] TdcError),
     /// The TDC's USB device was not found.
-    #[error("histogrammer {selector}: {why}; plug it in and check `periscope devices` and `tdc.usb` in the instrument config")]
+    #[error(
+        "histogrammer {selector}: {why}; plug it in and check `periscope devices` and `tdc.usb` in the instrument config"
+    )]
     Usb {
         /// The configured selector.
         selector: String,
@@ -67,7 +69,9 @@ fn galvo_settings(name: &str, arm: &GalvoArm, timeout: Duration) -> SerialGalvoS
 
 /// Builds the simulated instrument for a `sim` config: scene physics and devices.
 pub fn sim_rig(config: &InstrumentConfig) -> Result<Option<Rig>, ConfigError> {
-    let Backend::Sim(sim) = &config.backend else { return Ok(None) };
+    let Backend::Sim(sim) = &config.backend else {
+        return Ok(None);
+    };
     let scene = sim_scene(sim)?;
     let world = World::new(scene, sim.sample_spacing, sim.seed);
     Ok(Some(Rig::new(
@@ -111,7 +115,10 @@ impl Devices {
                 };
                 let (lp, sp) = (port(&config.laser_arm, "laser")?, port(&config.spad_arm, "spad")?);
                 let selector = config.tdc.usb.clone().ok_or_else(|| {
-                    OpenError::Missing("tdc.usb is required with backend = \"hardware\": give the histogrammer's VID:PID".into())
+                    OpenError::Missing(
+                        "tdc.usb is required with backend = \"hardware\": give the histogrammer's VID:PID"
+                            .into(),
+                    )
                 })?;
                 let transport = RusbTransport::open(selector.clone()).map_err(|e| OpenError::Usb {
                     selector: selector.to_string(),

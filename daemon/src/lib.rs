@@ -6,9 +6,14 @@
 //! Everything it does can therefore be driven from tests without a process.
 #![warn(missing_docs)]
 
+pub mod check;
 pub mod cli;
 pub mod config;
 pub mod devices;
-pub mod plan;
-pub mod store;
+pub mod events;
 pub mod logging;
+pub mod offline;
+pub mod pipeline;
+pub mod plan;
+pub mod progress;
+pub mod store;

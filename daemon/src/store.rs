@@ -106,47 +106,19 @@ impl HistogramLog {
     pub fn recover(dir: &Path) -> io::Result<(HistogramLog, Recovered)> {
         let path = dir.join(HISTOGRAM_LOG);
         if !path.exists() {
-            return Ok((HistogramLog::create(dir)?, Recovered { records: Vec::new(), discarded_bytes: 0 }));
-        }
-        let mut bytes = Vec::new();
-        BufReader::new(File::open(&path)?).read_to_end(&mut bytes)?;
-        let mut records = Vec::new();
-        let mut seen = std::collections::HashSet::new();
-        let mut at = 0usize;
-        while bytes.len() - at >= HEADER + 4 {
-            let b = &bytes[at..];
-            if b[..4] != MAGIC {
-                break;
-            }
-            let bins = u32_at(b, 12) as usize;
-            if bins == 0 || bins > 1 << 20 {
-                break;
-            }
-            let len = HEADER + 4 * bins + 4;
-            if b.len() < len || crc32fast::hash(&b[..len - 4]) != u32_at(b, len - 4) {
-                break;
-            }
-            let flags = u32_at(b, 8);
-            let rec = Record {
-                pair: u32_at(b, 4),
-                flags: HistogramFlags {
-                    overflow: flags & 1 != 0,
-                    saturated: flags & 2 != 0,
+            return Ok((
+                HistogramLog::create(dir)?,
+                Recovered {
+                    records: Vec::new(),
+                    discarded_bytes: 0,
                 },
-                bin_width_ps: u32_at(b, 16),
-                offset_ps: u32_at(b, 20),
-                dwell_us: u64::from_le_bytes(b[24..32].try_into().expect("8 bytes")),
-                counts: b[HEADER..len - 4].chunks_exact(4).map(|c| u32::from_le_bytes(c.try_into().expect("4"))).collect(),
-            };
-            if seen.insert(rec.pair) {
-                records.push(rec);
-            }
-            at += len;
+            ));
         }
-        let discarded = (bytes.len() - at) as u64;
+        let got = read_log(dir)?;
         let file = OpenOptions::new().append(true).open(&path)?;
-        if discarded > 0 {
-            file.set_len(at as u64)?;
+        if got.discarded_bytes > 0 {
+            let len = file.metadata()?.len() - got.discarded_bytes;
+            file.set_len(len)?;
             file.sync_all()?;
         }
         Ok((
@@ -156,10 +128,7 @@ impl HistogramLog {
                 unsynced: 0,
                 last_sync: Instant::now(),
             },
-            Recovered {
-                records,
-                discarded_bytes: discarded,
-            },
+            got,
         ))
     }
 
@@ -193,6 +162,56 @@ impl Drop for HistogramLog {
     fn drop(&mut self) {
         let _ = self.sync();
     }
+}
+
+/// Reads a run's histogram log without changing it: the valid records, in file order,
+/// up to the first incomplete or corrupted one. Later records for a pair already read
+/// are dropped (this writer never produces them, but the reader does not trust the
+/// file).
+pub fn read_log(dir: &Path) -> io::Result<Recovered> {
+    let path = dir.join(HISTOGRAM_LOG);
+    let mut bytes = Vec::new();
+    BufReader::new(File::open(&path)?).read_to_end(&mut bytes)?;
+    let mut records = Vec::new();
+    let mut seen = std::collections::HashSet::new();
+    let mut at = 0usize;
+    while bytes.len() - at >= HEADER + 4 {
+        let b = &bytes[at..];
+        if b[..4] != MAGIC {
+            break;
+        }
+        let bins = u32_at(b, 12) as usize;
+        if bins == 0 || bins > 1 << 20 {
+            break;
+        }
+        let len = HEADER + 4 * bins + 4;
+        if b.len() < len || crc32fast::hash(&b[..len - 4]) != u32_at(b, len - 4) {
+            break;
+        }
+        let flags = u32_at(b, 8);
+        let rec = Record {
+            pair: u32_at(b, 4),
+            flags: HistogramFlags {
+                overflow: flags & 1 != 0,
+                saturated: flags & 2 != 0,
+            },
+            bin_width_ps: u32_at(b, 16),
+            offset_ps: u32_at(b, 20),
+            dwell_us: u64::from_le_bytes(b[24..32].try_into().expect("8 bytes")),
+            counts: b[HEADER..len - 4]
+                .chunks_exact(4)
+                .map(|c| u32::from_le_bytes(c.try_into().expect("4")))
+                .collect(),
+        };
+        if seen.insert(rec.pair) {
+            records.push(rec);
+        }
+        at += len;
+    }
+    Ok(Recovered {
+        records,
+        discarded_bytes: (bytes.len() - at) as u64,
+    })
 }
 
 fn sync_dir(dir: &Path) {
@@ -274,13 +293,33 @@ impl RunInfo {
 /// A fresh run id: plan name and UTC time, made unique within `root`.
 pub fn new_run_dir(root: &Path, plan: &str) -> io::Result<PathBuf> {
     fs::create_dir_all(root)?;
-    let secs = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0, |d| d.as_secs());
+    let secs = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map_or(0, |d| d.as_secs());
     let (d, s) = (secs / 86_400, secs % 86_400);
     let (y, m, day) = civil_from_days(d as i64);
-    let stamp = format!("{y:04}{m:02}{day:02}-{:02}{:02}{:02}", s / 3600, s % 3600 / 60, s % 60);
-    let safe: String = plan.chars().map(|c| if c.is_ascii_alphanumeric() || c == '-' { c } else { '_' }).collect();
+    let stamp = format!(
+        "{y:04}{m:02}{day:02}-{:02}{:02}{:02}",
+        s / 3600,
+        s % 3600 / 60,
+        s % 60
+    );
+    let safe: String = plan
+        .chars()
+        .map(|c| {
+            if c.is_ascii_alphanumeric() || c == '-' {
+                c
+            } else {
+                '_'
+            }
+        })
+        .collect();
     for n in 0.. {
-        let id = if n == 0 { format!("{stamp}-{safe}") } else { format!("{stamp}-{safe}-{n}") };
+        let id = if n == 0 {
+            format!("{stamp}-{safe}")
+        } else {
+            format!("{stamp}-{safe}-{n}")
+        };
         let dir = root.join(id);
         match fs::create_dir(&dir) {
             Ok(()) => return Ok(dir),
@@ -311,7 +350,10 @@ mod tests {
     fn rec(pair: u32) -> Record {
         Record {
             pair,
-            flags: HistogramFlags { overflow: pair % 2 == 0, saturated: false },
+            flags: HistogramFlags {
+                overflow: pair % 2 == 0,
+                saturated: false,
+            },
             bin_width_ps: 16,
             offset_ps: 12_000,
             dwell_us: 1000,
@@ -330,7 +372,10 @@ mod tests {
         }
         // A torn write: half a record at the end.
         let half = rec(5).encode();
-        let mut f = OpenOptions::new().append(true).open(dir.path().join(HISTOGRAM_LOG)).unwrap();
+        let mut f = OpenOptions::new()
+            .append(true)
+            .open(dir.path().join(HISTOGRAM_LOG))
+            .unwrap();
         f.write_all(&half[..half.len() / 2]).unwrap();
         drop(f);
         let (mut log, got) = HistogramLog::recover(dir.path()).unwrap();
@@ -360,7 +405,10 @@ mod tests {
         let (_, got) = HistogramLog::recover(dir.path()).unwrap();
         assert_eq!(got.records.len(), 1);
         assert_eq!(got.discarded_bytes, (2 * one) as u64);
-        assert!(HistogramLog::create(dir.path()).is_err(), "an existing log is never overwritten");
+        assert!(
+            HistogramLog::create(dir.path()).is_err(),
+            "an existing log is never overwritten"
+        );
     }
 
     #[test]

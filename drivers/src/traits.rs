@@ -56,7 +56,11 @@ pub trait GalvoPair: ErrorType {
     fn park(&mut self) -> Result<(), Self::Error>;
 
     /// Moves to `target` and waits until settled there.
-    fn move_settled(&mut self, target: OpticalAngles, timeout: Duration) -> Result<OpticalAngles, Self::Error> {
+    fn move_settled(
+        &mut self,
+        target: OpticalAngles,
+        timeout: Duration,
+    ) -> Result<OpticalAngles, Self::Error> {
         self.move_to(target)?;
         self.wait_settled(timeout)
     }

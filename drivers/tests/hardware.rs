@@ -26,14 +26,26 @@ fn spad_arm_moves_and_settles() {
     let mut g = SerialGalvo::open(
         SerialGalvoSettings {
             name: "spad".into(),
-            limits: AngleLimits { x: [-lim, lim], y: [-lim, lim] },
+            limits: AngleLimits {
+                x: [-lim, lim],
+                y: [-lim, lim],
+            },
             timeout: Duration::from_millis(200),
             settle: Duration::from_micros(400),
         },
-        Box::new(PortConnector { path: env("PERISCOPE_GALVO_PORT"), baud: 115_200 }),
+        Box::new(PortConnector {
+            path: env("PERISCOPE_GALVO_PORT"),
+            baud: 115_200,
+        }),
     )
     .unwrap();
-    for target in [OpticalAngles { x: lim / 2.0, y: 0.0 }, OpticalAngles { x: 0.0, y: -lim / 2.0 }] {
+    for target in [
+        OpticalAngles { x: lim / 2.0, y: 0.0 },
+        OpticalAngles {
+            x: 0.0,
+            y: -lim / 2.0,
+        },
+    ] {
         let at = g.move_settled(target, Duration::from_millis(100)).unwrap();
         assert!((at.x - target.x).abs() < 1e-5 && (at.y - target.y).abs() < 1e-5);
     }

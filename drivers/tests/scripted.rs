@@ -11,7 +11,9 @@ use periscope_drivers::galvo::protocol::MotionState;
 use periscope_drivers::galvo::{Connector, Link, SerialGalvo, SerialGalvoSettings};
 use periscope_drivers::tdc::protocol::{self, FrameHeader, WireConfig, WireInfo, WireStatus};
 use periscope_drivers::tdc::{TransportError, UsbTdc, UsbTransport};
-use periscope_drivers::{AngleLimits, Error, ErrorKind, GalvoPair, Histogrammer, Laser, OpticalAngles, TdcConfig};
+use periscope_drivers::{
+    AngleLimits, Error, ErrorKind, GalvoPair, Histogrammer, Laser, OpticalAngles, TdcConfig,
+};
 
 type Script = Arc<Mutex<VecDeque<(&'static str, &'static str)>>>;
 
@@ -23,7 +25,12 @@ struct ScriptedLink {
 
 impl Link for ScriptedLink {
     fn send(&mut self, bytes: &[u8]) -> io::Result<()> {
-        let (want, reply) = self.script.lock().unwrap().pop_front().expect("an unexpected request was sent");
+        let (want, reply) = self
+            .script
+            .lock()
+            .unwrap()
+            .pop_front()
+            .expect("an unexpected request was sent");
         assert_eq!(String::from_utf8_lossy(bytes), want, "request bytes");
         self.rx.extend(reply.as_bytes());
         Ok(())
@@ -73,7 +80,10 @@ fn galvo_with(limit: f64, script: &[(&'static str, &'static str)]) -> (SerialGal
         timeout: Duration::from_millis(20),
         settle: Duration::from_micros(100),
     };
-    (SerialGalvo::new(settings, Box::new(ScriptedConnector(script.clone()))), script)
+    (
+        SerialGalvo::new(settings, Box::new(ScriptedConnector(script.clone()))),
+        script,
+    )
 }
 
 fn galvo(script: &[(&'static str, &'static str)]) -> (SerialGalvo, Script) {
@@ -89,7 +99,10 @@ fn done(script: &Script) {
 fn identify() {
     let (mut g, s) = galvo(&[("01 IDN*01\n", "01 OK PGC-2 1.0.0 1 SN123 LASER*9B\n")]);
     let info = g.identify().unwrap();
-    assert_eq!((info.model.as_str(), info.firmware.as_str(), info.serial.as_str()), ("PGC-2", "1.0.0", "SN123"));
+    assert_eq!(
+        (info.model.as_str(), info.firmware.as_str(), info.serial.as_str()),
+        ("PGC-2", "1.0.0", "SN123")
+    );
     done(&s);
 }
 
@@ -105,8 +118,13 @@ fn identify_refuses_another_protocol_version() {
 #[test]
 fn move_then_settle() {
     // The controller answers a move once the pair has settled.
-    let (mut g, s) = galvo(&[("01 MOVE 0.1000000 -0.0500000*15\n", "01 OK SETTLED 0.1000000 -0.0500000*06\n")]);
-    let pos = g.move_settled(OpticalAngles { x: 0.1, y: -0.05 }, Duration::from_secs(1)).unwrap();
+    let (mut g, s) = galvo(&[(
+        "01 MOVE 0.1000000 -0.0500000*15\n",
+        "01 OK SETTLED 0.1000000 -0.0500000*06\n",
+    )]);
+    let pos = g
+        .move_settled(OpticalAngles { x: 0.1, y: -0.05 }, Duration::from_secs(1))
+        .unwrap();
     assert_eq!(pos, OpticalAngles { x: 0.1, y: -0.05 });
     done(&s);
 }
@@ -114,7 +132,10 @@ fn move_then_settle() {
 #[test]
 fn a_command_after_an_unawaited_move_collects_its_reply_first() {
     let (mut g, s) = galvo(&[
-        ("01 MOVE 0.1000000 -0.0500000*15\n", "01 OK SETTLED 0.1000000 -0.0500000*06\n"),
+        (
+            "01 MOVE 0.1000000 -0.0500000*15\n",
+            "01 OK SETTLED 0.1000000 -0.0500000*06\n",
+        ),
         ("02 STAT*4D\n", "02 OK SETTLED 0.1000000 -0.0500000*22\n"),
     ]);
     g.move_to(OpticalAngles { x: 0.1, y: -0.05 }).unwrap();
@@ -136,8 +157,13 @@ fn settling_after_a_park_polls_while_moving() {
 
 #[test]
 fn a_settled_position_off_target_is_refused() {
-    let (mut g, s) = galvo(&[("01 MOVE 0.1000000 -0.0500000*15\n", "01 OK SETTLED 0.1000000 -0.0400000*2F\n")]);
-    let err = g.move_settled(OpticalAngles { x: 0.1, y: -0.05 }, Duration::from_secs(1)).unwrap_err();
+    let (mut g, s) = galvo(&[(
+        "01 MOVE 0.1000000 -0.0500000*15\n",
+        "01 OK SETTLED 0.1000000 -0.0400000*2F\n",
+    )]);
+    let err = g
+        .move_settled(OpticalAngles { x: 0.1, y: -0.05 }, Duration::from_secs(1))
+        .unwrap_err();
     assert_eq!(err.kind(), ErrorKind::Device);
     assert!(err.to_string().contains("instead of the target"), "{err}");
     done(&s);
@@ -159,7 +185,10 @@ fn position_status_park_limits() {
     g.park().unwrap();
     g.identify().unwrap();
     done(&s);
-    let (mut g, s) = galvo(&[("01 LIM*21\n", "01 OK -0.3490659 0.3490659 -0.2617994 0.2617994*C1\n")]);
+    let (mut g, s) = galvo(&[(
+        "01 LIM*21\n",
+        "01 OK -0.3490659 0.3490659 -0.2617994 0.2617994*C1\n",
+    )]);
     let l = g.hard_limits().unwrap();
     assert_eq!((l.x, l.y), ([-0.3490659, 0.3490659], [-0.2617994, 0.2617994]));
     done(&s);
@@ -194,7 +223,10 @@ fn laser_commands() {
 #[test]
 fn a_stale_reply_is_skipped_for_the_right_one() {
     // The reply to an earlier request (tag 01) arrives first and must be dropped.
-    let (mut g, s) = galvo(&[("01 IDN*01\n", "02 OK PGC-2 1.0.0 1 SN123 LASER*CB\n01 OK PGC-2 1.0.0 1 SN123 LASER*9B\n")]);
+    let (mut g, s) = galvo(&[(
+        "01 IDN*01\n",
+        "02 OK PGC-2 1.0.0 1 SN123 LASER*CB\n01 OK PGC-2 1.0.0 1 SN123 LASER*9B\n",
+    )]);
     g.identify().unwrap();
     done(&s);
 }
@@ -202,7 +234,10 @@ fn a_stale_reply_is_skipped_for_the_right_one() {
 #[test]
 fn the_controllers_out_of_range_reply_maps_to_its_kind() {
     // Inside the driver's limits (1 rad), outside the controller's.
-    let (mut g, s) = galvo_with(1.0, &[("01 MOVE 0.5000000 0.0000000*0C\n", "01 ERR 4 out of range*B8\n")]);
+    let (mut g, s) = galvo_with(
+        1.0,
+        &[("01 MOVE 0.5000000 0.0000000*0C\n", "01 ERR 4 out of range*B8\n")],
+    );
     g.move_to(OpticalAngles { x: 0.5, y: 0.0 }).unwrap();
     let err = g.wait_settled(Duration::from_millis(10)).unwrap_err();
     assert_eq!(err.kind(), ErrorKind::OutOfRange);
@@ -224,19 +259,36 @@ struct ScriptedUsb {
 
 impl ScriptedUsb {
     fn next(&mut self, got: Xfer) -> Vec<u8> {
-        let (want, reply) = self.script.pop_front().unwrap_or_else(|| panic!("unexpected transfer {got:?}"));
+        let (want, reply) = self
+            .script
+            .pop_front()
+            .unwrap_or_else(|| panic!("unexpected transfer {got:?}"));
         assert_eq!(got, want, "transfer");
         reply
     }
 }
 
 impl UsbTransport for ScriptedUsb {
-    fn control_in(&mut self, r: u8, v: u16, i: u16, buf: &mut [u8], _t: Duration) -> Result<usize, TransportError> {
+    fn control_in(
+        &mut self,
+        r: u8,
+        v: u16,
+        i: u16,
+        buf: &mut [u8],
+        _t: Duration,
+    ) -> Result<usize, TransportError> {
         let reply = self.next(Xfer::In(r, v, i));
         buf[..reply.len()].copy_from_slice(&reply);
         Ok(reply.len())
     }
-    fn control_out(&mut self, r: u8, v: u16, i: u16, data: &[u8], _t: Duration) -> Result<(), TransportError> {
+    fn control_out(
+        &mut self,
+        r: u8,
+        v: u16,
+        i: u16,
+        data: &[u8],
+        _t: Duration,
+    ) -> Result<(), TransportError> {
         self.next(Xfer::Out(r, v, i, data.to_vec()));
         Ok(())
     }
@@ -255,7 +307,9 @@ impl UsbTransport for ScriptedUsb {
 
 /// The documented SET_CONFIG payload for 16 ps × 4 bins, offset 12 ns, divider 1,
 /// 1 ms: five little-endian u32.
-const CONFIG_BYTES: [u8; 20] = [16, 0, 0, 0, 4, 0, 0, 0, 0xE0, 0x2E, 0, 0, 1, 0, 0, 0, 0xE8, 0x03, 0, 0];
+const CONFIG_BYTES: [u8; 20] = [
+    16, 0, 0, 0, 4, 0, 0, 0, 0xE0, 0x2E, 0, 0, 1, 0, 0, 0, 0xE8, 0x03, 0, 0,
+];
 
 fn config() -> TdcConfig {
     TdcConfig {
@@ -325,7 +379,10 @@ fn usb_configure_acquire_status_identify() {
     let st = tdc.status().unwrap();
     assert_eq!((st.rates.sync, st.rates.detector), (10e6, 2500.0));
     let id = tdc.identify().unwrap();
-    assert_eq!((id.model.as_str(), id.firmware.as_str(), id.serial.as_str()), ("PTDC-1", "2.1", "A1"));
+    assert_eq!(
+        (id.model.as_str(), id.firmware.as_str(), id.serial.as_str()),
+        ("PTDC-1", "2.1", "A1")
+    );
     assert!(tdc.transport_mut().script.is_empty());
 }
 

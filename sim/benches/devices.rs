@@ -18,7 +18,10 @@ use periscope_sim::Detector;
 use periscope_sim::devices::{Arm, Rig, RigSettings};
 
 fn env(name: &str, default: usize) -> usize {
-    std::env::var(name).ok().and_then(|v| v.parse().ok()).unwrap_or(default)
+    std::env::var(name)
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(default)
 }
 
 fn main() {
@@ -76,7 +79,10 @@ fn main() {
     for _ in 0..pairs {
         laser.position().unwrap();
     }
-    println!("one galvo round trip (POS): {:.1} µs", start.elapsed().as_secs_f64() / pairs as f64 * 1e6);
+    println!(
+        "one galvo round trip (POS): {:.1} µs",
+        start.elapsed().as_secs_f64() / pairs as f64 * 1e6
+    );
     for bins in [512u32, 4096] {
         tdc.configure(&TdcConfig {
             bin_width: 16e-12,

@@ -20,7 +20,10 @@ const TIMEOUT: Duration = Duration::from_millis(100);
 
 fn limits(deg: f64) -> AngleLimits {
     let r = deg.to_radians();
-    AngleLimits { x: [-r, r], y: [-r, r] }
+    AngleLimits {
+        x: [-r, r],
+        y: [-r, r],
+    }
 }
 
 fn detector() -> Detector {
@@ -47,7 +50,8 @@ fn detector() -> Detector {
 }
 
 fn rig() -> Rig {
-    let patch = Mesh::rectangle([-0.05, 0.05], [-0.05, 0.05]).transformed(glam::DMat3::IDENTITY, DVec3::new(0.0, 0.0, 0.5));
+    let patch = Mesh::rectangle([-0.05, 0.05], [-0.05, 0.05])
+        .transformed(glam::DMat3::IDENTITY, DVec3::new(0.0, 0.0, 0.5));
     let scene = Scene {
         name: "devices".into(),
         relay: Surface {
@@ -117,12 +121,18 @@ fn controllers_identify_and_move_through_the_pty() {
     let target = angles(0.05, -0.02);
     let start = Instant::now();
     let settled = laser.move_settled(target, Duration::from_secs(1)).unwrap();
-    assert!(start.elapsed() >= Duration::from_micros(300), "returned before the settling time");
+    assert!(
+        start.elapsed() >= Duration::from_micros(300),
+        "returned before the settling time"
+    );
     assert!((settled.x - target.x).abs() < 1e-7 && (settled.y - target.y).abs() < 1e-7);
     assert_eq!(rig.pointing().0, target);
     assert_eq!(laser.position().unwrap(), target);
     laser.park().unwrap();
-    assert_eq!(laser.wait_settled(Duration::from_secs(1)).unwrap(), angles(0.0, 0.0));
+    assert_eq!(
+        laser.wait_settled(Duration::from_secs(1)).unwrap(),
+        angles(0.0, 0.0)
+    );
 }
 
 #[test]
@@ -141,7 +151,10 @@ fn targets_outside_the_limits_never_move_the_mirrors() {
     assert_eq!(err.kind(), ErrorKind::OutOfRange);
     assert_eq!(rig.pointing().1, angles(0.0, 0.0));
     // NaN is never a target.
-    assert_eq!(spad.move_to(angles(f64::NAN, 0.0)).unwrap_err().kind(), ErrorKind::OutOfRange);
+    assert_eq!(
+        spad.move_to(angles(f64::NAN, 0.0)).unwrap_err().kind(),
+        ErrorKind::OutOfRange
+    );
 }
 
 #[test]
@@ -175,12 +188,16 @@ fn the_los_histogram_peaks_at_the_first_bounce_path() {
     let (l, s) = rig.origins();
     let p = DVec3::new(0.2, -0.1, 0.0);
     let pose = GalvoPose::looking(s, -DVec3::Z, DVec3::Y).unwrap();
-    spad.move_settled(pose.angles_for(p).unwrap(), Duration::from_secs(1)).unwrap();
+    spad.move_settled(pose.angles_for(p).unwrap(), Duration::from_secs(1))
+        .unwrap();
     let h = tdc.acquire().unwrap();
     let peak = (0..h.counts.len()).max_by_key(|&b| h.counts[b]).unwrap();
     let path = p.distance(l) + p.distance(s);
     let expected_bin = (path / C0 - 12e-9) / 16e-12;
-    assert!((peak as f64 + 0.5 - expected_bin).abs() < 2.0, "peak {peak}, expected {expected_bin:.1}");
+    assert!(
+        (peak as f64 + 0.5 - expected_bin).abs() < 2.0,
+        "peak {peak}, expected {expected_bin:.1}"
+    );
     // Laser off: only dark counts.
     laser.set_emission(false).unwrap();
     let dark: u64 = tdc.acquire().unwrap().counts.iter().map(|&c| u64::from(c)).sum();
@@ -197,8 +214,11 @@ fn an_nlos_pair_sees_the_hidden_patch() {
     let (l, s) = rig.origins();
     let (xi, xd) = (DVec3::new(-0.1, 0.0, 0.0), DVec3::new(0.1, 0.0, 0.0));
     let look = |o| GalvoPose::looking(o, -DVec3::Z, DVec3::Y).unwrap();
-    laser.move_settled(look(l).angles_for(xi).unwrap(), Duration::from_secs(1)).unwrap();
-    spad.move_settled(look(s).angles_for(xd).unwrap(), Duration::from_secs(1)).unwrap();
+    laser
+        .move_settled(look(l).angles_for(xi).unwrap(), Duration::from_secs(1))
+        .unwrap();
+    spad.move_settled(look(s).angles_for(xd).unwrap(), Duration::from_secs(1))
+        .unwrap();
     let h = tdc.acquire().unwrap();
     // The hidden return: the patch at z = 0.5 is 2 × ~0.51 m of hidden path.
     let path = xi.distance(l) + xd.distance(s) + 2.0 * DVec3::new(0.1, 0.0, 0.5).length();
@@ -238,7 +258,8 @@ fn a_corrupted_reply_is_retried_once_and_never_accepted() {
     moved_ok_after(GalvoFault::CorruptChecksum);
     let rig = rig();
     let mut spad = galvo(&rig, Arm::Spad, 20.0);
-    spad.move_settled(angles(0.02, 0.01), Duration::from_secs(1)).unwrap();
+    spad.move_settled(angles(0.02, 0.01), Duration::from_secs(1))
+        .unwrap();
     rig.inject(Fault::Galvo(Arm::Spad, GalvoFault::CorruptChecksum));
     rig.inject(Fault::Galvo(Arm::Spad, GalvoFault::CorruptChecksum));
     let err = spad.position().unwrap_err();
@@ -266,7 +287,10 @@ fn an_unplugged_controller_is_reconnected() {
     let rig = rig();
     let mut spad = galvo(&rig, Arm::Spad, 20.0);
     spad.identify().unwrap();
-    rig.inject(Fault::Galvo(Arm::Spad, GalvoFault::Disconnect { refused_connects: 1 }));
+    rig.inject(Fault::Galvo(
+        Arm::Spad,
+        GalvoFault::Disconnect { refused_connects: 1 },
+    ));
     let err = spad.position().unwrap_err();
     assert_eq!(err.kind(), ErrorKind::Disconnected);
     assert!(err.to_string().contains("plugged in"), "{err}");
@@ -278,9 +302,15 @@ fn an_unplugged_laser_controller_comes_back_with_the_laser_off() {
     let rig = rig();
     let mut laser = galvo(&rig, Arm::Laser, 20.0);
     laser.set_emission(true).unwrap();
-    rig.inject(Fault::Galvo(Arm::Laser, GalvoFault::Disconnect { refused_connects: 0 }));
+    rig.inject(Fault::Galvo(
+        Arm::Laser,
+        GalvoFault::Disconnect { refused_connects: 0 },
+    ));
     let state = laser.laser_state().unwrap();
-    assert!(!state.emission, "a power-cycled controller must not report emission");
+    assert!(
+        !state.emission,
+        "a power-cycled controller must not report emission"
+    );
 }
 
 // ---- Histogrammer faults ------------------------------------------------------
@@ -290,8 +320,15 @@ fn acquire_after(fault: TdcFault) -> (UsbTdc<SimTdcTransport>, periscope_drivers
     let mut tdc = tdc(&rig);
     rig.inject(Fault::Tdc(fault));
     let h = tdc.acquire().unwrap();
-    let sent = tdc.transport_mut().sent_counts(h.sequence).expect("a frame with that sequence was sent").to_vec();
-    assert_eq!(h.counts, sent, "after {fault:?} the driver returned other counts than the device produced");
+    let sent = tdc
+        .transport_mut()
+        .sent_counts(h.sequence)
+        .expect("a frame with that sequence was sent")
+        .to_vec();
+    assert_eq!(
+        h.counts, sent,
+        "after {fault:?} the driver returned other counts than the device produced"
+    );
     (tdc, h)
 }
 
@@ -379,8 +416,15 @@ fn acquiring_unconfigured_or_with_bad_settings_is_refused() {
         acquisition: Duration::from_millis(1),
     };
     assert_eq!(tdc.configure(&bad).unwrap_err().kind(), ErrorKind::OutOfRange);
-    let negative = TdcConfig { bins: 16, offset: -1e-9, ..bad };
-    assert_eq!(tdc.configure(&negative).unwrap_err().kind(), ErrorKind::OutOfRange);
+    let negative = TdcConfig {
+        bins: 16,
+        offset: -1e-9,
+        ..bad
+    };
+    assert_eq!(
+        tdc.configure(&negative).unwrap_err().kind(),
+        ErrorKind::OutOfRange
+    );
     let info = tdc.identify().unwrap();
     assert_eq!(info.model, "PTDC-SIM");
 }

@@ -343,7 +343,13 @@ fn sim_settings(check: &Check<'_>, raw: RawSim) -> Result<SimSettings, ConfigErr
         },
         pile_up: raw.pile_up,
         sample_spacing: check.range("sim.sample-spacing-mm", raw.sample_spacing_mm, 0.5, 100.0, "mm")? * 1e-3,
-        time_scale: check.range("sim.time-scale", raw.time_scale, 0.0, 100.0, "(real seconds per simulated second)")?,
+        time_scale: check.range(
+            "sim.time-scale",
+            raw.time_scale,
+            0.0,
+            100.0,
+            "(real seconds per simulated second)",
+        )?,
         interlock_closed: raw.interlock_closed,
     })
 }

@@ -11,7 +11,7 @@ use glam::DVec3;
 use periscope_recon::relay::Region;
 use serde::Deserialize;
 
-pub use pairs::{PairMode, PlannedPair, plan_pairs};
+pub use pairs::{PairMode, PlannedPair, RelayView, plan_pairs};
 pub use recon::{Method, ReconSettings, default_recon, load_recon};
 
 use crate::config::{ConfigError, InstrumentConfig, TomlSource};
@@ -174,9 +174,15 @@ impl Plan {
         }
         let los = {
             let l = &raw.los;
-            for (k, r) in [("los.angles-deg.x", l.angles_deg.x), ("los.angles-deg.y", l.angles_deg.y)] {
+            for (k, r) in [
+                ("los.angles-deg.x", l.angles_deg.x),
+                ("los.angles-deg.y", l.angles_deg.y),
+            ] {
                 if !(r[0].is_finite() && r[1].is_finite() && r[1] > r[0]) {
-                    return Err(src.invalid(k, format!("must be [min, max] in degrees with max > min, got {r:?}")));
+                    return Err(src.invalid(
+                        k,
+                        format!("must be [min, max] in degrees with max > min, got {r:?}"),
+                    ));
                 }
             }
             if l.grid.iter().any(|&n| !(2..=1024).contains(&n)) {
@@ -205,14 +211,20 @@ impl Plan {
             depth: {
                 let d = raw.relay.depth_m;
                 if !(d[0] >= 0.0 && d[1] > d[0] && d[1].is_finite()) {
-                    return Err(src.invalid("relay.depth-m", "must be [near, far] in metres with 0 ≤ near < far"));
+                    return Err(src.invalid(
+                        "relay.depth-m",
+                        "must be [near, far] in metres with 0 ≤ near < far",
+                    ));
                 }
                 d
             },
             min_intensity: {
                 let v = raw.relay.min_intensity;
                 if !(0.0..1.0).contains(&v) {
-                    return Err(src.invalid("relay.min-intensity", "must be a fraction in [0, 1) of the brightest return"));
+                    return Err(src.invalid(
+                        "relay.min-intensity",
+                        "must be a fraction in [0, 1) of the brightest return",
+                    ));
                 }
                 v
             },
@@ -239,7 +251,10 @@ impl Plan {
                 None => instrument.tdc.bin_width,
                 Some(w) if w >= 1.0 && w <= 1e6 && w.fract() == 0.0 => w * 1e-12,
                 Some(_) => {
-                    return Err(src.invalid("acquisition.bin-width-ps", "must be a whole number of picoseconds, 1 to 1,000,000"));
+                    return Err(src.invalid(
+                        "acquisition.bin-width-ps",
+                        "must be a whole number of picoseconds, 1 to 1,000,000",
+                    ));
                 }
             },
             offset: match a.offset_ns {
@@ -266,7 +281,9 @@ impl Plan {
     /// Hidden path length covered by the histograms' last bin for a pair whose two
     /// legs sum to `legs`, metres.
     pub fn window_end(&self, legs: f64, system_delay: f64) -> f64 {
-        periscope_recon::C0 * (self.acquisition.offset + self.acquisition.bins as f64 * self.acquisition.bin_width - system_delay)
+        periscope_recon::C0
+            * (self.acquisition.offset + self.acquisition.bins as f64 * self.acquisition.bin_width
+                - system_delay)
             - legs
     }
 }

@@ -72,14 +72,26 @@ impl PairMode {
     pub fn describe(&self) -> String {
         match self {
             PairMode::Confocal { grid, offset } => {
-                format!("confocal {}×{} grid, detection offset {:.1} mm", grid[0], grid[1], offset * 1e3)
+                format!(
+                    "confocal {}×{} grid, detection offset {:.1} mm",
+                    grid[0],
+                    grid[1],
+                    offset * 1e3
+                )
             }
-            PairMode::FixedLaser { laser, grid } => format!("fixed laser at {laser:?}, {}×{} detection grid", grid[0], grid[1]),
+            PairMode::FixedLaser { laser, grid } => {
+                format!("fixed laser at {laser:?}, {}×{} detection grid", grid[0], grid[1])
+            }
             PairMode::Scanned { laser_grid, grid } => format!(
                 "scanned: {}×{} laser points × {}×{} detection points",
                 laser_grid[0], laser_grid[1], grid[0], grid[1]
             ),
-            PairMode::Random { laser_grid, grid, count, .. } => format!(
+            PairMode::Random {
+                laser_grid,
+                grid,
+                count,
+                ..
+            } => format!(
                 "{count} random pairs from {}×{} laser × {}×{} detection points",
                 laser_grid[0], laser_grid[1], grid[0], grid[1]
             ),
@@ -203,8 +215,13 @@ pub struct RelayView<'a> {
 /// (row-major cell index, point index), rows from +v down.
 fn grid_sample(relay: &RelayView<'_>, candidates: &[usize], grid: [usize; 2]) -> Vec<(usize, usize)> {
     let pts: Vec<DVec3> = candidates.iter().map(|&i| relay.points[i]).collect();
-    let Some(plane) = fit_plane(&pts) else { return Vec::new() };
-    let uv: Vec<(f64, f64)> = pts.iter().map(|p| ((*p - plane.centre).dot(plane.u), (*p - plane.centre).dot(plane.v))).collect();
+    let Some(plane) = fit_plane(&pts) else {
+        return Vec::new();
+    };
+    let uv: Vec<(f64, f64)> = pts
+        .iter()
+        .map(|p| ((*p - plane.centre).dot(plane.u), (*p - plane.centre).dot(plane.v)))
+        .collect();
     let (mut lo, mut hi) = ([f64::INFINITY; 2], [f64::NEG_INFINITY; 2]);
     for &(u, v) in &uv {
         lo = [lo[0].min(u), lo[1].min(v)];
@@ -215,14 +232,20 @@ fn grid_sample(relay: &RelayView<'_>, candidates: &[usize], grid: [usize; 2]) ->
     for (k, &(u, v)) in uv.iter().enumerate() {
         let cx = (((u - lo[0]) / cell[0].max(1e-12)) as usize).min(grid[0] - 1);
         let cy = (((hi[1] - v) / cell[1].max(1e-12)) as usize).min(grid[1] - 1);
-        let centre = (lo[0] + (cx as f64 + 0.5) * cell[0], hi[1] - (cy as f64 + 0.5) * cell[1]);
+        let centre = (
+            lo[0] + (cx as f64 + 0.5) * cell[0],
+            hi[1] - (cy as f64 + 0.5) * cell[1],
+        );
         let d = (u - centre.0).hypot(v - centre.1);
         let slot = &mut best[cy * grid[0] + cx];
         if slot.is_none_or(|(bd, _)| d < bd) {
             *slot = Some((d, candidates[k]));
         }
     }
-    best.iter().enumerate().filter_map(|(c, b)| b.map(|(_, i)| (c, i))).collect()
+    best.iter()
+        .enumerate()
+        .filter_map(|(c, b)| b.map(|(_, i)| (c, i)))
+        .collect()
 }
 
 /// Plans the pairs on a measured relay: positions and normals from the relay, angles
@@ -242,18 +265,19 @@ pub fn plan_pairs(
         ill.iter().copied().filter(|i| d.contains(i)).collect()
     };
     let mut raw: Vec<(DVec3, DVec3, DVec3, DVec3)> = Vec::new();
-    let confocal = |raw: &mut Vec<_>, cells: Vec<(usize, usize)>, keep: &dyn Fn(usize) -> bool, offset: f64| {
-        let pts: Vec<DVec3> = both.iter().map(|&i| relay.points[i]).collect();
-        let u = fit_plane(&pts).map_or(DVec3::X, |p| p.u);
-        for (cell, i) in cells {
-            if !keep(cell) {
-                continue;
+    let confocal =
+        |raw: &mut Vec<_>, cells: Vec<(usize, usize)>, keep: &dyn Fn(usize) -> bool, offset: f64| {
+            let pts: Vec<DVec3> = both.iter().map(|&i| relay.points[i]).collect();
+            let u = fit_plane(&pts).map_or(DVec3::X, |p| p.u);
+            for (cell, i) in cells {
+                if !keep(cell) {
+                    continue;
+                }
+                let (x, n) = (relay.points[i], relay.normals[i]);
+                let along = (u - n * u.dot(n)).normalize_or_zero();
+                raw.push((x, n, x + along * offset, n));
             }
-            let (x, n) = (relay.points[i], relay.normals[i]);
-            let along = (u - n * u.dot(n)).normalize_or_zero();
-            raw.push((x, n, x + along * offset, n));
-        }
-    };
+        };
     match mode {
         PairMode::Confocal { grid, offset } => {
             confocal(&mut raw, grid_sample(relay, &both, *grid), &|_| true, *offset);
@@ -261,12 +285,26 @@ pub fn plan_pairs(
         PairMode::Mask { rows, offset } => {
             let width = rows[0].chars().count();
             let flags: Vec<bool> = rows.iter().flat_map(|r| r.chars().map(|c| c == '#')).collect();
-            confocal(&mut raw, grid_sample(relay, &both, [width, rows.len()]), &|c| flags[c], *offset);
+            confocal(
+                &mut raw,
+                grid_sample(relay, &both, [width, rows.len()]),
+                &|c| flags[c],
+                *offset,
+            );
         }
         PairMode::FixedLaser { laser, grid } => {
-            if let Some(&li) = ill.iter().min_by(|&&a, &&b| relay.points[a].distance(*laser).total_cmp(&relay.points[b].distance(*laser))) {
+            if let Some(&li) = ill.iter().min_by(|&&a, &&b| {
+                relay.points[a]
+                    .distance(*laser)
+                    .total_cmp(&relay.points[b].distance(*laser))
+            }) {
                 for (_, d) in grid_sample(relay, &det, *grid) {
-                    raw.push((relay.points[li], relay.normals[li], relay.points[d], relay.normals[d]));
+                    raw.push((
+                        relay.points[li],
+                        relay.normals[li],
+                        relay.points[d],
+                        relay.normals[d],
+                    ));
                 }
             }
         }
@@ -275,7 +313,12 @@ pub fn plan_pairs(
             let dets = grid_sample(relay, &det, *grid);
             for &(_, l) in &lasers {
                 for &(_, d) in &dets {
-                    raw.push((relay.points[l], relay.normals[l], relay.points[d], relay.normals[d]));
+                    raw.push((
+                        relay.points[l],
+                        relay.normals[l],
+                        relay.points[d],
+                        relay.normals[d],
+                    ));
                 }
             }
             if let PairMode::Random { count, seed, .. } = mode {
@@ -293,7 +336,14 @@ pub fn plan_pairs(
     for (xi, ni, xd, nd) in raw {
         match (lpose.angles_for(xi), spose.angles_for(xd)) {
             (Some(laser), Some(spad)) if llim.contains(laser) && slim.contains(spad) => {
-                out.push(PlannedPair { xi, ni, xd, nd, laser, spad })
+                out.push(PlannedPair {
+                    xi,
+                    ni,
+                    xd,
+                    nd,
+                    laser,
+                    spad,
+                })
             }
             _ => unreachable += 1,
         }

@@ -185,7 +185,10 @@ pub(crate) fn recon_settings(
         return Err(src.invalid(&key("gtr.batch"), "must be 1 to 65,536 pairs"));
     }
     if !(g.lr_scale > 0.0 && g.lr_scale <= 100.0) {
-        return Err(src.invalid(&key("gtr.lr-scale"), "must be in (0, 100]: it multiplies every learning rate"));
+        return Err(src.invalid(
+            &key("gtr.lr-scale"),
+            "must be in (0, 100]: it multiplies every learning rate",
+        ));
     }
     if g.virtual_grid.iter().any(|&n| !(2..=1024).contains(&n)) {
         return Err(src.invalid(&key("gtr.virtual-grid"), "must be two counts, 2 to 1024"));
@@ -228,7 +231,10 @@ pub(crate) fn recon_settings(
     }
     let depth_threshold = raw.depth_threshold.unwrap_or(0.3);
     if !(depth_threshold > 0.0 && depth_threshold < 1.0) {
-        return Err(src.invalid(&key("depth-threshold"), "must be a fraction in (0, 1) of the volume's maximum"));
+        return Err(src.invalid(
+            &key("depth-threshold"),
+            "must be a fraction in (0, 1) of the volume's maximum",
+        ));
     }
     Ok(ReconSettings {
         method,
@@ -242,7 +248,10 @@ pub(crate) fn recon_settings(
 }
 
 /// Loads a `RECON.toml`.
-pub fn load_recon(src: &TomlSource, default_volume: Option<VolumeGrid>) -> Result<ReconSettings, ConfigError> {
+pub fn load_recon(
+    src: &TomlSource,
+    default_volume: Option<VolumeGrid>,
+) -> Result<ReconSettings, ConfigError> {
     let raw: RawRecon = src.parse()?;
     recon_settings(src, "", raw, default_volume)
 }

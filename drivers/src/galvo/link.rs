@@ -37,7 +37,10 @@ impl<P: SerialPort + ?Sized> Link for Box<P> {
     fn receive(&mut self, buf: &mut [u8], timeout: Duration) -> io::Result<usize> {
         self.set_timeout(timeout.max(Duration::from_micros(1)))?;
         match self.read(buf) {
-            Ok(0) => Err(io::Error::new(io::ErrorKind::UnexpectedEof, "the port was closed")),
+            Ok(0) => Err(io::Error::new(
+                io::ErrorKind::UnexpectedEof,
+                "the port was closed",
+            )),
             Ok(n) => Ok(n),
             Err(e) if e.kind() == io::ErrorKind::TimedOut || e.kind() == io::ErrorKind::WouldBlock => Ok(0),
             Err(e) => Err(e),
@@ -45,7 +48,8 @@ impl<P: SerialPort + ?Sized> Link for Box<P> {
     }
 
     fn discard_input(&mut self) -> io::Result<()> {
-        self.clear(serialport::ClearBuffer::Input).map_err(io::Error::from)
+        self.clear(serialport::ClearBuffer::Input)
+            .map_err(io::Error::from)
     }
 }
 

@@ -20,7 +20,11 @@ pub fn crc8(bytes: &[u8]) -> u8 {
     for &b in bytes {
         crc ^= b;
         for _ in 0..8 {
-            crc = if crc & 0x80 != 0 { (crc << 1) ^ 0x07 } else { crc << 1 };
+            crc = if crc & 0x80 != 0 {
+                (crc << 1) ^ 0x07
+            } else {
+                crc << 1
+            };
         }
     }
     crc
@@ -111,7 +115,13 @@ impl Request {
         let mut words = body.split_ascii_whitespace();
         let cmd = words.next().ok_or(ErrorCode::UnknownCommand)?;
         let args: Vec<&str> = words.collect();
-        let no_args = |r: Request| if args.is_empty() { Ok(r) } else { Err(ErrorCode::BadArgument) };
+        let no_args = |r: Request| {
+            if args.is_empty() {
+                Ok(r)
+            } else {
+                Err(ErrorCode::BadArgument)
+            }
+        };
         let one = |yes: &str, no: &str| match args.as_slice() {
             [a] if *a == yes => Ok(true),
             [a] if *a == no => Ok(false),
@@ -175,9 +185,18 @@ impl ErrorCode {
     /// The code for a number, if known.
     pub fn from_number(n: u8) -> Option<ErrorCode> {
         use ErrorCode::*;
-        [BadChecksum, UnknownCommand, BadArgument, OutOfRange, Busy, InterlockOpen, NoLaser, Fault]
-            .into_iter()
-            .find(|c| *c as u8 == n)
+        [
+            BadChecksum,
+            UnknownCommand,
+            BadArgument,
+            OutOfRange,
+            Busy,
+            InterlockOpen,
+            NoLaser,
+            Fault,
+        ]
+        .into_iter()
+        .find(|c| *c as u8 == n)
     }
 
     /// The text the firmware sends after the code.
@@ -252,9 +271,14 @@ impl MotionState {
 
     /// Parses the word on the wire.
     pub fn from_word(w: &str) -> Option<MotionState> {
-        [MotionState::Settled, MotionState::Moving, MotionState::Parked, MotionState::Fault]
-            .into_iter()
-            .find(|s| s.word() == w)
+        [
+            MotionState::Settled,
+            MotionState::Moving,
+            MotionState::Parked,
+            MotionState::Fault,
+        ]
+        .into_iter()
+        .find(|s| s.word() == w)
     }
 }
 

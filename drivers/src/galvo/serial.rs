@@ -71,7 +71,10 @@ impl SerialGalvo {
     }
 
     /// Connects now (and identifies the controller), instead of on first use.
-    pub fn open(settings: SerialGalvoSettings, connector: Box<dyn Connector>) -> Result<SerialGalvo, GalvoError> {
+    pub fn open(
+        settings: SerialGalvoSettings,
+        connector: Box<dyn Connector>,
+    ) -> Result<SerialGalvo, GalvoError> {
         let mut galvo = SerialGalvo::new(settings, connector);
         galvo.identify()?;
         Ok(galvo)
@@ -94,7 +97,12 @@ impl SerialGalvo {
         }
         match self.exchange(req) {
             Ok(fields) => Ok(fields),
-            Err(e) if matches!(e.kind(), ErrorKind::Timeout | ErrorKind::Protocol | ErrorKind::Disconnected) => {
+            Err(e)
+                if matches!(
+                    e.kind(),
+                    ErrorKind::Timeout | ErrorKind::Protocol | ErrorKind::Disconnected
+                ) =>
+            {
                 warn!(arm = %self.settings.name, error = %e, "retrying galvo exchange once");
                 self.exchange(req)
             }
@@ -164,7 +172,9 @@ impl SerialGalvo {
                     // Our reply, corrupted: no point waiting out the timeout.
                     Err(LineError::Checksum(Some(t))) if t == tag => return Err(self.corrupted(req)),
                     Err(LineError::Checksum(_)) => corrupted = true,
-                    Err(LineError::Malformed) => debug!(line = ?String::from_utf8_lossy(&raw), "dropping garbage"),
+                    Err(LineError::Malformed) => {
+                        debug!(line = ?String::from_utf8_lossy(&raw), "dropping garbage")
+                    }
                 }
             }
             if self.rx.len() > protocol::MAX_LINE {
@@ -204,7 +214,12 @@ impl SerialGalvo {
         let wait = timeout + self.settings.timeout;
         let fields = match self.receive(req, tag, wait) {
             Ok(f) => f,
-            Err(e) if matches!(e.kind(), ErrorKind::Timeout | ErrorKind::Protocol | ErrorKind::Disconnected) => {
+            Err(e)
+                if matches!(
+                    e.kind(),
+                    ErrorKind::Timeout | ErrorKind::Protocol | ErrorKind::Disconnected
+                ) =>
+            {
                 warn!(arm = %self.settings.name, error = %e, "repeating the move once");
                 let tag = self.send(req)?;
                 self.receive(req, tag, wait)?
@@ -229,10 +244,18 @@ impl SerialGalvo {
     /// Accepts a settled status only at the target.
     fn check_settled(&self, status: GalvoStatus, target: OpticalAngles) -> Result<OpticalAngles, GalvoError> {
         match status.state {
-            MotionState::Fault => Err(self.err(ErrorKind::Device, "servo fault while settling: power-cycle the controller")),
-            MotionState::Moving => Err(self.err(ErrorKind::Device, "the controller reported a move done while still moving")),
+            MotionState::Fault => Err(self.err(
+                ErrorKind::Device,
+                "servo fault while settling: power-cycle the controller",
+            )),
+            MotionState::Moving => Err(self.err(
+                ErrorKind::Device,
+                "the controller reported a move done while still moving",
+            )),
             MotionState::Settled | MotionState::Parked => {
-                let off = (status.position.x - target.x).abs().max((status.position.y - target.y).abs());
+                let off = (status.position.x - target.x)
+                    .abs()
+                    .max((status.position.y - target.y).abs());
                 if !(off <= POSITION_TOLERANCE) {
                     return Err(self.err(
                         ErrorKind::Device,
@@ -250,7 +273,10 @@ impl SerialGalvo {
     fn corrupted(&self, req: Request) -> GalvoError {
         self.err(
             ErrorKind::Protocol,
-            format!("the reply to `{}` failed its checksum: check the cable and its shielding", req.body()),
+            format!(
+                "the reply to `{}` failed its checksum: check the cable and its shielding",
+                req.body()
+            ),
         )
     }
 
@@ -259,28 +285,48 @@ impl SerialGalvo {
             Some(Reply::Ok(fields)) => Ok(fields.into_iter().map(str::to_owned).collect()),
             Some(Reply::Err(code, text)) => {
                 let (kind, hint) = match code {
-                    Some(ErrorCode::BadChecksum) => (ErrorKind::Protocol, "the controller received a corrupted line"),
-                    Some(ErrorCode::OutOfRange) => (ErrorKind::OutOfRange, "the target is outside the controller's hard limits"),
-                    Some(ErrorCode::Busy) => (ErrorKind::Busy, "the controller is busy; try again when it has settled"),
-                    Some(ErrorCode::InterlockOpen) => {
-                        (ErrorKind::Interlock, "the laser interlock is open: close the enclosure door or key switch")
+                    Some(ErrorCode::BadChecksum) => {
+                        (ErrorKind::Protocol, "the controller received a corrupted line")
                     }
-                    Some(ErrorCode::NoLaser) => {
-                        (ErrorKind::Device, "this controller has no laser: check which arm the config calls `laser`")
-                    }
-                    Some(ErrorCode::Fault) => (ErrorKind::Device, "the controller reports a fault: power-cycle it"),
-                    Some(ErrorCode::UnknownCommand | ErrorCode::BadArgument) | None => {
-                        (ErrorKind::Protocol, "the controller's firmware does not understand this protocol version")
-                    }
+                    Some(ErrorCode::OutOfRange) => (
+                        ErrorKind::OutOfRange,
+                        "the target is outside the controller's hard limits",
+                    ),
+                    Some(ErrorCode::Busy) => (
+                        ErrorKind::Busy,
+                        "the controller is busy; try again when it has settled",
+                    ),
+                    Some(ErrorCode::InterlockOpen) => (
+                        ErrorKind::Interlock,
+                        "the laser interlock is open: close the enclosure door or key switch",
+                    ),
+                    Some(ErrorCode::NoLaser) => (
+                        ErrorKind::Device,
+                        "this controller has no laser: check which arm the config calls `laser`",
+                    ),
+                    Some(ErrorCode::Fault) => (
+                        ErrorKind::Device,
+                        "the controller reports a fault: power-cycle it",
+                    ),
+                    Some(ErrorCode::UnknownCommand | ErrorCode::BadArgument) | None => (
+                        ErrorKind::Protocol,
+                        "the controller's firmware does not understand this protocol version",
+                    ),
                 };
                 Err(self.err(kind, format!("`{}` refused (ERR {text}): {hint}", req.body())))
             }
-            None => Err(self.err(ErrorKind::Protocol, format!("malformed reply `{body}` to `{}`", req.body()))),
+            None => Err(self.err(
+                ErrorKind::Protocol,
+                format!("malformed reply `{body}` to `{}`", req.body()),
+            )),
         }
     }
 
     fn malformed(&self, req: Request, fields: &[String]) -> GalvoError {
-        self.err(ErrorKind::Protocol, format!("unexpected reply fields {fields:?} to `{}`", req.body()))
+        self.err(
+            ErrorKind::Protocol,
+            format!("unexpected reply fields {fields:?} to `{}`", req.body()),
+        )
     }
 
     /// The controller's hard limits.
@@ -290,7 +336,14 @@ impl SerialGalvo {
         protocol::parse_limits(&refs).ok_or_else(|| self.malformed(Request::Limits, &fields))
     }
 
-    fn on_off(&mut self, req: Request, i: usize, yes: &str, no: &str, fields: &[String]) -> Result<bool, GalvoError> {
+    fn on_off(
+        &mut self,
+        req: Request,
+        i: usize,
+        yes: &str,
+        no: &str,
+        fields: &[String],
+    ) -> Result<bool, GalvoError> {
         match fields.get(i).map(String::as_str) {
             Some(w) if w == yes => Ok(true),
             Some(w) if w == no => Ok(false),
@@ -304,7 +357,9 @@ impl GalvoPair for SerialGalvo {
         let fields = self.request(Request::Identify)?;
         match fields.as_slice() {
             [model, firmware, protocol, serial, ..] => {
-                let protocol: u32 = protocol.parse().map_err(|_| self.malformed(Request::Identify, &fields))?;
+                let protocol: u32 = protocol
+                    .parse()
+                    .map_err(|_| self.malformed(Request::Identify, &fields))?;
                 if protocol != protocol::PROTOCOL_VERSION {
                     return Err(self.err(
                         ErrorKind::Protocol,
@@ -384,7 +439,9 @@ impl GalvoPair for SerialGalvo {
                     ),
                 ));
             }
-            std::thread::sleep((self.settings.settle / 10).clamp(Duration::from_micros(20), Duration::from_millis(5)));
+            std::thread::sleep(
+                (self.settings.settle / 10).clamp(Duration::from_micros(20), Duration::from_millis(5)),
+            );
         }
     }
 

@@ -99,7 +99,9 @@ impl<T: UsbTransport> UsbTdc<T> {
             Ok(r) => Ok(r),
             Err(e) if e.kind() == ErrorKind::Disconnected => {
                 warn!(device = %self.device, error = %e, "reconnecting to the histogrammer");
-                self.transport.reopen().map_err(|e| self.transport_err("reconnecting", e))?;
+                self.transport
+                    .reopen()
+                    .map_err(|e| self.transport_err("reconnecting", e))?;
                 if let Some(config) = self.config {
                     self.send_config(&config)?;
                 }
@@ -122,7 +124,9 @@ impl<T: UsbTransport> UsbTdc<T> {
         if n < len {
             return Err(self.err(
                 ErrorKind::Protocol,
-                format!("{req:?} returned {n} of {len} bytes: the firmware does not speak this protocol version"),
+                format!(
+                    "{req:?} returned {n} of {len} bytes: the firmware does not speak this protocol version"
+                ),
             ));
         }
         Ok(buf)
@@ -148,7 +152,10 @@ impl<T: UsbTransport> UsbTdc<T> {
         if WireConfig::decode(&back) != Some(wire) {
             return Err(self.err(
                 ErrorKind::Protocol,
-                format!("the device reports settings {:?} after being sent {wire:?}", WireConfig::decode(&back)),
+                format!(
+                    "the device reports settings {:?} after being sent {wire:?}",
+                    WireConfig::decode(&back)
+                ),
             ));
         }
         Ok(())
@@ -161,7 +168,13 @@ impl<T: UsbTransport> UsbTdc<T> {
         let seq = self.sequence;
         self.rx.clear();
         self.transport
-            .control_out(ControlRequest::Start as u8, seq as u16, (seq >> 16) as u16, &[], self.timeout)
+            .control_out(
+                ControlRequest::Start as u8,
+                seq as u16,
+                (seq >> 16) as u16,
+                &[],
+                self.timeout,
+            )
             .map_err(|e| self.transport_err("Start", e))?;
         let deadline = Instant::now() + config.acquisition + self.timeout;
         let expected = to_wire(&config).expect("validated when configured");
@@ -204,7 +217,9 @@ impl<T: UsbTransport> UsbTdc<T> {
                     Err(FrameError::BadCrc) => {
                         return Err(self.err(
                             ErrorKind::Protocol,
-                            format!("frame {seq} failed its CRC: check the USB cable; the histogram was discarded"),
+                            format!(
+                                "frame {seq} failed its CRC: check the USB cable; the histogram was discarded"
+                            ),
                         ));
                     }
                 }
@@ -214,16 +229,25 @@ impl<T: UsbTransport> UsbTdc<T> {
                 return Err(if self.rx.is_empty() {
                     self.err(
                         ErrorKind::Timeout,
-                        format!("no histogram frame {} ms after the acquisition should have ended", self.timeout.as_millis()),
+                        format!(
+                            "no histogram frame {} ms after the acquisition should have ended",
+                            self.timeout.as_millis()
+                        ),
                     )
                 } else {
                     self.err(
                         ErrorKind::Protocol,
-                        format!("frame {seq} arrived incomplete ({} bytes); the histogram was discarded", self.rx.len()),
+                        format!(
+                            "frame {seq} arrived incomplete ({} bytes); the histogram was discarded",
+                            self.rx.len()
+                        ),
                     )
                 });
             }
-            match self.transport.bulk_in(protocol::BULK_IN_ENDPOINT, &mut self.chunk, deadline - now) {
+            match self
+                .transport
+                .bulk_in(protocol::BULK_IN_ENDPOINT, &mut self.chunk, deadline - now)
+            {
                 Ok(n) => {
                     let (rx, chunk) = (&mut self.rx, &self.chunk);
                     rx.extend_from_slice(&chunk[..n]);
@@ -272,9 +296,14 @@ impl<T: UsbTransport> Histogrammer for UsbTdc<T> {
 
     fn acquire(&mut self) -> Result<Histogram, TdcError> {
         let config = self.config.ok_or_else(|| {
-            self.err(ErrorKind::Device, "acquire called before configure: the driver has no settings to acquire with")
+            self.err(
+                ErrorKind::Device,
+                "acquire called before configure: the driver has no settings to acquire with",
+            )
         })?;
-        self.with_recovery(&[ErrorKind::Timeout, ErrorKind::Protocol], |d| d.acquire_once(config))
+        self.with_recovery(&[ErrorKind::Timeout, ErrorKind::Protocol], |d| {
+            d.acquire_once(config)
+        })
     }
 
     fn status(&mut self) -> Result<TdcStatus, TdcError> {

@@ -46,7 +46,9 @@ impl ControlRequest {
     /// The request for a `bRequest` value.
     pub fn from_u8(v: u8) -> Option<ControlRequest> {
         use ControlRequest::*;
-        [GetInfo, SetConfig, GetConfig, Start, GetStatus, Abort].into_iter().find(|r| *r as u8 == v)
+        [GetInfo, SetConfig, GetConfig, Start, GetStatus, Abort]
+            .into_iter()
+            .find(|r| *r as u8 == v)
     }
 }
 
@@ -80,9 +82,15 @@ impl WireConfig {
     /// Encodes.
     pub fn encode(&self) -> [u8; Self::LEN] {
         let mut b = [0u8; Self::LEN];
-        for (i, v) in [self.bin_width_ps, self.bins, self.offset_ps, self.sync_divider, self.acquisition_us]
-            .into_iter()
-            .enumerate()
+        for (i, v) in [
+            self.bin_width_ps,
+            self.bins,
+            self.offset_ps,
+            self.sync_divider,
+            self.acquisition_us,
+        ]
+        .into_iter()
+        .enumerate()
         {
             b[4 * i..4 * i + 4].copy_from_slice(&v.to_le_bytes());
         }
@@ -244,7 +252,11 @@ impl FrameHeader {
 
 /// Encodes a frame: header, counts, CRC-32.
 pub fn encode_frame(header: &FrameHeader, counts: &[u32]) -> Vec<u8> {
-    assert_eq!(counts.len(), header.config.bins as usize, "frame header and counts disagree");
+    assert_eq!(
+        counts.len(),
+        header.config.bins as usize,
+        "frame header and counts disagree"
+    );
     let mut b = Vec::with_capacity(header.frame_len());
     b.extend_from_slice(&MAGIC);
     b.extend_from_slice(&PROTOCOL_VERSION.to_le_bytes());
@@ -316,7 +328,10 @@ pub fn decode_frame(b: &[u8]) -> Result<(FrameHeader, Vec<u32>, usize), FrameErr
     if crc32fast::hash(body) != u32_at(b, len - 4) {
         return Err(FrameError::BadCrc);
     }
-    let counts = body[HEADER_LEN..].chunks_exact(4).map(|c| u32::from_le_bytes([c[0], c[1], c[2], c[3]])).collect();
+    let counts = body[HEADER_LEN..]
+        .chunks_exact(4)
+        .map(|c| u32::from_le_bytes([c[0], c[1], c[2], c[3]]))
+        .collect();
     Ok((header, counts, len))
 }
 
@@ -353,8 +368,14 @@ mod tests {
         let mut bad = bytes.clone();
         bad[HEADER_LEN + 1] ^= 0x10;
         assert_eq!(decode_frame(&bad).unwrap_err(), FrameError::BadCrc);
-        assert_eq!(decode_frame(&bytes[..40]).unwrap_err(), FrameError::Incomplete { needed: bytes.len() });
-        assert_eq!(decode_frame(&bytes[..2]).unwrap_err(), FrameError::Incomplete { needed: HEADER_LEN });
+        assert_eq!(
+            decode_frame(&bytes[..40]).unwrap_err(),
+            FrameError::Incomplete { needed: bytes.len() }
+        );
+        assert_eq!(
+            decode_frame(&bytes[..2]).unwrap_err(),
+            FrameError::Incomplete { needed: HEADER_LEN }
+        );
         assert_eq!(decode_frame(b"XXXX").unwrap_err(), FrameError::BadHeader);
     }
 

@@ -55,7 +55,14 @@ pub trait UsbTransport: Send {
 }
 
 impl<T: UsbTransport + ?Sized> UsbTransport for Box<T> {
-    fn control_in(&mut self, r: u8, v: u16, i: u16, buf: &mut [u8], t: Duration) -> Result<usize, TransportError> {
+    fn control_in(
+        &mut self,
+        r: u8,
+        v: u16,
+        i: u16,
+        buf: &mut [u8],
+        t: Duration,
+    ) -> Result<usize, TransportError> {
         (**self).control_in(r, v, i, buf, t)
     }
     fn control_out(&mut self, r: u8, v: u16, i: u16, data: &[u8], t: Duration) -> Result<(), TransportError> {
@@ -81,13 +88,19 @@ pub struct RusbTransport {
 /// A libusb context; fails (rather than panicking, as rusb's global context does) on
 /// hosts without USB support, such as containers without `/dev/bus/usb`.
 fn context() -> Result<rusb::Context, TransportError> {
-    rusb::Context::new().map_err(|e| TransportError::Other(format!("libusb cannot start ({e}): this host has no usable USB support")))
+    rusb::Context::new().map_err(|e| {
+        TransportError::Other(format!(
+            "libusb cannot start ({e}): this host has no usable USB support"
+        ))
+    })
 }
 
 fn map(e: rusb::Error) -> TransportError {
     match e {
         rusb::Error::Timeout => TransportError::Timeout,
-        rusb::Error::NoDevice | rusb::Error::NotFound | rusb::Error::Io => TransportError::Disconnected(e.to_string()),
+        rusb::Error::NoDevice | rusb::Error::NotFound | rusb::Error::Io => {
+            TransportError::Disconnected(e.to_string())
+        }
         rusb::Error::Pipe => TransportError::Stall,
         other => TransportError::Other(other.to_string()),
     }
@@ -96,7 +109,10 @@ fn map(e: rusb::Error) -> TransportError {
 impl RusbTransport {
     /// Opens the first device the selector matches and claims its interface.
     pub fn open(selector: UsbSelector) -> Result<RusbTransport, TransportError> {
-        let mut t = RusbTransport { selector, handle: None };
+        let mut t = RusbTransport {
+            selector,
+            handle: None,
+        };
         t.reopen()?;
         Ok(t)
     }
@@ -105,7 +121,9 @@ impl RusbTransport {
         if self.handle.is_none() {
             self.reopen()?;
         }
-        self.handle.as_mut().ok_or_else(|| TransportError::Disconnected("not open".into()))
+        self.handle
+            .as_mut()
+            .ok_or_else(|| TransportError::Disconnected("not open".into()))
     }
 }
 
@@ -131,7 +149,9 @@ pub fn list_usb_devices() -> Result<Vec<UsbDeviceInfo>, TransportError> {
     let devices = context()?.devices().map_err(map)?;
     let mut out = Vec::new();
     for dev in devices.iter() {
-        let Ok(desc) = dev.device_descriptor() else { continue };
+        let Ok(desc) = dev.device_descriptor() else {
+            continue;
+        };
         let (serial, product) = match dev.open() {
             Ok(h) => (
                 h.read_serial_number_string_ascii(&desc).ok(),
@@ -152,12 +172,24 @@ pub fn list_usb_devices() -> Result<Vec<UsbDeviceInfo>, TransportError> {
 }
 
 impl UsbTransport for RusbTransport {
-    fn control_in(&mut self, r: u8, v: u16, i: u16, buf: &mut [u8], t: Duration) -> Result<usize, TransportError> {
-        self.handle()?.read_control(REQUEST_TYPE_IN, r, v, i, buf, t).map_err(map)
+    fn control_in(
+        &mut self,
+        r: u8,
+        v: u16,
+        i: u16,
+        buf: &mut [u8],
+        t: Duration,
+    ) -> Result<usize, TransportError> {
+        self.handle()?
+            .read_control(REQUEST_TYPE_IN, r, v, i, buf, t)
+            .map_err(map)
     }
 
     fn control_out(&mut self, r: u8, v: u16, i: u16, data: &[u8], t: Duration) -> Result<(), TransportError> {
-        self.handle()?.write_control(REQUEST_TYPE_OUT, r, v, i, data, t).map(drop).map_err(map)
+        self.handle()?
+            .write_control(REQUEST_TYPE_OUT, r, v, i, data, t)
+            .map(drop)
+            .map_err(map)
     }
 
     fn bulk_in(&mut self, ep: u8, buf: &mut [u8], t: Duration) -> Result<usize, TransportError> {
@@ -176,13 +208,18 @@ impl UsbTransport for RusbTransport {
         self.handle = None;
         let devices = context()?.devices().map_err(map)?;
         for dev in devices.iter() {
-            let Ok(desc) = dev.device_descriptor() else { continue };
+            let Ok(desc) = dev.device_descriptor() else {
+                continue;
+            };
             if desc.vendor_id() != self.selector.vendor_id || desc.product_id() != self.selector.product_id {
                 continue;
             }
             let handle = dev.open().map_err(map)?;
             let serial = handle.read_serial_number_string_ascii(&desc).ok();
-            if !self.selector.matches(desc.vendor_id(), desc.product_id(), serial.as_deref()) {
+            if !self
+                .selector
+                .matches(desc.vendor_id(), desc.product_id(), serial.as_deref())
+            {
                 continue;
             }
             let _ = handle.set_auto_detach_kernel_driver(true);
@@ -190,7 +227,10 @@ impl UsbTransport for RusbTransport {
             self.handle = Some(handle);
             return Ok(());
         }
-        Err(TransportError::Disconnected(format!("no USB device matches {}", self.selector)))
+        Err(TransportError::Disconnected(format!(
+            "no USB device matches {}",
+            self.selector
+        )))
     }
 
     fn describe(&self) -> String {

@@ -38,13 +38,18 @@ impl Connector for PtyConnector {
             let arm = &mut s.arms[self.arm.index()];
             if arm.refused_connects > 0 {
                 arm.refused_connects -= 1;
-                return Err(io::Error::new(io::ErrorKind::NotFound, "simulated controller unplugged"));
+                return Err(io::Error::new(
+                    io::ErrorKind::NotFound,
+                    "simulated controller unplugged",
+                ));
             }
             arm.generation += 1;
             arm.generation
         };
         let (mut master, slave) = TTYPort::pair().map_err(io::Error::from)?;
-        master.set_timeout(Duration::from_millis(50)).map_err(io::Error::from)?;
+        master
+            .set_timeout(Duration::from_millis(50))
+            .map_err(io::Error::from)?;
         self.last_path = slave.name().unwrap_or_else(|| "simulated pty".into());
         let shared = std::sync::Arc::downgrade(&self.rig.shared);
         let arm = self.arm;
@@ -55,7 +60,11 @@ impl Connector for PtyConnector {
     }
 
     fn describe(&self) -> String {
-        format!("simulated {} controller ({})", format!("{:?}", self.arm).to_lowercase(), self.last_path)
+        format!(
+            "simulated {} controller ({})",
+            format!("{:?}", self.arm).to_lowercase(),
+            self.last_path
+        )
     }
 }
 
@@ -73,7 +82,9 @@ fn run(mut port: TTYPort, shared: Weak<Shared>, arm: Arm, generation: u64) {
         match port.read(&mut chunk) {
             Ok(0) => return,
             Ok(n) => rx.extend_from_slice(&chunk[..n]),
-            Err(e) if e.kind() == io::ErrorKind::TimedOut || e.kind() == io::ErrorKind::WouldBlock => continue,
+            Err(e) if e.kind() == io::ErrorKind::TimedOut || e.kind() == io::ErrorKind::WouldBlock => {
+                continue;
+            }
             Err(_) => return,
         }
         while let Some(end) = rx.iter().position(|&b| b == b'\n') {
@@ -164,7 +175,11 @@ fn handle(rig: &Shared, arm: Arm, body: &str) -> (String, Duration) {
         a.target = target;
         a.parked = false;
         a.settled_at = Instant::now() + settle;
-        let reply = format!("OK {} {}", MotionState::Settled.word(), protocol::fmt_angles(target));
+        let reply = format!(
+            "OK {} {}",
+            MotionState::Settled.word(),
+            protocol::fmt_angles(target)
+        );
         return (reply, settle);
     }
     (handle_immediate(rig, arm, req), Duration::ZERO)

@@ -210,7 +210,10 @@ impl Rig {
 
     /// The galvo origins.
     pub fn origins(&self) -> (DVec3, DVec3) {
-        (self.shared.settings.laser_pose.origin, self.shared.settings.spad_pose.origin)
+        (
+            self.shared.settings.laser_pose.origin,
+            self.shared.settings.spad_pose.origin,
+        )
     }
 
     /// The scene physics, if any.

@@ -52,12 +52,17 @@ impl SimTdcTransport {
     /// The counts the device generated for acquisition `sequence` (one of the last 16),
     /// before any injected fault touched the frame.
     pub fn sent_counts(&self, sequence: u32) -> Option<&[u32]> {
-        self.sent.iter().find(|(s, _)| *s == sequence).map(|(_, c)| c.as_slice())
+        self.sent
+            .iter()
+            .find(|(s, _)| *s == sequence)
+            .map(|(_, c)| c.as_slice())
     }
 
     fn check_present(&mut self) -> Result<(), TransportError> {
         if self.disconnected {
-            return Err(TransportError::Disconnected("simulated histogrammer unplugged".into()));
+            return Err(TransportError::Disconnected(
+                "simulated histogrammer unplugged".into(),
+            ));
         }
         Ok(())
     }
@@ -97,10 +102,15 @@ impl SimTdcTransport {
         if diffuser_in {
             // The LOS scan: no gating, the direct return is the signal.
             det.gate_margin = None;
-            return world.first_bounce(&inst, spad_dir, &det, dwell).map_or_else(dark, |(_, c)| c);
+            return world
+                .first_bounce(&inst, spad_dir, &det, dwell)
+                .map_or_else(dark, |(_, c)| c);
         }
         match world.spots(&inst, laser_dir, spad_dir) {
-            Some(pair) => world.third_bounce(&inst, &[pair], &det, dwell).pop().unwrap_or_else(dark),
+            Some(pair) => world
+                .third_bounce(&inst, &[pair], &det, dwell)
+                .pop()
+                .unwrap_or_else(dark),
             None => dark(),
         }
     }
@@ -113,7 +123,11 @@ impl SimTdcTransport {
         let fault = self.next_fault();
         self.check_present()?;
         let expected = self.expected(cfg);
-        std::thread::sleep(self.rig.shared.scaled(Duration::from_micros(u64::from(cfg.acquisition_us))));
+        std::thread::sleep(
+            self.rig
+                .shared
+                .scaled(Duration::from_micros(u64::from(cfg.acquisition_us))),
+        );
         self.acquisitions += 1;
         let counts = sample_counts(&expected, self.rig.shared.settings.seed, self.acquisitions);
         let dwell = f64::from(cfg.acquisition_us) * 1e-6;
@@ -133,7 +147,10 @@ impl SimTdcTransport {
         let header = FrameHeader {
             sequence,
             flags,
-            config: WireConfig { sync_divider: 0, ..cfg },
+            config: WireConfig {
+                sync_divider: 0,
+                ..cfg
+            },
         };
         let mut frame = protocol::encode_frame(&header, &counts);
         self.frames += 1;
@@ -146,7 +163,8 @@ impl SimTdcTransport {
                 sequence: self.last_sequence,
                 ..header
             };
-            self.out.push_back(protocol::encode_frame(&stale, &vec![1; cfg.bins as usize]));
+            self.out
+                .push_back(protocol::encode_frame(&stale, &vec![1; cfg.bins as usize]));
         }
         self.last_sequence = sequence;
         match fault {
@@ -172,7 +190,14 @@ impl SimTdcTransport {
 }
 
 impl UsbTransport for SimTdcTransport {
-    fn control_in(&mut self, request: u8, _value: u16, _index: u16, buf: &mut [u8], _t: Duration) -> Result<usize, TransportError> {
+    fn control_in(
+        &mut self,
+        request: u8,
+        _value: u16,
+        _index: u16,
+        buf: &mut [u8],
+        _t: Duration,
+    ) -> Result<usize, TransportError> {
         self.check_present()?;
         let bytes: Vec<u8> = match ControlRequest::from_u8(request) {
             Some(ControlRequest::GetInfo) => WireInfo {
@@ -207,7 +232,14 @@ impl UsbTransport for SimTdcTransport {
         Ok(n)
     }
 
-    fn control_out(&mut self, request: u8, value: u16, index: u16, data: &[u8], _t: Duration) -> Result<(), TransportError> {
+    fn control_out(
+        &mut self,
+        request: u8,
+        value: u16,
+        index: u16,
+        data: &[u8],
+        _t: Duration,
+    ) -> Result<(), TransportError> {
         self.check_present()?;
         match ControlRequest::from_u8(request) {
             Some(ControlRequest::SetConfig) => {
@@ -260,7 +292,9 @@ impl UsbTransport for SimTdcTransport {
         let mut s = self.rig.shared.lock();
         if s.tdc_refused_reopens > 0 {
             s.tdc_refused_reopens -= 1;
-            return Err(TransportError::Disconnected("simulated histogrammer unplugged".into()));
+            return Err(TransportError::Disconnected(
+                "simulated histogrammer unplugged".into(),
+            ));
         }
         self.disconnected = false;
         self.config = None;

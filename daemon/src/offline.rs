@@ -1,0 +1,100 @@
+//! `periscope recon CAPTURE`: reconstruct a stored run again, with other settings or
+//! another method, without the instrument.
+use std::path::Path;
+
+use periscope_recon::{Pair, TransientSet};
+
+use crate::cli::NotAvailable;
+use crate::config::TomlSource;
+use crate::events::EventSink;
+use crate::pipeline::{self, Control, ReconInput, hidden_histogram};
+use crate::plan::{PlannedPair, load_recon};
+
+/// Reconstructs `capture` (a run directory) into `out`.
+pub fn recon(capture: &Path, config: Option<&Path>, out: &Path) -> anyhow::Result<()> {
+    anyhow::ensure!(
+        capture.exists(),
+        "capture {} does not exist: give a run directory or a y-tal .hdf5/.h5 file",
+        capture.display()
+    );
+    if capture.is_file() {
+        return Err(NotAvailable {
+            command: "recon",
+            what: "y-tal HDF5 captures cannot be read by this build yet; give a run directory (runs/<id>)",
+        }
+        .into());
+    }
+    anyhow::ensure!(
+        capture.join("run.json").is_file(),
+        "{} is not a run directory (no run.json)",
+        capture.display()
+    );
+    let (_info, plan, inst) = pipeline::load_run(capture)?;
+    let pairs_path = capture.join("pairs.json");
+    let pairs: Vec<PlannedPair> = serde_json::from_slice(&std::fs::read(&pairs_path).map_err(|e| {
+        anyhow::anyhow!(
+            "{}: {e}; the run never got past pair planning",
+            pairs_path.display()
+        )
+    })?)?;
+    let settings = match config {
+        Some(path) => load_recon(&TomlSource::load(path)?, Some(plan.recon.volume.clone()))?,
+        None => plan.recon.clone(),
+    };
+    let records = crate::store::read_log(capture)?;
+    anyhow::ensure!(
+        !records.records.is_empty(),
+        "{} holds no measured pairs",
+        capture.display()
+    );
+    let (l, s) = (inst.laser_arm.pose.origin, inst.spad_arm.pose.origin);
+    let recon_pairs: Vec<Pair> = pairs
+        .iter()
+        .map(|p| Pair {
+            xi: p.xi,
+            ni: p.ni,
+            xd: p.xd,
+            nd: p.nd,
+        })
+        .collect();
+    let axis = pipeline::hidden_axis(&recon_pairs, &settings.volume, plan.acquisition.bin_width);
+    let mut set = TransientSet::new(axis)?;
+    let mut used = Vec::new();
+    for r in &records.records {
+        let Some(p) = pairs.get(r.pair as usize) else {
+            continue;
+        };
+        let legs = p.xi.distance(l) + p.xd.distance(s);
+        let h = hidden_histogram(
+            &r.counts,
+            f64::from(r.offset_ps) * 1e-12,
+            f64::from(r.bin_width_ps) * 1e-12,
+            inst.tdc.system_delay,
+            legs,
+            &axis,
+        );
+        set.push(recon_pairs[r.pair as usize], &h)?;
+        used.push(p.xd);
+    }
+    std::fs::create_dir_all(out)?;
+    let events = EventSink::open(out)?;
+    crate::progress::attach(&events);
+    let input = ReconInput {
+        settings,
+        set,
+        detection_points: used,
+        viewpoint: 0.5 * (l + s),
+    };
+    let t = std::time::Instant::now();
+    let result = pipeline::reconstruct(input, &events, &Control::new())?;
+    let outputs = pipeline::write_outputs(out, &result, &events)?;
+    println!(
+        "reconstructed {} pairs in {:.1} s",
+        result.pairs,
+        t.elapsed().as_secs_f64()
+    );
+    for f in &outputs.files {
+        println!("  {}", out.join(f).display());
+    }
+    Ok(())
+}

@@ -1,0 +1,282 @@
+//! NLOS acquisition: every planned pair measured through the drivers, stored in the
+//! histogram log, and streamed (in hidden path length) to the 3D-GTR optimiser.
+use std::collections::HashSet;
+use std::sync::mpsc;
+
+use periscope_drivers::{GalvoPair, HistogramFlags, Histogrammer, Laser, TdcConfig};
+use periscope_recon::{C0, Pair, TimeAxis, TransientSet, VolumeGrid};
+
+use super::los::RelayPoint;
+use super::reconstruct::{Fit, ReconInput};
+use super::{Control, PipelineError, Run};
+use crate::events::RunEvent;
+use crate::plan::{Acquisition, Method, PlannedPair};
+use crate::store::{HistogramLog, Record};
+
+/// Pairs per batch sent to the optimiser.
+const FEED_BATCH: usize = 32;
+
+/// Rebins a TDC histogram onto the hidden-path axis: TDC bin k covers path lengths
+/// c0·(offset + k·w − t_sys) − legs onward, a fractional shift of the common axis, so
+/// each bin's counts are split between the two axis bins it overlaps (area-exact).
+pub fn hidden_histogram(
+    counts: &[u32],
+    acq_offset: f64,
+    bin_width: f64,
+    system_delay: f64,
+    legs: f64,
+    axis: &TimeAxis,
+) -> Vec<f32> {
+    let mut out = vec![0.0f32; axis.bins];
+    let shift = (C0 * (acq_offset - system_delay) - legs - axis.start) / axis.width;
+    let scale = C0 * bin_width / axis.width;
+    for (k, &c) in counts.iter().enumerate() {
+        if c == 0 {
+            continue;
+        }
+        let lo = shift + k as f64 * scale;
+        let hi = lo + scale;
+        let (first, last) = (lo.floor() as isize, (hi.ceil() as isize) - 1);
+        for j in first.max(0)..=last.min(axis.bins as isize - 1) {
+            let overlap = (hi.min(j as f64 + 1.0) - lo.max(j as f64)).max(0.0);
+            out[j as usize] += (f64::from(c) * overlap / scale) as f32;
+        }
+    }
+    out
+}
+
+/// The hidden-path axis all pairs are rebinned to: the TDC's bin width, spanning the
+/// shortest to the longest hidden path any pair can have to the reconstruction volume.
+pub fn hidden_axis(pairs: &[Pair], volume: &VolumeGrid, bin_width: f64) -> TimeAxis {
+    let width = C0 * bin_width;
+    let (mut near, mut far) = (f64::INFINITY, 0.0f64);
+    let (lo, hi) = (volume.min(), volume.max());
+    for p in pairs {
+        let mut corner_far = 0.0f64;
+        for c in 0..8 {
+            let q = glam::DVec3::new(
+                if c & 1 == 0 { lo.x } else { hi.x },
+                if c & 2 == 0 { lo.y } else { hi.y },
+                if c & 4 == 0 { lo.z } else { hi.z },
+            );
+            corner_far = corner_far.max(q.distance(p.xi) + q.distance(p.xd));
+        }
+        far = far.max(corner_far);
+        let clamp = |x: glam::DVec3| x.clamp(lo, hi);
+        near = near.min(clamp(p.xi).distance(p.xi) + clamp(p.xd).distance(p.xd));
+    }
+    let start = ((near.max(0.0) / width).floor() - 4.0).max(0.0) * width;
+    let bins = (((far - start) / width).ceil() as usize + 4).max(8);
+    TimeAxis { start, width, bins }
+}
+
+fn as_pair(p: &PlannedPair) -> Pair {
+    Pair {
+        xi: p.xi,
+        ni: p.ni,
+        xd: p.xd,
+        nd: p.nd,
+    }
+}
+
+impl Run {
+    /// Measures every pair not yet stored; returns the fit that has been running
+    /// alongside.
+    pub(crate) fn capture(
+        &mut self,
+        relay: &[RelayPoint],
+        pairs: &[PlannedPair],
+    ) -> Result<Fit, PipelineError> {
+        let _ = relay;
+        let acq: Acquisition = self.plan.acquisition.clone();
+        let sys = self.instrument.tdc.system_delay;
+        let (l, s) = (
+            self.instrument.laser_arm.pose.origin,
+            self.instrument.spad_arm.pose.origin,
+        );
+        let recon_pairs: Vec<Pair> = pairs.iter().map(as_pair).collect();
+        let axis = hidden_axis(&recon_pairs, &self.plan.recon.volume, acq.bin_width);
+        let legs = |p: &PlannedPair| p.xi.distance(l) + p.xd.distance(s);
+        let (mut log, recovered) =
+            HistogramLog::recover(&self.dir).map_err(|e| PipelineError::storage(&self.dir, e))?;
+        if recovered.discarded_bytes > 0 {
+            tracing::warn!(
+                bytes = recovered.discarded_bytes,
+                "the histogram log ended in an incomplete or corrupted record; it was cut off and that pair is measured again"
+            );
+        }
+        let input = ReconInput {
+            settings: self.plan.recon.clone(),
+            set: TransientSet::new(axis).map_err(|e| PipelineError::Recon(e.to_string()))?,
+            detection_points: pairs.iter().map(|p| p.xd).collect(),
+            viewpoint: 0.5 * (l + s),
+        };
+        let mut fit = Fit::new(input);
+        let mut stored: HashSet<u32> = HashSet::new();
+        let mut batch = TransientSet::new(axis).map_err(|e| PipelineError::Recon(e.to_string()))?;
+        let push = |batch: &mut TransientSet, rec: &Record| -> Result<(), PipelineError> {
+            let p = &pairs[rec.pair as usize];
+            let h = hidden_histogram(
+                &rec.counts,
+                f64::from(rec.offset_ps) * 1e-12,
+                f64::from(rec.bin_width_ps) * 1e-12,
+                sys,
+                legs(p),
+                &axis,
+            );
+            batch
+                .push(as_pair(p), &h)
+                .map_err(|e| PipelineError::Recon(e.to_string()))
+        };
+        for rec in &recovered.records {
+            if (rec.pair as usize) < pairs.len() {
+                stored.insert(rec.pair);
+                push(&mut batch, rec)?;
+            }
+        }
+        self.info.pairs_done = stored.len();
+        let total = pairs.len();
+        let streaming = self.plan.recon.method == Method::Gtr;
+        // The optimiser starts once a quarter of the pairs (at least 64) are in.
+        let start_at = (total / 4).max(64).min(total);
+        let (tx, rx) = mpsc::channel::<TransientSet>();
+        let mut rx = Some(rx);
+        let (events, control) = (self.events.clone(), self.control.clone());
+        let mut feed = |fit: &mut Fit,
+                        batch: &mut TransientSet,
+                        done: usize,
+                        force: bool|
+         -> Result<(), PipelineError> {
+            if !streaming || batch.is_empty() {
+                return Ok(());
+            }
+            let started = fit.is_training();
+            if !started && done < start_at && !force {
+                return Ok(());
+            }
+            let full = std::mem::replace(
+                batch,
+                TransientSet::new(axis).map_err(|e| PipelineError::Recon(e.to_string()))?,
+            );
+            if !started {
+                fit.start_training(
+                    full,
+                    rx.take().expect("started once"),
+                    events.clone(),
+                    control.clone(),
+                )?;
+            } else if full.len() >= FEED_BATCH || force {
+                let _ = tx.send(full);
+            } else {
+                *batch = full;
+            }
+            Ok(())
+        };
+        if stored.len() < total {
+            let cfg = TdcConfig {
+                bin_width: acq.bin_width,
+                bins: acq.bins,
+                offset: acq.offset,
+                sync_divider: self.instrument.tdc.sync_divider,
+                acquisition: acq.dwell,
+            };
+            self.devices.tdc.configure(&cfg)?;
+            self.devices.laser.set_diffuser(false)?;
+            self.devices.laser.set_emission(true)?;
+            let settle = self.settle_timeout();
+            for (i, p) in pairs.iter().enumerate() {
+                if stored.contains(&(i as u32)) {
+                    continue;
+                }
+                match self.control.requested() {
+                    Control::PAUSE => return Err(PipelineError::Paused(stored.len())),
+                    Control::ABORT => return Err(PipelineError::Aborted(stored.len())),
+                    _ => {}
+                }
+                // Both arms move at once; each wait accepts only its commanded target.
+                self.devices.laser.move_to(p.laser)?;
+                self.devices.spad.move_to(p.spad)?;
+                self.devices.laser.wait_settled(settle)?;
+                self.devices.spad.wait_settled(settle)?;
+                let mut counts = vec![0u32; acq.bins as usize];
+                let mut flags = HistogramFlags::default();
+                for _ in 0..acq.repeats {
+                    let h = self.devices.tdc.acquire()?;
+                    for (c, v) in counts.iter_mut().zip(&h.counts) {
+                        *c = c.saturating_add(*v);
+                    }
+                    flags.overflow |= h.flags.overflow;
+                    flags.saturated |= h.flags.saturated;
+                }
+                let rec = Record {
+                    pair: i as u32,
+                    flags,
+                    bin_width_ps: (acq.bin_width * 1e12).round() as u32,
+                    offset_ps: (acq.offset * 1e12).round() as u32,
+                    dwell_us: (acq.dwell.as_micros() as u64) * u64::from(acq.repeats),
+                    counts,
+                };
+                log.append(&rec)
+                    .map_err(|e| PipelineError::storage(log.path(), e))?;
+                stored.insert(i as u32);
+                self.info.pairs_done = stored.len();
+                push(&mut batch, &rec)?;
+                let (peak_bin, _) = rec
+                    .counts
+                    .iter()
+                    .enumerate()
+                    .max_by_key(|(_, c)| **c)
+                    .unwrap_or((0, &0));
+                self.events.emit(RunEvent::Pair {
+                    done: stored.len(),
+                    total,
+                    counts: rec.counts.iter().map(|&c| u64::from(c)).sum(),
+                    peak_bin,
+                    flagged: flags.overflow || flags.saturated,
+                });
+                feed(&mut fit, &mut batch, stored.len(), false)?;
+                if stored.len() % 64 == 0 {
+                    self.save_info()?;
+                }
+            }
+            log.sync().map_err(|e| PipelineError::storage(log.path(), e))?;
+            self.devices.laser.set_emission(false)?;
+        }
+        self.save_info()?;
+        if streaming {
+            feed(&mut fit, &mut batch, stored.len(), true)?;
+        }
+        drop(tx);
+        if !streaming {
+            fit.add(&batch)?;
+        }
+        Ok(fit)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn rebinning_preserves_counts_and_shifts_by_the_legs() {
+        let mut counts = vec![0u32; 64];
+        counts[20] = 1000;
+        let bw = 16e-12;
+        let axis = TimeAxis {
+            start: 0.0,
+            width: C0 * bw,
+            bins: 64,
+        };
+        // Legs of exactly 10.25 bins: the peak lands a quarter into bin 9.
+        let legs = 10.25 * axis.width;
+        let h = hidden_histogram(&counts, 0.0, bw, 0.0, legs, &axis);
+        let total: f32 = h.iter().sum();
+        assert!((total - 1000.0).abs() < 1e-3, "{total}");
+        assert!(
+            (h[9] - 750.0).abs() < 1e-3 && (h[10] - 250.0).abs() < 1e-3,
+            "{:?}",
+            &h[8..12]
+        );
+    }
+}

@@ -1,0 +1,165 @@
+//! The LOS stage: the SPAD arm sweeps the relay under the diffused laser; each
+//! histogram's first-bounce peak gives a range along the SPAD ray, hence a relay point.
+//! Then thresholds, outlier removal and normals turn the points into the relay.
+use std::time::Duration;
+
+use glam::DVec3;
+use periscope_drivers::{GalvoPair, Histogrammer, Laser, OpticalAngles, TdcConfig};
+use periscope_recon::C0;
+use periscope_recon::relay::{estimate_normals, reject_isolated};
+
+use super::{PipelineError, Run};
+use crate::events::RunEvent;
+
+/// Fewest counts in the peak bin that count as a return.
+const MIN_PEAK_COUNTS: u32 = 8;
+
+/// A relay point as measured.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct RelayPoint {
+    /// Position, metres.
+    pub x: DVec3,
+    /// Unit normal toward the instrument.
+    pub n: DVec3,
+    /// Peak counts of its LOS return.
+    pub intensity: f64,
+}
+
+/// Sub-bin peak of a histogram (parabola through the top three bins), or `None`.
+pub(crate) fn peak(counts: &[u32]) -> Option<(f64, u32)> {
+    let (b, &top) = counts.iter().enumerate().max_by_key(|(_, c)| **c)?;
+    if top < MIN_PEAK_COUNTS {
+        return None;
+    }
+    let at = |i: isize| counts.get(i as usize).copied().map_or(0.0, f64::from);
+    let (l, c, r) = (at(b as isize - 1), f64::from(top), at(b as isize + 1));
+    let denom = l - 2.0 * c + r;
+    let delta = if denom < 0.0 {
+        (0.5 * (l - r) / denom).clamp(-0.5, 0.5)
+    } else {
+        0.0
+    };
+    Some((b as f64 + delta, top))
+}
+
+impl Run {
+    /// Scans the relay; returns the raw returns (point, intensity).
+    pub(crate) fn los_scan(&mut self) -> Result<Vec<(DVec3, f64)>, PipelineError> {
+        let los = self.plan.los.clone();
+        let acq = self.plan.acquisition.clone();
+        let tdc = &self.instrument.tdc;
+        let devices = &mut self.devices;
+        devices.tdc.configure(&TdcConfig {
+            bin_width: acq.bin_width,
+            bins: acq.bins,
+            offset: acq.offset,
+            sync_divider: tdc.sync_divider,
+            acquisition: los.dwell,
+        })?;
+        devices.laser.park()?;
+        devices.laser.wait_settled(Duration::from_secs(2))?;
+        devices.laser.set_diffuser(true)?;
+        devices.laser.set_emission(true)?;
+        let spad_pose = self.instrument.spad_arm.pose;
+        let (l, s) = (self.instrument.laser_arm.pose.origin, spad_pose.origin);
+        let d_ls = s - l;
+        let [nx, ny] = los.grid;
+        let total = nx * ny;
+        let mut out = Vec::new();
+        let settle = self.settle_timeout();
+        for iy in 0..ny {
+            for jx in 0..nx {
+                // Serpentine: no long fly-back between rows.
+                let ix = if iy % 2 == 0 { jx } else { nx - 1 - jx };
+                let t = |r: [f64; 2], i: usize, n: usize| r[0] + (r[1] - r[0]) * i as f64 / (n - 1) as f64;
+                let angles = OpticalAngles {
+                    x: t(los.x, ix, nx),
+                    y: t(los.y, iy, ny),
+                };
+                self.devices.spad.move_settled(angles, settle)?;
+                let h = self.devices.tdc.acquire()?;
+                if let Some((b, top)) = peak(&h.counts) {
+                    let ell = C0 * (acq.offset + (b + 0.5) * acq.bin_width - tdc.system_delay);
+                    let dir = spad_pose.direction(angles);
+                    // |p − L| + |p − S| = ℓ with p = S + r·d (DESIGN.md §4).
+                    let r = (ell * ell - d_ls.length_squared()) / (2.0 * (ell + d_ls.dot(dir)));
+                    if r.is_finite() && r > 0.0 {
+                        out.push((s + dir * r, f64::from(top)));
+                    }
+                }
+                let done = iy * nx + jx + 1;
+                if done % nx == 0 {
+                    self.events.emit(RunEvent::LosPoint { done, total });
+                }
+            }
+        }
+        self.devices.laser.set_diffuser(false)?;
+        Ok(out)
+    }
+
+    /// Thresholds, outlier removal and normals.
+    pub(crate) fn extract_relay(&self, returns: &[(DVec3, f64)]) -> Result<Vec<RelayPoint>, PipelineError> {
+        let r = &self.plan.relay;
+        let s = self.instrument.spad_arm.pose.origin;
+        let brightest = returns.iter().map(|p| p.1).fold(0.0, f64::max);
+        let kept: Vec<(DVec3, f64)> = returns
+            .iter()
+            .copied()
+            .filter(|(p, i)| {
+                let depth = p.distance(s);
+                depth >= r.depth[0] && depth <= r.depth[1] && *i >= r.min_intensity * brightest
+            })
+            .collect();
+        if kept.len() < r.neighbours.max(8) {
+            return Err(PipelineError::Relay(format!(
+                "only {} of {} LOS points passed relay.depth-m {:?} and relay.min-intensity {}: widen them, or check that los.angles-deg covers the relay",
+                kept.len(),
+                returns.len(),
+                r.depth,
+                r.min_intensity
+            )));
+        }
+        let points: Vec<DVec3> = kept.iter().map(|p| p.0).collect();
+        let keep = reject_isolated(&points, 8.min(points.len() - 1), 3.0)
+            .map_err(|e| PipelineError::Relay(e.to_string()))?;
+        let points: Vec<(DVec3, f64)> = kept
+            .into_iter()
+            .zip(keep)
+            .filter(|(_, k)| *k)
+            .map(|(p, _)| p)
+            .collect();
+        let xs: Vec<DVec3> = points.iter().map(|p| p.0).collect();
+        let view = 0.5 * (self.instrument.laser_arm.pose.origin + s);
+        let normals = estimate_normals(&xs, r.neighbours.min(xs.len()), view)
+            .map_err(|e| PipelineError::Relay(e.to_string()))?;
+        Ok(points
+            .iter()
+            .zip(normals)
+            .filter_map(|(&(x, intensity), n)| {
+                n.map(|n| RelayPoint {
+                    x,
+                    n: n.normal,
+                    intensity,
+                })
+            })
+            .collect())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_peak_is_refined_between_bins() {
+        let mut h = vec![0u32; 32];
+        h[10] = 50;
+        h[11] = 100;
+        h[12] = 50;
+        assert_eq!(peak(&h), Some((11.0, 100)));
+        h[12] = 90;
+        let (b, _) = peak(&h).unwrap();
+        assert!(b > 11.0 && b < 11.5, "{b}");
+        assert_eq!(peak(&[0, 3, 1]), None, "too few counts is no return");
+    }
+}

@@ -1,0 +1,229 @@
+//! Reconstruction: the 3D-GTR fit (already running during capture when streaming),
+//! virtual confocal synthesis on a plane fitted to the detection points, and a
+//! conventional solver; or a solver straight on the measured pairs.
+use std::sync::mpsc::Receiver;
+use std::thread::JoinHandle;
+use std::time::Instant;
+
+use glam::DVec3;
+use periscope_recon::gtr::{CancelToken, GaussianCloud, TrainError, TrainSummary, Trainer};
+use periscope_recon::relay::VirtualRelay;
+use periscope_recon::solver::{FbpSettings, LctSettings, RsdSettings, SolverKind, fbp, lct, rsd};
+use periscope_recon::synth::{default_axis, synthesise};
+use periscope_recon::{RoiBox, TransientSet, Volume, VolumeGrid};
+
+use super::{Control, PipelineError};
+use crate::events::{EventSink, RunEvent};
+use crate::plan::{Method, ReconSettings};
+
+/// Bins of the virtual confocal scan's time axis.
+const SYNTH_BINS: usize = 512;
+
+/// What a reconstruction needs.
+pub struct ReconInput {
+    /// Settings.
+    pub settings: ReconSettings,
+    /// Transients in hidden path length.
+    pub set: TransientSet,
+    /// Detection points (the virtual relay is fitted to them).
+    pub detection_points: Vec<DVec3>,
+    /// A point on the instrument's side (orients the virtual relay).
+    pub viewpoint: DVec3,
+}
+
+/// A finished reconstruction.
+pub struct ReconResult {
+    /// The volume.
+    pub volume: Volume,
+    /// The fitted Gaussians (method `gtr`).
+    pub cloud: Option<GaussianCloud>,
+    /// Fit summary (method `gtr`).
+    pub train: Option<TrainSummary>,
+    /// Settings used.
+    pub settings: ReconSettings,
+    /// Pairs used.
+    pub pairs: usize,
+    /// Seconds per step (fit, synthesis, solver).
+    pub timings: Vec<(String, f64)>,
+}
+
+type TrainerThread = JoinHandle<Result<(Trainer, TrainSummary, f64), TrainError>>;
+
+/// A reconstruction in progress: data so far, and the optimiser thread if started.
+pub(crate) struct Fit {
+    input: ReconInput,
+    trainer: Option<TrainerThread>,
+    cancel: CancelToken,
+}
+
+fn recon_err(e: impl std::fmt::Display) -> PipelineError {
+    PipelineError::Recon(e.to_string())
+}
+
+fn roi(grid: &VolumeGrid) -> Result<RoiBox, PipelineError> {
+    RoiBox::from_bounds(grid.min(), grid.max()).map_err(recon_err)
+}
+
+impl Fit {
+    pub(crate) fn new(input: ReconInput) -> Fit {
+        Fit {
+            input,
+            trainer: None,
+            cancel: CancelToken::new(),
+        }
+    }
+
+    pub(crate) fn is_training(&self) -> bool {
+        self.trainer.is_some()
+    }
+
+    /// Adds transients that will not be streamed (stored pairs when not training).
+    pub(crate) fn add(&mut self, more: &TransientSet) -> Result<(), PipelineError> {
+        self.input.set.extend(more).map_err(recon_err)
+    }
+
+    /// Starts the optimiser on `first`, with `feed` bringing the rest.
+    pub(crate) fn start_training(
+        &mut self,
+        first: TransientSet,
+        feed: Receiver<TransientSet>,
+        events: EventSink,
+        control: Control,
+    ) -> Result<(), PipelineError> {
+        let config = self.input.settings.train.clone();
+        let roi = roi(&self.input.settings.volume)?;
+        let cancel = self.cancel.clone();
+        let handle = std::thread::Builder::new()
+            .name("gtr-trainer".into())
+            .spawn(move || {
+                let t = Instant::now();
+                let mut trainer = Trainer::new(config, roi, first)?;
+                let summary = trainer.run(Some(feed), &cancel, &mut |e| {
+                    if control.requested() == Control::ABORT {
+                        cancel.cancel();
+                    }
+                    events.emit(RunEvent::Train(e.clone()));
+                })?;
+                Ok((trainer, summary, t.elapsed().as_secs_f64()))
+            })
+            .map_err(|e| PipelineError::Recon(format!("cannot start the optimiser thread: {e}")))?;
+        self.trainer = Some(handle);
+        Ok(())
+    }
+
+    /// Waits for the fit (or runs it, if it never started) and reconstructs.
+    pub(crate) fn finish(self, events: &EventSink, control: &Control) -> Result<ReconResult, PipelineError> {
+        match self.trainer {
+            Some(handle) => {
+                let (trainer, summary, secs) = handle
+                    .join()
+                    .map_err(|_| PipelineError::Recon("the optimiser thread panicked".into()))?
+                    .map_err(recon_err)?;
+                if summary.cancelled {
+                    return Err(PipelineError::Aborted(trainer.data().len()));
+                }
+                let data = trainer.data().clone();
+                let input = ReconInput {
+                    set: data,
+                    ..self.input
+                };
+                finish_gtr(&input, trainer, summary, secs)
+            }
+            None => reconstruct(self.input, events, control),
+        }
+    }
+}
+
+fn solve(kind: SolverKind, set: &TransientSet, grid: &VolumeGrid) -> Result<Volume, PipelineError> {
+    match kind {
+        SolverKind::Lct => lct(set, grid, &LctSettings::default()),
+        SolverKind::Rsd => rsd(set, grid, &RsdSettings::default()),
+        SolverKind::Fbp => fbp(set, grid, &FbpSettings::default()),
+    }
+    .map_err(recon_err)
+}
+
+fn finish_gtr(
+    input: &ReconInput,
+    trainer: Trainer,
+    summary: TrainSummary,
+    fit_secs: f64,
+) -> Result<ReconResult, PipelineError> {
+    let s = &input.settings;
+    let t = Instant::now();
+    let relay = VirtualRelay::fitted(
+        &input.detection_points,
+        input.viewpoint,
+        s.virtual_size,
+        s.virtual_resolution,
+    )
+    .map_err(recon_err)?;
+    let axis = default_axis(&relay, &s.volume, SYNTH_BINS);
+    let kernels = trainer.cloud().kernels();
+    let scan = synthesise(&kernels, &relay, axis, trainer.render_options()).map_err(recon_err)?;
+    let synth_secs = t.elapsed().as_secs_f64();
+    let t = Instant::now();
+    let volume = solve(s.solver, &scan.set, &s.volume)?;
+    Ok(ReconResult {
+        volume,
+        cloud: Some(trainer.cloud().clone()),
+        train: Some(summary),
+        settings: s.clone(),
+        pairs: input.set.len(),
+        timings: vec![
+            ("fit".into(), fit_secs),
+            ("synthesis".into(), synth_secs),
+            (format!("solver ({})", s.solver), t.elapsed().as_secs_f64()),
+        ],
+    })
+}
+
+/// Reconstructs a complete set of transients (offline, or a resumed run whose capture
+/// was already complete).
+pub fn reconstruct(
+    input: ReconInput,
+    events: &EventSink,
+    control: &Control,
+) -> Result<ReconResult, PipelineError> {
+    if input.set.is_empty() {
+        return Err(PipelineError::Recon("no transients to reconstruct from".into()));
+    }
+    let s = &input.settings;
+    match s.method {
+        Method::Gtr => {
+            let t = Instant::now();
+            let mut trainer =
+                Trainer::new(s.train.clone(), roi(&s.volume)?, input.set.clone()).map_err(recon_err)?;
+            let cancel = CancelToken::new();
+            let summary = trainer
+                .run(None, &cancel, &mut |e| {
+                    if control.requested() == Control::ABORT {
+                        cancel.cancel();
+                    }
+                    events.emit(RunEvent::Train(e.clone()));
+                })
+                .map_err(recon_err)?;
+            if summary.cancelled {
+                return Err(PipelineError::Aborted(input.set.len()));
+            }
+            finish_gtr(&input, trainer, summary, t.elapsed().as_secs_f64())
+        }
+        Method::Fbp | Method::Lct | Method::Rsd => {
+            let kind = match s.method {
+                Method::Fbp => SolverKind::Fbp,
+                Method::Lct => SolverKind::Lct,
+                _ => SolverKind::Rsd,
+            };
+            let t = Instant::now();
+            let volume = solve(kind, &input.set, &s.volume)?;
+            Ok(ReconResult {
+                volume,
+                cloud: None,
+                train: None,
+                settings: s.clone(),
+                pairs: input.set.len(),
+                timings: vec![(format!("solver ({kind})"), t.elapsed().as_secs_f64())],
+            })
+        }
+    }
+}
