@@ -108,6 +108,11 @@ fn planar_wall_letter_confocal_matches_the_truth() {
         "median depth error {:.3} m ≥ 2 cm: {a:?}",
         a.median_error
     );
+    assert!(
+        a.p90_error < 0.03,
+        "90th-percentile depth error {:.3} m ≥ 3 cm: {a:?}",
+        a.p90_error
+    );
     assert!(a.iou > 0.5, "silhouette IoU {:.2} ≤ 0.5: {a:?}", a.iou);
 }
 

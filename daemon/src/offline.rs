@@ -38,7 +38,7 @@ pub fn recon(capture: &Path, config: Option<&Path>, out: &Path) -> anyhow::Resul
         )
     })?)?;
     let settings = match config {
-        Some(path) => load_recon(&TomlSource::load(path)?, Some(plan.recon.volume.clone()))?,
+        Some(path) => load_recon(&TomlSource::load(path)?, Some(plan.recon.volume))?,
         None => plan.recon.clone(),
     };
     let records = crate::store::read_log(capture)?;

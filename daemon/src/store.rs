@@ -351,7 +351,7 @@ mod tests {
         Record {
             pair,
             flags: HistogramFlags {
-                overflow: pair % 2 == 0,
+                overflow: pair.is_multiple_of(2),
                 saturated: false,
             },
             bin_width_ps: 16,

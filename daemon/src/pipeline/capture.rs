@@ -235,7 +235,7 @@ impl Run {
                     flagged: flags.overflow || flags.saturated,
                 });
                 feed(&mut fit, &mut batch, stored.len(), false)?;
-                if stored.len() % 64 == 0 {
+                if stored.len().is_multiple_of(64) {
                     self.save_info()?;
                 }
             }

@@ -249,7 +249,7 @@ impl Plan {
             },
             bin_width: match a.bin_width_ps {
                 None => instrument.tdc.bin_width,
-                Some(w) if w >= 1.0 && w <= 1e6 && w.fract() == 0.0 => w * 1e-12,
+                Some(w) if (1.0..=1e6).contains(&w) && w.fract() == 0.0 => w * 1e-12,
                 Some(_) => {
                     return Err(src.invalid(
                         "acquisition.bin-width-ps",
@@ -289,7 +289,7 @@ impl Plan {
 }
 
 fn dwell(src: &TomlSource, key: &str, ms: f64) -> Result<Duration, ConfigError> {
-    if !(ms >= 0.001 && ms <= 3_600_000.0) {
+    if !(0.001..=3_600_000.0).contains(&ms) {
         return Err(src.invalid(key, "must be 0.001 ms to 1 hour, in milliseconds"));
     }
     Ok(Duration::from_secs_f64(ms * 1e-3))
