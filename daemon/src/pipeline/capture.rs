@@ -6,7 +6,6 @@ use std::sync::mpsc;
 use periscope_drivers::{GalvoPair, HistogramFlags, Histogrammer, Laser, TdcConfig};
 use periscope_recon::{C0, Pair, TimeAxis, TransientSet, VolumeGrid};
 
-use super::los::RelayPoint;
 use super::reconstruct::{Fit, ReconInput};
 use super::{Control, PipelineError, Run};
 use crate::events::RunEvent;
@@ -268,7 +267,8 @@ mod tests {
             width: C0 * bw,
             bins: 64,
         };
-        // Legs of exactly 10.25 bins: the peak lands a quarter into bin 9.
+        // Legs of exactly 10.25 bins: TDC bin 20 covers hidden bins [9.75, 10.75),
+        // a quarter in bin 9 and three quarters in bin 10.
         let legs = 10.25 * axis.width;
         let h = hidden_histogram(&counts, 0.0, bw, 0.0, legs, &axis);
         let total: f32 = h.iter().sum();

@@ -324,7 +324,7 @@ impl Run {
         self.info.pairs_total = pairs.len();
         let t = Instant::now();
         self.set_stage(Stage::Capture)?;
-        let fit = self.capture(&relay, &pairs)?;
+        let fit = self.capture(&pairs)?;
         self.finish_stage(Stage::Capture, t);
         let t = Instant::now();
         self.set_stage(Stage::Reconstruction)?;
