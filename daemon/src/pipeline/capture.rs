@@ -81,12 +81,7 @@ fn as_pair(p: &PlannedPair) -> Pair {
 impl Run {
     /// Measures every pair not yet stored; returns the fit that has been running
     /// alongside.
-    pub(crate) fn capture(
-        &mut self,
-        relay: &[RelayPoint],
-        pairs: &[PlannedPair],
-    ) -> Result<Fit, PipelineError> {
-        let _ = relay;
+    pub(crate) fn capture(&mut self, pairs: &[PlannedPair]) -> Result<Fit, PipelineError> {
         let acq: Acquisition = self.plan.acquisition.clone();
         let sys = self.instrument.tdc.system_delay;
         let (l, s) = (
