@@ -269,7 +269,7 @@ mod tests {
         let total: f32 = h.iter().sum();
         assert!((total - 1000.0).abs() < 1e-3, "{total}");
         assert!(
-            (h[9] - 750.0).abs() < 1e-3 && (h[10] - 250.0).abs() < 1e-3,
+            (h[9] - 250.0).abs() < 1e-3 && (h[10] - 750.0).abs() < 1e-3,
             "{:?}",
             &h[8..12]
         );
