@@ -132,7 +132,7 @@ impl HistogramLog {
         ))
     }
 
-    /// Appends one record; syncs every [`SYNC_EVERY`] records or [`SYNC_INTERVAL`].
+    /// Appends one record; syncs every 32 records or 0.5 s, whichever comes first.
     pub fn append(&mut self, record: &Record) -> io::Result<()> {
         self.file.write_all(&record.encode())?;
         self.unsynced += 1;
