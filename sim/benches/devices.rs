@@ -32,26 +32,7 @@ fn main() {
         y: [-0.35, 0.35],
     };
     let pose = |x| GalvoPose::looking(DVec3::new(x, 0.0, 2.0), -DVec3::Z, DVec3::Y).unwrap();
-    let detector = Detector {
-        bin_width: 16e-12,
-        bins: 512,
-        offset: 12e-9,
-        system_delay: 0.0,
-        jitter_fwhm: 60e-12,
-        efficiency: 0.3,
-        dark_count_rate: 100.0,
-        ambient_rate: 2000.0,
-        dead_time: 50e-9,
-        laser_power: 0.4,
-        wavelength: 532e-9,
-        repetition_rate: 10e6,
-        aperture_area: 7.85e-5,
-        spot_area: 2e-5,
-        diffuser_solid_angle: 0.6,
-        transmission: 0.5,
-        gate_margin: Some(0.1),
-        pile_up: false,
-    };
+    let detector = Detector::example();
     let rig = Rig::new(
         None,
         RigSettings {

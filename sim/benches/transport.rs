@@ -66,23 +66,8 @@ fn main() {
     };
     let det = Detector {
         bin_width: 32e-12,
-        bins: 512,
-        offset: 12e-9,
-        system_delay: 0.0,
-        jitter_fwhm: 60e-12,
-        efficiency: 0.3,
-        dark_count_rate: 100.0,
-        ambient_rate: 2000.0,
-        dead_time: 50e-9,
-        laser_power: 0.4,
-        wavelength: 532e-9,
-        repetition_rate: 10e6,
-        aperture_area: 7.9e-5,
-        spot_area: 2e-5,
-        diffuser_solid_angle: 0.59,
-        transmission: 0.5,
-        gate_margin: Some(0.1),
         pile_up: true,
+        ..Detector::example()
     };
     let grid = |i: usize, n: usize| -0.8 + 1.6 * (i as f64 + 0.5) / n as f64;
     let mut scanned = Vec::new();

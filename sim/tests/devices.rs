@@ -26,29 +26,6 @@ fn limits(deg: f64) -> AngleLimits {
     }
 }
 
-fn detector() -> Detector {
-    Detector {
-        bin_width: 16e-12,
-        bins: 512,
-        offset: 12e-9,
-        system_delay: 0.0,
-        jitter_fwhm: 60e-12,
-        efficiency: 0.3,
-        dark_count_rate: 100.0,
-        ambient_rate: 0.0,
-        dead_time: 50e-9,
-        laser_power: 0.4,
-        wavelength: 532e-9,
-        repetition_rate: 10e6,
-        aperture_area: 7.85e-5,
-        spot_area: 2e-5,
-        diffuser_solid_angle: 0.6,
-        transmission: 0.5,
-        gate_margin: Some(0.1),
-        pile_up: false,
-    }
-}
-
 fn rig() -> Rig {
     let patch = Mesh::rectangle([-0.05, 0.05], [-0.05, 0.05])
         .transformed(glam::DMat3::IDENTITY, DVec3::new(0.0, 0.0, 0.5));
@@ -75,7 +52,7 @@ fn rig() -> Rig {
             spad_pose: pose(0.1),
             limits: [limits(20.0), limits(20.0)],
             settle: [Duration::from_micros(300); 2],
-            detector: detector(),
+            detector: Detector::example(),
             time_scale: 1.0,
             seed: 3,
             interlock_closed: true,
