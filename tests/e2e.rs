@@ -13,6 +13,7 @@ use std::path::Path;
 use std::time::Duration;
 
 use periscope_daemon::config::load_scene;
+use periscope_daemon::ytal::YtalCapture;
 use periscope_recon::io::read_npy;
 use periscope_sim::World;
 use periscope_sim::truth::depth_truth;
@@ -114,6 +115,36 @@ fn planar_wall_letter_confocal_matches_the_truth() {
         a.p90_error
     );
     assert!(a.iou > 0.5, "silhouette IoU {:.2} ≤ 0.5: {a:?}", a.iou);
+
+    // The run's y-tal export holds every measured pair with both legs, and another
+    // reconstruction of it (FBP, no 3D-GTR) finds the letter at the same depth.
+    let capture = YtalCapture::read(&out.join("capture.hdf5")).expect("capture.hdf5 reads");
+    let planned = std::fs::read_to_string(out.join("pairs.json")).unwrap();
+    assert_eq!(capture.len(), planned.matches("\"xi\"").count());
+    assert!(capture.t_accounts_first_and_last_bounces && capture.laser_xyz.is_some());
+    let again = dir.path().join("from-hdf5");
+    let cap = out.join("capture.hdf5");
+    let done = periscope_with_limit(
+        &[
+            "recon",
+            cap.to_str().unwrap(),
+            "--config",
+            "tests/data/demo-fbp.toml",
+            "--out",
+            again.to_str().unwrap(),
+        ],
+        Duration::from_secs(300),
+    );
+    assert_eq!(done.code, Some(0), "{}\n{}", done.stdout, done.stderr);
+    let b = accuracy(
+        &again,
+        "configs/scenes/wall-letter.toml",
+        [-0.4, 0.4],
+        [-0.4, 0.4],
+        [64, 64],
+    );
+    eprintln!("wall + letter, from the exported capture with FBP: {b:?}");
+    assert!(b.median_error < 0.02, "FBP on the export: {b:?}");
 }
 
 /// Scores an existing run directory against the default scene's truth:

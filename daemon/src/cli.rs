@@ -73,6 +73,15 @@ pub enum Command {
         #[arg(long, value_name = "DIR")]
         out: PathBuf,
     },
+    /// Export a run's measured histograms as a y-tal HDF5 capture (readable by y-tal's
+    /// `tal.io.read_capture` and h5py). Works on interrupted runs too.
+    Export {
+        /// The run directory.
+        run_dir: PathBuf,
+        /// The capture file to write (default: RUN_DIR/capture.hdf5).
+        #[arg(long, value_name = "FILE")]
+        out: Option<PathBuf>,
+    },
     /// Serve the HTTP API (under /api/v1) for lab operators.
     Serve {
         /// Address to listen on; keep it on loopback unless the network is trusted.
@@ -180,6 +189,23 @@ pub fn execute(cli: Cli) -> anyhow::Result<()> {
             execute_run(&run_dir)
         }
         Command::Recon { capture, config, out } => offline::recon(&capture, config.as_deref(), &out),
+        Command::Export { run_dir, out } => {
+            anyhow::ensure!(
+                run_dir.join("run.json").is_file(),
+                "{} is not a run directory (no run.json): give the path of a directory under runs/",
+                run_dir.display()
+            );
+            let out = out.unwrap_or_else(|| run_dir.join(crate::ytal::CAPTURE_FILE));
+            let capture = crate::ytal::YtalCapture::from_run(&run_dir)?;
+            capture.write(&out)?;
+            println!(
+                "wrote {} ({} transients of {} bins, T_Si with first and last legs)",
+                out.display(),
+                capture.len(),
+                capture.bins()
+            );
+            Ok(())
+        }
         Command::Serve { instrument, .. } => {
             instrument.load()?;
             Err(NotAvailable {

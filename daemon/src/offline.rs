@@ -1,14 +1,15 @@
 //! `periscope recon CAPTURE`: reconstruct a stored run again, with other settings or
-//! another method, without the instrument.
+//! another method, without the instrument; or a y-tal HDF5 capture (a public dataset,
+//! or another lab's).
 use std::path::Path;
 
 use periscope_recon::{Pair, TransientSet};
 
-use crate::cli::NotAvailable;
 use crate::config::TomlSource;
 use crate::events::EventSink;
 use crate::pipeline::{self, Control, ReconInput, hidden_histogram};
-use crate::plan::{PlannedPair, load_recon};
+use crate::plan::{PlannedPair, default_recon, load_recon};
+use crate::ytal::{YtalCapture, is_hdf5_path};
 
 /// Reconstructs `capture` (a run directory) into `out`.
 pub fn recon(capture: &Path, config: Option<&Path>, out: &Path) -> anyhow::Result<()> {
@@ -18,11 +19,7 @@ pub fn recon(capture: &Path, config: Option<&Path>, out: &Path) -> anyhow::Resul
         capture.display()
     );
     if capture.is_file() {
-        return Err(NotAvailable {
-            command: "recon",
-            what: "y-tal HDF5 captures cannot be read by this build yet; give a run directory (runs/<id>)",
-        }
-        .into());
+        return recon_ytal(capture, config, out);
     }
     anyhow::ensure!(
         capture.join("run.json").is_file(),
@@ -76,15 +73,61 @@ pub fn recon(capture: &Path, config: Option<&Path>, out: &Path) -> anyhow::Resul
         set.push(recon_pairs[r.pair as usize], &h)?;
         used.push(p.xd);
     }
-    std::fs::create_dir_all(out)?;
-    let events = EventSink::open(out)?;
-    crate::progress::attach(&events);
     let input = ReconInput {
         settings,
         set,
         detection_points: used,
         viewpoint: 0.5 * (l + s),
     };
+    finish(input, out)
+}
+
+/// Reconstructs a y-tal HDF5 capture.
+fn recon_ytal(capture: &Path, config: Option<&Path>, out: &Path) -> anyhow::Result<()> {
+    if !is_hdf5_path(capture) {
+        anyhow::bail!(
+            "{} is a file but not a y-tal capture (.hdf5 or .h5); give a capture file or a run directory",
+            capture.display()
+        );
+    }
+    let ytal = YtalCapture::read(capture)?;
+    let settings = match config {
+        Some(path) => load_recon(&TomlSource::load(path)?, ytal.default_volume().ok())?,
+        None => default_recon(ytal.default_volume()?),
+    };
+    let set = ytal.transients(&settings.volume)?;
+    anyhow::ensure!(
+        !set.is_empty(),
+        "{}: every transient is empty inside the reconstruction volume's time range",
+        capture.display()
+    );
+    println!(
+        "{}: {} transients ({}), {} bins of {:.4} m{}",
+        capture.display(),
+        ytal.len(),
+        ytal.h_format.name(),
+        ytal.bins(),
+        ytal.delta_t,
+        if ytal.t_accounts_first_and_last_bounces {
+            ", first and last legs removed"
+        } else {
+            ""
+        }
+    );
+    let input = ReconInput {
+        settings,
+        set,
+        detection_points: ytal.sensor_grid.points.clone(),
+        viewpoint: ytal.viewpoint(),
+    };
+    finish(input, out)
+}
+
+/// Runs the reconstruction and writes its outputs to `out`.
+fn finish(input: ReconInput, out: &Path) -> anyhow::Result<()> {
+    std::fs::create_dir_all(out)?;
+    let events = EventSink::open(out)?;
+    crate::progress::attach(&events);
     let t = std::time::Instant::now();
     let result = pipeline::reconstruct(input, &events, &Control::new())?;
     let outputs = pipeline::write_outputs(out, &result, &events)?;

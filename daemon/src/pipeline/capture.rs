@@ -26,11 +26,28 @@ pub fn hidden_histogram(
     legs: f64,
     axis: &TimeAxis,
 ) -> Vec<f32> {
+    rebin_path(
+        counts.iter().map(|&c| c as f32),
+        C0 * (acq_offset - system_delay) - legs,
+        C0 * bin_width,
+        axis,
+    )
+}
+
+/// Rebins values whose bin k covers path lengths [start + k·width, start + (k+1)·width)
+/// (metres) onto `axis`, splitting each bin over the axis bins it overlaps so the total
+/// inside the axis is preserved (area-exact). Bins outside the axis are dropped.
+pub fn rebin_path(
+    values: impl IntoIterator<Item = f32>,
+    start: f64,
+    width: f64,
+    axis: &TimeAxis,
+) -> Vec<f32> {
     let mut out = vec![0.0f32; axis.bins];
-    let shift = (C0 * (acq_offset - system_delay) - legs - axis.start) / axis.width;
-    let scale = C0 * bin_width / axis.width;
-    for (k, &c) in counts.iter().enumerate() {
-        if c == 0 {
+    let shift = (start - axis.start) / axis.width;
+    let scale = width / axis.width;
+    for (k, c) in values.into_iter().enumerate() {
+        if c == 0.0 {
             continue;
         }
         let lo = shift + k as f64 * scale;

@@ -19,7 +19,7 @@ use std::time::{Duration, Instant};
 use periscope_drivers::galvo::GalvoError;
 use periscope_drivers::tdc::TdcError;
 
-pub use capture::{hidden_axis, hidden_histogram};
+pub use capture::{hidden_axis, hidden_histogram, rebin_path};
 pub use los::RelayPoint;
 pub use output::{RELAY_PLY, RunOutputs, write_outputs};
 pub use reconstruct::{ReconInput, ReconResult, reconstruct};
@@ -332,7 +332,16 @@ impl Run {
         self.finish_stage(Stage::Reconstruction, t);
         let t = Instant::now();
         self.set_stage(Stage::Outputs)?;
-        let outputs = output::write_outputs(&self.dir, &result, &self.events)?;
+        let mut outputs = output::write_outputs(&self.dir, &result, &self.events)?;
+        // The measured histograms as a y-tal capture, for y-tal, h5py and other labs.
+        let p = self.dir.join(crate::ytal::CAPTURE_FILE);
+        crate::ytal::YtalCapture::from_run(&self.dir)
+            .and_then(|c| Ok(c.write(&p)?))
+            .map_err(|e| PipelineError::storage(&p, std::io::Error::other(e.to_string())))?;
+        self.events.emit(RunEvent::Output {
+            name: crate::ytal::CAPTURE_FILE.into(),
+        });
+        outputs.files.push(crate::ytal::CAPTURE_FILE.into());
         self.finish_stage(Stage::Outputs, t);
         Ok(RunSummary {
             dir: self.dir.clone(),
