@@ -58,18 +58,6 @@ fn usage_mistakes_exit_with_2() {
 }
 
 #[test]
-fn unbuilt_machinery_is_reported_not_faked() {
-    let out = periscope(&["serve"]);
-    assert_eq!(out.code, Some(69), "{out:?}");
-    assert!(out.stderr.contains("not available yet"), "{}", out.stderr);
-    assert!(
-        out.stdout.is_empty(),
-        "nothing may look like a result: {}",
-        out.stdout
-    );
-}
-
-#[test]
 fn a_missing_run_directory_is_named() {
     let out = periscope(&["resume", "runs/does-not-exist"]);
     assert_eq!(out.code, Some(1), "{out:?}");

@@ -36,8 +36,8 @@ fn every_config_file_loads() {
 
 #[test]
 fn shipped_instruments_are_accepted_by_the_binary() {
-    // `serve` loads the instrument before anything else, so a valid config gets as far
-    // as the "not available yet" exit (69) and an invalid one stops at exit 2.
+    // `devices` loads the instrument before anything else: an invalid config stops at
+    // exit 2, a valid one gets further (the lab example then fails to find hardware).
     for file in [
         "configs/instrument/sim.toml",
         "configs/instrument/lab.example.toml",

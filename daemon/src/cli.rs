@@ -2,7 +2,7 @@
 //!
 //! This is the binary's edge, so commands return `anyhow::Result` and attach context;
 //! the library modules below it return typed errors. Exit codes: 0 success, 1 failure,
-//! 2 invalid usage or configuration, 69 a command whose machinery is not built yet.
+//! 2 invalid usage or configuration.
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
@@ -134,16 +134,6 @@ pub fn instrument_source(path: Option<&Path>) -> Result<TomlSource, ConfigError>
     }
 }
 
-/// A command whose machinery has not been built yet. Reported, never faked.
-#[derive(Debug, thiserror::Error)]
-#[error("`periscope {command}` is not available yet in this build: {what}")]
-pub struct NotAvailable {
-    /// The subcommand.
-    pub command: &'static str,
-    /// What is missing.
-    pub what: &'static str,
-}
-
 /// Runs a parsed command line.
 pub fn execute(cli: Cli) -> anyhow::Result<()> {
     match cli.command {
@@ -206,13 +196,27 @@ pub fn execute(cli: Cli) -> anyhow::Result<()> {
             );
             Ok(())
         }
-        Command::Serve { instrument, .. } => {
-            instrument.load()?;
-            Err(NotAvailable {
-                command: "serve",
-                what: "the HTTP API has not landed (issue: daemon HTTP API)",
-            }
-            .into())
+        Command::Serve { bind, instrument } => {
+            let src = instrument_source(instrument.instrument.as_deref())?;
+            let config = InstrumentConfig::from_source(&src)?;
+            let token = match std::env::var("PERISCOPE_TOKEN") {
+                Ok(t) if !t.trim().is_empty() => Some(t.trim().to_owned()),
+                _ => config.api.token.clone(),
+            };
+            let token = token.unwrap_or_else(|| {
+                let t = random_token();
+                eprintln!(
+                    "no PERISCOPE_TOKEN or [api] token: this session's token is {t}\n  \
+                     (mutating requests need `Authorization: Bearer {t}`)"
+                );
+                t
+            });
+            let service = crate::api::Service::open(src, Some(token))?;
+            tokio::runtime::Builder::new_multi_thread()
+                .enable_all()
+                .thread_name("periscope-api")
+                .build()?
+                .block_on(crate::api::serve(bind, service))
         }
         Command::Devices { instrument } => devices(&instrument.load()?),
     }
@@ -220,9 +224,7 @@ pub fn execute(cli: Cli) -> anyhow::Result<()> {
 
 /// The exit code for an error returned by [`execute`].
 pub fn exit_code(err: &anyhow::Error) -> ExitCode {
-    if err.downcast_ref::<NotAvailable>().is_some() {
-        ExitCode::from(69)
-    } else if err.downcast_ref::<ConfigError>().is_some()
+    if err.downcast_ref::<ConfigError>().is_some()
         || matches!(
             err.downcast_ref::<PipelineError>(),
             Some(PipelineError::Config(_))
@@ -338,4 +340,12 @@ fn execute_run(dir: &Path) -> anyhow::Result<()> {
         println!("    {}", summary.dir.join(f).display());
     }
     Ok(())
+}
+
+/// A random 192-bit token, hex-encoded.
+fn random_token() -> String {
+    use rand::RngCore;
+    let mut bytes = [0u8; 24];
+    rand::rng().fill_bytes(&mut bytes);
+    bytes.iter().map(|b| format!("{b:02x}")).collect()
 }

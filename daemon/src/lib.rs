@@ -6,6 +6,7 @@
 //! Everything it does can therefore be driven from tests without a process.
 #![warn(missing_docs)]
 
+pub mod api;
 pub mod check;
 pub mod cli;
 pub mod config;

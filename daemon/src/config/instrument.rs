@@ -4,7 +4,7 @@
 //! Units in the file carry their unit in the key (`bin-width-ps`, `power-mw`) so a lab
 //! user never has to guess; the validated types hold SI units (metres, seconds, watts,
 //! radians), as the rest of the code base does.
-use std::path::Path;
+use std::path::{Path, PathBuf};
 use std::time::Duration;
 
 use glam::DVec3;
@@ -71,6 +71,24 @@ pub struct InstrumentConfig {
     pub spad: SpadSettings,
     /// The time-to-digital converter / histogrammer.
     pub tdc: TdcSettings,
+    /// The HTTP API (`periscope serve`).
+    pub api: ApiSettings,
+}
+
+/// Settings of the HTTP API, from the optional `[api]` table.
+#[derive(Clone, Debug, PartialEq)]
+pub struct ApiSettings {
+    /// Bearer token for mutating endpoints (`PERISCOPE_TOKEN` overrides it).
+    pub token: Option<String>,
+    /// Where runs are stored and the queue is kept.
+    pub runs_dir: PathBuf,
+    /// Whether read-only endpoints answer clients that are not on loopback without a
+    /// token.
+    pub open_reads: bool,
+    /// Largest request body accepted, bytes.
+    pub body_limit: usize,
+    /// Longest time a request may take to answer (event streams excepted once open).
+    pub request_timeout: Duration,
 }
 
 /// One galvo pair.
@@ -148,6 +166,67 @@ struct RawInstrument {
     spad: RawSpad,
     tdc: RawTdc,
     sim: Option<RawSim>,
+    api: Option<RawApi>,
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields, rename_all = "kebab-case")]
+struct RawApi {
+    token: Option<String>,
+    #[serde(default = "default_runs_dir")]
+    runs_dir: PathBuf,
+    #[serde(default)]
+    open_reads: bool,
+    #[serde(default = "default_body_limit_kib")]
+    body_limit_kib: f64,
+    #[serde(default = "default_request_timeout_s")]
+    request_timeout_s: f64,
+}
+
+impl Default for RawApi {
+    fn default() -> Self {
+        RawApi {
+            token: None,
+            runs_dir: default_runs_dir(),
+            open_reads: false,
+            body_limit_kib: default_body_limit_kib(),
+            request_timeout_s: default_request_timeout_s(),
+        }
+    }
+}
+
+fn default_runs_dir() -> PathBuf {
+    PathBuf::from("runs")
+}
+fn default_body_limit_kib() -> f64 {
+    1024.0
+}
+fn default_request_timeout_s() -> f64 {
+    30.0
+}
+
+fn api_settings(check: &Check<'_>, raw: RawApi) -> Result<ApiSettings, ConfigError> {
+    if let Some(t) = &raw.token
+        && t.trim().len() < 16
+    {
+        return Err(check.src.invalid(
+            "api.token",
+            "is shorter than 16 characters: use a long random string (e.g. `openssl rand -hex 24`)",
+        ));
+    }
+    Ok(ApiSettings {
+        token: raw.token,
+        runs_dir: raw.runs_dir,
+        open_reads: raw.open_reads,
+        body_limit: (check.positive("api.body-limit-kib", raw.body_limit_kib, 1024.0 * 1024.0, "KiB")?
+            * 1024.0) as usize,
+        request_timeout: Duration::from_secs_f64(check.positive(
+            "api.request-timeout-s",
+            raw.request_timeout_s,
+            3600.0,
+            "s",
+        )?),
+    })
 }
 
 #[derive(Deserialize, Clone, Copy, PartialEq)]
@@ -436,6 +515,7 @@ impl InstrumentConfig {
             RawBackend::Hardware => Backend::Hardware,
             RawBackend::Sim => Backend::Sim(sim_settings(&check, raw.sim.unwrap_or_default())?),
         };
+        let api = api_settings(&check, raw.api.unwrap_or_default())?;
         Ok(Self {
             name: raw.name,
             backend,
@@ -444,6 +524,7 @@ impl InstrumentConfig {
             laser,
             spad,
             tdc,
+            api,
         })
     }
 

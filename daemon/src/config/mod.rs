@@ -9,7 +9,8 @@ mod scene;
 mod source;
 
 pub use instrument::{
-    Backend, GalvoArm, InstrumentConfig, LaserSettings, SerialLink, SimSettings, SpadSettings, TdcSettings,
+    ApiSettings, Backend, GalvoArm, InstrumentConfig, LaserSettings, SerialLink, SimSettings, SpadSettings,
+    TdcSettings,
 };
 pub use scene::{DEFAULT_SCENE, load_scene, scene_from_source, sim_scene};
 pub use source::{ConfigError, TomlSource};

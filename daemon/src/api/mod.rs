@@ -1,0 +1,440 @@
+//! The HTTP API for lab operators (`periscope serve`): JSON under `/api/v1`, a bearer
+//! token on every mutating endpoint, server-sent events for progress. The contract is
+//! in `docs/api.md` and served as OpenAPI at `/api/v1/openapi.json`.
+//!
+//! Handlers never block the runtime: run-directory reads and device access go through
+//! `spawn_blocking`, and runs execute on the service's worker thread.
+use std::convert::Infallible;
+use std::net::SocketAddr;
+use std::sync::Arc;
+
+use axum::Router;
+use axum::body::Body;
+use axum::extract::rejection::StringRejection;
+use axum::extract::{ConnectInfo, DefaultBodyLimit, Path, Request, State};
+use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
+use axum::middleware::{self, Next};
+use axum::response::sse::{Event, KeepAlive, Sse};
+use axum::response::{IntoResponse, Response};
+use axum::routing::{get, post};
+use tokio_stream::StreamExt;
+use tokio_stream::wrappers::BroadcastStream;
+use tokio_stream::wrappers::errors::BroadcastStreamRecvError;
+
+mod openapi;
+mod service;
+
+pub use openapi::openapi;
+pub use service::{EstopReport, QUEUE_FILE, RunStatus, Service, ServiceError, StreamEvent, state_name};
+
+/// Files a run offers for download, with their media types.
+pub const DOWNLOADS: &[(&str, &str)] = &[
+    ("volume.npy", "application/octet-stream"),
+    ("volume.json", "application/json"),
+    ("depth.npy", "application/octet-stream"),
+    ("depth.png", "image/png"),
+    ("albedo.png", "image/png"),
+    ("relay.ply", "application/octet-stream"),
+    ("gaussians.ply", "application/octet-stream"),
+    ("capture.hdf5", "application/x-hdf5"),
+    ("pairs.json", "application/json"),
+    ("events.jsonl", "application/x-ndjson"),
+    ("plan.toml", "application/toml"),
+    ("instrument.toml", "application/toml"),
+    ("run.json", "application/json"),
+];
+
+/// The routes, as (method, path): the router and the OpenAPI document are both checked
+/// against this list by the tests.
+pub const ROUTES: &[(&str, &str)] = &[
+    ("GET", "/api/v1/health"),
+    ("GET", "/api/v1/openapi.json"),
+    ("GET", "/api/v1/instrument"),
+    ("POST", "/api/v1/runs"),
+    ("GET", "/api/v1/runs"),
+    ("GET", "/api/v1/runs/{id}"),
+    ("POST", "/api/v1/runs/{id}/pause"),
+    ("POST", "/api/v1/runs/{id}/resume"),
+    ("POST", "/api/v1/runs/{id}/abort"),
+    ("POST", "/api/v1/estop"),
+    ("GET", "/api/v1/runs/{id}/events"),
+    ("GET", "/api/v1/runs/{id}/files/{name}"),
+];
+
+/// Shared state of the handlers.
+#[derive(Clone)]
+pub struct AppState {
+    service: Arc<Service>,
+}
+
+impl AppState {
+    /// State over a service.
+    pub fn new(service: Arc<Service>) -> AppState {
+        AppState { service }
+    }
+}
+
+/// A JSON error: `{"error": code, "message": text}` with its status.
+#[derive(Debug)]
+pub struct ApiError {
+    status: StatusCode,
+    code: &'static str,
+    message: String,
+}
+
+impl ApiError {
+    fn new(status: StatusCode, code: &'static str, message: impl Into<String>) -> ApiError {
+        ApiError {
+            status,
+            code,
+            message: message.into(),
+        }
+    }
+}
+
+impl IntoResponse for ApiError {
+    fn into_response(self) -> Response {
+        let body = serde_json::json!({ "error": self.code, "message": self.message });
+        let mut r = (self.status, axum::Json(body)).into_response();
+        if self.status == StatusCode::UNAUTHORIZED {
+            r.headers_mut()
+                .insert(header::WWW_AUTHENTICATE, HeaderValue::from_static("Bearer"));
+        }
+        r
+    }
+}
+
+impl From<ServiceError> for ApiError {
+    fn from(e: ServiceError) -> ApiError {
+        let (status, code) = match &e {
+            ServiceError::UnknownRun(_) => (StatusCode::NOT_FOUND, "unknown-run"),
+            ServiceError::Conflict(_) => (StatusCode::CONFLICT, "conflict"),
+            ServiceError::InvalidPlan(_) => (StatusCode::UNPROCESSABLE_ENTITY, "invalid-plan"),
+            ServiceError::Storage(_) => (StatusCode::INTERNAL_SERVER_ERROR, "storage"),
+            ServiceError::Device(_) => (StatusCode::SERVICE_UNAVAILABLE, "device"),
+        };
+        ApiError::new(status, code, e.to_string())
+    }
+}
+
+type ApiResult<T> = Result<T, ApiError>;
+
+/// Runs `f` on the blocking pool.
+async fn blocking<T: Send + 'static>(
+    f: impl FnOnce() -> Result<T, ServiceError> + Send + 'static,
+) -> ApiResult<T> {
+    match tokio::task::spawn_blocking(f).await {
+        Ok(r) => r.map_err(ApiError::from),
+        Err(e) => Err(ApiError::new(
+            StatusCode::INTERNAL_SERVER_ERROR,
+            "internal",
+            format!("the request's worker failed: {e}"),
+        )),
+    }
+}
+
+/// The API's router over `state`, with authentication, body limit, timeout and JSON
+/// errors for unknown routes and methods.
+pub fn app(state: AppState) -> Router {
+    let api = state.service.instrument().api.clone();
+    let routes = Router::new()
+        .route("/api/v1/health", get(health))
+        .route("/api/v1/openapi.json", get(openapi_doc))
+        .route("/api/v1/instrument", get(instrument))
+        .route("/api/v1/runs", post(submit).get(list))
+        .route("/api/v1/runs/{id}", get(run_status))
+        .route("/api/v1/runs/{id}/pause", post(pause))
+        .route("/api/v1/runs/{id}/resume", post(resume))
+        .route("/api/v1/runs/{id}/abort", post(abort))
+        .route("/api/v1/estop", post(estop))
+        .route("/api/v1/runs/{id}/events", get(events))
+        .route("/api/v1/runs/{id}/files/{name}", get(file))
+        .fallback(not_found)
+        .method_not_allowed_fallback(method_not_allowed);
+    routes
+        .layer(middleware::from_fn_with_state(state.clone(), authorise))
+        .layer(DefaultBodyLimit::max(api.body_limit))
+        .layer(tower_http::timeout::TimeoutLayer::with_status_code(
+            StatusCode::REQUEST_TIMEOUT,
+            api.request_timeout,
+        ))
+        .with_state(state)
+}
+
+/// Serves the API on `bind` until Ctrl-C; a running run is paused at its next
+/// checkpoint on the way out (resume it after the restart).
+pub async fn serve(bind: SocketAddr, service: Arc<Service>) -> anyhow::Result<()> {
+    let worker = service.start_worker();
+    let listener = tokio::net::TcpListener::bind(bind)
+        .await
+        .map_err(|e| anyhow::anyhow!("cannot listen on {bind}: {e}; choose another address with --bind"))?;
+    let addr = listener.local_addr()?;
+    eprintln!(
+        "periscope API on http://{addr}/api/v1 (runs in {})",
+        service.runs_dir().display()
+    );
+    let app = app(AppState::new(Arc::clone(&service)));
+    axum::serve(listener, app.into_make_service_with_connect_info::<SocketAddr>())
+        .with_graceful_shutdown(async {
+            let _ = tokio::signal::ctrl_c().await;
+            eprintln!("shutting down: the running run (if any) pauses at its next checkpoint");
+        })
+        .await?;
+    service.shutdown();
+    tokio::task::spawn_blocking(move || worker.join())
+        .await?
+        .map_err(|_| anyhow::anyhow!("the instrument worker panicked"))?;
+    Ok(())
+}
+
+fn is_mutating(req: &Request) -> bool {
+    req.method() != axum::http::Method::GET && req.method() != axum::http::Method::HEAD
+}
+
+/// Bearer token on mutating requests; on read-only ones too for clients not on
+/// loopback unless `[api] open-reads` is set. Requests built in-process (router tests)
+/// carry no peer address and count as loopback.
+async fn authorise(State(state): State<AppState>, req: Request, next: Next) -> Response {
+    let peer = req.extensions().get::<ConnectInfo<SocketAddr>>().map(|c| c.0);
+    let local = peer.is_none_or(|p| p.ip().is_loopback());
+    let needs_token = is_mutating(&req) || (!local && !state.service.instrument().api.open_reads);
+    if needs_token && let Err(e) = check_token(state.service.token(), req.headers()) {
+        return e.into_response();
+    }
+    next.run(req).await
+}
+
+fn check_token(expected: Option<&str>, headers: &HeaderMap) -> Result<(), ApiError> {
+    let Some(expected) = expected else {
+        return Err(ApiError::new(
+            StatusCode::FORBIDDEN,
+            "no-token-configured",
+            "this daemon has no API token: set PERISCOPE_TOKEN or [api] token and restart it",
+        ));
+    };
+    let given = headers
+        .get(header::AUTHORIZATION)
+        .and_then(|v| v.to_str().ok())
+        .and_then(|v| v.strip_prefix("Bearer "));
+    match given {
+        None => Err(ApiError::new(
+            StatusCode::UNAUTHORIZED,
+            "unauthorized",
+            "this request needs `Authorization: Bearer <token>` (the daemon's PERISCOPE_TOKEN)",
+        )),
+        Some(t) if constant_time_eq(t.trim().as_bytes(), expected.as_bytes()) => Ok(()),
+        Some(_) => Err(ApiError::new(
+            StatusCode::UNAUTHORIZED,
+            "unauthorized",
+            "the bearer token is wrong",
+        )),
+    }
+}
+
+fn constant_time_eq(a: &[u8], b: &[u8]) -> bool {
+    a.len() == b.len() && a.iter().zip(b).fold(0u8, |acc, (x, y)| acc | (x ^ y)) == 0
+}
+
+async fn not_found() -> ApiError {
+    ApiError::new(
+        StatusCode::NOT_FOUND,
+        "not-found",
+        "no such endpoint; the routes are listed at GET /api/v1/openapi.json",
+    )
+}
+
+async fn method_not_allowed() -> ApiError {
+    ApiError::new(
+        StatusCode::METHOD_NOT_ALLOWED,
+        "method-not-allowed",
+        "this endpoint does not take that method; see GET /api/v1/openapi.json",
+    )
+}
+
+async fn health(State(state): State<AppState>) -> axum::Json<serde_json::Value> {
+    axum::Json(serde_json::json!({
+        "status": "ok",
+        "version": env!("CARGO_PKG_VERSION"),
+        "instrument": state.service.instrument().name,
+    }))
+}
+
+async fn openapi_doc() -> axum::Json<serde_json::Value> {
+    axum::Json(openapi())
+}
+
+async fn instrument(State(state): State<AppState>) -> ApiResult<axum::Json<serde_json::Value>> {
+    let s = Arc::clone(&state.service);
+    blocking(move || Ok(s.instrument_status())).await.map(axum::Json)
+}
+
+async fn submit(
+    State(state): State<AppState>,
+    headers: HeaderMap,
+    body: Result<String, StringRejection>,
+) -> ApiResult<Response> {
+    let text = body.map_err(|e| {
+        let status = e.status();
+        let code = if status == StatusCode::PAYLOAD_TOO_LARGE {
+            "body-too-large"
+        } else {
+            "bad-body"
+        };
+        ApiError::new(
+            status,
+            code,
+            format!("the body must be a TOML capture plan (UTF-8, within the size limit): {e}"),
+        )
+    })?;
+    if let Some(ct) = headers.get(header::CONTENT_TYPE).and_then(|v| v.to_str().ok())
+        && !(ct.starts_with("application/toml") || ct.starts_with("text/"))
+    {
+        return Err(ApiError::new(
+            StatusCode::UNSUPPORTED_MEDIA_TYPE,
+            "unsupported-media-type",
+            format!("the body is {ct}; send the plan as application/toml (curl --data-binary @plan.toml)"),
+        ));
+    }
+    if text.trim().is_empty() {
+        return Err(ApiError::new(
+            StatusCode::UNPROCESSABLE_ENTITY,
+            "invalid-plan",
+            "the body is empty; send a TOML capture plan",
+        ));
+    }
+    let s = Arc::clone(&state.service);
+    let status = blocking(move || s.submit(text)).await?;
+    let location = format!("/api/v1/runs/{}", status.id);
+    let mut r = (StatusCode::CREATED, axum::Json(status)).into_response();
+    if let Ok(v) = HeaderValue::from_str(&location) {
+        r.headers_mut().insert(header::LOCATION, v);
+    }
+    Ok(r)
+}
+
+async fn list(State(state): State<AppState>) -> ApiResult<axum::Json<Vec<RunStatus>>> {
+    let s = Arc::clone(&state.service);
+    blocking(move || s.list()).await.map(axum::Json)
+}
+
+async fn run_status(
+    State(state): State<AppState>,
+    Path(id): Path<String>,
+) -> ApiResult<axum::Json<RunStatus>> {
+    let s = Arc::clone(&state.service);
+    blocking(move || s.status(&id)).await.map(axum::Json)
+}
+
+async fn pause(
+    State(state): State<AppState>,
+    Path(id): Path<String>,
+) -> ApiResult<(StatusCode, axum::Json<RunStatus>)> {
+    let s = Arc::clone(&state.service);
+    let st = blocking(move || s.pause(&id)).await?;
+    Ok((StatusCode::ACCEPTED, axum::Json(st)))
+}
+
+async fn resume(
+    State(state): State<AppState>,
+    Path(id): Path<String>,
+) -> ApiResult<(StatusCode, axum::Json<RunStatus>)> {
+    let s = Arc::clone(&state.service);
+    let st = blocking(move || s.resume(&id)).await?;
+    Ok((StatusCode::ACCEPTED, axum::Json(st)))
+}
+
+async fn abort(
+    State(state): State<AppState>,
+    Path(id): Path<String>,
+) -> ApiResult<(StatusCode, axum::Json<RunStatus>)> {
+    let s = Arc::clone(&state.service);
+    let st = blocking(move || s.abort(&id)).await?;
+    Ok((StatusCode::ACCEPTED, axum::Json(st)))
+}
+
+async fn estop(State(state): State<AppState>) -> ApiResult<axum::Json<EstopReport>> {
+    let s = Arc::clone(&state.service);
+    blocking(move || s.estop()).await.map(axum::Json)
+}
+
+async fn events(
+    State(state): State<AppState>,
+    Path(id): Path<String>,
+) -> ApiResult<Sse<impl tokio_stream::Stream<Item = Result<Event, Infallible>>>> {
+    let s = Arc::clone(&state.service);
+    let (rx, status) = {
+        let id = id.clone();
+        blocking(move || {
+            let rx = s.subscribe(&id)?;
+            Ok((rx, s.status(&id)?))
+        })
+        .await?
+    };
+    let first = Event::default()
+        .event("status")
+        .json_data(&status)
+        .unwrap_or_else(|_| Event::default().event("status"));
+    let head = tokio_stream::once(Ok::<_, Infallible>(first));
+    // A run that is not running has no channel: a closed one ends the stream after the
+    // status snapshot.
+    let rx = rx.unwrap_or_else(|| tokio::sync::broadcast::channel(1).1);
+    let live = BroadcastStream::new(rx).map(|item| {
+        Ok(match item {
+            Ok(StreamEvent { name, json }) => Event::default().event(&*name).data(&*json),
+            Err(BroadcastStreamRecvError::Lagged(n)) => Event::default()
+                .event("lagged")
+                .data(format!("{{\"skipped\":{n}}}")),
+        })
+    });
+    Ok(Sse::new(head.chain(live)).keep_alive(KeepAlive::default()))
+}
+
+async fn file(
+    State(state): State<AppState>,
+    Path((id, name)): Path<(String, String)>,
+) -> ApiResult<Response> {
+    let Some((_, media)) = DOWNLOADS.iter().find(|(n, _)| *n == name) else {
+        return Err(ApiError::new(
+            StatusCode::NOT_FOUND,
+            "unknown-file",
+            format!(
+                "`{name}` is not a run file; available names: {}",
+                DOWNLOADS.iter().map(|(n, _)| *n).collect::<Vec<_>>().join(", ")
+            ),
+        ));
+    };
+    let s = Arc::clone(&state.service);
+    let bytes = blocking(move || {
+        s.status(&id)?;
+        let path = s.runs_dir().join(&id).join(&name);
+        if !path.is_file() && name == crate::ytal::CAPTURE_FILE {
+            // Interrupted or running runs: export what is stored so far.
+            let capture = crate::ytal::YtalCapture::from_run(&s.runs_dir().join(&id))
+                .map_err(|e| ServiceError::Conflict(format!("run {id} has no capture to export yet: {e}")))?;
+            let tmp = std::env::temp_dir().join(format!("periscope-{id}-{}.hdf5", std::process::id()));
+            capture
+                .write(&tmp)
+                .map_err(|e| ServiceError::Storage(e.to_string()))?;
+            let bytes = std::fs::read(&tmp).map_err(|e| ServiceError::Storage(e.to_string()));
+            let _ = std::fs::remove_file(&tmp);
+            return bytes;
+        }
+        std::fs::read(&path).map_err(|_| {
+            ServiceError::Conflict(format!(
+                "run {id} has no {name} (yet): outputs appear when the run completes"
+            ))
+        })
+    })
+    .await
+    .map_err(|e| {
+        if e.status == StatusCode::CONFLICT {
+            ApiError::new(StatusCode::NOT_FOUND, "file-not-ready", e.message)
+        } else {
+            e
+        }
+    })?;
+    Response::builder()
+        .header(header::CONTENT_TYPE, *media)
+        .body(Body::from(bytes))
+        .map_err(|e| ApiError::new(StatusCode::INTERNAL_SERVER_ERROR, "internal", e.to_string()))
+}

@@ -1,0 +1,709 @@
+//! The instrument service behind the HTTP API: the run queue (persisted in
+//! `RUNS_DIR/queue.json`), the worker thread that owns the instrument and runs one plan
+//! at a time, and the live state the endpoints read.
+//!
+//! Everything here is synchronous and quick (a mutex held for microseconds, small file
+//! writes); the HTTP handlers call the slower parts through `spawn_blocking`. Runs
+//! execute on the dedicated worker thread, never on the async runtime.
+use std::collections::{HashMap, VecDeque};
+use std::path::{Path, PathBuf};
+use std::sync::{Arc, Condvar, Mutex, MutexGuard};
+use std::time::{Duration, Instant};
+
+use serde::Serialize;
+use tokio::sync::broadcast;
+
+use crate::config::{InstrumentConfig, TomlSource};
+use crate::events::{EventSink, RunEvent};
+use crate::pipeline::{self, Control, PipelineError, Run};
+use crate::plan::Plan;
+use crate::store::{RunInfo, RunState, write_atomic};
+
+/// The queue file in the runs directory.
+pub const QUEUE_FILE: &str = "queue.json";
+
+/// Pair events are forwarded to event-stream clients at most this often (plus the last
+/// one); stage, optimiser and output events always are.
+const PAIR_EVENT_INTERVAL: Duration = Duration::from_millis(50);
+
+/// Events buffered per run for slow stream clients before they are told they lagged.
+const EVENT_BUFFER: usize = 1024;
+
+/// An event as sent to stream clients: its name and JSON.
+#[derive(Clone, Debug)]
+pub struct StreamEvent {
+    /// The SSE event name: the event's `event` field (`stage-started`, `pair`,
+    /// `epoch`, `output`, ...).
+    pub name: Arc<str>,
+    /// The event as JSON.
+    pub json: Arc<str>,
+}
+
+/// A run as the API reports it.
+#[derive(Clone, Debug, Serialize)]
+pub struct RunStatus {
+    /// Run id.
+    pub id: String,
+    /// Plan name.
+    pub plan: String,
+    /// State.
+    pub state: RunState,
+    /// Current or last stage.
+    pub stage: String,
+    /// Pairs planned (0 until planned).
+    pub pairs_total: usize,
+    /// Pairs stored.
+    pub pairs_done: usize,
+    /// Fraction of the capture done, 0 to 1.
+    pub progress: f64,
+    /// Estimated seconds until the capture finishes (running captures only).
+    pub eta_s: Option<f64>,
+    /// Place in the queue (0 = next), for queued runs.
+    pub queue_position: Option<usize>,
+    /// Last optimiser loss, when fitting.
+    pub loss: Option<f64>,
+    /// Last error.
+    pub error: Option<String>,
+    /// Seconds per finished stage.
+    pub timings: Vec<(String, f64)>,
+    /// Files available for download.
+    pub files: Vec<String>,
+}
+
+/// Why a request on a run was refused.
+#[derive(Debug, thiserror::Error)]
+pub enum ServiceError {
+    /// No such run.
+    #[error("no run `{0}`: list runs with GET /api/v1/runs")]
+    UnknownRun(String),
+    /// The request does not fit the run's state.
+    #[error("{0}")]
+    Conflict(String),
+    /// The plan is invalid.
+    #[error("{0}")]
+    InvalidPlan(String),
+    /// Storage failed.
+    #[error("{0}")]
+    Storage(String),
+    /// The instrument could not be reached.
+    #[error("{0}")]
+    Device(String),
+}
+
+/// Live progress of the running run, fed by its events.
+#[derive(Default)]
+struct Live {
+    id: String,
+    stage: String,
+    pairs_done: usize,
+    pairs_total: usize,
+    capture_started: Option<(Instant, usize)>,
+    loss: Option<f64>,
+}
+
+struct Shared {
+    /// Run ids waiting or paused, in submission order.
+    queue: VecDeque<String>,
+    /// The running run and its control.
+    current: Option<(String, Control)>,
+    live: Live,
+    /// Event channels of runs that are running (or were, until a client drops them).
+    channels: HashMap<String, broadcast::Sender<StreamEvent>>,
+    /// The instrument's state as the last run or e-stop left it.
+    last_safe: Option<String>,
+    shutdown: bool,
+}
+
+/// The service: configuration, queue and worker.
+pub struct Service {
+    runs_dir: PathBuf,
+    instrument_src: TomlSource,
+    instrument: InstrumentConfig,
+    token: Option<String>,
+    shared: Mutex<Shared>,
+    wake: Condvar,
+}
+
+impl Service {
+    /// Opens the service on `runs_dir`, restoring the queue. A run that was running when
+    /// the daemon stopped is marked paused (its data is intact), so an operator decides
+    /// whether to resume it; queued runs stay queued.
+    pub fn open(instrument_src: TomlSource, token: Option<String>) -> Result<Arc<Service>, ServiceError> {
+        let instrument = InstrumentConfig::from_source(&instrument_src)
+            .map_err(|e| ServiceError::InvalidPlan(e.to_string()))?;
+        let runs_dir = instrument.api.runs_dir.clone();
+        std::fs::create_dir_all(&runs_dir)
+            .map_err(|e| ServiceError::Storage(format!("runs directory {}: {e}", runs_dir.display())))?;
+        let mut queue = VecDeque::new();
+        let qpath = runs_dir.join(QUEUE_FILE);
+        if qpath.is_file() {
+            let text = std::fs::read_to_string(&qpath)
+                .map_err(|e| ServiceError::Storage(format!("{}: {e}", qpath.display())))?;
+            let ids: Vec<String> = serde_json::from_str(&text).map_err(|e| {
+                ServiceError::Storage(format!(
+                    "{}: {e}; fix or delete the file (runs themselves are kept in their directories)",
+                    qpath.display()
+                ))
+            })?;
+            for id in ids {
+                let dir = runs_dir.join(&id);
+                let Ok(mut info) = RunInfo::load(&dir) else {
+                    tracing::warn!(
+                        "queue.json names run {id}, which has no readable run.json; dropped from the queue"
+                    );
+                    continue;
+                };
+                match info.state {
+                    RunState::Running => {
+                        info.state = RunState::Paused;
+                        info.error = Some(format!(
+                            "interrupted: the daemon stopped during stage {}; POST /api/v1/runs/{id}/resume continues it",
+                            info.stage
+                        ));
+                        info.save(&dir)
+                            .map_err(|e| ServiceError::Storage(format!("{}: {e}", dir.display())))?;
+                        queue.push_back(id);
+                    }
+                    RunState::Queued | RunState::Paused => queue.push_back(id),
+                    _ => {}
+                }
+            }
+        }
+        let service = Arc::new(Service {
+            runs_dir,
+            instrument_src,
+            instrument,
+            token,
+            shared: Mutex::new(Shared {
+                queue,
+                current: None,
+                live: Live::default(),
+                channels: HashMap::new(),
+                last_safe: None,
+                shutdown: false,
+            }),
+            wake: Condvar::new(),
+        });
+        service.persist(&service.lock())?;
+        Ok(service)
+    }
+
+    /// Starts the worker thread that runs queued plans, one at a time.
+    pub fn start_worker(self: &Arc<Self>) -> std::thread::JoinHandle<()> {
+        let me = Arc::clone(self);
+        std::thread::Builder::new()
+            .name("instrument".into())
+            .spawn(move || me.worker())
+            .expect("the worker thread starts")
+    }
+
+    /// Asks the worker to stop after the current run (which is paused at its next
+    /// checkpoint, so it can be resumed after a restart).
+    pub fn shutdown(&self) {
+        let mut s = self.lock();
+        s.shutdown = true;
+        if let Some((_, control)) = &s.current {
+            control.pause();
+        }
+        self.wake.notify_all();
+    }
+
+    fn lock(&self) -> MutexGuard<'_, Shared> {
+        self.shared.lock().unwrap_or_else(|p| p.into_inner())
+    }
+
+    /// The bearer token mutating requests must carry.
+    pub fn token(&self) -> Option<&str> {
+        self.token.as_deref()
+    }
+
+    /// The instrument config.
+    pub fn instrument(&self) -> &InstrumentConfig {
+        &self.instrument
+    }
+
+    /// The runs directory.
+    pub fn runs_dir(&self) -> &Path {
+        &self.runs_dir
+    }
+
+    fn persist(&self, s: &Shared) -> Result<(), ServiceError> {
+        let path = self.runs_dir.join(QUEUE_FILE);
+        let ids: Vec<&String> = s.queue.iter().collect();
+        write_atomic(
+            &path,
+            serde_json::to_string_pretty(&ids).expect("serialises").as_bytes(),
+        )
+        .map_err(|e| ServiceError::Storage(format!("{}: {e}", path.display())))
+    }
+
+    fn dir(&self, id: &str) -> Result<PathBuf, ServiceError> {
+        let valid = !id.is_empty()
+            && id
+                .chars()
+                .all(|c| c.is_ascii_alphanumeric() || c == '-' || c == '_');
+        let dir = self.runs_dir.join(id);
+        if valid && dir.join("run.json").is_file() {
+            Ok(dir)
+        } else {
+            Err(ServiceError::UnknownRun(id.to_owned()))
+        }
+    }
+
+    fn info(&self, id: &str) -> Result<RunInfo, ServiceError> {
+        let dir = self.dir(id)?;
+        RunInfo::load(&dir)
+            .map_err(|e| ServiceError::Storage(format!("{}: {e}", dir.join("run.json").display())))
+    }
+
+    fn set_state(&self, id: &str, state: RunState, error: Option<String>) -> Result<(), ServiceError> {
+        let dir = self.dir(id)?;
+        let mut info = self.info(id)?;
+        info.state = state;
+        if error.is_some() {
+            info.error = error;
+        }
+        info.save(&dir)
+            .map_err(|e| ServiceError::Storage(format!("{}: {e}", dir.display())))
+    }
+
+    /// Validates a plan (TOML text) and queues it. Returns the new run's status.
+    pub fn submit(&self, text: String) -> Result<RunStatus, ServiceError> {
+        let src = TomlSource::from_text("request body", text);
+        let plan = Plan::from_source(&src, &self.instrument)
+            .map_err(|e| ServiceError::InvalidPlan(e.to_string()))?;
+        let dir = crate::store::new_run_dir(&self.runs_dir, &plan.name)
+            .map_err(|e| ServiceError::Storage(format!("{}: {e}", self.runs_dir.display())))?;
+        let src = TomlSource::from_text(dir.join("plan.toml"), src.text().to_owned());
+        pipeline::prepare(&src, &self.instrument_src, Some(&dir)).map_err(|e| match e {
+            PipelineError::Config(c) => ServiceError::InvalidPlan(c.to_string()),
+            other => ServiceError::Storage(other.to_string()),
+        })?;
+        let id = dir
+            .file_name()
+            .map(|n| n.to_string_lossy().into_owned())
+            .unwrap_or_default();
+        {
+            let mut s = self.lock();
+            s.queue.push_back(id.clone());
+            self.persist(&s)?;
+            self.wake.notify_all();
+        }
+        tracing::info!(run = %id, plan = %plan.name, "run queued");
+        self.status(&id)
+    }
+
+    /// Every run in the runs directory, oldest first.
+    pub fn list(&self) -> Result<Vec<RunStatus>, ServiceError> {
+        let mut ids: Vec<String> = std::fs::read_dir(&self.runs_dir)
+            .map_err(|e| ServiceError::Storage(format!("{}: {e}", self.runs_dir.display())))?
+            .filter_map(Result::ok)
+            .filter(|e| e.path().join("run.json").is_file())
+            .map(|e| e.file_name().to_string_lossy().into_owned())
+            .collect();
+        ids.sort();
+        Ok(ids.iter().filter_map(|id| self.status(id).ok()).collect())
+    }
+
+    /// One run's status: its run.json, live progress if it is running, its queue place.
+    pub fn status(&self, id: &str) -> Result<RunStatus, ServiceError> {
+        let dir = self.dir(id)?;
+        let info = self.info(id)?;
+        let s = self.lock();
+        let mut st = RunStatus {
+            id: info.id.clone(),
+            plan: info.plan.clone(),
+            state: info.state,
+            stage: info.stage.clone(),
+            pairs_total: info.pairs_total,
+            pairs_done: info.pairs_done,
+            progress: 0.0,
+            eta_s: None,
+            queue_position: None,
+            loss: None,
+            error: info.error.clone(),
+            timings: info.timings.clone(),
+            files: Vec::new(),
+        };
+        if s.current.as_ref().is_some_and(|(c, _)| c == id) && s.live.id == id {
+            let live = &s.live;
+            st.stage = live.stage.clone();
+            st.pairs_done = live.pairs_done.max(st.pairs_done);
+            st.pairs_total = live.pairs_total.max(st.pairs_total);
+            st.loss = live.loss;
+            if let Some((t0, done0)) = live.capture_started {
+                let rate =
+                    (live.pairs_done.saturating_sub(done0)) as f64 / t0.elapsed().as_secs_f64().max(1e-3);
+                if rate > 0.0 && live.stage == "capture" {
+                    st.eta_s = Some(live.pairs_total.saturating_sub(live.pairs_done) as f64 / rate);
+                }
+            }
+        }
+        if st.state == RunState::Queued {
+            st.queue_position = s
+                .queue
+                .iter()
+                .filter(|q| self.info(q).is_ok_and(|i| i.state == RunState::Queued))
+                .position(|q| q == id);
+        }
+        drop(s);
+        if st.pairs_total > 0 {
+            st.progress = (st.pairs_done as f64 / st.pairs_total as f64).min(1.0);
+        }
+        if st.state == RunState::Completed {
+            st.progress = 1.0;
+        }
+        st.files = super::DOWNLOADS
+            .iter()
+            .filter(|(name, _)| dir.join(name).is_file())
+            .map(|(name, _)| (*name).to_owned())
+            .collect();
+        Ok(st)
+    }
+
+    /// Asks the running run to pause at its next checkpoint.
+    pub fn pause(&self, id: &str) -> Result<RunStatus, ServiceError> {
+        let info = self.info(id)?;
+        {
+            let s = self.lock();
+            match &s.current {
+                Some((c, control)) if c == id => control.pause(),
+                _ => {
+                    return Err(ServiceError::Conflict(format!(
+                        "run {id} is {}, not running: only a running run can be paused",
+                        state_name(info.state)
+                    )));
+                }
+            }
+        }
+        self.status(id)
+    }
+
+    /// Queues a paused, failed or interrupted run again; it continues from its last
+    /// stored pair when the instrument is free.
+    pub fn resume(&self, id: &str) -> Result<RunStatus, ServiceError> {
+        let info = self.info(id)?;
+        let mut s = self.lock();
+        if s.current.as_ref().is_some_and(|(c, _)| c == id) {
+            return Err(ServiceError::Conflict(format!(
+                "run {id} is running; there is nothing to resume"
+            )));
+        }
+        match info.state {
+            RunState::Paused | RunState::Failed => {}
+            other => {
+                return Err(ServiceError::Conflict(format!(
+                    "run {id} is {}: only a paused or failed run can be resumed",
+                    state_name(other)
+                )));
+            }
+        }
+        self.set_state(id, RunState::Queued, None)?;
+        if !s.queue.iter().any(|q| q == id) {
+            s.queue.push_back(id.to_owned());
+        }
+        self.persist(&s)?;
+        self.wake.notify_all();
+        drop(s);
+        self.status(id)
+    }
+
+    /// Aborts a run: a running one at its next checkpoint (the instrument is made safe
+    /// and what was captured is kept), a queued or paused one at once.
+    pub fn abort(&self, id: &str) -> Result<RunStatus, ServiceError> {
+        let info = self.info(id)?;
+        let mut s = self.lock();
+        if let Some((c, control)) = &s.current
+            && c == id
+        {
+            control.abort();
+            drop(s);
+            return self.status(id);
+        }
+        match info.state {
+            RunState::Queued | RunState::Paused | RunState::Failed => {
+                self.set_state(
+                    id,
+                    RunState::Aborted,
+                    Some("aborted by the operator before it ran again".into()),
+                )?;
+                s.queue.retain(|q| q != id);
+                self.persist(&s)?;
+            }
+            other => {
+                return Err(ServiceError::Conflict(format!(
+                    "run {id} is {}; there is nothing to abort",
+                    state_name(other)
+                )));
+            }
+        }
+        drop(s);
+        self.status(id)
+    }
+
+    /// Emergency stop: the running run aborts at its next checkpoint (between pairs, so
+    /// within one dwell) and its error path switches the laser off and parks both arms;
+    /// with no run, the devices are opened and made safe directly. Queued runs are
+    /// paused so that nothing starts until an operator resumes one.
+    pub fn estop(&self) -> Result<EstopReport, ServiceError> {
+        let t = Instant::now();
+        let running = {
+            let s = self.lock();
+            let running = s.current.as_ref().map(|(id, c)| {
+                c.abort();
+                id.clone()
+            });
+            let held: Vec<String> = s
+                .queue
+                .iter()
+                .filter(|q| Some(*q) != running.as_ref())
+                .cloned()
+                .collect();
+            for id in &held {
+                if self.info(id).is_ok_and(|i| i.state == RunState::Queued) {
+                    self.set_state(
+                        id,
+                        RunState::Paused,
+                        Some("held by an emergency stop; resume it to run".into()),
+                    )?;
+                }
+            }
+            running
+        };
+        if running.is_none() {
+            let mut devices = crate::devices::Devices::open(&self.instrument)
+                .map_err(|e| ServiceError::Device(format!("e-stop could not open the instrument: {e}")))?;
+            devices.make_safe().map_err(|e| {
+                ServiceError::Device(format!("e-stop could not make the instrument safe: {e}"))
+            })?;
+            self.lock().last_safe = Some("laser off, arms parked (e-stop)".into());
+        } else {
+            // Wait (bounded) for the run to reach its checkpoint and make itself safe.
+            let deadline = Instant::now() + Duration::from_secs(10);
+            let mut s = self.lock();
+            while s.current.as_ref().map(|(id, _)| id) == running.as_ref() && Instant::now() < deadline {
+                s = self
+                    .wake
+                    .wait_timeout(s, Duration::from_millis(20))
+                    .unwrap_or_else(|p| p.into_inner())
+                    .0;
+            }
+            if s.current.as_ref().map(|(id, _)| id) == running.as_ref() {
+                return Err(ServiceError::Device(format!(
+                    "e-stop: run {} did not stop within 10 s; switch the laser off at the interlock",
+                    running.unwrap_or_default()
+                )));
+            }
+        }
+        Ok(EstopReport {
+            aborted: running,
+            seconds: t.elapsed().as_secs_f64(),
+        })
+    }
+
+    /// The instrument's status: the devices' own report when idle (opened briefly), or
+    /// the running run's view of it while a run holds the instrument.
+    pub fn instrument_status(&self) -> serde_json::Value {
+        let (busy, last_safe) = {
+            let s = self.lock();
+            (
+                s.current
+                    .as_ref()
+                    .map(|(id, _)| (id.clone(), s.live.stage.clone())),
+                s.last_safe.clone(),
+            )
+        };
+        let mut v = serde_json::json!({
+            "name": self.instrument.name,
+            "summary": self.instrument.summary(),
+            "busy": busy.is_some(),
+        });
+        if let Some((id, stage)) = busy {
+            v["run"] = serde_json::json!({ "id": id, "stage": stage });
+            v["devices"] = serde_json::json!(null);
+            v["note"] = "the running run holds the devices; their live state is in its event stream".into();
+            return v;
+        }
+        match crate::devices::Devices::open(&self.instrument).and_then(|mut d| d.report()) {
+            Ok(report) => v["devices"] = serde_json::to_value(report).unwrap_or_default(),
+            Err(e) => {
+                v["devices"] = serde_json::json!(null);
+                v["error"] = format!("{e}").into();
+            }
+        }
+        if let Some(safe) = last_safe {
+            v["last_safe"] = safe.into();
+        }
+        v
+    }
+
+    /// Subscribes to a run's events. `None` when the run is not running (its past
+    /// events are in `events.jsonl`).
+    pub fn subscribe(&self, id: &str) -> Result<Option<broadcast::Receiver<StreamEvent>>, ServiceError> {
+        self.dir(id)?;
+        let s = self.lock();
+        Ok(s.channels.get(id).map(broadcast::Sender::subscribe))
+    }
+
+    fn worker(self: Arc<Self>) {
+        loop {
+            let (id, control) = {
+                let mut s = self.lock();
+                loop {
+                    if s.shutdown {
+                        return;
+                    }
+                    let next = s
+                        .queue
+                        .iter()
+                        .find(|q| self.info(q).is_ok_and(|i| i.state == RunState::Queued))
+                        .cloned();
+                    if let Some(id) = next {
+                        let control = Control::new();
+                        s.current = Some((id.clone(), control.clone()));
+                        s.live = Live {
+                            id: id.clone(),
+                            stage: "starting".into(),
+                            ..Live::default()
+                        };
+                        let (tx, _) = broadcast::channel(EVENT_BUFFER);
+                        s.channels.insert(id.clone(), tx);
+                        break (id, control);
+                    }
+                    s = self.wake.wait(s).unwrap_or_else(|p| p.into_inner());
+                }
+            };
+            tracing::info!(run = %id, "run starting");
+            let result = self.execute(&id, control);
+            let mut s = self.lock();
+            s.current = None;
+            s.channels.remove(&id);
+            match &result {
+                Ok(()) | Err(PipelineError::Aborted(_)) => {
+                    s.queue.retain(|q| q != &id);
+                    s.last_safe = Some(format!("laser off, arms parked (end of run {id})"));
+                }
+                Err(PipelineError::Paused(_)) => {}
+                Err(_) => {
+                    s.queue.retain(|q| q != &id);
+                }
+            }
+            if let Err(e) = self.persist(&s) {
+                tracing::error!("{e}");
+            }
+            self.wake.notify_all();
+            drop(s);
+            match result {
+                Ok(()) => tracing::info!(run = %id, "run completed"),
+                Err(e) => tracing::warn!(run = %id, "run stopped: {e}"),
+            }
+        }
+    }
+
+    fn execute(self: &Arc<Self>, id: &str, control: Control) -> Result<(), PipelineError> {
+        let dir = self.runs_dir.join(id);
+        let events = EventSink::open(&dir).map_err(|e| PipelineError::Storage {
+            path: dir.clone(),
+            source: e,
+        })?;
+        let me = Arc::clone(self);
+        let run_id = id.to_owned();
+        let mut last_pair = Instant::now() - PAIR_EVENT_INTERVAL;
+        events.listen(move |ev| me.on_event(&run_id, ev, &mut last_pair));
+        match Run::open(&dir, control, Some(events.clone())) {
+            Ok(run) => run.execute().map(|_| ()),
+            Err(e) => {
+                // The run never started: record why, keep it resumable.
+                if let Ok(mut info) = RunInfo::load(&dir) {
+                    info.state = RunState::Failed;
+                    info.error = Some(e.to_string());
+                    let _ = info.save(&dir);
+                }
+                events.emit(RunEvent::Failed {
+                    message: e.to_string(),
+                });
+                Err(e)
+            }
+        }
+    }
+
+    fn on_event(&self, id: &str, ev: &RunEvent, last_pair: &mut Instant) {
+        let mut s = self.lock();
+        if s.live.id == id {
+            let live = &mut s.live;
+            match ev {
+                RunEvent::StageStarted { stage } => {
+                    live.stage = stage.name().into();
+                    if stage.name() == "capture" {
+                        live.capture_started = Some((Instant::now(), live.pairs_done));
+                    }
+                }
+                RunEvent::Planned { pairs, .. } => live.pairs_total = *pairs,
+                RunEvent::Pair { done, total, .. } => {
+                    live.pairs_done = *done;
+                    live.pairs_total = *total;
+                    if live.capture_started.is_none() {
+                        live.capture_started = Some((Instant::now(), *done));
+                    }
+                }
+                RunEvent::Train(t) => {
+                    if let Some(loss) = train_loss(t) {
+                        live.loss = Some(loss);
+                    }
+                }
+                _ => {}
+            }
+        }
+        let Some(tx) = s.channels.get(id) else {
+            return;
+        };
+        if tx.receiver_count() == 0 {
+            return;
+        }
+        if let RunEvent::Pair { done, total, .. } = ev
+            && done != total
+            && last_pair.elapsed() < PAIR_EVENT_INTERVAL
+        {
+            return;
+        }
+        if matches!(ev, RunEvent::Pair { .. }) {
+            *last_pair = Instant::now();
+        }
+        let value = serde_json::to_value(ev).unwrap_or_default();
+        let name = event_name(&value);
+        // A send fails only when no client listens; that is fine.
+        let _ = tx.send(StreamEvent {
+            name,
+            json: value.to_string().into(),
+        });
+    }
+}
+
+/// What an e-stop did.
+#[derive(Debug, Serialize)]
+pub struct EstopReport {
+    /// The run that was aborted, if one was running.
+    pub aborted: Option<String>,
+    /// Seconds from the request until the instrument was safe.
+    pub seconds: f64,
+}
+
+fn train_loss(t: &periscope_recon::gtr::TrainEvent) -> Option<f64> {
+    serde_json::to_value(t).ok()?.get("loss")?.as_f64()
+}
+
+fn event_name(v: &serde_json::Value) -> Arc<str> {
+    v.get("event").and_then(|e| e.as_str()).unwrap_or("event").into()
+}
+
+/// A run state's name as the API spells it.
+pub fn state_name(s: RunState) -> &'static str {
+    match s {
+        RunState::Queued => "queued",
+        RunState::Running => "running",
+        RunState::Paused => "paused",
+        RunState::Completed => "completed",
+        RunState::Aborted => "aborted",
+        RunState::Failed => "failed",
+    }
+}

@@ -1,0 +1,560 @@
+//! The HTTP API: router tests without a socket (`tower::ServiceExt::oneshot`), against a
+//! service whose instrument is the simulator and whose runs live in a temporary
+//! directory. Bad input must get the right 4xx and change nothing.
+use std::path::Path;
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use axum::body::Body;
+use axum::http::{Method, Request, StatusCode, header};
+use periscope_daemon::api::{AppState, ROUTES, Service, app, openapi};
+use periscope_daemon::config::TomlSource;
+use serde_json::Value;
+use tower::ServiceExt;
+
+const TOKEN: &str = "test-token-0123456789abcdef";
+
+/// A small plan: 8×8 LOS, 8×8 confocal pairs, FBP (no 3D-GTR fit), so a run takes
+/// about a second at time-scale 0.
+pub const PLAN: &str = r#"
+name = "api-test"
+[los]
+angles-deg = { x = [-12.0, 12.0], y = [-12.0, 12.0] }
+grid = [12, 12]
+dwell-ms = 1.0
+[relay]
+depth-m = [1.7, 3.0]
+min-intensity = 0.05
+neighbours = 8
+detection = { min = [-0.4, -0.4, -0.1], max = [0.4, 0.4, 0.1] }
+[pairs]
+mode = "confocal"
+grid = [8, 8]
+offset-mm = 5.0
+[acquisition]
+dwell-ms = 20.0
+[recon]
+method = "fbp"
+[recon.volume]
+x = [-0.4, 0.4]
+y = [-0.4, 0.4]
+z = [0.3, 0.9]
+shape = [32, 32, 16]
+"#;
+
+/// The simulated instrument with its runs in `runs` and the given time scale.
+fn instrument(runs: &Path, time_scale: f64, token: Option<&str>) -> TomlSource {
+    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
+    let path = root.join("configs/instrument/sim.toml");
+    let mut text = std::fs::read_to_string(&path)
+        .unwrap()
+        .replace("[sim]\n", &format!("[sim]\ntime-scale = {time_scale}\n"));
+    text.push_str(&format!(
+        "\n[api]\nruns-dir = \"{}\"\nbody-limit-kib = 64\n{}",
+        runs.display(),
+        token.map(|t| format!("token = \"{t}\"\n")).unwrap_or_default()
+    ));
+    TomlSource::from_text(path, text)
+}
+
+fn service(runs: &Path, time_scale: f64, token: Option<&str>) -> Arc<Service> {
+    let src = instrument(runs, time_scale, token);
+    Service::open(src, token.map(str::to_owned)).unwrap()
+}
+
+async fn call(
+    router: &axum::Router,
+    method: Method,
+    uri: &str,
+    token: Option<&str>,
+    body: &str,
+) -> (StatusCode, Value) {
+    let (status, bytes) = call_raw(router, method, uri, token, body).await;
+    let json = serde_json::from_slice(&bytes).unwrap_or(Value::Null);
+    (status, json)
+}
+
+async fn call_raw(
+    router: &axum::Router,
+    method: Method,
+    uri: &str,
+    token: Option<&str>,
+    body: &str,
+) -> (StatusCode, Vec<u8>) {
+    let mut req = Request::builder().method(method).uri(uri);
+    if let Some(t) = token {
+        req = req.header(header::AUTHORIZATION, format!("Bearer {t}"));
+    }
+    if !body.is_empty() {
+        req = req.header(header::CONTENT_TYPE, "application/toml");
+    }
+    let resp = router
+        .clone()
+        .oneshot(req.body(Body::from(body.to_owned())).unwrap())
+        .await
+        .unwrap();
+    let status = resp.status();
+    let bytes = axum::body::to_bytes(resp.into_body(), 64 << 20).await.unwrap();
+    (status, bytes.to_vec())
+}
+
+fn listing(dir: &Path) -> Vec<String> {
+    let mut v: Vec<String> = std::fs::read_dir(dir)
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .collect();
+    v.sort();
+    v
+}
+
+async fn wait_for(
+    router: &axum::Router,
+    id: &str,
+    what: &str,
+    limit: Duration,
+    pred: impl Fn(&Value) -> bool,
+) -> Value {
+    let t = Instant::now();
+    loop {
+        let (s, v) = call(router, Method::GET, &format!("/api/v1/runs/{id}"), None, "").await;
+        assert_eq!(s, StatusCode::OK, "{v}");
+        if pred(&v) {
+            return v;
+        }
+        assert!(t.elapsed() < limit, "run {id} never became {what}: {v}");
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+}
+
+#[tokio::test]
+async fn health_and_openapi_match_the_routes() {
+    let dir = tempfile::tempdir().unwrap();
+    let router = app(AppState::new(service(dir.path(), 0.0, Some(TOKEN))));
+    let (s, v) = call(&router, Method::GET, "/api/v1/health", None, "").await;
+    assert_eq!((s, v["status"].as_str()), (StatusCode::OK, Some("ok")));
+
+    let (s, doc) = call(&router, Method::GET, "/api/v1/openapi.json", None, "").await;
+    assert_eq!(s, StatusCode::OK);
+    assert_eq!(doc, openapi());
+    let paths = doc["paths"].as_object().unwrap();
+    let mut documented: Vec<(String, String)> = paths
+        .iter()
+        .flat_map(|(p, ops)| {
+            ops.as_object()
+                .unwrap()
+                .keys()
+                .map(move |m| (m.to_uppercase(), p.clone()))
+        })
+        .collect();
+    let mut routes: Vec<(String, String)> = ROUTES
+        .iter()
+        .map(|(m, p)| (m.to_string(), p.to_string()))
+        .collect();
+    documented.sort();
+    routes.sort();
+    assert_eq!(
+        documented, routes,
+        "the OpenAPI document lists exactly the routes"
+    );
+    // Every route is served by a handler (not the unknown-route fallback), and a wrong
+    // method on it is a JSON 405.
+    for (m, p) in ROUTES {
+        let uri = p.replace("{id}", "no-such-run").replace("{name}", "depth.png");
+        let method = Method::from_bytes(m.as_bytes()).unwrap();
+        let (_, v) = call(&router, method, &uri, Some(TOKEN), "").await;
+        assert_ne!(v["error"], "not-found", "{m} {uri}: {v}");
+        assert_ne!(v["error"], "method-not-allowed", "{m} {uri}: {v}");
+    }
+    let (s, v) = call(&router, Method::DELETE, "/api/v1/runs", Some(TOKEN), "").await;
+    assert_eq!(
+        (s, v["error"].as_str()),
+        (StatusCode::METHOD_NOT_ALLOWED, Some("method-not-allowed"))
+    );
+    let (s, v) = call(&router, Method::GET, "/api/v2/runs", None, "").await;
+    assert_eq!(
+        (s, v["error"].as_str()),
+        (StatusCode::NOT_FOUND, Some("not-found"))
+    );
+}
+
+#[tokio::test]
+async fn bad_requests_get_4xx_and_change_nothing() {
+    let dir = tempfile::tempdir().unwrap();
+    let router = app(AppState::new(service(dir.path(), 0.0, Some(TOKEN))));
+    let before = listing(dir.path());
+
+    // Malformed TOML: 422 naming the line, like `periscope check`.
+    let (s, v) = call(
+        &router,
+        Method::POST,
+        "/api/v1/runs",
+        Some(TOKEN),
+        "name = \"x\"\n[los\n",
+    )
+    .await;
+    assert_eq!(
+        (s, v["error"].as_str()),
+        (StatusCode::UNPROCESSABLE_ENTITY, Some("invalid-plan")),
+        "{v}"
+    );
+    assert!(v["message"].as_str().unwrap().contains("request body:2"), "{v}");
+    // A value out of range names its key.
+    let bad = PLAN.replace("dwell-ms = 20.0", "dwell-ms = -1.0");
+    let (s, v) = call(&router, Method::POST, "/api/v1/runs", Some(TOKEN), &bad).await;
+    assert_eq!(s, StatusCode::UNPROCESSABLE_ENTITY, "{v}");
+    assert!(
+        v["message"].as_str().unwrap().contains("acquisition.dwell-ms"),
+        "{v}"
+    );
+    // Missing and wrong tokens.
+    let (s, v) = call(&router, Method::POST, "/api/v1/runs", None, PLAN).await;
+    assert_eq!(
+        (s, v["error"].as_str()),
+        (StatusCode::UNAUTHORIZED, Some("unauthorized")),
+        "{v}"
+    );
+    let (s, _) = call(
+        &router,
+        Method::POST,
+        "/api/v1/runs",
+        Some("wrong-token-wrong-token"),
+        PLAN,
+    )
+    .await;
+    assert_eq!(s, StatusCode::UNAUTHORIZED);
+    let (s, _) = call(&router, Method::POST, "/api/v1/estop", None, "").await;
+    assert_eq!(s, StatusCode::UNAUTHORIZED);
+    // Oversized body (the limit is 64 KiB here).
+    let huge = format!("{PLAN}\n# {}\n", "x".repeat(80 * 1024));
+    let (s, v) = call(&router, Method::POST, "/api/v1/runs", Some(TOKEN), &huge).await;
+    assert_eq!(
+        (s, v["error"].as_str()),
+        (StatusCode::PAYLOAD_TOO_LARGE, Some("body-too-large")),
+        "{v}"
+    );
+    // Empty body.
+    let (s, _) = call(&router, Method::POST, "/api/v1/runs", Some(TOKEN), "").await;
+    assert_eq!(s, StatusCode::UNPROCESSABLE_ENTITY);
+    // Unknown run, unknown file, path tricks.
+    for uri in [
+        "/api/v1/runs/nope",
+        "/api/v1/runs/nope/files/depth.png",
+        "/api/v1/runs/..%2F..%2Fetc/files/run.json",
+    ] {
+        let (s, v) = call(&router, Method::GET, uri, None, "").await;
+        assert_eq!(s, StatusCode::NOT_FOUND, "{uri}: {v}");
+        assert!(v["message"].is_string(), "{uri}: {v}");
+    }
+    for action in ["pause", "resume", "abort"] {
+        let (s, v) = call(
+            &router,
+            Method::POST,
+            &format!("/api/v1/runs/nope/{action}"),
+            Some(TOKEN),
+            "",
+        )
+        .await;
+        assert_eq!(
+            (s, v["error"].as_str()),
+            (StatusCode::NOT_FOUND, Some("unknown-run")),
+            "{v}"
+        );
+    }
+    assert_eq!(listing(dir.path()), before, "nothing was created");
+
+    // A queued run (no worker here): pausing it is a conflict, and changes nothing.
+    let (s, run) = call(&router, Method::POST, "/api/v1/runs", Some(TOKEN), PLAN).await;
+    assert_eq!(s, StatusCode::CREATED, "{run}");
+    let id = run["id"].as_str().unwrap().to_owned();
+    let run_json = std::fs::read(dir.path().join(&id).join("run.json")).unwrap();
+    let (s, v) = call(
+        &router,
+        Method::POST,
+        &format!("/api/v1/runs/{id}/pause"),
+        Some(TOKEN),
+        "",
+    )
+    .await;
+    assert_eq!(
+        (s, v["error"].as_str()),
+        (StatusCode::CONFLICT, Some("conflict")),
+        "{v}"
+    );
+    assert!(v["message"].as_str().unwrap().contains("queued"), "{v}");
+    let (s, _) = call(
+        &router,
+        Method::POST,
+        &format!("/api/v1/runs/{id}/resume"),
+        Some(TOKEN),
+        "",
+    )
+    .await;
+    assert_eq!(s, StatusCode::CONFLICT);
+    assert_eq!(
+        std::fs::read(dir.path().join(&id).join("run.json")).unwrap(),
+        run_json
+    );
+    let (s, v) = call(
+        &router,
+        Method::GET,
+        &format!("/api/v1/runs/{id}/files/secret.txt"),
+        None,
+        "",
+    )
+    .await;
+    assert_eq!(
+        (s, v["error"].as_str()),
+        (StatusCode::NOT_FOUND, Some("unknown-file"))
+    );
+    let (s, v) = call(
+        &router,
+        Method::GET,
+        &format!("/api/v1/runs/{id}/files/depth.png"),
+        None,
+        "",
+    )
+    .await;
+    assert_eq!(
+        (s, v["error"].as_str()),
+        (StatusCode::NOT_FOUND, Some("file-not-ready"))
+    );
+}
+
+#[tokio::test]
+async fn without_a_token_configured_mutations_are_forbidden() {
+    let dir = tempfile::tempdir().unwrap();
+    let router = app(AppState::new(service(dir.path(), 0.0, None)));
+    let (s, v) = call(&router, Method::POST, "/api/v1/runs", Some(TOKEN), PLAN).await;
+    assert_eq!(
+        (s, v["error"].as_str()),
+        (StatusCode::FORBIDDEN, Some("no-token-configured"))
+    );
+    let (s, _) = call(&router, Method::GET, "/api/v1/runs", None, "").await;
+    assert_eq!(s, StatusCode::OK, "reads stay open on loopback");
+}
+
+#[tokio::test]
+async fn the_queue_persists_across_a_restart_and_an_interrupted_run_is_held() {
+    let dir = tempfile::tempdir().unwrap();
+    let ids: Vec<String> = {
+        let router = app(AppState::new(service(dir.path(), 0.0, Some(TOKEN))));
+        let mut ids = Vec::new();
+        for k in 0..3 {
+            let (s, v) = call(&router, Method::POST, "/api/v1/runs", Some(TOKEN), PLAN).await;
+            assert_eq!(s, StatusCode::CREATED, "{v}");
+            assert_eq!(v["queue_position"], k, "{v}");
+            ids.push(v["id"].as_str().unwrap().to_owned());
+        }
+        ids
+    };
+    // The first run was running when the daemon died.
+    let run_json = dir.path().join(&ids[0]).join("run.json");
+    let text = std::fs::read_to_string(&run_json)
+        .unwrap()
+        .replace("\"queued\"", "\"running\"");
+    std::fs::write(&run_json, text).unwrap();
+
+    let router = app(AppState::new(service(dir.path(), 0.0, Some(TOKEN))));
+    let (_, list) = call(&router, Method::GET, "/api/v1/runs", None, "").await;
+    let states: Vec<(&str, &str)> = list
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|r| (r["id"].as_str().unwrap(), r["state"].as_str().unwrap()))
+        .collect();
+    assert_eq!(
+        states,
+        vec![(&*ids[0], "paused"), (&*ids[1], "queued"), (&*ids[2], "queued")],
+        "{list}"
+    );
+    assert!(
+        list[0]["error"].as_str().unwrap().contains("interrupted"),
+        "{list}"
+    );
+    assert_eq!(list[1]["queue_position"], 0);
+    assert_eq!(list[2]["queue_position"], 1);
+    // Aborting a queued run takes it out of the queue at once.
+    let (s, v) = call(
+        &router,
+        Method::POST,
+        &format!("/api/v1/runs/{}/abort", ids[2]),
+        Some(TOKEN),
+        "",
+    )
+    .await;
+    assert_eq!(
+        (s, v["state"].as_str()),
+        (StatusCode::ACCEPTED, Some("aborted")),
+        "{v}"
+    );
+    let queue = std::fs::read_to_string(dir.path().join("queue.json")).unwrap();
+    assert!(
+        queue.contains(&ids[0]) && queue.contains(&ids[1]) && !queue.contains(&ids[2]),
+        "{queue}"
+    );
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_run_completes_and_its_results_download() {
+    let dir = tempfile::tempdir().unwrap();
+    let svc = service(dir.path(), 0.0, Some(TOKEN));
+    let worker = svc.start_worker();
+    let router = app(AppState::new(Arc::clone(&svc)));
+    let (s, v) = call(&router, Method::POST, "/api/v1/runs", Some(TOKEN), PLAN).await;
+    assert_eq!(s, StatusCode::CREATED, "{v}");
+    let id = v["id"].as_str().unwrap().to_owned();
+    let done = wait_for(&router, &id, "completed", Duration::from_secs(120), |v| {
+        v["state"] == "completed" || v["state"] == "failed"
+    })
+    .await;
+    assert_eq!(done["state"], "completed", "{done}");
+    assert_eq!(done["progress"], 1.0);
+    assert!(done["pairs_done"].as_u64().unwrap() > 20, "{done}");
+    for (name, magic) in [
+        ("depth.png", &b"\x89PNG"[..]),
+        ("albedo.png", b"\x89PNG"),
+        ("volume.npy", b"\x93NUMPY"),
+        ("relay.ply", b"ply"),
+        ("capture.hdf5", b"\x89HDF"),
+    ] {
+        let (s, bytes) = call_raw(
+            &router,
+            Method::GET,
+            &format!("/api/v1/runs/{id}/files/{name}"),
+            None,
+            "",
+        )
+        .await;
+        assert_eq!(s, StatusCode::OK, "{name}");
+        assert!(bytes.starts_with(magic), "{name}");
+        assert!(
+            done["files"].as_array().unwrap().iter().any(|f| f == name),
+            "{done}"
+        );
+    }
+    // A finished run's event stream is its status, then the end.
+    let (s, bytes) = call_raw(
+        &router,
+        Method::GET,
+        &format!("/api/v1/runs/{id}/events"),
+        None,
+        "",
+    )
+    .await;
+    assert_eq!(s, StatusCode::OK);
+    let text = String::from_utf8(bytes).unwrap();
+    assert!(text.starts_with("event: status\ndata: {"), "{text}");
+    let (s, v) = call(
+        &router,
+        Method::POST,
+        &format!("/api/v1/runs/{id}/abort"),
+        Some(TOKEN),
+        "",
+    )
+    .await;
+    assert_eq!(s, StatusCode::CONFLICT, "{v}");
+    svc.shutdown();
+    worker.join().unwrap();
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn pause_resume_abort_and_estop_keep_the_data() {
+    let dir = tempfile::tempdir().unwrap();
+    // Real-time simulation: 64 pairs × 20 ms dwell ≈ 1.5 s of capture.
+    let svc = service(dir.path(), 1.0, Some(TOKEN));
+    let worker = svc.start_worker();
+    let router = app(AppState::new(Arc::clone(&svc)));
+    let submit = || async {
+        let (s, v) = call(&router, Method::POST, "/api/v1/runs", Some(TOKEN), PLAN).await;
+        assert_eq!(s, StatusCode::CREATED, "{v}");
+        v["id"].as_str().unwrap().to_owned()
+    };
+    let capturing = |v: &Value| v["stage"] == "capture" && v["pairs_done"].as_u64().unwrap_or(0) >= 5;
+    let limit = Duration::from_secs(60);
+
+    // Pause lands between pairs; resume continues to the end.
+    let a = submit().await;
+    wait_for(&router, &a, "capturing", limit, capturing).await;
+    let (s, v) = call(
+        &router,
+        Method::POST,
+        &format!("/api/v1/runs/{a}/pause"),
+        Some(TOKEN),
+        "",
+    )
+    .await;
+    assert_eq!(s, StatusCode::ACCEPTED, "{v}");
+    let paused = wait_for(&router, &a, "paused", limit, |v| v["state"] == "paused").await;
+    let (done, total) = (
+        paused["pairs_done"].as_u64().unwrap(),
+        paused["pairs_total"].as_u64().unwrap(),
+    );
+    assert!(done >= 5 && done < total, "{paused}");
+    let log = std::fs::metadata(dir.path().join(&a).join("histograms.bin"))
+        .unwrap()
+        .len();
+    assert!(log > 0);
+    let (s, v) = call(
+        &router,
+        Method::POST,
+        &format!("/api/v1/runs/{a}/resume"),
+        Some(TOKEN),
+        "",
+    )
+    .await;
+    assert_eq!(s, StatusCode::ACCEPTED, "{v}");
+    let fin = wait_for(&router, &a, "completed", limit, |v| v["state"] == "completed").await;
+    assert_eq!(fin["pairs_done"], fin["pairs_total"], "{fin}");
+
+    // Abort keeps what was captured.
+    let b = submit().await;
+    wait_for(&router, &b, "capturing", limit, capturing).await;
+    let (s, _) = call(
+        &router,
+        Method::POST,
+        &format!("/api/v1/runs/{b}/abort"),
+        Some(TOKEN),
+        "",
+    )
+    .await;
+    assert_eq!(s, StatusCode::ACCEPTED);
+    let ab = wait_for(&router, &b, "aborted", limit, |v| v["state"] == "aborted").await;
+    let kept = periscope_daemon::store::read_log(&dir.path().join(&b))
+        .unwrap()
+        .records
+        .len();
+    assert!(kept >= 5, "{kept} records kept: {ab}");
+
+    // E-stop: the running run aborts, the queued one is held, the laser is off.
+    let c = submit().await;
+    let d = submit().await;
+    wait_for(&router, &c, "capturing", limit, capturing).await;
+    let t = Instant::now();
+    let (s, v) = call(&router, Method::POST, "/api/v1/estop", Some(TOKEN), "").await;
+    assert_eq!((s, v["aborted"].as_str()), (StatusCode::OK, Some(&*c)), "{v}");
+    assert!(
+        t.elapsed() < Duration::from_secs(2),
+        "e-stop took {:?}",
+        t.elapsed()
+    );
+    let (_, vc) = call(&router, Method::GET, &format!("/api/v1/runs/{c}"), None, "").await;
+    assert_eq!(vc["state"], "aborted", "{vc}");
+    tokio::time::sleep(Duration::from_millis(300)).await;
+    let (_, vd) = call(&router, Method::GET, &format!("/api/v1/runs/{d}"), None, "").await;
+    assert_eq!(vd["state"], "paused", "{vd}");
+    let (s, inst) = call(&router, Method::GET, "/api/v1/instrument", None, "").await;
+    assert_eq!(s, StatusCode::OK);
+    assert_eq!(inst["busy"], false, "{inst}");
+    assert_eq!(inst["devices"]["laser"]["emission"], false, "{inst}");
+    let (s, _) = call(
+        &router,
+        Method::POST,
+        &format!("/api/v1/runs/{d}/abort"),
+        Some(TOKEN),
+        "",
+    )
+    .await;
+    assert_eq!(s, StatusCode::ACCEPTED);
+    svc.shutdown();
+    worker.join().unwrap();
+}
