@@ -1,6 +1,7 @@
 //! The HTTP API: router tests without a socket (`tower::ServiceExt::oneshot`), against a
 //! service whose instrument is the simulator and whose runs live in a temporary
 //! directory. Bad input must get the right 4xx and change nothing.
+use std::future::IntoFuture;
 use std::path::Path;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
@@ -555,6 +556,114 @@ async fn pause_resume_abort_and_estop_keep_the_data() {
     )
     .await;
     assert_eq!(s, StatusCode::ACCEPTED);
+    svc.shutdown();
+    worker.join().unwrap();
+}
+
+/// What one event-stream client saw.
+#[derive(Debug, Default)]
+struct Seen {
+    names: Vec<String>,
+}
+
+async fn sse_client(client: reqwest::Client, url: String) -> Seen {
+    let mut resp = client.get(&url).send().await.expect("event stream opens");
+    assert_eq!(resp.status(), 200);
+    let mut seen = Seen::default();
+    let mut buf = String::new();
+    while let Some(chunk) = resp.chunk().await.expect("event stream reads") {
+        buf.push_str(&String::from_utf8_lossy(&chunk));
+        while let Some(end) = buf.find("\n\n") {
+            let block: String = buf.drain(..end + 2).collect();
+            if let Some(name) = block.lines().find_map(|l| l.strip_prefix("event: ")) {
+                seen.names.push(name.to_owned());
+            }
+        }
+    }
+    seen
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn fifty_event_streams_and_a_status_poller_follow_a_real_capture() {
+    let dir = tempfile::tempdir().unwrap();
+    let svc = service(dir.path(), 1.0, Some(TOKEN));
+    let worker = svc.start_worker();
+    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+    let base = format!("http://{}/api/v1", listener.local_addr().unwrap());
+    let server = tokio::spawn(
+        axum::serve(
+            listener,
+            app(AppState::new(Arc::clone(&svc)))
+                .into_make_service_with_connect_info::<std::net::SocketAddr>(),
+        )
+        .into_future(),
+    );
+    let client = reqwest::Client::new();
+    let resp = client
+        .post(format!("{base}/runs"))
+        .bearer_auth(TOKEN)
+        .header("content-type", "application/toml")
+        .body(PLAN)
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(resp.status(), 201);
+    let id = serde_json::from_slice::<Value>(&resp.bytes().await.unwrap()).unwrap()["id"]
+        .as_str()
+        .unwrap()
+        .to_owned();
+    let clients: Vec<_> = (0..50)
+        .map(|_| tokio::spawn(sse_client(client.clone(), format!("{base}/runs/{id}/events"))))
+        .collect();
+    let poller = {
+        let (client, url) = (client.clone(), format!("{base}/runs/{id}"));
+        tokio::spawn(async move {
+            let mut latencies = Vec::new();
+            loop {
+                let t = Instant::now();
+                let resp = client.get(&url).send().await.unwrap();
+                assert_eq!(resp.status(), 200);
+                let v: Value = serde_json::from_slice(&resp.bytes().await.unwrap()).unwrap();
+                latencies.push(t.elapsed());
+                if v["state"] != "queued" && v["state"] != "running" {
+                    return (v, latencies);
+                }
+                tokio::time::sleep(Duration::from_millis(10)).await;
+            }
+        })
+    };
+    let (last, mut latencies) = tokio::time::timeout(Duration::from_secs(120), poller)
+        .await
+        .expect("the run finishes within 2 minutes")
+        .unwrap();
+    assert_eq!(last["state"], "completed", "{last}");
+    for c in clients {
+        let seen = tokio::time::timeout(Duration::from_secs(30), c)
+            .await
+            .expect("each stream ends when the run does")
+            .unwrap();
+        assert_eq!(seen.names.first().map(String::as_str), Some("status"), "{seen:?}");
+        for name in [
+            "stage-started",
+            "planned",
+            "pair",
+            "stage-finished",
+            "output",
+            "completed",
+        ] {
+            assert!(seen.names.iter().any(|n| n == name), "no {name} event: {seen:?}");
+        }
+        assert!(!seen.names.iter().any(|n| n == "lagged"), "{seen:?}");
+    }
+    latencies.sort();
+    eprintln!(
+        "status polls: {}, median {:?}, max {:?}",
+        latencies.len(),
+        latencies[latencies.len() / 2],
+        latencies.last().unwrap()
+    );
+    assert!(latencies.len() > 10);
+    server.abort();
     svc.shutdown();
     worker.join().unwrap();
 }

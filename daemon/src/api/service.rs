@@ -22,8 +22,8 @@ use crate::store::{RunInfo, RunState, write_atomic};
 /// The queue file in the runs directory.
 pub const QUEUE_FILE: &str = "queue.json";
 
-/// Pair events are forwarded to event-stream clients at most this often (plus the last
-/// one); stage, optimiser and output events always are.
+/// Pair and LOS-point events are forwarded to event-stream clients at most this often
+/// (plus the last one); stage, optimiser and output events always are.
 const PAIR_EVENT_INTERVAL: Duration = Duration::from_millis(50);
 
 /// Events buffered per run for slow stream clients before they are told they lagged.
@@ -537,12 +537,22 @@ impl Service {
         v
     }
 
-    /// Subscribes to a run's events. `None` when the run is not running (its past
-    /// events are in `events.jsonl`).
+    /// Subscribes to a run's events: a running run's, or a queued or paused one's from
+    /// when it (re)starts. `None` when the run has finished (its past events are in
+    /// `events.jsonl`). The stream ends when the run stops.
     pub fn subscribe(&self, id: &str) -> Result<Option<broadcast::Receiver<StreamEvent>>, ServiceError> {
         self.dir(id)?;
-        let s = self.lock();
-        Ok(s.channels.get(id).map(broadcast::Sender::subscribe))
+        let mut s = self.lock();
+        let waiting = s.current.as_ref().is_some_and(|(c, _)| c == id) || s.queue.iter().any(|q| q == id);
+        if !waiting {
+            return Ok(None);
+        }
+        Ok(Some(
+            s.channels
+                .entry(id.to_owned())
+                .or_insert_with(|| broadcast::channel(EVENT_BUFFER).0)
+                .subscribe(),
+        ))
     }
 
     fn worker(self: Arc<Self>) {
@@ -566,8 +576,9 @@ impl Service {
                             stage: "starting".into(),
                             ..Live::default()
                         };
-                        let (tx, _) = broadcast::channel(EVENT_BUFFER);
-                        s.channels.insert(id.clone(), tx);
+                        s.channels
+                            .entry(id.clone())
+                            .or_insert_with(|| broadcast::channel(EVENT_BUFFER).0);
                         break (id, control);
                     }
                     s = self.wake.wait(s).unwrap_or_else(|p| p.into_inner());
@@ -660,13 +671,16 @@ impl Service {
         if tx.receiver_count() == 0 {
             return;
         }
-        if let RunEvent::Pair { done, total, .. } = ev
-            && done != total
-            && last_pair.elapsed() < PAIR_EVENT_INTERVAL
-        {
-            return;
-        }
-        if matches!(ev, RunEvent::Pair { .. }) {
+        // Per-pair and per-LOS-point progress is forwarded at a display rate (and the
+        // last one always), so clients cost the capture nothing measurable.
+        let progress = match ev {
+            RunEvent::Pair { done, total, .. } | RunEvent::LosPoint { done, total } => Some(done == total),
+            _ => None,
+        };
+        if let Some(last) = progress {
+            if !last && last_pair.elapsed() < PAIR_EVENT_INTERVAL {
+                return;
+            }
             *last_pair = Instant::now();
         }
         let value = serde_json::to_value(ev).unwrap_or_default();

@@ -1,0 +1,186 @@
+//! The HTTP API under load: a capture's pairs per second with and without 50
+//! event-stream clients attached, and the status endpoint's latency meanwhile.
+//!
+//! `cargo bench -p periscope-daemon --bench api` (release). Each of 5 rounds runs the
+//! same plan (a 48×48 confocal grid on the simulator at time-scale 0, so the capture is
+//! as fast as the drivers and the physics go, FBP reconstruction) once with no client
+//! and once with 50 SSE clients and a status poller; medians are printed.
+use std::future::IntoFuture;
+use std::path::Path;
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use periscope_daemon::api::{AppState, Service, app};
+use periscope_daemon::config::TomlSource;
+use serde_json::Value;
+
+const TOKEN: &str = "bench-token-0123456789abcdef";
+const CLIENTS: usize = 50;
+const ROUNDS: usize = 7;
+
+const PLAN: &str = r#"
+name = "api-bench"
+[los]
+angles-deg = { x = [-12.0, 12.0], y = [-12.0, 12.0] }
+grid = [16, 16]
+dwell-ms = 1.0
+[relay]
+depth-m = [1.7, 3.0]
+min-intensity = 0.05
+neighbours = 8
+detection = { min = [-0.4, -0.4, -0.1], max = [0.4, 0.4, 0.1] }
+[pairs]
+mode = "confocal"
+grid = [48, 48]
+offset-mm = 5.0
+[acquisition]
+dwell-ms = 20.0
+[recon]
+method = "fbp"
+[recon.volume]
+x = [-0.4, 0.4]
+y = [-0.4, 0.4]
+z = [0.3, 0.9]
+shape = [16, 16, 8]
+"#;
+
+fn service(runs: &Path) -> Arc<Service> {
+    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../configs/instrument/sim.toml");
+    let mut text = std::fs::read_to_string(&path).unwrap();
+    text.push_str(&format!("\n[api]\nruns-dir = \"{}\"\n", runs.display()));
+    Service::open(TomlSource::from_text(path, text), Some(TOKEN.into())).unwrap()
+}
+
+struct Round {
+    pairs_per_s: f64,
+    latencies: Vec<Duration>,
+}
+
+async fn round(clients: usize) -> Round {
+    let dir = tempfile::tempdir().unwrap();
+    let svc = service(dir.path());
+    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+    let base = format!("http://{}/api/v1", listener.local_addr().unwrap());
+    let server = tokio::spawn(
+        axum::serve(
+            listener,
+            app(AppState::new(Arc::clone(&svc)))
+                .into_make_service_with_connect_info::<std::net::SocketAddr>(),
+        )
+        .into_future(),
+    );
+    let http = reqwest::Client::new();
+    let v: Value = serde_json::from_slice(
+        &http
+            .post(format!("{base}/runs"))
+            .bearer_auth(TOKEN)
+            .header("content-type", "application/toml")
+            .body(PLAN)
+            .send()
+            .await
+            .unwrap()
+            .bytes()
+            .await
+            .unwrap(),
+    )
+    .unwrap();
+    let id = v["id"].as_str().unwrap().to_owned();
+    // Attach the clients while the run is queued, then let the worker start it.
+    let mut streams = Vec::new();
+    for _ in 0..clients {
+        let mut resp = http.get(format!("{base}/runs/{id}/events")).send().await.unwrap();
+        let first = resp.chunk().await.unwrap();
+        assert!(first.is_some());
+        streams.push(tokio::spawn(async move {
+            let mut bytes = 0usize;
+            while let Ok(Some(c)) = resp.chunk().await {
+                bytes += c.len();
+            }
+            bytes
+        }));
+    }
+    let worker = svc.start_worker();
+    let mut latencies = Vec::new();
+    loop {
+        let t = Instant::now();
+        let v: Value = serde_json::from_slice(
+            &http
+                .get(format!("{base}/runs/{id}"))
+                .send()
+                .await
+                .unwrap()
+                .bytes()
+                .await
+                .unwrap(),
+        )
+        .unwrap();
+        if clients > 0 && v["stage"] == "capture" {
+            latencies.push(t.elapsed());
+        }
+        if v["state"] == "completed" || v["state"] == "failed" {
+            assert_eq!(v["state"], "completed", "{v}");
+            break;
+        }
+        tokio::time::sleep(Duration::from_millis(5)).await;
+    }
+    for s in streams {
+        s.await.unwrap();
+    }
+    let info: Value =
+        serde_json::from_str(&std::fs::read_to_string(dir.path().join(&id).join("run.json")).unwrap())
+            .unwrap();
+    let capture_s = info["timings"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|t| t[0] == "capture")
+        .and_then(|t| t[1].as_f64())
+        .unwrap();
+    let pairs = info["pairs_done"].as_f64().unwrap();
+    server.abort();
+    svc.shutdown();
+    worker.join().unwrap();
+    Round {
+        pairs_per_s: pairs / capture_s,
+        latencies,
+    }
+}
+
+fn median(mut v: Vec<f64>) -> f64 {
+    v.sort_by(f64::total_cmp);
+    v[v.len() / 2]
+}
+
+fn main() {
+    let rt = tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .build()
+        .unwrap();
+    let (mut quiet, mut loaded, mut lat) = (Vec::new(), Vec::new(), Vec::new());
+    for r in 0..ROUNDS {
+        let a = rt.block_on(round(0));
+        let b = rt.block_on(round(CLIENTS));
+        println!(
+            "round {r}: {:.0} pairs/s alone, {:.0} pairs/s with {CLIENTS} event streams",
+            a.pairs_per_s, b.pairs_per_s
+        );
+        quiet.push(a.pairs_per_s);
+        loaded.push(b.pairs_per_s);
+        lat.extend(b.latencies);
+    }
+    lat.sort();
+    let (q, l) = (median(quiet), median(loaded));
+    println!(
+        "capture, median of {ROUNDS}: {q:.0} pairs/s alone, {l:.0} pairs/s with {CLIENTS} event streams ({:+.1} %)",
+        100.0 * (l / q - 1.0)
+    );
+    if !lat.is_empty() {
+        println!(
+            "GET /runs/{{id}} during the loaded captures: {} polls, median {:.2} ms, p90 {:.2} ms, max {:.2} ms",
+            lat.len(),
+            lat[lat.len() / 2].as_secs_f64() * 1e3,
+            lat[lat.len() * 9 / 10].as_secs_f64() * 1e3,
+            lat.last().unwrap().as_secs_f64() * 1e3
+        );
+    }
+}
