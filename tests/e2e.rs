@@ -1,14 +1,17 @@
 //! End to end on the simulated instrument: `periscope run` scans the relay, plans and
 //! captures pairs through the real drivers, reconstructs, and the depth map is compared
-//! with the simulator's ground truth.
+//! with the simulator's ground truth. Four scenes: planar wall + letter (confocal, and
+//! non-confocal with a fixed laser), S-shaped relay + letter, torso pair + mannequin.
 //!
 //! Tolerances: on the pixels where both the reconstruction and the truth have the
-//! object, the median depth error is under 2 cm (the target; measured 5 mm);
-//! the silhouette (pixels with a depth) overlaps the true one with IoU above 0.5. The
-//! issue's IoU target is 0.7; we measure 0.56 on the demo, because the reconstruction
-//! blurs the 7 cm strokes by about 2.5 cm on each side (the lateral resolution of a
-//! 0.8 m aperture at 0.6 m with 60 ps jitter), so the bound here guards against
-//! regressions, not the target.
+//! object, the median depth error is under 2 cm (the target; measured 2.7–7 mm
+//! on all four) and the 90th percentile under 3–4 cm (measured under 1 cm). The
+//! silhouette (pixels with a depth) IoU bounds are regression guards, not the issue's
+//! 0.7 target, which is missed: measured 0.55 (confocal wall), 0.43 (fixed laser),
+//! 0.51 (S relay), 0.26 (torsos, 194 pairs over two 0.42 m backs for a 1 m mannequin).
+//! The reconstruction blurs the letters' 7 cm strokes by about 2.5 cm on each side (the
+//! lateral resolution of a 0.8 m aperture at 0.6 m with 60 ps jitter), which costs IoU
+//! on thin shapes while the depth stays accurate.
 use std::path::Path;
 use std::time::Duration;
 
@@ -145,6 +148,60 @@ fn planar_wall_letter_confocal_matches_the_truth() {
     );
     eprintln!("wall + letter, from the exported capture with FBP: {b:?}");
     assert!(b.median_error < 0.02, "FBP on the export: {b:?}");
+}
+
+/// Runs `plan` on `instrument` and scores the depth map against `scene`'s truth over
+/// the plan's 64×64 volume footprint `x` × `y`.
+fn run_and_score(plan: &str, instrument: &str, scene: &str, x: [f64; 2], y: [f64; 2]) -> Accuracy {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("run");
+    run(plan, Some(instrument), &out);
+    let a = accuracy(&out, scene, x, y, [64, 64]);
+    eprintln!("{plan}: {a:?}");
+    assert!(a.object_pixels > 50, "the truth has the object: {a:?}");
+    a
+}
+
+#[test]
+fn planar_wall_letter_non_confocal_matches_the_truth() {
+    let a = run_and_score(
+        "configs/plans/wall-letter-fixed-laser.toml",
+        "configs/instrument/sim.toml",
+        "configs/scenes/wall-letter.toml",
+        [-0.4, 0.4],
+        [-0.4, 0.4],
+    );
+    assert!(a.median_error < 0.02, "{a:?}");
+    assert!(a.p90_error < 0.04, "{a:?}");
+    assert!(a.iou > 0.4, "{a:?}");
+}
+
+#[test]
+fn s_shaped_relay_letter_matches_the_truth() {
+    let a = run_and_score(
+        "configs/plans/s-wall-letter.toml",
+        "configs/instrument/sim-s-wall-letter.toml",
+        "configs/scenes/s-wall-letter.toml",
+        [-0.4, 0.4],
+        [-0.4, 0.4],
+    );
+    assert!(a.median_error < 0.02, "{a:?}");
+    assert!(a.p90_error < 0.04, "{a:?}");
+    assert!(a.iou > 0.4, "{a:?}");
+}
+
+#[test]
+fn torso_pair_mannequin_matches_the_truth() {
+    let a = run_and_score(
+        "configs/plans/torsos-mannequin.toml",
+        "configs/instrument/sim-torsos-mannequin.toml",
+        "configs/scenes/torsos-mannequin.toml",
+        [-0.5, 0.5],
+        [-0.6, 0.6],
+    );
+    assert!(a.median_error < 0.02, "{a:?}");
+    assert!(a.p90_error < 0.03, "{a:?}");
+    assert!(a.iou > 0.2, "{a:?}");
 }
 
 /// Scores an existing run directory against the default scene's truth:

@@ -313,7 +313,9 @@ fn devices(config: &InstrumentConfig) -> anyhow::Result<()> {
 
 /// Runs (or resumes) the run in `dir` with a progress display and prints the summary.
 fn execute_run(dir: &Path) -> anyhow::Result<()> {
-    let run = Run::open(dir, Control::new(), None)?;
+    let control = Control::new();
+    pause_on_ctrl_c(control.clone());
+    let run = Run::open(dir, control, None)?;
     crate::progress::attach(run.events());
     let summary = run.execute()?;
     println!("run complete: {}", summary.dir.display());
@@ -348,4 +350,31 @@ fn random_token() -> String {
     let mut bytes = [0u8; 24];
     rand::rng().fill_bytes(&mut bytes);
     bytes.iter().map(|b| format!("{b:02x}")).collect()
+}
+
+/// Ctrl-C during `periscope run`/`resume`: the run pauses at its next checkpoint (between
+/// pairs), its error path switches the laser off and parks both arms, and the data
+/// stays resumable. A second Ctrl-C exits at once (exit code 130).
+fn pause_on_ctrl_c(control: Control) {
+    let spawned = std::thread::Builder::new().name("signals".into()).spawn(move || {
+        let Ok(rt) = tokio::runtime::Builder::new_current_thread().enable_all().build() else {
+            return;
+        };
+        rt.block_on(async {
+            if tokio::signal::ctrl_c().await.is_err() {
+                return;
+            }
+            eprintln!(
+                "\ninterrupted: pausing at the next checkpoint (laser off, arms parked); \
+                 `periscope resume` continues the run. Ctrl-C again to exit at once."
+            );
+            control.pause();
+            if tokio::signal::ctrl_c().await.is_ok() {
+                std::process::exit(130);
+            }
+        });
+    });
+    if let Err(e) = spawned {
+        tracing::warn!("Ctrl-C will not pause the run safely: {e}");
+    }
 }
