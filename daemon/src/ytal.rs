@@ -547,12 +547,20 @@ impl YtalCapture {
     }
 
     /// Writes the capture in y-tal's own layout (what `tal.io.write_capture` writes), so
-    /// y-tal and h5py read it.
+    /// y-tal and h5py read it. The file is replaced atomically.
     pub fn write(&self, path: &Path) -> Result<(), YtalError> {
-        let err = |e: &dyn std::fmt::Display| YtalError::Hdf5 {
+        let bytes = self.to_bytes().map_err(|e| YtalError::Hdf5 {
+            path: path.to_path_buf(),
+            message: format!("cannot be encoded: {e}"),
+        })?;
+        crate::store::write_atomic(path, &bytes).map_err(|e| YtalError::Hdf5 {
             path: path.to_path_buf(),
             message: format!("cannot be written: {e}"),
-        };
+        })
+    }
+
+    /// The capture as the bytes of a y-tal HDF5 file (what [`YtalCapture::write`] stores).
+    pub fn to_bytes(&self) -> Result<Vec<u8>, hdf5_pure::Error> {
         let h_type = enum_type(
             make_i32_type(),
             &[
@@ -562,12 +570,10 @@ impl YtalCapture {
                 ("T_Si", 3),
                 ("T_Li_Si", 4),
             ],
-        )
-        .map_err(|e| err(&e))?;
-        let grid_type =
-            enum_type(make_i32_type(), &[("UNKNOWN", 0), ("N_3", 1), ("X_Y_3", 2)]).map_err(|e| err(&e))?;
+        )?;
+        let grid_type = enum_type(make_i32_type(), &[("UNKNOWN", 0), ("N_3", 1), ("X_Y_3", 2)])?;
         // numpy booleans, as h5py stores them.
-        let bool_type = enum_type(make_i8_type(), &[("FALSE", 0), ("TRUE", 1)]).map_err(|e| err(&e))?;
+        let bool_type = enum_type(make_i8_type(), &[("FALSE", 0), ("TRUE", 1)])?;
         let shape = |s: &[usize]| s.iter().map(|&d| d as u64).collect::<Vec<u64>>();
         let mut b = FileBuilder::new();
         b.create_dataset("H")
@@ -615,8 +621,7 @@ impl YtalCapture {
                 .with_vlen_strings(&[info])
                 .with_shape(&[]);
         }
-        let bytes = b.finish().map_err(|e| err(&e))?;
-        crate::store::write_atomic(path, &bytes).map_err(|e| err(&e))
+        b.finish()
     }
 
     /// A run's stored histograms as a y-tal capture: `T_Si` with paired `N_3` point

@@ -112,6 +112,7 @@ impl From<ServiceError> for ApiError {
             ServiceError::InvalidPlan(_) => (StatusCode::UNPROCESSABLE_ENTITY, "invalid-plan"),
             ServiceError::Storage(_) => (StatusCode::INTERNAL_SERVER_ERROR, "storage"),
             ServiceError::Device(_) => (StatusCode::SERVICE_UNAVAILABLE, "device"),
+            ServiceError::Config(_) => (StatusCode::INTERNAL_SERVER_ERROR, "config"),
         };
         ApiError::new(status, code, e.to_string())
     }
@@ -411,13 +412,9 @@ async fn file(
             // Interrupted or running runs: export what is stored so far.
             let capture = crate::ytal::YtalCapture::from_run(&s.runs_dir().join(&id))
                 .map_err(|e| ServiceError::Conflict(format!("run {id} has no capture to export yet: {e}")))?;
-            let tmp = std::env::temp_dir().join(format!("periscope-{id}-{}.hdf5", std::process::id()));
-            capture
-                .write(&tmp)
-                .map_err(|e| ServiceError::Storage(e.to_string()))?;
-            let bytes = std::fs::read(&tmp).map_err(|e| ServiceError::Storage(e.to_string()));
-            let _ = std::fs::remove_file(&tmp);
-            return bytes;
+            return capture
+                .to_bytes()
+                .map_err(|e| ServiceError::Storage(format!("{id}: capture export: {e}")));
         }
         std::fs::read(&path).map_err(|_| {
             ServiceError::Conflict(format!(

@@ -88,6 +88,9 @@ pub enum ServiceError {
     /// The instrument could not be reached.
     #[error("{0}")]
     Device(String),
+    /// The instrument config is invalid.
+    #[error(transparent)]
+    Config(#[from] crate::config::ConfigError),
 }
 
 /// Live progress of the running run, fed by its events.
@@ -129,8 +132,7 @@ impl Service {
     /// the daemon stopped is marked paused (its data is intact), so an operator decides
     /// whether to resume it; queued runs stay queued.
     pub fn open(instrument_src: TomlSource, token: Option<String>) -> Result<Arc<Service>, ServiceError> {
-        let instrument = InstrumentConfig::from_source(&instrument_src)
-            .map_err(|e| ServiceError::InvalidPlan(e.to_string()))?;
+        let instrument = InstrumentConfig::from_source(&instrument_src)?;
         let runs_dir = instrument.api.runs_dir.clone();
         std::fs::create_dir_all(&runs_dir)
             .map_err(|e| ServiceError::Storage(format!("runs directory {}: {e}", runs_dir.display())))?;
