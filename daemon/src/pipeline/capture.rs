@@ -61,6 +61,20 @@ pub fn rebin_path(
     out
 }
 
+/// Interleaved passes of the capture order: pass `k` takes every `CAPTURE_PASSES`-th
+/// planned pair from `k`.
+const CAPTURE_PASSES: usize = 4;
+
+/// The order in which `total` planned pairs are captured: [`CAPTURE_PASSES`] interleaved
+/// passes (pairs 0, 4, 8, …, then 1, 5, 9, …). Plans list pairs along serpentine rows,
+/// so each pass spans the whole detection region: the optimiser, which starts on the
+/// first quarter, sees the whole aperture from its first step, and a capture stopped
+/// early is a coarser scan of everything rather than a full scan of one strip. The
+/// extra galvo travel is a few grid steps per move, well inside the settle time.
+pub(crate) fn capture_order(total: usize) -> impl Iterator<Item = usize> {
+    (0..CAPTURE_PASSES).flat_map(move |k| (k..total).step_by(CAPTURE_PASSES))
+}
+
 /// The hidden-path axis all pairs are rebinned to: the TDC's bin width, spanning the
 /// shortest to the longest hidden path any pair can have to the reconstruction volume.
 pub fn hidden_axis(pairs: &[Pair], volume: &VolumeGrid, bin_width: f64) -> TimeAxis {
@@ -195,7 +209,8 @@ impl Run {
             self.devices.laser.set_diffuser(false)?;
             self.devices.laser.set_emission(true)?;
             let settle = self.settle_timeout();
-            for (i, p) in pairs.iter().enumerate() {
+            for i in capture_order(total) {
+                let p = &pairs[i];
                 if stored.contains(&(i as u32)) {
                     continue;
                 }
@@ -268,6 +283,21 @@ impl Run {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_capture_order_visits_every_pair_once_in_interleaved_passes() {
+        for total in [0, 1, 3, 4, 5, 98, 456] {
+            let order: Vec<usize> = capture_order(total).collect();
+            let mut sorted = order.clone();
+            sorted.sort_unstable();
+            assert_eq!(sorted, (0..total).collect::<Vec<_>>(), "{total} pairs");
+        }
+        let order: Vec<usize> = capture_order(10).collect();
+        assert_eq!(order, [0, 4, 8, 1, 5, 9, 2, 6, 3, 7]);
+        // The first quarter of a 24 × 24 serpentine grid reaches every row.
+        let rows: std::collections::BTreeSet<usize> = capture_order(576).take(144).map(|i| i / 24).collect();
+        assert_eq!(rows.len(), 24);
+    }
 
     #[test]
     fn rebinning_preserves_counts_and_shifts_by_the_legs() {
