@@ -136,7 +136,7 @@ fn a_broken_plan_names_file_line_and_key() {
         ("mode = \"confocal\"", "mode = \"spiral\"", "pairs.mode"),
         ("dwell-ms = 20.0", "dwell-ms = -1.0", "acquisition.dwell-ms"),
         (
-            "shape = [64, 64, 32]",
+            "shape = [64, 64, 128]",
             "shape = [64, 64, 1]",
             "recon.volume.shape",
         ),

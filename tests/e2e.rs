@@ -3,15 +3,15 @@
 //! with the simulator's ground truth. Four scenes: planar wall + letter (confocal, and
 //! non-confocal with a fixed laser), S-shaped relay + letter, torso pair + mannequin.
 //!
-//! Tolerances: on the pixels where both the reconstruction and the truth have the
-//! object, the median depth error is under 2 cm (the target; measured 2.7–7 mm
-//! on all four) and the 90th percentile under 3–4 cm (measured under 1 cm). The
-//! silhouette (pixels with a depth) IoU bounds are regression guards, not the issue's
-//! 0.7 target, which is missed: measured 0.55 (confocal wall), 0.43 (fixed laser),
-//! 0.51 (S relay), 0.26 (torsos, 194 pairs over two 0.42 m backs for a 1 m mannequin).
-//! The reconstruction blurs the letters' 7 cm strokes by about 2.5 cm on each side (the
-//! lateral resolution of a 0.8 m aperture at 0.6 m with 60 ps jitter), which costs IoU
-//! on thin shapes while the depth stays accurate.
+//! Tolerances, on the pixels where both the reconstruction and the truth have the
+//! object: the median depth error is under 2 cm (the target; measured 0.5–3.5 mm
+//! on all four) and the 90th percentile under 1 cm on the letters (measured 1.5–3.2 mm)
+//! and 3 cm on the mannequin (23 mm). The silhouette (pixels with a depth) IoU is above
+//! the 0.7 on the three letter scenes (measured over several runs: 0.74–0.77
+//! confocal wall, 0.75–0.76 fixed laser, 0.79–0.82 S relay; the streamed fit varies a
+//! little with timing). The torso scene states its own bound, 0.4 (measured 0.51): 194
+//! pairs on two 0.42 m backs see the mannequin's head, torso and upper arms, but its
+//! legs hang below the backs' aperture, where no pair resolves them.
 use std::path::Path;
 use std::time::Duration;
 
@@ -113,11 +113,11 @@ fn planar_wall_letter_confocal_matches_the_truth() {
         a.median_error
     );
     assert!(
-        a.p90_error < 0.03,
-        "90th-percentile depth error {:.3} m ≥ 3 cm: {a:?}",
+        a.p90_error < 0.01,
+        "90th-percentile depth error {:.3} m ≥ 1 cm: {a:?}",
         a.p90_error
     );
-    assert!(a.iou > 0.5, "silhouette IoU {:.2} ≤ 0.5: {a:?}", a.iou);
+    assert!(a.iou > 0.7, "silhouette IoU {:.2} ≤ 0.7: {a:?}", a.iou);
 
     // The run's y-tal export holds every measured pair with both legs, and another
     // reconstruction of it (FBP, no 3D-GTR) finds the letter at the same depth.
@@ -172,8 +172,8 @@ fn planar_wall_letter_non_confocal_matches_the_truth() {
         [-0.4, 0.4],
     );
     assert!(a.median_error < 0.02, "{a:?}");
-    assert!(a.p90_error < 0.04, "{a:?}");
-    assert!(a.iou > 0.4, "{a:?}");
+    assert!(a.p90_error < 0.01, "{a:?}");
+    assert!(a.iou > 0.7, "{a:?}");
 }
 
 #[test]
@@ -186,8 +186,8 @@ fn s_shaped_relay_letter_matches_the_truth() {
         [-0.4, 0.4],
     );
     assert!(a.median_error < 0.02, "{a:?}");
-    assert!(a.p90_error < 0.04, "{a:?}");
-    assert!(a.iou > 0.4, "{a:?}");
+    assert!(a.p90_error < 0.01, "{a:?}");
+    assert!(a.iou > 0.7, "{a:?}");
 }
 
 #[test]
@@ -201,33 +201,48 @@ fn torso_pair_mannequin_matches_the_truth() {
     );
     assert!(a.median_error < 0.02, "{a:?}");
     assert!(a.p90_error < 0.03, "{a:?}");
-    assert!(a.iou > 0.2, "{a:?}");
+    assert!(a.iou > 0.4, "{a:?}");
 }
 
-/// Scores an existing run directory against the default scene's truth:
-/// `PERISCOPE_EVAL=runs/<id> cargo test -p periscope-tests --test e2e score -- --ignored --nocapture`.
+/// The scene and footprint the hand tools below score against: `PERISCOPE_SCENE`
+/// (default the demo's scene) and `PERISCOPE_XY=x0,x1,y0,y1` (default ±0.4 m).
+fn scene_from_env() -> (String, [f64; 2], [f64; 2]) {
+    let scene = std::env::var("PERISCOPE_SCENE").unwrap_or_else(|_| "configs/scenes/wall-letter.toml".into());
+    let xy: Vec<f64> = std::env::var("PERISCOPE_XY")
+        .unwrap_or_else(|_| "-0.4,0.4,-0.4,0.4".into())
+        .split(',')
+        .map(|v| v.trim().parse().expect("PERISCOPE_XY is x0,x1,y0,y1 in metres"))
+        .collect();
+    assert_eq!(xy.len(), 4, "PERISCOPE_XY is x0,x1,y0,y1 in metres");
+    (scene, [xy[0], xy[1]], [xy[2], xy[3]])
+}
+
+/// Scores an existing run directory against a scene's truth:
+/// `PERISCOPE_EVAL=runs/<id> cargo test -p periscope-tests --test e2e score -- --ignored --nocapture`
+/// (with `PERISCOPE_SCENE` and `PERISCOPE_XY` for other scenes, see [`scene_from_env`]).
 #[test]
 #[ignore = "a tool for scoring a run by hand, not a test"]
 fn score() {
     let dir = std::env::var("PERISCOPE_EVAL").expect("set PERISCOPE_EVAL to a run directory");
-    let scene = std::env::var("PERISCOPE_SCENE").unwrap_or_else(|_| "configs/scenes/wall-letter.toml".into());
-    eprintln!(
-        "{:?}",
-        accuracy(Path::new(&dir), &scene, [-0.4, 0.4], [-0.4, 0.4], [64, 64])
-    );
+    let (scene, x, y) = scene_from_env();
+    eprintln!("{:?}", accuracy(Path::new(&dir), &scene, x, y, [64, 64]));
 }
 
+/// Prints a run's silhouette against the truth (`#` both, `+` run only, `-` truth
+/// only), every other row; `PERISCOPE_TRUTH_NPY=FILE` also writes the truth's depth
+/// map as `.npy` for plotting.
 #[test]
 #[ignore = "a tool for looking at a run by hand, not a test"]
 fn show() {
     let dir = std::env::var("PERISCOPE_EVAL").expect("set PERISCOPE_EVAL");
+    let (scene, x, y) = scene_from_env();
     let (_, depth) = read_npy(&Path::new(&dir).join("depth.npy")).unwrap();
-    let world = World::new(
-        load_scene(&repo_path("configs/scenes/wall-letter.toml")).unwrap(),
-        0.01,
-        1,
-    );
-    let truth = depth_truth(&world, [-0.4, 0.4], [-0.4, 0.4], [64, 64], 0.01);
+    let world = World::new(load_scene(&repo_path(&scene)).unwrap(), 0.01, 1);
+    let truth = depth_truth(&world, x, y, [64, 64], 0.01);
+    if let Ok(p) = std::env::var("PERISCOPE_TRUTH_NPY") {
+        let t: Vec<f32> = truth.depth.iter().map(|d| *d as f32).collect();
+        periscope_recon::io::write_npy(Path::new(&p), &[64, 64], &t).unwrap();
+    }
     for iy in (0..64).rev().step_by(2) {
         let row: String = (0..64)
             .map(|ix| {

@@ -98,11 +98,17 @@ impl Default for RawGtr {
     }
 }
 
+/// The depth map's default mask, a fraction of the volume's maximum. The volume is the
+/// box-filtered mean over each voxel, so a surface's peak is about its integrated
+/// intensity; 0.4 keeps the pixels within about half the blur width of an edge
+/// (docs/pipeline.md, "Depth maps").
+const DEFAULT_DEPTH_THRESHOLD: f64 = 0.4;
+
 fn default_primitives() -> usize {
     2000
 }
 fn default_epochs() -> usize {
-    8
+    16
 }
 fn default_batch() -> usize {
     4
@@ -229,7 +235,7 @@ pub(crate) fn recon_settings(
     ] {
         group.lr *= g.lr_scale;
     }
-    let depth_threshold = raw.depth_threshold.unwrap_or(0.3);
+    let depth_threshold = raw.depth_threshold.unwrap_or(DEFAULT_DEPTH_THRESHOLD);
     if !(depth_threshold > 0.0 && depth_threshold < 1.0) {
         return Err(src.invalid(
             &key("depth-threshold"),
