@@ -4,15 +4,15 @@
 //! non-confocal with a fixed laser), S-shaped relay + letter, torso pair + mannequin.
 //!
 //! Tolerances, on the pixels where both the reconstruction and the truth have the
-//! object: the median depth error is under 2 cm (the target; measured 0.5–3.5 mm
+//! object: the median depth error is under 2 cm (the target; measured 0.5–4.3 mm
 //! on all four) and the 90th percentile under 1 cm on the letters (measured 1.5–3.2 mm)
-//! and 3 cm on the mannequin (23 mm). The silhouette (pixels with a depth) IoU is above
-//! the 0.7 on the three letter scenes (measured over several runs: 0.74–0.77
-//! confocal wall, 0.75–0.76 fixed laser, 0.79–0.82 S relay; the streamed fit varies a
-//! little with timing). The torso scene states its own bound, 0.4 (measured 0.51): the
-//! 194 pairs on two backs (y from −0.32 to 0.32 m) recover the mannequin's head, torso
-//! and upper arms, but its legs reach 0.2 m below the backs' lower edge and are seen
-//! only obliquely, and its arms are 3 cm thin; the fit leaves both mostly out.
+//! and 3 cm on the mannequin (21–25 mm). The silhouette (pixels with a depth) IoU is
+//! above the 0.7 on the three letter scenes (measured over several runs:
+//! 0.74–0.77 confocal wall, 0.75–0.76 fixed laser, 0.79–0.82 S relay; the streamed fit
+//! varies a little with timing). The torso scene states its own bound, 0.5 (measured
+//! 0.57–0.59): the 194 pairs on two backs (y from −0.32 to 0.32 m) recover the
+//! mannequin's head, torso, upper arms and upper legs, but its lower legs reach 0.2 m
+//! below the backs' lower edge and are seen only obliquely, and its arms are 3 cm thin.
 use std::path::Path;
 use std::time::Duration;
 
@@ -202,7 +202,7 @@ fn torso_pair_mannequin_matches_the_truth() {
     );
     assert!(a.median_error < 0.02, "{a:?}");
     assert!(a.p90_error < 0.03, "{a:?}");
-    assert!(a.iou > 0.4, "{a:?}");
+    assert!(a.iou > 0.5, "{a:?}");
 }
 
 /// The scene and footprint the hand tools below score against: `PERISCOPE_SCENE`
