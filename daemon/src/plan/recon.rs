@@ -99,9 +99,9 @@ impl Default for RawGtr {
 }
 
 /// The depth map's default mask, a fraction of the volume's maximum. The volume is the
-/// box-filtered mean over each voxel, so a surface's peak is about its integrated
-/// intensity; 0.4 keeps the pixels within about half the blur width of an edge
-/// (docs/pipeline.md, "Depth maps").
+/// box-filtered mean over each voxel, so a surface's peak follows its integrated
+/// intensity; for a uniformly bright object 0.4 of the maximum is close to half its
+/// level, which a blurred edge crosses at the true edge (docs/pipeline.md, "Depth maps").
 const DEFAULT_DEPTH_THRESHOLD: f64 = 0.4;
 
 fn default_primitives() -> usize {

@@ -73,7 +73,8 @@ impl FrameVolume {
 
     /// Sub-samples per world-voxel axis needed to see every frame cell the voxel spans:
     /// the voxel's extent along each world axis, in frame cells (L1 over the frame's
-    /// three axes), rounded up; at most [`MAX_SUBSAMPLES`].
+    /// three axes), rounded up (less a rounding allowance, so an exact fit is one
+    /// sample); at most [`MAX_SUBSAMPLES`].
     fn subsamples(&self, voxel: DVec3) -> [usize; 3] {
         let s = self.relay.spacing();
         let axes = [DVec3::X, DVec3::Y, DVec3::Z];
@@ -85,7 +86,7 @@ impl FrameVolume {
                     + e.dot(self.relay.v).abs() / s[1]
                     + e.dot(self.relay.normal).abs() / self.depth_step.abs());
             if cells.is_finite() {
-                n[a] = (cells.ceil() as usize).clamp(1, MAX_SUBSAMPLES);
+                n[a] = ((cells - 1e-6).ceil() as usize).clamp(1, MAX_SUBSAMPLES);
             }
         }
         n
