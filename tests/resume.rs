@@ -103,8 +103,9 @@ fn a_killed_capture_resumes_without_losing_or_repeating_a_pair() {
     bytes.extend_from_slice(&torn[..torn.len() / 2]);
     std::fs::write(&log, &bytes).unwrap();
     eprintln!(
-        "killed with {} of {total} pairs stored; appended a torn record",
-        before.records.len()
+        "killed with {} of {total} pairs stored; appended a torn record ({} bytes read as damaged)",
+        before.records.len(),
+        read_log(&run).unwrap().discarded_bytes
     );
 
     let done = periscope_with_limit(&["resume", run.to_str().unwrap()], Duration::from_secs(300));
@@ -116,6 +117,17 @@ fn a_killed_capture_resumes_without_losing_or_repeating_a_pair() {
         done.stderr
     );
     let after = read_log(&run).unwrap();
+    eprintln!(
+        "resumed: {} records in the log, {} of them captured by the resume\n{}",
+        after.records.len(),
+        after.records.len() - before.records.len(),
+        done.stdout
+            .lines()
+            .filter(|l| !l.trim().is_empty())
+            .take(12)
+            .collect::<Vec<_>>()
+            .join("\n")
+    );
     assert_eq!(after.discarded_bytes, 0, "the torn tail was cut");
     let mut pairs: Vec<u32> = after.records.iter().map(|r| r.pair).collect();
     assert_eq!(pairs.len(), total, "every pair stored");
