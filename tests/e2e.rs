@@ -8,7 +8,7 @@
 //! on all four) and the 90th percentile under 1 cm on the letters (measured 1.5–3.2 mm)
 //! and 3 cm on the mannequin (21–25 mm). The silhouette (pixels with a depth) IoU is
 //! above the 0.7 on the three letter scenes (measured over several runs:
-//! 0.74–0.77 confocal wall, 0.75–0.76 fixed laser, 0.79–0.82 S relay; the streamed fit
+//! 0.73–0.77 confocal wall, 0.74–0.76 fixed laser, 0.79–0.82 S relay; the streamed fit
 //! varies a little with timing). The torso scene states its own bound, 0.5 (measured
 //! 0.57–0.59): the 194 pairs on two backs (y from −0.32 to 0.32 m) recover the
 //! mannequin's head, torso, upper arms and upper legs, but its lower legs reach 0.2 m
