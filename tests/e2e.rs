@@ -35,6 +35,24 @@ struct Accuracy {
     object_pixels: usize,
 }
 
+impl Accuracy {
+    /// The depth target (median under 2 cm) and the scene's own bounds on the
+    /// 90th-percentile error (metres) and the silhouette IoU.
+    fn assert_within(&self, p90: f64, iou: f64) {
+        assert!(
+            self.median_error < 0.02,
+            "median depth error {:.4} m ≥ 2 cm: {self:?}",
+            self.median_error
+        );
+        assert!(
+            self.p90_error < p90,
+            "90th-percentile depth error {:.4} m ≥ {p90} m: {self:?}",
+            self.p90_error
+        );
+        assert!(self.iou > iou, "silhouette IoU {:.3} ≤ {iou}: {self:?}", self.iou);
+    }
+}
+
 fn accuracy(run: &Path, scene: &str, x: [f64; 2], y: [f64; 2], shape: [usize; 2]) -> Accuracy {
     let (dims, depth) = read_npy(&run.join("depth.npy")).expect("depth.npy");
     assert_eq!(dims, vec![shape[1], shape[0]], "depth.npy is [ny, nx]");
@@ -108,17 +126,7 @@ fn planar_wall_letter_confocal_matches_the_truth() {
     );
     eprintln!("wall + letter, confocal: {a:?}");
     assert!(a.object_pixels > 100, "the truth has the letter: {a:?}");
-    assert!(
-        a.median_error < 0.02,
-        "median depth error {:.3} m ≥ 2 cm: {a:?}",
-        a.median_error
-    );
-    assert!(
-        a.p90_error < 0.01,
-        "90th-percentile depth error {:.3} m ≥ 1 cm: {a:?}",
-        a.p90_error
-    );
-    assert!(a.iou > 0.7, "silhouette IoU {:.2} ≤ 0.7: {a:?}", a.iou);
+    a.assert_within(0.01, 0.7);
 
     // The run's y-tal export holds every measured pair with both legs, and another
     // reconstruction of it (FBP, no 3D-GTR) finds the letter at the same depth.
@@ -172,9 +180,7 @@ fn planar_wall_letter_non_confocal_matches_the_truth() {
         [-0.4, 0.4],
         [-0.4, 0.4],
     );
-    assert!(a.median_error < 0.02, "{a:?}");
-    assert!(a.p90_error < 0.01, "{a:?}");
-    assert!(a.iou > 0.7, "{a:?}");
+    a.assert_within(0.01, 0.7);
 }
 
 #[test]
@@ -186,9 +192,7 @@ fn s_shaped_relay_letter_matches_the_truth() {
         [-0.4, 0.4],
         [-0.4, 0.4],
     );
-    assert!(a.median_error < 0.02, "{a:?}");
-    assert!(a.p90_error < 0.01, "{a:?}");
-    assert!(a.iou > 0.7, "{a:?}");
+    a.assert_within(0.01, 0.7);
 }
 
 #[test]
@@ -200,9 +204,7 @@ fn torso_pair_mannequin_matches_the_truth() {
         [-0.5, 0.5],
         [-0.6, 0.6],
     );
-    assert!(a.median_error < 0.02, "{a:?}");
-    assert!(a.p90_error < 0.03, "{a:?}");
-    assert!(a.iou > 0.5, "{a:?}");
+    a.assert_within(0.03, 0.5);
 }
 
 /// The scene and footprint the hand tools below score against: `PERISCOPE_SCENE`
