@@ -34,6 +34,9 @@ pub enum OpenError {
     /// The histogrammer could not be opened.
     #[error(transparent)]
     Tdc(#[from] TdcError),
+    /// Opening was interrupted (pause, abort or e-stop) before every device was open.
+    #[error("opening the devices was interrupted")]
+    Interrupted,
     /// The TDC's USB device was not found.
     #[error(
         "histogrammer {selector}: {why}; plug it in and check `periscope devices` and `tdc.usb` in the instrument config"
@@ -58,12 +61,18 @@ pub struct Devices {
     pub rig: Option<Rig>,
 }
 
-fn galvo_settings(name: &str, arm: &GalvoArm, timeout: Duration) -> SerialGalvoSettings {
+fn galvo_settings(
+    name: &str,
+    arm: &GalvoArm,
+    timeout: Duration,
+    watchdog: Option<Duration>,
+) -> SerialGalvoSettings {
     SerialGalvoSettings {
         name: name.into(),
         limits: arm.limits,
         timeout,
         settle: arm.settle,
+        watchdog,
     }
 }
 
@@ -89,65 +98,100 @@ pub fn sim_rig(config: &InstrumentConfig) -> Result<Option<Rig>, ConfigError> {
     )))
 }
 
+/// Opens one galvo controller's driver (not yet connected). In the simulator an arm
+/// with a `serial` table talks to that port (a real controller, or one simulated in
+/// another process) instead of the built-in firmware.
+fn galvo(config: &InstrumentConfig, arm: Arm, rig: Option<&Rig>) -> Result<SerialGalvo, OpenError> {
+    let (name, a, watchdog) = match arm {
+        Arm::Laser => ("laser", &config.laser_arm, Some(config.laser.watchdog)),
+        Arm::Spad => ("spad", &config.spad_arm, None),
+    };
+    let connector: Box<dyn periscope_drivers::galvo::Connector> = match (&a.serial, rig) {
+        (Some(link), _) => Box::new(PortConnector {
+            path: link.port.clone(),
+            baud: link.baud,
+        }),
+        (None, Some(rig)) => Box::new(rig.galvo_connector(arm)),
+        (None, None) => {
+            return Err(OpenError::Missing(format!(
+                "galvo.{name}.serial is required with backend = \"hardware\": give the port, e.g. serial = {{ port = \"/dev/ttyUSB0\", baud = 115200, timeout-ms = 200 }}"
+            )));
+        }
+    };
+    let timeout = a.serial.as_ref().map_or(SIM_TIMEOUT, |l| l.timeout);
+    Ok(SerialGalvo::new(
+        galvo_settings(name, a, timeout, watchdog),
+        connector,
+    ))
+}
+
+/// Opens the histogrammer's driver.
+fn tdc(config: &InstrumentConfig, rig: Option<&Rig>) -> Result<UsbTdc<Box<dyn UsbTransport>>, OpenError> {
+    let transport: Box<dyn UsbTransport> = match rig {
+        Some(rig) => Box::new(rig.tdc_transport()),
+        None => {
+            let selector = config.tdc.usb.clone().ok_or_else(|| {
+                OpenError::Missing(
+                    "tdc.usb is required with backend = \"hardware\": give the histogrammer's VID:PID".into(),
+                )
+            })?;
+            Box::new(RusbTransport::open(selector.clone()).map_err(|e| OpenError::Usb {
+                selector: selector.to_string(),
+                why: e.to_string(),
+            })?)
+        }
+    };
+    Ok(UsbTdc::new(transport, TDC_TIMEOUT))
+}
+
 impl Devices {
-    /// Opens every device and identifies it.
+    /// Opens every device and identifies it (a fresh simulated instrument for `sim`).
     pub fn open(config: &InstrumentConfig) -> Result<Devices, OpenError> {
-        let mut devices = match sim_rig(config)? {
-            Some(rig) => Devices {
-                laser: SerialGalvo::new(
-                    galvo_settings("laser", &config.laser_arm, SIM_TIMEOUT),
-                    Box::new(rig.galvo_connector(Arm::Laser)),
-                ),
-                spad: SerialGalvo::new(
-                    galvo_settings("spad", &config.spad_arm, SIM_TIMEOUT),
-                    Box::new(rig.galvo_connector(Arm::Spad)),
-                ),
-                tdc: UsbTdc::new(Box::new(rig.tdc_transport()), TDC_TIMEOUT),
-                rig: Some(rig),
-            },
-            None => {
-                let port = |arm: &GalvoArm, key: &str| {
-                    arm.serial.clone().ok_or_else(|| {
-                        OpenError::Missing(format!(
-                            "galvo.{key}.serial is required with backend = \"hardware\": give the port, e.g. serial = {{ port = \"/dev/ttyUSB0\", baud = 115200, timeout-ms = 200 }}"
-                        ))
-                    })
-                };
-                let (lp, sp) = (port(&config.laser_arm, "laser")?, port(&config.spad_arm, "spad")?);
-                let selector = config.tdc.usb.clone().ok_or_else(|| {
-                    OpenError::Missing(
-                        "tdc.usb is required with backend = \"hardware\": give the histogrammer's VID:PID"
-                            .into(),
-                    )
-                })?;
-                let transport = RusbTransport::open(selector.clone()).map_err(|e| OpenError::Usb {
-                    selector: selector.to_string(),
-                    why: e.to_string(),
-                })?;
-                Devices {
-                    laser: SerialGalvo::new(
-                        galvo_settings("laser", &config.laser_arm, lp.timeout),
-                        Box::new(PortConnector {
-                            path: lp.port,
-                            baud: lp.baud,
-                        }),
-                    ),
-                    spad: SerialGalvo::new(
-                        galvo_settings("spad", &config.spad_arm, sp.timeout),
-                        Box::new(PortConnector {
-                            path: sp.port,
-                            baud: sp.baud,
-                        }),
-                    ),
-                    tdc: UsbTdc::new(Box::new(transport), TDC_TIMEOUT),
-                    rig: None,
-                }
+        Devices::open_on(config, sim_rig(config)?, &|| false)
+    }
+
+    /// Opens every device on `rig` (the simulated instrument a caller keeps across
+    /// runs; `None` for hardware), identifying each; `stop` is asked between devices
+    /// and opening gives up with [`OpenError::Interrupted`] when it says so.
+    pub fn open_on(
+        config: &InstrumentConfig,
+        rig: Option<Rig>,
+        stop: &dyn Fn() -> bool,
+    ) -> Result<Devices, OpenError> {
+        let interrupted = || {
+            if stop() {
+                Err(OpenError::Interrupted)
+            } else {
+                Ok(())
             }
         };
-        devices.laser.identify()?;
-        devices.spad.identify()?;
-        devices.tdc.identify()?;
-        Ok(devices)
+        interrupted()?;
+        let mut laser = galvo(config, Arm::Laser, rig.as_ref())?;
+        laser.identify()?;
+        interrupted()?;
+        let mut spad = galvo(config, Arm::Spad, rig.as_ref())?;
+        spad.identify()?;
+        interrupted()?;
+        let mut tdc = tdc(config, rig.as_ref())?;
+        tdc.identify()?;
+        interrupted()?;
+        Ok(Devices {
+            laser,
+            spad,
+            tdc,
+            rig,
+        })
+    }
+
+    /// Opens the laser arm's controller alone (the e-stop's way to the laser when no
+    /// run holds the devices: it needs neither the SPAD arm nor the histogrammer).
+    pub fn laser_controller(config: &InstrumentConfig, rig: Option<&Rig>) -> Result<SerialGalvo, OpenError> {
+        galvo(config, Arm::Laser, rig)
+    }
+
+    /// Opens the SPAD arm's controller alone (to park it).
+    pub fn spad_controller(config: &InstrumentConfig, rig: Option<&Rig>) -> Result<SerialGalvo, OpenError> {
+        galvo(config, Arm::Spad, rig)
     }
 
     /// Everything the devices report about themselves.
@@ -163,15 +207,18 @@ impl Devices {
         })
     }
 
-    /// Laser off and both pairs parked: the safe state. Tries every step even if one
-    /// fails, and returns the first failure.
+    /// Laser off and both pairs parked: the safe state. The laser goes first (out of
+    /// band, then confirmed), every step is tried even if an earlier one fails, and the
+    /// first failure is returned.
     pub fn make_safe(&mut self) -> Result<(), OpenError> {
         let off = self.laser.set_emission(false);
+        let abort = self.tdc.abort();
         let lp = self.laser.park();
         let sp = self.spad.park();
         off?;
         lp?;
         sp?;
+        abort?;
         Ok(())
     }
 }

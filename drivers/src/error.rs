@@ -26,6 +26,8 @@ pub enum ErrorKind {
     Interlock,
     /// The device reported an internal fault or refused a command for another reason.
     Device,
+    /// The caller stopped the operation (pause, abort, e-stop) before it finished.
+    Interrupted,
 }
 
 impl ErrorKind {
@@ -39,6 +41,7 @@ impl ErrorKind {
             ErrorKind::Busy => "busy",
             ErrorKind::Interlock => "interlock",
             ErrorKind::Device => "device",
+            ErrorKind::Interrupted => "interrupted",
         }
     }
 }

@@ -171,6 +171,13 @@ pub trait Histogrammer: ErrorType {
     fn config(&self) -> Option<TdcConfig>;
     /// Acquires one histogram with the settings in force.
     fn acquire(&mut self) -> Result<Histogram, Self::Error>;
+    /// Acquires one histogram, asking `stop` every few milliseconds while the dwell
+    /// runs; when it says stop, the acquisition is aborted on the device and the
+    /// error's kind is [`crate::ErrorKind::Interrupted`]. However long the dwell, a
+    /// stop lands within the driver's poll interval.
+    fn acquire_until(&mut self, stop: &dyn Fn() -> bool) -> Result<Histogram, Self::Error>;
+    /// Aborts an acquisition in progress and drops frames not yet read.
+    fn abort(&mut self) -> Result<(), Self::Error>;
     /// Count rates.
     fn count_rates(&mut self) -> Result<CountRates, Self::Error> {
         Ok(self.status()?.rates)

@@ -32,6 +32,7 @@ fn spad_arm_moves_and_settles() {
             },
             timeout: Duration::from_millis(200),
             settle: Duration::from_micros(400),
+            watchdog: None,
         },
         Box::new(PortConnector {
             path: env("PERISCOPE_GALVO_PORT"),

@@ -70,6 +70,18 @@ impl Connector for ScriptedConnector {
 }
 
 fn galvo_with(limit: f64, script: &[(&'static str, &'static str)]) -> (SerialGalvo, Script) {
+    galvo_settings(limit, None, script)
+}
+
+fn galvo_watchdog(watchdog: Duration, script: &[(&'static str, &'static str)]) -> (SerialGalvo, Script) {
+    galvo_settings(0.3, Some(watchdog), script)
+}
+
+fn galvo_settings(
+    limit: f64,
+    watchdog: Option<Duration>,
+    script: &[(&'static str, &'static str)],
+) -> (SerialGalvo, Script) {
     let script: Script = Arc::new(Mutex::new(script.iter().copied().collect()));
     let settings = SerialGalvoSettings {
         name: "laser".into(),
@@ -79,6 +91,7 @@ fn galvo_with(limit: f64, script: &[(&'static str, &'static str)]) -> (SerialGal
         },
         timeout: Duration::from_millis(20),
         settle: Duration::from_micros(100),
+        watchdog,
     };
     (
         SerialGalvo::new(settings, Box::new(ScriptedConnector(script.clone()))),
@@ -97,7 +110,7 @@ fn done(script: &Script) {
 
 #[test]
 fn identify() {
-    let (mut g, s) = galvo(&[("01 IDN*01\n", "01 OK PGC-2 1.0.0 1 SN123 LASER*9B\n")]);
+    let (mut g, s) = galvo(&[("01 IDN*01\n", "01 OK PGC-2 1.0.0 2 SN123 LASER*20\n")]);
     let info = g.identify().unwrap();
     assert_eq!(
         (info.model.as_str(), info.firmware.as_str(), info.serial.as_str()),
@@ -108,10 +121,10 @@ fn identify() {
 
 #[test]
 fn identify_refuses_another_protocol_version() {
-    let (mut g, s) = galvo(&[("01 IDN*01\n", "01 OK PGC-2 1.0.0 2 SN123 LASER*20\n")]);
+    let (mut g, s) = galvo(&[("01 IDN*01\n", "01 OK PGC-2 1.0.0 3 SN123 LASER*B4\n")]);
     let err = g.identify().unwrap_err();
     assert_eq!(err.kind(), ErrorKind::Protocol);
-    assert!(err.to_string().contains("protocol 2"), "{err}");
+    assert!(err.to_string().contains("protocol 3"), "{err}");
     done(&s);
 }
 
@@ -180,7 +193,7 @@ fn position_status_park_limits() {
     done(&s);
     let (mut g, s) = galvo(&[
         ("01 PARK*5B\n", "01 OK*C4\n"),
-        ("02 IDN*A7\n", "02 OK PGC-2 1.0.0 1 SN123 LASER*CB\n"),
+        ("02 IDN*A7\n", "02 OK PGC-2 1.0.0 2 SN123 LASER*70\n"),
     ]);
     g.park().unwrap();
     g.identify().unwrap();
@@ -203,7 +216,7 @@ fn laser_commands() {
     done(&s);
     let (mut g, s) = galvo(&[
         ("01 LSTAT*3D\n", "01 OK ON CLOSED OUT*40\n"),
-        ("02 IDN*A7\n", "02 OK PGC-2 1.0.0 1 SN123 LASER*CB\n"),
+        ("02 IDN*A7\n", "02 OK PGC-2 1.0.0 2 SN123 LASER*70\n"),
     ]);
     let st = g.laser_state().unwrap();
     assert!(st.emission && st.interlock_closed && !st.diffuser_in);
@@ -221,11 +234,39 @@ fn laser_commands() {
 }
 
 #[test]
+fn switching_on_sets_the_watchdog_first() {
+    // With a watchdog configured, `LASER ON` follows a `WDOG` that the controller
+    // must confirm with the same timeout (and its trip count).
+    let (mut g, s) = galvo_watchdog(
+        Duration::from_millis(250),
+        &[
+            ("01 WDOG 250*BE\n", "01 OK 250 0*AF\n"),
+            ("02 LASER ON*B0\n", "02 OK*FE\n"),
+        ],
+    );
+    g.set_emission(true).unwrap();
+    done(&s);
+    // A controller that keeps another timeout is refused, and the laser stays off.
+    let (mut g, s) = galvo_watchdog(
+        Duration::from_millis(250),
+        &[("01 WDOG 250*BE\n", "01 OK 500 0*C8\n")],
+    );
+    let err = g.set_emission(true).unwrap_err();
+    assert_eq!(err.kind(), ErrorKind::Device);
+    assert!(err.to_string().contains("not switched on"), "{err}");
+    done(&s);
+    // Reading it back: timeout and trips since power-up.
+    let (mut g, s) = galvo(&[("01 WDOG*63\n", "01 OK 500 1*CF\n")]);
+    assert_eq!(g.watchdog().unwrap(), (Duration::from_millis(500), 1));
+    done(&s);
+}
+
+#[test]
 fn a_stale_reply_is_skipped_for_the_right_one() {
     // The reply to an earlier request (tag 01) arrives first and must be dropped.
     let (mut g, s) = galvo(&[(
         "01 IDN*01\n",
-        "02 OK PGC-2 1.0.0 1 SN123 LASER*CB\n01 OK PGC-2 1.0.0 1 SN123 LASER*9B\n",
+        "02 OK PGC-2 1.0.0 2 SN123 LASER*70\n01 OK PGC-2 1.0.0 2 SN123 LASER*20\n",
     )]);
     g.identify().unwrap();
     done(&s);

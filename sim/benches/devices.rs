@@ -51,6 +51,7 @@ fn main() {
         limits,
         timeout: Duration::from_millis(200),
         settle: Duration::ZERO,
+        watchdog: None,
     };
     let mut laser = SerialGalvo::open(settings("laser"), Box::new(rig.galvo_connector(Arm::Laser))).unwrap();
     let mut spad = SerialGalvo::open(settings("spad"), Box::new(rig.galvo_connector(Arm::Spad))).unwrap();

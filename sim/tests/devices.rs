@@ -67,6 +67,7 @@ fn galvo(rig: &Rig, arm: Arm, driver_limits_deg: f64) -> SerialGalvo {
             limits: limits(driver_limits_deg),
             timeout: TIMEOUT,
             settle: Duration::from_micros(300),
+            watchdog: None,
         },
         Box::new(rig.galvo_connector(arm)),
     )
@@ -94,7 +95,7 @@ fn controllers_identify_and_move_through_the_pty() {
     let rig = rig();
     let mut laser = galvo(&rig, Arm::Laser, 20.0);
     let info = laser.identify().unwrap();
-    assert_eq!((info.model.as_str(), info.protocol), ("PGC-2", 1));
+    assert_eq!((info.model.as_str(), info.protocol), ("PGC-2", 2));
     let target = angles(0.05, -0.02);
     let start = Instant::now();
     let settled = laser.move_settled(target, Duration::from_secs(1)).unwrap();
@@ -404,4 +405,189 @@ fn acquiring_unconfigured_or_with_bad_settings_is_refused() {
     );
     let info = tdc.identify().unwrap();
     assert_eq!(info.model, "PTDC-SIM");
+}
+
+// ---- The laser watchdog and the paths that switch emission off --------------------
+
+use periscope_drivers::galvo::protocol::encode_line;
+use periscope_drivers::galvo::{Connector, PortConnector};
+use periscope_sim::devices::EmissionCause;
+
+/// How far a watchdog trip may land from its nominal time: the firmware evaluates it
+/// exactly, so only the test's own scheduling adds to it.
+const TRIP_SLACK: Duration = Duration::from_millis(60);
+
+/// When emission went off at or after `since`, waiting up to `limit` for it.
+fn wait_off(rig: &Rig, since: Instant, limit: Duration) -> Option<Instant> {
+    loop {
+        if let Some(t) = rig.off_since(since) {
+            return Some(t);
+        }
+        if since.elapsed() > limit {
+            return None;
+        }
+        std::thread::sleep(Duration::from_millis(1));
+    }
+}
+
+#[test]
+fn a_host_that_goes_silent_is_cut_off_by_the_watchdog() {
+    let rig = rig();
+    // A bare link: the host switches the laser on and then says nothing more, as a
+    // daemon that died would.
+    let mut link = rig.galvo_connector(Arm::Laser).connect().unwrap();
+    let on = Instant::now();
+    link.send(encode_line(0x01, "LASER ON").as_bytes()).unwrap();
+    let mut buf = [0u8; 64];
+    let n = link.receive(&mut buf, Duration::from_secs(1)).unwrap();
+    assert!(
+        buf[..n].starts_with(b"01 OK"),
+        "{:?}",
+        String::from_utf8_lossy(&buf[..n])
+    );
+    assert!(rig.emission());
+    while rig.emission() {
+        assert!(
+            on.elapsed() < Duration::from_secs(2),
+            "the watchdog never tripped"
+        );
+        std::thread::sleep(Duration::from_millis(5));
+    }
+    let change = *rig.emission_changes().last().unwrap();
+    assert_eq!(change.cause, EmissionCause::Watchdog);
+    let after = change.at - on;
+    assert!(
+        after >= Duration::from_millis(500) && after <= Duration::from_millis(500) + TRIP_SLACK,
+        "tripped {after:?} after the last line; the timeout is 500 ms"
+    );
+    assert_eq!(rig.watchdog().1, 1);
+}
+
+#[test]
+fn the_drivers_keepalive_holds_emission_and_stops_with_the_driver() {
+    let rig = rig();
+    let mut laser = SerialGalvo::new(
+        SerialGalvoSettings {
+            name: "laser".into(),
+            limits: limits(20.0),
+            timeout: TIMEOUT,
+            settle: Duration::from_micros(300),
+            watchdog: Some(Duration::from_millis(100)),
+        },
+        Box::new(rig.galvo_connector(Arm::Laser)),
+    );
+    laser.set_emission(true).unwrap();
+    assert_eq!(laser.watchdog().unwrap(), (Duration::from_millis(100), 0));
+    // Ten timeouts without a single ordinary request: the keepalive feeds it.
+    std::thread::sleep(Duration::from_secs(1));
+    assert!(rig.emission(), "the keepalive did not hold emission on");
+    assert_eq!(rig.watchdog().1, 0);
+    // Dropped with emission on (a panic unwinding): LASER OFF on the way out.
+    let dropped = Instant::now();
+    drop(laser);
+    let off = wait_off(&rig, dropped, Duration::from_secs(1))
+        .expect("the laser is still on after the driver was dropped");
+    assert!(off - dropped < Duration::from_millis(20), "{:?}", off - dropped);
+    assert_eq!(rig.emission_changes().last().unwrap().cause, EmissionCause::Host);
+}
+
+#[test]
+fn an_emergency_off_lands_while_a_move_is_outstanding() {
+    let rig = rig();
+    let mut laser = galvo(&rig, Arm::Laser, 20.0);
+    laser.set_emission(true).unwrap();
+    let estop = laser.emergency_off();
+    // The controller will answer the move only after 2 s; the driver waits for it.
+    rig.inject(Fault::Galvo(
+        Arm::Laser,
+        GalvoFault::Stall(Duration::from_secs(2)),
+    ));
+    laser.move_to(angles(0.05, 0.05)).unwrap();
+    let waiter = std::thread::spawn(move || {
+        let r = laser.wait_settled(Duration::from_secs(5));
+        (laser, r)
+    });
+    std::thread::sleep(Duration::from_millis(50));
+    let pressed = Instant::now();
+    estop.laser_off().unwrap();
+    let off = wait_off(&rig, pressed, Duration::from_secs(1))
+        .expect("LASER OFF out of band did not land within 1 s");
+    assert!(off - pressed < Duration::from_millis(20), "{:?}", off - pressed);
+    // The move still completes; the keepalive has stopped, so nothing turns it back on.
+    let (mut laser, r) = waiter.join().unwrap();
+    r.unwrap();
+    assert!(!laser.laser_state().unwrap().emission);
+}
+
+#[test]
+fn a_served_port_is_opened_by_path_and_outlives_its_hosts() {
+    let rig = rig();
+    let port = rig.serve_galvo_port(Arm::Laser).unwrap();
+    let connector = || PortConnector {
+        path: port.path().to_owned(),
+        baud: 115_200,
+    };
+    let settings = || SerialGalvoSettings {
+        name: "laser".into(),
+        limits: limits(20.0),
+        timeout: TIMEOUT,
+        settle: Duration::from_micros(300),
+        watchdog: None,
+    };
+    // One host identifies and goes; the firmware is still there for the next.
+    let mut host = SerialGalvo::new(settings(), Box::new(connector()));
+    assert_eq!(host.identify().unwrap().protocol, 2);
+    drop(host);
+    // The next switches the laser on and dies without a word: the watchdog ends it.
+    let mut link = connector().connect().unwrap();
+    link.send(encode_line(0x01, "LASER ON").as_bytes()).unwrap();
+    let mut buf = [0u8; 64];
+    link.receive(&mut buf, Duration::from_secs(1)).unwrap();
+    assert!(rig.emission());
+    let gone = Instant::now();
+    drop(link);
+    let off = wait_off(&rig, gone, Duration::from_secs(2)).expect("the watchdog did not end emission");
+    assert_eq!(
+        rig.emission_changes().last().unwrap().cause,
+        EmissionCause::Watchdog
+    );
+    assert!(
+        off - gone <= Duration::from_millis(500) + TRIP_SLACK,
+        "{:?}",
+        off - gone
+    );
+}
+
+#[test]
+fn a_long_acquisition_stops_within_the_poll_interval_and_is_aborted_on_the_device() {
+    let rig = rig();
+    let mut tdc = UsbTdc::new(rig.tdc_transport(), TIMEOUT);
+    tdc.configure(&TdcConfig {
+        bin_width: 16e-12,
+        bins: 64,
+        offset: 12e-9,
+        sync_divider: 1,
+        acquisition: Duration::from_secs(30),
+    })
+    .unwrap();
+    let start = Instant::now();
+    let stop_at = start + Duration::from_millis(100);
+    let err = tdc.acquire_until(&|| Instant::now() >= stop_at).unwrap_err();
+    let stopped = start.elapsed();
+    assert_eq!(err.kind(), ErrorKind::Interrupted, "{err}");
+    assert!(
+        stopped < Duration::from_millis(100) + periscope_drivers::tdc::POLL * 3,
+        "a 30 s dwell took {stopped:?} to stop"
+    );
+    // The aborted frame never turns up: a short acquisition afterwards gets its own.
+    tdc.configure(&TdcConfig {
+        bin_width: 16e-12,
+        bins: 64,
+        offset: 12e-9,
+        sync_divider: 1,
+        acquisition: Duration::from_millis(5),
+    })
+    .unwrap();
+    let h = tdc.acquire().unwrap();
+    assert_eq!(h.counts.len(), 64);
 }

@@ -124,6 +124,9 @@ pub struct LaserSettings {
     pub power: f64,
     /// Pulse repetition rate, hertz.
     pub repetition_rate: f64,
+    /// The laser controller's watchdog: emission stops when the controller hears
+    /// nothing from the host for this long.
+    pub watchdog: Duration,
 }
 
 /// The single-photon avalanche diode.
@@ -291,6 +294,12 @@ struct RawLaser {
     wavelength_nm: f64,
     power_mw: f64,
     rep_rate_mhz: f64,
+    #[serde(default = "default_watchdog_ms")]
+    watchdog_ms: f64,
+}
+
+fn default_watchdog_ms() -> f64 {
+    f64::from(periscope_drivers::galvo::protocol::WATCHDOG_DEFAULT_MS)
 }
 
 #[derive(Deserialize)]
@@ -497,6 +506,17 @@ impl InstrumentConfig {
             )? * 1e-9,
             power: check.positive("laser.power-mw", raw.laser.power_mw, 1e5, "mW")? * 1e-3,
             repetition_rate: check.positive("laser.rep-rate-mhz", raw.laser.rep_rate_mhz, 1e4, "MHz")? * 1e6,
+            watchdog: {
+                let range = periscope_drivers::galvo::protocol::WATCHDOG_RANGE_MS;
+                let ms = check.range(
+                    "laser.watchdog-ms",
+                    raw.laser.watchdog_ms,
+                    f64::from(*range.start()),
+                    f64::from(*range.end()),
+                    "ms (the controller cannot switch its watchdog off)",
+                )?;
+                Duration::from_millis(ms.round() as u64)
+            },
         };
         let spad = SpadSettings {
             efficiency: check.positive("spad.efficiency", raw.spad.efficiency, 1.0, "(a fraction)")?,

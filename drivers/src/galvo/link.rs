@@ -18,6 +18,16 @@ pub trait Link: Send {
     fn receive(&mut self, buf: &mut [u8], timeout: Duration) -> io::Result<usize>;
     /// Drops whatever unread input is buffered (stale replies, line noise).
     fn discard_input(&mut self) -> io::Result<()>;
+    /// A second handle that writes to the same link, for out-of-band lines (the laser
+    /// keepalive, an emergency `LASER OFF`) sent from another thread while this one
+    /// waits for a reply. Links that cannot offer one (scripted test links) say so,
+    /// and the driver then sends those lines through the link itself.
+    fn out_of_band_writer(&self) -> io::Result<Box<dyn Write + Send>> {
+        Err(io::Error::new(
+            io::ErrorKind::Unsupported,
+            "this link has no out-of-band writer",
+        ))
+    }
 }
 
 /// Opens a link; called again to reconnect.
@@ -50,6 +60,11 @@ impl<P: SerialPort + ?Sized> Link for Box<P> {
     fn discard_input(&mut self) -> io::Result<()> {
         self.clear(serialport::ClearBuffer::Input)
             .map_err(io::Error::from)
+    }
+
+    fn out_of_band_writer(&self) -> io::Result<Box<dyn Write + Send>> {
+        let port = self.try_clone().map_err(io::Error::from)?;
+        Ok(Box::new(port))
     }
 }
 

@@ -7,4 +7,4 @@ pub mod serial;
 
 pub use error::GalvoError;
 pub use link::{Connector, Link, PortConnector};
-pub use serial::{SerialGalvo, SerialGalvoSettings};
+pub use serial::{EmergencyOff, SerialGalvo, SerialGalvoSettings};

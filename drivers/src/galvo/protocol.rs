@@ -9,7 +9,21 @@
 use crate::geometry::{AngleLimits, OpticalAngles};
 
 /// Protocol revision this code speaks; the controller reports its own in `IDN`.
-pub const PROTOCOL_VERSION: u32 = 1;
+/// Revision 2 added the laser watchdog (`WDOG`, `KEEP`) and out-of-band requests.
+pub const PROTOCOL_VERSION: u32 = 2;
+
+/// The tag reserved for out-of-band requests (`KEEP`, and `LASER OFF` from an
+/// emergency stop): the host may send them at any time, even while another request
+/// is outstanding, and does not wait for their replies. Ordinary requests never use
+/// it (their tags wrap from `FF` to `01`).
+pub const OUT_OF_BAND_TAG: u8 = 0x00;
+
+/// The laser watchdog's timeout at power-up, milliseconds.
+pub const WATCHDOG_DEFAULT_MS: u32 = 500;
+
+/// The range of watchdog timeouts a controller accepts, milliseconds. The watchdog
+/// cannot be switched off.
+pub const WATCHDOG_RANGE_MS: std::ops::RangeInclusive<u32> = 20..=60_000;
 
 /// Longest line either side accepts, bytes (a longer one is garbage).
 pub const MAX_LINE: usize = 256;
@@ -87,6 +101,11 @@ pub enum Request {
     Interlock,
     /// `DIFF IN|OUT`: the LOS diffuser in or out of the laser path.
     Diffuser(bool),
+    /// `WDOG [ms]`: read the laser watchdog (timeout and trips since power-up), or set
+    /// its timeout (laser controller only).
+    Watchdog(Option<u32>),
+    /// `KEEP`: a keepalive; like every valid line, it feeds the laser watchdog.
+    KeepAlive,
 }
 
 fn on_off(on: bool) -> &'static str {
@@ -107,6 +126,9 @@ impl Request {
             Request::LaserStatus => "LSTAT".into(),
             Request::Interlock => "ILK".into(),
             Request::Diffuser(inserted) => format!("DIFF {}", if *inserted { "IN" } else { "OUT" }),
+            Request::Watchdog(None) => "WDOG".into(),
+            Request::Watchdog(Some(ms)) => format!("WDOG {ms}"),
+            Request::KeepAlive => "KEEP".into(),
         }
     }
 
@@ -137,6 +159,17 @@ impl Request {
             "ILK" => no_args(Request::Interlock),
             "LASER" => one("ON", "OFF").map(Request::Laser),
             "DIFF" => one("IN", "OUT").map(Request::Diffuser),
+            "KEEP" => no_args(Request::KeepAlive),
+            "WDOG" => match args.as_slice() {
+                [] => Ok(Request::Watchdog(None)),
+                [ms] => ms
+                    .parse::<u32>()
+                    .ok()
+                    .filter(|ms| WATCHDOG_RANGE_MS.contains(ms))
+                    .map(|ms| Request::Watchdog(Some(ms)))
+                    .ok_or(ErrorCode::BadArgument),
+                _ => Err(ErrorCode::BadArgument),
+            },
             "MOVE" => match args.as_slice() {
                 [x, y] => Ok(Request::Move(OpticalAngles {
                     x: parse_angle(x).ok_or(ErrorCode::BadArgument)?,
@@ -356,6 +389,9 @@ mod tests {
             Request::Interlock,
             Request::Diffuser(true),
             Request::Diffuser(false),
+            Request::Watchdog(None),
+            Request::Watchdog(Some(500)),
+            Request::KeepAlive,
         ];
         for r in all {
             assert_eq!(Request::parse(&r.body()), Ok(r), "{}", r.body());
@@ -363,6 +399,10 @@ mod tests {
         assert_eq!(Request::parse("MOVE 1"), Err(ErrorCode::BadArgument));
         assert_eq!(Request::parse("MOVE nan 0"), Err(ErrorCode::BadArgument));
         assert_eq!(Request::parse("JUMP"), Err(ErrorCode::UnknownCommand));
+        // The watchdog cannot be switched off or set out of its range.
+        assert_eq!(Request::parse("WDOG 0"), Err(ErrorCode::BadArgument));
+        assert_eq!(Request::parse("WDOG 60001"), Err(ErrorCode::BadArgument));
+        assert_eq!(Request::parse("WDOG -5"), Err(ErrorCode::BadArgument));
     }
 
     #[test]

@@ -7,6 +7,9 @@
 //! angle, emission on or off), so repeating one is harmless: a timed-out or corrupted
 //! exchange is retried once, and a broken link is reopened once before the retry.
 //! A second failure is reported with its kind.
+use std::io::Write;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Mutex, MutexGuard, Weak};
 use std::time::{Duration, Instant};
 
 use tracing::{debug, instrument, warn};
@@ -33,6 +36,92 @@ pub struct SerialGalvoSettings {
     pub timeout: Duration,
     /// Nominal settling time after a move (the controller also reports its own).
     pub settle: Duration,
+    /// The laser watchdog timeout to set on the controller before every `LASER ON`
+    /// (laser arm; `None` leaves the controller's own, 500 ms from power-up). While
+    /// emission is wanted the driver feeds the watchdog from its own thread.
+    pub watchdog: Option<Duration>,
+}
+
+/// The write side shared by the driver and its out-of-band senders: the link's second
+/// handle, replaced on every reconnect. Holding the lock is holding the right to
+/// write a line, so lines from different threads never interleave.
+type OobWriter = Arc<Mutex<Option<Box<dyn Write + Send>>>>;
+
+fn lock_writer(w: &Mutex<Option<Box<dyn Write + Send>>>) -> MutexGuard<'_, Option<Box<dyn Write + Send>>> {
+    w.lock().unwrap_or_else(|p| p.into_inner())
+}
+
+/// Writes one out-of-band line (tag `00`, reply not awaited).
+fn write_out_of_band(w: &Mutex<Option<Box<dyn Write + Send>>>, req: Request) -> std::io::Result<()> {
+    let line = protocol::encode_line(protocol::OUT_OF_BAND_TAG, &req.body());
+    let mut guard = lock_writer(w);
+    let writer = guard.as_mut().ok_or_else(|| {
+        std::io::Error::new(
+            std::io::ErrorKind::NotConnected,
+            "the controller is not connected",
+        )
+    })?;
+    writer.write_all(line.as_bytes())?;
+    writer.flush()
+}
+
+/// Switches the laser off through the laser controller's link without waiting for
+/// anything else the driver is doing: a `LASER OFF` out of band (tag `00`), which the
+/// controller acts on at once even while a move is outstanding. Cheap to clone and
+/// usable from any thread (the e-stop path, a signal handler); it also stops the
+/// driver's keepalive, so even a lost line ends emission at the watchdog timeout.
+#[derive(Clone)]
+pub struct EmergencyOff {
+    writer: Weak<Mutex<Option<Box<dyn Write + Send>>>>,
+    wanted: Arc<AtomicBool>,
+    name: String,
+    port: String,
+}
+
+impl std::fmt::Debug for EmergencyOff {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("EmergencyOff")
+            .field("name", &self.name)
+            .field("port", &self.port)
+            .finish()
+    }
+}
+
+impl EmergencyOff {
+    /// Sends `LASER OFF` now. An error means the line could not be written (the
+    /// driver is gone or not connected); the keepalive has stopped regardless, so the
+    /// controller's watchdog ends emission within its timeout.
+    pub fn laser_off(&self) -> Result<(), GalvoError> {
+        self.wanted.store(false, Ordering::SeqCst);
+        let err = |kind, message: String| GalvoError::new(&self.name, &self.port, kind, message);
+        let writer = self.writer.upgrade().ok_or_else(|| {
+            err(
+                ErrorKind::Disconnected,
+                "the driver is closed; the controller's watchdog switches emission off".into(),
+            )
+        })?;
+        write_out_of_band(&writer, Request::Laser(false)).map_err(|e| {
+            err(
+                ErrorKind::Disconnected,
+                "could not write the emergency LASER OFF; the controller's watchdog switches emission off within its timeout".into(),
+            )
+            .with_source(e)
+        })
+    }
+}
+
+/// Feeds the controller's laser watchdog with `KEEP` lines while emission is wanted,
+/// until the driver is dropped.
+fn keepalive(writer: Weak<Mutex<Option<Box<dyn Write + Send>>>>, wanted: Arc<AtomicBool>, period: Duration) {
+    loop {
+        std::thread::sleep(period);
+        let Some(w) = writer.upgrade() else { return };
+        if wanted.load(Ordering::SeqCst)
+            && let Err(e) = write_out_of_band(&w, Request::KeepAlive)
+        {
+            debug!(error = %e, "keepalive not sent");
+        }
+    }
 }
 
 /// A galvo pair (and, on the laser arm, the laser) behind a serial controller.
@@ -48,6 +137,12 @@ pub struct SerialGalvo {
     /// A `MOVE` sent whose reply (sent by the controller once settled) is not yet read:
     /// its tag and target.
     pending: Option<(u8, OpticalAngles)>,
+    /// The link's out-of-band writer (shared with keepalive and emergency handles).
+    oob: OobWriter,
+    /// Whether emission is wanted (the keepalive feeds the watchdog only then).
+    wanted: Arc<AtomicBool>,
+    /// Whether the keepalive thread runs.
+    keepalive: bool,
 }
 
 impl ErrorType for SerialGalvo {
@@ -67,6 +162,60 @@ impl SerialGalvo {
             rx: Vec::with_capacity(protocol::MAX_LINE),
             target: None,
             pending: None,
+            oob: Arc::new(Mutex::new(None)),
+            wanted: Arc::new(AtomicBool::new(false)),
+            keepalive: false,
+        }
+    }
+
+    /// A handle that switches the laser off from any thread, whatever this driver is
+    /// waiting for (see [`EmergencyOff`]).
+    pub fn emergency_off(&self) -> EmergencyOff {
+        EmergencyOff {
+            writer: Arc::downgrade(&self.oob),
+            wanted: self.wanted.clone(),
+            name: self.settings.name.clone(),
+            port: self.port.clone(),
+        }
+    }
+
+    /// The watchdog timeout and the trips since power-up, as the controller reports
+    /// them (laser arm).
+    pub fn watchdog(&mut self) -> Result<(Duration, u32), GalvoError> {
+        let req = Request::Watchdog(None);
+        let fields = self.request(req)?;
+        self.parse_watchdog(req, &fields)
+    }
+
+    fn parse_watchdog(&self, req: Request, fields: &[String]) -> Result<(Duration, u32), GalvoError> {
+        match fields {
+            [ms, trips] => match (ms.parse::<u64>(), trips.parse::<u32>()) {
+                (Ok(ms), Ok(trips)) => Ok((Duration::from_millis(ms), trips)),
+                _ => Err(self.malformed(req, fields)),
+            },
+            _ => Err(self.malformed(req, fields)),
+        }
+    }
+
+    fn start_keepalive(&mut self) {
+        if self.keepalive {
+            return;
+        }
+        let timeout = self
+            .settings
+            .watchdog
+            .unwrap_or(Duration::from_millis(u64::from(protocol::WATCHDOG_DEFAULT_MS)));
+        // Four keepalives per timeout: one lost or late line never trips it.
+        let period = (timeout / 4).max(Duration::from_millis(2));
+        let (writer, wanted) = (Arc::downgrade(&self.oob), self.wanted.clone());
+        match std::thread::Builder::new()
+            .name(format!("galvo-{}-keepalive", self.settings.name))
+            .spawn(move || keepalive(writer, wanted, period))
+        {
+            Ok(_) => self.keepalive = true,
+            Err(e) => {
+                warn!(error = %e, "cannot start the laser keepalive; emission stops at the watchdog timeout")
+            }
         }
     }
 
@@ -120,6 +269,7 @@ impl SerialGalvo {
                 .with_source(e)
             })?;
             debug!(arm = %self.settings.name, port = %self.port, "connected");
+            *lock_writer(&self.oob) = link.out_of_band_writer().ok();
             self.link = Some(link);
             self.rx.clear();
         }
@@ -128,6 +278,7 @@ impl SerialGalvo {
 
     fn broken(&mut self, e: std::io::Error) -> GalvoError {
         self.link = None;
+        *lock_writer(&self.oob) = None;
         self.err(
             ErrorKind::Disconnected,
             "the link broke (unplugged or powered off?); the driver reconnects on the next command",
@@ -144,11 +295,15 @@ impl SerialGalvo {
     /// Sends `req` with a fresh tag after dropping stale input; returns the tag.
     fn send(&mut self, req: Request) -> Result<u8, GalvoError> {
         self.connect()?;
-        self.tag = self.tag.wrapping_add(1);
+        // Tag 00 is reserved for out-of-band lines.
+        self.tag = self.tag.wrapping_add(1).max(1);
         let tag = self.tag;
         let line = protocol::encode_line(tag, &req.body());
         let link = self.link.as_mut().expect("connected above");
-        let sent = link.discard_input().and_then(|()| link.send(line.as_bytes()));
+        let sent = {
+            let _writing = lock_writer(&self.oob);
+            link.discard_input().and_then(|()| link.send(line.as_bytes()))
+        };
         if let Err(e) = sent {
             return Err(self.broken(e));
         }
@@ -352,6 +507,53 @@ impl SerialGalvo {
     }
 }
 
+impl SerialGalvo {
+    /// `LASER OFF` out of band, then waits (up to the reply timeout) for the
+    /// controller's tag-00 answer before the link closes: a port closed at once may
+    /// lose the line still in its buffer (a pseudo-terminal does).
+    fn off_before_closing(&mut self) {
+        let line = protocol::encode_line(protocol::OUT_OF_BAND_TAG, &Request::Laser(false).body());
+        let Some(link) = self.link.as_mut() else { return };
+        {
+            let _writing = lock_writer(&self.oob);
+            if link
+                .discard_input()
+                .and_then(|()| link.send(line.as_bytes()))
+                .is_err()
+            {
+                return;
+            }
+        }
+        let deadline = Instant::now() + self.settings.timeout;
+        let mut rx = Vec::new();
+        let mut chunk = [0u8; 128];
+        while let Some(left) = deadline.checked_duration_since(Instant::now()) {
+            match link.receive(&mut chunk, left) {
+                Ok(n) => rx.extend_from_slice(&chunk[..n]),
+                Err(_) => return,
+            }
+            let answered = rx
+                .split(|&b| b == b'\n')
+                .any(|l| matches!(protocol::decode_line(l), Ok((t, _)) if t == protocol::OUT_OF_BAND_TAG));
+            if answered {
+                return;
+            }
+        }
+        warn!(arm = %self.settings.name, "no answer to LASER OFF while closing; the controller's watchdog ends emission");
+    }
+}
+
+impl Drop for SerialGalvo {
+    /// A driver dropped while emission is wanted (a panic unwinding, a run abandoned)
+    /// switches the laser off on its way out; its keepalive stops with it, so the
+    /// controller's watchdog ends emission even if this line is lost.
+    fn drop(&mut self) {
+        if self.wanted.swap(false, Ordering::SeqCst) {
+            self.off_before_closing();
+        }
+    }
+}
+
 impl GalvoPair for SerialGalvo {
     fn identify(&mut self) -> Result<DeviceInfo, GalvoError> {
         let fields = self.request(Request::Identify)?;
@@ -464,8 +666,39 @@ impl GalvoPair for SerialGalvo {
 }
 
 impl Laser for SerialGalvo {
+    /// On: sets the controller's watchdog (if configured), starts feeding it, then
+    /// `LASER ON`. Off: stops feeding, sends `LASER OFF` out of band at once (nothing
+    /// outstanding can hold it up), then again as an ordinary, confirmed request.
     fn set_emission(&mut self, on: bool) -> Result<(), GalvoError> {
-        self.request(Request::Laser(on)).map(drop)
+        if on {
+            if let Some(timeout) = self.settings.watchdog {
+                let ms = u32::try_from(timeout.as_millis()).unwrap_or(u32::MAX);
+                let req = Request::Watchdog(Some(ms));
+                let fields = self.request(req)?;
+                let (set, _) = self.parse_watchdog(req, &fields)?;
+                if set != timeout {
+                    return Err(self.err(
+                        ErrorKind::Device,
+                        format!(
+                            "the controller set its laser watchdog to {} ms, not {ms} ms; emission was not switched on",
+                            set.as_millis()
+                        ),
+                    ));
+                }
+            }
+            self.wanted.store(true, Ordering::SeqCst);
+            self.start_keepalive();
+            let result = self.request(Request::Laser(true)).map(drop);
+            if result.is_err() {
+                self.wanted.store(false, Ordering::SeqCst);
+            }
+            return result;
+        }
+        self.wanted.store(false, Ordering::SeqCst);
+        if let Err(e) = write_out_of_band(&self.oob, Request::Laser(false)) {
+            debug!(error = %e, "no out-of-band LASER OFF; sending it in band");
+        }
+        self.request(Request::Laser(false)).map(drop)
     }
 
     fn laser_state(&mut self) -> Result<LaserState, GalvoError> {

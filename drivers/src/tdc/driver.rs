@@ -49,7 +49,20 @@ fn to_wire(c: &TdcConfig) -> Option<WireConfig> {
     })
 }
 
+/// How often an acquisition in progress asks whether to stop: the bound on how long
+/// a stop waits for a dwell, whatever its length.
+pub const POLL: Duration = Duration::from_millis(5);
+
 impl<T: UsbTransport> UsbTdc<T> {
+    /// Sends `ABORT` and drops whatever was received: the device discards the
+    /// acquisition in progress and any frame not yet read.
+    fn abort_acquisition(&mut self) -> Result<(), TdcError> {
+        self.rx.clear();
+        self.transport
+            .control_out(ControlRequest::Abort as u8, 0, 0, &[], self.timeout)
+            .map_err(|e| self.transport_err("Abort", e))
+    }
+
     /// A driver over an open transport.
     pub fn new(transport: T, timeout: Duration) -> UsbTdc<T> {
         let device = transport.describe();
@@ -161,9 +174,11 @@ impl<T: UsbTransport> UsbTdc<T> {
         Ok(())
     }
 
-    /// One attempt at an acquisition: start, then read until our frame arrives.
-    #[instrument(level = "trace", skip(self))]
-    fn acquire_once(&mut self, config: TdcConfig) -> Result<Histogram, TdcError> {
+    /// One attempt at an acquisition: start, then read until our frame arrives, asking
+    /// `stop` every [`POLL`]; when it says stop, the acquisition is aborted on the
+    /// device and the error's kind is `Interrupted`.
+    #[instrument(level = "trace", skip(self, stop))]
+    fn acquire_once(&mut self, config: TdcConfig, stop: &dyn Fn() -> bool) -> Result<Histogram, TdcError> {
         self.sequence = self.sequence.wrapping_add(1);
         let seq = self.sequence;
         self.rx.clear();
@@ -179,6 +194,13 @@ impl<T: UsbTransport> UsbTdc<T> {
         let deadline = Instant::now() + config.acquisition + self.timeout;
         let expected = to_wire(&config).expect("validated when configured");
         loop {
+            if stop() {
+                self.abort_acquisition()?;
+                return Err(self.err(
+                    ErrorKind::Interrupted,
+                    format!("acquisition {seq} was stopped and aborted on the device"),
+                ));
+            }
             // Parse what we have.
             loop {
                 match protocol::decode_frame(&self.rx) {
@@ -244,10 +266,11 @@ impl<T: UsbTransport> UsbTdc<T> {
                     )
                 });
             }
-            match self
-                .transport
-                .bulk_in(protocol::BULK_IN_ENDPOINT, &mut self.chunk, deadline - now)
-            {
+            match self.transport.bulk_in(
+                protocol::BULK_IN_ENDPOINT,
+                &mut self.chunk,
+                (deadline - now).min(POLL),
+            ) {
                 Ok(n) => {
                     let (rx, chunk) = (&mut self.rx, &self.chunk);
                     rx.extend_from_slice(&chunk[..n]);
@@ -295,6 +318,10 @@ impl<T: UsbTransport> Histogrammer for UsbTdc<T> {
     }
 
     fn acquire(&mut self) -> Result<Histogram, TdcError> {
+        self.acquire_until(&|| false)
+    }
+
+    fn acquire_until(&mut self, stop: &dyn Fn() -> bool) -> Result<Histogram, TdcError> {
         let config = self.config.ok_or_else(|| {
             self.err(
                 ErrorKind::Device,
@@ -302,8 +329,12 @@ impl<T: UsbTransport> Histogrammer for UsbTdc<T> {
             )
         })?;
         self.with_recovery(&[ErrorKind::Timeout, ErrorKind::Protocol], |d| {
-            d.acquire_once(config)
+            d.acquire_once(config, stop)
         })
+    }
+
+    fn abort(&mut self) -> Result<(), TdcError> {
+        self.abort_acquisition()
     }
 
     fn status(&mut self) -> Result<TdcStatus, TdcError> {

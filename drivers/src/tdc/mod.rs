@@ -5,6 +5,6 @@ pub mod error;
 pub mod protocol;
 pub mod transport;
 
-pub use driver::UsbTdc;
+pub use driver::{POLL, UsbTdc};
 pub use error::TdcError;
 pub use transport::{RusbTransport, TransportError, UsbDeviceInfo, UsbTransport, list_usb_devices};

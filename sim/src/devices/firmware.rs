@@ -2,6 +2,7 @@
 //! as `docs/protocols/galvo-serial.md` specifies, and models settling and limits.
 use std::io::{self, Read, Write};
 use std::sync::Weak;
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
 
 use periscope_drivers::galvo::protocol::{self, ErrorCode, LineError, MotionState, Request};
@@ -9,7 +10,7 @@ use periscope_drivers::galvo::{Connector, Link};
 use serialport::{SerialPort, TTYPort};
 use tracing::debug;
 
-use super::rig::{Arm, GalvoFault, Rig, Shared};
+use super::rig::{Arm, EmissionCause, GalvoFault, Rig, Shared};
 
 /// Firmware version the simulated controllers report.
 const FIRMWARE: &str = "1.0.0-sim";
@@ -46,16 +47,16 @@ impl Connector for PtyConnector {
             arm.generation += 1;
             arm.generation
         };
-        let (mut master, slave) = TTYPort::pair().map_err(io::Error::from)?;
-        master
-            .set_timeout(Duration::from_millis(50))
-            .map_err(io::Error::from)?;
+        let (master, slave) = TTYPort::pair().map_err(io::Error::from)?;
         self.last_path = slave.name().unwrap_or_else(|| "simulated pty".into());
-        let shared = std::sync::Arc::downgrade(&self.rig.shared);
-        let arm = self.arm;
+        let firmware = Firmware {
+            shared: std::sync::Arc::downgrade(&self.rig.shared),
+            arm: self.arm,
+            end: End::Generation(generation),
+        };
         std::thread::Builder::new()
-            .name(format!("sim-galvo-{arm:?}").to_lowercase())
-            .spawn(move || run(master, shared, arm, generation))?;
+            .name(format!("sim-galvo-{:?}", self.arm).to_lowercase())
+            .spawn(move || firmware.run(master))?;
         Ok(Box::new(Box::new(slave)))
     }
 
@@ -68,64 +69,181 @@ impl Connector for PtyConnector {
     }
 }
 
-/// The firmware loop: one line in, one line out, until the link is replaced, the rig
-/// is dropped or the host side closes.
-fn run(mut port: TTYPort, shared: Weak<Shared>, arm: Arm, generation: u64) {
-    let mut rx: Vec<u8> = Vec::with_capacity(protocol::MAX_LINE);
-    let mut chunk = [0u8; 256];
-    loop {
-        let Some(rig) = shared.upgrade() else { return };
-        if rig.lock().arms[arm.index()].generation != generation {
-            return;
+/// A simulated controller on a pseudo-terminal that any process can open by path, as
+/// it would open `/dev/ttyUSB0`: the firmware keeps running while hosts connect and
+/// go (or die), so a test can kill a `periscope` process and watch the controller's
+/// watchdog switch the laser off. Dropping it stops the firmware.
+pub struct ServedPort {
+    path: String,
+    stop: std::sync::Arc<AtomicBool>,
+    /// Held open so the master side never sees a hang-up between hosts.
+    _slave: TTYPort,
+    thread: Option<std::thread::JoinHandle<()>>,
+}
+
+impl ServedPort {
+    pub(crate) fn new(rig: &Rig, arm: Arm) -> io::Result<ServedPort> {
+        let (master, slave) = TTYPort::pair().map_err(io::Error::from)?;
+        let path = slave
+            .name()
+            .ok_or_else(|| io::Error::other("the pseudo-terminal has no path"))?;
+        let stop = std::sync::Arc::new(AtomicBool::new(false));
+        let firmware = Firmware {
+            shared: std::sync::Arc::downgrade(&rig.shared),
+            arm,
+            end: End::Stop(stop.clone()),
+        };
+        let thread = std::thread::Builder::new()
+            .name(format!("sim-galvo-{arm:?}-served").to_lowercase())
+            .spawn(move || firmware.run(master))?;
+        Ok(ServedPort {
+            path,
+            stop,
+            _slave: slave,
+            thread: Some(thread),
+        })
+    }
+
+    /// The port's path (`/dev/pts/N`).
+    pub fn path(&self) -> &str {
+        &self.path
+    }
+}
+
+impl Drop for ServedPort {
+    fn drop(&mut self) {
+        self.stop.store(true, Ordering::SeqCst);
+        if let Some(t) = self.thread.take() {
+            let _ = t.join();
         }
-        drop(rig);
-        match port.read(&mut chunk) {
-            Ok(0) => return,
-            Ok(n) => rx.extend_from_slice(&chunk[..n]),
-            Err(e) if e.kind() == io::ErrorKind::TimedOut || e.kind() == io::ErrorKind::WouldBlock => {
-                continue;
-            }
-            Err(_) => return,
+    }
+}
+
+/// When a firmware thread ends.
+enum End {
+    /// When its connection is replaced by a newer one (a reconnect), or the host hangs up.
+    Generation(u64),
+    /// When told to (a served port); it outlives its hosts.
+    Stop(std::sync::Arc<AtomicBool>),
+}
+
+/// The longest the firmware sleeps in a read, so it notices the end conditions.
+const POLL: Duration = Duration::from_millis(10);
+
+struct Firmware {
+    shared: Weak<Shared>,
+    arm: Arm,
+    end: End,
+}
+
+impl Firmware {
+    fn ended(&self, rig: &Shared) -> bool {
+        match &self.end {
+            End::Generation(g) => rig.lock().arms[self.arm.index()].generation != *g,
+            End::Stop(stop) => stop.load(Ordering::SeqCst),
         }
-        while let Some(end) = rx.iter().position(|&b| b == b'\n') {
-            let line: Vec<u8> = rx.drain(..=end).collect();
-            let Some(rig) = shared.upgrade() else { return };
-            let outcome = answer(&rig, arm, &line[..line.len() - 1]);
-            drop(rig);
-            match outcome {
-                Outcome::Reply(bytes) => {
-                    if port.write_all(&bytes).and_then(|()| port.flush()).is_err() {
-                        return;
-                    }
+    }
+
+    /// The firmware loop: reads lines and answers them. A move's reply waits until the
+    /// pair has settled, but the loop goes on reading meanwhile, so an out-of-band
+    /// `LASER OFF` is acted on at once whatever is outstanding.
+    fn run(self, mut port: TTYPort) {
+        let mut rx: Vec<u8> = Vec::with_capacity(protocol::MAX_LINE);
+        let mut chunk = [0u8; 256];
+        // Replies waiting for their time (a settling move, an injected stall).
+        let mut due: Vec<(Instant, Vec<u8>)> = Vec::new();
+        loop {
+            {
+                let Some(rig) = self.shared.upgrade() else { return };
+                if self.ended(&rig) {
+                    return;
                 }
-                Outcome::Silent => {}
-                Outcome::Unplug => return,
             }
-        }
-        if rx.len() > protocol::MAX_LINE {
-            rx.clear();
+            let now = Instant::now();
+            let (ready, later): (Vec<_>, Vec<_>) = due.drain(..).partition(|(t, _)| *t <= now);
+            due = later;
+            for (_, bytes) in ready {
+                if port.write_all(&bytes).and_then(|()| port.flush()).is_err() {
+                    return;
+                }
+            }
+            let wait = due
+                .iter()
+                .map(|(t, _)| t.saturating_duration_since(now))
+                .fold(POLL, Duration::min)
+                .max(Duration::from_micros(20));
+            let _ = port.set_timeout(wait);
+            match port.read(&mut chunk) {
+                Ok(0) => match self.end {
+                    End::Generation(_) => return,
+                    End::Stop(_) => continue,
+                },
+                Ok(n) => rx.extend_from_slice(&chunk[..n]),
+                Err(e) if e.kind() == io::ErrorKind::TimedOut || e.kind() == io::ErrorKind::WouldBlock => {
+                    continue;
+                }
+                Err(_) => match self.end {
+                    End::Generation(_) => return,
+                    // No host on the other end just now: wait for the next one.
+                    End::Stop(_) => {
+                        std::thread::sleep(POLL);
+                        continue;
+                    }
+                },
+            }
+            while let Some(end) = rx.iter().position(|&b| b == b'\n') {
+                let line: Vec<u8> = rx.drain(..=end).collect();
+                let Some(rig) = self.shared.upgrade() else { return };
+                let outcome = answer(&rig, self.arm, &line[..line.len() - 1]);
+                drop(rig);
+                match outcome {
+                    Outcome::Reply(bytes, delay) if delay.is_zero() => {
+                        if port.write_all(&bytes).and_then(|()| port.flush()).is_err() {
+                            return;
+                        }
+                    }
+                    Outcome::Reply(bytes, delay) => due.push((Instant::now() + delay, bytes)),
+                    Outcome::Silent => {}
+                    Outcome::Unplug => match self.end {
+                        End::Generation(_) => return,
+                        End::Stop(_) => due.clear(),
+                    },
+                }
+            }
+            if rx.len() > protocol::MAX_LINE {
+                rx.clear();
+            }
         }
     }
 }
 
 enum Outcome {
-    Reply(Vec<u8>),
+    /// Send these bytes after this long.
+    Reply(Vec<u8>, Duration),
     Silent,
     Unplug,
 }
 
 fn answer(rig: &Shared, arm: Arm, line: &[u8]) -> Outcome {
-    let fault = rig.lock().arms[arm.index()].faults.pop_front();
-    let (tag, body) = match protocol::decode_line(line) {
+    let decoded = protocol::decode_line(line);
+    // Injected faults are one-shot and meant for the host's ordinary requests; the
+    // out-of-band keepalives a driver sends from its own thread do not consume them.
+    let out_of_band = matches!(decoded, Ok((tag, _)) if tag == protocol::OUT_OF_BAND_TAG);
+    let fault = if out_of_band {
+        None
+    } else {
+        rig.lock().arms[arm.index()].faults.pop_front()
+    };
+    let (tag, body, mut delay) = match decoded {
         Ok((tag, body)) => {
-            let (reply, settle) = handle(rig, arm, body);
-            // A move is answered once the pair has settled.
-            if !settle.is_zero() {
-                std::thread::sleep(settle);
+            if arm == Arm::Laser {
+                // Every correctly framed line feeds the laser watchdog.
+                rig.lock().heard_host(Instant::now());
             }
-            (tag, reply)
+            let (reply, settle) = handle(rig, arm, body);
+            (tag, reply, settle)
         }
-        Err(LineError::Checksum(Some(tag))) => (tag, ErrorCode::BadChecksum.reply()),
+        Err(LineError::Checksum(Some(tag))) => (tag, ErrorCode::BadChecksum.reply(), Duration::ZERO),
         Err(_) => {
             debug!(?arm, "firmware ignoring garbage");
             return Outcome::Silent;
@@ -140,7 +258,7 @@ fn answer(rig: &Shared, arm: Arm, line: &[u8]) -> Outcome {
             let i = 3.min(reply.len() - 2);
             reply[i] ^= 0x02;
         }
-        Some(GalvoFault::Stall(d)) => std::thread::sleep(d),
+        Some(GalvoFault::Stall(d)) => delay += d,
         Some(GalvoFault::Garbage) => {
             let mut noisy = b"\x00\xff~~ line noise 17*ZZ\n".to_vec();
             noisy.extend_from_slice(&reply);
@@ -149,14 +267,16 @@ fn answer(rig: &Shared, arm: Arm, line: &[u8]) -> Outcome {
         Some(GalvoFault::Disconnect { refused_connects }) => {
             let mut s = rig.lock();
             s.arms[arm.index()].refused_connects = refused_connects;
-            // A controller that loses power forgets its laser state (fail-safe off).
+            // A controller that loses power forgets its laser state (fail-safe off)
+            // and comes back with its power-up watchdog.
             if arm == Arm::Laser {
-                s.emission = false;
+                s.set_emission(false, EmissionCause::PowerLoss, Instant::now());
+                s.watchdog.timeout = Duration::from_millis(u64::from(protocol::WATCHDOG_DEFAULT_MS));
             }
             return Outcome::Unplug;
         }
     }
-    Outcome::Reply(reply)
+    Outcome::Reply(reply, delay)
 }
 
 /// The reply to a request, and how long to wait before sending it.
@@ -219,19 +339,32 @@ fn handle_immediate(rig: &Shared, arm: Arm, req: Request) -> String {
             a.settled_at = now + settle;
             "OK".into()
         }
-        Request::Laser(_) | Request::LaserStatus | Request::Interlock | Request::Diffuser(_) if !is_laser => {
+        Request::KeepAlive => "OK".into(),
+        Request::Laser(_)
+        | Request::LaserStatus
+        | Request::Interlock
+        | Request::Diffuser(_)
+        | Request::Watchdog(_)
+            if !is_laser =>
+        {
             ErrorCode::NoLaser.reply()
         }
         Request::Laser(on) => {
             if on && !s.interlock_closed {
                 return ErrorCode::InterlockOpen.reply();
             }
-            s.emission = on;
+            s.set_emission(on, EmissionCause::Host, now);
             "OK".into()
+        }
+        Request::Watchdog(set) => {
+            if let Some(ms) = set {
+                s.watchdog.timeout = Duration::from_millis(u64::from(ms));
+            }
+            format!("OK {} {}", s.watchdog.timeout.as_millis(), s.watchdog.trips)
         }
         Request::LaserStatus => format!(
             "OK {} {} {}",
-            if s.emission { "ON" } else { "OFF" },
+            if s.emission() { "ON" } else { "OFF" },
             if s.interlock_closed { "CLOSED" } else { "OPEN" },
             if s.diffuser_in { "IN" } else { "OUT" }
         ),

@@ -11,5 +11,6 @@ mod rig;
 mod tdc;
 
 pub use firmware::PtyConnector;
-pub use rig::{Arm, Fault, GalvoFault, Rig, RigSettings, TdcFault};
+pub use firmware::ServedPort;
+pub use rig::{Arm, EmissionCause, EmissionChange, Fault, GalvoFault, Rig, RigSettings, TdcFault};
 pub use tdc::SimTdcTransport;

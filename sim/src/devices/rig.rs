@@ -109,14 +109,91 @@ pub(crate) struct ArmState {
     pub faults: VecDeque<GalvoFault>,
 }
 
+/// Why the simulated laser's emission changed.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum EmissionCause {
+    /// The host sent `LASER ON` or `LASER OFF` (an ordinary or an out-of-band request).
+    Host,
+    /// The watchdog expired: nothing heard from the host for its timeout.
+    Watchdog,
+    /// The interlock loop opened.
+    Interlock,
+    /// The controller lost power (an injected unplug).
+    PowerLoss,
+}
+
+/// One change of the simulated laser's emission, with when it happened.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct EmissionChange {
+    /// When (for a watchdog trip: the moment the timeout ran out).
+    pub at: Instant,
+    /// Emission after the change.
+    pub on: bool,
+    /// Why.
+    pub cause: EmissionCause,
+}
+
+/// The laser controller's watchdog, as its firmware keeps it.
+#[derive(Debug)]
+pub(crate) struct Watchdog {
+    pub timeout: Duration,
+    /// The last correctly framed line from the host.
+    pub last_heard: Instant,
+    /// Times it switched emission off since power-up.
+    pub trips: u32,
+}
+
 #[derive(Debug)]
 pub(crate) struct RigState {
     pub arms: [ArmState; 2],
-    pub emission: bool,
+    emission: bool,
+    pub watchdog: Watchdog,
+    emission_log: Vec<EmissionChange>,
     pub interlock_closed: bool,
     pub diffuser_in: bool,
     pub tdc_faults: VecDeque<TdcFault>,
     pub tdc_refused_reopens: u32,
+}
+
+/// Emission changes remembered for [`Rig::emission_changes`].
+const EMISSION_LOG: usize = 4096;
+
+impl RigState {
+    /// Whether the laser emits.
+    pub(crate) fn emission(&self) -> bool {
+        self.emission
+    }
+
+    /// Switches emission, remembering when and why.
+    pub(crate) fn set_emission(&mut self, on: bool, cause: EmissionCause, at: Instant) {
+        if self.emission == on {
+            return;
+        }
+        self.emission = on;
+        if self.emission_log.len() == EMISSION_LOG {
+            self.emission_log.remove(0);
+        }
+        self.emission_log.push(EmissionChange { at, on, cause });
+    }
+
+    /// The watchdog, evaluated at `now`: emission is switched off at the moment the
+    /// timeout ran out if nothing was heard from the host since. Evaluating it on every
+    /// look at the state is exactly equivalent to a timer interrupt in the firmware,
+    /// since nothing can observe emission in between.
+    fn expire_watchdog(&mut self, now: Instant) {
+        let due = self.watchdog.last_heard + self.watchdog.timeout;
+        if self.emission && now >= due {
+            self.watchdog.trips += 1;
+            self.set_emission(false, EmissionCause::Watchdog, due);
+        }
+    }
+
+    /// The host was heard (a correctly framed line): the watchdog restarts. The
+    /// expiry is evaluated first, so a line that arrives too late does not undo a trip.
+    pub(crate) fn heard_host(&mut self, now: Instant) {
+        self.expire_watchdog(now);
+        self.watchdog.last_heard = now;
+    }
 }
 
 pub(crate) struct Shared {
@@ -128,7 +205,9 @@ pub(crate) struct Shared {
 impl Shared {
     pub(crate) fn lock(&self) -> MutexGuard<'_, RigState> {
         // A panicking firmware thread must not take the whole rig down with it.
-        self.state.lock().unwrap_or_else(|p| p.into_inner())
+        let mut s = self.state.lock().unwrap_or_else(|p| p.into_inner());
+        s.expire_watchdog(Instant::now());
+        s
     }
 
     pub(crate) fn instrument(&self) -> Instrument {
@@ -165,6 +244,14 @@ impl Rig {
         let state = RigState {
             arms: [arm(), arm()],
             emission: false,
+            watchdog: Watchdog {
+                timeout: Duration::from_millis(u64::from(
+                    periscope_drivers::galvo::protocol::WATCHDOG_DEFAULT_MS,
+                )),
+                last_heard: now,
+                trips: 0,
+            },
+            emission_log: Vec::new(),
             interlock_closed: settings.interlock_closed,
             diffuser_in: false,
             tdc_faults: VecDeque::new(),
@@ -193,8 +280,30 @@ impl Rig {
         let mut s = self.shared.lock();
         s.interlock_closed = closed;
         if !closed {
-            s.emission = false;
+            s.set_emission(false, EmissionCause::Interlock, Instant::now());
         }
+    }
+
+    /// Every change of emission so far (the last 4,096), oldest first.
+    pub fn emission_changes(&self) -> Vec<EmissionChange> {
+        self.shared.lock().emission_log.clone()
+    }
+
+    /// When emission last went off at or after `since`, if it is off now; `None` while
+    /// it is on. A laser that was already off at `since` reports `since`.
+    pub fn off_since(&self, since: Instant) -> Option<Instant> {
+        let s = self.shared.lock();
+        if s.emission {
+            return None;
+        }
+        let last_off = s.emission_log.iter().rev().find(|c| !c.on).map(|c| c.at);
+        Some(last_off.map_or(since, |t| t.max(since)))
+    }
+
+    /// The laser watchdog's timeout and the number of times it has tripped.
+    pub fn watchdog(&self) -> (Duration, u32) {
+        let s = self.shared.lock();
+        (s.watchdog.timeout, s.watchdog.trips)
     }
 
     /// Where each arm is commanded to point (laser, SPAD).
@@ -205,7 +314,7 @@ impl Rig {
 
     /// Whether the laser is emitting.
     pub fn emission(&self) -> bool {
-        self.shared.lock().emission
+        self.shared.lock().emission()
     }
 
     /// The galvo origins.
@@ -225,6 +334,12 @@ impl Rig {
     /// end (what the driver opens in place of `/dev/ttyUSB0`).
     pub fn galvo_connector(&self, arm: Arm) -> crate::devices::PtyConnector {
         crate::devices::PtyConnector::new(self.clone(), arm)
+    }
+
+    /// This arm's firmware on a pseudo-terminal that another process opens by path (see
+    /// [`crate::devices::ServedPort`]).
+    pub fn serve_galvo_port(&self, arm: Arm) -> std::io::Result<crate::devices::ServedPort> {
+        crate::devices::ServedPort::new(self, arm)
     }
 
     /// The histogrammer behind a USB transport.

@@ -2,7 +2,7 @@
 //! control requests are answered by a device model and histogram frames are queued
 //! for bulk-in reads, encoded by the protocol code the driver decodes them with.
 use std::collections::VecDeque;
-use std::time::Duration;
+use std::time::{Duration, Instant};
 
 use periscope_drivers::tdc::protocol::{
     self, ControlRequest, FrameHeader, WireConfig, WireInfo, WireStatus, flag, state,
@@ -19,8 +19,9 @@ const PILE_UP_FRACTION: f64 = 0.05;
 pub struct SimTdcTransport {
     rig: Rig,
     config: Option<WireConfig>,
-    /// Bytes queued on the bulk-in endpoint, one transfer per entry.
-    out: VecDeque<Vec<u8>>,
+    /// Bytes queued on the bulk-in endpoint, one transfer per entry, each with the
+    /// moment it becomes available (the end of its acquisition).
+    out: VecDeque<(Instant, Vec<u8>)>,
     frames: u32,
     acquisitions: u64,
     last_rate: f64,
@@ -89,7 +90,7 @@ impl SimTdcTransport {
         let dwell = f64::from(cfg.acquisition_us) * 1e-6;
         let (laser, spad, emission, diffuser_in) = {
             let s = shared.lock();
-            (s.arms[0].target, s.arms[1].target, s.emission, s.diffuser_in)
+            (s.arms[0].target, s.arms[1].target, s.emission(), s.diffuser_in)
         };
         let background = det;
         let dark = || background.expected_counts(&vec![0.0; background.bins], None, dwell);
@@ -123,11 +124,13 @@ impl SimTdcTransport {
         let fault = self.next_fault();
         self.check_present()?;
         let expected = self.expected(cfg);
-        std::thread::sleep(
-            self.rig
+        // The frame is ready when the dwell ends; until then bulk reads time out, and an
+        // `ABORT` drops it.
+        let ready = Instant::now()
+            + self
+                .rig
                 .shared
-                .scaled(Duration::from_micros(u64::from(cfg.acquisition_us))),
-        );
+                .scaled(Duration::from_micros(u64::from(cfg.acquisition_us)));
         self.acquisitions += 1;
         let counts = sample_counts(&expected, self.rig.shared.settings.seed, self.acquisitions);
         let dwell = f64::from(cfg.acquisition_us) * 1e-6;
@@ -164,7 +167,7 @@ impl SimTdcTransport {
                 ..header
             };
             self.out
-                .push_back(protocol::encode_frame(&stale, &vec![1; cfg.bins as usize]));
+                .push_back((ready, protocol::encode_frame(&stale, &vec![1; cfg.bins as usize])));
         }
         self.last_sequence = sequence;
         match fault {
@@ -172,18 +175,18 @@ impl SimTdcTransport {
             Some(TdcFault::CorruptCrc) => {
                 let i = (protocol::HEADER_LEN + frame.len() / 3).min(frame.len() - 5);
                 frame[i] ^= 0x04;
-                self.out.push_back(frame);
+                self.out.push_back((ready, frame));
             }
             Some(TdcFault::ShortRead) => {
                 for piece in frame.chunks(61) {
-                    self.out.push_back(piece.to_vec());
+                    self.out.push_back((ready, piece.to_vec()));
                 }
             }
             Some(TdcFault::Truncated) => {
                 frame.truncate(frame.len() / 2);
-                self.out.push_back(frame);
+                self.out.push_back((ready, frame));
             }
-            _ => self.out.push_back(frame),
+            _ => self.out.push_back((ready, frame)),
         }
         Ok(())
     }
@@ -268,7 +271,16 @@ impl UsbTransport for SimTdcTransport {
         if endpoint != protocol::BULK_IN_ENDPOINT {
             return Err(TransportError::Stall);
         }
-        match self.out.front_mut() {
+        if let Some((ready, _)) = self.out.front() {
+            // Acquiring: the frame comes when the dwell ends, or the read times out.
+            let wait = ready.saturating_duration_since(Instant::now());
+            if wait > timeout {
+                std::thread::sleep(timeout);
+                return Err(TransportError::Timeout);
+            }
+            std::thread::sleep(wait);
+        }
+        match self.out.front_mut().map(|(_, bytes)| bytes) {
             None => {
                 // Nothing will come: the host would wait out its timeout. Wait a
                 // little of it (so timeouts stay real) without burning the test's time.
