@@ -90,8 +90,12 @@ fn devices_identifies_the_simulated_instrument_through_the_real_drivers() {
 fn devices_names_the_missing_hardware() {
     let out = periscope(&["devices", "--instrument", "configs/instrument/lab.example.toml"]);
     assert_eq!(out.code, Some(1), "{out:?}");
-    // Either libusb is unavailable here or the device is not plugged in: the message
-    // names the device and says what to check.
-    assert!(out.stderr.contains("histogrammer 1d50:6189"), "{}", out.stderr);
-    assert!(out.stderr.contains("tdc.usb"), "{}", out.stderr);
+    // Devices are opened laser controller first (the one an e-stop needs most): the
+    // message names it, its port, and says what to check.
+    assert!(
+        out.stderr.contains("galvo pair `laser` on /dev/ttyUSB0"),
+        "{}",
+        out.stderr
+    );
+    assert!(out.stderr.contains("plugged in"), "{}", out.stderr);
 }

@@ -6,6 +6,8 @@
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
+use std::sync::{Arc, Mutex};
+use std::time::Duration;
 
 use clap::{Parser, Subcommand};
 
@@ -14,6 +16,7 @@ use crate::logging::LogFormat;
 use crate::pipeline::{self, Control, PipelineError, Run};
 use crate::plan::Plan;
 use crate::{check, offline};
+use periscope_drivers::galvo::EmergencyOff;
 
 /// Periscope: non-line-of-sight imaging, from galvo scan to reconstructed volume.
 #[derive(Debug, Parser)]
@@ -311,13 +314,54 @@ fn devices(config: &InstrumentConfig) -> anyhow::Result<()> {
     Ok(())
 }
 
+/// After SIGINT, SIGTERM or SIGHUP, how long a run has to reach its checkpoint, park
+/// and record its state before the process exits anyway (the laser is off from the
+/// first moment): within the 2 s an operator or a service manager may expect.
+pub const SIGNAL_GRACE: Duration = Duration::from_millis(1500);
+
+/// What a stop signal does to `run` and `resume`.
+struct RunSignals {
+    control: Control,
+    laser: Mutex<Option<EmergencyOff>>,
+}
+
+impl crate::signals::OnSignal for RunSignals {
+    fn laser_off(&self) {
+        if let Some(off) = self.laser.lock().unwrap_or_else(|p| p.into_inner()).as_ref()
+            && let Err(e) = off.laser_off()
+        {
+            eprintln!("direct laser off failed: {e}");
+        }
+    }
+    fn stop(&self, _signal: &'static str) {
+        self.control.pause();
+    }
+}
+
 /// Runs (or resumes) the run in `dir` with a progress display and prints the summary.
 fn execute_run(dir: &Path) -> anyhow::Result<()> {
     let control = Control::new();
-    pause_on_ctrl_c(control.clone());
-    let run = Run::open(dir, control, None)?;
+    let signals = Arc::new(RunSignals {
+        control: control.clone(),
+        laser: Mutex::new(None),
+    });
+    crate::signals::install(signals.clone(), SIGNAL_GRACE);
+    let run = Run::open(dir, control, None, None)?;
+    *signals.laser.lock().unwrap_or_else(|p| p.into_inner()) = Some(run.emergency_off());
     crate::progress::attach(run.events());
-    let summary = run.execute()?;
+    let result = run.execute();
+    if let Some(n) = crate::signals::received() {
+        let state = match &result {
+            Ok(_) => "completed".to_owned(),
+            Err(e) => e.to_string(),
+        };
+        eprintln!(
+            "stopped by signal {n}: {state}; laser off, arms parked. `periscope resume {}` continues the run",
+            dir.display()
+        );
+        std::process::exit(i32::from(crate::signals::exit_code(n)));
+    }
+    let summary = result?;
     println!("run complete: {}", summary.dir.display());
     println!("  pairs measured: {}", summary.pairs);
     for (stage, secs) in &summary.timings {
@@ -350,31 +394,4 @@ fn random_token() -> String {
     let mut bytes = [0u8; 24];
     rand::rng().fill_bytes(&mut bytes);
     bytes.iter().map(|b| format!("{b:02x}")).collect()
-}
-
-/// Ctrl-C during `periscope run`/`resume`: the run pauses at its next checkpoint (between
-/// pairs), its error path switches the laser off and parks both arms, and the data
-/// stays resumable. A second Ctrl-C exits at once (exit code 130).
-fn pause_on_ctrl_c(control: Control) {
-    let spawned = std::thread::Builder::new().name("signals".into()).spawn(move || {
-        let Ok(rt) = tokio::runtime::Builder::new_current_thread().enable_all().build() else {
-            return;
-        };
-        rt.block_on(async {
-            if tokio::signal::ctrl_c().await.is_err() {
-                return;
-            }
-            eprintln!(
-                "\ninterrupted: pausing at the next checkpoint (laser off, arms parked); \
-                 `periscope resume` continues the run. Ctrl-C again to exit at once."
-            );
-            control.pause();
-            if tokio::signal::ctrl_c().await.is_ok() {
-                std::process::exit(130);
-            }
-        });
-    });
-    if let Err(e) = spawned {
-        tracing::warn!("Ctrl-C will not pause the run safely: {e}");
-    }
 }

@@ -13,6 +13,8 @@ use serde::Serialize;
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum Stage {
+    /// Opening and identifying the devices.
+    Opening,
     /// LOS first-bounce scan of the relay.
     LosScan,
     /// Relay point cloud, thresholds and normals.
@@ -31,6 +33,7 @@ impl Stage {
     /// The stage's name as written in `run.json` and events.
     pub fn name(self) -> &'static str {
         match self {
+            Stage::Opening => "opening",
             Stage::LosScan => "los-scan",
             Stage::Relay => "relay",
             Stage::Planning => "planning",
@@ -56,6 +59,20 @@ pub enum RunEvent {
         stage: Stage,
         /// Seconds it took.
         seconds: f64,
+    },
+    /// A suspender tripped: the laser is off and the run waits (or pauses) until the
+    /// condition clears.
+    Suspended {
+        /// What tripped and what was measured.
+        reason: String,
+        /// `auto` (the run goes on by itself once the condition has cleared) or
+        /// `operator` (the run pauses; resume it).
+        resume: String,
+    },
+    /// A suspender's condition cleared and the run goes on.
+    SuspendCleared {
+        /// What had tripped.
+        reason: String,
     },
     /// LOS scan progress.
     LosPoint {

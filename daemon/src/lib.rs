@@ -17,5 +17,6 @@ pub mod offline;
 pub mod pipeline;
 pub mod plan;
 pub mod progress;
+pub mod signals;
 pub mod store;
 pub mod ytal;

@@ -54,6 +54,14 @@ pub fn attach(events: &EventSink) {
                 tracing::info!(epoch, loss, "fit epoch");
             }
         }
+        RunEvent::Suspended { reason, resume } => {
+            bar.set_message(format!("suspended: {reason}"));
+            tracing::warn!(resume = %resume, "suspended, laser off: {reason}");
+        }
+        RunEvent::SuspendCleared { reason } => {
+            bar.set_message("");
+            tracing::info!("suspension cleared ({reason}); measuring again");
+        }
         RunEvent::Train(_) | RunEvent::Output { .. } | RunEvent::Completed => {}
         RunEvent::Failed { message } => {
             bar.abandon_with_message("failed");

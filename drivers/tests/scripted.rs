@@ -242,9 +242,12 @@ fn switching_on_sets_the_watchdog_first() {
         &[
             ("01 WDOG 250*BE\n", "01 OK 250 0*AF\n"),
             ("02 LASER ON*B0\n", "02 OK*FE\n"),
+            // Dropped with the laser on: LASER OFF out of band, answered before closing.
+            ("00 LASER OFF*5A\n", "00 OK*D2\n"),
         ],
     );
     g.set_emission(true).unwrap();
+    drop(g);
     done(&s);
     // A controller that keeps another timeout is refused, and the laser stays off.
     let (mut g, s) = galvo_watchdog(

@@ -162,8 +162,28 @@ pub fn app(state: AppState) -> Router {
         .with_state(state)
 }
 
-/// Serves the API on `bind` until Ctrl-C; a running run is paused at its next
-/// checkpoint on the way out (resume it after the restart).
+/// What a stop signal does to `serve`.
+struct ServeSignals {
+    service: Arc<Service>,
+    notify: Arc<tokio::sync::Notify>,
+}
+
+impl crate::signals::OnSignal for ServeSignals {
+    fn laser_off(&self) {
+        self.service.laser_off_now();
+    }
+    fn stop(&self, _signal: &'static str) {
+        // Laser off (again), run paused, event streams ended, worker told to stop;
+        // then the server stops accepting and drains.
+        self.service.shutdown();
+        self.notify.notify_one();
+    }
+}
+
+/// Serves the API on `bind` until SIGINT, SIGTERM or SIGHUP: the running run's laser
+/// goes off at once, the run pauses at its next checkpoint (resume it after the
+/// restart), event streams end, and the process exits within 2 s (a second signal
+/// exits at once).
 pub async fn serve(bind: SocketAddr, service: Arc<Service>) -> anyhow::Result<()> {
     let worker = service.start_worker();
     let listener = tokio::net::TcpListener::bind(bind)
@@ -175,11 +195,16 @@ pub async fn serve(bind: SocketAddr, service: Arc<Service>) -> anyhow::Result<()
         service.runs_dir().display()
     );
     let app = app(AppState::new(Arc::clone(&service)));
+    let notify = Arc::new(tokio::sync::Notify::new());
+    crate::signals::install(
+        Arc::new(ServeSignals {
+            service: Arc::clone(&service),
+            notify: Arc::clone(&notify),
+        }),
+        crate::cli::SIGNAL_GRACE,
+    );
     axum::serve(listener, app.into_make_service_with_connect_info::<SocketAddr>())
-        .with_graceful_shutdown(async {
-            let _ = tokio::signal::ctrl_c().await;
-            eprintln!("shutting down: the running run (if any) pauses at its next checkpoint");
-        })
+        .with_graceful_shutdown(async move { notify.notified().await })
         .await?;
     service.shutdown();
     tokio::task::spawn_blocking(move || worker.join())

@@ -18,6 +18,9 @@ use crate::events::{EventSink, RunEvent};
 use crate::pipeline::{self, Control, PipelineError, Run};
 use crate::plan::Plan;
 use crate::store::{RunInfo, RunState, write_atomic};
+use periscope_drivers::galvo::EmergencyOff;
+use periscope_drivers::{GalvoPair, Laser};
+use periscope_sim::devices::Rig;
 
 /// The queue file in the runs directory.
 pub const QUEUE_FILE: &str = "queue.json";
@@ -109,6 +112,8 @@ struct Shared {
     queue: VecDeque<String>,
     /// The running run and its control.
     current: Option<(String, Control)>,
+    /// The running run's direct way to its laser, once its devices are open.
+    laser_off: Option<EmergencyOff>,
     live: Live,
     /// Event channels of runs that are running (or were, until a client drops them).
     channels: HashMap<String, broadcast::Sender<StreamEvent>>,
@@ -122,6 +127,9 @@ pub struct Service {
     runs_dir: PathBuf,
     instrument_src: TomlSource,
     instrument: InstrumentConfig,
+    /// The simulated instrument (back-end `sim`), kept for the daemon's life so that
+    /// runs, e-stops and status all see the same devices.
+    rig: Option<Rig>,
     token: Option<String>,
     shared: Mutex<Shared>,
     wake: Condvar,
@@ -133,6 +141,7 @@ impl Service {
     /// whether to resume it; queued runs stay queued.
     pub fn open(instrument_src: TomlSource, token: Option<String>) -> Result<Arc<Service>, ServiceError> {
         let instrument = InstrumentConfig::from_source(&instrument_src)?;
+        let rig = crate::devices::sim_rig(&instrument)?;
         let runs_dir = instrument.api.runs_dir.clone();
         std::fs::create_dir_all(&runs_dir)
             .map_err(|e| ServiceError::Storage(format!("runs directory {}: {e}", runs_dir.display())))?;
@@ -175,10 +184,12 @@ impl Service {
             runs_dir,
             instrument_src,
             instrument,
+            rig,
             token,
             shared: Mutex::new(Shared {
                 queue,
                 current: None,
+                laser_off: None,
                 live: Live::default(),
                 channels: HashMap::new(),
                 last_safe: None,
@@ -199,15 +210,38 @@ impl Service {
             .expect("the worker thread starts")
     }
 
-    /// Asks the worker to stop after the current run (which is paused at its next
-    /// checkpoint, so it can be resumed after a restart).
+    /// Shuts down: the running run's laser off at once through its direct path, the
+    /// run paused at its next checkpoint (so it resumes after a restart), every event
+    /// stream ended, and the worker told to stop.
     pub fn shutdown(&self) {
         let mut s = self.lock();
         s.shutdown = true;
+        if let Some(off) = &s.laser_off
+            && let Err(e) = off.laser_off()
+        {
+            tracing::warn!(error = %e, "shutdown: direct laser off failed; the run switches it off at its checkpoint");
+        }
         if let Some((_, control)) = &s.current {
             control.pause();
         }
+        // Dropping the senders ends every event stream after what it has buffered.
+        s.channels.clear();
         self.wake.notify_all();
+    }
+
+    /// Switches the running run's laser off through its direct path, if a run holds
+    /// the devices (for signal handlers: quick, waits for nothing but a mutex).
+    pub fn laser_off_now(&self) {
+        if let Some(off) = self.lock().laser_off.clone()
+            && let Err(e) = off.laser_off()
+        {
+            tracing::warn!(error = %e, "direct laser off failed");
+        }
+    }
+
+    /// The simulated instrument, for back-end `sim`.
+    pub fn rig(&self) -> Option<&Rig> {
+        self.rig.as_ref()
     }
 
     fn lock(&self) -> MutexGuard<'_, Shared> {
@@ -443,64 +477,128 @@ impl Service {
         self.status(id)
     }
 
-    /// Emergency stop: the running run aborts at its next checkpoint (between pairs, so
-    /// within one dwell) and its error path switches the laser off and parks both arms;
-    /// with no run, the devices are opened and made safe directly. Queued runs are
-    /// paused so that nothing starts until an operator resumes one.
+    /// Emergency stop. In this order: the laser off through the running run's direct
+    /// path (an out-of-band `LASER OFF` to the laser controller that nothing pending
+    /// can hold up), the run aborted (it parks both arms on its way out), queued runs
+    /// held as paused. With no run holding the devices, or if the direct path fails,
+    /// the laser controller is opened on its own (neither the SPAD arm nor the
+    /// histogrammer is needed) and switched off, then each arm parked. Nothing stops
+    /// it half-way: every step is tried, and the report says what was done.
     pub fn estop(&self) -> Result<EstopReport, ServiceError> {
         let t = Instant::now();
-        let running = {
+        let mut report = EstopReport::default();
+        let (running, direct) = {
             let s = self.lock();
-            let running = s.current.as_ref().map(|(id, c)| {
-                c.abort();
-                id.clone()
-            });
-            let held: Vec<String> = s
-                .queue
+            (s.current.clone(), s.laser_off.clone())
+        };
+        // 1. The laser, directly.
+        let mut laser_off = false;
+        if let Some(off) = &direct {
+            match off.laser_off() {
+                Ok(()) => {
+                    laser_off = true;
+                    report.laser = "off: out-of-band LASER OFF to the laser controller".into();
+                    report.laser_off_s = Some(t.elapsed().as_secs_f64());
+                }
+                Err(e) => report.warnings.push(format!("direct laser off failed: {e}")),
+            }
+        }
+        // 2. The run.
+        if let Some((id, control)) = &running {
+            control.abort();
+            report.aborted = Some(id.clone());
+        }
+        // 3. Queued runs are held.
+        let held: Vec<String> = {
+            let s = self.lock();
+            s.queue
                 .iter()
-                .filter(|q| Some(*q) != running.as_ref())
+                .filter(|q| Some(*q) != running.as_ref().map(|(id, _)| id))
                 .cloned()
-                .collect();
-            for id in &held {
-                if self.info(id).is_ok_and(|i| i.state == RunState::Queued) {
-                    self.set_state(
-                        id,
-                        RunState::Paused,
-                        Some("held by an emergency stop; resume it to run".into()),
-                    )?;
+                .collect()
+        };
+        for id in held {
+            if self.info(&id).is_ok_and(|i| i.state == RunState::Queued) {
+                match self.set_state(
+                    &id,
+                    RunState::Paused,
+                    Some("held by an emergency stop; resume it to run".into()),
+                ) {
+                    Ok(()) => report.held.push(id),
+                    Err(e) => report
+                        .warnings
+                        .push(format!("could not hold queued run {id}: {e}")),
                 }
             }
-            running
-        };
-        if running.is_none() {
-            let mut devices = crate::devices::Devices::open(&self.instrument)
-                .map_err(|e| ServiceError::Device(format!("e-stop could not open the instrument: {e}")))?;
-            devices.make_safe().map_err(|e| {
-                ServiceError::Device(format!("e-stop could not make the instrument safe: {e}"))
-            })?;
-            self.lock().last_safe = Some("laser off, arms parked (e-stop)".into());
-        } else {
-            // Wait (bounded) for the run to reach its checkpoint and make itself safe.
-            let deadline = Instant::now() + Duration::from_secs(10);
+        }
+        // 4. Wait (bounded) for the run to reach its checkpoint: it parks the arms and
+        //    confirms the laser off on its way out.
+        if let Some((id, _)) = &running {
+            let deadline = Instant::now() + ESTOP_RUN_WAIT;
             let mut s = self.lock();
-            while s.current.as_ref().map(|(id, _)| id) == running.as_ref() && Instant::now() < deadline {
+            while s.current.as_ref().is_some_and(|(c, _)| c == id) && Instant::now() < deadline {
                 s = self
                     .wake
-                    .wait_timeout(s, Duration::from_millis(20))
+                    .wait_timeout(s, Duration::from_millis(5))
                     .unwrap_or_else(|p| p.into_inner())
                     .0;
             }
-            if s.current.as_ref().map(|(id, _)| id) == running.as_ref() {
-                return Err(ServiceError::Device(format!(
-                    "e-stop: run {} did not stop within 10 s; switch the laser off at the interlock",
-                    running.unwrap_or_default()
-                )));
+            if s.current.as_ref().is_some_and(|(c, _)| c == id) {
+                report.warnings.push(format!(
+                    "run {id} did not reach its checkpoint within {} s; the devices were opened directly",
+                    ESTOP_RUN_WAIT.as_secs_f64()
+                ));
+            } else {
+                report.parked = true;
+                if !laser_off {
+                    laser_off = true;
+                    report.laser = "off: the run switched it off on its way out".into();
+                    report.laser_off_s = Some(t.elapsed().as_secs_f64());
+                }
             }
         }
-        Ok(EstopReport {
-            aborted: running,
-            seconds: t.elapsed().as_secs_f64(),
-        })
+        // 5. No run (or one that did not stop): each controller opened on its own.
+        if !report.parked {
+            match self.laser_controller_off() {
+                Ok(()) => {
+                    if !laser_off {
+                        report.laser =
+                            "off: LASER OFF through the laser controller, opened for the e-stop".into();
+                        report.laser_off_s = Some(t.elapsed().as_secs_f64());
+                        laser_off = true;
+                    }
+                }
+                Err(e) => report.warnings.push(format!("laser controller: {e}")),
+            }
+            match self.park_spad() {
+                Ok(()) => report.parked = true,
+                Err(e) => report.warnings.push(format!("SPAD arm: {e}")),
+            }
+        }
+        if !laser_off {
+            report.laser = "UNCONFIRMED: no path to the laser controller answered; the controller's watchdog ends emission within its timeout, or switch the laser off at the interlock".into();
+        }
+        report.seconds = t.elapsed().as_secs_f64();
+        self.lock().last_safe = Some(format!("{} (e-stop)", report.laser));
+        tracing::warn!(laser = %report.laser, parked = report.parked, seconds = report.seconds, "emergency stop");
+        Ok(report)
+    }
+
+    /// Opens the laser controller alone: laser off, then park.
+    fn laser_controller_off(&self) -> Result<(), String> {
+        let mut laser = crate::devices::Devices::laser_controller(&self.instrument, self.rig.as_ref())
+            .map_err(|e| e.to_string())?;
+        let off = laser.set_emission(false).map_err(|e| e.to_string());
+        let park = laser.park().map_err(|e| e.to_string());
+        off?;
+        park
+    }
+
+    /// Opens the SPAD arm's controller alone and parks it.
+    fn park_spad(&self) -> Result<(), String> {
+        let mut spad = crate::devices::Devices::spad_controller(&self.instrument, self.rig.as_ref())
+            .map_err(|e| e.to_string())?;
+        spad.park().map_err(|e| e.to_string())
     }
 
     /// The instrument's status: the devices' own report when idle (opened briefly), or
@@ -526,7 +624,9 @@ impl Service {
             v["note"] = "the running run holds the devices; their live state is in its event stream".into();
             return v;
         }
-        match crate::devices::Devices::open(&self.instrument).and_then(|mut d| d.report()) {
+        match crate::devices::Devices::open_on(&self.instrument, self.rig.clone(), &|| false)
+            .and_then(|mut d| d.report())
+        {
             Ok(report) => v["devices"] = serde_json::to_value(report).unwrap_or_default(),
             Err(e) => {
                 v["devices"] = serde_json::json!(null);
@@ -546,7 +646,7 @@ impl Service {
         self.dir(id)?;
         let mut s = self.lock();
         let waiting = s.current.as_ref().is_some_and(|(c, _)| c == id) || s.queue.iter().any(|q| q == id);
-        if !waiting {
+        if !waiting || s.shutdown {
             return Ok(None);
         }
         Ok(Some(
@@ -587,9 +687,33 @@ impl Service {
                 }
             };
             tracing::info!(run = %id, "run starting");
-            let result = self.execute(&id, control);
+            // The pipeline catches its own panics; this catches the rest (the worker's
+            // own code), so a bug never freezes the queue or strands the e-stop.
+            let result = match std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+                self.execute(&id, control)
+            })) {
+                Ok(r) => r,
+                Err(payload) => {
+                    let e = PipelineError::Panicked {
+                        stage: "worker",
+                        message: pipeline::panic_message(payload.as_ref()),
+                    };
+                    self.lock().laser_off = None;
+                    if let Err(off) = self.laser_controller_off() {
+                        tracing::error!("after a panic, the laser controller could not be reached: {off}");
+                    }
+                    let dir = self.runs_dir.join(&id);
+                    if let Ok(mut info) = RunInfo::load(&dir) {
+                        info.state = RunState::Failed;
+                        info.error = Some(e.to_string());
+                        let _ = info.save(&dir);
+                    }
+                    Err(e)
+                }
+            };
             let mut s = self.lock();
             s.current = None;
+            s.laser_off = None;
             s.channels.remove(&id);
             match &result {
                 Ok(()) | Err(PipelineError::Aborted(_)) => {
@@ -623,21 +747,11 @@ impl Service {
         let run_id = id.to_owned();
         let mut last_pair = Instant::now() - PAIR_EVENT_INTERVAL;
         events.listen(move |ev| me.on_event(&run_id, ev, &mut last_pair));
-        match Run::open(&dir, control, Some(events.clone())) {
-            Ok(run) => run.execute().map(|_| ()),
-            Err(e) => {
-                // The run never started: record why, keep it resumable.
-                if let Ok(mut info) = RunInfo::load(&dir) {
-                    info.state = RunState::Failed;
-                    info.error = Some(e.to_string());
-                    let _ = info.save(&dir);
-                }
-                events.emit(RunEvent::Failed {
-                    message: e.to_string(),
-                });
-                Err(e)
-            }
-        }
+        // Run::open records a run that never started (paused, aborted or failed,
+        // resumable) itself.
+        let run = Run::open(&dir, control, Some(events), self.rig.clone())?;
+        self.lock().laser_off = Some(run.emergency_off());
+        run.execute().map(|_| ())
     }
 
     fn on_event(&self, id: &str, ev: &RunEvent, last_pair: &mut Instant) {
@@ -695,12 +809,26 @@ impl Service {
     }
 }
 
+/// How long an e-stop waits for a running run to reach its checkpoint (and park)
+/// before it opens the controllers itself.
+const ESTOP_RUN_WAIT: Duration = Duration::from_secs(2);
+
 /// What an e-stop did.
-#[derive(Debug, Serialize)]
+#[derive(Debug, Default, Serialize)]
 pub struct EstopReport {
     /// The run that was aborted, if one was running.
     pub aborted: Option<String>,
-    /// Seconds from the request until the instrument was safe.
+    /// What happened to the laser, and by which path.
+    pub laser: String,
+    /// Seconds from the request until LASER OFF was sent (`null`: not confirmed).
+    pub laser_off_s: Option<f64>,
+    /// Whether both arms were parked.
+    pub parked: bool,
+    /// Queued runs held as paused.
+    pub held: Vec<String>,
+    /// Steps that failed (each was tried regardless).
+    pub warnings: Vec<String>,
+    /// Seconds from the request until every step was done.
     pub seconds: f64,
 }
 

@@ -7,7 +7,8 @@ use periscope_drivers::{GalvoPair, HistogramFlags, Histogrammer, Laser, TdcConfi
 use periscope_recon::{C0, Pair, TimeAxis, TransientSet, VolumeGrid};
 
 use super::reconstruct::{Fit, ReconInput};
-use super::{Control, PipelineError, Run};
+use super::safety::FlagRun;
+use super::{PipelineError, Run};
 use crate::events::RunEvent;
 use crate::plan::{Acquisition, Method, PlannedPair};
 use crate::store::{HistogramLog, Record};
@@ -207,33 +208,40 @@ impl Run {
             };
             self.devices.tdc.configure(&cfg)?;
             self.devices.laser.set_diffuser(false)?;
+            self.checkpoint()?;
             self.devices.laser.set_emission(true)?;
             let settle = self.settle_timeout();
+            let mut flagged = FlagRun::default();
             for i in capture_order(total) {
                 let p = &pairs[i];
                 if stored.contains(&(i as u32)) {
                     continue;
                 }
-                match self.control.requested() {
-                    Control::PAUSE => return Err(PipelineError::Paused(stored.len())),
-                    Control::ABORT => return Err(PipelineError::Aborted(stored.len())),
-                    _ => {}
-                }
-                // Both arms move at once; each wait accepts only its commanded target.
-                self.devices.laser.move_to(p.laser)?;
-                self.devices.spad.move_to(p.spad)?;
-                self.devices.laser.wait_settled(settle)?;
-                self.devices.spad.wait_settled(settle)?;
-                let mut counts = vec![0u32; acq.bins as usize];
-                let mut flags = HistogramFlags::default();
-                for _ in 0..acq.repeats {
-                    let h = self.devices.tdc.acquire()?;
-                    for (c, v) in counts.iter_mut().zip(&h.counts) {
-                        *c = c.saturating_add(*v);
+                // Measured again after a suspension that cleared by itself.
+                let (counts, flags) = loop {
+                    self.checkpoint()?;
+                    // Both arms move at once; each wait accepts only its commanded target.
+                    self.devices.laser.move_to(p.laser)?;
+                    self.devices.spad.move_to(p.spad)?;
+                    self.devices.laser.wait_settled(settle)?;
+                    self.devices.spad.wait_settled(settle)?;
+                    let mut counts = vec![0u32; acq.bins as usize];
+                    let mut flags = HistogramFlags::default();
+                    for _ in 0..acq.repeats {
+                        self.checkpoint()?;
+                        let h = self.acquire()?;
+                        for (c, v) in counts.iter_mut().zip(&h.counts) {
+                            *c = c.saturating_add(*v);
+                        }
+                        flags.overflow |= h.flags.overflow;
+                        flags.saturated |= h.flags.saturated;
                     }
-                    flags.overflow |= h.flags.overflow;
-                    flags.saturated |= h.flags.saturated;
-                }
+                    match self.capture_suspension(flags, &mut flagged)? {
+                        None => break (counts, flags),
+                        // This pair's histograms are not kept: the light changed under them.
+                        Some(s) => self.suspend(s)?,
+                    }
+                };
                 let rec = Record {
                     pair: i as u32,
                     flags,

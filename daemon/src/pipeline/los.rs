@@ -47,7 +47,7 @@ impl Run {
     pub(crate) fn los_scan(&mut self) -> Result<Vec<(DVec3, f64)>, PipelineError> {
         let los = self.plan.los.clone();
         let acq = self.plan.acquisition.clone();
-        let tdc = &self.instrument.tdc;
+        let tdc = self.instrument.tdc.clone();
         let devices = &mut self.devices;
         devices.tdc.configure(&TdcConfig {
             bin_width: acq.bin_width,
@@ -59,7 +59,10 @@ impl Run {
         devices.laser.park()?;
         devices.laser.wait_settled(Duration::from_secs(2))?;
         devices.laser.set_diffuser(true)?;
-        devices.laser.set_emission(true)?;
+        self.checkpoint()?;
+        // Emission only while measuring: on here, off as soon as the last point is in
+        // (every error path switches it off too).
+        self.devices.laser.set_emission(true)?;
         let spad_pose = self.instrument.spad_arm.pose;
         let (l, s) = (self.instrument.laser_arm.pose.origin, spad_pose.origin);
         let d_ls = s - l;
@@ -76,8 +79,9 @@ impl Run {
                     x: t(los.x, ix, nx),
                     y: t(los.y, iy, ny),
                 };
+                self.checkpoint()?;
                 self.devices.spad.move_settled(angles, settle)?;
-                let h = self.devices.tdc.acquire()?;
+                let h = self.acquire()?;
                 if let Some((b, top)) = peak(&h.counts) {
                     let ell = C0 * (acq.offset + (b + 0.5) * acq.bin_width - tdc.system_delay);
                     let dir = spad_pose.direction(angles);
@@ -92,7 +96,9 @@ impl Run {
                     self.events.emit(RunEvent::LosPoint { done, total });
                 }
             }
+            self.watch_interlock()?;
         }
+        self.devices.laser.set_emission(false)?;
         self.devices.laser.set_diffuser(false)?;
         Ok(out)
     }

@@ -10,14 +10,17 @@ mod capture;
 mod los;
 mod output;
 mod reconstruct;
+mod safety;
 
 use std::path::{Path, PathBuf};
-use std::sync::Arc;
 use std::sync::atomic::{AtomicU8, Ordering};
+use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
-use periscope_drivers::galvo::GalvoError;
+use periscope_drivers::galvo::{EmergencyOff, GalvoError};
 use periscope_drivers::tdc::TdcError;
+use periscope_recon::gtr::CancelToken;
+use periscope_sim::devices::Rig;
 
 pub use capture::{hidden_axis, hidden_histogram, rebin_path};
 pub use los::RelayPoint;
@@ -68,6 +71,36 @@ pub enum PipelineError {
     /// The operator paused the run; `periscope resume` continues it.
     #[error("the run was paused after {0} pairs; resume it to continue")]
     Paused(usize),
+    /// A suspender tripped and the plan leaves resuming to the operator.
+    #[error(
+        "{reason}: the laser is off and the run paused after {pairs} pairs; resume it when the condition has cleared"
+    )]
+    Suspended {
+        /// What tripped.
+        reason: String,
+        /// Pairs stored.
+        pairs: usize,
+    },
+    /// A bug: code in the pipeline panicked. The instrument was made safe and the
+    /// data kept; the run can be resumed.
+    #[error(
+        "internal error in stage {stage}: {message}; the instrument was made safe and the data kept (resume continues the run; please report this)"
+    )]
+    Panicked {
+        /// The stage it happened in.
+        stage: &'static str,
+        /// The panic's message.
+        message: String,
+    },
+}
+
+/// The text of a panic payload.
+pub fn panic_message(payload: &(dyn std::any::Any + Send)) -> String {
+    payload
+        .downcast_ref::<&str>()
+        .map(|s| (*s).to_owned())
+        .or_else(|| payload.downcast_ref::<String>().cloned())
+        .unwrap_or_else(|| "a panic without a message".into())
 }
 
 impl PipelineError {
@@ -79,10 +112,32 @@ impl PipelineError {
     }
 }
 
-/// Operator requests a running pipeline honours at its next checkpoint (between pairs,
-/// between LOS rows, between epochs).
+/// What a running pipeline is asked to do, read at its checkpoints.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Request {
+    /// Carry on.
+    Run,
+    /// Pause (laser off, arms parked, data kept; resume continues).
+    Pause,
+    /// Abort (laser off, arms parked, data kept; the run ends).
+    Abort,
+}
+
+#[derive(Default)]
+struct ControlInner {
+    state: AtomicU8,
+    /// Cancel tokens of optimisers working for this run: a pause or an abort stops
+    /// them at once instead of at their next event.
+    cancels: Mutex<Vec<CancelToken>>,
+    /// Testing aid: the stage in which the next checkpoint panics (stage index + 1).
+    panic_in: AtomicU8,
+}
+
+/// Operator requests a running pipeline honours at its checkpoints: between devices
+/// while opening, at every LOS point and pair, every 5 ms inside a dwell, between the
+/// relay and planning steps, and at every optimiser step.
 #[derive(Clone, Default)]
-pub struct Control(Arc<AtomicU8>);
+pub struct Control(Arc<ControlInner>);
 
 impl Control {
     const RUN: u8 = 0;
@@ -97,14 +152,60 @@ impl Control {
     pub fn pause(&self) {
         let _ = self
             .0
+            .state
             .compare_exchange(Self::RUN, Self::PAUSE, Ordering::SeqCst, Ordering::SeqCst);
+        self.cancel_optimisers();
     }
     /// Asks the run to abort at the next checkpoint.
     pub fn abort(&self) {
-        self.0.store(Self::ABORT, Ordering::SeqCst);
+        self.0.state.store(Self::ABORT, Ordering::SeqCst);
+        self.cancel_optimisers();
     }
-    pub(crate) fn requested(&self) -> u8 {
-        self.0.load(Ordering::SeqCst)
+    /// What the run is asked to do.
+    pub fn requested(&self) -> Request {
+        match self.0.state.load(Ordering::SeqCst) {
+            Self::RUN => Request::Run,
+            Self::PAUSE => Request::Pause,
+            _ => Request::Abort,
+        }
+    }
+    /// Whether the run is asked to stop (pause or abort).
+    pub fn stopping(&self) -> bool {
+        self.requested() != Request::Run
+    }
+    /// Registers an optimiser's cancel token; cancelled at once if already stopping.
+    pub(crate) fn watch(&self, token: &CancelToken) {
+        self.0
+            .cancels
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .push(token.clone());
+        if self.stopping() {
+            token.cancel();
+        }
+    }
+    fn cancel_optimisers(&self) {
+        for t in self.0.cancels.lock().unwrap_or_else(|p| p.into_inner()).iter() {
+            t.cancel();
+        }
+    }
+    /// Testing aid (fault injection): the next checkpoint reached in `stage` panics,
+    /// as a bug there would. The safety tests use it to show that a panic anywhere
+    /// leaves the laser off and the run resumable.
+    pub fn inject_panic(&self, stage: Stage) {
+        self.0.panic_in.store(stage as u8 + 1, Ordering::SeqCst);
+    }
+    /// The error a checkpoint returns for the current request, if any.
+    pub(crate) fn check(&self, stage: Stage, pairs: usize) -> Result<(), PipelineError> {
+        if self.0.panic_in.load(Ordering::SeqCst) == stage as u8 + 1 {
+            self.0.panic_in.store(0, Ordering::SeqCst);
+            panic!("injected panic in stage {}", stage.name());
+        }
+        match self.requested() {
+            Request::Run => Ok(()),
+            Request::Pause => Err(PipelineError::Paused(pairs)),
+            Request::Abort => Err(PipelineError::Aborted(pairs)),
+        }
     }
 }
 
@@ -117,6 +218,8 @@ pub struct Run {
     events: EventSink,
     info: RunInfo,
     control: Control,
+    /// The stage in progress (for checkpoints and panic reports).
+    stage: Stage,
 }
 
 /// The result of a finished run.
@@ -183,6 +286,31 @@ pub fn prepare(
     Ok((dir, plan, instrument))
 }
 
+/// Records why a run stopped before its devices were open (a pause, an abort, a
+/// device that would not open, a panic): the run stays resumable.
+fn stopped_before_start(
+    dir: &Path,
+    info: &mut RunInfo,
+    events: &EventSink,
+    e: PipelineError,
+) -> PipelineError {
+    match &e {
+        PipelineError::Paused(_) => info.state = RunState::Paused,
+        PipelineError::Aborted(_) => info.state = RunState::Aborted,
+        e => {
+            info.state = RunState::Failed;
+            info.error = Some(e.to_string());
+            events.emit(RunEvent::Failed {
+                message: e.to_string(),
+            });
+        }
+    }
+    if let Err(io) = info.save(dir) {
+        tracing::error!(error = %io, "could not record the run's state in {}", dir.display());
+    }
+    e
+}
+
 /// Loads a run directory's plan and instrument back (for resume and offline recon).
 pub fn load_run(dir: &Path) -> Result<(RunInfo, Plan, InstrumentConfig), PipelineError> {
     let info = RunInfo::load(dir).map_err(|e| PipelineError::storage(&dir.join("run.json"), e))?;
@@ -203,13 +331,52 @@ pub fn load_run(dir: &Path) -> Result<(RunInfo, Plan, InstrumentConfig), Pipelin
 }
 
 impl Run {
-    /// Opens the devices for a prepared (or interrupted) run.
-    pub fn open(dir: &Path, control: Control, events: Option<EventSink>) -> Result<Run, PipelineError> {
-        let (info, plan, instrument) = load_run(dir)?;
-        let devices = Devices::open(&instrument)?;
+    /// Opens the devices for a prepared (or interrupted) run: stage `opening`, which a
+    /// pause or abort interrupts between devices. `rig` is the simulated instrument
+    /// to use (the API service keeps one for the daemon's life); `None` builds one
+    /// from the config when its back-end is `sim`.
+    pub fn open(
+        dir: &Path,
+        control: Control,
+        events: Option<EventSink>,
+        rig: Option<Rig>,
+    ) -> Result<Run, PipelineError> {
+        let (mut info, plan, instrument) = load_run(dir)?;
         let events = match events {
             Some(e) => e,
             None => EventSink::open(dir).map_err(|e| PipelineError::storage(dir, e))?,
+        };
+        info.stage = Stage::Opening.name().into();
+        info.state = RunState::Running;
+        info.save(dir).map_err(|e| PipelineError::storage(dir, e))?;
+        events.emit(RunEvent::StageStarted {
+            stage: Stage::Opening,
+        });
+        let pairs = info.pairs_done;
+        let opened = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+            control.check(Stage::Opening, pairs)?;
+            let rig = match rig {
+                Some(rig) => Some(rig),
+                None => crate::devices::sim_rig(&instrument)?,
+            };
+            Devices::open_on(&instrument, rig, &|| control.stopping()).map_err(|e| match e {
+                OpenError::Interrupted => match control.check(Stage::Opening, pairs) {
+                    Err(stop) => stop,
+                    Ok(()) => PipelineError::Open(e),
+                },
+                e => PipelineError::Open(e),
+            })
+        }));
+        let devices = match opened {
+            Ok(Ok(devices)) => devices,
+            Ok(Err(e)) => return Err(stopped_before_start(dir, &mut info, &events, e)),
+            Err(payload) => {
+                let e = PipelineError::Panicked {
+                    stage: Stage::Opening.name(),
+                    message: panic_message(payload.as_ref()),
+                };
+                return Err(stopped_before_start(dir, &mut info, &events, e));
+            }
         };
         Ok(Run {
             dir: dir.to_owned(),
@@ -219,7 +386,24 @@ impl Run {
             events,
             info,
             control,
+            stage: Stage::Opening,
         })
+    }
+
+    /// A handle that switches this run's laser off from any thread, whatever the run
+    /// is doing (the e-stop's and the signal handlers' direct path).
+    pub fn emergency_off(&self) -> EmergencyOff {
+        self.devices.laser.emergency_off()
+    }
+
+    /// The simulated instrument, when the back-end is `sim`.
+    pub fn rig(&self) -> Option<&Rig> {
+        self.devices.rig.as_ref()
+    }
+
+    /// A checkpoint: the pause or abort asked for, as the error that stops the run.
+    pub(crate) fn checkpoint(&self) -> Result<(), PipelineError> {
+        self.control.check(self.stage, self.info.pairs_done)
     }
 
     /// The event sink (to attach listeners).
@@ -243,6 +427,8 @@ impl Run {
     }
 
     fn set_stage(&mut self, stage: Stage) -> Result<(), PipelineError> {
+        self.stage = stage;
+        self.checkpoint()?;
         self.info.stage = stage.name().into();
         self.info.state = RunState::Running;
         self.save_info()?;
@@ -267,11 +453,24 @@ impl Run {
     /// off and the galvos parked, the run is marked failed (or paused, or aborted) with
     /// its data intact, and the error is returned.
     pub fn execute(mut self) -> Result<RunSummary, PipelineError> {
-        let result = self.stages();
+        // A panic anywhere in the stages is caught here, so the instrument is made safe
+        // and the run marked as for any other failure (the optimiser thread's panics
+        // arrive as errors already).
+        let result = match std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| self.stages())) {
+            Ok(r) => r,
+            Err(payload) => Err(PipelineError::Panicked {
+                stage: self.stage.name(),
+                message: panic_message(payload.as_ref()),
+            }),
+        };
         let safe = self.devices.make_safe();
         match &result {
             Ok(_) => self.info.state = RunState::Completed,
             Err(PipelineError::Paused(_)) => self.info.state = RunState::Paused,
+            Err(e @ PipelineError::Suspended { .. }) => {
+                self.info.state = RunState::Paused;
+                self.info.error = Some(e.to_string());
+            }
             Err(PipelineError::Aborted(_)) => self.info.state = RunState::Aborted,
             Err(e) => {
                 self.info.state = RunState::Failed;
@@ -292,6 +491,7 @@ impl Run {
     }
 
     fn stages(&mut self) -> Result<RunSummary, PipelineError> {
+        self.checkpoint()?;
         let relay = match self.load_relay()? {
             Some(r) => r,
             None => {
@@ -302,6 +502,7 @@ impl Run {
                 let t = Instant::now();
                 self.set_stage(Stage::Relay)?;
                 let relay = self.extract_relay(&returns)?;
+                self.checkpoint()?;
                 self.events.emit(RunEvent::Relay {
                     returns: returns.len(),
                     kept: relay.len(),
@@ -317,6 +518,7 @@ impl Run {
                 let t = Instant::now();
                 self.set_stage(Stage::Planning)?;
                 let pairs = self.plan_pairs(&relay)?;
+                self.checkpoint()?;
                 self.finish_stage(Stage::Planning, t);
                 pairs
             }
@@ -329,6 +531,7 @@ impl Run {
         let t = Instant::now();
         self.set_stage(Stage::Reconstruction)?;
         let result = fit.finish(&self.events, &self.control)?;
+        self.checkpoint()?;
         self.finish_stage(Stage::Reconstruction, t);
         let t = Instant::now();
         self.set_stage(Stage::Outputs)?;

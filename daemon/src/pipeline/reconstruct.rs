@@ -93,13 +93,14 @@ impl Fit {
         let config = self.input.settings.train.clone();
         let roi = roi(&self.input.settings.volume)?;
         let cancel = self.cancel.clone();
+        control.watch(&cancel);
         let handle = std::thread::Builder::new()
             .name("gtr-trainer".into())
             .spawn(move || {
                 let t = Instant::now();
                 let mut trainer = Trainer::new(config, roi, first)?;
                 let summary = trainer.run(Some(feed), &cancel, &mut |e| {
-                    if control.requested() == Control::ABORT {
+                    if control.stopping() {
                         cancel.cancel();
                     }
                     events.emit(RunEvent::Train(e.clone()));
@@ -112,25 +113,55 @@ impl Fit {
     }
 
     /// Waits for the fit (or runs it, if it never started) and reconstructs.
-    pub(crate) fn finish(self, events: &EventSink, control: &Control) -> Result<ReconResult, PipelineError> {
-        match self.trainer {
+    pub(crate) fn finish(
+        mut self,
+        events: &EventSink,
+        control: &Control,
+    ) -> Result<ReconResult, PipelineError> {
+        match self.trainer.take() {
             Some(handle) => {
                 let (trainer, summary, secs) = handle
                     .join()
                     .map_err(|_| PipelineError::Recon("the optimiser thread panicked".into()))?
                     .map_err(recon_err)?;
                 if summary.cancelled {
-                    return Err(PipelineError::Aborted(trainer.data().len()));
+                    return Err(stopped(control, trainer.data().len()));
                 }
                 let data = trainer.data().clone();
                 let input = ReconInput {
                     set: data,
-                    ..self.input
+                    ..self.take_input()
                 };
                 finish_gtr(&input, trainer, summary, secs)
             }
-            None => reconstruct(self.input, events, control),
+            None => reconstruct(self.take_input(), events, control),
         }
+    }
+
+    fn take_input(&mut self) -> ReconInput {
+        let empty = TransientSet::new(*self.input.set.axis()).expect("an axis that already holds data");
+        ReconInput {
+            settings: self.input.settings.clone(),
+            set: std::mem::replace(&mut self.input.set, empty),
+            detection_points: std::mem::take(&mut self.input.detection_points),
+            viewpoint: self.input.viewpoint,
+        }
+    }
+}
+
+impl Drop for Fit {
+    /// A fit abandoned (the run paused, failed or was aborted during capture) stops its
+    /// optimiser instead of training on to its last epoch.
+    fn drop(&mut self) {
+        self.cancel.cancel();
+    }
+}
+
+/// The error for an optimiser that was cancelled: the run's pause or abort.
+fn stopped(control: &Control, pairs: usize) -> PipelineError {
+    match control.check(crate::events::Stage::Reconstruction, pairs) {
+        Err(e) => e,
+        Ok(()) => PipelineError::Aborted(pairs),
     }
 }
 
@@ -195,16 +226,17 @@ pub fn reconstruct(
             let mut trainer =
                 Trainer::new(s.train.clone(), roi(&s.volume)?, input.set.clone()).map_err(recon_err)?;
             let cancel = CancelToken::new();
+            control.watch(&cancel);
             let summary = trainer
                 .run(None, &cancel, &mut |e| {
-                    if control.requested() == Control::ABORT {
+                    if control.stopping() {
                         cancel.cancel();
                     }
                     events.emit(RunEvent::Train(e.clone()));
                 })
                 .map_err(recon_err)?;
             if summary.cancelled {
-                return Err(PipelineError::Aborted(input.set.len()));
+                return Err(stopped(control, input.set.len()));
             }
             finish_gtr(&input, trainer, summary, t.elapsed().as_secs_f64())
         }

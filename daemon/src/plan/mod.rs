@@ -31,6 +31,36 @@ pub struct Plan {
     pub acquisition: Acquisition,
     /// How the hidden scene is reconstructed.
     pub recon: ReconSettings,
+    /// Conditions that suspend the capture with the laser off.
+    pub suspend: Suspenders,
+}
+
+/// Suspenders (Bluesky's word): conditions watched during a run that switch the laser
+/// off and hold the run until they clear. The interlock is always watched.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Suspenders {
+    /// Consecutive histograms flagged overflow or saturated that suspend the capture
+    /// (0: never).
+    pub flagged_frames: u32,
+    /// Detector count rate above which the capture is suspended, hertz (pile-up, a
+    /// bright object in the path).
+    pub max_count_rate: f64,
+    /// Who resumes a suspended run.
+    pub resume: SuspendResume,
+}
+
+/// Who resumes a suspended run.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum SuspendResume {
+    /// The run pauses (laser off, arms parked); an operator resumes it.
+    Operator,
+    /// The run waits with the laser off and goes on by itself once the condition has
+    /// stayed clear this long (for a rate or flag suspender: once this long has passed,
+    /// with the pair measured again to check).
+    Auto {
+        /// How long the condition must stay clear.
+        clear_for: Duration,
+    },
 }
 
 /// The LOS scan: the SPAD arm sweeps a grid of optical angles under the diffused laser.
@@ -86,7 +116,28 @@ struct RawPlan {
     pairs: pairs::RawPairs,
     acquisition: RawAcquisition,
     recon: recon::RawRecon,
+    #[serde(default)]
+    suspend: RawSuspend,
 }
+
+#[derive(Deserialize, Default)]
+#[serde(deny_unknown_fields, rename_all = "kebab-case")]
+struct RawSuspend {
+    flagged_frames: Option<u32>,
+    max_count_rate_hz: Option<f64>,
+    resume: Option<String>,
+    clear_for_s: Option<f64>,
+}
+
+/// Default consecutive flagged frames that suspend a capture.
+const DEFAULT_FLAGGED_FRAMES: u32 = 3;
+
+/// Default count-rate limit, as a fraction of the laser's pulse rate: the TDC flags
+/// pile-up at 5 %; twice that means something bright is in the path.
+const DEFAULT_RATE_FRACTION: f64 = 0.1;
+
+/// Default time a condition must stay clear before an automatic resume.
+const DEFAULT_CLEAR_FOR_S: f64 = 5.0;
 
 #[derive(Deserialize)]
 #[serde(deny_unknown_fields, rename_all = "kebab-case")]
@@ -268,6 +319,39 @@ impl Plan {
             },
         };
         let recon = recon::recon_settings(src, "recon.", raw.recon, None)?;
+        let sus = raw.suspend;
+        let suspend = Suspenders {
+            flagged_frames: match sus.flagged_frames.unwrap_or(DEFAULT_FLAGGED_FRAMES) {
+                n @ 0..=10_000 => n,
+                _ => return Err(src.invalid("suspend.flagged-frames", "must be 0 (off) to 10,000")),
+            },
+            max_count_rate: match sus.max_count_rate_hz {
+                None => DEFAULT_RATE_FRACTION * instrument.laser.repetition_rate,
+                Some(r) if r.is_finite() && r > 0.0 => r,
+                Some(_) => {
+                    return Err(src.invalid("suspend.max-count-rate-hz", "must be a positive rate in hertz"));
+                }
+            },
+            resume: match sus.resume.as_deref() {
+                None | Some("operator") => {
+                    if sus.clear_for_s.is_some() {
+                        return Err(src.invalid("suspend.clear-for-s", "applies only with resume = \"auto\""));
+                    }
+                    SuspendResume::Operator
+                }
+                Some("auto") => SuspendResume::Auto {
+                    clear_for: match sus.clear_for_s.unwrap_or(DEFAULT_CLEAR_FOR_S) {
+                        s if (0.0..=3600.0).contains(&s) => Duration::from_secs_f64(s),
+                        _ => return Err(src.invalid("suspend.clear-for-s", "must be 0 to 3600 seconds")),
+                    },
+                },
+                Some(other) => {
+                    return Err(
+                        src.invalid("suspend.resume", format!("`{other}` is not `operator` or `auto`"))
+                    );
+                }
+            },
+        };
         Ok(Plan {
             name: raw.name,
             los,
@@ -275,6 +359,7 @@ impl Plan {
             pairs,
             acquisition,
             recon,
+            suspend,
         })
     }
 

@@ -1,0 +1,167 @@
+//! What keeps a run safe while it measures: acquisitions that a pause, abort or e-stop
+//! stops within the driver's poll interval, and the suspenders that switch the laser
+//! off when the interlock opens, emission drops out, frames keep overflowing or the
+//! detector sees too much light.
+use std::time::{Duration, Instant};
+
+use periscope_drivers::{Error, ErrorKind, Histogram, HistogramFlags, Histogrammer, Laser};
+
+use super::{PipelineError, Run};
+use crate::events::RunEvent;
+use crate::plan::SuspendResume;
+
+/// How often a suspended run looks at its condition and its checkpoint.
+const SUSPENDED_POLL: Duration = Duration::from_millis(20);
+
+/// A condition that suspends measuring.
+#[derive(Clone, Debug, PartialEq)]
+pub(crate) enum Suspension {
+    /// The interlock loop is open; clears when it closes.
+    Interlock,
+    /// Emission stopped although it was wanted (a watchdog trip, a controller reset).
+    EmissionLost,
+    /// Consecutive flagged frames.
+    Flagged(u32),
+    /// The detector count rate, hertz, above the limit.
+    Rate(f64, f64),
+}
+
+impl Suspension {
+    fn reason(&self) -> String {
+        match self {
+            Suspension::Interlock => "the interlock loop opened".into(),
+            Suspension::EmissionLost => {
+                "laser emission stopped although it was wanted (the controller's watchdog tripped or it was reset)".into()
+            }
+            Suspension::Flagged(n) => {
+                format!("{n} consecutive histograms were flagged overflow or saturated")
+            }
+            Suspension::Rate(rate, max) => format!(
+                "the detector count rate {:.3e} Hz is above the plan's limit {max:.3e} Hz (suspend.max-count-rate-hz): something bright in the path?",
+                rate
+            ),
+        }
+    }
+}
+
+/// Counts consecutive flagged histograms.
+#[derive(Default)]
+pub(crate) struct FlagRun(u32);
+
+impl FlagRun {
+    pub(crate) fn record(&mut self, flags: HistogramFlags) -> u32 {
+        self.0 = if flags.overflow || flags.saturated {
+            self.0 + 1
+        } else {
+            0
+        };
+        self.0
+    }
+}
+
+impl Run {
+    /// One histogram, stopped (and aborted on the device) as soon as the run is asked
+    /// to pause or abort.
+    pub(crate) fn acquire(&mut self) -> Result<Histogram, PipelineError> {
+        let control = self.control.clone();
+        match self.devices.tdc.acquire_until(&|| control.stopping()) {
+            Ok(h) => Ok(h),
+            Err(e) if e.kind() == ErrorKind::Interrupted => {
+                self.checkpoint()?;
+                Err(e.into())
+            }
+            Err(e) => Err(e.into()),
+        }
+    }
+
+    /// Checks the interlock and that emission is still on; suspends if not.
+    pub(crate) fn watch_interlock(&mut self) -> Result<(), PipelineError> {
+        if let Some(s) = self.laser_suspension()? {
+            self.suspend(s)?;
+        }
+        Ok(())
+    }
+
+    fn laser_suspension(&mut self) -> Result<Option<Suspension>, PipelineError> {
+        let state = self.devices.laser.laser_state()?;
+        Ok(if !state.interlock_closed {
+            Some(Suspension::Interlock)
+        } else if !state.emission {
+            Some(Suspension::EmissionLost)
+        } else {
+            None
+        })
+    }
+
+    /// After a pair's histograms: every suspender, in order of urgency.
+    pub(crate) fn capture_suspension(
+        &mut self,
+        flags: HistogramFlags,
+        flagged: &mut FlagRun,
+    ) -> Result<Option<Suspension>, PipelineError> {
+        if let Some(s) = self.laser_suspension()? {
+            return Ok(Some(s));
+        }
+        let n = flagged.record(flags);
+        let limit = self.plan.suspend.flagged_frames;
+        if limit > 0 && n >= limit {
+            *flagged = FlagRun::default();
+            return Ok(Some(Suspension::Flagged(n)));
+        }
+        let rate = self.devices.tdc.status()?.rates.detector;
+        let max = self.plan.suspend.max_count_rate;
+        if rate > max {
+            return Ok(Some(Suspension::Rate(rate, max)));
+        }
+        Ok(None)
+    }
+
+    /// Switches the laser off and holds the run: with `resume = "operator"` the run
+    /// stops as paused (error [`PipelineError::Suspended`]); with `"auto"` it waits,
+    /// answering pause, abort and e-stop, until the condition has stayed clear for the
+    /// plan's time, then switches the laser back on and returns.
+    pub(crate) fn suspend(&mut self, s: Suspension) -> Result<(), PipelineError> {
+        self.devices.laser.set_emission(false)?;
+        let reason = s.reason();
+        let mode = self.plan.suspend.resume;
+        tracing::warn!(reason = %reason, "suspended: laser off");
+        self.events.emit(RunEvent::Suspended {
+            reason: reason.clone(),
+            resume: match mode {
+                SuspendResume::Operator => "operator".into(),
+                SuspendResume::Auto { .. } => "auto".into(),
+            },
+        });
+        let SuspendResume::Auto { clear_for } = mode else {
+            return Err(PipelineError::Suspended {
+                reason,
+                pairs: self.info.pairs_done,
+            });
+        };
+        let mut clear_since: Option<Instant> = None;
+        loop {
+            self.checkpoint()?;
+            let clear = match s {
+                Suspension::Interlock => self.devices.laser.interlock_closed()?,
+                // Rate, flags and dropped emission can only be judged with the laser
+                // on: wait the clear time out, then measure again.
+                _ => true,
+            };
+            if clear {
+                let since = *clear_since.get_or_insert_with(Instant::now);
+                if since.elapsed() >= clear_for {
+                    break;
+                }
+            } else {
+                clear_since = None;
+            }
+            std::thread::sleep(SUSPENDED_POLL);
+        }
+        self.events.emit(RunEvent::SuspendCleared {
+            reason: reason.clone(),
+        });
+        tracing::info!(reason = %reason, "suspension cleared: laser on again");
+        self.devices.laser.set_emission(true)?;
+        Ok(())
+    }
+}

@@ -1,0 +1,107 @@
+//! SIGINT, SIGTERM and SIGHUP for `run`, `resume` and `serve`: the first makes the
+//! instrument safe at once (the laser off through its direct path) and asks the work
+//! to stop at its next checkpoint, with a deadline after which the process exits
+//! anyway; a second exits at once, the laser already off. A dedicated thread waits for
+//! them, so nothing depends on the async runtime or the worker being responsive.
+use std::sync::Arc;
+use std::sync::atomic::{AtomicI32, Ordering};
+use std::time::Duration;
+
+/// The signal that asked this process to stop (0 if none), as its number.
+static RECEIVED: AtomicI32 = AtomicI32::new(0);
+
+/// The signal that asked the process to stop, if one did: its number.
+pub fn received() -> Option<i32> {
+    match RECEIVED.load(Ordering::SeqCst) {
+        0 => None,
+        n => Some(n),
+    }
+}
+
+/// The conventional exit code for a process ended by signal `n`: 128 + n.
+pub fn exit_code(n: i32) -> u8 {
+    u8::try_from(128 + n).unwrap_or(1)
+}
+
+/// What a stop signal does.
+pub trait OnSignal: Send + Sync + 'static {
+    /// Makes the instrument safe now without waiting for anything: the direct laser
+    /// off. Called on every signal and before a forced exit; must be quick.
+    fn laser_off(&self);
+    /// Asks the work to wind down (pause the run, shut the server down). Called once,
+    /// after [`OnSignal::laser_off`].
+    fn stop(&self, signal: &'static str);
+}
+
+/// The signals that stop Periscope and their numbers.
+#[cfg(unix)]
+const SIGNALS: [(&str, i32); 3] = [("SIGINT", 2), ("SIGTERM", 15), ("SIGHUP", 1)];
+
+/// Starts the signal thread. After the first signal the process has `grace` to finish
+/// on its own (the run reaching its checkpoint, parking the arms, writing its state)
+/// before it is ended with the laser off.
+pub fn install(handler: Arc<dyn OnSignal>, grace: Duration) {
+    let spawned = std::thread::Builder::new().name("signals".into()).spawn(move || {
+        let Ok(rt) = tokio::runtime::Builder::new_current_thread().enable_all().build() else {
+            tracing::warn!("no signal handling: the laser relies on the controller's watchdog");
+            return;
+        };
+        rt.block_on(async move {
+            let Some((name, n)) = next_signal().await else { return };
+            RECEIVED.store(n, Ordering::SeqCst);
+            handler.laser_off();
+            eprintln!(
+                "\n{name}: laser off; stopping at the next checkpoint (arms parked, data kept). \
+                 Again to exit at once."
+            );
+            handler.stop(name);
+            tokio::select! {
+                _ = tokio::time::sleep(grace) => {
+                    handler.laser_off();
+                    eprintln!("still busy {} s after {name}: exiting with the laser off", grace.as_secs_f64());
+                }
+                again = next_signal() => {
+                    handler.laser_off();
+                    if let Some((name, _)) = again {
+                        eprintln!("{name} again: exiting now with the laser off");
+                    }
+                }
+            }
+            std::process::exit(i32::from(exit_code(n)));
+        });
+    });
+    if let Err(e) = spawned {
+        tracing::warn!("no signal handling ({e}): the laser relies on the controller's watchdog");
+    }
+}
+
+#[cfg(unix)]
+async fn next_signal() -> Option<(&'static str, i32)> {
+    use tokio::signal::unix::{SignalKind, signal};
+    let mut streams = Vec::new();
+    for (name, n) in SIGNALS {
+        match signal(SignalKind::from_raw(n)) {
+            Ok(s) => streams.push((name, n, s)),
+            Err(e) => tracing::warn!("cannot listen for {name}: {e}"),
+        }
+    }
+    if streams.is_empty() {
+        return None;
+    }
+    let [(a, an, sa), (b, bn, sb), (c, cn, sc)] = &mut streams[..] else {
+        // Fewer than three: wait on the first.
+        let (name, n, s) = &mut streams[0];
+        s.recv().await;
+        return Some((name, *n));
+    };
+    tokio::select! {
+        _ = sa.recv() => Some((*a, *an)),
+        _ = sb.recv() => Some((*b, *bn)),
+        _ = sc.recv() => Some((*c, *cn)),
+    }
+}
+
+#[cfg(not(unix))]
+async fn next_signal() -> Option<(&'static str, i32)> {
+    tokio::signal::ctrl_c().await.ok().map(|()| ("Ctrl-C", 2))
+}
