@@ -6,6 +6,8 @@ use clap::Parser;
 use periscope_daemon::{cli, logging};
 
 fn main() -> ExitCode {
+    // Before anything can panic: a panic switches every open laser off first.
+    periscope_daemon::signals::install_panic_hook();
     let args = cli::Cli::parse();
     if let Err(err) = logging::init(args.log_format, args.log_file.as_deref()) {
         eprintln!("error: cannot open the log file: {err}");

@@ -1,11 +1,43 @@
+//! Signals and panics. A panic hook switches every open laser off first, before the
+//! panic is reported or unwound (printing a backtrace can take a tenth of a second).
 //! SIGINT, SIGTERM and SIGHUP for `run`, `resume` and `serve`: the first makes the
 //! instrument safe at once (the laser off through its direct path) and asks the work
 //! to stop at its next checkpoint, with a deadline after which the process exits
 //! anyway; a second exits at once, the laser already off. A dedicated thread waits for
 //! them, so nothing depends on the async runtime or the worker being responsive.
-use std::sync::Arc;
 use std::sync::atomic::{AtomicI32, Ordering};
+use std::sync::{Arc, Mutex, Once};
 use std::time::Duration;
+
+use periscope_drivers::galvo::EmergencyOff;
+
+/// The lasers of runs in this process, for the panic hook.
+static LASERS: Mutex<Vec<EmergencyOff>> = Mutex::new(Vec::new());
+
+/// Registers a run's laser with the panic hook (handles of closed drivers are dropped
+/// as new ones come).
+pub fn register_laser(off: EmergencyOff) {
+    let mut lasers = LASERS.lock().unwrap_or_else(|p| p.into_inner());
+    lasers.retain(EmergencyOff::is_open);
+    lasers.push(off);
+}
+
+/// Installs the panic hook (once per process): every registered laser off, then the
+/// usual report. The binary installs it at start; tests that inject panics too.
+pub fn install_panic_hook() {
+    static ONCE: Once = Once::new();
+    ONCE.call_once(|| {
+        let report = std::panic::take_hook();
+        std::panic::set_hook(Box::new(move |info| {
+            if let Ok(lasers) = LASERS.try_lock() {
+                for off in lasers.iter() {
+                    off.try_laser_off();
+                }
+            }
+            report(info);
+        }));
+    });
+}
 
 /// The signal that asked this process to stop (0 if none), as its number.
 static RECEIVED: AtomicI32 = AtomicI32::new(0);

@@ -209,6 +209,8 @@ impl Run {
             self.devices.tdc.configure(&cfg)?;
             self.devices.laser.set_diffuser(false)?;
             self.checkpoint()?;
+            // The histogrammer must answer before the laser goes on.
+            self.devices.tdc.status()?;
             self.devices.laser.set_emission(true)?;
             let settle = self.settle_timeout();
             let mut flagged = FlagRun::default();

@@ -60,6 +60,8 @@ impl Run {
         devices.laser.wait_settled(Duration::from_secs(2))?;
         devices.laser.set_diffuser(true)?;
         self.checkpoint()?;
+        // The histogrammer must answer before the laser goes on.
+        self.devices.tdc.status()?;
         // Emission only while measuring: on here, off as soon as the last point is in
         // (every error path switches it off too).
         self.devices.laser.set_emission(true)?;

@@ -378,6 +378,7 @@ impl Run {
                 return Err(stopped_before_start(dir, &mut info, &events, e));
             }
         };
+        crate::signals::register_laser(devices.laser.emergency_off());
         Ok(Run {
             dir: dir.to_owned(),
             plan,

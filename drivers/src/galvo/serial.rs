@@ -88,6 +88,39 @@ impl std::fmt::Debug for EmergencyOff {
 }
 
 impl EmergencyOff {
+    /// Whether the driver it belongs to is still open.
+    pub fn is_open(&self) -> bool {
+        self.writer.strong_count() > 0
+    }
+
+    /// Like [`EmergencyOff::laser_off`], but never waits on the line lock for more
+    /// than a few milliseconds: for a panic hook, which may run on the very thread
+    /// that holds it. Returns whether the line was written.
+    pub fn try_laser_off(&self) -> bool {
+        self.wanted.store(false, Ordering::SeqCst);
+        let Some(writer) = self.writer.upgrade() else {
+            return false;
+        };
+        let line = protocol::encode_line(protocol::OUT_OF_BAND_TAG, &Request::Laser(false).body());
+        for _ in 0..50 {
+            match writer.try_lock() {
+                Ok(mut guard) => {
+                    return guard
+                        .as_mut()
+                        .is_some_and(|w| w.write_all(line.as_bytes()).and_then(|()| w.flush()).is_ok());
+                }
+                Err(std::sync::TryLockError::Poisoned(p)) => {
+                    let mut guard = p.into_inner();
+                    return guard
+                        .as_mut()
+                        .is_some_and(|w| w.write_all(line.as_bytes()).and_then(|()| w.flush()).is_ok());
+                }
+                Err(std::sync::TryLockError::WouldBlock) => std::thread::sleep(Duration::from_micros(100)),
+            }
+        }
+        false
+    }
+
     /// Sends `LASER OFF` now. An error means the line could not be written (the
     /// driver is gone or not connected); the keepalive has stopped regardless, so the
     /// controller's watchdog ends emission within its timeout.

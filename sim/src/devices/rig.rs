@@ -153,6 +153,8 @@ pub(crate) struct RigState {
     pub diffuser_in: bool,
     pub tdc_faults: VecDeque<TdcFault>,
     pub tdc_refused_reopens: u32,
+    /// Unplugged now (not at the next acquisition): every transfer fails.
+    pub tdc_unplugged: bool,
 }
 
 /// Emission changes remembered for [`Rig::emission_changes`].
@@ -256,6 +258,7 @@ impl Rig {
             diffuser_in: false,
             tdc_faults: VecDeque::new(),
             tdc_refused_reopens: 0,
+            tdc_unplugged: false,
         };
         Rig {
             shared: Arc::new(Shared {
@@ -273,6 +276,14 @@ impl Rig {
             Fault::Galvo(arm, f) => s.arms[arm.index()].faults.push_back(f),
             Fault::Tdc(f) => s.tdc_faults.push_back(f),
         }
+    }
+
+    /// Pulls the histogrammer's cable now: the transfer in progress and every later one
+    /// fail, and this many reopens are refused before it is back.
+    pub fn unplug_tdc(&self, refused_reopens: u32) {
+        let mut s = self.shared.lock();
+        s.tdc_unplugged = true;
+        s.tdc_refused_reopens = refused_reopens;
     }
 
     /// Opens or closes the interlock loop; opening it stops emission at once.

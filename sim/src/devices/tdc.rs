@@ -60,6 +60,11 @@ impl SimTdcTransport {
     }
 
     fn check_present(&mut self) -> Result<(), TransportError> {
+        if std::mem::take(&mut self.rig.shared.lock().tdc_unplugged) {
+            self.disconnected = true;
+            self.config = None;
+            self.out.clear();
+        }
         if self.disconnected {
             return Err(TransportError::Disconnected(
                 "simulated histogrammer unplugged".into(),
@@ -279,6 +284,8 @@ impl UsbTransport for SimTdcTransport {
                 return Err(TransportError::Timeout);
             }
             std::thread::sleep(wait);
+            // Unplugged while the frame was being acquired?
+            self.check_present()?;
         }
         match self.out.front_mut().map(|(_, bytes)| bytes) {
             None => {

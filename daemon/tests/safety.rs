@@ -1,0 +1,470 @@
+//! The laser is off whenever nobody is measuring, whatever fails: every pipeline stage
+//! × every event (pause, abort, e-stop, an unplugged histogrammer, a panic), against
+//! the simulated devices in real time. Each case asserts the simulated laser's own
+//! emission state (the firmware's log of when emission changed and why), never the
+//! daemon's belief about it: off within 50 ms of the event, never on again after it,
+//! and the run left in the state it should be in, with its data resumable.
+use std::path::{Path, PathBuf};
+use std::sync::{Arc, Mutex, OnceLock, mpsc};
+use std::time::{Duration, Instant};
+
+use periscope_daemon::config::{InstrumentConfig, TomlSource};
+use periscope_daemon::events::{EventSink, RunEvent, Stage};
+use periscope_daemon::pipeline::{self, Control, PipelineError, Run};
+use periscope_daemon::store::{RunInfo, RunState, read_log};
+use periscope_drivers::galvo::EmergencyOff;
+use periscope_sim::devices::Rig;
+
+/// The bound on how long emission may outlast a pause, abort or e-stop (the
+/// issue's, for the simulator).
+const EMISSION_BOUND: Duration = Duration::from_millis(50);
+
+/// How long a stopped optimiser may take to notice (one step of this small fit, with
+/// headroom for a loaded CI machine).
+const TRAINER_BOUND: Duration = Duration::from_secs(2);
+
+/// Small and real-time: 64 LOS points of 10 ms, 25 pairs of 30 ms, a tiny fit.
+const PLAN: &str = r#"
+name = "safety"
+[los]
+angles-deg = { x = [-12.0, 12.0], y = [-12.0, 12.0] }
+grid = [8, 8]
+dwell-ms = 10.0
+[relay]
+depth-m = [1.7, 3.0]
+neighbours = 8
+detection = { min = [-0.4, -0.4, -0.1], max = [0.4, 0.4, 0.1] }
+[pairs]
+mode = "confocal"
+grid = [5, 5]
+offset-mm = 5.0
+[acquisition]
+dwell-ms = 30.0
+[recon]
+method = "gtr"
+[recon.volume]
+x = [-0.4, 0.4]
+y = [-0.4, 0.4]
+z = [0.3, 0.9]
+shape = [16, 16, 16]
+[recon.gtr]
+primitives = 200
+epochs = 40
+virtual-grid = [16, 16]
+"#;
+
+fn root() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("..")
+}
+
+/// The default simulated instrument in real time.
+fn instrument() -> TomlSource {
+    let path = root().join("configs/instrument/sim.toml");
+    let text = std::fs::read_to_string(&path)
+        .unwrap()
+        .replace("[sim]\n", "[sim]\ntime-scale = 1.0\n");
+    TomlSource::from_text(path, text)
+}
+
+/// A prepared run directory and the rig it will run on.
+fn prepare(tmp: &Path, plan: &str) -> (PathBuf, Rig) {
+    let src = instrument();
+    let config = InstrumentConfig::from_source(&src).unwrap();
+    let rig = periscope_daemon::devices::sim_rig(&config).unwrap().unwrap();
+    let plan_src = TomlSource::from_text(tmp.join("plan.toml"), plan.to_owned());
+    let (dir, _, _) = pipeline::prepare(&plan_src, &src, Some(&tmp.join("run"))).unwrap();
+    (dir, rig)
+}
+
+#[derive(Clone, Copy, Debug, PartialEq)]
+enum Event {
+    Pause,
+    Abort,
+    Estop,
+    DeviceError,
+    Panic,
+}
+
+const EVENTS: [Event; 5] = [
+    Event::Pause,
+    Event::Abort,
+    Event::Estop,
+    Event::DeviceError,
+    Event::Panic,
+];
+
+/// What one case did.
+struct Outcome {
+    /// From the event to emission off (zero: it was already off).
+    off_after: Duration,
+    /// From the event to the run's return.
+    returned_after: Duration,
+    /// The run's stored state.
+    state: RunState,
+    result: Result<(), String>,
+}
+
+/// Fires `event` at the run, as the service and the signal handlers would.
+fn fire(event: Event, stage: Stage, control: &Control, rig: &Rig, laser: &OnceLock<EmergencyOff>) {
+    match event {
+        Event::Pause => control.pause(),
+        Event::Abort => control.abort(),
+        Event::Estop => {
+            // The service's order: the laser directly, then the run.
+            if let Some(off) = laser.get() {
+                off.laser_off().unwrap();
+            }
+            control.abort();
+        }
+        Event::DeviceError => rig.unplug_tdc(1_000),
+        Event::Panic => control.inject_panic(stage),
+    }
+}
+
+/// Runs the plan and fires `event` in `stage`: while measuring (LOS, capture) from
+/// another thread a few milliseconds into a dwell, elsewhere at the stage's start.
+fn run_case(stage: Stage, event: Event) -> Outcome {
+    // As the binary does at start.
+    periscope_daemon::signals::install_panic_hook();
+    let tmp = tempfile::tempdir().unwrap();
+    let (dir, rig) = prepare(tmp.path(), PLAN);
+    let control = Control::new();
+    let laser: Arc<OnceLock<EmergencyOff>> = Arc::new(OnceLock::new());
+    let fired: Arc<Mutex<Option<Instant>>> = Arc::new(Mutex::new(None));
+    let events = EventSink::open(&dir).unwrap();
+    let (tx, rx) = mpsc::channel::<()>();
+    {
+        let (control, rig, laser, fired) = (control.clone(), rig.clone(), laser.clone(), fired.clone());
+        let mut armed = true;
+        events.listen(move |e| {
+            if !armed {
+                return;
+            }
+            let now = match (stage, e) {
+                (Stage::LosScan, RunEvent::LosPoint { .. }) | (Stage::Capture, RunEvent::Pair { .. }) => {
+                    // Mid-dwell, from another thread.
+                    let _ = tx.send(());
+                    armed = false;
+                    return;
+                }
+                (Stage::LosScan | Stage::Capture, _) => return,
+                (s, RunEvent::StageStarted { stage }) if *stage == s => true,
+                _ => false,
+            };
+            if now {
+                armed = false;
+                *fired.lock().unwrap() = Some(Instant::now());
+                fire(event, stage, &control, &rig, &laser);
+            }
+        });
+    }
+    let trigger = {
+        let (control, rig, laser, fired) = (control.clone(), rig.clone(), laser.clone(), fired.clone());
+        std::thread::spawn(move || {
+            if rx.recv().is_ok() {
+                std::thread::sleep(Duration::from_millis(7));
+                *fired.lock().unwrap() = Some(Instant::now());
+                fire(event, stage, &control, &rig, &laser);
+            }
+        })
+    };
+    let result = match Run::open(&dir, control, Some(events), Some(rig.clone())) {
+        Ok(run) => {
+            let _ = laser.set(run.emergency_off());
+            run.execute().map(drop)
+        }
+        Err(e) => Err(e),
+    };
+    let returned = Instant::now();
+    trigger.join().unwrap();
+    let t = fired
+        .lock()
+        .unwrap()
+        .unwrap_or_else(|| panic!("{event:?} in {stage:?} never fired: {result:?}"));
+    assert!(
+        !rig.emission(),
+        "{event:?} in {stage:?}: the laser is on after the run returned"
+    );
+    let off = rig.off_since(t).expect("off");
+    let switched_on_after: Vec<_> = rig
+        .emission_changes()
+        .into_iter()
+        .filter(|c| c.on && c.at > t)
+        .collect();
+    assert!(
+        switched_on_after.is_empty(),
+        "{event:?} in {stage:?}: emission went on again after the event: {switched_on_after:?}"
+    );
+    let info = RunInfo::load(&dir).unwrap();
+    Outcome {
+        off_after: off - t,
+        returned_after: returned.saturating_duration_since(t),
+        state: info.state,
+        result: result.map_err(|e: PipelineError| e.to_string()),
+    }
+}
+
+fn expected_state(stage: Stage, event: Event) -> RunState {
+    match event {
+        Event::Pause => RunState::Paused,
+        Event::Abort | Event::Estop => RunState::Aborted,
+        // Nothing talks to the histogrammer after the capture: the run completes, and
+        // making the instrument safe reports the unplugged device.
+        Event::DeviceError if stage == Stage::Reconstruction => RunState::Completed,
+        Event::DeviceError | Event::Panic => RunState::Failed,
+    }
+}
+
+/// One case at a time: the panic hook switches off every laser in the process, as it
+/// should in the daemon (one instrument), so concurrent cases would disturb each other.
+static ONE_AT_A_TIME: Mutex<()> = Mutex::new(());
+
+fn check_stage(stage: Stage) {
+    let _serial = ONE_AT_A_TIME.lock().unwrap_or_else(|p| p.into_inner());
+    let mut table = String::new();
+    for event in EVENTS {
+        let o = run_case(stage, event);
+        table.push_str(&format!(
+            "{:<15} {:<12} off after {:>6.1} ms, run returned after {:>7.1} ms, state {:?}: {}\n",
+            stage.name(),
+            format!("{event:?}"),
+            o.off_after.as_secs_f64() * 1e3,
+            o.returned_after.as_secs_f64() * 1e3,
+            o.state,
+            o.result.as_ref().err().map_or("ok", String::as_str),
+        ));
+        assert!(
+            o.off_after <= EMISSION_BOUND,
+            "{event:?} in {stage:?}: emission lasted {:?} after the event\n{table}",
+            o.off_after
+        );
+        assert!(
+            o.returned_after <= TRAINER_BOUND,
+            "{event:?} in {stage:?}: the run took {:?} to stop\n{table}",
+            o.returned_after
+        );
+        assert_eq!(
+            o.state,
+            expected_state(stage, event),
+            "{event:?} in {stage:?}\n{table}"
+        );
+        if event == Event::Panic {
+            let e = o.result.as_ref().unwrap_err();
+            assert!(
+                e.contains("internal error in stage") && e.contains(stage.name()),
+                "{e}"
+            );
+        }
+    }
+    eprint!("{table}");
+}
+
+#[test]
+fn opening() {
+    check_stage(Stage::Opening);
+}
+
+#[test]
+fn los_scan() {
+    check_stage(Stage::LosScan);
+}
+
+#[test]
+fn relay() {
+    check_stage(Stage::Relay);
+}
+
+#[test]
+fn planning() {
+    check_stage(Stage::Planning);
+}
+
+#[test]
+fn capture() {
+    check_stage(Stage::Capture);
+}
+
+#[test]
+fn reconstruction() {
+    check_stage(Stage::Reconstruction);
+}
+
+/// Runs (or resumes) the run in `dir` on `rig`, with `on_pair` called on the pipeline
+/// thread after each stored pair (with the pairs done so far).
+fn execute(
+    dir: &Path,
+    rig: &Rig,
+    control: Control,
+    mut on_pair: impl FnMut(usize) + Send + 'static,
+) -> Result<(), PipelineError> {
+    let events = EventSink::open(dir).unwrap();
+    events.listen(move |e| {
+        if let RunEvent::Pair { done, .. } = e {
+            on_pair(*done);
+        }
+    });
+    let run = Run::open(dir, control, Some(events), Some(rig.clone()))?;
+    run.execute().map(drop)
+}
+
+/// Every planned pair stored exactly once.
+fn assert_each_pair_once(dir: &Path) {
+    let planned: Vec<serde_json::Value> =
+        serde_json::from_slice(&std::fs::read(dir.join("pairs.json")).unwrap()).unwrap();
+    let log = read_log(dir).unwrap();
+    let mut seen: Vec<u32> = log.records.iter().map(|r| r.pair).collect();
+    seen.sort_unstable();
+    assert_eq!(seen, (0..planned.len() as u32).collect::<Vec<_>>());
+}
+
+#[test]
+fn a_paused_and_a_panicked_capture_resume_with_every_pair_once() {
+    let _serial = ONE_AT_A_TIME.lock().unwrap_or_else(|p| p.into_inner());
+    periscope_daemon::signals::install_panic_hook();
+    for panic in [false, true] {
+        let tmp = tempfile::tempdir().unwrap();
+        let (dir, rig) = prepare(tmp.path(), PLAN);
+        let control = Control::new();
+        let c = control.clone();
+        let r = execute(&dir, &rig, control, move |done| {
+            if done == 6 {
+                if panic {
+                    c.inject_panic(Stage::Capture)
+                } else {
+                    c.pause()
+                }
+            }
+        });
+        assert!(r.is_err());
+        assert!(!rig.emission());
+        let info = RunInfo::load(&dir).unwrap();
+        let want = if panic { RunState::Failed } else { RunState::Paused };
+        assert_eq!(info.state, want, "{r:?}");
+        let kept = read_log(&dir).unwrap().records.len();
+        assert!((6..=7).contains(&kept), "{kept} pairs kept");
+        execute(&dir, &rig, Control::new(), |_| {}).unwrap();
+        assert_eq!(RunInfo::load(&dir).unwrap().state, RunState::Completed);
+        assert_each_pair_once(&dir);
+        assert!(!rig.emission());
+    }
+}
+
+/// The plan with a `[suspend]` table.
+fn plan_with(suspend: &str) -> String {
+    format!("{PLAN}\n[suspend]\n{suspend}\n")
+}
+
+#[test]
+fn an_opened_interlock_pauses_the_capture_with_the_laser_off_until_the_operator_resumes() {
+    let _serial = ONE_AT_A_TIME.lock().unwrap_or_else(|p| p.into_inner());
+    let tmp = tempfile::tempdir().unwrap();
+    let (dir, rig) = prepare(tmp.path(), &plan_with("resume = \"operator\""));
+    let r2 = rig.clone();
+    let opened: Arc<Mutex<Option<Instant>>> = Arc::default();
+    let o2 = opened.clone();
+    let r = execute(&dir, &rig, Control::new(), move |done| {
+        if done == 5 {
+            *o2.lock().unwrap() = Some(Instant::now());
+            r2.set_interlock(false);
+        }
+    });
+    let Err(PipelineError::Suspended { reason, pairs }) = r else {
+        panic!("{r:?}")
+    };
+    assert!(reason.contains("interlock"), "{reason}");
+    assert!((5..=6).contains(&pairs), "{pairs}");
+    let info = RunInfo::load(&dir).unwrap();
+    assert_eq!(info.state, RunState::Paused);
+    assert!(info.error.unwrap().contains("interlock"));
+    assert!(!rig.emission());
+    // Nothing switched the laser on after the loop opened.
+    let t = opened.lock().unwrap().unwrap();
+    assert!(rig.emission_changes().iter().all(|c| !c.on || c.at < t));
+    // While the loop is open a resume cannot switch the laser on; closed, it completes.
+    rig.set_interlock(true);
+    execute(&dir, &rig, Control::new(), |_| {}).unwrap();
+    assert_each_pair_once(&dir);
+    assert!(!rig.emission());
+}
+
+#[test]
+fn an_interlock_that_closes_again_resumes_the_capture_by_itself() {
+    let _serial = ONE_AT_A_TIME.lock().unwrap_or_else(|p| p.into_inner());
+    let tmp = tempfile::tempdir().unwrap();
+    let (dir, rig) = prepare(tmp.path(), &plan_with("resume = \"auto\"\nclear-for-s = 0.2"));
+    let r2 = rig.clone();
+    let window: Arc<Mutex<Option<(Instant, Instant)>>> = Arc::default();
+    let w2 = window.clone();
+    execute(&dir, &rig, Control::new(), move |done| {
+        if done == 5 {
+            let r3 = r2.clone();
+            let w3 = w2.clone();
+            let opened = Instant::now();
+            r2.set_interlock(false);
+            std::thread::spawn(move || {
+                std::thread::sleep(Duration::from_millis(300));
+                r3.set_interlock(true);
+                *w3.lock().unwrap() = Some((opened, Instant::now()));
+            });
+        }
+    })
+    .unwrap();
+    assert_each_pair_once(&dir);
+    let (opened, closed) = window.lock().unwrap().unwrap();
+    let changes = rig.emission_changes();
+    // Off while the loop was open and for the clear time after; on again only then.
+    let back_on = changes
+        .iter()
+        .find(|c| c.on && c.at > opened)
+        .expect("the capture went on with the laser on");
+    assert!(
+        back_on.at >= closed + Duration::from_millis(200),
+        "{:?}",
+        back_on.at - closed
+    );
+    assert!(!rig.emission());
+    let events = std::fs::read_to_string(dir.join("events.jsonl")).unwrap();
+    assert!(events.contains("\"suspended\"") && events.contains("\"suspend-cleared\""));
+}
+
+#[test]
+fn flagged_frames_and_a_count_rate_above_the_limit_suspend_the_capture() {
+    let _serial = ONE_AT_A_TIME.lock().unwrap_or_else(|p| p.into_inner());
+    // Three overflowing frames in a row.
+    let tmp = tempfile::tempdir().unwrap();
+    let (dir, rig) = prepare(tmp.path(), &plan_with("flagged-frames = 3"));
+    let r2 = rig.clone();
+    let r = execute(&dir, &rig, Control::new(), move |done| {
+        if done == 2 {
+            for _ in 0..3 {
+                r2.inject(periscope_sim::devices::Fault::Tdc(
+                    periscope_sim::devices::TdcFault::Overflow,
+                ));
+            }
+        }
+    });
+    let Err(PipelineError::Suspended { reason, .. }) = r else {
+        panic!("{r:?}")
+    };
+    assert!(reason.contains("3 consecutive histograms"), "{reason}");
+    assert!(!rig.emission());
+    // Two flagged pairs were stored with their flags; the third is measured again.
+    let log = read_log(&dir).unwrap();
+    assert_eq!(log.records.iter().filter(|r| r.flags.overflow).count(), 2);
+    execute(&dir, &rig, Control::new(), |_| {}).unwrap();
+    assert_each_pair_once(&dir);
+
+    // A limit below what the wall returns: the first pair trips it.
+    let tmp = tempfile::tempdir().unwrap();
+    let (dir, rig) = prepare(tmp.path(), &plan_with("max-count-rate-hz = 1.0"));
+    let r = execute(&dir, &rig, Control::new(), |_| {});
+    let Err(PipelineError::Suspended { reason, pairs }) = r else {
+        panic!("{r:?}")
+    };
+    assert!(
+        reason.contains("count rate") && reason.contains("max-count-rate-hz"),
+        "{reason}"
+    );
+    assert_eq!(pairs, 0);
+    assert!(!rig.emission());
+}
