@@ -538,6 +538,15 @@ async fn pause_resume_abort_and_estop_keep_the_data() {
         "e-stop took {:?}",
         t.elapsed()
     );
+    // The simulated laser itself, not the daemon's belief: off within 50 ms, by the
+    // direct path, and both arms parked.
+    let rig = svc.rig().unwrap();
+    let off = rig.off_since(t).expect("the laser is on after the e-stop");
+    assert!(off - t < Duration::from_millis(50), "{:?}", off - t);
+    assert!(v["laser"].as_str().unwrap().contains("out-of-band"), "{v}");
+    assert!(v["laser_off_s"].as_f64().unwrap() < 0.05, "{v}");
+    assert_eq!(v["parked"], true, "{v}");
+    assert_eq!(v["held"][0].as_str(), Some(&*d), "{v}");
     let (_, vc) = call(&router, Method::GET, &format!("/api/v1/runs/{c}"), None, "").await;
     assert_eq!(vc["state"], "aborted", "{vc}");
     tokio::time::sleep(Duration::from_millis(300)).await;

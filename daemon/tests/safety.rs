@@ -468,3 +468,41 @@ fn flagged_frames_and_a_count_rate_above_the_limit_suspend_the_capture() {
     assert_eq!(pairs, 0);
     assert!(!rig.emission());
 }
+
+#[test]
+fn an_idle_estop_reaches_the_laser_with_the_tdc_unplugged_and_the_disk_refusing_writes() {
+    use periscope_drivers::galvo::Connector;
+    use periscope_drivers::galvo::protocol::encode_line;
+    use periscope_sim::devices::Arm;
+
+    let _serial = ONE_AT_A_TIME.lock().unwrap_or_else(|p| p.into_inner());
+    let runs = tempfile::tempdir().unwrap();
+    let mut src = instrument();
+    let text = format!("{}\n[api]\nruns-dir = {:?}\n", src.text(), runs.path());
+    src = TomlSource::from_text(src.path().to_owned(), text);
+    let svc = periscope_daemon::api::Service::open(src, None).unwrap();
+    let rig = svc.rig().unwrap().clone();
+    // A queued run whose run.json cannot be rewritten (its temporary file's name is
+    // taken by a directory), so holding it fails.
+    let queued = svc.submit(PLAN.to_owned()).unwrap().id;
+    std::fs::create_dir(runs.path().join(&queued).join("run.tmp")).unwrap();
+    // The laser left on by something else, and the histogrammer unplugged.
+    let mut link = rig.galvo_connector(Arm::Laser).connect().unwrap();
+    link.send(encode_line(0x01, "LASER ON").as_bytes()).unwrap();
+    let mut buf = [0u8; 64];
+    link.receive(&mut buf, Duration::from_secs(1)).unwrap();
+    assert!(rig.emission());
+    rig.unplug_tdc(1_000);
+    let t = Instant::now();
+    let report = svc.estop().unwrap();
+    let off = rig.off_since(t).expect("the e-stop left the laser on");
+    assert!(off - t < Duration::from_millis(50), "{:?}: {report:?}", off - t);
+    assert!(report.laser.contains("opened for the e-stop"), "{report:?}");
+    assert!(report.parked, "{report:?}");
+    assert!(
+        report.warnings.iter().any(|w| w.contains(&queued)),
+        "the failed write is reported: {report:?}"
+    );
+    let (laser, spad) = rig.pointing();
+    assert_eq!((laser.x, laser.y, spad.x, spad.y), (0.0, 0.0, 0.0, 0.0));
+}
