@@ -506,3 +506,48 @@ fn an_idle_estop_reaches_the_laser_with_the_tdc_unplugged_and_the_disk_refusing_
     let (laser, spad) = rig.pointing();
     assert_eq!((laser.x, laser.y, spad.x, spad.y), (0.0, 0.0, 0.0, 0.0));
 }
+
+#[test]
+fn a_panicking_run_fails_resumably_and_the_queue_goes_on() {
+    let _serial = ONE_AT_A_TIME.lock().unwrap_or_else(|p| p.into_inner());
+    periscope_daemon::signals::install_panic_hook();
+    let runs = tempfile::tempdir().unwrap();
+    let src = instrument();
+    let text = format!("{}\n[api]\nruns-dir = {:?}\n", src.text(), runs.path());
+    let svc = periscope_daemon::api::Service::open(TomlSource::from_text(src.path().to_owned(), text), None)
+        .unwrap();
+    let worker = svc.start_worker();
+    let rig = svc.rig().unwrap().clone();
+    let a = svc.submit(PLAN.to_owned()).unwrap().id;
+    let b = svc.submit(PLAN.to_owned()).unwrap().id;
+    let start = Instant::now();
+    while !(svc.status(&a).unwrap().stage == "capture" && rig.emission()) {
+        assert!(
+            start.elapsed() < Duration::from_secs(30),
+            "run {a} never captured"
+        );
+        std::thread::sleep(Duration::from_millis(5));
+    }
+    let t = Instant::now();
+    assert!(svc.inject_panic(Stage::Capture));
+    let wait = |id: &str, state: RunState| {
+        while svc.status(id).unwrap().state != state {
+            assert!(start.elapsed() < Duration::from_secs(60), "{id} never {state:?}");
+            std::thread::sleep(Duration::from_millis(5));
+        }
+    };
+    wait(&a, RunState::Failed);
+    let off = rig.off_since(t).unwrap();
+    assert!(off - t <= EMISSION_BOUND, "{:?}", off - t);
+    let err = svc.status(&a).unwrap().error.unwrap();
+    assert!(err.contains("internal error in stage capture"), "{err}");
+    // The queue goes on: the next run completes, on the same instrument.
+    wait(&b, RunState::Completed);
+    // And the failed one resumes to completion.
+    svc.resume(&a).unwrap();
+    wait(&a, RunState::Completed);
+    assert_each_pair_once(&runs.path().join(&a));
+    assert!(!rig.emission());
+    svc.shutdown();
+    worker.join().unwrap();
+}

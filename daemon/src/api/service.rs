@@ -244,6 +244,13 @@ impl Service {
         self.rig.as_ref()
     }
 
+    /// Testing aid (fault injection): the running run panics at its next checkpoint
+    /// in `stage` (see [`Control::inject_panic`]). Returns whether a run was running.
+    pub fn inject_panic(&self, stage: crate::events::Stage) -> bool {
+        let s = self.lock();
+        s.current.as_ref().map(|(_, c)| c.inject_panic(stage)).is_some()
+    }
+
     fn lock(&self) -> MutexGuard<'_, Shared> {
         self.shared.lock().unwrap_or_else(|p| p.into_inner())
     }
