@@ -551,3 +551,54 @@ fn a_panicking_run_fails_resumably_and_the_queue_goes_on() {
     svc.shutdown();
     worker.join().unwrap();
 }
+
+#[test]
+fn an_estop_reaches_the_laser_and_parks_while_the_worker_hangs() {
+    let _serial = ONE_AT_A_TIME.lock().unwrap_or_else(|p| p.into_inner());
+    let runs = tempfile::tempdir().unwrap();
+    let src = instrument();
+    let text = format!("{}\n[api]\nruns-dir = {:?}\n", src.text(), runs.path());
+    let svc = periscope_daemon::api::Service::open(TomlSource::from_text(src.path().to_owned(), text), None)
+        .unwrap();
+    let worker = svc.start_worker();
+    let rig = svc.rig().unwrap().clone();
+    let a = svc.submit(PLAN.to_owned()).unwrap().id;
+    let start = Instant::now();
+    while !(svc.status(&a).unwrap().stage == "capture" && rig.emission()) {
+        assert!(
+            start.elapsed() < Duration::from_secs(30),
+            "run {a} never captured"
+        );
+        std::thread::sleep(Duration::from_millis(5));
+    }
+    // The worker gets stuck at its next checkpoint for 4 s, with the laser on.
+    assert!(svc.inject_hang(Stage::Capture, Duration::from_secs(4)));
+    std::thread::sleep(Duration::from_millis(100));
+    assert!(
+        rig.emission(),
+        "the keepalive holds emission while the worker hangs"
+    );
+    let t = Instant::now();
+    let report = svc.estop().unwrap();
+    let off = rig.off_since(t).expect("the laser is on after the e-stop");
+    assert!(off - t <= EMISSION_BOUND, "{:?}: {report:?}", off - t);
+    assert!(report.laser.contains("out-of-band"), "{report:?}");
+    // It waited 2 s for the run, then parked both arms itself.
+    assert!(report.parked, "{report:?}");
+    assert!(
+        report.warnings.iter().any(|w| w.contains("checkpoint")),
+        "{report:?}"
+    );
+    let (laser, spad) = rig.pointing();
+    assert_eq!((laser.x, laser.y, spad.x, spad.y), (0.0, 0.0, 0.0, 0.0));
+    assert!(t.elapsed() < Duration::from_secs(3), "{:?}", t.elapsed());
+    // The keepalive stopped with the e-stop, so nothing switches the laser back on, and
+    // the run ends aborted once the worker comes back.
+    while svc.status(&a).unwrap().state != RunState::Aborted {
+        assert!(start.elapsed() < Duration::from_secs(60), "{a} never aborted");
+        std::thread::sleep(Duration::from_millis(10));
+    }
+    assert!(rig.emission_changes().iter().all(|c| !c.on || c.at < t));
+    svc.shutdown();
+    worker.join().unwrap();
+}

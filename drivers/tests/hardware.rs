@@ -69,3 +69,57 @@ fn histogrammer_acquires() {
     let h = tdc.acquire().unwrap();
     assert_eq!(h.counts.len(), 1024);
 }
+
+/// The laser controller's watchdog (protocol revision 2): switched on and then left
+/// silent, the controller must end emission within its timeout and count the trip.
+/// It switches the laser on, so it runs only when also given
+/// `PERISCOPE_ALLOW_EMISSION=1`, with the beam on a dump and the enclosure closed.
+#[test]
+fn laser_watchdog_ends_emission_when_the_host_goes_silent() {
+    use periscope_drivers::Laser;
+    use periscope_drivers::galvo::Connector;
+    use periscope_drivers::galvo::protocol::encode_line;
+
+    let port = env("PERISCOPE_LASER_PORT");
+    assert_eq!(
+        env("PERISCOPE_ALLOW_EMISSION"),
+        "1",
+        "this test switches the laser on: set PERISCOPE_ALLOW_EMISSION=1 with the beam on a dump"
+    );
+    let connector = || PortConnector {
+        path: port.clone(),
+        baud: 115_200,
+    };
+    let settings = SerialGalvoSettings {
+        name: "laser".into(),
+        limits: AngleLimits {
+            x: [-0.01, 0.01],
+            y: [-0.01, 0.01],
+        },
+        timeout: Duration::from_millis(200),
+        settle: Duration::from_micros(400),
+        watchdog: None,
+    };
+    let mut g = SerialGalvo::open(settings.clone(), Box::new(connector())).unwrap();
+    let (_, trips_before) = g.watchdog().unwrap();
+    drop(g);
+    // A bare link: WDOG 100, LASER ON, then silence.
+    let mut link = connector().connect().unwrap();
+    let mut buf = [0u8; 128];
+    for (tag, body) in [(1u8, "WDOG 100"), (2, "LASER ON")] {
+        link.send(encode_line(tag, body).as_bytes()).unwrap();
+        let n = link.receive(&mut buf, Duration::from_millis(200)).unwrap();
+        assert!(buf[..n].starts_with(format!("{tag:02X} OK").as_bytes()), "{body}");
+    }
+    std::thread::sleep(Duration::from_millis(250));
+    drop(link);
+    let mut g = SerialGalvo::open(settings, Box::new(connector())).unwrap();
+    let state = g.laser_state().unwrap();
+    let (_, trips) = g.watchdog().unwrap();
+    g.set_emission(false).unwrap();
+    assert!(
+        !state.emission,
+        "the controller kept emitting after 250 ms of silence"
+    );
+    assert_eq!(trips, trips_before + 1);
+}

@@ -251,6 +251,17 @@ impl Service {
         s.current.as_ref().map(|(_, c)| c.inject_panic(stage)).is_some()
     }
 
+    /// Testing aid (fault injection): the running run hangs at its next checkpoint in
+    /// `stage` for `duration` (see [`Control::inject_hang`]). Returns whether a run
+    /// was running.
+    pub fn inject_hang(&self, stage: crate::events::Stage, duration: Duration) -> bool {
+        let s = self.lock();
+        s.current
+            .as_ref()
+            .map(|(_, c)| c.inject_hang(stage, duration))
+            .is_some()
+    }
+
     fn lock(&self) -> MutexGuard<'_, Shared> {
         self.shared.lock().unwrap_or_else(|p| p.into_inner())
     }

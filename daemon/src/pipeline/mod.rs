@@ -131,6 +131,8 @@ struct ControlInner {
     cancels: Mutex<Vec<CancelToken>>,
     /// Testing aid: the stage in which the next checkpoint panics (stage index + 1).
     panic_in: AtomicU8,
+    /// Testing aid: the stage in which the next checkpoint hangs, and for how long.
+    hang_in: Mutex<Option<(Stage, std::time::Duration)>>,
 }
 
 /// Operator requests a running pipeline honours at its checkpoints: between devices
@@ -195,11 +197,24 @@ impl Control {
     pub fn inject_panic(&self, stage: Stage) {
         self.0.panic_in.store(stage as u8 + 1, Ordering::SeqCst);
     }
+    /// Testing aid (fault injection): the next checkpoint reached in `stage` hangs for
+    /// `duration`, deaf to pause, abort and e-stop, as a worker stuck in a call would.
+    /// The safety tests use it to show that an e-stop does not need the worker.
+    pub fn inject_hang(&self, stage: Stage, duration: std::time::Duration) {
+        *self.0.hang_in.lock().unwrap_or_else(|p| p.into_inner()) = Some((stage, duration));
+    }
     /// The error a checkpoint returns for the current request, if any.
     pub(crate) fn check(&self, stage: Stage, pairs: usize) -> Result<(), PipelineError> {
         if self.0.panic_in.load(Ordering::SeqCst) == stage as u8 + 1 {
             self.0.panic_in.store(0, Ordering::SeqCst);
             panic!("injected panic in stage {}", stage.name());
+        }
+        let hang = {
+            let mut h = self.0.hang_in.lock().unwrap_or_else(|p| p.into_inner());
+            h.filter(|(s, _)| *s == stage).and_then(|_| h.take())
+        };
+        if let Some((_, duration)) = hang {
+            std::thread::sleep(duration);
         }
         match self.requested() {
             Request::Run => Ok(()),
