@@ -306,3 +306,97 @@ fn detected_grid_matches_the_relay() {
         );
     }
 }
+
+#[test]
+fn the_sampling_pitch_of_a_grid_is_its_spacing_and_of_scattered_points_their_mean_spacing() {
+    use periscope_recon::solver::sampling_pitch;
+    let grid = wall(32).points();
+    let pitch = sampling_pitch(&grid).unwrap();
+    assert!((pitch - 1.0 / 32.0).abs() < 1e-9, "{pitch}");
+    // 400 points scattered over 1 m² (a jittered 20 × 20 lattice): about 5 cm apart.
+    let mut state = 7u64;
+    let mut rand = || {
+        state = state
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        ((state >> 11) as f64 / (1u64 << 53) as f64) - 0.5
+    };
+    let scattered: Vec<DVec3> = (0..400)
+        .map(|i| {
+            let (ix, iy) = ((i % 20) as f64, (i / 20) as f64);
+            DVec3::new(
+                (ix + 0.5 + 0.8 * rand()) / 20.0 - 0.5,
+                (iy + 0.5 + 0.8 * rand()) / 20.0 - 0.5,
+                0.0,
+            )
+        })
+        .collect();
+    let pitch = sampling_pitch(&scattered).unwrap();
+    assert!((pitch - 0.05).abs() < 0.005, "{pitch}");
+    assert_eq!(sampling_pitch(&grid[..2]), None, "two points have no pitch");
+}
+
+#[test]
+fn the_phasor_filter_ignores_a_constant_background_and_finds_the_point_in_noise() {
+    use periscope_recon::solver::FbpFilter;
+    // 300 confocal points scattered over the wall, a constant ambient level 20 times
+    // the pulse's peak, and noise: the band-pass keeps only what the relay resolves.
+    let mut state = 11u64;
+    let mut rand = || {
+        state = state
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        (state >> 11) as f64 / (1u64 << 53) as f64
+    };
+    let pairs: Vec<Pair> = (0..300)
+        .map(|_| Pair::confocal(DVec3::new(rand() - 0.5, rand() - 0.5, 0.0), DVec3::Z))
+        .collect();
+    let mut clean = TransientSet::new(axis()).unwrap();
+    scatter(&mut clean, &pairs, &[(POINT, 1.0)]);
+    let peak = (0..clean.len())
+        .flat_map(|p| clean.histogram(p).iter().copied())
+        .fold(0.0f32, f32::max);
+    let mut noisy = TransientSet::new(axis()).unwrap();
+    for p in 0..clean.len() {
+        let h: Vec<f32> = clean
+            .histogram(p)
+            .iter()
+            .map(|v| v + peak * (20.0 + 0.3 * (rand() as f32 - 0.5)))
+            .collect();
+        noisy.push(clean.pairs()[p], &h).unwrap();
+    }
+    let phasor = FbpSettings::default();
+    assert_eq!(phasor.filter, FbpFilter::Phasor);
+    assert_peak_at(
+        &fbp(&noisy, &grid(), &phasor).unwrap(),
+        POINT,
+        "phasor FBP, sparse and noisy",
+    );
+    // Without the band-pass, the background swamps the point.
+    let (at, _) = fbp(
+        &noisy,
+        &grid(),
+        &FbpSettings {
+            filter: FbpFilter::None,
+            ..phasor
+        },
+    )
+    .unwrap()
+    .argmax();
+    assert!(
+        ((at - POINT) / grid().voxel()).abs().max_element() > 1.0,
+        "{at:?}"
+    );
+    // Out-of-range settings are refused, naming the setting.
+    let bad = FbpSettings {
+        wavelength: Some(-1.0),
+        ..phasor
+    };
+    assert!(matches!(
+        fbp(&noisy, &grid(), &bad),
+        Err(SolverError::Setting {
+            name: "wavelength",
+            ..
+        })
+    ));
+}

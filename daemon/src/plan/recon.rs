@@ -2,7 +2,7 @@
 //! `RECON.toml` for `periscope recon` share this format.
 use periscope_recon::VolumeGrid;
 use periscope_recon::gtr::{Init, TrainConfig};
-use periscope_recon::solver::SolverKind;
+use periscope_recon::solver::{FbpSettings, LctSettings, RsdSettings, SolverError, SolverKind};
 use serde::Deserialize;
 
 use crate::config::{ConfigError, TomlSource};
@@ -38,6 +38,13 @@ pub struct ReconSettings {
     pub solver: SolverKind,
     /// Depth-map threshold, as a fraction of the volume's maximum.
     pub depth_threshold: f64,
+    /// FBP settings (`[fbp]`), for `method = "fbp"` (and `solver = "fbp"` after `gtr`,
+    /// where the filter defaults to the Laplacian).
+    pub fbp: Option<FbpSettings>,
+    /// LCT settings (`[lct]`).
+    pub lct: LctSettings,
+    /// RSD settings (`[rsd]`).
+    pub rsd: RsdSettings,
 }
 
 #[derive(Deserialize, Default)]
@@ -52,6 +59,12 @@ pub(crate) struct RawRecon {
     solver: Option<String>,
     #[serde(default)]
     depth_threshold: Option<f64>,
+    #[serde(default)]
+    fbp: Option<FbpSettings>,
+    #[serde(default)]
+    lct: Option<LctSettings>,
+    #[serde(default)]
+    rsd: Option<RsdSettings>,
 }
 
 #[derive(Deserialize)]
@@ -242,6 +255,24 @@ pub(crate) fn recon_settings(
             "must be a fraction in (0, 1) of the volume's maximum",
         ));
     }
+    let solver_err = |table: &str, e: SolverError| match e {
+        SolverError::Setting {
+            name,
+            value,
+            expected,
+        } => src.invalid(
+            &key(&format!("{table}.{name}")),
+            format!("{value} is out of range: {expected}"),
+        ),
+        other => src.invalid(&key(table), other.to_string()),
+    };
+    if let Some(f) = &raw.fbp {
+        f.validate().map_err(|e| solver_err("fbp", e))?;
+    }
+    let lct = raw.lct.unwrap_or_default();
+    lct.validate().map_err(|e| solver_err("lct", e))?;
+    let rsd = raw.rsd.unwrap_or_default();
+    rsd.validate().map_err(|e| solver_err("rsd", e))?;
     Ok(ReconSettings {
         method,
         volume,
@@ -250,6 +281,9 @@ pub(crate) fn recon_settings(
         virtual_size: g.virtual_size,
         solver,
         depth_threshold,
+        fbp: raw.fbp,
+        lct,
+        rsd,
     })
 }
 
@@ -266,4 +300,37 @@ pub fn load_recon(
 pub fn default_recon(volume: VolumeGrid) -> ReconSettings {
     let src = TomlSource::from_text("<defaults>", "");
     recon_settings(&src, "", RawRecon::default(), Some(volume)).expect("the defaults are valid")
+}
+
+#[cfg(test)]
+mod tests {
+    use periscope_recon::solver::FbpFilter;
+
+    use super::*;
+
+    fn volume() -> VolumeGrid {
+        VolumeGrid::new([-0.5, 0.5], [-0.5, 0.5], [0.2, 1.0], [8, 8, 8]).unwrap()
+    }
+
+    #[test]
+    fn solver_tables_are_read_and_checked() {
+        let src = TomlSource::from_text(
+            "recon.toml",
+            "method = \"fbp\"\n[fbp]\nfilter = \"laplacian\"\nfalloff = 0.0\n[lct]\nsnr = 4.0\n",
+        );
+        let s = load_recon(&src, Some(volume())).unwrap();
+        let fbp = s.fbp.unwrap();
+        assert_eq!((fbp.filter, fbp.falloff), (FbpFilter::Laplacian, 0.0));
+        assert_eq!(s.lct.snr, 4.0);
+        // Out of range: the error names the file, the line and the key.
+        let src = TomlSource::from_text("recon.toml", "method = \"fbp\"\n[fbp]\nfalloff = 9.0\n");
+        let e = load_recon(&src, Some(volume())).unwrap_err().to_string();
+        assert!(e.contains("fbp.falloff") && e.contains("between 0 and 4"), "{e}");
+        // Unknown keys too.
+        let src = TomlSource::from_text("recon.toml", "[rsd]\ncolour = 1\n");
+        let e = load_recon(&src, Some(volume())).unwrap_err().to_string();
+        assert!(e.contains("colour"), "{e}");
+        // No table: the solver decides (phasor on measured data).
+        assert_eq!(default_recon(volume()).fbp, None);
+    }
 }

@@ -48,7 +48,8 @@ impl Default for LctSettings {
 }
 
 impl LctSettings {
-    fn validate(&self) -> Result<(), SolverError> {
+    /// Checks every setting is in range.
+    pub fn validate(&self) -> Result<(), SolverError> {
         if !(self.snr.is_finite() && self.snr > 0.0) {
             return Err(SolverError::Setting {
                 name: "snr",

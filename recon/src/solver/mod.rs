@@ -13,7 +13,7 @@ mod lct;
 mod rsd;
 mod scan;
 
-pub use fbp::{FbpFilter, FbpSettings, fbp};
+pub use fbp::{FbpFilter, FbpSettings, PHASOR_PITCHES, fbp, phasor_wavelength, sampling_pitch};
 pub use frame::FrameVolume;
 pub use lct::{LctSettings, lct, lct_frame};
 pub use rsd::{RsdSettings, rsd, rsd_frame};

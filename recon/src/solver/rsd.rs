@@ -52,7 +52,8 @@ impl Default for RsdSettings {
 }
 
 impl RsdSettings {
-    fn validate(&self) -> Result<(), SolverError> {
+    /// Checks every setting is in range.
+    pub fn validate(&self) -> Result<(), SolverError> {
         let bad = |name, value: f64, expected| SolverError::Setting {
             name,
             value: value.to_string(),
