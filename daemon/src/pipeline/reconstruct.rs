@@ -8,7 +8,7 @@ use std::time::Instant;
 use glam::DVec3;
 use periscope_recon::gtr::{CancelToken, GaussianCloud, TrainError, TrainSummary, Trainer};
 use periscope_recon::relay::VirtualRelay;
-use periscope_recon::solver::{FbpSettings, SolverKind, fbp, lct, rsd};
+use periscope_recon::solver::{SolverKind, fbp, lct, rsd};
 use periscope_recon::synth::{default_axis, synthesise};
 use periscope_recon::{RoiBox, TransientSet, Volume, VolumeGrid};
 
@@ -165,27 +165,13 @@ fn stopped(control: &Control, pairs: usize) -> PipelineError {
     }
 }
 
-/// Runs a solver on measured transients, or (`synthesised`) on a 3D-GTR virtual
-/// confocal scan: dense, gridded and noise-free, where FBP's Laplacian filter is the
-/// sharper choice.
-fn solve(
-    kind: SolverKind,
-    set: &TransientSet,
-    s: &ReconSettings,
-    synthesised: bool,
-) -> Result<Volume, PipelineError> {
+/// Runs a solver, with the settings' `[lct]`, `[rsd]` or `[fbp]` table.
+fn solve(kind: SolverKind, set: &TransientSet, s: &ReconSettings) -> Result<Volume, PipelineError> {
     let grid = &s.volume;
     match kind {
         SolverKind::Lct => lct(set, grid, &s.lct),
         SolverKind::Rsd => rsd(set, grid, &s.rsd),
-        SolverKind::Fbp => {
-            let settings = s.fbp.unwrap_or(if synthesised {
-                FbpSettings::laplacian()
-            } else {
-                FbpSettings::default()
-            });
-            fbp(set, grid, &settings)
-        }
+        SolverKind::Fbp => fbp(set, grid, &s.fbp),
     }
     .map_err(recon_err)
 }
@@ -210,7 +196,7 @@ fn finish_gtr(
     let scan = synthesise(&kernels, &relay, axis, trainer.render_options()).map_err(recon_err)?;
     let synth_secs = t.elapsed().as_secs_f64();
     let t = Instant::now();
-    let volume = solve(s.solver, &scan.set, s, true)?;
+    let volume = solve(s.solver, &scan.set, s)?;
     Ok(ReconResult {
         volume,
         cloud: Some(trainer.cloud().clone()),
@@ -263,7 +249,7 @@ pub fn reconstruct(
                 _ => SolverKind::Rsd,
             };
             let t = Instant::now();
-            let volume = solve(kind, &input.set, s, false)?;
+            let volume = solve(kind, &input.set, s)?;
             Ok(ReconResult {
                 volume,
                 cloud: None,

@@ -38,9 +38,9 @@ pub struct ReconSettings {
     pub solver: SolverKind,
     /// Depth-map threshold, as a fraction of the volume's maximum.
     pub depth_threshold: f64,
-    /// FBP settings (`[fbp]`), for `method = "fbp"` (and `solver = "fbp"` after `gtr`,
-    /// where the filter defaults to the Laplacian).
-    pub fbp: Option<FbpSettings>,
+    /// FBP settings (`[fbp]`), for `method = "fbp"` and for `solver = "fbp"` after
+    /// `gtr`.
+    pub fbp: FbpSettings,
     /// LCT settings (`[lct]`).
     pub lct: LctSettings,
     /// RSD settings (`[rsd]`).
@@ -157,7 +157,9 @@ pub(crate) fn recon_settings(
             ));
         }
     };
-    let solver = match raw.solver.as_deref().unwrap_or("lct") {
+    // FBP with the phasor filter on the virtual scan beat LCT on every validation
+    // capture (docs/recon.md, "Which solver after 3D-GTR").
+    let solver = match raw.solver.as_deref().unwrap_or("fbp") {
         "lct" => SolverKind::Lct,
         "rsd" => SolverKind::Rsd,
         "fbp" => SolverKind::Fbp,
@@ -266,9 +268,8 @@ pub(crate) fn recon_settings(
         ),
         other => src.invalid(&key(table), other.to_string()),
     };
-    if let Some(f) = &raw.fbp {
-        f.validate().map_err(|e| solver_err("fbp", e))?;
-    }
+    let fbp = raw.fbp.unwrap_or_default();
+    fbp.validate().map_err(|e| solver_err("fbp", e))?;
     let lct = raw.lct.unwrap_or_default();
     lct.validate().map_err(|e| solver_err("lct", e))?;
     let rsd = raw.rsd.unwrap_or_default();
@@ -281,7 +282,7 @@ pub(crate) fn recon_settings(
         virtual_size: g.virtual_size,
         solver,
         depth_threshold,
-        fbp: raw.fbp,
+        fbp,
         lct,
         rsd,
     })
@@ -319,8 +320,7 @@ mod tests {
             "method = \"fbp\"\n[fbp]\nfilter = \"laplacian\"\nfalloff = 0.0\n[lct]\nsnr = 4.0\n",
         );
         let s = load_recon(&src, Some(volume())).unwrap();
-        let fbp = s.fbp.unwrap();
-        assert_eq!((fbp.filter, fbp.falloff), (FbpFilter::Laplacian, 0.0));
+        assert_eq!((s.fbp.filter, s.fbp.falloff), (FbpFilter::Laplacian, 0.0));
         assert_eq!(s.lct.snr, 4.0);
         // Out of range: the error names the file, the line and the key.
         let src = TomlSource::from_text("recon.toml", "method = \"fbp\"\n[fbp]\nfalloff = 9.0\n");
@@ -330,7 +330,8 @@ mod tests {
         let src = TomlSource::from_text("recon.toml", "[rsd]\ncolour = 1\n");
         let e = load_recon(&src, Some(volume())).unwrap_err().to_string();
         assert!(e.contains("colour"), "{e}");
-        // No table: the solver decides (phasor on measured data).
-        assert_eq!(default_recon(volume()).fbp, None);
+        // No table: the phasor filter, and FBP after 3D-GTR.
+        let d = default_recon(volume());
+        assert_eq!((d.fbp.filter, d.solver), (FbpFilter::Phasor, SolverKind::Fbp));
     }
 }

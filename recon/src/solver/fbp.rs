@@ -13,9 +13,9 @@
 //!   ambient light and shot noise outside that band. Robust on sparse, non-confocal
 //!   and noisy captures.
 //! - **Laplacian** (Velten et al. 2012): the backprojection sharpened with the
-//!   negative 3-D Laplacian on the voxel grid, negative lobes clipped. Sharpest on a
-//!   dense, noise-free confocal grid (a synthesised virtual scan), fragile elsewhere:
-//!   its cut-off is the voxel size, not the data's bandwidth.
+//!   negative 3-D Laplacian on the voxel grid, negative lobes clipped. Sharp on a
+//!   dense, noise-free confocal grid, fragile elsewhere: its cut-off is the voxel
+//!   size, not the data's bandwidth.
 //!
 //! Work is split by z slices (each thread owns whole slices and loops over all pairs,
 //! so a slice stays in cache); the inner loop runs in f32 along x.
@@ -73,15 +73,6 @@ impl Default for FbpSettings {
 }
 
 impl FbpSettings {
-    /// Sharpest on dense noise-free confocal grids: what runs on a 3D-GTR virtual scan.
-    pub fn laplacian() -> Self {
-        Self {
-            filter: FbpFilter::Laplacian,
-            falloff: 2.0,
-            ..Self::default()
-        }
-    }
-
     /// Checks every setting is in range.
     pub fn validate(&self) -> Result<(), SolverError> {
         if let Some(w) = self.wavelength
