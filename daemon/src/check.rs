@@ -161,6 +161,9 @@ pub fn report(plan: &Plan, inst: &InstrumentConfig) -> String {
             ""
         }
     );
+    let budget = crate::budget::Budget::of_plan(plan);
+    let _ = writeln!(out, "  budget (per run, from the instrument's [budget]):");
+    out.push_str(&budget.report(&inst.budget));
     if problems.is_empty() {
         let _ = writeln!(out, "  limits: every target is within the galvo limits");
     } else {

@@ -160,7 +160,9 @@ pub fn execute(cli: Cli) -> anyhow::Result<()> {
             let config = instrument.load()?;
             let plan = Plan::load(&plan, &config)?;
             print!("{}", check::report(&plan, &config));
-            Ok(())
+            crate::budget::Budget::of_plan(&plan)
+                .check(&config.budget)
+                .map_err(|e| anyhow::anyhow!("plan `{}`: {e}", plan.name))
         }
         Command::Resume { run_dir } => {
             anyhow::ensure!(

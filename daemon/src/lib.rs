@@ -7,6 +7,7 @@
 #![warn(missing_docs)]
 
 pub mod api;
+pub mod budget;
 pub mod check;
 pub mod cli;
 pub mod config;

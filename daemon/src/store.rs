@@ -220,6 +220,31 @@ fn sync_dir(dir: &Path) {
     }
 }
 
+/// Reads a UTF-8 text file of at most `limit` bytes; a larger file is refused before
+/// anything is read, so a file that grew (or was replaced) cannot exhaust memory.
+pub fn read_text_capped(path: &Path, limit: u64) -> io::Result<String> {
+    let file = File::open(path)?;
+    let len = file.metadata()?.len();
+    if len > limit {
+        return Err(io::Error::new(
+            io::ErrorKind::InvalidData,
+            format!(
+                "{} is {len} bytes, more than the {limit} a text file here may have",
+                path.display()
+            ),
+        ));
+    }
+    let mut text = String::with_capacity(len as usize);
+    file.take(limit + 1).read_to_string(&mut text)?;
+    if text.len() as u64 > limit {
+        return Err(io::Error::new(
+            io::ErrorKind::InvalidData,
+            format!("{} grew past {limit} bytes while it was read", path.display()),
+        ));
+    }
+    Ok(text)
+}
+
 /// Writes `bytes` to `path` atomically (temporary file, fsync, rename).
 pub fn write_atomic(path: &Path, bytes: &[u8]) -> io::Result<()> {
     let tmp = path.with_extension("tmp");

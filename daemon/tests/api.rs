@@ -552,8 +552,23 @@ async fn pause_resume_abort_and_estop_keep_the_data() {
     tokio::time::sleep(Duration::from_millis(300)).await;
     let (_, vd) = call(&router, Method::GET, &format!("/api/v1/runs/{d}"), None, "").await;
     assert_eq!(vd["state"], "paused", "{vd}");
-    let (s, inst) = call(&router, Method::GET, "/api/v1/instrument", None, "").await;
-    assert_eq!(s, StatusCode::OK);
+    // The worker reads the devices again after an e-stop; GET serves that reading.
+    let t = Instant::now();
+    let inst = loop {
+        let (s, inst) = call(&router, Method::GET, "/api/v1/instrument", None, "").await;
+        assert_eq!(s, StatusCode::OK);
+        if inst["reading"]["age_s"]
+            .as_f64()
+            .is_some_and(|a| a < t.elapsed().as_secs_f64())
+        {
+            break inst;
+        }
+        assert!(
+            t.elapsed() < Duration::from_secs(10),
+            "no reading after the e-stop: {inst}"
+        );
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    };
     assert_eq!(inst["busy"], false, "{inst}");
     assert_eq!(inst["devices"]["laser"]["emission"], false, "{inst}");
     let (s, _) = call(

@@ -65,12 +65,45 @@ pub const ROUTES: &[(&str, &str)] = &[
 #[derive(Clone)]
 pub struct AppState {
     service: Arc<Service>,
+    /// Event-stream clients connected now.
+    streams: Arc<std::sync::atomic::AtomicUsize>,
+    /// Downloads in flight (a permit per download, held until its body is sent).
+    downloads: Arc<tokio::sync::Semaphore>,
 }
 
 impl AppState {
     /// State over a service.
     pub fn new(service: Arc<Service>) -> AppState {
-        AppState { service }
+        let downloads = Arc::new(tokio::sync::Semaphore::new(
+            service.instrument().api.max_downloads,
+        ));
+        AppState {
+            service,
+            streams: Arc::default(),
+            downloads,
+        }
+    }
+}
+
+/// Holds one of the capped slots (an event stream) until dropped.
+struct Slot(Arc<std::sync::atomic::AtomicUsize>);
+
+impl Slot {
+    /// Takes a slot if fewer than `max` are taken.
+    fn take(count: &Arc<std::sync::atomic::AtomicUsize>, max: usize) -> Option<Slot> {
+        use std::sync::atomic::Ordering;
+        count
+            .fetch_update(Ordering::AcqRel, Ordering::Acquire, |n| {
+                (n < max).then_some(n + 1)
+            })
+            .ok()
+            .map(|_| Slot(Arc::clone(count)))
+    }
+}
+
+impl Drop for Slot {
+    fn drop(&mut self) {
+        self.0.fetch_sub(1, std::sync::atomic::Ordering::AcqRel);
     }
 }
 
@@ -113,6 +146,8 @@ impl From<ServiceError> for ApiError {
             ServiceError::Storage(_) => (StatusCode::INTERNAL_SERVER_ERROR, "storage"),
             ServiceError::Device(_) => (StatusCode::SERVICE_UNAVAILABLE, "device"),
             ServiceError::Config(_) => (StatusCode::INTERNAL_SERVER_ERROR, "config"),
+            ServiceError::QueueFull(_) => (StatusCode::TOO_MANY_REQUESTS, "queue-full"),
+            ServiceError::OverBudget(_) => (StatusCode::UNPROCESSABLE_ENTITY, "over-budget"),
         };
         ApiError::new(status, code, e.to_string())
     }
@@ -154,6 +189,7 @@ pub fn app(state: AppState) -> Router {
         .method_not_allowed_fallback(method_not_allowed);
     routes
         .layer(middleware::from_fn_with_state(state.clone(), authorise))
+        .layer(middleware::from_fn_with_state(state.clone(), check_host))
         .layer(DefaultBodyLimit::max(api.body_limit))
         .layer(tower_http::timeout::TimeoutLayer::with_status_code(
             StatusCode::REQUEST_TIMEOUT,
@@ -228,6 +264,78 @@ async fn authorise(State(state): State<AppState>, req: Request, next: Next) -> R
         return e.into_response();
     }
     next.run(req).await
+}
+
+/// Refuses requests whose `Host` names this machine by a name nobody configured, and
+/// mutating requests whose `Origin` is another site. A DNS-rebinding page reaches the
+/// daemon under the attacker's host name, and a cross-site form posts with its own
+/// origin: both stop here. IP literals and `localhost` are always accepted (a page
+/// cannot make a browser send them for its own origin); further names come from
+/// `[api] hosts`. Clients that send no `Origin` (curl, scripts) are not affected.
+async fn check_host(State(state): State<AppState>, req: Request, next: Next) -> Response {
+    let hosts = &state.service.instrument().api.hosts;
+    let host = req
+        .headers()
+        .get(header::HOST)
+        .map(|h| h.to_str().unwrap_or("\u{fffd}"));
+    if let Some(h) = host
+        && !host_allowed(h, hosts)
+    {
+        return ApiError::new(
+            StatusCode::FORBIDDEN,
+            "host-not-allowed",
+            format!(
+                "this daemon does not answer to the host name `{h}`: reach it by IP address or \
+                 localhost, or add the name to [api] hosts in the instrument config"
+            ),
+        )
+        .into_response();
+    }
+    if is_mutating(&req)
+        && let Some(origin) = req.headers().get(header::ORIGIN)
+    {
+        let origin = origin.to_str().unwrap_or("\u{fffd}");
+        let authority = origin
+            .strip_prefix("http://")
+            .or_else(|| origin.strip_prefix("https://"))
+            .unwrap_or("");
+        let same = host.is_some_and(|h| h.eq_ignore_ascii_case(authority));
+        if !same || !host_allowed(authority, hosts) {
+            return ApiError::new(
+                StatusCode::FORBIDDEN,
+                "origin-not-allowed",
+                format!(
+                    "a page from `{origin}` may not change this instrument: send mutating requests \
+                     from the daemon's own pages or from a client that sends no Origin"
+                ),
+            )
+            .into_response();
+        }
+    }
+    next.run(req).await
+}
+
+/// Whether `host` (a `Host` header or an origin's authority, with or without port) is
+/// an IP literal, `localhost`, or one of `names`.
+pub fn host_allowed(host: &str, names: &[String]) -> bool {
+    let name = if let Some(rest) = host.strip_prefix('[') {
+        // [v6]:port
+        return rest
+            .split(']')
+            .next()
+            .is_some_and(|a| a.parse::<std::net::Ipv6Addr>().is_ok());
+    } else {
+        match host.rsplit_once(':') {
+            Some((n, port)) if port.chars().all(|c| c.is_ascii_digit()) && !port.is_empty() => n,
+            Some(_) => return false,
+            None => host,
+        }
+    };
+    let name = name.trim_end_matches('.').to_ascii_lowercase();
+    !name.is_empty()
+        && (name.parse::<std::net::Ipv4Addr>().is_ok()
+            || name == "localhost"
+            || names.iter().any(|n| n.trim_end_matches('.') == name))
 }
 
 fn check_token(expected: Option<&str>, headers: &HeaderMap) -> Result<(), ApiError> {
@@ -387,6 +495,17 @@ async fn events(
     State(state): State<AppState>,
     Path(id): Path<String>,
 ) -> ApiResult<Sse<impl tokio_stream::Stream<Item = Result<Event, Infallible>>>> {
+    let max = state.service.instrument().api.max_streams;
+    let Some(slot) = Slot::take(&state.streams, max) else {
+        return Err(ApiError::new(
+            StatusCode::SERVICE_UNAVAILABLE,
+            "too-many-streams",
+            format!(
+                "{max} event streams are open, the most this daemon serves ([api] max-streams); \
+                 close one or poll GET /api/v1/runs/{id}"
+            ),
+        ));
+    };
     let s = Arc::clone(&state.service);
     let (rx, status) = {
         let id = id.clone();
@@ -404,7 +523,8 @@ async fn events(
     // A run that is not running has no channel: a closed one ends the stream after the
     // status snapshot.
     let rx = rx.unwrap_or_else(|| tokio::sync::broadcast::channel(1).1);
-    let live = BroadcastStream::new(rx).map(|item| {
+    let live = BroadcastStream::new(rx).map(move |item| {
+        let _slot = &slot;
         Ok(match item {
             Ok(StreamEvent { name, json }) => Event::default().event(&*name).data(&*json),
             Err(BroadcastStreamRecvError::Lagged(n)) => Event::default()
@@ -429,34 +549,41 @@ async fn file(
             ),
         ));
     };
+    let max = state.service.instrument().api.max_downloads;
+    let Ok(permit) = Arc::clone(&state.downloads).try_acquire_owned() else {
+        return Err(ApiError::new(
+            StatusCode::SERVICE_UNAVAILABLE,
+            "too-many-downloads",
+            format!(
+                "{max} downloads are in flight, the most this daemon serves at once ([api] max-downloads); retry shortly"
+            ),
+        ));
+    };
     let s = Arc::clone(&state.service);
-    let bytes = blocking(move || {
-        s.status(&id)?;
-        let path = s.runs_dir().join(&id).join(&name);
-        if !path.is_file() && name == crate::ytal::CAPTURE_FILE {
-            // Interrupted or running runs: export what is stored so far.
-            let capture = crate::ytal::YtalCapture::from_run(&s.runs_dir().join(&id))
-                .map_err(|e| ServiceError::Conflict(format!("run {id} has no capture to export yet: {e}")))?;
-            return capture
-                .to_bytes()
-                .map_err(|e| ServiceError::Storage(format!("{id}: capture export: {e}")));
-        }
-        std::fs::read(&path).map_err(|_| {
-            ServiceError::Conflict(format!(
-                "run {id} has no {name} (yet): outputs appear when the run completes"
-            ))
-        })
-    })
-    .await
-    .map_err(|e| {
+    let source = blocking(move || s.download(&id, &name)).await.map_err(|e| {
         if e.status == StatusCode::CONFLICT {
             ApiError::new(StatusCode::NOT_FOUND, "file-not-ready", e.message)
         } else {
             e
         }
     })?;
-    Response::builder()
-        .header(header::CONTENT_TYPE, *media)
-        .body(Body::from(bytes))
-        .map_err(|e| ApiError::new(StatusCode::INTERNAL_SERVER_ERROR, "internal", e.to_string()))
+    let builder = Response::builder().header(header::CONTENT_TYPE, *media);
+    let response = match source {
+        service::Download::Bytes(bytes) => {
+            drop(permit);
+            builder.body(Body::from(bytes))
+        }
+        service::Download::File(file, len) => {
+            // The permit lives as long as the body: a slow client holds its slot.
+            let stream =
+                tokio_util::io::ReaderStream::new(tokio::fs::File::from_std(file)).map(move |chunk| {
+                    let _permit = &permit;
+                    chunk
+                });
+            builder
+                .header(header::CONTENT_LENGTH, len)
+                .body(Body::from_stream(stream))
+        }
+    };
+    response.map_err(|e| ApiError::new(StatusCode::INTERNAL_SERVER_ERROR, "internal", e.to_string()))
 }

@@ -25,6 +25,9 @@ use periscope_sim::devices::Rig;
 /// The queue file in the runs directory.
 pub const QUEUE_FILE: &str = "queue.json";
 
+/// The y-tal export of an unfinished run, cached in its directory between downloads.
+const EXPORT_CACHE: &str = ".capture-export.hdf5";
+
 /// Pair and LOS-point events are forwarded to event-stream clients at most this often
 /// (plus the last one); stage, optimiser and output events always are.
 const PAIR_EVENT_INTERVAL: Duration = Duration::from_millis(50);
@@ -94,6 +97,31 @@ pub enum ServiceError {
     /// The instrument config is invalid.
     #[error(transparent)]
     Config(#[from] crate::config::ConfigError),
+    /// The queue is full.
+    #[error("{0}")]
+    QueueFull(String),
+    /// The plan needs more memory or disk than the instrument's budget allows.
+    #[error("{0}")]
+    OverBudget(String),
+}
+
+/// A run file to send: small ones in memory, the rest streamed from disk.
+#[derive(Debug)]
+pub enum Download {
+    /// The whole body.
+    Bytes(Vec<u8>),
+    /// An open file and its length.
+    File(std::fs::File, u64),
+}
+
+/// The devices as the worker last read them.
+struct Reading {
+    /// When it was taken.
+    at: Instant,
+    /// The same, as Unix seconds.
+    unix_s: f64,
+    /// The devices' report, or why they could not be read.
+    devices: Result<serde_json::Value, String>,
 }
 
 /// Live progress of the running run, fed by its events.
@@ -119,6 +147,12 @@ struct Shared {
     channels: HashMap<String, broadcast::Sender<StreamEvent>>,
     /// The instrument's state as the last run or e-stop left it.
     last_safe: Option<String>,
+    /// The worker's last reading of the devices (`GET /instrument` serves it).
+    reading: Option<Reading>,
+    /// Asks the worker for a fresh reading (after a run or an e-stop).
+    refresh: bool,
+    /// Submissions between their queue-length check and their place in the queue.
+    admitting: usize,
     shutdown: bool,
 }
 
@@ -133,6 +167,8 @@ pub struct Service {
     token: Option<String>,
     shared: Mutex<Shared>,
     wake: Condvar,
+    /// Held while a capture export is written.
+    exporting: Mutex<()>,
 }
 
 impl Service {
@@ -180,6 +216,35 @@ impl Service {
                 }
             }
         }
+        // A run whose directory was made but whose place in queue.json was never saved
+        // (the daemon stopped in between) is queued again rather than stranded.
+        let mut orphans: Vec<String> = std::fs::read_dir(&runs_dir)
+            .map_err(|e| ServiceError::Storage(format!("runs directory {}: {e}", runs_dir.display())))?
+            .filter_map(Result::ok)
+            .map(|e| e.file_name().to_string_lossy().into_owned())
+            .filter(|id| !queue.contains(id))
+            .filter(|id| {
+                RunInfo::load(&runs_dir.join(id))
+                    .is_ok_and(|i| matches!(i.state, RunState::Queued | RunState::Running))
+            })
+            .collect();
+        orphans.sort();
+        for id in orphans {
+            let dir = runs_dir.join(&id);
+            if let Ok(mut info) = RunInfo::load(&dir)
+                && info.state == RunState::Running
+            {
+                info.state = RunState::Paused;
+                info.error = Some(format!(
+                    "interrupted: the daemon stopped during stage {}; POST /api/v1/runs/{id}/resume continues it",
+                    info.stage
+                ));
+                info.save(&dir)
+                    .map_err(|e| ServiceError::Storage(format!("{}: {e}", dir.display())))?;
+            }
+            tracing::warn!(run = %id, "run {id} was missing from queue.json; queued again");
+            queue.push_back(id);
+        }
         let service = Arc::new(Service {
             runs_dir,
             instrument_src,
@@ -193,9 +258,13 @@ impl Service {
                 live: Live::default(),
                 channels: HashMap::new(),
                 last_safe: None,
+                reading: None,
+                refresh: true,
+                admitting: 0,
                 shutdown: false,
             }),
             wake: Condvar::new(),
+            exporting: Mutex::new(()),
         });
         service.persist(&service.lock())?;
         Ok(service)
@@ -326,6 +395,36 @@ impl Service {
         let src = TomlSource::from_text("request body", text);
         let plan = Plan::from_source(&src, &self.instrument)
             .map_err(|e| ServiceError::InvalidPlan(e.to_string()))?;
+        crate::budget::Budget::of_plan(&plan)
+            .check(&self.instrument.budget)
+            .map_err(ServiceError::OverBudget)?;
+        // A place in the queue is reserved before the run directory is made, so a
+        // flood of submissions never makes more directories than the queue takes.
+        {
+            let mut s = self.lock();
+            let max = self.instrument.api.max_queue;
+            if s.queue.len() + s.admitting >= max {
+                return Err(ServiceError::QueueFull(format!(
+                    "the queue holds {max} runs, the most this daemon keeps ([api] max-queue); \
+                     wait for runs to finish or abort queued ones"
+                )));
+            }
+            s.admitting += 1;
+        }
+        let admitted = self.admit(&src, &plan);
+        let mut s = self.lock();
+        s.admitting -= 1;
+        let id = admitted?;
+        s.queue.push_back(id.clone());
+        self.persist(&s)?;
+        self.wake.notify_all();
+        drop(s);
+        tracing::info!(run = %id, plan = %plan.name, "run queued");
+        self.status(&id)
+    }
+
+    /// Makes a submitted plan's run directory; returns its id.
+    fn admit(&self, src: &TomlSource, plan: &Plan) -> Result<String, ServiceError> {
         let dir = crate::store::new_run_dir(&self.runs_dir, &plan.name)
             .map_err(|e| ServiceError::Storage(format!("{}: {e}", self.runs_dir.display())))?;
         let src = TomlSource::from_text(dir.join("plan.toml"), src.text().to_owned());
@@ -333,18 +432,10 @@ impl Service {
             PipelineError::Config(c) => ServiceError::InvalidPlan(c.to_string()),
             other => ServiceError::Storage(other.to_string()),
         })?;
-        let id = dir
+        Ok(dir
             .file_name()
             .map(|n| n.to_string_lossy().into_owned())
-            .unwrap_or_default();
-        {
-            let mut s = self.lock();
-            s.queue.push_back(id.clone());
-            self.persist(&s)?;
-            self.wake.notify_all();
-        }
-        tracing::info!(run = %id, plan = %plan.name, "run queued");
-        self.status(&id)
+            .unwrap_or_default())
     }
 
     /// Every run in the runs directory, oldest first.
@@ -417,9 +508,9 @@ impl Service {
 
     /// Asks the running run to pause at its next checkpoint.
     pub fn pause(&self, id: &str) -> Result<RunStatus, ServiceError> {
-        let info = self.info(id)?;
         {
             let s = self.lock();
+            let info = self.info(id)?;
             match &s.current {
                 Some((c, control)) if c == id => control.pause(),
                 _ => {
@@ -436,8 +527,10 @@ impl Service {
     /// Queues a paused, failed or interrupted run again; it continues from its last
     /// stored pair when the instrument is free.
     pub fn resume(&self, id: &str) -> Result<RunStatus, ServiceError> {
-        let info = self.info(id)?;
+        // run.json is read under the lock: the worker and other requests change it
+        // under the same lock, so the state checked is the state changed.
         let mut s = self.lock();
+        let info = self.info(id)?;
         if s.current.as_ref().is_some_and(|(c, _)| c == id) {
             return Err(ServiceError::Conflict(format!(
                 "run {id} is running; there is nothing to resume"
@@ -465,8 +558,8 @@ impl Service {
     /// Aborts a run: a running one at its next checkpoint (the instrument is made safe
     /// and what was captured is kept), a queued or paused one at once.
     pub fn abort(&self, id: &str) -> Result<RunStatus, ServiceError> {
-        let info = self.info(id)?;
         let mut s = self.lock();
+        let info = self.info(id)?;
         if let Some((c, control)) = &s.current
             && c == id
         {
@@ -482,6 +575,8 @@ impl Service {
                     Some("aborted by the operator before it ran again".into()),
                 )?;
                 s.queue.retain(|q| q != id);
+                // Its event stream (clients waiting for it to start) ends here.
+                s.channels.remove(id);
                 self.persist(&s)?;
             }
             other => {
@@ -526,26 +621,22 @@ impl Service {
             control.abort();
             report.aborted = Some(id.clone());
         }
-        // 3. Queued runs are held.
-        let held: Vec<String> = {
+        // 3. Queued runs are held (under the lock, so no resume or worker pick races it).
+        {
             let s = self.lock();
-            s.queue
-                .iter()
-                .filter(|q| Some(*q) != running.as_ref().map(|(id, _)| id))
-                .cloned()
-                .collect()
-        };
-        for id in held {
-            if self.info(&id).is_ok_and(|i| i.state == RunState::Queued) {
-                match self.set_state(
-                    &id,
-                    RunState::Paused,
-                    Some("held by an emergency stop; resume it to run".into()),
-                ) {
-                    Ok(()) => report.held.push(id),
-                    Err(e) => report
-                        .warnings
-                        .push(format!("could not hold queued run {id}: {e}")),
+            let running_id = running.as_ref().map(|(id, _)| id);
+            for id in s.queue.iter().filter(|q| Some(*q) != running_id) {
+                if self.info(id).is_ok_and(|i| i.state == RunState::Queued) {
+                    match self.set_state(
+                        id,
+                        RunState::Paused,
+                        Some("held by an emergency stop; resume it to run".into()),
+                    ) {
+                        Ok(()) => report.held.push(id.clone()),
+                        Err(e) => report
+                            .warnings
+                            .push(format!("could not hold queued run {id}: {e}")),
+                    }
                 }
             }
         }
@@ -597,7 +688,12 @@ impl Service {
             report.laser = "UNCONFIRMED: no path to the laser controller answered; the controller's watchdog ends emission within its timeout, or switch the laser off at the interlock".into();
         }
         report.seconds = t.elapsed().as_secs_f64();
-        self.lock().last_safe = Some(format!("{} (e-stop)", report.laser));
+        {
+            let mut s = self.lock();
+            s.last_safe = Some(format!("{} (e-stop)", report.laser));
+            s.refresh = true;
+            self.wake.notify_all();
+        }
         tracing::warn!(laser = %report.laser, parked = report.parked, seconds = report.seconds, "emergency stop");
         Ok(report)
     }
@@ -619,42 +715,106 @@ impl Service {
         spad.park().map_err(|e| e.to_string())
     }
 
-    /// The instrument's status: the devices' own report when idle (opened briefly), or
-    /// the running run's view of it while a run holds the instrument.
+    /// The instrument's status, without touching the hardware: the worker's last
+    /// reading of the devices with its age (it reads them when it starts, after every
+    /// run and e-stop, and every `[api] status-interval-s` while idle), and the running
+    /// run's stage while one holds the instrument.
     pub fn instrument_status(&self) -> serde_json::Value {
-        let (busy, last_safe) = {
-            let s = self.lock();
-            (
-                s.current
-                    .as_ref()
-                    .map(|(id, _)| (id.clone(), s.live.stage.clone())),
-                s.last_safe.clone(),
-            )
-        };
+        let s = self.lock();
         let mut v = serde_json::json!({
             "name": self.instrument.name,
             "summary": self.instrument.summary(),
-            "busy": busy.is_some(),
+            "busy": s.current.is_some(),
+            "devices": null,
         });
-        if let Some((id, stage)) = busy {
-            v["run"] = serde_json::json!({ "id": id, "stage": stage });
-            v["devices"] = serde_json::json!(null);
+        if let Some((id, _)) = &s.current {
+            v["run"] = serde_json::json!({ "id": id, "stage": s.live.stage });
             v["note"] = "the running run holds the devices; their live state is in its event stream".into();
-            return v;
         }
-        match crate::devices::Devices::open_on(&self.instrument, self.rig.clone(), &|| false)
-            .and_then(|mut d| d.report())
-        {
-            Ok(report) => v["devices"] = serde_json::to_value(report).unwrap_or_default(),
-            Err(e) => {
-                v["devices"] = serde_json::json!(null);
-                v["error"] = format!("{e}").into();
+        match &s.reading {
+            Some(r) => {
+                v["reading"] = serde_json::json!({
+                    "taken_unix_s": r.unix_s,
+                    "age_s": r.at.elapsed().as_secs_f64(),
+                });
+                match &r.devices {
+                    Ok(d) => v["devices"] = d.clone(),
+                    Err(e) => v["error"] = e.clone().into(),
+                }
             }
+            None => v["reading"] = serde_json::Value::Null,
         }
-        if let Some(safe) = last_safe {
-            v["last_safe"] = safe.into();
+        if let Some(safe) = &s.last_safe {
+            v["last_safe"] = safe.clone().into();
         }
         v
+    }
+
+    /// Reads the devices (worker thread only: it owns the instrument between runs).
+    fn take_reading(&self) {
+        let devices = crate::devices::Devices::open_on(&self.instrument, self.rig.clone(), &|| false)
+            .and_then(|mut d| d.report())
+            .map(|r| serde_json::to_value(r).unwrap_or_default())
+            .map_err(|e| e.to_string());
+        let unix_s = std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .map_or(0.0, |d| d.as_secs_f64());
+        self.lock().reading = Some(Reading {
+            at: Instant::now(),
+            unix_s,
+            devices,
+        });
+    }
+
+    /// A run file for download. `instrument.toml` is served with its secrets cut out
+    /// (runs stored before they were cut out at the source included); `capture.hdf5`
+    /// of a run that has not finished is exported from what is stored so far, once per
+    /// stored pair count, into a cache file beside the run; the rest stream from disk.
+    pub fn download(&self, id: &str, name: &str) -> Result<Download, ServiceError> {
+        let dir = self.dir(id)?;
+        let missing = |_| {
+            ServiceError::Conflict(format!(
+                "run {id} has no {name} (yet): outputs appear when the run completes"
+            ))
+        };
+        let path = dir.join(name);
+        if name == "instrument.toml" {
+            let text = crate::store::read_text_capped(&path, 1 << 20).map_err(missing)?;
+            return Ok(Download::Bytes(crate::config::redact_secrets(&text).into_bytes()));
+        }
+        if !path.is_file() && name == crate::ytal::CAPTURE_FILE {
+            return self.export_capture(id, &dir);
+        }
+        let file = std::fs::File::open(&path).map_err(missing)?;
+        let len = file.metadata().map_err(missing)?.len();
+        Ok(Download::File(file, len))
+    }
+
+    fn export_capture(&self, id: &str, dir: &Path) -> Result<Download, ServiceError> {
+        // One export at a time: concurrent requests wait for it and share its file.
+        let _one = self.exporting.lock().unwrap_or_else(|p| p.into_inner());
+        let done = RunInfo::load(dir).map(|i| i.pairs_done).unwrap_or(0);
+        let records = std::fs::metadata(dir.join(crate::store::HISTOGRAM_LOG)).map_or(0, |m| m.len());
+        let cache = dir.join(EXPORT_CACHE);
+        let stamp = dir.join(format!("{EXPORT_CACHE}.stamp"));
+        let key = format!("{done} {records}");
+        let fresh = std::fs::read_to_string(&stamp).is_ok_and(|k| k == key) && cache.is_file();
+        if !fresh {
+            let capture = crate::ytal::YtalCapture::from_run(dir)
+                .map_err(|e| ServiceError::Conflict(format!("run {id} has no capture to export yet: {e}")))?;
+            capture
+                .write(&cache)
+                .map_err(|e| ServiceError::Storage(format!("{id}: capture export: {e}")))?;
+            write_atomic(&stamp, key.as_bytes())
+                .map_err(|e| ServiceError::Storage(format!("{}: {e}", stamp.display())))?;
+        }
+        let file = std::fs::File::open(&cache)
+            .map_err(|e| ServiceError::Storage(format!("{}: {e}", cache.display())))?;
+        let len = file
+            .metadata()
+            .map_err(|e| ServiceError::Storage(format!("{}: {e}", cache.display())))?
+            .len();
+        Ok(Download::File(file, len))
     }
 
     /// Subscribes to a run's events: a running run's, or a queued or paused one's from
@@ -688,6 +848,27 @@ impl Service {
                         .iter()
                         .find(|q| self.info(q).is_ok_and(|i| i.state == RunState::Queued))
                         .cloned();
+                    if next.is_none() {
+                        let interval = self.instrument.api.status_interval;
+                        let stale = s.reading.as_ref().is_none_or(|r| r.at.elapsed() >= interval);
+                        if s.refresh || stale {
+                            s.refresh = false;
+                            drop(s);
+                            self.take_reading();
+                            s = self.lock();
+                            continue;
+                        }
+                        let wait = s
+                            .reading
+                            .as_ref()
+                            .map_or(interval, |r| interval.saturating_sub(r.at.elapsed()));
+                        s = self
+                            .wake
+                            .wait_timeout(s, wait.max(Duration::from_millis(10)))
+                            .unwrap_or_else(|p| p.into_inner())
+                            .0;
+                        continue;
+                    }
                     if let Some(id) = next {
                         let control = Control::new();
                         s.current = Some((id.clone(), control.clone()));
@@ -701,7 +882,6 @@ impl Service {
                             .or_insert_with(|| broadcast::channel(EVENT_BUFFER).0);
                         break (id, control);
                     }
-                    s = self.wake.wait(s).unwrap_or_else(|p| p.into_inner());
                 }
             };
             tracing::info!(run = %id, "run starting");
@@ -732,6 +912,7 @@ impl Service {
             let mut s = self.lock();
             s.current = None;
             s.laser_off = None;
+            s.refresh = true;
             s.channels.remove(&id);
             match &result {
                 Ok(()) | Err(PipelineError::Aborted(_)) => {

@@ -73,13 +73,28 @@ pub struct InstrumentConfig {
     pub tdc: TdcSettings,
     /// The HTTP API (`periscope serve`).
     pub api: ApiSettings,
+    /// Memory and disk one run may need (`[budget]`).
+    pub budget: crate::budget::Limits,
 }
 
-/// Settings of the HTTP API, from the optional `[api]` table.
-#[derive(Clone, Debug, PartialEq)]
+/// Settings of the HTTP API, from the optional `[api]` table. Its `Debug` output
+/// never shows the token.
+#[derive(Clone, PartialEq)]
 pub struct ApiSettings {
     /// Bearer token for mutating endpoints (`PERISCOPE_TOKEN` overrides it).
     pub token: Option<String>,
+    /// Host names (besides IP literals and `localhost`) that requests may name in
+    /// their `Host` header: the names operators reach this machine by. Anything else
+    /// is refused, which stops DNS-rebinding pages from reaching the API.
+    pub hosts: Vec<String>,
+    /// How often the idle worker reads the devices for `GET /instrument`.
+    pub status_interval: Duration,
+    /// Most runs waiting (queued or paused) at once; more submissions get 429.
+    pub max_queue: usize,
+    /// Most event-stream clients at once; more get 503.
+    pub max_streams: usize,
+    /// Most file downloads in flight at once; more get 503.
+    pub max_downloads: usize,
     /// Where runs are stored and the queue is kept.
     pub runs_dir: PathBuf,
     /// Whether read-only endpoints answer clients that are not on loopback without a
@@ -89,6 +104,23 @@ pub struct ApiSettings {
     pub body_limit: usize,
     /// Longest time a request may take to answer (event streams excepted once open).
     pub request_timeout: Duration,
+}
+
+impl std::fmt::Debug for ApiSettings {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("ApiSettings")
+            .field("token", &self.token.as_ref().map(|_| "<redacted>"))
+            .field("hosts", &self.hosts)
+            .field("runs_dir", &self.runs_dir)
+            .field("open_reads", &self.open_reads)
+            .field("body_limit", &self.body_limit)
+            .field("request_timeout", &self.request_timeout)
+            .field("status_interval", &self.status_interval)
+            .field("max_queue", &self.max_queue)
+            .field("max_streams", &self.max_streams)
+            .field("max_downloads", &self.max_downloads)
+            .finish()
+    }
 }
 
 /// One galvo pair.
@@ -170,12 +202,44 @@ struct RawInstrument {
     tdc: RawTdc,
     sim: Option<RawSim>,
     api: Option<RawApi>,
+    budget: Option<RawBudget>,
+}
+
+#[derive(Deserialize, Default)]
+#[serde(deny_unknown_fields, rename_all = "kebab-case")]
+struct RawBudget {
+    memory_gib: Option<f64>,
+    disk_gib: Option<f64>,
+}
+
+fn budget_limits(check: &Check<'_>, raw: RawBudget) -> Result<crate::budget::Limits, ConfigError> {
+    let d = crate::budget::Limits::default();
+    let gib = |key: &str, v: Option<f64>, default: u64, max: f64| -> Result<u64, ConfigError> {
+        match v {
+            None => Ok(default),
+            Some(g) => Ok((check.positive(key, g, max, "GiB")? * (1u64 << 30) as f64) as u64),
+        }
+    };
+    Ok(crate::budget::Limits {
+        memory: gib("budget.memory-gib", raw.memory_gib, d.memory, 65_536.0)?,
+        disk: gib("budget.disk-gib", raw.disk_gib, d.disk, 1_048_576.0)?,
+    })
 }
 
 #[derive(Deserialize)]
 #[serde(deny_unknown_fields, rename_all = "kebab-case")]
 struct RawApi {
     token: Option<String>,
+    #[serde(default)]
+    hosts: Vec<String>,
+    #[serde(default = "default_status_interval_s")]
+    status_interval_s: f64,
+    #[serde(default = "default_max_queue")]
+    max_queue: f64,
+    #[serde(default = "default_max_streams")]
+    max_streams: f64,
+    #[serde(default = "default_max_downloads")]
+    max_downloads: f64,
     #[serde(default = "default_runs_dir")]
     runs_dir: PathBuf,
     #[serde(default)]
@@ -190,6 +254,11 @@ impl Default for RawApi {
     fn default() -> Self {
         RawApi {
             token: None,
+            hosts: Vec::new(),
+            status_interval_s: default_status_interval_s(),
+            max_queue: default_max_queue(),
+            max_streams: default_max_streams(),
+            max_downloads: default_max_downloads(),
             runs_dir: default_runs_dir(),
             open_reads: false,
             body_limit_kib: default_body_limit_kib(),
@@ -207,6 +276,18 @@ fn default_body_limit_kib() -> f64 {
 fn default_request_timeout_s() -> f64 {
     30.0
 }
+fn default_status_interval_s() -> f64 {
+    10.0
+}
+fn default_max_queue() -> f64 {
+    100.0
+}
+fn default_max_streams() -> f64 {
+    64.0
+}
+fn default_max_downloads() -> f64 {
+    4.0
+}
 
 fn api_settings(check: &Check<'_>, raw: RawApi) -> Result<ApiSettings, ConfigError> {
     if let Some(t) = &raw.token
@@ -217,8 +298,36 @@ fn api_settings(check: &Check<'_>, raw: RawApi) -> Result<ApiSettings, ConfigErr
             "is shorter than 16 characters: use a long random string (e.g. `openssl rand -hex 24`)",
         ));
     }
+    for (i, h) in raw.hosts.iter().enumerate() {
+        let ok = !h.is_empty()
+            && h.len() <= 253
+            && h.chars()
+                .all(|c| c.is_ascii_alphanumeric() || c == '-' || c == '.');
+        if !ok {
+            return Err(check.src.invalid(
+                &format!("api.hosts[{i}]"),
+                format!(
+                    "`{h}` is not a host name: give names like \"lab-pc.example.org\", without port or scheme"
+                ),
+            ));
+        }
+    }
+    let count = |key: &str, v: f64, max: f64| -> Result<usize, ConfigError> {
+        Ok(check.range(key, v, 1.0, max, "")?.round() as usize)
+    };
     Ok(ApiSettings {
         token: raw.token,
+        hosts: raw.hosts.iter().map(|h| h.to_ascii_lowercase()).collect(),
+        status_interval: Duration::from_secs_f64(check.range(
+            "api.status-interval-s",
+            raw.status_interval_s,
+            0.1,
+            3600.0,
+            "s",
+        )?),
+        max_queue: count("api.max-queue", raw.max_queue, 100_000.0)?,
+        max_streams: count("api.max-streams", raw.max_streams, 10_000.0)?,
+        max_downloads: count("api.max-downloads", raw.max_downloads, 1_000.0)?,
         runs_dir: raw.runs_dir,
         open_reads: raw.open_reads,
         body_limit: (check.positive("api.body-limit-kib", raw.body_limit_kib, 1024.0 * 1024.0, "KiB")?
@@ -480,6 +589,60 @@ impl Check<'_> {
     }
 }
 
+/// An instrument config's text with its secret (`[api] token`) taken out, for storing
+/// with a run and serving as a download: the token line becomes a comment and the rest
+/// keeps its layout. Text whose token cannot be cut out line by line (a multi-line
+/// string, an inline table) is written back from its parsed form without the token;
+/// text that does not parse keeps no line that mentions `token`.
+pub fn redact_secrets(text: &str) -> String {
+    const NOTE: &str = "# token = <redacted: secrets are not stored with runs>";
+    let mut table = String::new();
+    let mut out = String::with_capacity(text.len());
+    for line in text.split_inclusive('\n') {
+        let t = line.trim_start();
+        if t.starts_with('[') {
+            table = t
+                .trim_start_matches('[')
+                .split(']')
+                .next()
+                .unwrap_or("")
+                .trim()
+                .trim_matches('"')
+                .to_owned();
+        }
+        let key = t.split('=').next().unwrap_or("").trim();
+        let key = key.replace(['"', '\'', ' ', '\t'], "");
+        let secret = t.contains('=')
+            && !t.starts_with('#')
+            && ((table == "api" && key == "token") || (table.is_empty() && key.starts_with("api.token")));
+        if secret {
+            out.push_str(NOTE);
+            out.push('\n');
+        } else {
+            out.push_str(line);
+        }
+    }
+    let has_token = |t: &toml::Table| {
+        t.get("api")
+            .and_then(|a| a.as_table())
+            .is_some_and(|a| a.contains_key("token"))
+    };
+    match (out.parse::<toml::Table>(), text.parse::<toml::Table>()) {
+        (Ok(cut), _) if !has_token(&cut) => out,
+        (_, Ok(mut whole)) => {
+            if let Some(api) = whole.get_mut("api").and_then(|a| a.as_table_mut()) {
+                api.remove("token");
+            }
+            format!("{NOTE}\n{}", toml::to_string(&whole).unwrap_or_default())
+        }
+        (_, Err(_)) => text
+            .lines()
+            .filter(|l| !l.contains("token"))
+            .map(|l| format!("{l}\n"))
+            .collect(),
+    }
+}
+
 impl InstrumentConfig {
     /// Loads and validates the instrument config at `path`.
     pub fn load(path: &Path) -> Result<Self, ConfigError> {
@@ -536,6 +699,7 @@ impl InstrumentConfig {
             RawBackend::Sim => Backend::Sim(sim_settings(&check, raw.sim.unwrap_or_default())?),
         };
         let api = api_settings(&check, raw.api.unwrap_or_default())?;
+        let budget = budget_limits(&check, raw.budget.unwrap_or_default())?;
         Ok(Self {
             name: raw.name,
             backend,
@@ -545,6 +709,7 @@ impl InstrumentConfig {
             spad,
             tdc,
             api,
+            budget,
         })
     }
 

@@ -10,7 +10,7 @@ mod source;
 
 pub use instrument::{
     ApiSettings, Backend, GalvoArm, InstrumentConfig, LaserSettings, SerialLink, SimSettings, SpadSettings,
-    TdcSettings,
+    TdcSettings, redact_secrets,
 };
 pub use scene::{DEFAULT_SCENE, load_scene, scene_from_source, sim_scene};
 pub use source::{ConfigError, TomlSource};

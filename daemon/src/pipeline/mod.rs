@@ -264,6 +264,9 @@ pub fn prepare(
 ) -> Result<(PathBuf, Plan, InstrumentConfig), PipelineError> {
     let instrument = InstrumentConfig::from_source(instrument_src)?;
     let plan = Plan::from_source(plan_src, &instrument)?;
+    crate::budget::Budget::of_plan(&plan)
+        .check(&instrument.budget)
+        .map_err(|m| PipelineError::Config(plan_src.invalid("pairs", m)))?;
     let dir = match out {
         Some(dir) => {
             std::fs::create_dir_all(dir).map_err(|e| PipelineError::storage(dir, e))?;
@@ -282,7 +285,13 @@ pub fn prepare(
             .map_err(|e| PipelineError::storage(Path::new("runs"), e))?,
     };
     write(&dir, "plan.toml", plan_src.text().as_bytes())?;
-    write(&dir, "instrument.toml", instrument_src.text().as_bytes())?;
+    // The token stays in the process: the stored copy (served as a download) has it
+    // cut out, and the service never reads it back from a run.
+    write(
+        &dir,
+        "instrument.toml",
+        crate::config::redact_secrets(instrument_src.text()).as_bytes(),
+    )?;
     let info = RunInfo {
         id: dir
             .file_name()

@@ -295,6 +295,13 @@ impl Rig {
         }
     }
 
+    /// How many times a host has connected to either galvo controller (each `open` of
+    /// a driver is one): tests use it to prove a request touched no hardware.
+    pub fn galvo_connects(&self) -> u64 {
+        let s = self.shared.lock();
+        s.arms.iter().map(|a| a.generation).sum()
+    }
+
     /// Every change of emission so far (the last 4,096), oldest first.
     pub fn emission_changes(&self) -> Vec<EmissionChange> {
         self.shared.lock().emission_log.clone()

@@ -1,0 +1,252 @@
+//! What a plan costs in memory and disk, checked against the instrument's `[budget]`
+//! before anything runs: when a plan is submitted (422 over budget), by
+//! `periscope check` (printed), and when a run starts.
+//!
+//! The figures are upper estimates from the plan's sizes, item by item, each naming
+//! the plan keys that drive it, so an over-budget answer says what to shrink. They
+//! follow how the pipeline holds its data:
+//! - capture: every stored record (counts as `u32`) and the transient set the fit
+//!   reads (`f32` per bin, plus its weight row), per pair;
+//! - the solver's volume and its work arrays (complex FFT buffers padded to twice the
+//!   volume along each axis for LCT and RSD: 16 bytes × 8 per voxel, the largest);
+//! - 3D-GTR: the virtual confocal scan (`f64` per bin) and the primitives with their
+//!   gradients and optimiser moments;
+//! - disk: the histogram log (a 36-byte header and 4 bytes per bin per pair), the y-tal
+//!   export of the capture (4 bytes per bin per pair) and the volume outputs.
+use std::fmt::Write;
+
+use crate::plan::{Method, Plan};
+
+/// Bytes in a GiB.
+const GIB: f64 = (1u64 << 30) as f64;
+
+/// Memory and disk limits for one run, from the instrument config's `[budget]` table.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Limits {
+    /// Most memory one run may need, bytes.
+    pub memory: u64,
+    /// Most disk one run may write, bytes.
+    pub disk: u64,
+}
+
+impl Default for Limits {
+    /// 16 GiB of memory (two thirds of a 24 GiB machine, leaving the daemon, the OS and
+    /// the page cache room) and 64 GiB of disk per run.
+    fn default() -> Limits {
+        Limits {
+            memory: 16 << 30,
+            disk: 64 << 30,
+        }
+    }
+}
+
+/// One line of the estimate.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Item {
+    /// What it is.
+    pub what: &'static str,
+    /// The plan keys that size it.
+    pub keys: &'static str,
+    /// Bytes.
+    pub bytes: u64,
+}
+
+/// A plan's estimated memory and disk needs.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Budget {
+    /// Memory items.
+    pub memory: Vec<Item>,
+    /// Disk items.
+    pub disk: Vec<Item>,
+}
+
+/// `a × b × ...`, saturating (a hostile plan's sizes must not wrap to a small number).
+fn mul(factors: &[u64]) -> u64 {
+    factors.iter().fold(1u64, |a, &b| a.saturating_mul(b))
+}
+
+fn gib(bytes: u64) -> String {
+    let g = bytes as f64 / GIB;
+    if g >= 0.1 {
+        format!("{g:.1} GiB")
+    } else {
+        format!("{:.1} MiB", bytes as f64 / (1u64 << 20) as f64)
+    }
+}
+
+impl Budget {
+    /// The estimate for `plan`.
+    pub fn of_plan(plan: &Plan) -> Budget {
+        let pairs = plan.pairs.max_pairs() as u64;
+        let bins = u64::from(plan.acquisition.bins);
+        let voxels = mul(&plan.recon.volume.shape.map(|n| n as u64));
+        let los = mul(&plan.los.grid.map(|n| n as u64));
+        let mut memory = vec![
+            Item {
+                what: "captured histograms and transients",
+                keys: "pairs (grid, laser-grid, count, mask) × acquisition.bins",
+                // u32 record + f32 transient + f32 weight per bin, and per-pair
+                // geometry (a few hundred bytes).
+                bytes: mul(&[pairs, bins, 12]).saturating_add(mul(&[pairs, 512])),
+            },
+            Item {
+                what: "LOS scan",
+                keys: "los.grid × acquisition.bins",
+                bytes: mul(&[los, bins.max(1), 8]).saturating_add(mul(&[los, 256])),
+            },
+            Item {
+                what: "volume and solver work arrays",
+                keys: "recon.volume.shape",
+                bytes: mul(&[voxels, 16 * 8 + 8]),
+            },
+        ];
+        if plan.recon.method == Method::Gtr {
+            let virt = mul(&plan.recon.virtual_resolution.map(|n| n as u64));
+            memory.push(Item {
+                what: "3D-GTR virtual confocal scan",
+                keys: "recon.gtr.virtual-grid × acquisition.bins",
+                bytes: mul(&[virt, bins, 8 * 2]),
+            });
+            memory.push(Item {
+                what: "3D-GTR primitives, gradients and optimiser state",
+                keys: "recon.gtr.primitives",
+                bytes: mul(&[plan.recon.train.primitives as u64, 14 * 8 * 4]),
+            });
+        }
+        let disk = vec![
+            Item {
+                what: "histogram log",
+                keys: "pairs × acquisition.bins",
+                bytes: mul(&[pairs, bins.saturating_mul(4).saturating_add(36)]),
+            },
+            Item {
+                what: "y-tal capture export",
+                keys: "pairs × acquisition.bins",
+                bytes: mul(&[pairs, bins, 4]).saturating_add(mul(&[pairs, 48])),
+            },
+            Item {
+                what: "volume outputs",
+                keys: "recon.volume.shape",
+                bytes: mul(&[voxels, 4]),
+            },
+        ];
+        Budget { memory, disk }
+    }
+
+    /// Total memory, bytes.
+    pub fn memory_bytes(&self) -> u64 {
+        self.memory.iter().fold(0u64, |a, i| a.saturating_add(i.bytes))
+    }
+
+    /// Total disk, bytes.
+    pub fn disk_bytes(&self) -> u64 {
+        self.disk.iter().fold(0u64, |a, i| a.saturating_add(i.bytes))
+    }
+
+    /// Refuses a plan over `limits`, naming the largest item, its plan keys and the
+    /// numbers.
+    pub fn check(&self, limits: &Limits) -> Result<(), String> {
+        for (kind, items, total, limit, key) in [
+            (
+                "memory",
+                &self.memory,
+                self.memory_bytes(),
+                limits.memory,
+                "budget.memory-gib",
+            ),
+            (
+                "disk",
+                &self.disk,
+                self.disk_bytes(),
+                limits.disk,
+                "budget.disk-gib",
+            ),
+        ] {
+            if total > limit {
+                let top = items
+                    .iter()
+                    .max_by_key(|i| i.bytes)
+                    .expect("items are never empty");
+                return Err(format!(
+                    "over budget: the plan needs {} of {kind}, more than the instrument's {} \
+                     (`{}` in the instrument config); the largest part is the {} ({}), sized by {}: \
+                     reduce those",
+                    gib(total),
+                    gib(limit),
+                    key,
+                    top.what,
+                    gib(top.bytes),
+                    top.keys
+                ));
+            }
+        }
+        Ok(())
+    }
+
+    /// The estimate as `periscope check` prints it.
+    pub fn report(&self, limits: &Limits) -> String {
+        let mut out = String::new();
+        for (kind, items, total, limit) in [
+            ("memory", &self.memory, self.memory_bytes(), limits.memory),
+            ("disk", &self.disk, self.disk_bytes(), limits.disk),
+        ] {
+            let _ = writeln!(
+                out,
+                "  {kind}: {} of {} budget{}",
+                gib(total),
+                gib(limit),
+                if total > limit { " — OVER BUDGET" } else { "" }
+            );
+            for i in items {
+                let _ = writeln!(out, "    {:>10}  {} ({})", gib(i.bytes), i.what, i.keys);
+            }
+        }
+        out
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn saturating_products_never_wrap_to_small_numbers() {
+        assert_eq!(mul(&[u64::MAX, 2]), u64::MAX);
+        assert_eq!(mul(&[1 << 40, 1 << 40]), u64::MAX);
+        assert_eq!(mul(&[3, 4, 5]), 60);
+    }
+
+    #[test]
+    fn over_budget_names_the_largest_item_and_its_keys() {
+        let b = Budget {
+            memory: vec![
+                Item {
+                    what: "a",
+                    keys: "k.a",
+                    bytes: 1 << 30,
+                },
+                Item {
+                    what: "b",
+                    keys: "k.b",
+                    bytes: 20 << 30,
+                },
+            ],
+            disk: vec![Item {
+                what: "c",
+                keys: "k.c",
+                bytes: 1,
+            }],
+        };
+        let e = b.check(&Limits::default()).unwrap_err();
+        assert!(e.contains("21.0 GiB of memory"), "{e}");
+        assert!(e.contains("budget.memory-gib"), "{e}");
+        assert!(e.contains("k.b") && !e.contains("k.a"), "{e}");
+        assert!(
+            b.check(&Limits {
+                memory: 32 << 30,
+                disk: 1
+            })
+            .is_ok()
+        );
+    }
+}

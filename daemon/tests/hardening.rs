@@ -1,0 +1,715 @@
+//! The API against hostile and careless clients: secrets that must not leave the
+//! process, browsers pointed at the daemon by other sites, plans too large for the
+//! machine, floods of submissions, streams and downloads, and requests racing each
+//! other. Each test reproduces a finding of the hardening review and checks the fix.
+use std::future::IntoFuture;
+use std::path::Path;
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use axum::body::Body;
+use axum::http::{Method, Request, StatusCode, header};
+use periscope_daemon::api::{AppState, Service, app};
+use periscope_daemon::config::{TomlSource, redact_secrets};
+use serde_json::Value;
+use tower::ServiceExt;
+
+const TOKEN: &str = "hardening-token-0123456789abcdef";
+
+/// A small confocal plan solved by FBP (about a second at time-scale 0).
+const PLAN: &str = r#"
+name = "hardening"
+[los]
+angles-deg = { x = [-12.0, 12.0], y = [-12.0, 12.0] }
+grid = [12, 12]
+dwell-ms = 1.0
+[relay]
+depth-m = [1.7, 3.0]
+min-intensity = 0.05
+neighbours = 8
+detection = { min = [-0.4, -0.4, -0.1], max = [0.4, 0.4, 0.1] }
+[pairs]
+mode = "confocal"
+grid = [8, 8]
+offset-mm = 5.0
+[acquisition]
+dwell-ms = 20.0
+[recon]
+method = "fbp"
+[recon.volume]
+x = [-0.4, 0.4]
+y = [-0.4, 0.4]
+z = [0.3, 0.9]
+shape = [32, 32, 16]
+"#;
+
+/// The simulated instrument with runs in `runs`, the token in its `[api]` table (as a
+/// lab that keeps it in the file would), and `api_extra` lines added to that table.
+fn instrument(runs: &Path, time_scale: f64, api_extra: &str, tail: &str) -> TomlSource {
+    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
+    let path = root.join("configs/instrument/sim.toml");
+    let mut text = std::fs::read_to_string(&path)
+        .unwrap()
+        .replace("[sim]\n", &format!("[sim]\ntime-scale = {time_scale}\n"));
+    text.push_str(&format!(
+        "\n[api]\nruns-dir = \"{}\"\ntoken = \"{TOKEN}\"\n{api_extra}\n{tail}",
+        runs.display()
+    ));
+    TomlSource::from_text(path, text)
+}
+
+fn service(runs: &Path, time_scale: f64, api_extra: &str, tail: &str) -> Arc<Service> {
+    Service::open(instrument(runs, time_scale, api_extra, tail), Some(TOKEN.into())).unwrap()
+}
+
+fn request(method: Method, uri: &str, token: bool, headers: &[(&str, &str)], body: &str) -> Request<Body> {
+    let mut req = Request::builder().method(method).uri(uri);
+    if token {
+        req = req.header(header::AUTHORIZATION, format!("Bearer {TOKEN}"));
+    }
+    if !body.is_empty() {
+        req = req.header(header::CONTENT_TYPE, "application/toml");
+    }
+    for (k, v) in headers {
+        req = req.header(*k, *v);
+    }
+    req.body(Body::from(body.to_owned())).unwrap()
+}
+
+async fn send(router: &axum::Router, req: Request<Body>) -> (StatusCode, Vec<u8>) {
+    let resp = router.clone().oneshot(req).await.unwrap();
+    let status = resp.status();
+    let bytes = axum::body::to_bytes(resp.into_body(), 64 << 20).await.unwrap();
+    (status, bytes.to_vec())
+}
+
+async fn call(
+    router: &axum::Router,
+    method: Method,
+    uri: &str,
+    token: bool,
+    body: &str,
+) -> (StatusCode, Value) {
+    let (s, b) = send(router, request(method, uri, token, &[], body)).await;
+    (s, serde_json::from_slice(&b).unwrap_or(Value::Null))
+}
+
+async fn json(resp: reqwest::Response) -> Value {
+    serde_json::from_slice(&resp.bytes().await.unwrap()).unwrap()
+}
+
+fn run_dirs(runs: &Path) -> usize {
+    std::fs::read_dir(runs)
+        .unwrap()
+        .filter(|e| e.as_ref().unwrap().path().join("run.json").is_file())
+        .count()
+}
+
+#[test]
+fn the_token_is_cut_from_config_text_in_every_layout() {
+    let cases = [
+        "[api]\ntoken = \"s3cr3t-s3cr3t-s3cr3t\"\nruns-dir = \"r\"\n",
+        "[api]\n  'token'='s3cr3t-s3cr3t-s3cr3t' # ours\n",
+        "api.token = \"s3cr3t-s3cr3t-s3cr3t\"\nname = \"x\"\n",
+        "api = { token = \"s3cr3t-s3cr3t-s3cr3t\", open-reads = true }\n",
+        "[api]\ntoken = \"\"\"\ns3cr3t-s3cr3t-s3cr3t\n\"\"\"\n",
+        "[api\ntoken = \"s3cr3t-s3cr3t-s3cr3t\"\n",
+    ];
+    for text in cases {
+        let out = redact_secrets(text);
+        assert!(!out.contains("s3cr3t"), "{text:?} → {out:?}");
+    }
+    // The rest of the file keeps its layout and meaning.
+    let out = redact_secrets(cases[0]);
+    assert!(
+        out.contains("runs-dir = \"r\"") && out.contains("# token = <redacted"),
+        "{out}"
+    );
+    let out = redact_secrets(cases[3]);
+    let v: toml::Table = out.parse().unwrap();
+    assert_eq!(v["api"]["open-reads"].as_bool(), Some(true), "{out}");
+    // A `token` key in another table is not the API's and stays.
+    let other = "[sim]\ntoken = 3\n";
+    assert_eq!(redact_secrets(other), other);
+}
+
+#[tokio::test]
+async fn stored_and_downloaded_configs_never_carry_the_token() {
+    let dir = tempfile::tempdir().unwrap();
+    let svc = service(dir.path(), 0.0, "", "");
+    let router = app(AppState::new(Arc::clone(&svc)));
+    let (s, v) = call(&router, Method::POST, "/api/v1/runs", true, PLAN).await;
+    assert_eq!(s, StatusCode::CREATED, "{v}");
+    let id = v["id"].as_str().unwrap().to_owned();
+    let stored = std::fs::read_to_string(dir.path().join(&id).join("instrument.toml")).unwrap();
+    assert!(!stored.contains(TOKEN), "the run stores the token:\n{stored}");
+    assert!(stored.contains("runs-dir"), "{stored}");
+    // A run stored before secrets were cut out: the download cuts it.
+    std::fs::write(
+        dir.path().join(&id).join("instrument.toml"),
+        format!("name = \"x\"\n[api]\ntoken = \"{TOKEN}\"\n"),
+    )
+    .unwrap();
+    let (s, body) = send(
+        &router,
+        request(
+            Method::GET,
+            &format!("/api/v1/runs/{id}/files/instrument.toml"),
+            false,
+            &[],
+            "",
+        ),
+    )
+    .await;
+    assert_eq!(s, StatusCode::OK);
+    let body = String::from_utf8(body).unwrap();
+    assert!(!body.contains(TOKEN) && body.contains("name = \"x\""), "{body}");
+    // Nor does the config's debug form (what a log line would print).
+    let cfg = periscope_daemon::config::InstrumentConfig::from_source(&instrument(dir.path(), 0.0, "", ""))
+        .unwrap();
+    assert!(!format!("{cfg:?}").contains(TOKEN));
+}
+
+#[tokio::test]
+async fn foreign_host_names_and_cross_site_origins_are_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let svc = service(dir.path(), 0.0, "hosts = [\"lab-pc.example.org\"]", "");
+    let router = app(AppState::new(svc));
+    let health = |host: &'static str| request(Method::GET, "/api/v1/health", false, &[("host", host)], "");
+    for host in [
+        "127.0.0.1:8080",
+        "localhost:8080",
+        "localhost",
+        "[::1]:8080",
+        "192.168.1.20",
+        "LAB-PC.example.org:8080",
+    ] {
+        let (s, _) = send(&router, health(host)).await;
+        assert_eq!(s, StatusCode::OK, "Host: {host}");
+    }
+    // A DNS-rebinding page reaches the daemon under its own name.
+    for host in [
+        "attacker.example",
+        "localhost.attacker.example:8080",
+        "127.0.0.1:80x",
+        "",
+    ] {
+        let (s, b) = send(&router, health(host)).await;
+        assert_eq!(s, StatusCode::FORBIDDEN, "Host: {host}");
+        let v: Value = serde_json::from_slice(&b).unwrap();
+        assert_eq!(v["error"], "host-not-allowed", "{v}");
+        assert!(v["message"].as_str().unwrap().contains("[api] hosts"), "{v}");
+    }
+    // Mutations from another site's page are refused even with the token (a browser
+    // may hold it); the daemon's own origin and clients without Origin pass.
+    let estop = |origin: Option<&'static str>| {
+        let mut h = vec![("host", "127.0.0.1:8080")];
+        if let Some(o) = origin {
+            h.push(("origin", o));
+        }
+        request(Method::POST, "/api/v1/estop", true, &h, "")
+    };
+    for origin in ["http://attacker.example", "null", "http://127.0.0.1:9999"] {
+        let (s, b) = send(&router, estop(Some(origin))).await;
+        assert_eq!(s, StatusCode::FORBIDDEN, "Origin: {origin}");
+        assert!(String::from_utf8_lossy(&b).contains("origin-not-allowed"));
+    }
+    for origin in [Some("http://127.0.0.1:8080"), None] {
+        let (s, b) = send(&router, estop(origin)).await;
+        assert_eq!(
+            s,
+            StatusCode::OK,
+            "Origin: {origin:?}: {}",
+            String::from_utf8_lossy(&b)
+        );
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn instrument_status_comes_from_the_worker_and_never_opens_a_device() {
+    let dir = tempfile::tempdir().unwrap();
+    let svc = service(dir.path(), 0.0, "status-interval-s = 0.3", "");
+    let rig = svc.rig().unwrap().clone();
+    let router = app(AppState::new(Arc::clone(&svc)));
+    // No worker yet: no reading, and the GET opens nothing.
+    let before = rig.galvo_connects();
+    for _ in 0..5 {
+        let (s, v) = call(&router, Method::GET, "/api/v1/instrument", false, "").await;
+        assert_eq!(s, StatusCode::OK);
+        assert_eq!(v["reading"], Value::Null, "{v}");
+        assert_eq!(v["devices"], Value::Null, "{v}");
+    }
+    assert_eq!(
+        rig.galvo_connects(),
+        before,
+        "GET /instrument opened a galvo controller"
+    );
+    // The worker reads the devices when it starts and every status interval.
+    let worker = svc.start_worker();
+    let t = Instant::now();
+    let v = loop {
+        let (_, v) = call(&router, Method::GET, "/api/v1/instrument", false, "").await;
+        if v["devices"].is_object() {
+            break v;
+        }
+        assert!(t.elapsed() < Duration::from_secs(10), "no reading: {v}");
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    };
+    assert_eq!(v["devices"]["laser"]["emission"], false, "{v}");
+    let age = v["reading"]["age_s"].as_f64().unwrap();
+    assert!((0.0..5.0).contains(&age), "{v}");
+    assert!(v["reading"]["taken_unix_s"].as_f64().unwrap() > 1.7e9, "{v}");
+    tokio::time::sleep(Duration::from_millis(800)).await;
+    let (_, later) = call(&router, Method::GET, "/api/v1/instrument", false, "").await;
+    assert!(
+        later["reading"]["taken_unix_s"].as_f64() > v["reading"]["taken_unix_s"].as_f64(),
+        "the idle worker did not read again: {later}"
+    );
+    svc.shutdown();
+    worker.join().unwrap();
+}
+
+#[tokio::test]
+async fn plans_over_the_budget_get_422_naming_the_key_and_leave_nothing() {
+    let dir = tempfile::tempdir().unwrap();
+    let router = app(AppState::new(service(dir.path(), 0.0, "", "")));
+    let scanned = PLAN.replace(
+        "mode = \"confocal\"\ngrid = [8, 8]",
+        "mode = \"scanned\"\nlaser-grid = [512, 512]\ngrid = [512, 512]",
+    );
+    let huge_volume = PLAN.replace("shape = [32, 32, 16]", "shape = [1024, 1024, 1024]");
+    for (plan, names) in [(scanned, "pairs"), (huge_volume, "recon.volume.shape")] {
+        let (s, v) = call(&router, Method::POST, "/api/v1/runs", true, &plan).await;
+        assert_eq!(
+            (s, v["error"].as_str()),
+            (StatusCode::UNPROCESSABLE_ENTITY, Some("over-budget")),
+            "{v}"
+        );
+        let m = v["message"].as_str().unwrap();
+        assert!(
+            m.contains(names) && m.contains("GiB") && m.contains("budget.memory-gib"),
+            "{m}"
+        );
+    }
+    assert_eq!(run_dirs(dir.path()), 0);
+    // A lab with a bigger machine raises the budget in the instrument config.
+    let dir2 = tempfile::tempdir().unwrap();
+    let router = app(AppState::new(service(
+        dir2.path(),
+        0.0,
+        "",
+        "[budget]\nmemory-gib = 200\n",
+    )));
+    let big = PLAN.replace("shape = [32, 32, 16]", "shape = [512, 512, 512]");
+    let (s, v) = call(&router, Method::POST, "/api/v1/runs", true, &big).await;
+    assert_eq!(s, StatusCode::CREATED, "{v}");
+}
+
+#[tokio::test]
+async fn a_full_queue_answers_429_and_makes_no_run() {
+    let dir = tempfile::tempdir().unwrap();
+    let router = app(AppState::new(service(dir.path(), 0.0, "max-queue = 3", "")));
+    for _ in 0..3 {
+        let (s, v) = call(&router, Method::POST, "/api/v1/runs", true, PLAN).await;
+        assert_eq!(s, StatusCode::CREATED, "{v}");
+    }
+    let (s, v) = call(&router, Method::POST, "/api/v1/runs", true, PLAN).await;
+    assert_eq!(
+        (s, v["error"].as_str()),
+        (StatusCode::TOO_MANY_REQUESTS, Some("queue-full")),
+        "{v}"
+    );
+    assert!(v["message"].as_str().unwrap().contains("max-queue"), "{v}");
+    assert_eq!(run_dirs(dir.path()), 3);
+}
+
+#[tokio::test]
+async fn stream_and_download_caps_answer_503_until_a_slot_frees() {
+    let dir = tempfile::tempdir().unwrap();
+    let svc = service(dir.path(), 0.0, "max-streams = 1\nmax-downloads = 1", "");
+    let router = app(AppState::new(Arc::clone(&svc)));
+    let (_, v) = call(&router, Method::POST, "/api/v1/runs", true, PLAN).await;
+    let id = v["id"].as_str().unwrap().to_owned();
+    // A queued run's stream stays open (no worker runs it): it holds the one slot.
+    let events = format!("/api/v1/runs/{id}/events");
+    let first = router
+        .clone()
+        .oneshot(request(Method::GET, &events, false, &[], ""))
+        .await
+        .unwrap();
+    assert_eq!(first.status(), StatusCode::OK);
+    let (s, v) = call(&router, Method::GET, &events, false, "").await;
+    assert_eq!(
+        (s, v["error"].as_str()),
+        (StatusCode::SERVICE_UNAVAILABLE, Some("too-many-streams")),
+        "{v}"
+    );
+    drop(first);
+    let again = router
+        .clone()
+        .oneshot(request(Method::GET, &events, false, &[], ""))
+        .await
+        .unwrap();
+    assert_eq!(again.status(), StatusCode::OK, "the slot was not given back");
+    drop(again);
+    // A download whose body is not yet read holds the one download slot.
+    let plan = format!("/api/v1/runs/{id}/files/plan.toml");
+    let held = router
+        .clone()
+        .oneshot(request(Method::GET, &plan, false, &[], ""))
+        .await
+        .unwrap();
+    assert_eq!(held.status(), StatusCode::OK);
+    assert!(held.headers().get(header::CONTENT_LENGTH).is_some());
+    let (s, v) = call(&router, Method::GET, &plan, false, "").await;
+    assert_eq!(
+        (s, v["error"].as_str()),
+        (StatusCode::SERVICE_UNAVAILABLE, Some("too-many-downloads")),
+        "{v}"
+    );
+    let body = axum::body::to_bytes(held.into_body(), 1 << 20).await.unwrap();
+    assert!(String::from_utf8_lossy(&body).contains("name = \"hardening\""));
+    let (s, _) = send(&router, request(Method::GET, &plan, false, &[], "")).await;
+    assert_eq!(s, StatusCode::OK, "the download slot was not given back");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn aborting_a_queued_run_ends_its_event_stream() {
+    let dir = tempfile::tempdir().unwrap();
+    let svc = service(dir.path(), 0.0, "", "");
+    let router = app(AppState::new(Arc::clone(&svc)));
+    let (_, v) = call(&router, Method::POST, "/api/v1/runs", true, PLAN).await;
+    let id = v["id"].as_str().unwrap().to_owned();
+    let stream = router
+        .clone()
+        .oneshot(request(
+            Method::GET,
+            &format!("/api/v1/runs/{id}/events"),
+            false,
+            &[],
+            "",
+        ))
+        .await
+        .unwrap();
+    let (s, _) = call(
+        &router,
+        Method::POST,
+        &format!("/api/v1/runs/{id}/abort"),
+        true,
+        "",
+    )
+    .await;
+    assert_eq!(s, StatusCode::ACCEPTED);
+    let body = tokio::time::timeout(
+        Duration::from_secs(5),
+        axum::body::to_bytes(stream.into_body(), 1 << 20),
+    )
+    .await
+    .expect("the aborted run's event stream never ended")
+    .unwrap();
+    assert!(String::from_utf8_lossy(&body).starts_with("event: status"));
+}
+
+#[tokio::test]
+async fn a_run_missing_from_queue_json_is_queued_again_on_restart() {
+    let dir = tempfile::tempdir().unwrap();
+    let id = {
+        let router = app(AppState::new(service(dir.path(), 0.0, "", "")));
+        let (_, v) = call(&router, Method::POST, "/api/v1/runs", true, PLAN).await;
+        v["id"].as_str().unwrap().to_owned()
+    };
+    // The daemon died after making the run directory, before saving the queue.
+    std::fs::write(dir.path().join("queue.json"), "[]").unwrap();
+    let router = app(AppState::new(service(dir.path(), 0.0, "", "")));
+    let (_, v) = call(&router, Method::GET, &format!("/api/v1/runs/{id}"), false, "").await;
+    assert_eq!(
+        (v["state"].as_str(), v["queue_position"].as_u64()),
+        (Some("queued"), Some(0)),
+        "{v}"
+    );
+    let queue = std::fs::read_to_string(dir.path().join("queue.json")).unwrap();
+    assert!(queue.contains(&id), "{queue}");
+}
+
+/// Several clients submit, pause, resume, abort, e-stop and poll at once against a
+/// running worker; afterwards every run is in a final or paused state that agrees with
+/// queue.json, nothing is left running, and the laser is off.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn concurrent_clients_leave_consistent_states() {
+    let dir = tempfile::tempdir().unwrap();
+    let svc = service(dir.path(), 0.2, "", "");
+    let worker = svc.start_worker();
+    let router = app(AppState::new(Arc::clone(&svc)));
+    let ids = Arc::new(std::sync::Mutex::new(Vec::<String>::new()));
+    let mut tasks = Vec::new();
+    for client in 0..6u64 {
+        let (router, ids) = (router.clone(), Arc::clone(&ids));
+        tasks.push(tokio::spawn(async move {
+            let mut statuses = Vec::new();
+            for step in 0..12u64 {
+                let pick = |ids: &Vec<String>| {
+                    ids.get(((client * 7 + step * 3) as usize) % ids.len().max(1))
+                        .cloned()
+                };
+                let (action, id) = {
+                    let ids = ids.lock().unwrap();
+                    ((client + step) % 6, pick(&ids))
+                };
+                let (s, v) = match (action, id) {
+                    (0, _) | (_, None) => {
+                        let (s, v) = call(&router, Method::POST, "/api/v1/runs", true, PLAN).await;
+                        if s == StatusCode::CREATED {
+                            ids.lock().unwrap().push(v["id"].as_str().unwrap().to_owned());
+                        }
+                        (s, v)
+                    }
+                    (1, Some(id)) => {
+                        call(
+                            &router,
+                            Method::POST,
+                            &format!("/api/v1/runs/{id}/pause"),
+                            true,
+                            "",
+                        )
+                        .await
+                    }
+                    (2, Some(id)) => {
+                        call(
+                            &router,
+                            Method::POST,
+                            &format!("/api/v1/runs/{id}/resume"),
+                            true,
+                            "",
+                        )
+                        .await
+                    }
+                    (3, Some(id)) => {
+                        call(
+                            &router,
+                            Method::POST,
+                            &format!("/api/v1/runs/{id}/abort"),
+                            true,
+                            "",
+                        )
+                        .await
+                    }
+                    (4, _) if step % 4 == 0 => call(&router, Method::POST, "/api/v1/estop", true, "").await,
+                    (_, Some(id)) => {
+                        call(&router, Method::GET, &format!("/api/v1/runs/{id}"), false, "").await
+                    }
+                };
+                // Every answer is a success or a clean refusal, never a 5xx.
+                assert!(
+                    s.is_success() || s == StatusCode::CONFLICT,
+                    "client {client} step {step}: {s} {v}"
+                );
+                statuses.push(s);
+                tokio::time::sleep(Duration::from_millis(15)).await;
+            }
+            statuses
+        }));
+    }
+    for t in tasks {
+        t.await.unwrap();
+    }
+    // Settle: abort whatever still waits, then wait for the worker to go idle.
+    let ids = ids.lock().unwrap().clone();
+    assert!(ids.len() >= 3, "{ids:?}");
+    for id in &ids {
+        let _ = call(
+            &router,
+            Method::POST,
+            &format!("/api/v1/runs/{id}/abort"),
+            true,
+            "",
+        )
+        .await;
+    }
+    let t = Instant::now();
+    loop {
+        let (_, list) = call(&router, Method::GET, "/api/v1/runs", false, "").await;
+        let busy = list
+            .as_array()
+            .unwrap()
+            .iter()
+            .any(|r| r["state"] == "running" || r["state"] == "queued");
+        if !busy {
+            break;
+        }
+        assert!(
+            t.elapsed() < Duration::from_secs(60),
+            "runs never settled: {list}"
+        );
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+    let queue: Vec<String> =
+        serde_json::from_str(&std::fs::read_to_string(dir.path().join("queue.json")).unwrap()).unwrap();
+    for id in &ids {
+        let (_, v) = call(&router, Method::GET, &format!("/api/v1/runs/{id}"), false, "").await;
+        let state = v["state"].as_str().unwrap();
+        assert!(
+            ["completed", "aborted", "paused", "failed"].contains(&state),
+            "{id}: {v}"
+        );
+        // queue.json holds exactly the runs that can still run.
+        assert_eq!(
+            queue.contains(id),
+            state == "paused",
+            "{id} is {state}; queue {queue:?}"
+        );
+    }
+    assert!(
+        !svc.rig().unwrap().emission(),
+        "the laser is on after everything stopped"
+    );
+    svc.shutdown();
+    worker.join().unwrap();
+}
+
+/// 10,000 submissions while a capture runs: 429 once the queue is full, the daemon's
+/// memory flat, and the capture's pair rate within 10 % of an undisturbed one.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_submission_flood_gets_429_and_does_not_slow_the_capture() {
+    let dir = tempfile::tempdir().unwrap();
+    let svc = service(dir.path(), 1.0, "max-queue = 20", "");
+    let worker = svc.start_worker();
+    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+    let base = format!("http://{}/api/v1", listener.local_addr().unwrap());
+    let server = tokio::spawn(
+        axum::serve(
+            listener,
+            app(AppState::new(Arc::clone(&svc)))
+                .into_make_service_with_connect_info::<std::net::SocketAddr>(),
+        )
+        .into_future(),
+    );
+    let client = reqwest::Client::new();
+    // Real time: up to 400 pairs × 20 ms ≈ 8 s of capture per run, longer than the
+    // flood, so no flooded run starts (and leaves the queue) while it lasts.
+    let capture_plan = PLAN
+        .replace("grid = [8, 8]", "grid = [20, 20]")
+        .replace("grid = [12, 12]", "grid = [24, 24]");
+    let submit = |plan: String| {
+        let (client, base) = (client.clone(), base.clone());
+        async move {
+            client
+                .post(format!("{base}/runs"))
+                .bearer_auth(TOKEN)
+                .header("content-type", "application/toml")
+                .body(plan)
+                .send()
+                .await
+                .unwrap()
+        }
+    };
+    // The pair rate of a capture, from its progress while in the capture stage.
+    let rate_of = |id: String| {
+        let (client, base) = (client.clone(), base.clone());
+        async move {
+            let mut first: Option<(Instant, f64)> = None;
+            let mut last = (Instant::now(), 0.0);
+            loop {
+                let v = json(client.get(format!("{base}/runs/{id}")).send().await.unwrap()).await;
+                let done = v["pairs_done"].as_f64().unwrap_or(0.0);
+                if v["stage"] == "capture" && done > 0.0 {
+                    let now = (Instant::now(), done);
+                    first.get_or_insert(now);
+                    last = now;
+                } else if first.is_some() || !["queued", "running"].contains(&v["state"].as_str().unwrap()) {
+                    break;
+                }
+                tokio::time::sleep(Duration::from_millis(20)).await;
+            }
+            let (t0, d0) = first.expect("the capture was seen");
+            (last.1 - d0) / last.0.duration_since(t0).as_secs_f64()
+        }
+    };
+    let rss = || -> u64 {
+        let status = std::fs::read_to_string("/proc/self/status").unwrap();
+        let line = status.lines().find(|l| l.starts_with("VmRSS:")).unwrap();
+        line.split_whitespace().nth(1).unwrap().parse::<u64>().unwrap() * 1024
+    };
+
+    let quiet: Value = json(submit(capture_plan.clone()).await).await;
+    let quiet_rate = rate_of(quiet["id"].as_str().unwrap().to_owned()).await;
+
+    let busy: Value = json(submit(capture_plan.clone()).await).await;
+    let busy_url = format!("{base}/runs/{}", busy["id"].as_str().unwrap());
+    // Wait for the capture stage before flooding.
+    let t = Instant::now();
+    loop {
+        let v = json(client.get(&busy_url).send().await.unwrap()).await;
+        if v["stage"] == "capture" && v["pairs_done"].as_u64() > Some(0) {
+            break;
+        }
+        assert!(t.elapsed() < Duration::from_secs(30), "{v}");
+        tokio::time::sleep(Duration::from_millis(10)).await;
+    }
+    let rss_before = rss();
+    let done_before = json(client.get(&busy_url).send().await.unwrap()).await["pairs_done"]
+        .as_f64()
+        .unwrap();
+    let t_flood = Instant::now();
+    let mut flood = Vec::new();
+    for _ in 0..8 {
+        let (client, url) = (client.clone(), format!("{base}/runs"));
+        flood.push(tokio::spawn(async move {
+            let mut counts = [0usize; 2];
+            for _ in 0..1250 {
+                let s = client
+                    .post(&url)
+                    .bearer_auth(TOKEN)
+                    .header("content-type", "application/toml")
+                    .body(PLAN)
+                    .send()
+                    .await
+                    .unwrap()
+                    .status();
+                match s.as_u16() {
+                    201 => counts[0] += 1,
+                    429 => counts[1] += 1,
+                    other => panic!("flood request got {other}"),
+                }
+            }
+            counts
+        }));
+    }
+    let mut created = 0;
+    let mut refused = 0;
+    for f in flood {
+        let [c, r] = f.await.unwrap();
+        created += c;
+        refused += r;
+    }
+    let after = json(client.get(&busy_url).send().await.unwrap()).await;
+    let flood_s = t_flood.elapsed().as_secs_f64();
+    let rss_after = rss();
+    assert_eq!(
+        after["stage"], "capture",
+        "the capture ended during the flood: {after}"
+    );
+    let busy_rate = (after["pairs_done"].as_f64().unwrap() - done_before) / flood_s;
+    eprintln!(
+        "flood: 10,000 submissions in {flood_s:.1} s ({:.0}/s): {created} queued, {refused} refused; \
+         RSS {:.1} → {:.1} MiB; pair rate {quiet_rate:.1}/s alone, {busy_rate:.1}/s under the flood",
+        10_000.0 / flood_s,
+        rss_before as f64 / 1048576.0,
+        rss_after as f64 / 1048576.0
+    );
+    // The queue held the running capture, so 19 more fit.
+    assert_eq!(created, 19);
+    assert_eq!(refused, 10_000 - 19);
+    assert_eq!(run_dirs(dir.path()), 2 + 19);
+    assert!(
+        rss_after < rss_before + (48 << 20),
+        "memory grew by {} MiB under the flood",
+        (rss_after - rss_before) >> 20
+    );
+    assert!(
+        busy_rate > 0.9 * quiet_rate,
+        "the flood slowed the capture: {busy_rate:.1} vs {quiet_rate:.1} pairs/s"
+    );
+    server.abort();
+    svc.shutdown();
+    worker.join().unwrap();
+}
