@@ -141,7 +141,7 @@ fn tdc(config: &InstrumentConfig, rig: Option<&Rig>) -> Result<UsbTdc<Box<dyn Us
             })?)
         }
     };
-    Ok(UsbTdc::new(transport, TDC_TIMEOUT))
+    Ok(UsbTdc::open(transport, TDC_TIMEOUT)?)
 }
 
 impl Devices {

@@ -54,7 +54,8 @@ pub fn recon(capture: &Path, config: Option<&Path>, out: &Path) -> anyhow::Resul
             nd: p.nd,
         })
         .collect();
-    let axis = pipeline::hidden_axis(&recon_pairs, &settings.volume, plan.acquisition.bin_width);
+    let axis = pipeline::hidden_axis(&recon_pairs, &settings.volume, plan.acquisition.bin_width)
+        .map_err(|e| anyhow::anyhow!("{}: {e}", capture.display()))?;
     let mut set = TransientSet::new(axis)?;
     let mut used = Vec::new();
     for r in &records.records {

@@ -78,6 +78,8 @@ pub struct HistogramLog {
 pub struct Recovered {
     /// The valid records, in file order.
     pub records: Vec<Record>,
+    /// Length of the valid prefix, bytes.
+    pub valid_bytes: u64,
     /// Bytes cut from the end (an incomplete or corrupted tail).
     pub discarded_bytes: u64,
 }
@@ -110,6 +112,7 @@ impl HistogramLog {
                 HistogramLog::create(dir)?,
                 Recovered {
                     records: Vec::new(),
+                    valid_bytes: 0,
                     discarded_bytes: 0,
                 },
             ));
@@ -117,8 +120,9 @@ impl HistogramLog {
         let got = read_log(dir)?;
         let file = OpenOptions::new().append(true).open(&path)?;
         if got.discarded_bytes > 0 {
-            let len = file.metadata()?.len() - got.discarded_bytes;
-            file.set_len(len)?;
+            // Cut at the end of the valid prefix as read (not "length minus tail",
+            // which a file that changed in between would make wrong).
+            file.set_len(got.valid_bytes)?;
             file.sync_all()?;
         }
         Ok((
@@ -172,6 +176,13 @@ pub fn read_log(dir: &Path) -> io::Result<Recovered> {
     let path = dir.join(HISTOGRAM_LOG);
     let mut bytes = Vec::new();
     BufReader::new(File::open(&path)?).read_to_end(&mut bytes)?;
+    Ok(parse_log(&bytes))
+}
+
+/// Decodes a histogram log held in memory: the records up to the first one that is
+/// incomplete, fails its CRC, or carries impossible settings (no bins, more than
+/// 2^20, a zero bin width). Any input gives an answer; nothing here panics.
+pub fn parse_log(bytes: &[u8]) -> Recovered {
     let mut records = Vec::new();
     let mut seen = std::collections::HashSet::new();
     let mut at = 0usize;
@@ -181,7 +192,7 @@ pub fn read_log(dir: &Path) -> io::Result<Recovered> {
             break;
         }
         let bins = u32_at(b, 12) as usize;
-        if bins == 0 || bins > 1 << 20 {
+        if bins == 0 || bins > MAX_RECORD_BINS {
             break;
         }
         let len = HEADER + 4 * bins + 4;
@@ -203,16 +214,23 @@ pub fn read_log(dir: &Path) -> io::Result<Recovered> {
                 .map(|c| u32::from_le_bytes(c.try_into().expect("4")))
                 .collect(),
         };
+        if rec.bin_width_ps == 0 {
+            break;
+        }
         if seen.insert(rec.pair) {
             records.push(rec);
         }
         at += len;
     }
-    Ok(Recovered {
+    Recovered {
         records,
+        valid_bytes: at as u64,
         discarded_bytes: (bytes.len() - at) as u64,
-    })
+    }
 }
+
+/// Most bins a stored record may have (the TDC protocol's own limit is 65,536).
+const MAX_RECORD_BINS: usize = 1 << 20;
 
 fn sync_dir(dir: &Path) {
     if let Ok(d) = File::open(dir) {

@@ -147,9 +147,86 @@ type Values = (Vec<f64>, Vec<usize>);
 struct Reader<'a> {
     file: File,
     path: &'a Path,
+    /// Length of the file, bytes.
+    file_len: u64,
 }
 
+/// Largest dataset a capture may declare, bytes in memory (8 GiB of `H` is about
+/// 2,000 million bins, twenty times the largest published captures).
+pub const MAX_DATASET_BYTES: u64 = 8 << 30;
+
+/// Largest capture file read, bytes: the HDF5 layer reads the file whole.
+pub const MAX_FILE_BYTES: u64 = 16 << 30;
+
+/// Best compression ratio deflate can reach: a chunked dataset cannot hold more than
+/// this times the file's length.
+const MAX_GZIP_RATIO: u64 = 1032;
+
+/// Most chunks a dataset may be split into.
+const MAX_CHUNKS: u64 = 1 << 22;
+
+/// Most bytes the rebinned transients of a capture may take in memory (the default
+/// run budget).
+const MAX_TRANSIENT_BYTES: u64 = 16 << 30;
+
 impl Reader<'_> {
+    /// A dataset's shape, after checking that reading it is safe: the declared size
+    /// (as `out_width`-byte values in memory) fits [`MAX_DATASET_BYTES`] and what the
+    /// file can hold (its length, times the best gzip ratio for chunked data), and a
+    /// chunked layout has a sane chunk count. A small file that declares a huge shape
+    /// (an "HDF5 bomb") is refused here, before the HDF5 layer allocates for it.
+    fn checked_shape(
+        &self,
+        ds: &hdf5_pure::Dataset,
+        name: &str,
+        out_width: u64,
+    ) -> Result<Vec<usize>, YtalError> {
+        let err = |m: String| self.format(format!("dataset `{name}`: {m}"));
+        let shape = ds.shape().map_err(|e| err(e.to_string()))?;
+        let elements = shape
+            .iter()
+            .try_fold(1u64, |a, &d| a.checked_mul(d))
+            .ok_or_else(|| err(format!("its shape {shape:?} overflows")))?;
+        let stored = ds
+            .element_size()
+            .ok()
+            .and_then(|w| elements.checked_mul(w))
+            .ok_or_else(|| err(format!("its shape {shape:?} overflows")))?;
+        let declared = stored.max(elements.saturating_mul(out_width));
+        if declared > MAX_DATASET_BYTES {
+            return Err(err(format!(
+                "its shape {shape:?} declares {declared} bytes, more than the {MAX_DATASET_BYTES} a capture dataset may have"
+            )));
+        }
+        let chunked = matches!(ds.layout(), Ok(hdf5_pure::Layout::Chunked { .. }));
+        let holds = if chunked {
+            self.file_len.saturating_mul(MAX_GZIP_RATIO)
+        } else {
+            self.file_len
+        };
+        if stored > holds {
+            return Err(err(format!(
+                "its shape {shape:?} declares {stored} bytes but the file has {} bytes: it is truncated or forged",
+                self.file_len
+            )));
+        }
+        if let Ok(Some(chunk)) = ds.chunk_shape() {
+            let count = shape
+                .iter()
+                .zip(&chunk)
+                .try_fold(1u64, |a, (&d, &c)| a.checked_mul(d.div_ceil(c.max(1))));
+            if chunk.len() != shape.len() || chunk.contains(&0) || count.is_none_or(|n| n > MAX_CHUNKS) {
+                return Err(err(format!(
+                    "its chunk shape {chunk:?} does not fit its shape {shape:?} or makes too many chunks"
+                )));
+            }
+        }
+        shape
+            .into_iter()
+            .map(|d| usize::try_from(d).map_err(|_| err("a dimension does not fit this machine".into())))
+            .collect()
+    }
+
     fn format(&self, message: String) -> YtalError {
         YtalError::Format {
             path: self.path.to_path_buf(),
@@ -166,12 +243,7 @@ impl Reader<'_> {
         let Ok(ds) = self.file.dataset(name) else {
             return Ok(None);
         };
-        let shape: Vec<usize> = ds
-            .shape()
-            .map_err(|e| self.format(format!("dataset `{name}`: {e}")))?
-            .into_iter()
-            .map(|d| d as usize)
-            .collect();
+        let shape = self.checked_shape(&ds, name, 8)?;
         let values = ds
             .read_f64()
             .map_err(|e| self.format(format!("dataset `{name}` is not numeric: {e}")))?;
@@ -200,10 +272,11 @@ impl Reader<'_> {
     fn point(&self, name: &str) -> Result<Option<DVec3>, YtalError> {
         match self.floats(name)? {
             None => Ok(None),
-            Some((v, _)) if v.len() == 3 => Ok(Some(DVec3::new(v[0], v[1], v[2]))),
+            Some((v, _)) if v.len() == 3 && v.iter().all(|x| x.is_finite()) => {
+                Ok(Some(DVec3::new(v[0], v[1], v[2])))
+            }
             Some((v, _)) => Err(self.format(format!(
-                "dataset `{name}` should hold a point (3 values), it holds {}",
-                v.len()
+                "dataset `{name}` should hold a point (3 finite values), it holds {v:?}"
             ))),
         }
     }
@@ -270,13 +343,27 @@ fn to_points(v: &[f64]) -> Vec<DVec3> {
 impl YtalCapture {
     /// Reads a capture written by y-tal (or by [`YtalCapture::write`]).
     pub fn read(path: &Path) -> Result<YtalCapture, YtalError> {
+        let file_len = std::fs::metadata(path)
+            .map_err(|e| YtalError::Hdf5 {
+                path: path.to_path_buf(),
+                message: format!("cannot be read ({e})"),
+            })?
+            .len();
+        if file_len > MAX_FILE_BYTES {
+            return Err(YtalError::Hdf5 {
+                path: path.to_path_buf(),
+                message: format!(
+                    "is {file_len} bytes, more than the {MAX_FILE_BYTES} a capture file may have here"
+                ),
+            });
+        }
         let file = File::open(path).map_err(|e| YtalError::Hdf5 {
             path: path.to_path_buf(),
             message: format!(
                 "cannot be read as HDF5 ({e}); give a y-tal capture (.hdf5/.h5) or a run directory"
             ),
         })?;
-        let r = Reader { file, path };
+        let r = Reader { file, path, file_len };
         if !r.has("H") {
             let hint = ["data", "data_t", "dataset", "rect_data"]
                 .iter()
@@ -291,7 +378,8 @@ impl YtalCapture {
             return Err(r.format(format!("no dataset `H`; this is not a y-tal capture.{hint}")));
         }
         let code = r.required_scalar("H_format")?;
-        let h_format = HFormat::from_code(code as i64).ok_or_else(|| {
+        let integral = code.is_finite() && code.fract() == 0.0 && code.abs() < 1e6;
+        let h_format = HFormat::from_code(if integral { code as i64 } else { -1 }).ok_or_else(|| {
             r.format(format!(
                 "`H_format` is {code}; expected 1 to 4 (T_Sx_Sy … T_Li_Si)"
             ))
@@ -300,15 +388,7 @@ impl YtalCapture {
             .file
             .dataset("H")
             .map_err(|e| r.format(format!("dataset `H`: {e}")))?;
-        let h_shape: Vec<usize> = ds
-            .shape()
-            .map_err(|e| r.format(format!("dataset `H`: {e}")))?
-            .into_iter()
-            .map(|d| d as usize)
-            .collect();
-        let h = ds
-            .read_f32()
-            .map_err(|e| r.format(format!("dataset `H` is not numeric: {e}")))?;
+        let h_shape = r.checked_shape(&ds, "H", 4)?;
         let rank = match h_format {
             HFormat::TSxSy | HFormat::TLiSi => 3,
             HFormat::TSi => 2,
@@ -320,18 +400,34 @@ impl YtalCapture {
                 h_format.name()
             )));
         }
+        let h = ds
+            .read_f32()
+            .map_err(|e| r.format(format!("dataset `H` is not numeric: {e}")))?;
         if let Some(i) = h.iter().position(|v| !v.is_finite()) {
             return Err(r.format(format!("`H` value {i} is not finite")));
         }
         let delta_t = r.required_scalar("delta_t")?;
-        if !(delta_t > 0.0) || !delta_t.is_finite() {
+        if !(delta_t > 0.0 && delta_t <= 10.0) {
             return Err(r.format(format!(
-                "`delta_t` is {delta_t}; it must be a positive path length in metres"
+                "`delta_t` is {delta_t}; it must be a positive path length in metres (at most 10)"
             )));
         }
-        let t_accounts = r.scalar("t_accounts_first_and_last_bounces")?.unwrap_or(0.0) != 0.0;
+        let t_accounts = match r.scalar("t_accounts_first_and_last_bounces")? {
+            None => false,
+            Some(v) if v == 0.0 || v == 1.0 => v == 1.0,
+            Some(v) => {
+                return Err(r.format(format!(
+                    "`t_accounts_first_and_last_bounces` is {v}; it must be true or false"
+                )));
+            }
+        };
         let t_start = match r.scalar("t_start")? {
-            Some(t) => t,
+            Some(t) if t.is_finite() && t.abs() <= 1e4 => t,
+            Some(t) => {
+                return Err(r.format(format!(
+                    "`t_start` is {t}; it must be a path length in metres (within ±10 km)"
+                )));
+            }
             None if t_accounts => {
                 return Err(r.format(
                     "`t_start` is empty but `t_accounts_first_and_last_bounces` is true; \
@@ -345,6 +441,7 @@ impl YtalCapture {
             .file
             .dataset("scene_info")
             .ok()
+            .filter(|d| r.checked_shape(d, "scene_info", 1 << 16).is_ok())
             .and_then(|d| d.read_string().ok())
             .and_then(|v| v.into_iter().next());
         let capture = YtalCapture {
@@ -366,7 +463,29 @@ impl YtalCapture {
 
     /// Checks that `H`, the grids and the origins fit together.
     fn check(&self) -> Result<(), String> {
-        let columns: usize = self.h_shape[1..].iter().product();
+        let columns: usize = self.h_shape[1..]
+            .iter()
+            .try_fold(1usize, |a, &d| a.checked_mul(d))
+            .ok_or("the shape of `H` overflows")?;
+        // Grids stored as (X, Y, 3) must match `H`'s own dimensions, not only in count:
+        // a transposed grid would put every transient at the wrong point.
+        let dims: Vec<(&str, &Grid, &[usize])> = match self.h_format {
+            HFormat::TSxSy => vec![("sensor", &self.sensor_grid, &self.h_shape[1..3])],
+            HFormat::TLxLySxSy => vec![
+                ("laser", &self.laser_grid, &self.h_shape[1..3]),
+                ("sensor", &self.sensor_grid, &self.h_shape[3..5]),
+            ],
+            HFormat::TSi | HFormat::TLiSi => Vec::new(),
+        };
+        for (side, grid, want) in dims {
+            if grid.format == GridFormat::XY3 && grid.shape != want {
+                return Err(format!(
+                    "`{side}_grid_xyz` is a {:?} grid but `H` ({}) has {want:?} there",
+                    grid.shape,
+                    self.h_format.name()
+                ));
+            }
+        }
         let (ns, nl) = (self.sensor_grid.points.len(), self.laser_grid.points.len());
         if self.h_format.is_product() {
             if columns != nl * ns {
@@ -398,11 +517,11 @@ impl YtalCapture {
                     .into(),
             );
         }
-        if self.h.len() != self.bins() * columns {
+        if Some(self.h.len()) != self.bins().checked_mul(columns) {
             return Err(format!(
-                "`H` holds {} values, its shape says {}",
+                "`H` holds {} values, its shape {:?} says otherwise",
                 self.h.len(),
-                self.bins() * columns
+                self.h_shape
             ));
         }
         Ok(())
@@ -470,7 +589,19 @@ impl YtalCapture {
     /// width. Transients with no counts are left out.
     pub fn transients(&self, volume: &VolumeGrid) -> Result<TransientSet, YtalError> {
         let pairs: Vec<Pair> = (0..self.len()).map(|c| self.pair(c)).collect();
-        let axis: TimeAxis = pipeline::hidden_axis(&pairs, volume, self.delta_t / C0);
+        let axis: TimeAxis =
+            pipeline::hidden_axis(&pairs, volume, self.delta_t / C0).map_err(|e| self.error(e))?;
+        let bytes = (pairs.len() as u64)
+            .saturating_mul(axis.bins as u64)
+            .saturating_mul(8);
+        if bytes > MAX_TRANSIENT_BYTES {
+            return Err(self.error(format!(
+                "{} transients of {} bins would take {bytes} bytes, more than {MAX_TRANSIENT_BYTES}: \
+                 give a smaller [volume] or a coarser capture",
+                pairs.len(),
+                axis.bins
+            )));
+        }
         let mut set = TransientSet::new(axis).map_err(|e| self.error(e.to_string()))?;
         for (c, pair) in pairs.into_iter().enumerate() {
             let h = rebin_path(self.transient(c), self.hidden_start(c), self.delta_t, &axis);
@@ -646,24 +777,36 @@ impl YtalCapture {
             "{} holds no measured pairs to export",
             dir.display()
         );
+        // The time axis: the first record's settings when they are the plan's shape,
+        // else the plan's own (a damaged or forged log cannot size the export).
         let first = &records[0];
-        let (width, offset) = (
-            f64::from(first.bin_width_ps) * 1e-12,
-            f64::from(first.offset_ps) * 1e-12,
-        );
+        let acq = &plan.acquisition;
+        let (width, offset, bins) = if first.counts.len() == acq.bins as usize {
+            (
+                f64::from(first.bin_width_ps) * 1e-12,
+                f64::from(first.offset_ps) * 1e-12,
+                first.counts.len(),
+            )
+        } else {
+            (acq.bin_width, acq.offset, acq.bins as usize)
+        };
         let t_start = C0 * (offset - inst.tdc.system_delay);
         let delta_t = C0 * width;
-        let bins = first.counts.len();
         let axis = TimeAxis {
             start: t_start,
             width: delta_t,
             bins,
         };
         let n = records.len();
+        anyhow::ensure!(
+            (bins as u64).saturating_mul(n as u64) <= MAX_DATASET_BYTES / 4,
+            "{}: {n} records of {bins} bins are more than an export may hold",
+            dir.display()
+        );
         let mut h = vec![0.0f32; bins * n];
         for (c, r) in records.iter().enumerate() {
-            let same = r.bin_width_ps == first.bin_width_ps
-                && r.offset_ps == first.offset_ps
+            let same = f64::from(r.bin_width_ps) * 1e-12 == width
+                && f64::from(r.offset_ps) * 1e-12 == offset
                 && r.counts.len() == bins;
             let column: Vec<f32> = if same {
                 r.counts.iter().map(|&v| v as f32).collect()
@@ -689,7 +832,7 @@ impl YtalCapture {
                 shape: vec![n],
             }
         };
-        let dwell_s = records.iter().map(|r| r.dwell_us).sum::<u64>() as f64 * 1e-6;
+        let dwell_s = records.iter().fold(0u64, |a, r| a.saturating_add(r.dwell_us)) as f64 * 1e-6;
         let scene_info = format!(
             "original_format: periscope\nrun: '{}'\nplan: '{}'\npairs_planned: {}\npairs_measured: {n}\n\
              dwell_total_s: {dwell_s}\nbin_width_s: {width}\nacquisition_offset_s: {offset}\n\

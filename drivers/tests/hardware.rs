@@ -56,7 +56,7 @@ fn spad_arm_moves_and_settles() {
 #[test]
 fn histogrammer_acquires() {
     let transport = RusbTransport::open(env("PERISCOPE_TDC_USB").parse().unwrap()).unwrap();
-    let mut tdc = UsbTdc::new(transport, Duration::from_millis(500));
+    let mut tdc = UsbTdc::open(transport, Duration::from_millis(500)).unwrap();
     tdc.identify().unwrap();
     tdc.configure(&TdcConfig {
         bin_width: 16e-12,

@@ -401,7 +401,7 @@ fn usb_configure_acquire_status_identify() {
         input_rate_hz: 2500,
         frames: 1,
     };
-    let mut tdc = UsbTdc::new(
+    let mut tdc = UsbTdc::with_sequence(
         ScriptedUsb {
             script: [
                 (Xfer::Out(0x02, 0, 0, CONFIG_BYTES.to_vec()), vec![]),
@@ -416,6 +416,7 @@ fn usb_configure_acquire_status_identify() {
             .collect(),
         },
         Duration::from_millis(20),
+        0,
     );
     tdc.configure(&config()).unwrap();
     let h = tdc.acquire().unwrap();
@@ -435,7 +436,7 @@ fn usb_frame_with_other_settings_is_refused() {
     let wrong = frame(32);
     let mut second = wrong.clone();
     second[8] = 2; // sequence 2 for the retry (the CRC no longer holds: refused too)
-    let mut tdc = UsbTdc::new(
+    let mut tdc = UsbTdc::with_sequence(
         ScriptedUsb {
             script: [
                 (Xfer::Out(0x02, 0, 0, CONFIG_BYTES.to_vec()), vec![]),
@@ -449,9 +450,132 @@ fn usb_frame_with_other_settings_is_refused() {
             .collect(),
         },
         Duration::from_millis(20),
+        0,
     );
     tdc.configure(&config()).unwrap();
     let err = tdc.acquire().unwrap_err();
     assert_eq!(err.kind(), ErrorKind::Protocol);
     assert!(tdc.transport_mut().script.is_empty());
+}
+
+/// A histogrammer that keeps what it has not delivered on its bulk-in endpoint across
+/// connections (as a real device's FIFO does when the host goes away mid-read): it
+/// echoes its config, answers `START(seq)` with a frame of that sequence number and
+/// counts [1, 2, 3, 4], and `ABORT` stops acquiring but does not empty the FIFO.
+struct FifoDevice {
+    fifo: Arc<Mutex<VecDeque<Vec<u8>>>>,
+    config: Vec<u8>,
+}
+
+impl UsbTransport for FifoDevice {
+    fn control_in(
+        &mut self,
+        r: u8,
+        _v: u16,
+        _i: u16,
+        buf: &mut [u8],
+        _t: Duration,
+    ) -> Result<usize, TransportError> {
+        match r {
+            0x03 => {
+                buf[..self.config.len()].copy_from_slice(&self.config);
+                Ok(self.config.len())
+            }
+            _ => Err(TransportError::Stall),
+        }
+    }
+    fn control_out(
+        &mut self,
+        r: u8,
+        v: u16,
+        i: u16,
+        data: &[u8],
+        _t: Duration,
+    ) -> Result<(), TransportError> {
+        match r {
+            0x02 => self.config = data.to_vec(),
+            0x04 => {
+                let seq = u32::from(v) | (u32::from(i) << 16);
+                let wire = WireConfig::decode(&self.config).unwrap();
+                let f = protocol::encode_frame(
+                    &FrameHeader {
+                        sequence: seq,
+                        flags: 0,
+                        config: WireConfig {
+                            sync_divider: 0,
+                            ..wire
+                        },
+                    },
+                    &[1, 2, 3, 4],
+                );
+                self.fifo.lock().unwrap().push_back(f);
+            }
+            _ => {}
+        }
+        Ok(())
+    }
+    fn bulk_in(&mut self, _ep: u8, buf: &mut [u8], _t: Duration) -> Result<usize, TransportError> {
+        match self.fifo.lock().unwrap().pop_front() {
+            Some(f) => {
+                buf[..f.len()].copy_from_slice(&f);
+                Ok(f.len())
+            }
+            None => Err(TransportError::Timeout),
+        }
+    }
+    fn reopen(&mut self) -> Result<(), TransportError> {
+        Ok(())
+    }
+    fn describe(&self) -> String {
+        "FIFO device".into()
+    }
+}
+
+#[test]
+fn a_frame_left_by_an_earlier_connection_is_never_taken_for_a_fresh_one() {
+    // An earlier daemon started acquisition 1 and died before reading its frame, whose
+    // counts are [9, 9, 9, 9]: it still sits in the device's FIFO.
+    let stale = {
+        let wire = WireConfig::decode(&CONFIG_BYTES).unwrap();
+        protocol::encode_frame(
+            &FrameHeader {
+                sequence: 1,
+                flags: 0,
+                config: WireConfig {
+                    sync_divider: 0,
+                    ..wire
+                },
+            },
+            &[9, 9, 9, 9],
+        )
+    };
+    let fifo = Arc::new(Mutex::new(VecDeque::from([stale.clone()])));
+    let device = || FifoDevice {
+        fifo: Arc::clone(&fifo),
+        config: Vec::new(),
+    };
+    // What the driver did before: sequence numbers from 1 and no drain on open. The
+    // stale frame matches sequence 1 and is returned as this acquisition's histogram.
+    let mut naive = UsbTdc::with_sequence(device(), Duration::from_millis(20), 0);
+    naive.configure(&config()).unwrap();
+    assert_eq!(naive.acquire().unwrap().counts, vec![9, 9, 9, 9]);
+
+    // Opened properly, with the same stale frame waiting: it is drained, and the
+    // histogram is the one this connection asked for.
+    fifo.lock().unwrap().clear();
+    fifo.lock().unwrap().push_back(stale);
+    let mut tdc = UsbTdc::open(device(), Duration::from_millis(20)).unwrap();
+    tdc.configure(&config()).unwrap();
+    let h = tdc.acquire().unwrap();
+    assert_eq!(h.counts, vec![1, 2, 3, 4]);
+    assert!(fifo.lock().unwrap().is_empty());
+    // Each connection starts at its own random sequence number.
+    let firsts: std::collections::HashSet<u32> = (0..8)
+        .map(|_| {
+            let mut t = UsbTdc::open(device(), Duration::from_millis(20)).unwrap();
+            t.configure(&config()).unwrap();
+            t.acquire().unwrap().sequence
+        })
+        .collect();
+    assert!(firsts.len() >= 7, "{firsts:?}");
 }

@@ -74,7 +74,9 @@ fn galvo(rig: &Rig, arm: Arm, driver_limits_deg: f64) -> SerialGalvo {
 }
 
 fn tdc(rig: &Rig) -> UsbTdc<SimTdcTransport> {
-    let mut tdc = UsbTdc::new(rig.tdc_transport(), TIMEOUT);
+    // Sequence numbers from 1, so the fault tests can name the acquisition a frame
+    // came from (a driver opened for real starts at a random one).
+    let mut tdc = UsbTdc::with_sequence(rig.tdc_transport(), TIMEOUT, 0);
     tdc.configure(&TdcConfig {
         bin_width: 16e-12,
         bins: 512,

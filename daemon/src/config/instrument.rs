@@ -762,8 +762,8 @@ fn galvo_arm(check: &Check<'_>, key: &str, raw: RawGalvo, hardware: bool) -> Res
                     "must name a serial device, e.g. /dev/ttyUSB0",
                 ));
             }
-            if s.timeout_ms == 0 {
-                return Err(src.invalid(&format!("{key}.serial.timeout-ms"), "must be at least 1 ms"));
+            if !(1..=60_000).contains(&s.timeout_ms) {
+                return Err(src.invalid(&format!("{key}.serial.timeout-ms"), "must be 1 to 60,000 ms"));
             }
             Ok(SerialLink {
                 port: s.port,

@@ -47,13 +47,22 @@ pub fn rebin_path(
     let mut out = vec![0.0f32; axis.bins];
     let shift = (start - axis.start) / axis.width;
     let scale = width / axis.width;
+    if !(shift.is_finite() && scale.is_finite() && scale > 0.0) {
+        // No overlap can be computed: nothing lands on the axis.
+        return out;
+    }
     for (k, c) in values.into_iter().enumerate() {
         if c == 0.0 {
             continue;
         }
         let lo = shift + k as f64 * scale;
         let hi = lo + scale;
-        let (first, last) = (lo.floor() as isize, (hi.ceil() as isize) - 1);
+        // Bins wholly outside the axis are skipped before any index is formed, so
+        // far-off starts (hostile files) neither overflow nor loop.
+        if !(hi > 0.0 && lo < axis.bins as f64) {
+            continue;
+        }
+        let (first, last) = (lo.floor() as isize, (hi.ceil() as isize).saturating_sub(1));
         for j in first.max(0)..=last.min(axis.bins as isize - 1) {
             let overlap = (hi.min(j as f64 + 1.0) - lo.max(j as f64)).max(0.0);
             out[j as usize] += (f64::from(c) * overlap / scale) as f32;
@@ -78,8 +87,11 @@ pub(crate) fn capture_order(total: usize) -> impl Iterator<Item = usize> {
 
 /// The hidden-path axis all pairs are rebinned to: the TDC's bin width, spanning the
 /// shortest to the longest hidden path any pair can have to the reconstruction volume.
-pub fn hidden_axis(pairs: &[Pair], volume: &VolumeGrid, bin_width: f64) -> TimeAxis {
+pub fn hidden_axis(pairs: &[Pair], volume: &VolumeGrid, bin_width: f64) -> Result<TimeAxis, String> {
     let width = C0 * bin_width;
+    if !(width.is_finite() && width > 0.0) {
+        return Err(format!("the bin width {bin_width} s is not a positive time"));
+    }
     let (mut near, mut far) = (f64::INFINITY, 0.0f64);
     let (lo, hi) = (volume.min(), volume.max());
     for p in pairs {
@@ -97,9 +109,26 @@ pub fn hidden_axis(pairs: &[Pair], volume: &VolumeGrid, bin_width: f64) -> TimeA
         near = near.min(clamp(p.xi).distance(p.xi) + clamp(p.xd).distance(p.xd));
     }
     let start = ((near.max(0.0) / width).floor() - 4.0).max(0.0) * width;
-    let bins = (((far - start) / width).ceil() as usize + 4).max(8);
-    TimeAxis { start, width, bins }
+    // In f64 first: hostile geometry (a tiny bin width, points far away) must be
+    // refused, not wrapped or allocated.
+    let bins = ((far - start) / width).ceil() + 4.0;
+    if !(bins.is_finite() && start.is_finite()) || bins > MAX_AXIS_BINS as f64 {
+        return Err(format!(
+            "the hidden paths span {:.3e} m, {bins:.3e} bins of {width:.3e} m: more than the {MAX_AXIS_BINS} \
+             bins a transient may have; check the bin width, the relay points and the volume",
+            far - start
+        ));
+    }
+    Ok(TimeAxis {
+        start,
+        width,
+        bins: (bins as usize).max(8),
+    })
 }
+
+/// Most bins a transient on the hidden-path axis may have (at 4 ps bins, 1.3 km of
+/// path): beyond this a capture's geometry or bin width is wrong, not large.
+pub const MAX_AXIS_BINS: usize = 1 << 20;
 
 fn as_pair(p: &PlannedPair) -> Pair {
     Pair {
@@ -121,7 +150,8 @@ impl Run {
             self.instrument.spad_arm.pose.origin,
         );
         let recon_pairs: Vec<Pair> = pairs.iter().map(as_pair).collect();
-        let axis = hidden_axis(&recon_pairs, &self.plan.recon.volume, acq.bin_width);
+        let axis = hidden_axis(&recon_pairs, &self.plan.recon.volume, acq.bin_width)
+            .map_err(PipelineError::Recon)?;
         let legs = |p: &PlannedPair| p.xi.distance(l) + p.xd.distance(s);
         let (mut log, recovered) =
             HistogramLog::recover(&self.dir).map_err(|e| PipelineError::storage(&self.dir, e))?;

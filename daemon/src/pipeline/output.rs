@@ -76,41 +76,75 @@ pub(crate) fn read_relay_ply(dir: &Path) -> Result<Option<Vec<RelayPoint>>, Pipe
         return Ok(None);
     }
     let bytes = std::fs::read(&path).map_err(io(&path))?;
-    let bad = || {
+    parse_relay_ply(&bytes).map(Some).map_err(|m| {
         PipelineError::storage(
             &path,
-            std::io::Error::new(std::io::ErrorKind::InvalidData, "not a Periscope relay PLY"),
+            std::io::Error::new(
+                std::io::ErrorKind::InvalidData,
+                format!("not a Periscope relay PLY ({m}); delete it to measure the relay again"),
+            ),
         )
-    };
+    })
+}
+
+/// The vertex properties of a relay PLY, in order.
+const RELAY_PROPERTIES: [&str; 7] = ["x", "y", "z", "nx", "ny", "nz", "intensity"];
+
+/// Decodes a relay PLY as [`write_relay_ply`] writes it: the header must declare
+/// exactly its layout, the body must be exactly the declared vertices, and every
+/// point finite with a unit normal. Any input gives an answer; nothing here panics.
+pub fn parse_relay_ply(bytes: &[u8]) -> Result<Vec<RelayPoint>, String> {
     let end = bytes
         .windows(11)
         .position(|w| w == b"end_header\n")
-        .ok_or_else(bad)?
+        .ok_or("no end_header line")?
         + 11;
-    let header = std::str::from_utf8(&bytes[..end]).map_err(|_| bad())?;
-    let n: usize = header
-        .lines()
-        .find_map(|l| l.strip_prefix("element vertex "))
-        .and_then(|v| v.trim().parse().ok())
-        .ok_or_else(bad)?;
+    let header = std::str::from_utf8(&bytes[..end]).map_err(|_| "the header is not text")?;
+    let lines: Vec<&str> = header.lines().filter(|l| !l.starts_with("comment")).collect();
+    let n: usize = match lines.as_slice() {
+        [
+            "ply",
+            "format binary_little_endian 1.0",
+            vertex,
+            props @ ..,
+            "end_header",
+        ] if props.len() == RELAY_PROPERTIES.len()
+            && props
+                .iter()
+                .zip(RELAY_PROPERTIES)
+                .all(|(l, name)| l.strip_prefix("property float ") == Some(name)) =>
+        {
+            vertex
+                .strip_prefix("element vertex ")
+                .and_then(|v| v.trim().parse().ok())
+                .ok_or("no vertex count")?
+        }
+        _ => return Err("the header is not the relay layout (x y z nx ny nz intensity, float)".into()),
+    };
     let body = &bytes[end..];
-    if body.len() != n * 28 {
-        return Err(bad());
+    if n.checked_mul(28) != Some(body.len()) {
+        return Err(format!(
+            "the header declares {n} vertices but the body has {} bytes",
+            body.len()
+        ));
     }
     let f = |i: usize| {
         f64::from(f32::from_le_bytes(
             body[4 * i..4 * i + 4].try_into().expect("4 bytes"),
         ))
     };
-    Ok(Some(
-        (0..n)
-            .map(|k| RelayPoint {
+    (0..n)
+        .map(|k| {
+            let p = RelayPoint {
                 x: DVec3::new(f(7 * k), f(7 * k + 1), f(7 * k + 2)),
                 n: DVec3::new(f(7 * k + 3), f(7 * k + 4), f(7 * k + 5)),
                 intensity: f(7 * k + 6),
-            })
-            .collect(),
-    ))
+            };
+            let ok = p.x.is_finite() && p.intensity.is_finite() && (p.n.length() - 1.0).abs() < 1e-3;
+            ok.then_some(p)
+                .ok_or_else(|| format!("vertex {k} is not finite or its normal is not of unit length"))
+        })
+        .collect()
 }
 
 #[derive(Serialize)]

@@ -5,7 +5,6 @@ use periscope_drivers::{AngleLimits, GalvoPose, OpticalAngles};
 use periscope_recon::linalg::fit_plane;
 use periscope_recon::relay::Region;
 use rand::SeedableRng;
-use rand::seq::index::sample;
 use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
 
@@ -167,13 +166,13 @@ pub(crate) fn pair_mode(src: &TomlSource, raw: RawPairs) -> Result<PairMode, Con
             let width = rows.first().map_or(0, |r| r.chars().count());
             let valid = !rows.is_empty()
                 && rows.len() <= 512
-                && width >= 1
+                && (1..=512).contains(&width)
                 && rows.iter().all(|r| r.chars().count() == width && r.chars().all(|c| c == '#' || c == '.'))
                 && rows.iter().any(|r| r.contains('#'));
             if !valid {
                 return Err(src.invalid(
                     "pairs.mask",
-                    "must be rows of equal length made of `#` (measure) and `.` (skip), with at least one `#`",
+                    "must be 1 to 512 rows of equal length (1 to 512) made of `#` (measure) and `.` (skip), with at least one `#`",
                 ));
             }
             Ok(PairMode::Mask { rows, offset })
@@ -248,6 +247,31 @@ fn grid_sample(relay: &RelayView<'_>, candidates: &[usize], grid: [usize; 2]) ->
         .collect()
 }
 
+/// `n` distinct indices below `len`, sorted, drawn uniformly: memory in proportion
+/// to `n`, not `len` (rejection sampling while fewer than half are drawn; otherwise a
+/// partial shuffle of `0..len`, which is then at most `2n` long).
+fn draw_indices(rng: &mut ChaCha8Rng, len: usize, n: usize) -> Vec<usize> {
+    use rand::Rng;
+    let n = n.min(len);
+    let mut out: Vec<usize> = if n * 2 <= len {
+        let mut seen = std::collections::HashSet::with_capacity(n);
+        while seen.len() < n {
+            seen.insert(rng.random_range(0..len));
+        }
+        seen.into_iter().collect()
+    } else {
+        let mut all: Vec<usize> = (0..len).collect();
+        for i in 0..n {
+            let j = rng.random_range(i..len);
+            all.swap(i, j);
+        }
+        all.truncate(n);
+        all
+    };
+    out.sort_unstable();
+    out
+}
+
 /// Plans the pairs on a measured relay: positions and normals from the relay, angles
 /// from the calibration model. Pairs whose angles fall outside either arm's limits are
 /// left out and counted in the second return value.
@@ -311,22 +335,24 @@ pub fn plan_pairs(
         PairMode::Scanned { laser_grid, grid } | PairMode::Random { laser_grid, grid, .. } => {
             let lasers = grid_sample(relay, &ill, *laser_grid);
             let dets = grid_sample(relay, &det, *grid);
-            for &(_, l) in &lasers {
-                for &(_, d) in &dets {
-                    raw.push((
-                        relay.points[l],
-                        relay.normals[l],
-                        relay.points[d],
-                        relay.normals[d],
-                    ));
+            let product = lasers.len() * dets.len();
+            // Random pairs are drawn as indices into the laser × detection product,
+            // which is never built: only the drawn pairs are.
+            let picked: Box<dyn Iterator<Item = usize>> = match mode {
+                PairMode::Random { count, seed, .. } => {
+                    let mut rng = ChaCha8Rng::seed_from_u64(*seed);
+                    Box::new(draw_indices(&mut rng, product, (*count).min(product)).into_iter())
                 }
-            }
-            if let PairMode::Random { count, seed, .. } = mode {
-                let mut rng = ChaCha8Rng::seed_from_u64(*seed);
-                let n = (*count).min(raw.len());
-                let mut picked: Vec<usize> = sample(&mut rng, raw.len(), n).into_vec();
-                picked.sort_unstable();
-                raw = picked.into_iter().map(|k| raw[k]).collect();
+                _ => Box::new(0..product),
+            };
+            for k in picked {
+                let (l, d) = (lasers[k / dets.len()].1, dets[k % dets.len()].1);
+                raw.push((
+                    relay.points[l],
+                    relay.normals[l],
+                    relay.points[d],
+                    relay.normals[d],
+                ));
             }
         }
     }

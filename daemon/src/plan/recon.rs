@@ -117,6 +117,9 @@ impl Default for RawGtr {
 /// level, which a blurred edge crosses at the true edge (docs/pipeline.md, "Depth maps").
 const DEFAULT_DEPTH_THRESHOLD: f64 = 0.4;
 
+/// Farthest a volume may reach from the instrument, metres.
+const MAX_EXTENT_M: f64 = 100.0;
+
 fn default_primitives() -> usize {
     2000
 }
@@ -177,6 +180,12 @@ pub(crate) fn recon_settings(
                     return Err(src.invalid(
                         &key(&format!("volume.{name}")),
                         format!("must be [min, max] in metres with max > min, got {r:?}"),
+                    ));
+                }
+                if r[0].abs().max(r[1].abs()) > MAX_EXTENT_M {
+                    return Err(src.invalid(
+                        &key(&format!("volume.{name}")),
+                        format!("{r:?} reaches beyond {MAX_EXTENT_M} m of the instrument; NLOS volumes are metres across"),
                     ));
                 }
             }

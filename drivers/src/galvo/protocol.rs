@@ -60,6 +60,21 @@ pub enum LineError {
     Checksum(Option<u8>),
 }
 
+/// Exactly two upper-case hex digits, as the protocol writes tags and CRCs (not `+1`,
+/// `a`, or `000A`, which a lenient parser would take).
+fn hex_byte(s: &str) -> Option<u8> {
+    let b = s.as_bytes();
+    let digit = |c: u8| match c {
+        b'0'..=b'9' => Some(c - b'0'),
+        b'A'..=b'F' => Some(c - b'A' + 10),
+        _ => None,
+    };
+    match b {
+        [h, l] => Some(digit(*h)? << 4 | digit(*l)?),
+        _ => None,
+    }
+}
+
 /// Decodes one line (without its `\n`; a trailing `\r` is ignored) into its tag and
 /// body.
 pub fn decode_line(line: &[u8]) -> Result<(u8, &str), LineError> {
@@ -69,8 +84,8 @@ pub fn decode_line(line: &[u8]) -> Result<(u8, &str), LineError> {
     let tag = head
         .get(..2)
         .filter(|_| head.as_bytes().get(2) == Some(&b' '))
-        .and_then(|t| u8::from_str_radix(t, 16).ok());
-    let crc = u8::from_str_radix(crc, 16).map_err(|_| LineError::Malformed)?;
+        .and_then(hex_byte);
+    let crc = hex_byte(crc).ok_or(LineError::Malformed)?;
     if crc != crc8(head.as_bytes()) {
         return Err(LineError::Checksum(tag));
     }
@@ -356,6 +371,20 @@ pub fn parse_limits(fields: &[&str]) -> Option<AngleLimits> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn tags_and_crcs_are_exactly_two_upper_case_hex_digits() {
+        let good = encode_line(0x1A, "POS?");
+        assert_eq!(decode_line(good.trim_end().as_bytes()).unwrap(), (0x1A, "POS?"));
+        // Each would pass a lenient parser: the CRC holds over what is written.
+        for bad in [
+            format!("1a POS?*{:02X}", crc8(b"1a POS?")),
+            format!("+1 POS?*{:02X}", crc8(b"+1 POS?")),
+            format!("1A POS?*0{:02X}", crc8(b"1A POS?")),
+        ] {
+            assert!(decode_line(bad.as_bytes()).is_err(), "{bad} was accepted");
+        }
+    }
 
     #[test]
     fn crc8_matches_the_published_check_value() {

@@ -562,8 +562,12 @@ impl SerialGalvo {
         let mut chunk = [0u8; 128];
         while let Some(left) = deadline.checked_duration_since(Instant::now()) {
             match link.receive(&mut chunk, left) {
-                Ok(n) => rx.extend_from_slice(&chunk[..n]),
+                Ok(n) => rx.extend_from_slice(&chunk[..n.min(chunk.len())]),
                 Err(_) => return,
+            }
+            // Keep the tail only: a controller that babbles cannot grow this.
+            if rx.len() > 4096 {
+                rx.drain(..rx.len() - 1024);
             }
             let answered = rx
                 .split(|&b| b == b'\n')

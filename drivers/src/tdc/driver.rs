@@ -49,6 +49,26 @@ fn to_wire(c: &TdcConfig) -> Option<WireConfig> {
     })
 }
 
+/// How long a drain waits for more data before it counts the endpoint as empty.
+const DRAIN_WAIT: Duration = Duration::from_millis(10);
+
+/// Longest a drain on open may take (a device streaming without end is an error the
+/// first acquisition reports).
+pub const DRAIN_LIMIT: Duration = Duration::from_millis(500);
+
+/// A sequence number no earlier connection is likely to have used: from the
+/// process's random hash keys and the clock.
+fn random_sequence() -> u32 {
+    use std::hash::{BuildHasher, Hasher};
+    let mut h = std::collections::hash_map::RandomState::new().build_hasher();
+    h.write_u128(
+        std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .map_or(0, |d| d.as_nanos()),
+    );
+    h.finish() as u32
+}
+
 /// How often an acquisition in progress asks whether to stop: the bound on how long
 /// a stop waits for a dwell, whatever its length.
 pub const POLL: Duration = Duration::from_millis(5);
@@ -63,18 +83,59 @@ impl<T: UsbTransport> UsbTdc<T> {
             .map_err(|e| self.transport_err("Abort", e))
     }
 
-    /// A driver over an open transport.
+    /// A driver over an open transport, starting its sequence numbers at a random
+    /// value. It talks to the device only when asked; [`UsbTdc::open`] also clears
+    /// what an earlier connection left behind, and is what the daemon uses.
     pub fn new(transport: T, timeout: Duration) -> UsbTdc<T> {
+        UsbTdc::with_sequence(transport, timeout, random_sequence())
+    }
+
+    /// A driver whose first acquisition carries sequence number `last + 1` (scripted
+    /// tests, which need to know it).
+    pub fn with_sequence(transport: T, timeout: Duration, last: u32) -> UsbTdc<T> {
         let device = transport.describe();
         UsbTdc {
             transport,
             device,
             timeout,
             config: None,
-            sequence: 0,
+            sequence: last,
             rx: Vec::new(),
             chunk: vec![0; 1 << 16],
         }
+    }
+
+    /// Opens the device for this connection: a random starting sequence number, then
+    /// `ABORT` (the device drops the acquisition in progress) and a drain of the
+    /// bulk-in endpoint, so a frame an earlier connection (a crashed daemon, a failed
+    /// open) left behind can never be taken for a fresh one.
+    pub fn open(transport: T, timeout: Duration) -> Result<UsbTdc<T>, TdcError> {
+        let mut tdc = UsbTdc::new(transport, timeout);
+        tdc.clear_device()?;
+        Ok(tdc)
+    }
+
+    /// `ABORT`, then reads and drops whatever the bulk-in endpoint still holds, until
+    /// it stays empty for a short wait (at most [`DRAIN_LIMIT`] in all).
+    fn clear_device(&mut self) -> Result<(), TdcError> {
+        self.abort_acquisition()?;
+        let t = Instant::now();
+        let mut dropped = 0usize;
+        while t.elapsed() < DRAIN_LIMIT {
+            match self
+                .transport
+                .bulk_in(protocol::BULK_IN_ENDPOINT, &mut self.chunk, DRAIN_WAIT)
+            {
+                Ok(0) | Err(TransportError::Timeout) => break,
+                Ok(n) => dropped += n.min(self.chunk.len()),
+                Err(e) => return Err(self.transport_err("draining", e)),
+            }
+        }
+        if dropped > 0 {
+            debug!(device = %self.device, bytes = dropped, "dropped data an earlier connection left on the device");
+        }
+        self.rx.clear();
+        Ok(())
     }
 
     /// The transport (for tests and the simulator's fault injection).
@@ -115,6 +176,9 @@ impl<T: UsbTransport> UsbTdc<T> {
                 self.transport
                     .reopen()
                     .map_err(|e| self.transport_err("reconnecting", e))?;
+                // A new connection: new sequence numbers, and nothing from before.
+                self.sequence = random_sequence();
+                self.clear_device()?;
                 if let Some(config) = self.config {
                     self.send_config(&config)?;
                 }

@@ -1,0 +1,224 @@
+//! `periscope recon` on y-tal captures made to hurt: a small file declaring a huge
+//! `H` (an "HDF5 bomb"), a bin width that would need terabytes, a time origin of
+//! −1e30 m, origins that are not finite, a transposed grid. Each must end in a clear
+//! message naming the dataset, exit code 1, and never an abort, under a 4 GiB address
+//! space limit (as on a lab PC that is also running the instrument).
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+use glam::DVec3;
+use periscope_daemon::ytal::{Grid, GridFormat, HFormat, YtalCapture};
+
+/// A confocal 11 × 13 capture of 7 bins: small, with a shape whose bytes are unique in
+/// the file, so tests can find and forge it.
+fn capture() -> YtalCapture {
+    let (nx, ny) = (11, 13);
+    let points: Vec<DVec3> = (0..nx * ny)
+        .map(|k| DVec3::new(0.05 * (k / ny) as f64 - 0.25, 0.05 * (k % ny) as f64 - 0.3, 0.0))
+        .collect();
+    let grid = Grid {
+        normals: vec![DVec3::Z; points.len()],
+        points,
+        format: GridFormat::XY3,
+        shape: vec![nx, ny],
+    };
+    YtalCapture {
+        h: (0..7 * nx * ny).map(|v| (v % 5) as f32).collect(),
+        h_shape: vec![7, nx, ny],
+        h_format: HFormat::TSxSy,
+        sensor_grid: grid.clone(),
+        laser_grid: grid,
+        sensor_xyz: None,
+        laser_xyz: None,
+        delta_t: 0.01,
+        t_start: 1.0,
+        t_accounts_first_and_last_bounces: false,
+        scene_info: None,
+    }
+}
+
+/// Runs `periscope recon FILE` with the address space limited to 4 GiB; returns the
+/// exit code (`None`: killed by a signal) and stderr.
+fn recon_limited(file: &Path, out: &Path) -> (Option<i32>, String) {
+    let cmd = format!(
+        "ulimit -v 4194304; exec '{}' recon '{}' --out '{}'",
+        env!("CARGO_BIN_EXE_periscope"),
+        file.display(),
+        out.display()
+    );
+    let o = Command::new("sh").arg("-c").arg(cmd).output().unwrap();
+    (o.status.code(), String::from_utf8_lossy(&o.stderr).into_owned())
+}
+
+fn write(dir: &Path, name: &str, c: &YtalCapture) -> PathBuf {
+    let path = dir.join(name);
+    c.write(&path).unwrap();
+    path
+}
+
+/// Replaces the first occurrence of `from` in the file by `to` (same length) and
+/// re-seals the object header it lies in (HDF5 checksums its metadata with Jenkins'
+/// lookup3), as a forger would.
+fn forge(path: &Path, from: &[u8], to: &[u8]) {
+    let mut bytes = std::fs::read(path).unwrap();
+    let at = bytes
+        .windows(from.len())
+        .position(|w| w == from)
+        .expect("the pattern is in the file");
+    bytes[at..at + to.len()].copy_from_slice(to);
+    let start = bytes[..at]
+        .windows(4)
+        .rposition(|w| w == b"OHDR")
+        .expect("the pattern lies in a version-2 object header");
+    let flags = bytes[start + 5];
+    let mut p = start + 6;
+    if flags & 0x20 != 0 {
+        p += 16; // times
+    }
+    if flags & 0x10 != 0 {
+        p += 4; // attribute phase change
+    }
+    let width = 1usize << (flags & 0x03);
+    let mut size = 0usize;
+    for k in 0..width {
+        size |= usize::from(bytes[p + k]) << (8 * k);
+    }
+    let end = p + width + size;
+    assert!(at < end, "the pattern is not in the header's first chunk");
+    let sum = lookup3(&bytes[start..end]);
+    bytes[end..end + 4].copy_from_slice(&sum.to_le_bytes());
+    std::fs::write(path, bytes).unwrap();
+}
+
+/// Bob Jenkins' lookup3 `hashlittle` with seed 0, HDF5's metadata checksum.
+fn lookup3(data: &[u8]) -> u32 {
+    let mut a = 0xdead_beef_u32.wrapping_add(data.len() as u32);
+    let (mut b, mut c) = (a, a);
+    let word = |k: &[u8], i: usize| -> u32 {
+        let mut w = [0u8; 4];
+        for (j, x) in w.iter_mut().enumerate() {
+            *x = k.get(i + j).copied().unwrap_or(0);
+        }
+        u32::from_le_bytes(w)
+    };
+    let mut k = data;
+    while k.len() > 12 {
+        a = a.wrapping_add(word(k, 0));
+        b = b.wrapping_add(word(k, 4));
+        c = c.wrapping_add(word(k, 8));
+        a = a.wrapping_sub(c) ^ c.rotate_left(4);
+        c = c.wrapping_add(b);
+        b = b.wrapping_sub(a) ^ a.rotate_left(6);
+        a = a.wrapping_add(c);
+        c = c.wrapping_sub(b) ^ b.rotate_left(8);
+        b = b.wrapping_add(a);
+        a = a.wrapping_sub(c) ^ c.rotate_left(16);
+        c = c.wrapping_add(b);
+        b = b.wrapping_sub(a) ^ a.rotate_left(19);
+        a = a.wrapping_add(c);
+        c = c.wrapping_sub(b) ^ b.rotate_left(4);
+        b = b.wrapping_add(a);
+        k = &k[12..];
+    }
+    if k.is_empty() {
+        return c;
+    }
+    a = a.wrapping_add(word(k, 0));
+    b = b.wrapping_add(word(k, 4));
+    c = c.wrapping_add(word(k, 8));
+    c ^= b;
+    c = c.wrapping_sub(b.rotate_left(14));
+    a ^= c;
+    a = a.wrapping_sub(c.rotate_left(11));
+    b ^= a;
+    b = b.wrapping_sub(a.rotate_left(25));
+    c ^= b;
+    c = c.wrapping_sub(b.rotate_left(16));
+    a ^= c;
+    a = a.wrapping_sub(c.rotate_left(4));
+    b ^= a;
+    b = b.wrapping_sub(a.rotate_left(14));
+    c ^= b;
+    c.wrapping_sub(b.rotate_left(24))
+}
+
+fn dims(d: [u64; 3]) -> Vec<u8> {
+    d.iter().flat_map(|x| x.to_le_bytes()).collect()
+}
+
+#[test]
+fn the_untouched_capture_reconstructs() {
+    let dir = tempfile::tempdir().unwrap();
+    let file = write(dir.path(), "ok.hdf5", &capture());
+    let (code, stderr) = recon_limited(&file, &dir.path().join("out"));
+    assert_eq!(code, Some(0), "{stderr}");
+}
+
+#[test]
+fn an_hdf5_bomb_is_refused_before_anything_is_allocated() {
+    let dir = tempfile::tempdir().unwrap();
+    let file = write(dir.path(), "bomb.hdf5", &capture());
+    let size = std::fs::metadata(&file).unwrap().len();
+    // `H` now declares 7 × 2^20 × 2^20 values (28 TiB) in a file of a few KB.
+    forge(&file, &dims([7, 11, 13]), &dims([7, 1 << 20, 1 << 20]));
+    let (code, stderr) = recon_limited(&file, &dir.path().join("out"));
+    assert_eq!(code, Some(1), "{stderr}");
+    assert!(
+        stderr.contains("dataset `H`") && stderr.contains("declares"),
+        "{stderr}"
+    );
+    assert!(size < 64 << 10, "{size}");
+    // Declared within the in-memory limit but far beyond what the file can hold.
+    forge(&file, &dims([7, 1 << 20, 1 << 20]), &dims([7, 1 << 12, 1 << 12]));
+    let (code, stderr) = recon_limited(&file, &dir.path().join("out"));
+    assert_eq!(code, Some(1), "{stderr}");
+    assert!(
+        stderr.contains("dataset `H`") && stderr.contains("the file has"),
+        "{stderr}"
+    );
+}
+
+#[test]
+fn a_tiny_bin_width_is_refused_instead_of_allocating_terabytes() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut c = capture();
+    c.delta_t = 1e-12;
+    let file = write(dir.path(), "dt.hdf5", &c);
+    let (code, stderr) = recon_limited(&file, &dir.path().join("out"));
+    assert_eq!(code, Some(1), "{stderr}");
+    assert!(stderr.contains("bins"), "{stderr}");
+}
+
+#[test]
+fn absurd_time_origins_and_origins_are_refused_by_name() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut c = capture();
+    c.t_start = -1e30;
+    let file = write(dir.path(), "t.hdf5", &c);
+    let (code, stderr) = recon_limited(&file, &dir.path().join("out"));
+    assert_eq!(code, Some(1), "{stderr}");
+    assert!(stderr.contains("`t_start`"), "{stderr}");
+
+    let mut c = capture();
+    c.laser_xyz = Some(DVec3::new(f64::INFINITY, 0.0, 0.0));
+    c.sensor_xyz = Some(DVec3::ZERO);
+    c.t_accounts_first_and_last_bounces = true;
+    let file = write(dir.path(), "xyz.hdf5", &c);
+    let (code, stderr) = recon_limited(&file, &dir.path().join("out"));
+    assert_eq!(code, Some(1), "{stderr}");
+    assert!(stderr.contains("`laser_xyz`"), "{stderr}");
+}
+
+#[test]
+fn a_transposed_grid_is_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut c = capture();
+    c.sensor_grid.shape = vec![13, 11];
+    let file = write(dir.path(), "tr.hdf5", &c);
+    let (code, stderr) = recon_limited(&file, &dir.path().join("out"));
+    assert_eq!(code, Some(1), "{stderr}");
+    assert!(
+        stderr.contains("`sensor_grid_xyz` is a [13, 11] grid"),
+        "{stderr}"
+    );
+}
