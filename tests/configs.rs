@@ -90,7 +90,7 @@ fn a_broken_scene_names_file_line_and_key() {
     let err = load_scene(&bad).unwrap_err().to_string();
     let expected = format!("scene.toml:{line}: key `hidden[0].stroke`");
     assert!(err.contains(&expected), "expected `{expected}` in: {err}");
-    assert!(err.contains("too wide"), "{err}");
+    assert!(err.contains("does not suit"), "{err}");
 }
 
 #[test]

@@ -11,7 +11,7 @@ use periscope_sim::World;
 use periscope_sim::devices::{Arm, Rig, RigSettings};
 use serde::Serialize;
 
-use crate::config::{Backend, ConfigError, GalvoArm, InstrumentConfig, sim_scene};
+use crate::config::{Backend, ConfigError, GalvoArm, InstrumentConfig, TomlSource, sim_scene};
 
 /// Reply timeout of the simulated controllers' links.
 const SIM_TIMEOUT: Duration = Duration::from_millis(500);
@@ -76,12 +76,30 @@ fn galvo_settings(
     }
 }
 
+/// Most hidden-surface samples a simulated scene may need (about 1.5 GB of samples).
+const MAX_HIDDEN_SAMPLES: f64 = 2e7;
+
 /// Builds the simulated instrument for a `sim` config: scene physics and devices.
 pub fn sim_rig(config: &InstrumentConfig) -> Result<Option<Rig>, ConfigError> {
     let Backend::Sim(sim) = &config.backend else {
         return Ok(None);
     };
     let scene = sim_scene(sim)?;
+    // The third bounce samples hidden surfaces every `sample-spacing`: bound the count
+    // before anything is allocated (a scene file is a file from someone else).
+    let area: f64 = scene.hidden.iter().map(|s| s.mesh.total_area()).sum();
+    let samples = area / (sim.sample_spacing * sim.sample_spacing);
+    if !(samples <= MAX_HIDDEN_SAMPLES) {
+        let path = sim.scene.clone().unwrap_or_else(|| "<built-in scene>".into());
+        return Err(TomlSource::from_text(path, "").invalid(
+            "sim.sample-spacing-mm",
+            format!(
+                "the hidden surfaces ({area:.3e} m²) need {samples:.3e} samples at {} mm, more than {MAX_HIDDEN_SAMPLES:.0e}: \
+                 use a coarser spacing or smaller hidden objects",
+                sim.sample_spacing * 1e3
+            ),
+        ));
+    }
     let world = World::new(scene, sim.sample_spacing, sim.seed);
     Ok(Some(Rig::new(
         Some(world),

@@ -336,6 +336,25 @@ impl Reader<'_> {
     }
 }
 
+/// Runs a decode, turning a panic inside the HDF5 layer into an error that names the
+/// file. The fuzzer found malformed chunk layouts that make hdf5-pure 0.47 overflow
+/// an offset (`chunked_read.rs`, `copy_chunk_to_output`): a malformed file must be
+/// an error for the user, never a crash of `recon` or of the daemon.
+fn guarded(
+    path: &Path,
+    decode: impl FnOnce() -> Result<YtalCapture, YtalError>,
+) -> Result<YtalCapture, YtalError> {
+    std::panic::catch_unwind(std::panic::AssertUnwindSafe(decode)).unwrap_or_else(|payload| {
+        Err(YtalError::Hdf5 {
+            path: path.to_path_buf(),
+            message: format!(
+                "is malformed: the HDF5 decoder failed on it ({}); it is not a capture that can be read",
+                crate::pipeline::panic_message(payload.as_ref())
+            ),
+        })
+    })
+}
+
 fn to_points(v: &[f64]) -> Vec<DVec3> {
     v.chunks_exact(3).map(|c| DVec3::new(c[0], c[1], c[2])).collect()
 }
@@ -357,12 +376,31 @@ impl YtalCapture {
                 ),
             });
         }
-        let file = File::open(path).map_err(|e| YtalError::Hdf5 {
-            path: path.to_path_buf(),
-            message: format!(
-                "cannot be read as HDF5 ({e}); give a y-tal capture (.hdf5/.h5) or a run directory"
-            ),
-        })?;
+        guarded(path, || {
+            let file = File::open(path).map_err(|e| YtalError::Hdf5 {
+                path: path.to_path_buf(),
+                message: format!(
+                    "cannot be read as HDF5 ({e}); give a y-tal capture (.hdf5/.h5) or a run directory"
+                ),
+            })?;
+            YtalCapture::decode(file, path, file_len)
+        })
+    }
+
+    /// Reads a capture held in memory (`name` is used in messages), with the same
+    /// checks as [`YtalCapture::read`].
+    pub fn from_bytes(bytes: Vec<u8>, name: &Path) -> Result<YtalCapture, YtalError> {
+        let file_len = bytes.len() as u64;
+        guarded(name, || {
+            let file = File::from_bytes(bytes).map_err(|e| YtalError::Hdf5 {
+                path: name.to_path_buf(),
+                message: format!("cannot be read as HDF5 ({e})"),
+            })?;
+            YtalCapture::decode(file, name, file_len)
+        })
+    }
+
+    fn decode(file: File, path: &Path, file_len: u64) -> Result<YtalCapture, YtalError> {
         let r = Reader { file, path, file_len };
         if !r.has("H") {
             let hint = ["data", "data_t", "dataset", "rect_data"]

@@ -222,3 +222,21 @@ fn a_transposed_grid_is_refused() {
         "{stderr}"
     );
 }
+
+#[test]
+fn a_file_that_crashes_the_hdf5_decoder_is_an_error_not_a_crash() {
+    // Found by the `ytal_capture` fuzz target: a chunk layout that makes hdf5-pure
+    // overflow an offset while placing a chunk.
+    let seed = Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../fuzz/corpus/ytal_capture/seed-regression-hdf5-chunk-offset-overflow");
+    let dir = tempfile::tempdir().unwrap();
+    let file = dir.path().join("crash.hdf5");
+    std::fs::copy(seed, &file).unwrap();
+    let (code, stderr) = recon_limited(&file, &dir.path().join("out"));
+    assert_eq!(code, Some(1), "{stderr}");
+    let last = stderr.lines().last().unwrap_or_default();
+    assert!(
+        last.contains("crash.hdf5") && last.contains("malformed"),
+        "{stderr}"
+    );
+}

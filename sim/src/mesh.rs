@@ -136,7 +136,9 @@ impl Mesh {
     }
 
     /// Loads an OBJ or PLY file (by extension); all objects/faces are merged, polygons
-    /// triangulated.
+    /// triangulated. Files over [`MAX_MESH_FILE_BYTES`] are refused unread; an OBJ's
+    /// `mtllib` is never followed (materials are not used, and a scene file must not
+    /// make the daemon open other paths).
     pub fn load(path: &Path) -> Result<Mesh, MeshError> {
         let err = |message: String| MeshError::File {
             path: path.display().to_string(),
@@ -147,53 +149,80 @@ impl Mesh {
             .and_then(|e| e.to_str())
             .unwrap_or("")
             .to_ascii_lowercase();
-        let mesh = match ext.as_str() {
-            "obj" => {
-                let options = tobj::LoadOptions {
-                    triangulate: true,
-                    single_index: true,
-                    ..Default::default()
-                };
-                let (models, _) = tobj::load_obj(path, &options).map_err(|e| err(e.to_string()))?;
-                let mut mesh = Mesh::default();
-                for model in models {
-                    let m = &model.mesh;
-                    let part = Mesh {
-                        vertices: m
-                            .positions
-                            .chunks_exact(3)
-                            .map(|p| DVec3::new(p[0] as f64, p[1] as f64, p[2] as f64))
-                            .collect(),
-                        triangles: m.indices.chunks_exact(3).map(|t| [t[0], t[1], t[2]]).collect(),
-                    };
-                    mesh.append(&part);
-                }
-                mesh
-            }
-            "ply" => load_ply(path).map_err(err)?,
-            other => return Err(err(format!("unknown mesh format `.{other}`: use .obj or .ply"))),
-        };
-        if mesh.triangles.is_empty() {
-            return Err(err("contains no faces".into()));
+        if ext != "obj" && ext != "ply" {
+            return Err(err(format!("unknown mesh format `.{ext}`: use .obj or .ply")));
         }
-        let n = mesh.vertices.len() as u32;
-        if let Some(bad) = mesh.triangles.iter().flatten().find(|&&i| i >= n) {
+        let len = std::fs::metadata(path).map_err(|e| err(e.to_string()))?.len();
+        if len > MAX_MESH_FILE_BYTES {
             return Err(err(format!(
-                "face refers to vertex {bad}, but there are only {n}"
+                "is {len} bytes, more than the {MAX_MESH_FILE_BYTES} a scene mesh may have"
             )));
         }
-        if mesh.vertices.iter().any(|v| !v.is_finite()) {
-            return Err(err("a vertex is not finite".into()));
+        let bytes = std::fs::read(path).map_err(|e| err(e.to_string()))?;
+        if ext == "obj" {
+            Mesh::from_obj_bytes(&bytes)
+        } else {
+            Mesh::from_ply_bytes(&bytes)
         }
-        Ok(mesh)
+        .map_err(err)
+    }
+
+    /// Decodes an OBJ file held in memory (no materials; `mtllib` is ignored).
+    pub fn from_obj_bytes(bytes: &[u8]) -> Result<Mesh, String> {
+        let options = tobj::LoadOptions {
+            triangulate: true,
+            single_index: true,
+            ..Default::default()
+        };
+        let (models, _) = tobj::load_obj_buf(&mut std::io::Cursor::new(bytes), &options, |_| {
+            Err(tobj::LoadError::OpenFileFailed)
+        })
+        .map_err(|e| e.to_string())?;
+        let mut mesh = Mesh::default();
+        for model in models {
+            let m = &model.mesh;
+            let part = Mesh {
+                vertices: m
+                    .positions
+                    .chunks_exact(3)
+                    .map(|p| DVec3::new(p[0] as f64, p[1] as f64, p[2] as f64))
+                    .collect(),
+                triangles: m.indices.chunks_exact(3).map(|t| [t[0], t[1], t[2]]).collect(),
+            };
+            mesh.append(&part);
+        }
+        mesh.validated()
+    }
+
+    /// Decodes a PLY file (ASCII or binary) held in memory.
+    pub fn from_ply_bytes(bytes: &[u8]) -> Result<Mesh, String> {
+        load_ply(bytes)?.validated()
+    }
+
+    /// Checks what every loaded mesh must satisfy: faces, indices in range, finite
+    /// vertices, and sizes that fit.
+    fn validated(self) -> Result<Mesh, String> {
+        if self.triangles.is_empty() {
+            return Err("contains no faces".into());
+        }
+        let n = u32::try_from(self.vertices.len()).map_err(|_| "has more than 2^32 vertices".to_string())?;
+        if let Some(bad) = self.triangles.iter().flatten().find(|&&i| i >= n) {
+            return Err(format!("face refers to vertex {bad}, but there are only {n}"));
+        }
+        if self.vertices.iter().any(|v| !v.is_finite()) {
+            return Err("a vertex is not finite".into());
+        }
+        Ok(self)
     }
 }
 
-fn load_ply(path: &Path) -> Result<Mesh, String> {
+/// Largest mesh file a scene may name, bytes.
+pub const MAX_MESH_FILE_BYTES: u64 = 1 << 30;
+
+fn load_ply(bytes: &[u8]) -> Result<Mesh, String> {
     use ply_rs_bw::parser::Parser;
     use ply_rs_bw::ply::{DefaultElement, Property};
-    let file = std::fs::File::open(path).map_err(|e| e.to_string())?;
-    let mut reader = std::io::BufReader::new(file);
+    let mut reader = std::io::Cursor::new(bytes);
     let ply = Parser::<DefaultElement>::new()
         .read_ply(&mut reader)
         .map_err(|e| e.to_string())?;

@@ -173,8 +173,11 @@ fn surface(raw: &RawSurface, key: &str, base: &Path, relay: bool) -> Result<Surf
     };
     let positive = |field: &str, v: Option<f64>| -> Result<f64, SceneError> {
         match v {
-            Some(v) if v.is_finite() && v > 0.0 => Ok(v),
-            Some(v) => Err(err(field, format!("{v} must be a positive length in metres"))),
+            Some(v) if v.is_finite() && v > 0.0 && v <= 100.0 => Ok(v),
+            Some(v) => Err(err(
+                field,
+                format!("{v} must be a positive length in metres, at most 100"),
+            )),
             None => Err(err(
                 field,
                 format!("shape `{:?}` needs `{field}`", raw.shape).to_lowercase(),
@@ -253,11 +256,16 @@ fn surface(raw: &RawSurface, key: &str, base: &Path, relay: bool) -> Result<Surf
                 .ok_or_else(|| err("text", "letters need `text`".into()))?;
             let height = positive("height", raw.height)?;
             let stroke = positive("stroke", raw.stroke)?;
-            if stroke * 3.0 > height {
+            if stroke * 3.0 > height || stroke * 100.0 < height {
                 return Err(err(
                     "stroke",
-                    format!("{stroke} m is too wide for letters {height} m tall (at most a third)"),
+                    format!(
+                        "{stroke} m does not suit letters {height} m tall: give a stroke between a hundredth and a third of the height"
+                    ),
                 ));
+            }
+            if text.chars().count() > 32 {
+                return Err(err("text", "is longer than 32 letters".into()));
             }
             if let Some(c) = text.chars().find(|c| !shapes::has_glyph(*c)) {
                 return Err(err("text", format!("no glyph for `{c}`: use the letters A–Z")));
@@ -286,6 +294,12 @@ fn surface(raw: &RawSurface, key: &str, base: &Path, relay: bool) -> Result<Surf
             let mut mesh = Mesh::load(&full).map_err(|e| err("path", format!("{e}")))?;
             let scale = positive("scale", raw.scale.or(Some(1.0)))?;
             mesh.vertices.iter_mut().for_each(|v| *v *= scale);
+            if mesh.vertices.iter().any(|v| !(v.abs().max_element() <= 100.0)) {
+                return Err(err(
+                    "scale",
+                    format!("the scaled mesh reaches beyond 100 m of its origin (scale {scale})"),
+                ));
+            }
             mesh
         }
     };
