@@ -13,6 +13,7 @@ pub mod cli;
 pub mod config;
 pub mod devices;
 pub mod events;
+pub mod fuzz;
 pub mod logging;
 pub mod offline;
 pub mod pipeline;

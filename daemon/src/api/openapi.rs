@@ -7,13 +7,16 @@ fn error_responses(codes: &[&str]) -> Value {
     for c in codes {
         let text = match *c {
             "401" => "missing or wrong bearer token",
-            "403" => "the daemon has no token configured",
+            "403" => "the daemon has no token configured, or the Host or Origin is not allowed",
             "404" => "unknown run, file or route",
             "409" => "the request does not fit the run's state",
             "413" => "body over the size limit",
             "415" => "body is not TOML",
-            "422" => "invalid capture plan (file, line and key named)",
-            "503" => "the instrument could not be reached",
+            "422" => {
+                "invalid capture plan (file, line and key named), or over the run budget (`over-budget`)"
+            }
+            "429" => "the queue is full (`[api] max-queue`)",
+            "503" => "the instrument could not be reached, or the stream or download cap is reached",
             _ => "error",
         };
         m.insert(
@@ -94,7 +97,7 @@ pub fn openapi() -> Value {
         "paths": {
             "/api/v1/health": { "get": op("Liveness and version", false, ("200", json_ok("daemon is up", object.clone())), &[], &[]) },
             "/api/v1/openapi.json": { "get": op("This document", false, ("200", json_ok("OpenAPI 3.1", object.clone())), &[], &[]) },
-            "/api/v1/instrument": { "get": op("Devices, positions, laser and interlock state, count rates (or the running run, which holds the devices)", false, ("200", json_ok("instrument status", object.clone())), &[], &[]) },
+            "/api/v1/instrument": { "get": op("Devices, positions, laser and interlock state, count rates, as the worker last read them (`reading` gives when); never touches the hardware", false, ("200", json_ok("instrument status", object.clone())), &[], &[]) },
             "/api/v1/runs": {
                 "post": {
                     "summary": "Submit a TOML capture plan; it is validated, then queued",
@@ -104,7 +107,7 @@ pub fn openapi() -> Value {
                         "201": json_ok("queued; Location names the run", run_ref()),
                         "401": error_responses(&["401"])["401"], "403": error_responses(&["403"])["403"],
                         "413": error_responses(&["413"])["413"], "415": error_responses(&["415"])["415"],
-                        "422": error_responses(&["422"])["422"]
+                        "422": error_responses(&["422"])["422"], "429": error_responses(&["429"])["429"]
                     }
                 },
                 "get": op("Every run, oldest first", false, ("200", json_ok("runs", json!({ "type": "array", "items": run_ref() }))), &[], &[])
@@ -120,7 +123,7 @@ pub fn openapi() -> Value {
                     "parameters": [{ "name": "id", "in": "path", "required": true, "schema": { "type": "string" } }],
                     "responses": {
                         "200": { "description": "event stream", "content": { "text/event-stream": { "schema": { "type": "string" } } } },
-                        "404": error_responses(&["404"])["404"]
+                        "404": error_responses(&["404"])["404"], "503": error_responses(&["503"])["503"]
                     }
                 }
             },
@@ -133,7 +136,7 @@ pub fn openapi() -> Value {
                     ],
                     "responses": {
                         "200": { "description": "the file", "content": { "application/octet-stream": { "schema": { "type": "string", "format": "binary" } } } },
-                        "404": error_responses(&["404"])["404"]
+                        "404": error_responses(&["404"])["404"], "503": error_responses(&["503"])["503"]
                     }
                 }
             }

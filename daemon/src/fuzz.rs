@@ -1,0 +1,358 @@
+//! Entry points for fuzzing every reader of untrusted bytes (`fuzz/`, run by
+//! `cargo fuzz`; see docs/fuzzing.md). Each takes arbitrary bytes and checks the
+//! reader's contract: an answer or a named error, never a panic, an abort or an
+//! allocation beyond the reader's limits. `daemon/tests/fuzz_seeds.rs` replays the
+//! committed seeds and every past crash through the same functions on `cargo test`.
+use std::io;
+use std::time::Duration;
+
+use periscope_drivers::galvo::protocol::{
+    Reply, Request, decode_line, encode_line, parse_angles, parse_limits,
+};
+use periscope_drivers::galvo::{Connector, Link, SerialGalvo, SerialGalvoSettings};
+use periscope_drivers::tdc::protocol::{
+    FrameHeader, WireConfig, WireInfo, WireStatus, decode_frame, decode_header, encode_frame,
+};
+use periscope_drivers::tdc::{TransportError, UsbTdc, UsbTransport};
+use periscope_drivers::{AngleLimits, GalvoPair, Histogrammer, Laser, OpticalAngles, TdcConfig};
+use periscope_sim::Mesh;
+
+use crate::budget::{Budget, Limits};
+use crate::config::{InstrumentConfig, TomlSource};
+use crate::plan::{Plan, load_recon};
+use crate::ytal::YtalCapture;
+
+/// A fuzz target: takes any bytes, panics only on a broken contract.
+pub type Target = fn(&[u8]);
+
+/// The targets, by name (the names of `fuzz/fuzz_targets/*.rs` and of the corpus
+/// folders).
+pub const TARGETS: &[(&str, Target)] = &[
+    ("ytal_capture", ytal_capture),
+    ("histogram_log", histogram_log),
+    ("relay_ply", relay_ply),
+    ("tdc_frame", tdc_frame),
+    ("tdc_receive", tdc_receive),
+    ("galvo_line", galvo_line),
+    ("galvo_receive", galvo_receive),
+    ("plan_toml", plan_toml),
+    ("config_toml", config_toml),
+    ("mesh", mesh),
+];
+
+/// y-tal HDF5 captures (files downloaded from papers): decoding, the default volume
+/// and the rebinned transients.
+pub fn ytal_capture(data: &[u8]) {
+    // The reader turns a panic inside hdf5-pure into an error (see `ytal::guarded`);
+    // libFuzzer's hook would abort at the panic, before the reader can catch it, so
+    // panics located in hdf5-pure are let through to the reader here. Any other panic
+    // still aborts.
+    static HOOK: std::sync::Once = std::sync::Once::new();
+    HOOK.call_once(|| {
+        let fuzzer_hook = std::panic::take_hook();
+        std::panic::set_hook(Box::new(move |info| {
+            let in_hdf5 = info.location().is_some_and(|l| l.file().contains("hdf5-pure"));
+            if !in_hdf5 {
+                fuzzer_hook(info);
+            }
+        }));
+    });
+    let Ok(c) = YtalCapture::from_bytes(data.to_vec(), std::path::Path::new("fuzz.hdf5")) else {
+        return;
+    };
+    assert!(c.bins() > 0 && c.h.len() == c.bins() * c.len());
+    if let Ok(volume) = c.default_volume()
+        && let Ok(set) = c.transients(&volume)
+    {
+        assert!(set.len() <= c.len());
+    }
+}
+
+/// The histogram log (`histograms.bin`), read back on resume and export: the valid
+/// prefix and the discarded tail add up to the input, and every record kept has sane
+/// settings and a pair of its own.
+pub fn histogram_log(data: &[u8]) {
+    let got = crate::store::parse_log(data);
+    assert_eq!(got.valid_bytes + got.discarded_bytes, data.len() as u64);
+    let mut pairs = std::collections::HashSet::new();
+    for r in &got.records {
+        assert!(!r.counts.is_empty() && r.counts.len() <= 1 << 20 && r.bin_width_ps > 0);
+        assert!(pairs.insert(r.pair), "pair {} kept twice", r.pair);
+    }
+}
+
+/// `relay.ply`, read back on resume: only the relay layout with finite points and unit
+/// normals is accepted.
+pub fn relay_ply(data: &[u8]) {
+    if let Ok(points) = crate::pipeline::parse_relay_ply(data) {
+        for p in points {
+            assert!(p.x.is_finite() && p.intensity.is_finite());
+            assert!((p.n.length() - 1.0).abs() < 1e-3);
+        }
+    }
+}
+
+/// The TDC's wire formats: a frame that decodes is exactly what the encoder writes for
+/// it; control replies decode or are refused.
+pub fn tdc_frame(data: &[u8]) {
+    let _ = decode_header(data);
+    if let Ok((header, counts, len)) = decode_frame(data) {
+        assert!(len <= data.len());
+        assert_eq!(counts.len(), header.config.bins as usize);
+        assert_eq!(encode_frame(&header, &counts), data[..len]);
+    }
+    if let Some(c) = WireConfig::decode(data) {
+        assert_eq!(WireConfig::decode(&c.encode()), Some(c));
+    }
+    let _ = WireInfo::decode(data);
+    let _ = WireStatus::decode(data);
+}
+
+/// A histogrammer that sends the fuzz input on its bulk-in endpoint (in chunks of the
+/// size the input's first byte says), optionally followed by the genuine frame for
+/// each `START`.
+struct FuzzUsb {
+    config: Vec<u8>,
+    stream: Vec<u8>,
+    at: usize,
+    chunk: usize,
+    genuine: bool,
+    /// The sequence number of the last `START`.
+    started: Option<u32>,
+}
+
+impl UsbTransport for FuzzUsb {
+    fn control_in(
+        &mut self,
+        _r: u8,
+        _v: u16,
+        _i: u16,
+        buf: &mut [u8],
+        _t: Duration,
+    ) -> Result<usize, TransportError> {
+        let n = self.config.len().min(buf.len());
+        buf[..n].copy_from_slice(&self.config[..n]);
+        Ok(n)
+    }
+    fn control_out(
+        &mut self,
+        r: u8,
+        v: u16,
+        i: u16,
+        data: &[u8],
+        _t: Duration,
+    ) -> Result<(), TransportError> {
+        if r == 0x02 {
+            self.config = data.to_vec();
+        }
+        if r == 0x04 {
+            let seq = u32::from(v) | (u32::from(i) << 16);
+            self.started = Some(seq);
+            if self.genuine
+                && let Some(wire) = WireConfig::decode(&self.config)
+            {
+                let header = FrameHeader {
+                    sequence: seq,
+                    flags: 0,
+                    config: WireConfig {
+                        sync_divider: 0,
+                        ..wire
+                    },
+                };
+                self.stream
+                    .extend(encode_frame(&header, &vec![7; wire.bins as usize]));
+            }
+        }
+        Ok(())
+    }
+    fn bulk_in(&mut self, _ep: u8, buf: &mut [u8], _t: Duration) -> Result<usize, TransportError> {
+        if self.at >= self.stream.len() {
+            return Err(TransportError::Disconnected("fuzz input exhausted".into()));
+        }
+        let n = self.chunk.min(buf.len()).min(self.stream.len() - self.at);
+        buf[..n].copy_from_slice(&self.stream[self.at..self.at + n]);
+        self.at += n;
+        Ok(n)
+    }
+    fn reopen(&mut self) -> Result<(), TransportError> {
+        Err(TransportError::Disconnected("fuzz device gone".into()))
+    }
+    fn describe(&self) -> String {
+        "fuzz".into()
+    }
+}
+
+/// The TDC driver's receive loop over a device that sends arbitrary bytes: it returns
+/// a histogram only for the acquisition it last asked for, with the configured bin
+/// count.
+pub fn tdc_receive(data: &[u8]) {
+    let Some((&mode, rest)) = data.split_first() else {
+        return;
+    };
+    let usb = FuzzUsb {
+        config: Vec::new(),
+        stream: rest.to_vec(),
+        at: 0,
+        chunk: usize::from(mode >> 1).max(1) * 8,
+        genuine: mode & 1 == 1,
+        started: None,
+    };
+    let mut tdc = UsbTdc::with_sequence(usb, Duration::from_millis(1), 0);
+    let config = TdcConfig {
+        bin_width: 16e-12,
+        bins: 8,
+        offset: 0.0,
+        sync_divider: 1,
+        acquisition: Duration::from_micros(100),
+    };
+    if tdc.configure(&config).is_err() {
+        return;
+    }
+    if let Ok(h) = tdc.acquire() {
+        // Only the acquisition last asked for: the first, or its one repeat.
+        assert_eq!(Some(h.sequence), tdc.transport_mut().started);
+        assert!(h.sequence == 1 || h.sequence == 2);
+        assert_eq!(h.counts.len(), 8);
+    }
+}
+
+/// The galvo controllers' line protocol: a line that decodes is exactly the line the
+/// encoder writes for its tag and body; request and reply bodies parse or are refused.
+pub fn galvo_line(data: &[u8]) {
+    if let Ok((tag, body)) = decode_line(data) {
+        let line = data.strip_suffix(b"\r").unwrap_or(data);
+        assert_eq!(encode_line(tag, body).trim_end_matches('\n').as_bytes(), line);
+    }
+    if let Ok(text) = std::str::from_utf8(data) {
+        let _ = Request::parse(text);
+        let _ = Reply::parse(text);
+        let fields: Vec<&str> = text.split_whitespace().collect();
+        let _ = parse_angles(&fields);
+        let _ = parse_limits(&fields);
+    }
+}
+
+/// A serial link that delivers the fuzz input (in chunks) and then breaks.
+struct FuzzLink {
+    data: Vec<u8>,
+    at: usize,
+    chunk: usize,
+}
+
+impl Link for FuzzLink {
+    fn send(&mut self, _bytes: &[u8]) -> io::Result<()> {
+        Ok(())
+    }
+    fn receive(&mut self, buf: &mut [u8], _timeout: Duration) -> io::Result<usize> {
+        if self.at >= self.data.len() {
+            return Err(io::Error::new(io::ErrorKind::BrokenPipe, "fuzz input exhausted"));
+        }
+        let n = self.chunk.min(buf.len()).min(self.data.len() - self.at);
+        buf[..n].copy_from_slice(&self.data[self.at..self.at + n]);
+        self.at += n;
+        Ok(n)
+    }
+    fn discard_input(&mut self) -> io::Result<()> {
+        Ok(())
+    }
+}
+
+struct FuzzConnector(Option<FuzzLink>);
+
+impl Connector for FuzzConnector {
+    fn connect(&mut self) -> io::Result<Box<dyn Link>> {
+        match self.0.take() {
+            Some(l) => Ok(Box::new(l)),
+            None => Err(io::Error::new(io::ErrorKind::NotFound, "fuzz controller gone")),
+        }
+    }
+    fn describe(&self) -> String {
+        "fuzz".into()
+    }
+}
+
+/// The galvo driver's receive loop over a controller that sends arbitrary bytes:
+/// every request ends in an answer or an error.
+pub fn galvo_receive(data: &[u8]) {
+    let Some((&mode, rest)) = data.split_first() else {
+        return;
+    };
+    let settings = SerialGalvoSettings {
+        name: "fuzz".into(),
+        limits: AngleLimits {
+            x: [-0.3, 0.3],
+            y: [-0.3, 0.3],
+        },
+        timeout: Duration::from_millis(2),
+        settle: Duration::from_micros(10),
+        watchdog: None,
+    };
+    let link = FuzzLink {
+        data: rest.to_vec(),
+        at: 0,
+        chunk: usize::from(mode % 64) + 1,
+    };
+    let mut g = SerialGalvo::new(settings, Box::new(FuzzConnector(Some(link))));
+    let _ = g.identify();
+    let _ = g.position();
+    let _ = g.move_to(OpticalAngles { x: 0.1, y: -0.1 });
+    let _ = g.laser_state();
+    let _ = g.hard_limits();
+}
+
+/// The simulated instrument every plan is checked against.
+fn sim_instrument() -> &'static InstrumentConfig {
+    static INSTRUMENT: std::sync::LazyLock<InstrumentConfig> = std::sync::LazyLock::new(|| {
+        let text = include_str!("../../configs/instrument/sim.toml");
+        InstrumentConfig::from_source(&TomlSource::from_text("sim.toml", text))
+            .expect("the shipped config is valid")
+    });
+    &INSTRUMENT
+}
+
+/// Capture plans (TOML from operators and over HTTP) and their budget: a plan or an
+/// error naming the key, and a budget that never wraps.
+pub fn plan_toml(data: &[u8]) {
+    let Ok(text) = std::str::from_utf8(data) else {
+        return;
+    };
+    let src = TomlSource::from_text("fuzz.toml", text);
+    if let Ok(plan) = Plan::from_source(&src, sim_instrument()) {
+        let b = Budget::of_plan(&plan);
+        let _ = b.check(&Limits::default());
+        assert!(b.memory_bytes() >= b.memory.iter().map(|i| i.bytes).max().unwrap_or(0));
+    }
+}
+
+/// Instrument configs and RECON.toml files: a config or an error naming the key.
+pub fn config_toml(data: &[u8]) {
+    let Ok(text) = std::str::from_utf8(data) else {
+        return;
+    };
+    let src = TomlSource::from_text("fuzz.toml", text);
+    let _ = InstrumentConfig::from_source(&src);
+    let _ = load_recon(&src, None);
+}
+
+/// Scene meshes (PLY, ASCII or binary, and OBJ; the first byte picks): a mesh that
+/// loads has faces whose indices are in range and finite vertices.
+pub fn mesh(data: &[u8]) {
+    let Some((&kind, rest)) = data.split_first() else {
+        return;
+    };
+    let mesh = if kind & 1 == 0 {
+        Mesh::from_ply_bytes(rest)
+    } else {
+        Mesh::from_obj_bytes(rest)
+    };
+    if let Ok(m) = mesh {
+        assert!(!m.triangles.is_empty());
+        assert!(
+            m.triangles
+                .iter()
+                .flatten()
+                .all(|&i| (i as usize) < m.vertices.len())
+        );
+        assert!(m.vertices.iter().all(|v| v.is_finite()));
+    }
+}

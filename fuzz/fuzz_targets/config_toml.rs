@@ -1,0 +1,5 @@
+//! Instrument configs and RECON.toml files: any text gives a config or an error naming
+//! the key, never a panic.
+#![no_main]
+
+libfuzzer_sys::fuzz_target!(|data: &[u8]| periscope_daemon::fuzz::config_toml(data));

@@ -1,0 +1,5 @@
+//! The galvo driver's receive loop over a controller that sends arbitrary bytes: every
+//! request ends in an answer or an error, never a panic or a hang.
+#![no_main]
+
+libfuzzer_sys::fuzz_target!(|data: &[u8]| periscope_daemon::fuzz::galvo_receive(data));

@@ -1,0 +1,5 @@
+//! Scene meshes (PLY, ASCII or binary, and OBJ): a mesh that loads has faces whose
+//! indices are in range and finite vertices.
+#![no_main]
+
+libfuzzer_sys::fuzz_target!(|data: &[u8]| periscope_daemon::fuzz::mesh(data));

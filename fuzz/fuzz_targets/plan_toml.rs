@@ -1,0 +1,5 @@
+//! Capture plans (TOML from operators and over HTTP) and their budget: any text gives
+//! a plan or an error naming the key, and a plan's budget never overflows.
+#![no_main]
+
+libfuzzer_sys::fuzz_target!(|data: &[u8]| periscope_daemon::fuzz::plan_toml(data));

@@ -1,0 +1,5 @@
+//! `relay.ply`, read back on resume: only the relay layout with finite points and
+//! unit normals is accepted.
+#![no_main]
+
+libfuzzer_sys::fuzz_target!(|data: &[u8]| periscope_daemon::fuzz::relay_ply(data));

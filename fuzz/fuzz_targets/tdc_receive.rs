@@ -1,0 +1,7 @@
+//! The TDC driver's receive loop over a device that sends arbitrary bytes (chunked as
+//! the input's first byte says), optionally followed by the genuine frame: the driver
+//! returns a histogram only for the acquisition it asked for, with the configured
+//! bin count, and never panics.
+#![no_main]
+
+libfuzzer_sys::fuzz_target!(|data: &[u8]| periscope_daemon::fuzz::tdc_receive(data));

@@ -1,0 +1,6 @@
+//! y-tal HDF5 captures (files downloaded from papers): decoding, the default volume
+//! and the rebinned transients. Any input: an answer or a named error, never a panic
+//! or an allocation beyond the readers' limits.
+#![no_main]
+
+libfuzzer_sys::fuzz_target!(|data: &[u8]| periscope_daemon::fuzz::ytal_capture(data));
