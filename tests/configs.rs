@@ -102,9 +102,30 @@ fn check_summarises_the_demo_and_moves_nothing() {
         "confocal 24×24",
         "estimated duration",
         "within the galvo limits",
+        "budget (per run",
+        "captured histograms and transients",
     ] {
         assert!(out.stdout.contains(want), "missing `{want}`:\n{}", out.stdout);
     }
+    assert!(!out.stdout.contains("OVER BUDGET"), "{}", out.stdout);
+}
+
+#[test]
+fn check_refuses_a_plan_over_the_budget_naming_the_key() {
+    let dir = tempfile::tempdir().unwrap();
+    let text = std::fs::read_to_string(repo_path("configs/plans/demo.toml")).unwrap();
+    let huge = text.replace("shape = [64, 64, 128]", "shape = [1024, 1024, 1024]");
+    assert_ne!(huge, text);
+    let plan = dir.path().join("huge.toml");
+    std::fs::write(&plan, huge).unwrap();
+    let out = periscope(&["check", plan.to_str().unwrap()]);
+    assert_eq!(out.code, Some(1), "{out:?}");
+    assert!(out.stdout.contains("OVER BUDGET"), "{}", out.stdout);
+    assert!(
+        out.stderr.contains("over budget") && out.stderr.contains("recon.volume.shape"),
+        "{}",
+        out.stderr
+    );
 }
 
 #[test]
