@@ -165,6 +165,10 @@ const MAX_GZIP_RATIO: u64 = 1032;
 /// Most chunks a dataset may be split into.
 const MAX_CHUNKS: u64 = 1 << 22;
 
+/// Largest chunk, bytes (h5py aims at 1 MiB at most): the HDF5 layer sizes its
+/// decompression buffers by the declared chunk, whatever the data.
+const MAX_CHUNK_BYTES: u64 = 64 << 20;
+
 /// Most bytes the rebinned transients of a capture may take in memory (the default
 /// run budget).
 const MAX_TRANSIENT_BYTES: u64 = 16 << 30;
@@ -215,10 +219,37 @@ impl Reader<'_> {
                 .iter()
                 .zip(&chunk)
                 .try_fold(1u64, |a, (&d, &c)| a.checked_mul(d.div_ceil(c.max(1))));
-            if chunk.len() != shape.len() || chunk.contains(&0) || count.is_none_or(|n| n > MAX_CHUNKS) {
+            let chunk_bytes = chunk
+                .iter()
+                .try_fold(ds.element_size().unwrap_or(8).max(1), |a, &c| a.checked_mul(c));
+            if chunk.len() != shape.len()
+                || chunk.contains(&0)
+                || count.is_none_or(|n| n > MAX_CHUNKS)
+                || chunk_bytes.is_none_or(|b| b > MAX_CHUNK_BYTES)
+            {
                 return Err(err(format!(
-                    "its chunk shape {chunk:?} does not fit its shape {shape:?} or makes too many chunks"
+                    "its chunk shape {chunk:?} does not fit its shape {shape:?}, makes too many chunks, \
+                     or makes chunks over {MAX_CHUNK_BYTES} bytes"
                 )));
+            }
+        }
+        // Every stored chunk must lie inside the file and inside the dataset: the HDF5
+        // layer trusts a chunk's recorded size and offset when it reads (the fuzzer
+        // found a 160 KB file whose chunk record made it allocate 3.4 GB).
+        if chunked && let Ok(chunks) = ds.chunks() {
+            for c in &chunks {
+                let inside_file = c
+                    .address
+                    .checked_add(c.storage_size)
+                    .is_some_and(|end| end <= self.file_len);
+                let inside_data =
+                    c.offset.len() == shape.len() && c.offset.iter().zip(&shape).all(|(o, d)| o < d);
+                if !inside_file || !inside_data {
+                    return Err(err(format!(
+                        "a chunk (at {:?}, {} bytes at byte {}) lies outside the dataset or beyond the end of the file",
+                        c.offset, c.storage_size, c.address
+                    )));
+                }
             }
         }
         shape
