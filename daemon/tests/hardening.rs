@@ -713,3 +713,120 @@ async fn a_submission_flood_gets_429_and_does_not_slow_the_capture() {
     svc.shutdown();
     worker.join().unwrap();
 }
+
+/// Every route × token (none, wrong, right) × client (loopback, another machine) ×
+/// `open-reads`: mutations need the right token from anywhere; reads need it only from
+/// other machines, unless reads are open. An authorised request is never 401 or 403.
+#[tokio::test]
+async fn every_route_enforces_the_token_rules_for_every_client() {
+    use axum::extract::ConnectInfo;
+    use periscope_daemon::api::ROUTES;
+    for open_reads in [false, true] {
+        let dir = tempfile::tempdir().unwrap();
+        let extra = if open_reads { "open-reads = true" } else { "" };
+        let svc = service(dir.path(), 0.0, extra, "");
+        let router = app(AppState::new(Arc::clone(&svc)));
+        let (s, v) = call(&router, Method::POST, "/api/v1/runs", true, PLAN).await;
+        assert_eq!(s, StatusCode::CREATED, "{v}");
+        let id = v["id"].as_str().unwrap().to_owned();
+        for &(method, route) in ROUTES {
+            let uri = route.replace("{id}", &id).replace("{name}", "plan.toml");
+            let mutating = method == "POST";
+            for token in [None, Some("wrong-token-wrong-token-wrong"), Some(TOKEN)] {
+                for remote in [false, true] {
+                    let mut req = Request::builder().method(method).uri(&uri);
+                    if let Some(t) = token {
+                        req = req.header(header::AUTHORIZATION, format!("Bearer {t}"));
+                    }
+                    let body = if uri.ends_with("/runs") && mutating {
+                        PLAN
+                    } else {
+                        ""
+                    };
+                    if !body.is_empty() {
+                        req = req.header(header::CONTENT_TYPE, "application/toml");
+                    }
+                    let mut req = req.body(Body::from(body)).unwrap();
+                    let peer: std::net::SocketAddr = if remote {
+                        "192.0.2.7:50000".parse().unwrap()
+                    } else {
+                        "127.0.0.1:50000".parse().unwrap()
+                    };
+                    req.extensions_mut().insert(ConnectInfo(peer));
+                    let resp = router.clone().oneshot(req).await.unwrap();
+                    let status = resp.status();
+                    drop(resp);
+                    let needs_token = mutating || (remote && !open_reads);
+                    let authorised = !needs_token || token == Some(TOKEN);
+                    let case = format!(
+                        "{method} {route}, token {token:?}, remote {remote}, open-reads {open_reads}"
+                    );
+                    if authorised {
+                        assert!(
+                            status != StatusCode::UNAUTHORIZED && status != StatusCode::FORBIDDEN,
+                            "{case}: {status}"
+                        );
+                    } else {
+                        assert_eq!(status, StatusCode::UNAUTHORIZED, "{case}");
+                    }
+                }
+            }
+        }
+        // The e-stop may have held the run; the queue cap is 100, so submissions passed.
+        assert!(run_dirs(dir.path()) >= 2);
+    }
+}
+
+/// `PERISCOPE_TOKEN` is the token `serve` uses, over `[api] token` in the config.
+#[test]
+fn the_environment_token_overrides_the_configured_one() {
+    let dir = tempfile::tempdir().unwrap();
+    let inst = instrument(dir.path(), 0.0, "", "");
+    let path = dir.path().join("instrument.toml");
+    let scenes = Path::new(env!("CARGO_MANIFEST_DIR")).join("../configs/scenes");
+    let text = inst
+        .text()
+        .replace("\"../scenes/", &format!("\"{}/", scenes.display()));
+    std::fs::write(&path, text).unwrap();
+    let env_token = "from-the-environment-0123456789";
+    let mut child = std::process::Command::new(env!("CARGO_BIN_EXE_periscope"))
+        .args(["serve", "--bind", "127.0.0.1:0", "--instrument"])
+        .arg(&path)
+        .env("PERISCOPE_TOKEN", env_token)
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    // The bound address is printed on stderr.
+    let mut stderr = std::io::BufReader::new(child.stderr.take().unwrap());
+    let mut line = String::new();
+    let addr = loop {
+        line.clear();
+        assert!(
+            std::io::BufRead::read_line(&mut stderr, &mut line).unwrap() > 0,
+            "serve exited"
+        );
+        if let Some(rest) = line.split("http://").nth(1) {
+            break rest.split('/').next().unwrap().to_owned();
+        }
+    };
+    let post = |token: &str| {
+        let mut s = std::net::TcpStream::connect(&addr).unwrap();
+        std::io::Write::write_all(
+            &mut s,
+            format!(
+                "POST /api/v1/estop HTTP/1.1\r\nHost: {addr}\r\nAuthorization: Bearer {token}\r\nContent-Length: 0\r\nConnection: close\r\n\r\n"
+            )
+            .as_bytes(),
+        )
+        .unwrap();
+        let mut reply = String::new();
+        std::io::Read::read_to_string(&mut s, &mut reply).unwrap();
+        reply.lines().next().unwrap_or_default().to_owned()
+    };
+    let with_config = post(TOKEN);
+    let with_env = post(env_token);
+    let _ = child.kill();
+    let _ = child.wait();
+    assert!(with_config.contains(" 401 "), "{with_config}");
+    assert!(with_env.contains(" 200 "), "{with_env}");
+}
