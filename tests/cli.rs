@@ -66,10 +66,55 @@ fn a_missing_run_directory_is_named() {
 
 #[test]
 fn json_logs_are_json() {
-    let out = periscope(&["--log-format", "json", "devices"]);
-    for line in out.stderr.lines().filter(|l| l.starts_with('{')) {
-        assert!(line.ends_with('}') && line.contains("\"level\""), "{line}");
+    // A small run logs its stages at info level: every line on stderr must be one JSON
+    // object with a level and a message, and there must be some.
+    let dir = tempfile::tempdir().unwrap();
+    let plan = dir.path().join("plan.toml");
+    std::fs::write(
+        &plan,
+        r#"
+name = "json-logs"
+[los]
+angles-deg = { x = [-12.0, 12.0], y = [-12.0, 12.0] }
+grid = [8, 8]
+dwell-ms = 1.0
+[relay]
+depth-m = [1.7, 3.0]
+detection = { min = [-0.4, -0.4, -0.1], max = [0.4, 0.4, 0.1] }
+[pairs]
+mode = "confocal"
+grid = [4, 4]
+[acquisition]
+dwell-ms = 5.0
+[recon]
+method = "fbp"
+[recon.volume]
+x = [-0.4, 0.4]
+y = [-0.4, 0.4]
+z = [0.3, 0.9]
+shape = [16, 16, 8]
+"#,
+    )
+    .unwrap();
+    let out = std::process::Command::new(periscope_tests::periscope_bin())
+        .current_dir(periscope_tests::repo_root())
+        .env("RUST_LOG", "info")
+        .args(["--log-format", "json", "run"])
+        .arg(&plan)
+        .arg("--out")
+        .arg(dir.path().join("run"))
+        .output()
+        .unwrap();
+    assert_eq!(out.status.code(), Some(0), "{out:?}");
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    let lines: Vec<&str> = stderr.lines().filter(|l| !l.trim().is_empty()).collect();
+    assert!(lines.len() >= 3, "too few log lines:\n{stderr}");
+    for line in lines {
+        let v: serde_json::Value = serde_json::from_str(line).unwrap_or_else(|e| panic!("{e}: {line}"));
+        assert!(v["level"].is_string(), "{line}");
+        assert!(v["fields"]["message"].is_string(), "{line}");
     }
+    assert!(stderr.contains("stage started"), "{stderr}");
 }
 
 #[test]

@@ -148,12 +148,12 @@ pub fn execute(cli: Cli) -> anyhow::Result<()> {
             let instrument_src = instrument_source(instrument.instrument.as_deref())?;
             let plan_src = TomlSource::load(&plan)?;
             let (dir, plan, config) = pipeline::prepare(&plan_src, &instrument_src, out.as_deref())?;
-            eprintln!(
+            crate::logging::notice(&format!(
                 "run `{}` on {}\n  run directory: {}",
                 plan.name,
                 config.summary(),
                 dir.display()
-            );
+            ));
             execute_run(&dir)
         }
         Command::Check { plan, instrument } => {
@@ -177,10 +177,10 @@ pub fn execute(cli: Cli) -> anyhow::Result<()> {
                 info.id,
                 run_dir.display()
             );
-            eprintln!(
+            crate::logging::notice(&format!(
                 "resuming run {} ({} of {} pairs stored, last stage {})",
                 info.id, info.pairs_done, info.pairs_total, info.stage
-            );
+            ));
             execute_run(&run_dir)
         }
         Command::Recon { capture, config, out } => offline::recon(&capture, config.as_deref(), &out),
@@ -210,6 +210,8 @@ pub fn execute(cli: Cli) -> anyhow::Result<()> {
             };
             let token = token.unwrap_or_else(|| {
                 let t = random_token();
+                // Plain stderr even with JSON logs: the token is for the operator's eyes,
+                // never for a log file.
                 eprintln!(
                     "no PERISCOPE_TOKEN or [api] token: this session's token is {t}\n  \
                      (mutating requests need `Authorization: Bearer {t}`)"
@@ -357,10 +359,10 @@ fn execute_run(dir: &Path) -> anyhow::Result<()> {
             Ok(_) => "completed".to_owned(),
             Err(e) => e.to_string(),
         };
-        eprintln!(
+        crate::logging::notice(&format!(
             "stopped by signal {n}: {state}; laser off, arms parked. `periscope resume {}` continues the run",
             dir.display()
-        );
+        ));
         std::process::exit(i32::from(crate::signals::exit_code(n)));
     }
     let summary = result?;

@@ -20,8 +20,31 @@ pub enum LogFormat {
     Json,
 }
 
+/// Whether stderr carries JSON lines (set by [`init`]).
+static JSON: std::sync::atomic::AtomicBool = std::sync::atomic::AtomicBool::new(false);
+
+/// A message for the operator on stderr: a plain line, or with `--log-format json`
+/// an info event, so that stderr stays one JSON object per line.
+pub fn notice(message: &str) {
+    if JSON.load(std::sync::atomic::Ordering::Relaxed) {
+        tracing::info!("{message}");
+    } else {
+        eprintln!("{message}");
+    }
+}
+
+/// The error a command ended with, on stderr: `error: ...`, or an error event in JSON.
+pub fn report_error(message: &str) {
+    if JSON.load(std::sync::atomic::Ordering::Relaxed) {
+        tracing::error!("{message}");
+    } else {
+        eprintln!("error: {message}");
+    }
+}
+
 /// Installs the global subscriber. Fails only when the log file cannot be created.
 pub fn init(format: LogFormat, log_file: Option<&Path>) -> std::io::Result<()> {
+    JSON.store(format == LogFormat::Json, std::sync::atomic::Ordering::Relaxed);
     let filter = || EnvFilter::try_from_default_env().unwrap_or_else(|_| EnvFilter::new("info"));
     let stderr = match format {
         LogFormat::Text => fmt::layer()

@@ -16,7 +16,7 @@ fn main() -> ExitCode {
     match cli::execute(args) {
         Ok(()) => ExitCode::SUCCESS,
         Err(err) => {
-            eprintln!("error: {err:#}");
+            logging::report_error(&format!("{err:#}"));
             cli::exit_code(&err)
         }
     }

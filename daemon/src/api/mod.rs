@@ -226,10 +226,10 @@ pub async fn serve(bind: SocketAddr, service: Arc<Service>) -> anyhow::Result<()
         .await
         .map_err(|e| anyhow::anyhow!("cannot listen on {bind}: {e}; choose another address with --bind"))?;
     let addr = listener.local_addr()?;
-    eprintln!(
+    crate::logging::notice(&format!(
         "periscope API on http://{addr}/api/v1 (runs in {})",
         service.runs_dir().display()
-    );
+    ));
     let app = app(AppState::new(Arc::clone(&service)));
     let notify = Arc::new(tokio::sync::Notify::new());
     crate::signals::install(
