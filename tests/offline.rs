@@ -7,29 +7,7 @@ use periscope_daemon::store::{HISTOGRAM_LOG, read_log};
 use periscope_daemon::ytal::YtalCapture;
 use periscope_tests::periscope;
 
-const PLAN: &str = r#"
-name = "offline-test"
-[los]
-angles-deg = { x = [-12.0, 12.0], y = [-12.0, 12.0] }
-grid = [12, 12]
-dwell-ms = 1.0
-[relay]
-depth-m = [1.7, 3.0]
-detection = { min = [-0.4, -0.4, -0.1], max = [0.4, 0.4, 0.1] }
-[pairs]
-mode = "confocal"
-grid = [8, 8]
-offset-mm = 5.0
-[acquisition]
-dwell-ms = 20.0
-[recon]
-method = "fbp"
-[recon.volume]
-x = [-0.4, 0.4]
-y = [-0.4, 0.4]
-z = [0.3, 0.9]
-shape = [32, 32, 16]
-"#;
+const PLAN: &str = include_str!("data/plans/small-fbp.toml");
 
 fn copy_dir(from: &Path, to: &Path) {
     std::fs::create_dir_all(to).unwrap();

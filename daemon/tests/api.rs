@@ -17,31 +17,7 @@ const TOKEN: &str = "test-token-0123456789abcdef";
 
 /// A small plan: 8×8 LOS, 8×8 confocal pairs, FBP (no 3D-GTR fit), so a run takes
 /// about a second at time-scale 0.
-pub const PLAN: &str = r#"
-name = "api-test"
-[los]
-angles-deg = { x = [-12.0, 12.0], y = [-12.0, 12.0] }
-grid = [12, 12]
-dwell-ms = 1.0
-[relay]
-depth-m = [1.7, 3.0]
-min-intensity = 0.05
-neighbours = 8
-detection = { min = [-0.4, -0.4, -0.1], max = [0.4, 0.4, 0.1] }
-[pairs]
-mode = "confocal"
-grid = [8, 8]
-offset-mm = 5.0
-[acquisition]
-dwell-ms = 20.0
-[recon]
-method = "fbp"
-[recon.volume]
-x = [-0.4, 0.4]
-y = [-0.4, 0.4]
-z = [0.3, 0.9]
-shape = [32, 32, 16]
-"#;
+pub const PLAN: &str = include_str!("../../tests/data/plans/small-fbp.toml");
 
 /// The simulated instrument with its runs in `runs` and the given time scale.
 fn instrument(runs: &Path, time_scale: f64, token: Option<&str>) -> TomlSource {

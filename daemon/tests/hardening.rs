@@ -17,31 +17,7 @@ use tower::ServiceExt;
 const TOKEN: &str = "hardening-token-0123456789abcdef";
 
 /// A small confocal plan solved by FBP (about a second at time-scale 0).
-const PLAN: &str = r#"
-name = "hardening"
-[los]
-angles-deg = { x = [-12.0, 12.0], y = [-12.0, 12.0] }
-grid = [12, 12]
-dwell-ms = 1.0
-[relay]
-depth-m = [1.7, 3.0]
-min-intensity = 0.05
-neighbours = 8
-detection = { min = [-0.4, -0.4, -0.1], max = [0.4, 0.4, 0.1] }
-[pairs]
-mode = "confocal"
-grid = [8, 8]
-offset-mm = 5.0
-[acquisition]
-dwell-ms = 20.0
-[recon]
-method = "fbp"
-[recon.volume]
-x = [-0.4, 0.4]
-y = [-0.4, 0.4]
-z = [0.3, 0.9]
-shape = [32, 32, 16]
-"#;
+const PLAN: &str = include_str!("../../tests/data/plans/small-fbp.toml");
 
 /// The simulated instrument with runs in `runs`, the token in its `[api]` table (as a
 /// lab that keeps it in the file would), and `api_extra` lines added to that table.
@@ -368,7 +344,7 @@ async fn stream_and_download_caps_answer_503_until_a_slot_frees() {
         "{v}"
     );
     let body = axum::body::to_bytes(held.into_body(), 1 << 20).await.unwrap();
-    assert!(String::from_utf8_lossy(&body).contains("name = \"hardening\""));
+    assert!(String::from_utf8_lossy(&body).contains("name = \"small-fbp\""));
     let (s, _) = send(&router, request(Method::GET, &plan, false, &[], "")).await;
     assert_eq!(s, StatusCode::OK, "the download slot was not given back");
 }

@@ -90,7 +90,7 @@ pub(crate) fn read_relay_ply(dir: &Path) -> Result<Option<Vec<RelayPoint>>, Pipe
 /// The vertex properties of a relay PLY, in order.
 const RELAY_PROPERTIES: [&str; 7] = ["x", "y", "z", "nx", "ny", "nz", "intensity"];
 
-/// Decodes a relay PLY as [`write_relay_ply`] writes it: the header must declare
+/// Decodes a relay PLY as the capture writes it (`write_relay_ply`): the header must declare
 /// exactly its layout, the body must be exactly the declared vertices, and every
 /// point finite with a unit normal. Any input gives an answer; nothing here panics.
 pub fn parse_relay_ply(bytes: &[u8]) -> Result<Vec<RelayPoint>, String> {
