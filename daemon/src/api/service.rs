@@ -169,6 +169,11 @@ pub struct Service {
     wake: Condvar,
     /// Held while a capture export is written.
     exporting: Mutex<()>,
+    /// Held while the service itself has devices open outside a run (the worker's
+    /// reading, the idle e-stop), so the two never open one serial port at once: an
+    /// e-stop waits for a reading in progress (milliseconds) instead of failing to
+    /// open the laser controller.
+    devices: Mutex<()>,
 }
 
 impl Service {
@@ -265,6 +270,7 @@ impl Service {
             }),
             wake: Condvar::new(),
             exporting: Mutex::new(()),
+            devices: Mutex::new(()),
         });
         service.persist(&service.lock())?;
         Ok(service)
@@ -700,6 +706,7 @@ impl Service {
 
     /// Opens the laser controller alone: laser off, then park.
     fn laser_controller_off(&self) -> Result<(), String> {
+        let _devices = self.devices.lock().unwrap_or_else(|p| p.into_inner());
         let mut laser = crate::devices::Devices::laser_controller(&self.instrument, self.rig.as_ref())
             .map_err(|e| e.to_string())?;
         let off = laser.set_emission(false).map_err(|e| e.to_string());
@@ -710,6 +717,7 @@ impl Service {
 
     /// Opens the SPAD arm's controller alone and parks it.
     fn park_spad(&self) -> Result<(), String> {
+        let _devices = self.devices.lock().unwrap_or_else(|p| p.into_inner());
         let mut spad = crate::devices::Devices::spad_controller(&self.instrument, self.rig.as_ref())
             .map_err(|e| e.to_string())?;
         spad.park().map_err(|e| e.to_string())
@@ -752,6 +760,7 @@ impl Service {
 
     /// Reads the devices (worker thread only: it owns the instrument between runs).
     fn take_reading(&self) {
+        let _devices = self.devices.lock().unwrap_or_else(|p| p.into_inner());
         let devices = crate::devices::Devices::open_on(&self.instrument, self.rig.clone(), &|| false)
             .and_then(|mut d| d.report())
             .map(|r| serde_json::to_value(r).unwrap_or_default())
@@ -848,7 +857,7 @@ impl Service {
                         .iter()
                         .find(|q| self.info(q).is_ok_and(|i| i.state == RunState::Queued))
                         .cloned();
-                    if next.is_none() {
+                    let Some(id) = next else {
                         let interval = self.instrument.api.status_interval;
                         let stale = s.reading.as_ref().is_none_or(|r| r.at.elapsed() >= interval);
                         if s.refresh || stale {
@@ -856,32 +865,30 @@ impl Service {
                             drop(s);
                             self.take_reading();
                             s = self.lock();
-                            continue;
+                        } else {
+                            let wait = s
+                                .reading
+                                .as_ref()
+                                .map_or(interval, |r| interval.saturating_sub(r.at.elapsed()));
+                            s = self
+                                .wake
+                                .wait_timeout(s, wait.max(Duration::from_millis(10)))
+                                .unwrap_or_else(|p| p.into_inner())
+                                .0;
                         }
-                        let wait = s
-                            .reading
-                            .as_ref()
-                            .map_or(interval, |r| interval.saturating_sub(r.at.elapsed()));
-                        s = self
-                            .wake
-                            .wait_timeout(s, wait.max(Duration::from_millis(10)))
-                            .unwrap_or_else(|p| p.into_inner())
-                            .0;
                         continue;
-                    }
-                    if let Some(id) = next {
-                        let control = Control::new();
-                        s.current = Some((id.clone(), control.clone()));
-                        s.live = Live {
-                            id: id.clone(),
-                            stage: "starting".into(),
-                            ..Live::default()
-                        };
-                        s.channels
-                            .entry(id.clone())
-                            .or_insert_with(|| broadcast::channel(EVENT_BUFFER).0);
-                        break (id, control);
-                    }
+                    };
+                    let control = Control::new();
+                    s.current = Some((id.clone(), control.clone()));
+                    s.live = Live {
+                        id: id.clone(),
+                        stage: "starting".into(),
+                        ..Live::default()
+                    };
+                    s.channels
+                        .entry(id.clone())
+                        .or_insert_with(|| broadcast::channel(EVENT_BUFFER).0);
+                    break (id, control);
                 }
             };
             tracing::info!(run = %id, "run starting");
