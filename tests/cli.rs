@@ -70,32 +70,7 @@ fn json_logs_are_json() {
     // object with a level and a message, and there must be some.
     let dir = tempfile::tempdir().unwrap();
     let plan = dir.path().join("plan.toml");
-    std::fs::write(
-        &plan,
-        r#"
-name = "json-logs"
-[los]
-angles-deg = { x = [-12.0, 12.0], y = [-12.0, 12.0] }
-grid = [8, 8]
-dwell-ms = 1.0
-[relay]
-depth-m = [1.7, 3.0]
-detection = { min = [-0.4, -0.4, -0.1], max = [0.4, 0.4, 0.1] }
-[pairs]
-mode = "confocal"
-grid = [4, 4]
-[acquisition]
-dwell-ms = 5.0
-[recon]
-method = "fbp"
-[recon.volume]
-x = [-0.4, 0.4]
-y = [-0.4, 0.4]
-z = [0.3, 0.9]
-shape = [16, 16, 8]
-"#,
-    )
-    .unwrap();
+    std::fs::write(&plan, include_str!("data/plans/small-fbp.toml")).unwrap();
     let out = std::process::Command::new(periscope_tests::periscope_bin())
         .current_dir(periscope_tests::repo_root())
         .env("RUST_LOG", "info")
