@@ -439,31 +439,12 @@ async fn concurrent_clients_leave_consistent_states() {
                         }
                         (s, v)
                     }
-                    (1, Some(id)) => {
+                    (action @ 1..=3, Some(id)) => {
+                        let verb = ["pause", "resume", "abort"][action as usize - 1];
                         call(
                             &router,
                             Method::POST,
-                            &format!("/api/v1/runs/{id}/pause"),
-                            true,
-                            "",
-                        )
-                        .await
-                    }
-                    (2, Some(id)) => {
-                        call(
-                            &router,
-                            Method::POST,
-                            &format!("/api/v1/runs/{id}/resume"),
-                            true,
-                            "",
-                        )
-                        .await
-                    }
-                    (3, Some(id)) => {
-                        call(
-                            &router,
-                            Method::POST,
-                            &format!("/api/v1/runs/{id}/abort"),
+                            &format!("/api/v1/runs/{id}/{verb}"),
                             true,
                             "",
                         )

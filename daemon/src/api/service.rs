@@ -207,13 +207,7 @@ impl Service {
                 };
                 match info.state {
                     RunState::Running => {
-                        info.state = RunState::Paused;
-                        info.error = Some(format!(
-                            "interrupted: the daemon stopped during stage {}; POST /api/v1/runs/{id}/resume continues it",
-                            info.stage
-                        ));
-                        info.save(&dir)
-                            .map_err(|e| ServiceError::Storage(format!("{}: {e}", dir.display())))?;
+                        hold_interrupted(&dir, &id, &mut info)?;
                         queue.push_back(id);
                     }
                     RunState::Queued | RunState::Paused => queue.push_back(id),
@@ -239,13 +233,7 @@ impl Service {
             if let Ok(mut info) = RunInfo::load(&dir)
                 && info.state == RunState::Running
             {
-                info.state = RunState::Paused;
-                info.error = Some(format!(
-                    "interrupted: the daemon stopped during stage {}; POST /api/v1/runs/{id}/resume continues it",
-                    info.stage
-                ));
-                info.save(&dir)
-                    .map_err(|e| ServiceError::Storage(format!("{}: {e}", dir.display())))?;
+                hold_interrupted(&dir, &id, &mut info)?;
             }
             tracing::warn!(run = %id, "run {id} was missing from queue.json; queued again");
             queue.push_back(id);
@@ -1013,6 +1001,18 @@ impl Service {
             json: value.to_string().into(),
         });
     }
+}
+
+/// A run found `running` when the daemon starts was interrupted by its stop: it is
+/// held as paused (its data is intact) until an operator resumes it.
+fn hold_interrupted(dir: &Path, id: &str, info: &mut RunInfo) -> Result<(), ServiceError> {
+    info.state = RunState::Paused;
+    info.error = Some(format!(
+        "interrupted: the daemon stopped during stage {}; POST /api/v1/runs/{id}/resume continues it",
+        info.stage
+    ));
+    info.save(dir)
+        .map_err(|e| ServiceError::Storage(format!("{}: {e}", dir.display())))
 }
 
 /// How long an e-stop waits for a running run to reach its checkpoint (and park)
