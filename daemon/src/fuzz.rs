@@ -68,12 +68,20 @@ pub fn ytal_capture(data: &[u8]) {
     }
 }
 
-/// The histogram log (`histograms.bin`), read back on resume and export: the valid
-/// prefix and the discarded tail add up to the input, and every record kept has sane
+/// The histogram log (`histograms.bin`), read back on resume and export: the kept
+/// and the discarded bytes add up to the input, the damaged ranges are ordered,
+/// disjoint and cover exactly the discarded bytes, and every record kept has sane
 /// settings and a pair of its own.
 pub fn histogram_log(data: &[u8]) {
     let got = crate::store::parse_log(data);
     assert_eq!(got.valid_bytes + got.discarded_bytes, data.len() as u64);
+    let mut end = 0;
+    for r in &got.damaged {
+        assert!(r.start >= end && r.end > r.start && r.end <= data.len() as u64);
+        end = r.end;
+    }
+    let damaged: u64 = got.damaged.iter().map(|r| r.end - r.start).sum();
+    assert_eq!(damaged, got.discarded_bytes);
     let mut pairs = std::collections::HashSet::new();
     for r in &got.records {
         assert!(!r.counts.is_empty() && r.counts.len() <= 1 << 20 && r.bin_width_ps > 0);

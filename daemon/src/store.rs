@@ -4,10 +4,14 @@
 //! The histogram log is the only copy of what the instrument measured, so it is
 //! written for crashes: one self-describing record per pair (its pair index, flags,
 //! settings and counts, then a CRC-32 of all of it), appended and fsynced in batches.
-//! On resume, records are read back until the first one that is incomplete or fails
-//! its CRC; the file is cut there, and capture continues with the first pair that has
-//! no valid record. So a `kill -9` loses at most the unsynced tail, which is measured
-//! again, and no pair is ever stored twice.
+//! On resume, every valid record is read back: a record that is incomplete or fails its
+//! CRC is skipped and reading picks up at the next valid record, so damage in the
+//! middle of the log costs only the damaged records. A torn tail is cut off; damage
+//! anywhere else is set aside whole (the file as found is kept as
+//! `histograms.bin.damaged`) and the log is rewritten from the valid records. Capture
+//! then measures every pair that has no valid record. So a `kill -9` loses at most the
+//! unsynced tail, a flipped bit at most the record it sits in, both are measured again,
+//! and no pair is ever stored twice.
 use std::fs::{self, File, OpenOptions};
 use std::io::{self, BufReader, Read, Write};
 use std::path::{Path, PathBuf};
@@ -78,11 +82,30 @@ pub struct HistogramLog {
 pub struct Recovered {
     /// The valid records, in file order.
     pub records: Vec<Record>,
-    /// Length of the valid prefix, bytes.
+    /// Bytes in the records kept.
     pub valid_bytes: u64,
-    /// Bytes cut from the end (an incomplete or corrupted tail).
+    /// Bytes in nothing kept: damaged or incomplete records, and later copies of a
+    /// pair already read.
     pub discarded_bytes: u64,
+    /// The byte ranges, in file order, that no kept record covers.
+    pub damaged: Vec<std::ops::Range<u64>>,
 }
+
+impl Recovered {
+    /// Whether everything discarded lies after the last kept record (a torn or
+    /// damaged tail, which cutting the file removes), rather than between records.
+    pub fn damage_is_tail_only(&self) -> bool {
+        match self.damaged.as_slice() {
+            [] => true,
+            [only] => only.start == self.valid_bytes,
+            _ => false,
+        }
+    }
+}
+
+/// The file a log damaged between records is kept as before it is rewritten (with
+/// `.1`, `.2`, … appended when one exists already).
+pub const DAMAGED_LOG: &str = "histograms.bin.damaged";
 
 fn u32_at(b: &[u8], i: usize) -> u32 {
     u32::from_le_bytes(b[i..i + 4].try_into().expect("4 bytes"))
@@ -102,9 +125,12 @@ impl HistogramLog {
         })
     }
 
-    /// Reads a log back, cuts any invalid tail off the file, and opens it for
-    /// appending. Later records for a pair already stored are dropped (cannot happen
-    /// with this writer, but the reader does not trust the file).
+    /// Reads a log back, repairs it, and opens it for appending. An invalid tail is
+    /// cut off; damage between valid records (a flipped bit, a copied-over block) is
+    /// repaired by keeping the file as found under [`DAMAGED_LOG`] and replacing the
+    /// log, atomically, with its valid records. Later records for a pair already
+    /// stored are dropped (cannot happen with this writer, but the reader does not
+    /// trust the file).
     pub fn recover(dir: &Path) -> io::Result<(HistogramLog, Recovered)> {
         let path = dir.join(HISTOGRAM_LOG);
         if !path.exists() {
@@ -114,12 +140,16 @@ impl HistogramLog {
                     records: Vec::new(),
                     valid_bytes: 0,
                     discarded_bytes: 0,
+                    damaged: Vec::new(),
                 },
             ));
         }
         let got = read_log(dir)?;
+        if !got.damage_is_tail_only() {
+            set_aside_and_rewrite(dir, &path, &got.records)?;
+        }
         let file = OpenOptions::new().append(true).open(&path)?;
-        if got.discarded_bytes > 0 {
+        if got.damage_is_tail_only() && got.discarded_bytes > 0 {
             // Cut at the end of the valid prefix as read (not "length minus tail",
             // which a file that changed in between would make wrong).
             file.set_len(got.valid_bytes)?;
@@ -168,10 +198,42 @@ impl Drop for HistogramLog {
     }
 }
 
-/// Reads a run's histogram log without changing it: the valid records, in file order,
-/// up to the first incomplete or corrupted one. Later records for a pair already read
-/// are dropped (this writer never produces them, but the reader does not trust the
-/// file).
+/// Keeps the log as found under the first free [`DAMAGED_LOG`] name, then replaces it
+/// with `records` (written to a temporary file, synced, renamed over the log), so a
+/// crash at any point leaves either the old log or the new one, and the original
+/// bytes stay on disk for whoever wants to look at them.
+fn set_aside_and_rewrite(dir: &Path, path: &Path, records: &[Record]) -> io::Result<()> {
+    let mut keep = dir.join(DAMAGED_LOG);
+    let mut n = 0;
+    while keep.exists() {
+        n += 1;
+        keep = dir.join(format!("{DAMAGED_LOG}.{n}"));
+    }
+    fs::copy(path, &keep)?;
+    File::open(&keep)?.sync_all()?;
+    let tmp = dir.join(format!("{HISTOGRAM_LOG}.rewrite"));
+    {
+        let mut f = File::create(&tmp)?;
+        for r in records {
+            f.write_all(&r.encode())?;
+        }
+        f.sync_all()?;
+    }
+    fs::rename(&tmp, path)?;
+    sync_dir(dir);
+    tracing::warn!(
+        log = %path.display(),
+        kept = %keep.display(),
+        records = records.len(),
+        "the histogram log was damaged between records; the file as found was kept and the log rewritten from its valid records"
+    );
+    Ok(())
+}
+
+/// Reads a run's histogram log without changing it: every valid record, in file
+/// order, skipping damaged ones (see [`parse_log`]). Later records for a pair already
+/// read are dropped (this writer never produces them, but the reader does not trust
+/// the file).
 pub fn read_log(dir: &Path) -> io::Result<Recovered> {
     let path = dir.join(HISTOGRAM_LOG);
     let mut bytes = Vec::new();
@@ -179,55 +241,111 @@ pub fn read_log(dir: &Path) -> io::Result<Recovered> {
     Ok(parse_log(&bytes))
 }
 
-/// Decodes a histogram log held in memory: the records up to the first one that is
-/// incomplete, fails its CRC, or carries impossible settings (no bins, more than
-/// 2^20, a zero bin width). Any input gives an answer; nothing here panics.
+/// Decodes a histogram log held in memory: every valid record, in file order. A
+/// record that is incomplete, fails its CRC, or carries impossible settings (no bins,
+/// more than 2^20, a zero bin width) is skipped, and decoding resumes at the next
+/// position where a valid record starts. Any input gives an answer in time linear in
+/// its length (the search after damage checks at most [`RESYNC_BUDGET`] times the
+/// input's length in candidate records); nothing here panics.
 pub fn parse_log(bytes: &[u8]) -> Recovered {
     let mut records = Vec::new();
     let mut seen = std::collections::HashSet::new();
+    let mut damaged: Vec<std::ops::Range<u64>> = Vec::new();
+    let mut valid = 0u64;
+    let mut budget = RESYNC_BUDGET.saturating_mul(bytes.len()).saturating_add(1 << 20);
     let mut at = 0usize;
-    while bytes.len() - at >= HEADER + 4 {
-        let b = &bytes[at..];
-        if b[..4] != MAGIC {
-            break;
+    let mut skip_from: Option<usize> = None;
+    while at < bytes.len() {
+        // Reading straight through costs each byte once; only the search after
+        // damage draws on the budget.
+        let mut straight = usize::MAX;
+        let next = decode_at(bytes, at, if skip_from.is_none() { &mut straight } else { &mut budget });
+        match next {
+            Some((rec, len)) => {
+                if let Some(from) = skip_from.take() {
+                    damaged.push(from as u64..at as u64);
+                }
+                if seen.insert(rec.pair) {
+                    records.push(rec);
+                    valid += len as u64;
+                } else {
+                    damaged.push(at as u64..(at + len) as u64);
+                }
+                at += len;
+            }
+            None => {
+                skip_from.get_or_insert(at);
+                if budget == 0 {
+                    break;
+                }
+                // The next place the magic appears.
+                at = match bytes[at + 1..].windows(4).position(|w| w == MAGIC) {
+                    Some(i) => at + 1 + i,
+                    None => bytes.len(),
+                };
+            }
         }
-        let bins = u32_at(b, 12) as usize;
-        if bins == 0 || bins > MAX_RECORD_BINS {
-            break;
-        }
-        let len = HEADER + 4 * bins + 4;
-        if b.len() < len || crc32fast::hash(&b[..len - 4]) != u32_at(b, len - 4) {
-            break;
-        }
-        let flags = u32_at(b, 8);
-        let rec = Record {
-            pair: u32_at(b, 4),
-            flags: HistogramFlags {
-                overflow: flags & 1 != 0,
-                saturated: flags & 2 != 0,
-            },
-            bin_width_ps: u32_at(b, 16),
-            offset_ps: u32_at(b, 20),
-            dwell_us: u64::from_le_bytes(b[24..32].try_into().expect("8 bytes")),
-            counts: b[HEADER..len - 4]
-                .chunks_exact(4)
-                .map(|c| u32::from_le_bytes(c.try_into().expect("4")))
-                .collect(),
-        };
-        if rec.bin_width_ps == 0 {
-            break;
-        }
-        if seen.insert(rec.pair) {
-            records.push(rec);
-        }
-        at += len;
     }
+    if let Some(from) = skip_from {
+        damaged.push(from as u64..bytes.len() as u64);
+    }
+    // Adjacent ranges (a duplicate after damage) read as one.
+    damaged.dedup_by(|b, a| {
+        if a.end == b.start {
+            a.end = b.end;
+            true
+        } else {
+            false
+        }
+    });
     Recovered {
         records,
-        valid_bytes: at as u64,
-        discarded_bytes: (bytes.len() - at) as u64,
+        valid_bytes: valid,
+        discarded_bytes: bytes.len() as u64 - valid,
+        damaged,
     }
 }
+
+/// The record starting at `at`, with its encoded length, if one valid record does;
+/// the CRC's cost is taken from `budget` (none is checked once it is spent).
+fn decode_at(bytes: &[u8], at: usize, budget: &mut usize) -> Option<(Record, usize)> {
+    let b = &bytes[at..];
+    if b.len() < HEADER + 4 || b[..4] != MAGIC {
+        return None;
+    }
+    let bins = u32_at(b, 12) as usize;
+    if bins == 0 || bins > MAX_RECORD_BINS || u32_at(b, 16) == 0 {
+        return None;
+    }
+    let len = HEADER + 4 * bins + 4;
+    if b.len() < len || *budget < len {
+        return None;
+    }
+    *budget -= len;
+    if crc32fast::hash(&b[..len - 4]) != u32_at(b, len - 4) {
+        return None;
+    }
+    let flags = u32_at(b, 8);
+    let rec = Record {
+        pair: u32_at(b, 4),
+        flags: HistogramFlags {
+            overflow: flags & 1 != 0,
+            saturated: flags & 2 != 0,
+        },
+        bin_width_ps: u32_at(b, 16),
+        offset_ps: u32_at(b, 20),
+        dwell_us: u64::from_le_bytes(b[24..32].try_into().expect("8 bytes")),
+        counts: b[HEADER..len - 4]
+            .chunks_exact(4)
+            .map(|c| u32::from_le_bytes(c.try_into().expect("4")))
+            .collect(),
+    };
+    Some((rec, len))
+}
+
+/// After damage, the bytes of candidate records checked, as a multiple of the log's
+/// length (a hostile file full of false starts cannot make reading it quadratic).
+pub const RESYNC_BUDGET: usize = 4;
 
 /// Most bins a stored record may have (the TDC protocol's own limit is 65,536).
 const MAX_RECORD_BINS: usize = 1 << 20;
@@ -432,11 +550,11 @@ mod tests {
     }
 
     #[test]
-    fn a_flipped_bit_ends_the_valid_prefix() {
+    fn a_flipped_bit_costs_only_its_record_and_the_damaged_file_is_kept() {
         let dir = tempfile::tempdir().unwrap();
         {
             let mut log = HistogramLog::create(dir.path()).unwrap();
-            for p in 0..3 {
+            for p in 0..4 {
                 log.append(&rec(p)).unwrap();
             }
         }
@@ -445,13 +563,50 @@ mod tests {
         let one = rec(0).encode().len();
         bytes[one + HEADER + 2] ^= 1; // inside record 1's counts
         fs::write(&path, &bytes).unwrap();
-        let (_, got) = HistogramLog::recover(dir.path()).unwrap();
-        assert_eq!(got.records.len(), 1);
-        assert_eq!(got.discarded_bytes, (2 * one) as u64);
+        let (mut log, got) = HistogramLog::recover(dir.path()).unwrap();
+        assert_eq!(got.records, vec![rec(0), rec(2), rec(3)]);
+        assert_eq!(got.discarded_bytes, one as u64);
+        assert_eq!(got.damaged, vec![one as u64..2 * one as u64]);
+        assert!(!got.damage_is_tail_only());
+        // The file as found is kept, byte for byte; the log holds the valid records.
+        assert_eq!(fs::read(dir.path().join(DAMAGED_LOG)).unwrap(), bytes);
+        assert_eq!(fs::metadata(&path).unwrap().len(), 3 * one as u64);
+        log.append(&rec(1)).unwrap();
+        drop(log);
+        let again = read_log(dir.path()).unwrap();
+        assert_eq!(again.records, vec![rec(0), rec(2), rec(3), rec(1)]);
+        assert_eq!(again.discarded_bytes, 0);
         assert!(
             HistogramLog::create(dir.path()).is_err(),
             "an existing log is never overwritten"
         );
+        // A second repair keeps the first damaged copy too.
+        let mut bytes = fs::read(&path).unwrap();
+        bytes[HEADER] ^= 4;
+        fs::write(&path, &bytes).unwrap();
+        let (_, got) = HistogramLog::recover(dir.path()).unwrap();
+        assert_eq!(got.records.len(), 3);
+        assert!(dir.path().join(format!("{DAMAGED_LOG}.1")).exists());
+    }
+
+    #[test]
+    fn false_starts_cannot_make_reading_quadratic() {
+        // Every 4 bytes a magic and a header claiming 2^20 bins, none with a valid
+        // CRC: the search gives up after its budget and keeps what it read.
+        let mut bytes = rec(0).encode();
+        let mut fake = MAGIC.to_vec();
+        fake.extend_from_slice(&[0; 8]);
+        fake.extend_from_slice(&(1u32 << 20).to_le_bytes());
+        fake.extend_from_slice(&[1; 16]);
+        for _ in 0..200_000 {
+            bytes.extend_from_slice(&fake);
+        }
+        bytes.extend_from_slice(&rec(1).encode());
+        let t = Instant::now();
+        let got = parse_log(&bytes);
+        assert!(t.elapsed() < Duration::from_secs(20), "{:?}", t.elapsed());
+        assert_eq!(got.records[0], rec(0));
+        assert_eq!(got.valid_bytes + got.discarded_bytes, bytes.len() as u64);
     }
 
     #[test]

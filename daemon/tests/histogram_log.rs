@@ -1,7 +1,7 @@
 //! Property tests of the histogram log, the only copy of what the instrument measured:
 //! whatever records were written and however the file was then damaged (a byte
 //! flipped anywhere, the tail torn off, garbage appended), reading it back keeps
-//! exactly the records before the damage, and a resume that measures the missing pairs
+//! exactly the records the damage did not touch, and a resume that measures the missing pairs
 //! again ends with every pair stored exactly once, with the counts first written.
 use periscope_daemon::store::{HISTOGRAM_LOG, HistogramLog, Record, parse_log, read_log};
 use periscope_drivers::HistogramFlags;
@@ -42,7 +42,7 @@ proptest! {
     #![proptest_config(ProptestConfig { cases: 256, ..ProptestConfig::default() })]
 
     #[test]
-    fn damage_keeps_the_valid_prefix_and_resume_stores_every_pair_once(
+    fn damage_costs_only_the_records_it_touches_and_resume_stores_every_pair_once(
         shape in prop::collection::vec((1usize..64, any::<u32>()), 1..40),
         damage in damage(),
     ) {
@@ -70,35 +70,53 @@ proptest! {
         }
         prop_assert_eq!(at, clean.len());
         let mut bytes = clean.clone();
-        // The records wholly before the first damaged byte survive.
-        let first_bad = match &damage {
+        // The damaged byte range: a flipped byte, or everything after a cut.
+        let bad = match &damage {
             Damage::Flip { at, bit } => {
                 let i = at.index(bytes.len());
                 bytes[i] ^= 1 << bit;
-                i
+                i..i + 1
             }
             Damage::Truncate { at } => {
                 let i = at.index(bytes.len());
                 bytes.truncate(i);
-                i
+                i..usize::MAX
             }
-            Damage::Append { .. } => bytes.len(),
+            Damage::Append { .. } => usize::MAX..usize::MAX,
         };
         if let Damage::Append { bytes: extra } = &damage {
             bytes.extend_from_slice(extra);
         }
-        let kept = ends.iter().filter(|&&e| e <= first_bad).count();
+        // Every record the damage does not touch survives, in order.
+        let untouched: Vec<Record> = written
+            .iter()
+            .zip(&ends)
+            .filter(|&(r, &end)| {
+                let start = end - (36 + 4 * r.counts.len());
+                end <= bad.start || start >= bad.end
+            })
+            .map(|(r, _)| r.clone())
+            .collect();
         let got = parse_log(&bytes);
-        // Appended garbage may itself look like a record only if it carries a valid
-        // CRC over a valid header; the generator cannot produce that by chance.
-        prop_assert_eq!(&got.records[..], &written[..kept]);
-        prop_assert_eq!(got.valid_bytes, if kept == 0 { 0 } else { ends[kept - 1] as u64 });
+        // Garbage may itself look like a record only if it carries a valid CRC over a
+        // valid header; the generator cannot produce that by chance.
+        prop_assert_eq!(&got.records[..], &untouched[..]);
+        let kept_bytes: usize = untouched.iter().map(|r| 36 + 4 * r.counts.len()).sum();
+        prop_assert_eq!(got.valid_bytes, kept_bytes as u64);
         prop_assert_eq!(got.valid_bytes + got.discarded_bytes, bytes.len() as u64);
+        let damaged: u64 = got.damaged.iter().map(|r| r.end - r.start).sum();
+        prop_assert_eq!(damaged, got.discarded_bytes);
 
-        // Resume: recover cuts the damage off, the missing pairs are measured again.
+        // Resume: recover repairs the log, the missing pairs are measured again.
         std::fs::write(&path, &bytes).unwrap();
         let (mut log, recovered) = HistogramLog::recover(dir.path()).unwrap();
-        prop_assert_eq!(recovered.records.len(), kept);
+        prop_assert_eq!(recovered.records.len(), untouched.len());
+        // Damage between records leaves the file as found beside the log.
+        let set_aside = dir.path().join(periscope_daemon::store::DAMAGED_LOG);
+        prop_assert_eq!(set_aside.exists(), !recovered.damage_is_tail_only());
+        if set_aside.exists() {
+            prop_assert_eq!(std::fs::read(&set_aside).unwrap(), bytes.clone());
+        }
         let stored: std::collections::HashSet<u32> = recovered.records.iter().map(|r| r.pair).collect();
         for r in written.iter().filter(|r| !stored.contains(&r.pair)) {
             log.append(r).unwrap();

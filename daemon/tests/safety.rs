@@ -349,6 +349,46 @@ fn a_paused_and_a_panicked_capture_resume_with_every_pair_once() {
     }
 }
 
+#[test]
+fn a_record_damaged_in_the_middle_of_the_log_is_measured_again_and_the_rest_kept() {
+    use periscope_daemon::store::{DAMAGED_LOG, HISTOGRAM_LOG};
+    let _serial = ONE_AT_A_TIME.lock().unwrap_or_else(|p| p.into_inner());
+    let tmp = tempfile::tempdir().unwrap();
+    let (dir, rig) = prepare(tmp.path(), PLAN);
+    let control = Control::new();
+    let c = control.clone();
+    let r = execute(&dir, &rig, control, move |done| {
+        if done == 12 {
+            c.pause();
+        }
+    });
+    assert!(r.is_err());
+    assert_eq!(RunInfo::load(&dir).unwrap().state, RunState::Paused);
+    let before = read_log(&dir).unwrap().records;
+    assert!((12..=13).contains(&before.len()), "{}", before.len());
+    // Flip one bit in the counts of the fifth record (all records have one length).
+    let path = dir.join(HISTOGRAM_LOG);
+    let mut bytes = std::fs::read(&path).unwrap();
+    let one = bytes.len() / before.len();
+    assert_eq!(one * before.len(), bytes.len());
+    bytes[4 * one + 40] ^= 0x10;
+    std::fs::write(&path, &bytes).unwrap();
+    let hit = before[4].pair;
+
+    execute(&dir, &rig, Control::new(), |_| {}).unwrap();
+    assert_eq!(RunInfo::load(&dir).unwrap().state, RunState::Completed);
+    assert_each_pair_once(&dir);
+    assert!(!rig.emission());
+    // Every undamaged record is kept as it was; the damaged pair was measured again;
+    // the file as found is kept beside the log.
+    let after = read_log(&dir).unwrap();
+    for r in before.iter().filter(|r| r.pair != hit) {
+        assert!(after.records.contains(r), "pair {} changed or was lost", r.pair);
+    }
+    assert!(after.records.iter().any(|r| r.pair == hit));
+    assert_eq!(std::fs::read(dir.join(DAMAGED_LOG)).unwrap(), bytes);
+}
+
 /// The plan with a `[suspend]` table.
 fn plan_with(suspend: &str) -> String {
     format!("{PLAN}\n[suspend]\n{suspend}\n")

@@ -158,7 +158,9 @@ impl Run {
         if recovered.discarded_bytes > 0 {
             tracing::warn!(
                 bytes = recovered.discarded_bytes,
-                "the histogram log ended in an incomplete or corrupted record; it was cut off and that pair is measured again"
+                ranges = ?recovered.damaged,
+                kept = recovered.records.len(),
+                "the histogram log held incomplete or corrupted records; they were skipped and their pairs are measured again"
             );
         }
         let input = ReconInput {
