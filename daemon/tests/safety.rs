@@ -350,6 +350,46 @@ fn a_paused_and_a_panicked_capture_resume_with_every_pair_once() {
 }
 
 #[test]
+fn a_histogrammer_unplugged_for_good_fails_the_capture_keeps_its_pairs_and_resumes_once_back() {
+    let _serial = ONE_AT_A_TIME.lock().unwrap_or_else(|p| p.into_inner());
+    let tmp = tempfile::tempdir().unwrap();
+    let (dir, rig) = prepare(tmp.path(), PLAN);
+    let r2 = rig.clone();
+    let r = execute(&dir, &rig, Control::new(), move |done| {
+        if done == 8 {
+            r2.unplug_tdc(u32::MAX);
+        }
+    });
+    let e = r.expect_err("the capture went on without its histogrammer").to_string();
+    assert!(e.contains("histogrammer") || e.contains("TDC"), "{e}");
+    assert!(!rig.emission());
+    let info = RunInfo::load(&dir).unwrap();
+    assert_eq!(info.state, RunState::Failed);
+    let kept = read_log(&dir).unwrap();
+    assert!((8..=9).contains(&kept.records.len()), "{} kept", kept.records.len());
+    assert_eq!(kept.discarded_bytes, 0);
+    let log_before = std::fs::read(dir.join(periscope_daemon::store::HISTOGRAM_LOG)).unwrap();
+
+    // Still unplugged: a resume fails before the laser goes on and stores nothing.
+    let since = Instant::now();
+    assert!(execute(&dir, &rig, Control::new(), |_| {}).is_err());
+    assert!(rig.emission_changes().iter().all(|c| !c.on || c.at < since));
+    assert_eq!(
+        std::fs::read(dir.join(periscope_daemon::store::HISTOGRAM_LOG)).unwrap(),
+        log_before
+    );
+
+    // Plugged back in: the resume measures the rest, and what was kept is unchanged.
+    rig.plug_tdc();
+    execute(&dir, &rig, Control::new(), |_| {}).unwrap();
+    assert_eq!(RunInfo::load(&dir).unwrap().state, RunState::Completed);
+    assert_each_pair_once(&dir);
+    let after = read_log(&dir).unwrap();
+    assert_eq!(after.records[..kept.records.len()], kept.records[..]);
+    assert!(!rig.emission());
+}
+
+#[test]
 fn a_record_damaged_in_the_middle_of_the_log_is_measured_again_and_the_rest_kept() {
     use periscope_daemon::store::{DAMAGED_LOG, HISTOGRAM_LOG};
     let _serial = ONE_AT_A_TIME.lock().unwrap_or_else(|p| p.into_inner());

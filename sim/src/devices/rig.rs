@@ -286,6 +286,14 @@ impl Rig {
         s.tdc_refused_reopens = refused_reopens;
     }
 
+    /// Plugs the histogrammer's cable back in: the next reopen succeeds (the transfers
+    /// of a handle opened before the unplug keep failing, as on a real bus).
+    pub fn plug_tdc(&self) {
+        let mut s = self.shared.lock();
+        s.tdc_unplugged = false;
+        s.tdc_refused_reopens = 0;
+    }
+
     /// Opens or closes the interlock loop; opening it stops emission at once.
     pub fn set_interlock(&self, closed: bool) {
         let mut s = self.shared.lock();

@@ -37,6 +37,13 @@ const SENT_LOG: usize = 16;
 
 impl SimTdcTransport {
     pub(crate) fn new(rig: Rig) -> SimTdcTransport {
+        // With the cable still out the device is not on the bus: the first transfer
+        // fails and only a reopen the rig allows brings it up (as a handle opened on
+        // a real bus while the device is absent).
+        let absent = {
+            let s = rig.shared.lock();
+            s.tdc_unplugged || s.tdc_refused_reopens > 0
+        };
         SimTdcTransport {
             rig,
             config: None,
@@ -45,7 +52,7 @@ impl SimTdcTransport {
             acquisitions: 0,
             last_rate: 0.0,
             last_sequence: 0,
-            disconnected: false,
+            disconnected: absent,
             sent: VecDeque::new(),
         }
     }
