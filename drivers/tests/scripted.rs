@@ -381,11 +381,43 @@ fn frame(bin_width_ps: u32) -> Vec<u8> {
     )
 }
 
+/// The documented frame (`docs/protocols/tdc-usb.md`, Examples): sequence 1 under
+/// [`CONFIG_BYTES`], counts 5, 6, 7, 8, CRC from zlib's `crc32`. Written by hand.
+#[rustfmt::skip]
+const DOC_FRAME: [u8; 52] = [
+    0x50, 0x54, 0x44, 0x43, 0x01, 0x00, 0x20, 0x00, 0x01, 0x00, 0x00, 0x00, 0x00, 0x00, 0x00, 0x00,
+    0x04, 0x00, 0x00, 0x00, 0x10, 0x00, 0x00, 0x00, 0xe0, 0x2e, 0x00, 0x00, 0xe8, 0x03, 0x00, 0x00,
+    0x05, 0x00, 0x00, 0x00, 0x06, 0x00, 0x00, 0x00, 0x07, 0x00, 0x00, 0x00, 0x08, 0x00, 0x00, 0x00,
+    0xf1, 0x80, 0x06, 0x6f,
+];
+
+/// The documented info block: `PTDC-1`, firmware 2.1, serial `A1`.
+#[rustfmt::skip]
+const DOC_INFO: [u8; 64] = [
+    0x01, 0x00, 0x02, 0x00, 0x01, 0x00, 0x00, 0x00, 0x00, 0x00, 0x01, 0x00, 0x01, 0x00, 0x00, 0x00,
+    0x50, 0x54, 0x44, 0x43, 0x2d, 0x31, 0x00, 0x00, 0x00, 0x00, 0x00, 0x00, 0x00, 0x00, 0x00, 0x00,
+    0x00, 0x00, 0x00, 0x00, 0x00, 0x00, 0x00, 0x00, 0x41, 0x31, 0x00, 0x00, 0x00, 0x00, 0x00, 0x00,
+    0x00, 0x00, 0x00, 0x00, 0x00, 0x00, 0x00, 0x00, 0x00, 0x00, 0x00, 0x00, 0x00, 0x00, 0x00, 0x00,
+];
+
+/// The documented status block: idle, 10 MHz sync, 2,500 counts/s, one frame.
+const DOC_STATUS: [u8; 16] = [0, 0, 0, 0, 0x80, 0x96, 0x98, 0, 0xc4, 0x09, 0, 0, 1, 0, 0, 0];
+
 #[test]
-fn usb_configure_acquire_status_identify() {
-    let frame = frame(16);
-    // The frame layout, byte for byte: magic, version, header length, sequence.
-    assert_eq!(&frame[..12], b"PTDC\x01\x00\x20\x00\x01\x00\x00\x00");
+fn the_documented_usb_bytes_are_what_our_encoder_writes() {
+    let wire = WireConfig {
+        bin_width_ps: 16,
+        bins: 4,
+        offset_ps: 12_000,
+        sync_divider: 1,
+        acquisition_us: 1000,
+    };
+    assert_eq!(WireConfig::decode(&CONFIG_BYTES), Some(wire));
+    assert_eq!(wire.encode(), CONFIG_BYTES);
+    assert_eq!(frame(16), DOC_FRAME);
+    let (header, counts, used) = protocol::decode_frame(&DOC_FRAME).unwrap();
+    assert_eq!((header.sequence, header.flags, used), (1, 0, 52));
+    assert_eq!(counts, [5, 6, 7, 8]);
     let info = WireInfo {
         protocol: 1,
         firmware: (2, 1),
@@ -394,6 +426,8 @@ fn usb_configure_acquire_status_identify() {
         model: "PTDC-1".into(),
         serial: "A1".into(),
     };
+    assert_eq!(WireInfo::decode(&DOC_INFO), Some(info.clone()));
+    assert_eq!(info.encode(), DOC_INFO);
     let status = WireStatus {
         state: 0,
         error: 0,
@@ -401,6 +435,22 @@ fn usb_configure_acquire_status_identify() {
         input_rate_hz: 2500,
         frames: 1,
     };
+    assert_eq!(WireStatus::decode(&DOC_STATUS), Some(status));
+    assert_eq!(status.encode(), DOC_STATUS);
+    // One flipped bit anywhere fails the CRC.
+    for i in 0..DOC_FRAME.len() {
+        let mut bad = DOC_FRAME;
+        bad[i] ^= 0x40;
+        assert!(
+            protocol::decode_frame(&bad).is_err(),
+            "byte {i} flipped was accepted"
+        );
+    }
+}
+
+#[test]
+fn usb_configure_acquire_status_identify() {
+    let frame = DOC_FRAME.to_vec();
     let mut tdc = UsbTdc::with_sequence(
         ScriptedUsb {
             script: [
@@ -409,8 +459,8 @@ fn usb_configure_acquire_status_identify() {
                 (Xfer::Out(0x04, 1, 0, vec![]), vec![]),
                 (Xfer::Bulk(0x81), frame[..10].to_vec()),
                 (Xfer::Bulk(0x81), frame[10..].to_vec()),
-                (Xfer::In(0x05, 0, 0), status.encode().to_vec()),
-                (Xfer::In(0x01, 0, 0), info.encode().to_vec()),
+                (Xfer::In(0x05, 0, 0), DOC_STATUS.to_vec()),
+                (Xfer::In(0x01, 0, 0), DOC_INFO.to_vec()),
             ]
             .into_iter()
             .collect(),

@@ -593,3 +593,127 @@ fn a_long_acquisition_stops_within_the_poll_interval_and_is_aborted_on_the_devic
     let h = tdc.acquire().unwrap();
     assert_eq!(h.counts.len(), 64);
 }
+
+/// CRC-8/SMBUS written out from the protocol page (polynomial 0x07, init 0, no
+/// reflection), independent of the drivers' implementation.
+fn crc8(bytes: &[u8]) -> u8 {
+    let mut c = 0u8;
+    for &b in bytes {
+        c ^= b;
+        for _ in 0..8 {
+            c = if c & 0x80 != 0 { (c << 1) ^ 0x07 } else { c << 1 };
+        }
+    }
+    c
+}
+
+/// Sends one line to the simulated firmware and returns its reply line (without the
+/// newline).
+fn exchange(link: &mut dyn periscope_drivers::galvo::Link, line: &str) -> String {
+    link.send(format!("{line}\n").as_bytes()).unwrap();
+    let mut got = Vec::new();
+    let deadline = Instant::now() + Duration::from_secs(2);
+    while !got.ends_with(b"\n") {
+        assert!(Instant::now() < deadline, "no reply to {line:?}: {got:?}");
+        let mut buf = [0u8; 256];
+        let n = link.receive(&mut buf, Duration::from_millis(50)).unwrap();
+        got.extend_from_slice(&buf[..n]);
+    }
+    String::from_utf8(got).unwrap().trim_end().to_owned()
+}
+
+/// The simulated firmware against the example lines of
+/// `docs/protocols/galvo-serial.md`, typed in from the page (not made by our encoder):
+/// it must parse each request and answer with the documented bytes.
+#[test]
+fn the_simulated_galvo_firmware_answers_the_documented_lines() {
+    use periscope_drivers::galvo::Connector;
+    assert_eq!(crc8(b"123456789"), 0xF4, "the page's check value");
+    let rig = rig();
+    let mut link = rig.galvo_connector(Arm::Laser).connect().unwrap();
+    let link = link.as_mut();
+    // Identity: the layout of the page's example, with this firmware's own words.
+    let idn = exchange(link, "01 IDN*01");
+    let (body, crc) = idn.split_once('*').unwrap();
+    assert_eq!(
+        u8::from_str_radix(crc, 16).unwrap(),
+        crc8(body.as_bytes()),
+        "{idn}"
+    );
+    let words: Vec<&str> = body.split(' ').collect();
+    assert_eq!(
+        (words[0], words[1], words[4], words[6]),
+        ("01", "OK", "2", "LASER"),
+        "{idn}"
+    );
+    for (request, reply) in [
+        (
+            "01 MOVE 0.1000000 -0.0500000*15",
+            "01 OK SETTLED 0.1000000 -0.0500000*06",
+        ),
+        ("02 STAT*4D", "02 OK SETTLED 0.1000000 -0.0500000*22"),
+        ("01 WDOG 250*BE", "01 OK 250 0*AF"),
+        ("02 LASER ON*B0", "02 OK*FE"),
+        ("01 LSTAT*3D", "01 OK ON CLOSED OUT*40"),
+        ("00 KEEP*49", "00 OK*D2"),
+        ("00 LASER OFF*5A", "00 OK*D2"),
+        // A wrong checksum (the page's IDN line with CC 02): error 1, computed here.
+        ("01 IDN*02", "01 ERR 1 bad checksum*A2"),
+    ] {
+        assert_eq!(exchange(link, request), reply, "answer to {request}");
+    }
+    assert!(!rig.emission());
+    rig.set_interlock(false);
+    assert_eq!(exchange(link, "01 LASER ON*08"), "01 ERR 6 interlock open*87");
+    assert!(!rig.emission());
+}
+
+/// The simulated histogrammer against the bytes of `docs/protocols/tdc-usb.md`: the
+/// documented `SET_CONFIG` is accepted and read back as sent, and `START` yields a
+/// frame whose every field is read here by offset, with its CRC checked by zlib's
+/// algorithm (`crc32fast`), not by our decoder.
+#[test]
+fn the_simulated_histogrammer_answers_the_documented_requests() {
+    use periscope_drivers::tdc::UsbTransport;
+    const CONFIG: [u8; 20] = [
+        0x10, 0, 0, 0, 0x04, 0, 0, 0, 0xe0, 0x2e, 0, 0, 0x01, 0, 0, 0, 0xe8, 0x03, 0, 0,
+    ];
+    let rig = rig();
+    let mut usb = rig.tdc_transport();
+    let t = Duration::from_millis(100);
+    usb.control_out(0x02, 0, 0, &CONFIG, t).unwrap();
+    let mut back = [0u8; 20];
+    assert_eq!(usb.control_in(0x03, 0, 0, &mut back, t).unwrap(), 20);
+    assert_eq!(back, CONFIG);
+    // START, sequence 0x0002_0001: wValue the low half, wIndex the high half.
+    usb.control_out(0x04, 0x0001, 0x0002, &[], t).unwrap();
+    let mut frame = Vec::new();
+    let deadline = Instant::now() + Duration::from_secs(2);
+    while frame.len() < 52 {
+        assert!(Instant::now() < deadline, "no frame: {} bytes", frame.len());
+        let mut buf = [0u8; 512];
+        let n = usb
+            .bulk_in(0x81, &mut buf, Duration::from_millis(20))
+            .unwrap_or(0);
+        frame.extend_from_slice(&buf[..n]);
+    }
+    let u32_at = |i: usize| u32::from_le_bytes(frame[i..i + 4].try_into().unwrap());
+    assert_eq!(frame.len(), 52);
+    assert_eq!(&frame[..8], b"PTDC\x01\x00\x20\x00");
+    assert_eq!(u32_at(8), 0x0002_0001, "sequence");
+    assert_eq!(u32_at(12) & !3, 0, "only the two documented flags");
+    assert_eq!(
+        (u32_at(16), u32_at(20), u32_at(24), u32_at(28)),
+        (4, 16, 12_000, 1000)
+    );
+    assert_eq!(u32_at(48), crc32fast::hash(&frame[..48]));
+    // GET_STATUS: idle again, one frame.
+    let mut status = [0u8; 16];
+    assert_eq!(usb.control_in(0x05, 0, 0, &mut status, t).unwrap(), 16);
+    assert_eq!(status[0], 0, "idle");
+    assert_eq!(u32::from_le_bytes(status[12..16].try_into().unwrap()), 1);
+    // A config the page forbids (divider 0) is stalled.
+    let mut zero_divider = CONFIG;
+    zero_divider[12] = 0;
+    assert!(usb.control_out(0x02, 0, 0, &zero_divider, t).is_err());
+}
