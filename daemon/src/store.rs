@@ -259,7 +259,15 @@ pub fn parse_log(bytes: &[u8]) -> Recovered {
         // Reading straight through costs each byte once; only the search after
         // damage draws on the budget.
         let mut straight = usize::MAX;
-        let next = decode_at(bytes, at, if skip_from.is_none() { &mut straight } else { &mut budget });
+        let next = decode_at(
+            bytes,
+            at,
+            if skip_from.is_none() {
+                &mut straight
+            } else {
+                &mut budget
+            },
+        );
         match next {
             Some((rec, len)) => {
                 if let Some(from) = skip_from.take() {

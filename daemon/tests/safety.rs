@@ -360,13 +360,19 @@ fn a_histogrammer_unplugged_for_good_fails_the_capture_keeps_its_pairs_and_resum
             r2.unplug_tdc(u32::MAX);
         }
     });
-    let e = r.expect_err("the capture went on without its histogrammer").to_string();
+    let e = r
+        .expect_err("the capture went on without its histogrammer")
+        .to_string();
     assert!(e.contains("histogrammer") || e.contains("TDC"), "{e}");
     assert!(!rig.emission());
     let info = RunInfo::load(&dir).unwrap();
     assert_eq!(info.state, RunState::Failed);
     let kept = read_log(&dir).unwrap();
-    assert!((8..=9).contains(&kept.records.len()), "{} kept", kept.records.len());
+    assert!(
+        (8..=9).contains(&kept.records.len()),
+        "{} kept",
+        kept.records.len()
+    );
     assert_eq!(kept.discarded_bytes, 0);
     let log_before = std::fs::read(dir.join(periscope_daemon::store::HISTOGRAM_LOG)).unwrap();
 

@@ -25,8 +25,10 @@ pub struct RelayPoint {
     pub intensity: f64,
 }
 
-/// Sub-bin peak of a histogram (parabola through the top three bins), or `None`.
-pub(crate) fn peak(counts: &[u32]) -> Option<(f64, u32)> {
+/// Sub-bin peak of a histogram (parabola through the top three bins) as a fractional
+/// bin index (bin k spans [k, k + 1), so a return wholly in bin k reads k + 0.5 once
+/// the half bin is added), with the peak's counts; `None` below 8 counts.
+pub fn peak(counts: &[u32]) -> Option<(f64, u32)> {
     let (b, &top) = counts.iter().enumerate().max_by_key(|(_, c)| **c)?;
     if top < MIN_PEAK_COUNTS {
         return None;
@@ -40,6 +42,16 @@ pub(crate) fn peak(counts: &[u32]) -> Option<(f64, u32)> {
         0.0
     };
     Some((b as f64 + delta, top))
+}
+
+/// The range r along the SPAD ray p = S + r·d (`d` a unit vector) of the point whose
+/// first-bounce path laser → p → SPAD is `ell`: |p − L| + |p − S| = ℓ gives
+/// r = (ℓ² − |D|²) / (2(ℓ + D·d)) with D = S − L (DESIGN.md §4). `None` when no point
+/// in front of the SPAD has that path (ℓ shorter than the baseline, or not finite).
+pub fn first_bounce_range(ell: f64, laser: DVec3, spad: DVec3, d: DVec3) -> Option<f64> {
+    let d_ls = spad - laser;
+    let r = (ell * ell - d_ls.length_squared()) / (2.0 * (ell + d_ls.dot(d)));
+    (r.is_finite() && r > 0.0).then_some(r)
 }
 
 impl Run {
@@ -67,7 +79,6 @@ impl Run {
         self.devices.laser.set_emission(true)?;
         let spad_pose = self.instrument.spad_arm.pose;
         let (l, s) = (self.instrument.laser_arm.pose.origin, spad_pose.origin);
-        let d_ls = s - l;
         let [nx, ny] = los.grid;
         let total = nx * ny;
         let mut out = Vec::new();
@@ -87,9 +98,7 @@ impl Run {
                 if let Some((b, top)) = peak(&h.counts) {
                     let ell = C0 * (acq.offset + (b + 0.5) * acq.bin_width - tdc.system_delay);
                     let dir = spad_pose.direction(angles);
-                    // |p − L| + |p − S| = ℓ with p = S + r·d (DESIGN.md §4).
-                    let r = (ell * ell - d_ls.length_squared()) / (2.0 * (ell + d_ls.dot(dir)));
-                    if r.is_finite() && r > 0.0 {
+                    if let Some(r) = first_bounce_range(ell, l, s, dir) {
                         out.push((s + dir * r, f64::from(top)));
                     }
                 }
