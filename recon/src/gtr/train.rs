@@ -2,13 +2,15 @@
 //! cancel token, typed progress events, streaming input and pruning.
 //!
 //! Streaming: [`Trainer::run`] takes an optional channel of new transients. While the
-//! channel is open (the capture is still running) every epoch trains on whatever has
-//! arrived; these "live" epochs do not count towards `epochs`. Once the sender hangs up,
-//! exactly `epochs` more epochs run on the complete data, so a reconstruction finishes
-//! a fixed time after the capture does.
+//! channel is open (the capture is still running) the fit runs [`LIVE_EPOCHS_PER_BATCH`]
+//! "live" epochs on the data so far, then waits for the next batch; live epochs do not
+//! count towards `epochs`. Once the sender hangs up, exactly `epochs` more epochs run on
+//! the complete data. The schedule follows the data received, never the clock: the same
+//! batches in the same order give the same fit bit for bit, however fast they came
+//! (a fit that falls behind the capture works through its backlog after it).
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::mpsc::{Receiver, TryRecvError};
+use std::sync::mpsc::Receiver;
 
 use rand::SeedableRng;
 use rand::seq::SliceRandom;
@@ -23,6 +25,10 @@ use super::optim::{AdamW, AdamWSettings, Schedule};
 use super::render::{batch_loss_grad, render_set};
 use crate::roi::RoiBox;
 use crate::transient::{TransientError, TransientSet};
+
+/// Live epochs run on the data so far after each batch streamed in (and on the data
+/// the fit starts with) while the capture goes on.
+pub const LIVE_EPOCHS_PER_BATCH: usize = 1;
 
 /// Which primitives pruning removes.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
@@ -388,36 +394,21 @@ impl Trainer {
         let mut live_epochs_on_same_data = 0usize;
         let mut final_loss = f64::NAN;
         loop {
-            // Take in whatever the capture has produced.
-            let mut grew = false;
-            if let Some(rx) = &feed {
-                loop {
-                    // Block only when there is nothing at all to train on yet, or when
-                    // the current data has already been trained on enough.
-                    let must_wait =
-                        self.data.is_empty() || live_epochs_on_same_data >= self.config.epochs.max(1);
-                    let next = if must_wait && !grew {
-                        rx.recv().map_err(|_| TryRecvError::Disconnected)
-                    } else {
-                        rx.try_recv()
-                    };
-                    match next {
-                        Ok(more) => {
-                            self.add(&more)?;
-                            grew = true;
-                        }
-                        Err(TryRecvError::Empty) => break,
-                        Err(TryRecvError::Disconnected) => {
-                            feed = None;
-                            break;
-                        }
+            // Take in the next batch once the data so far has had its live epochs (at
+            // once when there is none yet): one batch at a time, waiting for it, so
+            // what each epoch sees depends only on the batches, never on timing.
+            if let Some(rx) = &feed
+                && (self.data.is_empty() || live_epochs_on_same_data >= LIVE_EPOCHS_PER_BATCH)
+            {
+                match rx.recv() {
+                    Ok(more) => {
+                        self.add(&more)?;
+                        live_epochs_on_same_data = 0;
+                        on_event(&TrainEvent::DataAdded {
+                            pairs: self.data.len(),
+                        });
                     }
-                }
-                if grew {
-                    live_epochs_on_same_data = 0;
-                    on_event(&TrainEvent::DataAdded {
-                        pairs: self.data.len(),
-                    });
+                    Err(_) => feed = None,
                 }
             }
             if cancel.is_cancelled() {
