@@ -46,7 +46,9 @@ fn recon_and_export_of_a_run_directory_whole_and_damaged() {
     );
     assert!(again.join("depth.png").is_file());
 
-    // Export: one transient per stored record, in pair order, counts as stored.
+    // Export: one transient per stored record, in pair order, the stored counts with
+    // pile-up undone as every reconstruction of the run sees them.
+    let (_, _, inst) = periscope_daemon::pipeline::load_run(&run).unwrap();
     let cap = tmp.path().join("cap.hdf5");
     let out = periscope(&["export", s(&run), "--out", s(&cap)]);
     assert_eq!(out.code, Some(0), "{out:?}");
@@ -57,12 +59,19 @@ fn recon_and_export_of_a_run_directory_whole_and_damaged() {
     assert_eq!(c.bins(), sorted[0].counts.len());
     for (k, r) in sorted.iter().enumerate() {
         let h: Vec<f32> = c.transient(k).collect();
-        let want: Vec<f32> = r.counts.iter().map(|&v| v as f32).collect();
+        let want = periscope_daemon::pipeline::record_counts(r, &inst);
         assert_eq!(h, want, "transient {k} (pair {})", r.pair);
+        let raw: f32 = r.counts.iter().map(|&v| v as f32).sum();
+        let total: f32 = h.iter().sum();
+        assert!(
+            total >= raw && total < 1.1 * raw,
+            "pair {}: {total} from {raw} counted",
+            r.pair
+        );
     }
 
-    // A record damaged in the middle of the log: recon and export use the records
-    // before it, and say nothing is wrong with the rest of the run.
+    // A record damaged in the middle of the log: recon and export use every record
+    // but that one, and leave the damaged run as it was.
     let damaged = tmp.path().join("damaged");
     copy_dir(&run, &damaged);
     let log = damaged.join(HISTOGRAM_LOG);
@@ -76,7 +85,12 @@ fn recon_and_export_of_a_run_directory_whole_and_damaged() {
     let dcap = tmp.path().join("d.hdf5");
     let out = periscope(&["export", s(&damaged), "--out", s(&dcap)]);
     assert_eq!(out.code, Some(0), "{out:?}");
-    assert_eq!(YtalCapture::read(&dcap).unwrap().len(), middle);
+    assert_eq!(YtalCapture::read(&dcap).unwrap().len(), records.len() - 1);
+    assert_eq!(
+        std::fs::read(&log).unwrap(),
+        bytes,
+        "reading changed the damaged log"
+    );
 
     // No pair plan: a clear error naming the file, no output directory.
     let planless = tmp.path().join("planless");

@@ -7,7 +7,7 @@ use periscope_recon::{Pair, TransientSet};
 
 use crate::config::TomlSource;
 use crate::events::EventSink;
-use crate::pipeline::{self, Control, ReconInput, hidden_histogram};
+use crate::pipeline::{self, Control, ReconInput};
 use crate::plan::{PlannedPair, default_recon, load_recon};
 use crate::ytal::{YtalCapture, is_hdf5_path};
 
@@ -58,22 +58,30 @@ pub fn recon(capture: &Path, config: Option<&Path>, out: &Path) -> anyhow::Resul
         .map_err(|e| anyhow::anyhow!("{}: {e}", capture.display()))?;
     let mut set = TransientSet::new(axis)?;
     let mut used = Vec::new();
+    let mut overflowed = 0usize;
     for r in &records.records {
         let Some(p) = pairs.get(r.pair as usize) else {
             continue;
         };
-        let legs = p.xi.distance(l) + p.xd.distance(s);
-        let h = hidden_histogram(
-            &r.counts,
-            f64::from(r.offset_ps) * 1e-12,
-            f64::from(r.bin_width_ps) * 1e-12,
-            inst.tdc.system_delay,
-            legs,
-            &axis,
-        );
-        set.push(recon_pairs[r.pair as usize], &h)?;
-        used.push(p.xd);
+        match pipeline::record_transient(r, p, &inst, &axis) {
+            Some(h) => {
+                set.push(recon_pairs[r.pair as usize], &h)?;
+                used.push(p.xd);
+            }
+            None => overflowed += 1,
+        }
     }
+    if overflowed > 0 {
+        println!(
+            "{}: {overflowed} histograms flagged overflow left out (their counts are only a lower bound)",
+            capture.display()
+        );
+    }
+    anyhow::ensure!(
+        !set.is_empty(),
+        "{}: every stored histogram is flagged overflow; nothing to reconstruct from",
+        capture.display()
+    );
     let input = ReconInput {
         settings,
         set,

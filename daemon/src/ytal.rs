@@ -15,6 +15,7 @@
 //! | `delta_t`, `t_start` | bin width and start of bin 0, metres of optical path |
 //! | `t_accounts_first_and_last_bounces` | whether path lengths include the legs from the laser and to the SPAD |
 //! | `scene_info` | YAML text (may be empty) |
+//! | `periscope_flags` | Periscope's own, optional: per transient, bit 0 overflow, bit 1 saturated (y-tal ignores it) |
 //!
 //! Bin k covers path lengths `[t_start + k·delta_t, t_start + (k+1)·delta_t)`. With
 //! `T_Sx_Sy` / `T_Si`, the laser grid either matches the sensor grid point for point
@@ -139,7 +140,16 @@ pub struct YtalCapture {
     pub t_accounts_first_and_last_bounces: bool,
     /// YAML text, if any.
     pub scene_info: Option<String>,
+    /// Periscope's histogram flags, one per transient in `H`'s order (bit 0 overflow: a
+    /// counter overflowed and the counts are only a lower bound; bit 1 saturated), in
+    /// captures Periscope exported; `None` in others.
+    pub flags: Option<Vec<u8>>,
 }
+
+/// `periscope_flags` bit: a counter or the FIFO overflowed.
+pub const FLAG_OVERFLOW: u8 = 1;
+/// `periscope_flags` bit: the detector rate exceeded 5 % of the sync rate.
+pub const FLAG_SATURATED: u8 = 2;
 
 /// A dataset's values (as f64) and shape.
 type Values = (Vec<f64>, Vec<usize>);
@@ -525,6 +535,17 @@ impl YtalCapture {
             t_start,
             t_accounts_first_and_last_bounces: t_accounts,
             scene_info,
+            flags: match r.floats("periscope_flags")? {
+                None => None,
+                Some((v, _)) => {
+                    if let Some(bad) = v.iter().find(|f| !(f.fract() == 0.0 && (0.0..=3.0).contains(*f))) {
+                        return Err(r.format(format!(
+                            "dataset `periscope_flags` holds {bad}; flags are 0 to 3 (bit 0 overflow, bit 1 saturated)"
+                        )));
+                    }
+                    Some(v.into_iter().map(|f| f as u8).collect())
+                }
+            },
         };
         capture.check().map_err(|m| r.format(m))?;
         Ok(capture)
@@ -585,6 +606,14 @@ impl YtalCapture {
                         empty, so the first and last legs cannot be subtracted"
                     .into(),
             );
+        }
+        if let Some(flags) = &self.flags
+            && flags.len() != columns
+        {
+            return Err(format!(
+                "`periscope_flags` has {} entries but `H` has {columns} transients",
+                flags.len()
+            ));
         }
         if Some(self.h.len()) != self.bins().checked_mul(columns) {
             return Err(format!(
@@ -655,7 +684,9 @@ impl YtalCapture {
     }
 
     /// All transients rebinned onto the hidden-path axis for `volume`, at the file's bin
-    /// width. Transients with no counts are left out.
+    /// width. Transients with no counts are left out, and so are those `periscope_flags`
+    /// marks overflowed (their counts are only a lower bound), as in a run's own
+    /// reconstruction.
     pub fn transients(&self, volume: &VolumeGrid) -> Result<TransientSet, YtalError> {
         let pairs: Vec<Pair> = (0..self.len()).map(|c| self.pair(c)).collect();
         let axis: TimeAxis =
@@ -673,6 +704,9 @@ impl YtalCapture {
         }
         let mut set = TransientSet::new(axis).map_err(|e| self.error(e.to_string()))?;
         for (c, pair) in pairs.into_iter().enumerate() {
+            if self.flags.as_ref().is_some_and(|f| f[c] & FLAG_OVERFLOW != 0) {
+                continue;
+            }
             let h = rebin_path(self.transient(c), self.hidden_start(c), self.delta_t, &axis);
             if h.iter().any(|&v| v != 0.0) {
                 set.push(pair, &h).map_err(|e| self.error(e.to_string()))?;
@@ -821,11 +855,17 @@ impl YtalCapture {
                 .with_vlen_strings(&[info])
                 .with_shape(&[]);
         }
+        if let Some(flags) = &self.flags {
+            b.create_dataset("periscope_flags").with_u8_data(flags);
+        }
         b.finish()
     }
 
     /// A run's stored histograms as a y-tal capture: `T_Si` with paired `N_3` point
-    /// lists (illumination point i with detection point i), raw TDC counts, path
+    /// lists (illumination point i with detection point i), the TDC counts (with pile-up
+    /// and dead time undone when `tdc.pile-up-correction` is on, as every
+    /// reconstruction of the run uses them; `histograms.bin` keeps them as counted),
+    /// each histogram's flags as `periscope_flags`, path
     /// lengths that include the legs from the laser and to the SPAD
     /// (`t_accounts_first_and_last_bounces`), and the galvo origins as `laser_xyz` and
     /// `sensor_xyz`. Pairs never measured are left out.
@@ -877,16 +917,12 @@ impl YtalCapture {
             let same = f64::from(r.bin_width_ps) * 1e-12 == width
                 && f64::from(r.offset_ps) * 1e-12 == offset
                 && r.counts.len() == bins;
+            let counts = pipeline::record_counts(r, &inst);
             let column: Vec<f32> = if same {
-                r.counts.iter().map(|&v| v as f32).collect()
+                counts
             } else {
                 let start = C0 * (f64::from(r.offset_ps) * 1e-12 - inst.tdc.system_delay);
-                rebin_path(
-                    r.counts.iter().map(|&v| v as f32),
-                    start,
-                    C0 * f64::from(r.bin_width_ps) * 1e-12,
-                    &axis,
-                )
+                rebin_path(counts, start, C0 * f64::from(r.bin_width_ps) * 1e-12, &axis)
             };
             for (k, v) in column.into_iter().enumerate() {
                 h[k * n + c] = v;
@@ -905,12 +941,13 @@ impl YtalCapture {
         let scene_info = format!(
             "original_format: periscope\nrun: '{}'\nplan: '{}'\npairs_planned: {}\npairs_measured: {n}\n\
              dwell_total_s: {dwell_s}\nbin_width_s: {width}\nacquisition_offset_s: {offset}\n\
-             system_delay_s: {}\nrepeats: {}\n",
+             system_delay_s: {}\nrepeats: {}\npile_up_corrected: {}\n",
             info.id.replace('\'', "''"),
             plan.name.replace('\'', "''"),
             pairs.len(),
             inst.tdc.system_delay,
             plan.acquisition.repeats,
+            inst.tdc.pile_up_correction,
         );
         Ok(YtalCapture {
             h,
@@ -924,6 +961,15 @@ impl YtalCapture {
             t_start,
             t_accounts_first_and_last_bounces: true,
             scene_info: Some(scene_info),
+            flags: Some(
+                records
+                    .iter()
+                    .map(|r| {
+                        (if r.flags.overflow { FLAG_OVERFLOW } else { 0 })
+                            | (if r.flags.saturated { FLAG_SATURATED } else { 0 })
+                    })
+                    .collect(),
+            ),
         })
     }
 }
@@ -986,6 +1032,7 @@ mod tests {
             t_start: 1.5,
             t_accounts_first_and_last_bounces: false,
             scene_info: Some("original_format: test\n".into()),
+            flags: Some(vec![0, 1, 2, 3, 0, 0, 0, 0, 0, 0, 0, 0]),
         }
     }
 

@@ -34,6 +34,7 @@ fn capture() -> YtalCapture {
         t_start: 1.0,
         t_accounts_first_and_last_bounces: false,
         scene_info: None,
+        flags: None,
     }
 }
 

@@ -187,6 +187,9 @@ pub struct TdcSettings {
     pub sync_divider: u32,
     /// Fixed system delay (cables, electronics), seconds; subtracted as `c0·t_sys`.
     pub system_delay: f64,
+    /// Undo pile-up (Coates) and the SPAD's dead time on every stored histogram before
+    /// it is reconstructed (`tdc.pile-up-correction`, default on).
+    pub pile_up_correction: bool,
     /// The USB device (required for the hardware back-end).
     pub usb: Option<UsbSelector>,
 }
@@ -434,6 +437,8 @@ struct RawTdc {
     sync_divider: u32,
     #[serde(default)]
     system_delay_ns: f64,
+    #[serde(default = "default_true")]
+    pile_up_correction: bool,
     usb: Option<String>,
 }
 
@@ -819,6 +824,7 @@ fn tdc_settings(check: &Check<'_>, raw: RawTdc, hardware: bool) -> Result<TdcSet
         offset: check.range("tdc.offset-ns", raw.offset_ns, 0.0, 1e6, "ns")? * 1e-9,
         sync_divider: raw.sync_divider,
         system_delay: check.range("tdc.system-delay-ns", raw.system_delay_ns, -1e3, 1e3, "ns")? * 1e-9,
+        pile_up_correction: raw.pile_up_correction,
         usb,
     })
 }

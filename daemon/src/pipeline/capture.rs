@@ -13,7 +13,9 @@ use crate::events::RunEvent;
 use crate::plan::{Acquisition, Method, PlannedPair};
 use crate::store::{HistogramLog, Record};
 
-/// Pairs per batch sent to the optimiser.
+/// Fewest pairs per batch sent to the optimiser; a batch is also at least an eighth of
+/// the plan, so a fit streams in at most a handful of batches and its live epochs (one
+/// per batch, see `periscope_recon::gtr::train`) cost at most a few full epochs.
 const FEED_BATCH: usize = 32;
 
 /// Rebins a TDC histogram onto the hidden-path axis: TDC bin k covers path lengths
@@ -33,6 +35,80 @@ pub fn hidden_histogram(
         C0 * bin_width,
         axis,
     )
+}
+
+/// Undoes the SPAD's dead time and pile-up on a histogram summed over `cycles` sync
+/// periods lasting `dwell` seconds in all, inverting the standard models in turn: a
+/// non-paralysable dead time τ on the total count rate R (true = measured / (1 − R·τ)),
+/// then Coates (1968): only the first photon of a cycle is recorded, so bin k, which saw
+/// N − Σ_{j<k} n_j cycles still waiting, received λ_k = −ln(1 − n_k / (N − Σ_{j<k} n_j))
+/// photons per cycle, N·λ_k in all. Returns the expected counts without either effect.
+/// At low rates it changes nothing measurable (λ ≈ n/N). A bin that took every cycle
+/// still waiting is read as taking all but half of one, and a dead-time loss is capped
+/// at 99 %, so the answer stays finite; without a cycle count the counts are returned
+/// as they are.
+pub fn undo_pile_up(counts: &[u32], cycles: f64, dwell: f64, dead_time: f64) -> Vec<f32> {
+    let total: f64 = counts.iter().map(|&c| f64::from(c)).sum();
+    if !(cycles.is_finite() && cycles > 0.0 && dwell > 0.0) {
+        return counts.iter().map(|&c| c as f32).collect();
+    }
+    let busy = (total / dwell * dead_time.max(0.0)).min(0.99);
+    let live = 1.0 / (1.0 - busy);
+    let mut waiting = cycles;
+    counts
+        .iter()
+        .map(|&c| {
+            let n = f64::from(c) * live;
+            if n <= 0.0 || waiting <= 0.5 {
+                return 0.0;
+            }
+            let taken = n.min(waiting - 0.5);
+            let lambda = -(-taken / waiting).ln_1p();
+            waiting -= taken;
+            (cycles * lambda) as f32
+        })
+        .collect()
+}
+
+/// A stored record's counts as reconstructions and the export use them: with pile-up
+/// and dead time undone ([`undo_pile_up`], over the record's dwell at the laser's
+/// pulse rate and the sync divider) when `tdc.pile-up-correction` is on, else as
+/// counted.
+pub fn record_counts(rec: &Record, inst: &crate::config::InstrumentConfig) -> Vec<f32> {
+    if inst.tdc.pile_up_correction {
+        let dwell = rec.dwell_us as f64 * 1e-6;
+        let cycles = dwell * inst.laser.repetition_rate / f64::from(inst.tdc.sync_divider.max(1));
+        undo_pile_up(&rec.counts, cycles, dwell, inst.spad.dead_time)
+    } else {
+        rec.counts.iter().map(|&c| c as f32).collect()
+    }
+}
+
+/// The transient a stored record gives its pair on the hidden-path axis, as every
+/// reconstruction of a run sees it (the live fit and `periscope recon RUN_DIR`):
+/// `None` for a histogram flagged overflow (a counter or the FIFO overflowed, so its
+/// counts are only a lower bound: it stays in the log and the export but is not
+/// fitted); pile-up and dead time undone when `tdc.pile-up-correction` is on
+/// ([`undo_pile_up`]); then shifted by the legs and the system delay and rebinned onto
+/// `axis` ([`rebin_path`]).
+pub fn record_transient(
+    rec: &Record,
+    pair: &PlannedPair,
+    inst: &crate::config::InstrumentConfig,
+    axis: &TimeAxis,
+) -> Option<Vec<f32>> {
+    if rec.flags.overflow {
+        return None;
+    }
+    let legs = pair.xi.distance(inst.laser_arm.pose.origin) + pair.xd.distance(inst.spad_arm.pose.origin);
+    let offset = f64::from(rec.offset_ps) * 1e-12;
+    let width = f64::from(rec.bin_width_ps) * 1e-12;
+    Some(rebin_path(
+        record_counts(rec, inst),
+        C0 * (offset - inst.tdc.system_delay) - legs,
+        C0 * width,
+        axis,
+    ))
 }
 
 /// Rebins values whose bin k covers path lengths [start + k·width, start + (k+1)·width)
@@ -144,7 +220,6 @@ impl Run {
     /// alongside.
     pub(crate) fn capture(&mut self, pairs: &[PlannedPair]) -> Result<Fit, PipelineError> {
         let acq: Acquisition = self.plan.acquisition.clone();
-        let sys = self.instrument.tdc.system_delay;
         let (l, s) = (
             self.instrument.laser_arm.pose.origin,
             self.instrument.spad_arm.pose.origin,
@@ -152,7 +227,6 @@ impl Run {
         let recon_pairs: Vec<Pair> = pairs.iter().map(as_pair).collect();
         let axis = hidden_axis(&recon_pairs, &self.plan.recon.volume, acq.bin_width)
             .map_err(PipelineError::Recon)?;
-        let legs = |p: &PlannedPair| p.xi.distance(l) + p.xd.distance(s);
         let (mut log, recovered) =
             HistogramLog::recover(&self.dir).map_err(|e| PipelineError::storage(&self.dir, e))?;
         if recovered.discarded_bytes > 0 {
@@ -172,19 +246,15 @@ impl Run {
         let mut fit = Fit::new(input);
         let mut stored: HashSet<u32> = HashSet::new();
         let mut batch = TransientSet::new(axis).map_err(|e| PipelineError::Recon(e.to_string()))?;
+        let instrument = self.instrument.clone();
         let push = |batch: &mut TransientSet, rec: &Record| -> Result<(), PipelineError> {
             let p = &pairs[rec.pair as usize];
-            let h = hidden_histogram(
-                &rec.counts,
-                f64::from(rec.offset_ps) * 1e-12,
-                f64::from(rec.bin_width_ps) * 1e-12,
-                sys,
-                legs(p),
-                &axis,
-            );
-            batch
-                .push(as_pair(p), &h)
-                .map_err(|e| PipelineError::Recon(e.to_string()))
+            match record_transient(rec, p, &instrument, &axis) {
+                Some(h) => batch
+                    .push(as_pair(p), &h)
+                    .map_err(|e| PipelineError::Recon(e.to_string())),
+                None => Ok(()),
+            }
         };
         for rec in &recovered.records {
             if (rec.pair as usize) < pairs.len() {
@@ -197,6 +267,7 @@ impl Run {
         let streaming = self.plan.recon.method == Method::Gtr;
         // The optimiser starts once a quarter of the pairs (at least 64) are in.
         let start_at = (total / 4).max(64).min(total);
+        let feed_batch = (total / 8).max(FEED_BATCH);
         let (tx, rx) = mpsc::channel::<TransientSet>();
         let mut rx = Some(rx);
         let (events, control) = (self.events.clone(), self.control.clone());
@@ -223,7 +294,7 @@ impl Run {
                     events.clone(),
                     control.clone(),
                 )?;
-            } else if full.len() >= FEED_BATCH || force {
+            } else if full.len() >= feed_batch || force {
                 let _ = tx.send(full);
             } else {
                 *batch = full;
@@ -339,6 +410,38 @@ mod tests {
         // The first quarter of a 24 × 24 serpentine grid reaches every row.
         let rows: std::collections::BTreeSet<usize> = capture_order(576).take(144).map(|i| i / 24).collect();
         assert_eq!(rows.len(), 24);
+    }
+
+    #[test]
+    fn pile_up_is_undone_by_hand_worked_figures() {
+        // 1000 cycles: bin 1 took 500 of them, so λ = −ln(1 − 500/1000) = ln 2; bin 2
+        // took 250 of the 500 still waiting, λ = ln 2 again.
+        let got = undo_pile_up(&[0, 500, 250, 0], 1000.0, 1.0, 0.0);
+        let ln2k = (1000.0 * std::f64::consts::LN_2) as f32;
+        assert_eq!(got[0], 0.0);
+        assert!(
+            (got[1] - ln2k).abs() < 1e-3 && (got[2] - ln2k).abs() < 1e-3,
+            "{got:?}"
+        );
+        // Dead time: 750 counts in 1 s with τ = 0.1 ms kept the SPAD busy 7.5 % of the
+        // time, so every bin is scaled by 1/0.925 before Coates.
+        let got = undo_pile_up(&[0, 500, 250, 0], 1e9, 1.0, 1e-4);
+        assert!((got[1] - 500.0 / 0.925).abs() < 0.01, "{got:?}");
+        // Low rates (21 counts in 2·10^5 cycles): under 0.02 % change.
+        let got = undo_pile_up(&[3, 7, 11], 2e5, 0.02, 50e-9);
+        assert!(
+            got.iter()
+                .zip([3.0, 7.0, 11.0])
+                .all(|(g, w)| (g / w - 1.0).abs() < 2e-4),
+            "{got:?}"
+        );
+        // Every cycle taken: finite; no cycle count: the counts as they are.
+        assert!(
+            undo_pile_up(&[10, 10], 10.0, 1.0, 0.0)
+                .iter()
+                .all(|v| v.is_finite())
+        );
+        assert_eq!(undo_pile_up(&[4, 5], 0.0, 1.0, 0.0), vec![4.0, 5.0]);
     }
 
     #[test]

@@ -12,7 +12,7 @@ use super::{PipelineError, Run};
 use crate::events::RunEvent;
 
 /// Fewest counts in the peak bin that count as a return.
-const MIN_PEAK_COUNTS: u32 = 8;
+const MIN_PEAK_COUNTS: f64 = 8.0;
 
 /// A relay point as measured.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -27,14 +27,27 @@ pub struct RelayPoint {
 
 /// Sub-bin peak of a histogram (parabola through the top three bins) as a fractional
 /// bin index (bin k spans [k, k + 1), so a return wholly in bin k reads k + 0.5 once
-/// the half bin is added), with the peak's counts; `None` below 8 counts.
-pub fn peak(counts: &[u32]) -> Option<(f64, u32)> {
-    let (b, &top) = counts.iter().enumerate().max_by_key(|(_, c)| **c)?;
-    if top < MIN_PEAK_COUNTS {
+/// the half bin is added), with the peak's value; `None` below 8 counts.
+pub fn peak<T: Copy + Into<f64>>(counts: &[T]) -> Option<(f64, f64)> {
+    let (b, top) =
+        counts
+            .iter()
+            .map(|&c| c.into())
+            .enumerate()
+            .fold(None, |best: Option<(usize, f64)>, (i, v)| match best {
+                Some((_, t)) if t > v => best,
+                _ => Some((i, v)),
+            })?;
+    if !(top >= MIN_PEAK_COUNTS) {
         return None;
     }
-    let at = |i: isize| counts.get(i as usize).copied().map_or(0.0, f64::from);
-    let (l, c, r) = (at(b as isize - 1), f64::from(top), at(b as isize + 1));
+    let at = |i: isize| {
+        usize::try_from(i)
+            .ok()
+            .and_then(|i| counts.get(i))
+            .map_or(0.0, |&c| c.into())
+    };
+    let (l, c, r) = (at(b as isize - 1), top, at(b as isize + 1));
     let denom = l - 2.0 * c + r;
     let delta = if denom < 0.0 {
         (0.5 * (l - r) / denom).clamp(-0.5, 0.5)
@@ -95,11 +108,21 @@ impl Run {
                 self.checkpoint()?;
                 self.devices.spad.move_settled(angles, settle)?;
                 let h = self.acquire()?;
-                if let Some((b, top)) = peak(&h.counts) {
+                // The first-bounce return is the brightest the SPAD sees: pile-up
+                // skews it towards early bins unless undone.
+                let counts: Vec<f32> = if tdc.pile_up_correction {
+                    let dwell = los.dwell.as_secs_f64();
+                    let cycles =
+                        dwell * self.instrument.laser.repetition_rate / f64::from(tdc.sync_divider.max(1));
+                    super::undo_pile_up(&h.counts, cycles, dwell, self.instrument.spad.dead_time)
+                } else {
+                    h.counts.iter().map(|&c| c as f32).collect()
+                };
+                if let Some((b, top)) = peak(&counts) {
                     let ell = C0 * (acq.offset + (b + 0.5) * acq.bin_width - tdc.system_delay);
                     let dir = spad_pose.direction(angles);
                     if let Some(r) = first_bounce_range(ell, l, s, dir) {
-                        out.push((s + dir * r, f64::from(top)));
+                        out.push((s + dir * r, top));
                     }
                 }
                 let done = iy * nx + jx + 1;
@@ -173,10 +196,10 @@ mod tests {
         h[10] = 50;
         h[11] = 100;
         h[12] = 50;
-        assert_eq!(peak(&h), Some((11.0, 100)));
+        assert_eq!(peak(&h), Some((11.0, 100.0)));
         h[12] = 90;
         let (b, _) = peak(&h).unwrap();
         assert!(b > 11.0 && b < 11.5, "{b}");
-        assert_eq!(peak(&[0, 3, 1]), None, "too few counts is no return");
+        assert_eq!(peak(&[0u32, 3, 1]), None, "too few counts is no return");
     }
 }

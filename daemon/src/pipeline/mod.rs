@@ -22,7 +22,9 @@ use periscope_drivers::tdc::TdcError;
 use periscope_recon::gtr::CancelToken;
 use periscope_sim::devices::Rig;
 
-pub use capture::{MAX_AXIS_BINS, hidden_axis, hidden_histogram, rebin_path};
+pub use capture::{
+    MAX_AXIS_BINS, hidden_axis, hidden_histogram, rebin_path, record_counts, record_transient, undo_pile_up,
+};
 pub use los::{RelayPoint, first_bounce_range, peak};
 pub use output::{RELAY_PLY, RunOutputs, parse_relay_ply, write_outputs};
 pub use reconstruct::{ReconInput, ReconResult, reconstruct};
