@@ -3,16 +3,26 @@
 //! with the simulator's ground truth. Four scenes: planar wall + letter (confocal, and
 //! non-confocal with a fixed laser), S-shaped relay + letter, torso pair + mannequin.
 //!
-//! Tolerances, on the pixels where both the reconstruction and the truth have the
-//! object: the median depth error is under 2 cm (the target; measured 0.5–4.3 mm
-//! on all four) and the 90th percentile under 1 cm on the letters (measured 1.5–3.2 mm)
-//! and 3 cm on the mannequin (21–25 mm). The silhouette (pixels with a depth) IoU is
-//! above the 0.7 on the three letter scenes (measured over several runs:
-//! 0.73–0.77 confocal wall, 0.74–0.76 fixed laser, 0.79–0.82 S relay; the streamed fit
-//! varies a little with timing). The torso scene states its own bound, 0.5 (measured
-//! 0.57–0.59): the 194 pairs on two backs (y from −0.32 to 0.32 m) recover the
-//! mannequin's head, torso, upper arms and upper legs, but its lower legs reach 0.2 m
-//! below the backs' lower edge and are seen only obliquely, and its arms are 3 cm thin.
+//! The runs are reproducible bit for bit (the streamed fit follows the data, not the
+//! clock: `daemon/tests/reproducible.rs`), so each bound is the measured figure plus a
+//! small margin, on the pixels where both the reconstruction and the truth have the
+//! object. Measured (median depth error, 90th percentile, silhouette IoU):
+//!
+//! | scene | median | p90 | IoU | bounds |
+//! |---|---|---|---|---|
+//! | wall + letter, confocal | 0.60 mm | 1.67 mm | 0.719 | 1.0 mm, 2.5 mm, 0.70 |
+//! | the same, its export solved by FBP | 4.78 mm | 8.12 mm | 0.644 | 6 mm, 10 mm, 0.62 |
+//! | wall + letter, fixed laser | 0.74 mm | 1.53 mm | 0.758 | 1.0 mm, 2.5 mm, 0.74 |
+//! | S relay + letter | 1.07 mm | 3.04 mm | 0.807 | 1.5 mm, 4.0 mm, 0.79 |
+//! | torso pair + mannequin | 4.53 mm | 24.4 mm | 0.545 | 6 mm, 28 mm, 0.525 |
+//!
+//! The margins (about 0.02 of IoU, a third of the median error, a sixth of the 90th
+//! percentile) cover only what changes between machines: another CPU's floating-point
+//! path (rustfft picks AVX or SSE at run time) moves a few voxels across the depth
+//! threshold. The torso scene is the weakest: the 194 pairs on two backs (y from −0.32
+//! to 0.32 m) recover the mannequin's head, torso, upper arms and upper legs, but its
+//! lower legs reach 0.2 m below the backs' lower edge and are seen only obliquely, and
+//! its arms are 3 cm thin.
 use std::path::Path;
 use std::time::Duration;
 
@@ -21,68 +31,7 @@ use periscope_daemon::ytal::YtalCapture;
 use periscope_recon::io::read_npy;
 use periscope_sim::World;
 use periscope_sim::truth::depth_truth;
-use periscope_tests::{periscope_with_limit, repo_path};
-
-/// How a reconstruction compares with the truth.
-#[derive(Debug)]
-struct Accuracy {
-    /// Median |depth error| on pixels both call object, metres.
-    median_error: f64,
-    /// 90th percentile of the same.
-    p90_error: f64,
-    /// Silhouette intersection over union.
-    iou: f64,
-    object_pixels: usize,
-}
-
-impl Accuracy {
-    /// The depth target (median under 2 cm) and the scene's own bounds on the
-    /// 90th-percentile error (metres) and the silhouette IoU.
-    fn assert_within(&self, p90: f64, iou: f64) {
-        assert!(
-            self.median_error < 0.02,
-            "median depth error {:.4} m ≥ 2 cm: {self:?}",
-            self.median_error
-        );
-        assert!(
-            self.p90_error < p90,
-            "90th-percentile depth error {:.4} m ≥ {p90} m: {self:?}",
-            self.p90_error
-        );
-        assert!(self.iou > iou, "silhouette IoU {:.3} ≤ {iou}: {self:?}", self.iou);
-    }
-}
-
-fn accuracy(run: &Path, scene: &str, x: [f64; 2], y: [f64; 2], shape: [usize; 2]) -> Accuracy {
-    let (dims, depth) = read_npy(&run.join("depth.npy")).expect("depth.npy");
-    assert_eq!(dims, vec![shape[1], shape[0]], "depth.npy is [ny, nx]");
-    let world = World::new(load_scene(&repo_path(scene)).unwrap(), 0.01, 1);
-    let truth = depth_truth(&world, x, y, shape, 0.01);
-    let (mut inter, mut union, mut errors) = (0usize, 0usize, Vec::new());
-    for (d, t) in depth.iter().zip(&truth.depth) {
-        let (has_d, has_t) = (d.is_finite(), t.is_finite());
-        if has_d && has_t {
-            inter += 1;
-            errors.push((f64::from(*d) - t).abs());
-        }
-        if has_d || has_t {
-            union += 1;
-        }
-    }
-    errors.sort_by(f64::total_cmp);
-    let pick = |q: f64| {
-        errors
-            .get(((errors.len() as f64 - 1.0) * q).round() as usize)
-            .copied()
-            .unwrap_or(f64::INFINITY)
-    };
-    Accuracy {
-        median_error: pick(0.5),
-        p90_error: pick(0.9),
-        iou: inter as f64 / union.max(1) as f64,
-        object_pixels: truth.depth.iter().filter(|t| t.is_finite()).count(),
-    }
-}
+use periscope_tests::{Accuracy, accuracy, periscope_with_limit, repo_path};
 
 fn run(plan: &str, instrument: Option<&str>, out: &Path) {
     let out_s = out.to_str().unwrap();
@@ -126,7 +75,7 @@ fn planar_wall_letter_confocal_matches_the_truth() {
     );
     eprintln!("wall + letter, confocal: {a:?}");
     assert!(a.object_pixels > 100, "the truth has the letter: {a:?}");
-    a.assert_within(0.01, 0.7);
+    a.assert_within(1.0e-3, 2.5e-3, 0.70);
 
     // The run's y-tal export holds every measured pair with both legs, and another
     // reconstruction of it (FBP, no 3D-GTR) finds the letter at the same depth.
@@ -156,7 +105,7 @@ fn planar_wall_letter_confocal_matches_the_truth() {
         [64, 64],
     );
     eprintln!("wall + letter, from the exported capture with FBP: {b:?}");
-    assert!(b.median_error < 0.02, "FBP on the export: {b:?}");
+    b.assert_within(6e-3, 10e-3, 0.62);
 }
 
 /// Runs `plan` on `instrument` and scores the depth map against `scene`'s truth over
@@ -180,7 +129,7 @@ fn planar_wall_letter_non_confocal_matches_the_truth() {
         [-0.4, 0.4],
         [-0.4, 0.4],
     );
-    a.assert_within(0.01, 0.7);
+    a.assert_within(1.0e-3, 2.5e-3, 0.74);
 }
 
 #[test]
@@ -192,7 +141,7 @@ fn s_shaped_relay_letter_matches_the_truth() {
         [-0.4, 0.4],
         [-0.4, 0.4],
     );
-    a.assert_within(0.01, 0.7);
+    a.assert_within(1.5e-3, 4e-3, 0.79);
 }
 
 #[test]
@@ -204,7 +153,7 @@ fn torso_pair_mannequin_matches_the_truth() {
         [-0.5, 0.5],
         [-0.6, 0.6],
     );
-    a.assert_within(0.03, 0.5);
+    a.assert_within(6e-3, 28e-3, 0.525);
 }
 
 /// The scene and footprint the hand tools below score against: `PERISCOPE_SCENE`

@@ -11,6 +11,11 @@ use std::path::{Path, PathBuf};
 use std::process::{Command, Output, Stdio};
 use std::time::{Duration, Instant};
 
+use periscope_daemon::config::load_scene;
+use periscope_recon::io::read_npy;
+use periscope_sim::World;
+use periscope_sim::truth::depth_truth;
+
 /// The repository root.
 pub fn repo_root() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR"))
@@ -140,4 +145,68 @@ pub fn config_files() -> Vec<PathBuf> {
         .into_iter()
         .map(|p| p.strip_prefix(&root).expect("under the root").to_owned())
         .collect()
+}
+
+/// How a reconstruction's depth map compares with the simulator's truth.
+#[derive(Debug)]
+pub struct Accuracy {
+    /// Median |depth error| on pixels both call object, metres.
+    pub median_error: f64,
+    /// 90th percentile of the same.
+    pub p90_error: f64,
+    /// Silhouette intersection over union.
+    pub iou: f64,
+    /// Pixels where the truth has an object.
+    pub object_pixels: usize,
+}
+
+impl Accuracy {
+    /// The scene's bounds: median and 90th-percentile depth error (metres) below
+    /// `median` and `p90`, silhouette IoU above `iou`.
+    pub fn assert_within(&self, median: f64, p90: f64, iou: f64) {
+        assert!(
+            self.median_error < median,
+            "median depth error {:.4} m ≥ {median} m: {self:?}",
+            self.median_error
+        );
+        assert!(
+            self.p90_error < p90,
+            "90th-percentile depth error {:.4} m ≥ {p90} m: {self:?}",
+            self.p90_error
+        );
+        assert!(self.iou > iou, "silhouette IoU {:.3} ≤ {iou}: {self:?}", self.iou);
+    }
+}
+
+/// Scores `run/depth.npy` (`shape` = [nx, ny] pixels over `x` × `y`) against the
+/// hidden objects of `scene` (a repository path), seen along +z.
+pub fn accuracy(run: &Path, scene: &str, x: [f64; 2], y: [f64; 2], shape: [usize; 2]) -> Accuracy {
+    let (dims, depth) = read_npy(&run.join("depth.npy")).expect("depth.npy");
+    assert_eq!(dims, vec![shape[1], shape[0]], "depth.npy is [ny, nx]");
+    let world = World::new(load_scene(&repo_path(scene)).unwrap(), 0.01, 1);
+    let truth = depth_truth(&world, x, y, shape, 0.01);
+    let (mut inter, mut union, mut errors) = (0usize, 0usize, Vec::new());
+    for (d, t) in depth.iter().zip(&truth.depth) {
+        let (has_d, has_t) = (d.is_finite(), t.is_finite());
+        if has_d && has_t {
+            inter += 1;
+            errors.push((f64::from(*d) - t).abs());
+        }
+        if has_d || has_t {
+            union += 1;
+        }
+    }
+    errors.sort_by(f64::total_cmp);
+    let pick = |q: f64| {
+        errors
+            .get(((errors.len() as f64 - 1.0) * q).round() as usize)
+            .copied()
+            .unwrap_or(f64::INFINITY)
+    };
+    Accuracy {
+        median_error: pick(0.5),
+        p90_error: pick(0.9),
+        iou: inter as f64 / union.max(1) as f64,
+        object_pixels: truth.depth.iter().filter(|t| t.is_finite()).count(),
+    }
 }
