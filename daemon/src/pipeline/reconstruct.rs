@@ -8,7 +8,7 @@ use std::time::Instant;
 use glam::DVec3;
 use periscope_recon::gtr::{CancelToken, GaussianCloud, TrainError, TrainSummary, Trainer};
 use periscope_recon::relay::VirtualRelay;
-use periscope_recon::solver::{SolverKind, fbp, lct, rsd};
+use periscope_recon::solver::{SolverKind, fbp, fk, lct, rsd};
 use periscope_recon::synth::{default_axis, synthesise};
 use periscope_recon::{RoiBox, TransientSet, Volume, VolumeGrid};
 
@@ -165,11 +165,12 @@ fn stopped(control: &Control, pairs: usize) -> PipelineError {
     }
 }
 
-/// Runs a solver, with the settings' `[lct]`, `[rsd]` or `[fbp]` table.
+/// Runs a solver, with the settings' `[lct]`, `[fk]`, `[rsd]` or `[fbp]` table.
 fn solve(kind: SolverKind, set: &TransientSet, s: &ReconSettings) -> Result<Volume, PipelineError> {
     let grid = &s.volume;
     match kind {
         SolverKind::Lct => lct(set, grid, &s.lct),
+        SolverKind::Fk => fk(set, grid, &s.fk),
         SolverKind::Rsd => rsd(set, grid, &s.rsd),
         SolverKind::Fbp => fbp(set, grid, &s.fbp),
     }
@@ -242,10 +243,11 @@ pub fn reconstruct(
             }
             finish_gtr(&input, trainer, summary, t.elapsed().as_secs_f64())
         }
-        Method::Fbp | Method::Lct | Method::Rsd => {
+        Method::Fbp | Method::Lct | Method::Fk | Method::Rsd => {
             let kind = match s.method {
                 Method::Fbp => SolverKind::Fbp,
                 Method::Lct => SolverKind::Lct,
+                Method::Fk => SolverKind::Fk,
                 _ => SolverKind::Rsd,
             };
             let t = Instant::now();

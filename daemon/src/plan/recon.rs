@@ -2,7 +2,7 @@
 //! `RECON.toml` for `periscope recon` share this format.
 use periscope_recon::VolumeGrid;
 use periscope_recon::gtr::{Init, TrainConfig};
-use periscope_recon::solver::{FbpSettings, LctSettings, RsdSettings, SolverError, SolverKind};
+use periscope_recon::solver::{FbpSettings, FkSettings, LctSettings, RsdSettings, SolverError, SolverKind};
 use serde::Deserialize;
 
 use crate::config::{ConfigError, TomlSource};
@@ -17,6 +17,8 @@ pub enum Method {
     Fbp,
     /// LCT of the measured pairs (confocal planar grids only).
     Lct,
+    /// f-k migration of the measured pairs (confocal planar grids only).
+    Fk,
     /// RSD/phasor field of the measured pairs (planar detection grid).
     Rsd,
 }
@@ -43,6 +45,8 @@ pub struct ReconSettings {
     pub fbp: FbpSettings,
     /// LCT settings (`[lct]`).
     pub lct: LctSettings,
+    /// f-k migration settings (`[fk]`).
+    pub fk: FkSettings,
     /// RSD settings (`[rsd]`).
     pub rsd: RsdSettings,
 }
@@ -63,6 +67,8 @@ pub(crate) struct RawRecon {
     fbp: Option<FbpSettings>,
     #[serde(default)]
     lct: Option<LctSettings>,
+    #[serde(default)]
+    fk: Option<FkSettings>,
     #[serde(default)]
     rsd: Option<RsdSettings>,
 }
@@ -152,11 +158,12 @@ pub(crate) fn recon_settings(
         "gtr" => Method::Gtr,
         "fbp" => Method::Fbp,
         "lct" => Method::Lct,
+        "fk" => Method::Fk,
         "rsd" => Method::Rsd,
         other => {
             return Err(src.invalid(
                 &key("method"),
-                format!("`{other}` is not a method: use \"gtr\", \"fbp\", \"lct\" or \"rsd\""),
+                format!("`{other}` is not a method: use \"gtr\", \"fbp\", \"lct\", \"fk\" or \"rsd\""),
             ));
         }
     };
@@ -164,12 +171,13 @@ pub(crate) fn recon_settings(
     // capture (docs/recon.md, "Which solver after 3D-GTR").
     let solver = match raw.solver.as_deref().unwrap_or("fbp") {
         "lct" => SolverKind::Lct,
+        "fk" => SolverKind::Fk,
         "rsd" => SolverKind::Rsd,
         "fbp" => SolverKind::Fbp,
         other => {
             return Err(src.invalid(
                 &key("solver"),
-                format!("`{other}` is not a solver: use \"lct\", \"rsd\" or \"fbp\""),
+                format!("`{other}` is not a solver: use \"lct\", \"fk\", \"rsd\" or \"fbp\""),
             ));
         }
     };
@@ -281,6 +289,8 @@ pub(crate) fn recon_settings(
     fbp.validate().map_err(|e| solver_err("fbp", e))?;
     let lct = raw.lct.unwrap_or_default();
     lct.validate().map_err(|e| solver_err("lct", e))?;
+    let fk = raw.fk.unwrap_or_default();
+    fk.validate().map_err(|e| solver_err("fk", e))?;
     let rsd = raw.rsd.unwrap_or_default();
     rsd.validate().map_err(|e| solver_err("rsd", e))?;
     Ok(ReconSettings {
@@ -293,6 +303,7 @@ pub(crate) fn recon_settings(
         depth_threshold,
         fbp,
         lct,
+        fk,
         rsd,
     })
 }
@@ -335,6 +346,19 @@ mod tests {
         let src = TomlSource::from_text("recon.toml", "method = \"fbp\"\n[fbp]\nfalloff = 9.0\n");
         let e = load_recon(&src, Some(volume())).unwrap_err().to_string();
         assert!(e.contains("fbp.falloff") && e.contains("between 0 and 4"), "{e}");
+        // f-k migration, as a method and as the solver after 3D-GTR, with its table.
+        let src = TomlSource::from_text(
+            "recon.toml",
+            "method = \"fk\"\nsolver = \"fk\"\n[fk]\nfalloff = 2.0\n",
+        );
+        let s = load_recon(&src, Some(volume())).unwrap();
+        assert_eq!(
+            (s.method, s.solver, s.fk.falloff),
+            (Method::Fk, SolverKind::Fk, 2.0)
+        );
+        let src = TomlSource::from_text("recon.toml", "method = \"fk\"\n[fk]\ngrid-tolerance = -1.0\n");
+        let e = load_recon(&src, Some(volume())).unwrap_err().to_string();
+        assert!(e.contains("fk.grid-tolerance"), "{e}");
         // Unknown keys too.
         let src = TomlSource::from_text("recon.toml", "[rsd]\ncolour = 1\n");
         let e = load_recon(&src, Some(volume())).unwrap_err().to_string();

@@ -82,8 +82,8 @@ pub fn lct(set: &TransientSet, grid: &VolumeGrid, settings: &LctSettings) -> Res
     Ok(lct_frame(set, &scan, settings)?.to_world(grid))
 }
 
-/// Checks every pair is confocal and finds the grid.
-fn confocal_scan(set: &TransientSet, tolerance: f64) -> Result<PlanarScan, SolverError> {
+/// Checks every pair is confocal and finds the grid (LCT and f-k migration).
+pub(super) fn confocal_scan(set: &TransientSet, tolerance: f64) -> Result<PlanarScan, SolverError> {
     if set.is_empty() {
         return Err(SolverError::Empty);
     }

@@ -1,4 +1,4 @@
-//! Conventional NLOS solvers: LCT for confocal grids, RSD / phasor-field propagation for
+//! Conventional NLOS solvers: LCT and f-k migration for confocal grids, RSD / phasor-field propagation for
 //! planar (also non-confocal) data, and filtered backprojection for any pairs on any
 //! relay. Each takes a [`TransientSet`](crate::TransientSet) in hidden path length, measured or synthesised,
 //! and returns a [`Volume`](crate::Volume) on the user's world-frame grid.
@@ -8,12 +8,14 @@
 //! their result is box-filtered onto the world grid ([`FrameVolume`]).
 mod fbp;
 mod fft;
+mod fk;
 mod frame;
 mod lct;
 mod rsd;
 mod scan;
 
 pub use fbp::{FbpFilter, FbpSettings, PHASOR_PITCHES, fbp, phasor_wavelength, sampling_pitch};
+pub use fk::{FkSettings, fk, fk_frame};
 pub use frame::FrameVolume;
 pub use lct::{LctSettings, lct, lct_frame};
 pub use rsd::{RsdSettings, rsd, rsd_frame};
@@ -28,6 +30,8 @@ use crate::volume::VolumeError;
 pub enum SolverKind {
     /// Light-cone transform (confocal grids on a plane).
     Lct,
+    /// f-k migration (confocal grids on a plane).
+    Fk,
     /// Rayleigh–Sommerfeld diffraction / phasor field (planar detection grid).
     Rsd,
     /// Filtered backprojection (any pairs, any relay).
@@ -38,6 +42,7 @@ impl std::fmt::Display for SolverKind {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         f.write_str(match self {
             SolverKind::Lct => "lct",
+            SolverKind::Fk => "fk",
             SolverKind::Rsd => "rsd",
             SolverKind::Fbp => "fbp",
         })
@@ -76,8 +81,8 @@ pub enum SolverError {
     },
     /// LCT got a non-confocal pair.
     #[error(
-        "pair {pair} is not confocal (illumination and detection {distance_mm:.1} mm apart): LCT needs confocal data; \
-         use rsd or fbp"
+        "pair {pair} is not confocal (illumination and detection {distance_mm:.1} mm apart): LCT and f-k migration \
+         need confocal data; use rsd or fbp"
     )]
     NotConfocal {
         /// Index of the pair.
