@@ -10,10 +10,10 @@
 //!
 //! | scene | median | p90 | IoU | bounds |
 //! |---|---|---|---|---|
-//! | wall + letter, confocal | 0.60 mm | 1.67 mm | 0.719 | 1.0 mm, 2.5 mm, 0.70 |
+//! | wall + letter, confocal | 0.53 mm | 1.67 mm | 0.719 | 1.0 mm, 2.5 mm, 0.70 |
 //! | the same, its export solved by FBP | 4.78 mm | 8.12 mm | 0.644 | 6 mm, 10 mm, 0.62 |
-//! | wall + letter, fixed laser | 0.74 mm | 1.53 mm | 0.758 | 1.0 mm, 2.5 mm, 0.74 |
-//! | S relay + letter | 1.07 mm | 3.04 mm | 0.807 | 1.5 mm, 4.0 mm, 0.79 |
+//! | wall + letter, fixed laser | 0.76 mm | 1.48 mm | 0.768 | 1.0 mm, 2.5 mm, 0.75 |
+//! | S relay + letter | 1.10 mm | 3.17 mm | 0.806 | 1.5 mm, 4.0 mm, 0.79 |
 //! | torso pair + mannequin | 4.53 mm | 24.4 mm | 0.545 | 6 mm, 28 mm, 0.525 |
 //!
 //! The margins (about 0.02 of IoU, a third of the median error, a sixth of the 90th
@@ -129,7 +129,7 @@ fn planar_wall_letter_non_confocal_matches_the_truth() {
         [-0.4, 0.4],
         [-0.4, 0.4],
     );
-    a.assert_within(1.0e-3, 2.5e-3, 0.74);
+    a.assert_within(1.0e-3, 2.5e-3, 0.75);
 }
 
 #[test]

@@ -101,10 +101,19 @@ impl Budget {
             },
         ];
         if plan.recon.method == Method::Gtr {
-            let virt = mul(&plan.recon.virtual_resolution.map(|n| n as u64));
+            // Without a virtual-size the grid may grow to cover the volume, up to the
+            // cap per axis.
+            let grown = |n: usize| {
+                if plan.recon.virtual_size.is_none() {
+                    n.max(crate::pipeline::MAX_VIRTUAL_RESOLUTION) as u64
+                } else {
+                    n as u64
+                }
+            };
+            let virt = mul(&plan.recon.virtual_resolution.map(grown));
             memory.push(Item {
                 what: "3D-GTR virtual confocal scan",
-                keys: "recon.gtr.virtual-grid × acquisition.bins",
+                keys: "recon.gtr.virtual-grid (grown to cover the volume up to 128 per axis) × acquisition.bins",
                 bytes: mul(&[virt, bins, 8 * 2]),
             });
             memory.push(Item {

@@ -190,6 +190,61 @@ fn virtual_relay_fits_a_tilted_wall() {
 }
 
 #[test]
+fn a_virtual_relay_grows_to_cover_the_volume() {
+    // A 0.2 m aperture on the wall z = 0 and a volume 0.8 m wide and off to one side:
+    // the covering grid spans both, on the same plane, at the same resolution.
+    let (points, _) = sample(400, 9, |a, b| {
+        (DVec3::new(0.2 * a - 0.1, 0.2 * b - 0.1, 0.0), DVec3::Z)
+    });
+    let small = VirtualRelay::fitted(&points, VIEW, None, [32, 32]).unwrap();
+    let corners: Vec<DVec3> = (0..8)
+        .map(|c| {
+            DVec3::new(
+                [-0.2, 0.6][c & 1],
+                [-0.4, 0.4][(c >> 1) & 1],
+                [0.3, 0.9][(c >> 2) & 1],
+            )
+        })
+        .collect();
+    let big = small.covering(&corners, 1024).unwrap();
+    assert_eq!((big.normal, big.u), (small.normal, small.u));
+    // The pitch is kept: four times the extent (of the sampled points, a little under
+    // 0.2 m), four times the points.
+    assert!(
+        big.resolution.iter().all(|n| (128..=132).contains(n)),
+        "{:?}",
+        big.resolution
+    );
+    let (p0, p1) = (small.spacing(), big.spacing());
+    assert!((p1[0] / p0[0] - 1.0).abs() < 0.01 && (p1[1] / p0[1] - 1.0).abs() < 0.01);
+    assert_eq!(
+        small.covering(&corners, 64).unwrap().resolution,
+        [64, 64],
+        "capped"
+    );
+    assert!(
+        (big.size[0] - 0.8).abs() < 1e-3 && (big.size[1] - 0.8).abs() < 1e-3,
+        "{:?}",
+        big.size
+    );
+    assert!(
+        big.centre.distance(DVec3::new(0.2, 0.0, 0.0)) < 1e-3,
+        "{:?}",
+        big.centre
+    );
+    // Every corner's footprint and every measured point lie on the grid's extent.
+    for p in corners.iter().chain(&points) {
+        let d = *p - big.centre;
+        assert!(
+            d.dot(big.u).abs() <= 0.5 * big.size[0] + 1e-9 && d.dot(big.v).abs() <= 0.5 * big.size[1] + 1e-9
+        );
+    }
+    // Already covered: unchanged.
+    assert_eq!(big.covering(&points, 1024).unwrap(), big);
+    assert!(small.covering(&[DVec3::new(f64::NAN, 0.0, 0.0)], 64).is_err());
+}
+
+#[test]
 fn noisy_plane_normals() {
     // A wall scanned on a 1.5 cm grid with 1 mm (rms) depth noise, typical of a
     // first-bounce scan: within 5° everywhere, 2° at the 95th percentile.

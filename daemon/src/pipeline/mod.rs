@@ -27,7 +27,7 @@ pub use capture::{
 };
 pub use los::{RelayPoint, first_bounce_range, peak};
 pub use output::{RELAY_PLY, RunOutputs, parse_relay_ply, write_outputs};
-pub use reconstruct::{ReconInput, ReconResult, reconstruct};
+pub use reconstruct::{MAX_VIRTUAL_RESOLUTION, ReconInput, ReconResult, reconstruct};
 
 use crate::config::{ConfigError, InstrumentConfig, TomlSource};
 use crate::devices::{Devices, OpenError};

@@ -19,6 +19,10 @@ use crate::plan::{Method, ReconSettings};
 /// Bins of the virtual confocal scan's time axis.
 const SYNTH_BINS: usize = 512;
 
+/// Most points per axis of a virtual scan grown to cover the volume (at the
+/// virtual grid's pitch); beyond it the pitch coarsens.
+pub const MAX_VIRTUAL_RESOLUTION: usize = 128;
+
 /// What a reconstruction needs.
 pub struct ReconInput {
     /// Settings.
@@ -185,13 +189,24 @@ fn finish_gtr(
 ) -> Result<ReconResult, PipelineError> {
     let s = &input.settings;
     let t = Instant::now();
-    let relay = VirtualRelay::fitted(
+    let mut relay = VirtualRelay::fitted(
         &input.detection_points,
         input.viewpoint,
         s.virtual_size,
         s.virtual_resolution,
     )
     .map_err(recon_err)?;
+    if s.virtual_size.is_none() {
+        // The virtual scan spans the detection points and the volume's footprint on
+        // the plane, so nothing fitted beyond the measured aperture is cut off.
+        let g = &s.volume;
+        let corners: Vec<DVec3> = (0..8)
+            .map(|c| DVec3::new(g.x[c & 1], g.y[(c >> 1) & 1], g.z[(c >> 2) & 1]))
+            .collect();
+        relay = relay
+            .covering(&corners, MAX_VIRTUAL_RESOLUTION)
+            .map_err(recon_err)?;
+    }
     let axis = default_axis(&relay, &s.volume, SYNTH_BINS);
     let kernels = trainer.cloud().kernels();
     let scan = synthesise(&kernels, &relay, axis, trainer.render_options()).map_err(recon_err)?;

@@ -108,6 +108,33 @@ impl VirtualRelay {
         Self::new(centre, normal, provisional.u, size, resolution)
     }
 
+    /// The same plane, orientation and grid pitch, its extent grown where needed to
+    /// cover the projections of `points` too (the reconstruction volume's corners: a
+    /// virtual scan narrower than the volume sees nothing of what lies beyond its
+    /// edge, while the fitted primitives do). The resolution grows with the extent,
+    /// up to `max_resolution` points per axis (then the pitch coarsens instead).
+    pub fn covering(&self, points: &[DVec3], max_resolution: usize) -> Result<Self, GeometryError> {
+        check_finite(points)?;
+        let mut lo = [-0.5 * self.size[0], -0.5 * self.size[1]];
+        let mut hi = [0.5 * self.size[0], 0.5 * self.size[1]];
+        for p in points {
+            let d = *p - self.centre;
+            for (a, axis) in [self.u, self.v].iter().enumerate() {
+                let t = d.dot(*axis);
+                lo[a] = lo[a].min(t);
+                hi[a] = hi[a].max(t);
+            }
+        }
+        let centre = self.centre + self.u * 0.5 * (lo[0] + hi[0]) + self.v * 0.5 * (lo[1] + hi[1]);
+        let size = [hi[0] - lo[0], hi[1] - lo[1]];
+        let pitch = self.spacing();
+        let resolution = [0, 1].map(|a| {
+            let n = (size[a] / pitch[a] - 1e-9).ceil() as usize;
+            n.clamp(self.resolution[a], max_resolution.max(self.resolution[a]))
+        });
+        Self::new(centre, self.normal, self.u, size, resolution)
+    }
+
     /// Grid spacing along u and v, metres.
     pub fn spacing(&self) -> [f64; 2] {
         [
