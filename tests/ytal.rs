@@ -120,3 +120,65 @@ fn a_file_that_is_not_a_capture_is_refused_with_its_name() {
     assert!(done.stderr.contains("broken.h5"), "{}", done.stderr);
     assert!(!dir.path().join("o").join("volume.npy").exists());
 }
+
+/// A Python that can `import tal` (y-tal): `PERISCOPE_YTAL_PYTHON`, else `python3`.
+fn ytal_python() -> Option<String> {
+    let python = std::env::var("PERISCOPE_YTAL_PYTHON").unwrap_or_else(|_| "python3".into());
+    let ok = std::process::Command::new(&python)
+        .args(["-c", "import tal"])
+        .output()
+        .is_ok_and(|o| o.status.success());
+    ok.then_some(python)
+}
+
+/// Our export, read by y-tal's own reader (`tal.io.read_capture`, which refuses any
+/// dataset it does not know), with the flags where our reader finds them.
+#[test]
+fn y_tal_reads_our_export() {
+    let Some(python) = ytal_python() else {
+        eprintln!(
+            "SKIPPED y_tal_reads_our_export: y-tal is not installed (no `import tal` in \
+             $PERISCOPE_YTAL_PYTHON or python3); .ci/run installs it"
+        );
+        return;
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let run = dir.path().join("run");
+    let done = periscope_with_limit(
+        &[
+            "run",
+            "tests/data/plans/small-fbp.toml",
+            "--out",
+            run.to_str().unwrap(),
+        ],
+        Duration::from_secs(300),
+    );
+    assert_eq!(done.code, Some(0), "{done:?}");
+    let ours = YtalCapture::read(&run.join("capture.hdf5")).unwrap();
+    let script = "import sys, tal\n\
+                  c = tal.io.read_capture(sys.argv[1])\n\
+                  print(c.H.shape[0], c.H.shape[1], c.H_format, c.t_accounts_first_and_last_bounces)\n\
+                  print(sorted(c.scene_info.keys()))\n";
+    let out = std::process::Command::new(&python)
+        .args(["-c", script, run.join("capture.hdf5").to_str().unwrap()])
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        out.status.success(),
+        "y-tal refused our export:\n{}{}",
+        stdout,
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let lines: Vec<&str> = stdout.lines().collect();
+    assert_eq!(
+        lines[0],
+        format!("{} {} HFormat.T_Si True", ours.bins(), ours.len()),
+        "{stdout}"
+    );
+    assert!(
+        lines[1].contains("'periscope_overflow'") && lines[1].contains("'periscope_saturated'"),
+        "{stdout}"
+    );
+    assert_eq!(ours.flags.as_ref().map(Vec::len), Some(ours.len()));
+}

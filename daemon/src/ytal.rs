@@ -15,12 +15,15 @@
 //! | `delta_t`, `t_start` | bin width and start of bin 0, metres of optical path |
 //! | `t_accounts_first_and_last_bounces` | whether path lengths include the legs from the laser and to the SPAD |
 //! | `scene_info` | YAML text (may be empty) |
-//! | `periscope_flags` | Periscope's own, optional: per transient, bit 0 overflow, bit 1 saturated (y-tal ignores it) |
 //!
 //! Bin k covers path lengths `[t_start + k·delta_t, t_start + (k+1)·delta_t)`. With
 //! `T_Sx_Sy` / `T_Si`, the laser grid either matches the sensor grid point for point
 //! (confocal or paired captures) or holds one point (a fixed laser). Missing values are
 //! HDF5 empty (null) datasets, as h5py writes `None`.
+//!
+//! y-tal's reader refuses datasets it does not know, so Periscope's histogram flags
+//! travel inside `scene_info`, as two YAML lists of transient indices (columns of `H`):
+//! `periscope_overflow: [..]` and `periscope_saturated: [..]`.
 use std::path::{Path, PathBuf};
 
 use glam::DVec3;
@@ -142,14 +145,57 @@ pub struct YtalCapture {
     pub scene_info: Option<String>,
     /// Periscope's histogram flags, one per transient in `H`'s order (bit 0 overflow: a
     /// counter overflowed and the counts are only a lower bound; bit 1 saturated), in
-    /// captures Periscope exported; `None` in others.
+    /// captures Periscope exported; `None` in others. Stored in the file as the
+    /// `scene_info` keys `periscope_overflow` and `periscope_saturated` (lists of
+    /// transient indices), which [`YtalCapture::read`] takes out of `scene_info` again.
     pub flags: Option<Vec<u8>>,
 }
 
-/// `periscope_flags` bit: a counter or the FIFO overflowed.
+/// Flag bit: a counter or the FIFO overflowed.
 pub const FLAG_OVERFLOW: u8 = 1;
-/// `periscope_flags` bit: the detector rate exceeded 5 % of the sync rate.
+/// Flag bit: the detector rate exceeded 5 % of the sync rate.
 pub const FLAG_SATURATED: u8 = 2;
+
+/// The `scene_info` keys that carry the flags, with their bits.
+const FLAG_KEYS: [(&str, u8); 2] = [
+    ("periscope_overflow", FLAG_OVERFLOW),
+    ("periscope_saturated", FLAG_SATURATED),
+];
+
+/// Splits the flag lists out of a `scene_info` text: the text without them, and the
+/// (index, bit) pairs they name. `Err` names a malformed list.
+fn take_flags(info: &str) -> Result<(String, Vec<(usize, u8)>), String> {
+    let mut rest = String::new();
+    let mut marks = Vec::new();
+    for line in info.lines() {
+        match FLAG_KEYS.iter().find_map(|(key, bit)| {
+            line.strip_prefix(key)
+                .and_then(|l| l.strip_prefix(':'))
+                .map(|l| (key, *bit, l))
+        }) {
+            Some((key, bit, list)) => {
+                let inner = list
+                    .trim()
+                    .strip_prefix('[')
+                    .and_then(|l| l.strip_suffix(']'))
+                    .ok_or_else(|| {
+                        format!("`scene_info` key `{key}` should be a list like [3, 17], it is {list:?}")
+                    })?;
+                for item in inner.split(',').map(str::trim).filter(|s| !s.is_empty()) {
+                    let i = item.parse::<usize>().map_err(|_| {
+                        format!("`scene_info` key `{key}` lists {item:?}, not a transient index")
+                    })?;
+                    marks.push((i, bit));
+                }
+            }
+            None => {
+                rest.push_str(line);
+                rest.push('\n');
+            }
+        }
+    }
+    Ok((rest, marks))
+}
 
 /// A dataset's values (as f64) and shape.
 type Values = (Vec<f64>, Vec<usize>);
@@ -523,7 +569,7 @@ impl YtalCapture {
             .filter(|d| r.checked_shape(d, "scene_info", 1 << 16).is_ok())
             .and_then(|d| d.read_string().ok())
             .and_then(|v| v.into_iter().next());
-        let capture = YtalCapture {
+        let mut capture = YtalCapture {
             h,
             h_shape,
             h_format,
@@ -535,18 +581,23 @@ impl YtalCapture {
             t_start,
             t_accounts_first_and_last_bounces: t_accounts,
             scene_info,
-            flags: match r.floats("periscope_flags")? {
-                None => None,
-                Some((v, _)) => {
-                    if let Some(bad) = v.iter().find(|f| !(f.fract() == 0.0 && (0.0..=3.0).contains(*f))) {
-                        return Err(r.format(format!(
-                            "dataset `periscope_flags` holds {bad}; flags are 0 to 3 (bit 0 overflow, bit 1 saturated)"
-                        )));
-                    }
-                    Some(v.into_iter().map(|f| f as u8).collect())
-                }
-            },
+            flags: None,
         };
+        if let Some(info) = &capture.scene_info
+            && FLAG_KEYS.iter().any(|(k, _)| info.contains(k))
+        {
+            let (rest, marks) = take_flags(info).map_err(|m| r.format(m))?;
+            let columns = capture.len();
+            let mut flags = vec![0u8; columns];
+            for (i, bit) in marks {
+                let f = flags.get_mut(i).ok_or_else(|| {
+                    r.format(format!("`scene_info` flags transient {i}, but `H` has {columns}"))
+                })?;
+                *f |= bit;
+            }
+            capture.scene_info = Some(rest);
+            capture.flags = Some(flags);
+        }
         capture.check().map_err(|m| r.format(m))?;
         Ok(capture)
     }
@@ -611,7 +662,7 @@ impl YtalCapture {
             && flags.len() != columns
         {
             return Err(format!(
-                "`periscope_flags` has {} entries but `H` has {columns} transients",
+                "the capture has {} histogram flags but `H` has {columns} transients",
                 flags.len()
             ));
         }
@@ -684,8 +735,8 @@ impl YtalCapture {
     }
 
     /// All transients rebinned onto the hidden-path axis for `volume`, at the file's bin
-    /// width. Transients with no counts are left out, and so are those `periscope_flags`
-    /// marks overflowed (their counts are only a lower bound), as in a run's own
+    /// width. Transients with no counts are left out, and so are those the flags mark
+    /// overflowed (their counts are only a lower bound), as in a run's own
     /// reconstruction.
     pub fn transients(&self, volume: &VolumeGrid) -> Result<TransientSet, YtalError> {
         let pairs: Vec<Pair> = (0..self.len()).map(|c| self.pair(c)).collect();
@@ -850,13 +901,24 @@ impl YtalCapture {
         b.create_dataset("t_accounts_first_and_last_bounces")
             .with_enum_u8_data(bool_type, &[u8::from(self.t_accounts_first_and_last_bounces)])
             .with_shape(&[]);
-        if let Some(info) = &self.scene_info {
+        let mut info = self.scene_info.clone();
+        if let Some(flags) = &self.flags {
+            let text = info.get_or_insert_with(String::new);
+            if !(text.is_empty() || text.ends_with('\n')) {
+                text.push('\n');
+            }
+            for (key, bit) in FLAG_KEYS {
+                let list: Vec<String> = (0..flags.len())
+                    .filter(|&i| flags[i] & bit != 0)
+                    .map(|i| i.to_string())
+                    .collect();
+                text.push_str(&format!("{key}: [{}]\n", list.join(", ")));
+            }
+        }
+        if let Some(info) = &info {
             b.create_dataset("scene_info")
                 .with_vlen_strings(&[info])
                 .with_shape(&[]);
-        }
-        if let Some(flags) = &self.flags {
-            b.create_dataset("periscope_flags").with_u8_data(flags);
         }
         b.finish()
     }
@@ -865,7 +927,7 @@ impl YtalCapture {
     /// lists (illumination point i with detection point i), the TDC counts (with pile-up
     /// and dead time undone when `tdc.pile-up-correction` is on, as every
     /// reconstruction of the run uses them; `histograms.bin` keeps them as counted),
-    /// each histogram's flags as `periscope_flags`, path
+    /// each histogram's flags (in `scene_info`), path
     /// lengths that include the legs from the laser and to the SPAD
     /// (`t_accounts_first_and_last_bounces`), and the galvo origins as `laser_xyz` and
     /// `sensor_xyz`. Pairs never measured are left out.
