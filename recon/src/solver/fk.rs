@@ -13,13 +13,11 @@
 //! spectra of (M + 1)·(2nx)·(2ny) complex f32 values (M bins), 540 MiB for a
 //! 128 × 128 × 512 scan.
 use rayon::prelude::*;
-use realfft::RealFftPlanner;
 use rustfft::FftPlanner;
 use rustfft::num_complex::Complex32;
 
 use super::fft::Fft2;
-use super::scan::gather_cube;
-use super::{FrameVolume, PlanarScan, SolverError, check_memory};
+use super::{FrameVolume, PlanarScan, SolverError, check_memory, confocal};
 use crate::transient::TransientSet;
 use crate::volume::{Volume, VolumeGrid};
 
@@ -48,21 +46,7 @@ impl Default for FkSettings {
 impl FkSettings {
     /// Checks every setting is in range.
     pub fn validate(&self) -> Result<(), SolverError> {
-        if !(self.falloff.is_finite() && (0.0..=8.0).contains(&self.falloff)) {
-            return Err(SolverError::Setting {
-                name: "falloff",
-                value: self.falloff.to_string(),
-                expected: "between 0 and 8",
-            });
-        }
-        if !(self.grid_tolerance.is_finite() && self.grid_tolerance > 0.0) {
-            return Err(SolverError::Setting {
-                name: "grid-tolerance",
-                value: self.grid_tolerance.to_string(),
-                expected: "a positive length in metres",
-            });
-        }
-        Ok(())
+        confocal::check_settings(self.falloff, self.grid_tolerance)
     }
 }
 
@@ -81,52 +65,26 @@ pub fn fk_frame(
     settings: &FkSettings,
 ) -> Result<FrameVolume, SolverError> {
     settings.validate()?;
-    let axis = *set.axis();
     let [nx, ny] = scan.relay.resolution;
-    let w = axis.width;
-    if axis.end() <= 0.0 {
-        return Err(SolverError::Axis(format!(
-            "the histograms end at path length {:.3} m; f-k migration needs positive path lengths",
-            axis.end()
-        )));
-    }
-    // Bins from path length 0 to the end of the data.
-    let m = (axis.end() / w - 1e-9).ceil() as usize;
+    let w = set.axis().width;
+    let m = confocal::bins_from_zero(set, "f-k migration")?;
     let (px, py, pt) = (2 * nx, 2 * ny, 2 * m);
     let slice_len = px * py;
     check_memory("f-k migration", 2 * (m + 1) * slice_len * 8 + nx * ny * m * 4)?;
-    let members: Vec<usize> = (0..set.len()).collect();
-    let cube = gather_cube(set, &members, &scan.cells, nx * ny, 0.0, m);
 
-    // Weight by path length, real FFT along t (padded to 2M), scattered into slices
-    // [kt][Y][X] of the laterally padded grid.
-    let mut planner = RealFftPlanner::<f32>::new();
-    let r2c = planner.plan_fft_forward(pt);
+    // Weight by path length, then the real FFT along t (padded to 2M), scattered into
+    // slices [kt][Y][X] of the laterally padded grid.
+    let mut cube = confocal::cube(set, scan, m);
     let weights: Vec<f32> = (0..m)
         .map(|t| ((t as f64 + 0.5) / m as f64).powf(settings.falloff) as f32)
         .collect();
-    let spectra: Vec<Vec<Complex32>> = cube
-        .par_chunks(m)
-        .map(|line| {
-            let mut input = vec![0.0f32; pt];
-            for ((i, v), wt) in input.iter_mut().zip(line).zip(&weights) {
-                *i = v * wt;
-            }
-            let mut out = r2c.make_output_vec();
-            r2c.process(&mut input, &mut out)
-                .expect("buffer lengths match the plan");
-            out
-        })
-        .collect();
-    drop(cube);
-    let mut slices = vec![Complex32::default(); (m + 1) * slice_len];
-    for (cell, spectrum) in spectra.iter().enumerate() {
-        let (y, x) = (cell / nx, cell % nx);
-        for (k, v) in spectrum.iter().enumerate() {
-            slices[k * slice_len + y * px + x] = *v;
+    cube.par_chunks_mut(m).for_each(|line| {
+        for (v, wt) in line.iter_mut().zip(&weights) {
+            *v *= wt;
         }
-    }
-    drop(spectra);
+    });
+    let mut slices = confocal::padded_spectra(&cube, m, [nx, ny]);
+    drop(cube);
 
     // Lateral FFTs: each slice becomes its spectrum, transposed ([kx][ky]).
     let fft = Fft2::new(py, px);
@@ -197,17 +155,5 @@ pub fn fk_frame(
         })
         .collect();
     drop(migrated);
-    let mut data = vec![0.0f32; m * nx * ny];
-    for (cell, line) in lines.iter().enumerate() {
-        for (t, v) in line.iter().enumerate() {
-            data[t * nx * ny + cell] = *v;
-        }
-    }
-    Ok(FrameVolume {
-        relay: scan.relay,
-        depth_start: 0.25 * w,
-        depth_step: 0.5 * w,
-        depths: m,
-        data,
-    })
+    Ok(confocal::frame_from_lines(scan, w, m, &lines))
 }

@@ -17,8 +17,7 @@ use realfft::RealFftPlanner;
 use rustfft::num_complex::{Complex, Complex32};
 
 use super::fft::Fft2;
-use super::scan::gather_cube;
-use super::{FrameVolume, PlanarScan, SolverError, check_memory};
+use super::{FrameVolume, PlanarScan, SolverError, check_memory, confocal};
 use crate::transient::TransientSet;
 use crate::volume::{Volume, VolumeGrid};
 
@@ -57,21 +56,7 @@ impl LctSettings {
                 expected: "a positive number",
             });
         }
-        if !(self.falloff.is_finite() && (0.0..=8.0).contains(&self.falloff)) {
-            return Err(SolverError::Setting {
-                name: "falloff",
-                value: self.falloff.to_string(),
-                expected: "between 0 and 8",
-            });
-        }
-        if !(self.grid_tolerance.is_finite() && self.grid_tolerance > 0.0) {
-            return Err(SolverError::Setting {
-                name: "grid-tolerance",
-                value: self.grid_tolerance.to_string(),
-                expected: "a positive length in metres",
-            });
-        }
-        Ok(())
+        confocal::check_settings(self.falloff, self.grid_tolerance)
     }
 }
 
@@ -108,20 +93,11 @@ pub fn lct_frame(
     settings: &LctSettings,
 ) -> Result<FrameVolume, SolverError> {
     settings.validate()?;
-    let axis = *set.axis();
     let [nx, ny] = scan.relay.resolution;
-    let w = axis.width;
-    if axis.end() <= 0.0 {
-        return Err(SolverError::Axis(format!(
-            "the histograms end at path length {:.3} m; LCT needs positive path lengths",
-            axis.end()
-        )));
-    }
-    // Bins from path length 0 to the end of the data.
-    let m = (axis.end() / w - 1e-9).ceil() as usize;
+    let w = set.axis().width;
+    let m = confocal::bins_from_zero(set, "LCT")?;
     check_memory("LCT", (m + 1) * 4 * nx * ny * 8 + 2 * nx * ny * m * 4)?;
-    let members: Vec<usize> = (0..set.len()).collect();
-    let mut cube = gather_cube(set, &members, &scan.cells, nx * ny, 0.0, m);
+    let mut cube = confocal::cube(set, scan, m);
 
     // Radiometric weight and ℓ → s resampling.
     let resample = Resampling::new(m);
@@ -136,28 +112,9 @@ pub fn lct_frame(
     // Real FFT along s (padded to 2M), scattered into slices [t'][Y][X] of 2ny × 2nx.
     let (px, py, pt) = (2 * nx, 2 * ny, 2 * m);
     let slice_len = px * py;
-    let mut slices = vec![Complex32::default(); (m + 1) * slice_len];
-    let mut planner = RealFftPlanner::<f32>::new();
-    let r2c = planner.plan_fft_forward(pt);
-    let c2r = planner.plan_fft_inverse(pt);
-    let spectra: Vec<Vec<Complex32>> = cube
-        .par_chunks(m)
-        .map(|line| {
-            let mut input = vec![0.0f32; pt];
-            input[..m].copy_from_slice(line);
-            let mut out = r2c.make_output_vec();
-            r2c.process(&mut input, &mut out)
-                .expect("buffer lengths match the plan");
-            out
-        })
-        .collect();
-    for (cell, spectrum) in spectra.iter().enumerate() {
-        let (y, x) = (cell / nx, cell % nx);
-        for (k, v) in spectrum.iter().enumerate() {
-            slices[k * slice_len + y * px + x] = *v;
-        }
-    }
-    drop(spectra);
+    let mut slices = confocal::padded_spectra(&cube, m, [nx, ny]);
+    drop(cube);
+    let c2r = RealFftPlanner::<f32>::new().plan_fft_inverse(pt);
 
     // The light cone: for each lateral offset, a (linearly split) delta at s-index k*.
     let lmax = m as f64 * w;
@@ -221,19 +178,7 @@ pub fn lct_frame(
         })
         .collect();
     drop(slices);
-    let mut data = vec![0.0f32; m * nx * ny];
-    for (cell, line) in lines.iter().enumerate() {
-        for (t, v) in line.iter().enumerate() {
-            data[t * nx * ny + cell] = *v;
-        }
-    }
-    Ok(FrameVolume {
-        relay: scan.relay,
-        depth_start: 0.25 * w,
-        depth_step: 0.5 * w,
-        depths: m,
-        data,
-    })
+    Ok(confocal::frame_from_lines(scan, w, m, &lines))
 }
 
 /// The sparse resampling from bins in ℓ to bins in s = (ℓ/ℓmax)², with its Jacobian,

@@ -6,6 +6,7 @@
 //! LCT and RSD work in the relay plane's own frame (columns along u, rows along v, depth
 //! along the normal) because their speed comes from shift invariance in that frame;
 //! their result is box-filtered onto the world grid ([`FrameVolume`]).
+mod confocal;
 mod fbp;
 mod fft;
 mod fk;
