@@ -34,8 +34,51 @@ fn outside(pose: &GalvoPose, limits: &AngleLimits, p: DVec3) -> Option<String> {
     }
 }
 
-/// The check report.
+/// What `periscope check` (and `POST /api/v1/check`) finds out about a plan.
+#[derive(Clone, Debug, serde::Serialize)]
+pub struct Check {
+    /// The plan's name.
+    pub plan: String,
+    /// The report as `periscope check` prints it.
+    pub report: String,
+    /// Pairs the plan asks for at most.
+    pub pairs: usize,
+    /// Estimated seconds per part: `los`, `capture`, `reconstruction`, `total`.
+    pub duration_s: Duration,
+    /// Memory the run needs, bytes.
+    pub memory_bytes: u64,
+    /// Disk the run needs, bytes.
+    pub disk_bytes: u64,
+    /// The instrument's memory budget, bytes.
+    pub memory_limit: u64,
+    /// The instrument's disk budget, bytes.
+    pub disk_limit: u64,
+    /// Why the plan would be refused as over budget, if it would be.
+    pub over_budget: Option<String>,
+    /// Targets outside the galvo limits (their pairs are left out).
+    pub problems: Vec<String>,
+}
+
+/// Estimated durations, seconds.
+#[derive(Clone, Copy, Debug, serde::Serialize)]
+pub struct Duration {
+    /// LOS scan.
+    pub los: f64,
+    /// NLOS capture.
+    pub capture: f64,
+    /// Reconstruction after the capture.
+    pub reconstruction: f64,
+    /// All of it.
+    pub total: f64,
+}
+
+/// The check report as text.
 pub fn report(plan: &Plan, inst: &InstrumentConfig) -> String {
+    check(plan, inst).report
+}
+
+/// Checks `plan` on `inst` without touching any device.
+pub fn check(plan: &Plan, inst: &InstrumentConfig) -> Check {
     let mut out = String::new();
     let mut problems = Vec::new();
     let _ = writeln!(out, "plan `{}` on {}", plan.name, inst.summary());
@@ -164,6 +207,7 @@ pub fn report(plan: &Plan, inst: &InstrumentConfig) -> String {
     let budget = crate::budget::Budget::of_plan(plan);
     let _ = writeln!(out, "  budget (per run, from the instrument's [budget]):");
     out.push_str(&budget.report(&inst.budget));
+    let listed = problems.clone();
     if problems.is_empty() {
         let _ = writeln!(out, "  limits: every target is within the galvo limits");
     } else {
@@ -176,5 +220,21 @@ pub fn report(plan: &Plan, inst: &InstrumentConfig) -> String {
             let _ = writeln!(out, "    - {p}");
         }
     }
-    out
+    Check {
+        plan: plan.name.clone(),
+        report: out,
+        pairs,
+        duration_s: Duration {
+            los: los_s,
+            capture: cap_s,
+            reconstruction: recon_s,
+            total: los_s + cap_s + recon_s,
+        },
+        memory_bytes: budget.memory_bytes(),
+        disk_bytes: budget.disk_bytes(),
+        memory_limit: inst.budget.memory,
+        disk_limit: inst.budget.disk,
+        over_budget: budget.check(&inst.budget).err(),
+        problems: listed,
+    }
 }

@@ -108,6 +108,28 @@ pub enum RunEvent {
         /// Whether a flag (overflow, saturation) was set.
         flagged: bool,
     },
+    /// A pair's histogram, for live displays (streamed to clients, not written to
+    /// `events.jsonl`: the data itself is in `histograms.bin`).
+    Histogram {
+        /// Index of the pair in `pairs.json`.
+        pair: usize,
+        /// Illumination point on the relay, metres.
+        illumination: [f64; 3],
+        /// Detection point on the relay, metres.
+        detection: [f64; 3],
+        /// The histogram, summed down to at most [`HISTOGRAM_DISPLAY_BINS`] bins: bin `i` sums the
+        /// measured bins `i·group ..(i+1)·group`.
+        bins: Vec<u32>,
+        /// Measured bins per bin of `bins`.
+        group: usize,
+        /// Width of a measured bin, picoseconds.
+        bin_width_ps: f64,
+        /// Time of the first bin after the laser pulse, picoseconds.
+        offset_ps: f64,
+        /// When the histogram was stored, milliseconds since the Unix epoch (for
+        /// event-to-screen latency).
+        unix_ms: f64,
+    },
     /// Optimiser progress.
     Train(TrainEvent),
     /// An output was written.
@@ -122,6 +144,49 @@ pub enum RunEvent {
     },
     /// The run finished.
     Completed,
+}
+
+/// At most this many bins of a histogram go into a [`RunEvent::Histogram`].
+pub const HISTOGRAM_DISPLAY_BINS: usize = 512;
+
+impl RunEvent {
+    /// Events for live displays only: streamed, never written to `events.jsonl`.
+    pub fn display_only(&self) -> bool {
+        matches!(
+            self,
+            RunEvent::Histogram { .. } | RunEvent::Train(TrainEvent::Snapshot { .. })
+        )
+    }
+
+    /// A pair's histogram as a [`RunEvent::Histogram`], summed down to at most
+    /// [`HISTOGRAM_DISPLAY_BINS`] bins.
+    pub fn histogram(
+        pair: usize,
+        illumination: glam::DVec3,
+        detection: glam::DVec3,
+        counts: &[u32],
+        bin_width_s: f64,
+        offset_s: f64,
+    ) -> RunEvent {
+        let group = counts.len().div_ceil(HISTOGRAM_DISPLAY_BINS).max(1);
+        let bins = counts
+            .chunks(group)
+            .map(|c| c.iter().fold(0u32, |a, &v| a.saturating_add(v)))
+            .collect();
+        let unix_ms = std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .map_or(0.0, |d| d.as_secs_f64() * 1e3);
+        RunEvent::Histogram {
+            pair,
+            illumination: illumination.to_array(),
+            detection: detection.to_array(),
+            bins,
+            group,
+            bin_width_ps: bin_width_s * 1e12,
+            offset_ps: offset_s * 1e12,
+            unix_ms,
+        }
+    }
 }
 
 /// Where events go: the run's `events.jsonl` and any number of listeners.
@@ -164,7 +229,7 @@ impl EventSink {
     /// Records an event.
     pub fn emit(&self, event: RunEvent) {
         let mut inner = self.lock();
-        if let Some(f) = inner.file.as_mut() {
+        if let Some(f) = inner.file.as_mut().filter(|_| !event.display_only()) {
             let t = std::time::SystemTime::now()
                 .duration_since(std::time::UNIX_EPOCH)
                 .map_or(0.0, |d| d.as_secs_f64());
@@ -180,5 +245,59 @@ impl EventSink {
         for l in inner.listeners.iter_mut() {
             l(&event);
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn histograms_are_summed_for_the_wire_and_kept_out_of_the_log() {
+        let counts: Vec<u32> = (0..1300).map(|i| i % 7).collect();
+        let e = RunEvent::histogram(3, glam::DVec3::X, glam::DVec3::Y, &counts, 16e-12, 2e-9);
+        let RunEvent::Histogram {
+            bins,
+            group,
+            bin_width_ps,
+            offset_ps,
+            ..
+        } = &e
+        else {
+            panic!("{e:?}")
+        };
+        // 1300 bins → groups of 3 → 434 bins, the last holding the one left over.
+        assert_eq!((*group, bins.len()), (3, 434));
+        assert_eq!(
+            bins.iter().map(|&b| u64::from(b)).sum::<u64>(),
+            counts.iter().map(|&c| u64::from(c)).sum::<u64>()
+        );
+        assert_eq!(bins[0], 1 + 2);
+        assert_eq!(bins[433], counts[1299]);
+        assert!((bin_width_ps - 16.0).abs() < 1e-9 && (offset_ps - 2000.0).abs() < 1e-9);
+        // Short histograms go as they are.
+        let RunEvent::Histogram { bins, group, .. } =
+            RunEvent::histogram(0, glam::DVec3::ZERO, glam::DVec3::ZERO, &[5, 6], 1e-12, 0.0)
+        else {
+            unreachable!()
+        };
+        assert_eq!((group, bins), (1, vec![5, 6]));
+
+        let dir = tempfile::tempdir().unwrap();
+        let sink = EventSink::open(dir.path()).unwrap();
+        let seen = Arc::new(Mutex::new(Vec::new()));
+        let s = Arc::clone(&seen);
+        sink.listen(move |e| s.lock().unwrap().push(e.display_only()));
+        sink.emit(e);
+        sink.emit(RunEvent::Train(TrainEvent::Snapshot {
+            centres: vec![[0.0; 3]],
+            weights: vec![1.0],
+        }));
+        sink.emit(RunEvent::Completed);
+        // Listeners (the event stream) get all three; the log only the last.
+        assert_eq!(*seen.lock().unwrap(), vec![true, true, false]);
+        let log = std::fs::read_to_string(dir.path().join("events.jsonl")).unwrap();
+        assert_eq!(log.lines().count(), 1, "{log}");
+        assert!(log.contains("\"completed\""), "{log}");
     }
 }

@@ -688,14 +688,15 @@ async fn every_route_enforces_the_token_rules_for_every_client() {
         let id = v["id"].as_str().unwrap().to_owned();
         for &(method, route) in ROUTES {
             let uri = route.replace("{id}", &id).replace("{name}", "plan.toml");
-            let mutating = method == "POST";
+            // The check endpoint reads its body and changes nothing.
+            let mutating = method == "POST" && route != "/api/v1/check";
             for token in [None, Some("wrong-token-wrong-token-wrong"), Some(TOKEN)] {
                 for remote in [false, true] {
                     let mut req = Request::builder().method(method).uri(&uri);
                     if let Some(t) = token {
                         req = req.header(header::AUTHORIZATION, format!("Bearer {t}"));
                     }
-                    let body = if uri.ends_with("/runs") && mutating {
+                    let body = if (uri.ends_with("/runs") && mutating) || uri.ends_with("/check") {
                         PLAN
                     } else {
                         ""
@@ -728,6 +729,16 @@ async fn every_route_enforces_the_token_rules_for_every_client() {
                     }
                 }
             }
+        }
+        // The dashboard's files carry no instrument data: a browser anywhere loads them
+        // without a token (it cannot send one for a page load), and the page asks.
+        for uri in ["/", "/ui/app.js", "/ui/vendor/uPlot.iife.min.js"] {
+            let mut req = Request::builder().uri(uri).body(Body::empty()).unwrap();
+            req.extensions_mut().insert(ConnectInfo(
+                "192.0.2.7:50000".parse::<std::net::SocketAddr>().unwrap(),
+            ));
+            let status = router.clone().oneshot(req).await.unwrap().status();
+            assert_eq!(status, StatusCode::OK, "{uri}, remote, no token");
         }
         // The e-stop may have held the run; the queue cap is 100, so submissions passed.
         assert!(run_dirs(dir.path()) >= 2);

@@ -21,11 +21,15 @@ use tokio_stream::StreamExt;
 use tokio_stream::wrappers::BroadcastStream;
 use tokio_stream::wrappers::errors::BroadcastStreamRecvError;
 
+mod dashboard;
 mod openapi;
 mod service;
 
+pub use dashboard::ASSETS;
 pub use openapi::openapi;
-pub use service::{EstopReport, QUEUE_FILE, RunStatus, Service, ServiceError, StreamEvent, state_name};
+pub use service::{
+    EstopReport, GEOMETRY_POINTS, QUEUE_FILE, RunStatus, Service, ServiceError, StreamEvent, state_name,
+};
 
 /// Files a run offers for download, with their media types.
 pub const DOWNLOADS: &[(&str, &str)] = &[
@@ -50,6 +54,7 @@ pub const ROUTES: &[(&str, &str)] = &[
     ("GET", "/api/v1/health"),
     ("GET", "/api/v1/openapi.json"),
     ("GET", "/api/v1/instrument"),
+    ("POST", "/api/v1/check"),
     ("POST", "/api/v1/runs"),
     ("GET", "/api/v1/runs"),
     ("GET", "/api/v1/runs/{id}"),
@@ -59,6 +64,7 @@ pub const ROUTES: &[(&str, &str)] = &[
     ("POST", "/api/v1/estop"),
     ("GET", "/api/v1/runs/{id}/events"),
     ("GET", "/api/v1/runs/{id}/files/{name}"),
+    ("GET", "/api/v1/runs/{id}/geometry"),
 ];
 
 /// Shared state of the handlers.
@@ -177,6 +183,7 @@ pub fn app(state: AppState) -> Router {
         .route("/api/v1/health", get(health))
         .route("/api/v1/openapi.json", get(openapi_doc))
         .route("/api/v1/instrument", get(instrument))
+        .route("/api/v1/check", post(check))
         .route("/api/v1/runs", post(submit).get(list))
         .route("/api/v1/runs/{id}", get(run_status))
         .route("/api/v1/runs/{id}/pause", post(pause))
@@ -185,6 +192,9 @@ pub fn app(state: AppState) -> Router {
         .route("/api/v1/estop", post(estop))
         .route("/api/v1/runs/{id}/events", get(events))
         .route("/api/v1/runs/{id}/files/{name}", get(file))
+        .route("/api/v1/runs/{id}/geometry", get(geometry))
+        .route("/", get(dashboard::index))
+        .route("/ui/{*file}", get(dashboard::asset))
         .fallback(not_found)
         .method_not_allowed_fallback(method_not_allowed);
     routes
@@ -227,7 +237,7 @@ pub async fn serve(bind: SocketAddr, service: Arc<Service>) -> anyhow::Result<()
         .map_err(|e| anyhow::anyhow!("cannot listen on {bind}: {e}; choose another address with --bind"))?;
     let addr = listener.local_addr()?;
     crate::logging::notice(&format!(
-        "periscope API on http://{addr}/api/v1 (runs in {})",
+        "periscope dashboard on http://{addr}/, API on http://{addr}/api/v1 (runs in {})",
         service.runs_dir().display()
     ));
     let app = app(AppState::new(Arc::clone(&service)));
@@ -249,8 +259,12 @@ pub async fn serve(bind: SocketAddr, service: Arc<Service>) -> anyhow::Result<()
     Ok(())
 }
 
+/// Whether a request may change the instrument: every method but GET and HEAD, except
+/// `POST /api/v1/check`, which only reads its body.
 fn is_mutating(req: &Request) -> bool {
-    req.method() != axum::http::Method::GET && req.method() != axum::http::Method::HEAD
+    req.method() != axum::http::Method::GET
+        && req.method() != axum::http::Method::HEAD
+        && req.uri().path() != "/api/v1/check"
 }
 
 /// Bearer token on mutating requests; on read-only ones too for clients not on
@@ -259,7 +273,11 @@ fn is_mutating(req: &Request) -> bool {
 async fn authorise(State(state): State<AppState>, req: Request, next: Next) -> Response {
     let peer = req.extensions().get::<ConnectInfo<SocketAddr>>().map(|c| c.0);
     let local = peer.is_none_or(|p| p.ip().is_loopback());
-    let needs_token = is_mutating(&req) || (!local && !state.service.instrument().api.open_reads);
+    // The dashboard's own files hold no instrument data: a browser loads them without a
+    // token (it cannot send one for a page load) and the page asks for the token.
+    let static_file = !is_mutating(&req) && dashboard::is_static(req.uri().path());
+    let needs_token =
+        is_mutating(&req) || (!local && !static_file && !state.service.instrument().api.open_reads);
     if needs_token && let Err(e) = check_token(state.service.token(), req.headers()) {
         return e.into_response();
     }
@@ -402,11 +420,8 @@ async fn instrument(State(state): State<AppState>) -> ApiResult<axum::Json<serde
     blocking(move || Ok(s.instrument_status())).await.map(axum::Json)
 }
 
-async fn submit(
-    State(state): State<AppState>,
-    headers: HeaderMap,
-    body: Result<String, StringRejection>,
-) -> ApiResult<Response> {
+/// A request body that must be a TOML capture plan.
+fn plan_body(headers: &HeaderMap, body: Result<String, StringRejection>) -> ApiResult<String> {
     let text = body.map_err(|e| {
         let status = e.status();
         let code = if status == StatusCode::PAYLOAD_TOO_LARGE {
@@ -436,6 +451,33 @@ async fn submit(
             "the body is empty; send a TOML capture plan",
         ));
     }
+    Ok(text)
+}
+
+async fn check(
+    State(state): State<AppState>,
+    headers: HeaderMap,
+    body: Result<String, StringRejection>,
+) -> ApiResult<axum::Json<crate::check::Check>> {
+    let text = plan_body(&headers, body)?;
+    let s = Arc::clone(&state.service);
+    blocking(move || s.check(text)).await.map(axum::Json)
+}
+
+async fn geometry(
+    State(state): State<AppState>,
+    Path(id): Path<String>,
+) -> ApiResult<axum::Json<serde_json::Value>> {
+    let s = Arc::clone(&state.service);
+    blocking(move || s.geometry(&id)).await.map(axum::Json)
+}
+
+async fn submit(
+    State(state): State<AppState>,
+    headers: HeaderMap,
+    body: Result<String, StringRejection>,
+) -> ApiResult<Response> {
+    let text = plan_body(&headers, body)?;
     let s = Arc::clone(&state.service);
     let status = blocking(move || s.submit(text)).await?;
     let location = format!("/api/v1/runs/{}", status.id);

@@ -112,6 +112,24 @@ pub fn openapi() -> Value {
                 },
                 "get": op("Every run, oldest first", false, ("200", json_ok("runs", json!({ "type": "array", "items": run_ref() }))), &[], &[])
             },
+            "/api/v1/check": {
+                "post": {
+                    "summary": "What `periscope check` says about a TOML capture plan: the report, estimated durations, the run budget and targets outside the galvo limits; nothing is queued or touched",
+                    "requestBody": { "required": true, "content": { "application/toml": { "schema": { "type": "string" } } } },
+                    "responses": {
+                        "200": json_ok("the plan is valid; `over_budget` says whether submit would refuse it", json!({ "type": "object", "required": ["plan", "report", "pairs", "duration_s", "memory_bytes", "disk_bytes", "memory_limit", "disk_limit", "problems"], "properties": {
+                            "plan": { "type": "string" }, "report": { "type": "string" }, "pairs": { "type": "integer" },
+                            "duration_s": { "type": "object", "properties": { "los": { "type": "number" }, "capture": { "type": "number" }, "reconstruction": { "type": "number" }, "total": { "type": "number" } } },
+                            "memory_bytes": { "type": "integer" }, "disk_bytes": { "type": "integer" }, "memory_limit": { "type": "integer" }, "disk_limit": { "type": "integer" },
+                            "over_budget": { "type": ["string", "null"] }, "problems": { "type": "array", "items": { "type": "string" } }
+                        } })),
+                        "401": error_responses(&["401"])["401"], "403": error_responses(&["403"])["403"],
+                        "413": error_responses(&["413"])["413"], "415": error_responses(&["415"])["415"],
+                        "422": error_responses(&["422"])["422"]
+                    }
+                }
+            },
+            "/api/v1/runs/{id}/geometry": { "get": op("A run's geometry for 3-D views: relay points, planned illumination and detection points (each thinned to at most 20,000), the volume box and the instrument's viewpoint, metres", false, ("200", json_ok("geometry", json!({ "type": "object", "properties": { "relay": { "type": "array" }, "illumination": { "type": "array" }, "detection": { "type": "array" }, "pairs": { "type": "integer" }, "volume": { "type": "object" }, "viewpoint": { "type": "array" } } }))), &["404"], &["id"]) },
             "/api/v1/runs/{id}": { "get": op("One run: state, stage, progress, ETA, files", false, ("200", json_ok("run", run_ref())), &["404"], &["id"]) },
             "/api/v1/runs/{id}/pause": { "post": op("Pause a running run at its next checkpoint (between pairs)", true, ("202", json_ok("pause requested", run_ref())), &["401", "403", "404", "409"], &["id"]) },
             "/api/v1/runs/{id}/resume": { "post": op("Queue a paused or failed run again; it continues from its last stored pair", true, ("202", json_ok("queued", run_ref())), &["401", "403", "404", "409"], &["id"]) },
@@ -119,7 +137,7 @@ pub fn openapi() -> Value {
             "/api/v1/estop": { "post": op("Emergency stop: laser off first (directly, out of band), then the running run aborted and both arms parked, queued runs held; every step is tried and reported", true, ("200", json_ok("instrument safe", json!({ "type": "object", "properties": { "aborted": { "type": ["string", "null"] }, "laser": { "type": "string" }, "laser_off_s": { "type": ["number", "null"] }, "parked": { "type": "boolean" }, "held": { "type": "array", "items": { "type": "string" } }, "warnings": { "type": "array", "items": { "type": "string" } }, "seconds": { "type": "number" } } }))), &["401", "403", "503"], &[]) },
             "/api/v1/runs/{id}/events": {
                 "get": {
-                    "summary": "Server-sent events: a `status` snapshot, then the run's typed events (stage-started, stage-finished, los-point, relay, planned, pair, initialised, data-added, epoch, pruned, output, failed, completed; `lagged` if the client fell behind)",
+                    "summary": "Server-sent events: a `status` snapshot, then the run's typed events (stage-started, stage-finished, los-point, relay, planned, pair, histogram, initialised, data-added, epoch, snapshot, pruned, output, failed, completed; `lagged` if the client fell behind)",
                     "parameters": [{ "name": "id", "in": "path", "required": true, "schema": { "type": "string" } }],
                     "responses": {
                         "200": { "description": "event stream", "content": { "text/event-stream": { "schema": { "type": "string" } } } },

@@ -814,6 +814,60 @@ impl Service {
         Ok(Download::File(file, len))
     }
 
+    /// What `periscope check` says about a plan (TOML text), as JSON-ready data; an
+    /// invalid plan is refused with the same message `submit` would give.
+    pub fn check(&self, text: String) -> Result<crate::check::Check, ServiceError> {
+        let src = TomlSource::from_text("request body", text);
+        let plan = Plan::from_source(&src, &self.instrument)
+            .map_err(|e| ServiceError::InvalidPlan(e.to_string()))?;
+        Ok(crate::check::check(&plan, &self.instrument))
+    }
+
+    /// A run's geometry for 3-D views: the relay points the LOS scan kept, the planned
+    /// illumination and detection points (each thinned to at most [`GEOMETRY_POINTS`]),
+    /// the reconstruction volume and the instrument's viewpoint, in metres. Parts the
+    /// run has not made yet are empty.
+    pub fn geometry(&self, id: &str) -> Result<serde_json::Value, ServiceError> {
+        let dir = self.dir(id)?;
+        let storage = |e: PipelineError| ServiceError::Storage(e.to_string());
+        let (_, plan, inst) = pipeline::load_run(&dir).map_err(storage)?;
+        let relay: Vec<[f64; 3]> = pipeline::read_relay_ply(&dir)
+            .map_err(storage)?
+            .unwrap_or_default()
+            .iter()
+            .map(|p| p.x.to_array())
+            .collect();
+        let pairs_path = dir.join("pairs.json");
+        let pairs: Vec<crate::plan::PlannedPair> = if pairs_path.is_file() {
+            let text = crate::store::read_text_capped(&pairs_path, 1 << 30)
+                .map_err(|e| ServiceError::Storage(format!("{}: {e}", pairs_path.display())))?;
+            serde_json::from_str(&text)
+                .map_err(|e| ServiceError::Storage(format!("{}: {e}", pairs_path.display())))?
+        } else {
+            Vec::new()
+        };
+        let unique = |pick: fn(&crate::plan::PlannedPair) -> glam::DVec3| {
+            let mut seen = std::collections::HashSet::new();
+            let points: Vec<[f64; 3]> = pairs
+                .iter()
+                .map(pick)
+                .filter(|p| seen.insert(p.to_array().map(f64::to_bits)))
+                .map(|p| p.to_array())
+                .collect();
+            thin(points)
+        };
+        let v = &plan.recon.volume;
+        let viewpoint = 0.5 * (inst.laser_arm.pose.origin + inst.spad_arm.pose.origin);
+        Ok(serde_json::json!({
+            "relay": thin(relay),
+            "illumination": unique(|p| p.xi),
+            "detection": unique(|p| p.xd),
+            "pairs": pairs.len(),
+            "volume": { "x": v.x, "y": v.y, "z": v.z },
+            "viewpoint": viewpoint.to_array(),
+        }))
+    }
+
     /// Subscribes to a run's events: a running run's, or a queued or paused one's from
     /// when it (re)starts. `None` when the run has finished (its past events are in
     /// `events.jsonl`). The stream ends when the run stops.
@@ -939,8 +993,8 @@ impl Service {
         })?;
         let me = Arc::clone(self);
         let run_id = id.to_owned();
-        let mut last_pair = Instant::now() - PAIR_EVENT_INTERVAL;
-        events.listen(move |ev| me.on_event(&run_id, ev, &mut last_pair));
+        let mut last_sent = [Instant::now() - PAIR_EVENT_INTERVAL; 2];
+        events.listen(move |ev| me.on_event(&run_id, ev, &mut last_sent));
         // Run::open records a run that never started (paused, aborted or failed,
         // resumable) itself.
         let run = Run::open(&dir, control, Some(events), self.rig.clone())?;
@@ -948,7 +1002,7 @@ impl Service {
         run.execute().map(|_| ())
     }
 
-    fn on_event(&self, id: &str, ev: &RunEvent, last_pair: &mut Instant) {
+    fn on_event(&self, id: &str, ev: &RunEvent, last_sent: &mut [Instant; 2]) {
         let mut s = self.lock();
         if s.live.id == id {
             let live = &mut s.live;
@@ -983,15 +1037,19 @@ impl Service {
         }
         // Per-pair and per-LOS-point progress is forwarded at a display rate (and the
         // last one always), so clients cost the capture nothing measurable.
+        // Histograms likewise, on their own clock (each forwarded one is the newest).
         let progress = match ev {
-            RunEvent::Pair { done, total, .. } | RunEvent::LosPoint { done, total } => Some(done == total),
+            RunEvent::Pair { done, total, .. } | RunEvent::LosPoint { done, total } => {
+                Some((0, done == total))
+            }
+            RunEvent::Histogram { .. } => Some((1, false)),
             _ => None,
         };
-        if let Some(last) = progress {
-            if !last && last_pair.elapsed() < PAIR_EVENT_INTERVAL {
+        if let Some((clock, last)) = progress {
+            if !last && last_sent[clock].elapsed() < PAIR_EVENT_INTERVAL {
                 return;
             }
-            *last_pair = Instant::now();
+            last_sent[clock] = Instant::now();
         }
         let value = serde_json::to_value(ev).unwrap_or_default();
         let name = event_name(&value);
@@ -1001,6 +1059,19 @@ impl Service {
             json: value.to_string().into(),
         });
     }
+}
+
+/// The most points of each kind [`Service::geometry`] returns.
+pub const GEOMETRY_POINTS: usize = 20_000;
+
+/// Every k-th point, so at most [`GEOMETRY_POINTS`] remain, rounded to 0.1 mm.
+fn thin(points: Vec<[f64; 3]>) -> Vec<[f64; 3]> {
+    let step = points.len().div_ceil(GEOMETRY_POINTS).max(1);
+    points
+        .into_iter()
+        .step_by(step)
+        .map(|p| p.map(|c| (c * 1e4).round() / 1e4))
+        .collect()
 }
 
 /// A run found `running` when the daemon starts was interrupted by its stop: it is
@@ -1039,7 +1110,10 @@ pub struct EstopReport {
 }
 
 fn train_loss(t: &periscope_recon::gtr::TrainEvent) -> Option<f64> {
-    serde_json::to_value(t).ok()?.get("loss")?.as_f64()
+    match t {
+        periscope_recon::gtr::TrainEvent::Epoch { loss, .. } => Some(*loss),
+        _ => None,
+    }
 }
 
 fn event_name(v: &serde_json::Value) -> Arc<str> {

@@ -366,6 +366,14 @@ impl Run {
                     .enumerate()
                     .max_by_key(|(_, c)| **c)
                     .unwrap_or((0, &0));
+                self.events.emit(RunEvent::histogram(
+                    i,
+                    p.xi,
+                    p.xd,
+                    &rec.counts,
+                    acq.bin_width,
+                    acq.offset,
+                ));
                 self.events.emit(RunEvent::Pair {
                     done: stored.len(),
                     total,

@@ -26,7 +26,7 @@ pub use capture::{
     MAX_AXIS_BINS, hidden_axis, hidden_histogram, rebin_path, record_counts, record_transient, undo_pile_up,
 };
 pub use los::{RelayPoint, first_bounce_range, peak};
-pub use output::{RELAY_PLY, RunOutputs, parse_relay_ply, write_outputs};
+pub use output::{RELAY_PLY, RunOutputs, parse_relay_ply, read_relay_ply, write_outputs};
 pub use reconstruct::{MAX_VIRTUAL_RESOLUTION, ReconInput, ReconResult, reconstruct};
 
 use crate::config::{ConfigError, InstrumentConfig, TomlSource};

@@ -69,8 +69,9 @@ pub(crate) fn write_relay_ply(dir: &Path, relay: &[RelayPoint]) -> Result<(), Pi
     std::fs::rename(&tmp, &path).map_err(io(&path))
 }
 
-/// Reads `relay.ply` back (resume), or `None` if the run has none yet.
-pub(crate) fn read_relay_ply(dir: &Path) -> Result<Option<Vec<RelayPoint>>, PipelineError> {
+/// Reads `relay.ply` back (resume, the dashboard's 3-D view), or `None` if the run has
+/// none yet.
+pub fn read_relay_ply(dir: &Path) -> Result<Option<Vec<RelayPoint>>, PipelineError> {
     let path = dir.join(RELAY_PLY);
     if !path.exists() {
         return Ok(None);

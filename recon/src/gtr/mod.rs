@@ -14,4 +14,6 @@ pub use model::{GaussianCloud, ModelError, Primitive, RawGrads, ScaleBounds};
 pub use optim::{AdamW, AdamWSettings, GroupSettings, Schedule};
 pub use ply::write_ply;
 pub use render::{batch_loss, batch_loss_grad, render_set};
-pub use train::{CancelToken, PruneSettings, TrainConfig, TrainError, TrainEvent, TrainSummary, Trainer};
+pub use train::{
+    CancelToken, PruneSettings, SNAPSHOT_MAX, TrainConfig, TrainError, TrainEvent, TrainSummary, Trainer,
+};

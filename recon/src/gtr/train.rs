@@ -110,6 +110,9 @@ impl Default for TrainConfig {
     }
 }
 
+/// The most primitives a [`TrainEvent::Snapshot`] carries.
+pub const SNAPSHOT_MAX: usize = 2048;
+
 /// Progress of a fit, for the CLI, the HTTP event stream and the logs alike.
 #[derive(Clone, Debug, PartialEq, Serialize)]
 #[serde(tag = "event", rename_all = "kebab-case")]
@@ -140,6 +143,14 @@ pub enum TrainEvent {
         pairs: usize,
         /// Primitives in the cloud.
         primitives: usize,
+    },
+    /// The primitives after an epoch, for live displays: the centres and weights
+    /// (albedo × largest cross-section, m²) of the [`SNAPSHOT_MAX`] heaviest.
+    Snapshot {
+        /// Centres, metres.
+        centres: Vec<[f32; 3]>,
+        /// Weights, in the order of `centres`.
+        weights: Vec<f32>,
     },
     /// Pruning ran.
     Pruned {
@@ -452,11 +463,32 @@ impl Trainer {
                 pairs: self.data.len(),
                 primitives: self.cloud.len(),
             });
+            on_event(&self.snapshot());
         }
         let before = self.cloud.len();
         let kept = self.prune();
         on_event(&TrainEvent::Pruned { before, kept });
         Ok(self.summary(final_loss, false))
+    }
+
+    /// The heaviest primitives as a [`TrainEvent::Snapshot`].
+    fn snapshot(&self) -> TrainEvent {
+        let mut weighted: Vec<([f32; 3], f32)> = (0..self.cloud.len())
+            .map(|k| {
+                let g = self.cloud.kernel(k);
+                let w = g.rho * g.pi.max_element();
+                (
+                    g.x.as_vec3().to_array(),
+                    if w.is_finite() { w as f32 } else { 0.0 },
+                )
+            })
+            .collect();
+        if weighted.len() > SNAPSHOT_MAX {
+            weighted.select_nth_unstable_by(SNAPSHOT_MAX, |a, b| b.1.total_cmp(&a.1));
+            weighted.truncate(SNAPSHOT_MAX);
+        }
+        let (centres, weights) = weighted.into_iter().unzip();
+        TrainEvent::Snapshot { centres, weights }
     }
 
     fn summary(&self, final_loss: f64, cancelled: bool) -> TrainSummary {

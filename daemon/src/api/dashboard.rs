@@ -1,0 +1,94 @@
+//! The operator's dashboard: a single page served at `/`, its script and styles under
+//! `/ui/`, all embedded in the binary (no Node toolchain at build or install time). The
+//! page talks to the same JSON API as any client, with the same token and Host rules;
+//! see `docs/dashboard.md`.
+use axum::extract::Path;
+use axum::http::{HeaderValue, StatusCode, header};
+use axum::response::{IntoResponse, Response};
+
+use super::ApiError;
+
+/// The embedded files: (path under `/ui/`, media type, contents). uPlot is vendored as
+/// released (`ui/vendor/`, MIT licence beside it).
+pub const ASSETS: &[(&str, &str, &str)] = &[
+    (
+        "app.js",
+        "text/javascript; charset=utf-8",
+        include_str!("../../ui/app.js"),
+    ),
+    (
+        "view3d.js",
+        "text/javascript; charset=utf-8",
+        include_str!("../../ui/view3d.js"),
+    ),
+    (
+        "style.css",
+        "text/css; charset=utf-8",
+        include_str!("../../ui/style.css"),
+    ),
+    (
+        "vendor/uPlot.iife.min.js",
+        "text/javascript; charset=utf-8",
+        include_str!("../../ui/vendor/uPlot.iife.min.js"),
+    ),
+    (
+        "vendor/uPlot.min.css",
+        "text/css; charset=utf-8",
+        include_str!("../../ui/vendor/uPlot.min.css"),
+    ),
+    (
+        "vendor/uPlot.LICENSE",
+        "text/plain; charset=utf-8",
+        include_str!("../../ui/vendor/uPlot.LICENSE"),
+    ),
+    (
+        "plans/demo.toml",
+        "application/toml; charset=utf-8",
+        include_str!("../../../configs/plans/demo.toml"),
+    ),
+];
+
+const INDEX: &str = include_str!("../../ui/index.html");
+
+/// The page's policy: its own scripts only, images from blobs it made, no framing.
+const CSP: &str = "default-src 'self'; script-src 'self'; style-src 'self' 'unsafe-inline'; \
+                   img-src 'self' blob: data:; connect-src 'self'; frame-ancestors 'none'; \
+                   base-uri 'none'; form-action 'none'";
+
+/// Whether `path` is one of the dashboard's static files (served without a token).
+pub(super) fn is_static(path: &str) -> bool {
+    path == "/" || path.starts_with("/ui/")
+}
+
+fn page(media: &'static str, body: &'static str) -> Response {
+    let mut r = ([(header::CONTENT_TYPE, media)], body).into_response();
+    let h = r.headers_mut();
+    h.insert(header::CACHE_CONTROL, HeaderValue::from_static("no-cache"));
+    h.insert(
+        header::X_CONTENT_TYPE_OPTIONS,
+        HeaderValue::from_static("nosniff"),
+    );
+    h.insert(header::CONTENT_SECURITY_POLICY, HeaderValue::from_static(CSP));
+    h.insert(header::X_FRAME_OPTIONS, HeaderValue::from_static("DENY"));
+    r
+}
+
+/// `GET /`: the dashboard.
+pub(super) async fn index() -> Response {
+    page("text/html; charset=utf-8", INDEX)
+}
+
+/// `GET /ui/{file}`: one of [`ASSETS`].
+pub(super) async fn asset(Path(file): Path<String>) -> Result<Response, ApiError> {
+    ASSETS
+        .iter()
+        .find(|(name, _, _)| *name == file)
+        .map(|(_, media, body)| page(media, body))
+        .ok_or_else(|| {
+            ApiError::new(
+                StatusCode::NOT_FOUND,
+                "not-found",
+                format!("the dashboard has no file `{file}`; open / for the dashboard"),
+            )
+        })
+}

@@ -1,0 +1,629 @@
+//! The dashboard: its files and endpoints through the router, and the page itself in
+//! headless Chromium driven over WebDriver (chromedriver). The browser test starts the
+//! API on loopback over the simulated instrument, submits the demo plan through the
+//! page, watches the histogram, 3-D view and loss plot fill, pauses and resumes, waits
+//! for the depth image and a volume slice, and presses the e-stop; the simulated laser
+//! itself must be off. Screenshots go to `target/tmp/dashboard/`.
+//!
+//! Without `chromium` and `chromedriver` on the PATH (Debian: `apt-get install chromium
+//! chromium-driver`; `.ci/run` installs them) the browser test says it skipped, unless
+//! `PERISCOPE_REQUIRE_BROWSER` is set (CI), when it fails.
+use std::net::SocketAddr;
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use axum::body::Body;
+use axum::http::{Method, Request, StatusCode, header};
+use fantoccini::{Client, ClientBuilder, Locator};
+use periscope_daemon::api::{ASSETS, AppState, Service, app};
+use periscope_daemon::config::TomlSource;
+use serde_json::Value;
+use tower::ServiceExt;
+
+const TOKEN: &str = "dashboard-token-0123456789abcdef";
+const DEMO: &str = include_str!("../../configs/plans/demo.toml");
+const SMALL: &str = include_str!("../../tests/data/plans/small-fbp.toml");
+
+fn service(runs: &Path, time_scale: f64) -> Arc<Service> {
+    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
+    let path = root.join("configs/instrument/sim.toml");
+    let mut text = std::fs::read_to_string(&path)
+        .unwrap()
+        .replace("[sim]\n", &format!("[sim]\ntime-scale = {time_scale}\n"));
+    text.push_str(&format!(
+        "\n[api]\nruns-dir = \"{}\"\ntoken = \"{TOKEN}\"\n",
+        runs.display()
+    ));
+    Service::open(TomlSource::from_text(path, text), Some(TOKEN.into())).unwrap()
+}
+
+async fn call(
+    router: &axum::Router,
+    method: Method,
+    uri: &str,
+    token: bool,
+    body: &str,
+) -> (StatusCode, Vec<u8>) {
+    let mut req = Request::builder().method(method).uri(uri);
+    if token {
+        req = req.header(header::AUTHORIZATION, format!("Bearer {TOKEN}"));
+    }
+    if !body.is_empty() {
+        req = req.header(header::CONTENT_TYPE, "application/toml");
+    }
+    let resp = router
+        .clone()
+        .oneshot(req.body(Body::from(body.to_owned())).unwrap())
+        .await
+        .unwrap();
+    let status = resp.status();
+    let bytes = axum::body::to_bytes(resp.into_body(), 64 << 20).await.unwrap();
+    (status, bytes.to_vec())
+}
+
+#[tokio::test]
+async fn the_page_and_its_files_are_served_from_the_binary() {
+    let dir = tempfile::tempdir().unwrap();
+    let router = app(AppState::new(service(dir.path(), 0.0)));
+    let resp = router
+        .clone()
+        .oneshot(Request::get("/").body(Body::empty()).unwrap())
+        .await
+        .unwrap();
+    assert_eq!(resp.status(), StatusCode::OK);
+    let csp = resp.headers()[header::CONTENT_SECURITY_POLICY]
+        .to_str()
+        .unwrap()
+        .to_owned();
+    assert!(
+        csp.contains("default-src 'self'") && csp.contains("frame-ancestors 'none'"),
+        "{csp}"
+    );
+    let html = String::from_utf8(
+        axum::body::to_bytes(resp.into_body(), 1 << 20)
+            .await
+            .unwrap()
+            .to_vec(),
+    )
+    .unwrap();
+    // Every file the page names is served, with its type; nothing comes from elsewhere.
+    for (name, media, body) in ASSETS {
+        let (s, bytes) = call(&router, Method::GET, &format!("/ui/{name}"), false, "").await;
+        assert_eq!(s, StatusCode::OK, "{name}");
+        assert_eq!(bytes, body.as_bytes(), "{name}");
+        assert!(!media.is_empty());
+    }
+    for src in html.split(['"', '\'']).filter(|s| s.starts_with("/ui/")) {
+        let name = src.trim_start_matches("/ui/");
+        assert!(
+            ASSETS.iter().any(|(n, _, _)| *n == name),
+            "index.html names {src}, which is not embedded"
+        );
+    }
+    assert!(
+        !html.contains("http://") && !html.contains("https://"),
+        "the page loads nothing from other sites"
+    );
+    let (s, body) = call(&router, Method::GET, "/ui/nope.js", false, "").await;
+    let v: Value = serde_json::from_slice(&body).unwrap();
+    assert_eq!(
+        (s, v["error"].as_str()),
+        (StatusCode::NOT_FOUND, Some("not-found"))
+    );
+}
+
+#[tokio::test]
+async fn check_reports_duration_budget_and_problems_without_queueing() {
+    let dir = tempfile::tempdir().unwrap();
+    // Real time, so the durations are the instrument's.
+    let router = app(AppState::new(service(dir.path(), 1.0)));
+    let (s, body) = call(&router, Method::POST, "/api/v1/check", false, DEMO).await;
+    let v: Value = serde_json::from_slice(&body).unwrap();
+    assert_eq!(s, StatusCode::OK, "{v}");
+    assert_eq!(v["plan"], "demo");
+    assert_eq!(v["pairs"], 576);
+    let d = &v["duration_s"];
+    let sum =
+        d["los"].as_f64().unwrap() + d["capture"].as_f64().unwrap() + d["reconstruction"].as_f64().unwrap();
+    assert!((d["total"].as_f64().unwrap() - sum).abs() < 1e-9, "{d}");
+    // 576 pairs × 20 ms of dwell at least.
+    assert!(d["capture"].as_f64().unwrap() >= 576.0 * 0.020, "{d}");
+    assert!(v["over_budget"].is_null(), "{v}");
+    assert!(v["memory_bytes"].as_u64().unwrap() < v["memory_limit"].as_u64().unwrap());
+    // The same report `periscope check` prints.
+    assert!(
+        v["report"].as_str().unwrap().contains("estimated duration"),
+        "{v}"
+    );
+    // Invalid plans name the key; over-budget plans are reported, not refused.
+    let bad = DEMO.replace("grid = [24, 24]", "grid = [24, -1]");
+    let (s, body) = call(&router, Method::POST, "/api/v1/check", false, &bad).await;
+    let v: Value = serde_json::from_slice(&body).unwrap();
+    assert_eq!(
+        (s, v["error"].as_str()),
+        (StatusCode::UNPROCESSABLE_ENTITY, Some("invalid-plan")),
+        "{v}"
+    );
+    assert!(v["message"].as_str().unwrap().contains("grid"), "{v}");
+    let huge = DEMO.replace("shape = [64, 64, 128]", "shape = [1024, 1024, 1024]");
+    let (s, body) = call(&router, Method::POST, "/api/v1/check", false, &huge).await;
+    let v: Value = serde_json::from_slice(&body).unwrap();
+    assert_eq!(s, StatusCode::OK, "{v}");
+    assert!(v["over_budget"].as_str().unwrap().contains("over budget"), "{v}");
+    let runs = std::fs::read_dir(dir.path())
+        .unwrap()
+        .filter(|e| e.as_ref().unwrap().path().join("run.json").exists())
+        .count();
+    assert_eq!(runs, 0, "check made no run");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn geometry_lists_the_relay_pairs_and_volume_of_a_run() {
+    let dir = tempfile::tempdir().unwrap();
+    let svc = service(dir.path(), 0.0);
+    let worker = svc.start_worker();
+    let router = app(AppState::new(Arc::clone(&svc)));
+    let (s, body) = call(&router, Method::POST, "/api/v1/runs", true, SMALL).await;
+    assert_eq!(s, StatusCode::CREATED);
+    let id = serde_json::from_slice::<Value>(&body).unwrap()["id"]
+        .as_str()
+        .unwrap()
+        .to_owned();
+    let t = Instant::now();
+    loop {
+        let st = svc.status(&id).unwrap();
+        if st.state == periscope_daemon::store::RunState::Completed {
+            break;
+        }
+        assert!(t.elapsed() < Duration::from_secs(60), "{st:?}");
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+    let (s, body) = call(
+        &router,
+        Method::GET,
+        &format!("/api/v1/runs/{id}/geometry"),
+        false,
+        "",
+    )
+    .await;
+    let g: Value = serde_json::from_slice(&body).unwrap();
+    assert_eq!(s, StatusCode::OK, "{g}");
+    let relay = g["relay"].as_array().unwrap();
+    assert!(relay.len() > 32, "{}", relay.len());
+    // The relay is the wall at z = 0 (sim.toml), within a millimetre.
+    assert!(relay.iter().all(|p| p[2].as_f64().unwrap().abs() < 1e-3), "{g}");
+    // Confocal pairs: as many distinct illumination and detection points as pairs.
+    let pairs: Vec<Value> =
+        serde_json::from_slice(&std::fs::read(dir.path().join(&id).join("pairs.json")).unwrap()).unwrap();
+    assert!(pairs.len() > 16);
+    assert_eq!(g["pairs"], pairs.len());
+    assert_eq!(g["illumination"].as_array().unwrap().len(), pairs.len());
+    assert_eq!(g["detection"].as_array().unwrap().len(), pairs.len());
+    let first = &g["illumination"][0];
+    for (k, axis) in ["x", "y", "z"].iter().enumerate() {
+        let want = pairs[0]["xi"][k]
+            .as_f64()
+            .unwrap_or_else(|| pairs[0]["xi"][*axis].as_f64().unwrap());
+        assert!(
+            (first[k].as_f64().unwrap() - want).abs() <= 0.6e-4,
+            "{first} vs {}",
+            pairs[0]
+        );
+    }
+    assert!(g["volume"]["z"][1].as_f64().unwrap() > 0.0, "{g}");
+    let (s, _) = call(&router, Method::GET, "/api/v1/runs/nope/geometry", false, "").await;
+    assert_eq!(s, StatusCode::NOT_FOUND);
+    svc.shutdown();
+    worker.join().unwrap();
+}
+
+// ---------------------------------------------------------------- the browser test
+
+/// chromedriver on a free loopback port, stopped on drop.
+struct Chromedriver {
+    child: Child,
+    url: String,
+}
+
+impl Drop for Chromedriver {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+fn on_path(name: &str) -> Option<PathBuf> {
+    std::env::var_os("PATH")?
+        .to_str()?
+        .split(':')
+        .map(|d| Path::new(d).join(name))
+        .find(|p| p.is_file())
+}
+
+/// Chromium and chromedriver, or why the browser test cannot run.
+fn browser() -> Result<(PathBuf, PathBuf), String> {
+    let chromium = std::env::var_os("PERISCOPE_CHROMIUM")
+        .map(PathBuf::from)
+        .or_else(|| on_path("chromium"))
+        .or_else(|| on_path("chromium-browser"))
+        .or_else(|| on_path("google-chrome"));
+    let driver = on_path("chromedriver");
+    match (chromium, driver) {
+        (Some(c), Some(d)) => Ok((c, d)),
+        (c, d) => Err(format!(
+            "missing {}{}{}",
+            if c.is_none() { "chromium" } else { "" },
+            if c.is_none() && d.is_none() { " and " } else { "" },
+            if d.is_none() { "chromedriver" } else { "" }
+        )),
+    }
+}
+
+async fn start_chromedriver(path: &Path) -> Chromedriver {
+    let port = std::net::TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port();
+    let child = Command::new(path)
+        .arg(format!("--port={port}"))
+        .stdout(Stdio::null())
+        .stderr(Stdio::null())
+        .spawn()
+        .unwrap_or_else(|e| panic!("cannot start {}: {e}", path.display()));
+    let driver = Chromedriver {
+        child,
+        url: format!("http://127.0.0.1:{port}"),
+    };
+    let t = Instant::now();
+    while tokio::net::TcpStream::connect(("127.0.0.1", port)).await.is_err() {
+        assert!(
+            t.elapsed() < Duration::from_secs(20),
+            "chromedriver did not listen on {port}"
+        );
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+    driver
+}
+
+/// A loopback TCP proxy in front of the daemon whose connections the test can cut,
+/// as a network drop or a restarted router would: existing connections close, new
+/// ones go through.
+async fn cuttable_proxy(target: SocketAddr) -> (SocketAddr, tokio::sync::watch::Sender<u64>) {
+    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+    let addr = listener.local_addr().unwrap();
+    let (cut, watch) = tokio::sync::watch::channel(0u64);
+    tokio::spawn(async move {
+        while let Ok((mut inbound, _)) = listener.accept().await {
+            let mut watch = watch.clone();
+            watch.mark_unchanged();
+            tokio::spawn(async move {
+                let Ok(mut outbound) = tokio::net::TcpStream::connect(target).await else {
+                    return;
+                };
+                tokio::select! {
+                    _ = tokio::io::copy_bidirectional(&mut inbound, &mut outbound) => {}
+                    _ = watch.changed() => {}
+                }
+            });
+        }
+    });
+    (addr, cut)
+}
+
+async fn probe(c: &Client) -> Value {
+    c.execute("return window.periscope || null;", vec![])
+        .await
+        .unwrap()
+}
+
+/// Polls the page's probe until `pred` holds.
+async fn wait_page(c: &Client, what: &str, limit: Duration, pred: impl Fn(&Value) -> bool) -> Value {
+    let t = Instant::now();
+    loop {
+        let v = probe(c).await;
+        if pred(&v) {
+            return v;
+        }
+        assert!(t.elapsed() < limit, "the page never showed {what}: {v}");
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+}
+
+async fn text(c: &Client, css: &str) -> String {
+    c.find(Locator::Css(css)).await.unwrap().text().await.unwrap()
+}
+
+async fn wait_text(c: &Client, css: &str, limit: Duration, pred: impl Fn(&str) -> bool) -> String {
+    let t = Instant::now();
+    loop {
+        let s = text(c, css).await;
+        if pred(&s) {
+            return s;
+        }
+        if t.elapsed() > limit {
+            let banner = text(c, "#banner").await;
+            let check = text(c, "#check-summary").await;
+            panic!(
+                "{css} never matched: {s:?} (banner {banner:?}, check {check:?}, probe {})",
+                probe(c).await
+            );
+        }
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+}
+
+async fn screenshot(c: &Client, dir: &Path, name: &str) {
+    let png = c.screenshot().await.unwrap();
+    assert!(png.starts_with(b"\x89PNG"), "{name} is not a PNG");
+    std::fs::write(dir.join(name), png).unwrap();
+}
+
+/// Non-background pixels of a canvas (drawn content, not a blank element).
+async fn inked(c: &Client, id: &str) -> u64 {
+    let js = "const c = document.getElementById(arguments[0]); \
+              if (!c || !c.width) return 0; \
+              const d = c.getContext('2d').getImageData(0, 0, c.width, c.height).data; \
+              let n = 0; for (let i = 0; i < d.length; i += 4) \
+                if (d[i + 3] > 0 && !(d[i] > 245 && d[i + 1] > 245 && d[i + 2] > 245)) n++; \
+              return n;";
+    c.execute(js, vec![Value::from(id)])
+        .await
+        .unwrap()
+        .as_u64()
+        .unwrap()
+}
+
+fn percentile(v: &mut [f64], q: f64) -> f64 {
+    v.sort_by(f64::total_cmp);
+    v[((v.len() - 1) as f64 * q).round() as usize]
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn an_operator_runs_the_demo_from_the_dashboard_in_chromium() {
+    let (chromium, chromedriver) = match browser() {
+        Ok(b) => b,
+        Err(why) => {
+            assert!(
+                std::env::var_os("PERISCOPE_REQUIRE_BROWSER").is_none(),
+                "PERISCOPE_REQUIRE_BROWSER is set but the browser test cannot run: {why}"
+            );
+            eprintln!(
+                "SKIPPED the dashboard browser test: {why} (Debian: apt-get install chromium chromium-driver; .ci/run installs them)"
+            );
+            return;
+        }
+    };
+    let shots = Path::new(env!("CARGO_TARGET_TMPDIR")).join("dashboard");
+    std::fs::create_dir_all(&shots).unwrap();
+    let dir = tempfile::tempdir().unwrap();
+    // Half real time: the demo's 576 pairs × 20 ms take about 6 s, long enough to pause.
+    let svc = service(dir.path(), 0.5);
+    let worker = svc.start_worker();
+    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+    let addr = listener.local_addr().unwrap();
+    let router = app(AppState::new(Arc::clone(&svc)));
+    let server = tokio::spawn(async move {
+        axum::serve(
+            listener,
+            router.into_make_service_with_connect_info::<SocketAddr>(),
+        )
+        .await
+        .unwrap();
+    });
+    // The browser reaches the daemon through a proxy the test can cut.
+    let (addr, cut) = cuttable_proxy(addr).await;
+    let driver = start_chromedriver(&chromedriver).await;
+    let caps: serde_json::Map<String, Value> = serde_json::from_value(serde_json::json!({
+        "browserName": "chrome",
+        "goog:chromeOptions": {
+            "binary": chromium,
+            "args": ["--headless=new", "--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage",
+                     "--window-size=1400,2000", "--hide-scrollbars"]
+        }
+    }))
+    .unwrap();
+    let c = ClientBuilder::new(hyper_util::client::legacy::connect::HttpConnector::new())
+        .capabilities(caps)
+        .connect(&driver.url)
+        .await
+        .expect("chromedriver starts a Chromium session");
+    let limit = Duration::from_secs(120);
+
+    // Page load: navigation to the first complete render (instrument and runs shown).
+    let t = Instant::now();
+    c.goto(&format!("http://{addr}/")).await.unwrap();
+    let p = wait_page(&c, "ready", Duration::from_secs(20), |v| v["ready"] == true).await;
+    let load_wall = t.elapsed();
+    let load_ms = p["loadMs"].as_f64().unwrap();
+    assert!(load_ms < 5000.0, "page load {load_ms} ms");
+    wait_text(&c, "#inst-body", limit, |s| {
+        s.contains("laser") && s.contains("off")
+    })
+    .await;
+    assert!(text(&c, "#token-state").await.contains("enter the API token"));
+
+    // The token, once for the tab.
+    c.find(Locator::Css("#token"))
+        .await
+        .unwrap()
+        .send_keys(TOKEN)
+        .await
+        .unwrap();
+    c.find(Locator::Css("#token-form button"))
+        .await
+        .unwrap()
+        .click()
+        .await
+        .unwrap();
+    wait_text(&c, "#token-state", limit, |s| s.contains("token set")).await;
+
+    // The demo plan: checked (budget and duration shown) before it can be submitted.
+    c.find(Locator::Css("#load-demo"))
+        .await
+        .unwrap()
+        .click()
+        .await
+        .unwrap();
+    let summary = wait_text(&c, "#check-summary", limit, |s| s.starts_with("valid")).await;
+    assert!(
+        summary.contains("576 pairs") && summary.contains("memory"),
+        "{summary}"
+    );
+    let submit = c.find(Locator::Css("#submit")).await.unwrap();
+    assert!(submit.is_enabled().await.unwrap());
+    submit.click().await.unwrap();
+    let id = wait_text(&c, "#run-id", limit, |s| s.ends_with("-demo")).await;
+
+    // Live: histograms arrive and are drawn; the relay and pairs are in the 3-D view.
+    wait_page(&c, "histograms", limit, |v| v["histograms"].as_u64() >= Some(5)).await;
+    wait_text(&c, "#view-caption", limit, |s| s.contains("relay points")).await;
+    assert!(inked(&c, "view3d").await > 500);
+
+    // Pause and resume from the page.
+    c.find(Locator::Css("#run-actions .act-pause"))
+        .await
+        .unwrap()
+        .click()
+        .await
+        .unwrap();
+    wait_text(&c, "#run-state", limit, |s| s == "paused").await;
+    assert_eq!(
+        svc.status(&id).unwrap().state,
+        periscope_daemon::store::RunState::Paused
+    );
+    let rig = svc.rig().unwrap();
+    assert!(!rig.emission(), "the laser is on while the run is paused");
+    let before = probe(&c).await["histograms"].as_u64().unwrap();
+    c.find(Locator::Css("#run-actions .act-resume"))
+        .await
+        .unwrap()
+        .click()
+        .await
+        .unwrap();
+    wait_page(&c, "histograms after resuming", limit, |v| {
+        v["histograms"].as_u64() > Some(before + 5)
+    })
+    .await;
+
+    // A dropped connection: the page reconnects its event stream by itself and catches
+    // up (status, then the stream again); histograms keep coming.
+    let p = probe(&c).await;
+    let (streams, seen) = (
+        p["streamsOpened"].as_u64().unwrap(),
+        p["histograms"].as_u64().unwrap(),
+    );
+    cut.send_modify(|g| *g += 1);
+    wait_page(&c, "a reconnected event stream", limit, |v| {
+        v["streamsOpened"].as_u64() > Some(streams) && v["histograms"].as_u64() > Some(seen + 3)
+    })
+    .await;
+
+    // The optimiser: loss points and Gaussians appear while the capture streams in.
+    wait_page(&c, "the loss curve and Gaussians", limit, |v| {
+        v["lossPoints"].as_u64() >= Some(3) && v["snapshots"].as_u64() >= Some(1)
+    })
+    .await;
+    screenshot(&c, &shots, "live.png").await;
+    eprintln!("dashboard: live view at {:.1} s", t.elapsed().as_secs_f64());
+
+    // Results: depth and albedo with axes, volume projections and a slice.
+    wait_page(&c, "the results", Duration::from_secs(300), |v| {
+        v["resultsShown"] == true && v["sliceShown"] == true
+    })
+    .await;
+    for canvas in [
+        "depth-canvas",
+        "albedo-canvas",
+        "mip-x",
+        "mip-y",
+        "mip-z",
+        "slice-canvas",
+    ] {
+        assert!(inked(&c, canvas).await > 2000, "{canvas} is blank");
+    }
+    let downloads = text(&c, "#downloads").await;
+    for f in [
+        "volume.npy",
+        "depth.png",
+        "gaussians.ply",
+        "relay.ply",
+        "capture.hdf5",
+    ] {
+        assert!(downloads.contains(f), "{downloads}");
+    }
+    c.execute(
+        "const s = document.getElementById('results'); s.scrollIntoView();",
+        vec![],
+    )
+    .await
+    .unwrap();
+    screenshot(&c, &shots, "results.png").await;
+    eprintln!("dashboard: results at {:.1} s", t.elapsed().as_secs_f64());
+
+    // Event-to-screen latency: from the daemon storing a histogram to the frame that
+    // shows it.
+    let mut lat: Vec<f64> = probe(&c).await["latencies"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter_map(Value::as_f64)
+        .collect();
+    let n = lat.len();
+    assert!(n >= 20, "only {n} histograms were timed");
+    let (median, p95) = (percentile(&mut lat, 0.5), percentile(&mut lat, 0.95));
+    assert!(median < 500.0, "event-to-screen median {median} ms");
+
+    // E-stop from the page: a second demo run, stopped mid-capture.
+    c.execute("window.scrollTo(0, 0);", vec![]).await.unwrap();
+    c.find(Locator::Css("#load-demo"))
+        .await
+        .unwrap()
+        .click()
+        .await
+        .unwrap();
+    wait_text(&c, "#check-summary", limit, |s| s.starts_with("valid")).await;
+    c.find(Locator::Css("#submit"))
+        .await
+        .unwrap()
+        .click()
+        .await
+        .unwrap();
+    let second = wait_text(&c, "#run-id", limit, |s| s.ends_with("-demo") && s != id).await;
+    let seen = probe(&c).await["histograms"].as_u64().unwrap();
+    wait_page(&c, "the second run's histograms", limit, |v| {
+        v["histograms"].as_u64() > Some(seen + 3)
+    })
+    .await;
+    assert!(rig.emission(), "the laser is on during the capture");
+    let pressed = Instant::now();
+    c.find(Locator::Css("#estop"))
+        .await
+        .unwrap()
+        .click()
+        .await
+        .unwrap();
+    let note = wait_text(&c, "#banner", limit, |s| s.starts_with("E-STOP")).await;
+    let off = rig
+        .off_since(pressed)
+        .expect("the simulated laser is off after the e-stop");
+    assert!(!rig.emission());
+    assert!(note.contains("arms parked") && note.contains(&second), "{note}");
+    wait_text(&c, "#run-state", limit, |s| s == "aborted").await;
+    let off_ms = (off - pressed).as_secs_f64() * 1e3;
+
+    eprintln!(
+        "dashboard: page load {load_ms:.0} ms in the page ({:.0} ms from navigation), \
+         event-to-screen latency median {median:.0} ms, 95th percentile {p95:.0} ms over {n} histograms, \
+         laser off {off_ms:.0} ms after the e-stop click; screenshots in {}",
+        load_wall.as_secs_f64() * 1e3,
+        shots.display()
+    );
+    c.close().await.unwrap();
+    drop(driver);
+    server.abort();
+    svc.shutdown();
+    worker.join().unwrap();
+}

@@ -1,0 +1,834 @@
+// The Periscope dashboard: the instrument, the queue, a live run and its results, all
+// through the JSON API at /api/v1 with the token the operator types once per tab.
+import { View3D, boxEdges } from '/ui/view3d.js';
+
+const $ = (id) => document.getElementById(id);
+const TOKEN_KEY = 'periscope-token';
+const POLL_MS = 2000;
+
+// What the browser test reads.
+const probe = {
+  ready: false,
+  loadMs: null,
+  latencies: [],
+  histograms: 0,
+  lossPoints: 0,
+  snapshots: 0,
+  resultsShown: false,
+  sliceShown: false,
+  streamsOpened: 0,
+  lastEvent: null,
+};
+window.periscope = probe;
+
+// ---------------------------------------------------------------- token and requests
+
+let token = sessionStorage.getItem(TOKEN_KEY);
+
+function showTokenState(message) {
+  const state = $('token-state');
+  if (token) {
+    state.textContent = 'token set for this tab';
+    state.className = 'ok';
+    $('token-form').classList.remove('needed');
+  } else {
+    state.textContent = message || 'enter the API token to control the instrument';
+    state.className = 'warn';
+    $('token-form').classList.add('needed');
+  }
+}
+
+$('token-form').addEventListener('submit', (e) => {
+  e.preventDefault();
+  const value = $('token').value.trim();
+  token = value || null;
+  if (token) sessionStorage.setItem(TOKEN_KEY, token);
+  else sessionStorage.removeItem(TOKEN_KEY);
+  $('token').value = '';
+  showTokenState();
+  refresh();
+});
+
+function headers(extra = {}) {
+  if (token) extra.Authorization = `Bearer ${token}`;
+  return extra;
+}
+
+class ApiError extends Error {
+  constructor(status, code, message) {
+    super(message);
+    this.status = status;
+    this.code = code;
+  }
+}
+
+async function api(method, path, body) {
+  const init = { method, headers: headers(body === undefined ? {} : { 'Content-Type': 'application/toml' }) };
+  if (body !== undefined) init.body = body;
+  const r = await fetch(path, init);
+  let json = null;
+  try {
+    json = await r.json();
+  } catch {
+    json = null;
+  }
+  if (!r.ok) {
+    const message = json?.message || `${r.status} ${r.statusText}`;
+    if (r.status === 401) {
+      if (token) {
+        token = null;
+        sessionStorage.removeItem(TOKEN_KEY);
+      }
+      showTokenState(`the daemon wants the API token: ${message}`);
+    }
+    throw new ApiError(r.status, json?.error, message);
+  }
+  return json;
+}
+
+async function fetchBytes(path) {
+  const r = await fetch(path, { headers: headers() });
+  if (!r.ok) throw new ApiError(r.status, null, `${path}: ${r.status} ${r.statusText}`);
+  return r.arrayBuffer();
+}
+
+function banner(text, kind = 'error') {
+  const b = $('banner');
+  b.textContent = text;
+  b.className = kind;
+  b.hidden = !text;
+}
+
+// ---------------------------------------------------------------- formatting
+
+const fmtS = (s) => (s == null ? '–' : s < 90 ? `${s.toFixed(1)} s` : s < 5400 ? `${(s / 60).toFixed(1)} min` : `${(s / 3600).toFixed(1)} h`);
+const fmtBytes = (b) => (b >= 2 ** 30 ? `${(b / 2 ** 30).toFixed(2)} GiB` : b >= 2 ** 20 ? `${(b / 2 ** 20).toFixed(1)} MiB` : `${(b / 1024).toFixed(0)} KiB`);
+const deg = (a) => `${((a.x * 180) / Math.PI).toFixed(2)}°, ${((a.y * 180) / Math.PI).toFixed(2)}°`;
+
+function el(tag, attrs = {}, ...children) {
+  const e = document.createElement(tag);
+  for (const [k, v] of Object.entries(attrs)) {
+    if (k === 'class') e.className = v;
+    else if (k.startsWith('on')) e.addEventListener(k.slice(2), v);
+    else e.setAttribute(k, v);
+  }
+  for (const c of children) e.append(c instanceof Node ? c : document.createTextNode(String(c)));
+  return e;
+}
+
+// Viridis, from 8 of its stops.
+const VIRIDIS = [[68, 1, 84], [70, 50, 127], [54, 92, 141], [39, 127, 142], [31, 161, 135], [74, 194, 109], [159, 218, 58], [253, 231, 37]];
+const INFERNO = [[0, 0, 4], [40, 11, 84], [101, 21, 110], [159, 42, 99], [212, 72, 66], [245, 125, 21], [250, 193, 39], [252, 255, 164]];
+function cmap(stops, t) {
+  if (!(t >= 0)) t = 0;
+  if (t > 1) t = 1;
+  const x = t * (stops.length - 1);
+  const i = Math.min(stops.length - 2, Math.floor(x));
+  const f = x - i;
+  return stops[i].map((c, k) => Math.round(c + (stops[i + 1][k] - c) * f));
+}
+const css = (rgb) => `rgb(${rgb[0]},${rgb[1]},${rgb[2]})`;
+
+// ---------------------------------------------------------------- instrument panel
+
+let instrumentFetched = 0;
+let instrument = null;
+
+function renderInstrument() {
+  const body = $('inst-body');
+  if (!instrument) return;
+  const v = instrument;
+  $('inst-name').textContent = v.name;
+  const rows = [];
+  const row = (k, val, cls = '') => rows.push(el('tr', {}, el('th', {}, k), el('td', { class: cls }, val)));
+  row('instrument', v.summary);
+  row('state', v.busy ? `busy: run ${v.run?.id} (${v.run?.stage})` : 'idle');
+  const d = v.devices;
+  if (d) {
+    row('laser', d.laser.emission ? 'ON' : 'off', d.laser.emission ? 'danger' : 'ok');
+    row('interlock', d.laser.interlock_closed ? 'closed' : 'OPEN', d.laser.interlock_closed ? 'ok' : 'danger');
+    row('diffuser', d.laser.diffuser_in ? 'in' : 'out');
+    row('laser arm', `${d.laser_arm.model} ${d.laser_arm.firmware} at (${deg(d.laser_position)})`);
+    row('SPAD arm', `${d.spad_arm.model} ${d.spad_arm.firmware} at (${deg(d.spad_position)})`);
+    row('histogrammer', `${d.tdc.model} ${d.tdc.firmware}: ${JSON.stringify(d.tdc_status.state)}`);
+    const rates = d.tdc_status.rates || {};
+    row('count rates', Object.entries(rates).map(([k, r]) => `${k} ${Number(r).toLocaleString()} /s`).join(' · ') || '–');
+  }
+  if (v.error) row('devices', v.error, 'danger');
+  if (v.note) row('note', v.note);
+  if (v.last_safe) row('last safe state', v.last_safe);
+  const age = v.reading ? v.reading.age_s + (performance.now() - instrumentFetched) / 1000 : null;
+  row('reading age', age == null ? 'not read yet' : fmtS(age), age != null && age > 30 ? 'warn' : '');
+  body.replaceChildren(el('table', { class: 'kv' }, ...rows));
+}
+
+async function pollInstrument() {
+  try {
+    instrument = await api('GET', '/api/v1/instrument');
+    instrumentFetched = performance.now();
+    renderInstrument();
+    setConnection(true);
+  } catch (e) {
+    if (e instanceof TypeError) setConnection(false);
+    else $('inst-body').textContent = e.message;
+  }
+}
+
+function setConnection(up) {
+  const c = $('conn');
+  c.textContent = up ? 'connected' : 'daemon unreachable: retrying';
+  c.className = `pill ${up ? 'ok' : 'danger'}`;
+}
+
+$('estop').addEventListener('click', async () => {
+  const t0 = performance.now();
+  try {
+    const r = await api('POST', '/api/v1/estop');
+    const parts = [`E-STOP done in ${((performance.now() - t0) / 1000).toFixed(2)} s: ${r.laser}`];
+    if (r.aborted) parts.push(`run ${r.aborted} aborted`);
+    parts.push(r.parked ? 'arms parked' : 'arms NOT parked');
+    if (r.held?.length) parts.push(`held: ${r.held.join(', ')}`);
+    if (r.warnings?.length) parts.push(`warnings: ${r.warnings.join('; ')}`);
+    banner(parts.join(' · '), r.parked ? 'notice' : 'error');
+  } catch (e) {
+    banner(`E-STOP failed: ${e.message}`);
+  }
+  refresh();
+});
+
+// ---------------------------------------------------------------- plan editor
+
+let checkedText = null;
+let checkTimer = null;
+
+// Until a loaded plan is checked, nothing about the old one stays on screen.
+function planLoading() {
+  checkedText = null;
+  $('submit').disabled = true;
+  $('check-summary').textContent = 'loading…';
+}
+
+$('load-demo').addEventListener('click', async () => {
+  planLoading();
+  const r = await fetch('/ui/plans/demo.toml');
+  $('plan').value = await r.text();
+  planEdited();
+});
+
+$('plan-file').addEventListener('change', async (e) => {
+  const f = e.target.files[0];
+  if (!f) return;
+  planLoading();
+  $('plan').value = await f.text();
+  planEdited();
+});
+
+function planEdited() {
+  checkedText = null;
+  $('submit').disabled = true;
+  $('check-summary').textContent = 'checking…';
+  clearTimeout(checkTimer);
+  checkTimer = setTimeout(checkPlan, 600);
+}
+$('plan').addEventListener('input', planEdited);
+$('check').addEventListener('click', checkPlan);
+
+async function checkPlan() {
+  clearTimeout(checkTimer);
+  const text = $('plan').value;
+  const out = $('check-out');
+  const summary = $('check-summary');
+  if (!text.trim()) {
+    summary.textContent = '';
+    out.textContent = '';
+    return;
+  }
+  try {
+    const c = await api('POST', '/api/v1/check', text);
+    if ($('plan').value !== text) return;
+    out.textContent = c.report;
+    const d = c.duration_s;
+    summary.replaceChildren(
+      el('span', { class: c.over_budget ? 'danger' : 'ok' }, c.over_budget ? 'over budget' : 'valid'),
+      ` · plan “${c.plan}” · ${c.pairs.toLocaleString()} pairs · about ${fmtS(d.total)} (LOS ${fmtS(d.los)}, capture ${fmtS(d.capture)}, reconstruction ${fmtS(d.reconstruction)})`,
+      ` · memory ${fmtBytes(c.memory_bytes)} of ${fmtBytes(c.memory_limit)} · disk ${fmtBytes(c.disk_bytes)} of ${fmtBytes(c.disk_limit)}`,
+      c.problems.length ? ` · ${c.problems.length} target(s) outside the galvo limits` : '',
+    );
+    if (c.over_budget) out.textContent = `${c.over_budget}\n\n${c.report}`;
+    checkedText = c.over_budget ? null : text;
+    $('submit').disabled = checkedText === null;
+  } catch (e) {
+    if ($('plan').value !== text) return;
+    summary.replaceChildren(el('span', { class: 'danger' }, 'invalid'));
+    out.textContent = e.message;
+    $('submit').disabled = true;
+  }
+}
+
+$('submit').addEventListener('click', async () => {
+  const text = $('plan').value;
+  if (text !== checkedText) return;
+  $('submit').disabled = true;
+  try {
+    const st = await api('POST', '/api/v1/runs', text);
+    banner(`run ${st.id} queued`, 'notice');
+    await refreshRuns();
+    select(st.id);
+  } catch (e) {
+    banner(`submit refused: ${e.message}`);
+  } finally {
+    $('submit').disabled = checkedText === null;
+  }
+});
+
+// ---------------------------------------------------------------- runs
+
+let runs = [];
+let selected = null;
+
+async function action(id, verb) {
+  try {
+    await api('POST', `/api/v1/runs/${id}/${verb}`);
+  } catch (e) {
+    banner(`${verb} refused: ${e.message}`);
+  }
+  await refreshRuns();
+}
+
+function actionButtons(r) {
+  const buttons = [];
+  if (r.state === 'running') buttons.push(el('button', { class: 'act-pause', onclick: () => action(r.id, 'pause') }, 'pause'));
+  if (r.state === 'paused' || r.state === 'failed') buttons.push(el('button', { class: 'act-resume', onclick: () => action(r.id, 'resume') }, 'resume'));
+  if (['queued', 'running', 'paused', 'failed'].includes(r.state)) buttons.push(el('button', { class: 'act-abort', onclick: () => action(r.id, 'abort') }, 'abort'));
+  return buttons;
+}
+
+let runsRendered = '';
+
+function renderRuns() {
+  // Rebuilt only when something shown changed, so clicks land on live buttons.
+  const key = JSON.stringify([selected, runs.map((r) => [r.id, r.state, r.stage, Math.round(r.progress * 100), r.timings.length, r.queue_position])]);
+  if (key === runsRendered) return;
+  runsRendered = key;
+  const rows = [...runs].reverse().map((r) => {
+    const timings = r.timings.map(([s, t]) => `${s} ${fmtS(t)}`).join(' · ');
+    const tr = el('tr', { class: r.id === selected ? 'selected' : '', 'data-run': r.id },
+      el('td', {}, el('a', { href: `#${r.id}`, onclick: (e) => { e.preventDefault(); select(r.id); } }, r.id)),
+      el('td', {}, r.plan),
+      el('td', { class: `state-${r.state}` }, r.state + (r.queue_position != null ? ` (#${r.queue_position + 1})` : '')),
+      el('td', {}, r.stage),
+      el('td', {}, `${Math.round(r.progress * 100)} %`),
+      el('td', { class: 'small' }, timings),
+      el('td', {}, ...actionButtons(r)));
+    return tr;
+  });
+  $('runs-body').replaceChildren(...rows);
+  if (!runs.length) $('runs-body').append(el('tr', {}, el('td', { colspan: 7 }, 'no runs yet')));
+}
+
+async function refreshRuns() {
+  try {
+    runs = await api('GET', '/api/v1/runs');
+    setConnection(true);
+  } catch (e) {
+    if (e instanceof TypeError) setConnection(false);
+    return;
+  }
+  renderRuns();
+  if (!selected) {
+    const active = [...runs].reverse().find((r) => r.state === 'running') || runs[runs.length - 1];
+    if (active) select(active.id);
+  } else {
+    const r = runs.find((x) => x.id === selected);
+    if (r) onStatus(r);
+  }
+}
+
+// ---------------------------------------------------------------- the selected run
+
+const view = new View3D($('view3d'));
+let histPlot = null;
+let lossPlot = null;
+let lossSteps = new Map();
+let live = null; // { id, abort: AbortController }
+let status = null;
+let statusAt = 0;
+let geometryStage = null;
+let resultsFor = null;
+
+function makePlots() {
+  const hist = $('hist-plot');
+  const loss = $('loss-plot');
+  hist.replaceChildren();
+  loss.replaceChildren();
+  const width = Math.max(280, hist.clientWidth || 400);
+  histPlot = new uPlot({
+    width, height: 220,
+    scales: { x: { time: false } },
+    axes: [{ label: 'time after the pulse (ns)' }, { label: 'counts', size: 60 }],
+    series: [{}, { label: 'counts', stroke: '#2a7ab9', fill: 'rgba(42,122,185,0.15)', points: { show: false } }],
+    legend: { show: false },
+  }, [[], []], hist);
+  lossPlot = new uPlot({
+    width, height: 220,
+    scales: { x: { time: false }, y: { distr: 3 } },
+    axes: [{ label: 'optimiser step' }, { label: 'loss', size: 70 }],
+    series: [{}, { label: 'loss', stroke: '#c0392b', points: { show: true, size: 4 } }],
+    legend: { show: false },
+  }, [[], []], loss);
+}
+
+function select(id) {
+  if (selected === id && live) return;
+  selected = id;
+  if (live) live.abort.abort();
+  live = null;
+  status = null;
+  geometryStage = null;
+  resultsFor = null;
+  lossSteps = new Map();
+  makePlots();
+  view.clear();
+  $('hist-caption').textContent = 'no histogram yet';
+  $('run-id').textContent = id;
+  $('results-body').hidden = true;
+  $('results-note').textContent = 'results appear when the run completes';
+  renderRuns();
+  loadHistory(id);
+  const r = runs.find((x) => x.id === id);
+  if (r) onStatus(r);
+  follow(id);
+}
+
+function onStatus(st) {
+  if (st.id !== selected) return;
+  status = st;
+  statusAt = performance.now();
+  renderSummary();
+  // A run resumed or started after its page stopped following it: follow it again.
+  if (['running', 'queued'].includes(st.state) && !live) follow(st.id);
+  // The 3-D view: the relay after the relay stage, the pairs once planned.
+  const stage = ['queued', 'opening', 'los-scan', 'starting'].includes(st.stage) ? 'none' : st.pairs_total > 0 ? 'planned' : 'relay';
+  if (stage !== 'none' && stage !== geometryStage) {
+    geometryStage = stage;
+    loadGeometry(st.id);
+  }
+  if (st.state === 'completed' && resultsFor !== st.id) {
+    resultsFor = st.id;
+    loadResults(st.id, st.files);
+  }
+}
+
+function renderSummary() {
+  const st = status;
+  if (!st) return;
+  const eta = st.eta_s == null ? null : Math.max(0, st.eta_s - (performance.now() - statusAt) / 1000);
+  $('run-state').textContent = st.state;
+  $('run-state').className = `state-${st.state}`;
+  $('run-stage').textContent = st.stage;
+  $('run-progress').value = st.progress;
+  $('run-pairs').textContent = st.pairs_total ? `${st.pairs_done.toLocaleString()} / ${st.pairs_total.toLocaleString()} pairs` : '';
+  $('run-eta').textContent = eta == null ? '' : `capture ends in about ${fmtS(eta)}`;
+  $('run-loss').textContent = st.loss == null ? '' : `loss ${st.loss.toExponential(3)}`;
+  $('run-error').textContent = st.error || '';
+  // Buttons are rebuilt only when they change, so a click never lands on a replaced one.
+  const key = `${st.id}:${st.state}`;
+  if ($('run-actions').dataset.key !== key) {
+    $('run-actions').dataset.key = key;
+    $('run-actions').replaceChildren(...actionButtons(st));
+  }
+}
+
+// Past optimiser steps from events.jsonl, so a page opened mid-run (or after a dropped
+// stream) shows the whole loss curve.
+async function loadHistory(id) {
+  try {
+    const buf = await fetchBytes(`/api/v1/runs/${id}/files/events.jsonl`);
+    if (id !== selected) return;
+    for (const line of new TextDecoder().decode(buf).split('\n')) {
+      if (!line.includes('"epoch"')) continue;
+      try {
+        const e = JSON.parse(line);
+        if (e.event === 'epoch') lossSteps.set(e.step, e.loss);
+      } catch {
+        // A line cut short by a crash: skip it.
+      }
+    }
+    drawLoss();
+  } catch {
+    // No events yet.
+  }
+}
+
+function drawLoss() {
+  const steps = [...lossSteps.keys()].sort((a, b) => a - b);
+  lossPlot.setData([steps, steps.map((s) => lossSteps.get(s))]);
+  probe.lossPoints = steps.length;
+}
+
+async function loadGeometry(id) {
+  try {
+    const g = await api('GET', `/api/v1/runs/${id}/geometry`);
+    if (id !== selected) return;
+    const vp = g.viewpoint;
+    const dist = g.relay.map((p) => Math.hypot(p[0] - vp[0], p[1] - vp[1], p[2] - vp[2]));
+    const lo = Math.min(...dist);
+    const hi = Math.max(...dist);
+    view.setPoints('relay', g.relay, { colour: (i) => css(cmap(VIRIDIS, (dist[i] - lo) / (hi - lo || 1))), size: 1.6 });
+    view.setPoints('illumination', g.illumination, { colour: '#e74c3c', size: 2.2, alpha: 0.8 });
+    view.setPoints('detection', g.detection, { colour: '#1abc9c', size: 1.6, alpha: 0.8 });
+    view.setLines('volume', boxEdges(g.volume.x, g.volume.y, g.volume.z), { colour: '#888', alpha: 0.8 });
+    view.frame([...g.relay, ...boxEdges(g.volume.x, g.volume.y, g.volume.z).flat()]);
+    $('view-caption').textContent = `${g.relay.length.toLocaleString()} relay points coloured by distance (${lo.toFixed(2)}–${hi.toFixed(2)} m) · ${g.illumination.length} illumination (red), ${g.detection.length} detection (green) points · volume box`;
+  } catch (e) {
+    $('view-caption').textContent = e.message;
+  }
+}
+
+function onHistogram(h) {
+  const n = h.bins.length;
+  const w = (h.bin_width_ps * h.group) / 1000;
+  const t0 = h.offset_ps / 1000;
+  const xs = new Array(n);
+  for (let i = 0; i < n; i++) xs[i] = t0 + (i + 0.5) * w;
+  histPlot.setData([xs, h.bins]);
+  const total = h.bins.reduce((a, b) => a + b, 0);
+  $('hist-caption').textContent = `pair ${h.pair} · ${total.toLocaleString()} counts · ${h.group > 1 ? `${h.group} bins summed per point` : 'every bin'}`;
+  view.setPoints('pair', [h.illumination, h.detection], { colour: (i) => (i === 0 ? '#ff2d00' : '#00a0ff'), size: 5 });
+  view.setLines('pair-link', [[h.illumination, h.detection]], { colour: '#333', width: 2 });
+  probe.histograms += 1;
+  requestAnimationFrame(() => setTimeout(() => {
+    probe.latencies.push(Date.now() - h.unix_ms);
+    if (probe.latencies.length > 10000) probe.latencies.shift();
+  }, 0));
+}
+
+function onSnapshot(s) {
+  const wmax = Math.max(...s.weights, 1e-30);
+  view.setPoints('gaussians', s.centres, {
+    colour: '#f39c12',
+    size: (i) => 1 + 3 * Math.sqrt(Math.max(0, s.weights[i]) / wmax),
+    alpha: 0.75,
+  });
+  $('gauss-caption').textContent = `${s.centres.length.toLocaleString()} Gaussians (orange, size by weight)`;
+  probe.snapshots += 1;
+}
+
+function onEvent(name, data) {
+  probe.lastEvent = name;
+  switch (name) {
+    case 'status':
+      onStatus(data);
+      break;
+    case 'stage-started':
+      if (status) {
+        status.stage = data.stage;
+        renderSummary();
+      }
+      break;
+    case 'pair':
+      if (status) {
+        status.pairs_done = data.done;
+        status.pairs_total = data.total;
+        status.progress = data.done / data.total;
+        renderSummary();
+      }
+      break;
+    case 'planned':
+    case 'relay':
+      geometryStage = null;
+      refreshRuns();
+      break;
+    case 'histogram':
+      onHistogram(data);
+      break;
+    case 'epoch':
+      lossSteps.set(data.step, data.loss);
+      if (status) status.loss = data.loss;
+      drawLoss();
+      break;
+    case 'snapshot':
+      onSnapshot(data);
+      break;
+    case 'failed':
+      banner(`run failed: ${data.message}`);
+      break;
+    default:
+      break;
+  }
+}
+
+// The event stream, read with fetch so the token travels in a header. A dropped
+// stream reconnects and catches up from the run's status and events.jsonl.
+async function follow(id) {
+  const abort = new AbortController();
+  live = { id, abort };
+  let delay = 500;
+  while (!abort.signal.aborted && selected === id) {
+    try {
+      const r = await fetch(`/api/v1/runs/${id}/events`, { headers: headers(), signal: abort.signal });
+      if (!r.ok) throw new ApiError(r.status, null, `event stream: ${r.status}`);
+      probe.streamsOpened += 1;
+      setConnection(true);
+      delay = 500;
+      const reader = r.body.pipeThrough(new TextDecoderStream()).getReader();
+      let buf = '';
+      for (;;) {
+        const { value, done } = await reader.read();
+        if (done) break;
+        buf += value;
+        let cut;
+        while ((cut = buf.indexOf('\n\n')) >= 0) {
+          const block = buf.slice(0, cut);
+          buf = buf.slice(cut + 2);
+          let name = 'message';
+          let data = '';
+          for (const line of block.split('\n')) {
+            if (line.startsWith('event:')) name = line.slice(6).trim();
+            else if (line.startsWith('data:')) data += line.slice(5).replace(/^ /, '');
+          }
+          if (data) onEvent(name, JSON.parse(data));
+        }
+      }
+    } catch (e) {
+      if (abort.signal.aborted) return;
+      if (e instanceof TypeError) setConnection(false);
+    }
+    // The stream ended: the run stopped, or the connection dropped. Catch up.
+    let st = null;
+    try {
+      st = await api('GET', `/api/v1/runs/${id}`);
+      onStatus(st);
+    } catch {
+      // Unreachable: retry below.
+    }
+    if (st && !['running', 'queued'].includes(st.state)) {
+      await loadHistory(id);
+      await refreshRuns();
+      if (live?.abort === abort) live = null;
+      return;
+    }
+    if (st) await loadHistory(id);
+    await new Promise((ok) => setTimeout(ok, delay));
+    delay = Math.min(delay * 2, 8000);
+  }
+}
+
+// ---------------------------------------------------------------- results
+
+function parseNpy(buf) {
+  const bytes = new Uint8Array(buf);
+  const magic = String.fromCharCode(...bytes.slice(1, 6));
+  if (bytes[0] !== 0x93 || magic !== 'NUMPY') throw new Error('not a .npy file');
+  const dv = new DataView(buf);
+  const major = bytes[6];
+  const headerLen = major >= 2 ? dv.getUint32(8, true) : dv.getUint16(8, true);
+  const start = major >= 2 ? 12 : 10;
+  const header = new TextDecoder().decode(bytes.slice(start, start + headerLen));
+  const descr = /'descr':\s*'([^']+)'/.exec(header)?.[1];
+  const shape = (/'shape':\s*\(([^)]*)\)/.exec(header)?.[1] || '').split(',').map((s) => s.trim()).filter(Boolean).map(Number);
+  if (/'fortran_order':\s*True/.test(header)) throw new Error('Fortran-order .npy is not supported');
+  const body = buf.slice(start + headerLen);
+  const data = descr === '<f4' ? new Float32Array(body) : descr === '<f8' ? new Float64Array(body) : null;
+  if (!data) throw new Error(`.npy dtype ${descr} is not supported`);
+  return { shape, data };
+}
+
+const niceStep = (span, n) => {
+  const raw = span / n;
+  const p = 10 ** Math.floor(Math.log10(raw));
+  return [1, 2, 5, 10].map((m) => m * p).find((s) => s >= raw);
+};
+const ticks = (lo, hi, n) => {
+  const s = niceStep(hi - lo, n);
+  const out = [];
+  for (let v = Math.ceil(lo / s) * s; v <= hi + 1e-9; v += s) out.push(+v.toFixed(6));
+  return out;
+};
+
+// Draws a 2-D map (row-major [rows][cols], row 0 at the bottom) with metric axes and a
+// colour bar. NaN pixels are left grey.
+function drawMap(canvas, { data, cols, rows, xr, yr, xlabel, ylabel, vmin, vmax, stops, unit, title }) {
+  const scale = Math.max(1, Math.floor(320 / Math.max(cols, rows)));
+  const [pw, ph] = [cols * scale, rows * scale];
+  const [ml, mt, mb, mr] = [56, 22, 42, 100];
+  canvas.width = ml + pw + mr;
+  canvas.height = mt + ph + mb;
+  const ctx = canvas.getContext('2d');
+  ctx.fillStyle = '#fff';
+  ctx.fillRect(0, 0, canvas.width, canvas.height);
+  const img = ctx.createImageData(cols, rows);
+  for (let r = 0; r < rows; r++) {
+    for (let c = 0; c < cols; c++) {
+      const v = data[r * cols + c];
+      const o = ((rows - 1 - r) * cols + c) * 4;
+      const rgb = Number.isFinite(v) ? cmap(stops, (v - vmin) / (vmax - vmin || 1)) : [200, 200, 200];
+      img.data.set([...rgb, 255], o);
+    }
+  }
+  const tmp = document.createElement('canvas');
+  tmp.width = cols;
+  tmp.height = rows;
+  tmp.getContext('2d').putImageData(img, 0, 0);
+  ctx.imageSmoothingEnabled = false;
+  ctx.drawImage(tmp, ml, mt, pw, ph);
+  ctx.strokeStyle = '#333';
+  ctx.strokeRect(ml, mt, pw, ph);
+  ctx.fillStyle = '#222';
+  ctx.font = '11px sans-serif';
+  ctx.textAlign = 'center';
+  for (const t of ticks(xr[0], xr[1], 5)) {
+    const x = ml + ((t - xr[0]) / (xr[1] - xr[0])) * pw;
+    ctx.fillRect(x, mt + ph, 1, 4);
+    ctx.fillText(t.toFixed(2), x, mt + ph + 15);
+  }
+  ctx.fillText(xlabel, ml + pw / 2, mt + ph + 32);
+  ctx.textAlign = 'right';
+  for (const t of ticks(yr[0], yr[1], 5)) {
+    const y = mt + ph - ((t - yr[0]) / (yr[1] - yr[0])) * ph;
+    ctx.fillRect(ml - 4, y, 4, 1);
+    ctx.fillText(t.toFixed(2), ml - 6, y + 4);
+  }
+  ctx.save();
+  ctx.translate(14, mt + ph / 2);
+  ctx.rotate(-Math.PI / 2);
+  ctx.textAlign = 'center';
+  ctx.fillText(ylabel, 0, 0);
+  ctx.restore();
+  ctx.textAlign = 'left';
+  ctx.fillText(title, ml, 14);
+  // Colour bar.
+  const bx = ml + pw + 14;
+  for (let y = 0; y < ph; y++) {
+    ctx.fillStyle = css(cmap(stops, 1 - y / ph));
+    ctx.fillRect(bx, mt + y, 14, 1);
+  }
+  ctx.strokeRect(bx, mt, 14, ph);
+  ctx.fillStyle = '#222';
+  for (const t of ticks(vmin, vmax, 4)) {
+    const y = mt + ph - ((t - vmin) / (vmax - vmin || 1)) * ph;
+    ctx.fillRect(bx + 14, y, 4, 1);
+    ctx.fillText(Math.abs(vmax) < 0.01 || Math.abs(vmax) >= 1e4 ? t.toExponential(1) : t.toFixed(2), bx + 20, y + 4);
+  }
+  ctx.save();
+  ctx.translate(bx + 84, mt + ph / 2);
+  ctx.rotate(-Math.PI / 2);
+  ctx.textAlign = 'center';
+  ctx.fillText(unit, 0, 0);
+  ctx.restore();
+}
+
+let volume = null; // { nx, ny, nz, data, json }
+
+// A 2-D view of the volume: `axis` is the one collapsed (max projection) or sliced.
+function plane(axis, index) {
+  const { nx, ny, nz, data, json } = volume;
+  const at = (ix, iy, iz) => data[(iz * ny + iy) * nx + ix];
+  const dims = { x: [nz, ny, 'z (m)', 'y (m)', json.z, json.y], y: [nx, nz, 'x (m)', 'z (m)', json.x, json.z], z: [nx, ny, 'x (m)', 'y (m)', json.x, json.y] }[axis];
+  const [cols, rows] = dims;
+  const out = new Float32Array(cols * rows);
+  for (let r = 0; r < rows; r++) {
+    for (let c = 0; c < cols; c++) {
+      let v = -Infinity;
+      const n = axis === 'x' ? nx : axis === 'y' ? ny : nz;
+      const [from, to] = index == null ? [0, n] : [index, index + 1];
+      for (let k = from; k < to; k++) {
+        const s = axis === 'x' ? at(k, r, c) : axis === 'y' ? at(c, k, r) : at(c, r, k);
+        if (s > v) v = s;
+      }
+      out[r * cols + c] = v;
+    }
+  }
+  return { data: out, cols, rows, xlabel: dims[2], ylabel: dims[3], xr: dims[4], yr: dims[5] };
+}
+
+function drawSlice() {
+  if (!volume) return;
+  const axis = $('slice-axis').value;
+  const n = { x: volume.nx, y: volume.ny, z: volume.nz }[axis];
+  const slider = $('slice');
+  slider.max = n - 1;
+  const i = Math.min(Number(slider.value), n - 1);
+  const range = volume.json[axis];
+  const pos = range[0] + ((i + 0.5) * (range[1] - range[0])) / n;
+  const p = plane(axis, i);
+  drawMap($('slice-canvas'), { ...p, vmin: 0, vmax: volume.max, stops: INFERNO, unit: 'intensity', title: `slice ${axis} = ${pos.toFixed(3)} m (${i + 1}/${n})` });
+  probe.sliceShown = true;
+}
+$('slice').addEventListener('input', drawSlice);
+$('slice-axis').addEventListener('change', () => {
+  const n = { x: volume?.nx, y: volume?.ny, z: volume?.nz }[$('slice-axis').value] || 1;
+  $('slice').max = n - 1;
+  $('slice').value = Math.floor(n / 2);
+  drawSlice();
+});
+
+async function loadResults(id, files) {
+  try {
+    const [vj, depthBuf, volBuf] = await Promise.all([
+      api('GET', `/api/v1/runs/${id}/files/volume.json`),
+      fetchBytes(`/api/v1/runs/${id}/files/depth.npy`),
+      fetchBytes(`/api/v1/runs/${id}/files/volume.npy`),
+    ]);
+    if (id !== selected) return;
+    const depth = parseNpy(depthBuf);
+    const vol = parseNpy(volBuf);
+    const [nz, ny, nx] = vol.shape;
+    let max = 0;
+    for (const v of vol.data) if (v > max) max = v;
+    volume = { nx, ny, nz, data: vol.data, json: vj, max: max || 1 };
+    drawMap($('depth-canvas'), {
+      data: depth.data, cols: depth.shape[1], rows: depth.shape[0], xr: vj.x, yr: vj.y,
+      xlabel: 'x (m)', ylabel: 'y (m)', vmin: vj.z[0], vmax: vj.z[1], stops: VIRIDIS, unit: 'depth z (m)', title: 'depth (grey: no surface)',
+    });
+    const mipZ = plane('z');
+    const albedo = mipZ.data.map((v) => Math.max(0, v) / volume.max);
+    drawMap($('albedo-canvas'), { ...mipZ, data: albedo, vmin: 0, vmax: 1, stops: INFERNO, unit: 'relative intensity', title: 'albedo (peak along z)' });
+    for (const axis of ['x', 'y', 'z']) {
+      drawMap($(`mip-${axis}`), { ...plane(axis), vmin: 0, vmax: volume.max, stops: INFERNO, unit: 'intensity', title: `max projection along ${axis}` });
+    }
+    $('slice-axis').value = 'z';
+    $('slice').max = nz - 1;
+    $('slice').value = Math.floor(nz / 2);
+    drawSlice();
+    $('results-note').textContent = `${vj.method} with ${vj.solver}, ${vj.pairs.toLocaleString()} pairs, ${nx}×${ny}×${nz} voxels of ${vj.voxel_m.map((v) => (v * 1000).toFixed(1)).join(' × ')} mm`;
+    $('results-body').hidden = false;
+    probe.resultsShown = true;
+  } catch (e) {
+    $('results-note').textContent = `results could not be shown: ${e.message}`;
+  }
+  $('downloads').replaceChildren(...files.map((f) => el('button', {
+    class: 'download',
+    onclick: async () => {
+      try {
+        const blob = new Blob([await fetchBytes(`/api/v1/runs/${id}/files/${f}`)]);
+        const a = el('a', { href: URL.createObjectURL(blob), download: `${id}-${f}` });
+        a.click();
+        setTimeout(() => URL.revokeObjectURL(a.href), 60000);
+      } catch (e) {
+        banner(`download failed: ${e.message}`);
+      }
+    },
+  }, f)));
+}
+
+// ---------------------------------------------------------------- start
+
+async function refresh() {
+  await Promise.all([pollInstrument(), refreshRuns()]);
+}
+
+async function start() {
+  showTokenState();
+  makePlots();
+  await refresh();
+  probe.loadMs = performance.now();
+  probe.ready = true;
+  setInterval(refresh, POLL_MS);
+  setInterval(() => {
+    renderInstrument();
+    renderSummary();
+  }, 1000);
+}
+
+start();
