@@ -490,7 +490,10 @@ async fn concurrent_clients_leave_consistent_states() {
             .unwrap()
             .iter()
             .any(|r| r["state"] == "running" || r["state"] == "queued");
-        if !busy {
+        // The worker records a run's end in run.json before it takes the run off the
+        // queue (and rewrites queue.json) and lets go of the instrument: wait for both.
+        let (_, inst) = call(&router, Method::GET, "/api/v1/instrument", false, "").await;
+        if !busy && inst["busy"] == false {
             break;
         }
         assert!(
