@@ -9,6 +9,7 @@
 //! chromium-driver`; `.ci/run` installs them) the browser test says it skipped, unless
 //! `PERISCOPE_REQUIRE_BROWSER` is set (CI), when it fails.
 use std::net::SocketAddr;
+use std::os::unix::process::CommandExt;
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::sync::Arc;
@@ -221,7 +222,9 @@ async fn geometry_lists_the_relay_pairs_and_volume_of_a_run() {
 
 // ---------------------------------------------------------------- the browser test
 
-/// chromedriver on a free loopback port, stopped on drop.
+/// chromedriver on a free loopback port, in a process group of its own: dropping it
+/// (also when the test fails before closing its session) kills the group, Chromium and
+/// its renderers included, so no browser outlives the test.
 struct Chromedriver {
     child: Child,
     url: String,
@@ -229,6 +232,10 @@ struct Chromedriver {
 
 impl Drop for Chromedriver {
     fn drop(&mut self) {
+        let _ = Command::new("kill")
+            .args(["-KILL", "--", &format!("-{}", self.child.id())])
+            .stderr(Stdio::null())
+            .status();
         let _ = self.child.kill();
         let _ = self.child.wait();
     }
@@ -269,6 +276,7 @@ async fn start_chromedriver(path: &Path) -> Chromedriver {
         .port();
     let child = Command::new(path)
         .arg(format!("--port={port}"))
+        .process_group(0)
         .stdout(Stdio::null())
         .stderr(Stdio::null())
         .spawn()
