@@ -48,7 +48,7 @@ fn recon_and_export_of_a_run_directory_whole_and_damaged() {
 
     // Export: one transient per stored record, in pair order, the stored counts with
     // pile-up undone as every reconstruction of the run sees them.
-    let (_, _, inst) = periscope_daemon::pipeline::load_run(&run).unwrap();
+    let (_, _, inst) = periscope_daemon::run_dir::RunDir::new(&run).load().unwrap();
     let cap = tmp.path().join("cap.hdf5");
     let out = periscope(&["export", s(&run), "--out", s(&cap)]);
     assert_eq!(out.code, Some(0), "{out:?}");

@@ -166,7 +166,7 @@ pub fn execute(cli: Cli) -> anyhow::Result<()> {
         }
         Command::Resume { run_dir } => {
             anyhow::ensure!(
-                run_dir.join("run.json").is_file(),
+                crate::run_dir::RunDir::holds_run(&run_dir),
                 "{} is not a run directory (no run.json): give the path of a directory under runs/",
                 run_dir.display()
             );
@@ -186,7 +186,7 @@ pub fn execute(cli: Cli) -> anyhow::Result<()> {
         Command::Recon { capture, config, out } => offline::recon(&capture, config.as_deref(), &out),
         Command::Export { run_dir, out } => {
             anyhow::ensure!(
-                run_dir.join("run.json").is_file(),
+                crate::run_dir::RunDir::holds_run(&run_dir),
                 "{} is not a run directory (no run.json): give the path of a directory under runs/",
                 run_dir.display()
             );

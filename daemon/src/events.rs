@@ -208,7 +208,7 @@ impl EventSink {
         let file = OpenOptions::new()
             .create(true)
             .append(true)
-            .open(dir.join("events.jsonl"))?;
+            .open(dir.join(crate::run_dir::file::EVENTS))?;
         Ok(EventSink {
             inner: Arc::new(Mutex::new(Inner {
                 file: Some(file),

@@ -19,6 +19,8 @@ pub mod offline;
 pub mod pipeline;
 pub mod plan;
 pub mod progress;
+pub mod record;
+pub mod run_dir;
 pub mod signals;
 pub mod store;
 pub mod ytal;

@@ -8,7 +8,8 @@ use periscope_recon::{Pair, TransientSet};
 use crate::config::TomlSource;
 use crate::events::EventSink;
 use crate::pipeline::{self, Control, ReconInput};
-use crate::plan::{PlannedPair, default_recon, load_recon};
+use crate::plan::{default_recon, load_recon};
+use crate::run_dir::RunDir;
 use crate::ytal::{YtalCapture, is_hdf5_path};
 
 /// Reconstructs `capture` (a run directory) into `out`.
@@ -22,18 +23,13 @@ pub fn recon(capture: &Path, config: Option<&Path>, out: &Path) -> anyhow::Resul
         return recon_ytal(capture, config, out);
     }
     anyhow::ensure!(
-        capture.join("run.json").is_file(),
+        RunDir::holds_run(capture),
         "{} is not a run directory (no run.json)",
         capture.display()
     );
-    let (_info, plan, inst) = pipeline::load_run(capture)?;
-    let pairs_path = capture.join("pairs.json");
-    let pairs: Vec<PlannedPair> = serde_json::from_slice(&std::fs::read(&pairs_path).map_err(|e| {
-        anyhow::anyhow!(
-            "{}: {e}; the run never got past pair planning",
-            pairs_path.display()
-        )
-    })?)?;
+    let run = RunDir::new(capture);
+    let (_info, plan, inst) = run.load()?;
+    let pairs = run.pairs()?;
     let settings = match config {
         Some(path) => load_recon(&TomlSource::load(path)?, Some(plan.recon.volume))?,
         None => plan.recon.clone(),
@@ -54,8 +50,9 @@ pub fn recon(capture: &Path, config: Option<&Path>, out: &Path) -> anyhow::Resul
             nd: p.nd,
         })
         .collect();
-    let axis = pipeline::hidden_axis(&recon_pairs, &settings.volume, plan.acquisition.bin_width)
-        .map_err(|e| anyhow::anyhow!("{}: {e}", capture.display()))?;
+    let axis =
+        periscope_recon::transient::hidden_axis(&recon_pairs, &settings.volume, plan.acquisition.bin_width)
+            .map_err(|e| anyhow::anyhow!("{}: {e}", capture.display()))?;
     let mut set = TransientSet::new(axis)?;
     let mut used = Vec::new();
     let mut overflowed = 0usize;

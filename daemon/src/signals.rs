@@ -137,3 +137,12 @@ async fn next_signal() -> Option<(&'static str, i32)> {
 async fn next_signal() -> Option<(&'static str, i32)> {
     tokio::signal::ctrl_c().await.ok().map(|()| ("Ctrl-C", 2))
 }
+
+/// The text of a panic payload.
+pub fn panic_message(payload: &(dyn std::any::Any + Send)) -> String {
+    payload
+        .downcast_ref::<&str>()
+        .map(|s| (*s).to_owned())
+        .or_else(|| payload.downcast_ref::<String>().cloned())
+        .unwrap_or_else(|| "a panic without a message".into())
+}

@@ -30,7 +30,7 @@ const SYNC_EVERY: usize = 32;
 const SYNC_INTERVAL: Duration = Duration::from_millis(500);
 
 /// The histogram log's file name in a run directory.
-pub const HISTOGRAM_LOG: &str = "histograms.bin";
+pub const HISTOGRAM_LOG: &str = crate::run_dir::file::HISTOGRAMS;
 
 /// One stored measurement.
 #[derive(Clone, Debug, PartialEq)]
@@ -105,7 +105,7 @@ impl Recovered {
 
 /// The file a log damaged between records is kept as before it is rewritten (with
 /// `.1`, `.2`, … appended when one exists already).
-pub const DAMAGED_LOG: &str = "histograms.bin.damaged";
+pub const DAMAGED_LOG: &str = crate::run_dir::file::HISTOGRAMS_DAMAGED;
 
 fn u32_at(b: &[u8], i: usize) -> u32 {
     u32::from_le_bytes(b[i..i + 4].try_into().expect("4 bytes"))
@@ -448,14 +448,14 @@ pub struct RunInfo {
 impl RunInfo {
     /// Reads `run.json` from a run directory.
     pub fn load(dir: &Path) -> io::Result<RunInfo> {
-        let text = fs::read_to_string(dir.join("run.json"))?;
+        let text = fs::read_to_string(dir.join(crate::run_dir::file::RUN))?;
         serde_json::from_str(&text).map_err(|e| io::Error::new(io::ErrorKind::InvalidData, e))
     }
 
     /// Writes `run.json` atomically.
     pub fn save(&self, dir: &Path) -> io::Result<()> {
         let text = serde_json::to_string_pretty(self).expect("run info serialises");
-        write_atomic(&dir.join("run.json"), text.as_bytes())
+        write_atomic(&dir.join(crate::run_dir::file::RUN), text.as_bytes())
     }
 }
 

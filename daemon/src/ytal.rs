@@ -30,11 +30,11 @@ use glam::DVec3;
 use hdf5_pure::{Datatype, EnumTypeBuilder, File, FileBuilder, make_i8_type, make_i32_type};
 use periscope_recon::{C0, Pair, TimeAxis, TransientSet, VolumeGrid};
 
-use crate::pipeline::{self, rebin_path};
 use crate::plan::PlannedPair;
+use periscope_recon::transient::{hidden_axis, rebin_path};
 
 /// The capture file a run writes next to its other outputs.
-pub const CAPTURE_FILE: &str = "capture.hdf5";
+pub const CAPTURE_FILE: &str = crate::run_dir::file::CAPTURE;
 
 /// What can go wrong reading or writing a y-tal capture.
 #[derive(Debug, thiserror::Error)]
@@ -436,7 +436,7 @@ fn guarded(
             path: path.to_path_buf(),
             message: format!(
                 "is malformed: the HDF5 decoder failed on it ({}); it is not a capture that can be read",
-                crate::pipeline::panic_message(payload.as_ref())
+                crate::signals::panic_message(payload.as_ref())
             ),
         })
     })
@@ -741,7 +741,7 @@ impl YtalCapture {
     pub fn transients(&self, volume: &VolumeGrid) -> Result<TransientSet, YtalError> {
         let pairs: Vec<Pair> = (0..self.len()).map(|c| self.pair(c)).collect();
         let axis: TimeAxis =
-            pipeline::hidden_axis(&pairs, volume, self.delta_t / C0).map_err(|e| self.error(e))?;
+            hidden_axis(&pairs, volume, self.delta_t / C0).map_err(|e| self.error(e.to_string()))?;
         let bytes = (pairs.len() as u64)
             .saturating_mul(axis.bins as u64)
             .saturating_mul(8);
@@ -932,14 +932,9 @@ impl YtalCapture {
     /// (`t_accounts_first_and_last_bounces`), and the galvo origins as `laser_xyz` and
     /// `sensor_xyz`. Pairs never measured are left out.
     pub fn from_run(dir: &Path) -> anyhow::Result<YtalCapture> {
-        let (info, plan, inst) = pipeline::load_run(dir)?;
-        let pairs_path = dir.join("pairs.json");
-        let pairs: Vec<PlannedPair> = serde_json::from_slice(&std::fs::read(&pairs_path).map_err(|e| {
-            anyhow::anyhow!(
-                "{}: {e}; the run never got past pair planning",
-                pairs_path.display()
-            )
-        })?)?;
+        let run = crate::run_dir::RunDir::new(dir);
+        let (info, plan, inst) = run.load()?;
+        let pairs = run.pairs()?;
         let mut records = crate::store::read_log(dir)?.records;
         records.retain(|r| (r.pair as usize) < pairs.len());
         records.sort_by_key(|r| r.pair);
@@ -961,13 +956,8 @@ impl YtalCapture {
         } else {
             (acq.bin_width, acq.offset, acq.bins as usize)
         };
-        let t_start = C0 * (offset - inst.tdc.system_delay);
-        let delta_t = C0 * width;
-        let axis = TimeAxis {
-            start: t_start,
-            width: delta_t,
-            bins,
-        };
+        let axis = TimeAxis::of_tdc(offset, width, bins, inst.tdc.system_delay);
+        let (t_start, delta_t) = (axis.start, axis.width);
         let n = records.len();
         anyhow::ensure!(
             (bins as u64).saturating_mul(n as u64) <= MAX_DATASET_BYTES / 4,
@@ -979,12 +969,12 @@ impl YtalCapture {
             let same = f64::from(r.bin_width_ps) * 1e-12 == width
                 && f64::from(r.offset_ps) * 1e-12 == offset
                 && r.counts.len() == bins;
-            let counts = pipeline::record_counts(r, &inst);
+            let counts = crate::record::record_counts(r, &inst);
             let column: Vec<f32> = if same {
                 counts
             } else {
-                let start = C0 * (f64::from(r.offset_ps) * 1e-12 - inst.tdc.system_delay);
-                rebin_path(counts, start, C0 * f64::from(r.bin_width_ps) * 1e-12, &axis)
+                let own = crate::record::record_axis(r, &inst);
+                rebin_path(counts, own.start, own.width, &axis)
             };
             for (k, v) in column.into_iter().enumerate() {
                 h[k * n + c] = v;

@@ -178,10 +178,6 @@ pub trait Histogrammer: ErrorType {
     fn acquire_until(&mut self, stop: &dyn Fn() -> bool) -> Result<Histogram, Self::Error>;
     /// Aborts an acquisition in progress and drops frames not yet read.
     fn abort(&mut self) -> Result<(), Self::Error>;
-    /// Count rates.
-    fn count_rates(&mut self) -> Result<CountRates, Self::Error> {
-        Ok(self.status()?.rates)
-    }
     /// State, rates and counters.
     fn status(&mut self) -> Result<TdcStatus, Self::Error>;
 }

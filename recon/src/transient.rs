@@ -6,6 +6,8 @@
 //! `[start + b·width, start + (b+1)·width)`, in metres, the y-tal convention.
 use glam::DVec3;
 
+use crate::volume::VolumeGrid;
+
 /// Speed of light in vacuum, m/s.
 pub const C0: f64 = 299_792_458.0;
 
@@ -38,6 +40,24 @@ impl TimeAxis {
     /// Path length at the end of the last bin.
     pub fn end(&self) -> f64 {
         self.edge(self.bins as isize)
+    }
+
+    /// The total-path axis of a TDC histogram whose first bin starts `offset_s` after
+    /// the laser pulse, with bins `bin_width_s` wide: the path light travels in that
+    /// time, less the system delay (cables, electronics), metres. The hidden path of a
+    /// pair is this less its two legs (laser to illumination point, detection point to
+    /// SPAD).
+    pub fn of_tdc(offset_s: f64, bin_width_s: f64, bins: usize, system_delay_s: f64) -> Self {
+        Self {
+            start: C0 * (offset_s - system_delay_s),
+            width: C0 * bin_width_s,
+            bins,
+        }
+    }
+
+    /// Path length at the centre of bin `b`.
+    pub fn centre(&self, b: f64) -> f64 {
+        self.start + (b + 0.5) * self.width
     }
 
     fn validate(&self) -> Result<(), TransientError> {
@@ -102,6 +122,9 @@ pub enum TransientError {
         /// Bins expected.
         expected: usize,
     },
+    /// No hidden-path window fits the pairs, the volume and the bin width.
+    #[error("{0}")]
+    Window(String),
     /// A pair or its histogram holds a bad value.
     #[error("pair {index}: {reason}")]
     Value {
@@ -110,6 +133,89 @@ pub enum TransientError {
         /// What is wrong.
         reason: &'static str,
     },
+}
+
+/// Most bins a transient on the hidden-path axis may have (at 4 ps bins, 1.3 km of
+/// path): beyond this a capture's geometry or bin width is wrong, not large.
+pub const MAX_AXIS_BINS: usize = 1 << 20;
+
+/// Rebins values whose bin k covers path lengths [start + k·width, start + (k+1)·width)
+/// (metres) onto `axis`, splitting each bin over the axis bins it overlaps so the total
+/// inside the axis is preserved (area-exact). Bins outside the axis are dropped.
+pub fn rebin_path(
+    values: impl IntoIterator<Item = f32>,
+    start: f64,
+    width: f64,
+    axis: &TimeAxis,
+) -> Vec<f32> {
+    let mut out = vec![0.0f32; axis.bins];
+    let shift = (start - axis.start) / axis.width;
+    let scale = width / axis.width;
+    if !(shift.is_finite() && scale.is_finite() && scale > 0.0) {
+        // No overlap can be computed: nothing lands on the axis.
+        return out;
+    }
+    for (k, c) in values.into_iter().enumerate() {
+        if c == 0.0 {
+            continue;
+        }
+        let lo = shift + k as f64 * scale;
+        let hi = lo + scale;
+        // Bins wholly outside the axis are skipped before any index is formed, so
+        // far-off starts (hostile files) neither overflow nor loop.
+        if !(hi > 0.0 && lo < axis.bins as f64) {
+            continue;
+        }
+        let (first, last) = (lo.floor() as isize, (hi.ceil() as isize).saturating_sub(1));
+        for j in first.max(0)..=last.min(axis.bins as isize - 1) {
+            let overlap = (hi.min(j as f64 + 1.0) - lo.max(j as f64)).max(0.0);
+            out[j as usize] += (f64::from(c) * overlap / scale) as f32;
+        }
+    }
+    out
+}
+
+/// The hidden-path axis all pairs are rebinned to: the TDC's bin width, spanning the
+/// shortest to the longest hidden path any pair can have to the reconstruction volume.
+pub fn hidden_axis(pairs: &[Pair], volume: &VolumeGrid, bin_width: f64) -> Result<TimeAxis, TransientError> {
+    let width = C0 * bin_width;
+    if !(width.is_finite() && width > 0.0) {
+        return Err(TransientError::Window(format!(
+            "the bin width {bin_width} s is not a positive time"
+        )));
+    }
+    let (mut near, mut far) = (f64::INFINITY, 0.0f64);
+    let (lo, hi) = (volume.min(), volume.max());
+    for p in pairs {
+        let mut corner_far = 0.0f64;
+        for c in 0..8 {
+            let q = DVec3::new(
+                if c & 1 == 0 { lo.x } else { hi.x },
+                if c & 2 == 0 { lo.y } else { hi.y },
+                if c & 4 == 0 { lo.z } else { hi.z },
+            );
+            corner_far = corner_far.max(q.distance(p.xi) + q.distance(p.xd));
+        }
+        far = far.max(corner_far);
+        let clamp = |x: DVec3| x.clamp(lo, hi);
+        near = near.min(clamp(p.xi).distance(p.xi) + clamp(p.xd).distance(p.xd));
+    }
+    let start = ((near.max(0.0) / width).floor() - 4.0).max(0.0) * width;
+    // In f64 first: hostile geometry (a tiny bin width, points far away) must be
+    // refused, not wrapped or allocated.
+    let bins = ((far - start) / width).ceil() + 4.0;
+    if !(bins.is_finite() && start.is_finite()) || bins > MAX_AXIS_BINS as f64 {
+        return Err(TransientError::Window(format!(
+            "the hidden paths span {:.3e} m, {bins:.3e} bins of {width:.3e} m: more than the {MAX_AXIS_BINS} \
+             bins a transient may have; check the bin width, the relay points and the volume",
+            far - start
+        )));
+    }
+    Ok(TimeAxis {
+        start,
+        width,
+        bins: (bins as usize).max(8),
+    })
 }
 
 /// Transients on a common time axis, stored contiguously for fast batched access.
@@ -236,6 +342,38 @@ mod tests {
             width: 0.01,
             bins: 4,
         }
+    }
+
+    #[test]
+    fn rebinning_preserves_counts_and_shifts_by_the_legs() {
+        let mut counts = vec![0.0f32; 64];
+        counts[20] = 1000.0;
+        let tdc = TimeAxis::of_tdc(0.0, 16e-12, 64, 0.0);
+        let axis = TimeAxis {
+            start: 0.0,
+            width: tdc.width,
+            bins: 64,
+        };
+        // Legs of exactly 10.25 bins: TDC bin 20 covers hidden bins [9.75, 10.75),
+        // a quarter in bin 9 and three quarters in bin 10.
+        let legs = 10.25 * axis.width;
+        let h = rebin_path(counts, tdc.start - legs, tdc.width, &axis);
+        let total: f32 = h.iter().sum();
+        assert!((total - 1000.0).abs() < 1e-3, "{total}");
+        assert!(
+            (h[9] - 250.0).abs() < 1e-3 && (h[10] - 750.0).abs() < 1e-3,
+            "{:?}",
+            &h[8..12]
+        );
+    }
+
+    #[test]
+    fn a_tdc_axis_starts_at_the_path_after_the_system_delay() {
+        // 10 ns after the pulse with a 2.5 ns system delay: 7.5 ns of flight.
+        let a = TimeAxis::of_tdc(10e-9, 4e-12, 100, 2.5e-9);
+        assert!((a.start - C0 * 7.5e-9).abs() < 1e-12, "{a:?}");
+        assert!((a.width - C0 * 4e-12).abs() < 1e-15);
+        assert!((a.centre(0.0) - (a.start + 0.5 * a.width)).abs() < 1e-12);
     }
 
     #[test]

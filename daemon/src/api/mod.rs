@@ -26,6 +26,8 @@ mod openapi;
 mod service;
 
 pub use dashboard::ASSETS;
+
+use crate::run_dir::file;
 pub use openapi::openapi;
 pub use service::{
     EstopReport, GEOMETRY_POINTS, QUEUE_FILE, RunStatus, Service, ServiceError, StreamEvent, state_name,
@@ -33,19 +35,19 @@ pub use service::{
 
 /// Files a run offers for download, with their media types.
 pub const DOWNLOADS: &[(&str, &str)] = &[
-    ("volume.npy", "application/octet-stream"),
-    ("volume.json", "application/json"),
-    ("depth.npy", "application/octet-stream"),
-    ("depth.png", "image/png"),
-    ("albedo.png", "image/png"),
-    ("relay.ply", "application/octet-stream"),
-    ("gaussians.ply", "application/octet-stream"),
-    ("capture.hdf5", "application/x-hdf5"),
-    ("pairs.json", "application/json"),
-    ("events.jsonl", "application/x-ndjson"),
-    ("plan.toml", "application/toml"),
-    ("instrument.toml", "application/toml"),
-    ("run.json", "application/json"),
+    (file::VOLUME, "application/octet-stream"),
+    (file::VOLUME_JSON, "application/json"),
+    (file::DEPTH, "application/octet-stream"),
+    (file::DEPTH_PNG, "image/png"),
+    (file::ALBEDO_PNG, "image/png"),
+    (file::RELAY, "application/octet-stream"),
+    (file::GAUSSIANS, "application/octet-stream"),
+    (file::CAPTURE, "application/x-hdf5"),
+    (file::PAIRS, "application/json"),
+    (file::EVENTS, "application/x-ndjson"),
+    (file::PLAN, "application/toml"),
+    (file::INSTRUMENT, "application/toml"),
+    (file::RUN, "application/json"),
 ];
 
 /// The routes, as (method, path): the router and the OpenAPI document are both checked

@@ -17,6 +17,7 @@ use crate::config::{InstrumentConfig, TomlSource};
 use crate::events::{EventSink, RunEvent};
 use crate::pipeline::{self, Control, PipelineError, Run};
 use crate::plan::Plan;
+use crate::run_dir::{RunDir, file};
 use crate::store::{RunInfo, RunState, write_atomic};
 use periscope_drivers::galvo::EmergencyOff;
 use periscope_drivers::{GalvoPair, Laser};
@@ -24,9 +25,6 @@ use periscope_sim::devices::Rig;
 
 /// The queue file in the runs directory.
 pub const QUEUE_FILE: &str = "queue.json";
-
-/// The y-tal export of an unfinished run, cached in its directory between downloads.
-const EXPORT_CACHE: &str = ".capture-export.hdf5";
 
 /// Pair and LOS-point events are forwarded to event-stream clients at most this often
 /// (plus the last one); stage, optimiser and output events always are.
@@ -360,7 +358,7 @@ impl Service {
                 .chars()
                 .all(|c| c.is_ascii_alphanumeric() || c == '-' || c == '_');
         let dir = self.runs_dir.join(id);
-        if valid && dir.join("run.json").is_file() {
+        if valid && RunDir::holds_run(&dir) {
             Ok(dir)
         } else {
             Err(ServiceError::UnknownRun(id.to_owned()))
@@ -370,7 +368,7 @@ impl Service {
     fn info(&self, id: &str) -> Result<RunInfo, ServiceError> {
         let dir = self.dir(id)?;
         RunInfo::load(&dir)
-            .map_err(|e| ServiceError::Storage(format!("{}: {e}", dir.join("run.json").display())))
+            .map_err(|e| ServiceError::Storage(format!("{}: {e}", dir.join(file::RUN).display())))
     }
 
     fn set_state(&self, id: &str, state: RunState, error: Option<String>) -> Result<(), ServiceError> {
@@ -421,7 +419,7 @@ impl Service {
     fn admit(&self, src: &TomlSource, plan: &Plan) -> Result<String, ServiceError> {
         let dir = crate::store::new_run_dir(&self.runs_dir, &plan.name)
             .map_err(|e| ServiceError::Storage(format!("{}: {e}", self.runs_dir.display())))?;
-        let src = TomlSource::from_text(dir.join("plan.toml"), src.text().to_owned());
+        let src = TomlSource::from_text(dir.join(file::PLAN), src.text().to_owned());
         pipeline::prepare(&src, &self.instrument_src, Some(&dir)).map_err(|e| match e {
             PipelineError::Config(c) => ServiceError::InvalidPlan(c.to_string()),
             other => ServiceError::Storage(other.to_string()),
@@ -437,7 +435,7 @@ impl Service {
         let mut ids: Vec<String> = std::fs::read_dir(&self.runs_dir)
             .map_err(|e| ServiceError::Storage(format!("{}: {e}", self.runs_dir.display())))?
             .filter_map(Result::ok)
-            .filter(|e| e.path().join("run.json").is_file())
+            .filter(|e| RunDir::holds_run(&e.path()))
             .map(|e| e.file_name().to_string_lossy().into_owned())
             .collect();
         ids.sort();
@@ -775,7 +773,7 @@ impl Service {
             ))
         };
         let path = dir.join(name);
-        if name == "instrument.toml" {
+        if name == file::INSTRUMENT {
             let text = crate::store::read_text_capped(&path, 1 << 20).map_err(missing)?;
             return Ok(Download::Bytes(crate::config::redact_secrets(&text).into_bytes()));
         }
@@ -792,8 +790,8 @@ impl Service {
         let _one = self.exporting.lock().unwrap_or_else(|p| p.into_inner());
         let done = RunInfo::load(dir).map(|i| i.pairs_done).unwrap_or(0);
         let records = std::fs::metadata(dir.join(crate::store::HISTOGRAM_LOG)).map_or(0, |m| m.len());
-        let cache = dir.join(EXPORT_CACHE);
-        let stamp = dir.join(format!("{EXPORT_CACHE}.stamp"));
+        let cache = dir.join(file::EXPORT_CACHE);
+        let stamp = dir.join(format!("{}.stamp", file::EXPORT_CACHE));
         let key = format!("{done} {records}");
         let fresh = std::fs::read_to_string(&stamp).is_ok_and(|k| k == key) && cache.is_file();
         if !fresh {
@@ -829,23 +827,17 @@ impl Service {
     /// run has not made yet are empty.
     pub fn geometry(&self, id: &str) -> Result<serde_json::Value, ServiceError> {
         let dir = self.dir(id)?;
-        let storage = |e: PipelineError| ServiceError::Storage(e.to_string());
-        let (_, plan, inst) = pipeline::load_run(&dir).map_err(storage)?;
-        let relay: Vec<[f64; 3]> = pipeline::read_relay_ply(&dir)
+        let storage = |e: crate::run_dir::RunDirError| ServiceError::Storage(e.to_string());
+        let run = RunDir::new(&dir);
+        let (_, plan, inst) = run.load().map_err(storage)?;
+        let relay: Vec<[f64; 3]> = run
+            .relay()
             .map_err(storage)?
             .unwrap_or_default()
             .iter()
             .map(|p| p.x.to_array())
             .collect();
-        let pairs_path = dir.join("pairs.json");
-        let pairs: Vec<crate::plan::PlannedPair> = if pairs_path.is_file() {
-            let text = crate::store::read_text_capped(&pairs_path, 1 << 30)
-                .map_err(|e| ServiceError::Storage(format!("{}: {e}", pairs_path.display())))?;
-            serde_json::from_str(&text)
-                .map_err(|e| ServiceError::Storage(format!("{}: {e}", pairs_path.display())))?
-        } else {
-            Vec::new()
-        };
+        let pairs = run.planned_pairs().map_err(storage)?.unwrap_or_default();
         let unique = |pick: fn(&crate::plan::PlannedPair) -> glam::DVec3| {
             let mut seen = std::collections::HashSet::new();
             let points: Vec<[f64; 3]> = pairs

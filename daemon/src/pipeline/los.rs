@@ -5,25 +5,15 @@ use std::time::Duration;
 
 use glam::DVec3;
 use periscope_drivers::{GalvoPair, Histogrammer, Laser, OpticalAngles, TdcConfig};
-use periscope_recon::C0;
+use periscope_recon::TimeAxis;
 use periscope_recon::relay::{estimate_normals, reject_isolated};
 
 use super::{PipelineError, Run};
 use crate::events::RunEvent;
+use crate::run_dir::RelayPoint;
 
 /// Fewest counts in the peak bin that count as a return.
 const MIN_PEAK_COUNTS: f64 = 8.0;
-
-/// A relay point as measured.
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub struct RelayPoint {
-    /// Position, metres.
-    pub x: DVec3,
-    /// Unit normal toward the instrument.
-    pub n: DVec3,
-    /// Peak counts of its LOS return.
-    pub intensity: f64,
-}
 
 /// Sub-bin peak of a histogram (parabola through the top three bins) as a fractional
 /// bin index (bin k spans [k, k + 1), so a return wholly in bin k reads k + 0.5 once
@@ -110,16 +100,11 @@ impl Run {
                 let h = self.acquire()?;
                 // The first-bounce return is the brightest the SPAD sees: pile-up
                 // skews it towards early bins unless undone.
-                let counts: Vec<f32> = if tdc.pile_up_correction {
-                    let dwell = los.dwell.as_secs_f64();
-                    let cycles =
-                        dwell * self.instrument.laser.repetition_rate / f64::from(tdc.sync_divider.max(1));
-                    super::undo_pile_up(&h.counts, cycles, dwell, self.instrument.spad.dead_time)
-                } else {
-                    h.counts.iter().map(|&c| c as f32).collect()
-                };
+                let counts =
+                    crate::record::corrected_counts(&h.counts, los.dwell.as_secs_f64(), &self.instrument);
                 if let Some((b, top)) = peak(&counts) {
-                    let ell = C0 * (acq.offset + (b + 0.5) * acq.bin_width - tdc.system_delay);
+                    let ell =
+                        TimeAxis::of_tdc(acq.offset, acq.bin_width, counts.len(), tdc.system_delay).centre(b);
                     let dir = spad_pose.direction(angles);
                     if let Some(r) = first_bounce_range(ell, l, s, dir) {
                         out.push((s + dir * r, top));

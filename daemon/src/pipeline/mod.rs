@@ -22,11 +22,13 @@ use periscope_drivers::tdc::TdcError;
 use periscope_recon::gtr::CancelToken;
 use periscope_sim::devices::Rig;
 
-pub use capture::{
-    MAX_AXIS_BINS, hidden_axis, hidden_histogram, rebin_path, record_counts, record_transient, undo_pile_up,
-};
-pub use los::{RelayPoint, first_bounce_range, peak};
-pub use output::{RELAY_PLY, RunOutputs, parse_relay_ply, read_relay_ply, write_outputs};
+use crate::run_dir::{RunDir, file};
+
+pub use crate::record::{record_axis, record_counts, record_transient, undo_pile_up};
+pub use crate::run_dir::{RelayPoint, parse_relay_ply, read_relay_ply};
+pub use crate::signals::panic_message;
+pub use los::{first_bounce_range, peak};
+pub use output::{RELAY_PLY, RunOutputs, write_outputs};
 pub use reconstruct::{MAX_VIRTUAL_RESOLUTION, ReconInput, ReconResult, reconstruct};
 
 use crate::config::{ConfigError, InstrumentConfig, TomlSource};
@@ -96,13 +98,13 @@ pub enum PipelineError {
     },
 }
 
-/// The text of a panic payload.
-pub fn panic_message(payload: &(dyn std::any::Any + Send)) -> String {
-    payload
-        .downcast_ref::<&str>()
-        .map(|s| (*s).to_owned())
-        .or_else(|| payload.downcast_ref::<String>().cloned())
-        .unwrap_or_else(|| "a panic without a message".into())
+impl From<crate::run_dir::RunDirError> for PipelineError {
+    fn from(e: crate::run_dir::RunDirError) -> PipelineError {
+        match e {
+            crate::run_dir::RunDirError::Io { path, source } => PipelineError::Storage { path, source },
+            crate::run_dir::RunDirError::Config(c) => PipelineError::Config(c),
+        }
+    }
 }
 
 impl PipelineError {
@@ -272,7 +274,7 @@ pub fn prepare(
     let dir = match out {
         Some(dir) => {
             std::fs::create_dir_all(dir).map_err(|e| PipelineError::storage(dir, e))?;
-            if dir.join("run.json").exists() {
+            if RunDir::holds_run(dir) {
                 return Err(PipelineError::storage(
                     dir,
                     std::io::Error::new(
@@ -286,12 +288,12 @@ pub fn prepare(
         None => crate::store::new_run_dir(Path::new("runs"), &plan.name)
             .map_err(|e| PipelineError::storage(Path::new("runs"), e))?,
     };
-    write(&dir, "plan.toml", plan_src.text().as_bytes())?;
+    write(&dir, file::PLAN, plan_src.text().as_bytes())?;
     // The token stays in the process: the stored copy (served as a download) has it
     // cut out, and the service never reads it back from a run.
     write(
         &dir,
-        "instrument.toml",
+        file::INSTRUMENT,
         crate::config::redact_secrets(instrument_src.text()).as_bytes(),
     )?;
     let info = RunInfo {
@@ -337,25 +339,6 @@ fn stopped_before_start(
     e
 }
 
-/// Loads a run directory's plan and instrument back (for resume and offline recon).
-pub fn load_run(dir: &Path) -> Result<(RunInfo, Plan, InstrumentConfig), PipelineError> {
-    let info = RunInfo::load(dir).map_err(|e| PipelineError::storage(&dir.join("run.json"), e))?;
-    let read = |name: &str| {
-        let path = dir.join(name);
-        std::fs::read_to_string(&path).map_err(|e| PipelineError::storage(&path, e))
-    };
-    // The stored text is what ran; scene paths in it resolve against where it was.
-    let instrument = InstrumentConfig::from_source(&TomlSource::from_text(
-        info.instrument_path.clone(),
-        read("instrument.toml")?,
-    ))?;
-    let plan = Plan::from_source(
-        &TomlSource::from_text(dir.join("plan.toml"), read("plan.toml")?),
-        &instrument,
-    )?;
-    Ok((info, plan, instrument))
-}
-
 impl Run {
     /// Opens the devices for a prepared (or interrupted) run: stage `opening`, which a
     /// pause or abort interrupts between devices. `rig` is the simulated instrument
@@ -367,7 +350,7 @@ impl Run {
         events: Option<EventSink>,
         rig: Option<Rig>,
     ) -> Result<Run, PipelineError> {
-        let (mut info, plan, instrument) = load_run(dir)?;
+        let (mut info, plan, instrument) = RunDir::new(dir).load()?;
         let events = match events {
             Some(e) => e,
             None => EventSink::open(dir).map_err(|e| PipelineError::storage(dir, e))?,
@@ -534,7 +517,7 @@ impl Run {
                     returns: returns.len(),
                     kept: relay.len(),
                 });
-                output::write_relay_ply(&self.dir, &relay)?;
+                crate::run_dir::write_relay_ply(&self.dir, &relay)?;
                 self.finish_stage(Stage::Relay, t);
                 relay
             }
@@ -610,22 +593,15 @@ impl Run {
             )));
         }
         let json = serde_json::to_vec(&pairs).expect("pairs serialise");
-        write(&self.dir, "pairs.json", &json)?;
+        write(&self.dir, file::PAIRS, &json)?;
         Ok(pairs)
     }
 
-    fn load_pairs(&self) -> Result<Option<Vec<PlannedPair>>, PipelineError> {
-        let path = self.dir.join("pairs.json");
-        if !path.exists() {
-            return Ok(None);
-        }
-        let bytes = std::fs::read(&path).map_err(|e| PipelineError::storage(&path, e))?;
-        serde_json::from_slice(&bytes).map(Some).map_err(|e| {
-            PipelineError::storage(&path, std::io::Error::new(std::io::ErrorKind::InvalidData, e))
-        })
+    fn load_relay(&self) -> Result<Option<Vec<RelayPoint>>, PipelineError> {
+        Ok(RunDir::new(&self.dir).relay()?)
     }
 
-    fn load_relay(&self) -> Result<Option<Vec<RelayPoint>>, PipelineError> {
-        output::read_relay_ply(&self.dir)
+    fn load_pairs(&self) -> Result<Option<Vec<PlannedPair>>, PipelineError> {
+        Ok(RunDir::new(&self.dir).planned_pairs()?)
     }
 }

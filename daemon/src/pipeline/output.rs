@@ -2,20 +2,19 @@
 //! `depth.npy` (float32 [ny, nx], metres, NaN where nothing was found), `depth.png`,
 //! `albedo.png`, `gaussians.ply` (3D-GTR only); and the relay point cloud `relay.ply`.
 use std::fs::File;
-use std::io::{BufWriter, Write};
+use std::io::BufWriter;
 use std::path::Path;
 
-use glam::DVec3;
 use periscope_recon::io::{write_albedo_png, write_depth_png, write_npy, write_volume};
 use serde::Serialize;
 
 use super::PipelineError;
-use super::los::RelayPoint;
 use super::reconstruct::ReconResult;
 use crate::events::{EventSink, RunEvent};
+use crate::run_dir::file;
 
 /// The relay point cloud's file name.
-pub const RELAY_PLY: &str = "relay.ply";
+pub const RELAY_PLY: &str = crate::run_dir::file::RELAY;
 
 /// What a reconstruction wrote, with its statistics.
 #[derive(Clone, Debug, Serialize)]
@@ -44,110 +43,6 @@ fn recon_io(path: &Path) -> impl Fn(periscope_recon::io::IoError) -> PipelineErr
     move |e| PipelineError::Recon(format!("{}: {e}", path.display()))
 }
 
-/// Writes the relay as a binary PLY: x y z nx ny nz intensity (float32), written to a
-/// temporary name and renamed.
-pub(crate) fn write_relay_ply(dir: &Path, relay: &[RelayPoint]) -> Result<(), PipelineError> {
-    let path = dir.join(RELAY_PLY);
-    let tmp = dir.join("relay.ply.tmp");
-    {
-        let mut w = BufWriter::new(File::create(&tmp).map_err(io(&tmp))?);
-        let header = format!(
-            "ply\nformat binary_little_endian 1.0\ncomment Periscope relay: LOS first-bounce points, normals toward the instrument, peak counts\nelement vertex {}\nproperty float x\nproperty float y\nproperty float z\nproperty float nx\nproperty float ny\nproperty float nz\nproperty float intensity\nend_header\n",
-            relay.len()
-        );
-        w.write_all(header.as_bytes()).map_err(io(&tmp))?;
-        for p in relay {
-            for v in [p.x.x, p.x.y, p.x.z, p.n.x, p.n.y, p.n.z, p.intensity] {
-                w.write_all(&(v as f32).to_le_bytes()).map_err(io(&tmp))?;
-            }
-        }
-        w.into_inner()
-            .map_err(|e| PipelineError::storage(&tmp, e.into_error()))?
-            .sync_all()
-            .map_err(io(&tmp))?;
-    }
-    std::fs::rename(&tmp, &path).map_err(io(&path))
-}
-
-/// Reads `relay.ply` back (resume, the dashboard's 3-D view), or `None` if the run has
-/// none yet.
-pub fn read_relay_ply(dir: &Path) -> Result<Option<Vec<RelayPoint>>, PipelineError> {
-    let path = dir.join(RELAY_PLY);
-    if !path.exists() {
-        return Ok(None);
-    }
-    let bytes = std::fs::read(&path).map_err(io(&path))?;
-    parse_relay_ply(&bytes).map(Some).map_err(|m| {
-        PipelineError::storage(
-            &path,
-            std::io::Error::new(
-                std::io::ErrorKind::InvalidData,
-                format!("not a Periscope relay PLY ({m}); delete it to measure the relay again"),
-            ),
-        )
-    })
-}
-
-/// The vertex properties of a relay PLY, in order.
-const RELAY_PROPERTIES: [&str; 7] = ["x", "y", "z", "nx", "ny", "nz", "intensity"];
-
-/// Decodes a relay PLY as the capture writes it (`write_relay_ply`): the header must declare
-/// exactly its layout, the body must be exactly the declared vertices, and every
-/// point finite with a unit normal. Any input gives an answer; nothing here panics.
-pub fn parse_relay_ply(bytes: &[u8]) -> Result<Vec<RelayPoint>, String> {
-    let end = bytes
-        .windows(11)
-        .position(|w| w == b"end_header\n")
-        .ok_or("no end_header line")?
-        + 11;
-    let header = std::str::from_utf8(&bytes[..end]).map_err(|_| "the header is not text")?;
-    let lines: Vec<&str> = header.lines().filter(|l| !l.starts_with("comment")).collect();
-    let n: usize = match lines.as_slice() {
-        [
-            "ply",
-            "format binary_little_endian 1.0",
-            vertex,
-            props @ ..,
-            "end_header",
-        ] if props.len() == RELAY_PROPERTIES.len()
-            && props
-                .iter()
-                .zip(RELAY_PROPERTIES)
-                .all(|(l, name)| l.strip_prefix("property float ") == Some(name)) =>
-        {
-            vertex
-                .strip_prefix("element vertex ")
-                .and_then(|v| v.trim().parse().ok())
-                .ok_or("no vertex count")?
-        }
-        _ => return Err("the header is not the relay layout (x y z nx ny nz intensity, float)".into()),
-    };
-    let body = &bytes[end..];
-    if n.checked_mul(28) != Some(body.len()) {
-        return Err(format!(
-            "the header declares {n} vertices but the body has {} bytes",
-            body.len()
-        ));
-    }
-    let f = |i: usize| {
-        f64::from(f32::from_le_bytes(
-            body[4 * i..4 * i + 4].try_into().expect("4 bytes"),
-        ))
-    };
-    (0..n)
-        .map(|k| {
-            let p = RelayPoint {
-                x: DVec3::new(f(7 * k), f(7 * k + 1), f(7 * k + 2)),
-                n: DVec3::new(f(7 * k + 3), f(7 * k + 4), f(7 * k + 5)),
-                intensity: f(7 * k + 6),
-            };
-            let ok = p.x.is_finite() && p.intensity.is_finite() && (p.n.length() - 1.0).abs() < 1e-3;
-            ok.then_some(p)
-                .ok_or_else(|| format!("vertex {k} is not finite or its normal is not of unit length"))
-        })
-        .collect()
-}
-
 #[derive(Serialize)]
 struct VolumeJson<'a> {
     shape_zyx: [usize; 3],
@@ -172,9 +67,9 @@ pub fn write_outputs(dir: &Path, r: &ReconResult, events: &EventSink) -> Result<
         files.push(name.to_owned());
     };
     let g = &r.volume.grid;
-    let p = dir.join("volume.npy");
+    let p = dir.join(file::VOLUME);
     write_volume(&p, &r.volume).map_err(recon_io(&p))?;
-    wrote("volume.npy", &mut files);
+    wrote(file::VOLUME, &mut files);
     let max = r.volume.max_value();
     let json = VolumeJson {
         shape_zyx: [g.shape[2], g.shape[1], g.shape[0]],
@@ -190,7 +85,7 @@ pub fn write_outputs(dir: &Path, r: &ReconResult, events: &EventSink) -> Result<
         depth_threshold: r.settings.depth_threshold,
         timings_s: &r.timings,
     };
-    let p = dir.join("volume.json");
+    let p = dir.join(file::VOLUME_JSON);
     crate::store::write_atomic(
         &p,
         serde_json::to_string_pretty(&json)
@@ -198,19 +93,19 @@ pub fn write_outputs(dir: &Path, r: &ReconResult, events: &EventSink) -> Result<
             .as_bytes(),
     )
     .map_err(io(&p))?;
-    wrote("volume.json", &mut files);
+    wrote(file::VOLUME_JSON, &mut files);
     let depth = r.volume.depth_map(r.settings.depth_threshold as f32);
-    let p = dir.join("depth.npy");
+    let p = dir.join(file::DEPTH);
     write_npy(&p, &[depth.shape[1], depth.shape[0]], &depth.depth).map_err(recon_io(&p))?;
-    wrote("depth.npy", &mut files);
-    let p = dir.join("depth.png");
+    wrote(file::DEPTH, &mut files);
+    let p = dir.join(file::DEPTH_PNG);
     write_depth_png(&p, &depth).map_err(recon_io(&p))?;
-    wrote("depth.png", &mut files);
-    let p = dir.join("albedo.png");
+    wrote(file::DEPTH_PNG, &mut files);
+    let p = dir.join(file::ALBEDO_PNG);
     write_albedo_png(&p, &depth).map_err(recon_io(&p))?;
-    wrote("albedo.png", &mut files);
+    wrote(file::ALBEDO_PNG, &mut files);
     if let Some(cloud) = &r.cloud {
-        let p = dir.join("gaussians.ply");
+        let p = dir.join(file::GAUSSIANS);
         let tmp = dir.join("gaussians.ply.tmp");
         let mut w = BufWriter::new(File::create(&tmp).map_err(io(&tmp))?);
         periscope_recon::gtr::write_ply(cloud, &mut w).map_err(io(&tmp))?;
@@ -219,7 +114,7 @@ pub fn write_outputs(dir: &Path, r: &ReconResult, events: &EventSink) -> Result<
             .sync_all()
             .map_err(io(&tmp))?;
         std::fs::rename(&tmp, &p).map_err(io(&p))?;
-        wrote("gaussians.ply", &mut files);
+        wrote(file::GAUSSIANS, &mut files);
     }
     Ok(RunOutputs {
         files,

@@ -8,7 +8,6 @@ use std::time::Instant;
 use glam::DVec3;
 use periscope_recon::gtr::{CancelToken, GaussianCloud, TrainError, TrainSummary, Trainer};
 use periscope_recon::relay::VirtualRelay;
-use periscope_recon::solver::{SolverKind, fbp, fk, lct, rsd};
 use periscope_recon::synth::{default_axis, synthesise};
 use periscope_recon::{RoiBox, TransientSet, Volume, VolumeGrid};
 
@@ -169,18 +168,6 @@ fn stopped(control: &Control, pairs: usize) -> PipelineError {
     }
 }
 
-/// Runs a solver, with the settings' `[lct]`, `[fk]`, `[rsd]` or `[fbp]` table.
-fn solve(kind: SolverKind, set: &TransientSet, s: &ReconSettings) -> Result<Volume, PipelineError> {
-    let grid = &s.volume;
-    match kind {
-        SolverKind::Lct => lct(set, grid, &s.lct),
-        SolverKind::Fk => fk(set, grid, &s.fk),
-        SolverKind::Rsd => rsd(set, grid, &s.rsd),
-        SolverKind::Fbp => fbp(set, grid, &s.fbp),
-    }
-    .map_err(recon_err)
-}
-
 fn finish_gtr(
     input: &ReconInput,
     trainer: Trainer,
@@ -212,7 +199,10 @@ fn finish_gtr(
     let scan = synthesise(&kernels, &relay, axis, trainer.render_options()).map_err(recon_err)?;
     let synth_secs = t.elapsed().as_secs_f64();
     let t = Instant::now();
-    let volume = solve(s.solver, &scan.set, s)?;
+    let volume = s
+        .solver
+        .solve(&scan.set, &s.volume, &s.solvers)
+        .map_err(recon_err)?;
     Ok(ReconResult {
         volume,
         cloud: Some(trainer.cloud().clone()),
@@ -259,14 +249,9 @@ pub fn reconstruct(
             finish_gtr(&input, trainer, summary, t.elapsed().as_secs_f64())
         }
         Method::Fbp | Method::Lct | Method::Fk | Method::Rsd => {
-            let kind = match s.method {
-                Method::Fbp => SolverKind::Fbp,
-                Method::Lct => SolverKind::Lct,
-                Method::Fk => SolverKind::Fk,
-                _ => SolverKind::Rsd,
-            };
+            let kind = s.method.solver().expect("a solver method");
             let t = Instant::now();
-            let volume = solve(kind, &input.set, s)?;
+            let volume = kind.solve(&input.set, &s.volume, &s.solvers).map_err(recon_err)?;
             Ok(ReconResult {
                 volume,
                 cloud: None,

@@ -362,15 +362,6 @@ impl Plan {
             suspend,
         })
     }
-
-    /// Hidden path length covered by the histograms' last bin for a pair whose two
-    /// legs sum to `legs`, metres.
-    pub fn window_end(&self, legs: f64, system_delay: f64) -> f64 {
-        periscope_recon::C0
-            * (self.acquisition.offset + self.acquisition.bins as f64 * self.acquisition.bin_width
-                - system_delay)
-            - legs
-    }
 }
 
 fn dwell(src: &TomlSource, key: &str, ms: f64) -> Result<Duration, ConfigError> {

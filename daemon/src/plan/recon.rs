@@ -2,7 +2,9 @@
 //! `RECON.toml` for `periscope recon` share this format.
 use periscope_recon::VolumeGrid;
 use periscope_recon::gtr::{Init, TrainConfig};
-use periscope_recon::solver::{FbpSettings, FkSettings, LctSettings, RsdSettings, SolverError, SolverKind};
+use periscope_recon::solver::{
+    FbpSettings, FkSettings, LctSettings, RsdSettings, SolverError, SolverKind, SolverSettings,
+};
 use serde::Deserialize;
 
 use crate::config::{ConfigError, TomlSource};
@@ -40,15 +42,23 @@ pub struct ReconSettings {
     pub solver: SolverKind,
     /// Depth-map threshold, as a fraction of the volume's maximum.
     pub depth_threshold: f64,
-    /// FBP settings (`[fbp]`), for `method = "fbp"` and for `solver = "fbp"` after
-    /// `gtr`.
-    pub fbp: FbpSettings,
-    /// LCT settings (`[lct]`).
-    pub lct: LctSettings,
-    /// f-k migration settings (`[fk]`).
-    pub fk: FkSettings,
-    /// RSD settings (`[rsd]`).
-    pub rsd: RsdSettings,
+    /// Each solver's settings (`[lct]`, `[fk]`, `[rsd]`, `[fbp]`), for the method of the
+    /// same name and for the solver after `gtr`.
+    pub solvers: SolverSettings,
+}
+
+impl Method {
+    /// The solver this method runs on the measured pairs; `None` for `gtr`, which
+    /// runs [`ReconSettings::solver`] on its virtual scan.
+    pub fn solver(self) -> Option<SolverKind> {
+        match self {
+            Method::Gtr => None,
+            Method::Fbp => Some(SolverKind::Fbp),
+            Method::Lct => Some(SolverKind::Lct),
+            Method::Fk => Some(SolverKind::Fk),
+            Method::Rsd => Some(SolverKind::Rsd),
+        }
+    }
 }
 
 #[derive(Deserialize, Default)]
@@ -285,14 +295,13 @@ pub(crate) fn recon_settings(
         ),
         other => src.invalid(&key(table), other.to_string()),
     };
-    let fbp = raw.fbp.unwrap_or_default();
-    fbp.validate().map_err(|e| solver_err("fbp", e))?;
-    let lct = raw.lct.unwrap_or_default();
-    lct.validate().map_err(|e| solver_err("lct", e))?;
-    let fk = raw.fk.unwrap_or_default();
-    fk.validate().map_err(|e| solver_err("fk", e))?;
-    let rsd = raw.rsd.unwrap_or_default();
-    rsd.validate().map_err(|e| solver_err("rsd", e))?;
+    let solvers = SolverSettings {
+        lct: raw.lct.unwrap_or_default(),
+        fk: raw.fk.unwrap_or_default(),
+        rsd: raw.rsd.unwrap_or_default(),
+        fbp: raw.fbp.unwrap_or_default(),
+    };
+    solvers.validate().map_err(|(table, e)| solver_err(table, e))?;
     Ok(ReconSettings {
         method,
         volume,
@@ -301,10 +310,7 @@ pub(crate) fn recon_settings(
         virtual_size: g.virtual_size,
         solver,
         depth_threshold,
-        fbp,
-        lct,
-        fk,
-        rsd,
+        solvers,
     })
 }
 
@@ -340,8 +346,11 @@ mod tests {
             "method = \"fbp\"\n[fbp]\nfilter = \"laplacian\"\nfalloff = 0.0\n[lct]\nsnr = 4.0\n",
         );
         let s = load_recon(&src, Some(volume())).unwrap();
-        assert_eq!((s.fbp.filter, s.fbp.falloff), (FbpFilter::Laplacian, 0.0));
-        assert_eq!(s.lct.snr, 4.0);
+        assert_eq!(
+            (s.solvers.fbp.filter, s.solvers.fbp.falloff),
+            (FbpFilter::Laplacian, 0.0)
+        );
+        assert_eq!(s.solvers.lct.snr, 4.0);
         // Out of range: the error names the file, the line and the key.
         let src = TomlSource::from_text("recon.toml", "method = \"fbp\"\n[fbp]\nfalloff = 9.0\n");
         let e = load_recon(&src, Some(volume())).unwrap_err().to_string();
@@ -353,7 +362,7 @@ mod tests {
         );
         let s = load_recon(&src, Some(volume())).unwrap();
         assert_eq!(
-            (s.method, s.solver, s.fk.falloff),
+            (s.method, s.solver, s.solvers.fk.falloff),
             (Method::Fk, SolverKind::Fk, 2.0)
         );
         let src = TomlSource::from_text("recon.toml", "method = \"fk\"\n[fk]\ngrid-tolerance = -1.0\n");
@@ -365,6 +374,9 @@ mod tests {
         assert!(e.contains("colour"), "{e}");
         // No table: the phasor filter, and FBP after 3D-GTR.
         let d = default_recon(volume());
-        assert_eq!((d.fbp.filter, d.solver), (FbpFilter::Phasor, SolverKind::Fbp));
+        assert_eq!(
+            (d.solvers.fbp.filter, d.solver),
+            (FbpFilter::Phasor, SolverKind::Fbp)
+        );
     }
 }

@@ -50,6 +50,47 @@ impl std::fmt::Display for SolverKind {
     }
 }
 
+impl SolverKind {
+    /// Runs this solver on `set`, onto `grid`, with its table of `settings`.
+    pub fn solve(
+        self,
+        set: &crate::TransientSet,
+        grid: &crate::VolumeGrid,
+        settings: &SolverSettings,
+    ) -> Result<crate::Volume, SolverError> {
+        match self {
+            SolverKind::Lct => lct(set, grid, &settings.lct),
+            SolverKind::Fk => fk(set, grid, &settings.fk),
+            SolverKind::Rsd => rsd(set, grid, &settings.rsd),
+            SolverKind::Fbp => fbp(set, grid, &settings.fbp),
+        }
+    }
+}
+
+/// Every solver's settings, as a plan's `[recon]` or a `RECON.toml` gives them in its
+/// `[lct]`, `[fk]`, `[rsd]` and `[fbp]` tables.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct SolverSettings {
+    /// LCT.
+    pub lct: LctSettings,
+    /// f-k migration.
+    pub fk: FkSettings,
+    /// RSD / phasor field.
+    pub rsd: RsdSettings,
+    /// Filtered backprojection.
+    pub fbp: FbpSettings,
+}
+
+impl SolverSettings {
+    /// Checks every table; on a bad value, the table's name (`lct`, ...) and why.
+    pub fn validate(&self) -> Result<(), (&'static str, SolverError)> {
+        self.lct.validate().map_err(|e| ("lct", e))?;
+        self.fk.validate().map_err(|e| ("fk", e))?;
+        self.rsd.validate().map_err(|e| ("rsd", e))?;
+        self.fbp.validate().map_err(|e| ("fbp", e))
+    }
+}
+
 /// Why a solver could not run on the given data.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum SolverError {

@@ -1,0 +1,270 @@
+//! A run directory's layout: the name of every file a run writes, in one place, and the
+//! reads every consumer of a stored run shares (the pipeline on resume, `periscope
+//! recon` and `export`, the API's downloads and geometry). See `docs/pipeline.md` for
+//! what each file holds.
+use std::fs::File;
+use std::io::{BufWriter, Write};
+use std::path::{Path, PathBuf};
+
+use glam::DVec3;
+
+use crate::config::{ConfigError, InstrumentConfig, TomlSource};
+use crate::plan::{Plan, PlannedPair};
+use crate::store::RunInfo;
+
+/// The files of a run directory, by name.
+pub mod file {
+    /// The run's state, stage, counters and timings (`store::RunInfo`).
+    pub const RUN: &str = "run.json";
+    /// The capture plan as submitted.
+    pub const PLAN: &str = "plan.toml";
+    /// The instrument config the run used (its token cut out).
+    pub const INSTRUMENT: &str = "instrument.toml";
+    /// The planned pairs.
+    pub const PAIRS: &str = "pairs.json";
+    /// The typed progress events, one JSON object per line.
+    pub const EVENTS: &str = "events.jsonl";
+    /// The histogram log (append-only, checksummed records).
+    pub const HISTOGRAMS: &str = "histograms.bin";
+    /// Bytes of the histogram log set aside by recovery.
+    pub const HISTOGRAMS_DAMAGED: &str = "histograms.bin.damaged";
+    /// The relay point cloud with normals (binary PLY).
+    pub const RELAY: &str = "relay.ply";
+    /// The reconstructed volume (`.npy`, C order `[nz, ny, nx]`).
+    pub const VOLUME: &str = "volume.npy";
+    /// The volume's grid, method and timings.
+    pub const VOLUME_JSON: &str = "volume.json";
+    /// The depth map (`.npy`, `[ny, nx]`, NaN where no surface).
+    pub const DEPTH: &str = "depth.npy";
+    /// The depth map as an image.
+    pub const DEPTH_PNG: &str = "depth.png";
+    /// The albedo (peak along z) as an image.
+    pub const ALBEDO_PNG: &str = "albedo.png";
+    /// The fitted Gaussians (PLY in the 3DGS layout; 3D-GTR only).
+    pub const GAUSSIANS: &str = "gaussians.ply";
+    /// The capture as a y-tal HDF5 file.
+    pub const CAPTURE: &str = "capture.hdf5";
+    /// The API's export of an unfinished run's capture, and its stamp.
+    pub const EXPORT_CACHE: &str = ".capture-export.hdf5";
+}
+
+/// Why a run directory could not be read or written.
+#[derive(Debug, thiserror::Error)]
+pub enum RunDirError {
+    /// A file could not be read or written, or holds something else than it should.
+    #[error("run directory {path}: {source}")]
+    Io {
+        /// The file or directory.
+        path: PathBuf,
+        /// What failed.
+        source: std::io::Error,
+    },
+    /// The stored plan or instrument config no longer loads.
+    #[error(transparent)]
+    Config(#[from] ConfigError),
+}
+
+impl RunDirError {
+    fn io(path: &Path, source: std::io::Error) -> RunDirError {
+        RunDirError::Io {
+            path: path.to_owned(),
+            source,
+        }
+    }
+}
+
+fn io(path: &Path) -> impl Fn(std::io::Error) -> RunDirError + '_ {
+    move |e| RunDirError::io(path, e)
+}
+
+/// A relay point as the LOS scan measured it.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct RelayPoint {
+    /// Position, metres.
+    pub x: DVec3,
+    /// Unit normal toward the instrument.
+    pub n: DVec3,
+    /// Peak counts of its LOS return.
+    pub intensity: f64,
+}
+
+/// A run directory.
+#[derive(Clone, Debug)]
+pub struct RunDir {
+    path: PathBuf,
+}
+
+impl RunDir {
+    /// The run directory at `path` (nothing is read yet).
+    pub fn new(path: impl Into<PathBuf>) -> RunDir {
+        RunDir { path: path.into() }
+    }
+
+    /// Whether `path` holds a run (it has a `run.json`).
+    pub fn holds_run(path: &Path) -> bool {
+        path.join(file::RUN).is_file()
+    }
+
+    /// The directory.
+    pub fn path(&self) -> &Path {
+        &self.path
+    }
+
+    /// One of its files (a name from [`file`]).
+    pub fn file(&self, name: &str) -> PathBuf {
+        self.path.join(name)
+    }
+
+    /// The run's state, plan and instrument as stored. The stored text is what ran;
+    /// scene paths in the instrument config resolve against where it was.
+    pub fn load(&self) -> Result<(RunInfo, Plan, InstrumentConfig), RunDirError> {
+        let info = RunInfo::load(&self.path).map_err(io(&self.file(file::RUN)))?;
+        let read = |name: &str| {
+            let path = self.file(name);
+            std::fs::read_to_string(&path).map_err(io(&path))
+        };
+        let instrument = InstrumentConfig::from_source(&TomlSource::from_text(
+            info.instrument_path.clone(),
+            read(file::INSTRUMENT)?,
+        ))?;
+        let plan = Plan::from_source(
+            &TomlSource::from_text(self.file(file::PLAN), read(file::PLAN)?),
+            &instrument,
+        )?;
+        Ok((info, plan, instrument))
+    }
+
+    /// The planned pairs, or `None` before planning.
+    pub fn planned_pairs(&self) -> Result<Option<Vec<PlannedPair>>, RunDirError> {
+        let path = self.file(file::PAIRS);
+        if !path.exists() {
+            return Ok(None);
+        }
+        let bytes = std::fs::read(&path).map_err(io(&path))?;
+        serde_json::from_slice(&bytes)
+            .map(Some)
+            .map_err(|e| RunDirError::io(&path, std::io::Error::new(std::io::ErrorKind::InvalidData, e)))
+    }
+
+    /// The planned pairs of a run that got past planning.
+    pub fn pairs(&self) -> Result<Vec<PlannedPair>, RunDirError> {
+        self.planned_pairs()?.ok_or_else(|| {
+            RunDirError::io(
+                &self.file(file::PAIRS),
+                std::io::Error::new(
+                    std::io::ErrorKind::NotFound,
+                    "the run never got past pair planning",
+                ),
+            )
+        })
+    }
+
+    /// The relay the LOS scan measured, or `None` before the relay stage.
+    pub fn relay(&self) -> Result<Option<Vec<RelayPoint>>, RunDirError> {
+        read_relay_ply(&self.path)
+    }
+}
+
+/// Writes the relay as a binary PLY: x y z nx ny nz intensity (float32), written to a
+/// temporary name and renamed.
+pub fn write_relay_ply(dir: &Path, relay: &[RelayPoint]) -> Result<(), RunDirError> {
+    let path = dir.join(file::RELAY);
+    let tmp = dir.join("relay.ply.tmp");
+    {
+        let mut w = BufWriter::new(File::create(&tmp).map_err(io(&tmp))?);
+        let header = format!(
+            "ply\nformat binary_little_endian 1.0\ncomment Periscope relay: LOS first-bounce points, normals toward the instrument, peak counts\nelement vertex {}\nproperty float x\nproperty float y\nproperty float z\nproperty float nx\nproperty float ny\nproperty float nz\nproperty float intensity\nend_header\n",
+            relay.len()
+        );
+        w.write_all(header.as_bytes()).map_err(io(&tmp))?;
+        for p in relay {
+            for v in [p.x.x, p.x.y, p.x.z, p.n.x, p.n.y, p.n.z, p.intensity] {
+                w.write_all(&(v as f32).to_le_bytes()).map_err(io(&tmp))?;
+            }
+        }
+        w.into_inner()
+            .map_err(|e| RunDirError::io(&tmp, e.into_error()))?
+            .sync_all()
+            .map_err(io(&tmp))?;
+    }
+    std::fs::rename(&tmp, &path).map_err(io(&path))
+}
+
+/// Reads `relay.ply` back (resume, the dashboard's 3-D view), or `None` if the run has
+/// none yet.
+pub fn read_relay_ply(dir: &Path) -> Result<Option<Vec<RelayPoint>>, RunDirError> {
+    let path = dir.join(file::RELAY);
+    if !path.exists() {
+        return Ok(None);
+    }
+    let bytes = std::fs::read(&path).map_err(io(&path))?;
+    parse_relay_ply(&bytes).map(Some).map_err(|m| {
+        RunDirError::io(
+            &path,
+            std::io::Error::new(
+                std::io::ErrorKind::InvalidData,
+                format!("not a Periscope relay PLY ({m}); delete it to measure the relay again"),
+            ),
+        )
+    })
+}
+
+/// The vertex properties of a relay PLY, in order.
+const RELAY_PROPERTIES: [&str; 7] = ["x", "y", "z", "nx", "ny", "nz", "intensity"];
+
+/// Decodes a relay PLY as the capture writes it (`write_relay_ply`): the header must declare
+/// exactly its layout, the body must be exactly the declared vertices, and every
+/// point finite with a unit normal. Any input gives an answer; nothing here panics.
+pub fn parse_relay_ply(bytes: &[u8]) -> Result<Vec<RelayPoint>, String> {
+    let end = bytes
+        .windows(11)
+        .position(|w| w == b"end_header\n")
+        .ok_or("no end_header line")?
+        + 11;
+    let header = std::str::from_utf8(&bytes[..end]).map_err(|_| "the header is not text")?;
+    let lines: Vec<&str> = header.lines().filter(|l| !l.starts_with("comment")).collect();
+    let n: usize = match lines.as_slice() {
+        [
+            "ply",
+            "format binary_little_endian 1.0",
+            vertex,
+            props @ ..,
+            "end_header",
+        ] if props.len() == RELAY_PROPERTIES.len()
+            && props
+                .iter()
+                .zip(RELAY_PROPERTIES)
+                .all(|(l, name)| l.strip_prefix("property float ") == Some(name)) =>
+        {
+            vertex
+                .strip_prefix("element vertex ")
+                .and_then(|v| v.trim().parse().ok())
+                .ok_or("no vertex count")?
+        }
+        _ => return Err("the header is not the relay layout (x y z nx ny nz intensity, float)".into()),
+    };
+    let body = &bytes[end..];
+    if n.checked_mul(28) != Some(body.len()) {
+        return Err(format!(
+            "the header declares {n} vertices but the body has {} bytes",
+            body.len()
+        ));
+    }
+    let f = |i: usize| {
+        f64::from(f32::from_le_bytes(
+            body[4 * i..4 * i + 4].try_into().expect("4 bytes"),
+        ))
+    };
+    (0..n)
+        .map(|k| {
+            let p = RelayPoint {
+                x: DVec3::new(f(7 * k), f(7 * k + 1), f(7 * k + 2)),
+                n: DVec3::new(f(7 * k + 3), f(7 * k + 4), f(7 * k + 5)),
+                intensity: f(7 * k + 6),
+            };
+            let ok = p.x.is_finite() && p.intensity.is_finite() && (p.n.length() - 1.0).abs() < 1e-3;
+            ok.then_some(p)
+                .ok_or_else(|| format!("vertex {k} is not finite or its normal is not of unit length"))
+        })
+        .collect()
+}
