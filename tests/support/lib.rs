@@ -1,10 +1,10 @@
 //! Shared helpers for Periscope's end-to-end tests: find the built `periscope` binary
 //! and the repository's files, and run the binary with a bounded run time.
 //!
-//! The binary is built through Cargo on first use, for the profile and target
-//! directory the tests themselves were built for (`cargo build` is a no-op when it is
-//! current), so `cargo test -p periscope-tests` never runs a stale binary. Set
-//! `PERISCOPE_BIN` to test another build.
+//! The binary is the daemon's `main.rs` built in this package as `periscope-e2e`:
+//! Cargo builds it before running this package's tests, for their profile and with
+//! their features, so the tests never run a stale binary. Set `PERISCOPE_BIN` to test
+//! another build.
 #![warn(missing_docs)]
 
 use std::path::{Path, PathBuf};
@@ -29,52 +29,27 @@ pub fn repo_path(relative: &str) -> PathBuf {
     repo_root().join(relative)
 }
 
-/// The `periscope` binary under test.
+/// The `periscope` binary under test: `periscope-e2e`, the daemon's `main.rs` built by
+/// Cargo in this package before its tests run (so it is never stale), found beside the
+/// test executables; `PERISCOPE_BIN` names another build to test.
 pub fn periscope_bin() -> PathBuf {
-    static BIN: std::sync::OnceLock<PathBuf> = std::sync::OnceLock::new();
-    BIN.get_or_init(|| {
-        if let Some(path) = std::env::var_os("PERISCOPE_BIN") {
-            return PathBuf::from(path);
-        }
-        let exe = std::env::current_exe().expect("the test knows its own path");
-        // target/<profile>/deps/<test>-<hash> → target/<profile>/periscope
-        let dir = exe
-            .parent()
-            .and_then(Path::parent)
-            .expect("test executables live in target/<profile>/deps");
-        // Built through Cargo for this test run (a no-op when it is current), so the
-        // tests never run a stale binary left by an earlier build.
-        let profile = match dir.file_name().and_then(|n| n.to_str()) {
-            Some("debug") | None => "dev",
-            Some(other) => other,
-        };
-        let target_dir = dir.parent().expect("target/<profile> has a parent");
-        let cargo = std::env::var_os("CARGO").unwrap_or_else(|| "cargo".into());
-        let status = Command::new(cargo)
-            .args([
-                "build",
-                "--quiet",
-                "-p",
-                "periscope-daemon",
-                "--bin",
-                "periscope",
-                "--profile",
-                profile,
-            ])
-            .arg("--target-dir")
-            .arg(target_dir)
-            .current_dir(repo_root())
-            .status()
-            .expect("cargo runs");
-        assert!(
-            status.success(),
-            "building the periscope binary for the tests failed"
-        );
-        let bin = dir.join(format!("periscope{}", std::env::consts::EXE_SUFFIX));
-        assert!(bin.is_file(), "{} is missing after the build", bin.display());
-        bin
-    })
-    .clone()
+    if let Some(path) = std::env::var_os("PERISCOPE_BIN") {
+        return PathBuf::from(path);
+    }
+    let exe = std::env::current_exe().expect("the test knows its own path");
+    // target/<profile>/deps/<test>-<hash> → target/<profile>/periscope-e2e
+    let dir = exe
+        .parent()
+        .and_then(Path::parent)
+        .expect("test executables live in target/<profile>/deps");
+    let bin = dir.join(format!("periscope-e2e{}", std::env::consts::EXE_SUFFIX));
+    assert!(
+        bin.is_file(),
+        "{} is missing: run the end-to-end tests through Cargo (cargo test -p periscope-tests), \
+         which builds it first, or set PERISCOPE_BIN",
+        bin.display()
+    );
+    bin
 }
 
 /// What a finished `periscope` process left behind.
