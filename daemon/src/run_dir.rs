@@ -110,7 +110,7 @@ impl RunDir {
         &self.path
     }
 
-    /// One of its files (a name from [`file`]).
+    /// One of its files (a name from [`mod@file`]).
     pub fn file(&self, name: &str) -> PathBuf {
         self.path.join(name)
     }
