@@ -231,10 +231,19 @@ pub fn execute(cli: Cli) -> anyhow::Result<()> {
 
 /// The exit code for an error returned by [`execute`].
 pub fn exit_code(err: &anyhow::Error) -> ExitCode {
+    use crate::run_dir::RunDirError;
+    use crate::ytal::YtalError;
+    // A stored run's plan or instrument that no longer loads is a configuration error
+    // too, whichever reader found it.
     if err.downcast_ref::<ConfigError>().is_some()
         || matches!(
             err.downcast_ref::<PipelineError>(),
             Some(PipelineError::Config(_))
+        )
+        || matches!(err.downcast_ref::<RunDirError>(), Some(RunDirError::Config(_)))
+        || matches!(
+            err.downcast_ref::<YtalError>(),
+            Some(YtalError::Run(RunDirError::Config(_)))
         )
     {
         ExitCode::from(2)

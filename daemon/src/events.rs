@@ -117,6 +117,12 @@ pub enum RunEvent {
         illumination: [f64; 3],
         /// Detection point on the relay, metres.
         detection: [f64; 3],
+        /// Laser arm's optical angles for the pair, degrees (x, y).
+        laser_deg: [f64; 2],
+        /// SPAD arm's optical angles for the pair, degrees (x, y).
+        spad_deg: [f64; 2],
+        /// Acquisition time summed into the histogram, microseconds.
+        dwell_us: u64,
         /// The histogram, summed down to at most [`HISTOGRAM_DISPLAY_BINS`] bins: bin `i` sums the
         /// measured bins `i·group ..(i+1)·group`.
         bins: Vec<u32>,
@@ -161,10 +167,10 @@ impl RunEvent {
     /// A pair's histogram as a [`RunEvent::Histogram`], summed down to at most
     /// [`HISTOGRAM_DISPLAY_BINS`] bins.
     pub fn histogram(
-        pair: usize,
-        illumination: glam::DVec3,
-        detection: glam::DVec3,
+        index: usize,
+        pair: &crate::plan::PlannedPair,
         counts: &[u32],
+        dwell_us: u64,
         bin_width_s: f64,
         offset_s: f64,
     ) -> RunEvent {
@@ -176,10 +182,14 @@ impl RunEvent {
         let unix_ms = std::time::SystemTime::now()
             .duration_since(std::time::UNIX_EPOCH)
             .map_or(0.0, |d| d.as_secs_f64() * 1e3);
+        let deg = |a: periscope_drivers::OpticalAngles| [a.x.to_degrees(), a.y.to_degrees()];
         RunEvent::Histogram {
-            pair,
-            illumination: illumination.to_array(),
-            detection: detection.to_array(),
+            pair: index,
+            illumination: pair.xi.to_array(),
+            detection: pair.xd.to_array(),
+            laser_deg: deg(pair.laser),
+            spad_deg: deg(pair.spad),
+            dwell_us,
             bins,
             group,
             bin_width_ps: bin_width_s * 1e12,
@@ -255,12 +265,22 @@ mod tests {
     #[test]
     fn histograms_are_summed_for_the_wire_and_kept_out_of_the_log() {
         let counts: Vec<u32> = (0..1300).map(|i| i % 7).collect();
-        let e = RunEvent::histogram(3, glam::DVec3::X, glam::DVec3::Y, &counts, 16e-12, 2e-9);
+        let pair = crate::plan::PlannedPair {
+            xi: glam::DVec3::X,
+            ni: glam::DVec3::Z,
+            xd: glam::DVec3::Y,
+            nd: glam::DVec3::Z,
+            laser: periscope_drivers::OpticalAngles { x: 0.1, y: -0.2 },
+            spad: periscope_drivers::OpticalAngles { x: 0.0, y: 0.05 },
+        };
+        let e = RunEvent::histogram(3, &pair, &counts, 20_000, 16e-12, 2e-9);
         let RunEvent::Histogram {
             bins,
             group,
             bin_width_ps,
             offset_ps,
+            laser_deg,
+            dwell_us,
             ..
         } = &e
         else {
@@ -275,9 +295,9 @@ mod tests {
         assert_eq!(bins[0], 1 + 2);
         assert_eq!(bins[433], counts[1299]);
         assert!((bin_width_ps - 16.0).abs() < 1e-9 && (offset_ps - 2000.0).abs() < 1e-9);
+        assert!((laser_deg[0] - 0.1f64.to_degrees()).abs() < 1e-12 && *dwell_us == 20_000);
         // Short histograms go as they are.
-        let RunEvent::Histogram { bins, group, .. } =
-            RunEvent::histogram(0, glam::DVec3::ZERO, glam::DVec3::ZERO, &[5, 6], 1e-12, 0.0)
+        let RunEvent::Histogram { bins, group, .. } = RunEvent::histogram(0, &pair, &[5, 6], 1, 1e-12, 0.0)
         else {
             unreachable!()
         };

@@ -55,6 +55,17 @@ pub enum YtalError {
         /// What is wrong, naming the dataset.
         message: String,
     },
+    /// A run directory's plan, instrument or pairs could not be read for an export.
+    #[error(transparent)]
+    Run(#[from] crate::run_dir::RunDirError),
+    /// A run's histograms cannot be exported (none stored, or too many).
+    #[error("{path}: {message}")]
+    Export {
+        /// The run directory.
+        path: PathBuf,
+        /// Why.
+        message: String,
+    },
 }
 
 /// How `H` is laid out (y-tal's `HFormat`).
@@ -931,18 +942,22 @@ impl YtalCapture {
     /// lengths that include the legs from the laser and to the SPAD
     /// (`t_accounts_first_and_last_bounces`), and the galvo origins as `laser_xyz` and
     /// `sensor_xyz`. Pairs never measured are left out.
-    pub fn from_run(dir: &Path) -> anyhow::Result<YtalCapture> {
+    pub fn from_run(dir: &Path) -> Result<YtalCapture, YtalError> {
         let run = crate::run_dir::RunDir::new(dir);
         let (info, plan, inst) = run.load()?;
         let pairs = run.pairs()?;
-        let mut records = crate::store::read_log(dir)?.records;
+        let refuse = |message: String| YtalError::Export {
+            path: dir.to_owned(),
+            message,
+        };
+        let mut records = crate::store::read_log(dir)
+            .map_err(|e| refuse(format!("{}: {e}", crate::run_dir::file::HISTOGRAMS)))?
+            .records;
         records.retain(|r| (r.pair as usize) < pairs.len());
         records.sort_by_key(|r| r.pair);
-        anyhow::ensure!(
-            !records.is_empty(),
-            "{} holds no measured pairs to export",
-            dir.display()
-        );
+        if records.is_empty() {
+            return Err(refuse("holds no measured pairs to export".into()));
+        }
         // The time axis: the first record's settings when they are the plan's shape,
         // else the plan's own (a damaged or forged log cannot size the export).
         let first = &records[0];
@@ -959,11 +974,11 @@ impl YtalCapture {
         let axis = TimeAxis::of_tdc(offset, width, bins, inst.tdc.system_delay);
         let (t_start, delta_t) = (axis.start, axis.width);
         let n = records.len();
-        anyhow::ensure!(
-            (bins as u64).saturating_mul(n as u64) <= MAX_DATASET_BYTES / 4,
-            "{}: {n} records of {bins} bins are more than an export may hold",
-            dir.display()
-        );
+        if (bins as u64).saturating_mul(n as u64) > MAX_DATASET_BYTES / 4 {
+            return Err(refuse(format!(
+                "{n} records of {bins} bins are more than an export may hold"
+            )));
+        }
         let mut h = vec![0.0f32; bins * n];
         for (c, r) in records.iter().enumerate() {
             let same = f64::from(r.bin_width_ps) * 1e-12 == width

@@ -340,6 +340,15 @@ async fn wait_page(c: &Client, what: &str, limit: Duration, pred: impl Fn(&Value
     }
 }
 
+async fn click(c: &Client, css: &str) {
+    c.find(Locator::Css(css))
+        .await
+        .unwrap_or_else(|e| panic!("{css}: {e}"))
+        .click()
+        .await
+        .unwrap_or_else(|e| panic!("clicking {css}: {e}"));
+}
+
 async fn text(c: &Client, css: &str) -> String {
     c.find(Locator::Css(css)).await.unwrap().text().await.unwrap()
 }
@@ -460,21 +469,11 @@ async fn an_operator_runs_the_demo_from_the_dashboard_in_chromium() {
         .send_keys(TOKEN)
         .await
         .unwrap();
-    c.find(Locator::Css("#token-form button"))
-        .await
-        .unwrap()
-        .click()
-        .await
-        .unwrap();
+    click(&c, "#token-form button").await;
     wait_text(&c, "#token-state", limit, |s| s.contains("token set")).await;
 
     // The demo plan: checked (budget and duration shown) before it can be submitted.
-    c.find(Locator::Css("#load-demo"))
-        .await
-        .unwrap()
-        .click()
-        .await
-        .unwrap();
+    click(&c, "#load-demo").await;
     let summary = wait_text(&c, "#check-summary", limit, |s| s.starts_with("valid")).await;
     assert!(
         summary.contains("576 pairs") && summary.contains("memory"),
@@ -488,15 +487,16 @@ async fn an_operator_runs_the_demo_from_the_dashboard_in_chromium() {
     // Live: histograms arrive and are drawn; the relay and pairs are in the 3-D view.
     wait_page(&c, "histograms", limit, |v| v["histograms"].as_u64() >= Some(5)).await;
     wait_text(&c, "#view-caption", limit, |s| s.contains("relay points")).await;
+    // The instrument panel shows the arms and the signal rate from the run itself.
+    let live = wait_text(&c, "#inst-body", limit, |s| s.contains("live signal")).await;
+    assert!(
+        live.contains("counts/s") && live.contains("SPAD arm at"),
+        "{live}"
+    );
     assert!(inked(&c, "view3d").await > 500);
 
     // Pause and resume from the page.
-    c.find(Locator::Css("#run-actions .act-pause"))
-        .await
-        .unwrap()
-        .click()
-        .await
-        .unwrap();
+    click(&c, "#run-actions .act-pause").await;
     wait_text(&c, "#run-state", limit, |s| s == "paused").await;
     assert_eq!(
         svc.status(&id).unwrap().state,
@@ -505,12 +505,7 @@ async fn an_operator_runs_the_demo_from_the_dashboard_in_chromium() {
     let rig = svc.rig().unwrap();
     assert!(!rig.emission(), "the laser is on while the run is paused");
     let before = probe(&c).await["histograms"].as_u64().unwrap();
-    c.find(Locator::Css("#run-actions .act-resume"))
-        .await
-        .unwrap()
-        .click()
-        .await
-        .unwrap();
+    click(&c, "#run-actions .act-resume").await;
     wait_page(&c, "histograms after resuming", limit, |v| {
         v["histograms"].as_u64() > Some(before + 5)
     })
@@ -586,19 +581,9 @@ async fn an_operator_runs_the_demo_from_the_dashboard_in_chromium() {
 
     // E-stop from the page: a second demo run, stopped mid-capture.
     c.execute("window.scrollTo(0, 0);", vec![]).await.unwrap();
-    c.find(Locator::Css("#load-demo"))
-        .await
-        .unwrap()
-        .click()
-        .await
-        .unwrap();
+    click(&c, "#load-demo").await;
     wait_text(&c, "#check-summary", limit, |s| s.starts_with("valid")).await;
-    c.find(Locator::Css("#submit"))
-        .await
-        .unwrap()
-        .click()
-        .await
-        .unwrap();
+    click(&c, "#submit").await;
     let second = wait_text(&c, "#run-id", limit, |s| s.ends_with("-demo") && s != id).await;
     let seen = probe(&c).await["histograms"].as_u64().unwrap();
     wait_page(&c, "the second run's histograms", limit, |v| {
@@ -607,12 +592,7 @@ async fn an_operator_runs_the_demo_from_the_dashboard_in_chromium() {
     .await;
     assert!(rig.emission(), "the laser is on during the capture");
     let pressed = Instant::now();
-    c.find(Locator::Css("#estop"))
-        .await
-        .unwrap()
-        .click()
-        .await
-        .unwrap();
+    click(&c, "#estop").await;
     let note = wait_text(&c, "#banner", limit, |s| s.starts_with("E-STOP")).await;
     let off = rig
         .off_since(pressed)

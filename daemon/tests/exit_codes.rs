@@ -1,6 +1,4 @@
-//! Exit codes of the binary, which scripts and the CI rely on. (Having an integration
-//! test here also makes `cargo test --workspace` build the `periscope` binary that the
-//! end-to-end tests in tests/ drive.)
+//! Exit codes of the binary, which scripts and the CI rely on.
 use std::process::Command;
 
 fn periscope(args: &[&str]) -> (Option<i32>, String) {
@@ -25,4 +23,32 @@ fn config_errors_are_two() {
     let (code, stderr) = periscope(&["serve", "--instrument", "Cargo.toml"]);
     assert_eq!(code, Some(2), "{stderr}");
     assert!(stderr.contains("Cargo.toml"), "{stderr}");
+}
+
+/// A stored run whose plan no longer loads is a configuration error for every command
+/// that reads it back, whichever reader finds it.
+#[test]
+fn a_stored_run_with_a_broken_plan_is_two() {
+    use periscope_daemon::config::TomlSource;
+    let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
+    let tmp = tempfile::tempdir().unwrap();
+    let run = tmp.path().join("run");
+    periscope_daemon::pipeline::prepare(
+        &TomlSource::load(&root.join("configs/plans/demo.toml")).unwrap(),
+        &TomlSource::load(&root.join("configs/instrument/sim.toml")).unwrap(),
+        Some(&run),
+    )
+    .unwrap();
+    std::fs::write(run.join("plan.toml"), "name = 1\n").unwrap();
+    let run = run.to_str().unwrap();
+    let out = tmp.path().join("out");
+    for args in [
+        vec!["recon", run, "--out", out.to_str().unwrap()],
+        vec!["export", run],
+        vec!["resume", run],
+    ] {
+        let (code, stderr) = periscope(&args);
+        assert_eq!(code, Some(2), "{args:?}: {stderr}");
+        assert!(stderr.contains("plan.toml"), "{args:?}: {stderr}");
+    }
 }

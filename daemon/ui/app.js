@@ -133,6 +133,8 @@ const css = (rgb) => `rgb(${rgb[0]},${rgb[1]},${rgb[2]})`;
 
 let instrumentFetched = 0;
 let instrument = null;
+// The running run's latest histogram: arm angles and count rate while it holds the devices.
+let liveReading = null;
 
 function renderInstrument() {
   const body = $('inst-body');
@@ -145,14 +147,23 @@ function renderInstrument() {
   row('state', v.busy ? `busy: run ${v.run?.id} (${v.run?.stage})` : 'idle');
   const d = v.devices;
   if (d) {
-    row('laser', d.laser.emission ? 'ON' : 'off', d.laser.emission ? 'danger' : 'ok');
-    row('interlock', d.laser.interlock_closed ? 'closed' : 'OPEN', d.laser.interlock_closed ? 'ok' : 'danger');
-    row('diffuser', d.laser.diffuser_in ? 'in' : 'out');
-    row('laser arm', `${d.laser_arm.model} ${d.laser_arm.firmware} at (${deg(d.laser_position)})`);
-    row('SPAD arm', `${d.spad_arm.model} ${d.spad_arm.firmware} at (${deg(d.spad_position)})`);
-    row('histogrammer', `${d.tdc.model} ${d.tdc.firmware}: ${JSON.stringify(d.tdc_status.state)}`);
+    // While a run holds the devices, this reading is from before it started.
+    const before = v.busy ? ' (read before the run)' : '';
+    const cls = (c) => (v.busy ? 'small' : c);
+    row('laser', (d.laser.emission ? 'ON' : 'off') + before, cls(d.laser.emission ? 'danger' : 'ok'));
+    row('interlock', (d.laser.interlock_closed ? 'closed' : 'OPEN') + before, cls(d.laser.interlock_closed ? 'ok' : 'danger'));
+    row('diffuser', (d.laser.diffuser_in ? 'in' : 'out') + before, cls(''));
+    row('laser arm', `${d.laser_arm.model} ${d.laser_arm.firmware} at (${deg(d.laser_position)})${before}`);
+    row('SPAD arm', `${d.spad_arm.model} ${d.spad_arm.firmware} at (${deg(d.spad_position)})${before}`);
+    row('histogrammer', `${d.tdc.model} ${d.tdc.firmware}: ${JSON.stringify(d.tdc_status.state)}${before}`);
     const rates = d.tdc_status.rates || {};
-    row('count rates', Object.entries(rates).map(([k, r]) => `${k} ${Number(r).toLocaleString()} /s`).join(' · ') || '–');
+    row('count rates', (Object.entries(rates).map(([k, r]) => `${k} ${Number(r).toLocaleString()} /s`).join(' · ') || '–') + before);
+  }
+  const lr = liveReading;
+  if (v.busy && lr && lr.run === v.run?.id) {
+    const age = (performance.now() - lr.at) / 1000;
+    row('live (from the run)', `laser arm at (${lr.laser[0].toFixed(2)}°, ${lr.laser[1].toFixed(2)}°), SPAD arm at (${lr.spad[0].toFixed(2)}°, ${lr.spad[1].toFixed(2)}°)`);
+    row('live signal', `${Math.round(lr.rate).toLocaleString()} counts/s on pair ${lr.pair}, ${fmtS(age)} ago`, age > 30 ? 'warn' : '');
   }
   if (v.error) row('devices', v.error, 'danger');
   if (v.note) row('note', v.note);
@@ -493,6 +504,7 @@ function onHistogram(h) {
   for (let i = 0; i < n; i++) xs[i] = t0 + (i + 0.5) * w;
   histPlot.setData([xs, h.bins]);
   const total = h.bins.reduce((a, b) => a + b, 0);
+  liveReading = { run: selected, at: performance.now(), laser: h.laser_deg, spad: h.spad_deg, rate: total / Math.max(h.dwell_us * 1e-6, 1e-9), pair: h.pair };
   $('hist-caption').textContent = `pair ${h.pair} · ${total.toLocaleString()} counts · ${h.group > 1 ? `${h.group} bins summed per point` : 'every bin'}`;
   view.setPoints('pair', [h.illumination, h.detection], { colour: (i) => (i === 0 ? '#ff2d00' : '#00a0ff'), size: 5 });
   view.setLines('pair-link', [[h.illumination, h.detection]], { colour: '#333', width: 2 });

@@ -196,9 +196,9 @@ impl Run {
                     .unwrap_or((0, &0));
                 self.events.emit(RunEvent::histogram(
                     i,
-                    p.xi,
-                    p.xd,
+                    p,
                     &rec.counts,
+                    rec.dwell_us,
                     acq.bin_width,
                     acq.offset,
                 ));

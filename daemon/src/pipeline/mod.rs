@@ -549,7 +549,7 @@ impl Run {
         // The measured histograms as a y-tal capture, for y-tal, h5py and other labs.
         let p = self.dir.join(crate::ytal::CAPTURE_FILE);
         crate::ytal::YtalCapture::from_run(&self.dir)
-            .and_then(|c| Ok(c.write(&p)?))
+            .and_then(|c| c.write(&p))
             .map_err(|e| PipelineError::storage(&p, std::io::Error::other(e.to_string())))?;
         self.events.emit(RunEvent::Output {
             name: crate::ytal::CAPTURE_FILE.into(),
