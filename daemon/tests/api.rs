@@ -6,12 +6,12 @@ use std::path::Path;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use axum::body::Body;
-use axum::http::{Method, Request, StatusCode, header};
+use axum::http::{Method, StatusCode};
 use periscope_daemon::api::{AppState, ROUTES, Service, app, openapi};
 use periscope_daemon::config::TomlSource;
 use serde_json::Value;
-use tower::ServiceExt;
+
+mod common;
 
 const TOKEN: &str = "test-token-0123456789abcdef";
 
@@ -21,17 +21,8 @@ pub const PLAN: &str = include_str!("../../tests/data/plans/small-fbp.toml");
 
 /// The simulated instrument with its runs in `runs` and the given time scale.
 fn instrument(runs: &Path, time_scale: f64, token: Option<&str>) -> TomlSource {
-    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
-    let path = root.join("configs/instrument/sim.toml");
-    let mut text = std::fs::read_to_string(&path)
-        .unwrap()
-        .replace("[sim]\n", &format!("[sim]\ntime-scale = {time_scale}\n"));
-    text.push_str(&format!(
-        "\n[api]\nruns-dir = \"{}\"\nbody-limit-kib = 64\n{}",
-        runs.display(),
-        token.map(|t| format!("token = \"{t}\"\n")).unwrap_or_default()
-    ));
-    TomlSource::from_text(path, text)
+    let token = token.map(|t| format!("token = \"{t}\"\n")).unwrap_or_default();
+    common::sim_instrument(runs, time_scale, &format!("body-limit-kib = 64\n{token}"), "")
 }
 
 fn service(runs: &Path, time_scale: f64, token: Option<&str>) -> Arc<Service> {
@@ -58,21 +49,7 @@ async fn call_raw(
     token: Option<&str>,
     body: &str,
 ) -> (StatusCode, Vec<u8>) {
-    let mut req = Request::builder().method(method).uri(uri);
-    if let Some(t) = token {
-        req = req.header(header::AUTHORIZATION, format!("Bearer {t}"));
-    }
-    if !body.is_empty() {
-        req = req.header(header::CONTENT_TYPE, "application/toml");
-    }
-    let resp = router
-        .clone()
-        .oneshot(req.body(Body::from(body.to_owned())).unwrap())
-        .await
-        .unwrap();
-    let status = resp.status();
-    let bytes = axum::body::to_bytes(resp.into_body(), 64 << 20).await.unwrap();
-    (status, bytes.to_vec())
+    common::send(router, common::request(method, uri, token, &[], body)).await
 }
 
 fn listing(dir: &Path) -> Vec<String> {

@@ -19,25 +19,18 @@ use axum::body::Body;
 use axum::http::{Method, Request, StatusCode, header};
 use fantoccini::{Client, ClientBuilder, Locator};
 use periscope_daemon::api::{ASSETS, AppState, Service, app};
-use periscope_daemon::config::TomlSource;
 use serde_json::Value;
 use tower::ServiceExt;
+
+mod common;
 
 const TOKEN: &str = "dashboard-token-0123456789abcdef";
 const DEMO: &str = include_str!("../../configs/plans/demo.toml");
 const SMALL: &str = include_str!("../../tests/data/plans/small-fbp.toml");
 
 fn service(runs: &Path, time_scale: f64) -> Arc<Service> {
-    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
-    let path = root.join("configs/instrument/sim.toml");
-    let mut text = std::fs::read_to_string(&path)
-        .unwrap()
-        .replace("[sim]\n", &format!("[sim]\ntime-scale = {time_scale}\n"));
-    text.push_str(&format!(
-        "\n[api]\nruns-dir = \"{}\"\ntoken = \"{TOKEN}\"\n",
-        runs.display()
-    ));
-    Service::open(TomlSource::from_text(path, text), Some(TOKEN.into())).unwrap()
+    let src = common::sim_instrument(runs, time_scale, &format!("token = \"{TOKEN}\""), "");
+    Service::open(src, Some(TOKEN.into())).unwrap()
 }
 
 async fn call(
@@ -47,21 +40,11 @@ async fn call(
     token: bool,
     body: &str,
 ) -> (StatusCode, Vec<u8>) {
-    let mut req = Request::builder().method(method).uri(uri);
-    if token {
-        req = req.header(header::AUTHORIZATION, format!("Bearer {TOKEN}"));
-    }
-    if !body.is_empty() {
-        req = req.header(header::CONTENT_TYPE, "application/toml");
-    }
-    let resp = router
-        .clone()
-        .oneshot(req.body(Body::from(body.to_owned())).unwrap())
-        .await
-        .unwrap();
-    let status = resp.status();
-    let bytes = axum::body::to_bytes(resp.into_body(), 64 << 20).await.unwrap();
-    (status, bytes.to_vec())
+    common::send(
+        router,
+        common::request(method, uri, token.then_some(TOKEN), &[], body),
+    )
+    .await
 }
 
 #[tokio::test]

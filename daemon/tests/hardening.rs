@@ -9,10 +9,13 @@ use std::time::{Duration, Instant};
 
 use axum::body::Body;
 use axum::http::{Method, Request, StatusCode, header};
+use common::send;
 use periscope_daemon::api::{AppState, Service, app};
 use periscope_daemon::config::{TomlSource, redact_secrets};
 use serde_json::Value;
 use tower::ServiceExt;
+
+mod common;
 
 const TOKEN: &str = "hardening-token-0123456789abcdef";
 
@@ -22,16 +25,12 @@ const PLAN: &str = include_str!("../../tests/data/plans/small-fbp.toml");
 /// The simulated instrument with runs in `runs`, the token in its `[api]` table (as a
 /// lab that keeps it in the file would), and `api_extra` lines added to that table.
 fn instrument(runs: &Path, time_scale: f64, api_extra: &str, tail: &str) -> TomlSource {
-    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
-    let path = root.join("configs/instrument/sim.toml");
-    let mut text = std::fs::read_to_string(&path)
-        .unwrap()
-        .replace("[sim]\n", &format!("[sim]\ntime-scale = {time_scale}\n"));
-    text.push_str(&format!(
-        "\n[api]\nruns-dir = \"{}\"\ntoken = \"{TOKEN}\"\n{api_extra}\n{tail}",
-        runs.display()
-    ));
-    TomlSource::from_text(path, text)
+    common::sim_instrument(
+        runs,
+        time_scale,
+        &format!("token = \"{TOKEN}\"\n{api_extra}"),
+        tail,
+    )
 }
 
 fn service(runs: &Path, time_scale: f64, api_extra: &str, tail: &str) -> Arc<Service> {
@@ -39,24 +38,7 @@ fn service(runs: &Path, time_scale: f64, api_extra: &str, tail: &str) -> Arc<Ser
 }
 
 fn request(method: Method, uri: &str, token: bool, headers: &[(&str, &str)], body: &str) -> Request<Body> {
-    let mut req = Request::builder().method(method).uri(uri);
-    if token {
-        req = req.header(header::AUTHORIZATION, format!("Bearer {TOKEN}"));
-    }
-    if !body.is_empty() {
-        req = req.header(header::CONTENT_TYPE, "application/toml");
-    }
-    for (k, v) in headers {
-        req = req.header(*k, *v);
-    }
-    req.body(Body::from(body.to_owned())).unwrap()
-}
-
-async fn send(router: &axum::Router, req: Request<Body>) -> (StatusCode, Vec<u8>) {
-    let resp = router.clone().oneshot(req).await.unwrap();
-    let status = resp.status();
-    let bytes = axum::body::to_bytes(resp.into_body(), 64 << 20).await.unwrap();
-    (status, bytes.to_vec())
+    common::request(method, uri, token.then_some(TOKEN), headers, body)
 }
 
 async fn call(

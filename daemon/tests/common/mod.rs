@@ -1,0 +1,55 @@
+//! What the API's test files share: the simulated instrument with its runs in a
+//! temporary directory, and requests into the router without a socket. Each test file
+//! uses part of it.
+#![allow(dead_code)]
+
+use std::path::Path;
+
+use axum::body::Body;
+use axum::http::{Method, Request, StatusCode, header};
+use periscope_daemon::config::TomlSource;
+use tower::ServiceExt;
+
+/// The shipped simulated instrument (`configs/instrument/sim.toml`) at `time_scale`,
+/// with its runs in `runs`, `api_lines` added to its `[api]` table and `tail` after it.
+pub(crate) fn sim_instrument(runs: &Path, time_scale: f64, api_lines: &str, tail: &str) -> TomlSource {
+    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
+    let path = root.join("configs/instrument/sim.toml");
+    let mut text = std::fs::read_to_string(&path)
+        .unwrap()
+        .replace("[sim]\n", &format!("[sim]\ntime-scale = {time_scale}\n"));
+    text.push_str(&format!(
+        "\n[api]\nruns-dir = \"{}\"\n{api_lines}\n{tail}",
+        runs.display()
+    ));
+    TomlSource::from_text(path, text)
+}
+
+/// A request with an optional bearer token, extra headers and a TOML body (if any).
+pub(crate) fn request(
+    method: Method,
+    uri: &str,
+    bearer: Option<&str>,
+    headers: &[(&str, &str)],
+    body: &str,
+) -> Request<Body> {
+    let mut req = Request::builder().method(method).uri(uri);
+    if let Some(t) = bearer {
+        req = req.header(header::AUTHORIZATION, format!("Bearer {t}"));
+    }
+    if !body.is_empty() {
+        req = req.header(header::CONTENT_TYPE, "application/toml");
+    }
+    for (k, v) in headers {
+        req = req.header(*k, *v);
+    }
+    req.body(Body::from(body.to_owned())).unwrap()
+}
+
+/// Sends `req` through the router; the status and the body's bytes.
+pub(crate) async fn send(router: &axum::Router, req: Request<Body>) -> (StatusCode, Vec<u8>) {
+    let resp = router.clone().oneshot(req).await.unwrap();
+    let status = resp.status();
+    let bytes = axum::body::to_bytes(resp.into_body(), 64 << 20).await.unwrap();
+    (status, bytes.to_vec())
+}
