@@ -1,7 +1,7 @@
 //! Reconstruction settings: the `[recon]` table of a capture plan and the whole of a
 //! `RECON.toml` for `periscope recon` share this format.
 use periscope_recon::VolumeGrid;
-use periscope_recon::gtr::{Init, TrainConfig};
+use periscope_recon::gtr::{DensifySettings, Init, TrainConfig};
 use periscope_recon::solver::{
     FbpSettings, FkSettings, LctSettings, RsdSettings, SolverError, SolverKind, SolverSettings,
 };
@@ -110,6 +110,10 @@ struct RawGtr {
     #[serde(default = "default_virtual")]
     virtual_grid: [usize; 2],
     virtual_size: Option<[f64; 2]>,
+    initial_scale: Option<f64>,
+    #[serde(default = "default_densify")]
+    densify: bool,
+    split_scale: Option<f64>,
 }
 
 impl Default for RawGtr {
@@ -123,6 +127,9 @@ impl Default for RawGtr {
             init: default_init(),
             virtual_grid: default_virtual(),
             virtual_size: None,
+            initial_scale: None,
+            densify: default_densify(),
+            split_scale: None,
         }
     }
 }
@@ -150,6 +157,9 @@ fn default_lr_scale() -> f64 {
 }
 fn default_init() -> String {
     "backprojection".into()
+}
+fn default_densify() -> bool {
+    true
 }
 fn default_virtual() -> [usize; 2] {
     [64, 64]
@@ -246,6 +256,16 @@ pub(crate) fn recon_settings(
     {
         return Err(src.invalid(&key("gtr.virtual-size"), "must be two positive lengths in metres"));
     }
+    for (name, value) in [("initial-scale", g.initial_scale), ("split-scale", g.split_scale)] {
+        if let Some(v) = value
+            && !(v.is_finite() && v > 1e-3 && v < 1.0)
+        {
+            return Err(src.invalid(
+                &key(&format!("gtr.{name}")),
+                format!("{v} m is out of range: give a scale between 1 mm and 1 m, or leave it out for the default"),
+            ));
+        }
+    }
     let init = match g.init.as_str() {
         "uniform" => Init::Uniform,
         "backprojection" => Init::Backprojection {
@@ -265,6 +285,16 @@ pub(crate) fn recon_settings(
         epochs: g.epochs,
         batch_size: g.batch,
         seed: g.seed,
+        initial_scale: g.initial_scale,
+        densify: DensifySettings {
+            until: if g.densify {
+                DensifySettings::default().until
+            } else {
+                0.0
+            },
+            target_scale: g.split_scale,
+            ..DensifySettings::default()
+        },
         ..TrainConfig::default()
     };
     let third = (g.epochs / 3).max(1);
@@ -378,5 +408,33 @@ mod tests {
             (d.solvers.fbp.filter, d.solver),
             (FbpFilter::Phasor, SolverKind::Fbp)
         );
+    }
+
+    #[test]
+    fn gtr_scales_and_densification_are_read_and_checked() {
+        let d = default_recon(volume());
+        assert!(d.train.densify.until > 0.0 && d.train.initial_scale.is_none());
+        let src = TomlSource::from_text(
+            "recon.toml",
+            "[gtr]\ninitial-scale = 0.02\ndensify = false\nsplit-scale = 0.005\n",
+        );
+        let s = load_recon(&src, Some(volume())).unwrap();
+        assert_eq!(s.train.initial_scale, Some(0.02));
+        assert_eq!(s.train.densify.until, 0.0);
+        assert_eq!(s.train.densify.target_scale, Some(0.005));
+        for bad in [
+            "initial-scale = 0.0",
+            "initial-scale = 2.0",
+            "split-scale = -1.0",
+            "split-scale = nan",
+        ] {
+            let src = TomlSource::from_text("recon.toml", format!("[gtr]\n{bad}\n"));
+            let e = load_recon(&src, Some(volume())).unwrap_err().to_string();
+            let key = bad.split(' ').next().unwrap();
+            assert!(
+                e.contains(&format!("gtr.{key}")) && e.contains("between 1 mm and 1 m"),
+                "{e}"
+            );
+        }
     }
 }

@@ -15,5 +15,6 @@ pub use optim::{AdamW, AdamWSettings, GroupSettings, Schedule};
 pub use ply::write_ply;
 pub use render::{batch_loss, batch_loss_grad, render_set};
 pub use train::{
-    CancelToken, PruneSettings, SNAPSHOT_MAX, TrainConfig, TrainError, TrainEvent, TrainSummary, Trainer,
+    CancelToken, DensifySettings, PruneSettings, SNAPSHOT_MAX, TrainConfig, TrainError, TrainEvent,
+    TrainSummary, Trainer, default_initial_scale, default_target_scale, densify,
 };

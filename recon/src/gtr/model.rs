@@ -117,6 +117,19 @@ pub struct Primitive {
     pub albedo: f64,
 }
 
+impl Primitive {
+    /// What the primitive adds to a transient, up to the geometry of the pair: its
+    /// albedo times the square of its largest projected area (the forward model's
+    /// `ρ A⊥(ui) A⊥(ud)` seen face-on). Albedo alone is no measure: the model's
+    /// amplitude grows with area², so half as wide a primitive needs 4× the albedo
+    /// for the same signal.
+    pub fn weight(&self) -> f64 {
+        let mut s = self.scale.to_array();
+        s.sort_by(f64::total_cmp);
+        self.albedo * (s[1] * s[2]).powi(2)
+    }
+}
+
 impl GaussianCloud {
     /// An empty cloud.
     pub fn new(roi: RoiBox, scale_bounds: ScaleBounds) -> Result<Self, ModelError> {
@@ -138,6 +151,29 @@ impl GaussianCloud {
     /// outside the bounds, its albedo not positive or its rotation not finite.
     pub fn push(&mut self, p: Primitive) -> Result<(), ModelError> {
         let index = self.len();
+        let (centre, scale, rotation, albedo) = self.raw_of(index, p)?;
+        self.centres.extend(centre);
+        self.scales.extend(scale);
+        self.rotations.extend(rotation);
+        self.albedo.push(albedo);
+        Ok(())
+    }
+
+    /// Replaces primitive `k` (which must exist) with `p`, under the same rules as
+    /// [`push`](Self::push); on error the cloud is unchanged.
+    pub fn set(&mut self, k: usize, p: Primitive) -> Result<(), ModelError> {
+        assert!(k < self.len(), "primitive {k} of {}", self.len());
+        let (centre, scale, rotation, albedo) = self.raw_of(k, p)?;
+        self.centres[3 * k..3 * k + 3].copy_from_slice(&centre);
+        self.scales[3 * k..3 * k + 3].copy_from_slice(&scale);
+        self.rotations[4 * k..4 * k + 4].copy_from_slice(&rotation);
+        self.albedo[k] = albedo;
+        Ok(())
+    }
+
+    /// The raw parameters of `p`, checked; `index` names it in errors.
+    #[allow(clippy::type_complexity)]
+    fn raw_of(&self, index: usize, p: Primitive) -> Result<([f64; 3], [f64; 3], [f64; 4], f64), ModelError> {
         let bad = |reason: String| ModelError::Value { index, reason };
         let rel = (p.centre - self.roi.centre) / self.roi.half;
         if !rel.is_finite() || rel.abs().max_element() >= 1.0 {
@@ -163,11 +199,12 @@ impl GaussianCloud {
             return Err(bad("rotation is not a finite, non-zero quaternion".into()));
         }
         let q = q.normalize();
-        self.centres.extend(rel.to_array().map(f64::atanh));
-        self.scales.extend(raw_s);
-        self.rotations.extend([q.w, q.x, q.y, q.z]);
-        self.albedo.push(inv_softplus(p.albedo));
-        Ok(())
+        Ok((
+            rel.to_array().map(f64::atanh),
+            raw_s,
+            [q.w, q.x, q.y, q.z],
+            inv_softplus(p.albedo),
+        ))
     }
 
     /// Number of primitives.

@@ -165,6 +165,17 @@ impl AdamW {
         skipped
     }
 
+    /// Forgets the moments of primitive `k`, as for a primitive just placed: its
+    /// next updates start from zero momentum instead of the history of what was there.
+    pub fn reset(&mut self, k: usize) {
+        for (moments, width) in self.moments.iter_mut().zip([3, 3, 4, 1]) {
+            if moments.m.len() >= width * (k + 1) {
+                moments.m[width * k..width * (k + 1)].fill(0.0);
+                moments.v[width * k..width * (k + 1)].fill(0.0);
+            }
+        }
+    }
+
     /// Drops the moments of primitives removed by `keep` (same rule as
     /// [`GaussianCloud::retain`]), so optimisation can continue after pruning.
     pub fn retain(&mut self, n: usize, keep: impl Fn(usize) -> bool) {
