@@ -234,12 +234,14 @@ pub fn exit_code(err: &anyhow::Error) -> ExitCode {
     use crate::run_dir::RunDirError;
     use crate::ytal::YtalError;
     // A stored run's plan or instrument that no longer loads is a configuration error
-    // too, whichever reader found it.
+    // too, whichever reader found it, and so is a reconstruction the settings cannot
+    // do (a solver that does not suit the data, a volume no pair sees).
     if err.downcast_ref::<ConfigError>().is_some()
         || matches!(
             err.downcast_ref::<PipelineError>(),
             Some(PipelineError::Config(_))
         )
+        || matches!(err.downcast_ref::<PipelineError>(), Some(PipelineError::Recon(e)) if e.is_settings())
         || matches!(err.downcast_ref::<RunDirError>(), Some(RunDirError::Config(_)))
         || matches!(
             err.downcast_ref::<YtalError>(),

@@ -52,3 +52,31 @@ fn a_stored_run_with_a_broken_plan_is_two() {
         assert!(stderr.contains("plan.toml"), "{args:?}: {stderr}");
     }
 }
+
+/// A reconstruction the settings cannot do (here LCT, which needs confocal pairs, on a
+/// capture with one fixed laser) is the user's to fix: exit 2, and the message says
+/// what to use instead.
+#[test]
+fn a_solver_that_does_not_suit_the_capture_is_two() {
+    let tmp = tempfile::tempdir().unwrap();
+    let config = tmp.path().join("recon.toml");
+    std::fs::write(
+        &config,
+        "method = \"lct\"\n[volume]\nx = [-0.5, 0.5]\ny = [-0.5, 0.5]\nz = [0.2, 1.0]\nshape = [8, 8, 8]\n",
+    )
+    .unwrap();
+    let out = tmp.path().join("out");
+    let (code, stderr) = periscope(&[
+        "recon",
+        "tests/data/ytal/single_laser_n3.hdf5",
+        "--config",
+        config.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert_eq!(code, Some(2), "{stderr}");
+    assert!(
+        stderr.contains("not confocal") && stderr.contains("use rsd or fbp"),
+        "{stderr}"
+    );
+}

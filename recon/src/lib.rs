@@ -17,6 +17,6 @@ pub mod synth;
 pub mod transient;
 pub mod volume;
 
-pub use roi::RoiBox;
+pub use roi::{RoiBox, RoiError};
 pub use transient::{C0, Pair, TimeAxis, TransientError, TransientSet};
 pub use volume::{DepthMap, Volume, VolumeGrid};

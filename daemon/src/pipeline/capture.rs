@@ -9,7 +9,7 @@ use periscope_recon::{Pair, TransientSet};
 
 use super::reconstruct::{Fit, ReconInput};
 use super::safety::FlagRun;
-use super::{PipelineError, Run};
+use super::{PipelineError, ReconError, Run};
 use crate::events::RunEvent;
 use crate::plan::{Acquisition, Method, PlannedPair};
 use crate::record::record_transient;
@@ -53,8 +53,8 @@ impl Run {
             self.instrument.spad_arm.pose.origin,
         );
         let recon_pairs: Vec<Pair> = pairs.iter().map(as_pair).collect();
-        let axis = hidden_axis(&recon_pairs, &self.plan.recon.volume, acq.bin_width)
-            .map_err(|e| PipelineError::Recon(e.to_string()))?;
+        let axis =
+            hidden_axis(&recon_pairs, &self.plan.recon.volume, acq.bin_width).map_err(ReconError::from)?;
         let (mut log, recovered) =
             HistogramLog::recover(&self.dir).map_err(|e| PipelineError::storage(&self.dir, e))?;
         if recovered.discarded_bytes > 0 {
@@ -67,20 +67,18 @@ impl Run {
         }
         let input = ReconInput {
             settings: self.plan.recon.clone(),
-            set: TransientSet::new(axis).map_err(|e| PipelineError::Recon(e.to_string()))?,
+            set: TransientSet::new(axis).map_err(ReconError::from)?,
             detection_points: pairs.iter().map(|p| p.xd).collect(),
             viewpoint: 0.5 * (l + s),
         };
         let mut fit = Fit::new(input);
         let mut stored: HashSet<u32> = HashSet::new();
-        let mut batch = TransientSet::new(axis).map_err(|e| PipelineError::Recon(e.to_string()))?;
+        let mut batch = TransientSet::new(axis).map_err(ReconError::from)?;
         let instrument = self.instrument.clone();
         let push = |batch: &mut TransientSet, rec: &Record| -> Result<(), PipelineError> {
             let p = &pairs[rec.pair as usize];
             match record_transient(rec, p, &instrument, &axis) {
-                Some(h) => batch
-                    .push(as_pair(p), &h)
-                    .map_err(|e| PipelineError::Recon(e.to_string())),
+                Some(h) => Ok(batch.push(as_pair(p), &h).map_err(ReconError::from)?),
                 None => Ok(()),
             }
         };
@@ -111,10 +109,7 @@ impl Run {
             if !started && done < start_at && !force {
                 return Ok(());
             }
-            let full = std::mem::replace(
-                batch,
-                TransientSet::new(axis).map_err(|e| PipelineError::Recon(e.to_string()))?,
-            );
+            let full = std::mem::replace(batch, TransientSet::new(axis).map_err(ReconError::from)?);
             if !started {
                 fit.start_training(
                     full,

@@ -8,7 +8,7 @@ use periscope_drivers::{GalvoPair, Histogrammer, Laser, OpticalAngles, TdcConfig
 use periscope_recon::TimeAxis;
 use periscope_recon::relay::{estimate_normals, reject_isolated};
 
-use super::{PipelineError, Run};
+use super::{PipelineError, RelayError, Run};
 use crate::events::RunEvent;
 use crate::run_dir::RelayPoint;
 
@@ -136,17 +136,16 @@ impl Run {
             })
             .collect();
         if kept.len() < r.neighbours.max(8) {
-            return Err(PipelineError::Relay(format!(
-                "only {} of {} LOS points passed relay.depth-m {:?} and relay.min-intensity {}: widen them, or check that los.angles-deg covers the relay",
-                kept.len(),
-                returns.len(),
-                r.depth,
-                r.min_intensity
-            )));
+            return Err(RelayError::TooFewPoints {
+                kept: kept.len(),
+                total: returns.len(),
+                depth: r.depth,
+                min_intensity: r.min_intensity,
+            }
+            .into());
         }
         let points: Vec<DVec3> = kept.iter().map(|p| p.0).collect();
-        let keep = reject_isolated(&points, 8.min(points.len() - 1), 3.0)
-            .map_err(|e| PipelineError::Relay(e.to_string()))?;
+        let keep = reject_isolated(&points, 8.min(points.len() - 1), 3.0).map_err(RelayError::from)?;
         let points: Vec<(DVec3, f64)> = kept
             .into_iter()
             .zip(keep)
@@ -155,8 +154,7 @@ impl Run {
             .collect();
         let xs: Vec<DVec3> = points.iter().map(|p| p.0).collect();
         let view = 0.5 * (self.instrument.laser_arm.pose.origin + s);
-        let normals = estimate_normals(&xs, r.neighbours.min(xs.len()), view)
-            .map_err(|e| PipelineError::Relay(e.to_string()))?;
+        let normals = estimate_normals(&xs, r.neighbours.min(xs.len()), view).map_err(RelayError::from)?;
         Ok(points
             .iter()
             .zip(normals)

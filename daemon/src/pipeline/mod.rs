@@ -37,6 +37,83 @@ use crate::events::{EventSink, RunEvent, Stage};
 use crate::plan::{Plan, PlannedPair};
 use crate::store::{RunInfo, RunState};
 
+/// Why the relay surface could not be extracted from the LOS scan.
+#[derive(Debug, thiserror::Error)]
+pub enum RelayError {
+    /// Too few LOS points passed the plan's relay thresholds.
+    #[error(
+        "only {kept} of {total} LOS points passed relay.depth-m {depth:?} and relay.min-intensity {min_intensity}: widen them, or check that los.angles-deg covers the relay"
+    )]
+    TooFewPoints {
+        /// Points kept.
+        kept: usize,
+        /// Points scanned.
+        total: usize,
+        /// The depth window, metres.
+        depth: [f64; 2],
+        /// The intensity floor, a fraction of the brightest return.
+        min_intensity: f64,
+    },
+    /// Outlier rejection or normal estimation failed on the points kept.
+    #[error(transparent)]
+    Geometry(#[from] periscope_recon::relay::GeometryError),
+}
+
+/// Why a reconstruction failed, with the recon crate's own error as its source.
+#[derive(Debug, thiserror::Error)]
+pub enum ReconError {
+    /// Transients or their time axis were rejected.
+    #[error(transparent)]
+    Transient(#[from] periscope_recon::TransientError),
+    /// The 3D-GTR fit failed.
+    #[error(transparent)]
+    Train(#[from] periscope_recon::gtr::TrainError),
+    /// A solver failed or does not suit the data.
+    #[error(transparent)]
+    Solver(#[from] periscope_recon::solver::SolverError),
+    /// The virtual relay could not be built.
+    #[error(transparent)]
+    Geometry(#[from] periscope_recon::relay::GeometryError),
+    /// The volume is not a box.
+    #[error(transparent)]
+    Roi(#[from] periscope_recon::RoiError),
+    /// An output file could not be written.
+    #[error("{}: {source}", path.display())]
+    Output {
+        /// The file.
+        path: PathBuf,
+        /// Why.
+        source: periscope_recon::io::IoError,
+    },
+    /// There is nothing to reconstruct.
+    #[error("no transients to reconstruct from")]
+    Empty,
+    /// The optimiser thread could not start or panicked.
+    #[error("the optimiser thread {0}")]
+    Thread(String),
+}
+
+impl ReconError {
+    /// Whether the error is the user's to fix by choosing another method or other
+    /// settings (the data do not suit the solver, a setting is out of range, no pair
+    /// sees the volume, the arrays would exceed the memory cap), as against a failure
+    /// of the run itself. The CLI exits with 2 for these, as for any other
+    /// configuration error.
+    pub fn is_settings(&self) -> bool {
+        use periscope_recon::gtr::TrainError;
+        use periscope_recon::solver::SolverError;
+        match self {
+            ReconError::Solver(e) => !matches!(e, SolverError::Volume(_)),
+            ReconError::Train(e) => matches!(e, TrainError::Config(_) | TrainError::NothingVisible),
+            ReconError::Roi(_) | ReconError::Empty => true,
+            ReconError::Transient(_)
+            | ReconError::Geometry(_)
+            | ReconError::Output { .. }
+            | ReconError::Thread(_) => false,
+        }
+    }
+}
+
 /// Why a run stopped.
 #[derive(Debug, thiserror::Error)]
 pub enum PipelineError {
@@ -54,13 +131,21 @@ pub enum PipelineError {
     Tdc(#[from] TdcError),
     /// The relay could not be extracted.
     #[error("relay: {0}")]
-    Relay(String),
-    /// No pair could be planned.
-    #[error("pair planning: {0}")]
-    Planning(String),
+    Relay(#[from] RelayError),
+    /// No pair could be planned: the plan's relay regions and pair grid, with the
+    /// galvo limits, leave none.
+    #[error(
+        "pair planning: no pair could be planned from {relay_points} relay points ({unreachable} outside the galvo limits): check relay.illumination, relay.detection and the pairs grid"
+    )]
+    NoPairs {
+        /// Relay points there were.
+        relay_points: usize,
+        /// Pairs outside the galvo limits.
+        unreachable: usize,
+    },
     /// Reconstruction failed.
     #[error("reconstruction: {0}")]
-    Recon(String),
+    Recon(#[from] ReconError),
     /// The run directory could not be written or read.
     #[error("run directory {path}: {source}")]
     Storage {
@@ -587,10 +672,10 @@ impl Run {
             unreachable,
         });
         if pairs.is_empty() {
-            return Err(PipelineError::Planning(format!(
-                "no pair could be planned from {} relay points ({unreachable} outside the galvo limits): check relay.illumination, relay.detection and the pairs grid",
-                relay.len()
-            )));
+            return Err(PipelineError::NoPairs {
+                relay_points: relay.len(),
+                unreachable,
+            });
         }
         let json = serde_json::to_vec(&pairs).expect("pairs serialise");
         write(&self.dir, file::PAIRS, &json)?;

@@ -8,8 +8,8 @@ use std::path::Path;
 use periscope_recon::io::{write_albedo_png, write_depth_png, write_npy, write_volume};
 use serde::Serialize;
 
-use super::PipelineError;
 use super::reconstruct::ReconResult;
+use super::{PipelineError, ReconError};
 use crate::events::{EventSink, RunEvent};
 use crate::run_dir::file;
 
@@ -40,7 +40,12 @@ fn io(path: &Path) -> impl Fn(std::io::Error) -> PipelineError + '_ {
 }
 
 fn recon_io(path: &Path) -> impl Fn(periscope_recon::io::IoError) -> PipelineError + '_ {
-    move |e| PipelineError::Recon(format!("{}: {e}", path.display()))
+    move |e| {
+        PipelineError::Recon(ReconError::Output {
+            path: path.to_path_buf(),
+            source: e,
+        })
+    }
 }
 
 #[derive(Serialize)]

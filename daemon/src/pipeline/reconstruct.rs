@@ -11,7 +11,7 @@ use periscope_recon::relay::VirtualRelay;
 use periscope_recon::synth::{default_axis, synthesise};
 use periscope_recon::{RoiBox, TransientSet, Volume, VolumeGrid};
 
-use super::{Control, PipelineError};
+use super::{Control, PipelineError, ReconError};
 use crate::events::{EventSink, RunEvent};
 use crate::plan::{Method, ReconSettings};
 
@@ -59,12 +59,8 @@ pub(crate) struct Fit {
     cancel: CancelToken,
 }
 
-fn recon_err(e: impl std::fmt::Display) -> PipelineError {
-    PipelineError::Recon(e.to_string())
-}
-
 fn roi(grid: &VolumeGrid) -> Result<RoiBox, PipelineError> {
-    RoiBox::from_bounds(grid.min(), grid.max()).map_err(recon_err)
+    Ok(RoiBox::from_bounds(grid.min(), grid.max()).map_err(ReconError::from)?)
 }
 
 impl Fit {
@@ -82,7 +78,7 @@ impl Fit {
 
     /// Adds transients that will not be streamed (stored pairs when not training).
     pub(crate) fn add(&mut self, more: &TransientSet) -> Result<(), PipelineError> {
-        self.input.set.extend(more).map_err(recon_err)
+        Ok(self.input.set.extend(more).map_err(ReconError::from)?)
     }
 
     /// Starts the optimiser on `first`, with `feed` bringing the rest.
@@ -110,7 +106,7 @@ impl Fit {
                 })?;
                 Ok((trainer, summary, t.elapsed().as_secs_f64()))
             })
-            .map_err(|e| PipelineError::Recon(format!("cannot start the optimiser thread: {e}")))?;
+            .map_err(|e| ReconError::Thread(format!("could not start: {e}")))?;
         self.trainer = Some(handle);
         Ok(())
     }
@@ -125,8 +121,8 @@ impl Fit {
             Some(handle) => {
                 let (trainer, summary, secs) = handle
                     .join()
-                    .map_err(|_| PipelineError::Recon("the optimiser thread panicked".into()))?
-                    .map_err(recon_err)?;
+                    .map_err(|_| ReconError::Thread("panicked".into()))?
+                    .map_err(ReconError::from)?;
                 if summary.cancelled {
                     return Err(stopped(control, trainer.data().len()));
                 }
@@ -182,7 +178,7 @@ fn finish_gtr(
         s.virtual_size,
         s.virtual_resolution,
     )
-    .map_err(recon_err)?;
+    .map_err(ReconError::from)?;
     if s.virtual_size.is_none() {
         // The virtual scan spans the detection points and the volume's footprint on
         // the plane, so nothing fitted beyond the measured aperture is cut off.
@@ -192,17 +188,17 @@ fn finish_gtr(
             .collect();
         relay = relay
             .covering(&corners, MAX_VIRTUAL_RESOLUTION)
-            .map_err(recon_err)?;
+            .map_err(ReconError::from)?;
     }
     let axis = default_axis(&relay, &s.volume, SYNTH_BINS);
     let kernels = trainer.cloud().kernels();
-    let scan = synthesise(&kernels, &relay, axis, trainer.render_options()).map_err(recon_err)?;
+    let scan = synthesise(&kernels, &relay, axis, trainer.render_options()).map_err(ReconError::from)?;
     let synth_secs = t.elapsed().as_secs_f64();
     let t = Instant::now();
     let volume = s
         .solver
         .solve(&scan.set, &s.volume, &s.solvers)
-        .map_err(recon_err)?;
+        .map_err(ReconError::from)?;
     Ok(ReconResult {
         volume,
         cloud: Some(trainer.cloud().clone()),
@@ -225,14 +221,14 @@ pub fn reconstruct(
     control: &Control,
 ) -> Result<ReconResult, PipelineError> {
     if input.set.is_empty() {
-        return Err(PipelineError::Recon("no transients to reconstruct from".into()));
+        return Err(ReconError::Empty.into());
     }
     let s = &input.settings;
     match s.method {
         Method::Gtr => {
             let t = Instant::now();
-            let mut trainer =
-                Trainer::new(s.train.clone(), roi(&s.volume)?, input.set.clone()).map_err(recon_err)?;
+            let mut trainer = Trainer::new(s.train.clone(), roi(&s.volume)?, input.set.clone())
+                .map_err(ReconError::from)?;
             let cancel = CancelToken::new();
             control.watch(&cancel);
             let summary = trainer
@@ -242,7 +238,7 @@ pub fn reconstruct(
                     }
                     events.emit(RunEvent::Train(e.clone()));
                 })
-                .map_err(recon_err)?;
+                .map_err(ReconError::from)?;
             if summary.cancelled {
                 return Err(stopped(control, input.set.len()));
             }
@@ -251,7 +247,9 @@ pub fn reconstruct(
         Method::Fbp | Method::Lct | Method::Fk | Method::Rsd => {
             let kind = s.method.solver().expect("a solver method");
             let t = Instant::now();
-            let volume = kind.solve(&input.set, &s.volume, &s.solvers).map_err(recon_err)?;
+            let volume = kind
+                .solve(&input.set, &s.volume, &s.solvers)
+                .map_err(ReconError::from)?;
             Ok(ReconResult {
                 volume,
                 cloud: None,
