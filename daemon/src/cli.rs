@@ -183,7 +183,7 @@ pub fn execute(cli: Cli) -> anyhow::Result<()> {
             ));
             execute_run(&run_dir)
         }
-        Command::Recon { capture, config, out } => offline::recon(&capture, config.as_deref(), &out),
+        Command::Recon { capture, config, out } => Ok(offline::recon(&capture, config.as_deref(), &out)?),
         Command::Export { run_dir, out } => {
             anyhow::ensure!(
                 crate::run_dir::RunDir::holds_run(&run_dir),
@@ -219,11 +219,11 @@ pub fn execute(cli: Cli) -> anyhow::Result<()> {
                 t
             });
             let service = crate::api::Service::open(src, Some(token))?;
-            tokio::runtime::Builder::new_multi_thread()
+            let runtime = tokio::runtime::Builder::new_multi_thread()
                 .enable_all()
                 .thread_name("periscope-api")
-                .build()?
-                .block_on(crate::api::serve(bind, service))
+                .build()?;
+            Ok(runtime.block_on(crate::api::serve(bind, service))?)
         }
         Command::Devices { instrument } => devices(&instrument.load()?),
     }
@@ -242,6 +242,9 @@ pub fn exit_code(err: &anyhow::Error) -> ExitCode {
             Some(PipelineError::Config(_))
         )
         || matches!(err.downcast_ref::<PipelineError>(), Some(PipelineError::Recon(e)) if e.is_settings())
+        || err
+            .downcast_ref::<crate::offline::OfflineError>()
+            .is_some_and(|e| e.is_config())
         || matches!(err.downcast_ref::<RunDirError>(), Some(RunDirError::Config(_)))
         || matches!(
             err.downcast_ref::<YtalError>(),

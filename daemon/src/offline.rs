@@ -1,32 +1,111 @@
 //! `periscope recon CAPTURE`: reconstruct a stored run again, with other settings or
 //! another method, without the instrument; or a y-tal HDF5 capture (a public dataset,
 //! or another lab's).
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
-use periscope_recon::{Pair, TransientSet};
+use periscope_recon::{Pair, TransientError, TransientSet};
 
-use crate::config::TomlSource;
+use crate::config::{ConfigError, TomlSource};
 use crate::events::EventSink;
-use crate::pipeline::{self, Control, ReconInput};
+use crate::pipeline::{self, Control, PipelineError, ReconInput};
 use crate::plan::{default_recon, load_recon};
-use crate::run_dir::RunDir;
-use crate::ytal::{YtalCapture, is_hdf5_path};
+use crate::run_dir::{RunDir, RunDirError};
+use crate::ytal::{YtalCapture, YtalError, is_hdf5_path};
+
+/// Why `periscope recon CAPTURE` failed; every variant names the capture or file.
+#[derive(Debug, thiserror::Error)]
+pub enum OfflineError {
+    /// The capture path does not exist.
+    #[error("capture {} does not exist: give a run directory or a y-tal .hdf5/.h5 file", .0.display())]
+    Missing(PathBuf),
+    /// A directory without `run.json`.
+    #[error("{} is not a run directory (no run.json)", .0.display())]
+    NotRun(PathBuf),
+    /// A file that is not `.hdf5` or `.h5`.
+    #[error(
+        "{} is a file but not a y-tal capture (.hdf5 or .h5); give a capture file or a run directory",
+        .0.display()
+    )]
+    NotCapture(PathBuf),
+    /// A run that stored no histogram.
+    #[error("{} holds no measured pairs", .0.display())]
+    NoPairs(PathBuf),
+    /// A run whose every histogram overflowed.
+    #[error("{}: every stored histogram is flagged overflow; nothing to reconstruct from", .0.display())]
+    AllOverflowed(PathBuf),
+    /// A y-tal capture with no signal inside the volume's time range.
+    #[error("{}: every transient is empty inside the reconstruction volume's time range", .0.display())]
+    NothingInWindow(PathBuf),
+    /// The capture's transients or time axis do not fit the volume.
+    #[error("{}: {source}", path.display())]
+    Transients {
+        /// The capture.
+        path: PathBuf,
+        /// Why.
+        source: TransientError,
+    },
+    /// A file could not be read or written.
+    #[error("{}: {source}", path.display())]
+    Io {
+        /// The file or directory.
+        path: PathBuf,
+        /// Why.
+        source: std::io::Error,
+    },
+    /// The RECON.toml is invalid.
+    #[error(transparent)]
+    Config(#[from] ConfigError),
+    /// The stored run could not be read.
+    #[error(transparent)]
+    Run(#[from] RunDirError),
+    /// The y-tal capture could not be read.
+    #[error(transparent)]
+    Ytal(#[from] YtalError),
+    /// The reconstruction or its outputs failed.
+    #[error(transparent)]
+    Pipeline(#[from] PipelineError),
+}
+
+impl OfflineError {
+    /// Whether a configuration is at fault: the RECON.toml, the stored run's plan or
+    /// instrument, or settings the data cannot support (exit code 2).
+    pub fn is_config(&self) -> bool {
+        match self {
+            OfflineError::Config(_)
+            | OfflineError::Run(RunDirError::Config(_))
+            | OfflineError::Ytal(YtalError::Run(RunDirError::Config(_)))
+            | OfflineError::Pipeline(PipelineError::Config(_)) => true,
+            OfflineError::Pipeline(PipelineError::Recon(e)) => e.is_settings(),
+            _ => false,
+        }
+    }
+}
+
+fn transients(path: &Path) -> impl Fn(TransientError) -> OfflineError + '_ {
+    move |source| OfflineError::Transients {
+        path: path.to_path_buf(),
+        source,
+    }
+}
+
+fn io(path: &Path) -> impl Fn(std::io::Error) -> OfflineError + '_ {
+    move |source| OfflineError::Io {
+        path: path.to_path_buf(),
+        source,
+    }
+}
 
 /// Reconstructs `capture` (a run directory) into `out`.
-pub fn recon(capture: &Path, config: Option<&Path>, out: &Path) -> anyhow::Result<()> {
-    anyhow::ensure!(
-        capture.exists(),
-        "capture {} does not exist: give a run directory or a y-tal .hdf5/.h5 file",
-        capture.display()
-    );
+pub fn recon(capture: &Path, config: Option<&Path>, out: &Path) -> Result<(), OfflineError> {
+    if !capture.exists() {
+        return Err(OfflineError::Missing(capture.to_path_buf()));
+    }
     if capture.is_file() {
         return recon_ytal(capture, config, out);
     }
-    anyhow::ensure!(
-        RunDir::holds_run(capture),
-        "{} is not a run directory (no run.json)",
-        capture.display()
-    );
+    if !RunDir::holds_run(capture) {
+        return Err(OfflineError::NotRun(capture.to_path_buf()));
+    }
     let run = RunDir::new(capture);
     let (_info, plan, inst) = run.load()?;
     let pairs = run.pairs()?;
@@ -34,12 +113,10 @@ pub fn recon(capture: &Path, config: Option<&Path>, out: &Path) -> anyhow::Resul
         Some(path) => load_recon(&TomlSource::load(path)?, Some(plan.recon.volume))?,
         None => plan.recon.clone(),
     };
-    let records = crate::store::read_log(capture)?;
-    anyhow::ensure!(
-        !records.records.is_empty(),
-        "{} holds no measured pairs",
-        capture.display()
-    );
+    let records = crate::store::read_log(capture).map_err(io(capture))?;
+    if records.records.is_empty() {
+        return Err(OfflineError::NoPairs(capture.to_path_buf()));
+    }
     let (l, s) = (inst.laser_arm.pose.origin, inst.spad_arm.pose.origin);
     let recon_pairs: Vec<Pair> = pairs
         .iter()
@@ -52,8 +129,8 @@ pub fn recon(capture: &Path, config: Option<&Path>, out: &Path) -> anyhow::Resul
         .collect();
     let axis =
         periscope_recon::transient::hidden_axis(&recon_pairs, &settings.volume, plan.acquisition.bin_width)
-            .map_err(|e| anyhow::anyhow!("{}: {e}", capture.display()))?;
-    let mut set = TransientSet::new(axis)?;
+            .map_err(transients(capture))?;
+    let mut set = TransientSet::new(axis).map_err(transients(capture))?;
     let mut used = Vec::new();
     let mut overflowed = 0usize;
     for r in &records.records {
@@ -62,7 +139,8 @@ pub fn recon(capture: &Path, config: Option<&Path>, out: &Path) -> anyhow::Resul
         };
         match pipeline::record_transient(r, p, &inst, &axis) {
             Some(h) => {
-                set.push(recon_pairs[r.pair as usize], &h)?;
+                set.push(recon_pairs[r.pair as usize], &h)
+                    .map_err(transients(capture))?;
                 used.push(p.xd);
             }
             None => overflowed += 1,
@@ -74,11 +152,9 @@ pub fn recon(capture: &Path, config: Option<&Path>, out: &Path) -> anyhow::Resul
             capture.display()
         );
     }
-    anyhow::ensure!(
-        !set.is_empty(),
-        "{}: every stored histogram is flagged overflow; nothing to reconstruct from",
-        capture.display()
-    );
+    if set.is_empty() {
+        return Err(OfflineError::AllOverflowed(capture.to_path_buf()));
+    }
     let input = ReconInput {
         settings,
         set,
@@ -89,12 +165,9 @@ pub fn recon(capture: &Path, config: Option<&Path>, out: &Path) -> anyhow::Resul
 }
 
 /// Reconstructs a y-tal HDF5 capture.
-fn recon_ytal(capture: &Path, config: Option<&Path>, out: &Path) -> anyhow::Result<()> {
+fn recon_ytal(capture: &Path, config: Option<&Path>, out: &Path) -> Result<(), OfflineError> {
     if !is_hdf5_path(capture) {
-        anyhow::bail!(
-            "{} is a file but not a y-tal capture (.hdf5 or .h5); give a capture file or a run directory",
-            capture.display()
-        );
+        return Err(OfflineError::NotCapture(capture.to_path_buf()));
     }
     let ytal = YtalCapture::read(capture)?;
     let settings = match config {
@@ -102,11 +175,9 @@ fn recon_ytal(capture: &Path, config: Option<&Path>, out: &Path) -> anyhow::Resu
         None => default_recon(ytal.default_volume()?),
     };
     let set = ytal.transients(&settings.volume)?;
-    anyhow::ensure!(
-        !set.is_empty(),
-        "{}: every transient is empty inside the reconstruction volume's time range",
-        capture.display()
-    );
+    if set.is_empty() {
+        return Err(OfflineError::NothingInWindow(capture.to_path_buf()));
+    }
     println!(
         "{}: {} transients ({}), {} bins of {:.4} m{}",
         capture.display(),
@@ -130,9 +201,9 @@ fn recon_ytal(capture: &Path, config: Option<&Path>, out: &Path) -> anyhow::Resu
 }
 
 /// Runs the reconstruction and writes its outputs to `out`.
-fn finish(input: ReconInput, out: &Path) -> anyhow::Result<()> {
-    std::fs::create_dir_all(out)?;
-    let events = EventSink::open(out)?;
+fn finish(input: ReconInput, out: &Path) -> Result<(), OfflineError> {
+    std::fs::create_dir_all(out).map_err(io(out))?;
+    let events = EventSink::open(out).map_err(io(out))?;
     crate::progress::attach(&events);
     let t = std::time::Instant::now();
     let result = pipeline::reconstruct(input, &events, &Control::new())?;

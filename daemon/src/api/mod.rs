@@ -232,12 +232,12 @@ impl crate::signals::OnSignal for ServeSignals {
 /// goes off at once, the run pauses at its next checkpoint (resume it after the
 /// restart), event streams end, and the process exits within 2 s (a second signal
 /// exits at once).
-pub async fn serve(bind: SocketAddr, service: Arc<Service>) -> anyhow::Result<()> {
+pub async fn serve(bind: SocketAddr, service: Arc<Service>) -> Result<(), ServeError> {
     let worker = service.start_worker();
     let listener = tokio::net::TcpListener::bind(bind)
         .await
-        .map_err(|e| anyhow::anyhow!("cannot listen on {bind}: {e}; choose another address with --bind"))?;
-    let addr = listener.local_addr()?;
+        .map_err(|source| ServeError::Bind { bind, source })?;
+    let addr = listener.local_addr().map_err(ServeError::Io)?;
     crate::logging::notice(&format!(
         "periscope dashboard on http://{addr}/, API on http://{addr}/api/v1 (runs in {})",
         service.runs_dir().display()
@@ -253,12 +253,32 @@ pub async fn serve(bind: SocketAddr, service: Arc<Service>) -> anyhow::Result<()
     );
     axum::serve(listener, app.into_make_service_with_connect_info::<SocketAddr>())
         .with_graceful_shutdown(async move { notify.notified().await })
-        .await?;
+        .await
+        .map_err(ServeError::Io)?;
     service.shutdown();
-    tokio::task::spawn_blocking(move || worker.join())
-        .await?
-        .map_err(|_| anyhow::anyhow!("the instrument worker panicked"))?;
-    Ok(())
+    match tokio::task::spawn_blocking(move || worker.join()).await {
+        Ok(Ok(())) => Ok(()),
+        Ok(Err(_)) | Err(_) => Err(ServeError::WorkerPanicked),
+    }
+}
+
+/// Why `periscope serve` stopped with an error.
+#[derive(Debug, thiserror::Error)]
+pub enum ServeError {
+    /// The address cannot be listened on.
+    #[error("cannot listen on {bind}: {source}; choose another address with --bind")]
+    Bind {
+        /// The address asked for.
+        bind: SocketAddr,
+        /// Why.
+        source: std::io::Error,
+    },
+    /// The listening socket failed.
+    #[error("the API socket failed: {0}")]
+    Io(std::io::Error),
+    /// The instrument worker thread panicked.
+    #[error("the instrument worker panicked")]
+    WorkerPanicked,
 }
 
 /// Whether a request may change the instrument: every method but GET and HEAD, except
