@@ -88,7 +88,7 @@ impl Default for DensifySettings {
 /// centre, so the pair keeps the parent's mean and spread (variance) along the axis;
 /// with twice the parent's albedo it keeps the parent's weight, each child's
 /// projected area being half the parent's. (Children at 1/√2 of the scale, a
-/// single-peaked pair, shrink the cloud more slowly and scored 0.01–0.09 lower on
+/// single-peaked pair, shrink the cloud more slowly and scored 0.03–0.10 lower on
 /// every validation capture: docs/recon.md.) As many splits as there are
 /// dead slots; deterministic, ties broken by index. Returns the (parent, slot) pairs.
 pub fn densify(cloud: &mut GaussianCloud, dead_fraction: f64, target_scale: f64) -> Vec<(usize, usize)> {
