@@ -11,6 +11,7 @@ pub mod io;
 pub mod linalg;
 pub mod relay;
 pub mod roi;
+pub mod simd;
 pub mod solver;
 pub mod special;
 pub mod synth;

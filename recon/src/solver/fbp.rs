@@ -186,17 +186,19 @@ pub fn fbp(set: &TransientSet, grid: &VolumeGrid, settings: &FbpSettings) -> Res
         let sigma = settings.sigma_per_wavelength * lambda;
         // Three envelope widths of zeros each side: the wavelet's support.
         let lead = (3.0 * sigma / set.axis().width).ceil() as usize + 1;
-        let (re, im): (Vec<Vec<f32>>, Vec<Vec<f32>>) = (0..set.len())
+        // Real and imaginary parts interleaved, so one backprojection pass computes
+        // each voxel's path length once and gathers both from one place.
+        let hists: Vec<Vec<f32>> = (0..set.len())
             .into_par_iter()
             .map(|p| {
                 let w = set.weight(p);
                 let h: Vec<f32> = set.histogram(p).iter().map(|v| v * w).collect();
-                phasor_filter(&h, set.axis().width, lambda, sigma, lead)
+                let (re, im) = phasor_filter(&h, set.axis().width, lambda, sigma, lead);
+                re.iter().zip(&im).flat_map(|(&a, &b)| [a, b]).collect()
             })
-            .unzip();
-        let a = backproject(set, grid, settings, &re, lead);
-        let b = backproject(set, grid, settings, &im, lead);
-        let data = a.iter().zip(&b).map(|(x, y)| x.hypot(*y)).collect();
+            .collect();
+        let sums = backproject::<2>(set, grid, settings.falloff, &hists, lead);
+        let data = sums.iter().map(|[a, b]| a.hypot(*b)).collect();
         return Ok(Volume { grid: *grid, data });
     }
     let hists: Vec<Vec<f32>> = (0..set.len())
@@ -205,7 +207,10 @@ pub fn fbp(set: &TransientSet, grid: &VolumeGrid, settings: &FbpSettings) -> Res
             set.histogram(p).iter().map(|v| v * w).collect()
         })
         .collect();
-    let data = backproject(set, grid, settings, &hists, 0);
+    let data = backproject::<1>(set, grid, settings.falloff, &hists, 0)
+        .into_iter()
+        .map(|[v]| v)
+        .collect();
     let mut volume = Volume { grid: *grid, data };
     if settings.filter == FbpFilter::Laplacian {
         volume = negative_laplacian(&volume);
@@ -213,15 +218,24 @@ pub fn fbp(set: &TransientSet, grid: &VolumeGrid, settings: &FbpSettings) -> Res
     Ok(volume)
 }
 
-/// Backprojects `hists` (one per pair, on the set's axis shifted by `lead` bins, i.e.
-/// bin `lead` is the axis' bin 0) onto `grid`.
-fn backproject(
+/// Backprojects `hists` onto `grid`. Each holds `C` interleaved channels per bin (the
+/// phasor filter's real and imaginary parts, or one plain histogram) on the set's axis
+/// shifted by `lead` bins (bin `lead` is the axis' bin 0). Returns the `C` sums per
+/// voxel.
+///
+/// Per voxel and pair the work is two square roots, the fractional bin, the falloff
+/// gain and a linear interpolation of each channel. The first three run as one loop
+/// along x that the compiler vectorises (eight voxels at a time with AVX2), the gather
+/// as a second; both run inside [`crate::simd::dispatch`]. The falloff gain is
+/// `(d_i d_d)^p` with the common exponents done without `powf`: 1 is `d_i·d_d` from the
+/// roots already taken, 2 is `d_i²·d_d²`, 0 is 1.
+fn backproject<const C: usize>(
     set: &TransientSet,
     grid: &VolumeGrid,
-    settings: &FbpSettings,
+    falloff: f64,
     hists: &[Vec<f32>],
     lead: usize,
-) -> Vec<f32> {
+) -> Vec<[f32; C]> {
     let axis = *set.axis();
     let [nx, ny, _] = grid.shape;
     let voxel = grid.voxel();
@@ -229,64 +243,168 @@ fn backproject(
     let xs: Vec<f32> = (0..nx)
         .map(|i| (min.x + (i as f64 + 0.5) * voxel.x) as f32)
         .collect();
+    let ys: Vec<f32> = (0..ny)
+        .map(|i| (min.y + (i as f64 + 0.5) * voxel.y) as f32)
+        .collect();
     let inv_w = (1.0 / axis.width) as f32;
-    let offset = (axis.start / axis.width + 0.5) as f32 - lead as f32;
-    // Histograms padded with one zero before and two after, so the interpolation below
-    // needs no bounds checks: indices are clamped into the padding instead.
+    let offset = (axis.start / axis.width + 0.5) as f32 - lead as f32 - 1.0;
+    // Histograms padded with one zero bin before and two after, so the interpolation
+    // below needs no bounds checks: indices are clamped into the padding instead.
     let padded: Vec<Vec<f32>> = hists
         .iter()
         .map(|h| {
-            let mut p = Vec::with_capacity(h.len() + 3);
-            p.push(0.0);
+            let mut p = Vec::with_capacity(h.len() + 3 * C);
+            p.extend([0.0; C]);
             p.extend_from_slice(h);
-            p.extend([0.0, 0.0]);
+            p.extend([0.0; C]);
+            p.extend([0.0; C]);
             p
         })
         .collect();
-    let top = padded.first().map_or(1, |p| p.len() - 2) as f32;
-    let mut data = vec![0.0f32; grid.len()];
+    let top = padded.first().map_or(1, |p| p.len() / C - 2) as f32;
+    let pairs: Vec<([f32; 3], [f32; 3])> = set
+        .pairs()
+        .iter()
+        .map(|p| (p.xi.as_vec3().to_array(), p.xd.as_vec3().to_array()))
+        .collect();
+    let mut data = vec![[0.0f32; C]; grid.len()];
     data.par_chunks_mut(nx * ny).enumerate().for_each(|(iz, slice)| {
         let z = (min.z + (iz as f64 + 0.5) * voxel.z) as f32;
-        let mut index = vec![0.0f32; nx];
-        let mut gain = vec![1.0f32; nx];
-        // Pairs in tiles whose histograms stay in L2 while every row of the slice
-        // visits them; the row being summed stays in L1.
-        for (pairs, hists) in set.pairs().chunks(PAIR_TILE).zip(padded.chunks(PAIR_TILE)) {
-            for iy in 0..ny {
-                let y = (min.y + (iy as f64 + 0.5) * voxel.y) as f32;
-                let row = &mut slice[iy * nx..(iy + 1) * nx];
-                for (pair, h) in pairs.iter().zip(hists) {
-                    let (xi, xd) = (pair.xi.as_vec3(), pair.xd.as_vec3());
-                    let byi = (z - xi.z) * (z - xi.z) + (y - xi.y) * (y - xi.y);
-                    let byd = (z - xd.z) * (z - xd.z) + (y - xd.y) * (y - xd.y);
-                    // Vectorisable pass: fractional bin index (shifted by the leading pad).
-                    for ((f, g), &x) in index.iter_mut().zip(gain.iter_mut()).zip(&xs) {
-                        let ri2 = byi + (x - xi.x) * (x - xi.x);
-                        let rd2 = byd + (x - xd.x) * (x - xd.x);
-                        *f = ((ri2.sqrt() + rd2.sqrt()) * inv_w - offset + 1.0)
-                            .max(0.0)
-                            .min(top);
-                        *g = ri2 * rd2;
-                    }
-                    match settings.falloff {
-                        2.0 => {}
-                        0.0 => gain.fill(1.0),
-                        p => {
-                            let half = (0.5 * p) as f32;
-                            gain.iter_mut().for_each(|g| *g = g.powf(half));
-                        }
-                    }
-                    // Gather pass.
-                    for ((out, &f), &g) in row.iter_mut().zip(&index).zip(&gain) {
-                        let b = f as usize;
-                        let t = f - b as f32;
-                        *out += g * ((1.0 - t) * h[b] + t * h[b + 1]);
-                    }
-                }
-            }
-        }
+        let rows = Rows {
+            pairs: &pairs,
+            hists: &padded,
+            xs: &xs,
+            ys: &ys,
+            inv_w,
+            offset,
+            top,
+            falloff,
+        };
+        crate::simd::dispatch(Slice { out: slice, z, rows });
     });
     data
+}
+
+/// What every slice of a backprojection shares.
+#[derive(Clone, Copy)]
+struct Rows<'a> {
+    /// Illumination and detection points.
+    pairs: &'a [([f32; 3], [f32; 3])],
+    /// Padded histograms, one per pair.
+    hists: &'a [Vec<f32>],
+    /// Voxel centres along x and y.
+    xs: &'a [f32],
+    ys: &'a [f32],
+    /// 1 / bin width; the padded index of path length 0 (negated); the last index.
+    inv_w: f32,
+    offset: f32,
+    top: f32,
+    falloff: f64,
+}
+
+/// One z slice of [`backproject`]: every pair, every row.
+struct Slice<'a, 'b, const C: usize> {
+    out: &'b mut [[f32; C]],
+    z: f32,
+    rows: Rows<'a>,
+}
+
+impl<const C: usize> crate::simd::Work for Slice<'_, '_, C> {
+    type Output = ();
+
+    #[inline(always)]
+    fn run(self) {
+        backproject_slice(self.out, self.z, self.rows);
+    }
+}
+
+#[inline(always)]
+fn backproject_slice<const C: usize>(slice: &mut [[f32; C]], z: f32, rows: Rows<'_>) {
+    let Rows {
+        pairs,
+        hists: padded,
+        xs,
+        ys,
+        inv_w,
+        offset,
+        top,
+        falloff,
+    } = rows;
+    let nx = xs.len();
+    let mut index = vec![0.0f32; nx];
+    let mut gain = vec![1.0f32; nx];
+    // Pairs in tiles whose histograms stay in L2 while every row of the slice visits
+    // them; the row being summed stays in L1.
+    for (tile, hists) in pairs.chunks(PAIR_TILE).zip(padded.chunks(PAIR_TILE)) {
+        for (row, &y) in slice.chunks_exact_mut(nx).zip(ys) {
+            for (&(xi, xd), h) in tile.iter().zip(hists) {
+                let byi = (z - xi[2]) * (z - xi[2]) + (y - xi[1]) * (y - xi[1]);
+                let byd = (z - xd[2]) * (z - xd[2]) + (y - xd[1]) * (y - xd[1]);
+                path_row(
+                    xs, byi, byd, xi[0], xd[0], inv_w, offset, top, falloff, &mut index, &mut gain,
+                );
+                gather_row(row, &index, &gain, h.as_chunks::<C>().0);
+            }
+        }
+    }
+}
+
+/// The fractional bin (into the padded histogram) and the falloff gain of every voxel
+/// of a row, for one pair.
+#[inline(always)]
+fn path_row(
+    xs: &[f32],
+    byi: f32,
+    byd: f32,
+    xi: f32,
+    xd: f32,
+    inv_w: f32,
+    offset: f32,
+    top: f32,
+    falloff: f64,
+    index: &mut [f32],
+    gain: &mut [f32],
+) {
+    let lanes = index.iter_mut().zip(gain.iter_mut()).zip(xs);
+    if falloff == 1.0 {
+        for ((f, g), &x) in lanes {
+            let ri = (byi + (x - xi) * (x - xi)).sqrt();
+            let rd = (byd + (x - xd) * (x - xd)).sqrt();
+            *f = ((ri + rd) * inv_w - offset).max(0.0).min(top);
+            *g = ri * rd;
+        }
+        return;
+    }
+    for ((f, g), &x) in lanes {
+        let ri2 = byi + (x - xi) * (x - xi);
+        let rd2 = byd + (x - xd) * (x - xd);
+        *f = ((ri2.sqrt() + rd2.sqrt()) * inv_w - offset).max(0.0).min(top);
+        *g = ri2 * rd2;
+    }
+    match falloff {
+        2.0 => {}
+        0.0 => gain.fill(1.0),
+        p => {
+            let half = (0.5 * p) as f32;
+            gain.iter_mut().for_each(|g| *g = g.powf(half));
+        }
+    }
+}
+
+/// Adds each voxel's interpolated, gain-weighted histogram value to the row.
+#[inline(always)]
+fn gather_row<const C: usize>(row: &mut [[f32; C]], index: &[f32], gain: &[f32], h: &[[f32; C]]) {
+    // The index is already clamped to the padding; the `min` lets the compiler drop
+    // the bounds checks.
+    let last = h.len().saturating_sub(2);
+    for ((out, &f), &g) in row.iter_mut().zip(index).zip(gain) {
+        let b = (f as usize).min(last);
+        let t = f - b as f32;
+        let (a, n) = (h[b], h[b + 1]);
+        for c in 0..C {
+            out[c] += g * ((1.0 - t) * a[c] + t * n[c]);
+        }
+    }
 }
 
 /// −∇² with edge replication, negatives clipped.
@@ -320,5 +438,97 @@ fn negative_laplacian(v: &Volume) -> Volume {
     Volume {
         grid: v.grid,
         data: out,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::transient::{Pair, TimeAxis};
+    use glam::DVec3;
+    use rand::{Rng, SeedableRng};
+    use rand_chacha::ChaCha8Rng;
+
+    /// Backprojection written the obvious way, in f64: every voxel, every pair, the
+    /// histogram linearly interpolated between bin centres (zero outside the axis).
+    fn reference(set: &TransientSet, grid: &VolumeGrid, falloff: f64) -> Vec<f64> {
+        let axis = set.axis();
+        let mut out = vec![0.0; grid.len()];
+        let [nx, ny, nz] = grid.shape;
+        for iz in 0..nz {
+            for iy in 0..ny {
+                for ix in 0..nx {
+                    let x = grid.centre(ix, iy, iz);
+                    let mut sum = 0.0;
+                    for (p, pair) in set.pairs().iter().enumerate() {
+                        let (ri, rd) = (x.distance(pair.xi), x.distance(pair.xd));
+                        let u = (ri + rd - axis.start) / axis.width - 0.5;
+                        let h = set.histogram(p);
+                        let at = |b: f64| {
+                            if b < 0.0 || b >= h.len() as f64 {
+                                0.0
+                            } else {
+                                h[b as usize] as f64
+                            }
+                        };
+                        let b = u.floor();
+                        let t = u - b;
+                        sum += (ri * rd).powf(falloff) * ((1.0 - t) * at(b) + t * at(b + 1.0));
+                    }
+                    out[(iz * ny + iy) * nx + ix] = sum;
+                }
+            }
+        }
+        out
+    }
+
+    /// The vectorised f32 backprojection agrees with the f64 reference to single
+    /// precision (relative to the volume's peak), for each falloff path: the root
+    /// product (1), the squares (2), none (0) and `powf` (1.5).
+    #[test]
+    fn backprojection_matches_the_f64_reference() {
+        let mut rng = ChaCha8Rng::seed_from_u64(3);
+        let axis = TimeAxis {
+            start: 0.4,
+            width: 0.01,
+            bins: 160,
+        };
+        let mut set = TransientSet::new(axis).unwrap();
+        for _ in 0..40 {
+            let xi = DVec3::new(rng.random_range(-0.5..0.5), rng.random_range(-0.5..0.5), 0.0);
+            let xd = DVec3::new(rng.random_range(-0.5..0.5), rng.random_range(-0.5..0.5), 0.0);
+            let h: Vec<f32> = (0..axis.bins).map(|_| rng.random::<f32>()).collect();
+            set.push(
+                Pair {
+                    xi,
+                    ni: DVec3::Z,
+                    xd,
+                    nd: DVec3::Z,
+                },
+                &h,
+            )
+            .unwrap();
+        }
+        // 19 voxels per row: not a multiple of any vector width.
+        let grid = VolumeGrid::new([-0.4, 0.4], [-0.3, 0.3], [0.3, 0.7], [19, 7, 5]).unwrap();
+        for falloff in [1.0, 2.0, 0.0, 1.5] {
+            let settings = FbpSettings {
+                filter: FbpFilter::None,
+                falloff,
+                ..FbpSettings::default()
+            };
+            let got = fbp(&set, &grid, &settings).unwrap();
+            let want = reference(&set, &grid, falloff);
+            let peak = want.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+            let worst = got
+                .data
+                .iter()
+                .zip(&want)
+                .fold(0.0f64, |m, (g, w)| m.max((*g as f64 - w).abs()));
+            assert!(
+                worst < 2e-5 * peak,
+                "falloff {falloff}: worst error {worst:e} against peak {peak:e}"
+            );
+        }
     }
 }
