@@ -15,7 +15,8 @@ use support::{median, peak_rss_mib};
 
 use glam::{DQuat, DVec3};
 use periscope_recon::gtr::{
-    CancelToken, GaussianCloud, Init, Primitive, RenderOptions, ScaleBounds, TrainConfig, Trainer, render_set,
+    CancelToken, GaussianCloud, Init, Primitive, RenderOptions, ScaleBounds, TrainConfig, Trainer,
+    batch_loss_grad, render_set,
 };
 use periscope_recon::{Pair, RoiBox, TimeAxis, TransientSet};
 use rand::{Rng, SeedableRng};
@@ -114,6 +115,23 @@ fn main() {
         epochs: 1,
         ..TrainConfig::default()
     };
+    // The loss gradient alone, over the same mini-batches an epoch takes (the
+    // optimiser's and the kernel refresh's share is the epoch's time minus this).
+    let mut grads = periscope_recon::gtr::RawGrads::zeros(cloud.len());
+    let order: Vec<usize> = (0..data.len()).collect();
+    let mut times = Vec::new();
+    for _ in 0..reps {
+        let t = Instant::now();
+        for batch in order.chunks(4) {
+            std::hint::black_box(batch_loss_grad(&cloud, &kernels, &data, batch, &opt, &mut grads));
+        }
+        times.push(t.elapsed().as_secs_f64());
+    }
+    let gradient = median(times);
+    println!(
+        "loss gradient, all mini-batches of 4 (no optimiser): median {gradient:.3} s ({:.1} M Gaussian-pair forward+backward evaluations/s)",
+        evals / gradient / 1e6
+    );
     let mut trainer = Trainer::new(config, roi, data).unwrap();
     let cancel = CancelToken::new();
     let mut times = Vec::new();

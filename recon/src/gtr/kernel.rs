@@ -108,7 +108,7 @@ pub struct Evaluation {
 
 /// Evaluates the geometry; `None` when the primitive cannot contribute (behind either
 /// relay point's tangent plane, on the relay, or its window misses the axis).
-#[inline]
+#[inline(always)]
 pub fn evaluate(k: &Kernel, pair: &Pair, axis: &TimeAxis, opt: &RenderOptions) -> Option<Evaluation> {
     let to_i = k.x - pair.xi;
     let to_d = k.x - pair.xd;
@@ -167,7 +167,7 @@ pub fn evaluate(k: &Kernel, pair: &Pair, axis: &TimeAxis, opt: &RenderOptions) -
 
 impl Evaluation {
     /// Adds the primitive's contribution to `out` (the full histogram of the pair).
-    #[inline]
+    #[inline(always)]
     pub fn accumulate(&self, axis: &TimeAxis, out: &mut [f64]) {
         let table = &*NORMAL;
         let inv = 1.0 / self.sigma;
@@ -176,14 +176,14 @@ impl Evaluation {
         let mut prev = table.cdf(z0);
         for (i, o) in out[self.lo..self.hi].iter_mut().enumerate() {
             let next = table.cdf(z0 + (i + 1) as f64 * dz);
-            *o += self.amplitude * (next - prev);
+            *o = self.amplitude.mul_add(next - prev, *o);
             prev = next;
         }
     }
 
     /// Given `dl = ∂loss/∂τ̂` for the pair's bins, adds the gradient with respect to the
     /// primitive's physical parameters to `grad`.
-    #[inline]
+    #[inline(always)]
     pub fn backward(
         &self,
         k: &Kernel,
@@ -206,9 +206,9 @@ impl Evaluation {
             let z1 = z0 + (i + 1) as f64 * dz;
             let (c1, p1) = table.cdf_and_slope(z1);
             let zp1 = z1 * p1;
-            s_cdf += r * (c1 - c0);
-            s_pdf += r * (p1 - p0);
-            s_zpdf += r * (zp1 - zp0);
+            s_cdf = r.mul_add(c1 - c0, s_cdf);
+            s_pdf = r.mul_add(p1 - p0, s_pdf);
+            s_zpdf = r.mul_add(zp1 - zp0, s_zpdf);
             (c0, p0, zp0) = (c1, p1, zp1);
         }
         let amp = self.amplitude;
@@ -298,10 +298,34 @@ impl Default for PhysicalGrad {
 
 /// Renders one pair's transient from all primitives into `out` (overwritten).
 pub fn render_pair(kernels: &[Kernel], pair: &Pair, axis: &TimeAxis, opt: &RenderOptions, out: &mut [f64]) {
-    out.iter_mut().for_each(|o| *o = 0.0);
-    for k in kernels {
-        if let Some(e) = evaluate(k, pair, axis, opt) {
-            e.accumulate(axis, out);
+    crate::simd::dispatch(RenderPair {
+        kernels,
+        pair,
+        axis,
+        opt,
+        out,
+    });
+}
+
+/// [`render_pair`]'s loop, compiled for the machine's SIMD level.
+struct RenderPair<'a> {
+    kernels: &'a [Kernel],
+    pair: &'a Pair,
+    axis: &'a TimeAxis,
+    opt: &'a RenderOptions,
+    out: &'a mut [f64],
+}
+
+impl crate::simd::Work for RenderPair<'_> {
+    type Output = ();
+
+    #[inline(always)]
+    fn run(self) {
+        self.out.iter_mut().for_each(|o| *o = 0.0);
+        for k in self.kernels {
+            if let Some(e) = evaluate(k, self.pair, self.axis, self.opt) {
+                e.accumulate(self.axis, self.out);
+            }
         }
     }
 }

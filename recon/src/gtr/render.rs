@@ -7,9 +7,9 @@
 //! depend on the thread count, so results are bit-identical however many threads run.
 use rayon::prelude::*;
 
-use super::kernel::{Kernel, PhysicalGrad, RenderOptions, evaluate, render_pair};
+use super::kernel::{Evaluation, Kernel, PhysicalGrad, RenderOptions, evaluate, render_pair};
 use super::model::{GaussianCloud, RawGrads};
-use crate::transient::TransientSet;
+use crate::transient::{Pair, TransientSet};
 
 /// Primitives per parallel work item in a training step.
 const CHUNK: usize = 512;
@@ -39,29 +39,83 @@ pub fn batch_loss(
 }
 
 fn forward_batch(kernels: &[Kernel], set: &TransientSet, batch: &[usize], opt: &RenderOptions) -> Vec<f64> {
-    let axis = set.axis();
-    let bins = axis.bins;
-    let partial: Vec<Vec<f64>> = kernels
+    forward_chunks(kernels, set, batch, opt, false).0
+}
+
+/// Renders the batch chunk by chunk (see the module comment) and sums the chunks.
+/// With `keep`, also returns each chunk's evaluations, `batch.len()` per primitive
+/// (primitive-major), for the backward pass to reuse instead of recomputing them.
+fn forward_chunks(
+    kernels: &[Kernel],
+    set: &TransientSet,
+    batch: &[usize],
+    opt: &RenderOptions,
+    keep: bool,
+) -> (Vec<f64>, Vec<Vec<Option<Evaluation>>>) {
+    let bins = set.axis().bins;
+    let partial: Vec<(Vec<f64>, Vec<Option<Evaluation>>)> = kernels
         .par_chunks(CHUNK)
         .map(|chunk| {
-            let mut local = vec![0.0; bins * batch.len()];
-            for (slot, &p) in batch.iter().enumerate() {
-                let pair = &set.pairs()[p];
-                let out = &mut local[slot * bins..(slot + 1) * bins];
-                for k in chunk {
-                    if let Some(e) = evaluate(k, pair, axis, opt) {
-                        e.accumulate(axis, out);
-                    }
-                }
-            }
-            local
+            crate::simd::dispatch(ForwardChunk {
+                chunk,
+                set,
+                batch,
+                opt,
+                keep,
+            })
         })
         .collect();
     let mut total = vec![0.0; bins * batch.len()];
-    for part in &partial {
-        total.iter_mut().zip(part).for_each(|(t, p)| *t += p);
+    let mut kept = Vec::with_capacity(partial.len());
+    for (part, evals) in partial {
+        total.iter_mut().zip(&part).for_each(|(t, p)| *t += p);
+        kept.push(evals);
     }
-    total
+    (total, kept)
+}
+
+/// One chunk of primitives rendered into a batch-sized buffer.
+struct ForwardChunk<'a> {
+    chunk: &'a [Kernel],
+    set: &'a TransientSet,
+    batch: &'a [usize],
+    opt: &'a RenderOptions,
+    keep: bool,
+}
+
+impl crate::simd::Work for ForwardChunk<'_> {
+    type Output = (Vec<f64>, Vec<Option<Evaluation>>);
+
+    #[inline(always)]
+    fn run(self) -> Self::Output {
+        let Self {
+            chunk,
+            set,
+            batch,
+            opt,
+            keep,
+        } = self;
+        let axis = set.axis();
+        let bins = axis.bins;
+        let b = batch.len();
+        let mut local = vec![0.0; bins * b];
+        let mut evals = Vec::with_capacity(if keep { chunk.len() * b } else { 0 });
+        let pairs: Vec<&Pair> = batch.iter().map(|&p| &set.pairs()[p]).collect();
+        // Primitive-major: the batch's histograms (a few KiB) stay in L1, and the
+        // evaluations are kept in the order the backward pass reads them.
+        for k in chunk {
+            for (out, pair) in local.chunks_exact_mut(bins).zip(&pairs) {
+                let e = evaluate(k, pair, axis, opt);
+                if let Some(e) = &e {
+                    e.accumulate(axis, out);
+                }
+                if keep {
+                    evals.push(e);
+                }
+            }
+        }
+        (local, evals)
+    }
 }
 
 /// The loss and ∂L/∂τ̂ for a rendered batch.
@@ -104,42 +158,90 @@ pub fn batch_loss_grad(
         grads.albedo.fill(0.0);
         return 0.0;
     }
-    let rendered = forward_batch(kernels, set, batch, opt);
+    let (rendered, evals) = forward_chunks(kernels, set, batch, opt, true);
     let (loss, dl) = residuals(&rendered, set, batch);
-    let axis = set.axis();
-    let bins = axis.bins;
     grads
         .centres
         .par_chunks_mut(3 * CHUNK)
         .zip(grads.scales.par_chunks_mut(3 * CHUNK))
         .zip(grads.rotations.par_chunks_mut(4 * CHUNK))
         .zip(grads.albedo.par_chunks_mut(CHUNK))
+        .zip(evals.par_iter())
         .enumerate()
-        .for_each(|(c, (((gc, gs), gr), ga))| {
-            for (i, k) in (c * CHUNK..(c * CHUNK + ga.len())).enumerate() {
-                let kernel = &kernels[k];
-                let mut g = PhysicalGrad::default();
-                for (slot, &p) in batch.iter().enumerate() {
-                    let pair = &set.pairs()[p];
-                    if let Some(e) = evaluate(kernel, pair, axis, opt) {
-                        e.backward(
-                            kernel,
-                            pair,
-                            axis,
-                            opt,
-                            &dl[slot * bins..(slot + 1) * bins],
-                            &mut g,
-                        );
-                    }
-                }
-                ga[i] = cloud.chain(
-                    k,
-                    &g,
-                    &mut gc[3 * i..3 * i + 3],
-                    &mut gs[3 * i..3 * i + 3],
-                    &mut gr[4 * i..4 * i + 4],
-                );
-            }
+        .for_each(|(c, ((((gc, gs), gr), ga), evals))| {
+            crate::simd::dispatch(BackwardChunk {
+                first: c * CHUNK,
+                cloud,
+                kernels,
+                set,
+                batch,
+                opt,
+                dl: &dl,
+                evals,
+                out: (gc, gs, gr, ga),
+            });
         });
     loss
+}
+
+/// The backward pass of one chunk of primitives: each primitive's gradient over the
+/// batch, chained to its raw parameters and written in place.
+struct BackwardChunk<'a, 'g> {
+    first: usize,
+    cloud: &'a GaussianCloud,
+    kernels: &'a [Kernel],
+    set: &'a TransientSet,
+    batch: &'a [usize],
+    opt: &'a RenderOptions,
+    dl: &'a [f64],
+    /// The chunk's evaluations from the forward pass, `batch.len()` per primitive.
+    evals: &'a [Option<Evaluation>],
+    /// Raw gradients of the chunk: centres, scales, rotations, albedo.
+    out: (&'g mut [f64], &'g mut [f64], &'g mut [f64], &'g mut [f64]),
+}
+
+impl crate::simd::Work for BackwardChunk<'_, '_> {
+    type Output = ();
+
+    #[inline(always)]
+    fn run(self) {
+        let Self {
+            first,
+            cloud,
+            kernels,
+            set,
+            batch,
+            opt,
+            dl,
+            evals,
+            out: (gc, gs, gr, ga),
+        } = self;
+        let axis = set.axis();
+        let bins = axis.bins;
+        let b = batch.len();
+        for i in 0..ga.len() {
+            let k = first + i;
+            let kernel = &kernels[k];
+            let mut g = PhysicalGrad::default();
+            for (slot, &p) in batch.iter().enumerate() {
+                if let Some(e) = &evals[i * b + slot] {
+                    e.backward(
+                        kernel,
+                        &set.pairs()[p],
+                        axis,
+                        opt,
+                        &dl[slot * bins..(slot + 1) * bins],
+                        &mut g,
+                    );
+                }
+            }
+            ga[i] = cloud.chain(
+                k,
+                &g,
+                &mut gc[3 * i..3 * i + 3],
+                &mut gs[3 * i..3 * i + 3],
+                &mut gr[4 * i..4 * i + 4],
+            );
+        }
+    }
 }
