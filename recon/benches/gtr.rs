@@ -5,13 +5,14 @@
 //! Timed: one forward render of all pairs; one training epoch (forward + backward +
 //! AdamW over shuffled mini-batches of 4 pairs, kernels refreshed every step).
 //! Not timed: building the scene and the synthetic measurements, the gain matching.
-//! Reports the median of the repetitions, Gaussian-pair evaluations per second, and
-//! the process's peak resident memory. `GTR_BENCH_PAIRS` / `GTR_BENCH_K` shrink the
+//! Reports the median of the repetitions, Gaussian-pair evaluations per second, the
+//! arithmetic rate (operations counted in the source) as a share of the 2-core f32 FMA
+//! peak, and the process's peak resident memory. `GTR_BENCH_PAIRS` / `GTR_BENCH_K` shrink the
 //! workload for quick looks; the defaults are the paper-scale numbers.
 use std::time::Instant;
 
 mod support;
-use support::{median, peak_rss_mib};
+use support::{median, peak_rss_mib, peak_share};
 
 use glam::{DQuat, DVec3};
 use periscope_recon::gtr::{
@@ -82,6 +83,30 @@ fn main() {
         axis.width * 1e3
     );
 
+    // The work per evaluation: bins in the window, and how many take the midpoint
+    // series (kernels at least two bins wide) rather than the Φ table.
+    let (mut bins_wide, mut bins_table, mut evaluated) = (0usize, 0usize, 0usize);
+    for pair in geometry.pairs().iter().step_by(40) {
+        for k in kernels.iter().step_by(10) {
+            if let Some(e) = periscope_recon::gtr::kernel::evaluate(k, pair, &axis, &opt) {
+                evaluated += 1;
+                if axis.width / e.sigma <= periscope_recon::gtr::kernel::WIDE_DZ {
+                    bins_wide += e.hi - e.lo;
+                } else {
+                    bins_table += e.hi - e.lo;
+                }
+            }
+        }
+    }
+    let per_eval = |n: usize| n as f64 / evaluated.max(1) as f64;
+    let (wide, table) = (per_eval(bins_wide), per_eval(bins_table));
+    println!("bins per evaluation: {wide:.1} by the midpoint series, {table:.1} by the Φ table");
+    // Operations per evaluation counted in the source (a multiply-add counts two):
+    // geometry 120 forward and 200 more backward; per bin 15 (series) or 14 (table)
+    // forward, 37 or 29 backward.
+    let forward_flops = 120.0 + 15.0 * wide + 14.0 * table;
+    let backward_flops = 200.0 + 37.0 * wide + 29.0 * table;
+
     let reps = env("GTR_BENCH_REPS", 3);
     let mut times = Vec::new();
     let mut rendered = Vec::new();
@@ -93,8 +118,9 @@ fn main() {
     let forward = median(times);
     let evals = (n_pairs * k) as f64;
     println!(
-        "forward render, all pairs: median {forward:.3} s ({:.1} M Gaussian-pair evaluations/s)",
-        evals / forward / 1e6
+        "forward render, all pairs: median {forward:.3} s ({:.1} M Gaussian-pair evaluations/s; {})",
+        evals / forward / 1e6,
+        peak_share(evals * forward_flops, forward)
     );
 
     // Measurements: the rendering itself, perturbed, so the fit has real residuals.
@@ -129,8 +155,9 @@ fn main() {
     }
     let gradient = median(times);
     println!(
-        "loss gradient, all mini-batches of 4 (no optimiser): median {gradient:.3} s ({:.1} M Gaussian-pair forward+backward evaluations/s)",
-        evals / gradient / 1e6
+        "loss gradient, all mini-batches of 4 (no optimiser): median {gradient:.3} s ({:.1} M Gaussian-pair forward+backward evaluations/s; {})",
+        evals / gradient / 1e6,
+        peak_share(evals * (forward_flops + backward_flops), gradient)
     );
     let mut trainer = Trainer::new(config, roi, data).unwrap();
     let cancel = CancelToken::new();
@@ -142,8 +169,9 @@ fn main() {
     }
     let epoch = median(times);
     println!(
-        "training epoch (batch 4, forward + backward + AdamW): median {epoch:.3} s ({:.1} M Gaussian-pair forward+backward evaluations/s)",
-        evals / epoch / 1e6
+        "training epoch (batch 4, forward + backward + AdamW): median {epoch:.3} s ({:.1} M Gaussian-pair forward+backward evaluations/s; {})",
+        evals / epoch / 1e6,
+        peak_share(evals * (forward_flops + backward_flops), epoch)
     );
     println!(
         "threads: {}, peak resident memory: {:.0} MiB",

@@ -169,16 +169,86 @@ impl Evaluation {
     /// Adds the primitive's contribution to `out` (the full histogram of the pair).
     #[inline(always)]
     pub fn accumulate(&self, axis: &TimeAxis, out: &mut [f64]) {
-        let table = &*NORMAL;
         let inv = 1.0 / self.sigma;
         let z0 = (axis.edge(self.lo as isize) - self.mu) * inv;
         let dz = axis.width * inv;
+        let out = &mut out[self.lo..self.hi];
+        if let Some(series) = WideSeries::new(z0, dz) {
+            let scale = self.amplitude * dz;
+            let WideSeries {
+                mut m,
+                mut phi,
+                mut rho,
+                q,
+                ..
+            } = series;
+            for o in out {
+                *o = (scale * phi).mul_add(series.poly(m * m), *o);
+                phi *= rho;
+                rho *= q;
+                m += dz;
+            }
+            return;
+        }
+        let table = &*NORMAL;
         let mut prev = table.cdf(z0);
-        for (i, o) in out[self.lo..self.hi].iter_mut().enumerate() {
+        for (i, o) in out.iter_mut().enumerate() {
             let next = table.cdf(z0 + (i + 1) as f64 * dz);
             *o = self.amplitude.mul_add(next - prev, *o);
             prev = next;
         }
+    }
+
+    /// `Σ_b dl_b ΔΦ_b`, `Σ_b dl_b ∂ΔΦ_b/∂m_b` and `Σ_b dl_b (m ∂/∂m + dz ∂/∂dz) ΔΦ_b`
+    /// over the window, where `ΔΦ_b` is the rendered bin mass (a function of the bin's
+    /// centre `m_b = (centre_b − μ)/σ` and width `dz = width/σ`). The second and third
+    /// are `−σ ∂/∂μ` and `−σ ∂/∂σ` of the first, so the gradient is that of the values
+    /// [`Evaluation::accumulate`] renders, on either path.
+    #[inline(always)]
+    fn sums(&self, axis: &TimeAxis, dl: &[f64]) -> (f64, f64, f64) {
+        let inv = 1.0 / self.sigma;
+        let z0 = (axis.edge(self.lo as isize) - self.mu) * inv;
+        let dz = axis.width * inv;
+        let dl = &dl[self.lo..self.hi];
+        let (mut s_cdf, mut s_pdf, mut s_zpdf) = (0.0, 0.0, 0.0);
+        if let Some(series) = WideSeries::new(z0, dz) {
+            let WideSeries {
+                mut m,
+                mut phi,
+                mut rho,
+                q,
+                ..
+            } = series;
+            for &r in dl {
+                let (p, dp_dm, dz_dp_ddz) = series.poly_and_slopes(m, m * m);
+                // ΔΦ = dz φ(m) P; ∂ΔΦ/∂m = dz φ (P' − m P); dz ∂ΔΦ/∂dz = dz φ (P + dz ∂P/∂dz).
+                let f = r * dz * phi;
+                s_cdf = f.mul_add(p, s_cdf);
+                let d_m = dp_dm - m * p;
+                s_pdf = f.mul_add(d_m, s_pdf);
+                s_zpdf = f.mul_add(m.mul_add(d_m, p + dz_dp_ddz), s_zpdf);
+                phi *= rho;
+                rho *= q;
+                m += dz;
+            }
+            return (s_cdf, s_pdf, s_zpdf);
+        }
+        // Table path: ΔΦ_b = Φ(z_{b+1}) − Φ(z_b); shifting every z by m gives the
+        // differences of φ at the edges, and −σ ∂/∂σ those of zφ (φ the slope of the
+        // tabulated Φ).
+        let table = &*NORMAL;
+        let (mut c0, mut p0) = table.cdf_and_slope(z0);
+        let mut zp0 = z0 * p0;
+        for (i, &r) in dl.iter().enumerate() {
+            let z1 = z0 + (i + 1) as f64 * dz;
+            let (c1, p1) = table.cdf_and_slope(z1);
+            let zp1 = z1 * p1;
+            s_cdf = r.mul_add(c1 - c0, s_cdf);
+            s_pdf = r.mul_add(p1 - p0, s_pdf);
+            s_zpdf = r.mul_add(zp1 - zp0, s_zpdf);
+            (c0, p0, zp0) = (c1, p1, zp1);
+        }
+        (s_cdf, s_pdf, s_zpdf)
     }
 
     /// Given `dl = ∂loss/∂τ̂` for the pair's bins, adds the gradient with respect to the
@@ -193,24 +263,8 @@ impl Evaluation {
         dl: &[f64],
         grad: &mut PhysicalGrad,
     ) {
-        let table = &*NORMAL;
         let inv = 1.0 / self.sigma;
-        // Σ_b dl_b ΔΦ_b, Σ_b dl_b Δφ_b and Σ_b dl_b Δ(zφ)_b over the window, with φ the
-        // slope of the tabulated Φ so the gradient is that of the rendered values.
-        let (mut s_cdf, mut s_pdf, mut s_zpdf) = (0.0, 0.0, 0.0);
-        let z0 = (axis.edge(self.lo as isize) - self.mu) * inv;
-        let dz = axis.width * inv;
-        let (mut c0, mut p0) = table.cdf_and_slope(z0);
-        let mut zp0 = z0 * p0;
-        for (i, &r) in dl[self.lo..self.hi].iter().enumerate() {
-            let z1 = z0 + (i + 1) as f64 * dz;
-            let (c1, p1) = table.cdf_and_slope(z1);
-            let zp1 = z1 * p1;
-            s_cdf = r.mul_add(c1 - c0, s_cdf);
-            s_pdf = r.mul_add(p1 - p0, s_pdf);
-            s_zpdf = r.mul_add(zp1 - zp0, s_zpdf);
-            (c0, p0, zp0) = (c1, p1, zp1);
-        }
+        let (s_cdf, s_pdf, s_zpdf) = self.sums(axis, dl);
         let amp = self.amplitude;
         let g_amp = s_cdf; // ∂L/∂A
         let g_mu = -amp * s_pdf * inv; // ∂L/∂μ
@@ -263,6 +317,73 @@ impl Evaluation {
         let g_dd = -2.0 * g_amp * amp / self.dd + g_mu;
         grad.x += g_di * self.ui + (g_ui - self.ui.dot(g_ui) * self.ui) / self.di;
         grad.x += g_dd * self.ud + (g_ud - self.ud.dot(g_ud) * self.ud) / self.dd;
+    }
+}
+
+/// Below this bin width in σ (a kernel at least two bins wide), bins are integrated by
+/// the midpoint series instead of differences of the tabulated Φ.
+pub const WIDE_DZ: f64 = 0.5;
+
+/// The bin masses of a Gaussian at least two bins wide, without a table: the integral
+/// of φ over a bin of width `dz` centred on `m` is
+/// `dz φ(m) [1 + dz² He₂(m)/24 + dz⁴ He₄(m)/1920 + …]` (He the Hermite polynomials),
+/// kept to the `dz⁴` term; φ at consecutive centres follows the recurrence
+/// `φ(m + dz) = φ(m) ρ`, `ρ ← ρ e^{−dz²}`, two multiplies a bin.
+///
+/// The first dropped term is `dz⁶ He₆(m)/322560`: for `dz ≤ 0.5` and `|m| ≤ 4` it is
+/// below 5e-5 of the bin's own mass in the outermost bins and 1e-6 at the peak, and
+/// the bins' total stays within 2e-7 of the exact Φ differences (tested against
+/// `erfc`). The recurrence adds about one rounding a bin (1e-14 over a window).
+struct WideSeries {
+    /// The first bin's centre, in σ.
+    m: f64,
+    /// φ(m), the ratio to the next bin's φ, and the ratio between consecutive ratios.
+    phi: f64,
+    rho: f64,
+    q: f64,
+    /// `dz²/24` and `dz⁴/1920`.
+    a: f64,
+    b: f64,
+}
+
+impl WideSeries {
+    /// The series from the first edge `z0`, or `None` when the bins are too wide for
+    /// it (or the window reaches beyond where φ is representable: |m| > 30).
+    #[inline(always)]
+    fn new(z0: f64, dz: f64) -> Option<Self> {
+        let m = z0 + 0.5 * dz;
+        if !(dz <= WIDE_DZ) || !(m.abs() < 30.0) {
+            return None;
+        }
+        let dz2 = dz * dz;
+        Some(Self {
+            m,
+            phi: crate::special::norm_pdf(m),
+            rho: (-m * dz - 0.5 * dz2).exp(),
+            q: (-dz2).exp(),
+            a: dz2 / 24.0,
+            b: dz2 * dz2 / 1920.0,
+        })
+    }
+
+    /// `P(m) = 1 + a He₂ + b He₄` with `He₂ = m² − 1`, `He₄ = m⁴ − 6m² + 3`.
+    #[inline(always)]
+    fn poly(&self, m2: f64) -> f64 {
+        let he2 = m2 - 1.0;
+        let he4 = m2.mul_add(m2 - 6.0, 3.0);
+        self.b.mul_add(he4, self.a.mul_add(he2, 1.0))
+    }
+
+    /// `P`, `∂P/∂m` and `dz ∂P/∂dz` (`a ∝ dz²`, `b ∝ dz⁴`).
+    #[inline(always)]
+    fn poly_and_slopes(&self, m: f64, m2: f64) -> (f64, f64, f64) {
+        let he2 = m2 - 1.0;
+        let he4 = m2.mul_add(m2 - 6.0, 3.0);
+        let p = self.b.mul_add(he4, self.a.mul_add(he2, 1.0));
+        // He₂' = 2m, He₄' = 4m³ − 12m.
+        let dp_dm = m * (2.0 * self.a + self.b * (4.0 * m2 - 12.0));
+        let dz_dp_ddz = 2.0 * self.a * he2 + 4.0 * self.b * he4;
+        (p, dp_dm, dz_dp_ddz)
     }
 }
 
@@ -327,5 +448,83 @@ impl crate::simd::Work for RenderPair<'_> {
                 e.accumulate(self.axis, self.out);
             }
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::special::norm_cdf;
+
+    /// An evaluation with only what `accumulate` reads set: unit amplitude, mean `mu`,
+    /// spread `sigma`, window ±`reach` σ on `axis`.
+    fn window(axis: &TimeAxis, mu: f64, sigma: f64, reach: f64) -> Evaluation {
+        let lo = ((mu - reach * sigma - axis.start) / axis.width).floor().max(0.0) as usize;
+        let hi = (((mu + reach * sigma - axis.start) / axis.width).ceil() as usize).min(axis.bins);
+        Evaluation {
+            di: 1.0,
+            dd: 1.0,
+            ui: DVec3::Z,
+            ud: DVec3::Z,
+            wi: DVec3::Z,
+            wd: DVec3::Z,
+            wv: DVec3::Z,
+            gi: 1.0,
+            gd: 1.0,
+            ai: 1.0,
+            ad: 1.0,
+            base: 1.0,
+            amplitude: 1.0,
+            mu,
+            sigma,
+            lo,
+            hi,
+        }
+    }
+
+    /// The midpoint series renders every bin within its stated bound of the exact
+    /// Φ differences (from `erfc`), for kernels from 2 to 100 bins wide at several
+    /// sub-bin offsets; the table path holds 1e-9 just above the switch-over.
+    #[test]
+    fn wide_kernels_match_the_exact_bin_masses() {
+        let axis = TimeAxis {
+            start: 0.0,
+            width: 0.01,
+            bins: 4000,
+        };
+        let mut worst_rel_peak: f64 = 0.0;
+        let mut worst_total: f64 = 0.0;
+        for dz in [0.01, 0.05, 0.2, 0.35, 0.5, 0.500001, 0.8] {
+            for offset in [0.0, 0.13, 0.5, 0.77] {
+                let sigma = axis.width / dz;
+                let mu = 20.0 + offset * axis.width;
+                let e = window(&axis, mu, sigma, 4.0);
+                let mut out = vec![0.0; axis.bins];
+                e.accumulate(&axis, &mut out);
+                let peak = out.iter().fold(0.0f64, |m, v| m.max(*v));
+                let mut total = 0.0;
+                for b in e.lo..e.hi {
+                    let exact = norm_cdf((axis.edge(b as isize + 1) - mu) / sigma)
+                        - norm_cdf((axis.edge(b as isize) - mu) / sigma);
+                    let err = (out[b] - exact).abs();
+                    total += out[b] - exact;
+                    let bound = if dz <= WIDE_DZ {
+                        // 5e-5 of the bin's own mass in the tails, 1e-6 of the peak.
+                        5e-5 * exact + 1e-6 * peak
+                    } else {
+                        1e-9
+                    };
+                    assert!(
+                        err <= bound,
+                        "dz {dz}, offset {offset}, bin {b}: {} vs exact {exact} (error {err:e}, bound {bound:e})",
+                        out[b]
+                    );
+                    worst_rel_peak = worst_rel_peak.max(err / peak);
+                }
+                worst_total = worst_total.max(total.abs());
+            }
+        }
+        assert!(worst_total < 2e-7, "total mass off by {worst_total:e}");
+        assert!(worst_rel_peak > 0.0);
     }
 }
