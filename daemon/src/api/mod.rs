@@ -151,13 +151,28 @@ impl From<ServiceError> for ApiError {
             ServiceError::UnknownRun(_) => (StatusCode::NOT_FOUND, "unknown-run"),
             ServiceError::Conflict(_) => (StatusCode::CONFLICT, "conflict"),
             ServiceError::InvalidPlan(_) => (StatusCode::UNPROCESSABLE_ENTITY, "invalid-plan"),
-            ServiceError::Storage(_) => (StatusCode::INTERNAL_SERVER_ERROR, "storage"),
-            ServiceError::Device(_) => (StatusCode::SERVICE_UNAVAILABLE, "device"),
+            ServiceError::Storage { .. }
+            | ServiceError::QueueFile { .. }
+            | ServiceError::RunFiles(_)
+            | ServiceError::Export { .. } => (StatusCode::INTERNAL_SERVER_ERROR, "storage"),
+            ServiceError::Prepare(p) => prepare_status(p),
             ServiceError::Config(_) => (StatusCode::INTERNAL_SERVER_ERROR, "config"),
             ServiceError::QueueFull(_) => (StatusCode::TOO_MANY_REQUESTS, "queue-full"),
             ServiceError::OverBudget(_) => (StatusCode::UNPROCESSABLE_ENTITY, "over-budget"),
         };
         ApiError::new(status, code, e.to_string())
+    }
+}
+
+/// The status of a failure to prepare a submitted run, by the pipeline's error kind:
+/// the plan's fault is 422, the instrument's 503, the daemon's storage 500.
+fn prepare_status(e: &crate::pipeline::PipelineError) -> (StatusCode, &'static str) {
+    use crate::pipeline::PipelineError as P;
+    match e {
+        P::Config(_) => (StatusCode::UNPROCESSABLE_ENTITY, "invalid-plan"),
+        P::Open(_) | P::Galvo(_) | P::Tdc(_) => (StatusCode::SERVICE_UNAVAILABLE, "device"),
+        P::Storage { .. } => (StatusCode::INTERNAL_SERVER_ERROR, "storage"),
+        _ => (StatusCode::INTERNAL_SERVER_ERROR, "internal"),
     }
 }
 
@@ -650,4 +665,73 @@ async fn file(
         }
     };
     response.map_err(|e| ApiError::new(StatusCode::INTERNAL_SERVER_ERROR, "internal", e.to_string()))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::pipeline::PipelineError;
+    use std::error::Error as _;
+    use std::path::PathBuf;
+
+    fn io(kind: std::io::ErrorKind) -> std::io::Error {
+        std::io::Error::new(kind, "disk says no")
+    }
+
+    /// A service error keeps its cause, and its HTTP status follows the cause's kind:
+    /// a failure to prepare a run is the plan's (422), the instrument's (503) or the
+    /// daemon's storage (500), not a blanket 500.
+    #[test]
+    fn service_errors_keep_their_cause_and_map_to_statuses_by_kind() {
+        let storage = ServiceError::Storage {
+            path: PathBuf::from("/runs/queue.json"),
+            source: io(std::io::ErrorKind::PermissionDenied),
+        };
+        assert!(storage.source().is_some(), "the io::Error is kept as the source");
+        let api = ApiError::from(storage);
+        assert_eq!(
+            (api.status, api.code),
+            (StatusCode::INTERNAL_SERVER_ERROR, "storage")
+        );
+        assert_eq!(api.message, "/runs/queue.json: disk says no");
+
+        let queue = ServiceError::QueueFile {
+            path: PathBuf::from("/runs/queue.json"),
+            source: serde_json::from_str::<Vec<String>>("{").unwrap_err(),
+        };
+        assert!(queue.source().is_some());
+        let api = ApiError::from(queue);
+        assert_eq!(api.code, "storage");
+        assert!(api.message.contains("fix or delete the file"), "{}", api.message);
+
+        let cases = [
+            (
+                PipelineError::Storage {
+                    path: PathBuf::from("/runs/x"),
+                    source: io(std::io::ErrorKind::StorageFull),
+                },
+                StatusCode::INTERNAL_SERVER_ERROR,
+                "storage",
+            ),
+            (
+                PipelineError::Open(crate::devices::OpenError::Usb {
+                    selector: "1234:5678".into(),
+                    why: "no such device".into(),
+                }),
+                StatusCode::SERVICE_UNAVAILABLE,
+                "device",
+            ),
+            (
+                PipelineError::Aborted(3),
+                StatusCode::INTERNAL_SERVER_ERROR,
+                "internal",
+            ),
+        ];
+        for (e, status, code) in cases {
+            let text = e.to_string();
+            let api = ApiError::from(ServiceError::Prepare(e));
+            assert_eq!((api.status, api.code), (status, code), "{text}");
+            assert_eq!(api.message, text, "the message is the cause's own");
+        }
+    }
 }

@@ -17,6 +17,9 @@ fn error_responses(codes: &[&str]) -> Value {
             }
             "429" => "the queue is full (`[api] max-queue`)",
             "503" => "the instrument could not be reached, or the stream or download cap is reached",
+            "500" => {
+                "a file under the runs directory could not be read or written (`storage`, the path named), or the instrument config is invalid"
+            }
             _ => "error",
         };
         m.insert(
@@ -107,7 +110,8 @@ pub fn openapi() -> Value {
                         "201": json_ok("queued; Location names the run", run_ref()),
                         "401": error_responses(&["401"])["401"], "403": error_responses(&["403"])["403"],
                         "413": error_responses(&["413"])["413"], "415": error_responses(&["415"])["415"],
-                        "422": error_responses(&["422"])["422"], "429": error_responses(&["429"])["429"]
+                        "422": error_responses(&["422"])["422"], "429": error_responses(&["429"])["429"],
+                        "500": error_responses(&["500"])["500"], "503": error_responses(&["503"])["503"]
                     }
                 },
                 "get": op("Every run, oldest first", false, ("200", json_ok("runs", json!({ "type": "array", "items": run_ref() }))), &[], &[])

@@ -74,7 +74,8 @@ pub struct RunStatus {
     pub files: Vec<String>,
 }
 
-/// Why a request on a run was refused.
+/// Why a request on a run was refused. Each variant keeps the error it came from, and
+/// the API's status code follows the kind (`api::ApiError::from`).
 #[derive(Debug, thiserror::Error)]
 pub enum ServiceError {
     /// No such run.
@@ -83,15 +84,46 @@ pub enum ServiceError {
     /// The request does not fit the run's state.
     #[error("{0}")]
     Conflict(String),
-    /// The plan is invalid.
-    #[error("{0}")]
-    InvalidPlan(String),
-    /// Storage failed.
-    #[error("{0}")]
-    Storage(String),
-    /// The instrument could not be reached.
-    #[error("{0}")]
-    Device(String),
+    /// The plan is invalid; the config error names the key and what it expects.
+    #[error(transparent)]
+    InvalidPlan(crate::config::ConfigError),
+    /// A file or directory under the runs directory could not be read or written.
+    #[error("{}: {source}", path.display())]
+    Storage {
+        /// The file or directory.
+        path: PathBuf,
+        /// What the filesystem said.
+        #[source]
+        source: std::io::Error,
+    },
+    /// `queue.json` is not a list of run ids.
+    #[error(
+        "{}: {source}; fix or delete the file (runs themselves are kept in their directories)",
+        path.display()
+    )]
+    QueueFile {
+        /// The queue file.
+        path: PathBuf,
+        /// Why it does not parse.
+        #[source]
+        source: serde_json::Error,
+    },
+    /// A run's stored files could not be loaded.
+    #[error(transparent)]
+    RunFiles(#[from] crate::run_dir::RunDirError),
+    /// Preparing a submitted run's directory failed; the pipeline's error kind decides
+    /// the status (a config error is the plan's fault, a storage error the daemon's).
+    #[error(transparent)]
+    Prepare(PipelineError),
+    /// A run's capture could not be exported as y-tal HDF5.
+    #[error("run {id}: capture export: {source}")]
+    Export {
+        /// The run.
+        id: String,
+        /// Why.
+        #[source]
+        source: crate::ytal::YtalError,
+    },
     /// The instrument config is invalid.
     #[error(transparent)]
     Config(#[from] crate::config::ConfigError),
@@ -101,6 +133,14 @@ pub enum ServiceError {
     /// The plan needs more memory or disk than the instrument's budget allows.
     #[error("{0}")]
     OverBudget(String),
+}
+
+impl ServiceError {
+    /// A storage error on `path`.
+    fn storage(path: impl Into<PathBuf>) -> impl FnOnce(std::io::Error) -> ServiceError {
+        let path = path.into();
+        move |source| ServiceError::Storage { path, source }
+    }
 }
 
 /// A run file to send: small ones in memory, the rest streamed from disk.
@@ -182,18 +222,14 @@ impl Service {
         let instrument = InstrumentConfig::from_source(&instrument_src)?;
         let rig = crate::devices::sim_rig(&instrument)?;
         let runs_dir = instrument.api.runs_dir.clone();
-        std::fs::create_dir_all(&runs_dir)
-            .map_err(|e| ServiceError::Storage(format!("runs directory {}: {e}", runs_dir.display())))?;
+        std::fs::create_dir_all(&runs_dir).map_err(ServiceError::storage(&runs_dir))?;
         let mut queue = VecDeque::new();
         let qpath = runs_dir.join(QUEUE_FILE);
         if qpath.is_file() {
-            let text = std::fs::read_to_string(&qpath)
-                .map_err(|e| ServiceError::Storage(format!("{}: {e}", qpath.display())))?;
-            let ids: Vec<String> = serde_json::from_str(&text).map_err(|e| {
-                ServiceError::Storage(format!(
-                    "{}: {e}; fix or delete the file (runs themselves are kept in their directories)",
-                    qpath.display()
-                ))
+            let text = std::fs::read_to_string(&qpath).map_err(ServiceError::storage(&qpath))?;
+            let ids: Vec<String> = serde_json::from_str(&text).map_err(|source| ServiceError::QueueFile {
+                path: qpath.clone(),
+                source,
             })?;
             for id in ids {
                 let dir = runs_dir.join(&id);
@@ -216,7 +252,7 @@ impl Service {
         // A run whose directory was made but whose place in queue.json was never saved
         // (the daemon stopped in between) is queued again rather than stranded.
         let mut orphans: Vec<String> = std::fs::read_dir(&runs_dir)
-            .map_err(|e| ServiceError::Storage(format!("runs directory {}: {e}", runs_dir.display())))?
+            .map_err(ServiceError::storage(&runs_dir))?
             .filter_map(Result::ok)
             .map(|e| e.file_name().to_string_lossy().into_owned())
             .filter(|id| !queue.contains(id))
@@ -349,7 +385,7 @@ impl Service {
             &path,
             serde_json::to_string_pretty(&ids).expect("serialises").as_bytes(),
         )
-        .map_err(|e| ServiceError::Storage(format!("{}: {e}", path.display())))
+        .map_err(ServiceError::storage(&path))
     }
 
     fn dir(&self, id: &str) -> Result<PathBuf, ServiceError> {
@@ -367,8 +403,7 @@ impl Service {
 
     fn info(&self, id: &str) -> Result<RunInfo, ServiceError> {
         let dir = self.dir(id)?;
-        RunInfo::load(&dir)
-            .map_err(|e| ServiceError::Storage(format!("{}: {e}", dir.join(file::RUN).display())))
+        RunInfo::load(&dir).map_err(ServiceError::storage(dir.join(file::RUN)))
     }
 
     fn set_state(&self, id: &str, state: RunState, error: Option<String>) -> Result<(), ServiceError> {
@@ -379,14 +414,13 @@ impl Service {
             info.error = error;
         }
         info.save(&dir)
-            .map_err(|e| ServiceError::Storage(format!("{}: {e}", dir.display())))
+            .map_err(ServiceError::storage(dir.join(file::RUN)))
     }
 
     /// Validates a plan (TOML text) and queues it. Returns the new run's status.
     pub fn submit(&self, text: String) -> Result<RunStatus, ServiceError> {
         let src = TomlSource::from_text("request body", text);
-        let plan = Plan::from_source(&src, &self.instrument)
-            .map_err(|e| ServiceError::InvalidPlan(e.to_string()))?;
+        let plan = Plan::from_source(&src, &self.instrument).map_err(ServiceError::InvalidPlan)?;
         crate::budget::Budget::of_plan(&plan)
             .check(&self.instrument.budget)
             .map_err(ServiceError::OverBudget)?;
@@ -418,11 +452,11 @@ impl Service {
     /// Makes a submitted plan's run directory; returns its id.
     fn admit(&self, src: &TomlSource, plan: &Plan) -> Result<String, ServiceError> {
         let dir = crate::store::new_run_dir(&self.runs_dir, &plan.name)
-            .map_err(|e| ServiceError::Storage(format!("{}: {e}", self.runs_dir.display())))?;
+            .map_err(ServiceError::storage(&self.runs_dir))?;
         let src = TomlSource::from_text(dir.join(file::PLAN), src.text().to_owned());
         pipeline::prepare(&src, &self.instrument_src, Some(&dir)).map_err(|e| match e {
-            PipelineError::Config(c) => ServiceError::InvalidPlan(c.to_string()),
-            other => ServiceError::Storage(other.to_string()),
+            PipelineError::Config(c) => ServiceError::InvalidPlan(c),
+            other => ServiceError::Prepare(other),
         })?;
         Ok(dir
             .file_name()
@@ -433,7 +467,7 @@ impl Service {
     /// Every run in the runs directory, oldest first.
     pub fn list(&self) -> Result<Vec<RunStatus>, ServiceError> {
         let mut ids: Vec<String> = std::fs::read_dir(&self.runs_dir)
-            .map_err(|e| ServiceError::Storage(format!("{}: {e}", self.runs_dir.display())))?
+            .map_err(ServiceError::storage(&self.runs_dir))?
             .filter_map(Result::ok)
             .filter(|e| RunDir::holds_run(&e.path()))
             .map(|e| e.file_name().to_string_lossy().into_owned())
@@ -797,18 +831,14 @@ impl Service {
         if !fresh {
             let capture = crate::ytal::YtalCapture::from_run(dir)
                 .map_err(|e| ServiceError::Conflict(format!("run {id} has no capture to export yet: {e}")))?;
-            capture
-                .write(&cache)
-                .map_err(|e| ServiceError::Storage(format!("{id}: capture export: {e}")))?;
-            write_atomic(&stamp, key.as_bytes())
-                .map_err(|e| ServiceError::Storage(format!("{}: {e}", stamp.display())))?;
+            capture.write(&cache).map_err(|source| ServiceError::Export {
+                id: id.to_owned(),
+                source,
+            })?;
+            write_atomic(&stamp, key.as_bytes()).map_err(ServiceError::storage(&stamp))?;
         }
-        let file = std::fs::File::open(&cache)
-            .map_err(|e| ServiceError::Storage(format!("{}: {e}", cache.display())))?;
-        let len = file
-            .metadata()
-            .map_err(|e| ServiceError::Storage(format!("{}: {e}", cache.display())))?
-            .len();
+        let file = std::fs::File::open(&cache).map_err(ServiceError::storage(&cache))?;
+        let len = file.metadata().map_err(ServiceError::storage(&cache))?.len();
         Ok(Download::File(file, len))
     }
 
@@ -816,8 +846,7 @@ impl Service {
     /// invalid plan is refused with the same message `submit` would give.
     pub fn check(&self, text: String) -> Result<crate::check::Check, ServiceError> {
         let src = TomlSource::from_text("request body", text);
-        let plan = Plan::from_source(&src, &self.instrument)
-            .map_err(|e| ServiceError::InvalidPlan(e.to_string()))?;
+        let plan = Plan::from_source(&src, &self.instrument).map_err(ServiceError::InvalidPlan)?;
         Ok(crate::check::check(&plan, &self.instrument))
     }
 
@@ -827,7 +856,7 @@ impl Service {
     /// run has not made yet are empty.
     pub fn geometry(&self, id: &str) -> Result<serde_json::Value, ServiceError> {
         let dir = self.dir(id)?;
-        let storage = |e: crate::run_dir::RunDirError| ServiceError::Storage(e.to_string());
+        let storage = ServiceError::RunFiles;
         let run = RunDir::new(&dir);
         let (_, plan, inst) = run.load().map_err(storage)?;
         let relay: Vec<[f64; 3]> = run
@@ -1074,8 +1103,7 @@ fn hold_interrupted(dir: &Path, id: &str, info: &mut RunInfo) -> Result<(), Serv
         "interrupted: the daemon stopped during stage {}; POST /api/v1/runs/{id}/resume continues it",
         info.stage
     ));
-    info.save(dir)
-        .map_err(|e| ServiceError::Storage(format!("{}: {e}", dir.display())))
+    info.save(dir).map_err(ServiceError::storage(dir.join(file::RUN)))
 }
 
 /// How long an e-stop waits for a running run to reach its checkpoint (and park)
