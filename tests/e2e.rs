@@ -144,16 +144,59 @@ fn s_shaped_relay_letter_matches_the_truth() {
     a.assert_within(1.5e-3, 4e-3, 0.79);
 }
 
+/// The two-torso scene is judged on the median of three fits: the live one (seed 0)
+/// and offline refits of the same capture with seeds 1 and 2. Its fit is chaotic: a
+/// change in rounding alone (fused multiply-adds, a bin integral exact to 1e-6) moved
+/// the seed-0 IoU between 0.52 and 0.59, and seeds 0–5 of one capture span 0.54–0.60,
+/// so a single run's IoU says more about the trajectory than about the method.
 #[test]
 fn torso_pair_mannequin_matches_the_truth() {
-    let a = run_and_score(
-        "configs/plans/torsos-mannequin.toml",
-        "configs/instrument/sim-torsos-mannequin.toml",
-        "configs/scenes/torsos-mannequin.toml",
-        [-0.5, 0.5],
-        [-0.6, 0.6],
+    const PLAN: &str = "configs/plans/torsos-mannequin.toml";
+    const SCENE: &str = "configs/scenes/torsos-mannequin.toml";
+    let (x, y) = ([-0.5, 0.5], [-0.6, 0.6]);
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("run");
+    run(PLAN, Some("configs/instrument/sim-torsos-mannequin.toml"), &out);
+    let mut fits = vec![accuracy(&out, SCENE, x, y, [64, 64])];
+    for seed in [1, 2] {
+        let config = dir.path().join(format!("recon-{seed}.toml"));
+        std::fs::write(&config, recon_settings(PLAN, seed)).unwrap();
+        let refit = dir.path().join(format!("seed-{seed}"));
+        let args = [
+            "recon",
+            out.to_str().unwrap(),
+            "--config",
+            config.to_str().unwrap(),
+            "--out",
+            refit.to_str().unwrap(),
+        ];
+        let done = periscope_with_limit(&args, Duration::from_secs(600));
+        assert_eq!(
+            done.code,
+            Some(0),
+            "refit with seed {seed} failed:\n{}",
+            done.stderr
+        );
+        fits.push(accuracy(&refit, SCENE, x, y, [64, 64]));
+    }
+    eprintln!("{PLAN}, seeds 0, 1, 2: {fits:?}");
+    assert!(
+        fits[0].object_pixels > 50,
+        "the truth has the object: {:?}",
+        fits[0]
     );
-    a.assert_within(6e-3, 28e-3, 0.525);
+    fits.sort_by(|a, b| a.iou.total_cmp(&b.iou));
+    fits[1].assert_within(6e-3, 28e-3, 0.525);
+}
+
+/// A plan's `[recon]` section as a RECON.toml for `periscope recon`, with the fit's
+/// seed set (the section must be the plan's last).
+fn recon_settings(plan: &str, seed: u64) -> String {
+    let text = std::fs::read_to_string(repo_path(plan)).unwrap();
+    let at = text.find("\n[recon]\n").expect("the plan has a [recon] section");
+    let recon = text[at + "\n[recon]\n".len()..].replace("[recon.", "[");
+    assert!(recon.contains("\n[gtr]\n"), "the plan has a [recon.gtr] table");
+    recon.replacen("\n[gtr]\n", &format!("\n[gtr]\nseed = {seed}\n"), 1)
 }
 
 /// The scene and footprint the hand tools below score against: `PERISCOPE_SCENE`
