@@ -2,7 +2,7 @@
 //!
 //! The renderer, the synthesis and FBP are written as plain loops over slices that
 //! LLVM vectorises. Built for the baseline x86-64 target, that code gets SSE2 only:
-//! no FMA, no 256-bit vectors, and `floor` is a libm call. [`dispatch`] runs a function
+//! no FMA, no 256-bit vectors, and `floor` is a libm call. `dispatch` runs a function
 //! inside a function compiled with AVX2 and FMA enabled when the CPU has them (checked
 //! once, at run time, by `pulp`), so everything inlined into it is vectorised for the
 //! machine it runs on; elsewhere it runs the same function as compiled for the baseline.
@@ -11,9 +11,10 @@
 //!
 //! Functions called from inside it are compiled for the wider target only if
 //! they are inlined into it, hence `#[inline(always)]` on the kernels' inner loops.
-//! The arithmetic is the same in both builds (no fused multiply-add is introduced by
-//! the compiler on its own; `mul_add` is not used), so results do not depend on the
-//! CPU.
+//! The arithmetic is the same in both builds, so results do not depend on the CPU: the
+//! compiler never fuses a multiply and an add on its own, and where the kernels ask
+//! for one (`mul_add`) the baseline build calls the correctly rounded software `fma`,
+//! which gives the same bits as the instruction (slower, on CPUs without FMA only).
 use std::sync::LazyLock;
 
 static ARCH: LazyLock<pulp::Arch> = LazyLock::new(pulp::Arch::new);
@@ -44,7 +45,7 @@ pub(crate) fn dispatch<W: Work>(work: W) -> W::Output {
     ARCH.dispatch(Op(work))
 }
 
-/// The SIMD level [`dispatch`] runs at on this machine, for benchmarks and logs.
+/// The SIMD level the hot loops run at on this machine, for benchmarks and logs.
 pub fn level() -> &'static str {
     #[cfg(target_arch = "x86_64")]
     {
