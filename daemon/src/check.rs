@@ -157,7 +157,7 @@ pub fn check(plan: &Plan, inst: &InstrumentConfig) -> Check {
             format!(
                 " (K = {}, {} epochs, virtual {}×{} confocal grid, then {})",
                 rc.train.primitives,
-                rc.train.epochs,
+                rc.train.counted_epochs(pairs),
                 rc.virtual_resolution[0],
                 rc.virtual_resolution[1],
                 rc.solver
@@ -187,7 +187,7 @@ pub fn check(plan: &Plan, inst: &InstrumentConfig) -> Check {
     let cap_s = pairs as f64 * ((a.dwell.as_secs_f64() * f64::from(a.repeats) + settle) * scale + overhead);
     let recon_s = if rc.method == Method::Gtr {
         let k = rc.train.primitives as f64;
-        pairs as f64 * k * rc.train.epochs as f64 / GTR_EVALS_PER_S
+        pairs as f64 * k * rc.train.counted_epochs(pairs) as f64 / GTR_EVALS_PER_S
             + (rc.virtual_resolution[0] * rc.virtual_resolution[1]) as f64 * k / SYNTH_EVALS_PER_S
     } else {
         (v.len() as f64 * pairs as f64 / 4e8).max(1.0)

@@ -77,7 +77,7 @@ fn main() {
             seed: 1,
             schedule: Schedule {
                 warmup_steps: 20,
-                milestones: vec![4, 8],
+                milestones: vec![1.0 / 3.0, 2.0 / 3.0],
                 gamma: 0.3,
             },
             ..TrainConfig::default()

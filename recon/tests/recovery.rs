@@ -83,7 +83,7 @@ fn fit(set: TransientSet, seed: u64) -> (Vec<Primitive>, Vec<f64>) {
         batch_size: 4,
         schedule: Schedule {
             warmup_steps: 20,
-            milestones: vec![30, 45],
+            milestones: vec![0.5, 0.75],
             gamma: 0.3,
         },
         seed,

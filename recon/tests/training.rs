@@ -212,6 +212,44 @@ fn streamed_transients_are_fitted_and_counted_after_the_capture_ends() {
     assert!(matches!(events.last(), Some(TrainEvent::Pruned { .. })));
 }
 
+#[test]
+fn a_small_capture_gets_more_epochs_to_reach_the_minimum_steps() {
+    // 50 pairs in batches of 4 are 13 steps a pass: 2 epochs take 26 steps, so 60
+    // steps need 5 epochs; the full 120 pairs (30 steps a pass) need only the 2.
+    let cfg = TrainConfig {
+        min_steps: 60,
+        ..config(30, 2)
+    };
+    assert_eq!(cfg.counted_epochs(50), 5);
+    assert_eq!(cfg.counted_epochs(120), 2);
+    assert_eq!(
+        cfg.counted_epochs(0),
+        60,
+        "no data: one step a pass, never a division by 0"
+    );
+    assert_eq!(
+        config(30, 2).counted_epochs(50),
+        2,
+        "min_steps 0: exactly `epochs`"
+    );
+
+    let mut trainer = Trainer::new(cfg, roi(), data(50, 5)).unwrap();
+    let (mut seen, mut densified) = (Vec::new(), Vec::new());
+    let summary = trainer
+        .run(None, &CancelToken::new(), &mut |e| match e {
+            TrainEvent::Epoch { epoch, .. } => seen.push(*epoch),
+            TrainEvent::Densified { epoch, .. } => densified.push(*epoch),
+            _ => {}
+        })
+        .unwrap();
+    assert_eq!(summary.epochs, 5);
+    assert_eq!(trainer.steps(), 65);
+    assert_eq!(seen, vec![1, 2, 3, 4, 5]);
+    // A 2-epoch fit densifies once (after the first half); spread over 5 epochs that
+    // round falls after epoch 3 (⌊3·2/5⌋ = 1), not after each of epochs 1 and 2.
+    assert_eq!(densified, vec![3]);
+}
+
 /// Streams `all` in batches of 30 (the first given at the start), each sent after
 /// `delay`, into a fit on `threads` threads; returns the fitted cloud and the pairs seen
 /// by each live epoch.

@@ -97,8 +97,7 @@ pub(crate) struct RawVolume {
 struct RawGtr {
     #[serde(default = "default_primitives")]
     primitives: usize,
-    #[serde(default = "default_epochs")]
-    epochs: usize,
+    epochs: Option<usize>,
     #[serde(default = "default_batch")]
     batch: usize,
     #[serde(default = "default_lr_scale")]
@@ -120,7 +119,7 @@ impl Default for RawGtr {
     fn default() -> Self {
         RawGtr {
             primitives: default_primitives(),
-            epochs: default_epochs(),
+            epochs: None,
             batch: default_batch(),
             lr_scale: default_lr_scale(),
             seed: 0,
@@ -146,9 +145,12 @@ const MAX_EXTENT_M: f64 = 100.0;
 fn default_primitives() -> usize {
     2000
 }
-fn default_epochs() -> usize {
-    16
-}
+/// Counted epochs when the plan sets none: at least this many ...
+const DEFAULT_EPOCHS: usize = 16;
+/// ... and at least this many optimiser steps: 16 epochs of a 1,024-pair capture in
+/// batches of 4. A smaller capture gets more epochs; the fit's cost, which follows the
+/// steps, stays that of the larger one (docs/recon.md, "Training").
+const DEFAULT_MIN_STEPS: usize = 4096;
 fn default_batch() -> usize {
     4
 }
@@ -236,7 +238,9 @@ pub(crate) fn recon_settings(
     if !(1..=1_000_000).contains(&g.primitives) {
         return Err(src.invalid(&key("gtr.primitives"), "must be 1 to 1,000,000"));
     }
-    if !(1..=10_000).contains(&g.epochs) {
+    if let Some(epochs) = g.epochs
+        && !(1..=10_000).contains(&epochs)
+    {
         return Err(src.invalid(&key("gtr.epochs"), "must be 1 to 10,000"));
     }
     if !(1..=65_536).contains(&g.batch) {
@@ -282,7 +286,9 @@ pub(crate) fn recon_settings(
     let mut train = TrainConfig {
         primitives: g.primitives,
         init,
-        epochs: g.epochs,
+        // A plan's own `epochs` is exact; without one the steps decide.
+        epochs: g.epochs.unwrap_or(DEFAULT_EPOCHS),
+        min_steps: if g.epochs.is_some() { 0 } else { DEFAULT_MIN_STEPS },
         batch_size: g.batch,
         seed: g.seed,
         initial_scale: g.initial_scale,
@@ -297,8 +303,6 @@ pub(crate) fn recon_settings(
         },
         ..TrainConfig::default()
     };
-    let third = (g.epochs / 3).max(1);
-    train.schedule.milestones = vec![third, 2 * third];
     for group in [
         &mut train.adam.centres,
         &mut train.adam.scales,

@@ -59,8 +59,10 @@ impl Default for AdamWSettings {
 pub struct Schedule {
     /// Steps over which the rate rises linearly from 0 to its full value.
     pub warmup_steps: usize,
-    /// Epochs at which the rate is multiplied by `gamma`.
-    pub milestones: Vec<usize>,
+    /// Fractions of the counted epochs after which the rate is multiplied by `gamma`:
+    /// a fraction f takes effect from epoch ⌊f·epochs⌋ (at least 1), so `[1/3, 2/3]`
+    /// decays at epochs 5 and 10 of 16.
+    pub milestones: Vec<f64>,
     /// The decay factor at each milestone.
     pub gamma: f64,
 }
@@ -76,15 +78,26 @@ impl Default for Schedule {
 }
 
 impl Schedule {
-    /// The multiplier at optimiser step `step` (counted from 0) during epoch `epoch`.
-    pub fn factor(&self, step: usize, epoch: usize) -> f64 {
+    /// The multiplier at optimiser step `step` (counted from 0) during counted epoch
+    /// `epoch` of `epochs` (0 during the live epochs of a streamed fit).
+    pub fn factor(&self, step: usize, epoch: usize, epochs: usize) -> f64 {
         let warm = if self.warmup_steps == 0 {
             1.0
         } else {
             ((step + 1) as f64 / self.warmup_steps as f64).min(1.0)
         };
-        let passed = self.milestones.iter().filter(|&&m| epoch >= m).count();
+        let passed = self
+            .milestones
+            .iter()
+            .filter(|&&f| epoch >= Self::milestone_epoch(f, epochs))
+            .count();
         warm * self.gamma.powi(passed as i32)
+    }
+
+    /// The counted epoch from which the milestone at fraction `f` of `epochs` applies:
+    /// ⌊f·epochs⌋, at least 1 (the tiny slack keeps ⌊(1/3)·15⌋ at 5 despite rounding).
+    pub fn milestone_epoch(f: f64, epochs: usize) -> usize {
+        ((f * epochs as f64 + 1e-9).floor() as usize).max(1)
     }
 }
 
@@ -203,13 +216,29 @@ mod tests {
     fn schedule_warms_up_then_decays_at_milestones() {
         let s = Schedule {
             warmup_steps: 4,
-            milestones: vec![2, 5],
+            milestones: vec![0.2, 0.5],
             gamma: 0.1,
         };
-        assert_eq!(s.factor(0, 0), 0.25);
-        assert_eq!(s.factor(3, 0), 1.0);
-        assert_eq!(s.factor(100, 1), 1.0);
-        assert!((s.factor(100, 2) - 0.1).abs() < 1e-15);
-        assert!((s.factor(100, 7) - 0.01).abs() < 1e-15);
+        assert_eq!(s.factor(0, 0, 10), 0.25);
+        assert_eq!(s.factor(3, 0, 10), 1.0);
+        assert_eq!(s.factor(100, 1, 10), 1.0);
+        assert!((s.factor(100, 2, 10) - 0.1).abs() < 1e-15);
+        assert!((s.factor(100, 7, 10) - 0.01).abs() < 1e-15);
+        // The same fractions scale with the epochs: epoch 7 of 40 is before both.
+        assert_eq!(s.factor(100, 7, 40), 1.0);
+    }
+
+    #[test]
+    fn milestones_at_thirds_fall_on_whole_epochs() {
+        for (epochs, at) in [
+            (12, [4, 8]),
+            (15, [5, 10]),
+            (16, [5, 10]),
+            (3, [1, 2]),
+            (1, [1, 1]),
+        ] {
+            let got = [1.0 / 3.0, 2.0 / 3.0].map(|f| Schedule::milestone_epoch(f, epochs));
+            assert_eq!(got, at, "{epochs} epochs");
+        }
     }
 }

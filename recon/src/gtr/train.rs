@@ -4,10 +4,11 @@
 //! Streaming: [`Trainer::run`] takes an optional channel of new transients. While the
 //! channel is open (the capture is still running) the fit runs [`LIVE_EPOCHS_PER_BATCH`]
 //! "live" epochs on the data so far, then waits for the next batch; live epochs do not
-//! count towards `epochs`. Once the sender hangs up, exactly `epochs` more epochs run on
-//! the complete data. The schedule follows the data received, never the clock: the same
-//! batches in the same order give the same fit bit for bit, however fast they came
-//! (a fit that falls behind the capture works through its backlog after it).
+//! count towards `epochs`. Once the sender hangs up, the counted epochs
+//! ([`TrainConfig::counted_epochs`]) run on the complete data. The schedule follows the
+//! data received, never the clock: the same batches in the same order give the same fit
+//! bit for bit, however fast they came (a fit that falls behind the capture works
+//! through its backlog after it).
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::mpsc::Receiver;
@@ -61,7 +62,8 @@ impl Default for PruneSettings {
 /// as set (3DGS's split with relocation instead of growth, as in 3DGS-MCMC).
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct DensifySettings {
-    /// Densify after each counted epoch up to this fraction of the epochs (0: never).
+    /// Densify after each of the first `until` fraction of [`TrainConfig::epochs`]
+    /// (0: never); a fit with more counted epochs spreads the same rounds over them.
     pub until: f64,
     /// A primitive is dead when its weight ([`Primitive::weight`]) is below this fraction of the mean weight.
     pub dead_fraction: f64,
@@ -151,13 +153,17 @@ pub struct TrainConfig {
     pub initial_albedo: f64,
     /// Scale bounds; `None`: 0.5 mm to half the smallest ROI half extent.
     pub scale_bounds: Option<ScaleBounds>,
-    /// Counted epochs (after the input is complete).
+    /// Counted epochs (after the input is complete), at least.
     pub epochs: usize,
+    /// Optimiser steps the counted epochs take, at least: a capture with few pairs gets
+    /// more epochs, so that every fit takes about the same number of steps
+    /// ([`TrainConfig::counted_epochs`]). 0: exactly `epochs`.
+    pub min_steps: usize,
     /// Pairs per mini-batch.
     pub batch_size: usize,
     /// Optimiser settings per group.
     pub adam: AdamWSettings,
-    /// Learning-rate schedule (milestones in counted epochs).
+    /// Learning-rate schedule (milestones at fractions of the counted epochs).
     pub schedule: Schedule,
     /// Forward-model switches; its `gain` is replaced by the matched gain.
     pub render: RenderOptions,
@@ -169,6 +175,15 @@ pub struct TrainConfig {
     pub gain_pairs: usize,
     /// Seed of initialisation and shuffling.
     pub seed: u64,
+}
+
+impl TrainConfig {
+    /// The counted epochs of a fit on `pairs` transients: `epochs`, or more where that
+    /// many would take fewer than `min_steps` optimiser steps (⌈pairs / batch⌉ a pass).
+    pub fn counted_epochs(&self, pairs: usize) -> usize {
+        let per_epoch = pairs.div_ceil(self.batch_size.max(1)).max(1);
+        self.epochs.max(self.min_steps.div_ceil(per_epoch))
+    }
 }
 
 /// The shared initial scale when none is set: half the mean spacing of K primitives
@@ -198,13 +213,14 @@ impl Default for TrainConfig {
             initial_albedo: 1.0,
             scale_bounds: None,
             epochs: 12,
+            min_steps: 0,
             batch_size: 4,
             adam: AdamWSettings::default(),
             // Constant-rate Adam on batches of 4 noisy transients does not settle;
             // decaying at a third and two thirds of the epochs does (docs/recon.md).
             schedule: Schedule {
                 warmup_steps: 20,
-                milestones: vec![4, 8],
+                milestones: vec![1.0 / 3.0, 2.0 / 3.0],
                 gamma: 0.3,
             },
             render: RenderOptions::default(),
@@ -477,7 +493,11 @@ impl Trainer {
                 &self.options,
                 &mut self.grads,
             );
-            let factor = self.config.schedule.factor(self.step, self.epochs_done);
+            let factor = self.config.schedule.factor(
+                self.step,
+                self.epochs_done,
+                self.config.counted_epochs(self.data.len()),
+            );
             let skipped = self.adam.step(&mut self.cloud, &self.grads, factor);
             if skipped > 0 {
                 tracing::warn!(
@@ -505,8 +525,8 @@ impl Trainer {
             .for_each(|(k, out)| *out = cloud.kernel(k));
     }
 
-    /// Runs the fit to completion: live epochs while `feed` is open, then `epochs`
-    /// counted epochs, then pruning. Events go to `on_event`.
+    /// Runs the fit to completion: live epochs while `feed` is open, then the counted
+    /// epochs ([`TrainConfig::counted_epochs`]), then pruning. Events go to `on_event`.
     pub fn run(
         &mut self,
         feed: Option<Receiver<TransientSet>>,
@@ -555,7 +575,9 @@ impl Trainer {
                 });
                 announced = true;
             }
-            if feed.is_none() && self.epochs_done >= self.config.epochs {
+            // Fixed once the data is complete (no more arrives after the feed closes).
+            let epochs = self.config.counted_epochs(self.data.len());
+            if feed.is_none() && self.epochs_done >= epochs {
                 break;
             }
             let Some(loss) = self.epoch(cancel) else {
@@ -576,10 +598,7 @@ impl Trainer {
                 pairs: self.data.len(),
                 primitives: self.cloud.len(),
             });
-            if counted
-                && (self.epochs_done as f64) <= self.config.densify.until * self.config.epochs as f64
-                && self.epochs_done < self.config.epochs
-            {
+            if counted && self.densify_due(epochs) {
                 let moved = self.densify();
                 on_event(&TrainEvent::Densified {
                     epoch: self.epochs_done,
@@ -592,6 +611,24 @@ impl Trainer {
         let kept = self.prune();
         on_event(&TrainEvent::Pruned { before, kept });
         Ok(self.summary(final_loss, false))
+    }
+
+    /// Whether a round of densification follows counted epoch `epochs_done` of
+    /// `epochs`. The rounds are those of a fit of [`TrainConfig::epochs`] epochs, one
+    /// after each of its first `until` fraction, spread over the counted epochs: a fit
+    /// that takes more epochs because its capture is small
+    /// ([`TrainConfig::counted_epochs`]) densifies as often as one that does not, rather
+    /// than splitting its primitives into isolated dots (docs/recon.md, "Training").
+    fn densify_due(&self, epochs: usize) -> bool {
+        let done = self.epochs_done;
+        if done == 0 || done >= epochs {
+            return false;
+        }
+        let nominal = self.config.epochs.clamp(1, epochs);
+        // Nominal epochs completed after counted epoch e: ⌊e · nominal / epochs⌋.
+        let at = |e: usize| e * nominal / epochs;
+        let (now, before) = (at(done), at(done - 1));
+        now > before && (now as f64) <= self.config.densify.until * nominal as f64
     }
 
     /// The heaviest primitives as a [`TrainEvent::Snapshot`].
