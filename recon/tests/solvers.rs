@@ -157,6 +157,32 @@ fn rsd_finds_a_point_scatterer_confocal() {
 }
 
 #[test]
+fn rsd_confocal_default_wave_is_sharper_than_a_non_aliasing_one() {
+    // The default confocal wavelength is 2.5 pitches of path length (y-tal's setting),
+    // whose wave across the relay is λ/2; the former 4 pitches (no aliasing at any
+    // angle) images a point wider.
+    let set = confocal_point_set(axis());
+    let g = VolumeGrid::new([-0.4, 0.4], [-0.4, 0.4], [0.25, 0.75], [64, 64, 20]).unwrap();
+    let pitch = 1.0 / 32.0;
+    let default = rsd(&set, &g, &RsdSettings::default()).unwrap();
+    let long = RsdSettings {
+        wavelength: Some(4.0 * pitch),
+        ..RsdSettings::default()
+    };
+    let (d, l) = (
+        half_max_area(&default),
+        half_max_area(&rsd(&set, &g, &long).unwrap()),
+    );
+    eprintln!("half-maximum area: default {d} voxels, 4 pitches {l} voxels");
+    let (at, _) = default.argmax();
+    assert!(
+        (at - POINT).abs().max_element() <= pitch / 2.0,
+        "RSD confocal, default wavelength: peak at {at:?}, truth {POINT:?}"
+    );
+    assert!(d < l, "default {d} voxels, 4 pitches {l}");
+}
+
+#[test]
 fn rsd_finds_a_point_scatterer_non_confocal() {
     // Two laser spots, a 32 × 32 detection grid.
     let relay = wall(32);
