@@ -3,7 +3,8 @@
 //! curved relay with tilted and opposite-facing normals, confocal and not.
 use glam::{DQuat, DVec3};
 use periscope_recon::gtr::{
-    GaussianCloud, Primitive, RawGrads, RenderOptions, ScaleBounds, batch_loss, batch_loss_grad, render_set,
+    GaussianCloud, Loss, Primitive, RawGrads, RenderOptions, ScaleBounds, batch_loss, batch_loss_grad,
+    render_set,
 };
 use periscope_recon::{Pair, RoiBox, TimeAxis, TransientSet};
 use rand::{Rng, SeedableRng};
@@ -123,8 +124,15 @@ fn options(gain: f64, use_ni: bool, use_nd: bool) -> RenderOptions {
 type Field = fn(&mut GaussianCloud) -> &mut Vec<f64>;
 
 fn check(seed: u64, use_ni: bool, use_nd: bool) {
+    check_loss(seed, use_ni, use_nd, Loss::L2);
+}
+
+fn check_loss(seed: u64, use_ni: bool, use_nd: bool, loss: Loss) {
     let (mut cloud, set, gain) = scene(seed, 12, 10);
-    let opt = options(gain, use_ni, use_nd);
+    let opt = RenderOptions {
+        loss,
+        ..options(gain, use_ni, use_nd)
+    };
     let batch: Vec<usize> = (0..set.len()).collect();
     let mut grads = RawGrads::default();
     let loss = batch_loss_grad(&cloud, &cloud.kernels(), &set, &batch, &opt, &mut grads);
@@ -172,6 +180,47 @@ fn gradient_matches_without_relay_normals() {
     check(10, false, true);
     check(11, true, false);
     check(12, false, false);
+}
+
+#[test]
+fn poisson_deviance_gradient_matches_finite_differences() {
+    // The photon-count loss: its per-bin weight 1/(τ̂ + β) varies with the model, so
+    // this checks the chain through the rate, with a background small against the
+    // signal (peak about 1) and one as large as the weakest bins.
+    for (seed, background) in [(20, 1e-3), (21, 0.05), (22, 0.3)] {
+        check_loss(seed, true, true, Loss::Poisson { background });
+    }
+    check_loss(23, false, false, Loss::Poisson { background: 0.05 });
+}
+
+#[test]
+fn poisson_deviance_is_zero_for_a_perfect_fit_and_positive_otherwise() {
+    let (cloud, set, gain) = scene(24, 12, 10);
+    let background = 0.02;
+    let opt = RenderOptions {
+        loss: Loss::Poisson { background },
+        ..options(gain, true, true)
+    };
+    let batch: Vec<usize> = (0..set.len()).collect();
+    let rendered = render_set(&cloud.kernels(), &set, &opt);
+    // Data equal to the rate the model predicts: the deviance vanishes.
+    let mut exact = TransientSet::new(*set.axis()).unwrap();
+    for (i, pair) in set.pairs().iter().enumerate() {
+        let bins = set.axis().bins;
+        let h: Vec<f32> = rendered[i * bins..(i + 1) * bins]
+            .iter()
+            .map(|&v| (v + background) as f32)
+            .collect();
+        exact.push(*pair, &h).unwrap();
+    }
+    let (at_truth, _) = batch_loss(&cloud.kernels(), &exact, &batch, &opt);
+    let total: f64 = rendered.iter().sum();
+    assert!(at_truth.abs() <= 1e-5 * total, "deviance {at_truth} at the truth");
+    let (elsewhere, _) = batch_loss(&cloud.kernels(), &set, &batch, &opt);
+    assert!(
+        elsewhere > 100.0 * at_truth.abs() && elsewhere.is_finite(),
+        "{elsewhere}"
+    );
 }
 
 #[test]

@@ -5,8 +5,9 @@ use std::time::Duration;
 
 use glam::{DQuat, DVec3};
 use periscope_recon::gtr::{
-    CancelToken, GaussianCloud, Init, Primitive, PruneSettings, RawGrads, RenderOptions, ScaleBounds,
-    TrainConfig, TrainEvent, Trainer, batch_loss_grad, densify, render_set,
+    CancelToken, GaussianCloud, Init, Loss, LossChoice, Primitive, PruneSettings, RawGrads, RenderOptions,
+    ScaleBounds, TrainConfig, TrainError, TrainEvent, Trainer, batch_loss_grad, densify, estimate_background,
+    holds_counts, render_set,
 };
 use periscope_recon::{Pair, RoiBox, TimeAxis, TransientSet};
 use rand::{Rng, SeedableRng};
@@ -497,4 +498,106 @@ fn densify_splits_a_wide_bright_primitive_into_the_slot_of_a_dead_one() {
     assert!(densify(&mut narrow, 0.05, 0.1).is_empty());
     assert!(densify(&mut narrow, 0.0, 0.01).is_empty());
     assert_eq!(narrow.centres, before.centres);
+}
+
+/// `data(n, seed)` as photon counts: each bin rounded to a whole number, plus
+/// `background` counts in every bin.
+fn counted(n: usize, seed: u64, background: f32) -> TransientSet {
+    let clean = data(n, seed);
+    let mut set = TransientSet::new(*clean.axis()).unwrap();
+    for (i, pair) in clean.pairs().iter().enumerate() {
+        let h: Vec<f32> = clean
+            .histogram(i)
+            .iter()
+            .map(|&v| (v + background).round())
+            .collect();
+        set.push(*pair, &h).unwrap();
+    }
+    set
+}
+
+#[test]
+fn photon_counts_are_fitted_with_the_poisson_deviance_and_its_background() {
+    let counts = counted(40, 3, 2.0);
+    assert!(holds_counts(&counts) && !holds_counts(&data(40, 3)));
+    // Most bins see no primitive: the background is what they hold.
+    let background = estimate_background(&counts);
+    assert!((background - 2.0).abs() < 0.01, "{background}");
+    // Without any, the floor keeps the rate positive.
+    let floor = estimate_background(&data(40, 3));
+    assert!(floor > 0.0 && floor < 0.1, "{floor}");
+
+    let trainer = Trainer::new(config(30, 1), roi(), counts.clone()).unwrap();
+    assert_eq!(
+        trainer.render_options().loss,
+        Loss::Poisson { background },
+        "auto picks Poisson for counts"
+    );
+    let trainer = Trainer::new(config(30, 1), roi(), data(40, 3)).unwrap();
+    assert_eq!(trainer.render_options().loss, Loss::L2, "and L2 for intensities");
+    let l2 = TrainConfig {
+        loss: LossChoice::L2,
+        ..config(30, 1)
+    };
+    let trainer = Trainer::new(l2, roi(), counts.clone()).unwrap();
+    assert_eq!(
+        trainer.render_options().loss,
+        Loss::L2,
+        "an explicit choice stands"
+    );
+
+    // The gain is matched to the counts above the background, so the same scene with
+    // and without a background of 2 gets nearly the same gain.
+    let with = Trainer::new(config(30, 1), roi(), counts)
+        .unwrap()
+        .render_options()
+        .gain;
+    let without = Trainer::new(config(30, 1), roi(), counted(40, 3, 0.0))
+        .unwrap()
+        .render_options()
+        .gain;
+    assert!(
+        (with / without - 1.0).abs() < 0.02,
+        "gain {with} against {without}"
+    );
+}
+
+#[test]
+fn poisson_on_negative_data_is_refused_with_the_pair() {
+    let clean = data(10, 4);
+    let mut set = TransientSet::new(*clean.axis()).unwrap();
+    for (i, pair) in clean.pairs().iter().enumerate() {
+        let mut h = clean.histogram(i).to_vec();
+        if i == 7 {
+            h[3] = -1.0;
+        }
+        set.push(*pair, &h).unwrap();
+    }
+    let cfg = TrainConfig {
+        loss: LossChoice::Poisson,
+        ..config(30, 1)
+    };
+    match Trainer::new(cfg, roi(), set) {
+        Err(TrainError::Config(msg)) => assert!(msg.contains("pair 7") && msg.contains("l2"), "{msg}"),
+        other => panic!("expected a config error, got {:?}", other.map(|_| ())),
+    }
+}
+
+#[test]
+fn a_poisson_fit_on_counts_stays_finite_and_lowers_its_loss() {
+    let cfg = TrainConfig {
+        loss: LossChoice::Poisson,
+        ..config(60, 4)
+    };
+    let mut trainer = Trainer::new(cfg, roi(), counted(60, 5, 1.0)).unwrap();
+    let mut losses = Vec::new();
+    trainer
+        .run(None, &CancelToken::new(), &mut |e| {
+            if let TrainEvent::Epoch { loss, .. } = e {
+                losses.push(*loss);
+            }
+        })
+        .unwrap();
+    assert!(losses.iter().all(|l| l.is_finite()), "{losses:?}");
+    assert!(losses.last().unwrap() < &losses[0], "{losses:?}");
 }

@@ -1,7 +1,7 @@
 //! Reconstruction settings: the `[recon]` table of a capture plan and the whole of a
 //! `RECON.toml` for `periscope recon` share this format.
 use periscope_recon::VolumeGrid;
-use periscope_recon::gtr::{DensifySettings, Init, TrainConfig};
+use periscope_recon::gtr::{DensifySettings, Init, LossChoice, TrainConfig};
 use periscope_recon::solver::{
     FbpSettings, FkSettings, LctSettings, RsdSettings, SolverError, SolverKind, SolverSettings,
 };
@@ -113,6 +113,8 @@ struct RawGtr {
     #[serde(default = "default_densify")]
     densify: bool,
     split_scale: Option<f64>,
+    #[serde(default = "default_loss")]
+    loss: String,
 }
 
 impl Default for RawGtr {
@@ -129,6 +131,7 @@ impl Default for RawGtr {
             initial_scale: None,
             densify: default_densify(),
             split_scale: None,
+            loss: default_loss(),
         }
     }
 }
@@ -151,6 +154,9 @@ const DEFAULT_EPOCHS: usize = 16;
 /// batches of 4. A smaller capture gets more epochs; the fit's cost, which follows the
 /// steps, stays that of the larger one (docs/recon.md, "Training").
 const DEFAULT_MIN_STEPS: usize = 4096;
+fn default_loss() -> String {
+    "auto".into()
+}
 fn default_batch() -> usize {
     4
 }
@@ -283,8 +289,20 @@ pub(crate) fn recon_settings(
             ));
         }
     };
+    let loss = match g.loss.as_str() {
+        "auto" => LossChoice::Auto,
+        "l2" => LossChoice::L2,
+        "poisson" => LossChoice::Poisson,
+        other => {
+            return Err(src.invalid(
+                &key("gtr.loss"),
+                format!("`{other}` is not a loss: use \"auto\" (Poisson for photon counts, L2 otherwise), \"poisson\" or \"l2\""),
+            ));
+        }
+    };
     let mut train = TrainConfig {
         primitives: g.primitives,
+        loss,
         init,
         // A plan's own `epochs` is exact; without one the steps decide.
         epochs: g.epochs.unwrap_or(DEFAULT_EPOCHS),
@@ -440,5 +458,24 @@ mod tests {
                 "{e}"
             );
         }
+    }
+
+    #[test]
+    fn gtr_loss_is_read_and_checked() {
+        assert_eq!(default_recon(volume()).train.loss, LossChoice::Auto);
+        for (text, loss) in [
+            ("auto", LossChoice::Auto),
+            ("l2", LossChoice::L2),
+            ("poisson", LossChoice::Poisson),
+        ] {
+            let src = TomlSource::from_text("recon.toml", format!("[gtr]\nloss = \"{text}\"\n"));
+            assert_eq!(load_recon(&src, Some(volume())).unwrap().train.loss, loss);
+        }
+        let src = TomlSource::from_text("recon.toml", "[gtr]\nloss = \"l1\"\n");
+        let e = load_recon(&src, Some(volume())).unwrap_err().to_string();
+        assert!(
+            e.contains("gtr.loss") && e.contains("`l1`") && e.contains("poisson"),
+            "{e}"
+        );
     }
 }

@@ -57,6 +57,27 @@ pub struct RenderOptions {
     /// Primitives closer than this to a relay point of a pair contribute nothing to it
     /// (the 1/d² model has no meaning on the relay surface), metres.
     pub min_distance: f64,
+    /// The data term of the fit's loss ([`crate::gtr::batch_loss`]).
+    #[serde(default)]
+    pub loss: Loss,
+}
+
+/// The data term the fit minimises, per pair p of a mini-batch of B with weight w_p.
+#[derive(Clone, Copy, Debug, Default, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(tag = "kind", rename_all = "kebab-case")]
+pub enum Loss {
+    /// `(1/B) Σ w_p ‖τ̂_p − τ_p‖²`: the paper's.
+    #[default]
+    L2,
+    /// The Poisson deviance of photon counts τ against the rate τ̂ + β,
+    /// `(2/B) Σ w_p Σ_b [τ ln(τ / (τ̂ + β)) − τ + τ̂ + β]` (0 for a perfect fit), whose
+    /// bins weigh by 1/(τ̂ + β) as their variance does. β > 0 is the background
+    /// counts per bin the model has no term for (ambient light, dark counts), and keeps
+    /// the rate positive where the model predicts nothing.
+    Poisson {
+        /// Background counts per bin, β.
+        background: f64,
+    },
 }
 
 impl Default for RenderOptions {
@@ -68,6 +89,7 @@ impl Default for RenderOptions {
             sigma_sys: 0.0,
             window_sigmas: 4.0,
             min_distance: 1e-3,
+            loss: Loss::L2,
         }
     }
 }

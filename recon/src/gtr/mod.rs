@@ -9,12 +9,13 @@ pub mod render;
 pub mod train;
 
 pub use init::Init;
-pub use kernel::{Kernel, PhysicalGrad, RenderOptions, render_pair};
+pub use kernel::{Kernel, Loss, PhysicalGrad, RenderOptions, render_pair};
 pub use model::{GaussianCloud, ModelError, Primitive, RawGrads, ScaleBounds};
 pub use optim::{AdamW, AdamWSettings, GroupSettings, Schedule};
 pub use ply::write_ply;
 pub use render::{batch_loss, batch_loss_grad, render_set};
 pub use train::{
-    CancelToken, DensifySettings, PruneSettings, SNAPSHOT_MAX, TrainConfig, TrainError, TrainEvent,
-    TrainSummary, Trainer, default_initial_scale, default_target_scale, densify,
+    CancelToken, DensifySettings, LossChoice, PruneSettings, SNAPSHOT_MAX, TrainConfig, TrainError,
+    TrainEvent, TrainSummary, Trainer, default_initial_scale, default_target_scale, densify,
+    estimate_background, holds_counts,
 };

@@ -7,7 +7,7 @@
 //! depend on the thread count, so results are bit-identical however many threads run.
 use rayon::prelude::*;
 
-use super::kernel::{Evaluation, Kernel, PhysicalGrad, RenderOptions, evaluate, render_pair};
+use super::kernel::{Evaluation, Kernel, Loss, PhysicalGrad, RenderOptions, evaluate, render_pair};
 use super::model::{GaussianCloud, RawGrads};
 use crate::transient::{Pair, TransientSet};
 
@@ -34,7 +34,7 @@ pub fn batch_loss(
     opt: &RenderOptions,
 ) -> (f64, Vec<f64>) {
     let rendered = forward_batch(kernels, set, batch, opt);
-    let (loss, _) = residuals(&rendered, set, batch);
+    let (loss, _) = residuals(&rendered, set, batch, opt.loss);
     (loss, rendered)
 }
 
@@ -119,7 +119,7 @@ impl crate::simd::Work for ForwardChunk<'_> {
 }
 
 /// The loss and ∂L/∂τ̂ for a rendered batch.
-fn residuals(rendered: &[f64], set: &TransientSet, batch: &[usize]) -> (f64, Vec<f64>) {
+fn residuals(rendered: &[f64], set: &TransientSet, batch: &[usize], loss_kind: Loss) -> (f64, Vec<f64>) {
     let bins = set.axis().bins;
     let scale = 1.0 / batch.len().max(1) as f64;
     let mut loss = 0.0;
@@ -128,9 +128,26 @@ fn residuals(rendered: &[f64], set: &TransientSet, batch: &[usize]) -> (f64, Vec
         let w = set.weight(p) as f64 * scale;
         let measured = set.histogram(p);
         for b in 0..bins {
-            let r = rendered[slot * bins + b] - measured[b] as f64;
-            loss += w * r * r;
-            dl[slot * bins + b] = 2.0 * w * r;
+            let (model, data) = (rendered[slot * bins + b], measured[b] as f64);
+            let (l, d) = match loss_kind {
+                Loss::L2 => {
+                    let r = model - data;
+                    (r * r, 2.0 * r)
+                }
+                Loss::Poisson { background } => {
+                    // The model is a sum of non-negative contributions; the floor only
+                    // guards the logarithm against round-off below zero.
+                    let rate = (model + background).max(f64::MIN_POSITIVE);
+                    let log_term = if data > 0.0 {
+                        data * (data / rate).ln()
+                    } else {
+                        0.0
+                    };
+                    (2.0 * (log_term - data + rate), 2.0 * (1.0 - data / rate))
+                }
+            };
+            loss += w * l;
+            dl[slot * bins + b] = w * d;
         }
     }
     (loss, dl)
@@ -159,7 +176,7 @@ pub fn batch_loss_grad(
         return 0.0;
     }
     let (rendered, evals) = forward_chunks(kernels, set, batch, opt, true);
-    let (loss, dl) = residuals(&rendered, set, batch);
+    let (loss, dl) = residuals(&rendered, set, batch, opt.loss);
     grads
         .centres
         .par_chunks_mut(3 * CHUNK)

@@ -22,7 +22,7 @@ use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use super::init::{Init, initial_cloud};
-use super::kernel::{Kernel, RenderOptions};
+use super::kernel::{Kernel, Loss, RenderOptions};
 use super::model::{GaussianCloud, ModelError, Primitive, RawGrads, ScaleBounds};
 use super::optim::{AdamW, AdamWSettings, Schedule};
 use super::render::{batch_loss_grad, render_set};
@@ -165,8 +165,11 @@ pub struct TrainConfig {
     pub adam: AdamWSettings,
     /// Learning-rate schedule (milestones at fractions of the counted epochs).
     pub schedule: Schedule,
-    /// Forward-model switches; its `gain` is replaced by the matched gain.
+    /// Forward-model switches; its `gain` is replaced by the matched gain and its
+    /// `loss` by the one `loss` chooses.
     pub render: RenderOptions,
+    /// The data term: L2, Poisson, or chosen from the data ([`LossChoice`]).
+    pub loss: LossChoice,
     /// Pruning after the last epoch.
     pub prune: PruneSettings,
     /// Splitting and relocation during the first counted epochs.
@@ -184,6 +187,52 @@ impl TrainConfig {
         let per_epoch = pairs.div_ceil(self.batch_size.max(1)).max(1);
         self.epochs.max(self.min_steps.div_ceil(per_epoch))
     }
+}
+
+/// Which data term a fit uses, resolved once the fit has data ([`Trainer::render_options`]
+/// shows the outcome).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum LossChoice {
+    /// [`Loss::Poisson`] when the data are photon counts (every bin a non-negative
+    /// whole number), with the background [`estimate_background`] finds; [`Loss::L2`]
+    /// otherwise (rendered intensities, background-subtracted or rescaled data).
+    #[default]
+    Auto,
+    /// [`Loss::L2`], the paper's.
+    L2,
+    /// [`Loss::Poisson`]; the data must be non-negative.
+    Poisson,
+}
+
+/// Whether every bin of `set` is a non-negative whole number: photon counts.
+pub fn holds_counts(set: &TransientSet) -> bool {
+    (0..set.len()).all(|i| {
+        set.histogram(i)
+            .iter()
+            .all(|&c| c >= 0.0 && c.is_finite() && c.fract() == 0.0)
+    })
+}
+
+/// The background counts per bin and pair of `set`, for [`Loss::Poisson`]: the 10th
+/// percentile over bins of the histograms' sum (most bins of a capture see no hidden
+/// surface, so this is the ambient and dark level), divided by the pairs; at least
+/// 1e-3 of the sum's peak per pair, so the rate stays positive on data without any
+/// background. 0 for an empty set.
+pub fn estimate_background(set: &TransientSet) -> f64 {
+    let bins = set.axis().bins;
+    if set.is_empty() || bins == 0 {
+        return 0.0;
+    }
+    let mut total = vec![0.0f64; bins];
+    for i in 0..set.len() {
+        for (t, &c) in total.iter_mut().zip(set.histogram(i)) {
+            *t += f64::from(c).max(0.0);
+        }
+    }
+    let peak = total.iter().fold(0.0f64, |m, &t| m.max(t));
+    total.sort_by(f64::total_cmp);
+    total[(bins - 1) / 10].max(1e-3 * peak) / set.len() as f64
 }
 
 /// The shared initial scale when none is set: half the mean spacing of K primitives
@@ -224,6 +273,7 @@ impl Default for TrainConfig {
                 gamma: 0.3,
             },
             render: RenderOptions::default(),
+            loss: LossChoice::Auto,
             prune: PruneSettings::default(),
             densify: DensifySettings::default(),
             gain_pairs: 512,
@@ -438,13 +488,49 @@ impl Trainer {
             .enumerate()
             .map(|(i, h)| sample.weight(i) as f64 * h.iter().sum::<f64>())
             .sum();
-        let measured = sample.total_counts();
         if rendered <= 0.0 || !rendered.is_finite() {
             return Err(TrainError::NothingVisible);
         }
+        self.options.loss = self.resolve_loss()?;
+        // The model has no background: match its total to the data's above it.
+        let background = match self.options.loss {
+            Loss::Poisson { background } => {
+                let weights: f64 = (0..sample.len()).map(|i| sample.weight(i) as f64).sum();
+                background * weights * sample.axis().bins as f64
+            }
+            Loss::L2 => 0.0,
+        };
+        let total = sample.total_counts();
+        let measured = if total - background > 0.0 {
+            total - background
+        } else {
+            total
+        };
         self.options.gain = if measured > 0.0 { measured / rendered } else { 1.0 };
         self.gain_set = true;
         Ok(())
+    }
+
+    /// The data term [`TrainConfig::loss`] asks for, given the data so far.
+    fn resolve_loss(&self) -> Result<Loss, TrainError> {
+        let poisson = || Loss::Poisson {
+            background: estimate_background(&self.data),
+        };
+        Ok(match self.config.loss {
+            LossChoice::L2 => Loss::L2,
+            LossChoice::Auto if holds_counts(&self.data) => poisson(),
+            LossChoice::Auto => Loss::L2,
+            LossChoice::Poisson => {
+                if let Some(i) =
+                    (0..self.data.len()).find(|&i| self.data.histogram(i).iter().any(|&c| c < 0.0))
+                {
+                    return Err(TrainError::Config(format!(
+                        "loss = \"poisson\" needs photon counts, but the histogram of pair {i} has negative bins (background-subtracted data?); use loss = \"l2\""
+                    )));
+                }
+                poisson()
+            }
+        })
     }
 
     /// Adds transients (same time axis) to the data being fitted.
