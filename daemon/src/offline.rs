@@ -160,8 +160,6 @@ pub fn recon(capture: &Path, config: Option<&Path>, out: &Path) -> Result<(), Of
         set,
         detection_points: used,
         viewpoint: 0.5 * (l + s),
-        // A run directory's histograms are the histogrammer's photon counts.
-        counts: true,
     };
     finish(input, out)
 }
@@ -198,7 +196,6 @@ fn recon_ytal(capture: &Path, config: Option<&Path>, out: &Path) -> Result<(), O
         set,
         detection_points: ytal.sensor_grid.points.clone(),
         viewpoint: ytal.viewpoint(),
-        counts: ytal.holds_counts(),
     };
     finish(input, out)
 }

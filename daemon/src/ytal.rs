@@ -458,16 +458,6 @@ fn to_points(v: &[f64]) -> Vec<DVec3> {
 }
 
 impl YtalCapture {
-    /// Whether `H` holds photon counts: every value a non-negative whole number (a
-    /// measured or Poisson-sampled capture), not rendered intensities.
-    pub fn holds_counts(&self) -> bool {
-        !self.h.is_empty()
-            && self
-                .h
-                .iter()
-                .all(|&c| c >= 0.0 && c.is_finite() && c.fract() == 0.0)
-    }
-
     /// Reads a capture written by y-tal (or by [`YtalCapture::write`]).
     pub fn read(path: &Path) -> Result<YtalCapture, YtalError> {
         let file_len = std::fs::metadata(path)

@@ -7,7 +7,7 @@ use glam::{DQuat, DVec3};
 use periscope_recon::gtr::{
     CancelToken, GaussianCloud, Init, Loss, LossChoice, Primitive, PruneSettings, RawGrads, RenderOptions,
     ScaleBounds, TrainConfig, TrainError, TrainEvent, Trainer, batch_loss_grad, densify, estimate_background,
-    holds_counts, render_set,
+    first_negative, render_set,
 };
 use periscope_recon::{Pair, RoiBox, TimeAxis, TransientSet};
 use rand::{Rng, SeedableRng};
@@ -517,9 +517,9 @@ fn counted(n: usize, seed: u64, background: f32) -> TransientSet {
 }
 
 #[test]
-fn photon_counts_are_fitted_with_the_poisson_deviance_and_its_background() {
+fn non_negative_data_are_fitted_with_the_poisson_deviance_and_its_background() {
     let counts = counted(40, 3, 2.0);
-    assert!(holds_counts(&counts) && !holds_counts(&data(40, 3)));
+    assert_eq!(first_negative(&counts), None);
     // Most bins see no primitive: the background is what they hold.
     let background = estimate_background(&counts);
     assert!((background - 2.0).abs() < 0.01, "{background}");
@@ -534,7 +534,22 @@ fn photon_counts_are_fitted_with_the_poisson_deviance_and_its_background() {
         "auto picks Poisson for counts"
     );
     let trainer = Trainer::new(config(30, 1), roi(), data(40, 3)).unwrap();
-    assert_eq!(trainer.render_options().loss, Loss::L2, "and L2 for intensities");
+    assert!(
+        matches!(trainer.render_options().loss, Loss::Poisson { .. }),
+        "and for non-negative intensities"
+    );
+    let mut signed = TransientSet::new(axis()).unwrap();
+    for (i, pair) in counts.pairs().iter().enumerate() {
+        let h: Vec<f32> = counts.histogram(i).iter().map(|&c| c - 2.5).collect();
+        signed.push(*pair, &h).unwrap();
+    }
+    assert!(first_negative(&signed).is_some());
+    let trainer = Trainer::new(config(30, 1), roi(), signed).unwrap();
+    assert_eq!(
+        trainer.render_options().loss,
+        Loss::L2,
+        "background-subtracted data get L2"
+    );
     let l2 = TrainConfig {
         loss: LossChoice::L2,
         ..config(30, 1)

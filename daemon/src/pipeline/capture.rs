@@ -70,8 +70,6 @@ impl Run {
             set: TransientSet::new(axis).map_err(ReconError::from)?,
             detection_points: pairs.iter().map(|p| p.xd).collect(),
             viewpoint: 0.5 * (l + s),
-            // The histogrammer counts photons.
-            counts: true,
         };
         let mut fit = Fit::new(input);
         let mut stored: HashSet<u32> = HashSet::new();

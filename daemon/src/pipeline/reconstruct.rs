@@ -6,9 +6,7 @@ use std::thread::JoinHandle;
 use std::time::Instant;
 
 use glam::DVec3;
-use periscope_recon::gtr::{
-    CancelToken, GaussianCloud, LossChoice, TrainConfig, TrainError, TrainSummary, Trainer,
-};
+use periscope_recon::gtr::{CancelToken, GaussianCloud, TrainError, TrainSummary, Trainer};
 use periscope_recon::relay::VirtualRelay;
 use periscope_recon::synth::{default_axis, synthesise};
 use periscope_recon::{RoiBox, TransientSet, Volume, VolumeGrid};
@@ -34,25 +32,6 @@ pub struct ReconInput {
     pub detection_points: Vec<DVec3>,
     /// A point on the instrument's side (orients the virtual relay).
     pub viewpoint: DVec3,
-    /// Whether the transients were photon counts before they were rebinned to hidden
-    /// path length: `[gtr] loss = "auto"` then fits with the Poisson deviance.
-    pub counts: bool,
-}
-
-impl ReconInput {
-    /// The fit's settings, with `loss = "auto"` resolved by [`ReconInput::counts`]
-    /// (the rebinned transients are fractions of counts, so the trainer cannot tell).
-    fn train_config(&self) -> TrainConfig {
-        let mut config = self.settings.train.clone();
-        if config.loss == LossChoice::Auto {
-            config.loss = if self.counts {
-                LossChoice::Poisson
-            } else {
-                LossChoice::L2
-            };
-        }
-        config
-    }
 }
 
 /// A finished reconstruction.
@@ -110,7 +89,7 @@ impl Fit {
         events: EventSink,
         control: Control,
     ) -> Result<(), PipelineError> {
-        let config = self.input.train_config();
+        let config = self.input.settings.train.clone();
         let roi = roi(&self.input.settings.volume)?;
         let cancel = self.cancel.clone();
         control.watch(&cancel);
@@ -165,7 +144,6 @@ impl Fit {
             set: std::mem::replace(&mut self.input.set, empty),
             detection_points: std::mem::take(&mut self.input.detection_points),
             viewpoint: self.input.viewpoint,
-            counts: self.input.counts,
         }
     }
 }
@@ -249,7 +227,7 @@ pub fn reconstruct(
     match s.method {
         Method::Gtr => {
             let t = Instant::now();
-            let mut trainer = Trainer::new(input.train_config(), roi(&s.volume)?, input.set.clone())
+            let mut trainer = Trainer::new(s.train.clone(), roi(&s.volume)?, input.set.clone())
                 .map_err(ReconError::from)?;
             let cancel = CancelToken::new();
             control.watch(&cancel);

@@ -17,5 +17,5 @@ pub use render::{batch_loss, batch_loss_grad, render_set};
 pub use train::{
     CancelToken, DensifySettings, LossChoice, PruneSettings, SNAPSHOT_MAX, TrainConfig, TrainError,
     TrainEvent, TrainSummary, Trainer, default_initial_scale, default_target_scale, densify,
-    estimate_background, holds_counts,
+    estimate_background, first_negative,
 };

@@ -194,9 +194,11 @@ impl TrainConfig {
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum LossChoice {
-    /// [`Loss::Poisson`] when the data are photon counts (every bin a non-negative
-    /// whole number), with the background [`estimate_background`] finds; [`Loss::L2`]
-    /// otherwise (rendered intensities, background-subtracted or rescaled data).
+    /// [`Loss::Poisson`], with the background [`estimate_background`] finds, when no
+    /// bin is negative: photon counts, and rendered or rebinned intensities, whose
+    /// noise (shot noise, Monte Carlo noise) also grows with the signal; [`Loss::L2`]
+    /// for data with negative bins (background-subtracted or filtered), which no rate
+    /// can explain.
     #[default]
     Auto,
     /// [`Loss::L2`], the paper's.
@@ -205,13 +207,10 @@ pub enum LossChoice {
     Poisson,
 }
 
-/// Whether every bin of `set` is a non-negative whole number: photon counts.
-pub fn holds_counts(set: &TransientSet) -> bool {
-    (0..set.len()).all(|i| {
-        set.histogram(i)
-            .iter()
-            .all(|&c| c >= 0.0 && c.is_finite() && c.fract() == 0.0)
-    })
+/// The first pair of `set` with a negative bin, if any: such data cannot be a rate's
+/// counts ([`Loss::Poisson`]).
+pub fn first_negative(set: &TransientSet) -> Option<usize> {
+    (0..set.len()).find(|&i| set.histogram(i).iter().any(|&c| c < 0.0))
 }
 
 /// The background counts per bin and pair of `set`, for [`Loss::Poisson`]: the 10th
@@ -518,14 +517,12 @@ impl Trainer {
         };
         Ok(match self.config.loss {
             LossChoice::L2 => Loss::L2,
-            LossChoice::Auto if holds_counts(&self.data) => poisson(),
+            LossChoice::Auto if first_negative(&self.data).is_none() => poisson(),
             LossChoice::Auto => Loss::L2,
             LossChoice::Poisson => {
-                if let Some(i) =
-                    (0..self.data.len()).find(|&i| self.data.histogram(i).iter().any(|&c| c < 0.0))
-                {
+                if let Some(i) = first_negative(&self.data) {
                     return Err(TrainError::Config(format!(
-                        "loss = \"poisson\" needs photon counts, but the histogram of pair {i} has negative bins (background-subtracted data?); use loss = \"l2\""
+                        "loss = \"poisson\" needs non-negative data (counts or intensities), but the histogram of pair {i} has negative bins (background-subtracted data?); use loss = \"l2\""
                     )));
                 }
                 poisson()
