@@ -296,7 +296,7 @@ pub(crate) fn recon_settings(
         other => {
             return Err(src.invalid(
                 &key("gtr.loss"),
-                format!("`{other}` is not a loss: use \"auto\" (Poisson for photon counts, L2 otherwise), \"poisson\" or \"l2\""),
+                format!("`{other}` is not a loss: use \"auto\" (Poisson unless a bin is negative, then L2), \"poisson\" or \"l2\""),
             ));
         }
     };

@@ -69,11 +69,11 @@ pub enum Loss {
     /// `(1/B) Σ w_p ‖τ̂_p − τ_p‖²`: the paper's.
     #[default]
     L2,
-    /// The Poisson deviance of photon counts τ against the rate τ̂ + β,
-    /// `(2/B) Σ w_p Σ_b [τ ln(τ / (τ̂ + β)) − τ + τ̂ + β]` (0 for a perfect fit), whose
-    /// bins weigh by 1/(τ̂ + β) as their variance does. β > 0 is the background
-    /// counts per bin the model has no term for (ambient light, dark counts), and keeps
-    /// the rate positive where the model predicts nothing.
+    /// The Poisson deviance of counts (or non-negative intensities) τ against the rate
+    /// τ̂ + β, `(2/B) Σ w_p Σ_b [τ ln(τ / (τ̂ + β)) − τ + τ̂ + β]` (0 for a perfect
+    /// fit), whose bins weigh by 1/(τ̂ + β) as their variance does. β > 0 is the
+    /// background per bin the model has no term for (ambient light, dark counts), and
+    /// keeps the rate positive where the model predicts nothing.
     Poisson {
         /// Background counts per bin, β.
         background: f64,
