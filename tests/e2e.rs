@@ -196,8 +196,8 @@ fn torso_pair_mannequin_matches_the_truth() {
 /// middle, |y| ≤ 0.1 m), the 3D-GTR image must peak at each bar and dip between them:
 /// the gaps at most 0.8 of the dimmest bar (a Rayleigh-like criterion; two equal
 /// spots at the Rayleigh distance dip to 0.735). The docs/recon.md "Resolution" table
-/// has the other pitches (resolved at 2 and 4 cm, not at 5 cm and beyond) and FBP on
-/// the same captures (resolved at 2 cm only).
+/// has the other pitches (with these defaults resolved down to a 10 cm pitch, fading
+/// at 13–16 cm) and FBP on the same captures (resolved at 2 cm only).
 #[test]
 fn bars_finer_than_the_relay_pitch_are_resolved() {
     let dir = tempfile::tempdir().unwrap();
