@@ -507,6 +507,7 @@ impl Trainer {
         };
         self.options.gain = if measured > 0.0 { measured / rendered } else { 1.0 };
         self.gain_set = true;
+        tracing::info!(loss = ?self.options.loss, gain = self.options.gain, "fit data term and gain");
         Ok(())
     }
 
