@@ -1,8 +1,8 @@
 //! The `periscope` command line: argument definitions and dispatch.
 //!
-//! This is the binary's edge, so commands return `anyhow::Result` and attach context;
-//! the library modules below it return typed errors. Exit codes: 0 success, 1 failure,
-//! 2 invalid usage or configuration.
+//! Commands return a [`CliError`] that keeps the library's typed error as its source;
+//! [`CliError::exit_code`] picks the exit status by its kind: 0 success, 1 failure,
+//! 2 invalid usage or configuration. [`report`] writes the error with its causes.
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
@@ -11,10 +11,15 @@ use std::time::Duration;
 
 use clap::{Parser, Subcommand};
 
+use crate::api::{ServeError, ServiceError};
 use crate::config::{ConfigError, DEFAULT_INSTRUMENT, InstrumentConfig, TomlSource};
+use crate::devices::OpenError;
 use crate::logging::LogFormat;
+use crate::offline::OfflineError;
 use crate::pipeline::{self, Control, PipelineError, Run};
 use crate::plan::Plan;
+use crate::run_dir::{RunDir, RunDirError};
+use crate::ytal::YtalError;
 use crate::{check, offline};
 use periscope_drivers::galvo::EmergencyOff;
 
@@ -138,7 +143,7 @@ pub fn instrument_source(path: Option<&Path>) -> Result<TomlSource, ConfigError>
 }
 
 /// Runs a parsed command line.
-pub fn execute(cli: Cli) -> anyhow::Result<()> {
+pub fn execute(cli: Cli) -> Result<(), CliError> {
     match cli.command {
         Command::Run {
             plan,
@@ -162,21 +167,25 @@ pub fn execute(cli: Cli) -> anyhow::Result<()> {
             print!("{}", check::report(&plan, &config));
             crate::budget::Budget::of_plan(&plan)
                 .check(&config.budget)
-                .map_err(|e| anyhow::anyhow!("plan `{}`: {e}", plan.name))
+                .map_err(|why| CliError::Budget {
+                    plan: plan.name.clone(),
+                    why,
+                })
         }
         Command::Resume { run_dir } => {
-            anyhow::ensure!(
-                crate::run_dir::RunDir::holds_run(&run_dir),
-                "{} is not a run directory (no run.json): give the path of a directory under runs/",
-                run_dir.display()
-            );
-            let info = crate::store::RunInfo::load(&run_dir)?;
-            anyhow::ensure!(
-                info.state != crate::store::RunState::Completed,
-                "run {} is already complete; its outputs are in {}",
-                info.id,
-                run_dir.display()
-            );
+            if !RunDir::holds_run(&run_dir) {
+                return Err(CliError::NotRun(run_dir));
+            }
+            let info = crate::store::RunInfo::load(&run_dir).map_err(|source| CliError::Io {
+                path: run_dir.join(crate::run_dir::file::RUN),
+                source,
+            })?;
+            if info.state == crate::store::RunState::Completed {
+                return Err(CliError::Completed {
+                    id: info.id,
+                    dir: run_dir,
+                });
+            }
             crate::logging::notice(&format!(
                 "resuming run {} ({} of {} pairs stored, last stage {})",
                 info.id, info.pairs_done, info.pairs_total, info.stage
@@ -185,11 +194,9 @@ pub fn execute(cli: Cli) -> anyhow::Result<()> {
         }
         Command::Recon { capture, config, out } => Ok(offline::recon(&capture, config.as_deref(), &out)?),
         Command::Export { run_dir, out } => {
-            anyhow::ensure!(
-                crate::run_dir::RunDir::holds_run(&run_dir),
-                "{} is not a run directory (no run.json): give the path of a directory under runs/",
-                run_dir.display()
-            );
+            if !RunDir::holds_run(&run_dir) {
+                return Err(CliError::NotRun(run_dir));
+            }
             let out = out.unwrap_or_else(|| run_dir.join(crate::ytal::CAPTURE_FILE));
             let capture = crate::ytal::YtalCapture::from_run(&run_dir)?;
             capture.write(&out)?;
@@ -222,44 +229,17 @@ pub fn execute(cli: Cli) -> anyhow::Result<()> {
             let runtime = tokio::runtime::Builder::new_multi_thread()
                 .enable_all()
                 .thread_name("periscope-api")
-                .build()?;
+                .build()
+                .map_err(CliError::Runtime)?;
             Ok(runtime.block_on(crate::api::serve(bind, service))?)
         }
         Command::Devices { instrument } => devices(&instrument.load()?),
     }
 }
 
-/// The exit code for an error returned by [`execute`].
-pub fn exit_code(err: &anyhow::Error) -> ExitCode {
-    use crate::run_dir::RunDirError;
-    use crate::ytal::YtalError;
-    // A stored run's plan or instrument that no longer loads is a configuration error
-    // too, whichever reader found it, and so is a reconstruction the settings cannot
-    // do (a solver that does not suit the data, a volume no pair sees).
-    if err.downcast_ref::<ConfigError>().is_some()
-        || matches!(
-            err.downcast_ref::<PipelineError>(),
-            Some(PipelineError::Config(_))
-        )
-        || matches!(err.downcast_ref::<PipelineError>(), Some(PipelineError::Recon(e)) if e.is_settings())
-        || err
-            .downcast_ref::<crate::offline::OfflineError>()
-            .is_some_and(|e| e.is_config())
-        || matches!(err.downcast_ref::<RunDirError>(), Some(RunDirError::Config(_)))
-        || matches!(
-            err.downcast_ref::<YtalError>(),
-            Some(YtalError::Run(RunDirError::Config(_)))
-        )
-    {
-        ExitCode::from(2)
-    } else {
-        ExitCode::FAILURE
-    }
-}
-
 /// `periscope devices`: what this host has plugged in, then the configured
 /// instrument's devices opened, identified and queried.
-fn devices(config: &InstrumentConfig) -> anyhow::Result<()> {
+fn devices(config: &InstrumentConfig) -> Result<(), CliError> {
     use periscope_drivers::{ports, tdc};
     println!("Serial ports on this host:");
     match ports::list_serial_ports() {
@@ -357,7 +337,7 @@ impl crate::signals::OnSignal for RunSignals {
 }
 
 /// Runs (or resumes) the run in `dir` with a progress display and prints the summary.
-fn execute_run(dir: &Path) -> anyhow::Result<()> {
+fn execute_run(dir: &Path) -> Result<(), CliError> {
     let control = Control::new();
     let signals = Arc::new(RunSignals {
         control: control.clone(),
@@ -406,10 +386,139 @@ fn execute_run(dir: &Path) -> anyhow::Result<()> {
     Ok(())
 }
 
+/// Why a command failed: the library's own error, kept whole, or one of the few
+/// checks the command line makes itself.
+#[derive(Debug, thiserror::Error)]
+pub enum CliError {
+    /// A config, plan or RECON.toml is invalid.
+    #[error(transparent)]
+    Config(#[from] ConfigError),
+    /// A run failed.
+    #[error(transparent)]
+    Pipeline(#[from] PipelineError),
+    /// An offline reconstruction failed.
+    #[error(transparent)]
+    Offline(#[from] OfflineError),
+    /// A stored run could not be read.
+    #[error(transparent)]
+    RunDir(#[from] RunDirError),
+    /// A y-tal capture could not be built or written.
+    #[error(transparent)]
+    Ytal(#[from] YtalError),
+    /// The devices could not be opened or queried.
+    #[error(transparent)]
+    Devices(#[from] OpenError),
+    /// The API service could not start.
+    #[error(transparent)]
+    Service(#[from] ServiceError),
+    /// The API server failed.
+    #[error(transparent)]
+    Serve(#[from] ServeError),
+    /// A plan over the instrument's budget.
+    #[error("plan `{plan}`: {why}")]
+    Budget {
+        /// The plan's name.
+        plan: String,
+        /// Which limit, by how much, and the key that sets it.
+        why: String,
+    },
+    /// A directory that holds no run.
+    #[error(
+        "{} is not a run directory (no run.json): give the path of a directory under runs/",
+        .0.display()
+    )]
+    NotRun(PathBuf),
+    /// `resume` of a run that has finished.
+    #[error("run {id} is already complete; its outputs are in {}", dir.display())]
+    Completed {
+        /// The run's id.
+        id: String,
+        /// Its directory.
+        dir: PathBuf,
+    },
+    /// A file could not be read.
+    #[error("{}: {source}", path.display())]
+    Io {
+        /// The file.
+        path: PathBuf,
+        /// Why.
+        source: std::io::Error,
+    },
+    /// The async runtime for `serve` could not start.
+    #[error("cannot start the API's runtime: {0}")]
+    Runtime(std::io::Error),
+}
+
+impl CliError {
+    /// The process's exit status: 2 when the fault is in a config, plan or RECON.toml
+    /// (a stored run's plan or instrument that no longer loads counts, whichever reader
+    /// found it, and so does a reconstruction the settings cannot do: a solver that
+    /// does not suit the data, a volume no pair sees); 1 for everything else.
+    pub fn exit_code(&self) -> ExitCode {
+        let config = match self {
+            CliError::Config(_) => true,
+            CliError::Pipeline(PipelineError::Config(_)) => true,
+            CliError::Pipeline(PipelineError::Recon(e)) => e.is_settings(),
+            CliError::Offline(e) => e.is_config(),
+            CliError::RunDir(RunDirError::Config(_)) => true,
+            CliError::Ytal(YtalError::Run(RunDirError::Config(_))) => true,
+            CliError::Service(ServiceError::Config(_)) => true,
+            _ => false,
+        };
+        if config {
+            ExitCode::from(2)
+        } else {
+            ExitCode::FAILURE
+        }
+    }
+}
+
+/// The error and its causes on one line, `error: cause: deeper cause`; a cause whose
+/// text the line already holds (an error that prints its source) is not repeated.
+pub fn report(err: &dyn std::error::Error) -> String {
+    let mut line = err.to_string();
+    let mut source = err.source();
+    while let Some(cause) = source {
+        let text = cause.to_string();
+        if !line.contains(&text) {
+            line.push_str(": ");
+            line.push_str(&text);
+        }
+        source = cause.source();
+    }
+    line
+}
+
 /// A random 192-bit token, hex-encoded.
 fn random_token() -> String {
     use rand::RngCore;
     let mut bytes = [0u8; 24];
     rand::rng().fill_bytes(&mut bytes);
     bytes.iter().map(|b| format!("{b:02x}")).collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_report_names_each_cause_once() {
+        let io = std::io::Error::new(std::io::ErrorKind::PermissionDenied, "permission denied");
+        // The message already holds its source: printed once.
+        let err = CliError::Io {
+            path: "runs/a/run.json".into(),
+            source: io,
+        };
+        assert_eq!(report(&err), "runs/a/run.json: permission denied");
+        // A transparent wrapper adds nothing of its own.
+        let err = CliError::Offline(OfflineError::NotRun("runs/b".into()));
+        assert_eq!(report(&err), "runs/b is not a run directory (no run.json)");
+    }
+
+    #[test]
+    fn refusals_of_the_command_line_are_failures_and_config_errors_are_two() {
+        assert_eq!(CliError::NotRun("x".into()).exit_code(), ExitCode::FAILURE);
+        let config = TomlSource::from_text("plan.toml", "").invalid("name", "is empty");
+        assert_eq!(CliError::Config(config).exit_code(), ExitCode::from(2));
+    }
 }

@@ -16,8 +16,8 @@ fn main() -> ExitCode {
     match cli::execute(args) {
         Ok(()) => ExitCode::SUCCESS,
         Err(err) => {
-            logging::report_error(&format!("{err:#}"));
-            cli::exit_code(&err)
+            logging::report_error(&cli::report(&err));
+            err.exit_code()
         }
     }
 }
