@@ -14,6 +14,7 @@
 //!   export, left out of every reconstruction.
 use std::path::{Path, PathBuf};
 
+use periscope_daemon::capture::RunCapture;
 use periscope_daemon::config::{InstrumentConfig, TomlSource};
 use periscope_daemon::events::{EventSink, RunEvent};
 use periscope_daemon::pipeline::{self, Control, Run};
@@ -190,7 +191,27 @@ fn system_delay_repeats_pile_up_and_flags_carry_through_to_the_answer() {
 
     // The export: flags per transient, the delay in the time origin, the corrected
     // counts; reconstructing it leaves the overflowed transient out.
-    let capture = YtalCapture::from_run(&dir).unwrap();
+    let capture = RunCapture::load(&dir).unwrap().to_ytal().unwrap();
+    // The run exported what it held in memory: the same capture as one built from its
+    // directory afterwards.
+    let written = YtalCapture::read(&dir.join("capture.hdf5")).unwrap();
+    assert_eq!(
+        (&written.h, &written.h_shape, &written.flags),
+        (&capture.h, &capture.h_shape, &capture.flags)
+    );
+    // Points and normals travel as float32.
+    let grids = |c: &YtalCapture| {
+        [&c.sensor_grid, &c.laser_grid]
+            .into_iter()
+            .flat_map(|g| g.points.iter().chain(&g.normals))
+            .flat_map(|p| p.to_array().map(|v| v as f32))
+            .collect::<Vec<f32>>()
+    };
+    assert_eq!(grids(&written), grids(&capture));
+    assert_eq!(
+        (written.t_start, written.delta_t),
+        (capture.t_start, capture.delta_t)
+    );
     let flags = capture.flags.as_ref().unwrap();
     assert_eq!(flags.iter().filter(|f| *f & FLAG_OVERFLOW != 0).count(), 1);
     assert_eq!(

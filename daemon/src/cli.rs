@@ -12,6 +12,7 @@ use std::time::Duration;
 use clap::{Parser, Subcommand};
 
 use crate::api::{ServeError, ServiceError};
+use crate::capture::CaptureError;
 use crate::config::{ConfigError, DEFAULT_INSTRUMENT, InstrumentConfig, TomlSource};
 use crate::devices::OpenError;
 use crate::logging::LogFormat;
@@ -198,7 +199,7 @@ pub fn execute(cli: Cli) -> Result<(), CliError> {
                 return Err(CliError::NotRun(run_dir));
             }
             let out = out.unwrap_or_else(|| run_dir.join(crate::ytal::CAPTURE_FILE));
-            let capture = crate::ytal::YtalCapture::from_run(&run_dir)?;
+            let capture = crate::capture::RunCapture::load(&run_dir)?.to_ytal()?;
             capture.write(&out)?;
             println!(
                 "wrote {} ({} transients of {} bins, T_Si with first and last legs)",
@@ -402,6 +403,9 @@ pub enum CliError {
     /// A stored run could not be read.
     #[error(transparent)]
     RunDir(#[from] RunDirError),
+    /// A stored run could not be read as a capture.
+    #[error(transparent)]
+    Capture(#[from] CaptureError),
     /// A y-tal capture could not be built or written.
     #[error(transparent)]
     Ytal(#[from] YtalError),
@@ -461,7 +465,7 @@ impl CliError {
             CliError::Pipeline(PipelineError::Recon(e)) => e.is_settings(),
             CliError::Offline(e) => e.is_config(),
             CliError::RunDir(RunDirError::Config(_)) => true,
-            CliError::Ytal(YtalError::Run(RunDirError::Config(_))) => true,
+            CliError::Capture(e) => e.is_config(),
             CliError::Service(ServiceError::Config(_)) => true,
             _ => false,
         };
@@ -511,7 +515,7 @@ mod tests {
         };
         assert_eq!(report(&err), "runs/a/run.json: permission denied");
         // A transparent wrapper adds nothing of its own.
-        let err = CliError::Offline(OfflineError::NotRun("runs/b".into()));
+        let err = CliError::Offline(OfflineError::Capture(CaptureError::NotRun("runs/b".into())));
         assert_eq!(report(&err), "runs/b is not a run directory (no run.json)");
     }
 

@@ -30,7 +30,6 @@ use glam::DVec3;
 use hdf5_pure::{Datatype, EnumTypeBuilder, File, FileBuilder, make_i8_type, make_i32_type};
 use periscope_recon::{C0, Pair, TimeAxis, TransientSet, VolumeGrid};
 
-use crate::plan::PlannedPair;
 use periscope_recon::transient::{hidden_axis, rebin_path};
 
 /// The capture file a run writes next to its other outputs.
@@ -55,9 +54,6 @@ pub enum YtalError {
         /// What is wrong, naming the dataset.
         message: String,
     },
-    /// A run directory's plan, instrument or pairs could not be read for an export.
-    #[error(transparent)]
-    Run(#[from] crate::run_dir::RunDirError),
     /// A run's histograms cannot be exported (none stored, or too many).
     #[error("{path}: {message}")]
     Export {
@@ -932,112 +928,6 @@ impl YtalCapture {
                 .with_shape(&[]);
         }
         b.finish()
-    }
-
-    /// A run's stored histograms as a y-tal capture: `T_Si` with paired `N_3` point
-    /// lists (illumination point i with detection point i), the TDC counts (with pile-up
-    /// and dead time undone when `tdc.pile-up-correction` is on, as every
-    /// reconstruction of the run uses them; `histograms.bin` keeps them as counted),
-    /// each histogram's flags (in `scene_info`), path
-    /// lengths that include the legs from the laser and to the SPAD
-    /// (`t_accounts_first_and_last_bounces`), and the galvo origins as `laser_xyz` and
-    /// `sensor_xyz`. Pairs never measured are left out.
-    pub fn from_run(dir: &Path) -> Result<YtalCapture, YtalError> {
-        let run = crate::run_dir::RunDir::new(dir);
-        let (info, plan, inst) = run.load()?;
-        let pairs = run.pairs()?;
-        let refuse = |message: String| YtalError::Export {
-            path: dir.to_owned(),
-            message,
-        };
-        let mut records = crate::store::read_log(dir)
-            .map_err(|e| refuse(format!("{}: {e}", crate::run_dir::file::HISTOGRAMS)))?
-            .records;
-        records.retain(|r| (r.pair as usize) < pairs.len());
-        records.sort_by_key(|r| r.pair);
-        if records.is_empty() {
-            return Err(refuse("holds no measured pairs to export".into()));
-        }
-        // The time axis: the first record's settings when they are the plan's shape,
-        // else the plan's own (a damaged or forged log cannot size the export).
-        let first = &records[0];
-        let acq = &plan.acquisition;
-        let (width, offset, bins) = if first.counts.len() == acq.bins as usize {
-            (
-                f64::from(first.bin_width_ps) * 1e-12,
-                f64::from(first.offset_ps) * 1e-12,
-                first.counts.len(),
-            )
-        } else {
-            (acq.bin_width, acq.offset, acq.bins as usize)
-        };
-        let axis = TimeAxis::of_tdc(offset, width, bins, inst.tdc.system_delay);
-        let (t_start, delta_t) = (axis.start, axis.width);
-        let n = records.len();
-        if (bins as u64).saturating_mul(n as u64) > MAX_DATASET_BYTES / 4 {
-            return Err(refuse(format!(
-                "{n} records of {bins} bins are more than an export may hold"
-            )));
-        }
-        let mut h = vec![0.0f32; bins * n];
-        for (c, r) in records.iter().enumerate() {
-            let same = f64::from(r.bin_width_ps) * 1e-12 == width
-                && f64::from(r.offset_ps) * 1e-12 == offset
-                && r.counts.len() == bins;
-            let counts = crate::record::record_counts(r, &inst);
-            let column: Vec<f32> = if same {
-                counts
-            } else {
-                let own = crate::record::record_axis(r, &inst);
-                rebin_path(counts, own.start, own.width, &axis)
-            };
-            for (k, v) in column.into_iter().enumerate() {
-                h[k * n + c] = v;
-            }
-        }
-        let grid = |f: &dyn Fn(&PlannedPair) -> (DVec3, DVec3)| {
-            let (points, normals) = records.iter().map(|r| f(&pairs[r.pair as usize])).unzip();
-            Grid {
-                points,
-                normals,
-                format: GridFormat::N3,
-                shape: vec![n],
-            }
-        };
-        let dwell_s = records.iter().fold(0u64, |a, r| a.saturating_add(r.dwell_us)) as f64 * 1e-6;
-        let scene_info = format!(
-            "original_format: periscope\nrun: '{}'\nplan: '{}'\npairs_planned: {}\npairs_measured: {n}\n\
-             dwell_total_s: {dwell_s}\nbin_width_s: {width}\nacquisition_offset_s: {offset}\n\
-             system_delay_s: {}\nrepeats: {}\npile_up_corrected: {}\n",
-            info.id.replace('\'', "''"),
-            plan.name.replace('\'', "''"),
-            pairs.len(),
-            inst.tdc.system_delay,
-            plan.acquisition.repeats,
-            inst.tdc.pile_up_correction,
-        );
-        Ok(YtalCapture {
-            h,
-            h_shape: vec![bins, n],
-            h_format: HFormat::TSi,
-            sensor_grid: grid(&|p| (p.xd, p.nd)),
-            laser_grid: grid(&|p| (p.xi, p.ni)),
-            sensor_xyz: Some(inst.spad_arm.pose.origin),
-            laser_xyz: Some(inst.laser_arm.pose.origin),
-            delta_t,
-            t_start,
-            t_accounts_first_and_last_bounces: true,
-            scene_info: Some(scene_info),
-            flags: Some(
-                records
-                    .iter()
-                    .map(|r| {
-                        (if r.flags.overflow { FLAG_OVERFLOW } else { 0 })
-                            | (if r.flags.saturated { FLAG_SATURATED } else { 0 })
-                    })
-                    .collect(),
-            ),
-        })
     }
 }
 

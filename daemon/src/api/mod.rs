@@ -171,7 +171,7 @@ fn prepare_status(e: &crate::pipeline::PipelineError) -> (StatusCode, &'static s
     match e {
         P::Config(_) => (StatusCode::UNPROCESSABLE_ENTITY, "invalid-plan"),
         P::Open(_) | P::Galvo(_) | P::Tdc(_) => (StatusCode::SERVICE_UNAVAILABLE, "device"),
-        P::Storage { .. } => (StatusCode::INTERNAL_SERVER_ERROR, "storage"),
+        P::Storage { .. } | P::Export { .. } => (StatusCode::INTERNAL_SERVER_ERROR, "storage"),
         _ => (StatusCode::INTERNAL_SERVER_ERROR, "internal"),
     }
 }

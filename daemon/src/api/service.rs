@@ -829,8 +829,13 @@ impl Service {
         let key = format!("{done} {records}");
         let fresh = std::fs::read_to_string(&stamp).is_ok_and(|k| k == key) && cache.is_file();
         if !fresh {
-            let capture = crate::ytal::YtalCapture::from_run(dir)
-                .map_err(|e| ServiceError::Conflict(format!("run {id} has no capture to export yet: {e}")))?;
+            let not_yet = |e: &dyn std::fmt::Display| {
+                ServiceError::Conflict(format!("run {id} has no capture to export yet: {e}"))
+            };
+            let capture = crate::capture::RunCapture::load(dir)
+                .map_err(|e| not_yet(&e))?
+                .to_ytal()
+                .map_err(|e| not_yet(&e))?;
             capture.write(&cache).map_err(|source| ServiceError::Export {
                 id: id.to_owned(),
                 source,

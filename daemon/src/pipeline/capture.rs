@@ -34,25 +34,17 @@ pub(crate) fn capture_order(total: usize) -> impl Iterator<Item = usize> {
     (0..CAPTURE_PASSES).flat_map(move |k| (k..total).step_by(CAPTURE_PASSES))
 }
 
-fn as_pair(p: &PlannedPair) -> Pair {
-    Pair {
-        xi: p.xi,
-        ni: p.ni,
-        xd: p.xd,
-        nd: p.nd,
-    }
-}
-
 impl Run {
     /// Measures every pair not yet stored; returns the fit that has been running
-    /// alongside.
-    pub(crate) fn capture(&mut self, pairs: &[PlannedPair]) -> Result<Fit, PipelineError> {
+    /// alongside and every stored record (those of earlier sessions of the run too),
+    /// which the outputs stage exports without reading the log back.
+    pub(crate) fn capture(&mut self, pairs: &[PlannedPair]) -> Result<(Fit, Vec<Record>), PipelineError> {
         let acq: Acquisition = self.plan.acquisition.clone();
         let (l, s) = (
             self.instrument.laser_arm.pose.origin,
             self.instrument.spad_arm.pose.origin,
         );
-        let recon_pairs: Vec<Pair> = pairs.iter().map(as_pair).collect();
+        let recon_pairs: Vec<Pair> = pairs.iter().map(PlannedPair::pair).collect();
         let axis =
             hidden_axis(&recon_pairs, &self.plan.recon.volume, acq.bin_width).map_err(ReconError::from)?;
         let (mut log, recovered) =
@@ -78,14 +70,16 @@ impl Run {
         let push = |batch: &mut TransientSet, rec: &Record| -> Result<(), PipelineError> {
             let p = &pairs[rec.pair as usize];
             match record_transient(rec, p, &instrument, &axis) {
-                Some(h) => Ok(batch.push(as_pair(p), &h).map_err(ReconError::from)?),
+                Some(h) => Ok(batch.push(p.pair(), &h).map_err(ReconError::from)?),
                 None => Ok(()),
             }
         };
-        for rec in &recovered.records {
+        let mut held = Vec::with_capacity(pairs.len());
+        for rec in recovered.records {
             if (rec.pair as usize) < pairs.len() {
                 stored.insert(rec.pair);
-                push(&mut batch, rec)?;
+                push(&mut batch, &rec)?;
+                held.push(rec);
             }
         }
         self.info.pairs_done = stored.len();
@@ -205,6 +199,7 @@ impl Run {
                     flagged: flags.overflow || flags.saturated,
                 });
                 feed(&mut fit, &mut batch, stored.len(), false)?;
+                held.push(rec);
                 if stored.len().is_multiple_of(64) {
                     self.save_info()?;
                 }
@@ -220,7 +215,7 @@ impl Run {
         if !streaming {
             fit.add(&batch)?;
         }
-        Ok(fit)
+        Ok((fit, held))
     }
 }
 

@@ -31,6 +31,7 @@ pub use los::{first_bounce_range, peak};
 pub use output::{RELAY_PLY, RunOutputs, write_outputs};
 pub use reconstruct::{MAX_VIRTUAL_RESOLUTION, ReconInput, ReconResult, reconstruct};
 
+use crate::capture::RunCapture;
 use crate::config::{ConfigError, InstrumentConfig, TomlSource};
 use crate::devices::{Devices, OpenError};
 use crate::events::{EventSink, RunEvent, Stage};
@@ -142,6 +143,14 @@ pub enum PipelineError {
         relay_points: usize,
         /// Pairs outside the galvo limits.
         unreachable: usize,
+    },
+    /// The run's y-tal capture could not be written.
+    #[error("{}: capture export: {source}", path.display())]
+    Export {
+        /// The capture file.
+        path: PathBuf,
+        /// Why.
+        source: crate::ytal::YtalError,
     },
     /// Reconstruction failed.
     #[error("reconstruction: {0}")]
@@ -621,7 +630,7 @@ impl Run {
         self.info.pairs_total = pairs.len();
         let t = Instant::now();
         self.set_stage(Stage::Capture)?;
-        let fit = self.capture(&pairs)?;
+        let (fit, records) = self.capture(&pairs)?;
         self.finish_stage(Stage::Capture, t);
         let t = Instant::now();
         self.set_stage(Stage::Reconstruction)?;
@@ -631,11 +640,22 @@ impl Run {
         let t = Instant::now();
         self.set_stage(Stage::Outputs)?;
         let mut outputs = output::write_outputs(&self.dir, &result, &self.events)?;
-        // The measured histograms as a y-tal capture, for y-tal, h5py and other labs.
+        // The measured histograms as a y-tal capture, for y-tal, h5py and other labs,
+        // from what the run holds.
+        let measured = pairs.len();
         let p = self.dir.join(crate::ytal::CAPTURE_FILE);
-        crate::ytal::YtalCapture::from_run(&self.dir)
+        let capture = RunCapture::new(
+            &self.dir,
+            self.info.clone(),
+            self.plan.clone(),
+            self.instrument.clone(),
+            pairs,
+            records,
+        );
+        capture
+            .to_ytal()
             .and_then(|c| c.write(&p))
-            .map_err(|e| PipelineError::storage(&p, std::io::Error::other(e.to_string())))?;
+            .map_err(|source| PipelineError::Export { path: p, source })?;
         self.events.emit(RunEvent::Output {
             name: crate::ytal::CAPTURE_FILE.into(),
         });
@@ -644,7 +664,7 @@ impl Run {
         Ok(RunSummary {
             dir: self.dir.clone(),
             timings: self.info.timings.clone(),
-            pairs: pairs.len(),
+            pairs: measured,
             outputs,
         })
     }

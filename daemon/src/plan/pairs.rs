@@ -201,6 +201,18 @@ pub struct PlannedPair {
     pub spad: OpticalAngles,
 }
 
+impl PlannedPair {
+    /// The pair as reconstructions see it (points and normals).
+    pub fn pair(&self) -> periscope_recon::Pair {
+        periscope_recon::Pair {
+            xi: self.xi,
+            ni: self.ni,
+            xd: self.xd,
+            nd: self.nd,
+        }
+    }
+}
+
 /// The relay as the LOS scan measured it.
 pub struct RelayView<'a> {
     /// Points.

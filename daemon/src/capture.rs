@@ -1,0 +1,392 @@
+//! One model of a capture, whatever holds it: a run (its directory on disk, or what a
+//! run in progress holds in memory) or a y-tal HDF5 file. A reconstruction gets its
+//! transients from either through [`Capture::transients`]; a run becomes a y-tal file
+//! through [`RunCapture::to_ytal`]. `periscope recon`, `periscope export`, the run's
+//! outputs stage and the API's `capture.hdf5` download all go through here.
+use std::path::{Path, PathBuf};
+
+use glam::DVec3;
+use periscope_recon::transient::{hidden_axis, rebin_path};
+use periscope_recon::{Pair, TimeAxis, TransientError, TransientSet, VolumeGrid};
+
+use crate::config::InstrumentConfig;
+use crate::plan::{Plan, PlannedPair, ReconSettings, default_recon};
+use crate::record::{record_axis, record_counts, record_transient};
+use crate::run_dir::{RunDir, RunDirError, file};
+use crate::store::{Record, RunInfo};
+use crate::ytal::{
+    FLAG_OVERFLOW, FLAG_SATURATED, Grid, GridFormat, HFormat, MAX_DATASET_BYTES, YtalCapture, YtalError,
+    is_hdf5_path,
+};
+
+/// Why a capture could not be opened or give its transients; every variant names the
+/// capture.
+#[derive(Debug, thiserror::Error)]
+pub enum CaptureError {
+    /// The path does not exist.
+    #[error("capture {} does not exist: give a run directory or a y-tal .hdf5/.h5 file", .0.display())]
+    Missing(PathBuf),
+    /// A directory without `run.json`.
+    #[error("{} is not a run directory (no run.json)", .0.display())]
+    NotRun(PathBuf),
+    /// A file that is not `.hdf5` or `.h5`.
+    #[error(
+        "{} is a file but not a y-tal capture (.hdf5 or .h5); give a capture file or a run directory",
+        .0.display()
+    )]
+    NotCapture(PathBuf),
+    /// The run's state, plan, instrument or pairs could not be read.
+    #[error(transparent)]
+    Run(#[from] RunDirError),
+    /// The run's histogram log could not be read.
+    #[error("{}: {source}", path.display())]
+    Log {
+        /// The log file.
+        path: PathBuf,
+        /// Why.
+        source: std::io::Error,
+    },
+    /// The y-tal file could not be read or does not fit the volume.
+    #[error(transparent)]
+    Ytal(#[from] YtalError),
+    /// A run that stored no histogram.
+    #[error("{} holds no measured pairs", .0.display())]
+    NoPairs(PathBuf),
+    /// A run whose every histogram overflowed.
+    #[error("{}: every stored histogram is flagged overflow; nothing to reconstruct from", .0.display())]
+    AllOverflowed(PathBuf),
+    /// A y-tal capture with no signal inside the volume's time range.
+    #[error("{}: every transient is empty inside the reconstruction volume's time range", .0.display())]
+    NothingInWindow(PathBuf),
+    /// The transients or their time axis do not fit the volume.
+    #[error("{}: {source}", path.display())]
+    Transients {
+        /// The capture.
+        path: PathBuf,
+        /// Why.
+        source: TransientError,
+    },
+}
+
+impl CaptureError {
+    /// Whether a configuration is at fault (a stored run's plan or instrument that no
+    /// longer loads).
+    pub fn is_config(&self) -> bool {
+        matches!(self, CaptureError::Run(RunDirError::Config(_)))
+    }
+}
+
+/// What a reconstruction takes from a capture.
+#[derive(Clone, Debug)]
+pub struct Transients {
+    /// Transients in hidden path length, on the axis the volume needs.
+    pub set: TransientSet,
+    /// The detection points of the transients kept (the virtual relay is fitted to them).
+    pub detection_points: Vec<DVec3>,
+    /// A point on the instrument's side (orients the virtual relay).
+    pub viewpoint: DVec3,
+    /// Transients left out because their counts are only a lower bound (overflow).
+    pub overflowed: usize,
+}
+
+/// A run's measurements: its state, plan, instrument, planned pairs and the stored
+/// record of each measured pair, in the order they were stored (the order the run's
+/// own fit received them, so a reconstruction from here repeats it exactly).
+#[derive(Clone, Debug)]
+pub struct RunCapture {
+    dir: PathBuf,
+    info: RunInfo,
+    plan: Plan,
+    instrument: InstrumentConfig,
+    pairs: Vec<PlannedPair>,
+    records: Vec<Record>,
+}
+
+impl RunCapture {
+    /// Reads a run directory: `run.json`, the plan and instrument it was started with,
+    /// `pairs.json` and every valid record of `histograms.bin`.
+    pub fn load(dir: &Path) -> Result<RunCapture, CaptureError> {
+        let run = RunDir::new(dir);
+        let (info, plan, instrument) = run.load()?;
+        let pairs = run.pairs()?;
+        let records = crate::store::read_log(dir)
+            .map_err(|source| CaptureError::Log {
+                path: run.file(file::HISTOGRAMS),
+                source,
+            })?
+            .records;
+        Ok(RunCapture::new(dir, info, plan, instrument, pairs, records))
+    }
+
+    /// What a run holds in memory (the outputs stage exports it without reading the
+    /// directory back), records in the order they were stored. Records of pairs the
+    /// plan does not have are dropped.
+    pub fn new(
+        dir: &Path,
+        info: RunInfo,
+        plan: Plan,
+        instrument: InstrumentConfig,
+        pairs: Vec<PlannedPair>,
+        mut records: Vec<Record>,
+    ) -> RunCapture {
+        records.retain(|r| (r.pair as usize) < pairs.len());
+        RunCapture {
+            dir: dir.to_owned(),
+            info,
+            plan,
+            instrument,
+            pairs,
+            records,
+        }
+    }
+
+    /// The run's plan.
+    pub fn plan(&self) -> &Plan {
+        &self.plan
+    }
+
+    /// The stored records, in the order they were stored.
+    pub fn records(&self) -> &[Record] {
+        &self.records
+    }
+
+    /// The transients for `volume`, as the run's own fit saw them: on the hidden-path
+    /// axis of the planned pairs at the plan's bin width, pile-up undone when the
+    /// instrument asks for it, overflowed histograms left out (and counted).
+    pub fn transients(&self, volume: &VolumeGrid) -> Result<Transients, CaptureError> {
+        if self.records.is_empty() {
+            return Err(CaptureError::NoPairs(self.dir.clone()));
+        }
+        let fail = |source| CaptureError::Transients {
+            path: self.dir.clone(),
+            source,
+        };
+        let pairs: Vec<Pair> = self.pairs.iter().map(PlannedPair::pair).collect();
+        let axis = hidden_axis(&pairs, volume, self.plan.acquisition.bin_width).map_err(fail)?;
+        let mut set = TransientSet::new(axis).map_err(fail)?;
+        let mut detection_points = Vec::new();
+        let mut overflowed = 0;
+        for r in &self.records {
+            let p = &self.pairs[r.pair as usize];
+            match record_transient(r, p, &self.instrument, &axis) {
+                Some(h) => {
+                    set.push(p.pair(), &h).map_err(fail)?;
+                    detection_points.push(p.xd);
+                }
+                None => overflowed += 1,
+            }
+        }
+        if set.is_empty() {
+            return Err(CaptureError::AllOverflowed(self.dir.clone()));
+        }
+        let (l, s) = (
+            self.instrument.laser_arm.pose.origin,
+            self.instrument.spad_arm.pose.origin,
+        );
+        Ok(Transients {
+            set,
+            detection_points,
+            viewpoint: 0.5 * (l + s),
+            overflowed,
+        })
+    }
+
+    /// The stored histograms as a y-tal capture: `T_Si` with paired `N_3` point lists
+    /// (illumination point i with detection point i), the TDC counts (with pile-up and
+    /// dead time undone when `tdc.pile-up-correction` is on, as every reconstruction of
+    /// the run uses them; `histograms.bin` keeps them as counted), each histogram's
+    /// flags (in `scene_info`), path lengths that include the legs from the laser and
+    /// to the SPAD (`t_accounts_first_and_last_bounces`), and the galvo origins as
+    /// `laser_xyz` and `sensor_xyz`. Transients in pair order; pairs never measured
+    /// are left out.
+    pub fn to_ytal(&self) -> Result<YtalCapture, YtalError> {
+        let (plan, inst) = (&self.plan, &self.instrument);
+        let mut records: Vec<&Record> = self.records.iter().collect();
+        records.sort_by_key(|r| r.pair);
+        let refuse = |message: String| YtalError::Export {
+            path: self.dir.clone(),
+            message,
+        };
+        let Some(first) = records.first() else {
+            return Err(refuse("holds no measured pairs to export".into()));
+        };
+        // The time axis: the first record's settings when they are the plan's shape,
+        // else the plan's own (a damaged or forged log cannot size the export).
+        let acq = &plan.acquisition;
+        let (width, offset, bins) = if first.counts.len() == acq.bins as usize {
+            (
+                f64::from(first.bin_width_ps) * 1e-12,
+                f64::from(first.offset_ps) * 1e-12,
+                first.counts.len(),
+            )
+        } else {
+            (acq.bin_width, acq.offset, acq.bins as usize)
+        };
+        let axis = TimeAxis::of_tdc(offset, width, bins, inst.tdc.system_delay);
+        let n = records.len();
+        if (bins as u64).saturating_mul(n as u64) > MAX_DATASET_BYTES / 4 {
+            return Err(refuse(format!(
+                "{n} records of {bins} bins are more than an export may hold"
+            )));
+        }
+        let mut h = vec![0.0f32; bins * n];
+        for (c, r) in records.iter().enumerate() {
+            let same = f64::from(r.bin_width_ps) * 1e-12 == width
+                && f64::from(r.offset_ps) * 1e-12 == offset
+                && r.counts.len() == bins;
+            let counts = record_counts(r, inst);
+            let column: Vec<f32> = if same {
+                counts
+            } else {
+                let own = record_axis(r, inst);
+                rebin_path(counts, own.start, own.width, &axis)
+            };
+            for (k, v) in column.into_iter().enumerate() {
+                h[k * n + c] = v;
+            }
+        }
+        let grid = |f: &dyn Fn(&PlannedPair) -> (DVec3, DVec3)| {
+            let (points, normals) = records.iter().map(|r| f(&self.pairs[r.pair as usize])).unzip();
+            Grid {
+                points,
+                normals,
+                format: GridFormat::N3,
+                shape: vec![n],
+            }
+        };
+        let dwell_s = records.iter().fold(0u64, |a, r| a.saturating_add(r.dwell_us)) as f64 * 1e-6;
+        let scene_info = format!(
+            "original_format: periscope\nrun: '{}'\nplan: '{}'\npairs_planned: {}\npairs_measured: {n}\n\
+             dwell_total_s: {dwell_s}\nbin_width_s: {width}\nacquisition_offset_s: {offset}\n\
+             system_delay_s: {}\nrepeats: {}\npile_up_corrected: {}\n",
+            self.info.id.replace('\'', "''"),
+            plan.name.replace('\'', "''"),
+            self.pairs.len(),
+            inst.tdc.system_delay,
+            plan.acquisition.repeats,
+            inst.tdc.pile_up_correction,
+        );
+        Ok(YtalCapture {
+            h,
+            h_shape: vec![bins, n],
+            h_format: HFormat::TSi,
+            sensor_grid: grid(&|p| (p.xd, p.nd)),
+            laser_grid: grid(&|p| (p.xi, p.ni)),
+            sensor_xyz: Some(inst.spad_arm.pose.origin),
+            laser_xyz: Some(inst.laser_arm.pose.origin),
+            delta_t: axis.width,
+            t_start: axis.start,
+            t_accounts_first_and_last_bounces: true,
+            scene_info: Some(scene_info),
+            flags: Some(
+                records
+                    .iter()
+                    .map(|r| {
+                        (if r.flags.overflow { FLAG_OVERFLOW } else { 0 })
+                            | (if r.flags.saturated { FLAG_SATURATED } else { 0 })
+                    })
+                    .collect(),
+            ),
+        })
+    }
+}
+
+/// A capture to reconstruct: a run or a y-tal file.
+#[derive(Clone, Debug)]
+pub enum Capture {
+    /// A run's measurements.
+    Run(Box<RunCapture>),
+    /// A y-tal HDF5 capture, with the path it was read from.
+    Ytal {
+        /// Where it came from.
+        path: PathBuf,
+        /// The capture.
+        capture: Box<YtalCapture>,
+    },
+}
+
+impl Capture {
+    /// Opens `path`: a run directory, or a y-tal `.hdf5`/`.h5` file.
+    pub fn open(path: &Path) -> Result<Capture, CaptureError> {
+        if !path.exists() {
+            return Err(CaptureError::Missing(path.to_path_buf()));
+        }
+        if path.is_file() {
+            if !is_hdf5_path(path) {
+                return Err(CaptureError::NotCapture(path.to_path_buf()));
+            }
+            return Ok(Capture::Ytal {
+                path: path.to_path_buf(),
+                capture: Box::new(YtalCapture::read(path)?),
+            });
+        }
+        if !RunDir::holds_run(path) {
+            return Err(CaptureError::NotRun(path.to_path_buf()));
+        }
+        Ok(Capture::Run(Box::new(RunCapture::load(path)?)))
+    }
+
+    /// The volume to use when the settings give none: the run's plan's, or one over
+    /// a y-tal capture's relay and time range.
+    pub fn default_volume(&self) -> Result<VolumeGrid, CaptureError> {
+        match self {
+            Capture::Run(run) => Ok(run.plan.recon.volume),
+            Capture::Ytal { capture, .. } => Ok(capture.default_volume()?),
+        }
+    }
+
+    /// The reconstruction settings to use without a RECON.toml: the run's plan's, or
+    /// the defaults derived for a y-tal capture's volume.
+    pub fn default_recon(&self) -> Result<ReconSettings, CaptureError> {
+        match self {
+            Capture::Run(run) => Ok(run.plan.recon.clone()),
+            Capture::Ytal { capture, .. } => Ok(default_recon(capture.default_volume()?)),
+        }
+    }
+
+    /// The transients for `volume`, whichever the source.
+    pub fn transients(&self, volume: &VolumeGrid) -> Result<Transients, CaptureError> {
+        match self {
+            Capture::Run(run) => run.transients(volume),
+            Capture::Ytal { path, capture } => {
+                let set = capture.transients(volume)?;
+                if set.is_empty() {
+                    return Err(CaptureError::NothingInWindow(path.clone()));
+                }
+                Ok(Transients {
+                    set,
+                    detection_points: capture.sensor_grid.points.clone(),
+                    viewpoint: capture.viewpoint(),
+                    overflowed: 0,
+                })
+            }
+        }
+    }
+
+    /// One line on what the capture holds.
+    pub fn describe(&self) -> String {
+        match self {
+            Capture::Run(run) => format!(
+                "{}: run {} (plan `{}`), {} of {} pairs measured",
+                run.dir.display(),
+                run.info.id,
+                run.plan.name,
+                run.records.len(),
+                run.pairs.len()
+            ),
+            Capture::Ytal { path, capture } => format!(
+                "{}: {} transients ({}), {} bins of {:.4} m{}",
+                path.display(),
+                capture.len(),
+                capture.h_format.name(),
+                capture.bins(),
+                capture.delta_t,
+                if capture.t_accounts_first_and_last_bounces {
+                    ", first and last legs removed"
+                } else {
+                    ""
+                }
+            ),
+        }
+    }
+}
