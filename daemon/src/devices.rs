@@ -1,17 +1,32 @@
-//! Opening the instrument's devices from its config: the real drivers, over real
-//! ports and libusb for `backend = "hardware"`, or over the simulator's
-//! pseudo-terminals and USB transport for `backend = "sim"`. Either way the daemon
-//! gets the same driver types, so the pipeline runs the same code in the lab and in CI.
+//! Opening the instrument's devices from its config, as trait objects the pipeline
+//! drives without knowing what is behind them (probe-rs's factory shape: the config
+//! picks the implementation, the rest of the daemon sees the traits):
+//!
+//! | config | galvo pairs and laser | histogrammer |
+//! |---|---|---|
+//! | `backend = "hardware"` | serial driver on the configured ports | USB driver over libusb |
+//! | `backend = "sim"` (`sim.devices = "wire"`) | serial driver on the simulator's pseudo-terminals | USB driver over the simulator's transport |
+//! | `backend = "sim"`, `sim.devices = "in-process"` | the simulator's controller model, no wire | the simulator's histogrammer, no wire |
+//!
+//! The first two run the same drivers, so CI runs the code the lab runs. A new driver
+//! is one more arm of [`open_galvo`], [`open_laser_arm`] or [`open_histogrammer`].
 use std::time::Duration;
 
 use periscope_drivers::galvo::{GalvoError, PortConnector, SerialGalvo, SerialGalvoSettings};
 use periscope_drivers::tdc::{RusbTransport, TdcError, UsbTdc, UsbTransport};
-use periscope_drivers::{DeviceInfo, GalvoPair, Histogrammer, Laser, LaserState, TdcStatus};
+use periscope_drivers::{DeviceInfo, GalvoPair, Histogrammer, Laser, LaserState, Shared, TdcStatus};
 use periscope_sim::World;
 use periscope_sim::devices::{Arm, Rig, RigSettings};
 use serde::Serialize;
 
-use crate::config::{Backend, ConfigError, GalvoArm, InstrumentConfig, TomlSource, sim_scene};
+use crate::config::{Backend, ConfigError, GalvoArm, InstrumentConfig, SimDevices, TomlSource, sim_scene};
+
+/// A galvo pair, whatever drives it.
+pub type GalvoBox = Box<dyn GalvoPair<Error = GalvoError> + Send>;
+/// A laser, whatever drives it.
+pub type LaserBox = Box<dyn Laser<Error = GalvoError> + Send>;
+/// A histogrammer, whatever drives it.
+pub type HistogrammerBox = Box<dyn Histogrammer<Error = TdcError> + Send>;
 
 /// Reply timeout of the simulated controllers' links.
 const SIM_TIMEOUT: Duration = Duration::from_millis(500);
@@ -51,14 +66,25 @@ pub enum OpenError {
 
 /// The instrument's devices, opened.
 pub struct Devices {
-    /// Laser arm: its galvo pair, the laser and the LOS diffuser.
-    pub laser: SerialGalvo,
+    /// Laser arm galvo pair.
+    pub laser_arm: GalvoBox,
+    /// The laser and the LOS diffuser (on the laser arm's controller: the two share
+    /// it).
+    pub laser: LaserBox,
     /// SPAD arm galvo pair.
-    pub spad: SerialGalvo,
+    pub spad: GalvoBox,
     /// The histogrammer.
-    pub tdc: UsbTdc<Box<dyn UsbTransport>>,
+    pub tdc: HistogrammerBox,
     /// The simulated instrument behind them, when the back-end is `sim`.
     pub rig: Option<Rig>,
+}
+
+/// The laser arm's controller opened on its own: its galvo pair and its laser.
+pub struct LaserArm {
+    /// The galvo pair.
+    pub arm: GalvoBox,
+    /// The laser.
+    pub laser: LaserBox,
 }
 
 fn galvo_settings(
@@ -116,10 +142,62 @@ pub fn sim_rig(config: &InstrumentConfig) -> Result<Option<Rig>, ConfigError> {
     )))
 }
 
-/// Opens one galvo controller's driver (not yet connected). In the simulator an arm
-/// with a `serial` table talks to that port (a real controller, or one simulated in
-/// another process) instead of the built-in firmware.
-fn galvo(config: &InstrumentConfig, arm: Arm, rig: Option<&Rig>) -> Result<SerialGalvo, OpenError> {
+/// Whether the simulated arm is reached in process: `sim.devices = "in-process"` and
+/// no `serial` table of its own.
+fn in_process_arm(config: &InstrumentConfig, arm: Arm, rig: Option<&Rig>) -> Option<Rig> {
+    let a = match arm {
+        Arm::Laser => &config.laser_arm,
+        Arm::Spad => &config.spad_arm,
+    };
+    match (&config.backend, rig) {
+        (Backend::Sim(sim), Some(rig)) if sim.devices == SimDevices::InProcess && a.serial.is_none() => {
+            Some(rig.clone())
+        }
+        _ => None,
+    }
+}
+
+/// Opens the SPAD arm's (or any plain) galvo pair, not yet identified.
+fn open_galvo(config: &InstrumentConfig, arm: Arm, rig: Option<&Rig>) -> Result<GalvoBox, OpenError> {
+    let limits = match arm {
+        Arm::Laser => config.laser_arm.limits,
+        Arm::Spad => config.spad_arm.limits,
+    };
+    Ok(match in_process_arm(config, arm, rig) {
+        Some(rig) => Box::new(rig.in_process_galvo(arm, limits, None)),
+        None => Box::new(serial_galvo(config, arm, rig)?),
+    })
+}
+
+/// Opens the laser arm's controller, not yet identified: one driver behind both its
+/// galvo pair and its laser.
+fn open_laser_arm(config: &InstrumentConfig, rig: Option<&Rig>) -> Result<LaserArm, OpenError> {
+    Ok(match in_process_arm(config, Arm::Laser, rig) {
+        Some(rig) => {
+            let shared = Shared::new(rig.in_process_galvo(
+                Arm::Laser,
+                config.laser_arm.limits,
+                Some(config.laser.watchdog),
+            ));
+            LaserArm {
+                arm: Box::new(shared.clone()),
+                laser: Box::new(shared),
+            }
+        }
+        None => {
+            let shared = Shared::new(serial_galvo(config, Arm::Laser, rig)?);
+            LaserArm {
+                arm: Box::new(shared.clone()),
+                laser: Box::new(shared),
+            }
+        }
+    })
+}
+
+/// Opens one galvo controller's serial driver (not yet connected). In the simulator
+/// an arm with a `serial` table talks to that port (a real controller, or one
+/// simulated in another process) instead of the built-in firmware.
+fn serial_galvo(config: &InstrumentConfig, arm: Arm, rig: Option<&Rig>) -> Result<SerialGalvo, OpenError> {
     let (name, a, watchdog) = match arm {
         Arm::Laser => ("laser", &config.laser_arm, Some(config.laser.watchdog)),
         Arm::Spad => ("spad", &config.spad_arm, None),
@@ -143,8 +221,13 @@ fn galvo(config: &InstrumentConfig, arm: Arm, rig: Option<&Rig>) -> Result<Seria
     ))
 }
 
-/// Opens the histogrammer's driver.
-fn tdc(config: &InstrumentConfig, rig: Option<&Rig>) -> Result<UsbTdc<Box<dyn UsbTransport>>, OpenError> {
+/// Opens the histogrammer.
+fn open_histogrammer(config: &InstrumentConfig, rig: Option<&Rig>) -> Result<HistogrammerBox, OpenError> {
+    if let (Backend::Sim(sim), Some(rig)) = (&config.backend, rig)
+        && sim.devices == SimDevices::InProcess
+    {
+        return Ok(Box::new(rig.in_process_tdc()));
+    }
     let transport: Box<dyn UsbTransport> = match rig {
         Some(rig) => Box::new(rig.tdc_transport()),
         None => {
@@ -159,7 +242,7 @@ fn tdc(config: &InstrumentConfig, rig: Option<&Rig>) -> Result<UsbTdc<Box<dyn Us
             })?)
         }
     };
-    Ok(UsbTdc::open(transport, TDC_TIMEOUT)?)
+    Ok(Box::new(UsbTdc::open(transport, TDC_TIMEOUT)?))
 }
 
 impl Devices {
@@ -184,16 +267,20 @@ impl Devices {
             }
         };
         interrupted()?;
-        let mut laser = galvo(config, Arm::Laser, rig.as_ref())?;
-        laser.identify()?;
+        let LaserArm {
+            arm: mut laser_arm,
+            laser,
+        } = open_laser_arm(config, rig.as_ref())?;
+        laser_arm.identify()?;
         interrupted()?;
-        let mut spad = galvo(config, Arm::Spad, rig.as_ref())?;
+        let mut spad = open_galvo(config, Arm::Spad, rig.as_ref())?;
         spad.identify()?;
         interrupted()?;
-        let mut tdc = tdc(config, rig.as_ref())?;
+        let mut tdc = open_histogrammer(config, rig.as_ref())?;
         tdc.identify()?;
         interrupted()?;
         Ok(Devices {
+            laser_arm,
             laser,
             spad,
             tdc,
@@ -203,20 +290,20 @@ impl Devices {
 
     /// Opens the laser arm's controller alone (the e-stop's way to the laser when no
     /// run holds the devices: it needs neither the SPAD arm nor the histogrammer).
-    pub fn laser_controller(config: &InstrumentConfig, rig: Option<&Rig>) -> Result<SerialGalvo, OpenError> {
-        galvo(config, Arm::Laser, rig)
+    pub fn laser_controller(config: &InstrumentConfig, rig: Option<&Rig>) -> Result<LaserArm, OpenError> {
+        open_laser_arm(config, rig)
     }
 
     /// Opens the SPAD arm's controller alone (to park it).
-    pub fn spad_controller(config: &InstrumentConfig, rig: Option<&Rig>) -> Result<SerialGalvo, OpenError> {
-        galvo(config, Arm::Spad, rig)
+    pub fn spad_controller(config: &InstrumentConfig, rig: Option<&Rig>) -> Result<GalvoBox, OpenError> {
+        open_galvo(config, Arm::Spad, rig)
     }
 
     /// Everything the devices report about themselves.
     pub fn report(&mut self) -> Result<DeviceReport, OpenError> {
         Ok(DeviceReport {
-            laser_arm: self.laser.identify()?,
-            laser_position: self.laser.position()?,
+            laser_arm: self.laser_arm.identify()?,
+            laser_position: self.laser_arm.position()?,
             laser: self.laser.laser_state()?,
             spad_arm: self.spad.identify()?,
             spad_position: self.spad.position()?,
@@ -231,7 +318,7 @@ impl Devices {
     pub fn make_safe(&mut self) -> Result<(), OpenError> {
         let off = self.laser.set_emission(false);
         let abort = self.tdc.abort();
-        let lp = self.laser.park();
+        let lp = self.laser_arm.park();
         let sp = self.spad.park();
         off?;
         lp?;

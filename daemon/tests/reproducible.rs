@@ -1,7 +1,8 @@
 //! A run's reconstruction is the same bit for bit whatever the timing: the fit that
 //! streams alongside the capture schedules its live epochs by the batches received,
 //! never by the clock, so a capture slowed down pair by pair (a busy machine, a slow
-//! instrument) gives the same Gaussians and the same volume as one at full speed.
+//! instrument) gives the same Gaussians and the same volume as one at full speed. The
+//! simulator's in-process devices give the same run as its wire-level ones.
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::sync::atomic::{AtomicUsize, Ordering};
@@ -51,7 +52,16 @@ fn root() -> PathBuf {
 /// Runs the plan on the simulated instrument, sleeping `pause` after each stored pair;
 /// returns the run directory and the number of live epochs (run during the capture).
 fn run(tmp: &Path, name: &str, pause: Duration) -> (PathBuf, usize) {
-    let src = TomlSource::load(&root().join("configs/instrument/sim.toml")).unwrap();
+    run_on(tmp, name, pause, "wire")
+}
+
+/// [`run`] with `sim.devices` set to `devices`.
+fn run_on(tmp: &Path, name: &str, pause: Duration, devices: &str) -> (PathBuf, usize) {
+    let path = root().join("configs/instrument/sim.toml");
+    let text = std::fs::read_to_string(&path)
+        .unwrap()
+        .replace("[sim]\n", &format!("[sim]\ndevices = \"{devices}\"\n"));
+    let src = TomlSource::from_text(path, text);
     let config = InstrumentConfig::from_source(&src).unwrap();
     let rig = periscope_daemon::devices::sim_rig(&config).unwrap().unwrap();
     let plan = TomlSource::from_text(tmp.join("plan.toml"), PLAN);
@@ -95,4 +105,28 @@ fn a_slowed_capture_reconstructs_the_same_volume_bit_for_bit() {
     assert!(planned > 96, "{planned} pairs: too few to stream two batches");
     let batches = 1 + (planned - 64).div_ceil(32);
     assert_eq!((live_fast, live_slow), (batches, batches));
+}
+
+#[test]
+fn in_process_devices_give_the_wire_devices_run_bit_for_bit() {
+    let tmp = tempfile::tempdir().unwrap();
+    let (wire, _) = run_on(tmp.path(), "wire", Duration::ZERO, "wire");
+    let (local, _) = run_on(tmp.path(), "in-process", Duration::ZERO, "in-process");
+    for f in [
+        "relay.ply",
+        "pairs.json",
+        "histograms.bin",
+        "gaussians.ply",
+        "volume.npy",
+    ] {
+        let (a, b) = (
+            std::fs::read(wire.join(f)).unwrap(),
+            std::fs::read(local.join(f)).unwrap(),
+        );
+        assert!(!a.is_empty(), "{f} is empty");
+        assert!(
+            a == b,
+            "{f} differs between the wire-level and the in-process devices"
+        );
+    }
 }

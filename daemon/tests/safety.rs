@@ -3,7 +3,8 @@
 //! the simulated devices in real time. Each case asserts the simulated laser's own
 //! emission state (the firmware's log of when emission changed and why), never the
 //! daemon's belief about it: off within 50 ms of the event, never on again after it,
-//! and the run left in the state it should be in, with its data resumable.
+//! and the run left in the state it should be in, with its data resumable. The
+//! measuring stages run the matrix again on the simulator's in-process devices.
 use std::path::{Path, PathBuf};
 use std::sync::{Arc, Mutex, OnceLock, mpsc};
 use std::time::{Duration, Instant};
@@ -59,16 +60,40 @@ fn root() -> PathBuf {
 
 /// The default simulated instrument in real time.
 fn instrument() -> TomlSource {
+    instrument_on(Devices::Wire)
+}
+
+/// How the run reaches the simulated devices (`sim.devices`).
+#[derive(Clone, Copy, Debug, PartialEq)]
+enum Devices {
+    /// The real drivers over the simulator's wire.
+    Wire,
+    /// The simulator's controller model and histogrammer, in process.
+    InProcess,
+}
+
+/// The default simulated instrument in real time, its devices reached by `devices`.
+fn instrument_on(devices: Devices) -> TomlSource {
     let path = root().join("configs/instrument/sim.toml");
-    let text = std::fs::read_to_string(&path)
-        .unwrap()
-        .replace("[sim]\n", "[sim]\ntime-scale = 1.0\n");
+    let devices = match devices {
+        Devices::Wire => "wire",
+        Devices::InProcess => "in-process",
+    };
+    let text = std::fs::read_to_string(&path).unwrap().replace(
+        "[sim]\n",
+        &format!("[sim]\ntime-scale = 1.0\ndevices = \"{devices}\"\n"),
+    );
     TomlSource::from_text(path, text)
 }
 
 /// A prepared run directory and the rig it will run on.
 fn prepare(tmp: &Path, plan: &str) -> (PathBuf, Rig) {
-    let src = instrument();
+    prepare_on(tmp, plan, Devices::Wire)
+}
+
+/// [`prepare`] with the devices reached by `devices`.
+fn prepare_on(tmp: &Path, plan: &str, devices: Devices) -> (PathBuf, Rig) {
+    let src = instrument_on(devices);
     let config = InstrumentConfig::from_source(&src).unwrap();
     let rig = periscope_daemon::devices::sim_rig(&config).unwrap().unwrap();
     let plan_src = TomlSource::from_text(tmp.join("plan.toml"), plan.to_owned());
@@ -123,11 +148,11 @@ fn fire(event: Event, stage: Stage, control: &Control, rig: &Rig, laser: &OnceLo
 
 /// Runs the plan and fires `event` in `stage`: while measuring (LOS, capture) from
 /// another thread a few milliseconds into a dwell, elsewhere at the stage's start.
-fn run_case(stage: Stage, event: Event) -> Outcome {
+fn run_case(stage: Stage, event: Event, devices: Devices) -> Outcome {
     // As the binary does at start.
     periscope_daemon::signals::install_panic_hook();
     let tmp = tempfile::tempdir().unwrap();
-    let (dir, rig) = prepare(tmp.path(), PLAN);
+    let (dir, rig) = prepare_on(tmp.path(), PLAN, devices);
     let control = Control::new();
     let laser: Arc<OnceLock<EmergencyOff>> = Arc::new(OnceLock::new());
     let fired: Arc<Mutex<Option<Instant>>> = Arc::new(Mutex::new(None));
@@ -220,10 +245,14 @@ fn expected_state(stage: Stage, event: Event) -> RunState {
 static ONE_AT_A_TIME: Mutex<()> = Mutex::new(());
 
 fn check_stage(stage: Stage) {
+    check_stage_on(stage, Devices::Wire);
+}
+
+fn check_stage_on(stage: Stage, devices: Devices) {
     let _serial = ONE_AT_A_TIME.lock().unwrap_or_else(|p| p.into_inner());
     let mut table = String::new();
     for event in EVENTS {
-        let o = run_case(stage, event);
+        let o = run_case(stage, event, devices);
         table.push_str(&format!(
             "{:<15} {:<12} off after {:>6.1} ms, run returned after {:>7.1} ms, state {:?}: {}\n",
             stage.name(),
@@ -287,6 +316,19 @@ fn capture() {
 #[test]
 fn reconstruction() {
     check_stage(Stage::Reconstruction);
+}
+
+// The matrix's measuring stages on the in-process devices: the pipeline's safety logic
+// holds whatever implements the device traits.
+
+#[test]
+fn los_scan_in_process() {
+    check_stage_on(Stage::LosScan, Devices::InProcess);
+}
+
+#[test]
+fn capture_in_process() {
+    check_stage_on(Stage::Capture, Devices::InProcess);
 }
 
 /// Runs (or resumes) the run in `dir` on `rig`, with `on_pair` called on the pipeline

@@ -22,6 +22,6 @@ pub use error::{Error, ErrorKind, ErrorType};
 pub use geometry::{AngleLimits, GalvoPose, OpticalAngles};
 pub use selector::{SelectorError, UsbSelector};
 pub use traits::{
-    CountRates, DeviceInfo, GalvoPair, GalvoStatus, Histogram, HistogramFlags, Histogrammer, Laser,
-    LaserState, TdcConfig, TdcState, TdcStatus,
+    CountRates, DeviceInfo, EmergencyOff, GalvoPair, GalvoStatus, Histogram, HistogramFlags, Histogrammer,
+    Laser, LaserState, OffSwitch, Shared, TdcConfig, TdcState, TdcStatus,
 };

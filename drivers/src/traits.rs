@@ -3,11 +3,13 @@
 //! so the pipeline is written once against them and runs the real drivers, whatever
 //! transport sits under those drivers (a serial port or the simulator's
 //! pseudo-terminal; libusb or the simulator's USB transport).
+use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::Duration;
 
 use serde::Serialize;
 
 use crate::error::ErrorType;
+use crate::galvo::GalvoError;
 use crate::galvo::protocol::MotionState;
 use crate::geometry::{AngleLimits, OpticalAngles};
 
@@ -90,6 +92,128 @@ pub trait Laser: ErrorType {
     }
     /// Puts the LOS diffuser into the beam (first-bounce scan) or takes it out.
     fn set_diffuser(&mut self, inserted: bool) -> Result<(), Self::Error>;
+    /// A handle that switches emission off from any thread, whatever this driver is
+    /// doing or waiting for (the e-stop's and the signal handlers' path).
+    fn emergency_off(&self) -> EmergencyOff;
+}
+
+/// What an [`EmergencyOff`] handle does; each laser driver implements it over its own
+/// out-of-band path to the laser.
+pub trait OffSwitch: Send + Sync {
+    /// Switches emission off now. An error means the command could not be delivered;
+    /// the driver's keepalive has stopped regardless, so the controller's watchdog
+    /// ends emission within its timeout.
+    fn laser_off(&self) -> Result<(), GalvoError>;
+    /// Like [`OffSwitch::laser_off`], but never blocks for more than a few
+    /// milliseconds (for a panic hook, which may run on the very thread that holds a
+    /// lock the driver needs). Returns whether the command was delivered.
+    fn try_laser_off(&self) -> bool;
+    /// Whether the driver it belongs to is still open.
+    fn is_open(&self) -> bool;
+    /// Which laser, for logs.
+    fn describe(&self) -> String;
+}
+
+/// Switches a laser off from any thread without waiting for its driver. Cheap to
+/// clone; [`Laser::emergency_off`] hands one out.
+#[derive(Clone)]
+pub struct EmergencyOff(Arc<dyn OffSwitch>);
+
+impl EmergencyOff {
+    /// A handle over a driver's off switch.
+    pub fn new(switch: impl OffSwitch + 'static) -> EmergencyOff {
+        EmergencyOff(Arc::new(switch))
+    }
+
+    /// Switches emission off now (see [`OffSwitch::laser_off`]).
+    pub fn laser_off(&self) -> Result<(), GalvoError> {
+        self.0.laser_off()
+    }
+
+    /// Switches emission off without blocking (see [`OffSwitch::try_laser_off`]).
+    pub fn try_laser_off(&self) -> bool {
+        self.0.try_laser_off()
+    }
+
+    /// Whether the driver it belongs to is still open.
+    pub fn is_open(&self) -> bool {
+        self.0.is_open()
+    }
+}
+
+impl std::fmt::Debug for EmergencyOff {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_tuple("EmergencyOff").field(&self.0.describe()).finish()
+    }
+}
+
+/// One controller behind two of its traits at once: the laser arm's controller is
+/// both a [`GalvoPair`] and the [`Laser`], and the daemon holds each as its own trait
+/// object. Clones share the driver; each call holds it for that call only.
+pub struct Shared<T>(Arc<Mutex<T>>);
+
+impl<T> Shared<T> {
+    /// Shares `driver`.
+    pub fn new(driver: T) -> Shared<T> {
+        Shared(Arc::new(Mutex::new(driver)))
+    }
+
+    fn lock(&self) -> MutexGuard<'_, T> {
+        // A panic in one call must not leave the laser unreachable.
+        self.0.lock().unwrap_or_else(|p| p.into_inner())
+    }
+}
+
+impl<T> Clone for Shared<T> {
+    fn clone(&self) -> Self {
+        Shared(self.0.clone())
+    }
+}
+
+impl<T: ErrorType> ErrorType for Shared<T> {
+    type Error = T::Error;
+}
+
+impl<T: GalvoPair> GalvoPair for Shared<T> {
+    fn identify(&mut self) -> Result<DeviceInfo, Self::Error> {
+        self.lock().identify()
+    }
+    fn limits(&self) -> AngleLimits {
+        self.lock().limits()
+    }
+    fn move_to(&mut self, target: OpticalAngles) -> Result<(), Self::Error> {
+        self.lock().move_to(target)
+    }
+    fn wait_settled(&mut self, timeout: Duration) -> Result<OpticalAngles, Self::Error> {
+        self.lock().wait_settled(timeout)
+    }
+    fn position(&mut self) -> Result<OpticalAngles, Self::Error> {
+        self.lock().position()
+    }
+    fn status(&mut self) -> Result<GalvoStatus, Self::Error> {
+        self.lock().status()
+    }
+    fn park(&mut self) -> Result<(), Self::Error> {
+        self.lock().park()
+    }
+}
+
+impl<T: Laser> Laser for Shared<T> {
+    fn set_emission(&mut self, on: bool) -> Result<(), Self::Error> {
+        self.lock().set_emission(on)
+    }
+    fn laser_state(&mut self) -> Result<LaserState, Self::Error> {
+        self.lock().laser_state()
+    }
+    fn interlock_closed(&mut self) -> Result<bool, Self::Error> {
+        self.lock().interlock_closed()
+    }
+    fn set_diffuser(&mut self, inserted: bool) -> Result<(), Self::Error> {
+        self.lock().set_diffuser(inserted)
+    }
+    fn emergency_off(&self) -> EmergencyOff {
+        self.lock().emergency_off()
+    }
 }
 
 /// Histogrammer settings, SI units.

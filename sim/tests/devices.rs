@@ -2,7 +2,8 @@
 //! galvo firmware on a pseudo-terminal and the histogrammer behind the USB transport.
 //! One test per injected fault shows the documented behaviour: a retry that recovers,
 //! or an error of the documented kind, and never a wrong position or histogram
-//! accepted.
+//! accepted. The last section holds the in-process devices to the same behaviour and
+//! the same counts.
 use std::time::{Duration, Instant};
 
 use glam::DVec3;
@@ -716,4 +717,161 @@ fn the_simulated_histogrammer_answers_the_documented_requests() {
     let mut zero_divider = CONFIG;
     zero_divider[12] = 0;
     assert!(usb.control_out(0x02, 0, 0, &zero_divider, t).is_err());
+}
+
+// ---- In process ------------------------------------------------------------------
+//
+// The same controller model and histogrammer reached without a wire, as the daemon's
+// `sim.devices = "in-process"` does: what they model must match the wire-level devices.
+
+/// The three acquisitions of an LOS point and two NLOS pairs, through any devices.
+fn three_acquisitions(
+    rig: &Rig,
+    laser: &mut (impl GalvoPair<Error = periscope_drivers::galvo::GalvoError> + Laser),
+    spad: &mut impl GalvoPair<Error = periscope_drivers::galvo::GalvoError>,
+    tdc: &mut impl Histogrammer<Error = periscope_drivers::tdc::TdcError>,
+) -> Vec<Vec<u32>> {
+    let (l, s) = rig.origins();
+    let look = |o| GalvoPose::looking(o, -DVec3::Z, DVec3::Y).unwrap();
+    let mut out = Vec::new();
+    laser.set_diffuser(true).unwrap();
+    laser.set_emission(true).unwrap();
+    spad.move_settled(
+        look(s).angles_for(DVec3::new(0.2, -0.1, 0.0)).unwrap(),
+        Duration::from_secs(1),
+    )
+    .unwrap();
+    out.push(tdc.acquire().unwrap().counts);
+    laser.set_diffuser(false).unwrap();
+    for (xi, xd) in [(-0.1, 0.1), (0.03, -0.07)] {
+        laser
+            .move_settled(
+                look(l).angles_for(DVec3::new(xi, 0.0, 0.0)).unwrap(),
+                Duration::from_secs(1),
+            )
+            .unwrap();
+        spad.move_settled(
+            look(s).angles_for(DVec3::new(xd, 0.02, 0.0)).unwrap(),
+            Duration::from_secs(1),
+        )
+        .unwrap();
+        out.push(tdc.acquire().unwrap().counts);
+    }
+    laser.set_emission(false).unwrap();
+    out
+}
+
+fn in_process_tdc(rig: &Rig) -> periscope_sim::devices::InProcessTdc {
+    let mut tdc = rig.in_process_tdc();
+    tdc.configure(&TdcConfig {
+        bin_width: 16e-12,
+        bins: 512,
+        offset: 12e-9,
+        sync_divider: 1,
+        acquisition: Duration::from_millis(50),
+    })
+    .unwrap();
+    tdc
+}
+
+#[test]
+fn in_process_devices_measure_the_same_counts_as_the_wire_devices() {
+    let wire_rig = rig();
+    let wire = three_acquisitions(
+        &wire_rig,
+        &mut galvo(&wire_rig, Arm::Laser, 20.0),
+        &mut galvo(&wire_rig, Arm::Spad, 20.0),
+        &mut tdc(&wire_rig),
+    );
+    let local_rig = rig();
+    let local = three_acquisitions(
+        &local_rig,
+        &mut local_rig.in_process_galvo(Arm::Laser, limits(20.0), None),
+        &mut local_rig.in_process_galvo(Arm::Spad, limits(20.0), None),
+        &mut in_process_tdc(&local_rig),
+    );
+    let total: u64 = wire.iter().flatten().map(|&c| u64::from(c)).sum();
+    assert!(total > 100, "too few counts to compare: {total}");
+    assert_eq!(wire, local, "the in-process devices measured different counts");
+    assert_eq!(wire_rig.pointing(), local_rig.pointing());
+}
+
+#[test]
+fn in_process_controllers_refuse_what_the_firmware_refuses() {
+    let rig = rig();
+    let mut spad = rig.in_process_galvo(Arm::Spad, limits(10.0), None);
+    assert_eq!((spad.identify().unwrap().protocol), 2);
+    // The configured limits, then the firmware's own.
+    let err = spad.move_to(angles(0.3, 0.0)).unwrap_err();
+    assert_eq!(err.kind(), ErrorKind::OutOfRange);
+    let mut wide = rig.in_process_galvo(Arm::Spad, limits(40.0), None);
+    assert_eq!(
+        wide.move_to(angles(0.5, 0.0)).unwrap_err().kind(),
+        ErrorKind::OutOfRange
+    );
+    assert_eq!(
+        spad.move_to(angles(f64::NAN, 0.0)).unwrap_err().kind(),
+        ErrorKind::OutOfRange
+    );
+    assert_eq!(rig.pointing().1, angles(0.0, 0.0));
+    // Settling takes the firmware's settling time.
+    let start = Instant::now();
+    spad.move_settled(angles(0.05, -0.02), Duration::from_secs(1))
+        .unwrap();
+    assert!(start.elapsed() >= Duration::from_micros(300));
+    assert_eq!(rig.pointing().1, angles(0.05, -0.02));
+    spad.park().unwrap();
+    assert_eq!(rig.pointing().1, angles(0.0, 0.0));
+    // The SPAD arm has no laser; the interlock gates the laser arm's.
+    assert_eq!(spad.set_emission(true).unwrap_err().kind(), ErrorKind::Device);
+    let mut laser = rig.in_process_galvo(Arm::Laser, limits(20.0), None);
+    rig.set_interlock(false);
+    assert_eq!(laser.set_emission(true).unwrap_err().kind(), ErrorKind::Interlock);
+    assert!(!rig.emission());
+    rig.set_interlock(true);
+    laser.set_emission(true).unwrap();
+    rig.set_interlock(false);
+    assert!(!laser.laser_state().unwrap().emission);
+}
+
+#[test]
+fn the_in_process_laser_goes_off_by_its_off_switch_and_when_dropped() {
+    let rig = rig();
+    let mut laser = rig.in_process_galvo(Arm::Laser, limits(20.0), Some(Duration::from_millis(60)));
+    // The keepalive holds emission on well past the watchdog while it is wanted.
+    laser.set_emission(true).unwrap();
+    std::thread::sleep(Duration::from_millis(250));
+    assert!(rig.emission(), "the watchdog tripped under a live keepalive");
+    assert_eq!(rig.watchdog(), (Duration::from_millis(60), 0));
+    // The out-of-band switch, from another thread, while the device is held.
+    let off = laser.emergency_off();
+    assert!(off.is_open());
+    std::thread::spawn(move || off.laser_off().unwrap())
+        .join()
+        .unwrap();
+    assert!(!rig.emission());
+    // Dropped with emission wanted (a run abandoned, a panic unwinding): off.
+    laser.set_emission(true).unwrap();
+    let off = laser.emergency_off();
+    drop(laser);
+    assert!(!rig.emission());
+    assert!(!off.is_open());
+}
+
+#[test]
+fn the_in_process_histogrammer_reports_overflow_and_unplugging() {
+    let rig = rig();
+    let mut tdc = in_process_tdc(&rig);
+    assert!(!tdc.acquire().unwrap().flags.overflow);
+    rig.inject(Fault::Tdc(TdcFault::Overflow));
+    assert!(tdc.acquire().unwrap().flags.overflow);
+    // Unplugged, and one reopen refused, as on the wire: one acquisition fails, the
+    // next finds it back with its settings (the driver restores them).
+    rig.unplug_tdc(1);
+    assert_eq!(tdc.acquire().unwrap_err().kind(), ErrorKind::Disconnected);
+    let h = tdc.acquire().unwrap();
+    assert_eq!(h.counts.len(), 512);
+    // Acquiring before configuring is refused.
+    let mut fresh = rig.in_process_tdc();
+    assert_eq!(fresh.acquire().unwrap_err().kind(), ErrorKind::Device);
 }

@@ -20,7 +20,7 @@ use crate::plan::Plan;
 use crate::run_dir::{RunDir, file};
 use crate::store::{RunInfo, RunState, write_atomic};
 use periscope_drivers::galvo::EmergencyOff;
-use periscope_drivers::{GalvoPair, Laser};
+
 use periscope_sim::devices::Rig;
 
 /// The queue file in the runs directory.
@@ -727,10 +727,10 @@ impl Service {
     /// Opens the laser controller alone: laser off, then park.
     fn laser_controller_off(&self) -> Result<(), String> {
         let _devices = self.devices.lock().unwrap_or_else(|p| p.into_inner());
-        let mut laser = crate::devices::Devices::laser_controller(&self.instrument, self.rig.as_ref())
+        let mut controller = crate::devices::Devices::laser_controller(&self.instrument, self.rig.as_ref())
             .map_err(|e| e.to_string())?;
-        let off = laser.set_emission(false).map_err(|e| e.to_string());
-        let park = laser.park().map_err(|e| e.to_string());
+        let off = controller.laser.set_emission(false).map_err(|e| e.to_string());
+        let park = controller.arm.park().map_err(|e| e.to_string());
         off?;
         park
     }

@@ -52,6 +52,22 @@ pub struct SimSettings {
     pub time_scale: f64,
     /// Whether the simulated interlock loop starts closed.
     pub interlock_closed: bool,
+    /// How the daemon reaches the simulated devices.
+    pub devices: SimDevices,
+}
+
+/// How the daemon reaches the simulated devices (`sim.devices`).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Deserialize, serde::Serialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum SimDevices {
+    /// Through the real drivers, over pseudo-terminals and the USB transport trait,
+    /// speaking the wire protocols byte for byte (the default: CI runs the code the lab
+    /// runs).
+    #[default]
+    Wire,
+    /// Straight over the simulator's controller model, without wire or drivers (for
+    /// tests of what lies above the drivers; faster, and wire faults do not apply).
+    InProcess,
 }
 
 /// A validated instrument config.
@@ -474,6 +490,8 @@ struct RawSim {
     time_scale: f64,
     #[serde(default = "default_true")]
     interlock_closed: bool,
+    #[serde(default)]
+    devices: SimDevices,
 }
 
 fn default_aperture_mm() -> f64 {
@@ -553,6 +571,7 @@ fn sim_settings(check: &Check<'_>, raw: RawSim) -> Result<SimSettings, ConfigErr
             "(real seconds per simulated second)",
         )?,
         interlock_closed: raw.interlock_closed,
+        devices: raw.devices,
     })
 }
 

@@ -3,7 +3,7 @@
 use std::collections::HashSet;
 use std::sync::mpsc;
 
-use periscope_drivers::{GalvoPair, HistogramFlags, Histogrammer, Laser, TdcConfig};
+use periscope_drivers::{HistogramFlags, TdcConfig};
 use periscope_recon::transient::hidden_axis;
 use periscope_recon::{Pair, TransientSet};
 
@@ -143,9 +143,9 @@ impl Run {
                 let (counts, flags) = loop {
                     self.checkpoint()?;
                     // Both arms move at once; each wait accepts only its commanded target.
-                    self.devices.laser.move_to(p.laser)?;
+                    self.devices.laser_arm.move_to(p.laser)?;
                     self.devices.spad.move_to(p.spad)?;
-                    self.devices.laser.wait_settled(settle)?;
+                    self.devices.laser_arm.wait_settled(settle)?;
                     self.devices.spad.wait_settled(settle)?;
                     let mut counts = vec![0u32; acq.bins as usize];
                     let mut flags = HistogramFlags::default();

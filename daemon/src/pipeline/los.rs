@@ -4,7 +4,7 @@
 use std::time::Duration;
 
 use glam::DVec3;
-use periscope_drivers::{GalvoPair, Histogrammer, Laser, OpticalAngles, TdcConfig};
+use periscope_drivers::{OpticalAngles, TdcConfig};
 use periscope_recon::TimeAxis;
 use periscope_recon::relay::{estimate_normals, reject_isolated};
 
@@ -71,8 +71,8 @@ impl Run {
             sync_divider: tdc.sync_divider,
             acquisition: los.dwell,
         })?;
-        devices.laser.park()?;
-        devices.laser.wait_settled(Duration::from_secs(2))?;
+        devices.laser_arm.park()?;
+        devices.laser_arm.wait_settled(Duration::from_secs(2))?;
         devices.laser.set_diffuser(true)?;
         self.checkpoint()?;
         // The histogrammer must answer before the laser goes on.

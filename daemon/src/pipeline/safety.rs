@@ -4,7 +4,7 @@
 //! detector sees too much light.
 use std::time::{Duration, Instant};
 
-use periscope_drivers::{Error, ErrorKind, Histogram, HistogramFlags, Histogrammer, Laser};
+use periscope_drivers::{Error, ErrorKind, Histogram, HistogramFlags};
 
 use super::{PipelineError, Run};
 use crate::events::RunEvent;

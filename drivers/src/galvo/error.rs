@@ -16,7 +16,9 @@ pub struct GalvoError {
 }
 
 impl GalvoError {
-    pub(crate) fn new(name: &str, port: &str, kind: ErrorKind, message: impl Into<String>) -> Self {
+    /// An error of the controller `name` on `port` (any driver of a galvo pair or a
+    /// laser reports its failures as these).
+    pub fn new(name: &str, port: &str, kind: ErrorKind, message: impl Into<String>) -> Self {
         GalvoError {
             name: name.to_owned(),
             port: port.to_owned(),
@@ -26,7 +28,8 @@ impl GalvoError {
         }
     }
 
-    pub(crate) fn with_source(mut self, source: std::io::Error) -> Self {
+    /// The I/O error behind it.
+    pub fn with_source(mut self, source: std::io::Error) -> Self {
         self.source = Some(source);
         self
     }

@@ -6,6 +6,7 @@
 //! command or reply text, and a CRC-8 of everything before the `*`. The tag lets the
 //! driver tell its reply from a late reply to an earlier request; the checksum lets
 //! either side reject a corrupted line instead of acting on it.
+use crate::error::ErrorKind;
 use crate::geometry::{AngleLimits, OpticalAngles};
 
 /// Protocol revision this code speaks; the controller reports its own in `IDN`.
@@ -264,6 +265,38 @@ impl ErrorCode {
     /// The reply body `ERR n text`.
     pub fn reply(self) -> String {
         format!("ERR {} {}", self as u8, self.text())
+    }
+}
+
+/// What a controller's refusal means for the host: the error kind and what to do,
+/// for a reply `ERR <code>` (`None`: a code this driver does not know).
+pub fn refusal(code: Option<ErrorCode>) -> (ErrorKind, &'static str) {
+    match code {
+        Some(ErrorCode::BadChecksum) => (ErrorKind::Protocol, "the controller received a corrupted line"),
+        Some(ErrorCode::OutOfRange) => (
+            ErrorKind::OutOfRange,
+            "the target is outside the controller's hard limits",
+        ),
+        Some(ErrorCode::Busy) => (
+            ErrorKind::Busy,
+            "the controller is busy; try again when it has settled",
+        ),
+        Some(ErrorCode::InterlockOpen) => (
+            ErrorKind::Interlock,
+            "the laser interlock is open: close the enclosure door or key switch",
+        ),
+        Some(ErrorCode::NoLaser) => (
+            ErrorKind::Device,
+            "this controller has no laser: check which arm the config calls `laser`",
+        ),
+        Some(ErrorCode::Fault) => (
+            ErrorKind::Device,
+            "the controller reports a fault: power-cycle it",
+        ),
+        Some(ErrorCode::UnknownCommand | ErrorCode::BadArgument) | None => (
+            ErrorKind::Protocol,
+            "the controller's firmware does not understand this protocol version",
+        ),
     }
 }
 

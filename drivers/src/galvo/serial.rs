@@ -16,10 +16,10 @@ use tracing::{debug, instrument, warn};
 
 use super::error::GalvoError;
 use super::link::{Connector, Link};
-use super::protocol::{self, ErrorCode, LineError, MotionState, Reply, Request};
+use super::protocol::{self, LineError, MotionState, Reply, Request};
 use crate::error::{Error, ErrorKind, ErrorType};
 use crate::geometry::{AngleLimits, OpticalAngles};
-use crate::traits::{DeviceInfo, GalvoPair, GalvoStatus, Laser, LaserState};
+use crate::traits::{DeviceInfo, EmergencyOff, GalvoPair, GalvoStatus, Laser, LaserState, OffSwitch};
 
 /// How far the settled position may be from the target before the driver refuses it,
 /// radians (10 µrad: 20 µm at 2 m, a tenth of a typical spot).
@@ -65,38 +65,27 @@ fn write_out_of_band(w: &Mutex<Option<Box<dyn Write + Send>>>, req: Request) -> 
     writer.flush()
 }
 
-/// Switches the laser off through the laser controller's link without waiting for
-/// anything else the driver is doing: a `LASER OFF` out of band (tag `00`), which the
-/// controller acts on at once even while a move is outstanding. Cheap to clone and
-/// usable from any thread (the e-stop path, a signal handler); it also stops the
-/// driver's keepalive, so even a lost line ends emission at the watchdog timeout.
-#[derive(Clone)]
-pub struct EmergencyOff {
+/// The serial controller's off switch: a `LASER OFF` out of band (tag `00`) through the
+/// link, which the controller acts on at once even while a move is outstanding,
+/// without waiting for anything else the driver is doing. It also stops the driver's
+/// keepalive, so even a lost line ends emission at the watchdog timeout.
+struct SerialOff {
     writer: Weak<Mutex<Option<Box<dyn Write + Send>>>>,
     wanted: Arc<AtomicBool>,
     name: String,
     port: String,
 }
 
-impl std::fmt::Debug for EmergencyOff {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("EmergencyOff")
-            .field("name", &self.name)
-            .field("port", &self.port)
-            .finish()
-    }
-}
-
-impl EmergencyOff {
-    /// Whether the driver it belongs to is still open.
-    pub fn is_open(&self) -> bool {
+impl OffSwitch for SerialOff {
+    fn is_open(&self) -> bool {
         self.writer.strong_count() > 0
     }
 
-    /// Like [`EmergencyOff::laser_off`], but never waits on the line lock for more
-    /// than a few milliseconds: for a panic hook, which may run on the very thread
-    /// that holds it. Returns whether the line was written.
-    pub fn try_laser_off(&self) -> bool {
+    fn describe(&self) -> String {
+        format!("laser on `{}` ({})", self.name, self.port)
+    }
+
+    fn try_laser_off(&self) -> bool {
         self.wanted.store(false, Ordering::SeqCst);
         let Some(writer) = self.writer.upgrade() else {
             return false;
@@ -121,10 +110,7 @@ impl EmergencyOff {
         false
     }
 
-    /// Sends `LASER OFF` now. An error means the line could not be written (the
-    /// driver is gone or not connected); the keepalive has stopped regardless, so the
-    /// controller's watchdog ends emission within its timeout.
-    pub fn laser_off(&self) -> Result<(), GalvoError> {
+    fn laser_off(&self) -> Result<(), GalvoError> {
         self.wanted.store(false, Ordering::SeqCst);
         let err = |kind, message: String| GalvoError::new(&self.name, &self.port, kind, message);
         let writer = self.writer.upgrade().ok_or_else(|| {
@@ -198,17 +184,6 @@ impl SerialGalvo {
             oob: Arc::new(Mutex::new(None)),
             wanted: Arc::new(AtomicBool::new(false)),
             keepalive: false,
-        }
-    }
-
-    /// A handle that switches the laser off from any thread, whatever this driver is
-    /// waiting for (see [`EmergencyOff`]).
-    pub fn emergency_off(&self) -> EmergencyOff {
-        EmergencyOff {
-            writer: Arc::downgrade(&self.oob),
-            wanted: self.wanted.clone(),
-            name: self.settings.name.clone(),
-            port: self.port.clone(),
         }
     }
 
@@ -472,35 +447,7 @@ impl SerialGalvo {
         match Reply::parse(body) {
             Some(Reply::Ok(fields)) => Ok(fields.into_iter().map(str::to_owned).collect()),
             Some(Reply::Err(code, text)) => {
-                let (kind, hint) = match code {
-                    Some(ErrorCode::BadChecksum) => {
-                        (ErrorKind::Protocol, "the controller received a corrupted line")
-                    }
-                    Some(ErrorCode::OutOfRange) => (
-                        ErrorKind::OutOfRange,
-                        "the target is outside the controller's hard limits",
-                    ),
-                    Some(ErrorCode::Busy) => (
-                        ErrorKind::Busy,
-                        "the controller is busy; try again when it has settled",
-                    ),
-                    Some(ErrorCode::InterlockOpen) => (
-                        ErrorKind::Interlock,
-                        "the laser interlock is open: close the enclosure door or key switch",
-                    ),
-                    Some(ErrorCode::NoLaser) => (
-                        ErrorKind::Device,
-                        "this controller has no laser: check which arm the config calls `laser`",
-                    ),
-                    Some(ErrorCode::Fault) => (
-                        ErrorKind::Device,
-                        "the controller reports a fault: power-cycle it",
-                    ),
-                    Some(ErrorCode::UnknownCommand | ErrorCode::BadArgument) | None => (
-                        ErrorKind::Protocol,
-                        "the controller's firmware does not understand this protocol version",
-                    ),
-                };
+                let (kind, hint) = protocol::refusal(code);
                 Err(self.err(kind, format!("`{}` refused (ERR {text}): {hint}", req.body())))
             }
             None => Err(self.err(
@@ -756,5 +703,15 @@ impl Laser for SerialGalvo {
 
     fn set_diffuser(&mut self, inserted: bool) -> Result<(), GalvoError> {
         self.request(Request::Diffuser(inserted)).map(drop)
+    }
+
+    /// `LASER OFF` out of band through the link, whatever this driver is waiting for.
+    fn emergency_off(&self) -> EmergencyOff {
+        EmergencyOff::new(SerialOff {
+            writer: Arc::downgrade(&self.oob),
+            wanted: self.wanted.clone(),
+            name: self.settings.name.clone(),
+            port: self.port.clone(),
+        })
     }
 }

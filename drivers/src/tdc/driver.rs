@@ -34,21 +34,6 @@ impl<T: UsbTransport> ErrorType for UsbTdc<T> {
     type Error = TdcError;
 }
 
-fn to_wire(c: &TdcConfig) -> Option<WireConfig> {
-    let ps = |s: f64| {
-        let v = (s * 1e12).round();
-        (v.is_finite() && (0.0..=u32::MAX as f64).contains(&v)).then_some(v as u32)
-    };
-    let us = c.acquisition.as_micros();
-    Some(WireConfig {
-        bin_width_ps: ps(c.bin_width).filter(|&p| p > 0)?,
-        bins: c.bins,
-        offset_ps: ps(c.offset)?,
-        sync_divider: c.sync_divider,
-        acquisition_us: u32::try_from(us).ok().filter(|&u| u > 0)?,
-    })
-}
-
 /// How long a drain waits for more data before it counts the endpoint as empty.
 const DRAIN_WAIT: Duration = Duration::from_millis(10);
 
@@ -210,7 +195,7 @@ impl<T: UsbTransport> UsbTdc<T> {
     }
 
     fn send_config(&mut self, config: &TdcConfig) -> Result<(), TdcError> {
-        let wire = to_wire(config).ok_or_else(|| {
+        let wire = WireConfig::from_config(config).ok_or_else(|| {
             self.err(
                 ErrorKind::OutOfRange,
                 format!("settings {config:?} cannot be expressed in whole picoseconds and microseconds (1 µs to 71 min)"),
@@ -256,7 +241,7 @@ impl<T: UsbTransport> UsbTdc<T> {
             )
             .map_err(|e| self.transport_err("Start", e))?;
         let deadline = Instant::now() + config.acquisition + self.timeout;
-        let expected = to_wire(&config).expect("validated when configured");
+        let expected = WireConfig::from_config(&config).expect("validated when configured");
         loop {
             if stop() {
                 self.abort_acquisition()?;

@@ -12,7 +12,9 @@ pub struct TdcError {
 }
 
 impl TdcError {
-    pub(crate) fn new(device: &str, kind: ErrorKind, message: impl Into<String>) -> Self {
+    /// An error of the histogrammer `device` (any histogrammer driver reports its
+    /// failures as these).
+    pub fn new(device: &str, kind: ErrorKind, message: impl Into<String>) -> Self {
         TdcError {
             device: device.to_owned(),
             kind,

@@ -79,6 +79,24 @@ impl WireConfig {
     /// Encoded length.
     pub const LEN: usize = 20;
 
+    /// Settings as the device takes them: whole picoseconds and microseconds, `None`
+    /// when they cannot be expressed so (a zero bin width or acquisition time, or out
+    /// of range).
+    pub fn from_config(c: &crate::traits::TdcConfig) -> Option<WireConfig> {
+        let ps = |s: f64| {
+            let v = (s * 1e12).round();
+            (v.is_finite() && (0.0..=u32::MAX as f64).contains(&v)).then_some(v as u32)
+        };
+        let us = c.acquisition.as_micros();
+        Some(WireConfig {
+            bin_width_ps: ps(c.bin_width).filter(|&p| p > 0)?,
+            bins: c.bins,
+            offset_ps: ps(c.offset)?,
+            sync_divider: c.sync_divider,
+            acquisition_us: u32::try_from(us).ok().filter(|&u| u > 0)?,
+        })
+    }
+
     /// Encodes.
     pub fn encode(&self) -> [u8; Self::LEN] {
         let mut b = [0u8; Self::LEN];

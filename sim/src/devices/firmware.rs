@@ -13,7 +13,7 @@ use tracing::debug;
 use super::rig::{Arm, EmissionCause, GalvoFault, Rig, Shared};
 
 /// Firmware version the simulated controllers report.
-const FIRMWARE: &str = "1.0.0-sim";
+pub(crate) const FIRMWARE: &str = "1.0.0-sim";
 
 /// Opens a pseudo-terminal pair per connection and runs the firmware on the master.
 pub struct PtyConnector {
@@ -286,29 +286,23 @@ fn handle(rig: &Shared, arm: Arm, body: &str) -> (String, Duration) {
         Err(code) => return (code.reply(), Duration::ZERO),
     };
     if let Request::Move(target) = req {
-        if !rig.settings.limits[arm.index()].contains(target) {
-            return (ErrorCode::OutOfRange.reply(), Duration::ZERO);
-        }
-        let settle = rig.scaled(rig.settings.settle[arm.index()]);
-        let mut s = rig.lock();
-        let a = &mut s.arms[arm.index()];
-        a.target = target;
-        a.parked = false;
-        a.settled_at = Instant::now() + settle;
-        let reply = format!(
-            "OK {} {}",
-            MotionState::Settled.word(),
-            protocol::fmt_angles(target)
-        );
-        return (reply, settle);
+        return match rig.start_move(arm, target) {
+            Ok(settle) => (
+                format!(
+                    "OK {} {}",
+                    MotionState::Settled.word(),
+                    protocol::fmt_angles(target)
+                ),
+                settle,
+            ),
+            Err(code) => (code.reply(), Duration::ZERO),
+        };
     }
     (handle_immediate(rig, arm, req), Duration::ZERO)
 }
 
 fn handle_immediate(rig: &Shared, arm: Arm, req: Request) -> String {
     let settings = &rig.settings;
-    let mut s = rig.lock();
-    let now = Instant::now();
     let is_laser = arm == Arm::Laser;
     match req {
         Request::Identify => format!(
@@ -319,24 +313,13 @@ fn handle_immediate(rig: &Shared, arm: Arm, req: Request) -> String {
         ),
         Request::Limits => format!("OK {}", protocol::fmt_limits(settings.limits[arm.index()])),
         Request::Move(_) => unreachable!("moves are answered by `handle`"),
-        Request::Position => format!("OK {}", protocol::fmt_angles(s.arms[arm.index()].target)),
+        Request::Position => format!("OK {}", protocol::fmt_angles(rig.motion(arm).1)),
         Request::Status => {
-            let a = &s.arms[arm.index()];
-            let state = if now < a.settled_at {
-                MotionState::Moving
-            } else if a.parked {
-                MotionState::Parked
-            } else {
-                MotionState::Settled
-            };
-            format!("OK {} {}", state.word(), protocol::fmt_angles(a.target))
+            let (state, target, _) = rig.motion(arm);
+            format!("OK {} {}", state.word(), protocol::fmt_angles(target))
         }
         Request::Park => {
-            let settle = rig.scaled(settings.settle[arm.index()]);
-            let a = &mut s.arms[arm.index()];
-            a.target = periscope_drivers::OpticalAngles { x: 0.0, y: 0.0 };
-            a.parked = true;
-            a.settled_at = now + settle;
+            rig.park(arm);
             "OK".into()
         }
         Request::KeepAlive => "OK".into(),
@@ -349,28 +332,26 @@ fn handle_immediate(rig: &Shared, arm: Arm, req: Request) -> String {
         {
             ErrorCode::NoLaser.reply()
         }
-        Request::Laser(on) => {
-            if on && !s.interlock_closed {
-                return ErrorCode::InterlockOpen.reply();
-            }
-            s.set_emission(on, EmissionCause::Host, now);
-            "OK".into()
-        }
+        Request::Laser(on) => match rig.switch_laser(on) {
+            Ok(()) => "OK".into(),
+            Err(code) => code.reply(),
+        },
         Request::Watchdog(set) => {
-            if let Some(ms) = set {
-                s.watchdog.timeout = Duration::from_millis(u64::from(ms));
-            }
-            format!("OK {} {}", s.watchdog.timeout.as_millis(), s.watchdog.trips)
+            let (timeout, trips) = rig.laser_watchdog(set.map(|ms| Duration::from_millis(u64::from(ms))));
+            format!("OK {} {trips}", timeout.as_millis())
         }
-        Request::LaserStatus => format!(
-            "OK {} {} {}",
-            if s.emission() { "ON" } else { "OFF" },
-            if s.interlock_closed { "CLOSED" } else { "OPEN" },
-            if s.diffuser_in { "IN" } else { "OUT" }
-        ),
-        Request::Interlock => format!("OK {}", if s.interlock_closed { "CLOSED" } else { "OPEN" }),
+        Request::LaserStatus => {
+            let (emission, closed, diffuser_in) = rig.laser_state();
+            format!(
+                "OK {} {} {}",
+                if emission { "ON" } else { "OFF" },
+                if closed { "CLOSED" } else { "OPEN" },
+                if diffuser_in { "IN" } else { "OUT" }
+            )
+        }
+        Request::Interlock => format!("OK {}", if rig.laser_state().1 { "CLOSED" } else { "OPEN" }),
         Request::Diffuser(inserted) => {
-            s.diffuser_in = inserted;
+            rig.set_diffuser(inserted);
             "OK".into()
         }
     }

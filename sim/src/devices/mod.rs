@@ -6,11 +6,17 @@
 //! drivers against them; only the transport's far end differs from the lab. Faults
 //! (a dropped reply, a corrupted checksum, a stall, an unplug, an overflow, a short
 //! read) are injected one at a time through [`Rig::inject`].
+//!
+//! [`InProcessGalvo`] and [`InProcessTdc`] implement the device traits straight over
+//! the same controller model, without the wire or the drivers, for tests about
+//! everything above the drivers.
 mod firmware;
+mod in_process;
 mod rig;
 mod tdc;
 
 pub use firmware::PtyConnector;
 pub use firmware::ServedPort;
+pub use in_process::{InProcessGalvo, InProcessTdc};
 pub use rig::{Arm, EmissionCause, EmissionChange, Fault, GalvoFault, Rig, RigSettings, TdcFault};
 pub use tdc::SimTdcTransport;

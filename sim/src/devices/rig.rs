@@ -5,6 +5,7 @@ use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::{Duration, Instant};
 
 use glam::DVec3;
+use periscope_drivers::galvo::protocol::{ErrorCode, MotionState};
 use periscope_drivers::{AngleLimits, GalvoPose, OpticalAngles};
 
 use crate::detector::Detector;
@@ -24,6 +25,14 @@ impl Arm {
         match self {
             Arm::Laser => 0,
             Arm::Spad => 1,
+        }
+    }
+
+    /// `laser` or `spad`.
+    pub fn name(self) -> &'static str {
+        match self {
+            Arm::Laser => "laser",
+            Arm::Spad => "spad",
         }
     }
 }
@@ -222,6 +231,98 @@ impl Shared {
     pub(crate) fn scaled(&self, d: Duration) -> Duration {
         d.mul_f64(self.settings.time_scale.max(0.0))
     }
+
+    // The controllers' behaviour, typed: the firmware answers its protocol lines with
+    // these, and the in-process devices call them directly.
+
+    /// Starts a move to `target`; returns how long the pair takes to settle. A target
+    /// outside the firmware's hard limits is refused.
+    pub(crate) fn start_move(&self, arm: Arm, target: OpticalAngles) -> Result<Duration, ErrorCode> {
+        if !self.settings.limits[arm.index()].contains(target) {
+            return Err(ErrorCode::OutOfRange);
+        }
+        let settle = self.scaled(self.settings.settle[arm.index()]);
+        let mut s = self.lock();
+        let a = &mut s.arms[arm.index()];
+        a.target = target;
+        a.parked = false;
+        a.settled_at = Instant::now() + settle;
+        Ok(settle)
+    }
+
+    /// Moves to the park position.
+    pub(crate) fn park(&self, arm: Arm) {
+        let settle = self.scaled(self.settings.settle[arm.index()]);
+        let mut s = self.lock();
+        let a = &mut s.arms[arm.index()];
+        a.target = OpticalAngles { x: 0.0, y: 0.0 };
+        a.parked = true;
+        a.settled_at = Instant::now() + settle;
+    }
+
+    /// Motion state and position of an arm, and when it settles.
+    pub(crate) fn motion(&self, arm: Arm) -> (MotionState, OpticalAngles, Instant) {
+        let s = self.lock();
+        let a = &s.arms[arm.index()];
+        let state = if Instant::now() < a.settled_at {
+            MotionState::Moving
+        } else if a.parked {
+            MotionState::Parked
+        } else {
+            MotionState::Settled
+        };
+        (state, a.target, a.settled_at)
+    }
+
+    /// Switches emission; on is refused while the interlock is open.
+    pub(crate) fn switch_laser(&self, on: bool) -> Result<(), ErrorCode> {
+        let mut s = self.lock();
+        if on && !s.interlock_closed {
+            return Err(ErrorCode::InterlockOpen);
+        }
+        s.set_emission(on, EmissionCause::Host, Instant::now());
+        Ok(())
+    }
+
+    /// Sets the watchdog timeout (if given); returns it with the trips since power-up.
+    pub(crate) fn laser_watchdog(&self, set: Option<Duration>) -> (Duration, u32) {
+        let mut s = self.lock();
+        if let Some(t) = set {
+            s.watchdog.timeout = t;
+        }
+        (s.watchdog.timeout, s.watchdog.trips)
+    }
+
+    /// Emission off without waiting more than a few milliseconds for the state (for
+    /// a panic hook, which may run on a thread that holds it); whether it went off.
+    pub(crate) fn try_laser_off(&self) -> bool {
+        for _ in 0..50 {
+            match self.state.try_lock() {
+                Ok(mut s) => {
+                    s.set_emission(false, EmissionCause::Host, Instant::now());
+                    return true;
+                }
+                Err(std::sync::TryLockError::Poisoned(p)) => {
+                    p.into_inner()
+                        .set_emission(false, EmissionCause::Host, Instant::now());
+                    return true;
+                }
+                Err(std::sync::TryLockError::WouldBlock) => std::thread::sleep(Duration::from_micros(100)),
+            }
+        }
+        false
+    }
+
+    /// Emission, interlock and diffuser.
+    pub(crate) fn laser_state(&self) -> (bool, bool, bool) {
+        let s = self.lock();
+        (s.emission(), s.interlock_closed, s.diffuser_in)
+    }
+
+    /// Puts the diffuser in or takes it out.
+    pub(crate) fn set_diffuser(&self, inserted: bool) {
+        self.lock().diffuser_in = inserted;
+    }
 }
 
 /// The simulated instrument. Cheap to clone; all clones share one state.
@@ -366,6 +467,23 @@ impl Rig {
     /// [`crate::devices::ServedPort`]).
     pub fn serve_galvo_port(&self, arm: Arm) -> std::io::Result<crate::devices::ServedPort> {
         crate::devices::ServedPort::new(self, arm)
+    }
+
+    /// This arm's controller in process, without a wire (see
+    /// [`crate::devices::InProcessGalvo`]).
+    pub fn in_process_galvo(
+        &self,
+        arm: Arm,
+        limits: AngleLimits,
+        watchdog: Option<Duration>,
+    ) -> crate::devices::InProcessGalvo {
+        crate::devices::InProcessGalvo::new(self.clone(), arm, arm.name(), limits, watchdog)
+    }
+
+    /// The histogrammer in process, without a wire (see
+    /// [`crate::devices::InProcessTdc`]).
+    pub fn in_process_tdc(&self) -> crate::devices::InProcessTdc {
+        crate::devices::InProcessTdc::new(self.clone())
     }
 
     /// The histogrammer behind a USB transport.

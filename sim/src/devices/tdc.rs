@@ -9,7 +9,7 @@ use periscope_drivers::tdc::protocol::{
 };
 use periscope_drivers::tdc::{TransportError, UsbTransport};
 
-use super::rig::{Rig, TdcFault};
+use super::rig::{Rig, Shared, TdcFault};
 use crate::detector::sample_counts;
 
 /// Pile-up rule of thumb: above 5 % detections per sync, histograms are distorted.
@@ -91,43 +91,6 @@ impl SimTdcTransport {
         fault
     }
 
-    /// Expected counts for the current pointing and laser state.
-    fn expected(&self, cfg: WireConfig) -> Vec<f64> {
-        let shared = &self.rig.shared;
-        let mut det = shared.settings.detector;
-        det.bins = cfg.bins as usize;
-        det.bin_width = f64::from(cfg.bin_width_ps) * 1e-12;
-        det.offset = f64::from(cfg.offset_ps) * 1e-12;
-        det.repetition_rate /= f64::from(cfg.sync_divider.max(1));
-        let dwell = f64::from(cfg.acquisition_us) * 1e-6;
-        let (laser, spad, emission, diffuser_in) = {
-            let s = shared.lock();
-            (s.arms[0].target, s.arms[1].target, s.emission(), s.diffuser_in)
-        };
-        let background = det;
-        let dark = || background.expected_counts(&vec![0.0; background.bins], None, dwell);
-        let Some(world) = shared.world.as_ref().filter(|_| emission) else {
-            return dark();
-        };
-        let inst = shared.instrument();
-        let laser_dir = shared.settings.laser_pose.direction(laser);
-        let spad_dir = shared.settings.spad_pose.direction(spad);
-        if diffuser_in {
-            // The LOS scan: no gating, the direct return is the signal.
-            det.gate_margin = None;
-            return world
-                .first_bounce(&inst, spad_dir, &det, dwell)
-                .map_or_else(dark, |(_, c)| c);
-        }
-        match world.spots(&inst, laser_dir, spad_dir) {
-            Some(pair) => world
-                .third_bounce(&inst, &[pair], &det, dwell)
-                .pop()
-                .unwrap_or_else(dark),
-            None => dark(),
-        }
-    }
-
     fn start(&mut self, sequence: u32) -> Result<(), TransportError> {
         let Some(cfg) = self.config else {
             // Not configured: the firmware stalls the request.
@@ -135,7 +98,6 @@ impl SimTdcTransport {
         };
         let fault = self.next_fault();
         self.check_present()?;
-        let expected = self.expected(cfg);
         // The frame is ready when the dwell ends; until then bulk reads time out, and an
         // `ABORT` drops it.
         let ready = Instant::now()
@@ -144,18 +106,12 @@ impl SimTdcTransport {
                 .shared
                 .scaled(Duration::from_micros(u64::from(cfg.acquisition_us)));
         self.acquisitions += 1;
-        let counts = sample_counts(&expected, self.rig.shared.settings.seed, self.acquisitions);
-        let dwell = f64::from(cfg.acquisition_us) * 1e-6;
-        let total: f64 = counts.iter().map(|&c| f64::from(c)).sum();
-        self.last_rate = total / dwell;
-        let sync = self.rig.shared.settings.detector.repetition_rate / f64::from(cfg.sync_divider.max(1));
-        let mut flags = 0;
-        if counts.contains(&u32::MAX) {
-            flags |= flag::OVERFLOW;
-        }
-        if self.last_rate > PILE_UP_FRACTION * sync {
-            flags |= flag::SATURATED;
-        }
+        let Measurement {
+            counts,
+            mut flags,
+            rate,
+        } = measure(&self.rig.shared, cfg, self.acquisitions);
+        self.last_rate = rate;
         if fault == Some(TdcFault::Overflow) {
             flags |= flag::OVERFLOW;
         }
@@ -204,6 +160,74 @@ impl SimTdcTransport {
     }
 }
 
+/// Expected counts for the current pointing and laser state.
+fn expected(shared: &Shared, cfg: WireConfig) -> Vec<f64> {
+    let mut det = shared.settings.detector;
+    det.bins = cfg.bins as usize;
+    det.bin_width = f64::from(cfg.bin_width_ps) * 1e-12;
+    det.offset = f64::from(cfg.offset_ps) * 1e-12;
+    det.repetition_rate /= f64::from(cfg.sync_divider.max(1));
+    let dwell = f64::from(cfg.acquisition_us) * 1e-6;
+    let (laser, spad, emission, diffuser_in) = {
+        let s = shared.lock();
+        (s.arms[0].target, s.arms[1].target, s.emission(), s.diffuser_in)
+    };
+    let background = det;
+    let dark = || background.expected_counts(&vec![0.0; background.bins], None, dwell);
+    let Some(world) = shared.world.as_ref().filter(|_| emission) else {
+        return dark();
+    };
+    let inst = shared.instrument();
+    let laser_dir = shared.settings.laser_pose.direction(laser);
+    let spad_dir = shared.settings.spad_pose.direction(spad);
+    if diffuser_in {
+        // The LOS scan: no gating, the direct return is the signal.
+        det.gate_margin = None;
+        return world
+            .first_bounce(&inst, spad_dir, &det, dwell)
+            .map_or_else(dark, |(_, c)| c);
+    }
+    match world.spots(&inst, laser_dir, spad_dir) {
+        Some(pair) => world
+            .third_bounce(&inst, &[pair], &det, dwell)
+            .pop()
+            .unwrap_or_else(dark),
+        None => dark(),
+    }
+}
+
+/// One acquisition's outcome, as the device produces it before any fault touches it.
+pub(crate) struct Measurement {
+    /// Counts per bin (Poisson draws, the `n`-th of the rig's seed).
+    pub counts: Vec<u32>,
+    /// Frame flags (`flag::OVERFLOW`, `flag::SATURATED`).
+    pub flags: u32,
+    /// Detector count rate over the dwell, Hz.
+    pub rate: f64,
+}
+
+/// Acquisition number `n` with settings `cfg`, for the current pointing and laser
+/// state: what the wire device frames and the in-process device returns.
+pub(crate) fn measure(shared: &Shared, cfg: WireConfig, n: u64) -> Measurement {
+    let counts = sample_counts(&expected(shared, cfg), shared.settings.seed, n);
+    let dwell = f64::from(cfg.acquisition_us) * 1e-6;
+    let total: f64 = counts.iter().map(|&c| f64::from(c)).sum();
+    let rate = total / dwell;
+    let mut flags = 0;
+    if counts.contains(&u32::MAX) {
+        flags |= flag::OVERFLOW;
+    }
+    if rate > PILE_UP_FRACTION * sync_rate(shared, cfg) {
+        flags |= flag::SATURATED;
+    }
+    Measurement { counts, flags, rate }
+}
+
+/// The sync rate after the divider, Hz.
+pub(crate) fn sync_rate(shared: &Shared, cfg: WireConfig) -> f64 {
+    shared.settings.detector.repetition_rate / f64::from(cfg.sync_divider.max(1))
+}
+
 impl UsbTransport for SimTdcTransport {
     fn control_in(
         &mut self,
@@ -227,9 +251,7 @@ impl UsbTransport for SimTdcTransport {
             .to_vec(),
             Some(ControlRequest::GetConfig) => self.config.ok_or(TransportError::Stall)?.encode().to_vec(),
             Some(ControlRequest::GetStatus) => {
-                let sync = self.config.map_or(0.0, |c| {
-                    self.rig.shared.settings.detector.repetition_rate / f64::from(c.sync_divider.max(1))
-                });
+                let sync = self.config.map_or(0.0, |c| sync_rate(&self.rig.shared, c));
                 WireStatus {
                     state: state::IDLE,
                     error: 0,
