@@ -2,17 +2,27 @@
 //! a curved 1 m relay, 512 bins of 32 ps, K = 10,000 primitives of 5–15 mm scale in a
 //! 1 m × 1 m × 0.4 m ROI 0.5–0.9 m from the relay.
 //!
-//! Timed: one forward render of all pairs; one training epoch (forward + backward +
-//! AdamW over shuffled mini-batches of 4 pairs, kernels refreshed every step).
-//! Not timed: building the scene and the synthetic measurements, the gain matching.
-//! Reports the median of the repetitions, Gaussian-pair evaluations per second, the
-//! arithmetic rate (operations counted in the source) as a share of the 2-core f32 FMA
-//! peak, and the process's peak resident memory. `GTR_BENCH_PAIRS` / `GTR_BENCH_K` shrink the
-//! workload for quick looks; the defaults are the paper-scale numbers.
-use std::time::Instant;
+//! Timed (criterion, one group `gtr`): one forward render of all pairs; the loss
+//! gradient over every mini-batch of 4 pairs (no optimiser); one training epoch
+//! (forward + backward + AdamW over shuffled mini-batches of 4 pairs, kernels refreshed
+//! every step). Not timed: building the scene, the one render that makes the synthetic
+//! measurements, the gain matching, building the trainer.
+//!
+//! Criterion's throughput is Gaussian-pair evaluations (pairs × primitives per
+//! iteration), so its elem/s line is evaluations per second; its median time is the
+//! figure to quote. Printed besides, once: the bins an evaluation covers on each
+//! integration path, the arithmetic rate (operations counted in the source) of the last
+//! sample as a share of the f32 FMA peak, and the process's peak resident memory.
+//! `GTR_BENCH_PAIRS` / `GTR_BENCH_K` shrink the workload for quick looks; the defaults
+//! are the paper-scale numbers. At paper scale each of the 10 samples is one run
+//! (criterion warns that it cannot fit 10 samples in the measurement time and names the
+//! time they take; two runs a sample would double a bench that already takes minutes).
+use std::time::Duration;
+
+use criterion::{Criterion, SamplingMode, Throughput, criterion_group, criterion_main};
 
 mod support;
-use support::{median, peak_rss_mib, peak_share};
+use support::{LastSample, f32_fma_peak_gflops, peak_rss_mib, peak_share};
 
 use glam::{DQuat, DVec3};
 use periscope_recon::gtr::{
@@ -37,7 +47,7 @@ fn relay_point(x: f64, y: f64) -> (DVec3, DVec3) {
     (DVec3::new(x, y, z), DVec3::new(-slope, 0.0, 1.0).normalize())
 }
 
-fn main() {
+fn gtr(c: &mut Criterion) {
     let n_pairs = env("GTR_BENCH_PAIRS", 8000);
     let k = env("GTR_BENCH_K", 10_000);
     let mut rng = ChaCha8Rng::seed_from_u64(42);
@@ -106,24 +116,16 @@ fn main() {
     // forward, 37 or 29 backward.
     let forward_flops = 120.0 + 15.0 * wide + 14.0 * table;
     let backward_flops = 200.0 + 37.0 * wide + 29.0 * table;
-
-    let reps = env("GTR_BENCH_REPS", 3);
-    let mut times = Vec::new();
-    let mut rendered = Vec::new();
-    for _ in 0..reps {
-        let t = Instant::now();
-        rendered = render_set(&kernels, &geometry, &opt);
-        times.push(t.elapsed().as_secs_f64());
-    }
-    let forward = median(times);
-    let evals = (n_pairs * k) as f64;
     println!(
-        "forward render, all pairs: median {forward:.3} s ({:.1} M Gaussian-pair evaluations/s; {})",
-        evals / forward / 1e6,
-        peak_share(evals * forward_flops, forward)
+        "counted operations per evaluation: {forward_flops:.0} forward, {:.0} forward + backward; \
+         f32 FMA peak of {} threads: {:.0} GFLOP/s",
+        forward_flops + backward_flops,
+        rayon::current_num_threads(),
+        f32_fma_peak_gflops(rayon::current_num_threads())
     );
 
     // Measurements: the rendering itself, perturbed, so the fit has real residuals.
+    let rendered = render_set(&kernels, &geometry, &opt);
     let mut data = TransientSet::new(axis).unwrap();
     for (i, pair) in geometry.pairs().iter().enumerate() {
         let h: Vec<f32> = rendered[i * axis.bins..(i + 1) * axis.bins]
@@ -132,6 +134,36 @@ fn main() {
             .collect();
         data.push(*pair, &h).unwrap();
     }
+
+    let evals = (n_pairs * k) as f64;
+    let mut group = c.benchmark_group("gtr");
+    group
+        .sample_size(10)
+        .sampling_mode(SamplingMode::Flat)
+        .warm_up_time(Duration::from_secs(1))
+        .measurement_time(Duration::from_secs(20))
+        .throughput(Throughput::Elements((n_pairs * k) as u64));
+
+    let forward = LastSample::default();
+    group.bench_function("forward render", |b| {
+        b.iter_custom(|iters| forward.time(iters, || render_set(&kernels, &geometry, &opt)))
+    });
+
+    // The loss gradient alone, over the same mini-batches an epoch takes (the
+    // optimiser's and the kernel refresh's share is the epoch's time minus this).
+    let mut grads = periscope_recon::gtr::RawGrads::zeros(cloud.len());
+    let order: Vec<usize> = (0..data.len()).collect();
+    let gradient = LastSample::default();
+    group.bench_function("loss gradient, batch 4", |b| {
+        b.iter_custom(|iters| {
+            gradient.time(iters, || {
+                for batch in order.chunks(4) {
+                    std::hint::black_box(batch_loss_grad(&cloud, &kernels, &data, batch, &opt, &mut grads));
+                }
+            })
+        })
+    });
+
     let config = TrainConfig {
         primitives: k,
         init: Init::Uniform,
@@ -141,41 +173,43 @@ fn main() {
         epochs: 1,
         ..TrainConfig::default()
     };
-    // The loss gradient alone, over the same mini-batches an epoch takes (the
-    // optimiser's and the kernel refresh's share is the epoch's time minus this).
-    let mut grads = periscope_recon::gtr::RawGrads::zeros(cloud.len());
-    let order: Vec<usize> = (0..data.len()).collect();
-    let mut times = Vec::new();
-    for _ in 0..reps {
-        let t = Instant::now();
-        for batch in order.chunks(4) {
-            std::hint::black_box(batch_loss_grad(&cloud, &kernels, &data, batch, &opt, &mut grads));
-        }
-        times.push(t.elapsed().as_secs_f64());
-    }
-    let gradient = median(times);
-    println!(
-        "loss gradient, all mini-batches of 4 (no optimiser): median {gradient:.3} s ({:.1} M Gaussian-pair forward+backward evaluations/s; {})",
-        evals / gradient / 1e6,
-        peak_share(evals * (forward_flops + backward_flops), gradient)
-    );
     let mut trainer = Trainer::new(config, roi, data).unwrap();
     let cancel = CancelToken::new();
-    let mut times = Vec::new();
-    for _ in 0..reps {
-        let t = Instant::now();
-        trainer.epoch(&cancel).unwrap();
-        times.push(t.elapsed().as_secs_f64());
+    let epoch = LastSample::default();
+    group.bench_function("training epoch, batch 4", |b| {
+        b.iter_custom(|iters| epoch.time(iters, || trainer.epoch(&cancel).unwrap()))
+    });
+    group.finish();
+
+    // The arithmetic rate of the last sample of each (criterion's median above is the
+    // figure to quote; these say how far it is from the CPU's peak).
+    for (name, last, flops) in [
+        ("forward render", &forward, forward_flops),
+        (
+            "loss gradient (no optimiser)",
+            &gradient,
+            forward_flops + backward_flops,
+        ),
+        (
+            "training epoch (forward + backward + AdamW)",
+            &epoch,
+            forward_flops + backward_flops,
+        ),
+    ] {
+        if let Some(t) = last.seconds() {
+            println!(
+                "{name}, last sample: {t:.3} s, {:.1} M Gaussian-pair evaluations/s; {}",
+                evals / t / 1e6,
+                peak_share(evals * flops, t)
+            );
+        }
     }
-    let epoch = median(times);
-    println!(
-        "training epoch (batch 4, forward + backward + AdamW): median {epoch:.3} s ({:.1} M Gaussian-pair forward+backward evaluations/s; {})",
-        evals / epoch / 1e6,
-        peak_share(evals * (forward_flops + backward_flops), epoch)
-    );
     println!(
         "threads: {}, peak resident memory: {:.0} MiB",
         rayon::current_num_threads(),
         peak_rss_mib()
     );
 }
+
+criterion_group!(benches, gtr);
+criterion_main!(benches);

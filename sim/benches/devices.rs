@@ -5,11 +5,13 @@
 //! timed is protocol encoding and decoding, the pseudo-terminal round trips, frame
 //! CRCs and the drivers' checks. Target: under 200 µs per pair.
 //!
-//! Timed: `PAIRS` pairs (default 2,000) in a loop, median over `REPS` runs (default 5),
-//! reported per pair, for 512- and 4,096-bin histograms. Not timed: connecting,
-//! configuring.
-use std::time::{Duration, Instant};
+//! Timed (criterion, group `devices`; one iteration is one pair, so criterion's median
+//! time is the time per pair to quote and its throughput line is pairs per second): one
+//! galvo round trip alone (POS), and move + settle + acquire for 512- and 4,096-bin
+//! histograms. Not timed: connecting, configuring.
+use std::time::Duration;
 
+use criterion::{Criterion, Throughput, criterion_group, criterion_main};
 use glam::DVec3;
 use periscope_drivers::galvo::{SerialGalvo, SerialGalvoSettings};
 use periscope_drivers::tdc::UsbTdc;
@@ -17,16 +19,7 @@ use periscope_drivers::{AngleLimits, GalvoPair, GalvoPose, Histogrammer, Optical
 use periscope_sim::Detector;
 use periscope_sim::devices::{Arm, Rig, RigSettings};
 
-fn env(name: &str, default: usize) -> usize {
-    std::env::var(name)
-        .ok()
-        .and_then(|v| v.parse().ok())
-        .unwrap_or(default)
-}
-
-fn main() {
-    let pairs = env("PAIRS", 2000);
-    let reps = env("REPS", 5);
+fn devices(c: &mut Criterion) {
     let limits = AngleLimits {
         x: [-0.35, 0.35],
         y: [-0.35, 0.35],
@@ -56,15 +49,14 @@ fn main() {
     let mut laser = SerialGalvo::open(settings("laser"), Box::new(rig.galvo_connector(Arm::Laser))).unwrap();
     let mut spad = SerialGalvo::open(settings("spad"), Box::new(rig.galvo_connector(Arm::Spad))).unwrap();
     let mut tdc = UsbTdc::new(rig.tdc_transport(), Duration::from_millis(200));
-    println!("pairs per run: {pairs}, runs: {reps}");
-    let start = Instant::now();
-    for _ in 0..pairs {
-        laser.position().unwrap();
-    }
-    println!(
-        "one galvo round trip (POS): {:.1} µs",
-        start.elapsed().as_secs_f64() / pairs as f64 * 1e6
-    );
+
+    let mut group = c.benchmark_group("devices");
+    // About 200 µs an iteration: criterion's default 100 samples fit in 5 s.
+    group
+        .warm_up_time(Duration::from_secs(1))
+        .measurement_time(Duration::from_secs(5))
+        .throughput(Throughput::Elements(1));
+    group.bench_function("galvo POS round trip", |b| b.iter(|| laser.position().unwrap()));
     for bins in [512u32, 4096] {
         tdc.configure(&TdcConfig {
             bin_width: 16e-12,
@@ -74,11 +66,12 @@ fn main() {
             acquisition: Duration::from_micros(1),
         })
         .unwrap();
-        let mut per_pair = Vec::new();
-        for _ in 0..reps {
-            let start = Instant::now();
-            for k in 0..pairs {
+        // The angles cycle through 64 steps across the iterations, as a scan would.
+        let mut k = 0usize;
+        group.bench_function(format!("move-settle-acquire {bins} bins"), |b| {
+            b.iter(|| {
                 let t = (k % 64) as f64 / 64.0 * 0.3 - 0.15;
+                k += 1;
                 let a = OpticalAngles { x: t, y: -t / 2.0 };
                 laser.move_to(a).unwrap();
                 spad.move_to(OpticalAngles { x: -t, y: t / 3.0 }).unwrap();
@@ -86,16 +79,11 @@ fn main() {
                 spad.wait_settled(Duration::from_secs(1)).unwrap();
                 let h = tdc.acquire().unwrap();
                 assert_eq!(h.counts.len(), bins as usize);
-            }
-            per_pair.push(start.elapsed().as_secs_f64() / pairs as f64);
-        }
-        per_pair.sort_by(f64::total_cmp);
-        println!(
-            "move+settle+acquire, {bins} bins: median {:.1} µs/pair (min {:.1}, max {:.1}) = {:.0} pairs/s",
-            per_pair[reps / 2] * 1e6,
-            per_pair[0] * 1e6,
-            per_pair[reps - 1] * 1e6,
-            1.0 / per_pair[reps / 2]
-        );
+            })
+        });
     }
+    group.finish();
 }
+
+criterion_group!(benches, devices);
+criterion_main!(benches);

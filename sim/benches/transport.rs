@@ -2,21 +2,20 @@
 //! 512 bins of 32 ps, a hidden mesh of about 2,000 triangles (a mannequin), visibility
 //! included, then Poisson noise on every histogram.
 //!
-//! Timed (median of `SIM_BENCH_REPS`, default 3): building the world (BVH, hidden
+//! Timed (criterion, group `transport`, 10 samples): building the world (BVH, hidden
 //! samples) plus transport plus noise, for two pair layouts: 80 laser spots × 100
 //! detection spots (180 distinct relay points) and 8,000 confocal spots (8,000
-//! distinct points, the worst case for the per-point visibility tables).
-//! Not timed: building the scene meshes.
-use std::time::Instant;
+//! distinct points, the worst case for the per-point visibility tables). Criterion's
+//! median is the figure to quote (target < 10 s); its throughput line counts pairs.
+//! Not timed: building the scene meshes. Printed once per layout that ran: the hidden
+//! samples and the total counts of the last run.
+use std::cell::Cell;
+use std::time::Duration;
 
+use criterion::{Criterion, SamplingMode, Throughput, criterion_group, criterion_main};
 use glam::DVec3;
 use periscope_sim::scene::{ShapeKind, Surface};
 use periscope_sim::{Detector, Instrument, Mesh, Scene, SpotPair, SurfaceHit, World, sample_counts, shapes};
-
-fn median(mut v: Vec<f64>) -> f64 {
-    v.sort_by(f64::total_cmp);
-    v[v.len() / 2]
-}
 
 fn spot(x: f64, y: f64) -> SurfaceHit {
     SurfaceHit {
@@ -28,11 +27,7 @@ fn spot(x: f64, y: f64) -> SurfaceHit {
     }
 }
 
-fn main() {
-    let reps: usize = std::env::var("SIM_BENCH_REPS")
-        .ok()
-        .and_then(|v| v.parse().ok())
-        .unwrap_or(3);
+fn transport(c: &mut Criterion) {
     let mut hidden = shapes::mannequin(1.0);
     // Finer limbs bring the figure to about 2,000 triangles.
     hidden.append(
@@ -92,20 +87,31 @@ fn main() {
         "threads: {}, hidden triangles: {triangles}",
         rayon::current_num_threads()
     );
+
+    let mut group = c.benchmark_group("transport");
+    group
+        .sample_size(10)
+        .sampling_mode(SamplingMode::Flat)
+        .warm_up_time(Duration::from_secs(1))
+        // 0.7 s and 7 s a run here: three runs a sample for the scanned layout, one for
+        // the confocal one (criterion warns that 10 samples do not fit; two runs a
+        // sample would take two and a half minutes). `--quick` stops after 20 s.
+        .measurement_time(Duration::from_secs(20));
+    let mut last = Vec::new();
     for (name, pairs) in [
-        ("80 lasers × 100 detectors", &scanned),
-        ("8,000 confocal spots", &confocal),
+        ("80 lasers x 100 detectors", &scanned),
+        ("8000 confocal spots", &confocal),
     ] {
-        let mut samples = 0;
-        let mut counts = 0u64;
-        let t = median(
-            (0..reps)
-                .map(|_| {
-                    let start = Instant::now();
-                    let world = World::new(scene.clone(), 0.005, 7);
-                    samples = world.sample_count();
-                    let expected = world.third_bounce(&inst, pairs, &det, 0.01);
-                    counts = expected
+        // Hidden samples and total counts of the last run, printed after the group.
+        let (samples, counts) = (Cell::new(0), Cell::new(0u64));
+        group.throughput(Throughput::Elements(pairs.len() as u64));
+        group.bench_function(name, |b| {
+            b.iter(|| {
+                let world = World::new(scene.clone(), 0.005, 7);
+                samples.set(world.sample_count());
+                let expected = world.third_bounce(&inst, pairs, &det, 0.01);
+                counts.set(
+                    expected
                         .iter()
                         .enumerate()
                         .map(|(i, e)| {
@@ -114,13 +120,17 @@ fn main() {
                                 .map(|&c| c as u64)
                                 .sum::<u64>()
                         })
-                        .sum();
-                    start.elapsed().as_secs_f64()
-                })
-                .collect(),
-        );
-        println!(
-            "{name}: {t:.3} s for 8,000 pairs × 512 bins ({samples} hidden samples, {counts} counts, target < 10 s)"
-        );
+                        .sum(),
+                );
+            })
+        });
+        last.push((name, samples.get(), counts.get()));
+    }
+    group.finish();
+    for (name, samples, counts) in last.into_iter().filter(|l| l.1 > 0) {
+        println!("{name}: 8,000 pairs × 512 bins, {samples} hidden samples, {counts} counts");
     }
 }
+
+criterion_group!(benches, transport);
+criterion_main!(benches);

@@ -1,9 +1,33 @@
-//! Helpers the recon benchmarks share: medians and the process's peak memory.
+//! Helpers the recon benchmarks share: the time of criterion's last sample, the
+//! process's peak memory and the arithmetic rate against the CPU's f32 FMA peak.
+use std::cell::Cell;
+use std::hint::black_box;
+use std::time::{Duration, Instant};
 
-/// Median of the samples (upper median for an even count).
-pub(crate) fn median(mut v: Vec<f64>) -> f64 {
-    v.sort_by(f64::total_cmp);
-    v[v.len() / 2]
+/// Times a routine for `Bencher::iter_custom` and keeps the time per iteration of the
+/// last sample criterion took, for the figures a bench prints besides criterion's own
+/// (the share of the FMA peak). Criterion's median is still the figure to quote.
+#[derive(Default)]
+pub(crate) struct LastSample(Cell<Option<f64>>);
+
+impl LastSample {
+    /// Runs `routine` `iters` times and returns the time they took, as `iter_custom`
+    /// wants it.
+    pub(crate) fn time<T>(&self, iters: u64, mut routine: impl FnMut() -> T) -> Duration {
+        let start = Instant::now();
+        for _ in 0..iters {
+            black_box(routine());
+        }
+        let elapsed = start.elapsed();
+        self.0.set(Some(elapsed.as_secs_f64() / iters as f64));
+        elapsed
+    }
+
+    /// Seconds per iteration in the last sample; `None` when criterion never ran the
+    /// routine (a filter on the command line left it out).
+    pub(crate) fn seconds(&self) -> Option<f64> {
+        self.0.get()
+    }
 }
 
 /// Peak resident set size of this process, MiB (NaN where /proc is unavailable).
