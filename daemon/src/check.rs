@@ -35,7 +35,7 @@ fn outside(pose: &GalvoPose, limits: &AngleLimits, p: DVec3) -> Option<String> {
 }
 
 /// What `periscope check` (and `POST /api/v1/check`) finds out about a plan.
-#[derive(Clone, Debug, serde::Serialize)]
+#[derive(Clone, Debug, serde::Serialize, utoipa::ToSchema)]
 pub struct Check {
     /// The plan's name.
     pub plan: String,
@@ -60,7 +60,8 @@ pub struct Check {
 }
 
 /// Estimated durations, seconds.
-#[derive(Clone, Copy, Debug, serde::Serialize)]
+#[derive(Clone, Copy, Debug, serde::Serialize, utoipa::ToSchema)]
+#[schema(as = Durations)]
 pub struct Duration {
     /// LOS scan.
     pub los: f64,

@@ -662,7 +662,7 @@ async fn a_submission_flood_gets_429_and_does_not_slow_the_capture() {
 #[tokio::test]
 async fn every_route_enforces_the_token_rules_for_every_client() {
     use axum::extract::ConnectInfo;
-    use periscope_daemon::api::ROUTES;
+    use periscope_daemon::api::routes;
     for open_reads in [false, true] {
         let dir = tempfile::tempdir().unwrap();
         let extra = if open_reads { "open-reads = true" } else { "" };
@@ -671,7 +671,8 @@ async fn every_route_enforces_the_token_rules_for_every_client() {
         let (s, v) = call(&router, Method::POST, "/api/v1/runs", true, PLAN).await;
         assert_eq!(s, StatusCode::CREATED, "{v}");
         let id = v["id"].as_str().unwrap().to_owned();
-        for &(method, route) in ROUTES {
+        for (method, route) in routes() {
+            let (method, route) = (method.as_str(), route.as_str());
             let uri = route.replace("{id}", &id).replace("{name}", "plan.toml");
             // The check endpoint reads its body and changes nothing.
             let mutating = method == "POST" && route != "/api/v1/check";

@@ -78,16 +78,18 @@ fn tdc(rig: &Rig) -> UsbTdc<SimTdcTransport> {
     // Sequence numbers from 1, so the fault tests can name the acquisition a frame
     // came from (a driver opened for real starts at a random one).
     let mut tdc = UsbTdc::with_sequence(rig.tdc_transport(), TIMEOUT, 0);
-    tdc.configure(&TdcConfig {
-        bin_width: 16e-12,
-        bins: 512,
-        offset: 12e-9,
-        sync_divider: 1,
-        acquisition: Duration::from_millis(50),
-    })
-    .unwrap();
+    tdc.configure(&TDC_CONFIG).unwrap();
     tdc
 }
+
+/// 512 bins of 16 ps from 12 ns, 50 ms acquisitions.
+const TDC_CONFIG: TdcConfig = TdcConfig {
+    bin_width: 16e-12,
+    bins: 512,
+    offset: 12e-9,
+    sync_divider: 1,
+    acquisition: Duration::from_millis(50),
+};
 
 fn angles(x: f64, y: f64) -> OpticalAngles {
     OpticalAngles { x, y }
@@ -763,14 +765,7 @@ fn three_acquisitions(
 
 fn in_process_tdc(rig: &Rig) -> periscope_sim::devices::InProcessTdc {
     let mut tdc = rig.in_process_tdc();
-    tdc.configure(&TdcConfig {
-        bin_width: 16e-12,
-        bins: 512,
-        offset: 12e-9,
-        sync_divider: 1,
-        acquisition: Duration::from_millis(50),
-    })
-    .unwrap();
+    tdc.configure(&TDC_CONFIG).unwrap();
     tdc
 }
 

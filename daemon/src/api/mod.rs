@@ -16,10 +16,13 @@ use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
 use axum::middleware::{self, Next};
 use axum::response::sse::{Event, KeepAlive, Sse};
 use axum::response::{IntoResponse, Response};
-use axum::routing::{get, post};
+use axum::routing::get;
 use tokio_stream::StreamExt;
 use tokio_stream::wrappers::BroadcastStream;
 use tokio_stream::wrappers::errors::BroadcastStreamRecvError;
+use utoipa::OpenApi as _;
+use utoipa_axum::router::OpenApiRouter;
+use utoipa_axum::routes;
 
 mod dashboard;
 mod openapi;
@@ -28,9 +31,11 @@ mod service;
 pub use dashboard::ASSETS;
 
 use crate::run_dir::file;
-pub use openapi::openapi;
+pub use openapi::ErrorBody;
+use openapi::status;
 pub use service::{
-    EstopReport, GEOMETRY_POINTS, QUEUE_FILE, RunStatus, Service, ServiceError, StreamEvent, state_name,
+    EstopReport, GEOMETRY_POINTS, Geometry, InstrumentStatus, QUEUE_FILE, RunStatus, Service, ServiceError,
+    StreamEvent, state_name,
 };
 
 /// Files a run offers for download, with their media types.
@@ -50,24 +55,45 @@ pub const DOWNLOADS: &[(&str, &str)] = &[
     (file::RUN, "application/json"),
 ];
 
-/// The routes, as (method, path): the router and the OpenAPI document are both checked
-/// against this list by the tests.
-pub const ROUTES: &[(&str, &str)] = &[
-    ("GET", "/api/v1/health"),
-    ("GET", "/api/v1/openapi.json"),
-    ("GET", "/api/v1/instrument"),
-    ("POST", "/api/v1/check"),
-    ("POST", "/api/v1/runs"),
-    ("GET", "/api/v1/runs"),
-    ("GET", "/api/v1/runs/{id}"),
-    ("POST", "/api/v1/runs/{id}/pause"),
-    ("POST", "/api/v1/runs/{id}/resume"),
-    ("POST", "/api/v1/runs/{id}/abort"),
-    ("POST", "/api/v1/estop"),
-    ("GET", "/api/v1/runs/{id}/events"),
-    ("GET", "/api/v1/runs/{id}/files/{name}"),
-    ("GET", "/api/v1/runs/{id}/geometry"),
-];
+/// The documented routes: every API handler, registered with the router and the
+/// OpenAPI document at once (the dashboard's pages are routed in [`app`]).
+fn documented() -> OpenApiRouter<AppState> {
+    OpenApiRouter::with_openapi(openapi::ApiDoc::openapi())
+        .routes(routes!(health))
+        .routes(routes!(openapi_doc))
+        .routes(routes!(instrument))
+        .routes(routes!(check))
+        .routes(routes!(submit, list))
+        .routes(routes!(run_status))
+        .routes(routes!(pause))
+        .routes(routes!(resume))
+        .routes(routes!(abort))
+        .routes(routes!(estop))
+        .routes(routes!(events))
+        .routes(routes!(file))
+        .routes(routes!(geometry))
+}
+
+/// The OpenAPI 3.1 document `GET /api/v1/openapi.json` serves, generated from the
+/// routed handlers (built once).
+pub fn openapi() -> serde_json::Value {
+    static DOC: std::sync::OnceLock<serde_json::Value> = std::sync::OnceLock::new();
+    DOC.get_or_init(|| openapi::to_json(&documented().into_openapi()))
+        .clone()
+}
+
+/// The API's routes as (method, path), read from the document: what the hardening
+/// tests put through the token and Host rules.
+pub fn routes() -> Vec<(String, String)> {
+    let doc = openapi();
+    let mut out = Vec::new();
+    for (path, ops) in doc["paths"].as_object().into_iter().flatten() {
+        for method in ops.as_object().into_iter().flatten().map(|(m, _)| m) {
+            out.push((method.to_uppercase(), path.clone()));
+        }
+    }
+    out
+}
 
 /// Shared state of the handlers.
 #[derive(Clone)]
@@ -135,7 +161,10 @@ impl ApiError {
 
 impl IntoResponse for ApiError {
     fn into_response(self) -> Response {
-        let body = serde_json::json!({ "error": self.code, "message": self.message });
+        let body = ErrorBody {
+            error: self.code,
+            message: self.message,
+        };
         let mut r = (self.status, axum::Json(body)).into_response();
         if self.status == StatusCode::UNAUTHORIZED {
             r.headers_mut()
@@ -196,20 +225,8 @@ async fn blocking<T: Send + 'static>(
 /// errors for unknown routes and methods.
 pub fn app(state: AppState) -> Router {
     let api = state.service.instrument().api.clone();
-    let routes = Router::new()
-        .route("/api/v1/health", get(health))
-        .route("/api/v1/openapi.json", get(openapi_doc))
-        .route("/api/v1/instrument", get(instrument))
-        .route("/api/v1/check", post(check))
-        .route("/api/v1/runs", post(submit).get(list))
-        .route("/api/v1/runs/{id}", get(run_status))
-        .route("/api/v1/runs/{id}/pause", post(pause))
-        .route("/api/v1/runs/{id}/resume", post(resume))
-        .route("/api/v1/runs/{id}/abort", post(abort))
-        .route("/api/v1/estop", post(estop))
-        .route("/api/v1/runs/{id}/events", get(events))
-        .route("/api/v1/runs/{id}/files/{name}", get(file))
-        .route("/api/v1/runs/{id}/geometry", get(geometry))
+    let (documented, _) = documented().split_for_parts();
+    let routes: Router<AppState> = documented
         .route("/", get(dashboard::index))
         .route("/ui/{*file}", get(dashboard::asset))
         .fallback(not_found)
@@ -440,19 +457,39 @@ async fn method_not_allowed() -> ApiError {
     )
 }
 
-async fn health(State(state): State<AppState>) -> axum::Json<serde_json::Value> {
-    axum::Json(serde_json::json!({
-        "status": "ok",
-        "version": env!("CARGO_PKG_VERSION"),
-        "instrument": state.service.instrument().name,
-    }))
+/// `GET /api/v1/health`.
+#[derive(Debug, serde::Serialize, utoipa::ToSchema)]
+pub struct Health {
+    /// Always `ok`.
+    pub status: &'static str,
+    /// The daemon's version.
+    pub version: &'static str,
+    /// The instrument config's name.
+    pub instrument: String,
 }
 
+/// Liveness and version
+#[utoipa::path(get, path = "/api/v1/health", responses((status = 200, description = "the daemon is up", body = Health)))]
+async fn health(State(state): State<AppState>) -> axum::Json<Health> {
+    axum::Json(Health {
+        status: "ok",
+        version: env!("CARGO_PKG_VERSION"),
+        instrument: state.service.instrument().name.clone(),
+    })
+}
+
+/// This document
+#[utoipa::path(get, path = "/api/v1/openapi.json", responses((status = 200, description = "OpenAPI 3.1", body = Object)))]
 async fn openapi_doc() -> axum::Json<serde_json::Value> {
     axum::Json(openapi())
 }
 
-async fn instrument(State(state): State<AppState>) -> ApiResult<axum::Json<serde_json::Value>> {
+/// The instrument's state as the worker last read it
+///
+/// Devices, positions, laser and interlock state and count rates, as the worker last
+/// read them (`reading` says when); never touches the hardware.
+#[utoipa::path(get, path = "/api/v1/instrument", responses((status = 200, description = "instrument status", body = InstrumentStatus)))]
+async fn instrument(State(state): State<AppState>) -> ApiResult<axum::Json<InstrumentStatus>> {
     let s = Arc::clone(&state.service);
     blocking(move || Ok(s.instrument_status())).await.map(axum::Json)
 }
@@ -491,6 +528,23 @@ fn plan_body(headers: &HeaderMap, body: Result<String, StringRejection>) -> ApiR
     Ok(text)
 }
 
+/// Check a TOML capture plan without queueing it
+///
+/// What `periscope check` says about the plan: the report, estimated durations, the run
+/// budget and targets outside the galvo limits. Nothing is queued or touched.
+#[utoipa::path(
+    post,
+    path = "/api/v1/check",
+    request_body(content = String, content_type = "application/toml", description = "a TOML capture plan"),
+    responses(
+        (status = 200, description = "the plan is valid; `over_budget` says whether submit would refuse it", body = crate::check::Check),
+        (status = 401, description = status::UNAUTHORISED, body = ErrorBody),
+        (status = 403, description = status::FORBIDDEN, body = ErrorBody),
+        (status = 413, description = status::TOO_LARGE, body = ErrorBody),
+        (status = 415, description = status::MEDIA_TYPE, body = ErrorBody),
+        (status = 422, description = status::INVALID_PLAN, body = ErrorBody),
+    )
+)]
 async fn check(
     State(state): State<AppState>,
     headers: HeaderMap,
@@ -501,14 +555,42 @@ async fn check(
     blocking(move || s.check(text)).await.map(axum::Json)
 }
 
-async fn geometry(
-    State(state): State<AppState>,
-    Path(id): Path<String>,
-) -> ApiResult<axum::Json<serde_json::Value>> {
+/// A run's geometry for 3-D views
+///
+/// Relay points, planned illumination and detection points (each thinned to at most
+/// 20,000), the volume box and the instrument's viewpoint, metres.
+#[utoipa::path(
+    get,
+    path = "/api/v1/runs/{id}/geometry",
+    params(("id" = String, Path, description = "run id")),
+    responses(
+        (status = 200, description = "geometry", body = Geometry),
+        (status = 404, description = status::NOT_FOUND, body = ErrorBody),
+    )
+)]
+async fn geometry(State(state): State<AppState>, Path(id): Path<String>) -> ApiResult<axum::Json<Geometry>> {
     let s = Arc::clone(&state.service);
     blocking(move || s.geometry(&id)).await.map(axum::Json)
 }
 
+/// Submit a TOML capture plan; it is validated, then queued
+#[utoipa::path(
+    post,
+    path = "/api/v1/runs",
+    security(("bearer" = [])),
+    request_body(content = String, content_type = "application/toml", description = "a TOML capture plan"),
+    responses(
+        (status = 201, description = "queued; Location names the run", body = RunStatus),
+        (status = 401, description = status::UNAUTHORISED, body = ErrorBody),
+        (status = 403, description = status::FORBIDDEN, body = ErrorBody),
+        (status = 413, description = status::TOO_LARGE, body = ErrorBody),
+        (status = 415, description = status::MEDIA_TYPE, body = ErrorBody),
+        (status = 422, description = status::INVALID_PLAN, body = ErrorBody),
+        (status = 429, description = status::QUEUE_FULL, body = ErrorBody),
+        (status = 500, description = status::STORAGE, body = ErrorBody),
+        (status = 503, description = status::UNAVAILABLE, body = ErrorBody),
+    )
+)]
 async fn submit(
     State(state): State<AppState>,
     headers: HeaderMap,
@@ -525,11 +607,23 @@ async fn submit(
     Ok(r)
 }
 
+/// Every run, oldest first
+#[utoipa::path(get, path = "/api/v1/runs", responses((status = 200, description = "runs", body = Vec<RunStatus>)))]
 async fn list(State(state): State<AppState>) -> ApiResult<axum::Json<Vec<RunStatus>>> {
     let s = Arc::clone(&state.service);
     blocking(move || s.list()).await.map(axum::Json)
 }
 
+/// One run: state, stage, progress, ETA, files
+#[utoipa::path(
+    get,
+    path = "/api/v1/runs/{id}",
+    params(("id" = String, Path, description = "run id")),
+    responses(
+        (status = 200, description = "run", body = RunStatus),
+        (status = 404, description = status::NOT_FOUND, body = ErrorBody),
+    )
+)]
 async fn run_status(
     State(state): State<AppState>,
     Path(id): Path<String>,
@@ -538,6 +632,20 @@ async fn run_status(
     blocking(move || s.status(&id)).await.map(axum::Json)
 }
 
+/// Pause a running run at its next checkpoint (between pairs)
+#[utoipa::path(
+    post,
+    path = "/api/v1/runs/{id}/pause",
+    security(("bearer" = [])),
+    params(("id" = String, Path, description = "run id")),
+    responses(
+        (status = 202, description = "pause requested", body = RunStatus),
+        (status = 401, description = status::UNAUTHORISED, body = ErrorBody),
+        (status = 403, description = status::FORBIDDEN, body = ErrorBody),
+        (status = 404, description = status::NOT_FOUND, body = ErrorBody),
+        (status = 409, description = status::CONFLICT, body = ErrorBody),
+    )
+)]
 async fn pause(
     State(state): State<AppState>,
     Path(id): Path<String>,
@@ -547,6 +655,20 @@ async fn pause(
     Ok((StatusCode::ACCEPTED, axum::Json(st)))
 }
 
+/// Queue a paused or failed run again; it continues from its last stored pair
+#[utoipa::path(
+    post,
+    path = "/api/v1/runs/{id}/resume",
+    security(("bearer" = [])),
+    params(("id" = String, Path, description = "run id")),
+    responses(
+        (status = 202, description = "queued", body = RunStatus),
+        (status = 401, description = status::UNAUTHORISED, body = ErrorBody),
+        (status = 403, description = status::FORBIDDEN, body = ErrorBody),
+        (status = 404, description = status::NOT_FOUND, body = ErrorBody),
+        (status = 409, description = status::CONFLICT, body = ErrorBody),
+    )
+)]
 async fn resume(
     State(state): State<AppState>,
     Path(id): Path<String>,
@@ -556,6 +678,20 @@ async fn resume(
     Ok((StatusCode::ACCEPTED, axum::Json(st)))
 }
 
+/// Abort a run; what was captured is kept
+#[utoipa::path(
+    post,
+    path = "/api/v1/runs/{id}/abort",
+    security(("bearer" = [])),
+    params(("id" = String, Path, description = "run id")),
+    responses(
+        (status = 202, description = "abort requested or done", body = RunStatus),
+        (status = 401, description = status::UNAUTHORISED, body = ErrorBody),
+        (status = 403, description = status::FORBIDDEN, body = ErrorBody),
+        (status = 404, description = status::NOT_FOUND, body = ErrorBody),
+        (status = 409, description = status::CONFLICT, body = ErrorBody),
+    )
+)]
 async fn abort(
     State(state): State<AppState>,
     Path(id): Path<String>,
@@ -565,11 +701,41 @@ async fn abort(
     Ok((StatusCode::ACCEPTED, axum::Json(st)))
 }
 
+/// Emergency stop
+///
+/// Laser off first (directly, out of band), then the running run aborted and both arms
+/// parked, queued runs held; every step is tried and reported.
+#[utoipa::path(
+    post,
+    path = "/api/v1/estop",
+    security(("bearer" = [])),
+    responses(
+        (status = 200, description = "instrument safe", body = EstopReport),
+        (status = 401, description = status::UNAUTHORISED, body = ErrorBody),
+        (status = 403, description = status::FORBIDDEN, body = ErrorBody),
+        (status = 503, description = status::UNAVAILABLE, body = ErrorBody),
+    )
+)]
 async fn estop(State(state): State<AppState>) -> ApiResult<axum::Json<EstopReport>> {
     let s = Arc::clone(&state.service);
     blocking(move || s.estop()).await.map(axum::Json)
 }
 
+/// A run's progress as server-sent events
+///
+/// A `status` snapshot, then the run's typed events (stage-started, stage-finished,
+/// los-point, relay, planned, pair, histogram, initialised, data-added, epoch,
+/// snapshot, pruned, output, failed, completed; `lagged` if the client fell behind).
+#[utoipa::path(
+    get,
+    path = "/api/v1/runs/{id}/events",
+    params(("id" = String, Path, description = "run id")),
+    responses(
+        (status = 200, description = "event stream", content_type = "text/event-stream", body = String),
+        (status = 404, description = status::NOT_FOUND, body = ErrorBody),
+        (status = 503, description = status::STREAMS, body = ErrorBody),
+    )
+)]
 async fn events(
     State(state): State<AppState>,
     Path(id): Path<String>,
@@ -614,6 +780,23 @@ async fn events(
     Ok(Sse::new(head.chain(live)).keep_alive(KeepAlive::default()))
 }
 
+/// Download a run file
+///
+/// The volume (.npy), depth and albedo (PNG), the relay point cloud and the Gaussians
+/// (PLY), the y-tal HDF5 capture, the plan, the logs.
+#[utoipa::path(
+    get,
+    path = "/api/v1/runs/{id}/files/{name}",
+    params(
+        ("id" = String, Path, description = "run id"),
+        ("name" = String, Path, description = "file name"),
+    ),
+    responses(
+        (status = 200, description = "the file, with its media type (`application/octet-stream` for .npy and .ply, `image/png`, `application/x-hdf5`, `application/json`, `application/toml`, `application/x-ndjson`)", content_type = "application/octet-stream", body = [u8]),
+        (status = 404, description = status::NOT_FOUND, body = ErrorBody),
+        (status = 503, description = status::DOWNLOADS, body = ErrorBody),
+    )
+)]
 async fn file(
     State(state): State<AppState>,
     Path((id, name)): Path<(String, String)>,

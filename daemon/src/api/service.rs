@@ -12,6 +12,7 @@ use std::time::{Duration, Instant};
 
 use serde::Serialize;
 use tokio::sync::broadcast;
+use utoipa::ToSchema;
 
 use crate::config::{InstrumentConfig, TomlSource};
 use crate::events::{EventSink, RunEvent};
@@ -44,7 +45,7 @@ pub struct StreamEvent {
 }
 
 /// A run as the API reports it.
-#[derive(Clone, Debug, Serialize)]
+#[derive(Clone, Debug, Serialize, ToSchema)]
 pub struct RunStatus {
     /// Run id.
     pub id: String,
@@ -747,35 +748,38 @@ impl Service {
     /// reading of the devices with its age (it reads them when it starts, after every
     /// run and e-stop, and every `[api] status-interval-s` while idle), and the running
     /// run's stage while one holds the instrument.
-    pub fn instrument_status(&self) -> serde_json::Value {
+    pub fn instrument_status(&self) -> InstrumentStatus {
         let s = self.lock();
-        let mut v = serde_json::json!({
-            "name": self.instrument.name,
-            "summary": self.instrument.summary(),
-            "busy": s.current.is_some(),
-            "devices": null,
-        });
-        if let Some((id, _)) = &s.current {
-            v["run"] = serde_json::json!({ "id": id, "stage": s.live.stage });
-            v["note"] = "the running run holds the devices; their live state is in its event stream".into();
-        }
-        match &s.reading {
+        let (reading, devices, error) = match &s.reading {
             Some(r) => {
-                v["reading"] = serde_json::json!({
-                    "taken_unix_s": r.unix_s,
-                    "age_s": r.at.elapsed().as_secs_f64(),
-                });
+                let age = ReadingAge {
+                    taken_unix_s: r.unix_s,
+                    age_s: r.at.elapsed().as_secs_f64(),
+                };
                 match &r.devices {
-                    Ok(d) => v["devices"] = d.clone(),
-                    Err(e) => v["error"] = e.clone().into(),
+                    Ok(d) => (Some(age), Some(d.clone()), None),
+                    Err(e) => (Some(age), None, Some(e.clone())),
                 }
             }
-            None => v["reading"] = serde_json::Value::Null,
+            None => (None, None, None),
+        };
+        let run = s.current.as_ref().map(|(id, _)| RunStage {
+            id: id.clone(),
+            stage: s.live.stage.clone(),
+        });
+        InstrumentStatus {
+            name: self.instrument.name.clone(),
+            summary: self.instrument.summary(),
+            busy: run.is_some(),
+            note: run
+                .as_ref()
+                .map(|_| "the running run holds the devices; their live state is in its event stream"),
+            run,
+            devices,
+            reading,
+            error,
+            last_safe: s.last_safe.clone(),
         }
-        if let Some(safe) = &s.last_safe {
-            v["last_safe"] = safe.clone().into();
-        }
-        v
     }
 
     /// Reads the devices (worker thread only: it owns the instrument between runs).
@@ -859,7 +863,7 @@ impl Service {
     /// illumination and detection points (each thinned to at most [`GEOMETRY_POINTS`]),
     /// the reconstruction volume and the instrument's viewpoint, in metres. Parts the
     /// run has not made yet are empty.
-    pub fn geometry(&self, id: &str) -> Result<serde_json::Value, ServiceError> {
+    pub fn geometry(&self, id: &str) -> Result<Geometry, ServiceError> {
         let dir = self.dir(id)?;
         let storage = ServiceError::RunFiles;
         let run = RunDir::new(&dir);
@@ -884,14 +888,18 @@ impl Service {
         };
         let v = &plan.recon.volume;
         let viewpoint = 0.5 * (inst.laser_arm.pose.origin + inst.spad_arm.pose.origin);
-        Ok(serde_json::json!({
-            "relay": thin(relay),
-            "illumination": unique(|p| p.xi),
-            "detection": unique(|p| p.xd),
-            "pairs": pairs.len(),
-            "volume": { "x": v.x, "y": v.y, "z": v.z },
-            "viewpoint": viewpoint.to_array(),
-        }))
+        Ok(Geometry {
+            relay: thin(relay),
+            illumination: unique(|p| p.xi),
+            detection: unique(|p| p.xd),
+            pairs: pairs.len(),
+            volume: VolumeBox {
+                x: v.x,
+                y: v.y,
+                z: v.z,
+            },
+            viewpoint: viewpoint.to_array(),
+        })
     }
 
     /// Subscribes to a run's events: a running run's, or a queued or paused one's from
@@ -1115,8 +1123,84 @@ fn hold_interrupted(dir: &Path, id: &str, info: &mut RunInfo) -> Result<(), Serv
 /// before it opens the controllers itself.
 const ESTOP_RUN_WAIT: Duration = Duration::from_secs(2);
 
+/// What `GET /api/v1/instrument` reports: the worker's last reading of the devices,
+/// never a fresh one.
+#[derive(Clone, Debug, Serialize, ToSchema)]
+pub struct InstrumentStatus {
+    /// The instrument config's name.
+    pub name: String,
+    /// One line on the instrument config.
+    pub summary: String,
+    /// Whether a run holds the instrument.
+    pub busy: bool,
+    /// The run holding the instrument, and its stage.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub run: Option<RunStage>,
+    /// Where to look for the devices' live state while a run holds them.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub note: Option<&'static str>,
+    /// The last reading of the devices, as `periscope devices --json` prints it
+    /// (`null` until one succeeded).
+    #[schema(value_type = Option<Object>)]
+    pub devices: Option<serde_json::Value>,
+    /// When that reading was taken (`null`: none yet).
+    pub reading: Option<ReadingAge>,
+    /// Why the last reading failed, if it did.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub error: Option<String>,
+    /// The last time the instrument was made safe, and by what.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub last_safe: Option<String>,
+}
+
+/// A run and its stage.
+#[derive(Clone, Debug, Serialize, ToSchema)]
+pub struct RunStage {
+    /// Run id.
+    pub id: String,
+    /// Its current stage.
+    pub stage: String,
+}
+
+/// When a device reading was taken.
+#[derive(Clone, Copy, Debug, Serialize, ToSchema)]
+pub struct ReadingAge {
+    /// Unix time of the reading, seconds.
+    pub taken_unix_s: f64,
+    /// Its age, seconds.
+    pub age_s: f64,
+}
+
+/// A run's geometry for 3-D views, metres, world frame.
+#[derive(Clone, Debug, Serialize, ToSchema)]
+pub struct Geometry {
+    /// Relay points of the LOS scan (thinned).
+    pub relay: Vec<[f64; 3]>,
+    /// Planned illumination points, each once (thinned).
+    pub illumination: Vec<[f64; 3]>,
+    /// Planned detection points, each once (thinned).
+    pub detection: Vec<[f64; 3]>,
+    /// Planned pairs.
+    pub pairs: usize,
+    /// The reconstruction volume.
+    pub volume: VolumeBox,
+    /// Midway between the two galvo pairs.
+    pub viewpoint: [f64; 3],
+}
+
+/// An axis-aligned box, metres.
+#[derive(Clone, Copy, Debug, Serialize, ToSchema)]
+pub struct VolumeBox {
+    /// x range.
+    pub x: [f64; 2],
+    /// y range.
+    pub y: [f64; 2],
+    /// z range.
+    pub z: [f64; 2],
+}
+
 /// What an e-stop did.
-#[derive(Debug, Default, Serialize)]
+#[derive(Debug, Default, Serialize, ToSchema)]
 pub struct EstopReport {
     /// The run that was aborted, if one was running.
     pub aborted: Option<String>,
