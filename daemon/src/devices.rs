@@ -9,7 +9,7 @@
 //! | `backend = "sim"`, `sim.devices = "in-process"` | the simulator's controller model, no wire | the simulator's histogrammer, no wire |
 //!
 //! The first two run the same drivers, so CI runs the code the lab runs. A new driver
-//! is one more arm of [`open_galvo`], [`open_laser_arm`] or [`open_histogrammer`].
+//! is one more arm of `open_galvo`, `open_laser_arm` or `open_histogrammer`.
 use std::time::Duration;
 
 use periscope_drivers::galvo::{GalvoError, PortConnector, SerialGalvo, SerialGalvoSettings};

@@ -21,7 +21,6 @@ use crate::plan::Plan;
 use crate::run_dir::{RunDir, file};
 use crate::store::{RunInfo, RunState, write_atomic};
 use periscope_drivers::galvo::EmergencyOff;
-
 use periscope_sim::devices::Rig;
 
 /// The queue file in the runs directory.
