@@ -164,6 +164,7 @@ impl RunCapture {
         let pairs: Vec<Pair> = self.pairs.iter().map(PlannedPair::pair).collect();
         let axis = hidden_axis(&pairs, volume, self.plan.acquisition.bin_width).map_err(fail)?;
         let mut set = TransientSet::new(axis).map_err(fail)?;
+        set.mark_photon_counts();
         let mut detection_points = Vec::new();
         let mut overflowed = 0;
         for r in &self.records {

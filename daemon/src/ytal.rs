@@ -761,14 +761,20 @@ impl YtalCapture {
             )));
         }
         let mut set = TransientSet::new(axis).map_err(|e| self.error(e.to_string()))?;
+        // Whole non-negative numbers throughout: a photon-counting capture.
+        let mut whole = true;
         for (c, pair) in pairs.into_iter().enumerate() {
             if self.flags.as_ref().is_some_and(|f| f[c] & FLAG_OVERFLOW != 0) {
                 continue;
             }
+            whole &= self.transient(c).all(|v| v >= 0.0 && v.fract() == 0.0);
             let h = rebin_path(self.transient(c), self.hidden_start(c), self.delta_t, &axis);
             if h.iter().any(|&v| v != 0.0) {
                 set.push(pair, &h).map_err(|e| self.error(e.to_string()))?;
             }
+        }
+        if whole {
+            set.mark_photon_counts();
         }
         Ok(set)
     }

@@ -225,6 +225,7 @@ pub struct TransientSet {
     pairs: Vec<Pair>,
     counts: Vec<f32>,
     weights: Vec<f32>,
+    photon_counts: bool,
 }
 
 impl TransientSet {
@@ -236,7 +237,22 @@ impl TransientSet {
             pairs: Vec::new(),
             counts: Vec::new(),
             weights: Vec::new(),
+            photon_counts: false,
         })
+    }
+
+    /// Marks the histograms as detected photons (counts, rebinned or corrected for
+    /// pile-up perhaps, but on the scale of photons), so noise follows Poisson
+    /// statistics: solvers then derive their regularisation from the counts
+    /// ([`crate::solver::default_snr`]). Unmarked sets are taken as noise-free
+    /// (rendered or processed transients).
+    pub fn mark_photon_counts(&mut self) {
+        self.photon_counts = true;
+    }
+
+    /// Whether the histograms are detected photons ([`Self::mark_photon_counts`]).
+    pub fn is_photon_counts(&self) -> bool {
+        self.photon_counts
     }
 
     /// Appends one transient with weight 1.
@@ -288,6 +304,11 @@ impl TransientSet {
                 expected: self.axis.bins,
             });
         }
+        self.photon_counts = if self.is_empty() {
+            other.photon_counts
+        } else {
+            self.photon_counts && other.photon_counts
+        };
         self.pairs.extend_from_slice(&other.pairs);
         self.counts.extend_from_slice(&other.counts);
         self.weights.extend_from_slice(&other.weights);

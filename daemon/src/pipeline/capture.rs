@@ -57,15 +57,21 @@ impl Run {
                 "the histogram log held incomplete or corrupted records; they were skipped and their pairs are measured again"
             );
         }
+        // The TDC's histograms are photon counts (pile-up corrected, perhaps).
+        let counts = || -> Result<TransientSet, ReconError> {
+            let mut set = TransientSet::new(axis)?;
+            set.mark_photon_counts();
+            Ok(set)
+        };
         let input = ReconInput {
             settings: self.plan.recon.clone(),
-            set: TransientSet::new(axis).map_err(ReconError::from)?,
+            set: counts()?,
             detection_points: pairs.iter().map(|p| p.xd).collect(),
             viewpoint: 0.5 * (l + s),
         };
         let mut fit = Fit::new(input);
         let mut stored: HashSet<u32> = HashSet::new();
-        let mut batch = TransientSet::new(axis).map_err(ReconError::from)?;
+        let mut batch = counts()?;
         let instrument = self.instrument.clone();
         let push = |batch: &mut TransientSet, rec: &Record| -> Result<(), PipelineError> {
             let p = &pairs[rec.pair as usize];
@@ -103,7 +109,7 @@ impl Run {
             if !started && done < start_at && !force {
                 return Ok(());
             }
-            let full = std::mem::replace(batch, TransientSet::new(axis).map_err(ReconError::from)?);
+            let full = std::mem::replace(batch, counts()?);
             if !started {
                 fit.start_training(
                     full,

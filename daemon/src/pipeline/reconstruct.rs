@@ -197,7 +197,7 @@ fn finish_gtr(
     let t = Instant::now();
     let volume = s
         .solver
-        .solve(&scan.set, &s.volume, &s.solvers)
+        .solve(&scan.set, &s.volume, &s.solvers.for_virtual_scan())
         .map_err(ReconError::from)?;
     Ok(ReconResult {
         volume,

@@ -402,7 +402,7 @@ mod tests {
             (s.solvers.fbp.filter, s.solvers.fbp.falloff),
             (FbpFilter::Laplacian, 0.0)
         );
-        assert_eq!(s.solvers.lct.snr, 4.0);
+        assert_eq!(s.solvers.lct.snr, Some(4.0));
         // Out of range: the error names the file, the line and the key.
         let src = TomlSource::from_text("recon.toml", "method = \"fbp\"\n[fbp]\nfalloff = 9.0\n");
         let e = load_recon(&src, Some(volume())).unwrap_err().to_string();

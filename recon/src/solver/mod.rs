@@ -18,7 +18,7 @@ mod scan;
 pub use fbp::{FbpFilter, FbpSettings, PHASOR_PITCHES, fbp, phasor_wavelength, sampling_pitch};
 pub use fk::{FkSettings, fk, fk_frame};
 pub use frame::FrameVolume;
-pub use lct::{LctSettings, lct, lct_frame};
+pub use lct::{LctSettings, VIRTUAL_SCAN_SNR, default_snr, lct, lct_frame};
 pub use rsd::{RsdSettings, rsd, rsd_frame};
 pub use scan::PlanarScan;
 
@@ -82,6 +82,14 @@ pub struct SolverSettings {
 }
 
 impl SolverSettings {
+    /// These settings for the virtual confocal scan 3D-GTR synthesises: LCT's `snr`,
+    /// when not set, is [`VIRTUAL_SCAN_SNR`] instead of [`default_snr`]'s.
+    pub fn for_virtual_scan(&self) -> SolverSettings {
+        let mut s = self.clone();
+        s.lct.snr = s.lct.snr.or(Some(VIRTUAL_SCAN_SNR));
+        s
+    }
+
     /// Checks every table; on a bad value, the table's name (`lct`, ...) and why.
     pub fn validate(&self) -> Result<(), (&'static str, SolverError)> {
         self.lct.validate().map_err(|e| ("lct", e))?;
