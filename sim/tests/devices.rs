@@ -497,6 +497,42 @@ fn the_drivers_keepalive_holds_emission_and_stops_with_the_driver() {
 }
 
 #[test]
+fn a_starved_firmware_thread_does_not_count_queued_keepalives_late() {
+    // The firmware thread reads nothing for four timeouts while the driver's keepalive
+    // goes on writing: a real controller would have taken every keepalive on time, so
+    // the watchdog must not trip (it did, when lines were stamped as the thread read
+    // them: the loaded-CI flake). Silence the firmware has seen still trips it
+    // (`a_host_that_goes_silent_is_cut_off_by_the_watchdog`).
+    let rig = rig();
+    let mut laser = SerialGalvo::new(
+        SerialGalvoSettings {
+            name: "laser".into(),
+            limits: limits(20.0),
+            timeout: TIMEOUT,
+            settle: Duration::from_micros(300),
+            watchdog: Some(Duration::from_millis(100)),
+        },
+        Box::new(rig.galvo_connector(Arm::Laser)),
+    );
+    laser.set_emission(true).unwrap();
+    rig.inject(Fault::Galvo(
+        Arm::Laser,
+        GalvoFault::Starve(Duration::from_millis(400)),
+    ));
+    assert!(laser.laser_state().unwrap().emission);
+    std::thread::sleep(Duration::from_millis(600));
+    assert!(
+        rig.emission(),
+        "the watchdog tripped on keepalives that waited in the line: {:?}",
+        rig.emission_changes()
+    );
+    assert_eq!(rig.watchdog().1, 0);
+    assert!(laser.laser_state().unwrap().emission);
+    drop(laser);
+    assert!(!rig.emission());
+}
+
+#[test]
 fn an_emergency_off_lands_while_a_move_is_outstanding() {
     let rig = rig();
     let mut laser = galvo(&rig, Arm::Laser, 20.0);

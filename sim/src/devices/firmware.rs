@@ -147,7 +147,27 @@ impl Firmware {
     /// The firmware loop: reads lines and answers them. A move's reply waits until the
     /// pair has settled, but the loop goes on reading meanwhile, so an out-of-band
     /// `LASER OFF` is acted on at once whatever is outstanding.
-    fn run(self, mut port: TTYPort) {
+    fn run(self, port: TTYPort) {
+        self.quiet(Instant::now());
+        self.serve(port);
+        if self.arm == Arm::Laser
+            && let Some(rig) = self.shared.upgrade()
+        {
+            rig.lock().line_quiet(None);
+        }
+    }
+
+    /// The laser arm's firmware has looked at its line at `now` and found no complete
+    /// line waiting (the watchdog's view of time, [`super::rig::Watchdog`]).
+    fn quiet(&self, now: Instant) {
+        if self.arm == Arm::Laser
+            && let Some(rig) = self.shared.upgrade()
+        {
+            rig.lock().line_quiet(Some(now));
+        }
+    }
+
+    fn serve(&self, mut port: TTYPort) {
         let mut rx: Vec<u8> = Vec::with_capacity(protocol::MAX_LINE);
         let mut chunk = [0u8; 256];
         // Replies waiting for their time (a settling move, an injected stall).
@@ -176,23 +196,33 @@ impl Firmware {
             match port.read(&mut chunk) {
                 Ok(0) => match self.end {
                     End::Generation(_) => return,
-                    End::Stop(_) => continue,
+                    End::Stop(_) => {
+                        self.quiet(Instant::now());
+                        continue;
+                    }
                 },
                 Ok(n) => rx.extend_from_slice(&chunk[..n]),
                 Err(e) if e.kind() == io::ErrorKind::TimedOut || e.kind() == io::ErrorKind::WouldBlock => {
+                    self.quiet(Instant::now());
                     continue;
                 }
                 Err(_) => match self.end {
                     End::Generation(_) => return,
                     // No host on the other end just now: wait for the next one.
                     End::Stop(_) => {
+                        self.quiet(Instant::now());
                         std::thread::sleep(POLL);
                         continue;
                     }
                 },
             }
+            // Bytes but no correctly framed line (a partial line, line noise): the
+            // watchdog's line was quiet up to this read.
+            let read_at = Instant::now();
+            let mut framed = false;
             while let Some(end) = rx.iter().position(|&b| b == b'\n') {
                 let line: Vec<u8> = rx.drain(..=end).collect();
+                framed |= protocol::decode_line(&line[..line.len() - 1]).is_ok();
                 let Some(rig) = self.shared.upgrade() else { return };
                 let outcome = answer(&rig, self.arm, &line[..line.len() - 1]);
                 drop(rig);
@@ -203,12 +233,21 @@ impl Firmware {
                         }
                     }
                     Outcome::Reply(bytes, delay) => due.push((Instant::now() + delay, bytes)),
+                    Outcome::Starve(bytes, pause) => {
+                        if port.write_all(&bytes).and_then(|()| port.flush()).is_err() {
+                            return;
+                        }
+                        std::thread::sleep(pause);
+                    }
                     Outcome::Silent => {}
                     Outcome::Unplug => match self.end {
                         End::Generation(_) => return,
                         End::Stop(_) => due.clear(),
                     },
                 }
+            }
+            if !framed {
+                self.quiet(read_at);
             }
             if rx.len() > protocol::MAX_LINE {
                 rx.clear();
@@ -220,6 +259,8 @@ impl Firmware {
 enum Outcome {
     /// Send these bytes after this long.
     Reply(Vec<u8>, Duration),
+    /// Send these bytes now, then read nothing for this long.
+    Starve(Vec<u8>, Duration),
     Silent,
     Unplug,
 }
@@ -259,6 +300,7 @@ fn answer(rig: &Shared, arm: Arm, line: &[u8]) -> Outcome {
             reply[i] ^= 0x02;
         }
         Some(GalvoFault::Stall(d)) => delay += d,
+        Some(GalvoFault::Starve(pause)) => return Outcome::Starve(reply, pause),
         Some(GalvoFault::Garbage) => {
             let mut noisy = b"\x00\xff~~ line noise 17*ZZ\n".to_vec();
             noisy.extend_from_slice(&reply);

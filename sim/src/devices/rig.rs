@@ -48,6 +48,10 @@ pub enum GalvoFault {
     Stall(Duration),
     /// Send a line of noise before the answer.
     Garbage,
+    /// Answer, then read nothing for this long: the firmware thread starved by a
+    /// loaded host, while a real controller's UART would go on taking bytes. The
+    /// host's keepalives wait in the line, and the watchdog must not count them late.
+    Starve(Duration),
     /// Drop the link without answering (an unplug); refuse this many reconnects.
     Disconnect {
         /// Connection attempts refused before the device is back.
@@ -148,6 +152,14 @@ pub(crate) struct Watchdog {
     pub timeout: Duration,
     /// The last correctly framed line from the host.
     pub last_heard: Instant,
+    /// While a wire firmware thread serves the laser arm: the latest instant it has
+    /// looked at its line and found no complete line waiting. A real controller stamps
+    /// a line when its bytes arrive; the simulated one only when its thread reads
+    /// them, which a loaded host may delay past the timeout although the keepalives
+    /// were sent on time. So the watchdog expires only once the firmware has seen its
+    /// line silent past the deadline. `None` (in-process devices, or no firmware
+    /// thread): by the wall clock.
+    pub quiet_until: Option<Instant>,
     /// Times it switched emission off since power-up.
     pub trips: u32,
 }
@@ -193,7 +205,8 @@ impl RigState {
     /// since nothing can observe emission in between.
     fn expire_watchdog(&mut self, now: Instant) {
         let due = self.watchdog.last_heard + self.watchdog.timeout;
-        if self.emission && now >= due {
+        let seen = self.watchdog.quiet_until.map_or(now, |q| q.min(now));
+        if self.emission && seen >= due {
             self.watchdog.trips += 1;
             self.set_emission(false, EmissionCause::Watchdog, due);
         }
@@ -204,6 +217,13 @@ impl RigState {
     pub(crate) fn heard_host(&mut self, now: Instant) {
         self.expire_watchdog(now);
         self.watchdog.last_heard = now;
+    }
+
+    /// The laser arm's wire firmware looked at its line at `now` and found no complete
+    /// line waiting (`Some`), or stopped serving it (`None`).
+    pub(crate) fn line_quiet(&mut self, now: Option<Instant>) {
+        self.watchdog.quiet_until = now;
+        self.expire_watchdog(now.unwrap_or_else(Instant::now));
     }
 }
 
@@ -352,6 +372,7 @@ impl Rig {
                     periscope_drivers::galvo::protocol::WATCHDOG_DEFAULT_MS,
                 )),
                 last_heard: now,
+                quiet_until: None,
                 trips: 0,
             },
             emission_log: Vec::new(),
