@@ -160,7 +160,16 @@ pub fn lct_frame(
     // The light cone, each lateral offset's cell integrated over its area.
     let [sx, sy] = scan.relay.spacing();
     let cone = LightCone::new([nx, ny], [sx, sy], m, m as f64 * w);
-    let inv_snr = 1.0 / settings.snr.unwrap_or_else(|| default_snr(set)) as f32;
+    let snr = settings.snr.unwrap_or_else(|| {
+        let snr = default_snr(set);
+        tracing::info!(
+            snr,
+            photon_counts = set.is_photon_counts(),
+            "LCT Wiener snr derived from the capture"
+        );
+        snr
+    });
+    let inv_snr = 1.0 / snr as f32;
 
     let fft = Fft2::new(py, px);
     const SLICES_PER_TASK: usize = 8;
