@@ -468,10 +468,9 @@ fn a_host_that_goes_silent_is_cut_off_by_the_watchdog() {
     assert_eq!(rig.watchdog().1, 1);
 }
 
-#[test]
-fn the_drivers_keepalive_holds_emission_and_stops_with_the_driver() {
-    let rig = rig();
-    let mut laser = SerialGalvo::new(
+/// The serial laser driver on `rig`'s laser controller, with a 100 ms watchdog.
+fn wire_laser(rig: &Rig) -> SerialGalvo {
+    SerialGalvo::new(
         SerialGalvoSettings {
             name: "laser".into(),
             limits: limits(20.0),
@@ -480,7 +479,13 @@ fn the_drivers_keepalive_holds_emission_and_stops_with_the_driver() {
             watchdog: Some(Duration::from_millis(100)),
         },
         Box::new(rig.galvo_connector(Arm::Laser)),
-    );
+    )
+}
+
+#[test]
+fn the_drivers_keepalive_holds_emission_and_stops_with_the_driver() {
+    let rig = rig();
+    let mut laser = wire_laser(&rig);
     laser.set_emission(true).unwrap();
     assert_eq!(laser.watchdog().unwrap(), (Duration::from_millis(100), 0));
     // Ten timeouts without a single ordinary request: the keepalive feeds it.
@@ -504,16 +509,7 @@ fn a_starved_firmware_thread_does_not_count_queued_keepalives_late() {
     // them: the loaded-CI flake). Silence the firmware has seen still trips it
     // (`a_host_that_goes_silent_is_cut_off_by_the_watchdog`).
     let rig = rig();
-    let mut laser = SerialGalvo::new(
-        SerialGalvoSettings {
-            name: "laser".into(),
-            limits: limits(20.0),
-            timeout: TIMEOUT,
-            settle: Duration::from_micros(300),
-            watchdog: Some(Duration::from_millis(100)),
-        },
-        Box::new(rig.galvo_connector(Arm::Laser)),
-    );
+    let mut laser = wire_laser(&rig);
     laser.set_emission(true).unwrap();
     rig.inject(Fault::Galvo(
         Arm::Laser,
