@@ -616,3 +616,39 @@ fn a_poisson_fit_on_counts_stays_finite_and_lowers_its_loss() {
     assert!(losses.iter().all(|l| l.is_finite()), "{losses:?}");
     assert!(losses.last().unwrap() < &losses[0], "{losses:?}");
 }
+
+/// The fit's result is the mean of the iterates of its last third (after the
+/// densification rounds): one `Averaged` event counting those steps, and a result that
+/// differs from the last iterate's; `average_from = 1` keeps the last iterate.
+#[test]
+fn the_last_third_of_the_iterates_is_averaged() {
+    let fit = |average_from: f64| {
+        let cfg = TrainConfig {
+            average_from,
+            ..config(60, 6)
+        };
+        // 60 pairs in batches of 4: 15 steps an epoch.
+        assert_eq!(cfg.average_start(6), Some(4).filter(|_| average_from < 1.0));
+        let mut t = Trainer::new(cfg, roi(), data(60, 3)).unwrap();
+        let mut averaged = Vec::new();
+        t.run(None, &CancelToken::new(), &mut |e| {
+            if let TrainEvent::Averaged { steps } = e {
+                averaged.push(*steps);
+            }
+        })
+        .unwrap();
+        assert!(all_finite(t.cloud()));
+        (t.cloud().clone(), averaged)
+    };
+    let (mean, events) = fit(2.0 / 3.0);
+    assert_eq!(events, vec![30], "epochs 5 and 6 of 6 are averaged");
+    let (last, events) = fit(1.0);
+    assert!(events.is_empty());
+    assert_ne!(mean, last);
+    // Averaging never starts before the last densification round.
+    let cfg = TrainConfig {
+        average_from: 0.0,
+        ..config(60, 6)
+    };
+    assert_eq!(cfg.average_start(6), Some(3));
+}

@@ -113,6 +113,7 @@ struct RawGtr {
     #[serde(default = "default_densify")]
     densify: bool,
     split_scale: Option<f64>,
+    average_from: Option<f64>,
     #[serde(default = "default_loss")]
     loss: String,
 }
@@ -131,6 +132,7 @@ impl Default for RawGtr {
             initial_scale: None,
             densify: default_densify(),
             split_scale: None,
+            average_from: None,
             loss: default_loss(),
         }
     }
@@ -276,6 +278,14 @@ pub(crate) fn recon_settings(
             ));
         }
     }
+    if let Some(v) = g.average_from
+        && !(0.0..=1.0).contains(&v)
+    {
+        return Err(src.invalid(
+            &key("gtr.average-from"),
+            format!("{v} is out of range: give the fraction of the epochs after which iterates are averaged, 0 to 1 (1: the last iterate, as the paper)"),
+        ));
+    }
     let init = match g.init.as_str() {
         "uniform" => Init::Uniform,
         "backprojection" => Init::Backprojection {
@@ -319,6 +329,7 @@ pub(crate) fn recon_settings(
             target_scale: g.split_scale,
             ..DensifySettings::default()
         },
+        average_from: g.average_from.unwrap_or(TrainConfig::default().average_from),
         ..TrainConfig::default()
     };
     for group in [
@@ -457,6 +468,19 @@ mod tests {
                 e.contains(&format!("gtr.{key}")) && e.contains("between 1 mm and 1 m"),
                 "{e}"
             );
+        }
+    }
+
+    #[test]
+    fn gtr_averaging_is_read_and_checked() {
+        let d = default_recon(volume());
+        assert!(d.train.average_from > 0.0 && d.train.average_from < 1.0);
+        let src = TomlSource::from_text("recon.toml", "[gtr]\naverage-from = 1.0\n");
+        assert_eq!(load_recon(&src, Some(volume())).unwrap().train.average_from, 1.0);
+        for bad in ["-0.1", "1.5", "nan"] {
+            let src = TomlSource::from_text("recon.toml", format!("[gtr]\naverage-from = {bad}\n"));
+            let e = load_recon(&src, Some(volume())).unwrap_err().to_string();
+            assert!(e.contains("gtr.average-from") && e.contains("0 to 1"), "{e}");
         }
     }
 

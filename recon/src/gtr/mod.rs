@@ -10,7 +10,7 @@ pub mod train;
 
 pub use init::Init;
 pub use kernel::{Kernel, Loss, PhysicalGrad, RenderOptions, render_pair};
-pub use model::{GaussianCloud, ModelError, Primitive, RawGrads, ScaleBounds};
+pub use model::{GaussianCloud, MapSlopes, ModelError, Primitive, RawGrads, ScaleBounds};
 pub use optim::{AdamW, AdamWSettings, GroupSettings, Schedule};
 pub use ply::write_ply;
 pub use render::{batch_loss, batch_loss_grad, render_set};

@@ -104,6 +104,18 @@ fn inv_softplus(y: f64) -> f64 {
     if y > 30.0 { y } else { y.exp_m1().ln() }
 }
 
+/// The slopes of one primitive's parameter maps at its raw parameters (the diagonal
+/// of the maps' Jacobian; the rotation's is computed where it is used).
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct MapSlopes {
+    /// `∂x_j/∂θx_j = h_j (1 − tanh² θx_j)`.
+    pub centre: DVec3,
+    /// `∂s_j/∂θs_j = s_j (ln s_max − ln s_min) σ(θs_j) (1 − σ(θs_j))`.
+    pub scale: DVec3,
+    /// `∂ρ/∂θρ = σ(θρ)`.
+    pub albedo: f64,
+}
+
 /// The physical description of one primitive.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Primitive {
@@ -265,13 +277,50 @@ impl GaussianCloud {
         Kernel::new(p.centre, DMat3::from_quat(p.rotation), p.scale, p.albedo)
     }
 
+    /// The render kernel of primitive `k` ([`GaussianCloud::kernel`], the same bits)
+    /// and the slopes of its parameter maps, from one evaluation of each map: a
+    /// training step refreshes both, and its backward pass then chains without
+    /// evaluating a transcendental function again ([`GaussianCloud::chain_with`]).
+    pub fn kernel_and_slopes(&self, k: usize) -> (Kernel, MapSlopes) {
+        let (lmin, lspan) = self.log_scale_map();
+        let (mut t, mut sg, mut scale) = (DVec3::ZERO, DVec3::ZERO, DVec3::ZERO);
+        for j in 0..3 {
+            t[j] = self.centres[3 * k + j].tanh();
+            sg[j] = sigmoid(self.scales[3 * k + j]);
+            scale[j] = (lmin + lspan * sg[j]).exp();
+        }
+        let centre = self.roi.centre + self.roi.half * t;
+        let rotation = self.raw_quat(k).normalize();
+        let kernel = Kernel::new(
+            centre,
+            DMat3::from_quat(rotation),
+            scale,
+            softplus(self.albedo[k]),
+        );
+        let mut slopes = MapSlopes {
+            centre: DVec3::ZERO,
+            scale: DVec3::ZERO,
+            albedo: sigmoid(self.albedo[k]),
+        };
+        for j in 0..3 {
+            slopes.centre[j] = self.roi.half[j] * (1.0 - t[j] * t[j]);
+            slopes.scale[j] = scale[j] * lspan * sg[j] * (1.0 - sg[j]);
+        }
+        (kernel, slopes)
+    }
+
+    /// The slopes of primitive `k`'s parameter maps.
+    pub fn slopes(&self, k: usize) -> MapSlopes {
+        self.kernel_and_slopes(k).1
+    }
+
     /// Render kernels of all primitives.
     pub fn kernels(&self) -> Vec<Kernel> {
         (0..self.len()).map(|k| self.kernel(k)).collect()
     }
 
     /// Writes the raw-parameter gradient of primitive `k` given the gradient with
-    /// respect to its physical parameters.
+    /// respect to its physical parameters; returns the albedo's.
     pub fn chain(
         &self,
         k: usize,
@@ -280,17 +329,25 @@ impl GaussianCloud {
         out_s: &mut [f64],
         out_r: &mut [f64],
     ) -> f64 {
-        // Centres: x = c + h tanh θ.
-        for j in 0..3 {
-            let t = self.centres[3 * k + j].tanh();
-            out_c[j] = g.x[j] * self.roi.half[j] * (1.0 - t * t);
-        }
+        self.chain_with(k, &self.slopes(k), g, out_c, out_s, out_r)
+    }
+
+    /// [`GaussianCloud::chain`] with the map slopes of primitive `k` already known
+    /// ([`GaussianCloud::kernel_and_slopes`]).
+    pub fn chain_with(
+        &self,
+        k: usize,
+        slopes: &MapSlopes,
+        g: &PhysicalGrad,
+        out_c: &mut [f64],
+        out_s: &mut [f64],
+        out_r: &mut [f64],
+    ) -> f64 {
+        // Centres: x = c + h tanh θ → dx/dθ = h (1 − tanh² θ).
         // Scales: s = exp(lmin + lspan σ(θ)) → ds/dθ = s lspan σ (1 − σ).
-        let (lmin, lspan) = self.log_scale_map();
         for j in 0..3 {
-            let sg = sigmoid(self.scales[3 * k + j]);
-            let s = (lmin + lspan * sg).exp();
-            out_s[j] = g.s[j] * s * lspan * sg * (1.0 - sg);
+            out_c[j] = g.x[j] * slopes.centre[j];
+            out_s[j] = g.s[j] * slopes.scale[j];
         }
         // Rotations: R(q) with q = r/‖r‖.
         let raw = self.raw_quat(k);
@@ -301,7 +358,7 @@ impl GaussianCloud {
         let dr = (dq - q * radial) / norm;
         out_r.copy_from_slice(&[dr.w, dr.x, dr.y, dr.z]);
         // Albedo: ρ = softplus(θ) → dρ/dθ = σ(θ).
-        g.rho * sigmoid(self.albedo[k])
+        g.rho * slopes.albedo
     }
 
     /// Renormalises the raw quaternions to unit length (after an optimiser step), and
@@ -345,4 +402,67 @@ fn quat_grad(q: DQuat, g: &DMat3) -> DQuat {
     let dz =
         2.0 * (-2.0 * z * g00 - w * g01 + x * g02 + w * g10 - 2.0 * z * g11 + y * g12 + x * g20 + y * g21);
     DQuat::from_xyzw(dx, dy, dz, dw)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// `kernel_and_slopes` gives `kernel`'s bits, and slopes that are the maps'
+    /// derivatives (central differences of `primitive` on each raw parameter).
+    #[test]
+    fn kernel_and_slopes_agree_with_the_maps() {
+        let roi = RoiBox::from_bounds(DVec3::new(-0.4, -0.3, 0.3), DVec3::new(0.4, 0.5, 0.9)).unwrap();
+        let mut cloud = GaussianCloud::new(roi, ScaleBounds { min: 2e-3, max: 0.2 }).unwrap();
+        for (i, scale) in [0.003, 0.02, 0.15].into_iter().enumerate() {
+            let f = i as f64;
+            cloud
+                .push(Primitive {
+                    centre: DVec3::new(-0.39 + 0.3 * f, 0.1 * f, 0.35 + 0.2 * f),
+                    scale: DVec3::new(scale, 0.5 * scale + 0.002, 0.01),
+                    rotation: DQuat::from_axis_angle(DVec3::new(1.0, 2.0, -0.5).normalize(), 0.7 * f),
+                    albedo: 0.01 + 3.0 * f,
+                })
+                .unwrap();
+        }
+        let h = 1e-6;
+        for k in 0..cloud.len() {
+            let (kernel, slopes) = cloud.kernel_and_slopes(k);
+            assert_eq!(kernel, cloud.kernel(k));
+            for j in 0..3 {
+                let moved = |group: fn(&mut GaussianCloud) -> &mut Vec<f64>, idx: usize| {
+                    let mut c = cloud.clone();
+                    group(&mut c)[idx] += h;
+                    let up = c.primitive(k);
+                    group(&mut c)[idx] -= 2.0 * h;
+                    let down = c.primitive(k);
+                    (up, down)
+                };
+                let (up, down) = moved(|c| &mut c.centres, 3 * k + j);
+                let fd = (up.centre[j] - down.centre[j]) / (2.0 * h);
+                assert!(
+                    (fd - slopes.centre[j]).abs() <= 1e-7 * fd.abs().max(1e-3),
+                    "centre {k}.{j}: {fd} vs {}",
+                    slopes.centre[j]
+                );
+                let (up, down) = moved(|c| &mut c.scales, 3 * k + j);
+                let fd = (up.scale[j] - down.scale[j]) / (2.0 * h);
+                assert!(
+                    (fd - slopes.scale[j]).abs() <= 1e-7 * fd.abs().max(1e-6),
+                    "scale {k}.{j}: {fd} vs {}",
+                    slopes.scale[j]
+                );
+            }
+            let mut c = cloud.clone();
+            c.albedo[k] += h;
+            let up = c.primitive(k).albedo;
+            c.albedo[k] -= 2.0 * h;
+            let fd = (up - c.primitive(k).albedo) / (2.0 * h);
+            assert!(
+                (fd - slopes.albedo).abs() <= 1e-7,
+                "albedo {k}: {fd} vs {}",
+                slopes.albedo
+            );
+        }
+    }
 }

@@ -107,6 +107,56 @@ struct Moments {
     v: Vec<f64>,
 }
 
+/// One parallel chunk of an AdamW update.
+struct AdamChunk<'a> {
+    params: &'a mut [f64],
+    grad: &'a [f64],
+    m: &'a mut [f64],
+    v: &'a mut [f64],
+    beta: (f64, f64),
+    bias: (f64, f64),
+    eps: f64,
+    lr: f64,
+    weight_decay: f64,
+}
+
+impl crate::simd::Work for AdamChunk<'_> {
+    type Output = usize;
+
+    /// The update of every entry with a finite gradient; entries without one keep
+    /// their parameter and moments. Written without a branch, so that it compiles to
+    /// vector divisions and square roots.
+    #[inline(always)]
+    fn run<Q: crate::simd::Quad>(self, _: Q) -> usize {
+        let Self {
+            params,
+            grad,
+            m,
+            v,
+            beta: (beta1, beta2),
+            bias: (bc1, bc2),
+            eps,
+            lr,
+            weight_decay,
+        } = self;
+        let mut skipped = 0;
+        for i in 0..params.len().min(grad.len()).min(m.len()).min(v.len()) {
+            let g = grad[i];
+            let ok = g.is_finite();
+            let g = if ok { g } else { 0.0 };
+            let mi = beta1 * m[i] + (1.0 - beta1) * g;
+            let vi = beta2 * v[i] + (1.0 - beta2) * g * g;
+            let update = (mi / bc1) / ((vi / bc2).sqrt() + eps);
+            let p = params[i] - lr * (update + weight_decay * params[i]);
+            m[i] = if ok { mi } else { m[i] };
+            v[i] = if ok { vi } else { v[i] };
+            params[i] = if ok { p } else { params[i] };
+            skipped += usize::from(!ok);
+        }
+        skipped
+    }
+}
+
 /// The optimiser state for one cloud.
 #[derive(Clone, Debug)]
 pub struct AdamW {
@@ -158,19 +208,17 @@ impl AdamW {
                 .zip(moments.m.par_chunks_mut(PARALLEL_CHUNK))
                 .zip(moments.v.par_chunks_mut(PARALLEL_CHUNK))
                 .map(|(((params, grad), m), v)| {
-                    let mut skipped = 0;
-                    for i in 0..params.len() {
-                        let g = grad[i];
-                        if !g.is_finite() {
-                            skipped += 1;
-                            continue;
-                        }
-                        m[i] = s.beta1 * m[i] + (1.0 - s.beta1) * g;
-                        v[i] = s.beta2 * v[i] + (1.0 - s.beta2) * g * g;
-                        let update = (m[i] / bc1) / ((v[i] / bc2).sqrt() + s.eps);
-                        params[i] -= lr * (update + group.weight_decay * params[i]);
-                    }
-                    skipped
+                    crate::simd::dispatch(AdamChunk {
+                        params,
+                        grad,
+                        m,
+                        v,
+                        beta: (s.beta1, s.beta2),
+                        bias: (bc1, bc2),
+                        eps: s.eps,
+                        lr,
+                        weight_decay: group.weight_decay,
+                    })
                 })
                 .sum::<usize>();
         }

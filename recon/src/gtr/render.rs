@@ -8,7 +8,7 @@
 use rayon::prelude::*;
 
 use super::kernel::{Evaluation, Kernel, Loss, PhysicalGrad, RenderOptions, evaluate, render_pair};
-use super::model::{GaussianCloud, RawGrads};
+use super::model::{GaussianCloud, MapSlopes, RawGrads};
 use crate::transient::{Pair, TransientSet};
 
 /// Primitives per parallel work item in a training step.
@@ -87,7 +87,7 @@ impl crate::simd::Work for ForwardChunk<'_> {
     type Output = (Vec<f64>, Vec<Option<Evaluation>>);
 
     #[inline(always)]
-    fn run(self) -> Self::Output {
+    fn run<Q: crate::simd::Quad>(self, quad: Q) -> Self::Output {
         let Self {
             chunk,
             set,
@@ -107,7 +107,7 @@ impl crate::simd::Work for ForwardChunk<'_> {
             for (out, pair) in local.chunks_exact_mut(bins).zip(&pairs) {
                 let e = evaluate(k, pair, axis, opt);
                 if let Some(e) = &e {
-                    e.accumulate(axis, out);
+                    e.accumulate_with(quad, axis, out);
                 }
                 if keep {
                     evals.push(e);
@@ -164,6 +164,21 @@ pub fn batch_loss_grad(
     opt: &RenderOptions,
     grads: &mut RawGrads,
 ) -> f64 {
+    batch_loss_grad_with(cloud, kernels, None, set, batch, opt, grads)
+}
+
+/// [`batch_loss_grad`], with the map slopes of every primitive already known
+/// (`slopes[k]` from [`GaussianCloud::kernel_and_slopes`], as `kernels[k]`) or, with
+/// `None`, computed here.
+pub(crate) fn batch_loss_grad_with(
+    cloud: &GaussianCloud,
+    kernels: &[Kernel],
+    slopes: Option<&[MapSlopes]>,
+    set: &TransientSet,
+    batch: &[usize],
+    opt: &RenderOptions,
+    grads: &mut RawGrads,
+) -> f64 {
     let n = cloud.len();
     if grads.albedo.len() != n {
         *grads = RawGrads::zeros(n);
@@ -190,6 +205,7 @@ pub fn batch_loss_grad(
                 first: c * CHUNK,
                 cloud,
                 kernels,
+                slopes,
                 set,
                 batch,
                 opt,
@@ -207,6 +223,7 @@ struct BackwardChunk<'a, 'g> {
     first: usize,
     cloud: &'a GaussianCloud,
     kernels: &'a [Kernel],
+    slopes: Option<&'a [MapSlopes]>,
     set: &'a TransientSet,
     batch: &'a [usize],
     opt: &'a RenderOptions,
@@ -221,11 +238,12 @@ impl crate::simd::Work for BackwardChunk<'_, '_> {
     type Output = ();
 
     #[inline(always)]
-    fn run(self) {
+    fn run<Q: crate::simd::Quad>(self, quad: Q) {
         let Self {
             first,
             cloud,
             kernels,
+            slopes,
             set,
             batch,
             opt,
@@ -242,7 +260,8 @@ impl crate::simd::Work for BackwardChunk<'_, '_> {
             let mut g = PhysicalGrad::default();
             for (slot, &p) in batch.iter().enumerate() {
                 if let Some(e) = &evals[i * b + slot] {
-                    e.backward(
+                    e.backward_with(
+                        quad,
                         kernel,
                         &set.pairs()[p],
                         axis,
@@ -252,8 +271,13 @@ impl crate::simd::Work for BackwardChunk<'_, '_> {
                     );
                 }
             }
-            ga[i] = cloud.chain(
+            let slope = match slopes {
+                Some(all) => all[k],
+                None => cloud.slopes(k),
+            };
+            ga[i] = cloud.chain_with(
                 k,
+                &slope,
                 &g,
                 &mut gc[3 * i..3 * i + 3],
                 &mut gs[3 * i..3 * i + 3],

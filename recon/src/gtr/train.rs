@@ -23,9 +23,9 @@ use serde::{Deserialize, Serialize};
 
 use super::init::{Init, initial_cloud};
 use super::kernel::{Kernel, Loss, RenderOptions};
-use super::model::{GaussianCloud, ModelError, Primitive, RawGrads, ScaleBounds};
+use super::model::{GaussianCloud, MapSlopes, ModelError, Primitive, RawGrads, ScaleBounds};
 use super::optim::{AdamW, AdamWSettings, Schedule};
-use super::render::{batch_loss_grad, render_set};
+use super::render::{batch_loss_grad_with, render_set};
 use crate::roi::RoiBox;
 use crate::transient::{TransientError, TransientSet};
 
@@ -174,13 +174,35 @@ pub struct TrainConfig {
     pub prune: PruneSettings,
     /// Splitting and relocation during the first counted epochs.
     pub densify: DensifySettings,
+    /// The fit's result is the mean of its iterates over the counted epochs after this
+    /// fraction of them (and after the last densification), instead of the last
+    /// iterate: mini-batches of a few transients leave the last iterate jittering
+    /// about the optimum by more than a pixel. 1 (or more): the last iterate, as
+    /// the paper.
+    #[serde(default = "default_average_from")]
+    pub average_from: f64,
     /// Pairs used to match the gain at initialisation, at most.
     pub gain_pairs: usize,
     /// Seed of initialisation and shuffling.
     pub seed: u64,
 }
 
+/// [`TrainConfig::average_from`]'s default: the last third, the epochs after the
+/// learning rate's last decay.
+fn default_average_from() -> f64 {
+    2.0 / 3.0
+}
+
 impl TrainConfig {
+    /// The counted epoch from which iterates are averaged, of `epochs`; `None`: never.
+    pub fn average_start(&self, epochs: usize) -> Option<usize> {
+        let from = self.average_from.max(self.densify.until);
+        if !(from < 1.0) {
+            return None;
+        }
+        Some(((from * epochs as f64 - 1e-9).ceil() as usize).min(epochs.saturating_sub(1)))
+    }
+
     /// The counted epochs of a fit on `pairs` transients: `epochs`, or more where that
     /// many would take fewer than `min_steps` optimiser steps (⌈pairs / batch⌉ a pass).
     pub fn counted_epochs(&self, pairs: usize) -> usize {
@@ -275,6 +297,7 @@ impl Default for TrainConfig {
             loss: LossChoice::Auto,
             prune: PruneSettings::default(),
             densify: DensifySettings::default(),
+            average_from: default_average_from(),
             gain_pairs: 512,
             seed: 0,
         }
@@ -330,6 +353,12 @@ pub enum TrainEvent {
         epoch: usize,
         /// Primitives split (and as many relocated).
         moved: usize,
+    },
+    /// The fit's result became the mean of its last iterates
+    /// ([`TrainConfig::average_from`]).
+    Averaged {
+        /// Optimiser steps averaged.
+        steps: usize,
     },
     /// Pruning ran.
     Pruned {
@@ -410,7 +439,12 @@ pub struct Trainer {
     rng: ChaCha8Rng,
     step: usize,
     epochs_done: usize,
+    /// The running mean of the iterates and how many it holds, while averaging
+    /// ([`TrainConfig::average_from`]).
+    average: Option<(GaussianCloud, usize)>,
     kernels: Vec<Kernel>,
+    /// The map slopes of each primitive, refreshed with `kernels`.
+    slopes: Vec<MapSlopes>,
     grads: RawGrads,
 }
 
@@ -459,7 +493,9 @@ impl Trainer {
             gain_set: false,
             step: 0,
             epochs_done: 0,
+            average: None,
             kernels: Vec::new(),
+            slopes: Vec::new(),
             grads: RawGrads::default(),
             config,
         };
@@ -569,9 +605,10 @@ impl Trainer {
                 return None;
             }
             self.refresh_kernels();
-            let loss = batch_loss_grad(
+            let loss = batch_loss_grad_with(
                 &self.cloud,
                 &self.kernels,
+                Some(&self.slopes),
                 &self.data,
                 batch,
                 &self.options,
@@ -590,6 +627,18 @@ impl Trainer {
                     "non-finite gradient entries were skipped"
                 );
             }
+            if let Some((mean, n)) = &mut self.average {
+                *n += 1;
+                let w = 1.0 / *n as f64;
+                for (m, x) in [
+                    (&mut mean.centres, &self.cloud.centres),
+                    (&mut mean.scales, &self.cloud.scales),
+                    (&mut mean.rotations, &self.cloud.rotations),
+                    (&mut mean.albedo, &self.cloud.albedo),
+                ] {
+                    m.iter_mut().zip(x).for_each(|(m, x)| *m += (x - *m) * w);
+                }
+            }
             self.step += 1;
             total += loss;
             batches += 1;
@@ -599,14 +648,17 @@ impl Trainer {
 
     fn refresh_kernels(&mut self) {
         let cloud = &self.cloud;
+        let n = cloud.len();
         self.kernels.resize(
-            cloud.len(),
+            n,
             Kernel::new(Default::default(), Default::default(), Default::default(), 0.0),
         );
+        self.slopes.resize(n, MapSlopes::default());
         self.kernels
             .par_iter_mut()
+            .zip(self.slopes.par_iter_mut())
             .enumerate()
-            .for_each(|(k, out)| *out = cloud.kernel(k));
+            .for_each(|(k, (kernel, slopes))| (*kernel, *slopes) = cloud.kernel_and_slopes(k));
     }
 
     /// Runs the fit to completion: live epochs while `feed` is open, then the counted
@@ -664,6 +716,15 @@ impl Trainer {
             if feed.is_none() && self.epochs_done >= epochs {
                 break;
             }
+            if feed.is_none()
+                && self.average.is_none()
+                && self
+                    .config
+                    .average_start(epochs)
+                    .is_some_and(|start| self.epochs_done >= start)
+            {
+                self.average = Some((self.cloud.clone(), 0));
+            }
             let Some(loss) = self.epoch(cancel) else {
                 on_event(&TrainEvent::Cancelled { step: self.step });
                 return Ok(self.summary(final_loss, true));
@@ -690,6 +751,13 @@ impl Trainer {
                 });
             }
             on_event(&self.snapshot());
+        }
+        if let Some((mean, n)) = self.average.take()
+            && n > 0
+        {
+            self.cloud = mean;
+            self.cloud.renormalise_rotations();
+            on_event(&TrainEvent::Averaged { steps: n });
         }
         let before = self.cloud.len();
         let kept = self.prune();

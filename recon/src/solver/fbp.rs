@@ -313,7 +313,7 @@ impl<const C: usize> crate::simd::Work for Slice<'_, '_, C> {
     type Output = ();
 
     #[inline(always)]
-    fn run(self) {
+    fn run<Q: crate::simd::Quad>(self, _: Q) {
         backproject_slice(self.out, self.z, self.rows);
     }
 }
