@@ -8,6 +8,9 @@
 //!   solver: cube, resampling, FFTs, Wiener filter, inverse; not the world-grid
 //!   resampling);
 //! - [fbp] FBP of 8,000 arbitrary pairs on a curved relay into a 128 × 128 × 64 volume;
+//! - [fbp_grid] FBP of a 64 × 64 × 512 confocal scan on a level grid of half the voxel
+//!   pitch into 32 × 32 × 81 (the 3D-GTR virtual scan of a 1 m validation capture,
+//!   which takes FBP's grid path);
 //! - [synth] virtual confocal synthesis of 64 × 64 × 512 from K = 10,000 Gaussians;
 //! - [synth_lct] synthesis + LCT for the 64 × 64 virtual grid (the 0.6 s target).
 //!
@@ -108,6 +111,17 @@ fn solvers(c: &mut Criterion) {
     let fbp_last = LastSample::default();
     group.bench_function("fbp", |b| {
         b.iter_custom(|iters| fbp_last.time(iters, || fbp(&set, &grid, &FbpSettings::default()).unwrap()))
+    });
+
+    // The virtual scan of `periscope recon` on a 1 m, 32 × 32 × 81 volume.
+    let relay = VirtualRelay::new(DVec3::ZERO, DVec3::Z, DVec3::X, [1.0, 1.0], [64, 64]).unwrap();
+    let (set, _) = noise_scan(&relay, 512, &mut rng);
+    let grid = VolumeGrid::new([-0.5, 0.5], [-0.5, 0.5], [0.195, 1.005], [32, 32, 81]).unwrap();
+    group
+        .measurement_time(Duration::from_secs(10))
+        .throughput(Throughput::Elements(set.len() as u64 * grid.len() as u64));
+    group.bench_function("fbp_grid", |b| {
+        b.iter(|| fbp(&set, &grid, &FbpSettings::default()).unwrap())
     });
 
     let kernels: Vec<Kernel> = (0..10_000)

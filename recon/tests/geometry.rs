@@ -245,6 +245,57 @@ fn a_virtual_relay_grows_to_cover_the_volume() {
 }
 
 #[test]
+fn a_level_virtual_relay_snaps_its_columns_to_the_voxels() {
+    // A level wall: 67 columns over 1 m (pitch 1/67) and voxels of 1/32 m become 64
+    // columns of 1/64 m (the nearest whole fraction), over the same centre and at
+    // least the same extent; rows untouched.
+    let relay = VirtualRelay::new(
+        DVec3::new(0.1, 0.0, 0.0),
+        DVec3::Z,
+        DVec3::X,
+        [1.0, 0.9],
+        [67, 60],
+    )
+    .unwrap();
+    let voxel = 1.0 / 32.0;
+    let snapped = relay.columns_fitting(voxel, 128);
+    assert_eq!(snapped.resolution, [64, 60]);
+    assert!(
+        (snapped.spacing()[0] - 1.0 / 64.0).abs() < 1e-15,
+        "{:?}",
+        snapped.spacing()
+    );
+    assert!(snapped.size[0] >= relay.size[0] && snapped.size[1] == relay.size[1]);
+    assert_eq!(
+        (snapped.centre, snapped.u, snapped.v),
+        (relay.centre, relay.u, relay.v)
+    );
+    // A finer grid keeps its finer fraction: 1/100 m becomes 1/96 m (a third of a voxel).
+    let fine = VirtualRelay::new(DVec3::ZERO, DVec3::Z, DVec3::X, [1.0, 1.0], [100, 100]).unwrap();
+    let r = voxel / fine.columns_fitting(voxel, 128).spacing()[0];
+    assert!((r - 3.0).abs() < 1e-12, "{r}");
+    // Capped: a fraction that needs more columns than allowed gives way to a coarser one.
+    let near = VirtualRelay::new(DVec3::ZERO, DVec3::Z, DVec3::X, [1.0, 1.0], [95, 95]).unwrap();
+    assert_eq!(near.columns_fitting(voxel, 128).resolution[0], 96);
+    assert_eq!(near.columns_fitting(voxel, 95).resolution[0], 64);
+    // Already fitting: unchanged to the bit (idempotent).
+    assert_eq!(snapped.columns_fitting(voxel, 128), snapped);
+    // A tilted plane, or columns along y, come back unchanged.
+    let tilted = VirtualRelay::new(
+        DVec3::ZERO,
+        DVec3::new(0.0, 0.1, 1.0),
+        DVec3::X,
+        [1.0, 1.0],
+        [67, 67],
+    )
+    .unwrap();
+    assert_eq!(tilted.columns_fitting(voxel, 128), tilted);
+    let turned = VirtualRelay::new(DVec3::ZERO, DVec3::Z, DVec3::Y, [1.0, 1.0], [67, 67]).unwrap();
+    assert_eq!(turned.columns_fitting(voxel, 128), turned);
+    assert_eq!(relay.columns_fitting(f64::NAN, 128), relay);
+}
+
+#[test]
 fn noisy_plane_normals() {
     // A wall scanned on a 1.5 cm grid with 1 mm (rms) depth noise, typical of a
     // first-bounce scan: within 5° everywhere, 2° at the 95th percentile.

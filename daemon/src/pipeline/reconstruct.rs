@@ -186,9 +186,12 @@ fn finish_gtr(
         let corners: Vec<DVec3> = (0..8)
             .map(|c| DVec3::new(g.x[c & 1], g.y[(c >> 1) & 1], g.z[(c >> 2) & 1]))
             .collect();
+        // Its columns on a whole fraction of the voxel pitch where the relay is level,
+        // so the final FBP shares each path length among all pairs at one offset.
         relay = relay
             .covering(&corners, MAX_VIRTUAL_RESOLUTION)
-            .map_err(ReconError::from)?;
+            .map_err(ReconError::from)?
+            .columns_fitting(g.voxel().x, MAX_VIRTUAL_RESOLUTION);
     }
     let axis = default_axis(&relay, &s.volume, SYNTH_BINS);
     let kernels = trainer.cloud().kernels();

@@ -135,6 +135,36 @@ impl VirtualRelay {
         Self::new(centre, self.normal, self.u, size, resolution)
     }
 
+    /// The same plane and centre, its column pitch snapped to a whole fraction of
+    /// `voxel` (the volume's voxel pitch along world x) when its columns run along
+    /// world x and the plane is level (normal along world z), to within 10⁻¹⁰ per
+    /// component. Then every voxel–point pair of the confocal scan on it shares its
+    /// path length with every other pair at the same lateral offset, and FBP takes its
+    /// grid path. The fraction is the one nearest the current pitch whose columns
+    /// still cover the current extent within `max_resolution` (at least the current
+    /// count); the extent grows about the centre to a whole number of the new pitch.
+    /// Any other relay, or none that fits, comes back unchanged.
+    pub fn columns_fitting(&self, voxel: f64, max_resolution: usize) -> Self {
+        let level = |d: DVec3, along: usize| (0..3).all(|a| a == along || d[a].abs() <= 1e-10);
+        if !(level(self.u, 0) && level(self.v, 1) && voxel.is_finite() && voxel > 0.0) {
+            return *self;
+        }
+        let most = max_resolution.max(self.resolution[0]);
+        let mut ratio = (voxel / self.spacing()[0]).round().max(1.0);
+        while ratio >= 1.0 {
+            let pitch = voxel / ratio;
+            let n = ((self.size[0] / pitch - 1e-9).ceil() as usize).max(2);
+            if n <= most {
+                let mut snapped = *self;
+                snapped.size[0] = n as f64 * pitch;
+                snapped.resolution[0] = n;
+                return snapped;
+            }
+            ratio -= 1.0;
+        }
+        *self
+    }
+
     /// Grid spacing along u and v, metres.
     pub fn spacing(&self) -> [f64; 2] {
         [

@@ -18,12 +18,21 @@
 //!   size, not the data's bandwidth.
 //!
 //! Work is split by z slices (each thread owns whole slices and loops over all pairs,
-//! so a slice stays in cache); the inner loop runs in f32 along x.
+//! so a slice stays in cache); the inner loop runs in f32 along x. A confocal scan on a
+//! regular grid whose pitch divides the voxel pitch (the 3D-GTR virtual scan) takes a
+//! faster path that shares each lateral offset's path length among all the voxel–point
+//! pairs at that offset ([`grid`]).
+use std::sync::Arc;
+
 use rayon::prelude::*;
+use rustfft::num_complex::Complex;
+use rustfft::{Fft, FftPlanner};
 
 use super::SolverError;
 use crate::transient::TransientSet;
 use crate::volume::{Volume, VolumeGrid};
+
+mod grid;
 
 /// Pairs whose histograms are swept together over a slice (64 × 2 KiB fits in L2).
 const PAIR_TILE: usize = 64;
@@ -134,45 +143,70 @@ pub fn phasor_wavelength(set: &TransientSet, settings: &FbpSettings) -> f64 {
         .max(floor)
 }
 
-/// Band-passes `h` (bins of `width` metres) with the complex Gaussian wavelet of
-/// wavelength `lambda` and envelope `sigma`; returns its real and imaginary parts with
-/// `lead` bins before and after (so the wavelet does not wrap around). The padding
-/// repeats the first and last values: a level that runs off either end of the
-/// histogram (ambient light, a cropped axis) is no edge for the band-pass to ring at.
-fn phasor_filter(h: &[f32], width: f64, lambda: f64, sigma: f64, lead: usize) -> (Vec<f32>, Vec<f32>) {
-    use rustfft::FftPlanner;
-    use rustfft::num_complex::Complex;
-    let n = h.len() + 2 * lead;
-    let mut planner = FftPlanner::<f32>::new();
-    let (fwd, inv) = (planner.plan_fft_forward(n), planner.plan_fft_inverse(n));
-    let (first, last) = (
-        h.first().copied().unwrap_or(0.0),
-        h.last().copied().unwrap_or(0.0),
-    );
-    let mut buf = vec![Complex::<f32>::default(); n];
-    for (i, b) in buf.iter_mut().enumerate() {
-        b.re = if i < lead {
-            first
-        } else {
-            h.get(i - lead).copied().unwrap_or(last)
-        };
+/// The phasor filter for histograms of one length: the band-pass of wavelength
+/// `lambda` and envelope `sigma` on bins of `width` metres, with `lead` bins of
+/// padding before and after. The FFT plans are made once and shared by every
+/// histogram (making one costs more than using it).
+struct PhasorFilter {
+    fwd: Arc<dyn Fft<f32>>,
+    inv: Arc<dyn Fft<f32>>,
+    /// The band-pass gain per frequency bin, already divided by the FFT length.
+    gain: Vec<f32>,
+    lead: usize,
+}
+
+impl PhasorFilter {
+    fn new(bins: usize, width: f64, lambda: f64, sigma: f64, lead: usize) -> Self {
+        let n = bins + 2 * lead;
+        let mut planner = FftPlanner::<f32>::new();
+        // exp(−t²/2σ²)·exp(2πi t/λ) ⇒ a Gaussian of std 1/(2πσ) around f = 1/λ, positive
+        // frequencies only (an analytic signal); normalised to unit gain at 1/λ.
+        let (f0, sf) = (1.0 / lambda, 1.0 / (2.0 * std::f64::consts::PI * sigma));
+        let scale = 1.0 / n as f64;
+        let gain = (0..n)
+            .map(|k| {
+                let f = k as f64 / (n as f64 * width);
+                let g = if k <= n / 2 {
+                    2.0 * (-0.5 * ((f - f0) / sf).powi(2)).exp() * scale
+                } else {
+                    0.0
+                };
+                g as f32
+            })
+            .collect();
+        Self {
+            fwd: planner.plan_fft_forward(n),
+            inv: planner.plan_fft_inverse(n),
+            gain,
+            lead,
+        }
     }
-    fwd.process(&mut buf);
-    // exp(−t²/2σ²)·exp(2πi t/λ) ⇒ a Gaussian of std 1/(2πσ) around f = 1/λ, positive
-    // frequencies only (an analytic signal); normalised to unit gain at 1/λ.
-    let (f0, sf) = (1.0 / lambda, 1.0 / (2.0 * std::f64::consts::PI * sigma));
-    let scale = 1.0 / n as f64;
-    for (k, b) in buf.iter_mut().enumerate() {
-        let f = k as f64 / (n as f64 * width);
-        let g = if k <= n / 2 {
-            2.0 * (-0.5 * ((f - f0) / sf).powi(2)).exp() * scale
-        } else {
-            0.0
-        };
-        *b *= g as f32;
+
+    /// Band-passes `h`; returns its real and imaginary parts interleaved, with `lead`
+    /// bins before and after (so the wavelet does not wrap around). The padding
+    /// repeats the first and last values: a level that runs off either end of the
+    /// histogram (ambient light, a cropped axis) is no edge for the band-pass to ring at.
+    fn apply(&self, h: &[f32]) -> Vec<f32> {
+        let lead = self.lead;
+        let (first, last) = (
+            h.first().copied().unwrap_or(0.0),
+            h.last().copied().unwrap_or(0.0),
+        );
+        let mut buf = vec![Complex::<f32>::default(); self.gain.len()];
+        for (i, b) in buf.iter_mut().enumerate() {
+            b.re = if i < lead {
+                first
+            } else {
+                h.get(i - lead).copied().unwrap_or(last)
+            };
+        }
+        self.fwd.process(&mut buf);
+        for (b, &g) in buf.iter_mut().zip(&self.gain) {
+            *b *= g;
+        }
+        self.inv.process(&mut buf);
+        buf.iter().flat_map(|c| [c.re, c.im]).collect()
     }
-    inv.process(&mut buf);
-    buf.iter().map(|c| (c.re, c.im)).unzip()
 }
 
 /// Filtered backprojection of `set` onto `grid`.
@@ -188,13 +222,13 @@ pub fn fbp(set: &TransientSet, grid: &VolumeGrid, settings: &FbpSettings) -> Res
         let lead = (3.0 * sigma / set.axis().width).ceil() as usize + 1;
         // Real and imaginary parts interleaved, so one backprojection pass computes
         // each voxel's path length once and gathers both from one place.
+        let filter = PhasorFilter::new(set.axis().bins, set.axis().width, lambda, sigma, lead);
         let hists: Vec<Vec<f32>> = (0..set.len())
             .into_par_iter()
             .map(|p| {
                 let w = set.weight(p);
                 let h: Vec<f32> = set.histogram(p).iter().map(|v| v * w).collect();
-                let (re, im) = phasor_filter(&h, set.axis().width, lambda, sigma, lead);
-                re.iter().zip(&im).flat_map(|(&a, &b)| [a, b]).collect()
+                filter.apply(&h)
             })
             .collect();
         let sums = backproject::<2>(set, grid, settings.falloff, &hists, lead);
@@ -221,7 +255,103 @@ pub fn fbp(set: &TransientSet, grid: &VolumeGrid, settings: &FbpSettings) -> Res
 /// Backprojects `hists` onto `grid`. Each holds `C` interleaved channels per bin (the
 /// phasor filter's real and imaginary parts, or one plain histogram) on the set's axis
 /// shifted by `lead` bins (bin `lead` is the axis' bin 0). Returns the `C` sums per
-/// voxel.
+/// voxel. A confocal scan on a grid that fits the voxels takes [`grid`]'s path, any
+/// other set [`backproject_pairs`].
+fn backproject<const C: usize>(
+    set: &TransientSet,
+    grid: &VolumeGrid,
+    falloff: f64,
+    hists: &[Vec<f32>],
+    lead: usize,
+) -> Vec<[f32; C]> {
+    let padded = pad::<C>(hists);
+    match grid::ConfocalGrid::detect(set, grid) {
+        Some(scan) => backproject_grid(&scan, set, grid, falloff, &padded, lead),
+        None => backproject_pairs(set, grid, falloff, &padded, lead),
+    }
+}
+
+/// The histograms padded with one zero bin before and two after, so the interpolation
+/// needs no bounds checks: indices are clamped into the padding instead.
+fn pad<const C: usize>(hists: &[Vec<f32>]) -> Vec<Vec<f32>> {
+    hists
+        .iter()
+        .map(|h| {
+            let mut p = Vec::with_capacity(h.len() + 3 * C);
+            p.extend([0.0; C]);
+            p.extend_from_slice(h);
+            p.extend([0.0; C]);
+            p.extend([0.0; C]);
+            p
+        })
+        .collect()
+}
+
+/// The padded index of path length 0, negated: path length L falls at padded index
+/// `L / width − offset` (bin b's centre is at `start + (b + ½)·width`, and the padding
+/// adds `lead + 1` bins before bin 0).
+fn index_offset(set: &TransientSet, lead: usize) -> f64 {
+    let axis = set.axis();
+    axis.start / axis.width + 0.5 - lead as f64 - 1.0
+}
+
+/// [`backproject`] for a confocal scan on a grid that fits the voxels.
+fn backproject_grid<const C: usize>(
+    scan: &grid::ConfocalGrid,
+    set: &TransientSet,
+    grid: &VolumeGrid,
+    falloff: f64,
+    padded: &[Vec<f32>],
+    lead: usize,
+) -> Vec<[f32; C]> {
+    let inv_w = 1.0 / set.axis().width;
+    let runs = grid::Runs::<C>::new(scan, grid, padded, inv_w, index_offset(set, lead), falloff);
+    // Each thread takes a band of relay rows into a volume of its own (every band's
+    // histograms are read once), and the volumes are summed.
+    let rows = scan.rows();
+    let band = rows.div_ceil(rayon::current_num_threads().max(1));
+    let bands: Vec<std::ops::Range<usize>> = (0..rows)
+        .step_by(band)
+        .map(|r0| r0..(r0 + band).min(rows))
+        .collect();
+    let parts: Vec<Vec<f32>> = bands
+        .into_par_iter()
+        .map(|rows| {
+            let mut out = vec![0.0f32; grid.len() * C];
+            crate::simd::dispatch(GridRows {
+                out: &mut out,
+                rows,
+                runs: &runs,
+            });
+            out
+        })
+        .collect();
+    let mut data = vec![[0.0f32; C]; grid.len()];
+    for part in &parts {
+        for (d, p) in data.as_flattened_mut().iter_mut().zip(part) {
+            *d += p;
+        }
+    }
+    data
+}
+
+/// One band of relay rows of [`backproject_grid`].
+struct GridRows<'a, 'b, const C: usize> {
+    out: &'b mut [f32],
+    rows: std::ops::Range<usize>,
+    runs: &'b grid::Runs<'a, C>,
+}
+
+impl<const C: usize> crate::simd::Work for GridRows<'_, '_, C> {
+    type Output = ();
+
+    #[inline(always)]
+    fn run<Q: crate::simd::Quad>(self, _: Q) {
+        self.runs.rows(self.out, self.rows);
+    }
+}
+
+/// [`backproject`] for any pairs.
 ///
 /// Per voxel and pair the work is two square roots, the fractional bin, the falloff
 /// gain and a linear interpolation of each channel. The first three run as one loop
@@ -229,11 +359,11 @@ pub fn fbp(set: &TransientSet, grid: &VolumeGrid, settings: &FbpSettings) -> Res
 /// as a second; both run inside [`crate::simd::dispatch`]. The falloff gain is
 /// `(d_i d_d)^p` with the common exponents done without `powf`: 1 is `d_i·d_d` from the
 /// roots already taken, 2 is `d_i²·d_d²`, 0 is 1.
-fn backproject<const C: usize>(
+fn backproject_pairs<const C: usize>(
     set: &TransientSet,
     grid: &VolumeGrid,
     falloff: f64,
-    hists: &[Vec<f32>],
+    padded: &[Vec<f32>],
     lead: usize,
 ) -> Vec<[f32; C]> {
     let axis = *set.axis();
@@ -248,19 +378,6 @@ fn backproject<const C: usize>(
         .collect();
     let inv_w = (1.0 / axis.width) as f32;
     let offset = (axis.start / axis.width + 0.5) as f32 - lead as f32 - 1.0;
-    // Histograms padded with one zero bin before and two after, so the interpolation
-    // below needs no bounds checks: indices are clamped into the padding instead.
-    let padded: Vec<Vec<f32>> = hists
-        .iter()
-        .map(|h| {
-            let mut p = Vec::with_capacity(h.len() + 3 * C);
-            p.extend([0.0; C]);
-            p.extend_from_slice(h);
-            p.extend([0.0; C]);
-            p.extend([0.0; C]);
-            p
-        })
-        .collect();
     let top = padded.first().map_or(1, |p| p.len() / C - 2) as f32;
     let pairs: Vec<([f32; 3], [f32; 3])> = set
         .pairs()
@@ -272,7 +389,7 @@ fn backproject<const C: usize>(
         let z = (min.z + (iz as f64 + 0.5) * voxel.z) as f32;
         let rows = Rows {
             pairs: &pairs,
-            hists: &padded,
+            hists: padded,
             xs: &xs,
             ys: &ys,
             inv_w,
@@ -530,5 +647,141 @@ mod tests {
                 "falloff {falloff}: worst error {worst:e} against peak {peak:e}"
             );
         }
+    }
+
+    /// A confocal scan of `nx × ny` points at height `z`, columns `pitch` apart from
+    /// x = −0.3, rows 0.07 m apart, pushed in a shuffled order, random histograms.
+    fn grid_scan(nx: usize, ny: usize, pitch: f64, z: f64, rng: &mut ChaCha8Rng) -> TransientSet {
+        use rand::seq::SliceRandom;
+        let axis = TimeAxis {
+            start: 0.5,
+            width: 0.01,
+            bins: 160,
+        };
+        let mut cells: Vec<(usize, usize)> = (0..ny).flat_map(|jy| (0..nx).map(move |jx| (jx, jy))).collect();
+        cells.shuffle(rng);
+        let mut set = TransientSet::new(axis).unwrap();
+        for (jx, jy) in cells {
+            let x = DVec3::new(-0.3 + jx as f64 * pitch, -0.2 + jy as f64 * 0.07, z);
+            let h: Vec<f32> = (0..axis.bins).map(|_| rng.random::<f32>()).collect();
+            set.push(Pair::confocal(x, DVec3::Z), &h).unwrap();
+        }
+        set
+    }
+
+    /// The grid path (a confocal scan whose column pitch is half the voxel pitch, its
+    /// origin off the voxel grid, rows at a pitch of their own) agrees with the f64
+    /// reference to the same bound as the general path, for every falloff; with two
+    /// channels (the phasor filter's) it agrees with the general path.
+    #[test]
+    fn a_confocal_grid_backprojects_as_the_reference() {
+        let mut rng = ChaCha8Rng::seed_from_u64(5);
+        let set = grid_scan(13, 7, 0.05, 0.02, &mut rng);
+        let grid = VolumeGrid::new([-0.45, 0.45], [-0.3, 0.3], [0.3, 0.7], [9, 5, 5]).unwrap();
+        assert!(
+            grid::ConfocalGrid::detect(&set, &grid).is_some(),
+            "the grid path applies"
+        );
+        for falloff in [1.0, 2.0, 0.0, 1.5] {
+            let settings = FbpSettings {
+                filter: FbpFilter::None,
+                falloff,
+                ..FbpSettings::default()
+            };
+            let got = fbp(&set, &grid, &settings).unwrap();
+            let want = reference(&set, &grid, falloff);
+            let peak = want.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+            let worst = got
+                .data
+                .iter()
+                .zip(&want)
+                .fold(0.0f64, |m, (g, w)| m.max((*g as f64 - w).abs()));
+            assert!(
+                worst < 2e-5 * peak,
+                "falloff {falloff}: worst error {worst:e} against peak {peak:e}"
+            );
+        }
+        let lead = 3;
+        let hists: Vec<Vec<f32>> = (0..set.len())
+            .map(|p| {
+                let mut h = vec![0.0f32; 2 * lead];
+                h.extend(set.histogram(p).iter().flat_map(|&v| [v, 1.0 - v]));
+                h.extend(vec![0.0f32; 2 * lead]);
+                h
+            })
+            .collect();
+        let padded = pad::<2>(&hists);
+        let scan = grid::ConfocalGrid::detect(&set, &grid).unwrap();
+        let fast = backproject_grid::<2>(&scan, &set, &grid, 1.0, &padded, lead);
+        let general = backproject_pairs::<2>(&set, &grid, 1.0, &padded, lead);
+        let flat = |v: &[[f32; 2]]| v.iter().flatten().map(|&x| x as f64).collect::<Vec<_>>();
+        let (fast, general) = (flat(&fast), flat(&general));
+        let peak = general.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+        let worst = fast
+            .iter()
+            .zip(&general)
+            .fold(0.0f64, |m, (a, b)| m.max((a - b).abs()));
+        assert!(
+            worst < 4e-5 * peak,
+            "two channels: {worst:e} against peak {peak:e}"
+        );
+    }
+
+    /// The grid path is taken only where its arithmetic holds: confocal pairs, one
+    /// plane of constant z, every cell of a regular grid once, and a voxel pitch that
+    /// is a whole multiple of the column pitch.
+    #[test]
+    fn only_a_fitting_confocal_grid_takes_the_grid_path() {
+        let mut rng = ChaCha8Rng::seed_from_u64(8);
+        let grid = VolumeGrid::new([-0.45, 0.45], [-0.3, 0.3], [0.3, 0.7], [9, 5, 5]).unwrap();
+        let fits = |set: &TransientSet| grid::ConfocalGrid::detect(set, &grid).is_some();
+        assert!(fits(&grid_scan(6, 4, 0.1, 0.0, &mut rng)), "a pitch of one voxel");
+        assert!(
+            fits(&grid_scan(19, 4, 0.1 / 3.0, 0.0, &mut rng)),
+            "a third of a voxel"
+        );
+        assert!(
+            !fits(&grid_scan(10, 4, 0.03, 0.0, &mut rng)),
+            "0.1 / 0.03 is no whole number"
+        );
+        assert!(
+            !fits(&grid_scan(6, 4, 0.2, 0.0, &mut rng)),
+            "a pitch of two voxels"
+        );
+        let axis = *grid_scan(2, 2, 0.1, 0.0, &mut rng).axis();
+        let h = vec![1.0f32; axis.bins];
+        let rebuilt = |edit: &dyn Fn(usize, Pair) -> Option<Pair>| {
+            let base = grid_scan(6, 4, 0.05, 0.0, &mut ChaCha8Rng::seed_from_u64(1));
+            let mut set = TransientSet::new(axis).unwrap();
+            for (i, p) in base.pairs().iter().enumerate() {
+                if let Some(p) = edit(i, *p) {
+                    set.push(p, &h).unwrap();
+                }
+            }
+            set
+        };
+        assert!(fits(&rebuilt(&|_, p| Some(p))), "the unedited scan");
+        assert!(!fits(&rebuilt(&|i, p| (i != 5).then_some(p))), "a missing point");
+        let moved = |i: usize, mut p: Pair| {
+            if i == 5 {
+                p.xd.x += 0.01;
+            }
+            Some(p)
+        };
+        assert!(!fits(&rebuilt(&moved)), "one pair not confocal");
+        let tilted = |i: usize, mut p: Pair| {
+            p.xi.z += 1e-3 * i as f64;
+            p.xd = p.xi;
+            Some(p)
+        };
+        assert!(!fits(&rebuilt(&tilted)), "a tilted relay");
+        let doubled = |i: usize, p: Pair| {
+            Some(if i == 5 {
+                rebuilt(&|_, p| Some(p)).pairs()[6]
+            } else {
+                p
+            })
+        };
+        assert!(!fits(&rebuilt(&doubled)), "a point twice");
     }
 }
