@@ -599,6 +599,36 @@ mod tests {
         out
     }
 
+    /// The largest difference between `got` and `want`, and `want`'s largest magnitude.
+    fn worst_and_peak(got: &[f64], want: &[f64]) -> (f64, f64) {
+        let peak = want.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+        let worst = got
+            .iter()
+            .zip(want)
+            .fold(0.0f64, |m, (g, w)| m.max((g - w).abs()));
+        (worst, peak)
+    }
+
+    /// The plain backprojection of `set` agrees with the f64 reference to single
+    /// precision (2e-5 of the volume's peak) for each falloff path: the root product
+    /// (1), the squares (2), none (0) and `powf` (1.5).
+    fn agrees_with_the_reference(set: &TransientSet, grid: &VolumeGrid) {
+        for falloff in [1.0, 2.0, 0.0, 1.5] {
+            let settings = FbpSettings {
+                filter: FbpFilter::None,
+                falloff,
+                ..FbpSettings::default()
+            };
+            let got = fbp(set, grid, &settings).unwrap();
+            let got: Vec<f64> = got.data.iter().map(|&v| v as f64).collect();
+            let (worst, peak) = worst_and_peak(&got, &reference(set, grid, falloff));
+            assert!(
+                worst < 2e-5 * peak,
+                "falloff {falloff}: worst error {worst:e} against peak {peak:e}"
+            );
+        }
+    }
+
     /// The vectorised f32 backprojection agrees with the f64 reference to single
     /// precision (relative to the volume's peak), for each falloff path: the root
     /// product (1), the squares (2), none (0) and `powf` (1.5).
@@ -628,25 +658,7 @@ mod tests {
         }
         // 19 voxels per row: not a multiple of any vector width.
         let grid = VolumeGrid::new([-0.4, 0.4], [-0.3, 0.3], [0.3, 0.7], [19, 7, 5]).unwrap();
-        for falloff in [1.0, 2.0, 0.0, 1.5] {
-            let settings = FbpSettings {
-                filter: FbpFilter::None,
-                falloff,
-                ..FbpSettings::default()
-            };
-            let got = fbp(&set, &grid, &settings).unwrap();
-            let want = reference(&set, &grid, falloff);
-            let peak = want.iter().fold(0.0f64, |m, v| m.max(v.abs()));
-            let worst = got
-                .data
-                .iter()
-                .zip(&want)
-                .fold(0.0f64, |m, (g, w)| m.max((*g as f64 - w).abs()));
-            assert!(
-                worst < 2e-5 * peak,
-                "falloff {falloff}: worst error {worst:e} against peak {peak:e}"
-            );
-        }
+        agrees_with_the_reference(&set, &grid);
     }
 
     /// A confocal scan of `nx × ny` points at height `z`, columns `pitch` apart from
@@ -682,25 +694,7 @@ mod tests {
             grid::ConfocalGrid::detect(&set, &grid).is_some(),
             "the grid path applies"
         );
-        for falloff in [1.0, 2.0, 0.0, 1.5] {
-            let settings = FbpSettings {
-                filter: FbpFilter::None,
-                falloff,
-                ..FbpSettings::default()
-            };
-            let got = fbp(&set, &grid, &settings).unwrap();
-            let want = reference(&set, &grid, falloff);
-            let peak = want.iter().fold(0.0f64, |m, v| m.max(v.abs()));
-            let worst = got
-                .data
-                .iter()
-                .zip(&want)
-                .fold(0.0f64, |m, (g, w)| m.max((*g as f64 - w).abs()));
-            assert!(
-                worst < 2e-5 * peak,
-                "falloff {falloff}: worst error {worst:e} against peak {peak:e}"
-            );
-        }
+        agrees_with_the_reference(&set, &grid);
         let lead = 3;
         let hists: Vec<Vec<f32>> = (0..set.len())
             .map(|p| {
@@ -715,12 +709,7 @@ mod tests {
         let fast = backproject_grid::<2>(&scan, &set, &grid, 1.0, &padded, lead);
         let general = backproject_pairs::<2>(&set, &grid, 1.0, &padded, lead);
         let flat = |v: &[[f32; 2]]| v.iter().flatten().map(|&x| x as f64).collect::<Vec<_>>();
-        let (fast, general) = (flat(&fast), flat(&general));
-        let peak = general.iter().fold(0.0f64, |m, v| m.max(v.abs()));
-        let worst = fast
-            .iter()
-            .zip(&general)
-            .fold(0.0f64, |m, (a, b)| m.max((a - b).abs()));
+        let (worst, peak) = worst_and_peak(&flat(&fast), &flat(&general));
         assert!(
             worst < 4e-5 * peak,
             "two channels: {worst:e} against peak {peak:e}"
