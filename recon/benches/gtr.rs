@@ -100,10 +100,10 @@ fn gtr(c: &mut Criterion) {
         for k in kernels.iter().step_by(10) {
             if let Some(e) = periscope_recon::gtr::kernel::evaluate(k, pair, &axis, &opt) {
                 evaluated += 1;
-                if axis.width / e.sigma <= periscope_recon::gtr::kernel::WIDE_DZ {
-                    bins_wide += e.hi - e.lo;
+                if axis.width / e.window.sigma <= periscope_recon::gtr::kernel::WIDE_DZ {
+                    bins_wide += e.window.hi - e.window.lo;
                 } else {
-                    bins_table += e.hi - e.lo;
+                    bins_table += e.window.hi - e.window.lo;
                 }
             }
         }

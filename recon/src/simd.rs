@@ -83,6 +83,10 @@ pub(crate) trait Quad: Copy {
     fn mul(self, a: Self::V, b: Self::V) -> Self::V;
     /// `a b + c`, rounded once.
     fn mul_add(self, a: Self::V, b: Self::V, c: Self::V) -> Self::V;
+    /// `a / b`.
+    fn div(self, a: Self::V, b: Self::V) -> Self::V;
+    /// `√a`.
+    fn sqrt(self, a: Self::V) -> Self::V;
 }
 
 /// [`Quad`] as arrays, for CPUs without AVX2 and FMA (`mul_add` is then the correctly
@@ -120,6 +124,14 @@ impl Quad for Portable {
     fn mul_add(self, a: Self::V, b: Self::V, c: Self::V) -> Self::V {
         std::array::from_fn(|j| a[j].mul_add(b[j], c[j]))
     }
+    #[inline(always)]
+    fn div(self, a: Self::V, b: Self::V) -> Self::V {
+        std::array::from_fn(|j| a[j] / b[j])
+    }
+    #[inline(always)]
+    fn sqrt(self, a: Self::V) -> Self::V {
+        a.map(f64::sqrt)
+    }
 }
 
 #[cfg(target_arch = "x86_64")]
@@ -153,6 +165,14 @@ impl Quad for pulp::x86::V3 {
     fn mul_add(self, a: Self::V, b: Self::V, c: Self::V) -> Self::V {
         pulp::Simd::mul_add_f64s(self, a, b, c)
     }
+    #[inline(always)]
+    fn div(self, a: Self::V, b: Self::V) -> Self::V {
+        pulp::Simd::div_f64s(self, a, b)
+    }
+    #[inline(always)]
+    fn sqrt(self, a: Self::V) -> Self::V {
+        pulp::Simd::sqrt_f64s(self, a)
+    }
 }
 
 /// This CPU's AVX2 + FMA token, for tests that compare it with [`Portable`].
@@ -184,6 +204,10 @@ mod tests {
             assert_eq!(bits(p.mul(a, b)), bits(v.store(v.mul(va, vb))));
             assert_eq!(bits(p.mul_add(a, b, c)), bits(v.store(v.mul_add(va, vb, vc))));
             assert_eq!(bits(p.splat(0.25)), bits(v.store(v.splat(0.25))));
+            assert_eq!(bits(p.div(a, b)), bits(v.store(v.div(va, vb))));
+            assert_eq!(bits(p.div(c, a)), bits(v.store(v.div(vc, va))));
+            let roots = [2.0, 1e-310, 0.0, 7.5e300];
+            assert_eq!(bits(p.sqrt(roots)), bits(v.store(v.sqrt(v.load(roots)))));
             return;
         }
         eprintln!("skipped: this CPU has no AVX2 + FMA, only the arrays run");

@@ -98,7 +98,7 @@ impl Default for RenderOptions {
 /// A floor on σ_L relative to the bin width, in quadrature, so a primitive seen
 /// exactly edge-on (σ_L → 0) still integrates smoothly over bins. At 1e-4 bin widths it
 /// changes no rendered value measurably.
-const SIGMA_FLOOR_BINS: f64 = 1e-4;
+pub(crate) const SIGMA_FLOOR_BINS: f64 = 1e-4;
 
 /// The geometry of one primitive against one pair: everything the forward value and
 /// the gradient share.
@@ -117,6 +117,14 @@ pub struct Evaluation {
     ad: f64,
     /// `g · A⊥i · A⊥d / (di² dd²)`: the amplitude without ρ and the cosines.
     base: f64,
+    /// What the per-bin loops read.
+    pub window: Window,
+}
+
+/// A primitive's pulse in one pair's histogram: what the per-bin loops of the forward
+/// and the backward pass read.
+#[derive(Clone, Copy, Debug)]
+pub struct Window {
     /// Amplitude A.
     pub amplitude: f64,
     /// Mean hidden path length μ_L, metres.
@@ -162,17 +170,7 @@ pub fn evaluate(k: &Kernel, pair: &Pair, axis: &TimeAxis, opt: &RenderOptions) -
     let amplitude = base * k.rho * gi * gd;
     let floor = SIGMA_FLOOR_BINS * axis.width;
     let sigma = ((k.s * wv).length_squared() + opt.sigma_sys * opt.sigma_sys + floor * floor).sqrt();
-    let mu = di + dd;
-    let reach = opt.window_sigmas * sigma;
-    let lo = ((mu - reach - axis.start) / axis.width).floor().max(0.0);
-    let hi = ((mu + reach - axis.start) / axis.width)
-        .ceil()
-        .min(axis.bins as f64);
-    if lo.partial_cmp(&hi) != Some(std::cmp::Ordering::Less) {
-        return None;
-    }
-    let inv = 1.0 / sigma;
-    let series = WideSeries::new((axis.edge(lo as isize) - mu) * inv, axis.width * inv);
+    let window = Window::new(amplitude, di + dd, sigma, axis, opt)?;
     Some(Evaluation {
         di,
         dd,
@@ -186,17 +184,42 @@ pub fn evaluate(k: &Kernel, pair: &Pair, axis: &TimeAxis, opt: &RenderOptions) -
         ai,
         ad,
         base,
-        amplitude,
-        mu,
-        sigma,
-        lo: lo as usize,
-        hi: hi as usize,
-        series,
+        window,
     })
 }
 
-impl Evaluation {
-    /// Adds the primitive's contribution to `out` (the full histogram of the pair).
+impl Window {
+    /// The pulse of amplitude `amplitude`, mean `mu` and spread `sigma` (with the floor
+    /// and the instrument's jitter in it); `None` when its window misses the axis.
+    #[inline(always)]
+    pub(crate) fn new(
+        amplitude: f64,
+        mu: f64,
+        sigma: f64,
+        axis: &TimeAxis,
+        opt: &RenderOptions,
+    ) -> Option<Self> {
+        let reach = opt.window_sigmas * sigma;
+        let lo = ((mu - reach - axis.start) / axis.width).floor().max(0.0);
+        let hi = ((mu + reach - axis.start) / axis.width)
+            .ceil()
+            .min(axis.bins as f64);
+        if lo.partial_cmp(&hi) != Some(std::cmp::Ordering::Less) {
+            return None;
+        }
+        let inv = 1.0 / sigma;
+        let series = WideSeries::new((axis.edge(lo as isize) - mu) * inv, axis.width * inv);
+        Some(Self {
+            amplitude,
+            mu,
+            sigma,
+            lo: lo as usize,
+            hi: hi as usize,
+            series,
+        })
+    }
+
+    /// Adds the pulse to `out` (the full histogram of the pair).
     ///
     /// On the midpoint series the bins go four (`LANES`) at a time, lane j taking bins j,
     /// j + 4, …, so the per-bin arithmetic compiles to vector instructions.
@@ -205,7 +228,7 @@ impl Evaluation {
         self.accumulate_with(crate::simd::Portable, axis, out);
     }
 
-    /// [`Evaluation::accumulate`] with the vector arithmetic `quad`.
+    /// [`Window::accumulate`] with the vector arithmetic `quad`.
     #[inline(always)]
     pub(crate) fn accumulate_with<Q: Quad>(&self, quad: Q, axis: &TimeAxis, out: &mut [f64]) {
         let out = &mut out[self.lo..self.hi];
@@ -249,7 +272,7 @@ impl Evaluation {
     /// are `−σ ∂/∂μ` and `−σ ∂/∂σ` of the first, so the gradient is that of the values
     /// [`Evaluation::accumulate`] renders, on either path.
     #[inline(always)]
-    fn sums<Q: Quad>(&self, quad: Q, axis: &TimeAxis, dl: &[f64]) -> (f64, f64, f64) {
+    pub(crate) fn sums<Q: Quad>(&self, quad: Q, axis: &TimeAxis, dl: &[f64]) -> (f64, f64, f64) {
         let dl = &dl[self.lo..self.hi];
         if let Some(series) = &self.series {
             // Per lane, without the common factor dz (applied to the lanes' totals).
@@ -301,6 +324,20 @@ impl Evaluation {
         }
         (s_cdf, s_pdf, s_zpdf)
     }
+}
+
+impl Evaluation {
+    /// Adds the primitive's contribution to `out` (the full histogram of the pair).
+    #[inline(always)]
+    pub fn accumulate(&self, axis: &TimeAxis, out: &mut [f64]) {
+        self.window.accumulate(axis, out);
+    }
+
+    /// [`Evaluation::accumulate`] with the vector arithmetic `quad`.
+    #[inline(always)]
+    pub(crate) fn accumulate_with<Q: Quad>(&self, quad: Q, axis: &TimeAxis, out: &mut [f64]) {
+        self.window.accumulate_with(quad, axis, out);
+    }
 
     /// Given `dl = ∂loss/∂τ̂` for the pair's bins, adds the gradient with respect to the
     /// primitive's physical parameters to `grad`.
@@ -330,9 +367,9 @@ impl Evaluation {
         dl: &[f64],
         grad: &mut PhysicalGrad,
     ) {
-        let inv = 1.0 / self.sigma;
-        let (s_cdf, s_pdf, s_zpdf) = self.sums(quad, axis, dl);
-        let amp = self.amplitude;
+        let inv = 1.0 / self.window.sigma;
+        let (s_cdf, s_pdf, s_zpdf) = self.window.sums(quad, axis, dl);
+        let amp = self.window.amplitude;
         let g_amp = s_cdf; // ∂L/∂A
         let g_mu = -amp * s_pdf * inv; // ∂L/∂μ
         let g_sigma = -amp * s_zpdf * inv; // ∂L/∂σ
@@ -641,24 +678,12 @@ mod tests {
     use super::*;
     use crate::special::norm_cdf;
 
-    /// An evaluation with only what `accumulate` reads set: unit amplitude, mean `mu`,
-    /// spread `sigma`, window ±`reach` σ on `axis`.
-    fn window(axis: &TimeAxis, mu: f64, sigma: f64, reach: f64) -> Evaluation {
+    /// A unit-amplitude pulse of mean `mu` and spread `sigma`, window ±`reach` σ on
+    /// `axis`.
+    fn window(axis: &TimeAxis, mu: f64, sigma: f64, reach: f64) -> Window {
         let lo = ((mu - reach * sigma - axis.start) / axis.width).floor().max(0.0) as usize;
         let hi = (((mu + reach * sigma - axis.start) / axis.width).ceil() as usize).min(axis.bins);
-        Evaluation {
-            di: 1.0,
-            dd: 1.0,
-            ui: DVec3::Z,
-            ud: DVec3::Z,
-            wi: DVec3::Z,
-            wd: DVec3::Z,
-            wv: DVec3::Z,
-            gi: 1.0,
-            gd: 1.0,
-            ai: 1.0,
-            ad: 1.0,
-            base: 1.0,
+        Window {
             amplitude: 1.0,
             mu,
             sigma,
@@ -670,7 +695,7 @@ mod tests {
 
     /// The series as one recurrence, a bin at a time (the loops before they were laid
     /// out in lanes): the rendered masses and the backward pass's three sums.
-    fn one_lane(e: &Evaluation, dl: &[f64]) -> (Vec<f64>, [f64; 3]) {
+    fn one_lane(e: &Window, dl: &[f64]) -> (Vec<f64>, [f64; 3]) {
         let s = e.series.expect("a wide kernel");
         let (mut m, mut phi, mut rho) = (s.m, s.phi, s.rho);
         let (mut out, mut sums) = (Vec::new(), [0.0; 3]);

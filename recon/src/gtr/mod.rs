@@ -2,6 +2,7 @@
 //! optimiser that fits primitives to measured transients.
 pub mod init;
 pub mod kernel;
+mod lanes;
 pub mod model;
 pub mod optim;
 pub mod ply;

@@ -7,9 +7,10 @@
 //! depend on the thread count, so results are bit-identical however many threads run.
 use rayon::prelude::*;
 
-use super::kernel::{Evaluation, Kernel, Loss, PhysicalGrad, RenderOptions, evaluate, render_pair};
+use super::kernel::{Kernel, Loss, PhysicalGrad, RenderOptions, render_pair};
+use super::lanes::{LANES, PairGroup, Pulses, backward_group, evaluate_group, groups};
 use super::model::{GaussianCloud, MapSlopes, RawGrads};
-use crate::transient::{Pair, TransientSet};
+use crate::transient::TransientSet;
 
 /// Primitives per parallel work item in a training step. Small enough that two
 /// threads share a step evenly (512 left K = 2,000 in four items, and a thread idle
@@ -42,33 +43,40 @@ pub fn batch_loss(
 }
 
 fn forward_batch(kernels: &[Kernel], set: &TransientSet, batch: &[usize], opt: &RenderOptions) -> Vec<f64> {
-    forward_chunks(kernels, set, batch, opt, false).0
+    forward_chunks(kernels, set, &groups(set, batch), batch.len(), opt, false).0
 }
 
-/// Renders the batch chunk by chunk (see the module comment) and sums the chunks.
-/// With `keep`, also returns each chunk's evaluations, `batch.len()` per primitive
-/// (primitive-major), for the backward pass to reuse instead of recomputing them.
+/// What a chunk keeps of its forward pass: the evaluations of its primitives against
+/// the batch's pair groups, primitive-major.
+type Kept = Vec<Option<Pulses>>;
+
+/// Renders the batch (`batch_len` pairs in `groups`) chunk by chunk (see the module
+/// comment) and sums the chunks. With `keep`, also returns each chunk's evaluations,
+/// one per group and primitive (primitive-major), for the backward pass to reuse
+/// instead of recomputing them.
 fn forward_chunks(
     kernels: &[Kernel],
     set: &TransientSet,
-    batch: &[usize],
+    groups: &[PairGroup],
+    batch_len: usize,
     opt: &RenderOptions,
     keep: bool,
-) -> (Vec<f64>, Vec<Vec<Option<Evaluation>>>) {
+) -> (Vec<f64>, Vec<Kept>) {
     let bins = set.axis().bins;
-    let partial: Vec<(Vec<f64>, Vec<Option<Evaluation>>)> = kernels
+    let partial: Vec<(Vec<f64>, Kept)> = kernels
         .par_chunks(CHUNK)
         .map(|chunk| {
             crate::simd::dispatch(ForwardChunk {
                 chunk,
                 set,
-                batch,
+                groups,
+                batch_len,
                 opt,
                 keep,
             })
         })
         .collect();
-    let mut total = vec![0.0; bins * batch.len()];
+    let mut total = vec![0.0; bins * batch_len];
     let mut kept = Vec::with_capacity(partial.len());
     for (part, evals) in partial {
         total.iter_mut().zip(&part).for_each(|(t, p)| *t += p);
@@ -81,43 +89,47 @@ fn forward_chunks(
 struct ForwardChunk<'a> {
     chunk: &'a [Kernel],
     set: &'a TransientSet,
-    batch: &'a [usize],
+    groups: &'a [PairGroup],
+    batch_len: usize,
     opt: &'a RenderOptions,
     keep: bool,
 }
 
 impl crate::simd::Work for ForwardChunk<'_> {
-    type Output = (Vec<f64>, Vec<Option<Evaluation>>);
+    type Output = (Vec<f64>, Kept);
 
     #[inline(always)]
     fn run<Q: crate::simd::Quad>(self, quad: Q) -> Self::Output {
         let Self {
             chunk,
             set,
-            batch,
+            groups,
+            batch_len,
             opt,
             keep,
         } = self;
         let axis = set.axis();
         let bins = axis.bins;
-        let b = batch.len();
-        let mut local = vec![0.0; bins * b];
-        let mut evals = Vec::with_capacity(if keep { chunk.len() * b } else { 0 });
-        let pairs: Vec<&Pair> = batch.iter().map(|&p| &set.pairs()[p]).collect();
+        let mut local = vec![0.0; bins * batch_len];
+        let mut kept = Vec::with_capacity(if keep { chunk.len() * groups.len() } else { 0 });
         // Primitive-major: the batch's histograms (a few KiB) stay in L1, and the
         // evaluations are kept in the order the backward pass reads them.
         for k in chunk {
-            for (out, pair) in local.chunks_exact_mut(bins).zip(&pairs) {
-                let e = evaluate(k, pair, axis, opt);
+            for (out, group) in local.chunks_mut(LANES * bins).zip(groups) {
+                let e = evaluate_group(quad, k, group, axis, opt);
                 if let Some(e) = &e {
-                    e.accumulate_with(quad, axis, out);
+                    for (w, hist) in e.iter().zip(out.chunks_exact_mut(bins)) {
+                        if let Some(w) = w {
+                            w.accumulate_with(quad, axis, hist);
+                        }
+                    }
                 }
                 if keep {
-                    evals.push(e);
+                    kept.push(e);
                 }
             }
         }
-        (local, evals)
+        (local, kept)
     }
 }
 
@@ -193,7 +205,8 @@ pub(crate) fn batch_loss_grad_with(
         grads.albedo.fill(0.0);
         return 0.0;
     }
-    let (rendered, evals) = forward_chunks(kernels, set, batch, opt, true);
+    let groups = groups(set, batch);
+    let (rendered, evals) = forward_chunks(kernels, set, &groups, batch.len(), opt, true);
     let (loss, dl) = residuals(&rendered, set, batch, opt.loss);
     grads
         .centres
@@ -210,7 +223,7 @@ pub(crate) fn batch_loss_grad_with(
                 kernels,
                 slopes,
                 set,
-                batch,
+                groups: &groups,
                 opt,
                 dl: &dl,
                 evals,
@@ -228,11 +241,11 @@ struct BackwardChunk<'a, 'g> {
     kernels: &'a [Kernel],
     slopes: Option<&'a [MapSlopes]>,
     set: &'a TransientSet,
-    batch: &'a [usize],
+    groups: &'a [PairGroup],
     opt: &'a RenderOptions,
     dl: &'a [f64],
-    /// The chunk's evaluations from the forward pass, `batch.len()` per primitive.
-    evals: &'a [Option<Evaluation>],
+    /// The chunk's evaluations from the forward pass, one per group and primitive.
+    evals: &'a [Option<Pulses>],
     /// Raw gradients of the chunk: centres, scales, rotations, albedo.
     out: (&'g mut [f64], &'g mut [f64], &'g mut [f64], &'g mut [f64]),
 }
@@ -248,7 +261,7 @@ impl crate::simd::Work for BackwardChunk<'_, '_> {
             kernels,
             slopes,
             set,
-            batch,
+            groups,
             opt,
             dl,
             evals,
@@ -256,22 +269,18 @@ impl crate::simd::Work for BackwardChunk<'_, '_> {
         } = self;
         let axis = set.axis();
         let bins = axis.bins;
-        let b = batch.len();
+        let n = groups.len();
         for i in 0..ga.len() {
             let k = first + i;
             let kernel = &kernels[k];
             let mut g = PhysicalGrad::default();
-            for (slot, &p) in batch.iter().enumerate() {
-                if let Some(e) = &evals[i * b + slot] {
-                    e.backward_with(
-                        quad,
-                        kernel,
-                        &set.pairs()[p],
-                        axis,
-                        opt,
-                        &dl[slot * bins..(slot + 1) * bins],
-                        &mut g,
-                    );
+            for ((e, group), dl) in evals[i * n..(i + 1) * n]
+                .iter()
+                .zip(groups)
+                .zip(dl.chunks(LANES * bins))
+            {
+                if let Some(pulses) = e {
+                    backward_group(quad, kernel, group, pulses, axis, opt, dl, &mut g);
                 }
             }
             let slope = match slopes {
