@@ -10,7 +10,8 @@
 use glam::{DMat3, DVec3};
 
 use crate::simd::Quad;
-use crate::special::NORMAL;
+use crate::simd::exp_scalar;
+use crate::special::{INV_SQRT_2PI, NORMAL};
 use crate::transient::{Pair, TimeAxis};
 
 /// A primitive's physical parameters, derived once per optimiser step.
@@ -217,6 +218,70 @@ impl Window {
             hi: hi as usize,
             series,
         })
+    }
+
+    /// [`Window::new`] for four pulses at once, lane by lane the same bits.
+    #[inline(always)]
+    pub(crate) fn lanes<Q: Quad>(
+        q: Q,
+        amplitude: Q::V,
+        mu: Q::V,
+        sigma: Q::V,
+        axis: &TimeAxis,
+        opt: &RenderOptions,
+    ) -> [Option<Self>; 4] {
+        let reach = q.mul(q.splat(opt.window_sigmas), sigma);
+        let (start, width) = (q.splat(axis.start), q.splat(axis.width));
+        let lo = q.max(
+            q.floor(q.div(q.sub(q.sub(mu, reach), start), width)),
+            q.splat(0.0),
+        );
+        let hi = q.min(
+            q.ceil(q.div(q.sub(q.add(mu, reach), start), width)),
+            q.splat(axis.bins as f64),
+        );
+        let inv = q.div(q.splat(1.0), sigma);
+        let z0 = q.mul(q.sub(q.add(start, q.mul(lo, width)), mu), inv);
+        let dz = q.mul(width, inv);
+        let m = q.add(z0, q.mul(q.splat(0.5), dz));
+        let dz2 = q.mul(dz, dz);
+        let minus_one = q.splat(-1.0);
+        let phi = q.mul(
+            q.splat(INV_SQRT_2PI),
+            crate::simd::exp(q, q.mul(q.mul(q.splat(-0.5), m), m)),
+        );
+        let rho = crate::simd::exp(q, q.sub(q.mul(q.mul(minus_one, m), dz), q.mul(q.splat(0.5), dz2)));
+        let ratio = crate::simd::exp(q, q.mul(minus_one, dz2));
+        let (lo, hi, m, dz) = (q.store(lo), q.store(hi), q.store(m), q.store(dz));
+        let (phi, rho, ratio) = (q.store(phi), q.store(rho), q.store(ratio));
+        let (amplitude, mu, sigma) = (q.store(amplitude), q.store(mu), q.store(sigma));
+        let mut out = [None; 4];
+        for (j, w) in out.iter_mut().enumerate() {
+            if !(lo[j] < hi[j]) {
+                continue;
+            }
+            let series = if WideSeries::applies(m[j], dz[j]) {
+                Some(WideSeries::from_exps(m[j], dz[j], phi[j], rho[j], ratio[j]))
+            } else {
+                None
+            };
+            *w = Some(Self {
+                amplitude: amplitude[j],
+                mu: mu[j],
+                sigma: sigma[j],
+                lo: lo[j] as usize,
+                hi: hi[j] as usize,
+                series,
+            });
+        }
+        out
+    }
+
+    /// The midpoint series' state as bits, for tests that compare two paths.
+    #[cfg(test)]
+    pub(crate) fn series_bits(&self) -> Option<[u64; 7]> {
+        self.series
+            .map(|s| [s.m, s.dz, s.phi, s.rho, s.q, s.a, s.b].map(f64::to_bits))
     }
 
     /// Adds the pulse to `out` (the full histogram of the pair).
@@ -503,19 +568,42 @@ impl WideSeries {
     #[inline(always)]
     fn new(z0: f64, dz: f64) -> Option<Self> {
         let m = z0 + 0.5 * dz;
-        if !(dz <= WIDE_DZ) || !(m.abs() < 30.0) {
+        if !Self::applies(m, dz) {
             return None;
         }
         let dz2 = dz * dz;
-        Some(Self {
+        let phi = INV_SQRT_2PI * exp_scalar(-0.5 * m * m);
+        Some(Self::from_exps(
             m,
             dz,
-            phi: crate::special::norm_pdf(m),
-            rho: (-m * dz - 0.5 * dz2).exp(),
-            q: (-dz2).exp(),
+            phi,
+            exp_scalar(-m * dz - 0.5 * dz2),
+            exp_scalar(-dz2),
+        ))
+    }
+
+    /// Whether the series serves a window whose first bin's centre is `m` and whose
+    /// bins are `dz` wide, in σ.
+    #[inline(always)]
+    fn applies(m: f64, dz: f64) -> bool {
+        dz <= WIDE_DZ && m.abs() < 30.0
+    }
+
+    /// The series from its first centre `m`, the bin width `dz`, and `φ(m)`,
+    /// `ρ = e^{−m dz − dz²/2}` and `q = e^{−dz²}` (`exp` from [`crate::simd`], whose
+    /// lanes give the same bits).
+    #[inline(always)]
+    fn from_exps(m: f64, dz: f64, phi: f64, rho: f64, q: f64) -> Self {
+        let dz2 = dz * dz;
+        Self {
+            m,
+            dz,
+            phi,
+            rho,
+            q,
             a: dz2 / 24.0,
             b: dz2 * dz2 / 1920.0,
-        })
+        }
     }
 
     /// The first [`LANES`] bins and each lane's recurrence. The first bins come from

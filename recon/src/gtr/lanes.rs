@@ -311,15 +311,17 @@ pub(crate) fn evaluate_group<Q: Quad>(
     opt: &RenderOptions,
 ) -> Option<Pulses> {
     let g = geometry(q, k, group, axis, opt);
+    let mut pulses = Window::lanes(q, g.amplitude, q.add(g.di, g.dd), g.sigma, axis, opt);
     let (di, dd, gi, gd) = (q.store(g.di), q.store(g.dd), q.store(g.gi), q.store(g.gd));
-    let (amplitude, sigma) = (q.store(g.amplitude), q.store(g.sigma));
-    let mu = q.store(q.add(g.di, g.dd));
-    let mut pulses = [None; LANES];
-    for (j, w) in pulses.iter_mut().enumerate().take(group.used) {
-        if di[j] < opt.min_distance || dd[j] < opt.min_distance || gi[j] <= 0.0 || gd[j] <= 0.0 {
-            continue;
+    for (j, w) in pulses.iter_mut().enumerate() {
+        if j >= group.used
+            || di[j] < opt.min_distance
+            || dd[j] < opt.min_distance
+            || gi[j] <= 0.0
+            || gd[j] <= 0.0
+        {
+            *w = None;
         }
-        *w = Window::new(amplitude[j], mu[j], sigma[j], axis, opt);
     }
     if pulses.iter().all(Option::is_none) {
         return None;
@@ -502,6 +504,7 @@ mod tests {
             && a.mu.to_bits() == b.mu.to_bits()
             && a.sigma.to_bits() == b.sigma.to_bits()
             && (a.lo, a.hi) == (b.lo, b.hi)
+            && a.series_bits() == b.series_bits()
     }
 
     fn grad_bits(g: &PhysicalGrad) -> Vec<u64> {
@@ -516,7 +519,7 @@ mod tests {
     /// Every lane's pulse and the group's gradient are bit-for-bit what the one-pair
     /// path gives, for groups of 1 to 4 pairs, with and without the relay cosines and
     /// the instrument's jitter, on the portable arrays and on this CPU's vectors.
-    fn check<Q: Quad>(q: Q) -> usize {
+    fn check<Q: Quad>(q: Q) -> (usize, usize) {
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(7);
         let (kernels, pairs) = scene(&mut rng);
         let axis = TimeAxis {
@@ -527,7 +530,7 @@ mod tests {
         let dl: Vec<f64> = (0..LANES * axis.bins)
             .map(|_| rng.random_range(-1.0..1.0))
             .collect();
-        let mut compared = 0;
+        let (mut compared, mut wide) = (0, 0);
         for (use_ni, use_nd, sigma_sys) in [(true, true, 0.0), (false, true, 0.003), (true, false, 0.0)] {
             let opt = RenderOptions {
                 use_ni,
@@ -563,6 +566,7 @@ mod tests {
                                         &mut want,
                                     );
                                     compared += 1;
+                                    wide += usize::from(w.series_bits().is_some());
                                 }
                                 (e, w) => panic!("lane {j}: one pair {e:?}, lanes {w:?}"),
                             }
@@ -574,17 +578,21 @@ mod tests {
                 }
             }
         }
-        compared
+        (compared, wide)
     }
 
     #[test]
     fn four_pairs_at_once_give_the_one_pair_bits() {
-        let compared = check(crate::simd::Portable);
+        let (compared, wide) = check(crate::simd::Portable);
         // Most primitive–pair combinations contribute; the culled ones are checked too.
         assert!(compared > 1000, "only {compared} contributing evaluations");
+        assert!(
+            wide > 100 && wide < compared,
+            "{wide} of {compared} on the series"
+        );
         #[cfg(target_arch = "x86_64")]
         if let Some(v3) = crate::simd::v3() {
-            assert_eq!(check(v3), compared);
+            assert_eq!(check(v3), (compared, wide));
             return;
         }
         eprintln!("skipped: this CPU has no AVX2 + FMA, only the arrays ran");
