@@ -596,6 +596,13 @@ impl Trainer {
     /// One pass over the data in shuffled mini-batches; returns the mean batch loss, or
     /// `None` when cancelled part-way (the cloud is valid either way).
     pub fn epoch(&mut self, cancel: &CancelToken) -> Option<f64> {
+        // On a worker of the thread pool, so that the step's parallel regions hand work
+        // to the other workers without waking this thread up each time (a call from
+        // outside the pool injects the region and sleeps until it is done).
+        rayon::scope(|_| self.epoch_on_pool(cancel))
+    }
+
+    fn epoch_on_pool(&mut self, cancel: &CancelToken) -> Option<f64> {
         let mut order: Vec<usize> = (0..self.data.len()).collect();
         order.shuffle(&mut self.rng);
         let mut total = 0.0;
