@@ -137,6 +137,29 @@ pub(crate) fn exp_scalar(x: f64) -> f64 {
     p * pow2_scalar(k)
 }
 
+/// `tanh x` as `(e²ˣ − 1)/(e²ˣ + 1)` with [`exp`]: within 4e-16 of it absolutely (not
+/// relatively: near 0 the difference cancels), ±1 beyond |x| = 354.
+#[inline(always)]
+pub(crate) fn tanh<Q: Quad>(q: Q, x: Q::V) -> Q::V {
+    let e = exp(q, q.add(x, x));
+    let one = q.splat(1.0);
+    q.div(q.sub(e, one), q.add(e, one))
+}
+
+/// [`tanh`] for one value, the same bits.
+#[inline(always)]
+pub(crate) fn tanh_scalar(x: f64) -> f64 {
+    let e = exp_scalar(x + x);
+    (e - 1.0) / (e + 1.0)
+}
+
+/// The logistic function `1/(1 + e⁻ˣ)` with [`exp`].
+#[inline(always)]
+pub(crate) fn sigmoid<Q: Quad>(q: Q, x: Q::V) -> Q::V {
+    let one = q.splat(1.0);
+    q.div(one, q.add(one, exp(q, q.mul(q.splat(-1.0), x))))
+}
+
 /// `2^k` for a whole number `k` in [−1022, 1023].
 #[inline(always)]
 fn pow2_scalar(k: f64) -> f64 {
@@ -368,6 +391,26 @@ mod tests {
             [f64::MIN_POSITIVE, 1.0, 128.0, 2f64.powi(1023)]
         );
         assert_eq!(exp_scalar(f64::NAN), exp_scalar(EXP_MAX));
+        for &x in xs
+            .iter()
+            .step_by(7)
+            .chain(&[0.0, 1e-9, -3e-4, 0.5, -20.0, 400.0, -400.0])
+        {
+            let x = x / 20.0;
+            assert!((tanh_scalar(x) - x.tanh()).abs() <= 4e-16, "tanh({x})");
+            let logistic = 1.0 / (1.0 + (-x).exp());
+            let got = sigmoid(Portable, [x; 4])[0];
+            assert!(
+                (got - logistic).abs() <= 5e-16 * logistic.max(1e-300),
+                "sigmoid({x})"
+            );
+            let lanes = [x, -x, 2.0 * x, 0.1];
+            assert_eq!(tanh(Portable, lanes)[0].to_bits(), tanh_scalar(x).to_bits());
+            assert_eq!(
+                sigmoid(Portable, lanes)[1].to_bits(),
+                sigmoid(Portable, [-x; 4])[0].to_bits()
+            );
+        }
         assert_eq!(exp_scalar(-1e10), exp_scalar(EXP_MIN));
         #[cfg(target_arch = "x86_64")]
         if let Some(v) = *V3 {
@@ -375,6 +418,17 @@ mod tests {
                 let a: [f64; 4] = c.try_into().unwrap();
                 let bits = |x: [f64; 4]| x.map(f64::to_bits);
                 assert_eq!(bits(v.store(exp(v, v.load(a)))), bits(exp(Portable, a)), "{a:?}");
+                let a = a.map(|x| x / 20.0);
+                assert_eq!(
+                    bits(v.store(tanh(v, v.load(a)))),
+                    bits(tanh(Portable, a)),
+                    "{a:?}"
+                );
+                assert_eq!(
+                    bits(v.store(sigmoid(v, v.load(a)))),
+                    bits(sigmoid(Portable, a)),
+                    "{a:?}"
+                );
             }
             let p = Portable;
             let a = [-2.5, -0.0, 3.5, 1e300];

@@ -16,6 +16,7 @@ use glam::{DMat3, DQuat, DVec3};
 
 use super::kernel::{Kernel, PhysicalGrad};
 use crate::roi::RoiBox;
+use crate::simd::{Quad, tanh_scalar};
 
 /// The range of primitive scales (standard deviations), metres.
 #[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -85,15 +86,6 @@ pub enum ModelError {
         /// What is wrong.
         reason: String,
     },
-}
-
-fn sigmoid(x: f64) -> f64 {
-    if x >= 0.0 {
-        1.0 / (1.0 + (-x).exp())
-    } else {
-        let e = x.exp();
-        e / (1.0 + e)
-    }
 }
 
 fn softplus(x: f64) -> f64 {
@@ -252,20 +244,18 @@ impl GaussianCloud {
     /// The centre that raw centre parameters `raw` (θx) map to.
     pub fn centre_of_raw(&self, raw: &[f64]) -> DVec3 {
         let t = DVec3::from_slice(raw);
-        self.roi.centre + self.roi.half * DVec3::new(t.x.tanh(), t.y.tanh(), t.z.tanh())
+        self.roi.centre + self.roi.half * DVec3::new(tanh_scalar(t.x), tanh_scalar(t.y), tanh_scalar(t.z))
     }
 
     /// The physical parameters of primitive `k`.
     pub fn primitive(&self, k: usize) -> Primitive {
-        let (lmin, lspan) = self.log_scale_map();
-        let s = DVec3::from_slice(&self.scales[3 * k..3 * k + 3]);
+        let m = crate::simd::dispatch(MapLanes {
+            cloud: self,
+            idx: [k; 4],
+        });
         Primitive {
-            centre: self.centre_of_raw(&self.centres[3 * k..3 * k + 3]),
-            scale: DVec3::new(
-                (lmin + lspan * sigmoid(s.x)).exp(),
-                (lmin + lspan * sigmoid(s.y)).exp(),
-                (lmin + lspan * sigmoid(s.z)).exp(),
-            ),
+            centre: m.centre[0],
+            scale: m.scale[0],
             rotation: self.raw_quat(k).normalize(),
             albedo: softplus(self.albedo[k]),
         }
@@ -282,31 +272,22 @@ impl GaussianCloud {
     /// training step refreshes both, and its backward pass then chains without
     /// evaluating a transcendental function again ([`GaussianCloud::chain_with`]).
     pub fn kernel_and_slopes(&self, k: usize) -> (Kernel, MapSlopes) {
-        let (lmin, lspan) = self.log_scale_map();
-        let (mut t, mut sg, mut scale) = (DVec3::ZERO, DVec3::ZERO, DVec3::ZERO);
-        for j in 0..3 {
-            t[j] = self.centres[3 * k + j].tanh();
-            sg[j] = sigmoid(self.scales[3 * k + j]);
-            scale[j] = (lmin + lspan * sg[j]).exp();
-        }
-        let centre = self.roi.centre + self.roi.half * t;
-        let rotation = self.raw_quat(k).normalize();
-        let kernel = Kernel::new(
-            centre,
-            DMat3::from_quat(rotation),
-            scale,
-            softplus(self.albedo[k]),
-        );
-        let mut slopes = MapSlopes {
-            centre: DVec3::ZERO,
-            scale: DVec3::ZERO,
-            albedo: sigmoid(self.albedo[k]),
-        };
-        for j in 0..3 {
-            slopes.centre[j] = self.roi.half[j] * (1.0 - t[j] * t[j]);
-            slopes.scale[j] = scale[j] * lspan * sg[j] * (1.0 - sg[j]);
-        }
-        (kernel, slopes)
+        let m = crate::simd::dispatch(MapLanes {
+            cloud: self,
+            idx: [k; 4],
+        });
+        m.kernel_and_slopes(self, 0, k)
+    }
+
+    /// [`GaussianCloud::kernel_and_slopes`] of primitives `first..first + kernels.len()`
+    /// into `kernels` and `slopes`, the maps four primitives at a time.
+    pub fn kernels_and_slopes_into(&self, first: usize, kernels: &mut [Kernel], slopes: &mut [MapSlopes]) {
+        crate::simd::dispatch(MapRange {
+            cloud: self,
+            first,
+            kernels,
+            slopes,
+        });
     }
 
     /// The slopes of primitive `k`'s parameter maps.
@@ -386,6 +367,109 @@ impl GaussianCloud {
     }
 }
 
+/// The centre, scale and slope maps of four primitives (lanes), from one vector
+/// evaluation of each map: `tanh` and the logistic function through
+/// [`crate::simd::exp`], so any lane gives the bits any other path gives.
+struct Mapped {
+    centre: [DVec3; 4],
+    scale: [DVec3; 4],
+    /// Slopes without the albedo's, which [`Mapped::kernel_and_slopes`] adds.
+    slopes: [MapSlopes; 4],
+    /// σ(θρ), the albedo's slope.
+    albedo_slope: [f64; 4],
+}
+
+impl Mapped {
+    /// Lane `lane`, primitive `k` of `cloud`: its kernel and slopes. The rotation and
+    /// the albedo's softplus are computed here, one primitive at a time.
+    #[inline(always)]
+    fn kernel_and_slopes(&self, cloud: &GaussianCloud, lane: usize, k: usize) -> (Kernel, MapSlopes) {
+        let kernel = Kernel::new(
+            self.centre[lane],
+            DMat3::from_quat(cloud.raw_quat(k).normalize()),
+            self.scale[lane],
+            softplus(cloud.albedo[k]),
+        );
+        let slopes = MapSlopes {
+            albedo: self.albedo_slope[lane],
+            ..self.slopes[lane]
+        };
+        (kernel, slopes)
+    }
+}
+
+/// The maps of primitives `idx` (an index may repeat), one lane each.
+struct MapLanes<'a> {
+    cloud: &'a GaussianCloud,
+    idx: [usize; 4],
+}
+
+impl crate::simd::Work for MapLanes<'_> {
+    type Output = Mapped;
+
+    #[inline(always)]
+    fn run<Q: Quad>(self, q: Q) -> Mapped {
+        let Self { cloud, idx } = self;
+        let (lmin, lspan) = cloud.log_scale_map();
+        let one = q.splat(1.0);
+        let mut out = Mapped {
+            centre: [DVec3::ZERO; 4],
+            scale: [DVec3::ZERO; 4],
+            slopes: [MapSlopes::default(); 4],
+            albedo_slope: [0.0; 4],
+        };
+        for j in 0..3 {
+            let t = crate::simd::tanh(q, q.load(idx.map(|k| cloud.centres[3 * k + j])));
+            let sg = crate::simd::sigmoid(q, q.load(idx.map(|k| cloud.scales[3 * k + j])));
+            let scale = crate::simd::exp(q, q.add(q.splat(lmin), q.mul(q.splat(lspan), sg)));
+            let (c, h) = (q.splat(cloud.roi.centre[j]), q.splat(cloud.roi.half[j]));
+            let centre = q.store(q.add(c, q.mul(h, t)));
+            let slope_c = q.store(q.mul(h, q.sub(one, q.mul(t, t))));
+            let slope_s = q.store(q.mul(q.mul(q.mul(scale, q.splat(lspan)), sg), q.sub(one, sg)));
+            let scale = q.store(scale);
+            for l in 0..4 {
+                out.centre[l][j] = centre[l];
+                out.scale[l][j] = scale[l];
+                out.slopes[l].centre[j] = slope_c[l];
+                out.slopes[l].scale[j] = slope_s[l];
+            }
+        }
+        out.albedo_slope = q.store(crate::simd::sigmoid(q, q.load(idx.map(|k| cloud.albedo[k]))));
+        out
+    }
+}
+
+/// [`GaussianCloud::kernels_and_slopes_into`]'s loop.
+struct MapRange<'a> {
+    cloud: &'a GaussianCloud,
+    first: usize,
+    kernels: &'a mut [Kernel],
+    slopes: &'a mut [MapSlopes],
+}
+
+impl crate::simd::Work for MapRange<'_> {
+    type Output = ();
+
+    #[inline(always)]
+    fn run<Q: Quad>(self, q: Q) {
+        let Self {
+            cloud,
+            first,
+            kernels,
+            slopes,
+        } = self;
+        let n = kernels.len().min(slopes.len());
+        for start in (0..n).step_by(4) {
+            let last = first + n - 1;
+            let idx = [0, 1, 2, 3].map(|l| (first + start + l).min(last));
+            let m = MapLanes { cloud, idx }.run(q);
+            for l in 0..4.min(n - start) {
+                (kernels[start + l], slopes[start + l]) = m.kernel_and_slopes(cloud, l, idx[l]);
+            }
+        }
+    }
+}
+
 /// ∂L/∂q (as a quaternion w, x, y, z) from ∂L/∂R for R = R(q), q unit.
 fn quat_grad(q: DQuat, g: &DMat3) -> DQuat {
     let (w, x, y, z) = (q.w, q.x, q.y, q.z);
@@ -426,9 +510,14 @@ mod tests {
                 .unwrap();
         }
         let h = 1e-6;
+        // Four at a time (the last group partial) as one at a time.
+        let mut kernels = vec![cloud.kernel(0); cloud.len()];
+        let mut all_slopes = vec![MapSlopes::default(); cloud.len()];
+        cloud.kernels_and_slopes_into(0, &mut kernels, &mut all_slopes);
         for k in 0..cloud.len() {
             let (kernel, slopes) = cloud.kernel_and_slopes(k);
             assert_eq!(kernel, cloud.kernel(k));
+            assert_eq!((kernel, slopes), (kernels[k], all_slopes[k]));
             for j in 0..3 {
                 let moved = |group: fn(&mut GaussianCloud) -> &mut Vec<f64>, idx: usize| {
                     let mut c = cloud.clone();

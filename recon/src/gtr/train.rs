@@ -29,6 +29,9 @@ use super::render::{batch_loss_grad_with, render_set};
 use crate::roi::RoiBox;
 use crate::transient::{TransientError, TransientSet};
 
+/// Primitives a parallel work item of the kernels' refresh maps (four at a time).
+const REFRESH_CHUNK: usize = 256;
+
 /// Live epochs run on the data so far after each batch streamed in (and on the data
 /// the fit starts with) while the capture goes on.
 pub const LIVE_EPOCHS_PER_BATCH: usize = 1;
@@ -662,10 +665,12 @@ impl Trainer {
         );
         self.slopes.resize(n, MapSlopes::default());
         self.kernels
-            .par_iter_mut()
-            .zip(self.slopes.par_iter_mut())
+            .par_chunks_mut(REFRESH_CHUNK)
+            .zip(self.slopes.par_chunks_mut(REFRESH_CHUNK))
             .enumerate()
-            .for_each(|(k, (kernel, slopes))| (*kernel, *slopes) = cloud.kernel_and_slopes(k));
+            .for_each(|(c, (kernels, slopes))| {
+                cloud.kernels_and_slopes_into(c * REFRESH_CHUNK, kernels, slopes)
+            });
     }
 
     /// Runs the fit to completion: live epochs while `feed` is open, then the counted
