@@ -3,7 +3,7 @@
 //! conventional solver (LCT, RSD) can turn them into a volume.
 use rayon::prelude::*;
 
-use crate::gtr::{Kernel, RenderOptions, render_pair};
+use crate::gtr::{Kernel, RenderOptions, render_pairs};
 use crate::relay::VirtualRelay;
 use crate::solver::PlanarScan;
 use crate::transient::{Pair, TimeAxis, TransientError, TransientSet};
@@ -42,7 +42,7 @@ pub fn default_axis(relay: &VirtualRelay, volume: &VolumeGrid, bins: usize) -> T
 }
 
 /// Renders confocal transients at every point of `relay` from `kernels`, in parallel
-/// over grid points.
+/// over groups of four grid points (one vector lane each).
 pub fn synthesise(
     kernels: &[Kernel],
     relay: &VirtualRelay,
@@ -56,13 +56,15 @@ pub fn synthesise(
         .collect();
     let bins = axis.bins;
     let mut histograms = vec![0.0f32; pairs.len() * bins];
+    const GROUP: usize = 4;
     histograms
-        .par_chunks_mut(bins)
-        .zip(pairs.par_iter())
+        .par_chunks_mut(GROUP * bins)
+        .zip(pairs.par_chunks(GROUP))
         .for_each_init(
-            || vec![0.0f64; bins],
-            |buf, (out, pair)| {
-                render_pair(kernels, pair, &axis, opt, buf);
+            || vec![0.0f64; GROUP * bins],
+            |buf, (out, pairs)| {
+                let buf = &mut buf[..pairs.len() * bins];
+                render_pairs(kernels, pairs, &axis, opt, buf);
                 for (o, v) in out.iter_mut().zip(buf.iter()) {
                     *o = *v as f32;
                 }

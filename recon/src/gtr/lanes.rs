@@ -39,7 +39,7 @@ pub(crate) struct PairGroup {
 
 impl PairGroup {
     /// The group of `pairs` (1 to [`LANES`] of them), lane j holding `pairs[j]`.
-    fn new(pairs: &[&Pair]) -> Self {
+    pub(crate) fn new(pairs: &[&Pair]) -> Self {
         assert!(
             (1..=LANES).contains(&pairs.len()),
             "a group holds 1 to {LANES} pairs"
@@ -596,5 +596,32 @@ mod tests {
             return;
         }
         eprintln!("skipped: this CPU has no AVX2 + FMA, only the arrays ran");
+    }
+
+    /// `render_pairs` gives `render_pair`'s bits on every pair, for any number of pairs
+    /// (whole groups and a partial one).
+    #[test]
+    fn rendering_four_pairs_at_once_gives_the_one_pair_bits() {
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(11);
+        let (kernels, pairs) = scene(&mut rng);
+        let axis = TimeAxis {
+            start: 0.3,
+            width: 0.005,
+            bins: 400,
+        };
+        let opt = RenderOptions::default();
+        for n in [1, 4, 7, pairs.len()] {
+            let mut lanes = vec![0.0; n * axis.bins];
+            crate::gtr::render_pairs(&kernels, &pairs[..n], &axis, &opt, &mut lanes);
+            assert!(lanes.iter().any(|&v| v > 0.0));
+            for (p, got) in pairs[..n].iter().zip(lanes.chunks(axis.bins)) {
+                let mut want = vec![1.0; axis.bins];
+                crate::gtr::render_pair(&kernels, p, &axis, &opt, &mut want);
+                assert_eq!(
+                    got.iter().map(|v| v.to_bits()).collect::<Vec<_>>(),
+                    want.iter().map(|v| v.to_bits()).collect::<Vec<_>>()
+                );
+            }
+        }
     }
 }

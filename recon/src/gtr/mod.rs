@@ -14,7 +14,7 @@ pub use kernel::{Kernel, Loss, PhysicalGrad, RenderOptions, render_pair};
 pub use model::{GaussianCloud, MapSlopes, ModelError, Primitive, RawGrads, ScaleBounds};
 pub use optim::{AdamW, AdamWSettings, GroupSettings, Schedule};
 pub use ply::write_ply;
-pub use render::{batch_loss, batch_loss_grad, render_set};
+pub use render::{batch_loss, batch_loss_grad, render_pairs, render_set};
 pub use train::{
     CancelToken, DensifySettings, LossChoice, PruneSettings, SNAPSHOT_MAX, TrainConfig, TrainError,
     TrainEvent, TrainSummary, Trainer, default_initial_scale, default_target_scale, densify,
