@@ -30,7 +30,7 @@ pub fn render_set(kernels: &[Kernel], set: &TransientSet, opt: &RenderOptions) -
 }
 
 /// Renders `pairs` from `kernels` into `out` (overwritten), `axis.bins` per pair: the
-/// same bits as [`render_pair`] on each, four pairs at a time in vector lanes.
+/// same bits as [`render_pair`](super::render_pair) on each, four pairs at a time in vector lanes.
 pub fn render_pairs(
     kernels: &[Kernel],
     pairs: &[Pair],
