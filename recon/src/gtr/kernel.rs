@@ -398,12 +398,6 @@ impl Evaluation {
         self.window.accumulate(axis, out);
     }
 
-    /// [`Evaluation::accumulate`] with the vector arithmetic `quad`.
-    #[inline(always)]
-    pub(crate) fn accumulate_with<Q: Quad>(&self, quad: Q, axis: &TimeAxis, out: &mut [f64]) {
-        self.window.accumulate_with(quad, axis, out);
-    }
-
     /// Given `dl = ∂loss/∂τ̂` for the pair's bins, adds the gradient with respect to the
     /// primitive's physical parameters to `grad`.
     #[inline(always)]
@@ -727,38 +721,10 @@ impl Default for PhysicalGrad {
     }
 }
 
-/// Renders one pair's transient from all primitives into `out` (overwritten).
+/// Renders one pair's transient from all primitives into `out` (overwritten), as
+/// [`render_pairs`](super::render_pairs) does.
 pub fn render_pair(kernels: &[Kernel], pair: &Pair, axis: &TimeAxis, opt: &RenderOptions, out: &mut [f64]) {
-    crate::simd::dispatch(RenderPair {
-        kernels,
-        pair,
-        axis,
-        opt,
-        out,
-    });
-}
-
-/// [`render_pair`]'s loop, compiled for the machine's SIMD level.
-struct RenderPair<'a> {
-    kernels: &'a [Kernel],
-    pair: &'a Pair,
-    axis: &'a TimeAxis,
-    opt: &'a RenderOptions,
-    out: &'a mut [f64],
-}
-
-impl crate::simd::Work for RenderPair<'_> {
-    type Output = ();
-
-    #[inline(always)]
-    fn run<Q: crate::simd::Quad>(self, quad: Q) {
-        self.out.iter_mut().for_each(|o| *o = 0.0);
-        for k in self.kernels {
-            if let Some(e) = evaluate(k, self.pair, self.axis, self.opt) {
-                e.accumulate_with(quad, self.axis, self.out);
-            }
-        }
-    }
+    super::render_pairs(kernels, std::slice::from_ref(pair), axis, opt, out);
 }
 
 #[cfg(test)]

@@ -598,8 +598,9 @@ mod tests {
         eprintln!("skipped: this CPU has no AVX2 + FMA, only the arrays ran");
     }
 
-    /// `render_pairs` gives `render_pair`'s bits on every pair, for any number of pairs
-    /// (whole groups and a partial one).
+    /// `render_pairs` gives, on every pair, the bits of the one-pair path's evaluations
+    /// accumulated in the primitives' order, for any number of pairs (whole groups and
+    /// a partial one).
     #[test]
     fn rendering_four_pairs_at_once_gives_the_one_pair_bits() {
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(11);
@@ -611,12 +612,16 @@ mod tests {
         };
         let opt = RenderOptions::default();
         for n in [1, 4, 7, pairs.len()] {
-            let mut lanes = vec![0.0; n * axis.bins];
+            let mut lanes = vec![1.0; n * axis.bins];
             crate::gtr::render_pairs(&kernels, &pairs[..n], &axis, &opt, &mut lanes);
             assert!(lanes.iter().any(|&v| v > 0.0));
             for (p, got) in pairs[..n].iter().zip(lanes.chunks(axis.bins)) {
-                let mut want = vec![1.0; axis.bins];
-                crate::gtr::render_pair(&kernels, p, &axis, &opt, &mut want);
+                let mut want = vec![0.0; axis.bins];
+                for k in &kernels {
+                    if let Some(e) = evaluate(k, p, &axis, &opt) {
+                        e.accumulate(&axis, &mut want);
+                    }
+                }
                 assert_eq!(
                     got.iter().map(|v| v.to_bits()).collect::<Vec<_>>(),
                     want.iter().map(|v| v.to_bits()).collect::<Vec<_>>()
