@@ -546,3 +546,113 @@ fn the_phasor_filter_ignores_a_constant_background_and_finds_the_point_in_noise(
         })
     ));
 }
+
+/// The pairs of `set` left after dropping about `drop` of them at random (seeded).
+fn thinned(set: &TransientSet, drop: f64, seed: u64) -> TransientSet {
+    use rand::{Rng, SeedableRng};
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
+    let mut out = TransientSet::new(*set.axis()).unwrap();
+    for (i, pair) in set.pairs().iter().enumerate() {
+        if rng.random::<f64>() >= drop {
+            out.push(*pair, set.histogram(i)).unwrap();
+        }
+    }
+    out
+}
+
+/// Correlation of two volumes' maximum projections (1: the same image up to scale).
+fn mip_correlation(a: &Volume, b: &Volume) -> f64 {
+    let mip = |v: &Volume| -> Vec<f64> {
+        let [nx, ny, nz] = v.grid.shape;
+        (0..nx * ny)
+            .map(|c| {
+                (0..nz)
+                    .map(|iz| f64::from(v.at(c % nx, c / nx, iz)))
+                    .fold(0.0, f64::max)
+            })
+            .collect()
+    };
+    let (a, b) = (mip(a), mip(b));
+    let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len() as f64;
+    let (ma, mb) = (mean(&a), mean(&b));
+    let (mut ab, mut aa, mut bb) = (0.0, 0.0, 0.0);
+    for (x, y) in a.iter().zip(&b) {
+        ab += (x - ma) * (y - mb);
+        aa += (x - ma) * (x - ma);
+        bb += (y - mb) * (y - mb);
+    }
+    ab / (aa * bb).sqrt()
+}
+
+#[test]
+fn grid_solvers_weigh_the_cells_of_a_perforated_grid() {
+    // Three bars (as above) seen from a 32 × 32 grid with about 40 % of its cells
+    // dropped at random: weighted by their share of the grid (their Voronoi cells),
+    // the remaining cells give the full grid's image at the full grid's scale. Zero-
+    // filled, RSD's peak fell to 0.64 of the full grid's (f-k's to about its square),
+    // and the images correlated less with the full grid's (measured while writing this
+    // test, seeds 0-2: RSD 0.977-0.989 zero-filled against 0.988-0.994 weighted, f-k
+    // 0.990-0.998 against 0.998-0.999). LCT's Wiener filter lifts its peak: 1.08-1.12.
+    // Seeds 0 and 1 run here.
+    let bars = [
+        ([-0.15, -0.1], [-0.15, 0.15]),
+        ([-0.05, 0.0], [-0.15, 0.15]),
+        ([0.05, 0.1], [-0.15, 0.15]),
+    ];
+    let points: Vec<_> = bars.iter().flat_map(|(x, y)| plate(*x, *y, 0.5)).collect();
+    let relay = wall(32);
+    let laser = DVec3::ZERO;
+    let nonconfocal: Vec<Pair> = relay
+        .points()
+        .into_iter()
+        .map(|xd| Pair {
+            xi: laser,
+            ni: DVec3::Z,
+            xd,
+            nd: DVec3::Z,
+        })
+        .collect();
+    let confocal = confocal_pairs(&relay);
+    let render = |pairs: &[Pair]| {
+        let mut set = TransientSet::new(axis()).unwrap();
+        scatter(&mut set, pairs, &points);
+        set
+    };
+    let g = grid();
+    type Solve<'a> = Box<dyn Fn(&TransientSet) -> Volume + 'a>;
+    let (nonconfocal, confocal) = (render(&nonconfocal), render(&confocal));
+    let solvers: [(&str, &TransientSet, Solve<'_>); 3] = [
+        (
+            "RSD",
+            &nonconfocal,
+            Box::new(|s| rsd(s, &g, &RsdSettings::default()).unwrap()),
+        ),
+        (
+            "LCT",
+            &confocal,
+            Box::new(|s| lct(s, &g, &LctSettings::default()).unwrap()),
+        ),
+        (
+            "f-k",
+            &confocal,
+            Box::new(|s| fk(s, &g, &FkSettings::default()).unwrap()),
+        ),
+    ];
+    for (who, set, solve) in &solvers {
+        let full = solve(set);
+        for seed in 0..2 {
+            let part = solve(&thinned(set, 0.4, seed));
+            let ratio = part.argmax().1 / full.argmax().1;
+            let corr = mip_correlation(&full, &part);
+            eprintln!("{who}, seed {seed}: peak ratio {ratio:.3}, correlation {corr:.4}");
+            assert!(
+                (0.85..1.2).contains(&ratio),
+                "{who}, seed {seed}: peak {ratio:.3} of the full grid's"
+            );
+            assert!(
+                corr > 0.93,
+                "{who}, seed {seed}: correlation {corr:.4} with the full grid's image"
+            );
+        }
+    }
+}

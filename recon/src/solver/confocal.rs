@@ -44,9 +44,8 @@ pub(super) fn bins_from_zero(set: &TransientSet, solver: &str) -> Result<usize, 
 
 /// Every pair of `set` in its cell of `scan`, on `m` bins from path length 0.
 pub(super) fn cube(set: &TransientSet, scan: &PlanarScan, m: usize) -> Vec<f32> {
-    let [nx, ny] = scan.relay.resolution;
     let members: Vec<usize> = (0..set.len()).collect();
-    gather_cube(set, &members, &scan.cells, nx * ny, 0.0, m)
+    gather_cube(set, &members, scan, 0.0, m)
 }
 
 /// The real FFT (length 2m) of each cell's line of `cube` (`[cell][m]`, cells of an

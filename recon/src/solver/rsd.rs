@@ -210,7 +210,7 @@ pub fn rsd_frame(
     let mut field = vec![Complex::<f64>::default(); depths * nx * ny];
 
     for (xi, members) in &groups {
-        let cube = gather_cube(set, members, &scan.cells, nx * ny, axis.start, bins);
+        let cube = gather_cube(set, members, scan, axis.start, bins);
         // Spectra of every cell's transient at the selected lines, as padded planes.
         let per_cell: Vec<Vec<Complex<f64>>> = cube
             .par_chunks(bins)
