@@ -12,7 +12,7 @@
 //! | scene | median | p90 | IoU | bounds |
 //! |---|---|---|---|---|
 //! | wall + letter, confocal | 0.53 mm | 1.67 mm | 0.719 | 1.0 mm, 2.5 mm, 0.70 |
-//! | the same, its export solved by FBP | 4.78 mm | 8.12 mm | 0.644 | 6 mm, 10 mm, 0.62 |
+//! | the same, its export solved by FBP (pairs weighted by their share of the relay) | 4.55 mm | 8.91 mm | 0.718 | 6 mm, 10.5 mm, 0.70 |
 //! | wall + letter, fixed laser | 0.76 mm | 1.48 mm | 0.768 | 1.0 mm, 2.5 mm, 0.75 |
 //! | S relay + letter | 1.10 mm | 3.17 mm | 0.806 | 1.5 mm, 4.0 mm, 0.79 |
 //! | torso pair + mannequin | 4.53 mm | 24.4 mm | 0.545 | 6 mm, 28 mm, 0.525 |
@@ -106,7 +106,7 @@ fn planar_wall_letter_confocal_matches_the_truth() {
         [64, 64],
     );
     eprintln!("wall + letter, from the exported capture with FBP: {b:?}");
-    b.assert_within(6e-3, 10e-3, 0.62);
+    b.assert_within(6e-3, 10.5e-3, 0.70);
 }
 
 /// Runs `plan` on `instrument` and scores the depth map against `scene`'s truth over

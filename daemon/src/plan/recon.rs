@@ -406,7 +406,8 @@ mod tests {
     fn solver_tables_are_read_and_checked() {
         let src = TomlSource::from_text(
             "recon.toml",
-            "method = \"fbp\"\n[fbp]\nfilter = \"laplacian\"\nfalloff = 0.0\n[lct]\nsnr = 4.0\n",
+            "method = \"fbp\"\n[fbp]\nfilter = \"laplacian\"\nfalloff = 0.0\nrelay-weights = false\n\
+             [lct]\nsnr = 4.0\n[rsd]\nrelay-weights = false\n",
         );
         let s = load_recon(&src, Some(volume())).unwrap();
         assert_eq!(
@@ -414,6 +415,8 @@ mod tests {
             (FbpFilter::Laplacian, 0.0)
         );
         assert_eq!(s.solvers.lct.snr, Some(4.0));
+        assert!(!s.solvers.fbp.relay_weights && !s.solvers.rsd.relay_weights);
+        assert!(s.solvers.lct.relay_weights && s.solvers.fk.relay_weights);
         // Out of range: the error names the file, the line and the key.
         let src = TomlSource::from_text("recon.toml", "method = \"fbp\"\n[fbp]\nfalloff = 9.0\n");
         let e = load_recon(&src, Some(volume())).unwrap_err().to_string();

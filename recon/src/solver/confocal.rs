@@ -42,10 +42,11 @@ pub(super) fn bins_from_zero(set: &TransientSet, solver: &str) -> Result<usize, 
     Ok((axis.end() / axis.width - 1e-9).ceil() as usize)
 }
 
-/// Every pair of `set` in its cell of `scan`, on `m` bins from path length 0.
-pub(super) fn cube(set: &TransientSet, scan: &PlanarScan, m: usize) -> Vec<f32> {
+/// Every pair of `set` in its cell of `scan`, on `m` bins from path length 0, the
+/// cells weighted by their share of the grid where `relay_weights` says.
+pub(super) fn cube(set: &TransientSet, scan: &PlanarScan, m: usize, relay_weights: bool) -> Vec<f32> {
     let members: Vec<usize> = (0..set.len()).collect();
-    gather_cube(set, &members, scan, 0.0, m)
+    gather_cube(set, &members, scan, 0.0, m, relay_weights)
 }
 
 /// The real FFT (length 2m) of each cell's line of `cube` (`[cell][m]`, cells of an

@@ -32,6 +32,10 @@ pub struct FkSettings {
     /// Distance within which points count as the same grid line, and largest rms
     /// distance from the fitted plane, metres.
     pub grid_tolerance: f64,
+    /// Weigh each measured cell by its share of the grid (its Voronoi cell) when some
+    /// cells are missing, so the sums over cells stay quadratures of the whole
+    /// aperture; `false`: missing cells are zeros and nothing else changes.
+    pub relay_weights: bool,
 }
 
 impl Default for FkSettings {
@@ -39,6 +43,7 @@ impl Default for FkSettings {
         Self {
             falloff: 1.0,
             grid_tolerance: 2e-3,
+            relay_weights: true,
         }
     }
 }
@@ -74,7 +79,7 @@ pub fn fk_frame(
 
     // Weight by path length, then the real FFT along t (padded to 2M), scattered into
     // slices [kt][Y][X] of the laterally padded grid.
-    let mut cube = confocal::cube(set, scan, m);
+    let mut cube = confocal::cube(set, scan, m, settings.relay_weights);
     let weights: Vec<f32> = (0..m)
         .map(|t| ((t as f64 + 0.5) / m as f64).powf(settings.falloff) as f32)
         .collect();

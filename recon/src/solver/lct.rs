@@ -34,6 +34,10 @@ pub struct LctSettings {
     /// Distance within which points count as the same grid line, and largest rms
     /// distance from the fitted plane, metres.
     pub grid_tolerance: f64,
+    /// Weigh each measured cell by its share of the grid (its Voronoi cell) when some
+    /// cells are missing, so the sums over cells stay quadratures of the whole
+    /// aperture; `false`: missing cells are zeros and nothing else changes.
+    pub relay_weights: bool,
 }
 
 impl Default for LctSettings {
@@ -42,6 +46,7 @@ impl Default for LctSettings {
             snr: None,
             falloff: 4.0,
             grid_tolerance: 2e-3,
+            relay_weights: true,
         }
     }
 }
@@ -138,7 +143,7 @@ pub fn lct_frame(
     let w = set.axis().width;
     let m = confocal::bins_from_zero(set, "LCT")?;
     check_memory("LCT", (m + 1) * 4 * nx * ny * 8 + 2 * nx * ny * m * 4)?;
-    let mut cube = confocal::cube(set, scan, m);
+    let mut cube = confocal::cube(set, scan, m, settings.relay_weights);
 
     // Radiometric weight and ℓ → s resampling.
     let resample = Resampling::new(m);

@@ -12,6 +12,7 @@ mod fft;
 mod fk;
 mod frame;
 mod lct;
+mod quadrature;
 mod rsd;
 mod scan;
 
@@ -19,6 +20,7 @@ pub use fbp::{FbpFilter, FbpSettings, PHASOR_PITCHES, fbp, phasor_wavelength, sa
 pub use fk::{FkSettings, fk, fk_frame};
 pub use frame::FrameVolume;
 pub use lct::{LctSettings, VIRTUAL_SCAN_SNR, default_snr, lct, lct_frame};
+pub use quadrature::{REACH_PITCHES, pair_weights, relay_areas};
 pub use rsd::{RsdSettings, rsd, rsd_frame};
 pub use scan::PlanarScan;
 

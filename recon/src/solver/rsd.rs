@@ -44,6 +44,10 @@ pub struct RsdSettings {
     /// `pf_dev`, which balanced near and far objects better on the validation captures:
     /// 0.640 against 0.573 IoU).
     pub spherical_amplitude: bool,
+    /// Weigh each measured cell by its share of the grid (its Voronoi cell) when some
+    /// cells are missing, so the sums over cells stay quadratures of the whole
+    /// aperture; `false`: missing cells are zeros and nothing else changes.
+    pub relay_weights: bool,
 }
 
 impl Default for RsdSettings {
@@ -54,6 +58,7 @@ impl Default for RsdSettings {
             spectral_cutoff: 1e-3,
             grid_tolerance: 2e-3,
             spherical_amplitude: false,
+            relay_weights: true,
         }
     }
 }
@@ -210,7 +215,7 @@ pub fn rsd_frame(
     let mut field = vec![Complex::<f64>::default(); depths * nx * ny];
 
     for (xi, members) in &groups {
-        let cube = gather_cube(set, members, scan, axis.start, bins);
+        let cube = gather_cube(set, members, scan, axis.start, bins, settings.relay_weights);
         // Spectra of every cell's transient at the selected lines, as padded planes.
         let per_cell: Vec<Vec<Complex<f64>>> = cube
             .par_chunks(bins)

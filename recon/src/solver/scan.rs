@@ -124,15 +124,16 @@ fn grid_lines(what: &'static str, values: &[f64], tolerance: f64) -> Result<(f64
 /// new axis of `bins` bins starting at path length `start` (same bin width),
 /// resampled linearly when the axes are offset by a fraction of a bin. A cell measured
 /// more than once gets the mean. A cell never measured stays zero, and when some are
-/// missing every measured cell is weighted by its share of the grid
-/// ([`cell_weights`]), so the solvers' sums over cells stay quadratures of the
-/// integral over the whole aperture.
+/// missing and `relay_weights` is set, every measured cell is weighted by its share of
+/// the grid ([`super::quadrature::cell_weights`]), so the solvers' sums over cells
+/// stay quadratures of the integral over the whole aperture.
 pub(crate) fn gather_cube(
     set: &crate::transient::TransientSet,
     members: &[usize],
     scan: &PlanarScan,
     start: f64,
     bins: usize,
+    relay_weights: bool,
 ) -> Vec<f32> {
     let [nx, ny] = scan.relay.resolution;
     let cell_count = nx * ny;
@@ -162,7 +163,11 @@ pub(crate) fn gather_cube(
         count[cell] += 1;
     }
     let occupied: Vec<bool> = count.iter().map(|&n| n > 0).collect();
-    let share = cell_weights(&occupied, scan.relay.resolution, scan.relay.spacing());
+    let share = if relay_weights {
+        super::quadrature::cell_weights(&occupied, scan.relay.resolution, scan.relay.spacing())
+    } else {
+        occupied.iter().map(|&o| f64::from(u8::from(o))).collect()
+    };
     for (cell, &n) in count.iter().enumerate() {
         let row = &mut cube[cell * bins..(cell + 1) * bins];
         if n > 1 {
@@ -174,96 +179,4 @@ pub(crate) fn gather_cube(
         }
     }
     cube
-}
-
-/// Quadrature weights of a grid's occupied cells: how many of the grid's cells lie
-/// nearest to each (its Voronoi cell, counted in grid cells; a cell equally near to
-/// several shares itself among them). A sum over the occupied cells with these
-/// weights approximates the integral over the whole grid, where zero-filled gaps
-/// would make it an integral over a perforated aperture, with the sidelobes of one.
-/// Every weight is 1 on a full grid, and an empty cell's is 0.
-pub(crate) fn cell_weights(occupied: &[bool], [nx, ny]: [usize; 2], [sx, sy]: [f64; 2]) -> Vec<f64> {
-    let mut weights: Vec<f64> = occupied.iter().map(|&o| f64::from(u8::from(o))).collect();
-    if occupied.iter().all(|&o| o) || !occupied.iter().any(|&o| o) {
-        return weights;
-    }
-    let step = sx.min(sy);
-    let mut nearest = Vec::new();
-    for (cell, _) in occupied.iter().enumerate().filter(|(_, o)| !**o) {
-        let (cx, cy) = ((cell % nx) as isize, (cell / nx) as isize);
-        let mut best = f64::INFINITY;
-        nearest.clear();
-        // Square rings of growing radius, until no nearer cell can lie further out.
-        for r in 1isize.. {
-            if r as f64 * step > best.sqrt() * (1.0 + 1e-9) {
-                break;
-            }
-            for dy in -r..=r {
-                let y = cy + dy;
-                if y < 0 || y >= ny as isize {
-                    continue;
-                }
-                let stride = if dy.abs() == r { 1 } else { 2 * r };
-                let mut dx = -r;
-                while dx <= r {
-                    let x = cx + dx;
-                    if x >= 0 && x < nx as isize && occupied[y as usize * nx + x as usize] {
-                        let d = (dx as f64 * sx).powi(2) + (dy as f64 * sy).powi(2);
-                        let tie = 1e-9 * d;
-                        if d < best - tie {
-                            best = d;
-                            nearest.clear();
-                            nearest.push(y as usize * nx + x as usize);
-                        } else if d <= best + tie {
-                            nearest.push(y as usize * nx + x as usize);
-                        }
-                    }
-                    dx += stride;
-                }
-            }
-        }
-        let part = 1.0 / nearest.len() as f64;
-        for &p in &nearest {
-            weights[p] += part;
-        }
-    }
-    weights
-}
-
-#[cfg(test)]
-mod tests {
-    use super::cell_weights;
-
-    #[test]
-    fn a_full_grid_weighs_one_and_the_weights_cover_the_grid() {
-        assert_eq!(cell_weights(&[true; 12], [4, 3], [0.1, 0.1]), vec![1.0; 12]);
-        assert_eq!(cell_weights(&[false; 6], [3, 2], [0.1, 0.1]), vec![0.0; 6]);
-        // Scattered cells of a 20 x 15 grid: the weights add up to the grid.
-        let occupied: Vec<bool> = (0..300).map(|c: usize| (c * c * 31 + c * 7) % 7 < 3).collect();
-        let w = cell_weights(&occupied, [20, 15], [0.03, 0.02]);
-        assert!((w.iter().sum::<f64>() - 300.0).abs() < 1e-9);
-        for (c, (&o, &w)) in occupied.iter().zip(&w).enumerate() {
-            assert!(
-                if o { w >= 1.0 } else { w == 0.0 },
-                "cell {c}: occupied {o}, weight {w}"
-            );
-        }
-    }
-
-    #[test]
-    fn a_hole_goes_to_its_nearest_cells() {
-        // The centre of a 3 x 3 grid is missing: its four edge neighbours are nearer
-        // than the corners and share it.
-        let mut occupied = [true; 9];
-        occupied[4] = false;
-        let w = cell_weights(&occupied, [3, 3], [1.0, 1.0]);
-        assert_eq!(w, vec![1.0, 1.25, 1.0, 1.25, 0.0, 1.25, 1.0, 1.25, 1.0]);
-        // Columns closer than rows: the row's two neighbours take it.
-        let w = cell_weights(&occupied, [3, 3], [1.0, 2.0]);
-        assert_eq!(w, vec![1.0, 1.0, 1.0, 1.5, 0.0, 1.5, 1.0, 1.0, 1.0]);
-        // A missing corner and its row: the nearest cell of each, further out.
-        let occupied = [false, false, false, true, true, true, true, true, true];
-        let w = cell_weights(&occupied, [3, 3], [1.0, 1.0]);
-        assert_eq!(w, vec![0.0, 0.0, 0.0, 2.0, 2.0, 2.0, 1.0, 1.0, 1.0]);
-    }
 }

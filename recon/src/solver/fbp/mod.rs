@@ -2,7 +2,9 @@
 //!
 //! Every voxel x collects, from every pair, the histogram value at its path length
 //! |x − x_i| + |x − x_d| (linearly interpolated between bin centres), optionally times
-//! d_i²·d_d² to undo the radiometric falloff. Two filters:
+//! d_i²·d_d² to undo the radiometric falloff, and times the pair's share of the relay
+//! ([`super::pair_weights`]: 1 on a full grid, the Voronoi cells of scattered points),
+//! so the sum is a quadrature of the integral over the relay. Two filters:
 //! - **Phasor** (the default; Liu et al. 2019's phasor-field virtual wave, as y-tal's
 //!   `fbp`): each histogram is first convolved along path length with a complex
 //!   Gaussian wavelet of wavelength λ, exp(−t²/2σ²)·exp(2πi·t/λ), i.e. band-passed
@@ -68,6 +70,10 @@ pub struct FbpSettings {
     pub wavelength: Option<f64>,
     /// Phasor envelope width σ as a fraction of λ (y-tal's default, 1/√2).
     pub sigma_per_wavelength: f64,
+    /// Weigh each pair by its share of the relay ([`super::pair_weights`]: 1 on a full
+    /// grid, Voronoi cells of scattered or perforated samples); `false`: every pair
+    /// alike.
+    pub relay_weights: bool,
 }
 
 impl Default for FbpSettings {
@@ -77,6 +83,7 @@ impl Default for FbpSettings {
             falloff: 1.0,
             wavelength: None,
             sigma_per_wavelength: std::f64::consts::FRAC_1_SQRT_2,
+            relay_weights: true,
         }
     }
 }
@@ -215,6 +222,24 @@ pub fn fbp(set: &TransientSet, grid: &VolumeGrid, settings: &FbpSettings) -> Res
     if set.is_empty() {
         return Err(SolverError::Empty);
     }
+    // Each pair's share of the relay integral: 1 on full grids, the Voronoi cells of
+    // scattered or perforated samples.
+    let quadrature = settings
+        .relay_weights
+        .then(|| super::quadrature::pair_weights(set.pairs()))
+        .flatten();
+    if let Some(q) = &quadrature {
+        let (lo, hi) = q
+            .iter()
+            .fold((f64::INFINITY, 0.0f64), |(lo, hi), &w| (lo.min(w), hi.max(w)));
+        tracing::info!(
+            pairs = q.len(),
+            smallest = lo,
+            largest = hi,
+            "FBP weighs each pair by its share of the relay (mean 1; [fbp] relay-weights = false turns this off)"
+        );
+    }
+    let weight = |p: usize| set.weight(p) * quadrature.as_ref().map_or(1.0, |q| q[p] as f32);
     if settings.filter == FbpFilter::Phasor {
         let lambda = phasor_wavelength(set, settings);
         let sigma = settings.sigma_per_wavelength * lambda;
@@ -226,7 +251,7 @@ pub fn fbp(set: &TransientSet, grid: &VolumeGrid, settings: &FbpSettings) -> Res
         let hists: Vec<Vec<f32>> = (0..set.len())
             .into_par_iter()
             .map(|p| {
-                let w = set.weight(p);
+                let w = weight(p);
                 let h: Vec<f32> = set.histogram(p).iter().map(|v| v * w).collect();
                 filter.apply(&h)
             })
@@ -237,7 +262,7 @@ pub fn fbp(set: &TransientSet, grid: &VolumeGrid, settings: &FbpSettings) -> Res
     }
     let hists: Vec<Vec<f32>> = (0..set.len())
         .map(|p| {
-            let w = set.weight(p);
+            let w = weight(p);
             set.histogram(p).iter().map(|v| v * w).collect()
         })
         .collect();
@@ -611,12 +636,14 @@ mod tests {
 
     /// The plain backprojection of `set` agrees with the f64 reference to single
     /// precision (2e-5 of the volume's peak) for each falloff path: the root product
-    /// (1), the squares (2), none (0) and `powf` (1.5).
+    /// (1), the squares (2), none (0) and `powf` (1.5). Every pair weighs alike here
+    /// (the quadrature weights have tests of their own).
     fn agrees_with_the_reference(set: &TransientSet, grid: &VolumeGrid) {
         for falloff in [1.0, 2.0, 0.0, 1.5] {
             let settings = FbpSettings {
                 filter: FbpFilter::None,
                 falloff,
+                relay_weights: false,
                 ..FbpSettings::default()
             };
             let got = fbp(set, grid, &settings).unwrap();
