@@ -555,7 +555,8 @@ impl Service {
     pub fn resume(&self, id: &str) -> Result<RunStatus, ServiceError> {
         // run.json is read under the lock: the worker and other requests change it
         // under the same lock, so the state checked is the state changed.
-        let mut s = self.lock();
+        let s = self.lock();
+        let mut s = self.await_hand_back(s, id);
         let info = self.info(id)?;
         if s.current.as_ref().is_some_and(|(c, _)| c == id) {
             return Err(ServiceError::Conflict(format!(
@@ -581,10 +582,35 @@ impl Service {
         self.status(id)
     }
 
+    /// Waits (at most [`HAND_BACK_WAIT`]) while run `id` is still the worker's current
+    /// run but has already written a final or paused state: the pipeline records its
+    /// state on its way out, before the worker takes the lock to let the run go. A
+    /// request in that gap saw the run `paused` in its status yet was refused as
+    /// running (resume), or was sent to a pipeline that had already stopped and lost
+    /// (abort).
+    fn await_hand_back<'a>(&'a self, mut s: MutexGuard<'a, Shared>, id: &str) -> MutexGuard<'a, Shared> {
+        let deadline = Instant::now() + HAND_BACK_WAIT;
+        while s.current.as_ref().is_some_and(|(c, _)| c == id)
+            && self
+                .info(id)
+                .is_ok_and(|i| !matches!(i.state, RunState::Running | RunState::Queued))
+            && Instant::now() < deadline
+        {
+            s = self
+                .wake
+                .wait_timeout(s, Duration::from_millis(5))
+                .unwrap_or_else(|p| p.into_inner())
+                .0;
+        }
+        s
+    }
+
     /// Aborts a run: a running one at its next checkpoint (the instrument is made safe
     /// and what was captured is kept), a queued or paused one at once.
     pub fn abort(&self, id: &str) -> Result<RunStatus, ServiceError> {
-        let mut s = self.lock();
+        let s = self.lock();
+        // A run that has already stopped at a checkpoint would not see the request.
+        let mut s = self.await_hand_back(s, id);
         let info = self.info(id)?;
         if let Some((c, control)) = &s.current
             && c == id
@@ -1122,6 +1148,10 @@ fn hold_interrupted(dir: &Path, id: &str, info: &mut RunInfo) -> Result<(), Serv
 /// before it opens the controllers itself.
 const ESTOP_RUN_WAIT: Duration = Duration::from_secs(2);
 
+/// How long a resume or abort waits for a run that has stopped at its checkpoint to be
+/// handed back by the worker ([`Service::await_hand_back`]).
+const HAND_BACK_WAIT: Duration = Duration::from_secs(5);
+
 /// What `GET /api/v1/instrument` reports: the worker's last reading of the devices,
 /// never a fresh one.
 #[derive(Clone, Debug, Serialize, ToSchema)]
@@ -1237,5 +1267,64 @@ pub fn state_name(s: RunState) -> &'static str {
         RunState::Completed => "completed",
         RunState::Aborted => "aborted",
         RunState::Failed => "failed",
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The service on the shipped simulated instrument, its runs in `runs`, no worker.
+    fn service(runs: &Path) -> Arc<Service> {
+        let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../configs/instrument/sim.toml");
+        let mut text = std::fs::read_to_string(&path).unwrap();
+        text.push_str(&format!("\n[api]\nruns-dir = \"{}\"\n", runs.display()));
+        Service::open(TomlSource::from_text(path, text), None).unwrap()
+    }
+
+    /// Run `id` as the pipeline leaves it when it stops at a checkpoint: its state
+    /// (`state`) written, still the worker's current run; the worker takes it back
+    /// after `delay`.
+    fn stopping(
+        svc: &Arc<Service>,
+        id: &str,
+        state: RunState,
+        delay: Duration,
+    ) -> std::thread::JoinHandle<()> {
+        svc.set_state(id, state, None).unwrap();
+        let control = Control::new();
+        svc.lock().current = Some((id.to_owned(), control));
+        let svc = Arc::clone(svc);
+        std::thread::spawn(move || {
+            std::thread::sleep(delay);
+            let mut s = svc.lock();
+            s.current = None;
+            svc.wake.notify_all();
+        })
+    }
+
+    #[test]
+    fn a_run_paused_at_its_checkpoint_resumes_and_aborts_while_the_worker_lets_it_go() {
+        let dir = tempfile::tempdir().unwrap();
+        let svc = service(dir.path());
+        let plan = include_str!("../../../tests/data/plans/small-fbp.toml");
+        let id = svc.submit(plan.to_owned()).unwrap().id;
+        // Resume in the gap: queued again, not refused as running.
+        let worker = stopping(&svc, &id, RunState::Paused, Duration::from_millis(100));
+        let st = svc.resume(&id).unwrap();
+        assert_eq!(st.state, RunState::Queued);
+        worker.join().unwrap();
+        // Abort in the gap: the paused run is aborted, not left paused.
+        let worker = stopping(&svc, &id, RunState::Paused, Duration::from_millis(100));
+        let st = svc.abort(&id).unwrap();
+        assert_eq!(st.state, RunState::Aborted);
+        worker.join().unwrap();
+        // A run still running is refused at once, whatever the worker does.
+        let id = svc.submit(plan.to_owned()).unwrap().id;
+        let worker = stopping(&svc, &id, RunState::Running, Duration::from_millis(300));
+        let t = Instant::now();
+        assert!(matches!(svc.resume(&id), Err(ServiceError::Conflict(_))));
+        assert!(t.elapsed() < Duration::from_millis(250));
+        worker.join().unwrap();
     }
 }
