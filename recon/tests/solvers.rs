@@ -166,6 +166,18 @@ fn plate([x0, x1]: [f64; 2], [y0, y1]: [f64; 2], z: f64) -> Vec<(DVec3, f64)> {
         .collect()
 }
 
+/// Three bars 5 cm wide and 5 cm apart (the strokes of a letter), `[x0, x1] × [y0, y1]`.
+const BARS: [([f64; 2], [f64; 2]); 3] = [
+    ([-0.15, -0.1], [-0.15, 0.15]),
+    ([-0.05, 0.0], [-0.15, 0.15]),
+    ([0.05, 0.1], [-0.15, 0.15]),
+];
+
+/// [`BARS`] as plates of point scatterers 0.5 m from the wall.
+fn bar_points() -> Vec<(DVec3, f64)> {
+    BARS.iter().flat_map(|(x, y)| plate(*x, *y, 0.5)).collect()
+}
+
 /// The x-y voxels above half the maximum projection's peak, and their overlap with
 /// the rectangles `[x0, x1] × [y0, y1]` as intersection over union.
 fn half_max_iou(volume: &Volume, rects: &[([f64; 2], [f64; 2])]) -> f64 {
@@ -198,14 +210,9 @@ fn lct_images_bars_at_their_size() {
     // wall sampled 32 × 32 (3.1 cm): the half-maximum footprint of LCT's image against
     // the bars, on 2.5 cm voxels (measured 0.64 with the cone integrated over each
     // cell; 0.51 with it sampled at cell centres).
-    let bars = [
-        ([-0.15, -0.1], [-0.15, 0.15]),
-        ([-0.05, 0.0], [-0.15, 0.15]),
-        ([0.05, 0.1], [-0.15, 0.15]),
-    ];
+    let (bars, points) = (BARS, bar_points());
     let relay = wall(32);
     let mut set = TransientSet::new(axis()).unwrap();
-    let points: Vec<_> = bars.iter().flat_map(|(x, y)| plate(*x, *y, 0.5)).collect();
     scatter(&mut set, &confocal_pairs(&relay), &points);
     let iou = half_max_iou(&lct(&set, &grid(), &LctSettings::default()).unwrap(), &bars);
     eprintln!("bars footprint IoU: LCT {iou:.3}");
@@ -594,12 +601,7 @@ fn grid_solvers_weigh_the_cells_of_a_perforated_grid() {
     // test, seeds 0-2: RSD 0.977-0.989 zero-filled against 0.988-0.994 weighted, f-k
     // 0.990-0.998 against 0.998-0.999). LCT's Wiener filter lifts its peak: 1.08-1.12.
     // Seeds 0 and 1 run here.
-    let bars = [
-        ([-0.15, -0.1], [-0.15, 0.15]),
-        ([-0.05, 0.0], [-0.15, 0.15]),
-        ([0.05, 0.1], [-0.15, 0.15]),
-    ];
-    let points: Vec<_> = bars.iter().flat_map(|(x, y)| plate(*x, *y, 0.5)).collect();
+    let points = bar_points();
     let relay = wall(32);
     let laser = DVec3::ZERO;
     let nonconfocal: Vec<Pair> = relay
@@ -667,12 +669,7 @@ fn fbp_weighs_unevenly_scattered_points_by_their_share_of_the_relay() {
     // grid's image 0.914 and 0.883, half-maximum IoU 0.910 and 0.744; unweighted
     // 0.835 and 0.834, 0.650 and 0.624.
     use rand::{Rng, SeedableRng};
-    let bars = [
-        ([-0.15, -0.1], [-0.15, 0.15]),
-        ([-0.05, 0.0], [-0.15, 0.15]),
-        ([0.05, 0.1], [-0.15, 0.15]),
-    ];
-    let points: Vec<_> = bars.iter().flat_map(|(x, y)| plate(*x, *y, 0.5)).collect();
+    let (bars, points) = (BARS, bar_points());
     let g = grid();
     let mut full = TransientSet::new(axis()).unwrap();
     scatter(&mut full, &confocal_pairs(&wall(32)), &points);
