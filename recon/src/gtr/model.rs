@@ -346,14 +346,9 @@ impl GaussianCloud {
     /// resets any that collapsed to zero to the identity.
     pub fn renormalise_rotations(&mut self) {
         use rayon::prelude::*;
-        self.rotations.par_chunks_exact_mut(4).for_each(|r| {
-            let n = r.iter().map(|v| v * v).sum::<f64>().sqrt();
-            if n.is_finite() && n > 1e-12 {
-                r.iter_mut().for_each(|v| *v /= n);
-            } else {
-                r.copy_from_slice(&[1.0, 0.0, 0.0, 0.0]);
-            }
-        });
+        self.rotations
+            .par_chunks_exact_mut(4)
+            .for_each(super::optim::renormalise);
     }
 
     /// Keeps only the primitives for which `keep(k)` is true.

@@ -5,8 +5,8 @@ use serde::{Deserialize, Serialize};
 
 use super::model::{GaussianCloud, RawGrads};
 
-/// Parameters per parallel work item of an update.
-const PARALLEL_CHUNK: usize = 8192;
+/// Primitives per parallel work item of an update (eight at the default 2,000).
+const PRIMITIVE_CHUNK: usize = 256;
 
 /// Learning rate and decoupled weight decay of one parameter group.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
@@ -101,6 +101,33 @@ impl Schedule {
     }
 }
 
+/// Entries per primitive of each group: centres, scales, rotations, albedo.
+const WIDTHS: [usize; 4] = [3, 3, 4, 1];
+
+/// The rotations' group.
+const ROTATIONS: usize = 2;
+
+/// One group's arrays for one chunk of primitives, as an update reads and writes them.
+struct GroupChunk<'a> {
+    params: &'a mut [f64],
+    grad: &'a [f64],
+    m: &'a mut [f64],
+    v: &'a mut [f64],
+    /// The running mean's entries, when iterates are averaged.
+    mean: Option<&'a mut [f64]>,
+}
+
+/// A raw quaternion back to unit length (after an optimiser step), or the identity
+/// where it collapsed to zero.
+pub(crate) fn renormalise(r: &mut [f64]) {
+    let n = r.iter().map(|v| v * v).sum::<f64>().sqrt();
+    if n.is_finite() && n > 1e-12 {
+        r.iter_mut().for_each(|v| *v /= n);
+    } else {
+        r.copy_from_slice(&[1.0, 0.0, 0.0, 0.0]);
+    }
+}
+
 #[derive(Clone, Debug, Default)]
 struct Moments {
     m: Vec<f64>,
@@ -184,52 +211,122 @@ impl AdamW {
     /// not finite are treated as zero for that entry, so a degenerate pair can never
     /// poison the parameters; returns how many such entries were skipped.
     pub fn step(&mut self, cloud: &mut GaussianCloud, grads: &RawGrads, factor: f64) -> usize {
+        self.step_averaged(cloud, grads, factor, None)
+    }
+
+    /// [`AdamW::step`], then, with `mean = Some((mean, n))`, adds the updated cloud to
+    /// the running mean of the last `n` iterates (`mean += (cloud − mean)/n`, entry by
+    /// entry; `mean` has the cloud's layout). One parallel pass over chunks of
+    /// primitives does the update, the rotations' renormalisation and the mean, so
+    /// every thread has work throughout. Element by element, so neither the split nor
+    /// the thread count changes the result.
+    pub fn step_averaged(
+        &mut self,
+        cloud: &mut GaussianCloud,
+        grads: &RawGrads,
+        factor: f64,
+        mean: Option<(&mut GaussianCloud, usize)>,
+    ) -> usize {
         self.t += 1;
         let s = self.settings;
         let bc1 = 1.0 - s.beta1.powi(self.t.min(i32::MAX as u64) as i32);
         let bc2 = 1.0 - s.beta2.powi(self.t.min(i32::MAX as u64) as i32);
-        let groups = [
-            (&mut cloud.centres, &grads.centres, s.centres),
-            (&mut cloud.scales, &grads.scales, s.scales),
-            (&mut cloud.rotations, &grads.rotations, s.rotations),
-            (&mut cloud.albedo, &grads.albedo, s.albedo),
+        let settings = [s.centres, s.scales, s.rotations, s.albedo];
+        let params = [
+            &mut cloud.centres,
+            &mut cloud.scales,
+            &mut cloud.rotations,
+            &mut cloud.albedo,
         ];
-        let mut skipped = 0;
-        for ((params, grad, group), moments) in groups.into_iter().zip(self.moments.iter_mut()) {
+        let grads = [&grads.centres, &grads.scales, &grads.rotations, &grads.albedo];
+        for (moments, params) in self.moments.iter_mut().zip(&params) {
             if moments.m.len() != params.len() {
                 moments.m = vec![0.0; params.len()];
                 moments.v = vec![0.0; params.len()];
             }
-            let lr = group.lr * factor;
-            // Element-wise, so the parallel split cannot change the result.
-            skipped += params
-                .par_chunks_mut(PARALLEL_CHUNK)
-                .zip(grad.par_chunks(PARALLEL_CHUNK))
-                .zip(moments.m.par_chunks_mut(PARALLEL_CHUNK))
-                .zip(moments.v.par_chunks_mut(PARALLEL_CHUNK))
-                .map(|(((params, grad), m), v)| {
-                    crate::simd::dispatch(AdamChunk {
+        }
+        let (mean, w) = match mean {
+            Some((mean, n)) => (Some(mean), 1.0 / n.max(1) as f64),
+            None => (None, 0.0),
+        };
+        // Every group's arrays cut at the same primitives: chunk c of group g holds
+        // primitives c·PRIMITIVE_CHUNK.. of it, WIDTHS[g] entries each.
+        let mut chunks: Vec<[Option<GroupChunk<'_>>; 4]> = Vec::new();
+        let means = match mean {
+            Some(m) => [
+                Some(&mut m.centres),
+                Some(&mut m.scales),
+                Some(&mut m.rotations),
+                Some(&mut m.albedo),
+            ],
+            None => [None, None, None, None],
+        };
+        let groups = params.into_iter().zip(grads).zip(&mut self.moments).zip(means);
+        for (g, (((params, grad), moments), mean)) in groups.enumerate() {
+            let width = WIDTHS[g] * PRIMITIVE_CHUNK;
+            let mut mean = mean.map(|m| m.chunks_mut(width));
+            let parts = params
+                .chunks_mut(width)
+                .zip(grad.chunks(width))
+                .zip(moments.m.chunks_mut(width))
+                .zip(moments.v.chunks_mut(width));
+            for (c, (((params, grad), m), v)) in parts.enumerate() {
+                if chunks.len() <= c {
+                    chunks.push([None, None, None, None]);
+                }
+                chunks[c][g] = Some(GroupChunk {
+                    params,
+                    grad,
+                    m,
+                    v,
+                    mean: mean.as_mut().and_then(Iterator::next),
+                });
+            }
+        }
+        chunks
+            .into_par_iter()
+            .map(|groups| {
+                let mut skipped = 0;
+                for (g, chunk) in groups.into_iter().enumerate() {
+                    let Some(GroupChunk {
                         params,
+                        grad,
+                        m,
+                        v,
+                        mean,
+                    }) = chunk
+                    else {
+                        continue;
+                    };
+                    skipped += crate::simd::dispatch(AdamChunk {
+                        params: &mut *params,
                         grad,
                         m,
                         v,
                         beta: (s.beta1, s.beta2),
                         bias: (bc1, bc2),
                         eps: s.eps,
-                        lr,
-                        weight_decay: group.weight_decay,
-                    })
-                })
-                .sum::<usize>();
-        }
-        cloud.renormalise_rotations();
-        skipped
+                        lr: settings[g].lr * factor,
+                        weight_decay: settings[g].weight_decay,
+                    });
+                    if g == ROTATIONS {
+                        params.chunks_exact_mut(4).for_each(renormalise);
+                    }
+                    if let Some(mean) = mean {
+                        mean.iter_mut()
+                            .zip(&*params)
+                            .for_each(|(m, x)| *m += (x - *m) * w);
+                    }
+                }
+                skipped
+            })
+            .sum()
     }
 
     /// Forgets the moments of primitive `k`, as for a primitive just placed: its
     /// next updates start from zero momentum instead of the history of what was there.
     pub fn reset(&mut self, k: usize) {
-        for (moments, width) in self.moments.iter_mut().zip([3, 3, 4, 1]) {
+        for (moments, width) in self.moments.iter_mut().zip(WIDTHS) {
             if moments.m.len() >= width * (k + 1) {
                 moments.m[width * k..width * (k + 1)].fill(0.0);
                 moments.v[width * k..width * (k + 1)].fill(0.0);
@@ -241,7 +338,7 @@ impl AdamW {
     /// [`GaussianCloud::retain`]), so optimisation can continue after pruning.
     pub fn retain(&mut self, n: usize, keep: impl Fn(usize) -> bool) {
         let kept: Vec<usize> = (0..n).filter(|&k| keep(k)).collect();
-        for (moments, width) in self.moments.iter_mut().zip([3, 3, 4, 1]) {
+        for (moments, width) in self.moments.iter_mut().zip(WIDTHS) {
             if moments.m.len() != n * width {
                 continue;
             }
@@ -258,7 +355,139 @@ impl AdamW {
 
 #[cfg(test)]
 mod tests {
+    use glam::{DQuat, DVec3};
+    use rand::{Rng, SeedableRng};
+    use rand_chacha::ChaCha8Rng;
+
     use super::*;
+    use crate::gtr::model::{Primitive, ScaleBounds};
+    use crate::roi::RoiBox;
+
+    /// The update as written in the paper, one entry at a time, for comparison.
+    fn reference_update(
+        p: &mut f64,
+        g: f64,
+        m: &mut f64,
+        v: &mut f64,
+        s: &AdamWSettings,
+        group: GroupSettings,
+        t: i32,
+        factor: f64,
+    ) -> bool {
+        if !g.is_finite() {
+            return false;
+        }
+        *m = s.beta1 * *m + (1.0 - s.beta1) * g;
+        *v = s.beta2 * *v + (1.0 - s.beta2) * g * g;
+        let update = (*m / (1.0 - s.beta1.powi(t))) / ((*v / (1.0 - s.beta2.powi(t))).sqrt() + s.eps);
+        *p -= group.lr * factor * (update + group.weight_decay * *p);
+        true
+    }
+
+    /// Three chunks of primitives and a partial one, a non-finite gradient entry, a
+    /// rotation pushed to zero, weight decay and the running mean: the chunked
+    /// parallel update gives the entry-by-entry reference's bits.
+    #[test]
+    fn the_chunked_step_is_the_entrywise_update() {
+        let mut rng = ChaCha8Rng::seed_from_u64(5);
+        let roi = RoiBox::from_bounds(DVec3::new(-0.5, -0.5, 0.2), DVec3::new(0.5, 0.5, 1.0)).unwrap();
+        let mut cloud = GaussianCloud::new(roi, ScaleBounds { min: 1e-3, max: 0.2 }).unwrap();
+        let n = 3 * PRIMITIVE_CHUNK + 17;
+        for _ in 0..n {
+            cloud
+                .push(Primitive {
+                    centre: DVec3::new(rng.random_range(-0.4..0.4), rng.random_range(-0.4..0.4), 0.6),
+                    scale: DVec3::splat(rng.random_range(0.01..0.05)),
+                    rotation: DQuat::from_rotation_z(rng.random_range(0.0..3.0)),
+                    albedo: rng.random_range(0.1..2.0),
+                })
+                .unwrap();
+        }
+        let mut settings = AdamWSettings::default();
+        settings.scales.weight_decay = 0.01;
+        let random = |len: usize, rng: &mut ChaCha8Rng| -> Vec<f64> {
+            (0..len).map(|_| rng.random_range(-1.0..1.0)).collect()
+        };
+        let mut adam = AdamW::new(settings);
+        let mut want = cloud.clone();
+        let mut moments = [
+            (vec![0.0; 3 * n], vec![0.0; 3 * n]),
+            (vec![0.0; 3 * n], vec![0.0; 3 * n]),
+            (vec![0.0; 4 * n], vec![0.0; 4 * n]),
+            (vec![0.0; n], vec![0.0; n]),
+        ];
+        let mut mean = cloud.clone();
+        let mut want_mean = cloud.clone();
+        for step in 1..=3 {
+            let mut grads = RawGrads {
+                centres: random(3 * n, &mut rng),
+                scales: random(3 * n, &mut rng),
+                rotations: random(4 * n, &mut rng),
+                albedo: random(n, &mut rng),
+            };
+            grads.centres[7] = f64::NAN;
+            grads.albedo[PRIMITIVE_CHUNK + 3] = f64::INFINITY;
+            if step == 1 {
+                // Rotation 600 collapses to zero (no gradient, no momentum yet): it
+                // becomes the identity.
+                let q = &want.rotations[4 * 600..4 * 601];
+                grads.rotations[4 * 600..4 * 601]
+                    .iter_mut()
+                    .zip(q)
+                    .for_each(|(g, _)| *g = 0.0);
+                cloud.rotations[4 * 600..4 * 601].fill(0.0);
+                want.rotations[4 * 600..4 * 601].fill(0.0);
+            }
+            let factor = 0.5 + 0.25 * step as f64;
+            let skipped = adam.step_averaged(&mut cloud, &grads, factor, Some((&mut mean, step)));
+            let mut want_skipped = 0;
+            let groups = [
+                (&mut want.centres, &grads.centres, settings.centres),
+                (&mut want.scales, &grads.scales, settings.scales),
+                (&mut want.rotations, &grads.rotations, settings.rotations),
+                (&mut want.albedo, &grads.albedo, settings.albedo),
+            ];
+            for ((params, grad, group), (m, v)) in groups.into_iter().zip(&mut moments) {
+                for i in 0..params.len() {
+                    if !reference_update(
+                        &mut params[i],
+                        grad[i],
+                        &mut m[i],
+                        &mut v[i],
+                        &settings,
+                        group,
+                        step as i32,
+                        factor,
+                    ) {
+                        want_skipped += 1;
+                    }
+                }
+            }
+            want.renormalise_rotations();
+            let w = 1.0 / step as f64;
+            for (m, x) in [
+                (&mut want_mean.centres, &want.centres),
+                (&mut want_mean.scales, &want.scales),
+                (&mut want_mean.rotations, &want.rotations),
+                (&mut want_mean.albedo, &want.albedo),
+            ] {
+                m.iter_mut().zip(x).for_each(|(m, x)| *m += (x - *m) * w);
+            }
+            assert_eq!(skipped, want_skipped, "step {step}");
+            let bits = |c: &GaussianCloud| -> Vec<u64> {
+                [&c.centres, &c.scales, &c.rotations, &c.albedo]
+                    .into_iter()
+                    .flatten()
+                    .map(|v| v.to_bits())
+                    .collect()
+            };
+            assert_eq!(bits(&cloud), bits(&want), "step {step}");
+            assert_eq!(bits(&mean), bits(&want_mean), "step {step}");
+            if step == 1 {
+                assert_eq!(&cloud.rotations[4 * 600..4 * 601], &[1.0, 0.0, 0.0, 0.0]);
+            }
+        }
+    }
 
     #[test]
     fn schedule_warms_up_then_decays_at_milestones() {

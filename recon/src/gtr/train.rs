@@ -629,25 +629,19 @@ impl Trainer {
                 self.epochs_done,
                 self.config.counted_epochs(self.data.len()),
             );
-            let skipped = self.adam.step(&mut self.cloud, &self.grads, factor);
+            let mean = self.average.as_mut().map(|(mean, n)| {
+                *n += 1;
+                (mean, *n)
+            });
+            let skipped = self
+                .adam
+                .step_averaged(&mut self.cloud, &self.grads, factor, mean);
             if skipped > 0 {
                 tracing::warn!(
                     skipped,
                     step = self.step,
                     "non-finite gradient entries were skipped"
                 );
-            }
-            if let Some((mean, n)) = &mut self.average {
-                *n += 1;
-                let w = 1.0 / *n as f64;
-                for (m, x) in [
-                    (&mut mean.centres, &self.cloud.centres),
-                    (&mut mean.scales, &self.cloud.scales),
-                    (&mut mean.rotations, &self.cloud.rotations),
-                    (&mut mean.albedo, &self.cloud.albedo),
-                ] {
-                    m.iter_mut().zip(x).for_each(|(m, x)| *m += (x - *m) * w);
-                }
             }
             self.step += 1;
             total += loss;
