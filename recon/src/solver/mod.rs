@@ -16,7 +16,10 @@ mod quadrature;
 mod rsd;
 mod scan;
 
-pub use fbp::{FbpFilter, FbpSettings, PHASOR_PITCHES, fbp, phasor_wavelength, sampling_pitch};
+pub use fbp::{
+    FbpFilter, FbpSettings, PHASOR_PITCHES, SIGMA_PER_WAVELENGTH, VIRTUAL_SCAN_SIGMA_PER_WAVELENGTH, fbp,
+    phasor_wavelength, sampling_pitch,
+};
 pub use fk::{FkSettings, fk, fk_frame};
 pub use frame::FrameVolume;
 pub use lct::{LctSettings, VIRTUAL_SCAN_SNR, default_snr, lct, lct_frame};
@@ -85,10 +88,16 @@ pub struct SolverSettings {
 
 impl SolverSettings {
     /// These settings for the virtual confocal scan 3D-GTR synthesises: LCT's `snr`,
-    /// when not set, is [`VIRTUAL_SCAN_SNR`] instead of [`default_snr`]'s.
+    /// when not set, is [`VIRTUAL_SCAN_SNR`] instead of [`default_snr`]'s, and FBP's
+    /// `sigma-per-wavelength` is [`VIRTUAL_SCAN_SIGMA_PER_WAVELENGTH`] instead of
+    /// [`SIGMA_PER_WAVELENGTH`].
     pub fn for_virtual_scan(&self) -> SolverSettings {
         let mut s = self.clone();
         s.lct.snr = s.lct.snr.or(Some(VIRTUAL_SCAN_SNR));
+        s.fbp.sigma_per_wavelength = s
+            .fbp
+            .sigma_per_wavelength
+            .or(Some(VIRTUAL_SCAN_SIGMA_PER_WAVELENGTH));
         s
     }
 
