@@ -182,3 +182,99 @@ fn y_tal_reads_our_export() {
     );
     assert_eq!(ours.flags.as_ref().map(Vec::len), Some(ours.len()));
 }
+
+/// The falloff a point-source laser at `laser` gives illumination point `i` of `c`.
+fn point_source_irradiance(c: &YtalCapture, laser: glam::DVec3, i: usize) -> f64 {
+    let (x, n) = (c.laser_grid.points[i], c.laser_grid.normals[i]);
+    let d = laser - x;
+    d.dot(n) / d.length().powi(3)
+}
+
+#[test]
+fn a_rendered_captures_point_source_laser_falloff_is_divided_out() {
+    use periscope_daemon::capture::{Capture, CaptureError};
+    use periscope_daemon::plan::LaserFalloff;
+
+    // The confocal fixture, lit as a renderer's point-source laser would light it:
+    // each transient times cos θ / d² from the laser origin, and `scene_info` naming
+    // a renderer.
+    let file = "tests/data/ytal/confocal_xy.hdf5";
+    let plain = YtalCapture::read(&repo_path(file)).unwrap();
+    let laser = plain.laser_xyz.expect("the fixture records its laser");
+    let mut rendered = plain.clone();
+    let n = rendered.len();
+    for (k, v) in rendered.h.iter_mut().enumerate() {
+        *v = (f64::from(*v) * point_source_irradiance(&plain, laser, k % n)) as f32;
+    }
+    rendered.scene_info = Some("renderer: a point-source test renderer\n".into());
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("rendered.hdf5");
+    rendered.write(&path).unwrap();
+
+    let volume = plain.default_volume().unwrap();
+    let open = |p: &Path| Capture::open(p).unwrap();
+    let original = open(&repo_path(file))
+        .transients(&volume, LaserFalloff::Auto)
+        .unwrap();
+    assert!(
+        original.falloff.is_none(),
+        "a capture that names no renderer is taken as measured"
+    );
+    let compensated = open(&path).transients(&volume, LaserFalloff::Auto).unwrap();
+    let applied = compensated
+        .falloff
+        .as_ref()
+        .expect("auto compensates a rendered, scanned laser");
+    assert_eq!(applied.laser, laser.as_vec3().as_dvec3());
+    assert!(
+        applied.why.contains("a point-source test renderer"),
+        "{}",
+        applied.why
+    );
+    let kept = open(&path).transients(&volume, LaserFalloff::None).unwrap();
+    assert!(kept.falloff.is_none());
+
+    // Pair by pair, the ratio to the original transients: one constant once the
+    // falloff is divided out (the mean factor), spread as the falloff otherwise.
+    let ratios = |t: &periscope_daemon::capture::Transients| {
+        let mut r = Vec::new();
+        for i in 0..t.set.len() {
+            let (a, b) = (t.set.histogram(i), original.set.histogram(i));
+            let peak = (0..b.len()).max_by(|&x, &y| b[x].total_cmp(&b[y])).unwrap();
+            r.push(f64::from(a[peak]) / f64::from(b[peak]));
+        }
+        let (lo, hi) = r
+            .iter()
+            .fold((f64::INFINITY, 0.0f64), |(l, h), &v| (l.min(v), h.max(v)));
+        hi / lo
+    };
+    assert!(ratios(&compensated) < 1.0 + 1e-5, "{}", ratios(&compensated));
+    assert!(
+        ratios(&kept) > 1.2,
+        "the test's falloff should vary: {}",
+        ratios(&kept)
+    );
+    assert!(applied.range.1 / applied.range.0 > 1.2, "{:?}", applied.range);
+
+    // Forced on a capture that records no laser origin: refused, naming file and key.
+    let mut anonymous = rendered.clone();
+    anonymous.laser_xyz = None;
+    let bare = dir.path().join("no-laser.hdf5");
+    anonymous.write(&bare).unwrap();
+    let err = open(&bare)
+        .transients(&volume, LaserFalloff::CosInverseSquare)
+        .unwrap_err();
+    assert!(matches!(err, CaptureError::LaserFalloff { .. }), "{err:?}");
+    let msg = err.to_string();
+    assert!(
+        msg.contains("no-laser.hdf5") && msg.contains("laser-falloff") && msg.contains("laser_xyz"),
+        "{msg}"
+    );
+
+    // `periscope recon` says what it did.
+    let config = dir.path().join("fbp.toml");
+    std::fs::write(&config, "method = \"fbp\"\n").unwrap();
+    let out = dir.path().join("out");
+    let stdout = recon(path.to_str().unwrap(), Some(config.to_str().unwrap()), &out);
+    assert!(stdout.contains("laser falloff divided out"), "{stdout}");
+}

@@ -10,7 +10,7 @@ use periscope_recon::transient::{hidden_axis, rebin_path};
 use periscope_recon::{Pair, TimeAxis, TransientError, TransientSet, VolumeGrid};
 
 use crate::config::InstrumentConfig;
-use crate::plan::{Plan, PlannedPair, ReconSettings, default_recon};
+use crate::plan::{LaserFalloff, Plan, PlannedPair, ReconSettings, default_recon};
 use crate::record::{record_axis, record_counts, record_transient};
 use crate::run_dir::{RunDir, RunDirError, file};
 use crate::store::{Record, RunInfo};
@@ -66,6 +66,18 @@ pub enum CaptureError {
         /// Why.
         source: TransientError,
     },
+    /// `laser-falloff = "cos-inverse-square"` on a capture that cannot take it.
+    #[error(
+        "{}: laser-falloff = \"cos-inverse-square\": {reason}; set laser-falloff = \"none\" for a collimated \
+         laser, or \"auto\"",
+        path.display()
+    )]
+    LaserFalloff {
+        /// The capture.
+        path: PathBuf,
+        /// Why.
+        reason: String,
+    },
 }
 
 impl CaptureError {
@@ -87,6 +99,20 @@ pub struct Transients {
     pub viewpoint: DVec3,
     /// Transients left out because their counts are only a lower bound (overflow).
     pub overflowed: usize,
+    /// The laser falloff divided out of the counts, if any.
+    pub falloff: Option<FalloffApplied>,
+}
+
+/// A point-source laser's falloff, divided out of a capture's counts
+/// ([`TransientSet::compensate_laser_falloff`]).
+#[derive(Clone, Debug, PartialEq)]
+pub struct FalloffApplied {
+    /// The laser's origin, metres.
+    pub laser: DVec3,
+    /// The smallest and largest multiplier applied to a histogram.
+    pub range: (f64, f64),
+    /// Why: the setting, or what `auto` saw in the capture.
+    pub why: String,
 }
 
 /// A run's measurements: its state, plan, instrument, planned pairs and the stored
@@ -189,6 +215,7 @@ impl RunCapture {
             detection_points,
             viewpoint: 0.5 * (l + s),
             overflowed,
+            falloff: None,
         })
     }
 
@@ -307,6 +334,14 @@ pub enum Capture {
 }
 
 impl Capture {
+    /// Where the capture was read from: the run directory or the y-tal file.
+    pub fn path(&self) -> &Path {
+        match self {
+            Capture::Run(run) => &run.dir,
+            Capture::Ytal { path, .. } => path,
+        }
+    }
+
     /// Opens `path`: a run directory, or a y-tal `.hdf5`/`.h5` file.
     pub fn open(path: &Path) -> Result<Capture, CaptureError> {
         if !path.exists() {
@@ -345,23 +380,68 @@ impl Capture {
         }
     }
 
-    /// The transients for `volume`, whichever the source.
-    pub fn transients(&self, volume: &VolumeGrid) -> Result<Transients, CaptureError> {
-        match self {
-            Capture::Run(run) => run.transients(volume),
+    /// The transients for `volume`, whichever the source, with a point-source laser's
+    /// falloff divided out where `falloff` asks for it: `auto` does for a rendered
+    /// y-tal capture whose laser visits more than one point
+    /// ([`YtalCapture::rendered_by`]), and never for a run (its laser is collimated).
+    pub fn transients(&self, volume: &VolumeGrid, falloff: LaserFalloff) -> Result<Transients, CaptureError> {
+        let (mut t, laser, auto_why) = match self {
+            Capture::Run(run) => (
+                run.transients(volume)?,
+                Some(run.instrument.laser_arm.pose.origin),
+                None,
+            ),
             Capture::Ytal { path, capture } => {
                 let set = capture.transients(volume)?;
                 if set.is_empty() {
                     return Err(CaptureError::NothingInWindow(path.clone()));
                 }
-                Ok(Transients {
+                let t = Transients {
                     set,
                     detection_points: capture.sensor_grid.points.clone(),
                     viewpoint: capture.viewpoint(),
                     overflowed: 0,
-                })
+                    falloff: None,
+                };
+                let why = match capture.rendered_by() {
+                    Some(renderer) if capture.laser_grid.points.len() > 1 => Some(format!(
+                        "auto: rendered by {renderer}, whose laser is a point source, and scanned over {} points",
+                        capture.laser_grid.points.len()
+                    )),
+                    _ => None,
+                };
+                (t, capture.laser_xyz, why)
+            }
+        };
+        let why = match falloff {
+            LaserFalloff::None => return Ok(t),
+            LaserFalloff::Auto => match auto_why {
+                Some(why) => why,
+                None => return Ok(t),
+            },
+            LaserFalloff::CosInverseSquare => "laser-falloff = \"cos-inverse-square\"".to_string(),
+        };
+        let path = self.path().to_path_buf();
+        let Some(laser) = laser else {
+            return Err(CaptureError::LaserFalloff {
+                path,
+                reason: "the capture gives no laser origin (`laser_xyz` is empty)".into(),
+            });
+        };
+        match t.set.compensate_laser_falloff(laser) {
+            Ok(range) => t.falloff = Some(FalloffApplied { laser, range, why }),
+            Err(e) if falloff == LaserFalloff::Auto => {
+                // Counts as they are, rather than a correction the geometry does not support.
+                tracing::warn!(capture = %path.display(), "laser falloff not compensated: {e}");
+            }
+            Err(e) => {
+                return Err(CaptureError::LaserFalloff {
+                    path,
+                    reason: e.to_string(),
+                });
             }
         }
+        Ok(t)
     }
 
     /// One line on what the capture holds.

@@ -60,8 +60,15 @@ pub fn recon(capture: &Path, config: Option<&Path>, out: &Path) -> Result<(), Of
         Some(path) => load_recon(&TomlSource::load(path)?, capture.default_volume().ok())?,
         None => capture.default_recon()?,
     };
-    let t = capture.transients(&settings.volume)?;
+    let t = capture.transients(&settings.volume, settings.laser_falloff)?;
     println!("{}", capture.describe());
+    if let Some(f) = &t.falloff {
+        println!(
+            "  laser falloff divided out: cos θ / d² from the laser at ({:.3}, {:.3}, {:.3}) m, each histogram \
+             scaled by {:.2} to {:.2} ({}; laser-falloff = \"none\" keeps the counts as they are)",
+            f.laser.x, f.laser.y, f.laser.z, f.range.0, f.range.1, f.why
+        );
+    }
     if t.overflowed > 0 {
         println!(
             "  {} histograms flagged overflow left out (their counts are only a lower bound)",

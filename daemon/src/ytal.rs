@@ -683,6 +683,27 @@ impl YtalCapture {
         Ok(())
     }
 
+    /// The renderer that made the capture, if `scene_info` says it was rendered: a
+    /// top-level `renderer` entry (mitransient's harnesses), or y-tal's documented
+    /// `config` entry, which `tal render` writes (its scene configuration). Measured
+    /// captures carry neither. Rendered lasers are point sources
+    /// ([`crate::plan::LaserFalloff::Auto`]).
+    pub fn rendered_by(&self) -> Option<String> {
+        let info = self.scene_info.as_deref()?;
+        let top = |key: &str| {
+            info.lines().find_map(|l| {
+                l.strip_prefix(key)
+                    .and_then(|rest| rest.strip_prefix(':'))
+                    .map(|v| v.trim().trim_matches(['\'', '"']).to_string())
+            })
+        };
+        match (top("renderer"), top("config")) {
+            (Some(r), _) if !r.is_empty() => Some(r),
+            (_, Some(_)) => Some("y-tal's `tal render`".into()),
+            _ => None,
+        }
+    }
+
     /// Time bins per transient.
     pub fn bins(&self) -> usize {
         self.h_shape[0]

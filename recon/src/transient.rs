@@ -345,6 +345,52 @@ impl TransientSet {
         self.weights[i]
     }
 
+    /// Undoes the falloff of a laser that lights the relay as a point source at `laser`
+    /// (metres): such a source gives illumination point `x` with normal `n` an
+    /// irradiance proportional to `cos θ / d²` (d = |laser − x|, θ the angle of
+    /// incidence), so every histogram carries that factor. Transient `i` is divided by
+    /// its factor over the mean factor of the set, so the counts keep their overall
+    /// scale. This is y-tal's `tal.reconstruct.compensate_laser_cos_dsqr` (which
+    /// divides by the raw factor). A collimated laser puts the same power into its spot
+    /// wherever it points and needs none of this (docs/ytal.md, "Laser falloff").
+    ///
+    /// Returns the smallest and largest multiplier applied. Refused, with the set
+    /// unchanged, when the laser is not in front of an illumination point
+    /// (cos θ ≤ 0.01, a grazing angle whose factor would amplify the counts a
+    /// hundredfold) or coincides with one.
+    pub fn compensate_laser_falloff(&mut self, laser: DVec3) -> Result<(f64, f64), TransientError> {
+        let mut factors = Vec::with_capacity(self.len());
+        for (index, p) in self.pairs.iter().enumerate() {
+            let to_laser = laser - p.xi;
+            let d = to_laser.length();
+            let cos = if d > 0.0 { to_laser.dot(p.ni) / d } else { f64::NAN };
+            if !(laser.is_finite() && d.is_finite() && cos > 0.01) {
+                return Err(TransientError::Value {
+                    index,
+                    reason: "the laser does not light this illumination point from in front of the relay \
+                             (cos θ at most 0.01, or the laser sits on the point), so its falloff cannot be \
+                             compensated",
+                });
+            }
+            factors.push(cos / (d * d));
+        }
+        if factors.is_empty() {
+            return Ok((1.0, 1.0));
+        }
+        let mean = factors.iter().sum::<f64>() / factors.len() as f64;
+        let (mut lo, mut hi) = (f64::INFINITY, 0.0f64);
+        let bins = self.axis.bins;
+        for (h, f) in self.counts.chunks_exact_mut(bins).zip(&factors) {
+            let m = mean / f;
+            lo = lo.min(m);
+            hi = hi.max(m);
+            for v in h {
+                *v = (f64::from(*v) * m) as f32;
+            }
+        }
+        Ok((lo, hi))
+    }
+
     /// Sum of all counts, weighted.
     pub fn total_counts(&self) -> f64 {
         (0..self.len())
@@ -411,6 +457,41 @@ mod tests {
         );
         assert!(set.push_weighted(pair, &[0.0; 4], -1.0).is_err());
         assert_eq!(set.len(), 1, "rejected transients are not stored");
+    }
+
+    #[test]
+    fn a_point_source_lasers_falloff_is_divided_out_around_the_mean() {
+        // Laser 1 m above the origin. The point under it: d = 1, cos θ = 1, factor 1.
+        // The point 1 m to the side: d = √2, cos θ = 1/√2, factor 1/(2√2).
+        let mut set = TransientSet::new(axis()).unwrap();
+        let side = 1.0 / (2.0 * 2f64.sqrt());
+        set.push(Pair::confocal(DVec3::ZERO, DVec3::Z), &[0.0, 4.0, 2.0, 0.0])
+            .unwrap();
+        set.push(
+            Pair::confocal(DVec3::X, DVec3::Z),
+            &[0.0, (4.0 * side) as f32, (2.0 * side) as f32, 0.0],
+        )
+        .unwrap();
+        let (lo, hi) = set.compensate_laser_falloff(DVec3::Z).unwrap();
+        let mean = 0.5 * (1.0 + side);
+        assert!(
+            (lo - mean).abs() < 1e-12 && (hi - mean / side).abs() < 1e-12,
+            "{lo} {hi}"
+        );
+        // Both now carry the same transient, at the mean factor's scale.
+        for i in 0..2 {
+            let h = set.histogram(i);
+            assert!((f64::from(h[1]) - 4.0 * mean).abs() < 1e-5, "{i}: {h:?}");
+            assert!((f64::from(h[2]) - 2.0 * mean).abs() < 1e-5, "{i}: {h:?}");
+        }
+        // A laser behind the relay, or grazing it, is refused and changes nothing.
+        let before = set.histogram(1).to_vec();
+        let err = set
+            .compensate_laser_falloff(DVec3::new(0.0, 0.0, -1.0))
+            .unwrap_err();
+        assert!(err.to_string().starts_with("pair 0:"), "{err}");
+        assert!(set.compensate_laser_falloff(DVec3::new(1e3, 0.0, 1.0)).is_err());
+        assert_eq!(set.histogram(1), &before[..]);
     }
 
     #[test]

@@ -45,6 +45,23 @@ pub struct ReconSettings {
     /// Each solver's settings (`[lct]`, `[fk]`, `[rsd]`, `[fbp]`), for the method of the
     /// same name and for the solver after `gtr`.
     pub solvers: SolverSettings,
+    /// Whether the counts are divided by the laser's `cos θ / d²` falloff first.
+    pub laser_falloff: LaserFalloff,
+}
+
+/// Whether a capture's histograms carry the falloff of a point-source laser, which
+/// the reconstruction then divides out (`laser-falloff`; docs/ytal.md, "Laser
+/// falloff").
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum LaserFalloff {
+    /// Rendered y-tal captures whose laser visits more than one point: yes; a run's
+    /// own captures (a collimated laser) and measured y-tal captures: no.
+    Auto,
+    /// Divide every histogram by `cos θ / d²` from the capture's laser origin.
+    CosInverseSquare,
+    /// Take the counts as they are.
+    None,
 }
 
 impl Method {
@@ -81,6 +98,8 @@ pub(crate) struct RawRecon {
     fk: Option<FkSettings>,
     #[serde(default)]
     rsd: Option<RsdSettings>,
+    #[serde(default)]
+    laser_falloff: Option<String>,
 }
 
 #[derive(Deserialize)]
@@ -365,6 +384,28 @@ pub(crate) fn recon_settings(
         fbp: raw.fbp.unwrap_or_default(),
     };
     solvers.validate().map_err(|(table, e)| solver_err(table, e))?;
+    let laser_falloff = match raw.laser_falloff.as_deref().unwrap_or("auto") {
+        "auto" => LaserFalloff::Auto,
+        "cos-inverse-square" if prefix.is_empty() => LaserFalloff::CosInverseSquare,
+        "cos-inverse-square" => {
+            return Err(src.invalid(
+                &key("laser-falloff"),
+                "a run's laser is the instrument's collimated beam, whose spot gets the same power wherever \
+                 it points: leave the key out, or compensate a point-source capture with `periscope recon \
+                 --config` instead",
+            ));
+        }
+        "none" => LaserFalloff::None,
+        other => {
+            return Err(src.invalid(
+                &key("laser-falloff"),
+                format!(
+                    "`{other}` is not a laser falloff: use \"auto\" (rendered y-tal captures only), \
+                     \"cos-inverse-square\" (a point-source laser) or \"none\" (a collimated laser)"
+                ),
+            ));
+        }
+    };
     Ok(ReconSettings {
         method,
         volume,
@@ -374,6 +415,7 @@ pub(crate) fn recon_settings(
         solver,
         depth_threshold,
         solvers,
+        laser_falloff,
     })
 }
 
@@ -443,6 +485,35 @@ mod tests {
         assert_eq!(
             (d.solvers.fbp.filter, d.solver),
             (FbpFilter::Phasor, SolverKind::Fbp)
+        );
+    }
+
+    #[test]
+    fn the_laser_falloff_is_read_and_checked() {
+        assert_eq!(default_recon(volume()).laser_falloff, LaserFalloff::Auto);
+        for (text, want) in [
+            ("cos-inverse-square", LaserFalloff::CosInverseSquare),
+            ("none", LaserFalloff::None),
+            ("auto", LaserFalloff::Auto),
+        ] {
+            let src = TomlSource::from_text("recon.toml", format!("laser-falloff = \"{text}\"\n"));
+            assert_eq!(load_recon(&src, Some(volume())).unwrap().laser_falloff, want);
+        }
+        let src = TomlSource::from_text("recon.toml", "laser-falloff = \"inverse-square\"\n");
+        let e = load_recon(&src, Some(volume())).unwrap_err().to_string();
+        assert!(
+            e.contains("laser-falloff") && e.contains("cos-inverse-square"),
+            "{e}"
+        );
+        // A plan's own reconstruction: the instrument's laser is collimated.
+        let src = TomlSource::from_text("plan.toml", "laser-falloff = \"cos-inverse-square\"\n");
+        let raw: RawRecon = src.parse().unwrap();
+        let e = recon_settings(&src, "recon.", raw, Some(volume()))
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("recon.laser-falloff") && e.contains("collimated"),
+            "{e}"
         );
     }
 
