@@ -62,9 +62,22 @@ pub fn ytal_capture(data: &[u8]) {
     };
     assert!(c.bins() > 0 && c.h.len() == c.bins() * c.len());
     if let Ok(volume) = c.default_volume()
-        && let Ok(set) = c.transients(&volume)
+        && let Ok(mut set) = c.transients(&volume)
     {
         assert!(set.len() <= c.len());
+        // The laser falloff a rendered capture gets divided out: finite counts, or a
+        // refusal that leaves them as they were.
+        let _ = c.rendered_by();
+        if let Some(laser) = c.laser_xyz {
+            let before = set.clone();
+            match set.compensate_laser_falloff(laser) {
+                Ok((lo, hi)) => {
+                    assert!(lo > 0.0 && hi >= lo && hi.is_finite());
+                    assert!((0..set.len()).all(|i| set.histogram(i).iter().all(|v| v.is_finite())));
+                }
+                Err(_) => assert!((0..set.len()).all(|i| set.histogram(i) == before.histogram(i))),
+            }
+        }
     }
 }
 

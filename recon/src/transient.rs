@@ -175,6 +175,11 @@ pub fn rebin_path(
     out
 }
 
+/// Most a point-source laser's falloff may vary across a capture's illumination
+/// points ([`TransientSet::compensate_laser_falloff`]): 10⁴ takes the laser from 1 cm
+/// to 1 m of the relay at normal incidence, or cos θ from 1 to 0.01.
+pub const MAX_FALLOFF_SPAN: f64 = 1e4;
+
 /// The hidden-path axis all pairs are rebinned to: the TDC's bin width, spanning the
 /// shortest to the longest hidden path any pair can have to the reconstruction volume.
 pub fn hidden_axis(pairs: &[Pair], volume: &VolumeGrid, bin_width: f64) -> Result<TimeAxis, TransientError> {
@@ -357,14 +362,16 @@ impl TransientSet {
     /// Returns the smallest and largest multiplier applied. Refused, with the set
     /// unchanged, when the laser is not in front of an illumination point
     /// (cos θ ≤ 0.01, a grazing angle whose factor would amplify the counts a
-    /// hundredfold) or coincides with one.
+    /// hundredfold) or coincides with one, when the factors span more than
+    /// [`MAX_FALLOFF_SPAN`], or when a multiplied count would not fit an `f32`.
     pub fn compensate_laser_falloff(&mut self, laser: DVec3) -> Result<(f64, f64), TransientError> {
         let mut factors = Vec::with_capacity(self.len());
         for (index, p) in self.pairs.iter().enumerate() {
             let to_laser = laser - p.xi;
             let d = to_laser.length();
             let cos = if d > 0.0 { to_laser.dot(p.ni) / d } else { f64::NAN };
-            if !(laser.is_finite() && d.is_finite() && cos > 0.01) {
+            let factor = cos / (d * d);
+            if !(laser.is_finite() && cos > 0.01 && factor.is_finite() && factor > 0.0) {
                 return Err(TransientError::Value {
                     index,
                     reason: "the laser does not light this illumination point from in front of the relay \
@@ -372,18 +379,32 @@ impl TransientSet {
                              compensated",
                 });
             }
-            factors.push(cos / (d * d));
+            factors.push(factor);
         }
-        if factors.is_empty() {
+        let Some(&top) = factors.iter().max_by(|a, b| a.total_cmp(b)) else {
             return Ok((1.0, 1.0));
-        }
-        let mean = factors.iter().sum::<f64>() / factors.len() as f64;
-        let (mut lo, mut hi) = (f64::INFINITY, 0.0f64);
+        };
+        // Relative to the largest factor, so neither the mean nor a multiplier overflows.
+        let relative: Vec<f64> = factors.iter().map(|f| f / top).collect();
+        let mean = relative.iter().sum::<f64>() / relative.len() as f64;
+        let multipliers: Vec<f64> = relative.iter().map(|r| mean / r).collect();
+        let (lo, hi) = multipliers
+            .iter()
+            .fold((f64::INFINITY, 0.0f64), |(l, h), &m| (l.min(m), h.max(m)));
         let bins = self.axis.bins;
-        for (h, f) in self.counts.chunks_exact_mut(bins).zip(&factors) {
-            let m = mean / f;
-            lo = lo.min(m);
-            hi = hi.max(m);
+        let fits = self.counts.chunks_exact(bins).zip(&multipliers).all(|(h, m)| {
+            let peak = h.iter().fold(0.0f64, |a, v| a.max(f64::from(v.abs())));
+            (peak * m).is_finite() && peak * m <= f64::from(f32::MAX)
+        });
+        if !(hi / lo <= MAX_FALLOFF_SPAN && fits) {
+            return Err(TransientError::Window(format!(
+                "the laser's falloff (cos θ / d²) varies {:.3e}-fold across the illumination points, more than \
+                 the {MAX_FALLOFF_SPAN:e} a laser aimed at a relay can give: check the laser origin and the relay \
+                 points",
+                hi / lo
+            )));
+        }
+        for (h, m) in self.counts.chunks_exact_mut(bins).zip(&multipliers) {
             for v in h {
                 *v = (f64::from(*v) * m) as f32;
             }
@@ -491,7 +512,20 @@ mod tests {
             .unwrap_err();
         assert!(err.to_string().starts_with("pair 0:"), "{err}");
         assert!(set.compensate_laser_falloff(DVec3::new(1e3, 0.0, 1.0)).is_err());
+        // Hostile geometry: a laser 11 mm above one point and a metre from the other
+        // (factors 8,264 and 0.011), and counts that would overflow once multiplied.
+        let err = set
+            .compensate_laser_falloff(DVec3::new(0.0, 0.0, 0.011))
+            .unwrap_err();
+        assert!(err.to_string().contains("varies"), "{err}");
+        let mut huge = TransientSet::new(axis()).unwrap();
+        huge.push(Pair::confocal(DVec3::ZERO, DVec3::Z), &[f32::MAX; 4])
+            .unwrap();
+        huge.push(Pair::confocal(DVec3::X, DVec3::Z), &[f32::MAX; 4])
+            .unwrap();
+        assert!(huge.compensate_laser_falloff(DVec3::Z).is_err());
         assert_eq!(set.histogram(1), &before[..]);
+        assert!(huge.histogram(0).iter().all(|v| *v == f32::MAX));
     }
 
     #[test]
