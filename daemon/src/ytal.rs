@@ -1021,6 +1021,37 @@ mod tests {
     }
 
     #[test]
+    fn a_rendered_capture_is_told_from_its_scene_info() {
+        let with = |info: Option<&str>| YtalCapture {
+            scene_info: info.map(str::to_string),
+            ..sample()
+        };
+        // The validation harness's mitransient captures.
+        let harness = "description: a letter\nrenderer: 'mitransient 1.3.1 / mitsuba 3.9.1'\nspp: 262144\n";
+        assert_eq!(
+            with(Some(harness)).rendered_by().as_deref(),
+            Some("mitransient 1.3.1 / mitsuba 3.9.1")
+        );
+        // `tal render`'s, as PyYAML dumps them (keys sorted, the config a mapping).
+        let tal =
+            "args:\n  threads: 2\nconfig:\n  laser_x: -0.5\n  scan_type: confocal\ntal_version: 0.20.0\n";
+        assert_eq!(
+            with(Some(tal)).rendered_by().as_deref(),
+            Some("y-tal's `tal render`")
+        );
+        // Measured or exported captures, and keys that only mention a renderer.
+        for info in [
+            None,
+            Some(""),
+            Some("original_format: periscope\nrun: 'x'\n"),
+            Some("original_format: HDF5_ZNLOS\nvolume:\n  config: 1\n"),
+            Some("notes: the renderer: was not used\n"),
+        ] {
+            assert_eq!(with(info).rendered_by(), None, "{info:?}");
+        }
+    }
+
+    #[test]
     fn a_written_capture_reads_back_identically() {
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("c.hdf5");
