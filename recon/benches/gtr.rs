@@ -52,7 +52,8 @@ fn gtr(c: &mut Criterion) {
     let k = env("GTR_BENCH_K", 10_000);
     let mut rng = ChaCha8Rng::seed_from_u64(42);
     let roi = RoiBox::from_bounds(DVec3::new(-0.5, -0.5, 0.5), DVec3::new(0.5, 0.5, 0.9)).unwrap();
-    let axis = TimeAxis::from_seconds(0.8, 32e-12, 512);
+    let bin_ps = env("GTR_BENCH_BIN_PS", 32);
+    let axis = TimeAxis::from_seconds(0.8, bin_ps as f64 * 1e-12, 512);
 
     let mut geometry = TransientSet::new(axis).unwrap();
     for _ in 0..n_pairs {
@@ -96,10 +97,12 @@ fn gtr(c: &mut Criterion) {
     // The work per evaluation: bins in the window, and how many take the midpoint
     // series (kernels at least two bins wide) rather than the Φ table.
     let (mut bins_wide, mut bins_table, mut evaluated) = (0usize, 0usize, 0usize);
+    let mut windows = Vec::new();
     for pair in geometry.pairs().iter().step_by(40) {
         for k in kernels.iter().step_by(10) {
             if let Some(e) = periscope_recon::gtr::kernel::evaluate(k, pair, &axis, &opt) {
                 evaluated += 1;
+                windows.push(e.window);
                 if axis.width / e.window.sigma <= periscope_recon::gtr::kernel::WIDE_DZ {
                     bins_wide += e.window.hi - e.window.lo;
                 } else {
@@ -180,6 +183,47 @@ fn gtr(c: &mut Criterion) {
         b.iter_custom(|iters| epoch.time(iters, || trainer.epoch(&cancel).unwrap()))
     });
     group.finish();
+
+    // The per-bin loops alone, over the windows sampled above, on the vector path a
+    // step takes: what they cost without the geometry, the chain rule, the threads and
+    // the memory traffic of a step around them.
+    let bins: usize = windows.iter().map(|w| w.hi - w.lo).sum();
+    let dl: Vec<f64> = (0..axis.bins)
+        .map(|b| ((b * 7919) % 101) as f64 / 100.0 - 0.5)
+        .collect();
+    let mut out = vec![0.0; axis.bins];
+    let mut loops = c.benchmark_group("gtr per-bin loops");
+    loops
+        .sample_size(20)
+        .measurement_time(Duration::from_secs(5))
+        .throughput(Throughput::Elements(bins as u64));
+    let sums = LastSample::default();
+    loops.bench_function("backward sums", |b| {
+        b.iter_custom(|iters| {
+            sums.time(iters, || {
+                std::hint::black_box(periscope_recon::gtr::kernel::probe::sums(&windows, &axis, &dl));
+            })
+        })
+    });
+    let adds = LastSample::default();
+    loops.bench_function("forward adds", |b| {
+        b.iter_custom(|iters| {
+            adds.time(iters, || {
+                periscope_recon::gtr::kernel::probe::accumulate(&windows, &axis, &mut out);
+                std::hint::black_box(&out);
+            })
+        })
+    });
+    loops.finish();
+    let per_window = |t: Option<f64>| t.map_or(f64::NAN, |s| s * 1e9 / windows.len().max(1) as f64);
+    println!(
+        "per-bin loops alone, one thread, {} windows of {:.1} bins on average: backward sums {:.1} ns a \
+         window, forward adds {:.1} ns a window",
+        windows.len(),
+        bins as f64 / windows.len().max(1) as f64,
+        per_window(sums.seconds()),
+        per_window(adds.seconds()),
+    );
 
     // The arithmetic rate of the last sample of each (criterion's median above is the
     // figure to quote; these say how far it is from the CPU's peak).

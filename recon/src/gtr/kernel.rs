@@ -391,6 +391,50 @@ impl Window {
     }
 }
 
+/// Timing probes for `benches/gtr.rs`: one pulse's per-bin loops alone, on the vector
+/// path a training step takes (this CPU's AVX2 + FMA where it has them), so the bench
+/// can tell their cost from the rest of a step's. Not an interface to build on.
+#[doc(hidden)]
+pub mod probe {
+    use super::Window;
+    use crate::simd::{Quad, Work, dispatch};
+    use crate::transient::TimeAxis;
+
+    /// The backward pass's three sums over each of `windows` with residuals `dl` (a
+    /// whole histogram), added up so nothing is optimised away.
+    pub fn sums(windows: &[Window], axis: &TimeAxis, dl: &[f64]) -> f64 {
+        struct Sums<'a>(&'a [Window], &'a TimeAxis, &'a [f64]);
+        impl Work for Sums<'_> {
+            type Output = f64;
+            #[inline(always)]
+            fn run<Q: Quad>(self, quad: Q) -> f64 {
+                let mut total = 0.0;
+                for w in self.0 {
+                    let (a, b, c) = w.sums(quad, self.1, self.2);
+                    total += a + b + c;
+                }
+                total
+            }
+        }
+        dispatch(Sums(windows, axis, dl))
+    }
+
+    /// The forward pass's adds of each of `windows` into `out` (a whole histogram).
+    pub fn accumulate(windows: &[Window], axis: &TimeAxis, out: &mut [f64]) {
+        struct Adds<'a>(&'a [Window], &'a TimeAxis, &'a mut [f64]);
+        impl Work for Adds<'_> {
+            type Output = ();
+            #[inline(always)]
+            fn run<Q: Quad>(self, quad: Q) {
+                for w in self.0 {
+                    w.accumulate_with(quad, self.1, self.2);
+                }
+            }
+        }
+        dispatch(Adds(windows, axis, out))
+    }
+}
+
 impl Evaluation {
     /// Adds the primitive's contribution to `out` (the full histogram of the pair).
     #[inline(always)]
