@@ -153,16 +153,22 @@ fn gtr(c: &mut Criterion) {
     });
 
     // The loss gradient alone, over the same mini-batches an epoch takes (the
-    // optimiser's and the kernel refresh's share is the epoch's time minus this).
+    // optimiser's and the kernel refresh's share is the epoch's time minus this). On a
+    // worker of the pool, as `Trainer::epoch` runs: called from outside it, each of a
+    // step's parallel regions would be injected into the pool while this thread slept.
     let mut grads = periscope_recon::gtr::RawGrads::zeros(cloud.len());
     let order: Vec<usize> = (0..data.len()).collect();
     let gradient = LastSample::default();
     group.bench_function("loss gradient, batch 4", |b| {
         b.iter_custom(|iters| {
             gradient.time(iters, || {
-                for batch in order.chunks(4) {
-                    std::hint::black_box(batch_loss_grad(&cloud, &kernels, &data, batch, &opt, &mut grads));
-                }
+                rayon::scope(|_| {
+                    for batch in order.chunks(4) {
+                        std::hint::black_box(batch_loss_grad(
+                            &cloud, &kernels, &data, batch, &opt, &mut grads,
+                        ));
+                    }
+                })
             })
         })
     });
