@@ -65,8 +65,9 @@ pub fn ytal_capture(data: &[u8]) {
         && let Ok(mut set) = c.transients(&volume)
     {
         assert!(set.len() <= c.len());
-        // The laser falloff a rendered capture gets divided out: finite counts, or a
-        // refusal that leaves them as they were.
+        // `scene_info` is read for a renderer's name without panicking, and the laser
+        // falloff divided out leaves finite counts, or is refused leaving them as
+        // they were.
         let _ = c.rendered_by();
         if let Some(laser) = c.laser_xyz {
             let before = set.clone();

@@ -391,7 +391,7 @@ impl Window {
     }
 }
 
-/// Timing probes for `benches/gtr.rs`: one pulse's per-bin loops alone, on the vector
+/// Timing probes for `benches/gtr.rs`: the pulses' per-bin loops alone, on the vector
 /// path a training step takes (this CPU's AVX2 + FMA where it has them), so the bench
 /// can tell their cost from the rest of a step's. Not an interface to build on.
 #[doc(hidden)]
