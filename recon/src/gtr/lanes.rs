@@ -13,6 +13,10 @@
 //! same order, and the lanes' gradients are added to the primitive's in the batch's
 //! order, so a training step gives bit-for-bit what the one-pair path gives (tested,
 //! on the portable arrays and on this CPU's vectors).
+//!
+//! A group of confocal pairs (`PairGroup::shares_sides`) computes its relay side once:
+//! detection equals illumination there, operand for operand, so reusing the values
+//! changes no bit.
 use glam::DVec3;
 
 use super::kernel::{Kernel, PhysicalGrad, RenderOptions, SIGMA_FLOOR_BINS, Window};
@@ -35,6 +39,10 @@ pub(crate) struct PairGroup {
     nd: [Lanes; 3],
     /// Lanes holding a pair of the batch.
     pub(crate) used: usize,
+    /// Every lane's pair is confocal: the same point and normal for illumination and
+    /// detection, bit for bit, so the detection side's geometry is the illumination
+    /// side's and is computed once.
+    confocal: bool,
 }
 
 impl PairGroup {
@@ -49,13 +57,25 @@ impl PairGroup {
             let v: [DVec3; LANES] = std::array::from_fn(|j| f(pair(j)));
             [v.map(|v| v.x), v.map(|v| v.y), v.map(|v| v.z)]
         };
+        let same = |a: DVec3, b: DVec3| a.to_array().map(f64::to_bits) == b.to_array().map(f64::to_bits);
         Self {
             xi: lanes(&|p| p.xi),
             ni: lanes(&|p| p.ni),
             xd: lanes(&|p| p.xd),
             nd: lanes(&|p| p.nd),
             used: pairs.len(),
+            confocal: pairs.iter().all(|p| same(p.xi, p.xd) && same(p.ni, p.nd)),
         }
+    }
+
+    /// Whether the detection side's geometry is the illumination side's under `opt`:
+    /// a confocal group whose two cosines are both on or both off. Then every value
+    /// of the detection side equals its illumination twin bit for bit (the same
+    /// operations on the same operands), so it is taken from the twin instead of
+    /// computed again.
+    #[inline(always)]
+    fn shares_sides(&self, opt: &RenderOptions) -> bool {
+        self.confocal && opt.use_ni == opt.use_nd
     }
 }
 
@@ -230,32 +250,15 @@ fn geometry<Q: Quad>(
     opt: &RenderOptions,
 ) -> Geometry<Q::V> {
     let x = Vec3s::splat(q, k.x);
-    let to_i = x.sub(q, Vec3s::load(q, &group.xi));
-    let to_d = x.sub(q, Vec3s::load(q, &group.xd));
-    let di = q.sqrt(to_i.dot(q, to_i));
-    let dd = q.sqrt(to_d.dot(q, to_d));
-    let one = q.splat(1.0);
-    let (inv_di, inv_dd) = (q.div(one, di), q.div(one, dd));
-    let ui = to_i.scale(q, inv_di);
-    let ud = to_d.scale(q, inv_dd);
-    let gi = if opt.use_ni {
-        Vec3s::load(q, &group.ni).dot(q, ui)
-    } else {
-        one
-    };
-    let gd = if opt.use_nd {
-        Vec3s::load(q, &group.nd).dot(q, ud)
-    } else {
-        one
-    };
     let cols = columns(q, k);
-    let wi = mat_t_vec(q, &cols, ui);
-    let wd = mat_t_vec(q, &cols, ud);
-    let wv = wi.add(q, wd);
     let pi = Vec3s::splat(q, k.pi);
-    let (pwi, pwd) = (pi.mul(q, wi), pi.mul(q, wd));
-    let ai = q.sqrt(pwi.dot(q, pwi));
-    let ad = q.sqrt(pwd.dot(q, pwd));
+    let (di, inv_di, ui, gi, wi, ai) = side(q, x, &cols, pi, &group.xi, &group.ni, opt.use_ni);
+    let (dd, inv_dd, ud, gd, wd, ad) = if group.shares_sides(opt) {
+        (di, inv_di, ui, gi, wi, ai)
+    } else {
+        side(q, x, &cols, pi, &group.xd, &group.nd, opt.use_nd)
+    };
+    let wv = wi.add(q, wd);
     let base = q.mul(
         q.mul(q.mul(q.mul(q.splat(opt.gain), ai), ad), q.mul(inv_di, inv_di)),
         q.mul(inv_dd, inv_dd),
@@ -283,6 +286,36 @@ fn geometry<Q: Quad>(
         amplitude,
         sigma,
     }
+}
+
+/// One relay point's side of [`geometry`] (illumination or detection): distance to the
+/// primitive's centre `x`, its inverse, the direction, the relay cosine (1 when
+/// `cosine` is off), the direction in the primitive's frame and the projected area.
+#[allow(clippy::type_complexity)]
+#[inline(always)]
+fn side<Q: Quad>(
+    q: Q,
+    x: Vec3s<Q::V>,
+    cols: &[Vec3s<Q::V>; 3],
+    pi: Vec3s<Q::V>,
+    at: &[Lanes; 3],
+    normal: &[Lanes; 3],
+    cosine: bool,
+) -> (Q::V, Q::V, Vec3s<Q::V>, Q::V, Vec3s<Q::V>, Q::V) {
+    let to = x.sub(q, Vec3s::load(q, at));
+    let d = q.sqrt(to.dot(q, to));
+    let one = q.splat(1.0);
+    let inv = q.div(one, d);
+    let u = to.scale(q, inv);
+    let g = if cosine {
+        Vec3s::load(q, normal).dot(q, u)
+    } else {
+        one
+    };
+    let w = mat_t_vec(q, cols, u);
+    let pw = pi.mul(q, w);
+    let a = q.sqrt(pw.dot(q, pw));
+    (d, inv, u, g, w, a)
 }
 
 /// The rotation's columns, in every lane.
@@ -380,16 +413,28 @@ pub(crate) fn backward_group<Q: Quad>(
     let (wi, wd, wv) = (geo.wi, geo.wd, geo.wv);
     let g_amp_amp = q.mul(g_amp, amp);
     let pi2 = Vec3s::splat(q, k.pi * k.pi);
+    // On a group whose sides are shared (`PairGroup::shares_sides`), every detection
+    // term below equals its illumination twin bit for bit, so it is reused.
+    let shared = group.shares_sides(opt);
     let g_wi = wi.mul(q, pi2).scale(q, q.div(g_amp_amp, q.mul(ai, ai)));
-    let g_wd = wd.mul(q, pi2).scale(q, q.div(g_amp_amp, q.mul(ad, ad)));
+    let g_wd = if shared {
+        g_wi
+    } else {
+        wd.mul(q, pi2).scale(q, q.div(g_amp_amp, q.mul(ad, ad)))
+    };
     let g_sigma_inv = q.mul(g_sigma, inv);
     let s = Vec3s::splat(q, k.s);
     let g_wv = Vec3s::splat(q, k.s * k.s).mul(q, wv).scale(q, g_sigma_inv);
 
     let pi = Vec3s::splat(q, k.pi);
-    let c_s = area_ds(q, wi, ai, pi, s)
-        .scale(q, q.div(g_amp_amp, ai))
-        .add(q, area_ds(q, wd, ad, pi, s).scale(q, q.div(g_amp_amp, ad)))
+    let c_si = area_ds(q, wi, ai, pi, s).scale(q, q.div(g_amp_amp, ai));
+    let c_sd = if shared {
+        c_si
+    } else {
+        area_ds(q, wd, ad, pi, s).scale(q, q.div(g_amp_amp, ad))
+    };
+    let c_s = c_si
+        .add(q, c_sd)
         .add(q, s.mul(q, wv).mul(q, wv).scale(q, g_sigma_inv));
 
     let (ui, ud) = (geo.ui, geo.ud);
@@ -413,15 +458,20 @@ pub(crate) fn backward_group<Q: Quad>(
     let g_ui = mat_vec(q, &cols, g_wi)
         .add(q, rg_v)
         .add(q, Vec3s::load(q, &group.ni).scale(q, g_gi));
-    let g_ud = mat_vec(q, &cols, g_wd)
-        .add(q, rg_v)
-        .add(q, Vec3s::load(q, &group.nd).scale(q, g_gd));
     let (di, dd) = (geo.di, geo.dd);
     let minus_two = q.splat(-2.0);
     let g_di = q.add(q.div(q.mul(q.mul(minus_two, g_amp), amp), di), g_mu);
-    let g_dd = q.add(q.div(q.mul(q.mul(minus_two, g_amp), amp), dd), g_mu);
     let c_xi = centre_grad(q, ui, g_ui, g_di, di);
-    let c_xd = centre_grad(q, ud, g_ud, g_dd, dd);
+    // Shared sides: g_gd = g_base ρ g_i is g_gi = g_base ρ g_d, and n_d = n_i.
+    let c_xd = if shared {
+        c_xi
+    } else {
+        let g_ud = mat_vec(q, &cols, g_wd)
+            .add(q, rg_v)
+            .add(q, Vec3s::load(q, &group.nd).scale(q, g_gd));
+        let g_dd = q.add(q.div(q.mul(q.mul(minus_two, g_amp), amp), dd), g_mu);
+        centre_grad(q, ud, g_ud, g_dd, dd)
+    };
 
     // Into the primitive's gradient, lane by lane in the batch's order.
     let c_rho = q.store(c_rho);
@@ -495,7 +545,15 @@ mod tests {
                 }
             })
             .chain([Pair::confocal(DVec3::new(0.1, 0.1, 0.0), DVec3::Z)])
-            .collect();
+            .collect::<Vec<_>>();
+        // A run of confocal pairs on tilted normals, so that whole groups share their
+        // two sides (`PairGroup::shares_sides`).
+        let confocal = (0..9).map(|_| {
+            let x = DVec3::new(rng.random_range(-0.5..0.5), rng.random_range(-0.5..0.5), 0.0);
+            let n = DVec3::new(rng.random_range(-0.6..0.6), rng.random_range(-0.6..0.6), 1.0).normalize();
+            Pair::confocal(x, n)
+        });
+        let pairs = pairs.into_iter().chain(confocal).collect();
         (kernels, pairs)
     }
 
@@ -530,8 +588,13 @@ mod tests {
         let dl: Vec<f64> = (0..LANES * axis.bins)
             .map(|_| rng.random_range(-1.0..1.0))
             .collect();
-        let (mut compared, mut wide) = (0, 0);
-        for (use_ni, use_nd, sigma_sys) in [(true, true, 0.0), (false, true, 0.003), (true, false, 0.0)] {
+        let (mut compared, mut wide, mut shared) = (0, 0, 0);
+        for (use_ni, use_nd, sigma_sys) in [
+            (true, true, 0.0),
+            (false, true, 0.003),
+            (true, false, 0.0),
+            (false, false, 0.0),
+        ] {
             let opt = RenderOptions {
                 use_ni,
                 use_nd,
@@ -542,6 +605,7 @@ mod tests {
                 for first in (0..pairs.len() - used).step_by(used) {
                     let members: Vec<&Pair> = pairs[first..first + used].iter().collect();
                     let group = PairGroup::new(&members);
+                    shared += usize::from(group.shares_sides(&opt));
                     for k in &kernels {
                         let one: Vec<Option<Evaluation>> =
                             members.iter().map(|p| evaluate(k, p, &axis, &opt)).collect();
@@ -578,6 +642,9 @@ mod tests {
                 }
             }
         }
+        // Groups of every size whose sides are shared, under both cosine settings that
+        // share them.
+        assert!(shared >= 8, "only {shared} groups with shared sides");
         (compared, wide)
     }
 
