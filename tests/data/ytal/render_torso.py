@@ -1,0 +1,246 @@
+#!/usr/bin/env python3
+"""Renders an independent two-torso capture with mitransient, for checking `periscope
+recon` on data our own simulator did not make (docs/recon.md, "A two-torso check").
+
+The relay is two human backs side by side, each a cylinder section (radius 0.25 m,
+axis along y, 0.30 m wide, 0.60 m tall) bulging towards the hidden scene, centred at
+x = -0.22 (back A) and x = +0.22 (back B). A fixed laser lights the crest of back A;
+24 x 32 detection points lie on back B. The hidden scene, every target a one-sided
+white Lambertian rectangle facing the relay, is off to A's side, so B sees it
+obliquely: an L (stem x in [-0.30, -0.22], y in [-0.25, 0.20]; foot x in [-0.22, 0.02],
+y in [-0.25, -0.17]; both at z = 0.55) and a 0.14 m patch at z = 0.75. Light
+transport as in the validation set: third bounce only (max_depth 3, hidden-geometry
+sampling, direct paths discarded), first and last legs not counted, 512 bins of 5 mm
+from 0.5 m. The file is written as y-tal writes a point-list capture (H_format T_Si,
+grid format N_3), with the truth maps score.py reads on the validation grid
+(32 x 32 over [-0.5, 0.5]^2; coverage by 16 x 16 sub-samples a pixel).
+
+Setup and run (about two minutes at the default 262,144 samples a point on two cores;
+drjit 1.5 needs LLVM 16 or newer: `apt-get install libllvm19`):
+
+    python3 -m venv /tmp/mit && /tmp/mit/bin/pip install mitransient==1.3.1 h5py
+    DRJIT_LIBLLVM_PATH=/usr/lib/x86_64-linux-gnu/libLLVM-19.so \\
+        /tmp/mit/bin/python tests/data/ytal/render_torso.py OUT_DIR [SPP]
+
+Detection points: the sensor is attached to a rectangle under back B and looks
+straight down from far above, so its pixel centres map onto B as a regular x-y grid;
+each point is the first hit of that ray (on B), and the time of the sensor's leg is the
+hit's own distance, which is not counted. The points' normals are the cylinder's.
+"""
+import json
+import os
+import sys
+
+import numpy as np
+import mitsuba as mi
+
+mi.set_variant("llvm_ad_mono")
+import drjit as dr  # noqa: E402
+import h5py  # noqa: E402
+import mitransient as mitr  # noqa: E402
+
+OUT = sys.argv[1]
+SPP = int(sys.argv[2]) if len(sys.argv) > 2 else 262144
+RADIUS, HALF_WIDTH, Y_RANGE = 0.25, 0.15, (-0.3, 0.3)
+CENTRE_A, CENTRE_B = -0.22, 0.22
+NX, NY = 24, 32
+BINS, DELTA_T, T_START = 512, 0.005, 0.5
+LASER_ORIGIN = [CENTRE_A, -1.0, 2.0]
+LASER_SPOT = [CENTRE_A, 0.0, 0.0]
+SENSOR_ORIGIN = [CENTRE_B, 0.0, 200.0]
+# (x0, x1, y0, y1, z, target name)
+RECTANGLES = [
+    (-0.30, -0.22, -0.25, 0.20, 0.55, "letter_L"),
+    (-0.22, 0.02, -0.25, -0.17, 0.55, "letter_L"),
+    (-0.12, 0.02, 0.10, 0.24, 0.75, "patch"),
+]
+
+
+def height(x, centre):
+    return np.sqrt(RADIUS**2 - (x - centre) ** 2) - RADIUS
+
+
+def normal(p, centre):
+    return np.stack([(p[:, 0] - centre) / RADIUS, np.zeros(len(p)), (p[:, 2] + RADIUS) / RADIUS], -1)
+
+
+def write_back(path, centre):
+    """The back as an OBJ with the cylinder's vertex normals, faces towards +z."""
+    xs = np.linspace(centre - HALF_WIDTH, centre + HALF_WIDTH, 61)
+    ys = np.linspace(*Y_RANGE, 13)
+    with open(path, "w") as f:
+        for x in xs:
+            for y in ys:
+                f.write(f"v {x} {y} {height(x, centre)}\n")
+        for x in xs:
+            for y in ys:
+                n = normal(np.array([[x, y, height(x, centre)]]), centre)[0]
+                f.write(f"vn {n[0]} {n[1]} {n[2]}\n")
+        index = lambda i, j: i * len(ys) + j + 1  # noqa: E731
+        for i in range(len(xs) - 1):
+            for j in range(len(ys) - 1):
+                a, b, c, d = index(i, j), index(i + 1, j), index(i + 1, j + 1), index(i, j + 1)
+                f.write(f"f {a}//{a} {b}//{b} {c}//{c}\nf {a}//{a} {c}//{c} {d}//{d}\n")
+
+
+def scene_dict(white):
+    x0, x1 = CENTRE_B - 0.13, CENTRE_B + 0.13
+    y0, y1 = -0.27, 0.27
+    T = mi.ScalarTransform4f
+    d = {
+        "type": "scene",
+        "integrator": {
+            "type": "transient_nlos_path",
+            "block_size": 1,
+            "max_depth": 3,
+            "filter_bounces": -1,
+            "discard_direct_paths": True,
+            "nlos_laser_sampling": True,
+            "nlos_hidden_geometry_sampling": True,
+            "nlos_hidden_geometry_sampling_do_rroulette": False,
+            "nlos_hidden_geometry_sampling_includes_relay_wall": False,
+            "temporal_filter": "box",
+            "account_first_and_last_bounces": False,
+        },
+        "laser": {
+            "type": "projector",
+            "irradiance": {"type": "spectrum", "value": 1.0},
+            "fov": 0.2,
+            "to_world": T().look_at(origin=LASER_ORIGIN, target=LASER_SPOT, up=[0, 0, 1]),
+        },
+        "back_a": {"type": "obj", "filename": f"{OUT}/back_a.obj", "bsdf": white, "face_normals": False},
+        "back_b": {"type": "obj", "filename": f"{OUT}/back_b.obj", "bsdf": white, "face_normals": False},
+        "relay_wall": {
+            "type": "rectangle",
+            "bsdf": white,
+            "to_world": T().translate([CENTRE_B, 0, -0.5]) @ T().scale([(x1 - x0) / 2, (y1 - y0) / 2, 1]),
+            "sensor": {
+                "type": "nlos_capture_meter",
+                "sensor_origin": SENSOR_ORIGIN,
+                "sampler": {"type": "independent", "sample_count": SPP, "seed": 1},
+                "film": {
+                    "type": "transient_hdr_film",
+                    "width": NX,
+                    "height": NY,
+                    "temporal_bins": BINS,
+                    "bin_width_opl": DELTA_T,
+                    "start_opl": T_START,
+                    "rfilter": {"type": "box"},
+                },
+            },
+        },
+    }
+    for i, (x0, x1, y0, y1, z, _) in enumerate(RECTANGLES):
+        d[f"target_{i}"] = {
+            "type": "rectangle",
+            "bsdf": white,
+            "to_world": T().translate([(x0 + x1) / 2, (y0 + y1) / 2, z])
+            @ T().scale([(x1 - x0) / 2, (y1 - y0) / 2, 1])
+            @ T().rotate([1, 0, 0], 180),
+        }
+    return d
+
+
+def render():
+    os.makedirs(OUT, exist_ok=True)
+    write_back(f"{OUT}/back_a.obj", CENTRE_A)
+    write_back(f"{OUT}/back_b.obj", CENTRE_B)
+    white = {"type": "diffuse", "reflectance": {"type": "spectrum", "value": 1.0}}
+    scene = mi.load_dict(scene_dict(white))
+    relay = next(s for s in scene.shapes() if s.id() == "relay_wall")
+    mitr.nlos.focus_emitter_at_relay_wall_3dpoint(mi.Point3f(*LASER_SPOT), relay, scene.emitters()[0])
+    # Pixel (i, j) looks at the rectangle's point (i + 1/2, j + 1/2) / film size; x fastest.
+    u, v = np.meshgrid((np.arange(NX) + 0.5) / NX, (np.arange(NY) + 0.5) / NY, indexing="xy")
+    targets = relay.sample_position(0.0, mi.Point2f(u.ravel(), v.ravel())).p
+    origin = mi.Point3f(*SENSOR_ORIGIN)
+    hits = scene.ray_intersect(mi.Ray3f(origin, dr.normalize(targets - origin)))
+    assert dr.all(hits.is_valid()), "a detection ray missed back B"
+    points = np.array(hits.p).T
+    assert np.all(np.abs(points[:, 2] - height(points[:, 0], CENTRE_B)) < 1e-4), "a ray hit something else"
+    _, transient = scene.integrator().render(scene, sensor=0)
+    h = np.array(transient)[..., 0].reshape(NY * NX, BINS).T.astype(np.float32)
+    return points, h
+
+
+def write_capture(points, h):
+    info = (
+        "description: two-torso relay (backs as cylinder sections, radius 0.25 m, centres "
+        f"x = {CENTRE_A} and {CENTRE_B}); laser fixed on back A at {LASER_SPOT}; {NX}x{NY} "
+        "detection points on back B; hidden L at z = 0.55 and a patch at z = 0.75 off to A's side\n"
+        "generator: periscope tests/data/ytal/render_torso.py\n"
+        "original_format: HDF5_TAL\n"
+        "renderer: mitransient 1.3.1 / mitsuba 3.9.1 (llvm_ad_mono)\n"
+        "scene: torso_check\n"
+        f"spp: {SPP}\n"
+    )
+    with h5py.File(f"{OUT}/capture.hdf5", "w") as f:
+        f["H"] = h
+        f["H_format"] = np.array([3], np.int32)  # T_Si
+        f["laser_grid_format"] = np.array([1], np.int32)  # N_3
+        f["sensor_grid_format"] = np.array([1], np.int32)
+        f["delta_t"] = np.float64(DELTA_T)
+        f["t_start"] = np.float64(T_START)
+        f["t_accounts_first_and_last_bounces"] = False
+        f["laser_grid_xyz"] = np.array([LASER_SPOT], np.float32)
+        f["laser_grid_normals"] = np.array([[0.0, 0.0, 1.0]], np.float32)
+        f["laser_xyz"] = np.array(LASER_ORIGIN, np.float32)
+        f["sensor_xyz"] = np.array(SENSOR_ORIGIN, np.float32)
+        f["sensor_grid_xyz"] = points.astype(np.float32)
+        f["sensor_grid_normals"] = normal(points, CENTRE_B).astype(np.float32)
+        f["scene_info"] = info
+
+
+def write_truth():
+    n, sub = 32, 16
+    centres = -0.5 + (np.arange(n) + 0.5) / n
+    offsets = (np.arange(sub) + 0.5) / sub / n - 0.5 / n
+    names = list(dict.fromkeys(r[5] for r in RECTANGLES))
+    coverage = np.zeros((n, n), np.float32)
+    depth = np.full((n, n), -1.0, np.float32)
+    labels = np.zeros((n, n), np.int16)
+    for ix in range(n):
+        for iy in range(n):
+            X, Y = np.meshgrid(centres[ix] + offsets, centres[iy] + offsets, indexing="ij")
+            nearest = np.full(X.shape, np.inf)
+            share = np.zeros(len(names))
+            for x0, x1, y0, y1, z, name in RECTANGLES:
+                hit = (X >= x0) & (X < x1) & (Y >= y0) & (Y < y1)
+                nearest = np.where(hit, np.minimum(nearest, z), nearest)
+                share[names.index(name)] += hit.mean()
+            covered = np.isfinite(nearest)
+            coverage[ix, iy] = covered.mean()
+            if covered.any():
+                depth[ix, iy] = nearest[covered].mean()
+            if coverage[ix, iy] >= 0.5:
+                labels[ix, iy] = 1 + int(np.argmax(share))
+    np.save(f"{OUT}/truth_coverage.npy", coverage)
+    np.save(f"{OUT}/truth_depth.npy", depth)
+    np.save(f"{OUT}/truth_mask.npy", coverage >= 0.5)
+    np.save(f"{OUT}/truth_labels.npy", labels)
+    axis = lambda lo, hi, k: {  # noqa: E731
+        "min_center": lo + (hi - lo) / k / 2,
+        "max_center": hi - (hi - lo) / k / 2,
+        "n": k,
+        "step": (hi - lo) / k,
+        "bounds": [lo, hi],
+    }
+    truth = {
+        "scene": "torso_check",
+        "coordinate_system": "y-tal: relay at (mean) z=0 facing +z; hidden scene at z>0; metres",
+        "targets": [{"name": name, "label": i + 1} for i, name in enumerate(names)],
+        "recommended_volume": {
+            "x": axis(-0.5, 0.5, 32),
+            "y": axis(-0.5, 0.5, 32),
+            "z": axis(0.195, 1.005, 81),
+            "shape_xyz": [32, 32, 81],
+        },
+    }
+    with open(f"{OUT}/truth.json", "w") as f:
+        json.dump(truth, f, indent=1)
+
+
+if __name__ == "__main__":
+    points, h = render()
+    write_capture(points, h)
+    write_truth()
+    print(f"{OUT}/capture.hdf5: {h.shape[1]} points, {h.shape[0]} bins, total {h.sum():.4g}")
