@@ -20,16 +20,20 @@ drjit 1.5 needs LLVM 16 or newer: `apt-get install libllvm19`):
 
     python3 -m venv /tmp/mit && /tmp/mit/bin/pip install mitransient==1.3.1 h5py
     DRJIT_LIBLLVM_PATH=/usr/lib/x86_64-linux-gnu/libLLVM-19.so \\
-        /tmp/mit/bin/python tests/data/ytal/render_torso.py OUT_DIR [SPP]
+        /tmp/mit/bin/python tests/data/ytal/render_torso.py OUT_DIR
+
+`--scene centred` puts a T in front of the gap between the backs instead (the fixture
+`torso_t.hdf5`, with `--grid 12x16 --bins 256 --t-start 0.9 --spp 65536`, which
+tests/ytal.rs reconstructs).
 
 Detection points: the sensor is attached to a rectangle under back B and looks
 straight down from far above, so its pixel centres map onto B as a regular x-y grid;
 each point is the first hit of that ray (on B), and the time of the sensor's leg is the
 hit's own distance, which is not counted. The points' normals are the cylinder's.
 """
+import argparse
 import json
 import os
-import sys
 
 import numpy as np
 import mitsuba as mi
@@ -39,21 +43,38 @@ import drjit as dr  # noqa: E402
 import h5py  # noqa: E402
 import mitransient as mitr  # noqa: E402
 
-OUT = sys.argv[1]
-SPP = int(sys.argv[2]) if len(sys.argv) > 2 else 262144
+ARGS = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+ARGS.add_argument("out", help="folder for capture.hdf5 and the truth maps")
+ARGS.add_argument("--spp", type=int, default=262144, help="samples a detection point")
+ARGS.add_argument("--scene", choices=["oblique", "centred"], default="oblique")
+ARGS.add_argument("--grid", default="24x32", help="detection points on back B, NXxNY")
+ARGS.add_argument("--bins", type=int, default=512)
+ARGS.add_argument("--t-start", type=float, default=0.5, help="path length of bin 0, m")
+ARGS = ARGS.parse_args()
+OUT, SPP = ARGS.out, ARGS.spp
 RADIUS, HALF_WIDTH, Y_RANGE = 0.25, 0.15, (-0.3, 0.3)
 CENTRE_A, CENTRE_B = -0.22, 0.22
-NX, NY = 24, 32
-BINS, DELTA_T, T_START = 512, 0.005, 0.5
+NX, NY = (int(n) for n in ARGS.grid.split("x"))
+BINS, DELTA_T, T_START = ARGS.bins, 0.005, ARGS.t_start
 LASER_ORIGIN = [CENTRE_A, -1.0, 2.0]
 LASER_SPOT = [CENTRE_A, 0.0, 0.0]
 SENSOR_ORIGIN = [CENTRE_B, 0.0, 200.0]
-# (x0, x1, y0, y1, z, target name)
-RECTANGLES = [
-    (-0.30, -0.22, -0.25, 0.20, 0.55, "letter_L"),
-    (-0.22, 0.02, -0.25, -0.17, 0.55, "letter_L"),
-    (-0.12, 0.02, 0.10, 0.24, 0.75, "patch"),
-]
+# (x0, x1, y0, y1, z, target name). Nothing may lie above back B (x > 0.09), where the
+# detection rays come down.
+RECTANGLES = {
+    # The L 0.3-0.5 m to the side of B, seen at 35-45 degrees, and a patch behind it.
+    "oblique": [
+        (-0.30, -0.22, -0.25, 0.20, 0.55, "letter_L"),
+        (-0.22, 0.02, -0.25, -0.17, 0.55, "letter_L"),
+        (-0.12, 0.02, 0.10, 0.24, 0.75, "patch"),
+    ],
+    # A T in front of the gap between the backs, and a patch low and far to A's side.
+    "centred": [
+        (-0.20, 0.08, 0.10, 0.18, 0.60, "letter_T"),
+        (-0.10, -0.02, -0.22, 0.10, 0.60, "letter_T"),
+        (-0.42, -0.30, -0.35, -0.23, 0.45, "patch"),
+    ],
+}[ARGS.scene]
 
 
 def height(x, centre):
@@ -174,7 +195,7 @@ def write_capture(points, h):
         f"spp: {SPP}\n"
     )
     with h5py.File(f"{OUT}/capture.hdf5", "w") as f:
-        f["H"] = h
+        f.create_dataset("H", data=h, compression="gzip")
         f["H_format"] = np.array([3], np.int32)  # T_Si
         f["laser_grid_format"] = np.array([1], np.int32)  # N_3
         f["sensor_grid_format"] = np.array([1], np.int32)
