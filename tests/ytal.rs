@@ -16,7 +16,19 @@ use periscope_tests::{periscope_with_limit, repo_path};
 
 /// Median depth error over the patch and silhouette IoU of `out/depth.npy` on `grid`.
 fn patch_accuracy(out: &Path, grid: &VolumeGrid) -> (f64, f64) {
-    let (dims, depth) = read_npy(&out.join("depth.npy")).expect("depth.npy");
+    let patch = |x: f64, y: f64| (x - 0.05).abs() <= 0.1 && (y + 0.05).abs() <= 0.1;
+    silhouette_accuracy(out, grid, patch, 0.5)
+}
+
+/// Median depth error against `depth` where `truth(x, y)` holds, and silhouette IoU, of
+/// `out/depth.npy` on `grid` (pixels with a finite depth are the reconstruction's).
+fn silhouette_accuracy(
+    out: &Path,
+    grid: &VolumeGrid,
+    truth: impl Fn(f64, f64) -> bool,
+    depth: f64,
+) -> (f64, f64) {
+    let (dims, depths) = read_npy(&out.join("depth.npy")).expect("depth.npy");
     let (ny, nx) = (dims[0], dims[1]);
     assert_eq!([nx, ny], [grid.shape[0], grid.shape[1]]);
     let v = grid.voxel();
@@ -25,18 +37,18 @@ fn patch_accuracy(out: &Path, grid: &VolumeGrid) -> (f64, f64) {
         for ix in 0..nx {
             let x = grid.x[0] + (ix as f64 + 0.5) * v.x;
             let y = grid.y[0] + (iy as f64 + 0.5) * v.y;
-            let truth = (x - 0.05).abs() <= 0.1 && (y + 0.05).abs() <= 0.1;
-            let d = depth[iy * nx + ix];
+            let truth = truth(x, y);
+            let d = depths[iy * nx + ix];
             if truth && d.is_finite() {
                 inter += 1;
-                errors.push((f64::from(d) - 0.5).abs());
+                errors.push((f64::from(d) - depth).abs());
             }
             if truth || d.is_finite() {
                 union += 1;
             }
         }
     }
-    assert!(!errors.is_empty(), "no depth on the patch at all");
+    assert!(!errors.is_empty(), "no depth on the target at all");
     errors.sort_by(f64::total_cmp);
     (errors[errors.len() / 2], inter as f64 / union as f64)
 }
@@ -124,30 +136,14 @@ fn a_two_torso_capture_rendered_by_mitransient_reconstructs() {
         Some(config.to_str().unwrap()),
         &out,
     );
-    let (dims, depth) = read_npy(&out.join("depth.npy")).expect("depth.npy");
-    let (ny, nx) = (dims[0], dims[1]);
+    let grid = VolumeGrid::new([-0.5, 0.5], [-0.5, 0.5], [0.195, 1.005], [32, 32, 81]).unwrap();
     let strokes = [[-0.20, 0.08, 0.10, 0.18], [-0.10, -0.02, -0.22, 0.10]];
-    let (mut inter, mut union, mut errors) = (0usize, 0usize, Vec::new());
-    for iy in 0..ny {
-        for ix in 0..nx {
-            let x = -0.5 + (ix as f64 + 0.5) / nx as f64;
-            let y = -0.5 + (iy as f64 + 0.5) / ny as f64;
-            let truth = strokes
-                .iter()
-                .any(|[x0, x1, y0, y1]| (*x0..*x1).contains(&x) && (*y0..*y1).contains(&y));
-            let d = depth[iy * nx + ix];
-            if truth && d.is_finite() {
-                inter += 1;
-                errors.push((f64::from(d) - 0.6).abs());
-            }
-            if truth || d.is_finite() {
-                union += 1;
-            }
-        }
-    }
-    assert!(!errors.is_empty(), "nothing of the T was reconstructed");
-    errors.sort_by(f64::total_cmp);
-    let (median, iou) = (errors[errors.len() / 2], inter as f64 / union as f64);
+    let t = |x: f64, y: f64| {
+        strokes
+            .iter()
+            .any(|[x0, x1, y0, y1]| (*x0..*x1).contains(&x) && (*y0..*y1).contains(&y))
+    };
+    let (median, iou) = silhouette_accuracy(&out, &grid, t, 0.6);
     eprintln!("torso_t: median depth error {median:.4} m, IoU {iou:.2}");
     assert!(median < 0.01, "median depth error {median:.3} m ≥ 1 cm");
     assert!(iou > 0.45, "silhouette IoU {iou:.2} ≤ 0.45");
