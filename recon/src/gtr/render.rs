@@ -8,7 +8,7 @@
 use rayon::prelude::*;
 
 use super::kernel::{Kernel, Loss, PhysicalGrad, RenderOptions};
-use super::lanes::{LANES, PairGroup, Pulses, backward_group, evaluate_group, groups};
+use super::lanes::{LANES, PairGroup, Pulses, backward_group, evaluate_group_into, groups};
 use super::model::{GaussianCloud, MapSlopes, RawGrads};
 use crate::transient::{Pair, TimeAxis, TransientSet};
 
@@ -76,8 +76,10 @@ impl crate::simd::Work for RenderGroup<'_> {
             out,
         } = self;
         out.fill(0.0);
+        let mut slot = None;
         for k in kernels {
-            if let Some(pulses) = evaluate_group(quad, k, &group, axis, opt) {
+            evaluate_group_into(quad, k, &group, axis, opt, &mut slot);
+            if let Some(pulses) = &slot {
                 for (w, hist) in pulses.iter().zip(out.chunks_exact_mut(axis.bins)) {
                     if let Some(w) = w {
                         w.accumulate_with(quad, axis, hist);
@@ -173,16 +175,19 @@ impl crate::simd::Work for ForwardChunk<'_> {
         let mut kept = Vec::with_capacity(if keep { chunk.len() * groups.len() } else { 0 });
         // Primitive-major: the batch's histograms (a few KiB) stay in L1, and the
         // evaluations are kept in the order the backward pass reads them.
+        let mut fresh = None;
         for k in chunk {
             for (out, group) in local.chunks_mut(LANES * bins).zip(groups) {
-                // Kept, the pulses go straight into their slot and are read from there:
-                // built aside and pushed after, they were copied (3 % of a fit).
-                let fresh;
+                // The pulses are built in their slot (the kept one, or one reused) and
+                // read from there: built aside and moved, they were copied (3 % of a
+                // fit).
                 let e = if keep {
-                    kept.push(evaluate_group(quad, k, group, axis, opt));
-                    kept.last().and_then(Option::as_ref)
+                    kept.push(None);
+                    let slot = kept.last_mut().expect("just pushed");
+                    evaluate_group_into(quad, k, group, axis, opt, slot);
+                    slot.as_ref()
                 } else {
-                    fresh = evaluate_group(quad, k, group, axis, opt);
+                    evaluate_group_into(quad, k, group, axis, opt, &mut fresh);
                     fresh.as_ref()
                 };
                 if let Some(e) = e {
