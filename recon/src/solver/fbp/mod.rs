@@ -36,8 +36,9 @@ use crate::volume::{Volume, VolumeGrid};
 
 mod grid;
 
-/// Pairs whose histograms are swept together over a slice (64 × 2 KiB fits in L2).
-const PAIR_TILE: usize = 64;
+/// Pairs whose histograms are swept together over a slice (32 pairs of 512 bins, two
+/// channels, each bin with the next: 32 × 8 KiB fits in L2).
+const PAIR_TILE: usize = 32;
 
 /// The filter.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
@@ -274,7 +275,7 @@ pub fn fbp(set: &TransientSet, grid: &VolumeGrid, settings: &FbpSettings) -> Res
                 filter.apply(&h)
             })
             .collect();
-        let sums = backproject::<2>(set, grid, settings.falloff, &hists, lead);
+        let sums = backproject::<2, 4>(set, grid, settings.falloff, hists, lead);
         let data = sums.iter().map(|[a, b]| a.hypot(*b)).collect();
         return Ok(Volume { grid: *grid, data });
     }
@@ -284,7 +285,7 @@ pub fn fbp(set: &TransientSet, grid: &VolumeGrid, settings: &FbpSettings) -> Res
             set.histogram(p).iter().map(|v| v * w).collect()
         })
         .collect();
-    let data = backproject::<1>(set, grid, settings.falloff, &hists, 0)
+    let data = backproject::<1, 2>(set, grid, settings.falloff, hists, 0)
         .into_iter()
         .map(|[v]| v)
         .collect();
@@ -299,18 +300,27 @@ pub fn fbp(set: &TransientSet, grid: &VolumeGrid, settings: &FbpSettings) -> Res
 /// phasor filter's real and imaginary parts, or one plain histogram) on the set's axis
 /// shifted by `lead` bins (bin `lead` is the axis' bin 0). Returns the `C` sums per
 /// voxel. A confocal scan on a grid that fits the voxels takes [`grid`]'s path, any
-/// other set [`backproject_pairs`].
-fn backproject<const C: usize>(
+/// other set [`backproject_pairs`], which reads each bin and the next as one `[f32; D]`
+/// (`D = 2C`).
+fn backproject<const C: usize, const D: usize>(
     set: &TransientSet,
     grid: &VolumeGrid,
     falloff: f64,
-    hists: &[Vec<f32>],
+    hists: Vec<Vec<f32>>,
     lead: usize,
 ) -> Vec<[f32; C]> {
-    let padded = pad::<C>(hists);
+    // Each path's layout replaces the histograms, which are dropped before the sums.
     match grid::ConfocalGrid::detect(set, grid) {
-        Some(scan) => backproject_grid(&scan, set, grid, falloff, &padded, lead),
-        None => backproject_pairs(set, grid, falloff, &padded, lead),
+        Some(scan) => {
+            let padded = pad::<C>(&hists);
+            drop(hists);
+            backproject_grid(&scan, set, grid, falloff, &padded, lead)
+        }
+        None => {
+            let doubled = doubled::<C, D>(&hists);
+            drop(hists);
+            backproject_pairs(set, grid, falloff, &doubled, lead)
+        }
     }
 }
 
@@ -402,11 +412,11 @@ impl<const C: usize> crate::simd::Work for GridRows<'_, '_, C> {
 /// as a second; both run inside [`crate::simd::dispatch`]. The falloff gain is
 /// `(d_i d_d)^p` with the common exponents done without `powf`: 1 is `d_i·d_d` from the
 /// roots already taken, 2 is `d_i²·d_d²`, 0 is 1.
-fn backproject_pairs<const C: usize>(
+fn backproject_pairs<const C: usize, const D: usize>(
     set: &TransientSet,
     grid: &VolumeGrid,
     falloff: f64,
-    padded: &[Vec<f32>],
+    doubled: &[Vec<[f32; D]>],
     lead: usize,
 ) -> Vec<[f32; C]> {
     let axis = *set.axis();
@@ -421,7 +431,7 @@ fn backproject_pairs<const C: usize>(
         .collect();
     let inv_w = (1.0 / axis.width) as f32;
     let offset = (axis.start / axis.width + 0.5) as f32 - lead as f32 - 1.0;
-    let top = padded.first().map_or(1, |p| p.len() / C - 2) as f32;
+    let top = doubled.first().map_or(1, |p| p.len() - 1) as f32;
     let pairs: Vec<([f32; 3], [f32; 3])> = set
         .pairs()
         .iter()
@@ -432,7 +442,7 @@ fn backproject_pairs<const C: usize>(
         let z = (min.z + (iz as f64 + 0.5) * voxel.z) as f32;
         let rows = Rows {
             pairs: &pairs,
-            hists: padded,
+            hists: doubled,
             xs: &xs,
             ys: &ys,
             inv_w,
@@ -447,11 +457,11 @@ fn backproject_pairs<const C: usize>(
 
 /// What every slice of a backprojection shares.
 #[derive(Clone, Copy)]
-struct Rows<'a> {
+struct Rows<'a, const D: usize> {
     /// Illumination and detection points.
     pairs: &'a [([f32; 3], [f32; 3])],
-    /// Padded histograms, one per pair.
-    hists: &'a [Vec<f32>],
+    /// Padded histograms, one per pair, each bin with the next ([`doubled`]).
+    hists: &'a [Vec<[f32; D]>],
     /// Voxel centres along x and y.
     xs: &'a [f32],
     ys: &'a [f32],
@@ -463,13 +473,13 @@ struct Rows<'a> {
 }
 
 /// One z slice of [`backproject`]: every pair, every row.
-struct Slice<'a, 'b, const C: usize> {
+struct Slice<'a, 'b, const C: usize, const D: usize> {
     out: &'b mut [[f32; C]],
     z: f32,
-    rows: Rows<'a>,
+    rows: Rows<'a, D>,
 }
 
-impl<const C: usize> crate::simd::Work for Slice<'_, '_, C> {
+impl<const C: usize, const D: usize> crate::simd::Work for Slice<'_, '_, C, D> {
     type Output = ();
 
     #[inline(always)]
@@ -479,7 +489,7 @@ impl<const C: usize> crate::simd::Work for Slice<'_, '_, C> {
 }
 
 #[inline(always)]
-fn backproject_slice<const C: usize>(slice: &mut [[f32; C]], z: f32, rows: Rows<'_>) {
+fn backproject_slice<const C: usize, const D: usize>(slice: &mut [[f32; C]], z: f32, rows: Rows<'_, D>) {
     let Rows {
         pairs,
         hists: padded,
@@ -506,7 +516,7 @@ fn backproject_slice<const C: usize>(slice: &mut [[f32; C]], z: f32, rows: Rows<
                     xs, byi, byd, xi[0], xd[0], inv_w, offset, top, falloff, &mut index, &mut gain,
                 );
                 weights_row(&index, &gain, &mut bin, &mut weights);
-                gather_row(row, &bin, &weights, h.as_chunks::<C>().0);
+                gather_row(row, &bin, &weights, h);
             }
         }
     }
@@ -574,22 +584,52 @@ fn weights_row(index: &[f32], gain: &[f32], bin: &mut [i32], weights: &mut [[f32
     }
 }
 
+/// The histograms padded as [`pad`] pads them, each padded bin followed by the next
+/// one's channels: `[h_b, h_{b+1}]` as `D = 2C` values, so the two values a linear
+/// interpolation needs are one load with one bounds check, which the compiler drops
+/// (the bin is clamped to the last entry) and the gather vectorises. Twice the padded
+/// histograms' memory.
+fn doubled<const C: usize, const D: usize>(hists: &[Vec<f32>]) -> Vec<Vec<[f32; D]>> {
+    const { assert!(D == 2 * C, "a doubled bin holds two bins of C channels") };
+    hists
+        .par_iter()
+        .map(|h| {
+            let bins = h.len() / C;
+            // Padded bin b: zero before the histogram and after it.
+            let at = |b: usize| match b {
+                1.. if b <= bins => &h[(b - 1) * C..b * C],
+                _ => &[0.0; C][..],
+            };
+            (0..bins + 2)
+                .map(|b| {
+                    let mut v = [0.0f32; D];
+                    v[..C].copy_from_slice(at(b));
+                    v[C..].copy_from_slice(at(b + 1));
+                    v
+                })
+                .collect()
+        })
+        .collect()
+}
+
 /// Adds each voxel's interpolated, gain-weighted histogram value to the row.
 #[inline(always)]
-fn gather_row<const C: usize>(row: &mut [[f32; C]], bin: &[i32], weights: &[[f32; 2]], h: &[[f32; C]]) {
+fn gather_row<const C: usize, const D: usize>(
+    row: &mut [[f32; C]],
+    bin: &[i32],
+    weights: &[[f32; 2]],
+    h: &[[f32; D]],
+) {
     // The bin is already clamped to the padding, so every voxel finds its two bins;
-    // `min` and `get` keep a bin from reading beyond the histogram all the same. (The
-    // assertion, which `pad` guarantees, lets the compiler vectorise the one-channel
-    // loop: about a quarter faster.)
-    assert!(h.len() >= 2, "a padded histogram holds at least two bins");
-    let last = h.len() - 2;
+    // `min` keeps a bin from reading beyond the histogram all the same, and lets the
+    // compiler drop the bounds check.
+    let Some(last) = h.len().checked_sub(1) else {
+        return;
+    };
     for ((out, &b), &[w0, w1]) in row.iter_mut().zip(bin).zip(weights) {
-        let b = (b as usize).min(last);
-        let Some(&[a, n]) = h.get(b..b + 2) else {
-            continue;
-        };
+        let v = &h[(b as usize).min(last)];
         for c in 0..C {
-            out[c] += w0 * a[c] + w1 * n[c];
+            out[c] += w0 * v[c] + w1 * v[C + c];
         }
     }
 }
@@ -779,7 +819,7 @@ mod tests {
         let padded = pad::<2>(&hists);
         let scan = grid::ConfocalGrid::detect(&set, &grid).unwrap();
         let fast = backproject_grid::<2>(&scan, &set, &grid, 1.0, &padded, lead);
-        let general = backproject_pairs::<2>(&set, &grid, 1.0, &padded, lead);
+        let general = backproject_pairs(&set, &grid, 1.0, &doubled::<2, 4>(&hists), lead);
         let flat = |v: &[[f32; 2]]| v.iter().flatten().map(|&x| x as f64).collect::<Vec<_>>();
         let (worst, peak) = worst_and_peak(&flat(&fast), &flat(&general));
         assert!(
