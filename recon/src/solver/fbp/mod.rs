@@ -492,7 +492,7 @@ impl<const C: usize, const D: usize> crate::simd::Work for Slice<'_, '_, C, D> {
 fn backproject_slice<const C: usize, const D: usize>(slice: &mut [[f32; C]], z: f32, rows: Rows<'_, D>) {
     let Rows {
         pairs,
-        hists: padded,
+        hists,
         xs,
         ys,
         inv_w,
@@ -507,7 +507,7 @@ fn backproject_slice<const C: usize, const D: usize>(slice: &mut [[f32; C]], z: 
     let mut weights = vec![[0.0f32; 2]; nx];
     // Pairs in tiles whose histograms stay in L2 while every row of the slice visits
     // them; the row being summed stays in L1.
-    for (tile, hists) in pairs.chunks(PAIR_TILE).zip(padded.chunks(PAIR_TILE)) {
+    for (tile, hists) in pairs.chunks(PAIR_TILE).zip(hists.chunks(PAIR_TILE)) {
         for (row, &y) in slice.chunks_exact_mut(nx).zip(ys) {
             for (&(xi, xd), h) in tile.iter().zip(hists) {
                 let byi = (z - xi[2]) * (z - xi[2]) + (y - xi[1]) * (y - xi[1]);
