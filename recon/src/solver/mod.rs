@@ -18,7 +18,7 @@ mod scan;
 
 pub use fbp::{
     FbpFilter, FbpSettings, PHASOR_PITCHES, SIGMA_PER_WAVELENGTH, VIRTUAL_SCAN_SIGMA_PER_WAVELENGTH, fbp,
-    phasor_wavelength, sampling_pitch,
+    lateral_voxel_pitch, phasor_wavelength, sampling_pitch,
 };
 pub use fk::{FkSettings, fk, fk_frame};
 pub use frame::FrameVolume;

@@ -11,7 +11,8 @@
 //!   around the spatial frequency 1/λ and made analytic; the real and imaginary parts
 //!   are backprojected and the volume is the magnitude. λ follows the relay's sampling
 //!   pitch Δ (λ = 2.5·Δ, the finest wave the aperture samples without aliasing, with
-//!   σ = λ/√2), so the filter keeps what the relay can resolve and drops the DC,
+//!   σ = λ/√2), and no less than 2.5 lateral voxel pitches (the finest detail the
+//!   volume holds), so the filter keeps what the relay can resolve and drops the DC,
 //!   ambient light and shot noise outside that band. Robust on sparse, non-confocal
 //!   and noisy captures.
 //! - **Laplacian** (Velten et al. 2012): the backprojection sharpened with the
@@ -81,8 +82,9 @@ pub struct FbpSettings {
     /// Weight each contribution by (d_i·d_d)^falloff: 2 undoes the 1/r² intensity
     /// falloff of both legs, 1 the 1/r amplitude of two spherical waves, 0 none.
     pub falloff: f64,
-    /// Phasor wavelength λ, metres of path length; `None`: 2.5 × the detection points'
-    /// sampling pitch (and at least 4 bins).
+    /// Phasor wavelength λ, metres of path length; `None`: 2.5 × the coarser of the
+    /// detection points' sampling pitch and the volume's lateral voxel pitch (and at
+    /// least 4 bins; [`phasor_wavelength`]).
     pub wavelength: Option<f64>,
     /// Phasor envelope width σ as a fraction of λ; `None`: [`SIGMA_PER_WAVELENGTH`]
     /// (y-tal's 1/√2), or [`VIRTUAL_SCAN_SIGMA_PER_WAVELENGTH`] on the virtual scan
@@ -156,15 +158,39 @@ pub fn sampling_pitch(points: &[glam::DVec3]) -> Option<f64> {
     (pitch.is_finite() && pitch > 0.0).then_some(pitch)
 }
 
-/// The phasor filter's wavelength for `set`: the setting, or 2.5 × the detection
-/// points' pitch, at least 4 bins.
-pub fn phasor_wavelength(set: &TransientSet, settings: &FbpSettings) -> f64 {
+/// The volume's voxel pitch across a relay facing `normal`: the coarser of the voxel's
+/// two sides along the world axes other than the one nearest the normal (x and y for a
+/// relay facing ±z). An image is sampled at this pitch laterally.
+pub fn lateral_voxel_pitch(grid: &VolumeGrid, normal: glam::DVec3) -> f64 {
+    let voxel = grid.voxel().to_array();
+    let n = normal.abs().to_array();
+    let along = (0..3).fold(2, |best, a| if n[a] > n[best] { a } else { best });
+    (0..3)
+        .filter(|&a| a != along)
+        .map(|a| voxel[a])
+        .fold(0.0, f64::max)
+}
+
+/// The phasor filter's wavelength for `set` on `grid`: the setting, or 2.5 × the
+/// coarser of the detection points' pitch and the volume's lateral voxel pitch
+/// ([`lateral_voxel_pitch`]), at least 4 bins.
+///
+/// The relay's pitch bounds what the data resolve (a shorter wave aliases across the
+/// relay); the voxel pitch bounds what the volume can hold. A wave shorter than 2.5
+/// voxels builds detail finer than the voxels, which sampling at their centres turns
+/// into speckle: on the virtual scan after 3D-GTR, whose pitch is half a voxel, the
+/// fitted primitives' scatter in depth (a few millimetres to centimetres where the
+/// relay saw a surface obliquely) then interferes within a pixel and dims whole
+/// surfaces (docs/recon.md, "The phasor wavelength after 3D-GTR").
+pub fn phasor_wavelength(set: &TransientSet, grid: &VolumeGrid, settings: &FbpSettings) -> f64 {
     let floor = 4.0 * set.axis().width;
     settings
         .wavelength
         .unwrap_or_else(|| {
             let points: Vec<glam::DVec3> = set.pairs().iter().map(|p| p.xd).collect();
-            sampling_pitch(&points).map_or(floor, |d| PHASOR_PITCHES * d)
+            let normal: glam::DVec3 = set.pairs().iter().map(|p| p.nd).sum();
+            let image = lateral_voxel_pitch(grid, normal);
+            PHASOR_PITCHES * sampling_pitch(&points).map_or(image, |d| d.max(image))
         })
         .max(floor)
 }
@@ -260,7 +286,11 @@ pub fn fbp(set: &TransientSet, grid: &VolumeGrid, settings: &FbpSettings) -> Res
     }
     let weight = |p: usize| set.weight(p) * quadrature.as_ref().map_or(1.0, |q| q[p] as f32);
     if settings.filter == FbpFilter::Phasor {
-        let lambda = phasor_wavelength(set, settings);
+        let lambda = phasor_wavelength(set, grid, settings);
+        tracing::info!(
+            wavelength = lambda,
+            "FBP phasor wavelength (2.5 x the coarser of the relay's sampling pitch and the voxels' lateral pitch; [fbp] wavelength sets it)"
+        );
         let sigma = settings.sigma_per_wavelength.unwrap_or(SIGMA_PER_WAVELENGTH) * lambda;
         // Three envelope widths of zeros each side: the wavelet's support.
         let lead = (3.0 * sigma / set.axis().width).ceil() as usize + 1;
