@@ -101,19 +101,18 @@ impl Budget {
             },
         ];
         if plan.recon.method == Method::Gtr {
-            // Without a virtual-size the grid may grow to cover the volume, up to the
-            // cap per axis.
-            let grown = |n: usize| {
-                if plan.recon.virtual_size.is_none() {
-                    n.max(crate::pipeline::MAX_VIRTUAL_RESOLUTION) as u64
-                } else {
-                    n as u64
-                }
+            // Without a virtual-size the grid may grow to cover the volume, and without
+            // a virtual-grid its points follow the voxels: either way up to the cap per
+            // axis.
+            let most = crate::pipeline::MAX_VIRTUAL_RESOLUTION;
+            let virt = match plan.recon.virtual_resolution {
+                Some(res) if plan.recon.virtual_size.is_some() => mul(&res.map(|n| n as u64)),
+                Some(res) => mul(&res.map(|n| n.max(most) as u64)),
+                None => mul(&[most as u64, most as u64]),
             };
-            let virt = mul(&plan.recon.virtual_resolution.map(grown));
             memory.push(Item {
                 what: "3D-GTR virtual confocal scan",
-                keys: "recon.gtr.virtual-grid (grown to cover the volume up to 128 per axis) × acquisition.bins",
+                keys: "recon.gtr.virtual-grid (default one point per voxel pitch; grown to cover the volume, up to 128 per axis) × acquisition.bins",
                 bytes: mul(&[virt, bins, 8 * 2]),
             });
             memory.push(Item {

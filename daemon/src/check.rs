@@ -22,6 +22,14 @@ const GTR_EVALS_PER_S: f64 = 1.1e6;
 /// in 1.8 s).
 const SYNTH_EVALS_PER_S: f64 = 4.5e6;
 
+/// Points of a plan's virtual confocal scan, for the estimate: its `virtual-grid`, or
+/// without one the volume's lateral voxel columns (a scan one voxel pitch apart over
+/// the volume's footprint; it grows where the relay reaches beyond it).
+fn virtual_points(rc: &crate::plan::ReconSettings) -> usize {
+    rc.virtual_resolution
+        .map_or(rc.volume.shape[0] * rc.volume.shape[1], |[nx, ny]| nx * ny)
+}
+
 fn deg(a: OpticalAngles) -> String {
     format!("({:.2}°, {:.2}°)", a.x.to_degrees(), a.y.to_degrees())
 }
@@ -156,11 +164,11 @@ pub fn check(plan: &Plan, inst: &InstrumentConfig) -> Check {
         rc.method,
         if rc.method == Method::Gtr {
             format!(
-                " (K = {}, {} epochs, virtual {}×{} confocal grid, then {})",
+                " (K = {}, {} epochs, virtual {} confocal grid, then {})",
                 rc.train.primitives,
                 rc.train.counted_epochs(pairs),
-                rc.virtual_resolution[0],
-                rc.virtual_resolution[1],
+                rc.virtual_resolution
+                    .map_or("voxel-pitch".to_string(), |[nx, ny]| format!("{nx}×{ny}")),
                 rc.solver
             )
         } else {
@@ -189,7 +197,7 @@ pub fn check(plan: &Plan, inst: &InstrumentConfig) -> Check {
     let recon_s = if rc.method == Method::Gtr {
         let k = rc.train.primitives as f64;
         pairs as f64 * k * rc.train.counted_epochs(pairs) as f64 / GTR_EVALS_PER_S
-            + (rc.virtual_resolution[0] * rc.virtual_resolution[1]) as f64 * k / SYNTH_EVALS_PER_S
+            + virtual_points(rc) as f64 * k / SYNTH_EVALS_PER_S
     } else {
         (v.len() as f64 * pairs as f64 / 4e8).max(1.0)
     };

@@ -245,6 +245,34 @@ fn a_virtual_relay_grows_to_cover_the_volume() {
 }
 
 #[test]
+fn a_virtual_relay_takes_a_given_pitch_about_its_centre() {
+    // 0.2 m × 0.3 m at 1/32 m: 7 × 10 points (0.219 × 0.3125 m), centre and plane kept.
+    let relay = VirtualRelay::new(DVec3::new(0.1, 0.0, 0.0), DVec3::Z, DVec3::X, [0.2, 0.3], [5, 5]).unwrap();
+    let pitched = relay.with_pitch(1.0 / 32.0, 128).unwrap();
+    assert_eq!(pitched.resolution, [7, 10]);
+    let s = pitched.spacing();
+    assert!(
+        (s[0] - 1.0 / 32.0).abs() < 1e-12 && (s[1] - 1.0 / 32.0).abs() < 1e-12,
+        "{s:?}"
+    );
+    assert_eq!(
+        (pitched.centre, pitched.normal, pitched.u),
+        (relay.centre, relay.normal, relay.u)
+    );
+    // An extent that is a whole number of pitches keeps its size.
+    let exact = VirtualRelay::new(DVec3::ZERO, DVec3::Z, DVec3::X, [1.0, 0.5], [2, 2]).unwrap();
+    let pitched = exact.with_pitch(1.0 / 32.0, 128).unwrap();
+    assert_eq!(pitched.resolution, [32, 16]);
+    assert!((pitched.size[0] - 1.0).abs() < 1e-12 && (pitched.size[1] - 0.5).abs() < 1e-12);
+    // Past the cap the extent stays and the pitch coarsens; tiny extents keep 2 points.
+    let capped = exact.with_pitch(1.0 / 256.0, 64).unwrap();
+    assert_eq!(capped.resolution, [64, 64]);
+    assert!((capped.size[0] - 1.0).abs() < 1e-12 && (capped.spacing()[0] - 1.0 / 64.0).abs() < 1e-12);
+    assert_eq!(exact.with_pitch(10.0, 64).unwrap().resolution, [2, 2]);
+    assert!(exact.with_pitch(0.0, 64).is_err() && exact.with_pitch(f64::NAN, 64).is_err());
+}
+
+#[test]
 fn a_level_virtual_relay_snaps_its_columns_to_the_voxels() {
     // A level wall: 67 columns over 1 m (pitch 1/67) and voxels of 1/32 m become 64
     // columns of 1/64 m (the nearest whole fraction), over the same centre and at

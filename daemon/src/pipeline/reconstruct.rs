@@ -8,6 +8,7 @@ use std::time::Instant;
 use glam::DVec3;
 use periscope_recon::gtr::{CancelToken, GaussianCloud, TrainError, TrainSummary, Trainer};
 use periscope_recon::relay::VirtualRelay;
+use periscope_recon::solver::lateral_voxel_pitch;
 use periscope_recon::synth::{default_axis, synthesise};
 use periscope_recon::{RoiBox, TransientSet, Volume, VolumeGrid};
 
@@ -172,13 +173,26 @@ fn finish_gtr(
 ) -> Result<ReconResult, PipelineError> {
     let s = &input.settings;
     let t = Instant::now();
-    let mut relay = VirtualRelay::fitted(
+    let fitted = VirtualRelay::fitted(
         &input.detection_points,
         input.viewpoint,
         s.virtual_size,
-        s.virtual_resolution,
+        s.virtual_resolution.unwrap_or([2, 2]),
     )
     .map_err(ReconError::from)?;
+    // Without a `virtual-grid`, the scan's points lie one lateral voxel pitch apart:
+    // the final FBP's wave is 2.5 voxel pitches long (`phasor_wavelength`), which that
+    // pitch samples as y-tal's rule samples a measured relay, and a denser scan only
+    // costs time (docs/recon.md, "The phasor wavelength after 3D-GTR").
+    let mut relay = match s.virtual_resolution {
+        Some(_) => fitted,
+        None => fitted
+            .with_pitch(
+                lateral_voxel_pitch(&s.volume, fitted.normal),
+                MAX_VIRTUAL_RESOLUTION,
+            )
+            .map_err(ReconError::from)?,
+    };
     if s.virtual_size.is_none() {
         // The virtual scan spans the detection points and the volume's footprint on
         // the plane, so nothing fitted beyond the measured aperture is cut off.
@@ -193,6 +207,13 @@ fn finish_gtr(
             .map_err(ReconError::from)?
             .columns_fitting(g.voxel().x, MAX_VIRTUAL_RESOLUTION);
     }
+    let pitch = relay.spacing();
+    tracing::info!(
+        columns = relay.resolution[0],
+        rows = relay.resolution[1],
+        pitch_m = pitch[0].max(pitch[1]),
+        "virtual confocal scan ([gtr] virtual-grid and virtual-size set it)"
+    );
     let axis = default_axis(&relay, &s.volume, SYNTH_BINS);
     let kernels = trainer.cloud().kernels();
     let scan = synthesise(&kernels, &relay, axis, trainer.render_options()).map_err(ReconError::from)?;

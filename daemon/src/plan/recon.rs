@@ -34,8 +34,10 @@ pub struct ReconSettings {
     pub volume: VolumeGrid,
     /// 3D-GTR fit settings.
     pub train: TrainConfig,
-    /// Virtual confocal grid (points per axis) for `gtr`.
-    pub virtual_resolution: [usize; 2],
+    /// Virtual confocal grid (points per axis) for `gtr`; `None` (FBP without a
+    /// `virtual-grid`): points one lateral voxel pitch apart
+    /// ([`periscope_recon::solver::lateral_voxel_pitch`]).
+    pub virtual_resolution: Option<[usize; 2]>,
     /// Virtual relay size (metres); `None`: the measured relay's extent.
     pub virtual_size: Option<[f64; 2]>,
     /// Solver run on the virtual confocal scan for `gtr`.
@@ -125,8 +127,7 @@ struct RawGtr {
     seed: u64,
     #[serde(default = "default_init")]
     init: String,
-    #[serde(default = "default_virtual")]
-    virtual_grid: [usize; 2],
+    virtual_grid: Option<[usize; 2]>,
     virtual_size: Option<[f64; 2]>,
     initial_scale: Option<f64>,
     #[serde(default = "default_densify")]
@@ -146,7 +147,7 @@ impl Default for RawGtr {
             lr_scale: default_lr_scale(),
             seed: 0,
             init: default_init(),
-            virtual_grid: default_virtual(),
+            virtual_grid: None,
             virtual_size: None,
             initial_scale: None,
             densify: default_densify(),
@@ -162,6 +163,11 @@ impl Default for RawGtr {
 /// intensity; for a uniformly bright object 0.4 of the maximum is close to half its
 /// level, which a blurred edge crosses at the true edge (docs/pipeline.md, "Depth maps").
 const DEFAULT_DEPTH_THRESHOLD: f64 = 0.4;
+
+/// The virtual scan's points per axis over the detection extent for `solver = "lct"`,
+/// `"fk"` and `"rsd"` when `[gtr] virtual-grid` is not set (FBP's scan follows the
+/// voxels instead).
+const GRID_SOLVERS_VIRTUAL_GRID: [usize; 2] = [64, 64];
 
 /// Farthest a volume may reach from the instrument, metres.
 const MAX_EXTENT_M: f64 = 100.0;
@@ -189,9 +195,6 @@ fn default_init() -> String {
 }
 fn default_densify() -> bool {
     true
-}
-fn default_virtual() -> [usize; 2] {
-    [64, 64]
 }
 
 /// Validates a `[recon]` table (keys under `prefix`, e.g. `recon.`, or `` for a
@@ -279,7 +282,9 @@ pub(crate) fn recon_settings(
             "must be in (0, 100]: it multiplies every learning rate",
         ));
     }
-    if g.virtual_grid.iter().any(|&n| !(2..=1024).contains(&n)) {
+    if let Some(grid) = g.virtual_grid
+        && grid.iter().any(|&n| !(2..=1024).contains(&n))
+    {
         return Err(src.invalid(&key("gtr.virtual-grid"), "must be two counts, 2 to 1024"));
     }
     if let Some(s) = g.virtual_size
@@ -410,7 +415,13 @@ pub(crate) fn recon_settings(
         method,
         volume,
         train,
-        virtual_resolution: g.virtual_grid,
+        // FBP's wave follows the voxels, so its scan does too (one point per lateral
+        // voxel pitch); the other solvers keep a grid of 64 × 64 over the detection
+        // extent, which scored better for them (docs/recon.md, "The phasor wavelength
+        // after 3D-GTR").
+        virtual_resolution: g
+            .virtual_grid
+            .or((solver != SolverKind::Fbp).then_some(GRID_SOLVERS_VIRTUAL_GRID)),
         virtual_size: g.virtual_size,
         solver,
         depth_threshold,
@@ -486,6 +497,30 @@ mod tests {
             (d.solvers.fbp.filter, d.solver),
             (FbpFilter::Phasor, SolverKind::Fbp)
         );
+    }
+
+    #[test]
+    fn the_virtual_grid_follows_the_voxels_for_fbp_unless_set() {
+        // FBP after 3D-GTR (the default): no grid, so the scan takes the voxel pitch.
+        assert_eq!(default_recon(volume()).virtual_resolution, None);
+        // The other solvers keep 64 × 64 over the detection extent.
+        for solver in ["lct", "fk", "rsd"] {
+            let src = TomlSource::from_text("recon.toml", format!("solver = \"{solver}\"\n"));
+            assert_eq!(
+                load_recon(&src, Some(volume())).unwrap().virtual_resolution,
+                Some([64, 64]),
+                "{solver}"
+            );
+        }
+        // A grid that is set is kept, for any solver, and checked.
+        let src = TomlSource::from_text("recon.toml", "[gtr]\nvirtual-grid = [48, 40]\n");
+        assert_eq!(
+            load_recon(&src, Some(volume())).unwrap().virtual_resolution,
+            Some([48, 40])
+        );
+        let src = TomlSource::from_text("recon.toml", "[gtr]\nvirtual-grid = [1, 40]\n");
+        let e = load_recon(&src, Some(volume())).unwrap_err().to_string();
+        assert!(e.contains("gtr.virtual-grid") && e.contains("2 to 1024"), "{e}");
     }
 
     #[test]

@@ -108,6 +108,26 @@ impl VirtualRelay {
         Self::new(centre, normal, provisional.u, size, resolution)
     }
 
+    /// The same plane, centre and orientation with its points `pitch` apart along both
+    /// axes: the extent grows about the centre to a whole number of pitches (at least
+    /// 2 points per axis); where that would take more than `max_resolution` points, the
+    /// extent stays and the pitch coarsens instead.
+    pub fn with_pitch(&self, pitch: f64, max_resolution: usize) -> Result<Self, GeometryError> {
+        if !(pitch.is_finite() && pitch > 0.0) {
+            return Err(GeometryError::OutOfRange {
+                name: "pitch",
+                value: pitch.to_string(),
+                expected: "a positive length in metres",
+            });
+        }
+        let most = max_resolution.max(2);
+        let resolution = self
+            .size
+            .map(|s| ((s / pitch - 1e-9).ceil() as usize).clamp(2, most));
+        let size = [0, 1].map(|a| (resolution[a] as f64 * pitch).max(self.size[a]));
+        Self::new(self.centre, self.normal, self.u, size, resolution)
+    }
+
     /// The same plane, orientation and grid pitch, its extent grown where needed to
     /// cover the projections of `points` too (the reconstruction volume's corners: a
     /// virtual scan narrower than the volume sees nothing of what lies beyond its
