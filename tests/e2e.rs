@@ -34,7 +34,7 @@ use periscope_daemon::ytal::YtalCapture;
 use periscope_recon::io::read_npy;
 use periscope_sim::World;
 use periscope_sim::truth::depth_truth;
-use periscope_tests::{Accuracy, accuracy, periscope_with_limit, repo_path};
+use periscope_tests::{Accuracy, BarsGrid, accuracy, assert_bars_resolved, periscope_with_limit, repo_path};
 
 fn run(plan: &str, instrument: Option<&str>, out: &Path) {
     let out_s = out.to_str().unwrap();
@@ -209,7 +209,7 @@ fn bars_finer_than_the_relay_pitch_are_resolved() {
         Some("configs/instrument/sim-wall-bars.toml"),
         &out,
     );
-    assert_bars_resolved(&out, "a 4 cm pitch", 0.8);
+    assert_bars_resolved(&out, BarsGrid::PLAN, "a 4 cm pitch", 0.8);
 }
 
 /// The same bars sampled at an 8 cm pitch (10 × 10 pairs, four times the bars'
@@ -229,59 +229,7 @@ fn bars_at_four_times_their_spacing_are_still_resolved() {
         Some("configs/instrument/sim-wall-bars.toml"),
         &out,
     );
-    assert_bars_resolved(&out, "an 8 cm pitch", 0.8);
-}
-
-/// Asserts the run's image across the bars peaks at each bar (within a voxel and a
-/// half) and dips between them to at most `max_dip` of the dimmest bar.
-fn assert_bars_resolved(out: &Path, pitch: &str, max_dip: f64) {
-    let profile = bar_profile(out);
-    let at = |x: f64| profile[((x + 0.2) / 0.005).floor() as usize];
-    let bars = [-0.04, 0.0, 0.04].map(at);
-    let gaps = [-0.02, 0.02].map(at);
-    let dip = gaps.iter().fold(0.0f64, |m, g| m.max(*g)) / bars.iter().fold(f64::INFINITY, |m, b| m.min(*b));
-    eprintln!("bars at {pitch}: bars {bars:.2?}, gaps {gaps:.2?}, dip {dip:.3}\n{profile:.2?}");
-    assert!(
-        dip <= max_dip,
-        "the bars at {pitch} are not resolved: gaps {gaps:.2?} against bars {bars:.2?}"
-    );
-    for centre in [-0.04, 0.0, 0.04] {
-        let i = ((centre + 0.2) / 0.005) as usize;
-        let peak = (i - 3..=i + 2)
-            .max_by(|&a, &b| profile[a].total_cmp(&profile[b]))
-            .unwrap();
-        let x = -0.2 + (peak as f64 + 0.5) * 0.005;
-        assert!(
-            (x - centre).abs() <= 0.0075
-                && profile[peak - 1] < profile[peak]
-                && profile[peak + 1] < profile[peak],
-            "at {pitch}, no peak at the bar at x = {centre} m (largest at {x:.4} m): {profile:.2?}"
-        );
-    }
-}
-
-/// The bars plan's image across the bars: its 80 × 80 × 80 volume over x, y ∈
-/// [−0.2, 0.2] m, maximum along z, mean over the rows with |y| ≤ 0.1 m, scaled to a
-/// maximum of 1; one value per 5 mm column from x = −0.2 m.
-fn bar_profile(run: &Path) -> Vec<f64> {
-    let (shape, volume) = read_npy(&run.join("volume.npy")).unwrap();
-    assert_eq!(shape, [80, 80, 80], "the plan's volume");
-    let (nz, ny, nx) = (shape[0], shape[1], shape[2]);
-    let mut profile = vec![0.0f64; nx];
-    let rows: Vec<usize> = (0..ny)
-        .filter(|&j| (-0.2 + (j as f64 + 0.5) * 0.005).abs() <= 0.1)
-        .collect();
-    for &j in &rows {
-        for (i, p) in profile.iter_mut().enumerate() {
-            let top = (0..nz)
-                .map(|k| volume[(k * ny + j) * nx + i])
-                .fold(0.0f32, f32::max);
-            *p += f64::from(top) / rows.len() as f64;
-        }
-    }
-    let max = profile.iter().fold(0.0f64, |m, v| m.max(*v));
-    assert!(max > 0.0, "the volume is empty");
-    profile.iter().map(|v| v / max).collect()
+    assert_bars_resolved(&out, BarsGrid::PLAN, "an 8 cm pitch", 0.8);
 }
 
 /// A plan's `[recon]` section as a RECON.toml for `periscope recon`, with the fit's

@@ -185,3 +185,85 @@ pub fn accuracy(run: &Path, scene: &str, x: [f64; 2], y: [f64; 2], shape: [usize
         object_pixels: truth.depth.iter().filter(|t| t.is_finite()).count(),
     }
 }
+
+/// The lateral grid of a volume across the bars: x and y both run from `lo` in
+/// columns `pitch` wide (the volume's `[nz, ny, nx]` shape gives their number).
+#[derive(Clone, Copy, Debug)]
+pub struct BarsGrid {
+    /// The grid's first edge, metres, in x and in y.
+    pub lo: f64,
+    /// The columns' width, metres.
+    pub pitch: f64,
+}
+
+impl BarsGrid {
+    /// The simulator's bars plan (`configs/plans/wall-bars.toml`): 5 mm voxels from
+    /// −0.2 m.
+    pub const PLAN: Self = Self {
+        lo: -0.2,
+        pitch: 0.005,
+    };
+
+    fn centre(&self, i: usize) -> f64 {
+        self.lo + (i as f64 + 0.5) * self.pitch
+    }
+}
+
+/// Asserts the image across three 2 cm bars 2 cm apart at x = −0.04, 0, 0.04 m (the
+/// simulator's `wall-bars` scene, and tests/data/ytal/render_bars.py's) in a run's
+/// `volume.npy` on `grid`: a peak within 7.5 mm of each bar, and the profile at the
+/// gaps' centres at most `max_dip` of the dimmest bar's (profile values linearly
+/// interpolated between column centres, as the validation scorer's resolution test).
+pub fn assert_bars_resolved(out: &Path, grid: BarsGrid, pitch: &str, max_dip: f64) {
+    let profile = bar_profile(out, grid);
+    let at = |x: f64| {
+        let f = ((x - grid.lo) / grid.pitch - 0.5).clamp(0.0, (profile.len() - 1) as f64);
+        let (i, t) = (f.floor() as usize, f - f.floor());
+        profile[i] * (1.0 - t) + profile[(i + 1).min(profile.len() - 1)] * t
+    };
+    let bars = [-0.04, 0.0, 0.04].map(at);
+    let gaps = [-0.02, 0.02].map(at);
+    let dip = gaps.iter().fold(0.0f64, |m, g| m.max(*g)) / bars.iter().fold(f64::INFINITY, |m, b| m.min(*b));
+    eprintln!("bars at {pitch}: bars {bars:.2?}, gaps {gaps:.2?}, dip {dip:.3}\n{profile:.2?}");
+    assert!(
+        dip <= max_dip,
+        "the bars at {pitch} are not resolved: gaps {gaps:.2?} against bars {bars:.2?}"
+    );
+    for centre in [-0.04, 0.0, 0.04] {
+        let near: Vec<usize> = (1..profile.len() - 1)
+            .filter(|&i| (grid.centre(i) - centre).abs() <= 0.0125)
+            .collect();
+        let peak = *near
+            .iter()
+            .max_by(|&&a, &&b| profile[a].total_cmp(&profile[b]))
+            .expect("the grid covers the bars");
+        let x = grid.centre(peak);
+        assert!(
+            (x - centre).abs() <= 0.0075
+                && profile[peak - 1] < profile[peak]
+                && profile[peak + 1] < profile[peak],
+            "at {pitch}, no peak at the bar at x = {centre} m (largest at {x:.4} m): {profile:.2?}"
+        );
+    }
+}
+
+/// A run's image across the bars: its volume's maximum along z, the mean over the rows
+/// with |y| ≤ 0.1 m, scaled to a maximum of 1; one value per column of `grid`.
+fn bar_profile(run: &Path, grid: BarsGrid) -> Vec<f64> {
+    let (shape, volume) = read_npy(&run.join("volume.npy")).unwrap();
+    assert_eq!(shape.len(), 3, "a volume");
+    let (nz, ny, nx) = (shape[0], shape[1], shape[2]);
+    let mut profile = vec![0.0f64; nx];
+    let rows: Vec<usize> = (0..ny).filter(|&j| grid.centre(j).abs() <= 0.1).collect();
+    for &j in &rows {
+        for (i, p) in profile.iter_mut().enumerate() {
+            let top = (0..nz)
+                .map(|k| volume[(k * ny + j) * nx + i])
+                .fold(0.0f32, f32::max);
+            *p += f64::from(top) / rows.len() as f64;
+        }
+    }
+    let max = profile.iter().fold(0.0f64, |m, v| m.max(*v));
+    assert!(max > 0.0, "the volume is empty");
+    profile.iter().map(|v| v / max).collect()
+}
