@@ -5,9 +5,9 @@ use std::time::Duration;
 
 use glam::{DQuat, DVec3};
 use periscope_recon::gtr::{
-    CancelToken, GaussianCloud, Init, Loss, LossChoice, Primitive, PruneSettings, RawGrads, RenderOptions,
-    ScaleBounds, TrainConfig, TrainError, TrainEvent, Trainer, batch_loss_grad, densify, estimate_background,
-    first_negative, render_set,
+    CancelToken, DENSIFY_ROUNDS, DensifySettings, GaussianCloud, Init, Loss, LossChoice, Primitive,
+    PruneSettings, RawGrads, RenderOptions, ScaleBounds, TrainConfig, TrainError, TrainEvent, Trainer,
+    batch_loss_grad, densify, densify_after, estimate_background, first_negative, render_set,
 };
 use periscope_recon::{Pair, RoiBox, TimeAxis, TransientSet};
 use rand::{Rng, SeedableRng};
@@ -217,10 +217,11 @@ fn streamed_transients_are_fitted_and_counted_after_the_capture_ends() {
 fn a_small_capture_gets_more_epochs_to_reach_the_minimum_steps() {
     // 50 pairs in batches of 4 are 13 steps a pass: 2 epochs take 26 steps, so 60
     // steps need 5 epochs; the full 120 pairs (30 steps a pass) need only the 2.
-    let cfg = TrainConfig {
+    let mut cfg = TrainConfig {
         min_steps: 60,
         ..config(30, 2)
     };
+    cfg.densify.rounds = 1;
     assert_eq!(cfg.counted_epochs(50), 5);
     assert_eq!(cfg.counted_epochs(120), 2);
     assert_eq!(
@@ -246,9 +247,45 @@ fn a_small_capture_gets_more_epochs_to_reach_the_minimum_steps() {
     assert_eq!(summary.epochs, 5);
     assert_eq!(trainer.steps(), 65);
     assert_eq!(seen, vec![1, 2, 3, 4, 5]);
-    // A 2-epoch fit densifies once (after the first half); spread over 5 epochs that
-    // round falls after epoch 3 (⌊3·2/5⌋ = 1), not after each of epochs 1 and 2.
-    assert_eq!(densified, vec![3]);
+    // One round in the first half of the 5 counted epochs (epochs 1 and 2), at its
+    // end: a fit of 2 epochs spread over 5 does not densify after every one.
+    assert_eq!(densified, vec![2]);
+}
+
+/// Densification rounds: one after each epoch of the first half when that half holds
+/// no more epochs than the rounds (a fit whose epochs are set, or a large capture),
+/// and the rounds spread evenly over it when it holds more (a small capture, which the
+/// step floor gives many short epochs).
+#[test]
+fn densification_rounds_are_spread_over_the_first_half() {
+    let d = DensifySettings::default();
+    assert_eq!(d.rounds, DENSIFY_ROUNDS);
+    let rounds = |epochs: usize, d: &DensifySettings| -> Vec<usize> {
+        (0..=epochs + 1)
+            .filter(|&e| densify_after(e, epochs, d))
+            .collect()
+    };
+    // A 1,024-pair capture at the step floor (32 epochs of 256 steps): every epoch of
+    // the first half; a plan's own 16 epochs: every epoch of its first 8.
+    assert_eq!(rounds(32, &d), (1..=16).collect::<Vec<_>>());
+    assert_eq!(rounds(16, &d), (1..=8).collect::<Vec<_>>());
+    // A 300-pair capture at the floor (110 epochs of 75 steps): 16 rounds over epochs
+    // 1 to 55, three or four epochs (225–300 steps) apart, the last at 55.
+    let small = rounds(110, &d);
+    assert_eq!(
+        small,
+        vec![4, 7, 11, 14, 18, 21, 25, 28, 31, 35, 38, 42, 45, 49, 52, 55]
+    );
+    assert!(
+        small.windows(2).all(|p| (3..=4).contains(&(p[1] - p[0]))),
+        "{small:?}"
+    );
+    // Never before the first epoch, at or after the last, with `until` 0 or no rounds.
+    assert!(!densify_after(0, 32, &d));
+    assert!(!densify_after(32, 32, &d));
+    assert!(rounds(1, &d).is_empty());
+    assert!(rounds(32, &DensifySettings { until: 0.0, ..d }).is_empty());
+    assert!(rounds(32, &DensifySettings { rounds: 0, ..d }).is_empty());
 }
 
 /// Streams `all` in batches of 30 (the first given at the start), each sent after

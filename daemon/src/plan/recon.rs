@@ -177,10 +177,13 @@ fn default_primitives() -> usize {
 }
 /// Counted epochs when the plan sets none: at least this many ...
 const DEFAULT_EPOCHS: usize = 16;
-/// ... and at least this many optimiser steps: 16 epochs of a 1,024-pair capture in
+/// ... and at least this many optimiser steps: 32 epochs of a 1,024-pair capture in
 /// batches of 4. A smaller capture gets more epochs; the fit's cost, which follows the
-/// steps, stays that of the larger one (docs/recon.md, "Training").
-const DEFAULT_MIN_STEPS: usize = 4096;
+/// steps, stays that of the larger one. The 4,096 steps this was before, with 8
+/// rounds of densification, left 2 cm bars 2 cm apart one blob on an independent
+/// 4 cm-pitch render, and the oblique two-torso render's L a third lost
+/// (docs/recon.md, "More steps, and rounds a step interval apart").
+const DEFAULT_MIN_STEPS: usize = 8192;
 fn default_loss() -> String {
     "auto".into()
 }
