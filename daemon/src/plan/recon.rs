@@ -181,8 +181,8 @@ const DEFAULT_EPOCHS: usize = 16;
 /// batches of 4. A smaller capture gets more epochs; the fit's cost, which follows the
 /// steps, stays that of the larger one. The 4,096 steps this was before, with 8
 /// rounds of densification, left 2 cm bars 2 cm apart one blob on an independent
-/// 4 cm-pitch render, and the oblique two-torso render's L a third lost
-/// (docs/recon.md, "More steps, and rounds a step interval apart").
+/// 4 cm-pitch render and cost the oblique two-torso render 0.16 IoU
+/// (docs/recon.md, "More steps and more rounds of densification").
 const DEFAULT_MIN_STEPS: usize = 8192;
 fn default_loss() -> String {
     "auto".into()

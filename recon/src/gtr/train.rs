@@ -64,8 +64,8 @@ impl Default for PruneSettings {
 /// independent render of 2 cm bars 2 cm apart seen from a 4 cm relay pitch, 8 rounds
 /// left the bars one blob however many steps followed them, and 16 through the first
 /// half of an 8,192-step fit resolved them; the validation captures and the two-torso
-/// renders held or gained (docs/recon.md, "More steps, and rounds a step interval
-/// apart").
+/// renders held or gained (docs/recon.md, "More steps and more rounds of
+/// densification").
 pub const DENSIFY_ROUNDS: usize = 16;
 
 /// Adaptive density control: large primitives that carry signal are split in two,

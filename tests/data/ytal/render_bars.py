@@ -38,6 +38,7 @@ import mitsuba as mi
 mi.set_variant("llvm_ad_mono")
 import h5py  # noqa: E402
 import mitransient as mitr  # noqa: E402
+from nlos_common import INTEGRATOR, axis  # noqa: E402
 
 ARGS = argparse.ArgumentParser(description=__doc__.splitlines()[0])
 ARGS.add_argument("out", help="folder for capture.hdf5 and the truth maps")
@@ -61,19 +62,7 @@ def render():
     T = mi.ScalarTransform4f
     scene = {
         "type": "scene",
-        "integrator": {
-            "type": "transient_nlos_path",
-            "block_size": 1,
-            "max_depth": 3,
-            "filter_bounces": -1,
-            "discard_direct_paths": True,
-            "nlos_laser_sampling": True,
-            "nlos_hidden_geometry_sampling": True,
-            "nlos_hidden_geometry_sampling_do_rroulette": False,
-            "nlos_hidden_geometry_sampling_includes_relay_wall": False,
-            "temporal_filter": "box",
-            "account_first_and_last_bounces": False,
-        },
+        "integrator": INTEGRATOR,
         "laser": {
             "type": "projector",
             "irradiance": {"type": "spectrum", "value": 1.0},
@@ -171,10 +160,6 @@ def write_truth():
     np.save(f"{OUT}/truth_depth.npy", np.where(coverage > 0, DEPTH, -1.0).astype(np.float32))
     np.save(f"{OUT}/truth_mask.npy", coverage >= 0.5)
     np.save(f"{OUT}/truth_labels.npy", (coverage >= 0.5).astype(np.int16))
-
-    def axis(lo, hi, k):
-        step = (hi - lo) / k
-        return {"min_center": lo + step / 2, "max_center": hi - step / 2, "n": k, "step": step, "bounds": [lo, hi]}
 
     truth = {
         "scene": "bars_coarse",

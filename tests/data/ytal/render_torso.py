@@ -42,6 +42,7 @@ mi.set_variant("llvm_ad_mono")
 import drjit as dr  # noqa: E402
 import h5py  # noqa: E402
 import mitransient as mitr  # noqa: E402
+from nlos_common import INTEGRATOR, axis  # noqa: E402
 
 ARGS = argparse.ArgumentParser(description=__doc__.splitlines()[0])
 ARGS.add_argument("out", help="folder for capture.hdf5 and the truth maps")
@@ -110,19 +111,7 @@ def scene_dict(white):
     T = mi.ScalarTransform4f
     d = {
         "type": "scene",
-        "integrator": {
-            "type": "transient_nlos_path",
-            "block_size": 1,
-            "max_depth": 3,
-            "filter_bounces": -1,
-            "discard_direct_paths": True,
-            "nlos_laser_sampling": True,
-            "nlos_hidden_geometry_sampling": True,
-            "nlos_hidden_geometry_sampling_do_rroulette": False,
-            "nlos_hidden_geometry_sampling_includes_relay_wall": False,
-            "temporal_filter": "box",
-            "account_first_and_last_bounces": False,
-        },
+        "integrator": INTEGRATOR,
         "laser": {
             "type": "projector",
             "irradiance": {"type": "spectrum", "value": 1.0},
@@ -238,13 +227,6 @@ def write_truth():
     np.save(f"{OUT}/truth_depth.npy", depth)
     np.save(f"{OUT}/truth_mask.npy", coverage >= 0.5)
     np.save(f"{OUT}/truth_labels.npy", labels)
-    axis = lambda lo, hi, k: {  # noqa: E731
-        "min_center": lo + (hi - lo) / k / 2,
-        "max_center": hi - (hi - lo) / k / 2,
-        "n": k,
-        "step": (hi - lo) / k,
-        "bounds": [lo, hi],
-    }
     truth = {
         "scene": "torso_check",
         "coordinate_system": "y-tal: relay at (mean) z=0 facing +z; hidden scene at z>0; metres",
