@@ -70,6 +70,25 @@ fn recon(file: &str, config: Option<&str>, out: &Path) -> String {
     done.stdout
 }
 
+/// `periscope recon FILE` with `method = "gtr"` and nothing else but `grid` set, as
+/// the validation set is judged; returns the temporary directory (kept alive by the
+/// caller) and the output folder in it.
+fn gtr_with_defaults(file: &str, grid: &VolumeGrid) -> (tempfile::TempDir, std::path::PathBuf) {
+    let dir = tempfile::tempdir().unwrap();
+    let config = dir.path().join("recon.toml");
+    std::fs::write(
+        &config,
+        format!(
+            "method = \"gtr\"\n[volume]\nx = {:?}\ny = {:?}\nz = {:?}\nshape = {:?}\n",
+            grid.x, grid.y, grid.z, grid.shape
+        ),
+    )
+    .unwrap();
+    let out = dir.path().join("out");
+    recon(file, Some(config.to_str().unwrap()), &out);
+    (dir, out)
+}
+
 fn check_fixture(name: &str, format: HFormat, config: Option<&str>) {
     let file = format!("tests/data/ytal/{name}.hdf5");
     let capture = YtalCapture::read(&repo_path(&file)).expect("y-tal's file reads");
@@ -123,20 +142,8 @@ fn exhaustive_capture_reconstructs_with_a_recon_config() {
 /// cosine, a leg's falloff, a normal, a time origin) would show here first.
 #[test]
 fn a_two_torso_capture_rendered_by_mitransient_reconstructs() {
-    let dir = tempfile::tempdir().unwrap();
-    let config = dir.path().join("recon.toml");
-    std::fs::write(
-        &config,
-        "method = \"gtr\"\n[volume]\nx = [-0.5, 0.5]\ny = [-0.5, 0.5]\nz = [0.195, 1.005]\nshape = [32, 32, 81]\n",
-    )
-    .unwrap();
-    let out = dir.path().join("out");
-    recon(
-        "tests/data/ytal/torso_t.hdf5",
-        Some(config.to_str().unwrap()),
-        &out,
-    );
     let grid = VolumeGrid::new([-0.5, 0.5], [-0.5, 0.5], [0.195, 1.005], [32, 32, 81]).unwrap();
+    let (_dir, out) = gtr_with_defaults("tests/data/ytal/torso_t.hdf5", &grid);
     let strokes = [[-0.20, 0.08, 0.10, 0.18], [-0.10, -0.02, -0.22, 0.10]];
     let t = |x: f64, y: f64| {
         strokes
@@ -158,19 +165,8 @@ fn a_two_torso_capture_rendered_by_mitransient_reconstructs() {
 /// before 2026-11-26 (8 rounds over 4,096 steps) 0.82 at every seed, one blob.
 #[test]
 fn bars_finer_than_the_pitch_rendered_by_mitransient_are_resolved() {
-    let dir = tempfile::tempdir().unwrap();
-    let config = dir.path().join("recon.toml");
-    std::fs::write(
-        &config,
-        "method = \"gtr\"\n[volume]\nx = [-0.25, 0.25]\ny = [-0.25, 0.25]\nz = [0.195, 1.005]\nshape = [50, 50, 81]\n",
-    )
-    .unwrap();
-    let out = dir.path().join("out");
-    recon(
-        "tests/data/ytal/bars_coarse.hdf5",
-        Some(config.to_str().unwrap()),
-        &out,
-    );
+    let grid = VolumeGrid::new([-0.25, 0.25], [-0.25, 0.25], [0.195, 1.005], [50, 50, 81]).unwrap();
+    let (_dir, out) = gtr_with_defaults("tests/data/ytal/bars_coarse.hdf5", &grid);
     assert_bars_resolved(
         &out,
         BarsGrid {
