@@ -178,6 +178,54 @@ fn bars_finer_than_the_pitch_rendered_by_mitransient_are_resolved() {
     );
 }
 
+/// A sign-inverted capture has a negative total, which no non-negative scene
+/// explains: `method = "gtr"` refuses it as a settings error (exit code 2) naming the
+/// cause instead of writing an empty volume, and FBP (magnitudes) still reconstructs
+/// it.
+#[test]
+fn a_sign_inverted_capture_is_refused_by_gtr_and_reconstructed_by_fbp() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut capture = YtalCapture::read(&repo_path("tests/data/ytal/confocal_xy.hdf5")).unwrap();
+    for v in &mut capture.h {
+        *v = -*v;
+    }
+    let inverted = dir.path().join("inverted.hdf5");
+    capture.write(&inverted).unwrap();
+    let volume = "[volume]\nx = [-0.3, 0.3]\ny = [-0.3, 0.3]\nz = [0.3, 0.7]\nshape = [12, 12, 10]\n";
+    let config = |method: &str| {
+        let path = dir.path().join(format!("{method}.toml"));
+        std::fs::write(&path, format!("method = \"{method}\"\n{volume}")).unwrap();
+        path
+    };
+    let gtr_out = dir.path().join("gtr");
+    let done = periscope_with_limit(
+        &[
+            "recon",
+            inverted.to_str().unwrap(),
+            "--config",
+            config("gtr").to_str().unwrap(),
+            "--out",
+            gtr_out.to_str().unwrap(),
+        ],
+        Duration::from_secs(120),
+    );
+    assert_eq!(done.code, Some(2), "{done:?}");
+    assert!(
+        done.stderr.contains("negative") && done.stderr.contains("fbp"),
+        "{}",
+        done.stderr
+    );
+    assert!(!gtr_out.join("volume.npy").exists());
+    let fbp_out = dir.path().join("fbp");
+    recon(
+        inverted.to_str().unwrap(),
+        Some(config("fbp").to_str().unwrap()),
+        &fbp_out,
+    );
+    let (_, values) = read_npy(&fbp_out.join("volume.npy")).unwrap();
+    assert!(values.iter().all(|v| v.is_finite()) && values.iter().any(|v| *v > 0.0));
+}
+
 #[test]
 fn a_file_that_is_not_a_capture_is_refused_with_its_name() {
     let dir = tempfile::tempdir().unwrap();

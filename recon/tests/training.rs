@@ -635,6 +635,42 @@ fn poisson_on_negative_data_is_refused_with_the_pair() {
     }
 }
 
+/// A sign-inverted capture has a negative total, which a non-negative scene cannot
+/// explain: the fit refuses it at the gain match instead of fitting an empty scene,
+/// and a capture with some negative bins but a positive total still fits.
+#[test]
+fn a_capture_with_a_negative_total_is_refused() {
+    let clean = data(10, 4);
+    let flipped = |keep_positive: bool| {
+        let mut set = TransientSet::new(*clean.axis()).unwrap();
+        for (i, pair) in clean.pairs().iter().enumerate() {
+            let h: Vec<f32> = clean
+                .histogram(i)
+                .iter()
+                .enumerate()
+                .map(|(b, v)| if keep_positive && b % 3 != 0 { *v } else { -v })
+                .collect();
+            set.push(*pair, &h).unwrap();
+        }
+        set
+    };
+    let cfg = || TrainConfig {
+        loss: LossChoice::L2,
+        ..config(30, 1)
+    };
+    match Trainer::new(cfg(), roi(), flipped(false)) {
+        Err(e @ TrainError::NegativeTotal { total }) => {
+            assert!(total < 0.0, "{total}");
+            let msg = e.to_string();
+            assert!(msg.contains("non-negative") && msg.contains("fbp"), "{msg}");
+        }
+        other => panic!("expected a negative-total error, got {:?}", other.map(|_| ())),
+    }
+    let mixed = flipped(true);
+    assert!((0..mixed.len()).any(|i| mixed.histogram(i).iter().any(|v| *v < 0.0)));
+    assert!(Trainer::new(cfg(), roi(), mixed).is_ok());
+}
+
 #[test]
 fn a_poisson_fit_on_counts_stays_finite_and_lowers_its_loss() {
     let cfg = TrainConfig {

@@ -105,7 +105,10 @@ impl ReconError {
         use periscope_recon::solver::SolverError;
         match self {
             ReconError::Solver(e) => !matches!(e, SolverError::Volume(_)),
-            ReconError::Train(e) => matches!(e, TrainError::Config(_) | TrainError::NothingVisible),
+            ReconError::Train(e) => matches!(
+                e,
+                TrainError::Config(_) | TrainError::NothingVisible | TrainError::NegativeTotal { .. }
+            ),
             ReconError::Roi(_) | ReconError::Empty => true,
             ReconError::Transient(_)
             | ReconError::Geometry(_)

@@ -443,6 +443,14 @@ pub enum TrainError {
         "no primitive in the region of interest is visible from any pair: check that the ROI lies in front of the relay surface (on the side its normals point to) and within the time axis"
     )]
     NothingVisible,
+    /// The histograms' total is negative, which no non-negative scene explains.
+    #[error(
+        "the histograms sum to {total:.3e} over the pairs the gain is matched on: 3D-GTR fits a non-negative scene, which cannot explain data whose total is negative (background subtracted with the wrong sign, or an inverted capture?); check the capture's sign, or use method = \"fbp\", which does not depend on it"
+    )]
+    NegativeTotal {
+        /// The sampled pairs' total, weighted as in the fit.
+        total: f64,
+    },
 }
 
 /// How a fit ended.
@@ -567,6 +575,11 @@ impl Trainer {
             Loss::L2 => 0.0,
         };
         let total = sample.total_counts();
+        if total < 0.0 {
+            // With a negative total every step would only shrink the albedo towards
+            // an empty scene, which the fit would then report as its result.
+            return Err(TrainError::NegativeTotal { total });
+        }
         let measured = if total - background > 0.0 {
             total - background
         } else {
