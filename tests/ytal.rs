@@ -226,6 +226,57 @@ fn a_sign_inverted_capture_is_refused_by_gtr_and_reconstructed_by_fbp() {
     assert!(values.iter().all(|v| v.is_finite()) && values.iter().any(|v| *v > 0.0));
 }
 
+/// A line scan (every relay point on one line) has no plane for 3D-GTR's virtual
+/// scan: `method = "gtr"` refuses it as a settings error (exit code 2) that names the
+/// cause and FBP, before the fit (with a volume behind the relay the refusal is still
+/// the line's, not the fit's "no primitive ... is visible"), and FBP reconstructs it.
+#[test]
+fn a_line_scan_is_refused_by_gtr_before_the_fit_and_reconstructed_by_fbp() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut capture = YtalCapture::read(&repo_path("tests/data/ytal/confocal_xy.hdf5")).unwrap();
+    for grid in [&mut capture.sensor_grid, &mut capture.laser_grid] {
+        for p in &mut grid.points {
+            p.y = 0.0;
+        }
+    }
+    let line = dir.path().join("line.hdf5");
+    capture.write(&line).unwrap();
+    let config = |name: &str, method: &str, z: &str| {
+        let path = dir.path().join(format!("{name}.toml"));
+        let text = format!(
+            "method = \"{method}\"\n[volume]\nx = [-0.3, 0.3]\ny = [-0.3, 0.3]\nz = {z}\nshape = [12, 12, 10]\n"
+        );
+        std::fs::write(&path, text).unwrap();
+        path
+    };
+    for (name, z) in [("front", "[0.3, 0.7]"), ("behind", "[-0.7, -0.3]")] {
+        let out = dir.path().join(name);
+        let done = periscope_with_limit(
+            &[
+                "recon",
+                line.to_str().unwrap(),
+                "--config",
+                config(name, "gtr", z).to_str().unwrap(),
+                "--out",
+                out.to_str().unwrap(),
+            ],
+            Duration::from_secs(120),
+        );
+        assert_eq!(done.code, Some(2), "{name}: {done:?}");
+        assert!(
+            done.stderr.contains("collinear") && done.stderr.contains("fbp"),
+            "{name}: {}",
+            done.stderr
+        );
+        assert!(!out.join("volume.npy").exists());
+    }
+    let fbp_out = dir.path().join("fbp");
+    let fbp = config("fbp", "fbp", "[0.3, 0.7]");
+    recon(line.to_str().unwrap(), Some(fbp.to_str().unwrap()), &fbp_out);
+    let (_, values) = read_npy(&fbp_out.join("volume.npy")).unwrap();
+    assert!(values.iter().all(|v| v.is_finite()) && values.iter().any(|v| *v > 0.0));
+}
+
 #[test]
 fn a_file_that_is_not_a_capture_is_refused_with_its_name() {
     let dir = tempfile::tempdir().unwrap();

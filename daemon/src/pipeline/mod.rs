@@ -97,11 +97,12 @@ pub enum ReconError {
 impl ReconError {
     /// Whether the error is the user's to fix by choosing another method or other
     /// settings (the data do not suit the solver, a setting is out of range, no pair
-    /// sees the volume, the arrays would exceed the memory cap), as against a failure
-    /// of the run itself. The CLI exits with 2 for these, as for any other
-    /// configuration error.
+    /// sees the volume, the arrays would exceed the memory cap, no plane fits the relay
+    /// points for 3D-GTR's virtual scan), as against a failure of the run itself. The
+    /// CLI exits with 2 for these, as for any other configuration error.
     pub fn is_settings(&self) -> bool {
         use periscope_recon::gtr::TrainError;
+        use periscope_recon::relay::GeometryError;
         use periscope_recon::solver::SolverError;
         match self {
             ReconError::Solver(e) => !matches!(e, SolverError::Volume(_)),
@@ -109,11 +110,9 @@ impl ReconError {
                 e,
                 TrainError::Config(_) | TrainError::NothingVisible | TrainError::NegativeTotal { .. }
             ),
+            ReconError::Geometry(e) => matches!(e, GeometryError::NoPlane { .. }),
             ReconError::Roi(_) | ReconError::Empty => true,
-            ReconError::Transient(_)
-            | ReconError::Geometry(_)
-            | ReconError::Output { .. }
-            | ReconError::Thread(_) => false,
+            ReconError::Transient(_) | ReconError::Output { .. } | ReconError::Thread(_) => false,
         }
     }
 }

@@ -132,7 +132,8 @@ impl Fit {
                     set: data,
                     ..self.take_input()
                 };
-                finish_gtr(&input, trainer, summary, secs)
+                let relay = virtual_relay(&input)?;
+                finish_gtr(&input, relay, trainer, summary, secs)
             }
             None => reconstruct(self.take_input(), events, control),
         }
@@ -165,33 +166,29 @@ fn stopped(control: &Control, pairs: usize) -> PipelineError {
     }
 }
 
-fn finish_gtr(
-    input: &ReconInput,
-    trainer: Trainer,
-    summary: TrainSummary,
-    fit_secs: f64,
-) -> Result<ReconResult, PipelineError> {
+/// The virtual confocal scan's relay after 3D-GTR: a plane fitted to the detection
+/// points, with the settings' `virtual-size` and `virtual-grid`, or else one voxel
+/// pitch between points over the points and the volume's footprint. Built before a
+/// fit where it can be, so that points no plane fits (a line scan) are refused
+/// before the fit's minutes instead of after them.
+fn virtual_relay(input: &ReconInput) -> Result<VirtualRelay, ReconError> {
     let s = &input.settings;
-    let t = Instant::now();
     let fitted = VirtualRelay::fitted(
         &input.detection_points,
         input.viewpoint,
         s.virtual_size,
         s.virtual_resolution.unwrap_or([2, 2]),
-    )
-    .map_err(ReconError::from)?;
+    )?;
     // Without a `virtual-grid`, the scan's points lie one lateral voxel pitch apart:
     // the final FBP's wave is 2.5 voxel pitches long (`phasor_wavelength`), which that
     // pitch samples as y-tal's rule samples a measured relay, and a denser scan only
     // costs time (docs/recon.md, "The phasor wavelength after 3D-GTR").
     let mut relay = match s.virtual_resolution {
         Some(_) => fitted,
-        None => fitted
-            .with_pitch(
-                lateral_voxel_pitch(&s.volume, fitted.normal),
-                MAX_VIRTUAL_RESOLUTION,
-            )
-            .map_err(ReconError::from)?,
+        None => fitted.with_pitch(
+            lateral_voxel_pitch(&s.volume, fitted.normal),
+            MAX_VIRTUAL_RESOLUTION,
+        )?,
     };
     if s.virtual_size.is_none() {
         // The virtual scan spans the detection points and the volume's footprint on
@@ -203,10 +200,21 @@ fn finish_gtr(
         // Its columns on a whole fraction of the voxel pitch where the relay is level,
         // so the final FBP shares each path length among all pairs at one offset.
         relay = relay
-            .covering(&corners, MAX_VIRTUAL_RESOLUTION)
-            .map_err(ReconError::from)?
+            .covering(&corners, MAX_VIRTUAL_RESOLUTION)?
             .columns_fitting(g.voxel().x, MAX_VIRTUAL_RESOLUTION);
     }
+    Ok(relay)
+}
+
+fn finish_gtr(
+    input: &ReconInput,
+    relay: VirtualRelay,
+    trainer: Trainer,
+    summary: TrainSummary,
+    fit_secs: f64,
+) -> Result<ReconResult, PipelineError> {
+    let s = &input.settings;
+    let t = Instant::now();
     let pitch = relay.spacing();
     tracing::info!(
         columns = relay.resolution[0],
@@ -250,6 +258,7 @@ pub fn reconstruct(
     let s = &input.settings;
     match s.method {
         Method::Gtr => {
+            let relay = virtual_relay(&input)?;
             let t = Instant::now();
             let mut trainer = Trainer::new(s.train.clone(), roi(&s.volume)?, input.set.clone())
                 .map_err(ReconError::from)?;
@@ -266,7 +275,7 @@ pub fn reconstruct(
             if summary.cancelled {
                 return Err(stopped(control, input.set.len()));
             }
-            finish_gtr(&input, trainer, summary, t.elapsed().as_secs_f64())
+            finish_gtr(&input, relay, trainer, summary, t.elapsed().as_secs_f64())
         }
         Method::Fbp | Method::Lct | Method::Fk | Method::Rsd => {
             let kind = s.method.solver().expect("a solver method");

@@ -45,7 +45,9 @@ pub enum GeometryError {
         what: &'static str,
     },
     /// No plane could be fitted (fewer than three points, or all on a line).
-    #[error("no plane fits the {points} relay points: they are fewer than three or collinear")]
+    #[error(
+        "no plane fits the {points} relay points: they are fewer than three or collinear (a line scan?); 3D-GTR renders its virtual confocal scan on that plane, so reconstruct such a capture with method = \"fbp\", which takes relay points of any shape"
+    )]
     NoPlane {
         /// Points given.
         points: usize,
