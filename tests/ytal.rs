@@ -12,7 +12,7 @@ use std::time::Duration;
 use periscope_daemon::ytal::{HFormat, YtalCapture};
 use periscope_recon::VolumeGrid;
 use periscope_recon::io::read_npy;
-use periscope_tests::{BarsGrid, assert_bars_resolved, periscope_with_limit, repo_path};
+use periscope_tests::{BarsGrid, Finished, assert_bars_resolved, periscope_with_limit, repo_path};
 
 /// Median depth error over the patch and silhouette IoU of `out/depth.npy` on `grid`.
 fn patch_accuracy(out: &Path, grid: &VolumeGrid) -> (f64, f64) {
@@ -53,13 +53,19 @@ fn silhouette_accuracy(
     (errors[errors.len() / 2], inter as f64 / union as f64)
 }
 
-fn recon(file: &str, config: Option<&str>, out: &Path) -> String {
+/// `periscope recon FILE [--config CONFIG] --out OUT`, however it ends.
+fn try_recon(file: &str, config: Option<&str>, out: &Path) -> Finished {
     let out_s = out.to_str().unwrap();
     let mut args = vec!["recon", file, "--out", out_s];
     if let Some(c) = config {
         args.extend(["--config", c]);
     }
-    let done = periscope_with_limit(&args, Duration::from_secs(300));
+    periscope_with_limit(&args, Duration::from_secs(300))
+}
+
+/// [`try_recon`], which must succeed; its standard output.
+fn recon(file: &str, config: Option<&str>, out: &Path) -> String {
+    let done = try_recon(file, config, out);
     assert_eq!(
         done.code,
         Some(0),
@@ -178,6 +184,37 @@ fn bars_finer_than_the_pitch_rendered_by_mitransient_are_resolved() {
     );
 }
 
+/// `method = "gtr"` on `capture`, with the volume at each of `gtr_depths` (z bounds),
+/// exits with 2 and a message naming `cause` and FBP, writing no volume; `method =
+/// "fbp"` on it (the volume at z 0.3–0.7 m) writes a finite, non-zero one.
+fn refused_by_gtr_and_reconstructed_by_fbp(capture: &Path, gtr_depths: &[&str], cause: &str) {
+    let dir = tempfile::tempdir().unwrap();
+    let run = |name: &str, method: &str, z: &str| {
+        let config = dir.path().join(format!("{name}.toml"));
+        let text = format!(
+            "method = \"{method}\"\n[volume]\nx = [-0.3, 0.3]\ny = [-0.3, 0.3]\nz = {z}\nshape = [12, 12, 10]\n"
+        );
+        std::fs::write(&config, text).unwrap();
+        let out = dir.path().join(name);
+        let done = try_recon(capture.to_str().unwrap(), Some(config.to_str().unwrap()), &out);
+        (done, out)
+    };
+    for (i, z) in gtr_depths.iter().enumerate() {
+        let (done, out) = run(&format!("gtr{i}"), "gtr", z);
+        assert_eq!(done.code, Some(2), "z = {z}: {done:?}");
+        assert!(
+            done.stderr.contains(cause) && done.stderr.contains("fbp"),
+            "z = {z}: {}",
+            done.stderr
+        );
+        assert!(!out.join("volume.npy").exists());
+    }
+    let (done, out) = run("fbp", "fbp", "[0.3, 0.7]");
+    assert_eq!(done.code, Some(0), "{done:?}");
+    let (_, values) = read_npy(&out.join("volume.npy")).unwrap();
+    assert!(values.iter().all(|v| v.is_finite()) && values.iter().any(|v| *v > 0.0));
+}
+
 /// A sign-inverted capture has a negative total, which no non-negative scene
 /// explains: `method = "gtr"` refuses it as a settings error (exit code 2) naming the
 /// cause instead of writing an empty volume, and FBP (magnitudes) still reconstructs
@@ -191,39 +228,7 @@ fn a_sign_inverted_capture_is_refused_by_gtr_and_reconstructed_by_fbp() {
     }
     let inverted = dir.path().join("inverted.hdf5");
     capture.write(&inverted).unwrap();
-    let volume = "[volume]\nx = [-0.3, 0.3]\ny = [-0.3, 0.3]\nz = [0.3, 0.7]\nshape = [12, 12, 10]\n";
-    let config = |method: &str| {
-        let path = dir.path().join(format!("{method}.toml"));
-        std::fs::write(&path, format!("method = \"{method}\"\n{volume}")).unwrap();
-        path
-    };
-    let gtr_out = dir.path().join("gtr");
-    let done = periscope_with_limit(
-        &[
-            "recon",
-            inverted.to_str().unwrap(),
-            "--config",
-            config("gtr").to_str().unwrap(),
-            "--out",
-            gtr_out.to_str().unwrap(),
-        ],
-        Duration::from_secs(120),
-    );
-    assert_eq!(done.code, Some(2), "{done:?}");
-    assert!(
-        done.stderr.contains("negative") && done.stderr.contains("fbp"),
-        "{}",
-        done.stderr
-    );
-    assert!(!gtr_out.join("volume.npy").exists());
-    let fbp_out = dir.path().join("fbp");
-    recon(
-        inverted.to_str().unwrap(),
-        Some(config("fbp").to_str().unwrap()),
-        &fbp_out,
-    );
-    let (_, values) = read_npy(&fbp_out.join("volume.npy")).unwrap();
-    assert!(values.iter().all(|v| v.is_finite()) && values.iter().any(|v| *v > 0.0));
+    refused_by_gtr_and_reconstructed_by_fbp(&inverted, &["[0.3, 0.7]"], "negative");
 }
 
 /// A line scan (every relay point on one line) has no plane for 3D-GTR's virtual
@@ -241,40 +246,7 @@ fn a_line_scan_is_refused_by_gtr_before_the_fit_and_reconstructed_by_fbp() {
     }
     let line = dir.path().join("line.hdf5");
     capture.write(&line).unwrap();
-    let config = |name: &str, method: &str, z: &str| {
-        let path = dir.path().join(format!("{name}.toml"));
-        let text = format!(
-            "method = \"{method}\"\n[volume]\nx = [-0.3, 0.3]\ny = [-0.3, 0.3]\nz = {z}\nshape = [12, 12, 10]\n"
-        );
-        std::fs::write(&path, text).unwrap();
-        path
-    };
-    for (name, z) in [("front", "[0.3, 0.7]"), ("behind", "[-0.7, -0.3]")] {
-        let out = dir.path().join(name);
-        let done = periscope_with_limit(
-            &[
-                "recon",
-                line.to_str().unwrap(),
-                "--config",
-                config(name, "gtr", z).to_str().unwrap(),
-                "--out",
-                out.to_str().unwrap(),
-            ],
-            Duration::from_secs(120),
-        );
-        assert_eq!(done.code, Some(2), "{name}: {done:?}");
-        assert!(
-            done.stderr.contains("collinear") && done.stderr.contains("fbp"),
-            "{name}: {}",
-            done.stderr
-        );
-        assert!(!out.join("volume.npy").exists());
-    }
-    let fbp_out = dir.path().join("fbp");
-    let fbp = config("fbp", "fbp", "[0.3, 0.7]");
-    recon(line.to_str().unwrap(), Some(fbp.to_str().unwrap()), &fbp_out);
-    let (_, values) = read_npy(&fbp_out.join("volume.npy")).unwrap();
-    assert!(values.iter().all(|v| v.is_finite()) && values.iter().any(|v| *v > 0.0));
+    refused_by_gtr_and_reconstructed_by_fbp(&line, &["[0.3, 0.7]", "[-0.7, -0.3]"], "collinear");
 }
 
 #[test]
