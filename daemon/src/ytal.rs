@@ -30,7 +30,7 @@ use glam::DVec3;
 use hdf5_pure::{Datatype, EnumTypeBuilder, File, FileBuilder, make_i8_type, make_i32_type};
 use periscope_recon::{C0, Pair, TimeAxis, TransientSet, VolumeGrid};
 
-use periscope_recon::transient::{hidden_axis, rebin_path};
+use periscope_recon::transient::{clip_to_measured, hidden_axis, rebin_path};
 
 /// The capture file a run writes next to its other outputs.
 pub const CAPTURE_FILE: &str = crate::run_dir::file::CAPTURE;
@@ -763,13 +763,24 @@ impl YtalCapture {
     }
 
     /// All transients rebinned onto the hidden-path axis for `volume`, at the file's bin
-    /// width. Transients with no counts are left out, and so are those the flags mark
+    /// width, where the file recorded it (the axis stops where the last transient's time
+    /// window ends, and starts no earlier than the first one's begins, even when the
+    /// volume's paths reach further: [`clip_to_measured`]). Transients with no counts are left out, and so are those the flags mark
     /// overflowed (their counts are only a lower bound), as in a run's own
     /// reconstruction.
     pub fn transients(&self, volume: &VolumeGrid) -> Result<TransientSet, YtalError> {
         let pairs: Vec<Pair> = (0..self.len()).map(|c| self.pair(c)).collect();
         let axis: TimeAxis =
             hidden_axis(&pairs, volume, self.delta_t / C0).map_err(|e| self.error(e.to_string()))?;
+        // Only the paths some transient recorded: beyond the file's time window the
+        // rebinned histograms would hold zeros nobody measured.
+        let span = self.bins() as f64 * self.delta_t;
+        let measured = (0..self.len())
+            .map(|c| self.hidden_start(c))
+            .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), s| {
+                (lo.min(s), hi.max(s + span))
+            });
+        let axis = clip_to_measured(&axis, measured).map_err(|e| self.error(e.to_string()))?;
         let bytes = (pairs.len() as u64)
             .saturating_mul(axis.bins as u64)
             .saturating_mul(8);
@@ -1096,6 +1107,44 @@ mod tests {
         assert!((c.hidden_start(3) - (1.5 - legs)).abs() < 1e-12);
         c.laser_xyz = None;
         assert!(c.check().unwrap_err().contains("laser_xyz"));
+    }
+
+    /// The hidden axis stops where the file's recording does: a volume whose far paths
+    /// reach beyond the time window gets no bins past it (they would be zeros nobody
+    /// measured), the recorded counts all land on the axis, and a volume the window
+    /// does not reach is refused with the file and the remedy named.
+    #[test]
+    fn the_hidden_axis_keeps_to_the_recorded_window() {
+        // 64 bins of 1 cm from 0.5 m: paths 0.5 to 1.14 m, seen confocally from six
+        // points with no legs in the times.
+        let mut c = sample();
+        c.h_format = HFormat::TSi;
+        c.h_shape = vec![64, 6];
+        c.laser_grid = c.sensor_grid.clone();
+        c.delta_t = 0.01;
+        c.t_start = 0.5;
+        c.h = (0..64 * 6).map(|v| (v % 7) as f32).collect();
+        c.flags = None;
+        c.check().unwrap();
+        // Paths from 2 × 0.2 m to past 2 m: beyond the recording at both ends.
+        let deep = VolumeGrid::new([-0.3, 0.3], [-0.3, 0.3], [0.2, 1.0], [8, 8, 8]).unwrap();
+        let set = c.transients(&deep).unwrap();
+        let axis = *set.axis();
+        assert!(axis.start >= 0.5 - 1e-9, "{axis:?}");
+        assert!(axis.end() <= 1.14 + 1e-9, "{axis:?}");
+        assert_eq!(axis.bins, 64, "every recorded bin is kept: {axis:?}");
+        let recorded: f64 = c.h.iter().map(|&v| f64::from(v)).sum();
+        let kept: f64 = (0..set.len())
+            .map(|i| set.histogram(i).iter().map(|&v| f64::from(v)).sum::<f64>())
+            .sum();
+        assert!(
+            (kept - recorded).abs() < 1e-6 * recorded,
+            "{kept} of {recorded} counts"
+        );
+        // A volume 3 m away: its paths start beyond the recording's end.
+        let far = VolumeGrid::new([-0.3, 0.3], [-0.3, 0.3], [3.0, 3.5], [8, 8, 8]).unwrap();
+        let e = c.transients(&far).unwrap_err().to_string();
+        assert!(e.contains("do not reach") && e.contains("[volume]"), "{e}");
     }
 
     #[test]

@@ -175,6 +175,39 @@ pub fn rebin_path(
     out
 }
 
+/// `axis` without the bins that lie outside `measured`, the hidden path lengths
+/// `[from, to]` (metres) that some transient of a capture actually recorded. A hidden
+/// axis ([`hidden_axis`]) spans every path the volume can produce; where the capture's
+/// time window stops short of that (a volume deeper or wider than the recording
+/// reaches), the bins beyond hold zeros that were never measured, and a fit would read
+/// them as "no light here". The bins kept are those wholly inside `measured`, on the
+/// same grid (`start + k·width`). An error when none is: the capture does not reach
+/// the volume at all.
+pub fn clip_to_measured(axis: &TimeAxis, measured: (f64, f64)) -> Result<TimeAxis, TransientError> {
+    let (from, to) = measured;
+    // A thousandth of a bin of slack, so an edge that falls on a bin boundary up to
+    // rounding keeps that bin.
+    let slack = 1e-3;
+    let first = ((from - axis.start) / axis.width - slack).ceil().max(0.0);
+    let end = ((to - axis.start) / axis.width + slack)
+        .floor()
+        .min(axis.bins as f64);
+    if !(from.is_finite() && to.is_finite() && first.is_finite() && end.is_finite() && end > first) {
+        return Err(TransientError::Window(format!(
+            "the capture recorded hidden path lengths {from:.3} to {to:.3} m, which do not reach the \
+             {:.3} to {:.3} m the volume's paths need: check the capture's time window (t_start, \
+             delta_t) or give a [volume] the recording covers",
+            axis.start,
+            axis.end()
+        )));
+    }
+    Ok(TimeAxis {
+        start: axis.start + first * axis.width,
+        width: axis.width,
+        bins: (end - first) as usize,
+    })
+}
+
 /// Most a point-source laser's falloff may vary across a capture's illumination
 /// points ([`TransientSet::compensate_laser_falloff`]): 10⁴ takes the laser from 1 cm
 /// to 1 m of the relay at normal incidence, or cos θ from 1 to 0.01.
@@ -423,6 +456,33 @@ impl TransientSet {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The bins wholly inside the recording are kept, on the axis's own grid; an axis
+    /// the recording covers comes back unchanged, and one it misses is refused.
+    #[test]
+    fn clip_to_measured_keeps_the_recorded_bins() {
+        let axis = TimeAxis {
+            start: 0.37,
+            width: 0.005,
+            bins: 624,
+        };
+        let tail = clip_to_measured(&axis, (0.0, 2.56)).unwrap();
+        assert_eq!((tail.start, tail.bins), (0.37, 438), "{tail:?}");
+        assert!((tail.end() - 2.56).abs() < 1e-9, "{tail:?}");
+        let both = clip_to_measured(&axis, (1.0, 1.5)).unwrap();
+        assert!((both.start - 1.0).abs() < 1e-12 && both.bins == 100, "{both:?}");
+        // An edge inside a bin drops that bin.
+        let inside = clip_to_measured(&axis, (1.0012, 1.4987)).unwrap();
+        assert!(
+            (inside.start - 1.005).abs() < 1e-12 && inside.bins == 98,
+            "{inside:?}"
+        );
+        assert_eq!(clip_to_measured(&axis, (-1.0, 10.0)).unwrap(), axis);
+        for missed in [(5.0, 6.0), (0.0, 0.3), (1.0, 1.003), (f64::NAN, 2.0)] {
+            let e = clip_to_measured(&axis, missed).unwrap_err().to_string();
+            assert!(e.contains("do not reach"), "{missed:?}: {e}");
+        }
+    }
 
     fn axis() -> TimeAxis {
         TimeAxis {
