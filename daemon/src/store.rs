@@ -364,6 +364,34 @@ fn sync_dir(dir: &Path) {
     }
 }
 
+fn refused_dirs() -> std::sync::MutexGuard<'static, Vec<PathBuf>> {
+    static REFUSED: std::sync::Mutex<Vec<PathBuf>> = std::sync::Mutex::new(Vec::new());
+    REFUSED.lock().unwrap_or_else(|p| p.into_inner())
+}
+
+/// Testing aid (fault injection): while the guard lives, [`write_atomic`] refuses
+/// every file directly in `dir`, as a full disk would (a test runs as root, whom file
+/// permissions do not stop). The safety tests use it to show that an e-stop does its
+/// work whatever the store does.
+#[must_use = "writes are refused only while the guard lives"]
+pub fn refuse_writes_in(dir: &Path) -> RefusedWrites {
+    refused_dirs().push(dir.to_owned());
+    RefusedWrites(dir.to_owned())
+}
+
+/// Ends a [`refuse_writes_in`] when dropped.
+#[derive(Debug)]
+pub struct RefusedWrites(PathBuf);
+
+impl Drop for RefusedWrites {
+    fn drop(&mut self) {
+        let mut dirs = refused_dirs();
+        if let Some(i) = dirs.iter().position(|d| *d == self.0) {
+            dirs.swap_remove(i);
+        }
+    }
+}
+
 /// Reads a UTF-8 text file of at most `limit` bytes; a larger file is refused before
 /// anything is read, so a file that grew (or was replaced) cannot exhaust memory.
 pub fn read_text_capped(path: &Path, limit: u64) -> io::Result<String> {
@@ -389,15 +417,33 @@ pub fn read_text_capped(path: &Path, limit: u64) -> io::Result<String> {
     Ok(text)
 }
 
-/// Writes `bytes` to `path` atomically (temporary file, fsync, rename).
+/// Writes `bytes` to `path` atomically (temporary file, fsync, rename). Each call
+/// writes its own temporary file (`<name>.<pid>-<n>.tmp` beside `path`), so writers
+/// racing on one path (the worker and an API request on a run's `run.json`), or on two
+/// paths with the same stem, never write into each other's file or rename it away:
+/// the file always holds one writer's whole bytes, the last rename's. A failed write
+/// removes its temporary file.
 pub fn write_atomic(path: &Path, bytes: &[u8]) -> io::Result<()> {
-    let tmp = path.with_extension("tmp");
+    if let Some(dir) = path.parent()
+        && refused_dirs().iter().any(|d| d == dir)
     {
-        let mut f = File::create(&tmp)?;
-        f.write_all(bytes)?;
-        f.sync_all()?;
+        return Err(io::Error::new(
+            io::ErrorKind::StorageFull,
+            format!("injected write failure in {}", dir.display()),
+        ));
     }
-    fs::rename(&tmp, path)?;
+    static NEXT: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
+    let n = NEXT.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+    let mut name = path.file_name().unwrap_or_default().to_owned();
+    name.push(format!(".{}-{n}.tmp", std::process::id()));
+    let tmp = path.with_file_name(name);
+    let written = File::create(&tmp)
+        .and_then(|mut f| f.write_all(bytes).and_then(|()| f.sync_all()))
+        .and_then(|()| fs::rename(&tmp, path));
+    if let Err(e) = written {
+        let _ = fs::remove_file(&tmp);
+        return Err(e);
+    }
     if let Some(dir) = path.parent() {
         sync_dir(dir);
     }
@@ -621,5 +667,86 @@ mod tests {
     fn dates_are_civil() {
         assert_eq!(civil_from_days(0), (1970, 1, 1));
         assert_eq!(civil_from_days(20_778), (2026, 11, 21));
+    }
+}
+
+#[cfg(test)]
+mod atomic_tests {
+    use super::*;
+
+    /// Each writer's whole bytes: `len` copies of `byte`, told apart by a reader.
+    fn body(byte: u8) -> Vec<u8> {
+        vec![byte; 2_000 + 300 * usize::from(byte - b'a')]
+    }
+
+    /// Writers racing on one path (and on a second with the same stem) each succeed,
+    /// a reader only ever sees one writer's whole bytes, and no temporary file is left.
+    /// With one temporary name per path, a writer renamed another's half-written file
+    /// into place or found its own renamed away (`run.json` left stale: a run shown
+    /// running after it had stopped).
+    #[test]
+    fn racing_writers_each_land_whole() {
+        let dir = tempfile::tempdir().unwrap();
+        let run = dir.path().join("run.json");
+        let twin = dir.path().join("run.hdf5");
+        write_atomic(&run, &body(b'a')).unwrap();
+        let done = std::sync::atomic::AtomicBool::new(false);
+        std::thread::scope(|s| {
+            let reader = s.spawn(|| {
+                let mut reads = 0;
+                while !done.load(std::sync::atomic::Ordering::SeqCst) {
+                    let seen = fs::read(&run).unwrap();
+                    assert!(
+                        seen.iter().all(|&b| b == seen[0]) && seen == body(seen[0]),
+                        "a reader saw mixed or partial bytes ({} of them)",
+                        seen.len()
+                    );
+                    reads += 1;
+                }
+                reads
+            });
+            let writers: Vec<_> = (0..4u8)
+                .map(|t| {
+                    let (run, twin) = (&run, &twin);
+                    s.spawn(move || {
+                        for i in 0..150 {
+                            let path = if i % 3 == 2 { twin } else { run };
+                            write_atomic(path, &body(b'a' + t)).unwrap_or_else(|e| {
+                                panic!("writer {t}, write {i} to {}: {e}", path.display())
+                            });
+                        }
+                    })
+                })
+                .collect();
+            let failed: Vec<_> = writers.into_iter().filter_map(|w| w.join().err()).collect();
+            done.store(true, std::sync::atomic::Ordering::SeqCst);
+            if let Some(panic) = failed.into_iter().next() {
+                std::panic::resume_unwind(panic);
+            }
+            assert!(reader.join().unwrap() > 0);
+        });
+        let left: Vec<_> = fs::read_dir(dir.path())
+            .unwrap()
+            .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+            .filter(|n| n.ends_with(".tmp"))
+            .collect();
+        assert!(left.is_empty(), "temporary files left: {left:?}");
+    }
+
+    /// A write that cannot land (a directory stands where the file goes) fails, and
+    /// its temporary file is not left behind.
+    #[test]
+    fn a_failed_write_reports_and_cleans_up() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("run.json");
+        fs::create_dir(&path).unwrap();
+        fs::write(path.join("keep"), b"x").unwrap();
+        assert!(write_atomic(&path, b"{}").is_err());
+        let names: Vec<_> = fs::read_dir(dir.path())
+            .unwrap()
+            .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+            .collect();
+        assert_eq!(names, ["run.json"]);
+        assert!(path.join("keep").is_file());
     }
 }

@@ -626,10 +626,10 @@ fn an_idle_estop_reaches_the_laser_with_the_tdc_unplugged_and_the_disk_refusing_
     let runs = tempfile::tempdir().unwrap();
     let svc = service(runs.path());
     let rig = svc.rig().unwrap().clone();
-    // A queued run whose run.json cannot be rewritten (its temporary file's name is
-    // taken by a directory), so holding it fails.
+    // A queued run whose run.json cannot be rewritten (the disk refuses writes in its
+    // directory), so holding it fails.
     let queued = svc.submit(PLAN.to_owned()).unwrap().id;
-    std::fs::create_dir(runs.path().join(&queued).join("run.tmp")).unwrap();
+    let _refused = periscope_daemon::store::refuse_writes_in(&runs.path().join(&queued));
     // The laser left on by something else, and the histogrammer unplugged.
     let mut link = rig.galvo_connector(Arm::Laser).connect().unwrap();
     link.send(encode_line(0x01, "LASER ON").as_bytes()).unwrap();

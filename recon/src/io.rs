@@ -42,20 +42,30 @@ fn io_err(path: &Path) -> impl FnOnce(std::io::Error) -> IoError + '_ {
     }
 }
 
-/// Writes through `write` into `path.tmp`, syncs, then renames over `path`.
+/// Writes through `write` into a temporary file of its own beside `path`
+/// (`<name>.<pid>-<n>.tmp`, so writers racing on one path never share one), syncs, then
+/// renames over `path`. A failed write removes its temporary file.
 fn write_atomically(
     path: &Path,
     write: impl FnOnce(&mut BufWriter<File>) -> std::io::Result<()>,
 ) -> Result<(), IoError> {
-    let mut tmp = path.as_os_str().to_owned();
-    tmp.push(".tmp");
-    let tmp = PathBuf::from(tmp);
-    let file = File::create(&tmp).map_err(io_err(&tmp))?;
-    let mut out = BufWriter::new(file);
-    write(&mut out).map_err(io_err(&tmp))?;
-    let file = out.into_inner().map_err(|e| io_err(&tmp)(e.into_error()))?;
-    file.sync_all().map_err(io_err(&tmp))?;
-    std::fs::rename(&tmp, path).map_err(io_err(path))
+    static NEXT: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
+    let n = NEXT.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+    let mut name = path.file_name().unwrap_or_default().to_owned();
+    name.push(format!(".{}-{n}.tmp", std::process::id()));
+    let tmp = path.with_file_name(name);
+    let written = (|| {
+        let file = File::create(&tmp).map_err(io_err(&tmp))?;
+        let mut out = BufWriter::new(file);
+        write(&mut out).map_err(io_err(&tmp))?;
+        let file = out.into_inner().map_err(|e| io_err(&tmp)(e.into_error()))?;
+        file.sync_all().map_err(io_err(&tmp))?;
+        std::fs::rename(&tmp, path).map_err(io_err(path))
+    })();
+    if written.is_err() {
+        let _ = std::fs::remove_file(&tmp);
+    }
+    written
 }
 
 /// Writes a float32 array of `shape` (C order) as `.npy`.

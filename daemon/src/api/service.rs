@@ -674,9 +674,18 @@ impl Service {
             report.aborted = Some(id.clone());
         }
         // 3. Queued runs are held (under the lock, so no resume or worker pick races it).
+        //    A run the worker took from the queue since step 1 is held through its
+        //    control (it stops at its next checkpoint, paused): its pipeline alone writes
+        //    its run.json, and a state written here would race the pipeline's own.
         {
             let s = self.lock();
-            let running_id = running.as_ref().map(|(id, _)| id);
+            if let Some((id, control)) = s.current.as_ref()
+                && running.as_ref().is_none_or(|(r, _)| r != id)
+            {
+                control.pause();
+                report.held.push(id.clone());
+            }
+            let running_id = s.current.as_ref().map(|(id, _)| id);
             for id in s.queue.iter().filter(|q| Some(*q) != running_id) {
                 if self.info(id).is_ok_and(|i| i.state == RunState::Queued) {
                     match self.set_state(

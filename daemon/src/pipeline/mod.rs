@@ -453,7 +453,16 @@ impl Run {
         };
         info.stage = Stage::Opening.name().into();
         info.state = RunState::Running;
-        info.save(dir).map_err(|e| PipelineError::storage(dir, e))?;
+        if let Err(e) = info.save(dir) {
+            // Recorded as failed (resumable) if the store lets it be, so the run is not
+            // left looking queued or running with nothing working on it.
+            return Err(stopped_before_start(
+                dir,
+                &mut info,
+                &events,
+                PipelineError::storage(dir, e),
+            ));
+        }
         events.emit(RunEvent::StageStarted {
             stage: Stage::Opening,
         });
