@@ -135,11 +135,11 @@ fn fire(event: Event, stage: Stage, control: &Control, rig: &Rig, laser: &OnceLo
         Event::Pause => control.pause(),
         Event::Abort => control.abort(),
         Event::Estop => {
-            // The service's order: the laser directly, then the run.
+            // The service's order: the run told to abort, then the laser directly.
+            control.abort();
             if let Some(off) = laser.get() {
                 off.laser_off().unwrap();
             }
-            control.abort();
         }
         Event::DeviceError => rig.unplug_tdc(1_000),
         Event::Panic => control.inject_panic(stage),
@@ -649,6 +649,28 @@ fn an_idle_estop_reaches_the_laser_with_the_tdc_unplugged_and_the_disk_refusing_
     );
     let (laser, spad) = rig.pointing();
     assert_eq!((laser.x, laser.y, spad.x, spad.y), (0.0, 0.0, 0.0, 0.0));
+    // The hold holds though its run.json still reads queued: the worker does not start
+    // the run (it had, and switched the laser on, once the disk took writes again).
+    assert_eq!(report.held, std::slice::from_ref(&queued), "{report:?}");
+    drop(_refused);
+    rig.plug_tdc();
+    let worker = svc.start_worker();
+    std::thread::sleep(Duration::from_millis(400));
+    assert_eq!(svc.status(&queued).unwrap().state, RunState::Queued);
+    assert!(!svc.instrument_status().busy);
+    assert!(rig.off_since(t).is_some() && !rig.emission());
+    // An operator's resume releases it; it runs to the end.
+    svc.resume(&queued).unwrap();
+    let start = Instant::now();
+    while svc.status(&queued).unwrap().state != RunState::Completed {
+        assert!(
+            start.elapsed() < Duration::from_secs(60),
+            "{queued} never completed"
+        );
+        std::thread::sleep(Duration::from_millis(10));
+    }
+    svc.shutdown();
+    worker.join().unwrap();
 }
 
 #[test]
@@ -731,6 +753,74 @@ fn an_estop_reaches_the_laser_and_parks_while_the_worker_hangs() {
         std::thread::sleep(Duration::from_millis(10));
     }
     assert!(rig.emission_changes().iter().all(|c| !c.on || c.at < t));
+    svc.shutdown();
+    worker.join().unwrap();
+}
+
+/// The e-stop believes a run that stopped only if the run made the instrument safe.
+/// Here the SPAD arm is unplugged for good during a capture, so the run's park fails
+/// on its way out; the e-stop then opens the controllers itself and reports the arm it
+/// could not park, where it had reported the instrument parked.
+#[test]
+fn an_estop_does_not_take_a_failed_make_safe_for_parked() {
+    use periscope_sim::devices::{Arm, Fault, GalvoFault};
+
+    let _serial = ONE_AT_A_TIME.lock().unwrap_or_else(|p| p.into_inner());
+    let runs = tempfile::tempdir().unwrap();
+    let svc = service(runs.path());
+    let worker = svc.start_worker();
+    let rig = svc.rig().unwrap().clone();
+    let a = svc.submit(PLAN.to_owned()).unwrap().id;
+    wait_capturing(&svc, &a, &rig);
+    rig.inject(Fault::Galvo(
+        Arm::Spad,
+        GalvoFault::Disconnect {
+            refused_connects: 1_000_000,
+        },
+    ));
+    let t = Instant::now();
+    let report = svc.estop().unwrap();
+    let off = rig.off_since(t).expect("the e-stop left the laser on");
+    assert!(off - t <= EMISSION_BOUND, "{:?}: {report:?}", off - t);
+    assert!(!report.parked, "the SPAD arm could not be parked: {report:?}");
+    assert!(
+        report.warnings.iter().any(|w| w.contains("SPAD arm")),
+        "{report:?}"
+    );
+    assert!(
+        !svc.instrument_status()
+            .last_safe
+            .is_some_and(|s| s.contains(&format!("end of run {a}"))),
+        "the worker claimed the run parked the arms"
+    );
+    svc.shutdown();
+    worker.join().unwrap();
+}
+
+/// A run that fails before it can record anything (its stored plan no longer loads) is
+/// recorded as failed with the reason by the worker, instead of staying `queued` out of
+/// the queue, never to run and not resumable.
+#[test]
+fn a_run_that_cannot_start_is_recorded_failed_not_left_queued() {
+    let _serial = ONE_AT_A_TIME.lock().unwrap_or_else(|p| p.into_inner());
+    let runs = tempfile::tempdir().unwrap();
+    let svc = service(runs.path());
+    let a = svc.submit(PLAN.to_owned()).unwrap().id;
+    std::fs::write(runs.path().join(&a).join("plan.toml"), "[los\n").unwrap();
+    let worker = svc.start_worker();
+    let start = Instant::now();
+    let status = loop {
+        let s = svc.status(&a).unwrap();
+        if s.state != RunState::Queued {
+            break s;
+        }
+        assert!(start.elapsed() < Duration::from_secs(30), "{a} stayed queued");
+        std::thread::sleep(Duration::from_millis(5));
+    };
+    assert_eq!(status.state, RunState::Failed, "{status:?}");
+    let error = status.error.unwrap_or_default();
+    assert!(error.contains("plan.toml"), "{error}");
+    assert!(!svc.instrument_status().busy);
     svc.shutdown();
     worker.join().unwrap();
 }

@@ -93,7 +93,9 @@ pub trait Laser: ErrorType {
     /// Puts the LOS diffuser into the beam (first-bounce scan) or takes it out.
     fn set_diffuser(&mut self, inserted: bool) -> Result<(), Self::Error>;
     /// A handle that switches emission off from any thread, whatever this driver is
-    /// doing or waiting for (the e-stop's and the signal handlers' path).
+    /// doing or waiting for (the e-stop's and the signal handlers' path). It latches:
+    /// once used, this driver refuses to switch emission on (kind `Interrupted`) for
+    /// the rest of its life, so a `set_emission(true)` racing the stop cannot undo it.
     fn emergency_off(&self) -> EmergencyOff;
 }
 

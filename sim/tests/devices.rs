@@ -877,7 +877,14 @@ fn the_in_process_laser_goes_off_by_its_off_switch_and_when_dropped() {
         .join()
         .unwrap();
     assert!(!rig.emission());
+    // The switch latches: this driver stays off (`an_emergency_off_latches_against_a_racing_laser_on`).
+    assert_eq!(
+        laser.set_emission(true).unwrap_err().kind(),
+        ErrorKind::Interrupted
+    );
+    drop(laser);
     // Dropped with emission wanted (a run abandoned, a panic unwinding): off.
+    let mut laser = rig.in_process_galvo(Arm::Laser, limits(20.0), Some(Duration::from_millis(60)));
     laser.set_emission(true).unwrap();
     let off = laser.emergency_off();
     drop(laser);
@@ -901,4 +908,66 @@ fn the_in_process_histogrammer_reports_overflow_and_unplugging() {
     // Acquiring before configuring is refused.
     let mut fresh = rig.in_process_tdc();
     assert_eq!(fresh.acquire().unwrap_err().kind(), ErrorKind::Device);
+}
+
+/// An emergency off latches, on the wire driver and the in-process one alike: the
+/// driver it came from refuses `LASER ON` from then on (kind `Interrupted`), and a
+/// switch-on racing the stop from another thread never leaves the laser on. Without
+/// the latch a run that had passed its checkpoint switched the laser back on after an
+/// e-stop's direct off.
+#[test]
+fn an_emergency_off_latches_against_a_racing_laser_on() {
+    fn check<L: Laser<Error = periscope_drivers::galvo::GalvoError> + Send + 'static>(
+        rig: &Rig,
+        open: &dyn Fn() -> L,
+    ) {
+        // Off, then on: refused, and the laser stays off.
+        let mut laser = open();
+        laser.set_emission(true).unwrap();
+        let estop = laser.emergency_off();
+        estop.laser_off().unwrap();
+        // The stop's LASER OFF goes out of band: on the wire it lands a moment later.
+        let off_soon = || {
+            let t = Instant::now();
+            while rig.emission() && t.elapsed() < Duration::from_secs(1) {
+                std::thread::sleep(Duration::from_millis(1));
+            }
+            !rig.emission()
+        };
+        let err = laser.set_emission(true).unwrap_err();
+        assert_eq!(err.kind(), ErrorKind::Interrupted, "{err}");
+        assert!(err.to_string().contains("emergency stop"), "{err}");
+        assert!(off_soon());
+        // Off still works, and a driver opened afresh may switch on again.
+        laser.set_emission(false).unwrap();
+        drop(laser);
+        let mut fresh = open();
+        fresh.set_emission(true).unwrap();
+        fresh.set_emission(false).unwrap();
+        drop(fresh);
+        // Racing: one thread switches on over and over while the stop comes.
+        for round in 0..20 {
+            let mut laser = open();
+            let estop = laser.emergency_off();
+            let racer = std::thread::spawn(move || {
+                let until = Instant::now() + Duration::from_millis(300);
+                let mut refused = false;
+                while !refused && Instant::now() < until {
+                    refused = laser.set_emission(true).is_err();
+                }
+                (laser, refused)
+            });
+            std::thread::sleep(Duration::from_micros(200 * round));
+            // Early rounds stop a driver that has not connected yet: nothing to deliver
+            // (an error), but the latch holds all the same.
+            let _ = estop.laser_off();
+            let (laser, refused) = racer.join().unwrap();
+            assert!(refused, "round {round}: LASER ON was not refused after the stop");
+            assert!(off_soon(), "round {round}: the laser stayed on after the stop");
+            drop(laser);
+        }
+    }
+    let rig = rig();
+    check(&rig, &|| galvo(&rig, Arm::Laser, 20.0));
+    check(&rig, &|| rig.in_process_galvo(Arm::Laser, limits(20.0), None));
 }

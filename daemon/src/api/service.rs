@@ -191,6 +191,10 @@ struct Shared {
     refresh: bool,
     /// Submissions between their queue-length check and their place in the queue.
     admitting: usize,
+    /// Queued runs an e-stop held (as `paused` in their run.json, where the store
+    /// lets it): the worker skips them whatever their run.json says, until an operator
+    /// resumes or aborts them, so a hold the disk refused still holds.
+    held: std::collections::HashSet<String>,
     shutdown: bool,
 }
 
@@ -288,6 +292,7 @@ impl Service {
                 reading: None,
                 refresh: true,
                 admitting: 0,
+                held: Default::default(),
                 shutdown: false,
             }),
             wake: Condvar::new(),
@@ -313,13 +318,13 @@ impl Service {
     pub fn shutdown(&self) {
         let mut s = self.lock();
         s.shutdown = true;
+        if let Some((_, control)) = &s.current {
+            control.pause();
+        }
         if let Some(off) = &s.laser_off
             && let Err(e) = off.laser_off()
         {
             tracing::warn!(error = %e, "shutdown: direct laser off failed; the run switches it off at its checkpoint");
-        }
-        if let Some((_, control)) = &s.current {
-            control.pause();
         }
         // Dropping the senders ends every event stream after what it has buffered.
         s.channels.clear();
@@ -563,8 +568,11 @@ impl Service {
                 "run {id} is running; there is nothing to resume"
             )));
         }
+        // A run an e-stop held whose run.json could not record the hold reads queued.
+        let held = s.held.remove(id);
         match info.state {
             RunState::Paused | RunState::Failed => {}
+            RunState::Queued if held => {}
             other => {
                 return Err(ServiceError::Conflict(format!(
                     "run {id} is {}: only a paused or failed run can be resumed",
@@ -626,6 +634,7 @@ impl Service {
                     RunState::Aborted,
                     Some("aborted by the operator before it ran again".into()),
                 )?;
+                s.held.remove(id);
                 s.queue.retain(|q| q != id);
                 // Its event stream (clients waiting for it to start) ends here.
                 s.channels.remove(id);
@@ -656,7 +665,11 @@ impl Service {
             let s = self.lock();
             (s.current.clone(), s.laser_off.clone())
         };
-        // 1. The laser, directly.
+        // 1. The laser, directly. The run is told to abort first (an atomic store), so
+        //    that a `LASER ON` the latched switch refuses it reads as the abort.
+        if let Some((_, control)) = &running {
+            control.abort();
+        }
         let mut laser_off = false;
         if let Some(off) = &direct {
             match off.laser_off() {
@@ -668,9 +681,8 @@ impl Service {
                 Err(e) => report.warnings.push(format!("direct laser off failed: {e}")),
             }
         }
-        // 2. The run.
-        if let Some((id, control)) = &running {
-            control.abort();
+        // 2. The run (asked above).
+        if let Some((id, _)) = &running {
             report.aborted = Some(id.clone());
         }
         // 3. Queued runs are held (under the lock, so no resume or worker pick races it).
@@ -678,32 +690,38 @@ impl Service {
         //    control (it stops at its next checkpoint, paused): its pipeline alone writes
         //    its run.json, and a state written here would race the pipeline's own.
         {
-            let s = self.lock();
+            let mut s = self.lock();
             if let Some((id, control)) = s.current.as_ref()
                 && running.as_ref().is_none_or(|(r, _)| r != id)
             {
                 control.pause();
                 report.held.push(id.clone());
             }
-            let running_id = s.current.as_ref().map(|(id, _)| id);
-            for id in s.queue.iter().filter(|q| Some(*q) != running_id) {
-                if self.info(id).is_ok_and(|i| i.state == RunState::Queued) {
-                    match self.set_state(
-                        id,
-                        RunState::Paused,
-                        Some("held by an emergency stop; resume it to run".into()),
-                    ) {
-                        Ok(()) => report.held.push(id.clone()),
-                        Err(e) => report
-                            .warnings
-                            .push(format!("could not hold queued run {id}: {e}")),
-                    }
+            let running_id = s.current.as_ref().map(|(id, _)| id.clone());
+            let queued: Vec<String> = s
+                .queue
+                .iter()
+                .filter(|q| Some(*q) != running_id.as_ref())
+                .filter(|q| self.info(q).is_ok_and(|i| i.state == RunState::Queued))
+                .cloned()
+                .collect();
+            for id in queued {
+                s.held.insert(id.clone());
+                if let Err(e) = self.set_state(
+                    &id,
+                    RunState::Paused,
+                    Some("held by an emergency stop; resume it to run".into()),
+                ) {
+                    report.warnings.push(format!(
+                        "queued run {id} is held (the worker will not start it), but its run.json could not record it: {e}; resume or abort it once the disk is fixed"
+                    ));
                 }
+                report.held.push(id);
             }
         }
         // 4. Wait (bounded) for the run to reach its checkpoint: it parks the arms and
         //    confirms the laser off on its way out.
-        if let Some((id, _)) = &running {
+        if let Some((id, control)) = &running {
             let deadline = Instant::now() + ESTOP_RUN_WAIT;
             let mut s = self.lock();
             while s.current.as_ref().is_some_and(|(c, _)| c == id) && Instant::now() < deadline {
@@ -719,11 +737,22 @@ impl Service {
                     ESTOP_RUN_WAIT.as_secs_f64()
                 ));
             } else {
-                report.parked = true;
-                if !laser_off {
-                    laser_off = true;
-                    report.laser = "off: the run switched it off on its way out".into();
-                    report.laser_off_s = Some(t.elapsed().as_secs_f64());
+                // Only a run that says it made the instrument safe is believed; one
+                // whose make-safe failed, or that never held the devices, leaves it
+                // to step 5.
+                match control.made_safe() {
+                    Some(Ok(())) => {
+                        report.parked = true;
+                        if !laser_off {
+                            laser_off = true;
+                            report.laser = "off: the run switched it off on its way out".into();
+                            report.laser_off_s = Some(t.elapsed().as_secs_f64());
+                        }
+                    }
+                    Some(Err(e)) => report.warnings.push(format!(
+                        "run {id} could not make the instrument safe on its way out ({e}); the devices were opened directly"
+                    )),
+                    None => {}
                 }
             }
         }
@@ -965,6 +994,7 @@ impl Service {
                     let next = s
                         .queue
                         .iter()
+                        .filter(|q| !s.held.contains(*q))
                         .find(|q| self.info(q).is_ok_and(|i| i.state == RunState::Queued))
                         .cloned();
                     let Some(id) = next else {
@@ -1005,7 +1035,7 @@ impl Service {
             // The pipeline catches its own panics; this catches the rest (the worker's
             // own code), so a bug never freezes the queue or strands the e-stop.
             let result = match std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
-                self.execute(&id, control)
+                self.execute(&id, control.clone())
             })) {
                 Ok(r) => r,
                 Err(payload) => {
@@ -1026,6 +1056,9 @@ impl Service {
                     Err(e)
                 }
             };
+            if let Err(e) = &result {
+                self.record_unrecorded_end(&id, e);
+            }
             let mut s = self.lock();
             s.current = None;
             s.laser_off = None;
@@ -1034,9 +1067,18 @@ impl Service {
             match &result {
                 Ok(()) | Err(PipelineError::Aborted(_)) => {
                     s.queue.retain(|q| q != &id);
-                    s.last_safe = Some(format!("laser off, arms parked (end of run {id})"));
+                    match control.made_safe() {
+                        Some(Ok(())) => {
+                            s.last_safe = Some(format!("laser off, arms parked (end of run {id})"))
+                        }
+                        Some(Err(e)) => {
+                            tracing::error!(run = %id, "the run could not make the instrument safe: {e}")
+                        }
+                        None => {}
+                    }
                 }
-                Err(PipelineError::Paused(_)) => {}
+                // Paused or suspended: resumable, it keeps its place.
+                Err(PipelineError::Paused(_) | PipelineError::Suspended { .. }) => {}
                 Err(_) => {
                     s.queue.retain(|q| q != &id);
                 }
@@ -1050,6 +1092,26 @@ impl Service {
                 Ok(()) => tracing::info!(run = %id, "run completed"),
                 Err(e) => tracing::warn!(run = %id, "run stopped: {e}"),
             }
+        }
+    }
+
+    /// After a run stopped with `e` (worker thread, the run still current so nothing
+    /// else writes its run.json): if its run.json still says queued or running, the
+    /// pipeline could not record its end (the store refused, or it failed before it
+    /// could), so it is recorded here as failed, resumable, with the error, rather
+    /// than left looking queued or running with nothing working on it.
+    fn record_unrecorded_end(&self, id: &str, e: &PipelineError) {
+        let dir = self.runs_dir.join(id);
+        match RunInfo::load(&dir) {
+            Ok(mut info) if matches!(info.state, RunState::Queued | RunState::Running) => {
+                info.state = RunState::Failed;
+                info.error = Some(e.to_string());
+                if let Err(io) = info.save(&dir) {
+                    tracing::error!(run = %id, "could not record the run's end ({e}) in {}: {io}", dir.display());
+                }
+            }
+            Ok(_) => {}
+            Err(io) => tracing::error!(run = %id, "could not read {}: {io}", dir.display()),
         }
     }
 

@@ -137,7 +137,7 @@ impl Run {
             self.checkpoint()?;
             // The histogrammer must answer before the laser goes on.
             self.devices.tdc.status()?;
-            self.devices.laser.set_emission(true)?;
+            self.laser_on()?;
             let settle = self.settle_timeout();
             let mut flagged = FlagRun::default();
             for i in capture_order(total) {

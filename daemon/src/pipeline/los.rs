@@ -79,7 +79,7 @@ impl Run {
         self.devices.tdc.status()?;
         // Emission only while measuring: on here, off as soon as the last point is in
         // (every error path switches it off too).
-        self.devices.laser.set_emission(true)?;
+        self.laser_on()?;
         let spad_pose = self.instrument.spad_arm.pose;
         let (l, s) = (self.instrument.laser_arm.pose.origin, spad_pose.origin);
         let [nx, ny] = los.grid;

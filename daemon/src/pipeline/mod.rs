@@ -233,6 +233,9 @@ struct ControlInner {
     panic_in: AtomicU8,
     /// Testing aid: the stage in which the next checkpoint hangs, and for how long.
     hang_in: Mutex<Option<(Stage, std::time::Duration)>>,
+    /// How the run's last attempt to make the instrument safe went (laser off, arms
+    /// parked): `None` until it has tried, the first failure as text.
+    made_safe: Mutex<Option<Result<(), String>>>,
 }
 
 /// Operator requests a running pipeline honours at its checkpoints: between devices
@@ -249,6 +252,16 @@ impl Control {
     /// A control that never interrupts.
     pub fn new() -> Control {
         Control::default()
+    }
+    /// How the run's last attempt to make the instrument safe went: `Some(Ok(()))`
+    /// once it has switched the laser off and parked both arms, `Some(Err(why))` if a
+    /// step failed, `None` if it has not tried (it never opened the devices). The
+    /// e-stop believes a run only on `Some(Ok(()))`.
+    pub fn made_safe(&self) -> Option<Result<(), String>> {
+        self.0.made_safe.lock().unwrap_or_else(|p| p.into_inner()).clone()
+    }
+    fn record_made_safe(&self, result: Result<(), String>) {
+        *self.0.made_safe.lock().unwrap_or_else(|p| p.into_inner()) = Some(result);
     }
     /// Asks the run to pause at the next checkpoint.
     pub fn pause(&self) {
@@ -579,6 +592,8 @@ impl Run {
             }),
         };
         let safe = self.devices.make_safe();
+        self.control
+            .record_made_safe(safe.as_ref().map(|_| ()).map_err(|e| e.to_string()));
         match &result {
             Ok(_) => self.info.state = RunState::Completed,
             Err(PipelineError::Paused(_)) => self.info.state = RunState::Paused,
@@ -598,7 +613,14 @@ impl Run {
         if let Err(e) = safe {
             tracing::error!(error = %e, "could not make the instrument safe: switch the laser off by hand");
         }
-        self.save_info()?;
+        // A run that stopped keeps its own error if its state cannot be recorded (the
+        // API's worker records it then, or holds it at the next start).
+        if let Err(e) = self.save_info() {
+            tracing::error!(error = %e, "could not record the run's end");
+            if result.is_ok() {
+                return Err(e);
+            }
+        }
         if result.is_ok() {
             self.events.emit(RunEvent::Completed);
         }

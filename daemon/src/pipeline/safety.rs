@@ -74,6 +74,23 @@ impl Run {
         }
     }
 
+    /// Switches the laser on to measure. After an emergency off (the e-stop, a signal,
+    /// a shutdown) the driver refuses for good, however the two raced: the run then
+    /// stops as the stop asked (aborted or paused), or, if nothing asked, is held
+    /// paused with the reason.
+    pub(crate) fn laser_on(&mut self) -> Result<(), PipelineError> {
+        match self.devices.laser.set_emission(true) {
+            Err(e) if e.kind() == ErrorKind::Interrupted => {
+                self.checkpoint()?;
+                Err(PipelineError::Suspended {
+                    reason: e.to_string(),
+                    pairs: self.info.pairs_done,
+                })
+            }
+            r => r.map_err(Into::into),
+        }
+    }
+
     /// Checks the interlock and that emission is still on; suspends if not.
     pub(crate) fn watch_interlock(&mut self) -> Result<(), PipelineError> {
         if let Some(s) = self.laser_suspension()? {
@@ -161,7 +178,7 @@ impl Run {
             reason: reason.clone(),
         });
         tracing::info!(reason = %reason, "suspension cleared: laser on again");
-        self.devices.laser.set_emission(true)?;
+        self.laser_on()?;
         Ok(())
     }
 }

@@ -68,10 +68,13 @@ fn write_out_of_band(w: &Mutex<Option<Box<dyn Write + Send>>>, req: Request) -> 
 /// The serial controller's off switch: a `LASER OFF` out of band (tag `00`) through the
 /// link, which the controller acts on at once even while a move is outstanding,
 /// without waiting for anything else the driver is doing. It also stops the driver's
-/// keepalive, so even a lost line ends emission at the watchdog timeout.
+/// keepalive, so even a lost line ends emission at the watchdog timeout. It latches:
+/// the driver it came from refuses to switch emission on again (see
+/// [`SerialGalvo`]'s `set_emission`).
 struct SerialOff {
     writer: Weak<Mutex<Option<Box<dyn Write + Send>>>>,
     wanted: Arc<AtomicBool>,
+    stopped: Arc<AtomicBool>,
     name: String,
     port: String,
 }
@@ -86,6 +89,7 @@ impl OffSwitch for SerialOff {
     }
 
     fn try_laser_off(&self) -> bool {
+        self.stopped.store(true, Ordering::SeqCst);
         self.wanted.store(false, Ordering::SeqCst);
         let Some(writer) = self.writer.upgrade() else {
             return false;
@@ -111,6 +115,7 @@ impl OffSwitch for SerialOff {
     }
 
     fn laser_off(&self) -> Result<(), GalvoError> {
+        self.stopped.store(true, Ordering::SeqCst);
         self.wanted.store(false, Ordering::SeqCst);
         let err = |kind, message: String| GalvoError::new(&self.name, &self.port, kind, message);
         let writer = self.writer.upgrade().ok_or_else(|| {
@@ -162,6 +167,9 @@ pub struct SerialGalvo {
     wanted: Arc<AtomicBool>,
     /// Whether the keepalive thread runs.
     keepalive: bool,
+    /// Set by an emergency off ([`Laser::emergency_off`]'s handle): emission stays
+    /// off for this driver's life.
+    stopped: Arc<AtomicBool>,
 }
 
 impl ErrorType for SerialGalvo {
@@ -184,6 +192,7 @@ impl SerialGalvo {
             oob: Arc::new(Mutex::new(None)),
             wanted: Arc::new(AtomicBool::new(false)),
             keepalive: false,
+            stopped: Arc::new(AtomicBool::new(false)),
         }
     }
 
@@ -284,6 +293,13 @@ impl SerialGalvo {
         Ok(())
     }
 
+    fn emergency_stopped(&self) -> GalvoError {
+        self.err(
+            ErrorKind::Interrupted,
+            "emission was switched off by an emergency stop and stays off on this connection: open the devices again to switch it on",
+        )
+    }
+
     fn broken(&mut self, e: std::io::Error) -> GalvoError {
         self.link = None;
         *lock_writer(&self.oob) = None;
@@ -310,10 +326,18 @@ impl SerialGalvo {
         let link = self.link.as_mut().expect("connected above");
         let sent = {
             let _writing = lock_writer(&self.oob);
-            link.discard_input().and_then(|()| link.send(line.as_bytes()))
+            // Checked holding the write lock: an emergency off either latched before
+            // this (refused here) or writes its LASER OFF after this line.
+            if req == Request::Laser(true) && self.stopped.load(Ordering::SeqCst) {
+                None
+            } else {
+                Some(link.discard_input().and_then(|()| link.send(line.as_bytes())))
+            }
         };
-        if let Err(e) = sent {
-            return Err(self.broken(e));
+        match sent {
+            None => return Err(self.emergency_stopped()),
+            Some(Err(e)) => return Err(self.broken(e)),
+            Some(Ok(())) => {}
         }
         self.rx.clear();
         Ok(tag)
@@ -653,7 +677,12 @@ impl Laser for SerialGalvo {
     /// On: sets the controller's watchdog (if configured), starts feeding it, then
     /// `LASER ON`. Off: stops feeding, sends `LASER OFF` out of band at once (nothing
     /// outstanding can hold it up), then again as an ordinary, confirmed request.
+    /// After an emergency off through this driver's [`Laser::emergency_off`] handle,
+    /// on is refused (kind `Interrupted`) for the driver's life, however the two race.
     fn set_emission(&mut self, on: bool) -> Result<(), GalvoError> {
+        if on && self.stopped.load(Ordering::SeqCst) {
+            return Err(self.emergency_stopped());
+        }
         if on {
             if let Some(timeout) = self.settings.watchdog {
                 let ms = u32::try_from(timeout.as_millis()).unwrap_or(u32::MAX);
@@ -710,6 +739,7 @@ impl Laser for SerialGalvo {
         EmergencyOff::new(SerialOff {
             writer: Arc::downgrade(&self.oob),
             wanted: self.wanted.clone(),
+            stopped: self.stopped.clone(),
             name: self.settings.name.clone(),
             port: self.port.clone(),
         })

@@ -40,6 +40,9 @@ pub struct InProcessGalvo {
     /// Dropped with the device: its keepalive thread and off switches see it go.
     alive: Arc<()>,
     keepalive: bool,
+    /// Set by an emergency off: emission stays off for this driver's life, as the
+    /// serial driver's.
+    stopped: Arc<AtomicBool>,
 }
 
 impl InProcessGalvo {
@@ -62,11 +65,21 @@ impl InProcessGalvo {
             wanted: Arc::new(AtomicBool::new(false)),
             alive: Arc::new(()),
             keepalive: false,
+            stopped: Arc::new(AtomicBool::new(false)),
         }
     }
 
     fn port(&self) -> String {
         format!("simulated {} controller (in process)", self.arm.name())
+    }
+
+    fn emergency_stopped(&self) -> GalvoError {
+        GalvoError::new(
+            &self.name,
+            &self.port(),
+            ErrorKind::Interrupted,
+            "emission was switched off by an emergency stop and stays off on this connection: open the devices again to switch it on",
+        )
     }
 
     fn refused(&self, what: &str, code: ErrorCode) -> GalvoError {
@@ -232,16 +245,25 @@ impl Laser for InProcessGalvo {
                 .switch_laser(false)
                 .map_err(|code| self.refused("LASER OFF", code));
         }
+        if self.stopped.load(Ordering::SeqCst) {
+            return Err(self.emergency_stopped());
+        }
         if let Some(timeout) = self.watchdog {
             self.rig.shared.laser_watchdog(Some(timeout));
         }
         self.wanted.store(true, Ordering::SeqCst);
         self.start_keepalive();
-        let result = self
+        let mut result = self
             .rig
             .shared
             .switch_laser(true)
             .map_err(|code| self.refused("LASER ON", code));
+        // An emergency off that latched after the check above switched off before this
+        // switched on, or will after: in the first case, off again now.
+        if result.is_ok() && self.stopped.load(Ordering::SeqCst) {
+            let _ = self.rig.shared.switch_laser(false);
+            result = Err(self.emergency_stopped());
+        }
         if result.is_err() {
             self.wanted.store(false, Ordering::SeqCst);
         }
@@ -269,6 +291,7 @@ impl Laser for InProcessGalvo {
             shared: Arc::downgrade(&self.rig.shared),
             alive: Arc::downgrade(&self.alive),
             wanted: self.wanted.clone(),
+            stopped: self.stopped.clone(),
             name: self.name.clone(),
         })
     }
@@ -279,11 +302,13 @@ struct InProcessOff {
     shared: Weak<Shared>,
     alive: Weak<()>,
     wanted: Arc<AtomicBool>,
+    stopped: Arc<AtomicBool>,
     name: String,
 }
 
 impl OffSwitch for InProcessOff {
     fn laser_off(&self) -> Result<(), GalvoError> {
+        self.stopped.store(true, Ordering::SeqCst);
         self.wanted.store(false, Ordering::SeqCst);
         let gone = || {
             GalvoError::new(
@@ -298,6 +323,7 @@ impl OffSwitch for InProcessOff {
     }
 
     fn try_laser_off(&self) -> bool {
+        self.stopped.store(true, Ordering::SeqCst);
         self.wanted.store(false, Ordering::SeqCst);
         self.shared.upgrade().is_some_and(|s| s.try_laser_off())
     }
