@@ -824,3 +824,65 @@ fn a_run_that_cannot_start_is_recorded_failed_not_left_queued() {
     svc.shutdown();
     worker.join().unwrap();
 }
+
+/// A submission whose queue.json cannot be rewritten (the disk refuses writes in the
+/// runs directory) is still queued and answered as such, rather than answered with an
+/// error while it sits in the queue (a client would submit it again: a duplicate run);
+/// the next start finds it from its run.json and queues it again.
+#[test]
+fn a_submission_the_queue_file_misses_is_queued_and_survives_a_restart() {
+    let _serial = ONE_AT_A_TIME.lock().unwrap_or_else(|p| p.into_inner());
+    let runs = tempfile::tempdir().unwrap();
+    let svc = service(runs.path());
+    let refused = periscope_daemon::store::refuse_writes_in(runs.path());
+    let status = svc.submit(PLAN.to_owned()).unwrap();
+    assert_eq!(status.state, RunState::Queued);
+    assert_eq!(status.queue_position, Some(0));
+    let listed = std::fs::read_to_string(runs.path().join("queue.json")).unwrap();
+    assert!(!listed.contains(&status.id), "{listed}");
+    drop(refused);
+    drop(svc);
+    let again = service(runs.path());
+    assert_eq!(again.status(&status.id).unwrap().queue_position, Some(0));
+}
+
+/// A run whose end neither its pipeline nor the worker could record (the disk refused
+/// every write in its directory) still reads `queued` with nothing working on it: once
+/// the disk takes writes again it can be resumed (and runs), where it was refused as
+/// neither paused nor failed. A `running` run.json the service never worked on (a
+/// `periscope run` of another process in the same directory) is still left alone.
+#[test]
+fn a_run_whose_end_could_not_be_recorded_can_be_resumed() {
+    let _serial = ONE_AT_A_TIME.lock().unwrap_or_else(|p| p.into_inner());
+    let runs = tempfile::tempdir().unwrap();
+    let svc = service(runs.path());
+    let a = svc.submit(PLAN.to_owned()).unwrap().id;
+    let refused = periscope_daemon::store::refuse_writes_in(&runs.path().join(&a));
+    let worker = svc.start_worker();
+    let start = Instant::now();
+    while svc.status(&a).unwrap().queue_position.is_some() || svc.instrument_status().busy {
+        assert!(start.elapsed() < Duration::from_secs(30), "{a} was never taken");
+        std::thread::sleep(Duration::from_millis(5));
+    }
+    assert_eq!(svc.status(&a).unwrap().state, RunState::Queued);
+    drop(refused);
+    let resumed = svc.resume(&a).unwrap();
+    assert!(
+        matches!(resumed.state, RunState::Queued | RunState::Running),
+        "{resumed:?}"
+    );
+    while svc.status(&a).unwrap().state != RunState::Completed {
+        assert!(start.elapsed() < Duration::from_secs(90), "{a} never completed");
+        std::thread::sleep(Duration::from_millis(10));
+    }
+    // Another process's run, running as far as anyone here knows.
+    let b = svc.submit(PLAN.to_owned()).unwrap().id;
+    svc.shutdown();
+    worker.join().unwrap();
+    let dir = runs.path().join(&b);
+    let mut info = RunInfo::load(&dir).unwrap();
+    info.state = RunState::Running;
+    info.save(&dir).unwrap();
+    assert!(svc.resume(&b).is_err());
+    assert!(svc.abort(&b).is_err());
+}

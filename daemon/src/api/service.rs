@@ -195,6 +195,11 @@ struct Shared {
     /// lets it): the worker skips them whatever their run.json says, until an operator
     /// resumes or aborts them, so a hold the disk refused still holds.
     held: std::collections::HashSet<String>,
+    /// Runs whose end neither the pipeline nor the worker could record: their run.json
+    /// still reads queued or running though nothing works on them. Resume and abort
+    /// take them as failed (a `running` run.json of any other run is left alone: it
+    /// may be a `periscope run` of another process in the same directory).
+    stale: std::collections::HashSet<String>,
     shutdown: bool,
 }
 
@@ -293,6 +298,7 @@ impl Service {
                 refresh: true,
                 admitting: 0,
                 held: Default::default(),
+                stale: Default::default(),
                 shutdown: false,
             }),
             wake: Condvar::new(),
@@ -393,6 +399,19 @@ impl Service {
         .map_err(ServiceError::storage(&path))
     }
 
+    /// Writes queue.json after a request has already changed the queue and a run's
+    /// run.json: a failure is logged, not returned, because the change has been made
+    /// and holds (a client told "failed" would submit again and queue a duplicate).
+    /// The next start rebuilds what queue.json missed from the runs' own run.json
+    /// (queued and running runs missing from it are queued again).
+    fn persist_after_change(&self, s: &Shared) {
+        if let Err(e) = self.persist(s) {
+            tracing::error!(
+                "{e}: the queue in memory is right, and the next start queues again the runs queue.json misses"
+            );
+        }
+    }
+
     fn dir(&self, id: &str) -> Result<PathBuf, ServiceError> {
         let valid = !id.is_empty()
             && id
@@ -447,7 +466,7 @@ impl Service {
         s.admitting -= 1;
         let id = admitted?;
         s.queue.push_back(id.clone());
-        self.persist(&s)?;
+        self.persist_after_change(&s);
         self.wake.notify_all();
         drop(s);
         tracing::info!(run = %id, plan = %plan.name, "run queued");
@@ -570,9 +589,11 @@ impl Service {
         }
         // A run an e-stop held whose run.json could not record the hold reads queued.
         let held = s.held.remove(id);
+        let stale = s.stale.remove(id);
         match info.state {
             RunState::Paused | RunState::Failed => {}
-            RunState::Queued if held => {}
+            RunState::Queued if held || stale => {}
+            RunState::Running if stale => {}
             other => {
                 return Err(ServiceError::Conflict(format!(
                     "run {id} is {}: only a paused or failed run can be resumed",
@@ -584,7 +605,7 @@ impl Service {
         if !s.queue.iter().any(|q| q == id) {
             s.queue.push_back(id.to_owned());
         }
-        self.persist(&s)?;
+        self.persist_after_change(&s);
         self.wake.notify_all();
         drop(s);
         self.status(id)
@@ -627,19 +648,10 @@ impl Service {
             drop(s);
             return self.status(id);
         }
+        let stale = s.stale.contains(id);
         match info.state {
-            RunState::Queued | RunState::Paused | RunState::Failed => {
-                self.set_state(
-                    id,
-                    RunState::Aborted,
-                    Some("aborted by the operator before it ran again".into()),
-                )?;
-                s.held.remove(id);
-                s.queue.retain(|q| q != id);
-                // Its event stream (clients waiting for it to start) ends here.
-                s.channels.remove(id);
-                self.persist(&s)?;
-            }
+            RunState::Queued | RunState::Paused | RunState::Failed => {}
+            RunState::Running if stale => {}
             other => {
                 return Err(ServiceError::Conflict(format!(
                     "run {id} is {}; there is nothing to abort",
@@ -647,6 +659,17 @@ impl Service {
                 )));
             }
         }
+        self.set_state(
+            id,
+            RunState::Aborted,
+            Some("aborted by the operator before it ran again".into()),
+        )?;
+        s.held.remove(id);
+        s.stale.remove(id);
+        s.queue.retain(|q| q != id);
+        // Its event stream (clients waiting for it to start) ends here.
+        s.channels.remove(id);
+        self.persist_after_change(&s);
         drop(s);
         self.status(id)
     }
@@ -1056,10 +1079,11 @@ impl Service {
                     Err(e)
                 }
             };
-            if let Err(e) = &result {
-                self.record_unrecorded_end(&id, e);
-            }
+            let stale = result.as_ref().is_err_and(|e| self.record_unrecorded_end(&id, e));
             let mut s = self.lock();
+            if stale {
+                s.stale.insert(id.clone());
+            }
             s.current = None;
             s.laser_off = None;
             s.refresh = true;
@@ -1099,8 +1123,9 @@ impl Service {
     /// else writes its run.json): if its run.json still says queued or running, the
     /// pipeline could not record its end (the store refused, or it failed before it
     /// could), so it is recorded here as failed, resumable, with the error, rather
-    /// than left looking queued or running with nothing working on it.
-    fn record_unrecorded_end(&self, id: &str, e: &PipelineError) {
+    /// than left looking queued or running with nothing working on it. Returns
+    /// whether it still reads so (the store refused this too).
+    fn record_unrecorded_end(&self, id: &str, e: &PipelineError) -> bool {
         let dir = self.runs_dir.join(id);
         match RunInfo::load(&dir) {
             Ok(mut info) if matches!(info.state, RunState::Queued | RunState::Running) => {
@@ -1108,10 +1133,15 @@ impl Service {
                 info.error = Some(e.to_string());
                 if let Err(io) = info.save(&dir) {
                     tracing::error!(run = %id, "could not record the run's end ({e}) in {}: {io}", dir.display());
+                    return true;
                 }
+                false
             }
-            Ok(_) => {}
-            Err(io) => tracing::error!(run = %id, "could not read {}: {io}", dir.display()),
+            Ok(_) => false,
+            Err(io) => {
+                tracing::error!(run = %id, "could not read {}: {io}", dir.display());
+                false
+            }
         }
     }
 
