@@ -765,9 +765,9 @@ impl YtalCapture {
     /// All transients rebinned onto the hidden-path axis for `volume`, at the file's bin
     /// width, where the file recorded it (the axis stops where the last transient's time
     /// window ends, and starts no earlier than the first one's begins, even when the
-    /// volume's paths reach further: [`clip_to_measured`]). Transients with no counts are left out, and so are those the flags mark
-    /// overflowed (their counts are only a lower bound), as in a run's own
-    /// reconstruction.
+    /// volume's paths reach further: [`clip_to_measured`]). Transients with no counts
+    /// are left out, and so are those the flags mark overflowed (their counts are only
+    /// a lower bound), as in a run's own reconstruction.
     pub fn transients(&self, volume: &VolumeGrid) -> Result<TransientSet, YtalError> {
         let pairs: Vec<Pair> = (0..self.len()).map(|c| self.pair(c)).collect();
         let axis: TimeAxis =

@@ -106,14 +106,18 @@ enum Event {
     Pause,
     Abort,
     Estop,
+    /// A stop signal to `periscope run`: the laser off directly, then the run paused
+    /// (the signal thread's order, the reverse of the e-stop's).
+    Signal,
     DeviceError,
     Panic,
 }
 
-const EVENTS: [Event; 5] = [
+const EVENTS: [Event; 6] = [
     Event::Pause,
     Event::Abort,
     Event::Estop,
+    Event::Signal,
     Event::DeviceError,
     Event::Panic,
 ];
@@ -140,6 +144,13 @@ fn fire(event: Event, stage: Stage, control: &Control, rig: &Rig, laser: &OnceLo
             if let Some(off) = laser.get() {
                 off.laser_off().unwrap();
             }
+        }
+        Event::Signal => {
+            if let Some(off) = laser.get() {
+                off.laser_off().unwrap();
+            }
+            std::thread::sleep(Duration::from_millis(1));
+            control.pause();
         }
         Event::DeviceError => rig.unplug_tdc(1_000),
         Event::Panic => control.inject_panic(stage),
@@ -231,7 +242,9 @@ fn run_case(stage: Stage, event: Event, devices: Devices) -> Outcome {
 
 fn expected_state(stage: Stage, event: Event) -> RunState {
     match event {
-        Event::Pause => RunState::Paused,
+        // A signal's laser off latches the run's driver: whether the run meets it at a
+        // switch-on or as emission lost, it ends paused (resumable), as asked.
+        Event::Pause | Event::Signal => RunState::Paused,
         Event::Abort | Event::Estop => RunState::Aborted,
         // Nothing talks to the histogrammer after the capture: the run completes, and
         // making the instrument safe reports the unplugged device.

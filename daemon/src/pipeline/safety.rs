@@ -59,6 +59,10 @@ impl FlagRun {
     }
 }
 
+/// How long a run whose laser switch-on an emergency off refused waits for the stop
+/// request that comes with it.
+const STOP_REQUEST_WAIT: Duration = Duration::from_millis(100);
+
 impl Run {
     /// One histogram, stopped (and aborted on the device) as soon as the run is asked
     /// to pause or abort.
@@ -81,6 +85,12 @@ impl Run {
     pub(crate) fn laser_on(&mut self) -> Result<(), PipelineError> {
         match self.devices.laser.set_emission(true) {
             Err(e) if e.kind() == ErrorKind::Interrupted => {
+                // Every emergency off comes with a stop request (a signal's right after
+                // the off): give it a moment to arrive, so the run ends as it asked.
+                let refused = Instant::now();
+                while !self.control.stopping() && refused.elapsed() < STOP_REQUEST_WAIT {
+                    std::thread::sleep(Duration::from_millis(1));
+                }
                 self.checkpoint()?;
                 Err(PipelineError::Suspended {
                     reason: e.to_string(),
