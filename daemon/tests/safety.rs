@@ -617,6 +617,18 @@ fn service(runs: &Path) -> Arc<periscope_daemon::api::Service> {
     periscope_daemon::api::Service::open(TomlSource::from_text(src.path().to_owned(), text), None).unwrap()
 }
 
+/// A service case: one at a time (see [`ONE_AT_A_TIME`]), on a fresh runs directory.
+fn fresh_service() -> (
+    std::sync::MutexGuard<'static, ()>,
+    tempfile::TempDir,
+    Arc<periscope_daemon::api::Service>,
+) {
+    let serial = ONE_AT_A_TIME.lock().unwrap_or_else(|p| p.into_inner());
+    let runs = tempfile::tempdir().unwrap();
+    let svc = service(runs.path());
+    (serial, runs, svc)
+}
+
 /// Waits until run `id` captures with the laser on.
 fn wait_capturing(svc: &periscope_daemon::api::Service, id: &str, rig: &Rig) {
     let start = Instant::now();
@@ -635,9 +647,7 @@ fn an_idle_estop_reaches_the_laser_with_the_tdc_unplugged_and_the_disk_refusing_
     use periscope_drivers::galvo::protocol::encode_line;
     use periscope_sim::devices::Arm;
 
-    let _serial = ONE_AT_A_TIME.lock().unwrap_or_else(|p| p.into_inner());
-    let runs = tempfile::tempdir().unwrap();
-    let svc = service(runs.path());
+    let (_serial, runs, svc) = fresh_service();
     let rig = svc.rig().unwrap().clone();
     // A queued run whose run.json cannot be rewritten (the disk refuses writes in its
     // directory), so holding it fails.
@@ -730,9 +740,7 @@ fn a_panicking_run_fails_resumably_and_the_queue_goes_on() {
 
 #[test]
 fn an_estop_reaches_the_laser_and_parks_while_the_worker_hangs() {
-    let _serial = ONE_AT_A_TIME.lock().unwrap_or_else(|p| p.into_inner());
-    let runs = tempfile::tempdir().unwrap();
-    let svc = service(runs.path());
+    let (_serial, _runs, svc) = fresh_service();
     let worker = svc.start_worker();
     let rig = svc.rig().unwrap().clone();
     let a = svc.submit(PLAN.to_owned()).unwrap().id;
@@ -778,9 +786,7 @@ fn an_estop_reaches_the_laser_and_parks_while_the_worker_hangs() {
 fn an_estop_does_not_take_a_failed_make_safe_for_parked() {
     use periscope_sim::devices::{Arm, Fault, GalvoFault};
 
-    let _serial = ONE_AT_A_TIME.lock().unwrap_or_else(|p| p.into_inner());
-    let runs = tempfile::tempdir().unwrap();
-    let svc = service(runs.path());
+    let (_serial, _runs, svc) = fresh_service();
     let worker = svc.start_worker();
     let rig = svc.rig().unwrap().clone();
     let a = svc.submit(PLAN.to_owned()).unwrap().id;
@@ -815,9 +821,7 @@ fn an_estop_does_not_take_a_failed_make_safe_for_parked() {
 /// the queue, never to run and not resumable.
 #[test]
 fn a_run_that_cannot_start_is_recorded_failed_not_left_queued() {
-    let _serial = ONE_AT_A_TIME.lock().unwrap_or_else(|p| p.into_inner());
-    let runs = tempfile::tempdir().unwrap();
-    let svc = service(runs.path());
+    let (_serial, runs, svc) = fresh_service();
     let a = svc.submit(PLAN.to_owned()).unwrap().id;
     std::fs::write(runs.path().join(&a).join("plan.toml"), "[los\n").unwrap();
     let worker = svc.start_worker();
@@ -844,9 +848,7 @@ fn a_run_that_cannot_start_is_recorded_failed_not_left_queued() {
 /// the next start finds it from its run.json and queues it again.
 #[test]
 fn a_submission_the_queue_file_misses_is_queued_and_survives_a_restart() {
-    let _serial = ONE_AT_A_TIME.lock().unwrap_or_else(|p| p.into_inner());
-    let runs = tempfile::tempdir().unwrap();
-    let svc = service(runs.path());
+    let (_serial, runs, svc) = fresh_service();
     let refused = periscope_daemon::store::refuse_writes_in(runs.path());
     let status = svc.submit(PLAN.to_owned()).unwrap();
     assert_eq!(status.state, RunState::Queued);
@@ -866,9 +868,7 @@ fn a_submission_the_queue_file_misses_is_queued_and_survives_a_restart() {
 /// `periscope run` of another process in the same directory) is still left alone.
 #[test]
 fn a_run_whose_end_could_not_be_recorded_can_be_resumed() {
-    let _serial = ONE_AT_A_TIME.lock().unwrap_or_else(|p| p.into_inner());
-    let runs = tempfile::tempdir().unwrap();
-    let svc = service(runs.path());
+    let (_serial, runs, svc) = fresh_service();
     let a = svc.submit(PLAN.to_owned()).unwrap().id;
     let refused = periscope_daemon::store::refuse_writes_in(&runs.path().join(&a));
     let worker = svc.start_worker();
