@@ -42,6 +42,17 @@ fn io_err(path: &Path) -> impl FnOnce(std::io::Error) -> IoError + '_ {
     }
 }
 
+/// A temporary file's path of its own beside `path`, `<name>.<pid>-<n>.tmp` (n counts
+/// the calls in this process), so writers racing on one path, or on two paths with the
+/// same stem, never share one. Every atomic write here and in the daemon takes it.
+pub fn temporary_beside(path: &Path) -> PathBuf {
+    static NEXT: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
+    let n = NEXT.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+    let mut name = path.file_name().unwrap_or_default().to_owned();
+    name.push(format!(".{}-{n}.tmp", std::process::id()));
+    path.with_file_name(name)
+}
+
 /// Writes through `write` into a temporary file of its own beside `path`
 /// (`<name>.<pid>-<n>.tmp`, so writers racing on one path never share one), syncs, then
 /// renames over `path`. A failed write removes its temporary file.
@@ -49,11 +60,7 @@ fn write_atomically(
     path: &Path,
     write: impl FnOnce(&mut BufWriter<File>) -> std::io::Result<()>,
 ) -> Result<(), IoError> {
-    static NEXT: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
-    let n = NEXT.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
-    let mut name = path.file_name().unwrap_or_default().to_owned();
-    name.push(format!(".{}-{n}.tmp", std::process::id()));
-    let tmp = path.with_file_name(name);
+    let tmp = temporary_beside(path);
     let written = (|| {
         let file = File::create(&tmp).map_err(io_err(&tmp))?;
         let mut out = BufWriter::new(file);
