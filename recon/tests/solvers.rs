@@ -278,6 +278,95 @@ fn rsd_finds_a_point_scatterer_non_confocal() {
     );
 }
 
+/// The largest value within one voxel of `x`.
+fn value_near(volume: &Volume, x: DVec3) -> f32 {
+    let g = &volume.grid;
+    let [ix, iy, iz] = g.voxel_of(x).expect("the point lies in the volume");
+    let [nx, ny, nz] = g.shape;
+    let around = |i: usize, n: usize| i.saturating_sub(1)..(i + 2).min(n);
+    around(iz, nz)
+        .flat_map(|z| around(iy, ny).flat_map(move |y| around(ix, nx).map(move |x| (x, y, z))))
+        .map(|(x, y, z)| volume.at(x, y, z))
+        .fold(0.0, f32::max)
+}
+
+#[test]
+fn rsd_falloff_weighs_both_legs_by_their_length() {
+    // Two equal point scatterers 0.35 and 0.7 m from the wall. Their signals fall as
+    // 1/(di² dd²), so the far one's image is the dimmer; r^falloff on each leg undoes
+    // part of that: the default (1) brings the two closer than the phase alone (0),
+    // and that closer than the RSD integral as written (−1, y-tal's pf), confocal and
+    // non-confocal alike (one laser spot; the illumination leg carries the weight
+    // too), with the brighter peak where it belongs every time.
+    let (near, far) = (DVec3::new(-0.1, 0.05, 0.35), DVec3::new(0.12, -0.1, 0.7));
+    let relay = wall(32);
+    let spot = DVec3::new(0.05, 0.2, 0.0);
+    let non_confocal: Vec<Pair> = relay
+        .points()
+        .into_iter()
+        .map(|xd| Pair {
+            xi: spot,
+            ni: DVec3::Z,
+            xd,
+            nd: DVec3::Z,
+        })
+        .collect();
+    let g = VolumeGrid::new([-0.4, 0.4], [-0.4, 0.4], [0.2, 0.8], [32, 32, 24]).unwrap();
+    for (name, pairs) in [
+        ("confocal", confocal_pairs(&relay)),
+        ("non-confocal", non_confocal),
+    ] {
+        let mut set = TransientSet::new(axis()).unwrap();
+        scatter(&mut set, &pairs, &[(near, 1.0), (far, 1.0)]);
+        let ratio = |falloff: f64| {
+            let settings = RsdSettings {
+                falloff,
+                ..RsdSettings::default()
+            };
+            let v = rsd(&set, &g, &settings).unwrap();
+            let (peak, at) = (v.max_value(), v.argmax().0);
+            let (n, f) = (value_near(&v, near), value_near(&v, far));
+            assert!(
+                f > 0.0 && n.max(f) == peak,
+                "{name}, falloff {falloff}: peak {peak} at {at:?}, near {n}, far {f}"
+            );
+            f / n
+        };
+        let (yes, phase, rsd_integral) = (ratio(1.0), ratio(0.0), ratio(-1.0));
+        eprintln!("{name}: far/near {yes:.3} (falloff 1), {phase:.3} (0), {rsd_integral:.3} (-1)");
+        assert!(
+            yes > 1.2 * phase && phase > 1.2 * rsd_integral,
+            "{name}: far/near {yes:.3} (falloff 1), {phase:.3} (0), {rsd_integral:.3} (-1)"
+        );
+    }
+    assert_eq!(RsdSettings::default().falloff, 1.0);
+}
+
+#[test]
+fn rsd_refuses_a_falloff_out_of_range_and_the_old_amplitude_switch() {
+    for falloff in [-3.0, 5.0, f64::NAN] {
+        let err = RsdSettings {
+            falloff,
+            ..RsdSettings::default()
+        }
+        .validate()
+        .unwrap_err()
+        .to_string();
+        assert!(err.contains("falloff"), "{err}");
+    }
+    let err = RsdSettings {
+        spherical_amplitude: Some(true),
+        ..RsdSettings::default()
+    }
+    .validate()
+    .unwrap_err()
+    .to_string();
+    assert!(
+        err.contains("spherical-amplitude") && err.contains("use `falloff`"),
+        "{err}"
+    );
+}
+
 /// Random non-confocal pairs on an S-shaped relay z = 0.06·sin(2πx).
 fn curved_pairs(n: usize) -> Vec<Pair> {
     let surface = |x: f64, y: f64| {

@@ -6,8 +6,10 @@
 //! a 2-D convolution with the RSD kernel e^{ikr}/r (an FFT convolution on the padded
 //! detection grid), the illumination side by the phase e^{ik|x − x_i|} of each
 //! illumination point, and the complex fields are summed over lines and illumination
-//! points before taking the magnitude. Confocal data use ℓ = 2r: the kernel e^{2ikr}/r²
-//! and no illumination term.
+//! points before taking the magnitude. Confocal data use ℓ = 2r: the kernel e^{2ikr}
+//! and no illumination term. Each leg's amplitude is r^`falloff` (as FBP's weight
+//! (d_i·d_d)^`falloff`): 1 by default, which undoes the 1/r amplitude of the two
+//! spherical waves; −1 is the RSD integral as written (y-tal's `pf`), 0 the phase alone.
 //!
 //! Detection points must lie on a planar grid; illumination points may be anywhere,
 //! and any number (each distinct one costs one more set of propagations).
@@ -39,11 +41,17 @@ pub struct RsdSettings {
     pub spectral_cutoff: f64,
     /// Grid/plane tolerance and illumination grouping distance, metres.
     pub grid_tolerance: f64,
-    /// Non-confocal data: propagate the detection side with the spherical wave's 1/r
-    /// amplitude (the RSD integral as written) instead of the phase alone (y-tal's
-    /// `pf_dev`, which balanced near and far objects better on the validation captures:
-    /// 0.640 against 0.573 IoU).
-    pub spherical_amplitude: bool,
+    /// Each leg's amplitude is r^falloff, r its length (for confocal data the kernel's
+    /// amplitude is r^(2·falloff)): 1 undoes the 1/r amplitude of the two spherical
+    /// waves, as FBP's default; −1 is the RSD integral as written (y-tal's `pf`, on
+    /// confocal data); 0 the phase alone (y-tal's `pf_dev` on non-confocal data).
+    pub falloff: f64,
+    /// Replaced by `falloff` (`spherical-amplitude = true` was `falloff = -1` on the
+    /// detection side only); kept so a RECON.toml that sets it gets a message saying
+    /// so rather than an unknown key.
+    #[serde(skip_serializing)]
+    #[doc(hidden)]
+    pub spherical_amplitude: Option<bool>,
     /// Weigh each measured cell by its share of the grid (its Voronoi cell) when some
     /// cells are missing, so the sums over cells stay quadratures of the whole
     /// aperture; `false`: missing cells are zeros and nothing else changes.
@@ -57,7 +65,8 @@ impl Default for RsdSettings {
             cycles: 4.0,
             spectral_cutoff: 1e-3,
             grid_tolerance: 2e-3,
-            spherical_amplitude: false,
+            falloff: 1.0,
+            spherical_amplitude: None,
             relay_weights: true,
         }
     }
@@ -75,6 +84,18 @@ impl RsdSettings {
             && !(l.is_finite() && l > 0.0)
         {
             return Err(bad("wavelength", l, "a positive length in metres"));
+        }
+        if let Some(v) = self.spherical_amplitude {
+            return Err(SolverError::Setting {
+                name: "spherical-amplitude",
+                value: v.to_string(),
+                expected: "a setting that was removed; use `falloff` instead (-1 weighs each leg by \
+                           1/r, the RSD integral as written; 0 is the phase alone; the default, 1, \
+                           undoes the 1/r)",
+            });
+        }
+        if !(self.falloff.is_finite() && (-2.0..=4.0).contains(&self.falloff)) {
+            return Err(bad("falloff", self.falloff, "a number from -2 to 4"));
         }
         if !(self.cycles.is_finite() && self.cycles >= 1.0) {
             return Err(bad("cycles", self.cycles, "at least 1"));
@@ -251,26 +272,42 @@ pub fn rsd_frame(
 
         field.par_chunks_mut(nx * ny).enumerate().for_each(|(iz, slice)| {
             let z = start + iz as f64 * step;
+            // The kernel's radii and amplitudes, and the illumination leg's length and
+            // amplitude at each voxel, are the same for every spectral line.
+            let leg_power = if confocal {
+                2.0 * settings.falloff
+            } else {
+                settings.falloff
+            };
+            let radii: Vec<(f64, f64)> = (0..plane)
+                .map(|i| {
+                    let (iy, ix) = (i / px, i % px);
+                    let dy = if iy < ny { iy as f64 } else { iy as f64 - py as f64 } * sy;
+                    let dx = if ix < nx { ix as f64 } else { ix as f64 - px as f64 } * sx;
+                    let r = (dx * dx + dy * dy + z * z).sqrt();
+                    (r, leg_gain(r, leg_power))
+                })
+                .collect();
+            let lit: Vec<(f64, f64)> = if confocal {
+                Vec::new()
+            } else {
+                (0..nx * ny)
+                    .map(|i| {
+                        let (u, w) = relay.coords(i % nx, i / nx);
+                        let x = relay.centre + relay.u * u + relay.v * w + relay.normal * z;
+                        let d = x.distance(*xi);
+                        (d, leg_gain(d, settings.falloff))
+                    })
+                    .collect()
+            };
             let mut kernel = vec![Complex32::default(); plane];
             let mut scratch = vec![Complex32::default(); fft.scratch_len()];
             let norm = 1.0 / plane as f64;
             for (l, &(_, k, weight)) in lines.iter().enumerate() {
                 let kk = wave_factor * k;
-                for iy in 0..py {
-                    let dy = if iy < ny { iy as f64 } else { iy as f64 - py as f64 } * sy;
-                    for ix in 0..px {
-                        let dx = if ix < nx { ix as f64 } else { ix as f64 - px as f64 } * sx;
-                        let r = (dx * dx + dy * dy + z * z).sqrt();
-                        let amp = if confocal {
-                            1.0 / (r * r)
-                        } else if settings.spherical_amplitude {
-                            1.0 / r
-                        } else {
-                            1.0
-                        };
-                        let (s, c) = (kk * r).sin_cos();
-                        kernel[iy * px + ix] = Complex32::new((amp * c) as f32, (amp * s) as f32);
-                    }
+                for (g, &(r, amp)) in kernel.iter_mut().zip(&radii) {
+                    let (s, c) = (kk * r).sin_cos();
+                    *g = Complex32::new((amp * c) as f32, (amp * s) as f32);
                 }
                 fft.forward_transposed(&mut kernel, &mut scratch);
                 for (g, h) in kernel.iter_mut().zip(&spectra[l]) {
@@ -282,9 +319,8 @@ pub fn rsd_frame(
                         let v = kernel[iy * px + ix];
                         let mut v = Complex::new(v.re as f64, v.im as f64) * (weight * norm);
                         if !confocal {
-                            let (u, w) = relay.coords(ix, iy);
-                            let x = relay.centre + relay.u * u + relay.v * w + relay.normal * z;
-                            v *= Complex::from_polar(1.0, k * x.distance(*xi));
+                            let (d, amp) = lit[iy * nx + ix];
+                            v *= Complex::from_polar(amp, k * d);
                         }
                         slice[iy * nx + ix] += v;
                     }
@@ -299,4 +335,17 @@ pub fn rsd_frame(
         depths,
         data: field.iter().map(|v| v.norm() as f32).collect(),
     })
+}
+
+/// `r^power`, with the common powers written out (`powf` per kernel sample cost more
+/// than the rest of the kernel).
+fn leg_gain(r: f64, power: f64) -> f64 {
+    match power {
+        0.0 => 1.0,
+        1.0 => r,
+        2.0 => r * r,
+        -1.0 => 1.0 / r,
+        -2.0 => 1.0 / (r * r),
+        p => r.powf(p),
+    }
 }
