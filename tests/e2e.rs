@@ -108,7 +108,11 @@ fn planar_wall_letter_confocal_matches_the_truth() {
         [64, 64],
     );
     eprintln!("wall + letter, from the exported capture with FBP: {b:?}");
-    b.assert_within(6e-3, 10.5e-3, 0.70);
+    // Measured: median 3.1 mm, 90th percentile 6.1 mm, IoU 0.691. Until FBP weighed
+    // the path-length part of its falloff on the histograms (docs/recon.md, "Where
+    // the falloff weight is applied") the peaks sat deeper: 4.6 mm, 8.9 mm, IoU 0.718,
+    // with bounds of 6 mm, 10.5 mm and 0.70.
+    b.assert_within(4.5e-3, 8e-3, 0.67);
 }
 
 /// Runs `plan` on `instrument` and scores the depth map against `scene`'s truth over

@@ -4,8 +4,9 @@
 //! lateral grid of pitch P along x, and the voxel pitch along x is a whole multiple r of
 //! P, voxel column i and relay column j are `c + (r·i − j)·P` apart: the lateral
 //! offset takes one of `r·nᵢ + nⱼ` values, each shared by many voxel–point pairs. So
-//! are the path length `2·√(dx² + dy² + dz²)`, its bin and its falloff gain, for a
-//! given voxel row and relay row (any spacing along y will do).
+//! are the path length `2·√(dx² + dy² + dz²)` and its bin, for a given voxel row and
+//! relay row (any spacing along y will do). The falloff weight of a confocal pair is a
+//! function of path length alone, already applied to the histograms.
 //! This path computes them once per offset, slice and row pair, and adds a contiguous
 //! run of histogram values to a contiguous run of voxels: no square roots per voxel,
 //! no gathers. The histograms are laid out anew for it, per relay row and x phase
@@ -119,7 +120,6 @@ pub(super) struct Runs<'a, const C: usize> {
     inv_w: f64,
     offset: f64,
     top: f64,
-    falloff: f64,
     /// Per lateral offset k = r·i − j that reaches a voxel: its squared x distance
     /// and its run.
     dx2: Vec<f64>,
@@ -146,7 +146,6 @@ impl<'a, const C: usize> Runs<'a, C> {
         padded: &[Vec<f32>],
         inv_w: f64,
         offset: f64,
-        falloff: f64,
     ) -> Self {
         let [nx, ny] = scan.n;
         let r = scan.ratio;
@@ -195,7 +194,6 @@ impl<'a, const C: usize> Runs<'a, C> {
             inv_w,
             offset,
             top: bins.saturating_sub(2) as f64,
-            falloff,
         }
     }
 
@@ -204,7 +202,7 @@ impl<'a, const C: usize> Runs<'a, C> {
     ///
     /// Relay rows outside: one row's histograms stay in L2 while every voxel row of
     /// every slice visits them. Per voxel row and relay row, one loop over the lateral
-    /// offsets takes their square roots, bins and gains (vectorised across offsets),
+    /// offsets takes their square roots and bins (vectorised across offsets),
     /// and a second adds each offset's run.
     #[inline(always)]
     pub(super) fn rows(&self, out: &mut [f32], rows: std::ops::Range<usize>) {
@@ -213,7 +211,7 @@ impl<'a, const C: usize> Runs<'a, C> {
         let (min, voxel) = (self.grid.min(), self.grid.voxel());
         let run = self.bins * self.width * C;
         let r = scan.ratio;
-        let (mut index, mut gain) = (vec![0.0f64; self.spans.len()], vec![0.0f64; self.spans.len()]);
+        let mut index = vec![0.0f64; self.spans.len()];
         for jy in rows {
             let hists = &self.data[jy * r * run..(jy + 1) * r * run];
             let y = scan.origin[1] + jy as f64 * scan.pitch[1];
@@ -221,8 +219,8 @@ impl<'a, const C: usize> Runs<'a, C> {
                 let dz = min.z + (iz as f64 + 0.5) * voxel.z - scan.z;
                 for (iy, row) in slice.chunks_exact_mut(nvx * C).enumerate() {
                     let dy = min.y + (iy as f64 + 0.5) * voxel.y - y;
-                    self.offsets(dy * dy + dz * dz, &mut index, &mut gain);
-                    self.add_runs(row, hists, &index, &gain);
+                    self.offsets(dy * dy + dz * dz, &mut index);
+                    self.add_runs(row, hists, &index);
                 }
             }
         }
@@ -231,15 +229,15 @@ impl<'a, const C: usize> Runs<'a, C> {
     /// Adds each lateral offset's run of one relay row's histograms (`hists`) to one
     /// voxel row.
     #[inline(always)]
-    fn add_runs(&self, row: &mut [f32], hists: &[f32], index: &[f64], gain: &[f64]) {
-        for ((span, &f), &g) in self.spans.iter().zip(index).zip(gain) {
+    fn add_runs(&self, row: &mut [f32], hists: &[f32], index: &[f64]) {
+        for (span, &f) in self.spans.iter().zip(index) {
             // Clamped to the padding: zeros on both sides.
             if f <= 0.0 || f >= self.top {
                 continue;
             }
             let b = f as usize;
             let t = f - b as f64;
-            let (wa, wb) = ((g * (1.0 - t)) as f32, (g * t) as f32);
+            let (wa, wb) = ((1.0 - t) as f32, t as f32);
             // Bin b's run, then bin b + 1's.
             let at = (span.phase * self.bins + b) * self.width * C + span.skip * C;
             let next = at + self.width * C;
@@ -252,28 +250,14 @@ impl<'a, const C: usize> Runs<'a, C> {
         }
     }
 
-    /// The padded bin index and the falloff gain of every lateral offset, at squared
-    /// distance `dyz` across rows and depth.
+    /// The padded bin index of every lateral offset, at squared distance `dyz` across
+    /// rows and depth. (No falloff gain: on a confocal scan the whole weight is a
+    /// function of path length, applied to the histograms before backprojection.)
     #[inline(always)]
-    fn offsets(&self, dyz: f64, index: &mut [f64], gain: &mut [f64]) {
+    fn offsets(&self, dyz: f64, index: &mut [f64]) {
         let (inv_w, offset, top) = (self.inv_w, self.offset, self.top);
-        let lanes = index.iter_mut().zip(gain.iter_mut()).zip(&self.dx2);
-        match self.falloff {
-            1.0 => lanes.for_each(|((f, g), &dx2)| {
-                let d2 = dx2 + dyz;
-                *f = ((2.0 * d2.sqrt()) * inv_w - offset).max(0.0).min(top);
-                *g = d2;
-            }),
-            2.0 => lanes.for_each(|((f, g), &dx2)| {
-                let d2 = dx2 + dyz;
-                *f = ((2.0 * d2.sqrt()) * inv_w - offset).max(0.0).min(top);
-                *g = d2 * d2;
-            }),
-            p => lanes.for_each(|((f, g), &dx2)| {
-                let d2 = dx2 + dyz;
-                *f = ((2.0 * d2.sqrt()) * inv_w - offset).max(0.0).min(top);
-                *g = if p == 0.0 { 1.0 } else { d2.powf(p) };
-            }),
+        for (f, &dx2) in index.iter_mut().zip(&self.dx2) {
+            *f = ((2.0 * (dx2 + dyz).sqrt()) * inv_w - offset).max(0.0).min(top);
         }
     }
 }

@@ -1,10 +1,16 @@
 //! Filtered backprojection for arbitrary pairs on any relay.
 //!
 //! Every voxel x collects, from every pair, the histogram value at its path length
-//! |x − x_i| + |x − x_d| (linearly interpolated between bin centres), optionally times
-//! d_i²·d_d² to undo the radiometric falloff, and times the pair's share of the relay
-//! ([`super::pair_weights`]: 1 on a full grid, the Voronoi cells of scattered points),
-//! so the sum is a quadrature of the integral over the relay. Two filters:
+//! ℓ = |x − x_i| + |x − x_d| (linearly interpolated between bin centres), times the
+//! falloff weight (d_i·d_d)^p that undoes the radiometric falloff, and times the
+//! pair's share of the relay ([`super::pair_weights`]: 1 on a full grid, the Voronoi
+//! cells of scattered points), so the sum is a quadrature of the integral over the
+//! relay. The falloff weight is split in two: (ℓ/2)^2p, a function of path length,
+//! multiplies each histogram bin before filtering (for the phasor filter, once the
+//! histogram's slow part is taken off), and the rest, (4·d_i·d_d/ℓ²)^p ≤ 1
+//! (exactly 1 for a confocal pair), multiplies at the voxel. Weighed at the voxel
+//! alone, the weight grew across the filtered pulse's envelope and pushed every peak
+//! deeper (by σ²·∂ln w/∂ℓ, millimetres for the phasor filter). Two filters:
 //! - **Phasor** (the default; Liu et al. 2019's phasor-field virtual wave, as y-tal's
 //!   `fbp`): each histogram is first convolved along path length with a complex
 //!   Gaussian wavelet of wavelength λ, exp(−t²/2σ²)·exp(2πi·t/λ), i.e. band-passed
@@ -73,6 +79,13 @@ pub const SIGMA_PER_WAVELENGTH: f64 = std::f64::consts::FRAC_1_SQRT_2;
 /// solver after 3D-GTR"). On measured captures the same 0.6 lowered FBP's IoU.
 pub const VIRTUAL_SCAN_SIGMA_PER_WAVELENGTH: f64 = 0.6;
 
+/// The width of the low-pass that takes a histogram's slow part (ambient light) off
+/// before the falloff weight, in phasor wavelengths: its gain is e^{−18π²} at 1/λ and
+/// 0.17 at 0.1/λ, where the band-pass's is 3·10⁻³ (σ = λ/√2), so what it takes off is
+/// what the band-pass drops anyway. At one wavelength it reached into the band: the
+/// virtual scan's images after 3D-GTR moved by 3–4 % of their peak.
+const LOW_PASS_WAVELENGTHS: f64 = 3.0;
+
 /// FBP settings.
 #[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
 #[serde(default, deny_unknown_fields, rename_all = "kebab-case")]
@@ -81,6 +94,8 @@ pub struct FbpSettings {
     pub filter: FbpFilter,
     /// Weight each contribution by (d_i·d_d)^falloff: 2 undoes the 1/r² intensity
     /// falloff of both legs, 1 the 1/r amplitude of two spherical waves, 0 none.
+    /// Applied as (ℓ/2)^(2·falloff) on each histogram bin at path length ℓ before the
+    /// filter, times (4·d_i·d_d/ℓ²)^falloff at the voxel (see the module comment).
     pub falloff: f64,
     /// Phasor wavelength λ, metres of path length; `None`: 2.5 × the coarser of the
     /// detection points' sampling pitch and the volume's lateral voxel pitch (and at
@@ -197,39 +212,56 @@ pub fn phasor_wavelength(set: &TransientSet, grid: &VolumeGrid, settings: &FbpSe
 
 /// The phasor filter for histograms of one length: the band-pass of wavelength
 /// `lambda` and envelope `sigma` on bins of `width` metres, with `lead` bins of
-/// padding before and after. The FFT plans are made once and shared by every
-/// histogram (making one costs more than using it).
+/// padding before and after, and the path-length part of the falloff weight. The FFT
+/// plans are made once and shared by every histogram (making one costs more than
+/// using it).
 struct PhasorFilter {
     fwd: Arc<dyn Fft<f32>>,
     inv: Arc<dyn Fft<f32>>,
     /// The band-pass gain per frequency bin, already divided by the FFT length.
     gain: Vec<f32>,
+    /// With a falloff: the weight (ℓ/2)^2p of every padded bin, and the gain of the
+    /// low-pass whose output is taken off before weighing (already divided by the
+    /// FFT length).
+    falloff: Option<(Vec<f32>, Vec<f32>)>,
     lead: usize,
 }
 
 impl PhasorFilter {
-    fn new(bins: usize, width: f64, lambda: f64, sigma: f64, lead: usize) -> Self {
+    fn new(axis: &crate::transient::TimeAxis, lambda: f64, sigma: f64, lead: usize, falloff: f64) -> Self {
+        let (bins, width) = (axis.bins, axis.width);
         let n = bins + 2 * lead;
         let mut planner = FftPlanner::<f32>::new();
         // exp(−t²/2σ²)·exp(2πi t/λ) ⇒ a Gaussian of std 1/(2πσ) around f = 1/λ, positive
         // frequencies only (an analytic signal); normalised to unit gain at 1/λ.
         let (f0, sf) = (1.0 / lambda, 1.0 / (2.0 * std::f64::consts::PI * sigma));
         let scale = 1.0 / n as f64;
+        let freq = |k: usize| k.min(n - k) as f64 / (n as f64 * width);
         let gain = (0..n)
             .map(|k| {
-                let f = k as f64 / (n as f64 * width);
                 let g = if k <= n / 2 {
-                    2.0 * (-0.5 * ((f - f0) / sf).powi(2)).exp() * scale
+                    2.0 * (-0.5 * ((freq(k) - f0) / sf).powi(2)).exp() * scale
                 } else {
                     0.0
                 };
                 g as f32
             })
             .collect();
+        // The low-pass: a Gaussian of σ = 3λ along path length (LOW_PASS_WAVELENGTHS),
+        // which holds the histogram's slow part (ambient light) and nothing of the band.
+        let falloff = (falloff != 0.0).then(|| {
+            let weights = path_falloff(axis, falloff, lead);
+            let sl = 1.0 / (2.0 * std::f64::consts::PI * LOW_PASS_WAVELENGTHS * lambda);
+            let low = (0..n)
+                .map(|k| ((-0.5 * (freq(k) / sl).powi(2)).exp() * scale) as f32)
+                .collect();
+            (weights, low)
+        });
         Self {
             fwd: planner.plan_fft_forward(n),
             inv: planner.plan_fft_inverse(n),
             gain,
+            falloff,
             lead,
         }
     }
@@ -238,6 +270,11 @@ impl PhasorFilter {
     /// bins before and after (so the wavelet does not wrap around). The padding
     /// repeats the first and last values: a level that runs off either end of the
     /// histogram (ambient light, a cropped axis) is no edge for the band-pass to ring at.
+    ///
+    /// With a falloff, the histogram's slow part (its low-pass) is taken off and the
+    /// rest weighed by (ℓ/2)^2p before the band-pass: weighed whole, a constant
+    /// ambient level would become a ramp that the padding ends in a kink, and the
+    /// band-pass would ring there. The band-pass drops the slow part anyway.
     fn apply(&self, h: &[f32]) -> Vec<f32> {
         let lead = self.lead;
         let (first, last) = (
@@ -251,6 +288,17 @@ impl PhasorFilter {
             } else {
                 h.get(i - lead).copied().unwrap_or(last)
             };
+        }
+        if let Some((weights, low)) = &self.falloff {
+            let mut slow = buf.clone();
+            self.fwd.process(&mut slow);
+            for (b, &g) in slow.iter_mut().zip(low) {
+                *b *= g;
+            }
+            self.inv.process(&mut slow);
+            for ((b, s), &w) in buf.iter_mut().zip(&slow).zip(weights) {
+                b.re = (b.re - s.re) * w;
+            }
         }
         self.fwd.process(&mut buf);
         for (b, &g) in buf.iter_mut().zip(&self.gain) {
@@ -296,7 +344,7 @@ pub fn fbp(set: &TransientSet, grid: &VolumeGrid, settings: &FbpSettings) -> Res
         let lead = (3.0 * sigma / set.axis().width).ceil() as usize + 1;
         // Real and imaginary parts interleaved, so one backprojection pass computes
         // each voxel's path length once and gathers both from one place.
-        let filter = PhasorFilter::new(set.axis().bins, set.axis().width, lambda, sigma, lead);
+        let filter = PhasorFilter::new(set.axis(), lambda, sigma, lead, settings.falloff);
         let hists: Vec<Vec<f32>> = (0..set.len())
             .into_par_iter()
             .map(|p| {
@@ -309,10 +357,15 @@ pub fn fbp(set: &TransientSet, grid: &VolumeGrid, settings: &FbpSettings) -> Res
         let data = sums.iter().map(|[a, b]| a.hypot(*b)).collect();
         return Ok(Volume { grid: *grid, data });
     }
+    let by_path = path_falloff(set.axis(), settings.falloff, 0);
     let hists: Vec<Vec<f32>> = (0..set.len())
         .map(|p| {
             let w = weight(p);
-            set.histogram(p).iter().map(|v| v * w).collect()
+            set.histogram(p)
+                .iter()
+                .zip(&by_path)
+                .map(|(v, g)| v * w * g)
+                .collect()
         })
         .collect();
     let data = backproject::<1, 2>(set, grid, settings.falloff, hists, 0)
@@ -326,12 +379,31 @@ pub fn fbp(set: &TransientSet, grid: &VolumeGrid, settings: &FbpSettings) -> Res
     Ok(volume)
 }
 
+/// The part of the falloff weight (d_i·d_d)^`falloff` that depends on path length
+/// alone, (ℓ/2)^(2·falloff), at each bin's centre ℓ (0 before path length 0), for the
+/// axis' bins with `lead` more before and after.
+fn path_falloff(axis: &crate::transient::TimeAxis, falloff: f64, lead: usize) -> Vec<f32> {
+    (0..axis.bins + 2 * lead)
+        .map(|b| {
+            let half = (0.5 * axis.centre(b as f64 - lead as f64)).max(0.0);
+            match falloff {
+                0.0 => 1.0,
+                1.0 => (half * half) as f32,
+                2.0 => (half * half * half * half) as f32,
+                p => half.powf(2.0 * p) as f32,
+            }
+        })
+        .collect()
+}
+
 /// Backprojects `hists` onto `grid`. Each holds `C` interleaved channels per bin (the
 /// phasor filter's real and imaginary parts, or one plain histogram) on the set's axis
 /// shifted by `lead` bins (bin `lead` is the axis' bin 0). Returns the `C` sums per
 /// voxel. A confocal scan on a grid that fits the voxels takes [`grid`]'s path, any
 /// other set [`backproject_pairs`], which reads each bin and the next as one `[f32; D]`
-/// (`D = 2C`).
+/// (`D = 2C`). The histograms carry the path-length part of the falloff weight
+/// ([`path_falloff`]); the general path multiplies the rest, (4·d_i·d_d/ℓ²)^`falloff`,
+/// which is 1 on the grid path's confocal pairs.
 fn backproject<const C: usize, const D: usize>(
     set: &TransientSet,
     grid: &VolumeGrid,
@@ -344,7 +416,7 @@ fn backproject<const C: usize, const D: usize>(
         Some(scan) => {
             let padded = pad::<C>(&hists);
             drop(hists);
-            backproject_grid(&scan, set, grid, falloff, &padded, lead)
+            backproject_grid(&scan, set, grid, &padded, lead)
         }
         None => {
             let doubled = doubled::<C, D>(&hists);
@@ -383,12 +455,11 @@ fn backproject_grid<const C: usize>(
     scan: &grid::ConfocalGrid,
     set: &TransientSet,
     grid: &VolumeGrid,
-    falloff: f64,
     padded: &[Vec<f32>],
     lead: usize,
 ) -> Vec<[f32; C]> {
     let inv_w = 1.0 / set.axis().width;
-    let runs = grid::Runs::<C>::new(scan, grid, padded, inv_w, index_offset(set, lead), falloff);
+    let runs = grid::Runs::<C>::new(scan, grid, padded, inv_w, index_offset(set, lead));
     // Each thread takes a band of relay rows into a volume of its own (every band's
     // histograms are read once), and the volumes are summed.
     let rows = scan.rows();
@@ -439,9 +510,10 @@ impl<const C: usize> crate::simd::Work for GridRows<'_, '_, C> {
 /// Per voxel and pair the work is two square roots, the fractional bin, the falloff
 /// gain and a linear interpolation of each channel. The first three run as one loop
 /// along x that the compiler vectorises (eight voxels at a time with AVX2), the gather
-/// as a second; both run inside [`crate::simd::dispatch`]. The falloff gain is
-/// `(d_i d_d)^p` with the common exponents done without `powf`: 1 is `d_i·d_d` from the
-/// roots already taken, 2 is `d_i²·d_d²`, 0 is 1.
+/// as a second; both run inside [`crate::simd::dispatch`]. The falloff gain is the
+/// voxel's part of the weight, `q^p` with `q = 4·d_i·d_d/(d_i + d_d)²` (the
+/// histograms carry the rest), the common exponents done without `powf`: 1 is `q`, 2
+/// is `q²`, 0 is 1.
 fn backproject_pairs<const C: usize, const D: usize>(
     set: &TransientSet,
     grid: &VolumeGrid,
@@ -569,27 +641,21 @@ fn path_row(
     gain: &mut [f32],
 ) {
     let lanes = index.iter_mut().zip(gain.iter_mut()).zip(xs);
-    if falloff == 1.0 {
-        for ((f, g), &x) in lanes {
-            let ri = (byi + (x - xi) * (x - xi)).sqrt();
-            let rd = (byd + (x - xd) * (x - xd)).sqrt();
-            *f = ((ri + rd) * inv_w - offset).max(0.0).min(top);
-            *g = ri * rd;
-        }
-        return;
-    }
     for ((f, g), &x) in lanes {
-        let ri2 = byi + (x - xi) * (x - xi);
-        let rd2 = byd + (x - xd) * (x - xd);
-        *f = ((ri2.sqrt() + rd2.sqrt()) * inv_w - offset).max(0.0).min(top);
-        *g = ri2 * rd2;
+        let ri = (byi + (x - xi) * (x - xi)).sqrt();
+        let rd = (byd + (x - xd) * (x - xd)).sqrt();
+        let path = ri + rd;
+        *f = (path * inv_w - offset).max(0.0).min(top);
+        // 0, not NaN, for a voxel on a confocal relay point.
+        *g = (4.0 * ri * rd) / (path * path).max(f32::MIN_POSITIVE);
     }
     match falloff {
-        2.0 => {}
+        1.0 => {}
+        2.0 => gain.iter_mut().for_each(|g| *g *= *g),
         0.0 => gain.fill(1.0),
         p => {
-            let half = (0.5 * p) as f32;
-            gain.iter_mut().for_each(|g| *g = g.powf(half));
+            let p = p as f32;
+            gain.iter_mut().for_each(|g| *g = g.powf(p));
         }
     }
 }
@@ -707,7 +773,9 @@ mod tests {
     use rand_chacha::ChaCha8Rng;
 
     /// Backprojection written the obvious way, in f64: every voxel, every pair, the
-    /// histogram linearly interpolated between bin centres (zero outside the axis).
+    /// histogram weighed by the path-length part of the falloff and linearly
+    /// interpolated between bin centres (zero outside the axis), times the voxel's
+    /// part.
     fn reference(set: &TransientSet, grid: &VolumeGrid, falloff: f64) -> Vec<f64> {
         let axis = set.axis();
         let mut out = vec![0.0; grid.len()];
@@ -721,16 +789,20 @@ mod tests {
                         let (ri, rd) = (x.distance(pair.xi), x.distance(pair.xd));
                         let u = (ri + rd - axis.start) / axis.width - 0.5;
                         let h = set.histogram(p);
+                        // Each bin weighed by (ℓ/2)^2p at its centre ℓ, the voxel by
+                        // the rest of (d_i·d_d)^p.
                         let at = |b: f64| {
                             if b < 0.0 || b >= h.len() as f64 {
                                 0.0
                             } else {
-                                h[b as usize] as f64
+                                let half = (0.5 * axis.centre(b)).max(0.0);
+                                h[b as usize] as f64 * half.powf(2.0 * falloff)
                             }
                         };
                         let b = u.floor();
                         let t = u - b;
-                        sum += (ri * rd).powf(falloff) * ((1.0 - t) * at(b) + t * at(b + 1.0));
+                        let q = 4.0 * ri * rd / ((ri + rd) * (ri + rd));
+                        sum += q.powf(falloff) * ((1.0 - t) * at(b) + t * at(b + 1.0));
                     }
                     out[(iz * ny + iy) * nx + ix] = sum;
                 }
@@ -848,7 +920,7 @@ mod tests {
             .collect();
         let padded = pad::<2>(&hists);
         let scan = grid::ConfocalGrid::detect(&set, &grid).unwrap();
-        let fast = backproject_grid::<2>(&scan, &set, &grid, 1.0, &padded, lead);
+        let fast = backproject_grid::<2>(&scan, &set, &grid, &padded, lead);
         let general = backproject_pairs(&set, &grid, 1.0, &doubled::<2, 4>(&hists), lead);
         let flat = |v: &[[f32; 2]]| v.iter().flatten().map(|&x| x as f64).collect::<Vec<_>>();
         let (worst, peak) = worst_and_peak(&flat(&fast), &flat(&general));
