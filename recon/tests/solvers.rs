@@ -278,6 +278,20 @@ fn rsd_finds_a_point_scatterer_non_confocal() {
     );
 }
 
+/// Every point of `relay` as a detection point, lit from one laser spot on the wall.
+fn lit_from(relay: &VirtualRelay, spot: DVec3) -> Vec<Pair> {
+    relay
+        .points()
+        .into_iter()
+        .map(|xd| Pair {
+            xi: spot,
+            ni: DVec3::Z,
+            xd,
+            nd: DVec3::Z,
+        })
+        .collect()
+}
+
 /// The largest value within one voxel of `x`.
 fn value_near(volume: &Volume, x: DVec3) -> f32 {
     let g = &volume.grid;
@@ -300,17 +314,7 @@ fn rsd_falloff_weighs_both_legs_by_their_length() {
     // too), with the brighter peak where it belongs every time.
     let (near, far) = (DVec3::new(-0.1, 0.05, 0.35), DVec3::new(0.12, -0.1, 0.7));
     let relay = wall(32);
-    let spot = DVec3::new(0.05, 0.2, 0.0);
-    let non_confocal: Vec<Pair> = relay
-        .points()
-        .into_iter()
-        .map(|xd| Pair {
-            xi: spot,
-            ni: DVec3::Z,
-            xd,
-            nd: DVec3::Z,
-        })
-        .collect();
+    let non_confocal = lit_from(&relay, DVec3::new(0.05, 0.2, 0.0));
     let g = VolumeGrid::new([-0.4, 0.4], [-0.4, 0.4], [0.2, 0.8], [32, 32, 24]).unwrap();
     for (name, pairs) in [
         ("confocal", confocal_pairs(&relay)),
@@ -389,17 +393,7 @@ fn fbp_falloff_moves_no_peak_in_depth() {
     // spot. With the path-length part weighed on the histograms before the filter it
     // moves 0.5, 0.9, 0.3 and 0.4 mm.
     let relay = wall(32);
-    let spot = DVec3::new(-0.2, 0.1, 0.0);
-    let non_confocal: Vec<Pair> = relay
-        .points()
-        .into_iter()
-        .map(|xd| Pair {
-            xi: spot,
-            ni: DVec3::Z,
-            xd,
-            nd: DVec3::Z,
-        })
-        .collect();
+    let non_confocal = lit_from(&relay, DVec3::new(-0.2, 0.1, 0.0));
     let g = VolumeGrid::new(
         [POINT.x - 0.05, POINT.x + 0.05],
         [POINT.y - 0.05, POINT.y + 0.05],
