@@ -188,6 +188,53 @@ fn a_killed_run_leaves_the_laser_off_within_the_watchdog_timeout() {
     assert_eq!(b.rig.watchdog().1, 1);
 }
 
+/// A laser left emitting by a process that died, with a watchdog longer than the
+/// restart takes, is switched off by the next process that opens the instrument (here
+/// `periscope devices`; `serve`'s first reading and every run open it the same way):
+/// its requests feed the controller's watchdog, so it must not leave the laser on.
+#[test]
+fn opening_the_instrument_switches_off_a_laser_a_killed_run_left_on() {
+    let b = bench(|_| String::new());
+    let text = std::fs::read_to_string(&b.instrument).unwrap();
+    assert!(text.contains("[laser]\n"));
+    std::fs::write(
+        &b.instrument,
+        text.replacen("[laser]\n", "[laser]\nwatchdog-ms = 30000\n", 1),
+    )
+    .unwrap();
+    let mut child = b.run();
+    b.wait_emitting(&mut child);
+    child.kill().unwrap(); // SIGKILL: no handler, no unwinding, no drop.
+    child.wait().unwrap();
+    assert!(b.rig.emission(), "the 30 s watchdog cannot have tripped yet");
+    let t = Instant::now();
+    let devices = b.spawn(&["devices", "--instrument", b.instrument.to_str().unwrap()]);
+    let out = devices.wait_with_output().unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "periscope devices failed: {stderr}");
+    let off = b
+        .rig
+        .off_since(t)
+        .expect("the laser is still on after `periscope devices`")
+        - t;
+    let last = *b.rig.emission_changes().last().unwrap();
+    eprintln!(
+        "laser left on by kill -9: off {:.0} ms after `periscope devices` started",
+        off.as_secs_f64() * 1e3
+    );
+    assert_eq!(
+        last.cause,
+        EmissionCause::Host,
+        "switched off by a command, not the watchdog"
+    );
+    assert!(!b.rig.emission());
+    assert!(off < Duration::from_secs(10), "{off:?}");
+    assert!(
+        stderr.contains("the laser was emitting when Periscope opened its controller"),
+        "{stderr}"
+    );
+}
+
 #[test]
 fn sigterm_switches_the_laser_off_at_once_and_the_run_pauses_resumably() {
     let b = bench(|_| String::new());

@@ -252,8 +252,9 @@ impl Devices {
     }
 
     /// Opens every device on `rig` (the simulated instrument a caller keeps across
-    /// runs; `None` for hardware), identifying each; `stop` is asked between devices
-    /// and opening gives up with [`OpenError::Interrupted`] when it says so.
+    /// runs; `None` for hardware), identifying each, and switches off a laser it finds
+    /// emitting (with a warning); `stop` is asked between devices and opening gives up
+    /// with [`OpenError::Interrupted`] when it says so.
     pub fn open_on(
         config: &InstrumentConfig,
         rig: Option<Rig>,
@@ -269,9 +270,22 @@ impl Devices {
         interrupted()?;
         let LaserArm {
             arm: mut laser_arm,
-            laser,
+            mut laser,
         } = open_laser_arm(config, rig.as_ref())?;
         laser_arm.identify()?;
+        // Opening the instrument leaves the laser off. A laser found emitting was left
+        // on by a process that ended without switching it off (a crash or `kill -9`
+        // with a watchdog longer than the restart took, or another program); every
+        // request feeds the controller's watchdog, so without this the idle worker's
+        // readings would keep such a laser on for as long as the daemon runs.
+        if laser.laser_state()?.emission {
+            tracing::warn!(
+                "the laser was emitting when Periscope opened its controller, with no run of this \
+                 process measuring (left on by a process that ended without switching it off?); \
+                 switching it off"
+            );
+            laser.set_emission(false)?;
+        }
         interrupted()?;
         let mut spad = open_galvo(config, Arm::Spad, rig.as_ref())?;
         spad.identify()?;

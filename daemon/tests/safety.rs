@@ -3,7 +3,7 @@
 //! the simulated devices in real time. Each case asserts the simulated laser's own
 //! emission state (the firmware's log of when emission changed and why), never the
 //! daemon's belief about it: off within 50 ms of the event, never on again after it,
-//! and the run left in the state it should be in, with its data resumable. The
+//! both arms parked when the run returns, and the run left in the state it should be in, with its data resumable. The
 //! measuring stages run the matrix again on the simulator's in-process devices.
 use std::path::{Path, PathBuf};
 use std::sync::{Arc, Mutex, OnceLock, mpsc};
@@ -230,6 +230,11 @@ fn run_case(stage: Stage, event: Event, devices: Devices) -> Outcome {
     assert!(
         switched_on_after.is_empty(),
         "{event:?} in {stage:?}: emission went on again after the event: {switched_on_after:?}"
+    );
+    assert_eq!(
+        rig.parked(),
+        (true, true),
+        "{event:?} in {stage:?}: both arms parked after the run returned (laser, SPAD)"
     );
     let info = RunInfo::load(&dir).unwrap();
     Outcome {

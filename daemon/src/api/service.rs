@@ -1070,6 +1070,9 @@ impl Service {
                     if let Err(off) = self.laser_controller_off() {
                         tracing::error!("after a panic, the laser controller could not be reached: {off}");
                     }
+                    if let Err(park) = self.park_spad() {
+                        tracing::error!("after a panic, the SPAD arm could not be parked: {park}");
+                    }
                     let dir = self.runs_dir.join(&id);
                     if let Ok(mut info) = RunInfo::load(&dir) {
                         info.state = RunState::Failed;

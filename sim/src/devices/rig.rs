@@ -460,6 +460,12 @@ impl Rig {
         (s.arms[0].target, s.arms[1].target)
     }
 
+    /// Whether each arm is parked (laser, SPAD): its last command was `PARK`, not a move.
+    pub fn parked(&self) -> (bool, bool) {
+        let s = self.shared.lock();
+        (s.arms[0].parked, s.arms[1].parked)
+    }
+
     /// Whether the laser is emitting.
     pub fn emission(&self) -> bool {
         self.shared.lock().emission()
