@@ -70,6 +70,16 @@ fn recon_and_export_of_a_run_directory_whole_and_damaged() {
         );
     }
 
+    // An export whose --out is one of the run's own files would replace the run's
+    // data with the export: refused, naming the file, and the log left as it was.
+    let before = std::fs::read(run.join(HISTOGRAM_LOG)).unwrap();
+    for own in [HISTOGRAM_LOG, "run.json"] {
+        let out = periscope(&["export", s(&run), "--out", s(&run.join(own))]);
+        assert_eq!(out.code, Some(1), "{out:?}");
+        assert!(out.stderr.contains("is one of the run's own files"), "{out:?}");
+    }
+    assert_eq!(std::fs::read(run.join(HISTOGRAM_LOG)).unwrap(), before);
+
     // A record damaged in the middle of the log: recon and export use every record
     // but that one, and leave the damaged run as it was.
     let damaged = tmp.path().join("damaged");

@@ -199,6 +199,7 @@ pub fn execute(cli: Cli) -> Result<(), CliError> {
                 return Err(CliError::NotRun(run_dir));
             }
             let out = out.unwrap_or_else(|| run_dir.join(crate::ytal::CAPTURE_FILE));
+            refuse_run_file(&run_dir, &out)?;
             let capture = crate::capture::RunCapture::load(&run_dir)?.to_ytal()?;
             capture.write(&out)?;
             println!(
@@ -236,6 +237,21 @@ pub fn execute(cli: Cli) -> Result<(), CliError> {
         }
         Command::Devices { instrument } => devices(&instrument.load()?),
     }
+}
+
+/// Refuses an export's `out` that is one of the run's own files (its histograms,
+/// `run.json`, the plan): the export replaces `out` whole, and the run's data would be
+/// gone. `capture.hdf5` in the run directory (the default) is the export's own file.
+fn refuse_run_file(run_dir: &Path, out: &Path) -> Result<(), CliError> {
+    let (Ok(dir), Ok(target)) = (run_dir.canonicalize(), out.canonicalize()) else {
+        return Ok(()); // `out` does not exist yet: nothing to overwrite.
+    };
+    let own = target.parent() == Some(dir.as_path())
+        && target.file_name() != Some(std::ffi::OsStr::new(crate::ytal::CAPTURE_FILE));
+    if own {
+        return Err(CliError::RunFile(out.to_path_buf()));
+    }
+    Ok(())
 }
 
 /// `periscope devices`: what this host has plugged in, then the configured
@@ -448,6 +464,13 @@ pub enum CliError {
         /// Why.
         source: std::io::Error,
     },
+    /// `export --out` naming one of the run's own files.
+    #[error(
+        "{} is one of the run's own files and the export would replace it; give --out a new file \
+         (or leave it out: RUN_DIR/capture.hdf5)",
+        .0.display()
+    )]
+    RunFile(PathBuf),
     /// The async runtime for `serve` could not start.
     #[error("cannot start the API's runtime: {0}")]
     Runtime(std::io::Error),
