@@ -14,7 +14,7 @@ use periscope_daemon::events::{EventSink, RunEvent, Stage};
 use periscope_daemon::pipeline::{self, Control, PipelineError, Run};
 use periscope_daemon::store::{RunInfo, RunState, read_log};
 use periscope_drivers::galvo::EmergencyOff;
-use periscope_sim::devices::Rig;
+use periscope_sim::devices::{EmissionCause, Rig};
 
 /// The bound on how long emission may outlast a pause, abort or e-stop (the
 /// issue's, for the simulator).
@@ -781,6 +781,59 @@ fn an_estop_reaches_the_laser_and_parks_while_the_worker_hangs() {
     assert!(rig.emission_changes().iter().all(|c| !c.on || c.at < t));
     svc.shutdown();
     worker.join().unwrap();
+}
+
+/// A worker stuck with the laser on and nobody at the e-stop: once the run has shown no
+/// progress (no checkpoint, no stop poll) for `[laser] stall-ms`, the keepalive stops
+/// feeding the controller's watchdog, and the watchdog switches the laser off.
+#[test]
+fn a_worker_stuck_with_the_laser_on_loses_it_to_the_watchdog_without_an_estop() {
+    let _serial = ONE_AT_A_TIME.lock().unwrap_or_else(|p| p.into_inner());
+    let runs = tempfile::tempdir().unwrap();
+    let src = instrument();
+    let stall = Duration::from_millis(1000);
+    let text = src.text().replacen("[laser]\n", "[laser]\nstall-ms = 1000\n", 1);
+    assert!(
+        text.contains("stall-ms"),
+        "the instrument config has no [laser] table"
+    );
+    let text = format!("{text}\n[api]\nruns-dir = {:?}\n", runs.path());
+    let svc = periscope_daemon::api::Service::open(TomlSource::from_text(src.path().to_owned(), text), None)
+        .unwrap();
+    let worker = svc.start_worker();
+    let rig = svc.rig().unwrap().clone();
+    let a = svc.submit(PLAN.to_owned()).unwrap().id;
+    wait_capturing(&svc, &a, &rig);
+    // Stuck at its next checkpoint for 4 s, with the laser on.
+    let t = Instant::now();
+    assert!(svc.inject_hang(Stage::Capture, Duration::from_secs(4)));
+    let off = loop {
+        if let Some(off) = rig.off_since(t) {
+            break off - t;
+        }
+        assert!(
+            t.elapsed() < Duration::from_secs(4),
+            "the laser stayed on while the run hung"
+        );
+        std::thread::sleep(Duration::from_millis(2));
+    };
+    eprintln!(
+        "stuck worker: laser off {:.0} ms after the hang began",
+        off.as_secs_f64() * 1e3
+    );
+    let (watchdog, trips) = rig.watchdog();
+    assert_eq!(trips, 1, "switched off by the watchdog");
+    assert_eq!(
+        rig.emission_changes().last().unwrap().cause,
+        EmissionCause::Watchdog
+    );
+    assert!(
+        off >= stall - Duration::from_millis(50) && off <= stall + watchdog + Duration::from_millis(500),
+        "off {off:?} after the hang began (stall limit {stall:?}, watchdog {watchdog:?})"
+    );
+    svc.shutdown();
+    worker.join().unwrap();
+    assert!(!rig.emission());
 }
 
 /// The e-stop believes a run that stopped only if the run made the instrument safe.

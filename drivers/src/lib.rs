@@ -23,5 +23,5 @@ pub use geometry::{AngleLimits, GalvoPose, OpticalAngles};
 pub use selector::{SelectorError, UsbSelector};
 pub use traits::{
     CountRates, DeviceInfo, EmergencyOff, GalvoPair, GalvoStatus, Histogram, HistogramFlags, Histogrammer,
-    Laser, LaserState, OffSwitch, Shared, TdcConfig, TdcState, TdcStatus,
+    Laser, LaserState, OffSwitch, Progress, ProgressWatch, Shared, Stall, TdcConfig, TdcState, TdcStatus,
 };

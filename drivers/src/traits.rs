@@ -97,6 +97,117 @@ pub trait Laser: ErrorType {
     /// once used, this driver refuses to switch emission on (kind `Interrupted`) for
     /// the rest of its life, so a `set_emission(true)` racing the stop cannot undo it.
     fn emergency_off(&self) -> EmergencyOff;
+    /// From now on, feeds the controller's watchdog only while `progress` is alive: a
+    /// run that stops making progress with the laser on (a call that never returns, a
+    /// deadlock) has its laser switched off by the controller's watchdog within the
+    /// progress limit plus the watchdog's timeout, with nobody there to press the
+    /// e-stop. Without a progress the keepalive feeds while emission is wanted.
+    fn watch_progress(&mut self, progress: Progress);
+}
+
+/// A run's sign of life for a laser's keepalive ([`Laser::watch_progress`]). The run
+/// calls [`Progress::beat`] at each of its checkpoints and stop polls (every 5 ms
+/// inside a dwell); it is alive while the last beat is younger than its limit. Clones
+/// share the beat.
+#[derive(Clone, Debug)]
+pub struct Progress(Arc<ProgressInner>);
+
+#[derive(Debug)]
+struct ProgressInner {
+    epoch: std::time::Instant,
+    /// Nanoseconds from `epoch` to the last beat.
+    last: std::sync::atomic::AtomicU64,
+    limit: Duration,
+}
+
+impl Progress {
+    /// A progress that has just beaten, alive for `limit` after each beat.
+    pub fn new(limit: Duration) -> Progress {
+        Progress(Arc::new(ProgressInner {
+            epoch: std::time::Instant::now(),
+            last: std::sync::atomic::AtomicU64::new(0),
+            limit,
+        }))
+    }
+
+    fn now_ns(&self) -> u64 {
+        u64::try_from(self.0.epoch.elapsed().as_nanos()).unwrap_or(u64::MAX)
+    }
+
+    /// The run is making progress.
+    pub fn beat(&self) {
+        self.0
+            .last
+            .fetch_max(self.now_ns(), std::sync::atomic::Ordering::Relaxed);
+    }
+
+    /// Whether the last beat is at most the limit old.
+    pub fn alive(&self) -> bool {
+        self.since_beat() <= self.0.limit
+    }
+
+    /// How long ago the last beat was.
+    pub fn since_beat(&self) -> Duration {
+        let last = self.0.last.load(std::sync::atomic::Ordering::Relaxed);
+        Duration::from_nanos(self.now_ns().saturating_sub(last))
+    }
+
+    /// How long it stays alive after a beat.
+    pub fn limit(&self) -> Duration {
+        self.0.limit
+    }
+}
+
+/// The progress a laser driver's keepalive consults, shared between the driver (which
+/// [`Laser::watch_progress`] sets) and its keepalive thread. For laser drivers.
+#[derive(Clone, Debug, Default)]
+pub struct ProgressWatch(Arc<Mutex<Option<Progress>>>);
+
+impl ProgressWatch {
+    /// Watches `progress` from now on.
+    pub fn set(&self, progress: Progress) {
+        *self.0.lock().unwrap_or_else(|p| p.into_inner()) = Some(progress);
+    }
+
+    /// `None` while the keepalive may feed (nothing watched, or alive); otherwise how
+    /// long the watched run has shown no progress.
+    pub fn stalled_for(&self) -> Option<Duration> {
+        let p = self.0.lock().unwrap_or_else(|p| p.into_inner());
+        p.as_ref().filter(|p| !p.alive()).map(Progress::since_beat)
+    }
+}
+
+/// A keepalive loop's view of a stall, so it warns once per stall. For laser drivers.
+#[derive(Debug, Default)]
+pub struct Stall(bool);
+
+impl Stall {
+    /// Whether a keepalive of the laser `name` feeds the watchdog now: emission is
+    /// `wanted` and the run it watches shows progress. Warns when a stall begins.
+    pub fn feeds(&mut self, progress: &ProgressWatch, wanted: bool, name: &str) -> bool {
+        if !wanted {
+            self.0 = false;
+            return false;
+        }
+        match progress.stalled_for() {
+            None => {
+                self.0 = false;
+                true
+            }
+            Some(since) => {
+                if !self.0 {
+                    tracing::warn!(
+                        arm = %name,
+                        "the run has shown no progress for {:.1} s with the laser on; the keepalive stops, \
+                         and the controller's watchdog switches the laser off",
+                        since.as_secs_f64()
+                    );
+                    self.0 = true;
+                }
+                false
+            }
+        }
+    }
 }
 
 /// What an [`EmergencyOff`] handle does; each laser driver implements it over its own
@@ -215,6 +326,9 @@ impl<T: Laser> Laser for Shared<T> {
     }
     fn emergency_off(&self) -> EmergencyOff {
         self.lock().emergency_off()
+    }
+    fn watch_progress(&mut self, progress: Progress) {
+        self.lock().watch_progress(progress)
     }
 }
 

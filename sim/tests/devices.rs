@@ -10,7 +10,8 @@ use glam::DVec3;
 use periscope_drivers::galvo::{SerialGalvo, SerialGalvoSettings};
 use periscope_drivers::tdc::UsbTdc;
 use periscope_drivers::{
-    AngleLimits, Error, ErrorKind, GalvoPair, GalvoPose, Histogrammer, Laser, OpticalAngles, TdcConfig,
+    AngleLimits, Error, ErrorKind, GalvoPair, GalvoPose, Histogrammer, Laser, OpticalAngles, Progress,
+    TdcConfig,
 };
 use periscope_sim::detector::C0;
 use periscope_sim::devices::{Arm, Fault, GalvoFault, Rig, RigSettings, SimTdcTransport, TdcFault};
@@ -499,6 +500,49 @@ fn the_drivers_keepalive_holds_emission_and_stops_with_the_driver() {
         .expect("the laser is still on after the driver was dropped");
     assert!(off - dropped < Duration::from_millis(20), "{:?}", off - dropped);
     assert_eq!(rig.emission_changes().last().unwrap().cause, EmissionCause::Host);
+}
+
+/// A laser driver watching a run's progress (`Laser::watch_progress`) feeds the
+/// watchdog while the run beats, and stops once the run has shown no progress for the
+/// limit: the watchdog then switches the laser off. Both the wire driver and the
+/// in-process one, each with a 100 ms watchdog.
+#[test]
+fn the_keepalive_stops_when_the_watched_run_stops_making_progress() {
+    let limit = Duration::from_millis(300);
+    let watchdog = Duration::from_millis(100);
+    for wire in [true, false] {
+        let rig = rig();
+        let mut laser: Box<dyn Laser<Error = periscope_drivers::galvo::GalvoError>> = if wire {
+            Box::new(wire_laser(&rig))
+        } else {
+            Box::new(rig.in_process_galvo(Arm::Laser, limits(20.0), Some(watchdog)))
+        };
+        let progress = Progress::new(limit);
+        laser.watch_progress(progress.clone());
+        laser.set_emission(true).unwrap();
+        // Beating every 20 ms for seven limits: emission holds.
+        let start = Instant::now();
+        while start.elapsed() < 7 * limit {
+            progress.beat();
+            std::thread::sleep(Duration::from_millis(20));
+        }
+        assert!(rig.emission(), "wire {wire}: emission dropped while the run beat");
+        assert_eq!(rig.watchdog().1, 0, "wire {wire}");
+        // No more beats (a run stuck in a call): off by the watchdog within the limit
+        // plus the watchdog's timeout, not before the limit.
+        progress.beat();
+        let last = Instant::now();
+        let off = wait_off(&rig, last, Duration::from_secs(3))
+            .unwrap_or_else(|| panic!("wire {wire}: the laser stayed on with the run stalled"));
+        let change = *rig.emission_changes().last().unwrap();
+        assert_eq!(change.cause, EmissionCause::Watchdog, "wire {wire}");
+        assert!(
+            off - last >= limit && off - last <= limit + watchdog + TRIP_SLACK,
+            "wire {wire}: off {:?} after the last beat (limit {limit:?}, watchdog {watchdog:?})",
+            off - last
+        );
+        drop(laser);
+    }
 }
 
 #[test]

@@ -175,6 +175,9 @@ pub struct LaserSettings {
     /// The laser controller's watchdog: emission stops when the controller hears
     /// nothing from the host for this long.
     pub watchdog: Duration,
+    /// How long a run may show no progress (no checkpoint, no stop poll) with the
+    /// laser on before the keepalive stops feeding the watchdog.
+    pub stall: Duration,
 }
 
 /// The single-photon avalanche diode.
@@ -424,6 +427,12 @@ struct RawLaser {
     rep_rate_mhz: f64,
     #[serde(default = "default_watchdog_ms")]
     watchdog_ms: f64,
+    #[serde(default = "default_stall_ms")]
+    stall_ms: f64,
+}
+
+fn default_stall_ms() -> f64 {
+    5000.0
 }
 
 fn default_watchdog_ms() -> f64 {
@@ -701,6 +710,16 @@ impl InstrumentConfig {
                     f64::from(*range.start()),
                     f64::from(*range.end()),
                     "ms (the controller cannot switch its watchdog off)",
+                )?;
+                Duration::from_millis(ms.round() as u64)
+            },
+            stall: {
+                let ms = check.range(
+                    "laser.stall-ms",
+                    raw.laser.stall_ms,
+                    100.0,
+                    600_000.0,
+                    "ms (how long a run may show no progress with the laser on)",
                 )?;
                 Duration::from_millis(ms.round() as u64)
             },

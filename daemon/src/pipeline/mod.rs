@@ -236,6 +236,9 @@ struct ControlInner {
     /// How the run's last attempt to make the instrument safe went (laser off, arms
     /// parked): `None` until it has tried, the first failure as text.
     made_safe: Mutex<Option<Result<(), String>>>,
+    /// The run's sign of life for the laser's keepalive, beaten at every checkpoint
+    /// and stop poll ([`Control::progress`]).
+    progress: Mutex<Option<periscope_drivers::Progress>>,
 }
 
 /// Operator requests a running pipeline honours at its checkpoints: between devices
@@ -284,9 +287,23 @@ impl Control {
             _ => Request::Abort,
         }
     }
-    /// Whether the run is asked to stop (pause or abort).
+    /// Whether the run is asked to stop (pause or abort). Asking is a sign of life
+    /// ([`Control::progress`]).
     pub fn stopping(&self) -> bool {
+        self.beat();
         self.requested() != Request::Run
+    }
+    /// The run's sign of life for its laser's keepalive, alive for `limit` after each
+    /// checkpoint or stop poll; a new one (just beaten) replaces the last.
+    pub fn progress(&self, limit: std::time::Duration) -> periscope_drivers::Progress {
+        let p = periscope_drivers::Progress::new(limit);
+        *self.0.progress.lock().unwrap_or_else(|p| p.into_inner()) = Some(p.clone());
+        p
+    }
+    fn beat(&self) {
+        if let Some(p) = &*self.0.progress.lock().unwrap_or_else(|p| p.into_inner()) {
+            p.beat();
+        }
     }
     /// Registers an optimiser's cancel token; cancelled at once if already stopping.
     pub(crate) fn watch(&self, token: &CancelToken) {
@@ -329,6 +346,7 @@ impl Control {
         if let Some((_, duration)) = hang {
             std::thread::sleep(duration);
         }
+        self.beat();
         match self.requested() {
             Request::Run => Ok(()),
             Request::Pause => Err(PipelineError::Paused(pairs)),
@@ -494,7 +512,7 @@ impl Run {
                 e => PipelineError::Open(e),
             })
         }));
-        let devices = match opened {
+        let mut devices = match opened {
             Ok(Ok(devices)) => devices,
             Ok(Err(e)) => return Err(stopped_before_start(dir, &mut info, &events, e)),
             Err(payload) => {
@@ -506,6 +524,12 @@ impl Run {
             }
         };
         crate::signals::register_laser(devices.laser.emergency_off());
+        // The laser's keepalive feeds the controller's watchdog only while this run
+        // beats (at its checkpoints and stop polls): a run stuck with the laser on
+        // loses it within `[laser] stall-ms` plus the watchdog's timeout.
+        devices
+            .laser
+            .watch_progress(control.progress(instrument.laser.stall));
         Ok(Run {
             dir: dir.to_owned(),
             plan,

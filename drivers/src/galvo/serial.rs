@@ -19,7 +19,10 @@ use super::link::{Connector, Link};
 use super::protocol::{self, LineError, MotionState, Reply, Request};
 use crate::error::{Error, ErrorKind, ErrorType};
 use crate::geometry::{AngleLimits, OpticalAngles};
-use crate::traits::{DeviceInfo, EmergencyOff, GalvoPair, GalvoStatus, Laser, LaserState, OffSwitch};
+use crate::traits::{
+    DeviceInfo, EmergencyOff, GalvoPair, GalvoStatus, Laser, LaserState, OffSwitch, Progress, ProgressWatch,
+    Stall,
+};
 
 /// How far the settled position may be from the target before the driver refuses it,
 /// radians (10 µrad: 20 µm at 2 m, a tenth of a typical spot).
@@ -134,13 +137,21 @@ impl OffSwitch for SerialOff {
     }
 }
 
-/// Feeds the controller's laser watchdog with `KEEP` lines while emission is wanted,
-/// until the driver is dropped.
-fn keepalive(writer: Weak<Mutex<Option<Box<dyn Write + Send>>>>, wanted: Arc<AtomicBool>, period: Duration) {
+/// Feeds the controller's laser watchdog with `KEEP` lines while emission is wanted
+/// and the watched run shows progress ([`Laser::watch_progress`]), until the driver is
+/// dropped.
+fn keepalive(
+    writer: Weak<Mutex<Option<Box<dyn Write + Send>>>>,
+    wanted: Arc<AtomicBool>,
+    progress: ProgressWatch,
+    name: String,
+    period: Duration,
+) {
+    let mut stall = Stall::default();
     loop {
         std::thread::sleep(period);
         let Some(w) = writer.upgrade() else { return };
-        if wanted.load(Ordering::SeqCst)
+        if stall.feeds(&progress, wanted.load(Ordering::SeqCst), &name)
             && let Err(e) = write_out_of_band(&w, Request::KeepAlive)
         {
             debug!(error = %e, "keepalive not sent");
@@ -170,6 +181,8 @@ pub struct SerialGalvo {
     /// Set by an emergency off ([`Laser::emergency_off`]'s handle): emission stays
     /// off for this driver's life.
     stopped: Arc<AtomicBool>,
+    /// The run the keepalive watches ([`Laser::watch_progress`]).
+    progress: ProgressWatch,
 }
 
 impl ErrorType for SerialGalvo {
@@ -193,6 +206,7 @@ impl SerialGalvo {
             wanted: Arc::new(AtomicBool::new(false)),
             keepalive: false,
             stopped: Arc::new(AtomicBool::new(false)),
+            progress: ProgressWatch::default(),
         }
     }
 
@@ -225,9 +239,10 @@ impl SerialGalvo {
         // Four keepalives per timeout: one lost or late line never trips it.
         let period = (timeout / 4).max(Duration::from_millis(2));
         let (writer, wanted) = (Arc::downgrade(&self.oob), self.wanted.clone());
+        let (progress, name) = (self.progress.clone(), self.settings.name.clone());
         match std::thread::Builder::new()
             .name(format!("galvo-{}-keepalive", self.settings.name))
-            .spawn(move || keepalive(writer, wanted, period))
+            .spawn(move || keepalive(writer, wanted, progress, name, period))
         {
             Ok(_) => self.keepalive = true,
             Err(e) => {
@@ -732,6 +747,10 @@ impl Laser for SerialGalvo {
 
     fn set_diffuser(&mut self, inserted: bool) -> Result<(), GalvoError> {
         self.request(Request::Diffuser(inserted)).map(drop)
+    }
+
+    fn watch_progress(&mut self, progress: Progress) {
+        self.progress.set(progress);
     }
 
     /// `LASER OFF` out of band through the link, whatever this driver is waiting for.

@@ -22,7 +22,8 @@ use periscope_drivers::tdc::TdcError;
 use periscope_drivers::tdc::protocol::{self as tdc_protocol, WireConfig, flag};
 use periscope_drivers::{
     AngleLimits, CountRates, DeviceInfo, EmergencyOff, ErrorKind, ErrorType, GalvoPair, GalvoStatus,
-    Histogram, HistogramFlags, Histogrammer, Laser, LaserState, OffSwitch, TdcConfig, TdcState, TdcStatus,
+    Histogram, HistogramFlags, Histogrammer, Laser, LaserState, OffSwitch, Progress, ProgressWatch, Stall,
+    TdcConfig, TdcState, TdcStatus,
 };
 
 use super::rig::{Arm, Rig, Shared};
@@ -43,6 +44,8 @@ pub struct InProcessGalvo {
     /// Set by an emergency off: emission stays off for this driver's life, as the
     /// serial driver's.
     stopped: Arc<AtomicBool>,
+    /// The run the keepalive watches ([`Laser::watch_progress`]).
+    progress: ProgressWatch,
 }
 
 impl InProcessGalvo {
@@ -66,6 +69,7 @@ impl InProcessGalvo {
             alive: Arc::new(()),
             keepalive: false,
             stopped: Arc::new(AtomicBool::new(false)),
+            progress: ProgressWatch::default(),
         }
     }
 
@@ -122,15 +126,17 @@ impl InProcessGalvo {
             Arc::downgrade(&self.alive),
             self.wanted.clone(),
         );
+        let (progress, name) = (self.progress.clone(), self.name.clone());
         let spawned = std::thread::Builder::new()
             .name(format!("sim-{}-keepalive", self.name))
             .spawn(move || {
+                let mut stall = Stall::default();
                 loop {
                     std::thread::sleep(period);
                     let (Some(shared), Some(_alive)) = (shared.upgrade(), alive.upgrade()) else {
                         return;
                     };
-                    if wanted.load(Ordering::SeqCst) {
+                    if stall.feeds(&progress, wanted.load(Ordering::SeqCst), &name) {
                         shared.lock().heard_host(Instant::now());
                     }
                 }
@@ -284,6 +290,10 @@ impl Laser for InProcessGalvo {
         self.laser_only("DIFF")?;
         self.rig.shared.set_diffuser(inserted);
         Ok(())
+    }
+
+    fn watch_progress(&mut self, progress: Progress) {
+        self.progress.set(progress);
     }
 
     fn emergency_off(&self) -> EmergencyOff {
