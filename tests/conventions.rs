@@ -49,7 +49,9 @@ fn instrument(edit: impl Fn(String) -> String) -> TomlSource {
 /// Runs `plan` on `inst`, injecting an overflowed frame when `overflow_at` pairs are in.
 fn run(tmp: &Path, name: &str, inst: &TomlSource, plan: &str, overflow_at: Option<usize>) -> PathBuf {
     let config = InstrumentConfig::from_source(inst).unwrap();
-    let rig = periscope_daemon::devices::sim_rig(&config).unwrap().unwrap();
+    let rig = periscope_daemon::devices::sim::SimBackend::from_config(&config)
+        .unwrap()
+        .unwrap();
     let plan = TomlSource::from_text(tmp.join(format!("{name}.toml")), plan.to_owned());
     let (dir, _, _) = pipeline::prepare(&plan, inst, Some(&tmp.join(name))).unwrap();
     let events = EventSink::open(&dir).unwrap();
@@ -61,7 +63,7 @@ fn run(tmp: &Path, name: &str, inst: &TomlSource, plan: &str, overflow_at: Optio
             r.inject(Fault::Tdc(TdcFault::Overflow));
         }
     });
-    Run::open(&dir, Control::new(), Some(events), Some(rig))
+    Run::open(&dir, Control::new(), Some(events), Some(&rig))
         .unwrap()
         .execute()
         .unwrap();

@@ -5,7 +5,8 @@ use std::path::Path;
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
-use periscope_daemon::store::{HISTOGRAM_LOG, RunInfo, RunState, read_log};
+use periscope_daemon::run_dir::{RunInfo, RunState};
+use periscope_daemon::store::{HISTOGRAM_LOG, read_log};
 use periscope_tests::{periscope_bin, periscope_with_limit, repo_path, repo_root};
 
 const PLAN: &str = r#"

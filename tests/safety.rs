@@ -13,7 +13,7 @@ use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
 use periscope_daemon::config::{InstrumentConfig, TomlSource};
-use periscope_daemon::store::{RunInfo, RunState};
+use periscope_daemon::run_dir::{RunInfo, RunState};
 use periscope_sim::devices::{Arm, EmissionCause, Rig, ServedPort};
 use periscope_tests::{periscope_bin, repo_path, repo_root};
 
@@ -70,7 +70,11 @@ fn bench(extra: impl FnOnce(&Path) -> String) -> Bench {
         .replace("[sim]\n", "[sim]\ntime-scale = 1.0\n");
     let path = dir.path().join("instrument.toml");
     let config = InstrumentConfig::from_source(&TomlSource::from_text(path.clone(), text.clone())).unwrap();
-    let rig = periscope_daemon::devices::sim_rig(&config).unwrap().unwrap();
+    let rig = periscope_daemon::devices::sim::SimBackend::from_config(&config)
+        .unwrap()
+        .unwrap()
+        .rig()
+        .clone();
     let port = rig.serve_galvo_port(Arm::Laser).unwrap();
     let text = text.replace(
         "[galvo.spad]",

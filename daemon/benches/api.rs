@@ -19,8 +19,9 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use criterion::{Criterion, SamplingMode, Throughput, criterion_group, criterion_main};
-use periscope_daemon::api::{AppState, Service, app};
+use periscope_daemon::api::{AppState, app};
 use periscope_daemon::config::TomlSource;
+use periscope_daemon::service::Service;
 use serde_json::Value;
 
 const TOKEN: &str = "bench-token-0123456789abcdef";

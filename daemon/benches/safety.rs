@@ -16,8 +16,8 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use criterion::{Criterion, SamplingMode, criterion_group, criterion_main};
-use periscope_daemon::api::Service;
 use periscope_daemon::config::TomlSource;
+use periscope_daemon::service::Service;
 use periscope_sim::devices::Rig;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -94,7 +94,7 @@ fn stop(svc: &Service, rig: &Rig, stage: &str, plan: &str, rng: &mut ChaCha8Rng)
     let off_at = rig.off_since(t).expect("the laser is on after the e-stop");
     assert!(report.parked && report.warnings.is_empty(), "{report:?}");
     // Release the queue hold the e-stop put on nothing (no queued runs here).
-    while svc.status(&id).unwrap().state != periscope_daemon::store::RunState::Aborted {
+    while svc.status(&id).unwrap().state != periscope_daemon::run_dir::RunState::Aborted {
         std::thread::sleep(Duration::from_millis(1));
     }
     (off_at - t, done)
@@ -118,7 +118,9 @@ fn safety(c: &mut Criterion) {
         let runs = tempfile::tempdir().unwrap();
         let svc = service(runs.path());
         let worker = svc.start_worker();
-        let rig = svc.rig().unwrap().clone();
+        let rig = periscope_daemon::devices::sim::rig_of(svc.backend())
+            .unwrap()
+            .clone();
         let (mut off, mut done) = (Vec::new(), Vec::new());
         group.bench_function(format!("{stage}: e-stop to laser off"), |b| {
             b.iter_custom(|iters| {

@@ -15,6 +15,10 @@
 //!   export of the capture (4 bytes per bin per pair) and the volume outputs.
 use std::fmt::Write;
 
+/// Most points per axis of a virtual scan grown to cover the volume (at the
+/// virtual grid's pitch); beyond it the pitch coarsens.
+pub const MAX_VIRTUAL_RESOLUTION: usize = 128;
+
 use crate::plan::{Method, Plan};
 
 /// Bytes in a GiB.
@@ -104,7 +108,7 @@ impl Budget {
             // Without a virtual-size the grid may grow to cover the volume, and without
             // a virtual-grid its points follow the voxels: either way up to the cap per
             // axis.
-            let most = crate::pipeline::MAX_VIRTUAL_RESOLUTION;
+            let most = MAX_VIRTUAL_RESOLUTION;
             let virt = match plan.recon.virtual_resolution {
                 Some(res) if plan.recon.virtual_size.is_some() => mul(&res.map(|n| n as u64)),
                 Some(res) => mul(&res.map(|n| n.max(most) as u64)),

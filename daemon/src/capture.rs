@@ -12,8 +12,9 @@ use periscope_recon::{Pair, TimeAxis, TransientError, TransientSet, VolumeGrid};
 use crate::config::InstrumentConfig;
 use crate::plan::{LaserFalloff, Plan, PlannedPair, ReconSettings, default_recon};
 use crate::record::{record_axis, record_counts, record_transient};
+use crate::run_dir::RunInfo;
 use crate::run_dir::{RunDir, RunDirError, file};
-use crate::store::{Record, RunInfo};
+use crate::store::Record;
 use crate::ytal::{
     FLAG_OVERFLOW, FLAG_SATURATED, Grid, GridFormat, HFormat, MAX_DATASET_BYTES, YtalCapture, YtalError,
     is_hdf5_path,

@@ -7,11 +7,10 @@ use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 use std::sync::{Arc, Mutex};
-use std::time::Duration;
 
 use clap::{Parser, Subcommand};
 
-use crate::api::{ServeError, ServiceError};
+use crate::api::ServeError;
 use crate::capture::CaptureError;
 use crate::config::{ConfigError, DEFAULT_INSTRUMENT, InstrumentConfig, TomlSource};
 use crate::devices::OpenError;
@@ -20,6 +19,7 @@ use crate::offline::OfflineError;
 use crate::pipeline::{self, Control, PipelineError, Run};
 use crate::plan::Plan;
 use crate::run_dir::{RunDir, RunDirError};
+use crate::service::ServiceError;
 use crate::ytal::YtalError;
 use crate::{check, offline};
 use periscope_drivers::galvo::EmergencyOff;
@@ -177,11 +177,11 @@ pub fn execute(cli: Cli) -> Result<(), CliError> {
             if !RunDir::holds_run(&run_dir) {
                 return Err(CliError::NotRun(run_dir));
             }
-            let info = crate::store::RunInfo::load(&run_dir).map_err(|source| CliError::Io {
+            let info = crate::run_dir::RunInfo::load(&run_dir).map_err(|source| CliError::Io {
                 path: run_dir.join(crate::run_dir::file::RUN),
                 source,
             })?;
-            if info.state == crate::store::RunState::Completed {
+            if info.state == crate::run_dir::RunState::Completed {
                 return Err(CliError::Completed {
                     id: info.id,
                     dir: run_dir,
@@ -227,7 +227,7 @@ pub fn execute(cli: Cli) -> Result<(), CliError> {
                 );
                 t
             });
-            let service = crate::api::Service::open(src, Some(token))?;
+            let service = crate::service::Service::open(src, Some(token))?;
             let runtime = tokio::runtime::Builder::new_multi_thread()
                 .enable_all()
                 .thread_name("periscope-api")
@@ -286,7 +286,7 @@ fn devices(config: &InstrumentConfig) -> Result<(), CliError> {
         Err(e) => println!("  (cannot list: {e})"),
     }
     println!("Instrument: {}", config.summary());
-    let mut devices = crate::devices::Devices::open(config)?;
+    let mut devices = crate::devices::Devices::open_config(config)?;
     let r = devices.report()?;
     let deg =
         |a: periscope_drivers::OpticalAngles| format!("({:.3}°, {:.3}°)", a.x.to_degrees(), a.y.to_degrees());
@@ -329,11 +329,6 @@ fn devices(config: &InstrumentConfig) -> Result<(), CliError> {
     Ok(())
 }
 
-/// After SIGINT, SIGTERM or SIGHUP, how long a run has to reach its checkpoint, park
-/// and record its state before the process exits anyway (the laser is off from the
-/// first moment): within the 2 s an operator or a service manager may expect.
-pub const SIGNAL_GRACE: Duration = Duration::from_millis(1500);
-
 /// What a stop signal does to `run` and `resume`.
 struct RunSignals {
     control: Control,
@@ -360,7 +355,7 @@ fn execute_run(dir: &Path) -> Result<(), CliError> {
         control: control.clone(),
         laser: Mutex::new(None),
     });
-    crate::signals::install(signals.clone(), SIGNAL_GRACE);
+    crate::signals::install(signals.clone(), crate::signals::SIGNAL_GRACE);
     let run = Run::open(dir, control, None, None)?;
     *signals.laser.lock().unwrap_or_else(|p| p.into_inner()) = Some(run.emergency_off());
     crate::progress::attach(run.events());

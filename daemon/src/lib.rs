@@ -14,6 +14,7 @@ pub mod cli;
 pub mod config;
 pub mod devices;
 pub mod events;
+#[cfg(feature = "test-hooks")]
 pub mod fuzz;
 pub mod logging;
 pub mod offline;
@@ -22,6 +23,7 @@ pub mod plan;
 pub mod progress;
 pub mod record;
 pub mod run_dir;
+pub mod service;
 pub mod signals;
 pub mod store;
 pub mod ytal;

@@ -2,19 +2,19 @@
 //! reads every consumer of a stored run shares (the pipeline on resume, `periscope
 //! recon` and `export`, the API's downloads and geometry). See `docs/pipeline.md` for
 //! what each file holds.
-use std::fs::File;
-use std::io::{BufWriter, Write};
+use std::fs::{self, File};
+use std::io::{self, BufWriter, Write};
 use std::path::{Path, PathBuf};
 
 use glam::DVec3;
+use serde::{Deserialize, Serialize};
 
 use crate::config::{ConfigError, InstrumentConfig, TomlSource};
 use crate::plan::{Plan, PlannedPair};
-use crate::store::RunInfo;
 
 /// The files of a run directory, by name.
 pub mod file {
-    /// The run's state, stage, counters and timings (`store::RunInfo`).
+    /// The run's state, stage, counters and timings ([`super::RunInfo`]).
     pub const RUN: &str = "run.json";
     /// The capture plan as submitted.
     pub const PLAN: &str = "plan.toml";
@@ -25,9 +25,9 @@ pub mod file {
     /// The typed progress events, one JSON object per line.
     pub const EVENTS: &str = "events.jsonl";
     /// The histogram log (append-only, checksummed records).
-    pub const HISTOGRAMS: &str = "histograms.bin";
+    pub const HISTOGRAMS: &str = crate::store::HISTOGRAM_LOG;
     /// Bytes of the histogram log set aside by recovery.
-    pub const HISTOGRAMS_DAMAGED: &str = "histograms.bin.damaged";
+    pub const HISTOGRAMS_DAMAGED: &str = crate::store::DAMAGED_LOG;
     /// The relay point cloud with normals (binary PLY).
     pub const RELAY: &str = "relay.ply";
     /// The reconstructed volume (`.npy`, C order `[nz, ny, nx]`).
@@ -267,4 +267,140 @@ pub fn parse_relay_ply(bytes: &[u8]) -> Result<Vec<RelayPoint>, String> {
                 .ok_or_else(|| format!("vertex {k} is not finite or its normal is not of unit length"))
         })
         .collect()
+}
+
+/// Files a run offers for download, with their media types.
+pub const DOWNLOADS: &[(&str, &str)] = &[
+    (file::VOLUME, "application/octet-stream"),
+    (file::VOLUME_JSON, "application/json"),
+    (file::DEPTH, "application/octet-stream"),
+    (file::DEPTH_PNG, "image/png"),
+    (file::ALBEDO_PNG, "image/png"),
+    (file::RELAY, "application/octet-stream"),
+    (file::GAUSSIANS, "application/octet-stream"),
+    (file::CAPTURE, "application/x-hdf5"),
+    (file::PAIRS, "application/json"),
+    (file::EVENTS, "application/x-ndjson"),
+    (file::PLAN, "application/toml"),
+    (file::INSTRUMENT, "application/toml"),
+    (file::RUN, "application/json"),
+];
+
+/// Where a run is in its life.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, utoipa::ToSchema)]
+#[serde(rename_all = "kebab-case")]
+pub enum RunState {
+    /// Waiting for the instrument.
+    Queued,
+    /// Capturing or reconstructing.
+    Running,
+    /// Stopped at a checkpoint, resumable.
+    Paused,
+    /// Finished with outputs.
+    Completed,
+    /// Stopped by the operator; what was captured is kept.
+    Aborted,
+    /// Stopped by an error; resumable.
+    Failed,
+}
+
+/// `run.json`: the run's state and provenance.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct RunInfo {
+    /// Run id (the directory name).
+    pub id: String,
+    /// Plan name.
+    pub plan: String,
+    /// State.
+    pub state: RunState,
+    /// Current or last stage.
+    pub stage: String,
+    /// Where the instrument config was loaded from (scene paths resolve against it).
+    pub instrument_path: PathBuf,
+    /// Pairs planned (0 until planned).
+    pub pairs_total: usize,
+    /// Pairs stored.
+    pub pairs_done: usize,
+    /// Last error, if failed.
+    pub error: Option<String>,
+    /// Seconds per stage, for the summary.
+    pub timings: Vec<(String, f64)>,
+}
+
+impl RunInfo {
+    /// Reads `run.json` from a run directory.
+    pub fn load(dir: &Path) -> io::Result<RunInfo> {
+        let text = fs::read_to_string(dir.join(file::RUN))?;
+        serde_json::from_str(&text).map_err(|e| io::Error::new(io::ErrorKind::InvalidData, e))
+    }
+
+    /// Writes `run.json` atomically.
+    pub fn save(&self, dir: &Path) -> io::Result<()> {
+        let text = serde_json::to_string_pretty(self).expect("run info serialises");
+        crate::store::write_atomic(&dir.join(file::RUN), text.as_bytes())
+    }
+}
+
+/// A fresh run id: plan name and UTC time, made unique within `root`.
+pub fn new_run_dir(root: &Path, plan: &str) -> io::Result<PathBuf> {
+    fs::create_dir_all(root)?;
+    let secs = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map_or(0, |d| d.as_secs());
+    let (d, s) = (secs / 86_400, secs % 86_400);
+    let (y, m, day) = civil_from_days(d as i64);
+    let stamp = format!(
+        "{y:04}{m:02}{day:02}-{:02}{:02}{:02}",
+        s / 3600,
+        s % 3600 / 60,
+        s % 60
+    );
+    let safe: String = plan
+        .chars()
+        .map(|c| {
+            if c.is_ascii_alphanumeric() || c == '-' {
+                c
+            } else {
+                '_'
+            }
+        })
+        .collect();
+    for n in 0.. {
+        let id = if n == 0 {
+            format!("{stamp}-{safe}")
+        } else {
+            format!("{stamp}-{safe}-{n}")
+        };
+        let dir = root.join(id);
+        match fs::create_dir(&dir) {
+            Ok(()) => return Ok(dir),
+            Err(e) if e.kind() == io::ErrorKind::AlreadyExists => continue,
+            Err(e) => return Err(e),
+        }
+    }
+    unreachable!("some suffix is free")
+}
+
+/// Days since 1970-01-01 to (year, month, day), proleptic Gregorian (H. Hinnant).
+fn civil_from_days(z: i64) -> (i64, u32, u32) {
+    let z = z + 719_468;
+    let era = z.div_euclid(146_097);
+    let doe = z.rem_euclid(146_097);
+    let yoe = (doe - doe / 1460 + doe / 36_524 - doe / 146_096) / 365;
+    let doy = doe - (365 * yoe + yoe / 4 - yoe / 100);
+    let mp = (5 * doy + 2) / 153;
+    let d = (doy - (153 * mp + 2) / 5 + 1) as u32;
+    let m = if mp < 10 { mp + 3 } else { mp - 9 } as u32;
+    (yoe + era * 400 + i64::from(m <= 2), m, d)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn dates_are_civil() {
+        assert_eq!(civil_from_days(0), (1970, 1, 1));
+        assert_eq!(civil_from_days(20_778), (2026, 11, 21));
+    }
 }

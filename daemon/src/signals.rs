@@ -9,6 +9,11 @@ use std::sync::atomic::{AtomicI32, Ordering};
 use std::sync::{Arc, Mutex, Once};
 use std::time::Duration;
 
+/// After SIGINT, SIGTERM or SIGHUP, how long a run has to reach its checkpoint, park
+/// and record its state before the process exits anyway (the laser is off from the
+/// first moment): within the 2 s an operator or a service manager may expect.
+pub const SIGNAL_GRACE: std::time::Duration = std::time::Duration::from_millis(1500);
+
 use periscope_drivers::galvo::EmergencyOff;
 
 /// The lasers of runs in this process, for the panic hook.

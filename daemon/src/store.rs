@@ -18,7 +18,6 @@ use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
 use periscope_drivers::HistogramFlags;
-use serde::{Deserialize, Serialize};
 
 /// Record magic, `PHR1`.
 const MAGIC: [u8; 4] = *b"PHR1";
@@ -30,7 +29,7 @@ const SYNC_EVERY: usize = 32;
 const SYNC_INTERVAL: Duration = Duration::from_millis(500);
 
 /// The histogram log's file name in a run directory.
-pub const HISTOGRAM_LOG: &str = crate::run_dir::file::HISTOGRAMS;
+pub const HISTOGRAM_LOG: &str = "histograms.bin";
 
 /// One stored measurement.
 #[derive(Clone, Debug, PartialEq)]
@@ -105,7 +104,7 @@ impl Recovered {
 
 /// The file a log damaged between records is kept as before it is rewritten (with
 /// `.1`, `.2`, … appended when one exists already).
-pub const DAMAGED_LOG: &str = crate::run_dir::file::HISTOGRAMS_DAMAGED;
+pub const DAMAGED_LOG: &str = "histograms.bin.damaged";
 
 fn u32_at(b: &[u8], i: usize) -> u32 {
     u32::from_le_bytes(b[i..i + 4].try_into().expect("4 bytes"))
@@ -364,6 +363,7 @@ fn sync_dir(dir: &Path) {
     }
 }
 
+#[cfg(feature = "test-hooks")]
 fn refused_dirs() -> std::sync::MutexGuard<'static, Vec<PathBuf>> {
     static REFUSED: std::sync::Mutex<Vec<PathBuf>> = std::sync::Mutex::new(Vec::new());
     REFUSED.lock().unwrap_or_else(|p| p.into_inner())
@@ -372,7 +372,9 @@ fn refused_dirs() -> std::sync::MutexGuard<'static, Vec<PathBuf>> {
 /// Testing aid (fault injection): while the guard lives, [`write_atomic`] refuses
 /// every file directly in `dir`, as a full disk would (a test runs as root, whom file
 /// permissions do not stop). The safety tests use it to show that an e-stop does its
-/// work whatever the store does.
+/// work whatever the store does. Built only with the `test-hooks` feature, which the
+/// release binary does not have.
+#[cfg(feature = "test-hooks")]
 #[must_use = "writes are refused only while the guard lives"]
 pub fn refuse_writes_in(dir: &Path) -> RefusedWrites {
     refused_dirs().push(dir.to_owned());
@@ -380,9 +382,11 @@ pub fn refuse_writes_in(dir: &Path) -> RefusedWrites {
 }
 
 /// Ends a [`refuse_writes_in`] when dropped.
+#[cfg(feature = "test-hooks")]
 #[derive(Debug)]
 pub struct RefusedWrites(PathBuf);
 
+#[cfg(feature = "test-hooks")]
 impl Drop for RefusedWrites {
     fn drop(&mut self) {
         let mut dirs = refused_dirs();
@@ -424,6 +428,7 @@ pub fn read_text_capped(path: &Path, limit: u64) -> io::Result<String> {
 /// the file always holds one writer's whole bytes, the last rename's. A failed write
 /// removes its temporary file.
 pub fn write_atomic(path: &Path, bytes: &[u8]) -> io::Result<()> {
+    #[cfg(feature = "test-hooks")]
     if let Some(dir) = path.parent()
         && refused_dirs().iter().any(|d| d == dir)
     {
@@ -444,114 +449,6 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> io::Result<()> {
         sync_dir(dir);
     }
     Ok(())
-}
-
-/// Where a run is in its life.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, utoipa::ToSchema)]
-#[serde(rename_all = "kebab-case")]
-pub enum RunState {
-    /// Waiting for the instrument.
-    Queued,
-    /// Capturing or reconstructing.
-    Running,
-    /// Stopped at a checkpoint, resumable.
-    Paused,
-    /// Finished with outputs.
-    Completed,
-    /// Stopped by the operator; what was captured is kept.
-    Aborted,
-    /// Stopped by an error; resumable.
-    Failed,
-}
-
-/// `run.json`: the run's state and provenance.
-#[derive(Clone, Debug, Serialize, Deserialize)]
-pub struct RunInfo {
-    /// Run id (the directory name).
-    pub id: String,
-    /// Plan name.
-    pub plan: String,
-    /// State.
-    pub state: RunState,
-    /// Current or last stage.
-    pub stage: String,
-    /// Where the instrument config was loaded from (scene paths resolve against it).
-    pub instrument_path: PathBuf,
-    /// Pairs planned (0 until planned).
-    pub pairs_total: usize,
-    /// Pairs stored.
-    pub pairs_done: usize,
-    /// Last error, if failed.
-    pub error: Option<String>,
-    /// Seconds per stage, for the summary.
-    pub timings: Vec<(String, f64)>,
-}
-
-impl RunInfo {
-    /// Reads `run.json` from a run directory.
-    pub fn load(dir: &Path) -> io::Result<RunInfo> {
-        let text = fs::read_to_string(dir.join(crate::run_dir::file::RUN))?;
-        serde_json::from_str(&text).map_err(|e| io::Error::new(io::ErrorKind::InvalidData, e))
-    }
-
-    /// Writes `run.json` atomically.
-    pub fn save(&self, dir: &Path) -> io::Result<()> {
-        let text = serde_json::to_string_pretty(self).expect("run info serialises");
-        write_atomic(&dir.join(crate::run_dir::file::RUN), text.as_bytes())
-    }
-}
-
-/// A fresh run id: plan name and UTC time, made unique within `root`.
-pub fn new_run_dir(root: &Path, plan: &str) -> io::Result<PathBuf> {
-    fs::create_dir_all(root)?;
-    let secs = std::time::SystemTime::now()
-        .duration_since(std::time::UNIX_EPOCH)
-        .map_or(0, |d| d.as_secs());
-    let (d, s) = (secs / 86_400, secs % 86_400);
-    let (y, m, day) = civil_from_days(d as i64);
-    let stamp = format!(
-        "{y:04}{m:02}{day:02}-{:02}{:02}{:02}",
-        s / 3600,
-        s % 3600 / 60,
-        s % 60
-    );
-    let safe: String = plan
-        .chars()
-        .map(|c| {
-            if c.is_ascii_alphanumeric() || c == '-' {
-                c
-            } else {
-                '_'
-            }
-        })
-        .collect();
-    for n in 0.. {
-        let id = if n == 0 {
-            format!("{stamp}-{safe}")
-        } else {
-            format!("{stamp}-{safe}-{n}")
-        };
-        let dir = root.join(id);
-        match fs::create_dir(&dir) {
-            Ok(()) => return Ok(dir),
-            Err(e) if e.kind() == io::ErrorKind::AlreadyExists => continue,
-            Err(e) => return Err(e),
-        }
-    }
-    unreachable!("some suffix is free")
-}
-
-/// Days since 1970-01-01 to (year, month, day), proleptic Gregorian (H. Hinnant).
-fn civil_from_days(z: i64) -> (i64, u32, u32) {
-    let z = z + 719_468;
-    let era = z.div_euclid(146_097);
-    let doe = z.rem_euclid(146_097);
-    let yoe = (doe - doe / 1460 + doe / 36_524 - doe / 146_096) / 365;
-    let doy = doe - (365 * yoe + yoe / 4 - yoe / 100);
-    let mp = (5 * doy + 2) / 153;
-    let d = (doy - (153 * mp + 2) / 5 + 1) as u32;
-    let m = if mp < 10 { mp + 3 } else { mp - 9 } as u32;
-    (yoe + era * 400 + i64::from(m <= 2), m, d)
 }
 
 #[cfg(test)]
@@ -657,12 +554,6 @@ mod tests {
         assert!(t.elapsed() < Duration::from_secs(20), "{:?}", t.elapsed());
         assert_eq!(got.records[0], rec(0));
         assert_eq!(got.valid_bytes + got.discarded_bytes, bytes.len() as u64);
-    }
-
-    #[test]
-    fn dates_are_civil() {
-        assert_eq!(civil_from_days(0), (1970, 1, 1));
-        assert_eq!(civil_from_days(20_778), (2026, 11, 21));
     }
 }
 

@@ -7,8 +7,9 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use axum::http::{Method, StatusCode};
-use periscope_daemon::api::{AppState, Service, app, openapi, routes};
+use periscope_daemon::api::{AppState, app, openapi, routes};
 use periscope_daemon::config::TomlSource;
+use periscope_daemon::service::Service;
 use serde_json::Value;
 
 mod common;
@@ -557,7 +558,7 @@ async fn pause_resume_abort_and_estop_keep_the_data() {
     );
     // The simulated laser itself, not the daemon's belief: off within 50 ms, by the
     // direct path, and both arms parked.
-    let rig = svc.rig().unwrap();
+    let rig = periscope_daemon::devices::sim::rig_of(svc.backend()).unwrap();
     let off = rig.off_since(t).expect("the laser is on after the e-stop");
     assert!(off - t < Duration::from_millis(50), "{:?}", off - t);
     assert!(v["laser"].as_str().unwrap().contains("out-of-band"), "{v}");

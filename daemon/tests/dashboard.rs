@@ -18,7 +18,8 @@ use std::time::{Duration, Instant};
 use axum::body::Body;
 use axum::http::{Method, Request, StatusCode, header};
 use fantoccini::{Client, ClientBuilder, Locator};
-use periscope_daemon::api::{ASSETS, AppState, Service, app};
+use periscope_daemon::api::{ASSETS, AppState, app};
+use periscope_daemon::service::Service;
 use serde_json::Value;
 use tower::ServiceExt;
 
@@ -158,7 +159,7 @@ async fn geometry_lists_the_relay_pairs_and_volume_of_a_run() {
     let t = Instant::now();
     loop {
         let st = svc.status(&id).unwrap();
-        if st.state == periscope_daemon::store::RunState::Completed {
+        if st.state == periscope_daemon::run_dir::RunState::Completed {
             break;
         }
         assert!(t.elapsed() < Duration::from_secs(60), "{st:?}");
@@ -483,9 +484,9 @@ async fn an_operator_runs_the_demo_from_the_dashboard_in_chromium() {
     wait_text(&c, "#run-state", limit, |s| s == "paused").await;
     assert_eq!(
         svc.status(&id).unwrap().state,
-        periscope_daemon::store::RunState::Paused
+        periscope_daemon::run_dir::RunState::Paused
     );
-    let rig = svc.rig().unwrap();
+    let rig = periscope_daemon::devices::sim::rig_of(svc.backend()).unwrap();
     assert!(!rig.emission(), "the laser is on while the run is paused");
     let before = probe(&c).await["histograms"].as_u64().unwrap();
     click(&c, "#run-actions .act-resume").await;

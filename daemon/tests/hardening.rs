@@ -10,8 +10,9 @@ use std::time::{Duration, Instant};
 use axum::body::Body;
 use axum::http::{Method, Request, StatusCode, header};
 use common::send;
-use periscope_daemon::api::{AppState, Service, app};
+use periscope_daemon::api::{AppState, app};
 use periscope_daemon::config::{TomlSource, redact_secrets};
+use periscope_daemon::service::Service;
 use serde_json::Value;
 use tower::ServiceExt;
 
@@ -187,7 +188,9 @@ async fn foreign_host_names_and_cross_site_origins_are_refused() {
 async fn instrument_status_comes_from_the_worker_and_never_opens_a_device() {
     let dir = tempfile::tempdir().unwrap();
     let svc = service(dir.path(), 0.0, "status-interval-s = 0.3", "");
-    let rig = svc.rig().unwrap().clone();
+    let rig = periscope_daemon::devices::sim::rig_of(svc.backend())
+        .unwrap()
+        .clone();
     let router = app(AppState::new(Arc::clone(&svc)));
     // No worker yet: no reading, and the GET opens nothing.
     let before = rig.galvo_connects();
@@ -501,7 +504,9 @@ async fn concurrent_clients_leave_consistent_states() {
         );
     }
     assert!(
-        !svc.rig().unwrap().emission(),
+        !periscope_daemon::devices::sim::rig_of(svc.backend())
+            .unwrap()
+            .emission(),
         "the laser is on after everything stopped"
     );
     svc.shutdown();

@@ -145,7 +145,9 @@ fn relay_against_truth(instrument_file: &str, plan_file: &str, tdc_extra: &str) 
         shipped.text().replace("[tdc]\n", &format!("[tdc]\n{tdc_extra}")),
     );
     let config = InstrumentConfig::from_source(&src).unwrap();
-    let rig = periscope_daemon::devices::sim_rig(&config).unwrap().unwrap();
+    let rig = periscope_daemon::devices::sim::SimBackend::from_config(&config)
+        .unwrap()
+        .unwrap();
     let plan = TomlSource::load(&root().join("configs/plans").join(plan_file)).unwrap();
     let (dir, _, _) = pipeline::prepare(&plan, &src, Some(&tmp.path().join("run"))).unwrap();
     // Stop once the relay is stored: the rest of the run is not under test.
@@ -160,7 +162,7 @@ fn relay_against_truth(instrument_file: &str, plan_file: &str, tdc_extra: &str) 
             c.pause();
         }
     });
-    let run = pipeline::Run::open(&dir, control, Some(events), Some(rig.clone())).unwrap();
+    let run = pipeline::Run::open(&dir, control, Some(events), Some(&rig)).unwrap();
     let _ = run.execute();
     let relay = parse_relay_ply(&std::fs::read(dir.join(pipeline::RELAY_PLY)).unwrap()).unwrap();
     assert!(

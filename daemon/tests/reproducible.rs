@@ -63,7 +63,9 @@ fn run_on(tmp: &Path, name: &str, pause: Duration, devices: &str) -> (PathBuf, u
         .replace("[sim]\n", &format!("[sim]\ndevices = \"{devices}\"\n"));
     let src = TomlSource::from_text(path, text);
     let config = InstrumentConfig::from_source(&src).unwrap();
-    let rig = periscope_daemon::devices::sim_rig(&config).unwrap().unwrap();
+    let rig = periscope_daemon::devices::sim::SimBackend::from_config(&config)
+        .unwrap()
+        .unwrap();
     let plan = TomlSource::from_text(tmp.join("plan.toml"), PLAN);
     let (dir, _, _) = pipeline::prepare(&plan, &src, Some(&tmp.join(name))).unwrap();
     let events = EventSink::open(&dir).unwrap();
@@ -77,7 +79,7 @@ fn run_on(tmp: &Path, name: &str, pause: Duration, devices: &str) -> (PathBuf, u
             counter.fetch_add(1, Ordering::SeqCst);
         }
     });
-    Run::open(&dir, Control::new(), Some(events), Some(rig))
+    Run::open(&dir, Control::new(), Some(events), Some(&rig))
         .unwrap()
         .execute()
         .unwrap();

@@ -10,9 +10,11 @@ use std::sync::{Arc, Mutex, OnceLock, mpsc};
 use std::time::{Duration, Instant};
 
 use periscope_daemon::config::{InstrumentConfig, TomlSource};
+use periscope_daemon::devices::sim::{SimBackend, rig_of};
 use periscope_daemon::events::{EventSink, RunEvent, Stage};
 use periscope_daemon::pipeline::{self, Control, PipelineError, Run};
-use periscope_daemon::store::{RunInfo, RunState, read_log};
+use periscope_daemon::run_dir::{RunInfo, RunState};
+use periscope_daemon::store::read_log;
 use periscope_drivers::galvo::EmergencyOff;
 use periscope_sim::devices::{EmissionCause, Rig};
 
@@ -87,15 +89,17 @@ fn instrument_on(devices: Devices) -> TomlSource {
 }
 
 /// A prepared run directory and the rig it will run on.
-fn prepare(tmp: &Path, plan: &str) -> (PathBuf, Rig) {
+fn prepare(tmp: &Path, plan: &str) -> (PathBuf, SimBackend) {
     prepare_on(tmp, plan, Devices::Wire)
 }
 
 /// [`prepare`] with the devices reached by `devices`.
-fn prepare_on(tmp: &Path, plan: &str, devices: Devices) -> (PathBuf, Rig) {
+fn prepare_on(tmp: &Path, plan: &str, devices: Devices) -> (PathBuf, SimBackend) {
     let src = instrument_on(devices);
     let config = InstrumentConfig::from_source(&src).unwrap();
-    let rig = periscope_daemon::devices::sim_rig(&config).unwrap().unwrap();
+    let rig = periscope_daemon::devices::sim::SimBackend::from_config(&config)
+        .unwrap()
+        .unwrap();
     let plan_src = TomlSource::from_text(tmp.join("plan.toml"), plan.to_owned());
     let (dir, _, _) = pipeline::prepare(&plan_src, &src, Some(&tmp.join("run"))).unwrap();
     (dir, rig)
@@ -204,7 +208,7 @@ fn run_case(stage: Stage, event: Event, devices: Devices) -> Outcome {
             }
         })
     };
-    let result = match Run::open(&dir, control, Some(events), Some(rig.clone())) {
+    let result = match Run::open(&dir, control, Some(events), Some(&rig)) {
         Ok(run) => {
             let _ = laser.set(run.emergency_off());
             run.execute().map(drop)
@@ -353,7 +357,7 @@ fn capture_in_process() {
 /// thread after each stored pair (with the pairs done so far).
 fn execute(
     dir: &Path,
-    rig: &Rig,
+    rig: &SimBackend,
     control: Control,
     mut on_pair: impl FnMut(usize) + Send + 'static,
 ) -> Result<(), PipelineError> {
@@ -363,7 +367,7 @@ fn execute(
             on_pair(*done);
         }
     });
-    let run = Run::open(dir, control, Some(events), Some(rig.clone()))?;
+    let run = Run::open(dir, control, Some(events), Some(rig))?;
     run.execute().map(drop)
 }
 
@@ -616,17 +620,18 @@ fn flagged_frames_and_a_count_rate_above_the_limit_suspend_the_capture() {
 }
 
 /// The API service on the real-time simulated instrument, its runs under `runs`.
-fn service(runs: &Path) -> Arc<periscope_daemon::api::Service> {
+fn service(runs: &Path) -> Arc<periscope_daemon::service::Service> {
     let src = instrument();
     let text = format!("{}\n[api]\nruns-dir = {:?}\n", src.text(), runs);
-    periscope_daemon::api::Service::open(TomlSource::from_text(src.path().to_owned(), text), None).unwrap()
+    periscope_daemon::service::Service::open(TomlSource::from_text(src.path().to_owned(), text), None)
+        .unwrap()
 }
 
 /// A service case: one at a time (see [`ONE_AT_A_TIME`]), on a fresh runs directory.
 fn fresh_service() -> (
     std::sync::MutexGuard<'static, ()>,
     tempfile::TempDir,
-    Arc<periscope_daemon::api::Service>,
+    Arc<periscope_daemon::service::Service>,
 ) {
     let serial = ONE_AT_A_TIME.lock().unwrap_or_else(|p| p.into_inner());
     let runs = tempfile::tempdir().unwrap();
@@ -635,7 +640,7 @@ fn fresh_service() -> (
 }
 
 /// Waits until run `id` captures with the laser on.
-fn wait_capturing(svc: &periscope_daemon::api::Service, id: &str, rig: &Rig) {
+fn wait_capturing(svc: &periscope_daemon::service::Service, id: &str, rig: &Rig) {
     let start = Instant::now();
     while !(svc.status(id).unwrap().stage == "capture" && rig.emission()) {
         assert!(
@@ -653,7 +658,7 @@ fn an_idle_estop_reaches_the_laser_with_the_tdc_unplugged_and_the_disk_refusing_
     use periscope_sim::devices::Arm;
 
     let (_serial, runs, svc) = fresh_service();
-    let rig = svc.rig().unwrap().clone();
+    let rig = rig_of(svc.backend()).unwrap().clone();
     // A queued run whose run.json cannot be rewritten (the disk refuses writes in its
     // directory), so holding it fails.
     let queued = svc.submit(PLAN.to_owned()).unwrap().id;
@@ -708,7 +713,7 @@ fn a_panicking_run_fails_resumably_and_the_queue_goes_on() {
     let runs = tempfile::tempdir().unwrap();
     let svc = service(runs.path());
     let worker = svc.start_worker();
-    let rig = svc.rig().unwrap().clone();
+    let rig = rig_of(svc.backend()).unwrap().clone();
     let a = svc.submit(PLAN.to_owned()).unwrap().id;
     let b = svc.submit(PLAN.to_owned()).unwrap().id;
     let start = Instant::now();
@@ -747,7 +752,7 @@ fn a_panicking_run_fails_resumably_and_the_queue_goes_on() {
 fn an_estop_reaches_the_laser_and_parks_while_the_worker_hangs() {
     let (_serial, _runs, svc) = fresh_service();
     let worker = svc.start_worker();
-    let rig = svc.rig().unwrap().clone();
+    let rig = rig_of(svc.backend()).unwrap().clone();
     let a = svc.submit(PLAN.to_owned()).unwrap().id;
     let start = Instant::now();
     wait_capturing(&svc, &a, &rig);
@@ -798,10 +803,11 @@ fn a_worker_stuck_with_the_laser_on_loses_it_to_the_watchdog_without_an_estop() 
         "the instrument config has no [laser] table"
     );
     let text = format!("{text}\n[api]\nruns-dir = {:?}\n", runs.path());
-    let svc = periscope_daemon::api::Service::open(TomlSource::from_text(src.path().to_owned(), text), None)
-        .unwrap();
+    let svc =
+        periscope_daemon::service::Service::open(TomlSource::from_text(src.path().to_owned(), text), None)
+            .unwrap();
     let worker = svc.start_worker();
-    let rig = svc.rig().unwrap().clone();
+    let rig = rig_of(svc.backend()).unwrap().clone();
     let a = svc.submit(PLAN.to_owned()).unwrap().id;
     wait_capturing(&svc, &a, &rig);
     // Stuck at its next checkpoint for 4 s, with the laser on.
@@ -846,7 +852,7 @@ fn an_estop_does_not_take_a_failed_make_safe_for_parked() {
 
     let (_serial, _runs, svc) = fresh_service();
     let worker = svc.start_worker();
-    let rig = svc.rig().unwrap().clone();
+    let rig = rig_of(svc.backend()).unwrap().clone();
     let a = svc.submit(PLAN.to_owned()).unwrap().id;
     wait_capturing(&svc, &a, &rig);
     rig.inject(Fault::Galvo(

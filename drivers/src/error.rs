@@ -63,3 +63,68 @@ pub trait ErrorType {
     /// The driver's error type.
     type Error: Error;
 }
+
+/// The one error type behind every device trait object: what the daemon holds when it
+/// drives a device without knowing its driver (probe-rs's boxed probe error). It keeps
+/// the [`ErrorKind`] the daemon decides on, which device failed, and the driver's own
+/// error as its source, whose message it shows unchanged (a driver's message already
+/// names the device and says what to do).
+pub struct DeviceError {
+    kind: ErrorKind,
+    device: String,
+    source: Box<dyn Error>,
+}
+
+impl DeviceError {
+    /// Wraps a driver's error; `device` names the device for callers that group
+    /// failures by device (logs, the API's status).
+    pub fn new(device: impl Into<String>, source: impl Error) -> DeviceError {
+        DeviceError {
+            kind: source.kind(),
+            device: device.into(),
+            source: Box::new(source),
+        }
+    }
+
+    /// The device that failed, e.g. ``galvo pair `laser` `` or `histogrammer`.
+    pub fn device(&self) -> &str {
+        &self.device
+    }
+
+    /// The driver's own error.
+    pub fn driver_error(&self) -> &(dyn Error + 'static) {
+        self.source.as_ref()
+    }
+}
+
+impl std::fmt::Debug for DeviceError {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("DeviceError")
+            .field("kind", &self.kind)
+            .field("device", &self.device)
+            .field("source", &self.source)
+            .finish()
+    }
+}
+
+/// Shows the driver's message as it is: the wrapper adds no words of its own, so a
+/// message reads the same whichever layer prints it.
+impl std::fmt::Display for DeviceError {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        std::fmt::Display::fmt(&self.source, f)
+    }
+}
+
+impl std::error::Error for DeviceError {
+    /// The driver error's own cause (its I/O error, say): the driver error itself is
+    /// what [`Display`](std::fmt::Display) shows, as `#[error(transparent)]` would.
+    fn source(&self) -> Option<&(dyn std::error::Error + 'static)> {
+        self.source.source()
+    }
+}
+
+impl Error for DeviceError {
+    fn kind(&self) -> ErrorKind {
+        self.kind
+    }
+}

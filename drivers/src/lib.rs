@@ -13,15 +13,18 @@
 pub mod error;
 pub mod galvo;
 pub mod geometry;
+pub mod laser_guard;
 pub mod ports;
 pub mod selector;
 pub mod tdc;
 pub mod traits;
 
-pub use error::{Error, ErrorKind, ErrorType};
+pub use error::{DeviceError, Error, ErrorKind, ErrorType};
 pub use geometry::{AngleLimits, GalvoPose, OpticalAngles};
+pub use laser_guard::{EmergencyOff, LaserGuard, LaserLine, Progress};
 pub use selector::{SelectorError, UsbSelector};
 pub use traits::{
-    CountRates, DeviceInfo, EmergencyOff, GalvoPair, GalvoStatus, Histogram, HistogramFlags, Histogrammer,
-    Laser, LaserState, OffSwitch, Progress, ProgressWatch, Shared, Stall, TdcConfig, TdcState, TdcStatus,
+    CountRates, DeviceInfo, Erased, GalvoBox, GalvoPair, GalvoStatus, Histogram, HistogramFlags,
+    Histogrammer, HistogrammerBox, Laser, LaserBox, LaserState, MotionState, Shared, TdcConfig, TdcState,
+    TdcStatus,
 };

@@ -3,15 +3,20 @@
 //! so the pipeline is written once against them and runs the real drivers, whatever
 //! transport sits under those drivers (a serial port or the simulator's
 //! pseudo-terminal; libusb or the simulator's USB transport).
+//!
+//! Each driver keeps its own error type (embedded-hal's shape: an associated error
+//! whose `kind()` the caller decides on). Where a caller picks the driver at run time
+//! it holds the device as a trait object with the one [`DeviceError`]
+//! ([`GalvoBox`], [`LaserBox`], [`HistogrammerBox`]), made by [`Erased`] from any
+//! driver: it never learns which driver it holds.
 use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::Duration;
 
 use serde::Serialize;
 
-use crate::error::ErrorType;
-use crate::galvo::GalvoError;
-use crate::galvo::protocol::MotionState;
+use crate::error::{DeviceError, ErrorType};
 use crate::geometry::{AngleLimits, OpticalAngles};
+use crate::laser_guard::{EmergencyOff, Progress};
 
 /// What a device says about itself.
 #[derive(Clone, Debug, PartialEq, Eq, Serialize)]
@@ -24,6 +29,20 @@ pub struct DeviceInfo {
     pub serial: String,
     /// Protocol revision the device speaks.
     pub protocol: u32,
+}
+
+/// Motion state a galvo pair reports.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum MotionState {
+    /// At the commanded position and within the settling band.
+    Settled,
+    /// Moving or still settling.
+    Moving,
+    /// Holding the park position.
+    Parked,
+    /// Servo fault; the controller needs attention.
+    Fault,
 }
 
 /// A galvo pair's motion state and measured position.
@@ -103,161 +122,6 @@ pub trait Laser: ErrorType {
     /// progress limit plus the watchdog's timeout, with nobody there to press the
     /// e-stop. Without a progress the keepalive feeds while emission is wanted.
     fn watch_progress(&mut self, progress: Progress);
-}
-
-/// A run's sign of life for a laser's keepalive ([`Laser::watch_progress`]). The run
-/// calls [`Progress::beat`] at each of its checkpoints and stop polls (every 5 ms
-/// inside a dwell); it is alive while the last beat is younger than its limit. Clones
-/// share the beat.
-#[derive(Clone, Debug)]
-pub struct Progress(Arc<ProgressInner>);
-
-#[derive(Debug)]
-struct ProgressInner {
-    epoch: std::time::Instant,
-    /// Nanoseconds from `epoch` to the last beat.
-    last: std::sync::atomic::AtomicU64,
-    limit: Duration,
-}
-
-impl Progress {
-    /// A progress that has just beaten, alive for `limit` after each beat.
-    pub fn new(limit: Duration) -> Progress {
-        Progress(Arc::new(ProgressInner {
-            epoch: std::time::Instant::now(),
-            last: std::sync::atomic::AtomicU64::new(0),
-            limit,
-        }))
-    }
-
-    fn now_ns(&self) -> u64 {
-        u64::try_from(self.0.epoch.elapsed().as_nanos()).unwrap_or(u64::MAX)
-    }
-
-    /// The run is making progress.
-    pub fn beat(&self) {
-        self.0
-            .last
-            .fetch_max(self.now_ns(), std::sync::atomic::Ordering::Relaxed);
-    }
-
-    /// Whether the last beat is at most the limit old.
-    pub fn alive(&self) -> bool {
-        self.since_beat() <= self.0.limit
-    }
-
-    /// How long ago the last beat was.
-    pub fn since_beat(&self) -> Duration {
-        let last = self.0.last.load(std::sync::atomic::Ordering::Relaxed);
-        Duration::from_nanos(self.now_ns().saturating_sub(last))
-    }
-
-    /// How long it stays alive after a beat.
-    pub fn limit(&self) -> Duration {
-        self.0.limit
-    }
-}
-
-/// The progress a laser driver's keepalive consults, shared between the driver (which
-/// [`Laser::watch_progress`] sets) and its keepalive thread. For laser drivers.
-#[derive(Clone, Debug, Default)]
-pub struct ProgressWatch(Arc<Mutex<Option<Progress>>>);
-
-impl ProgressWatch {
-    /// Watches `progress` from now on.
-    pub fn set(&self, progress: Progress) {
-        *self.0.lock().unwrap_or_else(|p| p.into_inner()) = Some(progress);
-    }
-
-    /// `None` while the keepalive may feed (nothing watched, or alive); otherwise how
-    /// long the watched run has shown no progress.
-    pub fn stalled_for(&self) -> Option<Duration> {
-        let p = self.0.lock().unwrap_or_else(|p| p.into_inner());
-        p.as_ref().filter(|p| !p.alive()).map(Progress::since_beat)
-    }
-}
-
-/// A keepalive loop's view of a stall, so it warns once per stall. For laser drivers.
-#[derive(Debug, Default)]
-pub struct Stall(bool);
-
-impl Stall {
-    /// Whether a keepalive of the laser `name` feeds the watchdog now: emission is
-    /// `wanted` and the run it watches shows progress. Warns when a stall begins.
-    pub fn feeds(&mut self, progress: &ProgressWatch, wanted: bool, name: &str) -> bool {
-        if !wanted {
-            self.0 = false;
-            return false;
-        }
-        match progress.stalled_for() {
-            None => {
-                self.0 = false;
-                true
-            }
-            Some(since) => {
-                if !self.0 {
-                    tracing::warn!(
-                        arm = %name,
-                        "the run has shown no progress for {:.1} s with the laser on; the keepalive stops, \
-                         and the controller's watchdog switches the laser off",
-                        since.as_secs_f64()
-                    );
-                    self.0 = true;
-                }
-                false
-            }
-        }
-    }
-}
-
-/// What an [`EmergencyOff`] handle does; each laser driver implements it over its own
-/// out-of-band path to the laser.
-pub trait OffSwitch: Send + Sync {
-    /// Switches emission off now. An error means the command could not be delivered;
-    /// the driver's keepalive has stopped regardless, so the controller's watchdog
-    /// ends emission within its timeout.
-    fn laser_off(&self) -> Result<(), GalvoError>;
-    /// Like [`OffSwitch::laser_off`], but never blocks for more than a few
-    /// milliseconds (for a panic hook, which may run on the very thread that holds a
-    /// lock the driver needs). Returns whether the command was delivered.
-    fn try_laser_off(&self) -> bool;
-    /// Whether the driver it belongs to is still open.
-    fn is_open(&self) -> bool;
-    /// Which laser, for logs.
-    fn describe(&self) -> String;
-}
-
-/// Switches a laser off from any thread without waiting for its driver. Cheap to
-/// clone; [`Laser::emergency_off`] hands one out.
-#[derive(Clone)]
-pub struct EmergencyOff(Arc<dyn OffSwitch>);
-
-impl EmergencyOff {
-    /// A handle over a driver's off switch.
-    pub fn new(switch: impl OffSwitch + 'static) -> EmergencyOff {
-        EmergencyOff(Arc::new(switch))
-    }
-
-    /// Switches emission off now (see [`OffSwitch::laser_off`]).
-    pub fn laser_off(&self) -> Result<(), GalvoError> {
-        self.0.laser_off()
-    }
-
-    /// Switches emission off without blocking (see [`OffSwitch::try_laser_off`]).
-    pub fn try_laser_off(&self) -> bool {
-        self.0.try_laser_off()
-    }
-
-    /// Whether the driver it belongs to is still open.
-    pub fn is_open(&self) -> bool {
-        self.0.is_open()
-    }
-}
-
-impl std::fmt::Debug for EmergencyOff {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_tuple("EmergencyOff").field(&self.0.describe()).finish()
-    }
 }
 
 /// One controller behind two of its traits at once: the laser arm's controller is
@@ -420,4 +284,134 @@ pub trait Histogrammer: ErrorType {
     fn abort(&mut self) -> Result<(), Self::Error>;
     /// State, rates and counters.
     fn status(&mut self) -> Result<TdcStatus, Self::Error>;
+}
+
+/// A galvo pair, whatever drives it.
+pub type GalvoBox = Box<dyn GalvoPair<Error = DeviceError> + Send>;
+/// A laser, whatever drives it.
+pub type LaserBox = Box<dyn Laser<Error = DeviceError> + Send>;
+/// A histogrammer, whatever drives it.
+pub type HistogrammerBox = Box<dyn Histogrammer<Error = DeviceError> + Send>;
+
+/// A driver behind the device traits with its errors turned into the one
+/// [`DeviceError`], so that callers who choose the driver at run time hold every
+/// driver as the same trait object.
+pub struct Erased<T>(pub T);
+
+impl<T> Erased<T> {
+    /// `driver` as a [`GalvoBox`].
+    pub fn galvo(driver: T) -> GalvoBox
+    where
+        T: GalvoPair + Send + 'static,
+        T::Error: Into<DeviceError>,
+    {
+        Box::new(Erased(driver))
+    }
+
+    /// `driver` as a [`LaserBox`].
+    pub fn laser(driver: T) -> LaserBox
+    where
+        T: Laser + Send + 'static,
+        T::Error: Into<DeviceError>,
+    {
+        Box::new(Erased(driver))
+    }
+
+    /// `driver` as a [`HistogrammerBox`].
+    pub fn histogrammer(driver: T) -> HistogrammerBox
+    where
+        T: Histogrammer + Send + 'static,
+        T::Error: Into<DeviceError>,
+    {
+        Box::new(Erased(driver))
+    }
+}
+
+impl<T> ErrorType for Erased<T> {
+    type Error = DeviceError;
+}
+
+impl<T: GalvoPair> GalvoPair for Erased<T>
+where
+    T::Error: Into<DeviceError>,
+{
+    fn identify(&mut self) -> Result<DeviceInfo, DeviceError> {
+        self.0.identify().map_err(Into::into)
+    }
+    fn limits(&self) -> AngleLimits {
+        self.0.limits()
+    }
+    fn move_to(&mut self, target: OpticalAngles) -> Result<(), DeviceError> {
+        self.0.move_to(target).map_err(Into::into)
+    }
+    fn wait_settled(&mut self, timeout: Duration) -> Result<OpticalAngles, DeviceError> {
+        self.0.wait_settled(timeout).map_err(Into::into)
+    }
+    fn position(&mut self) -> Result<OpticalAngles, DeviceError> {
+        self.0.position().map_err(Into::into)
+    }
+    fn status(&mut self) -> Result<GalvoStatus, DeviceError> {
+        self.0.status().map_err(Into::into)
+    }
+    fn park(&mut self) -> Result<(), DeviceError> {
+        self.0.park().map_err(Into::into)
+    }
+    fn move_settled(
+        &mut self,
+        target: OpticalAngles,
+        timeout: Duration,
+    ) -> Result<OpticalAngles, DeviceError> {
+        self.0.move_settled(target, timeout).map_err(Into::into)
+    }
+}
+
+impl<T: Laser> Laser for Erased<T>
+where
+    T::Error: Into<DeviceError>,
+{
+    fn set_emission(&mut self, on: bool) -> Result<(), DeviceError> {
+        self.0.set_emission(on).map_err(Into::into)
+    }
+    fn laser_state(&mut self) -> Result<LaserState, DeviceError> {
+        self.0.laser_state().map_err(Into::into)
+    }
+    fn interlock_closed(&mut self) -> Result<bool, DeviceError> {
+        self.0.interlock_closed().map_err(Into::into)
+    }
+    fn set_diffuser(&mut self, inserted: bool) -> Result<(), DeviceError> {
+        self.0.set_diffuser(inserted).map_err(Into::into)
+    }
+    fn emergency_off(&self) -> EmergencyOff {
+        self.0.emergency_off()
+    }
+    fn watch_progress(&mut self, progress: Progress) {
+        self.0.watch_progress(progress)
+    }
+}
+
+impl<T: Histogrammer> Histogrammer for Erased<T>
+where
+    T::Error: Into<DeviceError>,
+{
+    fn identify(&mut self) -> Result<DeviceInfo, DeviceError> {
+        self.0.identify().map_err(Into::into)
+    }
+    fn configure(&mut self, config: &TdcConfig) -> Result<(), DeviceError> {
+        self.0.configure(config).map_err(Into::into)
+    }
+    fn config(&self) -> Option<TdcConfig> {
+        self.0.config()
+    }
+    fn acquire(&mut self) -> Result<Histogram, DeviceError> {
+        self.0.acquire().map_err(Into::into)
+    }
+    fn acquire_until(&mut self, stop: &dyn Fn() -> bool) -> Result<Histogram, DeviceError> {
+        self.0.acquire_until(stop).map_err(Into::into)
+    }
+    fn abort(&mut self) -> Result<(), DeviceError> {
+        self.0.abort().map_err(Into::into)
+    }
+    fn status(&mut self) -> Result<TdcStatus, DeviceError> {
+        self.0.status().map_err(Into::into)
+    }
 }

@@ -26,34 +26,15 @@ use utoipa_axum::routes;
 
 mod dashboard;
 mod openapi;
-mod service;
 
 pub use dashboard::ASSETS;
 
-use crate::run_dir::file;
+use crate::run_dir::DOWNLOADS;
+use crate::service::{
+    EstopReport, Geometry, InstrumentStatus, RunStatus, Service, ServiceError, StreamEvent,
+};
 pub use openapi::ErrorBody;
 use openapi::status;
-pub use service::{
-    EstopReport, GEOMETRY_POINTS, Geometry, InstrumentStatus, QUEUE_FILE, RunStatus, Service, ServiceError,
-    StreamEvent, state_name,
-};
-
-/// Files a run offers for download, with their media types.
-pub const DOWNLOADS: &[(&str, &str)] = &[
-    (file::VOLUME, "application/octet-stream"),
-    (file::VOLUME_JSON, "application/json"),
-    (file::DEPTH, "application/octet-stream"),
-    (file::DEPTH_PNG, "image/png"),
-    (file::ALBEDO_PNG, "image/png"),
-    (file::RELAY, "application/octet-stream"),
-    (file::GAUSSIANS, "application/octet-stream"),
-    (file::CAPTURE, "application/x-hdf5"),
-    (file::PAIRS, "application/json"),
-    (file::EVENTS, "application/x-ndjson"),
-    (file::PLAN, "application/toml"),
-    (file::INSTRUMENT, "application/toml"),
-    (file::RUN, "application/json"),
-];
 
 /// The documented routes: every API handler, registered with the router and the
 /// OpenAPI document at once (the dashboard's pages are routed in [`app`]).
@@ -199,7 +180,7 @@ fn prepare_status(e: &crate::pipeline::PipelineError) -> (StatusCode, &'static s
     use crate::pipeline::PipelineError as P;
     match e {
         P::Config(_) => (StatusCode::UNPROCESSABLE_ENTITY, "invalid-plan"),
-        P::Open(_) | P::Galvo(_) | P::Tdc(_) => (StatusCode::SERVICE_UNAVAILABLE, "device"),
+        P::Open(_) | P::Device(_) => (StatusCode::SERVICE_UNAVAILABLE, "device"),
         P::Storage { .. } | P::Export { .. } => (StatusCode::INTERNAL_SERVER_ERROR, "storage"),
         _ => (StatusCode::INTERNAL_SERVER_ERROR, "internal"),
     }
@@ -281,7 +262,7 @@ pub async fn serve(bind: SocketAddr, service: Arc<Service>) -> Result<(), ServeE
             service: Arc::clone(&service),
             notify: Arc::clone(&notify),
         }),
-        crate::cli::SIGNAL_GRACE,
+        crate::signals::SIGNAL_GRACE,
     );
     axum::serve(listener, app.into_make_service_with_connect_info::<SocketAddr>())
         .with_graceful_shutdown(async move { notify.notified().await })
@@ -831,11 +812,11 @@ async fn file(
     })?;
     let builder = Response::builder().header(header::CONTENT_TYPE, *media);
     let response = match source {
-        service::Download::Bytes(bytes) => {
+        crate::service::Download::Bytes(bytes) => {
             drop(permit);
             builder.body(Body::from(bytes))
         }
-        service::Download::File(file, len) => {
+        crate::service::Download::File(file, len) => {
             // The permit lives as long as the body: a slow client holds its slot.
             let stream =
                 tokio_util::io::ReaderStream::new(tokio::fs::File::from_std(file)).map(move |chunk| {

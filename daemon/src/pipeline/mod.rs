@@ -6,7 +6,7 @@
 //! Everything here is blocking: device I/O and compute run on the calling thread and a
 //! trainer thread, never on an async runtime (the HTTP server calls this from
 //! `spawn_blocking`).
-mod capture;
+mod acquisition;
 mod los;
 mod output;
 mod reconstruct;
@@ -17,10 +17,8 @@ use std::sync::atomic::{AtomicU8, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
-use periscope_drivers::galvo::{EmergencyOff, GalvoError};
-use periscope_drivers::tdc::TdcError;
+use periscope_drivers::{DeviceError, EmergencyOff};
 use periscope_recon::gtr::CancelToken;
-use periscope_sim::devices::Rig;
 
 use crate::run_dir::{RunDir, file};
 
@@ -33,10 +31,10 @@ pub use reconstruct::{MAX_VIRTUAL_RESOLUTION, ReconInput, ReconResult, reconstru
 
 use crate::capture::RunCapture;
 use crate::config::{ConfigError, InstrumentConfig, TomlSource};
-use crate::devices::{Devices, OpenError};
+use crate::devices::{DeviceBackend, Devices, OpenError};
 use crate::events::{EventSink, RunEvent, Stage};
 use crate::plan::{Plan, PlannedPair};
-use crate::store::{RunInfo, RunState};
+use crate::run_dir::{RunInfo, RunState};
 
 /// Why the relay surface could not be extracted from the LOS scan.
 #[derive(Debug, thiserror::Error)]
@@ -126,12 +124,9 @@ pub enum PipelineError {
     /// The devices could not be opened.
     #[error(transparent)]
     Open(#[from] OpenError),
-    /// A galvo controller failed.
+    /// A device failed (a galvo controller, the laser, the histogrammer).
     #[error(transparent)]
-    Galvo(#[from] GalvoError),
-    /// The histogrammer failed.
-    #[error(transparent)]
-    Tdc(#[from] TdcError),
+    Device(#[from] DeviceError),
     /// The relay could not be extracted.
     #[error("relay: {0}")]
     Relay(#[from] RelayError),
@@ -230,8 +225,10 @@ struct ControlInner {
     /// them at once instead of at their next event.
     cancels: Mutex<Vec<CancelToken>>,
     /// Testing aid: the stage in which the next checkpoint panics (stage index + 1).
+    #[cfg(feature = "test-hooks")]
     panic_in: AtomicU8,
     /// Testing aid: the stage in which the next checkpoint hangs, and for how long.
+    #[cfg(feature = "test-hooks")]
     hang_in: Mutex<Option<(Stage, std::time::Duration)>>,
     /// How the run's last attempt to make the instrument safe went (laser off, arms
     /// parked): `None` until it has tried, the first failure as text.
@@ -323,18 +320,23 @@ impl Control {
     }
     /// Testing aid (fault injection): the next checkpoint reached in `stage` panics,
     /// as a bug there would. The safety tests use it to show that a panic anywhere
-    /// leaves the laser off and the run resumable.
+    /// leaves the laser off and the run resumable. Built only with the `test-hooks`
+    /// feature, which the release binary does not have.
+    #[cfg(feature = "test-hooks")]
     pub fn inject_panic(&self, stage: Stage) {
         self.0.panic_in.store(stage as u8 + 1, Ordering::SeqCst);
     }
     /// Testing aid (fault injection): the next checkpoint reached in `stage` hangs for
     /// `duration`, deaf to pause, abort and e-stop, as a worker stuck in a call would.
     /// The safety tests use it to show that an e-stop does not need the worker.
+    /// Built only with the `test-hooks` feature.
+    #[cfg(feature = "test-hooks")]
     pub fn inject_hang(&self, stage: Stage, duration: std::time::Duration) {
         *self.0.hang_in.lock().unwrap_or_else(|p| p.into_inner()) = Some((stage, duration));
     }
-    /// The error a checkpoint returns for the current request, if any.
-    pub(crate) fn check(&self, stage: Stage, pairs: usize) -> Result<(), PipelineError> {
+    /// The faults injected for `stage`: a panic, or a hang deaf to every request.
+    #[cfg(feature = "test-hooks")]
+    fn injected_faults(&self, stage: Stage) {
         if self.0.panic_in.load(Ordering::SeqCst) == stage as u8 + 1 {
             self.0.panic_in.store(0, Ordering::SeqCst);
             panic!("injected panic in stage {}", stage.name());
@@ -346,6 +348,14 @@ impl Control {
         if let Some((_, duration)) = hang {
             std::thread::sleep(duration);
         }
+    }
+    /// The error a checkpoint returns for the current request, if any.
+    pub(crate) fn check(&self, stage: Stage, pairs: usize) -> Result<(), PipelineError> {
+        #[cfg(feature = "test-hooks")]
+        self.injected_faults(stage);
+        // Only the injected faults depend on the stage.
+        #[cfg(not(feature = "test-hooks"))]
+        let _ = stage;
         self.beat();
         match self.requested() {
             Request::Run => Ok(()),
@@ -412,7 +422,7 @@ pub fn prepare(
             }
             dir.to_owned()
         }
-        None => crate::store::new_run_dir(Path::new("runs"), &plan.name)
+        None => crate::run_dir::new_run_dir(Path::new("runs"), &plan.name)
             .map_err(|e| PipelineError::storage(Path::new("runs"), e))?,
     };
     write(&dir, file::PLAN, plan_src.text().as_bytes())?;
@@ -468,14 +478,14 @@ fn stopped_before_start(
 
 impl Run {
     /// Opens the devices for a prepared (or interrupted) run: stage `opening`, which a
-    /// pause or abort interrupts between devices. `rig` is the simulated instrument
-    /// to use (the API service keeps one for the daemon's life); `None` builds one
-    /// from the config when its back-end is `sim`.
+    /// pause or abort interrupts between devices. `backend` is the way to the devices
+    /// (the run service keeps one for the daemon's life); `None` opens the backend the
+    /// run's instrument config names (a fresh simulated instrument for `sim`).
     pub fn open(
         dir: &Path,
         control: Control,
         events: Option<EventSink>,
-        rig: Option<Rig>,
+        backend: Option<&dyn DeviceBackend>,
     ) -> Result<Run, PipelineError> {
         let (mut info, plan, instrument) = RunDir::new(dir).load()?;
         let events = match events {
@@ -500,11 +510,15 @@ impl Run {
         let pairs = info.pairs_done;
         let opened = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
             control.check(Stage::Opening, pairs)?;
-            let rig = match rig {
-                Some(rig) => Some(rig),
-                None => crate::devices::sim_rig(&instrument)?,
+            let own;
+            let backend = match backend {
+                Some(b) => b,
+                None => {
+                    own = crate::devices::backend(&instrument)?;
+                    own.as_ref()
+                }
             };
-            Devices::open_on(&instrument, rig, &|| control.stopping()).map_err(|e| match e {
+            Devices::open(backend, &|| control.stopping()).map_err(|e| match e {
                 OpenError::Interrupted => match control.check(Stage::Opening, pairs) {
                     Err(stop) => stop,
                     Ok(()) => PipelineError::Open(e),
@@ -546,11 +560,6 @@ impl Run {
     /// is doing (the e-stop's and the signal handlers' direct path).
     pub fn emergency_off(&self) -> EmergencyOff {
         self.devices.laser.emergency_off()
-    }
-
-    /// The simulated instrument, when the back-end is `sim`.
-    pub fn rig(&self) -> Option<&Rig> {
-        self.devices.rig.as_ref()
     }
 
     /// A checkpoint: the pause or abort asked for, as the error that stops the run.

@@ -19,9 +19,7 @@ use crate::plan::{Method, ReconSettings};
 /// Bins of the virtual confocal scan's time axis.
 const SYNTH_BINS: usize = 512;
 
-/// Most points per axis of a virtual scan grown to cover the volume (at the
-/// virtual grid's pitch); beyond it the pitch coarsens.
-pub const MAX_VIRTUAL_RESOLUTION: usize = 128;
+pub use crate::budget::MAX_VIRTUAL_RESOLUTION;
 
 /// What a reconstruction needs.
 pub struct ReconInput {

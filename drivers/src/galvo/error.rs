@@ -45,3 +45,9 @@ impl Error for GalvoError {
         self.kind
     }
 }
+
+impl From<GalvoError> for crate::error::DeviceError {
+    fn from(e: GalvoError) -> crate::error::DeviceError {
+        crate::error::DeviceError::new(format!("galvo pair `{}`", e.name), e)
+    }
+}

@@ -5,7 +5,7 @@ pub mod link;
 pub mod protocol;
 pub mod serial;
 
-pub use crate::traits::EmergencyOff;
+pub use crate::laser_guard::EmergencyOff;
 pub use error::GalvoError;
 pub use link::{Connector, Link, PortConnector};
 pub use serial::{SerialGalvo, SerialGalvoSettings};

@@ -325,20 +325,9 @@ impl<'a> Reply<'a> {
     }
 }
 
-/// Motion state reported by `STAT`.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize)]
-#[serde(rename_all = "kebab-case")]
-pub enum MotionState {
-    /// At the commanded position and within the settling band.
-    Settled,
-    /// Moving or still settling.
-    Moving,
-    /// Holding the park position.
-    Parked,
-    /// Servo fault; the controller needs attention.
-    Fault,
-}
+pub use crate::traits::MotionState;
 
+/// The words `STAT` reports a [`MotionState`] by.
 impl MotionState {
     /// The word on the wire.
     pub fn word(self) -> &'static str {

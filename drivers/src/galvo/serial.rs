@@ -8,7 +8,6 @@
 //! exchange is retried once, and a broken link is reopened once before the retry.
 //! A second failure is reported with its kind.
 use std::io::Write;
-use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard, Weak};
 use std::time::{Duration, Instant};
 
@@ -17,12 +16,10 @@ use tracing::{debug, instrument, warn};
 use super::error::GalvoError;
 use super::link::{Connector, Link};
 use super::protocol::{self, LineError, MotionState, Reply, Request};
-use crate::error::{Error, ErrorKind, ErrorType};
+use crate::error::{DeviceError, Error, ErrorKind, ErrorType};
 use crate::geometry::{AngleLimits, OpticalAngles};
-use crate::traits::{
-    DeviceInfo, EmergencyOff, GalvoPair, GalvoStatus, Laser, LaserState, OffSwitch, Progress, ProgressWatch,
-    Stall,
-};
+use crate::laser_guard::{EmergencyOff, GuardedLaser, LaserGuard, LaserLine, Progress};
+use crate::traits::{DeviceInfo, GalvoPair, GalvoStatus, Laser, LaserState};
 
 /// How far the settled position may be from the target before the driver refuses it,
 /// radians (10 µrad: 20 µm at 2 m, a tenth of a typical spot).
@@ -68,48 +65,48 @@ fn write_out_of_band(w: &Mutex<Option<Box<dyn Write + Send>>>, req: Request) -> 
     writer.flush()
 }
 
-/// The serial controller's off switch: a `LASER OFF` out of band (tag `00`) through the
-/// link, which the controller acts on at once even while a move is outstanding,
-/// without waiting for anything else the driver is doing. It also stops the driver's
-/// keepalive, so even a lost line ends emission at the watchdog timeout. It latches:
-/// the driver it came from refuses to switch emission on again (see
-/// [`SerialGalvo`]'s `set_emission`).
-struct SerialOff {
+/// The serial controller's out-of-band path for the [`LaserGuard`]: `KEEP` and
+/// `LASER OFF` lines with tag `00` through the link, which the controller acts on at
+/// once even while a move is outstanding, without waiting for anything else the driver
+/// is doing. It holds the writer weakly: once the driver is closed it reaches nothing,
+/// and the controller's watchdog ends emission.
+struct SerialLine {
     writer: Weak<Mutex<Option<Box<dyn Write + Send>>>>,
-    wanted: Arc<AtomicBool>,
-    stopped: Arc<AtomicBool>,
     name: String,
     port: String,
 }
 
-impl OffSwitch for SerialOff {
-    fn is_open(&self) -> bool {
-        self.writer.strong_count() > 0
+impl SerialLine {
+    fn write_off(writer: &mut Option<Box<dyn Write + Send>>, line: &str) -> bool {
+        writer
+            .as_mut()
+            .is_some_and(|w| w.write_all(line.as_bytes()).and_then(|()| w.flush()).is_ok())
+    }
+}
+
+impl LaserLine for SerialLine {
+    fn feed(&self) -> std::io::Result<()> {
+        let writer = self
+            .writer
+            .upgrade()
+            .ok_or_else(|| std::io::Error::new(std::io::ErrorKind::NotConnected, "the driver is closed"))?;
+        write_out_of_band(&writer, Request::KeepAlive)
     }
 
     fn describe(&self) -> String {
         format!("laser on `{}` ({})", self.name, self.port)
     }
 
-    fn try_laser_off(&self) -> bool {
-        self.stopped.store(true, Ordering::SeqCst);
-        self.wanted.store(false, Ordering::SeqCst);
+    fn try_off(&self) -> bool {
         let Some(writer) = self.writer.upgrade() else {
             return false;
         };
         let line = protocol::encode_line(protocol::OUT_OF_BAND_TAG, &Request::Laser(false).body());
         for _ in 0..50 {
             match writer.try_lock() {
-                Ok(mut guard) => {
-                    return guard
-                        .as_mut()
-                        .is_some_and(|w| w.write_all(line.as_bytes()).and_then(|()| w.flush()).is_ok());
-                }
+                Ok(mut guard) => return SerialLine::write_off(&mut guard, &line),
                 Err(std::sync::TryLockError::Poisoned(p)) => {
-                    let mut guard = p.into_inner();
-                    return guard
-                        .as_mut()
-                        .is_some_and(|w| w.write_all(line.as_bytes()).and_then(|()| w.flush()).is_ok());
+                    return SerialLine::write_off(&mut p.into_inner(), &line);
                 }
                 Err(std::sync::TryLockError::WouldBlock) => std::thread::sleep(Duration::from_micros(100)),
             }
@@ -117,9 +114,7 @@ impl OffSwitch for SerialOff {
         false
     }
 
-    fn laser_off(&self) -> Result<(), GalvoError> {
-        self.stopped.store(true, Ordering::SeqCst);
-        self.wanted.store(false, Ordering::SeqCst);
+    fn off(&self) -> Result<(), DeviceError> {
         let err = |kind, message: String| GalvoError::new(&self.name, &self.port, kind, message);
         let writer = self.writer.upgrade().ok_or_else(|| {
             err(
@@ -133,29 +128,8 @@ impl OffSwitch for SerialOff {
                 "could not write the emergency LASER OFF; the controller's watchdog switches emission off within its timeout".into(),
             )
             .with_source(e)
+            .into()
         })
-    }
-}
-
-/// Feeds the controller's laser watchdog with `KEEP` lines while emission is wanted
-/// and the watched run shows progress ([`Laser::watch_progress`]), until the driver is
-/// dropped.
-fn keepalive(
-    writer: Weak<Mutex<Option<Box<dyn Write + Send>>>>,
-    wanted: Arc<AtomicBool>,
-    progress: ProgressWatch,
-    name: String,
-    period: Duration,
-) {
-    let mut stall = Stall::default();
-    loop {
-        std::thread::sleep(period);
-        let Some(w) = writer.upgrade() else { return };
-        if stall.feeds(&progress, wanted.load(Ordering::SeqCst), &name)
-            && let Err(e) = write_out_of_band(&w, Request::KeepAlive)
-        {
-            debug!(error = %e, "keepalive not sent");
-        }
     }
 }
 
@@ -172,17 +146,11 @@ pub struct SerialGalvo {
     /// A `MOVE` sent whose reply (sent by the controller once settled) is not yet read:
     /// its tag and target.
     pending: Option<(u8, OpticalAngles)>,
-    /// The link's out-of-band writer (shared with keepalive and emergency handles).
+    /// The link's out-of-band writer (shared with the guard's keepalive and off
+    /// switches).
     oob: OobWriter,
-    /// Whether emission is wanted (the keepalive feeds the watchdog only then).
-    wanted: Arc<AtomicBool>,
-    /// Whether the keepalive thread runs.
-    keepalive: bool,
-    /// Set by an emergency off ([`Laser::emergency_off`]'s handle): emission stays
-    /// off for this driver's life.
-    stopped: Arc<AtomicBool>,
-    /// The run the keepalive watches ([`Laser::watch_progress`]).
-    progress: ProgressWatch,
+    /// The laser's host-side safety (laser arm): watchdog, keepalive, latch.
+    guard: LaserGuard,
 }
 
 impl ErrorType for SerialGalvo {
@@ -193,6 +161,17 @@ impl SerialGalvo {
     /// A driver that connects on first use.
     pub fn new(settings: SerialGalvoSettings, connector: Box<dyn Connector>) -> SerialGalvo {
         let port = connector.describe();
+        let oob: OobWriter = Arc::new(Mutex::new(None));
+        let guard = LaserGuard::new(
+            &settings.name,
+            settings.watchdog,
+            Duration::from_millis(u64::from(protocol::WATCHDOG_DEFAULT_MS)),
+            SerialLine {
+                writer: Arc::downgrade(&oob),
+                name: settings.name.clone(),
+                port: port.clone(),
+            },
+        );
         SerialGalvo {
             settings,
             connector,
@@ -202,11 +181,8 @@ impl SerialGalvo {
             rx: Vec::with_capacity(protocol::MAX_LINE),
             target: None,
             pending: None,
-            oob: Arc::new(Mutex::new(None)),
-            wanted: Arc::new(AtomicBool::new(false)),
-            keepalive: false,
-            stopped: Arc::new(AtomicBool::new(false)),
-            progress: ProgressWatch::default(),
+            oob,
+            guard,
         }
     }
 
@@ -225,29 +201,6 @@ impl SerialGalvo {
                 _ => Err(self.malformed(req, fields)),
             },
             _ => Err(self.malformed(req, fields)),
-        }
-    }
-
-    fn start_keepalive(&mut self) {
-        if self.keepalive {
-            return;
-        }
-        let timeout = self
-            .settings
-            .watchdog
-            .unwrap_or(Duration::from_millis(u64::from(protocol::WATCHDOG_DEFAULT_MS)));
-        // Four keepalives per timeout: one lost or late line never trips it.
-        let period = (timeout / 4).max(Duration::from_millis(2));
-        let (writer, wanted) = (Arc::downgrade(&self.oob), self.wanted.clone());
-        let (progress, name) = (self.progress.clone(), self.settings.name.clone());
-        match std::thread::Builder::new()
-            .name(format!("galvo-{}-keepalive", self.settings.name))
-            .spawn(move || keepalive(writer, wanted, progress, name, period))
-        {
-            Ok(_) => self.keepalive = true,
-            Err(e) => {
-                warn!(error = %e, "cannot start the laser keepalive; emission stops at the watchdog timeout")
-            }
         }
     }
 
@@ -343,7 +296,7 @@ impl SerialGalvo {
             let _writing = lock_writer(&self.oob);
             // Checked holding the write lock: an emergency off either latched before
             // this (refused here) or writes its LASER OFF after this line.
-            if req == Request::Laser(true) && self.stopped.load(Ordering::SeqCst) {
+            if req == Request::Laser(true) && self.guard.latched() {
                 None
             } else {
                 Some(link.discard_input().and_then(|()| link.send(line.as_bytes())))
@@ -571,7 +524,7 @@ impl Drop for SerialGalvo {
     /// switches the laser off on its way out; its keepalive stops with it, so the
     /// controller's watchdog ends emission even if this line is lost.
     fn drop(&mut self) {
-        if self.wanted.swap(false, Ordering::SeqCst) {
+        if self.guard.release() {
             self.off_before_closing();
         }
     }
@@ -695,34 +648,10 @@ impl Laser for SerialGalvo {
     /// After an emergency off through this driver's [`Laser::emergency_off`] handle,
     /// on is refused (kind `Interrupted`) for the driver's life, however the two race.
     fn set_emission(&mut self, on: bool) -> Result<(), GalvoError> {
-        if on && self.stopped.load(Ordering::SeqCst) {
-            return Err(self.emergency_stopped());
-        }
         if on {
-            if let Some(timeout) = self.settings.watchdog {
-                let ms = u32::try_from(timeout.as_millis()).unwrap_or(u32::MAX);
-                let req = Request::Watchdog(Some(ms));
-                let fields = self.request(req)?;
-                let (set, _) = self.parse_watchdog(req, &fields)?;
-                if set != timeout {
-                    return Err(self.err(
-                        ErrorKind::Device,
-                        format!(
-                            "the controller set its laser watchdog to {} ms, not {ms} ms; emission was not switched on",
-                            set.as_millis()
-                        ),
-                    ));
-                }
-            }
-            self.wanted.store(true, Ordering::SeqCst);
-            self.start_keepalive();
-            let result = self.request(Request::Laser(true)).map(drop);
-            if result.is_err() {
-                self.wanted.store(false, Ordering::SeqCst);
-            }
-            return result;
+            return self.switch_on();
         }
-        self.wanted.store(false, Ordering::SeqCst);
+        self.guard.switching_off();
         if let Err(e) = write_out_of_band(&self.oob, Request::Laser(false)) {
             debug!(error = %e, "no out-of-band LASER OFF; sending it in band");
         }
@@ -750,17 +679,47 @@ impl Laser for SerialGalvo {
     }
 
     fn watch_progress(&mut self, progress: Progress) {
-        self.progress.set(progress);
+        self.guard.watch_progress(progress);
     }
 
     /// `LASER OFF` out of band through the link, whatever this driver is waiting for.
     fn emergency_off(&self) -> EmergencyOff {
-        EmergencyOff::new(SerialOff {
-            writer: Arc::downgrade(&self.oob),
-            wanted: self.wanted.clone(),
-            stopped: self.stopped.clone(),
-            name: self.settings.name.clone(),
-            port: self.port.clone(),
-        })
+        self.guard.emergency_off()
+    }
+}
+
+impl GuardedLaser for SerialGalvo {
+    type Error = GalvoError;
+
+    fn guard(&mut self) -> &mut LaserGuard {
+        &mut self.guard
+    }
+
+    /// `WDOG ms`, and a refusal unless the controller reports the same timeout back.
+    fn arm_watchdog(&mut self, timeout: Duration) -> Result<(), GalvoError> {
+        let ms = u32::try_from(timeout.as_millis()).unwrap_or(u32::MAX);
+        let req = Request::Watchdog(Some(ms));
+        let fields = self.request(req)?;
+        let (set, _) = self.parse_watchdog(req, &fields)?;
+        if set != timeout {
+            return Err(self.err(
+                ErrorKind::Device,
+                format!(
+                    "the controller set its laser watchdog to {} ms, not {ms} ms; emission was not switched on",
+                    set.as_millis()
+                ),
+            ));
+        }
+        Ok(())
+    }
+
+    /// `LASER ON`, refused in `send` (holding the write lock) once an emergency off
+    /// has latched, so the two are ordered on the wire.
+    fn send_on(&mut self) -> Result<(), GalvoError> {
+        self.request(Request::Laser(true)).map(drop)
+    }
+
+    fn latched_error(&self) -> GalvoError {
+        self.emergency_stopped()
     }
 }

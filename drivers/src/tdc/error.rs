@@ -33,3 +33,9 @@ impl Error for TdcError {
         self.kind
     }
 }
+
+impl From<TdcError> for crate::error::DeviceError {
+    fn from(e: TdcError) -> crate::error::DeviceError {
+        crate::error::DeviceError::new(format!("histogrammer on {}", e.device), e)
+    }
+}

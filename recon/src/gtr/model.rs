@@ -346,9 +346,7 @@ impl GaussianCloud {
     /// resets any that collapsed to zero to the identity.
     pub fn renormalise_rotations(&mut self) {
         use rayon::prelude::*;
-        self.rotations
-            .par_chunks_exact_mut(4)
-            .for_each(super::optim::renormalise);
+        self.rotations.par_chunks_exact_mut(4).for_each(renormalise);
     }
 
     /// Keeps only the primitives for which `keep(k)` is true.
@@ -481,6 +479,17 @@ fn quat_grad(q: DQuat, g: &DMat3) -> DQuat {
     let dz =
         2.0 * (-2.0 * z * g00 - w * g01 + x * g02 + w * g10 - 2.0 * z * g11 + y * g12 + x * g20 + y * g21);
     DQuat::from_xyzw(dx, dy, dz, dw)
+}
+
+/// A raw quaternion back to unit length (after an optimiser step), or the identity
+/// where it collapsed to zero.
+pub(crate) fn renormalise(r: &mut [f64]) {
+    let n = r.iter().map(|v| v * v).sum::<f64>().sqrt();
+    if n.is_finite() && n > 1e-12 {
+        r.iter_mut().for_each(|v| *v /= n);
+    } else {
+        r.copy_from_slice(&[1.0, 0.0, 0.0, 0.0]);
+    }
 }
 
 #[cfg(test)]

@@ -117,17 +117,6 @@ struct GroupChunk<'a> {
     mean: Option<&'a mut [f64]>,
 }
 
-/// A raw quaternion back to unit length (after an optimiser step), or the identity
-/// where it collapsed to zero.
-pub(crate) fn renormalise(r: &mut [f64]) {
-    let n = r.iter().map(|v| v * v).sum::<f64>().sqrt();
-    if n.is_finite() && n > 1e-12 {
-        r.iter_mut().for_each(|v| *v /= n);
-    } else {
-        r.copy_from_slice(&[1.0, 0.0, 0.0, 0.0]);
-    }
-}
-
 #[derive(Clone, Debug, Default)]
 struct Moments {
     m: Vec<f64>,
@@ -310,7 +299,7 @@ impl AdamW {
                         weight_decay: settings[g].weight_decay,
                     });
                     if g == ROTATIONS {
-                        params.chunks_exact_mut(4).for_each(renormalise);
+                        params.chunks_exact_mut(4).for_each(super::model::renormalise);
                     }
                     if let Some(mean) = mean {
                         mean.iter_mut()

@@ -12,17 +12,17 @@
 //! overflow and an unplug do reach these). Tests that are about the pipeline, the API
 //! or the safety logic rather than the drivers use them (`sim.devices =
 //! "in-process"`); the wire-level devices keep testing the real drivers.
-use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Weak};
 use std::time::{Duration, Instant};
 
 use periscope_drivers::galvo::GalvoError;
 use periscope_drivers::galvo::protocol::{self as galvo_protocol, ErrorCode};
+use periscope_drivers::laser_guard::GuardedLaser;
 use periscope_drivers::tdc::TdcError;
 use periscope_drivers::tdc::protocol::{self as tdc_protocol, WireConfig, flag};
 use periscope_drivers::{
-    AngleLimits, CountRates, DeviceInfo, EmergencyOff, ErrorKind, ErrorType, GalvoPair, GalvoStatus,
-    Histogram, HistogramFlags, Histogrammer, Laser, LaserState, OffSwitch, Progress, ProgressWatch, Stall,
+    AngleLimits, CountRates, DeviceError, DeviceInfo, EmergencyOff, ErrorKind, ErrorType, GalvoPair,
+    GalvoStatus, Histogram, HistogramFlags, Histogrammer, Laser, LaserGuard, LaserLine, LaserState, Progress,
     TdcConfig, TdcState, TdcStatus,
 };
 
@@ -35,17 +35,10 @@ pub struct InProcessGalvo {
     arm: Arm,
     name: String,
     limits: AngleLimits,
-    watchdog: Option<Duration>,
-    /// Whether emission is wanted (the keepalive feeds the watchdog only then).
-    wanted: Arc<AtomicBool>,
-    /// Dropped with the device: its keepalive thread and off switches see it go.
-    alive: Arc<()>,
-    keepalive: bool,
-    /// Set by an emergency off: emission stays off for this driver's life, as the
-    /// serial driver's.
-    stopped: Arc<AtomicBool>,
-    /// The run the keepalive watches ([`Laser::watch_progress`]).
-    progress: ProgressWatch,
+    /// The laser's host-side safety, the same guard the serial driver keeps: the
+    /// watchdog armed before each switch-on, the keepalive (here a call into the
+    /// controller model), the emergency-off latch.
+    guard: LaserGuard,
 }
 
 impl InProcessGalvo {
@@ -59,17 +52,21 @@ impl InProcessGalvo {
         limits: AngleLimits,
         watchdog: Option<Duration>,
     ) -> InProcessGalvo {
+        let guard = LaserGuard::new(
+            name,
+            watchdog,
+            Duration::from_millis(u64::from(galvo_protocol::WATCHDOG_DEFAULT_MS)),
+            InProcessLine {
+                shared: Arc::downgrade(&rig.shared),
+                name: name.to_owned(),
+            },
+        );
         InProcessGalvo {
             rig,
             arm,
             name: name.to_owned(),
             limits,
-            watchdog,
-            wanted: Arc::new(AtomicBool::new(false)),
-            alive: Arc::new(()),
-            keepalive: false,
-            stopped: Arc::new(AtomicBool::new(false)),
-            progress: ProgressWatch::default(),
+            guard,
         }
     }
 
@@ -112,44 +109,13 @@ impl InProcessGalvo {
             Err(self.refused(what, ErrorCode::NoLaser))
         }
     }
-
-    fn start_keepalive(&mut self) {
-        if self.keepalive {
-            return;
-        }
-        let timeout = self.watchdog.unwrap_or(Duration::from_millis(u64::from(
-            galvo_protocol::WATCHDOG_DEFAULT_MS,
-        )));
-        let period = (timeout / 4).max(Duration::from_millis(2));
-        let (shared, alive, wanted) = (
-            Arc::downgrade(&self.rig.shared),
-            Arc::downgrade(&self.alive),
-            self.wanted.clone(),
-        );
-        let (progress, name) = (self.progress.clone(), self.name.clone());
-        let spawned = std::thread::Builder::new()
-            .name(format!("sim-{}-keepalive", self.name))
-            .spawn(move || {
-                let mut stall = Stall::default();
-                loop {
-                    std::thread::sleep(period);
-                    let (Some(shared), Some(_alive)) = (shared.upgrade(), alive.upgrade()) else {
-                        return;
-                    };
-                    if stall.feeds(&progress, wanted.load(Ordering::SeqCst), &name) {
-                        shared.lock().heard_host(Instant::now());
-                    }
-                }
-            });
-        self.keepalive = spawned.is_ok();
-    }
 }
 
 impl Drop for InProcessGalvo {
     /// Dropped while emission is wanted (a panic unwinding, a run abandoned): the laser
     /// goes off on the way out, as with the serial driver.
     fn drop(&mut self) {
-        if self.wanted.swap(false, Ordering::SeqCst) {
+        if self.guard.release() {
             let _ = self.rig.shared.switch_laser(false);
         }
     }
@@ -243,37 +209,14 @@ impl GalvoPair for InProcessGalvo {
 impl Laser for InProcessGalvo {
     fn set_emission(&mut self, on: bool) -> Result<(), GalvoError> {
         self.laser_only(if on { "LASER ON" } else { "LASER OFF" })?;
-        if !on {
-            self.wanted.store(false, Ordering::SeqCst);
-            return self
-                .rig
-                .shared
-                .switch_laser(false)
-                .map_err(|code| self.refused("LASER OFF", code));
+        if on {
+            return self.switch_on();
         }
-        if self.stopped.load(Ordering::SeqCst) {
-            return Err(self.emergency_stopped());
-        }
-        if let Some(timeout) = self.watchdog {
-            self.rig.shared.laser_watchdog(Some(timeout));
-        }
-        self.wanted.store(true, Ordering::SeqCst);
-        self.start_keepalive();
-        let mut result = self
-            .rig
+        self.guard.switching_off();
+        self.rig
             .shared
-            .switch_laser(true)
-            .map_err(|code| self.refused("LASER ON", code));
-        // An emergency off that latched after the check above switched off before this
-        // switched on, or will after: in the first case, off again now.
-        if result.is_ok() && self.stopped.load(Ordering::SeqCst) {
-            let _ = self.rig.shared.switch_laser(false);
-            result = Err(self.emergency_stopped());
-        }
-        if result.is_err() {
-            self.wanted.store(false, Ordering::SeqCst);
-        }
-        result
+            .switch_laser(false)
+            .map_err(|code| self.refused("LASER OFF", code))
     }
 
     fn laser_state(&mut self) -> Result<LaserState, GalvoError> {
@@ -293,33 +236,60 @@ impl Laser for InProcessGalvo {
     }
 
     fn watch_progress(&mut self, progress: Progress) {
-        self.progress.set(progress);
+        self.guard.watch_progress(progress);
     }
 
     fn emergency_off(&self) -> EmergencyOff {
-        EmergencyOff::new(InProcessOff {
-            shared: Arc::downgrade(&self.rig.shared),
-            alive: Arc::downgrade(&self.alive),
-            wanted: self.wanted.clone(),
-            stopped: self.stopped.clone(),
-            name: self.name.clone(),
-        })
+        self.guard.emergency_off()
     }
 }
 
-/// The in-process laser's off switch: emission off in the controller model at once.
-struct InProcessOff {
+impl GuardedLaser for InProcessGalvo {
+    type Error = GalvoError;
+
+    fn guard(&mut self) -> &mut LaserGuard {
+        &mut self.guard
+    }
+
+    fn arm_watchdog(&mut self, timeout: Duration) -> Result<(), GalvoError> {
+        self.rig.shared.laser_watchdog(Some(timeout));
+        Ok(())
+    }
+
+    fn send_on(&mut self) -> Result<(), GalvoError> {
+        self.rig
+            .shared
+            .switch_laser(true)
+            .map_err(|code| self.refused("LASER ON", code))
+    }
+
+    fn latched_error(&self) -> GalvoError {
+        self.emergency_stopped()
+    }
+}
+
+/// The in-process laser's out-of-band path: calls into the controller model, which
+/// hears a keepalive as the firmware hears a `KEEP` line and switches emission off at
+/// once. It outlives the device (the rig keeps the controller), as a controller
+/// outlives its host's driver.
+struct InProcessLine {
     shared: Weak<Shared>,
-    alive: Weak<()>,
-    wanted: Arc<AtomicBool>,
-    stopped: Arc<AtomicBool>,
     name: String,
 }
 
-impl OffSwitch for InProcessOff {
-    fn laser_off(&self) -> Result<(), GalvoError> {
-        self.stopped.store(true, Ordering::SeqCst);
-        self.wanted.store(false, Ordering::SeqCst);
+impl LaserLine for InProcessLine {
+    fn feed(&self) -> std::io::Result<()> {
+        let shared = self.shared.upgrade().ok_or_else(|| {
+            std::io::Error::new(
+                std::io::ErrorKind::NotConnected,
+                "the simulated instrument is gone",
+            )
+        })?;
+        shared.lock().heard_host(Instant::now());
+        Ok(())
+    }
+
+    fn off(&self) -> Result<(), DeviceError> {
         let gone = || {
             GalvoError::new(
                 &self.name,
@@ -329,17 +299,11 @@ impl OffSwitch for InProcessOff {
             )
         };
         let shared = self.shared.upgrade().ok_or_else(gone)?;
-        shared.switch_laser(false).map_err(|_| gone())
+        shared.switch_laser(false).map_err(|_| gone().into())
     }
 
-    fn try_laser_off(&self) -> bool {
-        self.stopped.store(true, Ordering::SeqCst);
-        self.wanted.store(false, Ordering::SeqCst);
+    fn try_off(&self) -> bool {
         self.shared.upgrade().is_some_and(|s| s.try_laser_off())
-    }
-
-    fn is_open(&self) -> bool {
-        self.alive.strong_count() > 0
     }
 
     fn describe(&self) -> String {

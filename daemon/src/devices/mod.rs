@@ -1,0 +1,201 @@
+//! The device boundary: the instrument's devices opened from its config, as trait
+//! objects the pipeline, the run service and the API drive without knowing what is
+//! behind them (probe-rs's factory shape: the config picks a [`DeviceBackend`], the
+//! rest of the daemon sees the traits and the one [`DeviceError`]):
+//!
+//! | config | backend | galvo pairs and laser | histogrammer |
+//! |---|---|---|---|
+//! | `backend = "hardware"` | [`hardware::HardwareBackend`] | serial driver on the configured ports | USB driver over libusb |
+//! | `backend = "sim"` (`sim.devices = "wire"`) | [`sim::SimBackend`] | serial driver on the simulator's pseudo-terminals | USB driver over the simulator's transport |
+//! | `backend = "sim"`, `sim.devices = "in-process"` | [`sim::SimBackend`] | the simulator's controller model, no wire | the simulator's histogrammer, no wire |
+//!
+//! The first two run the same drivers, so CI runs the code the lab runs. Every laser
+//! driver keeps the one `periscope_drivers::LaserGuard`. A new backend is a type that
+//! implements [`DeviceBackend`] in a file of its own here, and one more arm of
+//! [`backend`]; nothing past this module names a driver type or the simulator (a
+//! test in `daemon/tests/architecture.rs` holds that).
+use std::any::Any;
+use std::sync::Arc;
+
+pub use periscope_drivers::{DeviceError, GalvoBox, HistogrammerBox, LaserBox};
+use periscope_drivers::{DeviceInfo, LaserState, TdcStatus};
+use serde::Serialize;
+
+use crate::config::{Backend, ConfigError, InstrumentConfig};
+
+pub mod hardware;
+pub mod sim;
+
+/// A way to the instrument's devices, chosen from the config: one per backend. It
+/// opens each device on its own, not yet identified ([`Devices::open`] opens them
+/// all); the run service keeps one for the daemon's life, so that runs, e-stops and
+/// status readings all reach the same devices.
+pub trait DeviceBackend: Any + Send + Sync {
+    /// The backend, for logs: `hardware`, `simulated (wire)`, `simulated (in process)`.
+    fn name(&self) -> &'static str;
+    /// Opens the laser arm's controller: one driver behind its galvo pair and its
+    /// laser.
+    fn laser_arm(&self) -> Result<LaserArm, OpenError>;
+    /// Opens the SPAD arm's galvo pair.
+    fn spad_arm(&self) -> Result<GalvoBox, OpenError>;
+    /// Opens the histogrammer.
+    fn histogrammer(&self) -> Result<HistogrammerBox, OpenError>;
+}
+
+/// The backend the instrument config names: [`hardware::HardwareBackend`] for
+/// `backend = "hardware"`, a fresh simulated instrument ([`sim::SimBackend`]) for
+/// `backend = "sim"`.
+pub fn backend(config: &InstrumentConfig) -> Result<Arc<dyn DeviceBackend>, ConfigError> {
+    Ok(match &config.backend {
+        Backend::Hardware => Arc::new(hardware::HardwareBackend::new(config)),
+        Backend::Sim(sim) => Arc::new(sim::SimBackend::new(config, sim)?),
+    })
+}
+
+/// Why the devices could not be opened.
+#[derive(Debug, thiserror::Error)]
+pub enum OpenError {
+    /// The config is missing something the back-end needs.
+    #[error(transparent)]
+    Config(#[from] ConfigError),
+    /// A key the hardware back-end needs is missing.
+    #[error("{0}")]
+    Missing(String),
+    /// A device failed or did not answer.
+    #[error(transparent)]
+    Device(#[from] DeviceError),
+    /// Opening was interrupted (pause, abort or e-stop) before every device was open.
+    #[error("opening the devices was interrupted")]
+    Interrupted,
+    /// The TDC's USB device was not found.
+    #[error(
+        "histogrammer {selector}: {why}; plug it in and check `periscope devices` and `tdc.usb` in the instrument config"
+    )]
+    Usb {
+        /// The configured selector.
+        selector: String,
+        /// What libusb said.
+        why: String,
+    },
+}
+
+/// The instrument's devices, opened.
+pub struct Devices {
+    /// Laser arm galvo pair.
+    pub laser_arm: GalvoBox,
+    /// The laser and the LOS diffuser (on the laser arm's controller: the two share
+    /// it).
+    pub laser: LaserBox,
+    /// SPAD arm galvo pair.
+    pub spad: GalvoBox,
+    /// The histogrammer.
+    pub tdc: HistogrammerBox,
+}
+
+/// The laser arm's controller opened on its own: its galvo pair and its laser.
+pub struct LaserArm {
+    /// The galvo pair.
+    pub arm: GalvoBox,
+    /// The laser.
+    pub laser: LaserBox,
+}
+
+impl Devices {
+    /// Opens every device the config names and identifies each (a fresh simulated
+    /// instrument for `sim`).
+    pub fn open_config(config: &InstrumentConfig) -> Result<Devices, OpenError> {
+        Devices::open(backend(config)?.as_ref(), &|| false)
+    }
+
+    /// Opens every device of `backend`, identifying each, and switches off a laser it
+    /// finds emitting (with a warning); `stop` is asked between devices and opening
+    /// gives up with [`OpenError::Interrupted`] when it says so.
+    pub fn open(backend: &dyn DeviceBackend, stop: &dyn Fn() -> bool) -> Result<Devices, OpenError> {
+        let interrupted = || {
+            if stop() {
+                Err(OpenError::Interrupted)
+            } else {
+                Ok(())
+            }
+        };
+        interrupted()?;
+        let LaserArm {
+            arm: mut laser_arm,
+            mut laser,
+        } = backend.laser_arm()?;
+        laser_arm.identify()?;
+        // Opening the instrument leaves the laser off. A laser found emitting was left
+        // on by a process that ended without switching it off (a crash or `kill -9`
+        // with a watchdog longer than the restart took, or another program); every
+        // request feeds the controller's watchdog, so without this the idle worker's
+        // readings would keep such a laser on for as long as the daemon runs.
+        if laser.laser_state()?.emission {
+            tracing::warn!(
+                "the laser was emitting when Periscope opened its controller, with no run of this \
+                 process measuring (left on by a process that ended without switching it off?); \
+                 switching it off"
+            );
+            laser.set_emission(false)?;
+        }
+        interrupted()?;
+        let mut spad = backend.spad_arm()?;
+        spad.identify()?;
+        interrupted()?;
+        let mut tdc = backend.histogrammer()?;
+        tdc.identify()?;
+        interrupted()?;
+        Ok(Devices {
+            laser_arm,
+            laser,
+            spad,
+            tdc,
+        })
+    }
+
+    /// Everything the devices report about themselves.
+    pub fn report(&mut self) -> Result<DeviceReport, OpenError> {
+        Ok(DeviceReport {
+            laser_arm: self.laser_arm.identify()?,
+            laser_position: self.laser_arm.position()?,
+            laser: self.laser.laser_state()?,
+            spad_arm: self.spad.identify()?,
+            spad_position: self.spad.position()?,
+            tdc: self.tdc.identify()?,
+            tdc_status: self.tdc.status()?,
+        })
+    }
+
+    /// Laser off and both pairs parked: the safe state. The laser goes first (out of
+    /// band, then confirmed), every step is tried even if an earlier one fails, and the
+    /// first failure is returned.
+    pub fn make_safe(&mut self) -> Result<(), OpenError> {
+        let off = self.laser.set_emission(false);
+        let abort = self.tdc.abort();
+        let lp = self.laser_arm.park();
+        let sp = self.spad.park();
+        off?;
+        lp?;
+        sp?;
+        abort?;
+        Ok(())
+    }
+}
+
+/// What `periscope devices` prints for the configured instrument.
+#[derive(Clone, Debug, Serialize)]
+pub struct DeviceReport {
+    /// Laser arm controller.
+    pub laser_arm: DeviceInfo,
+    /// Its position.
+    pub laser_position: periscope_drivers::OpticalAngles,
+    /// Laser, interlock and diffuser.
+    pub laser: LaserState,
+    /// SPAD arm controller.
+    pub spad_arm: DeviceInfo,
+    /// Its position.
+    pub spad_position: periscope_drivers::OpticalAngles,
+    /// Histogrammer.
+    pub tdc: DeviceInfo,
+    /// Its state and count rates.
+    pub tdc_status: TdcStatus,
+}

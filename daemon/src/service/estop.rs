@@ -1,0 +1,193 @@
+//! The e-stop: the laser off first (through the running run's direct path, else
+//! through the laser controller opened for the purpose), then both arms parked, then
+//! the queue held. Nothing queued in front of it can block it.
+use super::*;
+
+impl Service {
+    /// Switches the running run's laser off through its direct path, if a run holds
+    /// the devices (for signal handlers: quick, waits for nothing but a mutex).
+    pub fn laser_off_now(&self) {
+        if let Some(off) = self.lock().laser_off.clone()
+            && let Err(e) = off.laser_off()
+        {
+            tracing::warn!(error = %e, "direct laser off failed");
+        }
+    }
+
+    /// Emergency stop. In this order: the laser off through the running run's direct
+    /// path (an out-of-band `LASER OFF` to the laser controller that nothing pending
+    /// can hold up), the run aborted (it parks both arms on its way out), queued runs
+    /// held as paused. With no run holding the devices, or if the direct path fails,
+    /// the laser controller is opened on its own (neither the SPAD arm nor the
+    /// histogrammer is needed) and switched off, then each arm parked. Nothing stops
+    /// it half-way: every step is tried, and the report says what was done.
+    pub fn estop(&self) -> Result<EstopReport, ServiceError> {
+        let t = Instant::now();
+        let mut report = EstopReport::default();
+        let (running, direct) = {
+            let s = self.lock();
+            (s.current.clone(), s.laser_off.clone())
+        };
+        // 1. The laser, directly. The run is told to abort first (an atomic store), so
+        //    that a `LASER ON` the latched switch refuses it reads as the abort.
+        if let Some((_, control)) = &running {
+            control.abort();
+        }
+        let mut laser_off = false;
+        if let Some(off) = &direct {
+            match off.laser_off() {
+                Ok(()) => {
+                    laser_off = true;
+                    report.laser = "off: out-of-band LASER OFF to the laser controller".into();
+                    report.laser_off_s = Some(t.elapsed().as_secs_f64());
+                }
+                Err(e) => report.warnings.push(format!("direct laser off failed: {e}")),
+            }
+        }
+        // 2. The run (asked above).
+        if let Some((id, _)) = &running {
+            report.aborted = Some(id.clone());
+        }
+        // 3. Queued runs are held (under the lock, so no resume or worker pick races it).
+        //    A run the worker took from the queue since step 1 is held through its
+        //    control (it stops at its next checkpoint, paused): its pipeline alone writes
+        //    its run.json, and a state written here would race the pipeline's own.
+        {
+            let mut s = self.lock();
+            if let Some((id, control)) = s.current.as_ref()
+                && running.as_ref().is_none_or(|(r, _)| r != id)
+            {
+                control.pause();
+                report.held.push(id.clone());
+            }
+            let running_id = s.current.as_ref().map(|(id, _)| id.clone());
+            let queued: Vec<String> = s
+                .queue
+                .iter()
+                .filter(|q| Some(*q) != running_id.as_ref())
+                .filter(|q| self.info(q).is_ok_and(|i| i.state == RunState::Queued))
+                .cloned()
+                .collect();
+            for id in queued {
+                s.held.insert(id.clone());
+                if let Err(e) = self.set_state(
+                    &id,
+                    RunState::Paused,
+                    Some("held by an emergency stop; resume it to run".into()),
+                ) {
+                    report.warnings.push(format!(
+                        "queued run {id} is held (the worker will not start it), but its run.json could not record it: {e}; resume or abort it once the disk is fixed"
+                    ));
+                }
+                report.held.push(id);
+            }
+        }
+        // 4. Wait (bounded) for the run to reach its checkpoint: it parks the arms and
+        //    confirms the laser off on its way out.
+        if let Some((id, control)) = &running {
+            let deadline = Instant::now() + ESTOP_RUN_WAIT;
+            let mut s = self.lock();
+            while s.current.as_ref().is_some_and(|(c, _)| c == id) && Instant::now() < deadline {
+                s = self
+                    .wake
+                    .wait_timeout(s, Duration::from_millis(5))
+                    .unwrap_or_else(|p| p.into_inner())
+                    .0;
+            }
+            if s.current.as_ref().is_some_and(|(c, _)| c == id) {
+                report.warnings.push(format!(
+                    "run {id} did not reach its checkpoint within {} s; the devices were opened directly",
+                    ESTOP_RUN_WAIT.as_secs_f64()
+                ));
+            } else {
+                // Only a run that says it made the instrument safe is believed; one
+                // whose make-safe failed, or that never held the devices, leaves it
+                // to step 5.
+                match control.made_safe() {
+                    Some(Ok(())) => {
+                        report.parked = true;
+                        if !laser_off {
+                            laser_off = true;
+                            report.laser = "off: the run switched it off on its way out".into();
+                            report.laser_off_s = Some(t.elapsed().as_secs_f64());
+                        }
+                    }
+                    Some(Err(e)) => report.warnings.push(format!(
+                        "run {id} could not make the instrument safe on its way out ({e}); the devices were opened directly"
+                    )),
+                    None => {}
+                }
+            }
+        }
+        // 5. No run (or one that did not stop): each controller opened on its own.
+        if !report.parked {
+            match self.laser_controller_off() {
+                Ok(()) => {
+                    if !laser_off {
+                        report.laser =
+                            "off: LASER OFF through the laser controller, opened for the e-stop".into();
+                        report.laser_off_s = Some(t.elapsed().as_secs_f64());
+                        laser_off = true;
+                    }
+                }
+                Err(e) => report.warnings.push(format!("laser controller: {e}")),
+            }
+            match self.park_spad() {
+                Ok(()) => report.parked = true,
+                Err(e) => report.warnings.push(format!("SPAD arm: {e}")),
+            }
+        }
+        if !laser_off {
+            report.laser = "UNCONFIRMED: no path to the laser controller answered; the controller's watchdog ends emission within its timeout, or switch the laser off at the interlock".into();
+        }
+        report.seconds = t.elapsed().as_secs_f64();
+        {
+            let mut s = self.lock();
+            s.last_safe = Some(format!("{} (e-stop)", report.laser));
+            s.refresh = true;
+            self.wake.notify_all();
+        }
+        tracing::warn!(laser = %report.laser, parked = report.parked, seconds = report.seconds, "emergency stop");
+        Ok(report)
+    }
+
+    /// Opens the laser controller alone: laser off, then park.
+    pub(super) fn laser_controller_off(&self) -> Result<(), String> {
+        let _devices = self.devices.lock().unwrap_or_else(|p| p.into_inner());
+        let mut controller = self.backend.laser_arm().map_err(|e| e.to_string())?;
+        let off = controller.laser.set_emission(false).map_err(|e| e.to_string());
+        let park = controller.arm.park().map_err(|e| e.to_string());
+        off?;
+        park
+    }
+
+    /// Opens the SPAD arm's controller alone and parks it.
+    pub(super) fn park_spad(&self) -> Result<(), String> {
+        let _devices = self.devices.lock().unwrap_or_else(|p| p.into_inner());
+        let mut spad = self.backend.spad_arm().map_err(|e| e.to_string())?;
+        spad.park().map_err(|e| e.to_string())
+    }
+}
+
+/// How long an e-stop waits for a running run to reach its checkpoint (and park)
+/// before it opens the controllers itself.
+pub(super) const ESTOP_RUN_WAIT: Duration = Duration::from_secs(2);
+
+/// What an e-stop did.
+#[derive(Debug, Default, Serialize, ToSchema)]
+pub struct EstopReport {
+    /// The run that was aborted, if one was running.
+    pub aborted: Option<String>,
+    /// What happened to the laser, and by which path.
+    pub laser: String,
+    /// Seconds from the request until LASER OFF was sent (`null`: not confirmed).
+    pub laser_off_s: Option<f64>,
+    /// Whether both arms were parked.
+    pub parked: bool,
+    /// Queued runs held as paused.
+    pub held: Vec<String>,
+    /// Steps that failed (each was tried regardless).
+    pub warnings: Vec<String>,
+    /// Seconds from the request until every step was done.
+    pub seconds: f64,
+}

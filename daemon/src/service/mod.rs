@@ -1,0 +1,468 @@
+//! The run service: the run queue (persisted in `RUNS_DIR/queue.json`), the worker
+//! thread that owns the instrument and runs one plan at a time, the e-stop, and the
+//! live state that the HTTP API and the CLI read. It knows the devices only through
+//! their backend ([`DeviceBackend`]), and nothing of HTTP: `crate::api` is the HTTP
+//! face of it.
+//!
+//! | file | what it holds |
+//! |---|---|
+//! | `mod.rs` | the [`Service`], its shared state, opening (restoring the queue), shutdown |
+//! | `queue.rs` | submit, check, list, status, pause, resume, abort |
+//! | `estop.rs` | the e-stop and its report |
+//! | `status.rs` | the instrument's status, run geometry, downloads, event subscriptions |
+//! | `worker.rs` | the worker thread, a run's execution and its event forwarding |
+//!
+//! Everything here is synchronous and quick (a mutex held for microseconds, small file
+//! writes); the HTTP handlers call the slower parts through `spawn_blocking`. Runs
+//! execute on the dedicated worker thread, never on the async runtime.
+use std::collections::{HashMap, VecDeque};
+use std::path::{Path, PathBuf};
+use std::sync::{Arc, Condvar, Mutex, MutexGuard};
+use std::time::{Duration, Instant};
+
+use serde::Serialize;
+use tokio::sync::broadcast;
+use utoipa::ToSchema;
+
+use crate::config::{InstrumentConfig, TomlSource};
+use crate::devices::DeviceBackend;
+use crate::events::{EventSink, RunEvent};
+use crate::pipeline::{self, Control, PipelineError, Run};
+use crate::plan::Plan;
+use crate::run_dir::{RunDir, file};
+use crate::run_dir::{RunInfo, RunState};
+use crate::store::write_atomic;
+use periscope_drivers::EmergencyOff;
+
+mod estop;
+mod queue;
+mod status;
+mod worker;
+
+pub use estop::EstopReport;
+use queue::hold_interrupted;
+pub use status::{GEOMETRY_POINTS, Geometry, InstrumentStatus, ReadingAge, RunStage, VolumeBox};
+
+/// The queue file in the runs directory.
+pub const QUEUE_FILE: &str = "queue.json";
+
+/// Pair and LOS-point events are forwarded to event-stream clients at most this often
+/// (plus the last one); stage, optimiser and output events always are.
+const PAIR_EVENT_INTERVAL: Duration = Duration::from_millis(50);
+
+/// Events buffered per run for slow stream clients before they are told they lagged.
+const EVENT_BUFFER: usize = 1024;
+
+/// An event as sent to stream clients: its name and JSON.
+#[derive(Clone, Debug)]
+pub struct StreamEvent {
+    /// The SSE event name: the event's `event` field (`stage-started`, `pair`,
+    /// `epoch`, `output`, ...).
+    pub name: Arc<str>,
+    /// The event as JSON.
+    pub json: Arc<str>,
+}
+
+/// A run as the API reports it.
+#[derive(Clone, Debug, Serialize, ToSchema)]
+pub struct RunStatus {
+    /// Run id.
+    pub id: String,
+    /// Plan name.
+    pub plan: String,
+    /// State.
+    pub state: RunState,
+    /// Current or last stage.
+    pub stage: String,
+    /// Pairs planned (0 until planned).
+    pub pairs_total: usize,
+    /// Pairs stored.
+    pub pairs_done: usize,
+    /// Fraction of the capture done, 0 to 1.
+    pub progress: f64,
+    /// Estimated seconds until the capture finishes (running captures only).
+    pub eta_s: Option<f64>,
+    /// Place in the queue (0 = next), for queued runs.
+    pub queue_position: Option<usize>,
+    /// Last optimiser loss, when fitting.
+    pub loss: Option<f64>,
+    /// Last error.
+    pub error: Option<String>,
+    /// Seconds per finished stage.
+    pub timings: Vec<(String, f64)>,
+    /// Files available for download.
+    pub files: Vec<String>,
+}
+
+/// Why a request on a run was refused. Each variant keeps the error it came from, and
+/// the API's status code follows the kind (`crate::api::ApiError::from`).
+#[derive(Debug, thiserror::Error)]
+pub enum ServiceError {
+    /// No such run.
+    #[error("no run `{0}`: list runs with GET /api/v1/runs")]
+    UnknownRun(String),
+    /// The request does not fit the run's state.
+    #[error("{0}")]
+    Conflict(String),
+    /// The plan is invalid; the config error names the key and what it expects.
+    #[error(transparent)]
+    InvalidPlan(crate::config::ConfigError),
+    /// A file or directory under the runs directory could not be read or written.
+    #[error("{}: {source}", path.display())]
+    Storage {
+        /// The file or directory.
+        path: PathBuf,
+        /// What the filesystem said.
+        #[source]
+        source: std::io::Error,
+    },
+    /// `queue.json` is not a list of run ids.
+    #[error(
+        "{}: {source}; fix or delete the file (runs themselves are kept in their directories)",
+        path.display()
+    )]
+    QueueFile {
+        /// The queue file.
+        path: PathBuf,
+        /// Why it does not parse.
+        #[source]
+        source: serde_json::Error,
+    },
+    /// A run's stored files could not be loaded.
+    #[error(transparent)]
+    RunFiles(#[from] crate::run_dir::RunDirError),
+    /// Preparing a submitted run's directory failed; the pipeline's error kind decides
+    /// the status (a config error is the plan's fault, a storage error the daemon's).
+    #[error(transparent)]
+    Prepare(PipelineError),
+    /// A run's capture could not be exported as y-tal HDF5.
+    #[error("run {id}: capture export: {source}")]
+    Export {
+        /// The run.
+        id: String,
+        /// Why.
+        #[source]
+        source: crate::ytal::YtalError,
+    },
+    /// The instrument config is invalid.
+    #[error(transparent)]
+    Config(#[from] crate::config::ConfigError),
+    /// The queue is full.
+    #[error("{0}")]
+    QueueFull(String),
+    /// The plan needs more memory or disk than the instrument's budget allows.
+    #[error("{0}")]
+    OverBudget(String),
+}
+
+impl ServiceError {
+    /// A storage error on `path`.
+    fn storage(path: impl Into<PathBuf>) -> impl FnOnce(std::io::Error) -> ServiceError {
+        let path = path.into();
+        move |source| ServiceError::Storage { path, source }
+    }
+}
+
+/// A run file to send: small ones in memory, the rest streamed from disk.
+#[derive(Debug)]
+pub enum Download {
+    /// The whole body.
+    Bytes(Vec<u8>),
+    /// An open file and its length.
+    File(std::fs::File, u64),
+}
+
+/// The devices as the worker last read them.
+struct Reading {
+    /// When it was taken.
+    at: Instant,
+    /// The same, as Unix seconds.
+    unix_s: f64,
+    /// The devices' report, or why they could not be read.
+    devices: Result<serde_json::Value, String>,
+}
+
+/// Live progress of the running run, fed by its events.
+#[derive(Default)]
+struct Live {
+    id: String,
+    stage: String,
+    pairs_done: usize,
+    pairs_total: usize,
+    capture_started: Option<(Instant, usize)>,
+    loss: Option<f64>,
+}
+
+struct Shared {
+    /// Run ids waiting or paused, in submission order.
+    queue: VecDeque<String>,
+    /// The running run and its control.
+    current: Option<(String, Control)>,
+    /// The running run's direct way to its laser, once its devices are open.
+    laser_off: Option<EmergencyOff>,
+    live: Live,
+    /// Event channels of runs that are running (or were, until a client drops them).
+    channels: HashMap<String, broadcast::Sender<StreamEvent>>,
+    /// The instrument's state as the last run or e-stop left it.
+    last_safe: Option<String>,
+    /// The worker's last reading of the devices (`GET /instrument` serves it).
+    reading: Option<Reading>,
+    /// Asks the worker for a fresh reading (after a run or an e-stop).
+    refresh: bool,
+    /// Submissions between their queue-length check and their place in the queue.
+    admitting: usize,
+    /// Queued runs an e-stop held (as `paused` in their run.json, where the store
+    /// lets it): the worker skips them whatever their run.json says, until an operator
+    /// resumes or aborts them, so a hold the disk refused still holds.
+    held: std::collections::HashSet<String>,
+    /// Runs whose end neither the pipeline nor the worker could record: their run.json
+    /// still reads queued or running though nothing works on them. Resume and abort
+    /// take them as failed (a `running` run.json of any other run is left alone: it
+    /// may be a `periscope run` of another process in the same directory).
+    stale: std::collections::HashSet<String>,
+    shutdown: bool,
+}
+
+/// The service: configuration, queue and worker.
+pub struct Service {
+    runs_dir: PathBuf,
+    instrument_src: TomlSource,
+    instrument: InstrumentConfig,
+    /// The way to the devices, kept for the daemon's life so that runs, e-stops and
+    /// status readings all reach the same devices (one simulated instrument, for
+    /// `sim`).
+    backend: Arc<dyn DeviceBackend>,
+    token: Option<String>,
+    shared: Mutex<Shared>,
+    wake: Condvar,
+    /// Held while a capture export is written.
+    exporting: Mutex<()>,
+    /// Held while the service itself has devices open outside a run (the worker's
+    /// reading, the idle e-stop), so the two never open one serial port at once: an
+    /// e-stop waits for a reading in progress (milliseconds) instead of failing to
+    /// open the laser controller.
+    devices: Mutex<()>,
+}
+
+impl Service {
+    /// Opens the service on `runs_dir`, restoring the queue. A run that was running when
+    /// the daemon stopped is marked paused (its data is intact), so an operator decides
+    /// whether to resume it; queued runs stay queued.
+    pub fn open(instrument_src: TomlSource, token: Option<String>) -> Result<Arc<Service>, ServiceError> {
+        let instrument = InstrumentConfig::from_source(&instrument_src)?;
+        let backend = crate::devices::backend(&instrument)?;
+        let runs_dir = instrument.api.runs_dir.clone();
+        std::fs::create_dir_all(&runs_dir).map_err(ServiceError::storage(&runs_dir))?;
+        let mut queue = VecDeque::new();
+        let qpath = runs_dir.join(QUEUE_FILE);
+        if qpath.is_file() {
+            let text = std::fs::read_to_string(&qpath).map_err(ServiceError::storage(&qpath))?;
+            let ids: Vec<String> = serde_json::from_str(&text).map_err(|source| ServiceError::QueueFile {
+                path: qpath.clone(),
+                source,
+            })?;
+            for id in ids {
+                let dir = runs_dir.join(&id);
+                let Ok(mut info) = RunInfo::load(&dir) else {
+                    tracing::warn!(
+                        "queue.json names run {id}, which has no readable run.json; dropped from the queue"
+                    );
+                    continue;
+                };
+                match info.state {
+                    RunState::Running => {
+                        hold_interrupted(&dir, &id, &mut info)?;
+                        queue.push_back(id);
+                    }
+                    RunState::Queued | RunState::Paused => queue.push_back(id),
+                    _ => {}
+                }
+            }
+        }
+        // A run whose directory was made but whose place in queue.json was never saved
+        // (the daemon stopped in between) is queued again rather than stranded.
+        let mut orphans: Vec<String> = std::fs::read_dir(&runs_dir)
+            .map_err(ServiceError::storage(&runs_dir))?
+            .filter_map(Result::ok)
+            .map(|e| e.file_name().to_string_lossy().into_owned())
+            .filter(|id| !queue.contains(id))
+            .filter(|id| {
+                RunInfo::load(&runs_dir.join(id))
+                    .is_ok_and(|i| matches!(i.state, RunState::Queued | RunState::Running))
+            })
+            .collect();
+        orphans.sort();
+        for id in orphans {
+            let dir = runs_dir.join(&id);
+            if let Ok(mut info) = RunInfo::load(&dir)
+                && info.state == RunState::Running
+            {
+                hold_interrupted(&dir, &id, &mut info)?;
+            }
+            tracing::warn!(run = %id, "run {id} was missing from queue.json; queued again");
+            queue.push_back(id);
+        }
+        let service = Arc::new(Service {
+            runs_dir,
+            instrument_src,
+            instrument,
+            backend,
+            token,
+            shared: Mutex::new(Shared {
+                queue,
+                current: None,
+                laser_off: None,
+                live: Live::default(),
+                channels: HashMap::new(),
+                last_safe: None,
+                reading: None,
+                refresh: true,
+                admitting: 0,
+                held: Default::default(),
+                stale: Default::default(),
+                shutdown: false,
+            }),
+            wake: Condvar::new(),
+            exporting: Mutex::new(()),
+            devices: Mutex::new(()),
+        });
+        service.persist(&service.lock())?;
+        Ok(service)
+    }
+
+    /// Shuts down: the running run's laser off at once through its direct path, the
+    /// run paused at its next checkpoint (so it resumes after a restart), every event
+    /// stream ended, and the worker told to stop.
+    pub fn shutdown(&self) {
+        let mut s = self.lock();
+        s.shutdown = true;
+        if let Some((_, control)) = &s.current {
+            control.pause();
+        }
+        if let Some(off) = &s.laser_off
+            && let Err(e) = off.laser_off()
+        {
+            tracing::warn!(error = %e, "shutdown: direct laser off failed; the run switches it off at its checkpoint");
+        }
+        // Dropping the senders ends every event stream after what it has buffered.
+        s.channels.clear();
+        self.wake.notify_all();
+    }
+
+    /// The way to the devices (tests reach the simulated instrument through it:
+    /// `devices::sim::rig_of`).
+    pub fn backend(&self) -> &dyn DeviceBackend {
+        self.backend.as_ref()
+    }
+
+    /// Testing aid (fault injection): the running run panics at its next checkpoint
+    /// in `stage` (see [`Control::inject_panic`]). Returns whether a run was running.
+    /// Built only with the `test-hooks` feature.
+    #[cfg(feature = "test-hooks")]
+    pub fn inject_panic(&self, stage: crate::events::Stage) -> bool {
+        let s = self.lock();
+        s.current.as_ref().map(|(_, c)| c.inject_panic(stage)).is_some()
+    }
+
+    /// Testing aid (fault injection): the running run hangs at its next checkpoint in
+    /// `stage` for `duration` (see [`Control::inject_hang`]). Returns whether a run
+    /// was running. Built only with the `test-hooks` feature.
+    #[cfg(feature = "test-hooks")]
+    pub fn inject_hang(&self, stage: crate::events::Stage, duration: Duration) -> bool {
+        let s = self.lock();
+        s.current
+            .as_ref()
+            .map(|(_, c)| c.inject_hang(stage, duration))
+            .is_some()
+    }
+
+    fn lock(&self) -> MutexGuard<'_, Shared> {
+        self.shared.lock().unwrap_or_else(|p| p.into_inner())
+    }
+
+    /// The bearer token mutating requests must carry.
+    pub fn token(&self) -> Option<&str> {
+        self.token.as_deref()
+    }
+
+    /// The instrument config.
+    pub fn instrument(&self) -> &InstrumentConfig {
+        &self.instrument
+    }
+
+    /// The runs directory.
+    pub fn runs_dir(&self) -> &Path {
+        &self.runs_dir
+    }
+}
+
+/// A run state's name as the API spells it.
+pub fn state_name(s: RunState) -> &'static str {
+    match s {
+        RunState::Queued => "queued",
+        RunState::Running => "running",
+        RunState::Paused => "paused",
+        RunState::Completed => "completed",
+        RunState::Aborted => "aborted",
+        RunState::Failed => "failed",
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The service on the shipped simulated instrument, its runs in `runs`, no worker.
+    fn service(runs: &Path) -> Arc<Service> {
+        let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../configs/instrument/sim.toml");
+        let mut text = std::fs::read_to_string(&path).unwrap();
+        text.push_str(&format!("\n[api]\nruns-dir = \"{}\"\n", runs.display()));
+        Service::open(TomlSource::from_text(path, text), None).unwrap()
+    }
+
+    /// Run `id` as the pipeline leaves it when it stops at a checkpoint: its state
+    /// (`state`) written, still the worker's current run; the worker takes it back
+    /// after `delay`.
+    fn stopping(
+        svc: &Arc<Service>,
+        id: &str,
+        state: RunState,
+        delay: Duration,
+    ) -> std::thread::JoinHandle<()> {
+        svc.set_state(id, state, None).unwrap();
+        let control = Control::new();
+        svc.lock().current = Some((id.to_owned(), control));
+        let svc = Arc::clone(svc);
+        std::thread::spawn(move || {
+            std::thread::sleep(delay);
+            let mut s = svc.lock();
+            s.current = None;
+            svc.wake.notify_all();
+        })
+    }
+
+    #[test]
+    fn a_run_paused_at_its_checkpoint_resumes_and_aborts_while_the_worker_lets_it_go() {
+        let dir = tempfile::tempdir().unwrap();
+        let svc = service(dir.path());
+        let plan = include_str!("../../../tests/data/plans/small-fbp.toml");
+        let id = svc.submit(plan.to_owned()).unwrap().id;
+        // Resume in the gap: queued again, not refused as running.
+        let worker = stopping(&svc, &id, RunState::Paused, Duration::from_millis(100));
+        let st = svc.resume(&id).unwrap();
+        assert_eq!(st.state, RunState::Queued);
+        worker.join().unwrap();
+        // Abort in the gap: the paused run is aborted, not left paused.
+        let worker = stopping(&svc, &id, RunState::Paused, Duration::from_millis(100));
+        let st = svc.abort(&id).unwrap();
+        assert_eq!(st.state, RunState::Aborted);
+        worker.join().unwrap();
+        // A run still running is refused at once, whatever the worker does.
+        let id = svc.submit(plan.to_owned()).unwrap().id;
+        let worker = stopping(&svc, &id, RunState::Running, Duration::from_millis(300));
+        let t = Instant::now();
+        assert!(matches!(svc.resume(&id), Err(ServiceError::Conflict(_))));
+        assert!(t.elapsed() < Duration::from_millis(250));
+        worker.join().unwrap();
+    }
+}

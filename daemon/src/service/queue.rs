@@ -1,0 +1,323 @@
+//! The run queue: submitting and checking plans, listing runs, and the operator's
+//! pause, resume and abort. The queue's order is persisted in `RUNS_DIR/queue.json`
+//! after every change.
+use super::*;
+
+impl Service {
+    pub(super) fn persist(&self, s: &Shared) -> Result<(), ServiceError> {
+        let path = self.runs_dir.join(QUEUE_FILE);
+        let ids: Vec<&String> = s.queue.iter().collect();
+        write_atomic(
+            &path,
+            serde_json::to_string_pretty(&ids).expect("serialises").as_bytes(),
+        )
+        .map_err(ServiceError::storage(&path))
+    }
+
+    /// Writes queue.json after a request has already changed the queue and a run's
+    /// run.json: a failure is logged, not returned, because the change has been made
+    /// and holds (a client told "failed" would submit again and queue a duplicate).
+    /// The next start rebuilds what queue.json missed from the runs' own run.json
+    /// (queued and running runs missing from it are queued again).
+    pub(super) fn persist_after_change(&self, s: &Shared) {
+        if let Err(e) = self.persist(s) {
+            tracing::error!(
+                "{e}: the queue in memory is right, and the next start queues again the runs queue.json misses"
+            );
+        }
+    }
+
+    pub(super) fn dir(&self, id: &str) -> Result<PathBuf, ServiceError> {
+        let valid = !id.is_empty()
+            && id
+                .chars()
+                .all(|c| c.is_ascii_alphanumeric() || c == '-' || c == '_');
+        let dir = self.runs_dir.join(id);
+        if valid && RunDir::holds_run(&dir) {
+            Ok(dir)
+        } else {
+            Err(ServiceError::UnknownRun(id.to_owned()))
+        }
+    }
+
+    pub(super) fn info(&self, id: &str) -> Result<RunInfo, ServiceError> {
+        let dir = self.dir(id)?;
+        RunInfo::load(&dir).map_err(ServiceError::storage(dir.join(file::RUN)))
+    }
+
+    pub(super) fn set_state(
+        &self,
+        id: &str,
+        state: RunState,
+        error: Option<String>,
+    ) -> Result<(), ServiceError> {
+        let dir = self.dir(id)?;
+        let mut info = self.info(id)?;
+        info.state = state;
+        if error.is_some() {
+            info.error = error;
+        }
+        info.save(&dir)
+            .map_err(ServiceError::storage(dir.join(file::RUN)))
+    }
+
+    /// Validates a plan (TOML text) and queues it. Returns the new run's status.
+    pub fn submit(&self, text: String) -> Result<RunStatus, ServiceError> {
+        let src = TomlSource::from_text("request body", text);
+        let plan = Plan::from_source(&src, &self.instrument).map_err(ServiceError::InvalidPlan)?;
+        crate::budget::Budget::of_plan(&plan)
+            .check(&self.instrument.budget)
+            .map_err(ServiceError::OverBudget)?;
+        // A place in the queue is reserved before the run directory is made, so a
+        // flood of submissions never makes more directories than the queue takes.
+        {
+            let mut s = self.lock();
+            let max = self.instrument.api.max_queue;
+            if s.queue.len() + s.admitting >= max {
+                return Err(ServiceError::QueueFull(format!(
+                    "the queue holds {max} runs, the most this daemon keeps ([api] max-queue); \
+                     wait for runs to finish or abort queued ones"
+                )));
+            }
+            s.admitting += 1;
+        }
+        let admitted = self.admit(&src, &plan);
+        let mut s = self.lock();
+        s.admitting -= 1;
+        let id = admitted?;
+        s.queue.push_back(id.clone());
+        self.persist_after_change(&s);
+        self.wake.notify_all();
+        drop(s);
+        tracing::info!(run = %id, plan = %plan.name, "run queued");
+        self.status(&id)
+    }
+
+    /// Makes a submitted plan's run directory; returns its id.
+    pub(super) fn admit(&self, src: &TomlSource, plan: &Plan) -> Result<String, ServiceError> {
+        let dir = crate::run_dir::new_run_dir(&self.runs_dir, &plan.name)
+            .map_err(ServiceError::storage(&self.runs_dir))?;
+        let src = TomlSource::from_text(dir.join(file::PLAN), src.text().to_owned());
+        pipeline::prepare(&src, &self.instrument_src, Some(&dir)).map_err(|e| match e {
+            PipelineError::Config(c) => ServiceError::InvalidPlan(c),
+            other => ServiceError::Prepare(other),
+        })?;
+        Ok(dir
+            .file_name()
+            .map(|n| n.to_string_lossy().into_owned())
+            .unwrap_or_default())
+    }
+
+    /// Every run in the runs directory, oldest first.
+    pub fn list(&self) -> Result<Vec<RunStatus>, ServiceError> {
+        let mut ids: Vec<String> = std::fs::read_dir(&self.runs_dir)
+            .map_err(ServiceError::storage(&self.runs_dir))?
+            .filter_map(Result::ok)
+            .filter(|e| RunDir::holds_run(&e.path()))
+            .map(|e| e.file_name().to_string_lossy().into_owned())
+            .collect();
+        ids.sort();
+        Ok(ids.iter().filter_map(|id| self.status(id).ok()).collect())
+    }
+
+    /// One run's status: its run.json, live progress if it is running, its queue place.
+    pub fn status(&self, id: &str) -> Result<RunStatus, ServiceError> {
+        let dir = self.dir(id)?;
+        let info = self.info(id)?;
+        let s = self.lock();
+        let mut st = RunStatus {
+            id: info.id.clone(),
+            plan: info.plan.clone(),
+            state: info.state,
+            stage: info.stage.clone(),
+            pairs_total: info.pairs_total,
+            pairs_done: info.pairs_done,
+            progress: 0.0,
+            eta_s: None,
+            queue_position: None,
+            loss: None,
+            error: info.error.clone(),
+            timings: info.timings.clone(),
+            files: Vec::new(),
+        };
+        if s.current.as_ref().is_some_and(|(c, _)| c == id) && s.live.id == id {
+            let live = &s.live;
+            st.stage = live.stage.clone();
+            st.pairs_done = live.pairs_done.max(st.pairs_done);
+            st.pairs_total = live.pairs_total.max(st.pairs_total);
+            st.loss = live.loss;
+            if let Some((t0, done0)) = live.capture_started {
+                let rate =
+                    (live.pairs_done.saturating_sub(done0)) as f64 / t0.elapsed().as_secs_f64().max(1e-3);
+                if rate > 0.0 && live.stage == "capture" {
+                    st.eta_s = Some(live.pairs_total.saturating_sub(live.pairs_done) as f64 / rate);
+                }
+            }
+        }
+        if st.state == RunState::Queued {
+            st.queue_position = s
+                .queue
+                .iter()
+                .filter(|q| self.info(q).is_ok_and(|i| i.state == RunState::Queued))
+                .position(|q| q == id);
+        }
+        drop(s);
+        if st.pairs_total > 0 {
+            st.progress = (st.pairs_done as f64 / st.pairs_total as f64).min(1.0);
+        }
+        if st.state == RunState::Completed {
+            st.progress = 1.0;
+        }
+        st.files = crate::run_dir::DOWNLOADS
+            .iter()
+            .filter(|(name, _)| dir.join(name).is_file())
+            .map(|(name, _)| (*name).to_owned())
+            .collect();
+        Ok(st)
+    }
+
+    /// Asks the running run to pause at its next checkpoint.
+    pub fn pause(&self, id: &str) -> Result<RunStatus, ServiceError> {
+        {
+            let s = self.lock();
+            let info = self.info(id)?;
+            match &s.current {
+                Some((c, control)) if c == id => control.pause(),
+                _ => {
+                    return Err(ServiceError::Conflict(format!(
+                        "run {id} is {}, not running: only a running run can be paused",
+                        state_name(info.state)
+                    )));
+                }
+            }
+        }
+        self.status(id)
+    }
+
+    /// Queues a paused, failed or interrupted run again; it continues from its last
+    /// stored pair when the instrument is free.
+    pub fn resume(&self, id: &str) -> Result<RunStatus, ServiceError> {
+        // run.json is read under the lock: the worker and other requests change it
+        // under the same lock, so the state checked is the state changed.
+        let s = self.lock();
+        let mut s = self.await_hand_back(s, id);
+        let info = self.info(id)?;
+        if s.current.as_ref().is_some_and(|(c, _)| c == id) {
+            return Err(ServiceError::Conflict(format!(
+                "run {id} is running; there is nothing to resume"
+            )));
+        }
+        // A run an e-stop held whose run.json could not record the hold reads queued.
+        let held = s.held.remove(id);
+        let stale = s.stale.remove(id);
+        match info.state {
+            RunState::Paused | RunState::Failed => {}
+            RunState::Queued if held || stale => {}
+            RunState::Running if stale => {}
+            other => {
+                return Err(ServiceError::Conflict(format!(
+                    "run {id} is {}: only a paused or failed run can be resumed",
+                    state_name(other)
+                )));
+            }
+        }
+        self.set_state(id, RunState::Queued, None)?;
+        if !s.queue.iter().any(|q| q == id) {
+            s.queue.push_back(id.to_owned());
+        }
+        self.persist_after_change(&s);
+        self.wake.notify_all();
+        drop(s);
+        self.status(id)
+    }
+
+    /// Waits (at most [`HAND_BACK_WAIT`]) while run `id` is still the worker's current
+    /// run but has already written a final or paused state: the pipeline records its
+    /// state on its way out, before the worker takes the lock to let the run go. A
+    /// request in that gap saw the run `paused` in its status yet was refused as
+    /// running (resume), or was sent to a pipeline that had already stopped and lost
+    /// (abort).
+    pub(super) fn await_hand_back<'a>(
+        &'a self,
+        mut s: MutexGuard<'a, Shared>,
+        id: &str,
+    ) -> MutexGuard<'a, Shared> {
+        let deadline = Instant::now() + HAND_BACK_WAIT;
+        while s.current.as_ref().is_some_and(|(c, _)| c == id)
+            && self
+                .info(id)
+                .is_ok_and(|i| !matches!(i.state, RunState::Running | RunState::Queued))
+            && Instant::now() < deadline
+        {
+            s = self
+                .wake
+                .wait_timeout(s, Duration::from_millis(5))
+                .unwrap_or_else(|p| p.into_inner())
+                .0;
+        }
+        s
+    }
+
+    /// Aborts a run: a running one at its next checkpoint (the instrument is made safe
+    /// and what was captured is kept), a queued or paused one at once.
+    pub fn abort(&self, id: &str) -> Result<RunStatus, ServiceError> {
+        let s = self.lock();
+        // A run that has already stopped at a checkpoint would not see the request.
+        let mut s = self.await_hand_back(s, id);
+        let info = self.info(id)?;
+        if let Some((c, control)) = &s.current
+            && c == id
+        {
+            control.abort();
+            drop(s);
+            return self.status(id);
+        }
+        let stale = s.stale.contains(id);
+        match info.state {
+            RunState::Queued | RunState::Paused | RunState::Failed => {}
+            RunState::Running if stale => {}
+            other => {
+                return Err(ServiceError::Conflict(format!(
+                    "run {id} is {}; there is nothing to abort",
+                    state_name(other)
+                )));
+            }
+        }
+        self.set_state(
+            id,
+            RunState::Aborted,
+            Some("aborted by the operator before it ran again".into()),
+        )?;
+        s.held.remove(id);
+        s.stale.remove(id);
+        s.queue.retain(|q| q != id);
+        // Its event stream (clients waiting for it to start) ends here.
+        s.channels.remove(id);
+        self.persist_after_change(&s);
+        drop(s);
+        self.status(id)
+    }
+
+    /// What `periscope check` says about a plan (TOML text), as JSON-ready data; an
+    /// invalid plan is refused with the same message `submit` would give.
+    pub fn check(&self, text: String) -> Result<crate::check::Check, ServiceError> {
+        let src = TomlSource::from_text("request body", text);
+        let plan = Plan::from_source(&src, &self.instrument).map_err(ServiceError::InvalidPlan)?;
+        Ok(crate::check::check(&plan, &self.instrument))
+    }
+}
+
+/// A run found `running` when the daemon starts was interrupted by its stop: it is
+/// held as paused (its data is intact) until an operator resumes it.
+pub(super) fn hold_interrupted(dir: &Path, id: &str, info: &mut RunInfo) -> Result<(), ServiceError> {
+    info.state = RunState::Paused;
+    info.error = Some(format!(
+        "interrupted: the daemon stopped during stage {}; POST /api/v1/runs/{id}/resume continues it",
+        info.stage
+    ));
+    info.save(dir).map_err(ServiceError::storage(dir.join(file::RUN)))
+}
+
+/// How long a resume or abort waits for a run that has stopped at its checkpoint to be
+/// handed back by the worker ([`Service::await_hand_back`]).
+pub(super) const HAND_BACK_WAIT: Duration = Duration::from_secs(5);

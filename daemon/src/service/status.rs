@@ -1,0 +1,263 @@
+//! What the service reports without touching the hardware: the worker's last reading
+//! of the devices, a run's relay and pair geometry for the 3-D view, run files for
+//! download, and event-stream subscriptions.
+use super::*;
+
+impl Service {
+    /// The instrument's status, without touching the hardware: the worker's last
+    /// reading of the devices with its age (it reads them when it starts, after every
+    /// run and e-stop, and every `[api] status-interval-s` while idle), and the running
+    /// run's stage while one holds the instrument.
+    pub fn instrument_status(&self) -> InstrumentStatus {
+        let s = self.lock();
+        let (reading, devices, error) = match &s.reading {
+            Some(r) => {
+                let age = ReadingAge {
+                    taken_unix_s: r.unix_s,
+                    age_s: r.at.elapsed().as_secs_f64(),
+                };
+                match &r.devices {
+                    Ok(d) => (Some(age), Some(d.clone()), None),
+                    Err(e) => (Some(age), None, Some(e.clone())),
+                }
+            }
+            None => (None, None, None),
+        };
+        let run = s.current.as_ref().map(|(id, _)| RunStage {
+            id: id.clone(),
+            stage: s.live.stage.clone(),
+        });
+        InstrumentStatus {
+            name: self.instrument.name.clone(),
+            summary: self.instrument.summary(),
+            busy: run.is_some(),
+            note: run
+                .as_ref()
+                .map(|_| "the running run holds the devices; their live state is in its event stream"),
+            run,
+            devices,
+            reading,
+            error,
+            last_safe: s.last_safe.clone(),
+        }
+    }
+
+    /// Reads the devices (worker thread only: it owns the instrument between runs).
+    pub(super) fn take_reading(&self) {
+        let _devices = self.devices.lock().unwrap_or_else(|p| p.into_inner());
+        let devices = crate::devices::Devices::open(self.backend.as_ref(), &|| false)
+            .and_then(|mut d| d.report())
+            .map(|r| serde_json::to_value(r).unwrap_or_default())
+            .map_err(|e| e.to_string());
+        let unix_s = std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .map_or(0.0, |d| d.as_secs_f64());
+        self.lock().reading = Some(Reading {
+            at: Instant::now(),
+            unix_s,
+            devices,
+        });
+    }
+
+    /// A run file for download. `instrument.toml` is served with its secrets cut out
+    /// (runs stored before they were cut out at the source included); `capture.hdf5`
+    /// of a run that has not finished is exported from what is stored so far, once per
+    /// stored pair count, into a cache file beside the run; the rest stream from disk.
+    pub fn download(&self, id: &str, name: &str) -> Result<Download, ServiceError> {
+        let dir = self.dir(id)?;
+        let missing = |_| {
+            ServiceError::Conflict(format!(
+                "run {id} has no {name} (yet): outputs appear when the run completes"
+            ))
+        };
+        let path = dir.join(name);
+        if name == file::INSTRUMENT {
+            let text = crate::store::read_text_capped(&path, 1 << 20).map_err(missing)?;
+            return Ok(Download::Bytes(crate::config::redact_secrets(&text).into_bytes()));
+        }
+        if !path.is_file() && name == crate::ytal::CAPTURE_FILE {
+            return self.export_capture(id, &dir);
+        }
+        let file = std::fs::File::open(&path).map_err(missing)?;
+        let len = file.metadata().map_err(missing)?.len();
+        Ok(Download::File(file, len))
+    }
+
+    pub(super) fn export_capture(&self, id: &str, dir: &Path) -> Result<Download, ServiceError> {
+        // One export at a time: concurrent requests wait for it and share its file.
+        let _one = self.exporting.lock().unwrap_or_else(|p| p.into_inner());
+        let done = RunInfo::load(dir).map(|i| i.pairs_done).unwrap_or(0);
+        let records = std::fs::metadata(dir.join(crate::store::HISTOGRAM_LOG)).map_or(0, |m| m.len());
+        let cache = dir.join(file::EXPORT_CACHE);
+        let stamp = dir.join(format!("{}.stamp", file::EXPORT_CACHE));
+        let key = format!("{done} {records}");
+        let fresh = std::fs::read_to_string(&stamp).is_ok_and(|k| k == key) && cache.is_file();
+        if !fresh {
+            let not_yet = |e: &dyn std::fmt::Display| {
+                ServiceError::Conflict(format!("run {id} has no capture to export yet: {e}"))
+            };
+            let capture = crate::capture::RunCapture::load(dir)
+                .map_err(|e| not_yet(&e))?
+                .to_ytal()
+                .map_err(|e| not_yet(&e))?;
+            capture.write(&cache).map_err(|source| ServiceError::Export {
+                id: id.to_owned(),
+                source,
+            })?;
+            write_atomic(&stamp, key.as_bytes()).map_err(ServiceError::storage(&stamp))?;
+        }
+        let file = std::fs::File::open(&cache).map_err(ServiceError::storage(&cache))?;
+        let len = file.metadata().map_err(ServiceError::storage(&cache))?.len();
+        Ok(Download::File(file, len))
+    }
+
+    /// A run's geometry for 3-D views: the relay points the LOS scan kept, the planned
+    /// illumination and detection points (each thinned to at most [`GEOMETRY_POINTS`]),
+    /// the reconstruction volume and the instrument's viewpoint, in metres. Parts the
+    /// run has not made yet are empty.
+    pub fn geometry(&self, id: &str) -> Result<Geometry, ServiceError> {
+        let dir = self.dir(id)?;
+        let storage = ServiceError::RunFiles;
+        let run = RunDir::new(&dir);
+        let (_, plan, inst) = run.load().map_err(storage)?;
+        let relay: Vec<[f64; 3]> = run
+            .relay()
+            .map_err(storage)?
+            .unwrap_or_default()
+            .iter()
+            .map(|p| p.x.to_array())
+            .collect();
+        let pairs = run.planned_pairs().map_err(storage)?.unwrap_or_default();
+        let unique = |pick: fn(&crate::plan::PlannedPair) -> glam::DVec3| {
+            let mut seen = std::collections::HashSet::new();
+            let points: Vec<[f64; 3]> = pairs
+                .iter()
+                .map(pick)
+                .filter(|p| seen.insert(p.to_array().map(f64::to_bits)))
+                .map(|p| p.to_array())
+                .collect();
+            thin(points)
+        };
+        let v = &plan.recon.volume;
+        let viewpoint = 0.5 * (inst.laser_arm.pose.origin + inst.spad_arm.pose.origin);
+        Ok(Geometry {
+            relay: thin(relay),
+            illumination: unique(|p| p.xi),
+            detection: unique(|p| p.xd),
+            pairs: pairs.len(),
+            volume: VolumeBox {
+                x: v.x,
+                y: v.y,
+                z: v.z,
+            },
+            viewpoint: viewpoint.to_array(),
+        })
+    }
+
+    /// Subscribes to a run's events: a running run's, or a queued or paused one's from
+    /// when it (re)starts. `None` when the run has finished (its past events are in
+    /// `events.jsonl`). The stream ends when the run stops.
+    pub fn subscribe(&self, id: &str) -> Result<Option<broadcast::Receiver<StreamEvent>>, ServiceError> {
+        self.dir(id)?;
+        let mut s = self.lock();
+        let waiting = s.current.as_ref().is_some_and(|(c, _)| c == id) || s.queue.iter().any(|q| q == id);
+        if !waiting || s.shutdown {
+            return Ok(None);
+        }
+        Ok(Some(
+            s.channels
+                .entry(id.to_owned())
+                .or_insert_with(|| broadcast::channel(EVENT_BUFFER).0)
+                .subscribe(),
+        ))
+    }
+}
+
+/// The most points of each kind [`Service::geometry`] returns.
+pub const GEOMETRY_POINTS: usize = 20_000;
+
+/// Every k-th point, so at most [`GEOMETRY_POINTS`] remain, rounded to 0.1 mm.
+pub(super) fn thin(points: Vec<[f64; 3]>) -> Vec<[f64; 3]> {
+    let step = points.len().div_ceil(GEOMETRY_POINTS).max(1);
+    points
+        .into_iter()
+        .step_by(step)
+        .map(|p| p.map(|c| (c * 1e4).round() / 1e4))
+        .collect()
+}
+
+/// What `GET /api/v1/instrument` reports: the worker's last reading of the devices,
+/// never a fresh one.
+#[derive(Clone, Debug, Serialize, ToSchema)]
+pub struct InstrumentStatus {
+    /// The instrument config's name.
+    pub name: String,
+    /// One line on the instrument config.
+    pub summary: String,
+    /// Whether a run holds the instrument.
+    pub busy: bool,
+    /// The run holding the instrument, and its stage.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub run: Option<RunStage>,
+    /// Where to look for the devices' live state while a run holds them.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub note: Option<&'static str>,
+    /// The last reading of the devices, as `periscope devices --json` prints it
+    /// (`null` until one succeeded).
+    #[schema(value_type = Option<Object>)]
+    pub devices: Option<serde_json::Value>,
+    /// When that reading was taken (`null`: none yet).
+    pub reading: Option<ReadingAge>,
+    /// Why the last reading failed, if it did.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub error: Option<String>,
+    /// The last time the instrument was made safe, and by what.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub last_safe: Option<String>,
+}
+
+/// A run and its stage.
+#[derive(Clone, Debug, Serialize, ToSchema)]
+pub struct RunStage {
+    /// Run id.
+    pub id: String,
+    /// Its current stage.
+    pub stage: String,
+}
+
+/// When a device reading was taken.
+#[derive(Clone, Copy, Debug, Serialize, ToSchema)]
+pub struct ReadingAge {
+    /// Unix time of the reading, seconds.
+    pub taken_unix_s: f64,
+    /// Its age, seconds.
+    pub age_s: f64,
+}
+
+/// A run's geometry for 3-D views, metres, world frame.
+#[derive(Clone, Debug, Serialize, ToSchema)]
+pub struct Geometry {
+    /// Relay points of the LOS scan (thinned).
+    pub relay: Vec<[f64; 3]>,
+    /// Planned illumination points, each once (thinned).
+    pub illumination: Vec<[f64; 3]>,
+    /// Planned detection points, each once (thinned).
+    pub detection: Vec<[f64; 3]>,
+    /// Planned pairs.
+    pub pairs: usize,
+    /// The reconstruction volume.
+    pub volume: VolumeBox,
+    /// Midway between the two galvo pairs.
+    pub viewpoint: [f64; 3],
+}
+
+/// An axis-aligned box, metres.
+#[derive(Clone, Copy, Debug, Serialize, ToSchema)]
+pub struct VolumeBox {
+    /// x range.
+    pub x: [f64; 2],
+    /// y range.
+    pub y: [f64; 2],
+    /// z range.
+    pub z: [f64; 2],
+}

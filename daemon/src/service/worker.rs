@@ -1,0 +1,243 @@
+//! The worker thread: it owns the instrument between runs, runs queued plans one at a
+//! time, reads the devices while idle, and forwards each run's events to its stream
+//! clients.
+use super::*;
+
+impl Service {
+    /// Starts the worker thread that runs queued plans, one at a time.
+    pub fn start_worker(self: &Arc<Self>) -> std::thread::JoinHandle<()> {
+        let me = Arc::clone(self);
+        std::thread::Builder::new()
+            .name("instrument".into())
+            .spawn(move || me.worker())
+            .expect("the worker thread starts")
+    }
+
+    pub(super) fn worker(self: Arc<Self>) {
+        loop {
+            let (id, control) = {
+                let mut s = self.lock();
+                loop {
+                    if s.shutdown {
+                        return;
+                    }
+                    let next = s
+                        .queue
+                        .iter()
+                        .filter(|q| !s.held.contains(*q))
+                        .find(|q| self.info(q).is_ok_and(|i| i.state == RunState::Queued))
+                        .cloned();
+                    let Some(id) = next else {
+                        let interval = self.instrument.api.status_interval;
+                        let stale = s.reading.as_ref().is_none_or(|r| r.at.elapsed() >= interval);
+                        if s.refresh || stale {
+                            s.refresh = false;
+                            drop(s);
+                            self.take_reading();
+                            s = self.lock();
+                        } else {
+                            let wait = s
+                                .reading
+                                .as_ref()
+                                .map_or(interval, |r| interval.saturating_sub(r.at.elapsed()));
+                            s = self
+                                .wake
+                                .wait_timeout(s, wait.max(Duration::from_millis(10)))
+                                .unwrap_or_else(|p| p.into_inner())
+                                .0;
+                        }
+                        continue;
+                    };
+                    let control = Control::new();
+                    s.current = Some((id.clone(), control.clone()));
+                    s.live = Live {
+                        id: id.clone(),
+                        stage: "starting".into(),
+                        ..Live::default()
+                    };
+                    s.channels
+                        .entry(id.clone())
+                        .or_insert_with(|| broadcast::channel(EVENT_BUFFER).0);
+                    break (id, control);
+                }
+            };
+            tracing::info!(run = %id, "run starting");
+            // The pipeline catches its own panics; this catches the rest (the worker's
+            // own code), so a bug never freezes the queue or strands the e-stop.
+            let result = match std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+                self.execute(&id, control.clone())
+            })) {
+                Ok(r) => r,
+                Err(payload) => {
+                    let e = PipelineError::Panicked {
+                        stage: "worker",
+                        message: pipeline::panic_message(payload.as_ref()),
+                    };
+                    self.lock().laser_off = None;
+                    if let Err(off) = self.laser_controller_off() {
+                        tracing::error!("after a panic, the laser controller could not be reached: {off}");
+                    }
+                    if let Err(park) = self.park_spad() {
+                        tracing::error!("after a panic, the SPAD arm could not be parked: {park}");
+                    }
+                    let dir = self.runs_dir.join(&id);
+                    if let Ok(mut info) = RunInfo::load(&dir) {
+                        info.state = RunState::Failed;
+                        info.error = Some(e.to_string());
+                        let _ = info.save(&dir);
+                    }
+                    Err(e)
+                }
+            };
+            let stale = result.as_ref().is_err_and(|e| self.record_unrecorded_end(&id, e));
+            let mut s = self.lock();
+            if stale {
+                s.stale.insert(id.clone());
+            }
+            s.current = None;
+            s.laser_off = None;
+            s.refresh = true;
+            s.channels.remove(&id);
+            match &result {
+                Ok(()) | Err(PipelineError::Aborted(_)) => {
+                    s.queue.retain(|q| q != &id);
+                    match control.made_safe() {
+                        Some(Ok(())) => {
+                            s.last_safe = Some(format!("laser off, arms parked (end of run {id})"))
+                        }
+                        Some(Err(e)) => {
+                            tracing::error!(run = %id, "the run could not make the instrument safe: {e}")
+                        }
+                        None => {}
+                    }
+                }
+                // Paused or suspended: resumable, it keeps its place.
+                Err(PipelineError::Paused(_) | PipelineError::Suspended { .. }) => {}
+                Err(_) => {
+                    s.queue.retain(|q| q != &id);
+                }
+            }
+            if let Err(e) = self.persist(&s) {
+                tracing::error!("{e}");
+            }
+            self.wake.notify_all();
+            drop(s);
+            match result {
+                Ok(()) => tracing::info!(run = %id, "run completed"),
+                Err(e) => tracing::warn!(run = %id, "run stopped: {e}"),
+            }
+        }
+    }
+
+    /// After a run stopped with `e` (worker thread, the run still current so nothing
+    /// else writes its run.json): if its run.json still says queued or running, the
+    /// pipeline could not record its end (the store refused, or it failed before it
+    /// could), so it is recorded here as failed, resumable, with the error, rather
+    /// than left looking queued or running with nothing working on it. Returns
+    /// whether it still reads so (the store refused this too).
+    pub(super) fn record_unrecorded_end(&self, id: &str, e: &PipelineError) -> bool {
+        let dir = self.runs_dir.join(id);
+        match RunInfo::load(&dir) {
+            Ok(mut info) if matches!(info.state, RunState::Queued | RunState::Running) => {
+                info.state = RunState::Failed;
+                info.error = Some(e.to_string());
+                if let Err(io) = info.save(&dir) {
+                    tracing::error!(run = %id, "could not record the run's end ({e}) in {}: {io}", dir.display());
+                    return true;
+                }
+                false
+            }
+            Ok(_) => false,
+            Err(io) => {
+                tracing::error!(run = %id, "could not read {}: {io}", dir.display());
+                false
+            }
+        }
+    }
+
+    pub(super) fn execute(self: &Arc<Self>, id: &str, control: Control) -> Result<(), PipelineError> {
+        let dir = self.runs_dir.join(id);
+        let events = EventSink::open(&dir).map_err(|e| PipelineError::Storage {
+            path: dir.clone(),
+            source: e,
+        })?;
+        let me = Arc::clone(self);
+        let run_id = id.to_owned();
+        let mut last_sent = [Instant::now() - PAIR_EVENT_INTERVAL; 2];
+        events.listen(move |ev| me.on_event(&run_id, ev, &mut last_sent));
+        // Run::open records a run that never started (paused, aborted or failed,
+        // resumable) itself.
+        let run = Run::open(&dir, control, Some(events), Some(self.backend.as_ref()))?;
+        self.lock().laser_off = Some(run.emergency_off());
+        run.execute().map(|_| ())
+    }
+
+    pub(super) fn on_event(&self, id: &str, ev: &RunEvent, last_sent: &mut [Instant; 2]) {
+        let mut s = self.lock();
+        if s.live.id == id {
+            let live = &mut s.live;
+            match ev {
+                RunEvent::StageStarted { stage } => {
+                    live.stage = stage.name().into();
+                    if stage.name() == "capture" {
+                        live.capture_started = Some((Instant::now(), live.pairs_done));
+                    }
+                }
+                RunEvent::Planned { pairs, .. } => live.pairs_total = *pairs,
+                RunEvent::Pair { done, total, .. } => {
+                    live.pairs_done = *done;
+                    live.pairs_total = *total;
+                    if live.capture_started.is_none() {
+                        live.capture_started = Some((Instant::now(), *done));
+                    }
+                }
+                RunEvent::Train(t) => {
+                    if let Some(loss) = train_loss(t) {
+                        live.loss = Some(loss);
+                    }
+                }
+                _ => {}
+            }
+        }
+        let Some(tx) = s.channels.get(id) else {
+            return;
+        };
+        if tx.receiver_count() == 0 {
+            return;
+        }
+        // Per-pair and per-LOS-point progress is forwarded at a display rate (and the
+        // last one always), so clients cost the capture nothing measurable.
+        // Histograms likewise, on their own clock (each forwarded one is the newest).
+        let progress = match ev {
+            RunEvent::Pair { done, total, .. } | RunEvent::LosPoint { done, total } => {
+                Some((0, done == total))
+            }
+            RunEvent::Histogram { .. } => Some((1, false)),
+            _ => None,
+        };
+        if let Some((clock, last)) = progress {
+            if !last && last_sent[clock].elapsed() < PAIR_EVENT_INTERVAL {
+                return;
+            }
+            last_sent[clock] = Instant::now();
+        }
+        let value = serde_json::to_value(ev).unwrap_or_default();
+        let name = event_name(&value);
+        // A send fails only when no client listens; that is fine.
+        let _ = tx.send(StreamEvent {
+            name,
+            json: value.to_string().into(),
+        });
+    }
+}
+
+pub(super) fn train_loss(t: &periscope_recon::gtr::TrainEvent) -> Option<f64> {
+    match t {
+        periscope_recon::gtr::TrainEvent::Epoch { loss, .. } => Some(*loss),
+        _ => None,
+    }
+}
+
+pub(super) fn event_name(v: &serde_json::Value) -> Arc<str> {
+    v.get("event").and_then(|e| e.as_str()).unwrap_or("event").into()
+}
