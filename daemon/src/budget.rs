@@ -24,25 +24,8 @@ use crate::plan::{Method, Plan};
 /// Bytes in a GiB.
 const GIB: f64 = (1u64 << 30) as f64;
 
-/// Memory and disk limits for one run, from the instrument config's `[budget]` table.
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub struct Limits {
-    /// Most memory one run may need, bytes.
-    pub memory: u64,
-    /// Most disk one run may write, bytes.
-    pub disk: u64,
-}
-
-impl Default for Limits {
-    /// 16 GiB of memory (two thirds of a 24 GiB machine, leaving the daemon, the OS and
-    /// the page cache room) and 64 GiB of disk per run.
-    fn default() -> Limits {
-        Limits {
-            memory: 16 << 30,
-            disk: 64 << 30,
-        }
-    }
-}
+/// Memory and disk limits for one run: the instrument config's `[budget]` table.
+pub use crate::config::BudgetLimits as Limits;
 
 /// One line of the estimate.
 #[derive(Clone, Debug, PartialEq)]

@@ -90,7 +90,7 @@ pub struct InstrumentConfig {
     /// The HTTP API (`periscope serve`).
     pub api: ApiSettings,
     /// Memory and disk one run may need (`[budget]`).
-    pub budget: crate::budget::Limits,
+    pub budget: BudgetLimits,
 }
 
 /// Settings of the HTTP API, from the optional `[api]` table. Its `Debug` output
@@ -234,15 +234,15 @@ struct RawBudget {
     disk_gib: Option<f64>,
 }
 
-fn budget_limits(check: &Check<'_>, raw: RawBudget) -> Result<crate::budget::Limits, ConfigError> {
-    let d = crate::budget::Limits::default();
+fn budget_limits(check: &Check<'_>, raw: RawBudget) -> Result<BudgetLimits, ConfigError> {
+    let d = BudgetLimits::default();
     let gib = |key: &str, v: Option<f64>, default: u64, max: f64| -> Result<u64, ConfigError> {
         match v {
             None => Ok(default),
             Some(g) => Ok((check.positive(key, g, max, "GiB")? * (1u64 << 30) as f64) as u64),
         }
     };
-    Ok(crate::budget::Limits {
+    Ok(BudgetLimits {
         memory: gib("budget.memory-gib", raw.memory_gib, d.memory, 65_536.0)?,
         disk: gib("budget.disk-gib", raw.disk_gib, d.disk, 1_048_576.0)?,
     })
@@ -865,6 +865,26 @@ fn tdc_settings(check: &Check<'_>, raw: RawTdc, hardware: bool) -> Result<TdcSet
         pile_up_correction: raw.pile_up_correction,
         usb,
     })
+}
+
+/// Memory and disk limits for one run, from the instrument config's `[budget]` table.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct BudgetLimits {
+    /// Most memory one run may need, bytes.
+    pub memory: u64,
+    /// Most disk one run may write, bytes.
+    pub disk: u64,
+}
+
+impl Default for BudgetLimits {
+    /// 16 GiB of memory (two thirds of a 24 GiB machine, leaving the daemon, the OS and
+    /// the page cache room) and 64 GiB of disk per run.
+    fn default() -> BudgetLimits {
+        BudgetLimits {
+            memory: 16 << 30,
+            disk: 64 << 30,
+        }
+    }
 }
 
 #[cfg(test)]
