@@ -22,21 +22,19 @@ use periscope_daemon::plan::PlannedPair;
 use periscope_daemon::store::read_log;
 use periscope_daemon::ytal::{FLAG_OVERFLOW, FLAG_SATURATED, YtalCapture};
 use periscope_sim::devices::{Fault, TdcFault};
-use periscope_tests::{accuracy, repo_path};
+use periscope_tests::{SmallPlan, accuracy, repo_path};
 
 /// The small FBP plan the other tests share, on a finer grid (16 × 16 pairs, 64 depth
 /// voxels), at `dwell` × `repeats` per pair.
 fn plan(dwell_ms: f64, repeats: u32, extra: &str) -> String {
-    std::fs::read_to_string(repo_path("tests/data/plans/small-fbp.toml"))
-        .unwrap()
-        .replace("grid = [12, 12]", "grid = [32, 32]")
-        .replace("grid = [8, 8]", "grid = [16, 16]")
-        .replace("shape = [32, 32, 16]", "shape = [32, 32, 64]")
-        .replace(
-            "[acquisition]\ndwell-ms = 20.0\n",
-            &format!("[acquisition]\ndwell-ms = {dwell_ms}\nrepeats = {repeats}\n"),
-        )
-        + extra
+    SmallPlan::default()
+        .set("los.grid", [32, 32])
+        .set("pairs.grid", [16, 16])
+        .set("recon.volume.shape", [32, 32, 64])
+        .set("acquisition.dwell-ms", dwell_ms)
+        .set("acquisition.repeats", repeats)
+        .with(extra)
+        .toml()
 }
 
 /// The shipped simulated instrument with `edit` applied to its text.

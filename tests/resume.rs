@@ -7,35 +7,20 @@ use std::time::{Duration, Instant};
 
 use periscope_daemon::run_dir::{RunInfo, RunState};
 use periscope_daemon::store::{HISTOGRAM_LOG, read_log};
-use periscope_tests::{periscope_bin, periscope_with_limit, repo_path, repo_root};
+use periscope_tests::{SmallPlan, periscope_bin, periscope_with_limit, repo_path, repo_root};
 
-const PLAN: &str = r#"
-name = "resume-test"
-[los]
-angles-deg = { x = [-12.0, 12.0], y = [-12.0, 12.0] }
-grid = [16, 16]
-dwell-ms = 1.0
-[relay]
-depth-m = [1.7, 3.0]
-detection = { min = [-0.4, -0.4, -0.1], max = [0.4, 0.4, 0.1] }
-[pairs]
-mode = "confocal"
-grid = [12, 12]
-offset-mm = 5.0
-[acquisition]
-dwell-ms = 25.0
-[recon]
-method = "gtr"
-[recon.volume]
-x = [-0.4, 0.4]
-y = [-0.4, 0.4]
-z = [0.3, 0.9]
-shape = [32, 32, 16]
-[recon.gtr]
-primitives = 300
-epochs = 2
-virtual-grid = [32, 32]
-"#;
+fn plan_toml() -> String {
+    SmallPlan::named("resume-test")
+        .set("los.grid", [16, 16])
+        .set("relay.neighbours", 16)
+        .set("pairs.grid", [12, 12])
+        .set("acquisition.dwell-ms", 25.0)
+        .set("recon.method", "gtr")
+        .set("recon.gtr.primitives", 300)
+        .set("recon.gtr.epochs", 2)
+        .set("recon.gtr.virtual-grid", [32, 32])
+        .toml()
+}
 
 /// The simulated instrument in real time (settling and dwell take their real
 /// duration), so the capture lasts long enough to be killed in the middle.
@@ -56,7 +41,7 @@ fn realtime_instrument(dir: &Path) -> std::path::PathBuf {
 fn a_killed_capture_resumes_without_losing_or_repeating_a_pair() {
     let tmp = tempfile::tempdir().unwrap();
     let plan = tmp.path().join("plan.toml");
-    std::fs::write(&plan, PLAN).unwrap();
+    std::fs::write(&plan, plan_toml()).unwrap();
     let instrument = realtime_instrument(tmp.path());
     let run = tmp.path().join("run");
     let mut child = Command::new(periscope_bin())

@@ -15,31 +15,18 @@ use std::time::{Duration, Instant};
 use periscope_daemon::config::{InstrumentConfig, TomlSource};
 use periscope_daemon::run_dir::{RunInfo, RunState};
 use periscope_sim::devices::{Arm, EmissionCause, Rig, ServedPort};
-use periscope_tests::{periscope_bin, repo_path, repo_root};
+use periscope_tests::{SmallPlan, periscope_bin, repo_path, repo_root};
 
 /// A long LOS scan (16 × 16 points of 50 ms, about 13 s): the laser is on throughout.
-const PLAN: &str = r#"
-name = "process-safety"
-[los]
-angles-deg = { x = [-12.0, 12.0], y = [-12.0, 12.0] }
-grid = [16, 16]
-dwell-ms = 50.0
-[relay]
-depth-m = [1.7, 3.0]
-detection = { min = [-0.4, -0.4, -0.1], max = [0.4, 0.4, 0.1] }
-[pairs]
-mode = "confocal"
-grid = [8, 8]
-[acquisition]
-dwell-ms = 20.0
-[recon]
-method = "fbp"
-[recon.volume]
-x = [-0.4, 0.4]
-y = [-0.4, 0.4]
-z = [0.3, 0.9]
-shape = [16, 16, 16]
-"#;
+fn plan_toml() -> String {
+    SmallPlan::named("process-safety")
+        .set("los.grid", [16, 16])
+        .set("los.dwell-ms", 50.0)
+        .set("relay.neighbours", 16)
+        .set("pairs.offset-mm", 0.0)
+        .set("recon.volume.shape", [16, 16, 16])
+        .toml()
+}
 
 /// The default controller watchdog.
 const WATCHDOG: Duration = Duration::from_millis(500);
@@ -82,7 +69,7 @@ fn bench(extra: impl FnOnce(&Path) -> String) -> Bench {
     );
     std::fs::write(&path, format!("{text}\n{extra}")).unwrap();
     let plan = dir.path().join("plan.toml");
-    std::fs::write(&plan, PLAN).unwrap();
+    std::fs::write(&plan, plan_toml()).unwrap();
     Bench {
         rig,
         _port: port,
@@ -355,12 +342,13 @@ fn sigterm_on_serve_with_ten_event_streams_exits_within_2_s_with_the_laser_off()
         .to_owned();
     std::thread::spawn(move || std::io::copy(&mut stderr, &mut std::io::sink()));
     // Submit the plan.
+    let plan = plan_toml();
     let mut s = TcpStream::connect(&addr).unwrap();
     write!(
         s,
         "POST /api/v1/runs HTTP/1.1\r\nHost: {addr}\r\nAuthorization: Bearer safety-token\r\n\
-         Content-Type: application/toml\r\nContent-Length: {}\r\nConnection: close\r\n\r\n{PLAN}",
-        PLAN.len()
+         Content-Type: application/toml\r\nContent-Length: {}\r\nConnection: close\r\n\r\n{plan}",
+        plan.len()
     )
     .unwrap();
     let mut reply = String::new();

@@ -24,36 +24,25 @@ use periscope_daemon::config::TomlSource;
 use periscope_daemon::service::Service;
 use serde_json::Value;
 
+// The plan the tests share (the end-to-end crate's `SmallPlan`).
+#[allow(dead_code, unreachable_pub)]
+#[path = "../../tests/support/plan.rs"]
+mod small_plan;
+use small_plan::SmallPlan;
+
 const TOKEN: &str = "bench-token-0123456789abcdef";
 const CLIENTS: usize = 50;
 /// The plan's pairs: a 48 × 48 confocal grid.
 const PAIRS: u64 = 48 * 48;
 
-const PLAN: &str = r#"
-name = "api-bench"
-[los]
-angles-deg = { x = [-12.0, 12.0], y = [-12.0, 12.0] }
-grid = [16, 16]
-dwell-ms = 1.0
-[relay]
-depth-m = [1.7, 3.0]
-min-intensity = 0.05
-neighbours = 8
-detection = { min = [-0.4, -0.4, -0.1], max = [0.4, 0.4, 0.1] }
-[pairs]
-mode = "confocal"
-grid = [48, 48]
-offset-mm = 5.0
-[acquisition]
-dwell-ms = 20.0
-[recon]
-method = "fbp"
-[recon.volume]
-x = [-0.4, 0.4]
-y = [-0.4, 0.4]
-z = [0.3, 0.9]
-shape = [16, 16, 8]
-"#;
+/// The shared small plan on a 16 × 16 LOS grid and 48 × 48 pairs, FBP on a coarse volume.
+fn plan() -> String {
+    SmallPlan::named("api-bench")
+        .set("los.grid", [16, 16])
+        .set("pairs.grid", [48, 48])
+        .set("recon.volume.shape", [16, 16, 8])
+        .toml()
+}
 
 fn service(runs: &Path) -> Arc<Service> {
     let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../configs/instrument/sim.toml");
@@ -88,7 +77,7 @@ async fn round(clients: usize) -> Round {
             .post(format!("{base}/runs"))
             .bearer_auth(TOKEN)
             .header("content-type", "application/toml")
-            .body(PLAN)
+            .body(plan())
             .send()
             .await
             .unwrap()

@@ -22,32 +22,21 @@ use periscope_sim::devices::Rig;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
+// The plan the tests share (the end-to-end crate's `SmallPlan`).
+#[allow(dead_code, unreachable_pub)]
+#[path = "../../tests/support/plan.rs"]
+mod small_plan;
+use small_plan::SmallPlan;
+
 fn plan(los_dwell_ms: f64, pair_dwell_ms: f64) -> String {
-    format!(
-        r#"
-name = "estop-bench"
-[los]
-angles-deg = {{ x = [-12.0, 12.0], y = [-12.0, 12.0] }}
-grid = [6, 6]
-dwell-ms = {los_dwell_ms}
-[relay]
-depth-m = [1.7, 3.0]
-neighbours = 8
-detection = {{ min = [-0.4, -0.4, -0.1], max = [0.4, 0.4, 0.1] }}
-[pairs]
-mode = "confocal"
-grid = [3, 3]
-[acquisition]
-dwell-ms = {pair_dwell_ms}
-[recon]
-method = "fbp"
-[recon.volume]
-x = [-0.4, 0.4]
-y = [-0.4, 0.4]
-z = [0.3, 0.9]
-shape = [8, 8, 8]
-"#
-    )
+    SmallPlan::named("estop-bench")
+        .set("los.grid", [6, 6])
+        .set("los.dwell-ms", los_dwell_ms)
+        .set("pairs.grid", [3, 3])
+        .set("pairs.offset-mm", 0.0)
+        .set("acquisition.dwell-ms", pair_dwell_ms)
+        .set("recon.volume.shape", [8, 8, 8])
+        .toml()
 }
 
 fn service(runs: &Path) -> Arc<Service> {

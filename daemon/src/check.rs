@@ -160,19 +160,17 @@ pub fn check(plan: &Plan, inst: &InstrumentConfig) -> Check {
     let v = &rc.volume;
     let _ = writeln!(
         out,
-        "  reconstruction: {:?}{}, volume x [{:.2}, {:.2}] y [{:.2}, {:.2}] z [{:.2}, {:.2}] m on {}×{}×{} voxels",
-        rc.method,
-        if rc.method == Method::Gtr {
-            format!(
-                " (K = {}, {} epochs, virtual {} confocal grid, then {})",
+        "  reconstruction: {}, volume x [{:.2}, {:.2}] y [{:.2}, {:.2}] z [{:.2}, {:.2}] m on {}×{}×{} voxels",
+        match rc.method {
+            Method::Gtr => format!(
+                "Gtr (K = {}, {} epochs, virtual {} confocal grid, then {})",
                 rc.train.primitives,
                 rc.train.counted_epochs(pairs),
                 rc.virtual_resolution
                     .map_or("voxel-pitch".to_string(), |[nx, ny]| format!("{nx}×{ny}")),
                 rc.solver
-            )
-        } else {
-            String::new()
+            ),
+            Method::Solver(kind) => format!("{kind:?}"),
         },
         v.x[0],
         v.x[1],

@@ -13,6 +13,7 @@ use periscope_daemon::service::Service;
 use serde_json::Value;
 
 mod common;
+use common::SmallPlan;
 
 const TOKEN: &str = "test-token-0123456789abcdef";
 
@@ -218,7 +219,7 @@ async fn bad_requests_get_4xx_and_change_nothing() {
     );
     assert!(v["message"].as_str().unwrap().contains("request body:2"), "{v}");
     // A value out of range names its key.
-    let bad = PLAN.replace("dwell-ms = 20.0", "dwell-ms = -1.0");
+    let bad = SmallPlan::default().set("acquisition.dwell-ms", -1.0).toml();
     let (s, v) = call(&router, Method::POST, "/api/v1/runs", Some(TOKEN), &bad).await;
     assert_eq!(s, StatusCode::UNPROCESSABLE_ENTITY, "{v}");
     assert!(

@@ -9,7 +9,7 @@ use std::time::{Duration, Instant};
 
 use axum::body::Body;
 use axum::http::{Method, Request, StatusCode, header};
-use common::send;
+use common::{SmallPlan, send};
 use periscope_daemon::api::{AppState, app};
 use periscope_daemon::config::{TomlSource, redact_secrets};
 use periscope_daemon::service::Service;
@@ -234,12 +234,13 @@ async fn instrument_status_comes_from_the_worker_and_never_opens_a_device() {
 async fn plans_over_the_budget_get_422_naming_the_key_and_leave_nothing() {
     let dir = tempfile::tempdir().unwrap();
     let router = app(AppState::new(service(dir.path(), 0.0, "", "")));
-    let scanned = PLAN.replace(
-        "mode = \"confocal\"\ngrid = [8, 8]",
-        "mode = \"scanned\"\nlaser-grid = [512, 512]\ngrid = [512, 512]",
-    );
-    let huge_volume = PLAN.replace("shape = [32, 32, 16]", "shape = [1024, 1024, 1024]");
+    let scanned = SmallPlan::default()
+        .set("pairs.mode", "scanned")
+        .set("pairs.laser-grid", [512, 512])
+        .set("pairs.grid", [512, 512]);
+    let huge_volume = SmallPlan::default().set("recon.volume.shape", [1024, 1024, 1024]);
     for (plan, names) in [(scanned, "pairs"), (huge_volume, "recon.volume.shape")] {
+        let plan = plan.toml();
         let (s, v) = call(&router, Method::POST, "/api/v1/runs", true, &plan).await;
         assert_eq!(
             (s, v["error"].as_str()),
@@ -261,7 +262,9 @@ async fn plans_over_the_budget_get_422_naming_the_key_and_leave_nothing() {
         "",
         "[budget]\nmemory-gib = 200\n",
     )));
-    let big = PLAN.replace("shape = [32, 32, 16]", "shape = [512, 512, 512]");
+    let big = SmallPlan::default()
+        .set("recon.volume.shape", [512, 512, 512])
+        .toml();
     let (s, v) = call(&router, Method::POST, "/api/v1/runs", true, &big).await;
     assert_eq!(s, StatusCode::CREATED, "{v}");
 }
@@ -533,9 +536,10 @@ async fn a_submission_flood_gets_429_and_does_not_slow_the_capture() {
     let client = reqwest::Client::new();
     // Real time: up to 400 pairs × 20 ms ≈ 8 s of capture per run, longer than the
     // flood, so no flooded run starts (and leaves the queue) while it lasts.
-    let capture_plan = PLAN
-        .replace("grid = [8, 8]", "grid = [20, 20]")
-        .replace("grid = [12, 12]", "grid = [24, 24]");
+    let capture_plan = SmallPlan::default()
+        .set("los.grid", [24, 24])
+        .set("pairs.grid", [20, 20])
+        .toml();
     let submit = |plan: String| {
         let (client, base) = (client.clone(), base.clone());
         async move {

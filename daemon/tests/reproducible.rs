@@ -13,37 +13,24 @@ use periscope_daemon::events::{EventSink, RunEvent};
 use periscope_daemon::pipeline::{self, Control, Run};
 use periscope_recon::gtr::TrainEvent;
 
+mod common;
+use common::SmallPlan;
+
 /// A 12 × 12 confocal grid: the fit starts at 64 pairs and takes the rest in batches of
 /// 32 while the capture runs.
-const PLAN: &str = r#"
-name = "reproducible"
-[los]
-angles-deg = { x = [-12.0, 12.0], y = [-12.0, 12.0] }
-grid = [32, 32]
-dwell-ms = 1.0
-[relay]
-depth-m = [1.7, 3.0]
-neighbours = 8
-detection = { min = [-0.4, -0.4, -0.1], max = [0.4, 0.4, 0.1] }
-[pairs]
-mode = "confocal"
-grid = [12, 12]
-offset-mm = 5.0
-[acquisition]
-dwell-ms = 5.0
-[recon]
-method = "gtr"
-solver = "fbp"
-[recon.volume]
-x = [-0.4, 0.4]
-y = [-0.4, 0.4]
-z = [0.3, 0.9]
-shape = [16, 16, 16]
-[recon.gtr]
-primitives = 300
-epochs = 4
-virtual-grid = [16, 16]
-"#;
+fn plan() -> String {
+    SmallPlan::named("reproducible")
+        .set("los.grid", [32, 32])
+        .set("pairs.grid", [12, 12])
+        .set("acquisition.dwell-ms", 5.0)
+        .set("recon.method", "gtr")
+        .set("recon.solver", "fbp")
+        .set("recon.volume.shape", [16, 16, 16])
+        .set("recon.gtr.primitives", 300)
+        .set("recon.gtr.epochs", 4)
+        .set("recon.gtr.virtual-grid", [16, 16])
+        .toml()
+}
 
 fn root() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("..")
@@ -66,7 +53,7 @@ fn run_on(tmp: &Path, name: &str, pause: Duration, devices: &str) -> (PathBuf, u
     let rig = periscope_daemon::devices::sim::SimBackend::from_config(&config)
         .unwrap()
         .unwrap();
-    let plan = TomlSource::from_text(tmp.join("plan.toml"), PLAN);
+    let plan = TomlSource::from_text(tmp.join("plan.toml"), plan());
     let (dir, _, _) = pipeline::prepare(&plan, &src, Some(&tmp.join(name))).unwrap();
     let events = EventSink::open(&dir).unwrap();
     let live = Arc::new(AtomicUsize::new(0));

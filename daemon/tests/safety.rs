@@ -18,6 +18,9 @@ use periscope_daemon::store::read_log;
 use periscope_drivers::galvo::EmergencyOff;
 use periscope_sim::devices::{EmissionCause, Rig};
 
+mod common;
+use common::SmallPlan;
+
 /// The bound on how long emission may outlast a pause, abort or e-stop (the
 /// issue's, for the simulator).
 const EMISSION_BOUND: Duration = Duration::from_millis(50);
@@ -27,34 +30,19 @@ const EMISSION_BOUND: Duration = Duration::from_millis(50);
 const TRAINER_BOUND: Duration = Duration::from_secs(2);
 
 /// Small and real-time: 64 LOS points of 10 ms, 25 pairs of 30 ms, a tiny fit.
-const PLAN: &str = r#"
-name = "safety"
-[los]
-angles-deg = { x = [-12.0, 12.0], y = [-12.0, 12.0] }
-grid = [8, 8]
-dwell-ms = 10.0
-[relay]
-depth-m = [1.7, 3.0]
-neighbours = 8
-detection = { min = [-0.4, -0.4, -0.1], max = [0.4, 0.4, 0.1] }
-[pairs]
-mode = "confocal"
-grid = [5, 5]
-offset-mm = 5.0
-[acquisition]
-dwell-ms = 30.0
-[recon]
-method = "gtr"
-[recon.volume]
-x = [-0.4, 0.4]
-y = [-0.4, 0.4]
-z = [0.3, 0.9]
-shape = [16, 16, 16]
-[recon.gtr]
-primitives = 200
-epochs = 40
-virtual-grid = [16, 16]
-"#;
+fn plan() -> String {
+    SmallPlan::named("safety")
+        .set("los.grid", [8, 8])
+        .set("los.dwell-ms", 10.0)
+        .set("pairs.grid", [5, 5])
+        .set("acquisition.dwell-ms", 30.0)
+        .set("recon.method", "gtr")
+        .set("recon.volume.shape", [16, 16, 16])
+        .set("recon.gtr.primitives", 200)
+        .set("recon.gtr.epochs", 40)
+        .set("recon.gtr.virtual-grid", [16, 16])
+        .toml()
+}
 
 fn root() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("..")
@@ -167,7 +155,7 @@ fn run_case(stage: Stage, event: Event, devices: Devices) -> Outcome {
     // As the binary does at start.
     periscope_daemon::signals::install_panic_hook();
     let tmp = tempfile::tempdir().unwrap();
-    let (dir, rig) = prepare_on(tmp.path(), PLAN, devices);
+    let (dir, rig) = prepare_on(tmp.path(), &plan(), devices);
     let control = Control::new();
     let laser: Arc<OnceLock<EmergencyOff>> = Arc::new(OnceLock::new());
     let fired: Arc<Mutex<Option<Instant>>> = Arc::new(Mutex::new(None));
@@ -387,7 +375,7 @@ fn a_paused_and_a_panicked_capture_resume_with_every_pair_once() {
     periscope_daemon::signals::install_panic_hook();
     for panic in [false, true] {
         let tmp = tempfile::tempdir().unwrap();
-        let (dir, rig) = prepare(tmp.path(), PLAN);
+        let (dir, rig) = prepare(tmp.path(), &plan());
         let control = Control::new();
         let c = control.clone();
         let r = execute(&dir, &rig, control, move |done| {
@@ -417,7 +405,7 @@ fn a_paused_and_a_panicked_capture_resume_with_every_pair_once() {
 fn a_histogrammer_unplugged_for_good_fails_the_capture_keeps_its_pairs_and_resumes_once_back() {
     let _serial = ONE_AT_A_TIME.lock().unwrap_or_else(|p| p.into_inner());
     let tmp = tempfile::tempdir().unwrap();
-    let (dir, rig) = prepare(tmp.path(), PLAN);
+    let (dir, rig) = prepare(tmp.path(), &plan());
     let r2 = rig.clone();
     let r = execute(&dir, &rig, Control::new(), move |done| {
         if done == 8 {
@@ -464,7 +452,7 @@ fn a_record_damaged_in_the_middle_of_the_log_is_measured_again_and_the_rest_kept
     use periscope_daemon::store::{DAMAGED_LOG, HISTOGRAM_LOG};
     let _serial = ONE_AT_A_TIME.lock().unwrap_or_else(|p| p.into_inner());
     let tmp = tempfile::tempdir().unwrap();
-    let (dir, rig) = prepare(tmp.path(), PLAN);
+    let (dir, rig) = prepare(tmp.path(), &plan());
     let control = Control::new();
     let c = control.clone();
     let r = execute(&dir, &rig, control, move |done| {
@@ -501,7 +489,7 @@ fn a_record_damaged_in_the_middle_of_the_log_is_measured_again_and_the_rest_kept
 
 /// The plan with a `[suspend]` table.
 fn plan_with(suspend: &str) -> String {
-    format!("{PLAN}\n[suspend]\n{suspend}\n")
+    format!("{}\n[suspend]\n{suspend}\n", plan())
 }
 
 #[test]
@@ -661,7 +649,7 @@ fn an_idle_estop_reaches_the_laser_with_the_tdc_unplugged_and_the_disk_refusing_
     let rig = rig_of(svc.backend()).unwrap().clone();
     // A queued run whose run.json cannot be rewritten (the disk refuses writes in its
     // directory), so holding it fails.
-    let queued = svc.submit(PLAN.to_owned()).unwrap().id;
+    let queued = svc.submit(plan()).unwrap().id;
     let _refused = periscope_daemon::store::refuse_writes_in(&runs.path().join(&queued));
     // The laser left on by something else, and the histogrammer unplugged.
     let mut link = rig.galvo_connector(Arm::Laser).connect().unwrap();
@@ -714,8 +702,8 @@ fn a_panicking_run_fails_resumably_and_the_queue_goes_on() {
     let svc = service(runs.path());
     let worker = svc.start_worker();
     let rig = rig_of(svc.backend()).unwrap().clone();
-    let a = svc.submit(PLAN.to_owned()).unwrap().id;
-    let b = svc.submit(PLAN.to_owned()).unwrap().id;
+    let a = svc.submit(plan()).unwrap().id;
+    let b = svc.submit(plan()).unwrap().id;
     let start = Instant::now();
     wait_capturing(&svc, &a, &rig);
     let t = Instant::now();
@@ -753,7 +741,7 @@ fn an_estop_reaches_the_laser_and_parks_while_the_worker_hangs() {
     let (_serial, _runs, svc) = fresh_service();
     let worker = svc.start_worker();
     let rig = rig_of(svc.backend()).unwrap().clone();
-    let a = svc.submit(PLAN.to_owned()).unwrap().id;
+    let a = svc.submit(plan()).unwrap().id;
     let start = Instant::now();
     wait_capturing(&svc, &a, &rig);
     // The worker gets stuck at its next checkpoint for 4 s, with the laser on.
@@ -808,7 +796,7 @@ fn a_worker_stuck_with_the_laser_on_loses_it_to_the_watchdog_without_an_estop() 
             .unwrap();
     let worker = svc.start_worker();
     let rig = rig_of(svc.backend()).unwrap().clone();
-    let a = svc.submit(PLAN.to_owned()).unwrap().id;
+    let a = svc.submit(plan()).unwrap().id;
     wait_capturing(&svc, &a, &rig);
     // Stuck at its next checkpoint for 4 s, with the laser on.
     let t = Instant::now();
@@ -853,7 +841,7 @@ fn an_estop_does_not_take_a_failed_make_safe_for_parked() {
     let (_serial, _runs, svc) = fresh_service();
     let worker = svc.start_worker();
     let rig = rig_of(svc.backend()).unwrap().clone();
-    let a = svc.submit(PLAN.to_owned()).unwrap().id;
+    let a = svc.submit(plan()).unwrap().id;
     wait_capturing(&svc, &a, &rig);
     rig.inject(Fault::Galvo(
         Arm::Spad,
@@ -886,7 +874,7 @@ fn an_estop_does_not_take_a_failed_make_safe_for_parked() {
 #[test]
 fn a_run_that_cannot_start_is_recorded_failed_not_left_queued() {
     let (_serial, runs, svc) = fresh_service();
-    let a = svc.submit(PLAN.to_owned()).unwrap().id;
+    let a = svc.submit(plan()).unwrap().id;
     std::fs::write(runs.path().join(&a).join("plan.toml"), "[los\n").unwrap();
     let worker = svc.start_worker();
     let start = Instant::now();
@@ -914,7 +902,7 @@ fn a_run_that_cannot_start_is_recorded_failed_not_left_queued() {
 fn a_submission_the_queue_file_misses_is_queued_and_survives_a_restart() {
     let (_serial, runs, svc) = fresh_service();
     let refused = periscope_daemon::store::refuse_writes_in(runs.path());
-    let status = svc.submit(PLAN.to_owned()).unwrap();
+    let status = svc.submit(plan()).unwrap();
     assert_eq!(status.state, RunState::Queued);
     assert_eq!(status.queue_position, Some(0));
     let listed = std::fs::read_to_string(runs.path().join("queue.json")).unwrap();
@@ -933,7 +921,7 @@ fn a_submission_the_queue_file_misses_is_queued_and_survives_a_restart() {
 #[test]
 fn a_run_whose_end_could_not_be_recorded_can_be_resumed() {
     let (_serial, runs, svc) = fresh_service();
-    let a = svc.submit(PLAN.to_owned()).unwrap().id;
+    let a = svc.submit(plan()).unwrap().id;
     let refused = periscope_daemon::store::refuse_writes_in(&runs.path().join(&a));
     let worker = svc.start_worker();
     let start = Instant::now();
@@ -953,7 +941,7 @@ fn a_run_whose_end_could_not_be_recorded_can_be_resumed() {
         std::thread::sleep(Duration::from_millis(10));
     }
     // Another process's run, running as far as anyone here knows.
-    let b = svc.submit(PLAN.to_owned()).unwrap().id;
+    let b = svc.submit(plan()).unwrap().id;
     svc.shutdown();
     worker.join().unwrap();
     let dir = runs.path().join(&b);

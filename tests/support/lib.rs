@@ -16,6 +16,9 @@ use periscope_recon::io::read_npy;
 use periscope_sim::World;
 use periscope_sim::truth::depth_truth;
 
+mod plan;
+pub use plan::SmallPlan;
+
 /// The repository root.
 pub fn repo_root() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR"))
@@ -266,4 +269,30 @@ fn bar_profile(run: &Path, grid: BarsGrid) -> Vec<f64> {
     let max = profile.iter().fold(0.0f64, |m, v| m.max(*v));
     assert!(max > 0.0, "the volume is empty");
     profile.iter().map(|v| v / max).collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::SmallPlan;
+
+    #[test]
+    fn a_small_plan_key_is_replaced_in_its_own_table_or_added_to_it() {
+        let t = SmallPlan::named("x")
+            .set("los.grid", [4, 4])
+            .set("pairs.grid", [3, 3])
+            .set("recon.solver", "lct")
+            .set("recon.gtr.epochs", 2)
+            .toml();
+        assert!(t.contains("\nname = \"x\"\n[los]\n"), "{t}");
+        assert!(t.contains("\ngrid = [4, 4]\ndwell-ms = 1.0\n[relay]"), "{t}");
+        assert!(t.contains("mode = \"confocal\"\ngrid = [3, 3]\n"), "{t}");
+        assert!(
+            t.contains("method = \"fbp\"\nsolver = \"lct\"\n[recon.volume]"),
+            "{t}"
+        );
+        assert!(
+            t.ends_with("shape = [32, 32, 16]\n[recon.gtr]\nepochs = 2\n"),
+            "{t}"
+        );
+    }
 }

@@ -275,8 +275,7 @@ pub fn reconstruct(
             }
             finish_gtr(&input, relay, trainer, summary, t.elapsed().as_secs_f64())
         }
-        Method::Fbp | Method::Lct | Method::Fk | Method::Rsd => {
-            let kind = s.method.solver().expect("a solver method");
+        Method::Solver(kind) => {
             let t = Instant::now();
             let volume = kind
                 .solve(&input.set, &s.volume, &s.solvers)

@@ -5,24 +5,98 @@ use periscope_recon::gtr::{DensifySettings, Init, LossChoice, TrainConfig};
 use periscope_recon::solver::{
     FbpSettings, FkSettings, LctSettings, RsdSettings, SolverError, SolverKind, SolverSettings,
 };
-use serde::Deserialize;
+use serde::de::{self, value::StrDeserializer};
+use serde::{Deserialize, Deserializer, Serialize, Serializer};
 
 use crate::config::{ConfigError, TomlSource};
 
-/// How the hidden scene is reconstructed.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize)]
-#[serde(rename_all = "kebab-case")]
+/// How the hidden scene is reconstructed: `method = "gtr"`, or the name of a solver
+/// run on the measured pairs (`"fbp"`, `"lct"`, `"fk"`, `"rsd"`). The solvers' names
+/// are [`SolverKind`]'s serde names, so a new solver needs no edit here.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Method {
-    /// 3D-GTR fit, virtual confocal synthesis, then `solver`.
+    /// 3D-GTR fit, virtual confocal synthesis, then [`ReconSettings::solver`].
     Gtr,
-    /// Filtered backprojection of the measured pairs.
-    Fbp,
-    /// LCT of the measured pairs (confocal planar grids only).
-    Lct,
-    /// f-k migration of the measured pairs (confocal planar grids only).
-    Fk,
-    /// RSD/phasor field of the measured pairs (planar detection grid).
-    Rsd,
+    /// A solver run on the measured pairs: FBP on any pairs, LCT and f-k on confocal
+    /// planar grids only, RSD/phasor field on a planar detection grid.
+    Solver(SolverKind),
+}
+
+/// The one name of [`Method::Gtr`]; every other method is a solver's name.
+const GTR: &str = "gtr";
+
+impl Serialize for Method {
+    fn serialize<S: Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
+        match self {
+            Method::Gtr => s.serialize_str(GTR),
+            Method::Solver(kind) => kind.serialize(s),
+        }
+    }
+}
+
+impl<'de> Deserialize<'de> for Method {
+    fn deserialize<D: Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
+        let name = String::deserialize(d)?;
+        if name == GTR {
+            return Ok(Method::Gtr);
+        }
+        solver_named(&name).map(Method::Solver).ok_or_else(|| {
+            de::Error::custom(format!(
+                "`{name}` is not a method: use {}",
+                one_of(std::iter::once(GTR).chain(variant_names::<SolverKind>().iter().copied()))
+            ))
+        })
+    }
+}
+
+/// Reads the `solver` key, with the message the `method` key gives.
+fn solver_key<'de, D: Deserializer<'de>>(d: D) -> Result<Option<SolverKind>, D::Error> {
+    let name = String::deserialize(d)?;
+    solver_named(&name).map(Some).ok_or_else(|| {
+        de::Error::custom(format!(
+            "`{name}` is not a solver: use {}",
+            one_of(variant_names::<SolverKind>().iter().copied())
+        ))
+    })
+}
+
+/// The solver whose serde name is `name`.
+fn solver_named(name: &str) -> Option<SolverKind> {
+    SolverKind::deserialize(StrDeserializer::<de::value::Error>::new(name)).ok()
+}
+
+/// The names a unit-variant enum's serde derive reads, in declaration order. The derive
+/// is the one place that spells them and hands its list to
+/// [`de::Error::unknown_variant`] when a name is not among them, so asking for the
+/// empty name reads the list back.
+fn variant_names<'de, T: Deserialize<'de>>() -> &'static [&'static str] {
+    #[derive(Debug)]
+    struct Names(&'static [&'static str]);
+    impl std::fmt::Display for Names {
+        fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+            write!(f, "{:?}", self.0)
+        }
+    }
+    impl std::error::Error for Names {}
+    impl de::Error for Names {
+        fn custom<M: std::fmt::Display>(_: M) -> Self {
+            Names(&[])
+        }
+        fn unknown_variant(_: &str, expected: &'static [&'static str]) -> Self {
+            Names(expected)
+        }
+    }
+    T::deserialize(StrDeserializer::<Names>::new("")).map_or_else(|Names(names)| names, |_| &[])
+}
+
+/// `"a", "b" or "c"`.
+fn one_of<'a>(names: impl Iterator<Item = &'a str>) -> String {
+    let names: Vec<String> = names.map(|n| format!("\"{n}\"")).collect();
+    match names.split_last() {
+        Some((last, [])) => last.clone(),
+        Some((last, rest)) => format!("{} or {last}", rest.join(", ")),
+        None => String::new(),
+    }
 }
 
 /// Validated reconstruction settings.
@@ -66,30 +140,16 @@ pub enum LaserFalloff {
     None,
 }
 
-impl Method {
-    /// The solver this method runs on the measured pairs; `None` for `gtr`, which
-    /// runs [`ReconSettings::solver`] on its virtual scan.
-    pub fn solver(self) -> Option<SolverKind> {
-        match self {
-            Method::Gtr => None,
-            Method::Fbp => Some(SolverKind::Fbp),
-            Method::Lct => Some(SolverKind::Lct),
-            Method::Fk => Some(SolverKind::Fk),
-            Method::Rsd => Some(SolverKind::Rsd),
-        }
-    }
-}
-
 #[derive(Deserialize, Default)]
 #[serde(deny_unknown_fields, rename_all = "kebab-case")]
 pub(crate) struct RawRecon {
     #[serde(default)]
-    method: Option<String>,
+    method: Option<Method>,
     volume: Option<RawVolume>,
     #[serde(default)]
     gtr: RawGtr,
-    #[serde(default)]
-    solver: Option<String>,
+    #[serde(default, deserialize_with = "solver_key")]
+    solver: Option<SolverKind>,
     #[serde(default)]
     depth_threshold: Option<f64>,
     #[serde(default)]
@@ -209,33 +269,10 @@ pub(crate) fn recon_settings(
     default_volume: Option<VolumeGrid>,
 ) -> Result<ReconSettings, ConfigError> {
     let key = |k: &str| format!("{prefix}{k}");
-    let method = match raw.method.as_deref().unwrap_or("gtr") {
-        "gtr" => Method::Gtr,
-        "fbp" => Method::Fbp,
-        "lct" => Method::Lct,
-        "fk" => Method::Fk,
-        "rsd" => Method::Rsd,
-        other => {
-            return Err(src.invalid(
-                &key("method"),
-                format!("`{other}` is not a method: use \"gtr\", \"fbp\", \"lct\", \"fk\" or \"rsd\""),
-            ));
-        }
-    };
+    let method = raw.method.unwrap_or(Method::Gtr);
     // FBP with the phasor filter on the virtual scan beat LCT on every validation
     // capture (docs/recon.md, "Which solver after 3D-GTR").
-    let solver = match raw.solver.as_deref().unwrap_or("fbp") {
-        "lct" => SolverKind::Lct,
-        "fk" => SolverKind::Fk,
-        "rsd" => SolverKind::Rsd,
-        "fbp" => SolverKind::Fbp,
-        other => {
-            return Err(src.invalid(
-                &key("solver"),
-                format!("`{other}` is not a solver: use \"lct\", \"fk\", \"rsd\" or \"fbp\""),
-            ));
-        }
-    };
+    let solver = raw.solver.unwrap_or(SolverKind::Fbp);
     let volume = match raw.volume {
         Some(v) => {
             for (name, r) in [("x", v.x), ("y", v.y), ("z", v.z)] {
@@ -485,7 +522,7 @@ mod tests {
         let s = load_recon(&src, Some(volume())).unwrap();
         assert_eq!(
             (s.method, s.solver, s.solvers.fk.falloff),
-            (Method::Fk, SolverKind::Fk, 2.0)
+            (Method::Solver(SolverKind::Fk), SolverKind::Fk, 2.0)
         );
         let src = TomlSource::from_text("recon.toml", "method = \"fk\"\n[fk]\ngrid-tolerance = -1.0\n");
         let e = load_recon(&src, Some(volume())).unwrap_err().to_string();
@@ -500,6 +537,57 @@ mod tests {
             (d.solvers.fbp.filter, d.solver),
             (FbpFilter::Phasor, SolverKind::Fbp)
         );
+    }
+
+    #[test]
+    fn methods_and_solvers_are_the_solvers_serde_names() {
+        // `gtr`, then every solver by its own name, as a method and after 3D-GTR; the
+        // name a volume.json records is the name the plan gave.
+        let src = TomlSource::from_text("recon.toml", "method = \"gtr\"\n");
+        assert_eq!(load_recon(&src, Some(volume())).unwrap().method, Method::Gtr);
+        assert_eq!(default_recon(volume()).method, Method::Gtr);
+        assert_eq!(serde_json::to_string(&Method::Gtr).unwrap(), "\"gtr\"");
+        let names = variant_names::<SolverKind>();
+        assert_eq!(names, ["lct", "fk", "rsd", "fbp"]);
+        for name in names {
+            let src = TomlSource::from_text(
+                "recon.toml",
+                format!("method = \"{name}\"\nsolver = \"{name}\"\n"),
+            );
+            let s = load_recon(&src, Some(volume())).unwrap();
+            let Method::Solver(kind) = s.method else {
+                panic!("{name} read as {:?}", s.method)
+            };
+            assert_eq!((kind, s.solver), (s.solver, kind), "{name}");
+            assert_eq!(
+                kind.to_string(),
+                *name,
+                "SolverKind's Display and serde names differ"
+            );
+            assert_eq!(serde_json::to_string(&s.method).unwrap(), format!("\"{name}\""));
+        }
+        // An unknown name: the file, the line, the key and every name there is.
+        let src = TomlSource::from_text("plan.toml", "name = \"x\"\n\n[recon]\nmethod = \"phasor\"\n");
+        #[derive(Deserialize)]
+        #[allow(dead_code)]
+        struct Plan {
+            name: String,
+            recon: RawRecon,
+        }
+        let e = src.parse::<Plan>().err().expect("an unknown method").to_string();
+        assert_eq!(
+            e,
+            "plan.toml:4: key `recon.method`: `phasor` is not a method: use \"gtr\", \"lct\", \"fk\", \"rsd\" or \"fbp\"",
+        );
+        let src = TomlSource::from_text("recon.toml", "solver = \"gtr\"\n");
+        let e = load_recon(&src, Some(volume())).unwrap_err().to_string();
+        assert_eq!(
+            e,
+            "recon.toml:1: key `solver`: `gtr` is not a solver: use \"lct\", \"fk\", \"rsd\" or \"fbp\"",
+        );
+        let src = TomlSource::from_text("recon.toml", "method = 3\n");
+        let e = load_recon(&src, Some(volume())).unwrap_err().to_string();
+        assert!(e.starts_with("recon.toml:1: key `method`: invalid type"), "{e}");
     }
 
     #[test]

@@ -1,6 +1,7 @@
-//! What the API's test files share: the simulated instrument with its runs in a
-//! temporary directory, and requests into the router without a socket. Each test file
-//! uses part of it.
+//! What the daemon's test files share: the simulated instrument with its runs in a
+//! temporary directory, requests into the router without a socket, and the small
+//! capture plan the end-to-end tests share too ([`SmallPlan`]). Each test file uses
+//! part of it.
 #![allow(dead_code)]
 
 use std::path::Path;
@@ -9,6 +10,13 @@ use axum::body::Body;
 use axum::http::{Method, Request, StatusCode, header};
 use periscope_daemon::config::TomlSource;
 use tower::ServiceExt;
+
+// One copy for both crates: the end-to-end crate exports it, these tests include it.
+#[allow(unreachable_pub)]
+#[path = "../../../tests/support/plan.rs"]
+mod small_plan;
+#[allow(unused_imports)] // like the rest of this module, not every test file uses it
+pub(crate) use small_plan::SmallPlan;
 
 /// The shipped simulated instrument (`configs/instrument/sim.toml`) at `time_scale`,
 /// with its runs in `runs`, `api_lines` added to its `[api]` table and `tail` after it.
