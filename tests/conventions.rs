@@ -20,7 +20,7 @@ use periscope_daemon::events::{EventSink, RunEvent};
 use periscope_daemon::pipeline::{self, Control, Run};
 use periscope_daemon::plan::PlannedPair;
 use periscope_daemon::store::read_log;
-use periscope_daemon::ytal::{FLAG_OVERFLOW, FLAG_SATURATED, YtalCapture};
+use periscope_recon::io::ytal::{FLAG_OVERFLOW, FLAG_SATURATED, YtalCapture};
 use periscope_sim::devices::{Fault, TdcFault};
 use periscope_tests::{SmallPlan, accuracy, repo_path};
 

@@ -30,8 +30,8 @@ use std::path::Path;
 use std::time::Duration;
 
 use periscope_daemon::config::load_scene;
-use periscope_daemon::ytal::YtalCapture;
 use periscope_recon::io::read_npy;
+use periscope_recon::io::ytal::YtalCapture;
 use periscope_sim::World;
 use periscope_sim::truth::depth_truth;
 use periscope_tests::{Accuracy, BarsGrid, accuracy, assert_bars_resolved, periscope_with_limit, repo_path};

@@ -4,7 +4,7 @@
 use std::path::Path;
 
 use periscope_daemon::store::{HISTOGRAM_LOG, read_log};
-use periscope_daemon::ytal::YtalCapture;
+use periscope_recon::io::ytal::YtalCapture;
 use periscope_tests::periscope;
 
 const PLAN: &str = include_str!("data/plans/small-fbp.toml");

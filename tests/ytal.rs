@@ -9,9 +9,9 @@
 use std::path::Path;
 use std::time::Duration;
 
-use periscope_daemon::ytal::{HFormat, YtalCapture};
 use periscope_recon::VolumeGrid;
 use periscope_recon::io::read_npy;
+use periscope_recon::io::ytal::{HFormat, YtalCapture};
 use periscope_tests::{BarsGrid, Finished, assert_bars_resolved, periscope_with_limit, repo_path};
 
 /// Median depth error over the patch and silhouette IoU of `out/depth.npy` on `grid`.

@@ -6,6 +6,10 @@
 use std::path::{Path, PathBuf};
 
 use glam::DVec3;
+use periscope_recon::io::ytal::{
+    FLAG_OVERFLOW, FLAG_SATURATED, Grid, GridFormat, HFormat, MAX_DATASET_BYTES, YtalCapture, YtalError,
+    is_hdf5_path,
+};
 use periscope_recon::transient::{hidden_axis, rebin_path};
 use periscope_recon::{Pair, TimeAxis, TransientError, TransientSet, VolumeGrid};
 
@@ -15,10 +19,7 @@ use crate::record::{record_axis, record_counts, record_transient};
 use crate::run_dir::RunInfo;
 use crate::run_dir::{RunDir, RunDirError, file};
 use crate::store::Record;
-use crate::ytal::{
-    FLAG_OVERFLOW, FLAG_SATURATED, Grid, GridFormat, HFormat, MAX_DATASET_BYTES, YtalCapture, YtalError,
-    is_hdf5_path,
-};
+use crate::ytal::ExportError;
 
 /// Why a capture could not be opened or give its transients; every variant names the
 /// capture.
@@ -228,11 +229,11 @@ impl RunCapture {
     /// to the SPAD (`t_accounts_first_and_last_bounces`), and the galvo origins as
     /// `laser_xyz` and `sensor_xyz`. Transients in pair order; pairs never measured
     /// are left out.
-    pub fn to_ytal(&self) -> Result<YtalCapture, YtalError> {
+    pub fn to_ytal(&self) -> Result<YtalCapture, ExportError> {
         let (plan, inst) = (&self.plan, &self.instrument);
         let mut records: Vec<&Record> = self.records.iter().collect();
         records.sort_by_key(|r| r.pair);
-        let refuse = |message: String| YtalError::Export {
+        let refuse = |message: String| ExportError::Refused {
             path: self.dir.clone(),
             message,
         };

@@ -20,7 +20,7 @@ use crate::pipeline::{self, Control, PipelineError, Run};
 use crate::plan::Plan;
 use crate::run_dir::{RunDir, RunDirError};
 use crate::service::ServiceError;
-use crate::ytal::YtalError;
+use crate::ytal::ExportError;
 use crate::{check, offline};
 use periscope_drivers::galvo::EmergencyOff;
 
@@ -201,7 +201,7 @@ pub fn execute(cli: Cli) -> Result<(), CliError> {
             let out = out.unwrap_or_else(|| run_dir.join(crate::ytal::CAPTURE_FILE));
             refuse_run_file(&run_dir, &out)?;
             let capture = crate::capture::RunCapture::load(&run_dir)?.to_ytal()?;
-            capture.write(&out)?;
+            capture.write(&out).map_err(ExportError::from)?;
             println!(
                 "wrote {} ({} transients of {} bins, T_Si with first and last legs)",
                 out.display(),
@@ -419,7 +419,7 @@ pub enum CliError {
     Capture(#[from] CaptureError),
     /// A y-tal capture could not be built or written.
     #[error(transparent)]
-    Ytal(#[from] YtalError),
+    Export(#[from] ExportError),
     /// The devices could not be opened or queried.
     #[error(transparent)]
     Devices(#[from] OpenError),

@@ -20,7 +20,7 @@ use periscope_sim::Mesh;
 use crate::budget::{Budget, Limits};
 use crate::config::{InstrumentConfig, TomlSource};
 use crate::plan::{Plan, load_recon};
-use crate::ytal::YtalCapture;
+use periscope_recon::io::ytal::YtalCapture;
 
 /// A fuzz target: takes any bytes, panics only on a broken contract.
 pub type Target = fn(&[u8]);
@@ -43,10 +43,10 @@ pub const TARGETS: &[(&str, Target)] = &[
 /// y-tal HDF5 captures (files downloaded from papers): decoding, the default volume
 /// and the rebinned transients.
 pub fn ytal_capture(data: &[u8]) {
-    // The reader turns a panic inside hdf5-pure into an error (see `ytal::guarded`);
-    // libFuzzer's hook would abort at the panic, before the reader can catch it, so
-    // panics located in hdf5-pure are let through to the reader here. Any other panic
-    // still aborts.
+    // The reader turns a panic inside hdf5-pure into an error (see `guarded` in
+    // `periscope_recon::io::ytal`); libFuzzer's hook would abort at the panic, before
+    // the reader can catch it, so panics located in hdf5-pure are let through to the
+    // reader here. Any other panic still aborts.
     static HOOK: std::sync::Once = std::sync::Once::new();
     HOOK.call_once(|| {
         let fuzzer_hook = std::panic::take_hook();

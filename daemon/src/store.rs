@@ -426,7 +426,9 @@ pub fn read_text_capped(path: &Path, limit: u64) -> io::Result<String> {
 /// racing on one path (the worker and an API request on a run's `run.json`), or on two
 /// paths with the same stem, never write into each other's file or rename it away:
 /// the file always holds one writer's whole bytes, the last rename's. A failed write
-/// removes its temporary file.
+/// removes its temporary file. The write itself is the recon crate's
+/// [`periscope_recon::io::write_bytes_atomically`] (y-tal captures are written with it
+/// too); this adds the fault injection of [`refuse_writes_in`].
 pub fn write_atomic(path: &Path, bytes: &[u8]) -> io::Result<()> {
     #[cfg(feature = "test-hooks")]
     if let Some(dir) = path.parent()
@@ -437,18 +439,7 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> io::Result<()> {
             format!("injected write failure in {}", dir.display()),
         ));
     }
-    let tmp = periscope_recon::io::temporary_beside(path);
-    let written = File::create(&tmp)
-        .and_then(|mut f| f.write_all(bytes).and_then(|()| f.sync_all()))
-        .and_then(|()| fs::rename(&tmp, path));
-    if let Err(e) = written {
-        let _ = fs::remove_file(&tmp);
-        return Err(e);
-    }
-    if let Some(dir) = path.parent() {
-        sync_dir(dir);
-    }
-    Ok(())
+    periscope_recon::io::write_bytes_atomically(path, bytes)
 }
 
 #[cfg(test)]

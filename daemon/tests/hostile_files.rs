@@ -7,7 +7,7 @@ use std::path::{Path, PathBuf};
 use std::process::Command;
 
 use glam::DVec3;
-use periscope_daemon::ytal::{Grid, GridFormat, HFormat, YtalCapture};
+use periscope_recon::io::ytal::{Grid, GridFormat, HFormat, YtalCapture};
 
 /// A confocal 11 × 13 capture of 7 bins: small, with a shape whose bytes are unique in
 /// the file, so tests can find and forge it.

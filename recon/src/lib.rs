@@ -3,7 +3,10 @@
 //!
 //! This crate depends on no other crate of the workspace: it works in hidden path
 //! length on transients whose first and last legs the daemon has already removed, so
-//! it can reconstruct stored or public captures as well as live ones.
+//! it can reconstruct stored or public captures as well as live ones. It reads and
+//! writes y-tal HDF5 captures itself ([`io::ytal`]: the community's interchange format
+//! and the public datasets converted to it), so a library user reconstructs a capture
+//! file without the daemon.
 #![warn(missing_docs)]
 
 pub mod gtr;

@@ -147,7 +147,7 @@ pub enum PipelineError {
         /// The capture file.
         path: PathBuf,
         /// Why.
-        source: crate::ytal::YtalError,
+        source: crate::ytal::ExportError,
     },
     /// Reconstruction failed.
     #[error("reconstruction: {0}")]
@@ -720,7 +720,7 @@ impl Run {
         );
         capture
             .to_ytal()
-            .and_then(|c| c.write(&p))
+            .and_then(|c| c.write(&p).map_err(crate::ytal::ExportError::from))
             .map_err(|source| PipelineError::Export { path: p, source })?;
         self.events.emit(RunEvent::Output {
             name: crate::ytal::CAPTURE_FILE.into(),

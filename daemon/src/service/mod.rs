@@ -142,7 +142,7 @@ pub enum ServiceError {
         id: String,
         /// Why.
         #[source]
-        source: crate::ytal::YtalError,
+        source: periscope_recon::io::ytal::YtalError,
     },
     /// The instrument config is invalid.
     #[error(transparent)]

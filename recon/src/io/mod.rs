@@ -1,5 +1,7 @@
-//! Files the reconstruction writes and reads: numpy `.npy` arrays (via `npyz`) and PNG
-//! images (via `png`).
+//! Files the reconstruction writes and reads: numpy `.npy` arrays (via `npyz`), PNG
+//! images (via `png`) and y-tal HDF5 captures ([`ytal`], via `hdf5-pure`), so a program
+//! that uses this crate as a library reads and writes the community's capture format
+//! without the daemon.
 //!
 //! Images share one orientation with the arrays, documented in docs/recon.md: column
 //! `ix` runs along +x left to right, and row 0 is the *largest* y, so y points up. That
@@ -13,6 +15,8 @@ use std::path::{Path, PathBuf};
 use npyz::WriterBuilder;
 
 use crate::volume::{DepthMap, Volume};
+
+pub mod ytal;
 
 /// Why a file could not be written or read.
 #[derive(Debug, thiserror::Error)]
@@ -51,6 +55,27 @@ pub fn temporary_beside(path: &Path) -> PathBuf {
     let mut name = path.file_name().unwrap_or_default().to_owned();
     name.push(format!(".{}-{n}.tmp", std::process::id()));
     path.with_file_name(name)
+}
+
+/// Writes `bytes` to `path` atomically and durably: into a temporary file of its own
+/// beside it ([`temporary_beside`]), synced, renamed over `path`, then the directory
+/// synced so that the rename survives a crash. A failed write removes its temporary
+/// file. [`ytal::YtalCapture::write`] and the daemon's `store::write_atomic` take it.
+pub fn write_bytes_atomically(path: &Path, bytes: &[u8]) -> std::io::Result<()> {
+    let tmp = temporary_beside(path);
+    let written = File::create(&tmp)
+        .and_then(|mut f| f.write_all(bytes).and_then(|()| f.sync_all()))
+        .and_then(|()| std::fs::rename(&tmp, path));
+    if let Err(e) = written {
+        let _ = std::fs::remove_file(&tmp);
+        return Err(e);
+    }
+    if let Some(dir) = path.parent()
+        && let Ok(d) = File::open(dir)
+    {
+        let _ = d.sync_all();
+    }
+    Ok(())
 }
 
 /// Writes through `write` into a temporary file of its own beside `path`

@@ -1,0 +1,231 @@
+//! One dataset of a capture, read safely. A capture comes from anywhere (a paper's
+//! download, a colleague's disk, the fuzzer), and the HDF5 layer trusts the shapes,
+//! chunk sizes and offsets a file declares when it allocates and reads, so every
+//! dataset's declared size is checked here against the limits below and against what
+//! the file can hold before a value is read.
+use std::path::Path;
+
+use glam::DVec3;
+use hdf5_pure::File;
+
+use super::{Grid, GridFormat, MAX_DATASET_BYTES, YtalError};
+
+/// A dataset's values (as f64) and shape.
+type Values = (Vec<f64>, Vec<usize>);
+
+/// An open capture file and what its messages name.
+pub(super) struct Reader<'a> {
+    pub(super) file: File,
+    pub(super) path: &'a Path,
+    /// Length of the file, bytes.
+    pub(super) file_len: u64,
+}
+
+/// Best compression ratio deflate can reach: a chunked dataset cannot hold more than
+/// this times the file's length.
+const MAX_GZIP_RATIO: u64 = 1032;
+
+/// Most chunks a dataset may be split into.
+const MAX_CHUNKS: u64 = 1 << 22;
+
+/// Largest chunk, bytes (h5py aims at 1 MiB at most): the HDF5 layer sizes its
+/// decompression buffers by the declared chunk, whatever the data.
+const MAX_CHUNK_BYTES: u64 = 64 << 20;
+
+impl Reader<'_> {
+    /// A dataset's shape, after checking that reading it is safe: the declared size
+    /// (as `out_width`-byte values in memory) fits [`MAX_DATASET_BYTES`] and what the
+    /// file can hold (its length, times the best gzip ratio for chunked data), and a
+    /// chunked layout has a sane chunk count. A small file that declares a huge shape
+    /// (an "HDF5 bomb") is refused here, before the HDF5 layer allocates for it.
+    pub(super) fn checked_shape(
+        &self,
+        ds: &hdf5_pure::Dataset,
+        name: &str,
+        out_width: u64,
+    ) -> Result<Vec<usize>, YtalError> {
+        let err = |m: String| self.format(format!("dataset `{name}`: {m}"));
+        let shape = ds.shape().map_err(|e| err(e.to_string()))?;
+        let elements = shape
+            .iter()
+            .try_fold(1u64, |a, &d| a.checked_mul(d))
+            .ok_or_else(|| err(format!("its shape {shape:?} overflows")))?;
+        let stored = ds
+            .element_size()
+            .ok()
+            .and_then(|w| elements.checked_mul(w))
+            .ok_or_else(|| err(format!("its shape {shape:?} overflows")))?;
+        let declared = stored.max(elements.saturating_mul(out_width));
+        if declared > MAX_DATASET_BYTES {
+            return Err(err(format!(
+                "its shape {shape:?} declares {declared} bytes, more than the {MAX_DATASET_BYTES} a capture dataset may have"
+            )));
+        }
+        let chunked = matches!(ds.layout(), Ok(hdf5_pure::Layout::Chunked { .. }));
+        let holds = if chunked {
+            self.file_len.saturating_mul(MAX_GZIP_RATIO)
+        } else {
+            self.file_len
+        };
+        if stored > holds {
+            return Err(err(format!(
+                "its shape {shape:?} declares {stored} bytes but the file has {} bytes: it is truncated or forged",
+                self.file_len
+            )));
+        }
+        if let Ok(Some(chunk)) = ds.chunk_shape() {
+            let count = shape
+                .iter()
+                .zip(&chunk)
+                .try_fold(1u64, |a, (&d, &c)| a.checked_mul(d.div_ceil(c.max(1))));
+            let chunk_bytes = chunk
+                .iter()
+                .try_fold(ds.element_size().unwrap_or(8).max(1), |a, &c| a.checked_mul(c));
+            if chunk.len() != shape.len()
+                || chunk.contains(&0)
+                || count.is_none_or(|n| n > MAX_CHUNKS)
+                || chunk_bytes.is_none_or(|b| b > MAX_CHUNK_BYTES)
+            {
+                return Err(err(format!(
+                    "its chunk shape {chunk:?} does not fit its shape {shape:?}, makes too many chunks, \
+                     or makes chunks over {MAX_CHUNK_BYTES} bytes"
+                )));
+            }
+        }
+        // Every stored chunk must lie inside the file and inside the dataset: the HDF5
+        // layer trusts a chunk's recorded size and offset when it reads (the fuzzer
+        // found a 160 KB file whose chunk record made it allocate 3.4 GB).
+        if chunked && let Ok(chunks) = ds.chunks() {
+            for c in &chunks {
+                let inside_file = c
+                    .address
+                    .checked_add(c.storage_size)
+                    .is_some_and(|end| end <= self.file_len);
+                let inside_data =
+                    c.offset.len() == shape.len() && c.offset.iter().zip(&shape).all(|(o, d)| o < d);
+                if !inside_file || !inside_data {
+                    return Err(err(format!(
+                        "a chunk (at {:?}, {} bytes at byte {}) lies outside the dataset or beyond the end of the file",
+                        c.offset, c.storage_size, c.address
+                    )));
+                }
+            }
+        }
+        shape
+            .into_iter()
+            .map(|d| usize::try_from(d).map_err(|_| err("a dimension does not fit this machine".into())))
+            .collect()
+    }
+
+    pub(super) fn format(&self, message: String) -> YtalError {
+        YtalError::Format {
+            path: self.path.to_path_buf(),
+            message,
+        }
+    }
+
+    pub(super) fn has(&self, name: &str) -> bool {
+        self.file.dataset(name).is_ok()
+    }
+
+    /// Values and shape; `None` for a missing or empty (null) dataset.
+    fn floats(&self, name: &str) -> Result<Option<Values>, YtalError> {
+        let Ok(ds) = self.file.dataset(name) else {
+            return Ok(None);
+        };
+        let shape = self.checked_shape(&ds, name, 8)?;
+        let values = ds
+            .read_f64()
+            .map_err(|e| self.format(format!("dataset `{name}` is not numeric: {e}")))?;
+        if values.is_empty() {
+            return Ok(None);
+        }
+        Ok(Some((values, shape)))
+    }
+
+    pub(super) fn scalar(&self, name: &str) -> Result<Option<f64>, YtalError> {
+        match self.floats(name)? {
+            None => Ok(None),
+            Some((v, _)) if v.len() == 1 => Ok(Some(v[0])),
+            Some((v, _)) => Err(self.format(format!(
+                "dataset `{name}` should hold one value, it holds {}",
+                v.len()
+            ))),
+        }
+    }
+
+    pub(super) fn required_scalar(&self, name: &str) -> Result<f64, YtalError> {
+        self.scalar(name)?
+            .ok_or_else(|| self.format(format!("dataset `{name}` is missing or empty")))
+    }
+
+    pub(super) fn point(&self, name: &str) -> Result<Option<DVec3>, YtalError> {
+        match self.floats(name)? {
+            None => Ok(None),
+            Some((v, _)) if v.len() == 3 && v.iter().all(|x| x.is_finite()) => {
+                Ok(Some(DVec3::new(v[0], v[1], v[2])))
+            }
+            Some((v, _)) => Err(self.format(format!(
+                "dataset `{name}` should hold a point (3 finite values), it holds {v:?}"
+            ))),
+        }
+    }
+
+    pub(super) fn grid(&self, side: &str) -> Result<Grid, YtalError> {
+        let xyz_name = format!("{side}_grid_xyz");
+        let (xyz, shape) = self
+            .floats(&xyz_name)?
+            .ok_or_else(|| self.format(format!("dataset `{xyz_name}` is missing or empty")))?;
+        if shape.last() != Some(&3) || !(shape.len() == 2 || shape.len() == 3) {
+            return Err(self.format(format!(
+                "dataset `{xyz_name}` has shape {shape:?}; expected (N, 3) or (X, Y, 3)"
+            )));
+        }
+        let format = if shape.len() == 2 {
+            GridFormat::N3
+        } else {
+            GridFormat::XY3
+        };
+        let points = to_points(&xyz);
+        let normals_name = format!("{side}_grid_normals");
+        let normals = match self.floats(&normals_name)? {
+            Some((n, nshape)) => {
+                if nshape.iter().product::<usize>() == 3 {
+                    // One normal for the whole grid.
+                    vec![to_points(&n)[0].normalize_or_zero(); points.len()]
+                } else if nshape == shape {
+                    to_points(&n).into_iter().map(DVec3::normalize_or_zero).collect()
+                } else {
+                    return Err(self.format(format!(
+                        "dataset `{normals_name}` has shape {nshape:?} but `{xyz_name}` has {shape:?}"
+                    )));
+                }
+            }
+            None => {
+                tracing::warn!(
+                    "{}: no `{normals_name}`; assuming the y-tal convention, a relay facing +z",
+                    self.path.display()
+                );
+                vec![DVec3::Z; points.len()]
+            }
+        };
+        if let Some(i) = normals.iter().position(|n| *n == DVec3::ZERO || !n.is_finite()) {
+            return Err(self.format(format!(
+                "dataset `{normals_name}`: normal {i} is zero or not finite"
+            )));
+        }
+        if let Some(i) = points.iter().position(|p| !p.is_finite()) {
+            return Err(self.format(format!("dataset `{xyz_name}`: point {i} is not finite")));
+        }
+        Ok(Grid {
+            points,
+            normals,
+            format,
+            shape: shape[..shape.len() - 1].to_vec(),
+        })
+    }
+}
+
+fn to_points(v: &[f64]) -> Vec<DVec3> {
+    v.chunks_exact(3).map(|c| DVec3::new(c[0], c[1], c[2])).collect()
+}

@@ -1,0 +1,303 @@
+//! Decoding a capture: the datasets read through [`Reader`], the histogram flags taken
+//! out of `scene_info`, and the checks that `H`, the grids and the origins fit
+//! together. A panic inside the HDF5 layer becomes an error that names the file.
+use std::path::Path;
+
+use hdf5_pure::File;
+
+use super::dataset::Reader;
+use super::{FLAG_KEYS, Grid, GridFormat, HFormat, MAX_FILE_BYTES, YtalCapture, YtalError};
+
+/// Splits the flag lists out of a `scene_info` text: the text without them, and the
+/// (index, bit) pairs they name. `Err` names a malformed list.
+fn take_flags(info: &str) -> Result<(String, Vec<(usize, u8)>), String> {
+    let mut rest = String::new();
+    let mut marks = Vec::new();
+    for line in info.lines() {
+        match FLAG_KEYS.iter().find_map(|(key, bit)| {
+            line.strip_prefix(key)
+                .and_then(|l| l.strip_prefix(':'))
+                .map(|l| (key, *bit, l))
+        }) {
+            Some((key, bit, list)) => {
+                let inner = list
+                    .trim()
+                    .strip_prefix('[')
+                    .and_then(|l| l.strip_suffix(']'))
+                    .ok_or_else(|| {
+                        format!("`scene_info` key `{key}` should be a list like [3, 17], it is {list:?}")
+                    })?;
+                for item in inner.split(',').map(str::trim).filter(|s| !s.is_empty()) {
+                    let i = item.parse::<usize>().map_err(|_| {
+                        format!("`scene_info` key `{key}` lists {item:?}, not a transient index")
+                    })?;
+                    marks.push((i, bit));
+                }
+            }
+            None => {
+                rest.push_str(line);
+                rest.push('\n');
+            }
+        }
+    }
+    Ok((rest, marks))
+}
+
+/// Runs a decode, turning a panic inside the HDF5 layer into an error that names the
+/// file. The fuzzer found malformed chunk layouts that make hdf5-pure 0.47 overflow
+/// an offset (`chunked_read.rs`, `copy_chunk_to_output`): a malformed file must be
+/// an error for the user, never a crash of `recon` or of the daemon.
+fn guarded(
+    path: &Path,
+    decode: impl FnOnce() -> Result<YtalCapture, YtalError>,
+) -> Result<YtalCapture, YtalError> {
+    std::panic::catch_unwind(std::panic::AssertUnwindSafe(decode)).unwrap_or_else(|payload| {
+        Err(YtalError::Hdf5 {
+            path: path.to_path_buf(),
+            message: format!(
+                "is malformed: the HDF5 decoder failed on it ({}); it is not a capture that can be read",
+                panic_message(payload.as_ref())
+            ),
+        })
+    })
+}
+
+/// The text a panic was raised with.
+fn panic_message(payload: &(dyn std::any::Any + Send)) -> String {
+    payload
+        .downcast_ref::<&str>()
+        .map(|s| (*s).to_owned())
+        .or_else(|| payload.downcast_ref::<String>().cloned())
+        .unwrap_or_else(|| "a panic without a message".into())
+}
+
+impl YtalCapture {
+    /// Reads a capture written by y-tal (or by [`YtalCapture::write`]).
+    pub fn read(path: &Path) -> Result<YtalCapture, YtalError> {
+        let file_len = std::fs::metadata(path)
+            .map_err(|e| YtalError::Hdf5 {
+                path: path.to_path_buf(),
+                message: format!("cannot be read ({e})"),
+            })?
+            .len();
+        if file_len > MAX_FILE_BYTES {
+            return Err(YtalError::Hdf5 {
+                path: path.to_path_buf(),
+                message: format!(
+                    "is {file_len} bytes, more than the {MAX_FILE_BYTES} a capture file may have here"
+                ),
+            });
+        }
+        guarded(path, || {
+            let file = File::open(path).map_err(|e| YtalError::Hdf5 {
+                path: path.to_path_buf(),
+                message: format!(
+                    "cannot be read as HDF5 ({e}); give a y-tal capture (.hdf5/.h5) or a run directory"
+                ),
+            })?;
+            YtalCapture::decode(file, path, file_len)
+        })
+    }
+
+    /// Reads a capture held in memory (`name` is used in messages), with the same
+    /// checks as [`YtalCapture::read`].
+    pub fn from_bytes(bytes: Vec<u8>, name: &Path) -> Result<YtalCapture, YtalError> {
+        let file_len = bytes.len() as u64;
+        guarded(name, || {
+            let file = File::from_bytes(bytes).map_err(|e| YtalError::Hdf5 {
+                path: name.to_path_buf(),
+                message: format!("cannot be read as HDF5 ({e})"),
+            })?;
+            YtalCapture::decode(file, name, file_len)
+        })
+    }
+
+    fn decode(file: File, path: &Path, file_len: u64) -> Result<YtalCapture, YtalError> {
+        let r = Reader { file, path, file_len };
+        if !r.has("H") {
+            let hint = ["data", "data_t", "dataset", "rect_data"]
+                .iter()
+                .find(|k| r.has(k))
+                .map(|k| {
+                    format!(
+                        " It has `{k}`, so it is in another NLOS format: convert it with y-tal first \
+                         (`tal.io.write_capture(out, tal.io.read_capture(file))`)."
+                    )
+                })
+                .unwrap_or_default();
+            return Err(r.format(format!("no dataset `H`; this is not a y-tal capture.{hint}")));
+        }
+        let code = r.required_scalar("H_format")?;
+        let integral = code.is_finite() && code.fract() == 0.0 && code.abs() < 1e6;
+        let h_format = HFormat::from_code(if integral { code as i64 } else { -1 }).ok_or_else(|| {
+            r.format(format!(
+                "`H_format` is {code}; expected 1 to 4 (T_Sx_Sy … T_Li_Si)"
+            ))
+        })?;
+        let ds = r
+            .file
+            .dataset("H")
+            .map_err(|e| r.format(format!("dataset `H`: {e}")))?;
+        let h_shape = r.checked_shape(&ds, "H", 4)?;
+        let rank = match h_format {
+            HFormat::TSxSy | HFormat::TLiSi => 3,
+            HFormat::TSi => 2,
+            HFormat::TLxLySxSy => 5,
+        };
+        if h_shape.len() != rank || h_shape.contains(&0) {
+            return Err(r.format(format!(
+                "`H` has shape {h_shape:?} but `H_format` {} needs {rank} non-empty dimensions",
+                h_format.name()
+            )));
+        }
+        let h = ds
+            .read_f32()
+            .map_err(|e| r.format(format!("dataset `H` is not numeric: {e}")))?;
+        if let Some(i) = h.iter().position(|v| !v.is_finite()) {
+            return Err(r.format(format!("`H` value {i} is not finite")));
+        }
+        let delta_t = r.required_scalar("delta_t")?;
+        if !(delta_t > 0.0 && delta_t <= 10.0) {
+            return Err(r.format(format!(
+                "`delta_t` is {delta_t}; it must be a positive path length in metres (at most 10)"
+            )));
+        }
+        let t_accounts = match r.scalar("t_accounts_first_and_last_bounces")? {
+            None => false,
+            Some(v) if v == 0.0 || v == 1.0 => v == 1.0,
+            Some(v) => {
+                return Err(r.format(format!(
+                    "`t_accounts_first_and_last_bounces` is {v}; it must be true or false"
+                )));
+            }
+        };
+        let t_start = match r.scalar("t_start")? {
+            Some(t) if t.is_finite() && t.abs() <= 1e4 => t,
+            Some(t) => {
+                return Err(r.format(format!(
+                    "`t_start` is {t}; it must be a path length in metres (within ±10 km)"
+                )));
+            }
+            None if t_accounts => {
+                return Err(r.format(
+                    "`t_start` is empty but `t_accounts_first_and_last_bounces` is true; \
+                     the time origin is unknown"
+                        .into(),
+                ));
+            }
+            None => 0.0,
+        };
+        let scene_info = r
+            .file
+            .dataset("scene_info")
+            .ok()
+            .filter(|d| r.checked_shape(d, "scene_info", 1 << 16).is_ok())
+            .and_then(|d| d.read_string().ok())
+            .and_then(|v| v.into_iter().next());
+        let mut capture = YtalCapture {
+            h,
+            h_shape,
+            h_format,
+            sensor_grid: r.grid("sensor")?,
+            laser_grid: r.grid("laser")?,
+            sensor_xyz: r.point("sensor_xyz")?,
+            laser_xyz: r.point("laser_xyz")?,
+            delta_t,
+            t_start,
+            t_accounts_first_and_last_bounces: t_accounts,
+            scene_info,
+            flags: None,
+        };
+        if let Some(info) = &capture.scene_info
+            && FLAG_KEYS.iter().any(|(k, _)| info.contains(k))
+        {
+            let (rest, marks) = take_flags(info).map_err(|m| r.format(m))?;
+            let columns = capture.len();
+            let mut flags = vec![0u8; columns];
+            for (i, bit) in marks {
+                let f = flags.get_mut(i).ok_or_else(|| {
+                    r.format(format!("`scene_info` flags transient {i}, but `H` has {columns}"))
+                })?;
+                *f |= bit;
+            }
+            capture.scene_info = Some(rest);
+            capture.flags = Some(flags);
+        }
+        capture.check().map_err(|m| r.format(m))?;
+        Ok(capture)
+    }
+
+    /// Checks that `H`, the grids and the origins fit together.
+    pub(super) fn check(&self) -> Result<(), String> {
+        let columns: usize = self.h_shape[1..]
+            .iter()
+            .try_fold(1usize, |a, &d| a.checked_mul(d))
+            .ok_or("the shape of `H` overflows")?;
+        // Grids stored as (X, Y, 3) must match `H`'s own dimensions, not only in count:
+        // a transposed grid would put every transient at the wrong point.
+        let dims: Vec<(&str, &Grid, &[usize])> = match self.h_format {
+            HFormat::TSxSy => vec![("sensor", &self.sensor_grid, &self.h_shape[1..3])],
+            HFormat::TLxLySxSy => vec![
+                ("laser", &self.laser_grid, &self.h_shape[1..3]),
+                ("sensor", &self.sensor_grid, &self.h_shape[3..5]),
+            ],
+            HFormat::TSi | HFormat::TLiSi => Vec::new(),
+        };
+        for (side, grid, want) in dims {
+            if grid.format == GridFormat::XY3 && grid.shape != want {
+                return Err(format!(
+                    "`{side}_grid_xyz` is a {:?} grid but `H` ({}) has {want:?} there",
+                    grid.shape,
+                    self.h_format.name()
+                ));
+            }
+        }
+        let (ns, nl) = (self.sensor_grid.points.len(), self.laser_grid.points.len());
+        if self.h_format.is_product() {
+            if columns != nl * ns {
+                return Err(format!(
+                    "`H` ({}) has {columns} transients but the laser grid has {nl} points and the \
+                     sensor grid {ns}",
+                    self.h_format.name()
+                ));
+            }
+        } else {
+            if columns != ns {
+                return Err(format!(
+                    "`H` ({}) has {columns} transients but `sensor_grid_xyz` has {ns} points",
+                    self.h_format.name()
+                ));
+            }
+            if nl != ns && nl != 1 {
+                return Err(format!(
+                    "`laser_grid_xyz` has {nl} points: with `H_format` {} it must have one (a fixed \
+                     laser) or one per sensor point ({ns})",
+                    self.h_format.name()
+                ));
+            }
+        }
+        if self.t_accounts_first_and_last_bounces && (self.laser_xyz.is_none() || self.sensor_xyz.is_none()) {
+            return Err(
+                "`t_accounts_first_and_last_bounces` is true but `laser_xyz` or `sensor_xyz` is \
+                        empty, so the first and last legs cannot be subtracted"
+                    .into(),
+            );
+        }
+        if let Some(flags) = &self.flags
+            && flags.len() != columns
+        {
+            return Err(format!(
+                "the capture has {} histogram flags but `H` has {columns} transients",
+                flags.len()
+            ));
+        }
+        if Some(self.h.len()) != self.bins().checked_mul(columns) {
+            return Err(format!(
+                "`H` holds {} values, its shape {:?} says otherwise",
+                self.h.len(),
+                self.h_shape
+            ));
+        }
+        Ok(())
+    }
+}

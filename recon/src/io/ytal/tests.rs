@@ -1,0 +1,177 @@
+//! Unit tests of the y-tal reader and writer: a capture round-trips through a file,
+//! transients are indexed and timed as y-tal lays them out, and files that are not
+//! captures, or captures whose parts do not fit together, are refused by name.
+use glam::DVec3;
+use hdf5_pure::FileBuilder;
+
+use super::*;
+use crate::volume::VolumeGrid;
+
+fn sample() -> YtalCapture {
+    let points: Vec<DVec3> = (0..6)
+        .map(|i| DVec3::new(0.1 * i as f64, -0.05 * i as f64, 0.0))
+        .collect();
+    let grid = |points: Vec<DVec3>, shape: Vec<usize>, format| Grid {
+        normals: vec![DVec3::Z; points.len()],
+        points,
+        format,
+        shape,
+    };
+    YtalCapture {
+        h: (0..5 * 6 * 2).map(|v| v as f32 * 0.5).collect(),
+        h_shape: vec![5, 2, 6],
+        h_format: HFormat::TLiSi,
+        sensor_grid: grid(points.clone(), vec![2, 3], GridFormat::XY3),
+        laser_grid: grid(points[..2].to_vec(), vec![2], GridFormat::N3),
+        sensor_xyz: Some(DVec3::new(0.2, 0.0, 1.0)),
+        laser_xyz: None,
+        delta_t: 0.004,
+        t_start: 1.5,
+        t_accounts_first_and_last_bounces: false,
+        scene_info: Some("original_format: test\n".into()),
+        flags: Some(vec![0, 1, 2, 3, 0, 0, 0, 0, 0, 0, 0, 0]),
+    }
+}
+
+#[test]
+fn a_rendered_capture_is_told_from_its_scene_info() {
+    let with = |info: Option<&str>| YtalCapture {
+        scene_info: info.map(str::to_string),
+        ..sample()
+    };
+    // The validation harness's mitransient captures.
+    let harness = "description: a letter\nrenderer: 'mitransient 1.3.1 / mitsuba 3.9.1'\nspp: 262144\n";
+    assert_eq!(
+        with(Some(harness)).rendered_by().as_deref(),
+        Some("mitransient 1.3.1 / mitsuba 3.9.1")
+    );
+    // `tal render`'s, as PyYAML dumps them (keys sorted, the config a mapping).
+    let tal = "args:\n  threads: 2\nconfig:\n  laser_x: -0.5\n  scan_type: confocal\ntal_version: 0.20.0\n";
+    assert_eq!(
+        with(Some(tal)).rendered_by().as_deref(),
+        Some("y-tal's `tal render`")
+    );
+    // Measured or exported captures, and keys that only mention a renderer.
+    for info in [
+        None,
+        Some(""),
+        Some("original_format: periscope\nrun: 'x'\n"),
+        Some("original_format: HDF5_ZNLOS\nvolume:\n  config: 1\n"),
+        Some("notes: the renderer: was not used\n"),
+    ] {
+        assert_eq!(with(info).rendered_by(), None, "{info:?}");
+    }
+}
+
+#[test]
+fn a_written_capture_reads_back_identically() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("c.hdf5");
+    let c = sample();
+    c.write(&path).unwrap();
+    let back = YtalCapture::read(&path).unwrap();
+    // Points go through f32 in the file, as y-tal stores them.
+    let round = |g: &Grid| Grid {
+        points: g.points.iter().map(|p| p.as_vec3().as_dvec3()).collect(),
+        ..g.clone()
+    };
+    assert_eq!(back.sensor_grid, round(&c.sensor_grid));
+    assert_eq!(back.laser_grid, round(&c.laser_grid));
+    assert_eq!(back.h, c.h);
+    assert_eq!(back.h_shape, c.h_shape);
+    assert_eq!(back.h_format, c.h_format);
+    assert_eq!(back.laser_xyz, None);
+    assert_eq!(back.sensor_xyz, c.sensor_xyz.map(|p| p.as_vec3().as_dvec3()));
+    assert_eq!((back.delta_t, back.t_start), (c.delta_t, c.t_start));
+    assert!(!back.t_accounts_first_and_last_bounces);
+    assert_eq!(back.scene_info, c.scene_info);
+}
+
+#[test]
+fn transients_are_indexed_laser_major_and_time_first() {
+    let c = sample();
+    // H is (T=5, L=2, S=6): transient c = l·6 + s, value at (t, c) = h[t·12 + c].
+    assert_eq!(c.indices(7), (1, 1));
+    let t: Vec<f32> = c.transient(7).collect();
+    assert_eq!(t, (0..5).map(|k| (k * 12 + 7) as f32 * 0.5).collect::<Vec<_>>());
+    assert_eq!(c.pair(7).xi, c.laser_grid.points[1]);
+    assert_eq!(c.pair(7).xd, c.sensor_grid.points[1]);
+}
+
+#[test]
+fn legs_are_subtracted_when_the_file_includes_them() {
+    let mut c = sample();
+    c.t_accounts_first_and_last_bounces = true;
+    c.laser_xyz = Some(DVec3::new(0.0, 0.0, 1.0));
+    let p = c.pair(3);
+    let legs = p.xi.distance(c.laser_xyz.unwrap()) + p.xd.distance(c.sensor_xyz.unwrap());
+    assert!((c.hidden_start(3) - (1.5 - legs)).abs() < 1e-12);
+    c.laser_xyz = None;
+    assert!(c.check().unwrap_err().contains("laser_xyz"));
+}
+
+/// The hidden axis stops where the file's recording does: a volume whose far paths
+/// reach beyond the time window gets no bins past it (they would be zeros nobody
+/// measured), the recorded counts all land on the axis, and a volume the window
+/// does not reach is refused with the file and the remedy named.
+#[test]
+fn the_hidden_axis_keeps_to_the_recorded_window() {
+    // 64 bins of 1 cm from 0.5 m: paths 0.5 to 1.14 m, seen confocally from six
+    // points with no legs in the times.
+    let mut c = sample();
+    c.h_format = HFormat::TSi;
+    c.h_shape = vec![64, 6];
+    c.laser_grid = c.sensor_grid.clone();
+    c.delta_t = 0.01;
+    c.t_start = 0.5;
+    c.h = (0..64 * 6).map(|v| (v % 7) as f32).collect();
+    c.flags = None;
+    c.check().unwrap();
+    // Paths from 2 × 0.2 m to past 2 m: beyond the recording at both ends.
+    let deep = VolumeGrid::new([-0.3, 0.3], [-0.3, 0.3], [0.2, 1.0], [8, 8, 8]).unwrap();
+    let set = c.transients(&deep).unwrap();
+    let axis = *set.axis();
+    assert!(axis.start >= 0.5 - 1e-9, "{axis:?}");
+    assert!(axis.end() <= 1.14 + 1e-9, "{axis:?}");
+    assert_eq!(axis.bins, 64, "every recorded bin is kept: {axis:?}");
+    let recorded: f64 = c.h.iter().map(|&v| f64::from(v)).sum();
+    let kept: f64 = (0..set.len())
+        .map(|i| set.histogram(i).iter().map(|&v| f64::from(v)).sum::<f64>())
+        .sum();
+    assert!(
+        (kept - recorded).abs() < 1e-6 * recorded,
+        "{kept} of {recorded} counts"
+    );
+    // A volume 3 m away: its paths start beyond the recording's end.
+    let far = VolumeGrid::new([-0.3, 0.3], [-0.3, 0.3], [3.0, 3.5], [8, 8, 8]).unwrap();
+    let e = c.transients(&far).unwrap_err().to_string();
+    assert!(e.contains("do not reach") && e.contains("[volume]"), "{e}");
+}
+
+#[test]
+fn mismatched_grids_are_refused_with_the_dataset_named() {
+    let mut c = sample();
+    c.h_format = HFormat::TSi;
+    c.h_shape = vec![5, 12];
+    let e = c.check().unwrap_err();
+    assert!(e.contains("sensor_grid_xyz") && e.contains("12"), "{e}");
+    let mut c = sample();
+    c.laser_grid.points.push(DVec3::ZERO);
+    c.laser_grid.normals.push(DVec3::Z);
+    assert!(c.check().unwrap_err().contains("laser grid has 3 points"));
+}
+
+#[test]
+fn files_that_are_not_y_tal_captures_get_a_clear_message() {
+    let dir = tempfile::tempdir().unwrap();
+    let text = dir.path().join("notes.hdf5");
+    std::fs::write(&text, "not hdf5").unwrap();
+    let e = YtalCapture::read(&text).unwrap_err().to_string();
+    assert!(e.contains("notes.hdf5") && e.contains("HDF5"), "{e}");
+    let other = dir.path().join("znlos.hdf5");
+    let mut b = FileBuilder::new();
+    b.create_dataset("data").with_f32_data(&[0.0; 4]);
+    std::fs::write(&other, b.finish().unwrap()).unwrap();
+    let e = YtalCapture::read(&other).unwrap_err().to_string();
+    assert!(e.contains("no dataset `H`") && e.contains("`data`"), "{e}");
+}

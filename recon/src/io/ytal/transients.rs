@@ -1,0 +1,173 @@
+//! What a capture means for a reconstruction: the relay pair and the hidden-path start
+//! of each transient, every transient rebinned onto a volume's hidden-path axis, and a
+//! default volume and viewpoint for a capture that comes with none.
+use std::path::PathBuf;
+
+use glam::DVec3;
+
+use super::{FLAG_OVERFLOW, YtalCapture, YtalError};
+use crate::transient::{C0, Pair, TimeAxis, TransientSet, clip_to_measured, hidden_axis, rebin_path};
+use crate::volume::VolumeGrid;
+
+/// Most bytes the rebinned transients of a capture may take in memory (the default
+/// run budget).
+const MAX_TRANSIENT_BYTES: u64 = 16 << 30;
+
+impl YtalCapture {
+    /// Laser and sensor point indices of transient `c`.
+    pub fn indices(&self, c: usize) -> (usize, usize) {
+        let ns = self.sensor_grid.points.len();
+        if self.h_format.is_product() {
+            (c / ns, c % ns)
+        } else if self.laser_grid.points.len() == 1 {
+            (0, c)
+        } else {
+            (c, c)
+        }
+    }
+
+    /// The relay pair of transient `c`.
+    pub fn pair(&self, c: usize) -> Pair {
+        let (l, s) = self.indices(c);
+        Pair {
+            xi: self.laser_grid.points[l],
+            ni: self.laser_grid.normals[l],
+            xd: self.sensor_grid.points[s],
+            nd: self.sensor_grid.normals[s],
+        }
+    }
+
+    /// Transient `c`, time bins in order.
+    pub fn transient(&self, c: usize) -> impl Iterator<Item = f32> + '_ {
+        let stride = self.len();
+        self.h.iter().skip(c).step_by(stride).copied()
+    }
+
+    /// Path length at the start of transient `c`'s bin 0, in hidden path length (legs
+    /// from the laser and to the SPAD removed when the file includes them).
+    pub fn hidden_start(&self, c: usize) -> f64 {
+        if !self.t_accounts_first_and_last_bounces {
+            return self.t_start;
+        }
+        let p = self.pair(c);
+        let legs = match (self.laser_xyz, self.sensor_xyz) {
+            (Some(l), Some(s)) => p.xi.distance(l) + p.xd.distance(s),
+            _ => 0.0, // excluded by `check`
+        };
+        self.t_start - legs
+    }
+
+    /// All transients rebinned onto the hidden-path axis for `volume`, at the file's bin
+    /// width, where the file recorded it (the axis stops where the last transient's time
+    /// window ends, and starts no earlier than the first one's begins, even when the
+    /// volume's paths reach further: [`clip_to_measured`]). Transients with no counts
+    /// are left out, and so are those the flags mark overflowed (their counts are only
+    /// a lower bound), as in a run's own reconstruction.
+    pub fn transients(&self, volume: &VolumeGrid) -> Result<TransientSet, YtalError> {
+        let pairs: Vec<Pair> = (0..self.len()).map(|c| self.pair(c)).collect();
+        let axis: TimeAxis =
+            hidden_axis(&pairs, volume, self.delta_t / C0).map_err(|e| self.error(e.to_string()))?;
+        // Only the paths some transient recorded: beyond the file's time window the
+        // rebinned histograms would hold zeros nobody measured.
+        let span = self.bins() as f64 * self.delta_t;
+        let measured = (0..self.len())
+            .map(|c| self.hidden_start(c))
+            .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), s| {
+                (lo.min(s), hi.max(s + span))
+            });
+        let axis = clip_to_measured(&axis, measured).map_err(|e| self.error(e.to_string()))?;
+        let bytes = (pairs.len() as u64)
+            .saturating_mul(axis.bins as u64)
+            .saturating_mul(8);
+        if bytes > MAX_TRANSIENT_BYTES {
+            return Err(self.error(format!(
+                "{} transients of {} bins would take {bytes} bytes, more than {MAX_TRANSIENT_BYTES}: \
+                 give a smaller [volume] or a coarser capture",
+                pairs.len(),
+                axis.bins
+            )));
+        }
+        let mut set = TransientSet::new(axis).map_err(|e| self.error(e.to_string()))?;
+        // Whole non-negative numbers throughout: a photon-counting capture.
+        let mut whole = true;
+        for (c, pair) in pairs.into_iter().enumerate() {
+            if self.flags.as_ref().is_some_and(|f| f[c] & FLAG_OVERFLOW != 0) {
+                continue;
+            }
+            whole &= self.transient(c).all(|v| v >= 0.0 && v.fract() == 0.0);
+            let h = rebin_path(self.transient(c), self.hidden_start(c), self.delta_t, &axis);
+            if h.iter().any(|&v| v != 0.0) {
+                set.push(pair, &h).map_err(|e| self.error(e.to_string()))?;
+            }
+        }
+        if whole {
+            set.mark_photon_counts();
+        }
+        Ok(set)
+    }
+
+    fn error(&self, message: String) -> YtalError {
+        YtalError::Format {
+            path: PathBuf::from("<capture>"),
+            message,
+        }
+    }
+
+    /// A reconstruction volume for a capture that comes with none: over the relay
+    /// points' extent, from 5 cm in front of the relay out to the depth the time axis
+    /// reaches (at most 3 m), on the side the normals face.
+    pub fn default_volume(&self) -> Result<VolumeGrid, YtalError> {
+        let pts: Vec<DVec3> = self
+            .sensor_grid
+            .points
+            .iter()
+            .chain(&self.laser_grid.points)
+            .copied()
+            .collect();
+        let normal = self
+            .sensor_grid
+            .normals
+            .iter()
+            .fold(DVec3::ZERO, |a, &n| a + n)
+            .normalize_or_zero();
+        if normal == DVec3::ZERO {
+            return Err(self.error("the sensor normals cancel out; give a RECON.toml with a [volume]".into()));
+        }
+        let (lo, hi) = pts.iter().fold(
+            (DVec3::splat(f64::INFINITY), DVec3::splat(f64::NEG_INFINITY)),
+            |(a, b), &p| (a.min(p), b.max(p)),
+        );
+        let reach = (0..self.len())
+            .map(|c| self.hidden_start(c))
+            .fold(f64::NEG_INFINITY, f64::max)
+            + self.delta_t * self.bins() as f64;
+        let depth = (0.5 * reach).clamp(0.2, 3.0);
+        let (near, far) = (lo + normal * 0.05, hi + normal * depth);
+        let (a, b) = (near.min(far).min(lo), near.max(far).max(hi));
+        // Keep the relay itself out of the volume along the normal axis.
+        let axis = normal.abs().max_element();
+        let mut min = a;
+        let mut max = b;
+        for k in 0..3 {
+            if normal[k].abs() == axis {
+                if normal[k] > 0.0 {
+                    min[k] = hi[k] + 0.05;
+                    max[k] = hi[k] + depth;
+                } else {
+                    max[k] = lo[k] - 0.05;
+                    min[k] = lo[k] - depth;
+                }
+            }
+        }
+        VolumeGrid::new([min.x, max.x], [min.y, max.y], [min.z, max.z], [64, 64, 64])
+            .map_err(|e| self.error(e.to_string()))
+    }
+
+    /// A point on the side of the relay the normals face (orients the virtual relay).
+    pub fn viewpoint(&self) -> DVec3 {
+        let n = self.sensor_grid.points.len() as f64;
+        let centre = self.sensor_grid.points.iter().fold(DVec3::ZERO, |a, &p| a + p) / n;
+        let normal = self.sensor_grid.normals.iter().fold(DVec3::ZERO, |a, &p| a + p) / n;
+        centre + normal
+    }
+}
