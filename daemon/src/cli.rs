@@ -228,8 +228,22 @@ pub fn execute(cli: Cli) -> Result<(), CliError> {
                 t
             });
             let service = crate::service::Service::open(src, Some(token))?;
+            let api = &service.instrument().api;
+            // The blocking pool answers the API's slower requests (run directories,
+            // exports, plan checks): its size follows the API's own limits, so a flood
+            // never puts hundreds of threads beside the instrument's worker.
+            let blocking = api.max_concurrent + api.max_checks + api.max_downloads + 4;
+            // Compute threads are made now, from this thread, so they keep the
+            // instrument's priority rather than inheriting the API's.
+            let _ = rayon::ThreadPoolBuilder::new().build_global();
             let runtime = tokio::runtime::Builder::new_multi_thread()
                 .enable_all()
+                .max_blocking_threads(blocking)
+                .on_thread_start(|| {
+                    if let Err(e) = crate::priority::lower_current_thread(crate::priority::API_NICE) {
+                        tracing::debug!(error = %e, "the API thread keeps the instrument's priority");
+                    }
+                })
                 .thread_name("periscope-api")
                 .build()
                 .map_err(CliError::Runtime)?;

@@ -20,6 +20,7 @@ pub mod logging;
 pub mod offline;
 pub mod pipeline;
 pub mod plan;
+pub mod priority;
 pub mod progress;
 pub mod record;
 pub mod run_dir;

@@ -26,6 +26,7 @@ use utoipa_axum::routes;
 
 mod dashboard;
 mod openapi;
+pub mod server;
 
 pub use dashboard::ASSETS;
 
@@ -39,17 +40,35 @@ use openapi::status;
 /// The documented routes: every API handler, registered with the router and the
 /// OpenAPI document at once (the dashboard's pages are routed in [`app`]).
 fn documented() -> OpenApiRouter<AppState> {
+    exempt().merge(checks()).merge(limited())
+}
+
+/// The routes that never wait for a turn: the e-stop (nothing may stand in front of
+/// it) and the health check (a probe must tell a busy daemon from a dead one).
+fn exempt() -> OpenApiRouter<AppState> {
     OpenApiRouter::with_openapi(openapi::ApiDoc::openapi())
         .routes(routes!(health))
+        .routes(routes!(estop))
+}
+
+/// Plan checks: parsing a plan of up to the body limit takes memory and CPU, and needs
+/// no token on loopback, so they take turns of their own (`[api] max-checks`).
+fn checks() -> OpenApiRouter<AppState> {
+    OpenApiRouter::new().routes(routes!(check))
+}
+
+/// Every other route: they take turns (`[api] max-concurrent` at once), so a flood of
+/// requests waits in line instead of crowding the instrument's worker off the CPU or
+/// out of the service's state.
+fn limited() -> OpenApiRouter<AppState> {
+    OpenApiRouter::new()
         .routes(routes!(openapi_doc))
         .routes(routes!(instrument))
-        .routes(routes!(check))
         .routes(routes!(submit, list))
         .routes(routes!(run_status))
         .routes(routes!(pause))
         .routes(routes!(resume))
         .routes(routes!(abort))
-        .routes(routes!(estop))
         .routes(routes!(events))
         .routes(routes!(file))
         .routes(routes!(geometry))
@@ -206,10 +225,19 @@ async fn blocking<T: Send + 'static>(
 /// errors for unknown routes and methods.
 pub fn app(state: AppState) -> Router {
     let api = state.service.instrument().api.clone();
-    let (documented, _) = documented().split_for_parts();
-    let routes: Router<AppState> = documented
+    let (exempt, _) = exempt().split_for_parts();
+    let (checks, _) = checks().split_for_parts();
+    let (limited, _) = limited().split_for_parts();
+    // One shared permit pool per group (a plain ConcurrencyLimitLayer would give each
+    // route its own).
+    let limited = limited
         .route("/", get(dashboard::index))
         .route("/ui/{*file}", get(dashboard::asset))
+        .layer(tower::limit::GlobalConcurrencyLimitLayer::new(api.max_concurrent));
+    let checks = checks.layer(tower::limit::GlobalConcurrencyLimitLayer::new(api.max_checks));
+    let routes: Router<AppState> = exempt
+        .merge(checks)
+        .merge(limited)
         .fallback(not_found)
         .method_not_allowed_fallback(method_not_allowed);
     routes
@@ -264,8 +292,12 @@ pub async fn serve(bind: SocketAddr, service: Arc<Service>) -> Result<(), ServeE
         }),
         crate::signals::SIGNAL_GRACE,
     );
-    axum::serve(listener, app.into_make_service_with_connect_info::<SocketAddr>())
-        .with_graceful_shutdown(async move { notify.notified().await })
+    let api = &service.instrument().api;
+    let limits = server::ConnectionLimits {
+        header_timeout: api.header_timeout,
+        max_connections: server::connection_cap(api.max_connections, server::open_files_limit()),
+    };
+    server::serve_connections(listener, app, limits, async move { notify.notified().await })
         .await
         .map_err(ServeError::Io)?;
     service.shutdown();
@@ -399,10 +431,13 @@ fn check_token(expected: Option<&str>, headers: &HeaderMap) -> Result<(), ApiErr
             "this daemon has no API token: set PERISCOPE_TOKEN or [api] token and restart it",
         ));
     };
+    // The scheme is case-insensitive (RFC 9110 §11.1): `bearer` and `BEARER` too.
     let given = headers
         .get(header::AUTHORIZATION)
         .and_then(|v| v.to_str().ok())
-        .and_then(|v| v.strip_prefix("Bearer "));
+        .and_then(|v| v.trim_start().split_once(' '))
+        .filter(|(scheme, _)| scheme.eq_ignore_ascii_case("bearer"))
+        .map(|(_, token)| token);
     match given {
         None => Err(ApiError::new(
             StatusCode::UNAUTHORIZED,

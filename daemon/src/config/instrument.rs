@@ -120,6 +120,16 @@ pub struct ApiSettings {
     pub body_limit: usize,
     /// Longest time a request may take to answer (event streams excepted once open).
     pub request_timeout: Duration,
+    /// Longest wait for a request's headers, and for the next request on an idle
+    /// keep-alive connection; then the connection is closed.
+    pub header_timeout: Duration,
+    /// Most connections at once (lowered to the descriptor limit less a reserve).
+    pub max_connections: usize,
+    /// Most requests answered at once; more wait their turn (the e-stop and the health
+    /// check never wait).
+    pub max_concurrent: usize,
+    /// Most plan checks (`POST /check`, submissions' parsing) at once.
+    pub max_checks: usize,
 }
 
 impl std::fmt::Debug for ApiSettings {
@@ -131,6 +141,10 @@ impl std::fmt::Debug for ApiSettings {
             .field("open_reads", &self.open_reads)
             .field("body_limit", &self.body_limit)
             .field("request_timeout", &self.request_timeout)
+            .field("header_timeout", &self.header_timeout)
+            .field("max_connections", &self.max_connections)
+            .field("max_concurrent", &self.max_concurrent)
+            .field("max_checks", &self.max_checks)
             .field("status_interval", &self.status_interval)
             .field("max_queue", &self.max_queue)
             .field("max_streams", &self.max_streams)
@@ -270,6 +284,14 @@ struct RawApi {
     body_limit_kib: f64,
     #[serde(default = "default_request_timeout_s")]
     request_timeout_s: f64,
+    #[serde(default = "default_header_timeout_s")]
+    header_timeout_s: f64,
+    #[serde(default = "default_max_connections")]
+    max_connections: f64,
+    #[serde(default = "default_max_concurrent")]
+    max_concurrent: f64,
+    #[serde(default = "default_max_checks")]
+    max_checks: f64,
 }
 
 impl Default for RawApi {
@@ -285,6 +307,10 @@ impl Default for RawApi {
             open_reads: false,
             body_limit_kib: default_body_limit_kib(),
             request_timeout_s: default_request_timeout_s(),
+            header_timeout_s: default_header_timeout_s(),
+            max_connections: default_max_connections(),
+            max_concurrent: default_max_concurrent(),
+            max_checks: default_max_checks(),
         }
     }
 }
@@ -297,6 +323,18 @@ fn default_body_limit_kib() -> f64 {
 }
 fn default_request_timeout_s() -> f64 {
     30.0
+}
+fn default_header_timeout_s() -> f64 {
+    10.0
+}
+fn default_max_connections() -> f64 {
+    512.0
+}
+fn default_max_concurrent() -> f64 {
+    8.0
+}
+fn default_max_checks() -> f64 {
+    2.0
 }
 fn default_status_interval_s() -> f64 {
     10.0
@@ -360,6 +398,16 @@ fn api_settings(check: &Check<'_>, raw: RawApi) -> Result<ApiSettings, ConfigErr
             3600.0,
             "s",
         )?),
+        header_timeout: Duration::from_secs_f64(check.range(
+            "api.header-timeout-s",
+            raw.header_timeout_s,
+            0.1,
+            3600.0,
+            "s",
+        )?),
+        max_connections: count("api.max-connections", raw.max_connections, 1_000_000.0)?,
+        max_concurrent: count("api.max-concurrent", raw.max_concurrent, 10_000.0)?,
+        max_checks: count("api.max-checks", raw.max_checks, 1_000.0)?,
     })
 }
 

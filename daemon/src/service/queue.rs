@@ -154,14 +154,20 @@ impl Service {
                 }
             }
         }
+        // Run files are read with the lock released: the worker and the capture's
+        // events take it too.
+        let queue: Vec<String> = if st.state == RunState::Queued {
+            s.queue.iter().cloned().collect()
+        } else {
+            Vec::new()
+        };
+        drop(s);
         if st.state == RunState::Queued {
-            st.queue_position = s
-                .queue
+            st.queue_position = queue
                 .iter()
                 .filter(|q| self.info(q).is_ok_and(|i| i.state == RunState::Queued))
                 .position(|q| q == id);
         }
-        drop(s);
         if st.pairs_total > 0 {
             st.progress = (st.pairs_done as f64 / st.pairs_total as f64).min(1.0);
         }

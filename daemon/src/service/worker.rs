@@ -161,15 +161,49 @@ impl Service {
             path: dir.clone(),
             source: e,
         })?;
+        // The run's events reach the live state and the stream clients through a
+        // forwarding thread: the capture's own thread only queues them, so it never
+        // waits for the service's lock, whatever the API's readers do with it.
+        let (tx, rx) = std::sync::mpsc::channel::<RunEvent>();
+        let tx = Arc::new(Mutex::new(Some(tx)));
+        {
+            let tx = Arc::clone(&tx);
+            events.listen(move |ev| {
+                if let Some(tx) = &*tx.lock().unwrap_or_else(|p| p.into_inner()) {
+                    let _ = tx.send(ev.clone());
+                }
+            });
+        }
         let me = Arc::clone(self);
         let run_id = id.to_owned();
-        let mut last_sent = [Instant::now() - PAIR_EVENT_INTERVAL; 2];
-        events.listen(move |ev| me.on_event(&run_id, ev, &mut last_sent));
+        let forwarder = std::thread::Builder::new()
+            .name("run-events".into())
+            .spawn(move || {
+                let mut last_sent = [Instant::now() - PAIR_EVENT_INTERVAL; 2];
+                for ev in rx {
+                    me.on_event(&run_id, &ev, &mut last_sent);
+                }
+            });
+        let forwarder = match forwarder {
+            Ok(f) => Some(f),
+            Err(e) => {
+                tracing::warn!(run = %id, error = %e, "no thread for the run's events; its stream clients see none");
+                None
+            }
+        };
         // Run::open records a run that never started (paused, aborted or failed,
         // resumable) itself.
-        let run = Run::open(&dir, control, Some(events), Some(self.backend.as_ref()))?;
-        self.lock().laser_off = Some(run.emergency_off());
-        run.execute().map(|_| ())
+        let result = Run::open(&dir, control, Some(events), Some(self.backend.as_ref())).and_then(|run| {
+            self.lock().laser_off = Some(run.emergency_off());
+            run.execute().map(|_| ())
+        });
+        // Every event queued so far reaches the clients before the worker closes the
+        // run's channel.
+        tx.lock().unwrap_or_else(|p| p.into_inner()).take();
+        if let Some(f) = forwarder {
+            let _ = f.join();
+        }
+        result
     }
 
     pub(super) fn on_event(&self, id: &str, ev: &RunEvent, last_sent: &mut [Instant; 2]) {
