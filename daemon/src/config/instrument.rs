@@ -1148,6 +1148,94 @@ mod tests {
         assert!(err.contains("galvo.laser") && err.contains("serial"), "{err}");
     }
 
+    /// The lab example with its USB histogrammer swapped for `tdc_lines`.
+    fn lab_with(tdc_lines: &str) -> String {
+        LAB.replace(
+            "usb = \"1d50:6189\"           # VID:PID, or VID:PID:SERIAL to pick one of several",
+            tdc_lines,
+        )
+    }
+
+    #[test]
+    fn a_multiharp_takes_the_vendors_defaults() {
+        let lab = load(&lab_with("driver = \"multiharp\"")).unwrap();
+        let TdcDriver::PicoQuant(c) = &lab.tdc.driver else {
+            panic!("{:?}", lab.tdc.driver)
+        };
+        assert_eq!(c.family, Family::MultiHarp);
+        assert_eq!(c.library, PathBuf::from("/usr/local/lib64/mh150/mhlib.so"));
+        assert_eq!((c.channel, c.serial.as_deref(), c.input_offset_ps), (0, None, 0));
+        assert_eq!(c.sync_trigger, Family::MultiHarp.default_trigger());
+        let lab = load(&lab_with(
+            "driver = \"hydraharp\"\nserial = \"1012345\"\nchannel = 3\ninput-level-mv = 120\ninput-zero-cross-mv = 8\nlibrary = \"/opt/hhlib.so\"",
+        ))
+        .unwrap();
+        let TdcDriver::PicoQuant(c) = &lab.tdc.driver else {
+            panic!()
+        };
+        assert_eq!(
+            (c.family, c.channel, c.serial.as_deref()),
+            (Family::HydraHarp, 2, Some("1012345"))
+        );
+        assert_eq!(
+            c.input_trigger,
+            Trigger::Cfd {
+                level_mv: 120,
+                zero_cross_mv: 8
+            }
+        );
+        assert_eq!(c.library, PathBuf::from("/opt/hhlib.so"));
+        assert_eq!(load(LAB).unwrap().tdc.driver, TdcDriver::Usb);
+        // The example the lab config carries in comments, uncommented.
+        let mut example = lab_with("");
+        let start = example.find("# driver = \"multiharp\"").unwrap();
+        let block = example.split_off(start).replace("\n# ", "\n");
+        let lab = load(&format!("{example}{}", &block[2..])).unwrap();
+        assert!(
+            matches!(lab.tdc.driver, TdcDriver::PicoQuant(ref c) if c.serial.as_deref() == Some("1045678"))
+        );
+    }
+
+    #[test]
+    fn counter_keys_that_nothing_would_read_are_refused_by_key_and_line() {
+        let cases = [
+            (
+                "driver = \"multiharp\"\nsync-zero-cross-mv = 10",
+                "tdc.sync-zero-cross-mv",
+            ),
+            (
+                "driver = \"hydraharp\"\ninput-edge = \"rising\"",
+                "tdc.input-edge",
+            ),
+            ("usb = \"1d50:6189\"\nserial = \"1045678\"", "tdc.serial"),
+            ("driver = \"multiharp\"\nusb = \"1d50:6189\"", "tdc.usb"),
+            ("driver = \"multiharp\"\nchannel = 0", "tdc.channel"),
+            (
+                "driver = \"multiharp\"\nsync-level-mv = -1500",
+                "tdc.sync-level-mv",
+            ),
+            (
+                "driver = \"multiharp\"\ninput-offset-ps = 12.5",
+                "tdc.input-offset-ps",
+            ),
+            ("driver = \"hydraharp\"\nserial = \"12 34\"", "tdc.serial"),
+        ];
+        for (lines, key) in cases {
+            let text = lab_with(lines);
+            let err = load(&text).unwrap_err();
+            assert_eq!(err.key(), Some(key), "{lines}: {err}");
+            let last = lines.lines().last().unwrap();
+            let line = text.lines().position(|l| l == last).unwrap() + 1;
+            assert_eq!(err.line(), Some(line), "{lines}: {err}");
+        }
+        let text = lab_with("driver = \"hydraharp\"").replace("sync-divider = 1", "sync-divider = 3");
+        assert_eq!(load(&text).unwrap_err().key(), Some("tdc.sync-divider"));
+        // The simulated instrument has its own histogrammer.
+        let text = SIM.replace("[tdc]\n", "[tdc]\ndriver = \"multiharp\"\n");
+        let err = load(&text).unwrap_err();
+        assert_eq!(err.key(), Some("tdc.driver"), "{err}");
+    }
+
     #[test]
     fn empty_angle_ranges_are_rejected() {
         let text = SIM.replacen("x = [-20.0, 20.0]", "x = [20.0, -20.0]", 1);
