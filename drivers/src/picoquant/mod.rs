@@ -3,7 +3,7 @@
 //! the daemon builds and runs without it, and the library is found at the path the
 //! instrument config gives.
 //!
-//! Split by concern: [`ffi`](self) is the one module with `unsafe` code (the symbol
+//! Split by concern: `ffi` is the one module with `unsafe` code (the symbol
 //! lookups and calls); `defin` holds the headers' numbers; `family` what differs
 //! between the two libraries; `error` the error codes sorted into kinds; `driver` the
 //! [`Histogrammer`](crate::Histogrammer) over all of it.
