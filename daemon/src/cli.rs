@@ -299,6 +299,15 @@ fn devices(config: &InstrumentConfig) -> Result<(), CliError> {
         }
         Err(e) => println!("  (cannot list: {e})"),
     }
+    if let crate::config::TdcDriver::PicoQuant(counter) = &config.tdc.driver {
+        println!(
+            "PicoQuant {}s (select one in the config as tdc.serial = \"SERIAL\"):",
+            counter.family
+        );
+        for line in crate::devices::picoquant::survey(counter) {
+            println!("  {line}");
+        }
+    }
     println!("Instrument: {}", config.summary());
     let mut devices = crate::devices::Devices::open_config(config)?;
     let r = devices.report()?;

@@ -1,6 +1,6 @@
 //! Hardware side of Periscope: the traits the daemon drives ([`traits`]), the real
 //! drivers behind them (a serial galvo controller in [`galvo`], a USB histogrammer in
-//! [`tdc`]), their wire protocols (shared with the simulated devices), and the pieces of the instrument model that the driver side and the simulated
+//! [`tdc`], PicoQuant's counters through their vendor library in [`picoquant`]), their wire protocols (shared with the simulated devices), and the pieces of the instrument model that the driver side and the simulated
 //! devices must share exactly (the galvo calibration model, device selectors).
 //!
 //! The calibration model lives here rather than in `sim` because both directions of it
@@ -14,6 +14,7 @@ pub mod error;
 pub mod galvo;
 pub mod geometry;
 pub mod laser_guard;
+pub mod picoquant;
 pub mod ports;
 pub mod selector;
 pub mod tdc;

@@ -8,6 +8,7 @@ use std::path::{Path, PathBuf};
 use std::time::Duration;
 
 use glam::DVec3;
+use periscope_drivers::picoquant::{Family, Trigger};
 use periscope_drivers::{AngleLimits, GalvoPose, UsbSelector};
 use serde::Deserialize;
 
@@ -223,8 +224,38 @@ pub struct TdcSettings {
     /// Undo pile-up (Coates) and the SPAD's dead time on every stored histogram before
     /// it is reconstructed (`tdc.pile-up-correction`, default on).
     pub pile_up_correction: bool,
-    /// The USB device (required for the hardware back-end).
+    /// The USB device (required for the hardware back-end with the `usb` driver).
     pub usb: Option<UsbSelector>,
+    /// Which driver reaches the histogrammer (`tdc.driver`).
+    pub driver: TdcDriver,
+}
+
+/// The histogrammer's driver (`tdc.driver`).
+#[derive(Clone, Debug, PartialEq)]
+pub enum TdcDriver {
+    /// Periscope's own USB histogrammer (`"usb"`, the default), at `tdc.usb`.
+    Usb,
+    /// A PicoQuant counter through the vendor's library (`"multiharp"`, `"hydraharp"`).
+    PicoQuant(PicoQuantCounter),
+}
+
+/// A PicoQuant counter as the config describes it.
+#[derive(Clone, Debug, PartialEq)]
+pub struct PicoQuantCounter {
+    /// MultiHarp (MHLib) or HydraHarp (HHLib).
+    pub family: Family,
+    /// The library to load (`tdc.library`; the vendor's install path by default).
+    pub library: PathBuf,
+    /// The counter's serial number (`tdc.serial`); `None` takes the first found.
+    pub serial: Option<String>,
+    /// The SPAD's input, 0-based (`tdc.channel` is 1-based, as the front panel).
+    pub channel: u32,
+    /// The sync input's trigger.
+    pub sync_trigger: Trigger,
+    /// The SPAD input's trigger.
+    pub input_trigger: Trigger,
+    /// The SPAD input's channel offset, ps.
+    pub input_offset_ps: i32,
 }
 
 #[derive(Deserialize)]
@@ -513,6 +544,34 @@ struct RawTdc {
     #[serde(default = "default_true")]
     pile_up_correction: bool,
     usb: Option<String>,
+    #[serde(default)]
+    driver: RawTdcDriver,
+    library: Option<PathBuf>,
+    serial: Option<String>,
+    channel: Option<u32>,
+    sync_level_mv: Option<f64>,
+    input_level_mv: Option<f64>,
+    sync_edge: Option<RawEdge>,
+    input_edge: Option<RawEdge>,
+    sync_zero_cross_mv: Option<f64>,
+    input_zero_cross_mv: Option<f64>,
+    input_offset_ps: Option<f64>,
+}
+
+#[derive(Deserialize, Clone, Copy, Default, PartialEq)]
+#[serde(rename_all = "kebab-case")]
+enum RawTdcDriver {
+    #[default]
+    Usb,
+    Multiharp,
+    Hydraharp,
+}
+
+#[derive(Deserialize, Clone, Copy, PartialEq)]
+#[serde(rename_all = "kebab-case")]
+enum RawEdge {
+    Rising,
+    Falling,
 }
 
 fn default_sync_divider() -> u32 {
@@ -893,15 +952,17 @@ fn tdc_settings(check: &Check<'_>, raw: RawTdc, hardware: bool) -> Result<TdcSet
     }
     let usb = raw
         .usb
+        .as_ref()
         .map(|text| {
             text.parse::<UsbSelector>()
                 .map_err(|err| src.invalid("tdc.usb", err.to_string()))
         })
         .transpose()?;
-    if hardware && usb.is_none() {
+    let driver = tdc_driver(check, &raw, hardware)?;
+    if hardware && driver == TdcDriver::Usb && usb.is_none() {
         return Err(src.invalid(
             "tdc",
-            "backend = \"hardware\" needs `usb = \"VID:PID\"` naming the histogrammer; `periscope devices` lists what is plugged in",
+            "backend = \"hardware\" needs `usb = \"VID:PID\"` naming the histogrammer (or `driver = \"multiharp\"`/`\"hydraharp\"` for a PicoQuant counter); `periscope devices` lists what is plugged in",
         ));
     }
     Ok(TdcSettings {
@@ -912,7 +973,163 @@ fn tdc_settings(check: &Check<'_>, raw: RawTdc, hardware: bool) -> Result<TdcSet
         system_delay: check.range("tdc.system-delay-ns", raw.system_delay_ns, -1e3, 1e3, "ns")? * 1e-9,
         pile_up_correction: raw.pile_up_correction,
         usb,
+        driver,
     })
+}
+
+/// `tdc.driver` and the keys that go with it: the PicoQuant keys are refused with the
+/// `usb` driver, the edge keys on a HydraHarp and the zero-cross keys on a MultiHarp,
+/// so a config never holds a setting nothing reads.
+fn tdc_driver(check: &Check<'_>, raw: &RawTdc, hardware: bool) -> Result<TdcDriver, ConfigError> {
+    let src = check.src;
+    let family = match raw.driver {
+        RawTdcDriver::Usb => None,
+        RawTdcDriver::Multiharp => Some(Family::MultiHarp),
+        RawTdcDriver::Hydraharp => Some(Family::HydraHarp),
+    };
+    let picoquant_keys = [
+        ("tdc.library", raw.library.is_some()),
+        ("tdc.serial", raw.serial.is_some()),
+        ("tdc.channel", raw.channel.is_some()),
+        ("tdc.sync-level-mv", raw.sync_level_mv.is_some()),
+        ("tdc.input-level-mv", raw.input_level_mv.is_some()),
+        ("tdc.sync-edge", raw.sync_edge.is_some()),
+        ("tdc.input-edge", raw.input_edge.is_some()),
+        ("tdc.sync-zero-cross-mv", raw.sync_zero_cross_mv.is_some()),
+        ("tdc.input-zero-cross-mv", raw.input_zero_cross_mv.is_some()),
+        ("tdc.input-offset-ps", raw.input_offset_ps.is_some()),
+    ];
+    let Some(family) = family else {
+        if let Some((key, _)) = picoquant_keys.iter().find(|(_, given)| *given) {
+            return Err(src.invalid(
+                key,
+                "is a PicoQuant counter's setting: add `driver = \"multiharp\"` or `\"hydraharp\"` to [tdc], or remove it",
+            ));
+        }
+        return Ok(TdcDriver::Usb);
+    };
+    if !hardware {
+        return Err(src.invalid(
+            "tdc.driver",
+            format!(
+                "the {family} driver needs backend = \"hardware\": the simulated instrument has its own histogrammer \
+                 (to run the driver against the simulator, see `standins/picoquant` in docs/drivers.md)"
+            ),
+        ));
+    }
+    if raw.usb.is_some() {
+        return Err(src.invalid(
+            "tdc.usb",
+            format!("names a USB histogrammer, but tdc.driver picks a {family}: remove it"),
+        ));
+    }
+    let (foreign, own) = if family.uses_cfd() {
+        (
+            [
+                ("tdc.sync-edge", raw.sync_edge.is_some()),
+                ("tdc.input-edge", raw.input_edge.is_some()),
+            ],
+            "a HydraHarp's inputs are constant-fraction discriminators: give `sync-zero-cross-mv`/`input-zero-cross-mv`",
+        )
+    } else {
+        (
+            [
+                ("tdc.sync-zero-cross-mv", raw.sync_zero_cross_mv.is_some()),
+                ("tdc.input-zero-cross-mv", raw.input_zero_cross_mv.is_some()),
+            ],
+            "a MultiHarp's inputs are edge triggers: give `sync-edge`/`input-edge` (\"rising\" or \"falling\")",
+        )
+    };
+    if let Some((key, _)) = foreign.iter().find(|(_, given)| *given) {
+        return Err(src.invalid(key, own));
+    }
+    let whole = |key: &str, v: f64, lo: f64, hi: f64, unit: &str| -> Result<i32, ConfigError> {
+        let v = check.range(key, v, lo, hi, unit)?;
+        if v.fract() != 0.0 {
+            return Err(src.invalid(key, format!("{v} is not a whole number of {unit}")));
+        }
+        Ok(v as i32)
+    };
+    let trigger = |side: &str,
+                   level: Option<f64>,
+                   edge: Option<RawEdge>,
+                   zc: Option<f64>|
+     -> Result<Trigger, ConfigError> {
+        Ok(match family.default_trigger() {
+            Trigger::Edge { level_mv, rising } => Trigger::Edge {
+                level_mv: match level {
+                    Some(v) => whole(&format!("tdc.{side}-level-mv"), v, -1200.0, 1200.0, "mV")?,
+                    None => level_mv,
+                },
+                rising: edge.map_or(rising, |e| e == RawEdge::Rising),
+            },
+            Trigger::Cfd {
+                level_mv,
+                zero_cross_mv,
+            } => Trigger::Cfd {
+                level_mv: match level {
+                    Some(v) => whole(&format!("tdc.{side}-level-mv"), v, 0.0, 1000.0, "mV")?,
+                    None => level_mv,
+                },
+                zero_cross_mv: match zc {
+                    Some(v) => whole(&format!("tdc.{side}-zero-cross-mv"), v, 0.0, 40.0, "mV")?,
+                    None => zero_cross_mv,
+                },
+            },
+        })
+    };
+    if !family.sync_divider_ok(raw.sync_divider) {
+        return Err(src.invalid(
+            "tdc.sync-divider",
+            format!(
+                "the {family} does not take sync divider {}: {}",
+                raw.sync_divider,
+                if family.uses_cfd() {
+                    "use 1, 2, 4, 8 or 16"
+                } else {
+                    "use 1 to 16"
+                }
+            ),
+        ));
+    }
+    let channel = match raw.channel {
+        None => 0,
+        Some(c) if (1..=64).contains(&c) => c - 1,
+        Some(c) => {
+            return Err(src.invalid(
+                "tdc.channel",
+                format!("{c} is not an input: inputs are numbered from 1, as on the front panel"),
+            ));
+        }
+    };
+    if let Some(serial) = &raw.serial
+        && (serial.is_empty() || serial.len() > 8 || !serial.chars().all(|c| c.is_ascii_alphanumeric()))
+    {
+        return Err(src.invalid(
+            "tdc.serial",
+            format!("`{serial}` is not a serial number (up to 8 letters and digits; `periscope devices` lists them)"),
+        ));
+    }
+    Ok(TdcDriver::PicoQuant(PicoQuantCounter {
+        family,
+        library: raw
+            .library
+            .clone()
+            .unwrap_or_else(|| PathBuf::from(family.default_library())),
+        serial: raw.serial.clone(),
+        channel,
+        sync_trigger: trigger("sync", raw.sync_level_mv, raw.sync_edge, raw.sync_zero_cross_mv)?,
+        input_trigger: trigger(
+            "input",
+            raw.input_level_mv,
+            raw.input_edge,
+            raw.input_zero_cross_mv,
+        )?,
+        input_offset_ps: match raw.input_offset_ps {
+            Some(v) => whole("tdc.input-offset-ps", v, -99_999.0, 99_999.0, "ps")?,
+            None => 0,
+        },
+    }))
 }
 
 /// Memory and disk limits for one run, from the instrument config's `[budget]` table.
@@ -977,6 +1194,94 @@ mod tests {
         let text = SIM.replace("backend = \"sim\"", "backend = \"hardware\"");
         let err = load(&text).unwrap_err().to_string();
         assert!(err.contains("galvo.laser") && err.contains("serial"), "{err}");
+    }
+
+    /// The lab example with its USB histogrammer swapped for `tdc_lines`.
+    fn lab_with(tdc_lines: &str) -> String {
+        LAB.replace(
+            "usb = \"1d50:6189\"           # VID:PID, or VID:PID:SERIAL to pick one of several",
+            tdc_lines,
+        )
+    }
+
+    #[test]
+    fn a_multiharp_takes_the_vendors_defaults() {
+        let lab = load(&lab_with("driver = \"multiharp\"")).unwrap();
+        let TdcDriver::PicoQuant(c) = &lab.tdc.driver else {
+            panic!("{:?}", lab.tdc.driver)
+        };
+        assert_eq!(c.family, Family::MultiHarp);
+        assert_eq!(c.library, PathBuf::from("/usr/local/lib64/mh150/mhlib.so"));
+        assert_eq!((c.channel, c.serial.as_deref(), c.input_offset_ps), (0, None, 0));
+        assert_eq!(c.sync_trigger, Family::MultiHarp.default_trigger());
+        let lab = load(&lab_with(
+            "driver = \"hydraharp\"\nserial = \"1012345\"\nchannel = 3\ninput-level-mv = 120\ninput-zero-cross-mv = 8\nlibrary = \"/opt/hhlib.so\"",
+        ))
+        .unwrap();
+        let TdcDriver::PicoQuant(c) = &lab.tdc.driver else {
+            panic!()
+        };
+        assert_eq!(
+            (c.family, c.channel, c.serial.as_deref()),
+            (Family::HydraHarp, 2, Some("1012345"))
+        );
+        assert_eq!(
+            c.input_trigger,
+            Trigger::Cfd {
+                level_mv: 120,
+                zero_cross_mv: 8
+            }
+        );
+        assert_eq!(c.library, PathBuf::from("/opt/hhlib.so"));
+        assert_eq!(load(LAB).unwrap().tdc.driver, TdcDriver::Usb);
+        // The example the lab config carries in comments, uncommented.
+        let mut example = lab_with("");
+        let start = example.find("# driver = \"multiharp\"").unwrap();
+        let block = example.split_off(start).replace("\n# ", "\n");
+        let lab = load(&format!("{example}{}", &block[2..])).unwrap();
+        assert!(
+            matches!(lab.tdc.driver, TdcDriver::PicoQuant(ref c) if c.serial.as_deref() == Some("1045678"))
+        );
+    }
+
+    #[test]
+    fn counter_keys_that_nothing_would_read_are_refused_by_key_and_line() {
+        let cases = [
+            (
+                "driver = \"multiharp\"\nsync-zero-cross-mv = 10",
+                "tdc.sync-zero-cross-mv",
+            ),
+            (
+                "driver = \"hydraharp\"\ninput-edge = \"rising\"",
+                "tdc.input-edge",
+            ),
+            ("usb = \"1d50:6189\"\nserial = \"1045678\"", "tdc.serial"),
+            ("driver = \"multiharp\"\nusb = \"1d50:6189\"", "tdc.usb"),
+            ("driver = \"multiharp\"\nchannel = 0", "tdc.channel"),
+            (
+                "driver = \"multiharp\"\nsync-level-mv = -1500",
+                "tdc.sync-level-mv",
+            ),
+            (
+                "driver = \"multiharp\"\ninput-offset-ps = 12.5",
+                "tdc.input-offset-ps",
+            ),
+            ("driver = \"hydraharp\"\nserial = \"12 34\"", "tdc.serial"),
+        ];
+        for (lines, key) in cases {
+            let text = lab_with(lines);
+            let err = load(&text).unwrap_err();
+            assert_eq!(err.key(), Some(key), "{lines}: {err}");
+            let last = lines.lines().last().unwrap();
+            let line = text.lines().position(|l| l == last).unwrap() + 1;
+            assert_eq!(err.line(), Some(line), "{lines}: {err}");
+        }
+        let text = lab_with("driver = \"hydraharp\"").replace("sync-divider = 1", "sync-divider = 3");
+        assert_eq!(load(&text).unwrap_err().key(), Some("tdc.sync-divider"));
+        // The simulated instrument has its own histogrammer.
+        let text = SIM.replace("[tdc]\n", "[tdc]\ndriver = \"multiharp\"\n");
+        let err = load(&text).unwrap_err();
+        assert_eq!(err.key(), Some("tdc.driver"), "{err}");
     }
 
     #[test]

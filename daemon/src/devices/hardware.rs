@@ -1,5 +1,6 @@
 //! The lab backend: the serial galvo driver on the ports the config names, and the
-//! USB histogrammer driver over libusb. The simulated backend reuses the pieces here
+//! histogrammer `tdc.driver` picks: the USB histogrammer driver over libusb, or a
+//! PicoQuant counter through its vendor library (`picoquant.rs`). The simulated backend reuses the pieces here
 //! that build these drivers, so that it runs the very drivers the lab runs.
 use std::time::Duration;
 
@@ -8,7 +9,7 @@ use periscope_drivers::tdc::{RusbTransport, UsbTdc, UsbTransport};
 use periscope_drivers::{DeviceError, Erased, GalvoBox, GalvoPair, HistogrammerBox, Laser, Shared};
 
 use super::{DeviceBackend, LaserArm, OpenError};
-use crate::config::{GalvoArm, InstrumentConfig};
+use crate::config::{GalvoArm, InstrumentConfig, TdcDriver};
 
 /// Reply timeout of a controller link with no `serial` table of its own (the
 /// simulator's pseudo-terminals).
@@ -70,6 +71,9 @@ impl DeviceBackend for HardwareBackend {
     }
 
     fn histogrammer(&self) -> Result<HistogrammerBox, OpenError> {
+        if let TdcDriver::PicoQuant(counter) = &self.config.tdc.driver {
+            return super::picoquant::histogrammer(counter);
+        }
         let selector = self.config.tdc.usb.clone().ok_or_else(|| {
             OpenError::Missing(
                 "tdc.usb is required with backend = \"hardware\": give the histogrammer's VID:PID".into(),

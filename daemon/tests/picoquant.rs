@@ -1,0 +1,381 @@
+//! A whole run on a PicoQuant counter, through the real FFI path: the daemon's
+//! hardware backend opens the serial galvo driver on the stand-in's pseudo-terminals
+//! and the MultiHarp driver on the stand-in library (`standins/picoquant`), by the
+//! paths in an ordinary lab config; one simulated rig answers both, as one bench does.
+//!
+//! The capture completes with the relay found and every pair stored; then the stop
+//! matrix's measuring stages (LOS scan, capture) × every event run on this counter,
+//! asserting on the rig's own emission log: laser off within 50 ms of the event, never
+//! on again, both arms parked, the run left paused, aborted or failed as it should be.
+//! `periscope devices` lists the counters the library sees, or says plainly that the
+//! library is not there.
+use std::path::{Path, PathBuf};
+use std::sync::{Arc, Mutex, OnceLock, mpsc};
+use std::time::{Duration, Instant};
+
+use periscope_daemon::config::TomlSource;
+use periscope_daemon::events::{EventSink, RunEvent, Stage};
+use periscope_daemon::pipeline::{self, Control, Run};
+use periscope_daemon::run_dir::{RunInfo, RunState};
+use periscope_daemon::store::read_log;
+use periscope_drivers::EmergencyOff;
+use periscope_drivers::picoquant::Family;
+use periscope_standin_picoquant::client::{Standin, exclusive};
+
+/// The bound on how long emission may outlast a pause, abort or e-stop.
+const EMISSION_BOUND: Duration = Duration::from_millis(50);
+
+/// How long a stopped run may take to return.
+const RETURN_BOUND: Duration = Duration::from_secs(2);
+
+/// The safety matrix's plan: 64 LOS points of 10 ms, 25 pairs of 30 ms, a tiny fit.
+const PLAN: &str = r#"
+name = "picoquant"
+[los]
+angles-deg = { x = [-12.0, 12.0], y = [-12.0, 12.0] }
+grid = [8, 8]
+dwell-ms = 10.0
+[relay]
+depth-m = [1.7, 3.0]
+neighbours = 8
+detection = { min = [-0.4, -0.4, -0.1], max = [0.4, 0.4, 0.1] }
+[pairs]
+mode = "confocal"
+grid = [5, 5]
+offset-mm = 5.0
+[acquisition]
+dwell-ms = 30.0
+[recon]
+method = "gtr"
+[recon.volume]
+x = [-0.4, 0.4]
+y = [-0.4, 0.4]
+z = [0.3, 0.9]
+shape = [16, 16, 16]
+[recon.gtr]
+primitives = 200
+epochs = 40
+virtual-grid = [16, 16]
+"#;
+
+fn root() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("..")
+}
+
+/// The shipped simulated instrument's text at `time_scale`, its scene path absolute.
+fn sim_text(time_scale: f64) -> String {
+    let scene = root().join("configs/scenes/wall-letter.toml");
+    std::fs::read_to_string(root().join("configs/instrument/sim.toml"))
+        .unwrap()
+        .replace("../scenes/wall-letter.toml", &scene.to_string_lossy())
+        .replace("[sim]\n", &format!("[sim]\ntime-scale = {time_scale}\n"))
+}
+
+/// The same instrument as a lab config: `backend = "hardware"`, each galvo arm on its
+/// serial port, the histogrammer a MultiHarp through `library`, bins 20 ps wide (its
+/// 5 ps base resolution × 4; the shipped 16 ps is not available on a MultiHarp).
+fn lab_text(time_scale: f64, ports: (&str, &str), library: &Path) -> String {
+    let text = sim_text(time_scale);
+    let text = text[..text.find("[sim]").unwrap()].to_owned();
+    let serial = |port: &str| format!("serial = {{ port = \"{port}\", baud = 115200, timeout-ms = 500 }}\n");
+    let mut out = String::new();
+    for line in text.lines() {
+        let line = match line {
+            l if l.starts_with("backend") => "backend = \"hardware\"".to_owned(),
+            l if l.starts_with("bin-width-ps") => "bin-width-ps = 20.0".to_owned(),
+            l => l.to_owned(),
+        };
+        out.push_str(&line);
+        out.push('\n');
+        if line.starts_with("[galvo.laser]") {
+            out.push_str(&serial(ports.0));
+        } else if line.starts_with("[galvo.spad]") {
+            out.push_str(&serial(ports.1));
+        } else if line.starts_with("[tdc]") {
+            out.push_str(&format!(
+                "driver = \"multiharp\"\nlibrary = \"{}\"\nchannel = 1\n",
+                library.display()
+            ));
+        }
+    }
+    out
+}
+
+/// A fresh stand-in at `time_scale`, its galvos served; the lab config that reaches it.
+fn bench(dir: &Path, time_scale: f64) -> (Standin, TomlSource) {
+    let s = Standin::load();
+    let rig = dir.join("rig.toml");
+    std::fs::write(&rig, sim_text(time_scale)).unwrap();
+    s.setup(&rig);
+    let (laser, spad) = s.serve_galvos();
+    let lab = dir.join("lab.toml");
+    let text = lab_text(time_scale, (&laser, &spad), &s.path());
+    std::fs::write(&lab, &text).unwrap();
+    (s, TomlSource::from_text(lab, text))
+}
+
+/// A prepared run of `plan` on the lab config.
+fn prepare(dir: &Path, lab: &TomlSource, plan: &str) -> PathBuf {
+    let plan_src = TomlSource::from_text(dir.join("plan.toml"), plan.to_owned());
+    let (run, _, _) = pipeline::prepare(&plan_src, lab, Some(&dir.join("run"))).unwrap();
+    run
+}
+
+#[test]
+fn a_whole_capture_runs_on_the_multiharp_and_the_simulated_galvos() {
+    let _one = exclusive();
+    periscope_daemon::signals::install_panic_hook();
+    let tmp = tempfile::tempdir().unwrap();
+    let (s, lab) = bench(tmp.path(), 0.0);
+    let dir = prepare(tmp.path(), &lab, PLAN);
+    s.clear_calls();
+    let run = Run::open(&dir, Control::new(), None, None).unwrap();
+    run.execute().unwrap();
+    let info = RunInfo::load(&dir).unwrap();
+    assert_eq!(info.state, RunState::Completed);
+    // Every planned pair stored once, each a 1024-bin histogram from the counter.
+    let planned: Vec<serde_json::Value> =
+        serde_json::from_slice(&std::fs::read(dir.join("pairs.json")).unwrap()).unwrap();
+    let planned = planned.len();
+    assert!(
+        planned > 10,
+        "{planned} pairs planned on the relay found by the LOS scan"
+    );
+    let log = read_log(&dir).unwrap();
+    let mut pairs: Vec<u32> = log.records.iter().map(|r| r.pair).collect();
+    pairs.sort_unstable();
+    assert_eq!(pairs, (0..planned as u32).collect::<Vec<_>>());
+    assert!(log.records.iter().all(|r| r.counts.len() == 1024));
+    let total: u64 = log
+        .records
+        .iter()
+        .flat_map(|r| &r.counts)
+        .map(|&c| u64::from(c))
+        .sum();
+    assert!(total > 0, "the third bounce and the background reach the counter");
+    // The histograms came through MHLib's calls: one StartMeas per LOS point and pair.
+    let calls = s.calls();
+    let starts = calls.iter().filter(|c| c.starts_with("MH_StartMeas(")).count();
+    assert_eq!(starts, 64 + planned, "64 LOS points and the planned pairs");
+    assert!(
+        calls.iter().any(|c| c == "MH_StartMeas(0, 10)") && calls.iter().any(|c| c == "MH_StartMeas(0, 30)")
+    );
+    assert!(
+        calls.iter().any(|c| c == "MH_SetBinning(0, 2)"),
+        "20 ps = 5 ps × 2^2"
+    );
+    // The laser went on for the measuring stages only, and is off; both arms parked.
+    let log = s.emission_log();
+    assert!(
+        log.iter().any(|(_, on, _)| *on),
+        "the laser was switched on to measure"
+    );
+    assert!(!s.emission());
+    assert_eq!(s.parked(), (true, true));
+}
+
+#[derive(Clone, Copy, Debug, PartialEq)]
+enum Event {
+    Pause,
+    Abort,
+    Estop,
+    Signal,
+    /// The counter vanishes from the bus for good.
+    CounterGone,
+    Panic,
+}
+
+/// Fires `event`, as the service, the signal handlers or the bench would.
+fn fire(event: Event, stage: Stage, control: &Control, s: &Standin, laser: &OnceLock<EmergencyOff>) {
+    match event {
+        Event::Pause => control.pause(),
+        Event::Abort => control.abort(),
+        Event::Estop => {
+            control.abort();
+            if let Some(off) = laser.get() {
+                off.laser_off().unwrap();
+            }
+        }
+        Event::Signal => {
+            if let Some(off) = laser.get() {
+                off.laser_off().unwrap();
+            }
+            std::thread::sleep(Duration::from_millis(1));
+            control.pause();
+        }
+        Event::CounterGone => s.vanish(Family::MultiHarp, 0, u32::MAX),
+        Event::Panic => control.inject_panic(stage),
+    }
+}
+
+fn expected_state(event: Event) -> RunState {
+    match event {
+        Event::Pause | Event::Signal => RunState::Paused,
+        Event::Abort | Event::Estop => RunState::Aborted,
+        Event::CounterGone | Event::Panic => RunState::Failed,
+    }
+}
+
+/// Runs the plan in real time and fires `event` 7 ms into the first dwell of `stage`
+/// (LOS scan or capture), from another thread; checks the rig's laser and arms.
+fn run_case(stage: Stage, event: Event) -> String {
+    let tmp = tempfile::tempdir().unwrap();
+    let (s, lab) = bench(tmp.path(), 1.0);
+    let dir = prepare(tmp.path(), &lab, PLAN);
+    let control = Control::new();
+    let laser: Arc<OnceLock<EmergencyOff>> = Arc::new(OnceLock::new());
+    let fired: Arc<Mutex<Option<Instant>>> = Arc::new(Mutex::new(None));
+    let events = EventSink::open(&dir).unwrap();
+    let (tx, rx) = mpsc::channel::<()>();
+    let mut armed = true;
+    events.listen(move |e| {
+        let first = matches!(
+            (stage, e),
+            (Stage::LosScan, RunEvent::LosPoint { .. }) | (Stage::Capture, RunEvent::Pair { .. })
+        );
+        if armed && first {
+            armed = false;
+            let _ = tx.send(());
+        }
+    });
+    let trigger = {
+        let (control, laser, fired) = (control.clone(), laser.clone(), fired.clone());
+        std::thread::spawn(move || {
+            if rx.recv().is_ok() {
+                std::thread::sleep(Duration::from_millis(7));
+                *fired.lock().unwrap() = Some(Instant::now());
+                fire(event, stage, &control, &s, &laser);
+            }
+        })
+    };
+    let result = match Run::open(&dir, control, Some(events), None) {
+        Ok(run) => {
+            let _ = laser.set(run.emergency_off());
+            run.execute().map(drop)
+        }
+        Err(e) => Err(e),
+    };
+    let returned = Instant::now();
+    trigger.join().unwrap();
+    let t = fired
+        .lock()
+        .unwrap()
+        .unwrap_or_else(|| panic!("{event:?} in {stage:?} never fired: {result:?}"));
+    assert!(
+        !s.emission(),
+        "{event:?} in {stage:?}: the laser is on after the run returned"
+    );
+    let log = s.emission_log();
+    let off_at = log
+        .iter()
+        .rev()
+        .find(|(_, on, _)| !on)
+        .map_or(t, |(at, _, _)| (*at).max(t));
+    let on_after: Vec<_> = log.iter().filter(|(at, on, _)| *on && *at > t).collect();
+    assert!(
+        on_after.is_empty(),
+        "{event:?} in {stage:?}: emission went on again: {on_after:?}"
+    );
+    let off_after = off_at.saturating_duration_since(t);
+    assert!(
+        off_after <= EMISSION_BOUND,
+        "{event:?} in {stage:?}: emission lasted {off_after:?} after the event"
+    );
+    assert!(
+        returned.saturating_duration_since(t) <= RETURN_BOUND,
+        "{event:?} in {stage:?}: slow to return"
+    );
+    assert_eq!(
+        s.parked(),
+        (true, true),
+        "{event:?} in {stage:?}: both arms parked"
+    );
+    let state = RunInfo::load(&dir).unwrap().state;
+    assert_eq!(state, expected_state(event), "{event:?} in {stage:?}: {result:?}");
+    if event == Event::CounterGone {
+        let e = result.as_ref().unwrap_err().to_string();
+        assert!(
+            e.contains("MultiHarp") && e.contains("MH_ERROR_USB_VCMD_FAIL"),
+            "{e}"
+        );
+    }
+    format!(
+        "{:<10} {:<12} off after {:>5.1} ms, state {state:?}\n",
+        stage.name(),
+        format!("{event:?}"),
+        off_after.as_secs_f64() * 1e3
+    )
+}
+
+fn check_stage(stage: Stage) {
+    let _one = exclusive();
+    periscope_daemon::signals::install_panic_hook();
+    let mut table = String::new();
+    for event in [
+        Event::Pause,
+        Event::Abort,
+        Event::Estop,
+        Event::Signal,
+        Event::CounterGone,
+        Event::Panic,
+    ] {
+        table.push_str(&run_case(stage, event));
+    }
+    eprint!("{table}");
+}
+
+#[test]
+fn los_scan_on_the_multiharp() {
+    check_stage(Stage::LosScan);
+}
+
+#[test]
+fn capture_on_the_multiharp() {
+    check_stage(Stage::Capture);
+}
+
+/// `periscope devices` with the stand-in as `tdc.library`, set up in the child process
+/// from `PERISCOPE_STANDIN_CONFIG` (its galvo ports do not exist, so opening the
+/// instrument then fails: the listing comes first).
+fn devices(dir: &Path, library: &Path) -> (String, bool) {
+    let rig = dir.join("rig.toml");
+    std::fs::write(&rig, sim_text(0.0)).unwrap();
+    let lab = dir.join("lab.toml");
+    let text = lab_text(
+        0.0,
+        ("/dev/periscope-no-such-port-1", "/dev/periscope-no-such-port-2"),
+        library,
+    );
+    std::fs::write(&lab, text).unwrap();
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_periscope"))
+        .args(["devices", "--instrument"])
+        .arg(&lab)
+        .env(periscope_standin_picoquant::CONFIG_ENV, &rig)
+        .env("RUST_LOG", "warn")
+        .output()
+        .unwrap();
+    (
+        String::from_utf8_lossy(&out.stdout).into_owned(),
+        out.status.success(),
+    )
+}
+
+#[test]
+fn periscope_devices_lists_the_counters_or_says_the_library_is_missing() {
+    let tmp = tempfile::tempdir().unwrap();
+    let library = periscope_standin_picoquant::client::library_path();
+    let (out, _) = devices(tmp.path(), &library);
+    assert!(
+        out.contains(&format!("MHLib 3.1 at {}: 1 MultiHarp found", library.display())),
+        "{out}"
+    );
+    assert!(out.contains("index 0  serial 1045678  MultiHarp 150 4P"), "{out}");
+
+    let missing = Path::new("/nonexistent/mh150/mhlib.so");
+    let (out, ok) = devices(tmp.path(), missing);
+    assert!(!ok);
+    assert!(
+        out.contains("cannot load /nonexistent/mh150/mhlib.so") && out.contains("install PicoQuant's MHLib"),
+        "{out}"
+    );
+}
