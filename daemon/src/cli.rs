@@ -303,13 +303,14 @@ fn calibrate(
     match out {
         Some(path) => {
             let text = calibrate::calibrated_toml(src.text(), &calibration.fitted)?;
-            // What is written must load as the instrument it describes.
-            InstrumentConfig::from_source(&TomlSource::from_text(path.display().to_string(), &text))?;
             crate::store::write_atomic(path, text.as_bytes()).map_err(|source| CliError::Io {
                 path: path.to_owned(),
                 source,
             })?;
             println!("wrote {}", path.display());
+            // What is written must load as the instrument it describes, from where it
+            // is (relative paths in it, such as `sim.scene`, resolve against its folder).
+            InstrumentConfig::load(path)?;
         }
         None => println!("(give --out FILE to write the calibrated instrument config)"),
     }

@@ -349,8 +349,8 @@ pub struct Calibration {
     pub before: Residuals,
     /// Residuals of the fitted geometry.
     pub after: Residuals,
-    /// Ranges left out of the fit as outliers (a return off something in front of
-    /// the target).
+    /// Ranges and spots left out of the fit as outliers (a return off something in
+    /// front of the target, a spot partly hidden from the SPAD).
     pub outliers: usize,
     /// The fitted parameters' names and standard uncertainties (metres or radians).
     pub uncertainty: Vec<(&'static str, f64)>,
@@ -406,6 +406,9 @@ pub fn fit(
     let first = solve(m, &[0.0; PARAMETERS], prior, PARAMETERS)?;
     let (kept, outliers) = without_outliers(&params.geometry(&first.x), m);
     enough_ranges(kept.ranges.len(), m.range_angles)?;
+    if kept.spots.len() < MIN_SPOTS {
+        return Err(CalibrateError::TooFewSpots(kept.spots.len()));
+    }
     let r = Residuals::of(&params.geometry(&first.x), &kept);
     // Floors: a noiseless simulation must not give a weight of infinity.
     let sigma = (r.range_rms.max(1e-6), (r.angle_rms / 2f64.sqrt()).max(1e-7));
@@ -431,27 +434,46 @@ pub fn fit(
     })
 }
 
-/// `m` without the ranges whose residual under `g` is far outside the rest's spread
-/// (6 robust standard deviations, at least 2 mm), and how many were dropped.
+fn pick<T: Copy>(all: &[T], keep: Vec<bool>) -> Vec<T> {
+    all.iter()
+        .zip(keep)
+        .filter(|(_, k)| *k)
+        .map(|(x, _)| *x)
+        .collect()
+}
+
+/// `m` without the ranges and spots whose residual under `g` is far outside the rest's
+/// spread (6 robust standard deviations, at least 2 mm of path or 0.05 mrad of angle:
+/// a return off something in front of the target, a spot whose chord an object cut),
+/// and how many were dropped.
 fn without_outliers(g: &Geometry, m: &Measurements) -> (Measurements, usize) {
-    let res: Vec<f64> = m
+    let ranges: Vec<f64> = m
         .ranges
         .iter()
         .map(|r| g.path(r.spad).map_or(f64::INFINITY, |p| (r.path - p).abs()))
         .collect();
-    let mut sorted: Vec<f64> = res.iter().copied().filter(|v| v.is_finite()).collect();
-    sorted.sort_by(f64::total_cmp);
-    let mad = sorted.get(sorted.len() / 2).copied().unwrap_or(0.0);
-    let limit = (6.0 * 1.4826 * mad).max(2e-3);
-    let ranges: Vec<RangeSample> = m
-        .ranges
+    let spots: Vec<f64> = m
+        .spots
         .iter()
-        .zip(&res)
-        .filter(|(_, e)| **e <= limit)
-        .map(|(r, _)| *r)
+        .map(|s| {
+            g.spot(s.laser)
+                .map_or(f64::INFINITY, |p| (s.spad.x - p.x).hypot(s.spad.y - p.y))
+        })
         .collect();
-    let dropped = m.ranges.len() - ranges.len();
-    (Measurements { ranges, ..m.clone() }, dropped)
+    let keep = |errors: &[f64], floor: f64| -> Vec<bool> {
+        let mut sorted: Vec<f64> = errors.iter().copied().filter(|v| v.is_finite()).collect();
+        sorted.sort_by(f64::total_cmp);
+        let median = sorted.get(sorted.len() / 2).copied().unwrap_or(0.0);
+        let limit = (6.0 * 1.4826 * median).max(floor);
+        errors.iter().map(|e| *e <= limit).collect()
+    };
+    let kept = Measurements {
+        ranges: pick(&m.ranges, keep(&ranges, 2e-3)),
+        spots: pick(&m.spots, keep(&spots, 5e-5)),
+        range_angles: m.range_angles,
+    };
+    let dropped = m.ranges.len() + m.spots.len() - kept.ranges.len() - kept.spots.len();
+    (kept, dropped)
 }
 
 /// The weighted residuals of `g`: paths over `sp`, the two angles of each spot over
@@ -507,13 +529,14 @@ impl Calibration {
                 rotation_between(c.rotation, f.rotation) * 1e3
             );
         }
-        let plane = |p: &Plane| p.normal.dot(self.fitted.spad.origin - p.point);
+        // The SPAD origin's distance from the target.
+        let distance = |g: &Geometry| g.target.normal.dot(g.spad.origin - g.target.point);
         let _ = writeln!(
             t,
             "{:<22}{:<36}{:<36}{}",
             "target distance (m)",
-            format!("{:.6}", plane(&self.configured.target)),
-            format!("{:.6}", plane(&self.fitted.target)),
+            format!("{:.6}", distance(&self.configured)),
+            format!("{:.6}", distance(&self.fitted)),
             if self.known_target { "given" } else { "fitted" }
         );
         if !self.known_target {
@@ -550,7 +573,7 @@ impl Calibration {
         };
         let _ = writeln!(
             t,
-            "\nresiduals ({} ranges, {} spots; {} ranges left out as outliers):",
+            "\nresiduals ({} ranges, {} spots; {} left out as outliers):",
             self.after.ranges, self.after.spots, self.outliers
         );
         let _ = writeln!(t, "  configured poses  {}", row(&self.before));

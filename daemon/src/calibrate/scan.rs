@@ -21,6 +21,9 @@ const MIN_SPOT_COUNTS: f64 = 50.0;
 const EDGE_TOLERANCE: f64 = 2e-6;
 /// Chords through a spot: x, y, then x again (each refines the other's line).
 const CHORDS: usize = 3;
+/// Largest relative difference of a spot's widths along x and y before it counts as
+/// partly hidden.
+const MAX_WIDTH_MISMATCH: f64 = 0.2;
 
 /// The instrument opened for calibration.
 pub struct Calibrator {
@@ -199,7 +202,8 @@ impl Calibrator {
     /// For each laser angle of a grid, finds the SPAD angles that see the laser's spot:
     /// a search outwards from where `nominal` says it is, then chords through the spot
     /// at half its height, whose midpoints are its centre (the spot's profile is
-    /// symmetric about its centre along any line on the target).
+    /// symmetric about its centre along any line on the target). A spot partly hidden
+    /// from the SPAD is left out; the fit refuses fewer than [`super::MIN_SPOTS`].
     fn spot_scan(
         &mut self,
         settings: &Settings,
@@ -226,8 +230,14 @@ impl Calibrator {
                 laser,
                 why: "the configured poses put this spot off the target or behind the SPAD arm",
             })?;
-            let spad = self.find_spot(settings, expected, background, laser)?;
-            out.push(SpotSample { laser, spad });
+            match self.find_spot(settings, expected, background, laser)? {
+                Some(spad) => out.push(SpotSample { laser, spad }),
+                None => crate::logging::notice(&format!(
+                    "  the spot at laser angles ({:.2}°, {:.2}°) is partly hidden from the SPAD: left out",
+                    laser.x.to_degrees(),
+                    laser.y.to_degrees()
+                )),
+            }
             self.watch_laser()?;
         }
         self.devices.laser.set_emission(false)?;
@@ -251,7 +261,7 @@ impl Calibrator {
         expected: OpticalAngles,
         background: f64,
         laser: OpticalAngles,
-    ) -> Result<OpticalAngles, CalibrateError> {
+    ) -> Result<Option<OpticalAngles>, CalibrateError> {
         let floor = background + MIN_SPOT_COUNTS.max(10.0 * background.sqrt());
         // Outwards from the expected angles, nearest first, one step at a time.
         let step = settings.spot_step;
@@ -297,6 +307,7 @@ impl Calibrator {
             (centre, top) = best;
         }
         let level = background + 0.5 * (top - background);
+        let mut widths = [0.0; 2];
         for chord in 0..CHORDS {
             let along_x = chord % 2 == 0;
             let mut ends = [0.0; 2];
@@ -309,13 +320,21 @@ impl Calibrator {
                     })?;
             }
             let mid = 0.5 * (ends[0] + ends[1]);
+            widths[usize::from(!along_x)] = ends[1] - ends[0];
             if along_x {
                 centre.x = mid;
             } else {
                 centre.y = mid;
             }
         }
-        Ok(centre)
+        // A round spot is about as wide along x as along y (the projection changes
+        // that by a few per cent); one that is not is cut by something between it and
+        // the SPAD, and its chords' midpoints are not its centre.
+        let [wx, wy] = widths;
+        if (wx - wy).abs() > MAX_WIDTH_MISMATCH * wx.max(wy) {
+            return Ok(None);
+        }
+        Ok(Some(centre))
     }
 
     /// Where the counts fall below `level` going from `from` (above it) along x or y

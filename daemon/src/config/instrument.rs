@@ -59,8 +59,8 @@ pub struct SimSettings {
     /// Where the simulated arms really are (`[sim.true-pose.laser]`,
     /// `[sim.true-pose.spad]`), laser then SPAD: the configured poses unless the table
     /// says otherwise. A simulated instrument whose arms differ from its config is one
-    /// to practise and test `periscope calibrate` on.
-    pub true_poses: [GalvoPose; 2],
+    /// to practise and test `periscope calibrate` on. Boxed: [`Backend`] stays small.
+    pub true_poses: Box<[GalvoPose; 2]>,
 }
 
 /// How the daemon reaches the simulated devices (`sim.devices`).
@@ -641,7 +641,7 @@ fn sim_settings(check: &Check<'_>, raw: RawSim, arms: [GalvoPose; 2]) -> Result<
         interlock_closed: raw.interlock_closed,
         devices: raw.devices,
         noise: raw.noise,
-        true_poses,
+        true_poses: Box::new(true_poses),
     })
 }
 
@@ -1006,6 +1006,21 @@ mod tests {
         let text = SIM.replace("backend = \"sim\"", "backend = \"hardware\"");
         let err = load(&text).unwrap_err().to_string();
         assert!(err.contains("galvo.laser") && err.contains("serial"), "{err}");
+    }
+
+    #[test]
+    fn a_true_pose_keeps_the_configured_values_it_does_not_name() {
+        let text = format!("{SIM}\n[sim.true-pose.spad]\norigin = [0.11, 0.0, 2.0]\n");
+        let c = load(&text).unwrap();
+        let Backend::Sim(sim) = &c.backend else {
+            panic!("sim")
+        };
+        assert_eq!(sim.true_poses[0], c.laser_arm.pose);
+        assert_eq!(sim.true_poses[1].origin, DVec3::new(0.11, 0.0, 2.0));
+        assert_eq!(sim.true_poses[1].rotation, c.spad_arm.pose.rotation);
+        let text = format!("{SIM}\n[sim.true-pose.laser]\nboresight = [0.0, 1.0, 0.0]\n");
+        let err = load(&text).unwrap_err();
+        assert_eq!(err.key(), Some("sim.true-pose.laser.boresight"), "{err}");
     }
 
     #[test]
