@@ -100,6 +100,27 @@ pub enum Command {
         #[command(flatten)]
         instrument: InstrumentArg,
     },
+    /// Calibrate the galvo arms: scan a flat target (first-bounce ranges with the
+    /// diffuser in, the laser spot with it out), fit each arm's origin, boresight and
+    /// up, print fitted against configured values with the residuals, and write the
+    /// calibrated instrument config to --out.
+    Calibrate {
+        /// The instrument to calibrate.
+        #[command(flatten)]
+        instrument: InstrumentArg,
+        /// Write the instrument config with the fitted poses here (the rest of the file
+        /// is kept as it is); without it, only the table is printed.
+        #[arg(long, value_name = "FILE")]
+        out: Option<PathBuf>,
+        /// The SPAD range scan's grid: N × N angles over 75 % of the SPAD limits.
+        #[arg(long, value_name = "N", default_value_t = 9)]
+        grid: usize,
+        /// The flat target's distance from the SPAD origin along the configured SPAD
+        /// boresight, in metres, facing it. Without it the target's distance and tilt
+        /// are fitted and the SPAD pose stays as configured (docs/calibration.md).
+        #[arg(long, value_name = "M")]
+        target_distance: Option<f64>,
+    },
     /// List serial ports and USB devices, and say which ones the instrument config
     /// selects.
     Devices {
@@ -250,7 +271,64 @@ pub fn execute(cli: Cli) -> Result<(), CliError> {
             Ok(runtime.block_on(crate::api::serve(bind, service))?)
         }
         Command::Devices { instrument } => devices(&instrument.load()?),
+        Command::Calibrate {
+            instrument,
+            out,
+            grid,
+            target_distance,
+        } => calibrate(&instrument, out.as_deref(), grid, target_distance),
     }
+}
+
+/// `periscope calibrate`: scans, fit, table, and the calibrated config.
+fn calibrate(
+    instrument: &InstrumentArg,
+    out: Option<&Path>,
+    grid: usize,
+    target_distance: Option<f64>,
+) -> Result<(), CliError> {
+    use crate::calibrate::{self, Calibrator, Settings};
+    let settings = Settings {
+        grid,
+        target_distance,
+        ..Settings::default()
+    };
+    settings.validate()?;
+    let src = instrument_source(instrument.instrument.as_deref())?;
+    let config = InstrumentConfig::from_source(&src)?;
+    crate::logging::notice(&format!("calibrating {}", config.summary()));
+    let control = Control::new();
+    let signals = Arc::new(RunSignals {
+        control: control.clone(),
+        laser: Mutex::new(None),
+    });
+    crate::signals::install(signals.clone(), crate::signals::SIGNAL_GRACE);
+    let calibrator = Calibrator::open(&config, None, control)?;
+    *signals.laser.lock().unwrap_or_else(|p| p.into_inner()) = Some(calibrator.emergency_off());
+    let measured = calibrator.measure(&settings);
+    if let Some(n) = crate::signals::received() {
+        crate::logging::notice(&format!(
+            "stopped by signal {n}: laser off, arms parked; nothing written"
+        ));
+        std::process::exit(i32::from(crate::signals::exit_code(n)));
+    }
+    let calibration = calibrate::fit(&config, &measured?, &settings)?;
+    print!("{}", calibration.table());
+    match out {
+        Some(path) => {
+            let text = calibrate::calibrated_toml(src.text(), &calibration.fitted)?;
+            crate::store::write_atomic(path, text.as_bytes()).map_err(|source| CliError::Io {
+                path: path.to_owned(),
+                source,
+            })?;
+            println!("wrote {}", path.display());
+            // What is written must load as the instrument it describes, from where it
+            // is (relative paths in it, such as `sim.scene`, resolve against its folder).
+            InstrumentConfig::load(path)?;
+        }
+        None => println!("(give --out FILE to write the calibrated instrument config)"),
+    }
+    Ok(())
 }
 
 /// Refuses an export's `out` that is one of the run's own files (its histograms,
@@ -452,6 +530,9 @@ pub enum CliError {
     /// The API server failed.
     #[error(transparent)]
     Serve(#[from] ServeError),
+    /// A calibration failed.
+    #[error(transparent)]
+    Calibrate(#[from] crate::calibrate::CalibrateError),
     /// A plan over the instrument's budget.
     #[error("plan `{plan}`: {why}")]
     Budget {
@@ -508,6 +589,7 @@ impl CliError {
             CliError::RunDir(RunDirError::Config(_)) => true,
             CliError::Capture(e) => e.is_config(),
             CliError::Service(ServiceError::Config(_)) => true,
+            CliError::Calibrate(e) => e.is_config(),
             _ => false,
         };
         if config {

@@ -8,6 +8,7 @@
 
 pub mod api;
 pub mod budget;
+pub mod calibrate;
 pub mod capture;
 pub mod check;
 pub mod cli;

@@ -37,6 +37,7 @@ fn devices(c: &mut Criterion) {
             time_scale: 0.0,
             seed: 1,
             interlock_closed: true,
+            noise: true,
         },
     );
     let settings = |name: &str| SerialGalvoSettings {

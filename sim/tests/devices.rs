@@ -58,6 +58,7 @@ fn rig() -> Rig {
             time_scale: 1.0,
             seed: 3,
             interlock_closed: true,
+            noise: true,
         },
     )
 }

@@ -55,6 +55,13 @@ pub struct SimSettings {
     pub interlock_closed: bool,
     /// How the daemon reaches the simulated devices.
     pub devices: SimDevices,
+    /// Poisson noise on the simulated counts (`sim.noise`, default on).
+    pub noise: bool,
+    /// Where the simulated arms really are (`[sim.true-pose.laser]`,
+    /// `[sim.true-pose.spad]`), laser then SPAD: the configured poses unless the table
+    /// says otherwise. A simulated instrument whose arms differ from its config is one
+    /// to practise and test `periscope calibrate` on. Boxed: [`Backend`] stays small.
+    pub true_poses: Box<[GalvoPose; 2]>,
 }
 
 /// How the daemon reaches the simulated devices (`sim.devices`).
@@ -608,6 +615,26 @@ struct RawSim {
     interlock_closed: bool,
     #[serde(default)]
     devices: SimDevices,
+    #[serde(default = "default_true")]
+    noise: bool,
+    #[serde(default)]
+    true_pose: RawTruePoses,
+}
+
+#[derive(Deserialize, Default)]
+#[serde(deny_unknown_fields, rename_all = "kebab-case")]
+struct RawTruePoses {
+    laser: Option<RawTruePose>,
+    spad: Option<RawTruePose>,
+}
+
+/// A simulated arm's true pose; a key left out keeps the configured arm's value.
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields, rename_all = "kebab-case")]
+struct RawTruePose {
+    origin: Option<[f64; 3]>,
+    boresight: Option<[f64; 3]>,
+    up: Option<[f64; 3]>,
 }
 
 fn default_aperture_mm() -> f64 {
@@ -638,7 +665,39 @@ impl Default for RawSim {
     }
 }
 
-fn sim_settings(check: &Check<'_>, raw: RawSim) -> Result<SimSettings, ConfigError> {
+/// The true pose `[sim.true-pose.<arm>]` gives, the configured `pose` where it says
+/// nothing.
+fn true_pose(
+    check: &Check<'_>,
+    arm: &str,
+    raw: Option<RawTruePose>,
+    configured: GalvoPose,
+) -> Result<GalvoPose, ConfigError> {
+    let Some(raw) = raw else {
+        return Ok(configured);
+    };
+    let key = format!("sim.true-pose.{arm}");
+    let r = configured.rotation;
+    let vector = |name: &str, v: Option<[f64; 3]>, default: DVec3| match v {
+        Some(v) => check.finite3(&format!("{key}.{name}"), v),
+        None => Ok(default),
+    };
+    let origin = vector("origin", raw.origin, configured.origin)?;
+    let boresight = vector("boresight", raw.boresight, r.z_axis)?;
+    let up = vector("up", raw.up, r.y_axis)?;
+    GalvoPose::looking(origin, boresight, up).ok_or_else(|| {
+        check.src.invalid(
+            &format!("{key}.boresight"),
+            "must be a non-zero direction that is not parallel to `up`",
+        )
+    })
+}
+
+fn sim_settings(check: &Check<'_>, raw: RawSim, arms: [GalvoPose; 2]) -> Result<SimSettings, ConfigError> {
+    let true_poses = [
+        true_pose(check, "laser", raw.true_pose.laser, arms[0])?,
+        true_pose(check, "spad", raw.true_pose.spad, arms[1])?,
+    ];
     let base = check.src.path().parent().unwrap_or(Path::new("."));
     let mut scene = raw.scene.map(|p| base.join(p));
     // A config held in memory (the built-in default) has no folder to resolve against:
@@ -688,6 +747,8 @@ fn sim_settings(check: &Check<'_>, raw: RawSim) -> Result<SimSettings, ConfigErr
         )?,
         interlock_closed: raw.interlock_closed,
         devices: raw.devices,
+        noise: raw.noise,
+        true_poses: Box::new(true_poses),
     })
 }
 
@@ -846,7 +907,11 @@ impl InstrumentConfig {
         let tdc = tdc_settings(&check, raw.tdc, hardware)?;
         let backend = match raw.backend {
             RawBackend::Hardware => Backend::Hardware,
-            RawBackend::Sim => Backend::Sim(sim_settings(&check, raw.sim.unwrap_or_default())?),
+            RawBackend::Sim => Backend::Sim(sim_settings(
+                &check,
+                raw.sim.unwrap_or_default(),
+                [laser_arm.pose, spad_arm.pose],
+            )?),
         };
         let api = api_settings(&check, raw.api.unwrap_or_default())?;
         let budget = budget_limits(&check, raw.budget.unwrap_or_default())?;
@@ -861,6 +926,18 @@ impl InstrumentConfig {
             api,
             budget,
         })
+    }
+
+    /// The instrument as `periscope calibrate` runs it: the SPAD free-running, since
+    /// the laser-spot scan needs the direct return that a gated SPAD blanks. On the
+    /// simulator that is `sim.gate` off; a hardware SPAD's gate is set on its module,
+    /// which the daemon does not drive (docs/calibration.md says what to set).
+    pub fn with_spad_ungated(&self) -> InstrumentConfig {
+        let mut config = self.clone();
+        if let Backend::Sim(sim) = &mut config.backend {
+            sim.gate_margin = None;
+        }
+        config
     }
 
     /// One line describing the instrument, for logs and `--help`-style summaries.
@@ -1282,6 +1359,21 @@ mod tests {
         let text = SIM.replace("[tdc]\n", "[tdc]\ndriver = \"multiharp\"\n");
         let err = load(&text).unwrap_err();
         assert_eq!(err.key(), Some("tdc.driver"), "{err}");
+    }
+
+    #[test]
+    fn a_true_pose_keeps_the_configured_values_it_does_not_name() {
+        let text = format!("{SIM}\n[sim.true-pose.spad]\norigin = [0.11, 0.0, 2.0]\n");
+        let c = load(&text).unwrap();
+        let Backend::Sim(sim) = &c.backend else {
+            panic!("sim")
+        };
+        assert_eq!(sim.true_poses[0], c.laser_arm.pose);
+        assert_eq!(sim.true_poses[1].origin, DVec3::new(0.11, 0.0, 2.0));
+        assert_eq!(sim.true_poses[1].rotation, c.spad_arm.pose.rotation);
+        let text = format!("{SIM}\n[sim.true-pose.laser]\nboresight = [0.0, 1.0, 0.0]\n");
+        let err = load(&text).unwrap_err();
+        assert_eq!(err.key(), Some("sim.true-pose.laser.boresight"), "{err}");
     }
 
     #[test]

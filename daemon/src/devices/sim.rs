@@ -53,14 +53,15 @@ impl SimBackend {
         let rig = Rig::new(
             Some(world),
             RigSettings {
-                laser_pose: config.laser_arm.pose,
-                spad_pose: config.spad_arm.pose,
+                laser_pose: sim.true_poses[0],
+                spad_pose: sim.true_poses[1],
                 limits: [config.laser_arm.limits, config.spad_arm.limits],
                 settle: [config.laser_arm.settle, config.spad_arm.settle],
                 detector: config.sim_detector(sim),
                 time_scale: sim.time_scale,
                 seed: sim.seed,
                 interlock_closed: sim.interlock_closed,
+                noise: sim.noise,
             },
         );
         Ok(SimBackend {

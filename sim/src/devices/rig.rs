@@ -109,6 +109,9 @@ pub struct RigSettings {
     pub seed: u64,
     /// Whether the interlock starts closed.
     pub interlock_closed: bool,
+    /// Poisson noise on the counts (the default); `false` reports the expected counts,
+    /// rounded, so a test can tell a model error from photon noise.
+    pub noise: bool,
 }
 
 #[derive(Debug)]

@@ -209,7 +209,21 @@ pub(crate) struct Measurement {
 /// Acquisition number `n` with settings `cfg`, for the current pointing and laser
 /// state: what the wire device frames and the in-process device returns.
 pub(crate) fn measure(shared: &Shared, cfg: WireConfig, n: u64) -> Measurement {
-    let counts = sample_counts(&expected(shared, cfg), shared.settings.seed, n);
+    let expected = expected(shared, cfg);
+    let counts = if shared.settings.noise {
+        sample_counts(&expected, shared.settings.seed, n)
+    } else {
+        expected
+            .iter()
+            .map(|&l| {
+                if l.is_finite() {
+                    l.round().clamp(0.0, f64::from(u32::MAX)) as u32
+                } else {
+                    0
+                }
+            })
+            .collect()
+    };
     let dwell = f64::from(cfg.acquisition_us) * 1e-6;
     let total: f64 = counts.iter().map(|&c| f64::from(c)).sum();
     let rate = total / dwell;

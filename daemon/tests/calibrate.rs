@@ -1,0 +1,378 @@
+//! `periscope calibrate` on the simulator whose arms are not where the config says
+//! (`[sim.true-pose.*]`): the fit must find where they are, to 1 mm and 0.5 mrad,
+//! with and without photon noise; the fitted config fed back must explain the scans;
+//! degenerate inputs must give errors that say what is wrong; and the laser must be
+//! off, the arms parked, however the calibration ends.
+use std::time::{Duration, Instant};
+
+use glam::{DMat3, DQuat, DVec3};
+use periscope_daemon::calibrate::{
+    self, CalibrateError, Calibration, Calibrator, Geometry, Measurements, Plane, Settings, in_gauge,
+    rotation_between,
+};
+use periscope_daemon::config::{InstrumentConfig, TomlSource};
+use periscope_daemon::devices::sim::SimBackend;
+use periscope_daemon::pipeline::Control;
+use periscope_drivers::GalvoPose;
+
+/// The bounds the calibration promises (docs/calibration.md).
+const ORIGIN_TOLERANCE_MM: f64 = 1.0;
+const ANGLE_TOLERANCE_MRAD: f64 = 0.5;
+
+fn root() -> std::path::PathBuf {
+    std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("..")
+}
+
+fn rot(w: DVec3) -> DMat3 {
+    DMat3::from_quat(DQuat::from_scaled_axis(w))
+}
+
+/// Where the simulated arms really are: the configured poses moved by a few
+/// millimetres and turned by a few milliradians, about every axis (the SPAD's twist
+/// about its boresight and its sideways shift included: the gauge takes those out).
+fn misaligned(config: &InstrumentConfig) -> (GalvoPose, GalvoPose) {
+    let (l, s) = (config.laser_arm.pose, config.spad_arm.pose);
+    let laser = GalvoPose {
+        origin: l.origin + DVec3::new(-4.0e-3, 2.5e-3, -3.0e-3),
+        rotation: rot(DVec3::new(-3.0e-3, 2.0e-3, 4.0e-3)) * l.rotation,
+    };
+    let spad = GalvoPose {
+        origin: s.origin + DVec3::new(3.0e-3, -2.0e-3, 4.0e-3),
+        rotation: rot(DVec3::new(2.0e-3, -1.5e-3, 3.0e-3)) * s.rotation,
+    };
+    (laser, spad)
+}
+
+fn toml_vec(v: DVec3) -> String {
+    format!("[{:.15}, {:.15}, {:.15}]", v.x, v.y, v.z)
+}
+
+/// The default simulated instrument, in process and instant, with `noise`, and with
+/// its arms truly at `truth` if given. `text` replaces the shipped config's text.
+fn instrument(text: Option<&str>, noise: bool, truth: Option<(GalvoPose, GalvoPose)>) -> TomlSource {
+    let path = root().join("configs/instrument/sim.toml");
+    let mut text = match text {
+        Some(t) => t.to_owned(),
+        None => std::fs::read_to_string(&path).unwrap().replace(
+            "[sim]\n",
+            &format!("[sim]\ndevices = \"in-process\"\ntime-scale = 0.0\nnoise = {noise}\n"),
+        ),
+    };
+    if let Some((laser, spad)) = truth {
+        for (arm, p) in [("laser", laser), ("spad", spad)] {
+            text.push_str(&format!(
+                "\n[sim.true-pose.{arm}]\norigin = {}\nboresight = {}\nup = {}\n",
+                toml_vec(p.origin),
+                toml_vec(p.rotation.z_axis),
+                toml_vec(p.rotation.y_axis)
+            ));
+        }
+    }
+    TomlSource::from_text(path, text)
+}
+
+fn backend(config: &InstrumentConfig) -> SimBackend {
+    SimBackend::from_config(&config.with_spad_ungated())
+        .unwrap()
+        .unwrap()
+}
+
+fn measure(
+    config: &InstrumentConfig,
+    sim: &SimBackend,
+    settings: &Settings,
+) -> Result<Measurements, CalibrateError> {
+    Calibrator::open(config, Some(sim), Control::new())?.measure(settings)
+}
+
+/// The largest origin error (mm) and frame error (mrad) of the fit against the truth
+/// moved into the fit's gauge.
+fn errors(cal: &Calibration, truth: (GalvoPose, GalvoPose)) -> (f64, f64) {
+    let truth = Geometry {
+        laser: truth.0,
+        spad: truth.1,
+        // The built-in scene's relay: the plane z = 0, facing the instrument.
+        target: Plane {
+            point: DVec3::ZERO,
+            normal: DVec3::Z,
+        },
+    };
+    let t = in_gauge(&truth, &cal.configured, cal.known_target);
+    let f = &cal.fitted;
+    let mut origin = f
+        .laser
+        .origin
+        .distance(t.laser.origin)
+        .max(f.spad.origin.distance(t.spad.origin))
+        * 1e3;
+    let mut angle = rotation_between(f.laser.rotation, t.laser.rotation)
+        .max(rotation_between(f.spad.rotation, t.spad.rotation))
+        * 1e3;
+    if !cal.known_target {
+        // The fitted target stands in for the SPAD's own pose: its distance and tilt.
+        let d = |g: &Geometry| g.target.normal.dot(g.spad.origin - g.target.point);
+        origin = origin.max((d(f) - d(&t)).abs() * 1e3);
+        angle = angle.max(f.target.normal.angle_between(t.target.normal) * 1e3);
+    }
+    (origin, angle)
+}
+
+fn run(noise: bool, target_distance: Option<f64>) -> (Calibration, (GalvoPose, GalvoPose)) {
+    let nominal = InstrumentConfig::from_source(&instrument(None, noise, None)).unwrap();
+    let truth = misaligned(&nominal);
+    let config = InstrumentConfig::from_source(&instrument(None, noise, Some(truth))).unwrap();
+    let sim = backend(&config);
+    let settings = Settings {
+        target_distance,
+        ..Settings::default()
+    };
+    let started = Instant::now();
+    let m = measure(&config, &sim, &settings).unwrap();
+    let cal = calibrate::fit(&config, &m, &settings).unwrap();
+    let (origin, angle) = errors(&cal, truth);
+    eprintln!(
+        "noise {noise}, target {target_distance:?}: origin error {origin:.4} mm, angle error {angle:.4} mrad \
+         ({:.1} s)\n{}",
+        started.elapsed().as_secs_f64(),
+        cal.table()
+    );
+    assert!(
+        origin < ORIGIN_TOLERANCE_MM && angle < ANGLE_TOLERANCE_MRAD,
+        "origin error {origin:.4} mm (tolerance {ORIGIN_TOLERANCE_MM}), angle error {angle:.4} mrad \
+         (tolerance {ANGLE_TOLERANCE_MRAD})\n{}",
+        cal.table()
+    );
+    // The misalignment is far outside the tolerance: the fit moved the poses.
+    let (o0, a0) = errors(
+        &Calibration {
+            fitted: cal.configured,
+            ..cal.clone()
+        },
+        truth,
+    );
+    assert!(
+        o0 > 3.0 * ORIGIN_TOLERANCE_MM && a0 > 3.0 * ANGLE_TOLERANCE_MRAD,
+        "{o0} mm, {a0} mrad"
+    );
+    (cal, truth)
+}
+
+#[test]
+fn the_poses_are_recovered_without_noise() {
+    run(false, Some(2.0));
+}
+
+#[test]
+fn the_poses_are_recovered_with_photon_noise() {
+    run(true, Some(2.0));
+}
+
+#[test]
+fn the_laser_is_recovered_against_a_fitted_target() {
+    run(true, None);
+}
+
+#[test]
+fn the_fitted_config_fed_back_explains_the_scans() {
+    let nominal = InstrumentConfig::from_source(&instrument(None, true, None)).unwrap();
+    let truth = misaligned(&nominal);
+    let src = instrument(None, true, Some(truth));
+    let config = InstrumentConfig::from_source(&src).unwrap();
+    let settings = Settings {
+        target_distance: Some(2.0),
+        ..Settings::default()
+    };
+    let first = calibrate::fit(
+        &config,
+        &measure(&config, &backend(&config), &settings).unwrap(),
+        &settings,
+    )
+    .unwrap();
+    // The calibrated file keeps `[sim.true-pose.*]`: the same true instrument. A known
+    // target is placed from the configured SPAD pose, which has now moved: checking a
+    // calibrated instrument again fits the target (docs/calibration.md).
+    let text = calibrate::calibrated_toml(src.text(), &first.fitted).unwrap();
+    let src = instrument(Some(&text), true, None);
+    let config = InstrumentConfig::from_source(&src).unwrap();
+    let settings = Settings::default();
+    let second = calibrate::fit(
+        &config,
+        &measure(&config, &backend(&config), &settings).unwrap(),
+        &settings,
+    )
+    .unwrap();
+    eprintln!("first:\n{}\nsecond:\n{}", first.table(), second.table());
+    let (b1, b2) = (first.before, second.before);
+    assert!(
+        b2.range_rms < 0.2 * b1.range_rms && b2.angle_rms < 0.2 * b1.angle_rms,
+        "configured residuals before {b1:?}, after feeding the fit back {b2:?}"
+    );
+    // Fed back, the configured poses explain the scans about as well as a fit does.
+    let a2 = second.after;
+    assert!(
+        b2.range_rms < 3.0 * a2.range_rms + 1e-4 && b2.angle_rms < 3.0 * a2.angle_rms + 2e-5,
+        "{b2:?} against {a2:?}"
+    );
+}
+
+/// Whether the simulated laser is off and both arms parked, by the rig's own state.
+fn assert_safe(sim: &SimBackend) {
+    assert!(!sim.emission(), "the laser is on");
+    assert_eq!(sim.parked(), (true, true), "arms not parked");
+}
+
+#[test]
+fn the_laser_is_on_only_while_a_scan_measures() {
+    let config = InstrumentConfig::from_source(&instrument(None, true, None)).unwrap();
+    let sim = backend(&config);
+    let settings = Settings {
+        target_distance: Some(2.0),
+        grid: 4,
+        ..Settings::default()
+    };
+    measure(&config, &sim, &settings).unwrap();
+    assert_safe(&sim);
+    let on: Vec<_> = sim.emission_changes().into_iter().filter(|c| c.on).collect();
+    assert_eq!(
+        on.len(),
+        2,
+        "on for the range scan and the spot scan only: {on:?}"
+    );
+}
+
+#[test]
+fn an_abort_stops_the_calibration_with_the_laser_off() {
+    let config = InstrumentConfig::from_source(&instrument(None, true, None)).unwrap();
+    let sim = backend(&config);
+    let control = Control::new();
+    let watcher = {
+        let (sim, control) = (sim.clone(), control.clone());
+        std::thread::spawn(move || {
+            let started = Instant::now();
+            while !sim.emission() && started.elapsed() < Duration::from_secs(10) {
+                std::thread::sleep(Duration::from_micros(200));
+            }
+            control.abort();
+        })
+    };
+    let settings = Settings {
+        target_distance: Some(2.0),
+        grid: 31,
+        ..Settings::default()
+    };
+    let err = Calibrator::open(&config, Some(&sim), control)
+        .unwrap()
+        .measure(&settings)
+        .unwrap_err();
+    watcher.join().unwrap();
+    assert!(matches!(err, CalibrateError::Stopped), "{err}");
+    assert_safe(&sim);
+}
+
+#[test]
+fn a_target_out_of_view_is_a_clear_error() {
+    // The SPAD arm looks away from the wall: no return anywhere.
+    let text = std::fs::read_to_string(root().join("configs/instrument/sim.toml"))
+        .unwrap()
+        .replace("[sim]\n", "[sim]\ndevices = \"in-process\"\n");
+    let text = text.replacen(
+        "origin = [0.10, 0.0, 2.0]\nboresight = [0.0, 0.0, -1.0]",
+        "origin = [0.10, 0.0, 2.0]\nboresight = [0.0, 0.0, 1.0]",
+        1,
+    );
+    let config = InstrumentConfig::from_source(&instrument(Some(&text), true, None)).unwrap();
+    let sim = backend(&config);
+    let err = measure(&config, &sim, &Settings::default()).unwrap_err();
+    assert!(
+        matches!(err, CalibrateError::TooFewRanges { got: 0, tried: 81 }),
+        "{err}"
+    );
+    assert!(err.to_string().contains("flat target"), "{err}");
+    assert_safe(&sim);
+}
+
+#[test]
+fn a_gated_spad_is_named_when_no_spot_is_seen() {
+    let config = InstrumentConfig::from_source(&instrument(None, true, None)).unwrap();
+    // Built without `with_spad_ungated`: the gate blanks the spot's direct return.
+    let sim = SimBackend::from_config(&config).unwrap().unwrap();
+    let settings = Settings {
+        grid: 4,
+        spot_search: 4e-3,
+        ..Settings::default()
+    };
+    let err = measure(&config, &sim, &settings).unwrap_err();
+    assert!(matches!(err, CalibrateError::NoSpot { .. }), "{err}");
+    assert!(err.to_string().contains("gated"), "{err}");
+    assert_safe(&sim);
+}
+
+#[test]
+fn too_few_or_degenerate_measurements_are_refused_by_name() {
+    let nominal = InstrumentConfig::from_source(&instrument(None, false, None)).unwrap();
+    let config = InstrumentConfig::from_source(&instrument(None, false, Some(misaligned(&nominal)))).unwrap();
+    let settings = Settings {
+        target_distance: Some(2.0),
+        ..Settings::default()
+    };
+    let m = measure(&config, &backend(&config), &settings).unwrap();
+    let fit = |m: &Measurements| calibrate::fit(&config, m, &settings);
+
+    let few = Measurements {
+        ranges: m.ranges[..5].to_vec(),
+        ..m.clone()
+    };
+    let err = fit(&few).unwrap_err();
+    assert!(
+        matches!(err, CalibrateError::TooFewRanges { got: 5, .. }),
+        "{err}"
+    );
+
+    let few = Measurements {
+        spots: m.spots[..2].to_vec(),
+        ..m.clone()
+    };
+    assert!(matches!(fit(&few).unwrap_err(), CalibrateError::TooFewSpots(2)));
+
+    // One spot measured three times: the laser's rotation about that ray is free.
+    let same = Measurements {
+        spots: vec![m.spots[4]; 3],
+        ..m.clone()
+    };
+    let err = fit(&same).unwrap_err();
+    assert!(matches!(err, CalibrateError::Unconstrained(_)), "{err}");
+    assert!(err.to_string().contains("laser"), "{err}");
+
+    // A single row of ranges cannot see the SPAD's tilt across it: the fit refuses,
+    // or, if the spots pin it, returns finite poses; never NaN.
+    let row = Measurements {
+        ranges: m
+            .ranges
+            .iter()
+            .filter(|r| r.spad.y == m.ranges[0].spad.y)
+            .copied()
+            .collect(),
+        ..m.clone()
+    };
+    match fit(&row) {
+        Err(e) => assert!(
+            matches!(
+                e,
+                CalibrateError::TooFewRanges { .. } | CalibrateError::Unconstrained(_)
+            ),
+            "{e}"
+        ),
+        Ok(c) => assert!(c.fitted.laser.origin.is_finite() && c.fitted.spad.rotation.is_finite()),
+    }
+
+    let bad = Settings {
+        grid: 2,
+        ..settings.clone()
+    };
+    assert!(matches!(bad.validate().unwrap_err(), CalibrateError::Settings(_)));
+    let bad = Settings {
+        target_distance: Some(f64::NAN),
+        ..settings
+    };
+    assert!(matches!(bad.validate().unwrap_err(), CalibrateError::Settings(_)));
+}
