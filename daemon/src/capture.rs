@@ -137,13 +137,24 @@ impl RunCapture {
         let run = RunDir::new(dir);
         let (info, plan, instrument) = run.load()?;
         let pairs = run.pairs()?;
-        let records = crate::store::read_log(dir)
-            .map_err(|source| CaptureError::Log {
-                path: run.file(file::HISTOGRAMS),
-                source,
-            })?
-            .records;
-        Ok(RunCapture::new(dir, info, plan, instrument, pairs, records))
+        let log = crate::store::read_log(dir).map_err(|source| CaptureError::Log {
+            path: run.file(file::HISTOGRAMS),
+            source,
+        })?;
+        if log.discarded_bytes > 0 {
+            // What is reconstructed or exported from a damaged log is said, never
+            // passed off as the whole capture.
+            tracing::warn!(
+                run = %dir.display(),
+                "the histogram log is damaged ({} bytes in {} places unreadable): using the {} of {} \
+                 planned pairs that survive; `periscope resume` measures the rest again",
+                log.discarded_bytes,
+                log.damaged.len(),
+                log.records.len(),
+                pairs.len()
+            );
+        }
+        Ok(RunCapture::new(dir, info, plan, instrument, pairs, log.records))
     }
 
     /// What a run holds in memory (the outputs stage exports it without reading the
@@ -369,7 +380,7 @@ impl Capture {
     pub fn default_volume(&self) -> Result<VolumeGrid, CaptureError> {
         match self {
             Capture::Run(run) => Ok(run.plan.recon.volume),
-            Capture::Ytal { capture, .. } => Ok(capture.default_volume()?),
+            Capture::Ytal { path, capture } => Ok(capture.default_volume().map_err(|e| e.at(path))?),
         }
     }
 
@@ -378,7 +389,9 @@ impl Capture {
     pub fn default_recon(&self) -> Result<ReconSettings, CaptureError> {
         match self {
             Capture::Run(run) => Ok(run.plan.recon.clone()),
-            Capture::Ytal { capture, .. } => Ok(default_recon(capture.default_volume()?)),
+            Capture::Ytal { path, capture } => {
+                Ok(default_recon(capture.default_volume().map_err(|e| e.at(path))?))
+            }
         }
     }
 
@@ -394,7 +407,7 @@ impl Capture {
                 None,
             ),
             Capture::Ytal { path, capture } => {
-                let set = capture.transients(volume)?;
+                let set = capture.transients(volume).map_err(|e| e.at(path))?;
                 if set.is_empty() {
                     return Err(CaptureError::NothingInWindow(path.clone()));
                 }

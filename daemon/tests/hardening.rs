@@ -793,3 +793,43 @@ fn the_environment_token_overrides_the_configured_one() {
     assert!(with_config.contains(" 401 "), "{with_config}");
     assert!(with_env.contains(" 200 "), "{with_env}");
 }
+
+/// The `Authorization` scheme is case-insensitive (RFC 9110 §11.1): `bearer` and
+/// `BEARER` with the right token are let through, the wrong token is not.
+#[tokio::test]
+async fn the_bearer_scheme_is_accepted_in_any_case() {
+    let dir = tempfile::tempdir().unwrap();
+    let router = app(AppState::new(service(dir.path(), 0.0, "", "")));
+    for scheme in ["bearer", "BEARER", "Bearer"] {
+        let auth = format!("{scheme} {TOKEN}");
+        let (s, b) = send(
+            &router,
+            request(
+                Method::POST,
+                "/api/v1/runs",
+                false,
+                &[("authorization", &auth)],
+                PLAN,
+            ),
+        )
+        .await;
+        assert_eq!(
+            s,
+            StatusCode::CREATED,
+            "{scheme}: {}",
+            String::from_utf8_lossy(&b)
+        );
+    }
+    let (s, _) = send(
+        &router,
+        request(
+            Method::POST,
+            "/api/v1/runs",
+            false,
+            &[("authorization", "bearer wrong-token")],
+            PLAN,
+        ),
+    )
+    .await;
+    assert_eq!(s, StatusCode::UNAUTHORIZED);
+}

@@ -266,3 +266,66 @@ fn a_chunk_recorded_beyond_the_file_is_refused_before_it_is_read() {
     assert_eq!(code, Some(1), "{stderr}");
     assert!(stderr.contains("dataset `H`: a chunk"), "{stderr}");
 }
+
+/// Finite but huge counts (3e38, near f32::MAX) overflowed the reconstruction's sums
+/// and gave a volume that was all NaN, with exit 0. They are refused by name.
+#[test]
+fn counts_that_would_overflow_the_arithmetic_are_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut c = capture();
+    c.h.iter_mut().for_each(|v| *v = 3e38);
+    let file = write(dir.path(), "huge.hdf5", &c);
+    let (code, err) = recon_limited(&file, &dir.path().join("out"));
+    assert_ne!(code, Some(0), "{err}");
+    assert!(code.is_some(), "killed by a signal: {err}");
+    assert!(err.contains("huge.hdf5") && err.contains("overflow"), "{err}");
+    assert!(!dir.path().join("out/volume.npy").exists());
+}
+
+/// A capture whose `H` fits every size check on its own, but whose reading and
+/// reconstruction need more memory than the process may take (here an address-space
+/// limit a small capture reconstructs within), ends in a clear message naming the file
+/// instead of an abort in the allocator.
+#[test]
+fn a_capture_larger_than_the_memory_left_is_refused_before_it_is_read() {
+    let dir = tempfile::tempdir().unwrap();
+    // 8,192 bins × 64 × 64 points: 33.6 M values, about 512 MiB to reconstruct.
+    let (bins, nx, ny) = (8192, 64, 64);
+    let points: Vec<DVec3> = (0..nx * ny)
+        .map(|k| DVec3::new(0.01 * (k / ny) as f64 - 0.3, 0.01 * (k % ny) as f64 - 0.3, 0.0))
+        .collect();
+    let grid = Grid {
+        normals: vec![DVec3::Z; points.len()],
+        points,
+        format: GridFormat::XY3,
+        shape: vec![nx, ny],
+    };
+    let big = YtalCapture {
+        h: vec![1.0; bins * nx * ny],
+        h_shape: vec![bins, nx, ny],
+        sensor_grid: grid.clone(),
+        laser_grid: grid,
+        ..capture()
+    };
+    let file = write(dir.path(), "big.hdf5", &big);
+    drop(big);
+    let small = write(dir.path(), "small.hdf5", &capture());
+    let limit = LIMIT_FOR_SMALL_RECON_KIB;
+    let (code, err) = recon_within(limit, &small, &dir.path().join("small"));
+    assert_eq!(
+        code,
+        Some(0),
+        "the small capture must reconstruct within the limit: {err}"
+    );
+    let (code, err) = recon_within(limit, &file, &dir.path().join("big"));
+    assert!(code.is_some_and(|c| c != 0), "exit {code:?}: {err}");
+    assert!(
+        err.contains("big.hdf5") && err.contains("GiB") && err.contains("memory"),
+        "{err}"
+    );
+}
+
+/// An address-space limit `periscope recon` on a small capture runs within (the
+/// debug binary maps about 100 MiB before it reads anything), well short of what the
+/// large capture above needs.
+const LIMIT_FOR_SMALL_RECON_KIB: u64 = 400 << 10;

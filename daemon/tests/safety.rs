@@ -951,3 +951,27 @@ fn a_run_whose_end_could_not_be_recorded_can_be_resumed() {
     assert!(svc.resume(&b).is_err());
     assert!(svc.abort(&b).is_err());
 }
+
+/// A run killed between writing a temporary file and renaming it (`kill -9` in the
+/// outputs stage) left `volume.npy.<pid>-<n>.tmp` behind, which resume never removed;
+/// and a run that completed after a pause kept the pause's error text. A resume removes
+/// the first, and completion clears the second.
+#[test]
+fn a_completed_resume_leaves_no_stale_temporaries_and_no_old_error() {
+    let _serial = ONE_AT_A_TIME.lock().unwrap_or_else(|p| p.into_inner());
+    let tmp = tempfile::tempdir().unwrap();
+    let (dir, rig) = prepare(tmp.path(), &plan());
+    let stale = dir.join("volume.npy.4000000000-3.tmp");
+    std::fs::write(&stale, b"half a volume").unwrap();
+    let mut info = RunInfo::load(&dir).unwrap();
+    info.error = Some("the interlock opened: the laser is off and the run paused after 3 pairs".into());
+    info.save(&dir).unwrap();
+    execute(&dir, &rig, Control::new(), |_| {}).unwrap();
+    assert!(
+        !stale.exists(),
+        "the interrupted write's temporary is still there"
+    );
+    let info = RunInfo::load(&dir).unwrap();
+    assert_eq!(info.state, RunState::Completed);
+    assert_eq!(info.error, None, "a completed run kept an earlier stop's error");
+}

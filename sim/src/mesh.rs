@@ -152,13 +152,7 @@ impl Mesh {
         if ext != "obj" && ext != "ply" {
             return Err(err(format!("unknown mesh format `.{ext}`: use .obj or .ply")));
         }
-        let len = std::fs::metadata(path).map_err(|e| err(e.to_string()))?.len();
-        if len > MAX_MESH_FILE_BYTES {
-            return Err(err(format!(
-                "is {len} bytes, more than the {MAX_MESH_FILE_BYTES} a scene mesh may have"
-            )));
-        }
-        let bytes = std::fs::read(path).map_err(|e| err(e.to_string()))?;
+        let bytes = read_mesh_file(path).map_err(err)?;
         if ext == "obj" {
             Mesh::from_obj_bytes(&bytes)
         } else {
@@ -218,6 +212,32 @@ impl Mesh {
 
 /// Largest mesh file a scene may name, bytes.
 pub const MAX_MESH_FILE_BYTES: u64 = 1 << 30;
+
+/// A mesh file's bytes: a regular file of at most [`MAX_MESH_FILE_BYTES`]. A FIFO
+/// (whose open would block), a device (`/dev/zero` never ends) or a directory is refused
+/// before it is opened, and the cap applies to what is read, not only to the size the
+/// file claims.
+fn read_mesh_file(path: &Path) -> Result<Vec<u8>, String> {
+    use std::io::Read;
+    let meta = std::fs::metadata(path).map_err(|e| e.to_string())?;
+    if !meta.is_file() {
+        return Err("is not a regular file (a FIFO, device or directory): give an .obj or .ply file".into());
+    }
+    let too_large = |len: u64| {
+        format!("is {len} bytes or more, more than the {MAX_MESH_FILE_BYTES} a scene mesh may have")
+    };
+    if meta.len() > MAX_MESH_FILE_BYTES {
+        return Err(too_large(meta.len()));
+    }
+    let mut bytes = Vec::new();
+    std::fs::File::open(path)
+        .and_then(|f| f.take(MAX_MESH_FILE_BYTES + 1).read_to_end(&mut bytes))
+        .map_err(|e| e.to_string())?;
+    if bytes.len() as u64 > MAX_MESH_FILE_BYTES {
+        return Err(too_large(bytes.len() as u64));
+    }
+    Ok(bytes)
+}
 
 fn load_ply(bytes: &[u8]) -> Result<Mesh, String> {
     use ply_rs_bw::parser::Parser;

@@ -466,9 +466,11 @@ struct RawGalvos {
 #[derive(Deserialize)]
 #[serde(deny_unknown_fields, rename_all = "kebab-case")]
 struct RawGalvo {
+    #[serde(deserialize_with = "crate::config::exact::array")]
     origin: [f64; 3],
+    #[serde(deserialize_with = "crate::config::exact::array")]
     boresight: [f64; 3],
-    #[serde(default = "default_up")]
+    #[serde(deserialize_with = "crate::config::exact::array", default = "default_up")]
     up: [f64; 3],
     angle_limits_deg: RawLimits,
     #[serde(default)]
@@ -483,7 +485,9 @@ fn default_up() -> [f64; 3] {
 #[derive(Deserialize)]
 #[serde(deny_unknown_fields, rename_all = "kebab-case")]
 struct RawLimits {
+    #[serde(deserialize_with = "crate::config::exact::array")]
     x: [f64; 2],
+    #[serde(deserialize_with = "crate::config::exact::array")]
     y: [f64; 2],
 }
 
@@ -632,8 +636,11 @@ struct RawTruePoses {
 #[derive(Deserialize)]
 #[serde(deny_unknown_fields, rename_all = "kebab-case")]
 struct RawTruePose {
+    #[serde(default, deserialize_with = "crate::config::exact::option")]
     origin: Option<[f64; 3]>,
+    #[serde(default, deserialize_with = "crate::config::exact::option")]
     boresight: Option<[f64; 3]>,
+    #[serde(default, deserialize_with = "crate::config::exact::option")]
     up: Option<[f64; 3]>,
 }
 

@@ -13,7 +13,9 @@ pub use instrument::{
     SerialLink, SimDevices, SimSettings, SpadSettings, TdcDriver, TdcSettings, redact_secrets,
 };
 pub use scene::{DEFAULT_SCENE, load_scene, scene_from_source, sim_scene};
-pub use source::{ConfigError, TomlSource};
+pub use source::{ConfigError, MAX_TOML_BYTES, TomlSource};
+
+pub(crate) mod exact;
 
 /// The instrument config used when none is given: the simulated instrument.
 pub const DEFAULT_INSTRUMENT: &str = "configs/instrument/sim.toml";

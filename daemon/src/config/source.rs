@@ -75,13 +75,21 @@ pub struct TomlSource {
     text: String,
 }
 
+/// Largest config, plan or scene file read, bytes (4 MiB: the largest plan in use is a
+/// few KiB; a file of tens of MB is a mistake or an attack, and its parse would take
+/// hundreds of times its size in memory).
+pub const MAX_TOML_BYTES: u64 = 4 << 20;
+
 impl TomlSource {
     /// Reads `path` into memory.
     pub fn load(path: &Path) -> Result<Self, ConfigError> {
-        let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Read {
+        let read = |source| ConfigError::Read {
             path: path.to_owned(),
             source,
-        })?;
+        };
+        let bytes = periscope_recon::io::read_regular_capped(path, MAX_TOML_BYTES).map_err(read)?;
+        let text = String::from_utf8(bytes)
+            .map_err(|e| read(std::io::Error::new(std::io::ErrorKind::InvalidData, e)))?;
         Ok(Self::from_text(path, text))
     }
 

@@ -87,6 +87,18 @@ pub enum ReconError {
     /// There is nothing to reconstruct.
     #[error("no transients to reconstruct from")]
     Empty,
+    /// The solver produced a volume with a value that is not finite (data whose scale
+    /// overflows the arithmetic): nothing is written.
+    #[error(
+        "the reconstructed volume has a value that is not finite ({value} at voxel {index}); nothing \
+         was written: check the capture's counts (a huge or degenerate scale) and report it"
+    )]
+    NotFinite {
+        /// The first such voxel (C order).
+        index: usize,
+        /// Its value.
+        value: f32,
+    },
     /// The optimiser thread could not start or panicked.
     #[error("the optimiser thread {0}")]
     Thread(String),
@@ -110,7 +122,10 @@ impl ReconError {
             ),
             ReconError::Geometry(e) => matches!(e, GeometryError::NoPlane { .. }),
             ReconError::Roi(_) | ReconError::Empty => true,
-            ReconError::Transient(_) | ReconError::Output { .. } | ReconError::Thread(_) => false,
+            ReconError::Transient(_)
+            | ReconError::Output { .. }
+            | ReconError::Thread(_)
+            | ReconError::NotFinite { .. } => false,
         }
     }
 }
@@ -476,6 +491,37 @@ fn stopped_before_start(
     e
 }
 
+/// Removes what atomic writes of an earlier process left in the run directory when it
+/// was killed between writing a temporary file and renaming it
+/// (`<name>.<pid>-<n>.tmp`, [`periscope_recon::io::temporary_beside`]): the file it was
+/// replacing is intact, the temporary is garbage. Only this process's run holds the
+/// directory now, so no other writer's temporary is touched.
+fn remove_stale_temporaries(dir: &Path) {
+    let Ok(entries) = std::fs::read_dir(dir) else {
+        return;
+    };
+    for entry in entries.filter_map(Result::ok) {
+        let name = entry.file_name().to_string_lossy().into_owned();
+        let stale = name
+            .strip_suffix(".tmp")
+            .and_then(|s| s.rsplit_once('.'))
+            .and_then(|(_, tag)| tag.split_once('-'))
+            .is_some_and(|(pid, n)| {
+                !pid.is_empty()
+                    && !n.is_empty()
+                    && pid.chars().all(|c| c.is_ascii_digit())
+                    && n.chars().all(|c| c.is_ascii_digit())
+                    && pid != std::process::id().to_string()
+            });
+        if stale && entry.file_type().is_ok_and(|t| t.is_file()) {
+            match std::fs::remove_file(entry.path()) {
+                Ok(()) => tracing::info!("removed {name}, left by an interrupted write"),
+                Err(e) => tracing::warn!(error = %e, "could not remove {name}, left by an interrupted write"),
+            }
+        }
+    }
+}
+
 impl Run {
     /// Opens the devices for a prepared (or interrupted) run: stage `opening`, which a
     /// pause or abort interrupts between devices. `backend` is the way to the devices
@@ -488,6 +534,7 @@ impl Run {
         backend: Option<&dyn DeviceBackend>,
     ) -> Result<Run, PipelineError> {
         let (mut info, plan, instrument) = RunDir::new(dir).load()?;
+        remove_stale_temporaries(dir);
         let events = match events {
             Some(e) => e,
             None => EventSink::open(dir).map_err(|e| PipelineError::storage(dir, e))?,
@@ -628,7 +675,12 @@ impl Run {
         self.control
             .record_made_safe(safe.as_ref().map(|_| ()).map_err(|e| e.to_string()));
         match &result {
-            Ok(_) => self.info.state = RunState::Completed,
+            // An earlier stop's error (a pause, a suspender, a failure) is history once
+            // the run has completed.
+            Ok(_) => {
+                self.info.state = RunState::Completed;
+                self.info.error = None;
+            }
             Err(PipelineError::Paused(_)) => self.info.state = RunState::Paused,
             Err(e @ PipelineError::Suspended { .. }) => {
                 self.info.state = RunState::Paused;

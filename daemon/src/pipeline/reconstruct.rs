@@ -254,7 +254,7 @@ pub fn reconstruct(
         return Err(ReconError::Empty.into());
     }
     let s = &input.settings;
-    match s.method {
+    let result = match s.method {
         Method::Gtr => {
             let relay = virtual_relay(&input)?;
             let t = Instant::now();
@@ -289,5 +289,14 @@ pub fn reconstruct(
                 timings: vec![(format!("solver ({kind})"), t.elapsed().as_secs_f64())],
             })
         }
+    }?;
+    // A volume with a NaN or an infinity is never written as a result.
+    if let Some(i) = result.volume.data.iter().position(|v| !v.is_finite()) {
+        return Err(ReconError::NotFinite {
+            index: i,
+            value: result.volume.data[i],
+        }
+        .into());
     }
+    Ok(result)
 }

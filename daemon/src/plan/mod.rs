@@ -143,6 +143,7 @@ const DEFAULT_CLEAR_FOR_S: f64 = 5.0;
 #[serde(deny_unknown_fields, rename_all = "kebab-case")]
 struct RawLos {
     angles_deg: RawAngles,
+    #[serde(deserialize_with = "crate::config::exact::array")]
     grid: [usize; 2],
     dwell_ms: f64,
 }
@@ -150,14 +151,16 @@ struct RawLos {
 #[derive(Deserialize)]
 #[serde(deny_unknown_fields)]
 struct RawAngles {
+    #[serde(deserialize_with = "crate::config::exact::array")]
     x: [f64; 2],
+    #[serde(deserialize_with = "crate::config::exact::array")]
     y: [f64; 2],
 }
 
 #[derive(Deserialize)]
 #[serde(deny_unknown_fields, rename_all = "kebab-case")]
 struct RawRelay {
-    #[serde(default = "default_depth")]
+    #[serde(deserialize_with = "crate::config::exact::array", default = "default_depth")]
     depth_m: [f64; 2],
     #[serde(default = "default_intensity")]
     min_intensity: f64,
@@ -192,7 +195,9 @@ fn default_neighbours() -> usize {
 #[derive(Deserialize)]
 #[serde(deny_unknown_fields)]
 struct RawRegion {
+    #[serde(deserialize_with = "crate::config::exact::array")]
     min: [f64; 3],
+    #[serde(deserialize_with = "crate::config::exact::array")]
     max: [f64; 3],
 }
 

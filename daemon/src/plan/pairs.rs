@@ -103,10 +103,13 @@ impl PairMode {
 #[serde(deny_unknown_fields, rename_all = "kebab-case")]
 pub(crate) struct RawPairs {
     mode: String,
+    #[serde(default, deserialize_with = "crate::config::exact::option")]
     grid: Option<[usize; 2]>,
+    #[serde(default, deserialize_with = "crate::config::exact::option")]
     laser_grid: Option<[usize; 2]>,
     #[serde(default)]
     offset_mm: f64,
+    #[serde(default, deserialize_with = "crate::config::exact::option")]
     laser: Option<[f64; 3]>,
     count: Option<usize>,
     #[serde(default)]

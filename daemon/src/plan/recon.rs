@@ -167,9 +167,13 @@ pub(crate) struct RawRecon {
 #[derive(Deserialize)]
 #[serde(deny_unknown_fields, rename_all = "kebab-case")]
 pub(crate) struct RawVolume {
+    #[serde(deserialize_with = "crate::config::exact::array")]
     x: [f64; 2],
+    #[serde(deserialize_with = "crate::config::exact::array")]
     y: [f64; 2],
+    #[serde(deserialize_with = "crate::config::exact::array")]
     z: [f64; 2],
+    #[serde(deserialize_with = "crate::config::exact::array")]
     shape: [usize; 3],
 }
 
@@ -187,7 +191,9 @@ struct RawGtr {
     seed: u64,
     #[serde(default = "default_init")]
     init: String,
+    #[serde(default, deserialize_with = "crate::config::exact::option")]
     virtual_grid: Option<[usize; 2]>,
+    #[serde(default, deserialize_with = "crate::config::exact::option")]
     virtual_size: Option<[f64; 2]>,
     initial_scale: Option<f64>,
     #[serde(default = "default_densify")]

@@ -62,6 +62,7 @@ pub fn temporary_beside(path: &Path) -> PathBuf {
 /// synced so that the rename survives a crash. A failed write removes its temporary
 /// file. [`ytal::YtalCapture::write`] and the daemon's `store::write_atomic` take it.
 pub fn write_bytes_atomically(path: &Path, bytes: &[u8]) -> std::io::Result<()> {
+    refuse_non_regular_target(path)?;
     let tmp = temporary_beside(path);
     let written = File::create(&tmp)
         .and_then(|mut f| f.write_all(bytes).and_then(|()| f.sync_all()))
@@ -85,6 +86,7 @@ fn write_atomically(
     path: &Path,
     write: impl FnOnce(&mut BufWriter<File>) -> std::io::Result<()>,
 ) -> Result<(), IoError> {
+    refuse_non_regular_target(path).map_err(io_err(path))?;
     let tmp = temporary_beside(path);
     let written = (|| {
         let file = File::create(&tmp).map_err(io_err(&tmp))?;
@@ -228,6 +230,93 @@ pub fn write_albedo_png(path: &Path, map: &DepthMap) -> Result<(), IoError> {
         }
     }
     write_png(path, [nx, ny], png::ColorType::Grayscale, &pixels)
+}
+
+/// Refuses to replace `path` unless it is a regular file or does not exist: renaming
+/// over a device node (`/dev/full`), a FIFO, a directory or a symbolic link would
+/// replace that thing with a regular file (as root, a device node too).
+pub fn refuse_non_regular_target(path: &Path) -> std::io::Result<()> {
+    match std::fs::symlink_metadata(path) {
+        Ok(m) if !m.file_type().is_file() => Err(std::io::Error::new(
+            std::io::ErrorKind::InvalidInput,
+            format!(
+                "{} exists and is not a regular file (a device, FIFO, directory or link): \
+                 it is left as it is; write to another path",
+                path.display()
+            ),
+        )),
+        _ => Ok(()),
+    }
+}
+
+/// Reads a whole regular file of at most `limit` bytes. Anything else is refused
+/// before it is opened or read: a FIFO (which would block), a device such as
+/// `/dev/zero` (which never ends), a directory, or a file over the limit; a file that
+/// grows past the limit while it is read is refused too.
+pub fn read_regular_capped(path: &Path, limit: u64) -> std::io::Result<Vec<u8>> {
+    use std::io::Read;
+    let not_regular = || {
+        std::io::Error::new(
+            std::io::ErrorKind::InvalidInput,
+            format!(
+                "{} is not a regular file (a FIFO, device or directory): give a file",
+                path.display()
+            ),
+        )
+    };
+    let too_large = |len: u64| {
+        std::io::Error::new(
+            std::io::ErrorKind::InvalidData,
+            format!(
+                "{} is {len} bytes or more, more than the {limit} it may have here",
+                path.display()
+            ),
+        )
+    };
+    let meta = std::fs::metadata(path)?;
+    if !meta.is_file() {
+        return Err(not_regular());
+    }
+    if meta.len() > limit {
+        return Err(too_large(meta.len()));
+    }
+    let file = File::open(path)?;
+    if !file.metadata()?.is_file() {
+        return Err(not_regular());
+    }
+    let mut bytes = Vec::with_capacity(usize::try_from(meta.len()).unwrap_or(0));
+    file.take(limit + 1).read_to_end(&mut bytes)?;
+    if bytes.len() as u64 > limit {
+        return Err(too_large(bytes.len() as u64));
+    }
+    Ok(bytes)
+}
+
+/// Memory this process can still take, bytes: the smaller of the system's available
+/// memory (`MemAvailable`) and what its address-space limit leaves. `None` where that
+/// cannot be read (not Linux).
+pub fn memory_available() -> Option<u64> {
+    let kib = |text: &str, key: &str| -> Option<u64> {
+        text.lines()
+            .find_map(|l| l.strip_prefix(key))
+            .and_then(|v| v.trim().trim_end_matches("kB").trim().parse::<u64>().ok())
+            .map(|k| k << 10)
+    };
+    let meminfo = std::fs::read_to_string("/proc/meminfo").ok()?;
+    let available = kib(&meminfo, "MemAvailable:")?;
+    let limit = std::fs::read_to_string("/proc/self/limits").ok().and_then(|t| {
+        t.lines()
+            .find(|l| l.starts_with("Max address space"))
+            .and_then(|l| l.split_whitespace().nth(3).and_then(|v| v.parse::<u64>().ok()))
+    });
+    let used = std::fs::read_to_string("/proc/self/status")
+        .ok()
+        .and_then(|t| kib(&t, "VmSize:"))
+        .unwrap_or(0);
+    Some(match limit {
+        Some(l) => available.min(l.saturating_sub(used)),
+        None => available,
+    })
 }
 
 #[cfg(test)]

@@ -79,6 +79,24 @@ pub enum YtalError {
     },
 }
 
+impl YtalError {
+    /// The error with `path` named where it came from a capture held in memory (whose
+    /// methods do not know the file it was read from).
+    pub fn at(self, path: &std::path::Path) -> YtalError {
+        match self {
+            YtalError::Format { path: p, message } if p.as_os_str() == UNNAMED => YtalError::Format {
+                path: path.to_owned(),
+                message,
+            },
+            e => e,
+        }
+    }
+}
+
+/// What a capture's own errors call it until the caller names the file
+/// ([`YtalError::at`]).
+pub(crate) const UNNAMED: &str = "<capture>";
+
 /// How `H` is laid out (y-tal's `HFormat`).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum HFormat {

@@ -71,6 +71,18 @@ fn panic_message(payload: &(dyn std::any::Any + Send)) -> String {
         .unwrap_or_else(|| "a panic without a message".into())
 }
 
+/// Peak memory per value of `H` while it is read and reconstructed, bytes: the values
+/// as read (4), the HDF5 layer's decompressed chunks (4), and the transient set's counts
+/// and weights (8).
+const BYTES_PER_H_VALUE: u64 = 16;
+
+/// Bytes in a GiB, for messages.
+const GIB: f64 = (1u64 << 30) as f64;
+
+/// The largest magnitude of an `H` value: sums of up to 10^8 such values stay finite in
+/// single precision (f32::MAX is about 3.4e38).
+const MAX_H_VALUE: f32 = 1e30;
+
 impl YtalCapture {
     /// Reads a capture written by y-tal (or by [`YtalCapture::write`]).
     pub fn read(path: &Path) -> Result<YtalCapture, YtalError> {
@@ -150,11 +162,36 @@ impl YtalCapture {
                 h_format.name()
             )));
         }
+        // Each size check above holds on its own; what reading and reconstructing `H`
+        // takes in all must fit what this process can still allocate, or the read
+        // would abort the process instead of failing.
+        let values = h_shape.iter().map(|&d| d as u64).product::<u64>();
+        let need = values.saturating_mul(BYTES_PER_H_VALUE);
+        if let Some(available) = crate::io::memory_available()
+            && need > available
+        {
+            return Err(r.format(format!(
+                "`H` holds {values} values (shape {h_shape:?}): reading and reconstructing it takes about \
+                 {:.1} GiB, more than the {:.1} GiB this process can still use (free memory, and its \
+                 address-space limit): reconstruct it on a machine with more memory, or crop it (fewer \
+                 bins or relay points) with y-tal first",
+                need as f64 / GIB,
+                available as f64 / GIB
+            )));
+        }
         let h = ds
             .read_f32()
             .map_err(|e| r.format(format!("dataset `H` is not numeric: {e}")))?;
         if let Some(i) = h.iter().position(|v| !v.is_finite()) {
             return Err(r.format(format!("`H` value {i} is not finite")));
+        }
+        if let Some(i) = h.iter().position(|v| v.abs() > MAX_H_VALUE) {
+            return Err(r.format(format!(
+                "`H` value {i} is {:e}: sums over the capture would overflow single precision \
+                 (values above {MAX_H_VALUE:e} are refused); divide `H` by a constant first, the \
+                 reconstruction does not depend on its scale",
+                h[i]
+            )));
         }
         let delta_t = r.required_scalar("delta_t")?;
         if !(delta_t > 0.0 && delta_t <= 10.0) {

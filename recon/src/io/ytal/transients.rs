@@ -108,7 +108,7 @@ impl YtalCapture {
 
     fn error(&self, message: String) -> YtalError {
         YtalError::Format {
-            path: PathBuf::from("<capture>"),
+            path: PathBuf::from(super::UNNAMED),
             message,
         }
     }

@@ -1,0 +1,108 @@
+//! Inputs a user (or an attacker on the same host) can hand the daemon that used to
+//! hang it, abort it or damage the system: a FIFO or `/dev/zero` where a file belongs,
+//! a device node as an output, a 50 MB plan, a three-number grid, a lower-case bearer
+//! scheme, and what a killed write leaves in a run directory. Each must end in a clear
+//! message naming the file or key, promptly, with nothing replaced or lost.
+use std::path::Path;
+use std::process::Command;
+use std::time::{Duration, Instant};
+
+use periscope_daemon::config::{ConfigError, TomlSource};
+
+/// Makes a FIFO at `path` (with `mkfifo`, which every Linux has).
+fn fifo(path: &Path) {
+    let ok = Command::new("mkfifo").arg(path).status().unwrap().success();
+    assert!(ok, "mkfifo failed");
+}
+
+/// Runs `f` on another thread and fails the test if it takes longer than `limit` (a
+/// read of a FIFO with no writer blocks forever).
+fn within<T: Send + 'static>(limit: Duration, f: impl FnOnce() -> T + Send + 'static) -> T {
+    let (tx, rx) = std::sync::mpsc::channel();
+    std::thread::spawn(move || {
+        let _ = tx.send(f());
+    });
+    rx.recv_timeout(limit)
+        .unwrap_or_else(|_| panic!("still blocked after {limit:?}"))
+}
+
+#[test]
+fn an_output_path_that_is_not_a_regular_file_is_left_alone() {
+    let dir = tempfile::tempdir().unwrap();
+    let pipe = dir.path().join("out.hdf5");
+    fifo(&pipe);
+    let sub = dir.path().join("a-directory");
+    std::fs::create_dir(&sub).unwrap();
+    let link = dir.path().join("link.hdf5");
+    std::os::unix::fs::symlink(dir.path().join("target"), &link).unwrap();
+    for path in [&pipe, &sub, &link] {
+        let e = periscope_recon::io::write_bytes_atomically(path, b"data").unwrap_err();
+        assert!(e.to_string().contains("not a regular file"), "{e}");
+        let kind = std::fs::symlink_metadata(path).unwrap().file_type();
+        assert!(!kind.is_file(), "{} was replaced by a file", path.display());
+    }
+    // The daemon's own atomic writes go the same way.
+    let e = periscope_daemon::store::write_atomic(&pipe, b"x").unwrap_err();
+    assert!(e.to_string().contains("not a regular file"), "{e}");
+    // A regular file is still replaced.
+    let file = dir.path().join("plain");
+    std::fs::write(&file, b"old").unwrap();
+    periscope_recon::io::write_bytes_atomically(&file, b"new").unwrap();
+    assert_eq!(std::fs::read(&file).unwrap(), b"new");
+}
+
+#[test]
+fn a_fifo_or_an_endless_device_as_a_config_or_mesh_is_refused_at_once() {
+    let dir = tempfile::tempdir().unwrap();
+    let pipe = dir.path().join("plan.toml");
+    fifo(&pipe);
+    let p = pipe.clone();
+    let e = within(Duration::from_secs(5), move || TomlSource::load(&p).unwrap_err());
+    assert!(e.to_string().contains("plan.toml"), "{e}");
+    assert!(e.to_string().contains("not a regular file"), "{e}");
+
+    let mesh = dir.path().join("scene.obj");
+    fifo(&mesh);
+    let m = mesh.clone();
+    let e = within(Duration::from_secs(5), move || {
+        periscope_sim::Mesh::load(&m).unwrap_err()
+    });
+    assert!(e.to_string().contains("not a regular file"), "{e}");
+
+    let zero = dir.path().join("zero.ply");
+    std::os::unix::fs::symlink("/dev/zero", &zero).unwrap();
+    let t = Instant::now();
+    let e = periscope_sim::Mesh::load(&zero).unwrap_err();
+    assert!(e.to_string().contains("not a regular file"), "{e}");
+    assert!(t.elapsed() < Duration::from_secs(1), "read for {:?}", t.elapsed());
+}
+
+#[test]
+fn a_plan_file_larger_than_any_plan_is_refused_before_it_is_parsed() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("big.toml");
+    let array = "0,".repeat(25_000_000 / 2);
+    std::fs::write(&path, format!("name = \"big\"\nnumbers = [{array}0]\n")).unwrap();
+    let e = TomlSource::load(&path).unwrap_err();
+    assert!(matches!(e, ConfigError::Read { .. }), "{e:?}");
+    let text = e.to_string();
+    assert!(text.contains("big.toml") && text.contains("4194304"), "{text}");
+}
+
+#[test]
+fn a_grid_of_three_numbers_is_refused_with_its_key_and_line() {
+    let instrument =
+        TomlSource::load(&Path::new(env!("CARGO_MANIFEST_DIR")).join("../configs/instrument/sim.toml"))
+            .unwrap();
+    let instrument = periscope_daemon::config::InstrumentConfig::from_source(&instrument).unwrap();
+    let plan = std::fs::read_to_string(
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("../tests/data/plans/small-fbp.toml"),
+    )
+    .unwrap()
+    .replace("grid = [8, 8]", "grid = [24, 24, 24]");
+    let e = periscope_daemon::plan::Plan::from_source(&TomlSource::from_text("plan.toml", plan), &instrument)
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("plan.toml:") && e.contains("pairs.grid"), "{e}");
+    assert!(e.contains("exactly 2"), "{e}");
+}
