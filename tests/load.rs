@@ -6,6 +6,11 @@
 //! the laser's watchdog must never trip for want of progress, and the daemon's memory
 //! must stay bounded.
 //!
+//! The load generators run in this process on the same two cores as the daemon; they
+//! stand for clients on other hosts, whose work costs the instrument's PC nothing, so
+//! their threads run at nice 10 ([`client_thread`]). What is measured is what the
+//! daemon's handling of their requests costs the capture.
+//!
 //! A laser whose keepalive stops for want of progress trips its watchdog, which the
 //! run notices as the laser going off under it: the run pauses. So the run still
 //! capturing at the end, with no error recorded, is the proof the watchdog never
@@ -21,7 +26,7 @@ use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 use std::time::{Duration, Instant};
 
 use periscope_daemon::run_dir::{RunInfo, RunState};
-use periscope_tests::{SmallPlan, periscope_bin, repo_path, repo_root};
+use periscope_tests::{SmallPlan, periscope_bin, repo_root};
 
 const TOKEN: &str = "load-test-token-0123456789abcdef";
 
@@ -83,14 +88,7 @@ fn daemon() -> Daemon {
         .save(&run)
         .unwrap();
     }
-    let text = std::fs::read_to_string(repo_path("configs/instrument/sim.toml")).unwrap();
-    let scene = repo_path("configs/scenes/wall-letter.toml");
-    let text = text
-        .replace(
-            "\"../scenes/wall-letter.toml\"",
-            &format!("{:?}", scene.to_str().unwrap()),
-        )
-        .replace("[sim]\n", "[sim]\ntime-scale = 1.0\n");
+    let text = periscope_tests::real_time_sim_instrument();
     let path = dir.path().join("instrument.toml");
     let api = format!(
         "\n[api]\nruns-dir = {:?}\ntoken = {TOKEN:?}\nheader-timeout-s = {}\n",
@@ -198,6 +196,15 @@ fn rss(pid: u32) -> u64 {
         .map_or(0, |kb| kb << 10)
 }
 
+/// A load-generating thread: at nice 10, as a client on another host would cost this
+/// machine nothing (see the module docs).
+fn client_thread<T: Send + 'static>(f: impl FnOnce() -> T + Send + 'static) -> std::thread::JoinHandle<T> {
+    std::thread::spawn(move || {
+        let _ = periscope_daemon::priority::lower_current_thread(10);
+        f()
+    })
+}
+
 /// Runs `load` on `threads` threads until `stop` is set; returns the answers by status.
 fn in_background(
     threads: usize,
@@ -208,7 +215,7 @@ fn in_background(
     (0..threads)
         .map(|_| {
             let (stop, load) = (Arc::clone(stop), Arc::clone(&load));
-            std::thread::spawn(move || {
+            client_thread(move || {
                 let mut got = Vec::new();
                 // Bounded: at most 10,000 requests a thread, and the phase's deadline.
                 while !stop.load(Ordering::Relaxed) && got.len() < 10_000 {
@@ -302,7 +309,7 @@ fn a_capture_keeps_its_pace_under_read_floods_idle_connections_and_concurrent_ch
     let t_idle = Instant::now();
     // Opened from another thread: past the server's cap they wait in the kernel's
     // backlog, and past that a connect waits for its timeout.
-    let opener = std::thread::spawn(move || {
+    let opener = client_thread(move || {
         let deadline = Instant::now() + Duration::from_secs(4);
         let mut held = Vec::new();
         while held.len() < 2 * NOFILE && Instant::now() < deadline {

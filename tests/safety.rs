@@ -15,7 +15,7 @@ use std::time::{Duration, Instant};
 use periscope_daemon::config::{InstrumentConfig, TomlSource};
 use periscope_daemon::run_dir::{RunInfo, RunState};
 use periscope_sim::devices::{Arm, EmissionCause, Rig, ServedPort};
-use periscope_tests::{SmallPlan, periscope_bin, repo_path, repo_root};
+use periscope_tests::{SmallPlan, periscope_bin, repo_root};
 
 /// A long LOS scan (16 × 16 points of 50 ms, about 13 s): the laser is on throughout.
 fn plan_toml() -> String {
@@ -47,14 +47,7 @@ struct Bench {
 fn bench(extra: impl FnOnce(&Path) -> String) -> Bench {
     let dir = tempfile::tempdir().unwrap();
     let extra = extra(dir.path());
-    let text = std::fs::read_to_string(repo_path("configs/instrument/sim.toml")).unwrap();
-    let scene = repo_path("configs/scenes/wall-letter.toml");
-    let text = text
-        .replace(
-            "\"../scenes/wall-letter.toml\"",
-            &format!("{:?}", scene.to_str().unwrap()),
-        )
-        .replace("[sim]\n", "[sim]\ntime-scale = 1.0\n");
+    let text = periscope_tests::real_time_sim_instrument();
     let path = dir.path().join("instrument.toml");
     let config = InstrumentConfig::from_source(&TomlSource::from_text(path.clone(), text.clone())).unwrap();
     let rig = periscope_daemon::devices::sim::SimBackend::from_config(&config)

@@ -9,19 +9,30 @@ use std::process::Command;
 use glam::DVec3;
 use periscope_recon::io::ytal::{Grid, GridFormat, HFormat, YtalCapture};
 
-/// A confocal 11 × 13 capture of 7 bins: small, with a shape whose bytes are unique in
-/// the file, so tests can find and forge it.
-fn capture() -> YtalCapture {
-    let (nx, ny) = (11, 13);
+/// A planar `nx` × `ny` relay grid at `pitch` metres from `corner`, facing +z.
+fn relay_grid(nx: usize, ny: usize, pitch: f64, corner: [f64; 2]) -> Grid {
     let points: Vec<DVec3> = (0..nx * ny)
-        .map(|k| DVec3::new(0.05 * (k / ny) as f64 - 0.25, 0.05 * (k % ny) as f64 - 0.3, 0.0))
+        .map(|k| {
+            DVec3::new(
+                pitch * (k / ny) as f64 + corner[0],
+                pitch * (k % ny) as f64 + corner[1],
+                0.0,
+            )
+        })
         .collect();
-    let grid = Grid {
+    Grid {
         normals: vec![DVec3::Z; points.len()],
         points,
         format: GridFormat::XY3,
         shape: vec![nx, ny],
-    };
+    }
+}
+
+/// A confocal 11 × 13 capture of 7 bins: small, with a shape whose bytes are unique in
+/// the file, so tests can find and forge it.
+fn capture() -> YtalCapture {
+    let (nx, ny) = (11, 13);
+    let grid = relay_grid(nx, ny, 0.05, [-0.25, -0.3]);
     YtalCapture {
         h: (0..7 * nx * ny).map(|v| (v % 5) as f32).collect(),
         h_shape: vec![7, nx, ny],
@@ -291,15 +302,7 @@ fn a_capture_larger_than_the_memory_left_is_refused_before_it_is_read() {
     let dir = tempfile::tempdir().unwrap();
     // 8,192 bins × 64 × 64 points: 33.6 M values, about 512 MiB to reconstruct.
     let (bins, nx, ny) = (8192, 64, 64);
-    let points: Vec<DVec3> = (0..nx * ny)
-        .map(|k| DVec3::new(0.01 * (k / ny) as f64 - 0.3, 0.01 * (k % ny) as f64 - 0.3, 0.0))
-        .collect();
-    let grid = Grid {
-        normals: vec![DVec3::Z; points.len()],
-        points,
-        format: GridFormat::XY3,
-        shape: vec![nx, ny],
-    };
+    let grid = relay_grid(nx, ny, 0.01, [-0.3, -0.3]);
     let big = YtalCapture {
         h: vec![1.0; bins * nx * ny],
         h_shape: vec![bins, nx, ny],

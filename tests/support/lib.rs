@@ -55,6 +55,19 @@ pub fn periscope_bin() -> PathBuf {
     bin
 }
 
+/// The shipped simulated instrument (`configs/instrument/sim.toml`) running in real
+/// time (`time-scale = 1`), its scene path made absolute so the text can be written
+/// anywhere: what the tests that drive a `periscope` child process start from.
+pub fn real_time_sim_instrument() -> String {
+    let text = std::fs::read_to_string(repo_path("configs/instrument/sim.toml")).expect("sim.toml");
+    let scene = repo_path("configs/scenes/wall-letter.toml");
+    text.replace(
+        "\"../scenes/wall-letter.toml\"",
+        &format!("{:?}", scene.to_str().expect("a UTF-8 path")),
+    )
+    .replace("[sim]\n", "[sim]\ntime-scale = 1.0\n")
+}
+
 /// What a finished `periscope` process left behind.
 #[derive(Debug)]
 pub struct Finished {
