@@ -1,0 +1,169 @@
+//! What a running pipeline is asked to do and how it answers: the operator's pause and
+//! abort read at every checkpoint, the run's sign of life for the laser's keepalive,
+//! the record of how the run left the instrument, and (with the `test-hooks` feature)
+//! injected faults.
+use std::sync::atomic::{AtomicU8, Ordering};
+use std::sync::{Arc, Mutex};
+
+use periscope_recon::gtr::CancelToken;
+
+use super::PipelineError;
+use crate::events::Stage;
+
+/// What a running pipeline is asked to do, read at its checkpoints.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Request {
+    /// Carry on.
+    Run,
+    /// Pause (laser off, arms parked, data kept; resume continues).
+    Pause,
+    /// Abort (laser off, arms parked, data kept; the run ends).
+    Abort,
+}
+
+#[derive(Default)]
+struct ControlInner {
+    state: AtomicU8,
+    /// Cancel tokens of optimisers working for this run: a pause or an abort stops
+    /// them at once instead of at their next event.
+    cancels: Mutex<Vec<CancelToken>>,
+    /// Testing aid: the stage in which the next checkpoint panics (stage index + 1).
+    #[cfg(feature = "test-hooks")]
+    panic_in: AtomicU8,
+    /// Testing aid: the stage in which the next checkpoint hangs, and for how long.
+    #[cfg(feature = "test-hooks")]
+    hang_in: Mutex<Option<(Stage, std::time::Duration)>>,
+    /// How the run's last attempt to make the instrument safe went (laser off, arms
+    /// parked): `None` until it has tried, the first failure as text.
+    made_safe: Mutex<Option<Result<(), String>>>,
+    /// The run's sign of life for the laser's keepalive, beaten at every checkpoint
+    /// and stop poll ([`Control::progress`]).
+    progress: Mutex<Option<periscope_drivers::Progress>>,
+}
+
+/// Operator requests a running pipeline honours at its checkpoints: between devices
+/// while opening, at every LOS point and pair, every 5 ms inside a dwell, between the
+/// relay and planning steps, and at every optimiser step.
+#[derive(Clone, Default)]
+pub struct Control(Arc<ControlInner>);
+
+impl Control {
+    const RUN: u8 = 0;
+    const PAUSE: u8 = 1;
+    const ABORT: u8 = 2;
+
+    /// A control that never interrupts.
+    pub fn new() -> Control {
+        Control::default()
+    }
+    /// How the run's last attempt to make the instrument safe went: `Some(Ok(()))`
+    /// once it has switched the laser off and parked both arms, `Some(Err(why))` if a
+    /// step failed, `None` if it has not tried (it never opened the devices). The
+    /// e-stop believes a run only on `Some(Ok(()))`.
+    pub fn made_safe(&self) -> Option<Result<(), String>> {
+        self.0.made_safe.lock().unwrap_or_else(|p| p.into_inner()).clone()
+    }
+    pub(super) fn record_made_safe(&self, result: Result<(), String>) {
+        *self.0.made_safe.lock().unwrap_or_else(|p| p.into_inner()) = Some(result);
+    }
+    /// Asks the run to pause at the next checkpoint.
+    pub fn pause(&self) {
+        let _ = self
+            .0
+            .state
+            .compare_exchange(Self::RUN, Self::PAUSE, Ordering::SeqCst, Ordering::SeqCst);
+        self.cancel_optimisers();
+    }
+    /// Asks the run to abort at the next checkpoint.
+    pub fn abort(&self) {
+        self.0.state.store(Self::ABORT, Ordering::SeqCst);
+        self.cancel_optimisers();
+    }
+    /// What the run is asked to do.
+    pub fn requested(&self) -> Request {
+        match self.0.state.load(Ordering::SeqCst) {
+            Self::RUN => Request::Run,
+            Self::PAUSE => Request::Pause,
+            _ => Request::Abort,
+        }
+    }
+    /// Whether the run is asked to stop (pause or abort). Asking is a sign of life
+    /// ([`Control::progress`]).
+    pub fn stopping(&self) -> bool {
+        self.beat();
+        self.requested() != Request::Run
+    }
+    /// The run's sign of life for its laser's keepalive, alive for `limit` after each
+    /// checkpoint or stop poll; a new one (just beaten) replaces the last.
+    pub fn progress(&self, limit: std::time::Duration) -> periscope_drivers::Progress {
+        let p = periscope_drivers::Progress::new(limit);
+        *self.0.progress.lock().unwrap_or_else(|p| p.into_inner()) = Some(p.clone());
+        p
+    }
+    fn beat(&self) {
+        if let Some(p) = &*self.0.progress.lock().unwrap_or_else(|p| p.into_inner()) {
+            p.beat();
+        }
+    }
+    /// Registers an optimiser's cancel token; cancelled at once if already stopping.
+    pub(crate) fn watch(&self, token: &CancelToken) {
+        self.0
+            .cancels
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .push(token.clone());
+        if self.stopping() {
+            token.cancel();
+        }
+    }
+    fn cancel_optimisers(&self) {
+        for t in self.0.cancels.lock().unwrap_or_else(|p| p.into_inner()).iter() {
+            t.cancel();
+        }
+    }
+    /// Testing aid (fault injection): the next checkpoint reached in `stage` panics,
+    /// as a bug there would. The safety tests use it to show that a panic anywhere
+    /// leaves the laser off and the run resumable. Built only with the `test-hooks`
+    /// feature, which the release binary does not have.
+    #[cfg(feature = "test-hooks")]
+    pub fn inject_panic(&self, stage: Stage) {
+        self.0.panic_in.store(stage as u8 + 1, Ordering::SeqCst);
+    }
+    /// Testing aid (fault injection): the next checkpoint reached in `stage` hangs for
+    /// `duration`, deaf to pause, abort and e-stop, as a worker stuck in a call would.
+    /// The safety tests use it to show that an e-stop does not need the worker.
+    /// Built only with the `test-hooks` feature.
+    #[cfg(feature = "test-hooks")]
+    pub fn inject_hang(&self, stage: Stage, duration: std::time::Duration) {
+        *self.0.hang_in.lock().unwrap_or_else(|p| p.into_inner()) = Some((stage, duration));
+    }
+    /// The faults injected for `stage`: a panic, or a hang deaf to every request.
+    #[cfg(feature = "test-hooks")]
+    fn injected_faults(&self, stage: Stage) {
+        if self.0.panic_in.load(Ordering::SeqCst) == stage as u8 + 1 {
+            self.0.panic_in.store(0, Ordering::SeqCst);
+            panic!("injected panic in stage {}", stage.name());
+        }
+        let hang = {
+            let mut h = self.0.hang_in.lock().unwrap_or_else(|p| p.into_inner());
+            h.filter(|(s, _)| *s == stage).and_then(|_| h.take())
+        };
+        if let Some((_, duration)) = hang {
+            std::thread::sleep(duration);
+        }
+    }
+    /// The error a checkpoint returns for the current request, if any.
+    pub(crate) fn check(&self, stage: Stage, pairs: usize) -> Result<(), PipelineError> {
+        #[cfg(feature = "test-hooks")]
+        self.injected_faults(stage);
+        // Only the injected faults depend on the stage.
+        #[cfg(not(feature = "test-hooks"))]
+        let _ = stage;
+        self.beat();
+        match self.requested() {
+            Request::Run => Ok(()),
+            Request::Pause => Err(PipelineError::Paused(pairs)),
+            Request::Abort => Err(PipelineError::Aborted(pairs)),
+        }
+    }
+}

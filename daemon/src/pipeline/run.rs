@@ -1,0 +1,471 @@
+//! A run: its state, the devices it holds, and its life from opening the devices to
+//! the last stage. The stages themselves are `impl Run` blocks beside the code they
+//! drive: `los.rs` (the LOS scan and the relay), `acquisition.rs` (planning and the
+//! capture, streamed to the optimiser), `output.rs` (writing the results), `safety.rs`
+//! (the suspenders and device-error handling at every measurement); this file holds
+//! what every stage shares (opening, checkpoints, stage bookkeeping, `execute`).
+use std::path::{Path, PathBuf};
+use std::time::{Duration, Instant};
+
+use periscope_drivers::EmergencyOff;
+
+use super::{PipelineError, panic_message};
+use crate::capture::RunCapture;
+use crate::config::{InstrumentConfig, TomlSource};
+use crate::devices::{DeviceBackend, Devices, OpenError};
+use crate::events::{EventSink, RunEvent, Stage};
+use crate::plan::{Plan, PlannedPair};
+use crate::run_dir::{RunDir, RunInfo, RunState, file};
+
+use super::Control;
+use super::output::{self, RunOutputs};
+use crate::run_dir::RelayPoint;
+
+/// A run in progress.
+pub struct Run {
+    pub(super) dir: PathBuf,
+    pub(super) plan: Plan,
+    pub(super) instrument: InstrumentConfig,
+    pub(super) devices: Devices,
+    pub(super) events: EventSink,
+    pub(super) info: RunInfo,
+    pub(super) control: Control,
+    /// The stage in progress (for checkpoints and panic reports).
+    pub(super) stage: Stage,
+}
+
+/// The result of a finished run.
+#[derive(Clone, Debug)]
+pub struct RunSummary {
+    /// The run directory.
+    pub dir: PathBuf,
+    /// Seconds per stage.
+    pub timings: Vec<(String, f64)>,
+    /// Pairs measured.
+    pub pairs: usize,
+    /// Outputs and reconstruction statistics.
+    pub outputs: RunOutputs,
+}
+
+fn write(dir: &Path, name: &str, bytes: &[u8]) -> Result<(), PipelineError> {
+    let path = dir.join(name);
+    crate::store::write_atomic(&path, bytes).map_err(|e| PipelineError::storage(&path, e))
+}
+
+/// Starts a new run of `plan` on `instrument`: creates the run directory (under
+/// `runs/` unless `out` is given) with the plan and instrument config as provenance.
+pub fn prepare(
+    plan_src: &TomlSource,
+    instrument_src: &TomlSource,
+    out: Option<&Path>,
+) -> Result<(PathBuf, Plan, InstrumentConfig), PipelineError> {
+    let instrument = InstrumentConfig::from_source(instrument_src)?;
+    let plan = Plan::from_source(plan_src, &instrument)?;
+    crate::budget::Budget::of_plan(&plan)
+        .check(&instrument.budget)
+        .map_err(|m| PipelineError::Config(plan_src.invalid("pairs", m)))?;
+    let dir = match out {
+        Some(dir) => {
+            std::fs::create_dir_all(dir).map_err(|e| PipelineError::storage(dir, e))?;
+            if RunDir::holds_run(dir) {
+                return Err(PipelineError::storage(
+                    dir,
+                    std::io::Error::new(
+                        std::io::ErrorKind::AlreadyExists,
+                        "already holds a run: use `periscope resume` to continue it, or choose another --out",
+                    ),
+                ));
+            }
+            dir.to_owned()
+        }
+        None => crate::run_dir::new_run_dir(Path::new("runs"), &plan.name)
+            .map_err(|e| PipelineError::storage(Path::new("runs"), e))?,
+    };
+    write(&dir, file::PLAN, plan_src.text().as_bytes())?;
+    // The token stays in the process: the stored copy (served as a download) has it
+    // cut out, and the service never reads it back from a run.
+    write(
+        &dir,
+        file::INSTRUMENT,
+        crate::config::redact_secrets(instrument_src.text()).as_bytes(),
+    )?;
+    let info = RunInfo {
+        id: dir
+            .file_name()
+            .map_or_else(String::new, |n| n.to_string_lossy().into_owned()),
+        plan: plan.name.clone(),
+        state: RunState::Queued,
+        stage: "queued".into(),
+        instrument_path: std::path::absolute(instrument_src.path())
+            .unwrap_or_else(|_| instrument_src.path().to_owned()),
+        pairs_total: 0,
+        pairs_done: 0,
+        error: None,
+        timings: Vec::new(),
+    };
+    info.save(&dir).map_err(|e| PipelineError::storage(&dir, e))?;
+    Ok((dir, plan, instrument))
+}
+
+/// Records why a run stopped before its devices were open (a pause, an abort, a
+/// device that would not open, a panic): the run stays resumable.
+fn stopped_before_start(
+    dir: &Path,
+    info: &mut RunInfo,
+    events: &EventSink,
+    e: PipelineError,
+) -> PipelineError {
+    match &e {
+        PipelineError::Paused(_) => info.state = RunState::Paused,
+        PipelineError::Aborted(_) => info.state = RunState::Aborted,
+        e => {
+            info.state = RunState::Failed;
+            info.error = Some(e.to_string());
+            events.emit(RunEvent::Failed {
+                message: e.to_string(),
+            });
+        }
+    }
+    if let Err(io) = info.save(dir) {
+        tracing::error!(error = %io, "could not record the run's state in {}", dir.display());
+    }
+    e
+}
+
+/// Removes what atomic writes of an earlier process left in the run directory when it
+/// was killed between writing a temporary file and renaming it
+/// (`<name>.<pid>-<n>.tmp`, [`periscope_recon::io::temporary_beside`]): the file it was
+/// replacing is intact, the temporary is garbage. Only this process's run holds the
+/// directory now, so no other writer's temporary is touched.
+fn remove_stale_temporaries(dir: &Path) {
+    let Ok(entries) = std::fs::read_dir(dir) else {
+        return;
+    };
+    for entry in entries.filter_map(Result::ok) {
+        let name = entry.file_name().to_string_lossy().into_owned();
+        let stale = name
+            .strip_suffix(".tmp")
+            .and_then(|s| s.rsplit_once('.'))
+            .and_then(|(_, tag)| tag.split_once('-'))
+            .is_some_and(|(pid, n)| {
+                !pid.is_empty()
+                    && !n.is_empty()
+                    && pid.chars().all(|c| c.is_ascii_digit())
+                    && n.chars().all(|c| c.is_ascii_digit())
+                    && pid != std::process::id().to_string()
+            });
+        if stale && entry.file_type().is_ok_and(|t| t.is_file()) {
+            match std::fs::remove_file(entry.path()) {
+                Ok(()) => tracing::info!("removed {name}, left by an interrupted write"),
+                Err(e) => tracing::warn!(error = %e, "could not remove {name}, left by an interrupted write"),
+            }
+        }
+    }
+}
+
+impl Run {
+    /// Opens the devices for a prepared (or interrupted) run: stage `opening`, which a
+    /// pause or abort interrupts between devices. `backend` is the way to the devices
+    /// (the run service keeps one for the daemon's life); `None` opens the backend the
+    /// run's instrument config names (a fresh simulated instrument for `sim`).
+    pub fn open(
+        dir: &Path,
+        control: Control,
+        events: Option<EventSink>,
+        backend: Option<&dyn DeviceBackend>,
+    ) -> Result<Run, PipelineError> {
+        let (mut info, plan, instrument) = RunDir::new(dir).load()?;
+        remove_stale_temporaries(dir);
+        let events = match events {
+            Some(e) => e,
+            None => EventSink::open(dir).map_err(|e| PipelineError::storage(dir, e))?,
+        };
+        info.stage = Stage::Opening.name().into();
+        info.state = RunState::Running;
+        if let Err(e) = info.save(dir) {
+            // Recorded as failed (resumable) if the store lets it be, so the run is not
+            // left looking queued or running with nothing working on it.
+            return Err(stopped_before_start(
+                dir,
+                &mut info,
+                &events,
+                PipelineError::storage(dir, e),
+            ));
+        }
+        events.emit(RunEvent::StageStarted {
+            stage: Stage::Opening,
+        });
+        let pairs = info.pairs_done;
+        let opened = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+            control.check(Stage::Opening, pairs)?;
+            let own;
+            let backend = match backend {
+                Some(b) => b,
+                None => {
+                    own = crate::devices::backend(&instrument)?;
+                    own.as_ref()
+                }
+            };
+            Devices::open(backend, &|| control.stopping()).map_err(|e| match e {
+                OpenError::Interrupted => match control.check(Stage::Opening, pairs) {
+                    Err(stop) => stop,
+                    Ok(()) => PipelineError::Open(e),
+                },
+                e => PipelineError::Open(e),
+            })
+        }));
+        let mut devices = match opened {
+            Ok(Ok(devices)) => devices,
+            Ok(Err(e)) => return Err(stopped_before_start(dir, &mut info, &events, e)),
+            Err(payload) => {
+                let e = PipelineError::Panicked {
+                    stage: Stage::Opening.name(),
+                    message: panic_message(payload.as_ref()),
+                };
+                return Err(stopped_before_start(dir, &mut info, &events, e));
+            }
+        };
+        crate::signals::register_laser(devices.laser.emergency_off());
+        // The laser's keepalive feeds the controller's watchdog only while this run
+        // beats (at its checkpoints and stop polls): a run stuck with the laser on
+        // loses it within `[laser] stall-ms` plus the watchdog's timeout.
+        devices
+            .laser
+            .watch_progress(control.progress(instrument.laser.stall));
+        Ok(Run {
+            dir: dir.to_owned(),
+            plan,
+            instrument,
+            devices,
+            events,
+            info,
+            control,
+            stage: Stage::Opening,
+        })
+    }
+
+    /// A handle that switches this run's laser off from any thread, whatever the run
+    /// is doing (the e-stop's and the signal handlers' direct path).
+    pub fn emergency_off(&self) -> EmergencyOff {
+        self.devices.laser.emergency_off()
+    }
+
+    /// A checkpoint: the pause or abort asked for, as the error that stops the run.
+    pub(super) fn checkpoint(&self) -> Result<(), PipelineError> {
+        self.control.check(self.stage, self.info.pairs_done)
+    }
+
+    /// The event sink (to attach listeners).
+    pub fn events(&self) -> &EventSink {
+        &self.events
+    }
+
+    /// The run directory.
+    pub fn dir(&self) -> &Path {
+        &self.dir
+    }
+
+    pub(super) fn settle_timeout(&self) -> Duration {
+        (self
+            .instrument
+            .laser_arm
+            .settle
+            .max(self.instrument.spad_arm.settle)
+            * 20)
+            .max(Duration::from_millis(200))
+    }
+
+    pub(super) fn set_stage(&mut self, stage: Stage) -> Result<(), PipelineError> {
+        self.stage = stage;
+        self.checkpoint()?;
+        self.info.stage = stage.name().into();
+        self.info.state = RunState::Running;
+        self.save_info()?;
+        self.events.emit(RunEvent::StageStarted { stage });
+        Ok(())
+    }
+
+    pub(super) fn save_info(&self) -> Result<(), PipelineError> {
+        self.info
+            .save(&self.dir)
+            .map_err(|e| PipelineError::storage(&self.dir, e))
+    }
+
+    pub(super) fn finish_stage(&mut self, stage: Stage, started: Instant) {
+        let seconds = started.elapsed().as_secs_f64();
+        self.info.timings.retain(|(s, _)| s != stage.name());
+        self.info.timings.push((stage.name().into(), seconds));
+        self.events.emit(RunEvent::StageFinished { stage, seconds });
+    }
+
+    /// Runs (or continues) the pipeline to the end. On any error the laser is switched
+    /// off and the galvos parked, the run is marked failed (or paused, or aborted) with
+    /// its data intact, and the error is returned.
+    pub fn execute(mut self) -> Result<RunSummary, PipelineError> {
+        // A panic anywhere in the stages is caught here, so the instrument is made safe
+        // and the run marked as for any other failure (the optimiser thread's panics
+        // arrive as errors already).
+        let result = match std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| self.stages())) {
+            Ok(r) => r,
+            Err(payload) => Err(PipelineError::Panicked {
+                stage: self.stage.name(),
+                message: panic_message(payload.as_ref()),
+            }),
+        };
+        let safe = self.devices.make_safe();
+        self.control
+            .record_made_safe(safe.as_ref().map(|_| ()).map_err(|e| e.to_string()));
+        match &result {
+            // An earlier stop's error (a pause, a suspender, a failure) is history once
+            // the run has completed.
+            Ok(_) => {
+                self.info.state = RunState::Completed;
+                self.info.error = None;
+            }
+            Err(PipelineError::Paused(_)) => self.info.state = RunState::Paused,
+            Err(e @ PipelineError::Suspended { .. }) => {
+                self.info.state = RunState::Paused;
+                self.info.error = Some(e.to_string());
+            }
+            Err(PipelineError::Aborted(_)) => self.info.state = RunState::Aborted,
+            Err(e) => {
+                self.info.state = RunState::Failed;
+                self.info.error = Some(e.to_string());
+                self.events.emit(RunEvent::Failed {
+                    message: e.to_string(),
+                });
+            }
+        }
+        if let Err(e) = safe {
+            tracing::error!(error = %e, "could not make the instrument safe: switch the laser off by hand");
+        }
+        // A run that stopped keeps its own error if its state cannot be recorded (the
+        // API's worker records it then, or holds it at the next start).
+        if let Err(e) = self.save_info() {
+            tracing::error!(error = %e, "could not record the run's end");
+            if result.is_ok() {
+                return Err(e);
+            }
+        }
+        if result.is_ok() {
+            self.events.emit(RunEvent::Completed);
+        }
+        result
+    }
+
+    pub(super) fn stages(&mut self) -> Result<RunSummary, PipelineError> {
+        self.checkpoint()?;
+        let relay = match self.load_relay()? {
+            Some(r) => r,
+            None => {
+                let t = Instant::now();
+                self.set_stage(Stage::LosScan)?;
+                let returns = self.los_scan()?;
+                self.finish_stage(Stage::LosScan, t);
+                let t = Instant::now();
+                self.set_stage(Stage::Relay)?;
+                let relay = self.extract_relay(&returns)?;
+                self.checkpoint()?;
+                self.events.emit(RunEvent::Relay {
+                    returns: returns.len(),
+                    kept: relay.len(),
+                });
+                crate::run_dir::write_relay_ply(&self.dir, &relay)?;
+                self.finish_stage(Stage::Relay, t);
+                relay
+            }
+        };
+        let pairs = match self.load_pairs()? {
+            Some(p) => p,
+            None => {
+                let t = Instant::now();
+                self.set_stage(Stage::Planning)?;
+                let pairs = self.plan_pairs(&relay)?;
+                self.checkpoint()?;
+                self.finish_stage(Stage::Planning, t);
+                pairs
+            }
+        };
+        self.info.pairs_total = pairs.len();
+        let t = Instant::now();
+        self.set_stage(Stage::Capture)?;
+        let (fit, records) = self.capture(&pairs)?;
+        self.finish_stage(Stage::Capture, t);
+        let t = Instant::now();
+        self.set_stage(Stage::Reconstruction)?;
+        let result = fit.finish(&self.events, &self.control)?;
+        self.checkpoint()?;
+        self.finish_stage(Stage::Reconstruction, t);
+        let t = Instant::now();
+        self.set_stage(Stage::Outputs)?;
+        let mut outputs = output::write_outputs(&self.dir, &result, &self.events)?;
+        // The measured histograms as a y-tal capture, for y-tal, h5py and other labs,
+        // from what the run holds.
+        let measured = pairs.len();
+        let p = self.dir.join(crate::ytal::CAPTURE_FILE);
+        let capture = RunCapture::new(
+            &self.dir,
+            self.info.clone(),
+            self.plan.clone(),
+            self.instrument.clone(),
+            pairs,
+            records,
+        );
+        capture
+            .to_ytal()
+            .and_then(|c| c.write(&p).map_err(crate::ytal::ExportError::from))
+            .map_err(|source| PipelineError::Export { path: p, source })?;
+        self.events.emit(RunEvent::Output {
+            name: crate::ytal::CAPTURE_FILE.into(),
+        });
+        outputs.files.push(crate::ytal::CAPTURE_FILE.into());
+        self.finish_stage(Stage::Outputs, t);
+        Ok(RunSummary {
+            dir: self.dir.clone(),
+            timings: self.info.timings.clone(),
+            pairs: measured,
+            outputs,
+        })
+    }
+
+    pub(super) fn plan_pairs(&mut self, relay: &[RelayPoint]) -> Result<Vec<PlannedPair>, PipelineError> {
+        let points: Vec<_> = relay.iter().map(|r| r.x).collect();
+        let normals: Vec<_> = relay.iter().map(|r| r.n).collect();
+        let view = crate::plan::RelayView {
+            points: &points,
+            normals: &normals,
+        };
+        let i = &self.instrument;
+        let (pairs, unreachable) = crate::plan::plan_pairs(
+            &self.plan.pairs,
+            &view,
+            &self.plan.relay.illumination,
+            &self.plan.relay.detection,
+            [
+                (&i.laser_arm.pose, &i.laser_arm.limits),
+                (&i.spad_arm.pose, &i.spad_arm.limits),
+            ],
+        );
+        self.events.emit(RunEvent::Planned {
+            pairs: pairs.len(),
+            unreachable,
+        });
+        if pairs.is_empty() {
+            return Err(PipelineError::NoPairs {
+                relay_points: relay.len(),
+                unreachable,
+            });
+        }
+        let json = serde_json::to_vec(&pairs).expect("pairs serialise");
+        write(&self.dir, file::PAIRS, &json)?;
+        Ok(pairs)
+    }
+
+    pub(super) fn load_relay(&self) -> Result<Option<Vec<RelayPoint>>, PipelineError> {
+        Ok(RunDir::new(&self.dir).relay()?)
+    }
+
+    pub(super) fn load_pairs(&self) -> Result<Option<Vec<PlannedPair>>, PipelineError> {
+        Ok(RunDir::new(&self.dir).planned_pairs()?)
+    }
+}
