@@ -1190,7 +1190,7 @@ fn tdc_driver(check: &Check<'_>, raw: &RawTdc, hardware: bool) -> Result<TdcDriv
             "tdc.driver",
             format!(
                 "the {family} driver needs backend = \"hardware\": the simulated instrument has its own histogrammer \
-                 (to run the driver against the simulator, see `standins/picoquant` in docs/drivers.md)"
+                 (to run the driver against the simulator, see `standins` in docs/drivers.md)"
             ),
         ));
     }

@@ -1,5 +1,5 @@
 //! A stand-in for PicoQuant's C libraries, MHLib (MultiHarp 150/160) and HHLib
-//! (HydraHarp 400), for tests: a shared library (`libperiscope_standin_picoquant.so`)
+//! (HydraHarp 400), for tests: a shared library (`libperiscope_standins.so`)
 //! that exports the histogram-mode functions by their documented names and prototypes
 //! (`MH_OpenDevice`, `HH_GetHistogram`, …) and answers them from the simulated
 //! instrument. Periscope's driver loads it exactly as it loads the vendor's library, from
@@ -32,9 +32,11 @@
 
 pub mod client;
 pub mod control;
+pub mod daqmx;
 mod device;
 mod exports;
 mod state;
 
 pub use exports::*;
+pub use daqmx::DAQ_CONFIG_ENV;
 pub use state::CONFIG_ENV;
