@@ -228,7 +228,8 @@ impl Standin {
     /// `PERISCOPE_STANDIN_DaqFailNext`: the next call of the DAQmx function `function`
     /// returns `code`.
     pub fn daq_fail_next(&self, function: &str, code: i32) {
-        let f: unsafe extern "C" fn(*const c_char, c_int) -> c_int = self.get("PERISCOPE_STANDIN_DaqFailNext");
+        let f: unsafe extern "C" fn(*const c_char, c_int) -> c_int =
+            self.get("PERISCOPE_STANDIN_DaqFailNext");
         let s = cstr(function);
         // SAFETY: a NUL-terminated string.
         Self::ok("DaqFailNext", unsafe { f(s.as_ptr(), code) });

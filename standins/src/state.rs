@@ -94,7 +94,13 @@ impl State {
     /// Wires the simulated DAQ device as the hardware config at `path` says, on the
     /// rig set up before.
     pub(crate) fn wire_daq(&mut self, path: &Path) -> Result<(), String> {
-        let rig = self.bench.as_ref().ok_or("set the stand-in up first")?.backend.rig().clone();
+        let rig = self
+            .bench
+            .as_ref()
+            .ok_or("set the stand-in up first")?
+            .backend
+            .rig()
+            .clone();
         if let Some(old) = self.daq.as_mut() {
             old.shut_down();
         }

@@ -140,7 +140,7 @@ fn a_galvo_pair_follows_the_write_voltage_update_sequence_with_slew_limited_move
         ],
         "{calls:#?}"
     );
-    assert_eq!(s.parked().0, true, "open writes the park position");
+    assert!(s.parked().0, "open writes the park position");
     let info = g.identify().unwrap();
     assert!(info.model.starts_with("PCIe-6363 (Dev1"), "{info:?}");
     assert_eq!(info.serial, "1A2B3C4");
@@ -164,7 +164,10 @@ fn a_galvo_pair_follows_the_write_voltage_update_sequence_with_slew_limited_move
     assert!((last[0] - (0.1 + 0.4 * 15.0)).abs() < 1e-6 && (last[1] - (-0.1 - 0.4 * 5.0)).abs() < 1e-6);
     // The rig's mirrors went where the voltages say, through the config's scale.
     let (laser, _) = s.pointing();
-    assert!((laser.0 - 15.0).abs() < 1e-6 && (laser.1 + 5.0).abs() < 1e-6, "{laser:?}");
+    assert!(
+        (laser.0 - 15.0).abs() < 1e-6 && (laser.1 + 5.0).abs() < 1e-6,
+        "{laser:?}"
+    );
     assert_eq!(g.wait_settled(Duration::from_secs(1)).unwrap(), deg(15.0, -5.0));
 
     // Out of the limits: refused, nothing written.
@@ -173,8 +176,12 @@ fn a_galvo_pair_follows_the_write_voltage_update_sequence_with_slew_limited_move
     assert_eq!(e.kind(), ErrorKind::OutOfRange);
     assert!(named(&s.calls(), "DAQmxWriteAnalogF64").is_empty());
     g.park().unwrap();
-    assert_eq!(s.parked().0, true);
-    assert_eq!(s.daq_counters().0, 0, "no write drove an arm past the rig's hard limits");
+    assert!(s.parked().0);
+    assert_eq!(
+        s.daq_counters().0,
+        0,
+        "no write drove an arm past the rig's hard limits"
+    );
     drop(g);
     let calls = s.calls();
     assert!(calls.ends_with(&[
@@ -208,7 +215,11 @@ fn the_laser_follows_the_watchdog_timer_sequence_and_the_keepalive_holds_it() {
     assert!(s.emission());
     // Held by the keepalive for five timeouts.
     std::thread::sleep(Duration::from_millis(1000));
-    assert!(s.emission(), "the watchdog tripped while the keepalive fed it: {:?}", s.emission_log());
+    assert!(
+        s.emission(),
+        "the watchdog tripped while the keepalive fed it: {:?}",
+        s.emission_log()
+    );
     let resets = named(&s.calls(), "DAQmxControlWatchdogTask(0)").len();
     assert!(resets >= 10, "{resets} resets in 1 s with a 200 ms watchdog");
     let state = laser.laser_state().unwrap();
@@ -225,7 +236,10 @@ fn the_laser_follows_the_watchdog_timer_sequence_and_the_keepalive_holds_it() {
         ]
     );
     let log = s.emission_log();
-    assert!(log.iter().all(|(_, _, cause)| *cause == 0), "host switched: {log:?}");
+    assert!(
+        log.iter().all(|(_, _, cause)| *cause == 0),
+        "host switched: {log:?}"
+    );
 }
 
 #[test]
@@ -260,7 +274,10 @@ fn a_stalled_run_loses_the_laser_to_the_hardware_watchdog_without_an_estop() {
     let (_, on, cause) = *s.emission_log().last().unwrap();
     assert!(!on);
     assert_eq!(cause, 1, "the watchdog switched it off, not the host");
-    assert!(!laser.laser_state().unwrap().emission, "the driver sees the expiry");
+    assert!(
+        !laser.laser_state().unwrap().emission,
+        "the driver sees the expiry"
+    );
     // The run comes back and switches off: the expired line counts as off.
     laser.set_emission(false).unwrap();
     // And a later switch-on arms a fresh watchdog.
@@ -283,7 +300,10 @@ fn without_a_hardware_watchdog_emission_needs_a_heartbeat_or_the_configs_accepta
         e.to_string().contains("no hardware watchdog") && e.to_string().contains("heartbeat-line"),
         "{e}"
     );
-    assert!(!s.emission() && s.emission_log().is_empty(), "emitted without a watchdog");
+    assert!(
+        !s.emission() && s.emission_log().is_empty(),
+        "emitted without a watchdog"
+    );
     drop(laser);
 
     // With a heartbeat line: on, and each keepalive toggles it.
@@ -324,7 +344,10 @@ fn the_interlock_and_an_emergency_off_keep_the_laser_off() {
     let off = laser.emergency_off();
     off.laser_off().unwrap();
     assert!(!s.emission());
-    assert_eq!(laser.set_emission(true).unwrap_err().kind(), ErrorKind::Interrupted);
+    assert_eq!(
+        laser.set_emission(true).unwrap_err().kind(),
+        ErrorKind::Interrupted
+    );
     assert!(!s.emission());
     // Dropping the driver leaves the gate low and clears every task.
     s.clear_calls();
@@ -341,10 +364,26 @@ fn error_codes_become_kinds_with_the_librarys_words() {
     let settings = galvo_settings(&config);
     let mut g = DaqGalvo::open(settings.clone()).unwrap();
     for (code, kind, words) in [
-        (error::DEVICE_REMOVED, ErrorKind::Disconnected, "DAQmxErrorDeviceRemoved"),
-        (error::RESOURCE_ALREADY_RESERVED, ErrorKind::Busy, "DAQmxErrorResourceAlreadyReserved"),
-        (error::SAMPLE_VALUE_OUT_OF_RANGE, ErrorKind::OutOfRange, "DAQmxErrorSampleValueOutOfRange"),
-        (error::OPERATION_TIMED_OUT, ErrorKind::Timeout, "DAQmxErrorOperationTimedOut"),
+        (
+            error::DEVICE_REMOVED,
+            ErrorKind::Disconnected,
+            "DAQmxErrorDeviceRemoved",
+        ),
+        (
+            error::RESOURCE_ALREADY_RESERVED,
+            ErrorKind::Busy,
+            "DAQmxErrorResourceAlreadyReserved",
+        ),
+        (
+            error::SAMPLE_VALUE_OUT_OF_RANGE,
+            ErrorKind::OutOfRange,
+            "DAQmxErrorSampleValueOutOfRange",
+        ),
+        (
+            error::OPERATION_TIMED_OUT,
+            ErrorKind::Timeout,
+            "DAQmxErrorOperationTimedOut",
+        ),
         (error::INVALID_TASK, ErrorKind::Device, "DAQmxErrorInvalidTask"),
     ] {
         s.daq_fail_next("DAQmxWriteAnalogF64", code);
@@ -352,7 +391,9 @@ fn error_codes_become_kinds_with_the_librarys_words() {
         assert_eq!(e.kind(), kind, "{e}");
         let text = e.to_string();
         assert!(
-            text.contains(words) && text.contains(&format!("error {code}")) && text.contains("galvo pair `laser`"),
+            text.contains(words)
+                && text.contains(&format!("error {code}"))
+                && text.contains("galvo pair `laser`"),
             "{text}"
         );
         let d: periscope_drivers::DeviceError = e.into();
@@ -363,18 +404,27 @@ fn error_codes_become_kinds_with_the_librarys_words() {
     bad.channels[1] = "Dev1/ao7".into();
     let e = DaqGalvo::open(bad).err().unwrap();
     assert_eq!(e.kind(), ErrorKind::OutOfRange, "{e}");
-    assert!(e.to_string().contains("DAQmxErrorPhysicalChanDoesNotExist"), "{e}");
+    assert!(
+        e.to_string().contains("DAQmxErrorPhysicalChanDoesNotExist"),
+        "{e}"
+    );
     // The device vanishes: writes fail `disconnected`, and its gate drops.
     let mut laser = DaqLaser::open(laser_settings(&config)).unwrap();
     laser.set_emission(true).unwrap();
     s.daq_vanish();
     assert!(!s.emission());
     assert_eq!(s.emission_log().last().unwrap().2, 3, "a power loss");
-    assert_eq!(g.move_to(deg(1.0, 1.0)).unwrap_err().kind(), ErrorKind::Disconnected);
+    assert_eq!(
+        g.move_to(deg(1.0, 1.0)).unwrap_err().kind(),
+        ErrorKind::Disconnected
+    );
     // No library there.
     let mut missing = settings;
     missing.library = "/nonexistent/libnidaqmx.so".into();
     let e = DaqGalvo::open(missing).err().unwrap();
     assert_eq!(e.kind(), ErrorKind::Disconnected);
-    assert!(e.to_string().contains("cannot load /nonexistent/libnidaqmx.so") && e.to_string().contains("install NI-DAQmx"));
+    assert!(
+        e.to_string().contains("cannot load /nonexistent/libnidaqmx.so")
+            && e.to_string().contains("install NI-DAQmx")
+    );
 }

@@ -75,7 +75,12 @@ impl RawDaqLaser {
 }
 
 /// Refuses the DAQmx keys of a table whose driver is not DAQmx.
-pub(super) fn refuse_keys(src: &TomlSource, table: &str, given: &[&str], why: &str) -> Result<(), ConfigError> {
+pub(super) fn refuse_keys(
+    src: &TomlSource,
+    table: &str,
+    given: &[&str],
+    why: &str,
+) -> Result<(), ConfigError> {
     match given.first() {
         Some(k) => Err(src.invalid(&format!("{table}.{k}"), why.to_owned())),
         None => Ok(()),
@@ -105,10 +110,13 @@ fn channel(src: &TomlSource, key: &str, name: &str, kind: &str) -> Result<String
     } else {
         Err(src.invalid(
             key,
-            format!("`{name}` is not one {kind} (write it as NI-DAQmx names it, e.g. {})", match kind {
-                "analog output" => "Dev1/ao0",
-                _ => "Dev1/port0/line0",
-            }),
+            format!(
+                "`{name}` is not one {kind} (write it as NI-DAQmx names it, e.g. {})",
+                match kind {
+                    "analog output" => "Dev1/ao0",
+                    _ => "Dev1/port0/line0",
+                }
+            ),
         ))
     }
 }

@@ -1075,7 +1075,9 @@ fn galvo_arm(check: &Check<'_>, key: &str, raw: RawGalvo, hardware: bool) -> Res
                 ));
             }
             let name = key.rsplit('.').next().unwrap_or(key);
-            Some(GalvoLink::Daqmx(daqmx::galvo(src, key, name, raw_daq, limits, settle)?))
+            Some(GalvoLink::Daqmx(daqmx::galvo(
+                src, key, name, raw_daq, limits, settle,
+            )?))
         }
         RawGalvoDriver::Serial => {
             daqmx::refuse_galvo_keys(src, key, &raw_daq)?;
@@ -1088,7 +1090,9 @@ fn galvo_arm(check: &Check<'_>, key: &str, raw: RawGalvo, hardware: bool) -> Res
                         ));
                     }
                     if !(1..=60_000).contains(&s.timeout_ms) {
-                        return Err(src.invalid(&format!("{key}.serial.timeout-ms"), "must be 1 to 60,000 ms"));
+                        return Err(
+                            src.invalid(&format!("{key}.serial.timeout-ms"), "must be 1 to 60,000 ms")
+                        );
                     }
                     Ok(GalvoLink::Serial(SerialLink {
                         port: s.port,
@@ -1346,7 +1350,7 @@ mod tests {
         assert!(matches!(sim.backend, Backend::Sim(_)));
         let lab = load(LAB).unwrap();
         assert_eq!(lab.backend, Backend::Hardware);
-        assert!(lab.tdc.usb.is_some() && lab.laser_arm.serial.is_some());
+        assert!(lab.tdc.usb.is_some() && lab.laser_arm.serial().is_some());
     }
 
     #[test]
@@ -1481,5 +1485,81 @@ mod tests {
         let text = SIM.replacen("x = [-20.0, 20.0]", "x = [20.0, -20.0]", 1);
         let err = load(&text).unwrap_err();
         assert_eq!(err.key(), Some("galvo.laser.angle-limits-deg.x"), "{err}");
+    }
+
+    /// The lab example with its laser arm (and the laser) on a DAQ: `galvo` replaces
+    /// the laser arm's serial line, `laser` is added to `[laser]`.
+    fn daq_lab(galvo: &str, laser: &str) -> String {
+        let serial = "serial = { port = \"/dev/ttyUSB0\", baud = 115200, timeout-ms = 200 }\n";
+        LAB.replacen(serial, galvo, 1).replacen(
+            "rep-rate-mhz = 10.0\n",
+            &format!("rep-rate-mhz = 10.0\n{laser}"),
+            1,
+        )
+    }
+
+    const DAQ_GALVO: &str = "driver = \"daqmx\"\nchannels = [\"Dev1/ao0\", \"Dev1/ao1\"]\n\
+                             volts-per-deg = [0.4, 0.4]\nmax-slew-deg-per-ms = 2.0\n";
+
+    #[test]
+    fn daqmx_galvos_and_laser_lines_load_and_errors_name_their_key() {
+        let c = load(&daq_lab(DAQ_GALVO, "laser-line = \"Dev1/port0/line0\"\n")).unwrap();
+        let Some(GalvoLink::Daqmx(arm)) = &c.laser_arm.link else {
+            panic!("{:?}", c.laser_arm.link)
+        };
+        assert_eq!(arm.channels, ["Dev1/ao0".to_owned(), "Dev1/ao1".to_owned()]);
+        assert_eq!(arm.offsets_v, [0.0, 0.0]);
+        assert_eq!(
+            arm.library,
+            PathBuf::from(periscope_drivers::daqmx::DEFAULT_LIBRARY)
+        );
+        let l = c.laser.daqmx.as_ref().unwrap();
+        assert!(l.hardware_watchdog && l.interlock_line.is_none() && !l.accept_no_watchdog);
+        assert!(c.spad_arm.serial().is_some() && c.laser_arm.serial().is_none());
+
+        let err = |galvo: &str, laser: &str| load(&daq_lab(galvo, laser)).unwrap_err();
+        let e = err(DAQ_GALVO, "");
+        assert_eq!(e.key(), Some("laser"), "{e}");
+        assert!(e.to_string().contains("laser-line"), "{e}");
+        let e = err(
+            &DAQ_GALVO.replace("0.4, 0.4", "0.6, 0.4"),
+            "laser-line = \"Dev1/port0/line0\"\n",
+        );
+        assert_eq!(e.key(), Some("galvo.laser.volts-per-deg"), "{e}");
+        assert!(e.line().is_some() && e.to_string().contains("±10 V"), "{e}");
+        let e = err(
+            &DAQ_GALVO.replace("\"Dev1/ao1\"", "\"Dev1/ao0\""),
+            "laser-line = \"Dev1/port0/line0\"\n",
+        );
+        assert_eq!(e.key(), Some("galvo.laser.channels"), "{e}");
+        let e = err(
+            &DAQ_GALVO.replace("max-slew-deg-per-ms = 2.0\n", ""),
+            "laser-line = \"Dev1/port0/line0\"\n",
+        );
+        assert!(e.to_string().contains("max-slew-deg-per-ms"), "{e}");
+        let e = err(
+            DAQ_GALVO,
+            "laser-line = \"Dev1/port0/line0\"\ndaq-watchdog = false\n",
+        );
+        assert_eq!(e.key(), Some("laser.daq-watchdog"), "{e}");
+        let e = err(
+            DAQ_GALVO,
+            "laser-line = \"Dev1/port0/line0\"\ndiffuser-line = \"Dev1/port0/line0\"\n",
+        );
+        assert_eq!(e.key(), Some("laser.diffuser-line"), "{e}");
+        // DAQmx keys without the DAQmx driver are refused, not ignored.
+        let serial = "serial = { port = \"/dev/ttyUSB0\", baud = 115200, timeout-ms = 200 }\n";
+        let e = err(serial, "laser-line = \"Dev1/port0/line0\"\n");
+        assert_eq!(e.key(), Some("laser.laser-line"), "{e}");
+        let e = err(&format!("{serial}channels = [\"Dev1/ao0\", \"Dev1/ao1\"]\n"), "");
+        assert_eq!(e.key(), Some("galvo.laser.channels"), "{e}");
+        // And only on the hardware backend.
+        let e = load(&SIM.replacen(
+            "settle-us = 300.0\n",
+            &format!("settle-us = 300.0\n{DAQ_GALVO}"),
+            1,
+        ))
+        .unwrap_err();
+        assert_eq!(e.key(), Some("galvo.laser.driver"), "{e}");
     }
 }

@@ -10,8 +10,9 @@ mod scene;
 mod source;
 
 pub use instrument::{
-    ApiSettings, Backend, BudgetLimits, GalvoArm, GalvoLink, InstrumentConfig, LaserSettings, PicoQuantCounter,
-    SerialLink, SimDevices, SimSettings, SpadSettings, TdcDriver, TdcSettings, redact_secrets,
+    ApiSettings, Backend, BudgetLimits, GalvoArm, GalvoLink, InstrumentConfig, LaserSettings,
+    PicoQuantCounter, SerialLink, SimDevices, SimSettings, SpadSettings, TdcDriver, TdcSettings,
+    redact_secrets,
 };
 pub use scene::{DEFAULT_SCENE, load_scene, scene_from_source, sim_scene};
 pub use source::{ConfigError, TomlSource};

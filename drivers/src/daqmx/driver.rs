@@ -102,7 +102,9 @@ pub fn survey(library: &Path) -> Result<DaqSurvey, DaqError> {
     let devices = names
         .into_iter()
         .map(|name| {
-            let model = lib.dev_product_type(&name).unwrap_or_else(|c| lib.error_string(c));
+            let model = lib
+                .dev_product_type(&name)
+                .unwrap_or_else(|c| lib.error_string(c));
             let serial = lib
                 .dev_serial_num(&name)
                 .map_or_else(|c| lib.error_string(c), |s| format!("{s:X}"));
@@ -237,7 +239,9 @@ impl DaqGalvo {
                 format!("{volts:?} V is outside the card's ±10 V; nothing was written"),
             ));
         }
-        self.call("DAQmxWriteAnalogF64", |lib, t| lib.write_analog_f64(t, &volts, WRITE_TIMEOUT_S))?;
+        self.call("DAQmxWriteAnalogF64", |lib, t| {
+            lib.write_analog_f64(t, &volts, WRITE_TIMEOUT_S)
+        })?;
         self.commanded = angles;
         self.last_write = Instant::now();
         Ok(())

@@ -27,13 +27,36 @@ pub(crate) type Task = usize;
 type TaskHandle = *mut c_void;
 type FnCreateTask = unsafe extern "C" fn(*const c_char, *mut TaskHandle) -> c_int;
 type FnTask = unsafe extern "C" fn(TaskHandle) -> c_int;
-type FnCreateAoVoltageChan =
-    unsafe extern "C" fn(TaskHandle, *const c_char, *const c_char, c_double, c_double, c_int, *const c_char) -> c_int;
+type FnCreateAoVoltageChan = unsafe extern "C" fn(
+    TaskHandle,
+    *const c_char,
+    *const c_char,
+    c_double,
+    c_double,
+    c_int,
+    *const c_char,
+) -> c_int;
 type FnCreateDigitalChan = unsafe extern "C" fn(TaskHandle, *const c_char, *const c_char, c_int) -> c_int;
-type FnWriteAnalogF64 =
-    unsafe extern "C" fn(TaskHandle, c_int, c_uint, c_double, c_uint, *const c_double, *mut c_int, *mut c_uint) -> c_int;
-type FnWriteDigitalLines =
-    unsafe extern "C" fn(TaskHandle, c_int, c_uint, c_double, c_uint, *const u8, *mut c_int, *mut c_uint) -> c_int;
+type FnWriteAnalogF64 = unsafe extern "C" fn(
+    TaskHandle,
+    c_int,
+    c_uint,
+    c_double,
+    c_uint,
+    *const c_double,
+    *mut c_int,
+    *mut c_uint,
+) -> c_int;
+type FnWriteDigitalLines = unsafe extern "C" fn(
+    TaskHandle,
+    c_int,
+    c_uint,
+    c_double,
+    c_uint,
+    *const u8,
+    *mut c_int,
+    *mut c_uint,
+) -> c_int;
 type FnReadDigitalLines = unsafe extern "C" fn(
     TaskHandle,
     c_int,
@@ -45,7 +68,8 @@ type FnReadDigitalLines = unsafe extern "C" fn(
     *mut c_int,
     *mut c_uint,
 ) -> c_int;
-type FnCreateWatchdog = unsafe extern "C" fn(*const c_char, *const c_char, *mut TaskHandle, c_double) -> c_int;
+type FnCreateWatchdog =
+    unsafe extern "C" fn(*const c_char, *const c_char, *mut TaskHandle, c_double) -> c_int;
 type FnCfgWatchdogDo = unsafe extern "C" fn(TaskHandle, *const c_char, *const c_int, c_uint) -> c_int;
 type FnControlWatchdog = unsafe extern "C" fn(TaskHandle, c_int) -> c_int;
 type FnTaskOutBool = unsafe extern "C" fn(TaskHandle, *mut c_uint) -> c_int;
@@ -218,7 +242,13 @@ impl Lib {
     }
 
     /// `DAQmxCreateAOVoltageChan(task, channels, "", min, max, DAQmx_Val_Volts, NULL)`.
-    pub(crate) fn create_ao_voltage_chan(&self, task: Task, channels: &str, min: f64, max: f64) -> Result<(), i32> {
+    pub(crate) fn create_ao_voltage_chan(
+        &self,
+        task: Task,
+        channels: &str,
+        min: f64,
+        max: f64,
+    ) -> Result<(), i32> {
         let (channels, name) = (c(channels), c(""));
         // SAFETY: NUL-terminated strings the library only reads; a null custom scale
         // (none), as NI's examples pass.
@@ -298,7 +328,12 @@ impl Lib {
     }
 
     /// `DAQmxReadDigitalLines`: one sample into `lines` (one byte per line).
-    pub(crate) fn read_digital_lines(&self, task: Task, lines: &mut [u8], timeout_s: f64) -> Result<i32, i32> {
+    pub(crate) fn read_digital_lines(
+        &self,
+        task: Task,
+        lines: &mut [u8],
+        timeout_s: f64,
+    ) -> Result<i32, i32> {
         let (mut read, mut bytes_per_sample): (c_int, c_int) = (0, 0);
         // SAFETY: the library writes at most `arraySizeInBytes` (the buffer's length)
         // bytes into `lines`, and one int through each of two pointers to live locals;
@@ -320,7 +355,12 @@ impl Lib {
     }
 
     /// `DAQmxCreateWatchdogTimerTaskEx(device, name, &handle, timeout)`.
-    pub(crate) fn create_watchdog_timer_task_ex(&self, device: &str, name: &str, timeout_s: f64) -> Result<Task, i32> {
+    pub(crate) fn create_watchdog_timer_task_ex(
+        &self,
+        device: &str,
+        name: &str,
+        timeout_s: f64,
+    ) -> Result<Task, i32> {
         let (device, name) = (c(device), c(name));
         let mut handle: TaskHandle = std::ptr::null_mut();
         // SAFETY: NUL-terminated strings the library only reads; one handle written
@@ -332,12 +372,22 @@ impl Lib {
     }
 
     /// `DAQmxCfgWatchdogDOExpirStates(task, lines, states, n)`.
-    pub(crate) fn cfg_watchdog_do_expir_states(&self, task: Task, lines: &str, states: &[i32]) -> Result<(), i32> {
+    pub(crate) fn cfg_watchdog_do_expir_states(
+        &self,
+        task: Task,
+        lines: &str,
+        states: &[i32],
+    ) -> Result<(), i32> {
         let lines = c(lines);
         // SAFETY: the library reads `arraySize` (the slice's length) int32s and a
         // NUL-terminated string.
         self.check(unsafe {
-            (self.api.cfg_watchdog_do_expir_states)(ptr(task), lines.as_ptr(), states.as_ptr(), len32(states.len()))
+            (self.api.cfg_watchdog_do_expir_states)(
+                ptr(task),
+                lines.as_ptr(),
+                states.as_ptr(),
+                len32(states.len()),
+            )
         })
     }
 

@@ -405,15 +405,23 @@ impl GuardedLaser for DaqLaser {
                 Err(code::WATCHDOG_TIMER_NOT_SUPPORTED) => {
                     let device = s.device.clone();
                     if self.settings.heartbeat_line.is_some() {
-                        warn!(device, "the DAQ device has no hardware watchdog: the heartbeat line's external relay is the only watchdog");
+                        warn!(
+                            device,
+                            "the DAQ device has no hardware watchdog: the heartbeat line's external relay is the only watchdog"
+                        );
                         self.mode = WatchdogMode::Heartbeat;
                     } else if self.settings.accept_no_watchdog {
-                        warn!(device, "the DAQ device has no hardware watchdog; emission is unguarded, as the config accepts");
+                        warn!(
+                            device,
+                            "the DAQ device has no hardware watchdog; emission is unguarded, as the config accepts"
+                        );
                         self.mode = WatchdogMode::Unguarded;
                     } else {
                         return Err(no_watchdog(
                             &s.who,
-                            &format!("{device} has no hardware watchdog timer (DAQmxErrorWatchdogTimerNotSupported)"),
+                            &format!(
+                                "{device} has no hardware watchdog timer (DAQmxErrorWatchdogTimerNotSupported)"
+                            ),
                         ));
                     }
                 }

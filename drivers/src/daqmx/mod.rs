@@ -17,8 +17,6 @@ mod error;
 mod ffi;
 mod laser;
 
-pub use driver::{
-    AoGalvoSettings, DEFAULT_LIBRARY, DaqGalvo, DaqSurvey, STEP_PERIOD, device_of, survey,
-};
+pub use driver::{AoGalvoSettings, DEFAULT_LIBRARY, DaqGalvo, DaqSurvey, STEP_PERIOD, device_of, survey};
 pub use error::{DaqError, kind_of};
 pub use laser::{DaqLaser, DaqLaserSettings, WatchdogMode};

@@ -39,7 +39,8 @@ fn call(function: &str, args: String, f: impl FnOnce(&mut State) -> Result<(), C
         Err(_) => error::INVALID_TASK,
     };
     let words = error_name(code).unwrap_or("an error the test queued");
-    LAST_ERROR.with(|e| *e.borrow_mut() = format!("{words}.\nTask or function: {function}\nStatus Code: {code}"));
+    LAST_ERROR
+        .with(|e| *e.borrow_mut() = format!("{words}.\nTask or function: {function}\nStatus Code: {code}"));
     code
 }
 
@@ -95,6 +96,14 @@ unsafe fn put<T>(dst: *mut T, v: T) {
     }
 }
 
+/// Rewrites the record of the call in progress (with the task's name and the values
+/// written, which only the call's body knows).
+fn shown_as(s: &mut State, text: String) {
+    if let Some(c) = s.calls.last_mut() {
+        *c = text;
+    }
+}
+
 fn handle(t: TaskHandle) -> usize {
     t as usize
 }
@@ -107,15 +116,19 @@ fn handle(t: TaskHandle) -> usize {
 pub unsafe extern "C" fn DAQmxCreateTask(name: *const c_char, task: *mut TaskHandle) -> c_int {
     // SAFETY: per the contract.
     let name = unsafe { text(name) };
-    call("DAQmxCreateTask", format!("{:?}", name.as_deref().unwrap_or("NULL")), |s| {
-        if task.is_null() {
-            return Err(error::INVALID_ATTRIBUTE_VALUE);
-        }
-        let h = s.daq()?.create_task(&name?)?;
-        // SAFETY: non-null, valid per the contract.
-        unsafe { put(task, h as TaskHandle) };
-        Ok(())
-    })
+    call(
+        "DAQmxCreateTask",
+        format!("{:?}", name.as_deref().unwrap_or("NULL")),
+        |s| {
+            if task.is_null() {
+                return Err(error::INVALID_ATTRIBUTE_VALUE);
+            }
+            let h = s.daq()?.create_task(&name?)?;
+            // SAFETY: non-null, valid per the contract.
+            unsafe { put(task, h as TaskHandle) };
+            Ok(())
+        },
+    )
 }
 
 macro_rules! task_fn {
@@ -126,7 +139,7 @@ macro_rules! task_fn {
             call(stringify!($name), String::new(), |s| {
                 let d = s.daq()?;
                 let n = d.name(handle(task));
-                s.calls.last_mut().map(|c| *c = format!("{}({n})", stringify!($name)));
+                shown_as(s, format!("{}({n})", stringify!($name)));
                 s.daq()?.$method(handle(task))
             })
         }
@@ -153,9 +166,11 @@ pub unsafe extern "C" fn DAQmxCreateAOVoltageChan(
     // SAFETY: per the contract.
     let physical = unsafe { text(physical) };
     let shown = physical.clone().unwrap_or_default();
-    call("DAQmxCreateAOVoltageChan", format!("{shown}, {min}, {max}, {units}"), |s| {
-        s.daq()?.create_ao(handle(task), &physical?, min, max, units)
-    })
+    call(
+        "DAQmxCreateAOVoltageChan",
+        format!("{shown}, {min}, {max}, {units}"),
+        |s| s.daq()?.create_ao(handle(task), &physical?, min, max, units),
+    )
 }
 
 /// `DAQmxCreateDOChan`, as `NIDAQmx.h` declares it.
@@ -199,7 +214,11 @@ pub unsafe extern "C" fn DAQmxCreateDIChan(
 /// How many channels a task has, for reading the right number of samples.
 fn width(s: &mut State, task: TaskHandle, ao: bool) -> Result<usize, Code> {
     let d = s.daq()?;
-    Ok(if ao { d.ao_width(handle(task))? } else { d.digital_width(handle(task))? })
+    Ok(if ao {
+        d.ao_width(handle(task))?
+    } else {
+        d.digital_width(handle(task))?
+    })
 }
 
 /// `DAQmxWriteAnalogF64`, as `NIDAQmx.h` declares it.
@@ -218,23 +237,22 @@ pub unsafe extern "C" fn DAQmxWriteAnalogF64(
     written: *mut c_int,
     _reserved: *mut c_uint,
 ) -> c_int {
-    let mut volts = Vec::new();
-    let r = call("DAQmxWriteAnalogF64", String::new(), |s| {
+    call("DAQmxWriteAnalogF64", String::new(), |s| {
         let n = width(s, task, true)?;
         if data.is_null() || samples != 1 {
             return Err(error::INVALID_ATTRIBUTE_VALUE);
         }
         // SAFETY: one sample per channel of the task, per the contract.
-        volts = unsafe { std::slice::from_raw_parts(data, n) }.to_vec();
+        let volts = unsafe { std::slice::from_raw_parts(data, n) }.to_vec();
         let name = s.daq()?.name(handle(task));
         let shown: Vec<String> = volts.iter().map(|v| format!("{v:.6}")).collect();
-        s.calls.last_mut().map(|c| *c = format!("DAQmxWriteAnalogF64({name}, [{}])", shown.join(", ")));
-        s.daq()?.write_ao(handle(task), samples, auto_start != 0, &volts)?;
+        shown_as(s, format!("DAQmxWriteAnalogF64({name}, [{}])", shown.join(", ")));
+        s.daq()?
+            .write_ao(handle(task), samples, auto_start != 0, &volts)?;
         // SAFETY: null or valid per the contract.
         unsafe { put(written, samples) };
         Ok(())
-    });
-    r
+    })
 }
 
 /// `DAQmxWriteDigitalLines`, as `NIDAQmx.h` declares it.
@@ -261,7 +279,7 @@ pub unsafe extern "C" fn DAQmxWriteDigitalLines(
         // SAFETY: one byte per line of the task, per the contract.
         let levels = unsafe { std::slice::from_raw_parts(data, n) }.to_vec();
         let name = s.daq()?.name(handle(task));
-        s.calls.last_mut().map(|c| *c = format!("DAQmxWriteDigitalLines({name}, {levels:?})"));
+        shown_as(s, format!("DAQmxWriteDigitalLines({name}, {levels:?})"));
         s.daq()?.write_do(handle(task), samples, &levels)?;
         // SAFETY: null or valid per the contract.
         unsafe { put(written, samples) };
@@ -288,7 +306,7 @@ pub unsafe extern "C" fn DAQmxReadDigitalLines(
 ) -> c_int {
     call("DAQmxReadDigitalLines", String::new(), |s| {
         let name = s.daq()?.name(handle(task));
-        s.calls.last_mut().map(|c| *c = format!("DAQmxReadDigitalLines({name})"));
+        shown_as(s, format!("DAQmxReadDigitalLines({name})"));
         if data.is_null() || samples != 1 {
             return Err(error::INVALID_ATTRIBUTE_VALUE);
         }
@@ -318,16 +336,24 @@ pub unsafe extern "C" fn DAQmxCreateWatchdogTimerTaskEx(
     // SAFETY: per the contract.
     let (device, name) = unsafe { (text(device), shown(name)) };
     let dev = device.clone().unwrap_or_default();
-    call("DAQmxCreateWatchdogTimerTaskEx", format!("{dev}, {timeout}"), |s| {
-        if task.is_null() {
-            return Err(error::INVALID_ATTRIBUTE_VALUE);
-        }
-        let name = if name.is_empty() { "watchdog".to_owned() } else { name };
-        let h = s.daq()?.create_watchdog(&device?, &name, timeout)?;
-        // SAFETY: non-null, valid per the contract.
-        unsafe { put(task, h as TaskHandle) };
-        Ok(())
-    })
+    call(
+        "DAQmxCreateWatchdogTimerTaskEx",
+        format!("{dev}, {timeout}"),
+        |s| {
+            if task.is_null() {
+                return Err(error::INVALID_ATTRIBUTE_VALUE);
+            }
+            let name = if name.is_empty() {
+                "watchdog".to_owned()
+            } else {
+                name
+            };
+            let h = s.daq()?.create_watchdog(&device?, &name, timeout)?;
+            // SAFETY: non-null, valid per the contract.
+            unsafe { put(task, h as TaskHandle) };
+            Ok(())
+        },
+    )
 }
 
 /// `DAQmxCfgWatchdogDOExpirStates`, as `NIDAQmx.h` declares it.
@@ -350,9 +376,11 @@ pub unsafe extern "C" fn DAQmxCfgWatchdogDOExpirStates(
         unsafe { std::slice::from_raw_parts(states, n as usize) }.to_vec()
     };
     let shown = lines.clone().unwrap_or_default();
-    call("DAQmxCfgWatchdogDOExpirStates", format!("{shown}, {states:?}"), |s| {
-        s.daq()?.cfg_watchdog_do(handle(task), &lines?, &states)
-    })
+    call(
+        "DAQmxCfgWatchdogDOExpirStates",
+        format!("{shown}, {states:?}"),
+        |s| s.daq()?.cfg_watchdog_do(handle(task), &lines?, &states),
+    )
 }
 
 /// `DAQmxControlWatchdogTask`, as `NIDAQmx.h` declares it.
@@ -453,15 +481,23 @@ pub unsafe extern "C" fn DAQmxGetSysDevNames(buf: *mut c_char, size: c_uint) -> 
 /// # Safety
 /// `device` is NUL-terminated; `buf` is valid for writes of `size` bytes.
 #[unsafe(no_mangle)]
-pub unsafe extern "C" fn DAQmxGetDevProductType(device: *const c_char, buf: *mut c_char, size: c_uint) -> c_int {
+pub unsafe extern "C" fn DAQmxGetDevProductType(
+    device: *const c_char,
+    buf: *mut c_char,
+    size: c_uint,
+) -> c_int {
     // SAFETY: per the contract.
     let device = unsafe { text(device) };
-    call("DAQmxGetDevProductType", device.clone().unwrap_or_default(), |s| {
-        let d = s.daq()?;
-        d.check_device(&device?)?;
-        // SAFETY: per the contract.
-        unsafe { put_text(buf, size, &d.model) }
-    })
+    call(
+        "DAQmxGetDevProductType",
+        device.clone().unwrap_or_default(),
+        |s| {
+            let d = s.daq()?;
+            d.check_device(&device?)?;
+            // SAFETY: per the contract.
+            unsafe { put_text(buf, size, &d.model) }
+        },
+    )
 }
 
 /// `DAQmxGetDevSerialNum`, as `NIDAQmx.h` declares it.
@@ -512,7 +548,8 @@ pub unsafe extern "C" fn PERISCOPE_STANDIN_DaqFailNext(function: *const c_char, 
     // SAFETY: per the contract.
     let function = unsafe { text(function) };
     control("DaqFailNext", |s| {
-        s.daq_fail_next.push((function.map_err(|_| "null name".to_owned())?, code));
+        s.daq_fail_next
+            .push((function.map_err(|_| "null name".to_owned())?, code));
         Ok(0)
     })
 }

@@ -17,5 +17,5 @@ mod exports;
 mod model;
 
 pub use exports::*;
-pub(crate) use model::Daq;
 pub use model::DAQ_CONFIG_ENV;
+pub(crate) use model::Daq;

@@ -108,7 +108,13 @@ impl Daq {
         let lines = config.laser.daqmx.clone();
         if let Some(l) = &lines {
             names.push(l.laser_line.clone());
-            names.extend(l.interlock_line.iter().chain(&l.diffuser_line).chain(&l.heartbeat_line).cloned());
+            names.extend(
+                l.interlock_line
+                    .iter()
+                    .chain(&l.diffuser_line)
+                    .chain(&l.heartbeat_line)
+                    .cloned(),
+            );
             rig.gate_externally();
         }
         let device = names
@@ -173,37 +179,68 @@ impl Daq {
         self.present(device_of(name))?;
         let rest = &name[name.find('/').map_or(name.len(), |i| i + 1)..];
         let ok = if prefix == "ao" {
-            rest.strip_prefix("ao").is_some_and(|n| n.parse::<u8>().is_ok_and(|n| n < 4))
+            rest.strip_prefix("ao")
+                .is_some_and(|n| n.parse::<u8>().is_ok_and(|n| n < 4))
         } else {
             let mut p = rest.split('/');
-            p.next().and_then(|s| s.strip_prefix("port")).is_some_and(|n| n == "0")
+            p.next()
+                .and_then(|s| s.strip_prefix("port"))
+                .is_some_and(|n| n == "0")
                 && p.next()
                     .and_then(|s| s.strip_prefix("line"))
                     .is_some_and(|n| n.parse::<u8>().is_ok_and(|n| n < 32))
                 && p.next().is_none()
         };
-        if ok { Ok(name.to_owned()) } else { Err(error::PHYSICAL_CHAN_DOES_NOT_EXIST) }
+        if ok {
+            Ok(name.to_owned())
+        } else {
+            Err(error::PHYSICAL_CHAN_DOES_NOT_EXIST)
+        }
     }
 
     fn task(&mut self, handle: usize) -> Result<&mut Task, Code> {
         let vanished = self.vanished;
         let t = self.tasks.get_mut(&handle).ok_or(error::INVALID_TASK)?;
-        if vanished { Err(error::DEVICE_REMOVED) } else { Ok(t) }
+        if vanished {
+            Err(error::DEVICE_REMOVED)
+        } else {
+            Ok(t)
+        }
     }
 
     /// A task's name, for the record of calls.
     pub(crate) fn name(&self, handle: usize) -> String {
-        self.tasks.get(&handle).map_or_else(|| format!("{handle:#x}"), |t| t.name.clone())
+        self.tasks
+            .get(&handle)
+            .map_or_else(|| format!("{handle:#x}"), |t| t.name.clone())
     }
 
     pub(crate) fn create_task(&mut self, name: &str) -> Result<usize, Code> {
         let handle = NEXT_HANDLE.fetch_add(1, Ordering::Relaxed);
-        let name = if name.is_empty() { format!("task{handle:#x}") } else { name.to_owned() };
-        self.tasks.insert(handle, Task { name, kind: Kind::Do(Vec::new()), started: false });
+        let name = if name.is_empty() {
+            format!("task{handle:#x}")
+        } else {
+            name.to_owned()
+        };
+        self.tasks.insert(
+            handle,
+            Task {
+                name,
+                kind: Kind::Do(Vec::new()),
+                started: false,
+            },
+        );
         Ok(handle)
     }
 
-    pub(crate) fn create_ao(&mut self, handle: usize, channels: &str, min: f64, max: f64, units: i32) -> Result<(), Code> {
+    pub(crate) fn create_ao(
+        &mut self,
+        handle: usize,
+        channels: &str,
+        min: f64,
+        max: f64,
+        units: i32,
+    ) -> Result<(), Code> {
         if units != VAL_VOLTS {
             return Err(error::INVALID_ATTRIBUTE_VALUE);
         }
@@ -246,7 +283,14 @@ impl Daq {
         let laser = self.laser_line.clone();
         let t = self.task(handle)?;
         t.started = true;
-        if let Kind::Watchdog { clock, stop, thread, lines, .. } = &mut t.kind {
+        if let Kind::Watchdog {
+            clock,
+            stop,
+            thread,
+            lines,
+            ..
+        } = &mut t.kind
+        {
             if thread.is_some() {
                 return Ok(());
             }
@@ -255,9 +299,13 @@ impl Daq {
                 c.deadline = Instant::now() + c.timeout;
                 c.expired = false;
             }
-            let gates_laser = lines.iter().any(|(l, s)| Some(l) == laser.as_ref() && *s == VAL_LOW);
+            let gates_laser = lines
+                .iter()
+                .any(|(l, s)| Some(l) == laser.as_ref() && *s == VAL_LOW);
             let (clock, stop) = (clock.clone(), stop.clone());
-            *thread = Some(std::thread::spawn(move || count_down(&clock, &stop, gates_laser, &rig)));
+            *thread = Some(std::thread::spawn(move || {
+                count_down(&clock, &stop, gates_laser, &rig)
+            }));
         }
         Ok(())
     }
@@ -285,13 +333,20 @@ impl Daq {
     fn held_by_watchdog(&self, line: &str) -> bool {
         self.tasks.values().any(|t| match &t.kind {
             Kind::Watchdog { lines, clock, .. } => {
-                lines.iter().any(|(l, _)| l == line) && clock.lock().unwrap_or_else(|p| p.into_inner()).expired
+                lines.iter().any(|(l, _)| l == line)
+                    && clock.lock().unwrap_or_else(|p| p.into_inner()).expired
             }
             _ => false,
         })
     }
 
-    pub(crate) fn write_ao(&mut self, handle: usize, n: i32, auto_start: bool, volts: &[f64]) -> Result<(), Code> {
+    pub(crate) fn write_ao(
+        &mut self,
+        handle: usize,
+        n: i32,
+        auto_start: bool,
+        volts: &[f64],
+    ) -> Result<(), Code> {
         let t = self.task(handle)?;
         let Kind::Ao(channels) = &t.kind else {
             return Err(error::INVALID_TASK);
@@ -382,7 +437,11 @@ impl Daq {
         self.task(handle)?.kind = Kind::Watchdog {
             device: device.to_owned(),
             lines: Vec::new(),
-            clock: Arc::new(Mutex::new(WatchdogClock { timeout, deadline: Instant::now() + timeout, expired: false })),
+            clock: Arc::new(Mutex::new(WatchdogClock {
+                timeout,
+                deadline: Instant::now() + timeout,
+                expired: false,
+            })),
             stop: Arc::new(AtomicBool::new(false)),
             thread: None,
         };
@@ -438,13 +497,23 @@ pub(crate) fn error_name(code: Code) -> Option<&'static str> {
         error::DEVICE_REMOVED => "DAQmxErrorDeviceRemoved: the device has been removed from the system",
         error::INVALID_DEVICE_ID => "DAQmxErrorInvalidDeviceID: device identifier is invalid",
         error::INVALID_TASK => "DAQmxErrorInvalidTask: task specified is invalid or does not exist",
-        error::INVALID_ATTRIBUTE_VALUE => "DAQmxErrorInvalidAttributeValue: requested value is not a supported value",
+        error::INVALID_ATTRIBUTE_VALUE => {
+            "DAQmxErrorInvalidAttributeValue: requested value is not a supported value"
+        }
         error::MIN_NOT_LESS_THAN_MAX => "DAQmxErrorMinNotLessThanMax: minimum is not less than maximum",
-        error::PHYSICAL_CHAN_DOES_NOT_EXIST => "DAQmxErrorPhysicalChanDoesNotExist: physical channel does not exist",
-        error::SAMPLE_VALUE_OUT_OF_RANGE => "DAQmxErrorSampleValueOutOfRange: sample value is outside the channel's range",
-        error::RESOURCE_ALREADY_RESERVED => "DAQmxErrorResourceAlreadyReserved: the resource is reserved by another task",
+        error::PHYSICAL_CHAN_DOES_NOT_EXIST => {
+            "DAQmxErrorPhysicalChanDoesNotExist: physical channel does not exist"
+        }
+        error::SAMPLE_VALUE_OUT_OF_RANGE => {
+            "DAQmxErrorSampleValueOutOfRange: sample value is outside the channel's range"
+        }
+        error::RESOURCE_ALREADY_RESERVED => {
+            "DAQmxErrorResourceAlreadyReserved: the resource is reserved by another task"
+        }
         error::OPERATION_TIMED_OUT => "DAQmxErrorOperationTimedOut: the operation timed out",
-        error::WATCHDOG_TIMER_NOT_SUPPORTED => "DAQmxErrorWatchdogTimerNotSupported: the device does not support a watchdog timer",
+        error::WATCHDOG_TIMER_NOT_SUPPORTED => {
+            "DAQmxErrorWatchdogTimerNotSupported: the device does not support a watchdog timer"
+        }
         error::WRITE_FAILED_BECAUSE_WATCHDOG_EXPIRED => {
             "DAQmxErrorWriteFailedBecauseWatchdogExpired: the watchdog timer expired; clear the expiration first"
         }
