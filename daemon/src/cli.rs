@@ -386,6 +386,13 @@ fn devices(config: &InstrumentConfig) -> Result<(), CliError> {
             println!("  {line}");
         }
     }
+    let daq = crate::devices::daqmx::survey(config);
+    if !daq.is_empty() {
+        println!("NI-DAQmx (galvo.<arm>.channels and the laser's lines name its devices):");
+        for line in daq {
+            println!("  {line}");
+        }
+    }
     println!("Instrument: {}", config.summary());
     let mut devices = crate::devices::Devices::open_config(config)?;
     let r = devices.report()?;

@@ -47,10 +47,14 @@ fn nothing_past_the_device_boundary_names_a_driver_or_the_simulator() {
         "periscope_drivers::galvo",
         "periscope_drivers::tdc",
         "periscope_drivers::picoquant",
+        "periscope_drivers::daqmx",
         "SerialGalvo",
         "UsbTdc",
         "PicoQuantTdc",
         "PicoQuantError",
+        "DaqGalvo",
+        "DaqLaser",
+        "DaqError",
         "GalvoError",
         "TdcError",
         "InProcessGalvo",
@@ -108,7 +112,9 @@ fn every_laser_driver_uses_the_one_guard() {
         }
     }
     assert!(
-        drivers.contains_key("SerialGalvo") && drivers.contains_key("InProcessGalvo"),
+        drivers.contains_key("SerialGalvo")
+            && drivers.contains_key("InProcessGalvo")
+            && drivers.contains_key("DaqLaser"),
         "laser drivers found: {:?}",
         drivers.keys().collect::<Vec<_>>()
     );

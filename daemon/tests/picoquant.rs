@@ -1,6 +1,6 @@
 //! A whole run on a PicoQuant counter, through the real FFI path: the daemon's
 //! hardware backend opens the serial galvo driver on the stand-in's pseudo-terminals
-//! and the MultiHarp driver on the stand-in library (`standins/picoquant`), by the
+//! and the MultiHarp driver on the stand-in library (`standins`), by the
 //! paths in an ordinary lab config; one simulated rig answers both, as one bench does.
 //!
 //! The capture completes with the relay found and every pair stored; then the stop
@@ -20,7 +20,7 @@ use periscope_daemon::run_dir::{RunInfo, RunState};
 use periscope_daemon::store::read_log;
 use periscope_drivers::EmergencyOff;
 use periscope_drivers::picoquant::Family;
-use periscope_standin_picoquant::client::{Standin, exclusive};
+use periscope_standins::client::{Standin, exclusive};
 
 /// The bound on how long emission may outlast a pause, abort or e-stop.
 const EMISSION_BOUND: Duration = Duration::from_millis(50);
@@ -350,7 +350,7 @@ fn devices(dir: &Path, library: &Path) -> (String, bool) {
     let out = std::process::Command::new(env!("CARGO_BIN_EXE_periscope"))
         .args(["devices", "--instrument"])
         .arg(&lab)
-        .env(periscope_standin_picoquant::CONFIG_ENV, &rig)
+        .env(periscope_standins::CONFIG_ENV, &rig)
         .env("RUST_LOG", "warn")
         .output()
         .unwrap();
@@ -363,7 +363,7 @@ fn devices(dir: &Path, library: &Path) -> (String, bool) {
 #[test]
 fn periscope_devices_lists_the_counters_or_says_the_library_is_missing() {
     let tmp = tempfile::tempdir().unwrap();
-    let library = periscope_standin_picoquant::client::library_path();
+    let library = periscope_standins::client::library_path();
     let (out, _) = devices(tmp.path(), &library);
     assert!(
         out.contains(&format!("MHLib 3.1 at {}: 1 MultiHarp found", library.display())),

@@ -1,6 +1,6 @@
 //! Hardware side of Periscope: the traits the daemon drives ([`traits`]), the real
 //! drivers behind them (a serial galvo controller in [`galvo`], a USB histogrammer in
-//! [`tdc`], PicoQuant's counters through their vendor library in [`picoquant`]), their wire protocols (shared with the simulated devices), and the pieces of the instrument model that the driver side and the simulated
+//! [`tdc`], galvo pairs and the laser on an NI DAQ device through NI-DAQmx in [`daqmx`], PicoQuant's counters through their vendor library in [`picoquant`]), their wire protocols (shared with the simulated devices), and the pieces of the instrument model that the driver side and the simulated
 //! devices must share exactly (the galvo calibration model, device selectors).
 //!
 //! The calibration model lives here rather than in `sim` because both directions of it
@@ -10,6 +10,7 @@
 //! real one does.
 #![warn(missing_docs)]
 
+pub mod daqmx;
 pub mod error;
 pub mod galvo;
 pub mod geometry;

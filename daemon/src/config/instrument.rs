@@ -8,10 +8,12 @@ use std::path::{Path, PathBuf};
 use std::time::Duration;
 
 use glam::DVec3;
+use periscope_drivers::daqmx::{AoGalvoSettings, DaqLaserSettings};
 use periscope_drivers::picoquant::{Family, Trigger};
 use periscope_drivers::{AngleLimits, GalvoPose, UsbSelector};
 use serde::Deserialize;
 
+use super::daqmx::{self, RawDaqGalvo, RawDaqLaser, RawGalvoDriver};
 use super::{ConfigError, TomlSource};
 
 /// Which implementation drives the instrument.
@@ -170,8 +172,28 @@ pub struct GalvoArm {
     pub limits: AngleLimits,
     /// Time to wait after a move before the position counts as settled.
     pub settle: Duration,
-    /// The serial link to its controller (required for the hardware back-end).
-    pub serial: Option<SerialLink>,
+    /// What drives it (required for the hardware back-end; a simulated instrument
+    /// without one uses the simulator's pseudo-terminal or in-process devices).
+    pub link: Option<GalvoLink>,
+}
+
+/// What drives a galvo pair (`galvo.<arm>.driver`).
+#[derive(Clone, Debug, PartialEq)]
+pub enum GalvoLink {
+    /// A galvo controller on a serial port (`"serial"`, the default).
+    Serial(SerialLink),
+    /// Two analog outputs of an NI DAQ device through NI-DAQmx (`"daqmx"`).
+    Daqmx(AoGalvoSettings),
+}
+
+impl GalvoArm {
+    /// The serial link, if the pair is on one.
+    pub fn serial(&self) -> Option<&SerialLink> {
+        match &self.link {
+            Some(GalvoLink::Serial(s)) => Some(s),
+            _ => None,
+        }
+    }
 }
 
 /// A serial link to a galvo controller.
@@ -200,6 +222,9 @@ pub struct LaserSettings {
     /// How long a run may show no progress (no checkpoint, no stop poll) with the
     /// laser on before the keepalive stops feeding the watchdog.
     pub stall: Duration,
+    /// The laser's digital lines on a DAQ device; set exactly when the laser arm is
+    /// on one (`galvo.laser.driver = "daqmx"`), whose library it shares.
+    pub daqmx: Option<DaqLaserSettings>,
 }
 
 /// The single-photon avalanche diode.
@@ -476,6 +501,13 @@ struct RawGalvo {
     #[serde(default)]
     settle_us: f64,
     serial: Option<RawSerial>,
+    #[serde(default)]
+    driver: RawGalvoDriver,
+    channels: Option<[String; 2]>,
+    volts_per_deg: Option<[f64; 2]>,
+    offsets_v: Option<[f64; 2]>,
+    max_slew_deg_per_ms: Option<f64>,
+    library: Option<PathBuf>,
 }
 
 fn default_up() -> [f64; 3] {
@@ -519,6 +551,12 @@ struct RawLaser {
     watchdog_ms: f64,
     #[serde(default = "default_stall_ms")]
     stall_ms: f64,
+    laser_line: Option<String>,
+    interlock_line: Option<String>,
+    diffuser_line: Option<String>,
+    heartbeat_line: Option<String>,
+    daq_watchdog: Option<bool>,
+    accept_no_watchdog: Option<bool>,
 }
 
 fn default_stall_ms() -> f64 {
@@ -867,6 +905,14 @@ impl InstrumentConfig {
         let hardware = raw.backend == RawBackend::Hardware;
         let laser_arm = galvo_arm(&check, "galvo.laser", raw.galvo.laser, hardware)?;
         let spad_arm = galvo_arm(&check, "galvo.spad", raw.galvo.spad, hardware)?;
+        let raw_daq_laser = RawDaqLaser {
+            laser_line: raw.laser.laser_line.clone(),
+            interlock_line: raw.laser.interlock_line.clone(),
+            diffuser_line: raw.laser.diffuser_line.clone(),
+            heartbeat_line: raw.laser.heartbeat_line.clone(),
+            daq_watchdog: raw.laser.daq_watchdog,
+            accept_no_watchdog: raw.laser.accept_no_watchdog,
+        };
         let laser = LaserSettings {
             wavelength: check.range(
                 "laser.wavelength-nm",
@@ -898,6 +944,27 @@ impl InstrumentConfig {
                 )?;
                 Duration::from_millis(ms.round() as u64)
             },
+            daqmx: None,
+        };
+        let laser = LaserSettings {
+            daqmx: match &laser_arm.link {
+                Some(GalvoLink::Daqmx(arm)) => Some(daqmx::laser(
+                    src,
+                    raw_daq_laser,
+                    arm.library.clone(),
+                    laser.watchdog,
+                )?),
+                _ => {
+                    daqmx::refuse_keys(
+                        src,
+                        "laser",
+                        &raw_daq_laser.given(),
+                        "is a laser line on a DAQ device, read only with galvo.laser.driver = \"daqmx\": remove it (with a serial controller the laser is on the controller)",
+                    )?;
+                    None
+                }
+            },
+            ..laser
         };
         let spad = SpadSettings {
             efficiency: check.positive("spad.efficiency", raw.spad.efficiency, 1.0, "(a fraction)")?,
@@ -987,39 +1054,76 @@ fn galvo_arm(check: &Check<'_>, key: &str, raw: RawGalvo, hardware: bool) -> Res
         limits[axis] = [lo.to_radians(), hi.to_radians()];
     }
     let settle_us = check.range(&format!("{key}.settle-us"), raw.settle_us, 0.0, 1e6, "µs")?;
-    let serial = raw
-        .serial
-        .map(|s| {
-            if s.port.trim().is_empty() {
+    let settle = Duration::from_secs_f64(settle_us * 1e-6);
+    let limits = AngleLimits {
+        x: limits[0],
+        y: limits[1],
+    };
+    let raw_daq = RawDaqGalvo {
+        channels: raw.channels,
+        volts_per_deg: raw.volts_per_deg,
+        offsets_v: raw.offsets_v,
+        max_slew_deg_per_ms: raw.max_slew_deg_per_ms,
+        library: raw.library,
+    };
+    let link = match raw.driver {
+        RawGalvoDriver::Daqmx => {
+            if raw.serial.is_some() {
                 return Err(src.invalid(
-                    &format!("{key}.serial.port"),
-                    "must name a serial device, e.g. /dev/ttyUSB0",
+                    &format!("{key}.serial"),
+                    "names a serial controller, but driver = \"daqmx\" drives this pair from a DAQ's analog outputs: remove it",
                 ));
             }
-            if !(1..=60_000).contains(&s.timeout_ms) {
-                return Err(src.invalid(&format!("{key}.serial.timeout-ms"), "must be 1 to 60,000 ms"));
+            if !hardware {
+                return Err(src.invalid(
+                    &format!("{key}.driver"),
+                    "the DAQmx driver needs backend = \"hardware\": the simulated instrument has its own galvos \
+                     (to run the driver against the simulator, see `standins` in docs/drivers.md)",
+                ));
             }
-            Ok(SerialLink {
-                port: s.port,
-                baud: s.baud,
-                timeout: Duration::from_millis(s.timeout_ms),
-            })
-        })
-        .transpose()?;
-    if hardware && serial.is_none() {
+            let name = key.rsplit('.').next().unwrap_or(key);
+            Some(GalvoLink::Daqmx(daqmx::galvo(
+                src, key, name, raw_daq, limits, settle,
+            )?))
+        }
+        RawGalvoDriver::Serial => {
+            daqmx::refuse_galvo_keys(src, key, &raw_daq)?;
+            raw.serial
+                .map(|s| {
+                    if s.port.trim().is_empty() {
+                        return Err(src.invalid(
+                            &format!("{key}.serial.port"),
+                            "must name a serial device, e.g. /dev/ttyUSB0",
+                        ));
+                    }
+                    if !(1..=60_000).contains(&s.timeout_ms) {
+                        return Err(
+                            src.invalid(&format!("{key}.serial.timeout-ms"), "must be 1 to 60,000 ms")
+                        );
+                    }
+                    Ok(GalvoLink::Serial(SerialLink {
+                        port: s.port,
+                        baud: s.baud,
+                        timeout: Duration::from_millis(s.timeout_ms),
+                    }))
+                })
+                .transpose()?
+        }
+    };
+    if hardware && link.is_none() {
         return Err(src.invalid(
             key,
-            format!("backend = \"hardware\" needs a [{key}.serial] table with the controller's `port`"),
+            format!(
+                "backend = \"hardware\" needs a [{key}.serial] table with the controller's `port`, \
+                 or driver = \"daqmx\" with the pair's analog output channels"
+            ),
         ));
     }
     Ok(GalvoArm {
         pose,
-        limits: AngleLimits {
-            x: limits[0],
-            y: limits[1],
-        },
-        settle: Duration::from_secs_f64(settle_us * 1e-6),
-        serial,
+        limits,
+        settle,
+        link,
     })
 }
 
@@ -1097,7 +1201,7 @@ fn tdc_driver(check: &Check<'_>, raw: &RawTdc, hardware: bool) -> Result<TdcDriv
             "tdc.driver",
             format!(
                 "the {family} driver needs backend = \"hardware\": the simulated instrument has its own histogrammer \
-                 (to run the driver against the simulator, see `standins/picoquant` in docs/drivers.md)"
+                 (to run the driver against the simulator, see `standins` in docs/drivers.md)"
             ),
         ));
     }
@@ -1253,7 +1357,7 @@ mod tests {
         assert!(matches!(sim.backend, Backend::Sim(_)));
         let lab = load(LAB).unwrap();
         assert_eq!(lab.backend, Backend::Hardware);
-        assert!(lab.tdc.usb.is_some() && lab.laser_arm.serial.is_some());
+        assert!(lab.tdc.usb.is_some() && lab.laser_arm.serial().is_some());
     }
 
     #[test]
@@ -1388,5 +1492,81 @@ mod tests {
         let text = SIM.replacen("x = [-20.0, 20.0]", "x = [20.0, -20.0]", 1);
         let err = load(&text).unwrap_err();
         assert_eq!(err.key(), Some("galvo.laser.angle-limits-deg.x"), "{err}");
+    }
+
+    /// The lab example with its laser arm (and the laser) on a DAQ: `galvo` replaces
+    /// the laser arm's serial line, `laser` is added to `[laser]`.
+    fn daq_lab(galvo: &str, laser: &str) -> String {
+        let serial = "serial = { port = \"/dev/ttyUSB0\", baud = 115200, timeout-ms = 200 }\n";
+        LAB.replacen(serial, galvo, 1).replacen(
+            "rep-rate-mhz = 10.0\n",
+            &format!("rep-rate-mhz = 10.0\n{laser}"),
+            1,
+        )
+    }
+
+    const DAQ_GALVO: &str = "driver = \"daqmx\"\nchannels = [\"Dev1/ao0\", \"Dev1/ao1\"]\n\
+                             volts-per-deg = [0.4, 0.4]\nmax-slew-deg-per-ms = 2.0\n";
+
+    #[test]
+    fn daqmx_galvos_and_laser_lines_load_and_errors_name_their_key() {
+        let c = load(&daq_lab(DAQ_GALVO, "laser-line = \"Dev1/port0/line0\"\n")).unwrap();
+        let Some(GalvoLink::Daqmx(arm)) = &c.laser_arm.link else {
+            panic!("{:?}", c.laser_arm.link)
+        };
+        assert_eq!(arm.channels, ["Dev1/ao0".to_owned(), "Dev1/ao1".to_owned()]);
+        assert_eq!(arm.offsets_v, [0.0, 0.0]);
+        assert_eq!(
+            arm.library,
+            PathBuf::from(periscope_drivers::daqmx::DEFAULT_LIBRARY)
+        );
+        let l = c.laser.daqmx.as_ref().unwrap();
+        assert!(l.hardware_watchdog && l.interlock_line.is_none() && !l.accept_no_watchdog);
+        assert!(c.spad_arm.serial().is_some() && c.laser_arm.serial().is_none());
+
+        let err = |galvo: &str, laser: &str| load(&daq_lab(galvo, laser)).unwrap_err();
+        let e = err(DAQ_GALVO, "");
+        assert_eq!(e.key(), Some("laser"), "{e}");
+        assert!(e.to_string().contains("laser-line"), "{e}");
+        let e = err(
+            &DAQ_GALVO.replace("0.4, 0.4", "0.6, 0.4"),
+            "laser-line = \"Dev1/port0/line0\"\n",
+        );
+        assert_eq!(e.key(), Some("galvo.laser.volts-per-deg"), "{e}");
+        assert!(e.line().is_some() && e.to_string().contains("±10 V"), "{e}");
+        let e = err(
+            &DAQ_GALVO.replace("\"Dev1/ao1\"", "\"Dev1/ao0\""),
+            "laser-line = \"Dev1/port0/line0\"\n",
+        );
+        assert_eq!(e.key(), Some("galvo.laser.channels"), "{e}");
+        let e = err(
+            &DAQ_GALVO.replace("max-slew-deg-per-ms = 2.0\n", ""),
+            "laser-line = \"Dev1/port0/line0\"\n",
+        );
+        assert!(e.to_string().contains("max-slew-deg-per-ms"), "{e}");
+        let e = err(
+            DAQ_GALVO,
+            "laser-line = \"Dev1/port0/line0\"\ndaq-watchdog = false\n",
+        );
+        assert_eq!(e.key(), Some("laser.daq-watchdog"), "{e}");
+        let e = err(
+            DAQ_GALVO,
+            "laser-line = \"Dev1/port0/line0\"\ndiffuser-line = \"Dev1/port0/line0\"\n",
+        );
+        assert_eq!(e.key(), Some("laser.diffuser-line"), "{e}");
+        // DAQmx keys without the DAQmx driver are refused, not ignored.
+        let serial = "serial = { port = \"/dev/ttyUSB0\", baud = 115200, timeout-ms = 200 }\n";
+        let e = err(serial, "laser-line = \"Dev1/port0/line0\"\n");
+        assert_eq!(e.key(), Some("laser.laser-line"), "{e}");
+        let e = err(&format!("{serial}channels = [\"Dev1/ao0\", \"Dev1/ao1\"]\n"), "");
+        assert_eq!(e.key(), Some("galvo.laser.channels"), "{e}");
+        // And only on the hardware backend.
+        let e = load(&SIM.replacen(
+            "settle-us = 300.0\n",
+            &format!("settle-us = 300.0\n{DAQ_GALVO}"),
+            1,
+        ))
+        .unwrap_err();
+        assert_eq!(e.key(), Some("galvo.laser.driver"), "{e}");
     }
 }

@@ -4,13 +4,15 @@
 //! TOML exactly (`deny_unknown_fields`, kebab-case keys), then a validated type that
 //! cannot hold an invalid value. Both stages report problems through [`ConfigError`],
 //! which names the file, the line and the dotted key, and says what to do.
+mod daqmx;
 mod instrument;
 mod scene;
 mod source;
 
 pub use instrument::{
-    ApiSettings, Backend, BudgetLimits, GalvoArm, InstrumentConfig, LaserSettings, PicoQuantCounter,
-    SerialLink, SimDevices, SimSettings, SpadSettings, TdcDriver, TdcSettings, redact_secrets,
+    ApiSettings, Backend, BudgetLimits, GalvoArm, GalvoLink, InstrumentConfig, LaserSettings,
+    PicoQuantCounter, SerialLink, SimDevices, SimSettings, SpadSettings, TdcDriver, TdcSettings,
+    redact_secrets,
 };
 pub use scene::{DEFAULT_SCENE, load_scene, scene_from_source, sim_scene};
 pub use source::{ConfigError, MAX_TOML_BYTES, TomlSource};

@@ -1,4 +1,6 @@
-//! The lab backend: the serial galvo driver on the ports the config names, and the
+//! The lab backend: each galvo pair on what its `driver` names (the serial galvo
+//! driver on the configured port, or two analog outputs of an NI DAQ device through
+//! NI-DAQmx, `daqmx.rs`, with the laser's lines on the same device), and the
 //! histogrammer `tdc.driver` picks: the USB histogrammer driver over libusb, or a
 //! PicoQuant counter through its vendor library (`picoquant.rs`). The simulated backend reuses the pieces here
 //! that build these drivers, so that it runs the very drivers the lab runs.
@@ -9,7 +11,7 @@ use periscope_drivers::tdc::{RusbTransport, UsbTdc, UsbTransport};
 use periscope_drivers::{DeviceError, Erased, GalvoBox, GalvoPair, HistogrammerBox, Laser, Shared};
 
 use super::{DeviceBackend, LaserArm, OpenError};
-use crate::config::{GalvoArm, InstrumentConfig, TdcDriver};
+use crate::config::{GalvoArm, GalvoLink, InstrumentConfig, TdcDriver};
 
 /// Reply timeout of a controller link with no `serial` table of its own (the
 /// simulator's pseudo-terminals).
@@ -63,10 +65,16 @@ impl DeviceBackend for HardwareBackend {
     }
 
     fn laser_arm(&self) -> Result<LaserArm, OpenError> {
+        if let Some(GalvoLink::Daqmx(arm)) = &self.config.laser_arm.link {
+            return super::daqmx::laser_arm(&self.config, arm);
+        }
         Ok(laser_arm(serial_galvo(&self.config, Role::Laser, None)?))
     }
 
     fn spad_arm(&self) -> Result<GalvoBox, OpenError> {
+        if let Some(GalvoLink::Daqmx(arm)) = &self.config.spad_arm.link {
+            return super::daqmx::galvo(arm);
+        }
         Ok(Erased::galvo(serial_galvo(&self.config, Role::Spad, None)?))
     }
 
@@ -109,7 +117,7 @@ pub(super) fn serial_galvo(
     fallback: Option<Box<dyn Connector>>,
 ) -> Result<SerialGalvo, OpenError> {
     let (name, arm, watchdog) = role.of(config);
-    let connector: Box<dyn Connector> = match (&arm.serial, fallback) {
+    let connector: Box<dyn Connector> = match (arm.serial(), fallback) {
         (Some(link), _) => Box::new(PortConnector {
             path: link.port.clone(),
             baud: link.baud,
@@ -121,7 +129,7 @@ pub(super) fn serial_galvo(
             )));
         }
     };
-    let timeout = arm.serial.as_ref().map_or(DEFAULT_TIMEOUT, |l| l.timeout);
+    let timeout = arm.serial().map_or(DEFAULT_TIMEOUT, |l| l.timeout);
     Ok(SerialGalvo::new(
         SerialGalvoSettings {
             name: name.into(),

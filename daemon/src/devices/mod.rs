@@ -5,7 +5,7 @@
 //!
 //! | config | backend | galvo pairs and laser | histogrammer |
 //! |---|---|---|---|
-//! | `backend = "hardware"` | [`hardware::HardwareBackend`] | serial driver on the configured ports | USB driver over libusb, or a PicoQuant counter through its library (`tdc.driver`, [`picoquant`]) |
+//! | `backend = "hardware"` | [`hardware::HardwareBackend`] | serial driver on the configured ports, or a DAQ device's analog outputs and digital lines through NI-DAQmx (`galvo.<arm>.driver = "daqmx"`, [`daqmx`]) | USB driver over libusb, or a PicoQuant counter through its library (`tdc.driver`, [`picoquant`]) |
 //! | `backend = "sim"` (`sim.devices = "wire"`) | [`sim::SimBackend`] | serial driver on the simulator's pseudo-terminals | USB driver over the simulator's transport |
 //! | `backend = "sim"`, `sim.devices = "in-process"` | [`sim::SimBackend`] | the simulator's controller model, no wire | the simulator's histogrammer, no wire |
 //!
@@ -23,6 +23,7 @@ use serde::Serialize;
 
 use crate::config::{Backend, ConfigError, InstrumentConfig};
 
+pub mod daqmx;
 pub mod hardware;
 pub mod picoquant;
 pub mod sim;

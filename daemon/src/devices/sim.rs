@@ -88,7 +88,7 @@ impl SimBackend {
     /// no `serial` table of its own (an arm with one talks to that port: a real
     /// controller, or one simulated in another process).
     fn in_process_arm(&self, role: Role) -> bool {
-        self.in_process && role.arm(&self.config).serial.is_none()
+        self.in_process && role.arm(&self.config).link.is_none()
     }
 }
 

@@ -9,7 +9,7 @@
 //! [`Histogrammer`](crate::Histogrammer) over all of it.
 //!
 //! Verified against the published API only, through the workspace's stand-in library
-//! (`standins/picoquant`), which exports the same C functions; not yet on a counter.
+//! (`standins`), which exports the same C functions; not yet on a counter.
 pub mod defin;
 mod driver;
 mod error;

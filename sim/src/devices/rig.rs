@@ -179,6 +179,9 @@ pub(crate) struct RigState {
     pub tdc_refused_reopens: u32,
     /// Unplugged now (not at the next acquisition): every transfer fails.
     pub tdc_unplugged: bool,
+    /// The laser is gated by a line from outside (a DAQ's digital output): the
+    /// controller's own watchdog plays no part ([`Rig::gate_externally`]).
+    pub external_gate: bool,
 }
 
 /// Emission changes remembered for [`Rig::emission_changes`].
@@ -207,6 +210,9 @@ impl RigState {
     /// look at the state is exactly equivalent to a timer interrupt in the firmware,
     /// since nothing can observe emission in between.
     fn expire_watchdog(&mut self, now: Instant) {
+        if self.external_gate {
+            return;
+        }
         let due = self.watchdog.last_heard + self.watchdog.timeout;
         let seen = self.watchdog.quiet_until.map_or(now, |q| q.min(now));
         if self.emission && seen >= due {
@@ -384,6 +390,7 @@ impl Rig {
             tdc_faults: VecDeque::new(),
             tdc_refused_reopens: 0,
             tdc_unplugged: false,
+            external_gate: false,
         };
         Rig {
             shared: Arc::new(Shared {
@@ -426,6 +433,48 @@ impl Rig {
         if !closed {
             s.set_emission(false, EmissionCause::Interlock, Instant::now());
         }
+    }
+
+    /// From now on the laser is gated by a line driven from outside the galvo
+    /// controllers (a DAQ device's digital output, in the DAQmx stand-in): the serial
+    /// controller's watchdog no longer switches it off; whatever drives the gate
+    /// (and that driver's own watchdog) does, through [`Rig::gate_laser`].
+    pub fn gate_externally(&self) {
+        self.shared.lock().external_gate = true;
+    }
+
+    /// Drives the laser's gate input: emission follows it while the interlock is
+    /// closed (a gate high with the loop open leaves the laser off). `cause` is what
+    /// the emission log records (the host's write, a watchdog's expiry, a power loss).
+    pub fn gate_laser(&self, high: bool, cause: EmissionCause) {
+        let mut s = self.shared.lock();
+        let on = high && s.interlock_closed;
+        s.set_emission(on, cause, Instant::now());
+    }
+
+    /// Whether the interlock loop is closed (what a line reading it sees).
+    pub fn interlock_closed(&self) -> bool {
+        self.shared.lock().interlock_closed
+    }
+
+    /// Puts the LOS diffuser in or takes it out (a digital line driving its actuator).
+    pub fn drive_diffuser(&self, inserted: bool) {
+        self.shared.set_diffuser(inserted);
+    }
+
+    /// Drives an arm's mirrors straight to `target` (analog inputs: the servo follows
+    /// the voltage; nothing refuses it), settling after the arm's settle time; `park`
+    /// marks the park position. Returns whether `target` lay within the firmware's
+    /// hard limits, which an analog servo does not enforce.
+    pub fn drive_galvo(&self, arm: Arm, target: OpticalAngles, park: bool) -> bool {
+        let within = self.shared.settings.limits[arm.index()].contains(target);
+        let settle = self.shared.scaled(self.shared.settings.settle[arm.index()]);
+        let mut s = self.shared.lock();
+        let a = &mut s.arms[arm.index()];
+        a.target = target;
+        a.parked = park;
+        a.settled_at = Instant::now() + settle;
+        within
     }
 
     /// How many times a host has connected to either galvo controller (each `open` of

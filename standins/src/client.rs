@@ -17,7 +17,7 @@ use periscope_drivers::picoquant::Family;
 use crate::control::StandinEmission;
 
 /// The library's file name.
-pub const FILE: &str = "libperiscope_standin_picoquant.so";
+pub const FILE: &str = "libperiscope_standins.so";
 
 /// Where the stand-in was built: beside the test executable's folder
 /// (`target/<profile>/deps/`, where Cargo puts a dependency's shared library) or one
@@ -35,7 +35,7 @@ pub fn library_path() -> PathBuf {
         .cloned()
         .unwrap_or_else(|| {
             panic!(
-                "{FILE} not found in {} or its parent: list periscope-standin-picoquant under the test \
+                "{FILE} not found in {} or its parent: list periscope-standins under the test \
                  crate's [dev-dependencies] so Cargo builds it, or set PERISCOPE_STANDIN_LIB",
                 deps.display()
             )
@@ -208,5 +208,63 @@ impl Standin {
         let r = f();
         Self::ok("Parked", r);
         (r & 1 != 0, r & 2 != 0)
+    }
+
+    /// `PERISCOPE_STANDIN_SetInterlock`.
+    pub fn set_interlock(&self, closed: bool) {
+        let f: extern "C" fn(c_int) -> c_int = self.get("PERISCOPE_STANDIN_SetInterlock");
+        Self::ok("SetInterlock", f(c_int::from(closed)));
+    }
+
+    /// `PERISCOPE_STANDIN_DaqSetup`: the simulated DAQ device wired as the hardware
+    /// config at `config` says.
+    pub fn daq_setup(&self, config: &Path) {
+        let f: unsafe extern "C" fn(*const c_char) -> c_int = self.get("PERISCOPE_STANDIN_DaqSetup");
+        let c = cstr(&config.to_string_lossy());
+        // SAFETY: a NUL-terminated string.
+        Self::ok("DaqSetup", unsafe { f(c.as_ptr()) });
+    }
+
+    /// `PERISCOPE_STANDIN_DaqFailNext`: the next call of the DAQmx function `function`
+    /// returns `code`.
+    pub fn daq_fail_next(&self, function: &str, code: i32) {
+        let f: unsafe extern "C" fn(*const c_char, c_int) -> c_int =
+            self.get("PERISCOPE_STANDIN_DaqFailNext");
+        let s = cstr(function);
+        // SAFETY: a NUL-terminated string.
+        Self::ok("DaqFailNext", unsafe { f(s.as_ptr(), code) });
+    }
+
+    /// `PERISCOPE_STANDIN_DaqVanish`.
+    pub fn daq_vanish(&self) {
+        let f: extern "C" fn() -> c_int = self.get("PERISCOPE_STANDIN_DaqVanish");
+        Self::ok("DaqVanish", f());
+    }
+
+    /// `PERISCOPE_STANDIN_DaqWatchdogSupported`.
+    pub fn daq_watchdog_supported(&self, supported: bool) {
+        let f: extern "C" fn(c_int) -> c_int = self.get("PERISCOPE_STANDIN_DaqWatchdogSupported");
+        Self::ok("DaqWatchdogSupported", f(c_int::from(supported)));
+    }
+
+    /// `PERISCOPE_STANDIN_DaqCounters`: (writes that overdrove an arm, heartbeat
+    /// line changes).
+    pub fn daq_counters(&self) -> (u32, u32) {
+        let f: unsafe extern "C" fn(*mut c_uint) -> c_int = self.get("PERISCOPE_STANDIN_DaqCounters");
+        let mut over: c_uint = 0;
+        // SAFETY: a pointer to a live local.
+        let beats = unsafe { f(&mut over) };
+        Self::ok("DaqCounters", beats);
+        (over, beats as u32)
+    }
+
+    /// `PERISCOPE_STANDIN_Pointing`: where the rig's arms point, optical degrees
+    /// ((laser x, y), (SPAD x, y)).
+    pub fn pointing(&self) -> ((f64, f64), (f64, f64)) {
+        let f: unsafe extern "C" fn(*mut f64) -> c_int = self.get("PERISCOPE_STANDIN_Pointing");
+        let mut out = [0.0f64; 4];
+        // SAFETY: four doubles.
+        Self::ok("Pointing", unsafe { f(out.as_mut_ptr()) });
+        ((out[0], out[1]), (out[2], out[3]))
     }
 }

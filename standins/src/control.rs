@@ -25,7 +25,7 @@ pub struct StandinEmission {
 }
 
 /// Runs `f` on the state; a failure or a panic is printed and becomes -1.
-fn control(what: &str, f: impl FnOnce(&mut State) -> Result<c_int, String>) -> c_int {
+pub(crate) fn control(what: &str, f: impl FnOnce(&mut State) -> Result<c_int, String>) -> c_int {
     let r = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
         let mut guard = lock();
         f(guard.as_mut().expect("created by lock"))
@@ -267,5 +267,35 @@ pub extern "C" fn PERISCOPE_STANDIN_Parked() -> c_int {
         let bench = s.bench.as_ref().ok_or("set the stand-in up first")?;
         let (l, p) = bench.backend.rig().parked();
         Ok(c_int::from(l) | (c_int::from(p) << 1))
+    })
+}
+
+/// Opens (0) or closes (1) the rig's interlock loop; opening it stops emission.
+#[unsafe(no_mangle)]
+pub extern "C" fn PERISCOPE_STANDIN_SetInterlock(closed: c_int) -> c_int {
+    control("SetInterlock", |s| {
+        let bench = s.bench.as_ref().ok_or("set the stand-in up first")?;
+        bench.backend.rig().set_interlock(closed != 0);
+        Ok(0)
+    })
+}
+
+/// Where the rig's arms point, optical degrees: laser x, y, SPAD x, y into `out`.
+///
+/// # Safety
+/// `out` is valid for writes of 4 doubles.
+#[unsafe(no_mangle)]
+pub unsafe extern "C" fn PERISCOPE_STANDIN_Pointing(out: *mut std::ffi::c_double) -> c_int {
+    control("Pointing", |s| {
+        let bench = s.bench.as_ref().ok_or("set the stand-in up first")?;
+        let (l, p) = bench.backend.rig().pointing();
+        if out.is_null() {
+            return Err("null buffer".into());
+        }
+        for (i, v) in [l.x, l.y, p.x, p.y].into_iter().enumerate() {
+            // SAFETY: `i < 4`, writable per the contract.
+            unsafe { out.add(i).write(v.to_degrees()) };
+        }
+        Ok(0)
     })
 }

@@ -11,10 +11,10 @@ use std::time::{Duration, Instant};
 use periscope_drivers::picoquant::defin::{error, flag};
 use periscope_drivers::picoquant::{Family, PicoQuantSettings, PicoQuantTdc, list_counters};
 use periscope_drivers::{Error, ErrorKind, Histogrammer, TdcConfig};
-use periscope_standin_picoquant::client::{Standin, exclusive};
+use periscope_standins::client::{Standin, exclusive};
 
 fn root() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("../..")
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("..")
 }
 
 /// The shipped simulated instrument at `time_scale`, written into `dir` (its scene

@@ -39,6 +39,12 @@ pub(crate) struct State {
     pub calls: Vec<String>,
     /// Whether the environment variable was looked at.
     pub env_checked: bool,
+    /// The simulated DAQ device, once wired ([`crate::daqmx`]).
+    pub daq: Option<crate::daqmx::Daq>,
+    /// DAQmx functions whose next call fails with a code.
+    pub daq_fail_next: Vec<(String, Code)>,
+    /// Whether the DAQ wiring's environment variable was looked at.
+    pub daq_env_checked: bool,
 }
 
 static STATE: Mutex<Option<State>> = Mutex::new(None);
@@ -69,6 +75,9 @@ pub(crate) fn family_index(f: Family) -> usize {
 impl State {
     /// Drops the instrument and every counter (stopping their threads).
     pub(crate) fn reset(&mut self) {
+        if let Some(daq) = self.daq.as_mut() {
+            daq.shut_down();
+        }
         for list in &mut self.devices {
             for d in list.iter_mut().flatten() {
                 d.close();
@@ -77,8 +86,62 @@ impl State {
         *self = State {
             devices: [empty(), empty()],
             env_checked: true,
+            daq_env_checked: self.daq_env_checked,
             ..State::default()
         };
+    }
+
+    /// Wires the simulated DAQ device as the hardware config at `path` says, on the
+    /// rig set up before.
+    pub(crate) fn wire_daq(&mut self, path: &Path) -> Result<(), String> {
+        let rig = self
+            .bench
+            .as_ref()
+            .ok_or("set the stand-in up first")?
+            .backend
+            .rig()
+            .clone();
+        if let Some(old) = self.daq.as_mut() {
+            old.shut_down();
+        }
+        self.daq = Some(crate::daqmx::Daq::wire(rig, path)?);
+        Ok(())
+    }
+
+    /// Records a DAQmx call; answers with a queued failure for it, if there is one.
+    pub(crate) fn enter_daq(&mut self, function: &str, args: String) -> Result<(), Code> {
+        self.check_env();
+        if !self.daq_env_checked {
+            self.daq_env_checked = true;
+            if let Some(path) = std::env::var_os(crate::daqmx::DAQ_CONFIG_ENV)
+                && let Err(e) = self.wire_daq(Path::new(&path))
+            {
+                eprintln!("periscope stand-in: {}: {e}", crate::daqmx::DAQ_CONFIG_ENV);
+            }
+        }
+        self.calls.push(format!("{function}({args})"));
+        match self.daq_fail_next.iter().position(|(name, _)| name == function) {
+            Some(i) => Err(self.daq_fail_next.remove(i).1),
+            None => Ok(()),
+        }
+    }
+
+    /// The DAQ device, or the answer of a library that sees none.
+    pub(crate) fn daq(&mut self) -> Result<&mut crate::daqmx::Daq, Code> {
+        self.daq
+            .as_mut()
+            .ok_or(periscope_drivers::daqmx::defin::error::DEV_ABSENT_OR_UNAVAILABLE)
+    }
+
+    fn check_env(&mut self) {
+        if !self.env_checked {
+            self.env_checked = true;
+            if let Some(path) = std::env::var_os(CONFIG_ENV)
+                && let Err(e) = self.setup(Path::new(&path))
+            {
+                eprintln!("periscope stand-in: {CONFIG_ENV}: {e}");
+            }
+        }
     }
 
     /// Builds the simulated instrument from the config at `path` (`backend = "sim"`)
@@ -139,14 +202,7 @@ impl State {
 
     /// Records a call; answers with a queued failure for it, if there is one.
     pub(crate) fn enter(&mut self, family: Family, function: &str, args: String) -> Result<(), Code> {
-        if !self.env_checked {
-            self.env_checked = true;
-            if let Some(path) = std::env::var_os(CONFIG_ENV)
-                && let Err(e) = self.setup(Path::new(&path))
-            {
-                eprintln!("periscope stand-in: {CONFIG_ENV}: {e}");
-            }
-        }
+        self.check_env();
         self.calls.push(format!("{}{function}({args})", family.prefix()));
         match self
             .fail_next

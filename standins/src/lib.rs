@@ -1,8 +1,11 @@
-//! A stand-in for PicoQuant's C libraries, MHLib (MultiHarp 150/160) and HHLib
-//! (HydraHarp 400), for tests: a shared library (`libperiscope_standin_picoquant.so`)
-//! that exports the histogram-mode functions by their documented names and prototypes
-//! (`MH_OpenDevice`, `HH_GetHistogram`, …) and answers them from the simulated
-//! instrument. Periscope's driver loads it exactly as it loads the vendor's library, from
+//! Stand-ins for the vendor C libraries Periscope loads, for tests: one shared library
+//! (`libperiscope_standins.so`) that exports PicoQuant's MHLib (MultiHarp 150/160) and
+//! HHLib (HydraHarp 400) histogram-mode functions (`MH_OpenDevice`, `HH_GetHistogram`,
+//! …) and NI-DAQmx's functions for analog outputs, digital lines and the watchdog timer
+//! ([`daqmx`]: `DAQmxWriteAnalogF64`, `DAQmxCreateWatchdogTimerTaskEx`, …) by their
+//! documented names and prototypes, and answers them from one simulated instrument, so
+//! a bench whose galvos and laser are on a DAQ card and whose counter is a MultiHarp is
+//! one rig, as in the lab. Periscope's driver loads it exactly as it loads the vendor's library, from
 //! the path in the instrument config (`tdc.library`), so the tests run the real FFI path:
 //! symbol lookup, calling convention, buffers, return codes.
 //!
@@ -32,9 +35,11 @@
 
 pub mod client;
 pub mod control;
+pub mod daqmx;
 mod device;
 mod exports;
 mod state;
 
+pub use daqmx::DAQ_CONFIG_ENV;
 pub use exports::*;
 pub use state::CONFIG_ENV;

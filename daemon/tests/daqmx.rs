@@ -1,0 +1,511 @@
+//! A whole run with both galvo pairs and the laser on an NI DAQ device, through the
+//! real FFI path: the daemon's hardware backend opens the DAQmx drivers and the
+//! MultiHarp driver on the stand-in library (`standins`), by the paths in an ordinary
+//! lab config; one simulated rig answers both, as one bench does (the DAQ's analog
+//! outputs move its mirrors, its gate line its laser).
+//!
+//! The capture completes with the relay found and every pair stored; then the stop
+//! matrix's measuring stages (LOS scan, capture) × every event run on this bench,
+//! asserting on the rig's own emission log: laser off within 50 ms of the event, never
+//! on again, both arms parked, the run left paused, aborted or failed as it should be.
+//! A DAQ that vanishes mid-capture drops the gate (power loss) and fails the run; a run
+//! stuck with the laser on loses it to the DAQ's hardware watchdog with nobody at the
+//! e-stop. `periscope devices` lists what NI-DAQmx sees.
+use std::path::{Path, PathBuf};
+use std::sync::{Arc, Mutex, OnceLock, mpsc};
+use std::time::{Duration, Instant};
+
+use periscope_daemon::config::TomlSource;
+use periscope_daemon::events::{EventSink, RunEvent, Stage};
+use periscope_daemon::pipeline::{self, Control, Run};
+use periscope_daemon::run_dir::{RunInfo, RunState};
+use periscope_daemon::store::read_log;
+use periscope_drivers::EmergencyOff;
+use periscope_drivers::picoquant::Family;
+use periscope_standins::client::{Standin, exclusive};
+
+/// The bound on how long emission may outlast a pause, abort or e-stop.
+const EMISSION_BOUND: Duration = Duration::from_millis(50);
+
+/// How long a stopped run may take to return.
+const RETURN_BOUND: Duration = Duration::from_secs(2);
+
+/// The safety matrix's plan: 64 LOS points of 10 ms, 25 pairs of 30 ms, a tiny fit.
+const PLAN: &str = r#"
+name = "picoquant"
+[los]
+angles-deg = { x = [-12.0, 12.0], y = [-12.0, 12.0] }
+grid = [8, 8]
+dwell-ms = 10.0
+[relay]
+depth-m = [1.7, 3.0]
+neighbours = 8
+detection = { min = [-0.4, -0.4, -0.1], max = [0.4, 0.4, 0.1] }
+[pairs]
+mode = "confocal"
+grid = [5, 5]
+offset-mm = 5.0
+[acquisition]
+dwell-ms = 30.0
+[recon]
+method = "gtr"
+[recon.volume]
+x = [-0.4, 0.4]
+y = [-0.4, 0.4]
+z = [0.3, 0.9]
+shape = [16, 16, 16]
+[recon.gtr]
+primitives = 200
+epochs = 40
+virtual-grid = [16, 16]
+"#;
+
+fn root() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("..")
+}
+
+/// The shipped simulated instrument's text at `time_scale`, its scene path absolute.
+fn sim_text(time_scale: f64) -> String {
+    let scene = root().join("configs/scenes/wall-letter.toml");
+    std::fs::read_to_string(root().join("configs/instrument/sim.toml"))
+        .unwrap()
+        .replace("../scenes/wall-letter.toml", &scene.to_string_lossy())
+        .replace("[sim]\n", &format!("[sim]\ntime-scale = {time_scale}\n"))
+}
+
+/// The same instrument as a lab config: `backend = "hardware"`, both galvo pairs on
+/// `Dev1`'s analog outputs and the laser on its digital lines through `library`
+/// (NI-DAQmx's place), `laser_extra` added to `[laser]`; the histogrammer a MultiHarp
+/// through the same library, bins 20 ps wide (its 5 ps base resolution × 4).
+fn lab_text(time_scale: f64, library: &Path, laser_extra: &str) -> String {
+    let text = sim_text(time_scale);
+    let text = text[..text.find("[sim]").unwrap()].to_owned();
+    let lib = library.display();
+    let mut out = String::new();
+    for line in text.lines() {
+        let line = match line {
+            l if l.starts_with("backend") => "backend = \"hardware\"".to_owned(),
+            l if l.starts_with("bin-width-ps") => "bin-width-ps = 20.0".to_owned(),
+            l => l.to_owned(),
+        };
+        out.push_str(&line);
+        out.push('\n');
+        if line.starts_with("[galvo.laser]") {
+            out.push_str(&format!(
+                "driver = \"daqmx\"\nlibrary = \"{lib}\"\nchannels = [\"Dev1/ao0\", \"Dev1/ao1\"]\n\
+                 volts-per-deg = [0.4, 0.4]\noffsets-v = [0.1, -0.1]\nmax-slew-deg-per-ms = 4.0\n"
+            ));
+        } else if line.starts_with("[galvo.spad]") {
+            out.push_str(&format!(
+                "driver = \"daqmx\"\nlibrary = \"{lib}\"\nchannels = [\"Dev1/ao2\", \"Dev1/ao3\"]\n\
+                 volts-per-deg = [0.4, -0.4]\nmax-slew-deg-per-ms = 4.0\n"
+            ));
+        } else if line.starts_with("[laser]") {
+            out.push_str(&format!(
+                "laser-line = \"Dev1/port0/line0\"\ninterlock-line = \"Dev1/port0/line1\"\n\
+                 diffuser-line = \"Dev1/port0/line2\"\n{laser_extra}"
+            ));
+        } else if line.starts_with("[tdc]") {
+            out.push_str(&format!(
+                "driver = \"multiharp\"\nlibrary = \"{lib}\"\nchannel = 1\n"
+            ));
+        }
+    }
+    out
+}
+
+/// A fresh stand-in at `time_scale`, its DAQ wired by the lab config that reaches it.
+fn bench(dir: &Path, time_scale: f64, laser_extra: &str) -> (Standin, TomlSource) {
+    let s = Standin::load();
+    let rig = dir.join("rig.toml");
+    std::fs::write(&rig, sim_text(time_scale)).unwrap();
+    s.setup(&rig);
+    let lab = dir.join("lab.toml");
+    let text = lab_text(time_scale, &s.path(), laser_extra);
+    std::fs::write(&lab, &text).unwrap();
+    s.daq_setup(&lab);
+    (s, TomlSource::from_text(lab, text))
+}
+
+/// A prepared run of `plan` on the lab config.
+fn prepare(dir: &Path, lab: &TomlSource, plan: &str) -> PathBuf {
+    let plan_src = TomlSource::from_text(dir.join("plan.toml"), plan.to_owned());
+    let (run, _, _) = pipeline::prepare(&plan_src, lab, Some(&dir.join("run"))).unwrap();
+    run
+}
+
+#[test]
+fn a_whole_capture_runs_with_the_galvos_and_the_laser_on_a_daq() {
+    let _one = exclusive();
+    periscope_daemon::signals::install_panic_hook();
+    let tmp = tempfile::tempdir().unwrap();
+    let (s, lab) = bench(tmp.path(), 0.0, "");
+    let dir = prepare(tmp.path(), &lab, PLAN);
+    s.clear_calls();
+    let run = Run::open(&dir, Control::new(), None, None).unwrap();
+    run.execute().unwrap();
+    let info = RunInfo::load(&dir).unwrap();
+    assert_eq!(info.state, RunState::Completed);
+    // Every planned pair stored once, each a 1024-bin histogram from the counter.
+    let planned: Vec<serde_json::Value> =
+        serde_json::from_slice(&std::fs::read(dir.join("pairs.json")).unwrap()).unwrap();
+    let planned = planned.len();
+    assert!(
+        planned > 10,
+        "{planned} pairs planned on the relay found by the LOS scan"
+    );
+    let log = read_log(&dir).unwrap();
+    let mut pairs: Vec<u32> = log.records.iter().map(|r| r.pair).collect();
+    pairs.sort_unstable();
+    assert_eq!(pairs, (0..planned as u32).collect::<Vec<_>>());
+    assert!(log.records.iter().all(|r| r.counts.len() == 1024));
+    let total: u64 = log
+        .records
+        .iter()
+        .flat_map(|r| &r.counts)
+        .map(|&c| u64::from(c))
+        .sum();
+    assert!(total > 0, "the third bounce and the background reach the counter");
+    // The histograms came through MHLib's calls: one StartMeas per LOS point and pair;
+    // the mirrors moved through DAQmx's analog writes, the laser through its gate line
+    // with the watchdog armed first.
+    let calls = s.calls();
+    assert!(
+        calls
+            .iter()
+            .filter(|c| c.starts_with("DAQmxWriteAnalogF64(periscope-galvo-spad"))
+            .count()
+            > planned
+    );
+    let armed = calls
+        .iter()
+        .position(|c| c.starts_with("DAQmxStartTask(watchdog)"))
+        .unwrap();
+    let on = calls
+        .iter()
+        .position(|c| c == "DAQmxWriteDigitalLines(periscope-laser-gate, [1])")
+        .unwrap();
+    assert!(armed < on, "the watchdog runs before the gate goes high");
+    assert_eq!(
+        s.daq_counters().0,
+        0,
+        "no write drove an arm past the rig's hard limits"
+    );
+    let starts = calls.iter().filter(|c| c.starts_with("MH_StartMeas(")).count();
+    assert_eq!(starts, 64 + planned, "64 LOS points and the planned pairs");
+    assert!(
+        calls.iter().any(|c| c == "MH_StartMeas(0, 10)") && calls.iter().any(|c| c == "MH_StartMeas(0, 30)")
+    );
+    // The laser went on for the measuring stages only, and is off; both arms parked.
+    let log = s.emission_log();
+    assert!(
+        log.iter().any(|(_, on, _)| *on),
+        "the laser was switched on to measure"
+    );
+    assert!(!s.emission());
+    assert_eq!(s.parked(), (true, true));
+}
+
+#[derive(Clone, Copy, Debug, PartialEq)]
+enum Event {
+    Pause,
+    Abort,
+    Estop,
+    Signal,
+    /// The counter vanishes from the bus for good.
+    CounterGone,
+    Panic,
+}
+
+/// Fires `event`, as the service, the signal handlers or the bench would.
+fn fire(event: Event, stage: Stage, control: &Control, s: &Standin, laser: &OnceLock<EmergencyOff>) {
+    match event {
+        Event::Pause => control.pause(),
+        Event::Abort => control.abort(),
+        Event::Estop => {
+            control.abort();
+            if let Some(off) = laser.get() {
+                off.laser_off().unwrap();
+            }
+        }
+        Event::Signal => {
+            if let Some(off) = laser.get() {
+                off.laser_off().unwrap();
+            }
+            std::thread::sleep(Duration::from_millis(1));
+            control.pause();
+        }
+        Event::CounterGone => s.vanish(Family::MultiHarp, 0, u32::MAX),
+        Event::Panic => control.inject_panic(stage),
+    }
+}
+
+fn expected_state(event: Event) -> RunState {
+    match event {
+        Event::Pause | Event::Signal => RunState::Paused,
+        Event::Abort | Event::Estop => RunState::Aborted,
+        Event::CounterGone | Event::Panic => RunState::Failed,
+    }
+}
+
+/// Runs the plan in real time and fires `event` 7 ms into the first dwell of `stage`
+/// (LOS scan or capture), from another thread; checks the rig's laser and arms.
+fn run_case(stage: Stage, event: Event) -> String {
+    let tmp = tempfile::tempdir().unwrap();
+    let (s, lab) = bench(tmp.path(), 1.0, "");
+    let dir = prepare(tmp.path(), &lab, PLAN);
+    let control = Control::new();
+    let laser: Arc<OnceLock<EmergencyOff>> = Arc::new(OnceLock::new());
+    let fired: Arc<Mutex<Option<Instant>>> = Arc::new(Mutex::new(None));
+    let events = EventSink::open(&dir).unwrap();
+    let (tx, rx) = mpsc::channel::<()>();
+    let mut armed = true;
+    events.listen(move |e| {
+        let first = matches!(
+            (stage, e),
+            (Stage::LosScan, RunEvent::LosPoint { .. }) | (Stage::Capture, RunEvent::Pair { .. })
+        );
+        if armed && first {
+            armed = false;
+            let _ = tx.send(());
+        }
+    });
+    let trigger = {
+        let (control, laser, fired) = (control.clone(), laser.clone(), fired.clone());
+        std::thread::spawn(move || {
+            if rx.recv().is_ok() {
+                std::thread::sleep(Duration::from_millis(7));
+                *fired.lock().unwrap() = Some(Instant::now());
+                fire(event, stage, &control, &s, &laser);
+            }
+        })
+    };
+    let result = match Run::open(&dir, control, Some(events), None) {
+        Ok(run) => {
+            let _ = laser.set(run.emergency_off());
+            run.execute().map(drop)
+        }
+        Err(e) => Err(e),
+    };
+    let returned = Instant::now();
+    trigger.join().unwrap();
+    let t = fired
+        .lock()
+        .unwrap()
+        .unwrap_or_else(|| panic!("{event:?} in {stage:?} never fired: {result:?}"));
+    assert!(
+        !s.emission(),
+        "{event:?} in {stage:?}: the laser is on after the run returned"
+    );
+    let log = s.emission_log();
+    let off_at = log
+        .iter()
+        .rev()
+        .find(|(_, on, _)| !on)
+        .map_or(t, |(at, _, _)| (*at).max(t));
+    let on_after: Vec<_> = log.iter().filter(|(at, on, _)| *on && *at > t).collect();
+    assert!(
+        on_after.is_empty(),
+        "{event:?} in {stage:?}: emission went on again: {on_after:?}"
+    );
+    let off_after = off_at.saturating_duration_since(t);
+    assert!(
+        off_after <= EMISSION_BOUND,
+        "{event:?} in {stage:?}: emission lasted {off_after:?} after the event"
+    );
+    assert!(
+        returned.saturating_duration_since(t) <= RETURN_BOUND,
+        "{event:?} in {stage:?}: slow to return"
+    );
+    assert_eq!(
+        s.parked(),
+        (true, true),
+        "{event:?} in {stage:?}: both arms parked"
+    );
+    let state = RunInfo::load(&dir).unwrap().state;
+    assert_eq!(state, expected_state(event), "{event:?} in {stage:?}: {result:?}");
+    if event == Event::CounterGone {
+        let e = result.as_ref().unwrap_err().to_string();
+        assert!(
+            e.contains("MultiHarp") && e.contains("MH_ERROR_USB_VCMD_FAIL"),
+            "{e}"
+        );
+    }
+    format!(
+        "{:<10} {:<12} off after {:>5.1} ms, state {state:?}\n",
+        stage.name(),
+        format!("{event:?}"),
+        off_after.as_secs_f64() * 1e3
+    )
+}
+
+fn check_stage(stage: Stage) {
+    let _one = exclusive();
+    periscope_daemon::signals::install_panic_hook();
+    let mut table = String::new();
+    for event in [
+        Event::Pause,
+        Event::Abort,
+        Event::Estop,
+        Event::Signal,
+        Event::CounterGone,
+        Event::Panic,
+    ] {
+        table.push_str(&run_case(stage, event));
+    }
+    eprint!("{table}");
+}
+
+#[test]
+fn los_scan_on_the_daq() {
+    check_stage(Stage::LosScan);
+}
+
+#[test]
+fn capture_on_the_daq() {
+    check_stage(Stage::Capture);
+}
+
+/// Runs the plan in real time until the first pair is stored, then `during(s)`; waits
+/// for the run to return.
+fn capture_then(
+    laser_extra: &str,
+    during: impl FnOnce(&Standin, &Control) + Send + 'static,
+) -> (Standin, PathBuf, Result<(), String>) {
+    let tmp = tempfile::tempdir().unwrap();
+    let (s, lab) = bench(tmp.path(), 1.0, laser_extra);
+    let dir = prepare(tmp.path(), &lab, PLAN);
+    let control = Control::new();
+    let events = EventSink::open(&dir).unwrap();
+    let (tx, rx) = mpsc::channel::<()>();
+    let mut armed = true;
+    events.listen(move |e| {
+        if armed && matches!(e, RunEvent::Pair { .. }) {
+            armed = false;
+            let _ = tx.send(());
+        }
+    });
+    let trigger = {
+        let control = control.clone();
+        std::thread::spawn(move || {
+            if rx.recv().is_ok() {
+                during(&s, &control);
+            }
+            s
+        })
+    };
+    let result = Run::open(&dir, control, Some(events), None)
+        .and_then(|run| run.execute().map(drop))
+        .map_err(|e| e.to_string());
+    let s = trigger.join().unwrap();
+    let keep = tmp.keep();
+    (s, keep.join("run"), result)
+}
+
+#[test]
+fn a_daq_that_vanishes_mid_capture_drops_the_gate_and_fails_the_run() {
+    let _one = exclusive();
+    periscope_daemon::signals::install_panic_hook();
+    let (s, dir, result) = capture_then("", |s, _| {
+        std::thread::sleep(Duration::from_millis(7));
+        s.daq_vanish();
+    });
+    let e = result.unwrap_err();
+    assert!(e.contains("DAQmxErrorDeviceRemoved"), "{e}");
+    assert!(!s.emission());
+    let log = s.emission_log();
+    let (_, on, cause) = *log.last().unwrap();
+    assert!(
+        !on && cause == 3,
+        "the gate dropped with the device's power: {log:?}"
+    );
+    assert_eq!(RunInfo::load(&dir).unwrap().state, RunState::Failed);
+    let _ = std::fs::remove_dir_all(dir.parent().unwrap());
+}
+
+#[test]
+fn a_run_stuck_with_the_laser_on_loses_it_to_the_daqs_watchdog_without_an_estop() {
+    let _one = exclusive();
+    periscope_daemon::signals::install_panic_hook();
+    let hung: Arc<Mutex<Option<Instant>>> = Arc::new(Mutex::new(None));
+    let h = hung.clone();
+    // Stall limit 300 ms, watchdog 200 ms: off within about half a second of the hang.
+    let (s, dir, _) = capture_then("stall-ms = 300\nwatchdog-ms = 200\n", move |s, control| {
+        control.inject_hang(Stage::Capture, Duration::from_millis(1500));
+        let t = Instant::now();
+        *h.lock().unwrap() = Some(t);
+        while s.emission() && t.elapsed() < Duration::from_secs(3) {
+            std::thread::sleep(Duration::from_millis(2));
+        }
+    });
+    let t = hung.lock().unwrap().unwrap();
+    let log = s.emission_log();
+    let (off_at, on, cause) = *log
+        .iter()
+        .rev()
+        .find(|(at, on, _)| !on && *at > t)
+        .expect("switched off during the hang");
+    assert!(!on);
+    assert_eq!(
+        cause, 1,
+        "the DAQ's watchdog switched it off, not the host: {log:?}"
+    );
+    let after = off_at.saturating_duration_since(t);
+    assert!(
+        after <= Duration::from_millis(300 + 200 + 250),
+        "off {after:?} after the hang began"
+    );
+    eprintln!(
+        "stuck run on the DAQ: laser off {:.0} ms after the hang began",
+        after.as_secs_f64() * 1e3
+    );
+    assert!(!s.emission());
+    let _ = std::fs::remove_dir_all(dir.parent().unwrap());
+}
+
+/// `periscope devices` with the stand-in as NI-DAQmx's library, set up in the child
+/// process from `PERISCOPE_STANDIN_CONFIG` and `PERISCOPE_STANDIN_DAQ_CONFIG`.
+fn devices(dir: &Path, library: &Path) -> (String, bool) {
+    let rig = dir.join("rig.toml");
+    std::fs::write(&rig, sim_text(0.0)).unwrap();
+    let lab = dir.join("lab.toml");
+    std::fs::write(&lab, lab_text(0.0, library, "")).unwrap();
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_periscope"))
+        .args(["devices", "--instrument"])
+        .arg(&lab)
+        .env(periscope_standins::CONFIG_ENV, &rig)
+        .env(periscope_standins::DAQ_CONFIG_ENV, &lab)
+        .env("RUST_LOG", "warn")
+        .output()
+        .unwrap();
+    (
+        String::from_utf8_lossy(&out.stdout).into_owned(),
+        out.status.success(),
+    )
+}
+
+#[test]
+fn periscope_devices_lists_the_daq_devices_or_says_the_library_is_missing() {
+    let tmp = tempfile::tempdir().unwrap();
+    let library = periscope_standins::client::library_path();
+    let (out, ok) = devices(tmp.path(), &library);
+    assert!(ok, "{out}");
+    assert!(
+        out.contains(&format!("NI-DAQmx at {}: 1 device", library.display())),
+        "{out}"
+    );
+    assert!(out.contains("Dev1  PCIe-6363  serial 1A2B3C4"), "{out}");
+    assert!(out.contains("interlock read on Dev1/port0/line1"), "{out}");
+    assert!(
+        out.contains("laser arm  PCIe-6363 (Dev1, analog outputs)"),
+        "{out}"
+    );
+
+    let missing = Path::new("/nonexistent/libnidaqmx.so");
+    let (out, ok) = devices(tmp.path(), missing);
+    assert!(!ok);
+    assert!(
+        out.contains("cannot load /nonexistent/libnidaqmx.so") && out.contains("install NI-DAQmx"),
+        "{out}"
+    );
+}

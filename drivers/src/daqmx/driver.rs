@@ -1,0 +1,382 @@
+//! The library as the DAQmx drivers share it (loading, error words, the device
+//! survey), and a galvo pair on two analog outputs.
+//!
+//! An analog galvo pair is open loop: its servo follows the voltage, and nothing
+//! reports where the mirrors are. So the pair's position is the last commanded one,
+//! and "settled" means the configured settling time has passed since the last write
+//! (the settle time from the galvo's data sheet for the largest step a move makes,
+//! which the slew limit bounds). Each axis's voltage is `offset + volts-per-degree ×
+//! optical angle` (the configured calibration of the servo driver's input); targets
+//! outside the configured limits, or whose voltage lies outside the card's ±10 V, are
+//! refused before anything is written.
+//!
+//! A move is slew-limited: the driver writes intermediate positions at most
+//! `max-slew-deg-per-ms` apart on either axis, one per millisecond ([`STEP_PERIOD`],
+//! software-timed on-demand writes as in NI's "Write Voltage Update" example), so a
+//! large step never asks the servo for more than it can follow. `move_to` returns once
+//! the last step is written (a 30° move at 1°/ms takes 30 ms); the settling time runs
+//! from then, so two pairs settle together.
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use tracing::{debug, instrument, warn};
+
+use super::defin::MAX_AO_VOLTS;
+use super::error::DaqError;
+use super::ffi::{Lib, LoadError, Task};
+use crate::error::{ErrorKind, ErrorType};
+use crate::geometry::{AngleLimits, OpticalAngles};
+use crate::traits::{DeviceInfo, GalvoPair, GalvoStatus, MotionState};
+
+/// Where NI's Linux installer puts the library (Debian and Ubuntu packages; NI's own
+/// documentation and many published programs load it from here).
+pub const DEFAULT_LIBRARY: &str = "/usr/lib/x86_64-linux-gnu/libnidaqmx.so";
+
+/// Time between the intermediate writes of a slew-limited move.
+pub const STEP_PERIOD: Duration = Duration::from_millis(1);
+
+/// How long one on-demand write may take before the library gives up.
+pub(crate) const WRITE_TIMEOUT_S: f64 = 1.0;
+
+/// The library at `path`, or an error that says what is missing.
+pub(crate) fn load(path: &Path) -> Result<Arc<Lib>, DaqError> {
+    Lib::load(path).map(Arc::new).map_err(|e| match e {
+        LoadError::Open(why) => DaqError::new(
+            "NI-DAQmx library",
+            ErrorKind::Disconnected,
+            format!(
+                "cannot load {}: {why}; install NI-DAQmx for Linux (its packages put the library at {DEFAULT_LIBRARY}) \
+                 or set `library` in the galvo table of the instrument config to where it is",
+                path.display()
+            ),
+        ),
+        LoadError::Missing(name, why) => DaqError::new(
+            "NI-DAQmx library",
+            ErrorKind::Protocol,
+            format!(
+                "{} has no function {name} ({why}): it is not NI-DAQmx's C library, or one too old \
+                 (the driver needs the watchdog functions of NI-DAQmx 9.x or later)",
+                path.display()
+            ),
+        ),
+    })
+}
+
+/// The library's answer `code` to `call`, as an error of `device` with the extended
+/// error information.
+pub(crate) fn failed(lib: &Lib, device: &str, call: &str, code: i32) -> DaqError {
+    let mut text = lib.extended_error_info();
+    if text.is_empty() {
+        text = lib.error_string(code);
+    }
+    DaqError::library(device, call, code, &text)
+}
+
+/// Logs a warning the last call left, if any.
+pub(crate) fn warn_of(lib: &Lib, device: &str, call: &str) {
+    if let Some(w) = lib.take_warning() {
+        warn!(device, call, warning = w, "{}", lib.error_string(w));
+    }
+}
+
+/// The device part of a physical channel or line: `Dev1` of `Dev1/ao0`.
+pub fn device_of(channel: &str) -> &str {
+    channel.split('/').next().unwrap_or(channel).trim()
+}
+
+/// What `periscope devices` says about NI-DAQmx.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct DaqSurvey {
+    /// Each device NI-DAQmx knows: name, model, serial number (hex, as NI prints it).
+    pub devices: Vec<(String, String, String)>,
+}
+
+/// The devices the library at `library` knows (`DAQmxGetSysDevNames`), each with its
+/// model and serial number.
+pub fn survey(library: &Path) -> Result<DaqSurvey, DaqError> {
+    let lib = load(library)?;
+    let names = lib
+        .sys_dev_names()
+        .map_err(|c| failed(&lib, "NI-DAQmx library", "DAQmxGetSysDevNames", c))?;
+    let devices = names
+        .into_iter()
+        .map(|name| {
+            let model = lib
+                .dev_product_type(&name)
+                .unwrap_or_else(|c| lib.error_string(c));
+            let serial = lib
+                .dev_serial_num(&name)
+                .map_or_else(|c| lib.error_string(c), |s| format!("{s:X}"));
+            (name, model, serial)
+        })
+        .collect();
+    Ok(DaqSurvey { devices })
+}
+
+/// A galvo pair on two analog outputs, as the instrument config describes it.
+#[derive(Clone, Debug, PartialEq)]
+pub struct AoGalvoSettings {
+    /// The arm's name (`laser`, `spad`).
+    pub name: String,
+    /// NI-DAQmx's library.
+    pub library: PathBuf,
+    /// The x and y axes' physical channels (`Dev1/ao0`, `Dev1/ao1`).
+    pub channels: [String; 2],
+    /// Volts per optical degree, x and y (negative flips an axis).
+    pub volts_per_deg: [f64; 2],
+    /// Volts at optical angle 0, x and y.
+    pub offsets_v: [f64; 2],
+    /// The optical angles this pair may be sent to.
+    pub limits: AngleLimits,
+    /// Largest step between two writes, optical degrees (one write per [`STEP_PERIOD`]).
+    pub max_slew_deg_per_ms: f64,
+    /// Settling time after the last write of a move.
+    pub settle: Duration,
+}
+
+impl AoGalvoSettings {
+    /// The voltages for `angles`, x then y.
+    pub fn volts(&self, angles: OpticalAngles) -> [f64; 2] {
+        [
+            self.offsets_v[0] + self.volts_per_deg[0] * angles.x.to_degrees(),
+            self.offsets_v[1] + self.volts_per_deg[1] * angles.y.to_degrees(),
+        ]
+    }
+
+    /// The lowest and highest voltage any angle within the limits needs (the range
+    /// the channels are created with), or `None` if it leaves the card's ±10 V.
+    pub fn volt_range(&self) -> Option<(f64, f64)> {
+        let mut lo = f64::INFINITY;
+        let mut hi = f64::NEG_INFINITY;
+        for x in self.limits.x {
+            for y in self.limits.y {
+                for v in self.volts(OpticalAngles { x, y }) {
+                    lo = lo.min(v);
+                    hi = hi.max(v);
+                }
+            }
+        }
+        (lo >= -MAX_AO_VOLTS && hi <= MAX_AO_VOLTS && lo < hi).then_some((lo, hi))
+    }
+}
+
+/// A galvo pair driven by two analog outputs of a DAQ device.
+pub struct DaqGalvo {
+    lib: Arc<Lib>,
+    settings: AoGalvoSettings,
+    device: String,
+    task: Task,
+    /// Where the mirrors were last sent (open loop: the only position there is).
+    commanded: OpticalAngles,
+    parked: bool,
+    /// When the last write of the last move went out.
+    last_write: Instant,
+}
+
+impl ErrorType for DaqGalvo {
+    type Error = DaqError;
+}
+
+/// The park position: both axes at optical angle 0.
+const PARK: OpticalAngles = OpticalAngles { x: 0.0, y: 0.0 };
+
+impl DaqGalvo {
+    /// Loads the library and opens the pair: one task with both channels, created
+    /// with the voltage range the limits need, started, and the park position
+    /// written. The output's previous value is unknown to a new task, so this first
+    /// write is the one that is not slew-limited.
+    pub fn open(settings: AoGalvoSettings) -> Result<DaqGalvo, DaqError> {
+        let device = format!(
+            "galvo pair `{}` on {},{}",
+            settings.name, settings.channels[0], settings.channels[1]
+        );
+        let (lo, hi) = settings.volt_range().ok_or_else(|| {
+            DaqError::new(
+                &device,
+                ErrorKind::OutOfRange,
+                "the angle limits need voltages outside the card's ±10 V with the configured volts-per-deg and offsets",
+            )
+        })?;
+        let lib = load(&settings.library)?;
+        let task = lib
+            .create_task(&format!("periscope-galvo-{}", settings.name))
+            .map_err(|c| failed(&lib, &device, "DAQmxCreateTask", c))?;
+        let mut galvo = DaqGalvo {
+            lib,
+            device,
+            task,
+            commanded: PARK,
+            parked: true,
+            last_write: Instant::now(),
+            settings,
+        };
+        let channels = galvo.settings.channels.join(",");
+        galvo.call("DAQmxCreateAOVoltageChan", |lib, t| {
+            lib.create_ao_voltage_chan(t, &channels, lo, hi)
+        })?;
+        galvo.call("DAQmxStartTask", Lib::start_task)?;
+        galvo.write(PARK)?;
+        Ok(galvo)
+    }
+
+    fn call<T>(&self, name: &str, f: impl FnOnce(&Lib, Task) -> Result<T, i32>) -> Result<T, DaqError> {
+        let r = f(&self.lib, self.task).map_err(|c| failed(&self.lib, &self.device, name, c));
+        warn_of(&self.lib, &self.device, name);
+        r
+    }
+
+    fn err(&self, kind: ErrorKind, message: impl Into<String>) -> DaqError {
+        DaqError::new(&self.device, kind, message)
+    }
+
+    /// Writes the voltages for `angles` (checked against ±10 V once more).
+    fn write(&mut self, angles: OpticalAngles) -> Result<(), DaqError> {
+        let volts = self.settings.volts(angles);
+        if volts.iter().any(|v| !(v.abs() <= MAX_AO_VOLTS)) {
+            return Err(self.err(
+                ErrorKind::OutOfRange,
+                format!("{volts:?} V is outside the card's ±10 V; nothing was written"),
+            ));
+        }
+        self.call("DAQmxWriteAnalogF64", |lib, t| {
+            lib.write_analog_f64(t, &volts, WRITE_TIMEOUT_S)
+        })?;
+        self.commanded = angles;
+        self.last_write = Instant::now();
+        Ok(())
+    }
+
+    /// Ramps from the commanded position to `target`, one write per [`STEP_PERIOD`],
+    /// each at most the slew limit from the one before.
+    fn ramp(&mut self, target: OpticalAngles) -> Result<(), DaqError> {
+        let from = self.commanded;
+        let step = self.settings.max_slew_deg_per_ms.to_radians();
+        let span = (target.x - from.x).abs().max((target.y - from.y).abs());
+        let steps = ((span / step).ceil() as u64).max(1);
+        let start = Instant::now();
+        for k in 1..=steps {
+            let f = k as f64 / steps as f64;
+            let at = if k == steps {
+                target
+            } else {
+                OpticalAngles {
+                    x: from.x + (target.x - from.x) * f,
+                    y: from.y + (target.y - from.y) * f,
+                }
+            };
+            if k > 1 {
+                let due = start + STEP_PERIOD * (k - 1) as u32;
+                std::thread::sleep(due.saturating_duration_since(Instant::now()));
+            }
+            self.write(at)?;
+        }
+        debug!(steps, "move written");
+        Ok(())
+    }
+
+    /// The configured settings.
+    pub fn settings(&self) -> &AoGalvoSettings {
+        &self.settings
+    }
+}
+
+impl Drop for DaqGalvo {
+    fn drop(&mut self) {
+        // The outputs keep their last voltage after the task is cleared.
+        let _ = self.lib.stop_task(self.task);
+        let _ = self.lib.clear_task(self.task);
+    }
+}
+
+impl GalvoPair for DaqGalvo {
+    fn identify(&mut self) -> Result<DeviceInfo, DaqError> {
+        let dev = device_of(&self.settings.channels[0]).to_owned();
+        let model = self
+            .lib
+            .dev_product_type(&dev)
+            .map_err(|c| failed(&self.lib, &self.device, "DAQmxGetDevProductType", c))?;
+        let serial = self
+            .lib
+            .dev_serial_num(&dev)
+            .map_err(|c| failed(&self.lib, &self.device, "DAQmxGetDevSerialNum", c))?;
+        Ok(DeviceInfo {
+            model: format!("{model} ({dev}, analog outputs)"),
+            firmware: "NI-DAQmx".into(),
+            serial: format!("{serial:X}"),
+            protocol: 0,
+        })
+    }
+
+    fn limits(&self) -> AngleLimits {
+        self.settings.limits
+    }
+
+    /// Checks the target against the limits and the card's range, then writes the
+    /// slew-limited ramp to it.
+    #[instrument(skip(self), fields(arm = %self.settings.name))]
+    fn move_to(&mut self, target: OpticalAngles) -> Result<(), DaqError> {
+        if !target.x.is_finite() || !target.y.is_finite() || !self.settings.limits.contains(target) {
+            return Err(self.err(
+                ErrorKind::OutOfRange,
+                format!(
+                    "({:.3}°, {:.3}°) is outside the configured angle limits; nothing was written",
+                    target.x.to_degrees(),
+                    target.y.to_degrees()
+                ),
+            ));
+        }
+        let volts = self.settings.volts(target);
+        if volts.iter().any(|v| v.abs() > MAX_AO_VOLTS) {
+            return Err(self.err(
+                ErrorKind::OutOfRange,
+                format!("{volts:?} V is outside the card's ±10 V; nothing was written"),
+            ));
+        }
+        self.parked = false;
+        self.ramp(target)
+    }
+
+    /// Waits out the settling time after the last write and returns the commanded
+    /// position (an open-loop galvo reports none of its own).
+    fn wait_settled(&mut self, timeout: Duration) -> Result<OpticalAngles, DaqError> {
+        let left = (self.last_write + self.settings.settle).saturating_duration_since(Instant::now());
+        if left > timeout {
+            std::thread::sleep(timeout);
+            return Err(self.err(
+                ErrorKind::Timeout,
+                format!(
+                    "still settling after {timeout:?} (settle time {:?}): raise the timeout or lower settle-us",
+                    self.settings.settle
+                ),
+            ));
+        }
+        std::thread::sleep(left);
+        Ok(self.commanded)
+    }
+
+    fn position(&mut self) -> Result<OpticalAngles, DaqError> {
+        Ok(self.commanded)
+    }
+
+    fn status(&mut self) -> Result<GalvoStatus, DaqError> {
+        let state = if Instant::now() < self.last_write + self.settings.settle {
+            MotionState::Moving
+        } else if self.parked {
+            MotionState::Parked
+        } else {
+            MotionState::Settled
+        };
+        Ok(GalvoStatus {
+            state,
+            position: self.commanded,
+        })
+    }
+
+    /// Ramps to optical angle 0 on both axes.
+    fn park(&mut self) -> Result<(), DaqError> {
+        self.ramp(PARK)?;
+        self.parked = true;
+        Ok(())
+    }
+}
