@@ -31,7 +31,7 @@ pub struct SimBackend {
 impl SimBackend {
     /// A fresh simulated instrument for `config`, whose `[sim]` table is `sim`:
     /// scene physics and devices. Refuses a scene whose third bounce would need more
-    /// samples than [`MAX_HIDDEN_SAMPLES`].
+    /// samples than `MAX_HIDDEN_SAMPLES` (2e7, about 1.5 GB).
     pub fn new(config: &InstrumentConfig, sim: &SimSettings) -> Result<SimBackend, ConfigError> {
         let scene = sim_scene(sim)?;
         // The third bounce samples hidden surfaces every `sample-spacing`: bound the
