@@ -10,53 +10,17 @@
 //! `periscope devices` lists the counters the library sees, or says plainly that the
 //! library is not there.
 use std::path::{Path, PathBuf};
-use std::sync::{Arc, Mutex, OnceLock, mpsc};
-use std::time::{Duration, Instant};
 
 use periscope_daemon::config::TomlSource;
-use periscope_daemon::events::{EventSink, RunEvent, Stage};
+use periscope_daemon::events::Stage;
 use periscope_daemon::pipeline::{self, Control, Run};
 use periscope_daemon::run_dir::{RunInfo, RunState};
 use periscope_daemon::store::read_log;
-use periscope_drivers::EmergencyOff;
-use periscope_drivers::picoquant::Family;
 use periscope_standins::client::{Standin, exclusive};
 
-/// The bound on how long emission may outlast a pause, abort or e-stop.
-const EMISSION_BOUND: Duration = Duration::from_millis(50);
-
-/// How long a stopped run may take to return.
-const RETURN_BOUND: Duration = Duration::from_secs(2);
-
-/// The safety matrix's plan: 64 LOS points of 10 ms, 25 pairs of 30 ms, a tiny fit.
-const PLAN: &str = r#"
-name = "picoquant"
-[los]
-angles-deg = { x = [-12.0, 12.0], y = [-12.0, 12.0] }
-grid = [8, 8]
-dwell-ms = 10.0
-[relay]
-depth-m = [1.7, 3.0]
-neighbours = 8
-detection = { min = [-0.4, -0.4, -0.1], max = [0.4, 0.4, 0.1] }
-[pairs]
-mode = "confocal"
-grid = [5, 5]
-offset-mm = 5.0
-[acquisition]
-dwell-ms = 30.0
-[recon]
-method = "gtr"
-[recon.volume]
-x = [-0.4, 0.4]
-y = [-0.4, 0.4]
-z = [0.3, 0.9]
-shape = [16, 16, 16]
-[recon.gtr]
-primitives = 200
-epochs = 40
-virtual-grid = [16, 16]
-"#;
+#[path = "common/standin_matrix.rs"]
+mod standin_matrix;
+use standin_matrix::PLAN;
 
 fn root() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("..")
@@ -174,164 +138,21 @@ fn a_whole_capture_runs_on_the_multiharp_and_the_simulated_galvos() {
     assert_eq!(s.parked(), (true, true));
 }
 
-#[derive(Clone, Copy, Debug, PartialEq)]
-enum Event {
-    Pause,
-    Abort,
-    Estop,
-    Signal,
-    /// The counter vanishes from the bus for good.
-    CounterGone,
-    Panic,
-}
-
-/// Fires `event`, as the service, the signal handlers or the bench would.
-fn fire(event: Event, stage: Stage, control: &Control, s: &Standin, laser: &OnceLock<EmergencyOff>) {
-    match event {
-        Event::Pause => control.pause(),
-        Event::Abort => control.abort(),
-        Event::Estop => {
-            control.abort();
-            if let Some(off) = laser.get() {
-                off.laser_off().unwrap();
-            }
-        }
-        Event::Signal => {
-            if let Some(off) = laser.get() {
-                off.laser_off().unwrap();
-            }
-            std::thread::sleep(Duration::from_millis(1));
-            control.pause();
-        }
-        Event::CounterGone => s.vanish(Family::MultiHarp, 0, u32::MAX),
-        Event::Panic => control.inject_panic(stage),
-    }
-}
-
-fn expected_state(event: Event) -> RunState {
-    match event {
-        Event::Pause | Event::Signal => RunState::Paused,
-        Event::Abort | Event::Estop => RunState::Aborted,
-        Event::CounterGone | Event::Panic => RunState::Failed,
-    }
-}
-
-/// Runs the plan in real time and fires `event` 7 ms into the first dwell of `stage`
-/// (LOS scan or capture), from another thread; checks the rig's laser and arms.
-fn run_case(stage: Stage, event: Event) -> String {
-    let tmp = tempfile::tempdir().unwrap();
-    let (s, lab) = bench(tmp.path(), 1.0);
-    let dir = prepare(tmp.path(), &lab, PLAN);
-    let control = Control::new();
-    let laser: Arc<OnceLock<EmergencyOff>> = Arc::new(OnceLock::new());
-    let fired: Arc<Mutex<Option<Instant>>> = Arc::new(Mutex::new(None));
-    let events = EventSink::open(&dir).unwrap();
-    let (tx, rx) = mpsc::channel::<()>();
-    let mut armed = true;
-    events.listen(move |e| {
-        let first = matches!(
-            (stage, e),
-            (Stage::LosScan, RunEvent::LosPoint { .. }) | (Stage::Capture, RunEvent::Pair { .. })
-        );
-        if armed && first {
-            armed = false;
-            let _ = tx.send(());
-        }
-    });
-    let trigger = {
-        let (control, laser, fired) = (control.clone(), laser.clone(), fired.clone());
-        std::thread::spawn(move || {
-            if rx.recv().is_ok() {
-                std::thread::sleep(Duration::from_millis(7));
-                *fired.lock().unwrap() = Some(Instant::now());
-                fire(event, stage, &control, &s, &laser);
-            }
-        })
-    };
-    let result = match Run::open(&dir, control, Some(events), None) {
-        Ok(run) => {
-            let _ = laser.set(run.emergency_off());
-            run.execute().map(drop)
-        }
-        Err(e) => Err(e),
-    };
-    let returned = Instant::now();
-    trigger.join().unwrap();
-    let t = fired
-        .lock()
-        .unwrap()
-        .unwrap_or_else(|| panic!("{event:?} in {stage:?} never fired: {result:?}"));
-    assert!(
-        !s.emission(),
-        "{event:?} in {stage:?}: the laser is on after the run returned"
-    );
-    let log = s.emission_log();
-    let off_at = log
-        .iter()
-        .rev()
-        .find(|(_, on, _)| !on)
-        .map_or(t, |(at, _, _)| (*at).max(t));
-    let on_after: Vec<_> = log.iter().filter(|(at, on, _)| *on && *at > t).collect();
-    assert!(
-        on_after.is_empty(),
-        "{event:?} in {stage:?}: emission went on again: {on_after:?}"
-    );
-    let off_after = off_at.saturating_duration_since(t);
-    assert!(
-        off_after <= EMISSION_BOUND,
-        "{event:?} in {stage:?}: emission lasted {off_after:?} after the event"
-    );
-    assert!(
-        returned.saturating_duration_since(t) <= RETURN_BOUND,
-        "{event:?} in {stage:?}: slow to return"
-    );
-    assert_eq!(
-        s.parked(),
-        (true, true),
-        "{event:?} in {stage:?}: both arms parked"
-    );
-    let state = RunInfo::load(&dir).unwrap().state;
-    assert_eq!(state, expected_state(event), "{event:?} in {stage:?}: {result:?}");
-    if event == Event::CounterGone {
-        let e = result.as_ref().unwrap_err().to_string();
-        assert!(
-            e.contains("MultiHarp") && e.contains("MH_ERROR_USB_VCMD_FAIL"),
-            "{e}"
-        );
-    }
-    format!(
-        "{:<10} {:<12} off after {:>5.1} ms, state {state:?}\n",
-        stage.name(),
-        format!("{event:?}"),
-        off_after.as_secs_f64() * 1e3
-    )
-}
-
-fn check_stage(stage: Stage) {
-    let _one = exclusive();
-    periscope_daemon::signals::install_panic_hook();
-    let mut table = String::new();
-    for event in [
-        Event::Pause,
-        Event::Abort,
-        Event::Estop,
-        Event::Signal,
-        Event::CounterGone,
-        Event::Panic,
-    ] {
-        table.push_str(&run_case(stage, event));
-    }
-    eprint!("{table}");
+/// A fresh bench and prepared run for one case of the stop matrix.
+fn matrix_bench(tmp: &Path) -> (Standin, PathBuf) {
+    let (s, lab) = bench(tmp, 1.0);
+    let dir = prepare(tmp, &lab, PLAN);
+    (s, dir)
 }
 
 #[test]
 fn los_scan_on_the_multiharp() {
-    check_stage(Stage::LosScan);
+    standin_matrix::check_stage(Stage::LosScan, &matrix_bench);
 }
 
 #[test]
 fn capture_on_the_multiharp() {
-    check_stage(Stage::Capture);
+    standin_matrix::check_stage(Stage::Capture, &matrix_bench);
 }
 
 /// `periscope devices` with the stand-in as `tdc.library`, set up in the child process
