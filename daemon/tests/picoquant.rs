@@ -13,9 +13,7 @@ use std::path::{Path, PathBuf};
 
 use periscope_daemon::config::TomlSource;
 use periscope_daemon::events::Stage;
-use periscope_daemon::pipeline::{self, Control, Run};
-use periscope_daemon::run_dir::{RunInfo, RunState};
-use periscope_daemon::store::read_log;
+use periscope_daemon::pipeline::{self};
 use periscope_standins::client::{Standin, exclusive};
 
 #[path = "common/standin_matrix.rs"]
@@ -93,30 +91,7 @@ fn a_whole_capture_runs_on_the_multiharp_and_the_simulated_galvos() {
     let (s, lab) = bench(tmp.path(), 0.0);
     let dir = prepare(tmp.path(), &lab, PLAN);
     s.clear_calls();
-    let run = Run::open(&dir, Control::new(), None, None).unwrap();
-    run.execute().unwrap();
-    let info = RunInfo::load(&dir).unwrap();
-    assert_eq!(info.state, RunState::Completed);
-    // Every planned pair stored once, each a 1024-bin histogram from the counter.
-    let planned: Vec<serde_json::Value> =
-        serde_json::from_slice(&std::fs::read(dir.join("pairs.json")).unwrap()).unwrap();
-    let planned = planned.len();
-    assert!(
-        planned > 10,
-        "{planned} pairs planned on the relay found by the LOS scan"
-    );
-    let log = read_log(&dir).unwrap();
-    let mut pairs: Vec<u32> = log.records.iter().map(|r| r.pair).collect();
-    pairs.sort_unstable();
-    assert_eq!(pairs, (0..planned as u32).collect::<Vec<_>>());
-    assert!(log.records.iter().all(|r| r.counts.len() == 1024));
-    let total: u64 = log
-        .records
-        .iter()
-        .flat_map(|r| &r.counts)
-        .map(|&c| u64::from(c))
-        .sum();
-    assert!(total > 0, "the third bounce and the background reach the counter");
+    let planned = standin_matrix::whole_capture(&dir);
     // The histograms came through MHLib's calls: one StartMeas per LOS point and pair.
     let calls = s.calls();
     let starts = calls.iter().filter(|c| c.starts_with("MH_StartMeas(")).count();

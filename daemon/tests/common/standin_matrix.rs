@@ -10,6 +10,7 @@ use std::time::{Duration, Instant};
 use periscope_daemon::events::{EventSink, RunEvent, Stage};
 use periscope_daemon::pipeline::{Control, Run};
 use periscope_daemon::run_dir::{RunInfo, RunState};
+use periscope_daemon::store::read_log;
 use periscope_drivers::EmergencyOff;
 use periscope_drivers::picoquant::Family;
 use periscope_standins::client::{Standin, exclusive};
@@ -199,4 +200,35 @@ pub(crate) fn check_stage(stage: Stage, setup: &dyn Fn(&Path) -> (Standin, PathB
         table.push_str(&run_case(stage, event, setup));
     }
     eprint!("{table}");
+}
+
+/// Runs the prepared run in `dir` to completion and checks what every backend must
+/// give: completed, every planned pair stored once as a 1024-bin histogram, and light
+/// reaching the counter. Returns the number of planned pairs.
+pub(crate) fn whole_capture(dir: &Path) -> usize {
+    let run = Run::open(dir, Control::new(), None, None).unwrap();
+    run.execute().unwrap();
+    let info = RunInfo::load(dir).unwrap();
+    assert_eq!(info.state, RunState::Completed);
+    // Every planned pair stored once, each a 1024-bin histogram from the counter.
+    let planned: Vec<serde_json::Value> =
+        serde_json::from_slice(&std::fs::read(dir.join("pairs.json")).unwrap()).unwrap();
+    let planned = planned.len();
+    assert!(
+        planned > 10,
+        "{planned} pairs planned on the relay found by the LOS scan"
+    );
+    let log = read_log(dir).unwrap();
+    let mut pairs: Vec<u32> = log.records.iter().map(|r| r.pair).collect();
+    pairs.sort_unstable();
+    assert_eq!(pairs, (0..planned as u32).collect::<Vec<_>>());
+    assert!(log.records.iter().all(|r| r.counts.len() == 1024));
+    let total: u64 = log
+        .records
+        .iter()
+        .flat_map(|r| &r.counts)
+        .map(|&c| u64::from(c))
+        .sum();
+    assert!(total > 0, "the third bounce and the background reach the counter");
+    planned
 }
