@@ -51,7 +51,7 @@ fn run(tmp: &Path, name: &str, inst: &TomlSource, plan: &str, overflow_at: Optio
         .unwrap()
         .unwrap();
     let plan = TomlSource::from_text(tmp.join(format!("{name}.toml")), plan.to_owned());
-    let (dir, _, _) = pipeline::prepare(&plan, inst, Some(&tmp.join(name))).unwrap();
+    let (dir, _, _) = pipeline::prepare(&plan, inst, Some(&tmp.join(name)), "test").unwrap();
     let events = EventSink::open(&dir).unwrap();
     let r = rig.clone();
     events.listen(move |e| {

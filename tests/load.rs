@@ -84,6 +84,11 @@ fn daemon() -> Daemon {
             pairs_done: 64,
             error: None,
             timings: vec![("capture".into(), 1.0)],
+            created_unix_s: None,
+            submitted_by: None,
+            again_of: None,
+            history: Vec::new(),
+            acting: None,
         }
         .save(&run)
         .unwrap();

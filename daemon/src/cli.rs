@@ -12,7 +12,7 @@ use clap::{Parser, Subcommand};
 
 use crate::api::ServeError;
 use crate::capture::CaptureError;
-use crate::config::{ConfigError, DEFAULT_INSTRUMENT, InstrumentConfig, TomlSource};
+use crate::config::{ConfigError, InstrumentConfig, TomlSource};
 use crate::devices::OpenError;
 use crate::logging::LogFormat;
 use crate::offline::OfflineError;
@@ -121,6 +121,17 @@ pub enum Command {
         #[arg(long, value_name = "M")]
         target_distance: Option<f64>,
     },
+    /// Query the run catalogue (filters: state, dates, plan, tag, text), or tag and
+    /// annotate a run.
+    Runs(crate::admin::RunsArgs),
+    /// Rebuild or sync the run catalogue from the run directories.
+    #[command(subcommand)]
+    Catalogue(crate::admin::CatalogueCommand),
+    /// Make, list and revoke API keys (roles: estop, observer, operator, admin).
+    #[command(subcommand)]
+    Keys(crate::admin::KeysCommand),
+    /// Show the audit trail: who submitted, paused, aborted, e-stopped, made keys.
+    Audit(crate::admin::AuditArgs),
     /// List serial ports and USB devices, and say which ones the instrument config
     /// selects.
     Devices {
@@ -130,39 +141,7 @@ pub enum Command {
     },
 }
 
-/// The `--instrument` option shared by the commands that talk to an instrument.
-#[derive(Debug, clap::Args)]
-pub struct InstrumentArg {
-    /// Instrument config (TOML). Default: configs/instrument/sim.toml, the simulated
-    /// instrument (a built-in copy is used when that file is not present).
-    #[arg(long, value_name = "FILE")]
-    pub instrument: Option<PathBuf>,
-}
-
-impl InstrumentArg {
-    /// Loads and validates the chosen instrument config.
-    pub fn load(&self) -> Result<InstrumentConfig, ConfigError> {
-        load_instrument(self.instrument.as_deref())
-    }
-}
-
-/// Loads the instrument config at `path`, or the default simulated instrument.
-pub fn load_instrument(path: Option<&Path>) -> Result<InstrumentConfig, ConfigError> {
-    InstrumentConfig::from_source(&instrument_source(path)?)
-}
-
-/// The instrument config's text: the given file, else `configs/instrument/sim.toml`,
-/// else the copy built into the binary.
-pub fn instrument_source(path: Option<&Path>) -> Result<TomlSource, ConfigError> {
-    match path {
-        Some(path) => TomlSource::load(path),
-        None if Path::new(DEFAULT_INSTRUMENT).is_file() => TomlSource::load(Path::new(DEFAULT_INSTRUMENT)),
-        None => Ok(TomlSource::from_text(
-            format!("{DEFAULT_INSTRUMENT} (built in)"),
-            include_str!("../../configs/instrument/sim.toml"),
-        )),
-    }
-}
+pub use crate::config::{InstrumentArg, instrument_source, load_instrument};
 
 /// Runs a parsed command line.
 pub fn execute(cli: Cli) -> Result<(), CliError> {
@@ -174,7 +153,7 @@ pub fn execute(cli: Cli) -> Result<(), CliError> {
         } => {
             let instrument_src = instrument_source(instrument.instrument.as_deref())?;
             let plan_src = TomlSource::load(&plan)?;
-            let (dir, plan, config) = pipeline::prepare(&plan_src, &instrument_src, out.as_deref())?;
+            let (dir, plan, config) = pipeline::prepare(&plan_src, &instrument_src, out.as_deref(), "cli")?;
             crate::logging::notice(&format!(
                 "run `{}` on {}\n  run directory: {}",
                 plan.name,
@@ -271,6 +250,10 @@ pub fn execute(cli: Cli) -> Result<(), CliError> {
             Ok(runtime.block_on(crate::api::serve(bind, service))?)
         }
         Command::Devices { instrument } => devices(&instrument.load()?),
+        Command::Runs(args) => Ok(crate::admin::runs(args)?),
+        Command::Catalogue(cmd) => Ok(crate::admin::catalogue(cmd)?),
+        Command::Keys(cmd) => Ok(crate::admin::keys(cmd)?),
+        Command::Audit(args) => Ok(crate::admin::audit(args)?),
         Command::Calibrate {
             instrument,
             out,
@@ -540,6 +523,9 @@ pub enum CliError {
     /// A calibration failed.
     #[error(transparent)]
     Calibrate(#[from] crate::calibrate::CalibrateError),
+    /// A catalogue, key or audit command failed.
+    #[error(transparent)]
+    Admin(#[from] crate::admin::AdminError),
     /// A plan over the instrument's budget.
     #[error("plan `{plan}`: {why}")]
     Budget {
@@ -597,6 +583,7 @@ impl CliError {
             CliError::Capture(e) => e.is_config(),
             CliError::Service(ServiceError::Config(_)) => true,
             CliError::Calibrate(e) => e.is_config(),
+            CliError::Admin(crate::admin::AdminError::Config(_) | crate::admin::AdminError::Usage(_)) => true,
             _ => false,
         };
         if config {

@@ -6,10 +6,13 @@
 //! Everything it does can therefore be driven from tests without a process.
 #![warn(missing_docs)]
 
+pub mod access;
+pub mod admin;
 pub mod api;
 pub mod budget;
 pub mod calibrate;
 pub mod capture;
+pub mod catalogue;
 pub mod check;
 pub mod cli;
 pub mod config;
@@ -18,6 +21,7 @@ pub mod events;
 #[cfg(feature = "test-hooks")]
 pub mod fuzz;
 pub mod logging;
+pub mod metrics;
 pub mod offline;
 pub mod pipeline;
 pub mod plan;

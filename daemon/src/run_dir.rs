@@ -46,6 +46,9 @@ pub mod file {
     pub const CAPTURE: &str = "capture.hdf5";
     /// The API's export of an unfinished run's capture, and its stamp.
     pub const EXPORT_CACHE: &str = ".capture-export.hdf5";
+    /// The run's tags and note ([`super::Annotations`]), kept apart from `run.json` so
+    /// an operator's edit never races the pipeline's own writes of it.
+    pub const ANNOTATIONS: &str = "annotations.json";
 }
 
 /// Why a run directory could not be read or written.
@@ -304,6 +307,34 @@ pub enum RunState {
     Failed,
 }
 
+/// A run state's name as the API, the catalogue and the CLI spell it.
+pub fn state_name(s: RunState) -> &'static str {
+    match s {
+        RunState::Queued => "queued",
+        RunState::Running => "running",
+        RunState::Paused => "paused",
+        RunState::Completed => "completed",
+        RunState::Aborted => "aborted",
+        RunState::Failed => "failed",
+    }
+}
+
+/// The names [`parse_state`] takes.
+pub const STATE_NAMES: &str = "queued, running, paused, completed, aborted, failed";
+
+/// A run state from its name ([`state_name`]).
+pub fn parse_state(s: &str) -> Result<RunState, String> {
+    Ok(match s {
+        "queued" => RunState::Queued,
+        "running" => RunState::Running,
+        "paused" => RunState::Paused,
+        "completed" => RunState::Completed,
+        "aborted" => RunState::Aborted,
+        "failed" => RunState::Failed,
+        other => return Err(format!("state `{other}`: expected one of {STATE_NAMES}")),
+    })
+}
+
 /// `run.json`: the run's state and provenance.
 #[derive(Clone, Debug, Serialize, Deserialize)]
 pub struct RunInfo {
@@ -325,6 +356,123 @@ pub struct RunInfo {
     pub error: Option<String>,
     /// Seconds per stage, for the summary.
     pub timings: Vec<(String, f64)>,
+    /// When the run was made (Unix seconds); `None` in runs stored before it was kept
+    /// (the run catalogue then reads the time from the run id).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub created_unix_s: Option<f64>,
+    /// Who submitted it: the name of the API key, or `cli` for `periscope run`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub submitted_by: Option<String>,
+    /// The run whose stored plan this one runs again (`POST /runs/{id}/again`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub again_of: Option<String>,
+    /// Every change of `state`, oldest first; [`RunInfo::save`] appends one whenever
+    /// the state it writes differs from the last one recorded.
+    #[serde(default)]
+    pub history: Vec<StateChange>,
+    /// Who makes the next state change ([`RunInfo::save`] records it and clears it).
+    #[serde(skip)]
+    pub acting: Option<String>,
+}
+
+/// One change of a run's state.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct StateChange {
+    /// When (Unix seconds).
+    pub at_unix_s: f64,
+    /// The state entered.
+    pub state: RunState,
+    /// Who caused it (a key's name, `cli`, `worker`), where known.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub by: Option<String>,
+}
+
+/// The time now as Unix seconds.
+pub fn unix_now() -> f64 {
+    std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map_or(0.0, |d| d.as_secs_f64())
+}
+
+/// A run's tags and free-text note (`annotations.json`), set by operators through the
+/// API or `periscope runs tag` / `note`.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct Annotations {
+    /// Tags, sorted, without duplicates.
+    #[serde(default)]
+    pub tags: Vec<String>,
+    /// A free-text note.
+    #[serde(default)]
+    pub note: String,
+}
+
+/// The most tags one run keeps, and the longest tag and note: an annotation is a label,
+/// not a place to store data.
+pub const MAX_TAGS: usize = 32;
+/// See [`MAX_TAGS`].
+pub const MAX_TAG_LEN: usize = 64;
+/// See [`MAX_TAGS`].
+pub const MAX_NOTE_LEN: usize = 4096;
+
+impl Annotations {
+    /// Reads a run's annotations (none when the file is missing).
+    pub fn load(dir: &Path) -> io::Result<Annotations> {
+        let path = dir.join(file::ANNOTATIONS);
+        match crate::store::read_text_capped(&path, 1 << 20) {
+            Ok(text) => {
+                serde_json::from_str(&text).map_err(|e| io::Error::new(io::ErrorKind::InvalidData, e))
+            }
+            Err(e) if e.kind() == io::ErrorKind::NotFound => Ok(Annotations::default()),
+            Err(e) => Err(e),
+        }
+    }
+
+    /// Writes them atomically.
+    pub fn save(&self, dir: &Path) -> io::Result<()> {
+        let text = serde_json::to_string_pretty(self).expect("annotations serialise");
+        crate::store::write_atomic(&dir.join(file::ANNOTATIONS), text.as_bytes())
+    }
+
+    /// Checks a tag: 1 to [`MAX_TAG_LEN`] characters of letters, digits, `-`, `_`,
+    /// `.`, `:` or `/`.
+    pub fn check_tag(tag: &str) -> Result<(), String> {
+        let ok = !tag.is_empty()
+            && tag.chars().count() <= MAX_TAG_LEN
+            && tag
+                .chars()
+                .all(|c| c.is_alphanumeric() || matches!(c, '-' | '_' | '.' | ':' | '/'));
+        if ok {
+            Ok(())
+        } else {
+            Err(format!(
+                "tag `{tag}`: a tag is 1 to {MAX_TAG_LEN} letters, digits, `-`, `_`, `.`, `:` or `/`"
+            ))
+        }
+    }
+
+    /// Adds and removes tags and replaces the note (when given), refusing what breaks
+    /// the limits; the result is sorted and without duplicates.
+    pub fn edit(&mut self, add: &[String], remove: &[String], note: Option<&str>) -> Result<(), String> {
+        for t in add {
+            Annotations::check_tag(t)?;
+        }
+        let mut tags: std::collections::BTreeSet<String> = self.tags.iter().cloned().collect();
+        tags.extend(add.iter().cloned());
+        for t in remove {
+            tags.remove(t);
+        }
+        if tags.len() > MAX_TAGS {
+            return Err(format!("a run keeps at most {MAX_TAGS} tags; remove some first"));
+        }
+        if let Some(n) = note {
+            if n.chars().count() > MAX_NOTE_LEN {
+                return Err(format!("the note is longer than {MAX_NOTE_LEN} characters"));
+            }
+            self.note = n.to_owned();
+        }
+        self.tags = tags.into_iter().collect();
+        Ok(())
+    }
 }
 
 impl RunInfo {
@@ -334,8 +482,17 @@ impl RunInfo {
         serde_json::from_str(&text).map_err(|e| io::Error::new(io::ErrorKind::InvalidData, e))
     }
 
-    /// Writes `run.json` atomically.
-    pub fn save(&self, dir: &Path) -> io::Result<()> {
+    /// Writes `run.json` atomically, first recording a state change in `history`
+    /// when the state differs from the last one recorded (with [`RunInfo::acting`] as
+    /// its cause).
+    pub fn save(&mut self, dir: &Path) -> io::Result<()> {
+        if self.history.last().map(|c| c.state) != Some(self.state) {
+            self.history.push(StateChange {
+                at_unix_s: unix_now(),
+                state: self.state,
+                by: self.acting.take(),
+            });
+        }
         let text = serde_json::to_string_pretty(self).expect("run info serialises");
         crate::store::write_atomic(&dir.join(file::RUN), text.as_bytes())
     }

@@ -111,6 +111,21 @@ async fn health_and_openapi_match_the_routes() {
         ("GET", "/api/v1/runs/{id}/events"),
         ("GET", "/api/v1/runs/{id}/files/{name}"),
         ("GET", "/api/v1/runs/{id}/geometry"),
+        ("PATCH", "/api/v1/runs/{id}"),
+        ("POST", "/api/v1/runs/batch"),
+        ("POST", "/api/v1/runs/{id}/again"),
+        ("GET", "/api/v1/catalogue"),
+        ("GET", "/api/v1/queue"),
+        ("PUT", "/api/v1/queue"),
+        ("POST", "/api/v1/queue/move"),
+        ("POST", "/api/v1/queue/lock"),
+        ("POST", "/api/v1/queue/unlock"),
+        ("GET", "/api/v1/whoami"),
+        ("GET", "/api/v1/keys"),
+        ("POST", "/api/v1/keys"),
+        ("DELETE", "/api/v1/keys/{name}"),
+        ("GET", "/api/v1/audit"),
+        ("GET", "/metrics"),
     ]
     .iter()
     .map(|(m, p)| (m.to_string(), p.to_string()))
@@ -242,8 +257,9 @@ async fn bad_requests_get_4xx_and_change_nothing() {
     )
     .await;
     assert_eq!(s, StatusCode::UNAUTHORIZED);
+    // The e-stop needs no key from this machine (docs/safety.md): it answers.
     let (s, _) = call(&router, Method::POST, "/api/v1/estop", None, "").await;
-    assert_eq!(s, StatusCode::UNAUTHORIZED);
+    assert_eq!(s, StatusCode::OK);
     // Oversized body (the limit is 64 KiB here).
     let huge = format!("{PLAN}\n# {}\n", "x".repeat(80 * 1024));
     let (s, v) = call(&router, Method::POST, "/api/v1/runs", Some(TOKEN), &huge).await;
@@ -280,7 +296,14 @@ async fn bad_requests_get_4xx_and_change_nothing() {
             "{v}"
         );
     }
-    assert_eq!(listing(dir.path()), before, "nothing was created");
+    // Nothing was created but the audit trail's record of the refusals.
+    let after: Vec<String> = listing(dir.path())
+        .into_iter()
+        .filter(|f| f != "audit.jsonl")
+        .collect();
+    assert_eq!(after, before, "nothing was created");
+    let audit = std::fs::read_to_string(dir.path().join("audit.jsonl")).unwrap();
+    assert!(audit.contains("\"outcome\":\"refused\""), "{audit}");
 
     // A queued run (no worker here): pausing it is a conflict, and changes nothing.
     let (s, run) = call(&router, Method::POST, "/api/v1/runs", Some(TOKEN), PLAN).await;

@@ -95,7 +95,7 @@ fn bench(dir: &Path, time_scale: f64, laser_extra: &str) -> (Standin, TomlSource
 /// A prepared run of `plan` on the lab config.
 fn prepare(dir: &Path, lab: &TomlSource, plan: &str) -> PathBuf {
     let plan_src = TomlSource::from_text(dir.join("plan.toml"), plan.to_owned());
-    let (run, _, _) = pipeline::prepare(&plan_src, lab, Some(&dir.join("run"))).unwrap();
+    let (run, _, _) = pipeline::prepare(&plan_src, lab, Some(&dir.join("run")), "test").unwrap();
     run
 }
 

@@ -37,6 +37,7 @@ fn a_stored_run_with_a_broken_plan_is_two() {
         &TomlSource::load(&root.join("configs/plans/demo.toml")).unwrap(),
         &TomlSource::load(&root.join("configs/instrument/sim.toml")).unwrap(),
         Some(&run),
+        "test",
     )
     .unwrap();
     std::fs::write(run.join("plan.toml"), "name = 1\n").unwrap();

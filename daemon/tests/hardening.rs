@@ -666,11 +666,15 @@ async fn a_submission_flood_gets_429_and_does_not_slow_the_capture() {
 }
 
 /// Every route × token (none, wrong, right) × client (loopback, another machine) ×
-/// `open-reads`: mutations need the right token from anywhere; reads need it only from
-/// other machines, unless reads are open. An authorised request is never 401 or 403.
+/// `open-reads`: the token (an admin key) is accepted everywhere; a wrong one is
+/// refused everywhere; without one, loopback may read and e-stop, other machines may
+/// read only with `open-reads`, and nobody may change anything. (The full role matrix,
+/// with keys of every role, expired and revoked, is `tests/run_service.rs`.)
 #[tokio::test]
 async fn every_route_enforces_the_token_rules_for_every_client() {
     use axum::extract::ConnectInfo;
+    use periscope_daemon::access::Role;
+    use periscope_daemon::api::access::required_role;
     use periscope_daemon::api::routes;
     for open_reads in [false, true] {
         let dir = tempfile::tempdir().unwrap();
@@ -682,16 +686,15 @@ async fn every_route_enforces_the_token_rules_for_every_client() {
         let id = v["id"].as_str().unwrap().to_owned();
         for (method, route) in routes() {
             let (method, route) = (method.as_str(), route.as_str());
+            let need = required_role(&Method::from_bytes(method.as_bytes()).unwrap(), route).unwrap();
             let uri = route.replace("{id}", &id).replace("{name}", "plan.toml");
-            // The check endpoint reads its body and changes nothing.
-            let mutating = method == "POST" && route != "/api/v1/check";
             for token in [None, Some("wrong-token-wrong-token-wrong"), Some(TOKEN)] {
                 for remote in [false, true] {
                     let mut req = Request::builder().method(method).uri(&uri);
                     if let Some(t) = token {
                         req = req.header(header::AUTHORIZATION, format!("Bearer {t}"));
                     }
-                    let body = if (uri.ends_with("/runs") && mutating) || uri.ends_with("/check") {
+                    let body = if (uri.ends_with("/runs") && method == "POST") || uri.ends_with("/check") {
                         PLAN
                     } else {
                         ""
@@ -709,8 +712,12 @@ async fn every_route_enforces_the_token_rules_for_every_client() {
                     let resp = router.clone().oneshot(req).await.unwrap();
                     let status = resp.status();
                     drop(resp);
-                    let needs_token = mutating || (remote && !open_reads);
-                    let authorised = !needs_token || token == Some(TOKEN);
+                    let keyless =
+                        (!remote && need <= Role::Observer) || (need == Role::Observer && open_reads);
+                    let authorised = match token {
+                        None => keyless,
+                        Some(t) => t == TOKEN,
+                    };
                     let case = format!(
                         "{method} {route}, token {token:?}, remote {remote}, open-reads {open_reads}"
                     );
@@ -724,6 +731,7 @@ async fn every_route_enforces_the_token_rules_for_every_client() {
                     }
                 }
             }
+            let _ = svc.unlock_queue(None, true);
         }
         // The dashboard's files carry no instrument data: a browser anywhere loads them
         // without a token (it cannot send one for a page load), and the page asks.

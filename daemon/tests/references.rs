@@ -149,7 +149,7 @@ fn relay_against_truth(instrument_file: &str, plan_file: &str, tdc_extra: &str) 
         .unwrap()
         .unwrap();
     let plan = TomlSource::load(&root().join("configs/plans").join(plan_file)).unwrap();
-    let (dir, _, _) = pipeline::prepare(&plan, &src, Some(&tmp.path().join("run"))).unwrap();
+    let (dir, _, _) = pipeline::prepare(&plan, &src, Some(&tmp.path().join("run")), "test").unwrap();
     // Stop once the relay is stored: the rest of the run is not under test.
     let control = Control::new();
     let events = EventSink::open(&dir).unwrap();

@@ -54,7 +54,7 @@ fn run_on(tmp: &Path, name: &str, pause: Duration, devices: &str) -> (PathBuf, u
         .unwrap()
         .unwrap();
     let plan = TomlSource::from_text(tmp.join("plan.toml"), plan());
-    let (dir, _, _) = pipeline::prepare(&plan, &src, Some(&tmp.join(name))).unwrap();
+    let (dir, _, _) = pipeline::prepare(&plan, &src, Some(&tmp.join(name)), "test").unwrap();
     let events = EventSink::open(&dir).unwrap();
     let live = Arc::new(AtomicUsize::new(0));
     let counter = live.clone();

@@ -89,7 +89,7 @@ fn prepare_on(tmp: &Path, plan: &str, devices: Devices) -> (PathBuf, SimBackend)
         .unwrap()
         .unwrap();
     let plan_src = TomlSource::from_text(tmp.join("plan.toml"), plan.to_owned());
-    let (dir, _, _) = pipeline::prepare(&plan_src, &src, Some(&tmp.join("run"))).unwrap();
+    let (dir, _, _) = pipeline::prepare(&plan_src, &src, Some(&tmp.join("run")), "test").unwrap();
     (dir, rig)
 }
 

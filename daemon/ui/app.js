@@ -337,9 +337,24 @@ function renderRuns() {
   if (!runs.length) $('runs-body').append(el('tr', {}, el('td', { colspan: 7 }, 'no runs yet')));
 }
 
+/// The runs table's query: the newest 100 matching runs from the run catalogue.
+function runsQuery() {
+  const p = new URLSearchParams({ order: 'desc', limit: '100' });
+  const q = $('runs-filter').value.trim();
+  const state = $('runs-state').value;
+  if (q) p.set('q', q);
+  if (state) p.set('state', state);
+  return `/api/v1/runs?${p}`;
+}
+
 async function refreshRuns() {
   try {
-    runs = await api('GET', '/api/v1/runs');
+    const r = await fetch(runsQuery(), { headers: headers({}) });
+    if (!r.ok) throw new Error(`runs: ${r.status}`);
+    const total = r.headers.get('x-total-count');
+    // Oldest first, as the rest of the page expects.
+    runs = (await r.json()).reverse();
+    $('runs-count').textContent = total != null ? `${runs.length} of ${total}` : '';
     setConnection(true);
   } catch (e) {
     if (e instanceof TypeError) setConnection(false);
@@ -353,6 +368,32 @@ async function refreshRuns() {
     const r = runs.find((x) => x.id === selected);
     if (r) onStatus(r);
   }
+}
+
+// ---------------------------------------------------------------- the audit trail
+
+let auditRendered = '';
+
+async function refreshAudit() {
+  let page;
+  try {
+    page = await api('GET', '/api/v1/audit?limit=20');
+  } catch (e) {
+    return;
+  }
+  const key = JSON.stringify(page.entries.map((e) => e.id));
+  if (key === auditRendered) return;
+  auditRendered = key;
+  const rows = page.entries.map((e) => el('tr', { class: e.outcome === 'ok' ? '' : 'audit-refused' },
+    el('td', { class: 'small' }, new Date(e.at_unix_s * 1000).toISOString().slice(0, 19).replace('T', ' ')),
+    el('td', {}, e.actor),
+    el('td', {}, e.role),
+    el('td', {}, e.action),
+    el('td', { class: 'small' }, e.target || ''),
+    el('td', { class: e.outcome === 'ok' ? '' : 'state-failed' }, e.outcome),
+    el('td', { class: 'small' }, e.detail || '')));
+  $('audit-body').replaceChildren(...rows);
+  if (!rows.length) $('audit-body').append(el('tr', {}, el('td', { colspan: 7 }, 'nothing recorded yet')));
 }
 
 // ---------------------------------------------------------------- the selected run
@@ -833,7 +874,11 @@ async function refresh() {
 async function start() {
   showTokenState();
   makePlots();
+  $('runs-filter').addEventListener('input', () => refreshRuns());
+  $('runs-state').addEventListener('change', () => refreshRuns());
   await refresh();
+  refreshAudit();
+  setInterval(refreshAudit, 10 * POLL_MS);
   probe.loadMs = performance.now();
   probe.ready = true;
   setInterval(refresh, POLL_MS);

@@ -11,7 +11,7 @@ use std::sync::Arc;
 use axum::Router;
 use axum::body::Body;
 use axum::extract::rejection::StringRejection;
-use axum::extract::{ConnectInfo, DefaultBodyLimit, Path, Request, State};
+use axum::extract::{DefaultBodyLimit, Path, Request, State};
 use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
 use axum::middleware::{self, Next};
 use axum::response::sse::{Event, KeepAlive, Sse};
@@ -24,6 +24,8 @@ use utoipa::OpenApi as _;
 use utoipa_axum::router::OpenApiRouter;
 use utoipa_axum::routes;
 
+pub mod access;
+pub mod catalogue;
 mod dashboard;
 mod openapi;
 pub mod server;
@@ -64,8 +66,20 @@ fn limited() -> OpenApiRouter<AppState> {
     OpenApiRouter::new()
         .routes(routes!(openapi_doc))
         .routes(routes!(instrument))
-        .routes(routes!(submit, list))
-        .routes(routes!(run_status))
+        .routes(routes!(submit, catalogue::list))
+        .routes(routes!(run_status, catalogue::annotate))
+        .routes(routes!(catalogue::batch))
+        .routes(routes!(catalogue::again))
+        .routes(routes!(catalogue::catalogue))
+        .routes(routes!(catalogue::queue, catalogue::reorder))
+        .routes(routes!(catalogue::move_run))
+        .routes(routes!(catalogue::lock))
+        .routes(routes!(catalogue::unlock))
+        .routes(routes!(access::whoami))
+        .routes(routes!(access::keys_list, access::keys_create))
+        .routes(routes!(access::keys_revoke))
+        .routes(routes!(access::audit))
+        .routes(routes!(catalogue::metrics))
         .routes(routes!(pause))
         .routes(routes!(resume))
         .routes(routes!(abort))
@@ -103,6 +117,8 @@ pub struct AppState {
     streams: Arc<std::sync::atomic::AtomicUsize>,
     /// Downloads in flight (a permit per download, held until its body is sent).
     downloads: Arc<tokio::sync::Semaphore>,
+    /// The rate limit on recording failed authentications.
+    auth_audit: access::AuthAuditState,
 }
 
 impl AppState {
@@ -115,6 +131,7 @@ impl AppState {
             service,
             streams: Arc::default(),
             downloads,
+            auth_audit: Arc::default(),
         }
     }
 }
@@ -163,14 +180,48 @@ impl IntoResponse for ApiError {
     fn into_response(self) -> Response {
         let body = ErrorBody {
             error: self.code,
-            message: self.message,
+            message: self.message.clone(),
         };
         let mut r = (self.status, axum::Json(body)).into_response();
+        r.extensions_mut().insert(ErrorMessage(self.message));
         if self.status == StatusCode::UNAUTHORIZED {
             r.headers_mut()
                 .insert(header::WWW_AUTHENTICATE, HeaderValue::from_static("Bearer"));
         }
         r
+    }
+}
+
+/// An error response's message, kept as a response extension for the audit trail.
+#[derive(Clone, Debug)]
+pub(crate) struct ErrorMessage(pub String);
+
+/// A JSON request body whose rejection is a JSON error naming what is wrong.
+pub(crate) struct JsonBody<T>(pub T);
+
+impl<S: Send + Sync, T: serde::de::DeserializeOwned> axum::extract::FromRequest<S> for JsonBody<T> {
+    type Rejection = ApiError;
+
+    async fn from_request(req: Request, state: &S) -> Result<Self, Self::Rejection> {
+        match axum::Json::<T>::from_request(req, state).await {
+            Ok(axum::Json(v)) => Ok(JsonBody(v)),
+            Err(e) => {
+                let status = e.status();
+                let code = match status {
+                    StatusCode::PAYLOAD_TOO_LARGE => "body-too-large",
+                    StatusCode::UNSUPPORTED_MEDIA_TYPE => "unsupported-media-type",
+                    _ => "bad-body",
+                };
+                Err(ApiError::new(
+                    status,
+                    code,
+                    format!(
+                        "the body must be JSON as documented at GET /api/v1/openapi.json: {}",
+                        e.body_text()
+                    ),
+                ))
+            }
+        }
     }
 }
 
@@ -188,6 +239,9 @@ impl From<ServiceError> for ApiError {
             ServiceError::Config(_) => (StatusCode::INTERNAL_SERVER_ERROR, "config"),
             ServiceError::QueueFull(_) => (StatusCode::TOO_MANY_REQUESTS, "queue-full"),
             ServiceError::OverBudget(_) => (StatusCode::UNPROCESSABLE_ENTITY, "over-budget"),
+            ServiceError::Invalid(_) => (StatusCode::UNPROCESSABLE_ENTITY, "invalid"),
+            ServiceError::Locked(_) => (StatusCode::LOCKED, "queue-locked"),
+            ServiceError::Catalogue(_) => (StatusCode::INTERNAL_SERVER_ERROR, "catalogue"),
         };
         ApiError::new(status, code, e.to_string())
     }
@@ -241,8 +295,9 @@ pub fn app(state: AppState) -> Router {
         .fallback(not_found)
         .method_not_allowed_fallback(method_not_allowed);
     routes
-        .layer(middleware::from_fn_with_state(state.clone(), authorise))
+        .layer(middleware::from_fn_with_state(state.clone(), access::authorise))
         .layer(middleware::from_fn_with_state(state.clone(), check_host))
+        .layer(middleware::from_fn_with_state(state.clone(), access::track))
         .layer(DefaultBodyLimit::max(api.body_limit))
         .layer(tower_http::timeout::TimeoutLayer::with_status_code(
             StatusCode::REQUEST_TIMEOUT,
@@ -334,23 +389,6 @@ fn is_mutating(req: &Request) -> bool {
         && req.uri().path() != "/api/v1/check"
 }
 
-/// Bearer token on mutating requests; on read-only ones too for clients not on
-/// loopback unless `[api] open-reads` is set. Requests built in-process (router tests)
-/// carry no peer address and count as loopback.
-async fn authorise(State(state): State<AppState>, req: Request, next: Next) -> Response {
-    let peer = req.extensions().get::<ConnectInfo<SocketAddr>>().map(|c| c.0);
-    let local = peer.is_none_or(|p| p.ip().is_loopback());
-    // The dashboard's own files hold no instrument data: a browser loads them without a
-    // token (it cannot send one for a page load) and the page asks for the token.
-    let static_file = !is_mutating(&req) && dashboard::is_static(req.uri().path());
-    let needs_token =
-        is_mutating(&req) || (!local && !static_file && !state.service.instrument().api.open_reads);
-    if needs_token && let Err(e) = check_token(state.service.token(), req.headers()) {
-        return e.into_response();
-    }
-    next.run(req).await
-}
-
 /// Refuses requests whose `Host` names this machine by a name nobody configured, and
 /// mutating requests whose `Origin` is another site. A DNS-rebinding page reaches the
 /// daemon under the attacker's host name, and a cross-site form posts with its own
@@ -421,40 +459,6 @@ pub fn host_allowed(host: &str, names: &[String]) -> bool {
         && (name.parse::<std::net::Ipv4Addr>().is_ok()
             || name == "localhost"
             || names.iter().any(|n| n.trim_end_matches('.') == name))
-}
-
-fn check_token(expected: Option<&str>, headers: &HeaderMap) -> Result<(), ApiError> {
-    let Some(expected) = expected else {
-        return Err(ApiError::new(
-            StatusCode::FORBIDDEN,
-            "no-token-configured",
-            "this daemon has no API token: set PERISCOPE_TOKEN or [api] token and restart it",
-        ));
-    };
-    // The scheme is case-insensitive (RFC 9110 §11.1): `bearer` and `BEARER` too.
-    let given = headers
-        .get(header::AUTHORIZATION)
-        .and_then(|v| v.to_str().ok())
-        .and_then(|v| v.trim_start().split_once(' '))
-        .filter(|(scheme, _)| scheme.eq_ignore_ascii_case("bearer"))
-        .map(|(_, token)| token);
-    match given {
-        None => Err(ApiError::new(
-            StatusCode::UNAUTHORIZED,
-            "unauthorized",
-            "this request needs `Authorization: Bearer <token>` (the daemon's PERISCOPE_TOKEN)",
-        )),
-        Some(t) if constant_time_eq(t.trim().as_bytes(), expected.as_bytes()) => Ok(()),
-        Some(_) => Err(ApiError::new(
-            StatusCode::UNAUTHORIZED,
-            "unauthorized",
-            "the bearer token is wrong",
-        )),
-    }
-}
-
-fn constant_time_eq(a: &[u8], b: &[u8]) -> bool {
-    a.len() == b.len() && a.iter().zip(b).fold(0u8, |acc, (x, y)| acc | (x ^ y)) == 0
 }
 
 async fn not_found() -> ApiError {
@@ -602,6 +606,7 @@ async fn geometry(State(state): State<AppState>, Path(id): Path<String>) -> ApiR
         (status = 413, description = status::TOO_LARGE, body = ErrorBody),
         (status = 415, description = status::MEDIA_TYPE, body = ErrorBody),
         (status = 422, description = status::INVALID_PLAN, body = ErrorBody),
+        (status = 423, description = status::LOCKED, body = ErrorBody),
         (status = 429, description = status::QUEUE_FULL, body = ErrorBody),
         (status = 500, description = status::STORAGE, body = ErrorBody),
         (status = 503, description = status::UNAVAILABLE, body = ErrorBody),
@@ -609,25 +614,27 @@ async fn geometry(State(state): State<AppState>, Path(id): Path<String>) -> ApiR
 )]
 async fn submit(
     State(state): State<AppState>,
+    axum::Extension(caller): axum::Extension<access::Caller>,
     headers: HeaderMap,
     body: Result<String, StringRejection>,
 ) -> ApiResult<Response> {
     let text = plan_body(&headers, body)?;
+    let key = headers
+        .get(catalogue::LOCK_KEY_HEADER)
+        .and_then(|v| v.to_str().ok())
+        .map(str::to_owned);
     let s = Arc::clone(&state.service);
-    let status = blocking(move || s.submit(text)).await?;
+    let status = blocking(move || {
+        s.check_lock(key.as_deref())?;
+        s.submit_as(text, &caller.name, None)
+    })
+    .await?;
     let location = format!("/api/v1/runs/{}", status.id);
     let mut r = (StatusCode::CREATED, axum::Json(status)).into_response();
     if let Ok(v) = HeaderValue::from_str(&location) {
         r.headers_mut().insert(header::LOCATION, v);
     }
     Ok(r)
-}
-
-/// Every run, oldest first
-#[utoipa::path(get, path = "/api/v1/runs", responses((status = 200, description = "runs", body = Vec<RunStatus>)))]
-async fn list(State(state): State<AppState>) -> ApiResult<axum::Json<Vec<RunStatus>>> {
-    let s = Arc::clone(&state.service);
-    blocking(move || s.list()).await.map(axum::Json)
 }
 
 /// One run: state, stage, progress, ETA, files
@@ -687,10 +694,20 @@ async fn pause(
 )]
 async fn resume(
     State(state): State<AppState>,
+    axum::Extension(caller): axum::Extension<access::Caller>,
+    headers: HeaderMap,
     Path(id): Path<String>,
 ) -> ApiResult<(StatusCode, axum::Json<RunStatus>)> {
+    let key = headers
+        .get(catalogue::LOCK_KEY_HEADER)
+        .and_then(|v| v.to_str().ok())
+        .map(str::to_owned);
     let s = Arc::clone(&state.service);
-    let st = blocking(move || s.resume(&id)).await?;
+    let st = blocking(move || {
+        s.check_lock(key.as_deref())?;
+        s.resume_as(&id, &caller.name)
+    })
+    .await?;
     Ok((StatusCode::ACCEPTED, axum::Json(st)))
 }
 
@@ -710,10 +727,11 @@ async fn resume(
 )]
 async fn abort(
     State(state): State<AppState>,
+    axum::Extension(caller): axum::Extension<access::Caller>,
     Path(id): Path<String>,
 ) -> ApiResult<(StatusCode, axum::Json<RunStatus>)> {
     let s = Arc::clone(&state.service);
-    let st = blocking(move || s.abort(&id)).await?;
+    let st = blocking(move || s.abort_as(&id, &caller.name)).await?;
     Ok((StatusCode::ACCEPTED, axum::Json(st)))
 }
 

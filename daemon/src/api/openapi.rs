@@ -18,7 +18,7 @@ use utoipa::{Modify, OpenApi, ToSchema};
 #[openapi(
     info(
         title = "Periscope instrument API",
-        description = "Runs an NLOS imaging instrument: queue capture plans, follow their progress, download results. Mutating endpoints need `Authorization: Bearer <token>`; reads need it too from other machines unless `[api] open-reads` is set."
+        description = "Runs an NLOS imaging instrument: queue capture plans, follow their progress, download results. Requests carry `Authorization: Bearer <key>`: the daemon's token (an admin key) or a key from `periscope keys create` with a role (estop, observer, operator, admin). From this machine, reads and the e-stop need no key; every change needs one, and reads need one from other machines unless `[api] open-reads` is set."
     ),
     components(schemas(ErrorBody)),
     modifiers(&Bearer)
@@ -50,9 +50,10 @@ pub struct ErrorBody {
 
 /// What each error status means, for the handlers' `responses(...)`.
 pub(super) mod status {
-    pub(crate) const UNAUTHORISED: &str = "missing or wrong bearer token";
-    pub(crate) const FORBIDDEN: &str =
-        "the daemon has no token configured, or the Host or Origin is not allowed";
+    pub(crate) const UNAUTHORISED: &str = "missing, unknown, expired or revoked key";
+    pub(crate) const FORBIDDEN: &str = "the key's role is below what the request needs (`forbidden-role`), the daemon has no token or key configured, or the Host or Origin is not allowed";
+    pub(crate) const LOCKED: &str =
+        "the queue is locked for maintenance (send the lock key in `X-Periscope-Lock-Key`)";
     pub(crate) const NOT_FOUND: &str = "unknown run or file";
     pub(crate) const CONFLICT: &str = "the request does not fit the run's state";
     pub(crate) const TOO_LARGE: &str = "body over the size limit (`[api] body-limit-kib`)";

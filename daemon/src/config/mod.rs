@@ -4,11 +4,13 @@
 //! TOML exactly (`deny_unknown_fields`, kebab-case keys), then a validated type that
 //! cannot hold an invalid value. Both stages report problems through [`ConfigError`],
 //! which names the file, the line and the dotted key, and says what to do.
+mod args;
 mod daqmx;
 mod instrument;
 mod scene;
 mod source;
 
+pub use args::{InstrumentArg, instrument_source, load_instrument};
 pub use instrument::{
     ApiSettings, Backend, BudgetLimits, GalvoArm, GalvoLink, InstrumentConfig, LaserSettings,
     PicoQuantCounter, SerialLink, SimDevices, SimSettings, SpadSettings, TdcDriver, TdcSettings,

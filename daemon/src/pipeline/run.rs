@@ -53,11 +53,13 @@ fn write(dir: &Path, name: &str, bytes: &[u8]) -> Result<(), PipelineError> {
 }
 
 /// Starts a new run of `plan` on `instrument`: creates the run directory (under
-/// `runs/` unless `out` is given) with the plan and instrument config as provenance.
+/// `runs/` unless `out` is given) with the plan and instrument config as provenance,
+/// and `submitted_by` (an API key's name, or `cli`) as its submitter.
 pub fn prepare(
     plan_src: &TomlSource,
     instrument_src: &TomlSource,
     out: Option<&Path>,
+    submitted_by: &str,
 ) -> Result<(PathBuf, Plan, InstrumentConfig), PipelineError> {
     let instrument = InstrumentConfig::from_source(instrument_src)?;
     let plan = Plan::from_source(plan_src, &instrument)?;
@@ -89,7 +91,7 @@ pub fn prepare(
         file::INSTRUMENT,
         crate::config::redact_secrets(instrument_src.text()).as_bytes(),
     )?;
-    let info = RunInfo {
+    let mut info = RunInfo {
         id: dir
             .file_name()
             .map_or_else(String::new, |n| n.to_string_lossy().into_owned()),
@@ -102,6 +104,11 @@ pub fn prepare(
         pairs_done: 0,
         error: None,
         timings: Vec::new(),
+        created_unix_s: Some(crate::run_dir::unix_now()),
+        submitted_by: Some(submitted_by.to_owned()),
+        again_of: None,
+        history: Vec::new(),
+        acting: Some(submitted_by.to_owned()),
     };
     info.save(&dir).map_err(|e| PipelineError::storage(&dir, e))?;
     Ok((dir, plan, instrument))
@@ -285,7 +292,7 @@ impl Run {
         Ok(())
     }
 
-    pub(super) fn save_info(&self) -> Result<(), PipelineError> {
+    pub(super) fn save_info(&mut self) -> Result<(), PipelineError> {
         self.info
             .save(&self.dir)
             .map_err(|e| PipelineError::storage(&self.dir, e))

@@ -74,6 +74,7 @@ impl Service {
                     &id,
                     RunState::Paused,
                     Some("held by an emergency stop; resume it to run".into()),
+                    "estop",
                 ) {
                     report.warnings.push(format!(
                         "queued run {id} is held (the worker will not start it), but its run.json could not record it: {e}; resume or abort it once the disk is fixed"

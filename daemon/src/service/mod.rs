@@ -11,6 +11,7 @@
 //! | `estop.rs` | the e-stop and its report |
 //! | `status.rs` | the instrument's status, run geometry, downloads, event subscriptions |
 //! | `worker.rs` | the worker thread, a run's execution and its event forwarding |
+//! | `ops.rs` | reorder, move, batch, run again, the queue lock, annotations; the catalogue's indexer and the audit trail |
 //!
 //! Everything here is synchronous and quick (a mutex held for microseconds, small file
 //! writes); the HTTP handlers call the slower parts through `spawn_blocking`. Runs
@@ -35,11 +36,13 @@ use crate::store::write_atomic;
 use periscope_drivers::EmergencyOff;
 
 mod estop;
+mod ops;
 mod queue;
 mod status;
 mod worker;
 
 pub use estop::EstopReport;
+pub use ops::{LOCK_FILE, QueueLock, QueueView};
 use queue::hold_interrupted;
 pub use status::{GEOMETRY_POINTS, Geometry, InstrumentStatus, ReadingAge, RunStage, VolumeBox};
 
@@ -153,6 +156,15 @@ pub enum ServiceError {
     /// The plan needs more memory or disk than the instrument's budget allows.
     #[error("{0}")]
     OverBudget(String),
+    /// The request's values are not acceptable (a tag, an order, a lock key).
+    #[error("{0}")]
+    Invalid(String),
+    /// The queue is locked for maintenance.
+    #[error("{0}")]
+    Locked(String),
+    /// The run catalogue failed.
+    #[error(transparent)]
+    Catalogue(#[from] crate::catalogue::CatalogueError),
 }
 
 impl ServiceError {
@@ -190,6 +202,8 @@ struct Live {
     pairs_done: usize,
     pairs_total: usize,
     capture_started: Option<(Instant, usize)>,
+    /// Photon counts since the capture (re)started, for the counts-rate metric.
+    counts: u64,
     loss: Option<f64>,
 }
 
@@ -220,6 +234,8 @@ struct Shared {
     /// take them as failed (a `running` run.json of any other run is left alone: it
     /// may be a `periscope run` of another process in the same directory).
     stale: std::collections::HashSet<String>,
+    /// The queue's maintenance lock (`queue-lock.json` while held).
+    lock: Option<QueueLock>,
     shutdown: bool,
 }
 
@@ -232,7 +248,16 @@ pub struct Service {
     /// status readings all reach the same devices (one simulated instrument, for
     /// `sim`).
     backend: Arc<dyn DeviceBackend>,
-    token: Option<String>,
+    /// The API keys (and the daemon's single token, as an admin key).
+    keys: crate::access::KeyStore,
+    /// The run catalogue and audit trail.
+    catalogue: Arc<crate::catalogue::Catalogue>,
+    /// The catalogue's indexer thread's queue ([`Service::touch`]).
+    indexer: Mutex<Option<std::sync::mpsc::Sender<String>>>,
+    /// Counters and histograms for `/metrics`.
+    metrics: crate::metrics::Metrics,
+    /// Held while a run's annotations are changed.
+    annotating: Mutex<()>,
     shared: Mutex<Shared>,
     wake: Condvar,
     /// Held while a capture export is written.
@@ -292,6 +317,25 @@ impl Service {
             })
             .collect();
         orphans.sort();
+        let lock_path = runs_dir.join(LOCK_FILE);
+        let lock = match std::fs::read_to_string(&lock_path) {
+            Ok(text) => Some(serde_json::from_str::<QueueLock>(&text).unwrap_or_else(|e| {
+                // A damaged lock file still locks: maintenance was going on.
+                tracing::warn!(
+                    "{}: {e}; the queue stays locked (unlock it with force)",
+                    lock_path.display()
+                );
+                QueueLock {
+                    by: "unknown".into(),
+                    reason: format!("{} could not be read", lock_path.display()),
+                    since_unix_s: 0.0,
+                    key_sha256: String::new(),
+                }
+            })),
+            Err(_) => None,
+        };
+        let catalogue = Arc::new(crate::catalogue::Catalogue::open_unsynced(&runs_dir)?);
+        let keys = crate::access::KeyStore::open(&runs_dir, token);
         for id in orphans {
             let dir = runs_dir.join(&id);
             if let Ok(mut info) = RunInfo::load(&dir)
@@ -307,7 +351,11 @@ impl Service {
             instrument_src,
             instrument,
             backend,
-            token,
+            keys,
+            catalogue,
+            indexer: Mutex::new(None),
+            metrics: crate::metrics::Metrics::new(),
+            annotating: Mutex::new(()),
             shared: Mutex::new(Shared {
                 queue,
                 current: None,
@@ -320,6 +368,7 @@ impl Service {
                 admitting: 0,
                 held: Default::default(),
                 stale: Default::default(),
+                lock,
                 shutdown: false,
             }),
             wake: Condvar::new(),
@@ -327,6 +376,7 @@ impl Service {
             devices: Mutex::new(()),
         });
         service.persist(&service.lock())?;
+        service.start_indexer();
         Ok(service)
     }
 
@@ -346,6 +396,8 @@ impl Service {
         }
         // Dropping the senders ends every event stream after what it has buffered.
         s.channels.clear();
+        // And the catalogue's indexer ends after what it was told of.
+        *self.indexer.lock().unwrap_or_else(|p| p.into_inner()) = None;
         self.wake.notify_all();
     }
 
@@ -380,11 +432,6 @@ impl Service {
         self.shared.lock().unwrap_or_else(|p| p.into_inner())
     }
 
-    /// The bearer token mutating requests must carry.
-    pub fn token(&self) -> Option<&str> {
-        self.token.as_deref()
-    }
-
     /// The instrument config.
     pub fn instrument(&self) -> &InstrumentConfig {
         &self.instrument
@@ -396,17 +443,7 @@ impl Service {
     }
 }
 
-/// A run state's name as the API spells it.
-pub fn state_name(s: RunState) -> &'static str {
-    match s {
-        RunState::Queued => "queued",
-        RunState::Running => "running",
-        RunState::Paused => "paused",
-        RunState::Completed => "completed",
-        RunState::Aborted => "aborted",
-        RunState::Failed => "failed",
-    }
-}
+pub use crate::run_dir::state_name;
 
 #[cfg(test)]
 mod tests {
@@ -429,7 +466,7 @@ mod tests {
         state: RunState,
         delay: Duration,
     ) -> std::thread::JoinHandle<()> {
-        svc.set_state(id, state, None).unwrap();
+        svc.set_state(id, state, None, "test").unwrap();
         let control = Control::new();
         svc.lock().current = Some((id.to_owned(), control));
         let svc = Arc::clone(svc);

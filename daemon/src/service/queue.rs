@@ -50,19 +50,35 @@ impl Service {
         id: &str,
         state: RunState,
         error: Option<String>,
+        by: &str,
     ) -> Result<(), ServiceError> {
         let dir = self.dir(id)?;
         let mut info = self.info(id)?;
         info.state = state;
+        info.acting = Some(by.to_owned());
         if error.is_some() {
             info.error = error;
         }
         info.save(&dir)
-            .map_err(ServiceError::storage(dir.join(file::RUN)))
+            .map_err(ServiceError::storage(dir.join(file::RUN)))?;
+        self.touch(id);
+        Ok(())
     }
 
     /// Validates a plan (TOML text) and queues it. Returns the new run's status.
+    /// In-process callers (tests, benches) submit as `local`.
     pub fn submit(&self, text: String) -> Result<RunStatus, ServiceError> {
+        self.submit_as(text, "local", None)
+    }
+
+    /// Validates a plan and queues it as submitted by `by` (an API key's name),
+    /// recording the run it repeats, if any.
+    pub fn submit_as(
+        &self,
+        text: String,
+        by: &str,
+        again_of: Option<&str>,
+    ) -> Result<RunStatus, ServiceError> {
         let src = TomlSource::from_text("request body", text);
         let plan = Plan::from_source(&src, &self.instrument).map_err(ServiceError::InvalidPlan)?;
         crate::budget::Budget::of_plan(&plan)
@@ -81,7 +97,7 @@ impl Service {
             }
             s.admitting += 1;
         }
-        let admitted = self.admit(&src, &plan);
+        let admitted = self.admit(&src, &plan, by, again_of);
         let mut s = self.lock();
         s.admitting -= 1;
         let id = admitted?;
@@ -89,26 +105,40 @@ impl Service {
         self.persist_after_change(&s);
         self.wake.notify_all();
         drop(s);
-        tracing::info!(run = %id, plan = %plan.name, "run queued");
+        tracing::info!(run = %id, plan = %plan.name, by, "run queued");
+        self.index_now(&id);
         self.status(&id)
     }
 
     /// Makes a submitted plan's run directory; returns its id.
-    pub(super) fn admit(&self, src: &TomlSource, plan: &Plan) -> Result<String, ServiceError> {
+    pub(super) fn admit(
+        &self,
+        src: &TomlSource,
+        plan: &Plan,
+        by: &str,
+        again_of: Option<&str>,
+    ) -> Result<String, ServiceError> {
         let dir = crate::run_dir::new_run_dir(&self.runs_dir, &plan.name)
             .map_err(ServiceError::storage(&self.runs_dir))?;
         let src = TomlSource::from_text(dir.join(file::PLAN), src.text().to_owned());
-        pipeline::prepare(&src, &self.instrument_src, Some(&dir)).map_err(|e| match e {
+        pipeline::prepare(&src, &self.instrument_src, Some(&dir), by).map_err(|e| match e {
             PipelineError::Config(c) => ServiceError::InvalidPlan(c),
             other => ServiceError::Prepare(other),
         })?;
+        if let Some(of) = again_of {
+            let mut info = RunInfo::load(&dir).map_err(ServiceError::storage(dir.join(file::RUN)))?;
+            info.again_of = Some(of.to_owned());
+            info.save(&dir)
+                .map_err(ServiceError::storage(dir.join(file::RUN)))?;
+        }
         Ok(dir
             .file_name()
             .map(|n| n.to_string_lossy().into_owned())
             .unwrap_or_default())
     }
 
-    /// Every run in the runs directory, oldest first.
+    /// Every run in the runs directory, oldest first (read from the directories, not
+    /// the catalogue: the reference the catalogue is checked against).
     pub fn list(&self) -> Result<Vec<RunStatus>, ServiceError> {
         let mut ids: Vec<String> = std::fs::read_dir(&self.runs_dir)
             .map_err(ServiceError::storage(&self.runs_dir))?
@@ -203,6 +233,11 @@ impl Service {
     /// Queues a paused, failed or interrupted run again; it continues from its last
     /// stored pair when the instrument is free.
     pub fn resume(&self, id: &str) -> Result<RunStatus, ServiceError> {
+        self.resume_as(id, "local")
+    }
+
+    /// [`Service::resume`] by `by` (recorded in the run's state history).
+    pub fn resume_as(&self, id: &str, by: &str) -> Result<RunStatus, ServiceError> {
         // run.json is read under the lock: the worker and other requests change it
         // under the same lock, so the state checked is the state changed.
         let s = self.lock();
@@ -227,7 +262,7 @@ impl Service {
                 )));
             }
         }
-        self.set_state(id, RunState::Queued, None)?;
+        self.set_state(id, RunState::Queued, None, by)?;
         if !s.queue.iter().any(|q| q == id) {
             s.queue.push_back(id.to_owned());
         }
@@ -267,6 +302,12 @@ impl Service {
     /// Aborts a run: a running one at its next checkpoint (the instrument is made safe
     /// and what was captured is kept), a queued or paused one at once.
     pub fn abort(&self, id: &str) -> Result<RunStatus, ServiceError> {
+        self.abort_as(id, "local")
+    }
+
+    /// [`Service::abort`] by `by` (recorded in the run's state history when the abort
+    /// is immediate; a running run records its own end).
+    pub fn abort_as(&self, id: &str, by: &str) -> Result<RunStatus, ServiceError> {
         let s = self.lock();
         // A run that has already stopped at a checkpoint would not see the request.
         let mut s = self.await_hand_back(s, id);
@@ -293,6 +334,7 @@ impl Service {
             id,
             RunState::Aborted,
             Some("aborted by the operator before it ran again".into()),
+            by,
         )?;
         s.held.remove(id);
         s.stale.remove(id);

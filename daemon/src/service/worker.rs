@@ -21,9 +21,12 @@ impl Service {
                     if s.shutdown {
                         return;
                     }
+                    // A locked queue starts nothing (maintenance); the running run,
+                    // if any, finishes.
                     let next = s
                         .queue
                         .iter()
+                        .filter(|_| s.lock.is_none())
                         .filter(|q| !s.held.contains(*q))
                         .find(|q| self.info(q).is_ok_and(|i| i.state == RunState::Queued))
                         .cloned();
@@ -122,6 +125,10 @@ impl Service {
             }
             self.wake.notify_all();
             drop(s);
+            self.touch(&id);
+            if let Ok(info) = self.info(&id) {
+                self.metrics.run_finished(state_name(info.state));
+            }
             match result {
                 Ok(()) => tracing::info!(run = %id, "run completed"),
                 Err(e) => tracing::warn!(run = %id, "run stopped: {e}"),
@@ -207,6 +214,14 @@ impl Service {
     }
 
     pub(super) fn on_event(&self, id: &str, ev: &RunEvent, last_sent: &mut [Instant; 2]) {
+        match ev {
+            RunEvent::StageStarted { .. } => self.touch(id),
+            RunEvent::StageFinished { stage, seconds } => {
+                self.metrics.stage_finished(stage.name(), *seconds);
+                self.touch(id);
+            }
+            _ => {}
+        }
         let mut s = self.lock();
         if s.live.id == id {
             let live = &mut s.live;
@@ -215,10 +230,14 @@ impl Service {
                     live.stage = stage.name().into();
                     if stage.name() == "capture" {
                         live.capture_started = Some((Instant::now(), live.pairs_done));
+                        live.counts = 0;
                     }
                 }
                 RunEvent::Planned { pairs, .. } => live.pairs_total = *pairs,
-                RunEvent::Pair { done, total, .. } => {
+                RunEvent::Pair {
+                    done, total, counts, ..
+                } => {
+                    live.counts += counts;
                     live.pairs_done = *done;
                     live.pairs_total = *total;
                     if live.capture_started.is_none() {

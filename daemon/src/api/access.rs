@@ -1,0 +1,524 @@
+//! The API's side of roles, keys and the audit trail: which role each route needs, the
+//! middleware that authenticates a request's key and records what it changed, the
+//! latency and error metrics of every request, and the key and audit endpoints.
+//! `crate::access` holds the roles and keys themselves; `docs/api.md` the matrix.
+use std::net::SocketAddr;
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+use axum::extract::{ConnectInfo, MatchedPath, Path, Query, Request, State};
+use axum::http::{HeaderMap, Method, StatusCode, header};
+use axum::middleware::Next;
+use axum::response::{IntoResponse, Response};
+
+use super::{ApiError, ApiResult, AppState, ErrorBody, ErrorMessage, blocking, status};
+use crate::access::{AuthError, Identity, KeyRecord, Role};
+use crate::catalogue::{AuditEntry, AuditPage, AuditQuery};
+
+/// Who made a request, as the handlers see it (a request extension).
+#[derive(Clone, Debug)]
+pub struct Caller {
+    /// The key's name, or `loopback` / `open-reads` for a keyless read.
+    pub name: String,
+    /// Its role.
+    pub role: Role,
+    /// The client's address.
+    pub peer: Option<SocketAddr>,
+}
+
+/// Failed authentications recorded in the audit trail per minute; the rest are
+/// counted and the count recorded with the next one, so a flood of bad keys cannot
+/// grow the trail without bound.
+const AUTH_AUDIT_PER_MINUTE: u32 = 30;
+
+/// The rate limit on recording failed authentications.
+#[derive(Default)]
+pub struct AuthAuditLimit {
+    window: Option<Instant>,
+    recorded: u32,
+    suppressed: u64,
+}
+
+/// The role a route needs, by method and route template: `None` for the dashboard's
+/// static files (they hold no instrument data).
+pub fn required_role(method: &Method, route: &str) -> Option<Role> {
+    if super::dashboard::is_static(route) {
+        return None;
+    }
+    let admin =
+        route.starts_with("/api/v1/keys") || route.starts_with("/api/v1/queue") && method != Method::GET;
+    if admin {
+        return Some(Role::Admin);
+    }
+    if route == "/api/v1/estop" {
+        return Some(Role::Estop);
+    }
+    if method == Method::GET || method == Method::HEAD || route == "/api/v1/check" {
+        return Some(Role::Observer);
+    }
+    Some(Role::Operator)
+}
+
+/// What a changing request is called in the audit trail.
+fn action(method: &Method, route: &str) -> Option<&'static str> {
+    Some(match (method.as_str(), route) {
+        ("POST", "/api/v1/runs") => "submit",
+        ("POST", "/api/v1/runs/batch") => "submit-batch",
+        ("POST", "/api/v1/runs/{id}/pause") => "pause",
+        ("POST", "/api/v1/runs/{id}/resume") => "resume",
+        ("POST", "/api/v1/runs/{id}/abort") => "abort",
+        ("POST", "/api/v1/runs/{id}/again") => "again",
+        ("PATCH", "/api/v1/runs/{id}") => "annotate",
+        ("POST", "/api/v1/estop") => "estop",
+        ("PUT", "/api/v1/queue") => "queue-order",
+        ("POST", "/api/v1/queue/move") => "queue-move",
+        ("POST", "/api/v1/queue/lock") => "queue-lock",
+        ("POST", "/api/v1/queue/unlock") => "queue-unlock",
+        ("POST", "/api/v1/keys") => "key-create",
+        ("DELETE", "/api/v1/keys/{name}") => "key-revoke",
+        _ => return None,
+    })
+}
+
+/// The path segment a route template's `{…}` parameter matched.
+fn path_target(route: &str, path: &str) -> Option<String> {
+    route
+        .split('/')
+        .zip(path.split('/'))
+        .find(|(t, _)| t.starts_with('{'))
+        .map(|(_, v)| v.to_owned())
+}
+
+/// The secret of an `Authorization: Bearer …` header (the scheme is case-insensitive,
+/// RFC 9110 §11.1), or `Err` for an Authorization header of another shape.
+fn bearer(headers: &HeaderMap) -> Result<Option<&str>, ()> {
+    let Some(v) = headers.get(header::AUTHORIZATION) else {
+        return Ok(None);
+    };
+    v.to_str()
+        .ok()
+        .and_then(|v| v.trim_start().split_once(' '))
+        .filter(|(scheme, _)| scheme.eq_ignore_ascii_case("bearer"))
+        .map(|(_, t)| Some(t.trim()))
+        .ok_or(())
+}
+
+/// Authenticates and authorises every request (see `crate::access` for the roles),
+/// and records changing requests, e-stops and failed authentications in the audit
+/// trail.
+pub(super) async fn authorise(State(state): State<AppState>, mut req: Request, next: Next) -> Response {
+    let peer = req.extensions().get::<ConnectInfo<SocketAddr>>().map(|c| c.0);
+    // Requests built in-process (router tests) carry no peer and count as loopback.
+    let local = peer.is_none_or(|p| p.ip().is_loopback());
+    let route = req
+        .extensions()
+        .get::<MatchedPath>()
+        .map_or_else(|| req.uri().path().to_owned(), |m| m.as_str().to_owned());
+    let method = req.method().clone();
+    let path = req.uri().path().to_owned();
+    let Some(need) = required_role(&method, &route) else {
+        return next.run(req).await;
+    };
+    let service = Arc::clone(&state.service);
+    let keys = service.keys();
+    let audited = action(&method, &route);
+    let refuse = |e: ApiError, actor: &str, why: String| {
+        let entry = AuditEntry::new(
+            actor,
+            "none",
+            audited.unwrap_or("authorise"),
+            Some(&route),
+            "refused",
+        )
+        .detail(format!("{method} {path}: {why}"))
+        .peer(peer);
+        (e, entry)
+    };
+    let given = match bearer(req.headers()) {
+        Ok(g) => g,
+        Err(()) => {
+            let (e, entry) = refuse(
+                ApiError::new(
+                    StatusCode::UNAUTHORIZED,
+                    "unauthorized",
+                    "the Authorization header must be `Bearer <key>`",
+                ),
+                "unknown",
+                "malformed Authorization header".into(),
+            );
+            return refused(&state, e, entry).await;
+        }
+    };
+    let caller = match given {
+        Some(_) | None if need >= Role::Operator && !keys.any() => {
+            return ApiError::new(
+                StatusCode::FORBIDDEN,
+                "no-token-configured",
+                "this daemon has no API token or key: set PERISCOPE_TOKEN or [api] token, or make a key with `periscope keys create`, and restart it",
+            )
+            .into_response();
+        }
+        Some(secret) => match keys.authenticate(secret, crate::run_dir::unix_now()) {
+            Ok(Identity { name, role }) => Caller { name, role, peer },
+            Err(e) => {
+                let actor = match &e {
+                    AuthError::Expired(n) | AuthError::Revoked(n) => n.clone(),
+                    AuthError::Unknown => "unknown".into(),
+                };
+                let message = match &e {
+                    AuthError::Unknown => {
+                        "the bearer key is wrong: it is not the daemon's token nor a key it knows".to_owned()
+                    }
+                    other => other.to_string(),
+                };
+                let (e, entry) = refuse(
+                    ApiError::new(StatusCode::UNAUTHORIZED, "unauthorized", message),
+                    &actor,
+                    e.to_string(),
+                );
+                return refused(&state, e, entry).await;
+            }
+        },
+        // Loopback reads and e-stops need no key: whoever is at the instrument's
+        // computer can see it and stop it (docs/safety.md).
+        None if local && need <= Role::Observer => Caller {
+            name: "loopback".into(),
+            role: Role::Observer,
+            peer,
+        },
+        None if need == Role::Observer && service.instrument().api.open_reads => Caller {
+            name: "open-reads".into(),
+            role: Role::Observer,
+            peer,
+        },
+        None => {
+            let (e, entry) = refuse(
+                ApiError::new(
+                    StatusCode::UNAUTHORIZED,
+                    "unauthorized",
+                    format!(
+                        "this request needs `Authorization: Bearer <key>` with a key of role {} or above (the daemon's PERISCOPE_TOKEN, or a key from `periscope keys create`)",
+                        need.name()
+                    ),
+                ),
+                "unknown",
+                "no key".into(),
+            );
+            return refused(&state, e, entry).await;
+        }
+    };
+    if caller.role < need {
+        let e = ApiError::new(
+            StatusCode::FORBIDDEN,
+            "forbidden-role",
+            format!(
+                "key `{}` has role {}; this request needs {} (ask an admin for a key with that role)",
+                caller.name,
+                caller.role.name(),
+                need.name()
+            ),
+        );
+        let entry = AuditEntry::new(
+            &caller.name,
+            caller.role.name(),
+            audited.unwrap_or("authorise"),
+            Some(&route),
+            "refused",
+        )
+        .detail(format!(
+            "{method} {path}: role {} < {}",
+            caller.role.name(),
+            need.name()
+        ))
+        .peer(peer);
+        record(&state, entry).await;
+        return e.into_response();
+    }
+    let target = path_target(&route, &path);
+    req.extensions_mut().insert(caller.clone());
+    let response = next.run(req).await;
+    if let Some(action) = audited {
+        let outcome = match response.status() {
+            s if s.is_success() => "ok",
+            s if s.is_client_error() => "refused",
+            _ => "failed",
+        };
+        // A new run's id is in Location.
+        let target = target.or_else(|| {
+            response
+                .headers()
+                .get(header::LOCATION)
+                .and_then(|l| l.to_str().ok())
+                .and_then(|l| l.rsplit('/').next())
+                .map(str::to_owned)
+        });
+        let mut entry = AuditEntry::new(
+            &caller.name,
+            caller.role.name(),
+            action,
+            target.as_deref(),
+            outcome,
+        )
+        .peer(caller.peer);
+        if let Some(ErrorMessage(m)) = response.extensions().get::<ErrorMessage>() {
+            entry = entry.detail(m.clone());
+        } else if let Some(AuditDetail(d)) = response.extensions().get::<AuditDetail>() {
+            entry = entry.detail(d.clone());
+        }
+        record(&state, entry).await;
+    }
+    response
+}
+
+/// What a successful changing request did, for its audit entry (a response
+/// extension handlers may set).
+#[derive(Clone, Debug)]
+pub(super) struct AuditDetail(pub String);
+
+/// Answers a refused authentication, recording it (rate-limited).
+async fn refused(state: &AppState, e: ApiError, entry: AuditEntry) -> Response {
+    state.service.metrics().auth_failed();
+    let entry = {
+        let mut l = state.auth_audit.lock().unwrap_or_else(|p| p.into_inner());
+        let now = Instant::now();
+        if l.window
+            .is_none_or(|w| now.duration_since(w) >= Duration::from_secs(60))
+        {
+            l.window = Some(now);
+            l.recorded = 0;
+        }
+        if l.recorded < AUTH_AUDIT_PER_MINUTE {
+            l.recorded += 1;
+            let suppressed = std::mem::take(&mut l.suppressed);
+            Some(if suppressed > 0 {
+                let d = entry.detail.clone().unwrap_or_default();
+                entry.detail(format!(
+                    "{d} (and {suppressed} more refused requests not recorded one by one)"
+                ))
+            } else {
+                entry
+            })
+        } else {
+            l.suppressed += 1;
+            None
+        }
+    };
+    if let Some(entry) = entry {
+        record(state, entry).await;
+    }
+    e.into_response()
+}
+
+/// Records an audit entry on the blocking pool (it is flushed to disk).
+async fn record(state: &AppState, entry: AuditEntry) {
+    let s = Arc::clone(&state.service);
+    let _ = tokio::task::spawn_blocking(move || s.audit(entry)).await;
+}
+
+/// Records each request's latency and, for statuses of 400 and above, an error, by
+/// method and route template.
+pub(super) async fn track(State(state): State<AppState>, req: Request, next: Next) -> Response {
+    let route = req
+        .extensions()
+        .get::<MatchedPath>()
+        .map_or("unmatched", |m| m.as_str())
+        .to_owned();
+    let method = req.method().as_str().to_owned();
+    let t = Instant::now();
+    let response = next.run(req).await;
+    state.service.metrics().request(
+        &method,
+        &route,
+        response.status().as_u16(),
+        t.elapsed().as_secs_f64(),
+    );
+    response
+}
+
+/// The shared mutex type of [`AuthAuditLimit`].
+pub type AuthAuditState = Arc<Mutex<AuthAuditLimit>>;
+
+/// `GET /api/v1/whoami`.
+#[derive(Debug, serde::Serialize, utoipa::ToSchema)]
+pub struct WhoAmI {
+    /// The key's name (`loopback` without a key from this machine).
+    pub name: String,
+    /// Its role.
+    pub role: Role,
+}
+
+/// Who this request is from, and what it may do
+#[utoipa::path(get, path = "/api/v1/whoami", responses((status = 200, description = "the caller", body = WhoAmI), (status = 401, description = status::UNAUTHORISED, body = ErrorBody)))]
+pub(super) async fn whoami(axum::Extension(caller): axum::Extension<Caller>) -> axum::Json<WhoAmI> {
+    axum::Json(WhoAmI {
+        name: caller.name,
+        role: caller.role,
+    })
+}
+
+/// A key as the API shows it: without its digest.
+#[derive(Debug, serde::Serialize, utoipa::ToSchema)]
+pub struct KeyView {
+    /// Name.
+    pub name: String,
+    /// Role.
+    pub role: Role,
+    /// Made (Unix seconds).
+    pub created_unix_s: f64,
+    /// By.
+    pub created_by: String,
+    /// Expires (Unix seconds).
+    pub expires_unix_s: Option<f64>,
+    /// Revoked (Unix seconds).
+    pub revoked_unix_s: Option<f64>,
+}
+
+impl From<KeyRecord> for KeyView {
+    fn from(k: KeyRecord) -> KeyView {
+        KeyView {
+            name: k.name,
+            role: k.role,
+            created_unix_s: k.created_unix_s,
+            created_by: k.created_by,
+            expires_unix_s: k.expires_unix_s,
+            revoked_unix_s: k.revoked_unix_s,
+        }
+    }
+}
+
+/// The API keys (admin)
+#[utoipa::path(get, path = "/api/v1/keys", security(("bearer" = [])), responses((status = 200, description = "keys, without their secrets or digests", body = Vec<KeyView>), (status = 401, description = status::UNAUTHORISED, body = ErrorBody), (status = 403, description = status::FORBIDDEN, body = ErrorBody)))]
+pub(super) async fn keys_list(State(state): State<AppState>) -> ApiResult<axum::Json<Vec<KeyView>>> {
+    let s = Arc::clone(&state.service);
+    blocking(move || Ok(s.keys().keys().into_iter().map(KeyView::from).collect()))
+        .await
+        .map(axum::Json)
+}
+
+/// `POST /api/v1/keys`.
+#[derive(Debug, serde::Deserialize, utoipa::ToSchema)]
+pub struct NewKey {
+    /// Name (1–64 letters, digits, `-`, `_`, `.`, `@`).
+    pub name: String,
+    /// Role: estop, observer, operator or admin.
+    pub role: String,
+    /// Expiry: a duration (`90d`, `12h`) or a time (`2027-01-31`); none if absent.
+    pub expires: Option<String>,
+}
+
+/// A new key and its secret (shown once).
+#[derive(Debug, serde::Serialize, utoipa::ToSchema)]
+pub struct CreatedKey {
+    /// The key.
+    pub key: KeyView,
+    /// Its secret: send it as `Authorization: Bearer <secret>`. Not stored; not shown again.
+    pub secret: String,
+}
+
+/// Make an API key (admin)
+#[utoipa::path(post, path = "/api/v1/keys", security(("bearer" = [])), request_body = NewKey, responses((status = 201, description = "made", body = CreatedKey), (status = 401, description = status::UNAUTHORISED, body = ErrorBody), (status = 403, description = status::FORBIDDEN, body = ErrorBody), (status = 422, description = "bad name, role or expiry", body = ErrorBody)))]
+pub(super) async fn keys_create(
+    State(state): State<AppState>,
+    axum::Extension(caller): axum::Extension<Caller>,
+    body: super::JsonBody<NewKey>,
+) -> ApiResult<Response> {
+    let NewKey { name, role, expires } = body.0;
+    let s = Arc::clone(&state.service);
+    let created = blocking(move || {
+        let role = Role::parse(&role).map_err(crate::service::ServiceError::Invalid)?;
+        let expires = expires
+            .map(|e| crate::access::parse_expiry(&e, crate::run_dir::unix_now()))
+            .transpose()
+            .map_err(crate::service::ServiceError::Invalid)?;
+        s.keys()
+            .create(&name, role, expires, &caller.name)
+            .map_err(|e| crate::service::ServiceError::Invalid(e.to_string()))
+    })
+    .await?;
+    let detail = format!("role {}", created.0.role.name());
+    let target = created.0.name.clone();
+    let mut r = (
+        StatusCode::CREATED,
+        axum::Json(CreatedKey {
+            key: created.0.into(),
+            secret: created.1,
+        }),
+    )
+        .into_response();
+    r.extensions_mut()
+        .insert(AuditDetail(format!("{target}: {detail}")));
+    Ok(r)
+}
+
+/// Revoke an API key (admin)
+#[utoipa::path(delete, path = "/api/v1/keys/{name}", security(("bearer" = [])), params(("name" = String, Path, description = "key name")), responses((status = 200, description = "revoked", body = KeyView), (status = 401, description = status::UNAUTHORISED, body = ErrorBody), (status = 403, description = status::FORBIDDEN, body = ErrorBody), (status = 422, description = "no such key", body = ErrorBody)))]
+pub(super) async fn keys_revoke(
+    State(state): State<AppState>,
+    Path(name): Path<String>,
+) -> ApiResult<axum::Json<KeyView>> {
+    let s = Arc::clone(&state.service);
+    blocking(move || {
+        s.keys()
+            .revoke(&name)
+            .map(KeyView::from)
+            .map_err(|e| crate::service::ServiceError::Invalid(e.to_string()))
+    })
+    .await
+    .map(axum::Json)
+}
+
+/// `GET /api/v1/audit`'s filters.
+#[derive(Debug, Default, serde::Deserialize, utoipa::IntoParams)]
+pub struct AuditParams {
+    /// At or after (RFC 3339 time or date).
+    pub since: Option<String>,
+    /// Before (RFC 3339 time or date).
+    pub until: Option<String>,
+    /// By this actor (key name).
+    pub actor: Option<String>,
+    /// This action (`submit`, `abort`, `estop`, `authenticate`, ...).
+    pub action: Option<String>,
+    /// On this run id or key name.
+    pub target: Option<String>,
+    /// Entries per page (1–1000, default 100).
+    pub limit: Option<usize>,
+    /// Entries skipped.
+    pub offset: Option<usize>,
+}
+
+/// The audit trail, newest first
+///
+/// Who submitted, paused, resumed, aborted, e-stopped, reordered or locked the queue,
+/// made or revoked keys, and every refused authentication (at most 30 a minute one by
+/// one, the rest counted).
+#[utoipa::path(get, path = "/api/v1/audit", params(AuditParams), responses((status = 200, description = "entries", body = AuditPage), (status = 400, description = "bad filter", body = ErrorBody)))]
+pub(super) async fn audit(
+    State(state): State<AppState>,
+    Query(p): Query<AuditParams>,
+) -> ApiResult<axum::Json<AuditPage>> {
+    let time = |v: &Option<String>, field: &str| -> ApiResult<Option<f64>> {
+        v.as_deref()
+            .map(|t| {
+                crate::access::parse_time(t)
+                    .map_err(|m| ApiError::new(StatusCode::BAD_REQUEST, "bad-query", format!("{field}: {m}")))
+            })
+            .transpose()
+    };
+    let q = AuditQuery {
+        since: time(&p.since, "since")?,
+        until: time(&p.until, "until")?,
+        actor: p.actor,
+        action: p.action,
+        target: p.target,
+        limit: p.limit.unwrap_or(100),
+        offset: p.offset.unwrap_or(0),
+    };
+    let s = Arc::clone(&state.service);
+    blocking(move || {
+        s.catalogue()
+            .audit(&q)
+            .map_err(crate::service::ServiceError::Catalogue)
+    })
+    .await
+    .map(axum::Json)
+}

@@ -1,0 +1,115 @@
+//! The audit trail: who did what and when. Each entry is appended to
+//! `RUNS_DIR/audit.jsonl` first (one `write` of one line on an `O_APPEND` file, flushed
+//! to disk: the record that survives a lost or damaged catalogue, and that the daemon
+//! and the CLI append to at once without interleaving), then inserted in the
+//! catalogue's `audit` table by its id, so an entry is never there twice.
+use std::io::Write as _;
+use std::path::Path;
+
+use serde::{Deserialize, Serialize};
+use utoipa::ToSchema;
+
+/// The audit log's file name in the runs directory.
+pub const AUDIT_FILE: &str = "audit.jsonl";
+
+/// The longest detail an entry keeps (a refused plan's reason, say), in bytes.
+const MAX_DETAIL: usize = 2048;
+
+/// One audited action.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, ToSchema)]
+pub struct AuditEntry {
+    /// A unique id (random, 128 bits, hex).
+    pub id: String,
+    /// When (Unix seconds).
+    pub at_unix_s: f64,
+    /// Who: an API key's name, `loopback` for a request without a key from this
+    /// machine, `cli` for the command line, or `unknown` for a failed authentication.
+    pub actor: String,
+    /// The actor's role (`observer`, `operator`, `admin`, `estop`, or `none`).
+    pub role: String,
+    /// What: `submit`, `pause`, `resume`, `abort`, `estop`, `again`, `annotate`,
+    /// `queue-order`, `queue-lock`, `queue-unlock`, `key-create`, `key-revoke`,
+    /// `authenticate`, `authorise`.
+    pub action: String,
+    /// On what: a run id, a key's name.
+    pub target: Option<String>,
+    /// `ok`, `refused` (the request was not allowed or not valid) or `failed`.
+    pub outcome: String,
+    /// Why it was refused or failed, or what it changed.
+    pub detail: Option<String>,
+    /// The client's address, for API requests.
+    pub peer: Option<String>,
+}
+
+impl AuditEntry {
+    /// A new entry stamped now with a fresh id.
+    pub fn new(actor: &str, role: &str, action: &str, target: Option<&str>, outcome: &str) -> AuditEntry {
+        use rand::RngCore;
+        let mut id = [0u8; 16];
+        rand::rng().fill_bytes(&mut id);
+        AuditEntry {
+            id: id.iter().map(|b| format!("{b:02x}")).collect(),
+            at_unix_s: crate::run_dir::unix_now(),
+            actor: actor.to_owned(),
+            role: role.to_owned(),
+            action: action.to_owned(),
+            target: target.map(str::to_owned),
+            outcome: outcome.to_owned(),
+            detail: None,
+            peer: None,
+        }
+    }
+
+    /// With a detail (cut to [`MAX_DETAIL`] bytes at a character boundary).
+    pub fn detail(mut self, detail: impl Into<String>) -> AuditEntry {
+        let mut d: String = detail.into();
+        if d.len() > MAX_DETAIL {
+            let mut cut = MAX_DETAIL;
+            while !d.is_char_boundary(cut) {
+                cut -= 1;
+            }
+            d.truncate(cut);
+            d.push('…');
+        }
+        self.detail = Some(d);
+        self
+    }
+
+    /// With the client's address.
+    pub fn peer(mut self, peer: Option<std::net::SocketAddr>) -> AuditEntry {
+        self.peer = peer.map(|p| p.to_string());
+        self
+    }
+}
+
+/// Appends `entry` to the audit log in `runs_dir` as one line, written whole with one
+/// call on a file opened for appending, and flushed to disk.
+pub fn append(runs_dir: &Path, entry: &AuditEntry) -> std::io::Result<()> {
+    let mut line = serde_json::to_string(entry).expect("audit entries serialise");
+    line.push('\n');
+    let mut f = std::fs::OpenOptions::new()
+        .create(true)
+        .append(true)
+        .open(runs_dir.join(AUDIT_FILE))?;
+    f.write_all(line.as_bytes())?;
+    f.sync_data()
+}
+
+/// Every entry of the audit log in `runs_dir`, oldest first; lines that do not parse
+/// (a line cut short by a crash) are skipped with a warning.
+pub fn read_all(runs_dir: &Path) -> std::io::Result<Vec<AuditEntry>> {
+    let path = runs_dir.join(AUDIT_FILE);
+    let text = match std::fs::read_to_string(&path) {
+        Ok(t) => t,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(Vec::new()),
+        Err(e) => return Err(e),
+    };
+    let mut out = Vec::new();
+    for (n, line) in text.lines().enumerate().filter(|(_, l)| !l.trim().is_empty()) {
+        match serde_json::from_str(line) {
+            Ok(e) => out.push(e),
+            Err(e) => tracing::warn!("{}: line {} skipped: {e}", path.display(), n + 1),
+        }
+    }
+    Ok(out)
+}

@@ -1,0 +1,631 @@
+//! The run service at Bluesky's level, through the router: the role matrix (every
+//! route × every role × key valid, expired and revoked), the catalogue's queries, the
+//! audit trail, the queue's operations (lock, reorder, move, batch, run again), and
+//! `/metrics` read by an independent Prometheus text-format parser.
+use std::path::Path;
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use axum::body::Body;
+use axum::extract::ConnectInfo;
+use axum::http::{Method, Request, StatusCode, header};
+use periscope_daemon::access::{KeyStore, Role};
+use periscope_daemon::api::{AppState, app, routes};
+use periscope_daemon::service::Service;
+use serde_json::{Value, json};
+use tower::ServiceExt;
+
+mod common;
+
+const TOKEN: &str = "test-token-0123456789abcdef";
+const PLAN: &str = include_str!("../../tests/data/plans/small-fbp.toml");
+
+fn service(runs: &Path) -> Arc<Service> {
+    let src = common::sim_instrument(runs, 0.0, &format!("token = \"{TOKEN}\"\n"), "");
+    Service::open(src, Some(TOKEN.to_owned())).unwrap()
+}
+
+/// A request with a bearer key, a body (TOML for plans, JSON otherwise), and a peer.
+fn request(method: &Method, uri: &str, key: Option<&str>, body: &str, remote: bool) -> Request<Body> {
+    let mut req = Request::builder().method(method.clone()).uri(uri);
+    if let Some(k) = key {
+        req = req.header(header::AUTHORIZATION, format!("Bearer {k}"));
+    }
+    if !body.is_empty() {
+        let ct = if body.trim_start().starts_with('{') {
+            "application/json"
+        } else {
+            "application/toml"
+        };
+        req = req.header(header::CONTENT_TYPE, ct);
+    }
+    let mut req = req.body(Body::from(body.to_owned())).unwrap();
+    let peer: std::net::SocketAddr = if remote {
+        "192.0.2.7:50000".parse().unwrap()
+    } else {
+        "127.0.0.1:50000".parse().unwrap()
+    };
+    req.extensions_mut().insert(ConnectInfo(peer));
+    req
+}
+
+async fn call(
+    router: &axum::Router,
+    method: Method,
+    uri: &str,
+    key: Option<&str>,
+    body: &str,
+) -> (StatusCode, Value) {
+    let resp = router
+        .clone()
+        .oneshot(request(&method, uri, key, body, false))
+        .await
+        .unwrap();
+    let status = resp.status();
+    let bytes = axum::body::to_bytes(resp.into_body(), 64 << 20).await.unwrap();
+    (status, serde_json::from_slice(&bytes).unwrap_or(Value::Null))
+}
+
+/// A body each route accepts, so an authorised request is judged on its key alone.
+fn body_for(method: &str, route: &str) -> String {
+    match (method, route) {
+        ("POST", "/api/v1/runs") | ("POST", "/api/v1/check") => PLAN.into(),
+        ("POST", "/api/v1/runs/batch") => json!({ "plans": [PLAN] }).to_string(),
+        ("PATCH", "/api/v1/runs/{id}") => json!({ "add_tags": ["t"] }).to_string(),
+        ("PUT", "/api/v1/queue") => json!({ "order": [] }).to_string(),
+        ("POST", "/api/v1/queue/move") => json!({ "run": "x", "position": 0 }).to_string(),
+        ("POST", "/api/v1/queue/lock") => json!({ "reason": "matrix", "key": "matrix-lock-key" }).to_string(),
+        ("POST", "/api/v1/queue/unlock") => json!({ "key": "matrix-lock-key" }).to_string(),
+        ("POST", "/api/v1/keys") => json!({ "name": "k-matrix", "role": "observer" }).to_string(),
+        _ => String::new(),
+    }
+}
+
+/// Every documented route × caller (no key on loopback and remote, the token, a key of
+/// each role, expired and revoked keys, a wrong key): the request is refused (401 for
+/// no, unknown, expired or revoked keys; 403 for a role too low) exactly when the role
+/// matrix says so, and never otherwise.
+#[tokio::test]
+async fn every_route_follows_the_role_matrix_for_every_key() {
+    let dir = tempfile::tempdir().unwrap();
+    let svc = service(dir.path());
+    let keys = KeyStore::open(dir.path(), None);
+    let now = periscope_daemon::run_dir::unix_now();
+    let mut callers: Vec<(String, Option<String>, Option<Role>, bool)> = Vec::new();
+    for role in [Role::Estop, Role::Observer, Role::Operator, Role::Admin] {
+        let (_, secret) = keys
+            .create(&format!("k-{}", role.name()), role, Some(now + 3600.0), "test")
+            .unwrap();
+        callers.push((format!("{} key", role.name()), Some(secret), Some(role), false));
+    }
+    let (_, expired) = keys
+        .create("k-expired", Role::Admin, Some(now + 1.0), "test")
+        .unwrap();
+    let (_, revoked) = keys.create("k-revoked", Role::Admin, None, "test").unwrap();
+    keys.revoke("k-revoked").unwrap();
+    callers.push(("revoked admin key".into(), Some(revoked), None, false));
+    callers.push(("wrong key".into(), Some("psk_0000".into()), None, false));
+    callers.push(("token".into(), Some(TOKEN.into()), Some(Role::Admin), false));
+    callers.push(("no key, loopback".into(), None, None, false));
+    callers.push(("no key, remote".into(), None, None, true));
+    // Let the expiring key expire.
+    std::thread::sleep(Duration::from_millis(1100));
+    callers.push(("expired admin key".into(), Some(expired), None, false));
+    let router = app(AppState::new(Arc::clone(&svc)));
+    let (s, v) = call(&router, Method::POST, "/api/v1/runs", Some(TOKEN), PLAN).await;
+    assert_eq!(s, StatusCode::CREATED, "{v}");
+    let id = v["id"].as_str().unwrap().to_owned();
+    let mut checked = 0;
+    for (method, route) in routes() {
+        let m = Method::from_bytes(method.as_bytes()).unwrap();
+        let need = periscope_daemon::api::access::required_role(&m, &route).expect("an API route");
+        let uri = route.replace("{id}", &id).replace(
+            "{name}",
+            if route.starts_with("/api/v1/keys") {
+                "k-nobody"
+            } else {
+                "plan.toml"
+            },
+        );
+        for (who, key, role, remote) in &callers {
+            let body = body_for(&method, &route);
+            let resp = router
+                .clone()
+                .oneshot(request(&m, &uri, key.as_deref(), &body, *remote))
+                .await
+                .unwrap();
+            let status = resp.status();
+            drop(resp);
+            let keyless_ok = key.is_none() && !remote && need <= Role::Observer;
+            let expected = match (key, role) {
+                (Some(_), None) => Some(StatusCode::UNAUTHORIZED),
+                (Some(_), Some(r)) if *r < need => Some(StatusCode::FORBIDDEN),
+                (Some(_), Some(_)) => None,
+                (None, _) if keyless_ok => None,
+                (None, _) => Some(StatusCode::UNAUTHORIZED),
+            };
+            let case = format!("{method} {route} by {who}: {status}");
+            match expected {
+                Some(e) => assert_eq!(status, e, "{case}"),
+                None => assert!(
+                    status != StatusCode::UNAUTHORIZED && status != StatusCode::FORBIDDEN,
+                    "{case}"
+                ),
+            }
+            checked += 1;
+        }
+        // The matrix's lock leaves the queue locked for the next routes; unlock it.
+        let _ = svc.unlock_queue(None, true);
+    }
+    assert!(checked > 200, "{checked}");
+    // Refused authentications are in the audit trail, under the key's name where known.
+    let (_, audit) = call(
+        &router,
+        Method::GET,
+        "/api/v1/audit?actor=k-revoked&limit=5",
+        None,
+        "",
+    )
+    .await;
+    assert!(audit["total"].as_u64().unwrap() > 0, "{audit}");
+    assert_eq!(audit["entries"][0]["outcome"], "refused");
+    svc.shutdown();
+}
+
+async fn wait_state(router: &axum::Router, id: &str, states: &[&str]) -> Value {
+    let t = Instant::now();
+    loop {
+        let (_, v) = call(router, Method::GET, &format!("/api/v1/runs/{id}"), None, "").await;
+        if states.contains(&v["state"].as_str().unwrap_or("")) {
+            return v;
+        }
+        assert!(
+            t.elapsed() < Duration::from_secs(60),
+            "{id} never became {states:?}: {v}"
+        );
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+}
+
+/// A lab day through the API: keys of two people, a batch, a locked queue that starts
+/// nothing, reorder and move, a run again, tags and a note; the catalogue answers
+/// each filter, and the audit trail names who did what.
+#[tokio::test]
+async fn the_catalogue_queue_and_audit_follow_a_lab_day() {
+    let dir = tempfile::tempdir().unwrap();
+    let svc = service(dir.path());
+    let keys = KeyStore::open(dir.path(), None);
+    let (_, alice) = keys.create("alice", Role::Operator, None, "test").unwrap();
+    let (_, root) = keys.create("root", Role::Admin, None, "test").unwrap();
+    let router = app(AppState::new(Arc::clone(&svc)));
+    let (s, v) = call(&router, Method::GET, "/api/v1/whoami", Some(&alice), "").await;
+    assert_eq!(
+        (s, &v["name"], &v["role"]),
+        (StatusCode::OK, &json!("alice"), &json!("operator"))
+    );
+
+    // The queue is locked before the worker starts: nothing may start.
+    let (s, v) = call(
+        &router,
+        Method::POST,
+        "/api/v1/queue/lock",
+        Some(&root),
+        &json!({"reason": "realigning the SPAD arm", "key": "spad-lock-key"}).to_string(),
+    )
+    .await;
+    assert_eq!(s, StatusCode::OK, "{v}");
+    let worker = svc.start_worker();
+    let (s, v) = call(&router, Method::POST, "/api/v1/runs", Some(&alice), PLAN).await;
+    assert_eq!(
+        (s, v["error"].as_str()),
+        (StatusCode::LOCKED, Some("queue-locked")),
+        "{v}"
+    );
+    assert!(
+        v["message"].as_str().unwrap().contains("realigning the SPAD arm"),
+        "{v}"
+    );
+    // A batch with one invalid plan queues none.
+    let bad_batch = json!({"plans": [PLAN, "name = 3"]}).to_string();
+    let req = Request::builder()
+        .method(Method::POST)
+        .uri("/api/v1/runs/batch")
+        .header(header::AUTHORIZATION, format!("Bearer {alice}"))
+        .header(header::CONTENT_TYPE, "application/json")
+        .header("x-periscope-lock-key", "spad-lock-key")
+        .body(Body::from(bad_batch))
+        .unwrap();
+    let resp = router.clone().oneshot(req).await.unwrap();
+    assert_eq!(resp.status(), StatusCode::UNPROCESSABLE_ENTITY);
+    // With the lock key, the batch of three is queued and stays queued.
+    let batch = json!({"plans": [PLAN, PLAN, PLAN]}).to_string();
+    let req = Request::builder()
+        .method(Method::POST)
+        .uri("/api/v1/runs/batch")
+        .header(header::AUTHORIZATION, format!("Bearer {alice}"))
+        .header(header::CONTENT_TYPE, "application/json")
+        .header("x-periscope-lock-key", "spad-lock-key")
+        .body(Body::from(batch))
+        .unwrap();
+    let resp = router.clone().oneshot(req).await.unwrap();
+    assert_eq!(resp.status(), StatusCode::CREATED);
+    let bytes = axum::body::to_bytes(resp.into_body(), 1 << 20).await.unwrap();
+    let runs: Value = serde_json::from_slice(&bytes).unwrap();
+    let ids: Vec<String> = runs
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|r| r["id"].as_str().unwrap().to_owned())
+        .collect();
+    assert_eq!(ids.len(), 3);
+    tokio::time::sleep(Duration::from_millis(500)).await;
+    let (_, q) = call(&router, Method::GET, "/api/v1/queue", None, "").await;
+    assert_eq!(q["running"], Value::Null, "a locked queue starts nothing: {q}");
+    assert_eq!(q["lock"]["by"], "root");
+    assert!(
+        q["lock"].get("key_sha256").is_none(),
+        "the lock key's digest is not shown"
+    );
+    // Reorder (the lock key again) and move: the last goes first, then the first last.
+    let order = json!({"order": [ids[2], ids[0], ids[1]]}).to_string();
+    let req = Request::builder()
+        .method(Method::PUT)
+        .uri("/api/v1/queue")
+        .header(header::AUTHORIZATION, format!("Bearer {root}"))
+        .header(header::CONTENT_TYPE, "application/json")
+        .header("x-periscope-lock-key", "spad-lock-key")
+        .body(Body::from(order))
+        .unwrap();
+    let resp = router.clone().oneshot(req).await.unwrap();
+    assert_eq!(resp.status(), StatusCode::OK);
+    let (s, v) = call(
+        &router,
+        Method::PUT,
+        "/api/v1/queue",
+        Some(&root),
+        &json!({"order": [ids[0]]}).to_string(),
+    )
+    .await;
+    assert_eq!(s, StatusCode::LOCKED, "without the lock key: {v}");
+    // Alice (an operator) may not reorder, whatever the lock.
+    let (s, _) = call(
+        &router,
+        Method::PUT,
+        "/api/v1/queue",
+        Some(&alice),
+        &json!({"order": []}).to_string(),
+    )
+    .await;
+    assert_eq!(s, StatusCode::FORBIDDEN);
+    let (s, v) = call(
+        &router,
+        Method::POST,
+        "/api/v1/queue/unlock",
+        Some(&root),
+        &json!({"key": "wrong-key!"}).to_string(),
+    )
+    .await;
+    assert_eq!(s, StatusCode::LOCKED, "{v}");
+    let (s, v) = call(
+        &router,
+        Method::POST,
+        "/api/v1/queue/unlock",
+        Some(&root),
+        &json!({"key": "spad-lock-key"}).to_string(),
+    )
+    .await;
+    assert_eq!(s, StatusCode::OK, "{v}");
+    // Unlocked: they run in the new order.
+    let last = wait_state(&router, &ids[1], &["completed"]).await;
+    assert_eq!(last["state"], "completed");
+    let by_start: Vec<f64> = ids
+        .iter()
+        .map(|id| {
+            let rec = svc.catalogue().get(id).unwrap().unwrap().0;
+            rec.history
+                .iter()
+                .find(|c| c.state == periscope_daemon::run_dir::RunState::Running)
+                .map(|c| c.at_unix_s)
+                .unwrap()
+        })
+        .collect();
+    assert!(
+        by_start[2] < by_start[0] && by_start[0] < by_start[1],
+        "{by_start:?}"
+    );
+
+    // Run again, tag, annotate.
+    let (s, v) = call(
+        &router,
+        Method::POST,
+        &format!("/api/v1/runs/{}/again", ids[0]),
+        Some(&alice),
+        "",
+    )
+    .await;
+    assert_eq!(s, StatusCode::CREATED, "{v}");
+    let again = v["id"].as_str().unwrap().to_owned();
+    wait_state(&router, &again, &["completed"]).await;
+    let (s, v) = call(
+        &router,
+        Method::PATCH,
+        &format!("/api/v1/runs/{again}"),
+        Some(&alice),
+        &json!({"add_tags": ["repeat", "good"], "note": "same plan, new day"}).to_string(),
+    )
+    .await;
+    assert_eq!(
+        (s, &v["tags"]),
+        (StatusCode::OK, &json!(["good", "repeat"])),
+        "{v}"
+    );
+    let (s, v) = call(
+        &router,
+        Method::PATCH,
+        &format!("/api/v1/runs/{again}"),
+        Some(&alice),
+        &json!({"add_tags": ["bad tag"]}).to_string(),
+    )
+    .await;
+    assert_eq!(s, StatusCode::UNPROCESSABLE_ENTITY, "{v}");
+
+    // The catalogue: filters and paging.
+    tokio::time::sleep(Duration::from_millis(300)).await; // the indexer's last touch
+    let (s, page) = call(&router, Method::GET, "/api/v1/catalogue?tag=repeat", None, "").await;
+    assert_eq!(s, StatusCode::OK, "{page}");
+    assert_eq!(page["total"], 1);
+    let rec = &page["runs"][0];
+    assert_eq!(rec["id"], again.as_str());
+    assert_eq!(rec["again_of"], ids[0].as_str());
+    assert_eq!(rec["submitted_by"], "alice");
+    assert_eq!(rec["note"], "same plan, new day");
+    assert_eq!(rec["method"], "fbp");
+    let states: Vec<&str> = rec["history"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|c| c["state"].as_str().unwrap())
+        .collect();
+    assert_eq!(states.first(), Some(&"queued"));
+    assert_eq!(states.last(), Some(&"completed"));
+    let (_, page) = call(
+        &router,
+        Method::GET,
+        "/api/v1/catalogue?state=completed&sort=created&order=desc&limit=2",
+        None,
+        "",
+    )
+    .await;
+    assert_eq!(page["total"], 4);
+    assert_eq!(page["runs"].as_array().unwrap().len(), 2);
+    assert_eq!(page["runs"][0]["id"], again.as_str());
+    let resp = router
+        .clone()
+        .oneshot(request(
+            &Method::GET,
+            "/api/v1/runs?limit=1&q=same%20PLAN",
+            None,
+            "",
+            false,
+        ))
+        .await
+        .unwrap();
+    assert_eq!(resp.headers()["x-total-count"], "1");
+    let (s, v) = call(&router, Method::GET, "/api/v1/catalogue?state=lost", None, "").await;
+    assert_eq!(s, StatusCode::BAD_REQUEST);
+    assert!(v["message"].as_str().unwrap().contains("state `lost`"), "{v}");
+
+    // The audit trail: who did what.
+    let (_, audit) = call(&router, Method::GET, "/api/v1/audit?limit=100", None, "").await;
+    let entries = audit["entries"].as_array().unwrap();
+    let did = |actor: &str, action: &str, outcome: &str| {
+        entries
+            .iter()
+            .any(|e| e["actor"] == actor && e["action"] == action && e["outcome"] == outcome)
+    };
+    assert!(did("root", "queue-lock", "ok"));
+    assert!(did("alice", "submit", "refused"), "the locked submit");
+    assert!(did("alice", "submit-batch", "ok"));
+    assert!(did("alice", "submit-batch", "refused"));
+    assert!(did("root", "queue-order", "ok"));
+    assert!(did("alice", "queue-order", "refused"), "the operator's reorder");
+    assert!(did("root", "queue-unlock", "refused"));
+    assert!(did("root", "queue-unlock", "ok"));
+    assert!(did("alice", "again", "ok"));
+    assert!(did("alice", "annotate", "ok"));
+    // An e-stop from loopback without a key is recorded too.
+    let (s, _) = call(&router, Method::POST, "/api/v1/estop", None, "").await;
+    assert_eq!(s, StatusCode::OK);
+    let (_, audit) = call(&router, Method::GET, "/api/v1/audit?action=estop", None, "").await;
+    assert_eq!(audit["entries"][0]["actor"], "loopback");
+
+    // The catalogue rebuilt from the directories holds the same rows.
+    let before = svc.catalogue().query(&Default::default()).unwrap();
+    svc.shutdown();
+    worker.join().unwrap();
+    let (cat, _) = periscope_daemon::catalogue::Catalogue::rebuild(dir.path()).unwrap();
+    assert_eq!(cat.query(&Default::default()).unwrap(), before);
+}
+
+/// `/metrics` is the Prometheus text format (parsed by `prometheus-parse`, an
+/// independent parser) with the instrument's, queue's, runs' and requests' metrics.
+#[tokio::test]
+async fn metrics_parse_as_prometheus_text() {
+    let dir = tempfile::tempdir().unwrap();
+    let svc = service(dir.path());
+    let worker = svc.start_worker();
+    let router = app(AppState::new(Arc::clone(&svc)));
+    let (s, v) = call(&router, Method::POST, "/api/v1/runs", Some(TOKEN), PLAN).await;
+    assert_eq!(s, StatusCode::CREATED);
+    let id = v["id"].as_str().unwrap().to_owned();
+    wait_state(&router, &id, &["completed"]).await;
+    let _ = call(&router, Method::GET, "/api/v1/runs/nope", None, "").await;
+    let resp = router
+        .clone()
+        .oneshot(request(&Method::GET, "/metrics", None, "", false))
+        .await
+        .unwrap();
+    assert_eq!(resp.status(), StatusCode::OK);
+    assert!(
+        resp.headers()[header::CONTENT_TYPE]
+            .to_str()
+            .unwrap()
+            .starts_with("text/plain; version=0.0.4")
+    );
+    let bytes = axum::body::to_bytes(resp.into_body(), 1 << 20).await.unwrap();
+    let text = String::from_utf8(bytes.to_vec()).unwrap();
+    let lines = text.lines().map(|l| Ok(l.to_owned()));
+    let scrape = prometheus_parse::Scrape::parse(lines).expect("Prometheus text format");
+    let value = |name: &str, label: Option<(&str, &str)>| -> Option<f64> {
+        scrape
+            .samples
+            .iter()
+            .find(|s| s.metric == name && label.is_none_or(|(k, v)| s.labels.get(k) == Some(v)))
+            .map(|s| match s.value {
+                prometheus_parse::Value::Gauge(v)
+                | prometheus_parse::Value::Counter(v)
+                | prometheus_parse::Value::Untyped(v) => v,
+                prometheus_parse::Value::Histogram(ref b) => b.last().map_or(0.0, |b| b.count),
+                prometheus_parse::Value::Summary(_) => 0.0,
+            })
+    };
+    for name in [
+        "periscope_laser_emission",
+        "periscope_interlock_closed",
+        "periscope_diffuser_in",
+        "periscope_reading_age_seconds",
+        "periscope_capture_pair_rate",
+        "periscope_queue_length",
+        "periscope_queue_locked",
+        "periscope_instrument_busy",
+    ] {
+        assert!(value(name, None).is_some(), "{name} missing:\n{text}");
+    }
+    assert_eq!(
+        value("periscope_runs", Some(("state", "completed"))),
+        Some(1.0),
+        "{text}"
+    );
+    assert_eq!(
+        value("periscope_runs_finished_total", Some(("state", "completed"))),
+        Some(1.0),
+        "{text}"
+    );
+    assert!(value("periscope_count_rate_hertz", Some(("channel", "detector"))).is_some());
+    assert!(
+        text.contains("periscope_stage_duration_seconds_bucket{") && text.contains("stage=\"capture\""),
+        "{text}"
+    );
+    assert!(
+        text.contains("periscope_recon_duration_seconds_count 1"),
+        "{text}"
+    );
+    assert!(
+        text.contains(
+            "periscope_http_errors_total{method=\"GET\",route=\"/api/v1/runs/{id}\",status=\"404\"} 1"
+        ),
+        "{text}"
+    );
+    assert!(
+        text.contains(
+            "periscope_http_request_duration_seconds_count{method=\"POST\",route=\"/api/v1/runs\"} 1"
+        )
+    );
+    // Remote scrapers need a key (observer or above).
+    let resp = router
+        .clone()
+        .oneshot(request(&Method::GET, "/metrics", None, "", true))
+        .await
+        .unwrap();
+    assert_eq!(resp.status(), StatusCode::UNAUTHORIZED);
+    svc.shutdown();
+    worker.join().unwrap();
+}
+
+/// The command line over the same runs directory as a daemon: a key made by
+/// `periscope keys create` works at once, `periscope runs` finds the daemon's runs by
+/// tag, `periscope keys revoke` stops the key at the next request, and
+/// `periscope catalogue rebuild` and `periscope audit` report what the API did.
+#[tokio::test]
+async fn the_command_line_shares_keys_catalogue_and_audit_with_the_daemon() {
+    let dir = tempfile::tempdir().unwrap();
+    let src = common::sim_instrument(dir.path(), 0.0, &format!("token = \"{TOKEN}\"\n"), "");
+    let config = dir.path().join("instrument.toml");
+    let scenes = Path::new(env!("CARGO_MANIFEST_DIR")).join("../configs/scenes");
+    std::fs::write(
+        &config,
+        src.text()
+            .replace("\"../scenes/", &format!("\"{}/", scenes.display())),
+    )
+    .unwrap();
+    let periscope = |args: &[&str]| {
+        let out = std::process::Command::new(env!("CARGO_BIN_EXE_periscope"))
+            .args(args)
+            .arg("--instrument")
+            .arg(&config)
+            .output()
+            .unwrap();
+        (
+            out.status.code(),
+            String::from_utf8_lossy(&out.stdout).into_owned(),
+            String::from_utf8_lossy(&out.stderr).into_owned(),
+        )
+    };
+    let svc = Service::open(src, Some(TOKEN.to_owned())).unwrap();
+    let router = app(AppState::new(Arc::clone(&svc)));
+    let (code, secret, err) = periscope(&["keys", "create", "bob", "--role", "operator", "--expires", "30d"]);
+    assert_eq!(code, Some(0), "{err}");
+    let secret = secret.trim().to_owned();
+    assert!(
+        secret.starts_with("psk_") && err.contains("bob"),
+        "{secret} / {err}"
+    );
+    let (s, v) = call(&router, Method::POST, "/api/v1/runs", Some(&secret), PLAN).await;
+    assert_eq!(s, StatusCode::CREATED, "{v}");
+    let id = v["id"].as_str().unwrap().to_owned();
+    let (s, _) = call(
+        &router,
+        Method::PATCH,
+        &format!("/api/v1/runs/{id}"),
+        Some(&secret),
+        &json!({"add_tags": ["cli-test"]}).to_string(),
+    )
+    .await;
+    assert_eq!(s, StatusCode::OK);
+    let (code, out, err) = periscope(&["runs", "--tag", "cli-test", "--json"]);
+    assert_eq!(code, Some(0), "{err}");
+    let page: Value = serde_json::from_str(&out).unwrap();
+    assert_eq!(page["total"], 1);
+    assert_eq!(page["runs"][0]["id"], id.as_str());
+    assert_eq!(page["runs"][0]["submitted_by"], "bob");
+    let (code, out, _) = periscope(&["runs", "--state", "queued"]);
+    assert_eq!(code, Some(0));
+    assert!(out.contains(&id) && out.contains("bob"), "{out}");
+    let (code, _, err) = periscope(&["runs", "--state", "lost"]);
+    assert_eq!(code, Some(2), "a bad filter is a usage error");
+    assert!(err.contains("state `lost`"), "{err}");
+    let (code, out, err) = periscope(&["keys", "list"]);
+    assert_eq!(code, Some(0), "{err}");
+    assert!(
+        out.contains("bob") && out.contains("operator") && !out.contains(&secret),
+        "{out}"
+    );
+    let (code, _, err) = periscope(&["keys", "revoke", "bob"]);
+    assert_eq!(code, Some(0), "{err}");
+    let (s, v) = call(&router, Method::POST, "/api/v1/runs", Some(&secret), PLAN).await;
+    assert_eq!(s, StatusCode::UNAUTHORIZED, "{v}");
+    assert!(v["message"].as_str().unwrap().contains("revoked"), "{v}");
+    let (code, out, err) = periscope(&["catalogue", "rebuild"]);
+    assert_eq!(code, Some(0), "{err}");
+    assert!(out.contains("1 runs (1 read"), "{out}");
+    let (code, out, err) = periscope(&["audit", "--actor", "bob"]);
+    assert_eq!(code, Some(0), "{err}");
+    assert!(
+        out.contains("submit") && out.contains("annotate") && out.contains("refused"),
+        "{out}"
+    );
+    let (code, out, _) = periscope(&["audit", "--action", "key-revoke"]);
+    assert_eq!(code, Some(0));
+    assert!(out.contains("cli") && out.contains("bob"), "{out}");
+    svc.shutdown();
+}
