@@ -131,8 +131,11 @@ pub enum KeysError {
 pub struct KeyStore {
     path: PathBuf,
     token: Option<String>,
-    cache: Mutex<(Option<(std::time::SystemTime, u64)>, Vec<KeyRecord>)>,
+    cache: Mutex<(Option<FileStamp>, Vec<KeyRecord>)>,
 }
+
+/// A file's modification time and length: when either changes, it is read again.
+type FileStamp = (std::time::SystemTime, u64);
 
 /// The SHA-256 of `secret`, hex.
 pub fn digest(secret: &str) -> String {
