@@ -66,6 +66,29 @@ async fn call(
     (status, serde_json::from_slice(&bytes).unwrap_or(Value::Null))
 }
 
+/// A JSON request with a bearer key past the queue's maintenance lock (its key in
+/// `X-Periscope-Lock-Key`).
+async fn call_locked(
+    router: &axum::Router,
+    method: Method,
+    uri: &str,
+    key: &str,
+    body: String,
+) -> (StatusCode, Value) {
+    let req = Request::builder()
+        .method(method)
+        .uri(uri)
+        .header(header::AUTHORIZATION, format!("Bearer {key}"))
+        .header(header::CONTENT_TYPE, "application/json")
+        .header("x-periscope-lock-key", "spad-lock-key")
+        .body(Body::from(body))
+        .unwrap();
+    let resp = router.clone().oneshot(req).await.unwrap();
+    let status = resp.status();
+    let bytes = axum::body::to_bytes(resp.into_body(), 1 << 20).await.unwrap();
+    (status, serde_json::from_slice(&bytes).unwrap_or(Value::Null))
+}
+
 /// A body each route accepts, so an authorised request is judged on its key alone.
 fn body_for(method: &str, route: &str) -> String {
     match (method, route) {
@@ -227,30 +250,13 @@ async fn the_catalogue_queue_and_audit_follow_a_lab_day() {
     );
     // A batch with one invalid plan queues none.
     let bad_batch = json!({"plans": [PLAN, "name = 3"]}).to_string();
-    let req = Request::builder()
-        .method(Method::POST)
-        .uri("/api/v1/runs/batch")
-        .header(header::AUTHORIZATION, format!("Bearer {alice}"))
-        .header(header::CONTENT_TYPE, "application/json")
-        .header("x-periscope-lock-key", "spad-lock-key")
-        .body(Body::from(bad_batch))
-        .unwrap();
-    let resp = router.clone().oneshot(req).await.unwrap();
-    assert_eq!(resp.status(), StatusCode::UNPROCESSABLE_ENTITY);
+    let (s, v) = call_locked(&router, Method::POST, "/api/v1/runs/batch", &alice, bad_batch).await;
+    assert_eq!(s, StatusCode::UNPROCESSABLE_ENTITY, "{v}");
+    assert!(v["message"].as_str().unwrap().contains("batch plan 2"), "{v}");
     // With the lock key, the batch of three is queued and stays queued.
     let batch = json!({"plans": [PLAN, PLAN, PLAN]}).to_string();
-    let req = Request::builder()
-        .method(Method::POST)
-        .uri("/api/v1/runs/batch")
-        .header(header::AUTHORIZATION, format!("Bearer {alice}"))
-        .header(header::CONTENT_TYPE, "application/json")
-        .header("x-periscope-lock-key", "spad-lock-key")
-        .body(Body::from(batch))
-        .unwrap();
-    let resp = router.clone().oneshot(req).await.unwrap();
-    assert_eq!(resp.status(), StatusCode::CREATED);
-    let bytes = axum::body::to_bytes(resp.into_body(), 1 << 20).await.unwrap();
-    let runs: Value = serde_json::from_slice(&bytes).unwrap();
+    let (s, runs) = call_locked(&router, Method::POST, "/api/v1/runs/batch", &alice, batch).await;
+    assert_eq!(s, StatusCode::CREATED, "{runs}");
     let ids: Vec<String> = runs
         .as_array()
         .unwrap()
@@ -268,16 +274,8 @@ async fn the_catalogue_queue_and_audit_follow_a_lab_day() {
     );
     // Reorder (the lock key again) and move: the last goes first, then the first last.
     let order = json!({"order": [ids[2], ids[0], ids[1]]}).to_string();
-    let req = Request::builder()
-        .method(Method::PUT)
-        .uri("/api/v1/queue")
-        .header(header::AUTHORIZATION, format!("Bearer {root}"))
-        .header(header::CONTENT_TYPE, "application/json")
-        .header("x-periscope-lock-key", "spad-lock-key")
-        .body(Body::from(order))
-        .unwrap();
-    let resp = router.clone().oneshot(req).await.unwrap();
-    assert_eq!(resp.status(), StatusCode::OK);
+    let (s, v) = call_locked(&router, Method::PUT, "/api/v1/queue", &root, order).await;
+    assert_eq!(s, StatusCode::OK, "{v}");
     let (s, v) = call(
         &router,
         Method::PUT,
