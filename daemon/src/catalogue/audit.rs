@@ -60,7 +60,7 @@ impl AuditEntry {
         }
     }
 
-    /// With a detail (cut to [`MAX_DETAIL`] bytes at a character boundary).
+    /// With a detail (cut to 2,048 bytes at a character boundary).
     pub fn detail(mut self, detail: impl Into<String>) -> AuditEntry {
         let mut d: String = detail.into();
         if d.len() > MAX_DETAIL {
