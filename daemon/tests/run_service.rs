@@ -627,3 +627,153 @@ async fn the_command_line_shares_keys_catalogue_and_audit_with_the_daemon() {
     assert!(out.contains("cli") && out.contains("bob"), "{out}");
     svc.shutdown();
 }
+
+/// Whether the test must fail rather than skip when Prometheus is missing (`.ci/run`
+/// installs Debian's `prometheus` and sets it).
+fn prometheus_required() -> bool {
+    std::env::var_os("PERISCOPE_REQUIRE_PROMETHEUS").is_some()
+}
+
+/// A real Prometheus (Debian's package) scrapes a real socket's `/metrics`: the target
+/// is up and the daemon's series are queryable through Prometheus's own API; and
+/// `promtool` accepts the shipped scrape config and alert rules (docs/).
+#[tokio::test]
+async fn a_real_prometheus_scrapes_the_daemon_and_accepts_the_shipped_config() {
+    use std::future::IntoFuture;
+    let on_path = |name: &str| {
+        std::env::var_os("PATH").and_then(|p| {
+            std::env::split_paths(&p)
+                .map(|d| d.join(name))
+                .find(|f| f.is_file())
+        })
+    };
+    let (Some(prometheus), Some(promtool)) = (on_path("prometheus"), on_path("promtool")) else {
+        assert!(
+            !prometheus_required(),
+            "PERISCOPE_REQUIRE_PROMETHEUS is set but prometheus or promtool is not on PATH (apt-get install prometheus)"
+        );
+        eprintln!(
+            "SKIPPED: prometheus/promtool not on PATH; `.ci/run` installs Debian's prometheus for this test"
+        );
+        return;
+    };
+    let docs = Path::new(env!("CARGO_MANIFEST_DIR")).join("../docs");
+    for (what, file) in [("config", "prometheus.yml"), ("rules", "prometheus-rules.yml")] {
+        let out = std::process::Command::new(&promtool)
+            .args(["check", what])
+            .arg(docs.join(file))
+            .output()
+            .unwrap();
+        assert!(
+            out.status.success(),
+            "promtool check {what} {file}: {}",
+            String::from_utf8_lossy(&out.stdout)
+        );
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let svc = service(&dir.path().join("runs"));
+    // The worker reads the (simulated) devices while idle: the gauges Prometheus reads.
+    let worker = svc.start_worker();
+    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+    let target = listener.local_addr().unwrap();
+    let server = tokio::spawn(
+        axum::serve(
+            listener,
+            app(AppState::new(Arc::clone(&svc)))
+                .into_make_service_with_connect_info::<std::net::SocketAddr>(),
+        )
+        .into_future(),
+    );
+    let web = std::net::TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap();
+    let config = dir.path().join("prometheus.yml");
+    std::fs::write(
+        &config,
+        format!(
+            "global:\n  scrape_interval: 1s\nscrape_configs:\n  - job_name: periscope\n    static_configs:\n      - targets: ['{target}']\n"
+        ),
+    )
+    .unwrap();
+    struct Kill(std::process::Child);
+    impl Drop for Kill {
+        fn drop(&mut self) {
+            let _ = self.0.kill();
+            let _ = self.0.wait();
+        }
+    }
+    let _prom = Kill(
+        std::process::Command::new(&prometheus)
+            .arg(format!("--config.file={}", config.display()))
+            .arg(format!(
+                "--storage.tsdb.path={}",
+                dir.path().join("tsdb").display()
+            ))
+            .arg(format!("--web.listen-address={web}"))
+            .stdout(std::process::Stdio::null())
+            .stderr(std::process::Stdio::null())
+            .spawn()
+            .unwrap(),
+    );
+    let client = reqwest::Client::new();
+    let query = |q: &'static str| {
+        let client = client.clone();
+        async move {
+            let encoded: String = q
+                .bytes()
+                .map(|b| match b {
+                    b'a'..=b'z' | b'A'..=b'Z' | b'0'..=b'9' | b'_' => (b as char).to_string(),
+                    _ => format!("%{b:02X}"),
+                })
+                .collect();
+            let resp = client
+                .get(format!("http://{web}/api/v1/query?query={encoded}"))
+                .send()
+                .await
+                .ok()?;
+            let v: Value = serde_json::from_slice(&resp.bytes().await.ok()?).ok()?;
+            let r = v["data"]["result"].as_array()?.first()?.clone();
+            r["value"][1].as_str()?.parse::<f64>().ok()
+        }
+    };
+    let t = Instant::now();
+    let up = loop {
+        if let Some(v) = query("up{job=\"periscope\"}").await {
+            break v;
+        }
+        assert!(
+            t.elapsed() < Duration::from_secs(60),
+            "Prometheus never scraped the daemon"
+        );
+        tokio::time::sleep(Duration::from_millis(250)).await;
+    };
+    assert_eq!(up, 1.0, "the scrape failed (up = {up})");
+    assert_eq!(query("periscope_queue_length").await, Some(0.0));
+    // Once a scrape follows the worker's device reading, the simulator's closed
+    // interlock shows through Prometheus.
+    while query("periscope_reading_valid").await != Some(1.0) {
+        assert!(
+            t.elapsed() < Duration::from_secs(60),
+            "no scrape saw a device reading"
+        );
+        tokio::time::sleep(Duration::from_millis(250)).await;
+    }
+    assert_eq!(query("periscope_interlock_closed").await, Some(1.0));
+    assert_eq!(query("periscope_laser_emission").await, Some(0.0));
+    // The first scrape's own latency appears from the second scrape on: Prometheus
+    // ingests the histograms too.
+    while query("sum(periscope_http_request_duration_seconds_count{route=\"/metrics\"})")
+        .await
+        .is_none()
+    {
+        assert!(
+            t.elapsed() < Duration::from_secs(60),
+            "no scrape recorded the scrapes' latency"
+        );
+        tokio::time::sleep(Duration::from_millis(250)).await;
+    }
+    server.abort();
+    svc.shutdown();
+    worker.join().unwrap();
+}
