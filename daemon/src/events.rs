@@ -136,6 +136,19 @@ pub enum RunEvent {
         /// event-to-screen latency).
         unix_ms: f64,
     },
+    /// The laser's state as the run last read it from the controller (at every pair's
+    /// interlock check, and after each switch on or off), for the live safety bar;
+    /// streamed, not written to `events.jsonl`.
+    Safety {
+        /// Emission on.
+        emission: bool,
+        /// Interlock loop closed.
+        interlock_closed: bool,
+        /// LOS diffuser in the beam.
+        diffuser_in: bool,
+        /// When it was read, milliseconds since the Unix epoch.
+        unix_ms: f64,
+    },
     /// Optimiser progress.
     Train(TrainEvent),
     /// An output was written.
@@ -160,7 +173,9 @@ impl RunEvent {
     pub fn display_only(&self) -> bool {
         matches!(
             self,
-            RunEvent::Histogram { .. } | RunEvent::Train(TrainEvent::Snapshot { .. })
+            RunEvent::Histogram { .. }
+                | RunEvent::Safety { .. }
+                | RunEvent::Train(TrainEvent::Snapshot { .. })
         )
     }
 

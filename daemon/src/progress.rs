@@ -62,7 +62,11 @@ pub fn attach(events: &EventSink) {
             bar.set_message("");
             tracing::info!("suspension cleared ({reason}); measuring again");
         }
-        RunEvent::Train(_) | RunEvent::Histogram { .. } | RunEvent::Output { .. } | RunEvent::Completed => {}
+        RunEvent::Train(_)
+        | RunEvent::Histogram { .. }
+        | RunEvent::Safety { .. }
+        | RunEvent::Output { .. }
+        | RunEvent::Completed => {}
         RunEvent::Failed { message } => {
             bar.abandon_with_message("failed");
             tracing::error!("{message}");

@@ -109,6 +109,7 @@ async fn health_and_openapi_match_the_routes() {
         ("POST", "/api/v1/runs/{id}/abort"),
         ("POST", "/api/v1/estop"),
         ("GET", "/api/v1/runs/{id}/events"),
+        ("GET", "/api/v1/instrument/events"),
         ("GET", "/api/v1/runs/{id}/files/{name}"),
         ("GET", "/api/v1/runs/{id}/geometry"),
         ("PATCH", "/api/v1/runs/{id}"),
@@ -145,6 +146,15 @@ async fn health_and_openapi_match_the_routes() {
         let uri = p.replace("{id}", "no-such-run").replace("{name}", "depth.png");
         for m in ["GET", "POST", "PUT", "PATCH", "DELETE"] {
             let method = Method::from_bytes(m.as_bytes()).unwrap();
+            if m == "GET" && uri == "/api/v1/instrument/events" {
+                // An endless stream: its head is the answer.
+                use tower::ServiceExt as _;
+                let req = common::request(method, &uri, Some(TOKEN), &[], "");
+                let resp = router.clone().oneshot(req).await.unwrap();
+                assert_eq!(resp.status(), StatusCode::OK);
+                assert_eq!(resp.headers()["content-type"], "text/event-stream");
+                continue;
+            }
             let (s, v) = call(&router, method, &uri, Some(TOKEN), "").await;
             if documented.contains(&(m.to_owned(), p.to_owned())) {
                 assert_ne!(v["error"], "not-found", "{m} {uri}: {v}");
@@ -533,6 +543,15 @@ async fn pause_resume_abort_and_estop_keep_the_data() {
         paused["pairs_total"].as_u64().unwrap(),
     );
     assert!(done >= 5 && done < total, "{paused}");
+    // The part of the capture before the pause is timed (20 ms a pair at real time)...
+    let timing = |v: &Value, stage: &str| {
+        v["timings"]
+            .as_array()
+            .and_then(|t| t.iter().find(|e| e[0] == stage))
+            .and_then(|e| e[1].as_f64())
+    };
+    let part = timing(&paused, "capture").expect("the capture's part before the pause is timed");
+    assert!(part >= done as f64 * 0.02 * 0.8, "{part} s for {done} pairs");
     let log = std::fs::metadata(dir.path().join(&a).join("histograms.bin"))
         .unwrap()
         .len();
@@ -548,6 +567,13 @@ async fn pause_resume_abort_and_estop_keep_the_data() {
     assert_eq!(s, StatusCode::ACCEPTED, "{v}");
     let fin = wait_for(&router, &a, "completed", limit, |v| v["state"] == "completed").await;
     assert_eq!(fin["pairs_done"], fin["pairs_total"], "{fin}");
+    // ...and the capture's time is the sum of its parts, not its last part.
+    let whole = timing(&fin, "capture").unwrap();
+    assert!(
+        whole >= part + (total - done) as f64 * 0.02 * 0.8,
+        "capture {whole} s: before the pause {part} s, then {} pairs",
+        total - done
+    );
 
     // Abort keeps what was captured.
     let b = submit().await;

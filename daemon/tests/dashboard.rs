@@ -377,6 +377,32 @@ async fn inked(c: &Client, id: &str) -> u64 {
         .unwrap()
 }
 
+/// A headless Chromium session with a viewport of `w` × `h` CSS pixels; below 500 px
+/// (under Chromium's smallest window) as a phone, through its mobile emulation.
+async fn session(driver: &Chromedriver, chromium: &Path, w: u32, h: u32) -> Client {
+    let mut options = serde_json::json!({
+        "binary": chromium,
+        "args": ["--headless=new", "--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage",
+                 format!("--window-size={},{}", w.max(500), h), "--hide-scrollbars",
+                 "--disable-background-networking", "--disable-component-update", "--no-first-run"]
+    });
+    if w < 500 {
+        options["mobileEmulation"] = serde_json::json!({
+            "deviceMetrics": { "width": w, "height": h, "pixelRatio": 2, "touch": true }
+        });
+    }
+    let caps: serde_json::Map<String, Value> = serde_json::from_value(serde_json::json!({
+        "browserName": "chrome",
+        "goog:chromeOptions": options
+    }))
+    .unwrap();
+    ClientBuilder::new(hyper_util::client::legacy::connect::HttpConnector::new())
+        .capabilities(caps)
+        .connect(&driver.url)
+        .await
+        .expect("chromedriver starts a Chromium session")
+}
+
 fn percentile(v: &mut [f64], q: f64) -> f64 {
     v.sort_by(f64::total_cmp);
     v[((v.len() - 1) as f64 * q).round() as usize]
@@ -417,20 +443,7 @@ async fn an_operator_runs_the_demo_from_the_dashboard_in_chromium() {
     // The browser reaches the daemon through a proxy the test can cut.
     let (addr, cut) = cuttable_proxy(addr).await;
     let driver = start_chromedriver(&chromedriver).await;
-    let caps: serde_json::Map<String, Value> = serde_json::from_value(serde_json::json!({
-        "browserName": "chrome",
-        "goog:chromeOptions": {
-            "binary": chromium,
-            "args": ["--headless=new", "--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage",
-                     "--window-size=1400,2000", "--hide-scrollbars"]
-        }
-    }))
-    .unwrap();
-    let c = ClientBuilder::new(hyper_util::client::legacy::connect::HttpConnector::new())
-        .capabilities(caps)
-        .connect(&driver.url)
-        .await
-        .expect("chromedriver starts a Chromium session");
+    let c = session(&driver, &chromium, 1400, 2000).await;
     let limit = Duration::from_secs(120);
 
     // Page load: navigation to the first complete render (instrument and runs shown).
@@ -516,11 +529,20 @@ async fn an_operator_runs_the_demo_from_the_dashboard_in_chromium() {
     screenshot(&c, &shots, "live.png").await;
     eprintln!("dashboard: live view at {:.1} s", t.elapsed().as_secs_f64());
 
-    // Results: depth and albedo with axes, volume projections and a slice.
+    // Results: depth and albedo with axes, volume projections and a slice; the volume
+    // loads once its part of the page is shown.
     wait_page(&c, "the results", Duration::from_secs(300), |v| {
-        v["resultsShown"] == true && v["sliceShown"] == true
+        v["resultsShown"] == true
     })
     .await;
+    c.execute("document.getElementById('volume-part').scrollIntoView();", vec![])
+        .await
+        .unwrap();
+    wait_page(&c, "the volume", limit, |v| v["sliceShown"] == true).await;
+    // The completed fit's final loss is shown, and no capture ETA lingers.
+    let loss = wait_text(&c, "#run-loss", limit, |s| !s.is_empty()).await;
+    assert!(loss.starts_with("final loss"), "{loss}");
+    assert_eq!(text(&c, "#run-eta").await, "");
     for canvas in [
         "depth-canvas",
         "albedo-canvas",
@@ -596,6 +618,348 @@ async fn an_operator_runs_the_demo_from_the_dashboard_in_chromium() {
     c.close().await.unwrap();
     drop(driver);
     server.abort();
+    svc.shutdown();
+    worker.join().unwrap();
+}
+
+/// The faults an operator found (issue: an e-stop that always works, a laser state
+/// that cannot lie, views true to the run), each checked in Chromium: the e-stop from
+/// a phone-sized tab that has no token; the safety bar live from the run's own
+/// readings (laser ON during the capture) and UNKNOWN when the daemon is gone, with the
+/// e-stop sending the operator to the hardware one; views keyed to the selected run
+/// (downloads, banner, results); a plan error's line and reason shown; results loaded
+/// lazily and the event log once; one column at 390 px with the E-STOP pinned.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_page_stays_true_to_the_instrument_and_to_the_run() {
+    let (chromium, chromedriver) = match browser() {
+        Ok(b) => b,
+        Err(why) => {
+            assert!(
+                std::env::var_os("PERISCOPE_REQUIRE_BROWSER").is_none(),
+                "PERISCOPE_REQUIRE_BROWSER is set but the browser test cannot run: {why}"
+            );
+            eprintln!("SKIPPED the dashboard truth test: {why}");
+            return;
+        }
+    };
+    let shots = Path::new(env!("CARGO_TARGET_TMPDIR")).join("dashboard");
+    std::fs::create_dir_all(&shots).unwrap();
+    let dir = tempfile::tempdir().unwrap();
+    let svc = service(dir.path(), 0.5);
+    let worker = svc.start_worker();
+    let rig = periscope_daemon::devices::sim::rig_of(svc.backend()).unwrap();
+    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+    let direct = listener.local_addr().unwrap();
+    let router = app(AppState::new(Arc::clone(&svc)));
+    let server = tokio::spawn(async move {
+        axum::serve(
+            listener,
+            router.into_make_service_with_connect_info::<SocketAddr>(),
+        )
+        .await
+        .unwrap();
+    });
+    let (addr, cut) = cuttable_proxy(direct).await;
+    let driver = start_chromedriver(&chromedriver).await;
+    let limit = Duration::from_secs(120);
+    let http = reqwest::Client::new();
+
+    // A completed small run, submitted by a script.
+    let small: Value = serde_json::from_slice(
+        &http
+            .post(format!("http://{direct}/api/v1/runs"))
+            .bearer_auth(TOKEN)
+            .header("content-type", "application/toml")
+            .body(SMALL)
+            .send()
+            .await
+            .unwrap()
+            .bytes()
+            .await
+            .unwrap(),
+    )
+    .unwrap();
+    let small = small["id"].as_str().unwrap().to_owned();
+    let t = Instant::now();
+    while svc.status(&small).unwrap().state != periscope_daemon::run_dir::RunState::Completed {
+        assert!(t.elapsed() < limit, "the small run never completed");
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+
+    // A desktop tab without a token: the e-stop says it is armed; the safety bar is live.
+    let c = session(&driver, &chromium, 1400, 1600).await;
+    c.goto(&format!("http://{addr}/")).await.unwrap();
+    wait_page(&c, "ready", Duration::from_secs(20), |v| v["ready"] == true).await;
+    let armed = wait_text(&c, "#estop-state", limit, |s| s.starts_with("armed")).await;
+    assert!(armed.contains("without a key"), "{armed}");
+    wait_page(&c, "a known laser state", limit, |v| v["safety"] == "known").await;
+    assert_eq!(probe(&c).await["safetyEmission"], false);
+
+    // The plan editor: an error's line is marked and its reason shown without a click.
+    c.execute(
+        "const p = document.getElementById('plan'); \
+         p.value = 'name = \"bad\"\\nseed = 7\\n[pairs]\\nmode = 3\\n'; \
+         p.dispatchEvent(new Event('input'));",
+        vec![],
+    )
+    .await
+    .unwrap();
+    let problem = wait_text(&c, "#check-problem", limit, |s| s.starts_with("line")).await;
+    assert!(problem.contains("mode"), "{problem}");
+    let p = probe(&c).await;
+    assert!(p["errorLine"].as_u64().is_some_and(|l| l >= 3), "{p}");
+    assert!(
+        !c.find_all(Locator::Css("#plan-lines .err"))
+            .await
+            .unwrap()
+            .is_empty()
+    );
+    assert!(
+        !c.find(Locator::Css("#submit"))
+            .await
+            .unwrap()
+            .is_enabled()
+            .await
+            .unwrap()
+    );
+
+    // The completed run: depth at once, the volume only when shown, the log once.
+    c.execute("window.periscope.fetched = {}; window.scrollTo(0, 0);", vec![])
+        .await
+        .unwrap();
+    wait_text(&c, "#runs-body", limit, |s| s.contains(&small)).await;
+    click(&c, &format!("tr[data-run=\"{small}\"] a")).await;
+    wait_page(&c, "the small run's results", limit, |v| {
+        v["resultsShown"] == true
+    })
+    .await;
+    tokio::time::sleep(Duration::from_millis(1500)).await;
+    let fetched = probe(&c).await["fetched"].clone();
+    assert!(
+        fetched["volume.npy"].is_null(),
+        "the volume was fetched off screen: {fetched}"
+    );
+    assert_eq!(fetched["events.jsonl"], 1, "{fetched}");
+    c.execute("document.getElementById('volume-part').scrollIntoView();", vec![])
+        .await
+        .unwrap();
+    wait_page(&c, "the volume", limit, |v| v["sliceShown"] == true).await;
+    let fetched = probe(&c).await["fetched"].clone();
+    assert_eq!(
+        (fetched["volume.npy"].as_u64(), fetched["events.jsonl"].as_u64()),
+        (Some(1), Some(1)),
+        "{fetched}"
+    );
+    let runs_of = |ids: Vec<Option<String>>| ids.into_iter().flatten().collect::<Vec<_>>();
+    let mut buttons = Vec::new();
+    for b in c.find_all(Locator::Css("#downloads button")).await.unwrap() {
+        buttons.push(b.attr("data-run").await.unwrap());
+    }
+    let buttons = runs_of(buttons);
+    assert!(
+        !buttons.is_empty() && buttons.iter().all(|r| r == &small),
+        "{buttons:?}"
+    );
+
+    // The token, then the demo from the page: the "queued" banner belongs to that run.
+    c.execute("window.scrollTo(0, 0);", vec![]).await.unwrap();
+    c.find(Locator::Css("#token"))
+        .await
+        .unwrap()
+        .send_keys(TOKEN)
+        .await
+        .unwrap();
+    click(&c, "#token-form button").await;
+    click(&c, "#load-demo").await;
+    wait_text(&c, "#check-summary", limit, |s| s.starts_with("valid")).await;
+    let submit = c.find(Locator::Css("#submit")).await.unwrap();
+    let t = Instant::now();
+    while !submit.is_enabled().await.unwrap() {
+        assert!(
+            t.elapsed() < limit,
+            "submit never enabled: {}",
+            text(&c, "#submit-why").await
+        );
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+    submit.click().await.unwrap();
+    let demo = wait_text(&c, "#run-id", limit, |s| s.ends_with("-demo")).await;
+    wait_text(&c, "#banner", limit, |s| s.contains("queued")).await;
+    // Switching runs: the banner goes, and nothing of the other run stays.
+    click(&c, &format!("tr[data-run=\"{small}\"] a")).await;
+    wait_text(&c, "#run-id", limit, |s| s == small).await;
+    assert!(
+        !c.find(Locator::Css("#banner"))
+            .await
+            .unwrap()
+            .is_displayed()
+            .await
+            .unwrap()
+    );
+    click(&c, &format!("tr[data-run=\"{demo}\"] a")).await;
+    wait_text(&c, "#run-id", limit, |s| s == demo).await;
+    let mut buttons = Vec::new();
+    for b in c.find_all(Locator::Css("#downloads button")).await.unwrap() {
+        buttons.push(b.attr("data-run").await.unwrap());
+    }
+    assert!(
+        runs_of(buttons).iter().all(|r| r == &demo),
+        "the small run's downloads stayed"
+    );
+    assert!(
+        !c.find(Locator::Css("#results-body"))
+            .await
+            .unwrap()
+            .is_displayed()
+            .await
+            .unwrap()
+    );
+
+    // Live: the laser ON from the run's own readings, the pairs in the 3-D view during
+    // the capture, the histogram's caption consistent with the progress.
+    wait_page(&c, "the laser ON, live", limit, |v| {
+        v["safety"] == "known" && v["safetyEmission"] == true
+    })
+    .await;
+    let p = wait_page(&c, "the planned pairs in 3-D", limit, |v| {
+        v["geometry"]["illumination"].as_u64().is_some_and(|n| n > 0)
+    })
+    .await;
+    assert_eq!(
+        svc.status(&demo).unwrap().state,
+        periscope_daemon::run_dir::RunState::Running,
+        "the pairs appeared only after the run: {p}"
+    );
+    let caption = wait_text(&c, "#hist-caption", limit, |s| s.contains("measured")).await;
+    assert!(caption.contains("plan pair #"), "{caption}");
+    screenshot(&c, &shots, "live-safety.png").await;
+
+    // A phone-sized tab with no token: one column, the E-STOP pinned, and it works.
+    let phone = session(&driver, &chromium, 390, 844).await;
+    phone.goto(&format!("http://{addr}/")).await.unwrap();
+    wait_page(&phone, "ready", Duration::from_secs(20), |v| v["ready"] == true).await;
+    let layout = phone
+        .execute(
+            "const r = document.getElementById('estop').getBoundingClientRect(); \
+             return { width: document.documentElement.scrollWidth, inner: window.innerWidth, \
+                      right: r.right, bottom: r.bottom, height: window.innerHeight, \
+                      position: getComputedStyle(document.querySelector('.estop-box')).position };",
+            vec![],
+        )
+        .await
+        .unwrap();
+    let inner = layout["inner"].as_f64().unwrap();
+    assert_eq!(inner, 390.0, "{layout}");
+    assert!(
+        layout["width"].as_f64().unwrap() <= inner + 0.5,
+        "the page is wider than the phone: {layout}"
+    );
+    assert_eq!(layout["position"], "fixed", "{layout}");
+    assert!(
+        layout["right"].as_f64().unwrap() <= inner
+            && layout["bottom"].as_f64().unwrap() <= layout["height"].as_f64().unwrap(),
+        "the E-STOP is off screen: {layout}"
+    );
+    wait_page(&phone, "the live laser state", limit, |v| v["safety"] == "known").await;
+    screenshot(&phone, &shots, "phone.png").await;
+    wait_text(&phone, "#estop-state", limit, |s| s.starts_with("armed")).await;
+    assert!(rig.emission(), "the laser is on during the capture");
+    let pressed = Instant::now();
+    click(&phone, "#estop").await;
+    let note = wait_text(&phone, "#banner", limit, |s| s.starts_with("E-STOP")).await;
+    assert!(rig.off_since(pressed).is_some() && !rig.emission(), "{note}");
+    assert!(note.contains(&demo), "{note}");
+    phone.close().await.unwrap();
+
+    // The aborted run keeps its partial data on the page.
+    wait_text(&c, "#run-state", limit, |s| s == "aborted").await;
+    let note = wait_text(&c, "#results-note", limit, |s| s.contains("kept")).await;
+    assert!(note.contains("captured pairs"), "{note}");
+    wait_text(&c, "#downloads", limit, |s| s.contains("capture.hdf5")).await;
+
+    // The daemon gone: UNKNOWN, an alarm, and the e-stop sends the operator to the
+    // hardware one.
+    // (The server stops accepting and every open connection drops, as when the
+    // process dies.)
+    server.abort();
+    svc.shutdown();
+    cut.send_modify(|g| *g += 1);
+    wait_page(&c, "UNKNOWN", Duration::from_secs(10), |v| {
+        v["safety"] == "unknown"
+    })
+    .await;
+    assert_eq!(text(&c, "#sb-state").await, "LASER STATE UNKNOWN");
+    assert!(text(&c, "#series-alarm").await.starts_with("ALARM"));
+    wait_text(&c, "#estop-state", limit, |s| s.contains("UNREACHABLE")).await;
+    click(&c, "#estop").await;
+    let note = wait_text(&c, "#banner", limit, |s| s.contains("HARDWARE")).await;
+    assert!(note.contains("could not reach the daemon"), "{note}");
+    c.execute("window.scrollTo(0, 0);", vec![]).await.unwrap();
+    screenshot(&c, &shots, "unknown.png").await;
+    c.close().await.unwrap();
+    drop(driver);
+    worker.join().unwrap();
+}
+
+/// Compression and validators on the page, its files and the downloads (tower-http),
+/// and a favicon.
+#[tokio::test]
+async fn static_files_and_downloads_are_compressed_and_validated() {
+    let dir = tempfile::tempdir().unwrap();
+    let svc = service(dir.path(), 0.0);
+    let worker = svc.start_worker();
+    let router = app(AppState::new(Arc::clone(&svc)));
+    let get = |uri: &str, headers: &[(&str, &str)]| {
+        let mut req = Request::builder().uri(uri);
+        for (k, v) in headers {
+            req = req.header(*k, *v);
+        }
+        router.clone().oneshot(req.body(Body::empty()).unwrap())
+    };
+    for uri in ["/", "/ui/app.js", "/ui/style.css"] {
+        let r = get(uri, &[("accept-encoding", "gzip, br")]).await.unwrap();
+        assert_eq!(r.status(), StatusCode::OK, "{uri}");
+        assert_eq!(r.headers()[header::CONTENT_ENCODING], "br", "{uri}");
+        let tag = r.headers()[header::ETAG].to_str().unwrap().to_owned();
+        let r = get(uri, &[("if-none-match", &tag)]).await.unwrap();
+        assert_eq!(r.status(), StatusCode::NOT_MODIFIED, "{uri}");
+    }
+    let r = get("/ui/app.js", &[("accept-encoding", "gzip")]).await.unwrap();
+    assert_eq!(r.headers()[header::CONTENT_ENCODING], "gzip");
+    let r = get("/favicon.ico", &[]).await.unwrap();
+    assert_eq!(r.status(), StatusCode::OK);
+    assert_eq!(r.headers()[header::CONTENT_TYPE], "image/svg+xml");
+    // A download: compressed when it is text, validated by Last-Modified.
+    let (s, v) = call(&router, Method::POST, "/api/v1/runs", true, SMALL).await;
+    assert_eq!(s, StatusCode::CREATED);
+    let id = serde_json::from_slice::<Value>(&v).unwrap()["id"]
+        .as_str()
+        .unwrap()
+        .to_owned();
+    let t = Instant::now();
+    while svc.status(&id).unwrap().state != periscope_daemon::run_dir::RunState::Completed {
+        assert!(t.elapsed() < Duration::from_secs(60));
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+    let uri = format!("/api/v1/runs/{id}/files/events.jsonl");
+    let r = get(&uri, &[("accept-encoding", "gzip")]).await.unwrap();
+    assert_eq!(r.status(), StatusCode::OK);
+    assert_eq!(r.headers()[header::CONTENT_ENCODING], "gzip");
+    let modified = r.headers()[header::LAST_MODIFIED].to_str().unwrap().to_owned();
+    let r = get(&uri, &[("if-modified-since", &modified)]).await.unwrap();
+    assert_eq!(r.status(), StatusCode::NOT_MODIFIED);
+    let r = get(
+        &format!("/api/v1/runs/{id}/files/volume.npy"),
+        &[("accept-encoding", "gzip")],
+    )
+    .await
+    .unwrap();
+    assert_eq!(r.status(), StatusCode::OK);
+    assert!(
+        r.headers().get(header::CONTENT_ENCODING).is_none(),
+        "float volumes are sent as they are"
+    );
+    assert!(r.headers().get(header::LAST_MODIFIED).is_some());
     svc.shutdown();
     worker.join().unwrap();
 }

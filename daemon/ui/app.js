@@ -1,6 +1,7 @@
 // The Periscope dashboard: the instrument, the queue, a live run and its results, all
 // through the JSON API at /api/v1 with the token the operator types once per tab.
 import { View3D, boxEdges } from '/ui/view3d.js';
+import { startSafety } from '/ui/safety.js';
 
 const $ = (id) => document.getElementById(id);
 const TOKEN_KEY = 'periscope-token';
@@ -18,6 +19,9 @@ const probe = {
   sliceShown: false,
   streamsOpened: 0,
   lastEvent: null,
+  // Run files fetched, by name: results load lazily and the event log once.
+  fetched: {},
+  safety: 'unknown',
 };
 window.periscope = probe;
 
@@ -87,16 +91,21 @@ async function api(method, path, body) {
 }
 
 async function fetchBytes(path) {
+  const name = path.split('/').pop();
+  probe.fetched[name] = (probe.fetched[name] || 0) + 1;
   const r = await fetch(path, { headers: headers() });
   if (!r.ok) throw new ApiError(r.status, null, `${path}: ${r.status} ${r.statusText}`);
   return r.arrayBuffer();
 }
 
-function banner(text, kind = 'error') {
+// A banner; one about a run (`run` set) clears when another run is selected.
+let bannerRun = null;
+function banner(text, kind = 'error', run = null) {
   const b = $('banner');
   b.textContent = text;
   b.className = kind;
   b.hidden = !text;
+  bannerRun = run;
 }
 
 // ---------------------------------------------------------------- formatting
@@ -149,10 +158,15 @@ function renderInstrument() {
   if (d) {
     // While a run holds the devices, this reading is from before it started.
     const before = v.busy ? ' (read before the run)' : '';
-    const cls = (c) => (v.busy ? 'small' : c);
-    row('laser', (d.laser.emission ? 'ON' : 'off') + before, cls(d.laser.emission ? 'danger' : 'ok'));
-    row('interlock', (d.laser.interlock_closed ? 'closed' : 'OPEN') + before, cls(d.laser.interlock_closed ? 'ok' : 'danger'));
-    row('diffuser', (d.laser.diffuser_in ? 'in' : 'out') + before, cls(''));
+    if (v.busy) {
+      // A reading from before the run says nothing of the laser now: the bar at the
+      // top shows the run's own readings.
+      row('laser, interlock, diffuser', 'live in the safety bar at the top (the run reads them at every pair)');
+    } else {
+      row('laser', d.laser.emission ? 'ON' : 'off', d.laser.emission ? 'danger' : 'ok');
+      row('interlock', d.laser.interlock_closed ? 'closed' : 'OPEN', d.laser.interlock_closed ? 'ok' : 'danger');
+      row('diffuser', d.laser.diffuser_in ? 'in' : 'out');
+    }
     row('laser arm', `${d.laser_arm.model} ${d.laser_arm.firmware} at (${deg(d.laser_position)})${before}`);
     row('SPAD arm', `${d.spad_arm.model} ${d.spad_arm.firmware} at (${deg(d.spad_position)})${before}`);
     row('histogrammer', `${d.tdc.model} ${d.tdc.firmware}: ${JSON.stringify(d.tdc_status.state)}${before}`);
@@ -180,8 +194,14 @@ async function pollInstrument() {
     renderInstrument();
     setConnection(true);
   } catch (e) {
-    if (e instanceof TypeError) setConnection(false);
-    else $('inst-body').textContent = e.message;
+    if (e instanceof TypeError) {
+      setConnection(false);
+      // An old reading must not pass for a current one.
+      instrument = null;
+      $('inst-body').textContent = 'The daemon cannot be reached: nothing here is current. In doubt, use the hardware emergency stop.';
+    } else {
+      $('inst-body').textContent = e.message;
+    }
   }
 }
 
@@ -191,10 +211,38 @@ function setConnection(up) {
   c.className = `pill ${up ? 'ok' : 'danger'}`;
 }
 
+// Whether the E-STOP will work from this page: from this computer it needs no key; from
+// another, any valid key. Shown under the button, checked at every refresh.
+let caller = null; // { name, role } from GET /api/v1/whoami
+
+async function checkEstop() {
+  const st = $('estop-state');
+  try {
+    const r = await fetch('/api/v1/whoami', { headers: headers() });
+    if (r.ok) {
+      caller = await r.json();
+      st.textContent = caller.name === 'loopback' ? 'armed: works from this computer without a key' : `armed: key ${caller.name} (${caller.role})`;
+      st.className = 'estop-state armed';
+    } else {
+      caller = null;
+      st.textContent = 'NOT armed from this machine: enter a key (any role) to e-stop from here';
+      st.className = 'estop-state disarmed';
+    }
+  } catch {
+    caller = null;
+    st.textContent = 'DAEMON UNREACHABLE: use the hardware emergency stop';
+    st.className = 'estop-state unreachable';
+  }
+  probe.estop = st.className.replace('estop-state ', '');
+  updateSubmit();
+}
+
 $('estop').addEventListener('click', async () => {
   const t0 = performance.now();
   try {
-    const r = await api('POST', '/api/v1/estop');
+    const resp = await fetch('/api/v1/estop', { method: 'POST', headers: headers() });
+    const r = await resp.json().catch(() => ({}));
+    if (!resp.ok) throw new ApiError(resp.status, r.error, r.message || `${resp.status}`);
     const parts = [`E-STOP done in ${((performance.now() - t0) / 1000).toFixed(2)} s: ${r.laser}`];
     if (r.aborted) parts.push(`run ${r.aborted} aborted`);
     parts.push(r.parked ? 'arms parked' : 'arms NOT parked');
@@ -202,7 +250,11 @@ $('estop').addEventListener('click', async () => {
     if (r.warnings?.length) parts.push(`warnings: ${r.warnings.join('; ')}`);
     banner(parts.join(' · '), r.parked ? 'notice' : 'error');
   } catch (e) {
-    banner(`E-STOP failed: ${e.message}`);
+    if (e instanceof TypeError) {
+      banner('E-STOP could not reach the daemon: press the HARDWARE emergency stop on the laser controller now.');
+    } else {
+      banner(`E-STOP refused (${e.message}): press the HARDWARE emergency stop on the laser controller now.`);
+    }
   }
   refresh();
 });
@@ -215,7 +267,8 @@ let checkTimer = null;
 // Until a loaded plan is checked, nothing about the old one stays on screen.
 function planLoading() {
   checkedText = null;
-  $('submit').disabled = true;
+  planOk = false;
+  updateSubmit();
   $('check-summary').textContent = 'loading…';
 }
 
@@ -234,8 +287,54 @@ $('plan-file').addEventListener('change', async (e) => {
   planEdited();
 });
 
+// Line numbers beside the plan, the offending line marked.
+let errorLine = null;
+function drawLines() {
+  const n = $('plan').value.split('\n').length;
+  const out = [];
+  for (let i = 1; i <= n; i++) out.push(i === errorLine ? `<span class="err">${i}</span>` : String(i));
+  $('plan-lines').innerHTML = out.join('\n');
+}
+$('plan').addEventListener('scroll', () => {
+  $('plan-lines').style.transform = `translateY(${-$('plan').scrollTop}px)`;
+});
+
+function showProblem(message) {
+  const m = /(?:request body|plan\.toml|batch plan \d+):(\d+):/.exec(message || '');
+  errorLine = m ? Number(m[1]) : null;
+  drawLines();
+  const p = $('check-problem');
+  p.hidden = !message;
+  p.textContent = message ? (errorLine ? `line ${errorLine}: ${message}` : message) : '';
+  probe.errorLine = errorLine;
+}
+
+function showWarnings(items) {
+  const w = $('check-warnings');
+  w.hidden = !items.length;
+  w.replaceChildren(...items.map((t) => el('div', {}, `⚠ ${t}`)));
+}
+
+// Submit is enabled only when it can succeed: a checked plan within budget, a key
+// that may submit, an unlocked queue. Otherwise the reason is shown beside it.
+let planOk = false;
+let queueLock = null;
+function updateSubmit() {
+  const why = [];
+  if (!planOk) why.push('check the plan first (it must be valid and within budget)');
+  if (!caller) why.push('the daemon cannot be reached or does not know this page');
+  else if (!['operator', 'admin'].includes(caller.role)) why.push(token ? `key role ${caller.role} may not submit` : 'enter an operator key to submit');
+  if (queueLock) why.push(`the queue is locked by ${queueLock.by}: ${queueLock.reason}`);
+  $('submit').disabled = why.length > 0;
+  $('submit').title = why.join('; ') || 'queue this plan';
+  $('submit-why').textContent = why.length ? `submit: ${why.join('; ')}` : '';
+}
+
 function planEdited() {
   checkedText = null;
+  planOk = false;
+  errorLine = null;
+  drawLines();
   $('submit').disabled = true;
   $('check-summary').textContent = 'checking…';
   clearTimeout(checkTimer);
@@ -263,16 +362,28 @@ async function checkPlan() {
       el('span', { class: c.over_budget ? 'danger' : 'ok' }, c.over_budget ? 'over budget' : 'valid'),
       ` · plan “${c.plan}” · ${c.pairs.toLocaleString()} pairs · about ${fmtS(d.total)} (LOS ${fmtS(d.los)}, capture ${fmtS(d.capture)}, reconstruction ${fmtS(d.reconstruction)})`,
       ` · memory ${fmtBytes(c.memory_bytes)} of ${fmtBytes(c.memory_limit)} · disk ${fmtBytes(c.disk_bytes)} of ${fmtBytes(c.disk_limit)}`,
-      c.problems.length ? ` · ${c.problems.length} target(s) outside the galvo limits` : '',
     );
+    showProblem(c.over_budget ? `over the run budget: ${c.over_budget}` : null);
+    const warnings = [];
+    if (c.problems.length) {
+      warnings.push(`${c.problems.length} target(s) outside the galvo limits (they are skipped): ${c.problems.slice(0, 3).join('; ')}${c.problems.length > 3 ? ' …' : ''}`);
+    }
+    const near = (used, limit) => limit > 0 && used > 0.8 * limit && used <= limit;
+    if (near(c.memory_bytes, c.memory_limit)) warnings.push(`memory ${fmtBytes(c.memory_bytes)} is over 80 % of the budget ${fmtBytes(c.memory_limit)}`);
+    if (near(c.disk_bytes, c.disk_limit)) warnings.push(`disk ${fmtBytes(c.disk_bytes)} is over 80 % of the budget ${fmtBytes(c.disk_limit)}`);
+    showWarnings(warnings);
     if (c.over_budget) out.textContent = `${c.over_budget}\n\n${c.report}`;
     checkedText = c.over_budget ? null : text;
-    $('submit').disabled = checkedText === null;
+    planOk = checkedText !== null;
+    updateSubmit();
   } catch (e) {
     if ($('plan').value !== text) return;
     summary.replaceChildren(el('span', { class: 'danger' }, 'invalid'));
     out.textContent = e.message;
-    $('submit').disabled = true;
+    showProblem(e.message);
+    showWarnings([]);
+    planOk = false;
+    updateSubmit();
   }
 }
 
@@ -282,13 +393,13 @@ $('submit').addEventListener('click', async () => {
   $('submit').disabled = true;
   try {
     const st = await api('POST', '/api/v1/runs', text);
-    banner(`run ${st.id} queued`, 'notice');
     await refreshRuns();
     select(st.id);
+    banner(`run ${st.id} queued`, 'notice', st.id);
   } catch (e) {
     banner(`submit refused: ${e.message}`);
   } finally {
-    $('submit').disabled = checkedText === null;
+    updateSubmit();
   }
 });
 
@@ -443,8 +554,17 @@ function select(id) {
   view.clear();
   $('hist-caption').textContent = 'no histogram yet';
   $('run-id').textContent = id;
+  // Everything shown belongs to the selected run: nothing of the last one stays.
   $('results-body').hidden = true;
   $('results-note').textContent = 'results appear when the run completes';
+  $('downloads').replaceChildren();
+  $('view-caption').textContent = '';
+  $('gauss-caption').textContent = '';
+  $('view-colourbar').hidden = true;
+  $('run-error').textContent = '';
+  downloadsKey = null;
+  volume = null;
+  if (bannerRun && bannerRun !== id) banner('');
   renderRuns();
   loadHistory(id);
   const r = runs.find((x) => x.id === id);
@@ -465,10 +585,40 @@ function onStatus(st) {
     geometryStage = stage;
     loadGeometry(st.id);
   }
-  if (st.state === 'completed' && resultsFor !== st.id) {
+  renderDownloads(st);
+  // Results for any run that has them: completed, or stopped after its outputs.
+  if (st.files.includes('volume.npy') && st.files.includes('depth.npy') && resultsFor !== st.id) {
     resultsFor = st.id;
-    loadResults(st.id, st.files);
+    loadResults(st.id);
+  } else if (!st.files.includes('volume.npy') && ['aborted', 'failed', 'paused'].includes(st.state)) {
+    $('results-note').textContent = `run ${st.state} before it was reconstructed: its ${st.pairs_done.toLocaleString()} captured pairs are kept (download capture.hdf5 below, or reconstruct it offline with periscope recon)`;
   }
+}
+
+// The selected run's files, for any state; an unfinished run's capture so far is
+// exported on request as capture.hdf5.
+let downloadsKey = null;
+function renderDownloads(st) {
+  const files = [...st.files];
+  if (!files.includes('capture.hdf5') && st.pairs_done > 0) files.push('capture.hdf5');
+  const key = `${st.id}:${files.join(',')}`;
+  if (key === downloadsKey) return;
+  downloadsKey = key;
+  const id = st.id;
+  $('downloads').replaceChildren(...files.map((f) => el('button', {
+    class: 'download',
+    'data-run': id,
+    onclick: async () => {
+      try {
+        const blob = new Blob([await fetchBytes(`/api/v1/runs/${id}/files/${f}`)]);
+        const a = el('a', { href: URL.createObjectURL(blob), download: `${id}-${f}` });
+        a.click();
+        setTimeout(() => URL.revokeObjectURL(a.href), 60000);
+      } catch (e) {
+        banner(`download failed: ${e.message}`);
+      }
+    },
+  }, f)));
 }
 
 function renderSummary() {
@@ -480,8 +630,10 @@ function renderSummary() {
   $('run-stage').textContent = st.stage;
   $('run-progress').value = st.progress;
   $('run-pairs').textContent = st.pairs_total ? `${st.pairs_done.toLocaleString()} / ${st.pairs_total.toLocaleString()} pairs` : '';
-  $('run-eta').textContent = eta == null ? '' : `capture ends in about ${fmtS(eta)}`;
-  $('run-loss').textContent = st.loss == null ? '' : `loss ${st.loss.toExponential(3)}`;
+  // The ETA is the capture's: shown only while the capture runs.
+  const capturing = st.state === 'running' && st.stage === 'capture';
+  $('run-eta').textContent = capturing && eta != null && eta > 0.5 ? `capture ends in about ${fmtS(eta)}` : '';
+  $('run-loss').textContent = st.loss == null ? '' : `${st.state === 'completed' ? 'final loss' : 'loss'} ${st.loss.toExponential(3)}`;
   $('run-error').textContent = st.error || '';
   // Buttons are rebuilt only when they change, so a click never lands on a replaced one.
   const key = `${st.id}:${st.state}`;
@@ -518,10 +670,16 @@ function drawLoss() {
   probe.lossPoints = steps.length;
 }
 
+let geometryRetry = null;
 async function loadGeometry(id) {
+  clearTimeout(geometryRetry);
   try {
     const g = await api('GET', `/api/v1/runs/${id}/geometry`);
     if (id !== selected) return;
+    // Planned but the pairs not stored yet: ask again shortly.
+    if (status?.pairs_total > 0 && g.illumination.length === 0) {
+      geometryRetry = setTimeout(() => id === selected && loadGeometry(id), 1000);
+    }
     const vp = g.viewpoint;
     const dist = g.relay.map((p) => Math.hypot(p[0] - vp[0], p[1] - vp[1], p[2] - vp[2]));
     const lo = Math.min(...dist);
@@ -530,8 +688,17 @@ async function loadGeometry(id) {
     view.setPoints('illumination', g.illumination, { colour: '#e74c3c', size: 2.2, alpha: 0.8 });
     view.setPoints('detection', g.detection, { colour: '#1abc9c', size: 1.6, alpha: 0.8 });
     view.setLines('volume', boxEdges(g.volume.x, g.volume.y, g.volume.z), { colour: '#888', alpha: 0.8 });
+    // Axes from the volume's lower corner, 10 cm each: x red, y green, z blue.
+    const o = [g.volume.x[0], g.volume.y[0], g.volume.z[0]];
+    view.setLines('axis-x', [[o, [o[0] + 0.1, o[1], o[2]]]], { colour: '#e74c3c', width: 3 });
+    view.setLines('axis-y', [[o, [o[0], o[1] + 0.1, o[2]]]], { colour: '#27ae60', width: 3 });
+    view.setLines('axis-z', [[o, [o[0], o[1], o[2] + 0.1]]], { colour: '#2e86c1', width: 3 });
     view.frame([...g.relay, ...boxEdges(g.volume.x, g.volume.y, g.volume.z).flat()]);
+    $('cb-lo').textContent = `${lo.toFixed(2)} m`;
+    $('cb-hi').textContent = `${hi.toFixed(2)} m from the instrument`;
+    $('view-colourbar').hidden = g.relay.length === 0;
     $('view-caption').textContent = `${g.relay.length.toLocaleString()} relay points coloured by distance (${lo.toFixed(2)}–${hi.toFixed(2)} m) · ${g.illumination.length} illumination (red), ${g.detection.length} detection (green) points · volume box`;
+    probe.geometry = { relay: g.relay.length, illumination: g.illumination.length, detection: g.detection.length };
   } catch (e) {
     $('view-caption').textContent = e.message;
   }
@@ -546,8 +713,11 @@ function onHistogram(h) {
   histPlot.setData([xs, h.bins]);
   const total = h.bins.reduce((a, b) => a + b, 0);
   liveReading = { run: selected, at: performance.now(), laser: h.laser_deg, spad: h.spad_deg, rate: total / Math.max(h.dwell_us * 1e-6, 1e-9), pair: h.pair };
-  $('hist-caption').textContent = `pair ${h.pair} · ${total.toLocaleString()} counts · ${h.group > 1 ? `${h.group} bins summed per point` : 'every bin'}`;
-  view.setPoints('pair', [h.illumination, h.detection], { colour: (i) => (i === 0 ? '#ff2d00' : '#00a0ff'), size: 5 });
+  const measured = status?.pairs_total ? ` · ${status.pairs_done.toLocaleString()} of ${status.pairs_total.toLocaleString()} measured (the capture visits the plan in interleaved passes)` : '';
+  $('hist-caption').textContent = `plan pair #${h.pair} · ${total.toLocaleString()} counts · ${h.group > 1 ? `${h.group} bins summed per point` : 'every bin'}${measured}`;
+  // The current pair: yellow (illumination) and violet (detection), apart from the red
+  // and green planned points.
+  view.setPoints('pair', [h.illumination, h.detection], { colour: (i) => (i === 0 ? '#ffd400' : '#8e44ad'), size: 7 });
   view.setLines('pair-link', [[h.illumination, h.detection]], { colour: '#333', width: 2 });
   probe.histograms += 1;
   requestAnimationFrame(() => setTimeout(() => {
@@ -578,6 +748,8 @@ function onEvent(name, data) {
         status.stage = data.stage;
         renderSummary();
       }
+      // The pairs are stored by the time the capture starts: show them.
+      if (data.stage === 'capture') loadGeometry(selected);
       break;
     case 'pair':
       if (status) {
@@ -617,6 +789,9 @@ async function follow(id) {
   const abort = new AbortController();
   live = { id, abort };
   let delay = 500;
+  // Whether the stream brought anything past its status snapshot: only then does the
+  // event log hold more than the page already loaded.
+  let received = false;
   while (!abort.signal.aborted && selected === id) {
     try {
       const r = await fetch(`/api/v1/runs/${id}/events`, { headers: headers(), signal: abort.signal });
@@ -640,7 +815,10 @@ async function follow(id) {
             if (line.startsWith('event:')) name = line.slice(6).trim();
             else if (line.startsWith('data:')) data += line.slice(5).replace(/^ /, '');
           }
-          if (data) onEvent(name, JSON.parse(data));
+          if (data) {
+            if (name !== 'status') received = true;
+            onEvent(name, JSON.parse(data));
+          }
         }
       }
     } catch (e) {
@@ -656,12 +834,13 @@ async function follow(id) {
       // Unreachable: retry below.
     }
     if (st && !['running', 'queued'].includes(st.state)) {
-      await loadHistory(id);
+      if (received) await loadHistory(id);
       await refreshRuns();
       if (live?.abort === abort) live = null;
       return;
     }
-    if (st) await loadHistory(id);
+    if (st && received) await loadHistory(id);
+    received = false;
     await new Promise((ok) => setTimeout(ok, delay));
     delay = Math.min(delay * 2, 8000);
   }
@@ -816,24 +995,51 @@ $('slice-axis').addEventListener('change', () => {
   drawSlice();
 });
 
-async function loadResults(id, files) {
+// Results load lazily: the depth map and the volume's description at once (small),
+// the volume itself (megabytes) only when its part of the page is on screen.
+let resultsObserver = null;
+function whenVisible(target, f) {
+  resultsObserver?.disconnect();
+  resultsObserver = new IntersectionObserver((entries) => {
+    if (entries.some((e) => e.isIntersecting)) {
+      resultsObserver.disconnect();
+      f();
+    }
+  });
+  resultsObserver.observe(target);
+}
+
+async function loadResults(id) {
   try {
-    const [vj, depthBuf, volBuf] = await Promise.all([
+    const [vj, depthBuf] = await Promise.all([
       api('GET', `/api/v1/runs/${id}/files/volume.json`),
       fetchBytes(`/api/v1/runs/${id}/files/depth.npy`),
-      fetchBytes(`/api/v1/runs/${id}/files/volume.npy`),
     ]);
     if (id !== selected) return;
     const depth = parseNpy(depthBuf);
-    const vol = parseNpy(volBuf);
-    const [nz, ny, nx] = vol.shape;
-    let max = 0;
-    for (const v of vol.data) if (v > max) max = v;
-    volume = { nx, ny, nz, data: vol.data, json: vj, max: max || 1 };
     drawMap($('depth-canvas'), {
       data: depth.data, cols: depth.shape[1], rows: depth.shape[0], xr: vj.x, yr: vj.y,
       xlabel: 'x (m)', ylabel: 'y (m)', vmin: vj.z[0], vmax: vj.z[1], stops: VIRIDIS, unit: 'depth z (m)', title: 'depth (grey: no surface)',
     });
+    const [nz, ny, nx] = vj.shape_zyx;
+    $('results-note').textContent = `${vj.method} with ${vj.solver}, ${vj.pairs.toLocaleString()} pairs, ${nx}×${ny}×${nz} voxels of ${vj.voxel_m.map((v) => (v * 1000).toFixed(1)).join(' × ')} mm${vj.final_loss != null ? `, final loss ${vj.final_loss.toExponential(3)}` : ''}`;
+    $('volume-note').textContent = 'the volume loads when this part of the page is shown';
+    $('results-body').hidden = false;
+    probe.resultsShown = true;
+    whenVisible($('volume-part'), () => loadVolume(id, vj));
+  } catch (e) {
+    $('results-note').textContent = `results could not be shown: ${e.message}`;
+  }
+}
+
+async function loadVolume(id, vj) {
+  try {
+    const vol = parseNpy(await fetchBytes(`/api/v1/runs/${id}/files/volume.npy`));
+    if (id !== selected) return;
+    const [nz, ny, nx] = vol.shape;
+    let max = 0;
+    for (const v of vol.data) if (v > max) max = v;
+    volume = { nx, ny, nz, data: vol.data, json: vj, max: max || 1 };
     const mipZ = plane('z');
     const albedo = mipZ.data.map((v) => Math.max(0, v) / volume.max);
     drawMap($('albedo-canvas'), { ...mipZ, data: albedo, vmin: 0, vmax: 1, stops: INFERNO, unit: 'relative intensity', title: 'albedo (peak along z)' });
@@ -844,36 +1050,32 @@ async function loadResults(id, files) {
     $('slice').max = nz - 1;
     $('slice').value = Math.floor(nz / 2);
     drawSlice();
-    $('results-note').textContent = `${vj.method} with ${vj.solver}, ${vj.pairs.toLocaleString()} pairs, ${nx}×${ny}×${nz} voxels of ${vj.voxel_m.map((v) => (v * 1000).toFixed(1)).join(' × ')} mm`;
-    $('results-body').hidden = false;
-    probe.resultsShown = true;
+    $('volume-note').textContent = `${nx}×${ny}×${nz} voxels, maximum ${volume.max.toExponential(2)}`;
   } catch (e) {
-    $('results-note').textContent = `results could not be shown: ${e.message}`;
+    $('volume-note').textContent = `the volume could not be shown: ${e.message}`;
   }
-  $('downloads').replaceChildren(...files.map((f) => el('button', {
-    class: 'download',
-    onclick: async () => {
-      try {
-        const blob = new Blob([await fetchBytes(`/api/v1/runs/${id}/files/${f}`)]);
-        const a = el('a', { href: URL.createObjectURL(blob), download: `${id}-${f}` });
-        a.click();
-        setTimeout(() => URL.revokeObjectURL(a.href), 60000);
-      } catch (e) {
-        banner(`download failed: ${e.message}`);
-      }
-    },
-  }, f)));
 }
 
 // ---------------------------------------------------------------- start
 
 async function refresh() {
-  await Promise.all([pollInstrument(), refreshRuns()]);
+  await Promise.all([pollInstrument(), refreshRuns(), checkEstop(), checkQueue()]);
+}
+
+async function checkQueue() {
+  try {
+    queueLock = (await api('GET', '/api/v1/queue')).lock;
+  } catch {
+    queueLock = null;
+  }
+  updateSubmit();
 }
 
 async function start() {
   showTokenState();
   makePlots();
+  drawLines();
+  startSafety({ headers, probe, setConnection });
   $('runs-filter').addEventListener('input', () => refreshRuns());
   $('runs-state').addEventListener('change', () => refreshRuns());
   await refresh();

@@ -84,6 +84,7 @@ fn limited() -> OpenApiRouter<AppState> {
         .routes(routes!(resume))
         .routes(routes!(abort))
         .routes(routes!(events))
+        .routes(routes!(instrument_events))
         .routes(routes!(file))
         .routes(routes!(geometry))
 }
@@ -286,6 +287,7 @@ pub fn app(state: AppState) -> Router {
     // route its own).
     let limited = limited
         .route("/", get(dashboard::index))
+        .route("/favicon.ico", get(dashboard::favicon))
         .route("/ui/{*file}", get(dashboard::asset))
         .layer(tower::limit::GlobalConcurrencyLimitLayer::new(api.max_concurrent));
     let checks = checks.layer(tower::limit::GlobalConcurrencyLimitLayer::new(api.max_checks));
@@ -303,7 +305,23 @@ pub fn app(state: AppState) -> Router {
             StatusCode::REQUEST_TIMEOUT,
             api.request_timeout,
         ))
+        .layer(compression())
         .with_state(state)
+}
+
+/// Responses compressed (gzip or brotli, as the client's `Accept-Encoding` asks) by
+/// tower-http: the page, its scripts, JSON, event logs. Not compressed: event streams,
+/// images, and the binary downloads (`.npy`, `.ply`, HDF5: float data that hardly
+/// shrinks, and would cost the API's threads CPU for nothing).
+fn compression() -> tower_http::compression::CompressionLayer<impl tower_http::compression::Predicate> {
+    use tower_http::compression::predicate::{DefaultPredicate, NotForContentType, Predicate as _};
+    tower_http::compression::CompressionLayer::new()
+        .quality(tower_http::CompressionLevel::Precise(5))
+        .compress_when(
+            DefaultPredicate::new()
+                .and(NotForContentType::const_new("application/octet-stream"))
+                .and(NotForContentType::const_new("application/x-hdf5")),
+        )
 }
 
 /// What a stop signal does to `serve`.
@@ -814,6 +832,56 @@ async fn events(
     Ok(Sse::new(head.chain(live)).keep_alive(KeepAlive::default()))
 }
 
+/// How often `GET /api/v1/instrument/events` sends the safety state.
+const SAFETY_INTERVAL: std::time::Duration = std::time::Duration::from_millis(500);
+
+/// The live safety state as server-sent events
+///
+/// A `safety` event every 0.5 s: laser emission, interlock, diffuser, arm angles,
+/// signal and detector rates, counts per pulse, pair rate, from the running run's own
+/// readings or the idle reading, with the reading's age and the age past which it says
+/// nothing (`stale_after_s`): a client shows UNKNOWN then, or when the stream stops.
+#[utoipa::path(
+    get,
+    path = "/api/v1/instrument/events",
+    responses(
+        (status = 200, description = "event stream of `safety` events", content_type = "text/event-stream", body = crate::service::Safety),
+        (status = 503, description = status::STREAMS, body = ErrorBody),
+    )
+)]
+async fn instrument_events(
+    State(state): State<AppState>,
+) -> ApiResult<Sse<impl tokio_stream::Stream<Item = Result<Event, Infallible>>>> {
+    let max = state.service.instrument().api.max_streams;
+    let Some(slot) = Slot::take(&state.streams, max) else {
+        return Err(ApiError::new(
+            StatusCode::SERVICE_UNAVAILABLE,
+            "too-many-streams",
+            format!(
+                "{max} event streams are open, the most this daemon serves ([api] max-streams); \
+                 close one or poll GET /api/v1/instrument"
+            ),
+        ));
+    };
+    let service = Arc::clone(&state.service);
+    let ticks = tokio_stream::wrappers::IntervalStream::new(tokio::time::interval(SAFETY_INTERVAL));
+    let stream = ticks.then(move |_| {
+        let service = Arc::clone(&service);
+        let _slot = &slot;
+        async move {
+            let safety = tokio::task::spawn_blocking(move || service.safety()).await;
+            Ok(match safety {
+                Ok(s) => Event::default()
+                    .event("safety")
+                    .json_data(&s)
+                    .unwrap_or_else(|_| Event::default().event("safety")),
+                Err(_) => Event::default().event("error").data("{}"),
+            })
+        }
+    });
+    Ok(Sse::new(stream).keep_alive(KeepAlive::default()))
+}
+
 /// Download a run file
 ///
 /// The volume (.npy), depth and albedo (PNG), the relay point cloud and the Gaussians
@@ -834,6 +902,7 @@ async fn events(
 async fn file(
     State(state): State<AppState>,
     Path((id, name)): Path<(String, String)>,
+    request: Request,
 ) -> ApiResult<Response> {
     let Some((_, media)) = DOWNLOADS.iter().find(|(n, _)| *n == name) else {
         return Err(ApiError::new(
@@ -863,25 +932,34 @@ async fn file(
             e
         }
     })?;
-    let builder = Response::builder().header(header::CONTENT_TYPE, *media);
-    let response = match source {
+    match source {
         crate::service::Download::Bytes(bytes) => {
             drop(permit);
-            builder.body(Body::from(bytes))
+            Response::builder()
+                .header(header::CONTENT_TYPE, *media)
+                .body(Body::from(bytes))
+                .map_err(|e| ApiError::new(StatusCode::INTERNAL_SERVER_ERROR, "internal", e.to_string()))
         }
-        crate::service::Download::File(file, len) => {
-            // The permit lives as long as the body: a slow client holds its slot.
-            let stream =
-                tokio_util::io::ReaderStream::new(tokio::fs::File::from_std(file)).map(move |chunk| {
-                    let _permit = &permit;
-                    chunk
-                });
-            builder
-                .header(header::CONTENT_LENGTH, len)
-                .body(Body::from_stream(stream))
+        crate::service::Download::Path(path) => {
+            // tower-http's ServeFile answers with the file's validators (Last-Modified,
+            // so a second view of the same result is a 304), ranges and HEAD. The permit
+            // lives as long as the body: a slow client holds its slot.
+            use tower::ServiceExt as _;
+            let Ok(response) = tower_http::services::ServeFile::new(path).oneshot(request).await;
+            let (mut parts, body) = response.into_parts();
+            parts
+                .headers
+                .insert(header::CONTENT_TYPE, HeaderValue::from_static(media));
+            parts
+                .headers
+                .insert(header::CACHE_CONTROL, HeaderValue::from_static("no-cache"));
+            let stream = Body::new(body).into_data_stream().map(move |chunk| {
+                let _permit = &permit;
+                chunk
+            });
+            Ok(Response::from_parts(parts, Body::from_stream(stream)))
         }
-    };
-    response.map_err(|e| ApiError::new(StatusCode::INTERNAL_SERVER_ERROR, "internal", e.to_string()))
+    }
 }
 
 #[cfg(test)]

@@ -212,6 +212,7 @@ impl Run {
             }
             log.sync().map_err(|e| PipelineError::storage(log.path(), e))?;
             self.devices.laser.set_emission(false)?;
+            self.report_laser();
         }
         self.save_info()?;
         if streaming {

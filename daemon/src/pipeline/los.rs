@@ -119,6 +119,7 @@ impl Run {
         }
         self.devices.laser.set_emission(false)?;
         self.devices.laser.set_diffuser(false)?;
+        self.report_laser();
         Ok(out)
     }
 

@@ -32,6 +32,10 @@ pub struct Run {
     pub(super) control: Control,
     /// The stage in progress (for checkpoints and panic reports).
     pub(super) stage: Stage,
+    /// When the stage in progress started, until it finishes: a run that stops in it
+    /// (a pause, a failure) records the part it ran, so a resumed stage's time is the
+    /// sum of its parts.
+    pub(super) stage_started: Option<Instant>,
 }
 
 /// The result of a finished run.
@@ -248,6 +252,7 @@ impl Run {
             info,
             control,
             stage: Stage::Opening,
+            stage_started: None,
         })
     }
 
@@ -284,7 +289,9 @@ impl Run {
 
     pub(super) fn set_stage(&mut self, stage: Stage) -> Result<(), PipelineError> {
         self.stage = stage;
+        self.stage_started = None;
         self.checkpoint()?;
+        self.stage_started = Some(Instant::now());
         self.info.stage = stage.name().into();
         self.info.state = RunState::Running;
         self.save_info()?;
@@ -300,9 +307,18 @@ impl Run {
 
     pub(super) fn finish_stage(&mut self, stage: Stage, started: Instant) {
         let seconds = started.elapsed().as_secs_f64();
-        self.info.timings.retain(|(s, _)| s != stage.name());
-        self.info.timings.push((stage.name().into(), seconds));
+        self.stage_started = None;
+        self.add_timing(stage, seconds);
         self.events.emit(RunEvent::StageFinished { stage, seconds });
+    }
+
+    /// Adds `seconds` to `stage`'s time: a stage run in parts (paused and resumed,
+    /// suspended, failed and resumed) is timed over all its parts, not only its last.
+    fn add_timing(&mut self, stage: Stage, seconds: f64) {
+        match self.info.timings.iter_mut().find(|(s, _)| s == stage.name()) {
+            Some((_, total)) => *total += seconds,
+            None => self.info.timings.push((stage.name().into(), seconds)),
+        }
     }
 
     /// Runs (or continues) the pipeline to the end. On any error the laser is switched
@@ -319,6 +335,10 @@ impl Run {
                 message: panic_message(payload.as_ref()),
             }),
         };
+        // The part of the stage that ran before the run stopped in it.
+        if let Some(t) = self.stage_started.take() {
+            self.add_timing(self.stage, t.elapsed().as_secs_f64());
+        }
         let safe = self.devices.make_safe();
         self.control
             .record_made_safe(safe.as_ref().map(|_| ()).map_err(|e| e.to_string()));

@@ -83,7 +83,9 @@ impl Run {
     /// stops as the stop asked (aborted or paused), or, if nothing asked, is held
     /// paused with the reason.
     pub(crate) fn laser_on(&mut self) -> Result<(), PipelineError> {
-        match self.devices.laser.set_emission(true) {
+        let on = self.devices.laser.set_emission(true);
+        self.report_laser();
+        match on {
             Err(e) if e.kind() == ErrorKind::Interrupted => {
                 // Every emergency off comes with a stop request (a signal's right after
                 // the off): give it a moment to arrive, so the run ends as it asked.
@@ -109,8 +111,26 @@ impl Run {
         Ok(())
     }
 
+    /// Reads the laser's state and reports it to the live displays (errors are left
+    /// to the next check that needs the state).
+    pub(crate) fn report_laser(&mut self) {
+        if let Ok(state) = self.devices.laser.laser_state() {
+            self.emit_safety(state);
+        }
+    }
+
+    fn emit_safety(&self, state: periscope_drivers::LaserState) {
+        self.events.emit(RunEvent::Safety {
+            emission: state.emission,
+            interlock_closed: state.interlock_closed,
+            diffuser_in: state.diffuser_in,
+            unix_ms: crate::run_dir::unix_now() * 1e3,
+        });
+    }
+
     fn laser_suspension(&mut self) -> Result<Option<Suspension>, PipelineError> {
         let state = self.devices.laser.laser_state()?;
+        self.emit_safety(state);
         Ok(if !state.interlock_closed {
             Some(Suspension::Interlock)
         } else if !state.emission {
@@ -149,6 +169,7 @@ impl Run {
     /// plan's time, then switches the laser back on and returns.
     pub(crate) fn suspend(&mut self, s: Suspension) -> Result<(), PipelineError> {
         self.devices.laser.set_emission(false)?;
+        self.report_laser();
         let reason = s.reason();
         let mode = self.plan.suspend.resume;
         tracing::warn!(reason = %reason, "suspended: laser off");

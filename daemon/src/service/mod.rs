@@ -44,7 +44,9 @@ mod worker;
 pub use estop::EstopReport;
 pub use ops::{LOCK_FILE, QueueLock, QueueView};
 use queue::hold_interrupted;
-pub use status::{GEOMETRY_POINTS, Geometry, InstrumentStatus, ReadingAge, RunStage, VolumeBox};
+pub use status::{
+    GEOMETRY_POINTS, Geometry, InstrumentStatus, RUN_STALE_S, ReadingAge, RunStage, Safety, VolumeBox,
+};
 
 /// The queue file in the runs directory.
 pub const QUEUE_FILE: &str = "queue.json";
@@ -87,7 +89,7 @@ pub struct RunStatus {
     pub eta_s: Option<f64>,
     /// Place in the queue (0 = next), for queued runs.
     pub queue_position: Option<usize>,
-    /// Last optimiser loss, when fitting.
+    /// Last optimiser loss while fitting; the final loss once completed (method gtr).
     pub loss: Option<f64>,
     /// Last error.
     pub error: Option<String>,
@@ -180,8 +182,8 @@ impl ServiceError {
 pub enum Download {
     /// The whole body.
     Bytes(Vec<u8>),
-    /// An open file and its length.
-    File(std::fs::File, u64),
+    /// A regular file, served from disk with its validators.
+    Path(PathBuf),
 }
 
 /// The devices as the worker last read them.
@@ -205,6 +207,21 @@ struct Live {
     /// Photon counts since the capture (re)started, for the counts-rate metric.
     counts: u64,
     loss: Option<f64>,
+    /// The laser as the run last read it, and when.
+    laser: Option<(periscope_drivers::LaserState, Instant, f64)>,
+    /// The arms' angles (degrees), the signal rate (counts/s) and the pair index of
+    /// the run's latest histogram, and when it arrived.
+    histogram: Option<LiveHistogram>,
+}
+
+/// What the live safety bar takes from a run's latest histogram.
+#[derive(Clone, Copy, Debug)]
+struct LiveHistogram {
+    laser_deg: [f64; 2],
+    spad_deg: [f64; 2],
+    signal_rate: f64,
+    pair: usize,
+    at: Instant,
 }
 
 struct Shared {

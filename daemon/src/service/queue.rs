@@ -203,6 +203,11 @@ impl Service {
         }
         if st.state == RunState::Completed {
             st.progress = 1.0;
+            // The fit's final loss, from the outputs (method gtr).
+            st.loss = crate::store::read_text_capped(&dir.join(file::VOLUME_JSON), 1 << 20)
+                .ok()
+                .and_then(|t| serde_json::from_str::<serde_json::Value>(&t).ok())
+                .and_then(|v| v.get("final_loss").and_then(serde_json::Value::as_f64));
         }
         st.files = crate::run_dir::DOWNLOADS
             .iter()

@@ -42,6 +42,79 @@ impl Service {
         }
     }
 
+    /// The live safety state, from the running run's readings or the idle reading.
+    pub fn safety(&self) -> Safety {
+        let s = self.lock();
+        let idle_stale = 2.0 * self.instrument.api.status_interval.as_secs_f64() + 1.0;
+        let reading = s.reading.as_ref();
+        let idle_devices = reading.and_then(|r| r.devices.as_ref().ok());
+        let pointer = |p: &str| idle_devices.and_then(|d| d.pointer(p));
+        let flag = |p: &str| pointer(p).and_then(serde_json::Value::as_bool);
+        let angles = |p: &str| {
+            let x = pointer(&format!("{p}/x")).and_then(serde_json::Value::as_f64)?;
+            let y = pointer(&format!("{p}/y")).and_then(serde_json::Value::as_f64)?;
+            Some([x.to_degrees(), y.to_degrees()])
+        };
+        let mut out = Safety {
+            emission: flag("/laser/emission"),
+            interlock_closed: flag("/laser/interlock_closed"),
+            diffuser_in: flag("/laser/diffuser_in"),
+            laser_deg: angles("/laser_position"),
+            spad_deg: angles("/spad_position"),
+            signal_rate_hz: None,
+            detector_rate_hz: pointer("/tdc_status/rates/detector").and_then(serde_json::Value::as_f64),
+            counts_per_pulse: None,
+            pair_rate_hz: None,
+            source: "idle",
+            run: None,
+            pair: None,
+            age_s: idle_devices.and(reading).map(|r| r.at.elapsed().as_secs_f64()),
+            stale_after_s: idle_stale,
+            note: None,
+            unix_ms: crate::run_dir::unix_now() * 1e3,
+        };
+        if let Some((id, _)) = &s.current {
+            let live = &s.live;
+            out.source = "run";
+            out.run = Some(id.clone());
+            out.stale_after_s = RUN_STALE_S;
+            // Until the run reads the laser, nothing is known of it now.
+            out.emission = None;
+            out.interlock_closed = None;
+            out.diffuser_in = None;
+            out.age_s = None;
+            if let Some((state, at, _)) = live.laser {
+                out.emission = Some(state.emission);
+                out.interlock_closed = Some(state.interlock_closed);
+                out.diffuser_in = Some(state.diffuser_in);
+                out.age_s = Some(at.elapsed().as_secs_f64());
+            }
+            if let Some(h) = live.histogram {
+                out.laser_deg = Some(h.laser_deg);
+                out.spad_deg = Some(h.spad_deg);
+                out.pair = Some(h.pair);
+                if h.at.elapsed().as_secs_f64() < RUN_STALE_S {
+                    out.signal_rate_hz = Some(h.signal_rate);
+                    out.counts_per_pulse =
+                        Some(h.signal_rate / self.instrument.laser.repetition_rate.max(1.0));
+                }
+            }
+            if live.stage == "capture"
+                && let Some((t0, done0)) = live.capture_started
+            {
+                out.pair_rate_hz =
+                    Some(live.pairs_done.saturating_sub(done0) as f64 / t0.elapsed().as_secs_f64().max(1e-3));
+            }
+            if !matches!(live.stage.as_str(), "los-scan" | "capture") {
+                out.note = Some(format!(
+                    "run {id} holds the devices during {} and reads the laser only while it measures",
+                    live.stage
+                ));
+            }
+        }
+        out
+    }
+
     /// Reads the devices (worker thread only: it owns the instrument between runs).
     pub(super) fn take_reading(&self) {
         let _devices = self.devices.lock().unwrap_or_else(|p| p.into_inner());
@@ -78,9 +151,14 @@ impl Service {
         if !path.is_file() && name == crate::ytal::CAPTURE_FILE {
             return self.export_capture(id, &dir);
         }
-        let file = std::fs::File::open(&path).map_err(missing)?;
-        let len = file.metadata().map_err(missing)?.len();
-        Ok(Download::File(file, len))
+        // A regular file only (a FIFO or device planted there would hang or never end).
+        match std::fs::metadata(&path) {
+            Ok(m) if m.is_file() => Ok(Download::Path(path)),
+            Ok(_) => Err(ServiceError::Conflict(format!(
+                "run {id}'s {name} is not a regular file"
+            ))),
+            Err(e) => Err(missing(e)),
+        }
     }
 
     pub(super) fn export_capture(&self, id: &str, dir: &Path) -> Result<Download, ServiceError> {
@@ -106,9 +184,7 @@ impl Service {
             })?;
             write_atomic(&stamp, key.as_bytes()).map_err(ServiceError::storage(&stamp))?;
         }
-        let file = std::fs::File::open(&cache).map_err(ServiceError::storage(&cache))?;
-        let len = file.metadata().map_err(ServiceError::storage(&cache))?.len();
-        Ok(Download::File(file, len))
+        Ok(Download::Path(cache))
     }
 
     /// A run's geometry for 3-D views: the relay points the LOS scan kept, the planned
@@ -185,6 +261,52 @@ pub(super) fn thin(points: Vec<[f64; 3]>) -> Vec<[f64; 3]> {
         .map(|p| p.map(|c| (c * 1e4).round() / 1e4))
         .collect()
 }
+
+/// The live safety state (`GET /api/v1/instrument/events`, event `safety`): the
+/// laser, interlock and diffuser, the arms and the count rates, from the freshest
+/// source there is: the running run's own readings (it reads the laser at every pair
+/// and after each switch), else the worker's idle reading. `stale_after_s` is the age
+/// past which a client must show the state as UNKNOWN.
+#[derive(Clone, Debug, Serialize, ToSchema)]
+pub struct Safety {
+    /// Laser emitting; `None` when never read.
+    pub emission: Option<bool>,
+    /// Interlock loop closed.
+    pub interlock_closed: Option<bool>,
+    /// LOS diffuser in the beam.
+    pub diffuser_in: Option<bool>,
+    /// Laser arm's optical angles, degrees.
+    pub laser_deg: Option<[f64; 2]>,
+    /// SPAD arm's optical angles, degrees.
+    pub spad_deg: Option<[f64; 2]>,
+    /// Signal counts per second of the run's latest histogram (while capturing).
+    pub signal_rate_hz: Option<f64>,
+    /// Detector input rate of the idle reading (dark counts and ambient light while the
+    /// laser is off).
+    pub detector_rate_hz: Option<f64>,
+    /// Signal counts per laser pulse (pile-up stays negligible below about 0.05).
+    pub counts_per_pulse: Option<f64>,
+    /// Pairs per second of the running capture.
+    pub pair_rate_hz: Option<f64>,
+    /// `run` (the running run's readings) or `idle` (the worker's reading).
+    pub source: &'static str,
+    /// The running run, if any.
+    pub run: Option<String>,
+    /// The run's latest histogram's pair index.
+    pub pair: Option<usize>,
+    /// Age of the laser reading, seconds (`None`: never read).
+    pub age_s: Option<f64>,
+    /// Past this age the reading says nothing about now: clients show UNKNOWN.
+    pub stale_after_s: f64,
+    /// Why the reading may be old (a run reconstructing holds the devices).
+    pub note: Option<String>,
+    /// When this snapshot was taken, milliseconds since the Unix epoch.
+    pub unix_ms: f64,
+}
+
+/// While a run holds the devices, a laser reading older than this is stale: the run
+/// reads the laser at every pair, many times a second.
+pub const RUN_STALE_S: f64 = 3.0;
 
 /// What `GET /api/v1/instrument` reports: the worker's last reading of the devices,
 /// never a fresh one.

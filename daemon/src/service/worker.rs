@@ -186,7 +186,7 @@ impl Service {
         let forwarder = std::thread::Builder::new()
             .name("run-events".into())
             .spawn(move || {
-                let mut last_sent = [Instant::now() - PAIR_EVENT_INTERVAL; 2];
+                let mut last_sent = [Instant::now() - PAIR_EVENT_INTERVAL; 3];
                 for ev in rx {
                     me.on_event(&run_id, &ev, &mut last_sent);
                 }
@@ -213,7 +213,7 @@ impl Service {
         result
     }
 
-    pub(super) fn on_event(&self, id: &str, ev: &RunEvent, last_sent: &mut [Instant; 2]) {
+    pub(super) fn on_event(&self, id: &str, ev: &RunEvent, last_sent: &mut [Instant; 3]) {
         match ev {
             RunEvent::StageStarted { .. } => self.touch(id),
             RunEvent::StageFinished { stage, seconds } => {
@@ -249,6 +249,36 @@ impl Service {
                         live.loss = Some(loss);
                     }
                 }
+                RunEvent::Safety {
+                    emission,
+                    interlock_closed,
+                    diffuser_in,
+                    unix_ms,
+                } => {
+                    let state = periscope_drivers::LaserState {
+                        emission: *emission,
+                        interlock_closed: *interlock_closed,
+                        diffuser_in: *diffuser_in,
+                    };
+                    live.laser = Some((state, Instant::now(), unix_ms / 1e3));
+                }
+                RunEvent::Histogram {
+                    pair,
+                    laser_deg,
+                    spad_deg,
+                    dwell_us,
+                    bins,
+                    ..
+                } => {
+                    let counts: u64 = bins.iter().map(|&b| u64::from(b)).sum();
+                    live.histogram = Some(LiveHistogram {
+                        laser_deg: *laser_deg,
+                        spad_deg: *spad_deg,
+                        signal_rate: counts as f64 / (*dwell_us as f64 * 1e-6).max(1e-9),
+                        pair: *pair,
+                        at: Instant::now(),
+                    });
+                }
                 _ => {}
             }
         }
@@ -266,6 +296,7 @@ impl Service {
                 Some((0, done == total))
             }
             RunEvent::Histogram { .. } => Some((1, false)),
+            RunEvent::Safety { .. } => Some((2, false)),
             _ => None,
         };
         if let Some((clock, last)) = progress {
