@@ -320,8 +320,9 @@ fn read_keys(path: &Path) -> std::io::Result<Vec<KeyRecord>> {
     }
 }
 
-/// A key name: 1 to 64 letters, digits, `-`, `_`, `.` or `@`, not `token`, `loopback`
-/// or `cli` (the names the daemon gives callers without a key).
+/// A key name: 1 to 64 letters, digits, `-`, `_`, `.` or `@`, not one of the names the
+/// daemon gives callers and causes itself (`token`, `loopback`, `open-reads`, `cli`,
+/// `local`, `unknown`, `worker`, `estop`, `test`).
 fn check_name(name: &str) -> Result<(), KeysError> {
     let ok = !name.is_empty()
         && name.len() <= 64
@@ -333,7 +334,19 @@ fn check_name(name: &str) -> Result<(), KeysError> {
             "key name `{name}`: 1 to 64 letters, digits, `-`, `_`, `.` or `@`"
         )));
     }
-    if [TOKEN_KEY_NAME, "loopback", "cli", "local", "unknown"].contains(&name) {
+    if [
+        TOKEN_KEY_NAME,
+        "loopback",
+        "open-reads",
+        "cli",
+        "local",
+        "unknown",
+        "worker",
+        "estop",
+        "test",
+    ]
+    .contains(&name)
+    {
         return Err(KeysError::Invalid(format!(
             "`{name}` is a name the daemon gives callers itself; choose another"
         )));

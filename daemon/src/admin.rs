@@ -191,6 +191,16 @@ pub enum AdminError {
     },
 }
 
+impl From<std::io::Error> for AdminError {
+    /// An I/O error of a run's annotations (the caller names the file).
+    fn from(source: std::io::Error) -> AdminError {
+        AdminError::Io {
+            path: PathBuf::new(),
+            source,
+        }
+    }
+}
+
 fn runs_dir(instrument: &crate::config::InstrumentArg) -> Result<PathBuf, AdminError> {
     Ok(instrument.load()?.api.runs_dir)
 }
@@ -295,15 +305,17 @@ fn annotate(
             dir.display()
         )));
     }
-    let mut a = Annotations::load(&run).map_err(|source| AdminError::Io {
-        path: run.join(crate::run_dir::file::ANNOTATIONS),
-        source,
-    })?;
-    a.edit(add, remove, note).map_err(AdminError::Usage)?;
-    a.save(&run).map_err(|source| AdminError::Io {
-        path: run.join(crate::run_dir::file::ANNOTATIONS),
-        source,
-    })?;
+    let path = run.join(crate::run_dir::file::ANNOTATIONS);
+    let a =
+        Annotations::update(&run, |a| a.edit(add, remove, note).map_err(AdminError::Usage)).map_err(|e| {
+            match e {
+                AdminError::Io { source, .. } => AdminError::Io {
+                    path: path.clone(),
+                    source,
+                },
+                other => other,
+            }
+        })?;
     let cat = Catalogue::open_unsynced(dir)?;
     cat.index(id)?;
     cat.record(
@@ -366,10 +378,18 @@ pub fn keys(cmd: KeysCommand) -> Result<(), AdminError> {
                 })
                 .transpose()?;
             let (rec, secret) = KeyStore::open(&dir, None).create(&name, role, expires, "cli")?;
-            Catalogue::open_unsynced(&dir)?.record(
-                &AuditEntry::new("cli", "admin", "key-create", Some(&rec.name), "ok")
-                    .detail(format!("role {}", rec.role.name())),
-            )?;
+            // The key exists now: its secret is printed whatever the audit trail says.
+            let audited = Catalogue::open_unsynced(&dir).and_then(|c| {
+                c.record(
+                    &AuditEntry::new("cli", "admin", "key-create", Some(&rec.name), "ok")
+                        .detail(format!("role {}", rec.role.name())),
+                )
+            });
+            if let Err(e) = audited {
+                eprintln!(
+                    "warning: the key was made but its creation could not be recorded in the audit trail: {e}"
+                );
+            }
             // The secret alone on stdout, so `KEY=$(periscope keys create …)` works; the
             // rest on stderr.
             eprintln!(

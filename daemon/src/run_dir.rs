@@ -427,6 +427,25 @@ impl Annotations {
         }
     }
 
+    /// Loads a run's annotations, changes them with `f`, and writes them back, under
+    /// an exclusive lock (`annotations.json.lock`): the daemon and the CLI editing at
+    /// once never lose each other's tags.
+    pub fn update<E: From<io::Error>>(
+        dir: &Path,
+        f: impl FnOnce(&mut Annotations) -> Result<(), E>,
+    ) -> Result<Annotations, E> {
+        let lock = fs::OpenOptions::new()
+            .create(true)
+            .truncate(false)
+            .write(true)
+            .open(dir.join(format!("{}.lock", file::ANNOTATIONS)))?;
+        lock.lock()?;
+        let mut a = Annotations::load(dir)?;
+        f(&mut a)?;
+        a.save(dir)?;
+        Ok(a)
+    }
+
     /// Writes them atomically.
     pub fn save(&self, dir: &Path) -> io::Result<()> {
         let text = serde_json::to_string_pretty(self).expect("annotations serialise");

@@ -44,7 +44,14 @@ function showTokenState(message) {
 
 $('token-form').addEventListener('submit', (e) => {
   e.preventDefault();
-  const value = $('token').value.trim();
+    const value = $('token').value.trim();
+  // A header carries ISO-8859-1 only: a pasted curly quote would make every request
+  // fail in the browser, e-stop included.
+  if (/[^\x21-\x7e]/.test(value)) {
+    $('token').value = '';
+    showTokenState('that key has characters a key never has (spaces, quotes, accents): paste it again');
+    return;
+  }
   token = value || null;
   if (token) sessionStorage.setItem(TOKEN_KEY, token);
   else sessionStorage.removeItem(TOKEN_KEY);
@@ -199,7 +206,8 @@ async function pollInstrument() {
       // An old reading must not pass for a current one.
       instrument = null;
       $('inst-body').textContent = 'The daemon cannot be reached: nothing here is current. In doubt, use the hardware emergency stop.';
-    } else {
+        } else {
+      instrument = null;
       $('inst-body').textContent = e.message;
     }
   }
@@ -237,20 +245,29 @@ async function checkEstop() {
   updateSubmit();
 }
 
+// How long the E-STOP waits for the daemon's answer before it tells the operator to
+// use the hardware one.
+const ESTOP_TIMEOUT_MS = 3000;
+
 $('estop').addEventListener('click', async () => {
   const t0 = performance.now();
+  banner('E-STOP sent…', 'error');
   try {
-    const resp = await fetch('/api/v1/estop', { method: 'POST', headers: headers() });
-    const r = await resp.json().catch(() => ({}));
-    if (!resp.ok) throw new ApiError(resp.status, r.error, r.message || `${resp.status}`);
+    const resp = await fetch('/api/v1/estop', { method: 'POST', headers: headers(), signal: AbortSignal.timeout(ESTOP_TIMEOUT_MS) });
+    const r = await resp.json().catch(() => null);
+    if (!resp.ok || !r) throw new ApiError(resp.status, r?.error, r?.message || `${resp.status} ${resp.statusText}`);
     const parts = [`E-STOP done in ${((performance.now() - t0) / 1000).toFixed(2)} s: ${r.laser}`];
     if (r.aborted) parts.push(`run ${r.aborted} aborted`);
     parts.push(r.parked ? 'arms parked' : 'arms NOT parked');
     if (r.held?.length) parts.push(`held: ${r.held.join(', ')}`);
     if (r.warnings?.length) parts.push(`warnings: ${r.warnings.join('; ')}`);
-    banner(parts.join(' · '), r.parked ? 'notice' : 'error');
+        // Green only when the laser is confirmed off and the arms parked.
+    const laserOff = typeof r.laser === 'string' && r.laser.startsWith('off');
+    banner(parts.join(' · '), laserOff && r.parked ? 'notice' : 'error');
   } catch (e) {
-    if (e instanceof TypeError) {
+    if (e.name === 'TimeoutError') {
+      banner(`E-STOP got no answer within ${ESTOP_TIMEOUT_MS / 1000} s: press the HARDWARE emergency stop on the laser controller now.`);
+    } else if (e instanceof TypeError) {
       banner('E-STOP could not reach the daemon: press the HARDWARE emergency stop on the laser controller now.');
     } else {
       banner(`E-STOP refused (${e.message}): press the HARDWARE emergency stop on the laser controller now.`);
@@ -458,13 +475,18 @@ function runsQuery() {
   return `/api/v1/runs?${p}`;
 }
 
+let runsAsked = 0;
 async function refreshRuns() {
+  const asked = ++runsAsked;
   try {
     const r = await fetch(runsQuery(), { headers: headers({}) });
     if (!r.ok) throw new Error(`runs: ${r.status}`);
     const total = r.headers.get('x-total-count');
+    const list = (await r.json()).reverse();
+    // An answer to an older query (the filter changed since) is dropped.
+    if (asked !== runsAsked) return;
     // Oldest first, as the rest of the page expects.
-    runs = (await r.json()).reverse();
+    runs = list;
     $('runs-count').textContent = total != null ? `${runs.length} of ${total}` : '';
     setConnection(true);
   } catch (e) {
@@ -520,6 +542,8 @@ let geometryStage = null;
 let resultsFor = null;
 
 function makePlots() {
+  histPlot?.destroy();
+  lossPlot?.destroy();
   const hist = $('hist-plot');
   const loss = $('loss-plot');
   hist.replaceChildren();
@@ -561,7 +585,12 @@ function select(id) {
   $('view-caption').textContent = '';
   $('gauss-caption').textContent = '';
   $('view-colourbar').hidden = true;
-  $('run-error').textContent = '';
+    $('run-error').textContent = '';
+  for (const c of ['depth-canvas', 'albedo-canvas', 'mip-x', 'mip-y', 'mip-z', 'slice-canvas']) $(c).width = 0;
+  for (const f of ['run-state', 'run-stage', 'run-pairs', 'run-eta', 'run-loss']) $(f).textContent = '';
+  $('run-progress').value = 0;
+  $('run-actions').replaceChildren();
+  $('run-actions').dataset.key = '';
   downloadsKey = null;
   volume = null;
   if (bannerRun && bannerRun !== id) banner('');
@@ -699,8 +728,8 @@ async function loadGeometry(id) {
     $('view-colourbar').hidden = g.relay.length === 0;
     $('view-caption').textContent = `${g.relay.length.toLocaleString()} relay points coloured by distance (${lo.toFixed(2)}–${hi.toFixed(2)} m) · ${g.illumination.length} illumination (red), ${g.detection.length} detection (green) points · volume box`;
     probe.geometry = { relay: g.relay.length, illumination: g.illumination.length, detection: g.detection.length };
-  } catch (e) {
-    $('view-caption').textContent = e.message;
+    } catch (e) {
+    if (id === selected) $('view-caption').textContent = e.message;
   }
 }
 
@@ -775,8 +804,8 @@ function onEvent(name, data) {
     case 'snapshot':
       onSnapshot(data);
       break;
-    case 'failed':
-      banner(`run failed: ${data.message}`);
+        case 'failed':
+      banner(`run ${selected} failed: ${data.message}`, 'error', selected);
       break;
     default:
       break;
@@ -1027,8 +1056,8 @@ async function loadResults(id) {
     $('results-body').hidden = false;
     probe.resultsShown = true;
     whenVisible($('volume-part'), () => loadVolume(id, vj));
-  } catch (e) {
-    $('results-note').textContent = `results could not be shown: ${e.message}`;
+    } catch (e) {
+    if (id === selected) $('results-note').textContent = `results could not be shown: ${e.message}`;
   }
 }
 
@@ -1051,25 +1080,47 @@ async function loadVolume(id, vj) {
     $('slice').value = Math.floor(nz / 2);
     drawSlice();
     $('volume-note').textContent = `${nx}×${ny}×${nz} voxels, maximum ${volume.max.toExponential(2)}`;
-  } catch (e) {
-    $('volume-note').textContent = `the volume could not be shown: ${e.message}`;
+    } catch (e) {
+    if (id === selected) $('volume-note').textContent = `the volume could not be shown: ${e.message}`;
   }
 }
 
 // ---------------------------------------------------------------- start
 
+// One refresh at a time: a slow daemon must not pile requests up in the browser's few
+// connections (the E-STOP needs one).
+let refreshing = false;
 async function refresh() {
-  await Promise.all([pollInstrument(), refreshRuns(), checkEstop(), checkQueue()]);
+  if (refreshing) return;
+  refreshing = true;
+  try {
+    await Promise.all([pollInstrument(), refreshRuns(), checkEstop(), checkQueue()]);
+  } finally {
+    refreshing = false;
+  }
 }
 
 async function checkQueue() {
-  try {
+    try {
     queueLock = (await api('GET', '/api/v1/queue')).lock;
   } catch {
-    queueLock = null;
+    // Not known: Submit waits until it is.
+    queueLock = { by: 'unknown', reason: 'the queue could not be read' };
   }
   updateSubmit();
 }
+
+// A hidden tab gives back its connections (a browser has six per host, shared by its
+// tabs, and the E-STOP of the tab in use needs one): its run stream closes, and opens
+// again when the tab is shown.
+document.addEventListener('visibilitychange', () => {
+  if (document.hidden) {
+    if (live) live.abort.abort();
+    live = null;
+  } else if (selected && status && ['running', 'queued'].includes(status.state)) {
+    follow(selected);
+  }
+});
 
 async function start() {
   showTokenState();

@@ -112,8 +112,8 @@ export function startSafety({ headers, probe, setConnection }) {
       bar.className = `safety ${s.emission ? 'emitting' : 'safe'}`;
       word('sb-state', s.source === 'run' ? `run ${s.run}` : 'idle', '');
       word('sb-emission', s.emission ? 'LASER ON' : 'laser off', s.emission ? 'danger' : 'ok');
-      word('sb-interlock', s.interlock_closed ? 'interlock closed' : 'INTERLOCK OPEN', s.interlock_closed ? 'ok' : 'danger');
-      word('sb-diffuser', s.diffuser_in ? 'diffuser in' : 'diffuser out', '');
+            word('sb-interlock', s.interlock_closed == null ? 'interlock ?' : s.interlock_closed ? 'interlock closed' : 'INTERLOCK OPEN', s.interlock_closed === false ? 'danger' : s.interlock_closed ? 'ok' : '');
+      word('sb-diffuser', s.diffuser_in == null ? 'diffuser ?' : s.diffuser_in ? 'diffuser in' : 'diffuser out', '');
       const a = (v) => (v ? `${v[0].toFixed(2)}°, ${v[1].toFixed(2)}°` : '–');
       word('sb-arms', `laser arm (${a(s.laser_deg)}) · SPAD arm (${a(s.spad_deg)})`, '');
       const rate = s.signal_rate_hz ?? s.detector_rate_hz;
@@ -129,12 +129,20 @@ export function startSafety({ headers, probe, setConnection }) {
     probe.alarms = list;
   }
 
+    // The stream, closed while the tab is hidden (its connection is given back; the bar
+  // is not seen then anyway) and opened again when it is shown.
+  let abort = null;
   async function stream() {
     let delay = 500;
     for (;;) {
+      while (document.hidden) await new Promise((ok) => setTimeout(ok, 500));
+      abort = new AbortController();
       try {
-        const r = await fetch('/api/v1/instrument/events', { headers: headers() });
+        const r = await fetch('/api/v1/instrument/events', { headers: headers(), signal: abort.signal });
         if (!r.ok) throw new Error(`instrument events: ${r.status}`);
+        // Live only from the first event of this connection on: an event from before a
+        // drop is not shown as current again.
+        last = null;
         streamUp = true;
         delay = 500;
         const reader = r.body.pipeThrough(new TextDecoderStream()).getReader();
@@ -161,9 +169,10 @@ export function startSafety({ headers, probe, setConnection }) {
             }
           }
         }
-      } catch (e) {
-        if (e instanceof TypeError) setConnection(false);
+            } catch (e) {
+        if (e instanceof TypeError && !document.hidden) setConnection(false);
       }
+      abort?.abort();
       streamUp = false;
       render();
       await new Promise((ok) => setTimeout(ok, delay));
@@ -171,6 +180,9 @@ export function startSafety({ headers, probe, setConnection }) {
     }
   }
 
+    document.addEventListener('visibilitychange', () => {
+    if (document.hidden) abort?.abort();
+  });
   makePlots();
   $('series-range').addEventListener('change', drawSeries);
   setInterval(render, 250);

@@ -28,8 +28,8 @@ pub struct AuditEntry {
     /// The actor's role (`observer`, `operator`, `admin`, `estop`, or `none`).
     pub role: String,
     /// What: `submit`, `pause`, `resume`, `abort`, `estop`, `again`, `annotate`,
-    /// `queue-order`, `queue-lock`, `queue-unlock`, `key-create`, `key-revoke`,
-    /// `authenticate`, `authorise`.
+    /// `queue-order`, `queue-move`, `queue-lock`, `queue-unlock`, `key-create`,
+    /// `key-revoke`, `authenticate` (a missing, unknown, expired or revoked key).
     pub action: String,
     /// On what: a run id, a key's name.
     pub target: Option<String>,

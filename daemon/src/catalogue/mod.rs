@@ -120,7 +120,10 @@ impl Catalogue {
         let path = runs_dir.join(CATALOGUE_FILE);
         let conn = match open_connection(&path) {
             Ok(c) => c,
-            Err(why) => {
+            Err(Open::Refused(message)) => {
+                return Err(CatalogueError::Schema { path, message });
+            }
+            Err(Open::Damaged(why)) => {
                 let aside = runs_dir.join(format!("{CATALOGUE_FILE}.damaged"));
                 tracing::warn!(
                     "run catalogue {} is damaged ({why}); moved to {} and rebuilt from the run directories",
@@ -131,9 +134,11 @@ impl Catalogue {
                     path: path.clone(),
                     source,
                 })?;
-                open_connection(&path).map_err(|message| CatalogueError::Schema {
+                open_connection(&path).map_err(|e| CatalogueError::Schema {
                     path: path.clone(),
-                    message,
+                    message: match e {
+                        Open::Refused(m) | Open::Damaged(m) => m,
+                    },
                 })?
             }
         };
@@ -183,6 +188,20 @@ impl Catalogue {
     /// audit entries appended since the last sync.
     pub fn sync(&self) -> Result<SyncReport, CatalogueError> {
         let mut report = SyncReport::default();
+        // The rows first, then the directories: a run indexed in between (a submit
+        // while this syncs) is in neither list, so it is neither read nor dropped.
+        let known: HashMap<String, Option<String>> = {
+            let conn = self.conn();
+            let mut stmt = conn
+                .prepare("SELECT id, stamp FROM runs")
+                .map_err(self.sqlite())?;
+            let rows = stmt
+                .query_map([], |r| {
+                    Ok((r.get::<_, String>(0)?, r.get::<_, Option<String>>(1)?))
+                })
+                .map_err(self.sqlite())?;
+            rows.collect::<Result<_, _>>().map_err(self.sqlite())?
+        };
         let entries = std::fs::read_dir(&self.runs_dir).map_err(|source| CatalogueError::Io {
             path: self.runs_dir.clone(),
             source,
@@ -198,18 +217,6 @@ impl Catalogue {
             .collect();
         on_disk.sort();
         report.runs = on_disk.len();
-        let known: HashMap<String, Option<String>> = {
-            let conn = self.conn();
-            let mut stmt = conn
-                .prepare("SELECT id, stamp FROM runs")
-                .map_err(self.sqlite())?;
-            let rows = stmt
-                .query_map([], |r| {
-                    Ok((r.get::<_, String>(0)?, r.get::<_, Option<String>>(1)?))
-                })
-                .map_err(self.sqlite())?;
-            rows.collect::<Result<_, _>>().map_err(self.sqlite())?
-        };
         let changed: Vec<&String> = on_disk
             .iter()
             .filter(|(id, stamp)| known.get(id).is_none_or(|k| k.as_deref() != Some(stamp.as_str())))
@@ -231,13 +238,18 @@ impl Catalogue {
             let mut conn = self.conn();
             let tx = conn.transaction().map_err(self.sqlite())?;
             for r in &records {
-                upsert(&tx, r).map_err(self.sqlite())?;
+                report.indexed +=
+                    usize::from(upsert_if_current(&tx, &self.runs_dir, r).map_err(self.sqlite())?);
             }
             tx.commit().map_err(self.sqlite())?;
-            report.indexed += records.len();
         }
         let present: HashSet<&str> = on_disk.iter().map(|(id, _)| id.as_str()).collect();
-        let gone: Vec<&String> = known.keys().filter(|id| !present.contains(id.as_str())).collect();
+        let gone: Vec<&String> = known
+            .keys()
+            .filter(|id| !present.contains(id.as_str()))
+            // Gone still (not a directory that appeared since the listing).
+            .filter(|id| !RunDir::holds_run(&self.runs_dir.join(id.as_str())))
+            .collect();
         if !gone.is_empty() {
             let mut conn = self.conn();
             let tx = conn.transaction().map_err(self.sqlite())?;
@@ -309,7 +321,7 @@ impl Catalogue {
         })?;
         let mut conn = self.conn();
         let tx = conn.transaction().map_err(self.sqlite())?;
-        upsert(&tx, &r).map_err(self.sqlite())?;
+        upsert_if_current(&tx, &self.runs_dir, &r).map_err(self.sqlite())?;
         tx.commit().map_err(self.sqlite())
     }
 
@@ -354,24 +366,42 @@ fn wal(path: &Path, suffix: &str) -> PathBuf {
     PathBuf::from(s)
 }
 
+/// Why a catalogue could not be opened.
+enum Open {
+    /// The file is not a database or fails its integrity check: it is set aside and
+    /// rebuilt (it holds nothing the run directories do not).
+    Damaged(String),
+    /// Anything else (busy, read-only, a schema from a newer Periscope): refused as it
+    /// is, never set aside under another process that may be using it.
+    Refused(String),
+}
+
+fn classify(e: &rusqlite::Error) -> Open {
+    use rusqlite::ErrorCode::{DatabaseCorrupt, NotADatabase};
+    match e.sqlite_error_code() {
+        Some(NotADatabase | DatabaseCorrupt) => Open::Damaged(e.to_string()),
+        _ => Open::Refused(e.to_string()),
+    }
+}
+
 /// Opens a catalogue connection, checks the file is a readable database, and migrates
-/// it; the error says why it is not usable.
-fn open_connection(path: &Path) -> Result<Connection, String> {
-    let mut conn = Connection::open(path).map_err(|e| e.to_string())?;
-    conn.busy_timeout(BUSY_TIMEOUT).map_err(|e| e.to_string())?;
+/// it.
+fn open_connection(path: &Path) -> Result<Connection, Open> {
+    let mut conn = Connection::open(path).map_err(|e| classify(&e))?;
+    conn.busy_timeout(BUSY_TIMEOUT).map_err(|e| classify(&e))?;
     let check: String = conn
         .query_row("PRAGMA quick_check", [], |r| r.get(0))
-        .map_err(|e| e.to_string())?;
+        .map_err(|e| classify(&e))?;
     if check != "ok" {
-        return Err(format!("integrity check: {check}"));
+        return Err(Open::Damaged(format!("integrity check: {check}")));
     }
     conn.pragma_update(None, "journal_mode", "WAL")
-        .map_err(|e| e.to_string())?;
+        .map_err(|e| classify(&e))?;
     conn.pragma_update(None, "synchronous", "NORMAL")
-        .map_err(|e| e.to_string())?;
+        .map_err(|e| classify(&e))?;
     conn.pragma_update(None, "foreign_keys", "ON")
-        .map_err(|e| e.to_string())?;
-    schema::migrate_to(&mut conn, schema::VERSION)?;
+        .map_err(|e| classify(&e))?;
+    schema::migrate_to(&mut conn, schema::VERSION).map_err(Open::Refused)?;
     Ok(conn)
 }
 
@@ -421,7 +451,11 @@ fn read_run(dir: &Path) -> std::io::Result<Indexed> {
     // The stamp is taken first: a file changed while it is read leaves a stale stamp,
     // so the next sync reads it again.
     let stamp = stamp(dir);
-    let info = RunInfo::load(dir)?;
+    let mut info = RunInfo::load(dir)?;
+    // The row is the directory's: a copied or renamed run is keyed by where it is.
+    if let Some(name) = dir.file_name() {
+        info.id = name.to_string_lossy().into_owned();
+    }
     let plan_text = crate::store::read_text_capped(&dir.join(file::PLAN), 1 << 20).unwrap_or_default();
     let instrument = crate::store::read_text_capped(&dir.join(file::INSTRUMENT), 1 << 20)
         .ok()
@@ -506,6 +540,17 @@ pub fn time_of_id(id: &str) -> Option<f64> {
     let head = id.get(..15)?;
     let t = time::PrimitiveDateTime::parse(head, fmt).ok()?;
     Some(t.assume_utc().unix_timestamp() as f64)
+}
+
+/// Stores a run's row unless its files changed since they were read (then a newer
+/// read, by this process or another, writes it): a slow reader never puts an older
+/// state over a newer one. Returns whether it was stored.
+fn upsert_if_current(tx: &rusqlite::Transaction<'_>, runs_dir: &Path, r: &Indexed) -> rusqlite::Result<bool> {
+    if stamp(&runs_dir.join(&r.record.id)) != r.stamp {
+        return Ok(false);
+    }
+    upsert(tx, r)?;
+    Ok(true)
 }
 
 fn upsert(tx: &rusqlite::Transaction<'_>, r: &Indexed) -> rusqlite::Result<()> {

@@ -99,7 +99,14 @@ pub fn migrate_to(conn: &mut Connection, target: u32) -> Result<(), String> {
         ));
     }
     for v in at..target.min(VERSION) {
-        let tx = conn.transaction().map_err(|e| e.to_string())?;
+        // IMMEDIATE: the write lock is taken first, so of two processes migrating at
+        // once one waits, then finds the work done.
+        let tx = conn
+            .transaction_with_behavior(rusqlite::TransactionBehavior::Immediate)
+            .map_err(|e| e.to_string())?;
+        if version(&tx).map_err(|e| e.to_string())? > v {
+            continue;
+        }
         tx.execute_batch(MIGRATIONS[v as usize])
             .map_err(|e| format!("migration to schema version {}: {e}", v + 1))?;
         tx.pragma_update(None, "user_version", v + 1)

@@ -301,11 +301,12 @@ fn a_catalogue_from_a_newer_periscope_is_refused_not_damaged() {
         conn.pragma_update(None, "user_version", schema::VERSION + 1)
             .unwrap();
     }
-    // Refused as a schema it does not know, so it is set aside and rebuilt rather
-    // than written with a meaning it does not have.
-    let cat = Catalogue::open(dir.path()).unwrap();
-    assert_eq!(schema::version(&cat.conn()).unwrap(), schema::VERSION);
-    assert!(dir.path().join(format!("{CATALOGUE_FILE}.damaged")).is_file());
+    // Refused as a schema it does not know: neither written with a meaning it does
+    // not have, nor set aside under the newer Periscope that may be using it.
+    let err = Catalogue::open(dir.path()).err().expect("refused");
+    assert!(err.to_string().contains("newer than this periscope"), "{err}");
+    assert!(!dir.path().join(format!("{CATALOGUE_FILE}.damaged")).exists());
+    assert!(dir.path().join(CATALOGUE_FILE).is_file());
 }
 
 #[test]
@@ -358,4 +359,52 @@ fn concurrent_writers_lose_and_duplicate_nothing() {
     assert_eq!(ids.len(), 100);
     // audit.jsonl has each entry once too.
     assert_eq!(audit::read_all(&root).unwrap().len(), 100);
+}
+
+/// A reader that read a run before its files changed never writes its older row over
+/// the newer one (the CLI syncing while the daemon's indexer records a run's end).
+#[test]
+fn an_older_read_never_overwrites_a_newer_row() {
+    let dir = tempfile::tempdir().unwrap();
+    fixture(dir.path());
+    let cat = Catalogue::open(dir.path()).unwrap();
+    let id = "20261104-100000-wall";
+    let run = dir.path().join(id);
+    // A slow reader reads the paused run...
+    let old = read_run(&run).unwrap();
+    // ...the run completes meanwhile (its run.json rewritten) and is indexed...
+    std::thread::sleep(std::time::Duration::from_millis(20));
+    let mut info = RunInfo::load(&run).unwrap();
+    info.state = RunState::Completed;
+    info.save(&run).unwrap();
+    cat.index(id).unwrap();
+    // ...then the slow reader writes: refused, the row stays completed.
+    let mut conn = cat.conn();
+    let tx = conn.transaction().unwrap();
+    assert!(!upsert_if_current(&tx, dir.path(), &old).unwrap());
+    tx.commit().unwrap();
+    drop(conn);
+    assert_eq!(cat.get(id).unwrap().unwrap().0.state, RunState::Completed);
+}
+
+/// A run directory copied under another name is its own row, keyed by where it is.
+#[test]
+fn rows_are_keyed_by_their_directory() {
+    let dir = tempfile::tempdir().unwrap();
+    fixture(dir.path());
+    let from = dir.path().join("20261101-100000-wall");
+    let to = dir.path().join("20261101-100000-wall-copy");
+    std::fs::create_dir(&to).unwrap();
+    for e in std::fs::read_dir(&from).unwrap() {
+        let e = e.unwrap();
+        std::fs::copy(e.path(), to.join(e.file_name())).unwrap();
+    }
+    let cat = Catalogue::open(dir.path()).unwrap();
+    let ids: Vec<String> = everything(&cat).0.into_iter().map(|r| r.id).collect();
+    assert!(
+        ids.contains(&"20261101-100000-wall".to_owned())
+            && ids.contains(&"20261101-100000-wall-copy".to_owned()),
+        "{ids:?}"
+    );
+    assert_eq!(ids.len(), 5);
 }

@@ -273,8 +273,6 @@ pub struct Service {
     indexer: Mutex<Option<std::sync::mpsc::Sender<String>>>,
     /// Counters and histograms for `/metrics`.
     metrics: crate::metrics::Metrics,
-    /// Held while a run's annotations are changed.
-    annotating: Mutex<()>,
     shared: Mutex<Shared>,
     wake: Condvar,
     /// Held while a capture export is written.
@@ -372,7 +370,6 @@ impl Service {
             catalogue,
             indexer: Mutex::new(None),
             metrics: crate::metrics::Metrics::new(),
-            annotating: Mutex::new(()),
             shared: Mutex::new(Shared {
                 queue,
                 current: None,

@@ -6,6 +6,18 @@ use super::*;
 use crate::catalogue::{AuditEntry, Catalogue, RunPage, RunQuery};
 use crate::run_dir::Annotations;
 
+/// Why an annotation edit failed: the request's values, or the file.
+enum AnnotateError {
+    Invalid(String),
+    Io(std::io::Error),
+}
+
+impl From<std::io::Error> for AnnotateError {
+    fn from(e: std::io::Error) -> AnnotateError {
+        AnnotateError::Io(e)
+    }
+}
+
 /// The lock file in the runs directory (present while the queue is locked).
 pub const LOCK_FILE: &str = "queue-lock.json";
 
@@ -206,12 +218,16 @@ impl Service {
         note: Option<&str>,
     ) -> Result<Annotations, ServiceError> {
         let dir = self.dir(id)?;
-        // One annotation at a time, so two edits never lose one another's tags.
-        let _one = self.annotating.lock().unwrap_or_else(|p| p.into_inner());
-        let mut a = Annotations::load(&dir).map_err(ServiceError::storage(dir.join(file::ANNOTATIONS)))?;
-        a.edit(add, remove, note).map_err(ServiceError::Invalid)?;
-        a.save(&dir)
-            .map_err(ServiceError::storage(dir.join(file::ANNOTATIONS)))?;
+        // Under the annotations' file lock, which the CLI takes too: two edits never
+        // lose one another's tags.
+        let path = dir.join(file::ANNOTATIONS);
+        let a = Annotations::update(&dir, |a| {
+            a.edit(add, remove, note).map_err(AnnotateError::Invalid)
+        })
+        .map_err(|e| match e {
+            AnnotateError::Invalid(m) => ServiceError::Invalid(m),
+            AnnotateError::Io(source) => ServiceError::Storage { path, source },
+        })?;
         self.index_now(id);
         Ok(a)
     }
@@ -356,25 +372,74 @@ impl Service {
         if texts.is_empty() {
             return Err(ServiceError::Invalid("the batch holds no plans".into()));
         }
+        let mut plans = Vec::with_capacity(texts.len());
         for (i, text) in texts.iter().enumerate() {
             let src = TomlSource::from_text(format!("batch plan {}", i + 1), text.clone());
             let plan = Plan::from_source(&src, &self.instrument).map_err(ServiceError::InvalidPlan)?;
             crate::budget::Budget::of_plan(&plan)
                 .check(&self.instrument.budget)
                 .map_err(|m| ServiceError::OverBudget(format!("batch plan {}: {m}", i + 1)))?;
+            plans.push((src, plan));
         }
+        // The whole batch's places are reserved at once, so no submission in between
+        // can make it fail half-way for want of room.
         {
-            let s = self.lock();
+            let mut s = self.lock();
             let max = self.instrument.api.max_queue;
-            if s.queue.len() + s.admitting + texts.len() > max {
+            if s.queue.len() + s.admitting + plans.len() > max {
                 return Err(ServiceError::QueueFull(format!(
                     "the batch of {} does not fit: the queue holds {} of at most {max} runs ([api] max-queue)",
-                    texts.len(),
+                    plans.len(),
                     s.queue.len()
                 )));
             }
+            s.admitting += plans.len();
         }
-        texts.into_iter().map(|t| self.submit_as(t, by, None)).collect()
+        let mut ids = Vec::with_capacity(plans.len());
+        let mut failed = None;
+        for (src, plan) in &plans {
+            let admitted = if failed.is_none() {
+                self.admit(src, plan, by, None)
+            } else {
+                Err(ServiceError::Invalid(String::new()))
+            };
+            let mut s = self.lock();
+            s.admitting -= 1;
+            match admitted {
+                Ok(id) => {
+                    s.queue.push_back(id.clone());
+                    ids.push(id);
+                }
+                Err(e) => {
+                    if failed.is_none() {
+                        failed = Some(e);
+                    }
+                }
+            }
+        }
+        {
+            let s = self.lock();
+            self.persist_after_change(&s);
+            self.wake.notify_all();
+        }
+        for id in &ids {
+            self.index_now(id);
+        }
+        if let Some(e) = failed {
+            // A storage failure half-way: the runs queued before it stay (they are
+            // valid and stored); the error names them.
+            return Err(match e {
+                ServiceError::Storage { path, source } if !ids.is_empty() => ServiceError::Storage {
+                    path,
+                    source: std::io::Error::new(
+                        source.kind(),
+                        format!("{source} (queued before it: {})", ids.join(", ")),
+                    ),
+                },
+                other => other,
+            });
+        }
+        ids.iter().map(|id| self.status(id)).collect()
     }
 
     /// Queues run `id`'s stored plan again as a new run.
