@@ -252,6 +252,24 @@ fn browser() -> Result<(PathBuf, PathBuf), String> {
     }
 }
 
+/// Chromium and chromedriver, or `None` after saying the test `what` skipped (a
+/// failure instead when `PERISCOPE_REQUIRE_BROWSER` is set, as in CI).
+fn browser_or_skip(what: &str) -> Option<(PathBuf, PathBuf)> {
+    match browser() {
+        Ok(b) => Some(b),
+        Err(why) => {
+            assert!(
+                std::env::var_os("PERISCOPE_REQUIRE_BROWSER").is_none(),
+                "PERISCOPE_REQUIRE_BROWSER is set but {what} cannot run: {why}"
+            );
+            eprintln!(
+                "SKIPPED {what}: {why} (Debian: apt-get install chromium chromium-driver; .ci/run installs them)"
+            );
+            None
+        }
+    }
+}
+
 async fn start_chromedriver(path: &Path) -> Chromedriver {
     let port = std::net::TcpListener::bind("127.0.0.1:0")
         .unwrap()
@@ -410,18 +428,8 @@ fn percentile(v: &mut [f64], q: f64) -> f64 {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn an_operator_runs_the_demo_from_the_dashboard_in_chromium() {
-    let (chromium, chromedriver) = match browser() {
-        Ok(b) => b,
-        Err(why) => {
-            assert!(
-                std::env::var_os("PERISCOPE_REQUIRE_BROWSER").is_none(),
-                "PERISCOPE_REQUIRE_BROWSER is set but the browser test cannot run: {why}"
-            );
-            eprintln!(
-                "SKIPPED the dashboard browser test: {why} (Debian: apt-get install chromium chromium-driver; .ci/run installs them)"
-            );
-            return;
-        }
+    let Some((chromium, chromedriver)) = browser_or_skip("the dashboard browser test") else {
+        return;
     };
     let shots = Path::new(env!("CARGO_TARGET_TMPDIR")).join("dashboard");
     std::fs::create_dir_all(&shots).unwrap();
@@ -631,16 +639,8 @@ async fn an_operator_runs_the_demo_from_the_dashboard_in_chromium() {
 /// lazily and the event log once; one column at 390 px with the E-STOP pinned.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_page_stays_true_to_the_instrument_and_to_the_run() {
-    let (chromium, chromedriver) = match browser() {
-        Ok(b) => b,
-        Err(why) => {
-            assert!(
-                std::env::var_os("PERISCOPE_REQUIRE_BROWSER").is_none(),
-                "PERISCOPE_REQUIRE_BROWSER is set but the browser test cannot run: {why}"
-            );
-            eprintln!("SKIPPED the dashboard truth test: {why}");
-            return;
-        }
+    let Some((chromium, chromedriver)) = browser_or_skip("the dashboard truth test") else {
+        return;
     };
     let shots = Path::new(env!("CARGO_TARGET_TMPDIR")).join("dashboard");
     std::fs::create_dir_all(&shots).unwrap();

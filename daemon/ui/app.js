@@ -2,6 +2,7 @@
 // through the JSON API at /api/v1 with the token the operator types once per tab.
 import { View3D, boxEdges } from '/ui/view3d.js';
 import { startSafety } from '/ui/safety.js';
+import { readEvents } from '/ui/sse.js';
 
 const $ = (id) => document.getElementById(id);
 const TOKEN_KEY = 'periscope-token';
@@ -828,28 +829,10 @@ async function follow(id) {
       probe.streamsOpened += 1;
       setConnection(true);
       delay = 500;
-      const reader = r.body.pipeThrough(new TextDecoderStream()).getReader();
-      let buf = '';
-      for (;;) {
-        const { value, done } = await reader.read();
-        if (done) break;
-        buf += value;
-        let cut;
-        while ((cut = buf.indexOf('\n\n')) >= 0) {
-          const block = buf.slice(0, cut);
-          buf = buf.slice(cut + 2);
-          let name = 'message';
-          let data = '';
-          for (const line of block.split('\n')) {
-            if (line.startsWith('event:')) name = line.slice(6).trim();
-            else if (line.startsWith('data:')) data += line.slice(5).replace(/^ /, '');
-          }
-          if (data) {
-            if (name !== 'status') received = true;
-            onEvent(name, JSON.parse(data));
-          }
-        }
-      }
+      await readEvents(r, (name, data) => {
+        if (name !== 'status') received = true;
+        onEvent(name, data);
+      });
     } catch (e) {
       if (abort.signal.aborted) return;
       if (e instanceof TypeError) setConnection(false);

@@ -4,6 +4,8 @@
 // or the reading is older than the daemon's stated limit (`stale_after_s`); nothing on
 // it is ever shown as known when it is not.
 
+import { readEvents } from '/ui/sse.js';
+
 const STREAM_STALE_MS = 2000;
 // Signal counts per laser pulse past which pile-up distorts the histograms (the usual
 // TCSPC rule: keep below 5 %).
@@ -145,31 +147,13 @@ export function startSafety({ headers, probe, setConnection }) {
         last = null;
         streamUp = true;
         delay = 500;
-        const reader = r.body.pipeThrough(new TextDecoderStream()).getReader();
-        let buf = '';
-        for (;;) {
-          const { value, done } = await reader.read();
-          if (done) break;
-          buf += value;
-          let cut;
-          while ((cut = buf.indexOf('\n\n')) >= 0) {
-            const block = buf.slice(0, cut);
-            buf = buf.slice(cut + 2);
-            let name = 'message';
-            let data = '';
-            for (const line of block.split('\n')) {
-              if (line.startsWith('event:')) name = line.slice(6).trim();
-              else if (line.startsWith('data:')) data += line.slice(5).replace(/^ /, '');
-            }
-            if (name === 'safety' && data) {
-              const s = JSON.parse(data);
-              last = { s, at: performance.now() };
-              push(s);
-              probe.safetyEvents = (probe.safetyEvents || 0) + 1;
-            }
-          }
-        }
-            } catch (e) {
+        await readEvents(r, (name, s) => {
+          if (name !== 'safety') return;
+          last = { s, at: performance.now() };
+          push(s);
+          probe.safetyEvents = (probe.safetyEvents || 0) + 1;
+        });
+      } catch (e) {
         if (e instanceof TypeError && !document.hidden) setConnection(false);
       }
       abort?.abort();

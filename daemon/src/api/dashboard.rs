@@ -27,6 +27,11 @@ pub const ASSETS: &[(&str, &str, &str)] = &[
         include_str!("../../ui/safety.js"),
     ),
     (
+        "sse.js",
+        "text/javascript; charset=utf-8",
+        include_str!("../../ui/sse.js"),
+    ),
+    (
         "style.css",
         "text/css; charset=utf-8",
         include_str!("../../ui/style.css"),

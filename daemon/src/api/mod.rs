@@ -792,17 +792,7 @@ async fn events(
     State(state): State<AppState>,
     Path(id): Path<String>,
 ) -> ApiResult<Sse<impl tokio_stream::Stream<Item = Result<Event, Infallible>>>> {
-    let max = state.service.instrument().api.max_streams;
-    let Some(slot) = Slot::take(&state.streams, max) else {
-        return Err(ApiError::new(
-            StatusCode::SERVICE_UNAVAILABLE,
-            "too-many-streams",
-            format!(
-                "{max} event streams are open, the most this daemon serves ([api] max-streams); \
-                 close one or poll GET /api/v1/runs/{id}"
-            ),
-        ));
-    };
+    let slot = stream_slot(&state, &format!("GET /api/v1/runs/{id}"))?;
     let s = Arc::clone(&state.service);
     let (rx, status) = {
         let id = id.clone();
@@ -832,6 +822,22 @@ async fn events(
     Ok(Sse::new(head.chain(live)).keep_alive(KeepAlive::default()))
 }
 
+/// One of the capped event-stream slots (`[api] max-streams`), or a 503 that names
+/// what to poll instead.
+fn stream_slot(state: &AppState, instead: &str) -> ApiResult<Slot> {
+    let max = state.service.instrument().api.max_streams;
+    Slot::take(&state.streams, max).ok_or_else(|| {
+        ApiError::new(
+            StatusCode::SERVICE_UNAVAILABLE,
+            "too-many-streams",
+            format!(
+                "{max} event streams are open, the most this daemon serves ([api] max-streams); \
+                 close one or poll {instead}"
+            ),
+        )
+    })
+}
+
 /// How often `GET /api/v1/instrument/events` sends the safety state.
 const SAFETY_INTERVAL: std::time::Duration = std::time::Duration::from_millis(500);
 
@@ -852,17 +858,7 @@ const SAFETY_INTERVAL: std::time::Duration = std::time::Duration::from_millis(50
 async fn instrument_events(
     State(state): State<AppState>,
 ) -> ApiResult<Sse<impl tokio_stream::Stream<Item = Result<Event, Infallible>>>> {
-    let max = state.service.instrument().api.max_streams;
-    let Some(slot) = Slot::take(&state.streams, max) else {
-        return Err(ApiError::new(
-            StatusCode::SERVICE_UNAVAILABLE,
-            "too-many-streams",
-            format!(
-                "{max} event streams are open, the most this daemon serves ([api] max-streams); \
-                 close one or poll GET /api/v1/instrument"
-            ),
-        ));
-    };
+    let slot = stream_slot(&state, "GET /api/v1/instrument")?;
     let service = Arc::clone(&state.service);
     let ticks = tokio_stream::wrappers::IntervalStream::new(tokio::time::interval(SAFETY_INTERVAL));
     let stream = ticks.then(move |_| {
