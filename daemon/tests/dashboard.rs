@@ -252,6 +252,31 @@ fn browser() -> Result<(PathBuf, PathBuf), String> {
     }
 }
 
+/// The API on a loopback socket, and a proxy in front of it the test can cut: the
+/// direct address, the proxy's, its cutter, and the server's task.
+async fn serve_behind_proxy(
+    svc: &Arc<Service>,
+) -> (
+    SocketAddr,
+    SocketAddr,
+    tokio::sync::watch::Sender<u64>,
+    tokio::task::JoinHandle<()>,
+) {
+    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+    let direct = listener.local_addr().unwrap();
+    let router = app(AppState::new(Arc::clone(svc)));
+    let server = tokio::spawn(async move {
+        axum::serve(
+            listener,
+            router.into_make_service_with_connect_info::<SocketAddr>(),
+        )
+        .await
+        .unwrap();
+    });
+    let (addr, cut) = cuttable_proxy(direct).await;
+    (direct, addr, cut, server)
+}
+
 /// Chromium and chromedriver, or `None` after saying the test `what` skipped (a
 /// failure instead when `PERISCOPE_REQUIRE_BROWSER` is set, as in CI).
 fn browser_or_skip(what: &str) -> Option<(PathBuf, PathBuf)> {
@@ -437,19 +462,8 @@ async fn an_operator_runs_the_demo_from_the_dashboard_in_chromium() {
     // Half real time: the demo's 576 pairs × 20 ms take about 6 s, long enough to pause.
     let svc = service(dir.path(), 0.5);
     let worker = svc.start_worker();
-    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
-    let addr = listener.local_addr().unwrap();
-    let router = app(AppState::new(Arc::clone(&svc)));
-    let server = tokio::spawn(async move {
-        axum::serve(
-            listener,
-            router.into_make_service_with_connect_info::<SocketAddr>(),
-        )
-        .await
-        .unwrap();
-    });
     // The browser reaches the daemon through a proxy the test can cut.
-    let (addr, cut) = cuttable_proxy(addr).await;
+    let (_, addr, cut, server) = serve_behind_proxy(&svc).await;
     let driver = start_chromedriver(&chromedriver).await;
     let c = session(&driver, &chromium, 1400, 2000).await;
     let limit = Duration::from_secs(120);
@@ -648,18 +662,7 @@ async fn the_page_stays_true_to_the_instrument_and_to_the_run() {
     let svc = service(dir.path(), 0.5);
     let worker = svc.start_worker();
     let rig = periscope_daemon::devices::sim::rig_of(svc.backend()).unwrap();
-    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
-    let direct = listener.local_addr().unwrap();
-    let router = app(AppState::new(Arc::clone(&svc)));
-    let server = tokio::spawn(async move {
-        axum::serve(
-            listener,
-            router.into_make_service_with_connect_info::<SocketAddr>(),
-        )
-        .await
-        .unwrap();
-    });
-    let (addr, cut) = cuttable_proxy(direct).await;
+    let (direct, addr, cut, server) = serve_behind_proxy(&svc).await;
     let driver = start_chromedriver(&chromedriver).await;
     let limit = Duration::from_secs(120);
     let http = reqwest::Client::new();
