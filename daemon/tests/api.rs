@@ -551,6 +551,16 @@ async fn pause_resume_abort_and_estop_keep_the_data() {
             .and_then(|e| e[1].as_f64())
     };
     let part = timing(&paused, "capture").expect("the capture's part before the pause is timed");
+    // The state history names who paused it (the token is the admin key `token`).
+    let info: Value =
+        serde_json::from_str(&std::fs::read_to_string(dir.path().join(&a).join("run.json")).unwrap())
+            .unwrap();
+    let last = info["history"].as_array().unwrap().last().unwrap().clone();
+    assert_eq!(
+        (last["state"].as_str(), last["by"].as_str()),
+        (Some("paused"), Some("token")),
+        "{info}"
+    );
     assert!(part >= done as f64 * 0.02 * 0.8, "{part} s for {done} pairs");
     let log = std::fs::metadata(dir.path().join(&a).join("histograms.bin"))
         .unwrap()

@@ -459,8 +459,19 @@ async fn the_catalogue_queue_and_audit_follow_a_lab_day() {
 
     // The catalogue rebuilt from the directories holds the same rows.
     let before = svc.catalogue().query(&Default::default()).unwrap();
+    // Not while the daemon runs (it would keep writing to the deleted file)...
+    let refused = periscope_daemon::catalogue::Catalogue::rebuild(dir.path())
+        .err()
+        .expect("refused");
+    assert!(
+        refused.to_string().contains("stop it before a rebuild"),
+        "{refused}"
+    );
     svc.shutdown();
     worker.join().unwrap();
+    drop(router);
+    drop(svc);
+    // ...after it: the same rows.
     let (cat, _) = periscope_daemon::catalogue::Catalogue::rebuild(dir.path()).unwrap();
     assert_eq!(cat.query(&Default::default()).unwrap(), before);
 }
@@ -656,6 +667,15 @@ async fn the_command_line_shares_keys_catalogue_and_audit_with_the_daemon() {
     let (s, v) = call(&router, Method::POST, "/api/v1/runs", Some(&secret), PLAN).await;
     assert_eq!(s, StatusCode::UNAUTHORIZED, "{v}");
     assert!(v["message"].as_str().unwrap().contains("revoked"), "{v}");
+    let (code, _, err) = periscope(&["catalogue", "rebuild"]);
+    assert_eq!(code, Some(1), "a rebuild under a running daemon is refused");
+    assert!(err.contains("stop it before a rebuild"), "{err}");
+    let (code, out, err) = periscope(&["catalogue", "sync"]);
+    assert_eq!(code, Some(0), "{err}");
+    assert!(out.contains("1 runs"), "{out}");
+    svc.shutdown();
+    drop(router);
+    drop(svc);
     let (code, out, err) = periscope(&["catalogue", "rebuild"]);
     assert_eq!(code, Some(0), "{err}");
     assert!(out.contains("1 runs (1 read"), "{out}");
@@ -668,7 +688,6 @@ async fn the_command_line_shares_keys_catalogue_and_audit_with_the_daemon() {
     let (code, out, _) = periscope(&["audit", "--action", "key-revoke"]);
     assert_eq!(code, Some(0));
     assert!(out.contains("cli") && out.contains("bob"), "{out}");
-    svc.shutdown();
 }
 
 /// Whether the test must fail rather than skip when Prometheus is missing (`.ci/run`
@@ -819,4 +838,44 @@ async fn a_real_prometheus_scrapes_the_daemon_and_accepts_the_shipped_config() {
     server.abort();
     svc.shutdown();
     worker.join().unwrap();
+}
+
+/// An event stream is authorised at its start and may run for hours: one opened with a
+/// key ends within seconds of the key's revocation.
+#[tokio::test]
+async fn an_event_stream_ends_when_its_key_is_revoked() {
+    let dir = tempfile::tempdir().unwrap();
+    let svc = service(dir.path());
+    let keys = KeyStore::open(dir.path(), None);
+    let (_, secret) = keys.create("screen", Role::Observer, None, "test").unwrap();
+    let router = app(AppState::new(Arc::clone(&svc)));
+    let resp = router
+        .clone()
+        .oneshot(request(
+            &Method::GET,
+            "/api/v1/instrument/events",
+            Some(&secret),
+            "",
+            true,
+        ))
+        .await
+        .unwrap();
+    assert_eq!(resp.status(), StatusCode::OK);
+    let mut body = resp.into_body().into_data_stream();
+    use tokio_stream::StreamExt as _;
+    // Events flow...
+    let first = tokio::time::timeout(Duration::from_secs(5), body.next())
+        .await
+        .unwrap();
+    assert!(first.is_some_and(|c| c.is_ok_and(|b| b.starts_with(b"event: safety"))));
+    keys.revoke("screen").unwrap();
+    // ...and stop: the stream ends after the revocation.
+    let t = Instant::now();
+    let ended = tokio::time::timeout(Duration::from_secs(10), async {
+        while body.next().await.is_some() {}
+    })
+    .await;
+    assert!(ended.is_ok(), "the stream kept going after the key was revoked");
+    assert!(t.elapsed() < Duration::from_secs(5), "{:?}", t.elapsed());
+    svc.shutdown();
 }

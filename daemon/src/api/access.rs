@@ -155,6 +155,8 @@ pub(super) async fn authorise(State(state): State<AppState>, mut req: Request, n
             return refused(&state, e, entry).await;
         }
     };
+    // The key of an authenticated request, for event streams to check again.
+    let mut stream_key: Option<String> = None;
     let caller = match given {
         Some(_) | None if need >= Role::Operator && !keys.any() => {
             return ApiError::new(
@@ -165,7 +167,10 @@ pub(super) async fn authorise(State(state): State<AppState>, mut req: Request, n
             .into_response();
         }
         Some(secret) => match authenticate(&service, secret).await {
-            Ok(Identity { name, role }) => Caller { name, role, peer },
+            Ok(Identity { name, role }) => {
+                stream_key = Some(secret.to_owned());
+                Caller { name, role, peer }
+            }
             // The e-stop from the instrument's own computer works whatever key the
             // page sends (a revoked or expired one, a typo): stopping needs none there.
             // The refused key is still recorded.
@@ -263,7 +268,14 @@ pub(super) async fn authorise(State(state): State<AppState>, mut req: Request, n
     }
     let target = path_target(&route, &path);
     req.extensions_mut().insert(caller.clone());
-    let response = next.run(req).await;
+    let mut response = next.run(req).await;
+    let streaming = response
+        .headers()
+        .get(header::CONTENT_TYPE)
+        .is_some_and(|v| v.as_bytes().starts_with(b"text/event-stream"));
+    if streaming && let Some(secret) = stream_key {
+        response = end_when_key_lapses(response, Arc::clone(&state.service), secret);
+    }
     if let Some(action) = audited {
         let outcome = match response.status() {
             s if s.is_success() => "ok",
@@ -295,6 +307,50 @@ pub(super) async fn authorise(State(state): State<AppState>, mut req: Request, n
         record(&state, entry).await;
     }
     response
+}
+
+/// How often an event stream opened with a key checks the key again.
+const KEY_RECHECK: Duration = Duration::from_secs(2);
+
+/// An event stream opened with a key ends when the key stops working (revoked,
+/// expired, its file damaged): it was authorised once, at its start, and may run for
+/// hours.
+fn end_when_key_lapses(
+    response: Response,
+    service: Arc<crate::service::Service>,
+    secret: String,
+) -> Response {
+    use tokio_stream::StreamExt as _;
+    let (parts, body) = response.into_parts();
+    let mut data = body.into_data_stream();
+    let (tx, rx) = tokio::sync::mpsc::channel::<Result<axum::body::Bytes, axum::Error>>(16);
+    tokio::spawn(async move {
+        let mut check = tokio::time::interval(KEY_RECHECK);
+        check.tick().await;
+        loop {
+            tokio::select! {
+                chunk = data.next() => match chunk {
+                    Some(c) => {
+                        if tx.send(c).await.is_err() {
+                            return;
+                        }
+                    }
+                    None => return,
+                },
+                _ = check.tick() => {
+                    if let Err(e) = authenticate(&service, &secret).await {
+                        tracing::info!("an event stream ends: {e}");
+                        return;
+                    }
+                }
+                () = tx.closed() => return,
+            }
+        }
+    });
+    Response::from_parts(
+        parts,
+        axum::body::Body::from_stream(tokio_stream::wrappers::ReceiverStream::new(rx)),
+    )
 }
 
 /// Checks a key on the blocking pool (it may stat and read `keys.json`).

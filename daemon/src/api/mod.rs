@@ -689,10 +689,11 @@ async fn run_status(
 )]
 async fn pause(
     State(state): State<AppState>,
+    axum::Extension(caller): axum::Extension<access::Caller>,
     Path(id): Path<String>,
 ) -> ApiResult<(StatusCode, axum::Json<RunStatus>)> {
     let s = Arc::clone(&state.service);
-    let st = blocking(move || s.pause(&id)).await?;
+    let st = blocking(move || s.pause_as(&id, &caller.name)).await?;
     Ok((StatusCode::ACCEPTED, axum::Json(st)))
 }
 

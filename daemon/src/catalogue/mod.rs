@@ -154,6 +154,28 @@ impl Catalogue {
     /// and the audit trail all come back: they live in the runs directory, not only in
     /// the catalogue.
     pub fn rebuild(runs_dir: &Path) -> Result<(Catalogue, SyncReport), CatalogueError> {
+        // Not under a running daemon (it holds the catalogue's lock shared for its
+        // life): it would keep writing to the deleted file.
+        let lock_path = runs_dir.join(LOCK_FILE);
+        let io = |source| CatalogueError::Io {
+            path: lock_path.clone(),
+            source,
+        };
+        std::fs::create_dir_all(runs_dir).map_err(io)?;
+        let lock = lock_file(&lock_path).map_err(io)?;
+        match lock.try_lock() {
+            Ok(()) => {}
+            Err(std::fs::TryLockError::WouldBlock) => {
+                return Err(CatalogueError::Schema {
+                    path: runs_dir.join(CATALOGUE_FILE),
+                    message:
+                        "a running `periscope serve` uses this runs directory: stop it before a rebuild \
+                              (`periscope catalogue sync` is safe beside it)"
+                            .into(),
+                });
+            }
+            Err(std::fs::TryLockError::Error(e)) => return Err(io(e)),
+        }
         let path = runs_dir.join(CATALOGUE_FILE);
         for p in [path.clone(), wal(&path, "-wal"), wal(&path, "-shm")] {
             match std::fs::remove_file(&p) {
@@ -357,6 +379,26 @@ impl Catalogue {
             .map(|m| m.len())
             .sum()
     }
+}
+
+/// The lock a daemon holds shared on its runs directory's catalogue for its life, and
+/// a rebuild takes exclusively.
+pub const LOCK_FILE: &str = "catalogue.lock";
+
+fn lock_file(path: &Path) -> std::io::Result<std::fs::File> {
+    std::fs::OpenOptions::new()
+        .create(true)
+        .truncate(false)
+        .write(true)
+        .open(path)
+}
+
+/// Holds the catalogue of `runs_dir` shared (a daemon, for its life): a rebuild is
+/// refused meanwhile.
+pub fn hold(runs_dir: &Path) -> std::io::Result<std::fs::File> {
+    let f = lock_file(&runs_dir.join(LOCK_FILE))?;
+    f.lock_shared()?;
+    Ok(f)
 }
 
 /// `path` with `suffix` appended (SQLite's `-wal` and `-shm` files).

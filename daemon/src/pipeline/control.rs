@@ -39,6 +39,9 @@ struct ControlInner {
     /// The run's sign of life for the laser's keepalive, beaten at every checkpoint
     /// and stop poll ([`Control::progress`]).
     progress: Mutex<Option<periscope_drivers::Progress>>,
+    /// Who asked the run to pause or abort (a key's name, `estop`, `shutdown`): the
+    /// run records it with the state it stops in.
+    requested_by: Mutex<Option<String>>,
 }
 
 /// Operator requests a running pipeline honours at its checkpoints: between devices
@@ -74,6 +77,20 @@ impl Control {
             .compare_exchange(Self::RUN, Self::PAUSE, Ordering::SeqCst, Ordering::SeqCst);
         self.cancel_optimisers();
     }
+    /// Who asked the run to stop, if recorded.
+    pub fn requested_by(&self) -> Option<String> {
+        self.0
+            .requested_by
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .clone()
+    }
+
+    /// Records who asks the run to stop (the next pause or abort).
+    pub fn set_requested_by(&self, by: &str) {
+        *self.0.requested_by.lock().unwrap_or_else(|p| p.into_inner()) = Some(by.to_owned());
+    }
+
     /// Asks the run to abort at the next checkpoint.
     pub fn abort(&self) {
         self.0.state.store(Self::ABORT, Ordering::SeqCst);

@@ -349,12 +349,18 @@ impl Run {
                 self.info.state = RunState::Completed;
                 self.info.error = None;
             }
-            Err(PipelineError::Paused(_)) => self.info.state = RunState::Paused,
+            Err(PipelineError::Paused(_)) => {
+                self.info.state = RunState::Paused;
+                self.info.acting = self.control.requested_by();
+            }
             Err(e @ PipelineError::Suspended { .. }) => {
                 self.info.state = RunState::Paused;
                 self.info.error = Some(e.to_string());
             }
-            Err(PipelineError::Aborted(_)) => self.info.state = RunState::Aborted,
+            Err(PipelineError::Aborted(_)) => {
+                self.info.state = RunState::Aborted;
+                self.info.acting = self.control.requested_by();
+            }
             Err(e) => {
                 self.info.state = RunState::Failed;
                 self.info.error = Some(e.to_string());

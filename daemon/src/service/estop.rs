@@ -31,6 +31,7 @@ impl Service {
         // 1. The laser, directly. The run is told to abort first (an atomic store), so
         //    that a `LASER ON` the latched switch refuses it reads as the abort.
         if let Some((_, control)) = &running {
+            control.set_requested_by("estop");
             control.abort();
         }
         let mut laser_off = false;

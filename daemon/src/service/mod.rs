@@ -273,6 +273,8 @@ pub struct Service {
     indexer: Mutex<Option<std::sync::mpsc::Sender<String>>>,
     /// Counters and histograms for `/metrics`.
     metrics: crate::metrics::Metrics,
+    /// The catalogue's lock, held shared for the service's life (no rebuild under it).
+    _catalogue_hold: std::fs::File,
     shared: Mutex<Shared>,
     wake: Condvar,
     /// Held while a capture export is written.
@@ -350,6 +352,8 @@ impl Service {
             Err(_) => None,
         };
         let catalogue = Arc::new(crate::catalogue::Catalogue::open_unsynced(&runs_dir)?);
+        let catalogue_hold = crate::catalogue::hold(&runs_dir)
+            .map_err(ServiceError::storage(runs_dir.join(crate::catalogue::LOCK_FILE)))?;
         let keys = crate::access::KeyStore::open(&runs_dir, token);
         for id in orphans {
             let dir = runs_dir.join(&id);
@@ -370,6 +374,7 @@ impl Service {
             catalogue,
             indexer: Mutex::new(None),
             metrics: crate::metrics::Metrics::new(),
+            _catalogue_hold: catalogue_hold,
             shared: Mutex::new(Shared {
                 queue,
                 current: None,
@@ -401,6 +406,7 @@ impl Service {
         let mut s = self.lock();
         s.shutdown = true;
         if let Some((_, control)) = &s.current {
+            control.set_requested_by("shutdown");
             control.pause();
         }
         if let Some(off) = &s.laser_off

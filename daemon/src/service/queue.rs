@@ -219,11 +219,19 @@ impl Service {
 
     /// Asks the running run to pause at its next checkpoint.
     pub fn pause(&self, id: &str) -> Result<RunStatus, ServiceError> {
+        self.pause_as(id, "local")
+    }
+
+    /// [`Service::pause`] by `by` (recorded in the run's state history when it stops).
+    pub fn pause_as(&self, id: &str, by: &str) -> Result<RunStatus, ServiceError> {
         {
             let s = self.lock();
             let info = self.info(id)?;
             match &s.current {
-                Some((c, control)) if c == id => control.pause(),
+                Some((c, control)) if c == id => {
+                    control.set_requested_by(by);
+                    control.pause();
+                }
                 _ => {
                     return Err(ServiceError::Conflict(format!(
                         "run {id} is {}, not running: only a running run can be paused",
@@ -320,6 +328,7 @@ impl Service {
         if let Some((c, control)) = &s.current
             && c == id
         {
+            control.set_requested_by(by);
             control.abort();
             drop(s);
             return self.status(id);
