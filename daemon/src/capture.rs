@@ -26,14 +26,14 @@ use crate::ytal::ExportError;
 #[derive(Debug, thiserror::Error)]
 pub enum CaptureError {
     /// The path does not exist.
-    #[error("capture {} does not exist: give a run directory or a y-tal .hdf5/.h5 file", .0.display())]
+    #[error("capture {} does not exist: give a run directory, a y-tal .hdf5/.h5 file or a Stanford LCT .mat file", .0.display())]
     Missing(PathBuf),
     /// A directory without `run.json`.
     #[error("{} is not a run directory (no run.json)", .0.display())]
     NotRun(PathBuf),
     /// A file that is not `.hdf5` or `.h5`.
     #[error(
-        "{} is a file but not a y-tal capture (.hdf5 or .h5); give a capture file or a run directory",
+        "{} is a file but not a capture (a y-tal .hdf5/.h5 or a Stanford LCT .mat file); give a capture file or a run directory",
         .0.display()
     )]
     NotCapture(PathBuf),
@@ -355,12 +355,19 @@ impl Capture {
         }
     }
 
-    /// Opens `path`: a run directory, or a y-tal `.hdf5`/`.h5` file.
+    /// Opens `path`: a run directory, a y-tal `.hdf5`/`.h5` file, or a Stanford LCT
+    /// `.mat` file (read into the same in-memory capture).
     pub fn open(path: &Path) -> Result<Capture, CaptureError> {
         if !path.exists() {
             return Err(CaptureError::Missing(path.to_path_buf()));
         }
         if path.is_file() {
+            if periscope_recon::io::lct::is_mat_path(path) {
+                return Ok(Capture::Ytal {
+                    path: path.to_path_buf(),
+                    capture: Box::new(periscope_recon::io::lct::read_lct(path)?),
+                });
+            }
             if !is_hdf5_path(path) {
                 return Err(CaptureError::NotCapture(path.to_path_buf()));
             }

@@ -16,6 +16,7 @@ use npyz::WriterBuilder;
 
 use crate::volume::{DepthMap, Volume};
 
+pub mod lct;
 pub mod ytal;
 
 /// Why a file could not be written or read.

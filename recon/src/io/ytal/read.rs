@@ -265,7 +265,7 @@ impl YtalCapture {
     }
 
     /// Checks that `H`, the grids and the origins fit together.
-    pub(super) fn check(&self) -> Result<(), String> {
+    pub(crate) fn check(&self) -> Result<(), String> {
         let columns: usize = self.h_shape[1..]
             .iter()
             .try_fold(1usize, |a, &d| a.checked_mul(d))

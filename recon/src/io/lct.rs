@@ -1,0 +1,295 @@
+//! Stanford's confocal LCT captures (O'Toole, Lindell and Wetzstein 2018, "Confocal
+//! non-line-of-sight imaging based on the light-cone transform"), read into a
+//! [`YtalCapture`] so every method reconstructs them.
+//!
+//! The layout (`docs/research/nlos-capture-formats.md` §1, from the release's files
+//! and `cnlos_reconstruction.m`): a MAT v5 file (compressed elements) with two
+//! variables, `rect_data` of MATLAB dims (x, y, t), counts, and `width`, half the side
+//! of the scanned square on the wall, metres. Nothing else is stored: the bin width is
+//! the SPAD's native 4 ps (hard-coded in the reference code), the data are
+//! pre-rectified (bin 0 is the wall: round-trip hidden path length 0), and the scan
+//! points are `linspace(-width, width, N)` along x and y on the wall, the hidden scene
+//! in front of it (+z here). The reference code zeroes the first 600 bins (the wall's
+//! own return); this reader keeps them, as the file has them, and the reconstruction's
+//! volume starts where the settings say.
+//!
+//! The file is read whole (at most [`MAX_FILE_BYTES`]); each compressed element is
+//! inflated with a bound ([`MAX_INFLATED_BYTES`]), so a file that would expand without
+//! end is refused, not followed.
+use std::io::Read as _;
+use std::path::Path;
+
+use glam::DVec3;
+
+use super::ytal::{Grid, GridFormat, HFormat, YtalCapture, YtalError};
+
+/// Largest `.mat` file read, bytes.
+pub const MAX_FILE_BYTES: u64 = 4 << 30;
+
+/// Largest size the file's compressed elements may inflate to, bytes in all.
+pub const MAX_INFLATED_BYTES: u64 = 8 << 30;
+
+/// The SPAD's native bin, seconds (the reference code's `bin_resolution`).
+pub const BIN_S: f64 = 4e-12;
+
+/// Speed of light, m/s.
+const C: f64 = 299_792_458.0;
+
+/// MAT v5 element types used here.
+const MI_MATRIX: u32 = 14;
+const MI_COMPRESSED: u32 = 15;
+
+/// Whether `path` names a MATLAB file (`.mat`).
+pub fn is_mat_path(path: &Path) -> bool {
+    path.extension()
+        .and_then(|e| e.to_str())
+        .is_some_and(|e| e.eq_ignore_ascii_case("mat"))
+}
+
+fn format_error(path: &Path, message: impl Into<String>) -> YtalError {
+    YtalError::Format {
+        path: path.to_owned(),
+        message: message.into(),
+    }
+}
+
+/// Reads a Stanford LCT capture.
+pub fn read_lct(path: &Path) -> Result<YtalCapture, YtalError> {
+    let bytes = super::read_regular_capped(path, MAX_FILE_BYTES).map_err(|e| YtalError::Hdf5 {
+        path: path.to_owned(),
+        message: e.to_string(),
+    })?;
+    lct_from_bytes(&bytes, path)
+}
+
+/// Decodes a Stanford LCT capture held in memory (`path` names it in errors).
+pub fn lct_from_bytes(bytes: &[u8], path: &Path) -> Result<YtalCapture, YtalError> {
+    let plain = inflate_elements(bytes, MAX_INFLATED_BYTES).map_err(|m| format_error(path, m))?;
+    // matfile is a parser of untrusted bytes this crate does not own: a panic inside it
+    // is an unreadable file, not a crash.
+    let parsed = std::panic::catch_unwind(|| matfile::MatFile::parse(std::io::Cursor::new(plain)))
+        .map_err(|_| format_error(path, "not a MATLAB v5 file matfile can read (its parser gave up)"))?;
+    let mat =
+        parsed.map_err(|e| format_error(path, format!("not a MATLAB v5 file matfile can read: {e}")))?;
+    let names: Vec<&str> = mat.arrays().iter().map(|a| a.name()).collect();
+    let rect = mat.find_by_name("rect_data").ok_or_else(|| {
+        format_error(
+            path,
+            format!(
+                "no `rect_data`: not a Stanford LCT capture (variables: {}). Of the public formats, \
+                 periscope reads y-tal HDF5 and Stanford LCT .mat files; f-k (`meas`, `tofgrid`), \
+                 ZNLOS and phasor-field layouts are not read yet (docs/research/nlos-capture-formats.md)",
+                names.join(", ")
+            ),
+        )
+    })?;
+    let width = mat
+        .find_by_name("width")
+        .map(|w| real_values(w.data()))
+        .and_then(|v| (v.len() == 1).then(|| v[0]))
+        .ok_or_else(|| format_error(path, "no scalar `width` (half the scanned side, metres)"))?;
+    if !(width.is_finite() && width > 0.0) {
+        return Err(format_error(
+            path,
+            format!("`width` is {width}: it must be a positive length in metres"),
+        ));
+    }
+    let &[nx, ny, nt] = rect.size().as_slice() else {
+        return Err(format_error(
+            path,
+            format!(
+                "`rect_data` has dims {:?}; an LCT capture's are (x, y, t)",
+                rect.size()
+            ),
+        ));
+    };
+    if nx < 2 || ny < 2 || nt < 2 {
+        return Err(format_error(
+            path,
+            format!("`rect_data` of dims ({nx}, {ny}, {nt}) is too small"),
+        ));
+    }
+    let data = real_values(rect.data());
+    if nx.checked_mul(ny).and_then(|n| n.checked_mul(nt)) != Some(data.len()) {
+        return Err(format_error(
+            path,
+            "`rect_data` holds fewer values than its dims say",
+        ));
+    }
+    if let Some(bad) = data.iter().position(|v| !v.is_finite() || *v < 0.0) {
+        return Err(format_error(
+            path,
+            format!("`rect_data` value {} at index {bad} is not a count", data[bad]),
+        ));
+    }
+    // MATLAB stores (x, y, t) column-major: x varies fastest. H is (t, x, y), C order.
+    let mut h = vec![0f32; nx * ny * nt];
+    for t in 0..nt {
+        for y in 0..ny {
+            for x in 0..nx {
+                h[t * nx * ny + x * ny + y] = data[x + nx * (y + ny * t)] as f32;
+            }
+        }
+    }
+    let along = |n: usize, i: usize| -width + 2.0 * width * i as f64 / (n - 1) as f64;
+    let mut points = Vec::with_capacity(nx * ny);
+    for x in 0..nx {
+        for y in 0..ny {
+            points.push(DVec3::new(along(nx, x), along(ny, y), 0.0));
+        }
+    }
+    let grid = Grid {
+        normals: vec![DVec3::Z; points.len()],
+        points,
+        format: GridFormat::XY3,
+        shape: vec![nx, ny],
+    };
+    let capture = YtalCapture {
+        h,
+        h_shape: vec![nt, nx, ny],
+        h_format: HFormat::TSxSy,
+        sensor_grid: grid.clone(),
+        laser_grid: grid,
+        sensor_xyz: None,
+        laser_xyz: None,
+        delta_t: C * BIN_S,
+        t_start: 0.0,
+        t_accounts_first_and_last_bounces: false,
+        scene_info: Some(format!(
+            "source: Stanford confocal LCT capture ({}), {nx} x {ny} points over [-{width}, {width}] m, \
+             {nt} bins of 4 ps from the wall",
+            path.display()
+        )),
+        flags: None,
+    };
+    capture.check().map_err(|m| format_error(path, m))?;
+    Ok(capture)
+}
+
+/// A numeric array's real part as f64.
+fn real_values(d: &matfile::NumericData) -> Vec<f64> {
+    use matfile::NumericData as N;
+    match d {
+        N::Int8 { real, .. } => real.iter().map(|&v| f64::from(v)).collect(),
+        N::UInt8 { real, .. } => real.iter().map(|&v| f64::from(v)).collect(),
+        N::Int16 { real, .. } => real.iter().map(|&v| f64::from(v)).collect(),
+        N::UInt16 { real, .. } => real.iter().map(|&v| f64::from(v)).collect(),
+        N::Int32 { real, .. } => real.iter().map(|&v| f64::from(v)).collect(),
+        N::UInt32 { real, .. } => real.iter().map(|&v| f64::from(v)).collect(),
+        N::Int64 { real, .. } => real.iter().map(|&v| v as f64).collect(),
+        N::UInt64 { real, .. } => real.iter().map(|&v| v as f64).collect(),
+        N::Single { real, .. } => real.iter().map(|&v| f64::from(v)).collect(),
+        N::Double { real, .. } => real.clone(),
+    }
+}
+
+/// A MAT v5 file with its compressed top-level elements inflated in place (at most
+/// `limit` bytes in all), so the parser never inflates without a bound.
+pub fn inflate_elements(bytes: &[u8], limit: u64) -> Result<Vec<u8>, String> {
+    const HEADER: usize = 128;
+    if bytes.len() < HEADER || bytes[126..128] != *b"IM" {
+        return Err(
+            "not a little-endian MATLAB v5 file (MAT v7.3 files are HDF5; those layouts are not read yet)"
+                .into(),
+        );
+    }
+    let mut out = bytes[..HEADER].to_vec();
+    let mut at = HEADER;
+    let mut inflated = 0u64;
+    while at + 8 <= bytes.len() {
+        let kind = u32::from_le_bytes(bytes[at..at + 4].try_into().expect("4 bytes"));
+        let len = u32::from_le_bytes(bytes[at + 4..at + 8].try_into().expect("4 bytes")) as usize;
+        let body = at + 8;
+        let end = body
+            .checked_add(len)
+            .filter(|&e| e <= bytes.len())
+            .ok_or_else(|| format!("an element at byte {at} runs past the end of the file"))?;
+        match kind {
+            MI_COMPRESSED => {
+                let left = limit.saturating_sub(inflated);
+                let mut plain = Vec::new();
+                flate2::read::ZlibDecoder::new(&bytes[body..end])
+                    .take(left + 1)
+                    .read_to_end(&mut plain)
+                    .map_err(|e| format!("a compressed element at byte {at} does not inflate: {e}"))?;
+                if plain.len() as u64 > left {
+                    return Err(format!(
+                        "the compressed elements inflate past {limit} bytes, more than a capture may hold"
+                    ));
+                }
+                inflated += plain.len() as u64;
+                out.extend_from_slice(&plain);
+                // An element written uncompressed is padded to 8 bytes.
+                out.resize(out.len().next_multiple_of(8), 0);
+                at = end;
+            }
+            MI_MATRIX => {
+                out.extend_from_slice(&bytes[at..end]);
+                out.resize(out.len().next_multiple_of(8), 0);
+                at = end.next_multiple_of(8).min(bytes.len());
+            }
+            other => {
+                return Err(format!(
+                    "a top-level element of type {other} at byte {at}: not a MATLAB array"
+                ));
+            }
+        }
+    }
+    Ok(out)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The fixture: scipy's `savemat` (as the Stanford release's files are written) of
+    /// one point target at (0.1, -0.05, 0.3) m seen from an 8 × 8 grid over
+    /// [-0.2, 0.2]² m, pixel (i, j) holding 100 + 10 i + j counts in the bin of its
+    /// round trip (recon/tests/data/lct-point.py made it). A swapped axis, a mirrored
+    /// grid or a shifted time origin puts a count where the geometry says nothing is.
+    #[test]
+    fn a_known_scene_lands_on_its_points_and_bins() {
+        let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/lct-point.mat");
+        let c = read_lct(&path).unwrap();
+        assert_eq!(c.h_shape, vec![1024, 8, 8]);
+        assert_eq!(c.len(), 64);
+        let target = DVec3::new(0.1, -0.05, 0.3);
+        for k in 0..64 {
+            let p = c.pair(k);
+            assert_eq!(p.xi, p.xd, "confocal");
+            let (i, j) = (k / 8, k % 8);
+            assert!((p.xd.x - (-0.2 + 0.4 * i as f64 / 7.0)).abs() < 1e-12);
+            assert!((p.xd.y - (-0.2 + 0.4 * j as f64 / 7.0)).abs() < 1e-12);
+            let bins: Vec<f32> = c.transient(k).collect();
+            let (peak, &v) = bins.iter().enumerate().max_by(|a, b| a.1.total_cmp(b.1)).unwrap();
+            assert_eq!(v, (100 + 10 * i + j) as f32, "pixel ({i}, {j})");
+            let path_m = 2.0 * target.distance(p.xd);
+            let want = (path_m / c.delta_t).floor() as usize;
+            assert_eq!(peak, want, "pixel ({i}, {j}): round trip {path_m} m");
+            assert_eq!(c.hidden_start(k), 0.0, "bin 0 is the wall");
+        }
+    }
+
+    #[test]
+    fn other_layouts_and_hostile_files_are_refused_with_a_reason() {
+        let dir = tempfile::tempdir().unwrap();
+        let junk = dir.path().join("junk.mat");
+        std::fs::write(&junk, b"not a mat file").unwrap();
+        let e = read_lct(&junk).unwrap_err().to_string();
+        assert!(e.contains("not a little-endian MATLAB v5 file"), "{e}");
+        // A compressed element that would inflate past the bound is refused, not followed.
+        let fixture =
+            std::fs::read(Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/lct-point.mat")).unwrap();
+        let e = inflate_elements(&fixture, 1000).unwrap_err();
+        assert!(e.contains("inflate past 1000 bytes"), "{e}");
+        assert!(inflate_elements(&fixture, MAX_INFLATED_BYTES).is_ok());
+        // An element claiming more bytes than the file has.
+        let mut cut = fixture.clone();
+        cut.truncate(200);
+        assert!(
+            inflate_elements(&cut, MAX_INFLATED_BYTES)
+                .unwrap_err()
+                .contains("past the end")
+        );
+    }
+}
