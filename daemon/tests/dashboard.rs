@@ -621,7 +621,7 @@ async fn an_operator_runs_the_demo_from_the_dashboard_in_chromium() {
     assert!(rig.emission(), "the laser is on during the capture");
     let pressed = Instant::now();
     click(&c, "#estop").await;
-    let note = wait_text(&c, "#banner", limit, |s| s.starts_with("E-STOP")).await;
+    let note = wait_text(&c, "#banner", limit, |s| s.starts_with("E-STOP done")).await;
     let off = rig
         .off_since(pressed)
         .expect("the simulated laser is off after the e-stop");
@@ -869,7 +869,7 @@ async fn the_page_stays_true_to_the_instrument_and_to_the_run() {
     assert!(rig.emission(), "the laser is on during the capture");
     let pressed = Instant::now();
     click(&phone, "#estop").await;
-    let note = wait_text(&phone, "#banner", limit, |s| s.starts_with("E-STOP")).await;
+    let note = wait_text(&phone, "#banner", limit, |s| s.starts_with("E-STOP done")).await;
     assert!(rig.off_since(pressed).is_some() && !rig.emission(), "{note}");
     assert!(note.contains(&demo), "{note}");
     phone.close().await.unwrap();
