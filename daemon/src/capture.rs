@@ -26,14 +26,14 @@ use crate::ytal::ExportError;
 #[derive(Debug, thiserror::Error)]
 pub enum CaptureError {
     /// The path does not exist.
-    #[error("capture {} does not exist: give a run directory, a y-tal .hdf5/.h5 file or a Stanford LCT .mat file", .0.display())]
+    #[error("capture {} does not exist: give a run directory or a capture file (.hdf5/.h5: y-tal, ZNLOS; .mat: Stanford LCT or f-k, phasor field)", .0.display())]
     Missing(PathBuf),
     /// A directory without `run.json`.
     #[error("{} is not a run directory (no run.json)", .0.display())]
     NotRun(PathBuf),
-    /// A file that is not `.hdf5` or `.h5`.
+    /// A file that is not `.hdf5`, `.h5` or `.mat`.
     #[error(
-        "{} is a file but not a capture (a y-tal .hdf5/.h5 or a Stanford LCT .mat file); give a capture file or a run directory",
+        "{} is a file but not a capture (.hdf5/.h5: y-tal, ZNLOS; .mat: Stanford LCT or f-k, phasor field; docs/formats.md); give a capture file or a run directory",
         .0.display()
     )]
     NotCapture(PathBuf),
@@ -355,25 +355,21 @@ impl Capture {
         }
     }
 
-    /// Opens `path`: a run directory, a y-tal `.hdf5`/`.h5` file, or a Stanford LCT
-    /// `.mat` file (read into the same in-memory capture).
+    /// Opens `path`: a run directory, or a capture file of any public format
+    /// (`.hdf5`/`.h5`: y-tal, ZNLOS; `.mat`: Stanford LCT and f-k, phasor field), read
+    /// into the same in-memory capture ([`periscope_recon::io::formats::read_capture`]
+    /// tells the format from the contents).
     pub fn open(path: &Path) -> Result<Capture, CaptureError> {
         if !path.exists() {
             return Err(CaptureError::Missing(path.to_path_buf()));
         }
         if path.is_file() {
-            if periscope_recon::io::lct::is_mat_path(path) {
-                return Ok(Capture::Ytal {
-                    path: path.to_path_buf(),
-                    capture: Box::new(periscope_recon::io::lct::read_lct(path)?),
-                });
-            }
-            if !is_hdf5_path(path) {
+            if !is_hdf5_path(path) && !periscope_recon::io::lct::is_mat_path(path) {
                 return Err(CaptureError::NotCapture(path.to_path_buf()));
             }
             return Ok(Capture::Ytal {
                 path: path.to_path_buf(),
-                capture: Box::new(YtalCapture::read(path)?),
+                capture: Box::new(periscope_recon::io::formats::read_capture(path)?),
             });
         }
         if !RunDir::holds_run(path) {
@@ -418,9 +414,16 @@ impl Capture {
                 if set.is_empty() {
                     return Err(CaptureError::NothingInWindow(path.clone()));
                 }
+                // The virtual relay spans the relay points: the SPAD's, and the laser's
+                // too where the SPAD stays on fewer than three (a phasor-field capture's
+                // fixed SPAD and scanned laser: by reciprocity, the scanned side).
+                let mut detection_points = capture.sensor_grid.points.clone();
+                if detection_points.len() < 3 {
+                    detection_points.extend(&capture.laser_grid.points);
+                }
                 let t = Transients {
                     set,
-                    detection_points: capture.sensor_grid.points.clone(),
+                    detection_points,
                     viewpoint: capture.viewpoint(),
                     overflowed: 0,
                     falloff: None,

@@ -69,11 +69,12 @@ pub enum Command {
         /// The run directory, e.g. runs/20261121-110000-demo.
         run_dir: PathBuf,
     },
-    /// Reconstruct offline from a stored run or a y-tal HDF5 capture (.hdf5/.h5).
+    /// Reconstruct offline from a stored run or a capture file: y-tal or ZNLOS HDF5
+    /// (.hdf5/.h5), Stanford LCT or f-k, or phasor-field MATLAB (.mat).
     /// Writes volume.npy, volume.json, depth.png, depth.npy, albedo.png and
     /// gaussians.ply to --out.
     Recon {
-        /// A run directory or a y-tal capture file.
+        /// A run directory or a capture file (docs/formats.md).
         capture: PathBuf,
         /// Reconstruction settings (TOML); defaults are derived from the capture.
         #[arg(long, value_name = "RECON.toml")]

@@ -38,29 +38,37 @@ pub const TARGETS: &[(&str, Target)] = &[
     ("plan_toml", plan_toml),
     ("config_toml", config_toml),
     ("mesh", mesh),
-    ("lct_mat", lct_mat),
+    ("capture_file", capture_file),
 ];
 
-/// Stanford LCT `.mat` captures (files downloaded from papers): the bounded inflation
-/// of their compressed elements, the MAT v5 parse and the capture built from it.
-pub fn lct_mat(data: &[u8]) {
-    // Like the y-tal reader: panics inside matfile are turned into errors by the
-    // reader; the fuzzer's hook lets them through to it.
+/// Capture files of every public format (files downloaded from papers): told apart by
+/// their contents, MAT v5 (bounded inflation, matfile's parse) or HDF5 (MAT v7.3,
+/// ZNLOS, y-tal), and the capture each format's reader builds.
+pub fn capture_file(data: &[u8]) {
+    // Like the y-tal reader: panics inside matfile or hdf5-pure are turned into errors
+    // by the readers; the fuzzer's hook lets them through to them.
     static HOOK: std::sync::Once = std::sync::Once::new();
     HOOK.call_once(|| {
         let fuzzer_hook = std::panic::take_hook();
         std::panic::set_hook(Box::new(move |info| {
-            let in_matfile = info.location().is_some_and(|l| l.file().contains("matfile"));
-            if !in_matfile {
+            let in_parser = info
+                .location()
+                .is_some_and(|l| l.file().contains("matfile") || l.file().contains("hdf5-pure"));
+            if !in_parser {
                 fuzzer_hook(info);
             }
         }));
     });
-    let Ok(c) = periscope_recon::io::lct::lct_from_bytes(data, std::path::Path::new("fuzz.mat")) else {
+    let Ok(c) =
+        periscope_recon::io::formats::capture_from_bytes(data.to_vec(), std::path::Path::new("fuzz.mat"))
+    else {
         return;
     };
     assert_eq!(c.h.len(), c.h_shape.iter().product::<usize>());
     assert!(c.h.iter().all(|v| v.is_finite() && *v >= 0.0));
+    if let Ok(volume) = c.default_volume() {
+        let _ = c.transients(&volume);
+    }
 }
 
 /// y-tal HDF5 captures (files downloaded from papers): decoding, the default volume

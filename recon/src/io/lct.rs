@@ -21,6 +21,7 @@ use std::path::Path;
 
 use glam::DVec3;
 
+use super::formats::mat::Mat;
 use super::ytal::{Grid, GridFormat, HFormat, YtalCapture, YtalError};
 
 /// Largest `.mat` file read, bytes.
@@ -53,7 +54,9 @@ fn format_error(path: &Path, message: impl Into<String>) -> YtalError {
     }
 }
 
-/// Reads a Stanford LCT capture.
+/// Reads a Stanford LCT capture (MAT v5, as the release's files are, or v7.3).
+/// [`crate::io::formats::read_capture`] reads it too, telling the format from the
+/// contents.
 pub fn read_lct(path: &Path) -> Result<YtalCapture, YtalError> {
     let bytes = super::read_regular_capped(path, MAX_FILE_BYTES).map_err(|e| YtalError::Hdf5 {
         path: path.to_owned(),
@@ -64,29 +67,24 @@ pub fn read_lct(path: &Path) -> Result<YtalCapture, YtalError> {
 
 /// Decodes a Stanford LCT capture held in memory (`path` names it in errors).
 pub fn lct_from_bytes(bytes: &[u8], path: &Path) -> Result<YtalCapture, YtalError> {
-    let plain = inflate_elements(bytes, MAX_INFLATED_BYTES).map_err(|m| format_error(path, m))?;
-    // matfile is a parser of untrusted bytes this crate does not own: a panic inside it
-    // is an unreadable file, not a crash.
-    let parsed = std::panic::catch_unwind(|| matfile::MatFile::parse(std::io::Cursor::new(plain)))
-        .map_err(|_| format_error(path, "not a MATLAB v5 file matfile can read (its parser gave up)"))?;
-    let mat =
-        parsed.map_err(|e| format_error(path, format!("not a MATLAB v5 file matfile can read: {e}")))?;
-    let names: Vec<&str> = mat.arrays().iter().map(|a| a.name()).collect();
-    let rect = mat.find_by_name("rect_data").ok_or_else(|| {
+    super::formats::with_mat(bytes.to_vec(), path, from_mat)
+}
+
+/// The capture of an LCT file's variables.
+pub(crate) fn from_mat(mat: &Mat<'_>) -> Result<YtalCapture, YtalError> {
+    let path = mat.path();
+    let rect = mat.var_f32("rect_data")?.ok_or_else(|| {
         format_error(
             path,
             format!(
-                "no `rect_data`: not a Stanford LCT capture (variables: {}). Of the public formats, \
-                 periscope reads y-tal HDF5 and Stanford LCT .mat files; f-k (`meas`, `tofgrid`), \
-                 ZNLOS and phasor-field layouts are not read yet (docs/research/nlos-capture-formats.md)",
-                names.join(", ")
+                "no `rect_data`: not a Stanford LCT capture (variables: {}); `periscope recon` tells the \
+                 other public formats apart by themselves (docs/formats.md)",
+                mat.names().join(", ")
             ),
         )
     })?;
     let width = mat
-        .find_by_name("width")
-        .map(|w| real_values(w.data()))
-        .and_then(|v| (v.len() == 1).then(|| v[0]))
+        .scalar("width")?
         .ok_or_else(|| format_error(path, "no scalar `width` (half the scanned side, metres)"))?;
     if !(width.is_finite() && width > 0.0) {
         return Err(format_error(
@@ -94,12 +92,12 @@ pub fn lct_from_bytes(bytes: &[u8], path: &Path) -> Result<YtalCapture, YtalErro
             format!("`width` is {width}: it must be a positive length in metres"),
         ));
     }
-    let &[nx, ny, nt] = rect.size().as_slice() else {
+    let &[nx, ny, nt] = rect.dims.as_slice() else {
         return Err(format_error(
             path,
             format!(
                 "`rect_data` has dims {:?}; an LCT capture's are (x, y, t)",
-                rect.size()
+                rect.dims
             ),
         ));
     };
@@ -109,25 +107,20 @@ pub fn lct_from_bytes(bytes: &[u8], path: &Path) -> Result<YtalCapture, YtalErro
             format!("`rect_data` of dims ({nx}, {ny}, {nt}) is too small"),
         ));
     }
-    let data = real_values(rect.data());
+    let data = rect.values;
     if nx.checked_mul(ny).and_then(|n| n.checked_mul(nt)) != Some(data.len()) {
         return Err(format_error(
             path,
             "`rect_data` holds fewer values than its dims say",
         ));
     }
-    if let Some(bad) = data.iter().position(|v| !v.is_finite() || *v < 0.0) {
-        return Err(format_error(
-            path,
-            format!("`rect_data` value {} at index {bad} is not a count", data[bad]),
-        ));
-    }
+    super::formats::check_counts(&data, "rect_data").map_err(|m| format_error(path, m))?;
     // MATLAB stores (x, y, t) column-major: x varies fastest. H is (t, x, y), C order.
     let mut h = vec![0f32; nx * ny * nt];
     for t in 0..nt {
         for y in 0..ny {
             for x in 0..nx {
-                h[t * nx * ny + x * ny + y] = data[x + nx * (y + ny * t)] as f32;
+                h[t * nx * ny + x * ny + y] = data[x + nx * (y + ny * t)];
             }
         }
     }
@@ -166,32 +159,12 @@ pub fn lct_from_bytes(bytes: &[u8], path: &Path) -> Result<YtalCapture, YtalErro
     Ok(capture)
 }
 
-/// A numeric array's real part as f64.
-fn real_values(d: &matfile::NumericData) -> Vec<f64> {
-    use matfile::NumericData as N;
-    match d {
-        N::Int8 { real, .. } => real.iter().map(|&v| f64::from(v)).collect(),
-        N::UInt8 { real, .. } => real.iter().map(|&v| f64::from(v)).collect(),
-        N::Int16 { real, .. } => real.iter().map(|&v| f64::from(v)).collect(),
-        N::UInt16 { real, .. } => real.iter().map(|&v| f64::from(v)).collect(),
-        N::Int32 { real, .. } => real.iter().map(|&v| f64::from(v)).collect(),
-        N::UInt32 { real, .. } => real.iter().map(|&v| f64::from(v)).collect(),
-        N::Int64 { real, .. } => real.iter().map(|&v| v as f64).collect(),
-        N::UInt64 { real, .. } => real.iter().map(|&v| v as f64).collect(),
-        N::Single { real, .. } => real.iter().map(|&v| f64::from(v)).collect(),
-        N::Double { real, .. } => real.clone(),
-    }
-}
-
 /// A MAT v5 file with its compressed top-level elements inflated in place (at most
 /// `limit` bytes in all), so the parser never inflates without a bound.
 pub fn inflate_elements(bytes: &[u8], limit: u64) -> Result<Vec<u8>, String> {
     const HEADER: usize = 128;
     if bytes.len() < HEADER || bytes[126..128] != *b"IM" {
-        return Err(
-            "not a little-endian MATLAB v5 file (MAT v7.3 files are HDF5; those layouts are not read yet)"
-                .into(),
-        );
+        return Err("not a little-endian MATLAB v5 file (MAT v7.3 files are HDF5, and read as such)".into());
     }
     let mut out = bytes[..HEADER].to_vec();
     let mut at = HEADER;
@@ -276,7 +249,7 @@ mod tests {
         let junk = dir.path().join("junk.mat");
         std::fs::write(&junk, b"not a mat file").unwrap();
         let e = read_lct(&junk).unwrap_err().to_string();
-        assert!(e.contains("not a little-endian MATLAB v5 file"), "{e}");
+        assert!(e.contains("is not a MATLAB .mat file"), "{e}");
         // A compressed element that would inflate past the bound is refused, not followed.
         let fixture =
             std::fs::read(Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/lct-point.mat")).unwrap();

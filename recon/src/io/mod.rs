@@ -16,6 +16,7 @@ use npyz::WriterBuilder;
 
 use crate::volume::{DepthMap, Volume};
 
+pub mod formats;
 pub mod lct;
 pub mod ytal;
 

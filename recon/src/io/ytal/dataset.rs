@@ -14,11 +14,11 @@ use super::{Grid, GridFormat, MAX_DATASET_BYTES, YtalError};
 type Values = (Vec<f64>, Vec<usize>);
 
 /// An open capture file and what its messages name.
-pub(super) struct Reader<'a> {
-    pub(super) file: File,
-    pub(super) path: &'a Path,
+pub(crate) struct Reader<'a> {
+    pub(crate) file: File,
+    pub(crate) path: &'a Path,
     /// Length of the file, bytes.
-    pub(super) file_len: u64,
+    pub(crate) file_len: u64,
 }
 
 /// Best compression ratio deflate can reach: a chunked dataset cannot hold more than
@@ -38,7 +38,7 @@ impl Reader<'_> {
     /// file can hold (its length, times the best gzip ratio for chunked data), and a
     /// chunked layout has a sane chunk count. A small file that declares a huge shape
     /// (an "HDF5 bomb") is refused here, before the HDF5 layer allocates for it.
-    pub(super) fn checked_shape(
+    pub(crate) fn checked_shape(
         &self,
         ds: &hdf5_pure::Dataset,
         name: &str,
@@ -117,19 +117,19 @@ impl Reader<'_> {
             .collect()
     }
 
-    pub(super) fn format(&self, message: String) -> YtalError {
+    pub(crate) fn format(&self, message: String) -> YtalError {
         YtalError::Format {
             path: self.path.to_path_buf(),
             message,
         }
     }
 
-    pub(super) fn has(&self, name: &str) -> bool {
+    pub(crate) fn has(&self, name: &str) -> bool {
         self.file.dataset(name).is_ok()
     }
 
     /// Values and shape; `None` for a missing or empty (null) dataset.
-    fn floats(&self, name: &str) -> Result<Option<Values>, YtalError> {
+    pub(crate) fn floats(&self, name: &str) -> Result<Option<Values>, YtalError> {
         let Ok(ds) = self.file.dataset(name) else {
             return Ok(None);
         };
@@ -143,7 +143,7 @@ impl Reader<'_> {
         Ok(Some((values, shape)))
     }
 
-    pub(super) fn scalar(&self, name: &str) -> Result<Option<f64>, YtalError> {
+    pub(crate) fn scalar(&self, name: &str) -> Result<Option<f64>, YtalError> {
         match self.floats(name)? {
             None => Ok(None),
             Some((v, _)) if v.len() == 1 => Ok(Some(v[0])),
@@ -154,12 +154,12 @@ impl Reader<'_> {
         }
     }
 
-    pub(super) fn required_scalar(&self, name: &str) -> Result<f64, YtalError> {
+    pub(crate) fn required_scalar(&self, name: &str) -> Result<f64, YtalError> {
         self.scalar(name)?
             .ok_or_else(|| self.format(format!("dataset `{name}` is missing or empty")))
     }
 
-    pub(super) fn point(&self, name: &str) -> Result<Option<DVec3>, YtalError> {
+    pub(crate) fn point(&self, name: &str) -> Result<Option<DVec3>, YtalError> {
         match self.floats(name)? {
             None => Ok(None),
             Some((v, _)) if v.len() == 3 && v.iter().all(|x| x.is_finite()) => {
@@ -171,7 +171,7 @@ impl Reader<'_> {
         }
     }
 
-    pub(super) fn grid(&self, side: &str) -> Result<Grid, YtalError> {
+    pub(crate) fn grid(&self, side: &str) -> Result<Grid, YtalError> {
         let xyz_name = format!("{side}_grid_xyz");
         let (xyz, shape) = self
             .floats(&xyz_name)?

@@ -52,6 +52,9 @@ use glam::DVec3;
 
 mod dataset;
 mod read;
+
+pub(crate) use dataset::Reader;
+pub(crate) use read::{guarded, memory_check};
 mod transients;
 mod write;
 

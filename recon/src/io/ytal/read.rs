@@ -47,10 +47,7 @@ fn take_flags(info: &str) -> Result<(String, Vec<(usize, u8)>), String> {
 /// file. The fuzzer found malformed chunk layouts that make hdf5-pure 0.47 overflow
 /// an offset (`chunked_read.rs`, `copy_chunk_to_output`): a malformed file must be
 /// an error for the user, never a crash of `recon` or of the daemon.
-fn guarded(
-    path: &Path,
-    decode: impl FnOnce() -> Result<YtalCapture, YtalError>,
-) -> Result<YtalCapture, YtalError> {
+pub(crate) fn guarded<T>(path: &Path, decode: impl FnOnce() -> Result<T, YtalError>) -> Result<T, YtalError> {
     std::panic::catch_unwind(std::panic::AssertUnwindSafe(decode)).unwrap_or_else(|payload| {
         Err(YtalError::Hdf5 {
             path: path.to_path_buf(),
@@ -76,8 +73,41 @@ fn panic_message(payload: &(dyn std::any::Any + Send)) -> String {
 /// and weights (8).
 const BYTES_PER_H_VALUE: u64 = 16;
 
+/// y-tal's name for a frequency-domain `H_format` code (`tal.enums.HFormat` 10 to 13).
+fn frequency_format(code: f64) -> Option<&'static str> {
+    [
+        (10.0, "F_Sx_Sy"),
+        (11.0, "F_Lx_Ly_Sx_Sy"),
+        (12.0, "F_Si"),
+        (13.0, "F_Li_Si"),
+    ]
+    .into_iter()
+    .find(|&(c, _)| c == code)
+    .map(|(_, name)| name)
+}
+
 /// Bytes in a GiB, for messages.
 const GIB: f64 = (1u64 << 30) as f64;
+
+/// Whether reading and reconstructing a transient array of `shape` (dataset `name`)
+/// fits what this process can still allocate. Each size check on a dataset holds on
+/// its own; what the whole read takes must fit too, or the read would abort the
+/// process instead of failing. `Err` says how much it needs and what to do.
+pub(crate) fn memory_check(shape: &[usize], name: &str) -> Result<(), String> {
+    let values = shape.iter().map(|&d| d as u64).product::<u64>();
+    let need = values.saturating_mul(BYTES_PER_H_VALUE);
+    match crate::io::memory_available() {
+        Some(available) if need > available => Err(format!(
+            "`{name}` holds {values} values (shape {shape:?}): reading and reconstructing it takes about \
+             {:.1} GiB, more than the {:.1} GiB this process can still use (free memory, and its \
+             address-space limit): reconstruct it on a machine with more memory, or crop it (fewer \
+             bins or relay points) first",
+            need as f64 / GIB,
+            available as f64 / GIB
+        )),
+        _ => Ok(()),
+    }
+}
 
 /// The largest magnitude of an `H` value: sums of up to 10^8 such values stay finite in
 /// single precision (f32::MAX is about 3.4e38).
@@ -124,7 +154,7 @@ impl YtalCapture {
         })
     }
 
-    fn decode(file: File, path: &Path, file_len: u64) -> Result<YtalCapture, YtalError> {
+    pub(crate) fn decode(file: File, path: &Path, file_len: u64) -> Result<YtalCapture, YtalError> {
         let r = Reader { file, path, file_len };
         if !r.has("H") {
             let hint = ["data", "data_t", "dataset", "rect_data"]
@@ -142,9 +172,16 @@ impl YtalCapture {
         let code = r.required_scalar("H_format")?;
         let integral = code.is_finite() && code.fract() == 0.0 && code.abs() < 1e6;
         let h_format = HFormat::from_code(if integral { code as i64 } else { -1 }).ok_or_else(|| {
-            r.format(format!(
-                "`H_format` is {code}; expected 1 to 4 (T_Sx_Sy … T_Li_Si)"
-            ))
+            r.format(match frequency_format(code) {
+                Some(name) => format!(
+                    "`H_format` is {code} ({name}), one of y-tal's frequency-domain layouts: `H` holds only \
+                     the band of the transients' spectrum its phasor-field wavelengths use, from which the \
+                     time-domain transients every Periscope method fits cannot be recovered. Reconstruct \
+                     it with y-tal (`tal.reconstruct.pf_dev`), or render or export the capture in the time \
+                     domain (`histogram_mode: time`, H_format 1 to 4)"
+                ),
+                None => format!("`H_format` is {code}; expected 1 to 4 (T_Sx_Sy … T_Li_Si)"),
+            })
         })?;
         let ds = r
             .file
@@ -162,23 +199,7 @@ impl YtalCapture {
                 h_format.name()
             )));
         }
-        // Each size check above holds on its own; what reading and reconstructing `H`
-        // takes in all must fit what this process can still allocate, or the read
-        // would abort the process instead of failing.
-        let values = h_shape.iter().map(|&d| d as u64).product::<u64>();
-        let need = values.saturating_mul(BYTES_PER_H_VALUE);
-        if let Some(available) = crate::io::memory_available()
-            && need > available
-        {
-            return Err(r.format(format!(
-                "`H` holds {values} values (shape {h_shape:?}): reading and reconstructing it takes about \
-                 {:.1} GiB, more than the {:.1} GiB this process can still use (free memory, and its \
-                 address-space limit): reconstruct it on a machine with more memory, or crop it (fewer \
-                 bins or relay points) with y-tal first",
-                need as f64 / GIB,
-                available as f64 / GIB
-            )));
-        }
+        memory_check(&h_shape, "H").map_err(|m| r.format(m))?;
         let h = ds
             .read_f32()
             .map_err(|e| r.format(format!("dataset `H` is not numeric: {e}")))?;

@@ -1,0 +1,198 @@
+//! MATLAB files of either container, read the same way: MAT v5 (`save`, scipy's
+//! `savemat`; parsed by matfile after [`crate::io::lct::inflate_elements`]) and MAT v7.3
+//! (`save -v7.3`, hdf5storage: HDF5 after a 512-byte userblock, read through the
+//! capture [`Reader`]'s size checks). A variable comes back in MATLAB's terms
+//! whichever container held it: its MATLAB dims and its values in column-major order
+//! (HDF5 stores a MATLAB array with its dims reversed, so its C-order values are the
+//! same sequence). Structs (a v7.3 group) are read field by field, as `struct/field`.
+use std::path::Path;
+
+use crate::io::ytal::{Reader, YtalError};
+
+/// A MATLAB array: its dims (MATLAB's order) and values, column-major.
+#[derive(Debug, Clone, PartialEq)]
+pub(crate) struct Var<T> {
+    /// Dims as MATLAB reports them (`size(x)`), at least two.
+    pub(crate) dims: Vec<usize>,
+    /// Values, first dim fastest.
+    pub(crate) values: Vec<T>,
+}
+
+/// An open MATLAB file.
+pub(crate) enum Mat<'a> {
+    /// MAT v5, parsed whole.
+    V5 {
+        /// The parsed file.
+        mat: matfile::MatFile,
+        /// What messages name.
+        path: &'a Path,
+    },
+    /// MAT v7.3: HDF5.
+    V73(Reader<'a>),
+}
+
+impl Mat<'_> {
+    /// The file messages name.
+    pub(crate) fn path(&self) -> &Path {
+        match self {
+            Mat::V5 { path, .. } => path,
+            Mat::V73(r) => r.path,
+        }
+    }
+
+    /// An error naming the file.
+    pub(crate) fn error(&self, message: impl Into<String>) -> YtalError {
+        YtalError::Format {
+            path: self.path().to_owned(),
+            message: message.into(),
+        }
+    }
+
+    /// The file's top-level variables (v7.3: datasets and groups, MATLAB's own
+    /// `#refs#`/`#subsystem#` left out).
+    pub(crate) fn names(&self) -> Vec<String> {
+        let mut names: Vec<String> = match self {
+            Mat::V5 { mat, .. } => mat.arrays().iter().map(|a| a.name().to_owned()).collect(),
+            Mat::V73(r) => {
+                let root = r.file.root();
+                let mut n = root.datasets().unwrap_or_default();
+                n.extend(root.groups().unwrap_or_default());
+                n
+            }
+        };
+        names.retain(|n| !n.starts_with('#'));
+        names.sort();
+        names
+    }
+
+    /// Whether the file has variable (or struct field) `name`.
+    pub(crate) fn has(&self, name: &str) -> bool {
+        match self {
+            Mat::V5 { mat, .. } => mat.find_by_name(name).is_some(),
+            Mat::V73(r) => r.file.dataset(name).is_ok() || r.file.group(name).is_ok(),
+        }
+    }
+
+    /// Variable `name` as f64; `None` when absent or empty.
+    pub(crate) fn var(&self, name: &str) -> Result<Option<Var<f64>>, YtalError> {
+        match self {
+            Mat::V5 { mat, .. } => Ok(mat.find_by_name(name).and_then(|a| {
+                let values = v5_values(a.data(), |v| v);
+                (!values.is_empty()).then(|| Var {
+                    dims: a.size().clone(),
+                    values,
+                })
+            })),
+            Mat::V73(r) => match r.floats(name)? {
+                None => Ok(None),
+                Some((values, shape)) => Ok(Some(Var {
+                    dims: matlab_dims(&shape),
+                    values,
+                })),
+            },
+        }
+    }
+
+    /// Variable `name` as f32 (the transients: half the memory of f64); `None` when
+    /// absent or empty.
+    pub(crate) fn var_f32(&self, name: &str) -> Result<Option<Var<f32>>, YtalError> {
+        match self {
+            Mat::V5 { mat, .. } => Ok(mat.find_by_name(name).and_then(|a| {
+                let values = v5_values(a.data(), |v| v as f32);
+                (!values.is_empty()).then(|| Var {
+                    dims: a.size().clone(),
+                    values,
+                })
+            })),
+            Mat::V73(r) => {
+                let Ok(ds) = r.file.dataset(name) else {
+                    return Ok(None);
+                };
+                let shape = r.checked_shape(&ds, name, 4)?;
+                super::super::ytal::memory_check(&shape, name).map_err(|m| self.error(m))?;
+                let values = ds
+                    .read_f32()
+                    .map_err(|e| self.error(format!("`{name}` is not numeric: {e}")))?;
+                if values.is_empty() {
+                    return Ok(None);
+                }
+                Ok(Some(Var {
+                    dims: matlab_dims(&shape),
+                    values,
+                }))
+            }
+        }
+    }
+
+    /// Variable `name`, required.
+    pub(crate) fn required(&self, name: &str, what: &str) -> Result<Var<f64>, YtalError> {
+        self.var(name)?
+            .ok_or_else(|| self.error(format!("no `{name}` ({what})")))
+    }
+
+    /// A finite scalar variable; `None` when absent.
+    pub(crate) fn scalar(&self, name: &str) -> Result<Option<f64>, YtalError> {
+        match self.var(name)? {
+            None => Ok(None),
+            Some(v) if v.values.len() == 1 && v.values[0].is_finite() => Ok(Some(v.values[0])),
+            Some(v) => Err(self.error(format!(
+                "`{name}` should be one finite number; it has dims {:?}",
+                v.dims
+            ))),
+        }
+    }
+
+    /// A finite scalar, required.
+    pub(crate) fn required_scalar(&self, name: &str, what: &str) -> Result<f64, YtalError> {
+        self.scalar(name)?
+            .ok_or_else(|| self.error(format!("no `{name}` ({what})")))
+    }
+}
+
+/// MATLAB's dims of an array HDF5 stores with `shape`: reversed, at least two.
+fn matlab_dims(shape: &[usize]) -> Vec<usize> {
+    let mut dims: Vec<usize> = shape.iter().rev().copied().collect();
+    while dims.len() < 2 {
+        dims.push(1);
+    }
+    dims
+}
+
+/// A v5 numeric array's real part, converted by `f`.
+fn v5_values<T>(d: &matfile::NumericData, f: impl Fn(f64) -> T) -> Vec<T> {
+    use matfile::NumericData as N;
+    match d {
+        N::Int8 { real, .. } => real.iter().map(|&v| f(f64::from(v))).collect(),
+        N::UInt8 { real, .. } => real.iter().map(|&v| f(f64::from(v))).collect(),
+        N::Int16 { real, .. } => real.iter().map(|&v| f(f64::from(v))).collect(),
+        N::UInt16 { real, .. } => real.iter().map(|&v| f(f64::from(v))).collect(),
+        N::Int32 { real, .. } => real.iter().map(|&v| f(f64::from(v))).collect(),
+        N::UInt32 { real, .. } => real.iter().map(|&v| f(f64::from(v))).collect(),
+        N::Int64 { real, .. } => real.iter().map(|&v| f(v as f64)).collect(),
+        N::UInt64 { real, .. } => real.iter().map(|&v| f(v as f64)).collect(),
+        N::Single { real, .. } => real.iter().map(|&v| f(f64::from(v))).collect(),
+        N::Double { real, .. } => real.iter().map(|&v| f(v)).collect(),
+    }
+}
+
+/// The points of a list stored as MATLAB `n × 3` (or a single point as `1 × 3` or
+/// `3 × 1`), checked finite.
+pub(crate) fn points(mat: &Mat<'_>, var: &Var<f64>, name: &str) -> Result<Vec<glam::DVec3>, YtalError> {
+    let v = &var.values;
+    let n = v.len() / 3;
+    let pts: Vec<glam::DVec3> = match var.dims.as_slice() {
+        [1, 3] | [3, 1] | [3] => vec![glam::DVec3::new(v[0], v[1], v[2])],
+        [rows, 3] => (0..*rows)
+            .map(|i| glam::DVec3::new(v[i], v[i + n], v[i + 2 * n]))
+            .collect(),
+        dims => {
+            return Err(mat.error(format!(
+                "`{name}` has dims {dims:?}; expected an n × 3 list of points"
+            )));
+        }
+    };
+    if let Some(i) = pts.iter().position(|p| !p.is_finite()) {
+        return Err(mat.error(format!("`{name}` point {i} is not finite")));
+    }
+    Ok(pts)
+}

@@ -1,0 +1,172 @@
+//! Each public format's fixture (recon/tests/data/public-formats.py, written by the
+//! writers the format comes from) holds one point target; each transient's peak holds
+//! a count naming its relay point and lies in the bin of its path. A swapped or
+//! mirrored axis, a wrong time origin, bin width or bounce puts a count where the
+//! geometry says nothing is, and fails here.
+use std::path::{Path, PathBuf};
+
+use glam::DVec3;
+
+use super::*;
+use crate::io::ytal::HFormat;
+
+fn fixture(name: &str) -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("tests/data")
+        .join(name)
+}
+
+/// Checks every transient of `c`: its largest bin holds `count(c)` and lies where the
+/// path through `target` falls (a path within a micrometre of a bin edge may fall on
+/// either side: the fixtures' positions are stored in single precision).
+fn lands_on_the_target(c: &YtalCapture, target: DVec3, count: impl Fn(usize) -> f32) {
+    for k in 0..c.len() {
+        let p = c.pair(k);
+        let bins: Vec<f32> = c.transient(k).collect();
+        let (peak, &v) = bins.iter().enumerate().max_by(|a, b| a.1.total_cmp(b.1)).unwrap();
+        assert_eq!(v, count(k), "transient {k} ({p:?})");
+        let path = p.xi.distance(target) + p.xd.distance(target);
+        let at = (path - c.hidden_start(k)) / c.delta_t;
+        let near = [(at - 1e-6 / c.delta_t).floor(), (at + 1e-6 / c.delta_t).floor()];
+        assert!(
+            near.contains(&(peak as f64)),
+            "transient {k}: peak in bin {peak}, the path {path} m falls in bin {at}"
+        );
+    }
+}
+
+#[test]
+fn znlos_confocal_sums_the_third_bounce_on_and_takes_the_legs_out() {
+    let c = read_capture(&fixture("znlos-point.hdf5")).unwrap();
+    assert_eq!(c.h_shape, vec![640, 6, 8]);
+    assert_eq!(c.h_format, HFormat::TSxSy);
+    assert!(c.t_accounts_first_and_last_bounces);
+    let target = DVec3::new(0.1, -0.5, 0.05);
+    lands_on_the_target(&c, target, |k| (100 + 10 * (k / 8) + k % 8) as f32);
+    for k in 0..c.len() {
+        let p = c.pair(k);
+        assert_eq!(p.xi, p.xd, "confocal");
+        assert_eq!(p.nd, DVec3::NEG_Y);
+        let (i, j) = (k / 8, k % 8);
+        assert!((p.xd.x - (-0.35 + 0.7 * j as f64 / 7.0)).abs() < 1e-6, "{p:?}");
+        assert!((p.xd.z - (-0.25 + 0.5 * i as f64 / 5.0)).abs() < 1e-6, "{p:?}");
+        // The 3rd bounce and the 4th (7 counts), never the wall's own 2nd (5000).
+        let sum: f32 = c.transient(k).sum();
+        assert_eq!(sum, (100 + 10 * i + j) as f32 + 7.0, "transient {k}");
+    }
+    let row_major = read_capture(&fixture("znlos-point-rowmajor.hdf5")).unwrap();
+    assert_eq!(
+        row_major.h, c.h,
+        "a row-major file reads as its column-major twin"
+    );
+    assert_eq!(row_major.sensor_grid, c.sensor_grid);
+}
+
+#[test]
+fn znlos_exhaustive_pairs_every_laser_point_with_every_camera_point() {
+    let c = read_capture(&fixture("znlos-exhaustive.hdf5")).unwrap();
+    assert_eq!(c.h_format, HFormat::TLxLySxSy);
+    assert_eq!(c.h_shape, vec![256, 2, 3, 3, 4]);
+    lands_on_the_target(&c, DVec3::new(0.0, -0.4, 0.1), |k| {
+        let (l, s) = (k / 12, k % 12);
+        let (a, b, i, j) = (l / 3, l % 3, s / 4, s % 4);
+        (1000 * i + 100 * j + 10 * a + b + 1) as f32
+    });
+    assert_eq!(c.laser_xyz, Some(DVec3::new(0.4, -1.1, 0.2).as_vec3().as_dvec3()));
+}
+
+#[test]
+fn fk_rectifies_each_histogram_with_tofgrid_from_tof_mat() {
+    let c = read_capture(&fixture("fk-point/meas_10min.mat")).unwrap();
+    assert_eq!(c.h_format, HFormat::TSxSy);
+    assert_eq!(c.h_shape[1..], [8, 8]);
+    assert_eq!(
+        c.h_shape[0],
+        1024 - ((3000.0 + 37.0 * 7.0 + 11.0 * 7.0) / 32.0f64).floor() as usize
+    );
+    assert!((c.delta_t - C * 32e-12).abs() < 1e-15);
+    lands_on_the_target(&c, DVec3::new(0.25, -0.1, 0.6), |k| {
+        (100 + 10 * (k / 8) + k % 8) as f32
+    });
+    for k in 0..64 {
+        let p = c.pair(k);
+        let (y, x) = (k / 8, k % 8);
+        assert!((p.xd.x - (-1.0 + 2.0 * x as f64 / 7.0)).abs() < 1e-12);
+        assert!((p.xd.y - (-1.0 + 2.0 * y as f64 / 7.0)).abs() < 1e-12);
+        assert_eq!(c.hidden_start(k), 0.0, "bin 0 is the wall");
+    }
+    // Without its tof.mat the measurement cannot be placed in time: refused, naming it.
+    let dir = tempfile::tempdir().unwrap();
+    let alone = dir.path().join("meas_10min.mat");
+    std::fs::copy(fixture("fk-point/meas_10min.mat"), &alone).unwrap();
+    let e = read_capture(&alone).unwrap_err().to_string();
+    assert!(e.contains("tof.mat") && e.contains("tofgrid"), "{e}");
+}
+
+#[test]
+fn phasor_field_2019_dataset_struct_reads_every_laser_point() {
+    let c = read_capture(&fixture("pf2019-point.mat")).unwrap();
+    assert_eq!(c.h_format, HFormat::TLiSi);
+    assert_eq!(c.h_shape, vec![1024, 30, 1]);
+    assert_eq!(c.sensor_grid.points, vec![DVec3::new(0.05, 0.02, 0.0)]);
+    assert_eq!(c.laser_xyz, Some(DVec3::new(0.3, 0.1, 1.5)));
+    assert_eq!(c.sensor_xyz, Some(DVec3::new(-0.4, 0.0, 1.2)));
+    lands_on_the_target(&c, DVec3::new(-0.1, 0.05, 0.5), |k| (100 + k) as f32);
+    for (i, p) in c.laser_grid.points.iter().enumerate() {
+        let (a, b) = (i / 5, i % 5);
+        assert!(p.distance(DVec3::new(-0.25 + 0.1 * a as f64, -0.2 + 0.1 * b as f64, 0.0)) < 1e-12);
+    }
+}
+
+#[test]
+fn phasor_field_2020_rect_data_puts_the_spad_on_its_grid_point() {
+    let c = read_capture(&fixture("pf2020-point.mat")).unwrap();
+    assert_eq!(c.h_format, HFormat::TLxLySxSy);
+    assert_eq!(c.h_shape, vec![1024, 16, 12, 1, 1]);
+    let spacing = 0.025;
+    let at = |i: usize, j: usize| DVec3::new((i as f64 - 7.5) * spacing, (j as f64 - 5.5) * spacing, 0.0);
+    assert!(
+        c.sensor_grid.points[0].distance(at(6, 4)) < 1e-12,
+        "SPAD_index [7 5] is 1-based"
+    );
+    for k in 0..c.len() {
+        assert!(c.pair(k).xi.distance(at(k / 12, k % 12)) < 1e-12);
+    }
+    lands_on_the_target(&c, DVec3::new(0.03, -0.02, 0.4), |k| {
+        (100 + 10 * (k / 12) + k % 12) as f32
+    });
+}
+
+#[test]
+fn the_lct_release_layout_reads_through_the_same_entry() {
+    let c = read_capture(&fixture("lct-point.mat")).unwrap();
+    assert_eq!(c, crate::io::lct::read_lct(&fixture("lct-point.mat")).unwrap());
+    lands_on_the_target(&c, DVec3::new(0.1, -0.05, 0.3), |k| {
+        (100 + 10 * (k / 8) + k % 8) as f32
+    });
+}
+
+#[test]
+fn frequency_domain_and_unknown_layouts_are_refused_by_name() {
+    let e = read_capture(&fixture("ytal-frequency.hdf5"))
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("F_Sx_Sy") && e.contains("frequency-domain") && e.contains("time domain"),
+        "{e}"
+    );
+    let dir = tempfile::tempdir().unwrap();
+    let text = dir.path().join("notes.mat");
+    std::fs::write(&text, "no capture here").unwrap();
+    let e = read_capture(&text).unwrap_err().to_string();
+    assert!(e.contains("neither HDF5 nor a MATLAB"), "{e}");
+    // A MATLAB file of none of the formats lists what it has.
+    let bytes = std::fs::read(fixture("fk-point/tof.mat")).unwrap();
+    let e = capture_from_bytes(bytes, Path::new("tof.mat"))
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("it has: tofgrid") && e.contains("docs/formats.md"),
+        "{e}"
+    );
+}
