@@ -55,10 +55,7 @@ fn noise_scan(relay: &VirtualRelay, bins: usize, rng: &mut ChaCha8Rng) -> (Trans
         h.iter_mut().for_each(|v| *v = rng.random::<f32>());
         set.push(Pair::confocal(x, relay.normal), &h).unwrap();
     }
-    let scan = PlanarScan {
-        relay: *relay,
-        cells: (0..relay.len()).collect(),
-    };
+    let scan = PlanarScan::full(*relay);
     (set, scan)
 }
 

@@ -76,9 +76,6 @@ pub fn synthesise(
     }
     Ok(VirtualScan {
         set,
-        scan: PlanarScan {
-            relay: *relay,
-            cells: (0..relay.len()).collect(),
-        },
+        scan: PlanarScan::full(*relay),
     })
 }

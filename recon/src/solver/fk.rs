@@ -58,7 +58,7 @@ impl FkSettings {
 /// f-k migration of a confocal capture on a planar grid, resampled onto `grid`.
 pub fn fk(set: &TransientSet, grid: &VolumeGrid, settings: &FkSettings) -> Result<Volume, SolverError> {
     settings.validate()?;
-    let scan = super::lct::confocal_scan(set, settings.grid_tolerance)?;
+    let scan = super::lct::confocal_scan(set, settings.grid_tolerance)?.reaching(grid);
     Ok(fk_frame(set, &scan, settings)?.to_world(grid))
 }
 

@@ -70,7 +70,7 @@ impl LctSettings {
 /// LCT of a confocal capture on a planar grid, resampled onto `grid`.
 pub fn lct(set: &TransientSet, grid: &VolumeGrid, settings: &LctSettings) -> Result<Volume, SolverError> {
     settings.validate()?;
-    let scan = confocal_scan(set, settings.grid_tolerance)?;
+    let scan = confocal_scan(set, settings.grid_tolerance)?.reaching(grid);
     Ok(lct_frame(set, &scan, settings)?.to_world(grid))
 }
 

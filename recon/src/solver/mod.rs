@@ -25,7 +25,7 @@ pub use frame::FrameVolume;
 pub use lct::{LctSettings, VIRTUAL_SCAN_SNR, default_snr, lct, lct_frame};
 pub use quadrature::{REACH_PITCHES, pair_weights, relay_areas};
 pub use rsd::{RsdSettings, rsd, rsd_frame};
-pub use scan::PlanarScan;
+pub use scan::{MAX_REACH_FACTOR, PlanarScan};
 
 use crate::relay::GeometryError;
 use crate::volume::VolumeError;

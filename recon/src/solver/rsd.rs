@@ -127,7 +127,7 @@ pub fn rsd(set: &TransientSet, grid: &VolumeGrid, settings: &RsdSettings) -> Res
     }
     let points: Vec<DVec3> = set.pairs().iter().map(|p| p.xd).collect();
     let hint = set.pairs().iter().map(|p| p.nd).sum();
-    let scan = PlanarScan::detect("detection", &points, hint, settings.grid_tolerance)?;
+    let scan = PlanarScan::detect("detection", &points, hint, settings.grid_tolerance)?.reaching(grid);
     let (mut lo, mut hi) = (f64::INFINITY, f64::NEG_INFINITY);
     for corner in 0..8 {
         let c = DVec3::new(

@@ -4,6 +4,7 @@ use glam::DVec3;
 use super::SolverError;
 use crate::linalg::fit_plane;
 use crate::relay::VirtualRelay;
+use crate::volume::VolumeGrid;
 
 /// Relay points identified with the cells of a planar grid.
 #[derive(Clone, Debug, PartialEq)]
@@ -12,7 +13,16 @@ pub struct PlanarScan {
     pub relay: VirtualRelay,
     /// For each point, its cell `iy·resolution[0] + ix`.
     pub cells: Vec<usize>,
+    /// The scanned grid's columns `[start, end)` and rows within `relay`'s: the whole
+    /// grid, unless [`PlanarScan::reaching`] added empty cells around it so that a
+    /// solver's volume covers a reconstruction volume wider than the scan. Only cells
+    /// inside count as the sampled aperture ([`gather_cube`]'s weights).
+    pub aperture: [[usize; 2]; 2],
 }
+
+/// Most cells [`PlanarScan::reaching`] makes along an axis, as a multiple of the
+/// scanned grid's (the solvers' time and memory grow with the cells).
+pub const MAX_REACH_FACTOR: usize = 3;
 
 impl PlanarScan {
     /// Finds the grid `points` lie on: a fitted plane (rms distance at most
@@ -82,7 +92,85 @@ impl PlanarScan {
         let cells = (0..points.len())
             .map(|i| index[1][i] * nx + index[0][i])
             .collect();
-        Ok(Self { relay, cells })
+        Ok(Self {
+            relay,
+            cells,
+            aperture: [[0, nx], [0, ny]],
+        })
+    }
+
+    /// A scan of a full grid: every cell measured once, in order.
+    pub fn full(relay: VirtualRelay) -> Self {
+        let [nx, ny] = relay.resolution;
+        Self {
+            cells: (0..relay.len()).collect(),
+            relay,
+            aperture: [[0, nx], [0, ny]],
+        }
+    }
+
+    /// This scan on a grid widened, at the same pitch, by empty cells until it covers
+    /// `grid`'s extent across the relay plane (at most [`MAX_REACH_FACTOR`] times the
+    /// scanned cells along an axis). A grid solver's volume spans its grid's cells
+    /// only, and is zero beyond; on the wider grid it reconstructs what the aperture's
+    /// light says of the hidden scene beside the aperture too, as backprojection does,
+    /// instead of leaving a volume wider than the scan dark (and its depth map
+    /// arbitrary) there. The added cells are outside the aperture: never measured,
+    /// never weighted.
+    pub fn reaching(&self, grid: &VolumeGrid) -> Self {
+        let r = &self.relay;
+        let spacing = r.spacing();
+        let (mut lo, mut hi) = ([f64::INFINITY; 2], [f64::NEG_INFINITY; 2]);
+        for corner in 0..8 {
+            let c = DVec3::new(
+                grid.x[corner & 1],
+                grid.y[(corner >> 1) & 1],
+                grid.z[(corner >> 2) & 1],
+            ) - r.centre;
+            for (a, axis) in [r.u, r.v].into_iter().enumerate() {
+                lo[a] = lo[a].min(c.dot(axis));
+                hi[a] = hi[a].max(c.dot(axis));
+            }
+        }
+        let mut add = [[0usize; 2]; 2];
+        for a in 0..2 {
+            let half = 0.5 * r.size[a];
+            let cells = |gap: f64| (gap / spacing[a] - 1e-6).ceil().max(0.0);
+            let (low, high) = (cells(-half - lo[a]), cells(hi[a] - half));
+            let scanned = (self.aperture[a][1] - self.aperture[a][0]) as f64;
+            let room = (MAX_REACH_FACTOR as f64 * scanned - r.resolution[a] as f64).max(0.0);
+            let scale = if low + high > room {
+                room / (low + high)
+            } else {
+                1.0
+            };
+            add[a] = [(low * scale).floor() as usize, (high * scale).floor() as usize];
+        }
+        if add == [[0, 0], [0, 0]] {
+            return self.clone();
+        }
+        let [nx, _] = r.resolution;
+        let resolution = [0, 1].map(|a| r.resolution[a] + add[a][0] + add[a][1]);
+        let shift = |a: usize| (add[a][1] as f64 - add[a][0] as f64) * 0.5 * spacing[a];
+        let relay = VirtualRelay::new(
+            r.centre + r.u * shift(0) + r.v * shift(1),
+            r.normal,
+            r.u,
+            [0, 1].map(|a| resolution[a] as f64 * spacing[a]),
+            resolution,
+        )
+        .expect("a wider grid of the same plane and pitch");
+        let cells = self
+            .cells
+            .iter()
+            .map(|&c| (c / nx + add[1][0]) * resolution[0] + c % nx + add[0][0])
+            .collect();
+        let aperture = [0, 1].map(|a| self.aperture[a].map(|i| i + add[a][0]));
+        Self {
+            relay,
+            cells,
+            aperture,
+        }
     }
 }
 
@@ -163,11 +251,23 @@ pub(crate) fn gather_cube(
         count[cell] += 1;
     }
     let occupied: Vec<bool> = count.iter().map(|&n| n > 0).collect();
-    let share = if relay_weights {
-        super::quadrature::cell_weights(&occupied, scan.relay.resolution, scan.relay.spacing())
-    } else {
-        occupied.iter().map(|&o| f64::from(u8::from(o))).collect()
-    };
+    let mut share: Vec<f64> = occupied.iter().map(|&o| f64::from(u8::from(o))).collect();
+    if relay_weights {
+        // Weighed within the scanned aperture only: the cells a wider grid adds around
+        // it were never part of it.
+        let [[x0, x1], [y0, y1]] = scan.aperture;
+        let inside: Vec<bool> = (y0..y1)
+            .flat_map(|y| (x0..x1).map(move |x| y * nx + x))
+            .map(|c| occupied[c])
+            .collect();
+        let w = super::quadrature::cell_weights(&inside, [x1 - x0, y1 - y0], scan.relay.spacing());
+        for (i, c) in (y0..y1)
+            .flat_map(|y| (x0..x1).map(move |x| y * nx + x))
+            .enumerate()
+        {
+            share[c] = w[i];
+        }
+    }
     for (cell, &n) in count.iter().enumerate() {
         let row = &mut cube[cell * bins..(cell + 1) * bins];
         if n > 1 {
@@ -179,4 +279,64 @@ pub(crate) fn gather_cube(
         }
     }
     cube
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::transient::{Pair, TimeAxis, TransientSet};
+
+    /// A 6 × 5 grid over 0.6 × 0.5 m with five inner points missing, each measured
+    /// point's histogram its own index.
+    fn perforated() -> (TransientSet, PlanarScan) {
+        let relay = VirtualRelay::new(DVec3::ZERO, DVec3::Z, DVec3::X, [0.6, 0.5], [6, 5]).unwrap();
+        let axis = TimeAxis {
+            start: 0.0,
+            width: 0.01,
+            bins: 4,
+        };
+        let mut set = TransientSet::new(axis).unwrap();
+        let mut points = Vec::new();
+        for (i, p) in relay
+            .points()
+            .into_iter()
+            .enumerate()
+            .filter(|(i, _)| ![7, 8, 14, 20, 21].contains(i))
+        {
+            set.push(Pair::confocal(p, DVec3::Z), &[i as f32; 4]).unwrap();
+            points.push(p);
+        }
+        let scan = PlanarScan::detect("test", &points, DVec3::Z, 1e-6).unwrap();
+        (set, scan)
+    }
+
+    #[test]
+    fn a_wider_volume_widens_the_grid_around_the_aperture_at_the_same_pitch() {
+        let (set, scan) = perforated();
+        // A volume within the footprint keeps the scan as it is.
+        let inside = VolumeGrid::new([-0.25, 0.25], [-0.2, 0.2], [0.1, 1.0], [8, 8, 8]).unwrap();
+        assert_eq!(scan.reaching(&inside), scan);
+        // One reaching 0.25 m further in −x and 0.1 m in +y: 3 and 1 cells more.
+        let wider = VolumeGrid::new([-0.55, 0.3], [-0.25, 0.35], [0.1, 1.0], [8, 8, 8]).unwrap();
+        let w = scan.reaching(&wider);
+        assert_eq!(w.relay.resolution, [9, 6]);
+        assert!((w.relay.spacing()[0] - 0.1).abs() < 1e-12 && (w.relay.spacing()[1] - 0.1).abs() < 1e-12);
+        assert_eq!(w.aperture, [[3, 9], [0, 5]]);
+        let (old, new) = (scan.relay.points(), w.relay.points());
+        for (p, (&a, &b)) in scan.cells.iter().zip(&w.cells).enumerate() {
+            assert!(old[a].distance(new[b]) < 1e-12, "point {p} moved");
+        }
+        // The added cells are empty and outside the aperture: the measured cells keep
+        // their weights (a perforated grid's Voronoi shares), the others get none.
+        let members: Vec<usize> = (0..set.len()).collect();
+        let a = gather_cube(&set, &members, &scan, 0.0, 4, true);
+        let b = gather_cube(&set, &members, &w, 0.0, 4, true);
+        assert_eq!(a.iter().sum::<f32>(), b.iter().sum::<f32>());
+        for (&ca, &cb) in scan.cells.iter().zip(&w.cells) {
+            assert_eq!(a[ca * 4..ca * 4 + 4], b[cb * 4..cb * 4 + 4]);
+        }
+        // At most MAX_REACH_FACTOR times the scanned cells along an axis.
+        let huge = VolumeGrid::new([-50.0, 50.0], [-0.2, 0.2], [0.1, 1.0], [8, 8, 8]).unwrap();
+        assert_eq!(scan.reaching(&huge).relay.resolution, [6 * MAX_REACH_FACTOR, 5]);
+    }
 }
