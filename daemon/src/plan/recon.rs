@@ -1,7 +1,7 @@
 //! Reconstruction settings: the `[recon]` table of a capture plan and the whole of a
 //! `RECON.toml` for `periscope recon` share this format.
 use periscope_recon::VolumeGrid;
-use periscope_recon::gtr::{DensifySettings, Init, LossChoice, TrainConfig};
+use periscope_recon::gtr::{DensifySettings, Init, LossChoice, PairGains, TrainConfig};
 use periscope_recon::solver::{
     FbpSettings, FkSettings, LctSettings, RsdSettings, SolverError, SolverKind, SolverSettings,
 };
@@ -202,6 +202,12 @@ struct RawGtr {
     average_from: Option<f64>,
     #[serde(default = "default_loss")]
     loss: String,
+    #[serde(default = "default_pair_gains")]
+    pair_gains: String,
+}
+
+fn default_pair_gains() -> String {
+    "none".into()
 }
 
 impl Default for RawGtr {
@@ -220,6 +226,7 @@ impl Default for RawGtr {
             split_scale: None,
             average_from: None,
             loss: default_loss(),
+            pair_gains: default_pair_gains(),
         }
     }
 }
@@ -380,9 +387,21 @@ pub(crate) fn recon_settings(
             ));
         }
     };
+    let pair_gains = match g.pair_gains.as_str() {
+        "illumination" => PairGains::Illumination,
+        "detection" => PairGains::Detection,
+        "none" => PairGains::None,
+        other => {
+            return Err(src.invalid(
+                &key("gtr.pair-gains"),
+                format!("`{other}` is not a choice: use \"none\" (every transient's gain 1; the default), \"illumination\" (each illumination point's gain estimated from the data, jointly with the fit) or \"detection\" (each detection point's, with a fixed laser)"),
+            ));
+        }
+    };
     let mut train = TrainConfig {
         primitives: g.primitives,
         loss,
+        pair_gains,
         init,
         // A plan's own `epochs` is exact; without one the steps decide.
         epochs: g.epochs.unwrap_or(DEFAULT_EPOCHS),
@@ -688,6 +707,22 @@ mod tests {
             let e = load_recon(&src, Some(volume())).unwrap_err().to_string();
             assert!(e.contains("gtr.average-from") && e.contains("0 to 1"), "{e}");
         }
+    }
+
+    #[test]
+    fn gtr_pair_gains_are_read_and_checked() {
+        assert_eq!(default_recon(volume()).train.pair_gains, PairGains::None);
+        for (text, want) in [
+            ("illumination", PairGains::Illumination),
+            ("detection", PairGains::Detection),
+            ("none", PairGains::None),
+        ] {
+            let src = TomlSource::from_text("recon.toml", format!("[gtr]\npair-gains = \"{text}\"\n"));
+            assert_eq!(load_recon(&src, Some(volume())).unwrap().train.pair_gains, want);
+        }
+        let src = TomlSource::from_text("recon.toml", "[gtr]\npair-gains = \"estimate\"\n");
+        let e = load_recon(&src, Some(volume())).unwrap_err().to_string();
+        assert!(e.contains("gtr.pair-gains") && e.contains("illumination"), "{e}");
     }
 
     #[test]

@@ -99,7 +99,7 @@ pub fn batch_loss(
     opt: &RenderOptions,
 ) -> (f64, Vec<f64>) {
     let rendered = forward_batch(kernels, set, batch, opt);
-    let (loss, _) = residuals(&rendered, set, batch, opt.loss);
+    let (loss, _) = residuals(&rendered, set, batch, opt.loss, None);
     (loss, rendered)
 }
 
@@ -207,7 +207,17 @@ impl crate::simd::Work for ForwardChunk<'_> {
 /// parallel (the Poisson deviance's logarithms had been a serial stretch of every
 /// step) and the loss is summed afterwards in the batch's order, bin by bin, so it
 /// does not depend on the split.
-fn residuals(rendered: &[f64], set: &TransientSet, batch: &[usize], loss_kind: Loss) -> (f64, Vec<f64>) {
+///
+/// `gains` (one per pair of `set`, or `None` for all 1) multiply each pair's rendering
+/// in the model: the per-transient gains of the relay and the instrument
+/// ([`crate::gtr::Trainer`] estimates them), so ∂L/∂τ̂ is the gain times ∂L/∂model.
+fn residuals(
+    rendered: &[f64],
+    set: &TransientSet,
+    batch: &[usize],
+    loss_kind: Loss,
+    gains: Option<&[f64]>,
+) -> (f64, Vec<f64>) {
     let bins = set.axis().bins;
     let scale = 1.0 / batch.len().max(1) as f64;
     let mut dl = vec![0.0; rendered.len()];
@@ -218,9 +228,10 @@ fn residuals(rendered: &[f64], set: &TransientSet, batch: &[usize], loss_kind: L
         .zip(batch.par_iter())
         .for_each(|(((dl, terms), rendered), &p)| {
             let w = set.weight(p) as f64 * scale;
+            let gain = gains.map_or(1.0, |g| g[p]);
             let measured = set.histogram(p);
             for b in 0..bins {
-                let (model, data) = (rendered[b], measured[b] as f64);
+                let (model, data) = (gain * rendered[b], measured[b] as f64);
                 let (l, d) = match loss_kind {
                     Loss::L2 => {
                         let r = model - data;
@@ -239,7 +250,7 @@ fn residuals(rendered: &[f64], set: &TransientSet, batch: &[usize], loss_kind: L
                     }
                 };
                 terms[b] = w * l;
-                dl[b] = w * d;
+                dl[b] = w * d * gain;
             }
         });
     let loss = terms.iter().fold(0.0, |sum, &t| sum + t);
@@ -257,12 +268,13 @@ pub fn batch_loss_grad(
     opt: &RenderOptions,
     grads: &mut RawGrads,
 ) -> f64 {
-    batch_loss_grad_with(cloud, kernels, None, set, batch, opt, grads)
+    batch_loss_grad_with(cloud, kernels, None, set, batch, opt, None, grads)
 }
 
 /// [`batch_loss_grad`], with the map slopes of every primitive already known
 /// (`slopes[k]` from [`GaussianCloud::kernel_and_slopes`], as `kernels[k]`) or, with
-/// `None`, computed here.
+/// `None`, computed here, and with per-pair gains in the model (`None`: all 1).
+#[allow(clippy::too_many_arguments)]
 pub(crate) fn batch_loss_grad_with(
     cloud: &GaussianCloud,
     kernels: &[Kernel],
@@ -270,6 +282,7 @@ pub(crate) fn batch_loss_grad_with(
     set: &TransientSet,
     batch: &[usize],
     opt: &RenderOptions,
+    gains: Option<&[f64]>,
     grads: &mut RawGrads,
 ) -> f64 {
     let n = cloud.len();
@@ -285,7 +298,7 @@ pub(crate) fn batch_loss_grad_with(
     }
     let groups = groups(set, batch);
     let (rendered, evals) = forward_chunks(kernels, set, &groups, batch.len(), opt, true);
-    let (loss, dl) = residuals(&rendered, set, batch, opt.loss);
+    let (loss, dl) = residuals(&rendered, set, batch, opt.loss, gains);
     grads
         .centres
         .par_chunks_mut(3 * CHUNK)
@@ -373,6 +386,97 @@ impl crate::simd::Work for BackwardChunk<'_, '_> {
                 &mut gs[3 * i..3 * i + 3],
                 &mut gr[4 * i..4 * i + 4],
             );
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use glam::{DQuat, DVec3};
+
+    use super::*;
+    use crate::gtr::{Primitive, ScaleBounds};
+    use crate::roi::RoiBox;
+    use crate::transient::{Pair, TimeAxis};
+
+    /// Per-pair gains in the model: a batch's loss and gradient with gains g_p are the
+    /// mean of each pair's own, rendered at the gain times g_p (Poisson deviance, the
+    /// default data term).
+    #[test]
+    fn pair_gains_scale_each_pairs_model_and_gradient() {
+        let roi = RoiBox::from_bounds(DVec3::new(-0.3, -0.3, 0.3), DVec3::new(0.3, 0.3, 0.9)).unwrap();
+        let mut cloud = GaussianCloud::new(roi, ScaleBounds { min: 1e-3, max: 0.1 }).unwrap();
+        for (k, c) in [DVec3::new(0.05, -0.04, 0.55), DVec3::new(-0.1, 0.08, 0.7)]
+            .into_iter()
+            .enumerate()
+        {
+            cloud
+                .push(Primitive {
+                    centre: c,
+                    scale: DVec3::new(0.02, 0.03, 0.015),
+                    rotation: DQuat::from_rotation_z(0.3 * k as f64),
+                    albedo: 0.5 + k as f64,
+                })
+                .unwrap();
+        }
+        let axis = TimeAxis::from_seconds(0.6, 32e-12, 160);
+        let mut set = TransientSet::new(axis).unwrap();
+        for i in 0..6 {
+            let x = DVec3::new(-0.3 + 0.12 * i as f64, 0.05 * i as f64 - 0.1, 0.0);
+            let h: Vec<f32> = (0..axis.bins).map(|b| ((b * 7 + i * 3) % 5) as f32).collect();
+            set.push(Pair::confocal(x, DVec3::Z), &h).unwrap();
+        }
+        let gains = [0.5, 1.0, 1.7, 0.8, 2.5, 1.2];
+        let opt = RenderOptions {
+            gain: 3e3,
+            loss: Loss::Poisson { background: 0.01 },
+            ..RenderOptions::default()
+        };
+        let kernels = cloud.kernels();
+        let batch: Vec<usize> = (0..set.len()).collect();
+        let mut with = RawGrads::default();
+        let loss = batch_loss_grad_with(
+            &cloud,
+            &kernels,
+            None,
+            &set,
+            &batch,
+            &opt,
+            Some(&gains),
+            &mut with,
+        );
+        let (mut sum, mut grads) = (0.0, RawGrads::zeros(cloud.len()));
+        for p in 0..set.len() {
+            let own = RenderOptions {
+                gain: opt.gain * gains[p],
+                ..opt
+            };
+            let mut g = RawGrads::default();
+            sum += batch_loss_grad_with(&cloud, &kernels, None, &set, &[p], &own, None, &mut g) / 6.0;
+            for (a, b) in [
+                (&mut grads.centres, &g.centres),
+                (&mut grads.scales, &g.scales),
+                (&mut grads.rotations, &g.rotations),
+                (&mut grads.albedo, &g.albedo),
+            ] {
+                a.iter_mut().zip(b).for_each(|(a, b)| *a += b / 6.0);
+            }
+        }
+        assert!(
+            loss > 0.0 && (loss - sum).abs() <= 1e-9 * sum,
+            "{loss} against {sum}"
+        );
+        for (name, a, b) in [
+            ("centres", &with.centres, &grads.centres),
+            ("scales", &with.scales, &grads.scales),
+            ("rotations", &with.rotations, &grads.rotations),
+            ("albedo", &with.albedo, &grads.albedo),
+        ] {
+            let top = b.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+            assert!(top > 0.0, "{name}");
+            for (x, y) in a.iter().zip(b) {
+                assert!((x - y).abs() <= 1e-9 * top, "{name}: {x} against {y}");
+            }
         }
     }
 }

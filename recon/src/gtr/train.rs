@@ -199,6 +199,10 @@ pub struct TrainConfig {
     pub average_from: f64,
     /// Pairs used to match the gain at initialisation, at most.
     pub gain_pairs: usize,
+    /// Whether each transient's own gain is estimated from the data during the fit
+    /// ([`PairGains`]).
+    #[serde(default)]
+    pub pair_gains: PairGains,
     /// Seed of initialisation and shuffling.
     pub seed: u64,
 }
@@ -240,6 +244,225 @@ pub fn densify_after(done: usize, epochs: usize, d: &DensifySettings) -> bool {
         return false;
     }
     done * d.rounds / span > (done - 1) * d.rounds / span
+}
+
+/// Per-transient gains: what a real relay's albedo from spot to spot, a laser's
+/// drifting power and a detector's efficiency with angle multiply each transient by,
+/// and no capture file states. Estimated jointly with the fit when asked for: after
+/// counted epochs [`GAIN_ROUNDS`] (before averaging starts), from the data and the
+/// fit's rendering ([`estimate_pair_gains`]); the gains then multiply each group's
+/// transients in the model. A laser falloff divided out from a file's metadata is the
+/// starting value.
+///
+/// Not the default, measured (docs/recon.md, "Gains from the data"): the estimate
+/// needs the fit to be early enough that it has not yet bent the scene to explain
+/// the gains, and an early fit's own errors then pass into the gains, which the fit
+/// keeps. On captures with unknown gains it helps (confocal wall without its
+/// metadata's falloff: IoU 0.912 → 0.969; with a further 3× smooth gain 0.886 →
+/// 0.969); on captures whose gains are already right it hurts (the same wall with
+/// its falloff divided out: 0.984 → 0.827).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum PairGains {
+    /// Every transient's gain is 1 (the paper's model).
+    #[default]
+    None,
+    /// One gain per illumination point, where the laser visits more than one
+    /// (confocal and scanned-laser captures); none with a fixed laser.
+    Illumination,
+    /// One gain per detection point with a fixed laser (per illumination point
+    /// otherwise).
+    Detection,
+}
+
+/// When [`PairGains::Illumination`] or [`PairGains::Detection`] re-estimates the gains: after these fractions of the
+/// counted epochs (each round only before averaging starts).
+pub const GAIN_ROUNDS: [f64; 3] = [0.25, 0.4, 0.55];
+
+/// A gain estimate is shrunk towards the others by `s / (s + s0)` in the logarithm, `s`
+/// the signal the rendering gives its point: `s0` is this many photons for photon
+/// counts (a gain known to about 1/√30, 18 %, counts half) ...
+const GAIN_PRIOR_COUNTS: f64 = 30.0;
+
+/// ... and, for anything (and at least, for counts), this fraction of the median
+/// point's signal: a point the scene barely reaches tells its gain poorly.
+const GAIN_PRIOR_FRACTION: f64 = 0.05;
+
+/// Gains are kept within this factor of their (signal-weighted geometric) mean.
+const MAX_GAIN_SPREAD: f64 = 10.0;
+
+/// The gain group of each pair and each group's relay point for `kind`: by
+/// illumination point where the laser visits more than one, else by detection point
+/// for [`PairGains::Detection`]; `None` where there is nothing to estimate (one group).
+pub fn gain_groups(pairs: &[crate::transient::Pair], kind: PairGains) -> Option<(Vec<usize>, Vec<DVec3>)> {
+    let by = |key: &dyn Fn(&crate::transient::Pair) -> DVec3| {
+        let mut ids = std::collections::HashMap::new();
+        let mut points = Vec::new();
+        let groups: Vec<usize> = pairs
+            .iter()
+            .map(|p| {
+                let x = key(p);
+                *ids.entry(x.to_array().map(f64::to_bits)).or_insert_with(|| {
+                    points.push(x);
+                    points.len() - 1
+                })
+            })
+            .collect();
+        (groups, points)
+    };
+    let lit = by(&|p| p.xi);
+    let chosen = match kind {
+        PairGains::None => return None,
+        PairGains::Illumination => lit,
+        PairGains::Detection if lit.1.len() > 1 => lit,
+        PairGains::Detection => by(&|p| p.xd),
+    };
+    (chosen.1.len() > 1).then_some(chosen)
+}
+
+/// Each pair's gain in the model, estimated from the data `data` and the fit's
+/// rendering of it at unit gain (`rendered`, [`render_set`]'s layout) under `loss`, per
+/// the groups `kind` asks for ([`gain_groups`]): each group's signal in the data over
+/// the rendering's (the counts above the background for the Poisson deviance, the
+/// least-squares scale for L2); a quadratic over the relay through all groups' (in the
+/// logarithm, weighted by the signal they get, each shrunk by `s / (s + s0)` towards
+/// the others, `s0` [`GAIN_PRIOR_FRACTION`] of the median signal, and at least
+/// [`GAIN_PRIOR_COUNTS`] for photon counts) is the smooth part, and each group keeps
+/// its own departure from it by `s / (s + median)`. Normalised to a signal-weighted
+/// geometric mean of 1, within [`MAX_GAIN_SPREAD`] of it. `None` where there is one
+/// group or no signal.
+pub fn estimate_pair_gains(
+    data: &TransientSet,
+    rendered: &[f64],
+    loss: Loss,
+    kind: PairGains,
+) -> Option<Vec<f64>> {
+    let bins = data.axis().bins;
+    let (groups, points) = gain_groups(data.pairs(), kind)?;
+    let n = points.len();
+    let background = match loss {
+        Loss::Poisson { background } => Some(background),
+        Loss::L2 => None,
+    };
+    let (mut num, mut den, mut signal) = (vec![0.0f64; n], vec![0.0f64; n], vec![0.0f64; n]);
+    for (c, &g) in groups.iter().enumerate() {
+        let h = data.histogram(c);
+        let r = &rendered[c * bins..(c + 1) * bins];
+        let rs: f64 = r.iter().sum();
+        signal[g] += rs;
+        match background {
+            // Poisson: the rate's scale that matches the counts above the
+            // background (the maximum-likelihood scale without one).
+            Some(b) => {
+                num[g] += h.iter().map(|&v| f64::from(v) - b).sum::<f64>();
+                den[g] += rs;
+            }
+            // L2: the least-squares scale.
+            None => {
+                num[g] += h.iter().zip(r).map(|(&v, &m)| f64::from(v) * m).sum::<f64>();
+                den[g] += r.iter().map(|m| m * m).sum::<f64>();
+            }
+        }
+    }
+    let mut sorted: Vec<f64> = signal.iter().copied().filter(|s| *s > 0.0).collect();
+    sorted.sort_by(f64::total_cmp);
+    let &median = sorted.get(sorted.len() / 2)?;
+    let mut s0 = GAIN_PRIOR_FRACTION * median;
+    if data.is_photon_counts() {
+        s0 = s0.max(GAIN_PRIOR_COUNTS);
+    }
+    let limit = MAX_GAIN_SPREAD.ln();
+    // Each point's own estimate, and how far to trust it.
+    let raw: Vec<Option<f64>> = (0..n)
+        .map(|g| {
+            let r = num[g] / den[g];
+            (r.is_finite() && r > 0.0 && signal[g] > 0.0).then(|| r.ln().clamp(-limit, limit))
+        })
+        .collect();
+    let trust: Vec<f64> = (0..n)
+        .map(|g| {
+            if raw[g].is_some() {
+                signal[g] / (signal[g] + s0)
+            } else {
+                0.0
+            }
+        })
+        .collect();
+    let raw_log: Vec<f64> = raw.iter().map(|r| r.unwrap_or(0.0)).collect();
+    let weights: Vec<f64> = (0..n).map(|g| trust[g] * signal[g]).collect();
+    // The smooth part (a laser's falloff, a detector's angular response), fitted
+    // over all points; each point's own departure from it (its albedo) kept as far
+    // as its signal tells it, half at the median point's.
+    let smooth = smooth_log_gains(&points, &raw_log, &weights);
+    let mut log_gain: Vec<f64> = (0..n)
+        .map(|g| {
+            let own = if raw[g].is_some() {
+                signal[g] / (signal[g] + median) * (raw_log[g] - smooth[g])
+            } else {
+                0.0
+            };
+            (smooth[g] + own).clamp(-limit, limit)
+        })
+        .collect();
+    // The fit's own scale (the albedo and the matched gain) carries the mean.
+    let total: f64 = signal.iter().sum();
+    if total > 0.0 {
+        let mean = log_gain.iter().zip(&signal).map(|(l, s)| l * s).sum::<f64>() / total;
+        log_gain
+            .iter_mut()
+            .for_each(|l| *l = (*l - mean).clamp(-limit, limit));
+    }
+    Some(groups.iter().map(|&g| log_gain[g].exp()).collect())
+}
+
+/// The smooth part of log-gains `log_gain` at `points` (weights `w`): a quadratic in
+/// the two in-plane coordinates of the points' fitted plane, by weighted least
+/// squares; the mean where fewer than six points or no plane fit.
+fn smooth_log_gains(points: &[DVec3], log_gain: &[f64], w: &[f64]) -> Vec<f64> {
+    let total: f64 = w.iter().sum();
+    let mean = if total > 0.0 {
+        log_gain.iter().zip(w).map(|(l, w)| l * w).sum::<f64>() / total
+    } else {
+        0.0
+    };
+    let flat = vec![mean; points.len()];
+    let Some(plane) = (points.len() >= 6)
+        .then(|| crate::linalg::fit_plane(points))
+        .flatten()
+    else {
+        return flat;
+    };
+    // Coordinates scaled to about ±1, so the normal equations are well conditioned.
+    let coords: Vec<[f64; 2]> = points
+        .iter()
+        .map(|p| [(*p - plane.centre).dot(plane.u), (*p - plane.centre).dot(plane.v)])
+        .collect();
+    let reach = coords
+        .iter()
+        .fold(0.0f64, |m, c| m.max(c[0].abs()).max(c[1].abs()))
+        .max(f64::MIN_POSITIVE);
+    let basis = |c: [f64; 2]| {
+        let (u, v) = (c[0] / reach, c[1] / reach);
+        [1.0, u, v, u * u, u * v, v * v]
+    };
+    let mut a = [[0.0f64; 6]; 6];
+    let mut b = [0.0f64; 6];
+    for ((c, &l), &w) in coords.iter().zip(log_gain).zip(w) {
+        let f = basis(*c);
+        for i in 0..6 {
+            b[i] += w * f[i] * l;
+            for j in 0..6 {
+                a[i][j] += w * f[i] * f[j];
+            }
+        }
+    }
+    match crate::linalg::solve(a, b, 1e-10) {
+        Some(k) => coords
+            .iter()
+            .map(|c| basis(*c).iter().zip(&k).map(|(f, k)| f * k).sum())
+            .collect(),
+        None => flat,
+    }
 }
 
 /// Which data term a fit uses, resolved once the fit has data ([`Trainer::render_options`]
@@ -330,6 +553,7 @@ impl Default for TrainConfig {
             densify: DensifySettings::default(),
             average_from: default_average_from(),
             gain_pairs: 512,
+            pair_gains: PairGains::default(),
             seed: 0,
         }
     }
@@ -482,6 +706,10 @@ pub struct Trainer {
     /// ([`TrainConfig::average_from`]).
     average: Option<(GaussianCloud, usize)>,
     kernels: Vec<Kernel>,
+    /// Each pair's gain in the model ([`PairGains`]), 1 until estimated.
+    pair_gains: Vec<f64>,
+    /// Gain rounds done.
+    gain_rounds: usize,
     /// The map slopes of each primitive, refreshed with `kernels`.
     slopes: Vec<MapSlopes>,
     grads: RawGrads,
@@ -534,6 +762,8 @@ impl Trainer {
             epochs_done: 0,
             average: None,
             kernels: Vec::new(),
+            pair_gains: Vec::new(),
+            gain_rounds: 0,
             slopes: Vec::new(),
             grads: RawGrads::default(),
             config,
@@ -614,6 +844,8 @@ impl Trainer {
     /// Adds transients (same time axis) to the data being fitted.
     pub fn add(&mut self, more: &TransientSet) -> Result<(), TrainError> {
         self.data.extend(more)?;
+        // New transients start at gain 1 until the next estimate.
+        self.pair_gains.resize(self.data.len(), 1.0);
         self.match_gain()
     }
 
@@ -663,6 +895,7 @@ impl Trainer {
                 &self.data,
                 batch,
                 &self.options,
+                (self.gain_rounds > 0).then_some(self.pair_gains.as_slice()),
                 &mut self.grads,
             );
             let factor = self.config.schedule.factor(
@@ -790,6 +1023,9 @@ impl Trainer {
                 pairs: self.data.len(),
                 primitives: self.cloud.len(),
             });
+            if counted && self.gains_due(epochs) {
+                self.estimate_gains();
+            }
             if counted && self.densify_due(epochs) {
                 let moved = self.densify();
                 on_event(&TrainEvent::Densified {
@@ -810,6 +1046,53 @@ impl Trainer {
         let kept = self.prune();
         on_event(&TrainEvent::Pruned { before, kept });
         Ok(self.summary(final_loss, false))
+    }
+
+    /// Whether a round of gain estimation follows counted epoch `epochs_done` of
+    /// `epochs`: at [`GAIN_ROUNDS`], before averaging starts.
+    fn gains_due(&self, epochs: usize) -> bool {
+        if self.config.pair_gains == PairGains::None || self.data.len() < 2 {
+            return false;
+        }
+        let averaging = self.config.average_start(epochs).unwrap_or(epochs);
+        GAIN_ROUNDS.iter().any(|f| {
+            let at = ((f * epochs as f64).round() as usize).max(1);
+            at == self.epochs_done && at < averaging
+        })
+    }
+
+    /// Estimates each gain group's gain from the data and the current fit
+    /// ([`PairGains`], [`estimate_pair_gains`]); returns the smallest and largest gain.
+    pub fn estimate_gains(&mut self) -> (f64, f64) {
+        self.refresh_kernels();
+        let rendered = render_set(&self.kernels, &self.data, &self.options);
+        let Some(gains) =
+            estimate_pair_gains(&self.data, &rendered, self.options.loss, self.config.pair_gains)
+        else {
+            return (1.0, 1.0);
+        };
+        self.pair_gains = gains;
+        self.gain_rounds += 1;
+        let (lo, hi) = self
+            .pair_gains
+            .iter()
+            .fold((f64::INFINITY, 0.0f64), |(l, h), &g| (l.min(g), h.max(g)));
+        tracing::info!(
+            round = self.gain_rounds,
+            min = lo,
+            max = hi,
+            "per-transient gains estimated from the data"
+        );
+        (lo, hi)
+    }
+
+    /// Each pair's gain in the model (all 1 before the first estimate).
+    pub fn pair_gains(&self) -> Vec<f64> {
+        if self.gain_rounds == 0 {
+            vec![1.0; self.data.len()]
+        } else {
+            self.pair_gains.clone()
+        }
     }
 
     /// Whether a round of densification follows counted epoch `epochs_done` of
