@@ -326,10 +326,10 @@ pub fn gain_groups(pairs: &[crate::transient::Pair], kind: PairGains) -> Option<
 /// the rendering's (the counts above the background for the Poisson deviance, the
 /// least-squares scale for L2); a quadratic over the relay through all groups' (in the
 /// logarithm, weighted by the signal they get, each shrunk by `s / (s + s0)` towards
-/// the others, `s0` [`GAIN_PRIOR_FRACTION`] of the median signal, and at least
-/// [`GAIN_PRIOR_COUNTS`] for photon counts) is the smooth part, and each group keeps
+/// the others, `s0` `GAIN_PRIOR_FRACTION` of the median signal, and at least
+/// `GAIN_PRIOR_COUNTS` for photon counts) is the smooth part, and each group keeps
 /// its own departure from it by `s / (s + median)`. Normalised to a signal-weighted
-/// geometric mean of 1, within [`MAX_GAIN_SPREAD`] of it. `None` where there is one
+/// geometric mean of 1, within `MAX_GAIN_SPREAD` of it. `None` where there is one
 /// group or no signal.
 pub fn estimate_pair_gains(
     data: &TransientSet,

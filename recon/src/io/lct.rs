@@ -22,7 +22,7 @@ use std::path::Path;
 use glam::DVec3;
 
 use super::formats::mat::Mat;
-use super::ytal::{Grid, GridFormat, HFormat, YtalCapture, YtalError};
+use super::ytal::{YtalCapture, YtalError};
 
 /// Largest `.mat` file read, bytes.
 pub const MAX_FILE_BYTES: u64 = 4 << 30;
@@ -131,30 +131,17 @@ pub(crate) fn from_mat(mat: &Mat<'_>) -> Result<YtalCapture, YtalError> {
             points.push(DVec3::new(along(nx, x), along(ny, y), 0.0));
         }
     }
-    let grid = Grid {
-        normals: vec![DVec3::Z; points.len()],
-        points,
-        format: GridFormat::XY3,
-        shape: vec![nx, ny],
-    };
-    let capture = YtalCapture {
+    let capture = super::formats::confocal_wall(
         h,
-        h_shape: vec![nt, nx, ny],
-        h_format: HFormat::TSxSy,
-        sensor_grid: grid.clone(),
-        laser_grid: grid,
-        sensor_xyz: None,
-        laser_xyz: None,
-        delta_t: C * BIN_S,
-        t_start: 0.0,
-        t_accounts_first_and_last_bounces: false,
-        scene_info: Some(format!(
+        [nt, nx, ny],
+        points,
+        C * BIN_S,
+        format!(
             "source: Stanford confocal LCT capture ({}), {nx} x {ny} points over [-{width}, {width}] m, \
-             {nt} bins of 4 ps from the wall",
+         {nt} bins of 4 ps from the wall",
             path.display()
-        )),
-        flags: None,
-    };
+        ),
+    );
     capture.check().map_err(|m| format_error(path, m))?;
     Ok(capture)
 }

@@ -16,7 +16,7 @@ pub struct PlanarScan {
     /// The scanned grid's columns `[start, end)` and rows within `relay`'s: the whole
     /// grid, unless [`PlanarScan::reaching`] added empty cells around it so that a
     /// solver's volume covers a reconstruction volume wider than the scan. Only cells
-    /// inside count as the sampled aperture ([`gather_cube`]'s weights).
+    /// inside count as the sampled aperture (the cells' quadrature weights).
     pub aperture: [[usize; 2]; 2],
 }
 

@@ -17,8 +17,8 @@ use std::path::Path;
 use glam::DVec3;
 
 use super::mat::Mat;
-use super::{C, check_counts, grid};
-use crate::io::ytal::{HFormat, YtalCapture, YtalError};
+use super::{C, check_counts};
+use crate::io::ytal::{YtalCapture, YtalError};
 
 /// The release's bin, seconds (`bin_resolution = 32e-12`).
 pub const BIN_S: f64 = 32e-12;
@@ -90,22 +90,15 @@ pub(crate) fn from_mat(mat: &Mat<'_>, dir: Option<&Path>) -> Result<YtalCapture,
     let points: Vec<DVec3> = (0..ny)
         .flat_map(|y| (0..nx).map(move |x| DVec3::new(along(nx, x), along(ny, y), 0.0)))
         .collect();
-    let relay = grid(points, vec![DVec3::Z; columns], [ny, nx]);
-    let capture = YtalCapture {
+    let capture = super::confocal_wall(
         h,
-        h_shape: vec![bins, ny, nx],
-        h_format: HFormat::TSxSy,
-        sensor_grid: relay.clone(),
-        laser_grid: relay,
-        sensor_xyz: None,
-        laser_xyz: None,
-        delta_t: C * BIN_S,
-        t_start: 0.0,
-        t_accounts_first_and_last_bounces: false,
-        scene_info: Some(format!(
+        [bins, ny, nx],
+        points,
+        C * BIN_S,
+        format!(
             "source: Stanford f-k capture ({}), {ny} x {nx} confocal points over [-{width}, {width}] m{}, \
-             rectified with `tofgrid` from {tof_from} (shifts of {} to {max_shift} bins), {bins} bins of 32 ps \
-             from the wall",
+         rectified with `tofgrid` from {tof_from} (shifts of {} to {max_shift} bins), {bins} bins of 32 ps \
+         from the wall",
             mat.path().display(),
             if mat.has("width") {
                 ""
@@ -113,9 +106,8 @@ pub(crate) fn from_mat(mat: &Mat<'_>, dir: Option<&Path>) -> Result<YtalCapture,
                 " (the release's 2 m scan)"
             },
             shifts.iter().min().copied().unwrap_or(0),
-        )),
-        flags: None,
-    };
+        ),
+    );
     capture.check().map_err(|m| mat.error(m))?;
     Ok(capture)
 }

@@ -244,6 +244,34 @@ pub(crate) fn grid(points: Vec<glam::DVec3>, normals: Vec<glam::DVec3>, shape: [
     }
 }
 
+/// A confocal capture on a planar wall (normals +z, toward the hidden scene), its
+/// transients `h` of shape `[bins, a, b]` in C order with `points` flattened the same
+/// way (`b` fastest), bins of `delta_t` metres of hidden path from the wall: the
+/// Stanford layouts, whose files are pre-rectified or rectified on reading.
+pub(crate) fn confocal_wall(
+    h: Vec<f32>,
+    [bins, a, b]: [usize; 3],
+    points: Vec<glam::DVec3>,
+    delta_t: f64,
+    scene_info: String,
+) -> YtalCapture {
+    let relay = grid(points, vec![glam::DVec3::Z; a * b], [a, b]);
+    YtalCapture {
+        h,
+        h_shape: vec![bins, a, b],
+        h_format: super::ytal::HFormat::TSxSy,
+        sensor_grid: relay.clone(),
+        laser_grid: relay,
+        sensor_xyz: None,
+        laser_xyz: None,
+        delta_t,
+        t_start: 0.0,
+        t_accounts_first_and_last_bounces: false,
+        scene_info: Some(scene_info),
+        flags: None,
+    }
+}
+
 /// A list of relay points with their normals.
 pub(crate) fn list(points: Vec<glam::DVec3>, normals: Vec<glam::DVec3>) -> Grid {
     Grid {
