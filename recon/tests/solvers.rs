@@ -1108,3 +1108,55 @@ fn grid_solvers_place_depth_right_on_a_volume_wider_than_the_aperture() {
         }
     }
 }
+
+/// Issue 54's held-back fault on an 8 × 8 confocal grid at 12.5 cm pitch: RSD put
+/// depths 53 mm off where y-tal's `pf` was 23 mm off. At that pitch the virtual wave is
+/// 31 cm long and its envelope wide, and the legs' weight r^(2·falloff), applied on the
+/// kernel, multiplied each depth slice by z², moving each envelope's peak deeper
+/// (measured before the fix: 40 mm mean error over two 4 cm bars at 0.5 m and a patch
+/// at 0.7 m, FBP 12 mm). On the transients by path length it leaves the peak where
+/// the return is. Tolerance: 1.5 times FBP's error (one depth voxel is 10 mm).
+#[test]
+fn rsd_keeps_depth_on_a_coarse_grid() {
+    let relay = VirtualRelay::new(DVec3::ZERO, DVec3::Z, DVec3::X, [1.0, 1.0], [8, 8]).unwrap();
+    let axis = TimeAxis {
+        start: 0.0,
+        width: 0.005,
+        bins: 512,
+    };
+    let mut set = TransientSet::new(axis).unwrap();
+    let mut points = plate([-0.2, -0.16], [-0.2, 0.2], 0.5);
+    points.extend(plate([-0.12, -0.08], [-0.2, 0.2], 0.5));
+    points.extend(plate([0.1, 0.3], [-0.1, 0.1], 0.7));
+    scatter(&mut set, &confocal_pairs(&relay), &points);
+    let g = VolumeGrid::new([-0.5, 0.5], [-0.5, 0.5], [0.2, 1.0], [32, 32, 81]).unwrap();
+    let depth_error = |volume: &Volume| {
+        let [nx, ny, nz] = g.shape;
+        let mut errors = Vec::new();
+        for iy in 0..ny {
+            for ix in 0..nx {
+                let c = g.centre(ix, iy, 0);
+                let bar = ((c.x > -0.2 && c.x < -0.16) || (c.x > -0.12 && c.x < -0.08)) && c.y.abs() < 0.2;
+                let truth = if bar {
+                    0.5
+                } else if c.x > 0.1 && c.x < 0.3 && c.y.abs() < 0.1 {
+                    0.7
+                } else {
+                    continue;
+                };
+                let column = |iz: usize| volume.data[g.index(ix, iy, iz)];
+                let iz = (0..nz).max_by(|&a, &b| column(a).total_cmp(&column(b))).unwrap();
+                errors.push((g.centre(ix, iy, iz).z - truth).abs());
+            }
+        }
+        errors.iter().sum::<f64>() / errors.len() as f64
+    };
+    let fbp_error = depth_error(&fbp(&set, &g, &FbpSettings::default()).unwrap());
+    let rsd_error = depth_error(&rsd(&set, &g, &RsdSettings::default()).unwrap());
+    assert!(
+        rsd_error <= 1.5 * fbp_error,
+        "RSD depth error {:.1} mm, FBP's {:.1} mm",
+        rsd_error * 1e3,
+        fbp_error * 1e3
+    );
+}
