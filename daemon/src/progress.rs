@@ -54,6 +54,14 @@ pub fn attach(events: &EventSink) {
                 tracing::info!(epoch, loss, "fit epoch");
             }
         }
+        RunEvent::Train(TrainEvent::Converged { epoch, of, step }) => {
+            tracing::info!(
+                epoch,
+                of,
+                step,
+                "fit converged: the last stage's loss stopped falling ([gtr] tolerance)"
+            );
+        }
         RunEvent::Suspended { reason, resume } => {
             bar.set_message(format!("suspended: {reason}"));
             tracing::warn!(resume = %resume, "suspended, laser off: {reason}");

@@ -5,9 +5,9 @@ use std::time::Duration;
 
 use glam::{DQuat, DVec3};
 use periscope_recon::gtr::{
-    CancelToken, DENSIFY_ROUNDS, DensifySettings, GaussianCloud, Init, Loss, LossChoice, PairGains,
-    Primitive, PruneSettings, RawGrads, RenderOptions, ScaleBounds, TrainConfig, TrainError, TrainEvent,
-    Trainer, batch_loss_grad, densify, densify_after, estimate_background, estimate_pair_gains,
+    CancelToken, Convergence, DENSIFY_ROUNDS, DensifySettings, GaussianCloud, Init, Loss, LossChoice,
+    PairGains, Primitive, PruneSettings, RawGrads, RenderOptions, ScaleBounds, TrainConfig, TrainError,
+    TrainEvent, Trainer, batch_loss_grad, densify, densify_after, estimate_background, estimate_pair_gains,
     first_negative, gain_groups, render_set,
 };
 use periscope_recon::{Pair, RoiBox, TimeAxis, TransientSet};
@@ -725,6 +725,47 @@ fn the_last_third_of_the_iterates_is_averaged() {
         ..config(60, 6)
     };
     assert_eq!(cfg.average_start(6), Some(3));
+}
+
+/// `converge`: a fit whose averaged epochs have levelled off stops before its counted
+/// epochs are spent, with one `Converged` event and the averaged result of the epochs
+/// it ran; without the test every epoch runs.
+#[test]
+fn a_fit_stops_once_its_averaged_loss_levels_off() {
+    let fit = |tolerance: Option<f64>| {
+        let cfg = TrainConfig {
+            // 15 steps an epoch; the last 10 of 30 epochs averaged, tested in windows of
+            // 30 steps after at least 60.
+            converge: tolerance.map(|tolerance| Convergence {
+                min_steps: 60,
+                window: 30,
+                tolerance,
+            }),
+            ..config(60, 30)
+        };
+        let mut t = Trainer::new(cfg, roi(), data(60, 3)).unwrap();
+        let (mut converged, mut epochs, mut averaged) = (Vec::new(), 0, 0);
+        let summary = t
+            .run(None, &CancelToken::new(), &mut |e| match e {
+                TrainEvent::Converged { epoch, of, step } => converged.push((*epoch, *of, *step)),
+                TrainEvent::Epoch { epoch, .. } => epochs = *epoch,
+                TrainEvent::Averaged { steps } => averaged = *steps,
+                _ => {}
+            })
+            .unwrap();
+        assert!(all_finite(t.cloud()));
+        (converged, epochs, averaged, summary.steps)
+    };
+    let (converged, epochs, averaged, steps) = fit(Some(0.5));
+    assert_eq!(converged.len(), 1, "{converged:?}");
+    let (epoch, of, step) = converged[0];
+    assert_eq!((of, step, epoch), (30, steps, epochs));
+    // The earliest test (four epochs averaged) to before the last epoch.
+    assert!((24..30).contains(&epoch), "stopped after epoch {epoch}");
+    assert_eq!(averaged, (epoch - 20) * 15);
+    let (converged, epochs, averaged, steps) = fit(None);
+    assert!(converged.is_empty(), "{converged:?}");
+    assert_eq!((epochs, averaged, steps), (30, 150, 450));
 }
 
 /// Gains from the data: on a confocal 12 × 12 grid, transients rendered from a known

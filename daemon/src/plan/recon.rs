@@ -1,7 +1,7 @@
 //! Reconstruction settings: the `[recon]` table of a capture plan and the whole of a
 //! `RECON.toml` for `periscope recon` share this format.
 use periscope_recon::VolumeGrid;
-use periscope_recon::gtr::{DensifySettings, Init, LossChoice, PairGains, TrainConfig};
+use periscope_recon::gtr::{Convergence, DensifySettings, Init, LossChoice, PairGains, TrainConfig};
 use periscope_recon::solver::{
     FbpSettings, FkSettings, LctSettings, RsdSettings, SolverError, SolverKind, SolverSettings,
 };
@@ -204,6 +204,7 @@ struct RawGtr {
     loss: String,
     #[serde(default = "default_pair_gains")]
     pair_gains: String,
+    tolerance: Option<f64>,
 }
 
 fn default_pair_gains() -> String {
@@ -227,6 +228,7 @@ impl Default for RawGtr {
             average_from: None,
             loss: default_loss(),
             pair_gains: default_pair_gains(),
+            tolerance: None,
         }
     }
 }
@@ -257,6 +259,33 @@ const DEFAULT_EPOCHS: usize = 16;
 /// 4 cm-pitch render and cost the oblique two-torso render 0.16 IoU
 /// (docs/recon.md, "More steps and more rounds of densification").
 const DEFAULT_MIN_STEPS: usize = 8192;
+/// The convergence test's windows (`[gtr] tolerance`, [`Convergence`]): two windows of
+/// 256 steps compared, after at least 1,024 averaged steps.
+const CONVERGE_WINDOW_STEPS: usize = 256;
+const CONVERGE_MIN_STEPS: usize = 1024;
+
+/// The convergence test of `[gtr] tolerance`; none unless a tolerance above 0 is given
+/// (stopping when the loss levels off cost the validation captures up to 0.024 IoU:
+/// docs/recon.md, "Stopping when the loss levels off").
+fn converge(
+    src: &TomlSource,
+    key: &dyn Fn(&str) -> String,
+    g: &RawGtr,
+) -> Result<Option<Convergence>, ConfigError> {
+    let tolerance = g.tolerance.unwrap_or(0.0);
+    if !(tolerance.is_finite() && (0.0..1.0).contains(&tolerance)) {
+        return Err(src.invalid(
+            &key("gtr.tolerance"),
+            format!("{tolerance} is out of range: give the relative fall of the loss, 0 to 1 (e.g. 0.02), below which the fit's last stage ends early; 0 (the default) runs every epoch"),
+        ));
+    }
+    Ok((tolerance > 0.0).then_some(Convergence {
+        min_steps: CONVERGE_MIN_STEPS,
+        window: CONVERGE_WINDOW_STEPS,
+        tolerance,
+    }))
+}
+
 fn default_loss() -> String {
     "auto".into()
 }
@@ -419,6 +448,7 @@ pub(crate) fn recon_settings(
             ..DensifySettings::default()
         },
         average_from: g.average_from.unwrap_or(TrainConfig::default().average_from),
+        converge: converge(src, &key, &g)?,
         ..TrainConfig::default()
     };
     for group in [
@@ -723,6 +753,21 @@ mod tests {
         let src = TomlSource::from_text("recon.toml", "[gtr]\npair-gains = \"estimate\"\n");
         let e = load_recon(&src, Some(volume())).unwrap_err().to_string();
         assert!(e.contains("gtr.pair-gains") && e.contains("illumination"), "{e}");
+    }
+
+    #[test]
+    fn gtr_tolerance_is_read_and_checked() {
+        assert_eq!(default_recon(volume()).train.converge, None);
+        let src = TomlSource::from_text("recon.toml", "[gtr]\ntolerance = 0.02\n");
+        let c = load_recon(&src, Some(volume())).unwrap().train.converge.unwrap();
+        assert_eq!(c.tolerance, 0.02);
+        let src = TomlSource::from_text("recon.toml", "[gtr]\ntolerance = 0\n");
+        assert_eq!(load_recon(&src, Some(volume())).unwrap().train.converge, None);
+        for bad in ["1.5", "-0.1", "nan"] {
+            let src = TomlSource::from_text("recon.toml", format!("[gtr]\ntolerance = {bad}\n"));
+            let e = load_recon(&src, Some(volume())).unwrap_err().to_string();
+            assert!(e.contains("gtr.tolerance") && e.contains("0 to 1"), "{bad}: {e}");
+        }
     }
 
     #[test]
