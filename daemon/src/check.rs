@@ -14,20 +14,31 @@ use crate::plan::{Method, Plan};
 /// link adds about 3 ms per exchange.
 const OVERHEAD_SIM: f64 = 0.3e-3;
 const OVERHEAD_SERIAL: f64 = 6e-3;
-/// 3D-GTR forward+backward evaluations (pair × primitive) per second, as the demo plan's
-/// streamed fit runs them (release, 2 cores: 456 pairs × 2,000 primitives × about 18
-/// epochs, live ones included, in 14.3 s).
-const GTR_EVALS_PER_S: f64 = 1.1e6;
-/// Synthesis evaluations per second (the demo's 64 × 64 virtual grid × 2,000 primitives
-/// in 1.8 s).
-const SYNTH_EVALS_PER_S: f64 = 4.5e6;
+/// 3D-GTR forward+backward evaluations (pair × primitive) per optimiser step's pairs,
+/// per second, offline after a capture (release, 2 cores: `cargo bench -p
+/// periscope-daemon --bench scaling`, 1,000 to 16,000 pairs at 64³: 14.6–16 million;
+/// docs/recon.md, "How cost grows with the work").
+const GTR_EVALS_PER_S: f64 = 1.5e7;
+/// Synthesis evaluations (virtual point × primitive) per second (`--bench solvers`,
+/// 64 × 64 points × 10,000 primitives in 1.46 s).
+const SYNTH_EVALS_PER_S: f64 = 2.8e7;
+/// Voxel-pairs per second of the FBP of 3D-GTR's virtual scan onto the volume (the
+/// scaling bench: 128² points onto 128³ and 256³ voxels, 1.7 billion a second).
+const VIRTUAL_FBP_PER_S: f64 = 1.7e9;
+/// Voxel-pairs per second of `method = "fbp"` on a capture's own pairs (the scaling
+/// bench: 4,000 to 64,000 arbitrary pairs onto 128³ and 256³ voxels, 1.6–1.7 billion a
+/// second).
+const FBP_PER_S: f64 = 1.6e9;
 
 /// Points of a plan's virtual confocal scan, for the estimate: its `virtual-grid`, or
 /// without one the volume's lateral voxel columns (a scan one voxel pitch apart over
 /// the volume's footprint; it grows where the relay reaches beyond it).
 fn virtual_points(rc: &crate::plan::ReconSettings) -> usize {
-    rc.virtual_resolution
-        .map_or(rc.volume.shape[0] * rc.volume.shape[1], |[nx, ny]| nx * ny)
+    let most = crate::budget::MAX_VIRTUAL_RESOLUTION;
+    rc.virtual_resolution.map_or(
+        rc.volume.shape[0].min(most) * rc.volume.shape[1].min(most),
+        |[nx, ny]| nx * ny,
+    )
 }
 
 fn deg(a: OpticalAngles) -> String {
@@ -194,10 +205,12 @@ pub fn check(plan: &Plan, inst: &InstrumentConfig) -> Check {
     let cap_s = pairs as f64 * ((a.dwell.as_secs_f64() * f64::from(a.repeats) + settle) * scale + overhead);
     let recon_s = if rc.method == Method::Gtr {
         let k = rc.train.primitives as f64;
-        pairs as f64 * k * rc.train.counted_epochs(pairs) as f64 / GTR_EVALS_PER_S
-            + virtual_points(rc) as f64 * k / SYNTH_EVALS_PER_S
+        let points = virtual_points(rc) as f64;
+        rc.train.pairs_per_epoch(pairs) as f64 * k * rc.train.counted_epochs(pairs) as f64 / GTR_EVALS_PER_S
+            + points * k / SYNTH_EVALS_PER_S
+            + points * v.len() as f64 / VIRTUAL_FBP_PER_S
     } else {
-        (v.len() as f64 * pairs as f64 / 4e8).max(1.0)
+        (v.len() as f64 * pairs as f64 / FBP_PER_S).max(1.0)
     };
     let _ = writeln!(
         out,

@@ -84,6 +84,14 @@ pub fn recon(capture: &Path, config: Option<&Path>, out: &Path) -> Result<(), Of
     finish(input, out)
 }
 
+/// The process's peak resident memory (`VmHWM` of /proc/self/status), bytes; `None`
+/// where /proc is not there (not Linux).
+fn peak_memory_bytes() -> Option<u64> {
+    let status = std::fs::read_to_string("/proc/self/status").ok()?;
+    let kib = status.lines().find_map(|l| l.strip_prefix("VmHWM:"))?;
+    Some(kib.trim().trim_end_matches("kB").trim().parse::<u64>().ok()? * 1024)
+}
+
 /// Runs the reconstruction and writes its outputs to `out`.
 fn finish(input: ReconInput, out: &Path) -> Result<(), OfflineError> {
     std::fs::create_dir_all(out).map_err(io(out))?;
@@ -92,8 +100,11 @@ fn finish(input: ReconInput, out: &Path) -> Result<(), OfflineError> {
     let t = std::time::Instant::now();
     let result = pipeline::reconstruct(input, &events, &Control::new())?;
     let outputs = pipeline::write_outputs(out, &result, &events)?;
+    let peak = peak_memory_bytes().map_or(String::new(), |b| {
+        format!(", peak memory {:.0} MiB", b as f64 / (1u64 << 20) as f64)
+    });
     println!(
-        "reconstructed {} pairs in {:.1} s",
+        "reconstructed {} pairs in {:.1} s{peak}",
         result.pairs,
         t.elapsed().as_secs_f64()
     );

@@ -768,6 +768,48 @@ fn a_fit_stops_once_its_averaged_loss_levels_off() {
     assert_eq!((epochs, averaged, steps), (30, 150, 450));
 }
 
+/// `epoch_pairs`: with fewer pairs an epoch than the capture holds, each epoch trains
+/// on that many (its steps and its `Epoch` event say so), and the step floor counts
+/// such epochs; without it an epoch is a pass over every pair.
+#[test]
+fn an_epoch_of_a_large_capture_trains_on_part_of_it() {
+    let fit = |epoch_pairs: usize| {
+        let cfg = TrainConfig {
+            epoch_pairs,
+            ..config(40, 6)
+        };
+        let mut t = Trainer::new(cfg, roi(), data(60, 3)).unwrap();
+        let mut seen = Vec::new();
+        let summary = t
+            .run(None, &CancelToken::new(), &mut |e| {
+                if let TrainEvent::Epoch {
+                    epoch, pairs, step, ..
+                } = e
+                {
+                    seen.push((*epoch, *pairs, *step));
+                }
+            })
+            .unwrap();
+        assert!(all_finite(t.cloud()));
+        (seen, summary.steps)
+    };
+    // 16 of 60 pairs an epoch in batches of 4: 4 steps each.
+    let (seen, steps) = fit(16);
+    assert_eq!(steps, 24);
+    assert_eq!(seen, (1..=6).map(|e| (e, 16, 4 * e)).collect::<Vec<_>>());
+    let (seen, steps) = fit(0);
+    assert_eq!(steps, 90);
+    assert!(seen.iter().all(|&(_, pairs, _)| pairs == 60), "{seen:?}");
+    // The floor counts the smaller epochs: 100 steps are 25 epochs of 16 pairs.
+    let cfg = TrainConfig {
+        epoch_pairs: 16,
+        min_steps: 100,
+        ..config(40, 6)
+    };
+    assert_eq!((cfg.pairs_per_epoch(60), cfg.counted_epochs(60)), (16, 25));
+    assert_eq!(cfg.pairs_per_epoch(10), 10);
+}
+
 /// Gains from the data: on a confocal 12 × 12 grid, transients rendered from a known
 /// scene times known gains (a quadratic in the logarithm: a laser's falloff) come back
 /// exactly from the rendering, up to the one scale the fit's albedo carries; a point's

@@ -205,6 +205,7 @@ struct RawGtr {
     #[serde(default = "default_pair_gains")]
     pair_gains: String,
     tolerance: Option<f64>,
+    epoch_pairs: Option<usize>,
 }
 
 fn default_pair_gains() -> String {
@@ -229,6 +230,7 @@ impl Default for RawGtr {
             loss: default_loss(),
             pair_gains: default_pair_gains(),
             tolerance: None,
+            epoch_pairs: None,
         }
     }
 }
@@ -259,6 +261,9 @@ const DEFAULT_EPOCHS: usize = 16;
 /// 4 cm-pitch render and cost the oblique two-torso render 0.16 IoU
 /// (docs/recon.md, "More steps and more rounds of densification").
 const DEFAULT_MIN_STEPS: usize = 8192;
+/// Pairs an epoch trains on at most, by default ([`TrainConfig::epoch_pairs`]; 0: all).
+const DEFAULT_EPOCH_PAIRS: usize = 0;
+
 /// The convergence test's windows (`[gtr] tolerance`, [`Convergence`]): two windows of
 /// 256 steps compared, after at least 1,024 averaged steps.
 const CONVERGE_WINDOW_STEPS: usize = 256;
@@ -358,6 +363,15 @@ pub(crate) fn recon_settings(
     if !(1..=65_536).contains(&g.batch) {
         return Err(src.invalid(&key("gtr.batch"), "must be 1 to 65,536 pairs"));
     }
+    if let Some(n) = g.epoch_pairs
+        && n != 0
+        && !(g.batch..=100_000_000).contains(&n)
+    {
+        return Err(src.invalid(
+            &key("gtr.epoch-pairs"),
+            format!("{n} is out of range: give the pairs an epoch trains on, from the batch ({}) up, or 0 for every pair of the capture", g.batch),
+        ));
+    }
     if !(g.lr_scale > 0.0 && g.lr_scale <= 100.0) {
         return Err(src.invalid(
             &key("gtr.lr-scale"),
@@ -449,6 +463,7 @@ pub(crate) fn recon_settings(
         },
         average_from: g.average_from.unwrap_or(TrainConfig::default().average_from),
         converge: converge(src, &key, &g)?,
+        epoch_pairs: g.epoch_pairs.unwrap_or(DEFAULT_EPOCH_PAIRS),
         ..TrainConfig::default()
     };
     for group in [
@@ -768,6 +783,17 @@ mod tests {
             let e = load_recon(&src, Some(volume())).unwrap_err().to_string();
             assert!(e.contains("gtr.tolerance") && e.contains("0 to 1"), "{bad}: {e}");
         }
+    }
+
+    #[test]
+    fn gtr_epoch_pairs_are_read_and_checked() {
+        let src = TomlSource::from_text("recon.toml", "[gtr]\nepoch-pairs = 4096\n");
+        assert_eq!(load_recon(&src, Some(volume())).unwrap().train.epoch_pairs, 4096);
+        let src = TomlSource::from_text("recon.toml", "[gtr]\nepoch-pairs = 0\n");
+        assert_eq!(load_recon(&src, Some(volume())).unwrap().train.epoch_pairs, 0);
+        let src = TomlSource::from_text("recon.toml", "[gtr]\nepoch-pairs = 3\n");
+        let e = load_recon(&src, Some(volume())).unwrap_err().to_string();
+        assert!(e.contains("gtr.epoch-pairs") && e.contains("batch (4)"), "{e}");
     }
 
     #[test]

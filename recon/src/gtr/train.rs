@@ -177,6 +177,11 @@ pub struct TrainConfig {
     pub min_steps: usize,
     /// Pairs per mini-batch.
     pub batch_size: usize,
+    /// Pairs an epoch trains on, at most (0: all of them). A capture with more takes
+    /// each epoch's pairs from a shuffled pass over it, so the steps a fit takes stop
+    /// growing with the capture ([`TrainConfig::pairs_per_epoch`]).
+    #[serde(default)]
+    pub epoch_pairs: usize,
     /// Optimiser settings per group.
     pub adam: AdamWSettings,
     /// Learning-rate schedule (milestones at fractions of the counted epochs).
@@ -245,10 +250,23 @@ impl TrainConfig {
         Some(((from * epochs as f64 - 1e-9).ceil() as usize).min(epochs.saturating_sub(1)))
     }
 
+    /// The pairs an epoch of a fit on `pairs` transients trains on: all of them, or
+    /// [`TrainConfig::epoch_pairs`] where that is fewer.
+    pub fn pairs_per_epoch(&self, pairs: usize) -> usize {
+        match self.epoch_pairs {
+            0 => pairs,
+            cap => pairs.min(cap),
+        }
+    }
+
     /// The counted epochs of a fit on `pairs` transients: `epochs`, or more where that
-    /// many would take fewer than `min_steps` optimiser steps (⌈pairs / batch⌉ a pass).
+    /// many would take fewer than `min_steps` optimiser steps (⌈pairs an epoch / batch⌉
+    /// an epoch).
     pub fn counted_epochs(&self, pairs: usize) -> usize {
-        let per_epoch = pairs.div_ceil(self.batch_size.max(1)).max(1);
+        let per_epoch = self
+            .pairs_per_epoch(pairs)
+            .div_ceil(self.batch_size.max(1))
+            .max(1);
         self.epochs.max(self.min_steps.div_ceil(per_epoch))
     }
 }
@@ -561,6 +579,7 @@ impl Default for TrainConfig {
             epochs: 12,
             min_steps: 0,
             batch_size: 4,
+            epoch_pairs: 0,
             adam: AdamWSettings::default(),
             // Constant-rate Adam on batches of 4 noisy transients does not settle;
             // decaying at a third and two thirds of the epochs does (docs/recon.md).
@@ -749,6 +768,10 @@ pub struct Trainer {
     /// Each averaged epoch's steps and summed mini-batch loss, for the convergence
     /// test ([`TrainConfig::converge`]).
     averaged_losses: Vec<(usize, f64)>,
+    /// A shuffled pass over the data and how far the epochs have taken it, when an
+    /// epoch trains on part of the data ([`TrainConfig::epoch_pairs`]).
+    pass: Vec<usize>,
+    pass_at: usize,
 }
 
 impl Trainer {
@@ -803,6 +826,8 @@ impl Trainer {
             slopes: Vec::new(),
             grads: RawGrads::default(),
             averaged_losses: Vec::new(),
+            pass: Vec::new(),
+            pass_at: 0,
             config,
         };
         trainer.match_gain()?;
@@ -916,8 +941,23 @@ impl Trainer {
     }
 
     fn epoch_on_pool(&mut self, cancel: &CancelToken) -> Option<f64> {
-        let mut order: Vec<usize> = (0..self.data.len()).collect();
-        order.shuffle(&mut self.rng);
+        let n = self.data.len();
+        let take = self.config.pairs_per_epoch(n);
+        let order: Vec<usize> = if take >= n {
+            let mut order: Vec<usize> = (0..n).collect();
+            order.shuffle(&mut self.rng);
+            order
+        } else {
+            // The next `take` pairs of a shuffled pass over the data, a new pass when
+            // this one has fewer left (or the data grew).
+            if self.pass.len() != n || self.pass_at + take > n {
+                self.pass = (0..n).collect();
+                self.pass.shuffle(&mut self.rng);
+                self.pass_at = 0;
+            }
+            self.pass_at += take;
+            self.pass[self.pass_at - take..self.pass_at].to_vec()
+        };
         let mut total = 0.0;
         let mut batches = 0usize;
         for batch in order.chunks(self.config.batch_size) {
@@ -1057,11 +1097,14 @@ impl Trainer {
                 epoch: if counted { self.epochs_done } else { 0 },
                 step: self.step,
                 loss,
-                pairs: self.data.len(),
+                pairs: self.config.pairs_per_epoch(self.data.len()),
                 primitives: self.cloud.len(),
             });
             if counted && self.average.is_some() {
-                let steps = self.data.len().div_ceil(self.config.batch_size.max(1));
+                let steps = self
+                    .config
+                    .pairs_per_epoch(self.data.len())
+                    .div_ceil(self.config.batch_size.max(1));
                 self.averaged_losses.push((steps, loss * steps as f64));
                 if self.epochs_done < epochs && self.converged() {
                     on_event(&TrainEvent::Converged {
