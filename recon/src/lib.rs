@@ -9,6 +9,7 @@
 //! file without the daemon.
 #![warn(missing_docs)]
 
+pub mod adaptive;
 pub mod gtr;
 pub mod io;
 pub mod linalg;

@@ -353,6 +353,28 @@ impl TransientSet {
         Ok(())
     }
 
+    /// The transients at `indices` (in that order, repeats allowed), with their weights
+    /// and this set's marking: the pairs an adaptive capture or its replay has revealed.
+    ///
+    /// # Panics
+    /// If an index is out of range.
+    pub fn subset(&self, indices: &[usize]) -> TransientSet {
+        let bins = self.axis.bins;
+        let mut out = TransientSet {
+            axis: self.axis,
+            pairs: Vec::with_capacity(indices.len()),
+            counts: Vec::with_capacity(indices.len() * bins),
+            weights: Vec::with_capacity(indices.len()),
+            photon_counts: self.photon_counts,
+        };
+        for &i in indices {
+            out.pairs.push(self.pairs[i]);
+            out.counts.extend_from_slice(self.histogram(i));
+            out.weights.push(self.weights[i]);
+        }
+        out
+    }
+
     /// The time axis.
     pub fn axis(&self) -> &TimeAxis {
         &self.axis

@@ -189,6 +189,15 @@ pub fn evaluate(k: &Kernel, pair: &Pair, axis: &TimeAxis, opt: &RenderOptions) -
     })
 }
 
+impl Evaluation {
+    /// The gradient of the hidden path length `|x − xi| + |x − xd|` with respect to the
+    /// primitive's centre: the sum of the unit vectors from the two relay points. A
+    /// pulse locates the centre along it (the adaptive capture's information).
+    pub fn path_gradient(&self) -> DVec3 {
+        self.ui + self.ud
+    }
+}
+
 impl Window {
     /// The pulse of amplitude `amplitude`, mean `mu` and spread `sigma` (with the floor
     /// and the instrument's jitter in it); `None` when its window misses the axis.

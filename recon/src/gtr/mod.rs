@@ -16,7 +16,7 @@ pub use optim::{AdamW, AdamWSettings, GroupSettings, Schedule};
 pub use ply::write_ply;
 pub use render::{batch_loss, batch_loss_grad, render_pairs, render_set};
 pub use train::{
-    CancelToken, Convergence, DENSIFY_ROUNDS, DensifySettings, GAIN_ROUNDS, LossChoice, PairGains,
+    CancelToken, Convergence, DENSIFY_ROUNDS, DensifySettings, GAIN_ROUNDS, LiveModel, LossChoice, PairGains,
     PruneSettings, SNAPSHOT_MAX, TrainConfig, TrainError, TrainEvent, TrainSummary, Trainer,
     default_initial_scale, default_target_scale, densify, densify_after, estimate_background,
     estimate_pair_gains, first_negative, gain_groups,

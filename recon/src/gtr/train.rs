@@ -11,7 +11,7 @@
 //! through its backlog after it).
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::mpsc::Receiver;
+use std::sync::mpsc::{Receiver, Sender};
 
 use glam::{DMat3, DVec3};
 
@@ -772,6 +772,23 @@ pub struct Trainer {
     /// epoch trains on part of the data ([`TrainConfig::epoch_pairs`]).
     pass: Vec<usize>,
     pass_at: usize,
+    /// Where the model goes after each streamed batch's live training, and the live
+    /// steps each batch gets at least ([`Trainer::report_live_model`]).
+    live_model: Option<(Sender<LiveModel>, usize)>,
+}
+
+/// The fit as it stands after a streamed batch's live training: what an adaptive
+/// capture chooses its next pairs from ([`Trainer::report_live_model`]).
+#[derive(Clone, Debug)]
+pub struct LiveModel {
+    /// The primitives as kernels.
+    pub kernels: Vec<Kernel>,
+    /// The render options in force (matched gain, chosen loss).
+    pub options: RenderOptions,
+    /// Transients fitted so far.
+    pub pairs: usize,
+    /// Optimiser steps taken.
+    pub step: usize,
 }
 
 impl Trainer {
@@ -828,6 +845,7 @@ impl Trainer {
             averaged_losses: Vec::new(),
             pass: Vec::new(),
             pass_at: 0,
+            live_model: None,
             config,
         };
         trainer.match_gain()?;
@@ -909,6 +927,15 @@ impl Trainer {
         // New transients start at gain 1 until the next estimate.
         self.pair_gains.resize(self.data.len(), 1.0);
         self.match_gain()
+    }
+
+    /// Asks [`Trainer::run`] to send the model to `tx` each time a streamed batch has
+    /// had its live training, just before it waits for the next batch, and to train
+    /// each batch for at least `min_steps` live steps (whole epochs, at least
+    /// [`LIVE_EPOCHS_PER_BATCH`]). The capture waits for the model and chooses the next
+    /// pairs from it, so the choices depend on the batches alone, never on timing.
+    pub fn report_live_model(&mut self, tx: Sender<LiveModel>, min_steps: usize) {
+        self.live_model = Some((tx, min_steps));
     }
 
     /// The current primitives.
@@ -1029,18 +1056,34 @@ impl Trainer {
         let mut feed = feed;
         let mut announced = false;
         let mut live_epochs_on_same_data = 0usize;
+        let mut batch_arrived_at = self.step;
         let mut final_loss = f64::NAN;
         loop {
             // Take in the next batch once the data so far has had its live epochs (at
             // once when there is none yet): one batch at a time, waiting for it, so
             // what each epoch sees depends only on the batches, never on timing.
+            let min_live_steps = self.live_model.as_ref().map_or(0, |(_, n)| *n);
             if let Some(rx) = &feed
-                && (self.data.is_empty() || live_epochs_on_same_data >= LIVE_EPOCHS_PER_BATCH)
+                && (self.data.is_empty()
+                    || (live_epochs_on_same_data >= LIVE_EPOCHS_PER_BATCH
+                        && self.step - batch_arrived_at >= min_live_steps))
             {
+                if !self.data.is_empty() && self.live_model.is_some() {
+                    self.refresh_kernels();
+                    let (tx, _) = self.live_model.as_ref().expect("checked");
+                    // A capture that has stopped listening is not the fit's concern.
+                    let _ = tx.send(LiveModel {
+                        kernels: self.kernels.clone(),
+                        options: self.options,
+                        pairs: self.data.len(),
+                        step: self.step,
+                    });
+                }
                 match rx.recv() {
                     Ok(more) => {
                         self.add(&more)?;
                         live_epochs_on_same_data = 0;
+                        batch_arrived_at = self.step;
                         on_event(&TrainEvent::DataAdded {
                             pairs: self.data.len(),
                         });

@@ -1,0 +1,554 @@
+//! Where to measure next, from a running 3D-GTR fit: the information each candidate
+//! pair would add about the primitives' positions (adaptive capture).
+//!
+//! A primitive's pulse in a pair's histogram, of `N` expected counts (the window's
+//! amplitude), mean hidden path length μ and spread σ, locates the primitive's centre
+//! along the path length's gradient `g = ui + ud` (the unit vectors from the two relay
+//! points). Its Fisher information about the centre is rank one, `J = c g gᵀ`:
+//! - Poisson counts (the fit's Poisson loss, background β per bin): `c = N/σ² · η`, the
+//!   localisation precision of a pulse of N photons, with `η = p/(p + β)` for its peak
+//!   bin's expected count `p` (the background's share of the variance there);
+//! - noise-free data fitted by least squares (rendered captures, constant noise):
+//!   `c = N²/σ³`, up to the noise variance, a constant shared by every pair.
+//!
+//! The pairs measured so far give primitive `k` the information `M_k = Σ J`. A
+//! candidate's value is the D-optimal gain, the fall in the log-volume of every
+//! primitive's uncertainty ellipsoid:
+//! `Σ_k ln det(M_k + λI + J_k) − ln det(M_k + λI) = Σ_k ln(1 + c_k g_kᵀ (M_k + λI)⁻¹ g_k)`
+//! (the matrix determinant lemma). The prior precision λ is the information a typical
+//! measured pair gives a primitive it sees (the 90th percentile of `c|g|²` over the
+//! measured pairs' terms), so the criterion does not depend on the data's scale. A
+//! primitive no measured pair has located gains most from a pair that sees it; one
+//! located along one direction gains most from a pair whose gradient is across it.
+//!
+//! The gain of a set of pairs is submodular (adding a pair never raises another's
+//! gain), so a batch is chosen greedily with lazy re-evaluation: a candidate's stale
+//! gain bounds its current one, and it is taken once its refreshed gain still leads.
+use std::cmp::Ordering;
+use std::collections::BinaryHeap;
+
+use glam::{DMat3, DVec3};
+use rayon::prelude::*;
+
+use crate::gtr::kernel::evaluate;
+use crate::gtr::{Kernel, Loss, RenderOptions};
+use crate::special::INV_SQRT_2PI;
+use crate::transient::{Pair, TimeAxis};
+
+/// A term below this fraction of its pair's largest is dropped: it adds at most that
+/// fraction of a nat to any gain, and keeping it would cost memory on every candidate.
+const TERM_FLOOR: f64 = 1e-6;
+
+/// A pair keeps at most this many terms, its strongest: a candidate's memory is then
+/// bounded whatever the primitives (a diffuse early fit sees most of them from every
+/// pair), and a term outside a pair's 512 strongest adds little to its gain.
+pub const MAX_TERMS: usize = 512;
+
+/// The percentile of the measured terms' `c|g|²` that sets the prior precision λ.
+const PRIOR_PERCENTILE: f64 = 0.9;
+
+/// One primitive's information from one pair: `c g gᵀ`.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Term {
+    /// The primitive's index in the kernels.
+    pub primitive: u32,
+    /// The information per unit of `|g|²` along `g`.
+    pub c: f64,
+    /// The path length's gradient with respect to the primitive's centre.
+    pub g: DVec3,
+}
+
+impl Term {
+    fn strength(&self) -> f64 {
+        self.c * self.g.length_squared()
+    }
+}
+
+/// The information `pair` gives each primitive of `kernels` it sees (terms of at
+/// least [`TERM_FLOOR`] of the largest), under the noise model of `opt.loss`.
+pub fn pair_terms(kernels: &[Kernel], pair: &Pair, axis: &TimeAxis, opt: &RenderOptions) -> Vec<Term> {
+    let mut terms: Vec<Term> = kernels
+        .iter()
+        .enumerate()
+        .filter_map(|(k, kernel)| {
+            let e = evaluate(kernel, pair, axis, opt)?;
+            let w = e.window;
+            let (n, sigma) = (w.amplitude, w.sigma);
+            if !(n > 0.0 && sigma > 0.0) {
+                return None;
+            }
+            let c = match opt.loss {
+                Loss::Poisson { background } => {
+                    // The pulse's peak bin, and the share of its variance that is its own.
+                    let peak = n * axis.width.min(sigma) * INV_SQRT_2PI / sigma;
+                    n / (sigma * sigma) * peak / (peak + background.max(0.0))
+                }
+                Loss::L2 => n * n / (sigma * sigma * sigma),
+            };
+            let term = Term {
+                primitive: k as u32,
+                c,
+                g: e.path_gradient(),
+            };
+            (term.strength() > 0.0 && term.strength().is_finite()).then_some(term)
+        })
+        .collect();
+    let top = terms.iter().map(Term::strength).fold(0.0, f64::max);
+    terms.retain(|t| t.strength() >= TERM_FLOOR * top);
+    if terms.len() > MAX_TERMS {
+        // The strongest, in primitive order (so the sums add in a fixed order).
+        terms.select_nth_unstable_by(MAX_TERMS, |a, b| b.strength().total_cmp(&a.strength()));
+        terms.truncate(MAX_TERMS);
+        terms.sort_unstable_by_key(|t| t.primitive);
+    }
+    terms
+}
+
+/// [`pair_terms`] for every pair, in parallel.
+pub fn terms_of(kernels: &[Kernel], pairs: &[Pair], axis: &TimeAxis, opt: &RenderOptions) -> Vec<Vec<Term>> {
+    pairs
+        .par_iter()
+        .map(|p| pair_terms(kernels, p, axis, opt))
+        .collect()
+}
+
+/// What the measured pairs tell about each primitive's centre: the inverse of its
+/// information plus the prior, `(M_k + λI)⁻¹`.
+#[derive(Clone, Debug)]
+pub struct Information {
+    inverse: Vec<DMat3>,
+    lambda: f64,
+}
+
+/// The measured pairs' information summed primitive by primitive, taken in as many
+/// chunks as the caller likes (a large capture's terms need not be held at once), and
+/// the strengths that set the prior.
+#[derive(Clone, Debug)]
+pub struct InformationSums {
+    sums: Vec<DMat3>,
+    strengths: Vec<f64>,
+}
+
+impl InformationSums {
+    /// Nothing measured yet, for `primitives` primitives.
+    pub fn new(primitives: usize) -> Self {
+        Self {
+            sums: vec![DMat3::ZERO; primitives],
+            strengths: Vec::new(),
+        }
+    }
+
+    /// Adds measured pairs' terms.
+    pub fn add(&mut self, measured: &[Vec<Term>]) {
+        for t in measured.iter().flatten() {
+            let m = &mut self.sums[t.primitive as usize];
+            *m += DMat3::from_cols(t.g * (t.c * t.g.x), t.g * (t.c * t.g.y), t.g * (t.c * t.g.z));
+            self.strengths.push(t.strength());
+        }
+    }
+
+    /// The information with its prior: λ from the measured terms, or from
+    /// `candidates`' where no measured pair sees anything.
+    pub fn finish(mut self, candidates: &[Vec<Term>]) -> Information {
+        let lambda = percentile(&mut self.strengths)
+            .or_else(|| prior_precision(candidates))
+            .unwrap_or(1.0);
+        let prior = DMat3::IDENTITY * lambda;
+        Information {
+            inverse: self.sums.iter().map(|m| (*m + prior).inverse()).collect(),
+            lambda,
+        }
+    }
+}
+
+impl Information {
+    /// The information of `primitives` primitives from the `measured` pairs' terms;
+    /// λ from those terms, or from `candidates`' where no measured pair sees anything.
+    pub fn new(primitives: usize, measured: &[Vec<Term>], candidates: &[Vec<Term>]) -> Self {
+        let mut sums = InformationSums::new(primitives);
+        sums.add(measured);
+        sums.finish(candidates)
+    }
+
+    /// The prior precision λ.
+    pub fn prior(&self) -> f64 {
+        self.lambda
+    }
+
+    /// The D-optimal gain (nats) of measuring a pair with these terms next.
+    pub fn gain(&self, terms: &[Term]) -> f64 {
+        terms
+            .iter()
+            .map(|t| {
+                let a = self.inverse[t.primitive as usize];
+                (t.c * t.g.dot(a * t.g)).ln_1p()
+            })
+            .sum()
+    }
+
+    /// Adds a measured pair's terms (Sherman–Morrison on each primitive's inverse).
+    pub fn add(&mut self, terms: &[Term]) {
+        for t in terms {
+            let a = &mut self.inverse[t.primitive as usize];
+            let ag = *a * t.g;
+            let denom = 1.0 + t.c * t.g.dot(ag);
+            let scale = t.c / denom;
+            *a -= DMat3::from_cols(ag * (ag.x * scale), ag * (ag.y * scale), ag * (ag.z * scale));
+        }
+    }
+}
+
+/// λ: the [`PRIOR_PERCENTILE`] of the terms' `c|g|²`; `None` when there are none.
+fn prior_precision(terms: &[Vec<Term>]) -> Option<f64> {
+    percentile(&mut terms.iter().flatten().map(Term::strength).collect::<Vec<_>>())
+}
+
+/// The [`PRIOR_PERCENTILE`] of `s` (reordered); `None` when empty or not above 0.
+fn percentile(s: &mut [f64]) -> Option<f64> {
+    if s.is_empty() {
+        return None;
+    }
+    let i = ((s.len() - 1) as f64 * PRIOR_PERCENTILE).round() as usize;
+    let (_, v, _) = s.select_nth_unstable_by(i, f64::total_cmp);
+    (*v > 0.0).then_some(*v)
+}
+
+/// A candidate taken into a batch, and the gain it had when taken (nats, given the
+/// measured pairs and the batch's earlier choices).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Choice {
+    /// Its index in the candidates.
+    pub index: usize,
+    /// Its gain when chosen.
+    pub gain: f64,
+}
+
+/// A heap entry: a candidate's gain as of a round, ordered by gain then by lower index.
+struct Entry {
+    gain: f64,
+    index: usize,
+    round: usize,
+}
+
+impl PartialEq for Entry {
+    fn eq(&self, other: &Self) -> bool {
+        self.cmp(other) == Ordering::Equal
+    }
+}
+impl Eq for Entry {}
+impl PartialOrd for Entry {
+    fn partial_cmp(&self, other: &Self) -> Option<Ordering> {
+        Some(self.cmp(other))
+    }
+}
+impl Ord for Entry {
+    fn cmp(&self, other: &Self) -> Ordering {
+        self.gain
+            .total_cmp(&other.gain)
+            .then_with(|| other.index.cmp(&self.index))
+    }
+}
+
+/// Chooses up to `n` of the `candidates` (each a pair's terms) greedily by gain, adding
+/// each choice's information to `info` as it is taken; candidates whose gain is 0 (they
+/// see nothing) are never taken. Deterministic: ties go to the lower index.
+pub fn choose(info: &mut Information, candidates: &[Vec<Term>], n: usize) -> Vec<Choice> {
+    let mut heap: BinaryHeap<Entry> = candidates
+        .par_iter()
+        .enumerate()
+        .map(|(index, terms)| Entry {
+            gain: info.gain(terms),
+            index,
+            round: 0,
+        })
+        .collect::<Vec<_>>()
+        .into_iter()
+        .filter(|e| e.gain > 0.0)
+        .collect();
+    let mut chosen = Vec::with_capacity(n.min(candidates.len()));
+    while chosen.len() < n {
+        let Some(top) = heap.pop() else { break };
+        if top.round == chosen.len() {
+            info.add(&candidates[top.index]);
+            chosen.push(Choice {
+                index: top.index,
+                gain: top.gain,
+            });
+            continue;
+        }
+        let gain = info.gain(&candidates[top.index]);
+        if gain > 0.0 {
+            heap.push(Entry {
+                gain,
+                index: top.index,
+                round: chosen.len(),
+            });
+        }
+    }
+    chosen
+}
+
+/// The distance between two pairs: both relay points' displacements together.
+fn pair_distance_squared(a: &Pair, b: &Pair) -> f64 {
+    a.xi.distance_squared(b.xi) + a.xd.distance_squared(b.xd)
+}
+
+/// Up to `n` of `pairs` not in `taken`, each the farthest from every pair taken or
+/// chosen before it (distance over both relay points): a space-filling order over any
+/// relay and any pair layout. With nothing taken, the first is the pair nearest the
+/// pairs' mean. Deterministic: ties go to the lower index.
+pub fn farthest_points(pairs: &[Pair], taken: &[usize], n: usize) -> Vec<usize> {
+    let mut nearest = vec![f64::INFINITY; pairs.len()];
+    let mut used = vec![false; pairs.len()];
+    let relax = |nearest: &mut [f64], from: &Pair| {
+        nearest
+            .par_iter_mut()
+            .zip(pairs.par_iter())
+            .for_each(|(d, p)| *d = d.min(pair_distance_squared(p, from)));
+    };
+    for &i in taken {
+        used[i] = true;
+        relax(&mut nearest, &pairs[i]);
+    }
+    if taken.is_empty() && !pairs.is_empty() {
+        let k = pairs.len() as f64;
+        let mean = pairs
+            .iter()
+            .fold(Pair::confocal(DVec3::ZERO, DVec3::Z), |m, p| Pair {
+                xi: m.xi + p.xi / k,
+                xd: m.xd + p.xd / k,
+                ..m
+            });
+        for (d, p) in nearest.iter_mut().zip(pairs) {
+            *d = -pair_distance_squared(p, &mean);
+        }
+    }
+    let mut out = Vec::with_capacity(n.min(pairs.len()));
+    while out.len() < n {
+        let best = nearest
+            .iter()
+            .enumerate()
+            .filter(|(i, _)| !used[*i])
+            .max_by(|a, b| a.1.total_cmp(b.1).then_with(|| b.0.cmp(&a.0)));
+        let Some((i, _)) = best else { break };
+        used[i] = true;
+        out.push(i);
+        if out.len() == 1 && taken.is_empty() {
+            nearest.fill(f64::INFINITY);
+        }
+        relax(&mut nearest, &pairs[i]);
+    }
+    out
+}
+
+/// The galvos' travel between two pairs: the longer of the two relay points' moves
+/// (the arms move at once).
+pub fn travel(a: &Pair, b: &Pair) -> f64 {
+    a.xi.distance(b.xi).max(a.xd.distance(b.xd))
+}
+
+/// `chosen` (indices into `pairs`) in the order a nearest-neighbour tour visits them
+/// from `from` (the last pair measured; else the first chosen): the batch's
+/// information does not depend on its order, the galvos' travel does.
+pub fn tour(pairs: &[Pair], chosen: &[usize], from: Option<&Pair>) -> Vec<usize> {
+    let mut left: Vec<usize> = chosen.to_vec();
+    let mut out = Vec::with_capacity(left.len());
+    let mut at = match from {
+        Some(p) => *p,
+        None => match left.first() {
+            Some(&i) => pairs[i],
+            None => return out,
+        },
+    };
+    while !left.is_empty() {
+        let (j, _) = left
+            .iter()
+            .enumerate()
+            .min_by(|a, b| {
+                travel(&at, &pairs[*a.1])
+                    .total_cmp(&travel(&at, &pairs[*b.1]))
+                    .then_with(|| a.1.cmp(b.1))
+            })
+            .expect("not empty");
+        let i = left.swap_remove(j);
+        at = pairs[i];
+        out.push(i);
+    }
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn wall(n: usize, pitch: f64) -> Vec<Pair> {
+        let mut out = Vec::new();
+        for y in 0..n {
+            for x in 0..n {
+                let c = DVec3::new(
+                    (x as f64 - (n - 1) as f64 / 2.0) * pitch,
+                    (y as f64 - (n - 1) as f64 / 2.0) * pitch,
+                    0.0,
+                );
+                out.push(Pair::confocal(c, DVec3::Z));
+            }
+        }
+        out
+    }
+
+    fn axis() -> TimeAxis {
+        TimeAxis {
+            start: 0.0,
+            width: 0.005,
+            bins: 512,
+        }
+    }
+
+    fn kernel(x: DVec3, rho: f64) -> Kernel {
+        Kernel::new(x, DMat3::IDENTITY, DVec3::splat(0.01), rho)
+    }
+
+    #[test]
+    fn the_gain_of_a_pair_falls_once_a_pair_like_it_is_measured() {
+        let kernels = vec![kernel(DVec3::new(0.0, 0.0, 0.5), 1.0)];
+        let pairs = wall(5, 0.1);
+        let opt = RenderOptions::default();
+        let terms = terms_of(&kernels, &pairs, &axis(), &opt);
+        let mut info = Information::new(1, &[], &terms);
+        let before: Vec<f64> = terms.iter().map(|t| info.gain(t)).collect();
+        assert!(before.iter().all(|g| *g > 0.0), "{before:?}");
+        info.add(&terms[12]);
+        let after: Vec<f64> = terms.iter().map(|t| info.gain(t)).collect();
+        for (b, a) in before.iter().zip(&after) {
+            assert!(a < b, "a measurement raised a gain: {b} -> {a}");
+        }
+        // The pair measured and its neighbours lose most; a corner, whose gradient
+        // points another way, keeps more of its gain.
+        let lost = |i: usize| after[i] / before[i];
+        assert!(lost(12) < lost(0), "{} vs {}", lost(12), lost(0));
+    }
+
+    #[test]
+    fn sherman_morrison_matches_the_inverse_of_the_summed_information() {
+        let kernels = vec![kernel(DVec3::new(0.05, -0.02, 0.6), 0.7)];
+        let pairs = wall(4, 0.2);
+        let opt = RenderOptions::default();
+        let terms = terms_of(&kernels, &pairs, &axis(), &opt);
+        // Half summed and inverted, half added by Sherman–Morrison.
+        let (first, rest) = terms.split_at(terms.len() / 2);
+        let mut info = Information::new(1, first, &[]);
+        for t in rest {
+            info.add(t);
+        }
+        let mut m = DMat3::IDENTITY * info.prior();
+        for t in terms.iter().flatten() {
+            m += DMat3::from_cols(t.g * (t.c * t.g.x), t.g * (t.c * t.g.y), t.g * (t.c * t.g.z));
+        }
+        let exact = m.inverse();
+        let got = info.inverse[0];
+        let scale = exact.to_cols_array().iter().fold(0.0f64, |a, v| a.max(v.abs()));
+        for (a, b) in got.to_cols_array().iter().zip(exact.to_cols_array()) {
+            assert!((a - b).abs() <= 1e-9 * scale, "{a} vs {b}");
+        }
+    }
+
+    #[test]
+    fn a_batch_starts_with_the_pair_that_sees_most_and_chooses_each_pair_once() {
+        // One primitive over the centre of a wall: the pair straight below it (nearest,
+        // cosines 1) locates it best; each later choice gains less, none repeats.
+        let kernels = vec![kernel(DVec3::new(0.0, 0.0, 0.4), 1.0)];
+        let pairs = wall(9, 0.1);
+        let opt = RenderOptions::default();
+        let terms = terms_of(&kernels, &pairs, &axis(), &opt);
+        let mut info = Information::new(1, &[], &terms);
+        let chosen = choose(&mut info, &terms, 20);
+        assert_eq!(chosen.len(), 20);
+        assert_eq!(chosen[0].index, 40, "{chosen:?}");
+        assert!(chosen.windows(2).all(|w| w[0].gain >= w[1].gain), "{chosen:?}");
+        let mut seen: Vec<usize> = chosen.iter().map(|c| c.index).collect();
+        seen.sort();
+        seen.dedup();
+        assert_eq!(seen.len(), 20);
+        // Lazy greedy takes what plain greedy (every gain refreshed each time) takes.
+        let mut plain = Information::new(1, &[], &terms);
+        let mut left: Vec<usize> = (0..pairs.len()).collect();
+        for c in &chosen {
+            let best = left
+                .iter()
+                .copied()
+                .max_by(|a, b| {
+                    plain
+                        .gain(&terms[*a])
+                        .total_cmp(&plain.gain(&terms[*b]))
+                        .then_with(|| b.cmp(a))
+                })
+                .unwrap();
+            assert_eq!(best, c.index);
+            assert!((plain.gain(&terms[best]) - c.gain).abs() <= 1e-12 * c.gain);
+            plain.add(&terms[best]);
+            left.retain(|i| *i != best);
+        }
+        // Deterministic.
+        let mut again = Information::new(1, &[], &terms);
+        assert_eq!(choose(&mut again, &terms, 20), chosen);
+    }
+
+    #[test]
+    fn a_pair_keeps_its_strongest_terms_only() {
+        // More primitives than a pair keeps terms for: the nearest (strongest) stay.
+        let kernels: Vec<Kernel> = (0..MAX_TERMS + 300)
+            .map(|i| kernel(DVec3::new(0.0, 0.0, 0.3 + 0.001 * i as f64), 1.0))
+            .collect();
+        let pair = Pair::confocal(DVec3::ZERO, DVec3::Z);
+        let terms = pair_terms(&kernels, &pair, &axis(), &RenderOptions::default());
+        assert_eq!(terms.len(), MAX_TERMS);
+        assert!(terms.windows(2).all(|w| w[0].primitive < w[1].primitive));
+        assert_eq!(terms.last().unwrap().primitive as usize, MAX_TERMS - 1);
+    }
+
+    #[test]
+    fn pairs_that_see_nothing_are_never_chosen() {
+        // Behind the wall: no pair sees the primitive.
+        let kernels = vec![kernel(DVec3::new(0.0, 0.0, -0.4), 1.0)];
+        let pairs = wall(3, 0.1);
+        let terms = terms_of(&kernels, &pairs, &axis(), &RenderOptions::default());
+        assert!(terms.iter().all(Vec::is_empty));
+        let mut info = Information::new(1, &[], &terms);
+        assert!(choose(&mut info, &terms, 4).is_empty());
+    }
+
+    #[test]
+    fn farthest_points_start_central_and_fill_the_aperture() {
+        let pairs = wall(5, 0.1);
+        let order = farthest_points(&pairs, &[], 5);
+        assert_eq!(order[0], 12, "the centre first");
+        // Then the corners.
+        let mut corners = order[1..5].to_vec();
+        corners.sort();
+        assert_eq!(corners, vec![0, 4, 20, 24]);
+        // Taken pairs are skipped and pushed from.
+        let more = farthest_points(&pairs, &order, 25);
+        assert_eq!(more.len(), 20);
+        assert!(more.iter().all(|i| !order.contains(i)));
+    }
+
+    #[test]
+    fn a_tour_visits_each_chosen_pair_once_and_travels_less_than_the_given_order() {
+        let pairs = wall(6, 0.1);
+        let chosen: Vec<usize> = vec![0, 35, 5, 30, 1, 34, 6, 29];
+        let path = tour(&pairs, &chosen, Some(&pairs[0]));
+        let mut sorted = path.clone();
+        sorted.sort();
+        let mut expect = chosen.clone();
+        expect.sort();
+        assert_eq!(sorted, expect);
+        let length =
+            |order: &[usize]| -> f64 { order.windows(2).map(|w| travel(&pairs[w[0]], &pairs[w[1]])).sum() };
+        assert!(
+            length(&path) < length(&chosen),
+            "{} vs {}",
+            length(&path),
+            length(&chosen)
+        );
+    }
+}
