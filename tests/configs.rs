@@ -174,3 +174,104 @@ fn a_broken_plan_names_file_line_and_key() {
         );
     }
 }
+
+/// `periscope check` on an adaptive plan: the candidates, the budget and its batches,
+/// and the range of durations when the stopping rule can end it early.
+#[test]
+fn check_describes_an_adaptive_capture_and_its_range_of_durations() {
+    let out = periscope(&["check", "configs/plans/demo-adaptive.toml"]);
+    assert_eq!(out.code, Some(0), "{out:?}");
+    assert!(
+        out.stdout.contains("adaptive, at most 288 of the confocal 24×24")
+            && out
+                .stdout
+                .contains("72 spread over them first, then batches of 18"),
+        "{}",
+        out.stdout
+    );
+    let capture = |stdout: &str| -> String {
+        let line = stdout.lines().find(|l| l.contains("estimated duration")).unwrap();
+        line.split("capture ")
+            .nth(1)
+            .unwrap()
+            .split(" s,")
+            .next()
+            .unwrap()
+            .to_owned()
+    };
+    assert!(!capture(&out.stdout).contains(" to "), "{}", out.stdout);
+    let dir = tempfile::tempdir().unwrap();
+    let text = std::fs::read_to_string(repo_path("configs/plans/demo-adaptive.toml")).unwrap();
+    let stopping = text.replace("# stop-gain = 0.05", "stop-gain = 0.05");
+    assert_ne!(stopping, text);
+    let plan = dir.path().join("stopping.toml");
+    std::fs::write(&plan, stopping).unwrap();
+    let out = periscope(&["check", plan.to_str().unwrap()]);
+    assert_eq!(out.code, Some(0), "{out:?}");
+    let range = capture(&out.stdout);
+    let (lo, hi) = range
+        .split_once(" to ")
+        .unwrap_or_else(|| panic!("no range: {}", out.stdout));
+    assert!(lo.parse::<f64>().unwrap() < hi.parse::<f64>().unwrap(), "{range}");
+    assert!(out.stdout.contains("ending early"), "{}", out.stdout);
+}
+
+#[test]
+fn a_broken_adaptive_plan_names_the_key_and_what_to_do() {
+    let dir = tempfile::tempdir().unwrap();
+    let text = std::fs::read_to_string(repo_path("configs/plans/demo-adaptive.toml")).unwrap();
+    for (from, to, key, hint) in [
+        ("candidates = \"confocal\"", "", "pairs.candidates", "is required"),
+        (
+            "candidates = \"confocal\"",
+            "candidates = \"adaptive\"",
+            "pairs.candidates",
+            "planner",
+        ),
+        (
+            "method = \"gtr\"",
+            "method = \"fbp\"",
+            "pairs.mode",
+            "recon.method = \"gtr\"",
+        ),
+        (
+            "pairs = 288",
+            "pairs = 288\nstop-gain = 2.0",
+            "recon.adaptive.stop-gain",
+            "0 to 1",
+        ),
+        (
+            "pairs = 288",
+            "pairs = 10\nfirst = 20",
+            "recon.adaptive.first",
+            "budget",
+        ),
+    ] {
+        let bad = dir.path().join("bad.toml");
+        let changed = text.replacen(from, to, 1);
+        assert_ne!(changed, text, "{key}");
+        std::fs::write(&bad, changed).unwrap();
+        let out = periscope(&["check", bad.to_str().unwrap()]);
+        assert_eq!(out.code, Some(2), "{key}: {out:?}");
+        assert!(
+            out.stderr.contains("bad.toml:") && out.stderr.contains(key) && out.stderr.contains(hint),
+            "{key}: {}",
+            out.stderr
+        );
+    }
+    // `candidates` belongs to the adaptive mode only.
+    let demo = std::fs::read_to_string(repo_path("configs/plans/demo.toml")).unwrap();
+    let bad = dir.path().join("bad.toml");
+    std::fs::write(
+        &bad,
+        demo.replacen("grid = [24, 24]", "grid = [24, 24]\ncandidates = \"confocal\"", 1),
+    )
+    .unwrap();
+    let out = periscope(&["check", bad.to_str().unwrap()]);
+    assert_eq!(out.code, Some(2), "{out:?}");
+    assert!(
+        out.stderr.contains("pairs.candidates") && out.stderr.contains("only for mode"),
+        "{}",
+        out.stderr
+    );
+}

@@ -114,3 +114,103 @@ fn recon_and_export_of_a_run_directory_whole_and_damaged() {
     assert_eq!(out.code, Some(1), "{out:?}");
     assert!(out.stderr.contains("pairs.json"), "{}", out.stderr);
 }
+
+/// `periscope recon CAPTURE --adaptive-replay ORDER` on a y-tal capture: the pairs are
+/// revealed batch by batch up to the `[adaptive]` budget, the choices go to
+/// adaptive.json, and the adaptive order (which needs the running fit) is refused for
+/// a solver with a message naming the method and what to do.
+#[test]
+fn an_adaptive_replay_reveals_its_budget_and_records_each_choice() {
+    let tmp = tempfile::tempdir().unwrap();
+    let capture = periscope_tests::repo_path("tests/data/ytal/confocal_xy.hdf5");
+    let total = YtalCapture::read(&capture).unwrap().len();
+    let config = tmp.path().join("recon.toml");
+    let gtr = "method = \"gtr\"\n[volume]\nx = [-0.4, 0.4]\ny = [-0.4, 0.4]\nz = [0.2, 0.9]\nshape = [16, 16, 16]\n\
+               [gtr]\nprimitives = 200\nepochs = 2\nvirtual-grid = [16, 16]\n\
+               [adaptive]\npairs = 40\nfirst = 16\nbatch = 8\nlive-steps = 8\n";
+    std::fs::write(&config, gtr).unwrap();
+    let record = |out: &Path| -> serde_json::Value {
+        serde_json::from_slice(&std::fs::read(out.join("adaptive.json")).unwrap()).unwrap()
+    };
+    for order in ["adaptive", "uniform", "random"] {
+        let out = tmp.path().join(order);
+        let done = periscope(&[
+            "recon",
+            s(&capture),
+            "--config",
+            s(&config),
+            "--out",
+            s(&out),
+            "--adaptive-replay",
+            order,
+        ]);
+        assert_eq!(done.code, Some(0), "{order}: {done:?}");
+        assert!(
+            done.stdout.contains("reconstructed 40 pairs"),
+            "{order}: {}",
+            done.stdout
+        );
+        assert!(out.join("volume.npy").is_file());
+        let r = record(&out);
+        assert_eq!(
+            (
+                r["order"].as_str(),
+                r["candidates"].as_u64(),
+                r["measured"].as_u64()
+            ),
+            (Some(order), Some(total as u64), Some(40))
+        );
+        let batches = r["batches"].as_array().unwrap();
+        let sizes: Vec<usize> = batches
+            .iter()
+            .map(|b| b["pairs"].as_array().unwrap().len())
+            .collect();
+        assert_eq!(sizes, vec![16, 8, 8, 8], "{order}");
+        let mut all: Vec<u64> = batches
+            .iter()
+            .flat_map(|b| b["pairs"].as_array().unwrap().iter().map(|p| p.as_u64().unwrap()))
+            .collect();
+        all.sort_unstable();
+        all.dedup();
+        assert_eq!(all.len(), 40, "{order}: a pair revealed twice");
+        if order == "adaptive" {
+            assert!(
+                batches[1..]
+                    .iter()
+                    .all(|b| b["how"] == "adaptive" && b["relative_gain"].is_number())
+            );
+        }
+    }
+    // The bare flag means the adaptive order; a solver cannot choose pairs.
+    std::fs::write(&config, gtr.replace("method = \"gtr\"", "method = \"fbp\"")).unwrap();
+    let out = tmp.path().join("refused");
+    let done = periscope(&[
+        "recon",
+        s(&capture),
+        "--config",
+        s(&config),
+        "--out",
+        s(&out),
+        "--adaptive-replay",
+    ]);
+    assert_eq!(done.code, Some(2), "{done:?}");
+    assert!(
+        done.stderr.contains("\"fbp\"") && done.stderr.contains("method = \"gtr\""),
+        "{}",
+        done.stderr
+    );
+    // The uniform order works for a solver too: it needs no fit.
+    let out = tmp.path().join("fbp-uniform");
+    let done = periscope(&[
+        "recon",
+        s(&capture),
+        "--config",
+        s(&config),
+        "--out",
+        s(&out),
+        "--adaptive-replay",
+        "uniform",
+    ]);
+    assert_eq!(done.code, Some(0), "{done:?}");
+    assert_eq!(record(&out)["measured"], 40);
+}

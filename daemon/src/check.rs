@@ -84,8 +84,12 @@ pub struct Check {
 pub struct Duration {
     /// LOS scan.
     pub los: f64,
-    /// NLOS capture.
+    /// NLOS capture (an adaptive one: at its whole budget).
     pub capture: f64,
+    /// An adaptive capture's shortest: its stopping rule ending it after the first
+    /// choice (`None`: not adaptive, or no `stop-gain`).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub capture_min: Option<f64>,
     /// Reconstruction after the capture.
     pub reconstruction: f64,
     /// All of it.
@@ -155,8 +159,34 @@ pub fn check(plan: &Plan, inst: &InstrumentConfig) -> Check {
             }
         }
     }
-    let pairs = plan.pairs.max_pairs();
-    let _ = writeln!(out, "  pairs: {} (at most {pairs})", plan.pairs.describe());
+    let candidates = plan.pairs.max_pairs();
+    let adaptive = plan
+        .adaptive
+        .then(|| crate::adaptive::Sizes::of(candidates, &plan.recon.adaptive));
+    let pairs = adaptive.map_or(candidates, |s| s.budget);
+    match adaptive {
+        None => {
+            let _ = writeln!(out, "  pairs: {} (at most {pairs})", plan.pairs.describe());
+        }
+        Some(s) => {
+            let _ = writeln!(
+                out,
+                "  pairs: adaptive, at most {} of the {} (at most {candidates}): {} spread over them first, then batches of {} chosen by the running fit{}",
+                s.budget,
+                plan.pairs.describe(),
+                s.first,
+                s.batch,
+                if plan.recon.adaptive.stop_gain > 0.0 {
+                    format!(
+                        ", ending early once a batch's expected gain falls below {} of the first's",
+                        plan.recon.adaptive.stop_gain
+                    )
+                } else {
+                    String::new()
+                }
+            );
+        }
+    }
     let a = &plan.acquisition;
     let _ = writeln!(
         out,
@@ -202,7 +232,29 @@ pub fn check(plan: &Plan, inst: &InstrumentConfig) -> Check {
     };
     let settle = inst.laser_arm.settle.max(inst.spad_arm.settle).as_secs_f64();
     let los_s = (l.grid[0] * l.grid[1]) as f64 * ((l.dwell.as_secs_f64() + settle) * scale + overhead);
-    let cap_s = pairs as f64 * ((a.dwell.as_secs_f64() * f64::from(a.repeats) + settle) * scale + overhead);
+    let per_pair = (a.dwell.as_secs_f64() * f64::from(a.repeats) + settle) * scale + overhead;
+    let cap_s = pairs as f64 * per_pair;
+    // An adaptive capture waits, laser off, for each choice: the batch's live training
+    // and the scoring of every candidate against every primitive.
+    let choice_s = |rounds: usize| {
+        let k = rc.train.primitives as f64;
+        rounds as f64
+            * (rc.adaptive.live_steps as f64 * rc.train.batch_size as f64 * k / GTR_EVALS_PER_S
+                + candidates as f64 * k / SYNTH_EVALS_PER_S)
+    };
+    let (cap_s, cap_min_s) = match adaptive {
+        None => (cap_s, None),
+        Some(s) => (
+            // A time budget ends the choosing; the batch under way is finished.
+            match rc.adaptive.seconds {
+                t if t > 0.0 => (cap_s + choice_s(s.rounds())).min(t + s.batch as f64 * per_pair),
+                _ => cap_s + choice_s(s.rounds()),
+            },
+            // The stopping rule can end it after the first choice.
+            (rc.adaptive.stop_gain > 0.0 && s.rounds() > 0)
+                .then(|| (s.first + s.batch.min(s.budget - s.first)) as f64 * per_pair + choice_s(1)),
+        ),
+    };
     let recon_s = if rc.method == Method::Gtr {
         let k = rc.train.primitives as f64;
         let points = virtual_points(rc) as f64;
@@ -214,9 +266,12 @@ pub fn check(plan: &Plan, inst: &InstrumentConfig) -> Check {
     };
     let _ = writeln!(
         out,
-        "  estimated duration: LOS {:.0} s, capture {:.0} s, reconstruction {:.0} s{}",
+        "  estimated duration: LOS {:.0} s, capture {} s, reconstruction {:.0} s{}",
         los_s,
-        cap_s,
+        match cap_min_s {
+            Some(lo) => format!("{lo:.0} to {cap_s:.0}"),
+            None => format!("{cap_s:.0}"),
+        },
         recon_s,
         if sim {
             " (device time; the simulator's physics adds its own compute time)"
@@ -247,6 +302,7 @@ pub fn check(plan: &Plan, inst: &InstrumentConfig) -> Check {
         duration_s: Duration {
             los: los_s,
             capture: cap_s,
+            capture_min: cap_min_s,
             reconstruction: recon_s,
             total: los_s + cap_s + recon_s,
         },

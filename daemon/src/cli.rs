@@ -82,6 +82,12 @@ pub enum Command {
         /// Directory for the outputs.
         #[arg(long, value_name = "DIR")]
         out: PathBuf,
+        /// Emulate an adaptive capture on this (dense) capture: reveal its pairs batch by
+        /// batch in this order (adaptive: chosen by the running fit; uniform: spread
+        /// evenly; random) up to the `[adaptive]` budget, then reconstruct from those
+        /// revealed; each batch's choice goes to adaptive.json (docs/adaptive.md).
+        #[arg(long, value_name = "ORDER", num_args = 0..=1, default_missing_value = "adaptive")]
+        adaptive_replay: Option<crate::adaptive::Order>,
     },
     /// Export a run's measured histograms as a y-tal HDF5 capture (readable by y-tal's
     /// `tal.io.read_capture` and h5py). Works on interrupted runs too.
@@ -194,7 +200,18 @@ pub fn execute(cli: Cli) -> Result<(), CliError> {
             ));
             execute_run(&run_dir)
         }
-        Command::Recon { capture, config, out } => Ok(offline::recon(&capture, config.as_deref(), &out)?),
+        Command::Recon {
+            capture,
+            config,
+            out,
+            adaptive_replay,
+        } => {
+            match adaptive_replay {
+                Some(order) => offline::replay(&capture, config.as_deref(), &out, order)?,
+                None => offline::recon(&capture, config.as_deref(), &out)?,
+            }
+            Ok(())
+        }
         Command::Export { run_dir, out } => {
             if !RunDir::holds_run(&run_dir) {
                 return Err(CliError::NotRun(run_dir));

@@ -151,6 +151,8 @@ pub enum RunEvent {
     },
     /// Optimiser progress.
     Train(TrainEvent),
+    /// An adaptive capture (or its replay) chose its next batch of pairs.
+    PairsChosen(crate::adaptive::BatchChoice),
     /// An output was written.
     Output {
         /// File name in the run directory.

@@ -7,6 +7,7 @@
 #![warn(missing_docs)]
 
 pub mod access;
+pub mod adaptive;
 pub mod admin;
 pub mod api;
 pub mod budget;

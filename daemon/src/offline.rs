@@ -3,11 +3,17 @@
 //! or another lab's).
 use std::path::{Path, PathBuf};
 
-use crate::capture::{Capture, CaptureError};
+use std::sync::mpsc;
+
+use periscope_recon::TransientSet;
+use periscope_recon::gtr::LiveModel;
+
+use crate::adaptive::{Order, Selector};
+use crate::capture::{Capture, CaptureError, Transients};
 use crate::config::{ConfigError, TomlSource};
-use crate::events::EventSink;
-use crate::pipeline::{self, Control, PipelineError, ReconInput};
-use crate::plan::load_recon;
+use crate::events::{EventSink, RunEvent};
+use crate::pipeline::{self, Control, Fit, PipelineError, ReconError, ReconInput};
+use crate::plan::{Method, ReconSettings, load_recon};
 
 /// Why `periscope recon CAPTURE` failed; every variant names the capture or file.
 #[derive(Debug, thiserror::Error)]
@@ -29,6 +35,14 @@ pub enum OfflineError {
     /// The reconstruction or its outputs failed.
     #[error(transparent)]
     Pipeline(#[from] PipelineError),
+    /// An adaptive replay was asked for with a method that has no running fit.
+    #[error(
+        "--adaptive-replay adaptive chooses pairs from the running 3D-GTR fit, but the settings' method is {method}: use method = \"gtr\", or replay the uniform or random order"
+    )]
+    AdaptiveNeedsGtr {
+        /// The method asked for.
+        method: String,
+    },
 }
 
 impl OfflineError {
@@ -36,7 +50,9 @@ impl OfflineError {
     /// instrument, or settings the data cannot support (exit code 2).
     pub fn is_config(&self) -> bool {
         match self {
-            OfflineError::Config(_) | OfflineError::Pipeline(PipelineError::Config(_)) => true,
+            OfflineError::Config(_)
+            | OfflineError::AdaptiveNeedsGtr { .. }
+            | OfflineError::Pipeline(PipelineError::Config(_)) => true,
             OfflineError::Capture(e) => e.is_config(),
             OfflineError::Pipeline(PipelineError::Recon(e)) => e.is_settings(),
             OfflineError::Io { .. } | OfflineError::Pipeline(_) => false,
@@ -55,6 +71,18 @@ fn io(path: &Path) -> impl Fn(std::io::Error) -> OfflineError + '_ {
 /// settings of the RECON.toml at `config`, or else the run's plan's (the defaults
 /// derived for the capture, for a y-tal file).
 pub fn recon(capture: &Path, config: Option<&Path>, out: &Path) -> Result<(), OfflineError> {
+    let (settings, t) = load(capture, config)?;
+    let input = ReconInput {
+        settings,
+        set: t.set,
+        detection_points: t.detection_points,
+        viewpoint: t.viewpoint,
+    };
+    finish(input, out)
+}
+
+/// Opens `capture`, reads its settings and transients, and says what it read.
+fn load(capture: &Path, config: Option<&Path>) -> Result<(ReconSettings, Transients), OfflineError> {
     let capture = Capture::open(capture)?;
     let settings = match config {
         Some(path) => load_recon(&TomlSource::load(path)?, capture.default_volume().ok())?,
@@ -75,14 +103,115 @@ pub fn recon(capture: &Path, config: Option<&Path>, out: &Path) -> Result<(), Of
             t.overflowed
         );
     }
+    Ok((settings, t))
+}
+
+/// `periscope recon CAPTURE --adaptive-replay ORDER`: emulates an adaptive capture on
+/// a recorded one. Its transients are the candidates; batches are revealed to the fit
+/// as a capture would measure them (the first spread over the candidates, each next
+/// chosen in `order` from the fit after the last one's live training), up to the
+/// `[adaptive]` budget; the fit then finishes on the pairs revealed and the outputs are
+/// written to `out`, with `adaptive.json` (each batch's choice) beside them. The uniform
+/// and random orders run the same streamed fit and differ only in the choice, so the
+/// three compare like for like.
+pub fn replay(capture: &Path, config: Option<&Path>, out: &Path, order: Order) -> Result<(), OfflineError> {
+    let (settings, t) = load(capture, config)?;
+    if settings.method != Method::Gtr && order == Order::Adaptive {
+        return Err(OfflineError::AdaptiveNeedsGtr {
+            method: serde_json::to_string(&settings.method).expect("a name"),
+        });
+    }
+    std::fs::create_dir_all(out).map_err(io(out))?;
+    let events = EventSink::open(out).map_err(io(out))?;
+    crate::progress::attach(&events);
+    let control = Control::new();
+    let clock = std::time::Instant::now();
+    let axis = *t.set.axis();
+    let mut selector = Selector::new(t.set.pairs().to_vec(), settings.adaptive.clone(), order);
+    println!(
+        "  replaying an {order} capture of up to {} of its {} pairs",
+        selector.budget(),
+        t.set.len()
+    );
+    let mut batches = vec![selector.first()];
+    events.emit(RunEvent::PairsChosen(batches[0].clone()));
+    let first = t.set.subset(&batches[0].pairs);
+    let empty = TransientSet::new(axis)
+        .map_err(ReconError::from)
+        .map_err(PipelineError::from)?;
     let input = ReconInput {
-        settings,
-        set: t.set,
+        settings: settings.clone(),
+        set: empty,
         detection_points: t.detection_points,
         viewpoint: t.viewpoint,
     };
-    finish(input, out)
+    let result = if settings.method == Method::Gtr {
+        let mut fit = Fit::new(input);
+        let (tx, rx) = mpsc::channel::<TransientSet>();
+        let (model_tx, model_rx) = mpsc::channel();
+        fit.start_training(
+            first,
+            rx,
+            events.clone(),
+            control.clone(),
+            Some((model_tx, settings.adaptive.live_steps)),
+        )?;
+        // The fit sends its model once each batch has had its live training; a fit that
+        // ended (an error, which `finish` reports) sends no more.
+        while let Ok(model) = model_rx.recv() {
+            let Some(b) = selector.next(&model, &axis) else {
+                break;
+            };
+            events.emit(RunEvent::PairsChosen(b.clone()));
+            let more = t.set.subset(&b.pairs);
+            batches.push(b);
+            if tx.send(more).is_err() {
+                break;
+            }
+        }
+        drop(tx);
+        fit.refit(&events, &control)?
+    } else {
+        let model = LiveModel {
+            kernels: Vec::new(),
+            options: settings.train.render,
+            pairs: 0,
+            step: 0,
+        };
+        while let Some(b) = selector.next(&model, &axis) {
+            events.emit(RunEvent::PairsChosen(b.clone()));
+            batches.push(b);
+        }
+        pipeline::reconstruct(
+            ReconInput {
+                set: t.set.subset(selector.measured()),
+                ..input
+            },
+            &events,
+            &control,
+        )?
+    };
+    if let Some(why) = selector.stopped() {
+        println!("  stopped before the budget: {why}");
+    }
+    let record = serde_json::json!({
+        "order": order,
+        "candidates": t.set.len(),
+        "budget": selector.budget(),
+        "measured": selector.measured().len(),
+        "stopped": selector.stopped(),
+        "settings": settings.adaptive,
+        "batches": batches,
+    });
+    let path = out.join(ADAPTIVE_JSON);
+    std::fs::write(&path, serde_json::to_vec_pretty(&record).expect("plain data")).map_err(io(&path))?;
+    report(&result, out, clock, &events)?;
+    println!("  {}", path.display());
+    Ok(())
 }
+
+/// The replay's record of each batch's choice.
+pub const ADAPTIVE_JSON: &str = "adaptive.json";
 
 /// The process's peak resident memory (`VmHWM` of /proc/self/status), bytes; `None`
 /// where /proc is not there (not Linux).
@@ -99,7 +228,17 @@ fn finish(input: ReconInput, out: &Path) -> Result<(), OfflineError> {
     crate::progress::attach(&events);
     let t = std::time::Instant::now();
     let result = pipeline::reconstruct(input, &events, &Control::new())?;
-    let outputs = pipeline::write_outputs(out, &result, &events)?;
+    report(&result, out, t, &events)
+}
+
+/// Writes the outputs of `result` to `out` and says what took how long.
+fn report(
+    result: &pipeline::ReconResult,
+    out: &Path,
+    t: std::time::Instant,
+    events: &EventSink,
+) -> Result<(), OfflineError> {
+    let outputs = pipeline::write_outputs(out, result, events)?;
     let peak = peak_memory_bytes().map_or(String::new(), |b| {
         format!(", peak memory {:.0} MiB", b as f64 / (1u64 << 20) as f64)
     });

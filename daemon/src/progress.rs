@@ -62,6 +62,18 @@ pub fn attach(events: &EventSink) {
                 "fit converged: the last stage's loss stopped falling ([gtr] tolerance)"
             );
         }
+        RunEvent::PairsChosen(c) => {
+            tracing::info!(
+                batch = c.batch,
+                how = %c.how,
+                pairs = c.pairs.len(),
+                by_distance = c.explored,
+                relative_gain = c.relative_gain.map(|g| format!("{g:.3}")),
+                travel_m = format!("{:.2}", c.travel_m),
+                measured = c.measured,
+                "pairs chosen"
+            );
+        }
         RunEvent::Suspended { reason, resume } => {
             bar.set_message(format!("suspended: {reason}"));
             tracing::warn!(resume = %resume, "suspended, laser off: {reason}");

@@ -667,13 +667,23 @@ async fn the_page_stays_true_to_the_instrument_and_to_the_run() {
     let limit = Duration::from_secs(120);
     let http = reqwest::Client::new();
 
-    // A completed small run, submitted by a script.
+    // A completed small run, submitted by a script: an adaptive capture, whose choices
+    // the page draws from its event log.
+    let adaptive = SMALL
+        .replace(
+            "mode = \"confocal\"",
+            "mode = \"adaptive\"\ncandidates = \"confocal\"",
+        )
+        .replace("method = \"fbp\"", "method = \"gtr\"")
+        + "[recon.gtr]\nprimitives = 300\nepochs = 4\nvirtual-grid = [16, 16]\n\
+           [recon.adaptive]\npairs = 40\nfirst = 16\nbatch = 8\nlive-steps = 32\n";
+    assert!(adaptive.contains("candidates") && adaptive.contains("\"gtr\""));
     let small: Value = serde_json::from_slice(
         &http
             .post(format!("http://{direct}/api/v1/runs"))
             .bearer_auth(TOKEN)
             .header("content-type", "application/toml")
-            .body(SMALL)
+            .body(adaptive)
             .send()
             .await
             .unwrap()
@@ -741,6 +751,19 @@ async fn the_page_stays_true_to_the_instrument_and_to_the_run() {
     assert!(
         fetched["volume.npy"].is_null(),
         "the volume was fetched off screen: {fetched}"
+    );
+    // The adaptive capture's choices, from its event log: 16 spread, then three
+    // batches of 8 chosen by the fit, in the 3-D view and its caption.
+    let p = probe(&c).await;
+    assert_eq!(
+        (p["chosen"].as_u64(), p["chosenBatches"].as_u64()),
+        (Some(40), Some(4)),
+        "{p}"
+    );
+    let caption = text(&c, "#chosen-caption").await;
+    assert!(
+        caption.contains("40 pairs chosen in 4 batches") && caption.contains("for coverage"),
+        "{caption}"
     );
     assert_eq!(fetched["events.jsonl"], 1, "{fetched}");
     c.execute("document.getElementById('volume-part').scrollIntoView();", vec![])

@@ -44,6 +44,20 @@ fn run(tmp: &Path, name: &str, pause: Duration) -> (PathBuf, usize) {
 
 /// [`run`] with `sim.devices` set to `devices`.
 fn run_on(tmp: &Path, name: &str, pause: Duration, devices: &str) -> (PathBuf, usize) {
+    let (dir, live, _) = run_plan(tmp, name, pause, devices, &plan());
+    (dir, live)
+}
+
+/// What a run's listener saw of an adaptive capture's choices: how many batches were
+/// chosen, and how many of those the laser was on for while the fit chose them.
+#[derive(Debug, Default, PartialEq)]
+struct Choices {
+    batches: usize,
+    chosen_with_the_laser_on: usize,
+}
+
+/// Runs `plan` (see [`run`]); also returns what the listener saw of adaptive choices.
+fn run_plan(tmp: &Path, name: &str, pause: Duration, devices: &str, plan: &str) -> (PathBuf, usize, Choices) {
     let path = root().join("configs/instrument/sim.toml");
     let text = std::fs::read_to_string(&path)
         .unwrap()
@@ -53,11 +67,13 @@ fn run_on(tmp: &Path, name: &str, pause: Duration, devices: &str) -> (PathBuf, u
     let rig = periscope_daemon::devices::sim::SimBackend::from_config(&config)
         .unwrap()
         .unwrap();
-    let plan = TomlSource::from_text(tmp.join("plan.toml"), plan());
+    let plan = TomlSource::from_text(tmp.join("plan.toml"), plan.to_owned());
     let (dir, _, _) = pipeline::prepare(&plan, &src, Some(&tmp.join(name)), "test").unwrap();
     let events = EventSink::open(&dir).unwrap();
     let live = Arc::new(AtomicUsize::new(0));
     let counter = live.clone();
+    let choices = Arc::new(std::sync::Mutex::new((Choices::default(), false)));
+    let seen = choices.clone();
     events.listen(move |e| {
         if let RunEvent::Pair { .. } = e {
             std::thread::sleep(pause);
@@ -65,12 +81,24 @@ fn run_on(tmp: &Path, name: &str, pause: Duration, devices: &str) -> (PathBuf, u
         if let RunEvent::Train(TrainEvent::Epoch { epoch: 0, .. }) = e {
             counter.fetch_add(1, Ordering::SeqCst);
         }
+        let mut seen = seen.lock().unwrap();
+        match e {
+            RunEvent::Safety { emission, .. } => seen.1 = *emission,
+            RunEvent::PairsChosen(_) => {
+                seen.0.batches += 1;
+                if seen.1 {
+                    seen.0.chosen_with_the_laser_on += 1;
+                }
+            }
+            _ => {}
+        }
     });
     Run::open(&dir, Control::new(), Some(events), Some(&rig))
         .unwrap()
         .execute()
         .unwrap();
-    (dir, live.load(Ordering::SeqCst))
+    let choices = std::mem::take(&mut choices.lock().unwrap().0);
+    (dir, live.load(Ordering::SeqCst), choices)
 }
 
 #[test]
@@ -118,4 +146,81 @@ fn in_process_devices_give_the_wire_devices_run_bit_for_bit() {
             "{f} differs between the wire-level and the in-process devices"
         );
     }
+}
+
+/// An adaptive capture (`[pairs] mode = "adaptive"`) over the same 12 × 12 grid: the
+/// fit chooses each batch after the last one's live training, so a slowed capture
+/// chooses the same pairs and reconstructs the same volume bit for bit; it measures its
+/// budget and no more, and the laser is off whenever the fit is choosing.
+#[test]
+fn an_adaptive_capture_chooses_the_same_pairs_however_slow_the_instrument() {
+    let adaptive = plan().replace(
+        "mode = \"confocal\"",
+        "mode = \"adaptive\"\ncandidates = \"confocal\"",
+    ) + "[recon.adaptive]\npairs = 60\nfirst = 24\nbatch = 12\nlive-steps = 32\n";
+    assert!(adaptive.contains("candidates"), "the plan's [pairs] mode");
+    let tmp = tempfile::tempdir().unwrap();
+    let (fast, _, fast_choices) = run_plan(tmp.path(), "fast", Duration::ZERO, "wire", &adaptive);
+    let (slow, _, slow_choices) = run_plan(tmp.path(), "slow", Duration::from_millis(15), "wire", &adaptive);
+    for f in ["histograms.bin", "gaussians.ply", "volume.npy"] {
+        let (a, b) = (
+            std::fs::read(fast.join(f)).unwrap(),
+            std::fs::read(slow.join(f)).unwrap(),
+        );
+        assert!(a == b, "{f} differs between a fast and a slowed adaptive capture");
+    }
+    let chosen = |dir: &Path| -> Vec<serde_json::Value> {
+        std::fs::read_to_string(dir.join("events.jsonl"))
+            .unwrap()
+            .lines()
+            .filter_map(|l| serde_json::from_str::<serde_json::Value>(l).ok())
+            .filter(|v| v["event"] == "pairs-chosen")
+            .map(|v| serde_json::json!({"how": v["how"], "pairs": v["pairs"], "gains": v["gains"], "measured": v["measured"]}))
+            .collect()
+    };
+    let (a, b) = (chosen(&fast), chosen(&slow));
+    assert_eq!(a, b, "the choices differ");
+    // 24 spread, then three batches of 12 chosen by the fit: 60 pairs measured.
+    assert_eq!(a.len(), 4, "{a:?}");
+    assert_eq!(a[0]["how"], "spread");
+    assert!(
+        a[1..]
+            .iter()
+            .all(|b| b["how"] == "adaptive" && b["pairs"].as_array().unwrap().len() == 12)
+    );
+    assert_eq!(a[3]["measured"], 60);
+    let stored = periscope_daemon::store::HistogramLog::recover(&fast)
+        .unwrap()
+        .1
+        .records
+        .len();
+    assert_eq!(stored, 60, "pairs measured");
+    assert_eq!(
+        fast_choices,
+        Choices {
+            batches: 4,
+            chosen_with_the_laser_on: 0
+        }
+    );
+    assert_eq!(fast_choices, slow_choices);
+}
+
+/// The time budget (`[recon.adaptive] seconds`) ends the choosing: a budget shorter
+/// than the first batch leaves that batch, measured whole, and nothing chosen after it.
+#[test]
+fn an_adaptive_capture_stops_choosing_at_its_time_budget() {
+    let adaptive = plan().replace(
+        "mode = \"confocal\"",
+        "mode = \"adaptive\"\ncandidates = \"confocal\"",
+    ) + "[recon.adaptive]\npairs = 60\nfirst = 24\nbatch = 12\nlive-steps = 32\nseconds = 0.001\n";
+    let tmp = tempfile::tempdir().unwrap();
+    let (dir, _, choices) = run_plan(tmp.path(), "timed", Duration::ZERO, "wire", &adaptive);
+    assert_eq!(choices.batches, 1, "{choices:?}");
+    let stored = periscope_daemon::store::HistogramLog::recover(&dir)
+        .unwrap()
+        .1
+        .records
+        .len();
+    assert_eq!(stored, 24, "the first batch, whole");
+    assert!(dir.join("volume.npy").is_file());
 }

@@ -401,6 +401,63 @@ fn a_paused_and_a_panicked_capture_resume_with_every_pair_once() {
     }
 }
 
+/// An adaptive capture waits for its fit to choose each batch with the laser off; a
+/// pause while it waits ends the run paused within the poll (the laser already off),
+/// and the resumed run measures the rest of its budget, each pair once.
+#[test]
+fn an_adaptive_capture_paused_while_its_fit_chooses_resumes_to_its_budget() {
+    let _serial = ONE_AT_A_TIME.lock().unwrap_or_else(|p| p.into_inner());
+    let adaptive = plan().replace(
+        "mode = \"confocal\"",
+        "mode = \"adaptive\"\ncandidates = \"confocal\"",
+    ) + "[recon.adaptive]\npairs = 15\nfirst = 6\nbatch = 3\nlive-steps = 16\n";
+    let tmp = tempfile::tempdir().unwrap();
+    let (dir, rig) = prepare(tmp.path(), &adaptive);
+    let control = Control::new();
+    let events = EventSink::open(&dir).unwrap();
+    // The first live epoch: the first batch is stored and the capture waits for the fit.
+    let (c, r2) = (control.clone(), rig.clone());
+    let fired = Arc::new(Mutex::new(None::<(Instant, bool)>));
+    let at = fired.clone();
+    events.listen(move |e| {
+        if let RunEvent::Train(periscope_recon::gtr::TrainEvent::Epoch { epoch: 0, .. }) = e {
+            let mut at = at.lock().unwrap();
+            if at.is_none() {
+                *at = Some((Instant::now(), r2.emission()));
+                c.pause();
+            }
+        }
+    });
+    let t = Instant::now();
+    let r = Run::open(&dir, control, Some(events), Some(&rig))
+        .unwrap()
+        .execute();
+    assert!(r.is_err(), "{r:?}");
+    let (when, emitting) = fired.lock().unwrap().expect("a live epoch ran");
+    assert!(!emitting, "the laser was on while the fit chose");
+    assert!(
+        when.elapsed() < TRAINER_BOUND + Duration::from_secs(1),
+        "the pause took {:?}",
+        when.elapsed()
+    );
+    assert!(t.elapsed() < Duration::from_secs(60));
+    assert!(!rig.emission());
+    assert_eq!(RunInfo::load(&dir).unwrap().state, RunState::Paused);
+    assert_eq!(
+        read_log(&dir).unwrap().records.len(),
+        6,
+        "the first batch is kept"
+    );
+    execute(&dir, &rig, Control::new(), |_| {}).unwrap();
+    assert_eq!(RunInfo::load(&dir).unwrap().state, RunState::Completed);
+    let mut seen: Vec<u32> = read_log(&dir).unwrap().records.iter().map(|r| r.pair).collect();
+    assert_eq!(seen.len(), 15, "the budget");
+    seen.sort_unstable();
+    seen.dedup();
+    assert_eq!(seen.len(), 15, "a pair measured twice");
+    assert!(!rig.emission());
+}
+
 #[test]
 fn a_histogrammer_unplugged_for_good_fails_the_capture_keeps_its_pairs_and_resumes_once_back() {
     let _serial = ONE_AT_A_TIME.lock().unwrap_or_else(|p| p.into_inner());

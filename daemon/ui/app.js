@@ -16,6 +16,9 @@ const probe = {
   histograms: 0,
   lossPoints: 0,
   snapshots: 0,
+  // An adaptive capture's pairs chosen so far, and its batches.
+  chosen: 0,
+  chosenBatches: 0,
   resultsShown: false,
   sliceShown: false,
   streamsOpened: 0,
@@ -536,6 +539,8 @@ const view = new View3D($('view3d'));
 let histPlot = null;
 let lossPlot = null;
 let lossSteps = new Map();
+// An adaptive capture's choices, by batch (replayed events may repeat one).
+let chosenBatches = new Map();
 let live = null; // { id, abort: AbortController }
 let status = null;
 let statusAt = 0;
@@ -575,6 +580,7 @@ function select(id) {
   geometryStage = null;
   resultsFor = null;
   lossSteps = new Map();
+  chosenBatches = new Map();
   makePlots();
   view.clear();
   $('hist-caption').textContent = 'no histogram yet';
@@ -585,6 +591,7 @@ function select(id) {
   $('downloads').replaceChildren();
   $('view-caption').textContent = '';
   $('gauss-caption').textContent = '';
+  $('chosen-caption').textContent = '';
   $('view-colourbar').hidden = true;
     $('run-error').textContent = '';
   for (const c of ['depth-canvas', 'albedo-canvas', 'mip-x', 'mip-y', 'mip-z', 'slice-canvas']) $(c).width = 0;
@@ -680,15 +687,17 @@ async function loadHistory(id) {
     const buf = await fetchBytes(`/api/v1/runs/${id}/files/events.jsonl`);
     if (id !== selected) return;
     for (const line of new TextDecoder().decode(buf).split('\n')) {
-      if (!line.includes('"epoch"')) continue;
+      if (!line.includes('"epoch"') && !line.includes('"pairs-chosen"')) continue;
       try {
         const e = JSON.parse(line);
         if (e.event === 'epoch') lossSteps.set(e.step, e.loss);
+        if (e.event === 'pairs-chosen') chosenBatches.set(e.batch, e);
       } catch {
         // A line cut short by a crash: skip it.
       }
     }
     drawLoss();
+    drawChosen();
   } catch {
     // No events yet.
   }
@@ -756,6 +765,39 @@ function onHistogram(h) {
   }, 0));
 }
 
+// An adaptive capture chose a batch: its pairs' detection points join the 3-D view,
+// coloured by the expected gain each had when chosen (inferno, relative to the largest
+// so far); pairs taken for coverage (farthest from everything measured) are grey.
+function onPairsChosen(b) {
+  chosenBatches.set(b.batch, b);
+  drawChosen();
+}
+
+function drawChosen() {
+  const batches = [...chosenBatches.values()].sort((a, b) => a.batch - b.batch);
+  if (!batches.length) return;
+  const points = [];
+  const gains = [];
+  for (const b of batches) {
+    b.detection.forEach((p, i) => {
+      points.push(p);
+      gains.push(b.gains[i]);
+    });
+  }
+  const gmax = Math.max(...gains, 1e-30);
+  view.setPoints('chosen', points, {
+    colour: (i) => (gains[i] > 0 ? css(cmap(INFERNO, 0.25 + 0.75 * gains[i] / gmax)) : '#9aa0a6'),
+    size: 4,
+    alpha: 0.95,
+  });
+  const last = batches[batches.length - 1];
+  const byGain = gains.filter((g) => g > 0).length;
+  const rel = last.relative_gain == null ? '' : `, the last at ${last.relative_gain.toFixed(2)} of the first chosen batch's gain`;
+  $('chosen-caption').textContent = ` · adaptive capture: ${points.length.toLocaleString()} pairs chosen in ${batches.length} batches (${byGain} by expected gain, inferno up to ${gmax.toFixed(2)} nats; ${points.length - byGain} for coverage, grey${rel})`;
+  probe.chosen = points.length;
+  probe.chosenBatches = batches.length;
+}
+
 function onSnapshot(s) {
   const wmax = Math.max(...s.weights, 1e-30);
   view.setPoints('gaussians', s.centres, {
@@ -804,6 +846,9 @@ function onEvent(name, data) {
       break;
     case 'snapshot':
       onSnapshot(data);
+      break;
+    case 'pairs-chosen':
+      onPairsChosen(data);
       break;
         case 'failed':
       banner(`run ${selected} failed: ${data.message}`, 'error', selected);

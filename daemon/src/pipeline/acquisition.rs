@@ -2,6 +2,7 @@
 //! histogram log, and streamed (in hidden path length) to the 3D-GTR optimiser.
 use std::collections::HashSet;
 use std::sync::mpsc;
+use std::time::Duration;
 
 use periscope_drivers::{HistogramFlags, TdcConfig};
 use periscope_recon::transient::hidden_axis;
@@ -10,6 +11,7 @@ use periscope_recon::{Pair, TransientSet};
 use super::reconstruct::{Fit, ReconInput};
 use super::safety::FlagRun;
 use super::{PipelineError, ReconError, Run};
+use crate::adaptive::{Order, Selector};
 use crate::events::RunEvent;
 use crate::plan::{Acquisition, Method, PlannedPair};
 use crate::record::record_transient;
@@ -89,6 +91,115 @@ impl Run {
             }
         }
         self.info.pairs_done = stored.len();
+        if self.plan.adaptive && self.plan.recon.method == Method::Gtr {
+            // An adaptive capture: the planned pairs are candidates; a first batch
+            // spread over them, then each batch chosen by the fit after the last one's
+            // live training, until the budget or the stopping rule ends it.
+            let mut selector = Selector::new(
+                recon_pairs.clone(),
+                self.plan.recon.adaptive.clone(),
+                Order::Adaptive,
+            );
+            selector.resume(&held.iter().map(|r| r.pair as usize).collect::<Vec<_>>());
+            let total = selector.budget();
+            self.info.pairs_total = total;
+            let live_steps = self.plan.recon.adaptive.live_steps;
+            let mut next = selector.first_rest();
+            if next.is_none() && selector.measured().len() >= total {
+                // Resumed with the budget already measured: nothing to choose.
+                fit.add(&batch)?;
+                return Ok((fit, held));
+            }
+            let (tx, rx) = mpsc::channel::<TransientSet>();
+            let (model_tx, model_rx) = mpsc::channel();
+            let mut start = Some((rx, model_tx));
+            let settle = self.settle_timeout();
+            let mut flagged = FlagRun::default();
+            let mut prepared = false;
+            let started = std::time::Instant::now();
+            loop {
+                if let Some(choice) = next.take() {
+                    self.events.emit(RunEvent::PairsChosen(choice.clone()));
+                    if !prepared {
+                        self.prepare_capture(&acq)?;
+                        prepared = true;
+                    }
+                    self.laser_on()?;
+                    for &i in &choice.pairs {
+                        if stored.contains(&(i as u32)) {
+                            continue;
+                        }
+                        let p = &pairs[i];
+                        let rec = self.measure(i, p, &acq, settle, &mut flagged)?;
+                        self.store(&mut log, &mut stored, &rec)?;
+                        push(&mut batch, &rec)?;
+                        self.announce(i, p, &rec, &acq, stored.len(), total);
+                        held.push(rec);
+                    }
+                    log.sync().map_err(|e| PipelineError::storage(log.path(), e))?;
+                    // The laser is off while the fit chooses the next batch (seconds of
+                    // training with nothing to measure).
+                    self.devices.laser.set_emission(false)?;
+                    self.report_laser();
+                    self.save_info()?;
+                }
+                let full = std::mem::replace(&mut batch, counts()?);
+                if start.is_some() && full.is_empty() {
+                    // Nothing to fit yet (every histogram flagged and left out): spread
+                    // another batch instead of waiting for a fit that cannot start.
+                    next = selector.spread();
+                    if next.is_none() {
+                        break;
+                    }
+                    continue;
+                }
+                match start.take() {
+                    Some((rx, model_tx)) => fit.start_training(
+                        full,
+                        rx,
+                        self.events.clone(),
+                        self.control.clone(),
+                        Some((model_tx, live_steps)),
+                    )?,
+                    None => {
+                        let _ = tx.send(full);
+                    }
+                }
+                // The fit's model once the batch has had its live training; a stop or
+                // pause is answered while waiting. A fit that ended sends nothing more
+                // (`finish` reports why).
+                let model = loop {
+                    self.checkpoint()?;
+                    match model_rx.recv_timeout(MODEL_POLL) {
+                        Ok(m) => break Some(m),
+                        Err(mpsc::RecvTimeoutError::Timeout) => continue,
+                        Err(mpsc::RecvTimeoutError::Disconnected) => break None,
+                    }
+                };
+                let Some(model) = model else { break };
+                let budget_s = self.plan.recon.adaptive.seconds;
+                if budget_s > 0.0 && started.elapsed().as_secs_f64() >= budget_s {
+                    selector.stop(format!(
+                        "the capture has run {:.0} s, its time budget (adaptive.seconds = {budget_s})",
+                        started.elapsed().as_secs_f64()
+                    ));
+                }
+                match selector.next(&model, &axis) {
+                    Some(c) => next = Some(c),
+                    None => break,
+                }
+            }
+            if let Some(why) = selector.stopped() {
+                tracing::info!(
+                    measured = stored.len(),
+                    budget = total,
+                    "adaptive capture ended before its budget: {why}"
+                );
+            }
+            self.save_info()?;
+            drop(tx);
+            return Ok((fit, held));
+        }
         let total = pairs.len();
         let streaming = self.plan.recon.method == Method::Gtr;
         // The optimiser starts once a quarter of the pairs (at least 64) are in.
@@ -116,6 +227,7 @@ impl Run {
                     rx.take().expect("started once"),
                     events.clone(),
                     control.clone(),
+                    None,
                 )?;
             } else if full.len() >= feed_batch || force {
                 let _ = tx.send(full);
@@ -125,18 +237,7 @@ impl Run {
             Ok(())
         };
         if stored.len() < total {
-            let cfg = TdcConfig {
-                bin_width: acq.bin_width,
-                bins: acq.bins,
-                offset: acq.offset,
-                sync_divider: self.instrument.tdc.sync_divider,
-                acquisition: acq.dwell,
-            };
-            self.devices.tdc.configure(&cfg)?;
-            self.devices.laser.set_diffuser(false)?;
-            self.checkpoint()?;
-            // The histogrammer must answer before the laser goes on.
-            self.devices.tdc.status()?;
+            self.prepare_capture(&acq)?;
             self.laser_on()?;
             let settle = self.settle_timeout();
             let mut flagged = FlagRun::default();
@@ -145,65 +246,10 @@ impl Run {
                 if stored.contains(&(i as u32)) {
                     continue;
                 }
-                // Measured again after a suspension that cleared by itself.
-                let (counts, flags) = loop {
-                    self.checkpoint()?;
-                    // Both arms move at once; each wait accepts only its commanded target.
-                    self.devices.laser_arm.move_to(p.laser)?;
-                    self.devices.spad.move_to(p.spad)?;
-                    self.devices.laser_arm.wait_settled(settle)?;
-                    self.devices.spad.wait_settled(settle)?;
-                    let mut counts = vec![0u32; acq.bins as usize];
-                    let mut flags = HistogramFlags::default();
-                    for _ in 0..acq.repeats {
-                        self.checkpoint()?;
-                        let h = self.acquire()?;
-                        for (c, v) in counts.iter_mut().zip(&h.counts) {
-                            *c = c.saturating_add(*v);
-                        }
-                        flags.overflow |= h.flags.overflow;
-                        flags.saturated |= h.flags.saturated;
-                    }
-                    match self.capture_suspension(flags, &mut flagged)? {
-                        None => break (counts, flags),
-                        // This pair's histograms are not kept: the light changed under them.
-                        Some(s) => self.suspend(s)?,
-                    }
-                };
-                let rec = Record {
-                    pair: i as u32,
-                    flags,
-                    bin_width_ps: (acq.bin_width * 1e12).round() as u32,
-                    offset_ps: (acq.offset * 1e12).round() as u32,
-                    dwell_us: (acq.dwell.as_micros() as u64) * u64::from(acq.repeats),
-                    counts,
-                };
-                log.append(&rec)
-                    .map_err(|e| PipelineError::storage(log.path(), e))?;
-                stored.insert(i as u32);
-                self.info.pairs_done = stored.len();
+                let rec = self.measure(i, p, &acq, settle, &mut flagged)?;
+                self.store(&mut log, &mut stored, &rec)?;
                 push(&mut batch, &rec)?;
-                let (peak_bin, _) = rec
-                    .counts
-                    .iter()
-                    .enumerate()
-                    .max_by_key(|(_, c)| **c)
-                    .unwrap_or((0, &0));
-                self.events.emit(RunEvent::histogram(
-                    i,
-                    p,
-                    &rec.counts,
-                    rec.dwell_us,
-                    acq.bin_width,
-                    acq.offset,
-                ));
-                self.events.emit(RunEvent::Pair {
-                    done: stored.len(),
-                    total,
-                    counts: rec.counts.iter().map(|&c| u64::from(c)).sum(),
-                    peak_bin,
-                    flagged: flags.overflow || flags.saturated,
-                });
+                self.announce(i, p, &rec, &acq, stored.len(), total);
                 feed(&mut fit, &mut batch, stored.len(), false)?;
                 held.push(rec);
                 if stored.len().is_multiple_of(64) {
@@ -223,6 +269,119 @@ impl Run {
             fit.add(&batch)?;
         }
         Ok((fit, held))
+    }
+}
+
+/// How often a capture waiting for the fit's choice checks for a stop or pause.
+const MODEL_POLL: Duration = Duration::from_millis(50);
+
+impl Run {
+    /// Configures the histogrammer for the plan's acquisition and takes the diffuser
+    /// out; the histogrammer must answer before the laser goes on.
+    fn prepare_capture(&mut self, acq: &Acquisition) -> Result<(), PipelineError> {
+        let cfg = TdcConfig {
+            bin_width: acq.bin_width,
+            bins: acq.bins,
+            offset: acq.offset,
+            sync_divider: self.instrument.tdc.sync_divider,
+            acquisition: acq.dwell,
+        };
+        self.devices.tdc.configure(&cfg)?;
+        self.devices.laser.set_diffuser(false)?;
+        self.checkpoint()?;
+        self.devices.tdc.status()?;
+        Ok(())
+    }
+
+    /// Measures pair `i` (`p`): both arms moved and settled, the plan's repeats summed;
+    /// measured again after a suspension that cleared by itself.
+    fn measure(
+        &mut self,
+        i: usize,
+        p: &PlannedPair,
+        acq: &Acquisition,
+        settle: Duration,
+        flagged: &mut FlagRun,
+    ) -> Result<Record, PipelineError> {
+        let (counts, flags) = loop {
+            self.checkpoint()?;
+            // Both arms move at once; each wait accepts only its commanded target.
+            self.devices.laser_arm.move_to(p.laser)?;
+            self.devices.spad.move_to(p.spad)?;
+            self.devices.laser_arm.wait_settled(settle)?;
+            self.devices.spad.wait_settled(settle)?;
+            let mut counts = vec![0u32; acq.bins as usize];
+            let mut flags = HistogramFlags::default();
+            for _ in 0..acq.repeats {
+                self.checkpoint()?;
+                let h = self.acquire()?;
+                for (c, v) in counts.iter_mut().zip(&h.counts) {
+                    *c = c.saturating_add(*v);
+                }
+                flags.overflow |= h.flags.overflow;
+                flags.saturated |= h.flags.saturated;
+            }
+            match self.capture_suspension(flags, flagged)? {
+                None => break (counts, flags),
+                // This pair's histograms are not kept: the light changed under them.
+                Some(s) => self.suspend(s)?,
+            }
+        };
+        Ok(Record {
+            pair: i as u32,
+            flags,
+            bin_width_ps: (acq.bin_width * 1e12).round() as u32,
+            offset_ps: (acq.offset * 1e12).round() as u32,
+            dwell_us: (acq.dwell.as_micros() as u64) * u64::from(acq.repeats),
+            counts,
+        })
+    }
+
+    /// Appends a measured pair's record to the histogram log and counts it stored.
+    fn store(
+        &mut self,
+        log: &mut HistogramLog,
+        stored: &mut HashSet<u32>,
+        rec: &Record,
+    ) -> Result<(), PipelineError> {
+        log.append(rec)
+            .map_err(|e| PipelineError::storage(log.path(), e))?;
+        stored.insert(rec.pair);
+        self.info.pairs_done = stored.len();
+        Ok(())
+    }
+
+    /// The live displays' events for a stored pair: its histogram and the progress.
+    fn announce(
+        &self,
+        i: usize,
+        p: &PlannedPair,
+        rec: &Record,
+        acq: &Acquisition,
+        done: usize,
+        total: usize,
+    ) {
+        let (peak_bin, _) = rec
+            .counts
+            .iter()
+            .enumerate()
+            .max_by_key(|(_, c)| **c)
+            .unwrap_or((0, &0));
+        self.events.emit(RunEvent::histogram(
+            i,
+            p,
+            &rec.counts,
+            rec.dwell_us,
+            acq.bin_width,
+            acq.offset,
+        ));
+        self.events.emit(RunEvent::Pair {
+            done,
+            total,
+            counts: rec.counts.iter().map(|&c| u64::from(c)).sum(),
+            peak_bin,
+            flagged: rec.flags.overflow || rec.flags.saturated,
+        });
     }
 }
 

@@ -24,6 +24,7 @@ pub use crate::signals::panic_message;
 pub use control::{Control, Request};
 pub use los::{first_bounce_range, peak};
 pub use output::{RELAY_PLY, RunOutputs, write_outputs};
+pub(crate) use reconstruct::Fit;
 pub use reconstruct::{MAX_VIRTUAL_RESOLUTION, ReconInput, ReconResult, reconstruct};
 pub use run::{Run, RunSummary, prepare};
 

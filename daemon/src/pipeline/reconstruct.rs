@@ -1,12 +1,12 @@
 //! Reconstruction: the 3D-GTR fit (already running during capture when streaming),
 //! virtual confocal synthesis on a plane fitted to the detection points, and a
 //! conventional solver; or a solver straight on the measured pairs.
-use std::sync::mpsc::Receiver;
+use std::sync::mpsc::{Receiver, Sender};
 use std::thread::JoinHandle;
 use std::time::Instant;
 
 use glam::DVec3;
-use periscope_recon::gtr::{CancelToken, GaussianCloud, TrainError, TrainSummary, Trainer};
+use periscope_recon::gtr::{CancelToken, GaussianCloud, LiveModel, TrainError, TrainSummary, Trainer};
 use periscope_recon::relay::VirtualRelay;
 use periscope_recon::solver::lateral_voxel_pitch;
 use periscope_recon::synth::{default_axis, synthesise};
@@ -80,13 +80,16 @@ impl Fit {
         Ok(self.input.set.extend(more).map_err(ReconError::from)?)
     }
 
-    /// Starts the optimiser on `first`, with `feed` bringing the rest.
+    /// Starts the optimiser on `first`, with `feed` bringing the rest; with `live`, the
+    /// model goes to its sender after each batch's live training of at least its steps
+    /// (an adaptive capture's choices, [`Trainer::report_live_model`]).
     pub(crate) fn start_training(
         &mut self,
         first: TransientSet,
         feed: Receiver<TransientSet>,
         events: EventSink,
         control: Control,
+        live: Option<(Sender<LiveModel>, usize)>,
     ) -> Result<(), PipelineError> {
         let config = self.input.settings.train.clone();
         let roi = roi(&self.input.settings.volume)?;
@@ -97,6 +100,9 @@ impl Fit {
             .spawn(move || {
                 let t = Instant::now();
                 let mut trainer = Trainer::new(config, roi, first)?;
+                if let Some((tx, steps)) = live {
+                    trainer.report_live_model(tx, steps);
+                }
                 let summary = trainer.run(Some(feed), &cancel, &mut |e| {
                     if control.stopping() {
                         cancel.cancel();
@@ -135,6 +141,41 @@ impl Fit {
             }
             None => reconstruct(self.take_input(), events, control),
         }
+    }
+
+    /// Stops the fit that ran alongside the capture and fits its data afresh, with the
+    /// full schedule from a new start: an adaptive capture's live fit exists to choose
+    /// pairs, and continuing it costs the result (on the validation captures, all of
+    /// their pairs streamed in the adaptive batches and continued scored 0.940 and
+    /// 0.906 where a fit from the start scores 0.964 and 0.976; docs/adaptive.md).
+    pub(crate) fn refit(
+        mut self,
+        events: &EventSink,
+        control: &Control,
+    ) -> Result<ReconResult, PipelineError> {
+        let set = match self.trainer.take() {
+            Some(handle) => {
+                self.cancel.cancel();
+                let (trainer, _, _) = handle
+                    .join()
+                    .map_err(|_| ReconError::Thread("panicked".into()))?
+                    .map_err(ReconError::from)?;
+                trainer.data().clone()
+            }
+            None => {
+                let empty = TransientSet::new(*self.input.set.axis()).map_err(ReconError::from)?;
+                std::mem::replace(&mut self.input.set, empty)
+            }
+        };
+        control.check(crate::events::Stage::Reconstruction, set.len())?;
+        reconstruct(
+            ReconInput {
+                set,
+                ..self.take_input()
+            },
+            events,
+            control,
+        )
     }
 
     fn take_input(&mut self) -> ReconInput {

@@ -426,7 +426,11 @@ impl Run {
         self.finish_stage(Stage::Capture, t);
         let t = Instant::now();
         self.set_stage(Stage::Reconstruction)?;
-        let result = fit.finish(&self.events, &self.control)?;
+        let result = if self.plan.adaptive {
+            fit.refit(&self.events, &self.control)?
+        } else {
+            fit.finish(&self.events, &self.control)?
+        };
         self.checkpoint()?;
         self.finish_stage(Stage::Reconstruction, t);
         let t = Instant::now();

@@ -25,8 +25,13 @@ pub struct Plan {
     pub los: LosStage,
     /// Turning LOS points into the relay.
     pub relay: RelayStage,
-    /// Which pairs to measure.
+    /// Which pairs to measure: all of them, or (`adaptive`) the candidates the running
+    /// fit chooses from.
     pub pairs: PairMode,
+    /// Whether the capture is adaptive (`[pairs] mode = "adaptive"`): `pairs` lays out
+    /// the candidates, and `recon.adaptive` says how many are measured and how they
+    /// are chosen (docs/adaptive.md).
+    pub adaptive: bool,
     /// How each pair is measured.
     pub acquisition: Acquisition,
     /// How the hidden scene is reconstructed.
@@ -294,6 +299,7 @@ impl Plan {
             illumination: region("relay.illumination", &raw.relay.illumination)?,
             detection: region("relay.detection", &raw.relay.detection)?,
         };
+        let adaptive = raw.pairs.is_adaptive();
         let pairs = pairs::pair_mode(src, raw.pairs)?;
         let a = raw.acquisition;
         let acquisition = Acquisition {
@@ -324,6 +330,12 @@ impl Plan {
             },
         };
         let recon = recon::recon_settings(src, "recon.", raw.recon, None)?;
+        if adaptive && recon.method != Method::Gtr {
+            return Err(src.invalid(
+                "pairs.mode",
+                "\"adaptive\" needs recon.method = \"gtr\": the running 3D-GTR fit chooses the pairs; use another mode with a solver",
+            ));
+        }
         let sus = raw.suspend;
         let suspend = Suspenders {
             flagged_frames: match sus.flagged_frames.unwrap_or(DEFAULT_FLAGGED_FRAMES) {
@@ -362,6 +374,7 @@ impl Plan {
             los,
             relay,
             pairs,
+            adaptive,
             acquisition,
             recon,
             suspend,

@@ -115,6 +115,16 @@ pub(crate) struct RawPairs {
     #[serde(default)]
     seed: u64,
     mask: Option<Vec<String>>,
+    candidates: Option<String>,
+}
+
+impl RawPairs {
+    /// Whether the plan asks for an adaptive capture (`mode = "adaptive"`): the pairs
+    /// the `candidates` planner lays out are candidates, and the running fit chooses
+    /// which of them to measure (`[recon.adaptive]`).
+    pub(crate) fn is_adaptive(&self) -> bool {
+        self.mode == "adaptive"
+    }
 }
 
 pub(crate) fn pair_mode(src: &TomlSource, raw: RawPairs) -> Result<PairMode, ConfigError> {
@@ -129,7 +139,29 @@ pub(crate) fn pair_mode(src: &TomlSource, raw: RawPairs) -> Result<PairMode, Con
         return Err(src.invalid("pairs.offset-mm", "must be 0 to 100 mm"));
     }
     let offset = raw.offset_mm * 1e-3;
-    match raw.mode.as_str() {
+    let mode = if raw.is_adaptive() {
+        match raw.candidates.as_deref() {
+            Some("adaptive") => {
+                return Err(src.invalid("pairs.candidates", "must name the planner whose pairs are the candidates: \"confocal\", \"fixed-laser\", \"scanned\", \"random\" or \"mask\""));
+            }
+            Some(m) => m,
+            None => {
+                return Err(src.invalid(
+                    "pairs.candidates",
+                    "is required for mode \"adaptive\": the planner whose pairs the fit chooses from (\"confocal\", \"fixed-laser\", \"scanned\", \"random\" or \"mask\", with its keys)",
+                ));
+            }
+        }
+    } else {
+        if raw.candidates.is_some() {
+            return Err(src.invalid(
+                "pairs.candidates",
+                "is only for mode = \"adaptive\"; remove it, or set that mode",
+            ));
+        }
+        raw.mode.as_str()
+    };
+    match mode {
         "confocal" => Ok(PairMode::Confocal {
             grid: grid("pairs.grid", raw.grid)?,
             offset,
@@ -182,7 +214,7 @@ pub(crate) fn pair_mode(src: &TomlSource, raw: RawPairs) -> Result<PairMode, Con
         }
         other => Err(src.invalid(
             "pairs.mode",
-            format!("`{other}` is not a mode: use \"confocal\", \"fixed-laser\", \"scanned\", \"random\" or \"mask\""),
+            format!("`{other}` is not a mode: use \"confocal\", \"fixed-laser\", \"scanned\", \"random\", \"mask\" or \"adaptive\" (with `candidates`, one of the others)"),
         )),
     }
 }

@@ -8,6 +8,7 @@ use periscope_recon::solver::{
 use serde::de::{self, value::StrDeserializer};
 use serde::{Deserialize, Deserializer, Serialize, Serializer};
 
+use crate::adaptive::{AdaptiveSettings, RawAdaptive, adaptive_settings};
 use crate::config::{ConfigError, TomlSource};
 
 /// How the hidden scene is reconstructed: `method = "gtr"`, or the name of a solver
@@ -123,6 +124,8 @@ pub struct ReconSettings {
     pub solvers: SolverSettings,
     /// Whether the counts are divided by the laser's `cos θ / d²` falloff first.
     pub laser_falloff: LaserFalloff,
+    /// How an adaptive capture, or its replay, chooses its pairs (`[adaptive]`).
+    pub adaptive: AdaptiveSettings,
 }
 
 /// Whether a capture's histograms carry the falloff of a point-source laser, which
@@ -162,6 +165,8 @@ pub(crate) struct RawRecon {
     rsd: Option<RsdSettings>,
     #[serde(default)]
     laser_falloff: Option<String>,
+    #[serde(default)]
+    adaptive: RawAdaptive,
 }
 
 #[derive(Deserialize)]
@@ -537,6 +542,7 @@ pub(crate) fn recon_settings(
         depth_threshold,
         solvers,
         laser_falloff,
+        adaptive: adaptive_settings(src, prefix, raw.adaptive)?,
     })
 }
 

@@ -1,0 +1,643 @@
+//! Adaptive capture: the running 3D-GTR fit chooses the next pairs to measure
+//! (docs/adaptive.md).
+//!
+//! A capture, or its replay on a stored capture, measures a first batch spread over
+//! the candidate pairs (farthest-point order over both relay points), then asks the fit,
+//! after each batch's live training, which candidates would tell it most: the
+//! D-optimal gain of each candidate's information about the primitives' centres
+//! ([`periscope_recon::adaptive`]), chosen greedily, with a share of each batch kept
+//! for the candidates farthest from everything measured (what the fit has not found
+//! cannot ask to be looked at). A batch is measured in the order of a
+//! nearest-neighbour tour of the galvos. The capture ends at the pair budget, or once a
+//! batch's mean gain has fallen below `stop-gain` of the first choice's.
+use rand::SeedableRng;
+use rand::seq::{IndexedRandom, SliceRandom};
+use rand_chacha::ChaCha8Rng;
+use serde::{Deserialize, Serialize};
+
+use periscope_recon::Pair;
+use periscope_recon::adaptive::{InformationSums, choose, farthest_points, terms_of, tour, travel};
+use periscope_recon::gtr::LiveModel;
+use periscope_recon::transient::TimeAxis;
+
+use crate::config::{ConfigError, TomlSource};
+
+/// The first batch when `first` is not set: this fraction of the budget ...
+const FIRST_FRACTION: f64 = 0.25;
+/// ... and each next batch: this fraction of it ...
+const BATCH_FRACTION: f64 = 0.0625;
+/// ... each at least this many pairs.
+const MIN_BATCH: usize = 8;
+
+/// Candidates scored for one choice at most (a seeded sample of the rest beyond it),
+/// and measured pairs whose terms are held at once: with each pair's terms capped
+/// ([`periscope_recon::adaptive::MAX_TERMS`]), a choice holds at most about 170 MB.
+const MAX_SCORED: usize = 8192;
+
+/// The default share of each chosen batch taken by distance instead of by gain. Half:
+/// measured against a quarter, three quarters and none on the validation captures
+/// (three seeds, half or an eighth of their pairs; docs/adaptive.md).
+const DEFAULT_EXPLORE: f64 = 0.5;
+/// The default live optimiser steps each batch gets before the next choice.
+const DEFAULT_LIVE_STEPS: usize = 512;
+
+/// How the next pairs are chosen.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
+#[serde(rename_all = "kebab-case")]
+pub enum Order {
+    /// By the running fit (the adaptive capture).
+    Adaptive,
+    /// Farthest-point order over the candidates: an even spread, the uniform grid's
+    /// coarse-to-fine order on a grid.
+    Uniform,
+    /// A seeded random order.
+    Random,
+}
+
+impl std::fmt::Display for Order {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            Order::Adaptive => "adaptive",
+            Order::Uniform => "uniform",
+            Order::Random => "random",
+        })
+    }
+}
+
+/// Validated `[adaptive]` settings (`[recon.adaptive]` in a plan).
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct AdaptiveSettings {
+    /// Pairs to measure at most; 0: half of the candidates.
+    pub pairs: usize,
+    /// Pairs in the first batch; 0: a quarter of the budget.
+    pub first: usize,
+    /// Pairs in each later batch; 0: a sixteenth of the budget.
+    pub batch: usize,
+    /// The capture stops once a batch's mean gain per pair falls below this fraction of
+    /// the first chosen batch's; 0: never (the budget alone ends it).
+    pub stop_gain: f64,
+    /// The share of each chosen batch taken farthest from what was measured.
+    pub explore: f64,
+    /// Live optimiser steps each batch gets before the next choice, at least.
+    pub live_steps: usize,
+    /// Seed of the random order (replays).
+    pub seed: u64,
+    /// A live capture chooses no more batches once it has run this long, seconds
+    /// (the batch being measured is finished); 0: no time budget.
+    pub seconds: f64,
+}
+
+impl Default for AdaptiveSettings {
+    fn default() -> Self {
+        Self {
+            pairs: 0,
+            first: 0,
+            batch: 0,
+            stop_gain: 0.0,
+            explore: DEFAULT_EXPLORE,
+            live_steps: DEFAULT_LIVE_STEPS,
+            seed: 0,
+            seconds: 0.0,
+        }
+    }
+}
+
+/// The `[adaptive]` table as written.
+#[derive(Deserialize, Default)]
+#[serde(deny_unknown_fields, rename_all = "kebab-case")]
+pub(crate) struct RawAdaptive {
+    pairs: Option<usize>,
+    first: Option<usize>,
+    batch: Option<usize>,
+    stop_gain: Option<f64>,
+    explore: Option<f64>,
+    live_steps: Option<usize>,
+    seed: Option<u64>,
+    seconds: Option<f64>,
+}
+
+/// Validates an `[adaptive]` table whose keys are named `{prefix}adaptive.KEY`.
+pub(crate) fn adaptive_settings(
+    src: &TomlSource,
+    prefix: &str,
+    raw: RawAdaptive,
+) -> Result<AdaptiveSettings, ConfigError> {
+    let key = |k: &str| format!("{prefix}adaptive.{k}");
+    let d = AdaptiveSettings::default();
+    let s = AdaptiveSettings {
+        pairs: raw.pairs.unwrap_or(d.pairs),
+        first: raw.first.unwrap_or(d.first),
+        batch: raw.batch.unwrap_or(d.batch),
+        stop_gain: raw.stop_gain.unwrap_or(d.stop_gain),
+        explore: raw.explore.unwrap_or(d.explore),
+        live_steps: raw.live_steps.unwrap_or(d.live_steps),
+        seed: raw.seed.unwrap_or(d.seed),
+        seconds: raw.seconds.unwrap_or(d.seconds),
+    };
+    const MOST: usize = 1 << 24;
+    for (name, v) in [("pairs", s.pairs), ("first", s.first), ("batch", s.batch)] {
+        if v > MOST {
+            return Err(src.invalid(
+                &key(name),
+                format!("{v} is out of range: give 0 (the default) or a count of pairs up to {MOST}"),
+            ));
+        }
+    }
+    if s.pairs > 0 && s.first > s.pairs {
+        return Err(src.invalid(
+            &key("first"),
+            format!(
+                "{} is more than adaptive.pairs ({}): the first batch is part of the budget",
+                s.first, s.pairs
+            ),
+        ));
+    }
+    if !(s.stop_gain.is_finite() && (0.0..1.0).contains(&s.stop_gain)) {
+        return Err(src.invalid(
+            &key("stop-gain"),
+            format!("{} is out of range: give a fraction of the first batch's gain, 0 to 1 (e.g. 0.05); 0 stops at the budget only", s.stop_gain),
+        ));
+    }
+    if !(s.explore.is_finite() && (0.0..=1.0).contains(&s.explore)) {
+        return Err(src.invalid(
+            &key("explore"),
+            format!(
+                "{} is out of range: give the share of each batch chosen by distance, 0 to 1",
+                s.explore
+            ),
+        ));
+    }
+    if !(s.seconds.is_finite() && (0.0..=1e7).contains(&s.seconds)) {
+        return Err(src.invalid(
+            &key("seconds"),
+            format!(
+                "{} is out of range: give the capture's time budget in seconds, 0 (none) to 10000000",
+                s.seconds
+            ),
+        ));
+    }
+    if s.live_steps > 1_000_000 {
+        return Err(src.invalid(
+            &key("live-steps"),
+            format!(
+                "{} is out of range: give 0 to 1000000 optimiser steps",
+                s.live_steps
+            ),
+        ));
+    }
+    Ok(s)
+}
+
+/// One batch chosen, for the events and `adaptive.json`.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct BatchChoice {
+    /// The batch's index (0: the first batch).
+    pub batch: usize,
+    /// How it was chosen: `spread`, `adaptive`, `uniform` or `random`.
+    pub how: String,
+    /// The candidates chosen, in the order they are measured.
+    pub pairs: Vec<usize>,
+    /// Their illumination points, metres (for the dashboard's 3-D view).
+    pub illumination: Vec<[f64; 3]>,
+    /// Their detection points, metres.
+    pub detection: Vec<[f64; 3]>,
+    /// Each one's gain when chosen (nats); 0 for those taken by distance.
+    pub gains: Vec<f64>,
+    /// How many were taken by distance (`explore`).
+    pub explored: usize,
+    /// The mean gain of those chosen by gain, relative to the first chosen batch's.
+    pub relative_gain: Option<f64>,
+    /// The galvos' travel over the batch's tour, metres on the relay (the longer arm's).
+    pub travel_m: f64,
+    /// Pairs measured once this batch is.
+    pub measured: usize,
+}
+
+/// How many pairs an adaptive capture over some candidates measures: at most
+/// `budget`, the first `first` of them spread over the candidates, the rest in
+/// batches of `batch` chosen by the fit.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Sizes {
+    /// Pairs measured at most.
+    pub budget: usize,
+    /// The first batch.
+    pub first: usize,
+    /// Each later batch.
+    pub batch: usize,
+}
+
+impl Sizes {
+    /// The sizes for `candidates` candidate pairs under `s`.
+    pub fn of(candidates: usize, s: &AdaptiveSettings) -> Self {
+        let budget = match s.pairs {
+            0 => candidates.div_ceil(2),
+            b => b.min(candidates),
+        };
+        let auto = |f: f64| ((budget as f64 * f).round() as usize).max(MIN_BATCH);
+        let first = match s.first {
+            0 => auto(FIRST_FRACTION),
+            n => n,
+        }
+        .min(budget);
+        let batch = match s.batch {
+            0 => auto(BATCH_FRACTION),
+            n => n,
+        };
+        Self { budget, first, batch }
+    }
+
+    /// Choices the fit makes when the budget alone ends the capture.
+    pub fn rounds(&self) -> usize {
+        (self.budget - self.first).div_ceil(self.batch.max(1))
+    }
+}
+
+/// Chooses the batches of an adaptive capture (or of a replay in another order) from
+/// a fixed list of candidate pairs.
+pub struct Selector {
+    candidates: Vec<Pair>,
+    settings: AdaptiveSettings,
+    order: Order,
+    sizes: Sizes,
+    measured: Vec<usize>,
+    is_measured: Vec<bool>,
+    /// The random order's permutation.
+    shuffled: Vec<usize>,
+    /// Mean gain per pair of the first batch chosen by gain.
+    first_gain: Option<f64>,
+    batches: usize,
+    /// Why the selection stopped, once it has.
+    stopped: Option<String>,
+}
+
+impl Selector {
+    /// A selector over `candidates` (at least one).
+    pub fn new(candidates: Vec<Pair>, settings: AdaptiveSettings, order: Order) -> Self {
+        let n = candidates.len();
+        let sizes = Sizes::of(n, &settings);
+        let mut shuffled: Vec<usize> = (0..n).collect();
+        shuffled.shuffle(&mut ChaCha8Rng::seed_from_u64(settings.seed));
+        Self {
+            candidates,
+            settings,
+            order,
+            sizes,
+            measured: Vec::new(),
+            is_measured: vec![false; n],
+            shuffled,
+            first_gain: None,
+            batches: 0,
+            stopped: None,
+        }
+    }
+
+    /// The pairs the capture will measure at most.
+    pub fn budget(&self) -> usize {
+        self.sizes.budget
+    }
+
+    /// The candidates measured so far, in order.
+    pub fn measured(&self) -> &[usize] {
+        &self.measured
+    }
+
+    /// Why the selection ended before the budget, if it did.
+    pub fn stopped(&self) -> Option<&str> {
+        self.stopped.as_deref()
+    }
+
+    /// Ends the selection early: no batch is chosen after this (a live capture's time
+    /// budget, `seconds`).
+    pub fn stop(&mut self, why: String) {
+        self.stopped.get_or_insert(why);
+    }
+
+    fn first_size(&self) -> usize {
+        self.sizes.first
+    }
+
+    fn batch_size(&self) -> usize {
+        self.sizes.batch
+    }
+
+    fn take(
+        &mut self,
+        batch: Vec<usize>,
+        gains: Vec<f64>,
+        explored: usize,
+        how: &str,
+        relative: Option<f64>,
+    ) -> BatchChoice {
+        let from = self.measured.last().map(|&i| self.candidates[i]);
+        let order = tour(&self.candidates, &batch, from.as_ref());
+        let gain_of = |i: usize| batch.iter().position(|&b| b == i).map_or(0.0, |j| gains[j]);
+        let gains: Vec<f64> = order.iter().map(|&i| gain_of(i)).collect();
+        let mut at = from;
+        let mut travel_m = 0.0;
+        for &i in &order {
+            if let Some(p) = at {
+                travel_m += travel(&p, &self.candidates[i]);
+            }
+            at = Some(self.candidates[i]);
+        }
+        for &i in &order {
+            self.is_measured[i] = true;
+        }
+        self.measured.extend_from_slice(&order);
+        let choice = BatchChoice {
+            batch: self.batches,
+            how: how.into(),
+            illumination: order.iter().map(|&i| self.candidates[i].xi.to_array()).collect(),
+            detection: order.iter().map(|&i| self.candidates[i].xd.to_array()).collect(),
+            pairs: order,
+            gains,
+            explored,
+            relative_gain: relative,
+            travel_m,
+            measured: self.measured.len(),
+        };
+        self.batches += 1;
+        choice
+    }
+
+    /// Marks candidates already measured (a resumed capture's stored pairs, in the
+    /// order they were measured), without choosing anything.
+    pub fn resume(&mut self, measured: &[usize]) {
+        for &i in measured {
+            if i < self.candidates.len() && !self.is_measured[i] {
+                self.is_measured[i] = true;
+                self.measured.push(i);
+            }
+        }
+    }
+
+    /// What is left of the first batch after [`Selector::resume`]: `None` when the
+    /// pairs already measured cover it.
+    pub fn first_rest(&mut self) -> Option<BatchChoice> {
+        let n = self.first_size().saturating_sub(self.measured.len());
+        if n == 0 {
+            return None;
+        }
+        let batch = farthest_points(&self.candidates, &self.measured, n);
+        let k = batch.len();
+        Some(self.take(batch, vec![0.0; k], k, "spread", None))
+    }
+
+    /// Another batch spread around what was measured: for a fit that has nothing to
+    /// choose from yet (every histogram so far flagged and left out). `None` once the
+    /// budget is spent.
+    pub fn spread(&mut self) -> Option<BatchChoice> {
+        let n = self
+            .batch_size()
+            .min(self.sizes.budget.saturating_sub(self.measured.len()));
+        if n == 0 || self.stopped.is_some() {
+            return None;
+        }
+        let batch = farthest_points(&self.candidates, &self.measured, n);
+        let k = batch.len();
+        Some(self.take(batch, vec![0.0; k], k, "spread", None))
+    }
+
+    /// The first batch: spread over the candidates (random in the random order).
+    pub fn first(&mut self) -> BatchChoice {
+        let n = self.first_size();
+        match self.order {
+            Order::Random => {
+                let batch = self.shuffled[..n].to_vec();
+                self.take(batch, vec![0.0; n], 0, "random", None)
+            }
+            Order::Adaptive | Order::Uniform => {
+                let batch = farthest_points(&self.candidates, &[], n);
+                let how = if self.order == Order::Uniform {
+                    "uniform"
+                } else {
+                    "spread"
+                };
+                let k = batch.len();
+                self.take(batch, vec![0.0; k], k, how, None)
+            }
+        }
+    }
+
+    /// The next batch, chosen from `model` (the fit after the measured pairs' live
+    /// training) on the time axis `axis`; `None` once the budget is spent or the
+    /// expected gain has fallen below `stop-gain`.
+    pub fn next(&mut self, model: &LiveModel, axis: &TimeAxis) -> Option<BatchChoice> {
+        let left = self.sizes.budget.saturating_sub(self.measured.len());
+        if left == 0 || self.stopped.is_some() {
+            return None;
+        }
+        let n = self.batch_size().min(left);
+        match self.order {
+            Order::Random => {
+                let at = self.measured.len();
+                let batch = self.shuffled[at..at + n].to_vec();
+                Some(self.take(batch, vec![0.0; n], 0, "random", None))
+            }
+            Order::Uniform => {
+                let batch = farthest_points(&self.candidates, &self.measured, n);
+                let k = batch.len();
+                Some(self.take(batch, vec![0.0; k], k, "uniform", None))
+            }
+            Order::Adaptive => self.next_adaptive(model, axis, n),
+        }
+    }
+
+    fn next_adaptive(&mut self, model: &LiveModel, axis: &TimeAxis, n: usize) -> Option<BatchChoice> {
+        let mut open: Vec<usize> = (0..self.candidates.len())
+            .filter(|&i| !self.is_measured[i])
+            .collect();
+        if open.len() > MAX_SCORED {
+            // A seeded sample, new each batch: the terms of every candidate of a huge
+            // relay need not be held at once.
+            let mut rng =
+                ChaCha8Rng::seed_from_u64(self.settings.seed ^ (self.batches as u64).rotate_left(32));
+            open = open.choose_multiple(&mut rng, MAX_SCORED).copied().collect();
+            open.sort_unstable();
+        }
+        let pairs = |idx: &[usize]| -> Vec<Pair> { idx.iter().map(|&i| self.candidates[i]).collect() };
+        let mut sums = InformationSums::new(model.kernels.len());
+        for chunk in self.measured.chunks(MAX_SCORED) {
+            sums.add(&terms_of(&model.kernels, &pairs(chunk), axis, &model.options));
+        }
+        let open_terms = terms_of(&model.kernels, &pairs(&open), axis, &model.options);
+        let mut info = sums.finish(&open_terms);
+        let by_gain = n - ((n as f64 * self.settings.explore).round() as usize).min(n);
+        let chosen = choose(&mut info, &open_terms, by_gain);
+        let mean = if chosen.is_empty() {
+            0.0
+        } else {
+            chosen.iter().map(|c| c.gain).sum::<f64>() / chosen.len() as f64
+        };
+        let first = *self.first_gain.get_or_insert(mean);
+        let relative = if first > 0.0 { mean / first } else { 0.0 };
+        if self.settings.stop_gain > 0.0 && relative < self.settings.stop_gain {
+            self.stopped = Some(format!(
+                "the expected gain of the next batch fell to {relative:.3} of the first chosen batch's (adaptive.stop-gain = {})",
+                self.settings.stop_gain
+            ));
+            return None;
+        }
+        let mut batch: Vec<usize> = chosen.iter().map(|c| open[c.index]).collect();
+        let mut gains: Vec<f64> = chosen.iter().map(|c| c.gain).collect();
+        // The rest by distance from everything measured or chosen: what the fit has
+        // not found cannot ask to be looked at.
+        let taken: Vec<usize> = self.measured.iter().chain(&batch).copied().collect();
+        let spread = farthest_points(&self.candidates, &taken, n - batch.len());
+        let explored = spread.len();
+        gains.extend(std::iter::repeat_n(0.0, explored));
+        batch.extend(spread);
+        Some(self.take(batch, gains, explored, "adaptive", Some(relative)))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use glam::{DMat3, DVec3};
+    use periscope_recon::gtr::{Kernel, RenderOptions};
+
+    use super::*;
+
+    fn wall(n: usize) -> Vec<Pair> {
+        (0..n * n)
+            .map(|i| {
+                let (x, y) = (
+                    (i % n) as f64 / (n - 1) as f64 - 0.5,
+                    (i / n) as f64 / (n - 1) as f64 - 0.5,
+                );
+                Pair::confocal(DVec3::new(x, y, 0.0), DVec3::Z)
+            })
+            .collect()
+    }
+
+    fn model(kernels: Vec<Kernel>) -> LiveModel {
+        LiveModel {
+            kernels,
+            options: RenderOptions::default(),
+            pairs: 0,
+            step: 0,
+        }
+    }
+
+    fn axis() -> TimeAxis {
+        TimeAxis {
+            start: 0.0,
+            width: 0.01,
+            bins: 400,
+        }
+    }
+
+    #[test]
+    fn every_order_measures_each_candidate_at_most_once_and_stops_at_the_budget() {
+        let target = Kernel::new(
+            DVec3::new(0.3, 0.3, 0.5),
+            DMat3::IDENTITY,
+            DVec3::splat(0.02),
+            1.0,
+        );
+        for order in [Order::Adaptive, Order::Uniform, Order::Random] {
+            let settings = AdaptiveSettings {
+                pairs: 60,
+                first: 20,
+                batch: 16,
+                ..Default::default()
+            };
+            let mut s = Selector::new(wall(12), settings, order);
+            let mut sizes = vec![s.first().pairs.len()];
+            while let Some(b) = s.next(&model(vec![target]), &axis()) {
+                sizes.push(b.pairs.len());
+            }
+            assert_eq!(sizes, vec![20, 16, 16, 8], "{order}");
+            let mut m = s.measured().to_vec();
+            m.sort();
+            m.dedup();
+            assert_eq!(m.len(), 60, "{order}");
+        }
+    }
+
+    #[test]
+    fn the_adaptive_order_looks_where_the_fit_sees_something() {
+        // A target over one corner of the wall: with nothing explored, the chosen pairs
+        // crowd towards it; uniform ones do not.
+        let target = Kernel::new(
+            DVec3::new(0.35, 0.35, 0.3),
+            DMat3::IDENTITY,
+            DVec3::splat(0.02),
+            1.0,
+        );
+        let mean_distance = |order: Order| {
+            let settings = AdaptiveSettings {
+                pairs: 48,
+                first: 16,
+                batch: 32,
+                explore: 0.0,
+                ..Default::default()
+            };
+            let mut s = Selector::new(wall(16), settings, order);
+            s.first();
+            let b = s.next(&model(vec![target]), &axis()).unwrap();
+            let wall = wall(16);
+            b.pairs
+                .iter()
+                .map(|&i| wall[i].xi.truncate().distance(target.x.truncate()))
+                .sum::<f64>()
+                / b.pairs.len() as f64
+        };
+        let (adaptive, uniform) = (mean_distance(Order::Adaptive), mean_distance(Order::Uniform));
+        assert!(
+            adaptive < 0.7 * uniform,
+            "adaptive {adaptive} m, uniform {uniform} m"
+        );
+    }
+
+    #[test]
+    fn a_fit_that_sees_nothing_more_stops_the_capture_when_asked_to() {
+        // Gains fall as pairs near the only target are measured; with a high stop-gain
+        // the selector stops before the budget and says why.
+        let target = Kernel::new(
+            DVec3::new(0.0, 0.0, 0.4),
+            DMat3::IDENTITY,
+            DVec3::splat(0.02),
+            1.0,
+        );
+        let settings = AdaptiveSettings {
+            pairs: 200,
+            first: 16,
+            batch: 16,
+            stop_gain: 0.9,
+            explore: 0.0,
+            ..Default::default()
+        };
+        let mut s = Selector::new(wall(16), settings, Order::Adaptive);
+        s.first();
+        let mut n = 0;
+        while s.next(&model(vec![target]), &axis()).is_some() {
+            n += 1;
+            assert!(n < 20);
+        }
+        assert!(s.measured().len() < 200);
+        assert!(s.stopped().unwrap().contains("stop-gain"), "{:?}", s.stopped());
+    }
+
+    #[test]
+    fn settings_out_of_range_name_their_key() {
+        let src = TomlSource::from_text("recon.toml", "");
+        let bad = |raw: RawAdaptive| adaptive_settings(&src, "", raw).unwrap_err().to_string();
+        let e = bad(RawAdaptive {
+            stop_gain: Some(1.5),
+            ..Default::default()
+        });
+        assert!(e.contains("adaptive.stop-gain"), "{e}");
+        let e = bad(RawAdaptive {
+            pairs: Some(10),
+            first: Some(20),
+            ..Default::default()
+        });
+        assert!(e.contains("adaptive.first"), "{e}");
+        let e = bad(RawAdaptive {
+            explore: Some(-0.1),
+            ..Default::default()
+        });
+        assert!(e.contains("adaptive.explore"), "{e}");
+    }
+}
