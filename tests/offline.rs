@@ -132,18 +132,23 @@ fn an_adaptive_replay_reveals_its_budget_and_records_each_choice() {
     let record = |out: &Path| -> serde_json::Value {
         serde_json::from_slice(&std::fs::read(out.join("adaptive.json")).unwrap()).unwrap()
     };
-    for order in ["adaptive", "uniform", "random"] {
-        let out = tmp.path().join(order);
-        let done = periscope(&[
+    // `periscope recon` replaying the capture into `out`, in `order` (`None`: the bare flag).
+    let replay = |out: &Path, order: Option<&str>| {
+        let mut args = vec![
             "recon",
             s(&capture),
             "--config",
             s(&config),
             "--out",
-            s(&out),
+            s(out),
             "--adaptive-replay",
-            order,
-        ]);
+        ];
+        args.extend(order);
+        periscope(&args)
+    };
+    for order in ["adaptive", "uniform", "random"] {
+        let out = tmp.path().join(order);
+        let done = replay(&out, Some(order));
         assert_eq!(done.code, Some(0), "{order}: {done:?}");
         assert!(
             done.stdout.contains("reconstructed 40 pairs"),
@@ -184,15 +189,7 @@ fn an_adaptive_replay_reveals_its_budget_and_records_each_choice() {
     // The bare flag means the adaptive order; a solver cannot choose pairs.
     std::fs::write(&config, gtr.replace("method = \"gtr\"", "method = \"fbp\"")).unwrap();
     let out = tmp.path().join("refused");
-    let done = periscope(&[
-        "recon",
-        s(&capture),
-        "--config",
-        s(&config),
-        "--out",
-        s(&out),
-        "--adaptive-replay",
-    ]);
+    let done = replay(&out, None);
     assert_eq!(done.code, Some(2), "{done:?}");
     assert!(
         done.stderr.contains("\"fbp\"") && done.stderr.contains("method = \"gtr\""),
@@ -201,16 +198,7 @@ fn an_adaptive_replay_reveals_its_budget_and_records_each_choice() {
     );
     // The uniform order works for a solver too: it needs no fit.
     let out = tmp.path().join("fbp-uniform");
-    let done = periscope(&[
-        "recon",
-        s(&capture),
-        "--config",
-        s(&config),
-        "--out",
-        s(&out),
-        "--adaptive-replay",
-        "uniform",
-    ]);
+    let done = replay(&out, Some("uniform"));
     assert_eq!(done.code, Some(0), "{done:?}");
     assert_eq!(record(&out)["measured"], 40);
 }

@@ -312,14 +312,6 @@ impl Selector {
         self.stopped.get_or_insert(why);
     }
 
-    fn first_size(&self) -> usize {
-        self.sizes.first
-    }
-
-    fn batch_size(&self) -> usize {
-        self.sizes.batch
-    }
-
     fn take(
         &mut self,
         batch: Vec<usize>,
@@ -374,7 +366,7 @@ impl Selector {
     /// What is left of the first batch after [`Selector::resume`]: `None` when the
     /// pairs already measured cover it.
     pub fn first_rest(&mut self) -> Option<BatchChoice> {
-        let n = self.first_size().saturating_sub(self.measured.len());
+        let n = self.sizes.first.saturating_sub(self.measured.len());
         if n == 0 {
             return None;
         }
@@ -388,7 +380,8 @@ impl Selector {
     /// budget is spent.
     pub fn spread(&mut self) -> Option<BatchChoice> {
         let n = self
-            .batch_size()
+            .sizes
+            .batch
             .min(self.sizes.budget.saturating_sub(self.measured.len()));
         if n == 0 || self.stopped.is_some() {
             return None;
@@ -400,7 +393,7 @@ impl Selector {
 
     /// The first batch: spread over the candidates (random in the random order).
     pub fn first(&mut self) -> BatchChoice {
-        let n = self.first_size();
+        let n = self.sizes.first;
         match self.order {
             Order::Random => {
                 let batch = self.shuffled[..n].to_vec();
@@ -427,7 +420,7 @@ impl Selector {
         if left == 0 || self.stopped.is_some() {
             return None;
         }
-        let n = self.batch_size().min(left);
+        let n = self.sizes.batch.min(left);
         match self.order {
             Order::Random => {
                 let at = self.measured.len();

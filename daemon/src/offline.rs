@@ -110,8 +110,9 @@ fn load(capture: &Path, config: Option<&Path>) -> Result<(ReconSettings, Transie
 /// a recorded one. Its transients are the candidates; batches are revealed to the fit
 /// as a capture would measure them (the first spread over the candidates, each next
 /// chosen in `order` from the fit after the last one's live training), up to the
-/// `[adaptive]` budget; the fit then finishes on the pairs revealed and the outputs are
-/// written to `out`, with `adaptive.json` (each batch's choice) beside them. The uniform
+/// `[adaptive]` budget; the pairs revealed are then fitted afresh, as a live adaptive
+/// capture's are, and the outputs written to `out`, with `adaptive.json` (each batch's
+/// choice) beside them. The uniform
 /// and random orders run the same streamed fit and differ only in the choice, so the
 /// three compare like for like.
 pub fn replay(capture: &Path, config: Option<&Path>, out: &Path, order: Order) -> Result<(), OfflineError> {
@@ -129,7 +130,7 @@ pub fn replay(capture: &Path, config: Option<&Path>, out: &Path, order: Order) -
     let axis = *t.set.axis();
     let mut selector = Selector::new(t.set.pairs().to_vec(), settings.adaptive.clone(), order);
     println!(
-        "  replaying an {order} capture of up to {} of its {} pairs",
+        "  replaying the {order} order: up to {} of its {} pairs",
         selector.budget(),
         t.set.len()
     );
@@ -157,7 +158,7 @@ pub fn replay(capture: &Path, config: Option<&Path>, out: &Path, order: Order) -
             Some((model_tx, settings.adaptive.live_steps)),
         )?;
         // The fit sends its model once each batch has had its live training; a fit that
-        // ended (an error, which `finish` reports) sends no more.
+        // ended (an error, which `refit` reports) sends no more.
         while let Ok(model) = model_rx.recv() {
             let Some(b) = selector.next(&model, &axis) else {
                 break;

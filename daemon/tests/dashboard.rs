@@ -368,12 +368,21 @@ async fn wait_page(c: &Client, what: &str, limit: Duration, pred: impl Fn(&Value
 }
 
 async fn click(c: &Client, css: &str) {
-    c.find(Locator::Css(css))
-        .await
-        .unwrap_or_else(|e| panic!("{css}: {e}"))
-        .click()
-        .await
-        .unwrap_or_else(|e| panic!("clicking {css}: {e}"));
+    // A table the page re-renders (the runs list, as a run changes state) can replace
+    // the element between finding and clicking it: find it again, a few times.
+    for attempt in 1.. {
+        let e = c
+            .find(Locator::Css(css))
+            .await
+            .unwrap_or_else(|e| panic!("{css}: {e}"));
+        match e.click().await {
+            Ok(_) => return,
+            Err(e) if attempt < 5 && e.to_string().contains("stale element") => {
+                tokio::time::sleep(Duration::from_millis(50)).await;
+            }
+            Err(e) => panic!("clicking {css}: {e}"),
+        }
+    }
 }
 
 async fn text(c: &Client, css: &str) -> String {

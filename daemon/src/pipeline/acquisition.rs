@@ -167,7 +167,7 @@ impl Run {
                 }
                 // The fit's model once the batch has had its live training; a stop or
                 // pause is answered while waiting. A fit that ended sends nothing more
-                // (`finish` reports why).
+                // (`refit` reports why).
                 let model = loop {
                     self.checkpoint()?;
                     match model_rx.recv_timeout(MODEL_POLL) {
