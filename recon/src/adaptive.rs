@@ -65,7 +65,8 @@ impl Term {
 }
 
 /// The information `pair` gives each primitive of `kernels` it sees (terms of at
-/// least [`TERM_FLOOR`] of the largest), under the noise model of `opt.loss`.
+/// least a millionth of the largest, and the [`MAX_TERMS`] strongest at most), under
+/// the noise model of `opt.loss`.
 pub fn pair_terms(kernels: &[Kernel], pair: &Pair, axis: &TimeAxis, opt: &RenderOptions) -> Vec<Term> {
     let mut terms: Vec<Term> = kernels
         .iter()
