@@ -26,6 +26,16 @@ drjit 1.5 needs LLVM 16 or newer: `apt-get install libllvm19`):
 `torso_t.hdf5`, with `--grid 12x16 --bins 256 --t-start 0.9 --spp 65536`, which
 tests/ytal.rs reconstructs).
 
+`--scene mannequin` puts the simulator's child-sized mannequin (1 m tall: ellipsoid head
+and torso, capped cylinders for arms and legs; `sim::shapes::mannequin`) in front of
+the backs, its feet at y = -0.5, placed and turned by `--mannequin X,Z,DEGREES`; the
+truth maps label its head, torso, arms (`arm_a` on its -x side before the turn) and
+legs, cast along +z, on a volume 0.2-1.2 m deep. The laser then comes in low from A's
+side (the default beam would cross the legs); `--laser X,Y` moves its spot on back A,
+and `--points 500 --seed S` keeps 500 of the grid's detection points drawn at random,
+the issue's kind (docs/recon.md, "The mannequin"). About 40 s a render at the default
+samples.
+
 Detection points: the sensor is attached to a rectangle under back B and looks
 straight down from far above, so its pixel centres map onto B as a regular x-y grid;
 each point is the first hit of that ray (on B), and the time of the sensor's leg is the
@@ -47,7 +57,13 @@ from nlos_common import INTEGRATOR, axis  # noqa: E402
 ARGS = argparse.ArgumentParser(description=__doc__.splitlines()[0])
 ARGS.add_argument("out", help="folder for capture.hdf5 and the truth maps")
 ARGS.add_argument("--spp", type=int, default=262144, help="samples a detection point")
-ARGS.add_argument("--scene", choices=["oblique", "centred"], default="oblique")
+ARGS.add_argument("--scene", choices=["oblique", "centred", "mannequin"], default="oblique")
+ARGS.add_argument("--points", type=int, default=0,
+                  help="keep this many of the grid's detection points, drawn at random (0: all)")
+ARGS.add_argument("--laser", default=None, help="the laser spot's x,y on back A (default: its crest, 0)")
+ARGS.add_argument("--mannequin", default="0,0.7,0",
+                  help="the mannequin's x, z (its feet's centre) and turn about y in degrees")
+ARGS.add_argument("--seed", type=int, default=0, help="for --points")
 ARGS.add_argument("--grid", default="24x32", help="detection points on back B, NXxNY")
 ARGS.add_argument("--bins", type=int, default=512)
 ARGS.add_argument("--t-start", type=float, default=0.5, help="path length of bin 0, m")
@@ -57,8 +73,11 @@ RADIUS, HALF_WIDTH, Y_RANGE = 0.25, 0.15, (-0.3, 0.3)
 CENTRE_A, CENTRE_B = -0.22, 0.22
 NX, NY = (int(n) for n in ARGS.grid.split("x"))
 BINS, DELTA_T, T_START = ARGS.bins, 0.005, ARGS.t_start
-LASER_ORIGIN = [CENTRE_A, -1.0, 2.0]
-LASER_SPOT = [CENTRE_A, 0.0, 0.0]
+# The mannequin stands where the default laser's beam would cross its legs, so there
+# the laser comes in low from A's side.
+LASER_ORIGIN = [-1.5, 0.0, 1.0] if ARGS.scene == "mannequin" else [CENTRE_A, -1.0, 2.0]
+LASER_XY = [float(v) for v in ARGS.laser.split(",")] if ARGS.laser else [CENTRE_A, 0.0]
+LASER_SPOT = [LASER_XY[0], LASER_XY[1], float(np.sqrt(RADIUS**2 - (LASER_XY[0] - CENTRE_A) ** 2) - RADIUS)]
 SENSOR_ORIGIN = [CENTRE_B, 0.0, 200.0]
 # (x0, x1, y0, y1, z, target name). Nothing may lie above back B (x > 0.09), where the
 # detection rays come down.
@@ -70,12 +89,78 @@ RECTANGLES = {
         (-0.12, 0.02, 0.10, 0.24, 0.75, "patch"),
     ],
     # A T in front of the gap between the backs, and a patch low and far to A's side.
+    "mannequin": [],
     "centred": [
         (-0.20, 0.08, 0.10, 0.18, 0.60, "letter_T"),
         (-0.10, -0.02, -0.22, 0.10, 0.60, "letter_T"),
         (-0.42, -0.30, -0.35, -0.23, 0.45, "patch"),
     ],
 }[ARGS.scene]
+
+
+def mannequin_parts():
+    """A child-sized mannequin 1 m tall, as the simulator's (`sim::shapes::mannequin`):
+    an ellipsoid head and torso, two arms and two legs as capped cylinders, feet at
+    y = -0.5, placed at (x, z) and turned about its vertical axis by --mannequin.
+    Returns {part name: (vertices, triangles)}, triangles wound outwards."""
+    mx, mz, turn = (float(v) for v in ARGS.mannequin.split(","))
+    c, s_ = np.cos(np.radians(turn)), np.sin(np.radians(turn))
+    rot = np.array([[c, 0, s_], [0, 1, 0], [-s_, 0, c]])
+
+    def ellipsoid(radii, centre, n=24):
+        th, ph = np.meshgrid(np.linspace(0, np.pi, n + 1), np.linspace(0, 2 * np.pi, 2 * n + 1), indexing="ij")
+        v = np.stack([np.sin(th) * np.cos(ph), np.cos(th), np.sin(th) * np.sin(ph)], -1) * radii + centre
+        return grid_mesh(v.reshape(-1, 3), n + 1, 2 * n + 1), np.asarray(centre, float)
+
+    def cylinder(a, b, r, n=16):
+        a, b = np.asarray(a, float), np.asarray(b, float)
+        axis_ = (b - a) / np.linalg.norm(b - a)
+        u = np.cross(axis_, [0, 0, 1.0] if abs(axis_[2]) < 0.9 else [1.0, 0, 0])
+        u /= np.linalg.norm(u)
+        w = np.cross(axis_, u)
+        ph = np.linspace(0, 2 * np.pi, n + 1)
+        ring = np.cos(ph)[:, None] * u + np.sin(ph)[:, None] * w
+        rows = [a, a + r * ring, b + r * ring, b]
+        v = np.concatenate([np.repeat(a[None], n + 1, 0), a + r * ring, b + r * ring, np.repeat(b[None], n + 1, 0)])
+        return grid_mesh(v, len(rows), n + 1), (a + b) / 2
+
+    parts = {"head": [ellipsoid([0.075, 0.095, 0.085], [0, 0.88, 0])],
+             "torso": [ellipsoid([0.13, 0.2, 0.075], [0, 0.57, 0])], "arm_a": [], "arm_b": [], "legs": []}
+    for side in (-1, 1):
+        parts["arm_a" if side < 0 else "arm_b"].append(cylinder([0.14 * side, 0.72, 0], [0.21 * side, 0.40, 0.02], 0.035))
+        parts["legs"].append(cylinder([0.065 * side, 0.42, 0], [0.075 * side, 0.0, 0], 0.048))
+    out = {}
+    for name, meshes in parts.items():
+        verts, tris = [], []
+        for (v, t), centre in meshes:
+            t = t.copy()
+            # Wind each triangle outwards (diffuse surfaces are one-sided).
+            n_ = np.cross(v[t[:, 1]] - v[t[:, 0]], v[t[:, 2]] - v[t[:, 0]])
+            flip = np.einsum("ij,ij->i", n_, v[t].mean(1) - centre) < 0
+            t[flip] = t[flip][:, ::-1]
+            tris.append(t + sum(len(x) for x in verts))
+            verts.append(v)
+        v = np.concatenate(verts) @ rot.T + [mx, -0.5, mz]
+        out[name] = (v, np.concatenate(tris))
+    return out
+
+
+def grid_mesh(v, rows, cols):
+    """Triangles of a rows x cols vertex grid (row-major), dropping degenerate ones."""
+    t = []
+    for i in range(rows - 1):
+        for j in range(cols - 1):
+            a, b, c, d = i * cols + j, (i + 1) * cols + j, (i + 1) * cols + j + 1, i * cols + j + 1
+            t += [[a, b, c], [a, c, d]]
+    t = np.array(t)
+    area = np.linalg.norm(np.cross(v[t[:, 1]] - v[t[:, 0]], v[t[:, 2]] - v[t[:, 0]]), axis=1)
+    return v, t[area > 1e-12]
+
+
+def write_obj(path, v, t):
+    with open(path, "w") as f:
+        f.writelines(f"v {a} {b} {c}\n" for a, b, c in v)
+        f.writelines(f"f {a + 1} {b + 1} {c + 1}\n" for a, b, c in t)
 
 
 def height(x, centre):
@@ -140,6 +225,9 @@ def scene_dict(white):
             },
         },
     }
+    if ARGS.scene == "mannequin":
+        for name in MANNEQUIN:
+            d[f"target_{name}"] = {"type": "obj", "filename": f"{OUT}/{name}.obj", "bsdf": white, "face_normals": True}
     for i, (x0, x1, y0, y1, z, _) in enumerate(RECTANGLES):
         d[f"target_{i}"] = {
             "type": "rectangle",
@@ -155,6 +243,8 @@ def render():
     os.makedirs(OUT, exist_ok=True)
     write_back(f"{OUT}/back_a.obj", CENTRE_A)
     write_back(f"{OUT}/back_b.obj", CENTRE_B)
+    for name, (v, t) in MANNEQUIN.items():
+        write_obj(f"{OUT}/{name}.obj", v, t)
     white = {"type": "diffuse", "reflectance": {"type": "spectrum", "value": 1.0}}
     scene = mi.load_dict(scene_dict(white))
     relay = next(s for s in scene.shapes() if s.id() == "relay_wall")
@@ -169,14 +259,17 @@ def render():
     assert np.all(np.abs(points[:, 2] - height(points[:, 0], CENTRE_B)) < 1e-4), "a ray hit something else"
     _, transient = scene.integrator().render(scene, sensor=0)
     h = np.array(transient)[..., 0].reshape(NY * NX, BINS).T.astype(np.float32)
+    if ARGS.points:
+        keep = np.sort(np.random.default_rng(ARGS.seed).choice(NX * NY, ARGS.points, replace=False))
+        points, h = points[keep], h[:, keep]
     return points, h
 
 
 def write_capture(points, h):
     info = (
         "description: two-torso relay (backs as cylinder sections, radius 0.25 m, centres "
-        f"x = {CENTRE_A} and {CENTRE_B}); laser fixed on back A at {LASER_SPOT}; {NX}x{NY} "
-        "detection points on back B; hidden L at z = 0.55 and a patch at z = 0.75 off to A's side\n"
+        f"x = {CENTRE_A} and {CENTRE_B}); laser fixed on back A at {LASER_SPOT}; {len(points)} "
+        f"detection points on back B; hidden scene {ARGS.scene} {ARGS.mannequin if MANNEQUIN else ''}\n"
         "generator: periscope tests/data/ytal/render_torso.py\n"
         "original_format: HDF5_TAL\n"
         "renderer: mitransient 1.3.1 / mitsuba 3.9.1 (llvm_ad_mono)\n"
@@ -192,7 +285,7 @@ def write_capture(points, h):
         f["t_start"] = np.float64(T_START)
         f["t_accounts_first_and_last_bounces"] = False
         f["laser_grid_xyz"] = np.array([LASER_SPOT], np.float32)
-        f["laser_grid_normals"] = np.array([[0.0, 0.0, 1.0]], np.float32)
+        f["laser_grid_normals"] = normal(np.array([LASER_SPOT]), CENTRE_A).astype(np.float32)
         f["laser_xyz"] = np.array(LASER_ORIGIN, np.float32)
         f["sensor_xyz"] = np.array(SENSOR_ORIGIN, np.float32)
         f["sensor_grid_xyz"] = points.astype(np.float32)
@@ -204,7 +297,11 @@ def write_truth():
     n, sub = 32, 16
     centres = -0.5 + (np.arange(n) + 0.5) / n
     offsets = (np.arange(sub) + 0.5) / sub / n - 0.5 / n
-    names = list(dict.fromkeys(r[5] for r in RECTANGLES))
+    names = list(dict.fromkeys(r[5] for r in RECTANGLES)) + list(MANNEQUIN)
+    if MANNEQUIN:
+        # The mannequin's parts as seen from the relay: rays along +z from behind it.
+        alone = {name: mi.load_dict({"type": "scene", name: {"type": "obj", "filename": f"{OUT}/{name}.obj"}})
+                 for name in MANNEQUIN}
     coverage = np.zeros((n, n), np.float32)
     depth = np.full((n, n), -1.0, np.float32)
     labels = np.zeros((n, n), np.int16)
@@ -217,6 +314,16 @@ def write_truth():
                 hit = (X >= x0) & (X < x1) & (Y >= y0) & (Y < y1)
                 nearest = np.where(hit, np.minimum(nearest, z), nearest)
                 share[names.index(name)] += hit.mean()
+            if MANNEQUIN:
+                ray = mi.Ray3f(mi.Point3f(X.ravel(), Y.ravel(), np.full(X.size, -5.0)), mi.Vector3f(0, 0, 1))
+                zs = {}
+                for name, part in alone.items():
+                    si = part.ray_intersect(ray)
+                    zs[name] = np.where(np.array(si.is_valid()), np.array(si.p.z), np.inf).reshape(X.shape)
+                z = np.min(list(zs.values()), axis=0)
+                nearest = np.minimum(nearest, z)
+                for name, zk in zs.items():  # each ray's first hit is the part it belongs to
+                    share[names.index(name)] += (np.isfinite(zk) & (zk == z)).mean()
             covered = np.isfinite(nearest)
             coverage[ix, iy] = covered.mean()
             if covered.any():
@@ -234,12 +341,15 @@ def write_truth():
         "recommended_volume": {
             "x": axis(-0.5, 0.5, 32),
             "y": axis(-0.5, 0.5, 32),
-            "z": axis(0.195, 1.005, 81),
-            "shape_xyz": [32, 32, 81],
+            "z": axis(0.195, 1.205, 101) if MANNEQUIN else axis(0.195, 1.005, 81),
+            "shape_xyz": [32, 32, 101 if MANNEQUIN else 81],
         },
     }
     with open(f"{OUT}/truth.json", "w") as f:
         json.dump(truth, f, indent=1)
+
+
+MANNEQUIN = mannequin_parts() if ARGS.scene == "mannequin" else {}
 
 
 if __name__ == "__main__":
