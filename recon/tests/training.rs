@@ -7,8 +7,8 @@ use glam::{DQuat, DVec3};
 use periscope_recon::gtr::{
     CancelToken, Convergence, DENSIFY_ROUNDS, DensifySettings, GaussianCloud, Init, Loss, LossChoice,
     PairGains, Primitive, PruneSettings, RawGrads, RenderOptions, ScaleBounds, TrainConfig, TrainError,
-    TrainEvent, Trainer, batch_loss_grad, densify, densify_after, estimate_background, estimate_pair_gains,
-    first_negative, gain_groups, render_set,
+    TrainEvent, Trainer, batch_loss_grad, default_target_scale, densify, densify_after, estimate_background,
+    estimate_pair_gains, first_negative, gain_groups, render_set, resolvable_separation,
 };
 use periscope_recon::{Pair, RoiBox, TimeAxis, TransientSet};
 use rand::{Rng, SeedableRng};
@@ -894,4 +894,102 @@ fn pair_gains_come_back_from_the_data_and_the_rendering() {
     let (groups, pts) = gain_groups(&fixed, PairGains::Detection).unwrap();
     assert_eq!(pts.len(), 144);
     assert_eq!(groups, (0..144).collect::<Vec<_>>());
+}
+
+/// Zero transients on 5 mm bins for `pairs`.
+fn geometry(pairs: impl IntoIterator<Item = Pair>) -> TransientSet {
+    let axis = TimeAxis {
+        start: 0.5,
+        width: 0.005,
+        bins: 64,
+    };
+    let mut set = TransientSet::new(axis).unwrap();
+    for pair in pairs {
+        set.push(pair, &[0.0; 64]).unwrap();
+    }
+    set
+}
+
+/// `n × n` points over `[-half, half]²` at z = 0 (the first range along x), facing +z.
+fn grid(n: usize, x: [f64; 2], y: [f64; 2]) -> Vec<DVec3> {
+    let at = |r: [f64; 2], i: usize| r[0] + (r[1] - r[0]) * (i as f64 + 0.5) / n as f64;
+    (0..n * n)
+        .map(|k| DVec3::new(at(x, k % n), at(y, k / n), 0.0))
+        .collect()
+}
+
+fn pair(xi: DVec3, xd: DVec3) -> Pair {
+    Pair {
+        xi,
+        ni: DVec3::Z,
+        xd,
+        nd: DVec3::Z,
+    }
+}
+
+#[test]
+fn a_capture_places_points_as_finely_as_its_gradients_spread() {
+    let at = DVec3::new(0.0, 0.0, 0.5);
+    let wall = grid(32, [-0.5, 0.5], [-0.5, 0.5]);
+    // Confocal over a 1 m wall: g = 2u spreads over ±45°, s = 4 sin 45° · (cos of the
+    // narrowest direction) ≈ 2.5, so 4 bins of 5 mm over it ≈ 8 mm.
+    let confocal = geometry(wall.iter().map(|&x| pair(x, x)));
+    let d = resolvable_separation(&confocal, at, 0.0).unwrap();
+    assert!((0.006..0.010).contains(&d), "confocal wall: {d}");
+    // A fixed laser at the centre: only ud moves, about half the spread.
+    let fixed = geometry(wall.iter().map(|&x| pair(DVec3::ZERO, x)));
+    let d_fixed = resolvable_separation(&fixed, at, 0.0).unwrap();
+    assert!((0.012..0.020).contains(&d_fixed), "fixed laser: {d_fixed}");
+    // Two torsos: the laser on one back, a 0.3 × 0.54 m patch of detection points on
+    // the other beside the scene; across x the gradients spread over about 10°, less
+    // the farther the point.
+    let patch = grid(16, [0.07, 0.37], [-0.27, 0.27]);
+    let backs = geometry(patch.iter().map(|&x| pair(DVec3::new(-0.22, 0.0, 0.0), x)));
+    let d_backs = resolvable_separation(&backs, at, 0.0).unwrap();
+    assert!((0.035..0.055).contains(&d_backs), "two backs: {d_backs}");
+    let farther = resolvable_separation(&backs, DVec3::new(0.0, 0.0, 0.7), 0.0).unwrap();
+    assert!(
+        (0.05..0.08).contains(&farther) && farther > d_backs,
+        "two backs, 0.7 m: {farther}"
+    );
+    // Timing jitter wider than a bin coarsens it in proportion to its full width at
+    // half maximum, 2√(2 ln 2) × 10 mm.
+    let jittered = resolvable_separation(&backs, at, 0.01).unwrap();
+    let fwhm = 2.0 * (2.0 * 2f64.ln()).sqrt() * 0.01;
+    assert!(
+        (jittered / d_backs - fwhm / 0.005).abs() < 1e-9,
+        "{jittered} {d_backs}"
+    );
+    // A point no pair sees (behind the relay) has none.
+    assert_eq!(
+        resolvable_separation(&backs, DVec3::new(0.0, 0.0, -0.5), 0.0),
+        None
+    );
+}
+
+#[test]
+fn splits_stop_where_the_capture_stops_placing_points() {
+    let roi = RoiBox::from_bounds(DVec3::new(-0.5, -0.5, 0.2), DVec3::new(0.5, 0.5, 1.2)).unwrap();
+    let cfg = TrainConfig {
+        primitives: 2000,
+        ..TrainConfig::default()
+    };
+    let capacity = default_target_scale(&roi, 2000);
+    let wall = grid(32, [-0.5, 0.5], [-0.5, 0.5]);
+    let confocal = Trainer::new(cfg.clone(), roi, geometry(wall.iter().map(|&x| pair(x, x)))).unwrap();
+    assert_eq!(
+        confocal.split_floor(),
+        capacity,
+        "a wide aperture keeps the capacity rule"
+    );
+    let patch = grid(16, [0.07, 0.37], [-0.27, 0.27]);
+    let backs = geometry(patch.iter().map(|&x| pair(DVec3::new(-0.22, 0.0, 0.0), x)));
+    let separation = resolvable_separation(&backs, roi.centre, 0.0).unwrap();
+    let two_backs = Trainer::new(cfg, roi, backs).unwrap();
+    let floor = two_backs.split_floor();
+    assert!(floor > 2.0 * capacity, "{floor} against {capacity}");
+    assert!(
+        (floor - separation / 3f64.sqrt()).abs() < 1e-12,
+        "children √3 σ apart, {separation} m"
+    );
 }

@@ -6,9 +6,10 @@ use std::thread::JoinHandle;
 use std::time::Instant;
 
 use glam::DVec3;
+use periscope_recon::gtr::resolvable_separation;
 use periscope_recon::gtr::{CancelToken, GaussianCloud, LiveModel, TrainError, TrainSummary, Trainer};
 use periscope_recon::relay::VirtualRelay;
-use periscope_recon::solver::lateral_voxel_pitch;
+use periscope_recon::solver::{lateral_voxel_pitch, phasor_wavelength};
 use periscope_recon::synth::{default_axis, synthesise};
 use periscope_recon::{RoiBox, TransientSet, Volume, VolumeGrid};
 
@@ -245,6 +246,11 @@ fn virtual_relay(input: &ReconInput) -> Result<VirtualRelay, ReconError> {
     Ok(relay)
 }
 
+/// The final FBP's wave after 3D-GTR is at least this many times the smallest
+/// separation the capture resolves ([`resolvable_separation`]): a phasor field of
+/// wavelength λ resolves about λ/2.
+const WAVES_PER_SEPARATION: f64 = 2.0;
+
 fn finish_gtr(
     input: &ReconInput,
     relay: VirtualRelay,
@@ -266,9 +272,30 @@ fn finish_gtr(
     let scan = synthesise(&kernels, &relay, axis, trainer.render_options()).map_err(ReconError::from)?;
     let synth_secs = t.elapsed().as_secs_f64();
     let t = Instant::now();
+    let mut solvers = s.solvers.for_virtual_scan();
+    if solvers.fbp.wavelength.is_none() {
+        // No finer a wave than the capture resolves: the virtual scan is dense and wide,
+        // but what the fit put between the measured pairs' reach is its own lumps.
+        let rule = phasor_wavelength(&scan.set, &s.volume, &solvers.fbp);
+        let centre = 0.5 * (s.volume.min() + s.volume.max());
+        if let Some(separation) =
+            resolvable_separation(trainer.data(), centre, trainer.render_options().sigma_sys)
+        {
+            let floor = WAVES_PER_SEPARATION * separation;
+            if floor > rule && floor.is_finite() {
+                tracing::info!(
+                    wavelength = floor,
+                    separation_m = separation,
+                    "FBP phasor wavelength after 3D-GTR: twice the smallest separation the capture resolves, \
+                     longer than the voxels' rule here ([fbp] wavelength sets it)"
+                );
+                solvers.fbp.wavelength = Some(floor);
+            }
+        }
+    }
     let volume = s
         .solver
-        .solve(&scan.set, &s.volume, &s.solvers.for_virtual_scan())
+        .solve(&scan.set, &s.volume, &solvers)
         .map_err(ReconError::from)?;
     Ok(ReconResult {
         volume,

@@ -17,7 +17,7 @@ pub use ply::write_ply;
 pub use render::{batch_loss, batch_loss_grad, render_pairs, render_set};
 pub use train::{
     CancelToken, Convergence, DENSIFY_ROUNDS, DensifySettings, GAIN_ROUNDS, LiveModel, LossChoice, PairGains,
-    PruneSettings, SNAPSHOT_MAX, TrainConfig, TrainError, TrainEvent, TrainSummary, Trainer,
+    PruneSettings, SEPARATION_BINS, SNAPSHOT_MAX, TrainConfig, TrainError, TrainEvent, TrainSummary, Trainer,
     default_initial_scale, default_target_scale, densify, densify_after, estimate_background,
-    estimate_pair_gains, first_negative, gain_groups,
+    estimate_pair_gains, first_negative, gain_groups, resolvable_separation,
 };

@@ -568,6 +568,74 @@ pub fn default_target_scale(roi: &RoiBox, primitives: usize) -> f64 {
     0.5 * (largest_face / primitives.max(1) as f64).sqrt()
 }
 
+/// At most this many of a capture's pairs (evenly spaced) judge its
+/// [`resolvable_separation`].
+const SEPARATION_PAIRS: usize = 4096;
+
+/// Bins of path-length error that [`resolvable_separation`] allows a fit: chosen on
+/// independent renders of the two-torso kind (docs/recon.md, "The mannequin").
+pub const SEPARATION_BINS: f64 = 4.0;
+
+/// How finely the capture's pairs place a point laterally at `at`, in metres.
+///
+/// A point's path length for a pair is its distance to the pair's two points, whose
+/// gradient is `g = ui + ud`. Moving the point by `δ` along a direction `e` across the
+/// pairs' mean gradient changes its path length by `δ·(g·e)`. Only the differences of
+/// that change from pair to pair place it across (a change shared by every pair is a
+/// change of depth). So an error of `w` in path length, from the bins, the model or
+/// the noise, misplaces a fitted primitive by about `w / s` across, where
+/// `s = max(g·e) − min(g·e)` over the pairs that see `at`, on the narrowest direction.
+/// This returns [`SEPARATION_BINS`] such errors: `4w / s`, with `w` the bin, or the
+/// timing jitter's full width at half maximum where that is wider.
+///
+/// Splits finer than that leave the children free to drift into lumps, and an image
+/// resolved finer shows the lumps instead of the surface. Examples on 5 mm bins:
+/// - a planar relay a metre wide, half a metre from the scene: 8 mm confocal, 15 mm
+///   with a fixed laser;
+/// - the central 0.3 m of it, confocal: 22 mm;
+/// - one laser spot on one back and a 0.3 × 0.6 m patch of detection points on the
+///   other (two torsos as the relay): about 64 mm.
+///
+/// `None` without pairs that see `at`.
+pub fn resolvable_separation(set: &TransientSet, at: DVec3, jitter: f64) -> Option<f64> {
+    let pairs = set.pairs();
+    let stride = pairs.len().div_ceil(SEPARATION_PAIRS).max(1);
+    let gradients: Vec<DVec3> = pairs
+        .iter()
+        .step_by(stride)
+        .filter_map(|p| {
+            let (ui, ud) = ((at - p.xi).normalize_or_zero(), (at - p.xd).normalize_or_zero());
+            let seen = p.ni.dot(ui) > 0.0 && p.nd.dot(ud) > 0.0;
+            seen.then_some(ui + ud)
+        })
+        .collect();
+    let mean = gradients.iter().sum::<DVec3>().normalize_or_zero();
+    if mean == DVec3::ZERO {
+        return None;
+    }
+    let spread = |e: DVec3| {
+        let (lo, hi) = gradients
+            .iter()
+            .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), g| {
+                (lo.min(g.dot(e)), hi.max(g.dot(e)))
+            });
+        hi - lo
+    };
+    // The two axes across the mean and their diagonals, so that the narrowest
+    // direction is not missed when it lies between the axes.
+    let (a, b) = mean.any_orthonormal_pair();
+    let narrowest = [a, b, (a + b).normalize(), (a - b).normalize()]
+        .into_iter()
+        .map(spread)
+        .fold(f64::INFINITY, f64::min);
+    let w = set.axis().width.max(2.0 * (2.0 * 2f64.ln()).sqrt() * jitter);
+    Some(if narrowest > 0.0 {
+        SEPARATION_BINS * w / narrowest
+    } else {
+        f64::INFINITY
+    })
+}
+
 impl Default for TrainConfig {
     fn default() -> Self {
         Self {
@@ -1300,15 +1368,26 @@ impl Trainer {
     /// many primitives were split.
     pub fn densify(&mut self) -> usize {
         let d = self.config.densify;
-        let target = d
-            .target_scale
-            .unwrap_or_else(|| default_target_scale(self.cloud.roi(), self.config.primitives));
+        let target = d.target_scale.unwrap_or_else(|| self.split_floor());
         let moved = densify(&mut self.cloud, d.dead_fraction, target);
         for &(parent, slot) in &moved {
             self.adam.reset(parent);
             self.adam.reset(slot);
         }
         moved.len()
+    }
+
+    /// The scale splits stop at when none is set: [`default_target_scale`], or, where
+    /// the capture places points less finely, the scale whose split children (√3 of
+    /// it apart) lie [`resolvable_separation`] apart at the ROI's centre. Finer
+    /// children drifted into lumps that an image shows instead of the surface
+    /// (docs/recon.md, "The mannequin").
+    pub fn split_floor(&self) -> f64 {
+        let roi = self.cloud.roi();
+        let capacity = default_target_scale(roi, self.config.primitives);
+        resolvable_separation(&self.data, roi.centre, self.options.sigma_sys).map_or(capacity, |d| {
+            capacity.max(d / 3f64.sqrt()).min(roi.half.max_element())
+        })
     }
 
     /// Removes primitives at the ROI boundary, with negligible weight, or never moved;
