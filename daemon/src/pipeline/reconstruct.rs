@@ -6,8 +6,9 @@ use std::thread::JoinHandle;
 use std::time::Instant;
 
 use glam::DVec3;
-use periscope_recon::gtr::resolvable_separation;
-use periscope_recon::gtr::{CancelToken, GaussianCloud, LiveModel, TrainError, TrainSummary, Trainer};
+use periscope_recon::gtr::{
+    CancelToken, GaussianCloud, LiveModel, TrainError, TrainSummary, Trainer, resolvable_separation,
+};
 use periscope_recon::relay::VirtualRelay;
 use periscope_recon::solver::{lateral_voxel_pitch, phasor_wavelength};
 use periscope_recon::synth::{default_axis, synthesise};
