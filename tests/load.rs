@@ -87,6 +87,7 @@ fn daemon() -> Daemon {
             created_unix_s: None,
             submitted_by: None,
             again_of: None,
+            import: None,
             history: Vec::new(),
             acting: None,
         }

@@ -54,6 +54,7 @@ fn make(root: &Path) {
             created_unix_s: Some(created),
             submitted_by: Some(format!("user{}", i % 7)),
             again_of: None,
+            import: None,
             history: vec![
                 StateChange {
                     at_unix_s: created,

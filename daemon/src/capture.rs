@@ -375,6 +375,13 @@ impl Capture {
         if !RunDir::holds_run(path) {
             return Err(CaptureError::NotRun(path.to_path_buf()));
         }
+        // An imported capture's run reconstructs the file it holds.
+        if let Ok(RunInfo {
+            import: Some(source), ..
+        }) = RunInfo::load(path)
+        {
+            return Capture::open(&path.join(file::IMPORT_DIR).join(source.capture));
+        }
         Ok(Capture::Run(Box::new(RunCapture::load(path)?)))
     }
 

@@ -15,6 +15,8 @@ use serde::Serialize;
 pub enum Stage {
     /// Opening and identifying the devices.
     Opening,
+    /// Reading an imported capture file (`POST /api/v1/imports`) into transients.
+    Reading,
     /// LOS first-bounce scan of the relay.
     LosScan,
     /// Relay point cloud, thresholds and normals.
@@ -34,6 +36,7 @@ impl Stage {
     pub fn name(self) -> &'static str {
         match self {
             Stage::Opening => "opening",
+            Stage::Reading => "reading",
             Stage::LosScan => "los-scan",
             Stage::Relay => "relay",
             Stage::Planning => "planning",

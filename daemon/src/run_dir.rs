@@ -49,6 +49,12 @@ pub mod file {
     /// The run's tags and note ([`super::Annotations`]), kept apart from `run.json` so
     /// an operator's edit never races the pipeline's own writes of it.
     pub const ANNOTATIONS: &str = "annotations.json";
+    /// An imported capture's files, as uploaded ([`super::ImportSource`]).
+    pub const IMPORT_DIR: &str = "import";
+    /// The reconstruction settings an imported capture came with.
+    pub const RECON: &str = "recon.toml";
+    /// An imported capture's geometry for 3-D views (relay points, volume).
+    pub const GEOMETRY: &str = "geometry.json";
 }
 
 /// Why a run directory could not be read or written.
@@ -285,6 +291,7 @@ pub const DOWNLOADS: &[(&str, &str)] = &[
     (file::PAIRS, "application/json"),
     (file::EVENTS, "application/x-ndjson"),
     (file::PLAN, "application/toml"),
+    (file::RECON, "application/toml"),
     (file::INSTRUMENT, "application/toml"),
     (file::RUN, "application/json"),
 ];
@@ -366,6 +373,10 @@ pub struct RunInfo {
     /// The run whose stored plan this one runs again (`POST /runs/{id}/again`).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub again_of: Option<String>,
+    /// What an imported capture's run reconstructs (`POST /api/v1/imports`); `None`
+    /// for a capture run.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub import: Option<ImportSource>,
     /// Every change of `state`, oldest first; [`RunInfo::save`] appends one whenever
     /// the state it writes differs from the last one recorded.
     #[serde(default)]
@@ -373,6 +384,21 @@ pub struct RunInfo {
     /// Who makes the next state change ([`RunInfo::save`] records it and clears it).
     #[serde(skip)]
     pub acting: Option<String>,
+}
+
+/// An imported capture: the files uploaded into the run's `import/` directory.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
+pub struct ImportSource {
+    /// The capture file's name under `import/`.
+    pub capture: String,
+    /// Files stored beside it for its reader (an f-k measurement's `tof.mat`).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub sidecars: Vec<String>,
+    /// Bytes uploaded, all files together.
+    pub bytes: u64,
+    /// Whether reconstruction settings came with it (`recon.toml`); without, the
+    /// defaults derived for the capture are used.
+    pub recon: bool,
 }
 
 /// One change of a run's state.

@@ -102,6 +102,7 @@ async fn health_and_openapi_match_the_routes() {
         ("GET", "/api/v1/instrument"),
         ("POST", "/api/v1/check"),
         ("POST", "/api/v1/runs"),
+        ("POST", "/api/v1/imports"),
         ("GET", "/api/v1/runs"),
         ("GET", "/api/v1/runs/{id}"),
         ("POST", "/api/v1/runs/{id}/pause"),

@@ -653,6 +653,113 @@ async fn an_operator_runs_the_demo_from_the_dashboard_in_chromium() {
     worker.join().unwrap();
 }
 
+/// A public capture imported from the page: the file chosen in the import card, the
+/// method from its menu (written into the settings), a refused file's reason in the
+/// banner, and the import's results drawn like a run's, its downloads offered.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn an_operator_imports_a_public_capture_from_the_page() {
+    let Some((chromium, chromedriver)) = browser_or_skip("the dashboard import test") else {
+        return;
+    };
+    let shots = Path::new(env!("CARGO_TARGET_TMPDIR")).join("dashboard");
+    std::fs::create_dir_all(&shots).unwrap();
+    let dir = tempfile::tempdir().unwrap();
+    let svc = service(dir.path(), 0.0);
+    let worker = svc.start_worker();
+    let (_, addr, _cut, server) = serve_behind_proxy(&svc).await;
+    let driver = start_chromedriver(&chromedriver).await;
+    let c = session(&driver, &chromium, 1400, 2000).await;
+    let limit = Duration::from_secs(120);
+    c.goto(&format!("http://{addr}/")).await.unwrap();
+    wait_page(&c, "ready", Duration::from_secs(20), |v| v["ready"] == true).await;
+    // Without a key the page says why it cannot import.
+    let data = Path::new(env!("CARGO_MANIFEST_DIR")).join("../recon/tests/data");
+    let choose = |path: PathBuf| {
+        let c = c.clone();
+        async move {
+            c.find(Locator::Css("#import-file"))
+                .await
+                .unwrap()
+                .send_keys(path.canonicalize().unwrap().to_str().unwrap())
+                .await
+                .unwrap();
+        }
+    };
+    choose(data.join("lct-point.mat")).await;
+    let why = wait_text(&c, "#import-why", limit, |s| !s.is_empty()).await;
+    assert!(why.contains("enter an operator key"), "{why}");
+    c.find(Locator::Css("#token"))
+        .await
+        .unwrap()
+        .send_keys(TOKEN)
+        .await
+        .unwrap();
+    click(&c, "#token-form button").await;
+    wait_text(&c, "#token-state", limit, |s| s.contains("token set")).await;
+    let enabled = || async {
+        c.find(Locator::Css("#import-go"))
+            .await
+            .unwrap()
+            .is_enabled()
+            .await
+            .unwrap()
+    };
+    let t = Instant::now();
+    while !enabled().await {
+        assert!(
+            t.elapsed() < limit,
+            "import never enabled: {}",
+            text(&c, "#import-why").await
+        );
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+    // The method menu writes the settings.
+    c.execute(
+        "const m = document.getElementById('import-method'); m.value = 'fbp'; \
+         m.dispatchEvent(new Event('change'));",
+        vec![],
+    )
+    .await
+    .unwrap();
+    let recon = c
+        .execute("return document.getElementById('import-recon').value;", vec![])
+        .await
+        .unwrap();
+    assert_eq!(recon, "method = \"fbp\"\n");
+    click(&c, "#import-go").await;
+    let banner = wait_text(&c, "#banner", limit, |s| s.contains("imported")).await;
+    assert!(banner.contains("lct-point.mat"), "{banner}");
+    let id = wait_text(&c, "#run-id", limit, |s| s.ends_with("-lct-point")).await;
+    wait_text(&c, "#run-state", limit, |s| s == "completed").await;
+    wait_page(&c, "the import's results", limit, |v| v["resultsShown"] == true).await;
+    assert!(inked(&c, "depth-canvas").await > 200, "the depth image is blank");
+    let downloads = wait_text(&c, "#downloads", limit, |s| s.contains("capture.hdf5")).await;
+    for f in ["volume.npy", "depth.png", "recon.toml"] {
+        assert!(downloads.contains(f), "{downloads}");
+    }
+    let row = text(&c, &format!("tr[data-run='{id}']")).await;
+    assert!(row.contains("imported lct-point.mat"), "{row}");
+    let run = svc.status(&id).unwrap();
+    assert_eq!(run.imported.as_deref(), Some("lct-point.mat"));
+    c.execute(
+        "window.scrollTo(0, document.getElementById('import').offsetTop - 90);",
+        vec![],
+    )
+    .await
+    .unwrap();
+    screenshot(&c, &shots, "import.png").await;
+    // A file that is not a capture: refused, with the reason in the banner.
+    choose(Path::new(env!("CARGO_MANIFEST_DIR")).join("Cargo.toml")).await;
+    click(&c, "#import-go").await;
+    let refused = wait_text(&c, "#banner", limit, |s| s.starts_with("import refused")).await;
+    assert!(refused.contains("not a capture file name"), "{refused}");
+    c.close().await.unwrap();
+    drop(driver);
+    server.abort();
+    svc.shutdown();
+    worker.join().unwrap();
+}
+
 /// The faults an operator found (issue: an e-stop that always works, a laser state
 /// that cannot lie, views true to the run), each checked in Chromium: the e-stop from
 /// a phone-sized tab that has no token; the safety bar live from the run's own

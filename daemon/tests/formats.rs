@@ -4,6 +4,8 @@
 //! v7.3) reconstructs with its point where it is.
 use std::path::Path;
 
+mod common;
+
 /// Each fixture's point target; FBP and 3D-GTR must both put the volume's peak within
 /// 1.5 voxels (the default volume's largest edge) or 1.5 cm, whichever is more.
 #[test]
@@ -54,30 +56,5 @@ fn peak_error(fixture: &Path, method: &str, target: [f64; 3]) -> (f64, f64) {
         fixture.display(),
         String::from_utf8_lossy(&status.stderr)
     );
-    let (shape, v) = periscope_recon::io::read_npy(&out.join("volume.npy")).unwrap();
-    let meta: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(out.join("volume.json")).unwrap()).unwrap();
-    let (nz, ny, nx) = (shape[0], shape[1], shape[2]);
-    let peak = v
-        .iter()
-        .enumerate()
-        .max_by(|a, b| a.1.total_cmp(b.1))
-        .map(|(i, _)| i)
-        .unwrap();
-    let (iz, iy, ix) = (peak / (ny * nx), peak / nx % ny, peak % nx);
-    let mut voxel = 0f64;
-    let mut centre = |axis: &str, n: usize, i: usize| {
-        let r = &meta[axis];
-        let (lo, hi) = (r[0].as_f64().unwrap(), r[1].as_f64().unwrap());
-        voxel = voxel.max((hi - lo) / n as f64);
-        lo + (i as f64 + 0.5) * (hi - lo) / n as f64
-    };
-    let found = [centre("x", nx, ix), centre("y", ny, iy), centre("z", nz, iz)];
-    let err = found
-        .iter()
-        .zip(target)
-        .map(|(f, t)| (f - t).powi(2))
-        .sum::<f64>()
-        .sqrt();
-    (err, (1.5 * voxel).max(0.015))
+    common::peak_error(&out, target)
 }

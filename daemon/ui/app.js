@@ -349,7 +349,85 @@ function updateSubmit() {
   $('submit').disabled = why.length > 0;
   $('submit').title = why.join('; ') || 'queue this plan';
   $('submit-why').textContent = why.length ? `submit: ${why.join('; ')}` : '';
+  updateImport();
 }
+
+// ---------------------------------------------------------------- imports
+
+// Import is enabled when a capture file is chosen, the key may submit and the queue
+// is unlocked, and no import is uploading from this page.
+let importing = false;
+function updateImport() {
+  const why = [];
+  if (!$('import-file').files.length) why.push('choose a capture file');
+  if (!caller) why.push('the daemon cannot be reached or does not know this page');
+  else if (!['operator', 'admin'].includes(caller.role)) why.push(token ? `key role ${caller.role} may not import` : 'enter an operator key to import');
+  if (queueLock) why.push(`the queue is locked by ${queueLock.by}: ${queueLock.reason}`);
+  if (importing) why.push('an import is uploading');
+  $('import-go').disabled = why.length > 0;
+  $('import-go').title = why.join('; ') || 'upload the file and queue its reconstruction';
+  $('import-why').textContent = why.length && $('import-file').files.length ? `import: ${why.join('; ')}` : '';
+}
+$('import-file').addEventListener('change', updateImport);
+
+// The method menu writes the settings' `method` line, so the settings are the one
+// place the reconstruction is described.
+$('import-method').addEventListener('change', () => {
+  const m = $('import-method').value;
+  const lines = $('import-recon').value.split('\n').filter((l) => !/^\s*method\s*=/.test(l));
+  if (m) lines.unshift(`method = "${m}"`);
+  $('import-recon').value = lines.join('\n').trim() + (lines.some((l) => l.trim()) ? '\n' : '');
+});
+
+// Uploads with XMLHttpRequest, which reports the upload's progress (fetch does not).
+function uploadForm(path, form, onProgress) {
+  return new Promise((resolve, reject) => {
+    const xhr = new XMLHttpRequest();
+    xhr.open('POST', path);
+    if (token) xhr.setRequestHeader('Authorization', `Bearer ${token}`);
+    xhr.upload.onprogress = (e) => { if (e.lengthComputable) onProgress(e.loaded / e.total); };
+    xhr.onload = () => {
+      let json = null;
+      try { json = JSON.parse(xhr.responseText); } catch { json = null; }
+      if (xhr.status >= 200 && xhr.status < 300) resolve(json);
+      else reject(new ApiError(xhr.status, json?.error, json?.message || `${xhr.status} ${xhr.statusText}`));
+    };
+    xhr.onerror = () => reject(new ApiError(0, null, 'the daemon could not be reached'));
+    xhr.send(form);
+  });
+}
+
+$('import-go').addEventListener('click', async () => {
+  const file = $('import-file').files[0];
+  if (!file) return;
+  const form = new FormData();
+  form.append('capture', file, file.name);
+  for (const f of $('import-sidecars').files) form.append('sidecar', f, f.name);
+  const recon = $('import-recon').value;
+  if (recon.trim()) form.append('recon', recon);
+  const name = $('import-name').value.trim();
+  if (name) form.append('name', name);
+  importing = true;
+  updateImport();
+  const progress = $('import-progress');
+  progress.hidden = false;
+  progress.value = 0;
+  $('import-status').textContent = `uploading ${file.name} (${fmtBytes(file.size)})…`;
+  try {
+    const st = await uploadForm('/api/v1/imports', form, (f) => { progress.value = f; });
+    $('import-status').textContent = `imported as run ${st.id}`;
+    await refreshRuns();
+    select(st.id);
+    banner(`${file.name} imported: run ${st.id} queued`, 'notice', st.id);
+  } catch (e) {
+    $('import-status').textContent = '';
+    banner(`import refused: ${e.message}`);
+  } finally {
+    importing = false;
+    progress.hidden = true;
+    updateImport();
+  }
+});
 
 function planEdited() {
   checkedText = null;
@@ -457,7 +535,7 @@ function renderRuns() {
     const timings = r.timings.map(([s, t]) => `${s} ${fmtS(t)}`).join(' · ');
     const tr = el('tr', { class: r.id === selected ? 'selected' : '', 'data-run': r.id },
       el('td', {}, el('a', { href: `#${r.id}`, onclick: (e) => { e.preventDefault(); select(r.id); } }, r.id)),
-      el('td', {}, r.plan),
+      el('td', {}, r.plan, r.imported ? el('span', { class: 'small', title: `imported capture ${r.imported}` }, ` · imported ${r.imported}`) : ''),
       el('td', { class: `state-${r.state}` }, r.state + (r.queue_position != null ? ` (#${r.queue_position + 1})` : '')),
       el('td', {}, r.stage),
       el('td', {}, `${Math.round(r.progress * 100)} %`),

@@ -65,6 +65,7 @@ pub fn required_role(method: &Method, route: &str) -> Option<Role> {
 fn action(method: &Method, route: &str) -> Option<&'static str> {
     Some(match (method.as_str(), route) {
         ("POST", "/api/v1/runs") => "submit",
+        ("POST", "/api/v1/imports") => "import",
         ("POST", "/api/v1/runs/batch") => "submit-batch",
         ("POST", "/api/v1/runs/{id}/pause") => "pause",
         ("POST", "/api/v1/runs/{id}/resume") => "resume",

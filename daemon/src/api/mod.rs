@@ -27,6 +27,7 @@ use utoipa_axum::routes;
 pub mod access;
 pub mod catalogue;
 mod dashboard;
+mod import;
 mod openapi;
 pub mod server;
 
@@ -42,7 +43,15 @@ use openapi::status;
 /// The documented routes: every API handler, registered with the router and the
 /// OpenAPI document at once (the dashboard's pages are routed in [`app`]).
 fn documented() -> OpenApiRouter<AppState> {
-    exempt().merge(checks()).merge(limited())
+    exempt().merge(checks()).merge(limited()).merge(imports())
+}
+
+/// Imports: uploads of capture files, as large as `[api] import-limit-mib`. They take
+/// no turn of the others' (one uploads at a time, by its own permit), are bounded by
+/// their stall time rather than the request timeout, and take the import limit for
+/// their body.
+fn imports() -> OpenApiRouter<AppState> {
+    OpenApiRouter::new().routes(routes!(import::import))
 }
 
 /// The routes that never wait for a turn: the e-stop (nothing may stand in front of
@@ -118,6 +127,8 @@ pub struct AppState {
     streams: Arc<std::sync::atomic::AtomicUsize>,
     /// Downloads in flight (a permit per download, held until its body is sent).
     downloads: Arc<tokio::sync::Semaphore>,
+    /// The one import that may upload at a time.
+    imports: Arc<tokio::sync::Semaphore>,
     /// The rate limit on recording failed authentications.
     auth_audit: access::AuthAuditState,
 }
@@ -132,6 +143,7 @@ impl AppState {
             service,
             streams: Arc::default(),
             downloads,
+            imports: Arc::new(tokio::sync::Semaphore::new(1)),
             auth_audit: Arc::default(),
         }
     }
@@ -242,6 +254,7 @@ impl From<ServiceError> for ApiError {
             ServiceError::OverBudget(_) => (StatusCode::UNPROCESSABLE_ENTITY, "over-budget"),
             ServiceError::Invalid(_) => (StatusCode::UNPROCESSABLE_ENTITY, "invalid"),
             ServiceError::Locked(_) => (StatusCode::LOCKED, "queue-locked"),
+            ServiceError::InvalidImport(_) => (StatusCode::UNPROCESSABLE_ENTITY, "invalid-import"),
             ServiceError::Catalogue(_) => (StatusCode::INTERNAL_SERVER_ERROR, "catalogue"),
         };
         ApiError::new(status, code, e.to_string())
@@ -283,6 +296,7 @@ pub fn app(state: AppState) -> Router {
     let (exempt, _) = exempt().split_for_parts();
     let (checks, _) = checks().split_for_parts();
     let (limited, _) = limited().split_for_parts();
+    let (imports, _) = imports().split_for_parts();
     // One shared permit pool per group (a plain ConcurrencyLimitLayer would give each
     // route its own).
     let limited = limited
@@ -291,20 +305,20 @@ pub fn app(state: AppState) -> Router {
         .route("/ui/{*file}", get(dashboard::asset))
         .layer(tower::limit::GlobalConcurrencyLimitLayer::new(api.max_concurrent));
     let checks = checks.layer(tower::limit::GlobalConcurrencyLimitLayer::new(api.max_checks));
-    let routes: Router<AppState> = exempt
-        .merge(checks)
-        .merge(limited)
+    let timeout =
+        tower_http::timeout::TimeoutLayer::with_status_code(StatusCode::REQUEST_TIMEOUT, api.request_timeout);
+    // Every route but the imports is answered within the request timeout; an upload
+    // is bounded by its size and stall limits instead, and counts its own bytes.
+    let timed: Router<AppState> = exempt.merge(checks).merge(limited).layer(timeout);
+    let imports = imports.layer(DefaultBodyLimit::disable());
+    timed
+        .merge(imports)
         .fallback(not_found)
-        .method_not_allowed_fallback(method_not_allowed);
-    routes
+        .method_not_allowed_fallback(method_not_allowed)
         .layer(middleware::from_fn_with_state(state.clone(), access::authorise))
         .layer(middleware::from_fn_with_state(state.clone(), check_host))
         .layer(middleware::from_fn_with_state(state.clone(), access::track))
         .layer(DefaultBodyLimit::max(api.body_limit))
-        .layer(tower_http::timeout::TimeoutLayer::with_status_code(
-            StatusCode::REQUEST_TIMEOUT,
-            api.request_timeout,
-        ))
         .layer(compression())
         .with_state(state)
 }

@@ -557,6 +557,7 @@ fn read_run(dir: &Path) -> std::io::Result<Indexed> {
             instrument,
             submitted_by: info.submitted_by,
             again_of: info.again_of,
+            imported: info.import.map(|i| i.capture),
             created_unix_s: created,
             updated_unix_s: updated,
             pairs_total: info.pairs_total as u64,
@@ -600,8 +601,8 @@ fn upsert(tx: &rusqlite::Transaction<'_>, r: &Indexed) -> rusqlite::Result<()> {
     tx.execute(
         "INSERT INTO runs (id, plan, state, stage, created, updated, pairs_total, pairs_done,
             error, stamp, instrument, submitted_by, again_of, method, recon_s, final_loss, note,
-            plan_text)
-         VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11, ?12, ?13, ?14, ?15, ?16, ?17, ?18)
+            plan_text, imported)
+         VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11, ?12, ?13, ?14, ?15, ?16, ?17, ?18, ?19)
          ON CONFLICT(id) DO UPDATE SET plan = excluded.plan, state = excluded.state,
             stage = excluded.stage, created = excluded.created, updated = excluded.updated,
             pairs_total = excluded.pairs_total, pairs_done = excluded.pairs_done,
@@ -609,7 +610,7 @@ fn upsert(tx: &rusqlite::Transaction<'_>, r: &Indexed) -> rusqlite::Result<()> {
             submitted_by = excluded.submitted_by, again_of = excluded.again_of,
             method = excluded.method, recon_s = excluded.recon_s,
             final_loss = excluded.final_loss, note = excluded.note,
-            plan_text = excluded.plan_text",
+            plan_text = excluded.plan_text, imported = excluded.imported",
         params![
             rec.id,
             rec.plan,
@@ -629,6 +630,7 @@ fn upsert(tx: &rusqlite::Transaction<'_>, r: &Indexed) -> rusqlite::Result<()> {
             rec.final_loss,
             rec.note,
             r.plan_text,
+            rec.imported,
         ],
     )?;
     for table in ["state_changes", "timings", "outputs", "tags"] {

@@ -29,6 +29,8 @@ pub struct RunRecord {
     pub submitted_by: Option<String>,
     /// The run whose plan this one ran again.
     pub again_of: Option<String>,
+    /// The capture file an imported capture's run reconstructs.
+    pub imported: Option<String>,
     /// When it was made (Unix seconds).
     pub created_unix_s: Option<f64>,
     /// Its last state change (Unix seconds).
@@ -294,8 +296,9 @@ impl Catalogue {
             f.add(
                 "(r.id LIKE ? ESCAPE '\\' OR r.plan LIKE ? ESCAPE '\\' OR r.note LIKE ? ESCAPE '\\' \
                  OR r.error LIKE ? ESCAPE '\\' OR r.submitted_by LIKE ? ESCAPE '\\' \
+                 OR r.imported LIKE ? ESCAPE '\\' \
                  OR EXISTS (SELECT 1 FROM tags t WHERE t.run_id = r.id AND t.tag LIKE ? ESCAPE '\\'))",
-                (0..6).map(|_| Box::new(p.clone()) as Box<dyn ToSql>).collect(),
+                (0..7).map(|_| Box::new(p.clone()) as Box<dyn ToSql>).collect(),
             );
         }
         let limit = q.limit.clamp(1, MAX_PAGE);
@@ -312,7 +315,7 @@ impl Catalogue {
         let sql = format!(
             "SELECT r.id, r.plan, r.state, r.stage, r.instrument, r.submitted_by, r.again_of,
                 r.created, r.updated, r.pairs_total, r.pairs_done, r.error, r.method, r.recon_s,
-                r.final_loss, r.note
+                r.final_loss, r.note, r.imported
              FROM runs r{wh} ORDER BY {col} {dir}, r.id {dir} LIMIT {limit} OFFSET {offset}",
             col = q.sort.column(),
             offset = q.offset,
@@ -341,10 +344,10 @@ impl Catalogue {
             .query_row(
                 "SELECT r.id, r.plan, r.state, r.stage, r.instrument, r.submitted_by, r.again_of,
                     r.created, r.updated, r.pairs_total, r.pairs_done, r.error, r.method, r.recon_s,
-                    r.final_loss, r.note, r.plan_text
+                    r.final_loss, r.note, r.imported, r.plan_text
                  FROM runs r WHERE r.id = ?1",
                 [id],
-                |row| Ok((row_to_record(row)?, row.get::<_, String>(16)?)),
+                |row| Ok((row_to_record(row)?, row.get::<_, String>(17)?)),
             )
             .optional()
             .map_err(self.sqlite())?;
@@ -432,6 +435,7 @@ fn row_to_record(r: &rusqlite::Row<'_>) -> rusqlite::Result<RunRecord> {
         recon_s: r.get(13)?,
         final_loss: r.get(14)?,
         note: r.get(15)?,
+        imported: r.get(16)?,
         tags: Vec::new(),
         timings: Vec::new(),
         history: Vec::new(),

@@ -77,6 +77,10 @@ pub const MIGRATIONS: &[&str] = &[
     CREATE INDEX audit_at ON audit(at);
     CREATE TABLE meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
     UPDATE runs SET stamp = NULL;",
+    // 3: the capture file an imported capture's run reconstructs (`POST /imports`).
+    // Every run is read again from its directory to fill it.
+    "ALTER TABLE runs ADD COLUMN imported TEXT;
+    UPDATE runs SET stamp = NULL;",
 ];
 
 /// The version a fully migrated catalogue is at.

@@ -22,6 +22,7 @@ fn make_run(root: &Path, id: &str, plan: &str, state: RunState, created: f64, ta
         created_unix_s: Some(created),
         submitted_by: Some("alice".into()),
         again_of: None,
+        import: None,
         history: vec![
             StateChange {
                 at_unix_s: created,

@@ -140,6 +140,11 @@ pub struct ApiSettings {
     pub max_concurrent: usize,
     /// Most plan checks (`POST /check`, submissions' parsing) at once.
     pub max_checks: usize,
+    /// Largest capture file (all its files together) `POST /imports` accepts, bytes.
+    pub import_limit: u64,
+    /// Longest an import's upload may go without a byte arriving; then it is dropped
+    /// and nothing of it is kept.
+    pub import_stall: Duration,
 }
 
 impl std::fmt::Debug for ApiSettings {
@@ -155,6 +160,8 @@ impl std::fmt::Debug for ApiSettings {
             .field("max_connections", &self.max_connections)
             .field("max_concurrent", &self.max_concurrent)
             .field("max_checks", &self.max_checks)
+            .field("import_limit", &self.import_limit)
+            .field("import_stall", &self.import_stall)
             .field("status_interval", &self.status_interval)
             .field("max_queue", &self.max_queue)
             .field("max_streams", &self.max_streams)
@@ -355,6 +362,10 @@ struct RawApi {
     max_concurrent: f64,
     #[serde(default = "default_max_checks")]
     max_checks: f64,
+    #[serde(default = "default_import_limit_mib")]
+    import_limit_mib: f64,
+    #[serde(default = "default_import_stall_s")]
+    import_stall_s: f64,
 }
 
 impl Default for RawApi {
@@ -374,6 +385,8 @@ impl Default for RawApi {
             max_connections: default_max_connections(),
             max_concurrent: default_max_concurrent(),
             max_checks: default_max_checks(),
+            import_limit_mib: default_import_limit_mib(),
+            import_stall_s: default_import_stall_s(),
         }
     }
 }
@@ -398,6 +411,12 @@ fn default_max_concurrent() -> f64 {
 }
 fn default_max_checks() -> f64 {
     2.0
+}
+fn default_import_limit_mib() -> f64 {
+    4096.0
+}
+fn default_import_stall_s() -> f64 {
+    30.0
 }
 fn default_status_interval_s() -> f64 {
     10.0
@@ -471,6 +490,20 @@ fn api_settings(check: &Check<'_>, raw: RawApi) -> Result<ApiSettings, ConfigErr
         max_connections: count("api.max-connections", raw.max_connections, 1_000_000.0)?,
         max_concurrent: count("api.max-concurrent", raw.max_concurrent, 10_000.0)?,
         max_checks: count("api.max-checks", raw.max_checks, 1_000.0)?,
+        // The readers take files up to 16 GiB (y-tal's cap).
+        import_limit: (check.positive(
+            "api.import-limit-mib",
+            raw.import_limit_mib,
+            (periscope_recon::io::formats::MAX_FILE_BYTES >> 20) as f64,
+            "MiB",
+        )? * 1_048_576.0) as u64,
+        import_stall: Duration::from_secs_f64(check.range(
+            "api.import-stall-s",
+            raw.import_stall_s,
+            0.1,
+            3600.0,
+            "s",
+        )?),
     })
 }
 

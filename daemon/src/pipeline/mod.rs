@@ -8,6 +8,7 @@
 //! `spawn_blocking`).
 mod acquisition;
 mod control;
+mod import;
 mod los;
 mod output;
 mod reconstruct;
@@ -22,6 +23,7 @@ pub use crate::record::{record_axis, record_counts, record_transient, undo_pile_
 pub use crate::run_dir::{RelayPoint, parse_relay_ply, read_relay_ply};
 pub use crate::signals::panic_message;
 pub use control::{Control, Request};
+pub use import::{ImportGeometry, execute_import};
 pub use los::{first_bounce_range, peak};
 pub use output::{RELAY_PLY, RunOutputs, write_outputs};
 pub(crate) use reconstruct::Fit;
@@ -162,6 +164,9 @@ pub enum PipelineError {
     /// Reconstruction failed.
     #[error("reconstruction: {0}")]
     Recon(#[from] ReconError),
+    /// An imported capture's file could not be read, or does not fit its settings.
+    #[error("imported capture: {0}")]
+    Import(#[from] crate::capture::CaptureError),
     /// The run directory could not be written or read.
     #[error("run directory {path}: {source}")]
     Storage {

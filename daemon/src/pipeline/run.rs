@@ -111,6 +111,7 @@ pub fn prepare(
         created_unix_s: Some(crate::run_dir::unix_now()),
         submitted_by: Some(submitted_by.to_owned()),
         again_of: None,
+        import: None,
         history: Vec::new(),
         acting: Some(submitted_by.to_owned()),
     };

@@ -555,6 +555,22 @@ pub fn load_recon(
     recon_settings(src, "", raw, default_volume)
 }
 
+/// Checks a `RECON.toml` as far as it can be without the capture it is for: its keys,
+/// types and values, and the whole of it (against its own volume) when it gives one;
+/// one without a volume takes the capture's, which is known only once the capture is
+/// read.
+pub fn check_recon(src: &TomlSource) -> Result<(), ConfigError> {
+    let raw: RawRecon = src.parse()?;
+    match raw.volume {
+        Some(_) => recon_settings(src, "", raw, None).map(|_| ()),
+        None => {
+            let placeholder =
+                VolumeGrid::new([-0.5, 0.5], [-0.5, 0.5], [0.5, 1.5], [32, 32, 32]).expect("a valid grid");
+            recon_settings(src, "", raw, Some(placeholder)).map(|_| ())
+        }
+    }
+}
+
 /// The default reconstruction settings for a capture with no `RECON.toml`.
 pub fn default_recon(volume: VolumeGrid) -> ReconSettings {
     let src = TomlSource::from_text("<defaults>", "");

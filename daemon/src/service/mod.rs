@@ -36,12 +36,14 @@ use crate::store::write_atomic;
 use periscope_drivers::EmergencyOff;
 
 mod estop;
+mod import;
 mod ops;
 mod queue;
 mod status;
 mod worker;
 
 pub use estop::EstopReport;
+pub use import::{ImportTicket, MAX_FILE_NAME, STAGING_DIR, Upload, stored_name};
 pub use ops::{LOCK_FILE, QueueLock, QueueView};
 use queue::hold_interrupted;
 pub use status::{
@@ -97,6 +99,10 @@ pub struct RunStatus {
     pub timings: Vec<(String, f64)>,
     /// Files available for download.
     pub files: Vec<String>,
+    /// The capture file an imported capture's run reconstructs (`POST /imports`);
+    /// absent for a capture run.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub imported: Option<String>,
 }
 
 /// Why a request on a run was refused. Each variant keeps the error it came from, and
@@ -164,6 +170,9 @@ pub enum ServiceError {
     /// The queue is locked for maintenance.
     #[error("{0}")]
     Locked(String),
+    /// An import's upload is not a capture, or its settings are invalid.
+    #[error("{0}")]
+    InvalidImport(String),
     /// The run catalogue failed.
     #[error(transparent)]
     Catalogue(#[from] crate::catalogue::CatalogueError),
@@ -212,6 +221,8 @@ struct Live {
     /// The arms' angles (degrees), the signal rate (counts/s) and the pair index of
     /// the run's latest histogram, and when it arrived.
     histogram: Option<LiveHistogram>,
+    /// The run reconstructs an imported capture: it holds no device.
+    import: bool,
 }
 
 /// What the live safety bar takes from a run's latest histogram.
@@ -295,6 +306,7 @@ impl Service {
         let backend = crate::devices::backend(&instrument)?;
         let runs_dir = instrument.api.runs_dir.clone();
         std::fs::create_dir_all(&runs_dir).map_err(ServiceError::storage(&runs_dir))?;
+        Service::clear_staging(&runs_dir);
         let mut queue = VecDeque::new();
         let qpath = runs_dir.join(QUEUE_FILE);
         if qpath.is_file() {

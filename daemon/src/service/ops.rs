@@ -185,6 +185,7 @@ impl Service {
                     error: r.error.clone(),
                     timings: r.timings.clone(),
                     files: r.outputs.iter().map(|o| o.name.clone()).collect(),
+                    imported: r.imported.clone(),
                 };
                 if st.pairs_total > 0 {
                     st.progress = (st.pairs_done as f64 / st.pairs_total as f64).min(1.0);
@@ -445,6 +446,14 @@ impl Service {
     /// Queues run `id`'s stored plan again as a new run.
     pub fn again(&self, id: &str, by: &str) -> Result<RunStatus, ServiceError> {
         let dir = self.dir(id)?;
+        if let Some(source) = self.info(id)?.import {
+            return Err(ServiceError::Conflict(format!(
+                "run {id} reconstructed an imported capture ({}), not a plan: import the file again (with other \
+                 settings in its `recon` part), or reconstruct it offline with `periscope recon {}`",
+                source.capture,
+                dir.display()
+            )));
+        }
         let path = dir.join(file::PLAN);
         let text = crate::store::read_text_capped(&path, self.instrument.api.body_limit as u64)
             .map_err(ServiceError::storage(&path))?;

@@ -169,6 +169,7 @@ impl Service {
             error: info.error.clone(),
             timings: info.timings.clone(),
             files: Vec::new(),
+            imported: info.import.as_ref().map(|i| i.capture.clone()),
         };
         if s.current.as_ref().is_some_and(|(c, _)| c == id) && s.live.id == id {
             let live = &s.live;

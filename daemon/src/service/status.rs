@@ -27,13 +27,18 @@ impl Service {
             id: id.clone(),
             stage: s.live.stage.clone(),
         });
+        let import = s.live.import;
         InstrumentStatus {
             name: self.instrument.name.clone(),
             summary: self.instrument.summary(),
-            busy: run.is_some(),
-            note: run
-                .as_ref()
-                .map(|_| "the running run holds the devices; their live state is in its event stream"),
+            busy: run.is_some() && !import,
+            note: run.as_ref().map(|_| {
+                if import {
+                    "the running run reconstructs an imported capture and holds no device; the devices are read as when idle"
+                } else {
+                    "the running run holds the devices; their live state is in its event stream"
+                }
+            }),
             run,
             devices,
             reading,
@@ -73,7 +78,14 @@ impl Service {
             note: None,
             unix_ms: crate::run_dir::unix_now() * 1e3,
         };
-        if let Some((id, _)) = &s.current {
+        if let Some((id, _)) = &s.current
+            && s.live.import
+        {
+            out.run = Some(id.clone());
+            out.note = Some(format!(
+                "run {id} reconstructs an imported capture and holds no device; the devices are read as when idle"
+            ));
+        } else if let Some((id, _)) = &s.current {
             let live = &s.live;
             out.source = "run";
             out.run = Some(id.clone());
@@ -149,6 +161,11 @@ impl Service {
             return Ok(Download::Bytes(crate::config::redact_secrets(&text).into_bytes()));
         }
         if !path.is_file() && name == crate::ytal::CAPTURE_FILE {
+            if self.info(id)?.import.is_some() {
+                return Err(ServiceError::Conflict(format!(
+                    "run {id} has no {name} yet: an imported capture is written as y-tal HDF5 when it has been reconstructed"
+                )));
+            }
             return self.export_capture(id, &dir);
         }
         // A regular file only (a FIFO or device planted there would hang or never end).
@@ -193,6 +210,9 @@ impl Service {
     /// run has not made yet are empty.
     pub fn geometry(&self, id: &str) -> Result<Geometry, ServiceError> {
         let dir = self.dir(id)?;
+        if self.info(id)?.import.is_some() {
+            return import_geometry(&dir);
+        }
         let storage = ServiceError::RunFiles;
         let run = RunDir::new(&dir);
         let (_, plan, inst) = run.load().map_err(storage)?;
@@ -247,6 +267,38 @@ impl Service {
                 .subscribe(),
         ))
     }
+}
+
+/// An imported capture's geometry, from the `geometry.json` its run wrote when it read
+/// the file; empty (no points, a zero volume) until then.
+fn import_geometry(dir: &Path) -> Result<Geometry, ServiceError> {
+    let path = dir.join(file::GEOMETRY);
+    let g = match crate::store::read_text_capped(&path, 64 << 20) {
+        Ok(text) => serde_json::from_str::<pipeline::ImportGeometry>(&text).map_err(|e| {
+            ServiceError::storage(&path)(std::io::Error::new(std::io::ErrorKind::InvalidData, e))
+        })?,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => pipeline::ImportGeometry {
+            relay: Vec::new(),
+            illumination: Vec::new(),
+            detection: Vec::new(),
+            pairs: 0,
+            volume: [[0.0; 2]; 3],
+            viewpoint: [0.0; 3],
+        },
+        Err(e) => return Err(ServiceError::storage(&path)(e)),
+    };
+    Ok(Geometry {
+        relay: thin(g.relay),
+        illumination: thin(g.illumination),
+        detection: thin(g.detection),
+        pairs: g.pairs,
+        volume: VolumeBox {
+            x: g.volume[0],
+            y: g.volume[1],
+            z: g.volume[2],
+        },
+        viewpoint: g.viewpoint,
+    })
 }
 
 /// The most points of each kind [`Service::geometry`] returns.

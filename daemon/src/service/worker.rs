@@ -198,12 +198,19 @@ impl Service {
                 None
             }
         };
+        // An imported capture is read and reconstructed without the devices.
+        let import = RunInfo::load(&dir).is_ok_and(|i| i.import.is_some());
+        self.lock().live.import = import;
         // Run::open records a run that never started (paused, aborted or failed,
         // resumable) itself.
-        let result = Run::open(&dir, control, Some(events), Some(self.backend.as_ref())).and_then(|run| {
-            self.lock().laser_off = Some(run.emergency_off());
-            run.execute().map(|_| ())
-        });
+        let result = if import {
+            self.execute_import(&dir, control, events)
+        } else {
+            Run::open(&dir, control, Some(events), Some(self.backend.as_ref())).and_then(|run| {
+                self.lock().laser_off = Some(run.emergency_off());
+                run.execute().map(|_| ())
+            })
+        };
         // Every event queued so far reaches the clients before the worker closes the
         // run's channel.
         tx.lock().unwrap_or_else(|p| p.into_inner()).take();

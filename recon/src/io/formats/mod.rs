@@ -63,6 +63,13 @@ fn container(head: &[u8]) -> Container {
     Container::Unknown
 }
 
+/// Whether a file's first bytes (a few KiB) are those of a container some capture
+/// format uses: MATLAB v5, or HDF5 (at 0 or after a userblock, as MAT v7.3). A cheap
+/// test before a file is read whole (the daemon's import checks an upload with it).
+pub fn is_capture_container(head: &[u8]) -> bool {
+    container(head) != Container::Unknown
+}
+
 fn hdf5_error(path: &Path, message: impl Into<String>) -> YtalError {
     YtalError::Hdf5 {
         path: path.to_owned(),

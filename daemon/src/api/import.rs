@@ -1,0 +1,291 @@
+//! `POST /api/v1/imports`: a capture file of any public format, uploaded as a form
+//! (`multipart/form-data`, what a browser's file input sends), queued as a run that
+//! reconstructs it ([`crate::service`]'s imports).
+//!
+//! The upload streams to disk chunk by chunk, so it never holds more than a chunk in
+//! memory whatever its size; it is capped at `[api] import-limit-mib` in all, dropped
+//! when no byte arrives for `[api] import-stall-s` (not by the API's request timeout:
+//! a large file on a slow link may take minutes), and one import uploads at a time.
+use std::sync::Arc;
+
+use axum::extract::State;
+use axum::extract::multipart::{Field, Multipart, MultipartRejection};
+use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
+use axum::response::{IntoResponse, Response};
+use tokio::io::AsyncWriteExt as _;
+
+use super::openapi::{ErrorBody, status};
+use super::{ApiError, ApiResult, AppState, access, blocking};
+use crate::service::{ImportTicket, RunStatus, Upload, stored_name};
+
+/// The form `POST /imports` takes.
+#[derive(utoipa::ToSchema)]
+#[allow(dead_code)]
+pub(super) struct ImportForm {
+    /// The capture file (`.hdf5`/`.h5`: y-tal, ZNLOS; `.mat`: Stanford LCT and f-k,
+    /// phasor field), with its file name.
+    #[schema(value_type = String, format = Binary)]
+    capture: Vec<u8>,
+    /// A file its reader looks for beside it (an f-k measurement's `tof.mat`); repeat
+    /// the field for more.
+    #[schema(value_type = Option<String>, format = Binary)]
+    sidecar: Option<Vec<u8>>,
+    /// Reconstruction settings, as a RECON.toml (docs/recon.md); without, the defaults
+    /// derived for the capture.
+    recon: Option<String>,
+    /// The run's name; without, the capture file's stem.
+    name: Option<String>,
+}
+
+/// Longest `recon` and `name` fields, bytes.
+const MAX_TEXT_FIELD: usize = 1 << 20;
+
+/// Import a capture file and queue its reconstruction
+#[utoipa::path(
+    post,
+    path = "/api/v1/imports",
+    security(("bearer" = [])),
+    request_body(content = ImportForm, content_type = "multipart/form-data"),
+    responses(
+        (status = 201, description = "imported and queued", body = RunStatus),
+        (status = 400, description = "not a multipart/form-data upload, an unknown field, a file without a name", body = ErrorBody),
+        (status = 401, description = status::UNAUTHORISED, body = ErrorBody),
+        (status = 403, description = status::FORBIDDEN, body = ErrorBody),
+        (status = 408, description = "no byte arrived for `[api] import-stall-s`", body = ErrorBody),
+        (status = 413, description = "over `[api] import-limit-mib`", body = ErrorBody),
+        (status = 422, description = "not a capture file, or invalid settings (`invalid-import`)", body = ErrorBody),
+        (status = 500, description = status::STORAGE, body = ErrorBody),
+        (status = 423, description = status::LOCKED, body = ErrorBody),
+        (status = 429, description = status::QUEUE_FULL, body = ErrorBody),
+        (status = 503, description = "another import is uploading", body = ErrorBody),
+    )
+)]
+pub(super) async fn import(
+    State(state): State<AppState>,
+    axum::Extension(caller): axum::Extension<access::Caller>,
+    headers: HeaderMap,
+    form: Result<Multipart, MultipartRejection>,
+) -> ApiResult<Response> {
+    let api = &state.service.instrument().api;
+    let limit = api.import_limit;
+    let declared = headers
+        .get(header::CONTENT_LENGTH)
+        .and_then(|v| v.to_str().ok())
+        .and_then(|v| v.parse::<u64>().ok());
+    // The form's own bytes (boundaries, part headers, settings) come on top of the files.
+    if declared.is_some_and(|n| n > limit + MAX_TEXT_FIELD as u64 * 2) {
+        return Err(too_large(limit));
+    }
+    let mut form = form.map_err(|e| {
+        ApiError::new(
+            StatusCode::BAD_REQUEST,
+            "bad-body",
+            format!(
+                "an import is a multipart/form-data upload with the capture file in the field `capture` ({})",
+                e.body_text()
+            ),
+        )
+    })?;
+    let Ok(_permit) = Arc::clone(&state.imports).try_acquire_owned() else {
+        return Err(ApiError::new(
+            StatusCode::SERVICE_UNAVAILABLE,
+            "too-many-imports",
+            "another import is uploading; one uploads at a time: try again when it has finished",
+        ));
+    };
+    let key = headers
+        .get(super::catalogue::LOCK_KEY_HEADER)
+        .and_then(|v| v.to_str().ok())
+        .map(str::to_owned);
+    let s = Arc::clone(&state.service);
+    let ticket = blocking(move || s.begin_import(key.as_deref())).await?;
+    let stall = api.import_stall;
+    let upload = receive(&mut form, &ticket, limit, stall).await?;
+    let detail = format!(
+        "capture {} ({} bytes{})",
+        upload.capture.as_deref().unwrap_or("-"),
+        upload.bytes,
+        if upload.sidecars.is_empty() {
+            String::new()
+        } else {
+            format!(", with {}", upload.sidecars.join(", "))
+        }
+    );
+    let s = Arc::clone(&state.service);
+    let by = caller.name.clone();
+    let status = blocking(move || s.admit_import(ticket, upload, &by)).await?;
+    let location = format!("/api/v1/runs/{}", status.id);
+    let mut r = (StatusCode::CREATED, axum::Json(status)).into_response();
+    if let Ok(v) = HeaderValue::from_str(&location) {
+        r.headers_mut().insert(header::LOCATION, v);
+    }
+    r.extensions_mut().insert(access::AuditDetail(detail));
+    Ok(r)
+}
+
+fn too_large(limit: u64) -> ApiError {
+    ApiError::new(
+        StatusCode::PAYLOAD_TOO_LARGE,
+        "body-too-large",
+        format!(
+            "the upload is over {} MiB, the most this daemon takes ([api] import-limit-mib): raise the limit, \
+             or reconstruct the file where it is with `periscope recon`",
+            limit >> 20
+        ),
+    )
+}
+
+fn stalled(stall: std::time::Duration) -> ApiError {
+    ApiError::new(
+        StatusCode::REQUEST_TIMEOUT,
+        "upload-stalled",
+        format!(
+            "no byte of the upload arrived for {} s ([api] import-stall-s); nothing was kept: send it again",
+            stall.as_secs_f64()
+        ),
+    )
+}
+
+fn bad_form(e: impl std::fmt::Display) -> ApiError {
+    ApiError::new(
+        StatusCode::BAD_REQUEST,
+        "bad-body",
+        format!("the upload is not a well-formed multipart/form-data body: {e}"),
+    )
+}
+
+/// Reads the form's fields: files to the ticket's directory, settings and name into
+/// memory (capped).
+async fn receive(
+    form: &mut Multipart,
+    ticket: &ImportTicket,
+    limit: u64,
+    stall: std::time::Duration,
+) -> ApiResult<Upload> {
+    let mut upload = Upload::default();
+    loop {
+        let field = match tokio::time::timeout(stall, form.next_field()).await {
+            Err(_) => return Err(stalled(stall)),
+            Ok(Err(e)) => return Err(bad_form(e)),
+            Ok(Ok(None)) => break,
+            Ok(Ok(Some(f))) => f,
+        };
+        let name = field.name().unwrap_or_default().to_owned();
+        match name.as_str() {
+            "capture" | "sidecar" => {
+                let given = field.file_name().map(str::to_owned).ok_or_else(|| {
+                    ApiError::new(
+                        StatusCode::BAD_REQUEST,
+                        "bad-body",
+                        format!("the field `{name}` must be a file, with its file name"),
+                    )
+                })?;
+                let stored =
+                    stored_name(&given).map_err(|m| ApiError::new(StatusCode::BAD_REQUEST, "bad-body", m))?;
+                let taken =
+                    upload.capture.as_deref() == Some(stored.as_str()) || upload.sidecars.contains(&stored);
+                if taken || (name == "capture" && upload.capture.is_some()) {
+                    return Err(ApiError::new(
+                        StatusCode::BAD_REQUEST,
+                        "bad-body",
+                        format!(
+                            "`{stored}` is sent twice, or a second `capture`: send one capture file and each sidecar once"
+                        ),
+                    ));
+                }
+                let path = ticket.files_dir().join(&stored);
+                upload.bytes = save(field, &path, upload.bytes, limit, stall).await?;
+                if name == "capture" {
+                    upload.capture = Some(stored);
+                } else {
+                    upload.sidecars.push(stored);
+                }
+            }
+            "recon" | "name" => {
+                let text = text(field, &name, stall).await?;
+                if name == "recon" {
+                    upload.recon = Some(text);
+                } else {
+                    upload.name = Some(text);
+                }
+            }
+            other => {
+                return Err(ApiError::new(
+                    StatusCode::BAD_REQUEST,
+                    "bad-body",
+                    format!(
+                        "unknown form field `{other}`: an import takes `capture`, `sidecar`, `recon` and `name`"
+                    ),
+                ));
+            }
+        }
+    }
+    Ok(upload)
+}
+
+/// Streams a file field to `path`, synced to disk before it counts as received;
+/// returns the upload's bytes so far.
+async fn save(
+    mut field: Field<'_>,
+    path: &std::path::Path,
+    mut total: u64,
+    limit: u64,
+    stall: std::time::Duration,
+) -> ApiResult<u64> {
+    let storage = |e: std::io::Error| {
+        ApiError::new(
+            StatusCode::INTERNAL_SERVER_ERROR,
+            "storage",
+            format!("{}: {e}; nothing of the upload was kept", path.display()),
+        )
+    };
+    let mut out = tokio::fs::OpenOptions::new()
+        .write(true)
+        .create_new(true)
+        .open(path)
+        .await
+        .map_err(storage)?;
+    loop {
+        let chunk = match tokio::time::timeout(stall, field.chunk()).await {
+            Err(_) => return Err(stalled(stall)),
+            Ok(Err(e)) => return Err(bad_form(e)),
+            Ok(Ok(None)) => break,
+            Ok(Ok(Some(c))) => c,
+        };
+        total += chunk.len() as u64;
+        if total > limit {
+            return Err(too_large(limit));
+        }
+        out.write_all(&chunk).await.map_err(storage)?;
+    }
+    out.sync_all().await.map_err(storage)?;
+    Ok(total)
+}
+
+/// A text field, at most [`MAX_TEXT_FIELD`] bytes of UTF-8.
+async fn text(mut field: Field<'_>, name: &str, stall: std::time::Duration) -> ApiResult<String> {
+    let mut bytes = Vec::new();
+    loop {
+        let chunk = match tokio::time::timeout(stall, field.chunk()).await {
+            Err(_) => return Err(stalled(stall)),
+            Ok(Err(e)) => return Err(bad_form(e)),
+            Ok(Ok(None)) => break,
+            Ok(Ok(Some(c))) => c,
+        };
+        if bytes.len() + chunk.len() > MAX_TEXT_FIELD {
+            return Err(ApiError::new(
+                StatusCode::PAYLOAD_TOO_LARGE,
+                "body-too-large",
+                format!("the field `{name}` is over {} KiB", MAX_TEXT_FIELD >> 10),
+            ));
+        }
+        bytes.extend_from_slice(&chunk);
+    }
+    String::from_utf8(bytes).map_err(|_| {
+        ApiError::new(
+            StatusCode::BAD_REQUEST,
+            "bad-body",
+            format!("the field `{name}` is not UTF-8 text"),
+        )
+    })
+}
