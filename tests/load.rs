@@ -1,7 +1,8 @@
 //! The daemon under load and hostile peers: `periscope serve` (the binary, in a child
 //! process whose descriptor limit is set low) runs a real-time simulated capture while
 //! the test floods it with unauthenticated reads, holds idle and trickling connections
-//! past its descriptor limit, and sends concurrent 1 MiB plan checks. The capture's pair
+//! past its descriptor limit, sends concurrent 1 MiB plan checks, and uploads capture
+//! files to `POST /imports` back to back. The capture's pair
 //! rate in each phase must stay within 10 % of the unloaded rate measured just before,
 //! the laser's watchdog must never trip for want of progress, and the daemon's memory
 //! must stay bounded.
@@ -178,6 +179,46 @@ fn request(addr: SocketAddr, method: &str, path: &str, token: bool, body: &str) 
         .unwrap_or(0);
     let body = text.split_once("\r\n\r\n").map_or("", |(_, b)| b).to_owned();
     (status, body)
+}
+
+/// Uploads `bytes` of zeros as a capture file (`big.mat`) to `POST /imports`, calling
+/// `tick` after each MiB sent; the answer's status.
+fn upload(addr: SocketAddr, bytes: usize, tick: &dyn Fn()) -> u16 {
+    let Ok(mut s) = TcpStream::connect_timeout(&addr, Duration::from_secs(5)) else {
+        return 0;
+    };
+    let _ = s.set_read_timeout(Some(Duration::from_secs(60)));
+    let boundary = "load-test-boundary";
+    let head = format!(
+        "--{boundary}\r\nContent-Disposition: form-data; name=\"capture\"; filename=\"big.mat\"\r\n\r\n"
+    );
+    let tail = format!("\r\n--{boundary}--\r\n");
+    let request = format!(
+        "POST /api/v1/imports HTTP/1.1\r\nHost: 127.0.0.1\r\nConnection: close\r\n\
+         Authorization: Bearer {TOKEN}\r\nContent-Type: multipart/form-data; boundary={boundary}\r\n\
+         Content-Length: {}\r\n\r\n{head}",
+        head.len() + bytes + tail.len()
+    );
+    if s.write_all(request.as_bytes()).is_err() {
+        return 0;
+    }
+    let chunk = vec![0u8; 1 << 20];
+    for _ in 0..bytes >> 20 {
+        if s.write_all(&chunk).is_err() {
+            return 0;
+        }
+        tick();
+    }
+    if s.write_all(tail.as_bytes()).is_err() {
+        return 0;
+    }
+    let mut out = Vec::new();
+    let _ = s.read_to_end(&mut out);
+    String::from_utf8_lossy(&out)
+        .split_whitespace()
+        .nth(1)
+        .and_then(|c| c.parse().ok())
+        .unwrap_or(0)
 }
 
 /// Pairs stored so far by run `id`, from its histogram log.
@@ -428,6 +469,56 @@ fn a_capture_keeps_its_pace_under_read_floods_idle_connections_and_concurrent_ch
         (peak.load(Ordering::Relaxed) as u64) < rss_before + (512 << 20),
         "the checks held too much memory\n{}",
         report.join("\n")
+    );
+
+    // 4. Capture files uploaded to `POST /imports` back to back, 64 MiB each (zeros
+    //    under a capture's name: each streams to disk whole, then is refused as no
+    //    capture and deleted): the capture's pace kept, memory bounded by a chunk, not
+    //    the file.
+    let quiet = rate(&d.runs, &id);
+    let rss_before = rss(pid);
+    let stop = Arc::new(AtomicBool::new(false));
+    let peak = Arc::new(AtomicUsize::new(0));
+    let uploaded = Arc::new(AtomicUsize::new(0));
+    let uploads = {
+        let (peak, uploaded) = (Arc::clone(&peak), Arc::clone(&uploaded));
+        in_background(1, &stop, move || {
+            let s = upload(addr, 64 << 20, &|| {
+                peak.fetch_max(rss(pid) as usize, Ordering::Relaxed);
+            });
+            if s == 422 {
+                uploaded.fetch_add(64, Ordering::Relaxed);
+            }
+            s
+        })
+    };
+    let t_up = Instant::now();
+    std::thread::sleep(Duration::from_millis(500));
+    let loaded = rate(&d.runs, &id);
+    let answers = finish(&stop, uploads);
+    let mib = uploaded.load(Ordering::Relaxed);
+    report.push(format!(
+        "imports: {} uploads ({} refused as no capture, as they should be), {mib} MiB in {:.1} s, \
+         RSS {:.0} MiB before, {:.0} MiB peak",
+        answers.len(),
+        count(&answers, 422),
+        t_up.elapsed().as_secs_f64(),
+        rss_before as f64 / 1048576.0,
+        peak.load(Ordering::Relaxed) as f64 / 1048576.0
+    ));
+    check_rate("capture uploads", loaded, quiet, &mut report);
+    assert!(count(&answers, 422) >= 1, "{}", report.join("\n"));
+    assert!(
+        (peak.load(Ordering::Relaxed) as u64) < rss_before + (64 << 20),
+        "the uploads held too much memory\n{}",
+        report.join("\n")
+    );
+    let staging = d.runs.join(periscope_daemon::service::STAGING_DIR);
+    assert_eq!(
+        std::fs::read_dir(&staging).map_or(0, |d| d.count()),
+        0,
+        "refused uploads left files in {}",
+        staging.display()
     );
 
     // Throughout: the run never paused (a tripped watchdog pauses it) and recorded no

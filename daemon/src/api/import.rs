@@ -100,7 +100,14 @@ pub(super) async fn import(
     let s = Arc::clone(&state.service);
     let ticket = blocking(move || s.begin_import(key.as_deref())).await?;
     let stall = api.import_stall;
-    let upload = receive(&mut form, &ticket, limit, stall).await?;
+    let upload = match receive(&mut form, &ticket, limit, stall).await {
+        Ok(u) => u,
+        Err(e) => {
+            // What was written goes before the answer does.
+            let _ = tokio::task::spawn_blocking(move || ticket.discard()).await;
+            return Err(e);
+        }
+    };
     let detail = format!(
         "capture {} ({} bytes{})",
         upload.capture.as_deref().unwrap_or("-"),

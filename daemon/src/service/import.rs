@@ -31,6 +31,24 @@ impl ImportTicket {
     pub fn files_dir(&self) -> PathBuf {
         self.staging.join(file::IMPORT_DIR)
     }
+
+    /// Gives the place back and deletes what was written, before returning (blocking:
+    /// call it off the async runtime). A ticket merely dropped does the same in the
+    /// background.
+    pub fn discard(mut self) {
+        remove_staging(&std::mem::take(&mut self.staging));
+    }
+}
+
+fn remove_staging(staging: &Path) {
+    if staging.as_os_str().is_empty() {
+        return;
+    }
+    if let Err(e) = std::fs::remove_dir_all(staging)
+        && e.kind() != std::io::ErrorKind::NotFound
+    {
+        tracing::warn!("could not remove the upload directory {}: {e}", staging.display());
+    }
 }
 
 impl Drop for ImportTicket {
@@ -39,13 +57,10 @@ impl Drop for ImportTicket {
             self.service.lock().admitting -= 1;
         }
         let staging = std::mem::take(&mut self.staging);
-        let remove = move || {
-            if let Err(e) = std::fs::remove_dir_all(&staging)
-                && e.kind() != std::io::ErrorKind::NotFound
-            {
-                tracing::warn!("could not remove the upload directory {}: {e}", staging.display());
-            }
-        };
+        if staging.as_os_str().is_empty() {
+            return;
+        }
+        let remove = move || remove_staging(&staging);
         // A broken upload drops its ticket on the async runtime: the removal (a whole
         // file, perhaps gigabytes) goes to the blocking pool.
         match tokio::runtime::Handle::try_current() {
@@ -134,10 +149,22 @@ impl Service {
     /// read whole by the run), the settings must parse. Returns the new run's status.
     pub fn admit_import(
         &self,
-        mut ticket: ImportTicket,
+        ticket: ImportTicket,
         upload: Upload,
         by: &str,
     ) -> Result<RunStatus, ServiceError> {
+        let capture = match self.check_import(&ticket, &upload) {
+            Ok(c) => c,
+            Err(e) => {
+                ticket.discard();
+                return Err(e);
+            }
+        };
+        self.queue_import(ticket, upload, capture, by)
+    }
+
+    /// The upload's capture file name, once its name, container and settings pass.
+    fn check_import(&self, ticket: &ImportTicket, upload: &Upload) -> Result<String, ServiceError> {
         let invalid = ServiceError::InvalidImport;
         let capture = upload.capture.clone().ok_or_else(|| {
             invalid(
@@ -170,6 +197,17 @@ impl Service {
             crate::plan::check_recon(&TomlSource::from_text("the `recon` part", text.clone()))
                 .map_err(|e| invalid(e.to_string()))?;
         }
+        Ok(capture)
+    }
+
+    /// Moves a checked upload into a new run directory and queues it.
+    fn queue_import(
+        &self,
+        mut ticket: ImportTicket,
+        upload: Upload,
+        capture: String,
+        by: &str,
+    ) -> Result<RunStatus, ServiceError> {
         let name = match &upload.name {
             Some(n) if !n.trim().is_empty() => n.trim().to_owned(),
             _ => Path::new(&capture)
@@ -220,12 +258,15 @@ impl Service {
                 if let Err(rm) = std::fs::remove_dir_all(&dir) {
                     tracing::warn!("could not remove the unfinished import {}: {rm}", dir.display());
                 }
+                ticket.discard();
                 return Err(e);
             }
         };
         let mut s = self.lock();
         s.admitting -= 1;
         ticket.admitted = true;
+        // The upload's directory is empty now (its files moved into the run).
+        remove_staging(&std::mem::take(&mut ticket.staging));
         s.queue.push_back(id.clone());
         self.persist_after_change(&s);
         self.wake.notify_all();
