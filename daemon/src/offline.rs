@@ -92,9 +92,15 @@ fn load(capture: &Path, config: Option<&Path>) -> Result<(ReconSettings, Transie
     println!("{}", capture.describe());
     if let Some(f) = &t.falloff {
         println!(
-            "  laser falloff divided out: cos θ / d² from the laser at ({:.3}, {:.3}, {:.3}) m, each histogram \
-             scaled by {:.2} to {:.2} ({}; laser-falloff = \"none\" keeps the counts as they are)",
-            f.laser.x, f.laser.y, f.laser.z, f.range.0, f.range.1, f.why
+            "  laser falloff accounted for: cos θ / d² from the laser at ({:.3}, {:.3}, {:.3}) m, a gain of \
+             {:.2} to {:.2} on each histogram (in 3D-GTR's model; the solvers divide it out) ({}; \
+             laser-falloff = \"none\" takes the counts as they are)",
+            f.laser.x,
+            f.laser.y,
+            f.laser.z,
+            1.0 / f.range.1,
+            1.0 / f.range.0,
+            f.why
         );
     }
     if t.overflowed > 0 {

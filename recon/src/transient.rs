@@ -213,6 +213,27 @@ pub fn clip_to_measured(axis: &TimeAxis, measured: (f64, f64)) -> Result<TimeAxi
 /// to 1 m of the relay at normal incidence, or cos θ from 1 to 0.01.
 pub const MAX_FALLOFF_SPAN: f64 = 1e4;
 
+/// The shortest and longest hidden path of `pair` through `volume`'s box: each leg at
+/// least its point's distance to the box (a lower bound on the shortest), and the
+/// longest to a corner.
+pub fn path_range(pair: &Pair, volume: &VolumeGrid) -> (f64, f64) {
+    let (lo, hi) = (volume.min(), volume.max());
+    let mut far = 0.0f64;
+    for c in 0..8 {
+        let q = DVec3::new(
+            if c & 1 == 0 { lo.x } else { hi.x },
+            if c & 2 == 0 { lo.y } else { hi.y },
+            if c & 4 == 0 { lo.z } else { hi.z },
+        );
+        far = far.max(q.distance(pair.xi) + q.distance(pair.xd));
+    }
+    let clamp = |x: DVec3| x.clamp(lo, hi);
+    (
+        clamp(pair.xi).distance(pair.xi) + clamp(pair.xd).distance(pair.xd),
+        far,
+    )
+}
+
 /// The hidden-path axis all pairs are rebinned to: the TDC's bin width, spanning the
 /// shortest to the longest hidden path any pair can have to the reconstruction volume.
 pub fn hidden_axis(pairs: &[Pair], volume: &VolumeGrid, bin_width: f64) -> Result<TimeAxis, TransientError> {
@@ -223,20 +244,10 @@ pub fn hidden_axis(pairs: &[Pair], volume: &VolumeGrid, bin_width: f64) -> Resul
         )));
     }
     let (mut near, mut far) = (f64::INFINITY, 0.0f64);
-    let (lo, hi) = (volume.min(), volume.max());
     for p in pairs {
-        let mut corner_far = 0.0f64;
-        for c in 0..8 {
-            let q = DVec3::new(
-                if c & 1 == 0 { lo.x } else { hi.x },
-                if c & 2 == 0 { lo.y } else { hi.y },
-                if c & 4 == 0 { lo.z } else { hi.z },
-            );
-            corner_far = corner_far.max(q.distance(p.xi) + q.distance(p.xd));
-        }
-        far = far.max(corner_far);
-        let clamp = |x: DVec3| x.clamp(lo, hi);
-        near = near.min(clamp(p.xi).distance(p.xi) + clamp(p.xd).distance(p.xd));
+        let (n, f) = path_range(p, volume);
+        near = near.min(n);
+        far = far.max(f);
     }
     let start = ((near.max(0.0) / width).floor() - 4.0).max(0.0) * width;
     // In f64 first: hostile geometry (a tiny bin width, points far away) must be
@@ -263,6 +274,13 @@ pub struct TransientSet {
     pairs: Vec<Pair>,
     counts: Vec<f32>,
     weights: Vec<f32>,
+    /// Each transient's known gain in the model (a point-source laser's falloff,
+    /// [`TransientSet::compensate_laser_falloff`]): its counts are `gain` times what a
+    /// transient at gain 1 would hold. All 1 unless set.
+    gains: Vec<f32>,
+    /// Counts and bins read where no light from the scene can arrive (before the
+    /// transients were cut to the volume's paths): the ambient level's evidence.
+    ambient: (f64, usize),
     photon_counts: bool,
 }
 
@@ -275,6 +293,8 @@ impl TransientSet {
             pairs: Vec::new(),
             counts: Vec::new(),
             weights: Vec::new(),
+            gains: Vec::new(),
+            ambient: (0.0, 0),
             photon_counts: false,
         })
     }
@@ -330,6 +350,7 @@ impl TransientSet {
         self.pairs.push(pair);
         self.counts.extend_from_slice(histogram);
         self.weights.push(weight);
+        self.gains.push(1.0);
         Ok(())
     }
 
@@ -350,11 +371,13 @@ impl TransientSet {
         self.pairs.extend_from_slice(&other.pairs);
         self.counts.extend_from_slice(&other.counts);
         self.weights.extend_from_slice(&other.weights);
+        self.gains.extend_from_slice(&other.gains);
+        self.ambient = (self.ambient.0 + other.ambient.0, self.ambient.1 + other.ambient.1);
         Ok(())
     }
 
-    /// The transients at `indices` (in that order, repeats allowed), with their weights
-    /// and this set's marking: the pairs an adaptive capture or its replay has revealed.
+    /// The transients at `indices` (in that order, repeats allowed), with their weights,
+    /// gains and this set's marking: the pairs an adaptive capture or its replay has revealed.
     ///
     /// # Panics
     /// If an index is out of range.
@@ -365,12 +388,15 @@ impl TransientSet {
             pairs: Vec::with_capacity(indices.len()),
             counts: Vec::with_capacity(indices.len() * bins),
             weights: Vec::with_capacity(indices.len()),
+            gains: Vec::with_capacity(indices.len()),
+            ambient: self.ambient,
             photon_counts: self.photon_counts,
         };
         for &i in indices {
             out.pairs.push(self.pairs[i]);
             out.counts.extend_from_slice(self.histogram(i));
             out.weights.push(self.weights[i]);
+            out.gains.push(self.gains[i]);
         }
         out
     }
@@ -405,17 +431,58 @@ impl TransientSet {
         self.weights[i]
     }
 
-    /// Undoes the falloff of a laser that lights the relay as a point source at `laser`
-    /// (metres): such a source gives illumination point `x` with normal `n` an
+    /// The known gain of transient `i` in the model (1 unless
+    /// [`TransientSet::compensate_laser_falloff`] set it): its counts are this times a
+    /// transient's at gain 1.
+    pub fn gain(&self, i: usize) -> f32 {
+        self.gains[i]
+    }
+
+    /// Records `bins` bins holding `counts` in all, read where no light from the scene
+    /// can arrive (outside every path through the volume, before the transients were
+    /// cut to it): [`TransientSet::ambient`] reads the ambient level from them.
+    pub fn add_ambient(&mut self, counts: f64, bins: usize) {
+        self.ambient = (self.ambient.0 + counts, self.ambient.1 + bins);
+    }
+
+    /// The mean count of the bins [`TransientSet::add_ambient`] recorded, and how many
+    /// there were; `None` without any.
+    pub fn ambient(&self) -> Option<(f64, usize)> {
+        (self.ambient.1 > 0).then(|| (self.ambient.0 / self.ambient.1 as f64, self.ambient.1))
+    }
+
+    /// Whether any transient has a known gain other than 1.
+    pub fn has_gains(&self) -> bool {
+        self.gains.iter().any(|&g| g != 1.0)
+    }
+
+    /// Transient `i` as it would be at gain 1: its counts over its known gain, for the
+    /// methods that take the counts as they are (the solvers). Not Poisson counts any
+    /// more where the gain is not 1: a likelihood puts the gain in its model instead.
+    pub fn measured(&self, i: usize) -> std::borrow::Cow<'_, [f32]> {
+        let g = self.gains[i];
+        if g == 1.0 {
+            std::borrow::Cow::Borrowed(self.histogram(i))
+        } else {
+            std::borrow::Cow::Owned(self.histogram(i).iter().map(|&c| c / g).collect())
+        }
+    }
+
+    /// Accounts for the falloff of a laser that lights the relay as a point source at
+    /// `laser` (metres): such a source gives illumination point `x` with normal `n` an
     /// irradiance proportional to `cos θ / d²` (d = |laser − x|, θ the angle of
-    /// incidence), so every histogram carries that factor. Transient `i` is divided by
-    /// its factor over the mean factor of the set, so the counts keep their overall
-    /// scale. This is y-tal's `tal.reconstruct.compensate_laser_cos_dsqr` (which
-    /// divides by the raw factor). A collimated laser puts the same power into its spot
-    /// wherever it points and needs none of this (docs/ytal.md, "Laser falloff").
+    /// incidence), so every histogram carries that factor. Transient `i`'s known gain
+    /// becomes its factor over the mean factor of the set (so the overall scale is
+    /// kept): the counts stay as measured, Poisson with their one ambient background,
+    /// and the gain goes into the model of a likelihood fit (3D-GTR renders `gain ×
+    /// scene + background`), while the solvers take the counts over the gain
+    /// ([`TransientSet::measured`]): y-tal's `tal.reconstruct.compensate_laser_cos_dsqr`
+    /// (which divides by the raw factor). A collimated laser puts the same power into
+    /// its spot wherever it points and needs none of this (docs/ytal.md, "Laser
+    /// falloff").
     ///
-    /// Returns the smallest and largest multiplier applied. Refused, with the set
-    /// unchanged, when the laser is not in front of an illumination point
+    /// Returns the smallest and largest multiplier (1 / gain) it implies for the counts.
+    /// Refused, with the set unchanged, when the laser is not in front of an illumination point
     /// (cos θ ≤ 0.01, a grazing angle whose factor would amplify the counts a
     /// hundredfold) or coincides with one, when the factors span more than
     /// [`MAX_FALLOFF_SPAN`], or when a multiplied count would not fit an `f32`.
@@ -459,10 +526,8 @@ impl TransientSet {
                 hi / lo
             )));
         }
-        for (h, m) in self.counts.chunks_exact_mut(bins).zip(&multipliers) {
-            for v in h {
-                *v = (f64::from(*v) * m) as f32;
-            }
+        for (g, m) in self.gains.iter_mut().zip(&multipliers) {
+            *g = (f64::from(*g) / m) as f32;
         }
         Ok((lo, hi))
     }
@@ -563,7 +628,7 @@ mod tests {
     }
 
     #[test]
-    fn a_point_source_lasers_falloff_is_divided_out_around_the_mean() {
+    fn a_point_source_lasers_falloff_becomes_each_transients_gain_around_the_mean() {
         // Laser 1 m above the origin. The point under it: d = 1, cos θ = 1, factor 1.
         // The point 1 m to the side: d = √2, cos θ = 1/√2, factor 1/(2√2).
         let mut set = TransientSet::new(axis()).unwrap();
@@ -581,14 +646,30 @@ mod tests {
             (lo - mean).abs() < 1e-12 && (hi - mean / side).abs() < 1e-12,
             "{lo} {hi}"
         );
-        // Both now carry the same transient, at the mean factor's scale.
+        // The counts stay as measured; the falloff is each transient's gain in the model
+        // (relative to the mean factor), and at gain 1 both carry the same transient, at
+        // the mean factor's scale.
+        assert_eq!(set.histogram(0), &[0.0, 4.0, 2.0, 0.0]);
+        assert!(
+            (f64::from(set.gain(0)) - 1.0 / mean).abs() < 1e-6,
+            "{}",
+            set.gain(0)
+        );
+        assert!(
+            (f64::from(set.gain(1)) - side / mean).abs() < 1e-6,
+            "{}",
+            set.gain(1)
+        );
         for i in 0..2 {
-            let h = set.histogram(i);
+            let h = set.measured(i);
             assert!((f64::from(h[1]) - 4.0 * mean).abs() < 1e-5, "{i}: {h:?}");
             assert!((f64::from(h[2]) - 2.0 * mean).abs() < 1e-5, "{i}: {h:?}");
         }
+        // A subset keeps its transients' gains.
+        assert_eq!(set.subset(&[1]).gain(0), set.gain(1));
         // A laser behind the relay, or grazing it, is refused and changes nothing.
         let before = set.histogram(1).to_vec();
+        let gain = set.gain(1);
         let err = set
             .compensate_laser_falloff(DVec3::new(0.0, 0.0, -1.0))
             .unwrap_err();
@@ -606,8 +687,9 @@ mod tests {
         huge.push(Pair::confocal(DVec3::X, DVec3::Z), &[f32::MAX; 4])
             .unwrap();
         assert!(huge.compensate_laser_falloff(DVec3::Z).is_err());
-        assert_eq!(set.histogram(1), &before[..]);
+        assert_eq!((set.histogram(1), set.gain(1)), (&before[..], gain));
         assert!(huge.histogram(0).iter().all(|v| *v == f32::MAX));
+        assert!(!huge.has_gains());
     }
 
     #[test]

@@ -554,15 +554,60 @@ fn counted(n: usize, seed: u64, background: f32) -> TransientSet {
     set
 }
 
+/// A Poisson draw of mean `mean` (Knuth's product of uniforms; small means).
+fn poisson(rng: &mut ChaCha8Rng, mean: f64) -> f32 {
+    let (limit, mut k, mut p) = ((-mean).exp(), 0u32, 1.0f64);
+    loop {
+        p *= rng.random::<f64>();
+        if p <= limit {
+            return k as f32;
+        }
+        k += 1;
+    }
+}
+
+/// A faint ambient level (0.05 counts a bin, as the noisy validation capture's) is read
+/// from the bins no light from the ROI reaches, without the percentile's bias: the
+/// 10th percentile of the bins' sums sits 1.3 of their deviations below the mean,
+/// which at this level is a third of it.
+#[test]
+fn the_background_is_read_without_bias_from_the_bins_the_roi_cannot_reach() {
+    let clean = data(160, 3);
+    let peak = (0..clean.len())
+        .flat_map(|i| clean.histogram(i).to_vec())
+        .fold(0.0f32, f32::max);
+    let mut rng = ChaCha8Rng::seed_from_u64(54);
+    let mut counts = TransientSet::new(*clean.axis()).unwrap();
+    for (i, pair) in clean.pairs().iter().enumerate() {
+        let h: Vec<f32> = clean
+            .histogram(i)
+            .iter()
+            .map(|&v| poisson(&mut rng, f64::from(20.0 * v / peak) + 0.05))
+            .collect();
+        counts.push(*pair, &h).unwrap();
+    }
+    let by_roi = estimate_background(&counts, Some(&roi()));
+    let by_percentile = estimate_background(&counts, None);
+    assert!((by_roi / 0.05 - 1.0).abs() < 0.15, "{by_roi} against 0.05");
+    assert!(
+        by_percentile < 0.8 * 0.05,
+        "{by_percentile}: the percentile's bias"
+    );
+    // A ROI whose paths fill the window leaves too few such bins: the percentile.
+    let everywhere = RoiBox::from_bounds(DVec3::new(-2.0, -2.0, 0.01), DVec3::new(2.0, 2.0, 3.0)).unwrap();
+    assert_eq!(estimate_background(&counts, Some(&everywhere)), by_percentile);
+}
+
 #[test]
 fn non_negative_data_are_fitted_with_the_poisson_deviance_and_its_background() {
     let counts = counted(40, 3, 2.0);
     assert_eq!(first_negative(&counts), None);
     // Most bins see no primitive: the background is what they hold.
-    let background = estimate_background(&counts);
+    let background = estimate_background(&counts, Some(&roi()));
     assert!((background - 2.0).abs() < 0.01, "{background}");
+    assert!((estimate_background(&counts, None) - 2.0).abs() < 0.01);
     // Without any, the floor keeps the rate positive.
-    let floor = estimate_background(&data(40, 3));
+    let floor = estimate_background(&data(40, 3), Some(&roi()));
     assert!(floor > 0.0 && floor < 0.1, "{floor}");
 
     let trainer = Trainer::new(config(30, 1), roi(), counts.clone()).unwrap();

@@ -174,7 +174,12 @@ impl crate::simd::Work for DensityChunk<'_> {
                 let (di, dd) = (x.distance(pair.xi), x.distance(pair.xd));
                 let b = ((di + dd - axis.start) / axis.width).floor();
                 if b >= 0.0 && (b as usize) < axis.bins {
-                    sum += data.histogram(p)[b as usize] as f64 * data.weight(p) as f64 * di * di * dd * dd;
+                    sum += (data.histogram(p)[b as usize] / data.gain(p)) as f64
+                        * data.weight(p) as f64
+                        * di
+                        * di
+                        * dd
+                        * dd;
                 }
             }
             *d = sum;

@@ -18,14 +18,21 @@ use crate::transient::{Pair, TimeAxis, TransientSet};
 /// summing the items' batch buffers costs nothing measurable.
 const CHUNK: usize = 128;
 
-/// Renders every pair of `set` (its histograms are ignored) from `kernels`; returns the
-/// histograms concatenated, `set.axis().bins` per pair.
+/// Renders every pair of `set` (its histograms are ignored) from `kernels`, each times
+/// its known gain ([`TransientSet::gain`]); returns the histograms concatenated,
+/// `set.axis().bins` per pair.
 pub fn render_set(kernels: &[Kernel], set: &TransientSet, opt: &RenderOptions) -> Vec<f64> {
     let bins = set.axis().bins;
     let mut out = vec![0.0; bins * set.len()];
     out.par_chunks_mut(LANES * bins)
         .zip(set.pairs().par_chunks(LANES))
         .for_each(|(hists, pairs)| render_pairs(kernels, pairs, set.axis(), opt, hists));
+    if set.has_gains() {
+        for (i, h) in out.chunks_mut(bins).enumerate() {
+            let g = f64::from(set.gain(i));
+            h.iter_mut().for_each(|v| *v *= g);
+        }
+    }
     out
 }
 
@@ -208,9 +215,10 @@ impl crate::simd::Work for ForwardChunk<'_> {
 /// step) and the loss is summed afterwards in the batch's order, bin by bin, so it
 /// does not depend on the split.
 ///
-/// `gains` (one per pair of `set`, or `None` for all 1) multiply each pair's rendering
-/// in the model: the per-transient gains of the relay and the instrument
-/// ([`crate::gtr::Trainer`] estimates them), so ∂L/∂τ̂ is the gain times ∂L/∂model.
+/// Each pair's rendering is multiplied in the model by its known gain in `set`
+/// ([`TransientSet::gain`]) and by `gains` (one per pair of `set`, or `None` for all 1:
+/// the per-transient gains of the relay and the instrument that
+/// [`crate::gtr::Trainer`] estimates), so ∂L/∂τ̂ is the gain times ∂L/∂model.
 fn residuals(
     rendered: &[f64],
     set: &TransientSet,
@@ -228,7 +236,7 @@ fn residuals(
         .zip(batch.par_iter())
         .for_each(|(((dl, terms), rendered), &p)| {
             let w = set.weight(p) as f64 * scale;
-            let gain = gains.map_or(1.0, |g| g[p]);
+            let gain = f64::from(set.gain(p)) * gains.map_or(1.0, |g| g[p]);
             let measured = set.histogram(p);
             for b in 0..bins {
                 let (model, data) = (gain * rendered[b], measured[b] as f64);
@@ -476,6 +484,28 @@ mod tests {
             assert!(top > 0.0, "{name}");
             for (x, y) in a.iter().zip(b) {
                 assert!((x - y).abs() <= 1e-9 * top, "{name}: {x} against {y}");
+            }
+        }
+        // A point-source laser's falloff held as the set's own gains (the counts as
+        // counted) is the same model: the same loss, gradient and rendering as those
+        // gains given explicitly.
+        let mut lit = set.clone();
+        lit.compensate_laser_falloff(DVec3::new(0.0, -2.0, 1.2)).unwrap();
+        assert!(lit.has_gains());
+        let known: Vec<f64> = (0..lit.len()).map(|i| f64::from(lit.gain(i))).collect();
+        let (mut a, mut b) = (RawGrads::default(), RawGrads::default());
+        let la = batch_loss_grad_with(&cloud, &kernels, None, &lit, &batch, &opt, None, &mut a);
+        let lb = batch_loss_grad_with(&cloud, &kernels, None, &set, &batch, &opt, Some(&known), &mut b);
+        assert!((la - lb).abs() <= 1e-12 * lb, "{la} against {lb}");
+        assert_eq!(a.centres, b.centres);
+        assert_eq!(a.albedo, b.albedo);
+        let (ra, rb) = (render_set(&kernels, &lit, &opt), render_set(&kernels, &set, &opt));
+        for (p, (x, y)) in ra.chunks(axis.bins).zip(rb.chunks(axis.bins)).enumerate() {
+            for (x, y) in x.iter().zip(y) {
+                assert!(
+                    (x - known[p] * y).abs() <= 1e-12 * y.abs().max(1e-300),
+                    "pair {p}: {x} against {y}"
+                );
             }
         }
     }

@@ -101,7 +101,7 @@ pub fn default_snr(set: &TransientSet) -> f64 {
     }
     let (mut sum, mut squares) = (0.0f64, 0.0f64);
     for i in 0..set.len() {
-        for &c in set.histogram(i) {
+        for &c in set.measured(i).iter() {
             let c = f64::from(c.max(0.0));
             sum += c;
             squares += c * c;

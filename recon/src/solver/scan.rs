@@ -234,7 +234,7 @@ pub(crate) fn gather_cube(
     let mut count = vec![0u32; cell_count];
     for &p in members {
         let cell = scan.cells[p];
-        let h = set.histogram(p);
+        let h = set.measured(p);
         let w = set.weight(p);
         let row = &mut cube[cell * bins..(cell + 1) * bins];
         let src = |b: isize| {

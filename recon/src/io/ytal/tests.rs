@@ -175,3 +175,39 @@ fn files_that_are_not_y_tal_captures_get_a_clear_message() {
     let e = YtalCapture::read(&other).unwrap_err().to_string();
     assert!(e.contains("no dataset `H`") && e.contains("`data`"), "{e}");
 }
+
+/// The bins outside every path through the volume, which the transients are cut away
+/// from, are counted as the ambient level's evidence: here 2 counts in each bin before
+/// the volume's shortest path (less 5 bins of margin), 9 in the rest.
+#[test]
+fn the_bins_no_path_through_the_volume_reaches_are_kept_as_the_ambient_level() {
+    let mut c = sample();
+    c.h_format = HFormat::TSi;
+    c.h_shape = vec![200, 6];
+    c.laser_grid = c.sensor_grid.clone();
+    c.delta_t = 0.01;
+    c.t_start = 0.0;
+    c.flags = None;
+    // Volume z 0.6–1.2 m over the points: every path at least 1.2 m (bin 120), and
+    // the longest past the recording's end (2 m).
+    let volume = VolumeGrid::new([-0.1, 0.6], [-0.3, 0.1], [0.6, 1.2], [8, 8, 8]).unwrap();
+    c.h = (0..200 * 6)
+        .map(|v| if v / 6 < 115 { 2.0 } else { 9.0 })
+        .collect();
+    c.check().unwrap();
+    let set = c.transients(&volume).unwrap();
+    let (mean, bins) = set.ambient().expect("bins before the volume's paths");
+    assert_eq!(
+        mean, 2.0,
+        "only bins wholly before the shortest path, less the margin"
+    );
+    assert_eq!(bins, 6 * 114, "bins 0 to 113: wholly before 1.2 m less 5 bins");
+    assert!(
+        set.axis().start >= 1.1,
+        "the set itself is cut to the volume: {:?}",
+        set.axis()
+    );
+    // A volume whose paths fill the recording leaves none.
+    let wide = VolumeGrid::new([-3.0, 3.0], [-3.0, 3.0], [0.001, 1.0], [8, 8, 8]).unwrap();
+    assert!(c.transients(&wide).unwrap().ambient().is_none());
+}

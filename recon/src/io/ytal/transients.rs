@@ -13,6 +13,10 @@ use crate::volume::VolumeGrid;
 /// run budget).
 const MAX_TRANSIENT_BYTES: u64 = 16 << 30;
 
+/// Bins of margin, each side, between a transient's paths through the volume and the
+/// bins [`YtalCapture::transients`] reads the ambient level from (the pulse's width).
+pub(crate) const AMBIENT_MARGIN_BINS: f64 = 5.0;
+
 impl YtalCapture {
     /// Laser and sensor point indices of transient `c`.
     pub fn indices(&self, c: usize) -> (usize, usize) {
@@ -63,6 +67,9 @@ impl YtalCapture {
     /// volume's paths reach further: [`clip_to_measured`]). Transients with no counts
     /// are left out, and so are those the flags mark overflowed (their counts are only
     /// a lower bound), as in a run's own reconstruction.
+    /// The set also records the counts of the bins outside every path through the
+    /// volume (with 5 bins to spare), which the crop drops: the ambient level's
+    /// evidence ([`TransientSet::ambient`]).
     pub fn transients(&self, volume: &VolumeGrid) -> Result<TransientSet, YtalError> {
         let pairs: Vec<Pair> = (0..self.len()).map(|c| self.pair(c)).collect();
         let axis: TimeAxis =
@@ -90,11 +97,29 @@ impl YtalCapture {
         let mut set = TransientSet::new(axis).map_err(|e| self.error(e.to_string()))?;
         // Whole non-negative numbers throughout: a photon-counting capture.
         let mut whole = true;
+        let mut ambient = (0.0f64, 0usize);
         for (c, pair) in pairs.into_iter().enumerate() {
             if self.flags.as_ref().is_some_and(|f| f[c] & FLAG_OVERFLOW != 0) {
                 continue;
             }
             whole &= self.transient(c).all(|v| v >= 0.0 && v.fract() == 0.0);
+            // The bins no path through the volume reaches hold the ambient level only.
+            let (near, far) = crate::transient::path_range(&pair, volume);
+            let margin = AMBIENT_MARGIN_BINS * self.delta_t;
+            let start = self.hidden_start(c);
+            let (mut counts, mut bins) = (0.0f64, 0usize);
+            for (k, v) in self.transient(c).enumerate() {
+                let (a, b) = (
+                    start + k as f64 * self.delta_t,
+                    start + (k + 1) as f64 * self.delta_t,
+                );
+                if b < near - margin || a > far + margin {
+                    counts += f64::from(v.max(0.0));
+                    bins += 1;
+                }
+            }
+            ambient.0 += counts;
+            ambient.1 += bins;
             let h = rebin_path(self.transient(c), self.hidden_start(c), self.delta_t, &axis);
             if h.iter().any(|&v| v != 0.0) {
                 set.push(pair, &h).map_err(|e| self.error(e.to_string()))?;
@@ -103,6 +128,7 @@ impl YtalCapture {
         if whole {
             set.mark_photon_counts();
         }
+        set.add_ambient(ambient.0, ambient.1);
         Ok(set)
     }
 

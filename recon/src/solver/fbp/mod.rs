@@ -349,7 +349,7 @@ pub fn fbp(set: &TransientSet, grid: &VolumeGrid, settings: &FbpSettings) -> Res
             .into_par_iter()
             .map(|p| {
                 let w = weight(p);
-                let h: Vec<f32> = set.histogram(p).iter().map(|v| v * w).collect();
+                let h: Vec<f32> = set.measured(p).iter().map(|v| v * w).collect();
                 filter.apply(&h)
             })
             .collect();
@@ -361,7 +361,7 @@ pub fn fbp(set: &TransientSet, grid: &VolumeGrid, settings: &FbpSettings) -> Res
     let hists: Vec<Vec<f32>> = (0..set.len())
         .map(|p| {
             let w = weight(p);
-            set.histogram(p)
+            set.measured(p)
                 .iter()
                 .zip(&by_path)
                 .map(|(v, g)| v * w * g)
@@ -788,7 +788,7 @@ mod tests {
                     for (p, pair) in set.pairs().iter().enumerate() {
                         let (ri, rd) = (x.distance(pair.xi), x.distance(pair.xd));
                         let u = (ri + rd - axis.start) / axis.width - 0.5;
-                        let h = set.histogram(p);
+                        let h = set.measured(p);
                         // Each bin weighed by (ℓ/2)^2p at its centre ℓ, the voxel by
                         // the rest of (d_i·d_d)^p.
                         let at = |b: f64| {
