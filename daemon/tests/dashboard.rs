@@ -455,6 +455,30 @@ async fn session(driver: &Chromedriver, chromium: &Path, w: u32, h: u32) -> Clie
         .expect("chromedriver starts a Chromium session")
 }
 
+/// Where the browser tests' screenshots go (`target/tmp/dashboard/`), made if missing.
+fn screenshots_dir() -> PathBuf {
+    let shots = Path::new(env!("CARGO_TARGET_TMPDIR")).join("dashboard");
+    std::fs::create_dir_all(&shots).unwrap();
+    shots
+}
+
+/// Types the token into the page's token form and sends it.
+async fn type_token(c: &Client) {
+    c.find(Locator::Css("#token"))
+        .await
+        .unwrap()
+        .send_keys(TOKEN)
+        .await
+        .unwrap();
+    click(c, "#token-form button").await;
+}
+
+/// [`type_token`], then waits for the page to say the token is set.
+async fn enter_token(c: &Client, limit: Duration) {
+    type_token(c).await;
+    wait_text(c, "#token-state", limit, |s| s.contains("token set")).await;
+}
+
 fn percentile(v: &mut [f64], q: f64) -> f64 {
     v.sort_by(f64::total_cmp);
     v[((v.len() - 1) as f64 * q).round() as usize]
@@ -465,8 +489,7 @@ async fn an_operator_runs_the_demo_from_the_dashboard_in_chromium() {
     let Some((chromium, chromedriver)) = browser_or_skip("the dashboard browser test") else {
         return;
     };
-    let shots = Path::new(env!("CARGO_TARGET_TMPDIR")).join("dashboard");
-    std::fs::create_dir_all(&shots).unwrap();
+    let shots = screenshots_dir();
     let dir = tempfile::tempdir().unwrap();
     // Half real time: the demo's 576 pairs × 20 ms take about 6 s, long enough to pause.
     let svc = service(dir.path(), 0.5);
@@ -491,14 +514,7 @@ async fn an_operator_runs_the_demo_from_the_dashboard_in_chromium() {
     assert!(text(&c, "#token-state").await.contains("enter the API token"));
 
     // The token, once for the tab.
-    c.find(Locator::Css("#token"))
-        .await
-        .unwrap()
-        .send_keys(TOKEN)
-        .await
-        .unwrap();
-    click(&c, "#token-form button").await;
-    wait_text(&c, "#token-state", limit, |s| s.contains("token set")).await;
+    enter_token(&c, limit).await;
 
     // The demo plan: checked (budget and duration shown) before it can be submitted.
     click(&c, "#load-demo").await;
@@ -661,8 +677,7 @@ async fn an_operator_imports_a_public_capture_from_the_page() {
     let Some((chromium, chromedriver)) = browser_or_skip("the dashboard import test") else {
         return;
     };
-    let shots = Path::new(env!("CARGO_TARGET_TMPDIR")).join("dashboard");
-    std::fs::create_dir_all(&shots).unwrap();
+    let shots = screenshots_dir();
     let dir = tempfile::tempdir().unwrap();
     let svc = service(dir.path(), 0.0);
     let worker = svc.start_worker();
@@ -688,14 +703,7 @@ async fn an_operator_imports_a_public_capture_from_the_page() {
     choose(data.join("lct-point.mat")).await;
     let why = wait_text(&c, "#import-why", limit, |s| !s.is_empty()).await;
     assert!(why.contains("enter an operator key"), "{why}");
-    c.find(Locator::Css("#token"))
-        .await
-        .unwrap()
-        .send_keys(TOKEN)
-        .await
-        .unwrap();
-    click(&c, "#token-form button").await;
-    wait_text(&c, "#token-state", limit, |s| s.contains("token set")).await;
+    enter_token(&c, limit).await;
     let enabled = || async {
         c.find(Locator::Css("#import-go"))
             .await
@@ -772,8 +780,7 @@ async fn the_page_stays_true_to_the_instrument_and_to_the_run() {
     let Some((chromium, chromedriver)) = browser_or_skip("the dashboard truth test") else {
         return;
     };
-    let shots = Path::new(env!("CARGO_TARGET_TMPDIR")).join("dashboard");
-    std::fs::create_dir_all(&shots).unwrap();
+    let shots = screenshots_dir();
     let dir = tempfile::tempdir().unwrap();
     let svc = service(dir.path(), 0.5);
     let worker = svc.start_worker();
@@ -905,13 +912,7 @@ async fn the_page_stays_true_to_the_instrument_and_to_the_run() {
 
     // The token, then the demo from the page: the "queued" banner belongs to that run.
     c.execute("window.scrollTo(0, 0);", vec![]).await.unwrap();
-    c.find(Locator::Css("#token"))
-        .await
-        .unwrap()
-        .send_keys(TOKEN)
-        .await
-        .unwrap();
-    click(&c, "#token-form button").await;
+    type_token(&c).await;
     click(&c, "#load-demo").await;
     wait_text(&c, "#check-summary", limit, |s| s.starts_with("valid")).await;
     let submit = c.find(Locator::Css("#submit")).await.unwrap();

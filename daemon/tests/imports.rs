@@ -273,6 +273,7 @@ async fn bad_imports_are_refused_with_their_reason_and_leave_nothing() {
     let svc = service(dir.path(), "import-limit-mib = 0.25\n");
     let router = app(AppState::new(Arc::clone(&svc)));
     let lct = std::fs::read(fixture("lct-point.mat")).unwrap();
+    let sidecars: Vec<String> = (0..17).map(|i| format!("s{i}.mat")).collect();
     let cases: Vec<(&str, Request<Body>, StatusCode, &str)> = vec![
         (
             "no key",
@@ -361,6 +362,33 @@ async fn bad_imports_are_refused_with_their_reason_and_leave_nothing() {
             ),
             StatusCode::BAD_REQUEST,
             "sent twice",
+        ),
+        (
+            "the settings twice",
+            upload(
+                Some(TOKEN),
+                Body::from(form(&[
+                    Part::File("capture", "a.mat", lct.clone()),
+                    Part::Text("recon", "method = \"fbp\"\n"),
+                    Part::Text("recon", "method = \"fbp\"\n"),
+                ])),
+            ),
+            StatusCode::BAD_REQUEST,
+            "`recon` is sent twice",
+        ),
+        (
+            "too many sidecars",
+            upload(
+                Some(TOKEN),
+                Body::from(form(
+                    &sidecars
+                        .iter()
+                        .map(|n| Part::File("sidecar", n, Vec::new()))
+                        .collect::<Vec<_>>(),
+                )),
+            ),
+            StatusCode::BAD_REQUEST,
+            "more than 16 `sidecar` files",
         ),
         (
             "over the limit",

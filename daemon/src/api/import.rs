@@ -40,6 +40,10 @@ pub(super) struct ImportForm {
 /// Longest `recon` and `name` fields, bytes.
 const MAX_TEXT_FIELD: usize = 1 << 20;
 
+/// Most `sidecar` files one import takes (every other field at most once, so the
+/// whole form is bounded by the import limit and these).
+const MAX_SIDECARS: usize = 16;
+
 /// Import a capture file and queue its reconstruction
 #[utoipa::path(
     post,
@@ -187,6 +191,15 @@ async fn receive(
                         format!("the field `{name}` must be a file, with its file name"),
                     )
                 })?;
+                if name == "sidecar" && upload.sidecars.len() >= MAX_SIDECARS {
+                    return Err(ApiError::new(
+                        StatusCode::BAD_REQUEST,
+                        "bad-body",
+                        format!(
+                            "more than {MAX_SIDECARS} `sidecar` files: a capture's reader needs a few at most"
+                        ),
+                    ));
+                }
                 let stored =
                     stored_name(&given).map_err(|m| ApiError::new(StatusCode::BAD_REQUEST, "bad-body", m))?;
                 let taken =
@@ -209,6 +222,18 @@ async fn receive(
                 }
             }
             "recon" | "name" => {
+                let seen = if name == "recon" {
+                    upload.recon.is_some()
+                } else {
+                    upload.name.is_some()
+                };
+                if seen {
+                    return Err(ApiError::new(
+                        StatusCode::BAD_REQUEST,
+                        "bad-body",
+                        format!("the field `{name}` is sent twice: send it once"),
+                    ));
+                }
                 let text = text(field, &name, stall).await?;
                 if name == "recon" {
                     upload.recon = Some(text);
@@ -252,13 +277,7 @@ async fn save(
         .open(path)
         .await
         .map_err(storage)?;
-    loop {
-        let chunk = match tokio::time::timeout(stall, field.chunk()).await {
-            Err(_) => return Err(stalled(stall)),
-            Ok(Err(e)) => return Err(bad_form(e)),
-            Ok(Ok(None)) => break,
-            Ok(Ok(Some(c))) => c,
-        };
+    while let Some(chunk) = next_chunk(&mut field, stall).await? {
         total += chunk.len() as u64;
         if total > limit {
             return Err(too_large(limit));
@@ -269,16 +288,22 @@ async fn save(
     Ok(total)
 }
 
+/// A field's next chunk (`None` at its end), or the upload's error: stalled for
+/// `stall`, or not a well-formed form.
+async fn next_chunk(
+    field: &mut Field<'_>,
+    stall: std::time::Duration,
+) -> ApiResult<Option<axum::body::Bytes>> {
+    match tokio::time::timeout(stall, field.chunk()).await {
+        Err(_) => Err(stalled(stall)),
+        Ok(r) => r.map_err(bad_form),
+    }
+}
+
 /// A text field, at most [`MAX_TEXT_FIELD`] bytes of UTF-8.
 async fn text(mut field: Field<'_>, name: &str, stall: std::time::Duration) -> ApiResult<String> {
     let mut bytes = Vec::new();
-    loop {
-        let chunk = match tokio::time::timeout(stall, field.chunk()).await {
-            Err(_) => return Err(stalled(stall)),
-            Ok(Err(e)) => return Err(bad_form(e)),
-            Ok(Ok(None)) => break,
-            Ok(Ok(Some(c))) => c,
-        };
+    while let Some(chunk) = next_chunk(&mut field, stall).await? {
         if bytes.len() + chunk.len() > MAX_TEXT_FIELD {
             return Err(ApiError::new(
                 StatusCode::PAYLOAD_TOO_LARGE,

@@ -125,14 +125,7 @@ fn stages(
         )
     })?;
     let mut enter = |next: Stage, info: &mut RunInfo, timings: &mut Vec<(String, f64)>, pairs: usize| {
-        if let Some(t) = started.take() {
-            let seconds = t.elapsed().as_secs_f64();
-            add_timing(timings, *stage, seconds);
-            events.emit(RunEvent::StageFinished {
-                stage: *stage,
-                seconds,
-            });
-        }
+        finish_stage(*stage, started, timings, events);
         *stage = next;
         control.check(next, pairs)?;
         *started = Some(Instant::now());
@@ -184,15 +177,22 @@ fn stages(
             name: crate::ytal::CAPTURE_FILE.into(),
         });
     }
+    finish_stage(*stage, started, timings, events);
+    Ok(())
+}
+
+/// Ends `stage` if it was started: its time added to `timings`, its end sent.
+fn finish_stage(
+    stage: Stage,
+    started: &mut Option<Instant>,
+    timings: &mut Vec<(String, f64)>,
+    events: &EventSink,
+) {
     if let Some(t) = started.take() {
         let seconds = t.elapsed().as_secs_f64();
-        add_timing(timings, *stage, seconds);
-        events.emit(RunEvent::StageFinished {
-            stage: *stage,
-            seconds,
-        });
+        add_timing(timings, stage, seconds);
+        events.emit(RunEvent::StageFinished { stage, seconds });
     }
-    Ok(())
 }
 
 /// Writes `geometry.json`: the capture's relay points, the volume and the viewpoint.

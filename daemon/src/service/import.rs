@@ -118,17 +118,7 @@ impl Service {
     pub fn begin_import(self: &Arc<Self>, lock_key: Option<&str>) -> Result<ImportTicket, ServiceError> {
         static NEXT: AtomicU64 = AtomicU64::new(0);
         self.check_lock(lock_key)?;
-        {
-            let mut s = self.lock();
-            let max = self.instrument.api.max_queue;
-            if s.queue.len() + s.admitting >= max {
-                return Err(ServiceError::QueueFull(format!(
-                    "the queue holds {max} runs, the most this daemon keeps ([api] max-queue); \
-                     wait for runs to finish or abort queued ones"
-                )));
-            }
-            s.admitting += 1;
-        }
+        self.reserve_place()?;
         let staging = self.runs_dir.join(STAGING_DIR).join(format!(
             "{}-{}",
             std::process::id(),

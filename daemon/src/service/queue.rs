@@ -65,6 +65,21 @@ impl Service {
         Ok(())
     }
 
+    /// Holds a place in the queue for a run about to be made (released by decrementing
+    /// `admitting` once it is queued or refused): 429 when the queue is full.
+    pub(super) fn reserve_place(&self) -> Result<(), ServiceError> {
+        let mut s = self.lock();
+        let max = self.instrument.api.max_queue;
+        if s.queue.len() + s.admitting >= max {
+            return Err(ServiceError::QueueFull(format!(
+                "the queue holds {max} runs, the most this daemon keeps ([api] max-queue); \
+                 wait for runs to finish or abort queued ones"
+            )));
+        }
+        s.admitting += 1;
+        Ok(())
+    }
+
     /// Validates a plan (TOML text) and queues it. Returns the new run's status.
     /// In-process callers (tests, benches) submit as `local`.
     pub fn submit(&self, text: String) -> Result<RunStatus, ServiceError> {
@@ -86,17 +101,7 @@ impl Service {
             .map_err(ServiceError::OverBudget)?;
         // A place in the queue is reserved before the run directory is made, so a
         // flood of submissions never makes more directories than the queue takes.
-        {
-            let mut s = self.lock();
-            let max = self.instrument.api.max_queue;
-            if s.queue.len() + s.admitting >= max {
-                return Err(ServiceError::QueueFull(format!(
-                    "the queue holds {max} runs, the most this daemon keeps ([api] max-queue); \
-                     wait for runs to finish or abort queued ones"
-                )));
-            }
-            s.admitting += 1;
-        }
+        self.reserve_place()?;
         let admitted = self.admit(&src, &plan, by, again_of);
         let mut s = self.lock();
         s.admitting -= 1;
