@@ -125,9 +125,25 @@ impl RunDir {
     }
 
     /// The run's state, plan and instrument as stored. The stored text is what ran;
-    /// scene paths in the instrument config resolve against where it was.
+    /// scene paths in the instrument config resolve against where it was. An imported
+    /// capture's run has none, and is refused with what to do instead.
     pub fn load(&self) -> Result<(RunInfo, Plan, InstrumentConfig), RunDirError> {
         let info = RunInfo::load(&self.path).map_err(io(&self.file(file::RUN)))?;
+        if let Some(source) = &info.import {
+            return Err(RunDirError::io(
+                &self.path,
+                std::io::Error::other(format!(
+                    "run {} is an imported capture ({}/{}), not a capture run: it has no plan, instrument or \
+                     histogram log to resume or export; reconstruct it with `periscope recon {}`, and take its \
+                     capture as y-tal from {} once it has been reconstructed",
+                    info.id,
+                    file::IMPORT_DIR,
+                    source.capture,
+                    self.path.display(),
+                    file::CAPTURE
+                )),
+            ));
+        }
         let read = |name: &str| {
             let path = self.file(name);
             std::fs::read_to_string(&path).map_err(io(&path))

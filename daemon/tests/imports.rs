@@ -263,6 +263,18 @@ async fn imported_captures_of_every_kind_become_runs_with_their_results() {
         String::from_utf8_lossy(&status.stderr)
     );
     assert!(out.join("volume.npy").is_file());
+    // Resume and export, which need a capture run's plan and log, say what to do.
+    let status = std::process::Command::new(env!("CARGO_BIN_EXE_periscope"))
+        .arg("export")
+        .arg(dir.path().join(&ids[1]))
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&status.stderr);
+    assert!(!status.status.success(), "{stderr}");
+    assert!(
+        stderr.contains("is an imported capture") && stderr.contains("periscope recon"),
+        "{stderr}"
+    );
     svc.shutdown();
     worker.join().unwrap();
 }
