@@ -12,7 +12,11 @@
 //!   pitch into 32 × 32 × 81 (the 3D-GTR virtual scan of a 1 m validation capture,
 //!   which takes FBP's grid path);
 //! - [synth] virtual confocal synthesis of 64 × 64 × 512 from K = 10,000 Gaussians;
-//! - [synth_lct] synthesis + LCT for the 64 × 64 virtual grid (the 0.6 s target).
+//! - [synth_lct] synthesis + LCT for the 64 × 64 virtual grid (the 0.6 s target);
+//! - [fbp_gpu, fbp_grid_gpu, synth_gpu, synth_lct_gpu] the same on a GPU
+//!   (docs/gpu.md), where a hardware adapter is found (a software one, lavapipe, with
+//!   `PERISCOPE_BENCH_SOFTWARE_GPU=1`); the line saying why they were left out
+//!   otherwise is printed first.
 //!
 //! Not timed: building scenes and inputs. Criterion's median time is the figure to
 //! quote; its throughput line counts points (normals), transient bins in (LCT),
@@ -29,13 +33,36 @@ mod support;
 use support::{LastSample, peak_rss_mib, peak_share};
 
 use glam::{DMat3, DQuat, DVec3};
+use periscope_recon::gpu::{Compute, ComputeDevice};
 use periscope_recon::gtr::{Kernel, RenderOptions};
 use periscope_recon::relay::{VirtualRelay, estimate_normals};
-use periscope_recon::solver::{FbpSettings, LctSettings, PlanarScan, fbp, lct_frame};
-use periscope_recon::synth::synthesise;
+use periscope_recon::solver::{FbpSettings, LctSettings, PlanarScan, fbp, fbp_on, lct_frame};
+use periscope_recon::synth::{synthesise, synthesise_on};
 use periscope_recon::{Pair, TimeAxis, TransientSet, VolumeGrid};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
+
+/// The GPU the `_gpu` benchmarks run on: a hardware adapter, or a software one where
+/// `PERISCOPE_BENCH_SOFTWARE_GPU` is set; `None`, saying why, otherwise.
+fn bench_gpu() -> Option<Compute> {
+    match Compute::open(ComputeDevice::Gpu) {
+        Ok(c) if !c.info().software || std::env::var_os("PERISCOPE_BENCH_SOFTWARE_GPU").is_some() => {
+            println!("GPU benchmarks on {}", c.info());
+            Some(c)
+        }
+        Ok(c) => {
+            println!(
+                "GPU benchmarks left out: only a software adapter ({}); PERISCOPE_BENCH_SOFTWARE_GPU=1 runs them on it",
+                c.info()
+            );
+            None
+        }
+        Err(e) => {
+            println!("GPU benchmarks left out: {e}");
+            None
+        }
+    }
+}
 
 fn curved(x: f64, y: f64) -> (DVec3, DVec3) {
     let z = 0.1 * (std::f64::consts::PI * x).sin();
@@ -109,6 +136,12 @@ fn solvers(c: &mut Criterion) {
     group.bench_function("fbp", |b| {
         b.iter_custom(|iters| fbp_last.time(iters, || fbp(&set, &grid, &FbpSettings::default()).unwrap()))
     });
+    let gpu = bench_gpu();
+    if let Some(gpu) = &gpu {
+        group.bench_function("fbp_gpu", |b| {
+            b.iter(|| fbp_on(&set, &grid, &FbpSettings::default(), gpu).unwrap())
+        });
+    }
 
     // The virtual scan of `periscope recon` on a 1 m, 32 × 32 × 81 volume.
     let relay = VirtualRelay::new(DVec3::ZERO, DVec3::Z, DVec3::X, [1.0, 1.0], [64, 64]).unwrap();
@@ -120,6 +153,11 @@ fn solvers(c: &mut Criterion) {
     group.bench_function("fbp_grid", |b| {
         b.iter(|| fbp(&set, &grid, &FbpSettings::default()).unwrap())
     });
+    if let Some(gpu) = &gpu {
+        group.bench_function("fbp_grid_gpu", |b| {
+            b.iter(|| fbp_on(&set, &grid, &FbpSettings::default(), gpu).unwrap())
+        });
+    }
 
     let kernels: Vec<Kernel> = (0..10_000)
         .map(|_| {
@@ -155,6 +193,17 @@ fn solvers(c: &mut Criterion) {
             lct_frame(&scan.set, &scan.scan, &settings).unwrap()
         })
     });
+    if let Some(gpu) = &gpu {
+        group.bench_function("synth_gpu", |b| {
+            b.iter(|| synthesise_on(gpu, &kernels, &relay, axis, &opt).unwrap())
+        });
+        group.bench_function("synth_lct_gpu", |b| {
+            b.iter(|| {
+                let scan = synthesise_on(gpu, &kernels, &relay, axis, &opt).unwrap();
+                lct_frame(&scan.set, &scan.scan, &settings).unwrap()
+            })
+        });
+    }
     group.finish();
 
     // Per voxel-pair, counted in the source: two squared distances (2 each after the

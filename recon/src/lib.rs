@@ -10,6 +10,7 @@
 #![warn(missing_docs)]
 
 pub mod adaptive;
+pub mod gpu;
 pub mod gtr;
 pub mod io;
 pub mod linalg;

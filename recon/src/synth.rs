@@ -3,6 +3,7 @@
 //! conventional solver (LCT, RSD) can turn them into a volume.
 use rayon::prelude::*;
 
+use crate::gpu::Compute;
 use crate::gtr::{Kernel, RenderOptions, render_pairs};
 use crate::relay::VirtualRelay;
 use crate::solver::PlanarScan;
@@ -49,12 +50,42 @@ pub fn synthesise(
     axis: TimeAxis,
     opt: &RenderOptions,
 ) -> Result<VirtualScan, TransientError> {
+    match synthesise_on(&Compute::Cpu, kernels, relay, axis, opt) {
+        Ok(scan) => Ok(scan),
+        Err(SynthError::Transient(e)) => Err(e),
+        Err(SynthError::Gpu(e)) => unreachable!("the CPU path has no GPU to fail: {e}"),
+    }
+}
+
+/// Why [`synthesise_on`] failed.
+#[derive(Debug, thiserror::Error)]
+pub enum SynthError {
+    /// The rendered transients do not make a set.
+    #[error(transparent)]
+    Transient(#[from] TransientError),
+    /// The GPU failed.
+    #[error(transparent)]
+    Gpu(#[from] crate::gpu::GpuError),
+}
+
+/// [`synthesise`] on `compute`: on a GPU, [`crate::gpu::render_pairs`] in f32.
+pub fn synthesise_on(
+    compute: &Compute,
+    kernels: &[Kernel],
+    relay: &VirtualRelay,
+    axis: TimeAxis,
+    opt: &RenderOptions,
+) -> Result<VirtualScan, SynthError> {
     let pairs: Vec<Pair> = relay
         .points()
         .into_iter()
         .map(|x| Pair::confocal(x, relay.normal))
         .collect();
     let bins = axis.bins;
+    if let Some(gpu) = compute.gpu() {
+        let histograms = crate::gpu::render_pairs(gpu, kernels, &pairs, &axis, opt)?;
+        return scan(relay, axis, &pairs, &histograms);
+    }
     let mut histograms = vec![0.0f32; pairs.len() * bins];
     const GROUP: usize = 4;
     histograms
@@ -70,8 +101,18 @@ pub fn synthesise(
                 }
             },
         );
+    scan(relay, axis, &pairs, &histograms)
+}
+
+/// The scan of `relay` whose transients, `axis.bins` a pair, are `histograms`.
+fn scan(
+    relay: &VirtualRelay,
+    axis: TimeAxis,
+    pairs: &[Pair],
+    histograms: &[f32],
+) -> Result<VirtualScan, SynthError> {
     let mut set = TransientSet::new(axis)?;
-    for (pair, h) in pairs.iter().zip(histograms.chunks(bins)) {
+    for (pair, h) in pairs.iter().zip(histograms.chunks(axis.bins)) {
         set.push(*pair, h)?;
     }
     Ok(VirtualScan {

@@ -82,10 +82,16 @@ pub struct Finished {
 /// Runs `periscope ARGS` in the repository root with no standard input, killing it if
 /// it runs longer than `limit`.
 pub fn periscope_with_limit(args: &[&str], limit: Duration) -> Finished {
+    periscope_with_env(args, &[], limit)
+}
+
+/// [`periscope_with_limit`] with `env` added to its environment.
+pub fn periscope_with_env(args: &[&str], env: &[(&str, &str)], limit: Duration) -> Finished {
     let mut child = Command::new(periscope_bin())
         .args(args)
         .current_dir(repo_root())
         .env("RUST_LOG", "warn")
+        .envs(env.iter().copied())
         .stdin(Stdio::null())
         .stdout(Stdio::piped())
         .stderr(Stdio::piped())

@@ -99,6 +99,9 @@ pub enum ReconError {
     /// The optimiser thread could not start or panicked.
     #[error("the optimiser thread {0}")]
     Thread(String),
+    /// `[compute] device = "gpu"` and no GPU is usable, or the GPU failed.
+    #[error(transparent)]
+    Gpu(#[from] periscope_recon::gpu::GpuError),
 }
 
 impl ReconError {
@@ -112,7 +115,10 @@ impl ReconError {
         use periscope_recon::relay::GeometryError;
         use periscope_recon::solver::SolverError;
         match self {
-            ReconError::Solver(e) => !matches!(e, SolverError::Volume(_)),
+            ReconError::Solver(e) => !matches!(e, SolverError::Volume(_) | SolverError::Gpu(_)),
+            // No GPU where one was asked for is the settings' to fix; a GPU failing
+            // while it runs is not.
+            ReconError::Gpu(e) => !matches!(e, periscope_recon::gpu::GpuError::Run { .. }),
             ReconError::Train(e) => matches!(
                 e,
                 TrainError::Config(_) | TrainError::NothingVisible | TrainError::NegativeTotal { .. }

@@ -62,6 +62,9 @@ struct VolumeJson<'a> {
     max: f32,
     depth_threshold: f64,
     timings_s: &'a [(String, f64)],
+    /// Where the synthesis and the solver ran: `device` ("cpu" or "gpu"), and for a
+    /// GPU its adapter, backend and driver.
+    compute: &'a periscope_recon::gpu::DeviceInfo,
     /// The fit's last epoch loss (method `gtr`): the run catalogue's score of the fit.
     #[serde(skip_serializing_if = "Option::is_none")]
     final_loss: Option<f64>,
@@ -92,6 +95,7 @@ pub fn write_outputs(dir: &Path, r: &ReconResult, events: &EventSink) -> Result<
         max,
         depth_threshold: r.settings.depth_threshold,
         timings_s: &r.timings,
+        compute: &r.device,
         final_loss: r.train.as_ref().map(|t| t.final_loss).filter(|l| l.is_finite()),
     };
     let p = dir.join(file::VOLUME_JSON);

@@ -6,12 +6,14 @@ use std::thread::JoinHandle;
 use std::time::Instant;
 
 use glam::DVec3;
+use periscope_recon::gpu::{Compute, ComputeDevice, DeviceInfo, GpuError};
 use periscope_recon::gtr::{
     CancelToken, GaussianCloud, LiveModel, TrainError, TrainSummary, Trainer, resolvable_separation,
 };
 use periscope_recon::relay::VirtualRelay;
+use periscope_recon::solver::{SolverError, SolverKind, SolverSettings};
 use periscope_recon::solver::{lateral_voxel_pitch, phasor_wavelength};
-use periscope_recon::synth::{default_axis, synthesise};
+use periscope_recon::synth::{SynthError, default_axis, synthesise_on};
 use periscope_recon::{RoiBox, TransientSet, Volume, VolumeGrid};
 
 use super::{Control, PipelineError, ReconError};
@@ -49,6 +51,62 @@ pub struct ReconResult {
     pub pairs: usize,
     /// Seconds per step (fit, synthesis, solver).
     pub timings: Vec<(String, f64)>,
+    /// Where the synthesis and the solver ran (`[compute] device`).
+    pub device: DeviceInfo,
+}
+
+/// Opens the device `[compute] device` asks for, and says which it is.
+fn open_compute(device: ComputeDevice) -> Result<Compute, ReconError> {
+    let compute = Compute::open(device)?;
+    tracing::info!(device = %compute.info(), asked = %device, "reconstruction device ([compute] device sets it)");
+    Ok(compute)
+}
+
+/// Runs `work` on `compute`; with `device = "auto"`, a GPU that fails is left for the
+/// CPU, with a warning, and the work done again there (`[compute] device = "gpu"`
+/// makes the failure the run's).
+fn on_device<T, E>(
+    device: ComputeDevice,
+    compute: &mut Compute,
+    gpu_error: fn(&E) -> Option<&GpuError>,
+    mut work: impl FnMut(&Compute) -> Result<T, E>,
+) -> Result<T, E> {
+    match work(compute) {
+        Err(e) if device == ComputeDevice::Auto && compute.gpu().is_some() => match gpu_error(&e) {
+            Some(g) => {
+                tracing::warn!(error = %g, "the GPU failed: the reconstruction continues on the CPU");
+                *compute = Compute::Cpu;
+                work(compute)
+            }
+            None => Err(e),
+        },
+        other => other,
+    }
+}
+
+/// Runs `kind` on `set` with `settings` on `compute` ([`on_device`]).
+fn solve_on(
+    kind: SolverKind,
+    set: &TransientSet,
+    grid: &VolumeGrid,
+    settings: &SolverSettings,
+    device: ComputeDevice,
+    compute: &mut Compute,
+) -> Result<Volume, ReconError> {
+    fn gpu_error(e: &SolverError) -> Option<&GpuError> {
+        match e {
+            SolverError::Gpu(g) => Some(g),
+            _ => None,
+        }
+    }
+    on_device(device, compute, gpu_error, |c| {
+        let settings = SolverSettings {
+            compute: c.clone(),
+            ..settings.clone()
+        };
+        kind.solve(set, grid, &settings)
+    })
+    .map_err(ReconError::from)
 }
 
 type TrainerThread = JoinHandle<Result<(Trainer, TrainSummary, f64), TrainError>>;
@@ -270,7 +328,20 @@ fn finish_gtr(
     );
     let axis = default_axis(&relay, &s.volume, SYNTH_BINS);
     let kernels = trainer.cloud().kernels();
-    let scan = synthesise(&kernels, &relay, axis, trainer.render_options()).map_err(ReconError::from)?;
+    let mut compute = open_compute(s.compute)?;
+    fn gpu_error(e: &SynthError) -> Option<&GpuError> {
+        match e {
+            SynthError::Gpu(g) => Some(g),
+            SynthError::Transient(_) => None,
+        }
+    }
+    let scan = on_device(s.compute, &mut compute, gpu_error, |c| {
+        synthesise_on(c, &kernels, &relay, axis, trainer.render_options())
+    })
+    .map_err(|e| match e {
+        SynthError::Transient(e) => ReconError::from(e),
+        SynthError::Gpu(e) => ReconError::from(e),
+    })?;
     let synth_secs = t.elapsed().as_secs_f64();
     let t = Instant::now();
     let mut solvers = s.solvers.for_virtual_scan();
@@ -294,11 +365,9 @@ fn finish_gtr(
             }
         }
     }
-    let volume = s
-        .solver
-        .solve(&scan.set, &s.volume, &solvers)
-        .map_err(ReconError::from)?;
+    let volume = solve_on(s.solver, &scan.set, &s.volume, &solvers, s.compute, &mut compute)?;
     Ok(ReconResult {
+        device: compute.info(),
         volume,
         cloud: Some(trainer.cloud().clone()),
         train: Some(summary),
@@ -346,10 +415,10 @@ pub fn reconstruct(
         }
         Method::Solver(kind) => {
             let t = Instant::now();
-            let volume = kind
-                .solve(&input.set, &s.volume, &s.solvers)
-                .map_err(ReconError::from)?;
+            let mut compute = open_compute(s.compute)?;
+            let volume = solve_on(kind, &input.set, &s.volume, &s.solvers, s.compute, &mut compute)?;
             Ok(ReconResult {
+                device: compute.info(),
                 volume,
                 cloud: None,
                 train: None,

@@ -1,6 +1,7 @@
 //! Reconstruction settings: the `[recon]` table of a capture plan and the whole of a
 //! `RECON.toml` for `periscope recon` share this format.
 use periscope_recon::VolumeGrid;
+use periscope_recon::gpu::ComputeDevice;
 use periscope_recon::gtr::{Convergence, DensifySettings, Init, LossChoice, PairGains, TrainConfig};
 use periscope_recon::solver::{
     FbpSettings, FkSettings, LctSettings, RsdSettings, SolverError, SolverKind, SolverSettings,
@@ -126,6 +127,8 @@ pub struct ReconSettings {
     pub laser_falloff: LaserFalloff,
     /// How an adaptive capture, or its replay, chooses its pairs (`[adaptive]`).
     pub adaptive: AdaptiveSettings,
+    /// Where the synthesis and the solvers run (`[compute] device`).
+    pub compute: ComputeDevice,
 }
 
 /// Whether a capture's histograms carry the falloff of a point-source laser, which
@@ -167,6 +170,16 @@ pub(crate) struct RawRecon {
     laser_falloff: Option<String>,
     #[serde(default)]
     adaptive: RawAdaptive,
+    #[serde(default)]
+    compute: RawCompute,
+}
+
+/// `[compute]`: where the reconstruction's heavy work runs.
+#[derive(Deserialize, Default)]
+#[serde(deny_unknown_fields, rename_all = "kebab-case")]
+pub(crate) struct RawCompute {
+    #[serde(default)]
+    device: ComputeDevice,
 }
 
 #[derive(Deserialize)]
@@ -502,6 +515,7 @@ pub(crate) fn recon_settings(
         fk: raw.fk.unwrap_or_default(),
         rsd: raw.rsd.unwrap_or_default(),
         fbp: raw.fbp.unwrap_or_default(),
+        compute: Default::default(),
     };
     solvers.validate().map_err(|(table, e)| solver_err(table, e))?;
     let laser_falloff = match raw.laser_falloff.as_deref().unwrap_or("auto") {
@@ -543,6 +557,7 @@ pub(crate) fn recon_settings(
         solvers,
         laser_falloff,
         adaptive: adaptive_settings(src, prefix, raw.adaptive)?,
+        compute: raw.compute.device,
     })
 }
 
@@ -790,6 +805,25 @@ mod tests {
         let src = TomlSource::from_text("recon.toml", "[gtr]\npair-gains = \"estimate\"\n");
         let e = load_recon(&src, Some(volume())).unwrap_err().to_string();
         assert!(e.contains("gtr.pair-gains") && e.contains("illumination"), "{e}");
+    }
+
+    #[test]
+    fn the_compute_device_is_read_and_checked() {
+        assert_eq!(default_recon(volume()).compute, ComputeDevice::Auto);
+        for (text, want) in [
+            ("auto", ComputeDevice::Auto),
+            ("cpu", ComputeDevice::Cpu),
+            ("gpu", ComputeDevice::Gpu),
+        ] {
+            let src = TomlSource::from_text("recon.toml", format!("[compute]\ndevice = \"{text}\"\n"));
+            assert_eq!(load_recon(&src, Some(volume())).unwrap().compute, want);
+        }
+        let src = TomlSource::from_text("recon.toml", "[compute]\ndevice = \"tpu\"\n");
+        let e = load_recon(&src, Some(volume())).unwrap_err().to_string();
+        assert!(e.contains("compute.device") && e.contains("gpu"), "{e}");
+        let src = TomlSource::from_text("recon.toml", "[compute]\nadapter = \"x\"\n");
+        let e = load_recon(&src, Some(volume())).unwrap_err().to_string();
+        assert!(e.contains("adapter"), "{e}");
     }
 
     #[test]

@@ -10,6 +10,7 @@ pub mod render;
 pub mod train;
 
 pub use init::Init;
+pub(crate) use kernel::SIGMA_FLOOR_BINS;
 pub use kernel::{Kernel, Loss, PhysicalGrad, RenderOptions, render_pair};
 pub use model::{GaussianCloud, MapSlopes, ModelError, Primitive, RawGrads, ScaleBounds};
 pub use optim::{AdamW, AdamWSettings, GroupSettings, Schedule};

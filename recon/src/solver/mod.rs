@@ -18,7 +18,7 @@ mod scan;
 
 pub use fbp::{
     FbpFilter, FbpSettings, PHASOR_PITCHES, SIGMA_PER_WAVELENGTH, VIRTUAL_SCAN_SIGMA_PER_WAVELENGTH, fbp,
-    lateral_voxel_pitch, phasor_wavelength, sampling_pitch,
+    fbp_on, lateral_voxel_pitch, phasor_wavelength, sampling_pitch,
 };
 pub use fk::{FkSettings, fk, fk_frame};
 pub use frame::FrameVolume;
@@ -67,7 +67,7 @@ impl SolverKind {
             SolverKind::Lct => lct(set, grid, &settings.lct),
             SolverKind::Fk => fk(set, grid, &settings.fk),
             SolverKind::Rsd => rsd(set, grid, &settings.rsd),
-            SolverKind::Fbp => fbp(set, grid, &settings.fbp),
+            SolverKind::Fbp => fbp_on(set, grid, &settings.fbp, &settings.compute),
         }
     }
 }
@@ -84,6 +84,9 @@ pub struct SolverSettings {
     pub rsd: RsdSettings,
     /// Filtered backprojection.
     pub fbp: FbpSettings,
+    /// Where the solvers' heavy work runs (`[compute] device`): FBP's backprojection
+    /// runs on a GPU when this holds one; LCT, f-k and RSD run on the CPU.
+    pub compute: crate::gpu::Compute,
 }
 
 impl SolverSettings {
@@ -183,6 +186,9 @@ pub enum SolverError {
     /// Output grid failure.
     #[error(transparent)]
     Volume(#[from] VolumeError),
+    /// The GPU failed.
+    #[error(transparent)]
+    Gpu(#[from] crate::gpu::GpuError),
 }
 
 /// Working memory a solver may allocate, MiB.

@@ -38,6 +38,7 @@ use rustfft::num_complex::Complex;
 use rustfft::{Fft, FftPlanner};
 
 use super::SolverError;
+use crate::gpu::Compute;
 use crate::transient::TransientSet;
 use crate::volume::{Volume, VolumeGrid};
 
@@ -309,8 +310,19 @@ impl PhasorFilter {
     }
 }
 
-/// Filtered backprojection of `set` onto `grid`.
+/// Filtered backprojection of `set` onto `grid`, on the CPU.
 pub fn fbp(set: &TransientSet, grid: &VolumeGrid, settings: &FbpSettings) -> Result<Volume, SolverError> {
+    fbp_on(set, grid, settings, &Compute::Cpu)
+}
+
+/// [`fbp`] with its backprojection on `compute` (the filter runs on the CPU either
+/// way: it is a per-pair FFT, a few percent of the work).
+pub fn fbp_on(
+    set: &TransientSet,
+    grid: &VolumeGrid,
+    settings: &FbpSettings,
+    compute: &Compute,
+) -> Result<Volume, SolverError> {
     settings.validate()?;
     if set.is_empty() {
         return Err(SolverError::Empty);
@@ -353,7 +365,7 @@ pub fn fbp(set: &TransientSet, grid: &VolumeGrid, settings: &FbpSettings) -> Res
                 filter.apply(&h)
             })
             .collect();
-        let sums = backproject::<2, 4>(set, grid, settings.falloff, hists, lead);
+        let sums = backproject::<2, 4>(set, grid, settings.falloff, hists, lead, compute)?;
         let data = sums.iter().map(|[a, b]| a.hypot(*b)).collect();
         return Ok(Volume { grid: *grid, data });
     }
@@ -368,7 +380,7 @@ pub fn fbp(set: &TransientSet, grid: &VolumeGrid, settings: &FbpSettings) -> Res
                 .collect()
         })
         .collect();
-    let data = backproject::<1, 2>(set, grid, settings.falloff, hists, 0)
+    let data = backproject::<1, 2>(set, grid, settings.falloff, hists, 0, compute)?
         .into_iter()
         .map(|[v]| v)
         .collect();
@@ -403,16 +415,30 @@ fn path_falloff(axis: &crate::transient::TimeAxis, falloff: f64, lead: usize) ->
 /// other set [`backproject_pairs`], which reads each bin and the next as one `[f32; D]`
 /// (`D = 2C`). The histograms carry the path-length part of the falloff weight
 /// ([`path_falloff`]); the general path multiplies the rest, (4·d_i·d_d/ℓ²)^`falloff`,
-/// which is 1 on the grid path's confocal pairs.
+/// which is 1 on the grid path's confocal pairs. On a GPU every set takes the general
+/// path's arithmetic ([`crate::gpu::backproject`]).
 fn backproject<const C: usize, const D: usize>(
     set: &TransientSet,
     grid: &VolumeGrid,
     falloff: f64,
     hists: Vec<Vec<f32>>,
     lead: usize,
-) -> Vec<[f32; C]> {
+    compute: &Compute,
+) -> Result<Vec<[f32; C]>, SolverError> {
+    if let Some(gpu) = compute.gpu() {
+        let points: Vec<([f32; 3], [f32; 3])> = set
+            .pairs()
+            .iter()
+            .map(|p| (p.xi.as_vec3().to_array(), p.xd.as_vec3().to_array()))
+            .collect();
+        let sums = crate::gpu::backproject(gpu, &points, &hists, C, grid, set.axis(), lead, falloff)?;
+        return Ok(sums
+            .chunks_exact(C)
+            .map(|c| std::array::from_fn(|i| c[i]))
+            .collect());
+    }
     // Each path's layout replaces the histograms, which are dropped before the sums.
-    match grid::ConfocalGrid::detect(set, grid) {
+    Ok(match grid::ConfocalGrid::detect(set, grid) {
         Some(scan) => {
             let padded = pad::<C>(&hists);
             drop(hists);
@@ -423,7 +449,7 @@ fn backproject<const C: usize, const D: usize>(
             drop(hists);
             backproject_pairs(set, grid, falloff, &doubled, lead)
         }
-    }
+    })
 }
 
 /// The histograms padded with one zero bin before and two after, so the interpolation
@@ -835,10 +861,36 @@ mod tests {
             };
             let got = fbp(set, grid, &settings).unwrap();
             let got: Vec<f64> = got.data.iter().map(|&v| v as f64).collect();
-            let (worst, peak) = worst_and_peak(&got, &reference(set, grid, falloff));
+            let want = reference(set, grid, falloff);
+            let (worst, peak) = worst_and_peak(&got, &want);
             assert!(
                 worst < 2e-5 * peak,
                 "falloff {falloff}: worst error {worst:e} against peak {peak:e}"
+            );
+            // The GPU's backprojection (every set takes its one path there), to 1e-4
+            // of the peak: its square roots need not be correctly rounded.
+            if let Some(gpu) = crate::gpu::testing::gpu("fbp on the GPU against the f64 reference") {
+                let got = fbp_on(set, grid, &settings, &Compute::Gpu(gpu)).unwrap();
+                let got: Vec<f64> = got.data.iter().map(|&v| v as f64).collect();
+                let (worst, peak) = worst_and_peak(&got, &want);
+                assert!(
+                    worst < 1e-4 * peak,
+                    "GPU, falloff {falloff}: worst error {worst:e} against peak {peak:e}"
+                );
+            }
+        }
+        // The default filter (the phasor field's two channels) and relay weights: the
+        // GPU's volume is the CPU's to 1e-4 of the peak.
+        if let Some(gpu) = crate::gpu::testing::gpu("phasor fbp on the GPU against the CPU") {
+            let settings = FbpSettings::default();
+            let cpu = fbp(set, grid, &settings).unwrap();
+            let on_gpu = fbp_on(set, grid, &settings, &Compute::Gpu(gpu)).unwrap();
+            let f = |v: &Volume| v.data.iter().map(|&x| x as f64).collect::<Vec<_>>();
+            let (worst, peak) = worst_and_peak(&f(&on_gpu), &f(&cpu));
+            assert!(peak > 0.0, "the volume is not empty");
+            assert!(
+                worst < 1e-4 * peak,
+                "GPU phasor: worst error {worst:e} against peak {peak:e}"
             );
         }
     }
