@@ -1,7 +1,7 @@
 //! Backprojection on the GPU (`backproject.wgsl`): the hot loop of
 //! [`crate::solver::fbp`], every voxel against every pair, after the CPU has filtered
 //! the histograms.
-use super::{Gpu, GpuError};
+use super::{Gpu, GpuError, MAX_GROUPS};
 use crate::transient::TimeAxis;
 use crate::volume::VolumeGrid;
 
@@ -10,10 +10,6 @@ const WORKGROUP: usize = 64;
 /// The most pairs one dispatch takes, so no dispatch runs long enough for a desktop
 /// driver's watchdog (8,000 pairs × 128² × 64 voxels is 16 dispatches at this size).
 const PAIRS_PER_DISPATCH: usize = 512;
-/// The most workgroups of one dispatch along an axis.
-const MAX_GROUPS: usize = 65_535;
-
-pub(super) struct Pipeline(wgpu::ComputePipeline);
 
 #[repr(C)]
 #[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
@@ -65,10 +61,9 @@ pub fn backproject(
         "every histogram as long"
     );
     gpu.scoped("backprojecting", || {
-        let pipeline = &gpu
+        let pipeline = gpu
             .backproject
-            .get_or_init(|| Pipeline(gpu.pipeline("backproject", include_str!("backproject.wgsl"))))
-            .0;
+            .get_or_init(|| gpu.pipeline("backproject", include_str!("backproject.wgsl")));
         // Padded as the CPU pads them: one zero bin before, two after.
         let stride = bins + 3;
         let pair_bytes = (stride * channels * 4) as u64;
@@ -132,32 +127,12 @@ pub fn backproject(
                         ..base
                     },
                 );
-                let group = gpu.device.create_bind_group(&wgpu::BindGroupDescriptor {
-                    label: Some("backproject"),
-                    layout: &pipeline.get_bind_group_layout(0),
-                    entries: &[
-                        wgpu::BindGroupEntry {
-                            binding: 0,
-                            resource: uniform.as_entire_binding(),
-                        },
-                        wgpu::BindGroupEntry {
-                            binding: 1,
-                            resource: points.as_entire_binding(),
-                        },
-                        wgpu::BindGroupEntry {
-                            binding: 2,
-                            resource: hist.as_entire_binding(),
-                        },
-                        wgpu::BindGroupEntry {
-                            binding: 3,
-                            resource: sums.as_entire_binding(),
-                        },
-                    ],
-                });
-                let mut pass = encoder.begin_compute_pass(&Default::default());
-                pass.set_pipeline(pipeline);
-                pass.set_bind_group(0, &group, &[]);
-                pass.dispatch_workgroups(plane.div_ceil(WORKGROUP) as u32, slices as u32, 1);
+                gpu.dispatch(
+                    &mut encoder,
+                    pipeline,
+                    &[&uniform, points, hist, &sums],
+                    [plane.div_ceil(WORKGROUP) as u32, slices as u32, 1],
+                );
             }
             out.extend(gpu.finish("backprojecting", encoder, &sums, slices * plane * channels)?);
         }

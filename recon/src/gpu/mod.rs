@@ -121,9 +121,13 @@ pub struct Gpu {
     queue: wgpu::Queue,
     info: wgpu::AdapterInfo,
     limits: wgpu::Limits,
-    render: OnceLock<render::Pipeline>,
-    backproject: OnceLock<backproject::Pipeline>,
+    render: OnceLock<wgpu::ComputePipeline>,
+    backproject: OnceLock<wgpu::ComputePipeline>,
 }
+
+/// The most workgroups of one dispatch along an axis (WebGPU's default limit, which
+/// every adapter offers).
+const MAX_GROUPS: usize = 65_535;
 
 impl std::fmt::Debug for Gpu {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
@@ -397,6 +401,34 @@ impl Gpu {
             });
         }
         out
+    }
+
+    /// Records one dispatch of `pipeline` over `groups` workgroups into `encoder`, with
+    /// `buffers` bound to its group 0 in order (binding 0, 1, …).
+    fn dispatch(
+        &self,
+        encoder: &mut wgpu::CommandEncoder,
+        pipeline: &wgpu::ComputePipeline,
+        buffers: &[&wgpu::Buffer],
+        groups: [u32; 3],
+    ) {
+        let entries: Vec<wgpu::BindGroupEntry<'_>> = buffers
+            .iter()
+            .enumerate()
+            .map(|(i, b)| wgpu::BindGroupEntry {
+                binding: i as u32,
+                resource: b.as_entire_binding(),
+            })
+            .collect();
+        let group = self.device.create_bind_group(&wgpu::BindGroupDescriptor {
+            label: None,
+            layout: &pipeline.get_bind_group_layout(0),
+            entries: &entries,
+        });
+        let mut pass = encoder.begin_compute_pass(&Default::default());
+        pass.set_pipeline(pipeline);
+        pass.set_bind_group(0, &group, &[]);
+        pass.dispatch_workgroups(groups[0], groups[1], groups[2]);
     }
 
     /// A compute pipeline from WGSL `source`, entry point `main`.

@@ -1,6 +1,6 @@
 //! The forward render on the GPU (`render.wgsl`): [`crate::gtr::render_pairs`]'s
 //! transients, in f32.
-use super::{Gpu, GpuError};
+use super::{Gpu, GpuError, MAX_GROUPS};
 use crate::gtr::{Kernel, RenderOptions, SIGMA_FLOOR_BINS};
 use crate::transient::{Pair, TimeAxis};
 
@@ -9,10 +9,6 @@ const TILE: usize = 256;
 /// Bins each thread keeps in registers: a dispatch renders at most `TILE × PER_THREAD`
 /// bins of each transient, longer ones take several.
 const PER_THREAD: usize = 16;
-/// The most workgroups (pairs) of one dispatch along x.
-const MAX_GROUPS: usize = 65_535;
-
-pub(super) struct Pipeline(wgpu::ComputePipeline);
 
 #[repr(C)]
 #[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
@@ -69,10 +65,9 @@ pub fn render_pairs(
         return Ok(vec![0.0; pairs.len() * bins]);
     }
     gpu.scoped("rendering transients", || {
-        let pipeline = &gpu
+        let pipeline = gpu
             .render
-            .get_or_init(|| Pipeline(gpu.pipeline("render", include_str!("render.wgsl"))))
-            .0;
+            .get_or_init(|| gpu.pipeline("render", include_str!("render.wgsl")));
         let prims: Vec<[[f32; 4]; 5]> = kernels.iter().map(prim).collect();
         let geometry: Vec<[[f32; 4]; 4]> = pairs.iter().map(pair).collect();
         let prims = gpu.upload("primitives", &prims);
@@ -105,32 +100,12 @@ pub fn render_pairs(
                 params.first_pair = first as u32;
                 params.bin_offset = offset as u32;
                 let uniform = gpu.uniform("render parameters", &params);
-                let group = gpu.device.create_bind_group(&wgpu::BindGroupDescriptor {
-                    label: Some("render"),
-                    layout: &pipeline.get_bind_group_layout(0),
-                    entries: &[
-                        wgpu::BindGroupEntry {
-                            binding: 0,
-                            resource: uniform.as_entire_binding(),
-                        },
-                        wgpu::BindGroupEntry {
-                            binding: 1,
-                            resource: prims.as_entire_binding(),
-                        },
-                        wgpu::BindGroupEntry {
-                            binding: 2,
-                            resource: geometry.as_entire_binding(),
-                        },
-                        wgpu::BindGroupEntry {
-                            binding: 3,
-                            resource: target.as_entire_binding(),
-                        },
-                    ],
-                });
-                let mut pass = encoder.begin_compute_pass(&Default::default());
-                pass.set_pipeline(pipeline);
-                pass.set_bind_group(0, &group, &[]);
-                pass.dispatch_workgroups(n as u32, 1, 1);
+                gpu.dispatch(
+                    &mut encoder,
+                    pipeline,
+                    &[&uniform, &prims, &geometry, &target],
+                    [n as u32, 1, 1],
+                );
             }
             out.extend(gpu.finish("rendering transients", encoder, &target, n * bins)?);
         }
