@@ -534,11 +534,13 @@ async fn a_submission_flood_gets_429_and_does_not_slow_the_capture() {
         .into_future(),
     );
     let client = reqwest::Client::new();
-    // Real time: up to 400 pairs × 20 ms ≈ 8 s of capture per run, longer than the
-    // flood, so no flooded run starts (and leaves the queue) while it lasts.
+    // Real time: a 28 × 28 grid keeps about 520 pairs on the relay, at about 45 pairs/s
+    // (20 ms each plus the LOS-masked moves) about 12 s of capture per run, twice the
+    // flood (6.2 s on a 2-core machine), so no flooded run starts (and leaves the queue)
+    // while it lasts. A 20 × 20 grid kept 265 pairs, 6 s: as long as the flood.
     let capture_plan = SmallPlan::default()
         .set("los.grid", [24, 24])
-        .set("pairs.grid", [20, 20])
+        .set("pairs.grid", [28, 28])
         .toml();
     let submit = |plan: String| {
         let (client, base) = (client.clone(), base.clone());
