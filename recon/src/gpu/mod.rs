@@ -163,6 +163,10 @@ impl Compute {
     pub fn open(device: ComputeDevice) -> Result<Compute, GpuError> {
         match device {
             ComputeDevice::Cpu => Ok(Compute::Cpu),
+            ComputeDevice::Auto if !may_have_hardware_gpu() => {
+                tracing::debug!("no GPU device node: the reconstruction runs on the CPU");
+                Ok(Compute::Cpu)
+            }
             ComputeDevice::Auto => match shared(false) {
                 Ok(gpu) => Ok(Compute::Gpu(gpu)),
                 Err(e) => {
@@ -195,6 +199,24 @@ impl Compute {
             Compute::Gpu(g) => g.device_info(),
         }
     }
+}
+
+/// Whether a hardware GPU can be here at all: on Linux, a DRM render node
+/// (`/dev/dri/renderD*`: Mesa's and AMD's drivers) or an NVIDIA device node
+/// (`/dev/nvidia*`); elsewhere, yes. Without one, `auto` does not load the Vulkan
+/// drivers: they cost about 50 MiB of resident memory, and a software one may write
+/// to standard error (Mesa's, about `XDG_RUNTIME_DIR`), which would break JSON logs.
+fn may_have_hardware_gpu() -> bool {
+    if !cfg!(target_os = "linux") {
+        return true;
+    }
+    let any = |dir: &str, prefix: &str| {
+        std::fs::read_dir(dir).is_ok_and(|d| {
+            d.flatten()
+                .any(|e| e.file_name().to_string_lossy().starts_with(prefix))
+        })
+    };
+    any("/dev/dri", "renderD") || any("/dev", "nvidia")
 }
 
 /// The process's GPU, opened on first use: hardware only, or any adapter.
