@@ -1,6 +1,7 @@
-//! `[compute] device`: `periscope recon` with the synthesis and the backprojection on a
-//! GPU gives the CPU's volume, records the adapter in `volume.json`, and without any
-//! adapter refuses `"gpu"` with what to do while `"auto"` runs on the CPU.
+//! `[compute] device`: `periscope recon` with the 3D-GTR fit's steps, the synthesis and
+//! the backprojection on a GPU gives the CPU's volume, records the adapter in
+//! `volume.json`, and without any adapter refuses `"gpu"` with what to do while `"auto"`
+//! runs on the CPU.
 //!
 //! Without a hardware GPU these run on Mesa's software Vulkan (lavapipe), which
 //! `.ci/run` installs; where no adapter at all is found the comparison says so and
@@ -54,17 +55,23 @@ fn difference(a: &Path, b: &Path) -> f64 {
     (num / den).sqrt()
 }
 
-/// 3D-GTR (its fit on the CPU, synthesis and FBP on the GPU) and FBP on the measured
-/// pairs, each against the same on the CPU: the volumes agree to 1e-3 relative L2
-/// (measured on lavapipe: see docs/gpu.md), and `volume.json` names the adapter.
+/// 3D-GTR (its fit's steps, synthesis and FBP on the GPU) and FBP on the measured
+/// pairs, each against the same on the CPU: the volumes agree to 2e-3 relative L2 for
+/// 3D-GTR (a fit of 512 steps whose gradients are f32 goes a slightly different way:
+/// 4.8e-4 measured on lavapipe) and 1e-3 for FBP (1.5e-6), and `volume.json` names
+/// the adapter. The fit is short (400 primitives, 8 epochs): on lavapipe a default
+/// fit's 8,192 steps take minutes (docs/gpu.md).
 #[test]
 fn a_reconstruction_on_the_gpu_is_the_cpus() {
     let dir = tempfile::tempdir().unwrap();
-    for method in ["gtr", "fbp"] {
+    for (method, extra, bound) in [
+        ("gtr", "[gtr]\nprimitives = 400\nepochs = 8\n", 2e-3),
+        ("fbp", "", 1e-3),
+    ] {
         let (done, gpu) = recon(
             dir.path(),
             &format!("{method}-gpu"),
-            &format!("method = \"{method}\"\n[compute]\ndevice = \"gpu\""),
+            &format!("method = \"{method}\"\n{extra}[compute]\ndevice = \"gpu\""),
             &[],
         );
         if done.code == Some(2) && done.stderr.contains("no GPU is usable") {
@@ -95,7 +102,7 @@ fn a_reconstruction_on_the_gpu_is_the_cpus() {
         let (done, cpu) = recon(
             dir.path(),
             &format!("{method}-cpu"),
-            &format!("method = \"{method}\"\n[compute]\ndevice = \"cpu\""),
+            &format!("method = \"{method}\"\n{extra}[compute]\ndevice = \"cpu\""),
             &[],
         );
         assert_eq!(
@@ -109,7 +116,7 @@ fn a_reconstruction_on_the_gpu_is_the_cpus() {
         let d = difference(&gpu, &cpu);
         eprintln!("{method}: GPU against CPU, relative L2 {d:.2e}");
         assert!(
-            d < 1e-3,
+            d < bound,
             "{method}: the GPU's volume differs from the CPU's by {d:e} (relative L2)"
         );
     }

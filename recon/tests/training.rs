@@ -1038,3 +1038,93 @@ fn splits_stop_where_the_capture_stops_placing_points() {
         "children √3 σ apart, {separation} m"
     );
 }
+
+/// The GPU the fit tests run on (lavapipe included), or `None` with a line saying
+/// the test skipped; `PERISCOPE_REQUIRE_GPU` makes a missing adapter a failure.
+fn gpu(test: &str) -> Option<std::sync::Arc<periscope_recon::gpu::Gpu>> {
+    use periscope_recon::gpu::{Compute, ComputeDevice};
+    match Compute::open(ComputeDevice::Gpu) {
+        Ok(Compute::Gpu(g)) => Some(g),
+        Ok(Compute::Cpu) => unreachable!("device = gpu opens a GPU or fails"),
+        Err(e) if std::env::var_os("PERISCOPE_REQUIRE_GPU").is_none() => {
+            eprintln!("SKIPPED {test}: {e}");
+            None
+        }
+        Err(e) => panic!("{test}: PERISCOPE_REQUIRE_GPU is set but {e}"),
+    }
+}
+
+/// A fit whose steps run on the GPU (f32) follows the CPU's (f64): after 6 epochs of
+/// 15 steps on one primitive's transients, the last epoch's loss is within 1 % of the
+/// CPU fit's and every centre within 0.5 mm of it, and the fit stayed on the GPU.
+#[test]
+fn a_fit_on_the_gpu_follows_the_cpus() {
+    let Some(gpu) = gpu("a_fit_on_the_gpu_follows_the_cpus") else {
+        return;
+    };
+    let fit = |on_gpu: bool| {
+        let mut t = Trainer::new(config(50, 6), roi(), data(60, 1)).unwrap();
+        if on_gpu {
+            t.use_gpu(gpu.clone(), true);
+        }
+        let mut last = f64::NAN;
+        t.run(None, &CancelToken::new(), &mut |e| {
+            if let TrainEvent::Epoch { loss, .. } = e {
+                last = *loss;
+            }
+        })
+        .unwrap();
+        assert_eq!(t.on_gpu(), on_gpu);
+        (t.cloud().clone(), last)
+    };
+    let (cpu, cpu_loss) = fit(false);
+    let (gpu, gpu_loss) = fit(true);
+    eprintln!("last epoch's loss: GPU {gpu_loss}, CPU {cpu_loss}");
+    assert!(
+        cpu_loss > 0.0 && (gpu_loss - cpu_loss).abs() <= 0.01 * cpu_loss,
+        "GPU {gpu_loss} against CPU {cpu_loss}"
+    );
+    assert_eq!(gpu.len(), cpu.len());
+    let worst = (0..cpu.len())
+        .map(|k| (gpu.primitive(k).centre - cpu.primitive(k).centre).length())
+        .fold(0.0f64, f64::max);
+    eprintln!("largest centre difference {worst:.2e} m");
+    assert!(worst <= 5e-4, "a centre moved {worst} m from the CPU fit's");
+}
+
+/// A GPU step that fails (here a mini-batch larger than one dispatch holds) ends a
+/// strict fit with the GPU's error, naming the setting to change; a fit that is not
+/// strict (`[compute] device = "auto"`) goes on and ends on the CPU.
+#[test]
+fn a_failing_gpu_ends_a_strict_fit_and_leaves_the_others_to_the_cpu() {
+    let Some(gpu) = gpu("a_failing_gpu_ends_a_strict_fit_and_leaves_the_others_to_the_cpu") else {
+        return;
+    };
+    let axis = TimeAxis::from_seconds(0.6, 32e-12, 16);
+    let mut set = TransientSet::new(axis).unwrap();
+    let n = 65_600;
+    for i in 0..n {
+        let x = DVec3::new(
+            -0.5 + (i % 256) as f64 / 256.0,
+            -0.5 + (i / 256) as f64 / 257.0,
+            0.0,
+        );
+        set.push(Pair::confocal(x, DVec3::Z), &[0.0; 16]).unwrap();
+    }
+    let cfg = TrainConfig {
+        batch_size: n,
+        ..config(4, 1)
+    };
+    let mut strict = Trainer::new(cfg.clone(), roi(), set.clone()).unwrap();
+    strict.use_gpu(gpu.clone(), true);
+    match strict.run(None, &CancelToken::new(), &mut |_| {}) {
+        Err(TrainError::Gpu(e)) => assert!(e.to_string().contains("batch-size"), "{e}"),
+        other => panic!("a strict fit on a failing GPU gave {other:?}"),
+    }
+    let mut lenient = Trainer::new(cfg, roi(), set).unwrap();
+    lenient.use_gpu(gpu, false);
+    let summary = lenient.run(None, &CancelToken::new(), &mut |_| {}).unwrap();
+    assert!(!summary.cancelled && summary.steps == 1, "{summary:?}");
+    assert!(!lenient.on_gpu(), "the fit went on on the CPU");
+    assert!(all_finite(lenient.cloud()));
+}

@@ -62,6 +62,17 @@ fn open_compute(device: ComputeDevice) -> Result<Compute, ReconError> {
     Ok(compute)
 }
 
+/// Puts `trainer`'s steps on the GPU `[compute] device` asks for, if any: with
+/// `device = "gpu"` a failure of the GPU is the fit's, with `"auto"` the fit goes on
+/// on the CPU ([`Trainer::use_gpu`]).
+fn fit_on(trainer: &mut Trainer, device: ComputeDevice) -> Result<(), GpuError> {
+    if let Compute::Gpu(gpu) = Compute::open(device)? {
+        tracing::info!(device = %gpu.device_info(), "the 3D-GTR fit runs on the GPU ([compute] device sets it)");
+        trainer.use_gpu(gpu, device == ComputeDevice::Gpu);
+    }
+    Ok(())
+}
+
 /// Runs `work` on `compute`; with `device = "auto"`, a GPU that fails is left for the
 /// CPU, with a warning, and the work done again there (`[compute] device = "gpu"`
 /// makes the failure the run's).
@@ -152,6 +163,7 @@ impl Fit {
         live: Option<(Sender<LiveModel>, usize)>,
     ) -> Result<(), PipelineError> {
         let config = self.input.settings.train.clone();
+        let device = self.input.settings.compute;
         let roi = roi(&self.input.settings.volume)?;
         let cancel = self.cancel.clone();
         control.watch(&cancel);
@@ -160,6 +172,7 @@ impl Fit {
             .spawn(move || {
                 let t = Instant::now();
                 let mut trainer = Trainer::new(config, roi, first)?;
+                fit_on(&mut trainer, device)?;
                 if let Some((tx, steps)) = live {
                     trainer.report_live_model(tx, steps);
                 }
@@ -398,6 +411,7 @@ pub fn reconstruct(
             let t = Instant::now();
             let mut trainer = Trainer::new(s.train.clone(), roi(&s.volume)?, input.set.clone())
                 .map_err(ReconError::from)?;
+            fit_on(&mut trainer, s.compute).map_err(ReconError::from)?;
             let cancel = CancelToken::new();
             control.watch(&cancel);
             let summary = trainer

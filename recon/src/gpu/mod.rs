@@ -1,6 +1,7 @@
-//! The reconstruction on a GPU: the forward render (the fit's model and the virtual
-//! confocal synthesis) and filtered backprojection as WGSL compute shaders, run through
-//! [`wgpu`] on whatever Vulkan, Metal or DX12 adapter the machine has.
+//! The reconstruction on a GPU: the 3D-GTR fit's step (forward render, residuals and
+//! analytic backward pass), the virtual confocal synthesis and filtered
+//! backprojection as WGSL compute shaders, run through [`wgpu`] on whatever Vulkan,
+//! Metal or DX12 adapter the machine has.
 //!
 //! The CPU path stays the reference and the default where no adapter is found
 //! ([`ComputeDevice::Auto`]). Every GPU routine here is tested against its CPU
@@ -8,16 +9,18 @@
 //! Mesa's software Vulkan (lavapipe, Debian's `mesa-vulkan-drivers`), and they say
 //! plainly when no adapter at all is found and they skip.
 //!
-//! Why wgpu rather than CubeCL/burn: the kernels are two small, hand-written shaders
-//! with no autodiff or tensor algebra to borrow, and wgpu is the layer those build on,
+//! Why wgpu rather than CubeCL/burn: the kernels are a few small, hand-written shaders
+//! with an analytic gradient, no autodiff or tensor algebra to borrow, and wgpu is the layer those build on,
 //! maintained by the same community, with no code generation between our source and
 //! the driver.
 mod backproject;
+mod fit;
 mod render;
 
 use std::sync::{Arc, OnceLock};
 
 pub use backproject::backproject;
+pub use fit::{BatchGradient, batch_gradient};
 pub use render::render_pairs;
 
 /// Where the reconstruction's heavy work runs: `[compute] device` in a `RECON.toml`
@@ -122,6 +125,9 @@ pub struct Gpu {
     info: wgpu::AdapterInfo,
     limits: wgpu::Limits,
     render: OnceLock<wgpu::ComputePipeline>,
+    reduce: OnceLock<wgpu::ComputePipeline>,
+    residual: OnceLock<wgpu::ComputePipeline>,
+    backward: OnceLock<wgpu::ComputePipeline>,
     backproject: OnceLock<wgpu::ComputePipeline>,
 }
 
@@ -293,6 +299,9 @@ impl Gpu {
             info,
             limits,
             render: OnceLock::new(),
+            reduce: OnceLock::new(),
+            residual: OnceLock::new(),
+            backward: OnceLock::new(),
             backproject: OnceLock::new(),
         };
         if gpu.info.device_type == wgpu::DeviceType::Cpu {

@@ -5,21 +5,23 @@ use crate::gtr::{Kernel, RenderOptions, SIGMA_FLOOR_BINS};
 use crate::transient::{Pair, TimeAxis};
 
 /// Threads of a workgroup, and primitives per shared-memory tile.
-const TILE: usize = 256;
+pub(super) const TILE: usize = 256;
 /// Bins each thread keeps in registers: a dispatch renders at most `TILE × PER_THREAD`
 /// bins of each transient, longer ones take several.
 const PER_THREAD: usize = 16;
 
+/// The WGSL every kernel of the forward model starts with (`common.wgsl`).
+pub(super) fn source(kernel: &str) -> String {
+    [include_str!("common.wgsl"), kernel].concat()
+}
+
+/// The forward model's constants as `common.wgsl` reads them.
 #[repr(C)]
 #[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
-struct Params {
+pub(super) struct Model {
     start: f32,
     width: f32,
     bins: u32,
-    prims: u32,
-    first_pair: u32,
-    bin_offset: u32,
-    block_bins: u32,
     flags: u32,
     gain: f32,
     sys2: f32,
@@ -29,9 +31,48 @@ struct Params {
     pad: [f32; 3],
 }
 
-/// A primitive as the shader reads it: centre and albedo, the three local axes each
+impl Model {
+    pub(super) fn new(axis: &TimeAxis, opt: &RenderOptions) -> Self {
+        let floor = SIGMA_FLOOR_BINS * axis.width;
+        Model {
+            start: axis.start as f32,
+            width: axis.width as f32,
+            bins: axis.bins as u32,
+            flags: u32::from(opt.use_ni) | (u32::from(opt.use_nd) << 1),
+            gain: opt.gain as f32,
+            sys2: (opt.sigma_sys * opt.sigma_sys) as f32,
+            floor2: (floor * floor) as f32,
+            reach: opt.window_sigmas as f32,
+            min_distance: opt.min_distance as f32,
+            pad: [0.0; 3],
+        }
+    }
+}
+
+#[repr(C)]
+#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+struct Params {
+    model: Model,
+    prims: u32,
+    first_pair: u32,
+    bin_offset: u32,
+    block_bins: u32,
+    group_prims: u32,
+    pairs: u32,
+    pad: [u32; 2],
+}
+
+#[repr(C)]
+#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+struct ReduceParams {
+    len: u32,
+    groups: u32,
+    pad: [u32; 2],
+}
+
+/// A primitive as the shaders read it: centre and albedo, the three local axes each
 /// with its scale, and the scales' pairwise products.
-fn prim(k: &Kernel) -> [[f32; 4]; 5] {
+pub(super) fn prim(k: &Kernel) -> [[f32; 4]; 5] {
     let c = |i: usize, s: f64| {
         let a = k.r.col(i);
         [a.x as f32, a.y as f32, a.z as f32, s as f32]
@@ -45,9 +86,87 @@ fn prim(k: &Kernel) -> [[f32; 4]; 5] {
     ]
 }
 
-fn pair(p: &Pair) -> [[f32; 4]; 4] {
+/// A pair as the shaders read it.
+pub(super) fn pair(p: &Pair) -> [[f32; 4]; 4] {
     let v = |v: glam::DVec3| [v.x as f32, v.y as f32, v.z as f32, 0.0];
     [v(p.xi), v(p.ni), v(p.xd), v(p.nd)]
+}
+
+/// Where a forward render reads and writes: the primitives, the pairs, and the
+/// target of `groups × pairs × bins` values (each group of primitives' partial
+/// transients, summed into the first `pairs × bins` by [`Render::record`]).
+pub(super) struct Render<'a> {
+    pub prims: &'a wgpu::Buffer,
+    pub count: usize,
+    pub pairs: &'a wgpu::Buffer,
+    pub target: &'a wgpu::Buffer,
+    pub model: Model,
+}
+
+impl Render<'_> {
+    /// Records the render of `n` pairs from `first` with the primitives split into
+    /// `groups` workgroups each (1 for a render over many pairs; more when the pairs are
+    /// too few to fill the GPU), and the sum of the groups' partials.
+    pub(super) fn record(
+        &self,
+        gpu: &Gpu,
+        encoder: &mut wgpu::CommandEncoder,
+        first: usize,
+        n: usize,
+        groups: usize,
+    ) {
+        let pipeline = gpu
+            .render
+            .get_or_init(|| gpu.pipeline("render", &source(include_str!("render.wgsl"))));
+        let bins = self.model.bins as usize;
+        let tiles = self.count.div_ceil(TILE).max(1);
+        let group_prims = tiles.div_ceil(groups) * TILE;
+        let groups = tiles.div_ceil(group_prims / TILE);
+        for offset in (0..bins).step_by(TILE * PER_THREAD) {
+            let params = Params {
+                model: self.model,
+                prims: self.count as u32,
+                first_pair: first as u32,
+                bin_offset: offset as u32,
+                block_bins: (TILE * PER_THREAD) as u32,
+                group_prims: group_prims as u32,
+                pairs: n as u32,
+                pad: [0; 2],
+            };
+            let uniform = gpu.uniform("render parameters", &params);
+            gpu.dispatch(
+                encoder,
+                pipeline,
+                &[&uniform, self.prims, self.pairs, self.target],
+                [n as u32, groups as u32, 1],
+            );
+        }
+        if groups > 1 {
+            let reduce = gpu
+                .reduce
+                .get_or_init(|| gpu.pipeline("reduce", include_str!("reduce.wgsl")));
+            let len = n * bins;
+            let params = ReduceParams {
+                len: len as u32,
+                groups: groups as u32,
+                pad: [0; 2],
+            };
+            let uniform = gpu.uniform("reduce parameters", &params);
+            gpu.dispatch(
+                encoder,
+                reduce,
+                &[&uniform, self.target],
+                spread(len.div_ceil(256)),
+            );
+        }
+    }
+}
+
+/// `n` workgroups as a grid the dispatch limits allow: `[x, y, 1]` with `x·y ≥ n`
+/// (the shaders number them `x + y·width`, and skip the ones past the end).
+pub(super) fn spread(n: usize) -> [u32; 3] {
+    let x = n.clamp(1, MAX_GROUPS);
+    [x as u32, n.div_ceil(x).max(1) as u32, 1]
 }
 
 /// Renders `pairs` from `kernels` on `gpu`: `axis.bins` f32 a pair, pair by pair, the
@@ -65,30 +184,10 @@ pub fn render_pairs(
         return Ok(vec![0.0; pairs.len() * bins]);
     }
     gpu.scoped("rendering transients", || {
-        let pipeline = gpu
-            .render
-            .get_or_init(|| gpu.pipeline("render", include_str!("render.wgsl")));
         let prims: Vec<[[f32; 4]; 5]> = kernels.iter().map(prim).collect();
         let geometry: Vec<[[f32; 4]; 4]> = pairs.iter().map(pair).collect();
         let prims = gpu.upload("primitives", &prims);
         let geometry = gpu.upload("pairs", &geometry);
-        let floor = SIGMA_FLOOR_BINS * axis.width;
-        let mut params = Params {
-            start: axis.start as f32,
-            width: axis.width as f32,
-            bins: bins as u32,
-            prims: kernels.len() as u32,
-            first_pair: 0,
-            bin_offset: 0,
-            block_bins: (TILE * PER_THREAD) as u32,
-            flags: u32::from(opt.use_ni) | (u32::from(opt.use_nd) << 1),
-            gain: opt.gain as f32,
-            sys2: (opt.sigma_sys * opt.sigma_sys) as f32,
-            floor2: (floor * floor) as f32,
-            reach: opt.window_sigmas as f32,
-            min_distance: opt.min_distance as f32,
-            pad: [0.0; 3],
-        };
         // Pairs in chunks whose transients fit one binding and one dispatch.
         let per_chunk = ((gpu.max_binding() / (4 * bins as u64)) as usize).clamp(1, MAX_GROUPS);
         let mut out = Vec::with_capacity(pairs.len() * bins);
@@ -96,17 +195,14 @@ pub fn render_pairs(
             let n = per_chunk.min(pairs.len() - first);
             let target = gpu.output("transients", n * bins);
             let mut encoder = gpu.device.create_command_encoder(&Default::default());
-            for offset in (0..bins).step_by(TILE * PER_THREAD) {
-                params.first_pair = first as u32;
-                params.bin_offset = offset as u32;
-                let uniform = gpu.uniform("render parameters", &params);
-                gpu.dispatch(
-                    &mut encoder,
-                    pipeline,
-                    &[&uniform, &prims, &geometry, &target],
-                    [n as u32, 1, 1],
-                );
+            Render {
+                prims: &prims,
+                count: kernels.len(),
+                pairs: &geometry,
+                target: &target,
+                model: Model::new(axis, opt),
             }
+            .record(gpu, &mut encoder, first, n, 1);
             out.extend(gpu.finish("rendering transients", encoder, &target, n * bins)?);
         }
         Ok(out)

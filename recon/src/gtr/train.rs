@@ -25,7 +25,8 @@ use super::init::{Init, initial_cloud};
 use super::kernel::{Kernel, Loss, RenderOptions};
 use super::model::{GaussianCloud, MapSlopes, ModelError, Primitive, RawGrads, ScaleBounds};
 use super::optim::{AdamW, AdamWSettings, Schedule};
-use super::render::{batch_loss_grad_with, render_set};
+use super::render::{batch_loss_grad_gpu, batch_loss_grad_with, render_set};
+use crate::gpu::{Gpu, GpuError};
 use crate::roi::RoiBox;
 use crate::transient::{TransientError, TransientSet};
 
@@ -846,6 +847,9 @@ pub enum TrainError {
         /// The sampled pairs' total, weighted as in the fit.
         total: f64,
     },
+    /// The GPU the fit was asked to run on failed ([`Trainer::use_gpu`], strict).
+    #[error(transparent)]
+    Gpu(#[from] GpuError),
 }
 
 /// How a fit ended.
@@ -894,6 +898,11 @@ pub struct Trainer {
     /// Where the model goes after each streamed batch's live training, and the live
     /// steps each batch gets at least ([`Trainer::report_live_model`]).
     live_model: Option<(Sender<LiveModel>, usize)>,
+    /// The GPU the steps run on ([`Trainer::use_gpu`]), and whether its failure is the
+    /// fit's (otherwise the fit goes on on the CPU).
+    gpu: Option<(Arc<Gpu>, bool)>,
+    /// A strict GPU's failure, for [`Trainer::run`] to return.
+    gpu_failure: Option<GpuError>,
 }
 
 /// The fit as it stands after a streamed batch's live training: what an adaptive
@@ -965,6 +974,8 @@ impl Trainer {
             pass: Vec::new(),
             pass_at: 0,
             live_model: None,
+            gpu: None,
+            gpu_failure: None,
             config,
         };
         trainer.match_gain()?;
@@ -1056,6 +1067,19 @@ impl Trainer {
         self.live_model = Some((tx, min_steps));
     }
 
+    /// Runs the fit's steps on `gpu` from now on: the mini-batch's render, residuals
+    /// and backward pass there, in f32 ([`crate::gpu::batch_gradient`]), the chain rule
+    /// and AdamW here. With `strict`, a failure of the GPU ends the fit with
+    /// [`TrainError::Gpu`]; otherwise the fit says so in the log and goes on on the CPU.
+    pub fn use_gpu(&mut self, gpu: Arc<Gpu>, strict: bool) {
+        self.gpu = Some((gpu, strict));
+    }
+
+    /// Whether the steps run on a GPU (one that failed without `strict` no longer does).
+    pub fn on_gpu(&self) -> bool {
+        self.gpu.is_some()
+    }
+
     /// The current primitives.
     pub fn cloud(&self) -> &GaussianCloud {
         &self.cloud
@@ -1077,7 +1101,8 @@ impl Trainer {
     }
 
     /// One pass over the data in shuffled mini-batches; returns the mean batch loss, or
-    /// `None` when cancelled part-way (the cloud is valid either way).
+    /// `None` when cancelled part-way (the cloud is valid either way), or when a strict
+    /// GPU failed ([`Trainer::use_gpu`]; [`Trainer::run`] returns its error).
     pub fn epoch(&mut self, cancel: &CancelToken) -> Option<f64> {
         // On a worker of the thread pool, so that the step's parallel regions hand work
         // to the other workers without waking this thread up each time (a call from
@@ -1110,16 +1135,46 @@ impl Trainer {
                 return None;
             }
             self.refresh_kernels();
-            let loss = batch_loss_grad_with(
-                &self.cloud,
-                &self.kernels,
-                Some(&self.slopes),
-                &self.data,
-                batch,
-                &self.options,
-                (self.gain_rounds > 0).then_some(self.pair_gains.as_slice()),
-                &mut self.grads,
-            );
+            let gains = (self.gain_rounds > 0).then_some(self.pair_gains.as_slice());
+            let on_gpu = self.gpu.as_ref().map(|(gpu, strict)| {
+                let loss = batch_loss_grad_gpu(
+                    gpu,
+                    &self.cloud,
+                    &self.kernels,
+                    &self.slopes,
+                    &self.data,
+                    batch,
+                    &self.options,
+                    gains,
+                    &mut self.grads,
+                );
+                (loss, *strict)
+            });
+            let loss = match on_gpu {
+                Some((Ok(loss), _)) => Some(loss),
+                Some((Err(e), true)) => {
+                    self.gpu_failure = Some(e);
+                    return None;
+                }
+                Some((Err(e), false)) => {
+                    tracing::warn!(error = %e, step = self.step, "the GPU failed: the fit goes on on the CPU");
+                    self.gpu = None;
+                    None
+                }
+                None => None,
+            };
+            let loss = loss.unwrap_or_else(|| {
+                batch_loss_grad_with(
+                    &self.cloud,
+                    &self.kernels,
+                    Some(&self.slopes),
+                    &self.data,
+                    batch,
+                    &self.options,
+                    gains,
+                    &mut self.grads,
+                )
+            });
             let factor = self.config.schedule.factor(
                 self.step,
                 self.epochs_done,
@@ -1244,6 +1299,9 @@ impl Trainer {
                 self.average = Some((self.cloud.clone(), 0));
             }
             let Some(loss) = self.epoch(cancel) else {
+                if let Some(e) = self.gpu_failure.take() {
+                    return Err(e.into());
+                }
                 on_event(&TrainEvent::Cancelled { step: self.step });
                 return Ok(self.summary(final_loss, true));
             };
