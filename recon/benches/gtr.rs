@@ -5,7 +5,8 @@
 //! Timed (criterion, one group `gtr`): one forward render of all pairs; the loss
 //! gradient over every mini-batch of 4 pairs (no optimiser); one training epoch
 //! (forward + backward + AdamW over shuffled mini-batches of 4 pairs, kernels refreshed
-//! every step). Not timed: building the scene, the one render that makes the synthetic
+//! every step); and the same three on a GPU (`…, gpu`; docs/gpu.md) where a hardware
+//! adapter is found (lavapipe with `PERISCOPE_BENCH_SOFTWARE_GPU=1`). Not timed: building the scene, the one render that makes the synthetic
 //! measurements, the gain matching, building the trainer.
 //!
 //! Criterion's throughput is Gaussian-pair evaluations (pairs × primitives per
@@ -22,12 +23,12 @@ use std::time::Duration;
 use criterion::{Criterion, SamplingMode, Throughput, criterion_group, criterion_main};
 
 mod support;
-use support::{LastSample, f32_fma_peak_gflops, peak_rss_mib, peak_share};
+use support::{LastSample, bench_gpu, f32_fma_peak_gflops, peak_rss_mib, peak_share};
 
 use glam::{DQuat, DVec3};
 use periscope_recon::gtr::{
     CancelToken, GaussianCloud, Init, Primitive, RenderOptions, ScaleBounds, TrainConfig, Trainer,
-    batch_loss_grad, render_set,
+    batch_loss_grad, batch_loss_grad_gpu, render_set,
 };
 use periscope_recon::{Pair, RoiBox, TimeAxis, TransientSet};
 use rand::{Rng, SeedableRng};
@@ -182,12 +183,38 @@ fn gtr(c: &mut Criterion) {
         epochs: 1,
         ..TrainConfig::default()
     };
-    let mut trainer = Trainer::new(config, roi, data).unwrap();
+    let mut trainer = Trainer::new(config.clone(), roi, data.clone()).unwrap();
     let cancel = CancelToken::new();
     let epoch = LastSample::default();
     group.bench_function("training epoch, batch 4", |b| {
         b.iter_custom(|iters| epoch.time(iters, || trainer.epoch(&cancel).unwrap()))
     });
+
+    // The same three on a GPU (docs/gpu.md), where a hardware adapter is found.
+    if let Some(periscope_recon::gpu::Compute::Gpu(gpu)) = bench_gpu() {
+        group.bench_function("forward render, gpu", |b| {
+            b.iter(|| {
+                periscope_recon::gpu::render_pairs(&gpu, &kernels, geometry.pairs(), &axis, &opt).unwrap()
+            })
+        });
+        group.bench_function("loss gradient, batch 4, gpu", |b| {
+            b.iter(|| {
+                rayon::scope(|_| {
+                    for batch in order.chunks(4) {
+                        std::hint::black_box(
+                            batch_loss_grad_gpu(&gpu, &cloud, &kernels, &data, batch, &opt, &mut grads)
+                                .unwrap(),
+                        );
+                    }
+                })
+            })
+        });
+        let mut trainer = Trainer::new(config, roi, data).unwrap();
+        trainer.use_gpu(gpu, true);
+        group.bench_function("training epoch, batch 4, gpu", |b| {
+            b.iter(|| trainer.epoch(&cancel).unwrap())
+        });
+    }
     group.finish();
 
     // The per-bin loops alone, over the windows sampled above, on the vector path a

@@ -30,10 +30,9 @@ use std::time::Duration;
 use criterion::{Criterion, SamplingMode, Throughput, criterion_group, criterion_main};
 
 mod support;
-use support::{LastSample, peak_rss_mib, peak_share};
+use support::{LastSample, bench_gpu, peak_rss_mib, peak_share};
 
 use glam::{DMat3, DQuat, DVec3};
-use periscope_recon::gpu::{Compute, ComputeDevice};
 use periscope_recon::gtr::{Kernel, RenderOptions};
 use periscope_recon::relay::{VirtualRelay, estimate_normals};
 use periscope_recon::solver::{FbpSettings, LctSettings, PlanarScan, fbp, fbp_on, lct_frame};
@@ -41,28 +40,6 @@ use periscope_recon::synth::{synthesise, synthesise_on};
 use periscope_recon::{Pair, TimeAxis, TransientSet, VolumeGrid};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
-
-/// The GPU the `_gpu` benchmarks run on: a hardware adapter, or a software one where
-/// `PERISCOPE_BENCH_SOFTWARE_GPU` is set; `None`, saying why, otherwise.
-fn bench_gpu() -> Option<Compute> {
-    match Compute::open(ComputeDevice::Gpu) {
-        Ok(c) if !c.info().software || std::env::var_os("PERISCOPE_BENCH_SOFTWARE_GPU").is_some() => {
-            println!("GPU benchmarks on {}", c.info());
-            Some(c)
-        }
-        Ok(c) => {
-            println!(
-                "GPU benchmarks left out: only a software adapter ({}); PERISCOPE_BENCH_SOFTWARE_GPU=1 runs them on it",
-                c.info()
-            );
-            None
-        }
-        Err(e) => {
-            println!("GPU benchmarks left out: {e}");
-            None
-        }
-    }
-}
 
 fn curved(x: f64, y: f64) -> (DVec3, DVec3) {
     let z = 0.1 * (std::f64::consts::PI * x).sin();

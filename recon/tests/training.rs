@@ -1039,20 +1039,7 @@ fn splits_stop_where_the_capture_stops_placing_points() {
     );
 }
 
-/// The GPU the fit tests run on (lavapipe included), or `None` with a line saying
-/// the test skipped; `PERISCOPE_REQUIRE_GPU` makes a missing adapter a failure.
-fn gpu(test: &str) -> Option<std::sync::Arc<periscope_recon::gpu::Gpu>> {
-    use periscope_recon::gpu::{Compute, ComputeDevice};
-    match Compute::open(ComputeDevice::Gpu) {
-        Ok(Compute::Gpu(g)) => Some(g),
-        Ok(Compute::Cpu) => unreachable!("device = gpu opens a GPU or fails"),
-        Err(e) if std::env::var_os("PERISCOPE_REQUIRE_GPU").is_none() => {
-            eprintln!("SKIPPED {test}: {e}");
-            None
-        }
-        Err(e) => panic!("{test}: PERISCOPE_REQUIRE_GPU is set but {e}"),
-    }
-}
+use periscope_recon::gpu::testing::gpu;
 
 /// A fit whose steps run on the GPU (f32) follows the CPU's (f64): after 6 epochs of
 /// 15 steps on one primitive's transients, the last epoch's loss is within 1 % of the

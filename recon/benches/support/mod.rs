@@ -4,6 +4,8 @@ use std::cell::Cell;
 use std::hint::black_box;
 use std::time::{Duration, Instant};
 
+use periscope_recon::gpu::{Compute, ComputeDevice};
+
 /// Times a routine for `Bencher::iter_custom` and keeps the time per iteration of the
 /// last sample criterion took, for the figures a bench prints besides criterion's own
 /// (the share of the FMA peak). Criterion's median is still the figure to quote.
@@ -71,4 +73,26 @@ pub(crate) fn peak_share(flops: f64, seconds: f64) -> String {
         "{rate:.2} GFLOP/s counted, {:.1} % of the {threads}-core f32 FMA peak ({peak:.0} GFLOP/s)",
         100.0 * rate / peak
     )
+}
+
+/// The GPU the `_gpu` benchmarks run on: a hardware adapter, or a software one where
+/// `PERISCOPE_BENCH_SOFTWARE_GPU` is set; `None`, saying why, otherwise.
+pub(crate) fn bench_gpu() -> Option<Compute> {
+    match Compute::open(ComputeDevice::Gpu) {
+        Ok(c) if !c.info().software || std::env::var_os("PERISCOPE_BENCH_SOFTWARE_GPU").is_some() => {
+            println!("GPU benchmarks on {}", c.info());
+            Some(c)
+        }
+        Ok(c) => {
+            println!(
+                "GPU benchmarks left out: only a software adapter ({}); PERISCOPE_BENCH_SOFTWARE_GPU=1 runs them on it",
+                c.info()
+            );
+            None
+        }
+        Err(e) => {
+            println!("GPU benchmarks left out: {e}");
+            None
+        }
+    }
 }

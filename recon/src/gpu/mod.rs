@@ -480,14 +480,15 @@ impl Gpu {
     }
 }
 
-#[cfg(test)]
-pub(crate) mod testing {
+/// For tests, here and in the crates that use this one.
+#[doc(hidden)]
+pub mod testing {
     use super::*;
 
     /// The GPU the tests run on (any adapter, lavapipe included), or `None` with a
     /// line saying the test skipped. `PERISCOPE_REQUIRE_GPU` makes a missing adapter a
     /// failure instead (CI sets it after installing lavapipe).
-    pub(crate) fn gpu(test: &str) -> Option<Arc<Gpu>> {
+    pub fn gpu(test: &str) -> Option<Arc<Gpu>> {
         match shared(true) {
             Ok(g) => Some(g),
             Err(e) if std::env::var_os("PERISCOPE_REQUIRE_GPU").is_none() => {

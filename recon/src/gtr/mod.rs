@@ -15,7 +15,7 @@ pub use kernel::{Kernel, Loss, PhysicalGrad, RenderOptions, render_pair};
 pub use model::{GaussianCloud, MapSlopes, ModelError, Primitive, RawGrads, ScaleBounds};
 pub use optim::{AdamW, AdamWSettings, GroupSettings, Schedule};
 pub use ply::write_ply;
-pub use render::{batch_loss, batch_loss_grad, render_pairs, render_set};
+pub use render::{batch_loss, batch_loss_grad, batch_loss_grad_gpu, render_pairs, render_set};
 pub use train::{
     CancelToken, Convergence, DENSIFY_ROUNDS, DensifySettings, GAIN_ROUNDS, LiveModel, LossChoice, PairGains,
     PruneSettings, SEPARATION_BINS, SNAPSHOT_MAX, TrainConfig, TrainError, TrainEvent, TrainSummary, Trainer,

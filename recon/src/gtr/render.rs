@@ -332,11 +332,25 @@ pub(crate) fn batch_loss_grad_with(
     loss
 }
 
-/// [`batch_loss_grad_with`] with the render, the residuals and the backward pass on
-/// `gpu` ([`crate::gpu::batch_gradient`], in f32), and the parameter maps' chain rule
-/// here, from the map slopes `slopes` of `kernels`.
+/// [`batch_loss_grad`] with the render, the residuals and the backward pass on `gpu`
+/// ([`crate::gpu::batch_gradient`], in f32) and the parameter maps' chain rule here.
+pub fn batch_loss_grad_gpu(
+    gpu: &crate::gpu::Gpu,
+    cloud: &GaussianCloud,
+    kernels: &[Kernel],
+    set: &TransientSet,
+    batch: &[usize],
+    opt: &RenderOptions,
+    grads: &mut RawGrads,
+) -> Result<f64, crate::gpu::GpuError> {
+    let slopes: Vec<MapSlopes> = (0..cloud.len()).map(|k| cloud.slopes(k)).collect();
+    batch_loss_grad_gpu_with(gpu, cloud, kernels, &slopes, set, batch, opt, None, grads)
+}
+
+/// [`batch_loss_grad_gpu`] with the map slopes of every primitive already known
+/// (`slopes[k]` as `kernels[k]`) and per-pair gains in the model (`None`: all 1).
 #[allow(clippy::too_many_arguments)]
-pub(crate) fn batch_loss_grad_gpu(
+pub(crate) fn batch_loss_grad_gpu_with(
     gpu: &crate::gpu::Gpu,
     cloud: &GaussianCloud,
     kernels: &[Kernel],
@@ -564,205 +578,5 @@ mod tests {
                 );
             }
         }
-    }
-
-    /// A random scene for the GPU checks: `k` primitives of every shape and
-    /// orientation, `n` pairs on a curved relay (confocal ones, tilted normals, one
-    /// facing away), measurements a distorted copy of the rendering plus a background,
-    /// and the gain that brings the rendering's peak to 1.
-    fn gpu_scene(seed: u64, k: usize, n: usize) -> (GaussianCloud, TransientSet, f64) {
-        use rand::{Rng, SeedableRng};
-        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
-        let roi = RoiBox::from_bounds(DVec3::new(-0.4, -0.4, 0.3), DVec3::new(0.4, 0.4, 0.9)).unwrap();
-        let mut cloud = GaussianCloud::new(roi, ScaleBounds { min: 2e-3, max: 0.2 }).unwrap();
-        for _ in 0..k {
-            let axis = DVec3::new(
-                rng.random_range(-1.0..1.0),
-                rng.random_range(-1.0..1.0),
-                rng.random_range(0.1..1.0),
-            )
-            .normalize();
-            cloud
-                .push(Primitive {
-                    centre: DVec3::new(
-                        rng.random_range(-0.35..0.35),
-                        rng.random_range(-0.35..0.35),
-                        rng.random_range(0.35..0.85),
-                    ),
-                    scale: DVec3::new(
-                        rng.random_range(0.004..0.06),
-                        rng.random_range(0.004..0.06),
-                        rng.random_range(0.0025..0.03),
-                    ),
-                    rotation: DQuat::from_axis_angle(axis, rng.random_range(0.0..3.0)),
-                    albedo: rng.random_range(0.2..2.0),
-                })
-                .unwrap();
-        }
-        let axis = TimeAxis {
-            start: 0.4,
-            width: 0.01,
-            bins: 260,
-        };
-        let mut geometry = TransientSet::new(axis).unwrap();
-        for i in 0..n {
-            let mut point = || {
-                let x: f64 = rng.random_range(-0.5..0.5);
-                let y: f64 = rng.random_range(-0.5..0.5);
-                let tilt = DVec3::new(rng.random_range(-0.5..0.5), rng.random_range(-0.5..0.5), 1.0);
-                (
-                    DVec3::new(x, y, 0.08 * (std::f64::consts::TAU * x).sin()),
-                    tilt.normalize(),
-                )
-            };
-            let ((xi, ni), (xd, nd)) = (point(), point());
-            let pair = match i % 5 {
-                0 => Pair::confocal(xi, ni),
-                1 => Pair { xi, ni: -ni, xd, nd },
-                _ => Pair { xi, ni, xd, nd },
-            };
-            geometry.push(pair, &vec![0.0; axis.bins]).unwrap();
-        }
-        let rendered = render_set(&cloud.kernels(), &geometry, &RenderOptions::default());
-        let gain = 1.0 / rendered.iter().fold(0.0f64, |m, &v| m.max(v));
-        let mut set = TransientSet::new(axis).unwrap();
-        for (i, pair) in geometry.pairs().iter().enumerate() {
-            let hist: Vec<f32> = rendered[i * axis.bins..(i + 1) * axis.bins]
-                .iter()
-                .map(|&v| (gain * v * rng.random_range(0.3..1.5) + rng.random_range(0.0..0.05)) as f32)
-                .collect();
-            set.push(*pair, &hist).unwrap();
-        }
-        (cloud, set, gain)
-    }
-
-    fn slopes(cloud: &GaussianCloud) -> Vec<MapSlopes> {
-        (0..cloud.len()).map(|k| cloud.slopes(k)).collect()
-    }
-
-    /// Relative L2 distance of `got` from `want`.
-    fn relative_l2(got: &[f64], want: &[f64]) -> f64 {
-        let num: f64 = got.iter().zip(want).map(|(a, b)| (a - b) * (a - b)).sum();
-        let den: f64 = want.iter().map(|b| b * b).sum();
-        (num / den).sqrt()
-    }
-
-    /// A mini-batch's loss and raw gradient on the GPU (f32) agree with the CPU's
-    /// (f64): 300 primitives, 12 pairs with per-pair gains, the L2 loss and the
-    /// Poisson deviance, with and without the cosines. Bound: 1e-4 relative on the
-    /// loss and 1e-3 relative L2 on each parameter group.
-    #[test]
-    fn the_gpu_step_is_the_cpu_step() {
-        let Some(gpu) = crate::gpu::testing::gpu("the_gpu_step_is_the_cpu_step") else {
-            return;
-        };
-        let (cloud, set, gain) = gpu_scene(5, 300, 12);
-        let kernels = cloud.kernels();
-        let slopes = slopes(&cloud);
-        let batch: Vec<usize> = (0..set.len()).rev().collect();
-        let gains: Vec<f64> = (0..set.len()).map(|p| 0.6 + 0.1 * p as f64).collect();
-        for (loss, use_ni, pair_gains) in [
-            (Loss::L2, true, None),
-            (Loss::Poisson { background: 0.02 }, true, Some(gains.as_slice())),
-            (Loss::L2, false, Some(gains.as_slice())),
-        ] {
-            let opt = RenderOptions {
-                gain,
-                loss,
-                use_ni,
-                sigma_sys: 0.004,
-                ..RenderOptions::default()
-            };
-            let mut want = RawGrads::default();
-            let l_cpu =
-                batch_loss_grad_with(&cloud, &kernels, None, &set, &batch, &opt, pair_gains, &mut want);
-            let mut got = RawGrads::default();
-            let l_gpu = batch_loss_grad_gpu(
-                &gpu, &cloud, &kernels, &slopes, &set, &batch, &opt, pair_gains, &mut got,
-            )
-            .unwrap();
-            eprintln!("{loss:?}: loss {l_gpu} against {l_cpu}");
-            assert!(
-                l_cpu > 0.0 && (l_gpu - l_cpu).abs() <= 1e-4 * l_cpu,
-                "{loss:?}: {l_gpu} against {l_cpu}"
-            );
-            for (name, a, b) in [
-                ("centres", &got.centres, &want.centres),
-                ("scales", &got.scales, &want.scales),
-                ("rotations", &got.rotations, &want.rotations),
-                ("albedo", &got.albedo, &want.albedo),
-            ] {
-                let e = relative_l2(a, b);
-                eprintln!("{loss:?}: {name} relative L2 {e:.2e}");
-                assert!(b.iter().any(|&v| v != 0.0), "{name}: the gradient is seen");
-                assert!(e <= 1e-3, "{loss:?}, {name}: relative L2 {e:e}");
-            }
-        }
-    }
-
-    /// The GPU's analytic gradient against central differences of the GPU's own (f32)
-    /// loss, for every raw parameter of 12 primitives seen from 10 pairs: within 2 %
-    /// plus 1e-3 of the parameter group's largest entry (f32 round-off in the loss,
-    /// about 1e-6 of it, over steps of 2e-3, bounds what the differences resolve).
-    #[test]
-    fn the_gpu_gradient_matches_finite_differences() {
-        let Some(gpu) = crate::gpu::testing::gpu("the_gpu_gradient_matches_finite_differences") else {
-            return;
-        };
-        const STEP: f64 = 1e-3;
-        let (mut cloud, set, gain) = gpu_scene(7, 12, 10);
-        let opt = RenderOptions {
-            gain,
-            window_sigmas: 9.0,
-            sigma_sys: 0.004,
-            ..RenderOptions::default()
-        };
-        let batch: Vec<usize> = (0..set.len()).collect();
-        let loss_of = |cloud: &GaussianCloud, grads: &mut RawGrads| {
-            batch_loss_grad_gpu(
-                &gpu,
-                cloud,
-                &cloud.kernels(),
-                &slopes(cloud),
-                &set,
-                &batch,
-                &opt,
-                None,
-                grads,
-            )
-            .unwrap()
-        };
-        let mut grads = RawGrads::default();
-        let loss = loss_of(&cloud, &mut grads);
-        assert!(loss.is_finite() && loss > 0.0);
-        type Field = fn(&mut GaussianCloud) -> &mut Vec<f64>;
-        let groups: [(&str, Field, Vec<f64>); 4] = [
-            ("centres", |c| &mut c.centres, grads.centres.clone()),
-            ("scales", |c| &mut c.scales, grads.scales.clone()),
-            ("rotations", |c| &mut c.rotations, grads.rotations.clone()),
-            ("albedo", |c| &mut c.albedo, grads.albedo.clone()),
-        ];
-        let mut scratch = RawGrads::default();
-        let mut worst = 0.0f64;
-        for (name, field, analytic) in groups {
-            let top = analytic.iter().fold(0.0f64, |m, g| m.max(g.abs()));
-            assert!(top > 0.0, "{name}: the gradient is identically zero");
-            for (i, &a) in analytic.iter().enumerate() {
-                let original = field(&mut cloud)[i];
-                field(&mut cloud)[i] = original + STEP;
-                let plus = loss_of(&cloud, &mut scratch);
-                field(&mut cloud)[i] = original - STEP;
-                let minus = loss_of(&cloud, &mut scratch);
-                field(&mut cloud)[i] = original;
-                let numeric = (plus - minus) / (2.0 * STEP);
-                let tol = 0.02 * a.abs().max(numeric.abs()) + 1e-3 * top;
-                worst = worst.max((a - numeric).abs() / (a.abs().max(numeric.abs()) + 0.05 * top));
-                assert!(
-                    (a - numeric).abs() <= tol,
-                    "{name}[{i}]: analytic {a:e} vs finite difference {numeric:e} (tolerance {tol:e})"
-                );
-            }
-        }
-        eprintln!("worst relative disagreement {worst:.2e}");
     }
 }

@@ -25,7 +25,7 @@ use super::init::{Init, initial_cloud};
 use super::kernel::{Kernel, Loss, RenderOptions};
 use super::model::{GaussianCloud, MapSlopes, ModelError, Primitive, RawGrads, ScaleBounds};
 use super::optim::{AdamW, AdamWSettings, Schedule};
-use super::render::{batch_loss_grad_gpu, batch_loss_grad_with, render_set};
+use super::render::{batch_loss_grad_gpu_with, batch_loss_grad_with, render_set};
 use crate::gpu::{Gpu, GpuError};
 use crate::roi::RoiBox;
 use crate::transient::{TransientError, TransientSet};
@@ -1137,7 +1137,7 @@ impl Trainer {
             self.refresh_kernels();
             let gains = (self.gain_rounds > 0).then_some(self.pair_gains.as_slice());
             let on_gpu = self.gpu.as_ref().map(|(gpu, strict)| {
-                let loss = batch_loss_grad_gpu(
+                let loss = batch_loss_grad_gpu_with(
                     gpu,
                     &self.cloud,
                     &self.kernels,
