@@ -664,6 +664,53 @@ fn flagged_frames_and_a_count_rate_above_the_limit_suspend_the_capture() {
     assert!(!rig.emission());
 }
 
+/// An emergency off that the run meets as emission lost, with the stop request
+/// arriving as it does (the e-stop's abort, here a hair after the laser went off):
+/// the run ends aborted as asked, not held paused as a watchdog trip would leave it.
+/// The abort is made at the moment the run reads the laser off, between that reading
+/// and its decision, so the race the dashboard's e-stop once lost is met every time.
+#[test]
+fn an_emergency_off_met_as_emission_lost_ends_the_run_as_the_stop_asked() {
+    let _serial = ONE_AT_A_TIME.lock().unwrap_or_else(|p| p.into_inner());
+    let tmp = tempfile::tempdir().unwrap();
+    let (dir, rig) = prepare(tmp.path(), &plan());
+    let control = Control::new();
+    let events = EventSink::open(&dir).unwrap();
+    let laser: Arc<OnceLock<EmergencyOff>> = Arc::new(OnceLock::new());
+    let off_at: Arc<Mutex<Option<Instant>>> = Arc::default();
+    {
+        let (control, laser, off_at) = (control.clone(), laser.clone(), off_at.clone());
+        let mut aborted = false;
+        events.listen(move |e| match e {
+            RunEvent::Pair { done: 5, .. } => {
+                laser.get().unwrap().laser_off().unwrap();
+                *off_at.lock().unwrap() = Some(Instant::now());
+            }
+            RunEvent::Safety {
+                emission: false, ..
+            } if !aborted && off_at.lock().unwrap().is_some() => {
+                aborted = true;
+                control.set_requested_by("estop");
+                control.abort();
+            }
+            _ => {}
+        });
+    }
+    let run = Run::open(&dir, control, Some(events), Some(&rig)).unwrap();
+    let _ = laser.set(run.emergency_off());
+    let r = run.execute();
+    assert!(matches!(r, Err(PipelineError::Aborted(_))), "{r:?}");
+    let info = RunInfo::load(&dir).unwrap();
+    assert_eq!(info.state, RunState::Aborted);
+    assert!(!rig.emission());
+    let t = off_at.lock().unwrap().unwrap();
+    assert!(rig.emission_changes().iter().all(|c| !c.on || c.at < t));
+    assert_eq!(rig.parked(), (true, true));
+    // Nothing about a suspension reached the log: the run was stopped, not held.
+    let log = std::fs::read_to_string(dir.join("events.jsonl")).unwrap();
+    assert!(!log.contains("\"suspended\""), "{log}");
+}
+
 /// The API service on the real-time simulated instrument, its runs under `runs`.
 fn service(runs: &Path) -> Arc<periscope_daemon::service::Service> {
     let src = instrument();

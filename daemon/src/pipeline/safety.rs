@@ -89,10 +89,7 @@ impl Run {
             Err(e) if e.kind() == ErrorKind::Interrupted => {
                 // Every emergency off comes with a stop request (a signal's right after
                 // the off): give it a moment to arrive, so the run ends as it asked.
-                let refused = Instant::now();
-                while !self.control.stopping() && refused.elapsed() < STOP_REQUEST_WAIT {
-                    std::thread::sleep(Duration::from_millis(1));
-                }
+                self.await_stop_request();
                 self.checkpoint()?;
                 Err(PipelineError::Suspended {
                     reason: e.to_string(),
@@ -100,6 +97,15 @@ impl Run {
                 })
             }
             r => r.map_err(Into::into),
+        }
+    }
+
+    /// Waits (at most [`STOP_REQUEST_WAIT`]) for the stop request that comes with an
+    /// emergency off.
+    fn await_stop_request(&self) {
+        let since = Instant::now();
+        while !self.control.stopping() && since.elapsed() < STOP_REQUEST_WAIT {
+            std::thread::sleep(Duration::from_millis(1));
         }
     }
 
@@ -170,6 +176,13 @@ impl Run {
     pub(crate) fn suspend(&mut self, s: Suspension) -> Result<(), PipelineError> {
         self.devices.laser.set_emission(false)?;
         self.report_laser();
+        // Emission lost is what an emergency off looks like from here: the e-stop
+        // asks the run to abort before it switches the laser off, a signal right
+        // after. A stop asked for ends the run as it asked (aborted, not held paused).
+        if matches!(s, Suspension::EmissionLost) {
+            self.await_stop_request();
+        }
+        self.checkpoint()?;
         let reason = s.reason();
         let mode = self.plan.suspend.resume;
         tracing::warn!(reason = %reason, "suspended: laser off");
