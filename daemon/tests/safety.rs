@@ -686,9 +686,7 @@ fn an_emergency_off_met_as_emission_lost_ends_the_run_as_the_stop_asked() {
                 laser.get().unwrap().laser_off().unwrap();
                 *off_at.lock().unwrap() = Some(Instant::now());
             }
-            RunEvent::Safety {
-                emission: false, ..
-            } if !aborted && off_at.lock().unwrap().is_some() => {
+            RunEvent::Safety { emission: false, .. } if !aborted && off_at.lock().unwrap().is_some() => {
                 aborted = true;
                 control.set_requested_by("estop");
                 control.abort();

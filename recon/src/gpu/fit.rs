@@ -9,7 +9,7 @@
 //! ([`crate::gtr::Trainer`]): they are linear in the primitives and a small share of a
 //! step (docs/gpu.md).
 use super::render::{Model, Render, TILE, pair, prim, source, spread};
-use super::{Gpu, GpuError, MAX_GROUPS};
+use super::{BatchGradient, Gpu, GpuError, MAX_GROUPS};
 use crate::gtr::{Kernel, Loss, PhysicalGrad, RenderOptions};
 use crate::transient::{Pair, TimeAxis};
 
@@ -38,15 +38,6 @@ struct BackwardParams {
     prims: u32,
     pairs: u32,
     pad: [u32; 2],
-}
-
-/// A mini-batch's loss terms and gradients, as the GPU computed them.
-#[derive(Clone, Debug)]
-pub struct BatchGradient {
-    /// Each pair's weighted share of the loss, in the batch's order.
-    pub losses: Vec<f32>,
-    /// Each primitive's gradient with respect to its physical parameters.
-    pub grads: Vec<PhysicalGrad>,
 }
 
 /// The loss and gradient of one mini-batch on `gpu`: `kernels` rendered for `pairs`

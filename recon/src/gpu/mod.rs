@@ -13,15 +13,39 @@
 //! with an analytic gradient, no autodiff or tensor algebra to borrow, and wgpu is the layer those build on,
 //! maintained by the same community, with no code generation between our source and
 //! the driver.
+//!
+//! All of it is behind the crate's `gpu` feature (on by default). A build without it
+//! (the fuzz crate's) keeps this module's interface, but no GPU can be opened there:
+//! `gpu` is refused with [`GpuError::NotBuilt`] and `auto` runs on the CPU.
+#[cfg(not(feature = "gpu"))]
+mod absent;
+#[cfg(feature = "gpu")]
 mod backproject;
+#[cfg(feature = "gpu")]
 mod fit;
+#[cfg(feature = "gpu")]
 mod render;
 
 use std::sync::{Arc, OnceLock};
 
+#[cfg(not(feature = "gpu"))]
+pub use absent::{Gpu, backproject, batch_gradient, render_pairs};
+#[cfg(feature = "gpu")]
 pub use backproject::backproject;
-pub use fit::{BatchGradient, batch_gradient};
+#[cfg(feature = "gpu")]
+pub use fit::batch_gradient;
+#[cfg(feature = "gpu")]
 pub use render::render_pairs;
+
+/// A mini-batch's loss terms and gradients, as the GPU computed them
+/// ([`batch_gradient`]).
+#[derive(Clone, Debug)]
+pub struct BatchGradient {
+    /// Each pair's weighted share of the loss, in the batch's order.
+    pub losses: Vec<f32>,
+    /// Each primitive's gradient with respect to its physical parameters.
+    pub grads: Vec<crate::gtr::PhysicalGrad>,
+}
 
 /// Where the reconstruction's heavy work runs: `[compute] device` in a `RECON.toml`
 /// (`[recon.compute]` in a plan).
@@ -82,6 +106,12 @@ pub enum GpuError {
         /// wgpu's reason.
         reason: String,
     },
+    /// This build has no GPU path.
+    #[error(
+        "this build of Periscope has no GPU path (built without periscope-recon's `gpu` feature): \
+         rebuild with it, or set [compute] device = \"cpu\" or \"auto\""
+    )]
+    NotBuilt,
 }
 
 /// What a run's outputs record of the device the reconstruction ran on.
@@ -119,6 +149,7 @@ impl std::fmt::Display for DeviceInfo {
 }
 
 /// An open GPU: its device, queue and compiled pipelines.
+#[cfg(feature = "gpu")]
 pub struct Gpu {
     device: wgpu::Device,
     queue: wgpu::Queue,
@@ -133,8 +164,10 @@ pub struct Gpu {
 
 /// The most workgroups of one dispatch along an axis (WebGPU's default limit, which
 /// every adapter offers).
+#[cfg(feature = "gpu")]
 const MAX_GROUPS: usize = 65_535;
 
+#[cfg(feature = "gpu")]
 impl std::fmt::Debug for Gpu {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         f.debug_struct("Gpu").field("adapter", &self.info.name).finish()
@@ -237,6 +270,7 @@ fn shared(allow_software: bool) -> Result<Arc<Gpu>, GpuError> {
 
 /// How much an adapter is preferred: discrete over integrated over virtual over the
 /// rest; software adapters last, and only when allowed.
+#[cfg(feature = "gpu")]
 fn rank(info: &wgpu::AdapterInfo, allow_software: bool) -> Option<u8> {
     match info.device_type {
         wgpu::DeviceType::DiscreteGpu => Some(4),
@@ -247,6 +281,7 @@ fn rank(info: &wgpu::AdapterInfo, allow_software: bool) -> Option<u8> {
     }
 }
 
+#[cfg(feature = "gpu")]
 impl Gpu {
     /// Opens the most preferred adapter (discrete over integrated over virtual; software
     /// ones only when `allow_software`) with every limit it offers.

@@ -10,6 +10,7 @@ pub mod render;
 pub mod train;
 
 pub use init::Init;
+#[cfg(feature = "gpu")]
 pub(crate) use kernel::SIGMA_FLOOR_BINS;
 pub use kernel::{Kernel, Loss, PhysicalGrad, RenderOptions, render_pair};
 pub use model::{GaussianCloud, MapSlopes, ModelError, Primitive, RawGrads, ScaleBounds};
