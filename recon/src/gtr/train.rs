@@ -289,19 +289,23 @@ pub fn densify_after(done: usize, epochs: usize, d: &DensifySettings) -> bool {
 
 /// Per-transient gains: what a real relay's albedo from spot to spot, a laser's
 /// drifting power and a detector's efficiency with angle multiply each transient by,
-/// and no capture file states. Estimated jointly with the fit when asked for: after
-/// counted epochs [`GAIN_ROUNDS`] (before averaging starts), from the data and the
-/// fit's rendering ([`estimate_pair_gains`]); the gains then multiply each group's
-/// transients in the model. A laser falloff divided out from a file's metadata is the
-/// starting value.
+/// and no capture file states. Estimated jointly with the fit when asked for, on a
+/// slower time scale than the scene: after every counted epoch from [`GAIN_START`] of
+/// them to the end, the gains are estimated afresh from the data and the fit's
+/// rendering ([`estimate_pair_gains`]) and the log-gains move [`GAIN_STEP`] of the way
+/// to the estimate; the gains multiply each group's transients in the model. A laser
+/// falloff divided out from a file's metadata is the starting value.
 ///
-/// Not the default, measured (docs/recon.md, "Gains from the data"): the estimate
-/// needs the fit to be early enough that it has not yet bent the scene to explain
-/// the gains, and an early fit's own errors then pass into the gains, which the fit
-/// keeps. On captures with unknown gains it helps (confocal wall without its
-/// metadata's falloff: IoU 0.912 → 0.969; with a further 3× smooth gain 0.886 →
-/// 0.969); on captures whose gains are already right it hurts (the same wall with
-/// its falloff divided out: 0.984 → 0.827).
+/// Rounds that go on to the end let the gains give back what an early fit's own
+/// errors put into them once the scene has improved (three rounds before averaging,
+/// which the fit then kept, cost the confocal wall with its falloff known 0.984 →
+/// 0.954 IoU; rounds to the end keep 0.984, and score 0.969, 0.984 and 0.974 without
+/// the falloff, with a 3× smooth gain and with ±30 % random gains, where gains 1 score
+/// 0.925, 0.882 and 0.916; means of three seeds).
+///
+/// Not the default, measured (docs/recon.md, "Gains from the data"): on the noisy
+/// sparse capture, whose gains are right, it costs 0.010 IoU (0.957 → 0.947, three
+/// seeds), and with a fixed laser, per detection point, 0.01–0.04.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum PairGains {
@@ -316,9 +320,14 @@ pub enum PairGains {
     Detection,
 }
 
-/// When [`PairGains::Illumination`] or [`PairGains::Detection`] re-estimates the gains: after these fractions of the
-/// counted epochs (each round only before averaging starts).
-pub const GAIN_ROUNDS: [f64; 3] = [0.25, 0.4, 0.55];
+/// [`PairGains::Illumination`] and [`PairGains::Detection`] re-estimate the gains after
+/// every counted epoch from this fraction of them on: late enough that the fit has
+/// found the scene's rough shape, early enough that it has not bent the scene to
+/// explain the gains (starting at 10 % or 40 % scored no better; docs/recon.md).
+pub const GAIN_START: f64 = 0.25;
+
+/// Each round moves the log-gains this fraction of the way to the new estimate.
+pub const GAIN_STEP: f64 = 0.5;
 
 /// A gain estimate is shrunk towards the others by `s / (s + s0)` in the logarithm, `s`
 /// the signal the rendering gives its point: `s0` is this many photons for photon
@@ -363,13 +372,18 @@ pub fn gain_groups(pairs: &[crate::transient::Pair], kind: PairGains) -> Option<
 
 /// Each pair's gain in the model, estimated from the data `data` and the fit's
 /// rendering of it at unit gain (`rendered`, [`render_set`]'s layout) under `loss`, per
-/// the groups `kind` asks for ([`gain_groups`]): each group's signal in the data over
-/// the rendering's (the counts above the background for the Poisson deviance, the
-/// least-squares scale for L2); a quadratic over the relay through all groups' (in the
-/// logarithm, weighted by the signal they get, each shrunk by `s / (s + s0)` towards
-/// the others, `s0` `GAIN_PRIOR_FRACTION` of the median signal, and at least
-/// `GAIN_PRIOR_COUNTS` for photon counts) is the smooth part, and each group keeps
-/// its own departure from it by `s / (s + median)`. Normalised to a signal-weighted
+/// the groups `kind` asks for ([`gain_groups`]): each group's scale of the rendering
+/// that explains its data (for photon counts under the Poisson deviance the
+/// maximum-likelihood scale with the background, by Newton's method; otherwise the
+/// counts above the background over the rendering's, or the least-squares scale for
+/// L2); a quadratic over the relay through all groups' (in the logarithm, weighted by
+/// the signal they get, each shrunk by `s / (s + s0)` towards the others, `s0`
+/// `GAIN_PRIOR_FRACTION` of the median signal, and at least `GAIN_PRIOR_COUNTS` for
+/// photon counts) is the smooth part, and each group keeps its own departure from it
+/// by `s / (s + median)`, and for photon counts further by `τ² / (τ² + v)`: `v` its
+/// estimate's counting noise (the inverse Fisher information, in the logarithm), `τ²`
+/// the departures' spread less that noise, so that departures the counts cannot tell
+/// from noise are not taken for albedo. Normalised to a signal-weighted
 /// geometric mean of 1, within `MAX_GAIN_SPREAD` of it. `None` where there is one
 /// group or no signal.
 pub fn estimate_pair_gains(
@@ -405,6 +419,60 @@ pub fn estimate_pair_gains(
             }
         }
     }
+    // Poisson: each group's maximum-likelihood scale, by Newton's method from the
+    // ratio above (which it equals without a background): the bins the rendering
+    // reaches weigh by r/(g r + b), so the background's bins add no noise, and the
+    // Fisher information gives each estimate's noise, 1/(g² I) in the logarithm.
+    let mut noise = vec![0.0f64; n];
+    if let (Some(b), true) = (background, data.is_photon_counts()) {
+        let mut by_group: Vec<Vec<usize>> = vec![Vec::new(); n];
+        for (c, &g) in groups.iter().enumerate() {
+            by_group[g].push(c);
+        }
+        for (g, members) in by_group.iter().enumerate() {
+            let mut scale = (num[g] / den[g]).clamp(1e-3, 1e3);
+            if !scale.is_finite() || den[g] <= 0.0 {
+                continue;
+            }
+            let sums = |scale: f64| {
+                let (mut f, mut df, mut info) = (-den[g], 0.0, 0.0);
+                for &c in members {
+                    let h = data.histogram(c);
+                    for (&v, &m) in h.iter().zip(&rendered[c * bins..(c + 1) * bins]) {
+                        if m <= 0.0 {
+                            continue;
+                        }
+                        let rate = scale * m + b;
+                        let v = f64::from(v);
+                        f += m * v / rate;
+                        df -= m * m * v / (rate * rate);
+                        info += m * m / rate;
+                    }
+                }
+                (f, df, info)
+            };
+            for _ in 0..12 {
+                let (f, df, _) = sums(scale);
+                if df >= 0.0 || !f.is_finite() {
+                    break;
+                }
+                let next = scale - f / df;
+                let next = if next > 0.0 { next } else { 0.5 * scale };
+                let done = (next - scale).abs() <= 1e-6 * scale;
+                scale = next;
+                if done {
+                    break;
+                }
+            }
+            let (_, _, info) = sums(scale);
+            num[g] = scale * den[g];
+            noise[g] = if info > 0.0 {
+                1.0 / (scale * scale * info)
+            } else {
+                f64::INFINITY
+            };
+        }
+    }
     let mut sorted: Vec<f64> = signal.iter().copied().filter(|s| *s > 0.0).collect();
     sorted.sort_by(f64::total_cmp);
     let &median = sorted.get(sorted.len() / 2)?;
@@ -435,10 +503,11 @@ pub fn estimate_pair_gains(
     // over all points; each point's own departure from it (its albedo) kept as far
     // as its signal tells it, half at the median point's.
     let smooth = smooth_log_gains(&points, &raw_log, &weights);
+    let keep = departure_shrinkage(&noise, &raw, &raw_log, &smooth, &weights);
     let mut log_gain: Vec<f64> = (0..n)
         .map(|g| {
             let own = if raw[g].is_some() {
-                signal[g] / (signal[g] + median) * (raw_log[g] - smooth[g])
+                keep[g] * signal[g] / (signal[g] + median) * (raw_log[g] - smooth[g])
             } else {
                 0.0
             };
@@ -454,6 +523,42 @@ pub fn estimate_pair_gains(
             .for_each(|l| *l = (*l - mean).clamp(-limit, limit));
     }
     Some(groups.iter().map(|&g| log_gain[g].exp()).collect())
+}
+
+/// How much of each group's departure from the smooth part of the gains its photon
+/// counts can tell (empirical Bayes): the departures' spread `τ²` is their weighted
+/// variance less the counting noise's, each group's own noise `v = (S + B) / S²` in
+/// the logarithm (`S` its counts above the background, `B` the background's), and a
+/// group keeps `τ² / (τ² + v)` of its departure. All 1 for intensities (no counting
+/// noise) and for the L2 loss.
+fn departure_shrinkage(
+    noise: &[f64],
+    raw: &[Option<f64>],
+    raw_log: &[f64],
+    smooth: &[f64],
+    weights: &[f64],
+) -> Vec<f64> {
+    let n = raw.len();
+    if noise.iter().all(|v| *v == 0.0) {
+        return vec![1.0; n];
+    }
+    let (mut total, mut spread, mut counting) = (0.0, 0.0, 0.0);
+    for g in (0..n).filter(|&g| raw[g].is_some() && noise[g].is_finite()) {
+        let d = raw_log[g] - smooth[g];
+        total += weights[g];
+        spread += weights[g] * d * d;
+        counting += weights[g] * noise[g];
+    }
+    if total <= 0.0 {
+        return vec![0.0; n];
+    }
+    let tau2 = ((spread - counting) / total).max(0.0);
+    tracing::debug!(
+        tau = tau2.sqrt(),
+        noise = (counting / total).sqrt(),
+        "gain departures"
+    );
+    noise.iter().map(|v| tau2 / (tau2 + v)).collect()
 }
 
 /// The smooth part of log-gains `log_gain` at `points` (weights `w`): a quadratic in
@@ -1390,16 +1495,13 @@ impl Trainer {
     }
 
     /// Whether a round of gain estimation follows counted epoch `epochs_done` of
-    /// `epochs`: at [`GAIN_ROUNDS`], before averaging starts.
+    /// `epochs`: after every counted epoch from [`GAIN_START`] of them on.
     fn gains_due(&self, epochs: usize) -> bool {
         if self.config.pair_gains == PairGains::None || self.data.len() < 2 {
             return false;
         }
-        let averaging = self.config.average_start(epochs).unwrap_or(epochs);
-        GAIN_ROUNDS.iter().any(|f| {
-            let at = ((f * epochs as f64).round() as usize).max(1);
-            at == self.epochs_done && at < averaging
-        })
+        let start = ((GAIN_START * epochs as f64).round() as usize).max(1);
+        self.epochs_done >= start && self.epochs_done < epochs
     }
 
     /// Estimates each gain group's gain from the data and the current fit
@@ -1412,7 +1514,13 @@ impl Trainer {
         else {
             return (1.0, 1.0);
         };
-        self.pair_gains = gains;
+        if self.gain_rounds == 0 || self.pair_gains.len() != gains.len() {
+            self.pair_gains = gains.iter().map(|g| g.powf(GAIN_STEP)).collect();
+        } else {
+            for (old, new) in self.pair_gains.iter_mut().zip(&gains) {
+                *old = (old.ln() + GAIN_STEP * (new.ln() - old.ln())).exp();
+            }
+        }
         self.gain_rounds += 1;
         let (lo, hi) = self
             .pair_gains
