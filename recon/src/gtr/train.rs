@@ -527,10 +527,10 @@ pub fn estimate_pair_gains(
 
 /// How much of each group's departure from the smooth part of the gains its photon
 /// counts can tell (empirical Bayes): the departures' spread `τ²` is their weighted
-/// variance less the counting noise's, each group's own noise `v = (S + B) / S²` in
-/// the logarithm (`S` its counts above the background, `B` the background's), and a
-/// group keeps `τ² / (τ² + v)` of its departure. All 1 for intensities (no counting
-/// noise) and for the L2 loss.
+/// variance less the counting noise's, each group's own noise `v` (`noise`: the
+/// inverse Fisher information of its scale, in the logarithm), and a group keeps
+/// `τ² / (τ² + v)` of its departure. All 1 where no group has counting noise
+/// (intensities, the L2 loss).
 fn departure_shrinkage(
     noise: &[f64],
     raw: &[Option<f64>],
@@ -1504,8 +1504,10 @@ impl Trainer {
         self.epochs_done >= start && self.epochs_done < epochs
     }
 
-    /// Estimates each gain group's gain from the data and the current fit
-    /// ([`PairGains`], [`estimate_pair_gains`]); returns the smallest and largest gain.
+    /// Estimates each gain group's gain afresh from the data and the current fit
+    /// ([`PairGains`], [`estimate_pair_gains`]) and moves the log-gains [`GAIN_STEP`]
+    /// of the way to it (from 1 before the first round); returns the smallest and
+    /// largest gain.
     pub fn estimate_gains(&mut self) -> (f64, f64) {
         self.refresh_kernels();
         let rendered = render_set(&self.kernels, &self.data, &self.options);
