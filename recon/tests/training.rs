@@ -855,14 +855,9 @@ fn an_epoch_of_a_large_capture_trains_on_part_of_it() {
     assert_eq!(cfg.pairs_per_epoch(10), 10);
 }
 
-/// Gains from the data: on a confocal 12 × 12 grid, transients rendered from a known
-/// scene times known gains (a quadratic in the logarithm: a laser's falloff) come back
-/// exactly from the rendering, up to the one scale the fit's albedo carries; a point's
-/// own departure from the smooth part (its albedo) comes back in part, as far as its
-/// signal tells it; with a fixed laser there is nothing per illumination point to
-/// estimate, and per detection point there is.
-#[test]
-fn pair_gains_come_back_from_the_data_and_the_rendering() {
+/// The gain tests' scene: two blobs 0.5–0.6 m away, and a confocal 12 × 12 grid over a
+/// 1 m wall (zero transients) with its points.
+fn gain_scene() -> (GaussianCloud, TransientSet, Vec<DVec3>) {
     let mut truth = GaussianCloud::new(roi(), ScaleBounds { min: 1e-3, max: 0.1 }).unwrap();
     for c in [DVec3::new(0.05, -0.04, 0.6), DVec3::new(-0.12, 0.1, 0.5)] {
         truth
@@ -885,6 +880,18 @@ fn pair_gains_come_back_from_the_data_and_the_rendering() {
             points.push(x);
         }
     }
+    (truth, geometry, points)
+}
+
+/// Gains from the data: on a confocal 12 × 12 grid, transients rendered from a known
+/// scene times known gains (a quadratic in the logarithm: a laser's falloff) come back
+/// exactly from the rendering, up to the one scale the fit's albedo carries; a point's
+/// own departure from the smooth part (its albedo) comes back in part, as far as its
+/// signal tells it; with a fixed laser there is nothing per illumination point to
+/// estimate, and per detection point there is.
+#[test]
+fn pair_gains_come_back_from_the_data_and_the_rendering() {
+    let (truth, geometry, points) = gain_scene();
     let rendered = render_set(&truth.kernels(), &geometry, &RenderOptions::default());
     let smooth = |x: DVec3| (0.6 * x.x - 0.3 * x.y + 0.8 * x.x * x.x).exp();
     let own = |k: usize| if k % 7 == 3 { 1.3 } else { 1.0 };
@@ -948,27 +955,8 @@ fn pair_gains_come_back_from_the_data_and_the_rendering() {
 /// one); with ±30 % random gains, the estimate follows them.
 #[test]
 fn pair_gains_from_counts_take_only_what_the_counts_can_tell() {
-    let mut truth = GaussianCloud::new(roi(), ScaleBounds { min: 1e-3, max: 0.1 }).unwrap();
-    for c in [DVec3::new(0.05, -0.04, 0.6), DVec3::new(-0.12, 0.1, 0.5)] {
-        truth
-            .push(Primitive {
-                centre: c,
-                scale: DVec3::splat(0.03),
-                rotation: DQuat::IDENTITY,
-                albedo: 1.0,
-            })
-            .unwrap();
-    }
+    let (truth, geometry, _) = gain_scene();
     let bins = axis().bins;
-    let mut geometry = TransientSet::new(axis()).unwrap();
-    for i in 0..12 {
-        for j in 0..12 {
-            let x = DVec3::new(-0.5 + i as f64 / 11.0, -0.5 + j as f64 / 11.0, 0.0);
-            geometry
-                .push(Pair::confocal(x, DVec3::Z), &vec![0.0; bins])
-                .unwrap();
-        }
-    }
     let rendered = render_set(&truth.kernels(), &geometry, &RenderOptions::default());
     let n = geometry.len();
     let mean_total = rendered.iter().sum::<f64>() / n as f64;
