@@ -8,6 +8,9 @@
 //!   solver: cube, resampling, FFTs, Wiener filter, inverse; not the world-grid
 //!   resampling);
 //! - [fbp] FBP of 8,000 arbitrary pairs on a curved relay into a 128 × 128 × 64 volume;
+//! - [fbp_hierarchical, fbp_one_laser, fbp_one_laser_hierarchical] the same pairs
+//!   through the hierarchical backprojection at its default path error, and 8,000 pairs
+//!   lit at one point (the two-torso kind) exactly and through the hierarchy;
 //! - [fbp_grid] FBP of a 64 × 64 × 512 confocal scan on a level grid of half the voxel
 //!   pitch into 32 × 32 × 81 (the 3D-GTR virtual scan of a 1 m validation capture,
 //!   which takes FBP's grid path);
@@ -35,7 +38,9 @@ use support::{LastSample, bench_gpu, peak_rss_mib, peak_share};
 use glam::{DMat3, DQuat, DVec3};
 use periscope_recon::gtr::{Kernel, RenderOptions};
 use periscope_recon::relay::{VirtualRelay, estimate_normals};
-use periscope_recon::solver::{FbpSettings, LctSettings, PlanarScan, fbp, fbp_on, lct_frame};
+use periscope_recon::solver::{
+    FbpBackprojection, FbpSettings, LctSettings, PlanarScan, fbp, fbp_on, lct_frame,
+};
 use periscope_recon::synth::{synthesise, synthesise_on};
 use periscope_recon::{Pair, TimeAxis, TransientSet, VolumeGrid};
 use rand::{Rng, SeedableRng};
@@ -112,6 +117,26 @@ fn solvers(c: &mut Criterion) {
     let fbp_last = LastSample::default();
     group.bench_function("fbp", |b| {
         b.iter_custom(|iters| fbp_last.time(iters, || fbp(&set, &grid, &FbpSettings::default()).unwrap()))
+    });
+    let hierarchical = FbpSettings {
+        backprojection: FbpBackprojection::Hierarchical,
+        ..FbpSettings::default()
+    };
+    group.bench_function("fbp_hierarchical", |b| {
+        b.iter(|| fbp(&set, &grid, &hierarchical).unwrap())
+    });
+    let mut one_laser = TransientSet::new(axis).unwrap();
+    let (xi, ni) = curved(-0.3, 0.1);
+    for _ in 0..8000 {
+        let (xd, nd) = curved(rng.random_range(-0.5..0.5), rng.random_range(-0.5..0.5));
+        h.iter_mut().for_each(|v| *v = rng.random::<f32>());
+        one_laser.push(Pair { xi, ni, xd, nd }, &h).unwrap();
+    }
+    group.bench_function("fbp_one_laser", |b| {
+        b.iter(|| fbp(&one_laser, &grid, &FbpSettings::default()).unwrap())
+    });
+    group.bench_function("fbp_one_laser_hierarchical", |b| {
+        b.iter(|| fbp(&one_laser, &grid, &hierarchical).unwrap())
     });
     let gpu = bench_gpu();
     if let Some(gpu) = &gpu {

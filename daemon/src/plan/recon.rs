@@ -621,6 +621,19 @@ mod tests {
         let src = TomlSource::from_text("recon.toml", "method = \"fbp\"\n[fbp]\nfalloff = 9.0\n");
         let e = load_recon(&src, Some(volume())).unwrap_err().to_string();
         assert!(e.contains("fbp.falloff") && e.contains("between 0 and 4"), "{e}");
+        // The hierarchical backprojection and its bound.
+        let src = TomlSource::from_text(
+            "recon.toml",
+            "method = \"fbp\"\n[fbp]\nbackprojection = \"hierarchical\"\npath-error = 0.125\n",
+        );
+        let s = load_recon(&src, Some(volume())).unwrap();
+        assert_eq!(
+            (s.solvers.fbp.backprojection, s.solvers.fbp.path_error),
+            (periscope_recon::solver::FbpBackprojection::Hierarchical, 0.125)
+        );
+        let src = TomlSource::from_text("recon.toml", "method = \"fbp\"\n[fbp]\npath-error = 0.9\n");
+        let e = load_recon(&src, Some(volume())).unwrap_err().to_string();
+        assert!(e.contains("path-error") && e.contains("0.5 wavelengths"), "{e}");
         // f-k migration, as a method and as the solver after 3D-GTR, with its table.
         let src = TomlSource::from_text(
             "recon.toml",

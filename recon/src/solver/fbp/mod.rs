@@ -43,6 +43,7 @@ use crate::transient::TransientSet;
 use crate::volume::{Volume, VolumeGrid};
 
 mod grid;
+mod tree;
 
 /// Pairs whose histograms are swept together over a slice (32 pairs of 512 bins, two
 /// channels, each bin with the next: 32 × 8 KiB fits in L2).
@@ -60,6 +61,27 @@ pub enum FbpFilter {
     /// after (the phasor-field virtual wave).
     Phasor,
 }
+
+/// How the pairs reach the voxels.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum FbpBackprojection {
+    /// Every voxel reads every pair's histogram at its own path length: the reference.
+    #[default]
+    Exact,
+    /// On each small box of the volume, the pairs whose path lengths change alike
+    /// across it, to within [`FbpSettings::path_error`], merged into one before they
+    /// are backprojected (fast factorised backprojection's idea; the phasor filter
+    /// only; docs/recon.md, "A hierarchical backprojection").
+    Hierarchical,
+}
+
+/// The hierarchical backprojection's default bound on a merged pair's path-length
+/// error, in phasor wavelengths: at most a quarter-turn of phase for the worst member.
+/// On 8,000 pairs lit at one point into 128 × 128 × 64 voxels it ran 4.9 times faster
+/// than the exact path at a relative L2 of 0.049 from it; at 1/8, 1.3 times at 0.022
+/// (docs/recon.md, "A hierarchical backprojection").
+pub const PATH_ERROR_WAVELENGTHS: f64 = 0.25;
 
 /// The phasor wavelength per sampling pitch: y-tal's published settings (0.08 m for a
 /// 3.1 cm grid, 0.15 m for 300 points on 1 m², i.e. 5.8 cm apart) are 2.5–2.6 pitches.
@@ -110,6 +132,14 @@ pub struct FbpSettings {
     /// grid, Voronoi cells of scattered or perforated samples); `false`: every pair
     /// alike.
     pub relay_weights: bool,
+    /// How the pairs reach the voxels; `hierarchical` needs the phasor filter. A
+    /// confocal scan on a grid that fits the voxels, and a GPU, take their own exact
+    /// paths either way.
+    pub backprojection: FbpBackprojection,
+    /// The hierarchical backprojection's bound on the path-length error a merge may
+    /// leave at any voxel, in phasor wavelengths ([`PATH_ERROR_WAVELENGTHS`]: a
+    /// quarter).
+    pub path_error: f64,
 }
 
 impl Default for FbpSettings {
@@ -120,6 +150,8 @@ impl Default for FbpSettings {
             wavelength: None,
             sigma_per_wavelength: None,
             relay_weights: true,
+            backprojection: FbpBackprojection::Exact,
+            path_error: PATH_ERROR_WAVELENGTHS,
         }
     }
 }
@@ -150,6 +182,20 @@ impl FbpSettings {
                 name: "sigma-per-wavelength",
                 value: s.to_string(),
                 expected: "between 0.05 and 10",
+            });
+        }
+        if !(self.path_error.is_finite() && self.path_error > 0.0 && self.path_error <= 0.5) {
+            return Err(SolverError::Setting {
+                name: "path-error",
+                value: self.path_error.to_string(),
+                expected: "between 0 and 0.5 wavelengths (above 0)",
+            });
+        }
+        if self.backprojection == FbpBackprojection::Hierarchical && self.filter != FbpFilter::Phasor {
+            return Err(SolverError::Setting {
+                name: "backprojection",
+                value: "hierarchical".into(),
+                expected: "\"exact\" unless filter = \"phasor\" (the hierarchy bounds its error in phasor wavelengths)",
             });
         }
         Ok(())
@@ -365,7 +411,28 @@ pub fn fbp_on(
                 filter.apply(&h)
             })
             .collect();
-        let sums = backproject::<2, 4>(set, grid, settings.falloff, hists, lead, compute)?;
+        let mut hierarchical = settings.backprojection == FbpBackprojection::Hierarchical;
+        if hierarchical && (compute.gpu().is_some() || grid::ConfocalGrid::detect(set, grid).is_some()) {
+            tracing::info!(
+                "FBP takes its exact path despite [fbp] backprojection = \"hierarchical\": on a GPU, or for a confocal grid that fits the voxels, the exact path has its own fast form"
+            );
+            hierarchical = false;
+        }
+        let sums = if hierarchical {
+            let tolerance = settings.path_error * lambda;
+            let (sums, stats) =
+                tree::backproject_tree(set, grid, settings.falloff, hists, lead, lambda, tolerance);
+            tracing::info!(
+                pairs = set.len(),
+                leaves = stats.leaves,
+                sources_per_leaf = stats.leaf_sources as f64 / stats.leaves.max(1) as f64,
+                path_error_m = tolerance,
+                "FBP backprojected through the hierarchy ([fbp] backprojection = \"exact\" reads every pair at every voxel)"
+            );
+            sums
+        } else {
+            backproject::<2, 4>(set, grid, settings.falloff, hists, lead, compute)?
+        };
         let data = sums.iter().map(|[a, b]| a.hypot(*b)).collect();
         return Ok(Volume { grid: *grid, data });
     }
