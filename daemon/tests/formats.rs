@@ -39,7 +39,9 @@ fn every_public_format_reconstructs_its_point_where_it_is() {
 fn peak_error(fixture: &Path, method: &str, target: [f64; 3]) -> (f64, f64) {
     let dir = tempfile::tempdir().unwrap();
     let config = dir.path().join("recon.toml");
-    std::fs::write(&config, format!("method = \"{method}\"\n")).unwrap();
+    // What is checked is where each format puts the scene, not how sharp the fit gets:
+    // 16 epochs (a fixture of 64 pairs would otherwise take the 8,192-step floor).
+    std::fs::write(&config, format!("method = \"{method}\"\n[gtr]\nepochs = 16\n")).unwrap();
     let out = dir.path().join("out");
     let status = std::process::Command::new(env!("CARGO_BIN_EXE_periscope"))
         .arg("recon")
