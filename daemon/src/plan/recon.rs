@@ -654,8 +654,12 @@ mod tests {
         // No table: the phasor filter, and FBP after 3D-GTR.
         let d = default_recon(volume());
         assert_eq!(
-            (d.solvers.fbp.filter, d.solver),
-            (FbpFilter::Phasor, SolverKind::Fbp)
+            (d.solvers.fbp.filter, d.solvers.fbp.backprojection, d.solver),
+            (
+                FbpFilter::Phasor,
+                periscope_recon::solver::FbpBackprojection::Auto,
+                SolverKind::Fbp
+            )
         );
     }
 

@@ -17,8 +17,9 @@ mod rsd;
 mod scan;
 
 pub use fbp::{
-    FbpBackprojection, FbpFilter, FbpSettings, PATH_ERROR_WAVELENGTHS, PHASOR_PITCHES, SIGMA_PER_WAVELENGTH,
-    VIRTUAL_SCAN_SIGMA_PER_WAVELENGTH, fbp, fbp_on, lateral_voxel_pitch, phasor_wavelength, sampling_pitch,
+    AUTO_MAX_FRACTION, FbpBackprojection, FbpFilter, FbpSettings, PATH_ERROR_WAVELENGTHS, PHASOR_PITCHES,
+    SIGMA_PER_WAVELENGTH, VIRTUAL_SCAN_SIGMA_PER_WAVELENGTH, fbp, fbp_on, lateral_voxel_pitch,
+    phasor_wavelength, sampling_pitch,
 };
 pub use fk::{FkSettings, fk, fk_frame};
 pub use frame::FrameVolume;
