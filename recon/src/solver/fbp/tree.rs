@@ -193,6 +193,29 @@ pub(super) struct TreeStats {
     pub leaves: usize,
 }
 
+impl<'a> Tree<'a> {
+    /// The recursion over `grid` for histograms on `axis` with `lead` bins of padding,
+    /// a phasor `wavelength` and merges within `tolerance` metres of path length.
+    fn new(
+        grid: &'a VolumeGrid,
+        axis: &TimeAxis,
+        lead: usize,
+        falloff: f64,
+        wavelength: f64,
+        tolerance: f64,
+    ) -> Self {
+        Tree {
+            grid,
+            axis: *axis,
+            lead,
+            falloff,
+            phase_per_bin: 2.0 * std::f64::consts::PI * axis.width / wavelength,
+            tolerance,
+            shape: leaf_shape(grid, wavelength),
+        }
+    }
+}
+
 impl Tree<'_> {
     /// The global fractional bin index of path length `l`: bin `j` of a filtered
     /// histogram (with its `lead` bins of padding) is centred at
@@ -634,15 +657,7 @@ pub(super) fn backproject_tree(
             im,
         })
         .collect();
-    let tree = Tree {
-        grid,
-        axis: *set.axis(),
-        lead,
-        falloff,
-        phase_per_bin: 2.0 * std::f64::consts::PI * set.axis().width / wavelength,
-        tolerance,
-        shape: leaf_shape(grid, wavelength),
-    };
+    let tree = Tree::new(grid, set.axis(), lead, falloff, wavelength, tolerance);
     let root = Block {
         lo: [0; 3],
         hi: grid.shape,
@@ -676,8 +691,8 @@ pub(super) fn backproject_tree(
 const SAMPLE_LEAVES: usize = 16;
 
 /// The share of the pairs a leaf would still backproject after its merges, the mean
-/// over up to [`SAMPLE_LEAVES`] leaves spread evenly through the volume (the leaves in
-/// the recursion's order, every n-th). Planning reads no histogram, so this costs
+/// over up to [`SAMPLE_LEAVES`] leaves spread evenly through the volume (every n-th
+/// leaf of a depth-first walk). Planning reads no histogram, so this costs
 /// about a thousandth of the backprojection it decides on.
 pub(super) fn merged_fraction(set: &TransientSet, grid: &VolumeGrid, wavelength: f64, tolerance: f64) -> f64 {
     if set.is_empty() {
@@ -695,15 +710,8 @@ pub(super) fn merged_fraction(set: &TransientSet, grid: &VolumeGrid, wavelength:
             im: &[],
         })
         .collect();
-    let tree = Tree {
-        grid,
-        axis: *set.axis(),
-        lead: 0,
-        falloff: 1.0,
-        phase_per_bin: 2.0 * std::f64::consts::PI * set.axis().width / wavelength,
-        tolerance,
-        shape: leaf_shape(grid, wavelength),
-    };
+    // Planning reads neither the padding nor the falloff's exponent.
+    let tree = Tree::new(grid, set.axis(), 0, 1.0, wavelength, tolerance);
     let mut leaves = Vec::new();
     let mut open = vec![Block {
         lo: [0; 3],
