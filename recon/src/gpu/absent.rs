@@ -3,7 +3,7 @@
 //! keep the callers' code the same in both builds.
 use std::convert::Infallible;
 
-use super::{BatchGradient, DeviceInfo, GpuError};
+use super::{BatchGradient, DeviceInfo, GpuError, Optimiser, Resident, Step, Steps};
 use crate::gtr::{Kernel, RenderOptions};
 use crate::transient::{Pair, TimeAxis};
 use crate::volume::VolumeGrid;
@@ -67,5 +67,21 @@ pub fn backproject(
     _: usize,
     _: f64,
 ) -> Result<Vec<f32>, GpuError> {
+    match gpu.never {}
+}
+
+/// The GPU build's `fit_steps`.
+#[allow(clippy::too_many_arguments)]
+pub fn fit_steps(
+    gpu: &Gpu,
+    _: &[Kernel],
+    _: &mut Resident,
+    _: &Optimiser,
+    _: usize,
+    _: &mut dyn FnMut(usize) -> Step,
+    _: &TimeAxis,
+    _: &RenderOptions,
+    _: &dyn Fn() -> bool,
+) -> Result<Steps, GpuError> {
     match gpu.never {}
 }

@@ -3,13 +3,15 @@
 //! still fills the GPU, and `reduce.wgsl`), its residuals and loss (`residual.wgsl`)
 //! and the analytic backward pass (`backward.wgsl`), recorded in one submission with
 //! one readback: each primitive's gradient with respect to its physical parameters,
-//! and each pair's loss.
+//! and each pair's loss ([`batch_gradient`]).
 //!
-//! The parameter maps' chain rule and AdamW stay on the CPU
-//! ([`crate::gtr::Trainer`]): they are linear in the primitives and a small share of a
-//! step (docs/gpu.md).
+//! The fit itself ([`fit_steps`], what [`crate::gtr::Trainer`] runs on a GPU) keeps
+//! the parameters there from step to step: after each step's backward pass,
+//! `update.wgsl` chains the gradient through the parameter maps, takes the AdamW step
+//! and writes the primitives the next step renders, so a run of steps needs no
+//! transfer but the mini-batches in and their losses out.
 use super::render::{Model, Render, TILE, pair, prim, source, spread};
-use super::{BatchGradient, Gpu, GpuError, MAX_GROUPS};
+use super::{BatchGradient, Gpu, GpuError, MAX_GROUPS, Optimiser, RAW, Resident, Step, Steps};
 use crate::gtr::{Kernel, Loss, PhysicalGrad, RenderOptions};
 use crate::transient::{Pair, TimeAxis};
 
@@ -63,57 +65,111 @@ pub fn batch_gradient(
             grads: vec![PhysicalGrad::default(); k],
         });
     }
-    let what = "fitting the primitives";
-    let too_large = |reason: String| GpuError::Run {
-        adapter: gpu.info.name.clone(),
-        what,
-        reason,
-    };
-    let batch_bytes = (4 * b * bins) as u64;
-    if b > MAX_GROUPS || batch_bytes > gpu.max_binding() {
-        return Err(too_large(format!(
-            "a mini-batch of {b} pairs × {bins} bins is more than one dispatch holds; lower [gtr] batch-size"
-        )));
-    }
-    // Groups of primitives for the forward render: enough workgroups in all, each
-    // group at least one tile, and the partial transients within one binding.
-    let tiles = k.div_ceil(TILE).max(1);
-    let fit = (gpu.max_binding() / batch_bytes).max(1) as usize;
-    let groups = MIN_WORKGROUPS
-        .div_ceil(b)
-        .clamp(1, tiles)
-        .min(fit)
-        .min(MAX_GROUPS);
-    gpu.scoped(what, || {
+    check_batch(gpu, b, bins)?;
+    gpu.scoped(WHAT, || {
         let prims: Vec<[[f32; 4]; 5]> = kernels.iter().map(prim).collect();
-        let geometry: Vec<[[f32; 4]; 4]> = pairs.iter().map(pair).collect();
         let prims = gpu.upload("primitives", &prims);
-        let geometry = gpu.upload("pairs", &geometry);
-        let data = gpu.upload("measured transients", data);
-        let weights = gpu.upload("pair weights", weights);
-        let model = Model::new(axis, opt);
-        let rendered = gpu.output("rendered transients", groups * b * bins);
-        let dl = gpu.output("residuals", b * bins);
-        let result = gpu.output("gradients and losses", 16 * k + b);
+        let batch = Batch::upload(gpu, pairs, data, weights, k, bins);
         let mut encoder = gpu.device.create_command_encoder(&Default::default());
+        batch.record(gpu, &mut encoder, &prims, k, Model::new(axis, opt), opt.loss);
+        let out = gpu.finish(WHAT, encoder, &batch.result, 16 * k + b)?;
+        let grads = out[..16 * k].chunks_exact(16).map(physical).collect();
+        Ok(BatchGradient {
+            losses: out[16 * k..].to_vec(),
+            grads,
+        })
+    })
+}
+
+/// What a fit's GPU work is called in its errors.
+const WHAT: &str = "fitting the primitives";
+
+/// A mini-batch of `b` pairs × `bins` bins fits one dispatch and one binding, or the
+/// error says to lower `[gtr] batch-size`.
+fn check_batch(gpu: &Gpu, b: usize, bins: usize) -> Result<(), GpuError> {
+    if b > MAX_GROUPS || (4 * b * bins) as u64 > gpu.max_binding() {
+        return Err(GpuError::Run {
+            adapter: gpu.info.name.clone(),
+            what: WHAT,
+            reason: format!(
+                "a mini-batch of {b} pairs × {bins} bins is more than one dispatch holds; lower [gtr] batch-size"
+            ),
+        });
+    }
+    Ok(())
+}
+
+/// One mini-batch on the GPU: its pairs, measured histograms and weights, and the
+/// buffers its step writes (the groups' partial transients, the residuals, and each
+/// primitive's 16 gradient values followed by each pair's loss).
+struct Batch {
+    pairs: usize,
+    /// Groups the primitives are split into for the forward render.
+    groups: usize,
+    geometry: wgpu::Buffer,
+    data: wgpu::Buffer,
+    weights: wgpu::Buffer,
+    rendered: wgpu::Buffer,
+    dl: wgpu::Buffer,
+    result: wgpu::Buffer,
+}
+
+impl Batch {
+    /// The batch of `pairs` ([`batch_gradient`]'s arguments) for `k` primitives.
+    fn upload(gpu: &Gpu, pairs: &[Pair], data: &[f32], weights: &[[f32; 2]], k: usize, bins: usize) -> Self {
+        let b = pairs.len();
+        // Groups of primitives for the forward render: enough workgroups in all, each
+        // group at least one tile, and the partial transients within one binding.
+        let tiles = k.div_ceil(TILE).max(1);
+        let fit = (gpu.max_binding() / (4 * b * bins) as u64).max(1) as usize;
+        let groups = MIN_WORKGROUPS
+            .div_ceil(b)
+            .clamp(1, tiles)
+            .min(fit)
+            .min(MAX_GROUPS);
+        let geometry: Vec<[[f32; 4]; 4]> = pairs.iter().map(pair).collect();
+        Batch {
+            pairs: b,
+            groups,
+            geometry: gpu.upload("pairs", &geometry),
+            data: gpu.upload("measured transients", data),
+            weights: gpu.upload("pair weights", weights),
+            rendered: gpu.output("rendered transients", groups * b * bins),
+            dl: gpu.output("residuals", b * bins),
+            result: gpu.output("gradients and losses", 16 * k + b),
+        }
+    }
+
+    /// Records the batch's forward render of the `k` primitives `prims`, its residuals
+    /// and loss under `loss`, and the analytic backward pass into `result`.
+    fn record(
+        &self,
+        gpu: &Gpu,
+        encoder: &mut wgpu::CommandEncoder,
+        prims: &wgpu::Buffer,
+        k: usize,
+        model: Model,
+        loss: Loss,
+    ) {
+        let b = self.pairs;
         Render {
-            prims: &prims,
+            prims,
             count: k,
-            pairs: &geometry,
-            target: &rendered,
+            pairs: &self.geometry,
+            target: &self.rendered,
             model,
         }
-        .record(gpu, &mut encoder, 0, b, groups);
+        .record(gpu, encoder, 0, b, self.groups);
 
         let residual = gpu
             .residual
             .get_or_init(|| gpu.pipeline("residual", include_str!("residual.wgsl")));
-        let (loss, background) = match opt.loss {
+        let (loss, background) = match loss {
             Loss::L2 => (0, 0.0),
             Loss::Poisson { background } => (1, background as f32),
         };
         let params = ResidualParams {
-            bins: bins as u32,
+            bins: model.bins(),
             loss,
             loss_at: (16 * k) as u32,
             pad0: 0,
@@ -122,9 +178,16 @@ pub fn batch_gradient(
         };
         let uniform = gpu.uniform("residual parameters", &params);
         gpu.dispatch(
-            &mut encoder,
+            encoder,
             residual,
-            &[&uniform, &rendered, &data, &weights, &dl, &result],
+            &[
+                &uniform,
+                &self.rendered,
+                &self.data,
+                &self.weights,
+                &self.dl,
+                &self.result,
+            ],
             [b as u32, 1, 1],
         );
 
@@ -140,20 +203,166 @@ pub fn batch_gradient(
             };
             let uniform = gpu.uniform("backward parameters", &params);
             gpu.dispatch(
-                &mut encoder,
+                encoder,
                 backward,
-                &[&uniform, &prims, &geometry, &dl, &result],
+                &[&uniform, prims, &self.geometry, &self.dl, &self.result],
                 spread(k.div_ceil(BACKWARD_THREADS)),
             );
         }
-        let out = gpu.finish(what, encoder, &result, 16 * k + b)?;
-        let grads = out[..16 * k].chunks_exact(16).map(physical).collect();
-        Ok(BatchGradient {
-            losses: out[16 * k..].to_vec(),
-            grads,
-        })
+    }
+}
+
+#[repr(C)]
+#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+struct UpdateParams {
+    centre: [f32; 4],
+    half: [f32; 4],
+    lr: [f32; 4],
+    decay: [f32; 4],
+    beta1: f32,
+    beta2: f32,
+    bias1: f32,
+    bias2: f32,
+    eps: f32,
+    mean_weight: f32,
+    prims: u32,
+    pad: u32,
+}
+
+/// Steps a submission records: the fit checks `stop` and reads the losses back
+/// between submissions.
+const STEPS_PER_SUBMISSION: usize = 32;
+
+/// Runs `count` optimiser steps of the fit on `gpu` with the parameters resident
+/// there: each step's mini-batch forward render, residuals and backward pass (as
+/// [`batch_gradient`]), then `update.wgsl`'s chain rule through the parameter maps,
+/// AdamW update, rotation renormalisation and running mean, which also writes the
+/// primitives the next step renders. `kernels` are the primitives of `state.raw`
+/// (what the first step renders); `step(i)` gives step i's batch. Nothing comes back
+/// between steps but each batch's loss, 32 steps to a submission; `state` is read
+/// back at the end. When `stop()` turns true between submissions, the steps end
+/// there: the losses say how many were taken, and `state` holds the parameters after
+/// them.
+#[allow(clippy::too_many_arguments)]
+pub fn fit_steps(
+    gpu: &Gpu,
+    kernels: &[Kernel],
+    state: &mut Resident,
+    optimiser: &Optimiser,
+    count: usize,
+    step: &mut dyn FnMut(usize) -> Step,
+    axis: &TimeAxis,
+    opt: &RenderOptions,
+    stop: &dyn Fn() -> bool,
+) -> Result<Steps, GpuError> {
+    let (k, bins) = (kernels.len(), axis.bins);
+    assert_eq!(state.raw.len(), RAW * k, "{RAW} raw parameters a primitive");
+    assert_eq!(state.m1.len(), RAW * k, "a first moment a parameter");
+    assert_eq!(state.m2.len(), RAW * k, "a second moment a parameter");
+    if let Some(mean) = &state.mean {
+        assert_eq!(mean.len(), RAW * k, "a mean a parameter");
+    }
+    gpu.scoped(WHAT, || {
+        let prims: Vec<[[f32; 4]; 5]> = kernels.iter().map(prim).collect();
+        let prims = gpu.upload("primitives", &prims);
+        let raw = gpu.upload("raw parameters", &state.raw);
+        let m1 = gpu.upload("first moments", &state.m1);
+        let m2 = gpu.upload("second moments", &state.m2);
+        let mean = gpu.upload("running mean", state.mean.as_deref().unwrap_or(&[]));
+        let skipped = gpu.upload("skipped entries", &[0u32; 4]);
+        let update = gpu
+            .update
+            .get_or_init(|| gpu.pipeline("update", &source(include_str!("update.wgsl"))));
+        let model = Model::new(axis, opt);
+        let o = optimiser;
+        let v4 = |v: glam::DVec3, w: f64| [v.x as f32, v.y as f32, v.z as f32, w as f32];
+        let mut losses = Vec::with_capacity(count);
+        while losses.len() < count && !stop() {
+            let first = losses.len();
+            let n = STEPS_PER_SUBMISSION.min(count - first);
+            let mut encoder = gpu.device.create_command_encoder(&Default::default());
+            let mut ends = Vec::with_capacity(n);
+            let mut batches = Vec::with_capacity(n);
+            for i in first..first + n {
+                let s = step(i);
+                let b = s.pairs.len();
+                assert!(b > 0, "a step has pairs");
+                assert_eq!(s.data.len(), b * bins, "one histogram a pair");
+                assert_eq!(s.weights.len(), b, "one weight a pair");
+                check_batch(gpu, b, bins)?;
+                let batch = Batch::upload(gpu, &s.pairs, &s.data, &s.weights, k, bins);
+                batch.record(gpu, &mut encoder, &prims, k, model, opt.loss);
+                if k > 0 {
+                    let t = s.t.min(i32::MAX as u64) as i32;
+                    let params = UpdateParams {
+                        centre: v4(o.centre, o.log_min),
+                        half: v4(o.half, o.log_span),
+                        lr: o.lr.map(|lr| (lr * s.factor) as f32),
+                        decay: o.decay.map(|d| d as f32),
+                        beta1: o.beta1 as f32,
+                        beta2: o.beta2 as f32,
+                        bias1: (1.0 - o.beta1.powi(t)) as f32,
+                        bias2: (1.0 - o.beta2.powi(t)) as f32,
+                        eps: o.eps as f32,
+                        mean_weight: s.mean_of.map_or(0.0, |n| 1.0 / n.max(1) as f32),
+                        prims: k as u32,
+                        pad: 0,
+                    };
+                    let uniform = gpu.uniform("update parameters", &params);
+                    gpu.dispatch(
+                        &mut encoder,
+                        update,
+                        &[&uniform, &batch.result, &raw, &m1, &m2, &mean, &prims, &skipped],
+                        spread(k.div_ceil(UPDATE_THREADS)),
+                    );
+                }
+                ends.push(b);
+                batches.push(batch);
+            }
+            // Each step's losses, gathered for one readback.
+            let total: usize = ends.iter().sum();
+            let gathered = gpu.device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some("step losses"),
+                size: (total.max(4) * 4) as u64,
+                usage: wgpu::BufferUsages::STORAGE
+                    | wgpu::BufferUsages::COPY_SRC
+                    | wgpu::BufferUsages::COPY_DST,
+                mapped_at_creation: false,
+            });
+            let mut at = 0;
+            for batch in &batches {
+                let b = batch.pairs as u64;
+                encoder.copy_buffer_to_buffer(&batch.result, (64 * k) as u64, &gathered, at, 4 * b);
+                at += 4 * b;
+            }
+            let out = gpu.finish(WHAT, encoder, &gathered, total)?;
+            let mut at = 0;
+            for b in ends {
+                losses.push(out[at..at + b].iter().map(|&l| f64::from(l)).sum());
+                at += b;
+            }
+        }
+        let read = |buffer: &wgpu::Buffer, len: usize| {
+            gpu.finish(
+                WHAT,
+                gpu.device.create_command_encoder(&Default::default()),
+                buffer,
+                len,
+            )
+        };
+        state.raw = read(&raw, RAW * k)?;
+        state.m1 = read(&m1, RAW * k)?;
+        state.m2 = read(&m2, RAW * k)?;
+        if state.mean.is_some() {
+            state.mean = Some(read(&mean, RAW * k)?);
+        }
+        let skipped = u64::from(read(&skipped, 1)?[0].to_bits());
+        Ok(Steps { losses, skipped })
     })
 }
+
+/// Threads of an update workgroup (one primitive each).
+const UPDATE_THREADS: usize = 64;
 
 /// A primitive's 16 gradient values as `backward.wgsl` writes them.
 fn physical(v: &[f32]) -> PhysicalGrad {
@@ -164,5 +373,215 @@ fn physical(v: &[f32]) -> PhysicalGrad {
         r: glam::DMat3::from_cols(v3(3), v3(6), v3(9)),
         s: v3(12),
         rho: d(15),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use glam::{DQuat, DVec3};
+    use rand::{Rng, SeedableRng};
+
+    use super::*;
+    use crate::gpu::testing;
+    use crate::gtr::{
+        AdamW, AdamWSettings, GaussianCloud, GroupSettings, Primitive, RawGrads, ScaleBounds,
+        batch_loss_grad, render_set,
+    };
+    use crate::roi::RoiBox;
+    use crate::transient::TransientSet;
+
+    /// 200 primitives of every size and orientation, 12 non-confocal and confocal
+    /// pairs, and "measurements" that are a distorted copy of their render (peak about
+    /// 1), so every parameter has a gradient.
+    fn scene() -> (GaussianCloud, TransientSet, RenderOptions) {
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(11);
+        let roi = RoiBox::from_bounds(DVec3::new(-0.4, -0.4, 0.3), DVec3::new(0.4, 0.4, 0.9)).unwrap();
+        let mut cloud = GaussianCloud::new(roi, ScaleBounds { min: 2e-3, max: 0.2 }).unwrap();
+        for _ in 0..200 {
+            let axis = DVec3::new(
+                rng.random_range(-1.0..1.0),
+                rng.random_range(-1.0..1.0),
+                rng.random_range(0.1..1.0),
+            )
+            .normalize();
+            cloud
+                .push(Primitive {
+                    centre: DVec3::new(
+                        rng.random_range(-0.35..0.35),
+                        rng.random_range(-0.35..0.35),
+                        rng.random_range(0.35..0.85),
+                    ),
+                    scale: DVec3::new(
+                        rng.random_range(0.004..0.06),
+                        rng.random_range(0.004..0.06),
+                        rng.random_range(0.004..0.06),
+                    ),
+                    rotation: DQuat::from_axis_angle(axis, rng.random_range(0.0..3.0)),
+                    albedo: rng.random_range(0.2..2.0),
+                })
+                .unwrap();
+        }
+        let axis = TimeAxis {
+            start: 0.4,
+            width: 0.01,
+            bins: 260,
+        };
+        let mut geometry = TransientSet::new(axis).unwrap();
+        for i in 0..12 {
+            let mut point = || DVec3::new(rng.random_range(-0.5..0.5), rng.random_range(-0.5..0.5), 0.0);
+            let (xi, xd) = (point(), point());
+            let pair = if i % 3 == 0 {
+                Pair::confocal(xi, DVec3::Z)
+            } else {
+                Pair {
+                    xi,
+                    ni: DVec3::Z,
+                    xd,
+                    nd: DVec3::Z,
+                }
+            };
+            geometry.push(pair, &vec![0.0; axis.bins]).unwrap();
+        }
+        let opt = RenderOptions {
+            sigma_sys: 0.004,
+            ..RenderOptions::default()
+        };
+        let rendered = render_set(&cloud.kernels(), &geometry, &opt);
+        let gain = 1.0 / rendered.iter().fold(0.0f64, |m, &v| m.max(v));
+        let mut set = TransientSet::new(axis).unwrap();
+        for (i, pair) in geometry.pairs().iter().enumerate() {
+            let hist: Vec<f32> = rendered[i * axis.bins..(i + 1) * axis.bins]
+                .iter()
+                .map(|&v| (gain * v * rng.random_range(0.3..1.5) + rng.random_range(0.0..0.05)) as f32)
+                .collect();
+            set.push(*pair, &hist).unwrap();
+        }
+        (cloud, set, RenderOptions { gain, ..opt })
+    }
+
+    /// Relative L2 distance of `got` from `want`.
+    fn relative_l2(got: &[f64], want: &[f64]) -> f64 {
+        let num: f64 = got.iter().zip(want).map(|(a, b)| (a - b) * (a - b)).sum();
+        let den: f64 = want.iter().map(|b| b * b).sum();
+        (num / den).sqrt()
+    }
+
+    /// Steps with the parameters resident on the GPU (`update.wgsl`: the maps' chain
+    /// rule, AdamW with weight decay, the rotations' renormalisation, the running mean
+    /// and the next step's primitives) take the CPU's steps (f64): from an optimiser
+    /// state three CPU steps old, three more steps on each with the running mean kept,
+    /// the losses within 1e-4 (the later steps render the primitives the GPU wrote), and
+    /// each group's parameter change, both moments and the mean's change within 1e-3
+    /// relative L2.
+    #[test]
+    fn steps_resident_on_the_gpu_are_the_cpus_steps() {
+        let Some(gpu) = testing::gpu("steps_resident_on_the_gpu_are_the_cpus_steps") else {
+            return;
+        };
+        let (cloud, set, opt) = scene();
+        let settings = AdamWSettings {
+            centres: GroupSettings {
+                lr: 0.01,
+                weight_decay: 0.05,
+            },
+            rotations: GroupSettings {
+                lr: 0.02,
+                weight_decay: 0.1,
+            },
+            ..AdamWSettings::default()
+        };
+        let batches: Vec<Vec<usize>> = vec![
+            (0..6).collect(),
+            (6..12).collect(),
+            (0..12).rev().collect(),
+            vec![1, 4, 7, 10],
+            vec![0, 3, 6, 9],
+            vec![2, 5, 8, 11],
+        ];
+        let factors = [0.25, 0.5, 1.0, 1.0, 0.5, 0.5];
+        // The CPU's steps, the last three averaged.
+        let cpu_step = |cloud: &mut GaussianCloud,
+                        adam: &mut AdamW,
+                        i: usize,
+                        mean: Option<(&mut GaussianCloud, usize)>| {
+            let mut grads = RawGrads::default();
+            let loss = batch_loss_grad(cloud, &cloud.kernels(), &set, &batches[i], &opt, &mut grads);
+            assert_eq!(adam.step_averaged(cloud, &grads, factors[i], mean), 0);
+            loss
+        };
+        let mut warm = cloud.clone();
+        let mut adam = AdamW::new(settings);
+        for i in 0..3 {
+            cpu_step(&mut warm, &mut adam, i, None);
+        }
+        let (start, adam_start) = (warm.clone(), adam.clone());
+        let mut cpu_mean = warm.clone();
+        let cpu_losses: Vec<f64> = (3..6)
+            .map(|i| cpu_step(&mut warm, &mut adam, i, Some((&mut cpu_mean, i - 2))))
+            .collect();
+
+        let mut state = Resident::of(&start, &adam_start, Some(&start));
+        let optimiser = Optimiser::of(&start, &settings);
+        let mut step = |i: usize| {
+            let (pairs, data, weights) = crate::gtr::render::gpu_batch(&set, &batches[3 + i], None);
+            Step {
+                pairs,
+                data,
+                weights,
+                factor: factors[3 + i],
+                t: 4 + i as u64,
+                mean_of: Some(i + 1),
+            }
+        };
+        let done = fit_steps(
+            &gpu,
+            &start.kernels(),
+            &mut state,
+            &optimiser,
+            3,
+            &mut step,
+            set.axis(),
+            &opt,
+            &|| false,
+        )
+        .unwrap();
+        assert_eq!(done.skipped, 0);
+        for (got, want) in done.losses.iter().zip(&cpu_losses) {
+            eprintln!("loss {got} against {want}");
+            assert!((got - want).abs() <= 1e-4 * want, "loss {got} against {want}");
+        }
+        assert_eq!(done.losses.len(), 3);
+        let (mut gpu_cloud, mut gpu_adam, mut gpu_mean) = (start.clone(), adam_start.clone(), start.clone());
+        state.write_back(&mut gpu_cloud, &mut gpu_adam, 3, Some(&mut gpu_mean));
+        assert_eq!(gpu_adam.steps_taken(), adam.steps_taken());
+        let change = |a: &[f64], b: &[f64]| a.iter().zip(b).map(|(x, y)| x - y).collect::<Vec<_>>();
+        for (g, name) in ["centres", "scales", "rotations", "albedo"]
+            .into_iter()
+            .enumerate()
+        {
+            let pick = |c: &GaussianCloud| [&c.centres, &c.scales, &c.rotations, &c.albedo][g].clone();
+            let width = [3, 3, 4, 1][g] * start.len();
+            let moved = relative_l2(
+                &change(&pick(&gpu_cloud), &pick(&start)),
+                &change(&pick(&warm), &pick(&start)),
+            );
+            let mean = relative_l2(
+                &change(&pick(&gpu_mean), &pick(&start)),
+                &change(&pick(&cpu_mean), &pick(&start)),
+            );
+            let (m, v) = gpu_adam.moments(g, width);
+            let (m_cpu, v_cpu) = adam.moments(g, width);
+            let (m, v) = (relative_l2(m, m_cpu), relative_l2(v, v_cpu));
+            eprintln!("{name}: change {moved:.2e}, mean {mean:.2e}, moments {m:.2e} and {v:.2e}");
+            assert!(pick(&warm) != pick(&start), "{name} moved");
+            for (what, e) in [
+                ("change", moved),
+                ("mean", mean),
+                ("first moment", m),
+                ("second moment", v),
+            ] {
+                assert!(e <= 1e-3, "{name}: {what} relative L2 {e:e}");
+            }
+        }
     }
 }

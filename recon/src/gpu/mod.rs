@@ -25,17 +25,19 @@ mod backproject;
 mod fit;
 #[cfg(feature = "gpu")]
 mod render;
+mod resident;
 
 use std::sync::{Arc, OnceLock};
 
 #[cfg(not(feature = "gpu"))]
-pub use absent::{Gpu, backproject, batch_gradient, render_pairs};
+pub use absent::{Gpu, backproject, batch_gradient, fit_steps, render_pairs};
 #[cfg(feature = "gpu")]
 pub use backproject::backproject;
 #[cfg(feature = "gpu")]
-pub use fit::batch_gradient;
+pub use fit::{batch_gradient, fit_steps};
 #[cfg(feature = "gpu")]
 pub use render::render_pairs;
+pub use resident::{Optimiser, RAW, Resident, Step, Steps};
 
 /// A mini-batch's loss terms and gradients, as the GPU computed them
 /// ([`batch_gradient`]).
@@ -159,6 +161,7 @@ pub struct Gpu {
     reduce: OnceLock<wgpu::ComputePipeline>,
     residual: OnceLock<wgpu::ComputePipeline>,
     backward: OnceLock<wgpu::ComputePipeline>,
+    update: OnceLock<wgpu::ComputePipeline>,
     backproject: OnceLock<wgpu::ComputePipeline>,
 }
 
@@ -337,6 +340,7 @@ impl Gpu {
             reduce: OnceLock::new(),
             residual: OnceLock::new(),
             backward: OnceLock::new(),
+            update: OnceLock::new(),
             backproject: OnceLock::new(),
         };
         if gpu.info.device_type == wgpu::DeviceType::Cpu {

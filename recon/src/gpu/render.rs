@@ -47,6 +47,11 @@ impl Model {
             pad: [0.0; 3],
         }
     }
+
+    /// Bins a transient has.
+    pub(super) fn bins(&self) -> u32 {
+        self.bins
+    }
 }
 
 #[repr(C)]

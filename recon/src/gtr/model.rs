@@ -231,7 +231,7 @@ impl GaussianCloud {
         self.scale_bounds
     }
 
-    fn log_scale_map(&self) -> (f64, f64) {
+    pub(crate) fn log_scale_map(&self) -> (f64, f64) {
         let lmin = self.scale_bounds.min.ln();
         (lmin, self.scale_bounds.max.ln() - lmin)
     }

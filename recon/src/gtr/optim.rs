@@ -312,6 +312,33 @@ impl AdamW {
             .sum()
     }
 
+    /// Steps taken so far (Adam's t).
+    pub(crate) fn steps_taken(&self) -> u64 {
+        self.t
+    }
+
+    /// Group `g`'s moments (centres, scales, rotations, albedo) for `len` entries:
+    /// zeros where none are kept yet, as the next step would start them.
+    pub(crate) fn moments(&self, g: usize, len: usize) -> (&[f64], &[f64]) {
+        let m = &self.moments[g];
+        if m.m.len() == len {
+            (&m.m, &m.v)
+        } else {
+            (&[], &[])
+        }
+    }
+
+    /// Replaces group `g`'s moments with the state after steps taken elsewhere (on a
+    /// GPU, `crate::gpu::fit_steps`).
+    pub(crate) fn set_moments(&mut self, g: usize, m: Vec<f64>, v: Vec<f64>) {
+        self.moments[g] = Moments { m, v };
+    }
+
+    /// Counts `steps` steps taken elsewhere ([`AdamW::set_moments`]).
+    pub(crate) fn advance(&mut self, steps: u64) {
+        self.t += steps;
+    }
+
     /// Forgets the moments of primitive `k`, as for a primitive just placed: its
     /// next updates start from zero momentum instead of the history of what was there.
     pub fn reset(&mut self, k: usize) {

@@ -365,19 +365,7 @@ pub(crate) fn batch_loss_grad_gpu_with(
     if grads.albedo.len() != n {
         *grads = RawGrads::zeros(n);
     }
-    let pairs: Vec<Pair> = batch.iter().map(|&p| set.pairs()[p]).collect();
-    let data: Vec<f32> = batch
-        .iter()
-        .flat_map(|&p| set.histogram(p).iter().copied())
-        .collect();
-    let scale = 1.0 / batch.len().max(1) as f64;
-    let weights: Vec<[f32; 2]> = batch
-        .iter()
-        .map(|&p| {
-            let gain = f64::from(set.gain(p)) * gains.map_or(1.0, |g| g[p]);
-            [(set.weight(p) as f64 * scale) as f32, gain as f32]
-        })
-        .collect();
+    let (pairs, data, weights) = gpu_batch(set, batch, gains);
     let out = crate::gpu::batch_gradient(gpu, kernels, &pairs, &data, &weights, set.axis(), opt)?;
     grads
         .centres
@@ -400,6 +388,31 @@ pub(crate) fn batch_loss_grad_gpu_with(
             }
         });
     Ok(out.losses.iter().map(|&l| f64::from(l)).sum())
+}
+
+/// Mini-batch `batch` of `set` as the GPU takes one: its pairs, their histograms one
+/// after the other, and each pair's weight over the batch size with its gain in the
+/// model (the set's, times `gains[p]` where given).
+#[allow(clippy::type_complexity)]
+pub(crate) fn gpu_batch(
+    set: &TransientSet,
+    batch: &[usize],
+    gains: Option<&[f64]>,
+) -> (Vec<Pair>, Vec<f32>, Vec<[f32; 2]>) {
+    let pairs: Vec<Pair> = batch.iter().map(|&p| set.pairs()[p]).collect();
+    let data: Vec<f32> = batch
+        .iter()
+        .flat_map(|&p| set.histogram(p).iter().copied())
+        .collect();
+    let scale = 1.0 / batch.len().max(1) as f64;
+    let weights: Vec<[f32; 2]> = batch
+        .iter()
+        .map(|&p| {
+            let gain = f64::from(set.gain(p)) * gains.map_or(1.0, |g| g[p]);
+            [(set.weight(p) as f64 * scale) as f32, gain as f32]
+        })
+        .collect();
+    (pairs, data, weights)
 }
 
 /// The backward pass of one chunk of primitives: each primitive's gradient over the

@@ -25,7 +25,7 @@ use super::init::{Init, initial_cloud};
 use super::kernel::{Kernel, Loss, RenderOptions};
 use super::model::{GaussianCloud, MapSlopes, ModelError, Primitive, RawGrads, ScaleBounds};
 use super::optim::{AdamW, AdamWSettings, Schedule};
-use super::render::{batch_loss_grad_gpu_with, batch_loss_grad_with, render_set};
+use super::render::{batch_loss_grad_with, render_set};
 use crate::gpu::{Gpu, GpuError};
 use crate::roi::RoiBox;
 use crate::transient::{TransientError, TransientSet};
@@ -1233,6 +1233,19 @@ impl Trainer {
             self.pass_at += take;
             self.pass[self.pass_at - take..self.pass_at].to_vec()
         };
+        if let Some((gpu, strict)) = self.gpu.clone() {
+            match self.epoch_on_gpu(&gpu, &order, cancel) {
+                Ok(loss) => return loss,
+                Err(e) if strict => {
+                    self.gpu_failure = Some(e);
+                    return None;
+                }
+                Err(e) => {
+                    tracing::warn!(error = %e, step = self.step, "the GPU failed: the fit goes on on the CPU");
+                    self.gpu = None;
+                }
+            }
+        }
         let mut total = 0.0;
         let mut batches = 0usize;
         for batch in order.chunks(self.config.batch_size) {
@@ -1241,45 +1254,16 @@ impl Trainer {
             }
             self.refresh_kernels();
             let gains = (self.gain_rounds > 0).then_some(self.pair_gains.as_slice());
-            let on_gpu = self.gpu.as_ref().map(|(gpu, strict)| {
-                let loss = batch_loss_grad_gpu_with(
-                    gpu,
-                    &self.cloud,
-                    &self.kernels,
-                    &self.slopes,
-                    &self.data,
-                    batch,
-                    &self.options,
-                    gains,
-                    &mut self.grads,
-                );
-                (loss, *strict)
-            });
-            let loss = match on_gpu {
-                Some((Ok(loss), _)) => Some(loss),
-                Some((Err(e), true)) => {
-                    self.gpu_failure = Some(e);
-                    return None;
-                }
-                Some((Err(e), false)) => {
-                    tracing::warn!(error = %e, step = self.step, "the GPU failed: the fit goes on on the CPU");
-                    self.gpu = None;
-                    None
-                }
-                None => None,
-            };
-            let loss = loss.unwrap_or_else(|| {
-                batch_loss_grad_with(
-                    &self.cloud,
-                    &self.kernels,
-                    Some(&self.slopes),
-                    &self.data,
-                    batch,
-                    &self.options,
-                    gains,
-                    &mut self.grads,
-                )
-            });
+            let loss = batch_loss_grad_with(
+                &self.cloud,
+                &self.kernels,
+                Some(&self.slopes),
+                &self.data,
+                batch,
+                &self.options,
+                gains,
+                &mut self.grads,
+            );
             let factor = self.config.schedule.factor(
                 self.step,
                 self.epochs_done,
@@ -1304,6 +1288,80 @@ impl Trainer {
             batches += 1;
         }
         Some(if batches == 0 { 0.0 } else { total / batches as f64 })
+    }
+
+    /// The epoch's mini-batches of `order` on `gpu`, the parameters resident there
+    /// from step to step ([`crate::gpu::fit_steps`]): the same batches, schedule and
+    /// running mean as the CPU's steps, in f32. The cloud, the optimiser's moments and
+    /// the mean come back at the end (or at a cancellation, after the steps taken);
+    /// on an error nothing here has changed, so the CPU can take the epoch over.
+    fn epoch_on_gpu(
+        &mut self,
+        gpu: &Gpu,
+        order: &[usize],
+        cancel: &CancelToken,
+    ) -> Result<Option<f64>, GpuError> {
+        use crate::gpu::{Optimiser, Resident, Step};
+        self.refresh_kernels();
+        let mut state = Resident::of(
+            &self.cloud,
+            &self.adam,
+            self.average.as_ref().map(|(mean, _)| mean),
+        );
+        let optimiser = Optimiser::of(&self.cloud, self.adam.settings());
+        let batches: Vec<&[usize]> = order.chunks(self.config.batch_size).collect();
+        let gains = (self.gain_rounds > 0).then_some(self.pair_gains.as_slice());
+        let counted = self.config.counted_epochs(self.data.len());
+        let (step0, t0) = (self.step, self.adam.steps_taken());
+        let mean0 = self.average.as_ref().map(|(_, k)| *k);
+        let mut step = |i: usize| {
+            let (pairs, data, weights) = super::render::gpu_batch(&self.data, batches[i], gains);
+            Step {
+                pairs,
+                data,
+                weights,
+                factor: self.config.schedule.factor(step0 + i, self.epochs_done, counted),
+                t: t0 + i as u64 + 1,
+                mean_of: mean0.map(|k| k + i + 1),
+            }
+        };
+        let done = crate::gpu::fit_steps(
+            gpu,
+            &self.kernels,
+            &mut state,
+            &optimiser,
+            batches.len(),
+            &mut step,
+            self.data.axis(),
+            &self.options,
+            &|| cancel.is_cancelled(),
+        )?;
+        let taken = done.losses.len();
+        state.write_back(
+            &mut self.cloud,
+            &mut self.adam,
+            taken,
+            self.average.as_mut().map(|(mean, k)| {
+                *k += taken;
+                mean
+            }),
+        );
+        self.step += taken;
+        if done.skipped > 0 {
+            tracing::warn!(
+                skipped = done.skipped,
+                step = self.step,
+                "non-finite gradient entries were skipped"
+            );
+        }
+        if taken < batches.len() {
+            return Ok(None);
+        }
+        Ok(Some(if taken == 0 {
+            0.0
+        } else {
+            done.losses.iter().sum::<f64>() / taken as f64
+        }))
     }
 
     fn refresh_kernels(&mut self) {
