@@ -584,4 +584,63 @@ mod tests {
             }
         }
     }
+
+    /// A stop between submissions ends the steps there: asked after the first
+    /// submission, a run of 40 steps takes 32, and hands back the state after them,
+    /// the state a run of exactly 32 steps gives.
+    #[test]
+    fn a_stop_ends_the_steps_between_submissions() {
+        let Some(gpu) = testing::gpu("a_stop_ends_the_steps_between_submissions") else {
+            return;
+        };
+        let (cloud, set, opt) = scene();
+        let settings = AdamWSettings::default();
+        let run = |count: usize, stop_after: usize| {
+            let mut state = Resident::of(&cloud, &AdamW::new(settings), None);
+            let asked = std::cell::Cell::new(0);
+            let mut step = |i: usize| {
+                let batch: Vec<usize> = (0..4).map(|j| (i + 3 * j) % set.len()).collect();
+                let (pairs, data, weights) = crate::gtr::render::gpu_batch(&set, &batch, None);
+                Step {
+                    pairs,
+                    data,
+                    weights,
+                    factor: 1.0,
+                    t: i as u64 + 1,
+                    mean_of: None,
+                }
+            };
+            let done = fit_steps(
+                &gpu,
+                &cloud.kernels(),
+                &mut state,
+                &Optimiser::of(&cloud, &settings),
+                count,
+                &mut step,
+                set.axis(),
+                &opt,
+                &|| {
+                    asked.set(asked.get() + 1);
+                    asked.get() > stop_after
+                },
+            )
+            .unwrap();
+            (done.losses.len(), state)
+        };
+        let (taken, stopped) = run(40, 1);
+        assert_eq!(taken, STEPS_PER_SUBMISSION);
+        let (whole, state) = run(STEPS_PER_SUBMISSION, usize::MAX);
+        assert_eq!(whole, STEPS_PER_SUBMISSION);
+        let start = Resident::of(&cloud, &AdamW::new(settings), None);
+        assert!(stopped.raw != start.raw, "the steps taken moved the primitives");
+        let worst = stopped
+            .raw
+            .iter()
+            .zip(&state.raw)
+            .map(|(a, b)| (a - b).abs())
+            .fold(0.0f32, f32::max);
+        assert!(worst <= 1e-6, "{worst}");
+        let (none, untouched) = run(5, 0);
+        assert_eq!((none, untouched), (0, start));
+    }
 }

@@ -1337,6 +1337,9 @@ impl Trainer {
             &|| cancel.is_cancelled(),
         )?;
         let taken = done.losses.len();
+        if taken == 0 {
+            return Ok(None);
+        }
         state.write_back(
             &mut self.cloud,
             &mut self.adam,
@@ -1357,11 +1360,7 @@ impl Trainer {
         if taken < batches.len() {
             return Ok(None);
         }
-        Ok(Some(if taken == 0 {
-            0.0
-        } else {
-            done.losses.iter().sum::<f64>() / taken as f64
-        }))
+        Ok(Some(done.losses.iter().sum::<f64>() / taken as f64))
     }
 
     fn refresh_kernels(&mut self) {
