@@ -1172,10 +1172,12 @@ impl Trainer {
         self.live_model = Some((tx, min_steps));
     }
 
-    /// Runs the fit's steps on `gpu` from now on: the mini-batch's render, residuals
-    /// and backward pass there, in f32 ([`crate::gpu::batch_gradient`]), the chain rule
-    /// and AdamW here. With `strict`, a failure of the GPU ends the fit with
-    /// [`TrainError::Gpu`]; otherwise the fit says so in the log and goes on on the CPU.
+    /// Runs the fit's steps on `gpu` from now on, in f32, the parameters resident there
+    /// through each epoch ([`crate::gpu::fit_steps`]: the mini-batch's render,
+    /// residuals and backward pass, the chain rule and AdamW); densification, pruning
+    /// and the gain estimates stay here, between epochs. With `strict`, a failure of
+    /// the GPU ends the fit with [`TrainError::Gpu`]; otherwise the fit says so in the
+    /// log and takes the epoch again on the CPU.
     pub fn use_gpu(&mut self, gpu: Arc<Gpu>, strict: bool) {
         self.gpu = Some((gpu, strict));
     }
