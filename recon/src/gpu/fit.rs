@@ -281,7 +281,6 @@ pub fn fit_steps(
             let first = losses.len();
             let n = STEPS_PER_SUBMISSION.min(count - first);
             let mut encoder = gpu.device.create_command_encoder(&Default::default());
-            let mut ends = Vec::with_capacity(n);
             let mut batches = Vec::with_capacity(n);
             for i in first..first + n {
                 let s = step(i);
@@ -316,11 +315,10 @@ pub fn fit_steps(
                         spread(k.div_ceil(UPDATE_THREADS)),
                     );
                 }
-                ends.push(b);
                 batches.push(batch);
             }
             // Each step's losses, gathered for one readback.
-            let total: usize = ends.iter().sum();
+            let total: usize = batches.iter().map(|b| b.pairs).sum();
             let gathered = gpu.device.create_buffer(&wgpu::BufferDescriptor {
                 label: Some("step losses"),
                 size: (total.max(4) * 4) as u64,
@@ -337,7 +335,8 @@ pub fn fit_steps(
             }
             let out = gpu.finish(WHAT, encoder, &gathered, total)?;
             let mut at = 0;
-            for b in ends {
+            for batch in &batches {
+                let b = batch.pairs;
                 losses.push(out[at..at + b].iter().map(|&l| f64::from(l)).sum());
                 at += b;
             }
