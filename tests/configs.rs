@@ -93,6 +93,81 @@ fn a_broken_scene_names_file_line_and_key() {
     assert!(err.contains("does not suit"), "{err}");
 }
 
+/// A relay whose albedo varies (`[relay.albedo-variation]`): the albedo stays within
+/// the ramp and the cells' range and never above `albedo`, the ramp spans `smooth`
+/// from corner to corner, a cell reads the same wherever it is asked, and the cells
+/// spread over their range; out-of-range values and a variation on a hidden object
+/// are refused with the file, line and key.
+#[test]
+fn a_patchy_relay_varies_as_its_scene_says_and_bad_values_name_their_key() {
+    let path = repo_path("configs/scenes/patchy-wall-letter.toml");
+    let scene = load_scene(&path).unwrap();
+    let relay = &scene.relay;
+    let at = |x: f64, y: f64| relay.albedo_at(glam::DVec3::new(x, y, 0.0));
+    let (smooth, random) = (3.0, 0.3);
+    let floor = relay.albedo / smooth * (1.0 - random) / (1.0 + random);
+    // The same wall without the cells: the ramp alone.
+    let text = std::fs::read_to_string(&path).unwrap();
+    let dir = tempfile::tempdir().unwrap();
+    let smooth_only = dir.path().join("smooth.toml");
+    std::fs::write(&smooth_only, text.replace("random = 0.3", "random = 0.0")).unwrap();
+    let ramp = load_scene(&smooth_only).unwrap().relay;
+    let corner = |x: f64, y: f64| ramp.albedo_at(glam::DVec3::new(x, y, 0.0));
+    // A cell's own factor: the albedo over the ramp's.
+    let cell = |x: f64, y: f64| at(x, y) / corner(x, y);
+    for i in 0..80 {
+        for j in 0..80 {
+            let (x, y) = (-0.79 + 0.02 * i as f64, -0.79 + 0.02 * j as f64);
+            let a = at(x, y);
+            assert!(a > floor * 0.999 && a <= relay.albedo, "albedo {a} at ({x}, {y})");
+            // The same 2 cm cell, asked at another point of it.
+            let (here, there) = (cell(x, y), cell(x + 0.004, y - 0.004));
+            assert!(
+                (here - there).abs() < 1e-12,
+                "one cell, one factor: {here} and {there}"
+            );
+        }
+    }
+    // The corners are the ramp's ends.
+    let ratio = corner(0.8, 0.8) / corner(-0.8, -0.8);
+    assert!((ratio - smooth).abs() < 1e-9, "corner to corner {ratio}");
+    assert_eq!(corner(0.8, 0.8), ramp.albedo);
+    // The cells' factors spread over their range: along a strip of 80 cells the
+    // darkest and brightest differ by most of 1.3 / 0.7.
+    let strip: Vec<f64> = (0..400).map(|i| cell(0.79, -0.79 + 0.004 * i as f64)).collect();
+    let (lo, hi) = strip
+        .iter()
+        .fold((f64::INFINITY, 0.0f64), |(l, h), &v| (l.min(v), h.max(v)));
+    assert!(hi / lo > 1.6, "cells span {lo}..{hi}");
+
+    for (from, to, key) in [
+        ("random = 0.3", "random = 2.0", "relay.albedo-variation.random"),
+        ("smooth = 3.0", "smooth = 0.5", "relay.albedo-variation.smooth"),
+        ("cell-m = 0.02", "cell-m = 0.0", "relay.albedo-variation.cell-m"),
+        (
+            "direction = [0.6, 0.4]",
+            "direction = [0.0, 0.0]",
+            "relay.albedo-variation.direction",
+        ),
+    ] {
+        let bad = text.replace(from, to);
+        let line = bad.lines().position(|l| l.starts_with(to)).unwrap() + 1;
+        let file = dir.path().join("scene.toml");
+        std::fs::write(&file, bad).unwrap();
+        let err = load_scene(&file).unwrap_err().to_string();
+        let expected = format!("scene.toml:{line}: key `{key}`");
+        assert!(err.contains(&expected), "expected `{expected}` in: {err}");
+    }
+    let hidden = format!("{text}\n[hidden.albedo-variation]\nrandom = 0.1\n");
+    let file = dir.path().join("hidden.toml");
+    std::fs::write(&file, hidden).unwrap();
+    let err = load_scene(&file).unwrap_err().to_string();
+    assert!(
+        err.contains("hidden[0].albedo-variation") && err.contains("only the relay"),
+        "{err}"
+    );
+}
+
 #[test]
 fn check_summarises_the_demo_and_moves_nothing() {
     let out = periscope(&["check", "configs/plans/demo.toml"]);

@@ -76,12 +76,14 @@ fn cases(centre: DVec3, r: DMat3, pairs: &[(DVec3, DVec3)]) -> Vec<Case> {
             shape: ShapeKind::Plane,
             mesh: shapes::plane([2.0, 2.0]),
             albedo: 0.8,
+            variation: None,
         },
         hidden: vec![Surface {
             label: "patch".into(),
             shape: ShapeKind::Mesh,
             mesh: patch,
             albedo: 0.9,
+            variation: None,
         }],
     };
     let world = World::new(scene, 0.0005, 1);

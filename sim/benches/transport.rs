@@ -47,12 +47,14 @@ fn transport(c: &mut Criterion) {
             shape: ShapeKind::Plane,
             mesh: shapes::plane([2.0, 2.0]),
             albedo: 0.8,
+            variation: None,
         },
         hidden: vec![Surface {
             label: "hidden[0]".into(),
             shape: ShapeKind::Mannequin,
             mesh: hidden,
             albedo: 0.85,
+            variation: None,
         }],
     };
     let inst = Instrument {

@@ -106,6 +106,89 @@ pub struct RawSurface {
     pub path: Option<PathBuf>,
     /// Mesh scale factor.
     pub scale: Option<f64>,
+    /// How the albedo varies from spot to spot (the relay only).
+    pub albedo_variation: Option<RawAlbedoVariation>,
+}
+
+/// `[relay.albedo-variation]`: a relay whose albedo varies from spot to spot, as a
+/// real wall's paint, a poster or a person's clothes do, so every transient carries a
+/// gain no capture file states. The albedo at a point is `albedo` times a smooth ramp
+/// and a per-cell factor, never above `albedo`.
+#[derive(Clone, Debug, Deserialize)]
+#[serde(deny_unknown_fields, rename_all = "kebab-case")]
+pub struct RawAlbedoVariation {
+    /// The ramp: the brightest end over the darkest, across the relay's footprint
+    /// along `direction` (1: no ramp), exponential along it.
+    #[serde(default = "unity")]
+    pub smooth: f64,
+    /// The ramp's direction in the world x–y plane (need not be a unit vector).
+    #[serde(default = "ramp_direction")]
+    pub direction: [f64; 2],
+    /// Each cell's own factor, uniform in [1 − random, 1 + random] (0: none).
+    #[serde(default)]
+    pub random: f64,
+    /// The cells' size in world x and y, metres.
+    #[serde(default = "cell_size")]
+    pub cell_m: f64,
+    /// Seed of the cells' factors.
+    #[serde(default)]
+    pub seed: u64,
+}
+
+fn unity() -> f64 {
+    1.0
+}
+
+fn ramp_direction() -> [f64; 2] {
+    [0.6, 0.4]
+}
+
+fn cell_size() -> f64 {
+    0.02
+}
+
+/// A validated [`RawAlbedoVariation`] on a surface's footprint.
+#[derive(Clone, Debug, PartialEq)]
+pub struct AlbedoVariation {
+    /// `ln(smooth)`.
+    log_ramp: f64,
+    /// Unit ramp direction in x–y.
+    direction: [f64; 2],
+    /// The footprint's extent along `direction`: its least and its span.
+    start: f64,
+    span: f64,
+    random: f64,
+    cell: f64,
+    seed: u64,
+}
+
+impl AlbedoVariation {
+    /// The factor at `p`, in (0, 1]: the ramp, 1 at its bright end, times the
+    /// point's cell's factor over the largest a cell can have.
+    pub fn factor(&self, p: DVec3) -> f64 {
+        let along = p.x * self.direction[0] + p.y * self.direction[1];
+        let t = ((along - self.start) / self.span).clamp(0.0, 1.0);
+        let ramp = (self.log_ramp * (t - 1.0)).exp();
+        if self.random == 0.0 {
+            return ramp;
+        }
+        let cell = |v: f64| (v / self.cell).floor() as i64 as u64;
+        let u = unit_hash(cell(p.x), cell(p.y), self.seed);
+        ramp * (1.0 + self.random * (2.0 * u - 1.0)) / (1.0 + self.random)
+    }
+}
+
+/// A uniform number in [0, 1) from a cell's indices and a seed (SplitMix64's
+/// finaliser over their mix), the same wherever the cell is asked for.
+fn unit_hash(ix: u64, iy: u64, seed: u64) -> f64 {
+    let mut z = ix
+        .wrapping_mul(0x9E37_79B9_7F4A_7C15)
+        .wrapping_add(iy.wrapping_mul(0xC2B2_AE3D_27D4_EB4F))
+        .wrapping_add(seed.wrapping_mul(0x1656_67B1_9E37_79F9));
+    z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+    z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+    z ^= z >> 31;
+    (z >> 11) as f64 / (1u64 << 53) as f64
 }
 
 /// A validated surface: its mesh in the world frame and its albedo.
@@ -117,8 +200,19 @@ pub struct Surface {
     pub shape: ShapeKind,
     /// World-frame mesh.
     pub mesh: Mesh,
-    /// Lambertian albedo.
+    /// Lambertian albedo (the largest, where it varies).
     pub albedo: f64,
+    /// How the albedo varies from spot to spot; `None`: the same everywhere.
+    pub variation: Option<AlbedoVariation>,
+}
+
+impl Surface {
+    /// The albedo at `p`, a point on the surface.
+    pub fn albedo_at(&self, p: DVec3) -> f64 {
+        self.variation
+            .as_ref()
+            .map_or(self.albedo, |v| self.albedo * v.factor(p))
+    }
 }
 
 /// A validated scene.
@@ -305,10 +399,82 @@ fn surface(raw: &RawSurface, key: &str, base: &Path, relay: bool) -> Result<Surf
     };
     let [rx, ry, rz] = raw.rotation_deg.map(f64::to_radians);
     let rotation = DMat3::from_euler(EulerRot::XYZ, rx, ry, rz);
+    let mesh = mesh.transformed(rotation, DVec3::from_array(raw.position));
+    let variation = match &raw.albedo_variation {
+        None => None,
+        Some(_) if !relay => {
+            return Err(err(
+                "albedo-variation",
+                "only the relay's albedo can vary from spot to spot; remove it from this hidden object"
+                    .into(),
+            ));
+        }
+        Some(v) => Some(albedo_variation(v, &mesh, &|field, message| {
+            err(&format!("albedo-variation.{field}"), message)
+        })?),
+    };
     Ok(Surface {
         label: key.to_string(),
         shape: raw.shape,
-        mesh: mesh.transformed(rotation, DVec3::from_array(raw.position)),
+        mesh,
         albedo: raw.albedo,
+        variation,
+    })
+}
+
+/// Validates `[relay.albedo-variation]` against the relay's world-frame `mesh`.
+fn albedo_variation(
+    raw: &RawAlbedoVariation,
+    mesh: &Mesh,
+    err: &dyn Fn(&str, String) -> SceneError,
+) -> Result<AlbedoVariation, SceneError> {
+    if !(raw.smooth.is_finite() && (1.0..=100.0).contains(&raw.smooth)) {
+        return Err(err(
+            "smooth",
+            format!(
+                "{} must be from 1 (no ramp) to 100 (the bright end over the dark)",
+                raw.smooth
+            ),
+        ));
+    }
+    if !(raw.random.is_finite() && (0.0..=0.9).contains(&raw.random)) {
+        return Err(err(
+            "random",
+            format!("{} must be from 0 (none) to 0.9 (each cell ±90 %)", raw.random),
+        ));
+    }
+    if !(raw.cell_m.is_finite() && raw.cell_m > 0.0 && raw.cell_m <= 10.0) {
+        return Err(err(
+            "cell-m",
+            format!("{} must be a positive size in metres, at most 10", raw.cell_m),
+        ));
+    }
+    let [dx, dy] = raw.direction;
+    let norm = dx.hypot(dy);
+    if !(norm.is_finite() && norm > 0.0) {
+        return Err(err(
+            "direction",
+            format!(
+                "{:?} must be a non-zero direction in the x–y plane",
+                raw.direction
+            ),
+        ));
+    }
+    let direction = [dx / norm, dy / norm];
+    let (lo, hi) = mesh
+        .vertices
+        .iter()
+        .map(|v| v.x * direction[0] + v.y * direction[1])
+        .fold((f64::INFINITY, f64::NEG_INFINITY), |(l, h), a| {
+            (l.min(a), h.max(a))
+        });
+    Ok(AlbedoVariation {
+        log_ramp: raw.smooth.ln(),
+        direction,
+        start: lo,
+        span: (hi - lo).max(f64::MIN_POSITIVE),
+        random: raw.random,
+        cell: raw.cell_m,
+        seed: raw.seed,
     })
 }

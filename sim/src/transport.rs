@@ -173,13 +173,14 @@ impl World {
         if normal.dot(-dir) < 0.0 {
             normal = -normal;
         }
+        let point = origin + dir * hit.t;
         let albedo = if surface == 0 {
-            self.scene.relay.albedo
+            self.scene.relay.albedo_at(point)
         } else {
             self.scene.hidden[surface - 1].albedo
         };
         Some(SurfaceHit {
-            point: origin + dir * hit.t,
+            point,
             normal,
             albedo,
             distance: hit.t,

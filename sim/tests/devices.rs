@@ -38,12 +38,14 @@ fn rig() -> Rig {
             shape: ShapeKind::Plane,
             mesh: shapes::plane([2.0, 2.0]),
             albedo: 0.8,
+            variation: None,
         },
         hidden: vec![Surface {
             label: "patch".into(),
             shape: ShapeKind::Mesh,
             mesh: patch,
             albedo: 0.9,
+            variation: None,
         }],
     };
     let pose = |x: f64| GalvoPose::looking(DVec3::new(x, 0.0, 2.0), -DVec3::Z, DVec3::Y).unwrap();

@@ -44,6 +44,7 @@ fn scene(hidden: Vec<Mesh>) -> Scene {
             shape: ShapeKind::Plane,
             mesh: shapes::plane([2.0, 2.0]),
             albedo: 0.8,
+            variation: None,
         },
         hidden: hidden
             .into_iter()
@@ -53,6 +54,7 @@ fn scene(hidden: Vec<Mesh>) -> Scene {
                 shape: ShapeKind::Mesh,
                 mesh,
                 albedo: 0.9,
+                variation: None,
             })
             .collect(),
     }

@@ -1568,6 +1568,11 @@ impl Trainer {
     /// of the way to it (from 1 before the first round); returns the smallest and
     /// largest gain.
     pub fn estimate_gains(&mut self) -> (f64, f64) {
+        if gain_groups(self.data.pairs(), self.config.pair_gains).is_none() {
+            // One laser point (or one detection point): nothing to estimate, and no
+            // rendering of the whole capture spent on finding that out.
+            return (1.0, 1.0);
+        }
         self.refresh_kernels();
         let rendered = render_set(&self.kernels, &self.data, &self.options);
         let Some(gains) =
