@@ -15,7 +15,7 @@ use periscope_recon::{Pair, TimeAxis, TransientError, TransientSet, VolumeGrid};
 
 use crate::config::InstrumentConfig;
 use crate::plan::{LaserFalloff, Plan, PlannedPair, ReconSettings, default_recon};
-use crate::record::{record_axis, record_counts, record_transient};
+use crate::record::{record_axis, record_counts, record_transient, relay_gains};
 use crate::run_dir::RunInfo;
 use crate::run_dir::{RunDir, RunDirError, file};
 use crate::store::Record;
@@ -204,13 +204,26 @@ impl RunCapture {
         let axis = hidden_axis(&pairs, volume, self.plan.acquisition.bin_width).map_err(fail)?;
         let mut set = TransientSet::new(axis).map_err(fail)?;
         set.mark_photon_counts();
+        // The relay's albedo from its scan, as the run's own fit took it.
+        let gains = crate::run_dir::read_relay_ply(&self.dir)?.and_then(|relay| {
+            relay_gains(
+                &relay,
+                &self.pairs,
+                &self.instrument,
+                self.plan.relay.albedo_from_scan,
+            )
+        });
         let mut detection_points = Vec::new();
         let mut overflowed = 0;
         for r in &self.records {
             let p = &self.pairs[r.pair as usize];
             match record_transient(r, p, &self.instrument, &axis) {
                 Some(h) => {
-                    set.push(p.pair(), &h).map_err(fail)?;
+                    match &gains {
+                        Some(g) => set.push_with_gain(p.pair(), &h, g[r.pair as usize]),
+                        None => set.push(p.pair(), &h),
+                    }
+                    .map_err(fail)?;
                     detection_points.push(p.xd);
                 }
                 None => overflowed += 1,

@@ -7,7 +7,49 @@ use periscope_recon::transient::rebin_path;
 
 use crate::config::InstrumentConfig;
 use crate::plan::PlannedPair;
+use crate::run_dir::RelayPoint;
 use crate::store::Record;
+
+/// Each planned pair's known gain from the relay scan: the relay's albedo at its two
+/// spots, read from the LOS return's photons ([`periscope_recon::relay::RelayAlbedo`]),
+/// for the model of every reconstruction of the run (the live fit, `periscope recon
+/// RUN_DIR`); the counts stay as measured. `None` when the plan turns it off
+/// (`relay.albedo-from-scan = false`) or the scan cannot give it (fewer than six
+/// points with a return).
+pub fn relay_gains(
+    relay: &[RelayPoint],
+    pairs: &[PlannedPair],
+    inst: &InstrumentConfig,
+    on: bool,
+) -> Option<Vec<f32>> {
+    if !on {
+        return None;
+    }
+    // As `relay.ply` stores them (float32), so a run's live fit and `periscope recon
+    // RUN_DIR` or a resumed run, which read the file back, take the same gains.
+    let stored = |v: glam::DVec3| v.as_vec3().as_dvec3();
+    let points: Vec<_> = relay.iter().map(|p| stored(p.x)).collect();
+    let normals: Vec<_> = relay.iter().map(|p| stored(p.n)).collect();
+    let photons: Vec<f64> = relay.iter().map(|p| f64::from(p.intensity as f32)).collect();
+    let albedo = periscope_recon::relay::RelayAlbedo::from_scan(
+        &points,
+        &normals,
+        &photons,
+        inst.laser_arm.pose.origin,
+        inst.spad_arm.pose.origin,
+    )?;
+    let planned: Vec<_> = pairs.iter().map(PlannedPair::pair).collect();
+    let gains = albedo.pair_gains(&planned);
+    let (lo, hi) = gains
+        .iter()
+        .fold((f64::INFINITY, 0.0f64), |(l, h), &g| (l.min(g), h.max(g)));
+    tracing::info!(
+        min = lo,
+        max = hi,
+        "each transient's gain from the relay scan's albedo"
+    );
+    Some(gains.iter().map(|&g| g as f32).collect())
+}
 
 /// Undoes the SPAD's dead time and pile-up on a histogram summed over `cycles` sync
 /// periods lasting `dwell` seconds in all, inverting the standard models in turn: a

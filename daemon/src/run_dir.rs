@@ -93,7 +93,8 @@ pub struct RelayPoint {
     pub x: DVec3,
     /// Unit normal toward the instrument.
     pub n: DVec3,
-    /// Peak counts of its LOS return.
+    /// Photons of its LOS return (the counts within ±1.3 jitter FWHM of its peak, less
+    /// the histogram's median a bin): the spot's albedo under the diffused laser.
     pub intensity: f64,
 }
 
@@ -198,7 +199,7 @@ pub fn write_relay_ply(dir: &Path, relay: &[RelayPoint]) -> Result<(), RunDirErr
     {
         let mut w = BufWriter::new(File::create(&tmp).map_err(io(&tmp))?);
         let header = format!(
-            "ply\nformat binary_little_endian 1.0\ncomment Periscope relay: LOS first-bounce points, normals toward the instrument, peak counts\nelement vertex {}\nproperty float x\nproperty float y\nproperty float z\nproperty float nx\nproperty float ny\nproperty float nz\nproperty float intensity\nend_header\n",
+            "ply\nformat binary_little_endian 1.0\ncomment Periscope relay: LOS first-bounce points, normals toward the instrument, return photons\nelement vertex {}\nproperty float x\nproperty float y\nproperty float z\nproperty float nx\nproperty float ny\nproperty float nz\nproperty float intensity\nend_header\n",
             relay.len()
         );
         w.write_all(header.as_bytes()).map_err(io(&tmp))?;

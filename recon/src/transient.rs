@@ -354,6 +354,21 @@ impl TransientSet {
         Ok(())
     }
 
+    /// Appends one transient with weight 1 whose model carries a known `gain` (finite and
+    /// positive; [`TransientSet::gain`]): the relay's albedo at its two spots, read from the
+    /// relay scan ([`crate::relay::RelayAlbedo`]). The counts stay as measured.
+    pub fn push_with_gain(&mut self, pair: Pair, histogram: &[f32], gain: f32) -> Result<(), TransientError> {
+        if !(gain.is_finite() && gain > 0.0) {
+            return Err(TransientError::Value {
+                index: self.pairs.len(),
+                reason: "the known gain must be finite and positive",
+            });
+        }
+        self.push_weighted(pair, histogram, 1.0)?;
+        *self.gains.last_mut().expect("just pushed") = gain;
+        Ok(())
+    }
+
     /// Appends every transient of `other`, which must share this set's axis.
     pub fn extend(&mut self, other: &TransientSet) -> Result<(), TransientError> {
         if other.axis != self.axis {
@@ -432,8 +447,8 @@ impl TransientSet {
     }
 
     /// The known gain of transient `i` in the model (1 unless
-    /// [`TransientSet::compensate_laser_falloff`] set it): its counts are this times a
-    /// transient's at gain 1.
+    /// [`TransientSet::compensate_laser_falloff`] or [`TransientSet::push_with_gain`]
+    /// set it): its counts are this times a transient's at gain 1.
     pub fn gain(&self, i: usize) -> f32 {
         self.gains[i]
     }

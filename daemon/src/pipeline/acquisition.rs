@@ -14,7 +14,8 @@ use super::{PipelineError, ReconError, Run};
 use crate::adaptive::{Order, Selector};
 use crate::events::RunEvent;
 use crate::plan::{Acquisition, Method, PlannedPair};
-use crate::record::record_transient;
+use crate::record::{record_transient, relay_gains};
+use crate::run_dir::RelayPoint;
 use crate::store::{HistogramLog, Record};
 
 /// Fewest pairs per batch sent to the optimiser; a batch is also at least an eighth of
@@ -40,7 +41,11 @@ impl Run {
     /// Measures every pair not yet stored; returns the fit that has been running
     /// alongside and every stored record (those of earlier sessions of the run too),
     /// which the outputs stage exports without reading the log back.
-    pub(crate) fn capture(&mut self, pairs: &[PlannedPair]) -> Result<(Fit, Vec<Record>), PipelineError> {
+    pub(crate) fn capture(
+        &mut self,
+        pairs: &[PlannedPair],
+        relay: &[RelayPoint],
+    ) -> Result<(Fit, Vec<Record>), PipelineError> {
         let acq: Acquisition = self.plan.acquisition.clone();
         let (l, s) = (
             self.instrument.laser_arm.pose.origin,
@@ -75,10 +80,15 @@ impl Run {
         let mut stored: HashSet<u32> = HashSet::new();
         let mut batch = counts()?;
         let instrument = self.instrument.clone();
+        let gains = relay_gains(relay, pairs, &instrument, self.plan.relay.albedo_from_scan);
         let push = |batch: &mut TransientSet, rec: &Record| -> Result<(), PipelineError> {
             let p = &pairs[rec.pair as usize];
             match record_transient(rec, p, &instrument, &axis) {
-                Some(h) => Ok(batch.push(p.pair(), &h).map_err(ReconError::from)?),
+                Some(h) => Ok(match &gains {
+                    Some(g) => batch.push_with_gain(p.pair(), &h, g[rec.pair as usize]),
+                    None => batch.push(p.pair(), &h),
+                }
+                .map_err(ReconError::from)?),
                 None => Ok(()),
             }
         };

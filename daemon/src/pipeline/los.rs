@@ -47,6 +47,29 @@ pub fn peak<T: Copy + Into<f64>>(counts: &[T]) -> Option<(f64, f64)> {
     Some((b as f64 + delta, top))
 }
 
+/// The first-bounce return's photons: the counts within `half_width` bins of the
+/// peak at fractional bin `at` ([`peak`]), less the histogram's median count a bin
+/// (dark counts and ambient light). Unlike the peak bin's count, this does not depend
+/// on where the pulse falls within its bin, so it reads the spot's albedo to its
+/// counting noise ([`periscope_recon::relay::RelayAlbedo`]).
+pub(crate) fn return_photons(counts: &[f32], at: f64, half_width: usize) -> f64 {
+    if counts.is_empty() {
+        return 0.0;
+    }
+    let counts: Vec<f64> = counts.iter().map(|&c| f64::from(c)).collect();
+    let centre = (at.max(0.0) as usize).min(counts.len() - 1);
+    let lo = centre.saturating_sub(half_width);
+    let hi = (centre + half_width + 1).min(counts.len());
+    let mut sorted = counts.clone();
+    sorted.sort_by(f64::total_cmp);
+    let background = sorted[sorted.len() / 2].max(0.0);
+    counts[lo..hi]
+        .iter()
+        .map(|c| c - background)
+        .sum::<f64>()
+        .max(0.0)
+}
+
 /// The range r along the SPAD ray p = S + r·d (`d` a unit vector) of the point whose
 /// first-bounce path laser → p → SPAD is `ell`: |p − L| + |p − S| = ℓ gives
 /// r = (ℓ² − |D|²) / (2(ℓ + D·d)) with D = S − L (DESIGN.md §4). `None` when no point
@@ -58,7 +81,7 @@ pub fn first_bounce_range(ell: f64, laser: DVec3, spad: DVec3, d: DVec3) -> Opti
 }
 
 impl Run {
-    /// Scans the relay; returns the raw returns (point, intensity).
+    /// Scans the relay; returns the raw returns (point, the return's photons).
     pub(crate) fn los_scan(&mut self) -> Result<Vec<(DVec3, f64)>, PipelineError> {
         let los = self.plan.los.clone();
         let acq = self.plan.acquisition.clone();
@@ -86,6 +109,9 @@ impl Run {
         let total = nx * ny;
         let mut out = Vec::new();
         let settle = self.settle_timeout();
+        // The return's bins: ±1.3 jitter FWHM (±3σ) about its peak, and one more.
+        let half_width =
+            ((1.3 * self.instrument.spad.jitter_fwhm / acq.bin_width).ceil() as usize + 1).max(2);
         for iy in 0..ny {
             for jx in 0..nx {
                 // Serpentine: no long fly-back between rows.
@@ -102,12 +128,12 @@ impl Run {
                 // skews it towards early bins unless undone.
                 let counts =
                     crate::record::corrected_counts(&h.counts, los.dwell.as_secs_f64(), &self.instrument);
-                if let Some((b, top)) = peak(&counts) {
+                if let Some((b, _)) = peak(&counts) {
                     let ell =
                         TimeAxis::of_tdc(acq.offset, acq.bin_width, counts.len(), tdc.system_delay).centre(b);
                     let dir = spad_pose.direction(angles);
                     if let Some(r) = first_bounce_range(ell, l, s, dir) {
-                        out.push((s + dir * r, top));
+                        out.push((s + dir * r, return_photons(&counts, b, half_width)));
                     }
                 }
                 let done = iy * nx + jx + 1;

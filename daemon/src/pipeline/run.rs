@@ -423,7 +423,7 @@ impl Run {
         self.info.pairs_total = pairs.len();
         let t = Instant::now();
         self.set_stage(Stage::Capture)?;
-        let (fit, records) = self.capture(&pairs)?;
+        let (fit, records) = self.capture(&pairs, &relay)?;
         self.finish_stage(Stage::Capture, t);
         let t = Instant::now();
         self.set_stage(Stage::Reconstruction)?;

@@ -94,6 +94,9 @@ pub struct RelayStage {
     pub illumination: Region,
     /// Where the SPAD may look.
     pub detection: Region,
+    /// Whether each transient's known gain is the relay's albedo at its two spots,
+    /// read from the LOS scan's first-bounce counts ([`periscope_recon::relay::RelayAlbedo`]).
+    pub albedo_from_scan: bool,
 }
 
 /// Per-pair acquisition.
@@ -173,6 +176,8 @@ struct RawRelay {
     neighbours: usize,
     illumination: Option<RawRegion>,
     detection: Option<RawRegion>,
+    #[serde(default = "default_albedo_from_scan")]
+    albedo_from_scan: bool,
 }
 
 impl Default for RawRelay {
@@ -183,8 +188,13 @@ impl Default for RawRelay {
             neighbours: default_neighbours(),
             illumination: None,
             detection: None,
+            albedo_from_scan: default_albedo_from_scan(),
         }
     }
+}
+
+fn default_albedo_from_scan() -> bool {
+    true
 }
 
 fn default_depth() -> [f64; 2] {
@@ -298,6 +308,7 @@ impl Plan {
             },
             illumination: region("relay.illumination", &raw.relay.illumination)?,
             detection: region("relay.detection", &raw.relay.detection)?,
+            albedo_from_scan: raw.relay.albedo_from_scan,
         };
         let adaptive = raw.pairs.is_adaptive();
         let pairs = pairs::pair_mode(src, raw.pairs)?;

@@ -564,7 +564,7 @@ fn departure_shrinkage(
 /// The smooth part of log-gains `log_gain` at `points` (weights `w`): a quadratic in
 /// the two in-plane coordinates of the points' fitted plane, by weighted least
 /// squares; the mean where fewer than six points or no plane fit.
-fn smooth_log_gains(points: &[DVec3], log_gain: &[f64], w: &[f64]) -> Vec<f64> {
+pub(crate) fn smooth_log_gains(points: &[DVec3], log_gain: &[f64], w: &[f64]) -> Vec<f64> {
     let total: f64 = w.iter().sum();
     let mean = if total > 0.0 {
         log_gain.iter().zip(w).map(|(l, w)| l * w).sum::<f64>() / total

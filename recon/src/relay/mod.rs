@@ -3,11 +3,13 @@
 //!
 //! The measured relay may be any shape (a wall, a curved panel, two people's backs), so
 //! nothing here assumes a plane except [`VirtualRelay`], which is a plane by design.
+mod albedo;
 mod cloud;
 mod normals;
 mod region;
 mod virtual_relay;
 
+pub use albedo::RelayAlbedo;
 pub use cloud::{Thresholds, reject_isolated};
 pub use normals::{SurfaceNormal, estimate_normals};
 pub use region::Region;
