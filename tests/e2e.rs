@@ -13,19 +13,19 @@
 //!
 //! | scene | median | p90 | IoU | bounds |
 //! |---|---|---|---|---|
-//! | wall + letter, confocal | 0.32 mm | 0.67 mm | 0.808 | 0.5 mm, 1.0 mm, 0.78 |
+//! | wall + letter, confocal | 0.34 mm | 0.68 mm | 0.808 | 0.5 mm, 1.0 mm, 0.78 |
 //! | the same, its export solved by FBP (pairs weighted by their share of the relay) | 4.55 mm | 8.91 mm | 0.718 | 6 mm, 10.5 mm, 0.70 |
-//! | wall + letter, fixed laser | 0.74 mm | 1.05 mm | 0.832 | 1.0 mm, 1.2 mm, 0.81 |
-//! | wall + letter on a patchy wall, gains from the relay scan | 0.35 mm | 0.80 mm | 0.806 | 0.5 mm, 1.0 mm, 0.78 |
+//! | wall + letter, fixed laser | 0.75 mm | 1.06 mm | 0.834 | 1.0 mm, 1.2 mm, 0.81 |
+//! | wall + letter on a patchy wall, gains from the relay scan | 0.38 mm | 0.80 mm | 0.806 | 0.5 mm, 1.0 mm, 0.78 |
 //! | the same, gains from the fit instead | 0.33 mm | 0.86 mm | 0.806 | 0.5 mm, 1.0 mm, 0.78 |
-//! | S relay + letter | 0.61 mm | 1.66 mm | 0.866 | 1.0 mm, 2.5 mm, 0.845 |
+//! | S relay + letter | 0.59 mm | 1.62 mm | 0.866 | 1.0 mm, 2.5 mm, 0.845 |
 //! | torso pair + mannequin (the middle of seeds 0–2 by IoU) | 2.63 mm | 13.5 mm | 0.608 | 3.5 mm, 16 mm, 0.585 |
 //!
 //! Since the relay scan's albedo gives each transient its known gain
 //! (`relay.albedo-from-scan`, docs/recon.md; 2026-12-02) the rows moved: the confocal
 //! wall from 0.32 mm, 0.72 mm, 0.803; the S relay from 0.70 mm, 2.08 mm, 0.884 (seeds
-//! 0–2: IoU 0.866–0.881 against 0.878–0.884, depth errors 12–20 % lower); the torso
-//! pair from 2.30 mm, 10.2 mm, 0.544 (seeds 0–2: IoU 0.563, 0.643, 0.608 against 0.482,
+//! 0–2: IoU 0.866–0.881 against 0.878–0.884, depth errors 12–22 % lower); the torso
+//! pair from 2.30 mm, 10.2 mm, 0.544 (seeds 0–2: IoU 0.569, 0.643, 0.608 against 0.482,
 //! 0.566, 0.544: more of the mannequin found, and with it pixels whose depth is harder,
 //! so the 90th percentile rose). The curved relays gain most: the SPAD's collection
 //! from a spot (cos θ / d² from the SPAD arm) varies most across them, and the fit's
@@ -131,8 +131,8 @@ fn planar_wall_letter_confocal_matches_the_truth() {
 /// fit chooses 288 of the same 576 candidates (72 spread over the grid first, then
 /// batches of 18), and the letter comes out with the full capture's median error and
 /// silhouette (the bounds the full capture is held to above); its 90th percentile is
-/// bounded at 1.2 mm where the full capture's is 1.0 mm. Measured: median 0.26 mm,
-/// 90th percentile 0.97 mm, IoU 0.797 with the relay scan's gains (before them 0.24 mm,
+/// bounded at 1.2 mm where the full capture's is 1.0 mm. Measured: median 0.27 mm,
+/// 90th percentile 1.00 mm, IoU 0.797 with the relay scan's gains (before them 0.24 mm,
 /// 1.02 mm, 0.797; the full capture then: 0.32 mm, 0.72 mm, 0.803;
 /// half of the full demo's pairs replayed in the uniform and random orders: 0.35 and
 /// 0.33 mm, 1.06 and 1.32 mm, 0.797 and 0.794; docs/adaptive.md).
@@ -166,9 +166,9 @@ fn an_adaptive_capture_of_half_the_pairs_finds_what_the_full_capture_finds() {
 /// demo's bounds; so it does with the scan's albedo left out and the gains estimated
 /// by the fit instead (`configs/plans/patchy-wall.toml`, `pair-gains =
 /// "illumination"`, the path for a capture without a relay scan); with neither, it
-/// misses them. Measured (median, 90th percentile, IoU): from the scan 0.35 mm,
+/// misses them. Measured (median, 90th percentile, IoU): from the scan 0.38 mm,
 /// 0.80 mm, 0.806; from the fit 0.33 mm, 0.86 mm, 0.806; neither 0.44 mm, 1.34 mm,
-/// 0.801 (the uniform wall: 0.32 mm, 0.67 mm, 0.808).
+/// 0.801 (the uniform wall: 0.34 mm, 0.68 mm, 0.808).
 #[test]
 fn a_patchy_wall_gives_the_letter_back_with_gains_from_the_scan_or_the_fit() {
     let (instrument, scene) = (

@@ -28,6 +28,15 @@ use crate::transient::Pair;
 /// (fewer: its departure from the relay's smooth albedo is not used).
 const MIN_COUNTS: f64 = 1.0;
 
+/// The least cosine, from the spot to the laser or to the SPAD, at which a point's
+/// return is read: nearer grazing (84°) a small error in the estimated normal is a
+/// large error in `cos θ / d²`, and the point is left to its neighbours.
+const MIN_COSINE: f64 = 0.1;
+
+/// A pair's gain stays within this factor of the pairs' geometric mean, as the fit's
+/// own gain estimates do: beyond it the relay scan has misread a spot, not an albedo.
+const MAX_SPREAD: f64 = 10.0;
+
 /// Each relay point's two factors of a transient's gain, in the logarithm
 /// ([`RelayAlbedo::pair_gains`] combines them per pair).
 #[derive(Clone, Debug)]
@@ -43,8 +52,10 @@ pub struct RelayAlbedo {
 impl RelayAlbedo {
     /// From the relay scan: `points` and their unit `normals` (toward the instrument),
     /// each point's first-bounce `counts` (photons, background removed), and the
-    /// diffused laser's and the SPAD's origins. `None` with fewer than six points
-    /// with counts, or when the lengths differ.
+    /// diffused laser's and the SPAD's origins. Points with under one count, or seen
+    /// nearer grazing than a cosine of 0.1 from the laser or the SPAD, are left out
+    /// (pairs there take their nearest neighbour's factors). `None` with fewer than six points left, or when
+    /// the lengths differ.
     pub fn from_scan(
         points: &[DVec3],
         normals: &[DVec3],
@@ -60,7 +71,7 @@ impl RelayAlbedo {
             let to = at - p;
             let d2 = to.length_squared();
             let cos = normal.dot(to) / d2.sqrt();
-            (cos > 0.0 && d2 > 0.0).then(|| (cos / d2).ln())
+            (cos >= MIN_COSINE && d2 > 0.0).then(|| (cos / d2).ln())
         };
         let mut used = Vec::new();
         let (mut det, mut ill, mut var) = (Vec::new(), Vec::new(), Vec::new());
@@ -94,7 +105,7 @@ impl RelayAlbedo {
 
     /// Each pair's gain: the illumination factor at the relay point nearest `xi`
     /// times the detection factor at the one nearest `xd`, over their geometric mean
-    /// across `pairs` (so the overall scale stays the fit's).
+    /// across `pairs` (so the overall scale stays the fit's), within 10× of it.
     pub fn pair_gains(&self, pairs: &[Pair]) -> Vec<f64> {
         let nearest = |x: DVec3| self.tree.nearest_one::<SquaredEuclidean>(&x.to_array()).item as usize;
         let logs: Vec<f64> = pairs
@@ -105,7 +116,10 @@ impl RelayAlbedo {
             return Vec::new();
         }
         let mean = logs.iter().sum::<f64>() / logs.len() as f64;
-        logs.iter().map(|l| (l - mean).exp()).collect()
+        let limit = MAX_SPREAD.ln();
+        logs.iter()
+            .map(|l| (l - mean).clamp(-limit, limit).exp())
+            .collect()
     }
 
     /// The relay points the factors were read at.
