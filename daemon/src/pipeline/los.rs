@@ -56,16 +56,16 @@ pub(crate) fn return_photons(counts: &[f32], at: f64, half_width: usize) -> f64 
     if counts.is_empty() {
         return 0.0;
     }
-    let counts: Vec<f64> = counts.iter().map(|&c| f64::from(c)).collect();
     let centre = (at.max(0.0) as usize).min(counts.len() - 1);
     let lo = centre.saturating_sub(half_width);
     let hi = (centre + half_width + 1).min(counts.len());
-    let mut sorted = counts.clone();
-    sorted.sort_by(f64::total_cmp);
-    let background = sorted[sorted.len() / 2].max(0.0);
+    let mut order = counts.to_vec();
+    let mid = order.len() / 2;
+    let (_, &mut median, _) = order.select_nth_unstable_by(mid, f32::total_cmp);
+    let background = f64::from(median).max(0.0);
     counts[lo..hi]
         .iter()
-        .map(|c| c - background)
+        .map(|&c| f64::from(c) - background)
         .sum::<f64>()
         .max(0.0)
 }
