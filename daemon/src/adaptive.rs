@@ -5,9 +5,10 @@
 //! the candidate pairs (farthest-point order over both relay points), then asks the fit,
 //! after each batch's live training, which candidates would tell it most: the
 //! D-optimal gain of each candidate's information about the primitives' centres
-//! ([`periscope_recon::adaptive`]), chosen greedily, with a share of each batch kept
-//! for the candidates farthest from everything measured (what the fit has not found
-//! cannot ask to be looked at). A batch is measured in the order of a
+//! ([`periscope_recon::adaptive`]), chosen greedily among the candidates that keep the
+//! measured pairs spread (`coverage`), with a share of each batch kept for the
+//! candidates farthest from everything measured (what the fit has not found cannot ask
+//! to be looked at). A batch is measured in the order of a
 //! nearest-neighbour tour of the galvos. The capture ends at the pair budget, or once a
 //! batch's mean gain has fallen below `stop-gain` of the first choice's.
 use rand::SeedableRng;
@@ -16,7 +17,9 @@ use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
 
 use periscope_recon::Pair;
-use periscope_recon::adaptive::{InformationSums, choose, farthest_points, terms_of, tour, travel};
+use periscope_recon::adaptive::{
+    InformationSums, choose, choose_spread, farthest_points, terms_of, tour, travel,
+};
 use periscope_recon::gtr::LiveModel;
 use periscope_recon::transient::TimeAxis;
 
@@ -38,6 +41,10 @@ const MAX_SCORED: usize = 8192;
 /// measured against a quarter, three quarters and none on the validation captures
 /// (three seeds, half or an eighth of their pairs; docs/adaptive.md).
 const DEFAULT_EXPLORE: f64 = 0.5;
+/// The default spread a pick by gain keeps: 0.7 of the farthest candidate's distance,
+/// measured against 0 (by gain alone), 0.5 and 0.85 on the validation captures (three
+/// seeds, an eighth to half of their pairs; docs/adaptive.md).
+const DEFAULT_COVERAGE: f64 = 0.7;
 /// The default live optimiser steps each batch gets before the next choice.
 const DEFAULT_LIVE_STEPS: usize = 512;
 
@@ -78,6 +85,10 @@ pub struct AdaptiveSettings {
     pub stop_gain: f64,
     /// The share of each chosen batch taken farthest from what was measured.
     pub explore: f64,
+    /// The rest of the batch is chosen by gain among the candidates at least this
+    /// fraction as far from everything measured or chosen as the farthest candidate
+    /// is (0: by gain alone; 1: by distance alone).
+    pub coverage: f64,
     /// Live optimiser steps each batch gets before the next choice, at least.
     pub live_steps: usize,
     /// Seed of the random order (replays).
@@ -95,6 +106,7 @@ impl Default for AdaptiveSettings {
             batch: 0,
             stop_gain: 0.0,
             explore: DEFAULT_EXPLORE,
+            coverage: DEFAULT_COVERAGE,
             live_steps: DEFAULT_LIVE_STEPS,
             seed: 0,
             seconds: 0.0,
@@ -111,6 +123,7 @@ pub(crate) struct RawAdaptive {
     batch: Option<usize>,
     stop_gain: Option<f64>,
     explore: Option<f64>,
+    coverage: Option<f64>,
     live_steps: Option<usize>,
     seed: Option<u64>,
     seconds: Option<f64>,
@@ -130,6 +143,7 @@ pub(crate) fn adaptive_settings(
         batch: raw.batch.unwrap_or(d.batch),
         stop_gain: raw.stop_gain.unwrap_or(d.stop_gain),
         explore: raw.explore.unwrap_or(d.explore),
+        coverage: raw.coverage.unwrap_or(d.coverage),
         live_steps: raw.live_steps.unwrap_or(d.live_steps),
         seed: raw.seed.unwrap_or(d.seed),
         seconds: raw.seconds.unwrap_or(d.seconds),
@@ -164,6 +178,15 @@ pub(crate) fn adaptive_settings(
             format!(
                 "{} is out of range: give the share of each batch chosen by distance, 0 to 1",
                 s.explore
+            ),
+        ));
+    }
+    if !(s.coverage.is_finite() && (0.0..=1.0).contains(&s.coverage)) {
+        return Err(src.invalid(
+            &key("coverage"),
+            format!(
+                "{} is out of range: give the fraction of the farthest candidate's distance a pick by gain must keep, 0 to 1",
+                s.coverage
             ),
         ));
     }
@@ -456,7 +479,19 @@ impl Selector {
         let open_terms = terms_of(&model.kernels, &pairs(&open), axis, &model.options);
         let mut info = sums.finish(&open_terms);
         let by_gain = n - ((n as f64 * self.settings.explore).round() as usize).min(n);
-        let chosen = choose(&mut info, &open_terms, by_gain);
+        let taken: Vec<Pair> = self.measured.iter().map(|&i| self.candidates[i]).collect();
+        let chosen = if self.settings.coverage > 0.0 {
+            choose_spread(
+                &mut info,
+                &open_terms,
+                &pairs(&open),
+                &taken,
+                by_gain,
+                self.settings.coverage,
+            )
+        } else {
+            choose(&mut info, &open_terms, by_gain)
+        };
         let mean = if chosen.is_empty() {
             0.0
         } else {
@@ -477,8 +512,11 @@ impl Selector {
         // not found cannot ask to be looked at.
         let taken: Vec<usize> = self.measured.iter().chain(&batch).copied().collect();
         let spread = farthest_points(&self.candidates, &taken, n - batch.len());
-        let explored = spread.len();
-        gains.extend(std::iter::repeat_n(0.0, explored));
+        let by_distance = spread.len();
+        gains.extend(std::iter::repeat_n(0.0, by_distance));
+        // With the spread kept, a pick no candidate within reach had a gain for was
+        // taken by distance too.
+        let explored = by_distance + chosen.iter().filter(|c| c.gain == 0.0).count();
         batch.extend(spread);
         Some(self.take(batch, gains, explored, "adaptive", Some(relative)))
     }
@@ -564,6 +602,7 @@ mod tests {
                 first: 16,
                 batch: 32,
                 explore: 0.0,
+                coverage: 0.0,
                 ..Default::default()
             };
             let mut s = Selector::new(wall(16), settings, order);
@@ -599,6 +638,7 @@ mod tests {
             batch: 16,
             stop_gain: 0.9,
             explore: 0.0,
+            coverage: 0.0,
             ..Default::default()
         };
         let mut s = Selector::new(wall(16), settings, Order::Adaptive);
@@ -632,5 +672,10 @@ mod tests {
             ..Default::default()
         });
         assert!(e.contains("adaptive.explore"), "{e}");
+        let e = bad(RawAdaptive {
+            coverage: Some(f64::NAN),
+            ..Default::default()
+        });
+        assert!(e.contains("adaptive.coverage"), "{e}");
     }
 }

@@ -289,6 +289,84 @@ pub fn choose(info: &mut Information, candidates: &[Vec<Term>], n: usize) -> Vec
     chosen
 }
 
+/// [`choose`] with the spread kept: each pick is the candidate of highest gain among
+/// those at least `coverage` times as far from every pair of `taken` and every pick
+/// before it as the farthest open candidate is (distance over both relay points, as
+/// [`farthest_points`] measures it); where none of those sees anything, the farthest
+/// itself, with gain 0. `coverage` 0 chooses by gain alone (as [`choose`], except that
+/// it fills the batch by distance once no candidate sees anything), 1 by distance alone
+/// (as [`farthest_points`]).
+///
+/// `pairs` are the candidates' pairs, in the order of their `terms`. The picks then
+/// leave no hole in the measured pairs much wider than the farthest-point order would,
+/// and within that the fit's information decides: a fit of few pairs cannot see what it
+/// has not found, and a refit of pairs crowded where the first fit looked sees the rest
+/// of the scene worse (docs/adaptive.md).
+pub fn choose_spread(
+    info: &mut Information,
+    terms: &[Vec<Term>],
+    pairs: &[Pair],
+    taken: &[Pair],
+    n: usize,
+    coverage: f64,
+) -> Vec<Choice> {
+    assert_eq!(terms.len(), pairs.len(), "one pair a candidate's terms");
+    let mut stale: Vec<f64> = terms.par_iter().map(|t| info.gain(t)).collect();
+    let mut round = vec![0usize; terms.len()];
+    let mut used = vec![false; terms.len()];
+    let mut nearest = vec![f64::INFINITY; pairs.len()];
+    let relax = |nearest: &mut [f64], from: &Pair| {
+        nearest
+            .par_iter_mut()
+            .zip(pairs.par_iter())
+            .for_each(|(d, p)| *d = d.min(pair_distance_squared(p, from)));
+    };
+    for p in taken {
+        relax(&mut nearest, p);
+    }
+    let share = coverage.clamp(0.0, 1.0).powi(2);
+    let mut chosen = Vec::with_capacity(n.min(terms.len()));
+    while chosen.len() < n {
+        // The farthest open candidate, and the distance a pick must keep.
+        let Some((far, far_d)) = nearest
+            .iter()
+            .enumerate()
+            .filter(|(i, _)| !used[*i])
+            .max_by(|a, b| a.1.total_cmp(b.1).then_with(|| b.0.cmp(&a.0)))
+            .map(|(i, d)| (i, *d))
+        else {
+            break;
+        };
+        let floor = if share == 0.0 {
+            f64::NEG_INFINITY
+        } else {
+            share * far_d
+        };
+        let pick = loop {
+            let best = (0..terms.len())
+                .filter(|&i| !used[i] && nearest[i] >= floor && stale[i] > 0.0)
+                .max_by(|&a, &b| stale[a].total_cmp(&stale[b]).then_with(|| b.cmp(&a)));
+            let Some(i) = best else { break None };
+            if round[i] == chosen.len() {
+                break Some(i);
+            }
+            stale[i] = info.gain(&terms[i]);
+            round[i] = chosen.len();
+        };
+        let (index, gain) = match pick {
+            Some(i) => {
+                info.add(&terms[i]);
+                (i, stale[i])
+            }
+            None => (far, 0.0),
+        };
+        used[index] = true;
+        relax(&mut nearest, &pairs[index]);
+        chosen.push(Choice { index, gain });
+    }
+    chosen
+}
+
 /// The distance between two pairs: both relay points' displacements together.
 fn pair_distance_squared(a: &Pair, b: &Pair) -> f64 {
     a.xi.distance_squared(b.xi) + a.xd.distance_squared(b.xd)
@@ -492,6 +570,89 @@ mod tests {
         // Deterministic.
         let mut again = Information::new(1, &[], &terms);
         assert_eq!(choose(&mut again, &terms, 20), chosen);
+    }
+
+    #[test]
+    fn a_spread_batch_keeps_its_distance_and_chooses_by_gain_within_it() {
+        // One primitive over a corner of a wall whose centre was measured: by gain
+        // alone the batch crowds that corner; with the spread kept, every pick is at
+        // least `coverage` times as far from the pairs before it as the farthest open
+        // candidate was, and among those the ones nearer the primitive come first.
+        let kernels = vec![kernel(DVec3::new(0.3, 0.3, 0.4), 1.0)];
+        let pairs = wall(9, 0.1);
+        let opt = RenderOptions::default();
+        let terms = terms_of(&kernels, &pairs, &axis(), &opt);
+        let taken = [pairs[40]];
+        let spread_of = |idx: &[usize]| {
+            // The largest distance from any open pair to the pairs taken or chosen.
+            let near: Vec<Pair> = taken
+                .iter()
+                .copied()
+                .chain(idx.iter().map(|&i| pairs[i]))
+                .collect();
+            (0..pairs.len())
+                .filter(|i| *i != 40 && !idx.contains(i))
+                .map(|i| {
+                    near.iter()
+                        .map(|p| pair_distance_squared(&pairs[i], p))
+                        .fold(f64::INFINITY, f64::min)
+                        .sqrt()
+                })
+                .fold(0.0, f64::max)
+        };
+        let mut greedy = Information::new(1, &terms[40..41], &terms);
+        let by_gain: Vec<usize> = choose(&mut greedy, &terms, 8).iter().map(|c| c.index).collect();
+        let mut info = Information::new(1, &terms[40..41], &terms);
+        let spread = choose_spread(&mut info, &terms, &pairs, &taken, 8, 0.7);
+        let idx: Vec<usize> = spread.iter().map(|c| c.index).collect();
+        assert_eq!(idx.len(), 8);
+        for (k, c) in spread.iter().enumerate() {
+            let before = &idx[..k];
+            let near: Vec<Pair> = taken
+                .iter()
+                .copied()
+                .chain(before.iter().map(|&i| pairs[i]))
+                .collect();
+            let d = near
+                .iter()
+                .map(|p| pair_distance_squared(&pairs[c.index], p))
+                .fold(f64::INFINITY, f64::min)
+                .sqrt();
+            assert!(d >= 0.7 * spread_of(before) - 1e-12, "pick {k} at {d} m");
+        }
+        assert!(
+            spread_of(&idx) < spread_of(&by_gain),
+            "the spread batch leaves a hole {} m wide, by gain alone {} m",
+            spread_of(&idx),
+            spread_of(&by_gain)
+        );
+        // The first pick is the eligible pair of highest gain, near the primitive, not
+        // the farthest-point order's first (the lowest-index corner).
+        let fresh = Information::new(1, &terms[40..41], &terms);
+        let reach = 0.7 * spread_of(&[]);
+        let best = (0..pairs.len())
+            .filter(|&i| pairs[i].xi.distance(pairs[40].xi) * 2f64.sqrt() >= reach - 1e-12)
+            .max_by(|&a, &b| fresh.gain(&terms[a]).total_cmp(&fresh.gain(&terms[b])))
+            .unwrap();
+        assert_eq!(idx[0], best, "{idx:?}");
+        assert_ne!(idx[0], farthest_points(&pairs, &[40], 1)[0]);
+        assert!(pairs[idx[0]].xi.x > 0.2 && pairs[idx[0]].xi.y > 0.2, "{idx:?}");
+        assert!(spread[0].gain > 0.0);
+        // Coverage 0 takes what `choose` takes; coverage 1 what `farthest_points` takes.
+        let mut a = Information::new(1, &terms[40..41], &terms);
+        let none: Vec<usize> = choose_spread(&mut a, &terms, &pairs, &taken, 8, 0.0)
+            .iter()
+            .map(|c| c.index)
+            .collect();
+        assert_eq!(none, by_gain);
+        let mut b = Information::new(1, &terms[40..41], &terms);
+        let all = choose_spread(&mut b, &terms, &pairs, &taken, 4, 1.0);
+        let mut far: Vec<usize> = all.iter().map(|c| c.index).collect();
+        far.sort();
+        assert_eq!(far, vec![0, 8, 72, 80]);
+        // Deterministic.
+        let mut again = Information::new(1, &terms[40..41], &terms);
+        assert_eq!(choose_spread(&mut again, &terms, &pairs, &taken, 8, 0.7), spread);
     }
 
     #[test]
