@@ -480,22 +480,31 @@ impl Selector {
         let mut info = sums.finish(&open_terms);
         let by_gain = n - ((n as f64 * self.settings.explore).round() as usize).min(n);
         let taken: Vec<Pair> = self.measured.iter().map(|&i| self.candidates[i]).collect();
-        let chosen = if self.settings.coverage > 0.0 {
-            choose_spread(
+        let mean_gain = |chosen: &[periscope_recon::adaptive::Choice]| {
+            if chosen.is_empty() {
+                0.0
+            } else {
+                chosen.iter().map(|c| c.gain).sum::<f64>() / chosen.len() as f64
+            }
+        };
+        // The stopping rule and the events read the gain of the pairs the fit would
+        // choose by gain alone: how much is left to learn, wherever it lies. The picks
+        // that keep the spread gain less, by how far the best lie from the eligible.
+        let (chosen, mean) = if self.settings.coverage > 0.0 {
+            let free = choose(&mut info.clone(), &open_terms, by_gain);
+            let chosen = choose_spread(
                 &mut info,
                 &open_terms,
                 &pairs(&open),
                 &taken,
                 by_gain,
                 self.settings.coverage,
-            )
+            );
+            (chosen, mean_gain(&free))
         } else {
-            choose(&mut info, &open_terms, by_gain)
-        };
-        let mean = if chosen.is_empty() {
-            0.0
-        } else {
-            chosen.iter().map(|c| c.gain).sum::<f64>() / chosen.len() as f64
+            let chosen = choose(&mut info, &open_terms, by_gain);
+            let mean = mean_gain(&chosen);
+            (chosen, mean)
         };
         let first = *self.first_gain.get_or_insert(mean);
         let relative = if first > 0.0 { mean / first } else { 0.0 };
@@ -638,7 +647,6 @@ mod tests {
             batch: 16,
             stop_gain: 0.9,
             explore: 0.0,
-            coverage: 0.0,
             ..Default::default()
         };
         let mut s = Selector::new(wall(16), settings, Order::Adaptive);
