@@ -313,28 +313,15 @@ pub fn choose_spread(
     assert_eq!(terms.len(), pairs.len(), "one pair a candidate's terms");
     let mut stale: Vec<f64> = terms.par_iter().map(|t| info.gain(t)).collect();
     let mut round = vec![0usize; terms.len()];
-    let mut used = vec![false; terms.len()];
-    let mut nearest = vec![f64::INFINITY; pairs.len()];
-    let relax = |nearest: &mut [f64], from: &Pair| {
-        nearest
-            .par_iter_mut()
-            .zip(pairs.par_iter())
-            .for_each(|(d, p)| *d = d.min(pair_distance_squared(p, from)));
-    };
+    let mut spread = Spread::new(pairs);
     for p in taken {
-        relax(&mut nearest, p);
+        spread.relax(p);
     }
     let share = coverage.clamp(0.0, 1.0).powi(2);
     let mut chosen = Vec::with_capacity(n.min(terms.len()));
     while chosen.len() < n {
         // The farthest open candidate, and the distance a pick must keep.
-        let Some((far, far_d)) = nearest
-            .iter()
-            .enumerate()
-            .filter(|(i, _)| !used[*i])
-            .max_by(|a, b| a.1.total_cmp(b.1).then_with(|| b.0.cmp(&a.0)))
-            .map(|(i, d)| (i, *d))
-        else {
+        let Some((far, far_d)) = spread.farthest() else {
             break;
         };
         let floor = if share == 0.0 {
@@ -344,7 +331,7 @@ pub fn choose_spread(
         };
         let pick = loop {
             let best = (0..terms.len())
-                .filter(|&i| !used[i] && nearest[i] >= floor && stale[i] > 0.0)
+                .filter(|&i| spread.is_open(i) && spread.nearest[i] >= floor && stale[i] > 0.0)
                 .max_by(|&a, &b| stale[a].total_cmp(&stale[b]).then_with(|| b.cmp(&a)));
             let Some(i) = best else { break None };
             if round[i] == chosen.len() {
@@ -360,11 +347,58 @@ pub fn choose_spread(
             }
             None => (far, 0.0),
         };
-        used[index] = true;
-        relax(&mut nearest, &pairs[index]);
+        spread.take(index);
         chosen.push(Choice { index, gain });
     }
     chosen
+}
+
+/// Each pair's squared distance to the nearest pair taken, and which are taken: the
+/// bookkeeping of [`farthest_points`] and [`choose_spread`].
+struct Spread<'a> {
+    pairs: &'a [Pair],
+    nearest: Vec<f64>,
+    used: Vec<bool>,
+}
+
+impl<'a> Spread<'a> {
+    /// Nothing taken: every pair infinitely far.
+    fn new(pairs: &'a [Pair]) -> Self {
+        Self {
+            pairs,
+            nearest: vec![f64::INFINITY; pairs.len()],
+            used: vec![false; pairs.len()],
+        }
+    }
+
+    /// Brings every pair's distance down to `from`'s where that is nearer.
+    fn relax(&mut self, from: &Pair) {
+        self.nearest
+            .par_iter_mut()
+            .zip(self.pairs.par_iter())
+            .for_each(|(d, p)| *d = d.min(pair_distance_squared(p, from)));
+    }
+
+    /// Takes pair `i`: it is no longer open, and the others are measured from it too.
+    fn take(&mut self, i: usize) {
+        self.used[i] = true;
+        self.relax(&self.pairs[i]);
+    }
+
+    fn is_open(&self, i: usize) -> bool {
+        !self.used[i]
+    }
+
+    /// The open pair farthest from those taken, and its squared distance; ties go to
+    /// the lower index.
+    fn farthest(&self) -> Option<(usize, f64)> {
+        self.nearest
+            .iter()
+            .enumerate()
+            .filter(|(i, _)| !self.used[*i])
+            .max_by(|a, b| a.1.total_cmp(b.1).then_with(|| b.0.cmp(&a.0)))
+            .map(|(i, d)| (i, *d))
+    }
 }
 
 /// The distance between two pairs: both relay points' displacements together.
@@ -377,17 +411,9 @@ fn pair_distance_squared(a: &Pair, b: &Pair) -> f64 {
 /// relay and any pair layout. With nothing taken, the first is the pair nearest the
 /// pairs' mean. Deterministic: ties go to the lower index.
 pub fn farthest_points(pairs: &[Pair], taken: &[usize], n: usize) -> Vec<usize> {
-    let mut nearest = vec![f64::INFINITY; pairs.len()];
-    let mut used = vec![false; pairs.len()];
-    let relax = |nearest: &mut [f64], from: &Pair| {
-        nearest
-            .par_iter_mut()
-            .zip(pairs.par_iter())
-            .for_each(|(d, p)| *d = d.min(pair_distance_squared(p, from)));
-    };
+    let mut spread = Spread::new(pairs);
     for &i in taken {
-        used[i] = true;
-        relax(&mut nearest, &pairs[i]);
+        spread.take(i);
     }
     if taken.is_empty() && !pairs.is_empty() {
         let k = pairs.len() as f64;
@@ -398,24 +424,18 @@ pub fn farthest_points(pairs: &[Pair], taken: &[usize], n: usize) -> Vec<usize> 
                 xd: m.xd + p.xd / k,
                 ..m
             });
-        for (d, p) in nearest.iter_mut().zip(pairs) {
+        for (d, p) in spread.nearest.iter_mut().zip(pairs) {
             *d = -pair_distance_squared(p, &mean);
         }
     }
     let mut out = Vec::with_capacity(n.min(pairs.len()));
     while out.len() < n {
-        let best = nearest
-            .iter()
-            .enumerate()
-            .filter(|(i, _)| !used[*i])
-            .max_by(|a, b| a.1.total_cmp(b.1).then_with(|| b.0.cmp(&a.0)));
-        let Some((i, _)) = best else { break };
-        used[i] = true;
+        let Some((i, _)) = spread.farthest() else { break };
         out.push(i);
         if out.len() == 1 && taken.is_empty() {
-            nearest.fill(f64::INFINITY);
+            spread.nearest.fill(f64::INFINITY);
         }
-        relax(&mut nearest, &pairs[i]);
+        spread.take(i);
     }
     out
 }
