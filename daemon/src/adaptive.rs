@@ -172,23 +172,17 @@ pub(crate) fn adaptive_settings(
             format!("{} is out of range: give a fraction of the first batch's gain, 0 to 1 (e.g. 0.05); 0 stops at the budget only", s.stop_gain),
         ));
     }
-    if !(s.explore.is_finite() && (0.0..=1.0).contains(&s.explore)) {
-        return Err(src.invalid(
-            &key("explore"),
-            format!(
-                "{} is out of range: give the share of each batch chosen by distance, 0 to 1",
-                s.explore
-            ),
-        ));
-    }
-    if !(s.coverage.is_finite() && (0.0..=1.0).contains(&s.coverage)) {
-        return Err(src.invalid(
-            &key("coverage"),
-            format!(
-                "{} is out of range: give the fraction of the farthest candidate's distance a pick by gain must keep, 0 to 1",
-                s.coverage
-            ),
-        ));
+    for (name, v, what) in [
+        ("explore", s.explore, "the share of each batch chosen by distance"),
+        (
+            "coverage",
+            s.coverage,
+            "the fraction of the farthest candidate's distance a pick by gain must keep",
+        ),
+    ] {
+        if !(v.is_finite() && (0.0..=1.0).contains(&v)) {
+            return Err(src.invalid(&key(name), format!("{v} is out of range: give {what}, 0 to 1")));
+        }
     }
     if !(s.seconds.is_finite() && (0.0..=1e7).contains(&s.seconds)) {
         return Err(src.invalid(
@@ -479,7 +473,7 @@ impl Selector {
         let open_terms = terms_of(&model.kernels, &pairs(&open), axis, &model.options);
         let mut info = sums.finish(&open_terms);
         let by_gain = n - ((n as f64 * self.settings.explore).round() as usize).min(n);
-        let taken: Vec<Pair> = self.measured.iter().map(|&i| self.candidates[i]).collect();
+        let measured: Vec<Pair> = pairs(&self.measured);
         let mean_gain = |chosen: &[periscope_recon::adaptive::Choice]| {
             if chosen.is_empty() {
                 0.0
@@ -496,7 +490,7 @@ impl Selector {
                 &mut info,
                 &open_terms,
                 &pairs(&open),
-                &taken,
+                &measured,
                 by_gain,
                 self.settings.coverage,
             );
