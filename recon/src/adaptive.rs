@@ -697,6 +697,11 @@ mod tests {
         assert!(terms.iter().all(Vec::is_empty));
         let mut info = Information::new(1, &[], &terms);
         assert!(choose(&mut info, &terms, 4).is_empty());
+        // Keeping the spread, each pick falls back to the farthest pair, with gain 0.
+        let spread = choose_spread(&mut info, &terms, &pairs, &[pairs[4]], 4, 0.7);
+        let idx: Vec<usize> = spread.iter().map(|c| c.index).collect();
+        assert_eq!(idx, farthest_points(&pairs, &[4], 4));
+        assert!(spread.iter().all(|c| c.gain == 0.0), "{spread:?}");
     }
 
     #[test]
