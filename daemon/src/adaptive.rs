@@ -34,7 +34,8 @@ const MIN_BATCH: usize = 8;
 
 /// Candidates scored for one choice at most (a seeded sample of the rest beyond it),
 /// and measured pairs whose terms are held at once: with each pair's terms capped
-/// ([`periscope_recon::adaptive::MAX_TERMS`]), a choice holds at most about 170 MB.
+/// ([`periscope_recon::adaptive::MAX_TERMS`]), a choice holds at most about 170 MB of
+/// terms, and at most 16 MB of strengths for the prior however many were measured.
 const MAX_SCORED: usize = 8192;
 
 /// The default share of each chosen batch taken by distance instead of by gain. Half:
@@ -169,7 +170,7 @@ pub(crate) fn adaptive_settings(
     if !(s.stop_gain.is_finite() && (0.0..1.0).contains(&s.stop_gain)) {
         return Err(src.invalid(
             &key("stop-gain"),
-            format!("{} is out of range: give a fraction of the first batch's gain, 0 to 1 (e.g. 0.05); 0 stops at the budget only", s.stop_gain),
+            format!("{} is out of range: give a fraction of the first batch's gain, 0 to 1 but under 1 (e.g. 0.05); 0 stops at the budget only", s.stop_gain),
         ));
     }
     for (name, v, what) in [
@@ -222,7 +223,9 @@ pub struct BatchChoice {
     pub gains: Vec<f64>,
     /// How many were taken by distance (`explore`).
     pub explored: usize,
-    /// The mean gain of those chosen by gain, relative to the first chosen batch's.
+    /// The mean gain of a whole batch's picks by gain, chosen without keeping the
+    /// spread, relative to the first chosen batch that saw anything (`None` before
+    /// one has, and in the uniform and random orders).
     pub relative_gain: Option<f64>,
     /// The galvos' travel over the batch's tour, metres on the relay (the longer arm's).
     pub travel_m: f64,
@@ -472,7 +475,7 @@ impl Selector {
         }
         let open_terms = terms_of(&model.kernels, &pairs(&open), axis, &model.options);
         let mut info = sums.finish(&open_terms);
-        let by_gain = n - ((n as f64 * self.settings.explore).round() as usize).min(n);
+        let by_gain = |n: usize| n - ((n as f64 * self.settings.explore).round() as usize).min(n);
         let measured: Vec<Pair> = pairs(&self.measured);
         let mean_gain = |chosen: &[periscope_recon::adaptive::Choice]| {
             if chosen.is_empty() {
@@ -484,25 +487,33 @@ impl Selector {
         // The stopping rule and the events read the gain of the pairs the fit would
         // choose by gain alone: how much is left to learn, wherever it lies. The picks
         // that keep the spread gain less, by how far the best lie from the eligible.
-        let (chosen, mean) = if self.settings.coverage > 0.0 {
-            let free = choose(&mut info.clone(), &open_terms, by_gain);
-            let chosen = choose_spread(
+        // As many as a whole batch chooses by gain, and at least one, so that a last,
+        // short batch or one taken wholly by distance is not read as nothing left.
+        let reference = by_gain(self.sizes.batch).max(1);
+        let free = choose(&mut info.clone(), &open_terms, reference);
+        let mean = mean_gain(&free);
+        let chosen = if self.settings.coverage > 0.0 {
+            choose_spread(
                 &mut info,
                 &open_terms,
                 &pairs(&open),
                 &measured,
-                by_gain,
+                by_gain(n),
                 self.settings.coverage,
-            );
-            (chosen, mean_gain(&free))
+            )
         } else {
-            let chosen = choose(&mut info, &open_terms, by_gain);
-            let mean = mean_gain(&chosen);
-            (chosen, mean)
+            choose(&mut info, &open_terms, by_gain(n))
         };
-        let first = *self.first_gain.get_or_insert(mean);
-        let relative = if first > 0.0 { mean / first } else { 0.0 };
-        if self.settings.stop_gain > 0.0 && relative < self.settings.stop_gain {
+        // The first batch whose pairs see anything sets the reference; until one does,
+        // nothing is known to have fallen.
+        if self.first_gain.is_none() && mean > 0.0 {
+            self.first_gain = Some(mean);
+        }
+        let relative = self.first_gain.map(|first| mean / first);
+        if let Some(relative) = relative
+            && self.settings.stop_gain > 0.0
+            && relative < self.settings.stop_gain
+        {
             self.stopped = Some(format!(
                 "the expected gain of the next batch fell to {relative:.3} of the first chosen batch's (adaptive.stop-gain = {})",
                 self.settings.stop_gain
@@ -521,7 +532,7 @@ impl Selector {
         // taken by distance too.
         let explored = by_distance + chosen.iter().filter(|c| c.gain == 0.0).count();
         batch.extend(spread);
-        Some(self.take(batch, gains, explored, "adaptive", Some(relative)))
+        Some(self.take(batch, gains, explored, "adaptive", relative))
     }
 }
 
@@ -652,6 +663,71 @@ mod tests {
         }
         assert!(s.measured().len() < 200);
         assert!(s.stopped().unwrap().contains("stop-gain"), "{:?}", s.stopped());
+    }
+
+    /// The stopping rule reads the gain of a whole batch's picks by gain, and only
+    /// from the first batch that sees anything: batches taken wholly by distance, of
+    /// one pair, or the budget's short last one, and a first fit that sees nothing, do
+    /// not end a capture that has not fallen. (It did: the gain of no picks was 0, and
+    /// a reference of 0 read every later batch as fallen to nothing.)
+    #[test]
+    fn the_stopping_rule_needs_a_fall_from_a_batch_that_saw_something() {
+        let target = Kernel::new(
+            DVec3::new(0.0, 0.0, 0.4),
+            DMat3::IDENTITY,
+            DVec3::splat(0.02),
+            1.0,
+        );
+        // Far beyond the time axis: no candidate sees it.
+        let unseen = Kernel::new(
+            DVec3::new(0.0, 0.0, 40.0),
+            DMat3::IDENTITY,
+            DVec3::splat(0.02),
+            1.0,
+        );
+        let run = |explore: f64, batch: usize, pairs: usize, kernels: &[Vec<Kernel>]| {
+            let settings = AdaptiveSettings {
+                pairs,
+                first: 16,
+                batch,
+                stop_gain: 0.01,
+                explore,
+                ..Default::default()
+            };
+            let mut s = Selector::new(wall(16), settings, Order::Adaptive);
+            s.first();
+            let mut relative = Vec::new();
+            // The fits in turn, the last one's kernels from then on.
+            for i in 0.. {
+                let k = &kernels[i.min(kernels.len() - 1)];
+                match s.next(&model(k.clone()), &axis()) {
+                    Some(b) => relative.push(b.relative_gain),
+                    None => break,
+                }
+            }
+            (s.measured().len(), s.stopped().map(str::to_owned), relative)
+        };
+        let seen = [vec![target]];
+        for (explore, batch) in [(1.0, 8), (0.5, 1)] {
+            let (measured, stopped, relative) = run(explore, batch, 40, &seen);
+            assert_eq!(
+                measured, 40,
+                "explore {explore}, batch {batch}: stopped early: {stopped:?}"
+            );
+            assert_eq!(relative[0], Some(1.0), "the first choice is the reference");
+            assert!(
+                relative.iter().all(|r| r.is_some_and(|r| r > 0.01)),
+                "{relative:?}"
+            );
+        }
+        // 16 + 2 × 8 + a last batch of 3.
+        let (measured, stopped, _) = run(0.5, 8, 35, &seen);
+        assert_eq!(measured, 35, "the short last batch was measured: {stopped:?}");
+        // A first fit that sees nothing sets no reference; the next that does, does.
+        let (measured, stopped, relative) = run(0.5, 8, 40, &[vec![unseen], vec![target]]);
+        assert_eq!(measured, 40, "{stopped:?}");
+        assert_eq!(relative[0], None, "nothing seen, nothing to compare with");
+        assert_eq!(relative[1], Some(1.0));
     }
 
     #[test]

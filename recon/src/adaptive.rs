@@ -98,7 +98,12 @@ pub fn pair_terms(kernels: &[Kernel], pair: &Pair, axis: &TimeAxis, opt: &Render
     terms.retain(|t| t.strength() >= TERM_FLOOR * top);
     if terms.len() > MAX_TERMS {
         // The strongest, in primitive order (so the sums add in a fixed order).
-        terms.select_nth_unstable_by(MAX_TERMS, |a, b| b.strength().total_cmp(&a.strength()));
+        // Ties go to the lower primitive, so the cut does not rest on the sort.
+        terms.select_nth_unstable_by(MAX_TERMS, |a, b| {
+            b.strength()
+                .total_cmp(&a.strength())
+                .then(a.primitive.cmp(&b.primitive))
+        });
         terms.truncate(MAX_TERMS);
         terms.sort_unstable_by_key(|t| t.primitive);
     }
@@ -127,8 +132,18 @@ pub struct Information {
 #[derive(Clone, Debug)]
 pub struct InformationSums {
     sums: Vec<DMat3>,
+    /// The terms' strengths: of the `seen` so far, those whose place is a multiple of
+    /// `stride` (1 until there are [`MAX_STRENGTHS`] of them).
     strengths: Vec<f64>,
+    stride: usize,
+    seen: usize,
 }
+
+/// Strengths held for the prior's percentile at most (16 MB). Beyond it every other
+/// one held is dropped and the stride doubles: a fixed, evenly spread sample, so the
+/// memory of a choice stays bounded however many pairs were measured. Every term
+/// counts below it: 4,096 pairs of [`MAX_TERMS`] terms.
+const MAX_STRENGTHS: usize = 1 << 21;
 
 impl InformationSums {
     /// Nothing measured yet, for `primitives` primitives.
@@ -136,6 +151,8 @@ impl InformationSums {
         Self {
             sums: vec![DMat3::ZERO; primitives],
             strengths: Vec::new(),
+            stride: 1,
+            seen: 0,
         }
     }
 
@@ -144,7 +161,27 @@ impl InformationSums {
         for t in measured.iter().flatten() {
             let m = &mut self.sums[t.primitive as usize];
             *m += DMat3::from_cols(t.g * (t.c * t.g.x), t.g * (t.c * t.g.y), t.g * (t.c * t.g.z));
-            self.strengths.push(t.strength());
+            self.keep_strength(t.strength());
+        }
+    }
+
+    /// Holds `s` for the percentile, or passes over it (see [`MAX_STRENGTHS`]).
+    fn keep_strength(&mut self, s: f64) {
+        let place = self.seen;
+        self.seen += 1;
+        if !place.is_multiple_of(self.stride) {
+            return;
+        }
+        self.strengths.push(s);
+        if self.strengths.len() >= MAX_STRENGTHS {
+            // Held strength i is place i·stride: keep the even i, the multiples of
+            // twice the stride.
+            let mut i = 0usize;
+            self.strengths.retain(|_| {
+                i += 1;
+                !i.is_multiple_of(2)
+            });
+            self.stride *= 2;
         }
     }
 
@@ -295,7 +332,8 @@ pub fn choose(info: &mut Information, candidates: &[Vec<Term>], n: usize) -> Vec
 /// [`farthest_points`] measures it); where none of those sees anything, the farthest
 /// itself, with gain 0. `coverage` 0 chooses by gain alone (as [`choose`], except that
 /// it fills the batch by distance once no candidate sees anything), 1 by distance alone
-/// (as [`farthest_points`]).
+/// (as [`farthest_points`] once something is taken; with nothing taken every candidate
+/// is equally far, and the first pick is the one of highest gain).
 ///
 /// `pairs` are the candidates' pairs, in the order of their `terms`. The picks then
 /// leave no hole in the measured pairs much wider than the farthest-point order would,
@@ -411,6 +449,9 @@ fn pair_distance_squared(a: &Pair, b: &Pair) -> f64 {
 /// relay and any pair layout. With nothing taken, the first is the pair nearest the
 /// pairs' mean. Deterministic: ties go to the lower index.
 pub fn farthest_points(pairs: &[Pair], taken: &[usize], n: usize) -> Vec<usize> {
+    if n == 0 {
+        return Vec::new();
+    }
     let mut spread = Spread::new(pairs);
     for &i in taken {
         spread.take(i);
@@ -505,6 +546,41 @@ mod tests {
 
     fn kernel(x: DVec3, rho: f64) -> Kernel {
         Kernel::new(x, DMat3::IDENTITY, DVec3::splat(0.01), rho)
+    }
+
+    /// However many terms are measured, the strengths held for the prior stay under
+    /// the cap, as an even sample whose 90th percentile is the whole set's.
+    #[test]
+    fn the_strengths_held_for_the_prior_stay_bounded_and_representative() {
+        let mut sums = InformationSums::new(1);
+        let n = 5 * MAX_STRENGTHS / 2;
+        // Strengths 1..=n in a scrambled but fixed order.
+        for i in 0..n {
+            sums.keep_strength(((i * 7_919) % n + 1) as f64);
+        }
+        assert!(
+            sums.strengths.len() < MAX_STRENGTHS,
+            "{} held",
+            sums.strengths.len()
+        );
+        assert!(
+            sums.strengths.len() > MAX_STRENGTHS / 4,
+            "{} held",
+            sums.strengths.len()
+        );
+        assert_eq!(sums.stride, 4, "thinned twice");
+        let p = percentile(&mut sums.strengths).expect("positive strengths");
+        let truth = 0.9 * n as f64;
+        assert!(
+            (p - truth).abs() < 1e-3 * truth,
+            "90th percentile {p} against {truth}"
+        );
+        // Below the cap every strength is held.
+        let mut few = InformationSums::new(1);
+        for i in 0..1_000 {
+            few.keep_strength(i as f64);
+        }
+        assert_eq!(few.strengths.len(), 1_000);
     }
 
     #[test]
