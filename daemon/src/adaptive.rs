@@ -342,8 +342,11 @@ impl Selector {
     ) -> BatchChoice {
         let from = self.measured.last().map(|&i| self.candidates[i]);
         let order = tour(&self.candidates, &batch, from.as_ref());
-        let gain_of = |i: usize| batch.iter().position(|&b| b == i).map_or(0.0, |j| gains[j]);
-        let gains: Vec<f64> = order.iter().map(|&i| gain_of(i)).collect();
+        let gain_of: std::collections::HashMap<usize, f64> = batch.iter().copied().zip(gains).collect();
+        let gains: Vec<f64> = order
+            .iter()
+            .map(|i| gain_of.get(i).copied().unwrap_or(0.0))
+            .collect();
         let mut at = from;
         let mut travel_m = 0.0;
         for &i in &order {
