@@ -287,11 +287,9 @@ impl Ord for Entry {
     }
 }
 
-/// Chooses up to `n` of the `candidates` (each a pair's terms) greedily by gain, adding
-/// each choice's information to `info` as it is taken; candidates whose gain is 0 (they
-/// see nothing) are never taken. Deterministic: ties go to the lower index.
-pub fn choose(info: &mut Information, candidates: &[Vec<Term>], n: usize) -> Vec<Choice> {
-    let mut heap: BinaryHeap<Entry> = candidates
+/// The candidates that see anything, by their gain as of round 0.
+fn ranked(info: &Information, candidates: &[Vec<Term>]) -> BinaryHeap<Entry> {
+    candidates
         .par_iter()
         .enumerate()
         .map(|(index, terms)| Entry {
@@ -302,7 +300,14 @@ pub fn choose(info: &mut Information, candidates: &[Vec<Term>], n: usize) -> Vec
         .collect::<Vec<_>>()
         .into_iter()
         .filter(|e| e.gain > 0.0)
-        .collect();
+        .collect()
+}
+
+/// Chooses up to `n` of the `candidates` (each a pair's terms) greedily by gain, adding
+/// each choice's information to `info` as it is taken; candidates whose gain is 0 (they
+/// see nothing) are never taken. Deterministic: ties go to the lower index.
+pub fn choose(info: &mut Information, candidates: &[Vec<Term>], n: usize) -> Vec<Choice> {
+    let mut heap = ranked(info, candidates);
     let mut chosen = Vec::with_capacity(n.min(candidates.len()));
     while chosen.len() < n {
         let Some(top) = heap.pop() else { break };
@@ -349,14 +354,15 @@ pub fn choose_spread(
     coverage: f64,
 ) -> Vec<Choice> {
     assert_eq!(terms.len(), pairs.len(), "one pair a candidate's terms");
-    let mut stale: Vec<f64> = terms.par_iter().map(|t| info.gain(t)).collect();
-    let mut round = vec![0usize; terms.len()];
+    // Candidates by their last computed gain (lazy greedy, as in `choose`).
+    let mut heap = ranked(info, terms);
     let mut spread = Spread::new(pairs);
     for p in taken {
         spread.relax(p);
     }
     let share = coverage.clamp(0.0, 1.0).powi(2);
     let mut chosen = Vec::with_capacity(n.min(terms.len()));
+    let mut too_near = Vec::new();
     while chosen.len() < n {
         // The farthest open candidate, and the distance a pick must keep.
         let Some((far, far_d)) = spread.farthest() else {
@@ -367,21 +373,35 @@ pub fn choose_spread(
         } else {
             share * far_d
         };
+        // The first open candidate out of the heap that keeps the distance is the
+        // best of them; those too near are set aside for later picks, whose floor
+        // is lower.
         let pick = loop {
-            let best = (0..terms.len())
-                .filter(|&i| spread.is_open(i) && spread.nearest[i] >= floor && stale[i] > 0.0)
-                .max_by(|&a, &b| stale[a].total_cmp(&stale[b]).then_with(|| b.cmp(&a)));
-            let Some(i) = best else { break None };
-            if round[i] == chosen.len() {
-                break Some(i);
+            let Some(top) = heap.pop() else { break None };
+            if !spread.is_open(top.index) {
+                continue;
             }
-            stale[i] = info.gain(&terms[i]);
-            round[i] = chosen.len();
+            if spread.nearest[top.index] < floor {
+                too_near.push(top);
+                continue;
+            }
+            if top.round == chosen.len() {
+                break Some(top);
+            }
+            let gain = info.gain(&terms[top.index]);
+            if gain > 0.0 {
+                heap.push(Entry {
+                    gain,
+                    index: top.index,
+                    round: chosen.len(),
+                });
+            }
         };
+        heap.extend(too_near.drain(..));
         let (index, gain) = match pick {
-            Some(i) => {
-                info.add(&terms[i]);
-                (i, stale[i])
+            Some(top) => {
+                info.add(&terms[top.index]);
+                (top.index, top.gain)
             }
             None => (far, 0.0),
         };
