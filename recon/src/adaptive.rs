@@ -303,6 +303,21 @@ fn ranked(info: &Information, candidates: &[Vec<Term>]) -> BinaryHeap<Entry> {
         .collect()
 }
 
+/// Puts candidate `index` back into `heap` with its gain as of `round`, unless it no
+/// longer sees anything.
+fn refresh(
+    heap: &mut BinaryHeap<Entry>,
+    info: &Information,
+    candidates: &[Vec<Term>],
+    index: usize,
+    round: usize,
+) {
+    let gain = info.gain(&candidates[index]);
+    if gain > 0.0 {
+        heap.push(Entry { gain, index, round });
+    }
+}
+
 /// Chooses up to `n` of the `candidates` (each a pair's terms) greedily by gain, adding
 /// each choice's information to `info` as it is taken; candidates whose gain is 0 (they
 /// see nothing) are never taken. Deterministic: ties go to the lower index.
@@ -319,14 +334,7 @@ pub fn choose(info: &mut Information, candidates: &[Vec<Term>], n: usize) -> Vec
             });
             continue;
         }
-        let gain = info.gain(&candidates[top.index]);
-        if gain > 0.0 {
-            heap.push(Entry {
-                gain,
-                index: top.index,
-                round: chosen.len(),
-            });
-        }
+        refresh(&mut heap, info, candidates, top.index, chosen.len());
     }
     chosen
 }
@@ -388,14 +396,7 @@ pub fn choose_spread(
             if top.round == chosen.len() {
                 break Some(top);
             }
-            let gain = info.gain(&terms[top.index]);
-            if gain > 0.0 {
-                heap.push(Entry {
-                    gain,
-                    index: top.index,
-                    round: chosen.len(),
-                });
-            }
+            refresh(&mut heap, info, terms, top.index, chosen.len());
         };
         heap.extend(too_near.drain(..));
         let (index, gain) = match pick {
