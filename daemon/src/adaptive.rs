@@ -283,7 +283,8 @@ pub struct Selector {
     is_measured: Vec<bool>,
     /// The random order's permutation.
     shuffled: Vec<usize>,
-    /// Mean gain per pair of the first batch chosen by gain.
+    /// The stopping rule's reference: the gain it reads ([`Selector::next`]) at the first
+    /// chosen batch whose fit saw anything.
     first_gain: Option<f64>,
     batches: usize,
     /// Why the selection stopped, once it has.
