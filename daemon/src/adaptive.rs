@@ -376,6 +376,17 @@ impl Selector {
         choice
     }
 
+    /// The first `n` candidates of the seeded shuffle not yet measured: the random
+    /// order's next batch, whatever a resume marked measured before it.
+    fn next_shuffled(&self, n: usize) -> Vec<usize> {
+        self.shuffled
+            .iter()
+            .copied()
+            .filter(|&i| !self.is_measured[i])
+            .take(n)
+            .collect()
+    }
+
     /// Marks candidates already measured (a resumed capture's stored pairs, in the
     /// order they were measured), without choosing anything.
     pub fn resume(&mut self, measured: &[usize]) {
@@ -420,8 +431,9 @@ impl Selector {
         let n = self.sizes.first;
         match self.order {
             Order::Random => {
-                let batch = self.shuffled[..n].to_vec();
-                self.take(batch, vec![0.0; n], 0, "random", None)
+                let batch = self.next_shuffled(n);
+                let k = batch.len();
+                self.take(batch, vec![0.0; k], 0, "random", None)
             }
             Order::Adaptive | Order::Uniform => {
                 let batch = farthest_points(&self.candidates, &[], n);
@@ -447,9 +459,9 @@ impl Selector {
         let n = self.sizes.batch.min(left);
         match self.order {
             Order::Random => {
-                let at = self.measured.len();
-                let batch = self.shuffled[at..at + n].to_vec();
-                Some(self.take(batch, vec![0.0; n], 0, "random", None))
+                let batch = self.next_shuffled(n);
+                let k = batch.len();
+                Some(self.take(batch, vec![0.0; k], 0, "random", None))
             }
             Order::Uniform => {
                 let batch = farthest_points(&self.candidates, &self.measured, n);
@@ -601,6 +613,43 @@ mod tests {
             m.sort();
             m.dedup();
             assert_eq!(m.len(), 60, "{order}");
+        }
+    }
+
+    #[test]
+    fn a_resumed_capture_measures_each_candidate_at_most_once_in_every_order() {
+        // Stored pairs that are not the order's own prefix (another seed's shuffle, or
+        // a capture resumed under another order): the rest of the budget goes to pairs
+        // not yet measured.
+        let target = Kernel::new(
+            DVec3::new(0.3, 0.3, 0.5),
+            DMat3::IDENTITY,
+            DVec3::splat(0.02),
+            1.0,
+        );
+        let stored: Vec<usize> = (0..144).rev().step_by(7).collect();
+        for order in [Order::Adaptive, Order::Uniform, Order::Random] {
+            let settings = AdaptiveSettings {
+                pairs: 60,
+                first: 30,
+                batch: 16,
+                ..Default::default()
+            };
+            let mut s = Selector::new(wall(12), settings, order);
+            s.resume(&stored);
+            let mut sizes = Vec::new();
+            if let Some(b) = s.first_rest() {
+                sizes.push(b.pairs.len());
+            }
+            while let Some(b) = s.next(&model(vec![target]), &axis()) {
+                sizes.push(b.pairs.len());
+            }
+            assert_eq!(sizes, vec![9, 16, 14], "{order}");
+            let mut m = s.measured().to_vec();
+            assert_eq!(&m[..stored.len()], &stored[..], "{order}");
+            m.sort();
+            m.dedup();
+            assert_eq!(m.len(), 60, "{order}: a candidate measured twice");
         }
     }
 

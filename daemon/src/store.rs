@@ -428,7 +428,7 @@ pub fn read_text_capped(path: &Path, limit: u64) -> io::Result<String> {
 /// the file always holds one writer's whole bytes, the last rename's. A failed write
 /// removes its temporary file. The write itself is the recon crate's
 /// [`periscope_recon::io::write_bytes_atomically`] (y-tal captures are written with it
-/// too); this adds the fault injection of [`refuse_writes_in`].
+/// too); this adds the fault injection of `refuse_writes_in` (feature `test-hooks`).
 pub fn write_atomic(path: &Path, bytes: &[u8]) -> io::Result<()> {
     #[cfg(feature = "test-hooks")]
     if let Some(dir) = path.parent()
