@@ -588,31 +588,54 @@ mod tests {
         }
     }
 
-    #[test]
-    fn every_order_measures_each_candidate_at_most_once_and_stops_at_the_budget() {
+    /// Runs every order over a 12 × 12 wall to a budget of 60 pairs (a first batch of
+    /// `first`, then batches of 16) after resuming from `stored`, with a fit that sees a
+    /// target over one quadrant; each order's batch sizes and measured pairs.
+    fn to_the_budget(stored: &[usize], first: usize) -> Vec<(Order, Vec<usize>, Vec<usize>)> {
         let target = Kernel::new(
             DVec3::new(0.3, 0.3, 0.5),
             DMat3::IDENTITY,
             DVec3::splat(0.02),
             1.0,
         );
-        for order in [Order::Adaptive, Order::Uniform, Order::Random] {
-            let settings = AdaptiveSettings {
-                pairs: 60,
-                first: 20,
-                batch: 16,
-                ..Default::default()
-            };
-            let mut s = Selector::new(wall(12), settings, order);
-            let mut sizes = vec![s.first().pairs.len()];
-            while let Some(b) = s.next(&model(vec![target]), &axis()) {
-                sizes.push(b.pairs.len());
-            }
+        [Order::Adaptive, Order::Uniform, Order::Random]
+            .into_iter()
+            .map(|order| {
+                let settings = AdaptiveSettings {
+                    pairs: 60,
+                    first,
+                    batch: 16,
+                    ..Default::default()
+                };
+                let mut s = Selector::new(wall(12), settings, order);
+                s.resume(stored);
+                let first = if stored.is_empty() {
+                    Some(s.first())
+                } else {
+                    s.first_rest()
+                };
+                let mut sizes: Vec<usize> = first.iter().map(|b| b.pairs.len()).collect();
+                while let Some(b) = s.next(&model(vec![target]), &axis()) {
+                    sizes.push(b.pairs.len());
+                }
+                (order, sizes, s.measured().to_vec())
+            })
+            .collect()
+    }
+
+    /// How many different pairs `measured` holds.
+    fn distinct(measured: &[usize]) -> usize {
+        let mut m = measured.to_vec();
+        m.sort_unstable();
+        m.dedup();
+        m.len()
+    }
+
+    #[test]
+    fn every_order_measures_each_candidate_at_most_once_and_stops_at_the_budget() {
+        for (order, sizes, measured) in to_the_budget(&[], 20) {
             assert_eq!(sizes, vec![20, 16, 16, 8], "{order}");
-            let mut m = s.measured().to_vec();
-            m.sort();
-            m.dedup();
-            assert_eq!(m.len(), 60, "{order}");
+            assert_eq!(distinct(&measured), 60, "{order}");
         }
     }
 
@@ -621,35 +644,11 @@ mod tests {
         // Stored pairs that are not the order's own prefix (another seed's shuffle, or
         // a capture resumed under another order): the rest of the budget goes to pairs
         // not yet measured.
-        let target = Kernel::new(
-            DVec3::new(0.3, 0.3, 0.5),
-            DMat3::IDENTITY,
-            DVec3::splat(0.02),
-            1.0,
-        );
         let stored: Vec<usize> = (0..144).rev().step_by(7).collect();
-        for order in [Order::Adaptive, Order::Uniform, Order::Random] {
-            let settings = AdaptiveSettings {
-                pairs: 60,
-                first: 30,
-                batch: 16,
-                ..Default::default()
-            };
-            let mut s = Selector::new(wall(12), settings, order);
-            s.resume(&stored);
-            let mut sizes = Vec::new();
-            if let Some(b) = s.first_rest() {
-                sizes.push(b.pairs.len());
-            }
-            while let Some(b) = s.next(&model(vec![target]), &axis()) {
-                sizes.push(b.pairs.len());
-            }
+        for (order, sizes, measured) in to_the_budget(&stored, 30) {
             assert_eq!(sizes, vec![9, 16, 14], "{order}");
-            let mut m = s.measured().to_vec();
-            assert_eq!(&m[..stored.len()], &stored[..], "{order}");
-            m.sort();
-            m.dedup();
-            assert_eq!(m.len(), 60, "{order}: a candidate measured twice");
+            assert_eq!(&measured[..stored.len()], &stored[..], "{order}");
+            assert_eq!(distinct(&measured), 60, "{order}: a candidate measured twice");
         }
     }
 
