@@ -588,16 +588,16 @@ mod tests {
         }
     }
 
+    /// A round primitive of 2 cm scale and unit albedo at (x, y, z).
+    fn blob(x: f64, y: f64, z: f64) -> Kernel {
+        Kernel::new(DVec3::new(x, y, z), DMat3::IDENTITY, DVec3::splat(0.02), 1.0)
+    }
+
     /// Runs every order over a 12 × 12 wall to a budget of 60 pairs (a first batch of
     /// `first`, then batches of 16) after resuming from `stored`, with a fit that sees a
     /// target over one quadrant; each order's batch sizes and measured pairs.
     fn to_the_budget(stored: &[usize], first: usize) -> Vec<(Order, Vec<usize>, Vec<usize>)> {
-        let target = Kernel::new(
-            DVec3::new(0.3, 0.3, 0.5),
-            DMat3::IDENTITY,
-            DVec3::splat(0.02),
-            1.0,
-        );
+        let target = blob(0.3, 0.3, 0.5);
         [Order::Adaptive, Order::Uniform, Order::Random]
             .into_iter()
             .map(|order| {
@@ -656,12 +656,7 @@ mod tests {
     fn the_adaptive_order_looks_where_the_fit_sees_something() {
         // A target over one corner of the wall: with nothing explored, the chosen pairs
         // crowd towards it; uniform ones do not.
-        let target = Kernel::new(
-            DVec3::new(0.35, 0.35, 0.3),
-            DMat3::IDENTITY,
-            DVec3::splat(0.02),
-            1.0,
-        );
+        let target = blob(0.35, 0.35, 0.3);
         let mean_distance = |order: Order| {
             let settings = AdaptiveSettings {
                 pairs: 48,
@@ -692,12 +687,7 @@ mod tests {
     fn a_fit_that_sees_nothing_more_stops_the_capture_when_asked_to() {
         // Gains fall as pairs near the only target are measured; with a high stop-gain
         // the selector stops before the budget and says why.
-        let target = Kernel::new(
-            DVec3::new(0.0, 0.0, 0.4),
-            DMat3::IDENTITY,
-            DVec3::splat(0.02),
-            1.0,
-        );
+        let target = blob(0.0, 0.0, 0.4);
         let settings = AdaptiveSettings {
             pairs: 200,
             first: 16,
@@ -724,19 +714,9 @@ mod tests {
     /// a reference of 0 read every later batch as fallen to nothing.)
     #[test]
     fn the_stopping_rule_needs_a_fall_from_a_batch_that_saw_something() {
-        let target = Kernel::new(
-            DVec3::new(0.0, 0.0, 0.4),
-            DMat3::IDENTITY,
-            DVec3::splat(0.02),
-            1.0,
-        );
+        let target = blob(0.0, 0.0, 0.4);
         // Far beyond the time axis: no candidate sees it.
-        let unseen = Kernel::new(
-            DVec3::new(0.0, 0.0, 40.0),
-            DMat3::IDENTITY,
-            DVec3::splat(0.02),
-            1.0,
-        );
+        let unseen = blob(0.0, 0.0, 40.0);
         let run = |explore: f64, batch: usize, pairs: usize, kernels: &[Vec<Kernel>]| {
             let settings = AdaptiveSettings {
                 pairs,
