@@ -3,9 +3,10 @@
 //! The renderer, the synthesis and FBP are written as plain loops over slices that
 //! LLVM vectorises. Built for the baseline x86-64 target, that code gets SSE2 only:
 //! no FMA, no 256-bit vectors, and `floor` is a libm call. `dispatch` runs a function
-//! inside a function compiled with AVX2 and FMA enabled when the CPU has them (checked
-//! once, at run time, by `pulp`), so everything inlined into it is vectorised for the
-//! machine it runs on; elsewhere it runs the same function as compiled for the baseline.
+//! inside a function compiled with AVX-512 (x86-64-v4) or else AVX2 and FMA (x86-64-v3)
+//! enabled when the CPU has them (checked once, at run time, by `pulp`), so everything
+//! inlined into it is vectorised for the machine it runs on; elsewhere it runs the same
+//! function as compiled for the baseline.
 //! No `unsafe` here: `pulp` proves the features are present before it calls the
 //! specialised function.
 //!
@@ -18,13 +19,18 @@
 //!
 //! Loops that LLVM does not vectorise well on its own (the renderer's per-bin
 //! recurrences, whose state does not fit the registers in the shape it picks) are
-//! written against `Quad`, four f64 lanes: AVX2 + FMA vectors under `dispatch` on a
-//! CPU that has them, plain arrays otherwise. Both do the same IEEE operations lane by
-//! lane (`mul_add` fused in both), so they give the same bits.
+//! written against `Quad`, four f64 lanes (AVX2 + FMA vectors under `dispatch` on a
+//! CPU that has them, plain arrays otherwise), or against its `Quad::oct`, eight
+//! lanes (one AVX-512 vector, two AVX2 vectors, or an array). Every one does the same
+//! IEEE operations lane by lane (`mul_add` fused in all), so they give the same bits:
+//! a fit is bit for bit the same on a CPU with AVX-512, one with AVX2 only, and one
+//! with neither.
 use std::sync::LazyLock;
 
 #[cfg(target_arch = "x86_64")]
 static V3: LazyLock<Option<pulp::x86::V3>> = LazyLock::new(pulp::x86::V3::try_new);
+#[cfg(target_arch = "x86_64")]
+static V4: LazyLock<Option<pulp::x86::V4>> = LazyLock::new(pulp::x86::V4::try_new);
 
 /// A unit of hot work: `run` holds the loops to compile for the wider target.
 ///
@@ -34,13 +40,26 @@ static V3: LazyLock<Option<pulp::x86::V3>> = LazyLock::new(pulp::x86::V3::try_ne
 pub(crate) trait Work {
     /// What the work returns.
     type Output;
-    /// Does the work, with `quad` the four-lane vector arithmetic of this CPU.
+    /// Does the work, with `quad` the four-lane vector arithmetic of this CPU (and,
+    /// through [`Quad::oct`], its eight-lane arithmetic).
     fn run<Q: Quad>(self, quad: Q) -> Self::Output;
 }
 
 /// Runs `work` compiled for the best instruction set this CPU offers.
 #[inline]
 pub(crate) fn dispatch<W: Work>(work: W) -> W::Output {
+    #[cfg(target_arch = "x86_64")]
+    if let Some(simd) = *V4 {
+        struct Op<W>(W, pulp::x86::V4);
+        impl<W: Work> pulp::WithSimd for Op<W> {
+            type Output = W::Output;
+            #[inline(always)]
+            fn with_simd<S: pulp::Simd>(self, _: S) -> W::Output {
+                self.0.run(self.1)
+            }
+        }
+        return pulp::Simd::vectorize(simd, Op(work, simd));
+    }
     #[cfg(target_arch = "x86_64")]
     if let Some(simd) = *V3 {
         struct Op<W>(W, pulp::x86::V3);
@@ -59,6 +78,10 @@ pub(crate) fn dispatch<W: Work>(work: W) -> W::Output {
 /// The SIMD level the hot loops run at on this machine, for benchmarks and logs.
 pub fn level() -> &'static str {
     #[cfg(target_arch = "x86_64")]
+    if V4.is_some() {
+        return "x86-64-v4 (AVX-512)";
+    }
+    #[cfg(target_arch = "x86_64")]
     if V3.is_some() {
         return "x86-64-v3 (AVX2, FMA)";
     }
@@ -69,6 +92,10 @@ pub fn level() -> &'static str {
 pub(crate) trait Quad: Copy {
     /// The vector.
     type V: Copy;
+    /// This CPU's eight-lane arithmetic.
+    type Oct: Oct;
+    /// The eight-lane arithmetic of the same instruction set.
+    fn oct(self) -> Self::Oct;
     /// Every lane `x`.
     fn splat(self, x: f64) -> Self::V;
     /// The lanes from an array.
@@ -100,6 +127,28 @@ pub(crate) trait Quad: Copy {
     /// `2^k` for whole numbers `k` in [−1022, 1023] (anything else: unspecified bits,
     /// no panic).
     fn pow2(self, k: Self::V) -> Self::V;
+}
+
+/// Eight f64 lanes and the few IEEE operations the per-bin loops need, lane by lane:
+/// one AVX-512 vector, two AVX2 vectors, or an array. Every implementation does the
+/// same operations lane by lane (`mul_add` fused), so they give the same bits.
+pub(crate) trait Oct: Copy {
+    /// The vector.
+    type W: Copy;
+    /// Every lane `x`.
+    fn splat(self, x: f64) -> Self::W;
+    /// The lanes from an array.
+    fn load(self, a: [f64; 8]) -> Self::W;
+    /// The lanes as an array.
+    fn store(self, v: Self::W) -> [f64; 8];
+    /// `a + b`.
+    fn add(self, a: Self::W, b: Self::W) -> Self::W;
+    /// `a − b`.
+    fn sub(self, a: Self::W, b: Self::W) -> Self::W;
+    /// `a b`.
+    fn mul(self, a: Self::W, b: Self::W) -> Self::W;
+    /// `a b + c`, rounded once.
+    fn mul_add(self, a: Self::W, b: Self::W, c: Self::W) -> Self::W;
 }
 
 /// `eˣ` within 1 ulp of `f64::exp` (tested) for `x` in [−708, 709] (clamped to it), the same bits in every
@@ -197,6 +246,11 @@ pub(crate) struct Portable;
 
 impl Quad for Portable {
     type V = [f64; 4];
+    type Oct = Wide<Portable>;
+    #[inline(always)]
+    fn oct(self) -> Wide<Portable> {
+        Wide(self)
+    }
     #[inline(always)]
     fn splat(self, x: f64) -> Self::V {
         [x; 4]
@@ -262,6 +316,11 @@ impl Quad for Portable {
 #[cfg(target_arch = "x86_64")]
 impl Quad for pulp::x86::V3 {
     type V = pulp::f64x4;
+    type Oct = Wide<pulp::x86::V3>;
+    #[inline(always)]
+    fn oct(self) -> Wide<pulp::x86::V3> {
+        Wide(self)
+    }
     #[inline(always)]
     fn splat(self, x: f64) -> Self::V {
         pulp::Simd::splat_f64s(self, x)
@@ -327,10 +386,207 @@ impl Quad for pulp::x86::V3 {
     }
 }
 
+/// The eight-lane arithmetic of an instruction set (the four-lane one's token).
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct Wide<T>(T);
+
+impl Oct for Wide<Portable> {
+    type W = [f64; 8];
+    #[inline(always)]
+    fn splat(self, x: f64) -> Self::W {
+        [x; 8]
+    }
+    #[inline(always)]
+    fn load(self, a: [f64; 8]) -> Self::W {
+        a
+    }
+    #[inline(always)]
+    fn store(self, v: Self::W) -> [f64; 8] {
+        v
+    }
+    #[inline(always)]
+    fn add(self, a: Self::W, b: Self::W) -> Self::W {
+        std::array::from_fn(|j| a[j] + b[j])
+    }
+    #[inline(always)]
+    fn sub(self, a: Self::W, b: Self::W) -> Self::W {
+        std::array::from_fn(|j| a[j] - b[j])
+    }
+    #[inline(always)]
+    fn mul(self, a: Self::W, b: Self::W) -> Self::W {
+        std::array::from_fn(|j| a[j] * b[j])
+    }
+    #[inline(always)]
+    fn mul_add(self, a: Self::W, b: Self::W, c: Self::W) -> Self::W {
+        std::array::from_fn(|j| a[j].mul_add(b[j], c[j]))
+    }
+}
+
+/// Eight lanes as two AVX2 vectors, low lanes first.
+#[cfg(target_arch = "x86_64")]
+impl Oct for Wide<pulp::x86::V3> {
+    type W = (pulp::f64x4, pulp::f64x4);
+    #[inline(always)]
+    fn splat(self, x: f64) -> Self::W {
+        let v = pulp::Simd::splat_f64s(self.0, x);
+        (v, v)
+    }
+    #[inline(always)]
+    fn load(self, a: [f64; 8]) -> Self::W {
+        (
+            pulp::f64x4(a[0], a[1], a[2], a[3]),
+            pulp::f64x4(a[4], a[5], a[6], a[7]),
+        )
+    }
+    #[inline(always)]
+    fn store(self, v: Self::W) -> [f64; 8] {
+        [v.0.0, v.0.1, v.0.2, v.0.3, v.1.0, v.1.1, v.1.2, v.1.3]
+    }
+    #[inline(always)]
+    fn add(self, a: Self::W, b: Self::W) -> Self::W {
+        (
+            pulp::Simd::add_f64s(self.0, a.0, b.0),
+            pulp::Simd::add_f64s(self.0, a.1, b.1),
+        )
+    }
+    #[inline(always)]
+    fn sub(self, a: Self::W, b: Self::W) -> Self::W {
+        (
+            pulp::Simd::sub_f64s(self.0, a.0, b.0),
+            pulp::Simd::sub_f64s(self.0, a.1, b.1),
+        )
+    }
+    #[inline(always)]
+    fn mul(self, a: Self::W, b: Self::W) -> Self::W {
+        (
+            pulp::Simd::mul_f64s(self.0, a.0, b.0),
+            pulp::Simd::mul_f64s(self.0, a.1, b.1),
+        )
+    }
+    #[inline(always)]
+    fn mul_add(self, a: Self::W, b: Self::W, c: Self::W) -> Self::W {
+        (
+            pulp::Simd::mul_add_f64s(self.0, a.0, b.0, c.0),
+            pulp::Simd::mul_add_f64s(self.0, a.1, b.1, c.1),
+        )
+    }
+}
+
+/// AVX-512: the four-lane operations are AVX2's (the same instructions, here with the
+/// wider target's encodings), the eight-lane ones a single vector.
+#[cfg(target_arch = "x86_64")]
+impl Quad for pulp::x86::V4 {
+    type V = pulp::f64x4;
+    type Oct = Wide<pulp::x86::V4>;
+    #[inline(always)]
+    fn oct(self) -> Wide<pulp::x86::V4> {
+        Wide(self)
+    }
+    #[inline(always)]
+    fn splat(self, x: f64) -> Self::V {
+        Quad::splat(*self, x)
+    }
+    #[inline(always)]
+    fn load(self, a: [f64; 4]) -> Self::V {
+        Quad::load(*self, a)
+    }
+    #[inline(always)]
+    fn store(self, v: Self::V) -> [f64; 4] {
+        Quad::store(*self, v)
+    }
+    #[inline(always)]
+    fn add(self, a: Self::V, b: Self::V) -> Self::V {
+        Quad::add(*self, a, b)
+    }
+    #[inline(always)]
+    fn sub(self, a: Self::V, b: Self::V) -> Self::V {
+        Quad::sub(*self, a, b)
+    }
+    #[inline(always)]
+    fn mul(self, a: Self::V, b: Self::V) -> Self::V {
+        Quad::mul(*self, a, b)
+    }
+    #[inline(always)]
+    fn mul_add(self, a: Self::V, b: Self::V, c: Self::V) -> Self::V {
+        Quad::mul_add(*self, a, b, c)
+    }
+    #[inline(always)]
+    fn div(self, a: Self::V, b: Self::V) -> Self::V {
+        Quad::div(*self, a, b)
+    }
+    #[inline(always)]
+    fn sqrt(self, a: Self::V) -> Self::V {
+        Quad::sqrt(*self, a)
+    }
+    #[inline(always)]
+    fn round(self, a: Self::V) -> Self::V {
+        Quad::round(*self, a)
+    }
+    #[inline(always)]
+    fn floor(self, a: Self::V) -> Self::V {
+        Quad::floor(*self, a)
+    }
+    #[inline(always)]
+    fn ceil(self, a: Self::V) -> Self::V {
+        Quad::ceil(*self, a)
+    }
+    #[inline(always)]
+    fn max(self, a: Self::V, b: Self::V) -> Self::V {
+        Quad::max(*self, a, b)
+    }
+    #[inline(always)]
+    fn min(self, a: Self::V, b: Self::V) -> Self::V {
+        Quad::min(*self, a, b)
+    }
+    #[inline(always)]
+    fn pow2(self, k: Self::V) -> Self::V {
+        Quad::pow2(*self, k)
+    }
+}
+
+#[cfg(target_arch = "x86_64")]
+impl Oct for Wide<pulp::x86::V4> {
+    type W = pulp::f64x8;
+    #[inline(always)]
+    fn splat(self, x: f64) -> Self::W {
+        pulp::Simd::splat_f64s(self.0, x)
+    }
+    #[inline(always)]
+    fn load(self, a: [f64; 8]) -> Self::W {
+        pulp::f64x8(a[0], a[1], a[2], a[3], a[4], a[5], a[6], a[7])
+    }
+    #[inline(always)]
+    fn store(self, v: Self::W) -> [f64; 8] {
+        [v.0, v.1, v.2, v.3, v.4, v.5, v.6, v.7]
+    }
+    #[inline(always)]
+    fn add(self, a: Self::W, b: Self::W) -> Self::W {
+        pulp::Simd::add_f64s(self.0, a, b)
+    }
+    #[inline(always)]
+    fn sub(self, a: Self::W, b: Self::W) -> Self::W {
+        pulp::Simd::sub_f64s(self.0, a, b)
+    }
+    #[inline(always)]
+    fn mul(self, a: Self::W, b: Self::W) -> Self::W {
+        pulp::Simd::mul_f64s(self.0, a, b)
+    }
+    #[inline(always)]
+    fn mul_add(self, a: Self::W, b: Self::W, c: Self::W) -> Self::W {
+        pulp::Simd::mul_add_f64s(self.0, a, b, c)
+    }
+}
+
 /// This CPU's AVX2 + FMA token, for tests that compare it with [`Portable`].
 #[cfg(all(test, target_arch = "x86_64"))]
 pub(crate) fn v3() -> Option<pulp::x86::V3> {
     *V3
+}
+
+/// This CPU's AVX-512 token, for tests that compare it with [`Portable`].
+#[cfg(all(test, target_arch = "x86_64"))]
+pub(crate) fn v4() -> Option<pulp::x86::V4> {
+    *V4
 }
 
 #[cfg(test)]
@@ -363,6 +619,49 @@ mod tests {
             return;
         }
         eprintln!("skipped: this CPU has no AVX2 + FMA, only the arrays run");
+    }
+
+    /// The eight lanes of AVX2 (two vectors) and AVX-512 (one) give the arrays' bits,
+    /// operation by operation, on operands that round, underflow and cancel.
+    #[test]
+    fn eight_lanes_agree_bit_for_bit() {
+        fn check<O: Oct>(o: O) {
+            let p = Portable.oct();
+            let a = [0.1, -3.7e-12, 1.0 / 3.0, 7.5e300, 2.5, -0.0, 1e-300, 9.0];
+            let b = [2.0 / 3.0, 1e-310, -0.0, 1.2, 0.7, 3.0, 1e-10, -1.0 / 7.0];
+            let c = [
+                1e16,
+                0.3,
+                f64::MIN_POSITIVE,
+                -9.0e300,
+                -1.75,
+                0.0,
+                1.0,
+                1.0 / 49.0,
+            ];
+            let (va, vb, vc) = (o.load(a), o.load(b), o.load(c));
+            let bits = |x: [f64; 8]| x.map(f64::to_bits);
+            assert_eq!(bits(p.add(a, b)), bits(o.store(o.add(va, vb))));
+            assert_eq!(bits(p.sub(a, c)), bits(o.store(o.sub(va, vc))));
+            assert_eq!(bits(p.mul(a, b)), bits(o.store(o.mul(va, vb))));
+            assert_eq!(bits(p.mul_add(a, b, c)), bits(o.store(o.mul_add(va, vb, vc))));
+            assert_eq!(bits(p.splat(0.25)), bits(o.store(o.splat(0.25))));
+            assert_eq!(bits(a), bits(o.store(va)));
+        }
+        let mut ran = 0;
+        #[cfg(target_arch = "x86_64")]
+        if let Some(v) = *V3 {
+            check(v.oct());
+            ran += 1;
+        }
+        #[cfg(target_arch = "x86_64")]
+        if let Some(v) = *V4 {
+            check(v.oct());
+            ran += 1;
+        }
+        if ran < 2 {
+            eprintln!("skipped in part: this CPU lacks AVX2 + FMA or AVX-512 ({ran} of 2 ran)");
+        }
     }
 
     /// `exp` is within 1 ulp of `f64::exp` over its domain, and

@@ -9,8 +9,8 @@
 //! with `v = ui + ud`; bin `b` receives `A (Φ(z_{b+1}) − Φ(z_b))`, `z = (edge − μ)/σ`.
 use glam::{DMat3, DVec3};
 
-use crate::simd::Quad;
 use crate::simd::exp_scalar;
+use crate::simd::{Oct, Quad};
 use crate::special::{INV_SQRT_2PI, NORMAL};
 use crate::transient::{Pair, TimeAxis};
 
@@ -288,6 +288,17 @@ impl Window {
         }
     }
 
+    /// Where the series' loops end in a histogram of `n` bins: past the window's last,
+    /// partial group of bins where the histogram holds that group whole (it is then
+    /// read whole, its lanes past the window weighted zero: x + 0 = x, so the bits are
+    /// those of the window's lanes alone, with no lane handled by itself), else at the
+    /// window's end.
+    #[inline(always)]
+    fn series_end(&self, n: usize) -> usize {
+        let whole = self.lo + (self.hi - self.lo).next_multiple_of(LANES);
+        if whole <= n { whole } else { self.hi }
+    }
+
     /// The midpoint series' state as bits, for tests that compare two paths.
     #[cfg(test)]
     pub(crate) fn series_bits(&self) -> Option<[u64; 7]> {
@@ -297,8 +308,8 @@ impl Window {
 
     /// Adds the pulse to `out` (the full histogram of the pair).
     ///
-    /// On the midpoint series the bins go four (`LANES`) at a time, lane j taking bins j,
-    /// j + 4, …, so the per-bin arithmetic compiles to vector instructions.
+    /// On the midpoint series the bins go eight (`LANES`) at a time, lane j taking bins
+    /// j, j + 8, …, so the per-bin arithmetic compiles to vector instructions.
     #[inline(always)]
     pub fn accumulate(&self, axis: &TimeAxis, out: &mut [f64]) {
         self.accumulate_with(crate::simd::Portable, axis, out);
@@ -307,28 +318,32 @@ impl Window {
     /// [`Window::accumulate`] with the vector arithmetic `quad`.
     #[inline(always)]
     pub(crate) fn accumulate_with<Q: Quad>(&self, quad: Q, axis: &TimeAxis, out: &mut [f64]) {
-        let out = &mut out[self.lo..self.hi];
         if let Some(series) = &self.series {
-            let scale = quad.splat(self.amplitude * series.dz);
-            let poly = series.poly_consts(quad);
-            let mut lanes = series.lanes(quad);
-            let mut chunks = out.chunks_exact_mut(LANES);
+            let o = quad.oct();
+            let scale = o.splat(self.amplitude * series.dz);
+            let poly = series.poly_consts(o);
+            let mut lanes = series.lanes(o);
+            let end = self.series_end(out.len());
+            let mut chunks = out[self.lo..end].chunks_exact_mut(LANES);
+            let mut left = self.hi - self.lo;
             for chunk in &mut chunks {
                 let chunk: &mut [f64; LANES] = chunk.try_into().expect("a chunk of LANES");
-                let p = poly.value(quad, quad.mul(lanes.m, lanes.m));
-                *chunk = quad.store(quad.mul_add(quad.mul(scale, lanes.phi), p, quad.load(*chunk)));
-                lanes.advance(quad);
+                let p = poly.value(o, o.mul(lanes.m, lanes.m));
+                let a = o.mul(o.mul(scale, lanes.phi), o.load(TAIL_MASK[left.min(LANES)]));
+                *chunk = o.store(o.mul_add(a, p, o.load(*chunk)));
+                lanes.advance(o);
+                left = left.saturating_sub(LANES);
             }
-            // The last, partial group of bins.
+            // The last, partial group of bins, at the histogram's end.
             let rest = chunks.into_remainder();
             if !rest.is_empty() {
-                let p = poly.value(quad, quad.mul(lanes.m, lanes.m));
-                let tail =
-                    quad.store(quad.mul_add(quad.mul(scale, lanes.phi), p, quad.load(load_tail(rest))));
+                let p = poly.value(o, o.mul(lanes.m, lanes.m));
+                let tail = o.store(o.mul_add(o.mul(scale, lanes.phi), p, o.load(load_tail(rest))));
                 store_tail(&tail, rest);
             }
             return;
         }
+        let out = &mut out[self.lo..self.hi];
         let inv = 1.0 / self.sigma;
         let z0 = (axis.edge(self.lo as isize) - self.mu) * inv;
         let dz = axis.width * inv;
@@ -348,34 +363,39 @@ impl Window {
     /// [`Evaluation::accumulate`] renders, on either path.
     #[inline(always)]
     pub(crate) fn sums<Q: Quad>(&self, quad: Q, axis: &TimeAxis, dl: &[f64]) -> (f64, f64, f64) {
-        let dl = &dl[self.lo..self.hi];
         if let Some(series) = &self.series {
+            let dl = &dl[self.lo..self.series_end(dl.len())];
+            let o = quad.oct();
             // Per lane, without the common factor dz (applied to the lanes' totals).
-            let zero = quad.splat(0.0);
+            let zero = o.splat(0.0);
             let mut sums = SeriesSums {
                 cdf: zero,
                 pdf: zero,
                 zpdf: zero,
             };
-            let poly = series.poly_consts(quad);
-            let mut lanes = series.lanes(quad);
+            let poly = series.poly_consts(o);
+            let mut lanes = series.lanes(o);
             let mut chunks = dl.chunks_exact(LANES);
+            let mut left = self.hi - self.lo;
             for chunk in &mut chunks {
                 let chunk: &[f64; LANES] = chunk.try_into().expect("a chunk of LANES");
-                sums.add(quad, &poly, &lanes, quad.load(*chunk));
-                lanes.advance(quad);
+                let r = o.mul(o.load(*chunk), o.load(TAIL_MASK[left.min(LANES)]));
+                sums.add(o, &poly, &lanes, r);
+                lanes.advance(o);
+                left = left.saturating_sub(LANES);
             }
             // The last, partial group of bins: the missing lanes weigh zero.
             let rest = chunks.remainder();
             if !rest.is_empty() {
-                sums.add(quad, &poly, &lanes, quad.load(load_tail(rest)));
+                sums.add(o, &poly, &lanes, o.load(load_tail(rest)));
             }
-            let total = |v: Q::V| {
-                let l = quad.store(v);
-                series.dz * ((l[0] + l[1]) + (l[2] + l[3]))
+            let total = |v: <Q::Oct as Oct>::W| {
+                let l = o.store(v);
+                series.dz * (((l[0] + l[1]) + (l[2] + l[3])) + ((l[4] + l[5]) + (l[6] + l[7])))
             };
             return (total(sums.cdf), total(sums.pdf), total(sums.zpdf));
         }
+        let dl = &dl[self.lo..self.hi];
         // Table path: ΔΦ_b = Φ(z_{b+1}) − Φ(z_b); shifting every z by m gives the
         // differences of φ at the edges, and −σ ∂/∂σ those of zφ (φ the slope of the
         // tabulated Φ).
@@ -399,27 +419,38 @@ impl Window {
     }
 }
 
-/// The last, partial group of a window's bins (1 to 3 of them) as a vector's lanes,
-/// zeros after. Written out per length: `copy_from_slice` of a variable length compiles
-/// to a call of `memcpy`, twice a window, which took 6 % of a synthesis.
+/// `TAIL_MASK[r]`: 1 in the first `r` lanes, 0 after (every lane 1 at `r = LANES`).
+/// The per-bin loops multiply by it, where a branch on the last group would be
+/// mispredicted once a window.
+const TAIL_MASK: [[f64; LANES]; LANES + 1] = {
+    let mut m = [[0.0; LANES]; LANES + 1];
+    let mut r = 0;
+    while r <= LANES {
+        let mut j = 0;
+        while j < r {
+            m[r][j] = 1.0;
+            j += 1;
+        }
+        r += 1;
+    }
+    m
+};
+
+/// The last, partial group of a window's bins (1 to 7 of them) as a vector's lanes,
+/// zeros after. Lane by lane rather than `copy_from_slice`: a copy of a variable
+/// length compiles to a call of `memcpy`, twice a window, which took 6 % of a synthesis.
 #[inline(always)]
 fn load_tail(rest: &[f64]) -> [f64; LANES] {
-    match *rest {
-        [a] => [a, 0.0, 0.0, 0.0],
-        [a, b] => [a, b, 0.0, 0.0],
-        [a, b, c] => [a, b, c, 0.0],
-        _ => unreachable!("a partial group holds 1 to {} bins", LANES - 1),
-    }
+    debug_assert!(rest.len() < LANES);
+    std::array::from_fn(|j| rest.get(j).copied().unwrap_or(0.0))
 }
 
 /// Writes the first `rest.len()` lanes of `tail` back to `rest` (see [`load_tail`]).
 #[inline(always)]
 fn store_tail(tail: &[f64; LANES], rest: &mut [f64]) {
-    match rest {
-        [a] => *a = tail[0],
-        [a, b] => (*a, *b) = (tail[0], tail[1]),
-        [a, b, c] => (*a, *b, *c) = (tail[0], tail[1], tail[2]),
-        _ => unreachable!("a partial group holds 1 to {} bins", LANES - 1),
+    debug_assert!(rest.len() < LANES);
+    for (r, &t) in rest.iter_mut().zip(tail) {
+        *r = t;
     }
 }
 
@@ -588,12 +619,13 @@ struct WideSeries {
     b: f64,
 }
 
-/// Bins a step of the per-bin loops takes at once (one AVX2 vector of f64).
-const LANES: usize = 4;
+/// Bins a step of the per-bin loops takes at once (one AVX-512 vector of f64, two of
+/// AVX2).
+const LANES: usize = 8;
 
 /// The midpoint series spread over [`LANES`] interleaved recurrences: lane j holds
 /// bin `j + LANES t` at step t. Each lane steps `LANES` bins at once,
-/// `φ(m + 4dz) = φ(m) R`, `R ← R e^{−16 dz²}`, so the lanes are independent and
+/// `φ(m + 8dz) = φ(m) R`, `R ← R e^{−64 dz²}`, so the lanes are independent and
 /// advance as one vector.
 struct Lanes<V> {
     /// Bin centres, in σ.
@@ -602,7 +634,7 @@ struct Lanes<V> {
     phi: V,
     /// Each lane's ratio to its next bin's φ.
     ratio: V,
-    /// The ratio between consecutive ratios, `e^{−16 dz²}`.
+    /// The ratio between consecutive ratios, `e^{−64 dz²}`.
     q: V,
     /// `LANES dz`.
     step: V,
@@ -625,7 +657,7 @@ impl<V: Copy> PolyConsts<V> {
     /// `P(m) = 1 + a He₂ + b He₄` from `m²`, with `He₂ = m² − 1`,
     /// `He₄ = m⁴ − 6m² + 3`.
     #[inline(always)]
-    fn value<Q: Quad<V = V>>(&self, quad: Q, m2: V) -> V {
+    fn value<O: Oct<W = V>>(&self, quad: O, m2: V) -> V {
         let he2 = quad.sub(m2, self.one);
         let he4 = quad.mul_add(m2, quad.sub(m2, self.six), self.three);
         quad.mul_add(self.b, he4, quad.mul_add(self.a, he2, self.one))
@@ -677,38 +709,56 @@ impl WideSeries {
     }
 
     /// The first [`LANES`] bins and each lane's recurrence. The first bins come from
-    /// the one-bin recurrence; lane j's ratio `φ(m_j + 4dz)/φ(m_j)` is `ρ⁴ q^{4j+6}`.
+    /// the one-bin recurrence; lane j's ratio `φ(m_j + 8dz)/φ(m_j)` is `ρ⁸ q^{8j+28}`.
     #[inline(always)]
-    fn lanes<Q: Quad>(&self, quad: Q) -> Lanes<Q::V> {
-        let (mut m, mut phi, mut ratio) = ([0.0; LANES], [0.0; LANES], [0.0; LANES]);
-        let (mut p, mut r) = (self.phi, self.rho);
-        for j in 0..LANES {
-            m[j] = (j as f64).mul_add(self.dz, self.m);
-            phi[j] = p;
-            p *= r;
-            r *= self.q;
-        }
-        let q2 = self.q * self.q;
+    fn lanes<O: Oct>(&self, quad: O) -> Lanes<O::W> {
+        let m: [f64; LANES] = std::array::from_fn(|j| (j as f64).mul_add(self.dz, self.m));
+        let (q, rho) = (self.q, self.rho);
+        // The first four bins by the one-bin recurrence, the next four from them by the
+        // four-bin ratios f_j = ρ⁴ q^{4j+6}, and the lanes' eight-bin ratios as
+        // f_j² q¹⁶ (and that times q³² for lanes 4–7): short chains of multiplies,
+        // where eight steps of the one-bin recurrence were one long one.
+        let r1 = rho * q;
+        let r2 = r1 * q;
+        let p0 = self.phi;
+        let p1 = p0 * rho;
+        let p2 = p1 * r1;
+        let p3 = p2 * r2;
+        let q2 = q * q;
         let q4 = q2 * q2;
-        let rho2 = self.rho * self.rho;
-        let mut lane_ratio = rho2 * rho2 * (q4 * q2);
-        for slot in &mut ratio {
-            *slot = lane_ratio;
-            lane_ratio *= q4;
-        }
         let q8 = q4 * q4;
+        let q16 = q8 * q8;
+        let q32 = q16 * q16;
+        let rho2 = rho * rho;
+        let rho4 = rho2 * rho2;
+        let f0 = rho4 * (q4 * q2);
+        let f1 = f0 * q4;
+        let f2 = f0 * q8;
+        let f3 = f1 * q8;
+        let phi = [p0, p1, p2, p3, p0 * f0, p1 * f1, p2 * f2, p3 * f3];
+        let g = [f0 * (f0 * q16), f1 * (f1 * q16), f2 * (f2 * q16), f3 * (f3 * q16)];
+        let ratio = [
+            g[0],
+            g[1],
+            g[2],
+            g[3],
+            g[0] * q32,
+            g[1] * q32,
+            g[2] * q32,
+            g[3] * q32,
+        ];
         Lanes {
             m: quad.load(m),
             phi: quad.load(phi),
             ratio: quad.load(ratio),
-            q: quad.splat(q8 * q8),
+            q: quad.splat(q32 * q32),
             step: quad.splat(LANES as f64 * self.dz),
         }
     }
 
     /// The polynomial's constants for `quad`.
     #[inline(always)]
-    fn poly_consts<Q: Quad>(&self, quad: Q) -> PolyConsts<Q::V> {
+    fn poly_consts<O: Oct>(&self, quad: O) -> PolyConsts<O::W> {
         PolyConsts {
             one: quad.splat(1.0),
             three: quad.splat(3.0),
@@ -726,7 +776,7 @@ impl WideSeries {
 impl<V: Copy> Lanes<V> {
     /// Every lane on to its next bin.
     #[inline(always)]
-    fn advance<Q: Quad<V = V>>(&mut self, quad: Q) {
+    fn advance<O: Oct<W = V>>(&mut self, quad: O) {
         self.phi = quad.mul(self.phi, self.ratio);
         self.ratio = quad.mul(self.ratio, self.q);
         self.m = quad.add(self.m, self.step);
@@ -747,7 +797,7 @@ impl<V: Copy> SeriesSums<V> {
     /// `(m ∂/∂m + dz ∂/∂dz) ΔΦ / dz = φ (m (P' − m P) + P + dz ∂P/∂dz)`, with
     /// `P' = m (2a + b (4m² − 12))` and `dz ∂P/∂dz = 2a He₂ + 4b He₄`.
     #[inline(always)]
-    fn add<Q: Quad<V = V>>(&mut self, quad: Q, c: &PolyConsts<V>, lanes: &Lanes<V>, dl: V) {
+    fn add<O: Oct<W = V>>(&mut self, quad: O, c: &PolyConsts<V>, lanes: &Lanes<V>, dl: V) {
         let m = lanes.m;
         let m2 = quad.mul(m, m);
         let he2 = quad.sub(m2, c.one);
@@ -857,51 +907,95 @@ mod tests {
             width: 0.005,
             bins: 512,
         };
-        let mut checked = 0;
+        let (mut checked, mut vectors_compared) = (0, 0);
+        let mut tails = std::collections::BTreeSet::new();
         for (i, sigma) in [0.0101, 0.013, 0.021, 0.05, 0.11].into_iter().enumerate() {
-            for (j, reach) in [0.9, 1.7, 2.3, 4.0, 5.5].into_iter().enumerate() {
-                let mu = 1.0 + 0.0013 * (i * 5 + j) as f64;
-                let e = window(&axis, mu, sigma, reach);
-                let dl: Vec<f64> = (0..axis.bins)
-                    .map(|b| ((b * 37 % 11) as f64 - 5.0) * 0.1)
-                    .collect();
-                let (reference, ref_sums) = one_lane(&e, &dl);
-                let mut out = vec![0.0; axis.bins];
-                e.accumulate(&axis, &mut out);
-                let peak = reference.iter().fold(0.0f64, |m, v| m.max(*v));
-                // Both recurrences round about once a bin; their drift apart grows with
-                // the window's length.
-                let tol = 2e-15 * (e.hi - e.lo) as f64;
-                for (b, r) in (e.lo..e.hi).zip(&reference) {
-                    assert!(
-                        (out[b] - r).abs() <= tol * peak,
-                        "σ {sigma}, bin {b}: {} vs {r}",
-                        out[b]
-                    );
-                }
-                let sums = e.sums(crate::simd::Portable, &axis, &dl);
-                let scale = dl.iter().map(|r| r.abs()).sum::<f64>() * peak;
-                for (got, want) in [sums.0, sums.1, sums.2].into_iter().zip(ref_sums) {
-                    assert!((got - want).abs() <= tol * scale, "σ {sigma}: {got} vs {want}");
-                }
-                #[cfg(target_arch = "x86_64")]
-                if let Some(v3) = crate::simd::v3() {
-                    let mut fast = vec![0.0; axis.bins];
-                    e.accumulate_with(v3, &axis, &mut fast);
+            for (j, reach) in [0.9, 1.7, 2.3, 3.1, 4.0, 4.7, 5.5].into_iter().enumerate() {
+                // Inside the histogram, and cut by its end (no whole group after).
+                for base in [1.0, 2.54] {
+                    let mu = base + 0.0013 * (i * 7 + j) as f64;
+                    let e = window(&axis, mu, sigma, reach);
+                    let dl: Vec<f64> = (0..axis.bins)
+                        .map(|b| ((b * 37 % 11) as f64 - 5.0) * 0.1)
+                        .collect();
+                    tails.insert((e.hi - e.lo) % LANES);
+                    let (reference, ref_sums) = one_lane(&e, &dl);
+                    let mut out = vec![0.0; axis.bins];
+                    e.accumulate(&axis, &mut out);
+                    let peak = reference.iter().fold(0.0f64, |m, v| m.max(*v));
+                    // Both recurrences round about once a bin; their drift apart grows with
+                    // the window's length.
+                    let tol = 2e-15 * (e.hi - e.lo) as f64;
+                    for (b, r) in (e.lo..e.hi).zip(&reference) {
+                        assert!(
+                            (out[b] - r).abs() <= tol * peak,
+                            "σ {sigma}, bin {b}: {} vs {r}",
+                            out[b]
+                        );
+                    }
+                    let sums = e.sums(crate::simd::Portable, &axis, &dl);
+                    // A histogram that ends with the window (no whole group after it) gets
+                    // the same bits as one whose last group is read whole and masked, and
+                    // the bins past the window stay untouched.
+                    let mut cut = vec![0.0; e.hi];
+                    e.accumulate(&axis, &mut cut);
                     assert_eq!(
-                        fast.iter().map(|x| x.to_bits()).collect::<Vec<_>>(),
-                        out.iter().map(|x| x.to_bits()).collect::<Vec<_>>()
+                        cut.iter().map(|x| x.to_bits()).collect::<Vec<_>>(),
+                        out[..e.hi].iter().map(|x| x.to_bits()).collect::<Vec<_>>()
                     );
-                    let f = e.sums(v3, &axis, &dl);
+                    assert!(out[e.hi..].iter().all(|&v| v.to_bits() == 0));
+                    let c = e.sums(crate::simd::Portable, &axis, &dl[..e.hi]);
                     assert_eq!(
-                        [f.0, f.1, f.2].map(f64::to_bits),
+                        [c.0, c.1, c.2].map(f64::to_bits),
                         [sums.0, sums.1, sums.2].map(f64::to_bits)
                     );
+                    let scale = dl.iter().map(|r| r.abs()).sum::<f64>() * peak;
+                    for (got, want) in [sums.0, sums.1, sums.2].into_iter().zip(ref_sums) {
+                        assert!((got - want).abs() <= tol * scale, "σ {sigma}: {got} vs {want}");
+                    }
+                    // This CPU's vectors (AVX2's pairs, AVX-512's eights) give the arrays' bits.
+                    fn same_bits<Q: Quad>(
+                        q: Q,
+                        e: &Window,
+                        axis: &TimeAxis,
+                        dl: &[f64],
+                        out: &[f64],
+                        sums: (f64, f64, f64),
+                    ) {
+                        let mut fast = vec![0.0; axis.bins];
+                        e.accumulate_with(q, axis, &mut fast);
+                        assert_eq!(
+                            fast.iter().map(|x| x.to_bits()).collect::<Vec<_>>(),
+                            out.iter().map(|x| x.to_bits()).collect::<Vec<_>>()
+                        );
+                        let f = e.sums(q, axis, dl);
+                        assert_eq!(
+                            [f.0, f.1, f.2].map(f64::to_bits),
+                            [sums.0, sums.1, sums.2].map(f64::to_bits)
+                        );
+                    }
+                    #[cfg(target_arch = "x86_64")]
+                    if let Some(v3) = crate::simd::v3() {
+                        same_bits(v3, &e, &axis, &dl, &out, sums);
+                        vectors_compared += 1;
+                    }
+                    #[cfg(target_arch = "x86_64")]
+                    if let Some(v4) = crate::simd::v4() {
+                        same_bits(v4, &e, &axis, &dl, &out, sums);
+                        vectors_compared += 1;
+                    }
+                    checked += 1;
                 }
-                checked += 1;
             }
         }
-        assert_eq!(checked, 25);
+        assert_eq!(checked, 70);
+        assert_eq!(tails.len(), LANES, "window lengths modulo {LANES}: {tails:?}");
+        if vectors_compared < 2 * checked {
+            eprintln!(
+                "skipped in part: this CPU lacks AVX2 + FMA or AVX-512, {vectors_compared} vector runs of {}",
+                2 * checked
+            );
+        }
     }
 
     /// The midpoint series renders every bin within its stated bound of the exact
