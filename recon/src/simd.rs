@@ -239,6 +239,41 @@ const EXP_TAYLOR: [f64; 14] = [
     1.0 / 6_227_020_800.0,
 ];
 
+/// The operations [`Quad`] and [`Oct`] share, on arrays of `$n` lanes (the vector type
+/// `Self::$v`): IEEE operations lane by lane, `mul_add` the correctly rounded `fma`.
+macro_rules! array_lanes {
+    ($n:literal, $v:ident) => {
+        #[inline(always)]
+        fn splat(self, x: f64) -> Self::$v {
+            [x; $n]
+        }
+        #[inline(always)]
+        fn load(self, a: [f64; $n]) -> Self::$v {
+            a
+        }
+        #[inline(always)]
+        fn store(self, v: Self::$v) -> [f64; $n] {
+            v
+        }
+        #[inline(always)]
+        fn add(self, a: Self::$v, b: Self::$v) -> Self::$v {
+            std::array::from_fn(|j| a[j] + b[j])
+        }
+        #[inline(always)]
+        fn sub(self, a: Self::$v, b: Self::$v) -> Self::$v {
+            std::array::from_fn(|j| a[j] - b[j])
+        }
+        #[inline(always)]
+        fn mul(self, a: Self::$v, b: Self::$v) -> Self::$v {
+            std::array::from_fn(|j| a[j] * b[j])
+        }
+        #[inline(always)]
+        fn mul_add(self, a: Self::$v, b: Self::$v, c: Self::$v) -> Self::$v {
+            std::array::from_fn(|j| a[j].mul_add(b[j], c[j]))
+        }
+    };
+}
+
 /// [`Quad`] as arrays, for CPUs without AVX2 and FMA (`mul_add` is then the correctly
 /// rounded software `fma`).
 #[derive(Clone, Copy, Debug)]
@@ -251,34 +286,7 @@ impl Quad for Portable {
     fn oct(self) -> Wide<Portable> {
         Wide(self)
     }
-    #[inline(always)]
-    fn splat(self, x: f64) -> Self::V {
-        [x; 4]
-    }
-    #[inline(always)]
-    fn load(self, a: [f64; 4]) -> Self::V {
-        a
-    }
-    #[inline(always)]
-    fn store(self, v: Self::V) -> [f64; 4] {
-        v
-    }
-    #[inline(always)]
-    fn add(self, a: Self::V, b: Self::V) -> Self::V {
-        std::array::from_fn(|j| a[j] + b[j])
-    }
-    #[inline(always)]
-    fn sub(self, a: Self::V, b: Self::V) -> Self::V {
-        std::array::from_fn(|j| a[j] - b[j])
-    }
-    #[inline(always)]
-    fn mul(self, a: Self::V, b: Self::V) -> Self::V {
-        std::array::from_fn(|j| a[j] * b[j])
-    }
-    #[inline(always)]
-    fn mul_add(self, a: Self::V, b: Self::V, c: Self::V) -> Self::V {
-        std::array::from_fn(|j| a[j].mul_add(b[j], c[j]))
-    }
+    array_lanes!(4, V);
     #[inline(always)]
     fn div(self, a: Self::V, b: Self::V) -> Self::V {
         std::array::from_fn(|j| a[j] / b[j])
@@ -392,34 +400,7 @@ pub(crate) struct Wide<T>(T);
 
 impl Oct for Wide<Portable> {
     type W = [f64; 8];
-    #[inline(always)]
-    fn splat(self, x: f64) -> Self::W {
-        [x; 8]
-    }
-    #[inline(always)]
-    fn load(self, a: [f64; 8]) -> Self::W {
-        a
-    }
-    #[inline(always)]
-    fn store(self, v: Self::W) -> [f64; 8] {
-        v
-    }
-    #[inline(always)]
-    fn add(self, a: Self::W, b: Self::W) -> Self::W {
-        std::array::from_fn(|j| a[j] + b[j])
-    }
-    #[inline(always)]
-    fn sub(self, a: Self::W, b: Self::W) -> Self::W {
-        std::array::from_fn(|j| a[j] - b[j])
-    }
-    #[inline(always)]
-    fn mul(self, a: Self::W, b: Self::W) -> Self::W {
-        std::array::from_fn(|j| a[j] * b[j])
-    }
-    #[inline(always)]
-    fn mul_add(self, a: Self::W, b: Self::W, c: Self::W) -> Self::W {
-        std::array::from_fn(|j| a[j].mul_add(b[j], c[j]))
-    }
+    array_lanes!(8, W);
 }
 
 /// Eight lanes as two AVX2 vectors, low lanes first.
@@ -472,6 +453,19 @@ impl Oct for Wide<pulp::x86::V3> {
     }
 }
 
+/// [`Quad`]'s operations on vectors, each the AVX2 token's (`*self`) of the same name.
+#[cfg(target_arch = "x86_64")]
+macro_rules! delegate_to_v3 {
+    ($($f:ident($($a:ident),+)),+) => {
+        $(
+            #[inline(always)]
+            fn $f(self, $($a: Self::V),+) -> Self::V {
+                Quad::$f(*self, $($a),+)
+            }
+        )+
+    };
+}
+
 /// AVX-512: the four-lane operations are AVX2's (the same instructions, here with the
 /// wider target's encodings), the eight-lane ones a single vector.
 #[cfg(target_arch = "x86_64")]
@@ -494,54 +488,21 @@ impl Quad for pulp::x86::V4 {
     fn store(self, v: Self::V) -> [f64; 4] {
         Quad::store(*self, v)
     }
-    #[inline(always)]
-    fn add(self, a: Self::V, b: Self::V) -> Self::V {
-        Quad::add(*self, a, b)
-    }
-    #[inline(always)]
-    fn sub(self, a: Self::V, b: Self::V) -> Self::V {
-        Quad::sub(*self, a, b)
-    }
-    #[inline(always)]
-    fn mul(self, a: Self::V, b: Self::V) -> Self::V {
-        Quad::mul(*self, a, b)
-    }
-    #[inline(always)]
-    fn mul_add(self, a: Self::V, b: Self::V, c: Self::V) -> Self::V {
-        Quad::mul_add(*self, a, b, c)
-    }
-    #[inline(always)]
-    fn div(self, a: Self::V, b: Self::V) -> Self::V {
-        Quad::div(*self, a, b)
-    }
-    #[inline(always)]
-    fn sqrt(self, a: Self::V) -> Self::V {
-        Quad::sqrt(*self, a)
-    }
-    #[inline(always)]
-    fn round(self, a: Self::V) -> Self::V {
-        Quad::round(*self, a)
-    }
-    #[inline(always)]
-    fn floor(self, a: Self::V) -> Self::V {
-        Quad::floor(*self, a)
-    }
-    #[inline(always)]
-    fn ceil(self, a: Self::V) -> Self::V {
-        Quad::ceil(*self, a)
-    }
-    #[inline(always)]
-    fn max(self, a: Self::V, b: Self::V) -> Self::V {
-        Quad::max(*self, a, b)
-    }
-    #[inline(always)]
-    fn min(self, a: Self::V, b: Self::V) -> Self::V {
-        Quad::min(*self, a, b)
-    }
-    #[inline(always)]
-    fn pow2(self, k: Self::V) -> Self::V {
-        Quad::pow2(*self, k)
-    }
+    // The rest, as AVX2's, by name.
+    delegate_to_v3!(
+        add(a, b),
+        sub(a, b),
+        mul(a, b),
+        mul_add(a, b, c),
+        div(a, b),
+        sqrt(a),
+        round(a),
+        floor(a),
+        ceil(a),
+        max(a, b),
+        min(a, b),
+        pow2(k)
+    );
 }
 
 #[cfg(target_arch = "x86_64")]
