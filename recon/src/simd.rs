@@ -19,9 +19,9 @@
 //!
 //! Loops that LLVM does not vectorise well on its own (the renderer's per-bin
 //! recurrences, whose state does not fit the registers in the shape it picks) are
-//! written against `Quad`, four f64 lanes (AVX2 + FMA vectors under `dispatch` on a
-//! CPU that has them, plain arrays otherwise), or against its `Quad::oct`, eight
-//! lanes (one AVX-512 vector, two AVX2 vectors, or an array). Every one does the same
+//! written against `Lanes<N>`: four f64 lanes (`Quad`: AVX2 + FMA vectors under
+//! `dispatch` on a CPU that has them, plain arrays otherwise) or eight (`Quad::oct`:
+//! one AVX-512 vector, two AVX2 vectors, or an array). Every one does the same
 //! IEEE operations lane by lane (`mul_add` fused in all), so they give the same bits:
 //! a fit is bit for bit the same on a CPU with AVX-512, one with AVX2 only, and one
 //! with neither.
@@ -45,31 +45,29 @@ pub(crate) trait Work {
     fn run<Q: Quad>(self, quad: Q) -> Self::Output;
 }
 
+/// `work` with the token `S`, for `pulp` to run inside a function compiled for `S`'s
+/// instruction set.
+#[cfg(target_arch = "x86_64")]
+struct Op<W, S>(W, S);
+
+#[cfg(target_arch = "x86_64")]
+impl<W: Work, S: Quad> pulp::WithSimd for Op<W, S> {
+    type Output = W::Output;
+    #[inline(always)]
+    fn with_simd<T: pulp::Simd>(self, _: T) -> W::Output {
+        self.0.run(self.1)
+    }
+}
+
 /// Runs `work` compiled for the best instruction set this CPU offers.
 #[inline]
 pub(crate) fn dispatch<W: Work>(work: W) -> W::Output {
     #[cfg(target_arch = "x86_64")]
     if let Some(simd) = *V4 {
-        struct Op<W>(W, pulp::x86::V4);
-        impl<W: Work> pulp::WithSimd for Op<W> {
-            type Output = W::Output;
-            #[inline(always)]
-            fn with_simd<S: pulp::Simd>(self, _: S) -> W::Output {
-                self.0.run(self.1)
-            }
-        }
         return pulp::Simd::vectorize(simd, Op(work, simd));
     }
     #[cfg(target_arch = "x86_64")]
     if let Some(simd) = *V3 {
-        struct Op<W>(W, pulp::x86::V3);
-        impl<W: Work> pulp::WithSimd for Op<W> {
-            type Output = W::Output;
-            #[inline(always)]
-            fn with_simd<S: pulp::Simd>(self, _: S) -> W::Output {
-                self.0.run(self.1)
-            }
-        }
         return pulp::Simd::vectorize(simd, Op(work, simd));
     }
     work.run(Portable)
@@ -88,20 +86,19 @@ pub fn level() -> &'static str {
     "baseline"
 }
 
-/// Four f64 lanes and the IEEE operations on them, lane by lane.
-pub(crate) trait Quad: Copy {
+/// `N` f64 lanes and the IEEE operations on them, lane by lane: four (an AVX2 vector)
+/// or eight (an AVX-512 vector, or two AVX2 ones), or arrays of either on a CPU without
+/// them. Every implementation does the same operations lane by lane (`mul_add` fused),
+/// so they give the same bits.
+pub(crate) trait Lanes<const N: usize>: Copy {
     /// The vector.
     type V: Copy;
-    /// This CPU's eight-lane arithmetic.
-    type Oct: Oct;
-    /// The eight-lane arithmetic of the same instruction set.
-    fn oct(self) -> Self::Oct;
     /// Every lane `x`.
     fn splat(self, x: f64) -> Self::V;
     /// The lanes from an array.
-    fn load(self, a: [f64; 4]) -> Self::V;
+    fn load(self, a: [f64; N]) -> Self::V;
     /// The lanes as an array.
-    fn store(self, v: Self::V) -> [f64; 4];
+    fn store(self, v: Self::V) -> [f64; N];
     /// `a + b`.
     fn add(self, a: Self::V, b: Self::V) -> Self::V;
     /// `a − b`.
@@ -129,26 +126,12 @@ pub(crate) trait Quad: Copy {
     fn pow2(self, k: Self::V) -> Self::V;
 }
 
-/// Eight f64 lanes and the few IEEE operations the per-bin loops need, lane by lane:
-/// one AVX-512 vector, two AVX2 vectors, or an array. Every implementation does the
-/// same operations lane by lane (`mul_add` fused), so they give the same bits.
-pub(crate) trait Oct: Copy {
-    /// The vector.
-    type W: Copy;
-    /// Every lane `x`.
-    fn splat(self, x: f64) -> Self::W;
-    /// The lanes from an array.
-    fn load(self, a: [f64; 8]) -> Self::W;
-    /// The lanes as an array.
-    fn store(self, v: Self::W) -> [f64; 8];
-    /// `a + b`.
-    fn add(self, a: Self::W, b: Self::W) -> Self::W;
-    /// `a − b`.
-    fn sub(self, a: Self::W, b: Self::W) -> Self::W;
-    /// `a b`.
-    fn mul(self, a: Self::W, b: Self::W) -> Self::W;
-    /// `a b + c`, rounded once.
-    fn mul_add(self, a: Self::W, b: Self::W, c: Self::W) -> Self::W;
+/// An instruction set's lanes: four, and eight through [`Quad::oct`].
+pub(crate) trait Quad: Lanes<4> {
+    /// Eight lanes of the same instruction set.
+    type Oct: Lanes<8>;
+    /// The eight-lane arithmetic of the same instruction set.
+    fn oct(self) -> Self::Oct;
 }
 
 /// `eˣ` within 1 ulp of `f64::exp` (tested) for `x` in [−708, 709] (clamped to it), the same bits in every
@@ -156,7 +139,7 @@ pub(crate) trait Oct: Copy {
 /// with fused multiply-adds), `eʳ` by its Taylor polynomial of degree 13 (truncation
 /// below 1e-17 relative), times `2ᵏ`.
 #[inline(always)]
-pub(crate) fn exp<Q: Quad>(q: Q, x: Q::V) -> Q::V {
+pub(crate) fn exp<const N: usize, Q: Lanes<N>>(q: Q, x: Q::V) -> Q::V {
     let x = q.max(q.min(x, q.splat(EXP_MAX)), q.splat(EXP_MIN));
     let k = q.round(q.mul(x, q.splat(std::f64::consts::LOG2_E)));
     let minus_k = q.mul(k, q.splat(-1.0));
@@ -189,7 +172,7 @@ pub(crate) fn exp_scalar(x: f64) -> f64 {
 /// `tanh x` as `(e²ˣ − 1)/(e²ˣ + 1)` with [`exp`]: within 4e-16 of it absolutely (not
 /// relatively: near 0 the difference cancels), ±1 beyond |x| = 354.
 #[inline(always)]
-pub(crate) fn tanh<Q: Quad>(q: Q, x: Q::V) -> Q::V {
+pub(crate) fn tanh<const N: usize, Q: Lanes<N>>(q: Q, x: Q::V) -> Q::V {
     let e = exp(q, q.add(x, x));
     let one = q.splat(1.0);
     q.div(q.sub(e, one), q.add(e, one))
@@ -204,7 +187,7 @@ pub(crate) fn tanh_scalar(x: f64) -> f64 {
 
 /// The logistic function `1/(1 + e⁻ˣ)` with [`exp`].
 #[inline(always)]
-pub(crate) fn sigmoid<Q: Quad>(q: Q, x: Q::V) -> Q::V {
+pub(crate) fn sigmoid<const N: usize, Q: Lanes<N>>(q: Q, x: Q::V) -> Q::V {
     let one = q.splat(1.0);
     q.div(one, q.add(one, exp(q, q.mul(q.splat(-1.0), x))))
 }
@@ -239,96 +222,102 @@ const EXP_TAYLOR: [f64; 14] = [
     1.0 / 6_227_020_800.0,
 ];
 
-/// The operations [`Quad`] and [`Oct`] share, on arrays of `$n` lanes (the vector type
-/// `Self::$v`): IEEE operations lane by lane, `mul_add` the correctly rounded `fma`.
+/// [`Lanes`] on arrays of `$n` lanes: IEEE operations lane by lane, `mul_add` the
+/// correctly rounded `fma` (in software where the CPU has no FMA).
 macro_rules! array_lanes {
-    ($n:literal, $v:ident) => {
+    ($n:literal) => {
+        type V = [f64; $n];
         #[inline(always)]
-        fn splat(self, x: f64) -> Self::$v {
+        fn splat(self, x: f64) -> Self::V {
             [x; $n]
         }
         #[inline(always)]
-        fn load(self, a: [f64; $n]) -> Self::$v {
+        fn load(self, a: [f64; $n]) -> Self::V {
             a
         }
         #[inline(always)]
-        fn store(self, v: Self::$v) -> [f64; $n] {
+        fn store(self, v: Self::V) -> [f64; $n] {
             v
         }
         #[inline(always)]
-        fn add(self, a: Self::$v, b: Self::$v) -> Self::$v {
+        fn add(self, a: Self::V, b: Self::V) -> Self::V {
             std::array::from_fn(|j| a[j] + b[j])
         }
         #[inline(always)]
-        fn sub(self, a: Self::$v, b: Self::$v) -> Self::$v {
+        fn sub(self, a: Self::V, b: Self::V) -> Self::V {
             std::array::from_fn(|j| a[j] - b[j])
         }
         #[inline(always)]
-        fn mul(self, a: Self::$v, b: Self::$v) -> Self::$v {
+        fn mul(self, a: Self::V, b: Self::V) -> Self::V {
             std::array::from_fn(|j| a[j] * b[j])
         }
         #[inline(always)]
-        fn mul_add(self, a: Self::$v, b: Self::$v, c: Self::$v) -> Self::$v {
+        fn mul_add(self, a: Self::V, b: Self::V, c: Self::V) -> Self::V {
             std::array::from_fn(|j| a[j].mul_add(b[j], c[j]))
+        }
+        #[inline(always)]
+        fn div(self, a: Self::V, b: Self::V) -> Self::V {
+            std::array::from_fn(|j| a[j] / b[j])
+        }
+        #[inline(always)]
+        fn sqrt(self, a: Self::V) -> Self::V {
+            a.map(f64::sqrt)
+        }
+        #[inline(always)]
+        fn round(self, a: Self::V) -> Self::V {
+            a.map(f64::round_ties_even)
+        }
+        #[inline(always)]
+        fn floor(self, a: Self::V) -> Self::V {
+            a.map(f64::floor)
+        }
+        #[inline(always)]
+        fn ceil(self, a: Self::V) -> Self::V {
+            a.map(f64::ceil)
+        }
+        #[inline(always)]
+        fn max(self, a: Self::V, b: Self::V) -> Self::V {
+            std::array::from_fn(|j| if a[j] > b[j] { a[j] } else { b[j] })
+        }
+        #[inline(always)]
+        fn min(self, a: Self::V, b: Self::V) -> Self::V {
+            std::array::from_fn(|j| if a[j] < b[j] { a[j] } else { b[j] })
+        }
+        #[inline(always)]
+        fn pow2(self, k: Self::V) -> Self::V {
+            k.map(pow2_scalar)
         }
     };
 }
 
-/// [`Quad`] as arrays, for CPUs without AVX2 and FMA (`mul_add` is then the correctly
+/// Lanes as arrays, for CPUs without AVX2 and FMA (`mul_add` is then the correctly
 /// rounded software `fma`).
 #[derive(Clone, Copy, Debug)]
 pub(crate) struct Portable;
 
+impl Lanes<4> for Portable {
+    array_lanes!(4);
+}
+
 impl Quad for Portable {
-    type V = [f64; 4];
     type Oct = Wide<Portable>;
     #[inline(always)]
     fn oct(self) -> Wide<Portable> {
         Wide(self)
     }
-    array_lanes!(4, V);
-    #[inline(always)]
-    fn div(self, a: Self::V, b: Self::V) -> Self::V {
-        std::array::from_fn(|j| a[j] / b[j])
-    }
-    #[inline(always)]
-    fn sqrt(self, a: Self::V) -> Self::V {
-        a.map(f64::sqrt)
-    }
-    #[inline(always)]
-    fn round(self, a: Self::V) -> Self::V {
-        a.map(f64::round_ties_even)
-    }
-    #[inline(always)]
-    fn floor(self, a: Self::V) -> Self::V {
-        a.map(f64::floor)
-    }
-    #[inline(always)]
-    fn ceil(self, a: Self::V) -> Self::V {
-        a.map(f64::ceil)
-    }
-    #[inline(always)]
-    fn max(self, a: Self::V, b: Self::V) -> Self::V {
-        std::array::from_fn(|j| if a[j] > b[j] { a[j] } else { b[j] })
-    }
-    #[inline(always)]
-    fn min(self, a: Self::V, b: Self::V) -> Self::V {
-        std::array::from_fn(|j| if a[j] < b[j] { a[j] } else { b[j] })
-    }
-    #[inline(always)]
-    fn pow2(self, k: Self::V) -> Self::V {
-        k.map(pow2_scalar)
-    }
+}
+
+/// The eight-lane arithmetic of an instruction set (the four-lane one's token).
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct Wide<T>(T);
+
+impl Lanes<8> for Wide<Portable> {
+    array_lanes!(8);
 }
 
 #[cfg(target_arch = "x86_64")]
-impl Quad for pulp::x86::V3 {
+impl Lanes<4> for pulp::x86::V3 {
     type V = pulp::f64x4;
-    type Oct = Wide<pulp::x86::V3>;
-    #[inline(always)]
-    fn oct(self) -> Wide<pulp::x86::V3> {
-        Wide(self)
-    }
     #[inline(always)]
     fn splat(self, x: f64) -> Self::V {
         pulp::Simd::splat_f64s(self, x)
@@ -393,148 +382,181 @@ impl Quad for pulp::x86::V3 {
         pulp::cast(self.shl_const_i64x4::<52>(biased))
     }
 }
-
-/// The eight-lane arithmetic of an instruction set (the four-lane one's token).
-#[derive(Clone, Copy, Debug)]
-pub(crate) struct Wide<T>(T);
-
-impl Oct for Wide<Portable> {
-    type W = [f64; 8];
-    array_lanes!(8, W);
+#[cfg(target_arch = "x86_64")]
+impl Quad for pulp::x86::V3 {
+    type Oct = Wide<pulp::x86::V3>;
+    #[inline(always)]
+    fn oct(self) -> Wide<pulp::x86::V3> {
+        Wide(self)
+    }
 }
 
-/// Eight lanes as two AVX2 vectors, low lanes first.
+/// Calls `$m!` with [`Lanes`]' operations on vectors and their operands' names, for
+/// implementations that write them all alike.
 #[cfg(target_arch = "x86_64")]
-impl Oct for Wide<pulp::x86::V3> {
-    type W = (pulp::f64x4, pulp::f64x4);
+macro_rules! vector_ops {
+    ($m:ident) => {
+        $m!(
+            add(a, b),
+            sub(a, b),
+            mul(a, b),
+            mul_add(a, b, c),
+            div(a, b),
+            sqrt(a),
+            round(a),
+            floor(a),
+            ceil(a),
+            max(a, b),
+            min(a, b),
+            pow2(k)
+        );
+    };
+}
+
+/// AVX-512's four-lane operations: AVX2's (`*self`) of the same name.
+#[cfg(target_arch = "x86_64")]
+macro_rules! as_v3 {
+    ($($f:ident($($a:ident),+)),+) => {
+        $(
+            #[inline(always)]
+            fn $f(self, $($a: Self::V),+) -> Self::V {
+                Lanes::<4>::$f(*self, $($a),+)
+            }
+        )+
+    };
+}
+
+/// Eight lanes as two AVX2 vectors, low lanes first: each operation on both halves.
+#[cfg(target_arch = "x86_64")]
+macro_rules! halves {
+    ($($f:ident($($a:ident),+)),+) => {
+        $(
+            #[inline(always)]
+            fn $f(self, $($a: Self::V),+) -> Self::V {
+                (Lanes::<4>::$f(self.0, $($a.0),+), Lanes::<4>::$f(self.0, $($a.1),+))
+            }
+        )+
+    };
+}
+
+#[cfg(target_arch = "x86_64")]
+impl Lanes<8> for Wide<pulp::x86::V3> {
+    type V = (pulp::f64x4, pulp::f64x4);
     #[inline(always)]
-    fn splat(self, x: f64) -> Self::W {
-        let v = pulp::Simd::splat_f64s(self.0, x);
+    fn splat(self, x: f64) -> Self::V {
+        let v = Lanes::<4>::splat(self.0, x);
         (v, v)
     }
     #[inline(always)]
-    fn load(self, a: [f64; 8]) -> Self::W {
+    fn load(self, a: [f64; 8]) -> Self::V {
         (
             pulp::f64x4(a[0], a[1], a[2], a[3]),
             pulp::f64x4(a[4], a[5], a[6], a[7]),
         )
     }
     #[inline(always)]
-    fn store(self, v: Self::W) -> [f64; 8] {
+    fn store(self, v: Self::V) -> [f64; 8] {
         [v.0.0, v.0.1, v.0.2, v.0.3, v.1.0, v.1.1, v.1.2, v.1.3]
     }
-    #[inline(always)]
-    fn add(self, a: Self::W, b: Self::W) -> Self::W {
-        (
-            pulp::Simd::add_f64s(self.0, a.0, b.0),
-            pulp::Simd::add_f64s(self.0, a.1, b.1),
-        )
-    }
-    #[inline(always)]
-    fn sub(self, a: Self::W, b: Self::W) -> Self::W {
-        (
-            pulp::Simd::sub_f64s(self.0, a.0, b.0),
-            pulp::Simd::sub_f64s(self.0, a.1, b.1),
-        )
-    }
-    #[inline(always)]
-    fn mul(self, a: Self::W, b: Self::W) -> Self::W {
-        (
-            pulp::Simd::mul_f64s(self.0, a.0, b.0),
-            pulp::Simd::mul_f64s(self.0, a.1, b.1),
-        )
-    }
-    #[inline(always)]
-    fn mul_add(self, a: Self::W, b: Self::W, c: Self::W) -> Self::W {
-        (
-            pulp::Simd::mul_add_f64s(self.0, a.0, b.0, c.0),
-            pulp::Simd::mul_add_f64s(self.0, a.1, b.1, c.1),
-        )
-    }
+    vector_ops!(halves);
 }
 
-/// [`Quad`]'s operations on vectors, each the AVX2 token's (`*self`) of the same name.
+/// AVX-512's four lanes are AVX2's operations (the same instructions, here with the
+/// wider target's encodings).
 #[cfg(target_arch = "x86_64")]
-macro_rules! delegate_to_v3 {
-    ($($f:ident($($a:ident),+)),+) => {
-        $(
-            #[inline(always)]
-            fn $f(self, $($a: Self::V),+) -> Self::V {
-                Quad::$f(*self, $($a),+)
-            }
-        )+
-    };
+impl Lanes<4> for pulp::x86::V4 {
+    type V = pulp::f64x4;
+    #[inline(always)]
+    fn splat(self, x: f64) -> Self::V {
+        Lanes::<4>::splat(*self, x)
+    }
+    #[inline(always)]
+    fn load(self, a: [f64; 4]) -> Self::V {
+        Lanes::<4>::load(*self, a)
+    }
+    #[inline(always)]
+    fn store(self, v: Self::V) -> [f64; 4] {
+        Lanes::<4>::store(*self, v)
+    }
+    vector_ops!(as_v3);
 }
 
-/// AVX-512: the four-lane operations are AVX2's (the same instructions, here with the
-/// wider target's encodings), the eight-lane ones a single vector.
 #[cfg(target_arch = "x86_64")]
 impl Quad for pulp::x86::V4 {
-    type V = pulp::f64x4;
     type Oct = Wide<pulp::x86::V4>;
     #[inline(always)]
     fn oct(self) -> Wide<pulp::x86::V4> {
         Wide(self)
     }
-    #[inline(always)]
-    fn splat(self, x: f64) -> Self::V {
-        Quad::splat(*self, x)
-    }
-    #[inline(always)]
-    fn load(self, a: [f64; 4]) -> Self::V {
-        Quad::load(*self, a)
-    }
-    #[inline(always)]
-    fn store(self, v: Self::V) -> [f64; 4] {
-        Quad::store(*self, v)
-    }
-    // The rest, as AVX2's, by name.
-    delegate_to_v3!(
-        add(a, b),
-        sub(a, b),
-        mul(a, b),
-        mul_add(a, b, c),
-        div(a, b),
-        sqrt(a),
-        round(a),
-        floor(a),
-        ceil(a),
-        max(a, b),
-        min(a, b),
-        pow2(k)
-    );
 }
 
+/// AVX-512's eight lanes: one vector.
 #[cfg(target_arch = "x86_64")]
-impl Oct for Wide<pulp::x86::V4> {
-    type W = pulp::f64x8;
+impl Lanes<8> for Wide<pulp::x86::V4> {
+    type V = pulp::f64x8;
     #[inline(always)]
-    fn splat(self, x: f64) -> Self::W {
+    fn splat(self, x: f64) -> Self::V {
         pulp::Simd::splat_f64s(self.0, x)
     }
     #[inline(always)]
-    fn load(self, a: [f64; 8]) -> Self::W {
+    fn load(self, a: [f64; 8]) -> Self::V {
         pulp::f64x8(a[0], a[1], a[2], a[3], a[4], a[5], a[6], a[7])
     }
     #[inline(always)]
-    fn store(self, v: Self::W) -> [f64; 8] {
+    fn store(self, v: Self::V) -> [f64; 8] {
         [v.0, v.1, v.2, v.3, v.4, v.5, v.6, v.7]
     }
     #[inline(always)]
-    fn add(self, a: Self::W, b: Self::W) -> Self::W {
+    fn add(self, a: Self::V, b: Self::V) -> Self::V {
         pulp::Simd::add_f64s(self.0, a, b)
     }
     #[inline(always)]
-    fn sub(self, a: Self::W, b: Self::W) -> Self::W {
+    fn sub(self, a: Self::V, b: Self::V) -> Self::V {
         pulp::Simd::sub_f64s(self.0, a, b)
     }
     #[inline(always)]
-    fn mul(self, a: Self::W, b: Self::W) -> Self::W {
+    fn mul(self, a: Self::V, b: Self::V) -> Self::V {
         pulp::Simd::mul_f64s(self.0, a, b)
     }
     #[inline(always)]
-    fn mul_add(self, a: Self::W, b: Self::W, c: Self::W) -> Self::W {
+    fn mul_add(self, a: Self::V, b: Self::V, c: Self::V) -> Self::V {
         pulp::Simd::mul_add_f64s(self.0, a, b, c)
+    }
+    #[inline(always)]
+    fn div(self, a: Self::V, b: Self::V) -> Self::V {
+        pulp::Simd::div_f64s(self.0, a, b)
+    }
+    #[inline(always)]
+    fn sqrt(self, a: Self::V) -> Self::V {
+        pulp::Simd::sqrt_f64s(self.0, a)
+    }
+    #[inline(always)]
+    fn round(self, a: Self::V) -> Self::V {
+        self.0.round_f64x8(a)
+    }
+    #[inline(always)]
+    fn floor(self, a: Self::V) -> Self::V {
+        self.0.floor_f64x8(a)
+    }
+    #[inline(always)]
+    fn ceil(self, a: Self::V) -> Self::V {
+        self.0.ceil_f64x8(a)
+    }
+    #[inline(always)]
+    fn max(self, a: Self::V, b: Self::V) -> Self::V {
+        // vmaxpd returns its second operand when either is NaN.
+        pulp::Simd::max_f64s(self.0, a, b)
+    }
+    #[inline(always)]
+    fn min(self, a: Self::V, b: Self::V) -> Self::V {
+        pulp::Simd::min_f64s(self.0, a, b)
+    }
+    #[inline(always)]
+    fn pow2(self, k: Self::V) -> Self::V {
+        let v = self.0;
+        let k = v.convert_i32x8_to_i64x8(v.convert_f64x8_to_i32x8(k));
+        let biased = v.wrapping_add_i64x8(k, v.splat_i64x8(1023));
+        pulp::cast(v.shl_const_i64x8::<52>(biased))
     }
 }
 
@@ -583,20 +605,21 @@ mod tests {
     }
 
     /// The eight lanes of AVX2 (two vectors) and AVX-512 (one) give the arrays' bits,
-    /// operation by operation, on operands that round, underflow and cancel.
+    /// operation by operation, on operands that round, underflow, cancel and are NaN;
+    /// `exp` on eight lanes gives `exp_scalar`'s bits.
     #[test]
     fn eight_lanes_agree_bit_for_bit() {
-        fn check<O: Oct>(o: O) {
+        fn check<O: Lanes<8>>(o: O) {
             let p = Portable.oct();
             let a = [0.1, -3.7e-12, 1.0 / 3.0, 7.5e300, 2.5, -0.0, 1e-300, 9.0];
-            let b = [2.0 / 3.0, 1e-310, -0.0, 1.2, 0.7, 3.0, 1e-10, -1.0 / 7.0];
+            let b = [2.0 / 3.0, 1e-310, -0.0, 1.2, 0.7, f64::NAN, 1e-10, -1.0 / 7.0];
             let c = [
                 1e16,
                 0.3,
                 f64::MIN_POSITIVE,
                 -9.0e300,
                 -1.75,
-                0.0,
+                2.0,
                 1.0,
                 1.0 / 49.0,
             ];
@@ -608,6 +631,23 @@ mod tests {
             assert_eq!(bits(p.mul_add(a, b, c)), bits(o.store(o.mul_add(va, vb, vc))));
             assert_eq!(bits(p.splat(0.25)), bits(o.store(o.splat(0.25))));
             assert_eq!(bits(a), bits(o.store(va)));
+            assert_eq!(bits(p.div(a, b)), bits(o.store(o.div(va, vb))));
+            assert_eq!(bits(p.div(c, a)), bits(o.store(o.div(vc, va))));
+            let roots = [2.0, 1e-310, 0.0, 7.5e300, 0.5, 3.0, 1e-300, 1e10];
+            assert_eq!(bits(p.sqrt(roots)), bits(o.store(o.sqrt(o.load(roots)))));
+            let r = [-2.5, -0.0, 3.5, 1e300, 0.5, -1.5, 2.4999, -7.7];
+            let vr = o.load(r);
+            assert_eq!(bits(p.round(r)), bits(o.store(o.round(vr))));
+            assert_eq!(bits(p.floor(r)), bits(o.store(o.floor(vr))));
+            assert_eq!(bits(p.ceil(r)), bits(o.store(o.ceil(vr))));
+            assert_eq!(bits(p.max(r, b)), bits(o.store(o.max(vr, vb))));
+            assert_eq!(bits(p.min(r, b)), bits(o.store(o.min(vr, vb))));
+            assert_eq!(bits(p.max(b, r)), bits(o.store(o.max(vb, vr))));
+            let k = [-1022.0, 0.0, 7.0, 1023.0, -1.0, 52.0, -300.0, 1.0];
+            assert_eq!(bits(p.pow2(k)), bits(o.store(o.pow2(o.load(k)))));
+            let x = [0.3, -700.0, 12.5, 0.0, -1e-9, 708.0, -0.75, 3.0];
+            assert_eq!(bits(exp(p, x)), bits(o.store(exp(o, o.load(x)))));
+            assert_eq!(bits(exp(p, x)), bits(x.map(exp_scalar)));
         }
         let mut ran = 0;
         #[cfg(target_arch = "x86_64")]

@@ -10,7 +10,7 @@
 use glam::{DMat3, DVec3};
 
 use crate::simd::exp_scalar;
-use crate::simd::{Oct, Quad};
+use crate::simd::{self, Lanes as _, Quad};
 use crate::special::{INV_SQRT_2PI, NORMAL};
 use crate::transient::{Pair, TimeAxis};
 
@@ -229,19 +229,21 @@ impl Window {
         })
     }
 
-    /// [`Window::new`] for four pulses at once, lane by lane the same bits, written into
-    /// `out` (the caller's slot, so the pulses are not built aside and copied).
+    /// [`Window::new`] for `N` pulses at once (four or eight), lane by lane the same
+    /// bits, lane j written into `out[j / 4][j % 4]` (the callers' slots, so the pulses
+    /// are not built aside and copied).
     #[allow(clippy::too_many_arguments)]
     #[inline(always)]
-    pub(crate) fn lanes_into<Q: Quad>(
+    pub(crate) fn lanes_into<const N: usize, Q: simd::Lanes<N>, const S: usize>(
         q: Q,
         amplitude: Q::V,
         mu: Q::V,
         sigma: Q::V,
         axis: &TimeAxis,
         opt: &RenderOptions,
-        out: &mut [Option<Self>; 4],
+        out: &mut [&mut [Option<Self>; 4]; S],
     ) {
+        debug_assert_eq!(4 * S, N);
         let reach = q.mul(q.splat(opt.window_sigmas), sigma);
         let (start, width) = (q.splat(axis.start), q.splat(axis.width));
         let lo = q.max(
@@ -267,7 +269,8 @@ impl Window {
         let (lo, hi, m, dz) = (q.store(lo), q.store(hi), q.store(m), q.store(dz));
         let (phi, rho, ratio) = (q.store(phi), q.store(rho), q.store(ratio));
         let (amplitude, mu, sigma) = (q.store(amplitude), q.store(mu), q.store(sigma));
-        for (j, w) in out.iter_mut().enumerate() {
+        for j in 0..N {
+            let w = &mut out[j / 4][j % 4];
             if !(lo[j] < hi[j]) {
                 *w = None;
                 continue;
@@ -389,7 +392,7 @@ impl Window {
             if !rest.is_empty() {
                 sums.add(o, &poly, &lanes, o.load(load_tail(rest)));
             }
-            let total = |v: <Q::Oct as Oct>::W| {
+            let total = |v: <Q::Oct as simd::Lanes<8>>::V| {
                 let l = o.store(v);
                 series.dz * (((l[0] + l[1]) + (l[2] + l[3])) + ((l[4] + l[5]) + (l[6] + l[7])))
             };
@@ -657,7 +660,7 @@ impl<V: Copy> PolyConsts<V> {
     /// `P(m) = 1 + a He₂ + b He₄` from `m²`, with `He₂ = m² − 1`,
     /// `He₄ = m⁴ − 6m² + 3`.
     #[inline(always)]
-    fn value<O: Oct<W = V>>(&self, quad: O, m2: V) -> V {
+    fn value<O: simd::Lanes<8, V = V>>(&self, quad: O, m2: V) -> V {
         let he2 = quad.sub(m2, self.one);
         let he4 = quad.mul_add(m2, quad.sub(m2, self.six), self.three);
         quad.mul_add(self.b, he4, quad.mul_add(self.a, he2, self.one))
@@ -711,7 +714,7 @@ impl WideSeries {
     /// The first [`LANES`] bins and each lane's recurrence. The first bins come from
     /// the one-bin recurrence; lane j's ratio `φ(m_j + 8dz)/φ(m_j)` is `ρ⁸ q^{8j+28}`.
     #[inline(always)]
-    fn lanes<O: Oct>(&self, quad: O) -> Lanes<O::W> {
+    fn lanes<O: simd::Lanes<8>>(&self, quad: O) -> Lanes<O::V> {
         let m: [f64; LANES] = std::array::from_fn(|j| (j as f64).mul_add(self.dz, self.m));
         let (q, rho) = (self.q, self.rho);
         // The first four bins by the one-bin recurrence, the next four from them by the
@@ -758,7 +761,7 @@ impl WideSeries {
 
     /// The polynomial's constants for `quad`.
     #[inline(always)]
-    fn poly_consts<O: Oct>(&self, quad: O) -> PolyConsts<O::W> {
+    fn poly_consts<O: simd::Lanes<8>>(&self, quad: O) -> PolyConsts<O::V> {
         PolyConsts {
             one: quad.splat(1.0),
             three: quad.splat(3.0),
@@ -776,7 +779,7 @@ impl WideSeries {
 impl<V: Copy> Lanes<V> {
     /// Every lane on to its next bin.
     #[inline(always)]
-    fn advance<O: Oct<W = V>>(&mut self, quad: O) {
+    fn advance<O: simd::Lanes<8, V = V>>(&mut self, quad: O) {
         self.phi = quad.mul(self.phi, self.ratio);
         self.ratio = quad.mul(self.ratio, self.q);
         self.m = quad.add(self.m, self.step);
@@ -797,7 +800,7 @@ impl<V: Copy> SeriesSums<V> {
     /// `(m ∂/∂m + dz ∂/∂dz) ΔΦ / dz = φ (m (P' − m P) + P + dz ∂P/∂dz)`, with
     /// `P' = m (2a + b (4m² − 12))` and `dz ∂P/∂dz = 2a He₂ + 4b He₄`.
     #[inline(always)]
-    fn add<O: Oct<W = V>>(&mut self, quad: O, c: &PolyConsts<V>, lanes: &Lanes<V>, dl: V) {
+    fn add<O: simd::Lanes<8, V = V>>(&mut self, quad: O, c: &PolyConsts<V>, lanes: &Lanes<V>, dl: V) {
         let m = lanes.m;
         let m2 = quad.mul(m, m);
         let he2 = quad.sub(m2, c.one);

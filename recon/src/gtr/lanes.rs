@@ -1,12 +1,15 @@
-//! One primitive against four pairs of a mini-batch at once.
+//! One primitive against four pairs of a mini-batch at once, or two primitives in
+//! eight lanes.
 //!
 //! A training step evaluates every primitive against every pair of its batch. Each
 //! evaluation's geometry (distances, directions, projected areas, spread) and, in the
 //! backward pass, its chain rule down to the primitive's physical parameters are a few
 //! hundred scalar operations with square roots and divisions: more time than the
-//! per-bin loops, which run four bins to a vector. Here the batch's pairs go four to a
+//! per-bin loops, which run eight bins to a vector. Here the batch's pairs go four to a
 //! vector instead, lane j of group g holding the batch's pair 4g + j, with the
-//! primitive's parameters in every lane.
+//! primitive's parameters in every lane. With eight lanes (an AVX-512 vector, or two
+//! AVX2 ones) two primitives go together, lanes 0–3 the first against the group's
+//! pairs and lanes 4–7 the second against the same pairs.
 //!
 //! Every lane does the IEEE operations that [`evaluate`](super::kernel::evaluate) and
 //! [`Evaluation::backward`](super::kernel::Evaluation::backward) do for one pair, in the
@@ -20,7 +23,7 @@
 use glam::DVec3;
 
 use super::kernel::{Kernel, PhysicalGrad, RenderOptions, SIGMA_FLOOR_BINS, Window};
-use crate::simd::Quad;
+use crate::simd::{self, Quad};
 use crate::transient::{Pair, TimeAxis, TransientSet};
 
 /// Pairs per group: one f64 vector of AVX2.
@@ -96,31 +99,24 @@ struct Vec3s<V> {
 }
 
 impl<V: Copy> Vec3s<V> {
+    /// Lane j holds `f(j)`.
     #[inline(always)]
-    fn splat<Q: Quad<V = V>>(q: Q, v: DVec3) -> Self {
+    fn from_fn<const N: usize, Q: simd::Lanes<N, V = V>>(q: Q, f: impl Fn(usize) -> DVec3) -> Self {
+        let v: [DVec3; N] = std::array::from_fn(f);
         Self {
-            x: q.splat(v.x),
-            y: q.splat(v.y),
-            z: q.splat(v.z),
+            x: q.load(v.map(|v| v.x)),
+            y: q.load(v.map(|v| v.y)),
+            z: q.load(v.map(|v| v.z)),
         }
     }
 
     #[inline(always)]
-    fn load<Q: Quad<V = V>>(q: Q, a: &[Lanes; 3]) -> Self {
-        Self {
-            x: q.load(a[0]),
-            y: q.load(a[1]),
-            z: q.load(a[2]),
-        }
-    }
-
-    #[inline(always)]
-    fn store<Q: Quad<V = V>>(self, q: Q) -> [Lanes; 3] {
+    fn store<const N: usize, Q: simd::Lanes<N, V = V>>(self, q: Q) -> [[f64; N]; 3] {
         [q.store(self.x), q.store(self.y), q.store(self.z)]
     }
 
     #[inline(always)]
-    fn add<Q: Quad<V = V>>(self, q: Q, o: Self) -> Self {
+    fn add<const N: usize, Q: simd::Lanes<N, V = V>>(self, q: Q, o: Self) -> Self {
         Self {
             x: q.add(self.x, o.x),
             y: q.add(self.y, o.y),
@@ -129,7 +125,7 @@ impl<V: Copy> Vec3s<V> {
     }
 
     #[inline(always)]
-    fn sub<Q: Quad<V = V>>(self, q: Q, o: Self) -> Self {
+    fn sub<const N: usize, Q: simd::Lanes<N, V = V>>(self, q: Q, o: Self) -> Self {
         Self {
             x: q.sub(self.x, o.x),
             y: q.sub(self.y, o.y),
@@ -139,7 +135,7 @@ impl<V: Copy> Vec3s<V> {
 
     /// Component by component.
     #[inline(always)]
-    fn mul<Q: Quad<V = V>>(self, q: Q, o: Self) -> Self {
+    fn mul<const N: usize, Q: simd::Lanes<N, V = V>>(self, q: Q, o: Self) -> Self {
         Self {
             x: q.mul(self.x, o.x),
             y: q.mul(self.y, o.y),
@@ -148,7 +144,7 @@ impl<V: Copy> Vec3s<V> {
     }
 
     #[inline(always)]
-    fn scale<Q: Quad<V = V>>(self, q: Q, c: V) -> Self {
+    fn scale<const N: usize, Q: simd::Lanes<N, V = V>>(self, q: Q, c: V) -> Self {
         Self {
             x: q.mul(c, self.x),
             y: q.mul(c, self.y),
@@ -157,7 +153,7 @@ impl<V: Copy> Vec3s<V> {
     }
 
     #[inline(always)]
-    fn div<Q: Quad<V = V>>(self, q: Q, c: V) -> Self {
+    fn div<const N: usize, Q: simd::Lanes<N, V = V>>(self, q: Q, c: V) -> Self {
         Self {
             x: q.div(self.x, c),
             y: q.div(self.y, c),
@@ -167,21 +163,21 @@ impl<V: Copy> Vec3s<V> {
 
     /// `(x x' + y y') + z z'`, glam's order.
     #[inline(always)]
-    fn dot<Q: Quad<V = V>>(self, q: Q, o: Self) -> V {
+    fn dot<const N: usize, Q: simd::Lanes<N, V = V>>(self, q: Q, o: Self) -> V {
         q.add(q.add(q.mul(self.x, o.x), q.mul(self.y, o.y)), q.mul(self.z, o.z))
     }
 }
 
 /// Lane `j` of a 3-vector.
 #[inline(always)]
-fn lane(a: &[Lanes; 3], j: usize) -> DVec3 {
+fn lane<const N: usize>(a: &[[f64; N]; 3], j: usize) -> DVec3 {
     DVec3::new(a[0][j], a[1][j], a[2][j])
 }
 
 /// `m v` for a matrix given by its columns, as glam's `DMat3 * DVec3`:
 /// `(c0 v.x + c1 v.y) + c2 v.z`.
 #[inline(always)]
-fn mat_vec<Q: Quad>(q: Q, cols: &[Vec3s<Q::V>; 3], v: Vec3s<Q::V>) -> Vec3s<Q::V> {
+fn mat_vec<const N: usize, Q: simd::Lanes<N>>(q: Q, cols: &[Vec3s<Q::V>; 3], v: Vec3s<Q::V>) -> Vec3s<Q::V> {
     cols[0]
         .scale(q, v.x)
         .add(q, cols[1].scale(q, v.y))
@@ -191,7 +187,11 @@ fn mat_vec<Q: Quad>(q: Q, cols: &[Vec3s<Q::V>; 3], v: Vec3s<Q::V>) -> Vec3s<Q::V
 /// `mᵀ v` for a matrix given by its columns: component j is column j dotted with v
 /// (glam's `m.transpose() * v`).
 #[inline(always)]
-fn mat_t_vec<Q: Quad>(q: Q, cols: &[Vec3s<Q::V>; 3], v: Vec3s<Q::V>) -> Vec3s<Q::V> {
+fn mat_t_vec<const N: usize, Q: simd::Lanes<N>>(
+    q: Q,
+    cols: &[Vec3s<Q::V>; 3],
+    v: Vec3s<Q::V>,
+) -> Vec3s<Q::V> {
     Vec3s {
         x: cols[0].dot(q, v),
         y: cols[1].dot(q, v),
@@ -202,7 +202,13 @@ fn mat_t_vec<Q: Quad>(q: Q, cols: &[Vec3s<Q::V>; 3], v: Vec3s<Q::V>) -> Vec3s<Q:
 /// `∂A⊥/∂s` without the factor: with `c = w ⊙ w ⊙ π`,
 /// `(c_y s_z + c_z s_y, c_x s_z + c_z s_x, c_x s_y + c_y s_x) / a`.
 #[inline(always)]
-fn area_ds<Q: Quad>(q: Q, w: Vec3s<Q::V>, a: Q::V, pi: Vec3s<Q::V>, s: Vec3s<Q::V>) -> Vec3s<Q::V> {
+fn area_ds<const N: usize, Q: simd::Lanes<N>>(
+    q: Q,
+    w: Vec3s<Q::V>,
+    a: Q::V,
+    pi: Vec3s<Q::V>,
+    s: Vec3s<Q::V>,
+) -> Vec3s<Q::V> {
     let c = w.mul(q, w).mul(q, pi);
     Vec3s {
         x: q.add(q.mul(c.y, s.z), q.mul(c.z, s.y)),
@@ -215,13 +221,78 @@ fn area_ds<Q: Quad>(q: Q, w: Vec3s<Q::V>, a: Q::V, pi: Vec3s<Q::V>, s: Vec3s<Q::
 /// The centre's gradient through one relay point at distance `d` in direction `u`:
 /// `g_d u + (g_u − (u·g_u) u) / d`.
 #[inline(always)]
-fn centre_grad<Q: Quad>(q: Q, u: Vec3s<Q::V>, g_u: Vec3s<Q::V>, g_d: Q::V, d: Q::V) -> Vec3s<Q::V> {
+fn centre_grad<const N: usize, Q: simd::Lanes<N>>(
+    q: Q,
+    u: Vec3s<Q::V>,
+    g_u: Vec3s<Q::V>,
+    g_d: Q::V,
+    d: Q::V,
+) -> Vec3s<Q::V> {
     u.scale(q, g_d)
         .add(q, g_u.sub(q, u.scale(q, u.dot(q, g_u))).div(q, d))
 }
 
-/// One primitive's geometry against the four pairs of a [`PairGroup`], in registers:
-/// what [`evaluate`](super::kernel::evaluate) computes, lane by lane.
+/// The primitives of an evaluation in lanes: lane j holds `kernels[j / LANES]`, so four
+/// lanes hold one primitive and eight hold two, each against the group's four pairs.
+/// Every value is computed as the one-primitive path computes it (scalar products of
+/// the kernel's fields), so every lane has its bits.
+struct Prims<V> {
+    x: Vec3s<V>,
+    /// The rotation's columns.
+    cols: [Vec3s<V>; 3],
+    s: Vec3s<V>,
+    pi: Vec3s<V>,
+    /// `s ⊙ s` and `π ⊙ π`.
+    s2: Vec3s<V>,
+    pi2: Vec3s<V>,
+    rho: V,
+}
+
+impl<V: Copy> Prims<V> {
+    #[inline(always)]
+    fn load<const N: usize, Q: simd::Lanes<N, V = V>>(q: Q, kernels: &[&Kernel]) -> Self {
+        debug_assert_eq!(kernels.len() * LANES, N);
+        let k = |j: usize| kernels[j / LANES];
+        Self {
+            x: Vec3s::from_fn(q, |j| k(j).x),
+            cols: [
+                Vec3s::from_fn(q, |j| k(j).r.x_axis),
+                Vec3s::from_fn(q, |j| k(j).r.y_axis),
+                Vec3s::from_fn(q, |j| k(j).r.z_axis),
+            ],
+            s: Vec3s::from_fn(q, |j| k(j).s),
+            pi: Vec3s::from_fn(q, |j| k(j).pi),
+            s2: Vec3s::from_fn(q, |j| k(j).s * k(j).s),
+            pi2: Vec3s::from_fn(q, |j| k(j).pi * k(j).pi),
+            rho: q.load(std::array::from_fn(|j| k(j).rho)),
+        }
+    }
+}
+
+/// A group's relay points and normals in lanes: lane j holds the group's pair
+/// `j % LANES` (eight lanes repeat the four).
+struct Sides<V> {
+    xi: Vec3s<V>,
+    ni: Vec3s<V>,
+    xd: Vec3s<V>,
+    nd: Vec3s<V>,
+}
+
+impl<V: Copy> Sides<V> {
+    #[inline(always)]
+    fn load<const N: usize, Q: simd::Lanes<N, V = V>>(q: Q, group: &PairGroup) -> Self {
+        let at = |a: &[Lanes; 3]| Vec3s::from_fn(q, |j| lane(a, j % LANES));
+        Self {
+            xi: at(&group.xi),
+            ni: at(&group.ni),
+            xd: at(&group.xd),
+            nd: at(&group.nd),
+        }
+    }
+}
+
+/// Primitives' geometry against the pairs of a [`PairGroup`], in registers: what
+/// [`evaluate`](super::kernel::evaluate) computes, lane by lane.
 struct Geometry<V> {
     di: V,
     dd: V,
@@ -239,33 +310,32 @@ struct Geometry<V> {
     sigma: V,
 }
 
-/// The geometry of `k` against `group`. Cheap next to keeping it: the forward pass
+/// The geometry of the primitives `k` against the pairs `sides` (whose detection side is
+/// the illumination side's when `shared`). Cheap next to keeping it: the forward pass
 /// keeps only the pulses, and the backward pass computes this again.
 #[inline(always)]
-fn geometry<Q: Quad>(
+fn geometry<const N: usize, Q: simd::Lanes<N>>(
     q: Q,
-    k: &Kernel,
-    group: &PairGroup,
+    k: &Prims<Q::V>,
+    sides: &Sides<Q::V>,
+    shared: bool,
     axis: &TimeAxis,
     opt: &RenderOptions,
 ) -> Geometry<Q::V> {
-    let x = Vec3s::splat(q, k.x);
-    let cols = columns(q, k);
-    let pi = Vec3s::splat(q, k.pi);
-    let (di, inv_di, ui, gi, wi, ai) = side(q, x, &cols, pi, &group.xi, &group.ni, opt.use_ni);
-    let (dd, inv_dd, ud, gd, wd, ad) = if group.shares_sides(opt) {
+    let (di, inv_di, ui, gi, wi, ai) = side(q, k, sides.xi, sides.ni, opt.use_ni);
+    let (dd, inv_dd, ud, gd, wd, ad) = if shared {
         (di, inv_di, ui, gi, wi, ai)
     } else {
-        side(q, x, &cols, pi, &group.xd, &group.nd, opt.use_nd)
+        side(q, k, sides.xd, sides.nd, opt.use_nd)
     };
     let wv = wi.add(q, wd);
     let base = q.mul(
         q.mul(q.mul(q.mul(q.splat(opt.gain), ai), ad), q.mul(inv_di, inv_di)),
         q.mul(inv_dd, inv_dd),
     );
-    let amplitude = q.mul(q.mul(q.mul(base, q.splat(k.rho)), gi), gd);
+    let amplitude = q.mul(q.mul(q.mul(base, k.rho), gi), gd);
     let floor = SIGMA_FLOOR_BINS * axis.width;
-    let swv = Vec3s::splat(q, k.s).mul(q, wv);
+    let swv = k.s.mul(q, wv);
     let sigma = q.sqrt(q.add(
         q.add(swv.dot(q, swv), q.splat(opt.sigma_sys * opt.sigma_sys)),
         q.splat(floor * floor),
@@ -289,43 +359,27 @@ fn geometry<Q: Quad>(
 }
 
 /// One relay point's side of [`geometry`] (illumination or detection): distance to the
-/// primitive's centre `x`, its inverse, the direction, the relay cosine (1 when
-/// `cosine` is off), the direction in the primitive's frame and the projected area.
+/// primitive's centre, its inverse, the direction, the relay cosine (1 when `cosine` is
+/// off), the direction in the primitive's frame and the projected area.
 #[allow(clippy::type_complexity)]
 #[inline(always)]
-fn side<Q: Quad>(
+fn side<const N: usize, Q: simd::Lanes<N>>(
     q: Q,
-    x: Vec3s<Q::V>,
-    cols: &[Vec3s<Q::V>; 3],
-    pi: Vec3s<Q::V>,
-    at: &[Lanes; 3],
-    normal: &[Lanes; 3],
+    k: &Prims<Q::V>,
+    at: Vec3s<Q::V>,
+    normal: Vec3s<Q::V>,
     cosine: bool,
 ) -> (Q::V, Q::V, Vec3s<Q::V>, Q::V, Vec3s<Q::V>, Q::V) {
-    let to = x.sub(q, Vec3s::load(q, at));
+    let to = k.x.sub(q, at);
     let d = q.sqrt(to.dot(q, to));
     let one = q.splat(1.0);
     let inv = q.div(one, d);
     let u = to.scale(q, inv);
-    let g = if cosine {
-        Vec3s::load(q, normal).dot(q, u)
-    } else {
-        one
-    };
-    let w = mat_t_vec(q, cols, u);
-    let pw = pi.mul(q, w);
+    let g = if cosine { normal.dot(q, u) } else { one };
+    let w = mat_t_vec(q, &k.cols, u);
+    let pw = k.pi.mul(q, w);
     let a = q.sqrt(pw.dot(q, pw));
     (d, inv, u, g, w, a)
-}
-
-/// The rotation's columns, in every lane.
-#[inline(always)]
-fn columns<Q: Quad>(q: Q, k: &Kernel) -> [Vec3s<Q::V>; 3] {
-    [
-        Vec3s::splat(q, k.r.x_axis),
-        Vec3s::splat(q, k.r.y_axis),
-        Vec3s::splat(q, k.r.z_axis),
-    ]
 }
 
 /// One primitive's pulse in each pair of a [`PairGroup`]: `None` where it cannot
@@ -360,22 +414,60 @@ pub(crate) fn evaluate_group_into<Q: Quad>(
     opt: &RenderOptions,
     slot: &mut Option<Pulses>,
 ) {
-    let g = geometry(q, k, group, axis, opt);
-    let pulses = slot.insert([None; LANES]);
-    Window::lanes_into(q, g.amplitude, q.add(g.di, g.dd), g.sigma, axis, opt, pulses);
-    let (di, dd, gi, gd) = (q.store(g.di), q.store(g.dd), q.store(g.gi), q.store(g.gd));
-    for (j, w) in pulses.iter_mut().enumerate() {
-        if j >= group.used
-            || di[j] < opt.min_distance
-            || dd[j] < opt.min_distance
-            || gi[j] <= 0.0
-            || gd[j] <= 0.0
-        {
-            *w = None;
+    evaluate_lanes_into::<4, _, 1>(q, &[k], group, axis, opt, [slot]);
+}
+
+/// [`evaluate_group_into`] of two primitives at once, `a` into `slot_a` and `b` into
+/// `slot_b`, in eight lanes (one AVX-512 vector): the same bits as one at a time.
+#[inline(always)]
+pub(crate) fn evaluate_two_into<Q: Quad>(
+    q: Q,
+    [a, b]: [&Kernel; 2],
+    group: &PairGroup,
+    axis: &TimeAxis,
+    opt: &RenderOptions,
+    [slot_a, slot_b]: [&mut Option<Pulses>; 2],
+) {
+    evaluate_lanes_into::<8, _, 2>(q.oct(), &[a, b], group, axis, opt, [slot_a, slot_b]);
+}
+
+/// The primitives `kernels` (lane j holding `kernels[j / LANES]`) against `group`, each
+/// primitive's pulses into its slot (`None` where it reaches none of the pairs).
+#[inline(always)]
+fn evaluate_lanes_into<const N: usize, Q: simd::Lanes<N>, const S: usize>(
+    q: Q,
+    kernels: &[&Kernel; S],
+    group: &PairGroup,
+    axis: &TimeAxis,
+    opt: &RenderOptions,
+    slots: [&mut Option<Pulses>; S],
+) {
+    let prims = Prims::load(q, kernels);
+    let sides = Sides::load(q, group);
+    let g = geometry(q, &prims, &sides, group.shares_sides(opt), axis, opt);
+    let mut slots = slots;
+    let mut any = [false; S];
+    {
+        let mut pulses = slots.each_mut().map(|slot| slot.insert([None; LANES]));
+        Window::lanes_into(q, g.amplitude, q.add(g.di, g.dd), g.sigma, axis, opt, &mut pulses);
+        let (di, dd, gi, gd) = (q.store(g.di), q.store(g.dd), q.store(g.gi), q.store(g.gd));
+        for j in 0..N {
+            let w = &mut pulses[j / LANES][j % LANES];
+            if j % LANES >= group.used
+                || di[j] < opt.min_distance
+                || dd[j] < opt.min_distance
+                || gi[j] <= 0.0
+                || gd[j] <= 0.0
+            {
+                *w = None;
+            }
+            any[j / LANES] |= w.is_some();
         }
     }
-    if pulses.iter().all(Option::is_none) {
-        *slot = None;
+    for (slot, any) in slots.into_iter().zip(any) {
+        if !any {
+            *slot = None;
+        }
     }
 }
 
@@ -394,15 +486,57 @@ pub(crate) fn backward_group<Q: Quad>(
     dl: &[f64],
     grad: &mut PhysicalGrad,
 ) {
+    backward_lanes::<4, _, _, 1>(q, q, &[k], group, [pulses], axis, opt, dl, [grad]);
+}
+
+/// [`backward_group`] of two primitives at once, in eight lanes (one AVX-512 vector):
+/// the same bits as one at a time.
+#[allow(clippy::too_many_arguments)]
+#[inline(always)]
+pub(crate) fn backward_two<Q: Quad>(
+    q: Q,
+    kernels: [&Kernel; 2],
+    group: &PairGroup,
+    pulses: [&Pulses; 2],
+    axis: &TimeAxis,
+    opt: &RenderOptions,
+    dl: &[f64],
+    grads: [&mut PhysicalGrad; 2],
+) {
+    backward_lanes::<8, _, _, 2>(q, q.oct(), &kernels, group, pulses, axis, opt, dl, grads);
+}
+
+/// The backward pass of the primitives `kernels` (lane j holding `kernels[j / LANES]`,
+/// its pulses `pulses[j / LANES]`) against `group`, each primitive's gradient added to
+/// its own of `grads` in lane order. `quad` runs the per-bin sums, `q` the lanes.
+#[allow(clippy::too_many_arguments)]
+#[inline(always)]
+fn backward_lanes<const N: usize, Q: Quad, L: simd::Lanes<N>, const S: usize>(
+    quad: Q,
+    q: L,
+    kernels: &[&Kernel; S],
+    group: &PairGroup,
+    pulses: [&Pulses; S],
+    axis: &TimeAxis,
+    opt: &RenderOptions,
+    dl: &[f64],
+    grads: [&mut PhysicalGrad; S],
+) {
     // The per-bin sums, a lane at a time; lanes without a pulse get finite stand-ins
     // and are skipped below.
-    let (mut s_cdf, mut s_pdf, mut s_zpdf) = ([0.0; LANES], [0.0; LANES], [0.0; LANES]);
-    for (j, w) in pulses.iter().enumerate() {
-        if let Some(w) = w {
-            (s_cdf[j], s_pdf[j], s_zpdf[j]) = w.sums(q, axis, &dl[j * axis.bins..(j + 1) * axis.bins]);
+    let (mut s_cdf, mut s_pdf, mut s_zpdf) = ([0.0; N], [0.0; N], [0.0; N]);
+    for j in 0..N {
+        if let Some(w) = &pulses[j / LANES][j % LANES] {
+            let p = j % LANES;
+            (s_cdf[j], s_pdf[j], s_zpdf[j]) = w.sums(quad, axis, &dl[p * axis.bins..(p + 1) * axis.bins]);
         }
     }
-    let geo = geometry(q, k, group, axis, opt);
+    let k = Prims::load(q, kernels);
+    let sides = Sides::load(q, group);
+    // On a group whose sides are shared (`PairGroup::shares_sides`), every detection
+    // term below equals its illumination twin bit for bit, so it is reused.
+    let shared = group.shares_sides(opt);
+    let geo = geometry(q, &k, &sides, shared, axis, opt);
     let inv = q.div(q.splat(1.0), geo.sigma);
     let amp = geo.amplitude;
     let minus_one = q.splat(-1.0);
@@ -413,7 +547,7 @@ pub(crate) fn backward_group<Q: Quad>(
     let (base, gi, gd) = (geo.base, geo.gi, geo.gd);
     let g_base = q.mul(g_amp, base);
     let c_rho = q.mul(q.mul(g_base, gi), gd);
-    let rho = q.splat(k.rho);
+    let rho = k.rho;
     let zero = q.splat(0.0);
     let g_gi = if opt.use_ni {
         q.mul(q.mul(g_base, rho), gd)
@@ -429,21 +563,17 @@ pub(crate) fn backward_group<Q: Quad>(
     let (ai, ad) = (geo.ai, geo.ad);
     let (wi, wd, wv) = (geo.wi, geo.wd, geo.wv);
     let g_amp_amp = q.mul(g_amp, amp);
-    let pi2 = Vec3s::splat(q, k.pi * k.pi);
-    // On a group whose sides are shared (`PairGroup::shares_sides`), every detection
-    // term below equals its illumination twin bit for bit, so it is reused.
-    let shared = group.shares_sides(opt);
-    let g_wi = wi.mul(q, pi2).scale(q, q.div(g_amp_amp, q.mul(ai, ai)));
+    let g_wi = wi.mul(q, k.pi2).scale(q, q.div(g_amp_amp, q.mul(ai, ai)));
     let g_wd = if shared {
         g_wi
     } else {
-        wd.mul(q, pi2).scale(q, q.div(g_amp_amp, q.mul(ad, ad)))
+        wd.mul(q, k.pi2).scale(q, q.div(g_amp_amp, q.mul(ad, ad)))
     };
     let g_sigma_inv = q.mul(g_sigma, inv);
-    let s = Vec3s::splat(q, k.s);
-    let g_wv = Vec3s::splat(q, k.s * k.s).mul(q, wv).scale(q, g_sigma_inv);
+    let s = k.s;
+    let g_wv = k.s2.mul(q, wv).scale(q, g_sigma_inv);
 
-    let pi = Vec3s::splat(q, k.pi);
+    let pi = k.pi;
     let c_si = area_ds(q, wi, ai, pi, s).scale(q, q.div(g_amp_amp, ai));
     let c_sd = if shared {
         c_si
@@ -470,11 +600,11 @@ pub(crate) fn backward_group<Q: Quad>(
         .add(q, ud.scale(q, g_wd.z))
         .add(q, v.scale(q, g_wv.z));
 
-    let cols = columns(q, k);
-    let rg_v = mat_vec(q, &cols, g_wv);
-    let g_ui = mat_vec(q, &cols, g_wi)
+    let cols = &k.cols;
+    let rg_v = mat_vec(q, cols, g_wv);
+    let g_ui = mat_vec(q, cols, g_wi)
         .add(q, rg_v)
-        .add(q, Vec3s::load(q, &group.ni).scale(q, g_gi));
+        .add(q, sides.ni.scale(q, g_gi));
     let (di, dd) = (geo.di, geo.dd);
     let minus_two = q.splat(-2.0);
     let g_di = q.add(q.div(q.mul(q.mul(minus_two, g_amp), amp), di), g_mu);
@@ -483,22 +613,23 @@ pub(crate) fn backward_group<Q: Quad>(
     let c_xd = if shared {
         c_xi
     } else {
-        let g_ud = mat_vec(q, &cols, g_wd)
+        let g_ud = mat_vec(q, cols, g_wd)
             .add(q, rg_v)
-            .add(q, Vec3s::load(q, &group.nd).scale(q, g_gd));
+            .add(q, sides.nd.scale(q, g_gd));
         let g_dd = q.add(q.div(q.mul(q.mul(minus_two, g_amp), amp), dd), g_mu);
         centre_grad(q, ud, g_ud, g_dd, dd)
     };
 
-    // Into the primitive's gradient, lane by lane in the batch's order.
+    // Into each primitive's gradient, lane by lane in the batch's order.
     let c_rho = q.store(c_rho);
     let c_s = c_s.store(q);
     let c_r = [c_r0.store(q), c_r1.store(q), c_r2.store(q)];
     let (c_xi, c_xd) = (c_xi.store(q), c_xd.store(q));
-    for j in 0..LANES {
-        if pulses[j].is_none() {
+    for j in 0..N {
+        if pulses[j / LANES][j % LANES].is_none() {
             continue;
         }
+        let grad = &mut *grads[j / LANES];
         grad.rho += c_rho[j];
         grad.s += lane(&c_s, j);
         grad.r.x_axis += lane(&c_r[0], j);
@@ -593,8 +724,9 @@ mod tests {
 
     /// Every lane's pulse and the group's gradient are bit-for-bit what the one-pair
     /// path gives, for groups of 1 to 4 pairs, with and without the relay cosines and
-    /// the instrument's jitter, on the portable arrays and on this CPU's vectors.
-    fn check<Q: Quad>(q: Q) -> (usize, usize) {
+    /// the instrument's jitter, on the portable arrays and on this CPU's vectors; and
+    /// two primitives at once in eight lanes give each one's bits alone.
+    fn check<Q: Quad>(q: Q) -> (usize, usize, usize) {
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(7);
         let (kernels, pairs) = scene(&mut rng);
         let axis = TimeAxis {
@@ -605,7 +737,7 @@ mod tests {
         let dl: Vec<f64> = (0..LANES * axis.bins)
             .map(|_| rng.random_range(-1.0..1.0))
             .collect();
-        let (mut compared, mut wide, mut shared) = (0, 0, 0);
+        let (mut compared, mut wide, mut shared, mut twos) = (0, 0, 0, 0);
         for (use_ni, use_nd, sigma_sys) in [
             (true, true, 0.0),
             (false, true, 0.003),
@@ -656,30 +788,79 @@ mod tests {
                         backward_group(q, k, &group, &pulses, &axis, &opt, &dl, &mut got);
                         assert_eq!(grad_bits(&got), grad_bits(&want), "{got:?} vs {want:?}");
                     }
+                    // Two primitives at once, in eight lanes: each one's pulses and
+                    // gradient are its bits alone.
+                    for two in kernels.chunks_exact(2) {
+                        let (a, b) = (&two[0], &two[1]);
+                        let alone = [
+                            evaluate_group(q, a, &group, &axis, &opt),
+                            evaluate_group(q, b, &group, &axis, &opt),
+                        ];
+                        let mut together = [None, None];
+                        evaluate_two_into(q, [a, b], &group, &axis, &opt, together.each_mut());
+                        for (one, both) in alone.iter().zip(&together) {
+                            match (one, both) {
+                                (None, None) => {}
+                                (Some(x), Some(y)) => {
+                                    for (x, y) in x.iter().zip(y) {
+                                        match (x, y) {
+                                            (None, None) => {}
+                                            (Some(x), Some(y)) => assert!(same_pulse(x, y), "{x:?} vs {y:?}"),
+                                            (x, y) => panic!("alone {x:?}, together {y:?}"),
+                                        }
+                                    }
+                                }
+                                (x, y) => panic!("alone {x:?}, together {y:?}"),
+                            }
+                        }
+                        if let [Some(p_a), Some(p_b)] = &alone {
+                            let mut want = [PhysicalGrad::default(); 2];
+                            backward_group(q, a, &group, p_a, &axis, &opt, &dl, &mut want[0]);
+                            backward_group(q, b, &group, p_b, &axis, &opt, &dl, &mut want[1]);
+                            let mut got = [PhysicalGrad::default(); 2];
+                            backward_two(q, [a, b], &group, [p_a, p_b], &axis, &opt, &dl, got.each_mut());
+                            for (got, want) in got.iter().zip(&want) {
+                                assert_eq!(grad_bits(got), grad_bits(want), "{got:?} vs {want:?}");
+                            }
+                            twos += 1;
+                        }
+                    }
                 }
             }
         }
         // Groups of every size whose sides are shared, under both cosine settings that
         // share them.
         assert!(shared >= 8, "only {shared} groups with shared sides");
-        (compared, wide)
+        (compared, wide, twos)
     }
 
     #[test]
-    fn four_pairs_at_once_give_the_one_pair_bits() {
-        let (compared, wide) = check(crate::simd::Portable);
+    fn four_and_eight_lanes_give_the_one_pair_bits() {
+        let (compared, wide, twos) = check(crate::simd::Portable);
         // Most primitive–pair combinations contribute; the culled ones are checked too.
         assert!(compared > 1000, "only {compared} contributing evaluations");
         assert!(
             wide > 100 && wide < compared,
             "{wide} of {compared} on the series"
         );
+        assert!(
+            twos > 100,
+            "only {twos} groups with two primitives' gradients compared"
+        );
+        let mut ran = 0;
         #[cfg(target_arch = "x86_64")]
         if let Some(v3) = crate::simd::v3() {
-            assert_eq!(check(v3), (compared, wide));
-            return;
+            assert_eq!(check(v3), (compared, wide, twos));
+            ran += 1;
         }
-        eprintln!("skipped: this CPU has no AVX2 + FMA, only the arrays ran");
+        #[cfg(target_arch = "x86_64")]
+        if let Some(v4) = crate::simd::v4() {
+            assert_eq!(check(v4), (compared, wide, twos));
+            ran += 1;
+        }
+        if ran < 2 {
+            eprintln!("skipped in part: this CPU lacks AVX2 + FMA or AVX-512 ({ran} of 2 ran)");
+        }
     }
 
     /// `render_pairs` gives, on every pair, the bits of the one-pair path's evaluations

@@ -8,7 +8,9 @@
 use rayon::prelude::*;
 
 use super::kernel::{Kernel, Loss, PhysicalGrad, RenderOptions};
-use super::lanes::{LANES, PairGroup, Pulses, backward_group, evaluate_group_into, groups};
+use super::lanes::{
+    LANES, PairGroup, Pulses, backward_group, backward_two, evaluate_group_into, evaluate_two_into, groups,
+};
 use super::model::{GaussianCloud, MapSlopes, RawGrads};
 use crate::transient::{Pair, TimeAxis, TransientSet};
 
@@ -83,10 +85,19 @@ impl crate::simd::Work for RenderGroup<'_> {
             out,
         } = self;
         out.fill(0.0);
-        let mut slot = None;
-        for k in kernels {
-            evaluate_group_into(quad, k, &group, axis, opt, &mut slot);
-            if let Some(pulses) = &slot {
+        // Two primitives at a time in eight lanes; each one's pulses added in the
+        // primitives' order, as one at a time.
+        let mut slots = [None, None];
+        for ks in kernels.chunks(2) {
+            match ks {
+                [a, b] => evaluate_two_into(quad, [a, b], &group, axis, opt, slots.each_mut()),
+                [a] => {
+                    evaluate_group_into(quad, a, &group, axis, opt, &mut slots[0]);
+                    slots[1] = None;
+                }
+                _ => unreachable!("chunks of 1 or 2"),
+            }
+            for pulses in slots.iter().flatten() {
                 for (w, hist) in pulses.iter().zip(out.chunks_exact_mut(axis.bins)) {
                     if let Some(w) = w {
                         w.accumulate_with(quad, axis, hist);
@@ -178,26 +189,40 @@ impl crate::simd::Work for ForwardChunk<'_> {
         } = self;
         let axis = set.axis();
         let bins = axis.bins;
+        let n = groups.len();
         let mut local = vec![0.0; bins * batch_len];
-        let mut kept = Vec::with_capacity(if keep { chunk.len() * groups.len() } else { 0 });
+        let mut kept: Kept = if keep {
+            vec![None; chunk.len() * n]
+        } else {
+            Vec::new()
+        };
         // Primitive-major: the batch's histograms (a few KiB) stay in L1, and the
-        // evaluations are kept in the order the backward pass reads them.
-        let mut fresh = None;
-        for k in chunk {
-            for (out, group) in local.chunks_mut(LANES * bins).zip(groups) {
-                // The pulses are built in their slot (the kept one, or one reused) and
-                // read from there: built aside and moved, they were copied (3 % of a
-                // fit).
-                let e = if keep {
-                    kept.push(None);
-                    let slot = kept.last_mut().expect("just pushed");
-                    evaluate_group_into(quad, k, group, axis, opt, slot);
-                    slot.as_ref()
-                } else {
-                    evaluate_group_into(quad, k, group, axis, opt, &mut fresh);
-                    fresh.as_ref()
+        // evaluations are kept in the order the backward pass reads them. Two
+        // primitives at a time in eight lanes; each one's pulses are added in the
+        // primitives' order, so every histogram gets the bits of one at a time.
+        let mut fresh = [None, None];
+        for (c, ks) in chunk.chunks(2).enumerate() {
+            let i = 2 * c;
+            for (g, (out, group)) in local.chunks_mut(LANES * bins).zip(groups).enumerate() {
+                // The pulses are built in their slots (the kept ones, or two reused)
+                // and read from there: built aside and moved, they were copied (3 % of
+                // a fit).
+                let [sa, sb] = match (keep, ks) {
+                    (true, [_, _]) => kept
+                        .get_disjoint_mut([i * n + g, (i + 1) * n + g])
+                        .expect("two primitives' slots"),
+                    (true, _) => [&mut kept[i * n + g], &mut fresh[1]],
+                    (false, _) => fresh.each_mut(),
                 };
-                if let Some(e) = e {
+                match ks {
+                    [a, b] => evaluate_two_into(quad, [a, b], group, axis, opt, [&mut *sa, &mut *sb]),
+                    [a] => {
+                        evaluate_group_into(quad, a, group, axis, opt, &mut *sa);
+                        *sb = None;
+                    }
+                    _ => unreachable!("chunks of 1 or 2"),
+                }
+                for e in [&*sa, &*sb].into_iter().flatten() {
                     for (w, hist) in e.iter().zip(out.chunks_exact_mut(bins)) {
                         if let Some(w) = w {
                             w.accumulate_with(quad, axis, hist);
@@ -451,20 +476,9 @@ impl crate::simd::Work for BackwardChunk<'_, '_> {
         } = self;
         let axis = set.axis();
         let bins = axis.bins;
-        let n = groups.len();
-        for i in 0..ga.len() {
+        let (n, len) = (groups.len(), ga.len());
+        let mut chain = |i: usize, g: &PhysicalGrad| {
             let k = first + i;
-            let kernel = &kernels[k];
-            let mut g = PhysicalGrad::default();
-            for ((e, group), dl) in evals[i * n..(i + 1) * n]
-                .iter()
-                .zip(groups)
-                .zip(dl.chunks(LANES * bins))
-            {
-                if let Some(pulses) = e {
-                    backward_group(quad, kernel, group, pulses, axis, opt, dl, &mut g);
-                }
-            }
             let slope = match slopes {
                 Some(all) => all[k],
                 None => cloud.slopes(k),
@@ -472,11 +486,46 @@ impl crate::simd::Work for BackwardChunk<'_, '_> {
             ga[i] = cloud.chain_with(
                 k,
                 &slope,
-                &g,
+                g,
                 &mut gc[3 * i..3 * i + 3],
                 &mut gs[3 * i..3 * i + 3],
                 &mut gr[4 * i..4 * i + 4],
             );
+        };
+        // Two primitives at a time in eight lanes where both reach a group's pairs,
+        // one alone where only one does; each one's gradient gets its lanes in the
+        // batch's order, the bits of one primitive at a time.
+        let mut i = 0;
+        while i < len {
+            let (a, b) = (
+                &kernels[first + i],
+                kernels.get(first + i + 1).filter(|_| i + 1 < len),
+            );
+            let (mut g_a, mut g_b) = (PhysicalGrad::default(), PhysicalGrad::default());
+            for (g, (group, dl)) in groups.iter().zip(dl.chunks(LANES * bins)).enumerate() {
+                let e_a = &evals[i * n + g];
+                let e_b = b.and(evals.get((i + 1) * n + g)).and_then(Option::as_ref);
+                match (e_a, b.zip(e_b)) {
+                    (Some(p_a), Some((b, p_b))) => backward_two(
+                        quad,
+                        [a, b],
+                        group,
+                        [p_a, p_b],
+                        axis,
+                        opt,
+                        dl,
+                        [&mut g_a, &mut g_b],
+                    ),
+                    (Some(p_a), None) => backward_group(quad, a, group, p_a, axis, opt, dl, &mut g_a),
+                    (None, Some((b, p_b))) => backward_group(quad, b, group, p_b, axis, opt, dl, &mut g_b),
+                    (None, None) => {}
+                }
+            }
+            chain(i, &g_a);
+            if b.is_some() {
+                chain(i + 1, &g_b);
+            }
+            i += if b.is_some() { 2 } else { 1 };
         }
     }
 }
