@@ -458,7 +458,7 @@ fn store_tail(tail: &[f64; LANES], rest: &mut [f64]) {
 }
 
 /// Timing probes for `benches/gtr.rs`: the pulses' per-bin loops alone, on the vector
-/// path a training step takes (this CPU's AVX2 + FMA where it has them), so the bench
+/// path a training step takes (AVX-512, or AVX2 + FMA, where the CPU has them), so the bench
 /// can tell their cost from the rest of a step's. Not an interface to build on.
 #[doc(hidden)]
 pub mod probe {
