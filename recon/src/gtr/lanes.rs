@@ -431,6 +431,27 @@ pub(crate) fn evaluate_two_into<Q: Quad>(
     evaluate_lanes_into::<8, _, 2>(q.oct(), &[a, b], group, axis, opt, [slot_a, slot_b]);
 }
 
+/// The primitives `ks` (one or two: a chunk of a primitive list) against `group`: the
+/// first's pulses into `slot_a`, the second's into `slot_b` (`None` when there is none).
+#[inline(always)]
+pub(crate) fn evaluate_chunk_into<Q: Quad>(
+    q: Q,
+    ks: &[Kernel],
+    group: &PairGroup,
+    axis: &TimeAxis,
+    opt: &RenderOptions,
+    [slot_a, slot_b]: [&mut Option<Pulses>; 2],
+) {
+    match ks {
+        [a, b] => evaluate_two_into(q, [a, b], group, axis, opt, [slot_a, slot_b]),
+        [a] => {
+            evaluate_group_into(q, a, group, axis, opt, slot_a);
+            *slot_b = None;
+        }
+        _ => unreachable!("a chunk of one or two primitives"),
+    }
+}
+
 /// The primitives `kernels` (lane j holding `kernels[j / LANES]`) against `group`, each
 /// primitive's pulses into its slot (`None` where it reaches none of the pairs).
 #[inline(always)]

@@ -8,9 +8,7 @@
 use rayon::prelude::*;
 
 use super::kernel::{Kernel, Loss, PhysicalGrad, RenderOptions};
-use super::lanes::{
-    LANES, PairGroup, Pulses, backward_group, backward_two, evaluate_group_into, evaluate_two_into, groups,
-};
+use super::lanes::{LANES, PairGroup, Pulses, backward_group, backward_two, evaluate_chunk_into, groups};
 use super::model::{GaussianCloud, MapSlopes, RawGrads};
 use crate::transient::{Pair, TimeAxis, TransientSet};
 
@@ -89,14 +87,7 @@ impl crate::simd::Work for RenderGroup<'_> {
         // primitives' order, as one at a time.
         let mut slots = [None, None];
         for ks in kernels.chunks(2) {
-            match ks {
-                [a, b] => evaluate_two_into(quad, [a, b], &group, axis, opt, slots.each_mut()),
-                [a] => {
-                    evaluate_group_into(quad, a, &group, axis, opt, &mut slots[0]);
-                    slots[1] = None;
-                }
-                _ => unreachable!("chunks of 1 or 2"),
-            }
+            evaluate_chunk_into(quad, ks, &group, axis, opt, slots.each_mut());
             for pulses in slots.iter().flatten() {
                 for (w, hist) in pulses.iter().zip(out.chunks_exact_mut(axis.bins)) {
                     if let Some(w) = w {
@@ -214,14 +205,7 @@ impl crate::simd::Work for ForwardChunk<'_> {
                     (true, _) => [&mut kept[i * n + g], &mut fresh[1]],
                     (false, _) => fresh.each_mut(),
                 };
-                match ks {
-                    [a, b] => evaluate_two_into(quad, [a, b], group, axis, opt, [&mut *sa, &mut *sb]),
-                    [a] => {
-                        evaluate_group_into(quad, a, group, axis, opt, &mut *sa);
-                        *sb = None;
-                    }
-                    _ => unreachable!("chunks of 1 or 2"),
-                }
+                evaluate_chunk_into(quad, ks, group, axis, opt, [&mut *sa, &mut *sb]);
                 for e in [&*sa, &*sb].into_iter().flatten() {
                     for (w, hist) in e.iter().zip(out.chunks_exact_mut(bins)) {
                         if let Some(w) = w {
