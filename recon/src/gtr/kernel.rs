@@ -392,10 +392,7 @@ impl Window {
             if !rest.is_empty() {
                 sums.add(o, &poly, &lanes, o.load(load_tail(rest)));
             }
-            let total = |v: <Q::Oct as simd::Lanes<8>>::V| {
-                let l = o.store(v);
-                series.dz * (((l[0] + l[1]) + (l[2] + l[3])) + ((l[4] + l[5]) + (l[6] + l[7])))
-            };
+            let total = |v: <Q::Oct as simd::Lanes<8>>::V| series.dz * o.total(v);
             return (total(sums.cdf), total(sums.pdf), total(sums.zpdf));
         }
         let dl = &dl[self.lo..self.hi];
