@@ -611,8 +611,12 @@ impl Lanes<8> for Wide<pulp::x86::V4> {
     fn total(self, v: Self::V) -> f64 {
         use std::arch::x86_64::__m512d;
         let (x, a) = (self.0, pulp::cast::<_, __m512d>(v));
-        let a = x.avx512f._mm512_add_pd(a, x.avx512f._mm512_permute_pd::<0b0101_0101>(a));
-        let a = x.avx512f._mm512_add_pd(a, x.avx512f._mm512_shuffle_f64x2::<0b10_11_00_01>(a, a));
+        let a = x
+            .avx512f
+            ._mm512_add_pd(a, x.avx512f._mm512_permute_pd::<0b0101_0101>(a));
+        let a = x
+            .avx512f
+            ._mm512_add_pd(a, x.avx512f._mm512_shuffle_f64x2::<0b10_11_00_01>(a, a));
         let (lo, hi) = (
             x.avx512f._mm512_castpd512_pd256(a),
             x.avx512f._mm512_extractf64x4_pd::<1>(a),
@@ -717,7 +721,11 @@ mod tests {
                 assert_eq!(tree.to_bits(), o.total(o.load(l)).to_bits());
             }
             let fold = t.iter().fold(0.0, |s, x| s + x);
-            assert_ne!(fold.to_bits(), o.total(o.load(t)).to_bits(), "an order-blind check");
+            assert_ne!(
+                fold.to_bits(),
+                o.total(o.load(t)).to_bits(),
+                "an order-blind check"
+            );
             let four = |q: [f64; 4]| (q[0] + q[1]) + (q[2] + q[3]);
             let t4 = [t[0], t[1], t[2], t[3]];
             assert_eq!(four(t4).to_bits(), Portable.total(t4).to_bits());

@@ -206,10 +206,12 @@ impl crate::simd::Work for ForwardChunk<'_> {
                     (false, _) => fresh.each_mut(),
                 };
                 evaluate_chunk_into(quad, ks, group, axis, opt, [&mut *sa, &mut *sb]);
-                for e in [&*sa, &*sb].into_iter().flatten() {
-                    for (w, hist) in e.iter().zip(out.chunks_exact_mut(bins)) {
-                        if let Some(w) = w {
-                            w.accumulate_with(quad, axis, hist);
+                for e in [&mut *sa, &mut *sb].into_iter().flatten() {
+                    for (w, hist) in e.iter_mut().zip(out.chunks_exact_mut(bins)) {
+                        match w {
+                            Some(w) if keep => w.accumulate_keeping(quad, axis, hist),
+                            Some(w) => w.accumulate_with(quad, axis, hist),
+                            None => {}
                         }
                     }
                 }
