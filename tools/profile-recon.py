@@ -35,7 +35,7 @@ PARTS = [
     ("initial backprojection", ["DensityChunk"]),
     ("backward pass: per-bin sums (series and table)", ["sums<"]),
     ("backward pass: geometry and chain rule", ["backward_group<", "BackwardChunk"]),
-    ("forward pass: per-bin adds (series and table)", ["accumulate_with<"]),
+    ("forward pass: per-bin adds (series and table)", ["accumulate_with<", "accumulate_keeping<"]),
     ("forward pass: geometry and pulses", ["evaluate_group_into<", "ForwardChunk"]),
     ("parameter maps (refresh)", ["MapRange"]),
     ("rotation chain rule (chain_with)", ["chain_with"]),

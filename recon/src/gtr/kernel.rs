@@ -366,13 +366,7 @@ impl Window {
         if let Some(series) = &mut self.series
             && series.kept.is_none()
         {
-            let o = quad.oct();
-            let lanes = series.lanes(o);
-            series.kept = Some(KeptLanes {
-                phi: o.store(lanes.phi),
-                ratio: o.store(lanes.ratio),
-                q: o.store(lanes.q)[0],
-            });
+            series.kept = Some(series.starts());
         }
         self.accumulate_with(quad, axis, out);
     }
@@ -641,7 +635,8 @@ struct WideSeries {
     kept: Option<KeptLanes>,
 }
 
-/// Where [`Lanes`] start: φ and each lane's ratio, and the ratio between ratios.
+/// Where [`Lanes`] start: φ and each lane's ratio, and the ratio between ratios
+/// ([`WideSeries::starts`]).
 #[derive(Clone, Copy, Debug)]
 struct KeptLanes {
     phi: [f64; LANES],
@@ -739,20 +734,25 @@ impl WideSeries {
         }
     }
 
-    /// The first [`LANES`] bins and each lane's recurrence. The first bins come from
-    /// the one-bin recurrence; lane j's ratio `φ(m_j + 8dz)/φ(m_j)` is `ρ⁸ q^{8j+28}`.
+    /// The first [`LANES`] bins and each lane's recurrence, from the starts the forward
+    /// pass kept, or built here.
     #[inline(always)]
     fn lanes<O: simd::Lanes<8>>(&self, quad: O) -> Lanes<O::V> {
         let m: [f64; LANES] = std::array::from_fn(|j| (j as f64).mul_add(self.dz, self.m));
-        if let Some(kept) = &self.kept {
-            return Lanes {
-                m: quad.load(m),
-                phi: quad.load(kept.phi),
-                ratio: quad.load(kept.ratio),
-                q: quad.splat(kept.q),
-                step: quad.splat(LANES as f64 * self.dz),
-            };
+        let starts = self.kept.unwrap_or_else(|| self.starts());
+        Lanes {
+            m: quad.load(m),
+            phi: quad.load(starts.phi),
+            ratio: quad.load(starts.ratio),
+            q: quad.splat(starts.q),
+            step: quad.splat(LANES as f64 * self.dz),
         }
+    }
+
+    /// Where the lanes start. The first bins come from the one-bin recurrence; lane j's
+    /// ratio `φ(m_j + 8dz)/φ(m_j)` is `ρ⁸ q^{8j+28}`.
+    #[inline(always)]
+    fn starts(&self) -> KeptLanes {
         let (q, rho) = (self.q, self.rho);
         // The first four bins by the one-bin recurrence, the next four from them by the
         // four-bin ratios f_j = ρ⁴ q^{4j+6}, and the lanes' eight-bin ratios as
@@ -775,24 +775,20 @@ impl WideSeries {
         let f1 = f0 * q4;
         let f2 = f0 * q8;
         let f3 = f1 * q8;
-        let phi = [p0, p1, p2, p3, p0 * f0, p1 * f1, p2 * f2, p3 * f3];
         let g = [f0 * (f0 * q16), f1 * (f1 * q16), f2 * (f2 * q16), f3 * (f3 * q16)];
-        let ratio = [
-            g[0],
-            g[1],
-            g[2],
-            g[3],
-            g[0] * q32,
-            g[1] * q32,
-            g[2] * q32,
-            g[3] * q32,
-        ];
-        Lanes {
-            m: quad.load(m),
-            phi: quad.load(phi),
-            ratio: quad.load(ratio),
-            q: quad.splat(q32 * q32),
-            step: quad.splat(LANES as f64 * self.dz),
+        KeptLanes {
+            phi: [p0, p1, p2, p3, p0 * f0, p1 * f1, p2 * f2, p3 * f3],
+            ratio: [
+                g[0],
+                g[1],
+                g[2],
+                g[3],
+                g[0] * q32,
+                g[1] * q32,
+                g[2] * q32,
+                g[3] * q32,
+            ],
+            q: q32 * q32,
         }
     }
 
