@@ -334,17 +334,33 @@ impl Lanes<4> for Portable {
     array_lanes!(4);
 }
 
-impl Quad for Portable {
-    type Oct = Wide<Portable>;
-    #[inline(always)]
-    fn oct(self) -> Wide<Portable> {
-        Wide(self)
-    }
-}
-
 /// The eight-lane arithmetic of an instruction set (the four-lane one's token).
 #[derive(Clone, Copy, Debug)]
 pub(crate) struct Wide<T>(T);
+
+/// Each instruction set's eight lanes are [`Wide`] of its four-lane token.
+macro_rules! quad {
+    ($($(#[$attr:meta])* $t:ty),+) => {
+        $(
+            $(#[$attr])*
+            impl Quad for $t {
+                type Oct = Wide<$t>;
+                #[inline(always)]
+                fn oct(self) -> Wide<$t> {
+                    Wide(self)
+                }
+            }
+        )+
+    };
+}
+
+quad!(
+    Portable,
+    #[cfg(target_arch = "x86_64")]
+    pulp::x86::V3,
+    #[cfg(target_arch = "x86_64")]
+    pulp::x86::V4
+);
 
 impl Lanes<8> for Wide<Portable> {
     array_lanes!(8);
@@ -419,14 +435,6 @@ impl Lanes<4> for pulp::x86::V3 {
     #[inline(always)]
     fn total(self, v: Self::V) -> f64 {
         total_v3(self, v)
-    }
-}
-#[cfg(target_arch = "x86_64")]
-impl Quad for pulp::x86::V3 {
-    type Oct = Wide<pulp::x86::V3>;
-    #[inline(always)]
-    fn oct(self) -> Wide<pulp::x86::V3> {
-        Wide(self)
     }
 }
 
@@ -526,15 +534,6 @@ impl Lanes<4> for pulp::x86::V4 {
         total_v3(*self, v)
     }
     vector_ops!(as_v3);
-}
-
-#[cfg(target_arch = "x86_64")]
-impl Quad for pulp::x86::V4 {
-    type Oct = Wide<pulp::x86::V4>;
-    #[inline(always)]
-    fn oct(self) -> Wide<pulp::x86::V4> {
-        Wide(self)
-    }
 }
 
 /// AVX-512's eight lanes: one vector.
