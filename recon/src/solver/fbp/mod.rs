@@ -20,7 +20,9 @@
 //!   σ = λ/√2), and no less than 2.5 lateral voxel pitches (the finest detail the
 //!   volume holds), so the filter keeps what the relay can resolve and drops the DC,
 //!   ambient light and shot noise outside that band. Robust on sparse, non-confocal
-//!   and noisy captures.
+//!   and noisy captures. On photon counts the background's noise floor, which the
+//!   falloff weight lifts with the distance from the relay, is then taken off every
+//!   voxel (`noise.rs`, `[fbp] noise-floor`).
 //! - **Laplacian** (Velten et al. 2012): the backprojection sharpened with the
 //!   negative 3-D Laplacian on the voxel grid, negative lobes clipped. Sharp on a
 //!   dense, noise-free confocal grid, fragile elsewhere: its cut-off is the voxel
@@ -43,6 +45,7 @@ use crate::transient::TransientSet;
 use crate::volume::{Volume, VolumeGrid};
 
 mod grid;
+mod noise;
 mod tree;
 
 /// Pairs whose histograms are swept together over a slice (32 pairs of 512 bins, two
@@ -153,6 +156,12 @@ pub struct FbpSettings {
     /// leave at any voxel, in phasor wavelengths ([`PATH_ERROR_WAVELENGTHS`]: a
     /// quarter).
     pub path_error: f64,
+    /// On photon counts with the phasor filter, take the background's noise floor
+    /// off every voxel (`noise`: the noise power the background's counts put
+    /// there, times the logarithm of the voxel count, off the squared magnitude), so
+    /// that the falloff weight cannot lift noise far behind a dim target over it;
+    /// `false`: the magnitude as backprojected.
+    pub noise_floor: bool,
 }
 
 impl Default for FbpSettings {
@@ -165,6 +174,7 @@ impl Default for FbpSettings {
             relay_weights: true,
             backprojection: FbpBackprojection::Auto,
             path_error: PATH_ERROR_WAVELENGTHS,
+            noise_floor: true,
         }
     }
 }
@@ -326,6 +336,25 @@ impl PhasorFilter {
         }
     }
 
+    /// The power white noise of unit variance a bin has after the band-pass, as the
+    /// backprojection reads it between bin centres: the wavelet's energy `‖h‖²` (the
+    /// sum over bins of its impulse response's squared magnitude; by Parseval the FFT
+    /// length times the sum of the squared gains, which carry the inverse FFT's 1/n),
+    /// times `2/3 + ρ/3`, the mean over the fraction `t` of `(1 − t)² + t² + 2t(1 − t)ρ`
+    /// with `ρ` the filtered noise's correlation from one bin to the next (about
+    /// `cos(2π·width/λ)`: 0.96 of the energy at 12 bins a wavelength).
+    fn noise_power(&self) -> f64 {
+        let n = self.gain.len();
+        let (mut energy, mut next) = (0.0f64, 0.0f64);
+        for (k, &g) in self.gain.iter().enumerate() {
+            let g2 = f64::from(g) * f64::from(g);
+            energy += g2;
+            next += g2 * (2.0 * std::f64::consts::PI * k as f64 / n as f64).cos();
+        }
+        let rho = if energy > 0.0 { next / energy } else { 0.0 };
+        n as f64 * energy * (2.0 + rho) / 3.0
+    }
+
     /// Band-passes `h`; returns its real and imaginary parts interleaved, with `lead`
     /// bins before and after (so the wavelet does not wrap around). The padding
     /// repeats the first and last values: a level that runs off either end of the
@@ -467,7 +496,28 @@ pub fn fbp_on(
             backproject::<2, 4>(set, grid, settings.falloff, hists, lead, compute)?
         };
         let data = sums.iter().map(|[a, b]| a.hypot(*b)).collect();
-        return Ok(Volume { grid: *grid, data });
+        let mut volume = Volume { grid: *grid, data };
+        if settings.noise_floor && set.is_photon_counts() {
+            let roi = crate::roi::RoiBox::from_bounds(grid.min(), grid.max())
+                .expect("a volume grid's bounds are finite and ordered");
+            let background = crate::gtr::estimate_background(set, Some(&roi));
+            let power = noise::power(
+                set,
+                grid,
+                &weight,
+                settings.falloff,
+                filter.noise_power(),
+                background,
+            );
+            let normal = noise::mean_normal(set);
+            noise::remove(&mut volume, &power, normal);
+            tracing::info!(
+                background,
+                threshold = noise::threshold(grid, normal),
+                "FBP took the background's noise floor off the volume: the noise power its counts put in each voxel, times the threshold ([fbp] noise-floor = false keeps it)"
+            );
+        }
+        return Ok(volume);
     }
     let by_path = path_falloff(set.axis(), settings.falloff, 0);
     let hists: Vec<Vec<f32>> = (0..set.len())
