@@ -157,10 +157,11 @@ pub struct FbpSettings {
     /// quarter).
     pub path_error: f64,
     /// On photon counts with the phasor filter, take the background's noise floor
-    /// off every voxel (`noise`: the noise power the background's counts put
-    /// there, times the logarithm of the voxel count, off the squared magnitude), so
-    /// that the falloff weight cannot lift noise far behind a dim target over it;
-    /// `false`: the magnitude as backprojected.
+    /// off every voxel (the noise power the background's counts put there, times
+    /// the logarithm of the voxels along the relay's normal, off the squared
+    /// magnitude, which keeps at least 1/16 of itself), so that the falloff weight
+    /// cannot lift noise far behind a dim target over it; `false`: the magnitude as
+    /// backprojected.
     pub noise_floor: bool,
 }
 
@@ -498,9 +499,8 @@ pub fn fbp_on(
         let data = sums.iter().map(|[a, b]| a.hypot(*b)).collect();
         let mut volume = Volume { grid: *grid, data };
         if settings.noise_floor && set.is_photon_counts() {
-            let roi = crate::roi::RoiBox::from_bounds(grid.min(), grid.max())
-                .expect("a volume grid's bounds are finite and ordered");
-            let background = crate::gtr::estimate_background(set, Some(&roi));
+            let roi = crate::roi::RoiBox::from_bounds(grid.min(), grid.max()).ok();
+            let background = crate::gtr::estimate_background(set, roi.as_ref());
             let power = noise::power(
                 set,
                 grid,
