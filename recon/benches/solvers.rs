@@ -17,6 +17,7 @@
 //!   which takes FBP's grid path);
 //! - [synth] virtual confocal synthesis of 64 × 64 × 512 from K = 10,000 Gaussians;
 //! - [synth_lct] synthesis + LCT for the 64 × 64 virtual grid (the 0.6 s target);
+//! - [splat_lct] the same LCT volume without the synthesis (`synth::splat_lct`);
 //! - [fbp_gpu, fbp_grid_gpu, synth_gpu, synth_lct_gpu] the same on a GPU
 //!   (docs/gpu.md), where a hardware adapter is found (a software one, lavapipe, with
 //!   `PERISCOPE_BENCH_SOFTWARE_GPU=1`); the line saying why they were left out
@@ -42,7 +43,7 @@ use periscope_recon::relay::{VirtualRelay, estimate_normals};
 use periscope_recon::solver::{
     FbpBackprojection, FbpSettings, LctSettings, PlanarScan, fbp, fbp_on, lct_frame,
 };
-use periscope_recon::synth::{synthesise, synthesise_on};
+use periscope_recon::synth::{splat_lct, synthesise, synthesise_on};
 use periscope_recon::{Pair, TimeAxis, TransientSet, VolumeGrid};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -200,6 +201,11 @@ fn solvers(c: &mut Criterion) {
             let scan = synthesise(&kernels, &relay, axis, &opt).unwrap();
             lct_frame(&scan.set, &scan.scan, &settings).unwrap()
         })
+    });
+    // The same volume without the scan: each primitive splatted once, one filter.
+    let volume = VolumeGrid::new([-0.5, 0.5], [-0.5, 0.5], [0.5, 0.9], [64, 64, 64]).unwrap();
+    group.bench_function("splat_lct", |b| {
+        b.iter(|| splat_lct(&kernels, &relay, &volume, axis, &opt, &settings).unwrap())
     });
     if let Some(gpu) = &gpu {
         group.bench_function("synth_gpu", |b| {

@@ -6,9 +6,11 @@ use rayon::prelude::*;
 use crate::gpu::Compute;
 use crate::gtr::{Kernel, RenderOptions, render_pairs};
 use crate::relay::VirtualRelay;
-use crate::solver::PlanarScan;
+use crate::solver::{FrameVolume, LctSettings, PlanarScan, SolverError, VIRTUAL_SCAN_SNR, lct_of_apexes};
+use crate::special::NORMAL;
 use crate::transient::{Pair, TimeAxis, TransientError, TransientSet};
 use crate::volume::VolumeGrid;
+use glam::DVec3;
 
 /// A synthesised confocal scan and the grid it lies on.
 #[derive(Clone, Debug)]
@@ -119,4 +121,309 @@ fn scan(
         set,
         scan: PlanarScan::full(*relay),
     })
+}
+
+/// Quadrature points along each axis of the virtual relay in [`splat_lct`]'s
+/// brightness of a primitive: the mean of its direction-dependent factor over the
+/// relay, which varies on the scale of the primitive's depth, far above the relay's
+/// pitch. A relay with more points a side than this takes the Gauss–Legendre rule.
+const BRIGHTNESS_POINTS: usize = 8;
+
+/// Gauss–Legendre nodes and weights of 8 points on [−1, 1].
+const GAUSS_LEGENDRE_8: [(f64, f64); 8] = [
+    (-0.960_289_856_497_536_2, 0.101_228_536_290_376_26),
+    (-0.796_666_477_413_626_7, 0.222_381_034_453_374_47),
+    (-0.525_532_409_916_329, 0.313_706_645_877_887_3),
+    (-0.183_434_642_495_649_8, 0.362_683_783_378_362),
+    (0.183_434_642_495_649_8, 0.362_683_783_378_362),
+    (0.525_532_409_916_329, 0.313_706_645_877_887_3),
+    (0.796_666_477_413_626_7, 0.222_381_034_453_374_47),
+    (0.960_289_856_497_536_2, 0.101_228_536_290_376_26),
+];
+
+/// Most sub-samples along each principal axis of a primitive's footprint in
+/// [`splat_lct`].
+const FOOTPRINT_SAMPLES: usize = 48;
+
+/// The footprint's sub-samples reach this many standard deviations from its centre.
+const FOOTPRINT_SIGMAS: f64 = 3.5;
+
+/// LCT of the virtual confocal scan of `relay` that `kernels` would render, without
+/// rendering it: each primitive is splatted once onto the scan's cells (its footprint
+/// on the grid, and under each cell the profile in depth of the part of it there) and
+/// the whole is filtered once by what LCT's Wiener filter makes of a light cone
+/// ([`lct_of_apexes`]). Rendering 64 × 64 transients evaluates every primitive at
+/// every point; this touches each primitive's own cells only.
+///
+/// What it keeps from the renderer ([`RenderOptions`]): the gain and albedo; the
+/// cosines (`use_ni`, `use_nd`) and the projected areas A⊥(u)², each primitive's taken
+/// as their mean over the relay's points after LCT's radiometric weight ℓ^falloff
+/// (the scan would carry each point's own); `min_distance`; the primitive's whole
+/// covariance (a tilted primitive's depth changes across its footprint; its depth
+/// spread under each cell becomes a pulse of the same mean and variance, widened by
+/// `sigma_sys`); the pulse window of `window_sigmas`. What it does not: the scan's
+/// edge. The cones here run on past the relay's border, so a primitive near the
+/// border is not dimmed as the finite scan's LCT dims it.
+///
+/// `axis` must start at path length 0 (as [`default_axis`]'s does); the volume is on
+/// the grid of [`PlanarScan::reaching`] `grid`, as [`crate::solver::lct`] gives it.
+/// `settings.snr` not set: [`VIRTUAL_SCAN_SNR`], the Wiener filter's after 3D-GTR.
+pub fn splat_lct(
+    kernels: &[Kernel],
+    relay: &VirtualRelay,
+    grid: &VolumeGrid,
+    axis: TimeAxis,
+    opt: &RenderOptions,
+    settings: &LctSettings,
+) -> Result<FrameVolume, SolverError> {
+    settings.validate()?;
+    if axis.start != 0.0 || axis.bins == 0 || !(axis.width > 0.0) {
+        return Err(SolverError::Axis(format!(
+            "the splatted LCT needs bins from path length 0; this axis starts at {} m with {} bins of {} m",
+            axis.start, axis.bins, axis.width
+        )));
+    }
+    let scan = PlanarScan::full(*relay).reaching(grid);
+    let (m, w) = (axis.bins, axis.width);
+    let lmax = m as f64 * w;
+    let [nx, ny] = scan.relay.resolution;
+
+    // Quadrature of the brightness over the relay's rectangle: Gauss–Legendre, or the
+    // relay's own points where it has fewer a side.
+    let nodes = |n: usize| -> Vec<(f64, f64)> {
+        if n <= BRIGHTNESS_POINTS {
+            (0..n)
+                .map(|i| ((i as f64 + 0.5) / n as f64 - 0.5, 1.0 / n as f64))
+                .collect()
+        } else {
+            GAUSS_LEGENDRE_8
+                .iter()
+                .map(|&(x, w)| (0.5 * x, 0.5 * w))
+                .collect()
+        }
+    };
+    let (qa, qb) = (nodes(relay.resolution[0]), nodes(relay.resolution[1]));
+    let quad: Vec<(DVec3, f64)> = qb
+        .iter()
+        .flat_map(|&(b, wb)| {
+            qa.iter().map(move |&(a, wa)| {
+                (
+                    relay.centre + relay.u * (a * relay.size[0]) + relay.v * (b * relay.size[1]),
+                    wa * wb,
+                )
+            })
+        })
+        .collect();
+    let splat = Splat {
+        frame: scan.relay,
+        normal: relay.normal,
+        quad,
+        opt: *opt,
+        falloff: settings.falloff,
+        lmax,
+        bins: m,
+        width: w,
+    };
+    // Rounds of primitives splatted in parallel, their deposits added in order, so the
+    // sums are the same on any number of threads and the deposits held at once stay
+    // bounded.
+    const CHUNK: usize = 16;
+    const ROUND: usize = 1024;
+    let mut cube = vec![0.0f32; nx * ny * m];
+    for round in kernels.chunks(ROUND) {
+        let parts: Vec<Deposits> = round
+            .par_chunks(CHUNK)
+            .map(|chunk| {
+                let mut d = Deposits::default();
+                for k in chunk {
+                    splat.kernel(k, &mut d);
+                }
+                d
+            })
+            .collect();
+        for part in &parts {
+            for &(cell, first, ref range) in &part.heads {
+                let line = &mut cube[cell * m + first..];
+                for (c, v) in line.iter_mut().zip(&part.values[range.clone()]) {
+                    *c += *v;
+                }
+            }
+        }
+    }
+    lct_of_apexes(cube, &scan, m, w, settings.snr.unwrap_or(VIRTUAL_SCAN_SNR))
+}
+
+/// One chunk of primitives' apex profiles: (cell, first bin, range in `values`).
+#[derive(Default)]
+struct Deposits {
+    heads: Vec<(usize, usize, std::ops::Range<usize>)>,
+    values: Vec<f32>,
+}
+
+/// What [`splat_lct`] needs to splat one primitive.
+struct Splat {
+    /// The scan's grid (the relay widened to the volume).
+    frame: VirtualRelay,
+    /// The relay's normal (the confocal points' n_i = n_d).
+    normal: DVec3,
+    /// Quadrature points of the brightness and their weights (summing to 1).
+    quad: Vec<(DVec3, f64)>,
+    opt: RenderOptions,
+    falloff: f64,
+    lmax: f64,
+    bins: usize,
+    width: f64,
+}
+
+impl Splat {
+    /// The mean over the relay of what a confocal point at q sees of `k` per unit of
+    /// pulse mass, after LCT's weight (ℓ/ℓmax)^falloff: g ρ γ_i γ_d A⊥(u)² ℓ^n / d⁴.
+    fn brightness(&self, k: &Kernel) -> f64 {
+        let o = &self.opt;
+        let mut sum = 0.0;
+        // ℓ^n / d⁴ = (2/ℓmax)^n d^(n−4): a constant for the diffuse n = 4.
+        let scale = (2.0 / self.lmax).powf(self.falloff);
+        let power = self.falloff - 4.0;
+        for &(q, weight) in &self.quad {
+            let d = k.x - q;
+            let r = d.length();
+            if !(r >= o.min_distance && r > 0.0) {
+                continue;
+            }
+            let u = d / r;
+            let c = self.normal.dot(u).max(0.0);
+            let gamma = if o.use_ni { c } else { 1.0 } * if o.use_nd { c } else { 1.0 };
+            let a = (k.r.transpose() * u) * k.pi;
+            let radial = if power == 0.0 { 1.0 } else { r.powf(power) };
+            sum += weight * gamma * a.length_squared() * radial;
+        }
+        o.gain * k.rho * scale * sum
+    }
+
+    /// Adds `k`'s apex profiles to `out`.
+    fn kernel(&self, k: &Kernel, out: &mut Deposits) {
+        let weight = self.brightness(k);
+        if !(weight > 0.0 && weight.is_finite()) {
+            return;
+        }
+        let f = &self.frame;
+        let [nx, ny] = f.resolution;
+        let pitch = f.spacing();
+        // The covariance in the frame (u, v, normal): Σ_ij = (M eᵢ)·(M eⱼ), M = S Rᵀ.
+        let axes = [f.u, f.v, f.normal];
+        let t = axes.map(|e| (k.r.transpose() * e) * k.s);
+        let cov = |i: usize, j: usize| t[i].dot(t[j]);
+        let p = k.x - f.centre;
+        let (a0, b0, z0) = (p.dot(f.u), p.dot(f.v), p.dot(f.normal));
+        // A floor far below any pitch keeps the footprint's covariance invertible.
+        let floor = 1e-12;
+        let (saa, sab, sbb) = (cov(0, 0) + floor, cov(0, 1), cov(1, 1) + floor);
+        let (saz, sbz, szz) = (cov(0, 2), cov(1, 2), cov(2, 2));
+        let det = saa * sbb - sab * sab;
+        // The depth under (a, b): z0 + βa (a − a0) + βb (b − b0), with variance `var`.
+        let (ba, bb) = ((sbb * saz - sab * sbz) / det, (saa * sbz - sab * saz) / det);
+        let var = (szz - ba * saz - bb * sbz).max(0.0);
+        // The footprint's principal axes.
+        let half = 0.5 * (saa + sbb);
+        let root = (0.25 * (saa - sbb).powi(2) + sab * sab).sqrt();
+        let (l1, l2) = (half + root, (half - root).max(floor));
+        let theta = 0.5 * (2.0 * sab).atan2(saa - sbb);
+        let (e1, e2) = ([theta.cos(), theta.sin()], [-theta.sin(), theta.cos()]);
+        let step = 0.5 * pitch[0].min(pitch[1]);
+        let samples = |l: f64| {
+            let sd = l.sqrt();
+            let n =
+                ((2.0 * FOOTPRINT_SIGMAS * sd / sd.min(step)).ceil() as usize).clamp(1, FOOTPRINT_SAMPLES);
+            let h = 2.0 * FOOTPRINT_SIGMAS * sd / n as f64;
+            (0..n)
+                .map(|j| {
+                    let x = (j as f64 + 0.5) * h - FOOTPRINT_SIGMAS * sd;
+                    (x, (-0.5 * x * x / l).exp())
+                })
+                .collect::<Vec<_>>()
+        };
+        let (s1, s2) = (samples(l1), samples(l2));
+        // The window of cells the sub-samples can reach.
+        let reach = |e: usize| {
+            FOOTPRINT_SIGMAS * (l1.sqrt() * [e1, e2][0][e].abs() + l2.sqrt() * [e1, e2][1][e].abs())
+        };
+        let index = |c: f64, axis: usize| (c + 0.5 * f.size[axis]) / pitch[axis] - 0.5;
+        let lo = [
+            (index(a0 - reach(0), 0).floor() as i64).max(0),
+            (index(b0 - reach(1), 1).floor() as i64).max(0),
+        ];
+        let hi = [
+            (index(a0 + reach(0), 0).floor() as i64 + 1).min(nx as i64 - 1),
+            (index(b0 + reach(1), 1).floor() as i64 + 1).min(ny as i64 - 1),
+        ];
+        if hi[0] < lo[0] || hi[1] < lo[1] {
+            return;
+        }
+        let wx = (hi[0] - lo[0] + 1) as usize;
+        let wy = (hi[1] - lo[1] + 1) as usize;
+        // Per cell of the window: mass, and its first two moments of depth.
+        let mut moments = vec![[0.0f64; 3]; wx * wy];
+        let mut total = 0.0;
+        for &(x1, w1) in &s1 {
+            for &(x2, w2) in &s2 {
+                let ws = w1 * w2;
+                total += ws;
+                let a = a0 + x1 * e1[0] + x2 * e2[0];
+                let b = b0 + x1 * e1[1] + x2 * e2[1];
+                let z = z0 + ba * (a - a0) + bb * (b - b0);
+                let (fx, fy) = (index(a, 0), index(b, 1));
+                let (ix, iy) = (fx.floor(), fy.floor());
+                let (tx, ty) = (fx - ix, fy - iy);
+                for (cx, wcx) in [(ix as i64, 1.0 - tx), (ix as i64 + 1, tx)] {
+                    for (cy, wcy) in [(iy as i64, 1.0 - ty), (iy as i64 + 1, ty)] {
+                        if cx < lo[0] || cx > hi[0] || cy < lo[1] || cy > hi[1] {
+                            continue;
+                        }
+                        let c = &mut moments[(cy - lo[1]) as usize * wx + (cx - lo[0]) as usize];
+                        let mass = ws * wcx * wcy;
+                        c[0] += mass;
+                        c[1] += mass * z;
+                        c[2] += mass * z * z;
+                    }
+                }
+            }
+        }
+        let (m, w) = (self.bins, self.width);
+        let sys2 = self.opt.sigma_sys * self.opt.sigma_sys;
+        for (j, c) in moments.iter().enumerate() {
+            if c[0] <= 0.0 {
+                continue;
+            }
+            let mean = c[1] / c[0];
+            let spread = (c[2] / c[0] - mean * mean).max(0.0) + var;
+            // Path length 2z, its deviation twice the depth's.
+            let mu = 2.0 * mean;
+            let sigma = (4.0 * spread + sys2).sqrt();
+            let mass = (weight * c[0] / total) as f32;
+            let cell = (lo[1] as usize + j / wx) * nx + lo[0] as usize + j % wx;
+            let start = out.values.len();
+            if sigma < 1e-3 * w {
+                let bin = (mu / w).floor();
+                if bin >= 0.0 && bin < m as f64 {
+                    out.values.push(mass);
+                    out.heads.push((cell, bin as usize, start..start + 1));
+                }
+                continue;
+            }
+            let reach = self.opt.window_sigmas * sigma;
+            let first = ((mu - reach) / w).floor().max(0.0);
+            let last = ((mu + reach) / w).ceil().min(m as f64);
+            if first >= last {
+                continue;
+            }
+            let phi = &*NORMAL;
+            let mut below = phi.cdf((first * w - mu) / sigma);
+            for b in first as usize..last as usize {
+                let above = phi.cdf(((b + 1) as f64 * w - mu) / sigma);
+                out.values.push(mass * (above - below) as f32);
+                below = above;
+            }
+            out.heads.push((cell, first as usize, start..out.values.len()));
+        }
+    }
 }

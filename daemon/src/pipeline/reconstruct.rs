@@ -13,12 +13,12 @@ use periscope_recon::gtr::{
 use periscope_recon::relay::VirtualRelay;
 use periscope_recon::solver::{SolverError, SolverKind, SolverSettings};
 use periscope_recon::solver::{lateral_voxel_pitch, phasor_wavelength};
-use periscope_recon::synth::{SynthError, default_axis, synthesise_on};
+use periscope_recon::synth::{SynthError, default_axis, splat_lct, synthesise_on};
 use periscope_recon::{RoiBox, TransientSet, Volume, VolumeGrid};
 
 use super::{Control, PipelineError, ReconError};
 use crate::events::{EventSink, RunEvent};
-use crate::plan::{Method, ReconSettings};
+use crate::plan::{Method, ReconSettings, VirtualScan};
 
 /// Bins of the virtual confocal scan's time axis.
 const SYNTH_BINS: usize = 512;
@@ -341,6 +341,32 @@ fn finish_gtr(
     );
     let axis = default_axis(&relay, &s.volume, SYNTH_BINS);
     let kernels = trainer.cloud().kernels();
+    if s.solver == SolverKind::Lct && s.virtual_scan == VirtualScan::Splat {
+        // LCT's volume straight from the primitives: no scan is rendered.
+        let solvers = s.solvers.for_virtual_scan();
+        let volume = splat_lct(
+            &kernels,
+            &relay,
+            &s.volume,
+            axis,
+            trainer.render_options(),
+            &solvers.lct,
+        )
+        .map_err(ReconError::from)?
+        .to_world(&s.volume);
+        return Ok(ReconResult {
+            device: Compute::Cpu.info(),
+            volume,
+            cloud: Some(trainer.cloud().clone()),
+            train: Some(summary),
+            settings: s.clone(),
+            pairs: input.set.len(),
+            timings: vec![
+                ("fit".into(), fit_secs),
+                ("splat and lct".into(), t.elapsed().as_secs_f64()),
+            ],
+        });
+    }
     let mut compute = open_compute(s.compute)?;
     fn gpu_error(e: &SynthError) -> Option<&GpuError> {
         match e {

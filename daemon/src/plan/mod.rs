@@ -12,7 +12,7 @@ use periscope_recon::relay::Region;
 use serde::Deserialize;
 
 pub use pairs::{PairMode, PlannedPair, RelayView, plan_pairs};
-pub use recon::{LaserFalloff, Method, ReconSettings, check_recon, default_recon, load_recon};
+pub use recon::{LaserFalloff, Method, ReconSettings, VirtualScan, check_recon, default_recon, load_recon};
 
 use crate::config::{ConfigError, InstrumentConfig, TomlSource};
 

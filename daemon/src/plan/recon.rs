@@ -118,6 +118,9 @@ pub struct ReconSettings {
     pub virtual_size: Option<[f64; 2]>,
     /// Solver run on the virtual confocal scan for `gtr`.
     pub solver: SolverKind,
+    /// How `solver = "lct"` turns the fitted primitives into a volume after `gtr`
+    /// (`[gtr] virtual-scan`); the other solvers always render the scan.
+    pub virtual_scan: VirtualScan,
     /// Depth-map threshold, as a fraction of the volume's maximum.
     pub depth_threshold: f64,
     /// Each solver's settings (`[lct]`, `[fk]`, `[rsd]`, `[fbp]`), for the method of the
@@ -129,6 +132,19 @@ pub struct ReconSettings {
     pub adaptive: AdaptiveSettings,
     /// Where the synthesis and the solvers run (`[compute] device`).
     pub compute: ComputeDevice,
+}
+
+/// How the volume after 3D-GTR is made with `solver = "lct"` (`[gtr] virtual-scan`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum VirtualScan {
+    /// The virtual confocal scan rendered point by point, then LCT. The default.
+    Render,
+    /// Each primitive splatted once onto the scan's grid and filtered once by what LCT
+    /// makes of a light cone ([`periscope_recon::synth::splat_lct`]); no transient is
+    /// rendered. About a quarter of the time; a different image (docs/recon.md,
+    /// "LCT after 3D-GTR without the scan").
+    Splat,
 }
 
 /// Whether a capture's histograms carry the falloff of a point-source laser, which
@@ -224,6 +240,12 @@ struct RawGtr {
     pair_gains: String,
     tolerance: Option<f64>,
     epoch_pairs: Option<usize>,
+    #[serde(default = "default_virtual_scan")]
+    virtual_scan: String,
+}
+
+fn default_virtual_scan() -> String {
+    "render".into()
 }
 
 fn default_pair_gains() -> String {
@@ -249,6 +271,7 @@ impl Default for RawGtr {
             pair_gains: default_pair_gains(),
             tolerance: None,
             epoch_pairs: None,
+            virtual_scan: default_virtual_scan(),
         }
     }
 }
@@ -459,6 +482,16 @@ pub(crate) fn recon_settings(
             ));
         }
     };
+    let virtual_scan = match g.virtual_scan.as_str() {
+        "splat" => VirtualScan::Splat,
+        "render" => VirtualScan::Render,
+        other => {
+            return Err(src.invalid(
+                &key("gtr.virtual-scan"),
+                format!("`{other}` is not a choice: use \"render\" (the scan rendered, then LCT; the default) or \"splat\" (LCT's volume from the primitives in one filter, without the scan); only solver = \"lct\" reads it"),
+            ));
+        }
+    };
     let mut train = TrainConfig {
         primitives: g.primitives,
         loss,
@@ -553,6 +586,7 @@ pub(crate) fn recon_settings(
             .or((solver != SolverKind::Fbp).then_some(GRID_SOLVERS_VIRTUAL_GRID)),
         virtual_size: g.virtual_size,
         solver,
+        virtual_scan,
         depth_threshold,
         solvers,
         laser_falloff,
@@ -822,6 +856,18 @@ mod tests {
         let src = TomlSource::from_text("recon.toml", "[gtr]\npair-gains = \"estimate\"\n");
         let e = load_recon(&src, Some(volume())).unwrap_err().to_string();
         assert!(e.contains("gtr.pair-gains") && e.contains("illumination"), "{e}");
+    }
+
+    #[test]
+    fn gtr_virtual_scan_is_read_and_checked() {
+        assert_eq!(default_recon(volume()).virtual_scan, VirtualScan::Render);
+        for (text, want) in [("splat", VirtualScan::Splat), ("render", VirtualScan::Render)] {
+            let src = TomlSource::from_text("recon.toml", format!("[gtr]\nvirtual-scan = \"{text}\"\n"));
+            assert_eq!(load_recon(&src, Some(volume())).unwrap().virtual_scan, want);
+        }
+        let src = TomlSource::from_text("recon.toml", "[gtr]\nvirtual-scan = \"rendered\"\n");
+        let e = load_recon(&src, Some(volume())).unwrap_err().to_string();
+        assert!(e.contains("gtr.virtual-scan") && e.contains("\"render\""), "{e}");
     }
 
     #[test]

@@ -155,6 +155,75 @@ pub fn lct_frame(
         line.copy_from_slice(&s);
     });
 
+    let snr = settings.snr.unwrap_or_else(|| {
+        let snr = default_snr(set);
+        tracing::info!(
+            snr,
+            photon_counts = set.is_photon_counts(),
+            "LCT Wiener snr derived from the capture"
+        );
+        snr
+    });
+    Ok(filter_cube(cube, scan, m, w, snr, Filter::Wiener))
+}
+
+/// LCT of the confocal scan that a volume would cast on `scan`'s grid, computed
+/// without the scan: one convolution instead of the scan's rendering and its
+/// deconvolution.
+///
+/// `apexes` holds, for each cell of the grid (`[cell][m]`, row by row), the path-length
+/// profile (`m` bins of `w` from path length 0) of what lies under the cell, as the
+/// cell itself would measure it after LCT's radiometric weight: a scatterer at depth z
+/// of weighted brightness A adds mass A at path length 2z. The light cone each
+/// scatterer would cast on every cell is then the same for all of them, so LCT's
+/// result, the measured cones' spectrum D times H*/(|H|² + 1/snr), is the apexes'
+/// spectrum S times |H|²/(|H|² + 1/snr) (scaled by the cone's norm): the cones are
+/// never formed. Unlike the scan, these cones are not cut off at the scan's edge.
+pub fn lct_of_apexes(
+    mut apexes: Vec<f32>,
+    scan: &PlanarScan,
+    m: usize,
+    w: f64,
+    snr: f64,
+) -> Result<FrameVolume, SolverError> {
+    let [nx, ny] = scan.relay.resolution;
+    if !(snr.is_finite() && snr > 0.0) {
+        return Err(SolverError::Setting {
+            name: "snr",
+            value: snr.to_string(),
+            expected: "a positive number",
+        });
+    }
+    if m == 0 || apexes.len() != m * nx * ny {
+        return Err(SolverError::Axis(format!(
+            "{} apex samples for a {nx} × {ny} grid of {m} bins",
+            apexes.len()
+        )));
+    }
+    check_memory("LCT", (m + 1) * 4 * nx * ny * 8 + 2 * nx * ny * m * 4)?;
+    let resample = Resampling::new(m);
+    apexes.par_chunks_mut(m).for_each(|line| {
+        let s = resample.forward(line);
+        line.copy_from_slice(&s);
+    });
+    Ok(filter_cube(apexes, scan, m, w, snr, Filter::Blur))
+}
+
+/// What [`filter_cube`] does with a cube's spectrum D and the light cone's H.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum Filter {
+    /// D·H*/(|H|² + 1/snr): the Wiener deconvolution of measured cones.
+    Wiener,
+    /// D·c·|H|²/(|H|² + 1/snr), c the norm of the cone of unit mass per cell: what
+    /// `Wiener` makes of the cones that apexes of spectrum D would cast.
+    Blur,
+}
+
+/// The light-cone filter of a cube already weighted and resampled to s (`[cell][m]`
+/// on `scan`'s grid, bins of `w`), and the resampling back to depth.
+fn filter_cube(cube: Vec<f32>, scan: &PlanarScan, m: usize, w: f64, snr: f64, filter: Filter) -> FrameVolume {
+    let [nx, ny] = scan.relay.resolution;
+    let resample = Resampling::new(m);
     // Real FFT along s (padded to 2M), scattered into slices [t'][Y][X] of 2ny × 2nx.
     let (px, py, pt) = (2 * nx, 2 * ny, 2 * m);
     let slice_len = px * py;
@@ -165,16 +234,8 @@ pub fn lct_frame(
     // The light cone, each lateral offset's cell integrated over its area.
     let [sx, sy] = scan.relay.spacing();
     let cone = LightCone::new([nx, ny], [sx, sy], m, m as f64 * w);
-    let snr = settings.snr.unwrap_or_else(|| {
-        let snr = default_snr(set);
-        tracing::info!(
-            snr,
-            photon_counts = set.is_photon_counts(),
-            "LCT Wiener snr derived from the capture"
-        );
-        snr
-    });
     let inv_snr = 1.0 / snr as f32;
+    let mass = cone.mass_norm as f32;
 
     let fft = Fft2::new(py, px);
     const SLICES_PER_TASK: usize = 8;
@@ -191,8 +252,18 @@ pub fn lct_frame(
                 cone.spectrum(omega, &mut phases, &mut psf);
                 fft.forward_transposed(&mut psf, &mut scratch);
                 fft.forward_transposed(slice, &mut scratch);
-                for (d, h) in slice.iter_mut().zip(&psf) {
-                    *d = *d * h.conj() / (h.norm_sqr() + inv_snr);
+                match filter {
+                    Filter::Wiener => {
+                        for (d, h) in slice.iter_mut().zip(&psf) {
+                            *d = *d * h.conj() / (h.norm_sqr() + inv_snr);
+                        }
+                    }
+                    Filter::Blur => {
+                        for (d, h) in slice.iter_mut().zip(&psf) {
+                            let h2 = h.norm_sqr();
+                            *d *= mass * h2 / (h2 + inv_snr);
+                        }
+                    }
                 }
                 fft.inverse_from_transposed(slice, &mut scratch);
             }
@@ -215,7 +286,7 @@ pub fn lct_frame(
         })
         .collect();
     drop(slices);
-    Ok(confocal::frame_from_lines(scan, w, m, &lines))
+    confocal::frame_from_lines(scan, w, m, &lines)
 }
 
 /// The sparse resampling from bins in ℓ to bins in s = (ℓ/ℓmax)², with its Jacobian,
@@ -282,6 +353,9 @@ struct LightCone {
     weights: Vec<f32>,
     /// One past the last s-bin any run reaches.
     reach: usize,
+    /// The L2 norm of the cone before its normalisation: of unit mass in every cell
+    /// it reaches.
+    mass_norm: f64,
 }
 
 impl LightCone {
@@ -364,6 +438,7 @@ impl LightCone {
             cells,
             weights,
             reach,
+            mass_norm: norm,
         }
     }
 

@@ -23,7 +23,7 @@ pub use fbp::{
 };
 pub use fk::{FkSettings, fk, fk_frame};
 pub use frame::FrameVolume;
-pub use lct::{LctSettings, VIRTUAL_SCAN_SNR, default_snr, lct, lct_frame};
+pub use lct::{LctSettings, VIRTUAL_SCAN_SNR, default_snr, lct, lct_frame, lct_of_apexes};
 pub use quadrature::{REACH_PITCHES, pair_weights, relay_areas};
 pub use rsd::{RsdSettings, rsd, rsd_frame};
 pub use scan::{MAX_REACH_FACTOR, PlanarScan};
