@@ -149,6 +149,38 @@ fn exhaustive_capture_reconstructs_with_a_recon_config() {
     );
 }
 
+/// `solver = "lct"` with `[gtr] virtual-scan = "splat"`: after the fit, LCT's volume
+/// made without rendering the virtual scan finds y-tal's patch within the fixtures'
+/// tolerances, and `volume.json`'s timings name the step that replaced the synthesis.
+#[test]
+fn gtr_then_lct_without_the_scan_finds_the_patch() {
+    let file = "tests/data/ytal/confocal_xy.hdf5";
+    let grid = YtalCapture::read(&repo_path(file))
+        .expect("y-tal's file reads")
+        .default_volume()
+        .unwrap();
+    let dir = tempfile::tempdir().unwrap();
+    let config = dir.path().join("recon.toml");
+    std::fs::write(
+        &config,
+        format!(
+            "method = \"gtr\"\nsolver = \"lct\"\n[volume]\nx = {:?}\ny = {:?}\nz = {:?}\nshape = {:?}\n\
+             [gtr]\nvirtual-scan = \"splat\"\n",
+            grid.x, grid.y, grid.z, grid.shape
+        ),
+    )
+    .unwrap();
+    let out = dir.path().join("out");
+    recon(file, Some(config.to_str().unwrap()), &out);
+    let (median, iou) = patch_accuracy(&out, &grid);
+    eprintln!("gtr, splatted LCT: median depth error {median:.4} m, IoU {iou:.2}");
+    assert!(median < 0.02, "median depth error {median:.4} m ≥ 0.02 m");
+    assert!(iou > 0.6, "silhouette IoU {iou:.2} ≤ 0.6");
+    let json = std::fs::read_to_string(out.join("volume.json")).unwrap();
+    assert!(json.contains("\"splat and lct\""), "{json}");
+    assert!(!json.contains("\"synthesis\""), "{json}");
+}
+
 /// A capture none of our code rendered: mitransient's path tracer, a two-torso relay
 /// (tests/data/ytal/render_torso.py, `--scene centred`). The laser is fixed on one
 /// back, 12 × 16 detection points lie on the other, and a T (0.28 × 0.40 m, strokes

@@ -6,7 +6,9 @@ use rayon::prelude::*;
 use crate::gpu::Compute;
 use crate::gtr::{Kernel, RenderOptions, render_pairs};
 use crate::relay::VirtualRelay;
-use crate::solver::{FrameVolume, LctSettings, PlanarScan, SolverError, VIRTUAL_SCAN_SNR, lct_of_apexes};
+use crate::solver::{
+    FrameVolume, LctSettings, PlanarScan, SolverError, VIRTUAL_SCAN_SNR, check_memory, lct_of_apexes,
+};
 use crate::special::NORMAL;
 use crate::transient::{Pair, TimeAxis, TransientError, TransientSet};
 use crate::volume::VolumeGrid;
@@ -141,9 +143,9 @@ const GAUSS_LEGENDRE_8: [(f64, f64); 8] = [
     (0.960_289_856_497_536_2, 0.101_228_536_290_376_26),
 ];
 
-/// Most sub-samples along each principal axis of a primitive's footprint in
-/// [`splat_lct`].
-const FOOTPRINT_SAMPLES: usize = 48;
+/// Most bytes of deposits [`splat_lct`] holds at once (the primitives' pulses before
+/// they are added into the apexes), besides one primitive's own.
+const ROUND_BYTES: usize = 8 << 20;
 
 /// The footprint's sub-samples reach this many standard deviations from its centre.
 const FOOTPRINT_SIGMAS: f64 = 3.5;
@@ -153,7 +155,8 @@ const FOOTPRINT_SIGMAS: f64 = 3.5;
 /// on the grid, and under each cell the profile in depth of the part of it there) and
 /// the whole is filtered once by what LCT's Wiener filter makes of a light cone
 /// ([`lct_of_apexes`]). Rendering 64 × 64 transients evaluates every primitive at
-/// every point; this touches each primitive's own cells only.
+/// every point; this touches each primitive's own cells only. It runs on the CPU
+/// whatever the compute device.
 ///
 /// What it keeps from the renderer ([`RenderOptions`]): the gain and albedo; the
 /// cosines (`use_ni`, `use_nd`) and the projected areas A⊥(u)², each primitive's taken
@@ -163,7 +166,8 @@ const FOOTPRINT_SIGMAS: f64 = 3.5;
 /// spread under each cell becomes a pulse of the same mean and variance, widened by
 /// `sigma_sys`); the pulse window of `window_sigmas`. What it does not: the scan's
 /// edge. The cones here run on past the relay's border, so a primitive near the
-/// border is not dimmed as the finite scan's LCT dims it.
+/// border is not dimmed as the finite scan's LCT dims it; they wrap around the padded
+/// grid as LCT's filter assumes.
 ///
 /// `axis` must start at path length 0 (as [`default_axis`]'s does); the volume is on
 /// the grid of [`PlanarScan::reaching`] `grid`, as [`crate::solver::lct`] gives it.
@@ -216,6 +220,7 @@ pub fn splat_lct(
         .collect();
     let splat = Splat {
         frame: scan.relay,
+        per_cell: scan.relay.spacing().map(|p| 1.0 / p),
         normal: relay.normal,
         quad,
         opt: *opt,
@@ -224,19 +229,31 @@ pub fn splat_lct(
         bins: m,
         width: w,
     };
-    // Rounds of primitives splatted in parallel, their deposits added in order, so the
-    // sums are the same on any number of threads and the deposits held at once stay
-    // bounded.
-    const CHUNK: usize = 16;
-    const ROUND: usize = 1024;
+    check_memory("splatted LCT", nx * ny * m * 4 + ROUND_BYTES)?;
+    // Each primitive's footprint first (geometry only), then rounds of them splatted in
+    // parallel and added in order: the sums are the same on any number of threads, and
+    // a round's deposits stay within `ROUND_BYTES` (and one primitive's) by their
+    // estimate.
+    let plans: Vec<Option<Footprint>> = kernels.par_iter().map(|k| splat.plan(k)).collect();
     let mut cube = vec![0.0f32; nx * ny * m];
-    for round in kernels.chunks(ROUND) {
-        let parts: Vec<Deposits> = round
+    let mut start = 0;
+    while start < plans.len() {
+        let (mut end, mut bytes) = (start, 0usize);
+        while end < plans.len() {
+            let b = plans[end].as_ref().map_or(0, |f| f.bytes);
+            if end > start && bytes + b > ROUND_BYTES {
+                break;
+            }
+            bytes += b;
+            end += 1;
+        }
+        const CHUNK: usize = 16;
+        let parts: Vec<Deposits> = plans[start..end]
             .par_chunks(CHUNK)
             .map(|chunk| {
                 let mut d = Deposits::default();
-                for k in chunk {
-                    splat.kernel(k, &mut d);
+                for f in chunk.iter().flatten() {
+                    splat.deposit(f, &mut d);
                 }
                 d
             })
@@ -249,6 +266,7 @@ pub fn splat_lct(
                 }
             }
         }
+        start = end;
     }
     lct_of_apexes(cube, &scan, m, w, settings.snr.unwrap_or(VIRTUAL_SCAN_SNR))
 }
@@ -260,10 +278,35 @@ struct Deposits {
     values: Vec<f32>,
 }
 
+/// Where one primitive lands on the grid ([`Splat::plan`]).
+struct Footprint {
+    /// Its brightness ([`Splat::brightness`]).
+    weight: f64,
+    /// Its centre in the frame: along u, along v, depth.
+    centre: [f64; 3],
+    /// The change of its depth per metre along u and v, at a given (u, v).
+    slope: [f64; 2],
+    /// The variance of its depth at a given (u, v).
+    var: f64,
+    /// The standard deviations of its footprint along its principal axes.
+    spread: [f64; 2],
+    /// The principal axes, in (u, v).
+    dirs: [[f64; 2]; 2],
+    /// Sub-samples along each principal axis.
+    counts: [usize; 2],
+    /// The window of cells it reaches, inclusive: (column, row) from and to.
+    lo: [usize; 2],
+    hi: [usize; 2],
+    /// Its deposits' size, estimated from the window and the depth's whole spread.
+    bytes: usize,
+}
+
 /// What [`splat_lct`] needs to splat one primitive.
 struct Splat {
     /// The scan's grid (the relay widened to the volume).
     frame: VirtualRelay,
+    /// Cells per metre along u and v.
+    per_cell: [f64; 2],
     /// The relay's normal (the confocal points' n_i = n_d).
     normal: DVec3,
     /// Quadrature points of the brightness and their weights (summing to 1).
@@ -300,11 +343,12 @@ impl Splat {
         o.gain * k.rho * scale * sum
     }
 
-    /// Adds `k`'s apex profiles to `out`.
-    fn kernel(&self, k: &Kernel, out: &mut Deposits) {
+    /// Where and how `k` lands on the grid; `None` when it adds nothing (dark, not a
+    /// number, or off the grid).
+    fn plan(&self, k: &Kernel) -> Option<Footprint> {
         let weight = self.brightness(k);
         if !(weight > 0.0 && weight.is_finite()) {
-            return;
+            return None;
         }
         let f = &self.frame;
         let [nx, ny] = f.resolution;
@@ -314,93 +358,133 @@ impl Splat {
         let t = axes.map(|e| (k.r.transpose() * e) * k.s);
         let cov = |i: usize, j: usize| t[i].dot(t[j]);
         let p = k.x - f.centre;
-        let (a0, b0, z0) = (p.dot(f.u), p.dot(f.v), p.dot(f.normal));
+        let centre = [p.dot(f.u), p.dot(f.v), p.dot(f.normal)];
         // A floor far below any pitch keeps the footprint's covariance invertible.
         let floor = 1e-12;
         let (saa, sab, sbb) = (cov(0, 0) + floor, cov(0, 1), cov(1, 1) + floor);
         let (saz, sbz, szz) = (cov(0, 2), cov(1, 2), cov(2, 2));
         let det = saa * sbb - sab * sab;
         // The depth under (a, b): z0 + βa (a − a0) + βb (b − b0), with variance `var`.
-        let (ba, bb) = ((sbb * saz - sab * sbz) / det, (saa * sbz - sab * saz) / det);
-        let var = (szz - ba * saz - bb * sbz).max(0.0);
+        let slope = [(sbb * saz - sab * sbz) / det, (saa * sbz - sab * saz) / det];
+        let var = (szz - slope[0] * saz - slope[1] * sbz).max(0.0);
         // The footprint's principal axes.
         let half = 0.5 * (saa + sbb);
         let root = (0.25 * (saa - sbb).powi(2) + sab * sab).sqrt();
-        let (l1, l2) = (half + root, (half - root).max(floor));
+        let spread = [half + root, (half - root).max(floor)].map(f64::sqrt);
         let theta = 0.5 * (2.0 * sab).atan2(saa - sbb);
-        let (e1, e2) = ([theta.cos(), theta.sin()], [-theta.sin(), theta.cos()]);
+        let dirs = [[theta.cos(), theta.sin()], [-theta.sin(), theta.cos()]];
+        let all = centre
+            .iter()
+            .chain(&slope)
+            .chain(&spread)
+            .chain([var, theta].iter())
+            .all(|v| v.is_finite());
+        if !all {
+            return None;
+        }
+        // The window of cells the sub-samples can reach, clamped to the grid in floating
+        // point before any cast.
+        let mut lo = [0usize; 2];
+        let mut hi = [0usize; 2];
+        for axis in 0..2 {
+            let reach =
+                FOOTPRINT_SIGMAS * (spread[0] * dirs[0][axis].abs() + spread[1] * dirs[1][axis].abs());
+            let n = [nx, ny][axis] as f64;
+            let first = self.index(centre[axis] - reach, axis).floor().max(0.0);
+            let last = (self.index(centre[axis] + reach, axis).floor() + 1.0).min(n - 1.0);
+            if !(first <= last) {
+                return None;
+            }
+            (lo[axis], hi[axis]) = (first as usize, last as usize);
+        }
+        let cells = (hi[0] - lo[0] + 1) * (hi[1] - lo[1] + 1);
+        // Sub-samples at most half a pitch apart along each principal axis (and no more
+        // than the grid's cells can tell apart).
         let step = 0.5 * pitch[0].min(pitch[1]);
-        let samples = |l: f64| {
-            let sd = l.sqrt();
-            let n =
-                ((2.0 * FOOTPRINT_SIGMAS * sd / sd.min(step)).ceil() as usize).clamp(1, FOOTPRINT_SAMPLES);
+        let cap = 4 * nx.max(ny);
+        let counts =
+            spread.map(|sd| ((2.0 * FOOTPRINT_SIGMAS * sd / sd.min(step)).ceil() as usize).clamp(1, cap));
+        // The deposits' size by the depth's whole spread (its marginal): bins a cell.
+        let sigma = (4.0 * szz + self.opt.sigma_sys.powi(2)).sqrt();
+        let bins =
+            ((2.0 * self.opt.window_sigmas * sigma / self.width).ceil() + 2.0).min(self.bins as f64) as usize;
+        Some(Footprint {
+            weight,
+            centre,
+            slope,
+            var,
+            spread,
+            dirs,
+            counts,
+            lo,
+            hi,
+            bytes: cells * (bins * 4 + std::mem::size_of::<(usize, usize, std::ops::Range<usize>)>()),
+        })
+    }
+
+    /// The continuous cell index along `axis` of in-plane coordinate `c`.
+    fn index(&self, c: f64, axis: usize) -> f64 {
+        (c + 0.5 * self.frame.size[axis]) * self.per_cell[axis] - 0.5
+    }
+
+    /// Adds the apex profiles of the primitive `fp` plans to `out`.
+    fn deposit(&self, fp: &Footprint, out: &mut Deposits) {
+        let nx = self.frame.resolution[0];
+        let [a0, b0, z0] = fp.centre;
+        let samples = |axis: usize| {
+            let (sd, n) = (fp.spread[axis], fp.counts[axis]);
             let h = 2.0 * FOOTPRINT_SIGMAS * sd / n as f64;
             (0..n)
                 .map(|j| {
                     let x = (j as f64 + 0.5) * h - FOOTPRINT_SIGMAS * sd;
-                    (x, (-0.5 * x * x / l).exp())
+                    (x, (-0.5 * (x / sd) * (x / sd)).exp())
                 })
                 .collect::<Vec<_>>()
         };
-        let (s1, s2) = (samples(l1), samples(l2));
-        // The window of cells the sub-samples can reach.
-        let reach = |e: usize| {
-            FOOTPRINT_SIGMAS * (l1.sqrt() * [e1, e2][0][e].abs() + l2.sqrt() * [e1, e2][1][e].abs())
-        };
-        let index = |c: f64, axis: usize| (c + 0.5 * f.size[axis]) / pitch[axis] - 0.5;
-        let lo = [
-            (index(a0 - reach(0), 0).floor() as i64).max(0),
-            (index(b0 - reach(1), 1).floor() as i64).max(0),
-        ];
-        let hi = [
-            (index(a0 + reach(0), 0).floor() as i64 + 1).min(nx as i64 - 1),
-            (index(b0 + reach(1), 1).floor() as i64 + 1).min(ny as i64 - 1),
-        ];
-        if hi[0] < lo[0] || hi[1] < lo[1] {
-            return;
-        }
-        let wx = (hi[0] - lo[0] + 1) as usize;
-        let wy = (hi[1] - lo[1] + 1) as usize;
-        // Per cell of the window: mass, and its first two moments of depth.
-        let mut moments = vec![[0.0f64; 3]; wx * wy];
+        let (s1, s2) = (samples(0), samples(1));
+        let [e1, e2] = fp.dirs;
+        let (lo, hi) = (fp.lo, fp.hi);
+        let wx = hi[0] - lo[0] + 1;
+        // Per cell of the window: mass, and the first two moments of depth about z0.
+        let mut moments = vec![[0.0f64; 3]; wx * (hi[1] - lo[1] + 1)];
         let mut total = 0.0;
         for &(x1, w1) in &s1 {
             for &(x2, w2) in &s2 {
                 let ws = w1 * w2;
                 total += ws;
-                let a = a0 + x1 * e1[0] + x2 * e2[0];
-                let b = b0 + x1 * e1[1] + x2 * e2[1];
-                let z = z0 + ba * (a - a0) + bb * (b - b0);
-                let (fx, fy) = (index(a, 0), index(b, 1));
+                let (da, db) = (x1 * e1[0] + x2 * e2[0], x1 * e1[1] + x2 * e2[1]);
+                let dz = fp.slope[0] * da + fp.slope[1] * db;
+                let (fx, fy) = (self.index(a0 + da, 0), self.index(b0 + db, 1));
                 let (ix, iy) = (fx.floor(), fy.floor());
                 let (tx, ty) = (fx - ix, fy - iy);
-                for (cx, wcx) in [(ix as i64, 1.0 - tx), (ix as i64 + 1, tx)] {
-                    for (cy, wcy) in [(iy as i64, 1.0 - ty), (iy as i64 + 1, ty)] {
-                        if cx < lo[0] || cx > hi[0] || cy < lo[1] || cy > hi[1] {
+                for (cx, wcx) in [(ix, 1.0 - tx), (ix + 1.0, tx)] {
+                    for (cy, wcy) in [(iy, 1.0 - ty), (iy + 1.0, ty)] {
+                        if cx < lo[0] as f64 || cx > hi[0] as f64 || cy < lo[1] as f64 || cy > hi[1] as f64 {
                             continue;
                         }
-                        let c = &mut moments[(cy - lo[1]) as usize * wx + (cx - lo[0]) as usize];
+                        let c = &mut moments[(cy as usize - lo[1]) * wx + (cx as usize - lo[0])];
                         let mass = ws * wcx * wcy;
                         c[0] += mass;
-                        c[1] += mass * z;
-                        c[2] += mass * z * z;
+                        c[1] += mass * dz;
+                        c[2] += mass * dz * dz;
                     }
                 }
             }
         }
         let (m, w) = (self.bins, self.width);
         let sys2 = self.opt.sigma_sys * self.opt.sigma_sys;
+        let phi = &*NORMAL;
         for (j, c) in moments.iter().enumerate() {
             if c[0] <= 0.0 {
                 continue;
             }
             let mean = c[1] / c[0];
-            let spread = (c[2] / c[0] - mean * mean).max(0.0) + var;
+            let spread = (c[2] / c[0] - mean * mean).max(0.0) + fp.var;
             // Path length 2z, its deviation twice the depth's.
-            let mu = 2.0 * mean;
+            let mu = 2.0 * (z0 + mean);
             let sigma = (4.0 * spread + sys2).sqrt();
-            let mass = (weight * c[0] / total) as f32;
-            let cell = (lo[1] as usize + j / wx) * nx + lo[0] as usize + j % wx;
+            let mass = (fp.weight * c[0] / total) as f32;
+            let cell = (lo[1] + j / wx) * nx + lo[0] + j % wx;
             let start = out.values.len();
             if sigma < 1e-3 * w {
                 let bin = (mu / w).floor();
@@ -413,10 +497,9 @@ impl Splat {
             let reach = self.opt.window_sigmas * sigma;
             let first = ((mu - reach) / w).floor().max(0.0);
             let last = ((mu + reach) / w).ceil().min(m as f64);
-            if first >= last {
+            if !(first < last) {
                 continue;
             }
-            let phi = &*NORMAL;
             let mut below = phi.cdf((first * w - mu) / sigma);
             for b in first as usize..last as usize {
                 let above = phi.cdf(((b + 1) as f64 * w - mu) / sigma);

@@ -178,7 +178,8 @@ pub fn lct_frame(
 /// scatterer would cast on every cell is then the same for all of them, so LCT's
 /// result, the measured cones' spectrum D times H*/(|H|² + 1/snr), is the apexes'
 /// spectrum S times |H|²/(|H|² + 1/snr) (scaled by the cone's norm): the cones are
-/// never formed. Unlike the scan, these cones are not cut off at the scan's edge.
+/// never formed. Unlike a scan's, these cones do not stop at the grid's edge: they
+/// wrap around the padded grid, as the filter's model assumes.
 pub fn lct_of_apexes(
     mut apexes: Vec<f32>,
     scan: &PlanarScan,
@@ -198,6 +199,11 @@ pub fn lct_of_apexes(
         return Err(SolverError::Axis(format!(
             "{} apex samples for a {nx} × {ny} grid of {m} bins",
             apexes.len()
+        )));
+    }
+    if !(w.is_finite() && w > 0.0) {
+        return Err(SolverError::Axis(format!(
+            "bin width {w} m: it must be a positive length"
         )));
     }
     check_memory("LCT", (m + 1) * 4 * nx * ny * 8 + 2 * nx * ny * m * 4)?;

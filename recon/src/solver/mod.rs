@@ -195,7 +195,7 @@ pub enum SolverError {
 /// Working memory a solver may allocate, MiB.
 pub const MEMORY_CAP_MIB: usize = 8 * 1024;
 
-fn check_memory(solver: &'static str, bytes: usize) -> Result<(), SolverError> {
+pub(crate) fn check_memory(solver: &'static str, bytes: usize) -> Result<(), SolverError> {
     let needed_mib = bytes.div_ceil(1 << 20);
     if needed_mib > MEMORY_CAP_MIB {
         return Err(SolverError::TooLarge {
