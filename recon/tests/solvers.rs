@@ -531,8 +531,11 @@ fn planar_patch_gives_a_flat_depth_map() {
     }
 }
 
+/// The small Gaussian is found by LCT after rendering the virtual scan, and by the
+/// splatted LCT (`splat_lct`, no scan rendered), whose axis must start at path length
+/// 0 as the scan's does.
 #[test]
-fn synthesis_then_lct_finds_a_small_gaussian() {
+fn lct_after_the_synthesis_or_the_splat_finds_a_small_gaussian() {
     let relay = wall(32);
     let g = grid();
     let kernels = [Kernel::new(
@@ -542,45 +545,14 @@ fn synthesis_then_lct_finds_a_small_gaussian() {
         1.0,
     )];
     let axis = default_axis(&relay, &g, 256);
-    let scan = synthesise(&kernels, &relay, axis, &RenderOptions::default()).unwrap();
+    let opt = RenderOptions::default();
+    let scan = synthesise(&kernels, &relay, axis, &opt).unwrap();
     let frame = lct_frame(&scan.set, &scan.scan, &LctSettings::default()).unwrap();
     assert_peak_at(&frame.to_world(&g), POINT, "synthesis + LCT");
-}
-
-/// The splatted LCT (`splat_lct`, no scan rendered) finds the Gaussian where
-/// rendering the scan and running LCT does.
-#[test]
-fn splatted_lct_finds_a_small_gaussian() {
-    let relay = wall(32);
-    let g = grid();
-    let kernels = [Kernel::new(
-        POINT,
-        glam::DMat3::IDENTITY,
-        DVec3::splat(0.004),
-        1.0,
-    )];
-    let axis = default_axis(&relay, &g, 256);
-    let frame = splat_lct(
-        &kernels,
-        &relay,
-        &g,
-        axis,
-        &RenderOptions::default(),
-        &LctSettings::default(),
-    )
-    .unwrap();
+    let frame = splat_lct(&kernels, &relay, &g, axis, &opt, &LctSettings::default()).unwrap();
     assert_peak_at(&frame.to_world(&g), POINT, "splat + LCT");
-    // Its axis must start at path length 0, as the scan's.
     let late = TimeAxis { start: 0.1, ..axis };
-    let err = splat_lct(
-        &kernels,
-        &relay,
-        &g,
-        late,
-        &RenderOptions::default(),
-        &LctSettings::default(),
-    )
-    .unwrap_err();
+    let err = splat_lct(&kernels, &relay, &g, late, &opt, &LctSettings::default()).unwrap_err();
     assert!(err.to_string().contains("path length 0"), "{err}");
 }
 

@@ -8,13 +8,13 @@ use std::time::Instant;
 use glam::DVec3;
 use periscope_recon::gpu::{Compute, ComputeDevice, DeviceInfo, GpuError};
 use periscope_recon::gtr::{
-    CancelToken, GaussianCloud, LiveModel, TrainError, TrainSummary, Trainer, resolvable_separation,
+    CancelToken, GaussianCloud, Kernel, LiveModel, TrainError, TrainSummary, Trainer, resolvable_separation,
 };
 use periscope_recon::relay::VirtualRelay;
 use periscope_recon::solver::{SolverError, SolverKind, SolverSettings};
 use periscope_recon::solver::{lateral_voxel_pitch, phasor_wavelength};
 use periscope_recon::synth::{SynthError, default_axis, splat_lct, synthesise_on};
-use periscope_recon::{RoiBox, TransientSet, Volume, VolumeGrid};
+use periscope_recon::{RoiBox, TimeAxis, TransientSet, Volume, VolumeGrid};
 
 use super::{Control, PipelineError, ReconError};
 use crate::events::{EventSink, RunEvent};
@@ -341,7 +341,7 @@ fn finish_gtr(
     );
     let axis = default_axis(&relay, &s.volume, SYNTH_BINS);
     let kernels = trainer.cloud().kernels();
-    if s.solver == SolverKind::Lct && s.virtual_scan == VirtualScan::Splat {
+    let (device, volume, timings) = if s.solver == SolverKind::Lct && s.virtual_scan == VirtualScan::Splat {
         // LCT's volume straight from the primitives: no scan is rendered.
         let solvers = s.solvers.for_virtual_scan();
         let volume = splat_lct(
@@ -354,19 +354,40 @@ fn finish_gtr(
         )
         .map_err(ReconError::from)?
         .to_world(&s.volume);
-        return Ok(ReconResult {
-            device: Compute::Cpu.info(),
-            volume,
-            cloud: Some(trainer.cloud().clone()),
-            train: Some(summary),
-            settings: s.clone(),
-            pairs: input.set.len(),
-            timings: vec![
-                ("fit".into(), fit_secs),
-                ("splat and lct".into(), t.elapsed().as_secs_f64()),
-            ],
-        });
-    }
+        let timings = vec![
+            ("fit".into(), fit_secs),
+            ("splat and lct".into(), t.elapsed().as_secs_f64()),
+        ];
+        (Compute::Cpu.info(), volume, timings)
+    } else {
+        render_and_solve(input, &relay, &trainer, axis, &kernels, fit_secs)?
+    };
+    Ok(ReconResult {
+        device,
+        volume,
+        cloud: Some(trainer.cloud().clone()),
+        train: Some(summary),
+        settings: s.clone(),
+        pairs: input.set.len(),
+        timings,
+    })
+}
+
+/// What made the volume after 3D-GTR: the device, the volume, and the steps' timings.
+type Solved = (DeviceInfo, Volume, Vec<(String, f64)>);
+
+/// The virtual confocal scan of `kernels` on `relay`, rendered where `[compute]` says,
+/// and the solver's volume of it: the device it ran on, the volume and the timings.
+fn render_and_solve(
+    input: &ReconInput,
+    relay: &VirtualRelay,
+    trainer: &Trainer,
+    axis: TimeAxis,
+    kernels: &[Kernel],
+    fit_secs: f64,
+) -> Result<Solved, PipelineError> {
+    let s = &input.settings;
+    let t = Instant::now();
     let mut compute = open_compute(s.compute)?;
     fn gpu_error(e: &SynthError) -> Option<&GpuError> {
         match e {
@@ -375,7 +396,7 @@ fn finish_gtr(
         }
     }
     let scan = on_device(s.compute, &mut compute, gpu_error, |c| {
-        synthesise_on(c, &kernels, &relay, axis, trainer.render_options())
+        synthesise_on(c, kernels, relay, axis, trainer.render_options())
     })
     .map_err(|e| match e {
         SynthError::Transient(e) => ReconError::from(e),
@@ -405,19 +426,12 @@ fn finish_gtr(
         }
     }
     let volume = solve_on(s.solver, &scan.set, &s.volume, &solvers, s.compute, &mut compute)?;
-    Ok(ReconResult {
-        device: compute.info(),
-        volume,
-        cloud: Some(trainer.cloud().clone()),
-        train: Some(summary),
-        settings: s.clone(),
-        pairs: input.set.len(),
-        timings: vec![
-            ("fit".into(), fit_secs),
-            ("synthesis".into(), synth_secs),
-            (format!("solver ({})", s.solver), t.elapsed().as_secs_f64()),
-        ],
-    })
+    let timings = vec![
+        ("fit".into(), fit_secs),
+        ("synthesis".into(), synth_secs),
+        (format!("solver ({})", s.solver), t.elapsed().as_secs_f64()),
+    ];
+    Ok((compute.info(), volume, timings))
 }
 
 /// Reconstructs a complete set of transients (offline, or a resumed run whose capture
