@@ -582,6 +582,33 @@ fn bright_centroid(v: &Volume) -> DVec3 {
     sum / weight
 }
 
+/// LCT after 3D-GTR's defaults (its `snr`) of `kernels` seen from a 1 m relay of
+/// 64 × 64 points onto [`splat_grid`], two ways: rendering the virtual scan, and the
+/// splat.
+fn lct_rendered_and_splatted(kernels: &[Kernel]) -> (Volume, Volume) {
+    let relay = VirtualRelay::new(DVec3::ZERO, DVec3::Z, DVec3::X, [1.0, 1.0], [64, 64]).unwrap();
+    let g = splat_grid();
+    let axis = default_axis(&relay, &g, 512);
+    let opt = RenderOptions::default();
+    let settings = LctSettings {
+        snr: Some(periscope_recon::solver::VIRTUAL_SCAN_SNR),
+        ..LctSettings::default()
+    };
+    let scan = synthesise(kernels, &relay, axis, &opt).unwrap();
+    let rendered = lct_frame(&scan.set, &scan.scan.reaching(&g), &settings)
+        .unwrap()
+        .to_world(&g);
+    let splatted = splat_lct(kernels, &relay, &g, axis, &opt, &settings)
+        .unwrap()
+        .to_world(&g);
+    (rendered, splatted)
+}
+
+/// The volume [`lct_rendered_and_splatted`] fills: 1 m wide, 0.2–1.0 m deep, 32³.
+fn splat_grid() -> VolumeGrid {
+    VolumeGrid::new([-0.5, 0.5], [-0.5, 0.5], [0.2, 1.0], [32, 32, 32]).unwrap()
+}
+
 /// Primitives of every shape (round, flat and face-on, flat and turned, long), near
 /// the middle and near the edge of a 1 m relay, each alone: the splatted LCT puts each
 /// one (the centroid of its voxels above half the maximum) within one voxel of where
@@ -594,14 +621,6 @@ fn bright_centroid(v: &Volume) -> DVec3 {
 /// at the relay's edge.
 #[test]
 fn splatted_lct_agrees_with_rendering_the_scan() {
-    let relay = VirtualRelay::new(DVec3::ZERO, DVec3::Z, DVec3::X, [1.0, 1.0], [64, 64]).unwrap();
-    let g = VolumeGrid::new([-0.5, 0.5], [-0.5, 0.5], [0.2, 1.0], [32, 32, 32]).unwrap();
-    let axis = default_axis(&relay, &g, 512);
-    let opt = RenderOptions::default();
-    let settings = LctSettings {
-        snr: Some(periscope_recon::solver::VIRTUAL_SCAN_SNR),
-        ..LctSettings::default()
-    };
     let turned = glam::DMat3::from_quat(glam::DQuat::from_euler(glam::EulerRot::XYZ, 0.3, 0.5, 0.1));
     let cases = [
         (
@@ -625,15 +644,9 @@ fn splatted_lct_agrees_with_rendering_the_scan() {
     ];
     for (i, (x, r, s)) in cases.into_iter().enumerate() {
         let kernels = [Kernel::new(x, r, s, 1.0)];
-        let scan = synthesise(&kernels, &relay, axis, &opt).unwrap();
-        let rendered = lct_frame(&scan.set, &scan.scan.reaching(&g), &settings)
-            .unwrap()
-            .to_world(&g);
-        let splatted = splat_lct(&kernels, &relay, &g, axis, &opt, &settings)
-            .unwrap()
-            .to_world(&g);
+        let (rendered, splatted) = lct_rendered_and_splatted(&kernels);
         let (a, b) = (bright_centroid(&rendered), bright_centroid(&splatted));
-        let off = ((a - b) / g.voxel()).abs();
+        let off = ((a - b) / splat_grid().voxel()).abs();
         assert!(
             off.max_element() <= 1.0,
             "case {i}: rendered at {a:?}, splatted at {b:?}: {off:?} voxels apart"
@@ -730,14 +743,6 @@ fn peak_near(v: &Volume, x: DVec3) -> f32 {
 /// apex more): the splat's documented difference, held within a factor 1.7.
 #[test]
 fn splatted_lct_keeps_the_primitives_relative_brightness() {
-    let relay = VirtualRelay::new(DVec3::ZERO, DVec3::Z, DVec3::X, [1.0, 1.0], [64, 64]).unwrap();
-    let g = VolumeGrid::new([-0.5, 0.5], [-0.5, 0.5], [0.2, 1.0], [32, 32, 32]).unwrap();
-    let axis = default_axis(&relay, &g, 512);
-    let opt = RenderOptions::default();
-    let settings = LctSettings {
-        snr: Some(periscope_recon::solver::VIRTUAL_SCAN_SNR),
-        ..LctSettings::default()
-    };
     let shape = DVec3::new(0.015, 0.015, 0.002);
     let turned = |tilt: f64| glam::DMat3::from_rotation_y(tilt.to_radians());
     for (a, b, tilt, tolerance) in [
@@ -766,13 +771,7 @@ fn splatted_lct_keeps_the_primitives_relative_brightness() {
             Kernel::new(a, glam::DMat3::IDENTITY, shape, 1.0),
             Kernel::new(b, turned(tilt), shape, 1.0),
         ];
-        let scan = synthesise(&kernels, &relay, axis, &opt).unwrap();
-        let rendered = lct_frame(&scan.set, &scan.scan.reaching(&g), &settings)
-            .unwrap()
-            .to_world(&g);
-        let splatted = splat_lct(&kernels, &relay, &g, axis, &opt, &settings)
-            .unwrap()
-            .to_world(&g);
+        let (rendered, splatted) = lct_rendered_and_splatted(&kernels);
         let ratio = |v: &Volume| peak_near(v, b) / peak_near(v, a);
         let (r, s) = (ratio(&rendered), ratio(&splatted));
         assert!(
