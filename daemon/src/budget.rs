@@ -9,8 +9,11 @@
 //!   reads (`f32` per bin, plus its weight row), per pair;
 //! - the solver's volume and its work arrays (complex FFT buffers padded to twice the
 //!   volume along each axis for LCT and RSD: 16 bytes × 8 per voxel, the largest);
-//! - 3D-GTR: the virtual confocal scan (`f64` per bin) and the primitives with their
-//!   gradients and optimiser moments;
+//! - 3D-GTR: the virtual confocal scan (`f64` per bin of its own time axis,
+//!   [`VIRTUAL_SCAN_BINS`]), or with `virtual-scan = "splat"` the splatted apexes
+//!   instead; LCT's or f-k's work arrays on that scan when either is the solver after
+//!   the fit (the figures the solvers check themselves against); and the primitives
+//!   with their gradients and optimiser moments;
 //! - disk: the histogram log (a 36-byte header and 4 bytes per bin per pair), the y-tal
 //!   export of the capture (4 bytes per bin per pair) and the volume outputs.
 use std::fmt::Write;
@@ -19,7 +22,14 @@ use std::fmt::Write;
 /// virtual grid's pitch); beyond it the pitch coarsens.
 pub const MAX_VIRTUAL_RESOLUTION: usize = 128;
 
-use crate::plan::{Method, Plan};
+/// Bins of the virtual confocal scan's time axis, from path length zero to past the
+/// volume's farthest corner, whatever the capture's bins.
+pub const VIRTUAL_SCAN_BINS: usize = 512;
+
+use periscope_recon::solver::{SolverKind, fk_work_bytes, lct_work_bytes};
+use periscope_recon::synth::splat_bytes;
+
+use crate::plan::{Method, Plan, VirtualScan};
 
 /// Bytes in a GiB.
 const GIB: f64 = (1u64 << 30) as f64;
@@ -97,11 +107,37 @@ impl Budget {
                 Some(res) => mul(&res.map(|n| n.max(most) as u64)),
                 None => mul(&[most as u64, most as u64]),
             };
-            memory.push(Item {
-                what: "3D-GTR virtual confocal scan",
-                keys: "recon.gtr.virtual-grid (default one point per voxel pitch; grown to cover the volume, up to 128 per axis) × acquisition.bins",
-                bytes: mul(&[virt, bins, 8 * 2]),
-            });
+            const GRID: &str = "recon.gtr.virtual-grid (default one point per voxel pitch; grown to cover the volume, up to 128 per axis)";
+            let m = VIRTUAL_SCAN_BINS as u64;
+            let cells = usize::try_from(virt).unwrap_or(usize::MAX);
+            let to_u64 = |b: usize| u64::try_from(b).unwrap_or(u64::MAX);
+            let solver = plan.recon.solver;
+            if solver == SolverKind::Lct && plan.recon.virtual_scan == VirtualScan::Splat {
+                memory.push(Item {
+                    what: "3D-GTR splatted light cones",
+                    keys: GRID,
+                    bytes: to_u64(splat_bytes(cells, VIRTUAL_SCAN_BINS)),
+                });
+            } else {
+                memory.push(Item {
+                    what: "3D-GTR virtual confocal scan",
+                    keys: GRID,
+                    bytes: mul(&[virt, m, 8 * 2]),
+                });
+            }
+            match solver {
+                SolverKind::Lct => memory.push(Item {
+                    what: "LCT on the virtual scan",
+                    keys: GRID,
+                    bytes: to_u64(lct_work_bytes(cells, VIRTUAL_SCAN_BINS)),
+                }),
+                SolverKind::Fk => memory.push(Item {
+                    what: "f-k migration on the virtual scan",
+                    keys: GRID,
+                    bytes: to_u64(fk_work_bytes(cells, VIRTUAL_SCAN_BINS)),
+                }),
+                _ => {}
+            }
             memory.push(Item {
                 what: "3D-GTR primitives, gradients and optimiser state",
                 keys: "recon.gtr.primitives",
@@ -203,6 +239,67 @@ impl Budget {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The demo plan (LCT after 3D-GTR, a 64 × 64 virtual grid) with `edit` applied to
+    /// its text.
+    fn demo_budget(edit: impl Fn(&str) -> String) -> Budget {
+        use crate::config::{InstrumentConfig, TomlSource};
+        let instrument = InstrumentConfig::from_source(&TomlSource::from_text(
+            "sim.toml",
+            include_str!("../../configs/instrument/sim.toml"),
+        ))
+        .unwrap();
+        let text = edit(include_str!("../../configs/plans/demo.toml"));
+        let plan = Plan::from_source(&TomlSource::from_text("demo.toml", &text), &instrument).unwrap();
+        Budget::of_plan(&plan)
+    }
+
+    fn item(b: &Budget, what: &str) -> Option<u64> {
+        b.memory.iter().find(|i| i.what == what).map(|i| i.bytes)
+    }
+
+    #[test]
+    fn the_virtual_scan_and_its_solver_are_costed_as_the_pipeline_holds_them() {
+        // Without a `virtual-size` the 64 × 64 grid may grow to cover the volume, up to
+        // the cap per axis.
+        let cells = MAX_VIRTUAL_RESOLUTION * MAX_VIRTUAL_RESOLUTION;
+        let m = VIRTUAL_SCAN_BINS;
+        let scan = (cells * m * 16) as u64;
+        // LCT after 3D-GTR, the scan rendered: the scan on its own 512 bins (not the
+        // acquisition's), and LCT's padded spectra on it.
+        let render = demo_budget(|t| t.to_string());
+        assert_eq!(item(&render, "3D-GTR virtual confocal scan"), Some(scan));
+        let lct = item(&render, "LCT on the virtual scan").expect("LCT's work arrays");
+        assert_eq!(lct, ((m + 1) * 4 * cells * 8 + cells * m * 8) as u64);
+        assert_eq!(item(&render, "3D-GTR splatted light cones"), None);
+        // The acquisition's bins do not size the virtual scan.
+        let more_bins = demo_budget(|t| t.replace("repeats = 1", "repeats = 1\nbins = 4096"));
+        assert_eq!(item(&more_bins, "3D-GTR virtual confocal scan"), Some(scan));
+        // Splatted: no scan, the apexes and at most one grid-wide primitive's deposits.
+        let splat = demo_budget(|t| {
+            t.replace(
+                "virtual-grid = [64, 64]",
+                "virtual-grid = [64, 64]\nvirtual-scan = \"splat\"",
+            )
+        });
+        assert_eq!(item(&splat, "3D-GTR virtual confocal scan"), None);
+        let cones = item(&splat, "3D-GTR splatted light cones").expect("the splat's apexes");
+        assert_eq!(
+            cones,
+            (cells * m * 4 + (cells * m * 4 + cells * 32).max(8 << 20)) as u64
+        );
+        assert!(cones < scan, "{cones} ≥ {scan}");
+        assert_eq!(item(&splat, "LCT on the virtual scan"), Some(lct));
+        // FBP after the fit works on the volume: no solver item on the scan.
+        let fbp = demo_budget(|t| t.replace("solver = \"lct\"", "solver = \"fbp\""));
+        assert_eq!(item(&fbp, "3D-GTR virtual confocal scan"), Some(scan));
+        assert_eq!(item(&fbp, "LCT on the virtual scan"), None);
+        let fk = demo_budget(|t| t.replace("solver = \"lct\"", "solver = \"fk\""));
+        assert_eq!(
+            item(&fk, "f-k migration on the virtual scan"),
+            Some(((m + 1) * 8 * cells * 8 + cells * m * 4) as u64)
+        );
+    }
 
     #[test]
     fn saturating_products_never_wrap_to_small_numbers() {

@@ -147,6 +147,18 @@ const GAUSS_LEGENDRE_8: [(f64, f64); 8] = [
 /// they are added into the apexes), besides one primitive's own.
 const ROUND_BYTES: usize = 8 << 20;
 
+/// The most memory [`splat_lct`] allocates before LCT's filter for a grid of `cells`
+/// points and `m` bins from path length zero: the apexes in `f32`, and a round's
+/// deposits, 8 MiB or one primitive's when it alone is larger (at most a
+/// whole window of `f32` and a 32-byte head at every point). Saturating, so a hostile
+/// size is never small. `periscope check` and the splat's own cap read the same
+/// figure.
+pub fn splat_bytes(cells: usize, m: usize) -> usize {
+    let apexes = cells.saturating_mul(m).saturating_mul(4);
+    let one = apexes.saturating_add(cells.saturating_mul(32));
+    apexes.saturating_add(one.max(ROUND_BYTES))
+}
+
 /// The footprint's sub-samples reach this many standard deviations from its centre.
 const FOOTPRINT_SIGMAS: f64 = 3.5;
 
@@ -229,7 +241,7 @@ pub fn splat_lct(
         bins: m,
         width: w,
     };
-    check_memory("splatted LCT", nx * ny * m * 4 + ROUND_BYTES)?;
+    check_memory("splatted LCT", splat_bytes(nx * ny, m))?;
     // Each primitive's footprint first (geometry only), then rounds of them splatted in
     // parallel and added in order: the sums are the same on any number of threads, and
     // a round's deposits stay within `ROUND_BYTES` (and one primitive's) by their

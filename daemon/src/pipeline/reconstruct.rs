@@ -20,10 +20,8 @@ use super::{Control, PipelineError, ReconError};
 use crate::events::{EventSink, RunEvent};
 use crate::plan::{Method, ReconSettings, VirtualScan};
 
-/// Bins of the virtual confocal scan's time axis.
-const SYNTH_BINS: usize = 512;
-
 pub use crate::budget::MAX_VIRTUAL_RESOLUTION;
+use crate::budget::VIRTUAL_SCAN_BINS;
 
 /// What a reconstruction needs.
 pub struct ReconInput {
@@ -339,7 +337,7 @@ fn finish_gtr(
         pitch_m = pitch[0].max(pitch[1]),
         "virtual confocal scan ([gtr] virtual-grid and virtual-size set it)"
     );
-    let axis = default_axis(&relay, &s.volume, SYNTH_BINS);
+    let axis = default_axis(&relay, &s.volume, VIRTUAL_SCAN_BINS);
     let kernels = trainer.cloud().kernels();
     let (device, volume, timings) = if s.solver == SolverKind::Lct && s.virtual_scan == VirtualScan::Splat {
         // LCT's volume straight from the primitives: no scan is rendered.

@@ -62,6 +62,18 @@ pub fn fk(set: &TransientSet, grid: &VolumeGrid, settings: &FkSettings) -> Resul
     Ok(fk_frame(set, &scan, settings)?.to_world(grid))
 }
 
+/// The memory f-k migration allocates for a scan of `cells` grid cells and `m` bins
+/// from path length zero: two sets of `m + 1` complex slices of the grid padded to
+/// `2ny × 2nx`, and the cube in `f32`. Saturating, so a hostile size is never small.
+/// `periscope check` and the solver's own cap read the same figure.
+pub fn fk_work_bytes(cells: usize, m: usize) -> usize {
+    let spectra = (m.saturating_add(1))
+        .saturating_mul(8)
+        .saturating_mul(cells)
+        .saturating_mul(8);
+    spectra.saturating_add(cells.saturating_mul(m).saturating_mul(4))
+}
+
 /// f-k migration on the scan's own grid: a volume with one slice per bin, depth
 /// `(t + ½)·w/2`.
 pub fn fk_frame(
@@ -75,7 +87,7 @@ pub fn fk_frame(
     let m = confocal::bins_from_zero(set, "f-k migration")?;
     let (px, py, pt) = (2 * nx, 2 * ny, 2 * m);
     let slice_len = px * py;
-    check_memory("f-k migration", 2 * (m + 1) * slice_len * 8 + nx * ny * m * 4)?;
+    check_memory("f-k migration", fk_work_bytes(nx * ny, m))?;
 
     // Weight by path length, then the real FFT along t (padded to 2M), scattered into
     // slices [kt][Y][X] of the laterally padded grid.

@@ -142,7 +142,7 @@ pub fn lct_frame(
     let [nx, ny] = scan.relay.resolution;
     let w = set.axis().width;
     let m = confocal::bins_from_zero(set, "LCT")?;
-    check_memory("LCT", (m + 1) * 4 * nx * ny * 8 + 2 * nx * ny * m * 4)?;
+    check_memory("LCT", lct_work_bytes(nx * ny, m))?;
     let mut cube = confocal::cube(set, scan, m, settings.relay_weights);
 
     // Radiometric weight and ℓ → s resampling.
@@ -206,13 +206,25 @@ pub fn lct_of_apexes(
             "bin width {w} m: it must be a positive length"
         )));
     }
-    check_memory("LCT", (m + 1) * 4 * nx * ny * 8 + 2 * nx * ny * m * 4)?;
+    check_memory("LCT", lct_work_bytes(nx * ny, m))?;
     let resample = Resampling::new(m);
     apexes.par_chunks_mut(m).for_each(|line| {
         let s = resample.forward(line);
         line.copy_from_slice(&s);
     });
     Ok(filter_cube(apexes, scan, m, w, snr, Filter::Blur))
+}
+
+/// The memory LCT allocates for a scan of `cells` grid cells and `m` bins from path
+/// length zero: the padded spectra (`m + 1` complex slices of the `2ny × 2nx` grid)
+/// and the cube twice, in `f32`. Saturating, so a hostile size is never small.
+/// `periscope check` and the solver's own cap read the same figure.
+pub fn lct_work_bytes(cells: usize, m: usize) -> usize {
+    let slices = (m.saturating_add(1))
+        .saturating_mul(4)
+        .saturating_mul(cells)
+        .saturating_mul(8);
+    slices.saturating_add(cells.saturating_mul(m).saturating_mul(8))
 }
 
 /// What [`filter_cube`] does with a cube's spectrum D and the light cone's H.

@@ -21,9 +21,9 @@ pub use fbp::{
     SIGMA_PER_WAVELENGTH, VIRTUAL_SCAN_SIGMA_PER_WAVELENGTH, fbp, fbp_on, lateral_voxel_pitch,
     phasor_wavelength, sampling_pitch,
 };
-pub use fk::{FkSettings, fk, fk_frame};
+pub use fk::{FkSettings, fk, fk_frame, fk_work_bytes};
 pub use frame::FrameVolume;
-pub use lct::{LctSettings, VIRTUAL_SCAN_SNR, default_snr, lct, lct_frame, lct_of_apexes};
+pub use lct::{LctSettings, VIRTUAL_SCAN_SNR, default_snr, lct, lct_frame, lct_of_apexes, lct_work_bytes};
 pub use quadrature::{REACH_PITCHES, pair_weights, relay_areas};
 pub use rsd::{RsdSettings, rsd, rsd_frame};
 pub use scan::{MAX_REACH_FACTOR, PlanarScan};
