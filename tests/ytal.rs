@@ -237,9 +237,13 @@ fn otsu(values: &[f64]) -> f64 {
 /// threshold on the maximum projection, IoU with the true silhouette (228 pixels of
 /// the 32 × 32 grid, `mannequin_mask.npy`, indexed x then y), and the depth at each
 /// column's maximum against `mannequin_depth.npy`. Measured with defaults (seeds 0, 1,
-/// 2): IoU 0.52, 0.50, 0.52. Before the fit and the image were held to what the
-/// capture resolves (`resolvable_separation`: 64 mm here) they scored 0.29, 0.25, 0.31:
-/// splits down to 11 mm drifted into lumps and the 78 mm wave imaged them.
+/// 2): IoU 0.59, 0.59, 0.59 since the surface prior ([`SurfacePrior`]; without it
+/// 0.49, 0.53, 0.54: the torso's light in a column of lumps at its centre, spread in
+/// depth). Before the fit and the image were held to what the capture resolves
+/// (`resolvable_separation`: 64 mm here) they scored 0.29, 0.25, 0.31: splits down to
+/// 11 mm drifted into lumps and the 78 mm wave imaged them.
+///
+/// [`SurfacePrior`]: periscope_recon::gtr::SurfacePrior
 #[test]
 fn a_mannequin_behind_two_backs_rendered_by_mitransient_is_found_whole() {
     let grid = VolumeGrid::new([-0.5, 0.5], [-0.5, 0.5], [0.195, 1.205], [32, 32, 101]).unwrap();
@@ -251,8 +255,8 @@ fn a_mannequin_behind_two_backs_rendered_by_mitransient_is_found_whole() {
         score.iou
     );
     assert!(
-        score.iou > 0.42,
-        "silhouette IoU {:.3} ≤ 0.42: the mannequin is not found whole",
+        score.iou > 0.55,
+        "silhouette IoU {:.3} ≤ 0.55: the mannequin is not found whole",
         score.iou
     );
     assert!(median < 0.02, "median depth error {median:.3} m ≥ 2 cm");

@@ -2,7 +2,9 @@
 //! `RECON.toml` for `periscope recon` share this format.
 use periscope_recon::VolumeGrid;
 use periscope_recon::gpu::ComputeDevice;
-use periscope_recon::gtr::{Convergence, DensifySettings, Init, LossChoice, PairGains, TrainConfig};
+use periscope_recon::gtr::{
+    Convergence, DensifySettings, Init, LossChoice, PairGains, SurfacePrior, TrainConfig,
+};
 use periscope_recon::solver::{
     FbpSettings, FkSettings, LctSettings, RsdSettings, SolverError, SolverKind, SolverSettings,
 };
@@ -242,6 +244,7 @@ struct RawGtr {
     epoch_pairs: Option<usize>,
     #[serde(default = "default_virtual_scan")]
     virtual_scan: String,
+    surface_spread: Option<f64>,
 }
 
 fn default_virtual_scan() -> String {
@@ -272,6 +275,7 @@ impl Default for RawGtr {
             tolerance: None,
             epoch_pairs: None,
             virtual_scan: default_virtual_scan(),
+            surface_spread: None,
         }
     }
 }
@@ -439,6 +443,13 @@ pub(crate) fn recon_settings(
             ));
         }
     }
+    let spread = g.surface_spread.unwrap_or(SurfacePrior::DEFAULT_SPREAD);
+    if !(spread.is_finite() && (0.0..1.0).contains(&spread)) {
+        return Err(src.invalid(
+            &key("gtr.surface-spread"),
+            format!("{spread} m is out of range: give the depth spread within a column that the surface prior weighs as much as the data, up to 1 m, or 0 to turn the prior off"),
+        ));
+    }
     if let Some(v) = g.average_from
         && !(0.0..=1.0).contains(&v)
     {
@@ -515,6 +526,11 @@ pub(crate) fn recon_settings(
         average_from: g.average_from.unwrap_or(TrainConfig::default().average_from),
         converge: converge(src, &key, &g)?,
         epoch_pairs: g.epoch_pairs.unwrap_or(DEFAULT_EPOCH_PAIRS),
+        // One surface per pixel of the volume's image.
+        surface: (spread > 0.0).then(|| SurfacePrior {
+            spread,
+            cell: volume.voxel()[0].max(volume.voxel()[1]),
+        }),
         ..TrainConfig::default()
     };
     for group in [
@@ -839,6 +855,34 @@ mod tests {
             let src = TomlSource::from_text("recon.toml", format!("[gtr]\naverage-from = {bad}\n"));
             let e = load_recon(&src, Some(volume())).unwrap_err().to_string();
             assert!(e.contains("gtr.average-from") && e.contains("0 to 1"), "{e}");
+        }
+    }
+
+    #[test]
+    fn gtr_surface_spread_is_read_and_checked() {
+        // On by default, one column per lateral voxel (the test volume's are 0.125 m).
+        let on = default_recon(volume())
+            .train
+            .surface
+            .expect("the prior is on by default");
+        assert_eq!((on.spread, on.cell), (SurfacePrior::DEFAULT_SPREAD, 0.125));
+        let read = |text: &str| {
+            load_recon(
+                &TomlSource::from_text("recon.toml", format!("[gtr]\nsurface-spread = {text}\n")),
+                Some(volume()),
+            )
+        };
+        assert_eq!(
+            read("0.005").unwrap().train.surface.map(|p| p.spread),
+            Some(0.005)
+        );
+        assert_eq!(read("0.0").unwrap().train.surface, None);
+        for bad in ["-0.01", "1.5", "nan"] {
+            let e = read(bad).unwrap_err().to_string();
+            assert!(
+                e.contains("gtr.surface-spread") && e.contains("0 to turn the prior off"),
+                "{e}"
+            );
         }
     }
 

@@ -40,6 +40,14 @@ impl Kernel {
             rho,
         }
     }
+
+    /// Its albedo times the square of its largest projected area, as
+    /// [`Primitive::weight`](super::model::Primitive::weight): what it adds to a
+    /// transient seen face-on.
+    pub fn weight(&self) -> f64 {
+        let a = self.pi.max_element();
+        self.rho * a * a
+    }
 }
 
 /// Switches and constants of the forward model.

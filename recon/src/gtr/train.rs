@@ -216,6 +216,126 @@ pub struct TrainConfig {
     /// counted epoch runs.
     #[serde(default)]
     pub converge: Option<Convergence>,
+    /// The surface prior: each column of the scene, seen along the ROI's depth axis,
+    /// held to one surface ([`SurfacePrior`]). `None`: off, the paper's fit.
+    #[serde(default)]
+    pub surface: Option<SurfacePrior>,
+}
+
+/// A prior that holds each column of the scene to one surface.
+///
+/// Light the pairs cannot place laterally (one laser spot and a small patch of
+/// detection points resolve little across their mean path gradient) can be explained
+/// as well by primitives spread in depth along a column as by primitives spread
+/// across the surface at one depth: the former is what an unconstrained fit finds on
+/// a mannequin beside two backs, its torso's light in a column of lumps at the
+/// centre. The prior pulls each primitive's depth (the ROI's z) towards the
+/// weight-weighted mean depth of its column (cells of `cell` metres across x and y),
+/// as the gradient of
+///
+/// P = L̄ / spread² · Σ_cells Σ_{i ∈ cell} w_i (z_i − z̄_cell)² / Σ_i w_i,
+///
+/// with the primitives' weights w ([`Primitive::weight`](super::model::Primitive::weight))
+/// held fixed and L̄ the mini-batch's loss, so the prior is the data term's size when a
+/// column's light spreads `spread` metres in depth. A scene seen from the relay as one
+/// surface per column (a wall, a letter, a person) loses nothing by it. On the GPU the
+/// same pull is applied once an epoch ([`SurfacePrior::PULL_PER_EPOCH`]): the GPU's
+/// steps run resident and take no extra gradient.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct SurfacePrior {
+    /// The depth spread within a column that the prior weighs as much as the data,
+    /// metres; smaller pulls harder.
+    pub spread: f64,
+    /// The columns' width across x and y, metres (the daemon takes the volume's
+    /// lateral voxel pitch: one surface per pixel of its image).
+    pub cell: f64,
+}
+
+impl SurfacePrior {
+    /// The daemon's default spread, metres: chosen on the mannequin fixtures
+    /// (docs/recon.md, "A surface prior").
+    pub const DEFAULT_SPREAD: f64 = 0.018;
+
+    /// The share of its distance to its column's mean depth that each primitive moves
+    /// after an epoch on the GPU.
+    pub const PULL_PER_EPOCH: f64 = 0.7;
+
+    /// Each primitive's column mean depth (by weight), or `None` where the prior's
+    /// sizes are not usable; primitives of weight zero sit in their column but pull
+    /// nothing.
+    fn column_means(&self, kernels: &[Kernel], roi: &RoiBox) -> Option<(Vec<f64>, Vec<f64>, f64)> {
+        if !(self.cell.is_finite() && self.cell > 0.0 && self.spread.is_finite() && self.spread > 0.0) {
+            return None;
+        }
+        let lo = roi.centre - roi.half;
+        let cols = |a: usize| ((2.0 * roi.half[a] / self.cell).ceil() as usize).clamp(1, 4096);
+        let (nx, ny) = (cols(0), cols(1));
+        let index = |k: &Kernel| {
+            let at =
+                |a: usize, n: usize| (((k.x[a] - lo[a]) / self.cell).floor().max(0.0) as usize).min(n - 1);
+            at(1, ny) * nx + at(0, nx)
+        };
+        let weights: Vec<f64> = kernels.iter().map(Kernel::weight).collect();
+        let mut cells = vec![(0.0f64, 0.0f64); nx * ny];
+        for (k, &w) in kernels.iter().zip(&weights) {
+            let c = &mut cells[index(k)];
+            c.0 += w;
+            c.1 += w * k.x.z;
+        }
+        let total: f64 = weights.iter().sum();
+        if !(total.is_finite() && total > 0.0) {
+            return None;
+        }
+        let means = kernels
+            .iter()
+            .map(|k| {
+                let (w, wz) = cells[index(k)];
+                if w > 0.0 { wz / w } else { k.x.z }
+            })
+            .collect();
+        Some((means, weights, total))
+    }
+
+    /// Adds the prior's gradient for a mini-batch of loss `loss` to `grads` (the
+    /// centres' z entries, through the maps' slopes); returns P.
+    pub(crate) fn add_gradient(
+        &self,
+        kernels: &[Kernel],
+        slopes: &[MapSlopes],
+        roi: &RoiBox,
+        loss: f64,
+        grads: &mut RawGrads,
+    ) -> f64 {
+        let Some((means, weights, total)) = self.column_means(kernels, roi) else {
+            return 0.0;
+        };
+        if !(loss.is_finite() && loss > 0.0) {
+            return 0.0;
+        }
+        let lambda = loss / (self.spread * self.spread * total);
+        let mut p = 0.0;
+        for (i, k) in kernels.iter().enumerate() {
+            let d = k.x.z - means[i];
+            p += lambda * weights[i] * d * d;
+            grads.centres[3 * i + 2] += 2.0 * lambda * weights[i] * d * slopes[i].centre.z;
+        }
+        p
+    }
+
+    /// Moves each primitive of `cloud` the share `pull` of the way to its column's
+    /// mean depth (the GPU's epochs, which take no extra gradient).
+    fn pull(&self, cloud: &mut GaussianCloud, kernels: &[Kernel], pull: f64) {
+        let roi = *cloud.roi();
+        let Some((means, _, _)) = self.column_means(kernels, &roi) else {
+            return;
+        };
+        for (i, k) in kernels.iter().enumerate() {
+            let z = k.x.z - pull * (k.x.z - means[i]);
+            // Strictly inside the ROI, as the centre map requires.
+            let rel = ((z - roi.centre.z) / roi.half.z).clamp(-1.0 + 1e-9, 1.0 - 1e-9);
+            cloud.centres[3 * i + 2] = rel.atanh();
+        }
+    }
 }
 
 /// The test that ends a fit's last stage early: after at least `min_steps` averaged
@@ -822,6 +942,7 @@ impl Default for TrainConfig {
             pair_gains: PairGains::default(),
             seed: 0,
             converge: None,
+            surface: None,
         }
     }
 }
@@ -1266,6 +1387,15 @@ impl Trainer {
                 gains,
                 &mut self.grads,
             );
+            if let Some(prior) = self.config.surface {
+                prior.add_gradient(
+                    &self.kernels,
+                    &self.slopes,
+                    self.cloud.roi(),
+                    loss,
+                    &mut self.grads,
+                );
+            }
             let factor = self.config.schedule.factor(
                 self.step,
                 self.epochs_done,
@@ -1358,6 +1488,10 @@ impl Trainer {
                 step = self.step,
                 "non-finite gradient entries were skipped"
             );
+        }
+        if let Some(prior) = self.config.surface {
+            self.refresh_kernels();
+            prior.pull(&mut self.cloud, &self.kernels, SurfacePrior::PULL_PER_EPOCH);
         }
         if taken < batches.len() {
             return Ok(None);
@@ -1699,5 +1833,121 @@ impl Trainer {
             .collect();
         self.start_centres = kept_start;
         self.cloud.len()
+    }
+}
+
+#[cfg(test)]
+mod surface_tests {
+    use glam::DQuat;
+    use rand::Rng;
+
+    use super::*;
+
+    /// A cloud of `n` primitives scattered through a 1 m box, with their kernels and
+    /// slopes.
+    fn cloud(n: usize) -> (GaussianCloud, Vec<Kernel>, Vec<MapSlopes>) {
+        let roi = RoiBox::from_bounds(DVec3::new(-0.5, -0.5, 0.2), DVec3::new(0.5, 0.5, 1.2)).unwrap();
+        let mut cloud = GaussianCloud::new(roi, ScaleBounds { min: 1e-3, max: 0.2 }).unwrap();
+        let mut rng = ChaCha8Rng::seed_from_u64(3);
+        for _ in 0..n {
+            cloud
+                .push(Primitive {
+                    // Few columns, so each holds several primitives at different depths.
+                    centre: DVec3::new(
+                        rng.random_range(-0.2..0.2),
+                        rng.random_range(-0.2..0.2),
+                        rng.random_range(0.4..1.0),
+                    ),
+                    scale: DVec3::new(
+                        rng.random_range(0.005..0.05),
+                        rng.random_range(0.005..0.05),
+                        rng.random_range(0.002..0.02),
+                    ),
+                    rotation: DQuat::from_rotation_y(rng.random_range(-0.5..0.5)),
+                    albedo: rng.random_range(0.1..2.0),
+                })
+                .unwrap();
+        }
+        let kernels = cloud.kernels();
+        let slopes = (0..n).map(|k| cloud.slopes(k)).collect();
+        (cloud, kernels, slopes)
+    }
+
+    #[test]
+    fn the_surface_priors_gradient_matches_finite_differences() {
+        let prior = SurfacePrior {
+            spread: 0.02,
+            cell: 0.1,
+        };
+        let (cloud, kernels, slopes) = cloud(40);
+        let roi = *cloud.roi();
+        let loss = 0.3;
+        let mut grads = RawGrads::zeros(cloud.len());
+        let p = prior.add_gradient(&kernels, &slopes, &roi, loss, &mut grads);
+        assert!(
+            p > 0.0,
+            "primitives at different depths in a column cost something"
+        );
+        // Only the depths move: every other entry is untouched.
+        assert!(
+            grads
+                .centres
+                .iter()
+                .enumerate()
+                .all(|(j, g)| j % 3 == 2 || *g == 0.0)
+        );
+        assert!(grads.scales.iter().chain(&grads.albedo).all(|g| *g == 0.0));
+        let value = |cloud: &GaussianCloud| {
+            let kernels = cloud.kernels();
+            let slopes: Vec<MapSlopes> = (0..cloud.len()).map(|k| cloud.slopes(k)).collect();
+            prior.add_gradient(&kernels, &slopes, &roi, loss, &mut RawGrads::zeros(cloud.len()))
+        };
+        let h = 1e-6;
+        let mut moved = 0;
+        for i in 0..cloud.len() {
+            let (mut plus, mut minus) = (cloud.clone(), cloud.clone());
+            plus.centres[3 * i + 2] += h;
+            minus.centres[3 * i + 2] -= h;
+            let fd = (value(&plus) - value(&minus)) / (2.0 * h);
+            let g = grads.centres[3 * i + 2];
+            assert!(
+                (fd - g).abs() <= 1e-6 * p.max(1e-12) + 1e-4 * g.abs(),
+                "primitive {i}: {g} against {fd}"
+            );
+            moved += usize::from(g != 0.0);
+        }
+        assert!(moved > cloud.len() / 2, "only {moved} primitives were pulled");
+    }
+
+    #[test]
+    fn the_surface_prior_pulls_a_column_to_one_depth_and_leaves_a_flat_one_alone() {
+        let prior = SurfacePrior {
+            spread: 0.02,
+            cell: 0.1,
+        };
+        let (mut cloud, kernels, _) = cloud(40);
+        let roi = *cloud.roi();
+        let spread = |kernels: &[Kernel]| {
+            let (means, _, _) = prior.column_means(kernels, &roi).unwrap();
+            kernels
+                .iter()
+                .zip(&means)
+                .map(|(k, m)| (k.x.z - m).abs())
+                .fold(0.0, f64::max)
+        };
+        let before = spread(&kernels);
+        assert!(before > 0.05, "{before}");
+        prior.pull(&mut cloud, &kernels, 1.0);
+        let after = spread(&cloud.kernels());
+        assert!(
+            after < 1e-9,
+            "a full pull leaves {after} m between a column's depths"
+        );
+        // One surface per column already: P is zero and nothing is pulled.
+        let kernels = cloud.kernels();
+        let slopes: Vec<MapSlopes> = (0..cloud.len()).map(|k| cloud.slopes(k)).collect();
+        let mut grads = RawGrads::zeros(cloud.len());
+        let p = prior.add_gradient(&kernels, &slopes, cloud.roi(), 0.3, &mut grads);
+        assert!(p < 1e-12 && grads.centres.iter().all(|g| g.abs() < 1e-6), "{p}");
     }
 }
