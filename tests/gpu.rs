@@ -65,7 +65,14 @@ fn difference(a: &Path, b: &Path) -> f64 {
 fn a_reconstruction_on_the_gpu_is_the_cpus() {
     let dir = tempfile::tempdir().unwrap();
     for (method, extra, bound) in [
-        ("gtr", "[gtr]\nprimitives = 400\nepochs = 8\n", 2e-3),
+        // The surface prior off: the CPU applies it as a gradient every step, the GPU,
+        // whose steps run resident, as a pull once an epoch (docs/recon.md, "A surface
+        // prior"), so with it the two fits differ by design.
+        (
+            "gtr",
+            "[gtr]\nprimitives = 400\nepochs = 8\nsurface-spread = 0\n",
+            2e-3,
+        ),
         // The exact path on both: the CPU's default, `auto`, may take the hierarchy.
         ("fbp", "[fbp]\nbackprojection = \"exact\"\n", 1e-3),
     ] {

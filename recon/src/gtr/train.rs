@@ -268,31 +268,39 @@ impl SurfacePrior {
             return None;
         }
         let lo = roi.centre - roi.half;
-        let cols = |a: usize| ((2.0 * roi.half[a] / self.cell).ceil() as usize).clamp(1, 4096);
-        let (nx, ny) = (cols(0), cols(1));
-        let index = |k: &Kernel| {
-            let at =
-                |a: usize, n: usize| (((k.x[a] - lo[a]) / self.cell).floor().max(0.0) as usize).min(n - 1);
-            at(1, ny) * nx + at(0, nx)
+        // Columns numbered row by row; sorted by column (and index within one), so a
+        // column's sums add its primitives in their order, whatever the grid's size:
+        // no array of columns, which a fine wide volume would make large.
+        let cols =
+            |a: usize| ((2.0 * roi.half[a] / self.cell).ceil()).clamp(1.0, f64::from(1u32 << 30)) as u64;
+        let nx = cols(0);
+        let column = |k: &Kernel| {
+            let at = |a: usize, n: u64| (((k.x[a] - lo[a]) / self.cell).floor().max(0.0) as u64).min(n - 1);
+            at(1, cols(1)) * nx + at(0, nx)
         };
         let weights: Vec<f64> = kernels.iter().map(Kernel::weight).collect();
-        let mut cells = vec![(0.0f64, 0.0f64); nx * ny];
-        for (k, &w) in kernels.iter().zip(&weights) {
-            let c = &mut cells[index(k)];
-            c.0 += w;
-            c.1 += w * k.x.z;
-        }
         let total: f64 = weights.iter().sum();
         if !(total.is_finite() && total > 0.0) {
             return None;
         }
-        let means = kernels
+        let mut order: Vec<(u64, u32)> = kernels
             .iter()
-            .map(|k| {
-                let (w, wz) = cells[index(k)];
-                if w > 0.0 { wz / w } else { k.x.z }
-            })
+            .enumerate()
+            .map(|(i, k)| (column(k), i as u32))
             .collect();
+        order.sort_unstable();
+        let mut means = vec![0.0; kernels.len()];
+        for members in order.chunk_by(|a, b| a.0 == b.0) {
+            let (mut w, mut wz) = (0.0, 0.0);
+            for &(_, i) in members {
+                w += weights[i as usize];
+                wz += weights[i as usize] * kernels[i as usize].x.z;
+            }
+            for &(_, i) in members {
+                let z = kernels[i as usize].x.z;
+                means[i as usize] = if w > 0.0 { wz / w } else { z };
+            }
+        }
         Some((means, weights, total))
     }
 
