@@ -165,13 +165,10 @@ fn an_adaptive_capture_of_half_the_pairs_finds_what_the_full_capture_finds() {
 /// scan's returns (the default, `relay.albedo-from-scan`) the letter meets the uniform
 /// demo's bounds; so it does with the scan's albedo left out and the gains estimated
 /// by the fit instead (`configs/plans/patchy-wall.toml`, `pair-gains =
-/// "illumination"`, the path for a capture without a relay scan); with neither, its
-/// errors are half as large again. Measured (median, 90th percentile, IoU): the fit's
-/// gains 0.26 mm, 0.62 mm, 0.809; neither 0.45 mm, 0.95 mm, 0.801 (the uniform wall:
-/// 0.33 mm, 0.73 mm, 0.808). Before the surface prior (`[gtr] surface-spread`) neither
-/// missed the uniform demo's bounds outright (1.34 mm at the 90th percentile, against
-/// the fit's gains' 0.86 mm); the prior, which holds each column to one depth, takes
-/// part of what the gains cost, but not the half.
+/// "illumination"`, the path for a capture without a relay scan); with neither, it
+/// misses them. Measured (median, 90th percentile, IoU): from the scan 0.38 mm,
+/// 0.80 mm, 0.806; from the fit 0.33 mm, 0.86 mm, 0.806; neither 0.44 mm, 1.34 mm,
+/// 0.801 (the uniform wall: 0.34 mm, 0.68 mm, 0.808).
 #[test]
 fn a_patchy_wall_gives_the_letter_back_with_gains_from_the_scan_or_the_fit() {
     let (instrument, scene) = (
@@ -213,9 +210,8 @@ fn a_patchy_wall_gives_the_letter_back_with_gains_from_the_scan_or_the_fit() {
         footprint.1,
     );
     assert!(
-        neither.p90_error > 1.3 * fit.p90_error && neither.median_error > 1.3 * fit.median_error,
-        "the patchy wall must cost a fit with gains 1 a third more error than the fit's gains: \
-         {neither:?} against {fit:?}"
+        neither.p90_error > 1.0e-3,
+        "the patchy wall must cost a fit with gains 1 the uniform demo's bound: {neither:?}"
     );
 }
 

@@ -443,7 +443,7 @@ pub(crate) fn recon_settings(
             ));
         }
     }
-    let spread = g.surface_spread.unwrap_or(SurfacePrior::DEFAULT_SPREAD);
+    let spread = g.surface_spread.unwrap_or(0.0);
     if !(spread.is_finite() && (0.0..1.0).contains(&spread)) {
         return Err(src.invalid(
             &key("gtr.surface-spread"),
@@ -860,12 +860,8 @@ mod tests {
 
     #[test]
     fn gtr_surface_spread_is_read_and_checked() {
-        // On by default, one column per lateral voxel (the test volume's are 0.125 m).
-        let on = default_recon(volume())
-            .train
-            .surface
-            .expect("the prior is on by default");
-        assert_eq!((on.spread, on.cell), (SurfacePrior::DEFAULT_SPREAD, 0.125));
+        // Off by default; one column per lateral voxel (the test volume's are 0.125 m).
+        assert_eq!(default_recon(volume()).train.surface, None);
         let read = |text: &str| {
             load_recon(
                 &TomlSource::from_text("recon.toml", format!("[gtr]\nsurface-spread = {text}\n")),
@@ -877,6 +873,8 @@ mod tests {
             Some(0.005)
         );
         assert_eq!(read("0.0").unwrap().train.surface, None);
+        let on = read("0.018").unwrap().train.surface.expect("the prior is on");
+        assert_eq!((on.spread, on.cell), (SurfacePrior::DEFAULT_SPREAD, 0.125));
         for bad in ["-0.01", "1.5", "nan"] {
             let e = read(bad).unwrap_err().to_string();
             assert!(
