@@ -17,7 +17,7 @@ mod rsd;
 mod scan;
 
 pub use fbp::{
-    AUTO_MAX_FRACTION, FbpBackprojection, FbpFilter, FbpSettings, PATH_ERROR_WAVELENGTHS, PHASOR_PITCHES,
+    AUTO_MAX_COST, FbpBackprojection, FbpFilter, FbpSettings, PATH_ERROR_WAVELENGTHS, PHASOR_PITCHES,
     SIGMA_PER_WAVELENGTH, VIRTUAL_SCAN_SIGMA_PER_WAVELENGTH, fbp, fbp_on, lateral_voxel_pitch,
     phasor_wavelength, sampling_pitch,
 };

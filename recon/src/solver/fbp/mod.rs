@@ -77,19 +77,18 @@ pub enum FbpBackprojection {
     /// only; docs/recon.md, "A hierarchical backprojection").
     Hierarchical,
     /// The hierarchy where a sample of its leaves says the merges pay (each leaf
-    /// backprojecting at most [`AUTO_MAX_FRACTION`] of the pairs), the exact path
+    /// predicted to take at most [`AUTO_MAX_COST`] of the exact path's time), the exact path
     /// elsewhere, and for any filter but the phasor one: the default.
     #[default]
     Auto,
 }
 
-/// The most of the pairs a leaf of the hierarchy may still backproject after its merges
-/// for [`FbpBackprojection::Auto`] to take the hierarchy. Its fixed cost (every leaf
-/// plans and sums every pair's histogram) made it 1.3 times slower than the exact path
-/// where nothing merged (8,000 pairs with both points random: 0.87 of the pairs a leaf,
-/// 0.77 times the exact path's speed), and it ran 1.3 times faster at 0.31 and 4.9 times
-/// at 0.09 (docs/recon.md, "A hierarchical backprojection").
-pub const AUTO_MAX_FRACTION: f64 = 0.4;
+/// The most of the exact path's time the hierarchy may be predicted to take for
+/// [`FbpBackprojection::Auto`] to take it: its cost model (a sample of its leaves'
+/// merges, weighed by the measured costs of planning them and of backprojecting what
+/// is left) has to promise a third off, more than this machine's speed wanders
+/// (docs/recon.md, "A hierarchical backprojection").
+pub const AUTO_MAX_COST: f64 = 0.67;
 
 /// The hierarchical backprojection's default bound on a merged pair's path-length
 /// error, in phasor wavelengths: at most a quarter-turn of phase for the worst member.
@@ -457,36 +456,47 @@ pub fn fbp_on(
         let tolerance = settings.path_error * lambda;
         let own_fast_form = || compute.gpu().is_some() || grid::ConfocalGrid::detect(set, grid).is_some();
         let hierarchical = match settings.backprojection {
-            FbpBackprojection::Exact => false,
+            FbpBackprojection::Exact => None,
             FbpBackprojection::Hierarchical if own_fast_form() => {
                 tracing::info!(
                     "FBP takes its exact path despite [fbp] backprojection = \"hierarchical\": on a GPU, or for a confocal grid that fits the voxels, the exact path has its own fast form"
                 );
-                false
+                None
             }
-            FbpBackprojection::Hierarchical => true,
-            FbpBackprojection::Auto if own_fast_form() => false,
+            FbpBackprojection::Hierarchical => Some(tree::choose(set, grid, lambda, tolerance)),
+            FbpBackprojection::Auto if own_fast_form() => None,
             FbpBackprojection::Auto => {
-                let fraction = tree::merged_fraction(set, grid, lambda, tolerance);
-                let pays = fraction <= AUTO_MAX_FRACTION;
+                let choice = tree::choose(set, grid, lambda, tolerance);
+                let pays = choice.cost <= AUTO_MAX_COST;
                 tracing::info!(
-                    fraction,
-                    at_most = AUTO_MAX_FRACTION,
-                    "FBP {}: a sample of the hierarchy's leaves would backproject this share of the pairs after merging ([fbp] backprojection = \"auto\")",
+                    leaf = ?choice.shape,
+                    share = choice.share,
+                    predicted_cost = choice.cost,
+                    at_most = AUTO_MAX_COST,
+                    "FBP {}: a sample of the hierarchy's leaves predicts this time against the exact path's ([fbp] backprojection = \"auto\")",
                     if pays {
                         "takes the hierarchy"
                     } else {
                         "takes its exact path"
                     }
                 );
-                pays
+                pays.then_some(choice)
             }
         };
-        let sums = if hierarchical {
-            let (sums, stats) =
-                tree::backproject_tree(set, grid, settings.falloff, hists, lead, lambda, tolerance);
+        let sums = if let Some(choice) = hierarchical {
+            let (sums, stats) = tree::backproject_tree(
+                set,
+                grid,
+                settings.falloff,
+                hists,
+                lead,
+                lambda,
+                tolerance,
+                choice.shape,
+            );
             tracing::info!(
                 pairs = set.len(),
+                leaf = ?choice.shape,
                 leaves = stats.leaves,
                 sources_per_leaf = stats.leaf_sources as f64 / stats.leaves.max(1) as f64,
                 path_error_m = tolerance,
@@ -825,6 +835,12 @@ fn path_row(
         // 0, not NaN, for a voxel on a confocal relay point.
         *g = (4.0 * ri * rd) / (path * path).max(f32::MIN_POSITIVE);
     }
+    falloff_power(gain, falloff);
+}
+
+/// Raises each voxel's part of the falloff weight to the falloff's power.
+#[inline(always)]
+fn falloff_power(gain: &mut [f32], falloff: f64) {
     match falloff {
         1.0 => {}
         2.0 => gain.iter_mut().for_each(|g| *g *= *g),

@@ -4,7 +4,8 @@
 //! lengths change alike across the box carry the same information there, and can be
 //! summed into one before they are backprojected.
 //!
-//! The volume is split recursively into boxes down to leaves ([`leaf_shape`]). For
+//! The volume is split recursively into boxes down to leaves, whose shape a cost model
+//! picks from a sample of each shape's merges ([`choose`]). For
 //! each leaf, with centre v, every pair's path-length gradient
 //! k = (v − x_i)/|v − x_i| + (v − x_d)/|v − x_d| is computed, and the pairs whose k fall
 //! in one cell of a grid are merged into one: a representative pair r at the members'
@@ -14,22 +15,25 @@
 //!
 //! e_p(x) = [ℓ_p(x) − ℓ_p(v)] − [ℓ_r(x) − ℓ_r(v)],
 //!
-//! zero at v and about (k_p − k_r)·(x − v) elsewhere. A group is merged only when a
-//! bound on |e_p| over the leaf (its Taylor terms, [`Tree::merge_group`]) stays within
-//! `path-error` phasor wavelengths for every member; otherwise its pairs stay apart.
-//! The leaf then backprojects its merged and unmerged pairs with the exact path's row
-//! arithmetic (the carrier interpolated linearly between bins, times the voxel's part
-//! of the falloff weight; a member's part enters as its ratio to r's at v).
+//! zero at v and about (k_p − k_r)·(x − v) elsewhere. A member joins the merge only
+//! when a bound on |e_p| over the leaf (its Taylor terms, [`error_bound`]) stays within
+//! `path-error` phasor wavelengths; those that do not stay apart, and the rest are
+//! tried again about their own mean ([`Tree::merge_cells`]). The leaf then
+//! backprojects its merged and unmerged pairs with the exact path's arithmetic (the
+//! carrier interpolated linearly between bins, times the voxel's part of the falloff
+//! weight; a member's part enters as its ratio to r's at v), over all its voxels as one
+//! run rather than row by row, as a leaf's rows are short.
 //!
 //! The shift is done in baseband: the phasor histogram is a carrier e^{iωℓ}
 //! (ω = 2π/λ) times a slow envelope, so a member read part of a bin off is the linear
 //! interpolation of the envelope, with the carrier's phase put back exactly: a two-tap
 //! complex filter whose taps are fixed for the whole window.
 //!
-//! The work is in the merging: every leaf visits every pair. So the groups of all the
-//! leaves of a box one level up are planned from the pairs' geometry first, and the
-//! histograms then read once for all of them, pair after pair (their windows overlap
-//! in path length), in the real and imaginary parts apart so the adds vectorise.
+//! The fixed cost is in the merging: every leaf visits every pair. So the groups of
+//! all the leaves of a box one level up are planned from the pairs' geometry first (a
+//! counting sort over the gradients' cells), and the histograms then read pair after
+//! pair, each once for all those leaves (their windows overlap in path length), in the
+//! real and imaginary parts apart, in whole chunks of bins, so the adds vectorise.
 //! Merging on larger boxes as well, to pass merged pairs down, was tried and merged
 //! less: the larger box's merges spent the error budget the leaves' merges need
 //! (docs/recon.md, "A hierarchical backprojection").
@@ -39,31 +43,19 @@ use rayon::prelude::*;
 use crate::transient::{TimeAxis, TransientSet};
 use crate::volume::VolumeGrid;
 
-/// The most voxels along each side of a leaf box, and the fewest.
-const LEAF_MAX: usize = 16;
-const LEAF_MIN: usize = 4;
+/// The leaf edges [`choose`] tries along each axis, in voxels.
+const EDGES: [usize; 3] = [4, 8, 16];
 
-/// A leaf's half extent along each axis, at most, in phasor wavelengths. On 8,000 pairs
-/// from one laser point into 128 × 128 × 64 voxels (λ = 3.8 cm, voxels of 7.8 mm
-/// laterally), leaves of 16 × 16 × 16 voxels (half extents 1.5 λ) ran in 3.0 s,
-/// 16 × 8 × 8 in 3.5 s, 16 × 4 × 4 in 9.7 s and 32 × 16 × 16 in 10.9 s (the exact
-/// path 11.5–15.9 s in the same runs): a larger leaf is visited by the pairs fewer times, a smaller one
-/// lets more of them merge.
-const LEAF_HALF_WAVELENGTHS: f64 = 1.6;
-
-/// The leaf boxes' voxels along x, y and z for `grid` and wavelength `lambda`: per
-/// axis the largest power of two from [`LEAF_MIN`] to [`LEAF_MAX`] whose half extent
-/// stays within [`LEAF_HALF_WAVELENGTHS`].
-fn leaf_shape(grid: &VolumeGrid, lambda: f64) -> [usize; 3] {
-    let voxel = grid.voxel();
-    std::array::from_fn(|a| {
-        let mut edge = LEAF_MAX;
-        while edge > LEAF_MIN && 0.5 * (edge - 1) as f64 * voxel[a] > LEAF_HALF_WAVELENGTHS * lambda {
-            edge /= 2;
-        }
-        edge
-    })
-}
+/// The cost model [`choose`] ranks leaf shapes by, in nanoseconds of one core on the
+/// machine that measured them (8,000 pairs into 128 × 128 × 64 voxels, leaves of
+/// 4 × 4 × 4 to 16 × 16 × 16, docs/recon.md, "A hierarchical backprojection"): a leaf's
+/// visit to a pair (its geometry, grouping, merge plan and the shifted add of its
+/// histogram window), a leaf's backprojection of one source into one voxel, and the
+/// exact path's of one pair into one voxel (its rows are longer, so it runs faster a
+/// voxel). Only their ratios matter.
+const VISIT_NS: f64 = 80.0;
+const LEAF_VOXEL_NS: f64 = 1.8;
+const EXACT_VOXEL_NS: f64 = 1.4;
 
 /// A box of voxels, index ranges `lo..hi` along x, y and z.
 #[derive(Clone, Copy, Debug)]
@@ -143,6 +135,9 @@ struct Legs {
     di: f64,
     ud: DVec3,
     dd: f64,
+    /// 1/d_i and 1/d_d.
+    inv_i: f64,
+    inv_d: f64,
 }
 
 impl Legs {
@@ -152,11 +147,14 @@ impl Legs {
             a.length().max(f64::MIN_POSITIVE),
             b.length().max(f64::MIN_POSITIVE),
         );
+        let (inv_i, inv_d) = (1.0 / di, 1.0 / dd);
         Self {
-            ui: a / di,
+            ui: a * inv_i,
             di,
-            ud: b / dd,
+            ud: b * inv_d,
             dd,
+            inv_i,
+            inv_d,
         }
     }
 
@@ -181,9 +179,14 @@ struct Tree<'a> {
     phase_per_bin: f64,
     /// The largest path-length error a merge may leave, metres.
     tolerance: f64,
-    /// The leaf boxes' voxels along x, y and z ([`leaf_shape`]).
+    /// The leaf boxes' voxels along x, y and z ([`choose`]).
     shape: [usize; 3],
+    /// e^{iφj/TURN_STEPS} for j = 0..TURN_STEPS, and e^{−iφ} last ([`Tree::turn`]).
+    turns: Vec<[f64; 2]>,
 }
+
+/// The steps of [`Tree::turns`]' table over one bin's phase.
+const TURN_STEPS: usize = 64;
 
 /// How many merges the recursion made, for the log.
 #[derive(Default, Clone, Copy)]
@@ -203,6 +206,7 @@ impl<'a> Tree<'a> {
         falloff: f64,
         wavelength: f64,
         tolerance: f64,
+        shape: [usize; 3],
     ) -> Self {
         Tree {
             grid,
@@ -211,7 +215,19 @@ impl<'a> Tree<'a> {
             falloff,
             phase_per_bin: 2.0 * std::f64::consts::PI * axis.width / wavelength,
             tolerance,
-            shape: leaf_shape(grid, wavelength),
+            turns: {
+                let phi = 2.0 * std::f64::consts::PI * axis.width / wavelength;
+                let mut t: Vec<[f64; 2]> = (0..TURN_STEPS)
+                    .map(|j| {
+                        let (s, c) = (phi * j as f64 / TURN_STEPS as f64).sin_cos();
+                        [c, s]
+                    })
+                    .collect();
+                let (s, c) = (-phi).sin_cos();
+                t.push([c, s]);
+                t
+            },
+            shape,
         }
     }
 }
@@ -224,6 +240,21 @@ impl Tree<'_> {
         (l - self.axis.start) / self.axis.width - 0.5 + self.lead as f64
     }
 
+    /// e^{iφt} for t in [0, 1] as `[re, im]`: the table's nearest step below,
+    /// turned on by the rest, e^{iδ} with |δ| ≤ φ/TURN_STEPS, from its Taylor series
+    /// to the fifth power (off by under δ⁶/720, below 10⁻¹⁵ for φ up to π).
+    #[inline(always)]
+    fn turn(&self, t: f64) -> [f64; 2] {
+        let x = t.clamp(0.0, 1.0) * TURN_STEPS as f64;
+        let j = (x.floor() as usize).min(TURN_STEPS - 1);
+        let d = self.phase_per_bin * (x - j as f64) / TURN_STEPS as f64;
+        let d2 = d * d;
+        let c = 1.0 - d2 * (0.5 - d2 * (1.0 / 24.0));
+        let s = d * (1.0 - d2 * (1.0 / 6.0 - d2 * (1.0 / 120.0)));
+        let [a, b] = self.turns[j];
+        [a * c - b * s, a * s + b * c]
+    }
+
     fn centre(&self, b: &Block) -> DVec3 {
         let (min, voxel) = (self.grid.min(), self.grid.voxel());
         DVec3::from_array(std::array::from_fn(|a| {
@@ -232,12 +263,12 @@ impl Tree<'_> {
     }
 
     /// Backprojects `sources` over box `b`: the leaves' values, each with its box.
-    fn node(&self, b: Block, sources: &[Source<'_>]) -> Vec<Leaf> {
+    fn node(&self, b: Block, sources: &[Source<'_>], points: &Points) -> Vec<Leaf> {
         if b.levels(self.shape) > 1 {
             return b
                 .children(self.shape)
                 .into_par_iter()
-                .flat_map_iter(|child| self.node(child, sources))
+                .flat_map_iter(|child| self.node(child, sources, points))
                 .collect();
         }
         // The leaves' groups from the pairs' geometry; then one pass over the sources
@@ -248,52 +279,65 @@ impl Tree<'_> {
         } else {
             b.children(self.shape)
         };
-        let planned: Vec<(Vec<GroupPlan>, Vec<Planned>)> =
-            leaves.par_iter().map(|leaf| self.merge(leaf, sources)).collect();
-        let mut visits: Vec<(u32, u16, u32, u32)> = Vec::new();
-        for (c, (groups, _)) in planned.iter().enumerate() {
-            for (g, group) in groups.iter().enumerate() {
-                for (m, member) in group.members.iter().enumerate() {
-                    visits.push((member.source, c as u16, g as u32, m as u32));
-                }
-            }
-        }
-        visits.par_sort_unstable();
-        let mut data: Vec<Vec<(Vec<f32>, Vec<f32>)>> = planned
-            .iter()
-            .map(|(groups, _)| {
-                groups
-                    .iter()
-                    .map(|g| (vec![0.0f32; g.len], vec![0.0f32; g.len]))
-                    .collect()
+        let planned: Vec<LeafPlan> = leaves
+            .par_iter()
+            .map(|leaf| {
+                crate::simd::dispatch(Plan {
+                    tree: self,
+                    block: leaf,
+                    sources,
+                    points,
+                })
             })
             .collect();
+        // Every member into its group's window, source after source, so that the
+        // leaves' reads of one histogram follow each other.
+        let mut data: Vec<(Vec<f32>, Vec<f32>)> = planned
+            .iter()
+            .map(|p| (vec![0.0f32; p.bins], vec![0.0f32; p.bins]))
+            .collect();
         crate::simd::dispatch(Accumulate {
-            visits: &visits,
             planned: &planned,
             sources,
             data: &mut data,
         });
-        let doubled: Vec<Vec<Vec<[f32; 4]>>> = data
+        let doubled: Vec<Vec<[f32; 4]>> = data
             .into_par_iter()
-            .map(|groups| groups.into_iter().map(|(re, im)| double(&re, &im)).collect())
+            .zip(planned.par_iter())
+            .map(|((re, im), p)| {
+                let mut out = Vec::with_capacity(p.bins);
+                for g in &p.groups {
+                    // The window's last bin stays zero; chunks may have run into it.
+                    let last = g.offset + g.len - 1;
+                    let (mut re_g, mut im_g) = (re[g.offset..=last].to_vec(), im[g.offset..=last].to_vec());
+                    re_g[g.len - 1] = 0.0;
+                    im_g[g.len - 1] = 0.0;
+                    out.extend(double(&re_g, &im_g));
+                }
+                out
+            })
             .collect();
         leaves
             .into_par_iter()
             .zip(planned.into_par_iter().zip(doubled.par_iter()))
-            .map(|(leaf, ((groups, plan), merged))| {
-                let mine: Vec<Source<'_>> = plan
+            .map(|(leaf, (p, merged))| {
+                let mine: Vec<Source<'_>> = p
+                    .plan
                     .into_iter()
-                    .map(|p| match p {
+                    .map(|q| match q {
                         Planned::Keep(i) => sources[i],
-                        Planned::Merged(g) => Source {
-                            xi: groups[g].xi,
-                            xd: groups[g].xd,
-                            start: groups[g].start,
-                            data: &merged[g],
-                            re: &[],
-                            im: &[],
-                        },
+                        Planned::Merged(g) => {
+                            let g = &p.groups[g];
+                            let at = g.offset - g.index as usize * CHUNK;
+                            Source {
+                                xi: g.xi,
+                                xd: g.xd,
+                                start: g.start,
+                                data: &merged[at..at + g.len],
+                                re: &[],
+                                im: &[],
+                            }
+                        }
                     })
                     .collect();
                 Leaf {
@@ -309,43 +353,129 @@ impl Tree<'_> {
     /// plans a merge of each group whose members all stay within the tolerance.
     /// Returns the planned merges and the leaf's sources in order (a kept source by
     /// its index, a merged one by its place among the merges).
-    fn merge(&self, b: &Block, sources: &[Source<'_>]) -> (Vec<GroupPlan>, Vec<Planned>) {
+    #[inline(always)]
+    fn merge(&self, b: &Block, sources: &[Source<'_>], points: &Points) -> LeafPlan {
         let v = self.centre(b);
         let (half, diagonal) = self.half_extents(b);
         // Cells whose gradients differ by up to half the tolerance over the box's
         // half-diagonal: the other half is left to the position of k within its cell,
         // and to the quadratic and cubic terms.
         let cell = 0.5 * self.tolerance / diagonal.max(f64::MIN_POSITIVE);
-        let geo: Vec<Legs> = sources.iter().map(|s| Legs::at(v, s.xi, s.xd)).collect();
-        let key = |g: &Legs| -> u64 {
-            // |k| ≤ 2, so each coordinate's cell number fits 21 bits for cells down to
-            // 2⁻¹⁸; finer cells than that merge nothing anyway.
-            let q = |c: f64| (((c + 2.0) / cell).floor().clamp(0.0, 2_097_151.0)) as u64;
-            let k = g.k();
-            q(k.x) << 42 | q(k.y) << 21 | q(k.z)
+        // Every pair's legs from v, in loops over the points' coordinates that the
+        // compiler vectorises: the path length at v and the gradient's cell along x, y
+        // and z. |k| ≤ 2, so each cell number fits 21 bits for cells down to 2⁻¹⁸;
+        // finer cells than that merge nothing anyway.
+        let n = sources.len();
+        let (mut di, mut dd) = (vec![0.0f64; n], vec![0.0f64; n]);
+        let (mut inv_i, mut inv_d) = (vec![0.0f64; n], vec![0.0f64; n]);
+        let mut cells: [Vec<u32>; 3] = std::array::from_fn(|_| vec![0u32; n]);
+        let inv_cell = 1.0 / cell;
+        let [cx, cy, cz] = &mut cells;
+        let [ix, iy, iz] = &points.xi;
+        let [dx, dy, dz] = &points.xd;
+        for i in 0..n {
+            let (ax, ay, az) = (v.x - ix[i], v.y - iy[i], v.z - iz[i]);
+            let (bx, by, bz) = (v.x - dx[i], v.y - dy[i], v.z - dz[i]);
+            let a = (ax * ax + ay * ay + az * az).sqrt().max(f64::MIN_POSITIVE);
+            let b = (bx * bx + by * by + bz * bz).sqrt().max(f64::MIN_POSITIVE);
+            let (ra, rb) = (1.0 / a, 1.0 / b);
+            let q = |c: f64| ((c + 2.0) * inv_cell).floor().clamp(0.0, 2_097_151.0) as u32;
+            cx[i] = q(ax * ra + bx * rb);
+            cy[i] = q(ay * ra + by * rb);
+            cz[i] = q(az * ra + bz * rb);
+            di[i] = a;
+            dd[i] = b;
+            inv_i[i] = ra;
+            inv_d[i] = rb;
+        }
+        let legs = |i: u32| {
+            let i = i as usize;
+            Legs {
+                ui: (v - DVec3::new(ix[i], iy[i], iz[i])) * inv_i[i],
+                di: di[i],
+                ud: (v - DVec3::new(dx[i], dy[i], dz[i])) * inv_d[i],
+                dd: dd[i],
+                inv_i: inv_i[i],
+                inv_d: inv_d[i],
+            }
         };
-        let mut keyed: Vec<(u64, u32)> = geo.iter().enumerate().map(|(i, g)| (key(g), i as u32)).collect();
-        keyed.sort_unstable();
-        let mut arena = Vec::new();
-        let mut plan = Vec::with_capacity(sources.len());
-        for group in keyed.chunk_by(|a, b| a.0 == b.0) {
+        let mut out = LeafPlan {
+            groups: Vec::new(),
+            members: vec![Member::KEPT; sources.len()],
+            plan: Vec::with_capacity(sources.len()),
+            bins: 0,
+        };
+        let box_ = (v, half, diagonal);
+        let everyone: Vec<u32> = (0..n as u32).collect();
+        let mut apart = Vec::new();
+        self.merge_cells(&everyone, &cells, &legs, sources, box_, &mut out, &mut apart);
+        out.plan.extend(apart.iter().map(|&i| Planned::Keep(i as usize)));
+        out
+    }
+
+    /// Groups the sources `ids` by their gradients' `cells` (one entry per id) and
+    /// plans the merge of each group into `out`; the sources no merge takes are
+    /// pushed to `apart`. The members a merge would take past the tolerance stay
+    /// apart, and the rest are tried again about their own mean, up to
+    /// [`MERGE_ROUNDS`] times.
+    #[allow(clippy::too_many_arguments)]
+    #[inline(always)]
+    fn merge_cells(
+        &self,
+        ids: &[u32],
+        cells: &[Vec<u32>; 3],
+        legs: &impl Fn(u32) -> Legs,
+        sources: &[Source<'_>],
+        (v, half, diagonal): (DVec3, DVec3, f64),
+        out: &mut LeafPlan,
+        apart: &mut Vec<u32>,
+    ) {
+        let order = group_order(cells);
+        let same = |a: u32, b: u32| (0..3).all(|c| cells[c][a as usize] == cells[c][b as usize]);
+        let mut members = Vec::new();
+        for group in order.chunk_by(|&a, &b| same(a, b)) {
             if group.len() == 1 {
-                plan.push(Planned::Keep(group[0].1 as usize));
+                apart.push(ids[group[0] as usize]);
                 continue;
             }
-            let members: Vec<(u32, &Source<'_>, &Legs)> = group
-                .iter()
-                .map(|&(_, i)| (i, &sources[i as usize], &geo[i as usize]))
-                .collect();
-            match self.merge_group(&members, v, half, diagonal) {
-                Some(g) => {
-                    plan.push(Planned::Merged(arena.len()));
-                    arena.push(g);
+            members.clear();
+            members.extend(group.iter().map(|&j| {
+                let i = ids[j as usize];
+                (i, legs(i))
+            }));
+            for _ in 0..MERGE_ROUNDS {
+                let n = members.len() as f64;
+                let xi = members
+                    .iter()
+                    .map(|&(i, _)| sources[i as usize].xi)
+                    .sum::<DVec3>()
+                    / n;
+                let xd = members
+                    .iter()
+                    .map(|&(i, _)| sources[i as usize].xd)
+                    .sum::<DVec3>()
+                    / n;
+                let r = Legs::at(v, xi, xd);
+                let before = members.len();
+                members.retain(|(i, g)| {
+                    let fits = error_bound(g, &r, half, diagonal) <= self.tolerance;
+                    if !fits {
+                        apart.push(*i);
+                    }
+                    fits
+                });
+                if members.len() == before {
+                    self.merge_group(&members, (xi, xd, &r), sources, diagonal, out);
+                    members.clear();
+                    break;
                 }
-                None => plan.extend(group.iter().map(|&(_, i)| Planned::Keep(i as usize))),
+                if members.len() < 2 {
+                    break;
+                }
             }
+            // Out of rounds, or one left: what is left stays apart.
+            apart.extend(members.iter().map(|&(i, _)| i));
         }
-        (arena, plan)
     }
 
     /// The box's half extents between its outermost voxel centres, and their length.
@@ -357,25 +487,20 @@ impl Tree<'_> {
         (half, half.length())
     }
 
-    /// One group's planned merge (its representative, window and members' taps), or
-    /// `None` when a member would leave more than the tolerance ([`error_bound`]).
+    /// Plans the merge of `members` (each within the tolerance of the representative
+    /// `r` at their mean points `xi`, `xd`) into `out`: its window and the members'
+    /// taps.
+    #[allow(clippy::too_many_arguments)]
+    #[inline(always)]
     fn merge_group(
         &self,
-        members: &[(u32, &Source<'_>, &Legs)],
-        v: DVec3,
-        half: DVec3,
+        members: &[(u32, Legs)],
+        (xi, xd, r): (DVec3, DVec3, &Legs),
+        sources: &[Source<'_>],
         diagonal: f64,
-    ) -> Option<GroupPlan> {
-        let n = members.len() as f64;
-        let xi = members.iter().map(|(_, s, _)| s.xi).sum::<DVec3>() / n;
-        let xd = members.iter().map(|(_, s, _)| s.xd).sum::<DVec3>() / n;
-        let r = Legs::at(v, xi, xd);
+        out: &mut LeafPlan,
+    ) {
         let kr = r.k();
-        for (_, _, g) in members {
-            if error_bound(g, &r, half, diagonal) > self.tolerance {
-                return None;
-            }
-        }
         // r's path lengths over the box lie within ℓ(v) ± (|k|·|δ| + the quadratic
         // term's |δ|²·Σ 1/d).
         let lr_v = r.di + r.dd;
@@ -387,38 +512,47 @@ impl Tree<'_> {
         let len = (j1 - j0 + 3) as usize;
         let gain_r = r.falloff_part();
         let w = self.axis.width;
-        let phi = self.phase_per_bin;
-        let members = members
-            .iter()
-            .map(|&(source, s, g)| {
-                let shift = (g.di + g.dd - lr_v) / w;
-                let m = shift.floor();
-                let t = shift - m;
-                let ratio = g.falloff_part() / gain_r.max(f64::MIN_POSITIVE);
-                let a = match self.falloff {
-                    0.0 => 1.0,
-                    1.0 => ratio,
-                    2.0 => ratio * ratio,
-                    p => ratio.powf(p),
-                };
-                // The member at global index j + shift, in baseband: the envelope's
-                // linear interpolation with the carrier's phase restored,
-                // (1 − t)·e^{iφt}·h[j + m] + t·e^{−iφ(1 − t)}·h[j + m + 1].
-                Member {
-                    source,
-                    base: start + m as isize - s.start,
-                    c0: cis(a * (1.0 - t), phi * t),
-                    c1: cis(a * t, -phi * (1.0 - t)),
-                }
-            })
-            .collect();
-        Some(GroupPlan {
+        // e^{−iφ}: the second tap's phase is the first's less φ.
+        let back = self.turns[TURN_STEPS];
+        let index = out.groups.len() as u32;
+        for (i, g) in members {
+            let (i, s) = (*i, &sources[*i as usize]);
+            let shift = (g.di + g.dd - lr_v) / w;
+            let m = shift.floor();
+            let t = shift - m;
+            let ratio = g.falloff_part() / gain_r.max(f64::MIN_POSITIVE);
+            let a = match self.falloff {
+                0.0 => 1.0,
+                1.0 => ratio,
+                2.0 => ratio * ratio,
+                p => ratio.powf(p),
+            };
+            // The member at global index j + shift, in baseband: the envelope's
+            // linear interpolation with the carrier's phase restored,
+            // (1 − t)·e^{iφt}·h[j + m] + t·e^{−iφ(1 − t)}·h[j + m + 1].
+            let turn = self.turn(t);
+            let (a0, a1) = (a * (1.0 - t), a * t);
+            out.members[i as usize] = Member {
+                group: index,
+                base: start + m as isize - s.start,
+                c0: [(a0 * turn[0]) as f32, (a0 * turn[1]) as f32],
+                c1: {
+                    let [x, y] = turn;
+                    let [bx, by] = back;
+                    [(a1 * (x * bx - y * by)) as f32, (a1 * (x * by + y * bx)) as f32]
+                },
+            };
+        }
+        out.plan.push(Planned::Merged(out.groups.len()));
+        out.groups.push(GroupPlan {
             xi,
             xd,
             start,
             len,
-            members,
-        })
+            index,
+            offset: out.bins,
+        });
+        out.bins += len + CHUNK;
     }
 
     /// The exact path's arithmetic over one leaf: every source, every voxel, each row
@@ -456,42 +590,49 @@ impl crate::simd::Work for LeafWork<'_, '_> {
         } = self;
         let (min, voxel) = (tree.grid.min(), tree.grid.voxel());
         let coord = |a: usize, i: usize| (min[a] + (i as f64 + 0.5) * voxel[a]) as f32;
-        let xs: Vec<f32> = (b.lo[0]..b.hi[0]).map(|i| coord(0, i)).collect();
-        let nx = xs.len();
-        let (mut index, mut gain) = (vec![0.0f32; nx], vec![1.0f32; nx]);
-        let (mut bin, mut weights) = (vec![0i32; nx], vec![[0.0f32; 2]; nx]);
+        // The leaf's voxels in the output's order (x fastest), as one run: a leaf's
+        // rows are a few voxels long, too short to vectorise one by one.
+        let n = b.len();
+        let (mut xs, mut ys, mut zs) = (
+            Vec::with_capacity(n),
+            Vec::with_capacity(n),
+            Vec::with_capacity(n),
+        );
+        for iz in b.lo[2]..b.hi[2] {
+            for iy in b.lo[1]..b.hi[1] {
+                for ix in b.lo[0]..b.hi[0] {
+                    xs.push(coord(0, ix));
+                    ys.push(coord(1, iy));
+                    zs.push(coord(2, iz));
+                }
+            }
+        }
+        let (mut index, mut gain) = (vec![0.0f32; n], vec![1.0f32; n]);
+        let (mut bin, mut weights) = (vec![0i32; n], vec![[0.0f32; 2]; n]);
         let inv_w = (1.0 / tree.axis.width) as f32;
         for s in sources {
             let (xi, xd) = (s.xi.as_vec3(), s.xd.as_vec3());
             // The local fractional index is path·inv_w − offset.
             let offset = (s.start as f64 - tree.index(0.0)) as f32;
             let top = (s.data.len() - 1) as f32;
-            let mut rows = out.chunks_exact_mut(nx);
-            for iz in b.lo[2]..b.hi[2] {
-                let z = coord(2, iz);
-                for iy in b.lo[1]..b.hi[1] {
-                    let y = coord(1, iy);
-                    let byi = (z - xi.z) * (z - xi.z) + (y - xi.y) * (y - xi.y);
-                    let byd = (z - xd.z) * (z - xd.z) + (y - xd.y) * (y - xd.y);
-                    super::path_row(
-                        &xs,
-                        byi,
-                        byd,
-                        xi.x,
-                        xd.x,
-                        inv_w,
-                        offset,
-                        top,
-                        tree.falloff,
-                        &mut index,
-                        &mut gain,
-                    );
-                    super::weights_row(&index, &gain, &mut bin, &mut weights);
-                    if let Some(row) = rows.next() {
-                        super::gather_row(row, &bin, &weights, s.data);
-                    }
-                }
+            // The exact path's arithmetic (`path_row`), voxel by voxel.
+            let lanes = index
+                .iter_mut()
+                .zip(gain.iter_mut())
+                .zip(xs.iter().zip(&ys).zip(&zs));
+            for ((f, g), ((&x, &y), &z)) in lanes {
+                let byi = (z - xi.z) * (z - xi.z) + (y - xi.y) * (y - xi.y);
+                let byd = (z - xd.z) * (z - xd.z) + (y - xd.y) * (y - xd.y);
+                let ri = (byi + (x - xi.x) * (x - xi.x)).sqrt();
+                let rd = (byd + (x - xd.x) * (x - xd.x)).sqrt();
+                let path = ri + rd;
+                *f = (path * inv_w - offset).max(0.0).min(top);
+                // 0, not NaN, for a voxel on a confocal relay point.
+                *g = (4.0 * ri * rd) / (path * path).max(f32::MIN_POSITIVE);
             }
+            super::falloff_power(&mut gain, tree.falloff);
+            super::weights_row(&index, &gain, &mut bin, &mut weights);
+            super::gather_row(out, &bin, &weights, s.data);
         }
     }
 }
@@ -507,10 +648,10 @@ impl crate::simd::Work for LeafWork<'_, '_> {
 fn error_bound(p: &Legs, r: &Legs, half: DVec3, diagonal: f64) -> f64 {
     let linear = ((p.k() - r.k()).abs() * half).element_sum();
     let (di, dd) = (p.di.min(r.di), p.dd.min(r.dd));
-    let hessian = (1.0 / p.di - 1.0 / r.di).abs()
-        + 2.0 * p.ui.distance(r.ui) / di
-        + (1.0 / p.dd - 1.0 / r.dd).abs()
-        + 2.0 * p.ud.distance(r.ud) / dd;
+    let hessian = (p.inv_i - r.inv_i).abs()
+        + 2.0 * p.ui.distance(r.ui) * p.inv_i.max(r.inv_i)
+        + (p.inv_d - r.inv_d).abs()
+        + 2.0 * p.ud.distance(r.ud) * p.inv_d.max(r.inv_d);
     // A box that reaches within its half-diagonal of a point: no bound worth having.
     if di <= 2.0 * diagonal || dd <= 2.0 * diagonal {
         return f64::INFINITY;
@@ -534,32 +675,129 @@ enum Planned {
     Merged(usize),
 }
 
-/// A merged group: its representative, its window (global start, length with the
-/// zero bin at each end), and how each member is added in.
+/// A merged group: its representative, and its window (global start, length with the
+/// zero bin at each end, and where it starts in the leaf's buffer of windows).
 struct GroupPlan {
     xi: DVec3,
     xd: DVec3,
     start: isize,
     len: usize,
-    members: Vec<Member>,
+    /// Where the window starts in the leaf's buffer, which leaves CHUNK bins of slack
+    /// after each window, and the group's place in the leaf's list.
+    offset: usize,
+    index: u32,
 }
 
-/// A member of a group: its source, the offset from the window's index to its own,
-/// and the two taps.
+/// A member of a group: its group, the offset from the window's index to its own
+/// histogram's, and the two taps.
+#[derive(Clone, Copy)]
 struct Member {
-    source: u32,
+    group: u32,
     base: isize,
     c0: [f32; 2],
     c1: [f32; 2],
 }
 
-/// The pass of [`Tree::node`] that adds every member into its group's window, in
-/// the order of `visits` (by source), under [`crate::simd::dispatch`].
-struct Accumulate<'a, 'b> {
-    visits: &'b [(u32, u16, u32, u32)],
-    planned: &'b [(Vec<GroupPlan>, Vec<Planned>)],
+impl Member {
+    /// A source kept apart, in no group.
+    const KEPT: Member = Member {
+        group: u32::MAX,
+        base: 0,
+        c0: [0.0; 2],
+        c1: [0.0; 2],
+    };
+}
+
+/// A leaf's planned merges: the groups, their members, each source's member (`slot`,
+/// `u32::MAX` for a source kept apart), the leaf's sources in order, and the bins of
+/// all its groups' windows.
+struct LeafPlan {
+    groups: Vec<GroupPlan>,
+    members: Vec<Member>,
+    plan: Vec<Planned>,
+    bins: usize,
+}
+
+/// The order that puts sources of one cell next to each other, cells in the order of
+/// their x, then y, then z numbers, and the sources of a cell in index order. A
+/// counting sort over the cells the gradients span, where they are few enough;
+/// otherwise a comparison sort.
+fn group_order(cells: &[Vec<u32>; 3]) -> Vec<u32> {
+    let n = cells[0].len();
+    let lo: [u32; 3] = std::array::from_fn(|a| cells[a].iter().copied().min().unwrap_or(0));
+    let hi: [u32; 3] = std::array::from_fn(|a| cells[a].iter().copied().max().unwrap_or(0));
+    let span: [usize; 3] = std::array::from_fn(|a| (hi[a] - lo[a]) as usize + 1);
+    let total = span[0].saturating_mul(span[1]).saturating_mul(span[2]);
+    if total > 8 * n.max(1024) {
+        let mut keyed: Vec<(u64, u32)> = (0..n)
+            .map(|i| {
+                let key = (cells[0][i] as u64) << 42 | (cells[1][i] as u64) << 21 | cells[2][i] as u64;
+                (key, i as u32)
+            })
+            .collect();
+        keyed.sort_unstable();
+        return keyed.into_iter().map(|(_, i)| i).collect();
+    }
+    let at = |i: usize| {
+        ((cells[0][i] - lo[0]) as usize * span[1] + (cells[1][i] - lo[1]) as usize) * span[2]
+            + (cells[2][i] - lo[2]) as usize
+    };
+    let mut count = vec![0u32; total + 1];
+    for i in 0..n {
+        count[at(i) + 1] += 1;
+    }
+    for i in 1..count.len() {
+        count[i] += count[i - 1];
+    }
+    let mut order = vec![0u32; n];
+    for i in 0..n {
+        let k = &mut count[at(i)];
+        order[*k as usize] = i as u32;
+        *k += 1;
+    }
+    order
+}
+
+/// The pairs' points, each coordinate in an array of its own for the loops that the
+/// compiler vectorises.
+struct Points {
+    xi: [Vec<f64>; 3],
+    xd: [Vec<f64>; 3],
+}
+
+impl Points {
+    fn of(sources: &[Source<'_>]) -> Self {
+        let coord = |f: &dyn Fn(&Source<'_>) -> f64| sources.iter().map(f).collect::<Vec<f64>>();
+        Points {
+            xi: [coord(&|s| s.xi.x), coord(&|s| s.xi.y), coord(&|s| s.xi.z)],
+            xd: [coord(&|s| s.xd.x), coord(&|s| s.xd.y), coord(&|s| s.xd.z)],
+        }
+    }
+}
+
+/// [`Tree::merge`] for one leaf, under [`crate::simd::dispatch`].
+struct Plan<'a, 'b> {
+    tree: &'b Tree<'b>,
+    block: &'b Block,
     sources: &'b [Source<'a>],
-    data: &'b mut [Vec<(Vec<f32>, Vec<f32>)>],
+    points: &'b Points,
+}
+
+impl crate::simd::Work for Plan<'_, '_> {
+    type Output = LeafPlan;
+
+    #[inline(always)]
+    fn run<Q: crate::simd::Quad>(self, _: Q) -> LeafPlan {
+        self.tree.merge(self.block, self.sources, self.points)
+    }
+}
+
+/// The pass of [`Tree::node`] that adds every member into its group's window, source
+/// after source and, for each, leaf after leaf, under [`crate::simd::dispatch`].
+struct Accumulate<'a, 'b> {
+    planned: &'b [LeafPlan],
+    sources: &'b [Source<'a>],
+    data: &'b mut [(Vec<f32>, Vec<f32>)],
 }
 
 impl crate::simd::Work for Accumulate<'_, '_> {
@@ -567,11 +805,34 @@ impl crate::simd::Work for Accumulate<'_, '_> {
 
     #[inline(always)]
     fn run<Q: crate::simd::Quad>(self, _: Q) {
-        for &(_, c, g, m) in self.visits {
-            let member = &self.planned[c as usize].0[g as usize].members[m as usize];
-            let (re, im) = &mut self.data[c as usize][g as usize];
-            add_shifted(re, im, member, &self.sources[member.source as usize]);
+        let mut touched = 0.0f32;
+        for (i, s) in self.sources.iter().enumerate() {
+            // The histogram PREFETCH sources on, where the first leaf that merges it
+            // reads it: loaded now (its value unused), so that it is in the cache when
+            // its turn comes.
+            if let Some(ahead) = self.sources.get(i + PREFETCH) {
+                for p in self.planned {
+                    let m = &p.members[i + PREFETCH];
+                    if m.group != u32::MAX {
+                        let at = (m.base + 1).max(0) as usize;
+                        for part in [ahead.re, ahead.im] {
+                            touched += part.get(at).copied().unwrap_or_default()
+                                + part.get(at + CHUNK).copied().unwrap_or_default();
+                        }
+                        break;
+                    }
+                }
+            }
+            for (p, (re, im)) in self.planned.iter().zip(self.data.iter_mut()) {
+                let member = &p.members[i];
+                let Some(g) = p.groups.get(member.group as usize) else {
+                    continue;
+                };
+                let window = g.offset..g.offset + g.len + CHUNK;
+                add_shifted(&mut re[window.clone()], &mut im[window], member, s);
+            }
         }
+        std::hint::black_box(touched);
     }
 }
 
@@ -582,20 +843,36 @@ impl crate::simd::Work for Accumulate<'_, '_> {
 fn add_shifted(re: &mut [f32], im: &mut [f32], member: &Member, s: &Source<'_>) {
     let Member { base, c0, c1, .. } = *member;
     let o_lo = (-base).max(1);
-    let o_hi = (s.re.len() as isize - 2 - base).min(re.len() as isize - 2);
+    let o_hi = (s.data.len() as isize - 2 - base).min(re.len() as isize - CHUNK as isize - 2);
     if o_hi < o_lo {
         return;
     }
-    let (o_lo, n) = (o_lo as usize, (o_hi - o_lo + 1) as usize);
-    let i = (base + o_lo as isize) as usize;
-    let (h0r, h1r) = (&s.re[i..i + n], &s.re[i + 1..i + n + 1]);
-    let (h0i, h1i) = (&s.im[i..i + n], &s.im[i + 1..i + n + 1]);
-    let (dr, di) = (&mut re[o_lo..o_lo + n], &mut im[o_lo..o_lo + n]);
-    for k in 0..n {
-        dr[k] += c0[0] * h0r[k] - c0[1] * h0i[k] + c1[0] * h1r[k] - c1[1] * h1i[k];
-        di[k] += c0[0] * h0i[k] + c0[1] * h0r[k] + c1[0] * h1i[k] + c1[1] * h1r[k];
+    // Whole chunks of CHUNK bins, which compile to full-width vector operations: the
+    // window has CHUNK bins of slack after its end and the histogram CHUNK zeros after
+    // its own, so a chunk that runs past either reads zeros or writes into the slack
+    // (cleared by the caller).
+    let (mut o, mut i) = (o_lo as usize, (base + o_lo) as usize);
+    while o as isize <= o_hi {
+        let h0r: &[f32; CHUNK] = s.re[i..i + CHUNK].try_into().expect("a chunk");
+        let h1r: &[f32; CHUNK] = s.re[i + 1..i + 1 + CHUNK].try_into().expect("a chunk");
+        let h0i: &[f32; CHUNK] = s.im[i..i + CHUNK].try_into().expect("a chunk");
+        let h1i: &[f32; CHUNK] = s.im[i + 1..i + 1 + CHUNK].try_into().expect("a chunk");
+        let dr: &mut [f32; CHUNK] = (&mut re[o..o + CHUNK]).try_into().expect("a chunk");
+        let di: &mut [f32; CHUNK] = (&mut im[o..o + CHUNK]).try_into().expect("a chunk");
+        for k in 0..CHUNK {
+            dr[k] += c0[0] * h0r[k] - c0[1] * h0i[k] + c1[0] * h1r[k] - c1[1] * h1i[k];
+            di[k] += c0[0] * h0i[k] + c0[1] * h0r[k] + c1[0] * h1i[k] + c1[1] * h1r[k];
+        }
+        o += CHUNK;
+        i += CHUNK;
     }
 }
+
+/// How many sources ahead [`Accumulate`] asks for a histogram's window.
+const PREFETCH: usize = 8;
+
+/// The bins [`add_shifted`] adds at a time.
+const CHUNK: usize = 16;
 
 /// A window as the leaves read it, each bin with the next.
 fn double(re: &[f32], im: &[f32]) -> Vec<[f32; 4]> {
@@ -605,12 +882,6 @@ fn double(re: &[f32], im: &[f32]) -> Vec<[f32; 4]> {
             [re[o], im[o], next(re), next(im)]
         })
         .collect()
-}
-
-/// `r·e^{iθ}` as `[re, im]` in f32.
-fn cis(r: f64, theta: f64) -> [f32; 2] {
-    let (s, c) = theta.sin_cos();
-    [(r * c) as f32, (r * s) as f32]
 }
 
 /// Backprojects the phasor-filtered `hists` (real and imaginary parts interleaved,
@@ -625,44 +896,51 @@ pub(super) fn backproject_tree(
     lead: usize,
     wavelength: f64,
     tolerance: f64,
+    shape: [usize; 3],
 ) -> (Vec<[f32; 2]>, TreeStats) {
     // Each histogram with one zero bin before and after, each bin with the next.
     let complex = super::doubled::<2, 4>(&hists);
     // And the real and imaginary parts apart, with the same zero bin at each end.
-    let split: Vec<(Vec<f32>, Vec<f32>)> = hists
-        .par_iter()
-        .map(|h| {
-            let part = |c: usize| {
-                let mut v = Vec::with_capacity(h.len() / 2 + 2);
-                v.push(0.0);
-                v.extend(h.iter().skip(c).step_by(2));
-                v.push(0.0);
-                v
-            };
-            (part(0), part(1))
-        })
-        .collect();
+    // All of them in one allocation, each part a zero bin, the bins, a zero bin and
+    // CHUNK zeros for `add_shifted`'s chunks: the merges read a window of every
+    // histogram in turn, and histograms side by side in memory keep those reads on
+    // few pages.
+    let stride = hists.first().map_or(0, |h| h.len() / 2) + CHUNK + 2;
+    let mut split = vec![0.0f32; 2 * stride * hists.len()];
+    split
+        .par_chunks_mut(2 * stride)
+        .zip(hists.par_iter())
+        .for_each(|(out, h)| {
+            let (re, im) = out.split_at_mut(stride);
+            for (b, pair) in h.chunks_exact(2).enumerate() {
+                re[b + 1] = pair[0];
+                im[b + 1] = pair[1];
+            }
+        });
     // The two layouts replace the histograms.
     drop(hists);
     let sources: Vec<Source<'_>> = set
         .pairs()
         .iter()
-        .zip(complex.iter().zip(&split))
-        .map(|(p, (data, (re, im)))| Source {
-            xi: p.xi,
-            xd: p.xd,
-            start: -1,
-            data,
-            re,
-            im,
+        .zip(complex.iter().zip(split.chunks_exact(2 * stride)))
+        .map(|(p, (data, parts))| {
+            let (re, im) = parts.split_at(stride);
+            Source {
+                xi: p.xi,
+                xd: p.xd,
+                start: -1,
+                data,
+                re,
+                im,
+            }
         })
         .collect();
-    let tree = Tree::new(grid, set.axis(), lead, falloff, wavelength, tolerance);
+    let tree = Tree::new(grid, set.axis(), lead, falloff, wavelength, tolerance, shape);
     let root = Block {
         lo: [0; 3],
         hi: grid.shape,
     };
-    let leaves = tree.node(root, &sources);
+    let leaves = tree.node(root, &sources, &Points::of(&sources));
     let [nx, ny, _] = grid.shape;
     let mut data = vec![[0.0f32; 2]; grid.len()];
     let mut stats = TreeStats::default();
@@ -687,17 +965,40 @@ pub(super) fn backproject_tree(
     (data, stats)
 }
 
-/// Leaves whose merges [`merged_fraction`] plans, at most.
+/// The times a group is tried again about its members' mean once those a merge would
+/// take past the tolerance are taken out.
+const MERGE_ROUNDS: usize = 3;
+
+/// Leaves of each shape whose merges [`choose`] plans, at most.
 const SAMPLE_LEAVES: usize = 16;
 
-/// The share of the pairs a leaf would still backproject after its merges, the mean
-/// over up to [`SAMPLE_LEAVES`] leaves spread evenly through the volume (every n-th
-/// leaf of a depth-first walk). Planning reads no histogram, so this costs
-/// about a thousandth of the backprojection it decides on.
-pub(super) fn merged_fraction(set: &TransientSet, grid: &VolumeGrid, wavelength: f64, tolerance: f64) -> f64 {
-    if set.is_empty() {
-        return 1.0;
-    }
+/// The steps of the R₃ sequence that places [`choose`]'s sample: 1/g, 1/g² and 1/g³,
+/// g = 1.3247… the real root of g³ = g + 1.
+const R3: [f64; 3] = [
+    0.754_877_666_246_692_7,
+    0.569_840_290_998_053_3,
+    0.430_159_709_001_946_7,
+];
+
+/// The hierarchy's leaf shape for a backprojection, what its sample saw, and its
+/// predicted cost.
+#[derive(Clone, Copy, Debug)]
+pub(super) struct Choice {
+    /// The leaves' voxels along x, y and z.
+    pub shape: [usize; 3],
+    /// The share of the pairs a leaf still backprojects after its merges: the mean over
+    /// a sample of up to [`SAMPLE_LEAVES`] leaves spread evenly through the volume.
+    pub share: f64,
+    /// The predicted time against the exact path's.
+    pub cost: f64,
+}
+
+/// The leaf shape of least predicted cost: each shape of [`EDGES`] along each axis
+/// plans the merges of a sample of its leaves, and the cost model (`VISIT_NS`, ...)
+/// weighs its leaves' visits to every pair against the sources they still
+/// backproject. Planning reads no histogram, so this costs about a hundredth of the
+/// backprojection it decides on.
+pub(super) fn choose(set: &TransientSet, grid: &VolumeGrid, wavelength: f64, tolerance: f64) -> Choice {
     let sources: Vec<Source<'_>> = set
         .pairs()
         .iter()
@@ -710,29 +1011,58 @@ pub(super) fn merged_fraction(set: &TransientSet, grid: &VolumeGrid, wavelength:
             im: &[],
         })
         .collect();
-    // Planning reads neither the padding nor the falloff's exponent.
-    let tree = Tree::new(grid, set.axis(), 0, 1.0, wavelength, tolerance);
-    let mut leaves = Vec::new();
-    let mut open = vec![Block {
-        lo: [0; 3],
-        hi: grid.shape,
-    }];
-    while let Some(b) = open.pop() {
-        if b.is_leaf(tree.shape) {
-            leaves.push(b);
-        } else {
-            open.extend(b.children(tree.shape));
+    let points = Points::of(&sources);
+    let mut shapes: Vec<[usize; 3]> = Vec::new();
+    for ez in EDGES {
+        for ey in EDGES {
+            for ex in EDGES {
+                let shape = [ex, ey, ez];
+                let shape: [usize; 3] = std::array::from_fn(|a| shape[a].min(grid.shape[a]).max(1));
+                if !shapes.contains(&shape) {
+                    shapes.push(shape);
+                }
+            }
         }
     }
-    let n = leaves.len().min(SAMPLE_LEAVES);
-    let kept: usize = (0..n)
-        .into_par_iter()
-        .map(|i| {
-            let leaf = leaves[(2 * i + 1) * leaves.len() / (2 * n)];
-            tree.merge(&leaf, &sources).1.len()
-        })
-        .sum();
-    kept as f64 / (n * sources.len()) as f64
+    let mut best: Option<Choice> = None;
+    for shape in shapes {
+        // Planning reads neither the padding nor the falloff's exponent.
+        let tree = Tree::new(grid, set.axis(), 0, 1.0, wavelength, tolerance, shape);
+        let tiles: [usize; 3] = std::array::from_fn(|a| grid.shape[a] / shape[a]);
+        let count = tiles.iter().product::<usize>();
+        let n = count.min(SAMPLE_LEAVES);
+        let share = if sources.is_empty() || n == 0 {
+            1.0
+        } else {
+            let kept: usize = (0..n)
+                .into_par_iter()
+                .map(|i| {
+                    // The R₃ low-discrepancy sequence (steps 1/g, 1/g², 1/g³ with
+                    // g³ = g + 1) spreads the sample along every axis at once.
+                    let lo: [usize; 3] = std::array::from_fn(|a| {
+                        let u = (0.5 + (i + 1) as f64 * R3[a]).fract();
+                        ((u * tiles[a] as f64) as usize).min(tiles[a] - 1) * shape[a]
+                    });
+                    let leaf = Block {
+                        lo,
+                        hi: std::array::from_fn(|a| lo[a] + shape[a]),
+                    };
+                    tree.merge(&leaf, &sources, &points).plan.len()
+                })
+                .sum();
+            kept as f64 / (n * sources.len()) as f64
+        };
+        let voxels = shape.iter().product::<usize>() as f64;
+        let cost = (VISIT_NS / voxels + LEAF_VOXEL_NS * share) / EXACT_VOXEL_NS;
+        if best.is_none_or(|b| cost < b.cost) {
+            best = Some(Choice { shape, share, cost });
+        }
+    }
+    best.unwrap_or(Choice {
+        shape: grid.shape,
+        share: 1.0,
+        cost: f64::INFINITY,
+    })
 }
 
 #[cfg(test)]
@@ -840,7 +1170,9 @@ mod tests {
             })
             .collect();
         let lambda = 4.0 * axis.width;
-        let (sums, stats) = backproject_tree(&set, &grid, 1.0, hists, lead, lambda, 0.25 * lambda);
+        let choice = choose(&set, &grid, lambda, 0.25 * lambda);
+        let (sums, stats) =
+            backproject_tree(&set, &grid, 1.0, hists, lead, lambda, 0.25 * lambda, choice.shape);
         assert_eq!(sums.len(), grid.len());
         assert!(sums.iter().flatten().all(|v| v.is_finite()));
         let per_leaf = stats.leaf_sources as f64 / stats.leaves as f64;
@@ -851,13 +1183,12 @@ mod tests {
         );
         // The sample `auto` decides on sees what the whole volume does, and takes the
         // hierarchy here.
-        let sampled = merged_fraction(&set, &grid, lambda, 0.25 * lambda);
         let whole = per_leaf / set.len() as f64;
         assert!(
-            (sampled - whole).abs() < 0.05 && sampled <= super::super::AUTO_MAX_FRACTION,
-            "sampled {sampled}, the whole volume {whole}"
+            (choice.share - whole).abs() < 0.05 && choice.cost <= super::super::AUTO_MAX_COST,
+            "{choice:?}, the whole volume's share {whole}"
         );
-        // Both points free: few merges, so `auto` keeps the exact path.
+        // Both points free: fewer merges on every leaf shape, so a dearer hierarchy.
         let mut free = TransientSet::new(axis).unwrap();
         for _ in 0..2000 {
             let mut wall = || DVec3::new(rng.random_range(-0.5..0.5), rng.random_range(-0.5..0.5), 0.0);
@@ -870,7 +1201,10 @@ mod tests {
             };
             free.push(pair, &h).unwrap();
         }
-        let sampled = merged_fraction(&free, &grid, lambda, 0.25 * lambda);
-        assert!(sampled > super::super::AUTO_MAX_FRACTION, "sampled {sampled}");
+        let free_choice = choose(&free, &grid, lambda, 0.25 * lambda);
+        assert!(
+            free_choice.cost > 1.5 * choice.cost,
+            "both points free {free_choice:?}, one laser point {choice:?}"
+        );
     }
 }
