@@ -931,7 +931,7 @@ fn hierarchical_fbp_matches_the_exact_path_within_its_bound() {
     // point and seen at 3,000 (the two-torso kind) and on 3,000 pairs with both points
     // at random (on a finer grid, where their merges need smaller boxes). Measured
     // (2026-12-04, leaves chosen by the cost model): relative L2 0.033 at λ/8 and 0.054
-    // at λ/4 lit at one point, 0.020 and 0.083 with both points random, every peak on
+    // at λ/4 lit at one point, 0.020 and 0.086 with both points random, every peak on
     // the exact path's voxel. (With the carrier's phase put back
     // with the wrong sign in the merges' shifts: 0.25 at λ/8.)
     let axis = TimeAxis {

@@ -304,15 +304,15 @@ impl Tree<'_> {
         let doubled: Vec<Vec<[f32; 4]>> = data
             .into_par_iter()
             .zip(planned.par_iter())
-            .map(|((re, im), p)| {
-                let mut out = Vec::with_capacity(p.bins);
+            .map(|((mut re, mut im), p)| {
+                // The windows where the sums have them, each bin with the next.
+                let mut out = vec![[0.0f32; 4]; p.bins];
                 for g in &p.groups {
+                    let window = g.offset..g.offset + g.len;
                     // The window's last bin stays zero; chunks may have run into it.
-                    let last = g.offset + g.len - 1;
-                    let (mut re_g, mut im_g) = (re[g.offset..=last].to_vec(), im[g.offset..=last].to_vec());
-                    re_g[g.len - 1] = 0.0;
-                    im_g[g.len - 1] = 0.0;
-                    out.extend(double(&re_g, &im_g));
+                    re[window.end - 1] = 0.0;
+                    im[window.end - 1] = 0.0;
+                    out[window.clone()].copy_from_slice(&double(&re[window.clone()], &im[window.clone()]));
                 }
                 out
             })
@@ -328,12 +328,11 @@ impl Tree<'_> {
                         Planned::Keep(i) => sources[i],
                         Planned::Merged(g) => {
                             let g = &p.groups[g];
-                            let at = g.offset - g.index as usize * CHUNK;
                             Source {
                                 xi: g.xi,
                                 xd: g.xd,
                                 start: g.start,
-                                data: &merged[at..at + g.len],
+                                data: &merged[g.offset..g.offset + g.len],
                                 re: &[],
                                 im: &[],
                             }
@@ -405,10 +404,10 @@ impl Tree<'_> {
             plan: Vec::with_capacity(sources.len()),
             bins: 0,
         };
-        let box_ = (v, half, diagonal);
         let everyone: Vec<u32> = (0..n as u32).collect();
         let mut apart = Vec::new();
-        self.merge_cells(&everyone, &cells, &legs, sources, box_, &mut out, &mut apart);
+        let leaf = (v, half, diagonal);
+        self.merge_cells(&everyone, &cells, &legs, sources, leaf, &mut out, &mut apart);
         out.plan.extend(apart.iter().map(|&i| Planned::Keep(i as usize)));
         out
     }
@@ -490,7 +489,6 @@ impl Tree<'_> {
     /// Plans the merge of `members` (each within the tolerance of the representative
     /// `r` at their mean points `xi`, `xd`) into `out`: its window and the members'
     /// taps.
-    #[allow(clippy::too_many_arguments)]
     #[inline(always)]
     fn merge_group(
         &self,
@@ -549,7 +547,6 @@ impl Tree<'_> {
             xd,
             start,
             len,
-            index,
             offset: out.bins,
         });
         out.bins += len + CHUNK;
@@ -682,10 +679,9 @@ struct GroupPlan {
     xd: DVec3,
     start: isize,
     len: usize,
-    /// Where the window starts in the leaf's buffer, which leaves CHUNK bins of slack
-    /// after each window, and the group's place in the leaf's list.
+    /// Where the window starts in the leaf's buffers, which leave CHUNK bins of slack
+    /// after each window.
     offset: usize,
-    index: u32,
 }
 
 /// A member of a group: its group, the offset from the window's index to its own
