@@ -801,24 +801,7 @@ impl crate::simd::Work for Accumulate<'_, '_> {
 
     #[inline(always)]
     fn run<Q: crate::simd::Quad>(self, _: Q) {
-        let mut touched = 0.0f32;
         for (i, s) in self.sources.iter().enumerate() {
-            // The histogram PREFETCH sources on, where the first leaf that merges it
-            // reads it: loaded now (its value unused), so that it is in the cache when
-            // its turn comes.
-            if let Some(ahead) = self.sources.get(i + PREFETCH) {
-                for p in self.planned {
-                    let m = &p.members[i + PREFETCH];
-                    if m.group != u32::MAX {
-                        let at = (m.base + 1).max(0) as usize;
-                        for part in [ahead.re, ahead.im] {
-                            touched += part.get(at).copied().unwrap_or_default()
-                                + part.get(at + CHUNK).copied().unwrap_or_default();
-                        }
-                        break;
-                    }
-                }
-            }
             for (p, (re, im)) in self.planned.iter().zip(self.data.iter_mut()) {
                 let member = &p.members[i];
                 let Some(g) = p.groups.get(member.group as usize) else {
@@ -828,7 +811,6 @@ impl crate::simd::Work for Accumulate<'_, '_> {
                 add_shifted(&mut re[window.clone()], &mut im[window], member, s);
             }
         }
-        std::hint::black_box(touched);
     }
 }
 
@@ -863,9 +845,6 @@ fn add_shifted(re: &mut [f32], im: &mut [f32], member: &Member, s: &Source<'_>) 
         i += CHUNK;
     }
 }
-
-/// How many sources ahead [`Accumulate`] asks for a histogram's window.
-const PREFETCH: usize = 8;
 
 /// The bins [`add_shifted`] adds at a time.
 const CHUNK: usize = 16;
