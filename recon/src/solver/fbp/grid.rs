@@ -98,11 +98,6 @@ impl ConfocalGrid {
             cells,
         })
     }
-
-    /// Relay rows.
-    pub(super) fn rows(&self) -> usize {
-        self.n[1]
-    }
 }
 
 /// The histograms of a [`ConfocalGrid`] laid out for contiguous runs, and what every
@@ -197,26 +192,27 @@ impl<'a, const C: usize> Runs<'a, C> {
         }
     }
 
-    /// Adds what relay rows `rows` contribute to every voxel to `out` (the whole
-    /// volume, `C` values per voxel).
+    /// Adds what every relay row contributes to the depth slices `first..` of the
+    /// volume that `out` holds (`C` values per voxel), relay row by relay row, so a
+    /// voxel's sum has the same order however the slices are split.
     ///
     /// Relay rows outside: one row's histograms stay in L2 while every voxel row of
-    /// every slice visits them. Per voxel row and relay row, one loop over the lateral
+    /// the slices visits them. Per voxel row and relay row, one loop over the lateral
     /// offsets takes their square roots and bins (vectorised across offsets),
     /// and a second adds each offset's run.
     #[inline(always)]
-    pub(super) fn rows(&self, out: &mut [f32], rows: std::ops::Range<usize>) {
+    pub(super) fn slices(&self, out: &mut [f32], first: usize) {
         let scan = self.scan;
         let [nvx, nvy, _] = self.grid.shape;
         let (min, voxel) = (self.grid.min(), self.grid.voxel());
         let run = self.bins * self.width * C;
         let r = scan.ratio;
         let mut index = vec![0.0f64; self.spans.len()];
-        for jy in rows {
+        for jy in 0..scan.n[1] {
             let hists = &self.data[jy * r * run..(jy + 1) * r * run];
             let y = scan.origin[1] + jy as f64 * scan.pitch[1];
             for (iz, slice) in out.chunks_exact_mut(nvx * nvy * C).enumerate() {
-                let dz = min.z + (iz as f64 + 0.5) * voxel.z - scan.z;
+                let dz = min.z + ((first + iz) as f64 + 0.5) * voxel.z - scan.z;
                 for (iy, row) in slice.chunks_exact_mut(nvx * C).enumerate() {
                     let dy = min.y + (iy as f64 + 0.5) * voxel.y - y;
                     self.offsets(dy * dy + dz * dz, &mut index);

@@ -646,48 +646,40 @@ fn backproject_grid<const C: usize>(
 ) -> Vec<[f32; C]> {
     let inv_w = 1.0 / set.axis().width;
     let runs = grid::Runs::<C>::new(scan, grid, padded, inv_w, index_offset(set, lead));
-    // Each thread takes a band of relay rows into a volume of its own (every band's
-    // histograms are read once), and the volumes are summed.
-    let rows = scan.rows();
-    let band = rows.div_ceil(rayon::current_num_threads().max(1));
-    let bands: Vec<std::ops::Range<usize>> = (0..rows)
-        .step_by(band)
-        .map(|r0| r0..(r0 + band).min(rows))
-        .collect();
-    let parts: Vec<Vec<f32>> = bands
-        .into_par_iter()
-        .map(|rows| {
-            let mut out = vec![0.0f32; grid.len() * C];
-            crate::simd::dispatch(GridRows {
-                out: &mut out,
-                rows,
-                runs: &runs,
-            });
-            out
-        })
-        .collect();
+    // Split by depth slices: every voxel sums the relay rows in their order, whatever
+    // the split, so the volume has the same bits on any number of threads (bands of
+    // relay rows summed afterwards, as until 2026-12-04, rounded differently with
+    // the thread count, and held a volume a thread).
+    let [nx, ny, nz] = grid.shape;
+    let slice = nx * ny * C;
+    let per_task = nz.div_ceil(rayon::current_num_threads().max(1)).max(1);
     let mut data = vec![[0.0f32; C]; grid.len()];
-    for part in &parts {
-        for (d, p) in data.as_flattened_mut().iter_mut().zip(part) {
-            *d += p;
-        }
-    }
+    data.as_flattened_mut()
+        .par_chunks_mut(per_task * slice)
+        .enumerate()
+        .for_each(|(t, out)| {
+            crate::simd::dispatch(GridSlices {
+                out,
+                first: t * per_task,
+                runs: &runs,
+            })
+        });
     data
 }
 
-/// One band of relay rows of [`backproject_grid`].
-struct GridRows<'a, 'b, const C: usize> {
+/// Depth slices `first..` of [`backproject_grid`], every relay row.
+struct GridSlices<'a, 'b, const C: usize> {
     out: &'b mut [f32],
-    rows: std::ops::Range<usize>,
+    first: usize,
     runs: &'b grid::Runs<'a, C>,
 }
 
-impl<const C: usize> crate::simd::Work for GridRows<'_, '_, C> {
+impl<const C: usize> crate::simd::Work for GridSlices<'_, '_, C> {
     type Output = ();
 
     #[inline(always)]
     fn run<Q: crate::simd::Quad>(self, _: Q) {
-        self.runs.rows(self.out, self.rows);
+        self.runs.slices(self.out, self.first);
     }
 }
 
@@ -1151,6 +1143,63 @@ mod tests {
             worst < 4e-5 * peak,
             "two channels: {worst:e} against peak {peak:e}"
         );
+    }
+
+    /// Every path gives the same bits on one thread as on several: each voxel sums
+    /// its pairs in one order however the work is split (the grid path's bands of
+    /// relay rows, summed per thread, had not).
+    #[test]
+    fn the_volume_has_the_same_bits_on_any_number_of_threads() {
+        let mut rng = ChaCha8Rng::seed_from_u64(11);
+        let scan = grid_scan(13, 7, 0.05, 0.02, &mut rng);
+        let grid = VolumeGrid::new([-0.45, 0.45], [-0.3, 0.3], [0.3, 0.7], [9, 5, 17]).unwrap();
+        assert!(
+            grid::ConfocalGrid::detect(&scan, &grid).is_some(),
+            "the grid path applies"
+        );
+        let mut free = TransientSet::new(*scan.axis()).unwrap();
+        for _ in 0..300 {
+            let mut at = || DVec3::new(rng.random_range(-0.4..0.4), rng.random_range(-0.3..0.3), 0.0);
+            let (xi, xd) = (at(), at());
+            let h: Vec<f32> = (0..scan.axis().bins).map(|_| rng.random::<f32>()).collect();
+            free.push(
+                Pair {
+                    xi,
+                    ni: DVec3::Z,
+                    xd,
+                    nd: DVec3::Z,
+                },
+                &h,
+            )
+            .unwrap();
+        }
+        let on = |threads: usize, set: &TransientSet, how: FbpBackprojection| {
+            rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()
+                .unwrap()
+                .install(|| {
+                    let settings = FbpSettings {
+                        backprojection: how,
+                        ..FbpSettings::default()
+                    };
+                    fbp(set, &grid, &settings).unwrap().data
+                })
+        };
+        for (set, how, what) in [
+            (&scan, FbpBackprojection::Auto, "the grid path"),
+            (&free, FbpBackprojection::Exact, "the exact path"),
+            (&free, FbpBackprojection::Hierarchical, "the hierarchy"),
+        ] {
+            let one = on(1, set, how);
+            assert!(one.iter().any(|v| *v != 0.0), "{what}: an empty volume");
+            for threads in [2, 3] {
+                assert!(
+                    one == on(threads, set, how),
+                    "{what}: one thread and {threads} give different volumes"
+                );
+            }
+        }
     }
 
     /// The grid path is taken only where its arithmetic holds: confocal pairs, one
