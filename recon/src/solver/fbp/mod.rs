@@ -1058,21 +1058,19 @@ mod tests {
         }
     }
 
-    /// The vectorised f32 backprojection agrees with the f64 reference to single
-    /// precision (relative to the volume's peak), for each falloff path: the root
-    /// product (1), the squares (2), none (0) and `powf` (1.5).
-    #[test]
-    fn backprojection_matches_the_f64_reference() {
-        let mut rng = ChaCha8Rng::seed_from_u64(3);
-        let axis = TimeAxis {
-            start: 0.4,
-            width: 0.01,
-            bins: 160,
-        };
+    /// `n` pairs on the plane z = 0, both points drawn within `half` of the origin in x
+    /// and y, with random histograms.
+    fn free_pairs(n: usize, axis: TimeAxis, half: [f64; 2], rng: &mut ChaCha8Rng) -> TransientSet {
         let mut set = TransientSet::new(axis).unwrap();
-        for _ in 0..40 {
-            let xi = DVec3::new(rng.random_range(-0.5..0.5), rng.random_range(-0.5..0.5), 0.0);
-            let xd = DVec3::new(rng.random_range(-0.5..0.5), rng.random_range(-0.5..0.5), 0.0);
+        for _ in 0..n {
+            let mut at = || {
+                DVec3::new(
+                    rng.random_range(-half[0]..half[0]),
+                    rng.random_range(-half[1]..half[1]),
+                    0.0,
+                )
+            };
+            let (xi, xd) = (at(), at());
             let h: Vec<f32> = (0..axis.bins).map(|_| rng.random::<f32>()).collect();
             set.push(
                 Pair {
@@ -1085,6 +1083,21 @@ mod tests {
             )
             .unwrap();
         }
+        set
+    }
+
+    /// The vectorised f32 backprojection agrees with the f64 reference to single
+    /// precision (relative to the volume's peak), for each falloff path: the root
+    /// product (1), the squares (2), none (0) and `powf` (1.5).
+    #[test]
+    fn backprojection_matches_the_f64_reference() {
+        let mut rng = ChaCha8Rng::seed_from_u64(3);
+        let axis = TimeAxis {
+            start: 0.4,
+            width: 0.01,
+            bins: 160,
+        };
+        let set = free_pairs(40, axis, [0.5, 0.5], &mut rng);
         // 19 voxels per row: not a multiple of any vector width.
         let grid = VolumeGrid::new([-0.4, 0.4], [-0.3, 0.3], [0.3, 0.7], [19, 7, 5]).unwrap();
         agrees_with_the_reference(&set, &grid);
@@ -1157,22 +1170,7 @@ mod tests {
             grid::ConfocalGrid::detect(&scan, &grid).is_some(),
             "the grid path applies"
         );
-        let mut free = TransientSet::new(*scan.axis()).unwrap();
-        for _ in 0..300 {
-            let mut at = || DVec3::new(rng.random_range(-0.4..0.4), rng.random_range(-0.3..0.3), 0.0);
-            let (xi, xd) = (at(), at());
-            let h: Vec<f32> = (0..scan.axis().bins).map(|_| rng.random::<f32>()).collect();
-            free.push(
-                Pair {
-                    xi,
-                    ni: DVec3::Z,
-                    xd,
-                    nd: DVec3::Z,
-                },
-                &h,
-            )
-            .unwrap();
-        }
+        let free = free_pairs(300, *scan.axis(), [0.4, 0.3], &mut rng);
         let on = |threads: usize, set: &TransientSet, how: FbpBackprojection| {
             rayon::ThreadPoolBuilder::new()
                 .num_threads(threads)
