@@ -822,7 +822,8 @@ fn splatted_lct_ignores_what_it_cannot_place() {
     );
 }
 
-/// The splat's sums are the same on any number of threads.
+/// The splat's sums, and the synthesised virtual scan, are the same on any number of
+/// threads.
 #[test]
 fn splatted_lct_is_the_same_on_any_number_of_threads() {
     let relay = VirtualRelay::new(DVec3::ZERO, DVec3::Z, DVec3::X, [1.0, 1.0], [32, 32]).unwrap();
@@ -867,6 +868,22 @@ fn splatted_lct_is_the_same_on_any_number_of_threads() {
     let one = run(1);
     assert!(one.iter().any(|v| *v > 0.0), "the splat is not empty");
     assert!(one == run(3), "one thread and three give different volumes");
+    // The rendered virtual scan, which FBP, LCT, f-k and RSD solve after 3D-GTR, too.
+    let scan = |threads: usize| {
+        rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .build()
+            .unwrap()
+            .install(|| {
+                let scan = synthesise(&kernels, &relay, axis, &RenderOptions::default()).unwrap();
+                (0..scan.set.len())
+                    .flat_map(|p| scan.set.histogram(p).to_vec())
+                    .collect::<Vec<f32>>()
+            })
+    };
+    let one = scan(1);
+    assert!(one.iter().any(|v| *v > 0.0), "the scan is not empty");
+    assert!(one == scan(3), "one thread and three render different scans");
 }
 
 #[test]
