@@ -312,11 +312,24 @@ async fn start_chromedriver(path: &Path) -> Chromedriver {
         child,
         url: format!("http://127.0.0.1:{port}"),
     };
+    // Ready when its WebDriver status says so: a listening port alone is not enough
+    // (a session asked for while chromedriver was still starting, under CI's load, had
+    // its connection reset), and the status also shows that the port is chromedriver's.
     let t = Instant::now();
-    while tokio::net::TcpStream::connect(("127.0.0.1", port)).await.is_err() {
+    let http = reqwest::Client::new();
+    loop {
+        let ready = match http.get(format!("{}/status", driver.url)).send().await {
+            Ok(resp) => resp.bytes().await.is_ok_and(|b| {
+                serde_json::from_slice::<Value>(&b).is_ok_and(|v| v["value"]["ready"] == Value::Bool(true))
+            }),
+            Err(_) => false,
+        };
+        if ready {
+            break;
+        }
         assert!(
             t.elapsed() < Duration::from_secs(20),
-            "chromedriver did not listen on {port}"
+            "chromedriver on port {port} did not report itself ready within 20 s"
         );
         tokio::time::sleep(Duration::from_millis(50)).await;
     }
