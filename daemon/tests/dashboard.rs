@@ -313,8 +313,9 @@ async fn start_chromedriver(path: &Path) -> Chromedriver {
         url: format!("http://127.0.0.1:{port}"),
     };
     // Ready when its WebDriver status says so: a listening port alone is not enough
-    // (a session asked for while chromedriver was still starting, under CI's load, had
-    // its connection reset), and the status also shows that the port is chromedriver's.
+    // (on a clean-clone CI run the session request's connection was reset, most likely
+    // by a chromedriver still starting under load), and the status also shows that the
+    // port is chromedriver's.
     let t = Instant::now();
     let http = reqwest::Client::new();
     loop {
