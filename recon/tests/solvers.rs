@@ -822,6 +822,15 @@ fn splatted_lct_ignores_what_it_cannot_place() {
     );
 }
 
+/// `f` run on a pool of `threads` threads.
+fn on_threads<T: Send>(threads: usize, f: impl FnOnce() -> T + Send) -> T {
+    rayon::ThreadPoolBuilder::new()
+        .num_threads(threads)
+        .build()
+        .unwrap()
+        .install(f)
+}
+
 /// The splat's sums, and the synthesised virtual scan, are the same on any number of
 /// threads.
 #[test]
@@ -848,38 +857,30 @@ fn splatted_lct_is_the_same_on_any_number_of_threads() {
         })
         .collect();
     let run = |threads: usize| {
-        rayon::ThreadPoolBuilder::new()
-            .num_threads(threads)
-            .build()
+        on_threads(threads, || {
+            splat_lct(
+                &kernels,
+                &relay,
+                &g,
+                axis,
+                &RenderOptions::default(),
+                &LctSettings::default(),
+            )
             .unwrap()
-            .install(|| {
-                splat_lct(
-                    &kernels,
-                    &relay,
-                    &g,
-                    axis,
-                    &RenderOptions::default(),
-                    &LctSettings::default(),
-                )
-                .unwrap()
-                .data
-            })
+            .data
+        })
     };
     let one = run(1);
     assert!(one.iter().any(|v| *v > 0.0), "the splat is not empty");
     assert!(one == run(3), "one thread and three give different volumes");
     // The rendered virtual scan, which FBP, LCT, f-k and RSD solve after 3D-GTR, too.
     let scan = |threads: usize| {
-        rayon::ThreadPoolBuilder::new()
-            .num_threads(threads)
-            .build()
-            .unwrap()
-            .install(|| {
-                let scan = synthesise(&kernels, &relay, axis, &RenderOptions::default()).unwrap();
-                (0..scan.set.len())
-                    .flat_map(|p| scan.set.histogram(p).to_vec())
-                    .collect::<Vec<f32>>()
-            })
+        on_threads(threads, || {
+            let scan = synthesise(&kernels, &relay, axis, &RenderOptions::default()).unwrap();
+            (0..scan.set.len())
+                .flat_map(|p| scan.set.histogram(p).to_vec())
+                .collect::<Vec<f32>>()
+        })
     };
     let one = scan(1);
     assert!(one.iter().any(|v| *v > 0.0), "the scan is not empty");
