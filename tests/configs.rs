@@ -350,3 +350,42 @@ fn a_broken_adaptive_plan_names_the_key_and_what_to_do() {
         out.stderr
     );
 }
+
+/// A plan that leaves `[gtr] batch` and `epochs` unset is told both reconstruction
+/// times: the relay the scan finds decides whether the fit takes a coarse capture's
+/// batches of 8, over the same steps.
+#[test]
+fn check_gives_a_coarse_captures_reconstruction_time_where_the_plan_leaves_the_batch_unset() {
+    let dir = tempfile::tempdir().unwrap();
+    let text = std::fs::read_to_string(repo_path("configs/plans/demo.toml")).unwrap();
+    let unset = text
+        .replacen("batch = 4\n", "", 1)
+        .replacen("epochs = 16\n", "", 1);
+    assert_ne!(unset, text);
+    let plan = dir.path().join("unset.toml");
+    std::fs::write(&plan, unset).unwrap();
+    let out = periscope(&["check", plan.to_str().unwrap()]);
+    assert_eq!(out.code, Some(0), "{out:?}");
+    let line = out
+        .stdout
+        .lines()
+        .find(|l| l.contains("estimated duration"))
+        .unwrap();
+    let seconds = |after: &str| -> f64 {
+        line.split(after)
+            .nth(1)
+            .unwrap()
+            .split(" s")
+            .next()
+            .unwrap()
+            .parse()
+            .unwrap()
+    };
+    assert!(line.contains("if the relay places points coarsely"), "{line}");
+    let plain = seconds("reconstruction ");
+    let coarse = seconds(&format!("reconstruction {plain:.0} s ("));
+    assert!(coarse > plain, "{line}");
+    // The plan's own batch holds everywhere: one time.
+    let out = periscope(&["check", "configs/plans/demo.toml"]);
+    assert!(!out.stdout.contains("coarsely"), "{}", out.stdout);
+}

@@ -187,7 +187,8 @@ fn gtr_then_lct_without_the_scan_finds_the_patch() {
 /// 8 cm wide) hangs 0.6 m in front of the gap between them, seen obliquely from the
 /// detection points. 3D-GTR with defaults and the validation set's grid recovers the T:
 /// measured silhouette IoU 0.53, 0.72, 0.65 (seeds 0, 1, 2), median depth error 0.5 mm;
-/// FBP alone gets 0.39. A mismatch between our renderer and an independent one (a
+/// FBP alone gets 0.39. Seed 0 now scores 0.77 at 2.4 mm: the capture counts as coarse
+/// (`CoarseFit`), so the fit takes batches of 8 and the surface prior. A mismatch between our renderer and an independent one (a
 /// cosine, a leg's falloff, a normal, a time origin) would show here first.
 #[test]
 fn a_two_torso_capture_rendered_by_mitransient_reconstructs() {
@@ -237,22 +238,20 @@ fn otsu(values: &[f64]) -> f64 {
 /// threshold on the maximum projection, IoU with the true silhouette (228 pixels of
 /// the 32 × 32 grid, `mannequin_mask.npy`, indexed x then y), and the depth at each
 /// column's maximum against `mannequin_depth.npy`. Measured with defaults (seeds 0, 1,
-/// 2), with the surface prior ([`SurfacePrior`], `[gtr] surface-spread = 0.018`, which
-/// this test turns on): IoU 0.59, 0.59, 0.59; without it (the default) 0.49, 0.53,
-/// 0.54, the torso's light in a column of lumps at its centre, spread in depth. Before the fit and the image were held to what the capture resolves
-/// (`resolvable_separation`: 64 mm here) they scored 0.29, 0.25, 0.31: splits down to
-/// 11 mm drifted into lumps and the 78 mm wave imaged them.
+/// 2), which on a capture this coarse ([`CoarseFit`]) take batches of 8 and the surface
+/// prior ([`SurfacePrior`]): IoU 0.665, 0.672, 0.718. With the prior alone 0.59, 0.59,
+/// 0.59; with neither (the defaults before 2026-12-04) 0.49, 0.53, 0.54, the torso's
+/// light in a column of lumps at its centre, spread in depth. Before the fit and the
+/// image were held to what the capture resolves (`resolvable_separation`: 64 mm here)
+/// they scored 0.29, 0.25, 0.31: splits down to 11 mm drifted into lumps and the 78 mm
+/// wave imaged them.
 ///
 /// [`SurfacePrior`]: periscope_recon::gtr::SurfacePrior
+/// [`CoarseFit`]: periscope_recon::gtr::CoarseFit
 #[test]
 fn a_mannequin_behind_two_backs_rendered_by_mitransient_is_found_whole() {
     let grid = VolumeGrid::new([-0.5, 0.5], [-0.5, 0.5], [0.195, 1.205], [32, 32, 101]).unwrap();
-    let (_dir, out) = recon_on_grid(
-        "tests/data/ytal/mannequin.hdf5",
-        &grid,
-        "gtr",
-        "[gtr]\nsurface-spread = 0.018\n",
-    );
+    let (_dir, out) = gtr_with_defaults("tests/data/ytal/mannequin.hdf5", &grid);
     let score = silhouette_and_depths(&out, &grid, "mannequin");
     let median = score.errors[score.errors.len() / 2];
     eprintln!(
@@ -260,8 +259,8 @@ fn a_mannequin_behind_two_backs_rendered_by_mitransient_is_found_whole() {
         score.iou
     );
     assert!(
-        score.iou > 0.55,
-        "silhouette IoU {:.3} ≤ 0.55: the mannequin is not found whole",
+        score.iou > 0.6,
+        "silhouette IoU {:.3} ≤ 0.6: the mannequin is not found whole",
         score.iou
     );
     assert!(median < 0.02, "median depth error {median:.3} m ≥ 2 cm");

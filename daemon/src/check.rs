@@ -92,6 +92,11 @@ pub struct Duration {
     pub capture_min: Option<f64>,
     /// Reconstruction after the capture.
     pub reconstruction: f64,
+    /// The reconstruction where the relay the scan finds places points coarsely (one
+    /// laser spot on one back, detection points on another), which takes a fit of
+    /// twice the work ([`periscope_recon::gtr::CoarseFit`]); `None`: no other fit.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub reconstruction_max: Option<f64>,
     /// All of it.
     pub total: f64,
 }
@@ -255,24 +260,45 @@ pub fn check(plan: &Plan, inst: &InstrumentConfig) -> Check {
                 .then(|| (s.first + s.batch.min(s.budget - s.first)) as f64 * per_pair + choice_s(1)),
         ),
     };
-    let recon_s = if rc.method == Method::Gtr {
-        let k = rc.train.primitives as f64;
+    let gtr_s = |train: &periscope_recon::gtr::TrainConfig| {
+        let k = train.primitives as f64;
         let points = virtual_points(rc) as f64;
-        rc.train.pairs_per_epoch(pairs) as f64 * k * rc.train.counted_epochs(pairs) as f64 / GTR_EVALS_PER_S
+        train.pairs_per_epoch(pairs) as f64 * k * train.counted_epochs(pairs) as f64 / GTR_EVALS_PER_S
             + points * k / SYNTH_EVALS_PER_S
             + points * v.len() as f64 / VIRTUAL_FBP_PER_S
+    };
+    let (recon_s, recon_max_s) = if rc.method == Method::Gtr {
+        // Which fit a capture takes depends on the relay the scan finds.
+        let coarse = rc
+            .train
+            .coarse
+            .filter(|c| c.batch_size != rc.train.batch_size)
+            .map(|c| {
+                gtr_s(&periscope_recon::gtr::TrainConfig {
+                    batch_size: c.batch_size,
+                    ..rc.train.clone()
+                })
+            });
+        (gtr_s(&rc.train), coarse)
     } else {
-        (v.len() as f64 * pairs as f64 / FBP_PER_S).max(1.0)
+        ((v.len() as f64 * pairs as f64 / FBP_PER_S).max(1.0), None)
+    };
+    let recon = match recon_max_s {
+        // Epochs the plan sets take the same work in fewer, larger steps.
+        Some(hi) if hi - recon_s >= 0.5 => {
+            format!("{recon_s:.0} s ({hi:.0} s if the relay places points coarsely, as two backs do)")
+        }
+        _ => format!("{recon_s:.0} s"),
     };
     let _ = writeln!(
         out,
-        "  estimated duration: LOS {:.0} s, capture {} s, reconstruction {:.0} s{}",
+        "  estimated duration: LOS {:.0} s, capture {} s, reconstruction {}{}",
         los_s,
         match cap_min_s {
             Some(lo) => format!("{lo:.0} to {cap_s:.0}"),
             None => format!("{cap_s:.0}"),
         },
-        recon_s,
+        recon,
         if sim {
             " (device time; the simulator's physics adds its own compute time)"
         } else {
@@ -304,6 +330,7 @@ pub fn check(plan: &Plan, inst: &InstrumentConfig) -> Check {
             capture: cap_s,
             capture_min: cap_min_s,
             reconstruction: recon_s,
+            reconstruction_max: recon_max_s,
             total: los_s + cap_s + recon_s,
         },
         memory_bytes: budget.memory_bytes(),

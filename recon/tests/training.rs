@@ -5,10 +5,11 @@ use std::time::Duration;
 
 use glam::{DQuat, DVec3};
 use periscope_recon::gtr::{
-    CancelToken, Convergence, DENSIFY_ROUNDS, DensifySettings, GaussianCloud, Init, Loss, LossChoice,
-    PairGains, Primitive, PruneSettings, RawGrads, RenderOptions, ScaleBounds, TrainConfig, TrainError,
-    TrainEvent, Trainer, batch_loss_grad, default_target_scale, densify, densify_after, estimate_background,
-    estimate_pair_gains, first_negative, gain_groups, render_set, resolvable_separation,
+    CancelToken, CoarseFit, Convergence, DENSIFY_ROUNDS, DensifySettings, GaussianCloud, Init, Loss,
+    LossChoice, PairGains, Primitive, PruneSettings, RawGrads, RenderOptions, ScaleBounds, SurfacePrior,
+    TrainConfig, TrainError, TrainEvent, Trainer, batch_loss_grad, default_target_scale, densify,
+    densify_after, estimate_background, estimate_pair_gains, first_negative, gain_groups, render_set,
+    resolvable_separation,
 };
 use periscope_recon::{Pair, RoiBox, TimeAxis, TransientSet};
 use rand::{Rng, SeedableRng};
@@ -1109,6 +1110,51 @@ fn splits_stop_where_the_capture_stops_placing_points() {
         (floor - separation / 3f64.sqrt()).abs() < 1e-12,
         "children √3 σ apart, {separation} m"
     );
+}
+
+/// A fit with [`TrainConfig::coarse`] set takes its batch size and surface prior on a
+/// capture whose split floor its gradients raise to twice the capacity or more (one
+/// laser spot on one back, detection points on the other) and keeps its own on a
+/// confocal wall; without it the two fits are configured alike.
+#[test]
+fn a_coarse_capture_takes_the_coarse_fit() {
+    let roi = RoiBox::from_bounds(DVec3::new(-0.5, -0.5, 0.2), DVec3::new(0.5, 0.5, 1.2)).unwrap();
+    let prior = SurfacePrior {
+        spread: SurfacePrior::DEFAULT_SPREAD,
+        cell: 0.03,
+    };
+    let cfg = TrainConfig {
+        primitives: 2000,
+        coarse: Some(CoarseFit {
+            batch_size: 8,
+            surface: Some(prior),
+        }),
+        ..TrainConfig::default()
+    };
+    let wall = grid(32, [-0.5, 0.5], [-0.5, 0.5]);
+    let confocal = geometry(wall.iter().map(|&x| pair(x, x)));
+    let patch = grid(16, [0.07, 0.37], [-0.27, 0.27]);
+    let backs = geometry(patch.iter().map(|&x| pair(DVec3::new(-0.22, 0.0, 0.0), x)));
+    let on_wall = Trainer::new(cfg.clone(), roi, confocal.clone()).unwrap();
+    assert_eq!(
+        (on_wall.config().batch_size, on_wall.config().surface),
+        (4, None),
+        "a confocal wall keeps the configured fit"
+    );
+    let on_backs = Trainer::new(cfg.clone(), roi, backs.clone()).unwrap();
+    assert_eq!(
+        (on_backs.config().batch_size, on_backs.config().surface),
+        (8, Some(prior)),
+        "two backs take the coarse fit"
+    );
+    // Streamed: the choice waits for the first data.
+    let empty = TransientSet::new(*backs.axis()).unwrap();
+    let mut streamed = Trainer::new(cfg.clone(), roi, empty).unwrap();
+    assert_eq!(streamed.config().batch_size, 4);
+    streamed.add(&backs).unwrap();
+    assert_eq!(streamed.config().batch_size, 8);
+    let plain = Trainer::new(TrainConfig { coarse: None, ..cfg }, roi, backs).unwrap();
+    assert_eq!((plain.config().batch_size, plain.config().surface), (4, None));
 }
 
 use periscope_recon::gpu::testing::gpu;

@@ -3,7 +3,7 @@
 use periscope_recon::VolumeGrid;
 use periscope_recon::gpu::ComputeDevice;
 use periscope_recon::gtr::{
-    Convergence, DensifySettings, Init, LossChoice, PairGains, SurfacePrior, TrainConfig,
+    CoarseFit, Convergence, DensifySettings, Init, LossChoice, PairGains, SurfacePrior, TrainConfig,
 };
 use periscope_recon::solver::{
     FbpSettings, FkSettings, LctSettings, RsdSettings, SolverError, SolverKind, SolverSettings,
@@ -219,8 +219,7 @@ struct RawGtr {
     #[serde(default = "default_primitives")]
     primitives: usize,
     epochs: Option<usize>,
-    #[serde(default = "default_batch")]
-    batch: usize,
+    batch: Option<usize>,
     #[serde(default = "default_lr_scale")]
     lr_scale: f64,
     #[serde(default)]
@@ -260,7 +259,7 @@ impl Default for RawGtr {
         RawGtr {
             primitives: default_primitives(),
             epochs: None,
-            batch: default_batch(),
+            batch: None,
             lr_scale: default_lr_scale(),
             seed: 0,
             init: default_init(),
@@ -339,9 +338,9 @@ fn converge(
 fn default_loss() -> String {
     "auto".into()
 }
-fn default_batch() -> usize {
-    4
-}
+/// Pairs per mini-batch when the plan sets none (a coarse capture takes
+/// [`CoarseFit::DEFAULT_BATCH`]).
+const DEFAULT_BATCH: usize = 4;
 fn default_lr_scale() -> f64 {
     1.0
 }
@@ -405,16 +404,20 @@ pub(crate) fn recon_settings(
     {
         return Err(src.invalid(&key("gtr.epochs"), "must be 1 to 10,000"));
     }
-    if !(1..=65_536).contains(&g.batch) {
+    if let Some(b) = g.batch
+        && !(1..=65_536).contains(&b)
+    {
         return Err(src.invalid(&key("gtr.batch"), "must be 1 to 65,536 pairs"));
     }
+    // The largest batch the fit may take: a coarse capture's, where the plan sets none.
+    let batch_at_most = g.batch.unwrap_or(DEFAULT_BATCH.max(CoarseFit::DEFAULT_BATCH));
     if let Some(n) = g.epoch_pairs
         && n != 0
-        && !(g.batch..=100_000_000).contains(&n)
+        && !(batch_at_most..=100_000_000).contains(&n)
     {
         return Err(src.invalid(
             &key("gtr.epoch-pairs"),
-            format!("{n} is out of range: give the pairs an epoch trains on, from the batch ({}) up, or 0 for every pair of the capture", g.batch),
+            format!("{n} is out of range: give the pairs an epoch trains on, from the batch ({batch_at_most}) up, or 0 for every pair of the capture"),
         ));
     }
     if !(g.lr_scale > 0.0 && g.lr_scale <= 100.0) {
@@ -503,6 +506,13 @@ pub(crate) fn recon_settings(
             ));
         }
     };
+    // One surface per pixel of the volume's image.
+    let prior = |spread: f64| {
+        (spread > 0.0).then(|| SurfacePrior {
+            spread,
+            cell: volume.voxel()[0].max(volume.voxel()[1]),
+        })
+    };
     let mut train = TrainConfig {
         primitives: g.primitives,
         loss,
@@ -511,7 +521,7 @@ pub(crate) fn recon_settings(
         // A plan's own `epochs` is exact; without one the steps decide.
         epochs: g.epochs.unwrap_or(DEFAULT_EPOCHS),
         min_steps: if g.epochs.is_some() { 0 } else { DEFAULT_MIN_STEPS },
-        batch_size: g.batch,
+        batch_size: g.batch.unwrap_or(DEFAULT_BATCH),
         seed: g.seed,
         initial_scale: g.initial_scale,
         densify: DensifySettings {
@@ -526,10 +536,11 @@ pub(crate) fn recon_settings(
         average_from: g.average_from.unwrap_or(TrainConfig::default().average_from),
         converge: converge(src, &key, &g)?,
         epoch_pairs: g.epoch_pairs.unwrap_or(DEFAULT_EPOCH_PAIRS),
-        // One surface per pixel of the volume's image.
-        surface: (spread > 0.0).then(|| SurfacePrior {
-            spread,
-            cell: volume.voxel()[0].max(volume.voxel()[1]),
+        surface: prior(spread),
+        // What the plan leaves unset, a coarse capture sets its own way.
+        coarse: Some(CoarseFit {
+            batch_size: g.batch.unwrap_or(CoarseFit::DEFAULT_BATCH),
+            surface: prior(g.surface_spread.unwrap_or(SurfacePrior::DEFAULT_SPREAD)),
         }),
         ..TrainConfig::default()
     };
@@ -885,6 +896,44 @@ mod tests {
     }
 
     #[test]
+    fn a_coarse_capture_takes_what_the_plan_leaves_unset() {
+        let read = |text: &str| {
+            load_recon(
+                &TomlSource::from_text("recon.toml", format!("[gtr]\n{text}\n")),
+                Some(volume()),
+            )
+            .unwrap()
+            .train
+        };
+        let prior = |spread| Some(SurfacePrior { spread, cell: 0.125 });
+        // Unset: batches of 4 without the prior, or 8 with it on a coarse capture.
+        let t = read("");
+        assert_eq!((t.batch_size, t.surface), (4, None));
+        assert_eq!(
+            t.coarse,
+            Some(CoarseFit {
+                batch_size: 8,
+                surface: prior(SurfacePrior::DEFAULT_SPREAD),
+            })
+        );
+        // What the plan sets holds on every capture.
+        let t = read("batch = 4\nsurface-spread = 0");
+        assert_eq!(
+            t.coarse,
+            Some(CoarseFit {
+                batch_size: 4,
+                surface: None,
+            })
+        );
+        let t = read("surface-spread = 0.03");
+        assert_eq!((t.batch_size, t.surface), (4, prior(0.03)));
+        assert_eq!(
+            t.coarse.map(|c| (c.batch_size, c.surface)),
+            Some((8, prior(0.03)))
+        );
+    }
+
+    #[test]
     fn gtr_pair_gains_are_read_and_checked() {
         assert_eq!(default_recon(volume()).train.pair_gains, PairGains::None);
         for (text, want) in [
@@ -952,9 +1001,13 @@ mod tests {
         assert_eq!(load_recon(&src, Some(volume())).unwrap().train.epoch_pairs, 4096);
         let src = TomlSource::from_text("recon.toml", "[gtr]\nepoch-pairs = 0\n");
         assert_eq!(load_recon(&src, Some(volume())).unwrap().train.epoch_pairs, 0);
-        let src = TomlSource::from_text("recon.toml", "[gtr]\nepoch-pairs = 3\n");
+        // At least the largest batch the fit may take: a coarse capture's 8 when the
+        // plan sets none.
+        let src = TomlSource::from_text("recon.toml", "[gtr]\nepoch-pairs = 6\n");
         let e = load_recon(&src, Some(volume())).unwrap_err().to_string();
-        assert!(e.contains("gtr.epoch-pairs") && e.contains("batch (4)"), "{e}");
+        assert!(e.contains("gtr.epoch-pairs") && e.contains("batch (8)"), "{e}");
+        let src = TomlSource::from_text("recon.toml", "[gtr]\nbatch = 2\nepoch-pairs = 3\n");
+        assert_eq!(load_recon(&src, Some(volume())).unwrap().train.epoch_pairs, 3);
     }
 
     #[test]

@@ -220,6 +220,38 @@ pub struct TrainConfig {
     /// held to one surface ([`SurfacePrior`]). `None`: off, the paper's fit.
     #[serde(default)]
     pub surface: Option<SurfacePrior>,
+    /// What the fit takes instead of `batch_size` and `surface` where its capture
+    /// places points coarsely ([`CoarseFit`]). `None`: the same fit on every capture.
+    #[serde(default)]
+    pub coarse: Option<CoarseFit>,
+}
+
+/// A fit's settings for a capture that places points coarsely: where the separation
+/// it resolves at the ROI's centre ([`resolvable_separation`]) raises the split floor
+/// to [`CoarseFit::FROM_RATIO`] times the ROI's capacity ([`default_target_scale`]) or
+/// more, as one laser spot on one back and a few hundred detection points on another
+/// do (3.0–3.4 times on independent renders) and no validation capture does
+/// (0.41–0.83; 2 cm bars scanned confocally at a 4 cm pitch, 1.18). There the pairs place light across their mean path gradient so
+/// loosely that an unconstrained fit strings a surface's light along its columns in
+/// depth; twice the pairs a step and the surface prior hold it to the surface
+/// (docs/recon.md, "A fit for coarse captures").
+///
+/// The choice is made once, when the fit first has data (a streamed fit: its first
+/// batch), and logged.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct CoarseFit {
+    /// Pairs per mini-batch there.
+    pub batch_size: usize,
+    /// The surface prior there (`None`: off).
+    pub surface: Option<SurfacePrior>,
+}
+
+impl CoarseFit {
+    /// The split floor over the ROI's capacity from which a capture counts as coarse.
+    pub const FROM_RATIO: f64 = 2.0;
+
+    /// The batch size a coarse capture takes when the plan sets none.
+    pub const DEFAULT_BATCH: usize = 8;
 }
 
 /// A prior that holds each column of the scene to one surface.
@@ -951,6 +983,7 @@ impl Default for TrainConfig {
             seed: 0,
             converge: None,
             surface: None,
+            coarse: None,
         }
     }
 }
@@ -1162,7 +1195,7 @@ impl Trainer {
                 "the number of primitives must be at least 1".into(),
             ));
         }
-        if config.batch_size == 0 {
+        if config.batch_size == 0 || config.coarse.is_some_and(|c| c.batch_size == 0) {
             return Err(TrainError::Config("the batch size must be at least 1".into()));
         }
         let min_half = roi.half.min_element();
@@ -1239,6 +1272,7 @@ impl Trainer {
             return Err(TrainError::NothingVisible);
         }
         self.options.loss = self.resolve_loss()?;
+        self.choose_coarse_fit();
         // The model has no background: match its total to the data's above it.
         let background = match self.options.loss {
             Loss::Poisson { background } => {
@@ -1319,6 +1353,12 @@ impl Trainer {
     /// The current primitives.
     pub fn cloud(&self) -> &GaussianCloud {
         &self.cloud
+    }
+
+    /// The settings in force: the configured ones, with [`TrainConfig::coarse`]'s in
+    /// place of the batch size and the surface prior once the data chose them.
+    pub fn config(&self) -> &TrainConfig {
+        &self.config
     }
 
     /// The render options in force, including the matched gain.
@@ -1807,11 +1847,45 @@ impl Trainer {
     /// children drifted into lumps that an image shows instead of the surface
     /// (docs/recon.md, "The mannequin").
     pub fn split_floor(&self) -> f64 {
+        let (capacity, resolved) = self.floor_and_capacity();
+        let roi = self.cloud.roi();
+        resolved.map_or(capacity, |d| capacity.max(d).min(roi.half.max_element()))
+    }
+
+    /// The ROI's capacity ([`default_target_scale`]) and the scale whose split
+    /// children lie [`resolvable_separation`] apart at its centre, where the data say.
+    fn floor_and_capacity(&self) -> (f64, Option<f64>) {
         let roi = self.cloud.roi();
         let capacity = default_target_scale(roi, self.config.primitives);
-        resolvable_separation(&self.data, roi.centre, self.options.sigma_sys).map_or(capacity, |d| {
-            capacity.max(d / 3f64.sqrt()).min(roi.half.max_element())
-        })
+        let resolved =
+            resolvable_separation(&self.data, roi.centre, self.options.sigma_sys).map(|d| d / 3f64.sqrt());
+        (capacity, resolved)
+    }
+
+    /// Takes [`TrainConfig::coarse`]'s settings if the data place points coarsely;
+    /// once, at the first data.
+    fn choose_coarse_fit(&mut self) {
+        let (capacity, resolved) = self.floor_and_capacity();
+        let ratio = resolved.map_or(0.0, |f| f / capacity);
+        let coarse = ratio >= CoarseFit::FROM_RATIO;
+        tracing::info!(
+            resolved_split_m = resolved,
+            capacity_m = capacity,
+            ratio,
+            coarse,
+            "what the capture resolves at the ROI's centre against what its primitives can hold"
+        );
+        if let Some(c) = self.config.coarse.take()
+            && coarse
+        {
+            tracing::info!(
+                batch = c.batch_size,
+                surface_spread_m = c.surface.map(|p| p.spread),
+                "a coarse capture: the fit takes its settings for one ([gtr] batch and surface-spread set them)"
+            );
+            self.config.batch_size = c.batch_size;
+            self.config.surface = c.surface;
+        }
     }
 
     /// Removes primitives at the ROI boundary, with negligible weight, or never moved;
