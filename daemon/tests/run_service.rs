@@ -489,20 +489,29 @@ async fn metrics_parse_as_prometheus_text() {
     let id = v["id"].as_str().unwrap().to_owned();
     wait_state(&router, &id, &["completed"]).await;
     let _ = call(&router, Method::GET, "/api/v1/runs/nope", None, "").await;
-    let resp = router
-        .clone()
-        .oneshot(request(&Method::GET, "/metrics", None, "", false))
-        .await
-        .unwrap();
-    assert_eq!(resp.status(), StatusCode::OK);
-    assert!(
-        resp.headers()[header::CONTENT_TYPE]
-            .to_str()
-            .unwrap()
-            .starts_with("text/plain; version=0.0.4")
-    );
-    let bytes = axum::body::to_bytes(resp.into_body(), 1 << 20).await.unwrap();
-    let text = String::from_utf8(bytes.to_vec()).unwrap();
+    // The runs per state come from the catalogue, which its indexer updates moments
+    // after run.json (a clean-clone CI run scraped it still "running").
+    let t = Instant::now();
+    let text = loop {
+        let resp = router
+            .clone()
+            .oneshot(request(&Method::GET, "/metrics", None, "", false))
+            .await
+            .unwrap();
+        assert_eq!(resp.status(), StatusCode::OK);
+        assert!(
+            resp.headers()[header::CONTENT_TYPE]
+                .to_str()
+                .unwrap()
+                .starts_with("text/plain; version=0.0.4")
+        );
+        let bytes = axum::body::to_bytes(resp.into_body(), 1 << 20).await.unwrap();
+        let text = String::from_utf8(bytes.to_vec()).unwrap();
+        if text.contains("periscope_runs{state=\"completed\"} 1") || t.elapsed() > Duration::from_secs(10) {
+            break text;
+        }
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    };
     let lines = text.lines().map(|l| Ok(l.to_owned()));
     let scrape = prometheus_parse::Scrape::parse(lines).expect("Prometheus text format");
     let value = |name: &str, label: Option<(&str, &str)>| -> Option<f64> {
