@@ -264,6 +264,11 @@ fn a_mannequin_behind_two_backs_rendered_by_mitransient_is_found_whole() {
         score.iou
     );
     assert!(median < 0.02, "median depth error {median:.3} m ≥ 2 cm");
+    assert_eq!(
+        fit_in_force(&out),
+        (8, Some(0.018), true),
+        "one laser spot and 256 detection points on two backs: a coarse capture"
+    );
 }
 
 /// The validation set's scores of a volume against a rendered mannequin's truth.
@@ -379,6 +384,25 @@ fn bars_finer_than_the_pitch_rendered_by_mitransient_are_resolved() {
         "a 4 cm pitch (mitransient)",
         0.7,
     );
+    // A confocal grid over a plane is no coarse capture: its own fit, prior off.
+    assert_eq!(
+        fit_in_force(&out),
+        (4, None, false),
+        "batch, surface spread, coarse"
+    );
+}
+
+/// The fit's settings in force as `volume.json` records them: batch, surface spread,
+/// and whether the capture counted as coarse.
+fn fit_in_force(out: &Path) -> (u64, Option<f64>, bool) {
+    let json: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("volume.json")).unwrap()).unwrap();
+    let fit = &json["fit"];
+    (
+        fit["batch"].as_u64().expect("fit.batch"),
+        fit["surface_spread_m"].as_f64(),
+        fit["coarse"].as_bool().expect("fit.coarse"),
+    )
 }
 
 /// The brightest value over the patch against the 90th percentile over the bars, in

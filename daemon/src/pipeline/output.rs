@@ -68,6 +68,18 @@ struct VolumeJson<'a> {
     /// The fit's last epoch loss (method `gtr`): the run catalogue's score of the fit.
     #[serde(skip_serializing_if = "Option::is_none")]
     final_loss: Option<f64>,
+    /// The fit's settings the data chose (method `gtr`): `batch`, `surface_spread_m`
+    /// and whether the capture counted as `coarse`.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    fit: Option<FitJson>,
+}
+
+/// [`VolumeJson::fit`].
+#[derive(Serialize)]
+struct FitJson {
+    batch: usize,
+    surface_spread_m: Option<f64>,
+    coarse: bool,
 }
 
 /// Writes every output of a reconstruction into `dir`.
@@ -97,6 +109,11 @@ pub fn write_outputs(dir: &Path, r: &ReconResult, events: &EventSink) -> Result<
         timings_s: &r.timings,
         compute: &r.device,
         final_loss: r.train.as_ref().map(|t| t.final_loss).filter(|l| l.is_finite()),
+        fit: r.train.as_ref().map(|t| FitJson {
+            batch: t.batch_size,
+            surface_spread_m: t.surface_spread,
+            coarse: t.coarse,
+        }),
     };
     let p = dir.join(file::VOLUME_JSON);
     crate::store::write_atomic(

@@ -231,10 +231,11 @@ pub struct TrainConfig {
 /// to [`CoarseFit::FROM_RATIO`] times the ROI's capacity ([`default_target_scale`]) or
 /// more, as one laser spot on one back and a few hundred detection points on another
 /// do (3.0–3.4 times on independent renders) and no validation capture does
-/// (0.41–0.83; 2 cm bars scanned confocally at a 4 cm pitch, 1.18). There the pairs place light across their mean path gradient so
-/// loosely that an unconstrained fit strings a surface's light along its columns in
-/// depth; twice the pairs a step and the surface prior hold it to the surface
-/// (docs/recon.md, "A fit for coarse captures").
+/// (0.41–0.83; 2 cm bars scanned confocally at a 4 cm pitch, 1.18). There the pairs
+/// place light across their mean path gradient so loosely that an unconstrained fit
+/// strings a surface's light along its columns in depth; twice the pairs a step and
+/// the surface prior hold it to the surface (docs/recon.md, "A fit for coarse
+/// captures").
 ///
 /// The choice is made once, when the fit first has data (a streamed fit: its first
 /// batch), and logged.
@@ -1130,11 +1131,21 @@ pub struct TrainSummary {
     pub final_loss: f64,
     /// Whether the fit was cancelled.
     pub cancelled: bool,
+    /// Pairs per mini-batch in force ([`TrainConfig::batch_size`], or
+    /// [`TrainConfig::coarse`]'s).
+    pub batch_size: usize,
+    /// The surface prior's spread in force, metres (`None`: off).
+    pub surface_spread: Option<f64>,
+    /// Whether the data counted as a coarse capture and the fit took
+    /// [`TrainConfig::coarse`]'s settings.
+    pub coarse: bool,
 }
 
 /// A fit in progress.
 pub struct Trainer {
     config: TrainConfig,
+    /// Whether [`TrainConfig::coarse`]'s settings were taken.
+    coarse: bool,
     data: TransientSet,
     cloud: GaussianCloud,
     start_centres: Vec<f64>,
@@ -1244,6 +1255,7 @@ impl Trainer {
             gpu: None,
             gpu_failure: None,
             config,
+            coarse: false,
         };
         trainer.match_gain()?;
         Ok(trainer)
@@ -1824,6 +1836,9 @@ impl Trainer {
             steps: self.step,
             final_loss,
             cancelled,
+            batch_size: self.config.batch_size,
+            surface_spread: self.config.surface.map(|p| p.spread),
+            coarse: self.coarse,
         }
     }
 
@@ -1885,6 +1900,7 @@ impl Trainer {
             );
             self.config.batch_size = c.batch_size;
             self.config.surface = c.surface;
+            self.coarse = true;
         }
     }
 
