@@ -10,7 +10,7 @@ use std::path::Path;
 use std::time::Duration;
 
 use periscope_recon::io::read_npy;
-use periscope_tests::{Finished, periscope_with_env};
+use periscope_tests::{Finished, Projection, periscope_with_env};
 
 const CAPTURE: &str = "tests/data/ytal/confocal_xy.hdf5";
 const GRID: &str = "[volume]\nx = [-0.3, 0.3]\ny = [-0.3, 0.3]\nz = [0.3, 0.7]\nshape = [24, 24, 32]\n";
@@ -55,79 +55,142 @@ fn difference(a: &Path, b: &Path) -> f64 {
     (num / den).sqrt()
 }
 
+/// How two volumes' images agree: the IoU of their silhouettes (Otsu's threshold on
+/// the maximum projection, as the validation set scores) and the mean distance, in
+/// depth slices, between the two maxima of the columns both silhouettes hold.
+fn image_agreement(a: &Path, b: &Path) -> (f64, f64) {
+    let (a, b) = (Projection::of(a), Projection::of(b));
+    let (sa, sb) = (a.silhouette(), b.silhouette());
+    let (mut inter, mut union, mut slices) = (0usize, 0usize, 0usize);
+    for c in 0..sa.len() {
+        inter += usize::from(sa[c] && sb[c]);
+        union += usize::from(sa[c] || sb[c]);
+        if sa[c] && sb[c] {
+            slices += a.slice[c].abs_diff(b.slice[c]);
+        }
+    }
+    assert!(inter > 0, "the silhouettes share no column");
+    (inter as f64 / union as f64, slices as f64 / inter as f64)
+}
+
+/// The reconstruction on the GPU, or `None` where no adapter is found and the test
+/// may skip (`PERISCOPE_REQUIRE_GPU` unset).
+fn on_gpu(dir: &Path, name: &str, config: &str) -> Option<std::path::PathBuf> {
+    let (done, gpu) = recon(
+        dir,
+        &format!("{name}-gpu"),
+        &format!("{config}[compute]\ndevice = \"gpu\""),
+        &[],
+    );
+    if done.code == Some(2) && done.stderr.contains("no GPU is usable") {
+        assert!(
+            std::env::var_os("PERISCOPE_REQUIRE_GPU").is_none(),
+            "PERISCOPE_REQUIRE_GPU is set but: {}",
+            done.stderr
+        );
+        eprintln!(
+            "SKIPPED a_reconstruction_on_the_gpu_is_the_cpus: {}",
+            done.stderr.trim()
+        );
+        return None;
+    }
+    assert_eq!(
+        done.code,
+        Some(0),
+        "{name} on the GPU:\n{}\n{}",
+        done.stdout,
+        done.stderr
+    );
+    let compute = compute_of(&gpu);
+    assert_eq!(compute["device"], "gpu", "{compute}");
+    assert!(
+        compute["adapter"].as_str().is_some_and(|a| !a.is_empty()),
+        "{compute}"
+    );
+    Some(gpu)
+}
+
+/// The same on the CPU.
+fn on_cpu(dir: &Path, name: &str, config: &str) -> std::path::PathBuf {
+    let (done, cpu) = recon(
+        dir,
+        &format!("{name}-cpu"),
+        &format!("{config}[compute]\ndevice = \"cpu\""),
+        &[],
+    );
+    assert_eq!(
+        done.code,
+        Some(0),
+        "{name} on the CPU:\n{}\n{}",
+        done.stdout,
+        done.stderr
+    );
+    assert_eq!(compute_of(&cpu), serde_json::json!({"device": "cpu"}));
+    cpu
+}
+
 /// 3D-GTR (its fit's steps, synthesis and FBP on the GPU) and FBP on the measured
-/// pairs, each against the same on the CPU: the volumes agree to 2e-3 relative L2 for
-/// 3D-GTR (a fit of 512 steps whose gradients are f32 goes a slightly different way:
-/// 4.8e-4 measured on lavapipe) and 1e-3 for FBP (1.5e-6), and `volume.json` names
-/// the adapter. The fit is short (400 primitives, 8 epochs): on lavapipe a default
-/// fit's 8,192 steps take minutes (docs/gpu.md).
+/// pairs, each against the same on the CPU, and `volume.json` names the adapter:
+///
+/// - a fit of one epoch (400 primitives, 64 steps): the volumes agree to 2e-3 relative
+///   L2 (measured on lavapipe: 1.1e-5);
+/// - a fit of eight epochs (512 steps): its f32 steps go their own way, as any fit's
+///   do over a few hundred steps (the split and prune rounds between epochs turn a
+///   small difference into another cloud), so the images are compared: the
+///   silhouettes' IoU above 0.9 and their depths within half a slice on average.
+///   Measured on lavapipe: volumes 3.2e-4 apart, IoU 1.0, 0 slices; on an NVIDIA
+///   H200 the volumes were 4.8e-2 apart (2026-12-04, when this test still asked for
+///   2e-3 there), and the validation captures' default fits 1.9e-2 to 8.4e-2, with
+///   silhouettes 0.94 to 1.0 alike and depths 0 to 0.21 slices apart (docs/gpu.md);
+/// - FBP, the exact path on both (the CPU's default, `auto`, may take the hierarchy):
+///   1e-3 relative L2 (measured on lavapipe: 1.5e-6).
+///
+/// The surface prior is off: the CPU applies it as a gradient every step, the GPU,
+/// whose steps run resident, as a pull once an epoch (docs/recon.md, "A surface
+/// prior"), so with it the two fits differ by design. The fits are short: on lavapipe a
+/// default fit's 8,192 steps take minutes (docs/gpu.md).
 #[test]
 fn a_reconstruction_on_the_gpu_is_the_cpus() {
     let dir = tempfile::tempdir().unwrap();
-    for (method, extra, bound) in [
-        // The surface prior off: the CPU applies it as a gradient every step, the GPU,
-        // whose steps run resident, as a pull once an epoch (docs/recon.md, "A surface
-        // prior"), so with it the two fits differ by design.
+    let gtr = |epochs: u32| {
+        format!("method = \"gtr\"\n[gtr]\nprimitives = 400\nepochs = {epochs}\nsurface-spread = 0\n")
+    };
+    for (name, config, bound) in [
+        ("gtr-1", gtr(1), 2e-3),
         (
-            "gtr",
-            "[gtr]\nprimitives = 400\nepochs = 8\nsurface-spread = 0\n",
-            2e-3,
+            "fbp",
+            "method = \"fbp\"\n[fbp]\nbackprojection = \"exact\"\n".to_owned(),
+            1e-3,
         ),
-        // The exact path on both: the CPU's default, `auto`, may take the hierarchy.
-        ("fbp", "[fbp]\nbackprojection = \"exact\"\n", 1e-3),
     ] {
-        let (done, gpu) = recon(
-            dir.path(),
-            &format!("{method}-gpu"),
-            &format!("method = \"{method}\"\n{extra}[compute]\ndevice = \"gpu\""),
-            &[],
-        );
-        if done.code == Some(2) && done.stderr.contains("no GPU is usable") {
-            assert!(
-                std::env::var_os("PERISCOPE_REQUIRE_GPU").is_none(),
-                "PERISCOPE_REQUIRE_GPU is set but: {}",
-                done.stderr
-            );
-            eprintln!(
-                "SKIPPED a_reconstruction_on_the_gpu_is_the_cpus: {}",
-                done.stderr.trim()
-            );
+        let Some(gpu) = on_gpu(dir.path(), name, &config) else {
             return;
-        }
-        assert_eq!(
-            done.code,
-            Some(0),
-            "{method} on the GPU:\n{}\n{}",
-            done.stdout,
-            done.stderr
-        );
-        let compute = compute_of(&gpu);
-        assert_eq!(compute["device"], "gpu", "{compute}");
-        assert!(
-            compute["adapter"].as_str().is_some_and(|a| !a.is_empty()),
-            "{compute}"
-        );
-        let (done, cpu) = recon(
-            dir.path(),
-            &format!("{method}-cpu"),
-            &format!("method = \"{method}\"\n{extra}[compute]\ndevice = \"cpu\""),
-            &[],
-        );
-        assert_eq!(
-            done.code,
-            Some(0),
-            "{method} on the CPU:\n{}\n{}",
-            done.stdout,
-            done.stderr
-        );
-        assert_eq!(compute_of(&cpu), serde_json::json!({"device": "cpu"}));
+        };
+        let cpu = on_cpu(dir.path(), name, &config);
         let d = difference(&gpu, &cpu);
-        eprintln!("{method}: GPU against CPU, relative L2 {d:.2e}");
+        eprintln!("{name}: GPU against CPU, relative L2 {d:.2e}");
         assert!(
             d < bound,
-            "{method}: the GPU's volume differs from the CPU's by {d:e} (relative L2)"
+            "{name}: the GPU's volume differs from the CPU's by {d:e} (relative L2)"
         );
     }
+    let Some(gpu) = on_gpu(dir.path(), "gtr-8", &gtr(8)) else {
+        return;
+    };
+    let cpu = on_cpu(dir.path(), "gtr-8", &gtr(8));
+    let (iou, slices) = image_agreement(&gpu, &cpu);
+    eprintln!(
+        "gtr-8: GPU against CPU, relative L2 {:.2e}, silhouettes' IoU {iou:.3}, depths {slices:.2} slices apart",
+        difference(&gpu, &cpu)
+    );
+    assert!(
+        iou > 0.9,
+        "gtr-8: the GPU's silhouette is not the CPU's: IoU {iou:.3}"
+    );
+    assert!(
+        slices < 0.5,
+        "gtr-8: the GPU's depths are {slices:.2} slices from the CPU's on average"
+    );
 }
 
 /// With no Vulkan driver to be found (the loader pointed at none), `"gpu"` fails

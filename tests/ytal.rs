@@ -12,7 +12,9 @@ use std::time::Duration;
 use periscope_recon::VolumeGrid;
 use periscope_recon::io::read_npy;
 use periscope_recon::io::ytal::{HFormat, YtalCapture};
-use periscope_tests::{BarsGrid, Finished, assert_bars_resolved, periscope_with_limit, repo_path};
+use periscope_tests::{
+    BarsGrid, Finished, Projection, assert_bars_resolved, periscope_with_limit, repo_path,
+};
 
 /// Median depth error over the patch and silhouette IoU of `out/depth.npy` on `grid`.
 fn patch_accuracy(out: &Path, grid: &VolumeGrid) -> (f64, f64) {
@@ -206,30 +208,6 @@ fn a_two_torso_capture_rendered_by_mitransient_reconstructs() {
     assert!(iou > 0.45, "silhouette IoU {iou:.2} ≤ 0.45");
 }
 
-/// Otsu's threshold on values in [0, 1] (256 bins, the validation scorer's).
-fn otsu(values: &[f64]) -> f64 {
-    let mut hist = [0.0f64; 256];
-    for v in values {
-        hist[((v.clamp(0.0, 1.0) * 256.0) as usize).min(255)] += 1.0;
-    }
-    let total: f64 = hist.iter().sum();
-    let (mut w0, mut mu, mut best) = (0.0, 0.0, (f64::NEG_INFINITY, 1.0));
-    let mu_t: f64 = hist
-        .iter()
-        .enumerate()
-        .map(|(k, h)| h / total * (k as f64 + 0.5) / 256.0)
-        .sum();
-    for (k, h) in hist.iter().enumerate().take(255) {
-        w0 += h / total;
-        mu += h / total * (k as f64 + 0.5) / 256.0;
-        let between = (mu_t * w0 - mu).powi(2) / (w0 * (1.0 - w0));
-        if between.is_finite() && between > best.0 {
-            best = (between, (k + 1) as f64 / 256.0);
-        }
-    }
-    best.1
-}
-
 /// The mannequin of issue 54's two-torso regime, rendered by mitransient
 /// (render_torso.py `--scene mannequin --mannequin=0,0.5,0 --grid 16x24 --points 256
 /// --seed 4 --bins 256 --t-start 0.8 --spp 65536`): a 1 m child-sized mannequin 0.5 m
@@ -283,37 +261,22 @@ struct Silhouette {
 /// [`Silhouette`] of `out/volume.npy` on `grid` against `tests/data/ytal/NAME_mask.npy`
 /// and `NAME_depth.npy` (32 × 32, indexed x then y, as render_torso.py writes them).
 fn silhouette_and_depths(out: &Path, grid: &VolumeGrid, name: &str) -> Silhouette {
-    let (dims, volume) = read_npy(&out.join("volume.npy")).expect("volume.npy");
-    let (nz, ny, nx) = (dims[0], dims[1], dims[2]);
+    let image = Projection::of(out);
+    let (nx, ny) = (image.nx, image.ny);
     let (_, mask) = read_npy(&repo_path(&format!("tests/data/ytal/{name}_mask.npy"))).unwrap();
     let (_, truth_depth) = read_npy(&repo_path(&format!("tests/data/ytal/{name}_depth.npy"))).unwrap();
-    let dz = (grid.z[1] - grid.z[0]) / nz as f64;
-    // An empty column reads the first slice's depth, as the validation's argmax does.
-    let (mut mip, mut depth) = (vec![0.0f64; nx * ny], vec![grid.z[0] + 0.5 * dz; nx * ny]);
-    for iy in 0..ny {
-        for ix in 0..nx {
-            for iz in 0..nz {
-                let v = f64::from(volume[(iz * ny + iy) * nx + ix]);
-                if v > mip[iy * nx + ix] {
-                    mip[iy * nx + ix] = v;
-                    depth[iy * nx + ix] = grid.z[0] + (iz as f64 + 0.5) * dz;
-                }
-            }
-        }
-    }
-    let peak = mip.iter().cloned().fold(0.0, f64::max);
-    assert!(peak > 0.0, "an empty volume");
-    let norm: Vec<f64> = mip.iter().map(|v| v / peak).collect();
-    let threshold = otsu(&norm);
+    let dz = (grid.z[1] - grid.z[0]) / image.nz as f64;
+    let found = image.silhouette();
     let (mut inter, mut union, mut errors) = (0usize, 0usize, Vec::new());
     for iy in 0..ny {
         for ix in 0..nx {
             let truth = mask[ix * ny + iy] > 0.5;
-            let found = norm[iy * nx + ix] > threshold;
+            let found = found[iy * nx + ix];
             inter += usize::from(truth && found);
             union += usize::from(truth || found);
             if truth {
-                errors.push((depth[iy * nx + ix] - f64::from(truth_depth[ix * ny + iy])).abs());
+                let depth = grid.z[0] + (image.slice[iy * nx + ix] as f64 + 0.5) * dz;
+                errors.push((depth - f64::from(truth_depth[ix * ny + iy])).abs());
             }
         }
     }

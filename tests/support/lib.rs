@@ -290,6 +290,80 @@ fn bar_profile(run: &Path, grid: BarsGrid) -> Vec<f64> {
     profile.iter().map(|v| v / max).collect()
 }
 
+/// A volume's image as the validation scorer reads it: the maximum along depth of each
+/// column (`volume.npy` is indexed z, y, x), divided by the volume's peak, and the depth
+/// slice of each column's maximum (an empty column reads slice 0, as an argmax does).
+pub struct Projection {
+    /// Columns along x and y.
+    pub nx: usize,
+    /// Rows along y.
+    pub ny: usize,
+    /// Depth slices.
+    pub nz: usize,
+    /// Each column's maximum over the volume's peak, row by row (`iy * nx + ix`).
+    pub mip: Vec<f64>,
+    /// Each column's slice of its maximum, in the same order.
+    pub slice: Vec<usize>,
+}
+
+impl Projection {
+    /// The projection of `volume.npy` in `out`.
+    pub fn of(out: &Path) -> Projection {
+        let (dims, volume) = read_npy(&out.join("volume.npy")).expect("volume.npy");
+        let (nz, ny, nx) = (dims[0], dims[1], dims[2]);
+        let (mut mip, mut slice) = (vec![0.0f64; nx * ny], vec![0usize; nx * ny]);
+        for iz in 0..nz {
+            for c in 0..nx * ny {
+                let v = f64::from(volume[iz * nx * ny + c]);
+                if v > mip[c] {
+                    mip[c] = v;
+                    slice[c] = iz;
+                }
+            }
+        }
+        let peak = mip.iter().cloned().fold(0.0, f64::max);
+        assert!(peak > 0.0, "an empty volume in {}", out.display());
+        mip.iter_mut().for_each(|v| *v /= peak);
+        Projection {
+            nx,
+            ny,
+            nz,
+            mip,
+            slice,
+        }
+    }
+
+    /// The silhouette: columns above Otsu's threshold of the projection.
+    pub fn silhouette(&self) -> Vec<bool> {
+        let threshold = otsu(&self.mip);
+        self.mip.iter().map(|v| *v > threshold).collect()
+    }
+}
+
+/// Otsu's threshold on values in [0, 1] (256 bins, the validation scorer's).
+pub fn otsu(values: &[f64]) -> f64 {
+    let mut hist = [0.0f64; 256];
+    for v in values {
+        hist[((v.clamp(0.0, 1.0) * 256.0) as usize).min(255)] += 1.0;
+    }
+    let total: f64 = hist.iter().sum();
+    let (mut w0, mut mu, mut best) = (0.0, 0.0, (f64::NEG_INFINITY, 1.0));
+    let mu_t: f64 = hist
+        .iter()
+        .enumerate()
+        .map(|(k, h)| h / total * (k as f64 + 0.5) / 256.0)
+        .sum();
+    for (k, h) in hist.iter().enumerate().take(255) {
+        w0 += h / total;
+        mu += h / total * (k as f64 + 0.5) / 256.0;
+        let between = (mu_t * w0 - mu).powi(2) / (w0 * (1.0 - w0));
+        if between.is_finite() && between > best.0 {
+            best = (between, (k + 1) as f64 / 256.0);
+        }
+    }
+    best.1
+}
+
 #[cfg(test)]
 mod tests {
     use super::SmallPlan;

@@ -80,7 +80,9 @@ pub enum GpuError {
     /// No adapter of the kind asked for.
     #[error(
         "no GPU is usable ({found}): install the GPU's Vulkan driver (or Mesa's software one, Debian's \
-         `mesa-vulkan-drivers`, to check the GPU path), or set [compute] device = \"cpu\" or \"auto\""
+         `mesa-vulkan-drivers`, to check the GPU path; NVIDIA's loads only with GLVND beside it, Debian's \
+         `libglvnd0` and `libglx0`, and `VK_LOADER_DEBUG=driver` shows what the Vulkan loader tried), or set \
+         [compute] device = \"cpu\" or \"auto\""
     )]
     NoAdapter {
         /// The adapters seen, or "no Vulkan, Metal or DX12 adapter".
