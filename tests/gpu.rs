@@ -145,9 +145,10 @@ fn on_cpu(dir: &Path, name: &str, config: &str) -> std::path::PathBuf {
 /// - FBP, the exact path on both (the CPU's default, `auto`, may take the hierarchy):
 ///   1e-3 relative L2 (measured on lavapipe: 1.5e-6).
 ///
-/// The surface prior is off: the CPU applies it as a gradient every step, the GPU,
-/// whose steps run resident, as a pull once an epoch (docs/recon.md, "A surface
-/// prior"), so with it the two fits differ by design. The fits are short: on lavapipe a
+/// The surface prior is off: its gradient takes the column means of each step on the
+/// CPU and of each epoch's start on the GPU, whose steps run resident (docs/recon.md,
+/// "A surface prior"), so with it the two fits differ by design (`recon/src/gpu/fit.rs`
+/// checks the GPU's steps with it against the CPU's at the same terms). The fits are short: on lavapipe a
 /// default fit's 8,192 steps take minutes (docs/gpu.md).
 #[test]
 fn a_reconstruction_on_the_gpu_is_the_cpus() {

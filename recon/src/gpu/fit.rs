@@ -226,7 +226,8 @@ struct UpdateParams {
     eps: f32,
     mean_weight: f32,
     prims: u32,
-    pad: u32,
+    /// The step's pairs, whose losses scale the surface prior's gradient; 0: no prior.
+    prior_pairs: u32,
 }
 
 /// Steps a submission records: the fit checks `stop` and reads the losses back
@@ -242,7 +243,9 @@ const STEPS_PER_SUBMISSION: usize = 32;
 /// between steps but each batch's loss, 32 steps to a submission; `state` is read
 /// back at the end. When `stop()` turns true between submissions, the steps end
 /// there: the losses say how many were taken, and `state` holds the parameters after
-/// them.
+/// them. `prior`, one `[z̄, c]` a primitive ([`crate::gtr::SurfacePrior`]'s terms),
+/// adds the surface prior's gradient c · L · (z − z̄) to each step's, L the step's
+/// loss, as the CPU's steps do with the terms of their own step.
 #[allow(clippy::too_many_arguments)]
 pub fn fit_steps(
     gpu: &Gpu,
@@ -253,9 +256,13 @@ pub fn fit_steps(
     step: &mut dyn FnMut(usize) -> Step,
     axis: &TimeAxis,
     opt: &RenderOptions,
+    prior: Option<&[[f32; 2]]>,
     stop: &dyn Fn() -> bool,
 ) -> Result<Steps, GpuError> {
     let (k, bins) = (kernels.len(), axis.bins);
+    if let Some(prior) = prior {
+        assert_eq!(prior.len(), k, "the prior's terms, one a primitive");
+    }
     assert_eq!(state.raw.len(), RAW * k, "{RAW} raw parameters a primitive");
     assert_eq!(state.m1.len(), RAW * k, "a first moment a parameter");
     assert_eq!(state.m2.len(), RAW * k, "a second moment a parameter");
@@ -270,6 +277,7 @@ pub fn fit_steps(
         let m2 = gpu.upload("second moments", &state.m2);
         let mean = gpu.upload("running mean", state.mean.as_deref().unwrap_or(&[]));
         let skipped = gpu.upload("skipped entries", &[0u32; 4]);
+        let prior_terms = gpu.upload("surface prior", prior.unwrap_or(&[[0.0; 2]]));
         let update = gpu
             .update
             .get_or_init(|| gpu.pipeline("update", &source(include_str!("update.wgsl"))));
@@ -305,13 +313,23 @@ pub fn fit_steps(
                         eps: o.eps as f32,
                         mean_weight: s.mean_of.map_or(0.0, |n| 1.0 / n.max(1) as f32),
                         prims: k as u32,
-                        pad: 0,
+                        prior_pairs: if prior.is_some() { b as u32 } else { 0 },
                     };
                     let uniform = gpu.uniform("update parameters", &params);
                     gpu.dispatch(
                         &mut encoder,
                         update,
-                        &[&uniform, &batch.result, &raw, &m1, &m2, &mean, &prims, &skipped],
+                        &[
+                            &uniform,
+                            &batch.result,
+                            &raw,
+                            &m1,
+                            &m2,
+                            &mean,
+                            &prims,
+                            &skipped,
+                            &prior_terms,
+                        ],
                         spread(k.div_ceil(UPDATE_THREADS)),
                     );
                 }
@@ -383,7 +401,7 @@ mod tests {
     use super::*;
     use crate::gpu::testing;
     use crate::gtr::{
-        AdamW, AdamWSettings, GaussianCloud, GroupSettings, Primitive, RawGrads, ScaleBounds,
+        AdamW, AdamWSettings, GaussianCloud, GroupSettings, Primitive, RawGrads, ScaleBounds, SurfacePrior,
         batch_loss_grad, render_set,
     };
     use crate::roi::RoiBox;
@@ -477,6 +495,39 @@ mod tests {
         let Some(gpu) = testing::gpu("steps_resident_on_the_gpu_are_the_cpus_steps") else {
             return;
         };
+        resident_steps_against_the_cpus(&gpu, None);
+    }
+
+    /// The same with the surface prior, its terms those of the first step's
+    /// primitives on both: 3 cm columns and a 5 mm spread, so the prior's share of the
+    /// depths' gradient is large (leaving it out of `update.wgsl` fails this).
+    #[test]
+    fn steps_resident_on_the_gpu_take_the_surface_priors_gradient() {
+        let Some(gpu) = testing::gpu("steps_resident_on_the_gpu_take_the_surface_priors_gradient") else {
+            return;
+        };
+        resident_steps_against_the_cpus(
+            &gpu,
+            Some(SurfacePrior {
+                spread: 0.005,
+                cell: 0.03,
+            }),
+        );
+    }
+
+    /// The surface prior's gradient at fixed `terms` ([`SurfacePrior::terms`]) on the
+    /// CPU, in f64: what `SurfacePrior::add_gradient` adds with the terms of its own step.
+    fn add_prior(cloud: &GaussianCloud, terms: &[[f64; 2]], loss: f64, grads: &mut RawGrads) {
+        for (i, k) in cloud.kernels().iter().enumerate() {
+            let [mean, c] = terms[i];
+            grads.centres[3 * i + 2] += c * loss * (k.x.z - mean) * cloud.slopes(i).centre.z;
+        }
+    }
+
+    /// Three steps from an optimiser state three CPU steps old on each side (with
+    /// `prior`'s gradient, at the terms of the state they start from), compared as
+    /// the test above says.
+    fn resident_steps_against_the_cpus(gpu: &Gpu, prior: Option<SurfacePrior>) {
         let (cloud, set, opt) = scene();
         let settings = AdamWSettings {
             centres: GroupSettings {
@@ -502,22 +553,50 @@ mod tests {
         let cpu_step = |cloud: &mut GaussianCloud,
                         adam: &mut AdamW,
                         i: usize,
-                        mean: Option<(&mut GaussianCloud, usize)>| {
+                        mean: Option<(&mut GaussianCloud, usize)>,
+                        terms: Option<&[[f64; 2]]>| {
             let mut grads = RawGrads::default();
-            let loss = batch_loss_grad(cloud, &cloud.kernels(), &set, &batches[i], &opt, &mut grads);
+            let kernels = cloud.kernels();
+            let loss = batch_loss_grad(cloud, &kernels, &set, &batches[i], &opt, &mut grads);
+            if let Some(terms) = terms {
+                add_prior(cloud, terms, loss, &mut grads);
+            }
             assert_eq!(adam.step_averaged(cloud, &grads, factors[i], mean), 0);
             loss
         };
         let mut warm = cloud.clone();
         let mut adam = AdamW::new(settings);
         for i in 0..3 {
-            cpu_step(&mut warm, &mut adam, i, None);
+            cpu_step(&mut warm, &mut adam, i, None, None);
         }
         let (start, adam_start) = (warm.clone(), adam.clone());
+        let terms = prior.map(|p| p.terms(&start.kernels(), start.roi()).expect("the prior's terms"));
+        if let Some(terms) = &terms {
+            // The prior's gradient is a large share of the depths' on this scene.
+            let (mut data, mut with) = (RawGrads::default(), RawGrads::default());
+            let loss = batch_loss_grad(&start, &start.kernels(), &set, &batches[3], &opt, &mut data);
+            batch_loss_grad(&start, &start.kernels(), &set, &batches[3], &opt, &mut with);
+            add_prior(&start, terms, loss, &mut with);
+            let z = |g: &RawGrads| g.centres.iter().skip(2).step_by(3).copied().collect::<Vec<_>>();
+            let share = relative_l2(&z(&with), &z(&data));
+            eprintln!("the prior changes the depths' gradient by {share:.2} relative L2");
+            assert!(share > 0.3, "{share}");
+        }
         let mut cpu_mean = warm.clone();
         let cpu_losses: Vec<f64> = (3..6)
-            .map(|i| cpu_step(&mut warm, &mut adam, i, Some((&mut cpu_mean, i - 2))))
+            .map(|i| {
+                cpu_step(
+                    &mut warm,
+                    &mut adam,
+                    i,
+                    Some((&mut cpu_mean, i - 2)),
+                    terms.as_deref(),
+                )
+            })
             .collect();
+        let terms32: Option<Vec<[f32; 2]>> = terms
+            .as_ref()
+            .map(|t| t.iter().map(|&[m, c]| [m as f32, c as f32]).collect());
 
         let mut state = Resident::of(&start, &adam_start, Some(&start));
         let optimiser = Optimiser::of(&start, &settings);
@@ -533,7 +612,7 @@ mod tests {
             }
         };
         let done = fit_steps(
-            &gpu,
+            gpu,
             &start.kernels(),
             &mut state,
             &optimiser,
@@ -541,6 +620,7 @@ mod tests {
             &mut step,
             set.axis(),
             &opt,
+            terms32.as_deref(),
             &|| false,
         )
         .unwrap();
@@ -618,6 +698,7 @@ mod tests {
                 &mut step,
                 set.axis(),
                 &opt,
+                None,
                 &|| {
                     asked.set(asked.get() + 1);
                     asked.get() > stop_after

@@ -271,9 +271,9 @@ impl CoarseFit {
 /// with the primitives' weights w ([`Primitive::weight`](super::model::Primitive::weight))
 /// held fixed and L̄ the mini-batch's loss, so the prior is the data term's size when a
 /// column's light spreads `spread` metres in depth. A scene seen from the relay as one
-/// surface per column (a wall, a letter, a person) loses nothing by it. On the GPU the
-/// same pull is applied once an epoch ([`SurfacePrior::PULL_PER_EPOCH`]): the GPU's
-/// steps run resident and take no extra gradient.
+/// surface per column (a wall, a letter, a person) loses nothing by it. On the GPU,
+/// whose steps run resident, the same gradient is taken with the column means and
+/// weights of the epoch's start instead of each step's.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct SurfacePrior {
     /// The depth spread within a column that the prior weighs as much as the data,
@@ -288,10 +288,6 @@ impl SurfacePrior {
     /// The daemon's default spread, metres: chosen on the mannequin fixtures
     /// (docs/recon.md, "A surface prior").
     pub const DEFAULT_SPREAD: f64 = 0.018;
-
-    /// The share of its distance to its column's mean depth that each primitive moves
-    /// after an epoch on the GPU.
-    pub const PULL_PER_EPOCH: f64 = 0.7;
 
     /// Each primitive's column mean depth (by weight), or `None` where the prior's
     /// sizes are not usable; primitives of weight zero sit in their column but pull
@@ -337,6 +333,23 @@ impl SurfacePrior {
         Some((means, weights, total))
     }
 
+    /// Each primitive's term of the prior's gradient, `[z̄, c]`: its column's mean
+    /// depth z̄ and c = 2 w / (spread² Σ w), so that a mini-batch of loss L adds
+    /// c · L · (z − z̄) to ∂/∂z of its centre (what [`SurfacePrior::add_gradient`] adds
+    /// with each step's terms); `None` where the prior's sizes are not usable. What the
+    /// GPU's steps take, once an epoch ([`crate::gpu::fit_steps`]).
+    pub(crate) fn terms(&self, kernels: &[Kernel], roi: &RoiBox) -> Option<Vec<[f64; 2]>> {
+        let (means, weights, total) = self.column_means(kernels, roi)?;
+        let scale = 2.0 / (self.spread * self.spread * total);
+        Some(
+            means
+                .into_iter()
+                .zip(weights)
+                .map(|(m, w)| [m, scale * w])
+                .collect(),
+        )
+    }
+
     /// Adds the prior's gradient for a mini-batch of loss `loss` to `grads` (the
     /// centres' z entries, through the maps' slopes); returns P.
     pub(crate) fn add_gradient(
@@ -361,21 +374,6 @@ impl SurfacePrior {
             grads.centres[3 * i + 2] += 2.0 * lambda * weights[i] * d * slopes[i].centre.z;
         }
         p
-    }
-
-    /// Moves each primitive of `cloud` the share `pull` of the way to its column's
-    /// mean depth (the GPU's epochs, which take no extra gradient).
-    fn pull(&self, cloud: &mut GaussianCloud, kernels: &[Kernel], pull: f64) {
-        let roi = *cloud.roi();
-        let Some((means, _, _)) = self.column_means(kernels, &roi) else {
-            return;
-        };
-        for (i, k) in kernels.iter().enumerate() {
-            let z = k.x.z - pull * (k.x.z - means[i]);
-            // Strictly inside the ROI, as the centre map requires.
-            let rel = ((z - roi.centre.z) / roi.half.z).clamp(-1.0 + 1e-9, 1.0 - 1e-9);
-            cloud.centres[3 * i + 2] = rel.atanh();
-        }
     }
 }
 
@@ -1517,6 +1515,12 @@ impl Trainer {
                 mean_of: mean0.map(|k| k + i + 1),
             }
         };
+        // The surface prior's terms at the epoch's start: the steps take its gradient
+        // with these column means and weights.
+        let prior: Option<Vec<[f32; 2]>> = self.config.surface.and_then(|p| {
+            p.terms(&self.kernels, self.cloud.roi())
+                .map(|t| t.iter().map(|&[m, c]| [m as f32, c as f32]).collect())
+        });
         let done = crate::gpu::fit_steps(
             gpu,
             &self.kernels,
@@ -1526,6 +1530,7 @@ impl Trainer {
             &mut step,
             self.data.axis(),
             &self.options,
+            prior.as_deref(),
             &|| cancel.is_cancelled(),
         )?;
         let taken = done.losses.len();
@@ -1548,10 +1553,6 @@ impl Trainer {
                 step = self.step,
                 "non-finite gradient entries were skipped"
             );
-        }
-        if let Some(prior) = self.config.surface {
-            self.refresh_kernels();
-            prior.pull(&mut self.cloud, &self.kernels, SurfacePrior::PULL_PER_EPOCH);
         }
         if taken < batches.len() {
             return Ok(None);
@@ -2018,7 +2019,7 @@ mod surface_tests {
     }
 
     #[test]
-    fn the_surface_prior_pulls_a_column_to_one_depth_and_leaves_a_flat_one_alone() {
+    fn the_surface_prior_leaves_a_column_at_one_depth_alone() {
         let prior = SurfacePrior {
             spread: 0.02,
             cell: 0.1,
@@ -2035,12 +2036,13 @@ mod surface_tests {
         };
         let before = spread(&kernels);
         assert!(before > 0.05, "{before}");
-        prior.pull(&mut cloud, &kernels, 1.0);
+        // Every primitive moved to its column's mean depth.
+        let (means, _, _) = prior.column_means(&kernels, &roi).unwrap();
+        for (i, m) in means.iter().enumerate() {
+            cloud.centres[3 * i + 2] = ((m - roi.centre.z) / roi.half.z).atanh();
+        }
         let after = spread(&cloud.kernels());
-        assert!(
-            after < 1e-9,
-            "a full pull leaves {after} m between a column's depths"
-        );
+        assert!(after < 1e-9, "{after} m between a column's depths at their mean");
         // One surface per column already: P is zero and nothing is pulled.
         let kernels = cloud.kernels();
         let slopes: Vec<MapSlopes> = (0..cloud.len()).map(|k| cloud.slopes(k)).collect();
