@@ -256,7 +256,7 @@ pub fn fit_steps(
     step: &mut dyn FnMut(usize) -> Step,
     axis: &TimeAxis,
     opt: &RenderOptions,
-    prior: Option<&[[f32; 2]]>,
+    prior: Option<&[[f64; 2]]>,
     stop: &dyn Fn() -> bool,
 ) -> Result<Steps, GpuError> {
     let (k, bins) = (kernels.len(), axis.bins);
@@ -277,7 +277,11 @@ pub fn fit_steps(
         let m2 = gpu.upload("second moments", &state.m2);
         let mean = gpu.upload("running mean", state.mean.as_deref().unwrap_or(&[]));
         let skipped = gpu.upload("skipped entries", &[0u32; 4]);
-        let prior_terms = gpu.upload("surface prior", prior.unwrap_or(&[[0.0; 2]]));
+        let prior_terms: Vec<[f32; 2]> = match prior {
+            Some(terms) => terms.iter().map(|&[m, c]| [m as f32, c as f32]).collect(),
+            None => vec![[0.0; 2]],
+        };
+        let prior_terms = gpu.upload("surface prior", &prior_terms);
         let update = gpu
             .update
             .get_or_init(|| gpu.pipeline("update", &source(include_str!("update.wgsl"))));
@@ -573,9 +577,9 @@ mod tests {
         let terms = prior.map(|p| p.terms(&start.kernels(), start.roi()).expect("the prior's terms"));
         if let Some(terms) = &terms {
             // The prior's gradient is a large share of the depths' on this scene.
-            let (mut data, mut with) = (RawGrads::default(), RawGrads::default());
+            let mut data = RawGrads::default();
             let loss = batch_loss_grad(&start, &start.kernels(), &set, &batches[3], &opt, &mut data);
-            batch_loss_grad(&start, &start.kernels(), &set, &batches[3], &opt, &mut with);
+            let mut with = data.clone();
             add_prior(&start, terms, loss, &mut with);
             let z = |g: &RawGrads| g.centres.iter().skip(2).step_by(3).copied().collect::<Vec<_>>();
             let share = relative_l2(&z(&with), &z(&data));
@@ -594,9 +598,6 @@ mod tests {
                 )
             })
             .collect();
-        let terms32: Option<Vec<[f32; 2]>> = terms
-            .as_ref()
-            .map(|t| t.iter().map(|&[m, c]| [m as f32, c as f32]).collect());
 
         let mut state = Resident::of(&start, &adam_start, Some(&start));
         let optimiser = Optimiser::of(&start, &settings);
@@ -620,7 +621,7 @@ mod tests {
             &mut step,
             set.axis(),
             &opt,
-            terms32.as_deref(),
+            terms.as_deref(),
             &|| false,
         )
         .unwrap();

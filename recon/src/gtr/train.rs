@@ -1517,10 +1517,10 @@ impl Trainer {
         };
         // The surface prior's terms at the epoch's start: the steps take its gradient
         // with these column means and weights.
-        let prior: Option<Vec<[f32; 2]>> = self.config.surface.and_then(|p| {
-            p.terms(&self.kernels, self.cloud.roi())
-                .map(|t| t.iter().map(|&[m, c]| [m as f32, c as f32]).collect())
-        });
+        let prior = self
+            .config
+            .surface
+            .and_then(|p| p.terms(&self.kernels, self.cloud.roi()));
         let done = crate::gpu::fit_steps(
             gpu,
             &self.kernels,
