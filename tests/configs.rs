@@ -354,6 +354,53 @@ fn a_broken_adaptive_plan_names_the_key_and_what_to_do() {
 /// A plan that leaves `[gtr] batch` and `epochs` unset is told both reconstruction
 /// times: the relay the scan finds decides whether the fit takes a coarse capture's
 /// batches of 8, over the same steps.
+/// `periscope check` counts the fit's rounds of gain estimation where they will run: a
+/// scanned laser without the relay scan's albedo (`pair-gains = "auto"`, the default),
+/// or gains asked for; not where the scan gives them or the plan turns them off.
+#[test]
+fn check_counts_the_gain_rounds_where_the_fit_estimates_gains() {
+    let dir = tempfile::tempdir().unwrap();
+    // 4,096 pairs, so that the rounds' seconds show in whole seconds.
+    let text = std::fs::read_to_string(repo_path("configs/plans/demo.toml"))
+        .unwrap()
+        .replacen("grid = [24, 24]", "grid = [64, 64]", 1);
+    let reconstruction = |name: &str, text: &str| -> f64 {
+        let plan = dir.path().join(name);
+        std::fs::write(&plan, text).unwrap();
+        let out = periscope(&["check", plan.to_str().unwrap()]);
+        assert_eq!(out.code, Some(0), "{out:?}");
+        let line = out
+            .stdout
+            .lines()
+            .find(|l| l.contains("estimated duration"))
+            .unwrap()
+            .to_owned();
+        line.split("reconstruction ")
+            .nth(1)
+            .unwrap()
+            .split(" s")
+            .next()
+            .unwrap()
+            .parse()
+            .unwrap()
+    };
+    let no_scan = text.replacen("[relay]\n", "[relay]\nalbedo-from-scan = false\n", 1);
+    assert_ne!(no_scan, text);
+    let scanned = reconstruction("demo.toml", &text);
+    let estimated = reconstruction("no-scan.toml", &no_scan);
+    let off = reconstruction(
+        "off.toml",
+        &no_scan.replacen("[recon.gtr]\n", "[recon.gtr]\npair-gains = \"none\"\n", 1),
+    );
+    let asked = reconstruction(
+        "asked.toml",
+        &text.replacen("[recon.gtr]\n", "[recon.gtr]\npair-gains = \"illumination\"\n", 1),
+    );
+    assert!(estimated > scanned, "{estimated} s against {scanned} s");
+    assert_eq!(off, scanned);
+    assert_eq!(asked, estimated);
+}
+
 #[test]
 fn check_gives_a_coarse_captures_reconstruction_time_where_the_plan_leaves_the_batch_unset() {
     let dir = tempfile::tempdir().unwrap();

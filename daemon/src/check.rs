@@ -4,10 +4,11 @@ use std::fmt::Write;
 
 use glam::DVec3;
 use periscope_drivers::{AngleLimits, GalvoPose, OpticalAngles};
+use periscope_recon::gtr::{GAIN_START, PairGains};
 use periscope_recon::relay::Region;
 
 use crate::config::InstrumentConfig;
-use crate::plan::{Method, Plan};
+use crate::plan::{Method, PairMode, Plan};
 
 /// Software overhead per measured point (moves, acquisition, storage), seconds; the
 /// driver benchmark measures about 0.2 ms against the simulator, a real 115200-baud
@@ -22,6 +23,11 @@ const GTR_EVALS_PER_S: f64 = 1.5e7;
 /// Synthesis evaluations (virtual point × primitive) per second (`--bench solvers`,
 /// 64 × 64 points × 10,000 primitives in 1.46 s).
 const SYNTH_EVALS_PER_S: f64 = 2.8e7;
+/// Forward evaluations (pair × primitive) per second of a round of per-transient gain
+/// estimation, which renders the whole capture (`recon.gtr.pair-gains`): on 2 cores
+/// 24 rounds of a 1,024-pair capture at 2,000 primitives (49 million) added 0.8–1.0 s
+/// to confocal_sparse's fit.
+const GAIN_EVALS_PER_S: f64 = 5e7;
 /// Voxel-pairs per second of the FBP of 3D-GTR's virtual scan onto the volume (the
 /// scaling bench: 128² points onto 128³ and 256³ voxels, 1.7 billion a second).
 const VIRTUAL_FBP_PER_S: f64 = 1.7e9;
@@ -99,6 +105,20 @@ pub struct Duration {
     pub reconstruction_max: Option<f64>,
     /// All of it.
     pub total: f64,
+}
+
+/// Whether a run of `plan` has its fit estimate per-transient gains
+/// (`recon.gtr.pair-gains`, [`PairGains::resolve`] on a run's data): per illumination
+/// point where the laser visits more than one, asked for or (`auto`) where the relay
+/// scan gives no gains; per detection point where asked for.
+fn estimates_gains(plan: &Plan) -> bool {
+    let scans = !matches!(plan.pairs, PairMode::FixedLaser { .. });
+    match plan.recon.train.pair_gains {
+        PairGains::None => false,
+        PairGains::Illumination => scans,
+        PairGains::Detection => true,
+        PairGains::Auto => scans && !plan.relay.albedo_from_scan,
+    }
 }
 
 /// The check report as text.
@@ -263,7 +283,14 @@ pub fn check(plan: &Plan, inst: &InstrumentConfig) -> Check {
     let gtr_s = |train: &periscope_recon::gtr::TrainConfig| {
         let k = train.primitives as f64;
         let points = virtual_points(rc) as f64;
-        train.pairs_per_epoch(pairs) as f64 * k * train.counted_epochs(pairs) as f64 / GTR_EVALS_PER_S
+        let epochs = train.counted_epochs(pairs);
+        let gain_rounds = if estimates_gains(plan) {
+            epochs.saturating_sub(((GAIN_START * epochs as f64).round() as usize).max(1))
+        } else {
+            0
+        };
+        train.pairs_per_epoch(pairs) as f64 * k * epochs as f64 / GTR_EVALS_PER_S
+            + gain_rounds as f64 * pairs as f64 * k / GAIN_EVALS_PER_S
             + points * k / SYNTH_EVALS_PER_S
             + points * v.len() as f64 / VIRTUAL_FBP_PER_S
     };

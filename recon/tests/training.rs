@@ -1014,6 +1014,80 @@ fn pair_gains_from_counts_take_only_what_the_counts_can_tell() {
     );
 }
 
+/// `pair-gains = "auto"`, the plans' default: a scanned capture that states no gain
+/// has each illumination point's gain estimated by the fit; one whose transients carry
+/// known gains (a named laser falloff, the relay's albedo from its scan) and one with a
+/// fixed laser keep theirs, and the fit renders nothing for gains there.
+#[test]
+fn auto_pair_gains_are_estimated_only_where_the_capture_states_none() {
+    let (truth, geometry, points) = gain_scene();
+    let rendered = render_set(&truth.kernels(), &geometry, &RenderOptions::default());
+    let bins = axis().bins;
+    let smooth = |x: DVec3| (0.6 * x.x - 0.3 * x.y).exp();
+    let make = |known: bool, fixed: bool| {
+        let mut set = TransientSet::new(axis()).unwrap();
+        for (k, pair) in geometry.pairs().iter().enumerate() {
+            let g = smooth(points[k]);
+            let h: Vec<f32> = rendered[k * bins..(k + 1) * bins]
+                .iter()
+                .map(|&v| (g * v * 1e3) as f32)
+                .collect();
+            let pair = if fixed {
+                Pair {
+                    xi: DVec3::ZERO,
+                    ni: DVec3::Z,
+                    ..*pair
+                }
+            } else {
+                *pair
+            };
+            if known {
+                set.push_with_gain(pair, &h, g as f32).unwrap();
+            } else {
+                set.push(pair, &h).unwrap();
+            }
+        }
+        set
+    };
+    let (unknown, known, fixed) = (make(false, false), make(true, false), make(false, true));
+    assert_eq!(PairGains::Auto.resolve(&unknown), PairGains::Illumination);
+    assert_eq!(PairGains::Auto.resolve(&known), PairGains::None);
+    assert_eq!(PairGains::Auto.resolve(&fixed), PairGains::None);
+    for kind in [PairGains::None, PairGains::Illumination, PairGains::Detection] {
+        assert_eq!(kind.resolve(&unknown), kind);
+        assert_eq!(kind.resolve(&known), kind);
+    }
+
+    let fit = |set: TransientSet| {
+        let cfg = TrainConfig {
+            pair_gains: PairGains::Auto,
+            ..config(40, 8)
+        };
+        let mut trainer = Trainer::new(cfg, roi(), set).unwrap();
+        let summary = trainer.run(None, &CancelToken::new(), &mut |_| {}).unwrap();
+        (summary.pair_gains, trainer.pair_gains())
+    };
+    let (kind, gains) = fit(unknown);
+    assert_eq!(kind, PairGains::Illumination);
+    // The smooth gain spans 1.8× from one side of the wall to the other: the estimate
+    // follows it (lower on the −x side than on the +x side).
+    let side = |sign: f64| {
+        let ks: Vec<usize> = (0..points.len()).filter(|&k| points[k].x * sign > 0.3).collect();
+        ks.iter().map(|&k| gains[k].ln()).sum::<f64>() / ks.len() as f64
+    };
+    assert!(
+        side(1.0) > side(-1.0) + 0.1,
+        "+x {} against −x {}",
+        side(1.0),
+        side(-1.0)
+    );
+    for set in [known, fixed] {
+        let (kind, gains) = fit(set);
+        assert_eq!(kind, PairGains::None);
+        assert!(gains.iter().all(|&g| g == 1.0));
+    }
+}
+
 /// Zero transients on 5 mm bins for `pairs`.
 fn geometry(pairs: impl IntoIterator<Item = Pair>) -> TransientSet {
     let axis = TimeAxis {

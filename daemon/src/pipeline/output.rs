@@ -68,8 +68,8 @@ struct VolumeJson<'a> {
     /// The fit's last epoch loss (method `gtr`): the run catalogue's score of the fit.
     #[serde(skip_serializing_if = "Option::is_none")]
     final_loss: Option<f64>,
-    /// The fit's settings the data chose (method `gtr`): `batch`, `surface_spread_m`
-    /// and whether the capture counted as `coarse`.
+    /// The fit's settings the data chose (method `gtr`): `batch`, `surface_spread_m`,
+    /// whether the capture counted as `coarse`, and the `pair_gains` it estimated.
     #[serde(skip_serializing_if = "Option::is_none")]
     fit: Option<FitJson>,
 }
@@ -80,6 +80,9 @@ struct FitJson {
     batch: usize,
     surface_spread_m: Option<f64>,
     coarse: bool,
+    /// The per-transient gains the fit estimated: `illumination`, `detection` or
+    /// `none`.
+    pair_gains: periscope_recon::gtr::PairGains,
 }
 
 /// Writes every output of a reconstruction into `dir`.
@@ -113,6 +116,7 @@ pub fn write_outputs(dir: &Path, r: &ReconResult, events: &EventSink) -> Result<
             batch: t.batch_size,
             surface_spread_m: t.surface_spread,
             coarse: t.coarse,
+            pair_gains: t.pair_gains,
         }),
     };
     let p = dir.join(file::VOLUME_JSON);

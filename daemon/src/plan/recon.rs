@@ -251,7 +251,7 @@ fn default_virtual_scan() -> String {
 }
 
 fn default_pair_gains() -> String {
-    "none".into()
+    "auto".into()
 }
 
 impl Default for RawGtr {
@@ -486,13 +486,14 @@ pub(crate) fn recon_settings(
         }
     };
     let pair_gains = match g.pair_gains.as_str() {
+        "auto" => PairGains::Auto,
         "illumination" => PairGains::Illumination,
         "detection" => PairGains::Detection,
         "none" => PairGains::None,
         other => {
             return Err(src.invalid(
                 &key("gtr.pair-gains"),
-                format!("`{other}` is not a choice: use \"none\" (every transient's gain 1; the default), \"illumination\" (each illumination point's gain estimated from the data, jointly with the fit) or \"detection\" (each detection point's, with a fixed laser)"),
+                format!("`{other}` is not a choice: use \"auto\" (each illumination point's gain estimated where the capture states none; the default), \"none\" (every transient's gain 1, or as the capture states it), \"illumination\" (each illumination point's gain estimated from the data, jointly with the fit, starting from what the capture states) or \"detection\" (each detection point's, with a fixed laser)"),
             ));
         }
     };
@@ -935,11 +936,12 @@ mod tests {
 
     #[test]
     fn gtr_pair_gains_are_read_and_checked() {
-        assert_eq!(default_recon(volume()).train.pair_gains, PairGains::None);
+        assert_eq!(default_recon(volume()).train.pair_gains, PairGains::Auto);
         for (text, want) in [
             ("illumination", PairGains::Illumination),
             ("detection", PairGains::Detection),
             ("none", PairGains::None),
+            ("auto", PairGains::Auto),
         ] {
             let src = TomlSource::from_text("recon.toml", format!("[gtr]\npair-gains = \"{text}\"\n"));
             assert_eq!(load_recon(&src, Some(volume())).unwrap().train.pair_gains, want);

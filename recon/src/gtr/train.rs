@@ -462,21 +462,47 @@ pub fn densify_after(done: usize, epochs: usize, d: &DensifySettings) -> bool {
 /// the falloff, with a 3× smooth gain and with ±30 % random gains, where gains 1 score
 /// 0.925, 0.882 and 0.916; means of three seeds).
 ///
-/// Not the default, measured (docs/recon.md, "Gains from the data"): on the noisy
-/// sparse capture, whose gains are right, it costs 0.010 IoU (0.957 → 0.947, three
-/// seeds), and with a fixed laser, per detection point, 0.01–0.04.
+/// Where the data already carry their gains it is not worth its cost (docs/recon.md,
+/// "Gains from the data"): on the noisy sparse capture, whose falloff the file names,
+/// it costs 0.010 IoU (0.957 → 0.947, three seeds) and a fifth more time, and with a
+/// fixed laser, per detection point, 0.01–0.04. So [`PairGains::Auto`], what plans
+/// and `periscope recon` take by default, estimates them only where nothing else
+/// gives them.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum PairGains {
     /// Every transient's gain is 1 (the paper's model).
     #[default]
     None,
+    /// [`PairGains::Illumination`] where the capture's gains are unknown: the laser
+    /// visits more than one point and no transient carries a known gain
+    /// ([`TransientSet::has_gains`]: neither a file's named laser falloff nor the
+    /// relay's albedo from its scan); [`PairGains::None`] otherwise
+    /// ([`PairGains::resolve`]).
+    Auto,
     /// One gain per illumination point, where the laser visits more than one
     /// (confocal and scanned-laser captures); none with a fixed laser.
     Illumination,
     /// One gain per detection point with a fixed laser (per illumination point
     /// otherwise).
     Detection,
+}
+
+impl PairGains {
+    /// The kind of estimate `self` asks for on `data`: [`PairGains::Auto`] becomes
+    /// [`PairGains::Illumination`] where no transient of `data` has a known gain and
+    /// the laser visits more than one point, else [`PairGains::None`]; the others are
+    /// themselves.
+    pub fn resolve(self, data: &TransientSet) -> PairGains {
+        match self {
+            PairGains::Auto if data.has_gains() => PairGains::None,
+            PairGains::Auto if gain_groups(data.pairs(), PairGains::Illumination).is_some() => {
+                PairGains::Illumination
+            }
+            PairGains::Auto => PairGains::None,
+            kind => kind,
+        }
+    }
 }
 
 /// [`PairGains::Illumination`] and [`PairGains::Detection`] re-estimate the gains after
@@ -503,6 +529,8 @@ const MAX_GAIN_SPREAD: f64 = 10.0;
 /// The gain group of each pair and each group's relay point for `kind`: by
 /// illumination point where the laser visits more than one, else by detection point
 /// for [`PairGains::Detection`]; `None` where there is nothing to estimate (one group).
+/// [`PairGains::Auto`] groups as [`PairGains::Illumination`] (whether it estimates at
+/// all is [`PairGains::resolve`]'s).
 pub fn gain_groups(pairs: &[crate::transient::Pair], kind: PairGains) -> Option<(Vec<usize>, Vec<DVec3>)> {
     let by = |key: &dyn Fn(&crate::transient::Pair) -> DVec3| {
         let mut ids = std::collections::HashMap::new();
@@ -522,7 +550,7 @@ pub fn gain_groups(pairs: &[crate::transient::Pair], kind: PairGains) -> Option<
     let lit = by(&|p| p.xi);
     let chosen = match kind {
         PairGains::None => return None,
-        PairGains::Illumination => lit,
+        PairGains::Illumination | PairGains::Auto => lit,
         PairGains::Detection if lit.1.len() > 1 => lit,
         PairGains::Detection => by(&|p| p.xd),
     };
@@ -1137,6 +1165,10 @@ pub struct TrainSummary {
     /// Whether the data counted as a coarse capture and the fit took
     /// [`TrainConfig::coarse`]'s settings.
     pub coarse: bool,
+    /// The per-transient gains the fit estimated ([`PairGains::Illumination`] or
+    /// [`PairGains::Detection`]), or [`PairGains::None`] where it estimated none
+    /// ([`TrainConfig::pair_gains`] resolved on the data, [`PairGains::resolve`]).
+    pub pair_gains: PairGains,
 }
 
 /// A fit in progress.
@@ -1161,6 +1193,8 @@ pub struct Trainer {
     pair_gains: Vec<f64>,
     /// Gain rounds done.
     gain_rounds: usize,
+    /// The kind of gains the rounds estimated ([`PairGains::resolve`]).
+    gains_estimated: PairGains,
     /// The map slopes of each primitive, refreshed with `kernels`.
     slopes: Vec<MapSlopes>,
     grads: RawGrads,
@@ -1244,6 +1278,7 @@ impl Trainer {
             kernels: Vec::new(),
             pair_gains: Vec::new(),
             gain_rounds: 0,
+            gains_estimated: PairGains::None,
             slopes: Vec::new(),
             grads: RawGrads::default(),
             averaged_losses: Vec::new(),
@@ -1751,7 +1786,7 @@ impl Trainer {
     /// Whether a round of gain estimation follows counted epoch `epochs_done` of
     /// `epochs`: after every counted epoch from [`GAIN_START`] of them on.
     fn gains_due(&self, epochs: usize) -> bool {
-        if self.config.pair_gains == PairGains::None || self.data.len() < 2 {
+        if self.config.pair_gains.resolve(&self.data) == PairGains::None || self.data.len() < 2 {
             return false;
         }
         let start = ((GAIN_START * epochs as f64).round() as usize).max(1);
@@ -1763,18 +1798,24 @@ impl Trainer {
     /// of the way to it (from 1 before the first round); returns the smallest and
     /// largest gain.
     pub fn estimate_gains(&mut self) -> (f64, f64) {
-        if gain_groups(self.data.pairs(), self.config.pair_gains).is_none() {
-            // One laser point (or one detection point): nothing to estimate, and no
-            // rendering of the whole capture spent on finding that out.
+        let kind = self.config.pair_gains.resolve(&self.data);
+        if kind == PairGains::None || gain_groups(self.data.pairs(), kind).is_none() {
+            // One laser point (or one detection point), or gains the data carry
+            // already: nothing to estimate, and no rendering of the whole capture spent
+            // on finding that out.
             return (1.0, 1.0);
+        }
+        if self.gain_rounds == 0 && self.config.pair_gains == PairGains::Auto {
+            tracing::info!(
+                "no transient's gain is known (no laser falloff named by the file, no relay albedo from a scan): each illumination point's gain is estimated from the data ([gtr] pair-gains = \"none\" keeps them at 1)"
+            );
         }
         self.refresh_kernels();
         let rendered = render_set(&self.kernels, &self.data, &self.options);
-        let Some(gains) =
-            estimate_pair_gains(&self.data, &rendered, self.options.loss, self.config.pair_gains)
-        else {
+        let Some(gains) = estimate_pair_gains(&self.data, &rendered, self.options.loss, kind) else {
             return (1.0, 1.0);
         };
+        self.gains_estimated = kind;
         if self.gain_rounds == 0 || self.pair_gains.len() != gains.len() {
             self.pair_gains = gains.iter().map(|g| g.powf(GAIN_STEP)).collect();
         } else {
@@ -1840,6 +1881,11 @@ impl Trainer {
             batch_size: self.config.batch_size,
             surface_spread: self.config.surface.map(|p| p.spread),
             coarse: self.coarse,
+            pair_gains: if self.gain_rounds > 0 {
+                self.gains_estimated
+            } else {
+                PairGains::None
+            },
         }
     }
 
