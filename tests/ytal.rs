@@ -347,12 +347,69 @@ fn bars_finer_than_the_pitch_rendered_by_mitransient_are_resolved() {
         "a 4 cm pitch (mitransient)",
         0.7,
     );
-    // A confocal grid over a plane is no coarse capture: its own fit, prior off.
+    // A confocal grid over a plane is no coarse capture: its own fit, prior off; the
+    // renderer's named falloff gives the gains, so none are estimated.
     assert_eq!(
         fit_in_force(&out),
         (4, None, false),
         "batch, surface spread, coarse"
     );
+    assert_eq!(pair_gains(&out), "none");
+}
+
+/// The bars' capture as a measured file would be: its `scene_info` without the
+/// renderer's name, so nothing says its laser falls off from a point, times a further
+/// 3× ramp across the relay (an albedo or a laser power that drifts). With defaults
+/// (`pair-gains = "auto"`) the fit estimates each illumination point's gain, says so
+/// in `volume.json`, and still resolves the bars (measured dip 0.63; 0.70, 0.55, 0.57
+/// at seeds 0–2 in a release build, against 0.57 at each with the file's falloff
+/// known and no ramp).
+#[test]
+fn a_measured_captures_unknown_gains_are_estimated_and_the_bars_resolved() {
+    let mut capture = YtalCapture::read(&repo_path("tests/data/ytal/bars_coarse.hdf5")).unwrap();
+    let info = capture.scene_info.take().expect("the render's scene_info");
+    assert!(info.contains("renderer:"), "{info}");
+    capture.scene_info = Some(
+        info.lines()
+            .filter(|l| !l.starts_with("renderer:") && !l.starts_with("config:"))
+            .collect::<Vec<_>>()
+            .join("\n"),
+    );
+    let points = capture.sensor_grid.points.len();
+    let (lo, hi) = capture.sensor_grid.points.iter().fold(
+        (glam::DVec3::INFINITY, glam::DVec3::NEG_INFINITY),
+        |(lo, hi), p| (lo.min(*p), hi.max(*p)),
+    );
+    let bins = capture.h.len() / points;
+    for (k, p) in capture.sensor_grid.points.iter().enumerate() {
+        let u = (*p - lo) / (hi - lo);
+        let gain = (3f64.ln() * (0.6 * u.x + 0.4 * u.y)).exp() as f32;
+        for b in 0..bins {
+            capture.h[b * points + k] *= gain;
+        }
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let file = dir.path().join("bars_measured.hdf5");
+    capture.write(&file).unwrap();
+    let file = file.to_str().unwrap();
+    let grid = VolumeGrid::new([-0.25, 0.25], [-0.25, 0.25], [0.195, 1.005], [50, 50, 81]).unwrap();
+    let bars = BarsGrid {
+        lo: -0.25,
+        pitch: 0.01,
+    };
+    let (_dir, out) = gtr_with_defaults(file, &grid);
+    assert_eq!(pair_gains(&out), "illumination");
+    assert_bars_resolved(&out, bars, "a 4 cm pitch, gains unknown", 0.7);
+}
+
+/// The per-transient gains the fit estimated, as `volume.json` records them.
+fn pair_gains(out: &Path) -> String {
+    let json: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("volume.json")).unwrap()).unwrap();
+    json["fit"]["pair_gains"]
+        .as_str()
+        .expect("fit.pair_gains")
+        .to_owned()
 }
 
 /// The fit's settings in force as `volume.json` records them: batch, surface spread,
