@@ -1233,6 +1233,52 @@ fn a_coarse_capture_takes_the_coarse_fit() {
 
 use periscope_recon::gpu::testing::gpu;
 
+/// A fit on the GPU renders its rounds of gain estimation there: on the auto test's
+/// wall with a smooth gain unknown, the gains it ends with follow the CPU fit's (every
+/// point's within 0.02 in the logarithm), and the fit stayed on the GPU.
+#[test]
+fn gain_rounds_render_on_the_fits_gpu() {
+    let Some(gpu) = gpu("gain_rounds_render_on_the_fits_gpu") else {
+        return;
+    };
+    let (truth, geometry, points) = gain_scene();
+    let rendered = render_set(&truth.kernels(), &geometry, &RenderOptions::default());
+    let bins = axis().bins;
+    let mut set = TransientSet::new(axis()).unwrap();
+    for (k, pair) in geometry.pairs().iter().enumerate() {
+        let g = (0.6 * points[k].x - 0.3 * points[k].y).exp();
+        let h: Vec<f32> = rendered[k * bins..(k + 1) * bins]
+            .iter()
+            .map(|&v| (g * v * 1e3) as f32)
+            .collect();
+        set.push(*pair, &h).unwrap();
+    }
+    let fit = |on_gpu: bool| {
+        let cfg = TrainConfig {
+            pair_gains: PairGains::Auto,
+            ..config(40, 8)
+        };
+        let mut t = Trainer::new(cfg, roi(), set.clone()).unwrap();
+        if on_gpu {
+            t.use_gpu(gpu.clone(), true);
+        }
+        let summary = t.run(None, &CancelToken::new(), &mut |_| {}).unwrap();
+        assert_eq!(summary.pair_gains, PairGains::Illumination);
+        assert_eq!(t.on_gpu(), on_gpu, "the fit stayed where it started");
+        t.pair_gains()
+    };
+    let (cpu, on_gpu) = (fit(false), fit(true));
+    let worst = cpu
+        .iter()
+        .zip(&on_gpu)
+        .map(|(a, b)| (a.ln() - b.ln()).abs())
+        .fold(0.0f64, f64::max);
+    assert!(
+        worst < 0.02,
+        "the GPU fit's gains differ by up to {worst} in the log"
+    );
+}
+
 /// A fit whose steps run on the GPU (f32) follows the CPU's (f64): after 6 epochs of
 /// 15 steps on one primitive's transients, the last epoch's loss is within 1 % of the
 /// CPU fit's and every centre within 0.5 mm of it, and the fit stayed on the GPU.

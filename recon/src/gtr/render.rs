@@ -27,13 +27,19 @@ pub fn render_set(kernels: &[Kernel], set: &TransientSet, opt: &RenderOptions) -
     out.par_chunks_mut(LANES * bins)
         .zip(set.pairs().par_chunks(LANES))
         .for_each(|(hists, pairs)| render_pairs(kernels, pairs, set.axis(), opt, hists));
+    apply_known_gains(set, &mut out);
+    out
+}
+
+/// Multiplies each transient of `rendered` ([`render_set`]'s layout, at gain 1) by its
+/// known gain in `set` ([`TransientSet::gain`]).
+pub(crate) fn apply_known_gains(set: &TransientSet, rendered: &mut [f64]) {
     if set.has_gains() {
-        for (i, h) in out.chunks_mut(bins).enumerate() {
+        for (i, h) in rendered.chunks_mut(set.axis().bins).enumerate() {
             let g = f64::from(set.gain(i));
             h.iter_mut().for_each(|v| *v *= g);
         }
     }
-    out
 }
 
 /// Renders `pairs` from `kernels` into `out` (overwritten), `axis.bins` per pair: the

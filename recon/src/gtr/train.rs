@@ -1382,8 +1382,9 @@ impl Trainer {
 
     /// Runs the fit's steps on `gpu` from now on, in f32, the parameters resident there
     /// through each epoch ([`crate::gpu::fit_steps`]: the mini-batch's render,
-    /// residuals and backward pass, the chain rule and AdamW); densification, pruning
-    /// and the gain estimates stay here, between epochs. With `strict`, a failure of
+    /// residuals and backward pass, the chain rule and AdamW), and a round of gain
+    /// estimation's rendering of the whole capture; densification, pruning and the
+    /// gain estimates themselves stay here, between epochs. With `strict`, a failure of
     /// the GPU ends the fit with [`TrainError::Gpu`]; otherwise the fit says so in the
     /// log and takes the epoch again on the CPU.
     pub fn use_gpu(&mut self, gpu: Arc<Gpu>, strict: bool) {
@@ -1432,6 +1433,10 @@ impl Trainer {
     }
 
     fn epoch_on_pool(&mut self, cancel: &CancelToken) -> Option<f64> {
+        if self.gpu_failure.is_some() {
+            // A strict GPU failed outside an epoch (a round of gain estimation).
+            return None;
+        }
         let n = self.data.len();
         let take = self.config.pairs_per_epoch(n);
         let order: Vec<usize> = if take >= n {
@@ -1811,7 +1816,7 @@ impl Trainer {
             );
         }
         self.refresh_kernels();
-        let rendered = render_set(&self.kernels, &self.data, &self.options);
+        let rendered = self.render_for_gains();
         let Some(gains) = estimate_pair_gains(&self.data, &rendered, self.options.loss, kind) else {
             return (1.0, 1.0);
         };
@@ -1835,6 +1840,29 @@ impl Trainer {
             "per-transient gains estimated from the data"
         );
         (lo, hi)
+    }
+
+    /// The whole capture rendered from the current kernels for a round of gain
+    /// estimation ([`render_set`]'s layout): on the fit's GPU where it has one (in f32,
+    /// widened), since a round renders every pair; on the CPU otherwise, or after a
+    /// GPU failure (a strict fit records it, and its next epoch ends the fit with it).
+    fn render_for_gains(&mut self) -> Vec<f64> {
+        if let Some((gpu, strict)) = self.gpu.clone() {
+            let axis = self.data.axis();
+            match crate::gpu::render_pairs(&gpu, &self.kernels, self.data.pairs(), axis, &self.options) {
+                Ok(out) => {
+                    let mut out: Vec<f64> = out.into_iter().map(f64::from).collect();
+                    super::render::apply_known_gains(&self.data, &mut out);
+                    return out;
+                }
+                Err(e) if strict => self.gpu_failure = Some(e),
+                Err(e) => {
+                    tracing::warn!(error = %e, step = self.step, "the GPU failed: the fit goes on on the CPU");
+                    self.gpu = None;
+                }
+            }
+        }
+        render_set(&self.kernels, &self.data, &self.options)
     }
 
     /// Each pair's gain in the model (all 1 before the first estimate).
