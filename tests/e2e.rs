@@ -164,9 +164,9 @@ fn an_adaptive_capture_of_half_the_pairs_finds_what_the_full_capture_finds() {
 /// ±30 %): no capture file states it. With each transient's gain taken from the relay
 /// scan's returns (the default, `relay.albedo-from-scan`) the letter meets the uniform
 /// demo's bounds; so it does with the scan's albedo left out and the gains estimated
-/// by the fit instead (`configs/plans/patchy-wall.toml`, `pair-gains =
-/// "illumination"`, the path for a capture without a relay scan); with neither, it
-/// misses them. Measured (median, 90th percentile, IoU): from the scan 0.38 mm,
+/// by the fit instead (`configs/plans/patchy-wall.toml`, whose default `pair-gains =
+/// "auto"` estimates them where no gain is known: the path for a capture without a
+/// relay scan); with neither, it misses them. Each run's `volume.json` says which. Measured (median, 90th percentile, IoU): from the scan 0.38 mm,
 /// 0.80 mm, 0.806; from the fit 0.33 mm, 0.86 mm, 0.806; neither 0.44 mm, 1.34 mm,
 /// 0.801 (the uniform wall: 0.34 mm, 0.68 mm, 0.808).
 #[test]
@@ -176,7 +176,7 @@ fn a_patchy_wall_gives_the_letter_back_with_gains_from_the_scan_or_the_fit() {
         "configs/scenes/patchy-wall-letter.toml",
     );
     let footprint = ([-0.4, 0.4], [-0.4, 0.4]);
-    let scan = run_and_score(
+    let (scan, gains) = run_score_and_gains(
         "configs/plans/demo.toml",
         instrument,
         scene,
@@ -184,7 +184,10 @@ fn a_patchy_wall_gives_the_letter_back_with_gains_from_the_scan_or_the_fit() {
         footprint.1,
     );
     scan.assert_within(0.5e-3, 1.0e-3, 0.78);
-    let fit = run_and_score(
+    assert_eq!(gains, "none", "the scan's albedo gives the gains");
+    // The plan leaves `pair-gains` at its default, `auto`: without the scan's albedo
+    // no gain is known, so the run's fit estimates each laser spot's.
+    let (fit, gains) = run_score_and_gains(
         "configs/plans/patchy-wall.toml",
         instrument,
         scene,
@@ -192,23 +195,28 @@ fn a_patchy_wall_gives_the_letter_back_with_gains_from_the_scan_or_the_fit() {
         footprint.1,
     );
     fit.assert_within(0.5e-3, 1.0e-3, 0.78);
+    assert_eq!(gains, "illumination", "the fit estimates the unknown gains");
     // Neither: the patchy-wall plan without its fitted gains.
     let dir = tempfile::tempdir().unwrap();
     let plain = dir.path().join("plain.toml");
     let text = std::fs::read_to_string(repo_path("configs/plans/patchy-wall.toml")).unwrap();
-    assert!(text.contains("pair-gains = \"illumination\""));
+    assert!(
+        !text.lines().any(|l| l.trim_start().starts_with("pair-gains")),
+        "the plan takes the default"
+    );
     std::fs::write(
         &plain,
-        text.replace("pair-gains = \"illumination\"", "pair-gains = \"none\""),
+        text.replacen("[recon.gtr]\n", "[recon.gtr]\npair-gains = \"none\"\n", 1),
     )
     .unwrap();
-    let neither = run_and_score(
+    let (neither, gains) = run_score_and_gains(
         plain.to_str().unwrap(),
         instrument,
         scene,
         footprint.0,
         footprint.1,
     );
+    assert_eq!(gains, "none");
     assert!(
         neither.p90_error > 1.0e-3,
         "the patchy wall must cost a fit with gains 1 the uniform demo's bound: {neither:?}"
@@ -218,13 +226,31 @@ fn a_patchy_wall_gives_the_letter_back_with_gains_from_the_scan_or_the_fit() {
 /// Runs `plan` on `instrument` and scores the depth map against `scene`'s truth over
 /// the plan's 64×64 volume footprint `x` × `y`.
 fn run_and_score(plan: &str, instrument: &str, scene: &str, x: [f64; 2], y: [f64; 2]) -> Accuracy {
+    run_score_and_gains(plan, instrument, scene, x, y).0
+}
+
+/// [`run_and_score`], with the per-transient gains the run's fit estimated, as its
+/// `volume.json` records them (`fit.pair_gains`).
+fn run_score_and_gains(
+    plan: &str,
+    instrument: &str,
+    scene: &str,
+    x: [f64; 2],
+    y: [f64; 2],
+) -> (Accuracy, String) {
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("run");
     run(plan, Some(instrument), &out);
     let a = accuracy(&out, scene, x, y, [64, 64]);
     eprintln!("{plan}: {a:?}");
     assert!(a.object_pixels > 50, "the truth has the object: {a:?}");
-    a
+    let json: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("volume.json")).unwrap()).unwrap();
+    let gains = json["fit"]["pair_gains"]
+        .as_str()
+        .expect("fit.pair_gains")
+        .to_owned();
+    (a, gains)
 }
 
 #[test]
