@@ -351,9 +351,29 @@ fn a_broken_adaptive_plan_names_the_key_and_what_to_do() {
     );
 }
 
-/// A plan that leaves `[gtr] batch` and `epochs` unset is told both reconstruction
-/// times: the relay the scan finds decides whether the fit takes a coarse capture's
-/// batches of 8, over the same steps.
+/// `periscope check PLAN`'s line with the estimated duration.
+fn estimated_duration(plan: &std::path::Path) -> String {
+    let out = periscope(&["check", plan.to_str().unwrap()]);
+    assert_eq!(out.code, Some(0), "{out:?}");
+    out.stdout
+        .lines()
+        .find(|l| l.contains("estimated duration"))
+        .expect("a duration line")
+        .to_owned()
+}
+
+/// The seconds in `line` right after `after`.
+fn seconds_after(line: &str, after: &str) -> f64 {
+    line.split(after)
+        .nth(1)
+        .unwrap()
+        .split(" s")
+        .next()
+        .unwrap()
+        .parse()
+        .unwrap()
+}
+
 /// `periscope check` counts the fit's rounds of gain estimation where they will run: a
 /// scanned laser without the relay scan's albedo (`pair-gains = "auto"`, the default),
 /// or gains asked for; not where the scan gives them or the plan turns them off.
@@ -367,22 +387,7 @@ fn check_counts_the_gain_rounds_where_the_fit_estimates_gains() {
     let reconstruction = |name: &str, text: &str| -> f64 {
         let plan = dir.path().join(name);
         std::fs::write(&plan, text).unwrap();
-        let out = periscope(&["check", plan.to_str().unwrap()]);
-        assert_eq!(out.code, Some(0), "{out:?}");
-        let line = out
-            .stdout
-            .lines()
-            .find(|l| l.contains("estimated duration"))
-            .unwrap()
-            .to_owned();
-        line.split("reconstruction ")
-            .nth(1)
-            .unwrap()
-            .split(" s")
-            .next()
-            .unwrap()
-            .parse()
-            .unwrap()
+        seconds_after(&estimated_duration(&plan), "reconstruction ")
     };
     let no_scan = text.replacen("[relay]\n", "[relay]\nalbedo-from-scan = false\n", 1);
     assert_ne!(no_scan, text);
@@ -401,6 +406,9 @@ fn check_counts_the_gain_rounds_where_the_fit_estimates_gains() {
     assert_eq!(asked, estimated);
 }
 
+/// A plan that leaves `[gtr] batch` and `epochs` unset is told both reconstruction
+/// times: the relay the scan finds decides whether the fit takes a coarse capture's
+/// batches of 8, over the same steps.
 #[test]
 fn check_gives_a_coarse_captures_reconstruction_time_where_the_plan_leaves_the_batch_unset() {
     let dir = tempfile::tempdir().unwrap();
@@ -411,26 +419,10 @@ fn check_gives_a_coarse_captures_reconstruction_time_where_the_plan_leaves_the_b
     assert_ne!(unset, text);
     let plan = dir.path().join("unset.toml");
     std::fs::write(&plan, unset).unwrap();
-    let out = periscope(&["check", plan.to_str().unwrap()]);
-    assert_eq!(out.code, Some(0), "{out:?}");
-    let line = out
-        .stdout
-        .lines()
-        .find(|l| l.contains("estimated duration"))
-        .unwrap();
-    let seconds = |after: &str| -> f64 {
-        line.split(after)
-            .nth(1)
-            .unwrap()
-            .split(" s")
-            .next()
-            .unwrap()
-            .parse()
-            .unwrap()
-    };
+    let line = estimated_duration(&plan);
     assert!(line.contains("if the relay places points coarsely"), "{line}");
-    let plain = seconds("reconstruction ");
-    let coarse = seconds(&format!("reconstruction {plain:.0} s ("));
+    let plain = seconds_after(&line, "reconstruction ");
+    let coarse = seconds_after(&line, &format!("reconstruction {plain:.0} s ("));
     assert!(coarse > plain, "{line}");
     // The plan's own batch holds everywhere: one time.
     let out = periscope(&["check", "configs/plans/demo.toml"]);

@@ -12,8 +12,9 @@
 //! - 3D-GTR: the virtual confocal scan (`f64` per bin of its own time axis,
 //!   [`VIRTUAL_SCAN_BINS`]), or with `virtual-scan = "splat"` the splatted apexes
 //!   instead; LCT's or f-k's work arrays on that scan when either is the solver after
-//!   the fit (the figures the solvers check themselves against); and the primitives
-//!   with their gradients and optimiser moments;
+//!   the fit (the figures the solvers check themselves against); the primitives with
+//!   their gradients and optimiser moments; and where the fit estimates per-transient
+//!   gains, its rendering of the whole capture (`f64` per bin, and a GPU's `f32`);
 //! - disk: the histogram log (a 36-byte header and 4 bytes per bin per pair), the y-tal
 //!   export of the capture (4 bytes per bin per pair) and the volume outputs.
 use std::fmt::Write;
@@ -137,6 +138,14 @@ impl Budget {
                     bytes: to_u64(fk_work_bytes(cells, VIRTUAL_SCAN_BINS)),
                 }),
                 _ => {}
+            }
+            if plan.estimates_gains() {
+                memory.push(Item {
+                    what: "3D-GTR gain estimation's rendering of the capture",
+                    keys: "pairs × acquisition.bins, where the fit estimates gains (recon.gtr.pair-gains; relay.albedo-from-scan)",
+                    // f64 per bin, and on a GPU its f32 copy as it comes back.
+                    bytes: mul(&[pairs, bins, 12]),
+                });
             }
             memory.push(Item {
                 what: "3D-GTR primitives, gradients and optimiser state",
@@ -299,6 +308,22 @@ mod tests {
             item(&fk, "f-k migration on the virtual scan"),
             Some(((m + 1) * 8 * cells * 8 + cells * m * 4) as u64)
         );
+    }
+
+    #[test]
+    fn the_gain_rounds_rendering_is_costed_where_the_fit_estimates_gains() {
+        const WHAT: &str = "3D-GTR gain estimation's rendering of the capture";
+        // The demo takes its gains from the relay scan: nothing to estimate.
+        assert_eq!(item(&demo_budget(|t| t.to_string()), WHAT), None);
+        // Without the scan's albedo, `auto` estimates them: the capture's pairs × bins
+        // in f64, and a GPU's f32 copy.
+        let no_scan = |t: &str| t.replacen("[relay]\n", "[relay]\nalbedo-from-scan = false\n", 1);
+        let b = demo_budget(no_scan);
+        let bins = 1024; // the simulated instrument's
+        assert_eq!(item(&b, WHAT), Some(24 * 24 * bins * 12));
+        let off =
+            demo_budget(|t| no_scan(t).replacen("[recon.gtr]\n", "[recon.gtr]\npair-gains = \"none\"\n", 1));
+        assert_eq!(item(&off, WHAT), None);
     }
 
     #[test]

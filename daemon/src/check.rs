@@ -4,11 +4,11 @@ use std::fmt::Write;
 
 use glam::DVec3;
 use periscope_drivers::{AngleLimits, GalvoPose, OpticalAngles};
-use periscope_recon::gtr::{GAIN_START, PairGains};
+use periscope_recon::gtr::gain_start_epoch;
 use periscope_recon::relay::Region;
 
 use crate::config::InstrumentConfig;
-use crate::plan::{Method, PairMode, Plan};
+use crate::plan::{Method, Plan};
 
 /// Software overhead per measured point (moves, acquisition, storage), seconds; the
 /// driver benchmark measures about 0.2 ms against the simulator, a real 115200-baud
@@ -105,20 +105,6 @@ pub struct Duration {
     pub reconstruction_max: Option<f64>,
     /// All of it.
     pub total: f64,
-}
-
-/// Whether a run of `plan` has its fit estimate per-transient gains
-/// (`recon.gtr.pair-gains`, [`PairGains::resolve`] on a run's data): per illumination
-/// point where the laser visits more than one, asked for or (`auto`) where the relay
-/// scan gives no gains; per detection point where asked for.
-fn estimates_gains(plan: &Plan) -> bool {
-    let scans = !matches!(plan.pairs, PairMode::FixedLaser { .. });
-    match plan.recon.train.pair_gains {
-        PairGains::None => false,
-        PairGains::Illumination => scans,
-        PairGains::Detection => true,
-        PairGains::Auto => scans && !plan.relay.albedo_from_scan,
-    }
 }
 
 /// The check report as text.
@@ -284,8 +270,8 @@ pub fn check(plan: &Plan, inst: &InstrumentConfig) -> Check {
         let k = train.primitives as f64;
         let points = virtual_points(rc) as f64;
         let epochs = train.counted_epochs(pairs);
-        let gain_rounds = if estimates_gains(plan) {
-            epochs.saturating_sub(((GAIN_START * epochs as f64).round() as usize).max(1))
+        let gain_rounds = if plan.estimates_gains() {
+            epochs.saturating_sub(gain_start_epoch(epochs))
         } else {
             0
         };

@@ -232,6 +232,24 @@ fn default_repeats() -> u32 {
 }
 
 impl Plan {
+    /// Whether a run of this plan has its 3D-GTR fit estimate per-transient gains
+    /// (`recon.gtr.pair-gains`, resolved on a run's data by
+    /// [`periscope_recon::gtr::PairGains::resolve`]): per illumination point where the
+    /// laser visits more than one, where asked for or (`auto`) where the relay scan
+    /// gives no gains; per detection point where asked for. Each round renders the
+    /// whole capture.
+    pub fn estimates_gains(&self) -> bool {
+        use periscope_recon::gtr::PairGains;
+        let scans = !matches!(self.pairs, PairMode::FixedLaser { .. });
+        self.recon.method == Method::Gtr
+            && match self.recon.train.pair_gains {
+                PairGains::None => false,
+                PairGains::Illumination => scans,
+                PairGains::Detection => true,
+                PairGains::Auto => scans && !self.relay.albedo_from_scan,
+            }
+    }
+
     /// Loads and validates a plan for an instrument.
     pub fn load(path: &Path, instrument: &InstrumentConfig) -> Result<Plan, ConfigError> {
         Self::from_source(&TomlSource::load(path)?, instrument)

@@ -21,6 +21,6 @@ pub use train::{
     CancelToken, CoarseFit, Convergence, DENSIFY_ROUNDS, DensifySettings, GAIN_START, GAIN_STEP, LiveModel,
     LossChoice, PairGains, PruneSettings, SEPARATION_BINS, SNAPSHOT_MAX, SurfacePrior, TrainConfig,
     TrainError, TrainEvent, TrainSummary, Trainer, default_initial_scale, default_target_scale, densify,
-    densify_after, estimate_background, estimate_pair_gains, first_negative, gain_groups,
+    densify_after, estimate_background, estimate_pair_gains, first_negative, gain_groups, gain_start_epoch,
     resolvable_separation,
 };

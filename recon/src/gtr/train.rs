@@ -511,6 +511,13 @@ impl PairGains {
 /// explain the gains (starting at 10 % or 40 % scored no better; docs/recon.md).
 pub const GAIN_START: f64 = 0.25;
 
+/// The counted epoch after which the first round of gain estimation comes, of
+/// `epochs`: [`GAIN_START`] of them, at least the first; a round follows every epoch
+/// from there to the last but one, `epochs − gain_start_epoch(epochs)` rounds.
+pub fn gain_start_epoch(epochs: usize) -> usize {
+    ((GAIN_START * epochs as f64).round() as usize).max(1)
+}
+
 /// Each round moves the log-gains this fraction of the way to the new estimate.
 pub const GAIN_STEP: f64 = 0.5;
 
@@ -1794,8 +1801,7 @@ impl Trainer {
         if self.config.pair_gains.resolve(&self.data) == PairGains::None || self.data.len() < 2 {
             return false;
         }
-        let start = ((GAIN_START * epochs as f64).round() as usize).max(1);
-        self.epochs_done >= start && self.epochs_done < epochs
+        self.epochs_done >= gain_start_epoch(epochs) && self.epochs_done < epochs
     }
 
     /// Estimates each gain group's gain afresh from the data and the current fit
