@@ -465,7 +465,7 @@ pub fn densify_after(done: usize, epochs: usize, d: &DensifySettings) -> bool {
 /// Where the data already carry their gains it is not worth its cost (docs/recon.md,
 /// "Gains from the data"): on the noisy sparse capture, whose falloff the file names,
 /// it costs 0.010 IoU (0.957 → 0.947, three seeds) and a fifth more time, and with a
-/// fixed laser, per detection point, 0.01–0.04. So [`PairGains::Auto`], what plans
+/// fixed laser, per detection point, 0.02–0.07. So [`PairGains::Auto`], what plans
 /// and `periscope recon` take by default, estimates them only where nothing else
 /// gives them.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
