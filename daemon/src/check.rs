@@ -25,8 +25,8 @@ const GTR_EVALS_PER_S: f64 = 1.5e7;
 const SYNTH_EVALS_PER_S: f64 = 2.8e7;
 /// Forward evaluations (pair × primitive) per second of a round of per-transient gain
 /// estimation, which renders the whole capture (`recon.gtr.pair-gains`): on 2 cores
-/// 24 rounds of a 1,024-pair capture at 2,000 primitives (49 million) added 0.8–1.0 s
-/// to confocal_sparse's fit.
+/// confocal_sparse's 82 rounds of 300 pairs at 2,000 primitives (49 million, as many as
+/// 24 rounds of a 1,024-pair capture) added 0.8–1.0 s to its fit.
 const GAIN_EVALS_PER_S: f64 = 5e7;
 /// Voxel-pairs per second of the FBP of 3D-GTR's virtual scan onto the volume (the
 /// scaling bench: 128² points onto 128³ and 256³ voxels, 1.7 billion a second).
