@@ -474,13 +474,13 @@ fn densify_splits_a_wide_bright_primitive_into_the_slot_of_a_dead_one() {
         .unwrap();
     let before = cloud.clone();
     let mut again = cloud.clone();
-    let moved = densify(&mut cloud, 0.05, 0.01);
+    let moved = densify(&mut cloud, 0.05, 0.01, 0);
     assert_eq!(
         moved,
         vec![(0, 1)],
         "the wide primitive goes into the lightest dead slot"
     );
-    assert_eq!(densify(&mut again, 0.05, 0.01), moved, "deterministic");
+    assert_eq!(densify(&mut again, 0.05, 0.01, 0), moved, "deterministic");
     assert_eq!(again.centres, cloud.centres);
     for k in [2, 3] {
         assert_eq!(
@@ -534,8 +534,8 @@ fn densify_splits_a_wide_bright_primitive_into_the_slot_of_a_dead_one() {
 
     // Nothing to split or nothing dead: nothing moves.
     let mut narrow = before.clone();
-    assert!(densify(&mut narrow, 0.05, 0.1).is_empty());
-    assert!(densify(&mut narrow, 0.0, 0.01).is_empty());
+    assert!(densify(&mut narrow, 0.05, 0.1, 0).is_empty());
+    assert!(densify(&mut narrow, 0.0, 0.01, 0).is_empty());
     assert_eq!(narrow.centres, before.centres);
 }
 
@@ -1199,9 +1199,14 @@ fn a_coarse_capture_takes_the_coarse_fit() {
     };
     let cfg = TrainConfig {
         primitives: 2000,
+        densify: DensifySettings {
+            grow_from: 0.5,
+            ..DensifySettings::default()
+        },
         coarse: Some(CoarseFit {
             batch_size: 8,
             surface: Some(prior),
+            grow_from: 1.0,
         }),
         ..TrainConfig::default()
     };
@@ -1215,18 +1220,29 @@ fn a_coarse_capture_takes_the_coarse_fit() {
         (4, None),
         "a confocal wall keeps the configured fit"
     );
+    assert_eq!(on_wall.cloud().len(), 1000, "and starts with half its primitives");
     let on_backs = Trainer::new(cfg.clone(), roi, backs.clone()).unwrap();
     assert_eq!(
         (on_backs.config().batch_size, on_backs.config().surface),
         (8, Some(prior)),
         "two backs take the coarse fit"
     );
+    assert_eq!(on_backs.cloud().len(), 2000, "with all its primitives");
+    // The same places as a fit configured with all of them from the start.
+    let whole = TrainConfig {
+        densify: DensifySettings::default(),
+        ..cfg.clone()
+    };
+    let at_once = Trainer::new(whole, roi, backs.clone()).unwrap();
+    assert_eq!(on_backs.cloud().centres, at_once.cloud().centres);
     // Streamed: the choice waits for the first data.
     let empty = TransientSet::new(*backs.axis()).unwrap();
     let mut streamed = Trainer::new(cfg.clone(), roi, empty).unwrap();
     assert_eq!(streamed.config().batch_size, 4);
+    assert_eq!(streamed.cloud().len(), 1000);
     streamed.add(&backs).unwrap();
     assert_eq!(streamed.config().batch_size, 8);
+    assert_eq!(streamed.cloud().len(), 2000);
     let plain = Trainer::new(TrainConfig { coarse: None, ..cfg }, roi, backs).unwrap();
     assert_eq!((plain.config().batch_size, plain.config().surface), (4, None));
 }

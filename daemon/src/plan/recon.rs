@@ -3,7 +3,8 @@
 use periscope_recon::VolumeGrid;
 use periscope_recon::gpu::ComputeDevice;
 use periscope_recon::gtr::{
-    CoarseFit, Convergence, DensifySettings, Init, LossChoice, PairGains, SurfacePrior, TrainConfig,
+    CoarseFit, Convergence, DensifySettings, GROW_FROM, Init, LossChoice, PairGains, SurfacePrior,
+    TrainConfig,
 };
 use periscope_recon::solver::{
     FbpSettings, FkSettings, LctSettings, RsdSettings, SolverError, SolverKind, SolverSettings,
@@ -244,6 +245,7 @@ struct RawGtr {
     #[serde(default = "default_virtual_scan")]
     virtual_scan: String,
     surface_spread: Option<f64>,
+    grow_from: Option<f64>,
 }
 
 fn default_virtual_scan() -> String {
@@ -275,6 +277,7 @@ impl Default for RawGtr {
             epoch_pairs: None,
             virtual_scan: default_virtual_scan(),
             surface_spread: None,
+            grow_from: None,
         }
     }
 }
@@ -398,6 +401,14 @@ pub(crate) fn recon_settings(
     let g = raw.gtr;
     if !(1..=1_000_000).contains(&g.primitives) {
         return Err(src.invalid(&key("gtr.primitives"), "must be 1 to 1,000,000"));
+    }
+    if let Some(f) = g.grow_from
+        && !(f > 0.0 && f <= 1.0)
+    {
+        return Err(src.invalid(
+            &key("gtr.grow-from"),
+            format!("{f} is out of range: give the fraction of `primitives` the fit starts with, above 0 and at most 1 (1: all of them from the start)"),
+        ));
     }
     if let Some(epochs) = g.epochs
         && !(1..=10_000).contains(&epochs)
@@ -532,6 +543,12 @@ pub(crate) fn recon_settings(
                 0.0
             },
             target_scale: g.split_scale,
+            // Growing needs the rounds: without them the fit keeps what it starts with.
+            grow_from: if g.densify {
+                g.grow_from.unwrap_or(GROW_FROM)
+            } else {
+                1.0
+            },
             ..DensifySettings::default()
         },
         average_from: g.average_from.unwrap_or(TrainConfig::default().average_from),
@@ -542,6 +559,11 @@ pub(crate) fn recon_settings(
         coarse: Some(CoarseFit {
             batch_size: g.batch.unwrap_or(CoarseFit::DEFAULT_BATCH),
             surface: prior(g.surface_spread.unwrap_or(SurfacePrior::DEFAULT_SPREAD)),
+            grow_from: if g.densify {
+                g.grow_from.unwrap_or(1.0)
+            } else {
+                1.0
+            },
         }),
         ..TrainConfig::default()
     };
@@ -908,24 +930,42 @@ mod tests {
         };
         let prior = |spread| Some(SurfacePrior { spread, cell: 0.125 });
         // Unset: batches of 4 without the prior, or 8 with it on a coarse capture.
+        // Unset: half the primitives at the start, or all of them on a coarse capture.
         let t = read("");
         assert_eq!((t.batch_size, t.surface), (4, None));
+        assert_eq!(t.densify.grow_from, GROW_FROM);
         assert_eq!(
             t.coarse,
             Some(CoarseFit {
                 batch_size: 8,
                 surface: prior(SurfacePrior::DEFAULT_SPREAD),
+                grow_from: 1.0,
             })
         );
         // What the plan sets holds on every capture.
-        let t = read("batch = 4\nsurface-spread = 0");
+        let t = read("batch = 4\nsurface-spread = 0\ngrow-from = 0.75");
+        assert_eq!(t.densify.grow_from, 0.75);
         assert_eq!(
             t.coarse,
             Some(CoarseFit {
                 batch_size: 4,
                 surface: None,
+                grow_from: 0.75,
             })
         );
+        // Without densification there are no rounds to grow in.
+        let t = read("densify = false\ngrow-from = 0.5");
+        assert_eq!(t.densify.grow_from, 1.0);
+        assert_eq!(t.coarse.map(|c| c.grow_from), Some(1.0));
+        for bad in ["0", "-0.5", "1.5", "nan"] {
+            let e = load_recon(
+                &TomlSource::from_text("recon.toml", format!("[gtr]\ngrow-from = {bad}\n")),
+                Some(volume()),
+            )
+            .unwrap_err()
+            .to_string();
+            assert!(e.contains("gtr.grow-from") && e.contains("at most 1"), "{e}");
+        }
         let t = read("surface-spread = 0.03");
         assert_eq!((t.batch_size, t.surface), (4, prior(0.03)));
         assert_eq!(

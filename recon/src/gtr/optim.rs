@@ -350,6 +350,18 @@ impl AdamW {
         }
     }
 
+    /// Zero moments for primitives appended to the cloud, up to `n` of them in all (a
+    /// fit that grows: [`crate::gtr::DensifySettings::grow_from`]). Before the first
+    /// step there are none to extend.
+    pub fn grow(&mut self, n: usize) {
+        for (moments, width) in self.moments.iter_mut().zip(WIDTHS) {
+            if !moments.m.is_empty() && moments.m.len() < n * width {
+                moments.m.resize(n * width, 0.0);
+                moments.v.resize(n * width, 0.0);
+            }
+        }
+    }
+
     /// Drops the moments of primitives removed by `keep` (same rule as
     /// [`GaussianCloud::retain`]), so optimisation can continue after pruning.
     pub fn retain(&mut self, n: usize, keep: impl Fn(usize) -> bool) {

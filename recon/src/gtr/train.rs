@@ -70,8 +70,10 @@ impl Default for PruneSettings {
 pub const DENSIFY_ROUNDS: usize = 16;
 
 /// Adaptive density control: large primitives that carry signal are split in two,
-/// and the second half takes the place of a primitive that carries none, so K stays
-/// as set (3DGS's split with relocation instead of growth, as in 3DGS-MCMC).
+/// and the second half takes the place of a primitive that carries none (3DGS's split
+/// with relocation, as in 3DGS-MCMC). A fit may also start with fewer primitives than
+/// K and grow to K over its rounds (`grow_from`): the early steps, where the primitives
+/// are still large and few are needed, then cost less.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct DensifySettings {
     /// Densify within the first `until` fraction of the counted epochs (0: never).
@@ -86,7 +88,24 @@ pub struct DensifySettings {
     /// Primitives whose largest scale exceeds this (metres) are split; `None`:
     /// [`default_target_scale`].
     pub target_scale: Option<f64>,
+    /// The fraction of [`TrainConfig::primitives`] placed at initialisation (0 < f ≤ 1).
+    /// Below 1 the rounds add the rest ([`densify`]'s `grow`), no more than an even
+    /// share of it a round, so the cloud may reach K at the last round and never
+    /// before; where the data give fewer primitives worth splitting, it stays smaller.
+    /// 1: all K from the start, the relocation alone. A coarse capture starts with
+    /// [`CoarseFit::grow_from`].
+    #[serde(default = "full_start")]
+    pub grow_from: f64,
 }
+
+fn full_start() -> f64 {
+    1.0
+}
+
+/// What the daemon's fits start with ([`DensifySettings::grow_from`]): half of K. On
+/// the validation captures it cut a fit by a fifth to two fifths with the scores held
+/// (docs/recon.md, "Growing to K").
+pub const GROW_FROM: f64 = 0.5;
 
 impl Default for DensifySettings {
     fn default() -> Self {
@@ -95,6 +114,7 @@ impl Default for DensifySettings {
             rounds: DENSIFY_ROUNDS,
             dead_fraction: 0.05,
             target_scale: None,
+            grow_from: full_start(),
         }
     }
 }
@@ -110,7 +130,19 @@ impl Default for DensifySettings {
 /// single-peaked pair, shrink the cloud more slowly and scored 0.03–0.10 lower on
 /// every validation capture: docs/recon.md.) As many splits as there are
 /// dead slots; deterministic, ties broken by index. Returns the (parent, slot) pairs.
-pub fn densify(cloud: &mut GaussianCloud, dead_fraction: f64, target_scale: f64) -> Vec<(usize, usize)> {
+///
+/// With `grow` > 0 the cloud may also grow by up to `grow` primitives: the parents left
+/// over when the dead slots run out get new slots at the end, and when the splittable
+/// parents run out, the other heavy ones (at or under `target_scale`) are cloned: two
+/// children of the parent's scale, half its albedo each, half its scale either side
+/// of its centre along its widest axis, so no child is finer than the split floor
+/// allows. A slot index of `cloud.len()` or more in the result is a new primitive.
+pub fn densify(
+    cloud: &mut GaussianCloud,
+    dead_fraction: f64,
+    target_scale: f64,
+    grow: usize,
+) -> Vec<(usize, usize)> {
     let n = cloud.len();
     let prims: Vec<Primitive> = (0..n).map(|k| cloud.primitive(k)).collect();
     let w: Vec<f64> = prims.iter().map(Primitive::weight).collect();
@@ -120,10 +152,20 @@ pub fn densify(cloud: &mut GaussianCloud, dead_fraction: f64, target_scale: f64)
     }
     let mut dead: Vec<usize> = (0..n).filter(|&k| w[k] < dead_fraction * mean).collect();
     dead.sort_by(|&a, &b| w[a].total_cmp(&w[b]).then(a.cmp(&b)));
-    let mut large: Vec<usize> = (0..n)
-        .filter(|&k| w[k] >= mean && prims[k].scale.max_element() > target_scale)
-        .collect();
-    large.sort_by(|&a, &b| w[b].total_cmp(&w[a]).then(a.cmp(&b)));
+    let by_weight = |mut ks: Vec<usize>| {
+        ks.sort_by(|&a, &b| w[b].total_cmp(&w[a]).then(a.cmp(&b)));
+        ks
+    };
+    let splittable = |k: usize| prims[k].scale.max_element() > target_scale;
+    let mut parents = by_weight((0..n).filter(|&k| w[k] >= mean && splittable(k)).collect());
+    let split = parents.len();
+    if grow > 0 {
+        parents.extend(by_weight(
+            (0..n).filter(|&k| w[k] >= mean && !splittable(k)).collect(),
+        ));
+        let added = parents.len().saturating_sub(dead.len()).min(grow);
+        dead.extend(n..n + added);
+    }
     let min_scale = cloud.scale_bounds().min * 1.01;
     let roi = *cloud.roi();
     let inside = |c: DVec3| {
@@ -131,23 +173,37 @@ pub fn densify(cloud: &mut GaussianCloud, dead_fraction: f64, target_scale: f64)
         roi.centre + rel * roi.half
     };
     let mut moved = Vec::new();
-    for (&parent, &slot) in large.iter().zip(&dead) {
+    for (j, (&parent, &slot)) in parents.iter().zip(&dead).enumerate() {
         let p = prims[parent];
         let widest = p.scale.max_position();
         let axis = DMat3::from_quat(p.rotation).col(widest);
-        let offset = axis * (0.75f64.sqrt() * p.scale[widest]);
         let mut scale = p.scale;
-        scale[widest] = (0.5 * scale[widest]).max(min_scale);
+        let (offset, albedo) = if j < split {
+            scale[widest] = (0.5 * scale[widest]).max(min_scale);
+            (0.75f64.sqrt() * p.scale[widest], 2.0 * p.albedo)
+        } else {
+            (0.5 * p.scale[widest], 0.5 * p.albedo)
+        };
+        let offset = axis * offset;
         let child = |c| Primitive {
             centre: inside(c),
             scale,
             rotation: p.rotation,
-            albedo: 2.0 * p.albedo,
+            albedo,
         };
+        if slot > cloud.len() {
+            // An earlier new slot was not filled: the rest cannot be appended in order.
+            break;
+        }
         if cloud.set(parent, child(p.centre + offset)).is_err() {
             continue;
         }
-        if cloud.set(slot, child(p.centre - offset)).is_err() {
+        let placed = if slot == cloud.len() {
+            cloud.push(child(p.centre - offset))
+        } else {
+            cloud.set(slot, child(p.centre - offset))
+        };
+        if placed.is_err() {
             // Put the parent back: it was valid a moment ago.
             cloud.set(parent, p).expect("the parent as it was");
             continue;
@@ -245,6 +301,11 @@ pub struct CoarseFit {
     pub batch_size: usize,
     /// The surface prior there (`None`: off).
     pub surface: Option<SurfacePrior>,
+    /// [`DensifySettings::grow_from`] there. Started with half its primitives, the
+    /// coarse fit lost 0.016–0.044 IoU on the mannequin fixtures (docs/recon.md,
+    /// "Growing to K"), so the daemon starts it with all of them.
+    #[serde(default = "full_start")]
+    pub grow_from: f64,
 }
 
 impl CoarseFit {
@@ -1022,6 +1083,19 @@ impl Default for TrainConfig {
     }
 }
 
+/// The primitives a fit of `primitives` starts with at `grow_from`
+/// ([`DensifySettings::grow_from`]): at least one.
+pub fn starting_primitives(primitives: usize, grow_from: f64) -> usize {
+    ((primitives as f64 * grow_from).round() as usize).clamp(1, primitives.max(1))
+}
+
+/// The primitives' initial scale and whether their places came from data.
+#[derive(Clone, Copy, Debug)]
+struct Placement {
+    scale: f64,
+    from_data: bool,
+}
+
 /// The most primitives a [`TrainEvent::Snapshot`] carries.
 pub const SNAPSHOT_MAX: usize = 2048;
 
@@ -1180,6 +1254,9 @@ pub struct TrainSummary {
 
 /// A fit in progress.
 pub struct Trainer {
+    /// How the initial primitives were placed, to place them again for a coarse
+    /// capture that starts with more of them.
+    placement: Placement,
     config: TrainConfig,
     /// Whether [`TrainConfig::coarse`]'s settings were taken.
     coarse: bool,
@@ -1260,10 +1337,20 @@ impl Trainer {
         if !(config.initial_albedo.is_finite() && config.initial_albedo > 0.0) {
             return Err(TrainError::Config("the initial albedo must be positive".into()));
         }
+        let grows = [Some(config.densify.grow_from), config.coarse.map(|c| c.grow_from)];
+        if grows.into_iter().flatten().any(|f| !(f > 0.0 && f <= 1.0)) {
+            return Err(TrainError::Config(
+                "the fraction of the primitives a fit starts with must be above 0 and at most 1".into(),
+            ));
+        }
+        let placement = Placement {
+            scale,
+            from_data: !data.is_empty(),
+        };
         let cloud = initial_cloud(
             roi,
             bounds,
-            config.primitives,
+            starting_primitives(config.primitives, config.densify.grow_from),
             scale,
             config.initial_albedo,
             &config.init,
@@ -1272,6 +1359,7 @@ impl Trainer {
         )?;
         let options = config.render;
         let mut trainer = Self {
+            placement,
             adam: AdamW::new(config.adam),
             rng: ChaCha8Rng::seed_from_u64(config.seed),
             start_centres: cloud.centres.clone(),
@@ -1307,6 +1395,7 @@ impl Trainer {
         if self.gain_set || self.data.is_empty() {
             return Ok(());
         }
+        self.choose_coarse_fit()?;
         let step = (self.data.len() / self.config.gain_pairs.max(1)).max(1);
         let sample = self
             .data
@@ -1324,7 +1413,6 @@ impl Trainer {
             return Err(TrainError::NothingVisible);
         }
         self.options.loss = self.resolve_loss()?;
-        self.choose_coarse_fit();
         // The model has no background: match its total to the data's above it.
         let background = match self.options.loss {
             Loss::Poisson { background } => {
@@ -1929,12 +2017,36 @@ impl Trainer {
     pub fn densify(&mut self) -> usize {
         let d = self.config.densify;
         let target = d.target_scale.unwrap_or_else(|| self.split_floor());
-        let moved = densify(&mut self.cloud, d.dead_fraction, target);
+        let before = self.cloud.len();
+        let grow = self.growth_allowed();
+        let moved = densify(&mut self.cloud, d.dead_fraction, target, grow);
+        let n = self.cloud.len();
+        if n > before {
+            self.adam.grow(n);
+            self.start_centres
+                .extend_from_slice(&self.cloud.centres[3 * before..]);
+            tracing::debug!(from = before, to = n, "the fit grew");
+        }
         for &(parent, slot) in &moved {
             self.adam.reset(parent);
             self.adam.reset(slot);
         }
         moved.len()
+    }
+
+    /// How many primitives this round may add: up to an even share of the rest of K
+    /// for each round so far ([`DensifySettings::grow_from`]).
+    fn growth_allowed(&self) -> usize {
+        let d = &self.config.densify;
+        let k = self.config.primitives;
+        let start = starting_primitives(k, d.grow_from);
+        if start >= k {
+            return 0;
+        }
+        let epochs = self.config.counted_epochs(self.data.len());
+        let rounds = |upto: usize| (1..=upto).filter(|&e| densify_after(e, epochs, d)).count();
+        let (done, all) = (rounds(self.epochs_done), rounds(epochs).max(1));
+        (start + (k - start) * done.min(all) / all).saturating_sub(self.cloud.len())
     }
 
     /// The scale splits stop at when none is set: [`default_target_scale`], or, where
@@ -1959,8 +2071,9 @@ impl Trainer {
     }
 
     /// Takes [`TrainConfig::coarse`]'s settings if the data place points coarsely;
-    /// once, at the first data.
-    fn choose_coarse_fit(&mut self) {
+    /// once, at the first data, before any step: where the coarse fit starts with more
+    /// primitives, they are placed again.
+    fn choose_coarse_fit(&mut self) -> Result<(), TrainError> {
         let (capacity, resolved) = self.floor_and_capacity();
         let ratio = resolved.map_or(0.0, |f| f / capacity);
         let coarse = ratio >= CoarseFit::FROM_RATIO;
@@ -1981,8 +2094,30 @@ impl Trainer {
             );
             self.config.batch_size = c.batch_size;
             self.config.surface = c.surface;
+            self.config.densify.grow_from = c.grow_from;
             self.coarse = true;
+            let count = starting_primitives(self.config.primitives, c.grow_from);
+            if count != self.cloud.len() && self.step == 0 {
+                let none = self.data.subset(&[]);
+                self.cloud = initial_cloud(
+                    *self.cloud.roi(),
+                    self.cloud.scale_bounds(),
+                    count,
+                    self.placement.scale,
+                    self.config.initial_albedo,
+                    &self.config.init,
+                    if self.placement.from_data {
+                        &self.data
+                    } else {
+                        &none
+                    },
+                    self.config.seed,
+                )?;
+                self.start_centres = self.cloud.centres.clone();
+                self.adam = AdamW::new(self.config.adam);
+            }
         }
+        Ok(())
     }
 
     /// Removes primitives at the ROI boundary, with negligible weight, or never moved;
