@@ -539,6 +539,133 @@ fn densify_splits_a_wide_bright_primitive_into_the_slot_of_a_dead_one() {
     assert_eq!(narrow.centres, before.centres);
 }
 
+/// With room to grow, `densify` appends what the dead slots cannot take: the wide
+/// primitive split into a new slot, and a heavy one already at the target scale
+/// cloned (its scale kept, half its albedo each, half its scale either side), never
+/// more than it is allowed, in order, and the same twice.
+#[test]
+fn densify_grows_the_cloud_by_at_most_what_it_is_allowed() {
+    let mut cloud = GaussianCloud::new(roi(), ScaleBounds { min: 1e-3, max: 0.1 }).unwrap();
+    let wide = Primitive {
+        centre: DVec3::new(0.02, -0.01, 0.6),
+        scale: DVec3::new(0.06, 0.02, 0.003),
+        rotation: DQuat::from_rotation_z(0.4),
+        albedo: 1.0,
+    };
+    // Heavy (above the mean weight) but narrower than the target of 10 mm.
+    let narrow = Primitive {
+        centre: DVec3::new(-0.1, 0.1, 0.55),
+        scale: DVec3::new(0.009, 0.004, 0.003),
+        rotation: DQuat::from_rotation_x(0.3),
+        albedo: 1000.0,
+    };
+    // Light, so the other two are above the mean.
+    let faint = Primitive {
+        centre: DVec3::new(0.1, 0.1, 0.5),
+        scale: DVec3::splat(0.004),
+        rotation: DQuat::IDENTITY,
+        albedo: 1.0,
+    };
+    cloud.push(wide).unwrap();
+    cloud.push(narrow).unwrap();
+    cloud.push(faint).unwrap();
+    let before = cloud.clone();
+    // As the cloud holds them (its raw parameters round the last bits).
+    let (wide, narrow, faint) = (before.primitive(0), before.primitive(1), before.primitive(2));
+    let mean = (wide.weight() + narrow.weight() + faint.weight()) / 3.0;
+    assert!(
+        narrow.weight() >= mean && wide.weight() >= mean,
+        "both carry signal"
+    );
+
+    // Nothing dead and no room: nothing moves, as before.
+    let mut fixed = before.clone();
+    assert!(densify(&mut fixed, 0.0, 0.01, 0).is_empty());
+    assert_eq!(fixed, before);
+
+    // Room for one: the split comes first, into a new slot.
+    let mut one = before.clone();
+    assert_eq!(densify(&mut one, 0.0, 0.01, 1), vec![(0, 3)]);
+    assert_eq!(one.len(), 4);
+    assert_eq!(one.primitive(1), narrow, "no room left for the clone");
+
+    // Room for five: the split and the clone, two new primitives and no more.
+    let mut grown = before.clone();
+    let moved = densify(&mut grown, 0.0, 0.01, 5);
+    assert_eq!(moved, vec![(0, 3), (1, 4)]);
+    assert_eq!(grown.len(), 5);
+    assert_eq!(grown.primitive(2), faint, "the faint one is untouched");
+    let mut again = before.clone();
+    assert_eq!(densify(&mut again, 0.0, 0.01, 5), moved, "deterministic");
+    assert_eq!(again, grown);
+    let (a, b) = (grown.primitive(1), grown.primitive(4));
+    assert_eq!(
+        (a.scale, b.scale),
+        (narrow.scale, narrow.scale),
+        "a clone keeps its scale"
+    );
+    assert!(((a.centre + b.centre) / 2.0).distance(narrow.centre) < 1e-9);
+    let axis = glam::DMat3::from_quat(narrow.rotation).col(0);
+    assert!(
+        ((a.centre - narrow.centre).dot(axis) - 0.5 * narrow.scale.x).abs() < 1e-9,
+        "half its scale along its widest axis"
+    );
+    let weight = a.weight() + b.weight();
+    assert!(
+        (weight / narrow.weight() - 1.0).abs() < 1e-9,
+        "weight kept: {weight}"
+    );
+    let split = grown.primitive(0).weight() + grown.primitive(3).weight();
+    assert!((split / wide.weight() - 1.0).abs() < 1e-9, "weight kept: {split}");
+}
+
+/// A fit with `grow_from` = 0.5 starts with half its primitives, grows in its rounds
+/// and never past K, and is as reproducible as a fixed one: the same cloud on one
+/// thread and on two. Its Adam moments follow the growth (the steps after a round
+/// take the new primitives without a fault).
+#[test]
+fn a_fit_grows_from_half_its_primitives_to_at_most_k() {
+    let cfg = TrainConfig {
+        densify: DensifySettings {
+            grow_from: 0.5,
+            ..DensifySettings::default()
+        },
+        prune: PruneSettings {
+            boundary_margin: 0.0,
+            min_weight_fraction: 0.0,
+            min_motion: 0.0,
+        },
+        ..config(120, 16)
+    };
+    let fit = |threads: usize| {
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .build()
+            .unwrap();
+        pool.install(|| {
+            let mut t = Trainer::new(cfg.clone(), roi(), data(60, 4)).unwrap();
+            assert_eq!(t.cloud().len(), 60);
+            let mut sizes = Vec::new();
+            t.run(None, &CancelToken::new(), &mut |e| {
+                if let TrainEvent::Epoch { primitives, .. } = e {
+                    sizes.push(*primitives);
+                }
+            })
+            .unwrap();
+            (t.cloud().clone(), sizes)
+        })
+    };
+    let (one, sizes) = fit(1);
+    eprintln!("primitives after each epoch: {sizes:?}");
+    assert_eq!(sizes[0], 60, "{sizes:?}");
+    assert!(sizes.windows(2).all(|w| w[0] <= w[1]), "only grows: {sizes:?}");
+    let most = *sizes.iter().max().unwrap();
+    assert!(most > 60 && most <= 120, "{sizes:?}");
+    assert!(all_finite(&one));
+    assert_eq!(one.len(), most, "nothing pruned here");
+    assert_eq!(fit(2).0, one, "results differ between 1 and 2 threads");
+}
+
 /// `data(n, seed)` as photon counts: each bin rounded to a whole number, plus
 /// `background` counts in every bin.
 fn counted(n: usize, seed: u64, background: f32) -> TransientSet {

@@ -543,11 +543,13 @@ pub(crate) fn recon_settings(
                 0.0
             },
             target_scale: g.split_scale,
-            // Growing needs the rounds: without them the fit keeps what it starts with.
-            grow_from: if g.densify {
-                g.grow_from.unwrap_or(GROW_FROM)
-            } else {
-                1.0
+            // Growing needs the rounds, and steps between them for what they add to
+            // settle: a plan's own `epochs` (a short fit) starts with every primitive.
+            grow_from: match (g.densify, g.grow_from, g.epochs) {
+                (false, _, _) => 1.0,
+                (true, Some(f), _) => f,
+                (true, None, None) => GROW_FROM,
+                (true, None, Some(_)) => 1.0,
             },
             ..DensifySettings::default()
         },
@@ -930,7 +932,9 @@ mod tests {
         };
         let prior = |spread| Some(SurfacePrior { spread, cell: 0.125 });
         // Unset: batches of 4 without the prior, or 8 with it on a coarse capture.
-        // Unset: half the primitives at the start, or all of them on a coarse capture.
+        // Unset: half the primitives at the start, or all of them on a coarse capture
+        // or in a plan's own epochs.
+        assert_eq!(read("epochs = 16").densify.grow_from, 1.0);
         let t = read("");
         assert_eq!((t.batch_size, t.surface), (4, None));
         assert_eq!(t.densify.grow_from, GROW_FROM);

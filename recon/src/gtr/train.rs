@@ -72,8 +72,9 @@ pub const DENSIFY_ROUNDS: usize = 16;
 /// Adaptive density control: large primitives that carry signal are split in two,
 /// and the second half takes the place of a primitive that carries none (3DGS's split
 /// with relocation, as in 3DGS-MCMC). A fit may also start with fewer primitives than
-/// K and grow to K over its rounds (`grow_from`): the early steps, where the primitives
-/// are still large and few are needed, then cost less.
+/// K and grow towards K in its rounds (`grow_from`), where the splits outnumber the
+/// primitives that carry nothing: a scene that needs fewer than K never gets them,
+/// and every step costs less until it does.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct DensifySettings {
     /// Densify within the first `until` fraction of the counted epochs (0: never).
@@ -89,10 +90,10 @@ pub struct DensifySettings {
     /// [`default_target_scale`].
     pub target_scale: Option<f64>,
     /// The fraction of [`TrainConfig::primitives`] placed at initialisation (0 < f ≤ 1).
-    /// Below 1 the rounds add the rest ([`densify`]'s `grow`), no more than an even
-    /// share of it a round, so the cloud may reach K at the last round and never
-    /// before; where the data give fewer primitives worth splitting, it stays smaller.
-    /// 1: all K from the start, the relocation alone. A coarse capture starts with
+    /// Below 1 each round may add primitives ([`densify`]'s `grow`) up to K: the
+    /// heavy ones left over once every dead slot has taken a split. While some carry
+    /// nothing, the cloud does not grow, so a simple scene keeps fewer than K. 1: all
+    /// K from the start, the relocation alone. A coarse capture starts with
     /// [`CoarseFit::grow_from`].
     #[serde(default = "full_start")]
     pub grow_from: f64,
@@ -102,8 +103,10 @@ fn full_start() -> f64 {
     1.0
 }
 
-/// What the daemon's fits start with ([`DensifySettings::grow_from`]): half of K. On
-/// the validation captures it cut a fit by a fifth to two fifths with the scores held
+/// What the daemon's fits start with ([`DensifySettings::grow_from`]) where the plan
+/// leaves `epochs` to the step floor: half of K. On the validation captures it took
+/// a fifth to two fifths off the run with the scores held, and the simulator's two
+/// torsos (which grow to K) held theirs; starting with a quarter cost them 0.06 IoU
 /// (docs/recon.md, "Growing to K").
 pub const GROW_FROM: f64 = 0.5;
 
@@ -301,9 +304,10 @@ pub struct CoarseFit {
     pub batch_size: usize,
     /// The surface prior there (`None`: off).
     pub surface: Option<SurfacePrior>,
-    /// [`DensifySettings::grow_from`] there. Started with half its primitives, the
-    /// coarse fit lost 0.016–0.044 IoU on the mannequin fixtures (docs/recon.md,
-    /// "Growing to K"), so the daemon starts it with all of them.
+    /// [`DensifySettings::grow_from`] there. Started with half its primitives and
+    /// grown in even shares a round, the coarse fit lost 0.016–0.044 IoU on the
+    /// mannequin fixtures (docs/recon.md, "Growing to K"), so the daemon starts it
+    /// with all of them.
     #[serde(default = "full_start")]
     pub grow_from: f64,
 }
@@ -1848,6 +1852,15 @@ impl Trainer {
             on_event(&TrainEvent::Averaged { steps: n });
         }
         let before = self.cloud.len();
+        let start = starting_primitives(self.config.primitives, self.config.densify.grow_from);
+        if start < self.config.primitives {
+            tracing::info!(
+                from = start,
+                to = before,
+                of = self.config.primitives,
+                "the fit grew in its densification rounds ([gtr] grow-from sets where it starts)"
+            );
+        }
         let kept = self.prune();
         on_event(&TrainEvent::Pruned { before, kept });
         Ok(self.summary(final_loss, false))
@@ -2034,19 +2047,14 @@ impl Trainer {
         moved.len()
     }
 
-    /// How many primitives this round may add: up to an even share of the rest of K
-    /// for each round so far ([`DensifySettings::grow_from`]).
+    /// How many primitives this round may add: what K leaves, in a fit that grows
+    /// ([`DensifySettings::grow_from`] below 1); none in one that does not.
     fn growth_allowed(&self) -> usize {
-        let d = &self.config.densify;
         let k = self.config.primitives;
-        let start = starting_primitives(k, d.grow_from);
-        if start >= k {
+        if starting_primitives(k, self.config.densify.grow_from) >= k {
             return 0;
         }
-        let epochs = self.config.counted_epochs(self.data.len());
-        let rounds = |upto: usize| (1..=upto).filter(|&e| densify_after(e, epochs, d)).count();
-        let (done, all) = (rounds(self.epochs_done), rounds(epochs).max(1));
-        (start + (k - start) * done.min(all) / all).saturating_sub(self.cloud.len())
+        k.saturating_sub(self.cloud.len())
     }
 
     /// The scale splits stop at when none is set: [`default_target_scale`], or, where
