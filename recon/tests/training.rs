@@ -74,6 +74,15 @@ fn config(primitives: usize, epochs: usize) -> TrainConfig {
     }
 }
 
+/// `f` on a pool of `threads` workers.
+fn on_threads<T: Send>(threads: usize, f: impl FnOnce() -> T + Send) -> T {
+    rayon::ThreadPoolBuilder::new()
+        .num_threads(threads)
+        .build()
+        .unwrap()
+        .install(f)
+}
+
 fn all_finite(cloud: &GaussianCloud) -> bool {
     [&cloud.centres, &cloud.scales, &cloud.rotations, &cloud.albedo]
         .iter()
@@ -83,11 +92,7 @@ fn all_finite(cloud: &GaussianCloud) -> bool {
 #[test]
 fn same_seed_same_result_whatever_the_thread_count() {
     let fit = |threads: usize| {
-        let pool = rayon::ThreadPoolBuilder::new()
-            .num_threads(threads)
-            .build()
-            .unwrap();
-        pool.install(|| {
+        on_threads(threads, || {
             let mut t = Trainer::new(config(300, 2), roi(), data(60, 1)).unwrap();
             t.run(None, &CancelToken::new(), &mut |_| {}).unwrap();
             t.cloud().clone()
@@ -301,11 +306,7 @@ fn streamed_fit(all: &TransientSet, threads: usize, delay: Duration) -> (Gaussia
         }
         p
     };
-    let pool = rayon::ThreadPoolBuilder::new()
-        .num_threads(threads)
-        .build()
-        .unwrap();
-    pool.install(|| {
+    on_threads(threads, || {
         let (tx, rx) = mpsc::channel();
         let parts: Vec<TransientSet> = (30..all.len()).step_by(30).map(part).collect();
         let producer = std::thread::spawn(move || {
@@ -446,15 +447,20 @@ fn pruning_drops_primitives_the_data_never_moved() {
     }
 }
 
+/// A 60 × 20 mm primitive, 3 mm thin, wider than the densify tests' 10 mm target.
+fn wide(rotation: DQuat) -> Primitive {
+    Primitive {
+        centre: DVec3::new(0.02, -0.01, 0.6),
+        scale: DVec3::new(0.06, 0.02, 0.003),
+        rotation,
+        albedo: 1.0,
+    }
+}
+
 #[test]
 fn densify_splits_a_wide_bright_primitive_into_the_slot_of_a_dead_one() {
     let mut cloud = GaussianCloud::new(roi(), ScaleBounds { min: 1e-3, max: 0.1 }).unwrap();
-    let wide = Primitive {
-        centre: DVec3::new(0.02, -0.01, 0.6),
-        scale: DVec3::new(0.06, 0.02, 0.003),
-        rotation: DQuat::from_rotation_z(0.4) * DQuat::from_rotation_x(0.2),
-        albedo: 1.0,
-    };
+    let wide = wide(DQuat::from_rotation_z(0.4) * DQuat::from_rotation_x(0.2));
     let small = |x: f64, s: f64| Primitive {
         centre: DVec3::new(x, 0.1, 0.55),
         scale: DVec3::new(s, s, 0.003),
@@ -546,12 +552,7 @@ fn densify_splits_a_wide_bright_primitive_into_the_slot_of_a_dead_one() {
 #[test]
 fn densify_grows_the_cloud_by_at_most_what_it_is_allowed() {
     let mut cloud = GaussianCloud::new(roi(), ScaleBounds { min: 1e-3, max: 0.1 }).unwrap();
-    let wide = Primitive {
-        centre: DVec3::new(0.02, -0.01, 0.6),
-        scale: DVec3::new(0.06, 0.02, 0.003),
-        rotation: DQuat::from_rotation_z(0.4),
-        albedo: 1.0,
-    };
+    let wide = wide(DQuat::from_rotation_z(0.4));
     // Heavy (above the mean weight) but narrower than the target of 10 mm.
     let narrow = Primitive {
         centre: DVec3::new(-0.1, 0.1, 0.55),
@@ -638,11 +639,7 @@ fn a_fit_grows_from_half_its_primitives_to_at_most_k() {
         ..config(120, 16)
     };
     let fit = |threads: usize| {
-        let pool = rayon::ThreadPoolBuilder::new()
-            .num_threads(threads)
-            .build()
-            .unwrap();
-        pool.install(|| {
+        on_threads(threads, || {
             let mut t = Trainer::new(cfg.clone(), roi(), data(60, 4)).unwrap();
             assert_eq!(t.cloud().len(), 60);
             let mut sizes = Vec::new();
