@@ -931,9 +931,9 @@ mod tests {
             .train
         };
         let prior = |spread| Some(SurfacePrior { spread, cell: 0.125 });
-        // Unset: batches of 4 without the prior, or 8 with it on a coarse capture.
-        // Unset: half the primitives at the start, or all of them on a coarse capture
-        // or in a plan's own epochs.
+        // Unset: batches of 4 without the prior, or 8 with it on a coarse capture;
+        // half the primitives at the start, or all of them on a coarse capture or in a
+        // plan's own epochs.
         assert_eq!(read("epochs = 16").densify.grow_from, 1.0);
         let t = read("");
         assert_eq!((t.batch_size, t.surface), (4, None));

@@ -304,10 +304,10 @@ pub struct CoarseFit {
     pub batch_size: usize,
     /// The surface prior there (`None`: off).
     pub surface: Option<SurfacePrior>,
-    /// [`DensifySettings::grow_from`] there. Started with half its primitives and
-    /// grown in even shares a round, the coarse fit lost 0.016–0.044 IoU on the
-    /// mannequin fixtures (docs/recon.md, "Growing to K"), so the daemon starts it
-    /// with all of them.
+    /// [`DensifySettings::grow_from`] there. Started with half its primitives, the
+    /// coarse fit lost 0.07 IoU on the mean of the mannequin fixture's seeds and was no
+    /// faster, its cloud filling at once (docs/recon.md, "Growing to K"), so the
+    /// daemon starts it with all of them.
     #[serde(default = "full_start")]
     pub grow_from: f64,
 }
