@@ -1419,6 +1419,50 @@ fn gain_rounds_render_on_the_fits_gpu() {
     );
 }
 
+/// A fit that grows does so on the GPU too: its steps' resident buffers take the
+/// cloud's new size each epoch, the fit stays on the GPU, and it grows as the CPU fit
+/// does (the same sizes after every epoch, the rounds judging f32 fits alike here) to
+/// a loss within 2 % of the CPU's.
+#[test]
+fn a_growing_fit_runs_on_the_gpu() {
+    let Some(gpu) = gpu("a_growing_fit_runs_on_the_gpu") else {
+        return;
+    };
+    let fit = |on_gpu: bool| {
+        let cfg = TrainConfig {
+            densify: DensifySettings {
+                grow_from: 0.5,
+                ..DensifySettings::default()
+            },
+            ..config(120, 16)
+        };
+        let mut t = Trainer::new(cfg, roi(), data(60, 4)).unwrap();
+        if on_gpu {
+            t.use_gpu(gpu.clone(), true);
+        }
+        let (mut sizes, mut last) = (Vec::new(), f64::NAN);
+        t.run(None, &CancelToken::new(), &mut |e| {
+            if let TrainEvent::Epoch { primitives, loss, .. } = e {
+                sizes.push(*primitives);
+                last = *loss;
+            }
+        })
+        .unwrap();
+        assert_eq!(t.on_gpu(), on_gpu);
+        assert!(all_finite(t.cloud()));
+        (sizes, last)
+    };
+    let (cpu, cpu_loss) = fit(false);
+    let (gpu, gpu_loss) = fit(true);
+    eprintln!("sizes: CPU {cpu:?}, GPU {gpu:?}; last loss: CPU {cpu_loss}, GPU {gpu_loss}");
+    assert!(cpu[0] == 60 && *cpu.last().unwrap() > 60, "{cpu:?}");
+    assert_eq!(gpu, cpu);
+    assert!(
+        cpu_loss > 0.0 && (gpu_loss - cpu_loss).abs() <= 0.02 * cpu_loss,
+        "GPU {gpu_loss} against CPU {cpu_loss}"
+    );
+}
+
 /// A fit whose steps run on the GPU (f32) follows the CPU's (f64): after 6 epochs of
 /// 15 steps on one primitive's transients, the last epoch's loss is within 1 % of the
 /// CPU fit's and every centre within 0.5 mm of it, and the fit stayed on the GPU.
