@@ -1371,6 +1371,9 @@ fn a_coarse_capture_takes_the_coarse_fit() {
     assert_eq!((plain.config().batch_size, plain.config().surface), (4, None));
 }
 
+use std::sync::Arc;
+
+use periscope_recon::gpu::Gpu;
 use periscope_recon::gpu::testing::gpu;
 
 /// A fit on the GPU renders its rounds of gain estimation there: on the auto test's
@@ -1419,6 +1422,25 @@ fn gain_rounds_render_on_the_fits_gpu() {
     );
 }
 
+/// A fit of `data` run to the end on `gpu` (strict) or the CPU, which must stay where
+/// it started; with the primitives after every epoch and the last epoch's loss.
+fn fit_on(cfg: TrainConfig, data: TransientSet, gpu: Option<&Arc<Gpu>>) -> (Trainer, Vec<usize>, f64) {
+    let mut t = Trainer::new(cfg, roi(), data).unwrap();
+    if let Some(gpu) = gpu {
+        t.use_gpu(gpu.clone(), true);
+    }
+    let (mut sizes, mut last) = (Vec::new(), f64::NAN);
+    t.run(None, &CancelToken::new(), &mut |e| {
+        if let TrainEvent::Epoch { primitives, loss, .. } = e {
+            sizes.push(*primitives);
+            last = *loss;
+        }
+    })
+    .unwrap();
+    assert_eq!(t.on_gpu(), gpu.is_some(), "the fit stayed where it started");
+    (t, sizes, last)
+}
+
 /// A fit that grows does so on the GPU too: its steps' resident buffers take the
 /// cloud's new size each epoch, the fit stays on the GPU, and it grows as the CPU fit
 /// does (the same sizes after every epoch, the rounds judging f32 fits alike here) to
@@ -1428,32 +1450,20 @@ fn a_growing_fit_runs_on_the_gpu() {
     let Some(gpu) = gpu("a_growing_fit_runs_on_the_gpu") else {
         return;
     };
-    let fit = |on_gpu: bool| {
-        let cfg = TrainConfig {
-            densify: DensifySettings {
-                grow_from: 0.5,
-                ..DensifySettings::default()
-            },
-            ..config(120, 16)
-        };
-        let mut t = Trainer::new(cfg, roi(), data(60, 4)).unwrap();
-        if on_gpu {
-            t.use_gpu(gpu.clone(), true);
-        }
-        let (mut sizes, mut last) = (Vec::new(), f64::NAN);
-        t.run(None, &CancelToken::new(), &mut |e| {
-            if let TrainEvent::Epoch { primitives, loss, .. } = e {
-                sizes.push(*primitives);
-                last = *loss;
-            }
-        })
-        .unwrap();
-        assert_eq!(t.on_gpu(), on_gpu);
+    let cfg = TrainConfig {
+        densify: DensifySettings {
+            grow_from: 0.5,
+            ..DensifySettings::default()
+        },
+        ..config(120, 16)
+    };
+    let fit = |on: Option<&Arc<Gpu>>| {
+        let (t, sizes, last) = fit_on(cfg.clone(), data(60, 4), on);
         assert!(all_finite(t.cloud()));
         (sizes, last)
     };
-    let (cpu, cpu_loss) = fit(false);
-    let (gpu, gpu_loss) = fit(true);
+    let (cpu, cpu_loss) = fit(None);
+    let (gpu, gpu_loss) = fit(Some(&gpu));
     eprintln!("sizes: CPU {cpu:?}, GPU {gpu:?}; last loss: CPU {cpu_loss}, GPU {gpu_loss}");
     assert!(cpu[0] == 60 && *cpu.last().unwrap() > 60, "{cpu:?}");
     assert_eq!(gpu, cpu);
@@ -1471,23 +1481,12 @@ fn a_fit_on_the_gpu_follows_the_cpus() {
     let Some(gpu) = gpu("a_fit_on_the_gpu_follows_the_cpus") else {
         return;
     };
-    let fit = |on_gpu: bool| {
-        let mut t = Trainer::new(config(50, 6), roi(), data(60, 1)).unwrap();
-        if on_gpu {
-            t.use_gpu(gpu.clone(), true);
-        }
-        let mut last = f64::NAN;
-        t.run(None, &CancelToken::new(), &mut |e| {
-            if let TrainEvent::Epoch { loss, .. } = e {
-                last = *loss;
-            }
-        })
-        .unwrap();
-        assert_eq!(t.on_gpu(), on_gpu);
+    let fit = |on: Option<&Arc<Gpu>>| {
+        let (t, _, last) = fit_on(config(50, 6), data(60, 1), on);
         (t.cloud().clone(), last)
     };
-    let (cpu, cpu_loss) = fit(false);
-    let (gpu, gpu_loss) = fit(true);
+    let (cpu, cpu_loss) = fit(None);
+    let (gpu, gpu_loss) = fit(Some(&gpu));
     eprintln!("last epoch's loss: GPU {gpu_loss}, CPU {cpu_loss}");
     assert!(
         cpu_loss > 0.0 && (gpu_loss - cpu_loss).abs() <= 0.01 * cpu_loss,
