@@ -5,11 +5,11 @@ use std::time::Duration;
 
 use glam::{DQuat, DVec3};
 use periscope_recon::gtr::{
-    CancelToken, CoarseFit, Convergence, DENSIFY_ROUNDS, DensifySettings, GaussianCloud, Init, Loss,
-    LossChoice, PairGains, Primitive, PruneSettings, RawGrads, RenderOptions, ScaleBounds, SurfacePrior,
-    TrainConfig, TrainError, TrainEvent, Trainer, batch_loss_grad, default_target_scale, densify,
-    densify_after, estimate_background, estimate_pair_gains, first_negative, gain_groups, render_set,
-    resolvable_separation,
+    AverageBatch, CancelToken, CoarseFit, Convergence, DENSIFY_ROUNDS, DensifySettings, GaussianCloud, Init,
+    Loss, LossChoice, PairGains, Primitive, PruneSettings, RawGrads, RenderOptions, ScaleBounds,
+    SurfacePrior, TrainConfig, TrainError, TrainEvent, Trainer, batch_loss_grad, default_target_scale,
+    densify, densify_after, estimate_background, estimate_pair_gains, first_negative, gain_groups,
+    render_set, resolvable_separation,
 };
 use periscope_recon::{Pair, RoiBox, TimeAxis, TransientSet};
 use rand::{Rng, SeedableRng};
@@ -257,6 +257,90 @@ fn a_small_capture_gets_more_epochs_to_reach_the_minimum_steps() {
     // One round in the first half of the 5 counted epochs (epochs 1 and 2), at its
     // end: a fit of 2 epochs spread over 5 does not densify after every one.
     assert_eq!(densified, vec![2]);
+}
+
+/// The averaged epochs take `average_batch` pairs a step and as many steps as the
+/// others, so they train on fewer pairs, in turn from a shuffled pass over the capture.
+/// `Same` is the fit before, step for step.
+#[test]
+fn averaged_epochs_take_fewer_pairs_a_step_in_as_many_steps() {
+    assert_eq!([1, 2, 3, 4, 8].map(|b| AverageBatch::Half.of(b)), [1, 1, 2, 2, 4]);
+    assert_eq!(AverageBatch::Same.of(4), 4);
+    assert_eq!(
+        [0, 1, 3, 9].map(|n| AverageBatch::Pairs(n).of(4)),
+        [1, 1, 3, 4],
+        "between one pair and the batch in force"
+    );
+    let cfg = |average_batch| TrainConfig {
+        average_batch,
+        average_from: 0.5,
+        ..config(30, 4)
+    };
+    // 42 pairs in batches of 4: 11 steps an epoch; at half, 22 pairs in steps of 2.
+    assert_eq!(cfg(AverageBatch::Half).epoch_plan(42, false), (42, 4));
+    assert_eq!(cfg(AverageBatch::Half).epoch_plan(42, true), (22, 2));
+    assert_eq!(cfg(AverageBatch::Pairs(3)).epoch_plan(42, true), (33, 3));
+    assert_eq!(cfg(AverageBatch::Same).epoch_plan(42, true), (42, 4));
+    assert_eq!(cfg(AverageBatch::Half).counted_pair_visits(42), 2 * 42 + 2 * 22);
+    assert_eq!(cfg(AverageBatch::Same).counted_pair_visits(42), 4 * 42);
+
+    let fit = |average_batch| {
+        let mut trainer = Trainer::new(cfg(average_batch), roi(), data(42, 5)).unwrap();
+        let mut epochs = Vec::new();
+        let summary = trainer
+            .run(None, &CancelToken::new(), &mut |e| {
+                if let TrainEvent::Epoch {
+                    epoch, pairs, step, ..
+                } = e
+                {
+                    epochs.push((*epoch, *pairs, *step));
+                }
+            })
+            .unwrap();
+        let centres: Vec<u64> = (0..trainer.cloud().len())
+            .flat_map(|k| trainer.cloud().primitive(k).centre.to_array())
+            .map(f64::to_bits)
+            .collect();
+        (epochs, summary.average_batch, centres)
+    };
+    let (half, half_batch, half_centres) = fit(AverageBatch::Half);
+    assert_eq!(
+        half,
+        vec![(1, 42, 11), (2, 42, 22), (3, 22, 33), (4, 22, 44)],
+        "the averaged epochs (3 and 4) train on half the pairs in as many steps"
+    );
+    assert_eq!(half_batch, 2);
+    let (same, same_batch, same_centres) = fit(AverageBatch::Same);
+    assert_eq!(same, vec![(1, 42, 11), (2, 42, 22), (3, 42, 33), (4, 42, 44)]);
+    assert_eq!(same_batch, 4);
+    assert_ne!(
+        half_centres, same_centres,
+        "the averaged epochs saw other batches"
+    );
+    assert_eq!(
+        fit(AverageBatch::Half).2,
+        half_centres,
+        "the same fit again, bit for bit"
+    );
+    // The epochs before averaging are the same steps either way: with averaging
+    // from the end (never), Half changes nothing.
+    let never = |average_batch| {
+        let mut trainer = Trainer::new(
+            TrainConfig {
+                average_from: 1.0,
+                ..cfg(average_batch)
+            },
+            roi(),
+            data(42, 5),
+        )
+        .unwrap();
+        trainer.run(None, &CancelToken::new(), &mut |_| {}).unwrap();
+        (0..trainer.cloud().len())
+            .flat_map(|k| trainer.cloud().primitive(k).centre.to_array())
+            .map(f64::to_bits)
+            .collect::<Vec<_>>()
+    };
+    assert_eq!(never(AverageBatch::Half), never(AverageBatch::Same));
 }
 
 /// Densification rounds: one after each epoch of the first half when that half holds
@@ -1444,7 +1528,8 @@ fn fit_on(cfg: TrainConfig, data: TransientSet, gpu: Option<&Arc<Gpu>>) -> (Trai
 /// A fit that grows does so on the GPU too: its steps' resident buffers take the
 /// cloud's new size each epoch, the fit stays on the GPU, and it grows as the CPU fit
 /// does (the same sizes after every epoch, the rounds judging f32 fits alike here) to
-/// a loss within 2 % of the CPU's.
+/// a loss within 2 % of the CPU's. Its averaged epochs take half the pairs a step, as
+/// the daemon's default fit does, so the GPU's steps take those smaller batches too.
 #[test]
 fn a_growing_fit_runs_on_the_gpu() {
     let Some(gpu) = gpu("a_growing_fit_runs_on_the_gpu") else {
@@ -1455,18 +1540,21 @@ fn a_growing_fit_runs_on_the_gpu() {
             grow_from: 0.5,
             ..DensifySettings::default()
         },
+        average_batch: AverageBatch::Half,
         ..config(120, 16)
     };
     let fit = |on: Option<&Arc<Gpu>>| {
         let (t, sizes, last) = fit_on(cfg.clone(), data(60, 4), on);
         assert!(all_finite(t.cloud()));
-        (sizes, last)
+        (sizes, last, t.steps())
     };
-    let (cpu, cpu_loss) = fit(None);
-    let (gpu, gpu_loss) = fit(Some(&gpu));
+    let (cpu, cpu_loss, cpu_steps) = fit(None);
+    let (gpu, gpu_loss, gpu_steps) = fit(Some(&gpu));
     eprintln!("sizes: CPU {cpu:?}, GPU {gpu:?}; last loss: CPU {cpu_loss}, GPU {gpu_loss}");
     assert!(cpu[0] == 60 && *cpu.last().unwrap() > 60, "{cpu:?}");
     assert_eq!(gpu, cpu);
+    // 60 pairs in batches of 4 are 15 steps an epoch, averaged or not.
+    assert_eq!((cpu_steps, gpu_steps), (16 * 15, 16 * 15));
     assert!(
         cpu_loss > 0.0 && (gpu_loss - cpu_loss).abs() <= 0.02 * cpu_loss,
         "GPU {gpu_loss} against CPU {cpu_loss}"

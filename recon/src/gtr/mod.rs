@@ -18,9 +18,9 @@ pub use optim::{AdamW, AdamWSettings, GroupSettings, Schedule};
 pub use ply::write_ply;
 pub use render::{batch_loss, batch_loss_grad, batch_loss_grad_gpu, render_pairs, render_set};
 pub use train::{
-    CancelToken, CoarseFit, Convergence, DENSIFY_ROUNDS, DensifySettings, GAIN_START, GAIN_STEP, GROW_FROM,
-    LiveModel, LossChoice, PairGains, PruneSettings, SEPARATION_BINS, SNAPSHOT_MAX, SurfacePrior,
-    TrainConfig, TrainError, TrainEvent, TrainSummary, Trainer, default_initial_scale, default_target_scale,
-    densify, densify_after, estimate_background, estimate_pair_gains, first_negative, gain_groups,
-    gain_start_epoch, resolvable_separation, starting_primitives,
+    AverageBatch, CancelToken, CoarseFit, Convergence, DENSIFY_ROUNDS, DensifySettings, GAIN_START,
+    GAIN_STEP, GROW_FROM, LiveModel, LossChoice, PairGains, PruneSettings, SEPARATION_BINS, SNAPSHOT_MAX,
+    SurfacePrior, TrainConfig, TrainError, TrainEvent, TrainSummary, Trainer, default_initial_scale,
+    default_target_scale, densify, densify_after, estimate_background, estimate_pair_gains, first_negative,
+    gain_groups, gain_start_epoch, resolvable_separation, starting_primitives,
 };

@@ -262,6 +262,11 @@ pub struct TrainConfig {
     /// the paper.
     #[serde(default = "default_average_from")]
     pub average_from: f64,
+    /// Pairs a step takes in the averaged epochs ([`AverageBatch`]): each of those
+    /// epochs takes as many steps as the others, so with fewer pairs a step it trains on
+    /// fewer pairs, in turn from a shuffled pass over the capture.
+    #[serde(default)]
+    pub average_batch: AverageBatch,
     /// Pairs used to match the gain at initialisation, at most.
     pub gain_pairs: usize,
     /// Whether each transient's own gain is estimated from the data during the fit
@@ -459,6 +464,42 @@ pub struct Convergence {
     pub tolerance: f64,
 }
 
+/// The pairs a step takes in a fit's averaged epochs ([`TrainConfig::average_from`]),
+/// against the batch in force before them ([`TrainConfig::batch_size`], or
+/// [`TrainConfig::coarse`]'s).
+///
+/// The fit's result is the mean of those epochs' iterates, which averages the
+/// gradients' noise over a thousand steps and more, so they need fewer pairs a step
+/// than the steps before them, where each step's direction decides where the
+/// primitives go. Half the pairs there, at the same steps, takes a sixth off the fit's
+/// work with the validation captures' means over six seeds within 0.006 IoU; half in
+/// the epochs from the middle on, or a quarter in the averaged ones, lost 0.02–0.03 on
+/// the non-confocal captures (docs/recon.md, "Fewer pairs a step where the iterates
+/// are averaged").
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum AverageBatch {
+    /// The batch in force: the fit before 2026-12-05, bit for bit.
+    #[default]
+    Same,
+    /// Half the batch in force, rounded up.
+    Half,
+    /// This many pairs, at most the batch in force (and at least one).
+    Pairs(usize),
+}
+
+impl AverageBatch {
+    /// The pairs a step takes in the averaged epochs where `batch` is in force.
+    pub fn of(self, batch: usize) -> usize {
+        let batch = batch.max(1);
+        match self {
+            Self::Same => batch,
+            Self::Half => batch.div_ceil(2),
+            Self::Pairs(n) => n.clamp(1, batch),
+        }
+    }
+}
+
 /// [`TrainConfig::average_from`]'s default: the last third, the epochs after the
 /// learning rate's last decay.
 fn default_average_from() -> f64 {
@@ -482,6 +523,32 @@ impl TrainConfig {
             0 => pairs,
             cap => pairs.min(cap),
         }
+    }
+
+    /// The pairs an epoch of a fit on `pairs` transients trains on and the pairs each of
+    /// its steps takes: [`TrainConfig::pairs_per_epoch`] in batches of `batch_size`, or
+    /// in an averaged epoch (`averaged`) [`TrainConfig::average_batch`]'s pairs a step
+    /// and as many steps as the other epochs take, so fewer pairs.
+    pub fn epoch_plan(&self, pairs: usize, averaged: bool) -> (usize, usize) {
+        let take = self.pairs_per_epoch(pairs);
+        let batch = self.batch_size.max(1);
+        let per_step = if averaged {
+            self.average_batch.of(batch)
+        } else {
+            batch
+        };
+        if per_step >= batch {
+            return (take, batch);
+        }
+        ((take.div_ceil(batch) * per_step).min(take), per_step)
+    }
+
+    /// The pair visits of the counted epochs of a fit on `pairs` transients (each
+    /// renders every primitive once, forward and backward): what its time goes with.
+    pub fn counted_pair_visits(&self, pairs: usize) -> usize {
+        let epochs = self.counted_epochs(pairs);
+        let averaged = self.average_start(epochs).map_or(0, |start| epochs - start);
+        (epochs - averaged) * self.epoch_plan(pairs, false).0 + averaged * self.epoch_plan(pairs, true).0
     }
 
     /// The counted epochs of a fit on `pairs` transients: `epochs`, or more where that
@@ -1077,6 +1144,7 @@ impl Default for TrainConfig {
             prune: PruneSettings::default(),
             densify: DensifySettings::default(),
             average_from: default_average_from(),
+            average_batch: AverageBatch::Same,
             gain_pairs: 512,
             pair_gains: PairGains::default(),
             seed: 0,
@@ -1245,6 +1313,9 @@ pub struct TrainSummary {
     /// Pairs per mini-batch in force ([`TrainConfig::batch_size`], or
     /// [`TrainConfig::coarse`]'s).
     pub batch_size: usize,
+    /// Pairs a step in the averaged epochs ([`TrainConfig::average_batch`] of the
+    /// batch in force).
+    pub average_batch: usize,
     /// The surface prior's spread in force, metres (`None`: off).
     pub surface_spread: Option<f64>,
     /// Whether the data counted as a coarse capture and the fit took
@@ -1537,7 +1608,7 @@ impl Trainer {
             return None;
         }
         let n = self.data.len();
-        let take = self.config.pairs_per_epoch(n);
+        let (take, batch_size) = self.config.epoch_plan(n, self.average.is_some());
         let order: Vec<usize> = if take >= n {
             let mut order: Vec<usize> = (0..n).collect();
             order.shuffle(&mut self.rng);
@@ -1554,7 +1625,7 @@ impl Trainer {
             self.pass[self.pass_at - take..self.pass_at].to_vec()
         };
         if let Some((gpu, strict)) = self.gpu.clone() {
-            match self.epoch_on_gpu(&gpu, &order, cancel) {
+            match self.epoch_on_gpu(&gpu, &order, batch_size, cancel) {
                 Ok(loss) => return loss,
                 Err(e) if strict => {
                     self.gpu_failure = Some(e);
@@ -1568,7 +1639,7 @@ impl Trainer {
         }
         let mut total = 0.0;
         let mut batches = 0usize;
-        for batch in order.chunks(self.config.batch_size) {
+        for batch in order.chunks(batch_size) {
             if cancel.is_cancelled() {
                 return None;
             }
@@ -1628,6 +1699,7 @@ impl Trainer {
         &mut self,
         gpu: &Gpu,
         order: &[usize],
+        batch_size: usize,
         cancel: &CancelToken,
     ) -> Result<Option<f64>, GpuError> {
         use crate::gpu::{Optimiser, Resident, Step};
@@ -1638,7 +1710,7 @@ impl Trainer {
             self.average.as_ref().map(|(mean, _)| mean),
         );
         let optimiser = Optimiser::of(&self.cloud, self.adam.settings());
-        let batches: Vec<&[usize]> = order.chunks(self.config.batch_size).collect();
+        let batches: Vec<&[usize]> = order.chunks(batch_size).collect();
         let gains = (self.gain_rounds > 0).then_some(self.pair_gains.as_slice());
         let counted = self.config.counted_epochs(self.data.len());
         let (step0, t0) = (self.step, self.adam.steps_taken());
@@ -1804,6 +1876,8 @@ impl Trainer {
                 return Ok(self.summary(final_loss, true));
             };
             final_loss = loss;
+            // What the epoch trained on, and in steps of how many pairs.
+            let (trained, per_step) = self.config.epoch_plan(self.data.len(), self.average.is_some());
             let counted = feed.is_none();
             if counted {
                 self.epochs_done += 1;
@@ -1814,14 +1888,11 @@ impl Trainer {
                 epoch: if counted { self.epochs_done } else { 0 },
                 step: self.step,
                 loss,
-                pairs: self.config.pairs_per_epoch(self.data.len()),
+                pairs: trained,
                 primitives: self.cloud.len(),
             });
             if counted && self.average.is_some() {
-                let steps = self
-                    .config
-                    .pairs_per_epoch(self.data.len())
-                    .div_ceil(self.config.batch_size.max(1));
+                let steps = trained.div_ceil(per_step);
                 self.averaged_losses.push((steps, loss * steps as f64));
                 if self.epochs_done < epochs && self.converged() {
                     on_event(&TrainEvent::Converged {
@@ -2014,6 +2085,7 @@ impl Trainer {
             final_loss,
             cancelled,
             batch_size: self.config.batch_size,
+            average_batch: self.config.average_batch.of(self.config.batch_size),
             surface_spread: self.config.surface.map(|p| p.spread),
             coarse: self.coarse,
             pair_gains: if self.gain_rounds > 0 {
