@@ -406,6 +406,30 @@ fn check_counts_the_gain_rounds_where_the_fit_estimates_gains() {
     assert_eq!(asked, estimated);
 }
 
+/// `periscope check` counts the averaged epochs' smaller batches: a plan that leaves
+/// `epochs` to the step floor (half the batch there by default) is told less time than
+/// the same plan with `average-batch` at the batch, and the same as one that sets half.
+#[test]
+fn check_counts_the_averaged_epochs_smaller_batches() {
+    let dir = tempfile::tempdir().unwrap();
+    // 4,096 pairs, so that a sixth of the fit shows in whole seconds.
+    let text = std::fs::read_to_string(repo_path("configs/plans/demo.toml"))
+        .unwrap()
+        .replacen("grid = [24, 24]", "grid = [64, 64]", 1)
+        .replacen("epochs = 16\n", "", 1);
+    let reconstruction = |name: &str, text: &str| -> f64 {
+        let plan = dir.path().join(name);
+        std::fs::write(&plan, text).unwrap();
+        seconds_after(&estimated_duration(&plan), "reconstruction ")
+    };
+    let with = |line: &str| text.replacen("[recon.gtr]\n", &format!("[recon.gtr]\n{line}\n"), 1);
+    let default = reconstruction("default.toml", &text);
+    let whole = reconstruction("whole.toml", &with("average-batch = 4"));
+    let half = reconstruction("half.toml", &with("average-batch = 2"));
+    assert!(default < whole, "{default} s against {whole} s");
+    assert_eq!(default, half);
+}
+
 /// A plan that leaves `[gtr] batch` and `epochs` unset is told both reconstruction
 /// times: the relay the scan finds decides whether the fit takes a coarse capture's
 /// batches of 8, over the same steps.

@@ -275,7 +275,7 @@ pub fn check(plan: &Plan, inst: &InstrumentConfig) -> Check {
         } else {
             0
         };
-        train.pairs_per_epoch(pairs) as f64 * k * epochs as f64 / GTR_EVALS_PER_S
+        train.counted_pair_visits(pairs) as f64 * k / GTR_EVALS_PER_S
             + gain_rounds as f64 * pairs as f64 * k / GAIN_EVALS_PER_S
             + points * k / SYNTH_EVALS_PER_S
             + points * v.len() as f64 / VIRTUAL_FBP_PER_S

@@ -78,6 +78,8 @@ struct VolumeJson<'a> {
 #[derive(Serialize)]
 struct FitJson {
     batch: usize,
+    /// Pairs a step in the averaged epochs.
+    average_batch: usize,
     surface_spread_m: Option<f64>,
     coarse: bool,
     /// The per-transient gains the fit estimated: `illumination`, `detection` or
@@ -114,6 +116,7 @@ pub fn write_outputs(dir: &Path, r: &ReconResult, events: &EventSink) -> Result<
         final_loss: r.train.as_ref().map(|t| t.final_loss).filter(|l| l.is_finite()),
         fit: r.train.as_ref().map(|t| FitJson {
             batch: t.batch_size,
+            average_batch: t.average_batch,
             surface_spread_m: t.surface_spread,
             coarse: t.coarse,
             pair_gains: t.pair_gains,

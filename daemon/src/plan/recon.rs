@@ -3,8 +3,8 @@
 use periscope_recon::VolumeGrid;
 use periscope_recon::gpu::ComputeDevice;
 use periscope_recon::gtr::{
-    CoarseFit, Convergence, DensifySettings, GROW_FROM, Init, LossChoice, PairGains, SurfacePrior,
-    TrainConfig,
+    AverageBatch, CoarseFit, Convergence, DensifySettings, GROW_FROM, Init, LossChoice, PairGains,
+    SurfacePrior, TrainConfig,
 };
 use periscope_recon::solver::{
     FbpSettings, FkSettings, LctSettings, RsdSettings, SolverError, SolverKind, SolverSettings,
@@ -246,6 +246,7 @@ struct RawGtr {
     virtual_scan: String,
     surface_spread: Option<f64>,
     grow_from: Option<f64>,
+    average_batch: Option<usize>,
 }
 
 fn default_virtual_scan() -> String {
@@ -278,6 +279,7 @@ impl Default for RawGtr {
             virtual_scan: default_virtual_scan(),
             surface_spread: None,
             grow_from: None,
+            average_batch: None,
         }
     }
 }
@@ -420,6 +422,17 @@ pub(crate) fn recon_settings(
     {
         return Err(src.invalid(&key("gtr.batch"), "must be 1 to 65,536 pairs"));
     }
+    if let Some(n) = g.average_batch
+        && !(1..=g.batch.unwrap_or(65_536)).contains(&n)
+    {
+        return Err(src.invalid(
+            &key("gtr.average-batch"),
+            match g.batch {
+                Some(b) => format!("{n} is out of range: give the pairs a step takes in the averaged epochs, 1 to `gtr.batch` ({b})"),
+                None => format!("{n} is out of range: give the pairs a step takes in the averaged epochs, 1 to 65,536 (a fit takes at most its batch)"),
+            },
+        ));
+    }
     // The largest batch the fit may take: a coarse capture's, where the plan sets none.
     let batch_at_most = g.batch.unwrap_or(DEFAULT_BATCH.max(CoarseFit::DEFAULT_BATCH));
     if let Some(n) = g.epoch_pairs
@@ -554,6 +567,13 @@ pub(crate) fn recon_settings(
             ..DensifySettings::default()
         },
         average_from: g.average_from.unwrap_or(TrainConfig::default().average_from),
+        // Half the pairs a step where the iterates are averaged, at the same steps; a
+        // plan's own `epochs` keeps the fit it was measured with.
+        average_batch: match (g.average_batch, g.epochs) {
+            (Some(n), _) => AverageBatch::Pairs(n),
+            (None, None) => AverageBatch::Half,
+            (None, Some(_)) => AverageBatch::Same,
+        },
         converge: converge(src, &key, &g)?,
         epoch_pairs: g.epoch_pairs.unwrap_or(DEFAULT_EPOCH_PAIRS),
         surface: prior(spread),
@@ -976,6 +996,34 @@ mod tests {
             t.coarse.map(|c| (c.batch_size, c.surface)),
             Some((8, prior(0.03)))
         );
+    }
+
+    #[test]
+    fn the_averaged_epochs_take_half_the_batch_unless_the_plan_sets_epochs() {
+        let read = |text: &str| {
+            load_recon(
+                &TomlSource::from_text("recon.toml", format!("[gtr]\n{text}\n")),
+                Some(volume()),
+            )
+            .map(|r| r.train.average_batch)
+        };
+        assert_eq!(read("").unwrap(), AverageBatch::Half);
+        assert_eq!(read("batch = 8").unwrap(), AverageBatch::Half);
+        assert_eq!(read("epochs = 16").unwrap(), AverageBatch::Same);
+        assert_eq!(read("average-batch = 3").unwrap(), AverageBatch::Pairs(3));
+        assert_eq!(
+            read("epochs = 16\nbatch = 4\naverage-batch = 4").unwrap(),
+            AverageBatch::Pairs(4)
+        );
+        for (bad, says) in [
+            ("average-batch = 0", "1 to 65,536"),
+            ("batch = 2\naverage-batch = 3", "1 to `gtr.batch` (2)"),
+        ] {
+            let e = read(bad).unwrap_err().to_string();
+            assert!(e.contains("gtr.average-batch") && e.contains(says), "{e}");
+        }
+        let e = read("average-batch = -1").unwrap_err().to_string();
+        assert!(e.contains("average-batch"), "{e}");
     }
 
     #[test]
