@@ -289,6 +289,7 @@ pub fn check(plan: &Plan, inst: &InstrumentConfig) -> Check {
             .map(|c| {
                 gtr_s(&periscope_recon::gtr::TrainConfig {
                     batch_size: c.batch_size,
+                    average_batch: c.average_batch,
                     ..rc.train.clone()
                 })
             });

@@ -1411,10 +1411,12 @@ fn a_coarse_capture_takes_the_coarse_fit() {
             grow_from: 0.5,
             ..DensifySettings::default()
         },
+        average_batch: AverageBatch::Half,
         coarse: Some(CoarseFit {
             batch_size: 8,
             surface: Some(prior),
             grow_from: 1.0,
+            average_batch: AverageBatch::Same,
         }),
         ..TrainConfig::default()
     };
@@ -1429,6 +1431,7 @@ fn a_coarse_capture_takes_the_coarse_fit() {
         "a confocal wall keeps the configured fit"
     );
     assert_eq!(on_wall.cloud().len(), 1000, "and starts with half its primitives");
+    assert_eq!(on_wall.config().average_batch, AverageBatch::Half);
     let on_backs = Trainer::new(cfg.clone(), roi, backs.clone()).unwrap();
     assert_eq!(
         (on_backs.config().batch_size, on_backs.config().surface),
@@ -1436,6 +1439,11 @@ fn a_coarse_capture_takes_the_coarse_fit() {
         "two backs take the coarse fit"
     );
     assert_eq!(on_backs.cloud().len(), 2000, "with all its primitives");
+    assert_eq!(
+        on_backs.config().average_batch,
+        AverageBatch::Same,
+        "and the whole batch in its averaged epochs"
+    );
     // The same places as a fit configured with all of them from the start.
     let whole = TrainConfig {
         densify: DensifySettings::default(),

@@ -586,6 +586,7 @@ pub(crate) fn recon_settings(
             } else {
                 1.0
             },
+            average_batch: g.average_batch.map_or(AverageBatch::Same, AverageBatch::Pairs),
         }),
         ..TrainConfig::default()
     };
@@ -964,10 +965,11 @@ mod tests {
                 batch_size: 8,
                 surface: prior(SurfacePrior::DEFAULT_SPREAD),
                 grow_from: 1.0,
+                average_batch: AverageBatch::Same,
             })
         );
         // What the plan sets holds on every capture.
-        let t = read("batch = 4\nsurface-spread = 0\ngrow-from = 0.75");
+        let t = read("batch = 4\nsurface-spread = 0\ngrow-from = 0.75\naverage-batch = 3");
         assert_eq!(t.densify.grow_from, 0.75);
         assert_eq!(
             t.coarse,
@@ -975,6 +977,7 @@ mod tests {
                 batch_size: 4,
                 surface: None,
                 grow_from: 0.75,
+                average_batch: AverageBatch::Pairs(3),
             })
         );
         // Without densification there are no rounds to grow in.
