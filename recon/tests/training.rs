@@ -7,9 +7,9 @@ use glam::{DQuat, DVec3};
 use periscope_recon::gtr::{
     AverageBatch, CancelToken, CoarseFit, Convergence, DENSIFY_ROUNDS, DensifySettings, GaussianCloud, Init,
     Loss, LossChoice, PairGains, Primitive, PruneSettings, RawGrads, RenderOptions, ScaleBounds,
-    SurfacePrior, TrainConfig, TrainError, TrainEvent, Trainer, batch_loss_grad, default_target_scale,
-    densify, densify_after, estimate_background, estimate_pair_gains, first_negative, gain_groups,
-    render_set, resolvable_separation,
+    SurfacePrior, TrainConfig, TrainError, TrainEvent, TrainSummary, Trainer, batch_loss_grad,
+    default_target_scale, densify, densify_after, estimate_background, estimate_pair_gains, first_negative,
+    gain_groups, render_set, resolvable_separation,
 };
 use periscope_recon::{Pair, RoiBox, TimeAxis, TransientSet};
 use rand::{Rng, SeedableRng};
@@ -87,6 +87,31 @@ fn all_finite(cloud: &GaussianCloud) -> bool {
     [&cloud.centres, &cloud.scales, &cloud.rotations, &cloud.albedo]
         .iter()
         .all(|v| v.iter().all(|x| x.is_finite()))
+}
+
+/// Runs `t` to the end: each counted or live epoch's (epoch, pairs, steps so far), and
+/// the summary.
+fn epochs_of(t: &mut Trainer) -> (Vec<(usize, usize, usize)>, TrainSummary) {
+    let mut seen = Vec::new();
+    let summary = t
+        .run(None, &CancelToken::new(), &mut |e| {
+            if let TrainEvent::Epoch {
+                epoch, pairs, step, ..
+            } = e
+            {
+                seen.push((*epoch, *pairs, *step));
+            }
+        })
+        .unwrap();
+    (seen, summary)
+}
+
+/// The bits of every centre of `cloud`, to compare two fits exactly.
+fn centre_bits(cloud: &GaussianCloud) -> Vec<u64> {
+    (0..cloud.len())
+        .flat_map(|k| cloud.primitive(k).centre.to_array())
+        .map(f64::to_bits)
+        .collect()
 }
 
 #[test]
@@ -286,22 +311,8 @@ fn averaged_epochs_take_fewer_pairs_a_step_in_as_many_steps() {
 
     let fit = |average_batch| {
         let mut trainer = Trainer::new(cfg(average_batch), roi(), data(42, 5)).unwrap();
-        let mut epochs = Vec::new();
-        let summary = trainer
-            .run(None, &CancelToken::new(), &mut |e| {
-                if let TrainEvent::Epoch {
-                    epoch, pairs, step, ..
-                } = e
-                {
-                    epochs.push((*epoch, *pairs, *step));
-                }
-            })
-            .unwrap();
-        let centres: Vec<u64> = (0..trainer.cloud().len())
-            .flat_map(|k| trainer.cloud().primitive(k).centre.to_array())
-            .map(f64::to_bits)
-            .collect();
-        (epochs, summary.average_batch, centres)
+        let (epochs, summary) = epochs_of(&mut trainer);
+        (epochs, summary.average_batch, centre_bits(trainer.cloud()))
     };
     let (half, half_batch, half_centres) = fit(AverageBatch::Half);
     assert_eq!(
@@ -335,10 +346,7 @@ fn averaged_epochs_take_fewer_pairs_a_step_in_as_many_steps() {
         )
         .unwrap();
         trainer.run(None, &CancelToken::new(), &mut |_| {}).unwrap();
-        (0..trainer.cloud().len())
-            .flat_map(|k| trainer.cloud().primitive(k).centre.to_array())
-            .map(f64::to_bits)
-            .collect::<Vec<_>>()
+        centre_bits(trainer.cloud())
     };
     assert_eq!(never(AverageBatch::Half), never(AverageBatch::Same));
 }
@@ -1033,17 +1041,7 @@ fn an_epoch_of_a_large_capture_trains_on_part_of_it() {
             ..config(40, 6)
         };
         let mut t = Trainer::new(cfg, roi(), data(60, 3)).unwrap();
-        let mut seen = Vec::new();
-        let summary = t
-            .run(None, &CancelToken::new(), &mut |e| {
-                if let TrainEvent::Epoch {
-                    epoch, pairs, step, ..
-                } = e
-                {
-                    seen.push((*epoch, *pairs, *step));
-                }
-            })
-            .unwrap();
+        let (seen, summary) = epochs_of(&mut t);
         assert!(all_finite(t.cloud()));
         (seen, summary.steps)
     };

@@ -709,6 +709,14 @@ mod tests {
         VolumeGrid::new([-0.5, 0.5], [-0.5, 0.5], [0.2, 1.0], [8, 8, 8]).unwrap()
     }
 
+    /// A RECON.toml of `[gtr]` with `text` in it, read over [`volume`].
+    fn read_gtr(text: &str) -> Result<ReconSettings, ConfigError> {
+        load_recon(
+            &TomlSource::from_text("recon.toml", format!("[gtr]\n{text}\n")),
+            Some(volume()),
+        )
+    }
+
     #[test]
     fn solver_tables_are_read_and_checked() {
         let src = TomlSource::from_text(
@@ -943,14 +951,7 @@ mod tests {
 
     #[test]
     fn a_coarse_capture_takes_what_the_plan_leaves_unset() {
-        let read = |text: &str| {
-            load_recon(
-                &TomlSource::from_text("recon.toml", format!("[gtr]\n{text}\n")),
-                Some(volume()),
-            )
-            .unwrap()
-            .train
-        };
+        let read = |text: &str| read_gtr(text).unwrap().train;
         let prior = |spread| Some(SurfacePrior { spread, cell: 0.125 });
         // Unset: batches of 4 without the prior, or 8 with it on a coarse capture;
         // half the primitives at the start, or all of them on a coarse capture or in a
@@ -1003,13 +1004,7 @@ mod tests {
 
     #[test]
     fn the_averaged_epochs_take_half_the_batch_unless_the_plan_sets_epochs() {
-        let read = |text: &str| {
-            load_recon(
-                &TomlSource::from_text("recon.toml", format!("[gtr]\n{text}\n")),
-                Some(volume()),
-            )
-            .map(|r| r.train.average_batch)
-        };
+        let read = |text: &str| read_gtr(text).map(|r| r.train.average_batch);
         assert_eq!(read("").unwrap(), AverageBatch::Half);
         assert_eq!(read("batch = 8").unwrap(), AverageBatch::Half);
         assert_eq!(read("epochs = 16").unwrap(), AverageBatch::Same);
