@@ -3,6 +3,8 @@
 //! a flat depth map at its depth. The transients are written analytically here (a
 //! Gaussian pulse at the exact path length with 1/(di² dd²) falloff and both cosines),
 //! not by the 3D-GTR renderer, so the solvers are not judged by the model they serve.
+mod common;
+use common::on_threads;
 use glam::DVec3;
 use periscope_recon::gtr::{Kernel, RenderOptions};
 use periscope_recon::relay::VirtualRelay;
@@ -820,15 +822,6 @@ fn splatted_lct_ignores_what_it_cannot_place() {
         POINT,
         "splat + LCT among unplaceable primitives",
     );
-}
-
-/// `f` run on a pool of `threads` threads.
-fn on_threads<T: Send>(threads: usize, f: impl FnOnce() -> T + Send) -> T {
-    rayon::ThreadPoolBuilder::new()
-        .num_threads(threads)
-        .build()
-        .unwrap()
-        .install(f)
 }
 
 /// The splat's sums, and the synthesised virtual scan, are the same on any number of

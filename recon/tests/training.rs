@@ -1,5 +1,7 @@
 //! Behaviour of the trainer: degenerate input never produces NaN, results are
 //! reproducible, transients can stream in while it runs, and cancellation is clean.
+mod common;
+use common::on_threads;
 use std::sync::mpsc;
 use std::time::Duration;
 
@@ -72,15 +74,6 @@ fn config(primitives: usize, epochs: usize) -> TrainConfig {
         seed: 9,
         ..TrainConfig::default()
     }
-}
-
-/// `f` on a pool of `threads` workers.
-fn on_threads<T: Send>(threads: usize, f: impl FnOnce() -> T + Send) -> T {
-    rayon::ThreadPoolBuilder::new()
-        .num_threads(threads)
-        .build()
-        .unwrap()
-        .install(f)
 }
 
 fn all_finite(cloud: &GaussianCloud) -> bool {
