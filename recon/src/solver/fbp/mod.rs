@@ -784,7 +784,7 @@ fn backproject_slice<const C: usize, const D: usize>(slice: &mut [[f32; C]], z: 
     let mut index = vec![0.0f32; nx];
     let mut gain = vec![1.0f32; nx];
     let mut bin = vec![0i32; nx];
-    let mut weights = vec![[0.0f32; 2]; nx];
+    let (mut w0, mut w1) = (vec![0.0f32; nx], vec![0.0f32; nx]);
     // Pairs in tiles whose histograms stay in L2 while every row of the slice visits
     // them; the row being summed stays in L1.
     for (tile, hists) in pairs.chunks(PAIR_TILE).zip(hists.chunks(PAIR_TILE)) {
@@ -795,8 +795,8 @@ fn backproject_slice<const C: usize, const D: usize>(slice: &mut [[f32; C]], z: 
                 path_row(
                     xs, byi, byd, xi[0], xd[0], inv_w, offset, top, falloff, &mut index, &mut gain,
                 );
-                weights_row(&index, &gain, &mut bin, &mut weights);
-                gather_row(row, &bin, &weights, h);
+                weights_row(&index, &gain, &mut bin, (&mut w0, &mut w1));
+                gather_row(row, &bin, (&w0, &w1), h);
             }
         }
     }
@@ -849,18 +849,19 @@ fn falloff_power(gain: &mut [f32], falloff: f64) {
 /// with the gain folded in, computed eight voxels an instruction so that the gather
 /// below is only loads and multiply-adds.
 #[inline(always)]
-fn weights_row(index: &[f32], gain: &[f32], bin: &mut [i32], weights: &mut [[f32; 2]]) {
+fn weights_row(index: &[f32], gain: &[f32], bin: &mut [i32], (w0, w1): (&mut [f32], &mut [f32])) {
     // `index` is clamped to [0, top]; below 2²³, adding 2²³ puts the whole number
     // `below` in the mantissa's low bits, a bit pattern the compiler vectorises, where
     // `as` (saturating, NaN to 0) compiles to a branchy scalar loop. A histogram of
     // 2²³ bins or more (no instrument's) would get a wrong bin, clamped into the
     // histogram by `gather_row`, never an out-of-bounds read.
     const TWO_23: f32 = 8_388_608.0;
-    for (((&f, &g), b), w) in index.iter().zip(gain).zip(bin.iter_mut()).zip(weights.iter_mut()) {
+    let weights = w0.iter_mut().zip(w1.iter_mut());
+    for (((&f, &g), b), (w0, w1)) in index.iter().zip(gain).zip(bin.iter_mut()).zip(weights) {
         let below = f.floor();
         *b = ((below + TWO_23).to_bits() - TWO_23.to_bits()) as i32;
         let upper = g * (f - below);
-        *w = [g - upper, upper];
+        (*w0, *w1) = (g - upper, upper);
     }
 }
 
@@ -897,7 +898,7 @@ fn doubled<const C: usize, const D: usize>(hists: &[Vec<f32>]) -> Vec<Vec<[f32; 
 fn gather_row<const C: usize, const D: usize>(
     row: &mut [[f32; C]],
     bin: &[i32],
-    weights: &[[f32; 2]],
+    (w0, w1): (&[f32], &[f32]),
     h: &[[f32; D]],
 ) {
     // The bin is already clamped to the padding, so every voxel finds its two bins;
@@ -906,7 +907,7 @@ fn gather_row<const C: usize, const D: usize>(
     let Some(last) = h.len().checked_sub(1) else {
         return;
     };
-    for ((out, &b), &[w0, w1]) in row.iter_mut().zip(bin).zip(weights) {
+    for ((out, &b), (&w0, &w1)) in row.iter_mut().zip(bin).zip(w0.iter().zip(w1)) {
         let v = &h[(b as usize).min(last)];
         for c in 0..C {
             out[c] += w0 * v[c] + w1 * v[C + c];

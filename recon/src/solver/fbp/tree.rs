@@ -26,7 +26,8 @@
 //! from its quadratic Taylor model about v instead of a square root, where the
 //! remainder's bound over the leaf keeps the two legs within λ/64 together
 //! ([`LegModel`], [`QUADRATIC_ERROR`]); a pair nearer the leaf than that takes the
-//! square roots.
+//! square roots. Where the bins a source's voxels read fit one window of
+//! [`WINDOW`], they are read from registers ([`crate::simd::Quad::window_add`]).
 //!
 //! The shift is done in baseband: the phasor histogram is a carrier e^{iωℓ}
 //! (ω = 2π/λ) times a slow envelope, so a member read part of a bin off is the linear
@@ -44,6 +45,7 @@
 use glam::DVec3;
 use rayon::prelude::*;
 
+use crate::simd::WINDOW;
 use crate::transient::{TimeAxis, TransientSet};
 use crate::volume::VolumeGrid;
 
@@ -51,14 +53,17 @@ use crate::volume::VolumeGrid;
 const EDGES: [usize; 3] = [4, 8, 16];
 
 /// The cost model [`choose`] ranks leaf shapes by, in nanoseconds of one core on the
-/// machine that measured them (8,000 pairs into 128 × 128 × 64 voxels, leaves of
-/// 4 × 4 × 4 to 16 × 16 × 16, docs/recon.md, "A hierarchical backprojection"): a leaf's
-/// visit to a pair (its geometry, grouping, merge plan and the shifted add of its
-/// histogram window), a leaf's backprojection of one source into one voxel, and the
-/// exact path's of one pair into one voxel (its rows are longer, so it runs faster a
-/// voxel). Only their ratios matter.
-const VISIT_NS: f64 = 80.0;
-const LEAF_VOXEL_NS: f64 = 1.8;
+/// machine that measured them (8,000 pairs into 128 × 128 × 64 voxels, docs/recon.md,
+/// "A hierarchical backprojection"): a leaf's visit to a pair (its geometry, grouping,
+/// merge plan and the shifted add of its histogram window), a leaf's backprojection of
+/// one source into one voxel with the legs' quadratic models and with their square
+/// roots, and the exact path's of one pair into one voxel. Only their ratios matter.
+/// The leaves' figures were fitted to seven leaf shapes' times on 2026-12-05 (the
+/// square roots' one is also what a leaf's voxel costs where its window is too wide to
+/// read from registers).
+const VISIT_NS: f64 = 100.0;
+const MODELLED_VOXEL_NS: f64 = 0.4;
+const LEAF_VOXEL_NS: f64 = 0.8;
 const EXACT_VOXEL_NS: f64 = 1.4;
 
 /// A box of voxels, index ranges `lo..hi` along x, y and z.
@@ -564,8 +569,15 @@ impl Tree<'_> {
     /// whose voxels lie within `diagonal` of it, where their errors together stay
     /// within [`QUADRATIC_ERROR`]; `None` (the exact arithmetic) where they may not.
     fn quadratic_legs(&self, v: DVec3, diagonal: f64, s: &Source<'_>) -> Option<[LegModel; 2]> {
-        let error = quadratic_error(v.distance(s.xi), diagonal) + quadratic_error(v.distance(s.xd), diagonal);
-        (error <= self.quadratic_tolerance).then(|| [LegModel::at(v, s.xi), LegModel::at(v, s.xd)])
+        self.legs_modelled(v, diagonal, s.xi, s.xd)
+            .then(|| [LegModel::at(v, s.xi), LegModel::at(v, s.xd)])
+    }
+
+    /// Whether a pair at `xi`, `xd` takes the quadratic leg models on a leaf with
+    /// centre `v` and half-diagonal `diagonal` ([`Tree::quadratic_legs`]).
+    fn legs_modelled(&self, v: DVec3, diagonal: f64, xi: DVec3, xd: DVec3) -> bool {
+        quadratic_error(v.distance(xi), diagonal) + quadratic_error(v.distance(xd), diagonal)
+            <= self.quadratic_tolerance
     }
 
     /// The leaf's arithmetic: every source, every voxel, the path length from the
@@ -594,7 +606,7 @@ impl crate::simd::Work for LeafWork<'_, '_> {
     type Output = ();
 
     #[inline(always)]
-    fn run<Q: crate::simd::Quad>(self, _: Q) {
+    fn run<Q: crate::simd::Quad>(self, q: Q) {
         let LeafWork {
             tree,
             block: b,
@@ -621,7 +633,8 @@ impl crate::simd::Work for LeafWork<'_, '_> {
             }
         }
         let (mut index, mut gain) = (vec![0.0f32; n], vec![1.0f32; n]);
-        let (mut bin, mut weights) = (vec![0i32; n], vec![[0.0f32; 2]; n]);
+        let mut bin = vec![0i32; n];
+        let (mut w0, mut w1) = (vec![0.0f32; n], vec![0.0f32; n]);
         // The same voxels as offsets from the leaf's centre, and their squared
         // lengths, for the legs' quadratic models.
         let v = tree.centre(b);
@@ -671,8 +684,29 @@ impl crate::simd::Work for LeafWork<'_, '_> {
                 }
             }
             super::falloff_power(&mut gain, tree.falloff);
-            super::weights_row(&index, &gain, &mut bin, &mut weights);
-            super::gather_row(out, &bin, &weights, s.data);
+            super::weights_row(&index, &gain, &mut bin, (&mut w0, &mut w1));
+            // The bins the leaf reads (each with the next) are a few dozen at most on
+            // a small leaf: then they are one window, read from registers.
+            let (lo, hi) = bin
+                .iter()
+                .fold((i32::MAX, i32::MIN), |(lo, hi), &j| (lo.min(j), hi.max(j)));
+            if hi.saturating_sub(lo) < WINDOW as i32 - 1 {
+                let last = s.data.len() - 1;
+                let mut window = [[0.0f32; WINDOW]; 2];
+                for j in 0..=(hi - lo + 1) as usize {
+                    // Bin b, or past the last one the last one's next.
+                    let b = lo as usize + j;
+                    let (re, im) = match s.data.get(b) {
+                        Some(d) => (d[0], d[1]),
+                        None => (s.data[last][2], s.data[last][3]),
+                    };
+                    (window[0][j], window[1][j]) = (re, im);
+                }
+                bin.iter_mut().for_each(|j| *j -= lo);
+                q.window_add(&window, &bin, (&w0, &w1), out);
+            } else {
+                super::gather_row(out, &bin, (&w0, &w1), s.data);
+            }
         }
     }
 }
@@ -1098,10 +1132,10 @@ pub(super) fn choose(set: &TransientSet, grid: &VolumeGrid, wavelength: f64, tol
         let tiles: [usize; 3] = std::array::from_fn(|a| grid.shape[a] / shape[a]);
         let count = tiles.iter().product::<usize>();
         let n = count.min(SAMPLE_LEAVES);
-        let share = if sources.is_empty() || n == 0 {
-            1.0
+        let (share, modelled) = if sources.is_empty() || n == 0 {
+            (1.0, 0.0)
         } else {
-            let kept: usize = (0..n)
+            let (kept, quadratic): (usize, usize) = (0..n)
                 .into_par_iter()
                 .map(|i| {
                     // The R₃ low-discrepancy sequence (steps 1/g, 1/g², 1/g³ with
@@ -1114,13 +1148,31 @@ pub(super) fn choose(set: &TransientSet, grid: &VolumeGrid, wavelength: f64, tol
                         lo,
                         hi: std::array::from_fn(|a| lo[a] + shape[a]),
                     };
-                    tree.merge(&leaf, &sources, &points).plan.len()
+                    let plan = tree.merge(&leaf, &sources, &points);
+                    // How many of the leaf's sources take the quadratic leg models.
+                    let (v, (_, diagonal)) = (tree.centre(&leaf), tree.half_extents(&leaf));
+                    let quadratic = plan
+                        .plan
+                        .iter()
+                        .filter(|p| {
+                            let (xi, xd) = match **p {
+                                Planned::Keep(i) => (sources[i].xi, sources[i].xd),
+                                Planned::Merged(g) => (plan.groups[g].xi, plan.groups[g].xd),
+                            };
+                            tree.legs_modelled(v, diagonal, xi, xd)
+                        })
+                        .count();
+                    (plan.plan.len(), quadratic)
                 })
-                .sum();
-            kept as f64 / (n * sources.len()) as f64
+                .reduce(|| (0, 0), |a, b| (a.0 + b.0, a.1 + b.1));
+            (
+                kept as f64 / (n * sources.len()) as f64,
+                quadratic as f64 / kept.max(1) as f64,
+            )
         };
         let voxels = shape.iter().product::<usize>() as f64;
-        let cost = (VISIT_NS / voxels + LEAF_VOXEL_NS * share) / EXACT_VOXEL_NS;
+        let per_source = MODELLED_VOXEL_NS * modelled + LEAF_VOXEL_NS * (1.0 - modelled);
+        let cost = (VISIT_NS / voxels + per_source * share) / EXACT_VOXEL_NS;
         if best.is_none_or(|b| cost < b.cost) {
             best = Some(Choice { shape, share, cost });
         }
