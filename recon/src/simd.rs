@@ -851,9 +851,6 @@ mod tests {
         }
     }
 
-    /// `exp` is within 1 ulp of `f64::exp` over its domain, and
-    /// the arrays, this CPU's vectors and `exp_scalar` give the same bits; the other
-    /// operations agree with `f64`'s.
     #[test]
     fn the_window_reads_agree_bit_for_bit() {
         // 37 voxels (two vectors of sixteen and a tail) over every bin of the window,
@@ -890,6 +887,9 @@ mod tests {
         }
     }
 
+    /// `exp` is within 1 ulp of `f64::exp` over its domain, and
+    /// the arrays, this CPU's vectors and `exp_scalar` give the same bits; the other
+    /// operations agree with `f64`'s.
     #[test]
     fn exp_is_accurate_and_the_same_everywhere() {
         let n = 200_000;
