@@ -86,6 +86,16 @@ pub fn level() -> &'static str {
     "baseline"
 }
 
+/// Whether the hot loops run with AVX-512 here (where [`Quad::window_add`] reads its
+/// window from registers).
+pub(crate) fn avx512() -> bool {
+    #[cfg(target_arch = "x86_64")]
+    if V4.is_some() {
+        return true;
+    }
+    false
+}
+
 /// `N` f64 lanes and the IEEE operations on them, lane by lane: four (an AVX2 vector)
 /// or eight (an AVX-512 vector, or two AVX2 ones), or arrays of either on a CPU without
 /// them. Every implementation does the same operations lane by lane (`mul_add` fused),

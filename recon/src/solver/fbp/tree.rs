@@ -58,12 +58,27 @@ const EDGES: [usize; 3] = [4, 8, 16];
 /// merge plan and the shifted add of its histogram window), a leaf's backprojection of
 /// one source into one voxel with the legs' quadratic models and with their square
 /// roots, and the exact path's of one pair into one voxel. Only their ratios matter.
-/// The leaves' figures were fitted to seven leaf shapes' times on 2026-12-05 (the
-/// square roots' one is also what a leaf's voxel costs where its window is too wide to
-/// read from registers).
-const VISIT_NS: f64 = 100.0;
-const MODELLED_VOXEL_NS: f64 = 0.4;
-const LEAF_VOXEL_NS: f64 = 0.8;
+/// With AVX-512 the leaves' figures were fitted to seven leaf shapes' times on
+/// 2026-12-05 (the square roots' one is also what a leaf's voxel costs where its window
+/// is too wide to read from registers); without it, a leaf's voxel reads its bins one
+/// load at a time, and the figures are those measured before the registers were read
+/// (2026-12-04; the quadratic models changed which shape is fastest on neither).
+struct LeafCosts {
+    visit: f64,
+    modelled: f64,
+    leaf: f64,
+}
+
+const WITH_AVX512: LeafCosts = LeafCosts {
+    visit: 100.0,
+    modelled: 0.4,
+    leaf: 0.8,
+};
+const WITHOUT_AVX512: LeafCosts = LeafCosts {
+    visit: 80.0,
+    modelled: 1.8,
+    leaf: 1.8,
+};
 const EXACT_VOXEL_NS: f64 = 1.4;
 
 /// A box of voxels, index ranges `lo..hi` along x, y and z.
@@ -1095,7 +1110,7 @@ pub(super) struct Choice {
 }
 
 /// The leaf shape of least predicted cost: each shape of [`EDGES`] along each axis
-/// plans the merges of a sample of its leaves, and the cost model (`VISIT_NS`, ...)
+/// plans the merges of a sample of its leaves, and the cost model ([`LeafCosts`])
 /// weighs its leaves' visits to every pair against the sources they still
 /// backproject. Planning reads no histogram, so this costs about a hundredth of the
 /// backprojection it decides on.
@@ -1125,6 +1140,11 @@ pub(super) fn choose(set: &TransientSet, grid: &VolumeGrid, wavelength: f64, tol
             }
         }
     }
+    let costs = if crate::simd::avx512() {
+        WITH_AVX512
+    } else {
+        WITHOUT_AVX512
+    };
     let mut best: Option<Choice> = None;
     for shape in shapes {
         // Planning reads neither the padding nor the falloff's exponent.
@@ -1171,8 +1191,8 @@ pub(super) fn choose(set: &TransientSet, grid: &VolumeGrid, wavelength: f64, tol
             )
         };
         let voxels = shape.iter().product::<usize>() as f64;
-        let per_source = MODELLED_VOXEL_NS * modelled + LEAF_VOXEL_NS * (1.0 - modelled);
-        let cost = (VISIT_NS / voxels + per_source * share) / EXACT_VOXEL_NS;
+        let per_source = costs.modelled * modelled + costs.leaf * (1.0 - modelled);
+        let cost = (costs.visit / voxels + per_source * share) / EXACT_VOXEL_NS;
         if best.is_none_or(|b| cost < b.cost) {
             best = Some(Choice { shape, share, cost });
         }
