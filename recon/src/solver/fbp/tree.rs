@@ -39,6 +39,11 @@
 //! counting sort over the gradients' cells), and the histograms then read pair after
 //! pair, each once for all those leaves (their windows overlap in path length), in the
 //! real and imaginary parts apart, in whole chunks of bins, so the adds vectorise.
+//! Those reads, and the leaves' reads of their sources' bins, jump from one
+//! histogram to another, where the CPU's own prefetcher does not follow: the
+//! memory a few sources ahead is asked for while one is added ([`PREFETCH_AHEAD`],
+//! [`crate::simd::Quad::prefetch`]), and each member carries its group's window so
+//! that the adds read nothing else of the plan.
 //! Merging on larger boxes as well, to pass merged pairs down, was tried and merged
 //! less: the larger box's merges spent the error budget the leaves' merges need
 //! (docs/recon.md, "A hierarchical backprojection").
@@ -340,7 +345,7 @@ impl Tree<'_> {
                     // The window's last bin stays zero; chunks may have run into it.
                     re[window.end - 1] = 0.0;
                     im[window.end - 1] = 0.0;
-                    out[window.clone()].copy_from_slice(&double(&re[window.clone()], &im[window.clone()]));
+                    double(&re[window.clone()], &im[window.clone()], &mut out[window]);
                 }
                 out
             })
@@ -540,7 +545,7 @@ impl Tree<'_> {
         let w = self.axis.width;
         // e^{−iφ}: the second tap's phase is the first's less φ.
         let back = self.turns[TURN_STEPS];
-        let index = out.groups.len() as u32;
+        let offset = out.bins;
         for (i, g) in members {
             let (i, s) = (*i, &sources[*i as usize]);
             let shift = (g.di + g.dd - lr_v) / w;
@@ -558,9 +563,13 @@ impl Tree<'_> {
             // (1 − t)·e^{iφt}·h[j + m] + t·e^{−iφ(1 − t)}·h[j + m + 1].
             let turn = self.turn(t);
             let (a0, a1) = (a * (1.0 - t), a * t);
+            // A member more than 2³¹ bins off its histogram reads none of it, clamped
+            // or not.
+            let base = (start + m as isize - s.start).clamp(i32::MIN as isize, i32::MAX as isize);
             out.members[i as usize] = Member {
-                group: index,
-                base: start + m as isize - s.start,
+                offset,
+                len,
+                base: base as i32,
                 c0: [(a0 * turn[0]) as f32, (a0 * turn[1]) as f32],
                 c1: {
                     let [x, y] = turn;
@@ -575,7 +584,7 @@ impl Tree<'_> {
             xd,
             start,
             len,
-            offset: out.bins,
+            offset,
         });
         out.bins += len + CHUNK;
     }
@@ -668,7 +677,20 @@ impl crate::simd::Work for LeafWork<'_, '_> {
             .collect();
         debug_assert!(half.max_element() <= diagonal);
         let inv_w = (1.0 / tree.axis.width) as f32;
-        for s in sources {
+        // The bins a source's voxels read lie within its path length at the centre,
+        // less or more the two legs' change over the half-diagonal.
+        let reach = 2.0 * diagonal / tree.axis.width + 2.0;
+        for (i, s) in sources.iter().enumerate() {
+            // The next source's bins, asked for while this one is backprojected:
+            // every source's histogram lies elsewhere in memory.
+            if let Some(next) = sources.get(i + 1) {
+                let centre = tree.index(v.distance(next.xi) + v.distance(next.xd)) - next.start as f64;
+                let lo = (centre - reach).max(0.0) as usize;
+                let hi = ((centre + reach).max(0.0) as usize + 1).min(next.data.len());
+                if lo < hi {
+                    q.prefetch_slice(&next.data[lo..hi]);
+                }
+            }
             let (xi, xd) = (s.xi.as_vec3(), s.xd.as_vec3());
             // The local fractional index is path·inv_w − offset.
             let offset = (s.start as f64 - tree.index(0.0)) as f32;
@@ -825,12 +847,15 @@ struct GroupPlan {
     offset: usize,
 }
 
-/// A member of a group: its group, the offset from the window's index to its own
-/// histogram's, and the two taps.
+/// A member of a group: where its group's window lies in the leaf's buffers (its
+/// start, and its length without the slack), the offset from the window's index to
+/// its own histogram's, and the two taps. What the pass that adds the members reads
+/// of their groups is here, so that it reads nothing else of the plan.
 #[derive(Clone, Copy)]
 struct Member {
-    group: u32,
-    base: isize,
+    offset: usize,
+    len: usize,
+    base: i32,
     c0: [f32; 2],
     c1: [f32; 2],
 }
@@ -838,11 +863,19 @@ struct Member {
 impl Member {
     /// A source kept apart, in no group.
     const KEPT: Member = Member {
-        group: u32::MAX,
+        offset: usize::MAX,
+        len: 0,
         base: 0,
         c0: [0.0; 2],
         c1: [0.0; 2],
     };
+
+    /// The member's group's window in the leaf's buffers, with the slack after it;
+    /// `None` for a source kept apart.
+    #[inline(always)]
+    fn window(&self) -> Option<std::ops::Range<usize>> {
+        (self.offset != usize::MAX).then(|| self.offset..self.offset + self.len + CHUNK)
+    }
 }
 
 /// A leaf's planned merges: the groups, their members, each source's member (`slot`,
@@ -941,14 +974,38 @@ impl crate::simd::Work for Accumulate<'_, '_> {
     type Output = ();
 
     #[inline(always)]
-    fn run<Q: crate::simd::Quad>(self, _: Q) {
+    fn run<Q: crate::simd::Quad>(self, q: Q) {
+        // Each source's windows, and the groups' windows they are added into, lie
+        // apart in memory, where the CPU's own prefetcher does not look: the ones a
+        // few sources ahead are asked for while this one is added.
+        let ahead = |i: usize, data: &[(Vec<f32>, Vec<f32>)]| {
+            let Some(s) = self.sources.get(i) else {
+                return;
+            };
+            let (mut lo, mut hi) = (isize::MAX, isize::MIN);
+            for (p, (re, im)) in self.planned.iter().zip(data) {
+                let member = &p.members[i];
+                if let Some(window) = member.window() {
+                    let base = member.base as isize;
+                    lo = lo.min(base + 1);
+                    hi = hi.max(base + window.len() as isize);
+                    q.prefetch_slice(&re[window.clone()]);
+                    q.prefetch_slice(&im[window]);
+                }
+            }
+            let (lo, hi) = (lo.max(0) as usize, (hi.max(0) as usize).min(s.re.len()));
+            if lo < hi {
+                q.prefetch_slice(&s.re[lo..hi]);
+                q.prefetch_slice(&s.im[lo..hi]);
+            }
+        };
         for (i, s) in self.sources.iter().enumerate() {
+            ahead(i + PREFETCH_AHEAD, self.data);
             for (p, (re, im)) in self.planned.iter().zip(self.data.iter_mut()) {
                 let member = &p.members[i];
-                let Some(g) = p.groups.get(member.group as usize) else {
+                let Some(window) = member.window() else {
                     continue;
                 };
-                let window = g.offset..g.offset + g.len + CHUNK;
                 add_shifted(&mut re[window.clone()], &mut im[window], member, s);
             }
         }
@@ -961,6 +1018,7 @@ impl crate::simd::Work for Accumulate<'_, '_> {
 #[inline(always)]
 fn add_shifted(re: &mut [f32], im: &mut [f32], member: &Member, s: &Source<'_>) {
     let Member { base, c0, c1, .. } = *member;
+    let base = base as isize;
     let o_lo = (-base).max(1);
     let o_hi = (s.data.len() as isize - 2 - base).min(re.len() as isize - CHUNK as isize - 2);
     if o_hi < o_lo {
@@ -987,17 +1045,18 @@ fn add_shifted(re: &mut [f32], im: &mut [f32], member: &Member, s: &Source<'_>) 
     }
 }
 
+/// How many sources ahead [`Accumulate`] asks for the memory it will read.
+const PREFETCH_AHEAD: usize = 8;
+
 /// The bins [`add_shifted`] adds at a time.
 const CHUNK: usize = 16;
 
-/// A window as the leaves read it, each bin with the next.
-fn double(re: &[f32], im: &[f32]) -> Vec<[f32; 4]> {
-    (0..re.len())
-        .map(|o| {
-            let next = |v: &[f32]| v.get(o + 1).copied().unwrap_or_default();
-            [re[o], im[o], next(re), next(im)]
-        })
-        .collect()
+/// A window as the leaves read it, each bin with the next, into `out` (as long).
+fn double(re: &[f32], im: &[f32], out: &mut [[f32; 4]]) {
+    for (o, at) in out.iter_mut().enumerate().take(re.len()) {
+        let next = |v: &[f32]| v.get(o + 1).copied().unwrap_or_default();
+        *at = [re[o], im[o], next(re), next(im)];
+    }
 }
 
 /// Backprojects the phasor-filtered `hists` (real and imaginary parts interleaved,
