@@ -404,44 +404,41 @@ impl Lanes<4> for Portable {
 #[derive(Clone, Copy, Debug)]
 pub(crate) struct Wide<T>(T);
 
-// Each instruction set's eight lanes are [`Wide`] of its four-lane token.
-impl Quad for Portable {
-    type Oct = Wide<Portable>;
-    #[inline(always)]
-    fn oct(self) -> Wide<Portable> {
-        Wide(self)
-    }
+/// Each instruction set's eight lanes are [`Wide`] of its four-lane token. The x86
+/// tokens prefetch with `prefetcht0` (safe through pulp's `sse` token), and take what
+/// else they do their own way from the braces.
+macro_rules! quad {
+    ($t:ty) => {
+        impl Quad for $t {
+            type Oct = Wide<$t>;
+            #[inline(always)]
+            fn oct(self) -> Wide<$t> {
+                Wide(self)
+            }
+        }
+    };
+    (x86 $t:ty { $($own:tt)* }) => {
+        #[cfg(target_arch = "x86_64")]
+        impl Quad for $t {
+            type Oct = Wide<$t>;
+            #[inline(always)]
+            fn oct(self) -> Wide<$t> {
+                Wide(self)
+            }
+
+            #[inline(always)]
+            fn prefetch<T>(self, p: *const T) {
+                self.sse._mm_prefetch::<{ std::arch::x86_64::_MM_HINT_T0 }>(p.cast());
+            }
+
+            $($own)*
+        }
+    };
 }
 
-#[cfg(target_arch = "x86_64")]
-impl Quad for pulp::x86::V3 {
-    type Oct = Wide<pulp::x86::V3>;
-    #[inline(always)]
-    fn oct(self) -> Wide<pulp::x86::V3> {
-        Wide(self)
-    }
-
-    #[inline(always)]
-    fn prefetch<T>(self, p: *const T) {
-        self.sse
-            ._mm_prefetch::<{ std::arch::x86_64::_MM_HINT_T0 }>(p.cast());
-    }
-}
-
-#[cfg(target_arch = "x86_64")]
-impl Quad for pulp::x86::V4 {
-    type Oct = Wide<pulp::x86::V4>;
-    #[inline(always)]
-    fn oct(self) -> Wide<pulp::x86::V4> {
-        Wide(self)
-    }
-
-    #[inline(always)]
-    fn prefetch<T>(self, p: *const T) {
-        self.sse
-            ._mm_prefetch::<{ std::arch::x86_64::_MM_HINT_T0 }>(p.cast());
-    }
-
+quad!(Portable);
+quad!(x86 pulp::x86::V3 {});
+quad!(x86 pulp::x86::V4 {
     /// Sixteen voxels at a time: each of the four reads (bins j and j + 1 of either
     /// channel) one two-register permute of the window, whose 32 bins are two
     /// registers; the sums of the products interleaved by two more permutes and
@@ -499,7 +496,7 @@ impl Quad for pulp::x86::V4 {
         }
         window_add_from(window, bin, (w0, w1), out, v);
     }
-}
+});
 
 impl Lanes<8> for Wide<Portable> {
     array_lanes!(8);
