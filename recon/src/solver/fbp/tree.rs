@@ -878,9 +878,9 @@ impl Member {
     }
 }
 
-/// A leaf's planned merges: the groups, their members, each source's member (`slot`,
-/// `u32::MAX` for a source kept apart), the leaf's sources in order, and the bins of
-/// all its groups' windows.
+/// A leaf's planned merges: the groups, each source's member ([`Member::KEPT`] for a
+/// source kept apart), the leaf's sources in order, and the bins of all its groups'
+/// windows.
 struct LeafPlan {
     groups: Vec<GroupPlan>,
     members: Vec<Member>,
