@@ -28,9 +28,46 @@
 use std::sync::LazyLock;
 
 #[cfg(target_arch = "x86_64")]
-static V3: LazyLock<Option<pulp::x86::V3>> = LazyLock::new(pulp::x86::V3::try_new);
+static V3: LazyLock<Option<pulp::x86::V3>> =
+    LazyLock::new(|| (*CEILING >= Ceiling::Avx2).then(pulp::x86::V3::try_new).flatten());
 #[cfg(target_arch = "x86_64")]
-static V4: LazyLock<Option<pulp::x86::V4>> = LazyLock::new(pulp::x86::V4::try_new);
+static V4: LazyLock<Option<pulp::x86::V4>> = LazyLock::new(|| {
+    (*CEILING >= Ceiling::Avx512)
+        .then(pulp::x86::V4::try_new)
+        .flatten()
+});
+
+/// The widest instruction set the hot loops may use, from `PERISCOPE_SIMD`.
+static CEILING: LazyLock<Ceiling> =
+    LazyLock::new(|| Ceiling::from_env(std::env::var("PERISCOPE_SIMD").ok().as_deref()));
+
+/// How wide `dispatch` may go: the best the CPU has unless `PERISCOPE_SIMD` asks for
+/// less (`avx2`, or `baseline` for the portable code), so that one machine can run and
+/// time the paths a CPU without AVX-512, or without AVX2, takes. Asking for more than
+/// the CPU has gets what it has. Every path gives the same bits.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord)]
+enum Ceiling {
+    Baseline,
+    Avx2,
+    Avx512,
+}
+
+impl Ceiling {
+    fn from_env(value: Option<&str>) -> Self {
+        match value.map(|v| v.trim().to_ascii_lowercase()).as_deref() {
+            None | Some("" | "avx512" | "avx-512" | "x86-64-v4" | "native") => Self::Avx512,
+            Some("avx2" | "x86-64-v3") => Self::Avx2,
+            Some("baseline" | "portable" | "none") => Self::Baseline,
+            Some(other) => {
+                tracing::warn!(
+                    value = other,
+                    "PERISCOPE_SIMD is not one of avx512, avx2, baseline: using the best this CPU has"
+                );
+                Self::Avx512
+            }
+        }
+    }
+}
 
 /// A unit of hot work: `run` holds the loops to compile for the wider target.
 ///
@@ -91,6 +128,15 @@ pub fn level() -> &'static str {
 pub(crate) fn avx512() -> bool {
     #[cfg(target_arch = "x86_64")]
     if V4.is_some() {
+        return true;
+    }
+    false
+}
+
+/// Whether the hot loops run with AVX2 and FMA but not AVX-512 here.
+pub(crate) fn avx2() -> bool {
+    #[cfg(target_arch = "x86_64")]
+    if V4.is_none() && V3.is_some() {
         return true;
     }
     false
@@ -180,12 +226,22 @@ pub(crate) trait Quad: Lanes<4> {
 
     /// A linear interpolation read from a window of [`WINDOW`] bins of two channels,
     /// for each voxel v: `out[v][c] += w0[v]·window[c][j] + w1[v]·window[c][j + 1]`
-    /// with j = `bin[v]` (0 ≤ j < [`WINDOW`] − 1). The two products are summed, then
-    /// added: the operations of FBP's gather, in its order, on every instruction set
-    /// (AVX-512 reads the window from registers, sixteen voxels at a time; elsewhere
-    /// one voxel at a time).
+    /// with j = `bin[v]` (0 ≤ j and j + 1 < `reach` ≤ [`WINDOW`]: the window's bins
+    /// from `reach` on are never read). The two products are summed, then added: the
+    /// operations of FBP's gather, in its order, on every instruction set (AVX-512
+    /// reads the window from registers, sixteen voxels at a time; AVX2 from as many
+    /// registers as `reach` needs, eight voxels at a time; elsewhere one voxel at a
+    /// time).
     #[inline(always)]
-    fn window_add(self, window: &[[f32; WINDOW]; 2], bin: &[i32], w: (&[f32], &[f32]), out: &mut [[f32; 2]]) {
+    fn window_add(
+        self,
+        window: &[[f32; WINDOW]; 2],
+        reach: usize,
+        bin: &[i32],
+        w: (&[f32], &[f32]),
+        out: &mut [[f32; 2]],
+    ) {
+        let _ = reach;
         window_add_from(window, bin, w, out, 0);
     }
 
@@ -437,7 +493,118 @@ macro_rules! quad {
 }
 
 quad!(Portable);
-quad!(x86 pulp::x86::V3 {});
+quad!(x86 pulp::x86::V3 {
+    /// Eight voxels at a time: each of the four reads (bins j and j + 1 of either
+    /// channel) permutes the window's first 8, 16 or 32 bins (one, two or four
+    /// registers, as few as `reach` needs) and blends the registers' picks by j's
+    /// bits; the products summed and added to the voxels' pairs lane by lane as one
+    /// at a time, so the same bits.
+    #[inline(always)]
+    fn window_add(
+        self,
+        window: &[[f32; WINDOW]; 2],
+        reach: usize,
+        bin: &[i32],
+        w: (&[f32], &[f32]),
+        out: &mut [[f32; 2]],
+    ) {
+        let done = match reach {
+            ..=8 => window_add_v3::<1>(self, window, bin, w, out),
+            9..=16 => window_add_v3::<2>(self, window, bin, w, out),
+            _ => window_add_v3::<4>(self, window, bin, w, out),
+        };
+        window_add_from(window, bin, w, out, done);
+    }
+});
+
+/// Bin j (lane by lane) of the `8 R` bins in registers `t`: the permutes take j's low
+/// three bits, the blends (on a mask's sign bit) its fourth and fifth.
+#[cfg(target_arch = "x86_64")]
+#[inline(always)]
+fn read_v3<const R: usize>(
+    v3: pulp::x86::V3,
+    t: &[std::arch::x86_64::__m256; R],
+    j: std::arch::x86_64::__m256i,
+) -> std::arch::x86_64::__m256 {
+    use std::arch::x86_64::__m256;
+    let (avx, avx2) = (v3.avx, v3.avx2);
+    let p0 = avx2._mm256_permutevar8x32_ps(t[0], j);
+    if R == 1 {
+        return p0;
+    }
+    let fourth: __m256 = pulp::cast(avx2._mm256_slli_epi32::<28>(j));
+    let lo = avx._mm256_blendv_ps(p0, avx2._mm256_permutevar8x32_ps(t[1], j), fourth);
+    if R == 2 {
+        return lo;
+    }
+    let hi = avx._mm256_blendv_ps(
+        avx2._mm256_permutevar8x32_ps(t[2], j),
+        avx2._mm256_permutevar8x32_ps(t[3], j),
+        fourth,
+    );
+    let fifth: __m256 = pulp::cast(avx2._mm256_slli_epi32::<27>(j));
+    avx._mm256_blendv_ps(lo, hi, fifth)
+}
+
+/// [`Quad::window_add`] with AVX2 from the window's first `8 R` bins (`R` registers a
+/// channel), eight voxels at a time; returns how many voxels it did (the rest, fewer
+/// than eight, are left to [`window_add_from`]).
+#[cfg(target_arch = "x86_64")]
+#[inline(always)]
+fn window_add_v3<const R: usize>(
+    v3: pulp::x86::V3,
+    window: &[[f32; WINDOW]; 2],
+    bin: &[i32],
+    (w0, w1): (&[f32], &[f32]),
+    out: &mut [[f32; 2]],
+) -> usize {
+    use std::arch::x86_64::{__m256, __m256i};
+    const { assert!(R == 1 || R == 2 || R == 4, "one, two or four registers") };
+    let (avx, avx2) = (v3.avx, v3.avx2);
+    let n = bin.len().min(w0.len()).min(w1.len()).min(out.len());
+    let part = |c: usize, r: usize| -> __m256 {
+        pulp::cast(<[f32; 8]>::try_from(&window[c][8 * r..8 * r + 8]).expect("8 bins"))
+    };
+    let tables: [[__m256; R]; 2] = std::array::from_fn(|c| std::array::from_fn(|r| part(c, r)));
+    // As one at a time: a bin past the registers reads their last two.
+    let last = avx._mm256_set1_epi32(8 * R as i32 - 2);
+    let one = avx._mm256_set1_epi32(1);
+    // No closures in the loop: one the compiler does not inline is compiled without
+    // AVX2, and every intrinsic in it becomes a call.
+    let mut v = 0;
+    while v + 8 <= n {
+        let j: __m256i = pulp::cast(<[i32; 8]>::try_from(&bin[v..v + 8]).expect("8 lanes"));
+        let j = avx2._mm256_min_epi32(j, last);
+        let j1 = avx2._mm256_add_epi32(j, one);
+        let a0: __m256 = pulp::cast(<[f32; 8]>::try_from(&w0[v..v + 8]).expect("8 lanes"));
+        let a1: __m256 = pulp::cast(<[f32; 8]>::try_from(&w1[v..v + 8]).expect("8 lanes"));
+        let re = avx._mm256_add_ps(
+            avx._mm256_mul_ps(a0, read_v3(v3, &tables[0], j)),
+            avx._mm256_mul_ps(a1, read_v3(v3, &tables[0], j1)),
+        );
+        let im = avx._mm256_add_ps(
+            avx._mm256_mul_ps(a0, read_v3(v3, &tables[1], j)),
+            avx._mm256_mul_ps(a1, read_v3(v3, &tables[1], j1)),
+        );
+        // Interleaved within each half (voxels 0, 1 | 4, 5 and 2, 3 | 6, 7), then the
+        // halves put in order.
+        let (lo, hi) = (avx._mm256_unpacklo_ps(re, im), avx._mm256_unpackhi_ps(re, im));
+        let halves = [
+            avx._mm256_permute2f128_ps::<0x20>(lo, hi),
+            avx._mm256_permute2f128_ps::<0x31>(lo, hi),
+        ];
+        let pairs: &mut [[f32; 2]; 8] = (&mut out[v..v + 8]).try_into().expect("8 voxels");
+        let flat: &mut [f32; 16] = pairs.as_flattened_mut().try_into().expect("16 values");
+        let (first, second) = flat.split_at_mut(8);
+        for (at, add) in [first, second].into_iter().zip(halves) {
+            let at: &mut [f32; 8] = at.try_into().expect("8 values");
+            let before: __m256 = pulp::cast(*at);
+            *at = pulp::cast(avx._mm256_add_ps(before, add));
+        }
+        v += 8;
+    }
+    v
+}
 quad!(x86 pulp::x86::V4 {
     /// Sixteen voxels at a time: each of the four reads (bins j and j + 1 of either
     /// channel) one two-register permute of the window, whose 32 bins are two
@@ -447,11 +614,13 @@ quad!(x86 pulp::x86::V4 {
     fn window_add(
         self,
         window: &[[f32; WINDOW]; 2],
+        reach: usize,
         bin: &[i32],
         (w0, w1): (&[f32], &[f32]),
         out: &mut [[f32; 2]],
     ) {
         use std::arch::x86_64::{__m512, __m512i};
+        let _ = reach;
         let f = self.avx512f;
         let half = |c: usize, h: usize| -> __m512 {
             pulp::cast(<[f32; 16]>::try_from(&window[c][16 * h..16 * h + 16]).expect("16 bins"))
@@ -891,38 +1060,55 @@ mod tests {
 
     #[test]
     fn the_window_reads_agree_bit_for_bit() {
-        // 37 voxels (two vectors of sixteen and a tail) over every bin of the window,
-        // the last pair included, added to values already there: AVX-512's permutes
-        // against one voxel at a time, and the AVX2 build (one at a time) with them.
+        // 37 voxels (vectors of sixteen and of eight, and a tail) over every bin a
+        // reach allows, the last pair included, added to values already there:
+        // AVX-512's and AVX2's permutes against one voxel at a time, for reaches
+        // that take AVX2's one, two and four registers (and their edges).
         let window: [[f32; WINDOW]; 2] = std::array::from_fn(|c| {
             std::array::from_fn(|j| ((j * 7 + c * 3) % 11) as f32 * 0.37 - 1.1 + c as f32 / 3.0)
         });
         let n = 37;
-        let bin: Vec<i32> = (0..n).map(|v| ((v * 13) % (WINDOW - 1)) as i32).collect();
         let w0: Vec<f32> = (0..n).map(|v| 0.1 + v as f32 / 7.0).collect();
         let w1: Vec<f32> = (0..n).map(|v| 1.0 / (1.0 + v as f32)).collect();
         let start: Vec<[f32; 2]> = (0..n).map(|v| [v as f32 * 0.01, -(v as f32) / 3.0]).collect();
-        let mut want = start.clone();
-        window_add_from(&window, &bin, (&w0, &w1), &mut want, 0);
-        assert!(bin.contains(&(WINDOW as i32 - 2)) && bin.contains(&0));
         let bits = |o: &[[f32; 2]]| o.iter().flatten().map(|x| x.to_bits()).collect::<Vec<_>>();
-        let mut got = start.clone();
-        Portable.window_add(&window, &bin, (&w0, &w1), &mut got);
-        assert_eq!(bits(&got), bits(&want));
-        #[cfg(target_arch = "x86_64")]
-        if let Some(v) = *V4 {
+        for reach in [2, 5, 8, 9, 16, 17, 24, WINDOW] {
+            let bin: Vec<i32> = (0..n).map(|v| ((v * 13) % (reach - 1)) as i32).collect();
+            assert!(bin.contains(&(reach as i32 - 2)) && bin.contains(&0));
+            let mut want = start.clone();
+            window_add_from(&window, &bin, (&w0, &w1), &mut want, 0);
             let mut got = start.clone();
-            v.window_add(&window, &bin, (&w0, &w1), &mut got);
-            assert_eq!(bits(&got), bits(&want), "AVX-512");
-        } else {
-            eprintln!("the_window_reads_agree_bit_for_bit: no AVX-512 here, its path untested");
+            Portable.window_add(&window, reach, &bin, (&w0, &w1), &mut got);
+            assert_eq!(bits(&got), bits(&want), "portable, reach {reach}");
+            #[cfg(target_arch = "x86_64")]
+            if let Some(v) = pulp::x86::V4::try_new() {
+                let mut got = start.clone();
+                v.window_add(&window, reach, &bin, (&w0, &w1), &mut got);
+                assert_eq!(bits(&got), bits(&want), "AVX-512, reach {reach}");
+            } else if reach == WINDOW {
+                eprintln!("the_window_reads_agree_bit_for_bit: no AVX-512 here, its path untested");
+            }
+            #[cfg(target_arch = "x86_64")]
+            if let Some(v) = pulp::x86::V3::try_new() {
+                let mut got = start.clone();
+                v.window_add(&window, reach, &bin, (&w0, &w1), &mut got);
+                assert_eq!(bits(&got), bits(&want), "AVX2, reach {reach}");
+            } else if reach == WINDOW {
+                eprintln!("the_window_reads_agree_bit_for_bit: no AVX2 here, its path untested");
+            }
         }
-        #[cfg(target_arch = "x86_64")]
-        if let Some(v) = *V3 {
-            let mut got = start.clone();
-            v.window_add(&window, &bin, (&w0, &w1), &mut got);
-            assert_eq!(bits(&got), bits(&want), "AVX2");
-        }
+    }
+
+    /// `PERISCOPE_SIMD` caps the instruction set: names for each level (any case,
+    /// spaces around), and anything else (or nothing) leaves the best the CPU has.
+    #[test]
+    fn the_simd_ceiling_reads_its_names() {
+        assert_eq!(Ceiling::from_env(None), Ceiling::Avx512);
+        assert_eq!(Ceiling::from_env(Some(" AVX2 ")), Ceiling::Avx2);
+        assert_eq!(Ceiling::from_env(Some("x86-64-v3")), Ceiling::Avx2);
+        assert_eq!(Ceiling::from_env(Some("baseline")), Ceiling::Baseline);
+        assert_eq!(Ceiling::from_env(Some("avx512")), Ceiling::Avx512);
+        assert_eq!(Ceiling::from_env(Some("sse9")), Ceiling::Avx512);
     }
 
     /// `exp` is within 1 ulp of `f64::exp` over its domain, and

@@ -62,29 +62,44 @@ const EDGES: [usize; 3] = [4, 8, 16];
 /// "A hierarchical backprojection"): a leaf's visit to a pair (its geometry, grouping,
 /// merge plan and the shifted add of its histogram window), a leaf's backprojection of
 /// one source into one voxel with the legs' quadratic models and with their square
-/// roots, and the exact path's of one pair into one voxel. Only their ratios matter.
-/// With AVX-512 the leaves' figures were fitted to seven leaf shapes' times on
-/// 2026-12-05 (the square roots' one is also what a leaf's voxel costs where its window
-/// is too wide to read from registers); without it, a leaf's voxel reads its bins one
-/// load at a time, and the figures are those measured before the registers were read
-/// (2026-12-04; the quadratic models changed which shape is fastest on neither).
+/// roots, and the exact path's of one pair into one voxel. Only their ratios to the
+/// exact path's matter. Each instruction set has its own: its leaves read their
+/// windows their own way ([`crate::simd::Quad::window_add`]).
 struct LeafCosts {
     visit: f64,
     modelled: f64,
     leaf: f64,
+    exact: f64,
 }
 
+/// With AVX-512, fitted to seven leaf shapes' times on 2026-12-05 (the square roots'
+/// figure is also what a leaf's voxel costs where its window is too wide to read from
+/// registers).
 const WITH_AVX512: LeafCosts = LeafCosts {
     visit: 100.0,
     modelled: 0.4,
     leaf: 0.8,
+    exact: 1.4,
 };
-const WITHOUT_AVX512: LeafCosts = LeafCosts {
+
+/// With AVX2 and FMA (no AVX-512), fitted to seven leaf shapes' times with the AVX2
+/// window reads on 2026-12-05 (`PERISCOPE_SIMD=avx2` on the AVX-512 machine): a
+/// voxel whose window is too wide for registers takes the gather, about 2 ns.
+const WITH_AVX2: LeafCosts = LeafCosts {
+    visit: 70.0,
+    modelled: 0.85,
+    leaf: 2.1,
+    exact: 1.2,
+};
+
+/// Without either, the figures measured before the windows were read from registers
+/// (2026-12-04), not measured on a CPU without AVX2.
+const BASELINE: LeafCosts = LeafCosts {
     visit: 80.0,
     modelled: 1.8,
     leaf: 1.8,
+    exact: 1.4,
 };
-const EXACT_VOXEL_NS: f64 = 1.4;
 
 /// A box of voxels, index ranges `lo..hi` along x, y and z.
 #[derive(Clone, Copy, Debug)]
@@ -740,7 +755,7 @@ impl crate::simd::Work for LeafWork<'_, '_> {
                     (window[0][j], window[1][j]) = (re, im);
                 }
                 bin.iter_mut().for_each(|j| *j -= lo);
-                q.window_add(&window, &bin, (&w0, &w1), out);
+                q.window_add(&window, (hi - lo + 2) as usize, &bin, (&w0, &w1), out);
             } else {
                 super::gather_row(out, &bin, (&w0, &w1), s.data);
             }
@@ -1201,8 +1216,10 @@ pub(super) fn choose(set: &TransientSet, grid: &VolumeGrid, wavelength: f64, tol
     }
     let costs = if crate::simd::avx512() {
         WITH_AVX512
+    } else if crate::simd::avx2() {
+        WITH_AVX2
     } else {
-        WITHOUT_AVX512
+        BASELINE
     };
     let mut best: Option<Choice> = None;
     for shape in shapes {
@@ -1251,7 +1268,7 @@ pub(super) fn choose(set: &TransientSet, grid: &VolumeGrid, wavelength: f64, tol
         };
         let voxels = shape.iter().product::<usize>() as f64;
         let per_source = costs.modelled * modelled + costs.leaf * (1.0 - modelled);
-        let cost = (costs.visit / voxels + per_source * share) / EXACT_VOXEL_NS;
+        let cost = (costs.visit / voxels + per_source * share) / costs.exact;
         if best.is_none_or(|b| cost < b.cost) {
             best = Some(Choice { shape, share, cost });
         }
