@@ -605,6 +605,7 @@ fn window_add_v3<const R: usize>(
     }
     v
 }
+
 quad!(x86 pulp::x86::V4 {
     /// Sixteen voxels at a time: each of the four reads (bins j and j + 1 of either
     /// channel) one two-register permute of the window, whose 32 bins are two
