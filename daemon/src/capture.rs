@@ -10,12 +10,12 @@ use periscope_recon::io::ytal::{
     FLAG_OVERFLOW, FLAG_SATURATED, Grid, GridFormat, HFormat, MAX_DATASET_BYTES, YtalCapture, YtalError,
     is_hdf5_path,
 };
-use periscope_recon::transient::{hidden_axis, rebin_path};
-use periscope_recon::{Pair, TimeAxis, TransientError, TransientSet, VolumeGrid};
+use periscope_recon::transient::rebin_path;
+use periscope_recon::{TimeAxis, TransientError, TransientSet, VolumeGrid};
 
 use crate::config::InstrumentConfig;
 use crate::plan::{LaserFalloff, Plan, PlannedPair, ReconSettings, default_recon};
-use crate::record::{record_axis, record_counts, record_transient, relay_gains};
+use crate::record::{record_axis, record_counts, record_transient, relay_gains, run_axis};
 use crate::run_dir::RunInfo;
 use crate::run_dir::{RunDir, RunDirError, file};
 use crate::store::Record;
@@ -200,8 +200,7 @@ impl RunCapture {
             path: self.dir.clone(),
             source,
         };
-        let pairs: Vec<Pair> = self.pairs.iter().map(PlannedPair::pair).collect();
-        let axis = hidden_axis(&pairs, volume, self.plan.acquisition.bin_width).map_err(fail)?;
+        let axis = run_axis(&self.pairs, volume, &self.plan.acquisition, &self.instrument).map_err(fail)?;
         let mut set = TransientSet::new(axis).map_err(fail)?;
         set.mark_photon_counts();
         // The relay's albedo from its scan, as the run's own fit took it.

@@ -2,11 +2,11 @@
 //! time and pile-up undone (when the instrument asks for it), on its total-path axis,
 //! rebinned to the hidden path of its pair. The capture's streamed fit, `periscope
 //! recon RUN_DIR`, the y-tal export and the tests share these.
-use periscope_recon::TimeAxis;
-use periscope_recon::transient::rebin_path;
+use periscope_recon::transient::{TransientError, clip_to_measured, hidden_axis, rebin_path};
+use periscope_recon::{TimeAxis, VolumeGrid};
 
 use crate::config::InstrumentConfig;
-use crate::plan::PlannedPair;
+use crate::plan::{Acquisition, PlannedPair};
 use crate::run_dir::RelayPoint;
 use crate::store::Record;
 
@@ -120,14 +120,88 @@ pub fn record_transient(
     if rec.flags.overflow {
         return None;
     }
-    let legs = pair.xi.distance(inst.laser_arm.pose.origin) + pair.xd.distance(inst.spad_arm.pose.origin);
     let tdc = record_axis(rec, inst);
     Some(rebin_path(
         record_counts(rec, inst),
-        tdc.start - legs,
+        tdc.start - legs(pair, inst),
         tdc.width,
         axis,
     ))
+}
+
+/// The path a pair's light travels outside the hidden scene: from the laser galvo to
+/// its illumination point, and from its detection point to the SPAD galvo.
+fn legs(pair: &PlannedPair, inst: &InstrumentConfig) -> f64 {
+    pair.xi.distance(inst.laser_arm.pose.origin) + pair.xd.distance(inst.spad_arm.pose.origin)
+}
+
+/// The hidden path lengths the plan's TDC window records over `pairs`, from the
+/// earliest pair's first bin to the latest pair's last: each pair's window on the total
+/// path (the acquisition's offset, bins and bin width, less the system delay) shifted
+/// by its legs. `None` without pairs.
+pub fn recorded_hidden_range(
+    pairs: &[PlannedPair],
+    acq: &Acquisition,
+    inst: &InstrumentConfig,
+) -> Option<(f64, f64)> {
+    let tdc = TimeAxis::of_tdc(
+        acq.offset,
+        acq.bin_width,
+        acq.bins as usize,
+        inst.tdc.system_delay,
+    );
+    let end = tdc.start + tdc.bins as f64 * tdc.width;
+    pairs.iter().map(|p| legs(p, inst)).fold(None, |range, l| {
+        let (from, to) = range.unwrap_or((f64::INFINITY, f64::NEG_INFINITY));
+        Some((from.min(tdc.start - l), to.max(end - l)))
+    })
+}
+
+/// The hidden-path axis every reconstruction of a run puts its transients on (the live
+/// fit and `periscope recon RUN_DIR` alike): the plan's bin width, spanning the paths
+/// `volume` can produce ([`hidden_axis`]) where the TDC window records them
+/// ([`clip_to_measured`]). Bins past the window would hold zeros nobody measured,
+/// which the fit reads as "no light at this path length" and which would set the
+/// Poisson loss's background estimate to its floor. An error when the window records
+/// none of the volume's paths.
+pub fn run_axis(
+    pairs: &[PlannedPair],
+    volume: &VolumeGrid,
+    acq: &Acquisition,
+    inst: &InstrumentConfig,
+) -> Result<TimeAxis, TransientError> {
+    let recon_pairs: Vec<_> = pairs.iter().map(PlannedPair::pair).collect();
+    let axis = hidden_axis(&recon_pairs, volume, acq.bin_width)?;
+    let Some(range) = recorded_hidden_range(pairs, acq, inst) else {
+        return Ok(axis);
+    };
+    let kept = clip_to_measured(&axis, range).map_err(|_| {
+        TransientError::Window(format!(
+            "the TDC window (acquisition.offset-ns {:.3} ns, {} bins of {:.1} ps, less the \
+                 system delay) records hidden paths of {:.3} to {:.3} m over the planned pairs, \
+                 none of the {:.3} to {:.3} m the volume's paths need: move acquisition.offset-ns, \
+                 add bins, or give a [recon.volume] the window reaches",
+            acq.offset * 1e9,
+            acq.bins,
+            acq.bin_width * 1e12,
+            range.0,
+            range.1,
+            axis.start,
+            axis.start + axis.bins as f64 * axis.width,
+        ))
+    })?;
+    if kept != axis {
+        tracing::warn!(
+            recorded_m = ?range,
+            needed_m = ?(axis.start, axis.start + axis.bins as f64 * axis.width),
+            bins = kept.bins,
+            of = axis.bins,
+            "the TDC window records only part of the hidden paths the volume can produce; the \
+             reconstruction keeps the recorded bins (move acquisition.offset-ns or add bins to \
+             record the rest)"
+        );
+    }
+    Ok(kept)
 }
 
 /// A record's total-path axis (its own offset and bin width, the instrument's system
@@ -143,7 +217,82 @@ pub fn record_axis(rec: &Record, inst: &InstrumentConfig) -> TimeAxis {
 
 #[cfg(test)]
 mod tests {
+    use periscope_recon::C0;
+
     use super::*;
+
+    fn sim_instrument() -> InstrumentConfig {
+        let text = include_str!("../../configs/instrument/sim.toml");
+        InstrumentConfig::from_source(&crate::config::TomlSource::from_text("sim.toml", text))
+            .expect("the shipped config is valid")
+    }
+
+    #[test]
+    fn a_runs_hidden_axis_keeps_to_the_tdc_window() {
+        let inst = sim_instrument();
+        let volume = VolumeGrid::new([-0.4, 0.4], [-0.4, 0.4], [0.3, 0.9], [16, 16, 16]).unwrap();
+        let at = |x: f64, y: f64| PlannedPair {
+            xi: glam::DVec3::new(x, y, 0.0),
+            ni: glam::DVec3::Z,
+            xd: glam::DVec3::new(x + 0.005, y, 0.0),
+            nd: glam::DVec3::Z,
+            laser: periscope_drivers::OpticalAngles { x: 0.0, y: 0.0 },
+            spad: periscope_drivers::OpticalAngles { x: 0.0, y: 0.0 },
+        };
+        let pairs: Vec<PlannedPair> = [(-0.3, -0.3), (0.3, -0.3), (0.0, 0.0), (0.3, 0.3)]
+            .iter()
+            .map(|&(x, y)| at(x, y))
+            .collect();
+        let acq = |bins: u32, offset: f64| Acquisition {
+            dwell: std::time::Duration::from_millis(20),
+            bins,
+            bin_width: 16e-12,
+            offset,
+            repeats: 1,
+        };
+        let recon: Vec<_> = pairs.iter().map(PlannedPair::pair).collect();
+        let whole = hidden_axis(&recon, &volume, 16e-12).unwrap();
+        let end = |a: &TimeAxis| a.start + a.bins as f64 * a.width;
+        // The shipped window (1,024 bins from 12 ns) records every path: the axis as
+        // the volume needs it, bit for bit the one before windows were asked.
+        let wide = acq(1024, 12e-9);
+        let (from, to) = recorded_hidden_range(&pairs, &wide, &inst).unwrap();
+        assert!(from < whole.start && to > end(&whole), "{from} {to} {whole:?}");
+        assert_eq!(run_axis(&pairs, &volume, &wide, &inst).unwrap(), whole);
+        // 400 bins stop at 5.52 m of total path: the axis keeps the bins the window
+        // records for some pair, on the same grid, and no bin past the last one.
+        let short = acq(400, 12e-9);
+        let (_, to) = recorded_hidden_range(&pairs, &short, &inst).unwrap();
+        let legs = pairs.iter().map(|p| legs(p, &inst)).fold(f64::INFINITY, f64::min);
+        assert!((to - (C0 * (12e-9 + 400.0 * 16e-12) - legs)).abs() < 1e-9, "{to}");
+        let clipped = run_axis(&pairs, &volume, &short, &inst).unwrap();
+        assert_eq!((clipped.start, clipped.width), (whole.start, whole.width));
+        assert!(clipped.bins < whole.bins, "{clipped:?} {whole:?}");
+        assert!(
+            end(&clipped) <= to + 1e-9 && end(&clipped) > to - clipped.width,
+            "{clipped:?} {to}"
+        );
+        // The pair with the shortest legs (the relay's centre) has counts up to the
+        // axis's last bin, not zeros past what was recorded. (Pairs with longer legs
+        // stop a few bins earlier: one axis serves them all, as for a y-tal file.)
+        let flat = Record {
+            pair: 2,
+            counts: vec![7; 400],
+            flags: periscope_drivers::HistogramFlags::default(),
+            bin_width_ps: 16,
+            offset_ps: 12_000,
+            dwell_us: 20_000,
+        };
+        let h = record_transient(&flat, &pairs[2], &inst, &clipped).unwrap();
+        assert!(h.iter().all(|&v| v > 0.0), "{h:?}");
+        // A window wholly before the volume's paths: refused, naming the key to move.
+        let early = acq(64, 12e-9);
+        let e = run_axis(&pairs, &volume, &early, &inst).unwrap_err().to_string();
+        assert!(
+            e.contains("acquisition.offset-ns") && e.contains("[recon.volume]"),
+            "{e}"
+        );
+    }
 
     #[test]
     fn pile_up_is_undone_by_hand_worked_figures() {

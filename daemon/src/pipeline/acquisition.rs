@@ -5,7 +5,6 @@ use std::sync::mpsc;
 use std::time::Duration;
 
 use periscope_drivers::{HistogramFlags, TdcConfig};
-use periscope_recon::transient::hidden_axis;
 use periscope_recon::{Pair, TransientSet};
 
 use super::reconstruct::{Fit, ReconInput};
@@ -14,7 +13,7 @@ use super::{PipelineError, ReconError, Run};
 use crate::adaptive::{Order, Selector};
 use crate::events::RunEvent;
 use crate::plan::{Acquisition, Method, PlannedPair};
-use crate::record::{record_transient, relay_gains};
+use crate::record::{record_transient, relay_gains, run_axis};
 use crate::run_dir::RelayPoint;
 use crate::store::{HistogramLog, Record};
 
@@ -53,7 +52,7 @@ impl Run {
         );
         let recon_pairs: Vec<Pair> = pairs.iter().map(PlannedPair::pair).collect();
         let axis =
-            hidden_axis(&recon_pairs, &self.plan.recon.volume, acq.bin_width).map_err(ReconError::from)?;
+            run_axis(pairs, &self.plan.recon.volume, &acq, &self.instrument).map_err(ReconError::from)?;
         let (mut log, recovered) =
             HistogramLog::recover(&self.dir).map_err(|e| PipelineError::storage(&self.dir, e))?;
         if recovered.discarded_bytes > 0 {
