@@ -504,6 +504,36 @@ fn a_histogrammer_unplugged_for_good_fails_the_capture_keeps_its_pairs_and_resum
     assert!(!rig.emission());
 }
 
+/// A plan whose TDC window records none of the hidden paths its volume needs (the
+/// shipped window, total paths of 3.6 to 8.5 m, so hidden ones to about 4.5 m, and a
+/// volume 3.5 to 4 m deep, whose paths start at 7 m) stops once its pairs are planned,
+/// before the first NLOS pair: the run fails naming the keys to change, stores no
+/// histogram, and leaves the laser off and both arms parked. (Before 2026-12-05 it
+/// captured every pair and reconstructed zeros.)
+#[test]
+fn a_tdc_window_that_records_none_of_the_volume_fails_before_the_first_pair() {
+    let _serial = ONE_AT_A_TIME.lock().unwrap_or_else(|p| p.into_inner());
+    let tmp = tempfile::tempdir().unwrap();
+    let plan = SmallPlan::named("far-volume")
+        .set("recon.volume.z", [3.5, 4.0])
+        .toml();
+    let (dir, rig) = prepare(tmp.path(), &plan);
+    let e = execute(&dir, &rig, Control::new(), |_| {})
+        .expect_err("a capture of paths the volume has none of")
+        .to_string();
+    assert!(
+        e.contains("acquisition.offset-ns") && e.contains("[recon.volume]"),
+        "{e}"
+    );
+    assert_eq!(RunInfo::load(&dir).unwrap().state, RunState::Failed);
+    assert!(
+        read_log(&dir).map_or(true, |l| l.records.is_empty()),
+        "no NLOS histogram was measured"
+    );
+    assert!(!rig.emission());
+    assert_eq!(rig.parked(), (true, true));
+}
+
 #[test]
 fn a_record_damaged_in_the_middle_of_the_log_is_measured_again_and_the_rest_kept() {
     use periscope_daemon::store::{DAMAGED_LOG, HISTOGRAM_LOG};
