@@ -190,8 +190,10 @@ impl RunCapture {
     }
 
     /// The transients for `volume`, as the run's own fit saw them: on the hidden-path
-    /// axis of the planned pairs at the plan's bin width, pile-up undone when the
-    /// instrument asks for it, overflowed histograms left out (and counted).
+    /// axis of the planned pairs at the plan's bin width where the plan's TDC window
+    /// records them ([`run_axis`]; runs before 2026-12-05 fitted the whole axis live),
+    /// pile-up undone when the instrument asks for it, overflowed histograms left out
+    /// (and counted).
     pub fn transients(&self, volume: &VolumeGrid) -> Result<Transients, CaptureError> {
         if self.records.is_empty() {
             return Err(CaptureError::NoPairs(self.dir.clone()));
