@@ -156,6 +156,44 @@ fn solvers(c: &mut Criterion) {
         });
     }
 
+    // A virtual scan that is no level grid (a curved relay's, as `periscope recon`
+    // makes on the validation set's nonplanar_relay): 34 × 32 confocal points on the
+    // curved panel onto the validation volume's 32 × 32 × 81 voxels. `auto` takes
+    // leaves without merges here (merges would save under a third of their time).
+    let mut curved_scan = TransientSet::new(TimeAxis::from_seconds(0.0, 16e-12, 512)).unwrap();
+    for iy in 0..32 {
+        for ix in 0..34 {
+            let (x, n) = curved(-0.5 + (ix as f64 + 0.5) / 34.0, -0.5 + (iy as f64 + 0.5) / 32.0);
+            h.iter_mut().for_each(|v| *v = rng.random::<f32>());
+            curved_scan
+                .push(
+                    Pair {
+                        xi: x,
+                        ni: n,
+                        xd: x,
+                        nd: n,
+                    },
+                    &h,
+                )
+                .unwrap();
+        }
+    }
+    let scan_grid = VolumeGrid::new([-0.5, 0.5], [-0.5, 0.5], [0.195, 1.005], [32, 32, 81]).unwrap();
+    group
+        .measurement_time(Duration::from_secs(10))
+        .throughput(Throughput::Elements(
+            curved_scan.len() as u64 * scan_grid.len() as u64,
+        ));
+    for (name, settings) in [
+        ("fbp_curved_scan", &FbpSettings::default()),
+        ("fbp_curved_scan_hierarchical", &hierarchical),
+        ("fbp_curved_scan_exact", &exact),
+    ] {
+        group.bench_function(name, |b| {
+            b.iter(|| fbp(&curved_scan, &scan_grid, settings).unwrap())
+        });
+    }
+
     // The virtual scan of `periscope recon` on a 1 m, 32 × 32 × 81 volume.
     let relay = VirtualRelay::new(DVec3::ZERO, DVec3::Z, DVec3::X, [1.0, 1.0], [64, 64]).unwrap();
     let (set, _) = noise_scan(&relay, 512, &mut rng);

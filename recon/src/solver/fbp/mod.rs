@@ -76,9 +76,11 @@ pub enum FbpBackprojection {
     /// are backprojected (fast factorised backprojection's idea; the phasor filter
     /// only; docs/recon.md, "A hierarchical backprojection").
     Hierarchical,
-    /// The hierarchy where a sample of its leaves says the merges pay (each leaf
-    /// predicted to take at most [`AUTO_MAX_COST`] of the exact path's time), the exact path
-    /// elsewhere, and for any filter but the phasor one: the default.
+    /// The hierarchy where a sample of its leaves says it pays (each leaf predicted to
+    /// take at most [`AUTO_MAX_COST`] of the exact path's time), with merges only where
+    /// they promise as much against the leaves without them (whose arithmetic is the
+    /// exact path's to within the legs' quadratic models); the exact path elsewhere,
+    /// and for any filter but the phasor one: the default.
     #[default]
     Auto,
 }
@@ -463,15 +465,25 @@ pub fn fbp_on(
                 );
                 None
             }
-            FbpBackprojection::Hierarchical => Some(tree::choose(set, grid, lambda, tolerance)),
+            FbpBackprojection::Hierarchical => Some(tree::choose(set, grid, lambda, tolerance).merged),
             FbpBackprojection::Auto if own_fast_form() => None,
             FbpBackprojection::Auto => {
-                let choice = tree::choose(set, grid, lambda, tolerance);
+                // Merges trade accuracy for time: taken only where they promise a third
+                // off the leaves without them, as the hierarchy must promise a third
+                // off the exact path.
+                let choices = tree::choose(set, grid, lambda, tolerance);
+                let choice = if choices.merged.cost <= AUTO_MAX_COST * choices.unmerged.cost {
+                    choices.merged
+                } else {
+                    choices.unmerged
+                };
                 let pays = choice.cost <= AUTO_MAX_COST;
                 tracing::info!(
                     leaf = ?choice.shape,
+                    merges = choice.merges,
                     share = choice.share,
                     predicted_cost = choice.cost,
+                    merged_cost = choices.merged.cost,
                     at_most = AUTO_MAX_COST,
                     "FBP {}: a sample of the hierarchy's leaves predicts this time against the exact path's ([fbp] backprojection = \"auto\")",
                     if pays {
@@ -484,6 +496,8 @@ pub fn fbp_on(
             }
         };
         let sums = if let Some(choice) = hierarchical {
+            // Without merges the leaves' tolerance is none.
+            let tolerance = if choice.merges { tolerance } else { 0.0 };
             let (sums, stats) = tree::backproject_tree(
                 set,
                 grid,
@@ -497,6 +511,7 @@ pub fn fbp_on(
             tracing::info!(
                 pairs = set.len(),
                 leaf = ?choice.shape,
+                merges = choice.merges,
                 leaves = stats.leaves,
                 sources_per_leaf = stats.leaf_sources as f64 / stats.leaves.max(1) as f64,
                 path_error_m = tolerance,

@@ -402,6 +402,15 @@ impl Tree<'_> {
     /// its index, a merged one by its place among the merges).
     #[inline(always)]
     fn merge(&self, b: &Block, sources: &[Source<'_>], points: &Points) -> LeafPlan {
+        if self.tolerance <= 0.0 {
+            // No merges: every source kept, backprojected with the leaf's arithmetic.
+            return LeafPlan {
+                groups: Vec::new(),
+                members: vec![Member::KEPT; sources.len()],
+                plan: (0..sources.len()).map(Planned::Keep).collect(),
+                bins: 0,
+            };
+        }
         let v = self.centre(b);
         let (half, diagonal) = self.half_extents(b);
         // Cells whose gradients differ by up to half the tolerance over the box's
@@ -1181,14 +1190,28 @@ pub(super) struct Choice {
     pub share: f64,
     /// The predicted time against the exact path's.
     pub cost: f64,
+    /// Whether the leaves merge pairs (within the path-length tolerance); without, they
+    /// backproject every pair with their own arithmetic, as exact as the exact path's
+    /// to within the legs' quadratic models ([`QUADRATIC_ERROR`]).
+    pub merges: bool,
 }
 
-/// The leaf shape of least predicted cost: each shape of [`EDGES`] along each axis
-/// plans the merges of a sample of its leaves, and the cost model ([`LeafCosts`])
-/// weighs its leaves' visits to every pair against the sources they still
-/// backproject. Planning reads no histogram, so this costs about a hundredth of the
-/// backprojection it decides on.
-pub(super) fn choose(set: &TransientSet, grid: &VolumeGrid, wavelength: f64, tolerance: f64) -> Choice {
+/// [`choose`]'s two answers: the leaves of least predicted cost with merges, and
+/// without.
+#[derive(Clone, Copy, Debug)]
+pub(super) struct Choices {
+    /// With merges within the tolerance.
+    pub merged: Choice,
+    /// Every pair backprojected at every voxel, by the leaves' arithmetic.
+    pub unmerged: Choice,
+}
+
+/// The leaf shapes of least predicted cost, with merges and without: each shape of
+/// [`EDGES`] along each axis plans the merges of a sample of its leaves, and the cost
+/// model ([`LeafCosts`]) weighs its leaves' visits to every pair against the sources
+/// they still backproject (all of them, without merges). Planning reads no histogram,
+/// so this costs about a hundredth of the backprojection it decides on.
+pub(super) fn choose(set: &TransientSet, grid: &VolumeGrid, wavelength: f64, tolerance: f64) -> Choices {
     let sources: Vec<Source<'_>> = set
         .pairs()
         .iter()
@@ -1222,16 +1245,17 @@ pub(super) fn choose(set: &TransientSet, grid: &VolumeGrid, wavelength: f64, tol
         BASELINE
     };
     let mut best: Option<Choice> = None;
+    let mut best_unmerged: Option<Choice> = None;
     for shape in shapes {
         // Planning reads neither the padding nor the falloff's exponent.
         let tree = Tree::new(grid, set.axis(), 0, 1.0, wavelength, tolerance, shape);
         let tiles: [usize; 3] = std::array::from_fn(|a| grid.shape[a] / shape[a]);
         let count = tiles.iter().product::<usize>();
         let n = count.min(SAMPLE_LEAVES);
-        let (share, modelled) = if sources.is_empty() || n == 0 {
-            (1.0, 0.0)
+        let (share, modelled, all_modelled) = if sources.is_empty() || n == 0 {
+            (1.0, 0.0, 0.0)
         } else {
-            let (kept, quadratic): (usize, usize) = (0..n)
+            let (kept, quadratic, all_quadratic): (usize, usize, usize) = (0..n)
                 .into_par_iter()
                 .map(|i| {
                     // The R₃ low-discrepancy sequence (steps 1/g, 1/g², 1/g³ with
@@ -1258,26 +1282,57 @@ pub(super) fn choose(set: &TransientSet, grid: &VolumeGrid, wavelength: f64, tol
                             tree.legs_modelled(v, diagonal, xi, xd)
                         })
                         .count();
-                    (plan.plan.len(), quadratic)
+                    // And how many of all its pairs would, unmerged.
+                    let all = sources
+                        .iter()
+                        .filter(|s| tree.legs_modelled(v, diagonal, s.xi, s.xd))
+                        .count();
+                    (plan.plan.len(), quadratic, all)
                 })
-                .reduce(|| (0, 0), |a, b| (a.0 + b.0, a.1 + b.1));
+                .reduce(|| (0, 0, 0), |a, b| (a.0 + b.0, a.1 + b.1, a.2 + b.2));
             (
                 kept as f64 / (n * sources.len()) as f64,
                 quadratic as f64 / kept.max(1) as f64,
+                all_quadratic as f64 / (n * sources.len()) as f64,
             )
         };
         let voxels = shape.iter().product::<usize>() as f64;
-        let per_source = costs.modelled * modelled + costs.leaf * (1.0 - modelled);
-        let cost = (costs.visit / voxels + per_source * share) / costs.exact;
+        let predict = |share: f64, modelled: f64| {
+            let per_source = costs.modelled * modelled + costs.leaf * (1.0 - modelled);
+            (costs.visit / voxels + per_source * share) / costs.exact
+        };
+        let cost = predict(share, modelled);
         if best.is_none_or(|b| cost < b.cost) {
-            best = Some(Choice { shape, share, cost });
+            best = Some(Choice {
+                shape,
+                share,
+                cost,
+                merges: true,
+            });
+        }
+        // Without merges a leaf has no cells, plans or shifted windows to make; its
+        // visits are still counted at the merging figure, an upper bound (not measured
+        // apart).
+        let cost = predict(1.0, all_modelled);
+        if best_unmerged.is_none_or(|b| cost < b.cost) {
+            best_unmerged = Some(Choice {
+                shape,
+                share: 1.0,
+                cost,
+                merges: false,
+            });
         }
     }
-    best.unwrap_or(Choice {
+    let none = |merges| Choice {
         shape: grid.shape,
         share: 1.0,
         cost: f64::INFINITY,
-    })
+        merges,
+    };
+    Choices {
+        merged: best.unwrap_or(none(true)),
+        unmerged: best_unmerged.unwrap_or(none(false)),
+    }
 }
 
 #[cfg(test)]
@@ -1458,7 +1513,16 @@ mod tests {
             })
             .collect();
         let lambda = 4.0 * axis.width;
-        let choice = choose(&set, &grid, lambda, 0.25 * lambda);
+        let choices = choose(&set, &grid, lambda, 0.25 * lambda);
+        let choice = choices.merged;
+        // Lit at one point, merges pay: `auto` takes them over leaves without.
+        assert!(
+            choice.merges
+                && !choices.unmerged.merges
+                && choices.unmerged.share == 1.0
+                && choice.cost <= super::super::AUTO_MAX_COST * choices.unmerged.cost,
+            "{choices:?}"
+        );
         let (sums, stats) =
             backproject_tree(&set, &grid, 1.0, hists, lead, lambda, 0.25 * lambda, choice.shape);
         assert_eq!(sums.len(), grid.len());
@@ -1489,7 +1553,7 @@ mod tests {
             };
             free.push(pair, &h).unwrap();
         }
-        let free_choice = choose(&free, &grid, lambda, 0.25 * lambda);
+        let free_choice = choose(&free, &grid, lambda, 0.25 * lambda).merged;
         assert!(
             free_choice.cost > 1.5 * choice.cost,
             "both points free {free_choice:?}, one laser point {choice:?}"
