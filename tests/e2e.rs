@@ -52,7 +52,9 @@ use periscope_sim::World;
 use periscope_sim::truth::depth_truth;
 use periscope_tests::{Accuracy, BarsGrid, accuracy, assert_bars_resolved, periscope_with_limit, repo_path};
 
-fn run(plan: &str, instrument: Option<&str>, out: &Path) {
+/// Runs `plan` (on `instrument`, default the shipped simulator) into `out` and checks
+/// its outputs; returns what it printed.
+fn run(plan: &str, instrument: Option<&str>, out: &Path) -> String {
     let out_s = out.to_str().unwrap();
     let mut args = vec!["run", plan, "--out", out_s];
     if let Some(i) = instrument {
@@ -77,6 +79,21 @@ fn run(plan: &str, instrument: Option<&str>, out: &Path) {
     ] {
         assert!(out.join(f).is_file(), "{f} missing from {}", out.display());
     }
+    format!("{}{}", done.stdout, done.stderr)
+}
+
+/// The demo scene's letter in the depth map of the run or reconstruction in `out`,
+/// against the truth over the demo volume's 64 × 64 footprint, printed as `what`.
+fn demo_letter(out: &Path, what: &str) -> Accuracy {
+    let a = accuracy(
+        out,
+        "configs/scenes/wall-letter.toml",
+        [-0.4, 0.4],
+        [-0.4, 0.4],
+        [64, 64],
+    );
+    eprintln!("wall + letter, {what}: {a:?}");
+    a
 }
 
 #[test]
@@ -85,14 +102,7 @@ fn planar_wall_letter_confocal_matches_the_truth() {
     let out = dir.path().join("run");
     run("configs/plans/demo.toml", None, &out);
     assert!(out.join("gaussians.ply").is_file());
-    let a = accuracy(
-        &out,
-        "configs/scenes/wall-letter.toml",
-        [-0.4, 0.4],
-        [-0.4, 0.4],
-        [64, 64],
-    );
-    eprintln!("wall + letter, confocal: {a:?}");
+    let a = demo_letter(&out, "confocal");
     assert!(a.object_pixels > 100, "the truth has the letter: {a:?}");
     a.assert_within(0.5e-3, 1.0e-3, 0.78);
 
@@ -116,14 +126,7 @@ fn planar_wall_letter_confocal_matches_the_truth() {
         Duration::from_secs(300),
     );
     assert_eq!(done.code, Some(0), "{}\n{}", done.stdout, done.stderr);
-    let b = accuracy(
-        &again,
-        "configs/scenes/wall-letter.toml",
-        [-0.4, 0.4],
-        [-0.4, 0.4],
-        [64, 64],
-    );
-    eprintln!("wall + letter, from the exported capture with FBP: {b:?}");
+    let b = demo_letter(&again, "from the exported capture with FBP");
     // Measured: median 3.1 mm, 90th percentile 6.1 mm, IoU 0.691. Until FBP weighed
     // the path-length part of its falloff on the histograms (docs/recon.md, "Where
     // the falloff weight is applied") the peaks sat deeper: 4.6 mm, 8.9 mm, IoU 0.718,
@@ -150,14 +153,7 @@ fn an_adaptive_capture_of_half_the_pairs_finds_what_the_full_capture_finds() {
     assert_eq!(chosen, 1 + (288 - 72) / 18, "batches chosen");
     let capture = YtalCapture::read(&out.join("capture.hdf5")).expect("capture.hdf5 reads");
     assert_eq!(capture.len(), 288, "pairs measured");
-    let a = accuracy(
-        &out,
-        "configs/scenes/wall-letter.toml",
-        [-0.4, 0.4],
-        [-0.4, 0.4],
-        [64, 64],
-    );
-    eprintln!("wall + letter, adaptive, half the pairs: {a:?}");
+    let a = demo_letter(&out, "adaptive, half the pairs");
     assert!(a.object_pixels > 100, "the truth has the letter: {a:?}");
     a.assert_within(0.5e-3, 1.2e-3, 0.78);
 }
@@ -260,29 +256,16 @@ fn a_tdc_window_short_of_the_volume_costs_the_letter_nothing() {
     std::fs::write(&plan_path, plan).unwrap();
     std::fs::write(&inst_path, instrument).unwrap();
     let out = dir.path().join("run");
-    let args = [
-        "run",
+    let said = run(
         plan_path.to_str().unwrap(),
-        "--instrument",
-        inst_path.to_str().unwrap(),
-        "--out",
-        out.to_str().unwrap(),
-    ];
-    let done = periscope_with_limit(&args, Duration::from_secs(600));
-    assert_eq!(done.code, Some(0), "{}\n{}", done.stdout, done.stderr);
-    let said = format!("{}{}", done.stdout, done.stderr);
+        Some(inst_path.to_str().unwrap()),
+        &out,
+    );
     assert!(
         said.contains("the TDC window records only part of the hidden paths"),
         "the run says its window stops short: {said}"
     );
-    let a = accuracy(
-        &out,
-        "configs/scenes/wall-letter.toml",
-        [-0.4, 0.4],
-        [-0.4, 0.4],
-        [64, 64],
-    );
-    eprintln!("wall + letter, a window short of the volume: {a:?}");
+    let a = demo_letter(&out, "a window short of the volume");
     assert!(a.object_pixels > 100, "the truth has the letter: {a:?}");
     a.assert_within(0.5e-3, 1.0e-3, 0.78);
 }

@@ -934,6 +934,18 @@ fn one_laser_pairs(n: usize) -> Vec<Pair> {
         .collect()
 }
 
+/// ‖v − reference‖ / ‖reference‖ over the voxels.
+fn relative_l2(v: &Volume, reference: &Volume) -> f64 {
+    let (num, den) = reference
+        .data
+        .iter()
+        .zip(&v.data)
+        .fold((0.0f64, 0.0f64), |(n, d), (&e, &f)| {
+            (n + ((e - f) as f64).powi(2), d + (e as f64).powi(2))
+        });
+    (num / den).sqrt()
+}
+
 #[test]
 fn hierarchical_fbp_matches_the_exact_path_within_its_bound() {
     // Two points and a plate hidden in front of a curved relay, with a 4 cm wave: the
@@ -978,14 +990,7 @@ fn hierarchical_fbp_matches_the_exact_path_within_its_bound() {
                 ..exact_settings
             };
             let fast = fbp(&set, &grid, &settings).unwrap();
-            let (num, den) = exact
-                .data
-                .iter()
-                .zip(&fast.data)
-                .fold((0.0f64, 0.0f64), |(n, d), (&e, &f)| {
-                    (n + ((e - f) as f64).powi(2), d + (e as f64).powi(2))
-                });
-            let relative = (num / den).sqrt();
+            let relative = relative_l2(&fast, &exact);
             eprintln!("{name}, path-error {path_error}: relative L2 {relative}");
             assert!(
                 relative <= bound,
@@ -1066,19 +1071,9 @@ fn auto_fbp_of_a_curved_relays_virtual_scan_is_the_exact_paths_image() {
         )
         .unwrap()
     };
-    let relative = |v: &Volume| {
-        let (num, den) = exact
-            .data
-            .iter()
-            .zip(&v.data)
-            .fold((0.0f64, 0.0f64), |(n, d), (&e, &f)| {
-                (n + ((e - f) as f64).powi(2), d + (e as f64).powi(2))
-            });
-        (num / den).sqrt()
-    };
     let auto = with(FbpBackprojection::Auto);
     let merged = with(FbpBackprojection::Hierarchical);
-    let (auto_error, merged_error) = (relative(&auto), relative(&merged));
+    let (auto_error, merged_error) = (relative_l2(&auto, &exact), relative_l2(&merged, &exact));
     eprintln!("relative L2 against the exact path: auto {auto_error:.2e}, merges {merged_error:.2e}");
     assert!(
         auto_error < 1e-4,
