@@ -15,7 +15,7 @@ use periscope_recon::{TimeAxis, TransientError, TransientSet, VolumeGrid};
 
 use crate::config::InstrumentConfig;
 use crate::plan::{LaserFalloff, Plan, PlannedPair, ReconSettings, default_recon};
-use crate::record::{record_axis, record_counts, record_transient, relay_gains, run_axis};
+use crate::record::{push_record, record_axis, record_counts, relay_gains, run_axis};
 use crate::run_dir::RunInfo;
 use crate::run_dir::{RunDir, RunDirError, file};
 use crate::store::Record;
@@ -218,16 +218,11 @@ impl RunCapture {
         let mut overflowed = 0;
         for r in &self.records {
             let p = &self.pairs[r.pair as usize];
-            match record_transient(r, p, &self.instrument, &axis) {
-                Some(h) => {
-                    match &gains {
-                        Some(g) => set.push_with_gain(p.pair(), &h, g[r.pair as usize]),
-                        None => set.push(p.pair(), &h),
-                    }
-                    .map_err(fail)?;
-                    detection_points.push(p.xd);
-                }
-                None => overflowed += 1,
+            let gain = gains.as_ref().map(|g| g[r.pair as usize]);
+            if push_record(&mut set, r, p, &self.instrument, gain).map_err(fail)? {
+                detection_points.push(p.xd);
+            } else {
+                overflowed += 1;
             }
         }
         if set.is_empty() {

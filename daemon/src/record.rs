@@ -3,7 +3,7 @@
 //! rebinned to the hidden path of its pair. The capture's streamed fit, `periscope
 //! recon RUN_DIR`, the y-tal export and the tests share these.
 use periscope_recon::transient::{TransientError, clip_to_measured, hidden_axis, rebin_path};
-use periscope_recon::{TimeAxis, VolumeGrid};
+use periscope_recon::{TimeAxis, TransientSet, VolumeGrid};
 
 use crate::config::InstrumentConfig;
 use crate::plan::{Acquisition, PlannedPair};
@@ -127,6 +127,33 @@ pub fn record_transient(
         tdc.width,
         axis,
     ))
+}
+
+/// Appends the transient `rec` gives its pair ([`record_transient`], on `set`'s axis)
+/// to `set`, with `gain` its relay spots' known gain where there is one, and marks the
+/// bins its own TDC window recorded ([`TransientSet::limit_recorded`]): the window
+/// shifted by this pair's legs, so where the run's axis reaches past it (a pair whose
+/// legs are longer than the shortest pair's, under a window that stops short of the
+/// volume) the fit leaves the zeros there out. `Ok(false)` for an overflowed record,
+/// which is not appended.
+pub fn push_record(
+    set: &mut TransientSet,
+    rec: &Record,
+    pair: &PlannedPair,
+    inst: &InstrumentConfig,
+    gain: Option<f32>,
+) -> Result<bool, TransientError> {
+    let Some(h) = record_transient(rec, pair, inst, set.axis()) else {
+        return Ok(false);
+    };
+    match gain {
+        Some(g) => set.push_with_gain(pair.pair(), &h, g),
+        None => set.push(pair.pair(), &h),
+    }?;
+    let tdc = record_axis(rec, inst);
+    let start = tdc.start - legs(pair, inst);
+    set.limit_recorded(set.len() - 1, (start, start + tdc.bins as f64 * tdc.width));
+    Ok(true)
 }
 
 /// The path a pair's light travels outside the hidden scene: from the laser galvo to
@@ -273,18 +300,39 @@ mod tests {
             "{clipped:?} {to}"
         );
         // The pair with the shortest legs (the relay's centre) has counts up to the
-        // axis's last bin, not zeros past what was recorded. (Pairs with longer legs
-        // stop a few bins earlier: one axis serves them all, as for a y-tal file.)
-        let flat = Record {
-            pair: 2,
+        // axis's last bin, not zeros past what was recorded.
+        let flat = |pair: u32| Record {
+            pair,
             counts: vec![7; 400],
             flags: periscope_drivers::HistogramFlags::default(),
             bin_width_ps: 16,
             offset_ps: 12_000,
             dwell_us: 20_000,
         };
-        let h = record_transient(&flat, &pairs[2], &inst, &clipped).unwrap();
+        let h = record_transient(&flat(2), &pairs[2], &inst, &clipped).unwrap();
         assert!(h.iter().all(|&v| v > 0.0), "{h:?}");
+        // Pairs with longer legs stop a few bins earlier on the one axis; each is
+        // marked with the bins its own window recorded, which the fit keeps to, and
+        // holds its counts there.
+        let mut set = TransientSet::new(clipped).unwrap();
+        for (i, p) in pairs.iter().enumerate() {
+            assert!(push_record(&mut set, &flat(i as u32), p, &inst, None).unwrap());
+            let kept = set.recorded(i);
+            let own_end = C0 * (12e-9 + 400.0 * 16e-12) - super::legs(p, &inst);
+            assert!(clipped.edge(kept.end as isize) <= own_end + 1e-9, "{i}: {kept:?}");
+            assert!(
+                kept.end == clipped.bins || clipped.edge(kept.end as isize + 1) > own_end,
+                "{i}"
+            );
+            assert!(set.histogram(i)[kept.clone()].iter().all(|&v| v > 0.0), "{i}");
+        }
+        assert_eq!(set.recorded(2), 0..clipped.bins);
+        assert!(set.recorded(0).end < clipped.bins, "{:?}", set.recorded(0));
+        // An overflowed histogram is not appended.
+        let mut overflowed = flat(1);
+        overflowed.flags.overflow = true;
+        assert!(!push_record(&mut set, &overflowed, &pairs[1], &inst, None).unwrap());
+        assert_eq!(set.len(), 4);
         // A window wholly before the volume's paths: refused, naming the key to move.
         let early = acq(64, 12e-9);
         let e = run_axis(&pairs, &volume, &early, &inst).unwrap_err().to_string();

@@ -4,6 +4,8 @@
 //! their outward normals and a histogram over hidden path length ℓ (first and last
 //! legs and the system delay already removed). Bin `b` covers
 //! `[start + b·width, start + (b+1)·width)`, in metres, the y-tal convention.
+use std::ops::Range;
+
 use glam::DVec3;
 
 use crate::volume::VolumeGrid;
@@ -185,14 +187,7 @@ pub fn rebin_path(
 /// the volume at all.
 pub fn clip_to_measured(axis: &TimeAxis, measured: (f64, f64)) -> Result<TimeAxis, TransientError> {
     let (from, to) = measured;
-    // A thousandth of a bin of slack, so an edge that falls on a bin boundary up to
-    // rounding keeps that bin.
-    let slack = 1e-3;
-    let first = ((from - axis.start) / axis.width - slack).ceil().max(0.0);
-    let end = ((to - axis.start) / axis.width + slack)
-        .floor()
-        .min(axis.bins as f64);
-    if !(from.is_finite() && to.is_finite() && first.is_finite() && end.is_finite() && end > first) {
+    let Some((first, end)) = bins_within(axis, measured) else {
         return Err(TransientError::Window(format!(
             "the capture recorded hidden path lengths {from:.3} to {to:.3} m, which do not reach the \
              {:.3} to {:.3} m the volume's paths need: check the capture's time window (t_start, \
@@ -200,12 +195,26 @@ pub fn clip_to_measured(axis: &TimeAxis, measured: (f64, f64)) -> Result<TimeAxi
             axis.start,
             axis.end()
         )));
-    }
+    };
     Ok(TimeAxis {
-        start: axis.start + first * axis.width,
+        start: axis.start + first as f64 * axis.width,
         width: axis.width,
-        bins: (end - first) as usize,
+        bins: end - first,
     })
+}
+
+/// The bins of `axis` wholly inside `measured`, the path lengths `[from, to]`, as
+/// `(first, end)`; `None` when there are none. A thousandth of a bin of slack, so an
+/// edge that falls on a bin boundary up to rounding keeps that bin.
+fn bins_within(axis: &TimeAxis, measured: (f64, f64)) -> Option<(usize, usize)> {
+    let (from, to) = measured;
+    let slack = 1e-3;
+    let first = ((from - axis.start) / axis.width - slack).ceil().max(0.0);
+    let end = ((to - axis.start) / axis.width + slack)
+        .floor()
+        .min(axis.bins as f64);
+    (from.is_finite() && to.is_finite() && first.is_finite() && end.is_finite() && end > first)
+        .then_some((first as usize, end as usize))
 }
 
 /// Most a point-source laser's falloff may vary across a capture's illumination
@@ -282,6 +291,10 @@ pub struct TransientSet {
     /// transients were cut to the volume's paths): the ambient level's evidence.
     ambient: (f64, usize),
     photon_counts: bool,
+    /// Each transient's recorded bins, `[first, end)` on the axis
+    /// ([`TransientSet::recorded`]): the whole axis unless
+    /// [`TransientSet::limit_recorded`] narrowed it.
+    recorded: Vec<[u32; 2]>,
 }
 
 impl TransientSet {
@@ -296,6 +309,7 @@ impl TransientSet {
             gains: Vec::new(),
             ambient: (0.0, 0),
             photon_counts: false,
+            recorded: Vec::new(),
         })
     }
 
@@ -351,6 +365,7 @@ impl TransientSet {
         self.counts.extend_from_slice(histogram);
         self.weights.push(weight);
         self.gains.push(1.0);
+        self.recorded.push([0, self.axis.bins as u32]);
         Ok(())
     }
 
@@ -387,6 +402,7 @@ impl TransientSet {
         self.counts.extend_from_slice(&other.counts);
         self.weights.extend_from_slice(&other.weights);
         self.gains.extend_from_slice(&other.gains);
+        self.recorded.extend_from_slice(&other.recorded);
         self.ambient = (self.ambient.0 + other.ambient.0, self.ambient.1 + other.ambient.1);
         Ok(())
     }
@@ -406,12 +422,14 @@ impl TransientSet {
             gains: Vec::with_capacity(indices.len()),
             ambient: self.ambient,
             photon_counts: self.photon_counts,
+            recorded: Vec::with_capacity(indices.len()),
         };
         for &i in indices {
             out.pairs.push(self.pairs[i]);
             out.counts.extend_from_slice(self.histogram(i));
             out.weights.push(self.weights[i]);
             out.gains.push(self.gains[i]);
+            out.recorded.push(self.recorded[i]);
         }
         out
     }
@@ -451,6 +469,28 @@ impl TransientSet {
     /// set it): its counts are this times a transient's at gain 1.
     pub fn gain(&self, i: usize) -> f32 {
         self.gains[i]
+    }
+
+    /// The bins of transient `i` its recording covers: the whole axis, unless
+    /// [`TransientSet::limit_recorded`] narrowed it. Outside them the histogram holds
+    /// zeros nobody measured (or, at the edge, a part of a bin), which the fit leaves
+    /// out of its data term, its gains and its background.
+    pub fn recorded(&self, i: usize) -> Range<usize> {
+        let [first, end] = self.recorded[i];
+        first as usize..end as usize
+    }
+
+    /// Narrows transient `i`'s recorded bins ([`TransientSet::recorded`]) to those
+    /// wholly inside `measured`, the hidden path lengths `[from, to]` (metres) its own
+    /// recording covers: its time window, less its legs where they differ from pair to
+    /// pair. A bin partly inside holds only a part of its counts and is left out too;
+    /// none may remain, and such a transient tells the fit nothing. The counts stay as
+    /// they are, so the solvers, which read zeros as zeros, see what they saw.
+    pub fn limit_recorded(&mut self, i: usize, measured: (f64, f64)) {
+        let (first, end) = bins_within(&self.axis, measured).unwrap_or((0, 0));
+        let [a, b] = self.recorded[i];
+        let a = a.max(first as u32);
+        self.recorded[i] = [a, b.min(end as u32).max(a)];
     }
 
     /// Records `bins` bins holding `counts` in all, read where no light from the scene
@@ -558,6 +598,41 @@ impl TransientSet {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Each transient's recorded bins start as the whole axis; `limit_recorded` keeps
+    /// those wholly inside its window (an edge inside a bin drops that bin), only
+    /// narrows, may leave none, and leaves the counts as they were; `subset` and
+    /// `extend` carry the ranges with their transients.
+    #[test]
+    fn each_transient_keeps_the_bins_its_own_window_recorded() {
+        let axis = TimeAxis {
+            start: 1.0,
+            width: 0.01,
+            bins: 100,
+        };
+        let mut set = TransientSet::new(axis).unwrap();
+        let h: Vec<f32> = (0..100).map(|b| b as f32).collect();
+        for _ in 0..4 {
+            set.push(Pair::confocal(DVec3::ZERO, DVec3::Z), &h).unwrap();
+        }
+        assert_eq!(set.recorded(0), 0..100);
+        set.limit_recorded(0, (1.2, 1.5));
+        set.limit_recorded(1, (1.2012, 2.5));
+        set.limit_recorded(2, (0.0, 1.2));
+        set.limit_recorded(2, (1.1, 3.0));
+        set.limit_recorded(3, (2.5, 3.0));
+        assert_eq!(set.recorded(0), 20..50);
+        assert_eq!(set.recorded(1), 21..100);
+        assert_eq!(set.recorded(2), 10..20, "a second window narrows the first");
+        assert!(set.recorded(3).is_empty());
+        assert_eq!(set.histogram(0), &h[..], "the counts stay");
+        let sub = set.subset(&[3, 0]);
+        assert_eq!((sub.recorded(0), sub.recorded(1)), (set.recorded(3), 20..50));
+        let mut more = TransientSet::new(axis).unwrap();
+        more.push(Pair::confocal(DVec3::ZERO, DVec3::Z), &h).unwrap();
+        more.extend(&sub).unwrap();
+        assert_eq!([more.recorded(0), more.recorded(2)], [0..100, 20..50]);
+    }
 
     /// The bins wholly inside the recording are kept, on the axis's own grid; an axis
     /// the recording covers comes back unchanged, and one it misses is refused.

@@ -13,7 +13,7 @@ use super::{PipelineError, ReconError, Run};
 use crate::adaptive::{Order, Selector};
 use crate::events::RunEvent;
 use crate::plan::{Acquisition, Method, PlannedPair};
-use crate::record::{record_transient, relay_gains, run_axis};
+use crate::record::{push_record, relay_gains, run_axis};
 use crate::run_dir::RelayPoint;
 use crate::store::{HistogramLog, Record};
 
@@ -82,14 +82,9 @@ impl Run {
         let gains = relay_gains(relay, pairs, &instrument, self.plan.relay.albedo_from_scan);
         let push = |batch: &mut TransientSet, rec: &Record| -> Result<(), PipelineError> {
             let p = &pairs[rec.pair as usize];
-            match record_transient(rec, p, &instrument, &axis) {
-                Some(h) => Ok(match &gains {
-                    Some(g) => batch.push_with_gain(p.pair(), &h, g[rec.pair as usize]),
-                    None => batch.push(p.pair(), &h),
-                }
-                .map_err(ReconError::from)?),
-                None => Ok(()),
-            }
+            let gain = gains.as_ref().map(|g| g[rec.pair as usize]);
+            push_record(batch, rec, p, &instrument, gain).map_err(ReconError::from)?;
+            Ok(())
         };
         let mut held = Vec::with_capacity(pairs.len());
         for rec in recovered.records {

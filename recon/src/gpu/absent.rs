@@ -48,7 +48,7 @@ pub fn batch_gradient(
     _: &[Kernel],
     _: &[Pair],
     _: &[f32],
-    _: &[[f32; 2]],
+    _: &[[f32; 4]],
     _: &TimeAxis,
     _: &RenderOptions,
 ) -> Result<BatchGradient, GpuError> {

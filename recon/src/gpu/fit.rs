@@ -45,14 +45,16 @@ struct BackwardParams {
 /// The loss and gradient of one mini-batch on `gpu`: `kernels` rendered for `pairs`
 /// on `axis`, compared with `data` (the pairs' measured histograms, one after the
 /// other), each pair weighted by `weights[p][0]` and its model scaled by the gain
-/// `weights[p][1]`, under `opt`'s loss. The values [`crate::gtr::batch_loss_grad`]
-/// computes in f64 before the chain rule, to the f32 tolerance its tests state.
+/// `weights[p][1]`, its data term over bins `weights[p][2]` to `weights[p][3]` (the
+/// bins it recorded, [`crate::transient::TransientSet::recorded`]), under `opt`'s
+/// loss. The values [`crate::gtr::batch_loss_grad`] computes in f64 before the chain
+/// rule, to the f32 tolerance its tests state.
 pub fn batch_gradient(
     gpu: &Gpu,
     kernels: &[Kernel],
     pairs: &[Pair],
     data: &[f32],
-    weights: &[[f32; 2]],
+    weights: &[[f32; 4]],
     axis: &TimeAxis,
     opt: &RenderOptions,
 ) -> Result<BatchGradient, GpuError> {
@@ -116,7 +118,7 @@ struct Batch {
 
 impl Batch {
     /// The batch of `pairs` ([`batch_gradient`]'s arguments) for `k` primitives.
-    fn upload(gpu: &Gpu, pairs: &[Pair], data: &[f32], weights: &[[f32; 2]], k: usize, bins: usize) -> Self {
+    fn upload(gpu: &Gpu, pairs: &[Pair], data: &[f32], weights: &[[f32; 4]], k: usize, bins: usize) -> Self {
         let b = pairs.len();
         // Groups of primitives for the forward render: enough workgroups in all, each
         // group at least one tile, and the partial transients within one binding.

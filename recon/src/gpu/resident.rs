@@ -58,8 +58,9 @@ pub struct Step {
     pub pairs: Vec<Pair>,
     /// Their measured histograms, one after the other.
     pub data: Vec<f32>,
-    /// Each pair's weight (over the batch size) and gain in the model.
-    pub weights: Vec<[f32; 2]>,
+    /// Each pair's weight (over the batch size), gain in the model, and first and end
+    /// recorded bin ([`super::batch_gradient`]).
+    pub weights: Vec<[f32; 4]>,
     /// The learning-rate schedule's multiplier.
     pub factor: f64,
     /// AdamW's step count after this step (its bias corrections are 1 − βᵗ).

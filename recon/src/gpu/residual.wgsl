@@ -18,8 +18,9 @@ struct Params {
 @group(0) @binding(0) var<uniform> p: Params;
 @group(0) @binding(1) var<storage, read> model: array<f32>;
 @group(0) @binding(2) var<storage, read> data: array<f32>;
-// Per pair: its weight (over the batch size) and its gain in the model.
-@group(0) @binding(3) var<storage, read> weights: array<vec2<f32>>;
+// Per pair: its weight (over the batch size), its gain in the model, and the first
+// and end bin its recording covers (whole numbers; outside them no data term).
+@group(0) @binding(3) var<storage, read> weights: array<vec4<f32>>;
 @group(0) @binding(4) var<storage, read_write> dl: array<f32>;
 @group(0) @binding(5) var<storage, read_write> result: array<f32>;
 
@@ -31,9 +32,15 @@ var<workgroup> part: array<f32, 256>;
 fn main(@builtin(workgroup_id) wg: vec3<u32>, @builtin(local_invocation_index) t: u32) {
     let w = weights[wg.x].x;
     let gain = weights[wg.x].y;
+    let first = u32(weights[wg.x].z);
+    let end = u32(weights[wg.x].w);
     var sum = 0.0;
     for (var b = t; b < p.bins; b += THREADS) {
         let i = wg.x * p.bins + b;
+        if (b < first || b >= end) {
+            dl[i] = 0.0;
+            continue;
+        }
         let m = gain * model[i];
         let d = data[i];
         var l = 0.0;

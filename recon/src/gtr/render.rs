@@ -255,7 +255,8 @@ fn residuals(
             let w = set.weight(p) as f64 * scale;
             let gain = f64::from(set.gain(p)) * gains.map_or(1.0, |g| g[p]);
             let measured = set.histogram(p);
-            for b in 0..bins {
+            // Bins the recording did not cover hold zeros nobody measured: no term.
+            for b in set.recorded(p) {
                 let (model, data) = (gain * rendered[b], measured[b] as f64);
                 let (l, d) = match loss_kind {
                     Loss::L2 => {
@@ -409,24 +410,31 @@ pub(crate) fn batch_loss_grad_gpu_with(
 
 /// Mini-batch `batch` of `set` as the GPU takes one: its pairs, their histograms one
 /// after the other, and each pair's weight over the batch size with its gain in the
-/// model (the set's, times `gains[p]` where given).
+/// model (the set's, times `gains[p]` where given) and its recorded bins (first, end;
+/// exact in f32 to 2²⁴ bins).
 #[allow(clippy::type_complexity)]
 pub(crate) fn gpu_batch(
     set: &TransientSet,
     batch: &[usize],
     gains: Option<&[f64]>,
-) -> (Vec<Pair>, Vec<f32>, Vec<[f32; 2]>) {
+) -> (Vec<Pair>, Vec<f32>, Vec<[f32; 4]>) {
     let pairs: Vec<Pair> = batch.iter().map(|&p| set.pairs()[p]).collect();
     let data: Vec<f32> = batch
         .iter()
         .flat_map(|&p| set.histogram(p).iter().copied())
         .collect();
     let scale = 1.0 / batch.len().max(1) as f64;
-    let weights: Vec<[f32; 2]> = batch
+    let weights: Vec<[f32; 4]> = batch
         .iter()
         .map(|&p| {
             let gain = f64::from(set.gain(p)) * gains.map_or(1.0, |g| g[p]);
-            [(set.weight(p) as f64 * scale) as f32, gain as f32]
+            let recorded = set.recorded(p);
+            [
+                (set.weight(p) as f64 * scale) as f32,
+                gain as f32,
+                recorded.start as f32,
+                recorded.end as f32,
+            ]
         })
         .collect();
     (pairs, data, weights)

@@ -733,9 +733,17 @@ pub fn estimate_pair_gains(
         Loss::L2 => None,
     };
     let (mut num, mut den, mut signal) = (vec![0.0f64; n], vec![0.0f64; n], vec![0.0f64; n]);
+    // Each pair's recorded bins only: past its window the data holds zeros nobody
+    // measured.
+    let recorded = |c: usize| {
+        let kept = data.recorded(c);
+        (
+            &data.histogram(c)[kept.clone()],
+            &rendered[c * bins..(c + 1) * bins][kept],
+        )
+    };
     for (c, &g) in groups.iter().enumerate() {
-        let h = data.histogram(c);
-        let r = &rendered[c * bins..(c + 1) * bins];
+        let (h, r) = recorded(c);
         let rs: f64 = r.iter().sum();
         signal[g] += rs;
         match background {
@@ -770,8 +778,8 @@ pub fn estimate_pair_gains(
             let sums = |scale: f64| {
                 let (mut f, mut df, mut info) = (-den[g], 0.0, 0.0);
                 for &c in members {
-                    let h = data.histogram(c);
-                    for (&v, &m) in h.iter().zip(&rendered[c * bins..(c + 1) * bins]) {
+                    let (h, r) = recorded(c);
+                    for (&v, &m) in h.iter().zip(r) {
                         if m <= 0.0 {
                             continue;
                         }
@@ -978,7 +986,7 @@ pub const BACKGROUND_MARGIN_BINS: f64 = 5.0;
 pub const MIN_BACKGROUND_BINS: usize = 2048;
 
 /// The background counts per bin and pair of `set`, for [`Loss::Poisson`]: at least
-/// 1e-3 of the histograms' sum's peak per pair, so the rate stays positive on data
+/// 1e-3 of the peak of the histograms' mean, so the rate stays positive on data
 /// without any background; 0 for an empty set.
 ///
 /// Where the set recorded at least [`MIN_BACKGROUND_BINS`] bins outside every path
@@ -990,24 +998,38 @@ pub const MIN_BACKGROUND_BINS: usize = 2048;
 /// distance to its farthest corner), [`BACKGROUND_MARGIN_BINS`] to spare. That mean is
 /// the ambient and dark level without bias, where the capture's window reaches past
 /// the scene (at least [`MIN_BACKGROUND_BINS`] such bins). Otherwise, and without
-/// `roi`, the 10th percentile over bins of the histograms' sum, divided by the pairs
-/// (most bins of a capture see no hidden surface), which reads the level about 1.3
-/// of its noise's deviations low: 3 % at ten times a validation scene's light in
-/// ambient, 33 % at its 0.05 counts a bin.
+/// `roi`, the 10th percentile over bins of the histograms' mean (most bins of a
+/// capture see no hidden surface), which reads the level about 1.3 of its noise's
+/// deviations low: 3 % at ten times a validation scene's light in ambient, 33 % at its
+/// 0.05 counts a bin. Every figure reads only the bins each pair recorded
+/// ([`TransientSet::recorded`]): past a pair's window its zeros are no background.
 pub fn estimate_background(set: &TransientSet, roi: Option<&RoiBox>) -> f64 {
     let axis = *set.axis();
     let bins = axis.bins;
     if set.is_empty() || bins == 0 {
         return 0.0;
     }
+    // Each bin's counts over the pairs that recorded it, and how many did.
     let mut total = vec![0.0f64; bins];
+    let mut recorded = vec![0usize; bins];
     for i in 0..set.len() {
-        for (t, &c) in total.iter_mut().zip(set.histogram(i)) {
-            *t += f64::from(c).max(0.0);
+        let h = set.histogram(i);
+        for b in set.recorded(i) {
+            total[b] += f64::from(h[b]).max(0.0);
+            recorded[b] += 1;
         }
     }
-    let peak = total.iter().fold(0.0f64, |m, &t| m.max(t));
-    let floor = 1e-3 * peak / set.len() as f64;
+    let mut mean: Vec<f64> = total
+        .iter()
+        .zip(&recorded)
+        .filter(|&(_, &n)| n > 0)
+        .map(|(&t, &n)| t / n as f64)
+        .collect();
+    if mean.is_empty() {
+        return 0.0;
+    }
+    let peak = mean.iter().fold(0.0f64, |m, &t| m.max(t));
+    let floor = 1e-3 * peak;
     if let Some((mean, n)) = set.ambient()
         && n >= MIN_BACKGROUND_BINS
     {
@@ -1025,9 +1047,10 @@ pub fn estimate_background(set: &TransientSet, roi: Option<&RoiBox>) -> f64 {
         for (i, pair) in set.pairs().iter().enumerate() {
             let shortest = near(pair.xi) + near(pair.xd) - margin;
             let longest = far(pair.xi) + far(pair.xd) + margin;
-            for (b, &c) in set.histogram(i).iter().enumerate() {
+            let h = set.histogram(i);
+            for b in set.recorded(i) {
                 if axis.edge(b as isize + 1) < shortest || axis.edge(b as isize) > longest {
-                    sum += f64::from(c).max(0.0);
+                    sum += f64::from(h[b]).max(0.0);
                     n += 1;
                 }
             }
@@ -1036,8 +1059,8 @@ pub fn estimate_background(set: &TransientSet, roi: Option<&RoiBox>) -> f64 {
             return (sum / n as f64).max(floor);
         }
     }
-    total.sort_by(f64::total_cmp);
-    (total[(bins - 1) / 10] / set.len() as f64).max(floor)
+    mean.sort_by(f64::total_cmp);
+    mean[(mean.len() - 1) / 10].max(floor)
 }
 
 /// The shared initial scale when none is set: half the mean spacing of K primitives
@@ -1489,7 +1512,7 @@ impl Trainer {
         let rendered: f64 = render_set(&self.cloud.kernels(), &sample, &unit)
             .chunks(sample.axis().bins)
             .enumerate()
-            .map(|(i, h)| sample.weight(i) as f64 * h.iter().sum::<f64>())
+            .map(|(i, h)| sample.weight(i) as f64 * h[sample.recorded(i)].iter().sum::<f64>())
             .sum();
         if rendered <= 0.0 || !rendered.is_finite() {
             return Err(TrainError::NothingVisible);
@@ -1498,8 +1521,10 @@ impl Trainer {
         // The model has no background: match its total to the data's above it.
         let background = match self.options.loss {
             Loss::Poisson { background } => {
-                let weights: f64 = (0..sample.len()).map(|i| sample.weight(i) as f64).sum();
-                background * weights * sample.axis().bins as f64
+                let weighted_bins: f64 = (0..sample.len())
+                    .map(|i| sample.weight(i) as f64 * sample.recorded(i).len() as f64)
+                    .sum();
+                background * weighted_bins
             }
             Loss::L2 => 0.0,
         };

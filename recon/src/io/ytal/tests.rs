@@ -211,3 +211,58 @@ fn the_bins_no_path_through_the_volume_reaches_are_kept_as_the_ambient_level() {
     let wide = VolumeGrid::new([-3.0, 3.0], [-3.0, 3.0], [0.001, 1.0], [8, 8, 8]).unwrap();
     assert!(c.transients(&wide).unwrap().ambient().is_none());
 }
+
+/// Where the file's times include the legs, each transient's window lands on the
+/// hidden paths shifted by its own legs, so the union the axis spans is more than any
+/// one of them recorded: each transient is marked with the bins its own window holds
+/// whole ([`TransientSet::recorded`]), which the fit keeps to.
+#[test]
+fn each_transient_keeps_to_its_own_window_when_the_legs_differ() {
+    let mut c = sample();
+    c.h_format = HFormat::TSi;
+    c.h_shape = vec![64, 6];
+    c.laser_grid = c.sensor_grid.clone();
+    c.delta_t = 0.01;
+    c.t_start = 2.5;
+    c.t_accounts_first_and_last_bounces = true;
+    c.laser_xyz = Some(DVec3::new(-0.2, 0.0, 1.0));
+    c.h = vec![1.0; 64 * 6];
+    c.flags = None;
+    c.check().unwrap();
+    let deep = VolumeGrid::new([-0.3, 0.6], [-0.4, 0.3], [0.2, 1.0], [8, 8, 8]).unwrap();
+    let set = c.transients(&deep).unwrap();
+    let axis = *set.axis();
+    assert_eq!(set.len(), 6);
+    let span = 64.0 * c.delta_t;
+    let mut narrowed = 0;
+    for i in 0..set.len() {
+        let (from, to) = (c.hidden_start(i), c.hidden_start(i) + span);
+        let kept = set.recorded(i);
+        assert!(!kept.is_empty());
+        // Every bin kept lies wholly inside the window, and the bins beside it do not.
+        assert!(
+            axis.edge(kept.start as isize) >= from - 1e-9,
+            "{i}: {kept:?} from {from}"
+        );
+        assert!(axis.edge(kept.end as isize) <= to + 1e-9, "{i}: {kept:?} to {to}");
+        assert!(
+            kept.start == 0 || axis.edge(kept.start as isize - 1) < from,
+            "{i}"
+        );
+        assert!(
+            kept.end == axis.bins || axis.edge(kept.end as isize + 1) > to,
+            "{i}"
+        );
+        // Inside, the window's counts: 1 a bin.
+        assert!(
+            set.histogram(i)[kept.clone()]
+                .iter()
+                .all(|&v| (v - 1.0).abs() < 1e-5)
+        );
+        narrowed += usize::from(kept.len() < axis.bins);
+    }
+    assert!(
+        narrowed >= 4,
+        "the legs differ, so most windows cover part of the axis"
+    );
+}

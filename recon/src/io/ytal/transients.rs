@@ -120,9 +120,12 @@ impl YtalCapture {
             }
             ambient.0 += counts;
             ambient.1 += bins;
-            let h = rebin_path(self.transient(c), self.hidden_start(c), self.delta_t, &axis);
+            let h = rebin_path(self.transient(c), start, self.delta_t, &axis);
             if h.iter().any(|&v| v != 0.0) {
                 set.push(pair, &h).map_err(|e| self.error(e.to_string()))?;
+                // Where the legs differ from pair to pair, so does the part of the axis
+                // each window records.
+                set.limit_recorded(set.len() - 1, (start, start + span));
             }
         }
         if whole {
