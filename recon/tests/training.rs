@@ -1624,29 +1624,31 @@ fn a_failing_gpu_ends_a_strict_fit_and_leaves_the_others_to_the_cpu() {
     assert!(all_finite(lenient.cloud()));
 }
 
-/// Where each pair's TDC window records only part of the axis (0.8 m of its 2.3 m,
-/// placed pair by pair at random, as legs that differ from pair to pair place a
-/// window on the hidden paths; the bins past it hold zeros, as a rebinned capture's
-/// do), a fit that leaves those bins out ([`TransientSet::limit_recorded`]) renders
-/// the whole capture as a fit of the whole windows does, within 10 % of its light;
-/// one that reads the zeros as measured loses a third of it or more.
-#[test]
-fn a_fit_leaves_out_what_each_pairs_window_did_not_record() {
-    let full = data(80, 6);
-    let axis = *full.axis();
-    let mut rng = ChaCha8Rng::seed_from_u64(57);
-    let mut zeros = TransientSet::new(axis).unwrap();
-    let mut windows = Vec::new();
-    for (i, pair) in full.pairs().iter().enumerate() {
-        let from = axis.start + rng.random_range(0.0..1.3);
+/// `clean`'s transients as windows of 0.8 m placed at random (starting up to `latest`
+/// past the axis's start, drawn from `seed`) record them, as legs that differ from
+/// pair to pair place a TDC window on the hidden paths: each bin wholly inside
+/// `inside(count)`, zeros elsewhere (as a rebinned capture holds). Returns that set,
+/// and the same with each transient limited to its window
+/// ([`TransientSet::limit_recorded`]).
+fn through_windows(
+    clean: &TransientSet,
+    latest: f64,
+    seed: u64,
+    mut inside: impl FnMut(&mut ChaCha8Rng, f32) -> f32,
+) -> (TransientSet, TransientSet) {
+    let axis = *clean.axis();
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    let (mut zeros, mut windows) = (TransientSet::new(axis).unwrap(), Vec::new());
+    for (i, pair) in clean.pairs().iter().enumerate() {
+        let from = axis.start + rng.random_range(0.0..latest);
         let window = (from, from + 0.8);
-        let h: Vec<f32> = full
+        let h: Vec<f32> = clean
             .histogram(i)
             .iter()
             .enumerate()
             .map(|(b, &c)| {
-                let inside = axis.edge(b as isize) >= window.0 && axis.edge(b as isize + 1) <= window.1;
-                if inside { c } else { 0.0 }
+                let within = axis.edge(b as isize) >= window.0 && axis.edge(b as isize + 1) <= window.1;
+                if within { inside(&mut rng, c) } else { 0.0 }
             })
             .collect();
         zeros.push(*pair, &h).unwrap();
@@ -1656,6 +1658,19 @@ fn a_fit_leaves_out_what_each_pairs_window_did_not_record() {
     for (i, &w) in windows.iter().enumerate() {
         limited.limit_recorded(i, w);
     }
+    (zeros, limited)
+}
+
+/// Where each pair's TDC window records only part of the axis (0.8 m of its 2.3 m,
+/// placed pair by pair at random, as legs that differ from pair to pair place a
+/// window on the hidden paths; the bins past it hold zeros, as a rebinned capture's
+/// do), a fit that leaves those bins out ([`TransientSet::limit_recorded`]) renders
+/// the whole capture as a fit of the whole windows does, within 10 % of its light;
+/// one that reads the zeros as measured loses a third of it or more.
+#[test]
+fn a_fit_leaves_out_what_each_pairs_window_did_not_record() {
+    let full = data(80, 6);
+    let (zeros, limited) = through_windows(&full, 1.3, 57, |_, c| c);
     // Light the windows miss: a fit that reads it as zeros has to dim.
     let missed = 1.0 - zeros.total_counts() / full.total_counts();
     assert!(missed > 0.3, "the windows miss {missed:.2} of the light");
@@ -1680,33 +1695,7 @@ fn a_fit_leaves_out_what_each_pairs_window_did_not_record() {
 /// with the percentile alike.
 #[test]
 fn the_background_is_read_only_where_each_window_recorded() {
-    let clean = data(400, 3);
-    let axis = *clean.axis();
-    let mut rng = ChaCha8Rng::seed_from_u64(58);
-    let (mut zeros, mut windows) = (TransientSet::new(axis).unwrap(), Vec::new());
-    for (i, pair) in clean.pairs().iter().enumerate() {
-        let from = axis.start + rng.random_range(0.0..1.5);
-        let window = (from, from + 0.8);
-        let h: Vec<f32> = clean
-            .histogram(i)
-            .iter()
-            .enumerate()
-            .map(|(b, &c)| {
-                let inside = axis.edge(b as isize) >= window.0 && axis.edge(b as isize + 1) <= window.1;
-                if inside {
-                    poisson(&mut rng, f64::from(c) + 2.0)
-                } else {
-                    0.0
-                }
-            })
-            .collect();
-        zeros.push(*pair, &h).unwrap();
-        windows.push(window);
-    }
-    let mut limited = zeros.clone();
-    for (i, &w) in windows.iter().enumerate() {
-        limited.limit_recorded(i, w);
-    }
+    let (zeros, limited) = through_windows(&data(400, 3), 1.5, 58, |rng, c| poisson(rng, f64::from(c) + 2.0));
     for roi in [Some(roi()), None] {
         let (kept, read_as_zeros) = (
             estimate_background(&limited, roi.as_ref()),

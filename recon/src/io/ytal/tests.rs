@@ -33,6 +33,22 @@ fn sample() -> YtalCapture {
     }
 }
 
+/// Six points scanned confocally (`T_Si`), `bins` bins of 1 cm from `t_start`
+/// holding `h`, no flags, legs not in the times.
+fn confocal_six(bins: usize, t_start: f64, h: Vec<f32>) -> YtalCapture {
+    let c = sample();
+    YtalCapture {
+        h_format: HFormat::TSi,
+        h_shape: vec![bins, 6],
+        laser_grid: c.sensor_grid.clone(),
+        delta_t: 0.01,
+        t_start,
+        h,
+        flags: None,
+        ..c
+    }
+}
+
 #[test]
 fn a_rendered_capture_is_told_from_its_scene_info() {
     let with = |info: Option<&str>| YtalCapture {
@@ -118,14 +134,7 @@ fn legs_are_subtracted_when_the_file_includes_them() {
 fn the_hidden_axis_keeps_to_the_recorded_window() {
     // 64 bins of 1 cm from 0.5 m: paths 0.5 to 1.14 m, seen confocally from six
     // points with no legs in the times.
-    let mut c = sample();
-    c.h_format = HFormat::TSi;
-    c.h_shape = vec![64, 6];
-    c.laser_grid = c.sensor_grid.clone();
-    c.delta_t = 0.01;
-    c.t_start = 0.5;
-    c.h = (0..64 * 6).map(|v| (v % 7) as f32).collect();
-    c.flags = None;
+    let c = confocal_six(64, 0.5, (0..64 * 6).map(|v| (v % 7) as f32).collect());
     c.check().unwrap();
     // Paths from 2 × 0.2 m to past 2 m: beyond the recording at both ends.
     let deep = VolumeGrid::new([-0.3, 0.3], [-0.3, 0.3], [0.2, 1.0], [8, 8, 8]).unwrap();
@@ -181,19 +190,13 @@ fn files_that_are_not_y_tal_captures_get_a_clear_message() {
 /// the volume's shortest path (less 5 bins of margin), 9 in the rest.
 #[test]
 fn the_bins_no_path_through_the_volume_reaches_are_kept_as_the_ambient_level() {
-    let mut c = sample();
-    c.h_format = HFormat::TSi;
-    c.h_shape = vec![200, 6];
-    c.laser_grid = c.sensor_grid.clone();
-    c.delta_t = 0.01;
-    c.t_start = 0.0;
-    c.flags = None;
+    let h = (0..200 * 6)
+        .map(|v| if v / 6 < 115 { 2.0 } else { 9.0 })
+        .collect();
+    let c = confocal_six(200, 0.0, h);
     // Volume z 0.6–1.2 m over the points: every path at least 1.2 m (bin 120), and
     // the longest past the recording's end (2 m).
     let volume = VolumeGrid::new([-0.1, 0.6], [-0.3, 0.1], [0.6, 1.2], [8, 8, 8]).unwrap();
-    c.h = (0..200 * 6)
-        .map(|v| if v / 6 < 115 { 2.0 } else { 9.0 })
-        .collect();
     c.check().unwrap();
     let set = c.transients(&volume).unwrap();
     let (mean, bins) = set.ambient().expect("bins before the volume's paths");
@@ -218,16 +221,11 @@ fn the_bins_no_path_through_the_volume_reaches_are_kept_as_the_ambient_level() {
 /// whole ([`TransientSet::recorded`]), which the fit keeps to.
 #[test]
 fn each_transient_keeps_to_its_own_window_when_the_legs_differ() {
-    let mut c = sample();
-    c.h_format = HFormat::TSi;
-    c.h_shape = vec![64, 6];
-    c.laser_grid = c.sensor_grid.clone();
-    c.delta_t = 0.01;
-    c.t_start = 2.5;
-    c.t_accounts_first_and_last_bounces = true;
-    c.laser_xyz = Some(DVec3::new(-0.2, 0.0, 1.0));
-    c.h = vec![1.0; 64 * 6];
-    c.flags = None;
+    let c = YtalCapture {
+        t_accounts_first_and_last_bounces: true,
+        laser_xyz: Some(DVec3::new(-0.2, 0.0, 1.0)),
+        ..confocal_six(64, 2.5, vec![1.0; 64 * 6])
+    };
     c.check().unwrap();
     let deep = VolumeGrid::new([-0.3, 0.6], [-0.4, 0.3], [0.2, 1.0], [8, 8, 8]).unwrap();
     let set = c.transients(&deep).unwrap();
