@@ -18,7 +18,7 @@ use serde::{Deserialize, Serialize};
 
 use periscope_recon::Pair;
 use periscope_recon::adaptive::{
-    InformationSums, choose, choose_spread, farthest_points, terms_of, tour, travel,
+    InformationSums, Recorded, WHOLE_AXIS, choose, choose_spread, farthest_points, terms_of, tour, travel,
 };
 use periscope_recon::gtr::LiveModel;
 use periscope_recon::transient::TimeAxis;
@@ -276,6 +276,8 @@ impl Sizes {
 /// a fixed list of candidate pairs.
 pub struct Selector {
     candidates: Vec<Pair>,
+    /// The hidden path lengths each candidate's recording covers (or would).
+    recorded: Vec<Recorded>,
     settings: AdaptiveSettings,
     order: Order,
     sizes: Sizes,
@@ -299,6 +301,7 @@ impl Selector {
         let mut shuffled: Vec<usize> = (0..n).collect();
         shuffled.shuffle(&mut ChaCha8Rng::seed_from_u64(settings.seed));
         Self {
+            recorded: vec![WHOLE_AXIS; n],
             candidates,
             settings,
             order,
@@ -310,6 +313,19 @@ impl Selector {
             batches: 0,
             stopped: None,
         }
+    }
+
+    /// Each candidate's recording covers only the hidden path lengths `recorded[i]`
+    /// (its time window less its legs; without this, the whole axis): the information
+    /// a candidate offers is what falls in its window, as the fit reads only those bins.
+    pub fn with_recorded(mut self, recorded: Vec<Recorded>) -> Self {
+        assert_eq!(
+            recorded.len(),
+            self.candidates.len(),
+            "one recording per candidate"
+        );
+        self.recorded = recorded;
+        self
     }
 
     /// The pairs the capture will measure at most.
@@ -485,11 +501,14 @@ impl Selector {
             open.sort_unstable();
         }
         let pairs = |idx: &[usize]| -> Vec<Pair> { idx.iter().map(|&i| self.candidates[i]).collect() };
+        let recorded = |idx: &[usize]| -> Vec<Recorded> { idx.iter().map(|&i| self.recorded[i]).collect() };
+        let terms =
+            |idx: &[usize]| terms_of(&model.kernels, &pairs(idx), &recorded(idx), axis, &model.options);
         let mut sums = InformationSums::new(model.kernels.len());
         for chunk in self.measured.chunks(MAX_SCORED) {
-            sums.add(&terms_of(&model.kernels, &pairs(chunk), axis, &model.options));
+            sums.add(&terms(chunk));
         }
-        let open_terms = terms_of(&model.kernels, &pairs(&open), axis, &model.options);
+        let open_terms = terms(&open);
         let mut info = sums.finish(&open_terms);
         let by_gain = |n: usize| n - ((n as f64 * self.settings.explore).round() as usize).min(n);
         let measured: Vec<Pair> = pairs(&self.measured);
@@ -681,6 +700,50 @@ mod tests {
             adaptive < 0.7 * uniform,
             "adaptive {adaptive} m, uniform {uniform} m"
         );
+    }
+
+    /// Candidates near the target whose time window ends before its light arrives (a
+    /// window short of the volume, their legs longer) are not chosen for it: they would
+    /// record zeros the fit leaves out. Before, each was weighed as if it recorded the
+    /// whole axis, and the batch went to them first.
+    #[test]
+    fn the_adaptive_order_passes_over_pairs_whose_window_misses_the_target() {
+        let target = blob(0.35, 0.35, 0.3);
+        let candidates = wall(16);
+        let blind: Vec<bool> = candidates
+            .iter()
+            .map(|p| p.xi.truncate().distance(target.x.truncate()) < 0.25)
+            .collect();
+        let recorded: Vec<Recorded> = blind
+            .iter()
+            .map(|&b| if b { (0.0, 0.4) } else { WHOLE_AXIS })
+            .collect();
+        let settings = AdaptiveSettings {
+            pairs: 48,
+            first: 16,
+            batch: 32,
+            explore: 0.0,
+            coverage: 0.0,
+            ..Default::default()
+        };
+        let batch = |recorded: Option<Vec<Recorded>>| {
+            let s = Selector::new(candidates.clone(), settings.clone(), Order::Adaptive);
+            let mut s = match recorded {
+                Some(r) => s.with_recorded(r),
+                None => s,
+            };
+            let first = s.first();
+            let b = s.next(&model(vec![target]), &axis()).unwrap();
+            (first.pairs, b.pairs)
+        };
+        let (first, chosen) = batch(Some(recorded));
+        let blinded = chosen.iter().filter(|&&i| blind[i]).count();
+        assert_eq!(blinded, 0, "{chosen:?}");
+        // The same fit without the windows goes to them.
+        let (first_all, chosen_all) = batch(None);
+        assert_eq!(first, first_all, "the first batch is spread, not weighed");
+        let blinded_all = chosen_all.iter().filter(|&&i| blind[i]).count();
+        assert!(blinded_all >= 8, "{blinded_all} of {chosen_all:?}");
     }
 
     #[test]

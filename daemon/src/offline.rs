@@ -134,7 +134,15 @@ pub fn replay(capture: &Path, config: Option<&Path>, out: &Path, order: Order) -
     let control = Control::new();
     let clock = std::time::Instant::now();
     let axis = *t.set.axis();
-    let mut selector = Selector::new(t.set.pairs().to_vec(), settings.adaptive.clone(), order);
+    // Each candidate is weighed through the bins its recording covers, as the fit reads them.
+    let recorded = (0..t.set.len())
+        .map(|i| {
+            let r = t.set.recorded(i);
+            (axis.edge(r.start as isize), axis.edge(r.end as isize))
+        })
+        .collect();
+    let mut selector =
+        Selector::new(t.set.pairs().to_vec(), settings.adaptive.clone(), order).with_recorded(recorded);
     println!(
         "  replaying the {order} order: up to {} of its {} pairs",
         selector.budget(),

@@ -171,17 +171,28 @@ pub fn recorded_hidden_range(
     acq: &Acquisition,
     inst: &InstrumentConfig,
 ) -> Option<(f64, f64)> {
+    pairs
+        .iter()
+        .map(|p| recorded_window(p, acq, inst))
+        .fold(None, |range, (a, b)| {
+            let (from, to) = range.unwrap_or((f64::INFINITY, f64::NEG_INFINITY));
+            Some((from.min(a), to.max(b)))
+        })
+}
+
+/// The hidden path lengths the plan's TDC window records for `pair`: the window on the
+/// total path (offset, bins and bin width, less the system delay) shifted by the pair's
+/// legs. What [`push_record`] marks once the pair is measured, known before it is (an
+/// adaptive capture weighs its candidates by it).
+pub fn recorded_window(pair: &PlannedPair, acq: &Acquisition, inst: &InstrumentConfig) -> (f64, f64) {
     let tdc = TimeAxis::of_tdc(
         acq.offset,
         acq.bin_width,
         acq.bins as usize,
         inst.tdc.system_delay,
     );
-    let end = tdc.start + tdc.bins as f64 * tdc.width;
-    pairs.iter().map(|p| legs(p, inst)).fold(None, |range, l| {
-        let (from, to) = range.unwrap_or((f64::INFINITY, f64::NEG_INFINITY));
-        Some((from.min(tdc.start - l), to.max(end - l)))
-    })
+    let l = legs(pair, inst);
+    (tdc.start - l, tdc.end() - l)
 }
 
 /// The hidden-path axis every reconstruction of a run puts its transients on (the live

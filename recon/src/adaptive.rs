@@ -11,6 +11,14 @@
 //! - noise-free data fitted by least squares (rendered captures, constant noise):
 //!   `c = N²/σ³`, up to the noise variance, a constant shared by every pair.
 //!
+//! A pair records only part of the axis where its time window stops short of the
+//! volume's paths (its legs shift the window; the fit reads only the bins it recorded,
+//! [`crate::transient::TransientSet::recorded`]). A pulse cut by the window informs
+//! only through the bins inside it: its `c` is scaled by the share of the pulse's
+//! information there, `∫ z² φ(z) dz` over the recorded `z = (L − μ)/σ` under the
+//! Poisson model and `∫ z² φ(z)² dz` (normalised) under least squares, both closed
+//! forms in Φ and φ ([`recorded_share`]).
+//!
 //! The pairs measured so far give primitive `k` the information `M_k = Σ J`. A
 //! candidate's value is the D-optimal gain, the fall in the log-volume of every
 //! primitive's uncertainty ellipsoid:
@@ -32,7 +40,7 @@ use rayon::prelude::*;
 
 use crate::gtr::kernel::evaluate;
 use crate::gtr::{Kernel, Loss, RenderOptions};
-use crate::special::INV_SQRT_2PI;
+use crate::special::{INV_SQRT_2PI, norm_cdf, norm_pdf};
 use crate::transient::{Pair, TimeAxis};
 
 /// A term below this fraction of its pair's largest is dropped: it adds at most that
@@ -64,10 +72,55 @@ impl Term {
     }
 }
 
+/// The hidden path lengths `(from, to)`, metres, a pair's recording covers: its time
+/// window less its legs.
+pub type Recorded = (f64, f64);
+
+/// A recording that covers the whole axis.
+pub const WHOLE_AXIS: Recorded = (f64::NEG_INFINITY, f64::INFINITY);
+
+/// The share of the information about its mean μ that a Gaussian pulse (spread σ)
+/// gives through the path lengths `[from, to]`: under the Poisson model each length
+/// informs in proportion to `z² φ(z)`, under least squares to `z² φ(z)²`; their
+/// integrals are `F(z) = Φ(z) − z φ(z)`, at `z` and at `√2 z`. 0 for an empty range,
+/// 1 for the whole line.
+pub fn recorded_share(mu: f64, sigma: f64, (from, to): Recorded, loss: Loss) -> f64 {
+    let scale = match loss {
+        Loss::Poisson { .. } => 1.0,
+        Loss::L2 => std::f64::consts::SQRT_2,
+    };
+    let f = |x: f64| {
+        let z = scale * (x - mu) / sigma;
+        if z.is_infinite() {
+            if z > 0.0 { 1.0 } else { 0.0 }
+        } else {
+            norm_cdf(z) - z * norm_pdf(z)
+        }
+    };
+    (f(to) - f(from)).clamp(0.0, 1.0)
+}
+
 /// The information `pair` gives each primitive of `kernels` it sees (terms of at
 /// least a millionth of the largest, and the [`MAX_TERMS`] strongest at most), under
-/// the noise model of `opt.loss`.
-pub fn pair_terms(kernels: &[Kernel], pair: &Pair, axis: &TimeAxis, opt: &RenderOptions) -> Vec<Term> {
+/// the noise model of `opt.loss`, through the bins of `axis` its recording covers
+/// (`recorded`, [`WHOLE_AXIS`] for all) and the fit renders (the pulse's evaluated
+/// window): a pulse they cut gives the share of its information that falls inside
+/// ([`recorded_share`]), one the recording misses gives none.
+pub fn pair_terms(
+    kernels: &[Kernel],
+    pair: &Pair,
+    recorded: Recorded,
+    axis: &TimeAxis,
+    opt: &RenderOptions,
+) -> Vec<Term> {
+    // What the fit reads of a pulse: the bins it renders (its evaluated window, on the
+    // axis) that the recording covers.
+    let read = |lo: usize, hi: usize| {
+        (
+            recorded.0.max(axis.edge(lo as isize)),
+            recorded.1.min(axis.edge(hi as isize)),
+        )
+    };
     let mut terms: Vec<Term> = kernels
         .iter()
         .enumerate()
@@ -85,7 +138,7 @@ pub fn pair_terms(kernels: &[Kernel], pair: &Pair, axis: &TimeAxis, opt: &Render
                     n / (sigma * sigma) * peak / (peak + background.max(0.0))
                 }
                 Loss::L2 => n * n / (sigma * sigma * sigma),
-            };
+            } * recorded_share(w.mu, sigma, read(w.lo, w.hi), opt.loss);
             let term = Term {
                 primitive: k as u32,
                 c,
@@ -110,11 +163,20 @@ pub fn pair_terms(kernels: &[Kernel], pair: &Pair, axis: &TimeAxis, opt: &Render
     terms
 }
 
-/// [`pair_terms`] for every pair, in parallel.
-pub fn terms_of(kernels: &[Kernel], pairs: &[Pair], axis: &TimeAxis, opt: &RenderOptions) -> Vec<Vec<Term>> {
+/// [`pair_terms`] for every pair, each through its own recording (`recorded[i]` for
+/// `pairs[i]`), in parallel.
+pub fn terms_of(
+    kernels: &[Kernel],
+    pairs: &[Pair],
+    recorded: &[Recorded],
+    axis: &TimeAxis,
+    opt: &RenderOptions,
+) -> Vec<Vec<Term>> {
+    assert_eq!(pairs.len(), recorded.len(), "one recording per pair");
     pairs
         .par_iter()
-        .map(|p| pair_terms(kernels, p, axis, opt))
+        .zip(recorded)
+        .map(|(p, &r)| pair_terms(kernels, p, r, axis, opt))
         .collect()
 }
 
@@ -565,6 +627,10 @@ mod tests {
         }
     }
 
+    fn whole(pairs: &[Pair]) -> Vec<Recorded> {
+        vec![WHOLE_AXIS; pairs.len()]
+    }
+
     fn kernel(x: DVec3, rho: f64) -> Kernel {
         Kernel::new(x, DMat3::IDENTITY, DVec3::splat(0.01), rho)
     }
@@ -609,7 +675,7 @@ mod tests {
         let kernels = vec![kernel(DVec3::new(0.0, 0.0, 0.5), 1.0)];
         let pairs = wall(5, 0.1);
         let opt = RenderOptions::default();
-        let terms = terms_of(&kernels, &pairs, &axis(), &opt);
+        let terms = terms_of(&kernels, &pairs, &whole(&pairs), &axis(), &opt);
         let mut info = Information::new(1, &[], &terms);
         let before: Vec<f64> = terms.iter().map(|t| info.gain(t)).collect();
         assert!(before.iter().all(|g| *g > 0.0), "{before:?}");
@@ -629,7 +695,7 @@ mod tests {
         let kernels = vec![kernel(DVec3::new(0.05, -0.02, 0.6), 0.7)];
         let pairs = wall(4, 0.2);
         let opt = RenderOptions::default();
-        let terms = terms_of(&kernels, &pairs, &axis(), &opt);
+        let terms = terms_of(&kernels, &pairs, &whole(&pairs), &axis(), &opt);
         // Half summed and inverted, half added by Sherman–Morrison.
         let (first, rest) = terms.split_at(terms.len() / 2);
         let mut info = Information::new(1, first, &[]);
@@ -655,7 +721,7 @@ mod tests {
         let kernels = vec![kernel(DVec3::new(0.0, 0.0, 0.4), 1.0)];
         let pairs = wall(9, 0.1);
         let opt = RenderOptions::default();
-        let terms = terms_of(&kernels, &pairs, &axis(), &opt);
+        let terms = terms_of(&kernels, &pairs, &whole(&pairs), &axis(), &opt);
         let mut info = Information::new(1, &[], &terms);
         let chosen = choose(&mut info, &terms, 20);
         assert_eq!(chosen.len(), 20);
@@ -698,7 +764,7 @@ mod tests {
         let kernels = vec![kernel(DVec3::new(0.3, 0.3, 0.4), 1.0)];
         let pairs = wall(9, 0.1);
         let opt = RenderOptions::default();
-        let terms = terms_of(&kernels, &pairs, &axis(), &opt);
+        let terms = terms_of(&kernels, &pairs, &whole(&pairs), &axis(), &opt);
         let taken = [pairs[40]];
         let spread_of = |idx: &[usize]| {
             // The largest distance from any open pair to the pairs taken or chosen.
@@ -779,10 +845,78 @@ mod tests {
             .map(|i| kernel(DVec3::new(0.0, 0.0, 0.3 + 0.001 * i as f64), 1.0))
             .collect();
         let pair = Pair::confocal(DVec3::ZERO, DVec3::Z);
-        let terms = pair_terms(&kernels, &pair, &axis(), &RenderOptions::default());
+        let terms = pair_terms(&kernels, &pair, WHOLE_AXIS, &axis(), &RenderOptions::default());
         assert_eq!(terms.len(), MAX_TERMS);
         assert!(terms.windows(2).all(|w| w[0].primitive < w[1].primitive));
         assert_eq!(terms.last().unwrap().primitive as usize, MAX_TERMS - 1);
+    }
+
+    /// The closed forms against the integrals they stand for, by the midpoint rule.
+    #[test]
+    fn the_recorded_share_is_the_integral_of_the_information_density() {
+        let (mu, sigma) = (1.3, 0.04);
+        let poisson = Loss::Poisson { background: 0.0 };
+        let numeric = |(from, to): Recorded, loss: Loss| {
+            let density = |x: f64| {
+                let z = (x - mu) / sigma;
+                match loss {
+                    Loss::Poisson { .. } => z * z * norm_pdf(z),
+                    Loss::L2 => z * z * norm_pdf(z).powi(2),
+                }
+            };
+            let total_of = |a: f64, b: f64| {
+                let n = 200_000;
+                let h = (b - a) / n as f64;
+                (0..n).map(|i| density(a + (i as f64 + 0.5) * h)).sum::<f64>() * h
+            };
+            let clip = |x: f64| x.clamp(mu - 12.0 * sigma, mu + 12.0 * sigma);
+            total_of(clip(from), clip(to)) / total_of(mu - 12.0 * sigma, mu + 12.0 * sigma)
+        };
+        for loss in [poisson, Loss::L2] {
+            assert_eq!(recorded_share(mu, sigma, WHOLE_AXIS, loss), 1.0);
+            assert_eq!(recorded_share(mu, sigma, (mu + 1.0, mu - 1.0), loss), 0.0);
+            assert!((recorded_share(mu, sigma, (f64::NEG_INFINITY, mu), loss) - 0.5).abs() < 1e-12);
+            for range in [
+                (mu - 0.3 * sigma, mu + 1.7 * sigma),
+                (mu + 0.5 * sigma, f64::INFINITY),
+                (0.0, mu - 2.0 * sigma),
+            ] {
+                let (closed, integral) = (recorded_share(mu, sigma, range, loss), numeric(range, loss));
+                assert!(
+                    (closed - integral).abs() < 1e-6,
+                    "{loss:?} {range:?}: {closed} against {integral}"
+                );
+            }
+        }
+    }
+
+    /// A pair whose window stops before a primitive's pulse tells nothing about it; one
+    /// whose window stops at the pulse's middle, half (the Poisson model's information
+    /// is symmetric about the mean).
+    #[test]
+    fn a_pair_informs_only_through_the_bins_its_window_records() {
+        let kernels = vec![kernel(DVec3::new(0.0, 0.0, 0.5), 1.0)];
+        let pair = Pair::confocal(DVec3::ZERO, DVec3::Z);
+        let opt = RenderOptions {
+            loss: Loss::Poisson { background: 0.0 },
+            ..Default::default()
+        };
+        let whole = pair_terms(&kernels, &pair, WHOLE_AXIS, &axis(), &opt);
+        assert_eq!(whole.len(), 1);
+        let mu = evaluate(&kernels[0], &pair, &axis(), &opt).unwrap().window.mu;
+        assert!(pair_terms(&kernels, &pair, (0.0, mu - 0.2), &axis(), &opt).is_empty());
+        let half = pair_terms(&kernels, &pair, (0.0, mu), &axis(), &opt);
+        assert_eq!(half.len(), 1);
+        // Half, less the evaluated window's tails beyond 4 σ (6e-4 of the information).
+        assert!((half[0].c / whole[0].c - 0.5).abs() < 1e-3, "{half:?} {whole:?}");
+        assert_eq!(half[0].g, whole[0].g);
+        // Past the axis's end counts as unrecorded too: the fit reads no bin there.
+        let short = TimeAxis {
+            bins: (mu / axis().width).round() as usize,
+            ..axis()
+        };
+        let cut = pair_terms(&kernels, &pair, WHOLE_AXIS, &short, &opt);
+        assert!(cut.len() == 1 && cut[0].c < 0.6 * whole[0].c, "{cut:?}");
     }
 
     #[test]
@@ -790,7 +924,13 @@ mod tests {
         // Behind the wall: no pair sees the primitive.
         let kernels = vec![kernel(DVec3::new(0.0, 0.0, -0.4), 1.0)];
         let pairs = wall(3, 0.1);
-        let terms = terms_of(&kernels, &pairs, &axis(), &RenderOptions::default());
+        let terms = terms_of(
+            &kernels,
+            &pairs,
+            &whole(&pairs),
+            &axis(),
+            &RenderOptions::default(),
+        );
         assert!(terms.iter().all(Vec::is_empty));
         let mut info = Information::new(1, &[], &terms);
         assert!(choose(&mut info, &terms, 4).is_empty());
