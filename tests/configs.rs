@@ -203,6 +203,116 @@ fn check_refuses_a_plan_over_the_budget_naming_the_key() {
     );
 }
 
+/// `periscope check` judges the TDC window against the total paths the run needs it to
+/// record: the LOS scan's first bounces from the relay regions (the scan shares the
+/// window) and the volume's paths through them. The demo's window records both; 360
+/// bins record part of the volume's; 100 bins none of it; a 20 ns offset none of the
+/// LOS returns. Each warns, naming the offset and bins that would record all, and with
+/// them the check finds both recorded; one bin fewer than it names does not. None of it
+/// is a limit problem: exit 0.
+#[test]
+fn check_judges_the_tdc_window_against_the_paths_the_run_needs() {
+    let dir = tempfile::tempdir().unwrap();
+    let text = std::fs::read_to_string(repo_path("configs/plans/demo.toml")).unwrap();
+    let check = |acquisition: &str| {
+        let plan = dir.path().join("window.toml");
+        let edited = text.replace("[acquisition]\n", &format!("[acquisition]\n{acquisition}"));
+        assert!(
+            acquisition.is_empty() || edited != text,
+            "no [acquisition] to edit"
+        );
+        std::fs::write(&plan, edited).unwrap();
+        let out = periscope(&["check", plan.to_str().unwrap()]);
+        assert_eq!(out.code, Some(0), "{out:?}");
+        out.stdout
+    };
+    // The verdicts on the LOS returns and on the volume's paths.
+    let verdicts = |out: &str| -> (String, String) {
+        let line = out
+            .lines()
+            .find(|l| l.contains("TDC window:"))
+            .unwrap_or_else(|| panic!("no window line:\n{out}"));
+        let verdict = |after: &str| {
+            let rest = &line[line.find(after).unwrap_or_else(|| panic!("{line}")) + after.len()..];
+            let rest = &rest[rest.find(", ").unwrap() + 2..];
+            rest.split(';').next().unwrap().trim().to_owned()
+        };
+        (
+            verdict("LOS returns from"),
+            verdict("the volume's paths through them:"),
+        )
+    };
+    // The fixes a warning names, as [acquisition] lines.
+    let fixes = |out: &str| -> String {
+        let number = |key: &str| {
+            out.find(key).map(|at| {
+                out[at + key.len()..]
+                    .chars()
+                    .take_while(|c| c.is_ascii_digit() || *c == '.')
+                    .collect::<String>()
+                    .trim_end_matches('.')
+                    .to_owned()
+            })
+        };
+        let mut lines = String::new();
+        if let Some(o) = number("acquisition.offset-ns at most ") {
+            lines.push_str(&format!("offset-ns = {o}\n"));
+        }
+        if let Some(b) = number("acquisition.bins at least ") {
+            lines.push_str(&format!("bins = {b}\n"));
+        }
+        assert!(!lines.is_empty(), "no fix named:\n{out}");
+        lines
+    };
+    let all = ("all recorded".to_owned(), "all recorded".to_owned());
+    let shipped = check("");
+    assert_eq!(verdicts(&shipped), all, "{shipped}");
+    assert!(!shipped.contains("warning"), "{shipped}");
+
+    for (acquisition, los, volume, says) in [
+        (
+            "bins = 360\n",
+            "all recorded",
+            "part recorded",
+            "far side is seen by fewer pairs",
+        ),
+        (
+            "bins = 100\n",
+            "part recorded",
+            "none recorded",
+            "the run will fail before the first pair",
+        ),
+        (
+            "offset-ns = 20.0\n",
+            "none recorded",
+            "part recorded",
+            "the scan will find no relay",
+        ),
+    ] {
+        let out = check(acquisition);
+        assert_eq!(
+            verdicts(&out),
+            (los.to_owned(), volume.to_owned()),
+            "{acquisition}{out}"
+        );
+        assert!(
+            out.contains("warning: acquisition:") && out.contains(says),
+            "{acquisition}{out}"
+        );
+        let fixed = fixes(&out);
+        let after = check(&fixed);
+        assert_eq!(verdicts(&after), all, "{fixed}{after}");
+        assert!(!after.contains("warning"), "{fixed}{after}");
+        if let Some(b) = fixed.lines().find_map(|l| l.strip_prefix("bins = ")) {
+            let fewer = fixed.replace(
+                &format!("bins = {b}"),
+                &format!("bins = {}", b.parse::<u32>().unwrap() - 1),
+            );
+            assert_ne!(verdicts(&check(&fewer)), all, "{fewer}");
+        }
+    }
+}
+
 #[test]
 fn check_lists_targets_outside_the_limits() {
     let dir = tempfile::tempdir().unwrap();

@@ -6,9 +6,11 @@ use glam::DVec3;
 use periscope_drivers::{AngleLimits, GalvoPose, OpticalAngles};
 use periscope_recon::gtr::gain_start_epoch;
 use periscope_recon::relay::Region;
+use periscope_recon::transient::path_range;
+use periscope_recon::{C0, Pair, TimeAxis};
 
 use crate::config::InstrumentConfig;
-use crate::plan::{Method, Plan};
+use crate::plan::{Method, PairMode, Plan};
 
 /// Software overhead per measured point (moves, acquisition, storage), seconds; the
 /// driver benchmark measures about 0.2 ms against the simulator, a real 115200-baud
@@ -82,6 +84,9 @@ pub struct Check {
     pub over_budget: Option<String>,
     /// Targets outside the galvo limits (their pairs are left out).
     pub problems: Vec<String>,
+    /// What the run would warn about or fail on that costs no pair: a TDC window that
+    /// records only part of the volume's paths, or none of them.
+    pub warnings: Vec<String>,
 }
 
 /// Estimated durations, seconds.
@@ -208,6 +213,8 @@ pub fn check(plan: &Plan, inst: &InstrumentConfig) -> Check {
         a.bin_width * 1e12,
         a.offset * 1e9
     );
+    let (line, warnings) = window(plan, inst);
+    out.push_str(&line);
     let rc = &plan.recon;
     let v = &rc.volume;
     let _ = writeln!(
@@ -322,6 +329,9 @@ pub fn check(plan: &Plan, inst: &InstrumentConfig) -> Check {
     let budget = crate::budget::Budget::of_plan(plan);
     let _ = writeln!(out, "  budget (per run, from the instrument's [budget]):");
     out.push_str(&budget.report(&inst.budget));
+    for w in &warnings {
+        let _ = writeln!(out, "  warning: {w}");
+    }
     let listed = problems.clone();
     if problems.is_empty() {
         let _ = writeln!(out, "  limits: every target is within the galvo limits");
@@ -353,5 +363,209 @@ pub fn check(plan: &Plan, inst: &InstrumentConfig) -> Check {
         disk_limit: inst.budget.disk,
         over_budget: budget.check(&inst.budget).err(),
         problems: listed,
+        warnings,
     }
+}
+
+/// Relay points across `region`: a box's 9 × 9 × 3 grid, corners included; for any
+/// other region, the LOS scan's cone (its SPAD angles on a 9 × 9 grid, at the near and
+/// far ends and the middle of `relay.depth-m`), which holds every relay point the scan
+/// can find. `true` when a box bounds them.
+fn relay_samples(region: &Region, plan: &Plan, inst: &InstrumentConfig) -> (Vec<DVec3>, bool) {
+    let steps = |n: usize, a: f64, b: f64| (0..n).map(move |i| a + (b - a) * i as f64 / (n - 1) as f64);
+    match region {
+        Region::Box { min, max } => {
+            let mut out = Vec::with_capacity(243);
+            for z in steps(3, min.z, max.z) {
+                for y in steps(9, min.y, max.y) {
+                    out.extend(steps(9, min.x, max.x).map(|x| DVec3::new(x, y, z)));
+                }
+            }
+            (out, true)
+        }
+        _ => {
+            let pose = &inst.spad_arm.pose;
+            let (l, d) = (&plan.los, plan.relay.depth);
+            let mut out = Vec::with_capacity(243);
+            for depth in steps(3, d[0], d[1]) {
+                for y in steps(9, l.y[0], l.y[1]) {
+                    for x in steps(9, l.x[0], l.x[1]) {
+                        out.push(pose.origin + depth * pose.direction(OpticalAngles { x, y }));
+                    }
+                }
+            }
+            (out, false)
+        }
+    }
+}
+
+/// The TDC window against the total paths the run needs it to record, over relay points
+/// sampled where the plan lets them fall ([`relay_samples`]): the LOS scan's first
+/// bounces (laser galvo, relay, SPAD galvo; the scan shares the window) and the paths
+/// through the volume (laser galvo to relay, through the volume, back to the relay and
+/// the SPAD galvo). The report's line, and a warning where the window records part of
+/// them only, or none, with the offset and bins that would record all. The run makes the
+/// same judgement on the relay its scan finds (`record::run_axis`); this one is made
+/// before any device moves, so it bounds rather than measures. Where no box bounds the
+/// relay, only a window that misses even the bound is warned of.
+fn window(plan: &Plan, inst: &InstrumentConfig) -> (String, Vec<String>) {
+    let a = &plan.acquisition;
+    let tdc = TimeAxis::of_tdc(a.offset, a.bin_width, a.bins as usize, inst.tdc.system_delay);
+    let (detection, boxed_d) = relay_samples(&plan.relay.detection, plan, inst);
+    let (laser, spad) = (inst.laser_arm.pose.origin, inst.spad_arm.pose.origin);
+    let (illumination, boxed) = match &plan.pairs {
+        PairMode::Confocal { .. } | PairMode::Mask { .. } => (Vec::new(), boxed_d),
+        PairMode::FixedLaser { laser, .. } => (vec![*laser], boxed_d),
+        PairMode::Scanned { .. } | PairMode::Random { .. } => {
+            let (s, b) = relay_samples(&plan.relay.illumination, plan, inst);
+            (s, b && boxed_d)
+        }
+    };
+    let widen = |(lo, hi): (f64, f64), x: f64| (lo.min(x), hi.max(x));
+    let empty = (f64::INFINITY, f64::NEG_INFINITY);
+    let los = detection
+        .iter()
+        .chain(&illumination)
+        .fold(empty, |r, x| widen(r, x.distance(laser) + x.distance(spad)));
+    let mut volume = empty;
+    let mut take = |xi: DVec3, xd: DVec3| {
+        let pair = Pair {
+            xi,
+            ni: DVec3::Z,
+            xd,
+            nd: DVec3::Z,
+        };
+        let (n, f) = path_range(&pair, &plan.recon.volume);
+        let legs = xi.distance(laser) + xd.distance(spad);
+        volume = widen(widen(volume, n + legs), f + legs);
+    };
+    for &xd in &detection {
+        if illumination.is_empty() {
+            take(xd, xd);
+        }
+        for &xi in &illumination {
+            take(xi, xd);
+        }
+    }
+    let (from, to) = (tdc.start, tdc.end());
+    let (near, far) = (los.0.min(volume.0), los.1.max(volume.1));
+    // The latest offset (ns, to a tenth, rounded down) whose window starts by `near`,
+    // and the bins that window needs to reach `far`; or, where the start is early
+    // enough already, the bins from it.
+    let offset_ns = ((near / C0 + inst.tdc.system_delay) * 1e10).floor() / 10.0;
+    let start = if from > near {
+        C0 * (offset_ns * 1e-9 - inst.tdc.system_delay)
+    } else {
+        from
+    };
+    let bins = ((far - start) / tdc.width).ceil().max(1.0) as u64;
+    let mut fix = Vec::new();
+    if from > near {
+        fix.push(format!("acquisition.offset-ns at most {offset_ns:.1}"));
+    }
+    if bins > u64::from(a.bins) {
+        fix.push(format!(
+            "acquisition.bins at least {bins}{}",
+            if from > near {
+                " from there"
+            } else {
+                " at this offset"
+            }
+        ));
+    }
+    let fix = if fix.is_empty() {
+        String::new()
+    } else {
+        format!(
+            " To record the LOS returns and the volume's paths: {}.",
+            fix.join(", ")
+        )
+    };
+    let judge = |(lo, hi): (f64, f64)| {
+        if to <= lo || from >= hi {
+            "none recorded"
+        } else if from > lo || to < hi {
+            if boxed {
+                "part recorded"
+            } else {
+                "perhaps part recorded"
+            }
+        } else {
+            "all recorded"
+        }
+    };
+    let side = |(lo, hi): (f64, f64)| match (from > lo, to < hi) {
+        (true, true) => "near and far ends",
+        (true, false) => "near end",
+        _ => "far end",
+    };
+    let place = if boxed {
+        "the relay regions"
+    } else {
+        "the relay the LOS scan can find (a bound: a box in relay.detection narrows it)"
+    };
+    let line = format!(
+        "  TDC window: total paths {from:.2}–{to:.2} m; the LOS returns from {}: {:.2}–{:.2} m, {}; \
+         the volume's paths through them: {:.2}–{:.2} m, {}\n",
+        if boxed {
+            "the relay regions"
+        } else {
+            "the LOS cone"
+        },
+        los.0,
+        los.1,
+        judge(los),
+        volume.0,
+        volume.1,
+        judge(volume)
+    );
+    let mut warnings = Vec::new();
+    match judge(los) {
+        "none recorded" => warnings.push(format!(
+            "acquisition: the TDC window ({:.3} ns offset, {} bins of {:.1} ps) records total paths of \
+             {from:.2} to {to:.2} m, none of the LOS scan's first bounces from {place} ({:.2} to {:.2} m): \
+             the scan will find no relay and the run will fail.{fix}",
+            a.offset * 1e9,
+            a.bins,
+            a.bin_width * 1e12,
+            los.0,
+            los.1,
+        )),
+        "part recorded" => warnings.push(format!(
+            "acquisition: the TDC window records total paths of {from:.2} to {to:.2} m, part of the LOS \
+             scan's first bounces from {place} ({:.2} to {:.2} m): the relay points at their {} are not \
+             found.{fix}",
+            los.0,
+            los.1,
+            side(los)
+        )),
+        _ => {}
+    }
+    match judge(volume) {
+        "none recorded" => warnings.push(format!(
+            "acquisition: the TDC window ({:.3} ns offset, {} bins of {:.1} ps) records total paths of \
+             {from:.2} to {to:.2} m, none of the {:.2} to {:.2} m the volume's paths take through {place}: \
+             the run will fail before the first pair.{fix} Or give a [recon.volume] the window reaches.",
+            a.offset * 1e9,
+            a.bins,
+            a.bin_width * 1e12,
+            volume.0,
+            volume.1,
+        )),
+        "part recorded" => warnings.push(format!(
+            "acquisition: the TDC window records total paths of {from:.2} to {to:.2} m, part of the \
+             {:.2} to {:.2} m the volume's paths can take through {place}: pairs whose paths fall \
+             outside record zeros there, which the reconstruction leaves out, and the volume's {} is \
+             seen by fewer pairs or none.{fix}",
+            volume.0,
+            volume.1,
+            match side(volume) {
+                "near end" => "near side",
+                "far end" => "far side",
+                _ => "near and far sides",
+            }
+        )),
+        _ => {}
+    }
+    (line, warnings)
 }

@@ -122,6 +122,23 @@ async fn check_reports_duration_budget_and_problems_without_queueing() {
         v["report"].as_str().unwrap().contains("estimated duration"),
         "{v}"
     );
+    assert_eq!(v["warnings"], serde_json::json!([]), "{v}");
+    // A TDC window short of the volume is a warning, naming the bins that record it.
+    let short = DEMO.replace("[acquisition]\n", "[acquisition]\nbins = 360\n");
+    assert_ne!(short, DEMO);
+    let (s, body) = call(&router, Method::POST, "/api/v1/check", false, &short).await;
+    let v: Value = serde_json::from_slice(&body).unwrap();
+    assert_eq!(s, StatusCode::OK, "{v}");
+    let warnings = v["warnings"].as_array().unwrap();
+    assert!(
+        warnings.len() == 1
+            && warnings[0]
+                .as_str()
+                .unwrap()
+                .contains("acquisition.bins at least"),
+        "{v}"
+    );
+    assert!(v["over_budget"].is_null(), "{v}");
     // Invalid plans name the key; over-budget plans are reported, not refused.
     let bad = DEMO.replace("grid = [24, 24]", "grid = [24, -1]");
     let (s, body) = call(&router, Method::POST, "/api/v1/check", false, &bad).await;
@@ -872,6 +889,19 @@ async fn the_page_stays_true_to_the_instrument_and_to_the_run() {
             .await
             .unwrap()
     );
+
+    // A plan whose TDC window stops short of the volume: valid, and the check's warning
+    // shown beside it, naming the bins that would record the rest.
+    let short = DEMO.replace("[acquisition]\n", "[acquisition]\nbins = 360\n");
+    c.execute(
+        "const p = document.getElementById('plan'); p.value = arguments[0]; \
+         p.dispatchEvent(new Event('input'));",
+        vec![Value::String(short)],
+    )
+    .await
+    .unwrap();
+    let warned = wait_text(&c, "#check-warnings", limit, |s| s.contains("TDC window")).await;
+    assert!(warned.contains("acquisition.bins at least"), "{warned}");
 
     // The completed run: depth at once, the volume only when shown, the log once.
     c.execute("window.periscope.fetched = {}; window.scrollTo(0, 0);", vec![])

@@ -467,6 +467,7 @@ async function checkPlan() {
     if (c.problems.length) {
       warnings.push(`${c.problems.length} target(s) outside the galvo limits (they are skipped): ${c.problems.slice(0, 3).join('; ')}${c.problems.length > 3 ? ' …' : ''}`);
     }
+    for (const w of c.warnings || []) warnings.push(w);
     const near = (used, limit) => limit > 0 && used > 0.8 * limit && used <= limit;
     if (near(c.memory_bytes, c.memory_limit)) warnings.push(`memory ${fmtBytes(c.memory_bytes)} is over 80 % of the budget ${fmtBytes(c.memory_limit)}`);
     if (near(c.disk_bytes, c.disk_limit)) warnings.push(`disk ${fmtBytes(c.disk_bytes)} is over 80 % of the budget ${fmtBytes(c.disk_limit)}`);
