@@ -84,8 +84,9 @@ pub struct Check {
     pub over_budget: Option<String>,
     /// Targets outside the galvo limits (their pairs are left out).
     pub problems: Vec<String>,
-    /// What the run would warn about or fail on that costs no pair: a TDC window that
-    /// records only part of the volume's paths, or none of them.
+    /// What the run may warn about or fail on that costs no pair: a TDC window that
+    /// records only part of the LOS scan's first bounces or of the volume's paths, or
+    /// none of them.
     pub warnings: Vec<String>,
 }
 
@@ -399,15 +400,21 @@ fn relay_samples(region: &Region, plan: &Plan, inst: &InstrumentConfig) -> (Vec<
     }
 }
 
+/// The most bins a plan's histogram may have (`acquisition.bins`).
+const MAX_PLAN_BINS: u64 = 65_536;
+
 /// The TDC window against the total paths the run needs it to record, over relay points
 /// sampled where the plan lets them fall ([`relay_samples`]): the LOS scan's first
 /// bounces (laser galvo, relay, SPAD galvo; the scan shares the window) and the paths
 /// through the volume (laser galvo to relay, through the volume, back to the relay and
-/// the SPAD galvo). The report's line, and a warning where the window records part of
-/// them only, or none, with the offset and bins that would record all. The run makes the
-/// same judgement on the relay its scan finds (`record::run_axis`); this one is made
-/// before any device moves, so it bounds rather than measures. Where no box bounds the
-/// relay, only a window that misses even the bound is warned of.
+/// the SPAD galvo), each widened by a margin: the run's hidden axis reaches 4 bins past
+/// the volume's paths, and a pulse spreads by the jitter. The report's line, and a
+/// warning where the window records part of them only, or none, with the offset and
+/// bins that would record all. This is made before any device moves, over the regions
+/// the relay may lie in, so it bounds: the run judges the relay its scan finds
+/// (`record::run_axis`, which warns of a window short of the volume and fails when it
+/// records none of it over all pairs together). Where no box bounds the relay, only a
+/// window that misses even the bound is warned of.
 fn window(plan: &Plan, inst: &InstrumentConfig) -> (String, Vec<String>) {
     let a = &plan.acquisition;
     let tdc = TimeAxis::of_tdc(a.offset, a.bin_width, a.bins as usize, inst.tdc.system_delay);
@@ -421,6 +428,9 @@ fn window(plan: &Plan, inst: &InstrumentConfig) -> (String, Vec<String>) {
             (s, b && boxed_d)
         }
     };
+    // Four bins of the hidden axis's own margin, one for its rounding to a bin, and
+    // three standard deviations of the jitter.
+    let pad = 5.0 * tdc.width + 3.0 * C0 * inst.spad.jitter_fwhm / 2.355;
     let widen = |(lo, hi): (f64, f64), x: f64| (lo.min(x), hi.max(x));
     let empty = (f64::INFINITY, f64::NEG_INFINITY);
     let los = detection
@@ -447,31 +457,51 @@ fn window(plan: &Plan, inst: &InstrumentConfig) -> (String, Vec<String>) {
             take(xi, xd);
         }
     }
+    let (los, volume) = ((los.0 - pad, los.1 + pad), (volume.0 - pad, volume.1 + pad));
     let (from, to) = (tdc.start, tdc.end());
     let (near, far) = (los.0.min(volume.0), los.1.max(volume.1));
-    // The latest offset (ns, to a tenth, rounded down) whose window starts by `near`,
-    // and the bins that window needs to reach `far`; or, where the start is early
-    // enough already, the bins from it.
-    let offset_ns = ((near / C0 + inst.tdc.system_delay) * 1e10).floor() / 10.0;
-    let start = if from > near {
-        C0 * (offset_ns * 1e-9 - inst.tdc.system_delay)
-    } else {
-        from
-    };
-    let bins = ((far - start) / tdc.width).ceil().max(1.0) as u64;
+    // The latest offset (ns, to a tenth, rounded down, at least 0) whose window starts
+    // by `near`, and the bins a window from `start` needs to reach `far`.
+    let offset_ns = (((near / C0 + inst.tdc.system_delay) * 1e10).floor() / 10.0).max(0.0);
+    let start_at = |offset_ns: f64| C0 * (offset_ns * 1e-9 - inst.tdc.system_delay);
+    let bins_from = |start: f64| ((far - start) / tdc.width).ceil().max(16.0) as u64;
     let mut fix = Vec::new();
     if from > near {
         fix.push(format!("acquisition.offset-ns at most {offset_ns:.1}"));
+        if start_at(offset_ns) > near {
+            fix.push(format!(
+                "(the earliest offset, 0 ns, starts at {:.2} m: the system delay puts the \
+                 nearest paths before any offset)",
+                start_at(0.0)
+            ));
+        }
     }
-    if bins > u64::from(a.bins) {
+    let (start, moved) = if from > near {
+        (start_at(offset_ns), true)
+    } else {
+        (from, false)
+    };
+    let bins = bins_from(start);
+    if bins > MAX_PLAN_BINS {
+        fix.push(format!(
+            "{bins} bins{}, more than the {MAX_PLAN_BINS} a histogram may have: wider bins \
+             (acquisition.bin-width-ps) or a [recon.volume] nearer the relay",
+            if moved { " from there" } else { " at this offset" }
+        ));
+    } else if bins > u64::from(a.bins) {
         fix.push(format!(
             "acquisition.bins at least {bins}{}",
-            if from > near {
-                " from there"
-            } else {
-                " at this offset"
-            }
+            if moved { " from there" } else { " at this offset" }
         ));
+        // A window that starts well before the paths wastes bins: a later offset
+        // needs fewer.
+        let later = (((near / C0 + inst.tdc.system_delay) * 1e10).floor() / 10.0).max(0.0);
+        if !moved && later > a.offset * 1e9 + 0.05 && bins_from(start_at(later)) < bins {
+            fix.push(format!(
+                "or acquisition.offset-ns {later:.1} and bins at least {}",
+                bins_from(start_at(later))
+            ));
+        }
     }
     let fix = if fix.is_empty() {
         String::new()
@@ -495,18 +525,19 @@ fn window(plan: &Plan, inst: &InstrumentConfig) -> (String, Vec<String>) {
         }
     };
     let side = |(lo, hi): (f64, f64)| match (from > lo, to < hi) {
-        (true, true) => "near and far ends",
-        (true, false) => "near end",
-        _ => "far end",
+        (true, true) => "near and far",
+        (true, false) => "near",
+        _ => "far",
     };
     let place = if boxed {
         "the relay regions"
     } else {
-        "the relay the LOS scan can find (a bound: a box in relay.detection narrows it)"
+        "the relay the LOS scan can find (a bound: boxes in relay.detection, and relay.illumination \
+         where the laser scans, narrow it)"
     };
     let line = format!(
         "  TDC window: total paths {from:.2}–{to:.2} m; the LOS returns from {}: {:.2}–{:.2} m, {}; \
-         the volume's paths through them: {:.2}–{:.2} m, {}\n",
+         the volume's paths through them: {:.2}–{:.2} m, {} (each with a margin of {:.0} mm)\n",
         if boxed {
             "the relay regions"
         } else {
@@ -517,24 +548,25 @@ fn window(plan: &Plan, inst: &InstrumentConfig) -> (String, Vec<String>) {
         judge(los),
         volume.0,
         volume.1,
-        judge(volume)
+        judge(volume),
+        pad * 1e3,
     );
     let mut warnings = Vec::new();
+    let window = format!(
+        "the TDC window ({:.3} ns offset, {} bins of {:.1} ps) records total paths of {from:.2} to {to:.2} m",
+        a.offset * 1e9,
+        a.bins,
+        a.bin_width * 1e12,
+    );
     match judge(los) {
         "none recorded" => warnings.push(format!(
-            "acquisition: the TDC window ({:.3} ns offset, {} bins of {:.1} ps) records total paths of \
-             {from:.2} to {to:.2} m, none of the LOS scan's first bounces from {place} ({:.2} to {:.2} m): \
-             the scan will find no relay and the run will fail.{fix}",
-            a.offset * 1e9,
-            a.bins,
-            a.bin_width * 1e12,
-            los.0,
-            los.1,
+            "acquisition: {window}, none of the LOS scan's first bounces from {place} ({:.2} to \
+             {:.2} m): the scan will find no relay and the run will fail.{fix}",
+            los.0, los.1,
         )),
         "part recorded" => warnings.push(format!(
-            "acquisition: the TDC window records total paths of {from:.2} to {to:.2} m, part of the LOS \
-             scan's first bounces from {place} ({:.2} to {:.2} m): the relay points at their {} are not \
-             found.{fix}",
+            "acquisition: {window}, part of the LOS scan's first bounces from {place} ({:.2} to \
+             {:.2} m): relay points at the {} end may not be found.{fix}",
             los.0,
             los.1,
             side(los)
@@ -543,27 +575,18 @@ fn window(plan: &Plan, inst: &InstrumentConfig) -> (String, Vec<String>) {
     }
     match judge(volume) {
         "none recorded" => warnings.push(format!(
-            "acquisition: the TDC window ({:.3} ns offset, {} bins of {:.1} ps) records total paths of \
-             {from:.2} to {to:.2} m, none of the {:.2} to {:.2} m the volume's paths take through {place}: \
-             the run will fail before the first pair.{fix} Or give a [recon.volume] the window reaches.",
-            a.offset * 1e9,
-            a.bins,
-            a.bin_width * 1e12,
-            volume.0,
-            volume.1,
+            "acquisition: {window}, none of the {:.2} to {:.2} m the volume's paths take from any \
+             point of {place}: the run will fail before its first pair, or record nothing of the \
+             volume.{fix} Or give a [recon.volume] the window reaches.",
+            volume.0, volume.1,
         )),
         "part recorded" => warnings.push(format!(
-            "acquisition: the TDC window records total paths of {from:.2} to {to:.2} m, part of the \
-             {:.2} to {:.2} m the volume's paths can take through {place}: pairs whose paths fall \
-             outside record zeros there, which the reconstruction leaves out, and the volume's {} is \
-             seen by fewer pairs or none.{fix}",
+            "acquisition: {window}, part of the {:.2} to {:.2} m the volume's paths can take through \
+             {place}: pairs whose paths fall outside it record zeros there, which the reconstruction \
+             leaves out, and the volume's {} side may be seen by fewer pairs or none.{fix}",
             volume.0,
             volume.1,
-            match side(volume) {
-                "near end" => "near side",
-                "far end" => "far side",
-                _ => "near and far sides",
-            }
+            side(volume)
         )),
         _ => {}
     }

@@ -2,7 +2,7 @@
 //! time and pile-up undone (when the instrument asks for it), on its total-path axis,
 //! rebinned to the hidden path of its pair. The capture's streamed fit, `periscope
 //! recon RUN_DIR`, the y-tal export and the tests share these.
-use periscope_recon::transient::{TransientError, clip_to_measured, hidden_axis, rebin_path};
+use periscope_recon::transient::{TransientError, bins_within, clip_to_measured, hidden_axis, rebin_path};
 use periscope_recon::{TimeAxis, TransientSet, VolumeGrid};
 
 use crate::config::InstrumentConfig;
@@ -195,6 +195,21 @@ pub fn recorded_window(pair: &PlannedPair, acq: &Acquisition, inst: &InstrumentC
     (tdc.start - l, tdc.end() - l)
 }
 
+/// [`recorded_window`] as the fit will read it on `axis`: the bins wholly inside it
+/// ([`TransientSet::limit_recorded`]'s rule), as path lengths; an empty range where
+/// there are none.
+pub fn recorded_bins(
+    axis: &TimeAxis,
+    pair: &PlannedPair,
+    acq: &Acquisition,
+    inst: &InstrumentConfig,
+) -> (f64, f64) {
+    match bins_within(axis, recorded_window(pair, acq, inst)) {
+        Some((first, end)) => (axis.edge(first as isize), axis.edge(end as isize)),
+        None => (axis.start, axis.start),
+    }
+}
+
 /// The hidden-path axis every reconstruction of a run puts its transients on (the live
 /// fit and `periscope recon RUN_DIR` alike): the plan's bin width, spanning the paths
 /// `volume` can produce ([`hidden_axis`]) where the TDC window records them
@@ -336,6 +351,13 @@ mod tests {
                 "{i}"
             );
             assert!(set.histogram(i)[kept.clone()].iter().all(|&v| v > 0.0), "{i}");
+            // What an adaptive capture credits the pair with before measuring it.
+            let (a, b) = recorded_bins(&clipped, p, &short, &inst);
+            assert_eq!(
+                (a, b),
+                (clipped.edge(kept.start as isize), clipped.edge(kept.end as isize)),
+                "{i}"
+            );
         }
         assert_eq!(set.recorded(2), 0..clipped.bins);
         assert!(set.recorded(0).end < clipped.bins, "{:?}", set.recorded(0));

@@ -82,9 +82,12 @@ pub const WHOLE_AXIS: Recorded = (f64::NEG_INFINITY, f64::INFINITY);
 /// The share of the information about its mean μ that a Gaussian pulse (spread σ)
 /// gives through the path lengths `[from, to]`: under the Poisson model each length
 /// informs in proportion to `z² φ(z)`, under least squares to `z² φ(z)²`; their
-/// integrals are `F(z) = Φ(z) − z φ(z)`, at `z` and at `√2 z`. 0 for an empty range,
-/// 1 for the whole line.
+/// integrals are `F(z) = Φ(z) − z φ(z)`, at `z` and at `√2 z`. 0 for an empty range
+/// (or a spread that is not positive, or NaN), 1 for the whole line.
 pub fn recorded_share(mu: f64, sigma: f64, (from, to): Recorded, loss: Loss) -> f64 {
+    if !(sigma > 0.0 && mu.is_finite()) || from.is_nan() || to.is_nan() {
+        return 0.0;
+    }
     let scale = match loss {
         Loss::Poisson { .. } => 1.0,
         Loss::L2 => std::f64::consts::SQRT_2,

@@ -206,7 +206,7 @@ pub fn clip_to_measured(axis: &TimeAxis, measured: (f64, f64)) -> Result<TimeAxi
 /// The bins of `axis` wholly inside `measured`, the path lengths `[from, to]`, as
 /// `(first, end)`; `None` when there are none. A thousandth of a bin of slack, so an
 /// edge that falls on a bin boundary up to rounding keeps that bin.
-fn bins_within(axis: &TimeAxis, measured: (f64, f64)) -> Option<(usize, usize)> {
+pub fn bins_within(axis: &TimeAxis, measured: (f64, f64)) -> Option<(usize, usize)> {
     let (from, to) = measured;
     let slack = 1e-3;
     let first = ((from - axis.start) / axis.width - slack).ceil().max(0.0);

@@ -13,7 +13,7 @@ use super::{PipelineError, ReconError, Run};
 use crate::adaptive::{Order, Selector};
 use crate::events::RunEvent;
 use crate::plan::{Acquisition, Method, PlannedPair};
-use crate::record::{push_record, recorded_window, relay_gains, run_axis};
+use crate::record::{push_record, recorded_bins, relay_gains, run_axis};
 use crate::run_dir::RelayPoint;
 use crate::store::{HistogramLog, Record};
 
@@ -107,7 +107,7 @@ impl Run {
             .with_recorded(
                 pairs
                     .iter()
-                    .map(|p| recorded_window(p, &acq, &self.instrument))
+                    .map(|p| recorded_bins(&axis, p, &acq, &self.instrument))
                     .collect(),
             );
             selector.resume(&held.iter().map(|r| r.pair as usize).collect::<Vec<_>>());
