@@ -671,20 +671,26 @@ mod tests {
         }
     }
 
+    /// A first batch of 16, then one of 32 chosen by gain alone (nothing taken for
+    /// coverage), to a budget of 48.
+    fn by_gain_alone() -> AdaptiveSettings {
+        AdaptiveSettings {
+            pairs: 48,
+            first: 16,
+            batch: 32,
+            explore: 0.0,
+            coverage: 0.0,
+            ..Default::default()
+        }
+    }
+
     #[test]
     fn the_adaptive_order_looks_where_the_fit_sees_something() {
         // A target over one corner of the wall: with nothing explored, the chosen pairs
         // crowd towards it; uniform ones do not.
         let target = blob(0.35, 0.35, 0.3);
         let mean_distance = |order: Order| {
-            let settings = AdaptiveSettings {
-                pairs: 48,
-                first: 16,
-                batch: 32,
-                explore: 0.0,
-                coverage: 0.0,
-                ..Default::default()
-            };
+            let settings = by_gain_alone();
             let mut s = Selector::new(wall(16), settings, order);
             s.first();
             let b = s.next(&model(vec![target]), &axis()).unwrap();
@@ -718,14 +724,7 @@ mod tests {
             .iter()
             .map(|&b| if b { (0.0, 0.4) } else { WHOLE_AXIS })
             .collect();
-        let settings = AdaptiveSettings {
-            pairs: 48,
-            first: 16,
-            batch: 32,
-            explore: 0.0,
-            coverage: 0.0,
-            ..Default::default()
-        };
+        let settings = by_gain_alone();
         let batch = |recorded: Option<Vec<Recorded>>| {
             let s = Selector::new(candidates.clone(), settings.clone(), Order::Adaptive);
             let mut s = match recorded {
