@@ -370,10 +370,20 @@ pub fn plan_toml(data: &[u8]) {
         return;
     };
     let src = TomlSource::from_text("fuzz.toml", text);
-    if let Ok(plan) = Plan::from_source(&src, sim_instrument()) {
+    let instrument = sim_instrument();
+    if let Ok(plan) = Plan::from_source(&src, instrument) {
         let b = Budget::of_plan(&plan);
         let _ = b.check(&Limits::default());
         assert!(b.memory_bytes() >= b.memory.iter().map(|i| i.bytes).max().unwrap_or(0));
+        // What `periscope check` and `POST /check` make of it: the durations, the
+        // galvo limits and the TDC window, for any plan an observer may send.
+        let c = crate::check::check(&plan, instrument);
+        assert!(
+            c.duration_s.total.is_finite() && c.duration_s.total >= 0.0,
+            "{:?}",
+            c.duration_s
+        );
+        assert!(c.report.contains("TDC window:"), "{}", c.report);
     }
 }
 
