@@ -2,7 +2,9 @@
 //! time and pile-up undone (when the instrument asks for it), on its total-path axis,
 //! rebinned to the hidden path of its pair. The capture's streamed fit, `periscope
 //! recon RUN_DIR`, the y-tal export and the tests share these.
-use periscope_recon::transient::{TransientError, bins_within, clip_to_measured, hidden_axis, rebin_path};
+use periscope_recon::transient::{
+    TransientError, bins_within, clip_to_measured, hidden_axis, path_range, rebin_path,
+};
 use periscope_recon::{TimeAxis, TransientSet, VolumeGrid};
 
 use crate::config::InstrumentConfig;
@@ -243,6 +245,38 @@ pub fn run_axis(
             axis.start + axis.bins as f64 * axis.width,
         ))
     })?;
+    // Each pair's own window against its own paths: the union above can overlap where
+    // no pair records any of its own (the pair with the shortest legs aimed away from
+    // the volume, the one under it with longer legs).
+    let blind = pairs
+        .iter()
+        .zip(&recon_pairs)
+        .filter(|(p, q)| {
+            let (from, to) = recorded_window(p, acq, inst);
+            let (near, far) = path_range(q, volume);
+            to <= near || from >= far
+        })
+        .count();
+    if blind == pairs.len() {
+        return Err(TransientError::Window(format!(
+            "the TDC window (acquisition.offset-ns {:.3} ns, {} bins of {:.1} ps, less the system \
+             delay) records none of any planned pair's own paths through the volume (each pair's \
+             window shifted by its legs): move acquisition.offset-ns, add bins, or give a \
+             [recon.volume] the window reaches",
+            acq.offset * 1e9,
+            acq.bins,
+            acq.bin_width * 1e12,
+        )));
+    }
+    if blind > 0 {
+        tracing::warn!(
+            blind,
+            of = pairs.len(),
+            "the TDC window records none of some pairs' own paths through the volume (each \
+             pair's window shifted by its legs): their histograms tell the reconstruction \
+             nothing (move acquisition.offset-ns or add bins)"
+        );
+    }
     if kept != axis {
         tracing::warn!(
             recorded_m = ?range,
@@ -366,6 +400,33 @@ mod tests {
         overflowed.flags.overflow = true;
         assert!(!push_record(&mut set, &overflowed, &pairs[1], &inst, None).unwrap());
         assert_eq!(set.len(), 4);
+        // A volume off to one side: the pair with the shortest legs (the relay's centre)
+        // is farther from it than one under it, whose legs are longer. A window ending
+        // between their nearest paths records part of the union of the paths, but none
+        // of either pair's own: refused. Ending later, the pair under the volume
+        // records some of its own.
+        let aside = VolumeGrid::new([0.3, 0.7], [-0.2, 0.2], [0.3, 0.9], [16, 16, 16]).unwrap();
+        let two = [at(0.0, 0.0), at(0.5, 0.0)];
+        let total_near = |p: &PlannedPair| path_range(&p.pair(), &aside).0 + super::legs(p, &inst);
+        let (centre, under) = (total_near(&two[0]), total_near(&two[1]));
+        assert!(under < centre && super::legs(&two[1], &inst) > super::legs(&two[0], &inst));
+        let ending = |total: f64| {
+            let bins = ((total - C0 * (12e-9 - inst.tdc.system_delay)) / (C0 * 16e-12)).floor();
+            acq(bins as u32, 12e-9)
+        };
+        let between = ending(under - 0.01);
+        let (_, union_to) = recorded_hidden_range(&two, &between, &inst).unwrap();
+        let union_near = two
+            .iter()
+            .map(|p| path_range(&p.pair(), &aside).0)
+            .fold(f64::INFINITY, f64::min);
+        assert!(
+            union_to > union_near,
+            "the union overlaps: {union_to} {union_near}"
+        );
+        let e = run_axis(&two, &aside, &between, &inst).unwrap_err().to_string();
+        assert!(e.contains("none of any planned pair's own paths"), "{e}");
+        assert!(run_axis(&two, &aside, &ending(under + 0.05), &inst).is_ok());
         // A window wholly before the volume's paths: refused, naming the key to move.
         let early = acq(64, 12e-9);
         let e = run_axis(&pairs, &volume, &early, &inst).unwrap_err().to_string();
