@@ -495,11 +495,10 @@ fn window(plan: &Plan, inst: &InstrumentConfig) -> (String, Vec<String>) {
         ));
         // A window that starts well before the paths wastes bins: a later offset
         // needs fewer.
-        let later = (((near / C0 + inst.tdc.system_delay) * 1e10).floor() / 10.0).max(0.0);
-        if !moved && later > a.offset * 1e9 + 0.05 && bins_from(start_at(later)) < bins {
+        if !moved && offset_ns > a.offset * 1e9 + 0.05 && bins_from(start_at(offset_ns)) < bins {
             fix.push(format!(
-                "or acquisition.offset-ns {later:.1} and bins at least {}",
-                bins_from(start_at(later))
+                "or acquisition.offset-ns {offset_ns:.1} and bins at least {}",
+                bins_from(start_at(offset_ns))
             ));
         }
     }
