@@ -196,6 +196,29 @@ fn an_hdf5_bomb_is_refused_before_anything_is_allocated() {
 }
 
 #[test]
+fn a_contiguous_dataset_recorded_beyond_the_file_is_refused_before_it_is_read() {
+    let dir = tempfile::tempdir().unwrap();
+    let file = write(dir.path(), "run.hdf5", &capture());
+    // The relay points are stored contiguously: their layout message (version 3 or 4,
+    // class 1) records an address and a byte count, 11 × 13 points × 3 × 4 bytes.
+    // Forged to claim a TiB.
+    let bytes = std::fs::read(&file).unwrap();
+    let size = (11u64 * 13 * 3 * 4).to_le_bytes();
+    let at = (0..bytes.len() - 18)
+        .find(|&i| matches!(bytes[i], 3 | 4) && bytes[i + 1] == 1 && bytes[i + 10..i + 18] == size)
+        .expect("a contiguous layout message of the relay points' size");
+    let mut forged = bytes[at..at + 18].to_vec();
+    forged[10..].copy_from_slice(&(1u64 << 40).to_le_bytes());
+    forge(&file, &bytes[at..at + 18], &forged);
+    let (code, stderr) = recon_within(1 << 20, &file, &dir.path().join("out"));
+    assert_eq!(code, Some(1), "{stderr}");
+    assert!(
+        stderr.contains("run.hdf5") && stderr.contains("lies beyond the end of the file"),
+        "{stderr}"
+    );
+}
+
+#[test]
 fn a_tiny_bin_width_is_refused_instead_of_allocating_terabytes() {
     let dir = tempfile::tempdir().unwrap();
     let mut c = capture();
@@ -276,6 +299,26 @@ fn a_chunk_recorded_beyond_the_file_is_refused_before_it_is_read() {
     let (code, stderr) = recon_within(1 << 20, &file, &dir.path().join("out"));
     assert_eq!(code, Some(1), "{stderr}");
     assert!(stderr.contains("dataset `H`: a chunk"), "{stderr}");
+}
+
+#[test]
+fn a_chunk_index_the_hdf5_layer_cannot_list_is_refused_before_it_is_read() {
+    // Found by the `capture_file` fuzz target: a 14 KB MAT v7.3 file whose `rect_data`
+    // lists a chunk at the undefined address, which the HDF5 layer cannot place past
+    // the file's 512-byte header; the chunk check used to pass over an index it could
+    // not list, and the read then reserved 4 GiB (4.2 GB resident before the error).
+    // Refused under a 1 GiB address-space limit.
+    let seed = Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../fuzz/corpus/capture_file/seed-regression-mat73-chunk-index-unreadable");
+    let dir = tempfile::tempdir().unwrap();
+    let file = dir.path().join("forged.mat");
+    std::fs::copy(seed, &file).unwrap();
+    let (code, stderr) = recon_within(1 << 20, &file, &dir.path().join("out"));
+    assert_eq!(code, Some(1), "{stderr}");
+    assert!(
+        stderr.contains("forged.mat") && stderr.contains("`rect_data`: its chunk index cannot be read"),
+        "{stderr}"
+    );
 }
 
 /// Finite but huge counts (3e38, near f32::MAX) overflowed the reconstruction's sums

@@ -95,7 +95,15 @@ impl Reader<'_> {
         // Every stored chunk must lie inside the file and inside the dataset: the HDF5
         // layer trusts a chunk's recorded size and offset when it reads (the fuzzer
         // found a 160 KB file whose chunk record made it allocate 3.4 GB).
-        if chunked && let Ok(chunks) = ds.chunks() {
+        // A chunk index the HDF5 layer cannot list (an address past the end of the
+        // address space, as in a 14 KB file the fuzzer found that made it reserve 4 GiB
+        // to read) is refused too: what is not checked is not read.
+        if chunked {
+            let chunks = ds.chunks().map_err(|e| {
+                err(format!(
+                    "its chunk index cannot be read ({e}): the file is damaged or forged"
+                ))
+            })?;
             for c in &chunks {
                 let inside_file = c
                     .address
@@ -110,6 +118,19 @@ impl Reader<'_> {
                     )));
                 }
             }
+        }
+        // A contiguous layout records its own address and byte count, which the HDF5
+        // layer reads whatever the shape says: they must lie inside the file as well.
+        if let Ok(hdf5_pure::Layout::Contiguous {
+            address: Some(address),
+            size,
+        }) = ds.layout()
+            && address.checked_add(size).is_none_or(|end| end > self.file_len)
+        {
+            return Err(err(format!(
+                "its data ({size} bytes) lies beyond the end of the file ({} bytes): it is truncated or forged",
+                self.file_len
+            )));
         }
         shape
             .into_iter()
