@@ -288,6 +288,12 @@ fn check_judges_the_tdc_window_against_the_paths_the_run_needs() {
             "part recorded",
             "the scan will find no relay",
         ),
+        (
+            "offset-ns = 0.0\n",
+            "all recorded",
+            "part recorded",
+            "at this offset, or acquisition.offset-ns",
+        ),
     ] {
         let out = check(acquisition);
         assert_eq!(
@@ -299,7 +305,17 @@ fn check_judges_the_tdc_window_against_the_paths_the_run_needs() {
             out.contains("warning: acquisition:") && out.contains(says),
             "{acquisition}{out}"
         );
-        let fixed = fixes(&out);
+        // The fixes replace the case's own lines of the same keys.
+        let merged = |fix: &str| -> String {
+            let keys: Vec<&str> = fix.lines().filter_map(|l| l.split(" = ").next()).collect();
+            acquisition
+                .lines()
+                .filter(|l| !keys.iter().any(|k| l.starts_with(&format!("{k} = "))))
+                .map(|l| format!("{l}\n"))
+                .chain(std::iter::once(fix.to_owned()))
+                .collect()
+        };
+        let fixed = merged(&fixes(&out));
         let after = check(&fixed);
         assert_eq!(verdicts(&after), all, "{fixed}{after}");
         assert!(!after.contains("warning"), "{fixed}{after}");
@@ -310,7 +326,49 @@ fn check_judges_the_tdc_window_against_the_paths_the_run_needs() {
             );
             assert_ne!(verdicts(&check(&fewer)), all, "{fewer}");
         }
+        // The later offset, where one is named, records all with fewer bins.
+        if let Some(later) = later(&out).map(|l| merged(&l)) {
+            let after = check(&later);
+            assert_eq!(verdicts(&after), all, "{later}{after}");
+            assert!(!after.contains("warning"), "{later}{after}");
+        }
     }
+
+    // A window that would need more bins than a histogram holds at its offset, but
+    // not at a later one, is told the later one. 1 ps bins (0.3 mm of path) from
+    // 0 ns, a volume reaching 8 m: about 69,000 bins from 0 m, 57,000 from the LOS
+    // returns.
+    let deep = text.replace("z = [0.3, 0.9]", "z = [0.3, 8.0]").replace(
+        "[acquisition]\n",
+        "[acquisition]\nbin-width-ps = 1\noffset-ns = 0.0\nbins = 65536\n",
+    );
+    assert_ne!(deep, text);
+    let plan = dir.path().join("deep.toml");
+    std::fs::write(&plan, &deep).unwrap();
+    let out = periscope(&["check", plan.to_str().unwrap()]).stdout;
+    assert!(out.contains("warning: acquisition:"), "{out}");
+    assert!(!out.contains("more than the 65536"), "{out}");
+    let later = later(&out).unwrap_or_else(|| panic!("no later offset named:\n{out}"));
+    let fixed = deep.replace("offset-ns = 0.0\nbins = 65536\n", &later);
+    std::fs::write(&plan, &fixed).unwrap();
+    let after = periscope(&["check", plan.to_str().unwrap()]).stdout;
+    assert_eq!(verdicts(&after), all, "{fixed}{after}");
+}
+
+/// The later offset a window warning names (`or acquisition.offset-ns X and bins at
+/// least N`, or alone where the plan's offset would need too many bins), as
+/// [acquisition] lines.
+fn later(out: &str) -> Option<String> {
+    out.match_indices("acquisition.offset-ns ").find_map(|(at, key)| {
+        let rest = &out[at + key.len()..];
+        let offset: String = rest
+            .chars()
+            .take_while(|c| c.is_ascii_digit() || *c == '.')
+            .collect();
+        let rest = rest[offset.len()..].strip_prefix(" and bins at least ")?;
+        let bins: String = rest.chars().take_while(char::is_ascii_digit).collect();
+        Some(format!("offset-ns = {offset}\nbins = {bins}\n"))
+    })
 }
 
 #[test]

@@ -3,13 +3,13 @@
 use std::fmt::Write;
 
 use glam::DVec3;
-use periscope_drivers::{AngleLimits, GalvoPose, OpticalAngles};
+use periscope_drivers::{AngleLimits, GalvoPose, OpticalAngles, TdcConfig};
 use periscope_recon::gtr::gain_start_epoch;
 use periscope_recon::relay::Region;
 use periscope_recon::transient::path_range;
 use periscope_recon::{C0, Pair, TimeAxis};
 
-use crate::config::InstrumentConfig;
+use crate::config::{InstrumentConfig, TdcDriver};
 use crate::plan::{Method, PairMode, Plan};
 
 /// Software overhead per measured point (moves, acquisition, storage), seconds; the
@@ -214,7 +214,8 @@ pub fn check(plan: &Plan, inst: &InstrumentConfig) -> Check {
         a.bin_width * 1e12,
         a.offset * 1e9
     );
-    let (line, warnings) = window(plan, inst);
+    let (line, mut warnings) = window(plan, inst);
+    warnings.extend(tdc_settings(plan, inst));
     out.push_str(&line);
     let rc = &plan.recon;
     let v = &rc.volume;
@@ -401,7 +402,57 @@ fn relay_samples(region: &Region, plan: &Plan, inst: &InstrumentConfig) -> (Vec<
 }
 
 /// The most bins a plan's histogram may have (`acquisition.bins`).
-const MAX_PLAN_BINS: u64 = 65_536;
+const MAX_PLAN_BINS: u64 = crate::plan::MAX_BINS as u64;
+
+/// The step an offset is given in and the latest the TDC and a plan take, ns: a
+/// PicoQuant counter sets whole nanoseconds up to its family's largest, Periscope's
+/// USB histogrammer picoseconds (suggested to a tenth of a nanosecond).
+fn offset_steps(inst: &InstrumentConfig) -> (f64, f64) {
+    match &inst.tdc.driver {
+        TdcDriver::PicoQuant(counter) => (
+            1.0,
+            (counter.family.max_offset_ns() as f64).min(crate::plan::MAX_OFFSET_NS),
+        ),
+        TdcDriver::Usb => (0.1, crate::plan::MAX_OFFSET_NS),
+    }
+}
+
+/// What the configured TDC would refuse of the plan's settings before it measures
+/// anything, as warnings naming the plan's table: a PicoQuant counter takes whole
+/// milliseconds and nanoseconds and its own sync dividers and histogram lengths
+/// ([`Family::settings`](periscope_drivers::picoquant::Family::settings), which its
+/// driver applies). Periscope's USB histogrammer takes whatever a plan may say.
+fn tdc_settings(plan: &Plan, inst: &InstrumentConfig) -> Vec<String> {
+    let TdcDriver::PicoQuant(counter) = &inst.tdc.driver else {
+        return Vec::new();
+    };
+    let a = &plan.acquisition;
+    let config = |dwell| TdcConfig {
+        bin_width: a.bin_width,
+        bins: a.bins,
+        offset: a.offset,
+        sync_divider: inst.tdc.sync_divider,
+        acquisition: dwell,
+    };
+    let los = counter.family.settings(&config(plan.los.dwell)).err();
+    let capture = counter.family.settings(&config(a.dwell)).err();
+    let mut out = Vec::new();
+    if let Some(e) = &los {
+        out.push(format!(
+            "los: the run will stop before its LOS scan, which the {} refuses: {e}",
+            counter.family
+        ));
+    }
+    // The same refusal (of the offset, the bins or the divider) is named once.
+    if let Some(e) = capture.filter(|e| Some(e) != los.as_ref()) {
+        out.push(format!(
+            "acquisition: the run will stop before its first pair, whose settings the {} \
+             refuses: {e}",
+            counter.family
+        ));
+    }
+    out
+}
 
 /// The TDC window against the total paths the run needs it to record, over relay points
 /// sampled where the plan lets them fall ([`relay_samples`]): the LOS scan's first
@@ -428,9 +479,11 @@ fn window(plan: &Plan, inst: &InstrumentConfig) -> (String, Vec<String>) {
             (s, b && boxed_d)
         }
     };
-    // Four bins of the hidden axis's own margin, one for its rounding to a bin, and
-    // three standard deviations of the jitter.
-    let pad = 5.0 * tdc.width + 3.0 * C0 * inst.spad.jitter_fwhm / 2.355;
+    // A pulse spreads by the jitter (three standard deviations) and is read in whole
+    // bins (one); the hidden axis adds four bins of its own margin past the volume's
+    // paths.
+    let los_pad = tdc.width + 3.0 * C0 * inst.spad.jitter_fwhm / 2.355;
+    let pad = los_pad + 4.0 * tdc.width;
     let widen = |(lo, hi): (f64, f64), x: f64| (lo.min(x), hi.max(x));
     let empty = (f64::INFINITY, f64::NEG_INFINITY);
     let los = detection
@@ -457,23 +510,37 @@ fn window(plan: &Plan, inst: &InstrumentConfig) -> (String, Vec<String>) {
             take(xi, xd);
         }
     }
-    let (los, volume) = ((los.0 - pad, los.1 + pad), (volume.0 - pad, volume.1 + pad));
+    let (los, volume) = (
+        (los.0 - los_pad, los.1 + los_pad),
+        (volume.0 - pad, volume.1 + pad),
+    );
     let (from, to) = (tdc.start, tdc.end());
     let (near, far) = (los.0.min(volume.0), los.1.max(volume.1));
-    // The latest offset (ns, to a tenth, rounded down, at least 0) whose window starts
-    // by `near`, and the bins a window from `start` needs to reach `far`.
-    let offset_ns = (((near / C0 + inst.tdc.system_delay) * 1e10).floor() / 10.0).max(0.0);
+    // The latest offset the TDC can be given (ns, rounded down to its step: a tenth,
+    // or a whole ns on a PicoQuant counter; at least 0, at most its largest) whose
+    // window starts by `near`, and the bins a window from `start` needs to reach `far`.
+    let (step_ns, max_ns) = offset_steps(inst);
+    let offset_ns = ((near / C0 + inst.tdc.system_delay) * 1e9 / step_ns).floor() * step_ns;
+    let offset_ns = offset_ns.clamp(0.0, max_ns);
+    let shown = |ns: f64| {
+        if step_ns >= 1.0 {
+            format!("{ns:.0}")
+        } else {
+            format!("{ns:.1}")
+        }
+    };
     let start_at = |offset_ns: f64| C0 * (offset_ns * 1e-9 - inst.tdc.system_delay);
     let bins_from = |start: f64| ((far - start) / tdc.width).ceil().max(16.0) as u64;
     let mut fix = Vec::new();
     if from > near {
-        fix.push(format!("acquisition.offset-ns at most {offset_ns:.1}"));
-        if start_at(offset_ns) > near {
+        if offset_ns == 0.0 && start_at(0.0) > near {
             fix.push(format!(
-                "(the earliest offset, 0 ns, starts at {:.2} m: the system delay puts the \
-                 nearest paths before any offset)",
+                "acquisition.offset-ns 0 (the earliest offset, which starts at {:.2} m: the \
+                 system delay puts the nearest paths before any offset)",
                 start_at(0.0)
             ));
+        } else {
+            fix.push(format!("acquisition.offset-ns at most {}", shown(offset_ns)));
         }
     }
     let (start, moved) = if from > near {
@@ -482,24 +549,28 @@ fn window(plan: &Plan, inst: &InstrumentConfig) -> (String, Vec<String>) {
         (from, false)
     };
     let bins = bins_from(start);
+    // A window that starts well before the paths wastes bins: a later offset needs
+    // fewer, and may need no more than a histogram holds where this one does.
+    let later = (!moved && offset_ns > a.offset * 1e9 + step_ns / 2.0)
+        .then(|| bins_from(start_at(offset_ns)))
+        .filter(|&b| b < bins && b <= MAX_PLAN_BINS)
+        .map(|b| format!("acquisition.offset-ns {} and bins at least {b}", shown(offset_ns)));
     if bins > MAX_PLAN_BINS {
-        fix.push(format!(
-            "{bins} bins{}, more than the {MAX_PLAN_BINS} a histogram may have: wider bins \
-             (acquisition.bin-width-ps) or a [recon.volume] nearer the relay",
-            if moved { " from there" } else { " at this offset" }
-        ));
+        match later {
+            Some(later) => fix.push(later),
+            None => fix.push(format!(
+                "{bins} bins{}, more than the {MAX_PLAN_BINS} a histogram may have: wider bins \
+                 (acquisition.bin-width-ps) or a [recon.volume] nearer the relay",
+                if moved { " from there" } else { " at this offset" }
+            )),
+        }
     } else if bins > u64::from(a.bins) {
         fix.push(format!(
             "acquisition.bins at least {bins}{}",
             if moved { " from there" } else { " at this offset" }
         ));
-        // A window that starts well before the paths wastes bins: a later offset
-        // needs fewer.
-        if !moved && offset_ns > a.offset * 1e9 + 0.05 && bins_from(start_at(offset_ns)) < bins {
-            fix.push(format!(
-                "or acquisition.offset-ns {offset_ns:.1} and bins at least {}",
-                bins_from(start_at(offset_ns))
-            ));
+        if let Some(later) = later {
+            fix.push(format!("or {later}"));
         }
     }
     let fix = if fix.is_empty() {
@@ -536,7 +607,7 @@ fn window(plan: &Plan, inst: &InstrumentConfig) -> (String, Vec<String>) {
     };
     let line = format!(
         "  TDC window: total paths {from:.2}–{to:.2} m; the LOS returns from {}: {:.2}–{:.2} m, {}; \
-         the volume's paths through them: {:.2}–{:.2} m, {} (each with a margin of {:.0} mm)\n",
+         the volume's paths through them: {:.2}–{:.2} m, {} (margins of {:.0} and {:.0} mm)\n",
         if boxed {
             "the relay regions"
         } else {
@@ -548,6 +619,7 @@ fn window(plan: &Plan, inst: &InstrumentConfig) -> (String, Vec<String>) {
         volume.0,
         volume.1,
         judge(volume),
+        los_pad * 1e3,
         pad * 1e3,
     );
     let mut warnings = Vec::new();

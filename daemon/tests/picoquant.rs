@@ -11,9 +11,11 @@
 //! library is not there.
 use std::path::{Path, PathBuf};
 
-use periscope_daemon::config::TomlSource;
+use periscope_daemon::check;
+use periscope_daemon::config::{InstrumentConfig, TomlSource};
 use periscope_daemon::events::Stage;
 use periscope_daemon::pipeline::{self};
+use periscope_daemon::plan::Plan;
 use periscope_standins::client::{Standin, exclusive};
 
 #[path = "common/standin_matrix.rs"]
@@ -173,5 +175,83 @@ fn periscope_devices_lists_the_counters_or_says_the_library_is_missing() {
     assert!(
         out.contains("cannot load /nonexistent/mh150/mhlib.so") && out.contains("install PicoQuant's MHLib"),
         "{out}"
+    );
+}
+
+/// `periscope check` names what the MultiHarp would refuse of a plan before the run
+/// opens it: the same settings its driver refuses (`Family::settings`), with the
+/// plan's key; and the offsets it suggests for the TDC window are whole nanoseconds.
+#[test]
+fn check_names_what_the_multiharp_would_refuse_before_the_run() {
+    let tmp = tempfile::tempdir().unwrap();
+    let ports = ("/dev/periscope-no-such-port-1", "/dev/periscope-no-such-port-2");
+    let lab = TomlSource::from_text(
+        tmp.path().join("lab.toml"),
+        lab_text(0.0, ports, Path::new("/nonexistent/mhlib.so")),
+    );
+    let inst = InstrumentConfig::from_source(&lab).unwrap();
+    let demo = std::fs::read_to_string(root().join("configs/plans/demo.toml")).unwrap();
+    let warnings = |edit: &dyn Fn(&str) -> String| {
+        let text = edit(&demo);
+        assert_ne!(text, demo, "the edit changed nothing");
+        let plan =
+            Plan::from_source(&TomlSource::from_text(tmp.path().join("plan.toml"), text), &inst).unwrap();
+        check::check(&plan, &inst).warnings
+    };
+    let acquisition =
+        |lines: &'static str| move |t: &str| t.replace("[acquisition]\n", &format!("[acquisition]\n{lines}"));
+    let refusals = |w: &[String]| {
+        w.iter()
+            .filter(|w| w.contains("refuses"))
+            .cloned()
+            .collect::<Vec<_>>()
+    };
+
+    // Whole milliseconds and nanoseconds, 1,024 bins: nothing to refuse.
+    assert_eq!(
+        refusals(&warnings(&acquisition("bins = 1024\n"))),
+        Vec::<String>::new()
+    );
+    // The capture's dwell: only the capture is refused.
+    let w = refusals(&warnings(&|t: &str| {
+        t.replace("dwell-ms = 20.0", "dwell-ms = 20.5")
+    }));
+    assert_eq!(w.len(), 1, "{w:?}");
+    assert!(
+        w[0].starts_with("acquisition:") && w[0].contains("whole milliseconds"),
+        "{w:?}"
+    );
+    // The LOS scan's dwell: only the scan is refused.
+    let w = refusals(&warnings(&|t: &str| {
+        t.replace("dwell-ms = 1.0", "dwell-ms = 0.5")
+    }));
+    assert_eq!(w.len(), 1, "{w:?}");
+    assert!(
+        w[0].starts_with("los:") && w[0].contains("whole milliseconds"),
+        "{w:?}"
+    );
+    // The offset, which both share, is named once.
+    let w = refusals(&warnings(&acquisition("offset-ns = 12.5\n")));
+    assert_eq!(w.len(), 1, "{w:?}");
+    assert!(w[0].contains("whole nanoseconds"), "{w:?}");
+    // A window that starts past the LOS returns: the offset it names is whole, and
+    // the plan that takes it has nothing refused and nothing short.
+    let w = warnings(&acquisition("offset-ns = 20\n"));
+    let window = w
+        .iter()
+        .find(|w| w.contains("acquisition.offset-ns at most "))
+        .unwrap_or_else(|| panic!("{w:?}"));
+    let at = window.find("at most ").unwrap() + "at most ".len();
+    let offset: String = window[at..]
+        .chars()
+        .take_while(|c| c.is_ascii_digit() || *c == '.')
+        .collect();
+    let offset = offset.trim_end_matches('.');
+    assert!(!offset.is_empty() && !offset.contains('.'), "{window}");
+    let fixed = format!("offset-ns = {offset}\n");
+    let w = warnings(&|t: &str| t.replace("[acquisition]\n", &format!("[acquisition]\n{fixed}")));
+    assert!(
+        refusals(&w).is_empty() && !w.iter().any(|w| w.contains("none of")),
+        "{w:?}"
     );
 }

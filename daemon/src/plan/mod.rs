@@ -99,6 +99,12 @@ pub struct RelayStage {
     pub albedo_from_scan: bool,
 }
 
+/// The fewest and most bins a plan's histogram may have (`acquisition.bins`).
+pub(crate) const MIN_BINS: u32 = 16;
+pub(crate) const MAX_BINS: u32 = 65_536;
+/// The latest offset a plan may give its TDC window (`acquisition.offset-ns`), ns.
+pub(crate) const MAX_OFFSET_NS: f64 = 1e6;
+
 /// Per-pair acquisition.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Acquisition {
@@ -335,7 +341,7 @@ impl Plan {
             dwell: dwell(src, "acquisition.dwell-ms", a.dwell_ms)?,
             bins: match a.bins {
                 None => instrument.tdc.bins,
-                Some(b) if (16..=65_536).contains(&b) => b,
+                Some(b) if (MIN_BINS..=MAX_BINS).contains(&b) => b,
                 Some(_) => return Err(src.invalid("acquisition.bins", "must be 16 to 65,536")),
             },
             bin_width: match a.bin_width_ps {
@@ -350,7 +356,7 @@ impl Plan {
             },
             offset: match a.offset_ns {
                 None => instrument.tdc.offset,
-                Some(o) if (0.0..=1e6).contains(&o) => o * 1e-9,
+                Some(o) if (0.0..=MAX_OFFSET_NS).contains(&o) => o * 1e-9,
                 Some(_) => return Err(src.invalid("acquisition.offset-ns", "must be 0 to 1,000,000 ns")),
             },
             repeats: match a.repeats {

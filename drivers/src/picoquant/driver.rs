@@ -19,7 +19,7 @@ use tracing::{debug, instrument, warn};
 
 use super::defin::{self, MAX_DEV_NUM, MODE_HIST, REFSRC_INTERNAL, error as code, flag, warning};
 use super::error::PicoQuantError;
-use super::family::{Family, Trigger};
+use super::family::{Family, Settings, Trigger};
 use super::ffi::{Lib, LoadError};
 use crate::error::{Error, ErrorKind, ErrorType};
 use crate::traits::{
@@ -314,42 +314,11 @@ impl PicoQuantTdc {
     fn apply(&self, config: &TdcConfig) -> Result<Applied, PicoQuantError> {
         let family = self.settings.family;
         let refuse = |what: String| self.err(ErrorKind::OutOfRange, what);
-        if !family.sync_divider_ok(config.sync_divider) {
-            return Err(refuse(format!(
-                "the {family} does not take sync divider {} (tdc.sync-divider): {}",
-                config.sync_divider,
-                match family {
-                    Family::MultiHarp => "use 1 to 16",
-                    Family::HydraHarp => "use 1, 2, 4, 8 or 16",
-                }
-            )));
-        }
-        let acquisition_ms = whole(config.acquisition.as_secs_f64() * 1e3, 1e-3)
-            .filter(|ms| defin::ACQ_MS.contains(ms))
-            .ok_or_else(|| {
-                refuse(format!(
-                    "the {family} measures whole milliseconds (1 ms to 100 h), not a dwell of {:?}: set the plan's dwell-ms to a whole number",
-                    config.acquisition
-                ))
-            })?;
-        let offset_ns = whole(config.offset * 1e9, 1e-3)
-            .filter(|ns| (0..=family.max_offset_ns()).contains(ns))
-            .ok_or_else(|| {
-                refuse(format!(
-                    "the {family} sets its histogram offset in whole nanoseconds (0 to {} ns), not {} ns: set offset-ns to a whole number",
-                    family.max_offset_ns(),
-                    config.offset * 1e9
-                ))
-            })?;
-        let len_code = (family.min_len_code()..=defin::MAX_LEN_CODE)
-            .find(|c| 1024usize << c >= config.bins as usize)
-            .ok_or_else(|| {
-                refuse(format!(
-                    "the {family} histograms at most {} bins, not {}",
-                    defin::MAX_HIST_LEN,
-                    config.bins
-                ))
-            })?;
+        let Settings {
+            acquisition_ms,
+            offset_ns,
+            len_code,
+        } = family.settings(config).map_err(refuse)?;
         let (dev, lib) = (self.index, &self.lib);
         self.call("SetSyncDiv", lib.set_sync_div(dev, config.sync_divider as i32))?;
         let len = self.call("SetHistoLen", lib.set_histo_len(dev, len_code))?;
@@ -379,7 +348,7 @@ impl PicoQuantTdc {
             )));
         }
         self.call("SetBinning", lib.set_binning(dev, binning as i32))?;
-        self.call("SetOffset", lib.set_offset(dev, offset_ns as i32))?;
+        self.call("SetOffset", lib.set_offset(dev, offset_ns))?;
         let got_ps = self.call("GetResolution", lib.resolution(dev))?;
         if (got_ps - want_ps).abs() > 1e-3 * want_ps {
             return Err(self.err(
@@ -389,7 +358,7 @@ impl PicoQuantTdc {
         }
         Ok(Applied {
             config: *config,
-            acquisition_ms: acquisition_ms as i32,
+            acquisition_ms,
         })
     }
 
@@ -606,12 +575,6 @@ fn find(lib: &Lib, settings: &PicoQuantSettings) -> Result<(i32, String), PicoQu
             settings.library.display()
         ),
     ))
-}
-
-/// `x` as a whole number if it is one within `tolerance`.
-fn whole(x: f64, tolerance: f64) -> Option<i64> {
-    let r = x.round();
-    (x.is_finite() && (x - r).abs() <= tolerance).then_some(r as i64)
 }
 
 impl Drop for PicoQuantTdc {

@@ -4,6 +4,9 @@
 //! calibration, `GetHistogram`'s extra argument, ranges). One driver, parameterised by
 //! the family, instead of two copies.
 
+use super::defin;
+use crate::traits::TdcConfig;
+
 /// Which PicoQuant library, and so which instruments.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
 pub enum Family {
@@ -133,6 +136,76 @@ impl Family {
             Family::HydraHarp => 500_000,
         }
     }
+}
+
+/// The settings a PicoQuant library is given for a [`TdcConfig`], in its own units.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Settings {
+    /// Acquisition time, whole milliseconds.
+    pub acquisition_ms: i32,
+    /// Histogram offset, whole nanoseconds.
+    pub offset_ns: i32,
+    /// Histogram length code: `1024 · 2^code` bins.
+    pub len_code: i32,
+}
+
+impl Family {
+    /// `config` as this family's library takes it: its sync divider, a whole number of
+    /// milliseconds (1 ms to 100 h), an offset of whole nanoseconds within the family's
+    /// range and a histogram length code that holds its bins. `Err` says what the device
+    /// would refuse and what to set instead. What depends on the device itself (the bin
+    /// width, its base resolution times a power of two) is checked once it is open.
+    /// Needs no device, so `periscope check` asks it too.
+    pub fn settings(self, config: &TdcConfig) -> Result<Settings, String> {
+        if !self.sync_divider_ok(config.sync_divider) {
+            return Err(format!(
+                "the {self} does not take sync divider {} (tdc.sync-divider): {}",
+                config.sync_divider,
+                match self {
+                    Family::MultiHarp => "use 1 to 16",
+                    Family::HydraHarp => "use 1, 2, 4, 8 or 16",
+                }
+            ));
+        }
+        let acquisition_ms = whole(config.acquisition.as_secs_f64() * 1e3, 1e-3)
+            .filter(|ms| defin::ACQ_MS.contains(ms))
+            .ok_or_else(|| {
+                format!(
+                    "the {self} measures whole milliseconds (1 ms to 100 h), not a dwell of {:?}: set the plan's dwell-ms to a whole number",
+                    config.acquisition
+                )
+            })?;
+        let offset_ns = whole(config.offset * 1e9, 1e-3)
+            .filter(|ns| (0..=self.max_offset_ns()).contains(ns))
+            .ok_or_else(|| {
+                format!(
+                    "the {self} sets its histogram offset in whole nanoseconds (0 to {} ns), not {} ns: set offset-ns to a whole number",
+                    self.max_offset_ns(),
+                    config.offset * 1e9
+                )
+            })?;
+        let len_code = (self.min_len_code()..=defin::MAX_LEN_CODE)
+            .find(|c| 1024usize << c >= config.bins as usize)
+            .ok_or_else(|| {
+                format!(
+                    "the {self} histograms at most {} bins, not {}",
+                    defin::MAX_HIST_LEN,
+                    config.bins
+                )
+            })?;
+        // Each is within i32: ACQ_MS and the offsets' ranges are.
+        Ok(Settings {
+            acquisition_ms: acquisition_ms as i32,
+            offset_ns: offset_ns as i32,
+            len_code,
+        })
+    }
+}
+
+/// `x` as a whole number, if it lies within `tolerance` of one.
+fn whole(x: f64, tolerance: f64) -> Option<i64> {
+    let r = x.round();
+    (x.is_finite() && (x - r).abs() <= tolerance).then_some(r as i64)
 }
 
 impl std::fmt::Display for Family {

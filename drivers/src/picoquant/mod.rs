@@ -18,4 +18,4 @@ mod ffi;
 
 pub use driver::{FoundCounter, POLL, PicoQuantSettings, PicoQuantTdc, list_counters};
 pub use error::{PicoQuantError, kind_of};
-pub use family::{Family, Trigger};
+pub use family::{Family, Settings, Trigger};
