@@ -247,14 +247,16 @@ pub fn run_axis(
     })?;
     // Each pair's own window against its own paths: the union above can overlap where
     // no pair records any of its own (the pair with the shortest legs aimed away from
-    // the volume, the one under it with longer legs).
+    // the volume, the one under it with longer legs). A pair is blind where no bin the
+    // fit will read of it (whole bins of the kept axis inside its window) reaches its
+    // paths.
     let blind = pairs
         .iter()
         .zip(&recon_pairs)
         .filter(|(p, q)| {
-            let (from, to) = recorded_window(p, acq, inst);
+            let (from, to) = recorded_bins(&kept, p, acq, inst);
             let (near, far) = path_range(q, volume);
-            to <= near || from >= far
+            to <= from || to <= near || from >= far
         })
         .count();
     if blind == pairs.len() {

@@ -14,10 +14,12 @@
 //! A pair records only part of the axis where its time window stops short of the
 //! volume's paths (its legs shift the window; the fit reads only the bins it recorded,
 //! [`crate::transient::TransientSet::recorded`]). A pulse cut by the window informs
-//! only through the bins inside it: its `c` is scaled by the share of the pulse's
-//! information there, `∫ z² φ(z) dz` over the recorded `z = (L − μ)/σ` under the
-//! Poisson model and `∫ z² φ(z)² dz` (normalised) under least squares, both closed
-//! forms in Φ and φ ([`recorded_share`]).
+//! only through the bins inside it, and its amplitude is learnt from those same bins:
+//! its `c` is scaled by the share of the information about its place left once the
+//! amplitude is fitted there, the Schur complement `ΔF − (Δφ)²/ΔΦ` over the recorded
+//! `z = (L − μ)/σ`, with `F(z) = Φ(z) − z φ(z)`, under the Poisson model, and the same
+//! at `√2 z` under least squares (whose weights are `φ²`); half a pulse holds
+//! `1/2 − 1/π` of it ([`recorded_share`]).
 //!
 //! The pairs measured so far give primitive `k` the information `M_k = Σ J`. A
 //! candidate's value is the D-optimal gain, the fall in the log-volume of every
