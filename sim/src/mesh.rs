@@ -168,10 +168,27 @@ impl Mesh {
             single_index: true,
             ..Default::default()
         };
-        let (models, _) = tobj::load_obj_buf(&mut std::io::Cursor::new(bytes), &options, |_| {
-            Err(tobj::LoadError::OpenFileFailed)
+        // A scene uses positions and faces only. tobj trusts a face's texture and
+        // normal indices in its arithmetic (the `mesh` fuzz target found a relative
+        // texture index before the first coordinate that overflows it, a panic where
+        // overflow is checked), so it is given no texture coordinates or normals to
+        // look up; and any other panic in it is this file's error, never a crash of the
+        // daemon that loads the scene.
+        let bytes = positions_only(bytes);
+        let decoded = std::panic::catch_unwind(|| {
+            tobj::load_obj_buf(&mut std::io::Cursor::new(&bytes), &options, |_| {
+                Err(tobj::LoadError::OpenFileFailed)
+            })
         })
-        .map_err(|e| e.to_string())?;
+        .map_err(|payload| {
+            let why = payload
+                .downcast_ref::<&str>()
+                .map(|s| (*s).to_owned())
+                .or_else(|| payload.downcast_ref::<String>().cloned())
+                .unwrap_or_else(|| "a panic without a message".into());
+            format!("is malformed: the OBJ decoder failed on it ({why})")
+        })?;
+        let (models, _) = decoded.map_err(|e| e.to_string())?;
         let mut mesh = Mesh::default();
         for model in models {
             let m = &model.mesh;
@@ -210,6 +227,24 @@ impl Mesh {
     }
 }
 
+/// An OBJ file's bytes without its texture coordinate (`vt`) and normal (`vn`) lines,
+/// which a scene does not use; faces that still name them then look nothing up. A line
+/// is told as tobj tells it: its first word, split on Unicode whitespace (the fuzzer
+/// put a vertical tab before a `vt`). A line that is not UTF-8 is kept, and tobj
+/// refuses the file for it.
+fn positions_only(bytes: &[u8]) -> Vec<u8> {
+    let mut out = Vec::with_capacity(bytes.len());
+    for line in bytes.split_inclusive(|&b| b == b'\n') {
+        let first = std::str::from_utf8(line)
+            .ok()
+            .and_then(|text| text.split_whitespace().next());
+        if !matches!(first, Some("vt" | "vn")) {
+            out.extend_from_slice(line);
+        }
+    }
+    out
+}
+
 /// Largest mesh file a scene may name, bytes.
 pub const MAX_MESH_FILE_BYTES: u64 = 1 << 30;
 
@@ -242,9 +277,13 @@ fn read_mesh_file(path: &Path) -> Result<Vec<u8>, String> {
 fn load_ply(bytes: &[u8]) -> Result<Mesh, String> {
     use ply_rs_bw::parser::Parser;
     use ply_rs_bw::ply::{DefaultElement, Property};
-    let mut reader = std::io::Cursor::new(bytes);
-    let ply = Parser::<DefaultElement>::new()
-        .read_ply(&mut reader)
+    let parser = Parser::<DefaultElement>::new();
+    let header = parser
+        .read_ply_header(&mut std::io::Cursor::new(bytes))
+        .map_err(|e| e.to_string())?;
+    ply_elements_fit(bytes, &header)?;
+    let ply = parser
+        .read_ply(&mut std::io::Cursor::new(bytes))
         .map_err(|e| e.to_string())?;
     let scalar = |p: &Property| -> Option<f64> {
         Some(match p {
@@ -286,4 +325,141 @@ fn load_ply(bytes: &[u8]) -> Result<Mesh, String> {
         }
     }
     Ok(mesh)
+}
+
+/// Refuses a PLY header whose elements cannot fit in the bytes after it, before the
+/// parser reads them: an instance of a binary element takes at least its scalars' bytes
+/// and its lists' counts, an ASCII one at least a character and a separator a property.
+/// A binary element without properties takes no bytes at all, so the parser would read
+/// as many of them as the header claims out of nothing (the `mesh` fuzz target found
+/// one claiming 10^11 faces, which held gigabytes and tens of seconds).
+fn ply_elements_fit(bytes: &[u8], header: &ply_rs_bw::ply::Header) -> Result<(), String> {
+    use ply_rs_bw::ply::{Encoding, PropertyType, ScalarType};
+    let size = |t: &ScalarType| match t {
+        ScalarType::Char | ScalarType::UChar => 1u64,
+        ScalarType::Short | ScalarType::UShort => 2,
+        ScalarType::Int | ScalarType::UInt | ScalarType::Float => 4,
+        ScalarType::Double => 8,
+    };
+    let end = b"end_header";
+    let payload = bytes
+        .windows(end.len())
+        .position(|w| w == end)
+        .and_then(|at| {
+            let rest = &bytes[at..];
+            rest.iter()
+                .position(|&b| b == b'\n')
+                .map(|nl| (rest.len() - nl - 1) as u64)
+        })
+        .ok_or("no `end_header` line")?;
+    let mut need = 0u64;
+    for (name, e) in header.elements.iter() {
+        let each: u64 = e
+            .properties
+            .values()
+            .map(|p| match (&header.encoding, &p.data_type) {
+                (Encoding::Ascii, _) => 2,
+                (_, PropertyType::Scalar(t)) => size(t),
+                (_, PropertyType::List(count, _)) => size(count),
+            })
+            .sum();
+        if each == 0 && e.count > 0 {
+            return Err(format!(
+                "element `{name}` has no properties but claims {} instances",
+                e.count
+            ));
+        }
+        need = need.saturating_add((e.count as u64).saturating_mul(each));
+    }
+    if need > payload {
+        return Err(format!(
+            "its header declares elements of at least {need} bytes, but {payload} follow it: \
+             the file is truncated or forged"
+        ));
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn an_obj_keeps_its_positions_and_faces_without_its_texture_coordinates_and_normals() {
+        let quad = b"# a unit quad\nv 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nvt 0 0\nvt 1 0\nvt 1 1\nvt 0 1\n\
+                     vn 0 0 1\nf 1/1/1 2/2/1 3/3/1 4/4/1\n";
+        let m = Mesh::from_obj_bytes(quad).unwrap();
+        assert_eq!(m.triangles.len(), 2);
+        assert_eq!(m.vertices.len(), 4);
+        let area: f64 = m
+            .triangles
+            .iter()
+            .map(|t| {
+                let [a, b, c] = t.map(|i| m.vertices[i as usize]);
+                (b - a).cross(c - a).length() / 2.0
+            })
+            .sum();
+        assert!((area - 1.0).abs() < 1e-12, "{area}");
+        // A relative texture index before the first coordinate (found by the `mesh`
+        // fuzz target: it overflowed tobj's arithmetic) or past the last: looked up
+        // nowhere, the triangle kept.
+        for face in [
+            "f 1/-2 2 3\n",
+            "f 1/-9223372036854775807/-3 2 3\n",
+            "f 1/99/99 2/1 3\n",
+        ] {
+            // The coordinate's line starts with a vertical tab, whitespace to tobj.
+            let text = format!("v 0 0 0\nv 1 0 0\nv 0 1 0\n\u{b}vt 0 0\n{face}");
+            let m = Mesh::from_obj_bytes(text.as_bytes()).unwrap_or_else(|e| panic!("{face}: {e}"));
+            assert_eq!((m.vertices.len(), m.triangles.len()), (3, 1), "{face}");
+        }
+    }
+
+    /// A binary little-endian PLY of three vertices and `faces` declared triangles,
+    /// `body` after its header.
+    fn binary_ply(face_element: &str, body: &[u8]) -> Vec<u8> {
+        let mut out = format!(
+            "ply\nformat binary_little_endian 1.0\nelement vertex 3\nproperty float x\n\
+             property float y\nproperty float z\n{face_element}end_header\n"
+        )
+        .into_bytes();
+        out.extend_from_slice(body);
+        out
+    }
+
+    #[test]
+    fn a_ply_whose_header_claims_more_than_its_bytes_is_refused_before_it_is_read() {
+        let mut body = Vec::new();
+        for v in [[0f32, 0., 0.], [1., 0., 0.], [0., 1., 0.]] {
+            v.iter().for_each(|c| body.extend_from_slice(&c.to_le_bytes()));
+        }
+        let triangle = {
+            let mut t = body.clone();
+            t.push(3);
+            [0i32, 1, 2]
+                .iter()
+                .for_each(|i| t.extend_from_slice(&i.to_le_bytes()));
+            t
+        };
+        let list = "element face 1\nproperty list uchar int vertex_indices\n";
+        let m = Mesh::from_ply_bytes(&binary_ply(list, &triangle)).unwrap();
+        assert_eq!((m.vertices.len(), m.triangles.len()), (3, 1));
+        // Faces without properties take no bytes: 10^11 of them (found by the `mesh`
+        // fuzz target) would be read out of nothing.
+        let empty = "element face 99999999999\n";
+        let e = Mesh::from_ply_bytes(&binary_ply(empty, &body)).unwrap_err();
+        assert!(e.contains("`face` has no properties"), "{e}");
+        // More faces than the bytes after the header can hold.
+        let many = list.replace("face 1", "face 1000000");
+        let e = Mesh::from_ply_bytes(&binary_ply(&many, &triangle)).unwrap_err();
+        assert!(e.contains("truncated or forged"), "{e}");
+        // ASCII: a character and a separator a property at least.
+        let ascii = "ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\n\
+                     property float z\nelement face 1\nproperty list uchar int vertex_indices\n\
+                     end_header\n0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n";
+        let m = Mesh::from_ply_bytes(ascii.as_bytes()).unwrap();
+        assert_eq!((m.vertices.len(), m.triangles.len()), (3, 1));
+        let e = Mesh::from_ply_bytes(ascii.replace("face 1", "face 100").as_bytes()).unwrap_err();
+        assert!(e.contains("truncated or forged"), "{e}");
+    }
 }
