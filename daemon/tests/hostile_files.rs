@@ -67,6 +67,18 @@ fn recon_within(kib: u64, file: &Path, out: &Path) -> (Option<i32>, String) {
     (o.status.code(), String::from_utf8_lossy(&o.stderr).into_owned())
 }
 
+/// Runs `periscope recon` within `kib` KiB of address space on the committed fuzz
+/// seed `seed` (under `fuzz/corpus/`), copied into a fresh directory as `name`.
+fn recon_of_seed(seed: &str, name: &str, kib: u64) -> (Option<i32>, String) {
+    let seed = Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../fuzz/corpus")
+        .join(seed);
+    let dir = tempfile::tempdir().unwrap();
+    let file = dir.path().join(name);
+    std::fs::copy(seed, &file).unwrap();
+    recon_within(kib, &file, &dir.path().join("out"))
+}
+
 fn write(dir: &Path, name: &str, c: &YtalCapture) -> PathBuf {
     let path = dir.join(name);
     c.write(&path).unwrap();
@@ -268,12 +280,11 @@ fn a_file_that_crashes_the_hdf5_decoder_is_an_error_not_a_crash() {
     // Found by the `ytal_capture` fuzz target: a chunk layout that makes hdf5-pure
     // overflow an offset while placing a chunk. The chunk check refuses it first now;
     // the reader's panic guard stays behind it for what no check foresees.
-    let seed = Path::new(env!("CARGO_MANIFEST_DIR"))
-        .join("../fuzz/corpus/ytal_capture/seed-regression-hdf5-chunk-offset-overflow");
-    let dir = tempfile::tempdir().unwrap();
-    let file = dir.path().join("crash.hdf5");
-    std::fs::copy(seed, &file).unwrap();
-    let (code, stderr) = recon_limited(&file, &dir.path().join("out"));
+    let (code, stderr) = recon_of_seed(
+        "ytal_capture/seed-regression-hdf5-chunk-offset-overflow",
+        "crash.hdf5",
+        4 << 20,
+    );
     assert_eq!(code, Some(1), "{stderr}");
     let last = stderr
         .lines()
@@ -291,12 +302,11 @@ fn a_chunk_recorded_beyond_the_file_is_refused_before_it_is_read() {
     // Found by the `ytal_capture` fuzz target: a 160 KB file whose chunk record (size
     // and address beyond the end of the file) made the HDF5 layer allocate 3.4 GB.
     // Refused under a 1 GiB address-space limit.
-    let seed = Path::new(env!("CARGO_MANIFEST_DIR"))
-        .join("../fuzz/corpus/ytal_capture/seed-regression-chunk-beyond-file");
-    let dir = tempfile::tempdir().unwrap();
-    let file = dir.path().join("chunk.hdf5");
-    std::fs::copy(seed, &file).unwrap();
-    let (code, stderr) = recon_within(1 << 20, &file, &dir.path().join("out"));
+    let (code, stderr) = recon_of_seed(
+        "ytal_capture/seed-regression-chunk-beyond-file",
+        "chunk.hdf5",
+        1 << 20,
+    );
     assert_eq!(code, Some(1), "{stderr}");
     assert!(stderr.contains("dataset `H`: a chunk"), "{stderr}");
 }
@@ -308,12 +318,11 @@ fn a_chunk_index_the_hdf5_layer_cannot_list_is_refused_before_it_is_read() {
     // the file's 512-byte header; the chunk check used to pass over an index it could
     // not list, and the read then reserved 4 GiB (4.2 GB resident before the error).
     // Refused under a 1 GiB address-space limit.
-    let seed = Path::new(env!("CARGO_MANIFEST_DIR"))
-        .join("../fuzz/corpus/capture_file/seed-regression-mat73-chunk-index-unreadable");
-    let dir = tempfile::tempdir().unwrap();
-    let file = dir.path().join("forged.mat");
-    std::fs::copy(seed, &file).unwrap();
-    let (code, stderr) = recon_within(1 << 20, &file, &dir.path().join("out"));
+    let (code, stderr) = recon_of_seed(
+        "capture_file/seed-regression-mat73-chunk-index-unreadable",
+        "forged.mat",
+        1 << 20,
+    );
     assert_eq!(code, Some(1), "{stderr}");
     assert!(
         stderr.contains("forged.mat") && stderr.contains("`rect_data`: its chunk index cannot be read"),

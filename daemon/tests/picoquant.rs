@@ -212,24 +212,18 @@ fn check_names_what_the_multiharp_would_refuse_before_the_run() {
         refusals(&warnings(&acquisition("bins = 1024\n"))),
         Vec::<String>::new()
     );
-    // The capture's dwell: only the capture is refused.
-    let w = refusals(&warnings(&|t: &str| {
-        t.replace("dwell-ms = 20.0", "dwell-ms = 20.5")
-    }));
-    assert_eq!(w.len(), 1, "{w:?}");
-    assert!(
-        w[0].starts_with("acquisition:") && w[0].contains("whole milliseconds"),
-        "{w:?}"
-    );
-    // The LOS scan's dwell: only the scan is refused.
-    let w = refusals(&warnings(&|t: &str| {
-        t.replace("dwell-ms = 1.0", "dwell-ms = 0.5")
-    }));
-    assert_eq!(w.len(), 1, "{w:?}");
-    assert!(
-        w[0].starts_with("los:") && w[0].contains("whole milliseconds"),
-        "{w:?}"
-    );
+    // Each dwell on its own: only the stage it belongs to is refused.
+    for (from, to, stage) in [
+        ("dwell-ms = 20.0", "dwell-ms = 20.5", "acquisition:"),
+        ("dwell-ms = 1.0", "dwell-ms = 0.5", "los:"),
+    ] {
+        let w = refusals(&warnings(&|t: &str| t.replace(from, to)));
+        assert_eq!(w.len(), 1, "{w:?}");
+        assert!(
+            w[0].starts_with(stage) && w[0].contains("whole milliseconds"),
+            "{w:?}"
+        );
+    }
     // The offset, which both share, is named once.
     let w = refusals(&warnings(&acquisition("offset-ns = 12.5\n")));
     assert_eq!(w.len(), 1, "{w:?}");
