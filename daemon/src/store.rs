@@ -178,6 +178,10 @@ impl HistogramLog {
     /// Forces everything appended so far to disk.
     pub fn sync(&mut self) -> io::Result<()> {
         if self.unsynced > 0 {
+            #[cfg(feature = "test-hooks")]
+            std::thread::sleep(Duration::from_millis(
+                SLOW_SYNC_MS.load(std::sync::atomic::Ordering::SeqCst),
+            ));
             self.file.sync_data()?;
             self.unsynced = 0;
         }
@@ -190,6 +194,13 @@ impl HistogramLog {
         &self.path
     }
 }
+
+/// Testing aid (fault injection): every sync of a histogram log with records to write
+/// first waits this many milliseconds, as on a disk that stalls. The safety tests use it
+/// to show that a stopped capture switches the laser off before it waits on the disk.
+/// Built only with the `test-hooks` feature.
+#[cfg(feature = "test-hooks")]
+pub static SLOW_SYNC_MS: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
 
 impl Drop for HistogramLog {
     fn drop(&mut self) {

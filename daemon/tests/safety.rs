@@ -341,6 +341,33 @@ fn capture_in_process() {
     check_stage_on(Stage::Capture, Devices::InProcess);
 }
 
+/// A capture stopped while the disk stalls: the histogram log's last sync (its records
+/// are kept) waits 400 ms, and the laser must not wait with it. Until 2026-12-06 the
+/// log was synced and closed as the capture returned, before the run switched the laser
+/// off: a pause or abort then left it on for the disk's stall.
+#[test]
+fn a_stopped_capture_switches_the_laser_off_before_it_waits_on_a_stalling_disk() {
+    use std::sync::atomic::Ordering;
+    let _serial = ONE_AT_A_TIME.lock().unwrap_or_else(|p| p.into_inner());
+    let stall = Duration::from_millis(400);
+    for event in [Event::Pause, Event::Abort] {
+        periscope_daemon::store::SLOW_SYNC_MS.store(stall.as_millis() as u64, Ordering::SeqCst);
+        let o = run_case(Stage::Capture, event, Devices::Wire);
+        periscope_daemon::store::SLOW_SYNC_MS.store(0, Ordering::SeqCst);
+        assert!(
+            o.off_after <= EMISSION_BOUND,
+            "{event:?} with the disk stalling: emission lasted {:?} after the event",
+            o.off_after
+        );
+        assert!(
+            o.returned_after >= stall,
+            "{event:?}: the run returned after {:?}, before the stalled sync ({stall:?}) it should have waited for",
+            o.returned_after
+        );
+        assert_eq!(o.state, expected_state(Stage::Capture, event));
+    }
+}
+
 /// Runs (or resumes) the run in `dir` on `rig`, with `on_pair` called on the pipeline
 /// thread after each stored pair (with the pairs done so far).
 fn execute(

@@ -45,14 +45,6 @@ impl Run {
         pairs: &[PlannedPair],
         relay: &[RelayPoint],
     ) -> Result<(Fit, Vec<Record>), PipelineError> {
-        let acq: Acquisition = self.plan.acquisition.clone();
-        let (l, s) = (
-            self.instrument.laser_arm.pose.origin,
-            self.instrument.spad_arm.pose.origin,
-        );
-        let recon_pairs: Vec<Pair> = pairs.iter().map(PlannedPair::pair).collect();
-        let axis =
-            run_axis(pairs, &self.plan.recon.volume, &acq, &self.instrument).map_err(ReconError::from)?;
         let (mut log, recovered) =
             HistogramLog::recover(&self.dir).map_err(|e| PipelineError::storage(&self.dir, e))?;
         if recovered.discarded_bytes > 0 {
@@ -63,6 +55,36 @@ impl Run {
                 "the histogram log held incomplete or corrupted records; they were skipped and their pairs are measured again"
             );
         }
+        let result = self.capture_into(&mut log, recovered.records, pairs, relay);
+        if result.is_err() {
+            // A stop, a device error or a full disk: the laser goes off before the log
+            // is synced and closed (its drop syncs, which on a stalling disk takes
+            // seconds); the run's `make_safe` parks the arms after.
+            if let Err(e) = self.devices.laser.set_emission(false) {
+                tracing::warn!(error = %e, "switching the laser off as the capture stopped failed; the run's shutdown tries again");
+            }
+        }
+        drop(log);
+        result
+    }
+
+    /// [`Run::capture`]'s work, on the open histogram log and the records recovered
+    /// from it.
+    fn capture_into(
+        &mut self,
+        log: &mut HistogramLog,
+        recovered: Vec<Record>,
+        pairs: &[PlannedPair],
+        relay: &[RelayPoint],
+    ) -> Result<(Fit, Vec<Record>), PipelineError> {
+        let acq: Acquisition = self.plan.acquisition.clone();
+        let (l, s) = (
+            self.instrument.laser_arm.pose.origin,
+            self.instrument.spad_arm.pose.origin,
+        );
+        let recon_pairs: Vec<Pair> = pairs.iter().map(PlannedPair::pair).collect();
+        let axis =
+            run_axis(pairs, &self.plan.recon.volume, &acq, &self.instrument).map_err(ReconError::from)?;
         // The TDC's histograms are photon counts (pile-up corrected, perhaps).
         let counts = || -> Result<TransientSet, ReconError> {
             let mut set = TransientSet::new(axis)?;
@@ -87,7 +109,7 @@ impl Run {
             Ok(())
         };
         let mut held = Vec::with_capacity(pairs.len());
-        for rec in recovered.records {
+        for rec in recovered {
             if (rec.pair as usize) < pairs.len() {
                 stored.insert(rec.pair);
                 push(&mut batch, &rec)?;
@@ -141,16 +163,16 @@ impl Run {
                         }
                         let p = &pairs[i];
                         let rec = self.measure(i, p, &acq, settle, &mut flagged)?;
-                        self.store(&mut log, &mut stored, &rec)?;
+                        self.store(log, &mut stored, &rec)?;
                         push(&mut batch, &rec)?;
                         self.announce(i, p, &rec, &acq, stored.len(), total);
                         held.push(rec);
                     }
-                    log.sync().map_err(|e| PipelineError::storage(log.path(), e))?;
                     // The laser is off while the fit chooses the next batch (seconds of
-                    // training with nothing to measure).
+                    // training with nothing to measure), and before the disk is waited on.
                     self.devices.laser.set_emission(false)?;
                     self.report_laser();
+                    log.sync().map_err(|e| PipelineError::storage(log.path(), e))?;
                     self.save_info()?;
                 }
                 let full = std::mem::replace(&mut batch, counts()?);
@@ -257,7 +279,7 @@ impl Run {
                     continue;
                 }
                 let rec = self.measure(i, p, &acq, settle, &mut flagged)?;
-                self.store(&mut log, &mut stored, &rec)?;
+                self.store(log, &mut stored, &rec)?;
                 push(&mut batch, &rec)?;
                 self.announce(i, p, &rec, &acq, stored.len(), total);
                 feed(&mut fit, &mut batch, stored.len(), false)?;
@@ -266,9 +288,9 @@ impl Run {
                     self.save_info()?;
                 }
             }
-            log.sync().map_err(|e| PipelineError::storage(log.path(), e))?;
             self.devices.laser.set_emission(false)?;
             self.report_laser();
+            log.sync().map_err(|e| PipelineError::storage(log.path(), e))?;
         }
         self.save_info()?;
         if streaming {
