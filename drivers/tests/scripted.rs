@@ -629,3 +629,69 @@ fn a_frame_left_by_an_earlier_connection_is_never_taken_for_a_fresh_one() {
         .collect();
     assert!(firsts.len() >= 7, "{firsts:?}");
 }
+
+/// A transport for the stop path: `START` is taken, `ABORT` times out, and a dwell's
+/// bulk reads find nothing; every control transfer is recorded.
+struct AbortTimesOut {
+    sent: Vec<u8>,
+}
+
+impl UsbTransport for AbortTimesOut {
+    fn control_in(
+        &mut self,
+        _r: u8,
+        _v: u16,
+        _i: u16,
+        buf: &mut [u8],
+        _t: Duration,
+    ) -> Result<usize, TransportError> {
+        buf[..CONFIG_BYTES.len()].copy_from_slice(&CONFIG_BYTES);
+        Ok(CONFIG_BYTES.len())
+    }
+    fn control_out(
+        &mut self,
+        r: u8,
+        _v: u16,
+        _i: u16,
+        _data: &[u8],
+        _t: Duration,
+    ) -> Result<(), TransportError> {
+        self.sent.push(r);
+        if r == protocol::ControlRequest::Abort as u8 {
+            return Err(TransportError::Timeout);
+        }
+        Ok(())
+    }
+    fn bulk_in(&mut self, _ep: u8, _buf: &mut [u8], _t: Duration) -> Result<usize, TransportError> {
+        Err(TransportError::Timeout)
+    }
+    fn reopen(&mut self) -> Result<(), TransportError> {
+        Ok(())
+    }
+    fn describe(&self) -> String {
+        "USB whose ABORT times out".into()
+    }
+}
+
+/// A stop whose `ABORT` the device does not take is still a stop: kind `interrupted`
+/// (which the pipeline answers with the pause or abort asked for), not a timeout that
+/// the driver's retry answered with a second `START` while the laser stayed on.
+#[test]
+fn a_stop_whose_abort_times_out_is_interrupted_and_starts_nothing_more() {
+    let mut tdc = UsbTdc::with_sequence(AbortTimesOut { sent: vec![] }, Duration::from_millis(20), 0);
+    tdc.configure(&config()).unwrap();
+    let polls = std::cell::Cell::new(0);
+    // Stop at the first poll after `START`.
+    let err = tdc
+        .acquire_until(&|| {
+            polls.set(polls.get() + 1);
+            polls.get() > 1
+        })
+        .unwrap_err();
+    assert_eq!(err.kind(), ErrorKind::Interrupted, "{err}");
+    let start = protocol::ControlRequest::Start as u8;
+    let abort = protocol::ControlRequest::Abort as u8;
+    let sent = &tdc.transport_mut().sent;
+    assert_eq!(sent.iter().filter(|&&r| r == start).count(), 1, "{sent:?}");
+    assert_eq!(sent.last(), Some(&abort), "{sent:?}");
+}

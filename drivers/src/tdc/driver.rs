@@ -228,6 +228,14 @@ impl<T: UsbTransport> UsbTdc<T> {
     /// device and the error's kind is `Interrupted`.
     #[instrument(level = "trace", skip(self, stop))]
     fn acquire_once(&mut self, config: TdcConfig, stop: &dyn Fn() -> bool) -> Result<Histogram, TdcError> {
+        if stop() {
+            // A repeat after a failed attempt (`with_recovery`) that a stop overtook:
+            // nothing is started.
+            return Err(self.err(
+                ErrorKind::Interrupted,
+                "the acquisition was stopped before it started",
+            ));
+        }
         self.sequence = self.sequence.wrapping_add(1);
         let seq = self.sequence;
         self.rx.clear();
@@ -244,7 +252,13 @@ impl<T: UsbTransport> UsbTdc<T> {
         let expected = WireConfig::from_config(&config).expect("validated when configured");
         loop {
             if stop() {
-                self.abort_acquisition()?;
+                // Stopped either way: an abort the device does not take is reported,
+                // not turned into an error `with_recovery` would answer with a fresh
+                // acquisition (the dwell ends by itself, and the next `Start` or
+                // `open` clears what it leaves).
+                if let Err(e) = self.abort_acquisition() {
+                    warn!(device = %self.device, error = %e, "the stopped acquisition could not be aborted on the device");
+                }
                 return Err(self.err(
                     ErrorKind::Interrupted,
                     format!("acquisition {seq} was stopped and aborted on the device"),
