@@ -770,3 +770,102 @@ async fn fifty_event_streams_and_a_status_poller_follow_a_real_capture() {
     svc.shutdown();
     worker.join().unwrap();
 }
+
+/// The e-stop never waits behind the blocking pool: here the pool's one thread is
+/// taken for 3 s (as by requests whose timeout fired while their blocking work, an
+/// export or a stalled disk, went on), and a keyed e-stop must still reach the laser
+/// within 50 ms and answer within a second. Until 2026-12-06 its key check, its work
+/// and its audit entry all queued on that pool.
+#[test]
+fn an_estop_does_not_wait_for_a_full_blocking_pool() {
+    let rt = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .max_blocking_threads(1)
+        .enable_all()
+        .build()
+        .unwrap();
+    rt.block_on(async {
+        let dir = tempfile::tempdir().unwrap();
+        let svc = service(dir.path(), 1.0, Some(TOKEN));
+        let _worker = svc.start_worker();
+        let router = app(AppState::new(Arc::clone(&svc)));
+        let (s, v) = call(&router, Method::POST, "/api/v1/runs", Some(TOKEN), PLAN).await;
+        assert_eq!(s, StatusCode::CREATED, "{v}");
+        let id = v["id"].as_str().unwrap().to_owned();
+        wait_for(&router, &id, "capturing", Duration::from_secs(60), |v| {
+            v["stage"] == "capture" && v["pairs_done"].as_u64().unwrap_or(0) >= 5
+        })
+        .await;
+        let (taken_tx, taken) = std::sync::mpsc::channel();
+        let hog = tokio::task::spawn_blocking(move || {
+            taken_tx.send(()).unwrap();
+            std::thread::sleep(Duration::from_secs(3));
+        });
+        taken.recv().unwrap();
+        let t = Instant::now();
+        let (s, v) = call(&router, Method::POST, "/api/v1/estop", Some(TOKEN), "").await;
+        let answered = t.elapsed();
+        assert_eq!((s, v["aborted"].as_str()), (StatusCode::OK, Some(&*id)), "{v}");
+        let rig = periscope_daemon::devices::sim::rig_of(svc.backend()).unwrap();
+        let off = rig.off_since(t).expect("the laser is on after the e-stop");
+        assert!(
+            off - t < Duration::from_millis(50),
+            "laser off after {:?}",
+            off - t
+        );
+        assert!(
+            answered < Duration::from_secs(1),
+            "the e-stop answered after {answered:?}, behind the blocking pool"
+        );
+        hog.await.unwrap();
+    });
+}
+
+/// A running capture's export is made again at most every 10 s, however often it is
+/// downloaded: a client looping on `capture.hdf5` cannot keep a core and the disk
+/// re-exporting while the instrument measures. Two downloads half a second apart,
+/// with pairs stored in between, get the same file.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_running_captures_export_is_not_remade_on_every_download() {
+    let dir = tempfile::tempdir().unwrap();
+    let svc = service(dir.path(), 1.0, Some(TOKEN));
+    let _worker = svc.start_worker();
+    let router = app(AppState::new(Arc::clone(&svc)));
+    let (s, v) = call(&router, Method::POST, "/api/v1/runs", Some(TOKEN), PLAN).await;
+    assert_eq!(s, StatusCode::CREATED, "{v}");
+    let id = v["id"].as_str().unwrap().to_owned();
+    let limit = Duration::from_secs(60);
+    let first_done = wait_for(&router, &id, "capturing", limit, |v| {
+        v["stage"] == "capture" && v["pairs_done"].as_u64().unwrap_or(0) >= 5
+    })
+    .await["pairs_done"]
+        .as_u64()
+        .unwrap();
+    let url = format!("/api/v1/runs/{id}/files/capture.hdf5");
+    let (s, first) = call_raw(&router, Method::GET, &url, Some(TOKEN), "").await;
+    assert_eq!(s, StatusCode::OK);
+    let later = wait_for(&router, &id, "further on", limit, |v| {
+        v["pairs_done"].as_u64().unwrap_or(0) >= first_done + 5 || v["state"] != "running"
+    })
+    .await;
+    assert_eq!(
+        later["state"], "running",
+        "the capture ended too soon to test: {later}"
+    );
+    let (s, second) = call_raw(&router, Method::GET, &url, Some(TOKEN), "").await;
+    assert_eq!(s, StatusCode::OK);
+    assert!(
+        first == second,
+        "the export was made again {} pairs later",
+        later["pairs_done"]
+    );
+    let (s, v) = call(
+        &router,
+        Method::POST,
+        &format!("/api/v1/runs/{id}/abort"),
+        Some(TOKEN),
+        "",
+    )
+    .await;
+    assert_eq!(s, StatusCode::ACCEPTED, "{v}");
+}

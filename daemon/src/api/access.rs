@@ -125,6 +125,9 @@ pub(super) async fn authorise(State(state): State<AppState>, mut req: Request, n
     let service = Arc::clone(&state.service);
     let keys = service.keys();
     let audited = action(&method, &route);
+    // The e-stop's key check and audit entry run on threads of their own, never
+    // queued behind the blocking pool (`super::own_thread`).
+    let estop = route == "/api/v1/estop";
     // A refused authentication: recorded as `authenticate` with the route in the
     // detail (kept short: at most 30 a minute are recorded one by one).
     let refuse = |e: ApiError, actor: &str, why: String| {
@@ -167,7 +170,7 @@ pub(super) async fn authorise(State(state): State<AppState>, mut req: Request, n
             )
             .into_response();
         }
-        Some(secret) => match authenticate(&service, secret).await {
+        Some(secret) => match authenticate(&service, secret, estop).await {
             Ok(Identity { name, role }) => {
                 stream_key = Some(secret.to_owned());
                 Caller { name, role, peer }
@@ -181,7 +184,7 @@ pub(super) async fn authorise(State(state): State<AppState>, mut req: Request, n
                     "unknown",
                     format!("{e}; the e-stop went ahead as loopback"),
                 );
-                record(&state, entry).await;
+                record(&state, entry, estop).await;
                 Caller {
                     name: "loopback".into(),
                     role: Role::Observer,
@@ -305,7 +308,7 @@ pub(super) async fn authorise(State(state): State<AppState>, mut req: Request, n
         } else if let Some(AuditDetail(d)) = response.extensions().get::<AuditDetail>() {
             entry = entry.detail(d.clone());
         }
-        record(&state, entry).await;
+        record(&state, entry, estop).await;
     }
     response
 }
@@ -339,7 +342,7 @@ fn end_when_key_lapses(
                     None => return,
                 },
                 _ = check.tick() => {
-                    if let Err(e) = authenticate(&service, &secret).await {
+                    if let Err(e) = authenticate(&service, &secret, false).await {
                         tracing::info!("an event stream ends: {e}");
                         return;
                     }
@@ -354,11 +357,22 @@ fn end_when_key_lapses(
     )
 }
 
-/// Checks a key on the blocking pool (it may stat and read `keys.json`).
-async fn authenticate(service: &Arc<crate::service::Service>, secret: &str) -> Result<Identity, AuthError> {
+/// Checks a key on the blocking pool (it may stat and read `keys.json`), or for an
+/// e-stop (`estop`) on a thread of its own.
+async fn authenticate(
+    service: &Arc<crate::service::Service>,
+    secret: &str,
+    estop: bool,
+) -> Result<Identity, AuthError> {
     let s = Arc::clone(service);
     let secret = secret.to_owned();
-    tokio::task::spawn_blocking(move || s.keys().authenticate(&secret, crate::run_dir::unix_now()))
+    let check = move || s.keys().authenticate(&secret, crate::run_dir::unix_now());
+    if estop {
+        return super::own_thread("periscope-estop-auth", check)
+            .await
+            .unwrap_or(Err(AuthError::Unknown));
+    }
+    tokio::task::spawn_blocking(check)
         .await
         .unwrap_or(Err(AuthError::Unknown))
 }
@@ -397,14 +411,20 @@ async fn refused(state: &AppState, e: ApiError, entry: AuditEntry) -> Response {
         }
     };
     if let Some(entry) = entry {
-        record(state, entry).await;
+        record(state, entry, false).await;
     }
     e.into_response()
 }
 
 /// Records an audit entry on the blocking pool (it is flushed to disk).
-async fn record(state: &AppState, entry: AuditEntry) {
+/// An e-stop's entry (`estop`) is written on a thread of its own, and the response
+/// does not wait for it.
+async fn record(state: &AppState, entry: AuditEntry, estop: bool) {
     let s = Arc::clone(&state.service);
+    if estop {
+        drop(super::own_thread("periscope-estop-audit", move || s.audit(entry)));
+        return;
+    }
     let _ = tokio::task::spawn_blocking(move || s.audit(entry)).await;
 }
 

@@ -254,6 +254,7 @@ impl From<ServiceError> for ApiError {
             ServiceError::OverBudget(_) => (StatusCode::UNPROCESSABLE_ENTITY, "over-budget"),
             ServiceError::Invalid(_) => (StatusCode::UNPROCESSABLE_ENTITY, "invalid"),
             ServiceError::Locked(_) => (StatusCode::LOCKED, "queue-locked"),
+            ServiceError::Busy(_) => (StatusCode::SERVICE_UNAVAILABLE, "busy"),
             ServiceError::InvalidImport(_) => (StatusCode::UNPROCESSABLE_ENTITY, "invalid-import"),
             ServiceError::Catalogue(_) => (StatusCode::INTERNAL_SERVER_ERROR, "catalogue"),
         };
@@ -784,8 +785,37 @@ async fn abort(
     )
 )]
 async fn estop(State(state): State<AppState>) -> ApiResult<axum::Json<EstopReport>> {
+    // A thread of its own, not the blocking pool: requests timed out while their
+    // blocking work goes on (a download's export, a disk that stalls) can fill the
+    // pool, and the e-stop must never queue behind them.
     let s = Arc::clone(&state.service);
-    blocking(move || s.estop()).await.map(axum::Json)
+    match own_thread("periscope-estop", move || s.estop()).await {
+        Some(r) => r.map(axum::Json).map_err(ApiError::from),
+        None => Err(ApiError::new(
+            StatusCode::INTERNAL_SERVER_ERROR,
+            "internal",
+            "the e-stop's thread could not start or ended without a report",
+        )),
+    }
+}
+
+/// Runs `f` on a thread of its own, started at the call (dropping the future leaves
+/// it running), and waits for its result (`None`: the thread could not start, or
+/// panicked). For the e-stop's path, which must never wait behind the
+/// blocking pool: requests whose timeout fired while their blocking work went on (an
+/// export, a disk that stalls) can fill it.
+fn own_thread<T: Send + 'static>(
+    name: &'static str,
+    f: impl FnOnce() -> T + Send + 'static,
+) -> impl std::future::Future<Output = Option<T>> {
+    let (tx, rx) = tokio::sync::oneshot::channel();
+    let started = std::thread::Builder::new().name(name.into()).spawn(move || {
+        let _ = tx.send(f());
+    });
+    if let Err(e) = &started {
+        tracing::error!(thread = name, error = %e, "a thread of the e-stop's path could not start");
+    }
+    async move { rx.await.ok() }
 }
 
 /// A run's progress as server-sent events

@@ -7,7 +7,7 @@ impl Service {
     /// Switches the running run's laser off through its direct path, if a run holds
     /// the devices (for signal handlers: quick, waits for nothing but a mutex).
     pub fn laser_off_now(&self) {
-        if let Some(off) = self.lock().laser_off.clone()
+        if let Some(off) = self.direct().laser_off.clone()
             && let Err(e) = off.laser_off()
         {
             tracing::warn!(error = %e, "direct laser off failed");
@@ -24,9 +24,11 @@ impl Service {
     pub fn estop(&self) -> Result<EstopReport, ServiceError> {
         let t = Instant::now();
         let mut report = EstopReport::default();
+        // The stop path's own lock, never the service's, which a request writing
+        // files may hold.
         let (running, direct) = {
-            let s = self.lock();
-            (s.current.clone(), s.laser_off.clone())
+            let d = self.direct();
+            (d.run.clone(), d.laser_off.clone())
         };
         // 1. The laser, directly. The run is told to abort first (an atomic store), so
         //    that a `LASER ON` the latched switch refuses it reads as the abort.

@@ -170,6 +170,9 @@ pub enum ServiceError {
     /// The queue is locked for maintenance.
     #[error("{0}")]
     Locked(String),
+    /// The work asked for is already under way for another request; retry shortly.
+    #[error("{0}")]
+    Busy(String),
     /// An import's upload is not a capture, or its settings are invalid.
     #[error("{0}")]
     InvalidImport(String),
@@ -240,8 +243,6 @@ struct Shared {
     queue: VecDeque<String>,
     /// The running run and its control.
     current: Option<(String, Control)>,
-    /// The running run's direct way to its laser, once its devices are open.
-    laser_off: Option<EmergencyOff>,
     live: Live,
     /// Event channels of runs that are running (or were, until a client drops them).
     channels: HashMap<String, broadcast::Sender<StreamEvent>>,
@@ -267,6 +268,15 @@ struct Shared {
     shutdown: bool,
 }
 
+/// The running run's stop path ([`Service::direct`]).
+#[derive(Default)]
+struct Direct {
+    /// The running run and its control (as `Shared::current`, set and cleared with it).
+    run: Option<(String, Control)>,
+    /// The running run's direct way to its laser, once its devices are open.
+    laser_off: Option<EmergencyOff>,
+}
+
 /// The service: configuration, queue and worker.
 pub struct Service {
     runs_dir: PathBuf,
@@ -288,6 +298,10 @@ pub struct Service {
     _catalogue_hold: std::fs::File,
     shared: Mutex<Shared>,
     wake: Condvar,
+    /// The running run's stop path, apart from `shared`, whose holders write files
+    /// (fsyncs, on a disk that may stall): the e-stop, the signal thread and shutdown
+    /// reach the laser without waiting for them.
+    direct: Mutex<Direct>,
     /// Held while a capture export is written.
     exporting: Mutex<()>,
     /// Held while the service itself has devices open outside a run (the worker's
@@ -390,7 +404,6 @@ impl Service {
             shared: Mutex::new(Shared {
                 queue,
                 current: None,
-                laser_off: None,
                 live: Live::default(),
                 channels: HashMap::new(),
                 last_safe: None,
@@ -403,6 +416,7 @@ impl Service {
                 shutdown: false,
             }),
             wake: Condvar::new(),
+            direct: Mutex::new(Direct::default()),
             exporting: Mutex::new(()),
             devices: Mutex::new(()),
         });
@@ -421,7 +435,7 @@ impl Service {
             control.set_requested_by("shutdown");
             control.pause();
         }
-        if let Some(off) = &s.laser_off
+        if let Some(off) = self.direct().laser_off.clone()
             && let Err(e) = off.laser_off()
         {
             tracing::warn!(error = %e, "shutdown: direct laser off failed; the run switches it off at its checkpoint");
@@ -464,6 +478,22 @@ impl Service {
         self.shared.lock().unwrap_or_else(|p| p.into_inner())
     }
 
+    /// The stop path's lock: held for a clone or an assignment, never while another
+    /// lock is taken or a file written.
+    fn direct(&self) -> MutexGuard<'_, Direct> {
+        self.direct.lock().unwrap_or_else(|p| p.into_inner())
+    }
+
+    /// Sets (or clears) the running run, in `s` and in the stop path.
+    fn set_current(&self, s: &mut Shared, run: Option<(String, Control)>) {
+        let mut d = self.direct();
+        if run.is_none() {
+            d.laser_off = None;
+        }
+        d.run.clone_from(&run);
+        s.current = run;
+    }
+
     /// The instrument config.
     pub fn instrument(&self) -> &InstrumentConfig {
         &self.instrument
@@ -500,12 +530,11 @@ mod tests {
     ) -> std::thread::JoinHandle<()> {
         svc.set_state(id, state, None, "test").unwrap();
         let control = Control::new();
-        svc.lock().current = Some((id.to_owned(), control));
+        svc.set_current(&mut svc.lock(), Some((id.to_owned(), control)));
         let svc = Arc::clone(svc);
         std::thread::spawn(move || {
             std::thread::sleep(delay);
-            let mut s = svc.lock();
-            s.current = None;
+            svc.set_current(&mut svc.lock(), None);
             svc.wake.notify_all();
         })
     }

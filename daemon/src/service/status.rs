@@ -179,15 +179,33 @@ impl Service {
     }
 
     pub(super) fn export_capture(&self, id: &str, dir: &Path) -> Result<Download, ServiceError> {
-        // One export at a time: concurrent requests wait for it and share its file.
-        let _one = self.exporting.lock().unwrap_or_else(|p| p.into_inner());
-        let done = RunInfo::load(dir).map(|i| i.pairs_done).unwrap_or(0);
+        // One export at a time, and a request that finds one under way is answered at
+        // once: waiting for it would hold a thread of the blocking pool past the
+        // request's own timeout, and enough of them would starve every other request.
+        let _one = match self.exporting.try_lock() {
+            Ok(guard) => guard,
+            Err(std::sync::TryLockError::Poisoned(p)) => p.into_inner(),
+            Err(std::sync::TryLockError::WouldBlock) => {
+                return Err(ServiceError::Busy(format!(
+                    "run {id}: a capture export is being written; retry in a few seconds"
+                )));
+            }
+        };
+        let info = RunInfo::load(dir).ok();
+        let done = info.as_ref().map_or(0, |i| i.pairs_done);
         let records = std::fs::metadata(dir.join(crate::store::HISTOGRAM_LOG)).map_or(0, |m| m.len());
         let cache = dir.join(file::EXPORT_CACHE);
         let stamp = dir.join(format!("{}.stamp", file::EXPORT_CACHE));
         let key = format!("{done} {records}");
         let fresh = std::fs::read_to_string(&stamp).is_ok_and(|k| k == key) && cache.is_file();
-        if !fresh {
+        // A running capture changes with every pair: an export made in the last
+        // EXPORT_REFRESH is served as it is, so no client can keep the disk and a core
+        // busy re-exporting while the instrument measures.
+        let recent = info.as_ref().is_some_and(|i| i.state == RunState::Running)
+            && std::fs::metadata(&cache)
+                .and_then(|m| m.modified())
+                .is_ok_and(|t| t.elapsed().is_ok_and(|age| age < EXPORT_REFRESH));
+        if !fresh && !recent {
             let not_yet = |e: &dyn std::fmt::Display| {
                 ServiceError::Conflict(format!("run {id} has no capture to export yet: {e}"))
             };
@@ -300,6 +318,9 @@ fn import_geometry(dir: &Path) -> Result<Geometry, ServiceError> {
         viewpoint: g.viewpoint,
     })
 }
+
+/// How long a running capture's export is served before a download makes it again.
+const EXPORT_REFRESH: Duration = Duration::from_secs(10);
 
 /// The most points of each kind [`Service::geometry`] returns.
 pub const GEOMETRY_POINTS: usize = 20_000;

@@ -52,7 +52,7 @@ impl Service {
                         continue;
                     };
                     let control = Control::new();
-                    s.current = Some((id.clone(), control.clone()));
+                    self.set_current(&mut s, Some((id.clone(), control.clone())));
                     s.live = Live {
                         id: id.clone(),
                         stage: "starting".into(),
@@ -76,7 +76,7 @@ impl Service {
                         stage: "worker",
                         message: pipeline::panic_message(payload.as_ref()),
                     };
-                    self.lock().laser_off = None;
+                    self.direct().laser_off = None;
                     if let Err(off) = self.laser_controller_off() {
                         tracing::error!("after a panic, the laser controller could not be reached: {off}");
                     }
@@ -97,8 +97,7 @@ impl Service {
             if stale {
                 s.stale.insert(id.clone());
             }
-            s.current = None;
-            s.laser_off = None;
+            self.set_current(&mut s, None);
             s.refresh = true;
             s.channels.remove(&id);
             match &result {
@@ -207,7 +206,7 @@ impl Service {
             self.execute_import(&dir, control, events)
         } else {
             Run::open(&dir, control, Some(events), Some(self.backend.as_ref())).and_then(|run| {
-                self.lock().laser_off = Some(run.emergency_off());
+                self.direct().laser_off = Some(run.emergency_off());
                 run.execute().map(|_| ())
             })
         };
