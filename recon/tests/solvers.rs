@@ -233,6 +233,34 @@ fn rsd_finds_a_point_scatterer_confocal() {
     );
 }
 
+/// An envelope many times the time axis is refused, naming `cycles`, before its
+/// padding is allocated: 10⁹ cycles asked for 64 GB and aborted `periscope recon`.
+#[test]
+fn rsd_refuses_an_envelope_longer_than_its_time_axis_can_hold() {
+    let set = confocal_point_set(axis());
+    for settings in [
+        RsdSettings {
+            cycles: 1e9,
+            ..RsdSettings::default()
+        },
+        RsdSettings {
+            wavelength: Some(1000.0),
+            ..RsdSettings::default()
+        },
+    ] {
+        let e = rsd(&set, &grid(), &settings).unwrap_err().to_string();
+        assert!(e.contains("`cycles`") && e.contains("envelope"), "{e}");
+    }
+    // Long but within bounds: an envelope of 8 time axes.
+    let span = axis().bins as f64 * axis().width;
+    let long = RsdSettings {
+        wavelength: Some(span),
+        cycles: 8.0,
+        ..RsdSettings::default()
+    };
+    assert!(rsd(&set, &grid(), &long).is_ok());
+}
+
 #[test]
 fn rsd_confocal_default_wave_is_sharper_than_a_non_aliasing_one() {
     // The default confocal wavelength is 2.5 pitches of path length (y-tal's setting),

@@ -197,6 +197,21 @@ pub fn rsd_frame(
     // wrap around the time axis.
     let bins = axis.bins;
     let sigma = settings.cycles * lambda / 6.0;
+    // The envelope (cycles wavelengths, 6σ) pads the transients by half its length
+    // each side: one many times longer than the time axis filters nothing the axis
+    // holds, and its padding (10⁹ cycles asked for 64 GB) would not fit in memory.
+    let span = axis.bins as f64 * axis.width;
+    if !(6.0 * sigma <= MAX_ENVELOPE_SPANS * span) {
+        return Err(SolverError::Setting {
+            name: "cycles",
+            value: format!(
+                "{} (with a wavelength of {lambda} m, an envelope of {} m against a time axis of {span} m)",
+                settings.cycles,
+                6.0 * sigma
+            ),
+            expected: "an envelope (cycles × wavelength) at most 8 times the time axis's length: fewer cycles or a shorter wavelength",
+        });
+    }
     let pad = (3.0 * sigma / axis.width).ceil() as usize + 1;
     let padded_bins = bins + 2 * pad;
     let kc = 2.0 * PI / lambda;
@@ -355,6 +370,10 @@ pub fn rsd_frame(
         data: field.iter().map(|v| v.norm() as f32).collect(),
     })
 }
+
+/// The longest envelope RSD takes, in lengths of the time axis (`[rsd] cycles` times
+/// the wavelength).
+const MAX_ENVELOPE_SPANS: f64 = 8.0;
 
 /// `r^power`, with the common powers written out (`powf` per kernel sample cost more
 /// than the rest of the kernel).
