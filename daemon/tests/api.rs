@@ -292,6 +292,28 @@ async fn bad_requests_get_4xx_and_change_nothing() {
         assert_eq!(s, StatusCode::NOT_FOUND, "{uri}: {v}");
         assert!(v["message"].is_string(), "{uri}: {v}");
     }
+    // Malformed query strings and paths: a JSON error naming the field, never axum's
+    // plain text (which the dashboard cannot read) or a 500.
+    for (uri, code, names) in [
+        ("/api/v1/runs?limit=abc", "bad-query", "limit"),
+        (
+            "/api/v1/catalogue?offset=18446744073709551615",
+            "bad-query",
+            "offset",
+        ),
+        ("/api/v1/audit?offset=18446744073709551615", "bad-query", "offset"),
+        ("/api/v1/audit?limit=-1", "bad-query", "limit"),
+        ("/api/v1/runs/%FF", "bad-path", "UTF-8"),
+        ("/api/v1/runs/%FF/files/run.json", "bad-path", "UTF-8"),
+    ] {
+        let (s, v) = call(&router, Method::GET, uri, Some(TOKEN), "").await;
+        assert_eq!(
+            (s, v["error"].as_str()),
+            (StatusCode::BAD_REQUEST, Some(code)),
+            "{uri}: {v}"
+        );
+        assert!(v["message"].as_str().unwrap().contains(names), "{uri}: {v}");
+    }
     for action in ["pause", "resume", "abort"] {
         let (s, v) = call(
             &router,

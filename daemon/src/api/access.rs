@@ -6,7 +6,8 @@ use std::net::SocketAddr;
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
-use axum::extract::{ConnectInfo, MatchedPath, Path, Query, Request, State};
+use super::{PathParams, QueryParams};
+use axum::extract::{ConnectInfo, MatchedPath, Request, State};
 use axum::http::{HeaderMap, Method, StatusCode, header};
 use axum::middleware::Next;
 use axum::response::{IntoResponse, Response};
@@ -131,14 +132,7 @@ pub(super) async fn authorise(State(state): State<AppState>, mut req: Request, n
     // A refused authentication: recorded as `authenticate` with the route in the
     // detail (kept short: at most 30 a minute are recorded one by one).
     let refuse = |e: ApiError, actor: &str, why: String| {
-        let mut request = format!("{method} {path}");
-        if request.len() > 200 {
-            let mut cut = 200;
-            while !request.is_char_boundary(cut) {
-                cut -= 1;
-            }
-            request.truncate(cut);
-        }
+        let request = crate::catalogue::audit::cut(format!("{method} {path}"), 200);
         let entry = AuditEntry::new(actor, "none", "authenticate", Some(&route), "refused")
             .detail(format!("{request}: {why}"))
             .peer(peer);
@@ -577,7 +571,7 @@ pub(super) async fn keys_create(
 #[utoipa::path(delete, path = "/api/v1/keys/{name}", security(("bearer" = [])), params(("name" = String, Path, description = "key name")), responses((status = 200, description = "revoked", body = KeyView), (status = 401, description = status::UNAUTHORISED, body = ErrorBody), (status = 403, description = status::FORBIDDEN, body = ErrorBody), (status = 422, description = "no such key", body = ErrorBody)))]
 pub(super) async fn keys_revoke(
     State(state): State<AppState>,
-    Path(name): Path<String>,
+    PathParams(name): PathParams<String>,
 ) -> ApiResult<axum::Json<KeyView>> {
     let s = Arc::clone(&state.service);
     blocking(move || {
@@ -617,7 +611,7 @@ pub struct AuditParams {
 #[utoipa::path(get, path = "/api/v1/audit", params(AuditParams), responses((status = 200, description = "entries", body = AuditPage), (status = 400, description = "bad filter", body = ErrorBody)))]
 pub(super) async fn audit(
     State(state): State<AppState>,
-    Query(p): Query<AuditParams>,
+    QueryParams(p): QueryParams<AuditParams>,
 ) -> ApiResult<axum::Json<AuditPage>> {
     let time = |v: &Option<String>, field: &str| -> ApiResult<Option<f64>> {
         v.as_deref()
@@ -634,7 +628,7 @@ pub(super) async fn audit(
         action: p.action,
         target: p.target,
         limit: p.limit.unwrap_or(100),
-        offset: p.offset.unwrap_or(0),
+        offset: super::catalogue::offset(p.offset)?,
     };
     let s = Arc::clone(&state.service);
     blocking(move || {

@@ -3,7 +3,8 @@
 //! maintenance lock; `GET /metrics` for Prometheus.
 use std::sync::Arc;
 
-use axum::extract::{Path, Query, State};
+use super::{PathParams, QueryParams};
+use axum::extract::State;
 use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
 use axum::response::{IntoResponse, Response};
 
@@ -45,6 +46,15 @@ pub struct RunParams {
 
 fn bad(field: &str, m: impl std::fmt::Display) -> ApiError {
     ApiError::new(StatusCode::BAD_REQUEST, "bad-query", format!("{field}: {m}"))
+}
+
+/// A page's `offset` (default 0), at most what the catalogue's SQL takes (an `i64`).
+pub(super) fn offset(v: Option<usize>) -> ApiResult<usize> {
+    let offset = v.unwrap_or(0);
+    if i64::try_from(offset).is_err() {
+        return Err(bad("offset", format!("{offset}: expected 0 to {}", i64::MAX)));
+    }
+    Ok(offset)
 }
 
 impl RunParams {
@@ -92,7 +102,7 @@ impl RunParams {
                 Some(o) => return Err(bad("order", format!("`{o}`: expected asc or desc"))),
             },
             limit,
-            offset: self.offset.unwrap_or(0),
+            offset: offset(self.offset)?,
         })
     }
 }
@@ -102,7 +112,10 @@ impl RunParams {
 /// Filtered (state, dates, plan, tag, submitter, text), sorted and paged; the total
 /// matching is in `X-Total-Count`. Queued and running runs carry their live progress.
 #[utoipa::path(get, path = "/api/v1/runs", params(RunParams), responses((status = 200, description = "runs; `X-Total-Count` has the number matching in all pages", body = Vec<RunStatus>), (status = 400, description = "bad filter", body = ErrorBody)))]
-pub(super) async fn list(State(state): State<AppState>, Query(p): Query<RunParams>) -> ApiResult<Response> {
+pub(super) async fn list(
+    State(state): State<AppState>,
+    QueryParams(p): QueryParams<RunParams>,
+) -> ApiResult<Response> {
     let q = p.query()?;
     let s = Arc::clone(&state.service);
     let (page, statuses) = blocking(move || s.query(&q)).await?;
@@ -116,7 +129,7 @@ pub(super) async fn list(State(state): State<AppState>, Query(p): Query<RunParam
 #[utoipa::path(get, path = "/api/v1/catalogue", params(RunParams), responses((status = 200, description = "a page of runs", body = RunPage), (status = 400, description = "bad filter", body = ErrorBody)))]
 pub(super) async fn catalogue(
     State(state): State<AppState>,
-    Query(p): Query<RunParams>,
+    QueryParams(p): QueryParams<RunParams>,
 ) -> ApiResult<axum::Json<RunPage>> {
     let q = p.query()?;
     let s = Arc::clone(&state.service);
@@ -152,7 +165,7 @@ pub struct AnnotationsView {
 #[utoipa::path(patch, path = "/api/v1/runs/{id}", security(("bearer" = [])), params(("id" = String, Path, description = "run id")), request_body = Annotate, responses((status = 200, description = "the run's tags and note", body = AnnotationsView), (status = 401, description = status::UNAUTHORISED, body = ErrorBody), (status = 403, description = status::FORBIDDEN, body = ErrorBody), (status = 404, description = status::NOT_FOUND, body = ErrorBody), (status = 422, description = "a tag or note over its limits", body = ErrorBody)))]
 pub(super) async fn annotate(
     State(state): State<AppState>,
-    Path(id): Path<String>,
+    PathParams(id): PathParams<String>,
     body: JsonBody<Annotate>,
 ) -> ApiResult<axum::Json<AnnotationsView>> {
     let a = body.0;
@@ -209,7 +222,7 @@ pub(super) async fn again(
     State(state): State<AppState>,
     axum::Extension(caller): axum::Extension<Caller>,
     headers: HeaderMap,
-    Path(id): Path<String>,
+    PathParams(id): PathParams<String>,
 ) -> ApiResult<Response> {
     let key = lock_key(&headers);
     let s = Arc::clone(&state.service);

@@ -2,7 +2,7 @@
 //! `/ui/`, all embedded in the binary (no Node toolchain at build or install time). The
 //! page talks to the same JSON API as any client, with the same token and Host rules;
 //! see `docs/dashboard.md`.
-use axum::extract::Path;
+use super::PathParams;
 use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
 use axum::response::{IntoResponse, Response};
 
@@ -125,7 +125,10 @@ pub(super) async fn favicon(headers: HeaderMap) -> Response {
 }
 
 /// `GET /ui/{file}`: one of [`ASSETS`].
-pub(super) async fn asset(Path(file): Path<String>, headers: HeaderMap) -> Result<Response, ApiError> {
+pub(super) async fn asset(
+    PathParams(file): PathParams<String>,
+    headers: HeaderMap,
+) -> Result<Response, ApiError> {
     ASSETS
         .iter()
         .find(|(name, _, _)| *name == file)

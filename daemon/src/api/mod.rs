@@ -209,6 +209,54 @@ impl IntoResponse for ApiError {
 #[derive(Clone, Debug)]
 pub(crate) struct ErrorMessage(pub String);
 
+/// Query parameters whose rejection (`?limit=abc`, a repeated field) is a JSON 400
+/// `bad-query` naming what is wrong, not axum's plain text.
+pub(crate) struct QueryParams<T>(pub T);
+
+impl<S: Send + Sync, T: serde::de::DeserializeOwned> axum::extract::FromRequestParts<S> for QueryParams<T> {
+    type Rejection = ApiError;
+
+    async fn from_request_parts(parts: &mut axum::http::request::Parts, state: &S) -> Result<Self, ApiError> {
+        match axum::extract::Query::<T>::from_request_parts(parts, state).await {
+            Ok(axum::extract::Query(v)) => Ok(QueryParams(v)),
+            Err(e) => Err(ApiError::new(
+                StatusCode::BAD_REQUEST,
+                "bad-query",
+                format!("the query string: {}", e.body_text()),
+            )),
+        }
+    }
+}
+
+/// Path segments whose rejection (a segment that is not UTF-8 once decoded, `%FF`) is a
+/// JSON `bad-path` error, not axum's plain text.
+pub(crate) struct PathParams<T>(pub T);
+
+impl<S: Send + Sync, T: serde::de::DeserializeOwned + Send> axum::extract::FromRequestParts<S>
+    for PathParams<T>
+{
+    type Rejection = ApiError;
+
+    async fn from_request_parts(parts: &mut axum::http::request::Parts, state: &S) -> Result<Self, ApiError> {
+        match Path::<T>::from_request_parts(parts, state).await {
+            Ok(Path(v)) => Ok(PathParams(v)),
+            Err(e) => {
+                let status = e.status();
+                let code = if status.is_client_error() {
+                    "bad-path"
+                } else {
+                    "internal"
+                };
+                Err(ApiError::new(
+                    status,
+                    code,
+                    format!("the path: {}", e.body_text()),
+                ))
+            }
+        }
+    }
+}
+
 /// A JSON request body whose rejection is a JSON error naming what is wrong.
 pub(crate) struct JsonBody<T>(pub T);
 
@@ -621,7 +669,10 @@ async fn check(
         (status = 404, description = status::NOT_FOUND, body = ErrorBody),
     )
 )]
-async fn geometry(State(state): State<AppState>, Path(id): Path<String>) -> ApiResult<axum::Json<Geometry>> {
+async fn geometry(
+    State(state): State<AppState>,
+    PathParams(id): PathParams<String>,
+) -> ApiResult<axum::Json<Geometry>> {
     let s = Arc::clone(&state.service);
     blocking(move || s.geometry(&id)).await.map(axum::Json)
 }
@@ -682,7 +733,7 @@ async fn submit(
 )]
 async fn run_status(
     State(state): State<AppState>,
-    Path(id): Path<String>,
+    PathParams(id): PathParams<String>,
 ) -> ApiResult<axum::Json<RunStatus>> {
     let s = Arc::clone(&state.service);
     blocking(move || s.status(&id)).await.map(axum::Json)
@@ -705,7 +756,7 @@ async fn run_status(
 async fn pause(
     State(state): State<AppState>,
     axum::Extension(caller): axum::Extension<access::Caller>,
-    Path(id): Path<String>,
+    PathParams(id): PathParams<String>,
 ) -> ApiResult<(StatusCode, axum::Json<RunStatus>)> {
     let s = Arc::clone(&state.service);
     let st = blocking(move || s.pause_as(&id, &caller.name)).await?;
@@ -730,7 +781,7 @@ async fn resume(
     State(state): State<AppState>,
     axum::Extension(caller): axum::Extension<access::Caller>,
     headers: HeaderMap,
-    Path(id): Path<String>,
+    PathParams(id): PathParams<String>,
 ) -> ApiResult<(StatusCode, axum::Json<RunStatus>)> {
     let key = headers
         .get(catalogue::LOCK_KEY_HEADER)
@@ -762,7 +813,7 @@ async fn resume(
 async fn abort(
     State(state): State<AppState>,
     axum::Extension(caller): axum::Extension<access::Caller>,
-    Path(id): Path<String>,
+    PathParams(id): PathParams<String>,
 ) -> ApiResult<(StatusCode, axum::Json<RunStatus>)> {
     let s = Arc::clone(&state.service);
     let st = blocking(move || s.abort_as(&id, &caller.name)).await?;
@@ -835,7 +886,7 @@ fn own_thread<T: Send + 'static>(
 )]
 async fn events(
     State(state): State<AppState>,
-    Path(id): Path<String>,
+    PathParams(id): PathParams<String>,
 ) -> ApiResult<Sse<impl tokio_stream::Stream<Item = Result<Event, Infallible>>>> {
     let slot = stream_slot(&state, &format!("GET /api/v1/runs/{id}"))?;
     let s = Arc::clone(&state.service);
@@ -942,7 +993,7 @@ async fn instrument_events(
 )]
 async fn file(
     State(state): State<AppState>,
-    Path((id, name)): Path<(String, String)>,
+    PathParams((id, name)): PathParams<(String, String)>,
     request: Request,
 ) -> ApiResult<Response> {
     let Some((_, media)) = DOWNLOADS.iter().find(|(n, _)| *n == name) else {

@@ -15,6 +15,22 @@ pub const AUDIT_FILE: &str = "audit.jsonl";
 /// The longest detail an entry keeps (a refused plan's reason, say), in bytes.
 const MAX_DETAIL: usize = 2048;
 
+/// The longest target an entry keeps, in bytes.
+const MAX_TARGET: usize = 256;
+
+/// `s` cut to at most `max` bytes at a character boundary, marked with `…` where cut.
+pub(crate) fn cut(mut s: String, max: usize) -> String {
+    if s.len() > max {
+        let mut at = max;
+        while !s.is_char_boundary(at) {
+            at -= 1;
+        }
+        s.truncate(at);
+        s.push('…');
+    }
+    s
+}
+
 /// One audited action.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize, ToSchema)]
 pub struct AuditEntry {
@@ -42,7 +58,8 @@ pub struct AuditEntry {
 }
 
 impl AuditEntry {
-    /// A new entry stamped now with a fresh id.
+    /// A new entry stamped now with a fresh id; the target is cut to 256 bytes (a
+    /// refused request's route may be any path a client sends).
     pub fn new(actor: &str, role: &str, action: &str, target: Option<&str>, outcome: &str) -> AuditEntry {
         use rand::RngCore;
         let mut id = [0u8; 16];
@@ -53,7 +70,7 @@ impl AuditEntry {
             actor: actor.to_owned(),
             role: role.to_owned(),
             action: action.to_owned(),
-            target: target.map(str::to_owned),
+            target: target.map(|t| cut(t.to_owned(), MAX_TARGET)),
             outcome: outcome.to_owned(),
             detail: None,
             peer: None,
@@ -62,16 +79,7 @@ impl AuditEntry {
 
     /// With a detail (cut to 2,048 bytes at a character boundary).
     pub fn detail(mut self, detail: impl Into<String>) -> AuditEntry {
-        let mut d: String = detail.into();
-        if d.len() > MAX_DETAIL {
-            let mut cut = MAX_DETAIL;
-            while !d.is_char_boundary(cut) {
-                cut -= 1;
-            }
-            d.truncate(cut);
-            d.push('…');
-        }
-        self.detail = Some(d);
+        self.detail = Some(cut(detail.into(), MAX_DETAIL));
         self
     }
 

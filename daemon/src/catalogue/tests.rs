@@ -409,3 +409,23 @@ fn rows_are_keyed_by_their_directory() {
     );
     assert_eq!(ids.len(), 5);
 }
+
+/// A refused request's target is whatever path the client sent: an entry keeps at
+/// most 256 bytes of it (and 2,048 of a detail), cut at a character boundary, so a
+/// client cannot fill the trail's disk and its responses with 64 KB paths.
+#[test]
+fn an_entrys_target_and_detail_are_cut_to_their_bounds() {
+    let long = format!("/api/v1/runs/{}", "é".repeat(40_000));
+    let e = AuditEntry::new("unknown", "none", "authenticate", Some(&long), "refused").detail(long.clone());
+    let target = e.target.as_deref().unwrap();
+    assert!(
+        target.len() <= 256 + '…'.len_utf8() && target.ends_with('…'),
+        "{}",
+        target.len()
+    );
+    assert!(long.starts_with(target.trim_end_matches('…')));
+    let detail = e.detail.as_deref().unwrap();
+    assert!(detail.len() <= 2048 + '…'.len_utf8(), "{}", detail.len());
+    let short = AuditEntry::new("alice", "operator", "pause", Some("20261101-100000-wall"), "ok");
+    assert_eq!(short.target.as_deref(), Some("20261101-100000-wall"));
+}
