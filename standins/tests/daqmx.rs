@@ -349,11 +349,24 @@ fn the_interlock_and_an_emergency_off_keep_the_laser_off() {
         ErrorKind::Interrupted
     );
     assert!(!s.emission());
-    // Dropping the driver leaves the gate low and clears every task.
+    // Dropping the driver leaves the gate low and clears every task, even while its
+    // emergency off is still held (the panic hook keeps the handles of a process's
+    // runs): the line is free for the next open, which NI-DAQmx would refuse as
+    // reserved while the old gate task lived. The handle of the closed driver reads
+    // the laser as off.
     s.clear_calls();
     drop(laser);
     assert!(!s.emission());
     assert!(!off.is_open());
+    let calls = s.calls();
+    let cleared = named(&calls, "DAQmxClearTask");
+    assert!(
+        cleared.iter().any(|c| c.contains("periscope-laser-gate")),
+        "the gate's task was not cleared: {cleared:?}"
+    );
+    let again = DaqLaser::open(laser_settings(&config)).unwrap_or_else(|e| panic!("reopening the line: {e}"));
+    off.laser_off().unwrap();
+    drop(again);
 }
 
 #[test]

@@ -97,14 +97,27 @@ pub(super) fn refuse_galvo_keys(src: &TomlSource, key: &str, raw: &RawDaqGalvo) 
     )
 }
 
-/// A physical channel or line name: `Dev1/ao0`, `Dev1/port0/line0`.
+/// A physical channel or line name: `Dev1/ao0`, `Dev1/port0/line0`. Exactly one: a
+/// digital line is a device, a port and a line (a whole port, `Dev1/port0`, would make
+/// one channel of eight lines, which the driver's one-byte writes do not fill).
 fn channel(src: &TomlSource, key: &str, name: &str, kind: &str) -> Result<String, ConfigError> {
     let name = name.trim();
-    let mut parts = name.split('/');
-    let ok = parts.next().is_some_and(|d| !d.is_empty())
-        && parts.clone().next().is_some()
-        && parts.all(|p| !p.is_empty())
-        && !name.contains([',', ':', ' ']);
+    let parts: Vec<&str> = name.split('/').collect();
+    // `prefix` followed by a number.
+    let numbered = |part: &str, prefix: &str| {
+        part.len() > prefix.len()
+            && part.is_char_boundary(prefix.len())
+            && part[..prefix.len()].eq_ignore_ascii_case(prefix)
+            && part[prefix.len()..].bytes().all(|b| b.is_ascii_digit())
+    };
+    let ok = !name.contains([',', ':', ' '])
+        && match (kind, parts.as_slice()) {
+            ("digital line", [device, port, line]) => {
+                !device.is_empty() && numbered(port, "port") && numbered(line, "line")
+            }
+            ("analog output", [device, ao]) => !device.is_empty() && numbered(ao, "ao"),
+            _ => false,
+        };
     if ok {
         Ok(name.to_owned())
     } else {

@@ -1587,6 +1587,26 @@ mod tests {
             "laser-line = \"Dev1/port0/line0\"\ndiffuser-line = \"Dev1/port0/line0\"\n",
         );
         assert_eq!(e.key(), Some("laser.diffuser-line"), "{e}");
+        // One line, one output: a whole port (eight lines the driver's one-byte writes
+        // do not fill), a range or a list is refused by name.
+        for (line, key) in [
+            ("laser-line = \"Dev1/port0\"\n", "laser.laser-line"),
+            ("laser-line = \"Dev1/port0/line0:3\"\n", "laser.laser-line"),
+            (
+                "laser-line = \"Dev1/port0/line0\"\ninterlock-line = \"Dev1/port1\"\n",
+                "laser.interlock-line",
+            ),
+            ("laser-line = \"Dev1/line0\"\n", "laser.laser-line"),
+        ] {
+            let e = err(DAQ_GALVO, line);
+            assert_eq!(e.key(), Some(key), "{line}: {e}");
+            assert!(e.to_string().contains("Dev1/port0/line0"), "{e}");
+        }
+        let e = err(
+            &DAQ_GALVO.replace("\"Dev1/ao1\"", "\"Dev1/port0\""),
+            "laser-line = \"Dev1/port0/line0\"\n",
+        );
+        assert_eq!(e.key(), Some("galvo.laser.channels[1]"), "{e}");
         // DAQmx keys without the DAQmx driver are refused, not ignored.
         let serial = "serial = { port = \"/dev/ttyUSB0\", baud = 115200, timeout-ms = 200 }\n";
         let e = err(serial, "laser-line = \"Dev1/port0/line0\"\n");

@@ -20,7 +20,7 @@
 //! switched on (docs/safety.md says what to wire).
 use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::{Arc, Mutex, MutexGuard};
+use std::sync::{Arc, Mutex, MutexGuard, Weak};
 use std::time::Duration;
 
 use tracing::warn;
@@ -132,13 +132,25 @@ impl Drop for LineState {
 }
 
 /// The guard's path to the laser: the watchdog's reset (and the heartbeat) as the
-/// feed, the gate written low as the off.
+/// feed, the gate written low as the off. It holds the line weakly, as the serial
+/// laser's off switch holds its port: an `EmergencyOff` kept after the driver closed
+/// (the panic hook's list keeps them until the next run registers) must not keep the
+/// line's tasks, which NI-DAQmx reserves, from being cleared, or the next open of the
+/// same line (a run, a status reading, the idle e-stop) would be refused.
 #[derive(Clone)]
-struct DaqLine(Arc<LineState>);
+struct DaqLine(Weak<LineState>);
+
+impl DaqLine {
+    fn state(&self) -> Option<Arc<LineState>> {
+        self.0.upgrade()
+    }
+}
 
 impl LaserLine for DaqLine {
     fn feed(&self) -> std::io::Result<()> {
-        let s = &self.0;
+        let s = self
+            .state()
+            .ok_or_else(|| std::io::Error::new(std::io::ErrorKind::NotConnected, "the driver is closed"))?;
         if let Some(task) = *s.watchdog() {
             s.lib
                 .control_watchdog_task(task, VAL_RESET_TIMER)
@@ -147,23 +159,28 @@ impl LaserLine for DaqLine {
         s.beat().map_err(std::io::Error::other)
     }
 
+    /// A closed driver wrote its gate low and cleared its tasks as it closed: off.
     fn off(&self) -> Result<(), DeviceError> {
-        self.0.gate_low().map_err(DeviceError::from)
+        self.state()
+            .map_or(Ok(()), |s| s.gate_low().map_err(DeviceError::from))
     }
 
     /// The library call does not wait for anything of ours.
     fn try_off(&self) -> bool {
-        self.0.gate_low().is_ok()
+        self.state().is_none_or(|s| s.gate_low().is_ok())
     }
 
     fn describe(&self) -> String {
-        self.0.who.clone()
+        self.state()
+            .map_or_else(|| "laser gate (driver closed)".to_owned(), |s| s.who.clone())
     }
 }
 
 /// The laser gated by a DAQ device's digital line.
 pub struct DaqLaser {
-    line: DaqLine,
+    /// The line's tasks: this is their one strong holder, so they are cleared when the
+    /// driver closes.
+    line: Arc<LineState>,
     guard: LaserGuard,
     settings: DaqLaserSettings,
     interlock: Option<Task>,
@@ -209,7 +226,15 @@ impl DaqLaser {
         };
         let gate = output("laser-gate", &settings.laser_line)?;
         let heartbeat = match &settings.heartbeat_line {
-            Some(line) => Some((output("laser-heartbeat", line)?, AtomicBool::new(false))),
+            Some(line) => match output("laser-heartbeat", line) {
+                Ok(task) => Some((task, AtomicBool::new(false))),
+                Err(e) => {
+                    // The gate's task is started: cleared, or the line stays reserved.
+                    let _ = lib.stop_task(gate);
+                    let _ = lib.clear_task(gate);
+                    return Err(e);
+                }
+            },
             None => None,
         };
         let state = Arc::new(LineState {
@@ -223,10 +248,14 @@ impl DaqLaser {
             heartbeat,
         });
         state.gate_low()?;
-        let line = DaqLine(state);
-        let guard = LaserGuard::new("laser", Some(settings.watchdog), settings.watchdog, line.clone());
+        let guard = LaserGuard::new(
+            "laser",
+            Some(settings.watchdog),
+            settings.watchdog,
+            DaqLine(Arc::downgrade(&state)),
+        );
         let mut laser = DaqLaser {
-            line,
+            line: state,
             guard,
             interlock: None,
             diffuser: None,
@@ -253,11 +282,11 @@ impl DaqLaser {
     }
 
     fn lib(&self) -> &Lib {
-        &self.line.0.lib
+        &self.line.lib
     }
 
     fn who(&self) -> &str {
-        &self.line.0.who
+        &self.line.who
     }
 
     fn err(&self, kind: ErrorKind, message: impl Into<String>) -> DaqError {
@@ -292,7 +321,7 @@ fn no_watchdog(who: &str, why: &str) -> DaqError {
 impl Drop for DaqLaser {
     fn drop(&mut self) {
         if self.guard.release()
-            && let Err(e) = self.line.0.gate_low()
+            && let Err(e) = self.line.gate_low()
         {
             warn!(error = %e, "switching the laser off on closing failed");
         }
@@ -318,13 +347,13 @@ impl Laser for DaqLaser {
             return self.switch_on();
         }
         self.guard.switching_off();
-        let off = self.line.0.gate_low();
-        self.line.0.disarm();
+        let off = self.line.gate_low();
+        self.line.disarm();
         off
     }
 
     fn laser_state(&mut self) -> Result<LaserState, DaqError> {
-        let expired = match *self.line.0.watchdog() {
+        let expired = match *self.line.watchdog() {
             Some(task) => self
                 .lib()
                 .watchdog_has_expired(task)
@@ -332,7 +361,7 @@ impl Laser for DaqLaser {
             None => false,
         };
         Ok(LaserState {
-            emission: self.line.0.high.load(Ordering::SeqCst) && !expired,
+            emission: self.line.high.load(Ordering::SeqCst) && !expired,
             interlock_closed: self.interlock_closed()?,
             diffuser_in: self.diffuser_in,
         })
@@ -385,7 +414,7 @@ impl GuardedLaser for DaqLaser {
     /// the gate line, started (with a heartbeat: one beat, so an external relay has
     /// closed before the gate goes high).
     fn arm_watchdog(&mut self, timeout: Duration) -> Result<(), DaqError> {
-        let s = self.line.0.clone();
+        let s = self.line.clone();
         if self.mode == WatchdogMode::Hardware {
             s.disarm();
             let lib = &s.lib;
@@ -436,7 +465,7 @@ impl GuardedLaser for DaqLaser {
 
     /// The gate written high.
     fn send_on(&mut self) -> Result<(), DaqError> {
-        let s = &self.line.0;
+        let s = &self.line;
         s.lib
             .write_digital_lines(s.gate, &[1], WRITE_TIMEOUT_S)
             .map_err(|c| failed(&s.lib, &s.who, "DAQmxWriteDigitalLines", c))?;

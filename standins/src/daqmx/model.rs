@@ -61,6 +61,24 @@ struct Task {
     started: bool,
 }
 
+impl Task {
+    /// The physical channels the task reserves once started (a watchdog task's lines
+    /// are the expiration states of lines other tasks drive).
+    fn channels(&self) -> Vec<String> {
+        match &self.kind {
+            Kind::Ao(v) => v.iter().map(|(c, _, _)| c.clone()).collect(),
+            Kind::Do(v) | Kind::Di(v) => v.clone(),
+            Kind::Watchdog { .. } => Vec::new(),
+        }
+    }
+}
+
+/// Whether two physical channels overlap: the same, or a port and one of its lines.
+fn same_channel(a: &str, b: &str) -> bool {
+    let within = |inner: &str, outer: &str| inner.strip_prefix(outer).is_some_and(|r| r.starts_with('/'));
+    a.eq_ignore_ascii_case(b) || within(a, b) || within(b, a)
+}
+
 /// The simulated DAQ device and what it is wired to.
 pub(crate) struct Daq {
     rig: Rig,
@@ -279,6 +297,19 @@ impl Daq {
     }
 
     pub(crate) fn start(&mut self, handle: usize) -> Result<(), Code> {
+        // A started task reserves its physical channels until it is cleared (NI-DAQmx's
+        // "resource is reserved"): another task started on one of them is refused.
+        let mine = self.tasks.get(&handle).map(Task::channels).unwrap_or_default();
+        let taken = self.tasks.iter().any(|(&h, t)| {
+            h != handle
+                && t.started
+                && t.channels()
+                    .iter()
+                    .any(|a| mine.iter().any(|b| same_channel(a, b)))
+        });
+        if taken {
+            return Err(error::RESOURCE_ALREADY_RESERVED);
+        }
         let rig = self.rig.clone();
         let laser = self.laser_line.clone();
         let t = self.task(handle)?;
