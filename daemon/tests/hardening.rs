@@ -846,3 +846,46 @@ async fn the_bearer_scheme_is_accepted_in_any_case() {
     .await;
     assert_eq!(s, StatusCode::UNAUTHORIZED);
 }
+
+/// A client that stops reading a response is cut off once no byte has gone out for the
+/// write timeout (`[api] request-timeout-s`, 1 s here): it gets part of a 64 MiB body,
+/// then the end of the connection, not the whole body whenever it resumes reading.
+/// Without it such a client held its socket, and a download or stream slot, forever.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_client_that_stops_reading_is_cut_off_after_the_write_timeout() {
+    use periscope_daemon::api::server::{ConnectionLimits, serve_connections};
+    use tokio::io::{AsyncReadExt, AsyncWriteExt};
+    const BODY: usize = 64 << 20;
+    let app = axum::Router::new().route("/big", axum::routing::get(|| async { vec![7u8; BODY] }));
+    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+    let addr = listener.local_addr().unwrap();
+    let limits = ConnectionLimits {
+        header_timeout: Duration::from_secs(5),
+        max_connections: 8,
+        write_timeout: Duration::from_secs(1),
+    };
+    let stop = Arc::new(tokio::sync::Notify::new());
+    let server = {
+        let stop = Arc::clone(&stop);
+        tokio::spawn(async move {
+            serve_connections(listener, app, limits, async move { stop.notified().await }).await
+        })
+    };
+    let mut client = tokio::net::TcpStream::connect(addr).await.unwrap();
+    client
+        .write_all(b"GET /big HTTP/1.1\r\nhost: localhost\r\n\r\n")
+        .await
+        .unwrap();
+    // Not reading: the server's writes wait on full socket buffers, then time out.
+    tokio::time::sleep(Duration::from_secs(3)).await;
+    let mut got = Vec::new();
+    let read = tokio::time::timeout(Duration::from_secs(20), client.read_to_end(&mut got)).await;
+    let read = read.expect("the connection was never closed");
+    assert!(
+        read.is_err() || got.len() < BODY,
+        "the whole body ({} bytes) arrived after 3 s of not reading",
+        got.len()
+    );
+    stop.notify_one();
+    server.await.unwrap().unwrap();
+}

@@ -432,6 +432,7 @@ pub async fn serve(bind: SocketAddr, service: Arc<Service>) -> Result<(), ServeE
     let limits = server::ConnectionLimits {
         header_timeout: api.header_timeout,
         max_connections: server::connection_cap(api.max_connections, server::open_files_limit()),
+        write_timeout: api.request_timeout,
     };
     server::serve_connections(listener, app, limits, async move { notify.notified().await })
         .await

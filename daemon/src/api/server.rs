@@ -12,6 +12,11 @@
 //!   files, serial ports, the capture's log): at the cap the server stops accepting
 //!   until a connection closes, and what waits stays in the kernel's backlog, costing
 //!   the process nothing.
+//! - **Write timeout** (`tokio-io-timeout`'s `TimeoutStream` under hyper): a
+//!   connection whose client takes none of a response's bytes for `[api]
+//!   request-timeout-s` is closed. `request-timeout-s` itself ends when a response's
+//!   headers go out, so without this a client that stops reading a download or an
+//!   event stream would hold its socket, and the download or stream slot, forever.
 //! - **HTTP/1.1 only**: a protocol detector (hyper-util's `auto`) would read the first
 //!   bytes of every connection before hyper's timer starts, so a silent client would
 //!   never be timed out.
@@ -65,6 +70,8 @@ pub struct ConnectionLimits {
     pub header_timeout: Duration,
     /// Most connections at once.
     pub max_connections: usize,
+    /// Longest a write may wait for the client to take bytes.
+    pub write_timeout: Duration,
 }
 
 /// Serves `app` on `listener` until `shutdown` completes, then lets the connections
@@ -123,9 +130,11 @@ pub async fn serve_connections(
             },
         };
         let _ = stream.set_nodelay(true);
+        let mut stream = tokio_io_timeout::TimeoutStream::new(stream);
+        stream.set_write_timeout(Some(limits.write_timeout));
         let Ok(service) = make.call(peer).await;
         let service = TowerToHyperService::new(service);
-        let conn = builder.serve_connection(TokioIo::new(stream), service);
+        let conn = builder.serve_connection(TokioIo::new(Box::pin(stream)), service);
         let conn = graceful.watch(conn);
         tokio::spawn(async move {
             // Held until the connection closes.
