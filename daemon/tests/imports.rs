@@ -303,6 +303,46 @@ async fn bad_imports_are_refused_with_their_reason_and_leave_nothing() {
             "multipart/form-data",
         ),
         (
+            // The parser holds a part's headers (and the preamble) in memory until
+            // they end: 2 MiB of them is refused, not buffered on to the upload limit.
+            "a preamble of 2 MiB",
+            upload(
+                Some(TOKEN),
+                Body::from(
+                    [
+                        vec![b'x'; 2 << 20],
+                        b"\r\n".to_vec(),
+                        form(&[Part::File("capture", "a.mat", lct.clone())]),
+                    ]
+                    .concat(),
+                ),
+            ),
+            StatusCode::BAD_REQUEST,
+            "before the next part's headers ended",
+        ),
+        (
+            "a part header of 2 MiB",
+            upload(
+                Some(TOKEN),
+                Body::from(
+                    form(&[Part::File("capture", "a.mat", lct.clone())])
+                        .splitn(2, |&b| b == b'\n')
+                        .enumerate()
+                        .flat_map(|(i, piece)| {
+                            let mut v = piece.to_vec();
+                            if i == 0 {
+                                v.extend_from_slice(format!("\nX-Pad: {}\r", "p".repeat(2 << 20)).as_bytes());
+                                v.push(b'\n');
+                            }
+                            v
+                        })
+                        .collect::<Vec<u8>>(),
+                ),
+            ),
+            StatusCode::BAD_REQUEST,
+            "before the next part's headers ended",
+        ),
+        (
             "an unknown field",
             upload(Some(TOKEN), Body::from(form(&[Part::Text("plan", "x")]))),
             StatusCode::BAD_REQUEST,

@@ -8,11 +8,15 @@
 //! a large file on a slow link may take minutes), and one import uploads at a time.
 use std::sync::Arc;
 
-use axum::extract::State;
-use axum::extract::multipart::{Field, Multipart, MultipartRejection};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+
+use axum::body::Body;
+use axum::extract::multipart::{Field, Multipart};
+use axum::extract::{FromRequest, Request, State};
 use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
 use axum::response::{IntoResponse, Response};
 use tokio::io::AsyncWriteExt as _;
+use tokio_stream::StreamExt as _;
 
 use super::openapi::{ErrorBody, status};
 use super::{ApiError, ApiResult, AppState, access, blocking};
@@ -39,6 +43,47 @@ pub(super) struct ImportForm {
 
 /// Longest `recon` and `name` fields, bytes.
 const MAX_TEXT_FIELD: usize = 1 << 20;
+
+/// Most bytes a form may send while it is looked through for its next part: that
+/// part's boundary and headers (and, before the first, the preamble), which the
+/// multipart parser holds in memory until the headers end, plus the one chunk that
+/// carries them in.
+const MAX_PART_HEAD: u64 = 1 << 20;
+
+/// The bytes the form's body delivers while the parser looks for the next part
+/// ([`MAX_PART_HEAD`]): counted only while `armed`, so a file's data is not.
+#[derive(Default)]
+struct PartHead {
+    armed: AtomicBool,
+    seen: AtomicU64,
+}
+
+impl PartHead {
+    fn arm(&self, on: bool) {
+        self.seen.store(0, Ordering::SeqCst);
+        self.armed.store(on, Ordering::SeqCst);
+    }
+
+    /// `req`'s body, which fails once more than [`MAX_PART_HEAD`] bytes arrive while
+    /// armed: the parser then reports the form malformed instead of buffering on.
+    fn watch(self: &Arc<Self>, req: Request) -> Request {
+        let head = Arc::clone(self);
+        req.map(|body| {
+            Body::from_stream(body.into_data_stream().map(move |chunk| {
+                let chunk = chunk?;
+                let n = chunk.len() as u64;
+                if head.armed.load(Ordering::SeqCst) && head.seen.fetch_add(n, Ordering::SeqCst) + n > MAX_PART_HEAD {
+                    return Err(axum::Error::new(std::io::Error::other(format!(
+                        "more than {} KiB arrived before the next part's headers ended (a part's boundary and \
+                         headers, or the preamble before the first)",
+                        MAX_PART_HEAD >> 10
+                    ))));
+                }
+                Ok(chunk)
+            }))
+        })
+    }
+}
 
 /// Most `sidecar` files one import takes (every other field at most once, so the
 /// whole form is bounded by the import limit and these).
@@ -68,8 +113,10 @@ pub(super) async fn import(
     State(state): State<AppState>,
     axum::Extension(caller): axum::Extension<access::Caller>,
     headers: HeaderMap,
-    form: Result<Multipart, MultipartRejection>,
+    req: Request,
 ) -> ApiResult<Response> {
+    let head = Arc::new(PartHead::default());
+    let form = Multipart::from_request(head.watch(req), &()).await;
     let api = &state.service.instrument().api;
     let limit = api.import_limit;
     let declared = headers
@@ -104,7 +151,7 @@ pub(super) async fn import(
     let s = Arc::clone(&state.service);
     let ticket = blocking(move || s.begin_import(key.as_deref())).await?;
     let stall = api.import_stall;
-    let upload = match receive(&mut form, &ticket, limit, stall).await {
+    let upload = match receive(&mut form, &head, &ticket, limit, stall).await {
         Ok(u) => u,
         Err(e) => {
             // What was written goes before the answer does.
@@ -157,11 +204,22 @@ fn stalled(stall: std::time::Duration) -> ApiError {
     )
 }
 
-fn bad_form(e: impl std::fmt::Display) -> ApiError {
+/// The parser's own words, with their causes (its `Display` says only that parsing
+/// failed, and a failed read of the body only that reading failed).
+fn bad_form(e: axum::extract::multipart::MultipartError) -> ApiError {
+    let mut why = e.body_text();
+    let mut cause = std::error::Error::source(&e);
+    while let Some(c) = cause {
+        let said = c.to_string();
+        if !why.contains(&said) {
+            why = format!("{why}: {said}");
+        }
+        cause = c.source();
+    }
     ApiError::new(
         StatusCode::BAD_REQUEST,
         "bad-body",
-        format!("the upload is not a well-formed multipart/form-data body: {e}"),
+        format!("the upload is not a well-formed multipart/form-data body: {why}"),
     )
 }
 
@@ -169,13 +227,17 @@ fn bad_form(e: impl std::fmt::Display) -> ApiError {
 /// memory (capped).
 async fn receive(
     form: &mut Multipart,
+    head: &PartHead,
     ticket: &ImportTicket,
     limit: u64,
     stall: std::time::Duration,
 ) -> ApiResult<Upload> {
     let mut upload = Upload::default();
     loop {
-        let field = match tokio::time::timeout(stall, form.next_field()).await {
+        head.arm(true);
+        let next = tokio::time::timeout(stall, form.next_field()).await;
+        head.arm(false);
+        let field = match next {
             Err(_) => return Err(stalled(stall)),
             Ok(Err(e)) => return Err(bad_form(e)),
             Ok(Ok(None)) => break,
