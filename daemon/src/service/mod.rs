@@ -60,6 +60,9 @@ const PAIR_EVENT_INTERVAL: Duration = Duration::from_millis(50);
 /// Events buffered per run for slow stream clients before they are told they lagged.
 const EVENT_BUFFER: usize = 1024;
 
+/// Events queued from a run to its forwarder thread at most (a few MB of histograms).
+const EVENT_QUEUE: usize = 4096;
+
 /// An event as sent to stream clients: its name and JSON.
 #[derive(Clone, Debug)]
 pub struct StreamEvent {

@@ -170,13 +170,41 @@ impl Service {
         // The run's events reach the live state and the stream clients through a
         // forwarding thread: the capture's own thread only queues them, so it never
         // waits for the service's lock, whatever the API's readers do with it.
-        let (tx, rx) = std::sync::mpsc::channel::<RunEvent>();
+        // The queue is bounded: while the forwarder waits for the lock (requests
+        // writing files under it), the per-pair events for live displays (pairs, LOS
+        // points, histograms, safety readings: each carries its totals, and the
+        // streams thin them anyway) are dropped once it is full, so the measurement
+        // neither waits nor makes the queue grow; the rare others (stages, outputs,
+        // the end) wait for room.
+        let (tx, rx) = std::sync::mpsc::sync_channel::<RunEvent>(EVENT_QUEUE);
         let tx = Arc::new(Mutex::new(Some(tx)));
         {
             let tx = Arc::clone(&tx);
+            let mut dropped = 0u64;
             events.listen(move |ev| {
                 if let Some(tx) = &*tx.lock().unwrap_or_else(|p| p.into_inner()) {
-                    let _ = tx.send(ev.clone());
+                    match tx.try_send(ev.clone()) {
+                        Err(std::sync::mpsc::TrySendError::Full(ev)) => {
+                            if matches!(
+                                ev,
+                                RunEvent::Pair { .. }
+                                    | RunEvent::LosPoint { .. }
+                                    | RunEvent::Histogram { .. }
+                                    | RunEvent::Safety { .. }
+                            ) {
+                                dropped += 1;
+                                if dropped.is_power_of_two() {
+                                    tracing::warn!(
+                                        dropped,
+                                        "the run's event forwarder is behind: live pair, histogram and safety events are skipped"
+                                    );
+                                }
+                            } else {
+                                let _ = tx.send(ev);
+                            }
+                        }
+                        Ok(()) | Err(std::sync::mpsc::TrySendError::Disconnected(_)) => {}
+                    }
                 }
             });
         }
