@@ -561,6 +561,32 @@ fn a_tdc_window_that_records_none_of_the_volume_fails_before_the_first_pair() {
     assert_eq!(rig.parked(), (true, true));
 }
 
+/// A window that records none of the relay's first bounces: the run fails after the
+/// LOS scan, laser off and arms parked, naming the window and what to change, not the
+/// relay thresholds (until 2026-12-06: "only 0 of 0 LOS points passed relay.depth-m
+/// … widen them").
+#[test]
+fn a_tdc_window_that_records_none_of_the_relay_fails_naming_the_window() {
+    let _serial = ONE_AT_A_TIME.lock().unwrap_or_else(|p| p.into_inner());
+    let tmp = tempfile::tempdir().unwrap();
+    let plan = SmallPlan::named("window-misses-relay")
+        .set("acquisition.offset-ns", 500.0)
+        .toml();
+    let (dir, rig) = prepare(tmp.path(), &plan);
+    let e = execute(&dir, &rig, Control::new(), |_| {})
+        .expect_err("a capture whose window misses the relay")
+        .to_string();
+    assert!(
+        e.contains("none of the 144 LOS points had a return inside the TDC window")
+            && e.contains("acquisition.offset-ns")
+            && e.contains("periscope check"),
+        "{e}"
+    );
+    assert_eq!(RunInfo::load(&dir).unwrap().state, RunState::Failed);
+    assert!(!rig.emission());
+    assert_eq!(rig.parked(), (true, true));
+}
+
 #[test]
 fn a_record_damaged_in_the_middle_of_the_log_is_measured_again_and_the_rest_kept() {
     use periscope_daemon::store::{DAMAGED_LOG, HISTOGRAM_LOG};

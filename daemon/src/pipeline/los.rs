@@ -146,6 +146,15 @@ impl Run {
         self.devices.laser.set_emission(false)?;
         self.devices.laser.set_diffuser(false)?;
         self.report_laser();
+        if out.is_empty() {
+            let c = periscope_recon::C0;
+            let end = acq.offset + acq.bins as f64 * acq.bin_width;
+            return Err(RelayError::NoReturns {
+                scanned: total,
+                window: [c * acq.offset, c * end],
+            }
+            .into());
+        }
         Ok(out)
     }
 

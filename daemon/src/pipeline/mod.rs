@@ -36,14 +36,26 @@ use crate::devices::OpenError;
 /// Why the relay surface could not be extracted from the LOS scan.
 #[derive(Debug, thiserror::Error)]
 pub enum RelayError {
+    /// No LOS point had a return inside the histogrammer's window.
+    #[error(
+        "none of the {scanned} LOS points had a return inside the TDC window (total paths {:.2} to {:.2} m, from acquisition.offset-ns, acquisition.bins and bin-width-ps): the window must reach the relay's first bounces, and los.angles-deg must cover the relay; `periscope check` names the acquisition settings that record them",
+        window[0],
+        window[1]
+    )]
+    NoReturns {
+        /// Points scanned.
+        scanned: usize,
+        /// The total path lengths the window records, metres.
+        window: [f64; 2],
+    },
     /// Too few LOS points passed the plan's relay thresholds.
     #[error(
-        "only {kept} of {total} LOS points passed relay.depth-m {depth:?} and relay.min-intensity {min_intensity}: widen them, or check that los.angles-deg covers the relay"
+        "only {kept} of the {total} LOS points with a return passed relay.depth-m {depth:?} and relay.min-intensity {min_intensity}: widen them, or check that los.angles-deg covers the relay"
     )]
     TooFewPoints {
         /// Points kept.
         kept: usize,
-        /// Points scanned.
+        /// Points with a return.
         total: usize,
         /// The depth window, metres.
         depth: [f64; 2],
