@@ -410,13 +410,13 @@ async fn refused(state: &AppState, e: ApiError, entry: AuditEntry) -> Response {
     e.into_response()
 }
 
-/// Records an audit entry on the blocking pool (it is flushed to disk).
-/// An e-stop's entry (`estop`) is written on a thread of its own, and the response
-/// does not wait for it.
+/// Records an audit entry on the blocking pool (it is flushed to disk), or an
+/// e-stop's (`estop`) on a thread of its own: the laser is off by then, and the
+/// response waits for its entry like any other's.
 async fn record(state: &AppState, entry: AuditEntry, estop: bool) {
     let s = Arc::clone(&state.service);
     if estop {
-        drop(super::own_thread("periscope-estop-audit", move || s.audit(entry)));
+        let _ = super::own_thread("periscope-estop-audit", move || s.audit(entry)).await;
         return;
     }
     let _ = tokio::task::spawn_blocking(move || s.audit(entry)).await;

@@ -851,24 +851,32 @@ async fn estop(State(state): State<AppState>) -> ApiResult<axum::Json<EstopRepor
     }
 }
 
-/// Runs `f` on a thread of its own, started at the call (dropping the future leaves
-/// it running), and waits for its result (`None`: the thread could not start, or
-/// panicked). For the e-stop's path, which must never wait behind the
+/// Runs `f` on a thread of its own and waits for its result (`None`: the thread could
+/// not start, or panicked). For the e-stop's path, which must never wait behind the
 /// blocking pool: requests whose timeout fired while their blocking work went on (an
-/// export, a disk that stalls) can fill it.
-fn own_thread<T: Send + 'static>(
+/// export, a disk that stalls) can fill it. At most [`OWN_THREADS`] run at once (a
+/// flood of e-stops waits for one to end rather than start threads without bound);
+/// a dropped future leaves its thread to finish.
+async fn own_thread<T: Send + 'static>(
     name: &'static str,
     f: impl FnOnce() -> T + Send + 'static,
-) -> impl std::future::Future<Output = Option<T>> {
+) -> Option<T> {
+    static SLOTS: tokio::sync::Semaphore = tokio::sync::Semaphore::const_new(OWN_THREADS);
+    SLOTS.acquire().await.ok()?.forget();
     let (tx, rx) = tokio::sync::oneshot::channel();
     let started = std::thread::Builder::new().name(name.into()).spawn(move || {
         let _ = tx.send(f());
+        SLOTS.add_permits(1);
     });
     if let Err(e) = &started {
+        SLOTS.add_permits(1);
         tracing::error!(thread = name, error = %e, "a thread of the e-stop's path could not start");
     }
-    async move { rx.await.ok() }
+    rx.await.ok()
 }
+
+/// The most threads of the e-stop's path ([`own_thread`]) at once.
+const OWN_THREADS: usize = 16;
 
 /// A run's progress as server-sent events
 ///

@@ -7,7 +7,8 @@ impl Service {
     /// Switches the running run's laser off through its direct path, if a run holds
     /// the devices (for signal handlers: quick, waits for nothing but a mutex).
     pub fn laser_off_now(&self) {
-        if let Some(off) = self.direct().laser_off.clone()
+        let off = self.direct().laser_off.clone();
+        if let Some(off) = off
             && let Err(e) = off.laser_off()
         {
             tracing::warn!(error = %e, "direct laser off failed");
@@ -45,6 +46,22 @@ impl Service {
                     report.laser_off_s = Some(t.elapsed().as_secs_f64());
                 }
                 Err(e) => report.warnings.push(format!("direct laser off failed: {e}")),
+            }
+        }
+        // With no run holding the devices, the laser controller opened on its own, now,
+        // before anything below waits for the service's lock (step 5 parks the arms).
+        // A running run's devices are its own until it stops (step 4).
+        let mut controller_off = false;
+        if running.is_none() && !laser_off {
+            match self.laser_controller_off() {
+                Ok(()) => {
+                    controller_off = true;
+                    laser_off = true;
+                    report.laser =
+                        "off: LASER OFF through the laser controller, opened for the e-stop".into();
+                    report.laser_off_s = Some(t.elapsed().as_secs_f64());
+                }
+                Err(e) => report.warnings.push(format!("laser controller: {e}")),
             }
         }
         // 2. The run (asked above).
@@ -123,9 +140,14 @@ impl Service {
                 }
             }
         }
-        // 5. No run (or one that did not stop): each controller opened on its own.
+        // 5. No run (or one that did not stop): each controller opened on its own (the
+        //    laser's already, above, where no run held it).
         if !report.parked {
-            match self.laser_controller_off() {
+            match if controller_off {
+                Ok(())
+            } else {
+                self.laser_controller_off()
+            } {
                 Ok(()) => {
                     if !laser_off {
                         report.laser =

@@ -438,7 +438,8 @@ impl Service {
             control.set_requested_by("shutdown");
             control.pause();
         }
-        if let Some(off) = self.direct().laser_off.clone()
+        let off = self.direct().laser_off.clone();
+        if let Some(off) = off
             && let Err(e) = off.laser_off()
         {
             tracing::warn!(error = %e, "shutdown: direct laser off failed; the run switches it off at its checkpoint");
