@@ -121,8 +121,11 @@ impl LineState {
 
 impl Drop for LineState {
     fn drop(&mut self) {
-        let _ = self.gate_low();
-        self.disarm();
+        // A gate that would not go low keeps its watchdog armed and unfed: it expires
+        // and drives the line low (its expiration state) without us.
+        if self.gate_low().is_ok() {
+            self.disarm();
+        }
         let tasks = std::iter::once(self.gate).chain(self.heartbeat.as_ref().map(|(t, _)| *t));
         for task in tasks {
             let _ = self.lib.stop_task(task);
@@ -159,15 +162,23 @@ impl LaserLine for DaqLine {
         s.beat().map_err(std::io::Error::other)
     }
 
-    /// A closed driver wrote its gate low and cleared its tasks as it closed: off.
+    /// A closed driver's line cannot be written: as the serial laser's off switch, this
+    /// says so (kind `disconnected`) rather than report an off it did not make, and the
+    /// e-stop opens the laser on its own.
     fn off(&self) -> Result<(), DeviceError> {
-        self.state()
-            .map_or(Ok(()), |s| s.gate_low().map_err(DeviceError::from))
+        let s = self.state().ok_or_else(|| {
+            DaqError::new(
+                "laser gate",
+                ErrorKind::Disconnected,
+                "the driver is closed (it wrote the gate low as it closed); open the laser again to switch it off",
+            )
+        })?;
+        s.gate_low().map_err(DeviceError::from)
     }
 
     /// The library call does not wait for anything of ours.
     fn try_off(&self) -> bool {
-        self.state().is_none_or(|s| s.gate_low().is_ok())
+        self.state().is_some_and(|s| s.gate_low().is_ok())
     }
 
     fn describe(&self) -> String {
