@@ -170,41 +170,16 @@ impl Service {
         // The run's events reach the live state and the stream clients through a
         // forwarding thread: the capture's own thread only queues them, so it never
         // waits for the service's lock, whatever the API's readers do with it.
-        // The queue is bounded: while the forwarder waits for the lock (requests
-        // writing files under it), the per-pair events for live displays (pairs, LOS
-        // points, histograms, safety readings: each carries its totals, and the
-        // streams thin them anyway) are dropped once it is full, so the measurement
-        // neither waits nor makes the queue grow; the rare others (stages, outputs,
-        // the end) wait for room.
-        let (tx, rx) = std::sync::mpsc::sync_channel::<RunEvent>(EVENT_QUEUE);
-        let tx = Arc::new(Mutex::new(Some(tx)));
+        // The queue is bounded (`EventQueue`): while the forwarder waits for the lock
+        // (requests writing files under it), the live displays' per-pair events are
+        // coalesced, so the measurement neither waits nor makes the queue grow.
+        let (queue, rx) = EventQueue::new(EVENT_QUEUE);
+        let tx = Arc::new(Mutex::new(Some(queue)));
         {
             let tx = Arc::clone(&tx);
-            let mut dropped = 0u64;
             events.listen(move |ev| {
-                if let Some(tx) = &*tx.lock().unwrap_or_else(|p| p.into_inner()) {
-                    match tx.try_send(ev.clone()) {
-                        Err(std::sync::mpsc::TrySendError::Full(ev)) => {
-                            if matches!(
-                                ev,
-                                RunEvent::Pair { .. }
-                                    | RunEvent::LosPoint { .. }
-                                    | RunEvent::Histogram { .. }
-                                    | RunEvent::Safety { .. }
-                            ) {
-                                dropped += 1;
-                                if dropped.is_power_of_two() {
-                                    tracing::warn!(
-                                        dropped,
-                                        "the run's event forwarder is behind: live pair, histogram and safety events are skipped"
-                                    );
-                                }
-                            } else {
-                                let _ = tx.send(ev);
-                            }
-                        }
-                        Ok(()) | Err(std::sync::mpsc::TrySendError::Disconnected(_)) => {}
-                    }
+                if let Some(q) = &mut *tx.lock().unwrap_or_else(|p| p.into_inner()) {
+                    q.send(ev);
                 }
             });
         }
@@ -238,9 +213,11 @@ impl Service {
                 run.execute().map(|_| ())
             })
         };
-        // Every event queued so far reaches the clients before the worker closes the
-        // run's channel.
-        tx.lock().unwrap_or_else(|p| p.into_inner()).take();
+        // Every event queued so far (and held back) reaches the clients before the
+        // worker closes the run's channel.
+        if let Some(mut q) = tx.lock().unwrap_or_else(|p| p.into_inner()).take() {
+            q.flush();
+        }
         if let Some(f) = forwarder {
             let _ = f.join();
         }
@@ -358,4 +335,126 @@ pub(super) fn train_loss(t: &periscope_recon::gtr::TrainEvent) -> Option<f64> {
 
 pub(super) fn event_name(v: &serde_json::Value) -> Arc<str> {
     v.get("event").and_then(|e| e.as_str()).unwrap_or("event").into()
+}
+
+/// A run's events on their way to its forwarder thread: a bounded queue, and for the
+/// live displays' per-pair events (pairs, LOS points, histograms, safety readings) a
+/// slot per kind where the latest waits while the queue is full, a pair's photon counts
+/// summed over those it replaced. The sender never blocks on them; the rare other
+/// events (stages, outputs, the end) send what is held first and wait for room, so
+/// the forwarder sees every kind in order and the last of each.
+struct EventQueue {
+    tx: std::sync::mpsc::SyncSender<RunEvent>,
+    held: [Option<RunEvent>; 4],
+    coalesced: u64,
+}
+
+impl EventQueue {
+    fn new(capacity: usize) -> (EventQueue, std::sync::mpsc::Receiver<RunEvent>) {
+        let (tx, rx) = std::sync::mpsc::sync_channel(capacity);
+        let q = EventQueue {
+            tx,
+            held: Default::default(),
+            coalesced: 0,
+        };
+        (q, rx)
+    }
+
+    /// The slot of a live-display event's kind.
+    fn slot(ev: &RunEvent) -> Option<usize> {
+        match ev {
+            RunEvent::Pair { .. } => Some(0),
+            RunEvent::LosPoint { .. } => Some(1),
+            RunEvent::Histogram { .. } => Some(2),
+            RunEvent::Safety { .. } => Some(3),
+            _ => None,
+        }
+    }
+
+    fn send(&mut self, ev: &RunEvent) {
+        let Some(i) = Self::slot(ev) else {
+            self.flush();
+            let _ = self.tx.send(ev.clone());
+            return;
+        };
+        let mut ev = ev.clone();
+        if let Some(before) = self.held[i].take() {
+            // Behind one already held: it joins it, so its kind stays in order.
+            if let (RunEvent::Pair { counts, .. }, RunEvent::Pair { counts: earlier, .. }) =
+                (&mut ev, &before)
+            {
+                *counts += earlier;
+            }
+        }
+        if let Err(std::sync::mpsc::TrySendError::Full(ev)) = self.tx.try_send(ev) {
+            self.held[i] = Some(ev);
+            self.coalesced += 1;
+            if self.coalesced.is_power_of_two() {
+                tracing::warn!(
+                    coalesced = self.coalesced,
+                    "the run's event forwarder is behind: live pair, histogram and safety events are coalesced"
+                );
+            }
+        }
+    }
+
+    /// Sends what is held, waiting for room.
+    fn flush(&mut self) {
+        for ev in self.held.iter_mut().filter_map(Option::take) {
+            let _ = self.tx.send(ev);
+        }
+    }
+}
+
+#[cfg(test)]
+mod event_queue_tests {
+    use super::*;
+
+    fn pair(done: usize, counts: u64) -> RunEvent {
+        RunEvent::Pair {
+            done,
+            total: 100,
+            counts,
+            peak_bin: 0,
+            flagged: false,
+        }
+    }
+
+    /// With the forwarder stalled, the queue never holds more than its capacity, the
+    /// pair events held back keep the latest pair and every photon, and an event that
+    /// must not be lost brings what is held with it, in order.
+    #[test]
+    fn a_full_queue_coalesces_pairs_keeping_their_counts_and_order() {
+        let (mut q, rx) = EventQueue::new(4);
+        for done in 1..=50 {
+            q.send(&pair(done, 10));
+        }
+        let queued: Vec<RunEvent> = rx.try_iter().collect();
+        assert_eq!(queued.len(), 4, "the bound");
+        // Room again: the next pair takes the held ones' place and counts.
+        q.send(&pair(51, 10));
+        let mut seen: Vec<RunEvent> = queued;
+        seen.extend(rx.try_iter());
+        // The end, with the forwarder running again.
+        let end = std::thread::spawn(move || rx.iter().collect::<Vec<_>>());
+        q.send(&RunEvent::Completed);
+        drop(q);
+        seen.extend(end.join().unwrap());
+        let (mut counts, mut last_done) = (0, 0);
+        for ev in &seen {
+            if let RunEvent::Pair { done, counts: c, .. } = ev {
+                counts += c;
+                if *done > 0 {
+                    assert!(*done > last_done, "pairs out of order: {done} after {last_done}");
+                    last_done = *done;
+                }
+            }
+        }
+        assert_eq!((counts, last_done), (510, 51), "every photon, and the last pair");
+        assert!(
+            matches!(seen.last(), Some(RunEvent::Completed)),
+            "{:?}",
+            seen.last()
+        );
+    }
 }
