@@ -47,7 +47,8 @@ const MAX_TEXT_FIELD: usize = 1 << 20;
 /// Most bytes a form may send while it is looked through for its next part: that
 /// part's boundary and headers (and, before the first, the preamble), which the
 /// multipart parser holds in memory until the headers end, plus the one chunk that
-/// carries them in.
+/// carries them in (hyper hands an HTTP/1.1 body over in chunks of at most a few
+/// hundred KiB, so a legitimate part's first chunk stays under the bound).
 const MAX_PART_HEAD: u64 = 1 << 20;
 
 /// The bytes the form's body delivers while the parser looks for the next part

@@ -147,11 +147,12 @@ impl Run {
         self.devices.laser.set_diffuser(false)?;
         self.report_laser();
         if out.is_empty() {
-            let c = periscope_recon::C0;
-            let end = acq.offset + acq.bins as f64 * acq.bin_width;
+            // Total paths, as `periscope check` gives them: the window less the
+            // system's delay.
+            let axis = TimeAxis::of_tdc(acq.offset, acq.bin_width, acq.bins as usize, tdc.system_delay);
             return Err(RelayError::NoReturns {
                 scanned: total,
-                window: [c * acq.offset, c * end],
+                window: [axis.start, axis.start + axis.bins as f64 * axis.width],
             }
             .into());
         }
