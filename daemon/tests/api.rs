@@ -793,6 +793,30 @@ async fn fifty_event_streams_and_a_status_poller_follow_a_real_capture() {
     worker.join().unwrap();
 }
 
+/// A service on the simulator in real time, its worker and router, and one run of
+/// [`PLAN`] submitted and capturing (at least 5 pairs stored): the run's id and status.
+async fn a_capturing_run(
+    runs: &Path,
+) -> (
+    Arc<Service>,
+    std::thread::JoinHandle<()>,
+    axum::Router,
+    String,
+    Value,
+) {
+    let svc = service(runs, 1.0, Some(TOKEN));
+    let worker = svc.start_worker();
+    let router = app(AppState::new(Arc::clone(&svc)));
+    let (s, v) = call(&router, Method::POST, "/api/v1/runs", Some(TOKEN), PLAN).await;
+    assert_eq!(s, StatusCode::CREATED, "{v}");
+    let id = v["id"].as_str().unwrap().to_owned();
+    let status = wait_for(&router, &id, "capturing", Duration::from_secs(60), |v| {
+        v["stage"] == "capture" && v["pairs_done"].as_u64().unwrap_or(0) >= 5
+    })
+    .await;
+    (svc, worker, router, id, status)
+}
+
 /// The e-stop never waits behind the blocking pool: here the pool's one thread is
 /// taken for 3 s (as by requests whose timeout fired while their blocking work, an
 /// export or a stalled disk, went on), and a keyed e-stop must still reach the laser
@@ -808,16 +832,7 @@ fn an_estop_does_not_wait_for_a_full_blocking_pool() {
         .unwrap();
     rt.block_on(async {
         let dir = tempfile::tempdir().unwrap();
-        let svc = service(dir.path(), 1.0, Some(TOKEN));
-        let _worker = svc.start_worker();
-        let router = app(AppState::new(Arc::clone(&svc)));
-        let (s, v) = call(&router, Method::POST, "/api/v1/runs", Some(TOKEN), PLAN).await;
-        assert_eq!(s, StatusCode::CREATED, "{v}");
-        let id = v["id"].as_str().unwrap().to_owned();
-        wait_for(&router, &id, "capturing", Duration::from_secs(60), |v| {
-            v["stage"] == "capture" && v["pairs_done"].as_u64().unwrap_or(0) >= 5
-        })
-        .await;
+        let (svc, _worker, router, id, _) = a_capturing_run(dir.path()).await;
         let (taken_tx, taken) = std::sync::mpsc::channel();
         let hog = tokio::task::spawn_blocking(move || {
             taken_tx.send(()).unwrap();
@@ -850,19 +865,9 @@ fn an_estop_does_not_wait_for_a_full_blocking_pool() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_running_captures_export_is_not_remade_on_every_download() {
     let dir = tempfile::tempdir().unwrap();
-    let svc = service(dir.path(), 1.0, Some(TOKEN));
-    let _worker = svc.start_worker();
-    let router = app(AppState::new(Arc::clone(&svc)));
-    let (s, v) = call(&router, Method::POST, "/api/v1/runs", Some(TOKEN), PLAN).await;
-    assert_eq!(s, StatusCode::CREATED, "{v}");
-    let id = v["id"].as_str().unwrap().to_owned();
+    let (_svc, _worker, router, id, status) = a_capturing_run(dir.path()).await;
+    let first_done = status["pairs_done"].as_u64().unwrap();
     let limit = Duration::from_secs(60);
-    let first_done = wait_for(&router, &id, "capturing", limit, |v| {
-        v["stage"] == "capture" && v["pairs_done"].as_u64().unwrap_or(0) >= 5
-    })
-    .await["pairs_done"]
-        .as_u64()
-        .unwrap();
     let url = format!("/api/v1/runs/{id}/files/capture.hdf5");
     let (s, first) = call_raw(&router, Method::GET, &url, Some(TOKEN), "").await;
     assert_eq!(s, StatusCode::OK);
