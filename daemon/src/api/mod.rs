@@ -862,14 +862,22 @@ async fn own_thread<T: Send + 'static>(
     f: impl FnOnce() -> T + Send + 'static,
 ) -> Option<T> {
     static SLOTS: tokio::sync::Semaphore = tokio::sync::Semaphore::const_new(OWN_THREADS);
+    /// A slot, given back when the thread ends, panicking or not.
+    struct Slot;
+    impl Drop for Slot {
+        fn drop(&mut self) {
+            SLOTS.add_permits(1);
+        }
+    }
     SLOTS.acquire().await.ok()?.forget();
+    let slot = Slot;
     let (tx, rx) = tokio::sync::oneshot::channel();
     let started = std::thread::Builder::new().name(name.into()).spawn(move || {
+        let _slot = slot;
         let _ = tx.send(f());
-        SLOTS.add_permits(1);
     });
     if let Err(e) = &started {
-        SLOTS.add_permits(1);
+        // The closure, and the slot with it, were dropped.
         tracing::error!(thread = name, error = %e, "a thread of the e-stop's path could not start");
     }
     rx.await.ok()
