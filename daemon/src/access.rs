@@ -290,20 +290,31 @@ impl KeyStore {
         f(&mut keys)?;
         let text = serde_json::to_string_pretty(&keys).expect("keys serialise");
         let tmp = self.path.with_extension("json.tmp");
-        {
+        let written = (|| {
             use std::io::Write as _;
             use std::os::unix::fs::OpenOptionsExt as _;
+            // A temporary left by a failed write keeps its mode: made afresh, 0600.
+            let _ = std::fs::remove_file(&tmp);
             let mut file = std::fs::OpenOptions::new()
-                .create(true)
-                .truncate(true)
+                .create_new(true)
                 .write(true)
                 .mode(0o600)
-                .open(&tmp)
-                .map_err(io(&tmp))?;
-            file.write_all(text.as_bytes()).map_err(io(&tmp))?;
-            file.sync_all().map_err(io(&tmp))?;
+                .open(&tmp)?;
+            file.write_all(text.as_bytes())?;
+            file.sync_all()?;
+            std::fs::rename(&tmp, &self.path)
+        })();
+        if let Err(e) = written {
+            let _ = std::fs::remove_file(&tmp);
+            return Err(io(&self.path)(e));
         }
-        std::fs::rename(&tmp, &self.path).map_err(io(&self.path))?;
+        // The rename is durable once the directory is: a revoked key must not come
+        // back after a power cut.
+        if let Some(dir) = self.path.parent()
+            && let Ok(d) = std::fs::File::open(dir)
+        {
+            let _ = d.sync_all();
+        }
         // The cache is read again at the next request.
         self.cache.lock().unwrap_or_else(|p| p.into_inner()).0 = None;
         Ok(())

@@ -239,13 +239,6 @@ fn list(a: &RunsList) -> Result<(), AdminError> {
             .collect::<Result<Vec<_>, _>>()?,
         None => Vec::new(),
     };
-    if !(1..=crate::catalogue::query::MAX_PAGE).contains(&a.limit) {
-        return Err(AdminError::Usage(format!(
-            "--limit {}: expected 1 to {}",
-            a.limit,
-            crate::catalogue::query::MAX_PAGE
-        )));
-    }
     let q = RunQuery {
         states,
         since: time_arg(&a.since, "since")?,
@@ -259,6 +252,10 @@ fn list(a: &RunsList) -> Result<(), AdminError> {
         limit: a.limit,
         offset: a.offset,
     };
+    q.check().map_err(|(field, m)| {
+        let flag = if field == "q" { "text" } else { field };
+        AdminError::Usage(format!("--{flag} {m}"))
+    })?;
     let cat = Catalogue::open(&dir)?;
     let page = cat.query(&q)?;
     if a.json {

@@ -294,7 +294,9 @@ async fn bad_requests_get_4xx_and_change_nothing() {
     }
     // Malformed query strings and paths: a JSON error naming the field, never axum's
     // plain text (which the dashboard cannot read) or a 500.
+    let long_q = format!("/api/v1/runs?q={}", "_".repeat(25_001));
     for (uri, code, names) in [
+        (long_q.as_str(), "bad-query", "q: 25001 bytes"),
         ("/api/v1/runs?limit=abc", "bad-query", "limit"),
         (
             "/api/v1/catalogue?offset=18446744073709551615",
@@ -303,6 +305,8 @@ async fn bad_requests_get_4xx_and_change_nothing() {
         ),
         ("/api/v1/audit?offset=18446744073709551615", "bad-query", "offset"),
         ("/api/v1/audit?limit=-1", "bad-query", "limit"),
+        ("/api/v1/audit?limit=0", "bad-query", "limit"),
+        ("/api/v1/audit?limit=5000", "bad-query", "limit"),
         ("/api/v1/runs/%FF", "bad-path", "UTF-8"),
         ("/api/v1/runs/%FF/files/run.json", "bad-path", "UTF-8"),
     ] {

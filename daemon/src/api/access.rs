@@ -627,7 +627,16 @@ pub(super) async fn audit(
         actor: p.actor,
         action: p.action,
         target: p.target,
-        limit: p.limit.unwrap_or(100),
+        limit: match p.limit.unwrap_or(100) {
+            l @ 1..=crate::catalogue::query::MAX_PAGE => l,
+            l => {
+                return Err(ApiError::new(
+                    StatusCode::BAD_REQUEST,
+                    "bad-query",
+                    format!("limit: {l}: expected 1 to {}", crate::catalogue::query::MAX_PAGE),
+                ));
+            }
+        },
         offset: super::catalogue::offset(p.offset)?,
     };
     let s = Arc::clone(&state.service);

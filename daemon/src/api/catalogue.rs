@@ -74,14 +74,7 @@ impl RunParams {
                 .collect::<ApiResult<Vec<_>>>()?,
             None => Vec::new(),
         };
-        let limit = self.limit.unwrap_or(crate::catalogue::query::MAX_PAGE);
-        if !(1..=crate::catalogue::query::MAX_PAGE).contains(&limit) {
-            return Err(bad(
-                "limit",
-                format!("{limit}: expected 1 to {}", crate::catalogue::query::MAX_PAGE),
-            ));
-        }
-        Ok(RunQuery {
+        let q = RunQuery {
             states,
             since: time(&self.since, "since")?,
             until: time(&self.until, "until")?,
@@ -101,9 +94,11 @@ impl RunParams {
                 Some("desc") => true,
                 Some(o) => return Err(bad("order", format!("`{o}`: expected asc or desc"))),
             },
-            limit,
-            offset: offset(self.offset)?,
-        })
+            limit: self.limit.unwrap_or(crate::catalogue::query::MAX_PAGE),
+            offset: self.offset.unwrap_or(0),
+        };
+        q.check().map_err(|(field, m)| bad(field, m))?;
+        Ok(q)
     }
 }
 

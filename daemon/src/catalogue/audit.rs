@@ -91,33 +91,79 @@ impl AuditEntry {
 }
 
 /// Appends `entry` to the audit log in `runs_dir` as one line, written whole with one
-/// call on a file opened for appending, and flushed to disk.
+/// call on a file opened for appending, and flushed to disk. A log that ends inside a
+/// line (a write cut short by a crash) gets a line break first, so the fragment does
+/// not take this entry with it.
 pub fn append(runs_dir: &Path, entry: &AuditEntry) -> std::io::Result<()> {
+    use std::os::unix::fs::FileExt as _;
     let mut line = serde_json::to_string(entry).expect("audit entries serialise");
     line.push('\n');
     let mut f = std::fs::OpenOptions::new()
         .create(true)
+        .read(true)
         .append(true)
         .open(runs_dir.join(AUDIT_FILE))?;
+    let len = f.metadata()?.len();
+    let mut last = [b'\n'];
+    if len > 0 {
+        f.read_exact_at(&mut last, len - 1)?;
+    }
+    if last[0] != b'\n' {
+        line.insert(0, '\n');
+    }
     f.write_all(line.as_bytes())?;
     f.sync_data()
 }
 
-/// Every entry of the audit log in `runs_dir`, oldest first; lines that do not parse
-/// (a line cut short by a crash) are skipped with a warning.
+/// Every entry of the audit log in `runs_dir`, oldest first ([`read_from`] 0).
 pub fn read_all(runs_dir: &Path) -> std::io::Result<Vec<AuditEntry>> {
+    read_from(runs_dir, 0)
+}
+
+/// The entries of the audit log in `runs_dir` from byte `from` on (from the start of
+/// the line `from` falls in), oldest first, read a line at a time. Lines that do not
+/// parse (a line cut short by a crash, bytes that are not UTF-8) are skipped with a
+/// warning.
+pub fn read_from(runs_dir: &Path, from: u64) -> std::io::Result<Vec<AuditEntry>> {
+    use std::io::{BufRead as _, Seek as _};
     let path = runs_dir.join(AUDIT_FILE);
-    let text = match std::fs::read_to_string(&path) {
-        Ok(t) => t,
+    let mut file = match std::fs::File::open(&path) {
+        Ok(f) => f,
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(Vec::new()),
         Err(e) => return Err(e),
     };
+    let len = file.metadata()?.len();
+    // Back to the start of the line `from` falls in (entries are a few KiB at most).
+    let mut start = 0;
+    if from > 0 && from <= len {
+        let back = from.min(LINE_SEARCH);
+        let mut before = vec![0; back as usize];
+        file.seek(std::io::SeekFrom::Start(from - back))?;
+        std::io::Read::read_exact(&mut file, &mut before)?;
+        start = match before.iter().rposition(|&b| b == b'\n') {
+            Some(i) => from - back + i as u64 + 1,
+            None if back == from => 0,
+            None => from,
+        };
+    }
+    file.seek(std::io::SeekFrom::Start(start))?;
     let mut out = Vec::new();
-    for (n, line) in text.lines().enumerate().filter(|(_, l)| !l.trim().is_empty()) {
-        match serde_json::from_str(line) {
+    for (n, line) in std::io::BufReader::new(file).split(b'\n').enumerate() {
+        let line = line?;
+        if line.iter().all(u8::is_ascii_whitespace) {
+            continue;
+        }
+        match serde_json::from_slice(&line) {
             Ok(e) => out.push(e),
-            Err(e) => tracing::warn!("{}: line {} skipped: {e}", path.display(), n + 1),
+            Err(e) => tracing::warn!(
+                "{}: line {} after byte {start} skipped: {e}",
+                path.display(),
+                n + 1
+            ),
         }
     }
     Ok(out)
 }
+
+/// How far back from an offset [`read_from`] looks for the start of its line.
+const LINE_SEARCH: u64 = 16 << 10;

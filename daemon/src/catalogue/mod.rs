@@ -307,7 +307,11 @@ impl Catalogue {
         if done == len {
             return Ok(0);
         }
-        let entries = audit::read_all(&self.runs_dir).map_err(|source| CatalogueError::Io {
+        // The log only grows: what was read before is in the table (entries are
+        // inserted by id, so a line read twice counts once). A log shorter than the
+        // offset was replaced: read whole.
+        let from = if done <= len { done } else { 0 };
+        let entries = audit::read_from(&self.runs_dir, from).map_err(|source| CatalogueError::Io {
             path: path.clone(),
             source,
         })?;

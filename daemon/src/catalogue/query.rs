@@ -145,6 +145,36 @@ pub struct RunQuery {
     pub offset: usize,
 }
 
+/// The longest filter text a query takes, in bytes (SQLite refuses `LIKE` patterns
+/// past 50,000 bytes, and escaping can double them).
+pub const MAX_FILTER_TEXT: usize = 1024;
+
+impl RunQuery {
+    /// Whether the query's values are ones the catalogue can run: the field at fault
+    /// (its API name) and why, if not.
+    pub fn check(&self) -> Result<(), (&'static str, String)> {
+        if !(1..=MAX_PAGE).contains(&self.limit) {
+            return Err(("limit", format!("{}: expected 1 to {MAX_PAGE}", self.limit)));
+        }
+        if i64::try_from(self.offset).is_err() {
+            return Err(("offset", format!("{}: expected 0 to {}", self.offset, i64::MAX)));
+        }
+        for (field, v) in [
+            ("q", &self.text),
+            ("plan", &self.plan),
+            ("tag", &self.tag),
+            ("submitted_by", &self.submitted_by),
+        ] {
+            if let Some(v) = v
+                && v.len() > MAX_FILTER_TEXT
+            {
+                return Err((field, format!("{} bytes: at most {MAX_FILTER_TEXT}", v.len())));
+            }
+        }
+        Ok(())
+    }
+}
+
 impl Default for RunQuery {
     fn default() -> RunQuery {
         RunQuery {

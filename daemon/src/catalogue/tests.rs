@@ -429,3 +429,32 @@ fn an_entrys_target_and_detail_are_cut_to_their_bounds() {
     let short = AuditEntry::new("alice", "operator", "pause", Some("20261101-100000-wall"), "ok");
     assert_eq!(short.target.as_deref(), Some("20261101-100000-wall"));
 }
+
+/// The audit log read after damage: a line that is not UTF-8 and a line a crash cut
+/// short are skipped, not the whole log (reading it as one string refused it all, and
+/// with it `periscope runs`, `audit` and `catalogue rebuild`); and an entry appended
+/// after the cut line starts a line of its own instead of joining the fragment.
+#[test]
+fn a_damaged_audit_log_loses_only_its_damaged_lines() {
+    let tmp = tempfile::tempdir().unwrap();
+    let root = tmp.path();
+    let first = AuditEntry::new("alice", "operator", "submit", Some("run-a"), "ok");
+    audit::append(root, &first).unwrap();
+    let path = root.join(AUDIT_FILE);
+    let mut bytes = std::fs::read(&path).unwrap();
+    bytes.extend_from_slice(b"{\"id\": \"\xff\xfe not utf-8\"}\n");
+    bytes.extend_from_slice(b"{\"id\": \"cut short by a cra");
+    std::fs::write(&path, &bytes).unwrap();
+    let second = AuditEntry::new("bob", "operator", "pause", Some("run-b"), "ok");
+    audit::append(root, &second).unwrap();
+    let ids: Vec<String> = audit::read_all(root).unwrap().into_iter().map(|e| e.id).collect();
+    assert_eq!(ids, [first.id.clone(), second.id.clone()]);
+    // Read on from an offset inside the second entry's line: that line again.
+    let from = std::fs::metadata(&path).unwrap().len() - 10;
+    let tail: Vec<String> = audit::read_from(root, from)
+        .unwrap()
+        .into_iter()
+        .map(|e| e.id)
+        .collect();
+    assert_eq!(tail, [second.id]);
+}
