@@ -57,8 +57,7 @@ impl Service {
                 Ok(()) => {
                     controller_off = true;
                     laser_off = true;
-                    report.laser =
-                        "off: LASER OFF through the laser controller, opened for the e-stop".into();
+                    report.laser = CONTROLLER_OFF.into();
                     report.laser_off_s = Some(t.elapsed().as_secs_f64());
                 }
                 Err(e) => report.warnings.push(format!("laser controller: {e}")),
@@ -143,15 +142,15 @@ impl Service {
         // 5. No run (or one that did not stop): each controller opened on its own (the
         //    laser's already, above, where no run held it).
         if !report.parked {
-            match if controller_off {
+            let controller = if controller_off {
                 Ok(())
             } else {
                 self.laser_controller_off()
-            } {
+            };
+            match controller {
                 Ok(()) => {
                     if !laser_off {
-                        report.laser =
-                            "off: LASER OFF through the laser controller, opened for the e-stop".into();
+                        report.laser = CONTROLLER_OFF.into();
                         report.laser_off_s = Some(t.elapsed().as_secs_f64());
                         laser_off = true;
                     }
@@ -194,6 +193,9 @@ impl Service {
         spad.park().map_err(|e| e.to_string())
     }
 }
+
+/// The report's laser line when the e-stop opened the laser controller itself.
+const CONTROLLER_OFF: &str = "off: LASER OFF through the laser controller, opened for the e-stop";
 
 /// How long an e-stop waits for a running run to reach its checkpoint (and park)
 /// before it opens the controllers itself.
