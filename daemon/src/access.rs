@@ -176,12 +176,14 @@ impl KeyStore {
                 Ok(keys) => *cache = (stamp, keys),
                 Err(e) => {
                     // A file that cannot be read accepts no key (never the old set,
-                    // which may hold a revoked one).
+                    // which may hold a revoked one). The failure is kept for this
+                    // version of the file, so a damaged file is read and reported
+                    // once, not again on every request, until it changes.
                     tracing::error!(
                         "{}: {e}; no API key is accepted until it is fixed",
                         self.path.display()
                     );
-                    *cache = (None, Vec::new());
+                    *cache = (stamp, Vec::new());
                 }
             }
         }
@@ -481,8 +483,15 @@ mod tests {
         let store = KeyStore::open(dir.path(), None);
         let (_, secret) = store.create("alice", Role::Admin, None, "cli").unwrap();
         assert!(store.authenticate(&secret, 0.0).is_ok());
+        let good = std::fs::read(dir.path().join(KEYS_FILE)).unwrap();
         std::fs::write(dir.path().join(KEYS_FILE), "[{\"name\": ").unwrap();
         assert_eq!(store.authenticate(&secret, 0.0), Err(AuthError::Unknown));
+        // The failure is remembered for this version of the file, not the key set.
+        assert_eq!(store.authenticate(&secret, 0.0), Err(AuthError::Unknown));
+        assert!(store.keys().is_empty());
+        // Mended, it is read again.
+        std::fs::write(dir.path().join(KEYS_FILE), good).unwrap();
+        assert!(store.authenticate(&secret, 0.0).is_ok());
     }
 
     #[test]

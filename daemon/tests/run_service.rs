@@ -888,3 +888,35 @@ async fn an_event_stream_ends_when_its_key_is_revoked() {
     assert!(t.elapsed() < Duration::from_secs(5), "{:?}", t.elapsed());
     svc.shutdown();
 }
+
+/// A key request the keys file cannot serve is the daemon's fault (500 `storage`, the
+/// file named), not the caller's; a request for a key that is not there stays a 422.
+#[tokio::test]
+async fn a_keys_file_that_cannot_be_written_is_a_storage_error() {
+    let dir = tempfile::tempdir().unwrap();
+    let svc = service(dir.path());
+    let router = app(AppState::new(Arc::clone(&svc)));
+    let new_key = json!({ "name": "k-new", "role": "observer" }).to_string();
+    let (s, v) = call(&router, Method::DELETE, "/api/v1/keys/k-nobody", Some(TOKEN), "").await;
+    assert_eq!(
+        (s, v["error"].as_str()),
+        (StatusCode::UNPROCESSABLE_ENTITY, Some("invalid")),
+        "{v}"
+    );
+    // The lock the store takes (its file made by the request above) cannot be opened
+    // where a directory stands.
+    let _ = std::fs::remove_file(dir.path().join("keys.lock"));
+    std::fs::create_dir(dir.path().join("keys.lock")).unwrap();
+    for (method, uri, body) in [
+        (Method::POST, "/api/v1/keys", new_key.as_str()),
+        (Method::DELETE, "/api/v1/keys/k-nobody", ""),
+    ] {
+        let (s, v) = call(&router, method.clone(), uri, Some(TOKEN), body).await;
+        assert_eq!(s, StatusCode::INTERNAL_SERVER_ERROR, "{method} {uri}: {v}");
+        assert_eq!(v["error"], "storage", "{v}");
+        assert!(v["message"].as_str().unwrap().contains("keys.lock"), "{v}");
+    }
+    std::fs::remove_dir(dir.path().join("keys.lock")).unwrap();
+    let (s, v) = call(&router, Method::POST, "/api/v1/keys", Some(TOKEN), &new_key).await;
+    assert_eq!(s, StatusCode::CREATED, "{v}");
+}

@@ -533,7 +533,7 @@ pub struct CreatedKey {
 }
 
 /// Make an API key (admin)
-#[utoipa::path(post, path = "/api/v1/keys", security(("bearer" = [])), request_body = NewKey, responses((status = 201, description = "made", body = CreatedKey), (status = 401, description = status::UNAUTHORISED, body = ErrorBody), (status = 403, description = status::FORBIDDEN, body = ErrorBody), (status = 422, description = "bad name, role or expiry", body = ErrorBody)))]
+#[utoipa::path(post, path = "/api/v1/keys", security(("bearer" = [])), request_body = NewKey, responses((status = 201, description = "made", body = CreatedKey), (status = 401, description = status::UNAUTHORISED, body = ErrorBody), (status = 403, description = status::FORBIDDEN, body = ErrorBody), (status = 422, description = "bad name, role or expiry", body = ErrorBody), (status = 500, description = "the keys file could not be read or written", body = ErrorBody)))]
 pub(super) async fn keys_create(
     State(state): State<AppState>,
     axum::Extension(caller): axum::Extension<Caller>,
@@ -549,7 +549,7 @@ pub(super) async fn keys_create(
             .map_err(crate::service::ServiceError::Invalid)?;
         s.keys()
             .create(&name, role, expires, &caller.name)
-            .map_err(|e| crate::service::ServiceError::Invalid(e.to_string()))
+            .map_err(crate::service::ServiceError::from)
     })
     .await?;
     let detail = format!("role {}", created.0.role.name());
@@ -568,7 +568,7 @@ pub(super) async fn keys_create(
 }
 
 /// Revoke an API key (admin)
-#[utoipa::path(delete, path = "/api/v1/keys/{name}", security(("bearer" = [])), params(("name" = String, Path, description = "key name")), responses((status = 200, description = "revoked", body = KeyView), (status = 401, description = status::UNAUTHORISED, body = ErrorBody), (status = 403, description = status::FORBIDDEN, body = ErrorBody), (status = 422, description = "no such key", body = ErrorBody)))]
+#[utoipa::path(delete, path = "/api/v1/keys/{name}", security(("bearer" = [])), params(("name" = String, Path, description = "key name")), responses((status = 200, description = "revoked", body = KeyView), (status = 401, description = status::UNAUTHORISED, body = ErrorBody), (status = 403, description = status::FORBIDDEN, body = ErrorBody), (status = 422, description = "no such key", body = ErrorBody), (status = 500, description = "the keys file could not be read or written", body = ErrorBody)))]
 pub(super) async fn keys_revoke(
     State(state): State<AppState>,
     PathParams(name): PathParams<String>,
@@ -578,7 +578,7 @@ pub(super) async fn keys_revoke(
         s.keys()
             .revoke(&name)
             .map(KeyView::from)
-            .map_err(|e| crate::service::ServiceError::Invalid(e.to_string()))
+            .map_err(crate::service::ServiceError::from)
     })
     .await
     .map(axum::Json)

@@ -192,6 +192,17 @@ impl ServiceError {
     }
 }
 
+/// A key the request asks for that does not fit the keys there is the request's fault
+/// (422); a keys file that cannot be read or written is the daemon's (500 `storage`).
+impl From<crate::access::KeysError> for ServiceError {
+    fn from(e: crate::access::KeysError) -> ServiceError {
+        match e {
+            crate::access::KeysError::Io { path, source } => ServiceError::Storage { path, source },
+            crate::access::KeysError::Invalid(m) => ServiceError::Invalid(m),
+        }
+    }
+}
+
 /// A run file to send: small ones in memory, the rest streamed from disk.
 #[derive(Debug)]
 pub enum Download {
@@ -307,6 +318,10 @@ pub struct Service {
     direct: Mutex<Direct>,
     /// Held while a capture export is written.
     exporting: Mutex<()>,
+    /// The geometry of the runs viewed last, each with the stamps of the files it was
+    /// made from, so a view polled by many clients does not read a run's whole pair
+    /// list again each time.
+    geometries: Mutex<status::GeometryCache>,
     /// Held while the service itself has devices open outside a run (the worker's
     /// reading, the idle e-stop), so the two never open one serial port at once: an
     /// e-stop waits for a reading in progress (milliseconds) instead of failing to
@@ -421,6 +436,7 @@ impl Service {
             wake: Condvar::new(),
             direct: Mutex::new(Direct::default()),
             exporting: Mutex::new(()),
+            geometries: Mutex::default(),
             devices: Mutex::new(()),
         });
         service.persist(&service.lock())?;
@@ -566,5 +582,68 @@ mod tests {
         assert!(matches!(svc.resume(&id), Err(ServiceError::Conflict(_))));
         assert!(t.elapsed() < Duration::from_millis(250));
         worker.join().unwrap();
+    }
+
+    #[test]
+    fn a_capture_export_under_way_answers_a_second_one_busy_at_once() {
+        let dir = tempfile::tempdir().unwrap();
+        let svc = service(dir.path());
+        let plan = include_str!("../../../tests/data/plans/small-fbp.toml");
+        let id = svc.submit(plan.to_owned()).unwrap().id;
+        let run = svc.dir(&id).unwrap();
+        let one = svc.exporting.lock().unwrap();
+        let t = Instant::now();
+        assert!(matches!(
+            svc.export_capture(&id, &run),
+            Err(ServiceError::Busy(_))
+        ));
+        assert!(t.elapsed() < Duration::from_millis(100));
+        drop(one);
+        // Free again, it is judged on the run: a queued run has nothing to export.
+        assert!(matches!(
+            svc.export_capture(&id, &run),
+            Err(ServiceError::Conflict(_))
+        ));
+    }
+
+    #[test]
+    fn a_runs_geometry_is_kept_until_its_files_change() {
+        let dir = tempfile::tempdir().unwrap();
+        let svc = service(dir.path());
+        let plan = include_str!("../../../tests/data/plans/small-fbp.toml");
+        let ids: Vec<String> = (0..=status::GEOMETRY_CACHE)
+            .map(|_| svc.submit(plan.to_owned()).unwrap().id)
+            .collect();
+        let g = svc.geometry(&ids[0]).unwrap();
+        assert_eq!((g.pairs, g.illumination.len()), (0, 0));
+        // The run plans: its pairs appear, not the geometry kept from before.
+        let pair = |x: f64| crate::plan::PlannedPair {
+            xi: glam::DVec3::new(x, 0.0, 0.0),
+            ni: glam::DVec3::Z,
+            xd: glam::DVec3::new(0.0, x, 0.0),
+            nd: glam::DVec3::Z,
+            laser: periscope_drivers::OpticalAngles { x: 0.0, y: 0.0 },
+            spad: periscope_drivers::OpticalAngles { x: 0.0, y: 0.0 },
+        };
+        let pairs = svc.dir(&ids[0]).unwrap().join(crate::run_dir::file::PAIRS);
+        std::fs::write(&pairs, serde_json::to_vec(&[pair(0.1), pair(0.2)]).unwrap()).unwrap();
+        let g = svc.geometry(&ids[0]).unwrap();
+        assert_eq!((g.pairs, g.illumination.len(), g.detection.len()), (2, 2, 2));
+        // Kept while the file stands: a read of it again would fail on this.
+        let stamp = std::fs::metadata(&pairs).unwrap().modified().unwrap();
+        let same_length = vec![b' '; std::fs::metadata(&pairs).unwrap().len() as usize];
+        std::fs::write(&pairs, &same_length).unwrap();
+        std::fs::File::options()
+            .write(true)
+            .open(&pairs)
+            .unwrap()
+            .set_modified(stamp)
+            .unwrap();
+        assert_eq!(svc.geometry(&ids[0]).unwrap().pairs, 2);
+        // At most GEOMETRY_CACHE runs are kept: viewing the others drops the first.
+        for id in &ids[1..] {
+            svc.geometry(id).unwrap();
+        }
+        assert!(matches!(svc.geometry(&ids[0]), Err(ServiceError::RunFiles(_))));
     }
 }

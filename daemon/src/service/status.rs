@@ -231,41 +231,24 @@ impl Service {
         if self.info(id)?.import.is_some() {
             return import_geometry(&dir);
         }
-        let storage = ServiceError::RunFiles;
-        let run = RunDir::new(&dir);
-        let (_, plan, inst) = run.load().map_err(storage)?;
-        let relay: Vec<[f64; 3]> = run
-            .relay()
-            .map_err(storage)?
-            .unwrap_or_default()
-            .iter()
-            .map(|p| p.x.to_array())
-            .collect();
-        let pairs = run.planned_pairs().map_err(storage)?.unwrap_or_default();
-        let unique = |pick: fn(&crate::plan::PlannedPair) -> glam::DVec3| {
-            let mut seen = std::collections::HashSet::new();
-            let points: Vec<[f64; 3]> = pairs
-                .iter()
-                .map(pick)
-                .filter(|p| seen.insert(p.to_array().map(f64::to_bits)))
-                .map(|p| p.to_array())
-                .collect();
-            thin(points)
-        };
-        let v = &plan.recon.volume;
-        let viewpoint = 0.5 * (inst.laser_arm.pose.origin + inst.spad_arm.pose.origin);
-        Ok(Geometry {
-            relay: thin(relay),
-            illumination: unique(|p| p.xi),
-            detection: unique(|p| p.xd),
-            pairs: pairs.len(),
-            volume: VolumeBox {
-                x: v.x,
-                y: v.y,
-                z: v.z,
-            },
-            viewpoint: viewpoint.to_array(),
-        })
+        // The pair list and the relay are written once each, when the run plans and
+        // scans: while their stamps hold, the geometry made from them holds too.
+        let stamp =
+            [file::PAIRS, file::RELAY, file::PLAN, file::INSTRUMENT].map(|f| file_stamp(&dir.join(f)));
+        if let Some(g) = self
+            .geometries
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .get(id, &stamp)
+        {
+            return Ok(g);
+        }
+        let g = run_geometry(&dir)?;
+        self.geometries
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .put(id, stamp, g.clone());
+        Ok(g)
     }
 
     /// Subscribes to a run's events: a running run's, or a queued or paused one's from
@@ -285,6 +268,77 @@ impl Service {
                 .subscribe(),
         ))
     }
+}
+
+/// A planned run's geometry, made from its files (see [`Service::geometry`]).
+fn run_geometry(dir: &Path) -> Result<Geometry, ServiceError> {
+    let storage = ServiceError::RunFiles;
+    let run = RunDir::new(dir);
+    let (_, plan, inst) = run.load().map_err(storage)?;
+    let relay: Vec<[f64; 3]> = run
+        .relay()
+        .map_err(storage)?
+        .unwrap_or_default()
+        .iter()
+        .map(|p| p.x.to_array())
+        .collect();
+    let pairs = run.planned_pairs().map_err(storage)?.unwrap_or_default();
+    let unique = |pick: fn(&crate::plan::PlannedPair) -> glam::DVec3| {
+        let mut seen = std::collections::HashSet::new();
+        let points: Vec<[f64; 3]> = pairs
+            .iter()
+            .map(pick)
+            .filter(|p| seen.insert(p.to_array().map(f64::to_bits)))
+            .map(|p| p.to_array())
+            .collect();
+        thin(points)
+    };
+    let v = &plan.recon.volume;
+    let viewpoint = 0.5 * (inst.laser_arm.pose.origin + inst.spad_arm.pose.origin);
+    Ok(Geometry {
+        relay: thin(relay),
+        illumination: unique(|p| p.xi),
+        detection: unique(|p| p.xd),
+        pairs: pairs.len(),
+        volume: VolumeBox {
+            x: v.x,
+            y: v.y,
+            z: v.z,
+        },
+        viewpoint: viewpoint.to_array(),
+    })
+}
+
+/// The geometries [`Service::geometry`] made last, at most [`GEOMETRY_CACHE`] runs'.
+#[derive(Default)]
+pub(super) struct GeometryCache(std::collections::VecDeque<(String, GeometryStamp, Geometry)>);
+
+/// The modification time and length of each file a run's geometry is made from
+/// (`None` for one not written yet).
+type GeometryStamp = [Option<(std::time::SystemTime, u64)>; 4];
+
+/// How many runs' geometries are kept: a few runs open in a few browsers.
+pub(super) const GEOMETRY_CACHE: usize = 8;
+
+impl GeometryCache {
+    fn get(&mut self, id: &str, stamp: &GeometryStamp) -> Option<Geometry> {
+        let at = self.0.iter().position(|(i, s, _)| i == id && s == stamp)?;
+        let hit = self.0.remove(at)?;
+        let g = hit.2.clone();
+        self.0.push_front(hit);
+        Some(g)
+    }
+
+    fn put(&mut self, id: &str, stamp: GeometryStamp, g: Geometry) {
+        self.0.retain(|(i, _, _)| i != id);
+        self.0.push_front((id.to_owned(), stamp, g));
+        self.0.truncate(GEOMETRY_CACHE);
+    }
+}
+
+fn file_stamp(path: &Path) -> Option<(std::time::SystemTime, u64)> {
+    let m = std::fs::metadata(path).ok()?;
+    Some((m.modified().ok()?, m.len()))
 }
 
 /// An imported capture's geometry, from the `geometry.json` its run wrote when it read
