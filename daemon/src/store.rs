@@ -6,9 +6,10 @@
 //! settings and counts, then a CRC-32 of all of it), appended and fsynced in batches.
 //! On resume, every valid record is read back: a record that is incomplete or fails its
 //! CRC is skipped and reading picks up at the next valid record, so damage in the
-//! middle of the log costs only the damaged records. A torn tail is cut off; damage
-//! anywhere else is set aside whole (the file as found is kept as
-//! `histograms.bin.damaged`) and the log is rewritten from the valid records. Capture
+//! middle of the log costs only the damaged records. A torn tail (one append cut
+//! short) is cut off; any other damage, in the middle or in the last records, is set
+//! aside whole (the file as found is kept as `histograms.bin.damaged`) and the log is
+//! rewritten from the valid records. Capture
 //! then measures every pair that has no valid record. So a `kill -9` loses at most the
 //! unsynced tail, a flipped bit at most the record it sits in, both are measured again,
 //! and no pair is ever stored twice.
@@ -88,18 +89,38 @@ pub struct Recovered {
     pub discarded_bytes: u64,
     /// The byte ranges, in file order, that no kept record covers.
     pub damaged: Vec<std::ops::Range<u64>>,
+    /// Whether what follows the last kept record is the start of one record and no
+    /// more (an append a crash or a full disk cut short, shorter than the longest
+    /// record kept), or nothing.
+    pub torn_tail: bool,
 }
 
 impl Recovered {
-    /// Whether everything discarded lies after the last kept record (a torn or
-    /// damaged tail, which cutting the file removes), rather than between records.
+    /// Whether all that is discarded is a torn append at the end, which cutting the
+    /// file removes without losing a whole record. Anything else (damage between
+    /// records, or a tail that holds or held whole records: a flipped bit in the last
+    /// one, a file of another format) is kept as found before the log is repaired.
     pub fn damage_is_tail_only(&self) -> bool {
         match self.damaged.as_slice() {
             [] => true,
-            [only] => only.start == self.valid_bytes,
+            [only] => only.start == self.valid_bytes && self.torn_tail,
             _ => false,
         }
     }
+}
+
+/// Whether `tail` is a record's first bytes and no more: a prefix of the magic, or a
+/// header whose own length runs past the bytes there are.
+fn is_torn_record(tail: &[u8]) -> bool {
+    let m = tail.len().min(MAGIC.len());
+    if tail[..m] != MAGIC[..m] {
+        return false;
+    }
+    if tail.len() < HEADER {
+        return true;
+    }
+    let bins = u32_at(tail, 12) as usize;
+    (1..=MAX_RECORD_BINS).contains(&bins) && tail.len() < HEADER + 4 * bins + 4
 }
 
 /// The file a log damaged between records is kept as before it is rewritten (with
@@ -124,10 +145,11 @@ impl HistogramLog {
         })
     }
 
-    /// Reads a log back, repairs it, and opens it for appending. An invalid tail is
-    /// cut off; damage between valid records (a flipped bit, a copied-over block) is
-    /// repaired by keeping the file as found under [`DAMAGED_LOG`] and replacing the
-    /// log, atomically, with its valid records. Later records for a pair already
+    /// Reads a log back, repairs it, and opens it for appending. A torn tail (the start
+    /// of one record, cut short) is cut off; any other damage (a flipped bit, a
+    /// copied-over block, between records or in the last ones) is repaired by keeping
+    /// the file as found under [`DAMAGED_LOG`] and replacing the log, atomically, with
+    /// its valid records. Later records for a pair already
     /// stored are dropped (cannot happen with this writer, but the reader does not
     /// trust the file).
     pub fn recover(dir: &Path) -> io::Result<(HistogramLog, Recovered)> {
@@ -140,6 +162,7 @@ impl HistogramLog {
                     valid_bytes: 0,
                     discarded_bytes: 0,
                     damaged: Vec::new(),
+                    torn_tail: true,
                 },
             ));
         }
@@ -235,7 +258,7 @@ fn set_aside_and_rewrite(dir: &Path, path: &Path, records: &[Record]) -> io::Res
         log = %path.display(),
         kept = %keep.display(),
         records = records.len(),
-        "the histogram log was damaged between records; the file as found was kept and the log rewritten from its valid records"
+        "the histogram log was damaged (not only a torn last append); the file as found was kept and the log rewritten from its valid records"
     );
     Ok(())
 }
@@ -316,11 +339,27 @@ pub fn parse_log(bytes: &[u8]) -> Recovered {
             false
         }
     });
+    // An append cut short is shorter than the records written before it (a log's
+    // records are of a few sizes); a longer tail, or one with nothing before it, is
+    // kept aside rather than trusted to be one.
+    let longest = records
+        .iter()
+        .map(|r| HEADER + 4 * r.counts.len() + 4)
+        .max()
+        .unwrap_or(0);
+    let torn_tail = match damaged.as_slice() {
+        [only] => {
+            let tail = &bytes[only.start as usize..];
+            tail.len() < longest && is_torn_record(tail)
+        }
+        _ => damaged.is_empty(),
+    };
     Recovered {
         records,
         valid_bytes: valid,
         discarded_bytes: bytes.len() as u64 - valid,
         damaged,
+        torn_tail,
     }
 }
 
@@ -536,6 +575,57 @@ mod tests {
         let (_, got) = HistogramLog::recover(dir.path()).unwrap();
         assert_eq!(got.records.len(), 3);
         assert!(dir.path().join(format!("{DAMAGED_LOG}.1")).exists());
+    }
+
+    #[test]
+    fn damage_in_the_last_records_is_kept_aside_not_cut() {
+        let dir = tempfile::tempdir().unwrap();
+        {
+            let mut log = HistogramLog::create(dir.path()).unwrap();
+            for p in 0..3 {
+                log.append(&rec(p)).unwrap();
+            }
+        }
+        let path = dir.path().join(HISTOGRAM_LOG);
+        let one = rec(0).encode().len();
+        // A flipped bit in the last record, then a log with no valid record at all (a
+        // flipped bit in its only one, or a file of another format): each is kept as
+        // found, not cut away.
+        let mut bytes = fs::read(&path).unwrap();
+        bytes[2 * one + HEADER + 1] ^= 2;
+        fs::write(&path, &bytes).unwrap();
+        let (_, got) = HistogramLog::recover(dir.path()).unwrap();
+        assert_eq!(got.records, vec![rec(0), rec(1)]);
+        assert!(!got.torn_tail && !got.damage_is_tail_only());
+        assert_eq!(fs::read(dir.path().join(DAMAGED_LOG)).unwrap(), bytes);
+        assert_eq!(fs::metadata(&path).unwrap().len(), 2 * one as u64);
+        let mut only = rec(7).encode();
+        only[HEADER] ^= 1;
+        for found in [only, b"PHR2 a log of a later version".to_vec(), vec![0; 4096]] {
+            fs::write(&path, &found).unwrap();
+            let (_, got) = HistogramLog::recover(dir.path()).unwrap();
+            assert!(got.records.is_empty());
+            let kept = (1..)
+                .map(|n| dir.path().join(format!("{DAMAGED_LOG}.{n}")))
+                .take_while(|p| p.exists())
+                .last()
+                .unwrap();
+            assert_eq!(fs::read(kept).unwrap(), found);
+            assert_eq!(fs::metadata(&path).unwrap().len(), 0);
+        }
+        // An append cut short anywhere in its record is only cut: nothing is kept.
+        // (A tail as long as a record, or after no record, is kept aside.)
+        let whole = rec(9).encode();
+        for cut in [1, 3, HEADER - 1, HEADER, HEADER + 5, whole.len() - 1] {
+            let mut bytes = rec(0).encode();
+            bytes.extend_from_slice(&whole[..cut]);
+            let torn = parse_log(&bytes);
+            assert!(torn.torn_tail && torn.damage_is_tail_only(), "cut at {cut}");
+            assert!(
+                !parse_log(&whole[..cut]).torn_tail,
+                "cut at {cut}, no record before"
+            );
+        }
     }
 
     #[test]
