@@ -252,8 +252,12 @@ pub fn execute(cli: Cli) -> Result<(), CliError> {
             // never puts hundreds of threads beside the instrument's worker.
             let blocking = api.max_concurrent + api.max_checks + api.max_downloads + 4;
             // Compute threads are made now, from this thread, so they keep the
-            // instrument's priority rather than inheriting the API's.
+            // instrument's priority rather than inheriting the API's; so is the
+            // thread that starts the e-stop's.
             let _ = rayon::ThreadPoolBuilder::new().build_global();
+            if let Err(e) = crate::api::start_own_threads() {
+                tracing::warn!(error = %e, "the e-stop's threads will be started at the API's priority");
+            }
             let runtime = tokio::runtime::Builder::new_multi_thread()
                 .enable_all()
                 .max_blocking_threads(blocking)

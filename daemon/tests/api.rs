@@ -862,6 +862,52 @@ fn an_estop_does_not_wait_for_a_full_blocking_pool() {
     });
 }
 
+/// A loopback e-stop sent with a key the daemon refuses (a wall panel's expired key)
+/// goes ahead, and the laser goes off before the refusal is recorded: the audit trail
+/// waits for the catalogue's lock, held here for 2 s as `periscope catalogue sync`
+/// would hold it.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_loopback_estop_with_a_refused_key_does_not_wait_for_the_audit_trail() {
+    let dir = tempfile::tempdir().unwrap();
+    let (svc, _worker, router, id, _) = a_capturing_run(dir.path()).await;
+    let catalogue = dir.path().join(periscope_daemon::catalogue::CATALOGUE_FILE);
+    let (held_tx, held) = std::sync::mpsc::channel();
+    let holder = std::thread::spawn(move || {
+        let conn = rusqlite::Connection::open(catalogue).unwrap();
+        conn.execute_batch("BEGIN IMMEDIATE").unwrap();
+        held_tx.send(()).unwrap();
+        std::thread::sleep(Duration::from_secs(2));
+        conn.execute_batch("ROLLBACK").unwrap();
+    });
+    held.recv().unwrap();
+    let t = Instant::now();
+    let (s, v) = call(&router, Method::POST, "/api/v1/estop", Some("psk_expired"), "").await;
+    let rig = periscope_daemon::devices::sim::rig_of(svc.backend()).unwrap();
+    let off = rig.off_since(t).expect("the laser is on after the e-stop");
+    assert!(
+        off - t < Duration::from_millis(50),
+        "laser off after {:?}, behind the audit trail",
+        off - t
+    );
+    assert_eq!((s, v["aborted"].as_str()), (StatusCode::OK, Some(&*id)), "{v}");
+    holder.join().unwrap();
+    // The refusal is recorded all the same.
+    let (_, audit) = call(
+        &router,
+        Method::GET,
+        "/api/v1/audit?action=authenticate",
+        Some(TOKEN),
+        "",
+    )
+    .await;
+    assert!(
+        audit["entries"].as_array().unwrap().iter().any(|e| e["detail"]
+            .as_str()
+            .is_some_and(|d| d.contains("went ahead as loopback"))),
+        "{audit}"
+    );
+}
+
 /// A running capture's export is made again at most every 10 s, however often it is
 /// downloaded: a client looping on `capture.hdf5` cannot keep a core and the disk
 /// re-exporting while the instrument measures. Two downloads half a second apart,

@@ -155,6 +155,9 @@ pub(super) async fn authorise(State(state): State<AppState>, mut req: Request, n
     };
     // The key of an authenticated request, for event streams to check again.
     let mut stream_key: Option<String> = None;
+    // A loopback e-stop's refused key, recorded once the laser is off (the audit
+    // writes and syncs a file and waits for the catalogue's lock).
+    let mut late_refusal: Option<AuditEntry> = None;
     let caller = match given {
         Some(_) | None if need >= Role::Operator && !keys.any() => {
             return ApiError::new(
@@ -178,7 +181,7 @@ pub(super) async fn authorise(State(state): State<AppState>, mut req: Request, n
                     "unknown",
                     format!("{e}; the e-stop went ahead as loopback"),
                 );
-                record(&state, entry, estop).await;
+                late_refusal = Some(entry);
                 Caller {
                     name: "loopback".into(),
                     role: Role::Observer,
@@ -267,6 +270,9 @@ pub(super) async fn authorise(State(state): State<AppState>, mut req: Request, n
     let target = path_target(&route, &path);
     req.extensions_mut().insert(caller.clone());
     let mut response = next.run(req).await;
+    if let Some(entry) = late_refusal {
+        record(&state, entry, estop).await;
+    }
     let streaming = response
         .headers()
         .get(header::CONTENT_TYPE)

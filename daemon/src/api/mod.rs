@@ -872,15 +872,60 @@ async fn own_thread<T: Send + 'static>(
     SLOTS.acquire().await.ok()?.forget();
     let slot = Slot;
     let (tx, rx) = tokio::sync::oneshot::channel();
-    let started = std::thread::Builder::new().name(name.into()).spawn(move || {
-        let _slot = slot;
-        let _ = tx.send(f());
-    });
-    if let Err(e) = &started {
-        // The closure, and the slot with it, were dropped.
-        tracing::error!(thread = name, error = %e, "a thread of the e-stop's path could not start");
+    let job: OwnJob = (
+        name,
+        Box::new(move || {
+            let _slot = slot;
+            let _ = tx.send(f());
+        }),
+    );
+    // Started by the spawner where there is one, so the thread has the instrument's
+    // priority: a thread inherits its creator's nice value, and the API's are lowered.
+    let job = match SPAWNER.get() {
+        Some(spawner) => match spawner.send(job) {
+            Ok(()) => None,
+            Err(std::sync::mpsc::SendError(job)) => Some(job),
+        },
+        None => Some(job),
+    };
+    if let Some((name, work)) = job {
+        spawn_own(name, work);
     }
     rx.await.ok()
+}
+
+/// A thread of the e-stop's path: its name and its work.
+type OwnJob = (&'static str, Box<dyn FnOnce() + Send>);
+
+/// The thread that starts [`own_thread`]'s threads, made by [`start_own_threads`].
+static SPAWNER: std::sync::OnceLock<std::sync::mpsc::Sender<OwnJob>> = std::sync::OnceLock::new();
+
+/// Starts the thread that starts the e-stop path's threads, from the calling thread,
+/// whose scheduling priority they keep. `periscope serve` calls it from its main
+/// thread before the API's runtime (whose threads run at [`crate::priority::API_NICE`])
+/// exists, so an e-stop is not weighed at a tenth of a reconstruction's threads.
+/// Without it (tests, embedders), the threads are started by the API's own.
+pub fn start_own_threads() -> std::io::Result<()> {
+    if SPAWNER.get().is_some() {
+        return Ok(());
+    }
+    let (tx, rx) = std::sync::mpsc::channel::<OwnJob>();
+    std::thread::Builder::new()
+        .name("periscope-estop-spawner".into())
+        .spawn(move || {
+            for (name, work) in rx {
+                spawn_own(name, work);
+            }
+        })?;
+    let _ = SPAWNER.set(tx);
+    Ok(())
+}
+
+fn spawn_own(name: &'static str, work: Box<dyn FnOnce() + Send>) {
+    if let Err(e) = std::thread::Builder::new().name(name.into()).spawn(work) {
+        // The work, and the slot and answer with it, were dropped.
+        tracing::error!(thread = name, error = %e, "a thread of the e-stop's path could not start");
+    }
 }
 
 /// The most threads of the e-stop's path ([`own_thread`]) at once.
@@ -1080,6 +1125,31 @@ mod tests {
 
     fn io(kind: std::io::ErrorKind) -> std::io::Error {
         std::io::Error::new(kind, "disk says no")
+    }
+
+    /// The e-stop's threads keep the priority of the thread that started the spawner,
+    /// not the lowered one of the API thread that asks for them.
+    #[test]
+    fn the_estops_threads_keep_the_instruments_priority() {
+        if !cfg!(target_os = "linux") {
+            return;
+        }
+        let instrument = crate::priority::current_nice();
+        start_own_threads().unwrap();
+        let (api, estop) = std::thread::spawn(|| {
+            crate::priority::lower_current_thread(crate::priority::current_nice() + 5).unwrap();
+            let rt = tokio::runtime::Builder::new_current_thread().build().unwrap();
+            let estop = rt.block_on(own_thread("test-estop", crate::priority::current_nice));
+            (crate::priority::current_nice(), estop)
+        })
+        .join()
+        .unwrap();
+        assert_eq!(api, instrument + 5);
+        assert_eq!(
+            estop,
+            Some(instrument),
+            "the e-stop's thread ran at the API's priority"
+        );
     }
 
     /// A service error keeps its cause, and its HTTP status follows the cause's kind:
