@@ -162,7 +162,7 @@ impl Run {
                             continue;
                         }
                         let p = &pairs[i];
-                        let rec = self.measure(i, p, &acq, settle, &mut flagged)?;
+                        let rec = self.measure(i, p, &acq, settle, &mut flagged, log)?;
                         self.store(log, &mut stored, &rec)?;
                         push(&mut batch, &rec)?;
                         self.announce(i, p, &rec, &acq, stored.len(), total);
@@ -278,7 +278,7 @@ impl Run {
                 if stored.contains(&(i as u32)) {
                     continue;
                 }
-                let rec = self.measure(i, p, &acq, settle, &mut flagged)?;
+                let rec = self.measure(i, p, &acq, settle, &mut flagged, log)?;
                 self.store(log, &mut stored, &rec)?;
                 push(&mut batch, &rec)?;
                 self.announce(i, p, &rec, &acq, stored.len(), total);
@@ -334,6 +334,7 @@ impl Run {
         acq: &Acquisition,
         settle: Duration,
         flagged: &mut FlagRun,
+        log: &mut HistogramLog,
     ) -> Result<Record, PipelineError> {
         let (counts, flags) = loop {
             self.checkpoint()?;
@@ -356,7 +357,7 @@ impl Run {
             match self.capture_suspension(flags, flagged)? {
                 None => break (counts, flags),
                 // This pair's histograms are not kept: the light changed under them.
-                Some(s) => self.suspend(s)?,
+                Some(s) => self.suspend(s, Some(&mut *log))?,
             }
         };
         Ok(Record {

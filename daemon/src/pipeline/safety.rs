@@ -112,7 +112,7 @@ impl Run {
     /// Checks the interlock and that emission is still on; suspends if not.
     pub(crate) fn watch_interlock(&mut self) -> Result<(), PipelineError> {
         if let Some(s) = self.laser_suspension()? {
-            self.suspend(s)?;
+            self.suspend(s, None)?;
         }
         Ok(())
     }
@@ -173,9 +173,18 @@ impl Run {
     /// stops as paused (error [`PipelineError::Suspended`]); with `"auto"` it waits,
     /// answering pause, abort and e-stop, until the condition has stayed clear for the
     /// plan's time, then switches the laser back on and returns.
-    pub(crate) fn suspend(&mut self, s: Suspension) -> Result<(), PipelineError> {
+    pub(crate) fn suspend(
+        &mut self,
+        s: Suspension,
+        log: Option<&mut crate::store::HistogramLog>,
+    ) -> Result<(), PipelineError> {
         self.devices.laser.set_emission(false)?;
         self.report_laser();
+        // A suspension may last until someone closes the door: the records appended
+        // since the last sync are made durable now, with the laser already off.
+        if let Some(log) = log {
+            log.sync().map_err(|e| PipelineError::storage(log.path(), e))?;
+        }
         // Emission lost is what an emergency off looks like from here: the e-stop
         // asks the run to abort before it switches the laser off, a signal right
         // after. A stop asked for ends the run as it asked (aborted, not held paused).

@@ -293,9 +293,11 @@ impl Service {
                 _ => {}
             }
         }
-        let Some(tx) = s.channels.get(id) else {
+        let Some(tx) = s.channels.get(id).cloned() else {
             return;
         };
+        // Serialised without the service's lock (a snapshot is thousands of Gaussians).
+        drop(s);
         if tx.receiver_count() == 0 {
             return;
         }
@@ -337,17 +339,26 @@ pub(super) fn event_name(v: &serde_json::Value) -> Arc<str> {
     v.get("event").and_then(|e| e.as_str()).unwrap_or("event").into()
 }
 
-/// A run's events on their way to its forwarder thread: a bounded queue, and for the
-/// live displays' per-pair events (pairs, LOS points, histograms, safety readings) a
-/// slot per kind where the latest waits while the queue is full, a pair's photon counts
-/// summed over those it replaced. The sender never blocks on them; the rare other
-/// events (stages, outputs, the end) send what is held first and wait for room, so
-/// the forwarder sees every kind in order and the last of each.
+/// A run's events on their way to its forwarder thread, which waits for the service's
+/// lock: a bounded queue that the run's threads (the capture, the trainer) never wait
+/// on. The live displays' per-pair events (pairs, LOS points, histograms, safety
+/// readings) and the fit's snapshots have a slot per kind where the latest waits while
+/// the queue is full, a pair's photon counts summed over those it replaced. Every
+/// other event waits in a backlog, what is held in the slots going first, so the
+/// forwarder sees every kind in order and the last of each. The backlog is bounded too:
+/// past [`EVENT_BACKLOG`] its oldest training events are dropped from the live stream
+/// (they are in `events.jsonl`); the rare others (stages, outputs, the end) are always
+/// kept.
 struct EventQueue {
     tx: std::sync::mpsc::SyncSender<RunEvent>,
-    held: [Option<RunEvent>; 4],
+    held: [Option<RunEvent>; 5],
+    backlog: std::collections::VecDeque<RunEvent>,
     coalesced: u64,
+    dropped: u64,
 }
+
+/// The most events [`EventQueue`]'s backlog holds before it drops training events.
+const EVENT_BACKLOG: usize = 1024;
 
 impl EventQueue {
     fn new(capacity: usize) -> (EventQueue, std::sync::mpsc::Receiver<RunEvent>) {
@@ -355,7 +366,9 @@ impl EventQueue {
         let q = EventQueue {
             tx,
             held: Default::default(),
+            backlog: std::collections::VecDeque::new(),
             coalesced: 0,
+            dropped: 0,
         };
         (q, rx)
     }
@@ -367,14 +380,20 @@ impl EventQueue {
             RunEvent::LosPoint { .. } => Some(1),
             RunEvent::Histogram { .. } => Some(2),
             RunEvent::Safety { .. } => Some(3),
+            RunEvent::Train(periscope_recon::gtr::TrainEvent::Snapshot { .. }) => Some(4),
             _ => None,
         }
     }
 
     fn send(&mut self, ev: &RunEvent) {
+        self.drain();
         let Some(i) = Self::slot(ev) else {
-            self.flush();
-            let _ = self.tx.send(ev.clone());
+            // What is held goes first, so every kind stays in order.
+            let held = self.held.iter_mut().filter_map(Option::take);
+            self.backlog.extend(held);
+            self.backlog.push_back(ev.clone());
+            self.drain();
+            self.bound();
             return;
         };
         let mut ev = ev.clone();
@@ -386,23 +405,74 @@ impl EventQueue {
                 *counts += earlier;
             }
         }
-        if let Err(std::sync::mpsc::TrySendError::Full(ev)) = self.tx.try_send(ev) {
-            self.held[i] = Some(ev);
-            self.coalesced += 1;
-            if self.coalesced.is_power_of_two() {
+        if !self.backlog.is_empty() {
+            self.hold(i, ev);
+        } else if let Err(std::sync::mpsc::TrySendError::Full(ev)) = self.tx.try_send(ev) {
+            self.hold(i, ev);
+        }
+    }
+
+    fn hold(&mut self, i: usize, ev: RunEvent) {
+        self.held[i] = Some(ev);
+        self.coalesced += 1;
+        if self.coalesced.is_power_of_two() {
+            tracing::warn!(
+                coalesced = self.coalesced,
+                "the run's event forwarder is behind: live pair, histogram, safety and snapshot events are coalesced"
+            );
+        }
+    }
+
+    /// Sends what the backlog holds while there is room, without waiting.
+    fn drain(&mut self) {
+        while let Some(ev) = self.backlog.pop_front() {
+            match self.tx.try_send(ev) {
+                Ok(()) => {}
+                Err(std::sync::mpsc::TrySendError::Full(ev)) => {
+                    self.backlog.push_front(ev);
+                    return;
+                }
+                // No forwarder: nobody to tell.
+                Err(std::sync::mpsc::TrySendError::Disconnected(_)) => {
+                    self.backlog.clear();
+                    return;
+                }
+            }
+        }
+    }
+
+    /// Past [`EVENT_BACKLOG`], drops the oldest training events from the backlog.
+    fn bound(&mut self) {
+        while self.backlog.len() > EVENT_BACKLOG {
+            let Some(at) = self.backlog.iter().position(|e| matches!(e, RunEvent::Train(_))) else {
+                return;
+            };
+            self.backlog.remove(at);
+            self.dropped += 1;
+            if self.dropped.is_power_of_two() {
                 tracing::warn!(
-                    coalesced = self.coalesced,
-                    "the run's event forwarder is behind: live pair, histogram and safety events are coalesced"
+                    dropped = self.dropped,
+                    "the run's event forwarder is behind: training events are left out of the live stream (events.jsonl has them)"
                 );
             }
         }
     }
 
-    /// Sends what is held, waiting for room.
+    /// Sends everything, the backlog and then what is held, waiting for room: at the
+    /// run's end, from the worker, with the run's threads done.
     fn flush(&mut self) {
+        for ev in self.backlog.drain(..) {
+            let _ = self.tx.send(ev);
+        }
         for ev in self.held.iter_mut().filter_map(Option::take) {
             let _ = self.tx.send(ev);
         }
+    }
+}
+
+impl Drop for EventQueue {
+    fn drop(&mut self) {
+        self.flush();
     }
 }
 
@@ -423,6 +493,70 @@ mod event_queue_tests {
     /// With the forwarder stalled, the queue never holds more than its capacity, the
     /// pair events held back keep the latest pair and every photon, and an event that
     /// must not be lost brings what is held with it, in order.
+    fn epoch(step: usize) -> RunEvent {
+        RunEvent::Train(periscope_recon::gtr::TrainEvent::Epoch {
+            epoch: 0,
+            step,
+            loss: 1.0,
+            pairs: 10,
+            primitives: 10,
+        })
+    }
+
+    /// With the forwarder stalled, neither the capture nor the trainer waits: a flood
+    /// of training events and the stage events among them return at once, the backlog
+    /// stays bounded by dropping training events only, and once the forwarder reads
+    /// again every stage event arrives, in order, after the pairs before it.
+    #[test]
+    fn a_stalled_forwarder_never_makes_the_run_wait() {
+        let (mut q, rx) = EventQueue::new(4);
+        let (done_tx, done) = std::sync::mpsc::channel();
+        let sender = std::thread::spawn(move || {
+            for k in 0..5_000 {
+                q.send(&epoch(k));
+                if k % 1_000 == 0 {
+                    q.send(&pair(k + 1, 1));
+                    q.send(&RunEvent::StageStarted {
+                        stage: crate::events::Stage::Capture,
+                    });
+                }
+            }
+            done_tx.send(q.backlog.len()).unwrap();
+            q
+        });
+        let backlog = done
+            .recv_timeout(std::time::Duration::from_secs(10))
+            .expect("a send waited for the stalled forwarder");
+        assert!(backlog <= EVENT_BACKLOG, "{backlog}");
+        let mut q = sender.join().unwrap();
+        let end = std::thread::spawn(move || rx.iter().collect::<Vec<_>>());
+        q.flush();
+        drop(q);
+        let seen = end.join().unwrap();
+        let stages: Vec<usize> = seen
+            .iter()
+            .enumerate()
+            .filter(|(_, e)| matches!(e, RunEvent::StageStarted { .. }))
+            .map(|(i, _)| i)
+            .collect();
+        assert_eq!(stages.len(), 5, "every stage event");
+        let pairs: Vec<usize> = seen
+            .iter()
+            .enumerate()
+            .filter(|(_, e)| matches!(e, RunEvent::Pair { .. }))
+            .map(|(i, _)| i)
+            .collect();
+        assert_eq!(pairs.len(), 5, "every pair event");
+        assert!(
+            pairs.iter().zip(&stages).all(|(p, s)| p < s),
+            "each pair goes ahead of the stage event after it: {pairs:?} {stages:?}"
+        );
+        assert!(
+            matches!(seen.last(), Some(RunEvent::Train(_))),
+            "the last training event is kept"
+        );
+    }
+
     #[test]
     fn a_full_queue_coalesces_pairs_keeping_their_counts_and_order() {
         let (mut q, rx) = EventQueue::new(4);
