@@ -161,7 +161,7 @@ pub fn replay(capture: &Path, config: Option<&Path>, out: &Path, order: Order) -
         viewpoint: t.viewpoint,
     };
     let result = if settings.method == Method::Gtr {
-        let mut fit = Fit::new(input);
+        let mut fit = Fit::new(input)?;
         let (tx, rx) = mpsc::channel::<TransientSet>();
         let (model_tx, model_rx) = mpsc::channel();
         fit.start_training(

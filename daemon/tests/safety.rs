@@ -1160,3 +1160,32 @@ fn a_completed_resume_leaves_no_stale_temporaries_and_no_old_error() {
     assert_eq!(info.state, RunState::Completed);
     assert_eq!(info.error, None, "a completed run kept an earlier stop's error");
 }
+
+/// A 3D-GTR plan whose detection points no plane fits (a fixed laser and a 2 × 1
+/// detection grid) is refused when the capture is about to start, naming `fbp` as the
+/// way to reconstruct it: no pair is measured for a fit that could never render.
+#[test]
+fn a_gtr_capture_no_plane_fits_is_refused_before_its_pairs_are_measured() {
+    let _serial = ONE_AT_A_TIME.lock().unwrap_or_else(|p| p.into_inner());
+    let tmp = tempfile::tempdir().unwrap();
+    let plan = SmallPlan::named("line")
+        .set("los.grid", [8, 8])
+        .set("los.dwell-ms", 10.0)
+        .set("pairs.mode", "fixed-laser")
+        .set("pairs.laser", [0.0, 0.0, 0.0])
+        .set("pairs.grid", [2, 1])
+        .set("acquisition.dwell-ms", 30.0)
+        .set("recon.method", "gtr")
+        .set("recon.volume.shape", [16, 16, 16])
+        .toml();
+    let (dir, rig) = prepare_on(tmp.path(), &plan, Devices::InProcess);
+    let r = execute(&dir, &rig, Control::new(), |_| {});
+    let Err(e) = r else {
+        panic!("a line of detection points was reconstructed")
+    };
+    assert!(e.to_string().contains("no plane fits"), "{e}");
+    assert!(e.to_string().contains("fbp"), "{e}");
+    let stored = read_log(&dir).map_or(0, |l| l.records.len());
+    assert_eq!(stored, 0, "pairs were measured for a fit that cannot render");
+    assert!(!rig.emission());
+}

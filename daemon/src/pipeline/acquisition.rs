@@ -97,7 +97,7 @@ impl Run {
             detection_points: pairs.iter().map(|p| p.xd).collect(),
             viewpoint: 0.5 * (l + s),
         };
-        let mut fit = Fit::new(input);
+        let mut fit = Fit::new(input)?;
         let mut stored: HashSet<u32> = HashSet::new();
         let mut batch = counts()?;
         let instrument = self.instrument.clone();

@@ -132,12 +132,19 @@ fn roi(grid: &VolumeGrid) -> Result<RoiBox, PipelineError> {
 }
 
 impl Fit {
-    pub(crate) fn new(input: ReconInput) -> Fit {
-        Fit {
+    /// The fit of a capture about to start. For 3D-GTR the virtual relay the result
+    /// is rendered on is built now from the planned detection points, so a layout no
+    /// plane fits (fewer than three points, all in a line) is refused before the laser
+    /// goes on, not after the capture and the fit.
+    pub(crate) fn new(input: ReconInput) -> Result<Fit, PipelineError> {
+        if input.settings.method == Method::Gtr {
+            virtual_relay(&input)?;
+        }
+        Ok(Fit {
             input,
             trainer: None,
             cancel: CancelToken::new(),
-        }
+        })
     }
 
     pub(crate) fn is_training(&self) -> bool {
@@ -208,7 +215,7 @@ impl Fit {
                     ..self.take_input()
                 };
                 let relay = virtual_relay(&input)?;
-                finish_gtr(&input, relay, trainer, summary, secs)
+                finish_gtr(&input, relay, trainer, summary, secs).and_then(finite)
             }
             None => reconstruct(self.take_input(), events, control),
         }
@@ -480,7 +487,12 @@ pub fn reconstruct(
             })
         }
     }?;
-    // A volume with a NaN or an infinity is never written as a result.
+    finite(result)
+}
+
+/// `result`, unless its volume holds a NaN or an infinity, which is never written as a
+/// result (every way to a volume, offline, streamed or refitted, ends here).
+fn finite(result: ReconResult) -> Result<ReconResult, PipelineError> {
     if let Some(i) = result.volume.data.iter().position(|v| !v.is_finite()) {
         return Err(ReconError::NotFinite {
             index: i,
