@@ -371,8 +371,11 @@ fn later(out: &str) -> Option<String> {
     })
 }
 
+/// The LOS scan moves the SPAD arm over its whole grid with the laser on: a scan past
+/// the arm's limits is refused with the plan, naming both keys, not when the run reaches
+/// that corner.
 #[test]
-fn check_lists_targets_outside_the_limits() {
+fn check_refuses_an_los_scan_past_the_spad_arms_limits() {
     let dir = tempfile::tempdir().unwrap();
     let text = std::fs::read_to_string(repo_path("configs/plans/demo.toml")).unwrap();
     let wide = text.replace(
@@ -383,12 +386,13 @@ fn check_lists_targets_outside_the_limits() {
     let plan = dir.path().join("wide.toml");
     std::fs::write(&plan, wide).unwrap();
     let out = periscope(&["check", plan.to_str().unwrap()]);
-    assert_eq!(out.code, Some(0), "{out:?}");
+    assert_eq!(out.code, Some(2), "{out:?}");
     assert!(
-        out.stdout
-            .contains("los.angles-deg: the SPAD arm cannot reach (-30.00°"),
+        out.stderr.contains("los.angles-deg.x")
+            && out.stderr.contains("[-20.00, 20.00]")
+            && out.stderr.contains("galvo.spad.angle-limits-deg"),
         "{}",
-        out.stdout
+        out.stderr
     );
 }
 
@@ -405,6 +409,7 @@ fn a_broken_plan_names_file_line_and_key() {
             "recon.volume.shape",
         ),
         ("neighbours = 16", "neighbours = 2", "relay.neighbours"),
+        ("grid = [32, 32]", "grid = [3, 3]", "los.grid"),
     ] {
         let bad = dir.path().join("bad.toml");
         std::fs::write(&bad, text.replace(from, to)).unwrap();

@@ -153,7 +153,7 @@ impl RunDir {
             info.instrument_path.clone(),
             read(file::INSTRUMENT)?,
         ))?;
-        let plan = Plan::from_source(
+        let plan = Plan::stored(
             &TomlSource::from_text(self.file(file::PLAN), read(file::PLAN)?),
             &instrument,
         )?;

@@ -106,3 +106,47 @@ fn a_grid_of_three_numbers_is_refused_with_its_key_and_line() {
     assert!(e.contains("plan.toml:") && e.contains("pairs.grid"), "{e}");
     assert!(e.contains("exactly 2"), "{e}");
 }
+
+/// LCT and f-k take confocal pairs only: a plan that cannot give them (a detection
+/// offset past the solver's tolerance, a layout of other pairs) is refused when it is
+/// read, naming the key, not by the solver after the whole capture.
+#[test]
+fn a_confocal_solver_on_pairs_it_cannot_take_is_refused_with_the_plan() {
+    let instrument =
+        TomlSource::load(&Path::new(env!("CARGO_MANIFEST_DIR")).join("../configs/instrument/sim.toml"))
+            .unwrap();
+    let instrument = periscope_daemon::config::InstrumentConfig::from_source(&instrument).unwrap();
+    let base = std::fs::read_to_string(
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("../tests/data/plans/small-fbp.toml"),
+    )
+    .unwrap();
+    let read = |plan: String| {
+        periscope_daemon::plan::Plan::from_source(&TomlSource::from_text("plan.toml", plan), &instrument)
+            .map(drop)
+            .map_err(|e| e.to_string())
+    };
+    for solver in ["lct", "fk"] {
+        let plan = base.replace("method = \"fbp\"", &format!("method = \"{solver}\""));
+        let e = read(plan.clone()).unwrap_err();
+        assert!(e.contains("pairs.offset-mm") && e.contains("5.0 mm"), "{e}");
+        // A run that stored such a plan before it was refused still opens: its
+        // captured data stays readable (export, fbp), only a new run is refused.
+        let stored = TomlSource::from_text("plan.toml", plan.clone());
+        assert!(periscope_daemon::plan::Plan::stored(&stored, &instrument).is_ok());
+        assert!(read(plan.replace("offset-mm = 5.0", "offset-mm = 1.5")).is_ok());
+        assert!(
+            read(plan.replace(
+                "[recon.volume]",
+                &format!("[recon.{solver}]\ngrid-tolerance = 6.0e-3\n[recon.volume]")
+            ))
+            .is_ok()
+        );
+        let fixed = plan.replace(
+            "mode = \"confocal\"",
+            "mode = \"fixed-laser\"\nlaser = [0.0, 0.0, 0.0]",
+        );
+        let e = read(fixed).unwrap_err();
+        assert!(e.contains("recon.method") && e.contains("fixed laser"), "{e}");
+    }
+    assert!(read(base.replace("method = \"fbp\"", "method = \"rsd\"")).is_ok());
+}

@@ -261,8 +261,21 @@ impl Plan {
         Self::from_source(&TomlSource::load(path)?, instrument)
     }
 
-    /// Validates a plan held in memory.
+    /// Validates a plan held in memory, as a new run's: besides every value, that the
+    /// instrument can carry it out (the LOS scan within the SPAD arm's limits and
+    /// enough points for the relay, a solver the layout's pairs suit).
     pub fn from_source(src: &TomlSource, instrument: &InstrumentConfig) -> Result<Plan, ConfigError> {
+        Self::read(src, instrument, true)
+    }
+
+    /// Reads the plan a run stored when it was made: every value is validated, but not
+    /// what [`Plan::from_source`] asks of a new run beyond them, so a run a later
+    /// version would refuse to start still opens, and its data stays readable.
+    pub fn stored(src: &TomlSource, instrument: &InstrumentConfig) -> Result<Plan, ConfigError> {
+        Self::read(src, instrument, false)
+    }
+
+    fn read(src: &TomlSource, instrument: &InstrumentConfig, new: bool) -> Result<Plan, ConfigError> {
         let raw: RawPlan = src.parse()?;
         if raw.name.trim().is_empty() || raw.name.len() > 64 {
             return Err(src.invalid("name", "must be 1 to 64 characters"));
@@ -282,6 +295,47 @@ impl Plan {
             }
             if l.grid.iter().any(|&n| !(2..=1024).contains(&n)) {
                 return Err(src.invalid("los.grid", "must be two counts, 2 to 1024"));
+            }
+            // The SPAD arm scans the LOS grid (the laser parked, its diffuser in): a
+            // corner past its limits would fail the run at that point with the laser on.
+            let lim = instrument.spad_arm.limits;
+            let (lim, neighbours) = if new {
+                (lim, raw.relay.neighbours.max(8))
+            } else {
+                (
+                    periscope_drivers::AngleLimits {
+                        x: [f64::NEG_INFINITY, f64::INFINITY],
+                        y: [f64::NEG_INFINITY, f64::INFINITY],
+                    },
+                    0,
+                )
+            };
+            for (k, r, allowed) in [
+                ("los.angles-deg.x", l.angles_deg.x, lim.x),
+                ("los.angles-deg.y", l.angles_deg.y, lim.y),
+            ] {
+                let within = |a: f64| (allowed[0]..=allowed[1]).contains(&a.to_radians());
+                if !(within(r[0]) && within(r[1])) {
+                    return Err(src.invalid(
+                        k,
+                        format!(
+                            "is [{}, {}]°, past the SPAD arm's limits [{:.2}, {:.2}]° (the instrument's galvo.spad.angle-limits-deg): narrow the scan",
+                            r[0],
+                            r[1],
+                            allowed[0].to_degrees(),
+                            allowed[1].to_degrees()
+                        ),
+                    ));
+                }
+            }
+            if l.grid[0] * l.grid[1] < neighbours {
+                return Err(src.invalid(
+                    "los.grid",
+                    format!(
+                        "gives {} LOS points, fewer than the {neighbours} the relay needs (relay.neighbours, and at least 8) before any is left out: give a finer grid",
+                        l.grid[0] * l.grid[1]
+                    ),
+                ));
             }
             LosStage {
                 x: l.angles_deg.x.map(f64::to_radians),
@@ -371,6 +425,9 @@ impl Plan {
                 "\"adaptive\" needs recon.method = \"gtr\": the running 3D-GTR fit chooses the pairs; use another mode with a solver",
             ));
         }
+        if new {
+            confocal_solver_fits(src, &recon, &pairs)?;
+        }
         let sus = raw.suspend;
         let suspend = Suspenders {
             flagged_frames: match sus.flagged_frames.unwrap_or(DEFAULT_FLAGGED_FRAMES) {
@@ -414,6 +471,40 @@ impl Plan {
             recon,
             suspend,
         })
+    }
+}
+
+/// LCT and f-k take confocal pairs only (illumination and detection within the
+/// solver's `grid-tolerance`): a plan whose layout cannot give them is refused here,
+/// not by the solver after the whole capture.
+fn confocal_solver_fits(
+    src: &TomlSource,
+    recon: &ReconSettings,
+    pairs: &PairMode,
+) -> Result<(), ConfigError> {
+    use periscope_recon::solver::SolverKind;
+    let (name, tolerance) = match recon.method {
+        Method::Solver(SolverKind::Lct) => ("lct", recon.solvers.lct.grid_tolerance),
+        Method::Solver(SolverKind::Fk) => ("fk", recon.solvers.fk.grid_tolerance),
+        _ => return Ok(()),
+    };
+    match pairs {
+        PairMode::Confocal { offset, .. } | PairMode::Mask { offset, .. } if *offset > tolerance => Err(src.invalid(
+            "pairs.offset-mm",
+            format!(
+                "is {:.1} mm, but recon.method = \"{name}\" takes confocal pairs, their two points at most recon.{name}.grid-tolerance ({:.1} mm) apart: lower the offset, raise the tolerance, or reconstruct with \"fbp\" or \"gtr\", which take any pairs",
+                offset * 1e3,
+                tolerance * 1e3
+            ),
+        )),
+        PairMode::Confocal { .. } | PairMode::Mask { .. } => Ok(()),
+        _ => Err(src.invalid(
+            "recon.method",
+            format!(
+                "\"{name}\" takes confocal pairs (pairs.mode = \"confocal\" or \"mask\"), not this plan's {}: reconstruct it with \"fbp\" or \"gtr\", which take any pairs",
+                pairs.describe()
+            ),
+        )),
     }
 }
 
