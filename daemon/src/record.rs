@@ -70,6 +70,22 @@ pub fn undo_pile_up(counts: &[u32], cycles: f64, dwell: f64, dead_time: f64) -> 
     }
     let busy = (total / dwell * dead_time.max(0.0)).min(0.99);
     let live = 1.0 / (1.0 - busy);
+    if total * live > cycles {
+        // More photons than laser cycles: impossible for a first-photon TDC, so the
+        // cycle count (the laser's pulse rate, the sync divider) is wrong. Undoing
+        // pile-up with it would zero every later bin; the counts stay as counted.
+        static SEEN: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
+        let n = SEEN.fetch_add(1, std::sync::atomic::Ordering::Relaxed) + 1;
+        if n.is_power_of_two() {
+            tracing::warn!(
+                histograms = n,
+                counts = total,
+                cycles,
+                "a histogram holds more counts than the laser had pulses over its dwell: pile-up is left uncorrected; check laser.rep-rate-mhz and tdc.sync-divider"
+            );
+        }
+        return counts.iter().map(|&c| c as f32).collect();
+    }
     let mut waiting = cycles;
     counts
         .iter()
@@ -468,5 +484,11 @@ mod tests {
                 .all(|v| v.is_finite())
         );
         assert_eq!(undo_pile_up(&[4, 5], 0.0, 1.0, 0.0), vec![4.0, 5.0]);
+        // More counts than cycles (a wrong pulse rate or divider): as counted, where
+        // undoing pile-up would zero every bin after the cycles run out.
+        assert_eq!(
+            undo_pile_up(&[30, 40, 50], 20.0, 1.0, 0.0),
+            vec![30.0, 40.0, 50.0]
+        );
     }
 }

@@ -2,8 +2,8 @@
 //! reads every consumer of a stored run shares (the pipeline on resume, `periscope
 //! recon` and `export`, the API's downloads and geometry). See `docs/pipeline.md` for
 //! what each file holds.
-use std::fs::{self, File};
-use std::io::{self, BufWriter, Write};
+use std::fs;
+use std::io;
 use std::path::{Path, PathBuf};
 
 use glam::DVec3;
@@ -191,29 +191,23 @@ impl RunDir {
     }
 }
 
-/// Writes the relay as a binary PLY: x y z nx ny nz intensity (float32), written to a
-/// temporary name and renamed.
+/// Writes the relay as a binary PLY: x y z nx ny nz intensity (float32), atomically
+/// ([`crate::store::write_atomic`]: its own temporary file, synced, renamed, the
+/// directory synced).
 pub fn write_relay_ply(dir: &Path, relay: &[RelayPoint]) -> Result<(), RunDirError> {
     let path = dir.join(file::RELAY);
-    let tmp = dir.join("relay.ply.tmp");
-    {
-        let mut w = BufWriter::new(File::create(&tmp).map_err(io(&tmp))?);
-        let header = format!(
-            "ply\nformat binary_little_endian 1.0\ncomment Periscope relay: LOS first-bounce points, normals toward the instrument, return photons\nelement vertex {}\nproperty float x\nproperty float y\nproperty float z\nproperty float nx\nproperty float ny\nproperty float nz\nproperty float intensity\nend_header\n",
-            relay.len()
-        );
-        w.write_all(header.as_bytes()).map_err(io(&tmp))?;
-        for p in relay {
-            for v in [p.x.x, p.x.y, p.x.z, p.n.x, p.n.y, p.n.z, p.intensity] {
-                w.write_all(&(v as f32).to_le_bytes()).map_err(io(&tmp))?;
-            }
+    let header = format!(
+        "ply\nformat binary_little_endian 1.0\ncomment Periscope relay: LOS first-bounce points, normals toward the instrument, return photons\nelement vertex {}\nproperty float x\nproperty float y\nproperty float z\nproperty float nx\nproperty float ny\nproperty float nz\nproperty float intensity\nend_header\n",
+        relay.len()
+    );
+    let mut bytes = Vec::with_capacity(header.len() + relay.len() * 28);
+    bytes.extend_from_slice(header.as_bytes());
+    for p in relay {
+        for v in [p.x.x, p.x.y, p.x.z, p.n.x, p.n.y, p.n.z, p.intensity] {
+            bytes.extend_from_slice(&(v as f32).to_le_bytes());
         }
-        w.into_inner()
-            .map_err(|e| RunDirError::io(&tmp, e.into_error()))?
-            .sync_all()
-            .map_err(io(&tmp))?;
     }
-    std::fs::rename(&tmp, &path).map_err(io(&path))
+    crate::store::write_atomic(&path, &bytes).map_err(io(&path))
 }
 
 /// Reads `relay.ply` back (resume, the dashboard's 3-D view), or `None` if the run has
@@ -592,7 +586,14 @@ pub fn new_run_dir(root: &Path, plan: &str) -> io::Result<PathBuf> {
         };
         let dir = root.join(id);
         match fs::create_dir(&dir) {
-            Ok(()) => return Ok(dir),
+            Ok(()) => {
+                // The new directory's entry is made durable before anything in it
+                // is: a log synced inside a directory a power cut forgot is lost.
+                if let Ok(r) = fs::File::open(root) {
+                    let _ = r.sync_all();
+                }
+                return Ok(dir);
+            }
             Err(e) if e.kind() == io::ErrorKind::AlreadyExists => continue,
             Err(e) => return Err(e),
         }
