@@ -321,15 +321,15 @@ fn calibrate(
     print!("{}", calibration.table());
     match out {
         Some(path) => {
-            let text = calibrate::calibrated_toml(src.text(), &calibration.fitted)?;
+            let text = calibrate::calibrated_toml(src.text(), &calibration.fitted, src.path(), path)?;
+            // What is written must load as the instrument it describes, from where it
+            // will be: checked before anything there is replaced.
+            InstrumentConfig::from_source(&crate::config::TomlSource::from_text(path, text.as_str()))?;
             crate::store::write_atomic(path, text.as_bytes()).map_err(|source| CliError::Io {
                 path: path.to_owned(),
                 source,
             })?;
             println!("wrote {}", path.display());
-            // What is written must load as the instrument it describes, from where it
-            // is (relative paths in it, such as `sim.scene`, resolve against its folder).
-            InstrumentConfig::load(path)?;
         }
         None => println!("(give --out FILE to write the calibrated instrument config)"),
     }

@@ -191,7 +191,7 @@ fn the_fitted_config_fed_back_explains_the_scans() {
     // The calibrated file keeps `[sim.true-pose.*]`: the same true instrument. A known
     // target is placed from the configured SPAD pose, which has now moved: checking a
     // calibrated instrument again fits the target (docs/calibration.md).
-    let text = calibrate::calibrated_toml(src.text(), &first.fitted).unwrap();
+    let text = calibrate::calibrated_toml(src.text(), &first.fitted, src.path(), src.path()).unwrap();
     let src = instrument(Some(&text), true, None);
     let config = InstrumentConfig::from_source(&src).unwrap();
     let settings = Settings::default();

@@ -233,7 +233,7 @@ impl Calibrator {
             match self.find_spot(settings, expected, background, laser)? {
                 Some(spad) => out.push(SpotSample { laser, spad }),
                 None => crate::logging::notice(&format!(
-                    "  the spot at laser angles ({:.2}°, {:.2}°) is partly hidden from the SPAD: left out",
+                    "  the spot at laser angles ({:.2}°, {:.2}°) is cut (partly hidden from the SPAD, or at the SPAD arm's limits): left out",
                     laser.x.to_degrees(),
                     laser.y.to_degrees()
                 )),
@@ -312,12 +312,18 @@ impl Calibrator {
             let along_x = chord % 2 == 0;
             let mut ends = [0.0; 2];
             for (k, sign) in [-1.0, 1.0].into_iter().enumerate() {
-                ends[k] = self
-                    .edge(centre, along_x, sign, step / 2.0, level, settings.spot_search)?
-                    .ok_or(CalibrateError::NoSpot {
-                        laser,
-                        why: "its edge was not found within the search: is stray light saturating the SPAD?",
-                    })?;
+                ends[k] = match self.edge(centre, along_x, sign, step / 2.0, level, settings.spot_search)? {
+                    Edge::At(e) => e,
+                    // A spot the limits cut has no true chord there: left out, as a
+                    // spot cut by something in front of the SPAD is.
+                    Edge::AtLimit => return Ok(None),
+                    Edge::NotFound => {
+                        return Err(CalibrateError::NoSpot {
+                            laser,
+                            why: "its edge was not found within the search: is stray light saturating the SPAD?",
+                        });
+                    }
+                };
             }
             let mid = 0.5 * (ends[0] + ends[1]);
             widths[usize::from(!along_x)] = ends[1] - ends[0];
@@ -338,8 +344,9 @@ impl Calibrator {
     }
 
     /// Where the counts fall below `level` going from `from` (above it) along x or y
-    /// in direction `sign`: stepping out by `step`, then bisecting; `None` if they do
-    /// not within `reach`.
+    /// in direction `sign`: stepping out by `step`, then bisecting; [`Edge::NotFound`]
+    /// if they do not within `reach`, [`Edge::AtLimit`] if the SPAD arm's limits come
+    /// first.
     fn edge(
         &mut self,
         from: OpticalAngles,
@@ -348,7 +355,7 @@ impl Calibrator {
         step: f64,
         level: f64,
         reach: f64,
-    ) -> Result<Option<f64>, CalibrateError> {
+    ) -> Result<Edge, CalibrateError> {
         let at = |t: f64| {
             if along_x {
                 OpticalAngles { x: t, y: from.y }
@@ -361,7 +368,12 @@ impl Calibrator {
         loop {
             outside += sign * step;
             if (outside - start).abs() > reach {
-                return Ok(None);
+                return Ok(Edge::NotFound);
+            }
+            // Past the SPAD arm's limits nothing is measured: an edge found there is
+            // the limit's, not the spot's.
+            if !self.config.spad_arm.limits.contains(at(outside)) {
+                return Ok(Edge::AtLimit);
             }
             if self.counts_at(at(outside))? < level {
                 break;
@@ -376,8 +388,18 @@ impl Calibrator {
                 inside = mid;
             }
         }
-        Ok(Some(0.5 * (inside + outside)))
+        Ok(Edge::At(0.5 * (inside + outside)))
     }
+}
+
+/// What [`Calibrator::edge`] found.
+enum Edge {
+    /// The edge, an angle along the chord.
+    At(f64),
+    /// The counts stay above the level within the search.
+    NotFound,
+    /// The chord reaches the SPAD arm's limits first: the spot is cut there.
+    AtLimit,
 }
 
 /// An N × N serpentine grid over the central `span` (a fraction) of `limits`.
@@ -411,7 +433,8 @@ fn total(counts: &[u32]) -> f64 {
 /// [`peak`]'s): the background-subtracted centroid over the peak ± 4σ of the timing
 /// jitter (plus a bin). Unlike the parabola through three bins, whose bias swings with
 /// where the return falls inside its bin, the centroid keeps the mean arrival time.
-/// `None` when no peak stands out.
+/// `None` when no peak stands out, or when the return is cut by either end of the
+/// histogram (its centroid would lie early or late by the part cut off).
 pub(crate) fn centroid_peak(counts: &[f32], sigma_bins: f64) -> Option<f64> {
     let (b, _) = peak(counts)?;
     let mut sorted: Vec<f32> = counts.iter().copied().filter(|c| c.is_finite()).collect();
@@ -419,8 +442,11 @@ pub(crate) fn centroid_peak(counts: &[f32], sigma_bins: f64) -> Option<f64> {
     let background = f64::from(*sorted.get(sorted.len() / 2)?);
     let half = (4.0 * sigma_bins).ceil() as isize + 1;
     let centre = b.round() as isize;
+    if centre - half < 0 || centre + half >= counts.len() as isize {
+        return None;
+    }
     let (mut mass, mut moment) = (0.0, 0.0);
-    for k in (centre - half).max(0)..=(centre + half).min(counts.len() as isize - 1) {
+    for k in centre - half..=centre + half {
         let c = f64::from(counts[k as usize]) - background;
         mass += c;
         moment += c * k as f64;
@@ -447,6 +473,19 @@ mod tests {
             assert!((b - mu).abs() < 1e-3, "{mu}: {b}");
         }
         assert_eq!(centroid_peak(&[0.0f32; 16], 1.0), None);
+        // A return cut by the window's end is not a range: its centroid would lie early.
+        let cut: Vec<f32> = (0..128)
+            .map(|k| {
+                let z = (k as f64 - 126.0) / 1.6;
+                (5.0 + 1000.0 * (-0.5 * z * z).exp()) as f32
+            })
+            .collect();
+        assert_eq!(centroid_peak(&cut, 1.6), None);
+        assert_eq!(
+            centroid_peak(&cut[..120], 1.6),
+            None,
+            "a rising edge at the last bin"
+        );
     }
 
     #[test]

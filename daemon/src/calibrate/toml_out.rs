@@ -2,17 +2,54 @@
 //! `boresight` and `up` replaced, everything else (comments, order, other tables)
 //! kept byte for byte. `toml_edit` edits the document in place, keeping each value's
 //! surrounding whitespace and trailing comment.
+use std::path::Path;
+
 use glam::DVec3;
 use periscope_drivers::GalvoPose;
 use toml_edit::{Array, DocumentMut, Item, Value};
 
 use super::{CalibrateError, Geometry};
 
-/// `text` (an instrument config) with the arms' poses set to `fitted`'s.
-pub fn calibrated_toml(text: &str, fitted: &Geometry) -> Result<String, CalibrateError> {
+/// `text` (an instrument config read from `from`) with the arms' poses set to
+/// `fitted`'s, to be written at `to`. A relative `sim.scene` (the one path a config
+/// resolves against its own folder) is rewritten to resolve from `to` as it did from
+/// `from`: kept where both are in one folder, else made absolute.
+pub fn calibrated_toml(
+    text: &str,
+    fitted: &Geometry,
+    from: &Path,
+    to: &Path,
+) -> Result<String, CalibrateError> {
     let mut doc: DocumentMut = text
         .parse()
         .map_err(|e| CalibrateError::Output(format!("the instrument config does not parse: {e}")))?;
+    let folder = |p: &Path| {
+        let f = p.parent().unwrap_or(Path::new(""));
+        let f = if f.as_os_str().is_empty() {
+            Path::new(".")
+        } else {
+            f
+        };
+        std::fs::canonicalize(f).unwrap_or_else(|_| f.to_owned())
+    };
+    if let Some(scene) = doc
+        .get_mut("sim")
+        .and_then(|s| s.get_mut("scene"))
+        .and_then(Item::as_value_mut)
+        && let Some(rel) = scene.as_str().map(std::path::PathBuf::from)
+        && rel.is_relative()
+        && from.is_file()
+        && folder(from) != folder(to)
+    {
+        let resolved = folder(from).join(&rel);
+        let resolved = std::fs::canonicalize(&resolved).unwrap_or(resolved);
+        let resolved = resolved.to_str().ok_or_else(|| {
+            CalibrateError::Output(format!("sim.scene {} is not a UTF-8 path", resolved.display()))
+        })?;
+        let mut value = Value::from(resolved);
+        *value.decor_mut() = scene.decor().clone();
+        *scene = value;
+    }
     for (arm, pose) in [("laser", &fitted.laser), ("spad", &fitted.spad)] {
         let table = doc
             .get_mut("galvo")
@@ -87,7 +124,7 @@ mod tests {
 
     #[test]
     fn only_the_poses_change() {
-        let out = calibrated_toml(SIM, &geometry()).unwrap();
+        let out = calibrated_toml(SIM, &geometry(), Path::new("sim.toml"), Path::new("cal.toml")).unwrap();
         // The SPAD arm had no `up`: it is added (at the end of its table).
         let added: Vec<&str> = out.lines().filter(|l| l.starts_with("up = [0.00299")).collect();
         assert_eq!(added.len(), 1, "{out}");
@@ -111,7 +148,7 @@ mod tests {
     #[test]
     fn the_written_config_loads_with_the_fitted_poses() {
         let g = geometry();
-        let out = calibrated_toml(SIM, &g).unwrap();
+        let out = calibrated_toml(SIM, &g, Path::new("sim.toml"), Path::new("cal.toml")).unwrap();
         let c = crate::config::InstrumentConfig::from_source(&crate::config::TomlSource::from_text(
             "cal.toml", &out,
         ))
@@ -122,9 +159,46 @@ mod tests {
         }
     }
 
+    /// Written to another folder, the config's relative scene still names the same
+    /// file; written beside its source, it is left as it was.
+    #[test]
+    fn a_relative_scene_resolves_from_where_the_config_is_written() {
+        let repo = Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
+        let from = repo.join("configs/instrument/sim.toml");
+        let elsewhere = tempfile::tempdir().unwrap();
+        let to = elsewhere.path().join("calibrated.toml");
+        let out = calibrated_toml(SIM, &geometry(), &from, &to).unwrap();
+        let c =
+            crate::config::InstrumentConfig::from_source(&crate::config::TomlSource::from_text(&to, &out))
+                .unwrap();
+        let crate::config::Backend::Sim(sim) = c.backend else {
+            panic!("the simulated instrument")
+        };
+        let scene = sim.scene.expect("a scene file");
+        assert_eq!(
+            std::fs::canonicalize(scene).unwrap(),
+            std::fs::canonicalize(repo.join("configs/scenes/wall-letter.toml")).unwrap()
+        );
+        assert!(
+            out.contains("wall-letter.toml\"   # relative to this file"),
+            "{out}"
+        );
+        let beside = calibrated_toml(SIM, &geometry(), &from, &from.with_file_name("cal.toml")).unwrap();
+        assert!(
+            beside.contains("scene = \"../scenes/wall-letter.toml\""),
+            "{beside}"
+        );
+    }
+
     #[test]
     fn a_config_without_arms_is_refused() {
-        let err = calibrated_toml("name = \"x\"\n", &geometry()).unwrap_err();
+        let err = calibrated_toml(
+            "name = \"x\"\n",
+            &geometry(),
+            Path::new("x.toml"),
+            Path::new("y.toml"),
+        )
+        .unwrap_err();
         assert!(err.to_string().contains("[galvo.laser]"), "{err}");
     }
 }
