@@ -77,10 +77,28 @@ class ApiError extends Error {
   }
 }
 
+// The page's requests other than its two streams, so the E-STOP can cancel them: a
+// browser has six connections per host, and polls waiting on a loaded daemon must not
+// hold the one the E-STOP needs.
+const inflight = new Set();
+async function pageFetch(path, init = {}) {
+  const ctl = new AbortController();
+  inflight.add(ctl);
+  try {
+    return await fetch(path, { ...init, signal: ctl.signal });
+  } finally {
+    inflight.delete(ctl);
+  }
+}
+function cancelPageRequests() {
+  for (const ctl of inflight) ctl.abort();
+  inflight.clear();
+}
+
 async function api(method, path, body) {
   const init = { method, headers: headers(body === undefined ? {} : { 'Content-Type': 'application/toml' }) };
   if (body !== undefined) init.body = body;
-  const r = await fetch(path, init);
+  const r = await pageFetch(path, init);
   let json = null;
   try {
     json = await r.json();
@@ -104,7 +122,7 @@ async function api(method, path, body) {
 async function fetchBytes(path) {
   const name = path.split('/').pop();
   probe.fetched[name] = (probe.fetched[name] || 0) + 1;
-  const r = await fetch(path, { headers: headers() });
+  const r = await pageFetch(path, { headers: headers() });
   if (!r.ok) throw new ApiError(r.status, null, `${path}: ${r.status} ${r.statusText}`);
   return r.arrayBuffer();
 }
@@ -174,9 +192,16 @@ function renderInstrument() {
       // top shows the run's own readings.
       row('laser, interlock, diffuser', 'live in the safety bar at the top (the run reads them at every pair)');
     } else {
-      row('laser', d.laser.emission ? 'ON' : 'off', d.laser.emission ? 'danger' : 'ok');
-      row('interlock', d.laser.interlock_closed ? 'closed' : 'OPEN', d.laser.interlock_closed ? 'ok' : 'danger');
-      row('diffuser', d.laser.diffuser_in ? 'in' : 'out');
+      // A reading past its age limit says nothing of now: unknown, never a green off.
+      const readAge = v.reading ? v.reading.age_s + (performance.now() - instrumentFetched) / 1000 : Infinity;
+      if (!(readAge <= (v.reading?.stale_after_s ?? 0))) {
+        const why = v.reading ? `unknown: the reading is ${fmtS(readAge)} old` : 'unknown: not read';
+        for (const k of ['laser', 'interlock', 'diffuser']) row(k, why, 'warn');
+      } else {
+        row('laser', d.laser.emission ? 'ON' : 'off', d.laser.emission ? 'danger' : 'ok');
+        row('interlock', d.laser.interlock_closed ? 'closed' : 'OPEN', d.laser.interlock_closed ? 'ok' : 'danger');
+        row('diffuser', d.laser.diffuser_in ? 'in' : 'out');
+      }
     }
     row('laser arm', `${d.laser_arm.model} ${d.laser_arm.firmware} at (${deg(d.laser_position)})${before}`);
     row('SPAD arm', `${d.spad_arm.model} ${d.spad_arm.firmware} at (${deg(d.spad_position)})${before}`);
@@ -205,6 +230,7 @@ async function pollInstrument() {
     renderInstrument();
     setConnection(true);
   } catch (e) {
+    if (e.name === 'AbortError') return;
     if (e instanceof TypeError) {
       setConnection(false);
       // An old reading must not pass for a current one.
@@ -230,7 +256,7 @@ let caller = null; // { name, role } from GET /api/v1/whoami
 async function checkEstop() {
   const st = $('estop-state');
   try {
-    const r = await fetch('/api/v1/whoami', { headers: headers() });
+    const r = await pageFetch('/api/v1/whoami', { headers: headers() });
     if (r.ok) {
       caller = await r.json();
       st.textContent = caller.name === 'loopback' ? 'armed: works from this computer without a key' : `armed: key ${caller.name} (${caller.role})`;
@@ -240,7 +266,8 @@ async function checkEstop() {
       st.textContent = 'NOT armed from this machine: enter a key (any role) to e-stop from here';
       st.className = 'estop-state disarmed';
     }
-  } catch {
+  } catch (e) {
+    if (e.name === 'AbortError') return;
     caller = null;
     st.textContent = 'DAEMON UNREACHABLE: use the hardware emergency stop';
     st.className = 'estop-state unreachable';
@@ -255,6 +282,9 @@ const ESTOP_TIMEOUT_MS = 3000;
 
 $('estop').addEventListener('click', async () => {
   const t0 = performance.now();
+  // Whatever the page is waiting for gives its connection to the E-STOP.
+  cancelPageRequests();
+  probe.cancelledForEstop = (probe.cancelledForEstop || 0) + 1;
   banner('E-STOP sent…', 'error');
   try {
     const resp = await fetch('/api/v1/estop', { method: 'POST', headers: headers(), signal: AbortSignal.timeout(ESTOP_TIMEOUT_MS) });
@@ -562,7 +592,7 @@ let runsAsked = 0;
 async function refreshRuns() {
   const asked = ++runsAsked;
   try {
-    const r = await fetch(runsQuery(), { headers: headers({}) });
+    const r = await pageFetch(runsQuery(), { headers: headers({}) });
     if (!r.ok) throw new Error(`runs: ${r.status}`);
     const total = r.headers.get('x-total-count');
     const list = (await r.json()).reverse();
@@ -591,6 +621,7 @@ async function refreshRuns() {
 let auditRendered = '';
 
 async function refreshAudit() {
+  if (document.hidden) return;
   let page;
   try {
     page = await api('GET', '/api/v1/audit?limit=20');
@@ -818,7 +849,9 @@ async function loadGeometry(id) {
     $('view-caption').textContent = `${g.relay.length.toLocaleString()} relay points coloured by distance (${lo.toFixed(2)}–${hi.toFixed(2)} m) · ${g.illumination.length} illumination (red), ${g.detection.length} detection (green) points · volume box`;
     probe.geometry = { relay: g.relay.length, illumination: g.illumination.length, detection: g.detection.length };
     } catch (e) {
-    if (id === selected) $('view-caption').textContent = e.message;
+    // Cancelled for the E-STOP: loaded again at the next status.
+    if (e.name === 'AbortError') geometryStage = null;
+    else if (id === selected) $('view-caption').textContent = e.message;
   }
 }
 
@@ -932,6 +965,16 @@ function onEvent(name, data) {
         case 'failed':
       banner(`run ${selected} failed: ${data.message}`, 'error', selected);
       break;
+    case 'lagged':
+      // The page fell behind and the daemon skipped events: what was missed is in
+      // the run's status and its event log.
+      probe.lagged = (probe.lagged || 0) + 1;
+      if (selected) {
+        const id = selected;
+        api('GET', `/api/v1/runs/${id}`).then(onStatus).catch(() => {});
+        loadHistory(id);
+      }
+      break;
     default:
       break;
   }
@@ -940,6 +983,9 @@ function onEvent(name, data) {
 // The event stream, read with fetch so the token travels in a header. A dropped
 // stream reconnects and catches up from the run's status and events.jsonl.
 async function follow(id) {
+  // One stream per run, and none while the tab is hidden (shown again, it follows).
+  if (document.hidden || (live && live.id === id && !live.abort.signal.aborted)) return;
+  if (live) live.abort.abort();
   const abort = new AbortController();
   live = { id, abort };
   let delay = 500;
@@ -954,6 +1000,8 @@ async function follow(id) {
       setConnection(true);
       delay = 500;
       await readEvents(r, (name, data) => {
+        // A loop another has replaced shows nothing more.
+        if (live?.abort !== abort) return;
         if (name !== 'status') received = true;
         onEvent(name, data);
       });
@@ -1164,7 +1212,8 @@ async function loadResults(id) {
     probe.resultsShown = true;
     whenVisible($('volume-part'), () => loadVolume(id, vj));
     } catch (e) {
-    if (id === selected) $('results-note').textContent = `results could not be shown: ${e.message}`;
+    if (e.name === 'AbortError') resultsFor = null;
+    else if (id === selected) $('results-note').textContent = `results could not be shown: ${e.message}`;
   }
 }
 
@@ -1188,7 +1237,8 @@ async function loadVolume(id, vj) {
     drawSlice();
     $('volume-note').textContent = `${nx}×${ny}×${nz} voxels, maximum ${volume.max.toExponential(2)}`;
     } catch (e) {
-    if (id === selected) $('volume-note').textContent = `the volume could not be shown: ${e.message}`;
+    if (e.name === 'AbortError') resultsFor = null;
+    else if (id === selected) $('volume-note').textContent = `the volume could not be shown: ${e.message}`;
   }
 }
 
@@ -1198,10 +1248,12 @@ async function loadVolume(id, vj) {
 // connections (the E-STOP needs one).
 let refreshing = false;
 async function refresh() {
-  if (refreshing) return;
+  // A hidden tab polls nothing: its connections are shared with the tab in use.
+  if (refreshing || document.hidden) return;
   refreshing = true;
   try {
-    await Promise.all([pollInstrument(), refreshRuns(), checkEstop(), checkQueue()]);
+    // One after another: one connection for the polls, beside the two streams.
+    for (const poll of [pollInstrument, refreshRuns, checkEstop, checkQueue]) await poll();
   } finally {
     refreshing = false;
   }
@@ -1210,7 +1262,8 @@ async function refresh() {
 async function checkQueue() {
     try {
     queueLock = (await api('GET', '/api/v1/queue')).lock;
-  } catch {
+  } catch (e) {
+    if (e.name === 'AbortError') return;
     // Not known: Submit waits until it is.
     queueLock = { by: 'unknown', reason: 'the queue could not be read' };
   }

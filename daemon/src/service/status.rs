@@ -4,6 +4,11 @@
 use super::*;
 
 impl Service {
+    /// How old the worker's idle reading may be before it is unknown.
+    fn idle_stale_s(&self) -> f64 {
+        2.0 * self.instrument.api.status_interval.as_secs_f64() + 1.0
+    }
+
     /// The instrument's status, without touching the hardware: the worker's last
     /// reading of the devices with its age (it reads them when it starts, after every
     /// run and e-stop, and every `[api] status-interval-s` while idle), and the running
@@ -15,6 +20,7 @@ impl Service {
                 let age = ReadingAge {
                     taken_unix_s: r.unix_s,
                     age_s: r.at.elapsed().as_secs_f64(),
+                    stale_after_s: self.idle_stale_s(),
                 };
                 match &r.devices {
                     Ok(d) => (Some(age), Some(d.clone()), None),
@@ -50,7 +56,7 @@ impl Service {
     /// The live safety state, from the running run's readings or the idle reading.
     pub fn safety(&self) -> Safety {
         let s = self.lock();
-        let idle_stale = 2.0 * self.instrument.api.status_interval.as_secs_f64() + 1.0;
+        let idle_stale = self.idle_stale_s();
         let reading = s.reading.as_ref();
         let idle_devices = reading.and_then(|r| r.devices.as_ref().ok());
         let pointer = |p: &str| idle_devices.and_then(|d| d.pointer(p));
@@ -481,6 +487,9 @@ pub struct ReadingAge {
     pub taken_unix_s: f64,
     /// Its age, seconds.
     pub age_s: f64,
+    /// The age past which a client must show what it read as unknown (two of the
+    /// worker's reading intervals and a second).
+    pub stale_after_s: f64,
 }
 
 /// A run's geometry for 3-D views, metres, world frame.
