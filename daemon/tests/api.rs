@@ -908,6 +908,48 @@ async fn a_loopback_estop_with_a_refused_key_does_not_wait_for_the_audit_trail()
     );
 }
 
+/// During a capture `/metrics` gives the laser as the run reads it (at every pair), not
+/// the worker's reading from before the run, in which the laser was off: an alert on
+/// emission with the interlock open must be able to fire while a run measures.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn metrics_give_the_runs_own_laser_reading_during_a_capture() {
+    let dir = tempfile::tempdir().unwrap();
+    let (svc, _worker, router, id, _) = a_capturing_run(dir.path()).await;
+    let (s, text) = call_raw(&router, Method::GET, "/metrics", None, "").await;
+    assert_eq!(s, StatusCode::OK);
+    let text = String::from_utf8(text).unwrap();
+    let gauge = |name: &str| {
+        text.lines()
+            .find_map(|l| {
+                l.strip_prefix(name)?
+                    .strip_prefix(' ')?
+                    .trim()
+                    .parse::<f64>()
+                    .ok()
+            })
+            .unwrap_or_else(|| panic!("no {name} in {text}"))
+    };
+    assert_eq!(gauge("periscope_instrument_busy"), 1.0);
+    assert_eq!(
+        gauge("periscope_laser_emission"),
+        1.0,
+        "the laser is on in the capture"
+    );
+    assert_eq!(gauge("periscope_interlock_closed"), 1.0);
+    assert_eq!(gauge("periscope_reading_valid"), 1.0);
+    assert!(gauge("periscope_reading_age_seconds") < 3.0);
+    let (s, _) = call(
+        &router,
+        Method::POST,
+        &format!("/api/v1/runs/{id}/abort"),
+        Some(TOKEN),
+        "",
+    )
+    .await;
+    assert_eq!(s, StatusCode::ACCEPTED);
+    drop(svc);
+}
+
 /// A running capture's export is made again at most every 10 s, however often it is
 /// downloaded: a client looping on `capture.hdf5` cannot keep a core and the disk
 /// re-exporting while the instrument measures. Two downloads half a second apart,

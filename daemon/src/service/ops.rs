@@ -132,6 +132,19 @@ impl Service {
                     snap.rates = rate("/tdc_status/rates/sync").zip(rate("/tdc_status/rates/detector"));
                 }
             }
+            // A run holds the devices and reads the laser at every pair: while it
+            // runs, its reading is the current one, not the worker's from before it.
+            // (An imported capture's run holds no device: the worker's reading stands.)
+            let running = s.current.as_ref().is_some_and(|(c, _)| *c == s.live.id);
+            if running && !s.live.import {
+                let live = s.live.laser.as_ref();
+                snap.emission = live.map(|l| l.0.emission);
+                snap.interlock_closed = live.map(|l| l.0.interlock_closed);
+                snap.diffuser_in = live.map(|l| l.0.diffuser_in);
+                if let Some(l) = live {
+                    snap.reading_age_s = Some(l.1.elapsed().as_secs_f64());
+                }
+            }
             snap.busy = s.current.is_some();
             if s.current.is_some()
                 && s.live.stage == "capture"
