@@ -18,7 +18,8 @@ use serde::{Deserialize, Serialize};
 
 use periscope_recon::Pair;
 use periscope_recon::adaptive::{
-    InformationSums, Recorded, WHOLE_AXIS, choose, choose_spread, farthest_points, terms_of, tour, travel,
+    Coverage, InformationSums, Recorded, WHOLE_AXIS, choose, choose_spread_near, farthest_points,
+    farthest_points_from, terms_of, tour, travel,
 };
 use periscope_recon::gtr::LiveModel;
 use periscope_recon::transient::TimeAxis;
@@ -283,6 +284,10 @@ pub struct Selector {
     sizes: Sizes,
     measured: Vec<usize>,
     is_measured: Vec<bool>,
+    /// Each candidate's distance to the nearest measured, kept as pairs are taken (a
+    /// batch's choice then costs what the batch does, not a pass over the candidates
+    /// for every pair measured before it).
+    coverage: Coverage,
     /// The random order's permutation.
     shuffled: Vec<usize>,
     /// The stopping rule's reference: the gain it reads ([`Selector::next`]) at the first
@@ -308,6 +313,7 @@ impl Selector {
             sizes,
             measured: Vec::new(),
             is_measured: vec![false; n],
+            coverage: Coverage::new(n),
             shuffled,
             first_gain: None,
             batches: 0,
@@ -374,6 +380,7 @@ impl Selector {
         }
         for &i in &order {
             self.is_measured[i] = true;
+            self.coverage.take(&self.candidates, i);
         }
         self.measured.extend_from_slice(&order);
         let choice = BatchChoice {
@@ -409,6 +416,7 @@ impl Selector {
         for &i in measured {
             if i < self.candidates.len() && !self.is_measured[i] {
                 self.is_measured[i] = true;
+                self.coverage.take(&self.candidates, i);
                 self.measured.push(i);
             }
         }
@@ -421,7 +429,7 @@ impl Selector {
         if n == 0 {
             return None;
         }
-        let batch = farthest_points(&self.candidates, &self.measured, n);
+        let batch = farthest_points_from(&self.candidates, &self.coverage, n);
         let k = batch.len();
         Some(self.take(batch, vec![0.0; k], k, "spread", None))
     }
@@ -437,7 +445,7 @@ impl Selector {
         if n == 0 || self.stopped.is_some() {
             return None;
         }
-        let batch = farthest_points(&self.candidates, &self.measured, n);
+        let batch = farthest_points_from(&self.candidates, &self.coverage, n);
         let k = batch.len();
         Some(self.take(batch, vec![0.0; k], k, "spread", None))
     }
@@ -480,7 +488,7 @@ impl Selector {
                 Some(self.take(batch, vec![0.0; k], 0, "random", None))
             }
             Order::Uniform => {
-                let batch = farthest_points(&self.candidates, &self.measured, n);
+                let batch = farthest_points_from(&self.candidates, &self.coverage, n);
                 let k = batch.len();
                 Some(self.take(batch, vec![0.0; k], k, "uniform", None))
             }
@@ -511,7 +519,6 @@ impl Selector {
         let open_terms = terms(&open);
         let mut info = sums.finish(&open_terms);
         let by_gain = |n: usize| n - ((n as f64 * self.settings.explore).round() as usize).min(n);
-        let measured: Vec<Pair> = pairs(&self.measured);
         let mean_gain = |chosen: &[periscope_recon::adaptive::Choice]| {
             if chosen.is_empty() {
                 0.0
@@ -528,11 +535,11 @@ impl Selector {
         let free = choose(&mut info.clone(), &open_terms, reference);
         let mean = mean_gain(&free);
         let chosen = if self.settings.coverage > 0.0 {
-            choose_spread(
+            choose_spread_near(
                 &mut info,
                 &open_terms,
                 &pairs(&open),
-                &measured,
+                open.iter().map(|&i| self.coverage.nearest(i)).collect(),
                 by_gain(n),
                 self.settings.coverage,
             )
@@ -559,8 +566,11 @@ impl Selector {
         let mut gains: Vec<f64> = chosen.iter().map(|c| c.gain).collect();
         // The rest by distance from everything measured or chosen: what the fit has
         // not found cannot ask to be looked at.
-        let taken: Vec<usize> = self.measured.iter().chain(&batch).copied().collect();
-        let spread = farthest_points(&self.candidates, &taken, n - batch.len());
+        let mut taken = self.coverage.clone();
+        for &i in &batch {
+            taken.take(&self.candidates, i);
+        }
+        let spread = farthest_points_from(&self.candidates, &taken, n - batch.len());
         let by_distance = spread.len();
         gains.extend(std::iter::repeat_n(0.0, by_distance));
         // With the spread kept, a pick no candidate within reach had a gain for was

@@ -443,13 +443,33 @@ pub fn choose_spread(
     n: usize,
     coverage: f64,
 ) -> Vec<Choice> {
-    assert_eq!(terms.len(), pairs.len(), "one pair a candidate's terms");
-    // Candidates by their last computed gain (lazy greedy, as in `choose`).
-    let mut heap = ranked(info, terms);
     let mut spread = Spread::new(pairs);
     for p in taken {
         spread.relax(p);
     }
+    choose_spread_near(info, terms, pairs, spread.nearest, n, coverage)
+}
+
+/// [`choose_spread`] with each candidate's squared distance to the nearest pair taken
+/// given (`nearest`, infinite where none is; a [`Coverage`] keeps it), instead of
+/// measured from every pair taken.
+pub fn choose_spread_near(
+    info: &mut Information,
+    terms: &[Vec<Term>],
+    pairs: &[Pair],
+    nearest: Vec<f64>,
+    n: usize,
+    coverage: f64,
+) -> Vec<Choice> {
+    assert_eq!(terms.len(), pairs.len(), "one pair a candidate's terms");
+    assert_eq!(nearest.len(), pairs.len(), "one distance a candidate");
+    // Candidates by their last computed gain (lazy greedy, as in `choose`).
+    let mut heap = ranked(info, terms);
+    let mut spread = Spread {
+        pairs,
+        nearest,
+        used: vec![false; pairs.len()],
+    };
     let share = coverage.clamp(0.0, 1.0).powi(2);
     let mut chosen = Vec::with_capacity(n.min(terms.len()));
     let mut too_near = Vec::new();
@@ -492,6 +512,48 @@ pub fn choose_spread(
         chosen.push(Choice { index, gain });
     }
     chosen
+}
+
+/// Which of a list of candidate pairs are taken, and each one's squared distance (over
+/// both relay points) to the nearest taken: kept by a capture as it measures, one pass
+/// over the candidates a pair, so that choosing a batch ([`farthest_points_from`],
+/// [`choose_spread_near`]) costs what the batch does, not a pass for every pair
+/// measured before it.
+#[derive(Clone, Debug)]
+pub struct Coverage {
+    nearest: Vec<f64>,
+    used: Vec<bool>,
+}
+
+impl Coverage {
+    /// `n` candidates, none taken.
+    pub fn new(n: usize) -> Self {
+        Self {
+            nearest: vec![f64::INFINITY; n],
+            used: vec![false; n],
+        }
+    }
+
+    /// Takes candidate `i` of `pairs` (the list this covers).
+    pub fn take(&mut self, pairs: &[Pair], i: usize) {
+        let mut spread = Spread {
+            pairs,
+            nearest: std::mem::take(&mut self.nearest),
+            used: std::mem::take(&mut self.used),
+        };
+        spread.take(i);
+        (self.nearest, self.used) = (spread.nearest, spread.used);
+    }
+
+    /// Candidate `i`'s squared distance to the nearest taken (infinite with none).
+    pub fn nearest(&self, i: usize) -> f64 {
+        self.nearest[i]
+    }
+
+    /// Whether any candidate is taken.
+    pub fn any_taken(&self) -> bool {
+        self.used.iter().any(|&u| u)
+    }
 }
 
 /// Each pair's squared distance to the nearest pair taken, and which are taken: the
@@ -572,11 +634,33 @@ pub fn farthest_points(pairs: &[Pair], taken: &[usize], n: usize) -> Vec<usize> 
             *d = -pair_distance_squared(p, &mean);
         }
     }
-    let mut out = Vec::with_capacity(n.min(pairs.len()));
+    farthest_loop(spread, n, taken.is_empty())
+}
+
+/// [`farthest_points`] after the pairs `coverage` has taken (of `pairs`, the list it
+/// covers): the same picks, without a pass over the candidates for each pair taken.
+pub fn farthest_points_from(pairs: &[Pair], coverage: &Coverage, n: usize) -> Vec<usize> {
+    assert_eq!(coverage.nearest.len(), pairs.len(), "the coverage of these pairs");
+    if n == 0 {
+        return Vec::new();
+    }
+    if !coverage.any_taken() {
+        return farthest_points(pairs, &[], n);
+    }
+    let spread = Spread {
+        pairs,
+        nearest: coverage.nearest.clone(),
+        used: coverage.used.clone(),
+    };
+    farthest_loop(spread, n, false)
+}
+
+fn farthest_loop(mut spread: Spread<'_>, n: usize, from_the_mean: bool) -> Vec<usize> {
+    let mut out = Vec::with_capacity(n.min(spread.pairs.len()));
     while out.len() < n {
         let Some((i, _)) = spread.farthest() else { break };
         out.push(i);
-        if out.len() == 1 && taken.is_empty() {
+        if out.len() == 1 && from_the_mean {
             spread.nearest.fill(f64::INFINITY);
         }
         spread.take(i);
@@ -982,6 +1066,46 @@ mod tests {
         let idx: Vec<usize> = spread.iter().map(|c| c.index).collect();
         assert_eq!(idx, farthest_points(&pairs, &[4], 4));
         assert!(spread.iter().all(|c| c.gain == 0.0), "{spread:?}");
+    }
+
+    /// A coverage kept pair by pair picks what the pairs taken, given whole, pick.
+    #[test]
+    fn a_kept_coverage_picks_as_the_taken_pairs_do() {
+        let pairs = wall(9, 0.05);
+        let taken = [40, 3, 77, 12, 58];
+        let mut coverage = Coverage::new(pairs.len());
+        assert!(!coverage.any_taken());
+        assert_eq!(
+            farthest_points_from(&pairs, &coverage, 6),
+            farthest_points(&pairs, &[], 6)
+        );
+        for &i in &taken {
+            coverage.take(&pairs, i);
+        }
+        assert_eq!(
+            farthest_points_from(&pairs, &coverage, 12),
+            farthest_points(&pairs, &taken, 12)
+        );
+        let open: Vec<usize> = (0..pairs.len()).filter(|i| !taken.contains(i)).collect();
+        let open_pairs: Vec<Pair> = open.iter().map(|&i| pairs[i]).collect();
+        let taken_pairs: Vec<Pair> = taken.iter().map(|&i| pairs[i]).collect();
+        let terms: Vec<Vec<Term>> = open
+            .iter()
+            .map(|&i| {
+                vec![Term {
+                    primitive: (i % 7) as u32,
+                    c: 1.0 + (i % 5) as f64,
+                    g: DVec3::new(1.0, (i % 3) as f64, 0.5),
+                }]
+            })
+            .collect();
+        let mut a = Information::new(7, &[], &terms);
+        let mut b = a.clone();
+        let whole = choose_spread(&mut a, &terms, &open_pairs, &taken_pairs, 8, 0.6);
+        let near = open.iter().map(|&i| coverage.nearest(i)).collect();
+        let kept = choose_spread_near(&mut b, &terms, &open_pairs, near, 8, 0.6);
+        let idx = |c: &[Choice]| c.iter().map(|c| c.index).collect::<Vec<_>>();
+        assert_eq!(idx(&whole), idx(&kept));
     }
 
     #[test]
