@@ -265,9 +265,14 @@ pub fn check(plan: &Plan, inst: &InstrumentConfig) -> Check {
     let (cap_s, cap_min_s) = match adaptive {
         None => (cap_s, None),
         Some(s) => (
-            // A time budget ends the choosing; the batch under way is finished.
+            // A time budget ends the choosing, judged after each batch's live training:
+            // the first batch always runs whole, and the choice and batch under way when
+            // the budget runs out are finished.
             match rc.adaptive.seconds {
-                t if t > 0.0 => (cap_s + choice_s(s.rounds())).min(t + s.batch as f64 * per_pair),
+                t if t > 0.0 => (cap_s + choice_s(s.rounds())).min(
+                    (s.first as f64 * per_pair + choice_s(1))
+                        .max(t + choice_s(1) + s.batch as f64 * per_pair),
+                ),
                 _ => cap_s + choice_s(s.rounds()),
             },
             // The stopping rule can end it after the first choice.

@@ -392,9 +392,17 @@ pub struct RunInfo {
     /// the state it writes differs from the last one recorded.
     #[serde(default)]
     pub history: Vec<StateChange>,
+    /// Seconds an adaptive capture has spent choosing and measuring, over every session
+    /// (a resumed capture's time budget, `adaptive.seconds`, counts them all).
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub adaptive_seconds: f64,
     /// Who makes the next state change ([`RunInfo::save`] records it and clears it).
     #[serde(skip)]
     pub acting: Option<String>,
+}
+
+fn is_zero(v: &f64) -> bool {
+    *v == 0.0
 }
 
 /// An imported capture: the files uploaded into the run's `import/` directory.

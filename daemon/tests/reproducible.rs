@@ -58,6 +58,18 @@ struct Choices {
 
 /// Runs `plan` (see [`run`]); also returns what the listener saw of adaptive choices.
 fn run_plan(tmp: &Path, name: &str, pause: Duration, devices: &str, plan: &str) -> (PathBuf, usize, Choices) {
+    run_plan_with(tmp, name, pause, devices, plan, |_| {})
+}
+
+/// [`run_plan`], with `before` given the prepared run's directory before it runs.
+fn run_plan_with(
+    tmp: &Path,
+    name: &str,
+    pause: Duration,
+    devices: &str,
+    plan: &str,
+    before: impl FnOnce(&Path),
+) -> (PathBuf, usize, Choices) {
     let path = root().join("configs/instrument/sim.toml");
     let text = std::fs::read_to_string(&path)
         .unwrap()
@@ -69,6 +81,7 @@ fn run_plan(tmp: &Path, name: &str, pause: Duration, devices: &str, plan: &str) 
         .unwrap();
     let plan = TomlSource::from_text(tmp.join("plan.toml"), plan.to_owned());
     let (dir, _, _) = pipeline::prepare(&plan, &src, Some(&tmp.join(name)), "test").unwrap();
+    before(&dir);
     let events = EventSink::open(&dir).unwrap();
     let live = Arc::new(AtomicUsize::new(0));
     let counter = live.clone();
@@ -223,4 +236,29 @@ fn an_adaptive_capture_stops_choosing_at_its_time_budget() {
         .len();
     assert_eq!(stored, 24, "the first batch, whole");
     assert!(dir.join("volume.npy").is_file());
+}
+
+/// The time budget counts every session of a resumed capture: a run whose earlier
+/// sessions spent its `seconds` (as run.json records them) measures its first batch
+/// and chooses nothing after it, where a fresh one of the same plan chooses on.
+#[test]
+fn a_resumed_adaptive_capture_counts_the_time_its_earlier_sessions_spent() {
+    let adaptive = plan().replace(
+        "mode = \"confocal\"",
+        "mode = \"adaptive\"\ncandidates = \"confocal\"",
+    ) + "[recon.adaptive]\npairs = 60\nfirst = 24\nbatch = 12\nlive-steps = 32\nseconds = 600\n";
+    let tmp = tempfile::tempdir().unwrap();
+    let spent = |dir: &Path| {
+        let mut info = periscope_daemon::run_dir::RunInfo::load(dir).unwrap();
+        info.adaptive_seconds = 600.0;
+        info.save(dir).unwrap();
+    };
+    let (dir, _, choices) = run_plan_with(tmp.path(), "spent", Duration::ZERO, "wire", &adaptive, spent);
+    assert_eq!(choices.batches, 1, "{choices:?}");
+    let info = periscope_daemon::run_dir::RunInfo::load(&dir).unwrap();
+    assert!(info.adaptive_seconds > 600.0, "{}", info.adaptive_seconds);
+    let (fresh, _, choices) = run_plan(tmp.path(), "fresh", Duration::ZERO, "wire", &adaptive);
+    assert_eq!(choices.batches, 4, "{choices:?}");
+    let info = periscope_daemon::run_dir::RunInfo::load(&fresh).unwrap();
+    assert!(info.adaptive_seconds > 0.0 && info.adaptive_seconds < 600.0);
 }

@@ -35,6 +35,7 @@ fn make_run(root: &Path, id: &str, plan: &str, state: RunState, created: f64, ta
                 by: None,
             },
         ],
+        adaptive_seconds: 0.0,
         acting: None,
     };
     info.save(&dir).unwrap();

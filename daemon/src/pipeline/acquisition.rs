@@ -148,7 +148,9 @@ impl Run {
             let settle = self.settle_timeout();
             let mut flagged = FlagRun::default();
             let mut prepared = false;
-            let started = std::time::Instant::now();
+            // The time budget counts every session of a resumed capture.
+            let (started, before) = (std::time::Instant::now(), self.info.adaptive_seconds);
+            let spent = move || before + started.elapsed().as_secs_f64();
             loop {
                 if let Some(choice) = next.take() {
                     self.events.emit(RunEvent::PairsChosen(choice.clone()));
@@ -173,6 +175,7 @@ impl Run {
                     self.devices.laser.set_emission(false)?;
                     self.report_laser();
                     log.sync().map_err(|e| PipelineError::storage(log.path(), e))?;
+                    self.info.adaptive_seconds = spent();
                     self.save_info()?;
                 }
                 let full = std::mem::replace(&mut batch, counts()?);
@@ -210,10 +213,10 @@ impl Run {
                 };
                 let Some(model) = model else { break };
                 let budget_s = self.plan.recon.adaptive.seconds;
-                if budget_s > 0.0 && started.elapsed().as_secs_f64() >= budget_s {
+                if budget_s > 0.0 && spent() >= budget_s {
                     selector.stop(format!(
                         "the capture has run {:.0} s, its time budget (adaptive.seconds = {budget_s})",
-                        started.elapsed().as_secs_f64()
+                        spent()
                     ));
                 }
                 match selector.next(&model, &axis) {
@@ -228,6 +231,7 @@ impl Run {
                     "adaptive capture ended before its budget: {why}"
                 );
             }
+            self.info.adaptive_seconds = spent();
             self.save_info()?;
             drop(tx);
             return Ok((fit, held));

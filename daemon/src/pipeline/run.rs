@@ -113,6 +113,7 @@ pub fn prepare(
         again_of: None,
         import: None,
         history: Vec::new(),
+        adaptive_seconds: 0.0,
         acting: Some(submitted_by.to_owned()),
     };
     info.save(&dir).map_err(|e| PipelineError::storage(&dir, e))?;

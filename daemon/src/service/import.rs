@@ -236,6 +236,7 @@ impl Service {
                     recon: upload.recon.is_some(),
                 }),
                 history: Vec::new(),
+                adaptive_seconds: 0.0,
                 acting: Some(by.to_owned()),
             };
             info.save(&dir)
