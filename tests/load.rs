@@ -90,6 +90,7 @@ fn daemon() -> Daemon {
             again_of: None,
             import: None,
             history: Vec::new(),
+            adaptive_seconds: 0.0,
             acting: None,
         }
         .save(&run)

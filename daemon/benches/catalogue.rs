@@ -67,6 +67,7 @@ fn make(root: &Path) {
                     by: None,
                 },
             ],
+            adaptive_seconds: 0.0,
             acting: None,
         };
         info.save(&dir).unwrap();
