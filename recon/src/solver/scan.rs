@@ -74,6 +74,14 @@ impl PlanarScan {
                         ),
                     });
                 }
+                // Lines clustered within the tolerance can put a point of the first or
+                // last cluster a line beyond the grid: not a grid of these lines.
+                if f.round() < 0.0 || f.round() >= count as f64 {
+                    return Err(SolverError::NotGrid {
+                        what,
+                        detail: format!("point {i} falls on line {} of a grid of {count} lines", f.round()),
+                    });
+                }
                 index[a][i] = f.round() as usize;
             }
             lines[a] = (first, spacing, count);
@@ -308,6 +316,26 @@ mod tests {
         }
         let scan = PlanarScan::detect("test", &points, DVec3::Z, 1e-6).unwrap();
         (set, scan)
+    }
+
+    /// Lines at 0, 3, 6, 9.5 and 11.4 mm with a 2 mm tolerance: the last two cluster
+    /// into one line at 10.45 mm, a grid of four lines, and the point at 11.4 mm falls
+    /// on a fifth. Refused as no grid; it was an index past the grid's cells.
+    #[test]
+    fn a_point_beyond_the_clustered_lines_is_not_a_grid() {
+        let at = [0.0, 3.0, 6.0, 9.5, 11.4];
+        let points: Vec<DVec3> = at
+            .iter()
+            .flat_map(|&y| at.iter().map(move |&x| DVec3::new(x * 1e-3, y * 1e-3, 0.0)))
+            .collect();
+        match PlanarScan::detect("test", &points, DVec3::Z, 2e-3) {
+            Err(SolverError::NotGrid { .. }) => {}
+            Ok(scan) => {
+                let cells = scan.relay.resolution[0] * scan.relay.resolution[1];
+                assert!(scan.cells.iter().all(|&c| c < cells), "a cell past the grid");
+            }
+            Err(e) => panic!("{e}"),
+        }
     }
 
     #[test]

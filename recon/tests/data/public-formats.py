@@ -155,6 +155,19 @@ def fk():
 fk()
 
 
+# A hostile f-k capture in MAT v5 (scipy's writer, as an older release might be saved):
+# a 2 x 2 x 64 `meas` and a `tofgrid` holding a finite but impossible 1e30 ps. Reading
+# it must refuse the shift by name, not saturate a cast into an index past `meas`.
+def fk_hostile():
+    import scipy.io
+    meas = np.ones((2, 2, 64), np.float32)
+    tof = np.array([[0.0, 64.0], [1e30, 32.0]])
+    scipy.io.savemat(out("fk-hostile.mat"), {"meas": meas, "tofgrid": tof}, do_compression=False)
+
+
+fk_hostile()
+
+
 # --- Phasor field, Liu et al. 2019 (Nature): a `dataset` struct, MAT v7.3 ------------
 # data (laser index, 1 SPAD, t); bin k holds total paths t0 + k deltat, laserOrigin ->
 # laserPos -> scene -> cameraPos -> cameraOrigin (y-tal's reading of the format).

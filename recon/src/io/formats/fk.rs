@@ -40,6 +40,12 @@ pub(crate) fn from_mat(mat: &Mat<'_>, dir: Option<&Path>) -> Result<YtalCapture,
     if nx < 2 || ny < 2 || nt < 2 {
         return Err(mat.error(format!("`meas` of dims ({ny}, {nx}, {nt}) is too small")));
     }
+    if Some(meas.values.len()) != ny.checked_mul(nx).and_then(|n| n.checked_mul(nt)) {
+        return Err(mat.error(format!(
+            "`meas` holds {} values for dims ({ny}, {nx}, {nt})",
+            meas.values.len()
+        )));
+    }
     check_counts(&meas.values, "meas").map_err(|m| mat.error(m))?;
     let (tof, tof_from) = tofgrid(mat, dir)?;
     if tof.dims != [ny, nx] {
@@ -56,14 +62,21 @@ pub(crate) fn from_mat(mat: &Mat<'_>, dir: Option<&Path>) -> Result<YtalCapture,
         )));
     }
     let bin_ps = BIN_S * 1e12;
-    let shifts: Vec<usize> = tof.values.iter().map(|t| (t / bin_ps).floor() as usize).collect();
-    let max_shift = shifts.iter().copied().max().unwrap_or(0);
-    if max_shift + 2 > nt {
+    // Judged as a real number first: a huge time would saturate the cast.
+    if let Some(t) = tof
+        .values
+        .iter()
+        .copied()
+        .find(|t| (t / bin_ps).floor() + 2.0 > nt as f64)
+    {
         return Err(mat.error(format!(
-            "`tofgrid` ({tof_from}) shifts a histogram by {max_shift} bins of 32 ps but `meas` has {nt}: \
-             the two do not belong together"
+            "`tofgrid` ({tof_from}) shifts a histogram by {:.0} bins of 32 ps but `meas` has {nt}: \
+             the two do not belong together",
+            (t / bin_ps).floor()
         )));
     }
+    let shifts: Vec<usize> = tof.values.iter().map(|t| (t / bin_ps).floor() as usize).collect();
+    let max_shift = shifts.iter().copied().max().unwrap_or(0);
     let bins = nt - max_shift;
     let width = match mat.scalar("width")? {
         Some(w) if w.is_finite() && w > 0.0 => w,

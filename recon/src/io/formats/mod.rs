@@ -101,7 +101,8 @@ pub fn read_capture(path: &Path) -> Result<YtalCapture, YtalError> {
         Container::MatV5 => {
             let bytes = super::read_regular_capped(path, super::lct::MAX_FILE_BYTES)
                 .map_err(|e| hdf5_error(path, e.to_string()))?;
-            from_v5(&bytes, path, path.parent())
+            // A fault a hostile file finds in a decoder is the file's error, as for HDF5.
+            guarded(path, || from_v5(&bytes, path, path.parent()))
         }
         Container::Hdf5 => guarded(path, || {
             let file =
@@ -117,7 +118,7 @@ pub fn read_capture(path: &Path) -> Result<YtalCapture, YtalError> {
 /// not looked for.
 pub fn capture_from_bytes(bytes: Vec<u8>, name: &Path) -> Result<YtalCapture, YtalError> {
     match container(&bytes[..bytes.len().min(4096)]) {
-        Container::MatV5 => from_v5(&bytes, name, None),
+        Container::MatV5 => guarded(name, || from_v5(&bytes, name, None)),
         Container::Hdf5 => {
             let len = bytes.len() as u64;
             guarded(name, || {

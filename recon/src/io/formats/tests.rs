@@ -103,6 +103,18 @@ fn fk_rectifies_each_histogram_with_tofgrid_from_tof_mat() {
     assert!(e.contains("tof.mat") && e.contains("tofgrid"), "{e}");
 }
 
+/// A MAT v5 f-k capture whose `tofgrid` holds 1e30 ps (finite, non-negative, and
+/// far past any histogram): refused naming `tofgrid`, where the shift saturated its
+/// cast and indexed past `meas`.
+#[test]
+fn an_fk_shift_past_any_histogram_is_refused_by_name() {
+    let e = read_capture(&fixture("fk-hostile.mat")).unwrap_err().to_string();
+    assert!(
+        e.contains("tofgrid") && e.contains("do not belong together"),
+        "{e}"
+    );
+}
+
 #[test]
 fn phasor_field_2019_dataset_struct_reads_every_laser_point() {
     let c = read_capture(&fixture("pf2019-point.mat")).unwrap();

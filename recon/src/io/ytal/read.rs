@@ -43,7 +43,7 @@ fn take_flags(info: &str) -> Result<(String, Vec<(usize, u8)>), String> {
     Ok((rest, marks))
 }
 
-/// Runs a decode, turning a panic inside the HDF5 layer into an error that names the
+/// Runs a decode, turning a panic inside the HDF5 or MAT layer into an error that names the
 /// file. The fuzzer found malformed chunk layouts that make hdf5-pure 0.47 overflow
 /// an offset (`chunked_read.rs`, `copy_chunk_to_output`): a malformed file must be
 /// an error for the user, never a crash of `recon` or of the daemon.
@@ -52,7 +52,7 @@ pub(crate) fn guarded<T>(path: &Path, decode: impl FnOnce() -> Result<T, YtalErr
         Err(YtalError::Hdf5 {
             path: path.to_path_buf(),
             message: format!(
-                "is malformed: the HDF5 decoder failed on it ({}); it is not a capture that can be read",
+                "is malformed: its decoder failed on it ({}); it is not a capture that can be read",
                 panic_message(payload.as_ref())
             ),
         })
