@@ -261,6 +261,26 @@ fn rsd_refuses_an_envelope_longer_than_its_time_axis_can_hold() {
     assert!(rsd(&set, &grid(), &long).is_ok());
 }
 
+/// FBP's phasor filter pads every histogram by its envelope, all held at once: an
+/// envelope many time axes long (a wavelength typed 100 times too long) is refused
+/// naming `wavelength`, before any padding is made.
+#[test]
+fn fbp_refuses_a_phasor_envelope_longer_than_its_time_axis_can_hold() {
+    let set = confocal_point_set(axis());
+    let span = axis().bins as f64 * axis().width;
+    let typo = FbpSettings {
+        wavelength: Some(100.0 * span),
+        ..Default::default()
+    };
+    let e = fbp(&set, &grid(), &typo).unwrap_err().to_string();
+    assert!(e.contains("wavelength") && e.contains("envelope"), "{e}");
+    let long = FbpSettings {
+        wavelength: Some(span),
+        ..Default::default()
+    };
+    assert!(fbp(&set, &grid(), &long).is_ok());
+}
+
 #[test]
 fn rsd_confocal_default_wave_is_sharper_than_a_non_aliasing_one() {
     // The default confocal wavelength is 2.5 pitches of path length (y-tal's setting),

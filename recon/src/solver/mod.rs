@@ -31,6 +31,10 @@ pub use scan::{MAX_REACH_FACTOR, PlanarScan};
 use crate::relay::GeometryError;
 use crate::volume::VolumeError;
 
+/// The longest wavelet envelope (6 sigma) the phasor solvers (RSD, FBP's phasor
+/// filter) take, in lengths of the time axis: their padding grows with it.
+pub(crate) const MAX_ENVELOPE_SPANS: f64 = 8.0;
+
 /// Which conventional solver turns transients into a volume.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
 #[serde(rename_all = "kebab-case")]

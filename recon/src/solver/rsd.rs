@@ -201,7 +201,7 @@ pub fn rsd_frame(
     // each side: one many times longer than the time axis filters nothing the axis
     // holds, and its padding (10⁹ cycles asked for 64 GB) would not fit in memory.
     let span = axis.bins as f64 * axis.width;
-    if !(6.0 * sigma <= MAX_ENVELOPE_SPANS * span) {
+    if !(6.0 * sigma <= super::MAX_ENVELOPE_SPANS * span) {
         return Err(SolverError::Setting {
             name: "cycles",
             value: format!(
@@ -243,9 +243,14 @@ pub fn rsd_frame(
 
     let (px, py) = (2 * nx, 2 * ny);
     let plane = px * py;
+    // The kernels' planes, the field (complex f64 at every depth and cell), each
+    // group's spectra (complex f64 per cell and line) and each thread's work planes.
     check_memory(
         "RSD",
-        lines.len() * plane * 8 + depths * nx * ny * 8 + plane * 8 * 4 * rayon::current_num_threads(),
+        lines.len() * plane * 8
+            + depths * nx * ny * 16
+            + nx * ny * lines.len() * 16
+            + plane * 8 * 4 * rayon::current_num_threads(),
     )?;
     let fft = Fft2::new(py, px);
     let mut planner = RealFftPlanner::<f64>::new();
@@ -370,10 +375,6 @@ pub fn rsd_frame(
         data: field.iter().map(|v| v.norm() as f32).collect(),
     })
 }
-
-/// The longest envelope RSD takes, in lengths of the time axis (`[rsd] cycles` times
-/// the wavelength).
-const MAX_ENVELOPE_SPANS: f64 = 8.0;
 
 /// `r^power`, with the common powers written out (`powf` per kernel sample cost more
 /// than the rest of the kernel).

@@ -442,6 +442,22 @@ pub fn fbp_on(
             "FBP phasor wavelength (2.5 x the coarser of the relay's sampling pitch and the voxels' lateral pitch; [fbp] wavelength sets it)"
         );
         let sigma = settings.sigma_per_wavelength.unwrap_or(SIGMA_PER_WAVELENGTH) * lambda;
+        // The wavelet's support is padded each side of every histogram, all held at
+        // once: one many times longer than the time axis filters nothing the axis holds,
+        // and its padding would not fit in memory (`wavelength = 10.0`, a typo for 0.10,
+        // asked for 4.8 GB on a 128 × 128 capture of 4 ps bins).
+        let span = set.axis().bins as f64 * set.axis().width;
+        if !(6.0 * sigma <= super::MAX_ENVELOPE_SPANS * span) {
+            return Err(SolverError::Setting {
+                name: "wavelength",
+                value: format!(
+                    "{lambda} (an envelope of {} m with sigma-per-wavelength {}, against a time axis of {span} m)",
+                    6.0 * sigma,
+                    sigma / lambda
+                ),
+                expected: "an envelope (6 sigma) at most 8 times the time axis's length: a shorter wavelength",
+            });
+        }
         // Three envelope widths of zeros each side: the wavelet's support.
         let lead = (3.0 * sigma / set.axis().width).ceil() as usize + 1;
         // Real and imaginary parts interleaved, so one backprojection pass computes
