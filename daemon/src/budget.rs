@@ -30,7 +30,7 @@ pub const VIRTUAL_SCAN_BINS: usize = 512;
 use periscope_recon::solver::{SolverKind, fk_work_bytes, lct_work_bytes};
 use periscope_recon::synth::splat_bytes;
 
-use crate::plan::{Method, Plan, VirtualScan};
+use crate::plan::{Method, Plan, ReconSettings, VirtualScan};
 
 /// Bytes in a GiB.
 const GIB: f64 = (1u64 << 30) as f64;
@@ -63,6 +63,74 @@ fn mul(factors: &[u64]) -> u64 {
     factors.iter().fold(1u64, |a, &b| a.saturating_mul(b))
 }
 
+/// The reconstruction's memory: the volume and its solver's work arrays, and for
+/// 3D-GTR its virtual scan, the solver after it, the gains' rendering and the
+/// primitives (`pairs` × `bins` is the capture, 0 where it is not known yet).
+pub fn recon_items(recon: &ReconSettings, pairs: u64, bins: u64, estimates_gains: bool) -> Vec<Item> {
+    let voxels = mul(&recon.volume.shape.map(|n| n as u64));
+    let mut memory = vec![Item {
+        what: "volume and solver work arrays",
+        keys: "recon.volume.shape",
+        bytes: mul(&[voxels, 16 * 8 + 8]),
+    }];
+    if recon.method == Method::Gtr {
+        // Without a virtual-size the grid may grow to cover the volume, and without
+        // a virtual-grid its points follow the voxels: either way up to the cap per
+        // axis.
+        let most = MAX_VIRTUAL_RESOLUTION;
+        let virt = match recon.virtual_resolution {
+            Some(res) if recon.virtual_size.is_some() => mul(&res.map(|n| n as u64)),
+            Some(res) => mul(&res.map(|n| n.max(most) as u64)),
+            None => mul(&[most as u64, most as u64]),
+        };
+        const GRID: &str = "recon.gtr.virtual-grid (default one point per voxel pitch; grown to cover the volume, up to 128 per axis)";
+        let m = VIRTUAL_SCAN_BINS as u64;
+        let cells = usize::try_from(virt).unwrap_or(usize::MAX);
+        let to_u64 = |b: usize| u64::try_from(b).unwrap_or(u64::MAX);
+        let solver = recon.solver;
+        if solver == SolverKind::Lct && recon.virtual_scan == VirtualScan::Splat {
+            memory.push(Item {
+                what: "3D-GTR splatted light cones",
+                keys: GRID,
+                bytes: to_u64(splat_bytes(cells, VIRTUAL_SCAN_BINS)),
+            });
+        } else {
+            memory.push(Item {
+                what: "3D-GTR virtual confocal scan",
+                keys: GRID,
+                bytes: mul(&[virt, m, 8 * 2]),
+            });
+        }
+        match solver {
+            SolverKind::Lct => memory.push(Item {
+                what: "LCT on the virtual scan",
+                keys: GRID,
+                bytes: to_u64(lct_work_bytes(cells, VIRTUAL_SCAN_BINS)),
+            }),
+            SolverKind::Fk => memory.push(Item {
+                what: "f-k migration on the virtual scan",
+                keys: GRID,
+                bytes: to_u64(fk_work_bytes(cells, VIRTUAL_SCAN_BINS)),
+            }),
+            _ => {}
+        }
+        if estimates_gains {
+            memory.push(Item {
+                what: "3D-GTR gain estimation's rendering of the capture",
+                keys: "pairs × acquisition.bins, where the fit estimates gains (recon.gtr.pair-gains; relay.albedo-from-scan)",
+                // f64 per bin, and on a GPU its f32 copy as it comes back.
+                bytes: mul(&[pairs, bins, 12]),
+            });
+        }
+        memory.push(Item {
+            what: "3D-GTR primitives, gradients and optimiser state",
+            keys: "recon.gtr.primitives",
+            bytes: mul(&[recon.train.primitives as u64, 14 * 8 * 4]),
+        });
+    }
+    memory
+}
+
 fn gib(bytes: u64) -> String {
     let g = bytes as f64 / GIB;
     if g >= 0.1 {
@@ -73,6 +141,21 @@ fn gib(bytes: u64) -> String {
 }
 
 impl Budget {
+    /// The estimate for reconstructing an imported capture with `recon`, before the
+    /// capture is read (its own size is checked as it is read): the volume and the
+    /// fit, memory and the volume's outputs on disk.
+    pub fn of_import(recon: &ReconSettings) -> Budget {
+        let voxels = mul(&recon.volume.shape.map(|n| n as u64));
+        Budget {
+            memory: recon_items(recon, 0, 0, false),
+            disk: vec![Item {
+                what: "volume outputs",
+                keys: "recon.volume.shape",
+                bytes: mul(&[voxels, 4]),
+            }],
+        }
+    }
+
     /// The estimate for `plan`.
     pub fn of_plan(plan: &Plan) -> Budget {
         let pairs = plan.pairs.max_pairs() as u64;
@@ -92,67 +175,8 @@ impl Budget {
                 keys: "los.grid × acquisition.bins",
                 bytes: mul(&[los, bins.max(1), 8]).saturating_add(mul(&[los, 256])),
             },
-            Item {
-                what: "volume and solver work arrays",
-                keys: "recon.volume.shape",
-                bytes: mul(&[voxels, 16 * 8 + 8]),
-            },
         ];
-        if plan.recon.method == Method::Gtr {
-            // Without a virtual-size the grid may grow to cover the volume, and without
-            // a virtual-grid its points follow the voxels: either way up to the cap per
-            // axis.
-            let most = MAX_VIRTUAL_RESOLUTION;
-            let virt = match plan.recon.virtual_resolution {
-                Some(res) if plan.recon.virtual_size.is_some() => mul(&res.map(|n| n as u64)),
-                Some(res) => mul(&res.map(|n| n.max(most) as u64)),
-                None => mul(&[most as u64, most as u64]),
-            };
-            const GRID: &str = "recon.gtr.virtual-grid (default one point per voxel pitch; grown to cover the volume, up to 128 per axis)";
-            let m = VIRTUAL_SCAN_BINS as u64;
-            let cells = usize::try_from(virt).unwrap_or(usize::MAX);
-            let to_u64 = |b: usize| u64::try_from(b).unwrap_or(u64::MAX);
-            let solver = plan.recon.solver;
-            if solver == SolverKind::Lct && plan.recon.virtual_scan == VirtualScan::Splat {
-                memory.push(Item {
-                    what: "3D-GTR splatted light cones",
-                    keys: GRID,
-                    bytes: to_u64(splat_bytes(cells, VIRTUAL_SCAN_BINS)),
-                });
-            } else {
-                memory.push(Item {
-                    what: "3D-GTR virtual confocal scan",
-                    keys: GRID,
-                    bytes: mul(&[virt, m, 8 * 2]),
-                });
-            }
-            match solver {
-                SolverKind::Lct => memory.push(Item {
-                    what: "LCT on the virtual scan",
-                    keys: GRID,
-                    bytes: to_u64(lct_work_bytes(cells, VIRTUAL_SCAN_BINS)),
-                }),
-                SolverKind::Fk => memory.push(Item {
-                    what: "f-k migration on the virtual scan",
-                    keys: GRID,
-                    bytes: to_u64(fk_work_bytes(cells, VIRTUAL_SCAN_BINS)),
-                }),
-                _ => {}
-            }
-            if plan.estimates_gains() {
-                memory.push(Item {
-                    what: "3D-GTR gain estimation's rendering of the capture",
-                    keys: "pairs × acquisition.bins, where the fit estimates gains (recon.gtr.pair-gains; relay.albedo-from-scan)",
-                    // f64 per bin, and on a GPU its f32 copy as it comes back.
-                    bytes: mul(&[pairs, bins, 12]),
-                });
-            }
-            memory.push(Item {
-                what: "3D-GTR primitives, gradients and optimiser state",
-                keys: "recon.gtr.primitives",
-                bytes: mul(&[plan.recon.train.primitives as u64, 14 * 8 * 4]),
-            });
-        }
+        memory.extend(recon_items(&plan.recon, pairs, bins, plan.estimates_gains()));
         let disk = vec![
             Item {
                 what: "histogram log",

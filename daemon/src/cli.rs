@@ -206,6 +206,11 @@ pub fn execute(cli: Cli) -> Result<(), CliError> {
             out,
             adaptive_replay,
         } => {
+            // A run directory as the output would have its own results replaced and
+            // the reconstruction's events added to its log.
+            if RunDir::holds_run(&out) {
+                return Err(CliError::OutIsRun(out));
+            }
             match adaptive_replay {
                 Some(order) => offline::replay(&capture, config.as_deref(), &out, order)?,
                 None => offline::recon(&capture, config.as_deref(), &out)?,
@@ -585,6 +590,13 @@ pub enum CliError {
         .0.display()
     )]
     RunFile(PathBuf),
+    /// `recon --out` naming a run directory.
+    #[error(
+        "{} is a run directory: the reconstruction would replace the run's own results and add to its \
+         event log; give --out a new folder",
+        .0.display()
+    )]
+    OutIsRun(PathBuf),
     /// The async runtime for `serve` could not start.
     #[error("cannot start the API's runtime: {0}")]
     Runtime(std::io::Error),
@@ -606,6 +618,7 @@ impl CliError {
             CliError::Service(ServiceError::Config(_)) => true,
             CliError::Calibrate(e) => e.is_config(),
             CliError::Admin(crate::admin::AdminError::Config(_) | crate::admin::AdminError::Usage(_)) => true,
+            CliError::OutIsRun(_) => true,
             _ => false,
         };
         if config {

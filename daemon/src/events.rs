@@ -97,6 +97,10 @@ pub enum RunEvent {
         pairs: usize,
         /// Pairs left out (outside the galvo limits).
         unreachable: usize,
+        /// Pairs the plan's layout asks for at most (its grid's cells, its count): more
+        /// than `pairs` plus `unreachable` where the relay the LOS scan found has no
+        /// point in some of the grid's cells.
+        requested: usize,
     },
     /// A pair was measured and stored.
     Pair {

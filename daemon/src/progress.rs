@@ -37,7 +37,11 @@ pub fn attach(events: &EventSink) {
             bar.set_position(*done as u64);
         }
         RunEvent::Relay { returns, kept } => tracing::info!(returns, kept, "relay extracted"),
-        RunEvent::Planned { pairs, unreachable } => tracing::info!(pairs, unreachable, "pairs planned"),
+        RunEvent::Planned {
+            pairs,
+            unreachable,
+            requested,
+        } => tracing::info!(pairs, unreachable, requested, "pairs planned"),
         RunEvent::Pair { done, total, .. } => {
             bar.set_length(*total as u64);
             bar.set_position(*done as u64);

@@ -52,6 +52,16 @@ fn a_stored_run_with_a_broken_plan_is_two() {
         assert_eq!(code, Some(2), "{args:?}: {stderr}");
         assert!(stderr.contains("plan.toml"), "{args:?}: {stderr}");
     }
+    // A run directory as a reconstruction's output: its results and log would be
+    // written over; refused before anything is read.
+    let before = std::fs::read_dir(run).unwrap().count();
+    let (code, stderr) = periscope(&["recon", run, "--out", run]);
+    assert_eq!(code, Some(2), "{stderr}");
+    assert!(
+        stderr.contains("is a run directory") && stderr.contains("--out"),
+        "{stderr}"
+    );
+    assert_eq!(std::fs::read_dir(run).unwrap().count(), before);
 }
 
 /// A reconstruction the settings cannot do (here LCT, which needs confocal pairs, on a

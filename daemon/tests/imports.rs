@@ -395,6 +395,23 @@ async fn bad_imports_are_refused_with_their_reason_and_leave_nothing() {
             "method",
         ),
         (
+            // A volume the daemon could not hold: refused by the instrument's memory
+            // budget as a plan is, before the capture is read.
+            "a volume past the memory budget",
+            upload(
+                Some(TOKEN),
+                Body::from(form(&[
+                    Part::File("capture", "a.mat", lct.clone()),
+                    Part::Text(
+                        "recon",
+                        "method = \"fbp\"\n[volume]\nx = [-1.0, 1.0]\ny = [-1.0, 1.0]\nz = [0.1, 2.0]\nshape = [1024, 1024, 1024]\n",
+                    ),
+                ])),
+            ),
+            StatusCode::UNPROCESSABLE_ENTITY,
+            "budget.memory-gib",
+        ),
+        (
             "a path for a name",
             upload(
                 Some(TOKEN),

@@ -1189,3 +1189,35 @@ fn a_gtr_capture_no_plane_fits_is_refused_before_its_pairs_are_measured() {
     assert_eq!(stored, 0, "pairs were measured for a fit that cannot render");
     assert!(!rig.emission());
 }
+
+/// A pairs grid finer than the relay the LOS scan found: the run measures what the
+/// relay gives, and says how many of the grid's pairs it could not plan (the `planned`
+/// event's `requested` against its `pairs`), rather than a smaller layout passed off as
+/// the plan's.
+#[test]
+fn a_pairs_grid_finer_than_the_relay_is_planned_short_and_says_so() {
+    let _serial = ONE_AT_A_TIME.lock().unwrap_or_else(|p| p.into_inner());
+    let tmp = tempfile::tempdir().unwrap();
+    let plan = SmallPlan::named("sparse")
+        .set("los.grid", [6, 6])
+        .set("los.dwell-ms", 10.0)
+        .set("relay.neighbours", 8)
+        .set("pairs.grid", [16, 16])
+        .set("acquisition.dwell-ms", 5.0)
+        .toml();
+    let (dir, rig) = prepare_on(tmp.path(), &plan, Devices::InProcess);
+    execute(&dir, &rig, Control::new(), |_| {}).unwrap();
+    let planned = std::fs::read_to_string(dir.join("events.jsonl"))
+        .unwrap()
+        .lines()
+        .filter_map(|l| serde_json::from_str::<serde_json::Value>(l).ok())
+        .find(|v| v["event"] == "planned")
+        .expect("a planned event");
+    let (pairs, requested) = (
+        planned["pairs"].as_u64().unwrap(),
+        planned["requested"].as_u64().unwrap(),
+    );
+    assert_eq!(requested, 256, "{planned}");
+    assert!(pairs > 0 && pairs <= 36, "{planned}");
+    assert_each_pair_once(&dir);
+}

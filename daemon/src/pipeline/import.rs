@@ -153,6 +153,7 @@ fn stages(
     events.emit(RunEvent::Planned {
         pairs,
         unreachable: 0,
+        requested: pairs,
     });
     write_geometry(dir, &capture, &t, &settings.volume, pairs)?;
     enter(Stage::Reconstruction, info, timings, pairs)?;

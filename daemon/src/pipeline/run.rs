@@ -485,10 +485,23 @@ impl Run {
                 (&i.spad_arm.pose, &i.spad_arm.limits),
             ],
         );
+        let requested = self.plan.pairs.max_pairs();
         self.events.emit(RunEvent::Planned {
             pairs: pairs.len(),
             unreachable,
+            requested,
         });
+        let empty = requested.saturating_sub(pairs.len() + unreachable);
+        if empty > 0 {
+            // Not an error (a relay smaller than the grid still gives what it has), but
+            // never silent: the layout measured is not the one the plan drew.
+            tracing::warn!(
+                planned = pairs.len(),
+                requested,
+                "{empty} of the {requested} pairs the plan asks for have no relay point: the cells of pairs.grid (or pairs.laser-grid) the relay the LOS scan found leaves empty ({} relay points); a finer los.grid, a coarser pairs grid, or relay regions that match the relay fill them",
+                relay.len()
+            );
+        }
         if pairs.is_empty() {
             return Err(PipelineError::NoPairs {
                 relay_points: relay.len(),

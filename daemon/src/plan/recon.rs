@@ -680,15 +680,15 @@ pub fn load_recon(
 /// Checks a `RECON.toml` as far as it can be without the capture it is for: its keys,
 /// types and values, and the whole of it (against its own volume) when it gives one;
 /// one without a volume takes the capture's, which is known only once the capture is
-/// read.
-pub fn check_recon(src: &TomlSource) -> Result<(), ConfigError> {
+/// read. The settings come back (with a 32³ placeholder volume where none is given).
+pub fn check_recon(src: &TomlSource) -> Result<ReconSettings, ConfigError> {
     let raw: RawRecon = src.parse()?;
     match raw.volume {
-        Some(_) => recon_settings(src, "", raw, None).map(|_| ()),
+        Some(_) => recon_settings(src, "", raw, None),
         None => {
             let placeholder =
                 VolumeGrid::new([-0.5, 0.5], [-0.5, 0.5], [0.5, 1.5], [32, 32, 32]).expect("a valid grid");
-            recon_settings(src, "", raw, Some(placeholder)).map(|_| ())
+            recon_settings(src, "", raw, Some(placeholder))
         }
     }
 }

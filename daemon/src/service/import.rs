@@ -184,8 +184,12 @@ impl Service {
             )));
         }
         if let Some(text) = &upload.recon {
-            crate::plan::check_recon(&TomlSource::from_text("the `recon` part", text.clone()))
+            let recon = crate::plan::check_recon(&TomlSource::from_text("the `recon` part", text.clone()))
                 .map_err(|e| invalid(e.to_string()))?;
+            // Its volume and fit are held in the daemon's memory as a run's are.
+            crate::budget::Budget::of_import(&recon)
+                .check(&self.instrument.budget)
+                .map_err(ServiceError::OverBudget)?;
         }
         Ok(capture)
     }
