@@ -84,7 +84,10 @@ pub fn install(handler: Arc<dyn OnSignal>, grace: Duration) {
             return;
         };
         rt.block_on(async move {
-            let Some((name, n)) = next_signal().await else { return };
+            // Listened for once, so a second signal sent while the first is handled is
+            // not missed between two registrations.
+            let mut signals = Signals::listen();
+            let Some((name, n)) = signals.next().await else { return };
             RECEIVED.store(n, Ordering::SeqCst);
             handler.laser_off();
             eprintln!(
@@ -97,7 +100,7 @@ pub fn install(handler: Arc<dyn OnSignal>, grace: Duration) {
                     handler.laser_off();
                     eprintln!("still busy {} s after {name}: exiting with the laser off", grace.as_secs_f64());
                 }
-                again = next_signal() => {
+                again = signals.next() => {
                     handler.laser_off();
                     if let Some((name, _)) = again {
                         eprintln!("{name} again: exiting now with the laser off");
@@ -112,35 +115,51 @@ pub fn install(handler: Arc<dyn OnSignal>, grace: Duration) {
     }
 }
 
-#[cfg(unix)]
-async fn next_signal() -> Option<(&'static str, i32)> {
-    use tokio::signal::unix::{SignalKind, signal};
-    let mut streams = Vec::new();
-    for (name, n) in SIGNALS {
-        match signal(SignalKind::from_raw(n)) {
-            Ok(s) => streams.push((name, n, s)),
-            Err(e) => tracing::warn!("cannot listen for {name}: {e}"),
-        }
-    }
-    if streams.is_empty() {
-        return None;
-    }
-    let [(a, an, sa), (b, bn, sb), (c, cn, sc)] = &mut streams[..] else {
-        // Fewer than three: wait on the first.
-        let (name, n, s) = &mut streams[0];
-        s.recv().await;
-        return Some((name, *n));
-    };
-    tokio::select! {
-        _ = sa.recv() => Some((*a, *an)),
-        _ = sb.recv() => Some((*b, *bn)),
-        _ = sc.recv() => Some((*c, *cn)),
-    }
+/// The stop signals, listened for from when they are made.
+struct Signals {
+    #[cfg(unix)]
+    streams: Vec<(&'static str, i32, tokio::signal::unix::Signal)>,
 }
 
-#[cfg(not(unix))]
-async fn next_signal() -> Option<(&'static str, i32)> {
-    tokio::signal::ctrl_c().await.ok().map(|()| ("Ctrl-C", 2))
+impl Signals {
+    #[cfg(unix)]
+    fn listen() -> Signals {
+        use tokio::signal::unix::{SignalKind, signal};
+        let mut streams = Vec::new();
+        for (name, n) in SIGNALS {
+            match signal(SignalKind::from_raw(n)) {
+                Ok(s) => streams.push((name, n, s)),
+                Err(e) => tracing::warn!("cannot listen for {name}: {e}"),
+            }
+        }
+        Signals { streams }
+    }
+
+    #[cfg(not(unix))]
+    fn listen() -> Signals {
+        Signals {}
+    }
+
+    /// The next stop signal; `None` when none can be listened for.
+    #[cfg(unix)]
+    async fn next(&mut self) -> Option<(&'static str, i32)> {
+        let [(a, an, sa), (b, bn, sb), (c, cn, sc)] = &mut self.streams[..] else {
+            // Fewer than three: wait on the first.
+            let (name, n, s) = self.streams.first_mut()?;
+            s.recv().await;
+            return Some((name, *n));
+        };
+        tokio::select! {
+            _ = sa.recv() => Some((*a, *an)),
+            _ = sb.recv() => Some((*b, *bn)),
+            _ = sc.recv() => Some((*c, *cn)),
+        }
+    }
+
+    #[cfg(not(unix))]
+    async fn next(&mut self) -> Option<(&'static str, i32)> {
+        tokio::signal::ctrl_c().await.ok().map(|()| ("Ctrl-C", 2))
+    }
 }
 
 /// The text of a panic payload.
