@@ -19,6 +19,9 @@
 //! - [synth] virtual confocal synthesis of 64 × 64 × 512 from K = 10,000 Gaussians;
 //! - [synth_lct] synthesis + LCT for the 64 × 64 virtual grid (the 0.6 s target);
 //! - [splat_lct] the same LCT volume without the synthesis (`synth::splat_lct`);
+//! - [adaptive_spread_remade, adaptive_spread_kept] an adaptive capture's spread of 128
+//!   pairs among 65,536 candidates with 16,384 measured, from every measured pair and
+//!   from the capture's kept distances (`adaptive::Coverage`);
 //! - [fbp_gpu, fbp_grid_gpu, synth_gpu, synth_lct_gpu] the same on a GPU
 //!   (docs/gpu.md), where a hardware adapter is found (a software one, lavapipe, with
 //!   `PERISCOPE_BENCH_SOFTWARE_GPU=1`); the line saying why they were left out
@@ -258,6 +261,31 @@ fn solvers(c: &mut Criterion) {
                 let scan = synthesise_on(gpu, &kernels, &relay, axis, &opt).unwrap();
                 lct_frame(&scan.set, &scan.scan, &settings).unwrap()
             })
+        });
+    }
+    // An adaptive capture's spread of the next batch: 128 pairs chosen among 65,536
+    // confocal candidates (a 256 × 256 grid), 16,384 measured. `farthest_points`
+    // measures every candidate against every pair measured; a capture keeps each
+    // candidate's distance to the nearest measured pair instead (`Coverage`).
+    {
+        use periscope_recon::adaptive::{Coverage, farthest_points, farthest_points_from};
+        let n = 256;
+        let candidates: Vec<Pair> = (0..n * n)
+            .map(|i| {
+                let (x, y) = ((i % n) as f64 / n as f64 - 0.5, (i / n) as f64 / n as f64 - 0.5);
+                Pair::confocal(DVec3::new(x, y, 0.0), DVec3::Z)
+            })
+            .collect();
+        let measured = farthest_points(&candidates, &[], 16_384);
+        let mut coverage = Coverage::new(candidates.len());
+        for &i in &measured {
+            coverage.take(&candidates, i);
+        }
+        group.bench_function("adaptive_spread_remade", |b| {
+            b.iter(|| farthest_points(&candidates, &measured, 128))
+        });
+        group.bench_function("adaptive_spread_kept", |b| {
+            b.iter(|| farthest_points_from(&candidates, &coverage, 128))
         });
     }
     group.finish();
