@@ -176,14 +176,18 @@ impl KeyStore {
                 Ok(keys) => *cache = (stamp, keys),
                 Err(e) => {
                     // A file that cannot be read accepts no key (never the old set,
-                    // which may hold a revoked one). The failure is kept for this
-                    // version of the file, so a damaged file is read and reported
-                    // once, not again on every request, until it changes.
-                    tracing::error!(
-                        "{}: {e}; no API key is accepted until it is fixed",
-                        self.path.display()
-                    );
-                    *cache = (stamp, Vec::new());
+                    // which may hold a revoked one). A damaged file's failure is kept
+                    // for this version of it, so it is read and reported once, not on
+                    // every request, until it changes; any other failure (no file
+                    // descriptor left, a slow disk) is tried again at the next request.
+                    let damaged = e.kind() == std::io::ErrorKind::InvalidData;
+                    if damaged || cache.0.is_some() {
+                        tracing::error!(
+                            "{}: {e}; no API key is accepted until it is fixed",
+                            self.path.display()
+                        );
+                    }
+                    *cache = (if damaged { stamp } else { None }, Vec::new());
                 }
             }
         }

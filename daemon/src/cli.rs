@@ -328,12 +328,25 @@ fn calibrate(
         Some(path) => {
             let text = calibrate::calibrated_toml(src.text(), &calibration.fitted, src.path(), path)?;
             // What is written must load as the instrument it describes, from where it
-            // will be: checked before anything there is replaced.
-            InstrumentConfig::from_source(&crate::config::TomlSource::from_text(path, text.as_str()))?;
-            crate::store::write_atomic(path, text.as_bytes()).map_err(|source| CliError::Io {
+            // will be: written beside it and loaded from there before anything at
+            // `path` is replaced.
+            let io = |source| CliError::Io {
                 path: path.to_owned(),
                 source,
-            })?;
+            };
+            let trial = path.with_file_name(format!(
+                ".{}.{}.check",
+                path.file_name()
+                    .map_or("calibrated".into(), |n| n.to_string_lossy()),
+                std::process::id()
+            ));
+            crate::store::write_atomic(&trial, text.as_bytes()).map_err(io)?;
+            if let Err(e) = InstrumentConfig::load(&trial) {
+                let _ = std::fs::remove_file(&trial);
+                return Err(e.into());
+            }
+            let _ = std::fs::remove_file(&trial);
+            crate::store::write_atomic(path, text.as_bytes()).map_err(io)?;
             println!("wrote {}", path.display());
         }
         None => println!("(give --out FILE to write the calibrated instrument config)"),

@@ -7,7 +7,7 @@
 //! On resume, every valid record is read back: a record that is incomplete or fails its
 //! CRC is skipped and reading picks up at the next valid record, so damage in the
 //! middle of the log costs only the damaged records. A torn tail (one append cut
-//! short) is cut off; any other damage, in the middle or in the last records, is set
+//! short, or zeros) is cut off; any other damage, in the middle or in the last records, is set
 //! aside whole (the file as found is kept as `histograms.bin.damaged`) and the log is
 //! rewritten from the valid records. Capture
 //! then measures every pair that has no valid record. So a `kill -9` loses at most the
@@ -89,9 +89,8 @@ pub struct Recovered {
     pub discarded_bytes: u64,
     /// The byte ranges, in file order, that no kept record covers.
     pub damaged: Vec<std::ops::Range<u64>>,
-    /// Whether what follows the last kept record is the start of one record and no
-    /// more (an append a crash or a full disk cut short, shorter than the longest
-    /// record kept), or nothing.
+    /// Whether what follows the last kept record is what a crash leaves of appends
+    /// (one record's first bytes, or zeros), or nothing.
     pub torn_tail: bool,
 }
 
@@ -107,6 +106,13 @@ impl Recovered {
             _ => false,
         }
     }
+}
+
+/// Whether `tail`, all that follows the last valid record, is what a crash leaves of
+/// appends: zeros (a file system that grew the file before it wrote the data), or one
+/// record's first bytes and no more (no second record starts in it).
+fn is_torn_tail(tail: &[u8]) -> bool {
+    tail.iter().all(|&b| b == 0) || (is_torn_record(tail) && !tail[1..].windows(4).any(|w| w == MAGIC))
 }
 
 /// Whether `tail` is a record's first bytes and no more: a prefix of the magic, or a
@@ -339,19 +345,8 @@ pub fn parse_log(bytes: &[u8]) -> Recovered {
             false
         }
     });
-    // An append cut short is shorter than the records written before it (a log's
-    // records are of a few sizes); a longer tail, or one with nothing before it, is
-    // kept aside rather than trusted to be one.
-    let longest = records
-        .iter()
-        .map(|r| HEADER + 4 * r.counts.len() + 4)
-        .max()
-        .unwrap_or(0);
     let torn_tail = match damaged.as_slice() {
-        [only] => {
-            let tail = &bytes[only.start as usize..];
-            tail.len() < longest && is_torn_record(tail)
-        }
+        [only] => is_torn_tail(&bytes[only.start as usize..]),
         _ => damaged.is_empty(),
     };
     Recovered {
@@ -601,7 +596,7 @@ mod tests {
         assert_eq!(fs::metadata(&path).unwrap().len(), 2 * one as u64);
         let mut only = rec(7).encode();
         only[HEADER] ^= 1;
-        for found in [only, b"PHR2 a log of a later version".to_vec(), vec![0; 4096]] {
+        for found in [only, b"PHR2 a log of a later version".to_vec()] {
             fs::write(&path, &found).unwrap();
             let (_, got) = HistogramLog::recover(dir.path()).unwrap();
             assert!(got.records.is_empty());
@@ -613,8 +608,9 @@ mod tests {
             assert_eq!(fs::read(kept).unwrap(), found);
             assert_eq!(fs::metadata(&path).unwrap().len(), 0);
         }
-        // An append cut short anywhere in its record is only cut: nothing is kept.
-        // (A tail as long as a record, or after no record, is kept aside.)
+        // An append cut short anywhere in its record, the first one included, and a
+        // tail of zeros are only cut: nothing is kept. A tail in which a second record
+        // starts is not one torn append.
         let whole = rec(9).encode();
         for cut in [1, 3, HEADER - 1, HEADER, HEADER + 5, whole.len() - 1] {
             let mut bytes = rec(0).encode();
@@ -622,10 +618,17 @@ mod tests {
             let torn = parse_log(&bytes);
             assert!(torn.torn_tail && torn.damage_is_tail_only(), "cut at {cut}");
             assert!(
-                !parse_log(&whole[..cut]).torn_tail,
+                parse_log(&whole[..cut]).torn_tail,
                 "cut at {cut}, no record before"
             );
         }
+        let mut zeros = rec(0).encode();
+        zeros.extend_from_slice(&[0; 4096]);
+        assert!(parse_log(&zeros).damage_is_tail_only());
+        let mut two = rec(0).encode();
+        two.extend_from_slice(&whole[..HEADER]);
+        two.extend_from_slice(&whole[..HEADER + 8]);
+        assert!(!parse_log(&two).torn_tail);
     }
 
     #[test]

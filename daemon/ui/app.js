@@ -921,6 +921,10 @@ function onSnapshot(s) {
   probe.snapshots += 1;
 }
 
+// A `lagged` event's catch-up: under way, and when the last one ended.
+let catchingUp = false;
+let caughtUpAt = -Infinity;
+
 function onEvent(name, data) {
   probe.lastEvent = name;
   switch (name) {
@@ -967,12 +971,16 @@ function onEvent(name, data) {
       break;
     case 'lagged':
       // The page fell behind and the daemon skipped events: what was missed is in
-      // the run's status and its event log.
+      // the run's status and its event log, read again at most every 5 s and one
+      // catch-up at a time (a page lags when it is busy; reloads must not add to it).
       probe.lagged = (probe.lagged || 0) + 1;
-      if (selected) {
+      if (selected && !catchingUp && performance.now() - caughtUpAt > 5000) {
         const id = selected;
-        api('GET', `/api/v1/runs/${id}`).then(onStatus).catch(() => {});
-        loadHistory(id);
+        catchingUp = true;
+        Promise.allSettled([api('GET', `/api/v1/runs/${id}`).then(onStatus), loadHistory(id)]).finally(() => {
+          catchingUp = false;
+          caughtUpAt = performance.now();
+        });
       }
       break;
     default:

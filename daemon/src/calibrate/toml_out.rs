@@ -13,7 +13,9 @@ use super::{CalibrateError, Geometry};
 /// `text` (an instrument config read from `from`) with the arms' poses set to
 /// `fitted`'s, to be written at `to`. A relative `sim.scene` (the one path a config
 /// resolves against its own folder) is rewritten to resolve from `to` as it did from
-/// `from`: kept where both are in one folder, else made absolute.
+/// `from`: kept where both are in one folder, else made absolute; from the built-in
+/// config (no file), left out where it names no file from `to` (the built-in scene,
+/// as the built-in config used).
 pub fn calibrated_toml(
     text: &str,
     fitted: &Geometry,
@@ -32,6 +34,20 @@ pub fn calibrated_toml(
         };
         std::fs::canonicalize(f).unwrap_or_else(|_| f.to_owned())
     };
+    // A config held in memory (the built-in default) has no folder: its scene is the
+    // built-in one wherever its relative path does not resolve, and so is the written
+    // config's (no `scene` key) unless the path resolves from where it is written.
+    if !from.is_file()
+        && let Some(sim) = doc.get_mut("sim").and_then(Item::as_table_like_mut)
+        && let Some(rel) = sim
+            .get("scene")
+            .and_then(Item::as_str)
+            .map(std::path::PathBuf::from)
+        && rel.is_relative()
+        && !folder(to).join(&rel).is_file()
+    {
+        sim.remove("scene");
+    }
     if let Some(scene) = doc
         .get_mut("sim")
         .and_then(|s| s.get_mut("scene"))
@@ -101,6 +117,11 @@ mod tests {
 
     const SIM: &str = include_str!("../../../configs/instrument/sim.toml");
 
+    /// Where `SIM` comes from.
+    fn sim_toml() -> std::path::PathBuf {
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("../configs/instrument/sim.toml")
+    }
+
     fn geometry() -> Geometry {
         Geometry {
             laser: GalvoPose::looking(
@@ -124,7 +145,13 @@ mod tests {
 
     #[test]
     fn only_the_poses_change() {
-        let out = calibrated_toml(SIM, &geometry(), Path::new("sim.toml"), Path::new("cal.toml")).unwrap();
+        let out = calibrated_toml(
+            SIM,
+            &geometry(),
+            &sim_toml(),
+            &sim_toml().with_file_name("cal.toml"),
+        )
+        .unwrap();
         // The SPAD arm had no `up`: it is added (at the end of its table).
         let added: Vec<&str> = out.lines().filter(|l| l.starts_with("up = [0.00299")).collect();
         assert_eq!(added.len(), 1, "{out}");
@@ -148,7 +175,7 @@ mod tests {
     #[test]
     fn the_written_config_loads_with_the_fitted_poses() {
         let g = geometry();
-        let out = calibrated_toml(SIM, &g, Path::new("sim.toml"), Path::new("cal.toml")).unwrap();
+        let out = calibrated_toml(SIM, &g, &sim_toml(), &sim_toml().with_file_name("cal.toml")).unwrap();
         let c = crate::config::InstrumentConfig::from_source(&crate::config::TomlSource::from_text(
             "cal.toml", &out,
         ))
@@ -188,6 +215,17 @@ mod tests {
             beside.contains("scene = \"../scenes/wall-letter.toml\""),
             "{beside}"
         );
+        // From the built-in config (no file): the scene it could not find is left out,
+        // so the written config takes the built-in scene as the built-in one did.
+        let built_in = Path::new("configs/instrument/sim.toml (built in)");
+        let out = calibrated_toml(SIM, &geometry(), built_in, &to).unwrap();
+        assert!(!out.contains("scene ="), "{out}");
+        std::fs::write(&to, &out).unwrap();
+        let c = crate::config::InstrumentConfig::load(&to).unwrap();
+        let crate::config::Backend::Sim(sim) = c.backend else {
+            panic!("the simulated instrument")
+        };
+        assert_eq!(sim.scene, None);
     }
 
     #[test]

@@ -144,6 +144,9 @@ impl Service {
                 if let Some(l) = live {
                     snap.reading_age_s = Some(l.1.elapsed().as_secs_f64());
                 }
+                // The worker's count rates are from before the run: not shown beside
+                // a fresh age (the run's own rate is the capture's counts rate).
+                snap.rates = None;
             }
             snap.busy = s.current.is_some();
             if s.current.is_some()

@@ -185,12 +185,23 @@ impl Service {
         }
         let me = Arc::clone(self);
         let run_id = id.to_owned();
+        let queue = Arc::clone(&tx);
         let forwarder = std::thread::Builder::new()
             .name("run-events".into())
             .spawn(move || {
                 let mut last_sent = [Instant::now() - PAIR_EVENT_INTERVAL; 3];
-                for ev in rx {
-                    me.on_event(&run_id, &ev, &mut last_sent);
+                loop {
+                    match rx.recv_timeout(EVENT_PUMP) {
+                        Ok(ev) => me.on_event(&run_id, &ev, &mut last_sent),
+                        Err(std::sync::mpsc::RecvTimeoutError::Timeout) => {}
+                        Err(std::sync::mpsc::RecvTimeoutError::Disconnected) => break,
+                    }
+                    // What waits in the queue's backlog and slots moves on as the
+                    // channel makes room, not only when the run next emits (a run
+                    // suspended for an open door emits nothing for minutes).
+                    if let Some(q) = &mut *queue.lock().unwrap_or_else(|p| p.into_inner()) {
+                        q.pump();
+                    }
                 }
             });
         let forwarder = match forwarder {
@@ -360,6 +371,10 @@ struct EventQueue {
 /// The most events [`EventQueue`]'s backlog holds before it drops training events.
 const EVENT_BACKLOG: usize = 1024;
 
+/// How often the forwarder moves on what waits in a run's [`EventQueue`] when no event
+/// comes.
+const EVENT_PUMP: std::time::Duration = std::time::Duration::from_millis(100);
+
 impl EventQueue {
     fn new(capacity: usize) -> (EventQueue, std::sync::mpsc::Receiver<RunEvent>) {
         let (tx, rx) = std::sync::mpsc::sync_channel(capacity);
@@ -420,6 +435,22 @@ impl EventQueue {
                 coalesced = self.coalesced,
                 "the run's event forwarder is behind: live pair, histogram, safety and snapshot events are coalesced"
             );
+        }
+    }
+
+    /// Moves on what waits, as far as the channel has room, without waiting: the
+    /// backlog, then (with the backlog sent) what the slots hold. The forwarder calls
+    /// it, so nothing waits for the run's next event.
+    fn pump(&mut self) {
+        self.drain();
+        if self.backlog.is_empty() {
+            for i in 0..self.held.len() {
+                let Some(ev) = self.held[i].take() else { continue };
+                if let Err(std::sync::mpsc::TrySendError::Full(ev)) = self.tx.try_send(ev) {
+                    self.held[i] = Some(ev);
+                    return;
+                }
+            }
         }
     }
 
@@ -501,6 +532,42 @@ mod event_queue_tests {
             pairs: 10,
             primitives: 10,
         })
+    }
+
+    /// What waits in the backlog and the slots reaches the forwarder once the channel
+    /// has room, without another event from the run (one suspended for an open door
+    /// emits nothing for minutes): the forwarder pumps it.
+    #[test]
+    fn the_forwarder_moves_on_what_waits_without_another_event() {
+        let (mut q, rx) = EventQueue::new(2);
+        q.send(&pair(1, 1));
+        q.send(&pair(2, 1));
+        q.send(&pair(3, 1)); // held: the channel is full
+        q.send(&RunEvent::StageStarted {
+            stage: crate::events::Stage::Reconstruction,
+        }); // the held pair and this wait in the backlog
+        assert_eq!(rx.try_iter().count(), 2);
+        q.pump();
+        let mut seen: Vec<RunEvent> = rx.try_iter().collect();
+        q.pump();
+        seen.extend(rx.try_iter());
+        assert!(
+            matches!(seen.last(), Some(RunEvent::StageStarted { .. })),
+            "{seen:?}"
+        );
+        assert!(matches!(seen[0], RunEvent::Pair { done: 3, .. }), "{seen:?}");
+        // A safety reading held behind a full channel goes too.
+        q.send(&pair(4, 1));
+        q.send(&pair(5, 1));
+        q.send(&RunEvent::Safety {
+            emission: false,
+            interlock_closed: false,
+            diffuser_in: false,
+            unix_ms: 0.0,
+        });
+        assert_eq!(rx.try_iter().count(), 2);
+        q.pump();
+        assert!(rx.try_iter().any(|e| matches!(e, RunEvent::Safety { .. })));
     }
 
     /// With the forwarder stalled, neither the capture nor the trainer waits: a flood
