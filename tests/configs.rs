@@ -66,6 +66,61 @@ fn a_broken_instrument_names_file_line_and_key() {
     );
 }
 
+/// What the counter would do differently from what the config says is refused by key:
+/// a bin width it cannot bin at (12.5 ps, binned at 13 while the time axis read 12.5),
+/// fewer than 16 bins, and a window past the laser's sync period (a counter times each
+/// photon from the last sync: nothing is recorded past it, and longer returns fold into
+/// the first bins). A plan's own window is held to the period too.
+#[test]
+fn an_instrument_whose_counter_cannot_do_what_it_says_is_refused_by_key() {
+    let dir = tempfile::tempdir().unwrap();
+    let sim = std::fs::read_to_string(repo_path("configs/instrument/sim.toml")).unwrap();
+    for (from, to, key, says) in [
+        (
+            "bin-width-ps = 16.0",
+            "bin-width-ps = 12.5",
+            "tdc.bin-width-ps",
+            "whole number",
+        ),
+        ("bins = 1024", "bins = 8", "tdc.bins", "between 16 and 65536"),
+        (
+            "rep-rate-mhz = 10.0",
+            "rep-rate-mhz = 80.0",
+            "tdc.offset-ns",
+            "sync period of 12.50 ns",
+        ),
+    ] {
+        assert!(sim.contains(from), "{from}");
+        let bad = dir.path().join("counter.toml");
+        std::fs::write(&bad, sim.replacen(from, to, 1)).unwrap();
+        let out = periscope(&["devices", "--instrument", bad.to_str().unwrap()]);
+        assert_eq!(out.code, Some(2), "{to}: {out:?}");
+        assert!(
+            out.stderr.contains(key) && out.stderr.contains(says),
+            "{to}: {}",
+            out.stderr
+        );
+    }
+    let plan = std::fs::read_to_string(repo_path("configs/plans/demo.toml")).unwrap();
+    let long = dir.path().join("long.toml");
+    std::fs::write(
+        &long,
+        plan.replacen(
+            "[acquisition]\n",
+            "[acquisition]\nbins = 65536\nbin-width-ps = 2000\n",
+            1,
+        ),
+    )
+    .unwrap();
+    let out = periscope(&["check", long.to_str().unwrap()]);
+    assert_eq!(out.code, Some(2), "{out:?}");
+    assert!(
+        out.stderr.contains("acquisition.bins") && out.stderr.contains("sync period of 100.00 ns"),
+        "{}",
+        out.stderr
+    );
+}
+
 #[test]
 fn a_missing_instrument_file_is_named() {
     let out = periscope(&["devices", "--instrument", "configs/instrument/nope.toml"]);

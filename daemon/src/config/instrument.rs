@@ -1012,6 +1012,22 @@ impl InstrumentConfig {
             jitter_fwhm: check.range("spad.jitter-fwhm-ps", raw.spad.jitter_fwhm_ps, 0.0, 1e5, "ps")? * 1e-12,
         };
         let tdc = tdc_settings(&check, raw.tdc, hardware)?;
+        // A TDC times each photon from the last sync: a window reaching past the sync
+        // period records nothing there, and folds longer returns into its first bins.
+        let period = f64::from(tdc.sync_divider) / laser.repetition_rate;
+        let end = tdc.offset + f64::from(tdc.bins) * tdc.bin_width;
+        if end > period * (1.0 + 1e-9) {
+            return Err(src.invalid(
+                "tdc.offset-ns",
+                format!(
+                    "with tdc.bins and tdc.bin-width-ps the window ends at {:.2} ns, past the sync period of {:.2} ns (laser.rep-rate-mhz {}, tdc.sync-divider {}): a counter times each photon from the last sync, so the window must end within it; fewer or narrower bins, an earlier offset, or a larger divider",
+                    end * 1e9,
+                    period * 1e9,
+                    laser.repetition_rate * 1e-6,
+                    tdc.sync_divider
+                ),
+            ));
+        }
         let backend = match raw.backend {
             RawBackend::Hardware => Backend::Hardware,
             RawBackend::Sim => Backend::Sim(sim_settings(
@@ -1114,6 +1130,14 @@ fn galvo_arm(check: &Check<'_>, key: &str, raw: RawGalvo, hardware: bool) -> Res
                      (to run the driver against the simulator, see `standins` in docs/drivers.md)",
                 ));
             }
+            // Driven open loop: nothing says the mirrors have arrived but this wait
+            // after the last write (a serial controller answers once settled).
+            if settle_us <= 0.0 {
+                return Err(src.invalid(
+                    &format!("{key}.settle-us"),
+                    "must be above 0 with driver = \"daqmx\": the pair is driven open loop, and the driver waits this long after the last write before it reports the mirrors settled (a data sheet's small-step settling time, typically 100-500 µs)",
+                ));
+            }
             let name = key.rsplit('.').next().unwrap_or(key);
             Some(GalvoLink::Daqmx(daqmx::galvo(
                 src, key, name, raw_daq, limits, settle,
@@ -1162,10 +1186,21 @@ fn galvo_arm(check: &Check<'_>, key: &str, raw: RawGalvo, hardware: bool) -> Res
 
 fn tdc_settings(check: &Check<'_>, raw: RawTdc, hardware: bool) -> Result<TdcSettings, ConfigError> {
     let src = check.src;
-    if !(1..=65_536).contains(&raw.bins) {
+    // As a plan's acquisition.bins and bin-width-ps: the counter bins in whole
+    // picoseconds, and a histogram holds at least 16 bins.
+    if !(16..=65_536).contains(&raw.bins) {
         return Err(src.invalid(
             "tdc.bins",
-            format!("{} is out of range: it must lie between 1 and 65536", raw.bins),
+            format!("{} is out of range: it must lie between 16 and 65536", raw.bins),
+        ));
+    }
+    if !(raw.bin_width_ps >= 1.0 && raw.bin_width_ps.fract() == 0.0) {
+        return Err(src.invalid(
+            "tdc.bin-width-ps",
+            format!(
+                "{} is not a whole number of picoseconds of at least 1: the counter bins in whole picoseconds (12.5 would be binned at 13, and the time axis read at 12.5)",
+                raw.bin_width_ps
+            ),
         ));
     }
     if raw.sync_divider == 0 {
@@ -1613,6 +1648,16 @@ mod tests {
         assert_eq!(e.key(), Some("laser.laser-line"), "{e}");
         let e = err(&format!("{serial}channels = [\"Dev1/ao0\", \"Dev1/ao1\"]\n"), "");
         assert_eq!(e.key(), Some("galvo.laser.channels"), "{e}");
+        // Open loop: a settling time is required.
+        let e = load(
+            &daq_lab(DAQ_GALVO, "laser-line = \"Dev1/port0/line0\"\n").replacen(
+                "settle-us = 400.0",
+                "settle-us = 0.0",
+                1,
+            ),
+        )
+        .unwrap_err();
+        assert_eq!(e.key(), Some("galvo.laser.settle-us"), "{e}");
         // And only on the hardware backend.
         let e = load(&SIM.replacen(
             "settle-us = 300.0\n",

@@ -418,6 +418,21 @@ impl Plan {
                 _ => return Err(src.invalid("acquisition.repeats", "must be 1 to 1000")),
             },
         };
+        if new {
+            // As the instrument's own window: it must end within the sync period.
+            let period = f64::from(instrument.tdc.sync_divider) / instrument.laser.repetition_rate;
+            let end = acquisition.offset + f64::from(acquisition.bins) * acquisition.bin_width;
+            if end > period * (1.0 + 1e-9) {
+                return Err(src.invalid(
+                    "acquisition.bins",
+                    format!(
+                        "with acquisition.bin-width-ps and offset-ns the window ends at {:.2} ns, past the instrument's sync period of {:.2} ns (laser.rep-rate-mhz, tdc.sync-divider): a counter times each photon from the last sync; fewer or narrower bins, or an earlier offset",
+                        end * 1e9,
+                        period * 1e9
+                    ),
+                ));
+            }
+        }
         let recon = recon::recon_settings(src, "recon.", raw.recon, None)?;
         if adaptive && recon.method != Method::Gtr {
             return Err(src.invalid(
