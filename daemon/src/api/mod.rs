@@ -357,8 +357,18 @@ pub fn app(state: AppState) -> Router {
     let timeout =
         tower_http::timeout::TimeoutLayer::with_status_code(StatusCode::REQUEST_TIMEOUT, api.request_timeout);
     // Every route but the imports is answered within the request timeout; an upload
-    // is bounded by its size and stall limits instead, and counts its own bytes.
-    let timed: Router<AppState> = exempt.merge(checks).merge(limited).layer(timeout);
+    // is bounded by its size and stall limits instead, and counts its own bytes. The
+    // e-stop (and health) get at least ESTOP_TIMEOUT whatever the config's timeout: an
+    // e-stop during a run waits up to 2 s for the run to park, and one cut off by a
+    // short timeout would tell the operator it failed after the laser went off.
+    let estop_timeout = tower_http::timeout::TimeoutLayer::with_status_code(
+        StatusCode::REQUEST_TIMEOUT,
+        api.request_timeout.max(ESTOP_TIMEOUT),
+    );
+    let timed: Router<AppState> = checks
+        .merge(limited)
+        .layer(timeout)
+        .merge(exempt.layer(estop_timeout));
     let imports = imports.layer(DefaultBodyLimit::disable());
     timed
         .merge(imports)
@@ -371,6 +381,10 @@ pub fn app(state: AppState) -> Router {
         .layer(compression())
         .with_state(state)
 }
+
+/// The least time the e-stop is given before its request is answered 408: its own
+/// waits (the run's way out, 2 s; opening the controllers) with room to spare.
+const ESTOP_TIMEOUT: std::time::Duration = std::time::Duration::from_secs(10);
 
 /// Responses compressed (gzip or brotli, as the client's `Accept-Encoding` asks) by
 /// tower-http: the page, its scripts, JSON, event logs. Not compressed: event streams,

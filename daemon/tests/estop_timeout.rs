@@ -1,0 +1,71 @@
+//! The e-stop is answered whatever `[api] request-timeout-s` says: with a 1 s request
+//! timeout and a disk that stalls the run's way out for 1.5 s, the e-stop's answer (the
+//! laser off, the run aborted and parked) still comes, where the timeout layer cut it
+//! off with a 408 after the laser had gone off, telling the operator it failed.
+//!
+//! A test binary of its own: the disk stall (`store::SLOW_SYNC_MS`, feature
+//! `test-hooks`) is process-wide and would slow every other API test.
+use std::sync::Arc;
+use std::sync::atomic::Ordering;
+use std::time::{Duration, Instant};
+
+use axum::http::{Method, StatusCode};
+use periscope_daemon::api::{AppState, app};
+use periscope_daemon::service::Service;
+use serde_json::Value;
+
+mod common;
+
+const TOKEN: &str = "test-token-0123456789abcdef";
+const PLAN: &str = include_str!("../../tests/data/plans/small-fbp.toml");
+
+async fn call(router: &axum::Router, method: Method, uri: &str, body: &str) -> (StatusCode, Value) {
+    let (status, bytes) = common::send(router, common::request(method, uri, Some(TOKEN), &[], body)).await;
+    (status, serde_json::from_slice(&bytes).unwrap_or(Value::Null))
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn an_estop_outlasting_the_request_timeout_is_still_answered() {
+    let dir = tempfile::tempdir().unwrap();
+    let src = common::sim_instrument(
+        dir.path(),
+        1.0,
+        &format!("token = \"{TOKEN}\"\nrequest-timeout-s = 1.0\n"),
+        "",
+    );
+    let svc = Service::open(src, Some(TOKEN.to_owned())).unwrap();
+    let worker = svc.start_worker();
+    let router = app(AppState::new(Arc::clone(&svc)));
+    let (s, v) = call(&router, Method::POST, "/api/v1/runs", PLAN).await;
+    assert_eq!(s, StatusCode::CREATED, "{v}");
+    let id = v["id"].as_str().unwrap().to_owned();
+    let t = Instant::now();
+    loop {
+        let (_, v) = call(&router, Method::GET, &format!("/api/v1/runs/{id}"), "").await;
+        if v["stage"] == "capture" && v["pairs_done"].as_u64().unwrap_or(0) >= 3 {
+            break;
+        }
+        assert!(t.elapsed() < Duration::from_secs(60), "never capturing: {v}");
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+    periscope_daemon::store::SLOW_SYNC_MS.store(1500, Ordering::SeqCst);
+    let pressed = Instant::now();
+    let (s, v) = call(&router, Method::POST, "/api/v1/estop", "").await;
+    let answered = pressed.elapsed();
+    periscope_daemon::store::SLOW_SYNC_MS.store(0, Ordering::SeqCst);
+    let rig = periscope_daemon::devices::sim::rig_of(svc.backend()).unwrap();
+    let off = rig.off_since(pressed).expect("the laser is on after the e-stop");
+    assert!(
+        off - pressed < Duration::from_millis(50),
+        "laser off after {:?}",
+        off - pressed
+    );
+    assert_eq!(s, StatusCode::OK, "answered after {answered:?}: {v}");
+    assert_eq!(v["aborted"].as_str(), Some(&*id), "{v}");
+    assert!(
+        answered > Duration::from_secs(1),
+        "the run's way out did not outlast the timeout: {answered:?}"
+    );
+    svc.shutdown();
+    worker.join().unwrap();
+}
