@@ -1029,6 +1029,14 @@ impl InstrumentConfig {
             ));
         }
         let backend = match raw.backend {
+            // A config never holds a setting nothing reads: a [sim] table left in a
+            // config switched to the hardware would look as if it did something.
+            RawBackend::Hardware if raw.sim.is_some() => {
+                return Err(src.invalid(
+                    "sim",
+                    "is read only with backend = \"sim\" (the simulator's scene, true poses and optics): remove the [sim] table from a hardware config",
+                ));
+            }
             RawBackend::Hardware => Backend::Hardware,
             RawBackend::Sim => Backend::Sim(sim_settings(
                 &check,
@@ -1215,6 +1223,12 @@ fn tdc_settings(check: &Check<'_>, raw: RawTdc, hardware: bool) -> Result<TdcSet
         })
         .transpose()?;
     let driver = tdc_driver(check, &raw, hardware)?;
+    if !hardware && usb.is_some() {
+        return Err(src.invalid(
+            "tdc.usb",
+            "names a USB histogrammer, but backend = \"sim\" has its own: remove it, or set backend = \"hardware\"",
+        ));
+    }
     if hardware && driver == TdcDriver::Usb && usb.is_none() {
         return Err(src.invalid(
             "tdc",
@@ -1575,6 +1589,16 @@ mod tests {
 
     const DAQ_GALVO: &str = "driver = \"daqmx\"\nchannels = [\"Dev1/ao0\", \"Dev1/ao1\"]\n\
                              volts-per-deg = [0.4, 0.4]\nmax-slew-deg-per-ms = 2.0\n";
+
+    /// A setting the backend does not read is refused by key, not ignored: the
+    /// simulator's table in a hardware config, a USB histogrammer in a simulated one.
+    #[test]
+    fn what_the_backend_does_not_read_is_refused_by_key() {
+        let e = load(&format!("{LAB}\n[sim]\nseed = 3\n")).unwrap_err();
+        assert_eq!(e.key(), Some("sim"), "{e}");
+        let e = load(&SIM.replacen("[tdc]\n", "[tdc]\nusb = \"1d50:6189\"\n", 1)).unwrap_err();
+        assert_eq!(e.key(), Some("tdc.usb"), "{e}");
+    }
 
     #[test]
     fn daqmx_galvos_and_laser_lines_load_and_errors_name_their_key() {
