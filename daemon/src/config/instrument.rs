@@ -999,6 +999,29 @@ impl InstrumentConfig {
             },
             ..laser
         };
+        // A DAQmx pair ramps on the run's thread, a step a millisecond, and settles after
+        // its last write; the two pairs move one after the other with nothing to show
+        // progress. Moves that could outlast the stall rule would have the keepalive stop
+        // and the watchdog end emission on every long move.
+        let ramp_ms = |arm: &GalvoArm| match &arm.link {
+            Some(GalvoLink::Daqmx(d)) => {
+                let span = (d.limits.x[1] - d.limits.x[0])
+                    .max(d.limits.y[1] - d.limits.y[0])
+                    .to_degrees();
+                (span / d.max_slew_deg_per_ms).ceil() + d.settle.as_secs_f64() * 1e3
+            }
+            _ => 0.0,
+        };
+        let moves_ms = ramp_ms(&laser_arm) + ramp_ms(&spad_arm);
+        if moves_ms >= laser.stall.as_secs_f64() * 1e3 {
+            return Err(src.invalid(
+                "laser.stall-ms",
+                format!(
+                    "is {} ms, but a pair's moves across the DAQmx galvos' limits take up to {moves_ms:.0} ms (max-slew-deg-per-ms and settle-us), with nothing to show progress: the stall rule would stop the keepalive mid-move; raise stall-ms or the slew limit",
+                    laser.stall.as_millis()
+                ),
+            ));
+        }
         let spad = SpadSettings {
             efficiency: check.positive("spad.efficiency", raw.spad.efficiency, 1.0, "(a fraction)")?,
             dark_count_rate: check.range(
@@ -1672,6 +1695,13 @@ mod tests {
         assert_eq!(e.key(), Some("laser.laser-line"), "{e}");
         let e = err(&format!("{serial}channels = [\"Dev1/ao0\", \"Dev1/ao1\"]\n"), "");
         assert_eq!(e.key(), Some("galvo.laser.channels"), "{e}");
+        // Moves slower than the stall rule allows are refused by the stall rule's key.
+        let e = load(&daq_lab(
+            &DAQ_GALVO.replace("max-slew-deg-per-ms = 2.0", "max-slew-deg-per-ms = 0.005"),
+            "laser-line = \"Dev1/port0/line0\"\n",
+        ))
+        .unwrap_err();
+        assert_eq!(e.key(), Some("laser.stall-ms"), "{e}");
         // Open loop: a settling time is required.
         let e = load(
             &daq_lab(DAQ_GALVO, "laser-line = \"Dev1/port0/line0\"\n").replacen(
