@@ -115,6 +115,41 @@ fn a_whole_capture_runs_on_the_multiharp_and_the_simulated_galvos() {
     assert_eq!(s.parked(), (true, true));
 }
 
+/// A lab config whose laser arm's limits reach past what its controller reports
+/// (`LIM`: the stand-in's galvos keep the rig's ±20°, the config says ±25°): refused
+/// when the devices open, naming the key, before any light; it failed mid-capture at
+/// the first target past the controller's limits.
+#[test]
+fn limits_past_the_controllers_own_are_refused_when_the_devices_open() {
+    let _one = exclusive();
+    let tmp = tempfile::tempdir().unwrap();
+    let (s, lab) = bench(tmp.path(), 0.0);
+    let limits = "angle-limits-deg = { x = [-20.0, 20.0], y = [-20.0, 20.0] }";
+    assert!(lab.text().contains(limits));
+    let wide = lab.text().replacen(
+        limits,
+        "angle-limits-deg = { x = [-25.0, 25.0], y = [-20.0, 20.0] }",
+        1,
+    );
+    let wide = TomlSource::from_text(lab.path(), wide);
+    let dir = prepare(tmp.path(), &wide, PLAN);
+    let run =
+        periscope_daemon::pipeline::Run::open(&dir, periscope_daemon::pipeline::Control::new(), None, None);
+    let e = match run.and_then(|r| r.execute().map(drop)) {
+        Ok(()) => panic!("a run opened with limits past the controller's"),
+        Err(e) => e.to_string(),
+    };
+    assert!(
+        e.contains("galvo.laser.angle-limits-deg") && e.contains("hard limits"),
+        "{e}"
+    );
+    assert!(
+        !s.emission_log().iter().any(|(_, on, _)| *on),
+        "the laser went on"
+    );
+    assert!(s.parked().0, "the laser arm is not parked");
+}
+
 /// A fresh bench and prepared run for one case of the stop matrix.
 fn matrix_bench(tmp: &Path) -> (Standin, PathBuf) {
     let (s, lab) = bench(tmp, 1.0);

@@ -570,7 +570,7 @@ fn a_tdc_window_that_records_none_of_the_relay_fails_naming_the_window() {
     let _serial = ONE_AT_A_TIME.lock().unwrap_or_else(|p| p.into_inner());
     let tmp = tempfile::tempdir().unwrap();
     let plan = SmallPlan::named("window-misses-relay")
-        .set("acquisition.offset-ns", 500.0)
+        .set("acquisition.offset-ns", 60.0)
         .toml();
     let (dir, rig) = prepare(tmp.path(), &plan);
     let e = execute(&dir, &rig, Control::new(), |_| {})

@@ -61,6 +61,11 @@ pub trait GalvoPair: ErrorType {
     /// The optical-angle range this driver lets through; targets outside it are
     /// refused before anything is sent.
     fn limits(&self) -> AngleLimits;
+    /// The controller's own hard limits, where it reports them (`None` where it does
+    /// not, or where [`GalvoPair::limits`] are the only ones there are).
+    fn hard_limits(&mut self) -> Result<Option<AngleLimits>, Self::Error> {
+        Ok(None)
+    }
     /// Starts a move to `target` and returns without waiting for it, so that two pairs
     /// can move at once. A target outside [`GalvoPair::limits`] is refused here; the
     /// controller's own answer (settled, or a refusal) is collected by
@@ -157,6 +162,9 @@ impl<T: GalvoPair> GalvoPair for Shared<T> {
     }
     fn limits(&self) -> AngleLimits {
         self.lock().limits()
+    }
+    fn hard_limits(&mut self) -> Result<Option<AngleLimits>, Self::Error> {
+        self.lock().hard_limits()
     }
     fn move_to(&mut self, target: OpticalAngles) -> Result<(), Self::Error> {
         self.lock().move_to(target)
@@ -340,6 +348,9 @@ where
     }
     fn limits(&self) -> AngleLimits {
         self.0.limits()
+    }
+    fn hard_limits(&mut self) -> Result<Option<AngleLimits>, DeviceError> {
+        self.0.hard_limits().map_err(Into::into)
     }
     fn move_to(&mut self, target: OpticalAngles) -> Result<(), DeviceError> {
         self.0.move_to(target).map_err(Into::into)

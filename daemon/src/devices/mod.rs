@@ -81,6 +81,30 @@ pub enum OpenError {
     },
 }
 
+/// Refuses a pair whose configured limits reach past its controller's own: every
+/// target there would be refused by the controller mid-run (its `ERR`), hours into a
+/// capture, naming the controller rather than the key.
+fn within_hard_limits(name: &str, arm: &mut GalvoBox) -> Result<(), OpenError> {
+    let Some(hard) = arm.hard_limits()? else {
+        return Ok(());
+    };
+    let conf = arm.limits();
+    // The protocol gives limits to 10⁻⁷ rad; a thousandth of a degree of slack.
+    let slack = 1e-3f64.to_radians();
+    let within = |c: [f64; 2], h: [f64; 2]| c[0] >= h[0] - slack && c[1] <= h[1] + slack;
+    if within(conf.x, hard.x) && within(conf.y, hard.y) {
+        return Ok(());
+    }
+    let deg = |r: [f64; 2]| format!("[{:.3}, {:.3}]", r[0].to_degrees(), r[1].to_degrees());
+    Err(OpenError::Missing(format!(
+        "galvo.{name}.angle-limits-deg (x {}, y {}) reach past the controller's own hard limits (x {}, y {}): narrow them to within the controller's",
+        deg(conf.x),
+        deg(conf.y),
+        deg(hard.x),
+        deg(hard.y)
+    )))
+}
+
 /// The instrument's devices, opened.
 pub struct Devices {
     /// Laser arm galvo pair.
@@ -126,6 +150,7 @@ impl Devices {
             mut laser,
         } = backend.laser_arm()?;
         laser_arm.identify()?;
+        within_hard_limits("laser", &mut laser_arm)?;
         // Opening the instrument leaves the laser off. A laser found emitting was left
         // on by a process that ended without switching it off (a crash or `kill -9`
         // with a watchdog longer than the restart took, or another program); every
@@ -142,6 +167,7 @@ impl Devices {
         interrupted()?;
         let mut spad = backend.spad_arm()?;
         spad.identify()?;
+        within_hard_limits("spad", &mut spad)?;
         interrupted()?;
         let mut tdc = backend.histogrammer()?;
         tdc.identify()?;

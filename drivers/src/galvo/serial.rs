@@ -562,6 +562,10 @@ impl GalvoPair for SerialGalvo {
         self.settings.limits
     }
 
+    fn hard_limits(&mut self) -> Result<Option<AngleLimits>, GalvoError> {
+        SerialGalvo::hard_limits(self).map(Some)
+    }
+
     fn move_to(&mut self, target: OpticalAngles) -> Result<(), GalvoError> {
         if !self.settings.limits.contains(target) {
             let l = self.settings.limits;
