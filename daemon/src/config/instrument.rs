@@ -1035,11 +1035,13 @@ impl InstrumentConfig {
             jitter_fwhm: check.range("spad.jitter-fwhm-ps", raw.spad.jitter_fwhm_ps, 0.0, 1e5, "ps")? * 1e-12,
         };
         let tdc = tdc_settings(&check, raw.tdc, hardware)?;
-        // A TDC times each photon from the last sync: a window reaching past the sync
-        // period records nothing there, and folds longer returns into its first bins.
-        let period = f64::from(tdc.sync_divider) / laser.repetition_rate;
-        let end = tdc.offset + f64::from(tdc.bins) * tdc.bin_width;
-        if end > period * (1.0 + 1e-9) {
+        if let Some((end, period)) = window_past_period(
+            tdc.offset,
+            tdc.bins,
+            tdc.bin_width,
+            tdc.sync_divider,
+            laser.repetition_rate,
+        ) {
             return Err(src.invalid(
                 "tdc.offset-ns",
                 format!(
@@ -1213,6 +1215,22 @@ fn galvo_arm(check: &Check<'_>, key: &str, raw: RawGalvo, hardware: bool) -> Res
         settle,
         link,
     })
+}
+
+/// Where a window of `bins` bins of `bin_width` from `offset` (seconds) ends and the
+/// sync period (`sync_divider` pulses of a laser at `repetition_rate`), if it ends past
+/// it: a TDC times each photon from the last sync, so such a window records nothing at
+/// its end and folds longer returns into its first bins.
+pub(crate) fn window_past_period(
+    offset: f64,
+    bins: u32,
+    bin_width: f64,
+    sync_divider: u32,
+    repetition_rate: f64,
+) -> Option<(f64, f64)> {
+    let period = f64::from(sync_divider) / repetition_rate;
+    let end = offset + f64::from(bins) * bin_width;
+    (end > period * (1.0 + 1e-9)).then_some((end, period))
 }
 
 fn tdc_settings(check: &Check<'_>, raw: RawTdc, hardware: bool) -> Result<TdcSettings, ConfigError> {

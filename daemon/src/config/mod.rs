@@ -11,6 +11,7 @@ mod scene;
 mod source;
 
 pub use args::{InstrumentArg, instrument_source, load_instrument};
+pub(crate) use instrument::window_past_period;
 pub use instrument::{
     ApiSettings, Backend, BudgetLimits, GalvoArm, GalvoLink, InstrumentConfig, LaserSettings,
     PicoQuantCounter, SerialLink, SimDevices, SimSettings, SpadSettings, TdcDriver, TdcSettings,

@@ -420,9 +420,13 @@ impl Plan {
         };
         if new {
             // As the instrument's own window: it must end within the sync period.
-            let period = f64::from(instrument.tdc.sync_divider) / instrument.laser.repetition_rate;
-            let end = acquisition.offset + f64::from(acquisition.bins) * acquisition.bin_width;
-            if end > period * (1.0 + 1e-9) {
+            if let Some((end, period)) = crate::config::window_past_period(
+                acquisition.offset,
+                acquisition.bins,
+                acquisition.bin_width,
+                instrument.tdc.sync_divider,
+                instrument.laser.repetition_rate,
+            ) {
                 return Err(src.invalid(
                     "acquisition.bins",
                     format!(
