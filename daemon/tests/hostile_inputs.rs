@@ -89,17 +89,23 @@ fn a_plan_file_larger_than_any_plan_is_refused_before_it_is_parsed() {
     assert!(text.contains("big.toml") && text.contains("4194304"), "{text}");
 }
 
+/// The shipped simulated instrument.
+fn sim_instrument() -> periscope_daemon::config::InstrumentConfig {
+    let src = TomlSource::load(&Path::new(env!("CARGO_MANIFEST_DIR")).join("../configs/instrument/sim.toml"))
+        .unwrap();
+    periscope_daemon::config::InstrumentConfig::from_source(&src).unwrap()
+}
+
+/// The tests' small FBP plan, as text.
+fn small_fbp() -> String {
+    std::fs::read_to_string(Path::new(env!("CARGO_MANIFEST_DIR")).join("../tests/data/plans/small-fbp.toml"))
+        .unwrap()
+}
+
 #[test]
 fn a_grid_of_three_numbers_is_refused_with_its_key_and_line() {
-    let instrument =
-        TomlSource::load(&Path::new(env!("CARGO_MANIFEST_DIR")).join("../configs/instrument/sim.toml"))
-            .unwrap();
-    let instrument = periscope_daemon::config::InstrumentConfig::from_source(&instrument).unwrap();
-    let plan = std::fs::read_to_string(
-        Path::new(env!("CARGO_MANIFEST_DIR")).join("../tests/data/plans/small-fbp.toml"),
-    )
-    .unwrap()
-    .replace("grid = [8, 8]", "grid = [24, 24, 24]");
+    let instrument = sim_instrument();
+    let plan = small_fbp().replace("grid = [8, 8]", "grid = [24, 24, 24]");
     let e = periscope_daemon::plan::Plan::from_source(&TomlSource::from_text("plan.toml", plan), &instrument)
         .unwrap_err()
         .to_string();
@@ -112,14 +118,8 @@ fn a_grid_of_three_numbers_is_refused_with_its_key_and_line() {
 /// read, naming the key, not by the solver after the whole capture.
 #[test]
 fn a_confocal_solver_on_pairs_it_cannot_take_is_refused_with_the_plan() {
-    let instrument =
-        TomlSource::load(&Path::new(env!("CARGO_MANIFEST_DIR")).join("../configs/instrument/sim.toml"))
-            .unwrap();
-    let instrument = periscope_daemon::config::InstrumentConfig::from_source(&instrument).unwrap();
-    let base = std::fs::read_to_string(
-        Path::new(env!("CARGO_MANIFEST_DIR")).join("../tests/data/plans/small-fbp.toml"),
-    )
-    .unwrap();
+    let instrument = sim_instrument();
+    let base = small_fbp();
     let read = |plan: String| {
         periscope_daemon::plan::Plan::from_source(&TomlSource::from_text("plan.toml", plan), &instrument)
             .map(drop)
