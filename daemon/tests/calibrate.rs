@@ -269,6 +269,28 @@ fn an_abort_stops_the_calibration_with_the_laser_off() {
     assert_safe(&sim);
 }
 
+/// A laser pulsing at another rate than `laser.rep-rate-mhz` says: the calibration
+/// reads the counter's sync once the laser is on and stops before it measures,
+/// naming the keys, with the laser off and the arms parked.
+#[test]
+fn a_laser_at_another_rate_than_configured_stops_the_calibration_before_it_measures() {
+    let text = std::fs::read_to_string(root().join("configs/instrument/sim.toml"))
+        .unwrap()
+        .replace(
+            "[sim]\n",
+            "[sim]\ndevices = \"in-process\"\ntrue-rep-rate-mhz = 9.5\n",
+        );
+    let config = InstrumentConfig::from_source(&instrument(Some(&text), true, None)).unwrap();
+    let sim = backend(&config);
+    let err = measure(&config, &sim, &Settings::default()).unwrap_err();
+    assert!(matches!(err, CalibrateError::Sync(_)), "{err}");
+    assert!(
+        err.to_string().contains("sync rate of 9.5000 MHz") && err.to_string().contains("laser.rep-rate-mhz"),
+        "{err}"
+    );
+    assert_safe(&sim);
+}
+
 #[test]
 fn a_target_out_of_view_is_a_clear_error() {
     // The SPAD arm looks away from the wall: no return anywhere.

@@ -150,6 +150,49 @@ fn limits_past_the_controllers_own_are_refused_when_the_devices_open() {
     assert!(s.parked().0, "the laser arm is not parked");
 }
 
+/// A bench whose laser pulses at 20 MHz where the lab config says 10: the run waits
+/// out the MultiHarp's rate meter once the laser is on (the stand-in, as the vendor's
+/// demos say, shows the old rate for 400 ms after `SetSyncDiv`), reads the sync
+/// rate, and fails before the first `StartMeas`, naming both keys; the laser is off and
+/// both arms parked. Verified only against the stand-in.
+#[test]
+fn a_sync_rate_the_config_does_not_expect_fails_the_run_before_the_multiharp_measures() {
+    let _one = exclusive();
+    let tmp = tempfile::tempdir().unwrap();
+    let s = Standin::load();
+    let rig = tmp.path().join("rig.toml");
+    std::fs::write(
+        &rig,
+        sim_text(0.0).replacen("[sim]\n", "[sim]\ntrue-rep-rate-mhz = 20.0\n", 1),
+    )
+    .unwrap();
+    s.setup(&rig);
+    let (laser, spad) = s.serve_galvos();
+    let text = lab_text(0.0, (&laser, &spad), &s.path());
+    let lab = TomlSource::from_text(tmp.path().join("lab.toml"), text);
+    let dir = prepare(tmp.path(), &lab, PLAN);
+    s.clear_calls();
+    let run =
+        periscope_daemon::pipeline::Run::open(&dir, periscope_daemon::pipeline::Control::new(), None, None);
+    let e = match run.and_then(|r| r.execute().map(drop)) {
+        Ok(()) => panic!("a run on a laser at twice its configured rate"),
+        Err(e) => e.to_string(),
+    };
+    assert!(
+        e.contains("sync rate of 20.0000 MHz")
+            && e.contains("laser.rep-rate-mhz = 10 over tdc.sync-divider = 1"),
+        "{e}"
+    );
+    let calls = s.calls();
+    assert!(
+        calls.iter().any(|c| c.starts_with("MH_GetSyncRate(")),
+        "{calls:?}"
+    );
+    assert!(!calls.iter().any(|c| c.starts_with("MH_StartMeas(")), "{calls:?}");
+    assert!(!s.emission());
+    assert_eq!(s.parked(), (true, true));
+}
+
 /// A fresh bench and prepared run for one case of the stop matrix.
 fn matrix_bench(tmp: &Path) -> (Standin, PathBuf) {
     let (s, lab) = bench(tmp, 1.0);

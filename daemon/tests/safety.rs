@@ -531,6 +531,81 @@ fn a_histogrammer_unplugged_for_good_fails_the_capture_keeps_its_pairs_and_resum
     assert!(!rig.emission());
 }
 
+/// A prepared run on the default simulated instrument in real time whose laser really
+/// pulses at `true_mhz` (`sim.true-rep-rate-mhz`; its config says 10 MHz).
+fn prepare_pulsing_at(tmp: &Path, plan: &str, true_mhz: f64) -> (PathBuf, SimBackend) {
+    let src = instrument();
+    let text = src
+        .text()
+        .replacen("[sim]\n", &format!("[sim]\ntrue-rep-rate-mhz = {true_mhz}\n"), 1);
+    let src = TomlSource::from_text(src.path(), text);
+    let rig = SimBackend::from_config(&InstrumentConfig::from_source(&src).unwrap())
+        .unwrap()
+        .unwrap();
+    let plan_src = TomlSource::from_text(tmp.join("plan.toml"), plan.to_owned());
+    let (dir, _, _) = pipeline::prepare(&plan_src, &src, Some(&tmp.join("run")), "test").unwrap();
+    (dir, rig)
+}
+
+/// A laser that pulses at another rate than `laser.rep-rate-mhz` says (here twice
+/// it): the pile-up correction would count the wrong cycles and the window's check
+/// the wrong period, silently. The run reads the counter's sync rate once the laser is
+/// on, before the first LOS point, and fails naming both keys and both rates; the
+/// laser is off, both arms parked, nothing measured. (Before 2026-12-06 the sync
+/// rate was never compared with the config.)
+#[test]
+fn a_laser_pulsing_at_another_rate_than_configured_fails_the_run_before_it_measures() {
+    let _serial = ONE_AT_A_TIME.lock().unwrap_or_else(|p| p.into_inner());
+    let tmp = tempfile::tempdir().unwrap();
+    let (dir, rig) = prepare_pulsing_at(tmp.path(), &plan(), 20.0);
+    let e = execute(&dir, &rig, Control::new(), |_| {})
+        .expect_err("a run on a laser at twice its configured rate")
+        .to_string();
+    assert!(
+        e.contains("sync rate of 20.0000 MHz")
+            && e.contains("laser.rep-rate-mhz = 10 over tdc.sync-divider = 1 gives 10.0000 MHz"),
+        "{e}"
+    );
+    let info = RunInfo::load(&dir).unwrap();
+    assert_eq!(info.state, RunState::Failed);
+    assert!(!dir.join("relay.ply").exists(), "the LOS scan went on");
+    assert!(read_log(&dir).map_or(true, |l| l.records.is_empty()));
+    assert!(!rig.emission());
+    assert_eq!(rig.parked(), (true, true));
+}
+
+/// The laser's rate changes in the middle of a capture (another preset): the pair
+/// measured under it is not kept, the run fails with the laser off and the arms
+/// parked, and the pairs before are kept; with the rate back, the resume measures the
+/// rest, each pair once.
+#[test]
+fn a_laser_rate_that_changes_mid_capture_fails_the_run_and_keeps_the_pairs_before() {
+    let _serial = ONE_AT_A_TIME.lock().unwrap_or_else(|p| p.into_inner());
+    let tmp = tempfile::tempdir().unwrap();
+    let (dir, rig) = prepare(tmp.path(), &plan());
+    let r2 = rig.clone();
+    let e = execute(&dir, &rig, Control::new(), move |done| {
+        if done == 8 {
+            r2.set_repetition_rate(12e6);
+        }
+    })
+    .expect_err("the capture went on at another rate")
+    .to_string();
+    assert!(
+        e.contains("sync rate of 12.0000 MHz") && e.contains("20.0 % off"),
+        "{e}"
+    );
+    assert_eq!(RunInfo::load(&dir).unwrap().state, RunState::Failed);
+    assert_eq!(read_log(&dir).unwrap().records.len(), 8);
+    assert!(!rig.emission());
+    assert_eq!(rig.parked(), (true, true));
+
+    rig.set_repetition_rate(10e6);
+    execute(&dir, &rig, Control::new(), |_| {}).unwrap();
+    assert_eq!(RunInfo::load(&dir).unwrap().state, RunState::Completed);
+    assert_each_pair_once(&dir);
+}
+
 /// A plan whose TDC window records none of the hidden paths its volume needs (the
 /// shipped window, total paths of 3.6 to 8.5 m, so hidden ones to about 4.5 m, and a
 /// volume 3.5 to 4 m deep, whose paths start at 7 m) stops once its pairs are planned,

@@ -292,6 +292,13 @@ pub trait Histogrammer: ErrorType {
     fn abort(&mut self) -> Result<(), Self::Error>;
     /// State, rates and counters.
     fn status(&mut self) -> Result<TdcStatus, Self::Error>;
+    /// How long after the sync changes (the laser starts pulsing, a divider is set)
+    /// [`Histogrammer::status`] reads the new rate: a counter with a gated rate meter
+    /// answers the last gate's count until then. Zero (the default) where the status
+    /// reads the rate as it is.
+    fn rate_latency(&self) -> Duration {
+        Duration::ZERO
+    }
 }
 
 /// A galvo pair, whatever drives it.
@@ -424,5 +431,8 @@ where
     }
     fn status(&mut self) -> Result<TdcStatus, DeviceError> {
         self.0.status().map_err(Into::into)
+    }
+    fn rate_latency(&self) -> Duration {
+        self.0.rate_latency()
     }
 }

@@ -62,7 +62,15 @@ pub(crate) struct Device {
     pub refused_reopens: u32,
     /// The laser's repetition rate, Hz (the sync input's rate before the divider).
     repetition_rate: f64,
+    /// The sync rate meter: until the instant, `GetSyncRate` still answers the rate
+    /// (Hz) it showed before the last `Initialize` or `SetSyncDiv`.
+    meter: (Instant, i32),
 }
+
+/// How long after `Initialize` or `SetSyncDiv` the rate meter shows the new sync rate:
+/// the vendor's demos say to allow more than 400 ms ("otherwise you get new values
+/// after every 100 ms").
+pub(crate) const RATE_SETTLE: Duration = Duration::from_millis(400);
 
 impl Device {
     /// A counter of `family` with `channels` inputs, its SPAD on input `spad_channel`.
@@ -104,6 +112,7 @@ impl Device {
             vanished: false,
             refused_reopens: 0,
             repetition_rate,
+            meter: (Instant::now(), 0),
         }
     }
 
@@ -168,6 +177,7 @@ impl Device {
             return Err(error::INVALID_OPTION);
         }
         self.finish(true);
+        self.meter = (Instant::now() + RATE_SETTLE, 0);
         self.initialised = true;
         self.calibrated = false;
         self.sync_div = 1;
@@ -188,7 +198,9 @@ impl Device {
         if !self.family.sync_divider_ok(div.max(0) as u32) {
             return Err(error::INVALID_ARGUMENT);
         }
+        let shown = self.shown_sync_rate();
         self.sync_div = div;
+        self.meter = (Instant::now() + RATE_SETTLE, shown);
         Ok(())
     }
 
@@ -383,12 +395,21 @@ impl Device {
         })
     }
 
-    /// The sync rate after the divider, Hz.
+    /// The sync rate after the divider, Hz, as the rate meter shows it: the rate
+    /// before the last `Initialize` or `SetSyncDiv` until [`RATE_SETTLE`] has passed.
     pub(crate) fn sync_rate(&mut self) -> Result<i32, Code> {
         self.ready(false)?;
-        let rate = (self.repetition_rate / f64::from(self.sync_div)) as i32;
+        let rate = self.shown_sync_rate();
         self.read_rates.0 = Some(rate);
         Ok(rate)
+    }
+
+    fn shown_sync_rate(&self) -> i32 {
+        if Instant::now() < self.meter.0 {
+            self.meter.1
+        } else {
+            (self.repetition_rate / f64::from(self.sync_div)) as i32
+        }
     }
 
     /// Input `ch`'s rate, Hz: the SPAD's during the last measurement, 0 elsewhere.

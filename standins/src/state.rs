@@ -157,9 +157,16 @@ impl State {
                     path.display()
                 )
             })?;
+        // The bench's laser pulses as the simulator's does: at `sim.true-rep-rate-mhz`
+        // where the config sets it, so a counter can read another rate than the
+        // daemon's config expects.
+        let repetition_rate = match &config.backend {
+            periscope_daemon::config::Backend::Sim(sim) => sim.true_repetition_rate,
+            periscope_daemon::config::Backend::Hardware => config.laser.repetition_rate,
+        };
         self.bench = Some(Bench {
             backend,
-            repetition_rate: config.laser.repetition_rate,
+            repetition_rate,
             ports: Vec::new(),
         });
         self.plug(Family::MultiHarp, 0, "1045678", 4, 0)?;

@@ -131,6 +131,9 @@ fn the_vendors_multiharp_demo_sequence_runs_through_the_driver() {
             "MH_GetWarnings(0, *)",
         ],
     );
+    // The rate meter shows the sync set by `SetSyncDiv` once the vendor's 400 ms
+    // have passed (the driver's `rate_latency`).
+    std::thread::sleep(tdc.rate_latency());
     let status = tdc.status().unwrap();
     assert_eq!(status.rates.sync, 10e6, "the laser's 10 MHz, divider 1");
     assert_eq!(status.acquisitions, 1);

@@ -178,6 +178,10 @@ pub enum CalibrateError {
     /// A stop was asked for (a signal, an abort); the laser is off and the arms parked.
     #[error("the calibration was stopped; the laser is off, the arms parked and nothing was written")]
     Stopped,
+    /// The counter's sync rate, read with the laser on, is none or not the one the
+    /// config gives ([`InstrumentConfig::sync_fault`]).
+    #[error("{0}: the laser is off, the arms parked and nothing was written")]
+    Sync(String),
     /// Emission stopped while a scan measured.
     #[error("{0} during the calibration: the laser is off; close the interlock and calibrate again")]
     LaserLost(String),

@@ -4,7 +4,7 @@
 //! angles. The laser is on only while a scan measures; every exit, an error, a stop
 //! request or a panic included, leaves it off and both arms parked
 //! ([`Devices::make_safe`]), as a run's do.
-use std::time::Duration;
+use std::time::{Duration, Instant};
 
 use periscope_drivers::{EmergencyOff, Error as _, ErrorKind, OpticalAngles, TdcConfig};
 use periscope_recon::TimeAxis;
@@ -127,8 +127,20 @@ impl Calibrator {
         // The histogrammer must answer before the laser goes on.
         self.devices.tdc.status()?;
         match self.devices.laser.set_emission(true) {
-            Err(e) if e.kind() == ErrorKind::Interrupted => Err(CalibrateError::Stopped),
-            r => Ok(r?),
+            Err(e) if e.kind() == ErrorKind::Interrupted => return Err(CalibrateError::Stopped),
+            r => r?,
+        }
+        // As a run's: the sync the counter reads once its rate meter shows it, before
+        // anything is measured.
+        let until = Instant::now() + self.devices.tdc.rate_latency();
+        while Instant::now() < until {
+            self.checkpoint()?;
+            std::thread::sleep((until - Instant::now()).min(Duration::from_millis(20)));
+        }
+        let sync = self.devices.tdc.status()?.rates.sync;
+        match self.config.sync_fault(sync) {
+            Some(fault) => Err(CalibrateError::Sync(fault)),
+            None => Ok(()),
         }
     }
 

@@ -64,6 +64,11 @@ pub struct SimSettings {
     /// says otherwise. A simulated instrument whose arms differ from its config is one
     /// to practise and test `periscope calibrate` on. Boxed: [`Backend`] stays small.
     pub true_poses: Box<[GalvoPose; 2]>,
+    /// How fast the simulated laser really pulses, hertz (`sim.true-rep-rate-mhz`):
+    /// `laser.rep-rate-mhz` unless the key says otherwise. The photons and the
+    /// counter's sync rate follow it; a run checks that rate against the config when
+    /// the laser goes on.
+    pub true_repetition_rate: f64,
 }
 
 /// How the daemon reaches the simulated devices (`sim.devices`).
@@ -694,6 +699,8 @@ struct RawSim {
     noise: bool,
     #[serde(default)]
     true_pose: RawTruePoses,
+    #[serde(default)]
+    true_rep_rate_mhz: Option<f64>,
 }
 
 #[derive(Deserialize, Default)]
@@ -771,7 +778,12 @@ fn true_pose(
     })
 }
 
-fn sim_settings(check: &Check<'_>, raw: RawSim, arms: [GalvoPose; 2]) -> Result<SimSettings, ConfigError> {
+fn sim_settings(
+    check: &Check<'_>,
+    raw: RawSim,
+    arms: [GalvoPose; 2],
+    repetition_rate: f64,
+) -> Result<SimSettings, ConfigError> {
     let true_poses = [
         true_pose(check, "laser", raw.true_pose.laser, arms[0])?,
         true_pose(check, "spad", raw.true_pose.spad, arms[1])?,
@@ -827,6 +839,10 @@ fn sim_settings(check: &Check<'_>, raw: RawSim, arms: [GalvoPose; 2]) -> Result<
         devices: raw.devices,
         noise: raw.noise,
         true_poses: Box::new(true_poses),
+        true_repetition_rate: match raw.true_rep_rate_mhz {
+            Some(mhz) => check.positive("sim.true-rep-rate-mhz", mhz, 1e4, "MHz")? * 1e6,
+            None => repetition_rate,
+        },
     })
 }
 
@@ -1067,6 +1083,7 @@ impl InstrumentConfig {
                 &check,
                 raw.sim.unwrap_or_default(),
                 [laser_arm.pose, spad_arm.pose],
+                laser.repetition_rate,
             )?),
         };
         let api = api_settings(&check, raw.api.unwrap_or_default())?;
@@ -1094,6 +1111,41 @@ impl InstrumentConfig {
             sim.gate_margin = None;
         }
         config
+    }
+
+    /// The sync rate the counter should read, hertz: the laser's pulse rate over the
+    /// sync divider.
+    pub fn expected_sync_rate(&self) -> f64 {
+        self.laser.repetition_rate / f64::from(self.tdc.sync_divider.max(1))
+    }
+
+    /// What is wrong with a sync rate the counter read with the laser pulsing, if
+    /// anything: none at all, or a rate more than [`SYNC_TOLERANCE`] from
+    /// [`InstrumentConfig::expected_sync_rate`]. The pile-up correction counts laser
+    /// cycles with the configured rate, and the window's check against the sync
+    /// period rests on it, so a laser that pulses at another rate than its config says
+    /// corrupts both silently.
+    pub fn sync_fault(&self, measured_hz: f64) -> Option<String> {
+        let expected = self.expected_sync_rate();
+        let keys = format!(
+            "laser.rep-rate-mhz = {} over tdc.sync-divider = {} gives {}",
+            self.laser.repetition_rate * 1e-6,
+            self.tdc.sync_divider,
+            hz_text(expected)
+        );
+        if !(measured_hz > 0.0) {
+            return Some(format!(
+                "the counter reads no sync pulses with the laser on, where {keys}: check the cable from the laser's sync output to the counter's sync input, and that the laser is pulsing"
+            ));
+        }
+        let off = (measured_hz / expected - 1.0).abs();
+        (off > SYNC_TOLERANCE).then(|| {
+            format!(
+                "the counter reads a sync rate of {} with the laser on, {:.1} % off what {keys}: set laser.rep-rate-mhz (and tdc.sync-divider) to what the laser really does, since the pile-up correction and the window's check rest on them",
+                hz_text(measured_hz),
+                off * 100.0,
+            )
+        })
     }
 
     /// One line describing the instrument, for logs and `--help`-style summaries.
@@ -1215,6 +1267,22 @@ fn galvo_arm(check: &Check<'_>, key: &str, raw: RawGalvo, hardware: bool) -> Res
         settle,
         link,
     })
+}
+
+/// How far a sync rate the counter reads may lie from the configured one
+/// ([`InstrumentConfig::sync_fault`]): 2 %. A pulsed diode's or a mode-locked laser's
+/// rate holds to far better; a wrong preset, divider or laser is off by far more.
+pub const SYNC_TOLERANCE: f64 = 0.02;
+
+/// A rate in the unit that reads best: MHz, kHz or Hz.
+fn hz_text(hz: f64) -> String {
+    if hz >= 1e6 {
+        format!("{:.4} MHz", hz * 1e-6)
+    } else if hz >= 1e3 {
+        format!("{:.3} kHz", hz * 1e-3)
+    } else {
+        format!("{hz:.0} Hz")
+    }
 }
 
 /// Where a window of `bins` bins of `bin_width` from `offset` (seconds) ends and the
@@ -1738,5 +1806,47 @@ mod tests {
         ))
         .unwrap_err();
         assert_eq!(e.key(), Some("galvo.laser.driver"), "{e}");
+    }
+
+    /// The sync a counter reads is judged against `laser.rep-rate-mhz` over
+    /// `tdc.sync-divider`: within 2 % passes, none or further off is named with both
+    /// keys.
+    #[test]
+    fn a_sync_rate_off_the_configured_one_is_named_with_its_keys() {
+        let sim = load(&SIM.replace("sync-divider = 1", "sync-divider = 4")).unwrap();
+        assert_eq!(sim.expected_sync_rate(), 2.5e6);
+        assert_eq!(sim.sync_fault(2.5e6), None);
+        assert_eq!(sim.sync_fault(2.5e6 * 1.019), None);
+        assert_eq!(sim.sync_fault(2.5e6 * 0.981), None);
+        for wrong in [2.5e6 * 1.03, 2.5e6 * 0.97, 10e6, 5e6] {
+            let e = sim.sync_fault(wrong).expect("a rate 3 % or more off passed");
+            assert!(
+                e.contains("laser.rep-rate-mhz = 10 over tdc.sync-divider = 4 gives 2.5000 MHz")
+                    && e.contains("% off"),
+                "{e}"
+            );
+        }
+        for none in [0.0, -1.0, f64::NAN] {
+            let e = sim.sync_fault(none).expect("no sync passed");
+            assert!(e.contains("no sync pulses") && e.contains("sync input"), "{e}");
+        }
+    }
+
+    /// `sim.true-rep-rate-mhz` sets how the simulated laser really pulses, and is
+    /// checked as the configured rate is.
+    #[test]
+    fn the_simulated_lasers_true_rate_is_the_configured_one_unless_set() {
+        let rate = |text: &str| match load(text).map(|c| c.backend) {
+            Ok(Backend::Sim(sim)) => Ok(sim.true_repetition_rate),
+            Ok(b) => panic!("{b:?}"),
+            Err(e) => Err(e),
+        };
+        assert_eq!(rate(SIM).unwrap(), 10e6);
+        let with = |v: &str| SIM.replacen("[sim]\n", &format!("[sim]\ntrue-rep-rate-mhz = {v}\n"), 1);
+        assert_eq!(rate(&with("20.0")).unwrap(), 20e6);
+        for bad in ["0.0", "-5.0", "nan", "1e9"] {
+            let e = rate(&with(bad)).unwrap_err();
+            assert_eq!(e.key(), Some("sim.true-rep-rate-mhz"), "{bad}: {e}");
+        }
     }
 }

@@ -14,8 +14,8 @@ pub use args::{InstrumentArg, instrument_source, load_instrument};
 pub(crate) use instrument::window_past_period;
 pub use instrument::{
     ApiSettings, Backend, BudgetLimits, GalvoArm, GalvoLink, InstrumentConfig, LaserSettings,
-    PicoQuantCounter, SerialLink, SimDevices, SimSettings, SpadSettings, TdcDriver, TdcSettings,
-    redact_secrets,
+    PicoQuantCounter, SYNC_TOLERANCE, SerialLink, SimDevices, SimSettings, SpadSettings, TdcDriver,
+    TdcSettings, redact_secrets,
 };
 pub use scene::{DEFAULT_SCENE, load_scene, scene_from_source, sim_scene};
 pub use source::{ConfigError, MAX_TOML_BYTES, TomlSource};

@@ -49,7 +49,8 @@ impl InstrumentConfig {
             dead_time: self.spad.dead_time,
             laser_power: self.laser.power,
             wavelength: self.laser.wavelength,
-            repetition_rate: self.laser.repetition_rate,
+            // The laser as it really pulses, which a run checks the config against.
+            repetition_rate: sim.true_repetition_rate,
             aperture_area: std::f64::consts::PI * (0.5 * sim.aperture).powi(2),
             spot_area: std::f64::consts::PI * (0.5 * sim.spot).powi(2),
             diffuser_solid_angle: 2.0 * std::f64::consts::PI * (1.0 - half.cos()),

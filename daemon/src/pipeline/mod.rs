@@ -209,6 +209,11 @@ pub enum PipelineError {
         /// Pairs stored.
         pairs: usize,
     },
+    /// The counter's sync rate, read with the laser on, is none or not what the
+    /// instrument config says the laser pulses at
+    /// ([`crate::config::InstrumentConfig::sync_fault`]).
+    #[error("{0}; the laser is off and the run kept what it measured (resume it once this is fixed)")]
+    Sync(String),
     /// A bug: code in the pipeline panicked. The instrument was made safe and the
     /// data kept; the run can be resumed.
     #[error(

@@ -36,6 +36,19 @@ pub struct Run {
     /// (a pause, a failure) records the part it ran, so a resumed stage's time is the
     /// sum of its parts.
     pub(super) stage_started: Option<Instant>,
+    /// The sync as the counter reads it since the laser last went on: from when its
+    /// readings show it (the rate meter's latency after the switch-on), and whether
+    /// this session has already waited for one and checked it.
+    pub(super) sync: SyncWatch,
+}
+
+/// See [`Run::sync`].
+#[derive(Clone, Copy, Debug, Default)]
+pub(super) struct SyncWatch {
+    /// Status readings from this instant on show the sync since the laser went on.
+    pub(super) from: Option<Instant>,
+    /// The first switch-on of this session waited for a reading and checked it.
+    pub(super) verified: bool,
 }
 
 /// The result of a finished run.
@@ -255,6 +268,7 @@ impl Run {
             control,
             stage: Stage::Opening,
             stage_started: None,
+            sync: SyncWatch::default(),
         })
     }
 

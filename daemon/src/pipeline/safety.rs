@@ -97,6 +97,36 @@ impl Run {
                 })
             }
             r => r.map_err(Into::into),
+        }?;
+        self.sync.from = Some(Instant::now() + self.devices.tdc.rate_latency());
+        if !self.sync.verified {
+            self.verify_sync()?;
+            self.sync.verified = true;
+        }
+        Ok(())
+    }
+
+    /// With the laser just switched on, the first time this session: waits out the
+    /// counter's rate meter (answering a stop), then reads the sync rate and fails
+    /// the run if it is none or not the configured one
+    /// ([`crate::config::InstrumentConfig::sync_fault`]), before anything is measured.
+    /// Later switch-ons (after a suspension, between adaptive batches) do not wait:
+    /// [`Run::capture_suspension`] checks every reading that shows the sync since.
+    fn verify_sync(&mut self) -> Result<(), PipelineError> {
+        let until = self.sync.from.unwrap_or_else(Instant::now);
+        while Instant::now() < until {
+            self.checkpoint()?;
+            std::thread::sleep((until - Instant::now()).min(SUSPENDED_POLL));
+        }
+        let sync = self.devices.tdc.status()?.rates.sync;
+        self.check_sync(sync)
+    }
+
+    /// Fails the run on a sync rate the instrument config does not expect.
+    fn check_sync(&self, sync: f64) -> Result<(), PipelineError> {
+        match self.instrument.sync_fault(sync) {
+            Some(fault) => Err(PipelineError::Sync(fault)),
+            None => Ok(()),
         }
     }
 
@@ -161,7 +191,13 @@ impl Run {
             *flagged = FlagRun::default();
             return Ok(Some(Suspension::Flagged(n)));
         }
-        let rate = self.devices.tdc.status()?.rates.detector;
+        let rates = self.devices.tdc.status()?.rates;
+        // The laser is on (checked above); once the rate meter shows the sync since
+        // it went on, a sync that stops or changes fails the run.
+        if self.sync.from.is_some_and(|t| Instant::now() >= t) {
+            self.check_sync(rates.sync)?;
+        }
+        let rate = rates.detector;
         let max = self.plan.suspend.max_count_rate;
         if rate > max {
             return Ok(Some(Suspension::Rate(rate, max)));

@@ -645,4 +645,10 @@ impl Histogrammer for PicoQuantTdc {
             })
         })
     }
+
+    /// The vendor's demos: "after Init or SetSyncDiv you must allow > 400 ms for valid
+    /// new count rate readings; otherwise you get new values after every 100 ms".
+    fn rate_latency(&self) -> Duration {
+        Duration::from_millis(400)
+    }
 }

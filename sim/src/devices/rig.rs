@@ -182,6 +182,9 @@ pub(crate) struct RigState {
     /// The laser is gated by a line from outside (a DAQ's digital output): the
     /// controller's own watchdog plays no part ([`Rig::gate_externally`]).
     pub external_gate: bool,
+    /// How fast the laser pulses now, hertz: the detector's rate until
+    /// [`Rig::set_repetition_rate`] changes it.
+    pub repetition_rate: f64,
 }
 
 /// Emission changes remembered for [`Rig::emission_changes`].
@@ -391,6 +394,7 @@ impl Rig {
             tdc_refused_reopens: 0,
             tdc_unplugged: false,
             external_gate: false,
+            repetition_rate: settings.detector.repetition_rate,
         };
         Rig {
             shared: Arc::new(Shared {
@@ -408,6 +412,12 @@ impl Rig {
             Fault::Galvo(arm, f) => s.arms[arm.index()].faults.push_back(f),
             Fault::Tdc(f) => s.tdc_faults.push_back(f),
         }
+    }
+
+    /// The laser pulses at `hz` from now on (another preset, another laser): the
+    /// photons per pulse and the counter's sync rate follow.
+    pub fn set_repetition_rate(&self, hz: f64) {
+        self.shared.lock().repetition_rate = hz;
     }
 
     /// Pulls the histogrammer's cable now: the transfer in progress and every later one

@@ -166,12 +166,13 @@ fn expected(shared: &Shared, cfg: WireConfig) -> Vec<f64> {
     det.bins = cfg.bins as usize;
     det.bin_width = f64::from(cfg.bin_width_ps) * 1e-12;
     det.offset = f64::from(cfg.offset_ps) * 1e-12;
-    det.repetition_rate /= f64::from(cfg.sync_divider.max(1));
     let dwell = f64::from(cfg.acquisition_us) * 1e-6;
     let (laser, spad, emission, diffuser_in) = {
         let s = shared.lock();
+        det.repetition_rate = s.repetition_rate;
         (s.arms[0].target, s.arms[1].target, s.emission(), s.diffuser_in)
     };
+    det.repetition_rate /= f64::from(cfg.sync_divider.max(1));
     let background = det;
     let dark = || background.expected_counts(&vec![0.0; background.bins], None, dwell);
     let Some(world) = shared.world.as_ref().filter(|_| emission) else {
@@ -239,7 +240,7 @@ pub(crate) fn measure(shared: &Shared, cfg: WireConfig, n: u64) -> Measurement {
 
 /// The sync rate after the divider, Hz.
 pub(crate) fn sync_rate(shared: &Shared, cfg: WireConfig) -> f64 {
-    shared.settings.detector.repetition_rate / f64::from(cfg.sync_divider.max(1))
+    shared.lock().repetition_rate / f64::from(cfg.sync_divider.max(1))
 }
 
 impl UsbTransport for SimTdcTransport {
