@@ -408,6 +408,26 @@ fn check_judges_the_tdc_window_against_the_paths_the_run_needs() {
     std::fs::write(&plan, &fixed).unwrap();
     let after = periscope(&["check", plan.to_str().unwrap()]).stdout;
     assert_eq!(verdicts(&after), all, "{fixed}{after}");
+
+    // A volume whose paths (to 36.7 m) run past what the sync period holds (100 ns at
+    // 10 MHz, 30 m): no window records them, and the bins that would (6,898 from
+    // 12 ns, which `check` named until 2026-12-06) end past the period, which the plan
+    // refuses. The warning names the divider instead.
+    let far = text.replace("z = [0.3, 0.9]", "z = [0.3, 16.0]");
+    std::fs::write(&plan, &far).unwrap();
+    let out = periscope(&["check", plan.to_str().unwrap()]).stdout;
+    assert!(
+        out.contains("warning: acquisition:")
+            && out.contains("past the 29.98 m a sync period holds")
+            && out.contains("a larger tdc.sync-divider"),
+        "{out}"
+    );
+    assert!(!out.contains("bins at least"), "{out}");
+    let past = far.replace("[acquisition]\n", "[acquisition]\nbins = 6898\n");
+    std::fs::write(&plan, &past).unwrap();
+    let refused = periscope(&["check", plan.to_str().unwrap()]);
+    assert_eq!(refused.code, Some(2), "{refused:?}");
+    assert!(refused.stderr.contains("sync period"), "{}", refused.stderr);
 }
 
 /// The later offset a window warning names (`or acquisition.offset-ns X and bins at

@@ -554,13 +554,35 @@ fn window(plan: &Plan, inst: &InstrumentConfig) -> (String, Vec<String>) {
         (from, false)
     };
     let bins = bins_from(start);
+    // A counter times each photon from the last sync: a window past the sync period is
+    // refused with the plan, so no suggestion may end past it.
+    let within_period = |offset_ns: f64, bins: u64| {
+        crate::config::window_past_period(
+            offset_ns * 1e-9,
+            u32::try_from(bins).unwrap_or(u32::MAX),
+            a.bin_width,
+            inst.tdc.sync_divider,
+            inst.laser.repetition_rate,
+        )
+        .is_none()
+    };
     // A window that starts well before the paths wastes bins: a later offset needs
     // fewer, and may need no more than a histogram holds where this one does.
     let later = (!moved && offset_ns > a.offset * 1e9 + step_ns / 2.0)
         .then(|| bins_from(start_at(offset_ns)))
-        .filter(|&b| b < bins && b <= MAX_PLAN_BINS)
+        .filter(|&b| b < bins && b <= MAX_PLAN_BINS && within_period(offset_ns, b))
         .map(|b| format!("acquisition.offset-ns {} and bins at least {b}", shown(offset_ns)));
-    if bins > MAX_PLAN_BINS {
+    let start_ns = if moved { offset_ns } else { a.offset * 1e9 };
+    if bins > u64::from(a.bins) && !within_period(start_ns, bins) && later.is_none() {
+        let period = f64::from(inst.tdc.sync_divider) / inst.laser.repetition_rate;
+        fix.push(format!(
+            "paths to {far:.2} m, past the {:.2} m a sync period holds (tdc.sync-divider / \
+             laser.rep-rate-mhz, {:.1} ns, less the system delay): a larger tdc.sync-divider, \
+             or a [recon.volume] nearer the relay",
+            C0 * (period - inst.tdc.system_delay),
+            period * 1e9
+        ));
+    } else if bins > MAX_PLAN_BINS {
         match later {
             Some(later) => fix.push(later),
             None => fix.push(format!(
