@@ -35,6 +35,27 @@ pub enum OfflineError {
     /// The reconstruction or its outputs failed.
     #[error(transparent)]
     Pipeline(#[from] PipelineError),
+    /// The volume needs more memory than this machine has free.
+    #[error(
+        "{}: the volume of {shape:?} voxels needs about {:.1} GiB ({per} bytes a voxel {why}), more than the {:.1} GiB free to this process (the machine's available memory, within any address-space limit): a smaller [volume] shape (or coarser voxels over the same bounds)",
+        config.display(),
+        *need as f64 / GIB,
+        *available as f64 / GIB
+    )]
+    Memory {
+        /// The RECON.toml, or the capture whose defaults set the volume.
+        config: PathBuf,
+        /// The volume's shape.
+        shape: [usize; 3],
+        /// Bytes a voxel.
+        per: u64,
+        /// What the bytes a voxel hold.
+        why: &'static str,
+        /// Bytes needed.
+        need: u64,
+        /// Bytes free.
+        available: u64,
+    },
     /// An adaptive replay was asked for with a method that has no running fit.
     #[error(
         "--adaptive-replay adaptive chooses pairs from the running 3D-GTR fit, but the settings' method is {method}: use method = \"gtr\", or replay the uniform or random order"
@@ -52,6 +73,7 @@ impl OfflineError {
         match self {
             OfflineError::Config(_)
             | OfflineError::AdaptiveNeedsGtr { .. }
+            | OfflineError::Memory { .. }
             | OfflineError::Pipeline(PipelineError::Config(_)) => true,
             OfflineError::Capture(e) => e.is_config(),
             OfflineError::Pipeline(PipelineError::Recon(e)) => e.is_settings(),
@@ -83,11 +105,13 @@ pub fn recon(capture: &Path, config: Option<&Path>, out: &Path) -> Result<(), Of
 
 /// Opens `capture`, reads its settings and transients, and says what it read.
 fn load(capture: &Path, config: Option<&Path>) -> Result<(ReconSettings, Transients), OfflineError> {
+    let capture_path = capture;
     let capture = Capture::open(capture)?;
     let settings = match config {
         Some(path) => load_recon(&TomlSource::load(path)?, capture.default_volume().ok())?,
         None => capture.default_recon()?,
     };
+    volume_fits(&settings, config.unwrap_or(capture_path))?;
     let t = capture.transients(&settings.volume, settings.laser_falloff)?;
     println!("{}", capture.describe());
     if let Some(f) = &t.falloff {
@@ -110,6 +134,46 @@ fn load(capture: &Path, config: Option<&Path>) -> Result<(ReconSettings, Transie
         );
     }
     Ok((settings, t))
+}
+
+/// Bytes in a GiB.
+const GIB: f64 = (1u64 << 30) as f64;
+
+/// Refuses a volume this machine cannot hold before anything is computed: a process
+/// that asks for more memory than there is gets aborted by its allocator, or killed,
+/// minutes into the work. The figures are what `periscope recon` was measured to take
+/// (peak resident memory over the volume's voxels, 2026-12-06, at 256³ and 1024³ on
+/// the validation captures): about 20 bytes a voxel where FBP makes the volume (its
+/// phasor accumulation, the magnitude and the output), whether as the method or after
+/// 3D-GTR; 4 where LCT, f-k or RSD solve on the capture's own grid and resample to
+/// the volume.
+fn volume_fits(settings: &ReconSettings, config: &Path) -> Result<(), OfflineError> {
+    use periscope_recon::solver::SolverKind;
+    let Some(available) = periscope_recon::io::memory_available() else {
+        return Ok(());
+    };
+    let fbp = match settings.method {
+        Method::Gtr => settings.solver == SolverKind::Fbp,
+        Method::Solver(kind) => kind == SolverKind::Fbp,
+    };
+    let (per, why) = if fbp {
+        (20u64, "where FBP makes it")
+    } else {
+        (4, "for the volume the solver resamples to")
+    };
+    let shape = settings.volume.shape;
+    let need = shape.iter().fold(per, |a, &n| a.saturating_mul(n as u64));
+    if need > available {
+        return Err(OfflineError::Memory {
+            config: config.to_owned(),
+            shape,
+            per,
+            why,
+            need,
+            available,
+        });
+    }
+    Ok(())
 }
 
 /// `periscope recon CAPTURE --adaptive-replay ORDER`: emulates an adaptive capture on
