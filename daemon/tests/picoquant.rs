@@ -193,6 +193,92 @@ fn a_sync_rate_the_config_does_not_expect_fails_the_run_before_the_multiharp_mea
     assert_eq!(s.parked(), (true, true));
 }
 
+/// The MultiHarp drops off the bus in the middle of a capture and is back at once: its
+/// driver reopens it (initialised again, its rate meter showing no sync for 400 ms),
+/// and the run reads the sync again after that latency instead of failing on the
+/// first reading, and completes with every pair.
+#[test]
+fn a_multiharp_reopened_mid_capture_is_not_taken_for_a_lost_sync() {
+    use periscope_daemon::events::{EventSink, RunEvent};
+    use periscope_drivers::picoquant::Family;
+    let _one = exclusive();
+    let tmp = tempfile::tempdir().unwrap();
+    let (s, lab) = bench(tmp.path(), 0.0);
+    let dir = prepare(tmp.path(), &lab, PLAN);
+    let events = EventSink::open(&dir).unwrap();
+    let s2 = s;
+    events.listen(move |e| {
+        if let RunEvent::Pair { done: 8, .. } = e {
+            s2.vanish(Family::MultiHarp, 0, 0);
+        }
+    });
+    s.clear_calls();
+    let run = periscope_daemon::pipeline::Run::open(
+        &dir,
+        periscope_daemon::pipeline::Control::new(),
+        Some(events),
+        None,
+    )
+    .unwrap();
+    run.execute().unwrap();
+    let calls = s.calls();
+    let inits = calls.iter().filter(|c| c.starts_with("MH_Initialize(")).count();
+    assert!(inits >= 2, "the counter was not reopened: {calls:?}");
+    let info = periscope_daemon::run_dir::RunInfo::load(&dir).unwrap();
+    assert_eq!(info.state, periscope_daemon::run_dir::RunState::Completed);
+    assert!(!s.emission());
+    assert_eq!(s.parked(), (true, true));
+}
+
+/// A pause during the wait for the rate meter (400 ms with the laser on, before the
+/// first LOS point) is answered within the wait's 20 ms poll: the laser is off within
+/// the docs' 50 ms and the run ends paused, having measured nothing.
+#[test]
+fn a_pause_while_the_run_waits_for_the_sync_reading_is_answered_at_once() {
+    use std::time::{Duration, Instant};
+    let _one = exclusive();
+    let tmp = tempfile::tempdir().unwrap();
+    let (s, lab) = bench(tmp.path(), 0.0);
+    let dir = prepare(tmp.path(), &lab, PLAN);
+    s.clear_calls();
+    let control = periscope_daemon::pipeline::Control::new();
+    let watcher = {
+        let (s, control) = (s, control.clone());
+        std::thread::spawn(move || {
+            let started = Instant::now();
+            while !s.emission() && started.elapsed() < Duration::from_secs(20) {
+                std::thread::sleep(Duration::from_micros(200));
+            }
+            std::thread::sleep(Duration::from_millis(100));
+            let paused = Instant::now();
+            control.pause();
+            paused
+        })
+    };
+    let run = periscope_daemon::pipeline::Run::open(&dir, control, None, None).unwrap();
+    let e = run
+        .execute()
+        .map(drop)
+        .expect_err("the run went on after the pause");
+    let returned = Instant::now();
+    let paused = watcher.join().unwrap();
+    assert!(e.to_string().contains("paused"), "{e}");
+    assert!(
+        returned - paused < Duration::from_millis(500),
+        "{:?}",
+        returned - paused
+    );
+    let off = s
+        .emission_log()
+        .into_iter()
+        .find(|(at, on, _)| !on && *at >= paused)
+        .map(|(at, _, _)| at)
+        .expect("the laser went off");
+    assert!(off - paused < Duration::from_millis(50), "{:?}", off - paused);
+    assert!(!s.calls().iter().any(|c| c.starts_with("MH_StartMeas(")));
+    assert_eq!(s.parked(), (true, true));
+}
+
 /// A fresh bench and prepared run for one case of the stop matrix.
 fn matrix_bench(tmp: &Path) -> (Standin, PathBuf) {
     let (s, lab) = bench(tmp, 1.0);

@@ -92,6 +92,9 @@ fn the_vendors_multiharp_demo_sequence_runs_through_the_driver() {
     assert_eq!(info.serial, "1045678");
     assert!(info.model.contains("MultiHarp"), "{info:?}");
     tdc.configure(&config(20.0, 30)).unwrap();
+    // The rates (and the warnings made from them) are read once the meters read true,
+    // 400 ms after SetSyncDiv, as the demo waits; an acquisition before then skips them.
+    std::thread::sleep(tdc.rate_latency());
     let h = tdc.acquire().unwrap();
     assert_eq!(h.counts.len(), 1024);
     assert!(
@@ -131,9 +134,6 @@ fn the_vendors_multiharp_demo_sequence_runs_through_the_driver() {
             "MH_GetWarnings(0, *)",
         ],
     );
-    // The rate meter shows the sync set by `SetSyncDiv` once the vendor's 400 ms
-    // have passed (the driver's `rate_latency`).
-    std::thread::sleep(tdc.rate_latency());
     let status = tdc.status().unwrap();
     assert_eq!(status.rates.sync, 10e6, "the laser's 10 MHz, divider 1");
     assert_eq!(status.acquisitions, 1);
@@ -506,4 +506,56 @@ fn a_missing_library_says_which_path_was_tried_and_what_to_install() {
         .unwrap();
     assert_eq!(e.kind(), ErrorKind::Protocol, "{e}");
     assert!(e.to_string().contains("MH_GetLibraryVersion"), "{e}");
+}
+
+/// The rate meter as the vendor's demos describe it: for 400 ms after `Initialize` the
+/// sync reads 0, and for 400 ms after `SetSyncDiv` the rate from before; then the
+/// laser's rate over the divider. The driver's `rate_latency` is that time.
+#[test]
+fn the_sync_rate_meter_lags_initialise_and_set_sync_div() {
+    let _one = exclusive();
+    let tmp = tempfile::tempdir().unwrap();
+    let s = standin(tmp.path(), 0.0);
+    let mut tdc = PicoQuantTdc::open(settings(Family::MultiHarp, s.path())).unwrap();
+    assert_eq!(tdc.rate_latency(), Duration::from_millis(400));
+    tdc.configure(&config(20.0, 10)).unwrap();
+    assert_eq!(
+        tdc.status().unwrap().rates.sync,
+        0.0,
+        "read at once after Initialize"
+    );
+    std::thread::sleep(tdc.rate_latency());
+    assert_eq!(tdc.status().unwrap().rates.sync, 10e6);
+    tdc.configure(&TdcConfig {
+        sync_divider: 2,
+        ..config(20.0, 10)
+    })
+    .unwrap();
+    assert_eq!(
+        tdc.status().unwrap().rates.sync,
+        10e6,
+        "read at once after SetSyncDiv"
+    );
+    std::thread::sleep(tdc.rate_latency());
+    assert_eq!(tdc.status().unwrap().rates.sync, 5e6);
+}
+
+/// Within 400 ms of `SetSyncDiv` the rate meters read nothing true (a sync of 0 after
+/// `Initialize`), so the warnings made from them would call every histogram piled up:
+/// the driver reads neither then, and flags nothing.
+#[test]
+fn no_histogram_is_flagged_from_rates_the_meter_has_not_settled() {
+    let _one = exclusive();
+    let tmp = tempfile::tempdir().unwrap();
+    let s = standin(tmp.path(), 0.0);
+    let mut tdc = PicoQuantTdc::open(settings(Family::MultiHarp, s.path())).unwrap();
+    tdc.configure(&config(20.0, 10)).unwrap();
+    s.clear_calls();
+    let h = tdc.acquire().unwrap();
+    assert!(!h.flags.saturated, "{:?}", h.flags);
+    assert!(
+        !s.calls().iter().any(|c| c.starts_with("MH_GetWarnings")),
+        "{:?}",
+        s.calls()
+    );
 }

@@ -130,15 +130,23 @@ impl Calibrator {
             Err(e) if e.kind() == ErrorKind::Interrupted => return Err(CalibrateError::Stopped),
             r => r?,
         }
-        // As a run's: the sync the counter reads once its rate meter shows it, before
-        // anything is measured.
-        let until = Instant::now() + self.devices.tdc.rate_latency();
-        while Instant::now() < until {
-            self.checkpoint()?;
-            std::thread::sleep((until - Instant::now()).min(Duration::from_millis(20)));
-        }
-        let sync = self.devices.tdc.status()?.rates.sync;
-        match self.config.sync_fault(sync) {
+        // As a run's: the sync the counter reads once its rate meter shows it, with
+        // the laser still on, before anything is measured.
+        let control = self.control.clone();
+        let wait = |d: Duration| {
+            let until = Instant::now() + d;
+            while Instant::now() < until {
+                if control.stopping() {
+                    return Err(CalibrateError::Stopped);
+                }
+                std::thread::sleep((until - Instant::now()).min(Duration::from_millis(20)));
+            }
+            Ok(())
+        };
+        wait(self.devices.tdc.rate_latency())?;
+        self.watch_laser()?;
+        let first = self.devices.tdc.status()?.rates.sync;
+        match crate::devices::confirmed_sync_fault(&mut self.devices.tdc, &self.config, first, wait)? {
             Some(fault) => Err(CalibrateError::Sync(fault)),
             None => Ok(()),
         }

@@ -212,7 +212,9 @@ pub enum PipelineError {
     /// The counter's sync rate, read with the laser on, is none or not what the
     /// instrument config says the laser pulses at
     /// ([`crate::config::InstrumentConfig::sync_fault`]).
-    #[error("{0}; the laser is off and the run kept what it measured (resume it once this is fixed)")]
+    #[error(
+        "{0}. The laser is off and the run kept what it measured: resume it once the laser is put right; a run keeps the instrument config it started with, so for a config put right submit the plan again as a new run"
+    )]
     Sync(String),
     /// A bug: code in the pipeline panicked. The instrument was made safe and the
     /// data kept; the run can be resumed.

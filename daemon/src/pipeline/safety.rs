@@ -59,6 +59,25 @@ impl FlagRun {
     }
 }
 
+/// Sleeps `d` in slices of [`SUSPENDED_POLL`], returning the pause or abort asked for
+/// in the meantime (a checkpoint feeds the laser's stall watchdog as well).
+fn wait_answering_stops(
+    control: &super::Control,
+    stage: crate::events::Stage,
+    pairs: usize,
+    d: Duration,
+) -> Result<(), PipelineError> {
+    let until = Instant::now() + d;
+    loop {
+        control.check(stage, pairs)?;
+        let left = until.saturating_duration_since(Instant::now());
+        if left.is_zero() {
+            return Ok(());
+        }
+        std::thread::sleep(left.min(SUSPENDED_POLL));
+    }
+}
+
 /// How long a run whose laser switch-on an emergency off refused waits for the stop
 /// request that comes with it.
 const STOP_REQUEST_WAIT: Duration = Duration::from_millis(100);
@@ -100,34 +119,44 @@ impl Run {
         }?;
         self.sync.from = Some(Instant::now() + self.devices.tdc.rate_latency());
         if !self.sync.verified {
-            self.verify_sync()?;
-            self.sync.verified = true;
+            self.sync.verified = self.verify_sync()?;
         }
         Ok(())
     }
 
-    /// With the laser just switched on, the first time this session: waits out the
-    /// counter's rate meter (answering a stop), then reads the sync rate and fails
-    /// the run if it is none or not the configured one
-    /// ([`crate::config::InstrumentConfig::sync_fault`]), before anything is measured.
+    /// With the laser just switched on, until one such check has passed this session:
+    /// waits out the counter's rate meter (answering a stop), then reads the sync rate
+    /// and fails the run if it is none or not the configured one (confirmed:
+    /// [`crate::devices::confirmed_sync_fault`]), before anything is measured. Whether
+    /// it judged: an interlock that opened or emission that dropped while it waited is
+    /// left to the suspenders at the first reading, and the next switch-on judges.
     /// Later switch-ons (after a suspension, between adaptive batches) do not wait:
     /// [`Run::capture_suspension`] checks every reading that shows the sync since.
-    fn verify_sync(&mut self) -> Result<(), PipelineError> {
+    fn verify_sync(&mut self) -> Result<bool, PipelineError> {
         let until = self.sync.from.unwrap_or_else(Instant::now);
-        while Instant::now() < until {
-            self.checkpoint()?;
-            std::thread::sleep((until - Instant::now()).min(SUSPENDED_POLL));
+        self.wait_answering_stops(until.saturating_duration_since(Instant::now()))?;
+        if self.laser_suspension()?.is_some() {
+            return Ok(false);
         }
-        let sync = self.devices.tdc.status()?.rates.sync;
-        self.check_sync(sync)
+        let first = self.devices.tdc.status()?.rates.sync;
+        self.sync_verdict(first)?;
+        Ok(true)
     }
 
-    /// Fails the run on a sync rate the instrument config does not expect.
-    fn check_sync(&self, sync: f64) -> Result<(), PipelineError> {
-        match self.instrument.sync_fault(sync) {
+    /// Fails the run on a sync rate the instrument config does not expect, read again
+    /// after the counter's rate-meter latency before it is believed.
+    fn sync_verdict(&mut self, first: f64) -> Result<(), PipelineError> {
+        let (control, stage, pairs) = (self.control.clone(), self.stage, self.info.pairs_done);
+        let wait = |d: Duration| wait_answering_stops(&control, stage, pairs, d);
+        match crate::devices::confirmed_sync_fault(&mut self.devices.tdc, &self.instrument, first, wait)? {
             Some(fault) => Err(PipelineError::Sync(fault)),
             None => Ok(()),
         }
+    }
+
+    /// Sleeps `d`, answering a pause or abort within [`SUSPENDED_POLL`].
+    fn wait_answering_stops(&self, d: Duration) -> Result<(), PipelineError> {
+        wait_answering_stops(&self.control, self.stage, self.info.pairs_done, d)
     }
 
     /// Waits (at most [`STOP_REQUEST_WAIT`]) for the stop request that comes with an
@@ -195,7 +224,7 @@ impl Run {
         // The laser is on (checked above); once the rate meter shows the sync since
         // it went on, a sync that stops or changes fails the run.
         if self.sync.from.is_some_and(|t| Instant::now() >= t) {
-            self.check_sync(rates.sync)?;
+            self.sync_verdict(rates.sync)?;
         }
         let rate = rates.detector;
         let max = self.plan.suspend.max_count_rate;

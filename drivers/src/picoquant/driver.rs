@@ -85,7 +85,16 @@ pub struct PicoQuantTdc {
     acquisitions: u32,
     counts: Vec<u32>,
     last_warnings: i32,
+    /// The rate meter's readings, and the warnings the library makes from them, are
+    /// valid from this instant: [`RATE_SETTLE`] after the last `Initialize` or
+    /// `SetSyncDiv`.
+    rates_from: Instant,
 }
+
+/// How long after `Initialize` or `SetSyncDiv` the rate meters read true: the vendor's
+/// demos say "you must allow > 400 ms for valid new count rate readings; otherwise you
+/// get new values after every 100 ms".
+const RATE_SETTLE: Duration = Duration::from_millis(400);
 
 impl ErrorType for PicoQuantTdc {
     type Error = PicoQuantError;
@@ -185,6 +194,7 @@ impl PicoQuantTdc {
             acquisitions: 0,
             counts: Vec::new(),
             last_warnings: 0,
+            rates_from: Instant::now() + RATE_SETTLE,
         };
         if let Err(e) = tdc.initialise() {
             let _ = tdc.lib.close_device(tdc.index);
@@ -207,6 +217,7 @@ impl PicoQuantTdc {
 
     /// Initialise, identify, calibrate and apply the static settings.
     fn initialise(&mut self) -> Result<(), PicoQuantError> {
+        self.rates_from = Instant::now() + RATE_SETTLE;
         self.info = self.identify_device()?;
         let (dev, lib) = (self.index, &self.lib);
         let channels = self.call("GetNumOfInputChannels", lib.input_channels(dev))?;
@@ -374,6 +385,7 @@ impl PicoQuantTdc {
         self.initialise()?;
         if let Some(a) = self.applied {
             self.apply(&a.config)?;
+            self.rates_from = Instant::now() + RATE_SETTLE;
         }
         Ok(())
     }
@@ -460,7 +472,11 @@ impl PicoQuantTdc {
                 ),
             ));
         }
-        let saturated = self.warnings()? & (warning::INPT_RATE_RATIO | warning::INPT_RATE_TOO_HIGH) != 0;
+        // Warnings come from the rate meters, which read nothing true for a while after
+        // the counter was (re)initialised or its divider set: a sync of 0 then would
+        // flag every histogram as piled up.
+        let saturated = Instant::now() >= self.rates_from
+            && self.warnings()? & (warning::INPT_RATE_RATIO | warning::INPT_RATE_TOO_HIGH) != 0;
         self.sequence = self.sequence.wrapping_add(1);
         self.acquisitions = self.acquisitions.wrapping_add(1);
         Ok(Histogram {
@@ -600,7 +616,11 @@ impl Histogrammer for PicoQuantTdc {
 
     fn configure(&mut self, config: &TdcConfig) -> Result<(), PicoQuantError> {
         let c = *config;
-        let applied = self.with_recovery(|d| d.apply(&c))?;
+        let applied = self.with_recovery(|d| {
+            let applied = d.apply(&c)?;
+            d.rates_from = Instant::now() + RATE_SETTLE;
+            Ok(applied)
+        })?;
         self.applied = Some(applied);
         Ok(())
     }
@@ -649,6 +669,6 @@ impl Histogrammer for PicoQuantTdc {
     /// The vendor's demos: "after Init or SetSyncDiv you must allow > 400 ms for valid
     /// new count rate readings; otherwise you get new values after every 100 ms".
     fn rate_latency(&self) -> Duration {
-        Duration::from_millis(400)
+        RATE_SETTLE
     }
 }

@@ -419,4 +419,11 @@ impl<T: UsbTransport> Histogrammer for UsbTdc<T> {
             })
         })
     }
+
+    /// The protocol's rate meter counts the sync over gates of
+    /// [`protocol::RATE_GATE`]: a change shows in full once a whole gate has passed
+    /// after it, so within two.
+    fn rate_latency(&self) -> Duration {
+        2 * protocol::RATE_GATE
+    }
 }

@@ -192,6 +192,10 @@ pub mod state {
     pub const ERROR: u8 = 2;
 }
 
+/// The gate of the device's sync rate meter: `GET_STATUS` reports the sync (after
+/// the divider) counted over the last whole gate.
+pub const RATE_GATE: std::time::Duration = std::time::Duration::from_millis(100);
+
 /// Status returned by `GET_STATUS`.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct WireStatus {
@@ -199,7 +203,7 @@ pub struct WireStatus {
     pub state: u8,
     /// Device error code, 0 = none.
     pub error: u8,
-    /// Sync rate after the divider, Hz.
+    /// Sync rate after the divider, Hz, over the last whole [`RATE_GATE`].
     pub sync_rate_hz: u32,
     /// Detector input rate, Hz.
     pub input_rate_hz: u32,
