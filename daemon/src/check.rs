@@ -575,12 +575,22 @@ fn window(plan: &Plan, inst: &InstrumentConfig) -> (String, Vec<String>) {
     let start_ns = if moved { offset_ns } else { a.offset * 1e9 };
     if bins > u64::from(a.bins) && !within_period(start_ns, bins) && later.is_none() {
         let period = f64::from(inst.tdc.sync_divider) / inst.laser.repetition_rate;
+        // A PicoQuant counter takes dividers up to its family's largest.
+        let divide_more = match &inst.tdc.driver {
+            TdcDriver::PicoQuant(counter) => counter.family.sync_divider_ok(inst.tdc.sync_divider * 2),
+            TdcDriver::Usb => true,
+        };
         fix.push(format!(
             "paths to {far:.2} m, past the {:.2} m a sync period holds (tdc.sync-divider / \
-             laser.rep-rate-mhz, {:.1} ns, less the system delay): a larger tdc.sync-divider, \
-             or a [recon.volume] nearer the relay",
+             laser.rep-rate-mhz, {:.1} ns, less the system delay): {}a [recon.volume] nearer \
+             the relay",
             C0 * (period - inst.tdc.system_delay),
-            period * 1e9
+            period * 1e9,
+            if divide_more {
+                "a larger tdc.sync-divider, or "
+            } else {
+                ""
+            }
         ));
     } else if bins > MAX_PLAN_BINS {
         match later {
@@ -592,12 +602,17 @@ fn window(plan: &Plan, inst: &InstrumentConfig) -> (String, Vec<String>) {
             )),
         }
     } else if bins > u64::from(a.bins) {
-        fix.push(format!(
-            "acquisition.bins at least {bins}{}",
-            if moved { " from there" } else { " at this offset" }
-        ));
-        if let Some(later) = later {
-            fix.push(format!("or {later}"));
+        // `later` is some here where the bins past this offset end past the period.
+        if within_period(start_ns, bins) {
+            fix.push(format!(
+                "acquisition.bins at least {bins}{}",
+                if moved { " from there" } else { " at this offset" }
+            ));
+            if let Some(later) = later {
+                fix.push(format!("or {later}"));
+            }
+        } else if let Some(later) = later {
+            fix.push(later);
         }
     }
     let fix = if fix.is_empty() {

@@ -37,7 +37,7 @@ pub enum OfflineError {
     Pipeline(#[from] PipelineError),
     /// The volume needs more memory than this machine has free.
     #[error(
-        "{}: the volume of {shape:?} voxels needs about {:.1} GiB ({per} bytes a voxel {why}), more than the {:.1} GiB free to this process (the machine's available memory, within any address-space limit): a smaller [volume] shape (or coarser voxels over the same bounds)",
+        "{}: the volume of {shape:?} voxels needs about {:.1} GiB ({per} bytes a voxel {why}), more than the {:.1} GiB free to this process (the machine's available memory, within any address-space limit): a smaller [volume] shape (a RECON.toml given with --config sets it), or coarser voxels over the same bounds",
         config.display(),
         *need as f64 / GIB,
         *available as f64 / GIB
@@ -142,11 +142,11 @@ const GIB: f64 = (1u64 << 30) as f64;
 /// Refuses a volume this machine cannot hold before anything is computed: a process
 /// that asks for more memory than there is gets aborted by its allocator, or killed,
 /// minutes into the work. The figures are what `periscope recon` was measured to take
-/// (peak resident memory over the volume's voxels, 2026-12-06, at 256³ and 1024³ on
-/// the validation captures): about 20 bytes a voxel where FBP makes the volume (its
-/// phasor accumulation, the magnitude and the output), whether as the method or after
-/// 3D-GTR; 4 where LCT, f-k or RSD solve on the capture's own grid and resample to
-/// the volume.
+/// (peak resident memory over the volume's voxels, 2026-12-06, at 256³ to 1024³ on
+/// the validation captures): about 20 bytes a voxel where FBP with its phasor filter
+/// makes the volume (the complex accumulation, the magnitude and the output), whether
+/// as the method or after 3D-GTR; 8 with the Laplacian filter, 4 unfiltered; 4 where
+/// LCT, f-k or RSD solve on the capture's own grid and resample to the volume.
 fn volume_fits(settings: &ReconSettings, config: &Path) -> Result<(), OfflineError> {
     use periscope_recon::solver::SolverKind;
     let Some(available) = periscope_recon::io::memory_available() else {
@@ -156,10 +156,11 @@ fn volume_fits(settings: &ReconSettings, config: &Path) -> Result<(), OfflineErr
         Method::Gtr => settings.solver == SolverKind::Fbp,
         Method::Solver(kind) => kind == SolverKind::Fbp,
     };
-    let (per, why) = if fbp {
-        (20u64, "where FBP makes it")
-    } else {
-        (4, "for the volume the solver resamples to")
+    use periscope_recon::solver::FbpFilter;
+    let (per, why) = match settings.solvers.fbp.filter {
+        FbpFilter::Phasor if fbp => (20u64, "where FBP's phasor filter makes it"),
+        FbpFilter::Laplacian if fbp => (8, "where FBP's Laplacian filter makes it"),
+        _ => (4, "for the volume the solver makes"),
     };
     let shape = settings.volume.shape;
     let need = shape.iter().fold(per, |a, &n| a.saturating_mul(n as u64));
