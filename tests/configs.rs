@@ -249,7 +249,9 @@ fn check_refuses_a_plan_over_the_budget_naming_the_key() {
     let plan = dir.path().join("huge.toml");
     std::fs::write(&plan, huge).unwrap();
     let out = periscope(&["check", plan.to_str().unwrap()]);
-    assert_eq!(out.code, Some(1), "{out:?}");
+    // Exit 2, a configuration fault, as `periscope run` refuses the same plan (it
+    // was 1 until 2026-12-06).
+    assert_eq!(out.code, Some(2), "{out:?}");
     assert!(out.stdout.contains("OVER BUDGET"), "{}", out.stdout);
     assert!(
         out.stderr.contains("over budget") && out.stderr.contains("recon.volume.shape"),

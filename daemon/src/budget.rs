@@ -83,7 +83,7 @@ pub fn recon_items(recon: &ReconSettings, pairs: u64, bins: u64, estimates_gains
             Some(res) => mul(&res.map(|n| n.max(most) as u64)),
             None => mul(&[most as u64, most as u64]),
         };
-        const GRID: &str = "recon.gtr.virtual-grid (default one point per voxel pitch; grown to cover the volume, up to 128 per axis)";
+        const GRID: &str = "recon.gtr.virtual-grid (default one point per voxel pitch after fbp, 64 × 64 after lct, fk and rsd; grown to cover the volume, up to 128 per axis)";
         let m = VIRTUAL_SCAN_BINS as u64;
         let cells = usize::try_from(virt).unwrap_or(usize::MAX);
         let to_u64 = |b: usize| u64::try_from(b).unwrap_or(u64::MAX);

@@ -139,8 +139,9 @@ pub enum Command {
     Keys(crate::admin::KeysCommand),
     /// Show the audit trail: who submitted, paused, aborted, e-stopped, made keys.
     Audit(crate::admin::AuditArgs),
-    /// List serial ports and USB devices, and say which ones the instrument config
-    /// selects.
+    /// List serial ports and USB devices, then open the instrument config's devices
+    /// through their drivers and show what each reports (the laser is not switched
+    /// on).
     Devices {
         /// The instrument to use.
         #[command(flatten)]
@@ -448,12 +449,13 @@ fn devices(config: &InstrumentConfig) -> Result<(), CliError> {
         deg(r.spad_position)
     );
     println!(
-        "  histogrammer {} {} serial {}  {:?}, sync {:.0} Hz, detector {:.0} Hz, {} histograms since power-up",
+        "  histogrammer {} {} serial {}  {:?}, sync {:.0} Hz (the config expects {:.0} Hz with the laser on: laser.rep-rate-mhz / tdc.sync-divider), detector {:.0} Hz, {} histograms since power-up",
         r.tdc.model,
         r.tdc.firmware,
         r.tdc.serial,
         r.tdc_status.state,
         r.tdc_status.rates.sync,
+        config.expected_sync_rate(),
         r.tdc_status.rates.detector,
         r.tdc_status.acquisitions
     );
@@ -632,6 +634,8 @@ impl CliError {
             CliError::Calibrate(e) => e.is_config(),
             CliError::Admin(crate::admin::AdminError::Config(_) | crate::admin::AdminError::Usage(_)) => true,
             CliError::OutIsRun(_) => true,
+            // The plan against the instrument's limits, as `run` refuses it.
+            CliError::Budget { .. } => true,
             _ => false,
         };
         if config {

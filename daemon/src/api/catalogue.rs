@@ -212,7 +212,7 @@ pub(super) async fn batch(
 }
 
 /// Run a past run's exact plan again as a new run (operator)
-#[utoipa::path(post, path = "/api/v1/runs/{id}/again", security(("bearer" = [])), params(("id" = String, Path, description = "the run to repeat")), responses((status = 201, description = "queued; Location names the new run", body = RunStatus), (status = 401, description = status::UNAUTHORISED, body = ErrorBody), (status = 403, description = status::FORBIDDEN, body = ErrorBody), (status = 404, description = status::NOT_FOUND, body = ErrorBody), (status = 422, description = status::INVALID_PLAN, body = ErrorBody), (status = 423, description = status::LOCKED, body = ErrorBody), (status = 429, description = status::QUEUE_FULL, body = ErrorBody)))]
+#[utoipa::path(post, path = "/api/v1/runs/{id}/again", security(("bearer" = [])), params(("id" = String, Path, description = "the run to repeat")), responses((status = 201, description = "queued; Location names the new run", body = RunStatus), (status = 401, description = status::UNAUTHORISED, body = ErrorBody), (status = 403, description = status::FORBIDDEN, body = ErrorBody), (status = 404, description = status::NOT_FOUND, body = ErrorBody), (status = 409, description = "an imported run has no plan to run again", body = ErrorBody), (status = 422, description = status::INVALID_PLAN, body = ErrorBody), (status = 423, description = status::LOCKED, body = ErrorBody), (status = 429, description = status::QUEUE_FULL, body = ErrorBody)))]
 pub(super) async fn again(
     State(state): State<AppState>,
     axum::Extension(caller): axum::Extension<Caller>,

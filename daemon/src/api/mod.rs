@@ -368,7 +368,8 @@ pub fn app(state: AppState) -> Router {
     let timed: Router<AppState> = checks
         .merge(limited)
         .layer(timeout)
-        .merge(exempt.layer(estop_timeout));
+        .merge(exempt.layer(estop_timeout))
+        .layer(middleware::map_response(timeout_as_json));
     let imports = imports.layer(DefaultBodyLimit::disable());
     timed
         .merge(imports)
@@ -555,6 +556,22 @@ pub fn host_allowed(host: &str, names: &[String]) -> bool {
         && (name.parse::<std::net::Ipv4Addr>().is_ok()
             || name == "localhost"
             || names.iter().any(|n| n.trim_end_matches('.') == name))
+}
+
+/// The timeout layer's answer (a bare 408) as the API's other errors are: JSON
+/// `request-timeout`, naming the key that sets the limit.
+async fn timeout_as_json(res: axum::response::Response) -> axum::response::Response {
+    if res.status() == StatusCode::REQUEST_TIMEOUT
+        && !res.headers().contains_key(axum::http::header::CONTENT_TYPE)
+    {
+        return ApiError::new(
+            StatusCode::REQUEST_TIMEOUT,
+            "request-timeout",
+            "the request took longer than the daemon allows ([api] request-timeout-s): what it asked for may or may not have been done; look at the run's or the queue's state before trying again",
+        )
+        .into_response();
+    }
+    res
 }
 
 async fn not_found() -> ApiError {
@@ -1136,6 +1153,7 @@ mod tests {
     use crate::pipeline::PipelineError;
     use std::error::Error as _;
     use std::path::PathBuf;
+    use std::time::Duration;
 
     fn io(kind: std::io::ErrorKind) -> std::io::Error {
         std::io::Error::new(kind, "disk says no")
@@ -1220,6 +1238,58 @@ mod tests {
             let api = ApiError::from(ServiceError::Prepare(e));
             assert_eq!((api.status, api.code), (status, code), "{text}");
             assert_eq!(api.message, text, "the message is the cause's own");
+        }
+    }
+
+    /// A request the timeout layer cuts off is answered as every other error is: JSON
+    /// `request-timeout` naming the key (until 2026-12-06 a bare 408 with no body);
+    /// a 408 that is already JSON (an import's `upload-stalled`) is left as it is.
+    #[test]
+    fn a_request_timeout_is_a_json_error() {
+        use tower::ServiceExt as _;
+        let slow = Router::new()
+            .route(
+                "/slow",
+                get(|| async {
+                    tokio::time::sleep(Duration::from_secs(5)).await;
+                    "late"
+                }),
+            )
+            .route(
+                "/stalled",
+                get(|| async { ApiError::new(StatusCode::REQUEST_TIMEOUT, "upload-stalled", "no bytes") }),
+            )
+            .layer(tower_http::timeout::TimeoutLayer::with_status_code(
+                StatusCode::REQUEST_TIMEOUT,
+                Duration::from_millis(20),
+            ))
+            .layer(middleware::map_response(timeout_as_json));
+        let rt = tokio::runtime::Builder::new_current_thread()
+            .enable_all()
+            .build()
+            .unwrap();
+        for (uri, code) in [("/slow", "request-timeout"), ("/stalled", "upload-stalled")] {
+            let res = rt
+                .block_on(
+                    slow.clone().oneshot(
+                        axum::http::Request::get(uri)
+                            .body(axum::body::Body::empty())
+                            .unwrap(),
+                    ),
+                )
+                .unwrap();
+            assert_eq!(res.status(), StatusCode::REQUEST_TIMEOUT);
+            let body = rt
+                .block_on(axum::body::to_bytes(res.into_body(), 1 << 16))
+                .unwrap();
+            let v: serde_json::Value = serde_json::from_slice(&body).unwrap();
+            assert_eq!(v["error"], code, "{v}");
+            if code == "request-timeout" {
+                assert!(
+                    v["message"].as_str().unwrap().contains("request-timeout-s"),
+                    "{v}"
+                );
+            }
         }
     }
 }

@@ -278,7 +278,7 @@ impl Plan {
     fn read(src: &TomlSource, instrument: &InstrumentConfig, new: bool) -> Result<Plan, ConfigError> {
         let raw: RawPlan = src.parse()?;
         if raw.name.trim().is_empty() || raw.name.len() > 64 {
-            return Err(src.invalid("name", "must be 1 to 64 characters"));
+            return Err(src.invalid("name", "must be 1 to 64 bytes long (64 ASCII characters)"));
         }
         let los = {
             let l = &raw.los;
