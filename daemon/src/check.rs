@@ -577,7 +577,9 @@ fn window(plan: &Plan, inst: &InstrumentConfig) -> (String, Vec<String>) {
         let period = f64::from(inst.tdc.sync_divider) / inst.laser.repetition_rate;
         // A PicoQuant counter takes dividers up to its family's largest.
         let divide_more = match &inst.tdc.driver {
-            TdcDriver::PicoQuant(counter) => counter.family.sync_divider_ok(inst.tdc.sync_divider * 2),
+            TdcDriver::PicoQuant(counter) => {
+                (inst.tdc.sync_divider + 1..=1024).any(|d| counter.family.sync_divider_ok(d))
+            }
             TdcDriver::Usb => true,
         };
         fix.push(format!(

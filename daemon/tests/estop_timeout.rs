@@ -66,6 +66,55 @@ async fn an_estop_outlasting_the_request_timeout_is_still_answered() {
         answered > Duration::from_secs(1),
         "the run's way out did not outlast the timeout: {answered:?}"
     );
+
     svc.shutdown();
     worker.join().unwrap();
+}
+
+/// Any other request past the timeout is answered as every error is: JSON
+/// `request-timeout` naming the key (a bare 408 with no body until 2026-12-06). A run's
+/// status waits here for the blocking pool's one thread, taken for 3 s.
+#[test]
+fn a_request_past_the_timeout_is_a_json_error() {
+    let rt = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .max_blocking_threads(1)
+        .enable_all()
+        .build()
+        .unwrap();
+    rt.block_on(async {
+        let dir = tempfile::tempdir().unwrap();
+        let src = common::sim_instrument(
+            dir.path(),
+            0.0,
+            &format!("token = \"{TOKEN}\"\nrequest-timeout-s = 1.0\n"),
+            "",
+        );
+        let svc = Service::open(src, Some(TOKEN.to_owned())).unwrap();
+        let router = app(AppState::new(Arc::clone(&svc)));
+        let (taken_tx, taken) = std::sync::mpsc::channel();
+        let hog = tokio::task::spawn_blocking(move || {
+            taken_tx.send(()).unwrap();
+            std::thread::sleep(Duration::from_secs(3));
+        });
+        taken.recv().unwrap();
+        let t = Instant::now();
+        // Without a key: a loopback read, which asks the key store nothing (the key
+        // check, outside the timeout, would wait on the pool too).
+        let (s, bytes) = common::send(
+            &router,
+            common::request(Method::GET, "/api/v1/runs/nothing-here", None, &[], ""),
+        )
+        .await;
+        let v: Value = serde_json::from_slice(&bytes).unwrap_or(Value::Null);
+        assert_eq!(s, StatusCode::REQUEST_TIMEOUT, "after {:?}: {v}", t.elapsed());
+        assert!(t.elapsed() < Duration::from_secs(2), "{:?}", t.elapsed());
+        assert_eq!(v["error"], "request-timeout", "{v}");
+        assert!(
+            v["message"].as_str().unwrap().contains("request-timeout-s"),
+            "{v}"
+        );
+        hog.await.unwrap();
+        svc.shutdown();
+    });
 }

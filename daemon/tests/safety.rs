@@ -533,11 +533,12 @@ fn a_histogrammer_unplugged_for_good_fails_the_capture_keeps_its_pairs_and_resum
 
 /// A prepared run on the default simulated instrument in real time whose laser really
 /// pulses at `true_mhz` (`sim.true-rep-rate-mhz`; its config says 10 MHz).
-fn prepare_pulsing_at(tmp: &Path, plan: &str, true_mhz: f64) -> (PathBuf, SimBackend) {
+fn prepare_pulsing_at(tmp: &Path, plan: &str, true_mhz: f64, divider: u32) -> (PathBuf, SimBackend) {
     let src = instrument();
     let text = src
         .text()
-        .replacen("[sim]\n", &format!("[sim]\ntrue-rep-rate-mhz = {true_mhz}\n"), 1);
+        .replacen("[sim]\n", &format!("[sim]\ntrue-rep-rate-mhz = {true_mhz}\n"), 1)
+        .replacen("sync-divider = 1\n", &format!("sync-divider = {divider}\n"), 1);
     let src = TomlSource::from_text(src.path(), text);
     let rig = SimBackend::from_config(&InstrumentConfig::from_source(&src).unwrap())
         .unwrap()
@@ -557,7 +558,7 @@ fn prepare_pulsing_at(tmp: &Path, plan: &str, true_mhz: f64) -> (PathBuf, SimBac
 fn a_laser_pulsing_at_another_rate_than_configured_fails_the_run_before_it_measures() {
     let _serial = ONE_AT_A_TIME.lock().unwrap_or_else(|p| p.into_inner());
     let tmp = tempfile::tempdir().unwrap();
-    let (dir, rig) = prepare_pulsing_at(tmp.path(), &plan(), 20.0);
+    let (dir, rig) = prepare_pulsing_at(tmp.path(), &plan(), 20.0, 1);
     let e = execute(&dir, &rig, Control::new(), |_| {})
         .expect_err("a run on a laser at twice its configured rate")
         .to_string();
@@ -570,6 +571,25 @@ fn a_laser_pulsing_at_another_rate_than_configured_fails_the_run_before_it_measu
     assert_eq!(info.state, RunState::Failed);
     assert!(!dir.join("relay.ply").exists(), "the LOS scan went on");
     assert!(read_log(&dir).map_or(true, |l| l.records.is_empty()));
+    assert!(!rig.emission());
+    assert_eq!(rig.parked(), (true, true));
+}
+
+/// With a divider of 2, a laser at twice its configured rate gives Periscope's counter
+/// (whose meter counts after the divider) the laser's configured rate: that is a
+/// fault, not a pass, and the run fails before it measures.
+#[test]
+fn a_laser_at_the_divider_times_its_configured_rate_is_not_taken_for_a_meter_before_the_divider() {
+    let _serial = ONE_AT_A_TIME.lock().unwrap_or_else(|p| p.into_inner());
+    let tmp = tempfile::tempdir().unwrap();
+    let (dir, rig) = prepare_pulsing_at(tmp.path(), &plan(), 20.0, 2);
+    let e = execute(&dir, &rig, Control::new(), |_| {})
+        .expect_err("a laser at twice its rate behind a divider of 2")
+        .to_string();
+    assert!(
+        e.contains("sync rate of 10.0000 MHz") && e.contains("tdc.sync-divider = 2 gives 5.0000 MHz"),
+        "{e}"
+    );
     assert!(!rig.emission());
     assert_eq!(rig.parked(), (true, true));
 }

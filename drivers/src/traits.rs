@@ -299,6 +299,12 @@ pub trait Histogrammer: ErrorType {
     fn rate_latency(&self) -> Duration {
         Duration::ZERO
     }
+    /// Whether [`Histogrammer::status`]'s sync rate is counted after the sync divider
+    /// (`Some(true)`, the default: Periscope's counter and the simulator), before it
+    /// (`Some(false)`), or `None` where the vendor's documents do not settle which.
+    fn sync_after_divider(&self) -> Option<bool> {
+        Some(true)
+    }
 }
 
 /// A galvo pair, whatever drives it.
@@ -434,5 +440,8 @@ where
     }
     fn rate_latency(&self) -> Duration {
         self.0.rate_latency()
+    }
+    fn sync_after_divider(&self) -> Option<bool> {
+        self.0.sync_after_divider()
     }
 }

@@ -368,8 +368,12 @@ pub fn app(state: AppState) -> Router {
     let timed: Router<AppState> = checks
         .merge(limited)
         .layer(timeout)
-        .merge(exempt.layer(estop_timeout))
-        .layer(middleware::map_response(timeout_as_json));
+        .layer(middleware::map_response(timeout_as_json))
+        .merge(
+            exempt
+                .layer(estop_timeout)
+                .layer(middleware::map_response(estop_timeout_as_json)),
+        );
     let imports = imports.layer(DefaultBodyLimit::disable());
     timed
         .merge(imports)
@@ -568,6 +572,22 @@ async fn timeout_as_json(res: axum::response::Response) -> axum::response::Respo
             StatusCode::REQUEST_TIMEOUT,
             "request-timeout",
             "the request took longer than the daemon allows ([api] request-timeout-s): what it asked for may or may not have been done; look at the run's or the queue's state before trying again",
+        )
+        .into_response();
+    }
+    res
+}
+
+/// [`timeout_as_json`] for the e-stop and the health check, whose limit is at least
+/// [`ESTOP_TIMEOUT`]: an e-stop not answered in that time has an unknown outcome.
+async fn estop_timeout_as_json(res: axum::response::Response) -> axum::response::Response {
+    if res.status() == StatusCode::REQUEST_TIMEOUT
+        && !res.headers().contains_key(axum::http::header::CONTENT_TYPE)
+    {
+        return ApiError::new(
+            StatusCode::REQUEST_TIMEOUT,
+            "request-timeout",
+            "no answer within the e-stop's time limit (the larger of 10 s and [api] request-timeout-s): whether the laser is off is not known from here; use the hardware emergency stop and read GET /api/v1/instrument",
         )
         .into_response();
     }

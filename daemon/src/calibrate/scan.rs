@@ -143,10 +143,20 @@ impl Calibrator {
             }
             Ok(())
         };
-        wait(self.devices.tdc.rate_latency())?;
+        let latency = self.devices.tdc.rate_latency();
+        let after = self.devices.tdc.sync_after_divider();
+        wait(latency)?;
         self.watch_laser()?;
         let first = self.devices.tdc.status()?.rates.sync;
-        match crate::devices::confirmed_sync_fault(&mut self.devices.tdc, &self.config, first, wait)? {
+        if self.config.sync_fault(first, after).is_none() {
+            return Ok(());
+        }
+        // Read again after the meter's latency before it is believed: a counter
+        // reopened or reconfigured meanwhile reads its old rate, or none, that long.
+        wait(latency)?;
+        self.watch_laser()?;
+        let second = self.devices.tdc.status()?.rates.sync;
+        match self.config.sync_fault(second, after) {
             Some(fault) => Err(CalibrateError::Sync(fault)),
             None => Ok(()),
         }

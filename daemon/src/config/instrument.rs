@@ -1124,17 +1124,32 @@ impl InstrumentConfig {
     /// [`InstrumentConfig::expected_sync_rate`]. The pile-up correction counts laser
     /// cycles with the configured rate, and the window's check against the sync
     /// period rests on it, so a laser that pulses at another rate than its config says
-    /// corrupts both silently. With a divider above 1 the laser's own rate passes too:
-    /// whether a counter's rate meter counts before or after its divider is not the
-    /// same for every vendor (Periscope's counter, the simulator and the PicoQuant
-    /// stand-in count after it).
-    pub fn sync_fault(&self, measured_hz: f64) -> Option<String> {
-        let expected = self.expected_sync_rate();
+    /// corrupts both silently. `after_divider` says whether the counter's meter counts
+    /// after the divider ([`periscope_drivers::Histogrammer::sync_after_divider`]):
+    /// before it, the laser's own rate is expected; where that is not known (`None`)
+    /// and the divider is above 1, either passes.
+    pub fn sync_fault(&self, measured_hz: f64, after_divider: Option<bool>) -> Option<String> {
+        let (laser, divided) = (self.laser.repetition_rate, self.expected_sync_rate());
+        let expected = if after_divider == Some(false) {
+            laser
+        } else {
+            divided
+        };
         let keys = format!(
-            "laser.rep-rate-mhz = {} over tdc.sync-divider = {} gives {}",
-            self.laser.repetition_rate / 1e6,
+            "laser.rep-rate-mhz = {} over tdc.sync-divider = {} gives {}{}",
+            laser / 1e6,
             self.tdc.sync_divider,
-            hz_text(expected)
+            hz_text(divided),
+            match after_divider {
+                Some(false) => format!(
+                    " ({} before the divider, where this counter counts)",
+                    hz_text(laser)
+                ),
+                None if self.tdc.sync_divider > 1 => {
+                    format!(" ({} if this counter counts before the divider)", hz_text(laser))
+                }
+                _ => String::new(),
+            }
         );
         if !(measured_hz > 0.0) {
             return Some(format!(
@@ -1142,8 +1157,8 @@ impl InstrumentConfig {
             ));
         }
         let off = |rate: f64| (measured_hz / rate - 1.0).abs();
-        let before_divider = self.tdc.sync_divider > 1 && off(self.laser.repetition_rate) <= SYNC_TOLERANCE;
-        (off(expected) > SYNC_TOLERANCE && !before_divider).then(|| {
+        let either = after_divider.is_none() && off(laser) <= SYNC_TOLERANCE;
+        (off(expected) > SYNC_TOLERANCE && !either).then(|| {
             format!(
                 "the counter reads a sync rate of {} with the laser on, {:.1} % off what {keys}: set laser.rep-rate-mhz (and tdc.sync-divider) to what the laser really does, since the pile-up correction and the window's check rest on them",
                 hz_text(measured_hz),
@@ -1819,24 +1834,37 @@ mod tests {
     fn a_sync_rate_off_the_configured_one_is_named_with_its_keys() {
         let sim = load(&SIM.replace("sync-divider = 1", "sync-divider = 4")).unwrap();
         assert_eq!(sim.expected_sync_rate(), 2.5e6);
-        assert_eq!(sim.sync_fault(2.5e6), None);
-        assert_eq!(sim.sync_fault(2.5e6 * 1.019), None);
-        assert_eq!(sim.sync_fault(2.5e6 * 0.981), None);
-        // The laser's own rate: a rate meter that counts before the divider.
-        assert_eq!(sim.sync_fault(10e6 * 1.01), None);
-        for wrong in [2.5e6 * 1.03, 2.5e6 * 0.97, 10e6 * 1.03, 5e6, 20e6] {
-            let e = sim.sync_fault(wrong).expect("a rate 3 % or more off passed");
+        let after = Some(true);
+        assert_eq!(sim.sync_fault(2.5e6, after), None);
+        assert_eq!(sim.sync_fault(2.5e6 * 1.019, after), None);
+        assert_eq!(sim.sync_fault(2.5e6 * 0.981, after), None);
+        // A meter that counts after the divider reading the laser's own rate is a laser
+        // at four times the configured rate.
+        for wrong in [2.5e6 * 1.03, 2.5e6 * 0.97, 10e6, 5e6, 20e6] {
+            let e = sim
+                .sync_fault(wrong, after)
+                .expect("a rate 3 % or more off passed");
             assert!(
                 e.contains("laser.rep-rate-mhz = 10 over tdc.sync-divider = 4 gives 2.5000 MHz")
                     && e.contains("% off"),
                 "{e}"
             );
         }
+        // A meter that counts before it expects the laser's rate; one not known, either.
+        assert_eq!(sim.sync_fault(10e6 * 1.01, Some(false)), None);
+        assert!(sim.sync_fault(2.5e6, Some(false)).is_some());
+        assert_eq!(sim.sync_fault(10e6 * 1.01, None), None);
+        assert_eq!(sim.sync_fault(2.5e6, None), None);
+        let e = sim.sync_fault(5e6, None).unwrap();
+        assert!(
+            e.contains("10.0000 MHz if this counter counts before the divider"),
+            "{e}"
+        );
         let odd = load(&SIM.replace("rep-rate-mhz = 10.0", "rep-rate-mhz = 2.7")).unwrap();
-        let e = odd.sync_fault(1e6).unwrap();
+        let e = odd.sync_fault(1e6, after).unwrap();
         assert!(e.contains("laser.rep-rate-mhz = 2.7 over"), "{e}");
         for none in [0.0, -1.0, f64::NAN] {
-            let e = sim.sync_fault(none).expect("no sync passed");
+            let e = sim.sync_fault(none, after).expect("no sync passed");
             assert!(e.contains("no sync pulses") && e.contains("sync input"), "{e}");
         }
     }

@@ -105,25 +105,6 @@ fn within_hard_limits(name: &str, arm: &mut GalvoBox) -> Result<(), OpenError> {
     )))
 }
 
-/// The sync fault a first reading `first` (hertz) shows, confirmed: a reading off the
-/// config ([`InstrumentConfig::sync_fault`]) is read again after the counter's
-/// rate-meter latency (`wait` sleeps that long, answering a stop), since a counter
-/// reopened or reconfigured in between shows its old rate, or none, that long. Only a
-/// second reading off as well is a fault.
-pub(crate) fn confirmed_sync_fault<E: From<DeviceError>>(
-    tdc: &mut HistogrammerBox,
-    instrument: &InstrumentConfig,
-    first: f64,
-    mut wait: impl FnMut(std::time::Duration) -> Result<(), E>,
-) -> Result<Option<String>, E> {
-    if instrument.sync_fault(first).is_none() {
-        return Ok(None);
-    }
-    wait(tdc.rate_latency())?;
-    let second = tdc.status().map_err(E::from)?.rates.sync;
-    Ok(instrument.sync_fault(second))
-}
-
 /// The instrument's devices, opened.
 pub struct Devices {
     /// Laser arm galvo pair.

@@ -8,7 +8,7 @@ use periscope_drivers::{HistogramFlags, TdcConfig};
 use periscope_recon::{Pair, TransientSet};
 
 use super::reconstruct::{Fit, ReconInput};
-use super::safety::FlagRun;
+use super::safety::{FlagRun, PairVerdict};
 use super::{PipelineError, ReconError, Run};
 use crate::adaptive::{Order, Selector};
 use crate::events::RunEvent;
@@ -359,9 +359,11 @@ impl Run {
                 flags.saturated |= h.flags.saturated;
             }
             match self.capture_suspension(flags, flagged)? {
-                None => break (counts, flags),
-                // This pair's histograms are not kept: the light changed under them.
-                Some(s) => self.suspend(s, Some(&mut *log))?,
+                PairVerdict::Keep => break (counts, flags),
+                // This pair's histograms are not kept: the sync was in doubt under them.
+                PairVerdict::Again => {}
+                // Nor here: the light changed under them.
+                PairVerdict::Suspend(s) => self.suspend(s, Some(&mut *log))?,
             }
         };
         Ok(Record {

@@ -44,6 +44,29 @@ impl Suspension {
     }
 }
 
+/// What a sync reading says ([`Run::sync_verdict`]).
+#[derive(Debug)]
+enum SyncVerdict {
+    /// As configured.
+    Right,
+    /// Off, then right after the rate meter's latency: what was measured under the
+    /// first reading is measured again.
+    Again,
+    /// The laser stopped meanwhile: the suspenders' to handle.
+    Laser(Suspension),
+}
+
+/// What a measured pair's histograms are worth ([`Run::capture_suspension`]).
+#[derive(Debug)]
+pub(crate) enum PairVerdict {
+    /// Keep them.
+    Keep,
+    /// Measure the pair again at once (the sync read off while it was measured).
+    Again,
+    /// Suspend, then measure it again.
+    Suspend(Suspension),
+}
+
 /// Counts consecutive flagged histograms.
 #[derive(Default)]
 pub(crate) struct FlagRun(u32);
@@ -126,12 +149,12 @@ impl Run {
 
     /// With the laser just switched on, until one such check has passed this session:
     /// waits out the counter's rate meter (answering a stop), then reads the sync rate
-    /// and fails the run if it is none or not the configured one (confirmed:
-    /// [`crate::devices::confirmed_sync_fault`]), before anything is measured. Whether
-    /// it judged: an interlock that opened or emission that dropped while it waited is
-    /// left to the suspenders at the first reading, and the next switch-on judges.
-    /// Later switch-ons (after a suspension, between adaptive batches) do not wait:
-    /// [`Run::capture_suspension`] checks every reading that shows the sync since.
+    /// and fails the run if it is none or not the configured one ([`Run::sync_verdict`]),
+    /// before anything is measured. Whether it judged: an interlock that opened or
+    /// emission that dropped while it waited is left to the suspenders at the first
+    /// reading, and the next switch-on judges. Later switch-ons (after a suspension,
+    /// between adaptive batches) do not wait: [`Run::capture_suspension`] checks every
+    /// reading that shows the sync since.
     fn verify_sync(&mut self) -> Result<bool, PipelineError> {
         let until = self.sync.from.unwrap_or_else(Instant::now);
         self.wait_answering_stops(until.saturating_duration_since(Instant::now()))?;
@@ -139,18 +162,36 @@ impl Run {
             return Ok(false);
         }
         let first = self.devices.tdc.status()?.rates.sync;
-        self.sync_verdict(first)?;
-        Ok(true)
+        Ok(!matches!(self.sync_verdict(first)?, SyncVerdict::Laser(_)))
     }
 
-    /// Fails the run on a sync rate the instrument config does not expect, read again
-    /// after the counter's rate-meter latency before it is believed.
-    fn sync_verdict(&mut self, first: f64) -> Result<(), PipelineError> {
-        let (control, stage, pairs) = (self.control.clone(), self.stage, self.info.pairs_done);
-        let wait = |d: Duration| wait_answering_stops(&control, stage, pairs, d);
-        match crate::devices::confirmed_sync_fault(&mut self.devices.tdc, &self.instrument, first, wait)? {
+    /// The sync reading `first` (hertz) against the instrument config
+    /// ([`crate::config::InstrumentConfig::sync_fault`]). A reading off is read again
+    /// after the counter's rate-meter latency before it is believed (a counter reopened
+    /// or reconfigured in between reads its old rate, or none, that long): off again,
+    /// the run fails; right now, what was measured under the first is measured again.
+    /// An interlock that opened or emission that dropped during the wait is handed to
+    /// the suspenders instead.
+    fn sync_verdict(&mut self, first: f64) -> Result<SyncVerdict, PipelineError> {
+        let after = self.devices.tdc.sync_after_divider();
+        if self.instrument.sync_fault(first, after).is_none() {
+            return Ok(SyncVerdict::Right);
+        }
+        self.wait_answering_stops(self.devices.tdc.rate_latency())?;
+        if let Some(s) = self.laser_suspension()? {
+            return Ok(SyncVerdict::Laser(s));
+        }
+        let second = self.devices.tdc.status()?.rates.sync;
+        match self.instrument.sync_fault(second, after) {
             Some(fault) => Err(PipelineError::Sync(fault)),
-            None => Ok(()),
+            None => {
+                tracing::warn!(
+                    first_hz = first,
+                    then_hz = second,
+                    "the counter's sync read off the config, then right after its rate meter's latency: what was measured meanwhile is measured again"
+                );
+                Ok(SyncVerdict::Again)
+            }
         }
     }
 
@@ -210,28 +251,32 @@ impl Run {
         &mut self,
         flags: HistogramFlags,
         flagged: &mut FlagRun,
-    ) -> Result<Option<Suspension>, PipelineError> {
+    ) -> Result<PairVerdict, PipelineError> {
         if let Some(s) = self.laser_suspension()? {
-            return Ok(Some(s));
-        }
-        let n = flagged.record(flags);
-        let limit = self.plan.suspend.flagged_frames;
-        if limit > 0 && n >= limit {
-            *flagged = FlagRun::default();
-            return Ok(Some(Suspension::Flagged(n)));
+            return Ok(PairVerdict::Suspend(s));
         }
         let rates = self.devices.tdc.status()?.rates;
         // The laser is on (checked above); once the rate meter shows the sync since
         // it went on, a sync that stops or changes fails the run.
         if self.sync.from.is_some_and(|t| Instant::now() >= t) {
-            self.sync_verdict(rates.sync)?;
+            match self.sync_verdict(rates.sync)? {
+                SyncVerdict::Right => {}
+                SyncVerdict::Again => return Ok(PairVerdict::Again),
+                SyncVerdict::Laser(s) => return Ok(PairVerdict::Suspend(s)),
+            }
+        }
+        let n = flagged.record(flags);
+        let limit = self.plan.suspend.flagged_frames;
+        if limit > 0 && n >= limit {
+            *flagged = FlagRun::default();
+            return Ok(PairVerdict::Suspend(Suspension::Flagged(n)));
         }
         let rate = rates.detector;
         let max = self.plan.suspend.max_count_rate;
         if rate > max {
-            return Ok(Some(Suspension::Rate(rate, max)));
+            return Ok(PairVerdict::Suspend(Suspension::Rate(rate, max)));
         }
-        Ok(None)
+        Ok(PairVerdict::Keep)
     }
 
     /// Switches the laser off and holds the run: with `resume = "operator"` the run

@@ -89,6 +89,10 @@ pub struct PicoQuantTdc {
     /// valid from this instant: [`RATE_SETTLE`] after the last `Initialize` or
     /// `SetSyncDiv`.
     rates_from: Instant,
+    /// The sync divider the device holds since it was last initialised: set again only
+    /// when it changes, since each `SetSyncDiv` blinds the rate meters for
+    /// [`RATE_SETTLE`].
+    sync_div_set: Option<u32>,
 }
 
 /// How long after `Initialize` or `SetSyncDiv` the rate meters read true: the vendor's
@@ -195,6 +199,7 @@ impl PicoQuantTdc {
             counts: Vec::new(),
             last_warnings: 0,
             rates_from: Instant::now() + RATE_SETTLE,
+            sync_div_set: None,
         };
         if let Err(e) = tdc.initialise() {
             let _ = tdc.lib.close_device(tdc.index);
@@ -217,8 +222,9 @@ impl PicoQuantTdc {
 
     /// Initialise, identify, calibrate and apply the static settings.
     fn initialise(&mut self) -> Result<(), PicoQuantError> {
-        self.rates_from = Instant::now() + RATE_SETTLE;
+        self.sync_div_set = None;
         self.info = self.identify_device()?;
+        self.rates_from = Instant::now() + RATE_SETTLE;
         let (dev, lib) = (self.index, &self.lib);
         let channels = self.call("GetNumOfInputChannels", lib.input_channels(dev))?;
         let ch = self.settings.channel as i32;
@@ -322,16 +328,21 @@ impl PicoQuantTdc {
 
     /// Applies `config`: sync divider, histogram length, binning and offset, each
     /// checked against what the device can do exactly.
-    fn apply(&self, config: &TdcConfig) -> Result<Applied, PicoQuantError> {
+    fn apply(&mut self, config: &TdcConfig) -> Result<Applied, PicoQuantError> {
         let family = self.settings.family;
-        let refuse = |what: String| self.err(ErrorKind::OutOfRange, what);
         let Settings {
             acquisition_ms,
             offset_ns,
             len_code,
-        } = family.settings(config).map_err(refuse)?;
+        } = family
+            .settings(config)
+            .map_err(|what| self.err(ErrorKind::OutOfRange, what))?;
         let (dev, lib) = (self.index, &self.lib);
-        self.call("SetSyncDiv", lib.set_sync_div(dev, config.sync_divider as i32))?;
+        if self.sync_div_set != Some(config.sync_divider) {
+            self.call("SetSyncDiv", lib.set_sync_div(dev, config.sync_divider as i32))?;
+            self.sync_div_set = Some(config.sync_divider);
+            self.rates_from = Instant::now() + RATE_SETTLE;
+        }
         let len = self.call("SetHistoLen", lib.set_histo_len(dev, len_code))?;
         if len < config.bins as i32 {
             return Err(self.err(
@@ -352,11 +363,14 @@ impl PicoQuantTdc {
             let options: Vec<String> = (0..6)
                 .map(|b| format!("{}", base_ps * f64::from(1 << b)))
                 .collect();
-            return Err(refuse(format!(
-                "this {family}'s bins are {base_ps} ps × 2^n wide, so {want_ps} ps is not available: \
+            return Err(self.err(
+                ErrorKind::OutOfRange,
+                format!(
+                    "this {family}'s bins are {base_ps} ps × 2^n wide, so {want_ps} ps is not available: \
                  set bin-width-ps to one of {}, ... ps",
-                options.join(", ")
-            )));
+                    options.join(", ")
+                ),
+            ));
         }
         self.call("SetBinning", lib.set_binning(dev, binning as i32))?;
         self.call("SetOffset", lib.set_offset(dev, offset_ns))?;
@@ -385,7 +399,6 @@ impl PicoQuantTdc {
         self.initialise()?;
         if let Some(a) = self.applied {
             self.apply(&a.config)?;
-            self.rates_from = Instant::now() + RATE_SETTLE;
         }
         Ok(())
     }
@@ -616,11 +629,7 @@ impl Histogrammer for PicoQuantTdc {
 
     fn configure(&mut self, config: &TdcConfig) -> Result<(), PicoQuantError> {
         let c = *config;
-        let applied = self.with_recovery(|d| {
-            let applied = d.apply(&c)?;
-            d.rates_from = Instant::now() + RATE_SETTLE;
-            Ok(applied)
-        })?;
+        let applied = self.with_recovery(|d| d.apply(&c))?;
         self.applied = Some(applied);
         Ok(())
     }
@@ -670,5 +679,11 @@ impl Histogrammer for PicoQuantTdc {
     /// new count rate readings; otherwise you get new values after every 100 ms".
     fn rate_latency(&self) -> Duration {
         RATE_SETTLE
+    }
+
+    /// MHLib's and HHLib's documents do not say whether `GetSyncRate` counts before or
+    /// after the divider (the stand-in counts after it).
+    fn sync_after_divider(&self) -> Option<bool> {
+        None
     }
 }
