@@ -203,12 +203,14 @@ fn a_multiharp_reopened_mid_capture_is_not_taken_for_a_lost_sync() {
     use periscope_drivers::picoquant::Family;
     let _one = exclusive();
     let tmp = tempfile::tempdir().unwrap();
-    let (s, lab) = bench(tmp.path(), 0.0);
+    let (s, lab) = bench(tmp.path(), 1.0);
     let dir = prepare(tmp.path(), &lab, PLAN);
     let events = EventSink::open(&dir).unwrap();
     let s2 = s;
     events.listen(move |e| {
-        if let RunEvent::Pair { done: 8, .. } = e {
+        // Late enough that the capture's laser has been on for the meter's 400 ms, so
+        // the pair after the reopen is judged (19 pairs of 30 ms, in real time).
+        if let RunEvent::Pair { done: 14, .. } = e {
             s2.vanish(Family::MultiHarp, 0, 0);
         }
     });
@@ -224,6 +226,18 @@ fn a_multiharp_reopened_mid_capture_is_not_taken_for_a_lost_sync() {
     let calls = s.calls();
     let inits = calls.iter().filter(|c| c.starts_with("MH_Initialize(")).count();
     assert!(inits >= 2, "the counter was not reopened: {calls:?}");
+    // The pair measured while the reopened meter read no sync was measured again, and
+    // stored once: one StartMeas more than the LOS points and pairs.
+    let planned = std::fs::read(dir.join("pairs.json")).unwrap();
+    let planned = serde_json::from_slice::<Vec<serde_json::Value>>(&planned)
+        .unwrap()
+        .len();
+    let starts = calls.iter().filter(|c| c.starts_with("MH_StartMeas(")).count();
+    assert_eq!(starts, 64 + planned + 1, "{planned} planned");
+    let log = periscope_daemon::store::read_log(&dir).unwrap();
+    let mut seen: Vec<u32> = log.records.iter().map(|r| r.pair).collect();
+    seen.sort_unstable();
+    assert_eq!(seen, (0..planned as u32).collect::<Vec<_>>());
     let info = periscope_daemon::run_dir::RunInfo::load(&dir).unwrap();
     assert_eq!(info.state, periscope_daemon::run_dir::RunState::Completed);
     assert!(!s.emission());

@@ -355,7 +355,21 @@ fn a_counter_that_vanishes_mid_acquisition_is_reopened_or_reported_gone() {
     let s = standin(tmp.path(), 1.0);
     let f = Family::MultiHarp;
     let mut tdc = PicoQuantTdc::open(settings(f, s.path())).unwrap();
-    tdc.configure(&config(20.0, 50)).unwrap();
+    // A divider other than the device's default after Initialize, so that restoring it
+    // shows in the calls.
+    let divided = TdcConfig {
+        sync_divider: 2,
+        ..config(20.0, 50)
+    };
+    tdc.configure(&divided).unwrap();
+    // The same divider again is not set again: each SetSyncDiv blinds the rate meters.
+    s.clear_calls();
+    tdc.configure(&divided).unwrap();
+    assert!(
+        !s.calls().iter().any(|c| c.starts_with("MH_SetSyncDiv")),
+        "{:?}",
+        s.calls()
+    );
 
     // Back at once: reopened by serial, the settings restored, the acquisition repeated.
     s.clear_calls();
@@ -377,6 +391,7 @@ fn a_counter_that_vanishes_mid_acquisition_is_reopened_or_reported_gone() {
             "MH_CloseDevice(0)",
             "MH_OpenDevice(0, *)",
             "MH_Initialize(0, 0, 0)",
+            "MH_SetSyncDiv(0, 2)",
             "MH_SetHistoLen(0, 2, *)",
             "MH_SetBinning(0, 2)",
             "MH_StartMeas(0, 50)",

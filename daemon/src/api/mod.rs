@@ -587,7 +587,7 @@ async fn estop_timeout_as_json(res: axum::response::Response) -> axum::response:
         return ApiError::new(
             StatusCode::REQUEST_TIMEOUT,
             "request-timeout",
-            "no answer within the e-stop's time limit (the larger of 10 s and [api] request-timeout-s): whether the laser is off is not known from here; use the hardware emergency stop and read GET /api/v1/instrument",
+            "no answer within the time limit of the e-stop and the health check (the larger of 10 s and [api] request-timeout-s): after an e-stop, whether the laser is off is not known from here; use the hardware emergency stop and read GET /api/v1/instrument",
         )
         .into_response();
     }

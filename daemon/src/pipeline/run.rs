@@ -49,6 +49,9 @@ pub(super) struct SyncWatch {
     pub(super) from: Option<Instant>,
     /// The first switch-on of this session waited for a reading and checked it.
     pub(super) verified: bool,
+    /// Times running the pair being measured was measured again because its sync
+    /// read off and then right.
+    pub(super) agains: u32,
 }
 
 /// The result of a finished run.

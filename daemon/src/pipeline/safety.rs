@@ -44,6 +44,10 @@ impl Suspension {
     }
 }
 
+/// How many times running one pair may be measured again because its sync read off
+/// and then right ([`PairVerdict::Again`]) before the run fails.
+const MAX_SYNC_AGAINS: u32 = 3;
+
 /// What a sync reading says ([`Run::sync_verdict`]).
 #[derive(Debug)]
 enum SyncVerdict {
@@ -188,7 +192,7 @@ impl Run {
                 tracing::warn!(
                     first_hz = first,
                     then_hz = second,
-                    "the counter's sync read off the config, then right after its rate meter's latency: what was measured meanwhile is measured again"
+                    "the counter's sync read off the config, then right after its rate meter's latency: a pair measured under the first reading is measured again"
                 );
                 Ok(SyncVerdict::Again)
             }
@@ -260,9 +264,22 @@ impl Run {
         // it went on, a sync that stops or changes fails the run.
         if self.sync.from.is_some_and(|t| Instant::now() >= t) {
             match self.sync_verdict(rates.sync)? {
-                SyncVerdict::Right => {}
-                SyncVerdict::Again => return Ok(PairVerdict::Again),
-                SyncVerdict::Laser(s) => return Ok(PairVerdict::Suspend(s)),
+                SyncVerdict::Right => self.sync.agains = 0,
+                SyncVerdict::Again => {
+                    // A sync or a counter link that keeps dropping out would have the
+                    // pair measured again for ever.
+                    self.sync.agains += 1;
+                    if self.sync.agains >= MAX_SYNC_AGAINS {
+                        return Err(PipelineError::Sync(format!(
+                            "the counter's sync read off, then right after its rate meter's latency, {MAX_SYNC_AGAINS} times running on one pair: the laser's sync, or the counter's link to this host, keeps dropping out"
+                        )));
+                    }
+                    return Ok(PairVerdict::Again);
+                }
+                SyncVerdict::Laser(s) => {
+                    self.sync.agains = 0;
+                    return Ok(PairVerdict::Suspend(s));
+                }
             }
         }
         let n = flagged.record(flags);

@@ -339,6 +339,8 @@ impl PicoQuantTdc {
             .map_err(|what| self.err(ErrorKind::OutOfRange, what))?;
         let (dev, lib) = (self.index, &self.lib);
         if self.sync_div_set != Some(config.sync_divider) {
+            // Unknown until the call answers.
+            self.sync_div_set = None;
             self.call("SetSyncDiv", lib.set_sync_div(dev, config.sync_divider as i32))?;
             self.sync_div_set = Some(config.sync_divider);
             self.rates_from = Instant::now() + RATE_SETTLE;
