@@ -562,36 +562,32 @@ pub fn host_allowed(host: &str, names: &[String]) -> bool {
             || names.iter().any(|n| n.trim_end_matches('.') == name))
 }
 
-/// The timeout layer's answer (a bare 408) as the API's other errors are: JSON
-/// `request-timeout`, naming the key that sets the limit.
-async fn timeout_as_json(res: axum::response::Response) -> axum::response::Response {
+/// The timeout layer's answer (a bare 408, no content type) as the API's other errors
+/// are: JSON `request-timeout` with `message`; any other response as it is.
+fn timeout_json(res: axum::response::Response, message: &'static str) -> axum::response::Response {
     if res.status() == StatusCode::REQUEST_TIMEOUT
         && !res.headers().contains_key(axum::http::header::CONTENT_TYPE)
     {
-        return ApiError::new(
-            StatusCode::REQUEST_TIMEOUT,
-            "request-timeout",
-            "the request took longer than the daemon allows ([api] request-timeout-s): what it asked for may or may not have been done; look at the run's or the queue's state before trying again",
-        )
-        .into_response();
+        return ApiError::new(StatusCode::REQUEST_TIMEOUT, "request-timeout", message).into_response();
     }
     res
 }
 
-/// [`timeout_as_json`] for the e-stop and the health check, whose limit is at least
+/// [`timeout_json`] for the routes under `[api] request-timeout-s`.
+async fn timeout_as_json(res: axum::response::Response) -> axum::response::Response {
+    timeout_json(
+        res,
+        "the request took longer than the daemon allows ([api] request-timeout-s): what it asked for may or may not have been done; look at the run's or the queue's state before trying again",
+    )
+}
+
+/// [`timeout_json`] for the e-stop and the health check, whose limit is at least
 /// [`ESTOP_TIMEOUT`]: an e-stop not answered in that time has an unknown outcome.
 async fn estop_timeout_as_json(res: axum::response::Response) -> axum::response::Response {
-    if res.status() == StatusCode::REQUEST_TIMEOUT
-        && !res.headers().contains_key(axum::http::header::CONTENT_TYPE)
-    {
-        return ApiError::new(
-            StatusCode::REQUEST_TIMEOUT,
-            "request-timeout",
-            "no answer within the time limit of the e-stop and the health check (the larger of 10 s and [api] request-timeout-s): after an e-stop, whether the laser is off is not known from here; use the hardware emergency stop and read GET /api/v1/instrument",
-        )
-        .into_response();
-    }
-    res
+    timeout_json(
+        res,
+        "no answer within the time limit of the e-stop and the health check (the larger of 10 s and [api] request-timeout-s): after an e-stop, whether the laser is off is not known from here; use the hardware emergency stop and read GET /api/v1/instrument",
+    )
 }
 
 async fn not_found() -> ApiError {

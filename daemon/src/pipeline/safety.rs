@@ -86,25 +86,6 @@ impl FlagRun {
     }
 }
 
-/// Sleeps `d` in slices of [`SUSPENDED_POLL`], returning the pause or abort asked for
-/// in the meantime (a checkpoint feeds the laser's stall watchdog as well).
-fn wait_answering_stops(
-    control: &super::Control,
-    stage: crate::events::Stage,
-    pairs: usize,
-    d: Duration,
-) -> Result<(), PipelineError> {
-    let until = Instant::now() + d;
-    loop {
-        control.check(stage, pairs)?;
-        let left = until.saturating_duration_since(Instant::now());
-        if left.is_zero() {
-            return Ok(());
-        }
-        std::thread::sleep(left.min(SUSPENDED_POLL));
-    }
-}
-
 /// How long a run whose laser switch-on an emergency off refused waits for the stop
 /// request that comes with it.
 const STOP_REQUEST_WAIT: Duration = Duration::from_millis(100);
@@ -199,9 +180,18 @@ impl Run {
         }
     }
 
-    /// Sleeps `d`, answering a pause or abort within [`SUSPENDED_POLL`].
+    /// Sleeps `d` in slices of [`SUSPENDED_POLL`], returning the pause or abort asked
+    /// for in the meantime (each checkpoint feeds the laser's stall watchdog as well).
     fn wait_answering_stops(&self, d: Duration) -> Result<(), PipelineError> {
-        wait_answering_stops(&self.control, self.stage, self.info.pairs_done, d)
+        let until = Instant::now() + d;
+        loop {
+            self.checkpoint()?;
+            let left = until.saturating_duration_since(Instant::now());
+            if left.is_zero() {
+                return Ok(());
+            }
+            std::thread::sleep(left.min(SUSPENDED_POLL));
+        }
     }
 
     /// Waits (at most [`STOP_REQUEST_WAIT`]) for the stop request that comes with an
