@@ -99,8 +99,8 @@ fn a_request_past_the_timeout_is_a_json_error() {
         });
         taken.recv().unwrap();
         let t = Instant::now();
-        // Without a key: a loopback read, which asks the key store nothing (the key
-        // check, outside the timeout, would wait on the pool too).
+        // Without a key: a loopback read, which asks the key store nothing (a key's
+        // check has a timeout of its own: the next test).
         let (s, bytes) = common::send(
             &router,
             common::request(Method::GET, "/api/v1/runs/nothing-here", None, &[], ""),
@@ -115,6 +115,70 @@ fn a_request_past_the_timeout_is_a_json_error() {
             "{v}"
         );
         hog.await.unwrap();
+        svc.shutdown();
+    });
+}
+
+/// The key check runs before the timeout layer, on the blocking pool (a key in
+/// `keys.json` may need the file read again). With the pool's one thread taken for
+/// 3 s, a request with such a key is answered with JSON `request-timeout` within the
+/// 1 s timeout: until 2026-12-06 it waited the whole 3 s, however short the timeout.
+/// One with the daemon's token, which reads no file, is answered at once.
+#[test]
+fn a_key_check_waiting_for_a_busy_pool_is_cut_off_at_the_timeout() {
+    let rt = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .max_blocking_threads(1)
+        .enable_all()
+        .build()
+        .unwrap();
+    rt.block_on(async {
+        let dir = tempfile::tempdir().unwrap();
+        let src = common::sim_instrument(
+            dir.path(),
+            0.0,
+            &format!("token = \"{TOKEN}\"\nrequest-timeout-s = 1.0\n"),
+            "",
+        );
+        let svc = Service::open(src, Some(TOKEN.to_owned())).unwrap();
+        let (_, key) = svc
+            .keys()
+            .create("panel", periscope_daemon::access::Role::Observer, None, "test")
+            .unwrap();
+        let router = app(AppState::new(Arc::clone(&svc)));
+        let whoami = |secret: &str| common::request(Method::GET, "/api/v1/whoami", Some(secret), &[], "");
+        // The key works while the pool is free.
+        let (s, bytes) = common::send(&router, whoami(&key)).await;
+        assert_eq!(s, StatusCode::OK, "{}", String::from_utf8_lossy(&bytes));
+
+        let (taken_tx, taken) = std::sync::mpsc::channel();
+        let hog = tokio::task::spawn_blocking(move || {
+            taken_tx.send(()).unwrap();
+            std::thread::sleep(Duration::from_secs(3));
+        });
+        taken.recv().unwrap();
+        let t = Instant::now();
+        let (s, bytes) = common::send(&router, whoami(TOKEN)).await;
+        let v: Value = serde_json::from_slice(&bytes).unwrap_or(Value::Null);
+        assert_eq!(s, StatusCode::OK, "after {:?}: {v}", t.elapsed());
+        assert_eq!(v["name"], "token", "{v}");
+        assert!(t.elapsed() < Duration::from_millis(500), "{:?}", t.elapsed());
+
+        let t = Instant::now();
+        let (s, bytes) = common::send(&router, whoami(&key)).await;
+        let v: Value = serde_json::from_slice(&bytes).unwrap_or(Value::Null);
+        assert_eq!(s, StatusCode::REQUEST_TIMEOUT, "after {:?}: {v}", t.elapsed());
+        assert!(
+            t.elapsed() >= Duration::from_millis(900) && t.elapsed() < Duration::from_secs(2),
+            "{:?}",
+            t.elapsed()
+        );
+        assert_eq!(v["error"], "request-timeout", "{v}");
+        assert!(v["message"].as_str().unwrap().contains("key check"), "{v}");
+        hog.await.unwrap();
+        // The pool free again, the key works.
+        let (s, _) = common::send(&router, whoami(&key)).await;
+        assert_eq!(s, StatusCode::OK);
         svc.shutdown();
     });
 }

@@ -124,7 +124,6 @@ pub(super) async fn authorise(State(state): State<AppState>, mut req: Request, n
         return next.run(req).await;
     };
     let service = Arc::clone(&state.service);
-    let keys = service.keys();
     let audited = action(&method, &route);
     // The e-stop's key check and audit entry run on threads of their own, never
     // queued behind the blocking pool (`super::own_thread`).
@@ -158,8 +157,12 @@ pub(super) async fn authorise(State(state): State<AppState>, mut req: Request, n
     // A loopback e-stop's refused key, recorded once the laser is off (the audit
     // writes and syncs a file and waits for the catalogue's lock).
     let mut late_refusal: Option<AuditEntry> = None;
-    let caller = match given {
-        Some(_) | None if need >= Role::Operator && !keys.any() => {
+    let checked = match check_key(&service, given, need >= Role::Operator, estop).await {
+        Ok(c) => c,
+        Err(e) => return e.into_response(),
+    };
+    let caller = match (given, checked.who) {
+        _ if checked.no_keys => {
             return ApiError::new(
                 StatusCode::FORBIDDEN,
                 "no-token-configured",
@@ -167,7 +170,7 @@ pub(super) async fn authorise(State(state): State<AppState>, mut req: Request, n
             )
             .into_response();
         }
-        Some(secret) => match authenticate(&service, secret, estop).await {
+        (Some(secret), Some(who)) => match who {
             Ok(Identity { name, role }) => {
                 stream_key = Some(secret.to_owned());
                 Caller { name, role, peer }
@@ -209,17 +212,18 @@ pub(super) async fn authorise(State(state): State<AppState>, mut req: Request, n
         },
         // Loopback reads and e-stops need no key: whoever is at the instrument's
         // computer can see it and stop it (docs/safety.md).
-        None if local && need <= Role::Observer => Caller {
+        (None, _) if local && need <= Role::Observer => Caller {
             name: "loopback".into(),
             role: Role::Observer,
             peer,
         },
-        None if need == Role::Observer && service.instrument().api.open_reads => Caller {
+        (None, _) if need == Role::Observer && service.instrument().api.open_reads => Caller {
             name: "open-reads".into(),
             role: Role::Observer,
             peer,
         },
-        None => {
+        // A key given is always checked (`check_key`), so `who` is there.
+        (Some(_), None) | (None, _) => {
             let (e, entry) = refuse(
                 ApiError::new(
                     StatusCode::UNAUTHORIZED,
@@ -342,7 +346,11 @@ fn end_when_key_lapses(
                     None => return,
                 },
                 _ = check.tick() => {
-                    if let Err(e) = authenticate(&service, &secret, false).await {
+                    // A check the busy blocking pool holds past the request timeout
+                    // is tried again at the next tick.
+                    if let Ok(KeyCheck { who: Some(Err(e)), .. }) =
+                        check_key(&service, Some(&secret), false, false).await
+                    {
                         tracing::info!("an event stream ends: {e}");
                         return;
                     }
@@ -357,24 +365,68 @@ fn end_when_key_lapses(
     )
 }
 
-/// Checks a key on the blocking pool (it may stat and read `keys.json`), or for an
-/// e-stop (`estop`) on a thread of its own.
-async fn authenticate(
+/// What the key store says of a request's key.
+struct KeyCheck {
+    /// The daemon accepts no key at all (no token, no key in `keys.json`); asked only
+    /// where the route needs an operator or more.
+    no_keys: bool,
+    /// Who holds the key given, where one was.
+    who: Option<Result<Identity, AuthError>>,
+}
+
+/// Asks the key store about `secret`. The daemon's token is answered at once, on this
+/// thread: it reads no file. A key from `keys.json` (which is read again when it
+/// changes) and whether any key exists (`need_any`) are asked on the blocking pool, or
+/// for an e-stop on a thread of its own. The check runs before the request timeout's
+/// layer, so it has a timeout of its own, the same `[api] request-timeout-s`: a check
+/// still waiting for the pool then is answered with the same JSON `request-timeout`,
+/// instead of holding the request for as long as the pool stays busy.
+async fn check_key(
     service: &Arc<crate::service::Service>,
-    secret: &str,
+    secret: Option<&str>,
+    need_any: bool,
     estop: bool,
-) -> Result<Identity, AuthError> {
-    let s = Arc::clone(service);
-    let secret = secret.to_owned();
-    let check = move || s.keys().authenticate(&secret, crate::run_dir::unix_now());
-    if estop {
-        return super::own_thread("periscope-estop-auth", check)
-            .await
-            .unwrap_or(Err(AuthError::Unknown));
+) -> Result<KeyCheck, ApiError> {
+    let keys = service.keys();
+    if let Some(id) = secret.and_then(|s| keys.token_identity(s)) {
+        return Ok(KeyCheck {
+            no_keys: false,
+            who: Some(Ok(id)),
+        });
     }
-    tokio::task::spawn_blocking(check)
-        .await
-        .unwrap_or(Err(AuthError::Unknown))
+    if secret.is_none() && (!need_any || keys.has_token()) {
+        return Ok(KeyCheck {
+            no_keys: false,
+            who: None,
+        });
+    }
+    let unknown = KeyCheck {
+        no_keys: false,
+        who: secret.map(|_| Err(AuthError::Unknown)),
+    };
+    let s = Arc::clone(service);
+    let secret = secret.map(str::to_owned);
+    let check = move || {
+        let keys = s.keys();
+        KeyCheck {
+            no_keys: need_any && !keys.any(),
+            who: secret.map(|x| keys.authenticate(&x, crate::run_dir::unix_now())),
+        }
+    };
+    if estop {
+        return Ok(super::own_thread("periscope-estop-auth", check)
+            .await
+            .unwrap_or(unknown));
+    }
+    let limit = service.instrument().api.request_timeout;
+    match tokio::time::timeout(limit, tokio::task::spawn_blocking(check)).await {
+        Ok(checked) => Ok(checked.unwrap_or(unknown)),
+        Err(_) => Err(ApiError::new(
+            StatusCode::REQUEST_TIMEOUT,
+            "request-timeout",
+            "the key check waited longer than the daemon allows ([api] request-timeout-s) for a free worker: the daemon is busy, and nothing was done; try again",
+        )),
+    }
 }
 
 /// What a successful changing request did, for its audit entry (a response
