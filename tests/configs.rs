@@ -414,22 +414,48 @@ fn check_judges_the_tdc_window_against_the_paths_the_run_needs() {
     // A volume whose paths (to 36.7 m) run past what the sync period holds (100 ns at
     // 10 MHz, 30 m): no window records them, and the bins that would (6,898 from
     // 12 ns, which `check` named until 2026-12-06) end past the period, which the plan
-    // refuses. The warning names the divider instead.
+    // refuses. The warning names the least divider that holds them, with those bins,
+    // and with both the check finds the paths recorded (until 2026-12-06 it said "a
+    // larger tdc.sync-divider" without a number, whether any would do or not).
     let far = text.replace("z = [0.3, 0.9]", "z = [0.3, 16.0]");
     std::fs::write(&plan, &far).unwrap();
     let out = periscope(&["check", plan.to_str().unwrap()]).stdout;
     assert!(
-        out.contains("warning: acquisition:")
-            && out.contains("past the 29.98 m a sync period holds")
-            && out.contains("a larger tdc.sync-divider"),
+        out.contains("warning: acquisition:") && out.contains("past the 29.98 m a sync period holds"),
         "{out}"
     );
-    assert!(!out.contains("bins at least"), "{out}");
-    let past = far.replace("[acquisition]\n", "[acquisition]\nbins = 6898\n");
+    let named = |key: &str| -> u32 {
+        let at = out.rfind(key).unwrap_or_else(|| panic!("no {key}:\n{out}")) + key.len();
+        out[at..]
+            .chars()
+            .take_while(char::is_ascii_digit)
+            .collect::<String>()
+            .parse()
+            .unwrap()
+    };
+    let (divider, bins) = (named("tdc.sync-divider "), named("acquisition.bins at least "));
+    assert_eq!(divider, 2, "{out}");
+    let past = far.replace("[acquisition]\n", &format!("[acquisition]\nbins = {bins}\n"));
     std::fs::write(&plan, &past).unwrap();
     let refused = periscope(&["check", plan.to_str().unwrap()]);
     assert_eq!(refused.code, Some(2), "{refused:?}");
     assert!(refused.stderr.contains("sync period"), "{}", refused.stderr);
+    let sim = std::fs::read_to_string(repo_path("configs/instrument/sim.toml")).unwrap();
+    let scenes = repo_path("configs/scenes");
+    let divided = sim
+        .replace("sync-divider = 1\n", &format!("sync-divider = {divider}\n"))
+        .replace("\"../scenes", &format!("\"{}", scenes.display()));
+    assert_ne!(divided, sim);
+    let instrument = dir.path().join("divided.toml");
+    std::fs::write(&instrument, divided).unwrap();
+    let out = periscope(&[
+        "check",
+        plan.to_str().unwrap(),
+        "--instrument",
+        instrument.to_str().unwrap(),
+    ]);
+    assert_eq!(out.code, Some(0), "{out:?}");
+    assert_eq!(verdicts(&out.stdout).1, "all recorded", "{}", out.stdout);
 }
 
 /// The later offset a window warning names (`or acquisition.offset-ns X and bins at

@@ -409,6 +409,11 @@ fn relay_samples(region: &Region, plan: &Plan, inst: &InstrumentConfig) -> (Vec<
 /// The most bins a plan's histogram may have (`acquisition.bins`).
 const MAX_PLAN_BINS: u64 = crate::plan::MAX_BINS as u64;
 
+/// The largest `tdc.sync-divider` a suggestion names (PicoQuant's families take at
+/// most 16; Periscope's USB counter any, but a period of 1,024 pulses is microseconds,
+/// past any NLOS path).
+const MAX_SYNC_DIVIDER: u32 = 1024;
+
 /// The step an offset is given in and the latest the TDC and a plan take, ns: a
 /// PicoQuant counter sets whole nanoseconds up to its family's largest, Periscope's
 /// USB histogrammer picoseconds (suggested to a tenth of a nanosecond).
@@ -575,23 +580,45 @@ fn window(plan: &Plan, inst: &InstrumentConfig) -> (String, Vec<String>) {
     let start_ns = if moved { offset_ns } else { a.offset * 1e9 };
     if bins > u64::from(a.bins) && !within_period(start_ns, bins) && later.is_none() {
         let period = f64::from(inst.tdc.sync_divider) / inst.laser.repetition_rate;
-        // A PicoQuant counter takes dividers up to its family's largest.
-        let divide_more = match &inst.tdc.driver {
-            TdcDriver::PicoQuant(counter) => {
-                (inst.tdc.sync_divider + 1..=1024).any(|d| counter.family.sync_divider_ok(d))
-            }
-            TdcDriver::Usb => true,
+        // The least divider whose period holds the window that records the paths, of
+        // those the counter takes (a PicoQuant counter, its family's; Periscope's USB
+        // counter, any), where the window fits a histogram at all.
+        let fits = |d: u32| {
+            crate::config::window_past_period(
+                start_ns * 1e-9,
+                u32::try_from(bins).unwrap_or(u32::MAX),
+                a.bin_width,
+                d,
+                inst.laser.repetition_rate,
+            )
+            .is_none()
         };
+        let divider = (bins <= MAX_PLAN_BINS)
+            .then(|| match &inst.tdc.driver {
+                TdcDriver::PicoQuant(counter) => (inst.tdc.sync_divider + 1..=MAX_SYNC_DIVIDER)
+                    .find(|&d| counter.family.sync_divider_ok(d) && fits(d)),
+                TdcDriver::Usb => {
+                    let end = start_ns * 1e-9 + bins as f64 * a.bin_width;
+                    let least = (end * inst.laser.repetition_rate).ceil().max(1.0);
+                    (least < f64::from(MAX_SYNC_DIVIDER))
+                        .then_some(least as u32)
+                        .and_then(|d| (d..d + 2).find(|&d| fits(d)))
+                }
+            })
+            .flatten();
         fix.push(format!(
             "paths to {far:.2} m, past the {:.2} m a sync period holds (tdc.sync-divider / \
              laser.rep-rate-mhz, {:.1} ns, less the system delay): {}a [recon.volume] nearer \
              the relay",
             C0 * (period - inst.tdc.system_delay),
             period * 1e9,
-            if divide_more {
-                "a larger tdc.sync-divider, or "
-            } else {
-                ""
+            match divider {
+                Some(d) => format!(
+                    "tdc.sync-divider {d} (in the instrument config) and acquisition.bins at \
+                     least {bins}{}, or ",
+                    if moved { " from there" } else { " at this offset" }
+                ),
+                None => String::new(),
             }
         ));
     } else if bins > MAX_PLAN_BINS {
