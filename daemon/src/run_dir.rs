@@ -98,6 +98,35 @@ pub struct RelayPoint {
     pub intensity: f64,
 }
 
+/// One process's hold on a run directory while it writes the run: an exclusive
+/// advisory lock (`flock`) on the directory itself, released when the hold is dropped
+/// or the process ends, however it ends. A second process (a `periscope resume` of a
+/// run the daemon is capturing, a second daemon, a daemon that finds a `periscope run`
+/// under way in its runs directory) is refused it, so two writers never append to, cut
+/// or replace the same histogram log.
+#[derive(Debug)]
+pub struct RunHold {
+    _dir: std::fs::File,
+}
+
+impl RunHold {
+    /// Holds `dir`; `Ok(None)` where another holds it now.
+    pub fn take(dir: &Path) -> io::Result<Option<RunHold>> {
+        let f = std::fs::File::open(dir)?;
+        match f.try_lock() {
+            Ok(()) => Ok(Some(RunHold { _dir: f })),
+            Err(std::fs::TryLockError::WouldBlock) => Ok(None),
+            Err(std::fs::TryLockError::Error(e)) => Err(e),
+        }
+    }
+
+    /// Whether another hold on `dir` is taken now (by any process, this one included).
+    /// Unknown (the directory cannot be opened) counts as not held.
+    pub fn held(dir: &Path) -> bool {
+        matches!(RunHold::take(dir), Ok(None))
+    }
+}
+
 /// A run directory.
 #[derive(Clone, Debug)]
 pub struct RunDir {

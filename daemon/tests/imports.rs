@@ -478,7 +478,10 @@ async fn bad_imports_are_refused_with_their_reason_and_leave_nothing() {
         tokio::time::sleep(Duration::from_millis(50)).await;
         assert_eq!(runs_and_staging(dir.path()), (Vec::new(), 0), "{what}");
     }
-    // An upload that stops sending is dropped after `import-stall-s`, not held.
+    // An upload that stops sending is dropped after `import-stall-s`, not held. A
+    // daemon of its own: one daemon a runs directory, so the first goes first.
+    svc.shutdown();
+    drop((router, svc));
     let svc = service(dir.path(), "import-stall-s = 0.3\n");
     let router = app(AppState::new(Arc::clone(&svc)));
     let mut head = form(&[Part::File("capture", "a.mat", lct.clone())]);

@@ -920,3 +920,74 @@ async fn a_keys_file_that_cannot_be_written_is_a_storage_error() {
     let (s, v) = call(&router, Method::POST, "/api/v1/keys", Some(TOKEN), &new_key).await;
     assert_eq!(s, StatusCode::CREATED, "{v}");
 }
+
+/// One writer a run, one daemon a runs directory. A run directory another process
+/// holds (`periscope run` or `resume` under way; here a hold the test takes, which is
+/// the same advisory lock) is left to it: the daemon's worker does not open it and
+/// does not write its run.json, `periscope resume` refuses it, a daemon starting then
+/// does not queue it, and a second daemon on the same runs directory is refused.
+/// Before 2026-12-06 each of them went ahead: two processes appended to one
+/// histogram log, and the second's recovery cut records the first had counted.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_run_another_process_is_writing_is_left_to_it() {
+    use periscope_daemon::run_dir::RunHold;
+    let dir = tempfile::tempdir().unwrap();
+    let svc = service(dir.path());
+    let router = app(AppState::new(Arc::clone(&svc)));
+    let (s, v) = call(&router, Method::POST, "/api/v1/runs", Some(TOKEN), PLAN).await;
+    assert_eq!(s, StatusCode::CREATED, "{v}");
+    let id = v["id"].as_str().unwrap().to_owned();
+    let run = dir.path().join(&id);
+    let hold = RunHold::take(&run).unwrap().expect("the run is held already");
+    let before = std::fs::read(run.join("run.json")).unwrap();
+
+    // A second daemon on this runs directory.
+    let src = common::sim_instrument(dir.path(), 0.0, &format!("token = \"{TOKEN}\"\n"), "");
+    let second = Service::open(src, Some(TOKEN.to_owned()))
+        .err()
+        .expect("a second daemon opened");
+    assert!(
+        second.to_string().contains("another Periscope daemon serves"),
+        "{second}"
+    );
+
+    // `periscope resume` of the held run.
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_periscope"))
+        .arg("resume")
+        .arg(&run)
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(1), "{stderr}");
+    assert!(stderr.contains("another Periscope process"), "{stderr}");
+
+    // The daemon's worker: the run leaves its queue, its run.json untouched.
+    let worker = svc.start_worker();
+    let t = Instant::now();
+    loop {
+        let (_, q) = call(&router, Method::GET, "/api/v1/queue", None, "").await;
+        if q["order"].as_array().is_some_and(Vec::is_empty) && q["running"].is_null() {
+            break;
+        }
+        assert!(t.elapsed() < Duration::from_secs(30), "still queued: {q}");
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+    assert_eq!(std::fs::read(run.join("run.json")).unwrap(), before);
+    assert!(!run.join("histograms.bin").exists());
+    svc.shutdown();
+    worker.join().unwrap();
+    drop((router, svc));
+
+    // A daemon starting while the run is held does not queue it (it reads queued and
+    // is in no queue.json: an orphan, which a daemon otherwise queues again) ...
+    let svc = service(dir.path());
+    assert!(svc.queue().order.is_empty(), "{:?}", svc.queue().order);
+    svc.shutdown();
+    drop(svc);
+    // ... and once it is let go, does.
+    drop(hold);
+    let svc = service(dir.path());
+    assert_eq!(svc.queue().order, vec![id.clone()]);
+    assert_eq!(std::fs::read(run.join("run.json")).unwrap(), before);
+    svc.shutdown();
+}

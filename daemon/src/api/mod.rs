@@ -299,6 +299,7 @@ impl From<ServiceError> for ApiError {
             ServiceError::Prepare(p) => prepare_status(p),
             ServiceError::Config(_) => (StatusCode::INTERNAL_SERVER_ERROR, "config"),
             ServiceError::QueueFull(_) => (StatusCode::TOO_MANY_REQUESTS, "queue-full"),
+            ServiceError::RunsDirInUse(_) => (StatusCode::INTERNAL_SERVER_ERROR, "storage"),
             ServiceError::OverBudget(_) => (StatusCode::UNPROCESSABLE_ENTITY, "over-budget"),
             ServiceError::Invalid(_) => (StatusCode::UNPROCESSABLE_ENTITY, "invalid"),
             ServiceError::Locked(_) => (StatusCode::LOCKED, "queue-locked"),

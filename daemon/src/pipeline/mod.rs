@@ -193,6 +193,13 @@ pub enum PipelineError {
         /// The I/O error.
         source: std::io::Error,
     },
+    /// Another process holds the run directory ([`crate::run_dir::RunHold`]): it is
+    /// writing the run now. Nothing was written.
+    #[error(
+        "run directory {}: another Periscope process (a daemon, or `periscope run` or `resume`) is writing this run now; nothing was changed. Wait for it to finish, or pause or stop it there, then resume the run",
+        .0.display()
+    )]
+    InUse(PathBuf),
     /// The operator aborted the run (captured data is kept).
     #[error("the run was aborted; the {0} pairs captured so far are kept")]
     Aborted(usize),

@@ -40,6 +40,10 @@ pub struct Run {
     /// readings show it (the rate meter's latency after the switch-on), and whether
     /// this session has already waited for one and checked it.
     pub(super) sync: SyncWatch,
+    /// This process's hold on the run directory, for as long as the run is open: the
+    /// last field, so it is let go after everything else is dropped (the histogram
+    /// log synced, the devices closed).
+    _hold: crate::run_dir::RunHold,
 }
 
 /// See [`Run::sync`].
@@ -165,7 +169,8 @@ fn stopped_before_start(
 /// was killed between writing a temporary file and renaming it
 /// (`<name>.<pid>-<n>.tmp`, [`periscope_recon::io::temporary_beside`]): the file it was
 /// replacing is intact, the temporary is garbage. Only this process's run holds the
-/// directory now, so no other writer's temporary is touched.
+/// directory now ([`crate::run_dir::RunHold`]), so no other writer's temporary is
+/// touched.
 fn remove_stale_temporaries(dir: &Path) {
     let Ok(entries) = std::fs::read_dir(dir) else {
         return;
@@ -203,6 +208,13 @@ impl Run {
         events: Option<EventSink>,
         backend: Option<&dyn DeviceBackend>,
     ) -> Result<Run, PipelineError> {
+        // Before anything is read or written: a run another process is writing is left
+        // as it is, its run.json included.
+        let hold = match crate::run_dir::RunHold::take(dir) {
+            Ok(Some(h)) => h,
+            Ok(None) => return Err(PipelineError::InUse(dir.to_owned())),
+            Err(e) => return Err(PipelineError::storage(dir, e)),
+        };
         let (mut info, plan, instrument) = RunDir::new(dir).load()?;
         remove_stale_temporaries(dir);
         let events = match events {
@@ -272,6 +284,7 @@ impl Run {
             stage: Stage::Opening,
             stage_started: None,
             sync: SyncWatch::default(),
+            _hold: hold,
         })
     }
 

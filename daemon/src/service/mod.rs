@@ -164,6 +164,12 @@ pub enum ServiceError {
     /// The queue is full.
     #[error("{0}")]
     QueueFull(String),
+    /// Another daemon serves this runs directory.
+    #[error(
+        "another Periscope daemon serves {}: one daemon per runs directory (stop that one, or give this one another [api] runs-dir)",
+        .0.display()
+    )]
+    RunsDirInUse(PathBuf),
     /// The plan needs more memory or disk than the instrument's budget allows.
     #[error("{0}")]
     OverBudget(String),
@@ -310,6 +316,8 @@ pub struct Service {
     metrics: crate::metrics::Metrics,
     /// The catalogue's lock, held shared for the service's life (no rebuild under it).
     _catalogue_hold: std::fs::File,
+    /// This daemon's hold on its runs directory (one daemon a runs directory).
+    _runs_hold: crate::run_dir::RunHold,
     shared: Mutex<Shared>,
     wake: Condvar,
     /// The running run's stop path, apart from `shared`, whose holders write files
@@ -338,6 +346,13 @@ impl Service {
         let backend = crate::devices::backend(&instrument)?;
         let runs_dir = instrument.api.runs_dir.clone();
         std::fs::create_dir_all(&runs_dir).map_err(ServiceError::storage(&runs_dir))?;
+        // One daemon per runs directory: a second would rewrite queue.json under the
+        // first and take its running run for an interrupted one.
+        let runs_hold = match crate::run_dir::RunHold::take(&runs_dir) {
+            Ok(Some(h)) => h,
+            Ok(None) => return Err(ServiceError::RunsDirInUse(runs_dir)),
+            Err(e) => return Err(ServiceError::storage(&runs_dir)(e)),
+        };
         Service::clear_staging(&runs_dir);
         let mut queue = VecDeque::new();
         let qpath = runs_dir.join(QUEUE_FILE);
@@ -349,6 +364,12 @@ impl Service {
             })?;
             for id in ids {
                 let dir = runs_dir.join(&id);
+                if crate::run_dir::RunHold::held(&dir) {
+                    tracing::warn!(
+                        "run {id} is being written by another Periscope process (`periscope run` or `resume`); left out of the queue, and left as it is"
+                    );
+                    continue;
+                }
                 let Ok(mut info) = RunInfo::load(&dir) else {
                     tracing::warn!(
                         "queue.json names run {id}, which has no readable run.json; dropped from the queue"
@@ -372,6 +393,8 @@ impl Service {
             .filter_map(Result::ok)
             .map(|e| e.file_name().to_string_lossy().into_owned())
             .filter(|id| !queue.contains(id))
+            // A `periscope run` under way in this runs directory is that process's.
+            .filter(|id| !crate::run_dir::RunHold::held(&runs_dir.join(id)))
             .filter(|id| {
                 RunInfo::load(&runs_dir.join(id))
                     .is_ok_and(|i| matches!(i.state, RunState::Queued | RunState::Running))
@@ -419,6 +442,7 @@ impl Service {
             indexer: Mutex::new(None),
             metrics: crate::metrics::Metrics::new(),
             _catalogue_hold: catalogue_hold,
+            _runs_hold: runs_hold,
             shared: Mutex::new(Shared {
                 queue,
                 current: None,

@@ -142,6 +142,10 @@ impl Service {
     /// than left looking queued or running with nothing working on it. Returns
     /// whether it still reads so (the store refused this too).
     pub(super) fn record_unrecorded_end(&self, id: &str, e: &PipelineError) -> bool {
+        // Another process is writing the run: its run.json is that process's to write.
+        if matches!(e, PipelineError::InUse(_)) {
+            return false;
+        }
         let dir = self.runs_dir.join(id);
         match RunInfo::load(&dir) {
             Ok(mut info) if matches!(info.state, RunState::Queued | RunState::Running) => {
