@@ -232,6 +232,7 @@ impl Run {
                 );
             }
             self.info.adaptive_seconds = spent();
+            log.sync().map_err(|e| PipelineError::storage(log.path(), e))?;
             self.save_info()?;
             drop(tx);
             return Ok((fit, held));
@@ -289,6 +290,10 @@ impl Run {
                 feed(&mut fit, &mut batch, stored.len(), false)?;
                 held.push(rec);
                 if stored.len().is_multiple_of(64) {
+                    // The count run.json records is of records on the disk: the log
+                    // first, so a power cut never leaves run.json counting records
+                    // the log lost.
+                    log.sync().map_err(|e| PipelineError::storage(log.path(), e))?;
                     self.save_info()?;
                 }
             }
@@ -352,8 +357,13 @@ impl Run {
             for _ in 0..acq.repeats {
                 self.checkpoint()?;
                 let h = self.acquire()?;
+                // A sum past a bin's 2³² − 1 is clipped, and the histogram flagged as
+                // overflowed like a counter's own (its counts only a lower bound).
                 for (c, v) in counts.iter_mut().zip(&h.counts) {
-                    *c = c.saturating_add(*v);
+                    *c = c.checked_add(*v).unwrap_or_else(|| {
+                        flags.overflow = true;
+                        u32::MAX
+                    });
                 }
                 flags.overflow |= h.flags.overflow;
                 flags.saturated |= h.flags.saturated;
