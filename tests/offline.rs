@@ -76,7 +76,7 @@ fn recon_and_export_of_a_run_directory_whole_and_damaged() {
     for own in [HISTOGRAM_LOG, "run.json"] {
         let out = periscope(&["export", s(&run), "--out", s(&run.join(own))]);
         assert_eq!(out.code, Some(1), "{out:?}");
-        assert!(out.stderr.contains("is one of the run's own files"), "{out:?}");
+        assert!(out.stderr.contains("is a file of a run directory"), "{out:?}");
     }
     assert_eq!(std::fs::read(run.join(HISTOGRAM_LOG)).unwrap(), before);
 
@@ -101,6 +101,18 @@ fn recon_and_export_of_a_run_directory_whole_and_damaged() {
         bytes,
         "reading changed the damaged log"
     );
+    // Nor another run's files: its log is its only copy of what it measured, and its
+    // capture.hdf5 would hold this run's (until 2026-12-06 only the exported run's own
+    // files were refused). The default, the run's own capture.hdf5, is not refused.
+    for other in [HISTOGRAM_LOG, "run.json", "capture.hdf5"] {
+        std::fs::write(damaged.join("capture.hdf5"), b"an earlier export").unwrap();
+        let out = periscope(&["export", s(&run), "--out", s(&damaged.join(other))]);
+        assert_eq!(out.code, Some(1), "{other}: {out:?}");
+        assert!(out.stderr.contains("is a file of a run directory"), "{out:?}");
+    }
+    assert_eq!(std::fs::read(&log).unwrap(), bytes);
+    let out = periscope(&["export", s(&run), "--out", s(&run.join("capture.hdf5"))]);
+    assert_eq!(out.code, Some(0), "{out:?}");
 
     // No pair plan: a clear error naming the file, no output directory.
     let planless = tmp.path().join("planless");

@@ -358,13 +358,18 @@ fn calibrate(
 /// Refuses an export's `out` that is one of the run's own files (its histograms,
 /// `run.json`, the plan): the export replaces `out` whole, and the run's data would be
 /// gone. `capture.hdf5` in the run directory (the default) is the export's own file.
+/// Nor a file of another run's directory (its histogram log is its only copy of the
+/// measurements), its `capture.hdf5` included, which would then hold this run's.
 fn refuse_run_file(run_dir: &Path, out: &Path) -> Result<(), CliError> {
     let (Ok(dir), Ok(target)) = (run_dir.canonicalize(), out.canonicalize()) else {
         return Ok(()); // `out` does not exist yet: nothing to overwrite.
     };
-    let own = target.parent() == Some(dir.as_path())
-        && target.file_name() != Some(std::ffi::OsStr::new(crate::ytal::CAPTURE_FILE));
-    if own {
+    let Some(parent) = target.parent() else {
+        return Ok(());
+    };
+    let export = parent == dir.as_path()
+        && target.file_name() == Some(std::ffi::OsStr::new(crate::ytal::CAPTURE_FILE));
+    if RunDir::holds_run(parent) && !export {
         return Err(CliError::RunFile(out.to_path_buf()));
     }
     Ok(())
@@ -600,8 +605,8 @@ pub enum CliError {
     },
     /// `export --out` naming one of the run's own files.
     #[error(
-        "{} is one of the run's own files and the export would replace it; give --out a new file \
-         (or leave it out: RUN_DIR/capture.hdf5)",
+        "{} is a file of a run directory and the export would replace it; give --out a new file \
+         outside the run directories (or leave it out: RUN_DIR/capture.hdf5)",
         .0.display()
     )]
     RunFile(PathBuf),
