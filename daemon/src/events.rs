@@ -233,19 +233,41 @@ type Listener = Box<dyn FnMut(&RunEvent) + Send>;
 
 struct Inner {
     file: Option<File>,
+    /// The file may end in a partial line (a process killed, or a disk that filled,
+    /// mid-write): the next line starts on a line of its own, so the log stays one
+    /// JSON object a line.
+    torn: bool,
     listeners: Vec<Listener>,
+}
+
+/// Whether `file` is not empty and its last byte is not a newline.
+fn ends_mid_line(file: &File) -> std::io::Result<bool> {
+    use std::io::{Read, Seek, SeekFrom};
+    let len = file.metadata()?.len();
+    if len == 0 {
+        return Ok(false);
+    }
+    let mut f = file;
+    f.seek(SeekFrom::Start(len - 1))?;
+    let mut last = [0u8];
+    f.read_exact(&mut last)?;
+    Ok(last[0] != b'\n')
 }
 
 impl EventSink {
     /// Appends to `dir/events.jsonl`.
     pub fn open(dir: &Path) -> std::io::Result<EventSink> {
+        // Read as well, for its last byte (writes still go to its end).
         let file = OpenOptions::new()
             .create(true)
+            .read(true)
             .append(true)
             .open(dir.join(crate::run_dir::file::EVENTS))?;
+        let torn = ends_mid_line(&file)?;
         Ok(EventSink {
             inner: Arc::new(Mutex::new(Inner {
                 file: Some(file),
+                torn,
                 listeners: Vec::new(),
             })),
         })
@@ -262,8 +284,13 @@ impl EventSink {
 
     /// Records an event.
     pub fn emit(&self, event: RunEvent) {
-        let mut inner = self.lock();
-        if let Some(f) = inner.file.as_mut().filter(|_| !event.display_only()) {
+        let mut guard = self.lock();
+        let Inner {
+            file,
+            torn,
+            listeners,
+        } = &mut *guard;
+        if let Some(f) = file.as_mut().filter(|_| !event.display_only()) {
             let t = std::time::SystemTime::now()
                 .duration_since(std::time::UNIX_EPOCH)
                 .map_or(0.0, |d| d.as_secs_f64());
@@ -273,10 +300,13 @@ impl EventSink {
             {
                 obj.extend(ev);
             }
+            // One write a line, so a line is whole on the disk or cut at its end, never
+            // interleaved; after a cut one, a newline first.
+            let text = format!("{}{line}\n", if *torn { "\n" } else { "" });
             // Events are a log, not data: a full disk must not stop the capture.
-            let _ = writeln!(f, "{line}");
+            *torn = f.write_all(text.as_bytes()).is_err();
         }
-        for l in inner.listeners.iter_mut() {
+        for l in listeners.iter_mut() {
             l(&event);
         }
     }
@@ -285,6 +315,44 @@ impl EventSink {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A log whose last line was cut (a process killed mid-write) gets its next event
+    /// on a line of its own: until 2026-12-06 the two ran together into one line that
+    /// no JSON-lines reader takes.
+    #[test]
+    fn an_event_after_a_cut_line_starts_a_line_of_its_own() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join(crate::run_dir::file::EVENTS);
+        std::fs::write(
+            &path,
+            "{\"time\":1.0,\"event\":\"stage-started\"}\n{\"time\":2.0,\"ev",
+        )
+        .unwrap();
+        let sink = EventSink::open(dir.path()).unwrap();
+        sink.emit(RunEvent::StageStarted {
+            stage: Stage::Opening,
+        });
+        sink.emit(RunEvent::StageStarted {
+            stage: Stage::Reading,
+        });
+        let text = std::fs::read_to_string(&path).unwrap();
+        let lines: Vec<&str> = text.lines().collect();
+        assert_eq!(lines.len(), 4, "{text}");
+        assert_eq!(lines[1], "{\"time\":2.0,\"ev");
+        for l in [lines[0], lines[2], lines[3]] {
+            serde_json::from_str::<serde_json::Value>(l).unwrap_or_else(|e| panic!("{l}: {e}"));
+        }
+        assert!(text.ends_with('\n'));
+        // A whole log gains no empty line.
+        drop(sink);
+        let sink = EventSink::open(dir.path()).unwrap();
+        sink.emit(RunEvent::StageStarted {
+            stage: Stage::Opening,
+        });
+        let again = std::fs::read_to_string(&path).unwrap();
+        assert_eq!(again.lines().count(), 5);
+        assert!(!again.contains("\n\n"), "{again}");
+    }
 
     #[test]
     fn histograms_are_summed_for_the_wire_and_kept_out_of_the_log() {
