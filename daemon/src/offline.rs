@@ -56,6 +56,28 @@ pub enum OfflineError {
         /// Bytes free.
         available: u64,
     },
+    /// The volume fits, but with 3D-GTR's virtual scan and its solver it does not.
+    #[error(
+        "{}: with the volume ({:.1} GiB), {what} need about {:.1} GiB more, more than the {:.1} GiB free to this process (the machine's available memory, within any address-space limit): a smaller {keys}, or a smaller [volume] shape",
+        config.display(),
+        *volume as f64 / GIB,
+        *need as f64 / GIB,
+        *available as f64 / GIB
+    )]
+    VirtualScan {
+        /// The RECON.toml, or the capture whose defaults set the settings.
+        config: PathBuf,
+        /// What the bytes hold.
+        what: String,
+        /// The settings that size it.
+        keys: &'static str,
+        /// Bytes the volume needs.
+        volume: u64,
+        /// Bytes the virtual scan and its solver need.
+        need: u64,
+        /// Bytes free.
+        available: u64,
+    },
     /// An adaptive replay was asked for with a method that has no running fit.
     #[error(
         "--adaptive-replay adaptive chooses pairs from the running 3D-GTR fit, but the settings' method is {method}: use method = \"gtr\", or replay the uniform or random order"
@@ -74,6 +96,7 @@ impl OfflineError {
             OfflineError::Config(_)
             | OfflineError::AdaptiveNeedsGtr { .. }
             | OfflineError::Memory { .. }
+            | OfflineError::VirtualScan { .. }
             | OfflineError::Pipeline(PipelineError::Config(_)) => true,
             OfflineError::Capture(e) => e.is_config(),
             OfflineError::Pipeline(PipelineError::Recon(e)) => e.is_settings(),
@@ -173,6 +196,28 @@ fn volume_fits(settings: &ReconSettings, config: &Path) -> Result<(), OfflineErr
             need,
             available,
         });
+    }
+    // 3D-GTR's virtual scan, its solver's work arrays and the primitives, as a plan's
+    // budget counts them (the first item, the volume's upper estimate, is measured
+    // above): a virtual grid of 1024 × 1024 points alone asks 8 GiB.
+    if settings.method == Method::Gtr {
+        let items: Vec<_> = crate::budget::recon_items(settings, 0, 0, false)
+            .into_iter()
+            .skip(1)
+            .collect();
+        let extra = items.iter().fold(0u64, |a, i| a.saturating_add(i.bytes));
+        if need.saturating_add(extra) > available
+            && let Some(largest) = items.iter().max_by_key(|i| i.bytes)
+        {
+            return Err(OfflineError::VirtualScan {
+                config: config.to_owned(),
+                what: items.iter().map(|i| i.what).collect::<Vec<_>>().join(" and "),
+                keys: largest.keys,
+                volume: need,
+                need: extra,
+                available,
+            });
+        }
     }
     Ok(())
 }

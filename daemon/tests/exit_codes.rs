@@ -128,3 +128,39 @@ fn a_volume_larger_than_the_memory_left_is_refused_up_front() {
     );
     assert!(!tmp.path().join("out/volume.npy").exists());
 }
+
+/// The same for 3D-GTR's virtual scan, which the volume's figure leaves out: a
+/// 1024 × 1024 virtual grid (512 bins of `f64`, twice: 8 GiB) over a small volume,
+/// under a 3 GiB address-space limit, is refused naming `virtual-grid`, with exit 2.
+/// Until 2026-12-06 it aborted in the allocator (signal 6) when the scan was made.
+#[test]
+fn a_virtual_scan_larger_than_the_memory_left_is_refused_up_front() {
+    let tmp = tempfile::tempdir().unwrap();
+    let config = tmp.path().join("recon.toml");
+    std::fs::write(
+        &config,
+        "method = \"gtr\"\n[volume]\nx = [-0.4, 0.4]\ny = [-0.4, 0.4]\nz = [0.2, 0.9]\nshape = [16, 16, 16]\n\
+         [gtr]\nprimitives = 1\nepochs = 1\nvirtual-grid = [1024, 1024]\n",
+    )
+    .unwrap();
+    let out = Command::new("sh")
+        .arg("-c")
+        .arg("ulimit -v 3145728 && exec \"$0\" \"$@\"")
+        .arg(env!("CARGO_BIN_EXE_periscope"))
+        .args(["recon", "tests/data/ytal/confocal_xy.hdf5", "--config"])
+        .arg(&config)
+        .arg("--out")
+        .arg(tmp.path().join("out"))
+        .current_dir(concat!(env!("CARGO_MANIFEST_DIR"), "/.."))
+        .output()
+        .expect("periscope runs");
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(2), "{stderr}");
+    assert!(
+        stderr.contains("recon.toml")
+            && stderr.contains("virtual confocal scan")
+            && stderr.contains("recon.gtr.virtual-grid"),
+        "{stderr}"
+    );
+    assert!(!tmp.path().join("out/volume.npy").exists());
+}
