@@ -92,6 +92,24 @@ fn lct_finds_a_point_scatterer() {
     );
 }
 
+/// Counts that overflow LCT's `f32` FFTs leave non-numbers in its volume, for the
+/// caller's finite check to refuse: until 2026-12-06 the clamp of negative values
+/// (`max(0.0)`) made every NaN a 0, and `periscope recon` wrote an empty volume with
+/// exit 0.
+#[test]
+fn lct_keeps_an_overflow_for_the_finite_check() {
+    let relay = wall(32);
+    let mut set = TransientSet::new(axis()).unwrap();
+    for pair in confocal_pairs(&relay) {
+        set.push(pair, &vec![3.0e38f32; axis().bins]).unwrap();
+    }
+    let v = lct(&set, &grid(), &LctSettings::default()).unwrap();
+    assert!(
+        v.data.iter().any(|x| !x.is_finite()),
+        "an overflow came out as numbers"
+    );
+}
+
 #[test]
 fn lct_handles_an_offset_time_axis() {
     // Histograms starting at 0.3037 m (not a whole number of bins) are shifted onto an

@@ -300,7 +300,13 @@ fn filter_cube(cube: Vec<f32>, scan: &PlanarScan, m: usize, w: f64, snr: f64, fi
             c2r.process(&mut spectrum, &mut out)
                 .expect("buffer lengths match the plan");
             let q: Vec<f32> = out[..m].iter().map(|v| v * scale).collect();
-            resample.inverse(&q).into_iter().map(|v| v.max(0.0)).collect()
+            // Negative values clamped; a NaN kept, for the caller's finite check (`max`
+            // would turn it into 0 and an overflowed capture into an empty volume).
+            resample
+                .inverse(&q)
+                .into_iter()
+                .map(|v| if v < 0.0 { 0.0 } else { v })
+                .collect()
         })
         .collect();
     drop(slices);
