@@ -17,6 +17,7 @@ pub mod geometry;
 pub mod laser_guard;
 pub mod picoquant;
 pub mod ports;
+mod resident;
 pub mod selector;
 pub mod tdc;
 pub mod traits;

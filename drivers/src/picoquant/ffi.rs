@@ -46,7 +46,7 @@ enum GetHistogram {
 }
 
 /// The library's functions. Plain function pointers copied out of the library: valid
-/// while [`Lib`] keeps the library loaded.
+/// for the process's life, which the library stays loaded for (`crate::resident`).
 struct Api {
     get_library_version: FnText,
     get_error_string: FnErrorText,
@@ -83,8 +83,6 @@ struct Api {
 /// A loaded PicoQuant library of one [`Family`].
 pub(crate) struct Lib {
     api: Api,
-    /// Keeps the code behind `api` mapped; dropped last.
-    _library: Library,
 }
 
 /// Why a library could not be used.
@@ -111,17 +109,22 @@ fn check(code: c_int) -> Result<(), i32> {
 impl Lib {
     /// Loads the library at `path` and looks up every function the driver calls.
     pub(crate) fn load(family: Family, path: &Path) -> Result<Lib, LoadError> {
-        // SAFETY: loading runs the library's initialisers. The path is the vendor
-        // library the operator configured for this instrument (or the test
-        // stand-in exporting the same API); nothing else is loaded here.
-        let library = unsafe { Library::new(path) }.map_err(|e| LoadError::Open(e.to_string()))?;
+        // Kept loaded for the process's life (`crate::resident`): never unloaded
+        // under a task or thread of the library's own.
+        let library = crate::resident::resident(path, || {
+            // SAFETY: loading runs the library's initialisers. The path is the vendor
+            // library the operator configured for this instrument (or the test
+            // stand-in exporting the same API); nothing else is loaded here.
+            unsafe { Library::new(path) }.map_err(|e| e.to_string())
+        })
+        .map_err(LoadError::Open)?;
         let prefix = family.prefix();
         macro_rules! get {
             ($name:literal) => {{
                 let name = format!("{prefix}{}", $name);
                 // SAFETY: the symbol's type is the prototype the vendor's header
-                // declares for this name (see the type aliases above); the pointer is
-                // used only while `library` stays loaded, which `Lib` guarantees.
+                // declares for this name (see the type aliases above); `library` stays
+                // loaded for the process's life (`crate::resident`).
                 let symbol = unsafe { library.get(name.as_bytes()) }
                     .map_err(|e| LoadError::Missing(name.clone(), e.to_string()))?;
                 *symbol
@@ -174,10 +177,7 @@ impl Lib {
             get_warnings_text: get!("GetWarningsText"),
             get_elapsed_meas_time: get!("GetElapsedMeasTime"),
         };
-        Ok(Lib {
-            api,
-            _library: library,
-        })
+        Ok(Lib { api })
     }
 
     /// A call that takes only the device index.
