@@ -441,3 +441,40 @@ fn error_codes_become_kinds_with_the_librarys_words() {
             && e.to_string().contains("install NI-DAQmx")
     );
 }
+
+/// `DAQmxWriteAnalogF64` and `DAQmxWriteDigitalLines` take no array size: the library
+/// reads one value a channel (a byte a line) of the task. A galvo axis named by a list
+/// (`Dev1/ao0,Dev1/ao2`: three channels for the driver's two values) or a laser line
+/// naming two lines is refused by the driver's own check of the task's width, naming
+/// the fix, with nothing written; until 2026-12-06 the library read past the driver's
+/// values (the stand-in read a third voltage from beyond the array).
+#[test]
+fn a_task_wider_than_the_drivers_values_is_refused_before_any_write() {
+    let _one = exclusive();
+    let tmp = tempfile::tempdir().unwrap();
+    let (s, config) = bench(tmp.path(), "");
+    let mut settings = galvo_settings(&config);
+    settings.channels[0] = "Dev1/ao0,Dev1/ao2".into();
+    s.clear_calls();
+    let e = DaqGalvo::open(settings)
+        .err()
+        .expect("a three-channel task opened");
+    assert_eq!(e.kind(), ErrorKind::OutOfRange, "{e}");
+    assert!(e.to_string().contains("one analog output"), "{e}");
+    assert!(
+        named(&s.calls(), "DAQmxWriteAnalogF64").is_empty(),
+        "{:?}",
+        s.calls()
+    );
+
+    let mut laser = laser_settings(&config);
+    laser.laser_line = "Dev1/port0/line0,Dev1/port0/line3".into();
+    s.clear_calls();
+    let e = DaqLaser::open(laser).err().expect("a two-line gate opened");
+    assert!(e.to_string().contains("one digital line"), "{e}");
+    assert!(
+        named(&s.calls(), "DAQmxWriteDigitalLines").is_empty(),
+        "{:?}",
+        s.calls()
+    );
+}

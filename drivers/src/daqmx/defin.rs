@@ -61,4 +61,6 @@ pub mod error {
     pub const WRITE_FAILED_BECAUSE_WATCHDOG_EXPIRED: i32 = -200678;
     /// `DAQmxErrorBufferTooSmallForString`.
     pub const BUFFER_TOO_SMALL_FOR_STRING: i32 = -200228;
+    /// `DAQmxErrorWriteNumChansMismatch`: the data's channels are not the task's.
+    pub const WRITE_NUM_CHANS_MISMATCH: i32 = -200524;
 }

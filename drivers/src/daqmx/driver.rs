@@ -66,6 +66,18 @@ pub(crate) fn load(path: &Path) -> Result<Arc<Lib>, DaqError> {
 /// The library's answer `code` to `call`, as an error of `device` with the extended
 /// error information.
 pub(crate) fn failed(lib: &Lib, device: &str, call: &str, code: i32) -> DaqError {
+    // Refused before the library was called (`Lib::write_*`): its extended
+    // information is of some earlier call, if any.
+    if code == super::defin::error::WRITE_NUM_CHANS_MISMATCH {
+        return DaqError::library(
+            device,
+            call,
+            code,
+            "the task has another number of channels or lines than Periscope writes, so nothing was written: \
+             each galvo axis must name one analog output (Dev1/ao0), and the laser's lines one digital line \
+             each (Dev1/port0/line0), not a list or a whole port",
+        );
+    }
     let mut text = lib.extended_error_info();
     if text.is_empty() {
         text = lib.error_string(code);

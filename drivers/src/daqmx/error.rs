@@ -78,7 +78,8 @@ pub fn kind_of(c: i32) -> ErrorKind {
         | code::MIN_NOT_LESS_THAN_MAX
         | code::PHYSICAL_CHAN_DOES_NOT_EXIST
         | code::INVALID_PHYS_CHAN_NAME
-        | code::SAMPLE_VALUE_OUT_OF_RANGE => ErrorKind::OutOfRange,
+        | code::SAMPLE_VALUE_OUT_OF_RANGE
+        | code::WRITE_NUM_CHANS_MISMATCH => ErrorKind::OutOfRange,
         code::TIMEOUT_EXCEEDED | code::OPERATION_TIMED_OUT => ErrorKind::Timeout,
         _ => ErrorKind::Device,
     }

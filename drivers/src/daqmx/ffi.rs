@@ -19,7 +19,7 @@ use std::sync::atomic::{AtomicI32, Ordering};
 
 use libloading::Library;
 
-use super::defin::{VAL_CHAN_FOR_ALL_LINES, VAL_GROUP_BY_CHANNEL, VAL_VOLTS};
+use super::defin::{VAL_CHAN_FOR_ALL_LINES, VAL_GROUP_BY_CHANNEL, VAL_VOLTS, error};
 
 /// A `TaskHandle`, as the address it holds.
 pub(crate) type Task = usize;
@@ -73,6 +73,7 @@ type FnCreateWatchdog =
 type FnCfgWatchdogDo = unsafe extern "C" fn(TaskHandle, *const c_char, *const c_int, c_uint) -> c_int;
 type FnControlWatchdog = unsafe extern "C" fn(TaskHandle, c_int) -> c_int;
 type FnTaskOutBool = unsafe extern "C" fn(TaskHandle, *mut c_uint) -> c_int;
+type FnTaskOutU32 = unsafe extern "C" fn(TaskHandle, *mut c_uint) -> c_int;
 type FnExtendedErrorInfo = unsafe extern "C" fn(*mut c_char, c_uint) -> c_int;
 type FnErrorString = unsafe extern "C" fn(c_int, *mut c_char, c_uint) -> c_int;
 type FnText = unsafe extern "C" fn(*mut c_char, c_uint) -> c_int;
@@ -86,7 +87,7 @@ const TEXT: usize = 2048;
 const DEVICE_LIST: usize = 16_384;
 
 /// The library's functions: plain function pointers copied out of the library, valid
-/// while [`Lib`] keeps it loaded.
+/// for the process's life, which the library stays loaded for (`crate::resident`).
 struct Api {
     create_task: FnCreateTask,
     start_task: FnTask,
@@ -102,6 +103,8 @@ struct Api {
     cfg_watchdog_do_expir_states: FnCfgWatchdogDo,
     control_watchdog_task: FnControlWatchdog,
     get_watchdog_has_expired: FnTaskOutBool,
+    get_task_num_chans: FnTaskOutU32,
+    get_write_digital_lines_bytes_per_chan: FnTaskOutU32,
     get_extended_error_info: FnExtendedErrorInfo,
     get_error_string: FnErrorString,
     get_sys_dev_names: FnText,
@@ -114,8 +117,6 @@ pub(crate) struct Lib {
     api: Api,
     /// The last warning (positive code) a call returned, 0 if none since it was taken.
     warning: AtomicI32,
-    /// Keeps the code behind `api` mapped; dropped last.
-    _library: Library,
 }
 
 /// Why the library could not be used.
@@ -151,15 +152,20 @@ fn ptr(task: Task) -> TaskHandle {
 impl Lib {
     /// Loads the library at `path` and looks up every function the driver calls.
     pub(crate) fn load(path: &Path) -> Result<Lib, LoadError> {
-        // SAFETY: loading runs the library's initialisers. The path is NI-DAQmx's
-        // library as the operator configured it (or the test stand-in exporting the
-        // same API); nothing else is loaded here.
-        let library = unsafe { Library::new(path) }.map_err(|e| LoadError::Open(e.to_string()))?;
+        // Kept loaded for the process's life (`crate::resident`): never unloaded
+        // under a task or thread of the library's own.
+        let library = crate::resident::resident(path, || {
+            // SAFETY: loading runs the library's initialisers. The path is NI-DAQmx's
+            // library as the operator configured it (or the test stand-in exporting the
+            // same API); nothing else is loaded here.
+            unsafe { Library::new(path) }.map_err(|e| e.to_string())
+        })
+        .map_err(LoadError::Open)?;
         macro_rules! get {
             ($name:literal) => {{
                 // SAFETY: the symbol's type is the prototype NIDAQmx.h declares for
-                // this name (the type aliases above); the pointer is used only while
-                // `library` stays loaded, which `Lib` guarantees.
+                // this name (the type aliases above); `library` stays loaded for the
+                // process's life (`crate::resident`).
                 let symbol = unsafe { library.get($name.as_bytes()) }
                     .map_err(|e| LoadError::Missing($name.to_owned(), e.to_string()))?;
                 *symbol
@@ -180,6 +186,8 @@ impl Lib {
             cfg_watchdog_do_expir_states: get!("DAQmxCfgWatchdogDOExpirStates"),
             control_watchdog_task: get!("DAQmxControlWatchdogTask"),
             get_watchdog_has_expired: get!("DAQmxGetWatchdogHasExpired"),
+            get_task_num_chans: get!("DAQmxGetTaskNumChans"),
+            get_write_digital_lines_bytes_per_chan: get!("DAQmxGetWriteDigitalLinesBytesPerChan"),
             get_extended_error_info: get!("DAQmxGetExtendedErrorInfo"),
             get_error_string: get!("DAQmxGetErrorString"),
             get_sys_dev_names: get!("DAQmxGetSysDevNames"),
@@ -189,7 +197,6 @@ impl Lib {
         Ok(Lib {
             api,
             warning: AtomicI32::new(0),
-            _library: library,
         })
     }
 
@@ -283,12 +290,43 @@ impl Lib {
         })
     }
 
+    /// A `uInt32` task property (`DAQmxGetTaskNumChans`, ...).
+    fn task_u32(&self, f: FnTaskOutU32, task: Task) -> Result<u32, i32> {
+        let mut value: c_uint = 0;
+        // SAFETY: a task handle the library gave us; one uInt32 is written through a
+        // pointer to a live local.
+        self.check(unsafe { f(ptr(task), &mut value) })?;
+        Ok(value)
+    }
+
+    /// How many values one sample of the task's channels is, as the write functions
+    /// read it: `DAQmxGetTaskNumChans`, times `DAQmxGetWriteDigitalLinesBytesPerChan`
+    /// for a digital task written by lines. The writes take no array size, so each
+    /// asks this first and refuses a slice of another length
+    /// ([`error::WRITE_NUM_CHANS_MISMATCH`]) instead of letting the library read past
+    /// it: a channel list such as `Dev1/ao0,Dev1/ao2` or a whole port `Dev1/port0` makes
+    /// a task wider than the caller's slice.
+    fn sample_width(&self, task: Task, digital: bool) -> Result<usize, i32> {
+        let chans = self.task_u32(self.api.get_task_num_chans, task)?;
+        let per = if digital {
+            self.task_u32(self.api.get_write_digital_lines_bytes_per_chan, task)?
+        } else {
+            1
+        };
+        Ok(usize::try_from(u64::from(chans) * u64::from(per)).unwrap_or(usize::MAX))
+    }
+
     /// `DAQmxWriteAnalogF64`: one sample per channel (`volts`, one per channel of the
     /// task, grouped by channel), started automatically, on-demand timing.
+    /// [`error::WRITE_NUM_CHANS_MISMATCH`] where the task has another number of
+    /// channels: nothing is written.
     pub(crate) fn write_analog_f64(&self, task: Task, volts: &[f64], timeout_s: f64) -> Result<i32, i32> {
+        if self.sample_width(task, false)? != volts.len() {
+            return Err(error::WRITE_NUM_CHANS_MISMATCH);
+        }
         let mut written: c_int = 0;
         // SAFETY: with one sample per channel the library reads one double per channel
-        // of the task; the driver's tasks have exactly `volts.len()` channels. It
+        // of the task, and the task has `volts.len()` channels (asked just above). It
         // writes one int through a pointer to a live local; `reserved` is null as the
         // header asks.
         self.check(unsafe {
@@ -307,10 +345,15 @@ impl Lib {
     }
 
     /// `DAQmxWriteDigitalLines`: one sample of `lines` (one byte per line, 0 or 1).
+    /// [`error::WRITE_NUM_CHANS_MISMATCH`] where the task's sample is another number
+    /// of bytes: nothing is written.
     pub(crate) fn write_digital_lines(&self, task: Task, lines: &[u8], timeout_s: f64) -> Result<i32, i32> {
+        if self.sample_width(task, true)? != lines.len() {
+            return Err(error::WRITE_NUM_CHANS_MISMATCH);
+        }
         let mut written: c_int = 0;
-        // SAFETY: one sample per channel of one line each: the library reads one byte
-        // per line of the task, which has `lines.len()` lines; one int is written
+        // SAFETY: one sample: the library reads the task's channels times its bytes
+        // per channel, which is `lines.len()` (asked just above); one int is written
         // through a pointer to a live local; `reserved` is null.
         self.check(unsafe {
             (self.api.write_digital_lines)(

@@ -423,6 +423,61 @@ pub unsafe extern "C" fn DAQmxGetWatchdogHasExpired(task: TaskHandle, expired: *
     })
 }
 
+/// A task's width for the two getters below, asked of the model without recording a
+/// call (the driver asks before each write; the record is of what it does).
+///
+/// # Safety
+/// `data` is null or valid for one write.
+unsafe fn task_width(
+    task: TaskHandle,
+    data: *mut c_uint,
+    f: impl FnOnce(&mut super::Daq, usize) -> Result<usize, Code>,
+) -> c_int {
+    let r = std::panic::catch_unwind(AssertUnwindSafe(|| {
+        let mut guard = lock();
+        let state = guard.as_mut().expect("created by lock");
+        f(state.daq()?, handle(task))
+    }));
+    match r {
+        Ok(Ok(n)) if !data.is_null() => {
+            // SAFETY: non-null, valid per the contract.
+            unsafe { put(data, c_uint::try_from(n).unwrap_or(c_uint::MAX)) };
+            0
+        }
+        Ok(Ok(_)) => error::INVALID_ATTRIBUTE_VALUE,
+        Ok(Err(code)) => code,
+        Err(_) => error::INVALID_TASK,
+    }
+}
+
+/// `DAQmxGetTaskNumChans`, as `NIDAQmx.h` declares it: an analog output task's
+/// channels; a digital task is one channel of all its lines (`DAQmx_Val_ChanForAllLines`,
+/// as the driver creates them). Not recorded as a call.
+///
+/// # Safety
+/// `data` is null or valid for one write.
+#[unsafe(no_mangle)]
+pub unsafe extern "C" fn DAQmxGetTaskNumChans(task: TaskHandle, data: *mut c_uint) -> c_int {
+    // SAFETY: per the contract.
+    unsafe {
+        task_width(task, data, |d, h| match d.ao_width(h) {
+            Ok(n) => Ok(n),
+            Err(_) => d.digital_width(h).map(|_| 1),
+        })
+    }
+}
+
+/// `DAQmxGetWriteDigitalLinesBytesPerChan`, as `NIDAQmx.h` declares it: the lines of
+/// the task's one channel. Not recorded as a call.
+///
+/// # Safety
+/// `data` is null or valid for one write.
+#[unsafe(no_mangle)]
+pub unsafe extern "C" fn DAQmxGetWriteDigitalLinesBytesPerChan(task: TaskHandle, data: *mut c_uint) -> c_int {
+    // SAFETY: per the contract.
+    unsafe { task_width(task, data, |d, h| d.digital_width(h)) }
+}
+
 /// `DAQmxGetExtendedErrorInfo`, as `NIDAQmx.h` declares it: the last failure on this
 /// thread. Not recorded as a call (it is how a caller reads a failure, not an action).
 ///
