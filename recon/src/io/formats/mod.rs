@@ -200,6 +200,17 @@ fn from_hdf5(file: File, path: &Path, file_len: u64, dir: Option<&Path>) -> Resu
     if file.dataset("H").is_ok() {
         return YtalCapture::decode(file, path, file_len);
     }
+    // A root group that cannot be listed is a damaged file, not one of an unknown
+    // layout (which is then named by the variables it has: none).
+    if let Err(e) = file.root().datasets() {
+        return Err(hdf5_error(
+            path,
+            format!(
+                "is damaged or truncated: its root group cannot be read ({e}; the file is {file_len} bytes); \
+                 copy it again from where it was made"
+            ),
+        ));
+    }
     let r = Reader { file, path, file_len };
     if r.has("data") {
         return znlos::from_reader(&r);

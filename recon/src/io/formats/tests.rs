@@ -158,6 +158,25 @@ fn the_lct_release_layout_reads_through_the_same_entry() {
     });
 }
 
+/// An HDF5 file cut short is said to be damaged, not of a layout Periscope does not
+/// read: until 2026-12-06 one cut inside its root group's records was refused with
+/// "no variable of a capture format Periscope reads (it has: )".
+#[test]
+fn a_truncated_hdf5_file_is_called_damaged() {
+    let whole = std::fs::read(fixture("znlos-point.hdf5")).unwrap();
+    for len in [600, 1000, 2048, 4096] {
+        let e = capture_from_bytes(whole[..len].to_vec(), Path::new("cut.hdf5"))
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("cut.hdf5")
+                && (e.contains("damaged or truncated") || e.contains("beyond the end of the file"))
+                && !e.contains("it has: )"),
+            "{len} bytes: {e}"
+        );
+    }
+}
+
 #[test]
 fn frequency_domain_and_unknown_layouts_are_refused_by_name() {
     let e = read_capture(&fixture("ytal-frequency.hdf5"))
