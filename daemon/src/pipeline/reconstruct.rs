@@ -492,6 +492,7 @@ pub fn reconstruct(
 
 /// `result`, unless its volume holds a NaN or an infinity, which is never written as a
 /// result (every way to a volume, offline, streamed or refitted, ends here).
+/// A volume of zeros is kept (a fit that found nothing writes one), but not silently.
 fn finite(result: ReconResult) -> Result<ReconResult, PipelineError> {
     if let Some(i) = result.volume.data.iter().position(|v| !v.is_finite()) {
         return Err(ReconError::NotFinite {
@@ -499,6 +500,15 @@ fn finite(result: ReconResult) -> Result<ReconResult, PipelineError> {
             value: result.volume.data[i],
         }
         .into());
+    }
+    if result.volume.data.iter().all(|&v| v == 0.0) {
+        tracing::warn!(
+            pairs = result.pairs,
+            "the volume is zero everywhere: nothing was reconstructed. Check that the volume lies where the \
+             capture's pairs see (its bounds, in metres) and, for 3D-GTR on values far from photon counts \
+             (about 1e-10 or less a bin), scale the capture's values up: the fit's optimiser does not move \
+             on gradients below about 1e-12"
+        );
     }
     Ok(result)
 }
