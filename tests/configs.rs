@@ -728,3 +728,62 @@ fn check_gives_a_coarse_captures_reconstruction_time_where_the_plan_leaves_the_b
     let out = periscope(&["check", "configs/plans/demo.toml"]);
     assert!(!out.stdout.contains("coarsely"), "{}", out.stdout);
 }
+
+/// A wavelength the plan sets whose envelope the solver would refuse (FBP's phasor
+/// filter, RSD: at most 8 window lengths) is refused by `check` and submit, naming the
+/// key, before anything is measured: until 2026-12-06 `periscope run` captured every
+/// pair and then failed in the solver, naming a setting the plan did not hold by
+/// that name. A simulator scene that cannot be built is refused by `check` too, as the
+/// run would refuse it when it starts.
+#[test]
+fn check_refuses_what_the_run_would_refuse_after_the_capture() {
+    let dir = tempfile::tempdir().unwrap();
+    let text = std::fs::read_to_string(repo_path("tests/data/plans/small-fbp.toml")).unwrap();
+    for (table, value) in [
+        ("[recon.fbp]", "wavelength = 30.0"),
+        ("[recon.rsd]", "wavelength = 30.0"),
+    ] {
+        let plan = dir.path().join("long-wave.toml");
+        let edited = text.replace(
+            "method = \"fbp\"",
+            if table == "[recon.rsd]" {
+                "method = \"rsd\""
+            } else {
+                "method = \"fbp\""
+            },
+        );
+        std::fs::write(&plan, format!("{edited}{table}\n{value}\n")).unwrap();
+        let out = periscope(&["check", plan.to_str().unwrap()]);
+        let key = format!("{}.wavelength", &table[1..table.len() - 1]);
+        assert_eq!(out.code, Some(2), "{table}: {out:?}");
+        assert!(
+            out.stderr.contains(&key) && out.stderr.contains("envelope"),
+            "{table}: {}",
+            out.stderr
+        );
+        // A wavelength in range passes.
+        std::fs::write(&plan, format!("{edited}{table}\nwavelength = 0.1\n")).unwrap();
+        let out = periscope(&["check", plan.to_str().unwrap()]);
+        assert_eq!(out.code, Some(0), "{table}: {out:?}");
+    }
+    // A scene whose letter is empty, through `check`.
+    let scene = std::fs::read_to_string(repo_path("configs/scenes/wall-letter.toml")).unwrap();
+    let broken = scene.replacen("text = \"", "text = \"\" # was \"", 1);
+    assert_ne!(broken, scene, "no `text` in the demo scene");
+    std::fs::write(dir.path().join("scene.toml"), broken).unwrap();
+    let sim = std::fs::read_to_string(repo_path("configs/instrument/sim.toml")).unwrap();
+    let instrument = dir.path().join("sim.toml");
+    std::fs::write(
+        &instrument,
+        sim.replace("\"../scenes/wall-letter.toml\"", "\"scene.toml\""),
+    )
+    .unwrap();
+    let out = periscope(&[
+        "check",
+        repo_path("configs/plans/demo.toml").to_str().unwrap(),
+        "--instrument",
+        instrument.to_str().unwrap(),
+    ]);
+    assert_eq!(out.code, Some(2), "{out:?}");
+    assert!(out.stderr.contains("scene.toml"), "{}", out.stderr);
+}

@@ -172,6 +172,9 @@ pub fn execute(cli: Cli) -> Result<(), CliError> {
         }
         Command::Check { plan, instrument } => {
             let config = instrument.load()?;
+            // The way to the devices as a run makes it (nothing opened): the
+            // simulator's scene file is read and checked here, not when the run starts.
+            crate::devices::backend(&config)?;
             let plan = Plan::load(&plan, &config)?;
             print!("{}", check::report(&plan, &config));
             crate::budget::Budget::of_plan(&plan)
@@ -211,6 +214,9 @@ pub fn execute(cli: Cli) -> Result<(), CliError> {
             // the reconstruction's events added to its log.
             if RunDir::holds_run(&out) {
                 return Err(CliError::OutIsRun(out));
+            }
+            if out.exists() && !out.is_dir() {
+                return Err(CliError::OutNotFolder(out));
             }
             match adaptive_replay {
                 Some(order) => offline::replay(&capture, config.as_deref(), &out, order)?,
@@ -617,6 +623,13 @@ pub enum CliError {
         .0.display()
     )]
     OutIsRun(PathBuf),
+    /// `recon --out` naming something that is not a folder.
+    #[error(
+        "{} exists and is not a folder: --out names the folder the reconstruction's files go in; give a new or \
+         existing folder",
+        .0.display()
+    )]
+    OutNotFolder(PathBuf),
     /// The async runtime for `serve` could not start.
     #[error("cannot start the API's runtime: {0}")]
     Runtime(std::io::Error),
@@ -638,7 +651,7 @@ impl CliError {
             CliError::Service(ServiceError::Config(_)) => true,
             CliError::Calibrate(e) => e.is_config(),
             CliError::Admin(crate::admin::AdminError::Config(_) | crate::admin::AdminError::Usage(_)) => true,
-            CliError::OutIsRun(_) => true,
+            CliError::OutIsRun(_) | CliError::OutNotFolder(_) => true,
             // The plan against the instrument's limits, as `run` refuses it.
             CliError::Budget { .. } => true,
             _ => false,

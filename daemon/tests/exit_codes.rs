@@ -62,6 +62,22 @@ fn a_stored_run_with_a_broken_plan_is_two() {
         "{stderr}"
     );
     assert_eq!(std::fs::read_dir(run).unwrap().count(), before);
+    // A file as the output folder: named as such, exit 2, not "File exists (os error
+    // 17)" after the capture was read (until 2026-12-06).
+    let file = tmp.path().join("a-file");
+    std::fs::write(&file, "kept").unwrap();
+    let (code, stderr) = periscope(&[
+        "recon",
+        "tests/data/ytal/confocal_xy.hdf5",
+        "--out",
+        file.to_str().unwrap(),
+    ]);
+    assert_eq!(code, Some(2), "{stderr}");
+    assert!(
+        stderr.contains("is not a folder") && stderr.contains("--out"),
+        "{stderr}"
+    );
+    assert_eq!(std::fs::read(&file).unwrap(), b"kept");
 }
 
 /// A reconstruction the settings cannot do (here LCT, which needs confocal pairs, on a

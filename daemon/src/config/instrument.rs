@@ -796,6 +796,18 @@ fn sim_settings(
         scene = None;
     }
     if let Some(path) = &scene
+        && path.exists()
+        && !path.is_file()
+    {
+        return Err(check.src.invalid(
+            "sim.scene",
+            format!(
+                "{} is not a regular file (a directory, a device or a pipe): give the scene's TOML file",
+                path.display()
+            ),
+        ));
+    }
+    if let Some(path) = &scene
         && !path.is_file()
     {
         return Err(check.src.invalid(

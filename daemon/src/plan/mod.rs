@@ -446,6 +446,7 @@ impl Plan {
         }
         if new {
             confocal_solver_fits(src, &recon, &pairs)?;
+            envelope_fits(src, &recon, &acquisition)?;
         }
         let sus = raw.suspend;
         let suspend = Suspenders {
@@ -491,6 +492,52 @@ impl Plan {
             suspend,
         })
     }
+}
+
+/// A wavelength the plan sets for FBP's phasor filter or RSD, whose envelope (6 σ)
+/// is longer than the solvers take against the window's length (8 times: the
+/// padding would not fit in memory), is refused here, as the solver would refuse it,
+/// but before the capture rather than after it (`wavelength = 10.0`, a typo for 0.10).
+/// A wavelength left to its default depends on the relay's sampling, which the scan
+/// finds, so it is left to the solver.
+fn envelope_fits(src: &TomlSource, recon: &ReconSettings, acq: &Acquisition) -> Result<(), ConfigError> {
+    use periscope_recon::solver::{MAX_ENVELOPE_SPANS, SIGMA_PER_WAVELENGTH, SolverKind};
+    let span = f64::from(acq.bins) * acq.bin_width * periscope_recon::C0;
+    let (key, lambda, sigma) = match recon.method {
+        Method::Solver(SolverKind::Fbp)
+            if recon.solvers.fbp.filter == periscope_recon::solver::FbpFilter::Phasor =>
+        {
+            let Some(l) = recon.solvers.fbp.wavelength else {
+                return Ok(());
+            };
+            let per = recon
+                .solvers
+                .fbp
+                .sigma_per_wavelength
+                .unwrap_or(SIGMA_PER_WAVELENGTH);
+            ("recon.fbp.wavelength", l, per * l)
+        }
+        Method::Solver(SolverKind::Rsd) => {
+            let Some(l) = recon.solvers.rsd.wavelength else {
+                return Ok(());
+            };
+            ("recon.rsd.wavelength", l, recon.solvers.rsd.cycles * l / 6.0)
+        }
+        _ => return Ok(()),
+    };
+    if 6.0 * sigma <= MAX_ENVELOPE_SPANS * span {
+        return Ok(());
+    }
+    Err(src.invalid(
+        key,
+        format!(
+            "is {lambda} m: its envelope (6 sigma) of {:.3} m is more than {MAX_ENVELOPE_SPANS} times the window's \
+             {:.3} m of path (acquisition.bins × bin-width-ps), longer than the solver takes; a shorter wavelength \
+             (metres: 0.1 is 10 cm), or a longer window",
+            6.0 * sigma,
+            span
+        ),
+    ))
 }
 
 /// LCT and f-k take confocal pairs only (illumination and detection within the

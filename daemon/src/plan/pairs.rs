@@ -170,8 +170,13 @@ pub(crate) fn pair_mode(src: &TomlSource, raw: RawPairs) -> Result<PairMode, Con
             let laser = raw
                 .laser
                 .map(DVec3::from_array)
-                .filter(|l| l.is_finite())
                 .ok_or_else(|| src.invalid("pairs.laser", "is required for mode \"fixed-laser\": the point [x, y, z] in metres to aim the laser at"))?;
+            if !laser.is_finite() {
+                return Err(src.invalid(
+                    "pairs.laser",
+                    format!("{laser:?} is not a point: each of [x, y, z] must be a finite number of metres"),
+                ));
+            }
             Ok(PairMode::FixedLaser {
                 laser,
                 grid: grid("pairs.grid", raw.grid)?,

@@ -33,7 +33,7 @@ use crate::volume::VolumeError;
 
 /// The longest wavelet envelope (6 sigma) the phasor solvers (RSD, FBP's phasor
 /// filter) take, in lengths of the time axis: their padding grows with it.
-pub(crate) const MAX_ENVELOPE_SPANS: f64 = 8.0;
+pub const MAX_ENVELOPE_SPANS: f64 = 8.0;
 
 /// Which conventional solver turns transients into a volume.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]

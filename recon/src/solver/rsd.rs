@@ -209,7 +209,7 @@ pub fn rsd_frame(
                 settings.cycles,
                 6.0 * sigma
             ),
-            expected: "an envelope (cycles × wavelength) at most 8 times the time axis's length: fewer cycles or a shorter wavelength",
+            expected: "an envelope (cycles × wavelength) at most 8 times the time axis's length: fewer [rsd] cycles or a shorter [rsd] wavelength (recon.rsd.* in a plan); a run's capture is kept, and `periscope recon RUN_DIR --config RECON.toml` reconstructs it again",
         });
     }
     let pad = (3.0 * sigma / axis.width).ceil() as usize + 1;

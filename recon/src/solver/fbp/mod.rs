@@ -455,7 +455,7 @@ pub fn fbp_on(
                     6.0 * sigma,
                     sigma / lambda
                 ),
-                expected: "an envelope (6 sigma) at most 8 times the time axis's length: a shorter wavelength",
+                expected: "an envelope (6 sigma) at most 8 times the time axis's length: a shorter [fbp] wavelength (recon.fbp.wavelength in a plan), or, where it is left to the default (2.5 times the coarser of the relay's sampling pitch and the voxels' lateral pitch), finer voxels across ([volume] shape, recon.volume.shape in a plan); a run's capture is kept, and `periscope recon RUN_DIR --config RECON.toml` reconstructs it again",
             });
         }
         // Three envelope widths of zeros each side: the wavelet's support.
