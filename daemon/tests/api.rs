@@ -908,6 +908,71 @@ async fn a_loopback_estop_with_a_refused_key_does_not_wait_for_the_audit_trail()
     );
 }
 
+/// E-stops pressed while another process holds the catalogue (as `periscope catalogue
+/// sync` does) keep their audit entries waiting; sixteen of them, the most the e-stop's
+/// threads run at once, must not keep a seventeenth from switching the laser off and
+/// reporting it. Until 2026-12-06 the entries held the action's own slots, and each
+/// answer waited for its entry: the seventeenth waited for the catalogue.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn estops_whose_audit_entries_wait_leave_the_next_estop_its_threads() {
+    let dir = tempfile::tempdir().unwrap();
+    let (svc, _worker, router, _id, _) = a_capturing_run(dir.path()).await;
+    let catalogue = dir.path().join(periscope_daemon::catalogue::CATALOGUE_FILE);
+    let (held_tx, held) = std::sync::mpsc::channel();
+    let holder = std::thread::spawn(move || {
+        let conn = rusqlite::Connection::open(catalogue).unwrap();
+        conn.execute_batch("BEGIN IMMEDIATE").unwrap();
+        held_tx.send(()).unwrap();
+        std::thread::sleep(Duration::from_secs(6));
+        conn.execute_batch("ROLLBACK").unwrap();
+    });
+    held.recv().unwrap();
+    let pressed: Vec<_> = (0..16)
+        .map(|_| {
+            let router = router.clone();
+            tokio::spawn(async move { call(&router, Method::POST, "/api/v1/estop", Some(TOKEN), "").await })
+        })
+        .collect();
+    // Their audit entries now wait for the catalogue.
+    tokio::time::sleep(Duration::from_millis(1500)).await;
+    let t = Instant::now();
+    let (s, v) = call(&router, Method::POST, "/api/v1/estop", Some(TOKEN), "").await;
+    let answered = t.elapsed();
+    assert_eq!(s, StatusCode::OK, "{v}");
+    assert!(
+        answered < Duration::from_secs(3),
+        "the seventeenth e-stop answered after {answered:?}, behind the audit trail"
+    );
+    for p in pressed {
+        let (s, v) = p.await.unwrap();
+        assert_eq!(s, StatusCode::OK, "{v}");
+    }
+    let rig = periscope_daemon::devices::sim::rig_of(svc.backend()).unwrap();
+    assert!(!rig.emission(), "the laser is on after the e-stops");
+    holder.join().unwrap();
+    // Every e-stop is recorded once the catalogue lets go.
+    let t = Instant::now();
+    loop {
+        let (_, audit) = call(
+            &router,
+            Method::GET,
+            "/api/v1/audit?action=estop&limit=100",
+            Some(TOKEN),
+            "",
+        )
+        .await;
+        let n = audit["entries"].as_array().map_or(0, Vec::len);
+        if n >= 17 {
+            break;
+        }
+        assert!(
+            t.elapsed() < Duration::from_secs(30),
+            "{n} e-stops recorded: {audit}"
+        );
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+}
+
 /// During a capture `/metrics` gives the laser as the run reads it (at every pair), not
 /// the worker's reading from before the run, in which the laser was off: an alert on
 /// emission with the interlock open must be able to fire while a run measures.

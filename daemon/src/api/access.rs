@@ -414,9 +414,11 @@ async fn check_key(
         }
     };
     if estop {
-        return Ok(super::own_thread("periscope-estop-auth", check)
-            .await
-            .unwrap_or(unknown));
+        return Ok(
+            super::own_thread("periscope-estop-auth", &super::ESTOP_SLOTS, check)
+                .await
+                .unwrap_or(unknown),
+        );
     }
     let limit = service.instrument().api.request_timeout;
     match tokio::time::timeout(limit, tokio::task::spawn_blocking(check)).await {
@@ -468,13 +470,24 @@ async fn refused(state: &AppState, e: ApiError, entry: AuditEntry) -> Response {
     e.into_response()
 }
 
-/// Records an audit entry on the blocking pool (it is flushed to disk), or an
-/// e-stop's (`estop`) on a thread of its own: the laser is off by then, and the
-/// response waits for its entry like any other's.
+/// How long an e-stop's answer waits for its audit entry: the laser is off by then,
+/// and an operator waiting for the report of a stop may press again.
+const ESTOP_AUDIT_WAIT: Duration = Duration::from_secs(1);
+
+/// Records an audit entry on the blocking pool (it is flushed to disk), and the
+/// response waits for it. An e-stop's (`estop`) goes on a thread of its own, of the
+/// e-stop audit's slots, and its response waits at most [`ESTOP_AUDIT_WAIT`]: a
+/// catalogue another process holds delays the entry, not the report that the laser is
+/// off. The entry is written all the same once the catalogue lets it.
 async fn record(state: &AppState, entry: AuditEntry, estop: bool) {
     let s = Arc::clone(&state.service);
     if estop {
-        let _ = super::own_thread("periscope-estop-audit", move || s.audit(entry)).await;
+        let written = tokio::spawn(super::own_thread(
+            "periscope-estop-audit",
+            &super::ESTOP_AUDIT_SLOTS,
+            move || s.audit(entry),
+        ));
+        let _ = tokio::time::timeout(ESTOP_AUDIT_WAIT, written).await;
         return;
     }
     let _ = tokio::task::spawn_blocking(move || s.audit(entry)).await;

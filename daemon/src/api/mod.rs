@@ -889,7 +889,7 @@ async fn estop(State(state): State<AppState>) -> ApiResult<axum::Json<EstopRepor
     // blocking work goes on (a download's export, a disk that stalls) can fill the
     // pool, and the e-stop must never queue behind them.
     let s = Arc::clone(&state.service);
-    match own_thread("periscope-estop", move || s.estop()).await {
+    match own_thread("periscope-estop", &ESTOP_SLOTS, move || s.estop()).await {
         Some(r) => r.map(axum::Json).map_err(ApiError::from),
         None => Err(ApiError::new(
             StatusCode::INTERNAL_SERVER_ERROR,
@@ -899,26 +899,38 @@ async fn estop(State(state): State<AppState>) -> ApiResult<axum::Json<EstopRepor
     }
 }
 
-/// Runs `f` on a thread of its own and waits for its result (`None`: the thread could
-/// not start, or panicked). For the e-stop's path, which must never wait behind the
-/// blocking pool: requests whose timeout fired while their blocking work went on (an
-/// export, a disk that stalls) can fill it. At most [`OWN_THREADS`] run at once (a
-/// flood of e-stops waits for one to end rather than start threads without bound);
-/// a dropped future leaves its thread to finish.
+/// Slots of the e-stop's own work ([`estop`]) and its key check, which read no more
+/// than `keys.json`.
+static ESTOP_SLOTS: tokio::sync::Semaphore = tokio::sync::Semaphore::const_new(OWN_THREADS);
+
+/// Slots of the e-stop's audit entries, which wait for `audit.jsonl`'s sync and the
+/// catalogue's lock: a catalogue another process holds (or a stalled disk) keeps
+/// these, never the slots an e-stop needs to switch the laser off. Until 2026-12-06
+/// the two shared one set, and sixteen e-stops pressed while the catalogue was held
+/// left the seventeenth waiting for a slot.
+static ESTOP_AUDIT_SLOTS: tokio::sync::Semaphore = tokio::sync::Semaphore::const_new(OWN_THREADS);
+
+/// Runs `f` on a thread of its own, taking one of `slots`, and waits for its result
+/// (`None`: the thread could not start, or panicked). For the e-stop's path, which must
+/// never wait behind the blocking pool: requests whose timeout fired while their
+/// blocking work went on (an export, a disk that stalls) can fill it. At most
+/// [`OWN_THREADS`] of a set of slots run at once (a flood of e-stops waits for one to
+/// end rather than start threads without bound); a dropped future leaves its thread to
+/// finish.
 async fn own_thread<T: Send + 'static>(
     name: &'static str,
+    slots: &'static tokio::sync::Semaphore,
     f: impl FnOnce() -> T + Send + 'static,
 ) -> Option<T> {
-    static SLOTS: tokio::sync::Semaphore = tokio::sync::Semaphore::const_new(OWN_THREADS);
     /// A slot, given back when the thread ends, panicking or not.
-    struct Slot;
+    struct Slot(&'static tokio::sync::Semaphore);
     impl Drop for Slot {
         fn drop(&mut self) {
-            SLOTS.add_permits(1);
+            self.0.add_permits(1);
         }
     }
-    SLOTS.acquire().await.ok()?.forget();
-    let slot = Slot;
+    slots.acquire().await.ok()?.forget();
+    let slot = Slot(slots);
     let (tx, rx) = tokio::sync::oneshot::channel();
     let job: OwnJob = (
         name,
@@ -1188,7 +1200,11 @@ mod tests {
         let (api, estop) = std::thread::spawn(|| {
             crate::priority::lower_current_thread(crate::priority::current_nice() + 5).unwrap();
             let rt = tokio::runtime::Builder::new_current_thread().build().unwrap();
-            let estop = rt.block_on(own_thread("test-estop", crate::priority::current_nice));
+            let estop = rt.block_on(own_thread(
+                "test-estop",
+                &ESTOP_SLOTS,
+                crate::priority::current_nice,
+            ));
             (crate::priority::current_nice(), estop)
         })
         .join()
