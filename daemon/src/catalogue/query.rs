@@ -149,6 +149,12 @@ pub struct RunQuery {
 /// past 50,000 bytes, and escaping can double them).
 pub const MAX_FILTER_TEXT: usize = 1024;
 
+/// The longest free-text search (`q`), in bytes: it is matched as `%text%` against
+/// seven columns of every run, at a cost of its length times each field's (notes of
+/// 4,096 bytes), under the catalogue's lock that audit entries wait for; a search box's
+/// text is a few words.
+pub const MAX_SEARCH_TEXT: usize = 128;
+
 impl RunQuery {
     /// Whether the query's values are ones the catalogue can run: the field at fault
     /// (its API name) and why, if not.
@@ -159,8 +165,15 @@ impl RunQuery {
         if i64::try_from(self.offset).is_err() {
             return Err(("offset", format!("{}: expected 0 to {}", self.offset, i64::MAX)));
         }
+        if let Some(q) = &self.text
+            && q.len() > MAX_SEARCH_TEXT
+        {
+            return Err((
+                "q",
+                format!("{} bytes: a search of at most {MAX_SEARCH_TEXT}", q.len()),
+            ));
+        }
         for (field, v) in [
-            ("q", &self.text),
             ("plan", &self.plan),
             ("tag", &self.tag),
             ("submitted_by", &self.submitted_by),
