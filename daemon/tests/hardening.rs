@@ -889,3 +889,67 @@ async fn a_client_that_stops_reading_is_cut_off_after_the_write_timeout() {
     stop.notify_one();
     server.await.unwrap().unwrap();
 }
+
+/// A request head longer than the read buffer (`server::MAX_BUF`, 64 KiB) is answered
+/// 431 and the connection closed once the buffer is full, not held until the header
+/// timeout while it grows (hyper's default buffer took about 400 KB a connection, with
+/// no key needed to send headers). A head within it is served.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_request_head_past_the_read_buffer_is_refused_when_it_fills() {
+    use periscope_daemon::api::server::{ConnectionLimits, MAX_BUF, serve_connections};
+    use tokio::io::{AsyncReadExt, AsyncWriteExt};
+    let app = axum::Router::new().route("/", axum::routing::get(|| async { "ok" }));
+    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+    let addr = listener.local_addr().unwrap();
+    let limits = ConnectionLimits {
+        header_timeout: Duration::from_secs(30),
+        max_connections: 8,
+        write_timeout: Duration::from_secs(5),
+    };
+    let stop = Arc::new(tokio::sync::Notify::new());
+    let server = {
+        let stop = Arc::clone(&stop);
+        tokio::spawn(async move {
+            serve_connections(listener, app, limits, async move { stop.notified().await }).await
+        })
+    };
+    // Within the buffer: served.
+    let mut client = tokio::net::TcpStream::connect(addr).await.unwrap();
+    let head = format!(
+        "GET / HTTP/1.1\r\nhost: localhost\r\nx-pad: {}\r\nconnection: close\r\n\r\n",
+        "a".repeat(16 << 10)
+    );
+    client.write_all(head.as_bytes()).await.unwrap();
+    let mut got = Vec::new();
+    client.read_to_end(&mut got).await.unwrap();
+    assert!(
+        got.starts_with(b"HTTP/1.1 200"),
+        "{}",
+        String::from_utf8_lossy(&got[..got.len().min(200)])
+    );
+    // One header growing past it, never ended: refused once it fills, well before the
+    // 30 s header timeout.
+    let mut client = tokio::net::TcpStream::connect(addr).await.unwrap();
+    let t = std::time::Instant::now();
+    client
+        .write_all(b"GET / HTTP/1.1\r\nhost: localhost\r\nx-pad: ")
+        .await
+        .unwrap();
+    let chunk = vec![b'a'; 8 << 10];
+    for _ in 0..(2 * MAX_BUF / chunk.len()) {
+        if client.write_all(&chunk).await.is_err() {
+            break;
+        }
+    }
+    let mut got = Vec::new();
+    let read = tokio::time::timeout(Duration::from_secs(10), client.read_to_end(&mut got)).await;
+    assert!(read.is_ok(), "the connection was held open");
+    assert!(t.elapsed() < Duration::from_secs(10), "{:?}", t.elapsed());
+    assert!(
+        got.is_empty() || got.starts_with(b"HTTP/1.1 431"),
+        "{}",
+        String::from_utf8_lossy(&got[..got.len().min(200)])
+    );
+    stop.notify_one();
+    server.await.unwrap().unwrap();
+}

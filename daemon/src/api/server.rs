@@ -17,6 +17,8 @@
 //!   request-timeout-s` is closed. `request-timeout-s` itself ends when a response's
 //!   headers go out, so without this a client that stops reading a download or an
 //!   event stream would hold its socket, and the download or stream slot, forever.
+//! - **Read buffer** (hyper's `max_buf_size`, [`MAX_BUF`]): a request's head must fit
+//!   64 KiB, so a connection holds no more than that before it is authenticated.
 //! - **HTTP/1.1 only**: a protocol detector (hyper-util's `auto`) would read the first
 //!   bytes of every connection before hyper's timer starts, so a silent client would
 //!   never be timed out.
@@ -35,6 +37,13 @@ use hyper_util::service::TowerToHyperService;
 use tokio::net::TcpListener;
 use tokio::sync::Semaphore;
 use tower::Service as _;
+
+/// The most a connection's read (and write) buffer holds, so the most of a request's
+/// head held before it is parsed whole: hyper's default is about 400 KB, which 512
+/// connections trickling one long header each (no key needed to send headers) made
+/// 200 MB. A head past it is answered 431 and the connection closed; bodies stream
+/// through it in pieces.
+pub const MAX_BUF: usize = 64 << 10;
 
 /// How long connections have to finish after a stop signal.
 const SHUTDOWN_GRACE: Duration = Duration::from_secs(1);
@@ -93,6 +102,7 @@ pub async fn serve_connections(
     builder
         .timer(TokioTimer::new())
         .header_read_timeout(limits.header_timeout)
+        .max_buf_size(MAX_BUF)
         .keep_alive(true);
     tokio::pin!(shutdown);
     let mut warned_full = false;
