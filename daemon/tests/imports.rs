@@ -501,6 +501,31 @@ async fn bad_imports_are_refused_with_their_reason_and_leave_nothing() {
     assert!(t.elapsed() < Duration::from_secs(5), "{:?}", t.elapsed());
     tokio::time::sleep(Duration::from_millis(50)).await;
     assert_eq!(runs_and_staging(dir.path()), (Vec::new(), 0));
+    // Nor is one that trickles, a few bytes just inside each stall window: after two
+    // windows its average rate is judged (until 2026-12-06 it held the one import slot
+    // for as long as it kept trickling; here it would have for 40 s).
+    // The part's headers at once, then the file's bytes a few at a time, each
+    // arriving well inside the 0.3 s stall window.
+    let whole = form(&[Part::File("capture", "a.mat", lct.clone())]);
+    let (first, rest) = whole.split_at(whole.len() / 4);
+    let pieces: Vec<Vec<u8>> = std::iter::once(first.to_vec())
+        .chain(rest.chunks(rest.len().div_ceil(2000)).map(<[u8]>::to_vec))
+        .collect();
+    let stream = tokio_stream::StreamExt::throttle(
+        tokio_stream::iter(pieces.into_iter().map(Ok::<_, std::io::Error>)),
+        Duration::from_millis(20),
+    );
+    let t = Instant::now();
+    let (s, bytes) = common::send(&router, upload(Some(TOKEN), Body::from_stream(stream))).await;
+    let text = String::from_utf8_lossy(&bytes);
+    assert_eq!(s, StatusCode::REQUEST_TIMEOUT, "{text}");
+    assert!(
+        text.contains("upload-too-slow") && text.contains("KiB/s"),
+        "{text}"
+    );
+    assert!(t.elapsed() < Duration::from_secs(5), "{:?}", t.elapsed());
+    tokio::time::sleep(Duration::from_millis(50)).await;
+    assert_eq!(runs_and_staging(dir.path()), (Vec::new(), 0));
     // A file whose container is right but whose contents are not a capture is queued,
     // and its run fails with the reader's reason, the upload kept as it came.
     let worker = svc.start_worker();

@@ -51,12 +51,25 @@ const MAX_TEXT_FIELD: usize = 1 << 20;
 /// hundred KiB, so a legitimate part's first chunk stays under the bound).
 const MAX_PART_HEAD: u64 = 1 << 20;
 
+/// The least average rate an upload must keep once [`PACE_GRACE_STALLS`] stall
+/// windows have passed, bytes a second: a client sending one byte just inside each
+/// stall window would otherwise hold the one import slot for ever. A lab link of a
+/// megabit a second carries eight times this.
+const MIN_IMPORT_RATE: f64 = 16.0 * 1024.0;
+
+/// Stall windows (`[api] import-stall-s`) an upload has before its average rate is
+/// judged.
+const PACE_GRACE_STALLS: u32 = 2;
+
 /// The bytes the form's body delivers while the parser looks for the next part
-/// ([`MAX_PART_HEAD`]): counted only while `armed`, so a file's data is not.
+/// ([`MAX_PART_HEAD`]): counted only while `armed`, so a file's data is not. And the
+/// whole body's pace ([`MIN_IMPORT_RATE`]).
 #[derive(Default)]
 struct PartHead {
     armed: AtomicBool,
     seen: AtomicU64,
+    /// Set once the body failed for its pace, so the answer says so.
+    slow: AtomicBool,
 }
 
 impl PartHead {
@@ -66,13 +79,23 @@ impl PartHead {
     }
 
     /// `req`'s body, which fails once more than [`MAX_PART_HEAD`] bytes arrive while
-    /// armed: the parser then reports the form malformed instead of buffering on.
-    fn watch(self: &Arc<Self>, req: Request) -> Request {
+    /// armed: the parser then reports the form malformed instead of buffering on. It
+    /// also fails once, after `grace`, the body's average rate falls under
+    /// [`MIN_IMPORT_RATE`] (`slow` says so).
+    fn watch(self: &Arc<Self>, req: Request, grace: std::time::Duration) -> Request {
         let head = Arc::clone(self);
+        let started = std::time::Instant::now();
+        let mut total = 0u64;
         req.map(|body| {
             Body::from_stream(body.into_data_stream().map(move |chunk| {
                 let chunk = chunk?;
                 let n = chunk.len() as u64;
+                total += n;
+                let elapsed = started.elapsed();
+                if elapsed > grace && (total as f64) < MIN_IMPORT_RATE * elapsed.as_secs_f64() {
+                    head.slow.store(true, Ordering::SeqCst);
+                    return Err(axum::Error::new(std::io::Error::other("the upload is too slow")));
+                }
                 if head.armed.load(Ordering::SeqCst) && head.seen.fetch_add(n, Ordering::SeqCst) + n > MAX_PART_HEAD {
                     return Err(axum::Error::new(std::io::Error::other(format!(
                         "more than {} KiB arrived before the next part's headers ended (a part's boundary and \
@@ -101,7 +124,7 @@ const MAX_SIDECARS: usize = 16;
         (status = 400, description = "not a multipart/form-data upload, an unknown field, a file without a name", body = ErrorBody),
         (status = 401, description = status::UNAUTHORISED, body = ErrorBody),
         (status = 403, description = status::FORBIDDEN, body = ErrorBody),
-        (status = 408, description = "no byte arrived for `[api] import-stall-s`", body = ErrorBody),
+        (status = 408, description = "no byte arrived for `[api] import-stall-s`, or the upload averaged under 16 KiB/s after twice that", body = ErrorBody),
         (status = 413, description = "over `[api] import-limit-mib`", body = ErrorBody),
         (status = 422, description = "not a capture file, or invalid settings (`invalid-import`)", body = ErrorBody),
         (status = 500, description = status::STORAGE, body = ErrorBody),
@@ -117,8 +140,9 @@ pub(super) async fn import(
     req: Request,
 ) -> ApiResult<Response> {
     let head = Arc::new(PartHead::default());
-    let form = Multipart::from_request(head.watch(req), &()).await;
     let api = &state.service.instrument().api;
+    let grace = api.import_stall * PACE_GRACE_STALLS;
+    let form = Multipart::from_request(head.watch(req, grace), &()).await;
     let limit = api.import_limit;
     let declared = headers
         .get(header::CONTENT_LENGTH)
@@ -157,6 +181,19 @@ pub(super) async fn import(
         Err(e) => {
             // What was written goes before the answer does.
             let _ = tokio::task::spawn_blocking(move || ticket.discard()).await;
+            if head.slow.load(Ordering::SeqCst) {
+                return Err(ApiError::new(
+                    StatusCode::REQUEST_TIMEOUT,
+                    "upload-too-slow",
+                    format!(
+                        "the upload averaged under {} KiB/s after its first {} s (twice [api] import-stall-s), \
+                         the least an import keeps, so another may upload; nothing was kept: send it again \
+                         over a faster link, or reconstruct the file where it is with `periscope recon`",
+                        MIN_IMPORT_RATE as u64 >> 10,
+                        grace.as_secs_f64()
+                    ),
+                ));
+            }
             return Err(e);
         }
     };
