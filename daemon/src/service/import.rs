@@ -36,6 +36,10 @@ impl ImportTicket {
     /// call it off the async runtime). A ticket merely dropped does the same in the
     /// background.
     pub fn discard(mut self) {
+        if !self.admitted {
+            self.service.lock().admitting -= 1;
+            self.admitted = true;
+        }
         remove_staging(&std::mem::take(&mut self.staging));
     }
 }
@@ -53,16 +57,20 @@ fn remove_staging(staging: &Path) {
 
 impl Drop for ImportTicket {
     fn drop(&mut self) {
-        if !self.admitted {
-            self.service.lock().admitting -= 1;
-        }
         let staging = std::mem::take(&mut self.staging);
-        if staging.as_os_str().is_empty() {
+        if self.admitted && staging.as_os_str().is_empty() {
             return;
         }
-        let remove = move || remove_staging(&staging);
-        // A broken upload drops its ticket on the async runtime: the removal (a whole
-        // file, perhaps gigabytes) goes to the blocking pool.
+        // The place in the queue is given back under the service's lock, which resume,
+        // abort and the e-stop hold across file syncs: with the removal, off the async
+        // runtime when the ticket is dropped on it (a broken or cancelled upload).
+        let service = (!self.admitted).then(|| Arc::clone(&self.service));
+        let remove = move || {
+            if let Some(service) = service {
+                service.lock().admitting -= 1;
+            }
+            remove_staging(&staging);
+        };
         match tokio::runtime::Handle::try_current() {
             Ok(rt) => {
                 rt.spawn_blocking(remove);
