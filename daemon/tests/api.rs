@@ -832,21 +832,11 @@ async fn a_capturing_run(
 /// and its audit entry all queued on that pool.
 #[test]
 fn an_estop_does_not_wait_for_a_full_blocking_pool() {
-    let rt = tokio::runtime::Builder::new_multi_thread()
-        .worker_threads(2)
-        .max_blocking_threads(1)
-        .enable_all()
-        .build()
-        .unwrap();
+    let rt = common::one_blocking_thread();
     rt.block_on(async {
         let dir = tempfile::tempdir().unwrap();
         let (svc, _worker, router, id, _) = a_capturing_run(dir.path()).await;
-        let (taken_tx, taken) = std::sync::mpsc::channel();
-        let hog = tokio::task::spawn_blocking(move || {
-            taken_tx.send(()).unwrap();
-            std::thread::sleep(Duration::from_secs(3));
-        });
-        taken.recv().unwrap();
+        let hog = common::take_the_blocking_pool(Duration::from_secs(3));
         let t = Instant::now();
         let (s, v) = call(&router, Method::POST, "/api/v1/estop", Some(TOKEN), "").await;
         let answered = t.elapsed();
@@ -866,6 +856,22 @@ fn an_estop_does_not_wait_for_a_full_blocking_pool() {
     });
 }
 
+/// Holds the runs directory's catalogue in a write transaction for `hold`, as another
+/// process (`periscope catalogue sync`) would; returns once it is held.
+fn hold_the_catalogue(runs: &Path, hold: Duration) -> std::thread::JoinHandle<()> {
+    let catalogue = runs.join(periscope_daemon::catalogue::CATALOGUE_FILE);
+    let (held_tx, held) = std::sync::mpsc::channel();
+    let holder = std::thread::spawn(move || {
+        let conn = rusqlite::Connection::open(catalogue).unwrap();
+        conn.execute_batch("BEGIN IMMEDIATE").unwrap();
+        held_tx.send(()).unwrap();
+        std::thread::sleep(hold);
+        conn.execute_batch("ROLLBACK").unwrap();
+    });
+    held.recv().unwrap();
+    holder
+}
+
 /// A loopback e-stop sent with a key the daemon refuses (a wall panel's expired key)
 /// goes ahead, and the laser goes off before the refusal is recorded: the audit trail
 /// waits for the catalogue's lock, held here for 2 s as `periscope catalogue sync`
@@ -874,16 +880,7 @@ fn an_estop_does_not_wait_for_a_full_blocking_pool() {
 async fn a_loopback_estop_with_a_refused_key_does_not_wait_for_the_audit_trail() {
     let dir = tempfile::tempdir().unwrap();
     let (svc, _worker, router, id, _) = a_capturing_run(dir.path()).await;
-    let catalogue = dir.path().join(periscope_daemon::catalogue::CATALOGUE_FILE);
-    let (held_tx, held) = std::sync::mpsc::channel();
-    let holder = std::thread::spawn(move || {
-        let conn = rusqlite::Connection::open(catalogue).unwrap();
-        conn.execute_batch("BEGIN IMMEDIATE").unwrap();
-        held_tx.send(()).unwrap();
-        std::thread::sleep(Duration::from_secs(2));
-        conn.execute_batch("ROLLBACK").unwrap();
-    });
-    held.recv().unwrap();
+    let holder = hold_the_catalogue(dir.path(), Duration::from_secs(2));
     let t = Instant::now();
     let (s, v) = call(&router, Method::POST, "/api/v1/estop", Some("psk_expired"), "").await;
     let rig = periscope_daemon::devices::sim::rig_of(svc.backend()).unwrap();
@@ -921,16 +918,7 @@ async fn a_loopback_estop_with_a_refused_key_does_not_wait_for_the_audit_trail()
 async fn estops_whose_audit_entries_wait_leave_the_next_estop_its_threads() {
     let dir = tempfile::tempdir().unwrap();
     let (svc, _worker, router, _id, _) = a_capturing_run(dir.path()).await;
-    let catalogue = dir.path().join(periscope_daemon::catalogue::CATALOGUE_FILE);
-    let (held_tx, held) = std::sync::mpsc::channel();
-    let holder = std::thread::spawn(move || {
-        let conn = rusqlite::Connection::open(catalogue).unwrap();
-        conn.execute_batch("BEGIN IMMEDIATE").unwrap();
-        held_tx.send(()).unwrap();
-        std::thread::sleep(Duration::from_secs(6));
-        conn.execute_batch("ROLLBACK").unwrap();
-    });
-    held.recv().unwrap();
+    let holder = hold_the_catalogue(dir.path(), Duration::from_secs(6));
     let pressed: Vec<_> = (0..16)
         .map(|_| {
             let router = router.clone();

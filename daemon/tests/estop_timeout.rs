@@ -19,6 +19,17 @@ mod common;
 const TOKEN: &str = "test-token-0123456789abcdef";
 const PLAN: &str = include_str!("../../tests/data/plans/small-fbp.toml");
 
+/// The simulated instrument at `time_scale` with a request timeout of 1 s.
+fn service(runs: &std::path::Path, time_scale: f64) -> Arc<Service> {
+    let src = common::sim_instrument(
+        runs,
+        time_scale,
+        &format!("token = \"{TOKEN}\"\nrequest-timeout-s = 1.0\n"),
+        "",
+    );
+    Service::open(src, Some(TOKEN.to_owned())).unwrap()
+}
+
 async fn call(router: &axum::Router, method: Method, uri: &str, body: &str) -> (StatusCode, Value) {
     let (status, bytes) = common::send(router, common::request(method, uri, Some(TOKEN), &[], body)).await;
     (status, serde_json::from_slice(&bytes).unwrap_or(Value::Null))
@@ -27,13 +38,7 @@ async fn call(router: &axum::Router, method: Method, uri: &str, body: &str) -> (
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn an_estop_outlasting_the_request_timeout_is_still_answered() {
     let dir = tempfile::tempdir().unwrap();
-    let src = common::sim_instrument(
-        dir.path(),
-        1.0,
-        &format!("token = \"{TOKEN}\"\nrequest-timeout-s = 1.0\n"),
-        "",
-    );
-    let svc = Service::open(src, Some(TOKEN.to_owned())).unwrap();
+    let svc = service(dir.path(), 1.0);
     let worker = svc.start_worker();
     let router = app(AppState::new(Arc::clone(&svc)));
     let (s, v) = call(&router, Method::POST, "/api/v1/runs", PLAN).await;
@@ -76,28 +81,12 @@ async fn an_estop_outlasting_the_request_timeout_is_still_answered() {
 /// status waits here for the blocking pool's one thread, taken for 3 s.
 #[test]
 fn a_request_past_the_timeout_is_a_json_error() {
-    let rt = tokio::runtime::Builder::new_multi_thread()
-        .worker_threads(2)
-        .max_blocking_threads(1)
-        .enable_all()
-        .build()
-        .unwrap();
+    let rt = common::one_blocking_thread();
     rt.block_on(async {
         let dir = tempfile::tempdir().unwrap();
-        let src = common::sim_instrument(
-            dir.path(),
-            0.0,
-            &format!("token = \"{TOKEN}\"\nrequest-timeout-s = 1.0\n"),
-            "",
-        );
-        let svc = Service::open(src, Some(TOKEN.to_owned())).unwrap();
+        let svc = service(dir.path(), 0.0);
         let router = app(AppState::new(Arc::clone(&svc)));
-        let (taken_tx, taken) = std::sync::mpsc::channel();
-        let hog = tokio::task::spawn_blocking(move || {
-            taken_tx.send(()).unwrap();
-            std::thread::sleep(Duration::from_secs(3));
-        });
-        taken.recv().unwrap();
+        let hog = common::take_the_blocking_pool(Duration::from_secs(3));
         let t = Instant::now();
         // Without a key: a loopback read, which asks the key store nothing (a key's
         // check has a timeout of its own: the next test).
@@ -126,21 +115,10 @@ fn a_request_past_the_timeout_is_a_json_error() {
 /// One with the daemon's token, which reads no file, is answered at once.
 #[test]
 fn a_key_check_waiting_for_a_busy_pool_is_cut_off_at_the_timeout() {
-    let rt = tokio::runtime::Builder::new_multi_thread()
-        .worker_threads(2)
-        .max_blocking_threads(1)
-        .enable_all()
-        .build()
-        .unwrap();
+    let rt = common::one_blocking_thread();
     rt.block_on(async {
         let dir = tempfile::tempdir().unwrap();
-        let src = common::sim_instrument(
-            dir.path(),
-            0.0,
-            &format!("token = \"{TOKEN}\"\nrequest-timeout-s = 1.0\n"),
-            "",
-        );
-        let svc = Service::open(src, Some(TOKEN.to_owned())).unwrap();
+        let svc = service(dir.path(), 0.0);
         let (_, key) = svc
             .keys()
             .create("panel", periscope_daemon::access::Role::Observer, None, "test")
@@ -151,12 +129,7 @@ fn a_key_check_waiting_for_a_busy_pool_is_cut_off_at_the_timeout() {
         let (s, bytes) = common::send(&router, whoami(&key)).await;
         assert_eq!(s, StatusCode::OK, "{}", String::from_utf8_lossy(&bytes));
 
-        let (taken_tx, taken) = std::sync::mpsc::channel();
-        let hog = tokio::task::spawn_blocking(move || {
-            taken_tx.send(()).unwrap();
-            std::thread::sleep(Duration::from_secs(3));
-        });
-        taken.recv().unwrap();
+        let hog = common::take_the_blocking_pool(Duration::from_secs(3));
         let t = Instant::now();
         let (s, bytes) = common::send(&router, whoami(TOKEN)).await;
         let v: Value = serde_json::from_slice(&bytes).unwrap_or(Value::Null);

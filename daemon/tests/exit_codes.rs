@@ -108,6 +108,31 @@ fn a_solver_that_does_not_suit_the_capture_is_two() {
     );
 }
 
+/// `periscope recon` of the y-tal fixture with the RECON.toml `config` under an
+/// address-space limit of `kib` KiB: its exit code and stderr, and whether it wrote a
+/// volume.
+fn recon_within(kib: u64, config: &str) -> (Option<i32>, String, bool) {
+    let tmp = tempfile::tempdir().unwrap();
+    let path = tmp.path().join("recon.toml");
+    std::fs::write(&path, config).unwrap();
+    let out = Command::new("sh")
+        .arg("-c")
+        .arg(format!("ulimit -v {kib} && exec \"$0\" \"$@\""))
+        .arg(env!("CARGO_BIN_EXE_periscope"))
+        .args(["recon", "tests/data/ytal/confocal_xy.hdf5", "--config"])
+        .arg(&path)
+        .arg("--out")
+        .arg(tmp.path().join("out"))
+        .current_dir(concat!(env!("CARGO_MANIFEST_DIR"), "/.."))
+        .output()
+        .expect("periscope runs");
+    (
+        out.status.code(),
+        String::from_utf8_lossy(&out.stderr).into_owned(),
+        tmp.path().join("out/volume.npy").exists(),
+    )
+}
+
 /// A volume the process cannot hold is refused by `periscope recon` before it reads
 /// the transients, naming the RECON.toml, the shape and both sizes, with exit 2. With
 /// a 4 GiB address-space limit a 768³ FBP volume (about 8.4 GiB at FBP's 20 bytes a
@@ -115,26 +140,11 @@ fn a_solver_that_does_not_suit_the_capture_is_two() {
 /// failed", signal 6) once the backprojection began.
 #[test]
 fn a_volume_larger_than_the_memory_left_is_refused_up_front() {
-    let tmp = tempfile::tempdir().unwrap();
-    let config = tmp.path().join("recon.toml");
-    std::fs::write(
-        &config,
+    let (code, stderr, wrote) = recon_within(
+        4 << 20,
         "method = \"fbp\"\n[volume]\nx = [-0.5, 0.5]\ny = [-0.5, 0.5]\nz = [0.2, 1.0]\nshape = [768, 768, 768]\n",
-    )
-    .unwrap();
-    let out = Command::new("sh")
-        .arg("-c")
-        .arg("ulimit -v 4194304 && exec \"$0\" \"$@\"")
-        .arg(env!("CARGO_BIN_EXE_periscope"))
-        .args(["recon", "tests/data/ytal/confocal_xy.hdf5", "--config"])
-        .arg(&config)
-        .arg("--out")
-        .arg(tmp.path().join("out"))
-        .current_dir(concat!(env!("CARGO_MANIFEST_DIR"), "/.."))
-        .output()
-        .expect("periscope runs");
-    let stderr = String::from_utf8_lossy(&out.stderr);
-    assert_eq!(out.status.code(), Some(2), "{stderr}");
+    );
+    assert_eq!(code, Some(2), "{stderr}");
     assert!(
         stderr.contains("recon.toml")
             && stderr.contains("[768, 768, 768]")
@@ -142,7 +152,7 @@ fn a_volume_larger_than_the_memory_left_is_refused_up_front() {
             && stderr.contains("[volume] shape"),
         "{stderr}"
     );
-    assert!(!tmp.path().join("out/volume.npy").exists());
+    assert!(!wrote);
 }
 
 /// The same for 3D-GTR's virtual scan, which the volume's figure leaves out: a
@@ -151,32 +161,17 @@ fn a_volume_larger_than_the_memory_left_is_refused_up_front() {
 /// Until 2026-12-06 it aborted in the allocator (signal 6) when the scan was made.
 #[test]
 fn a_virtual_scan_larger_than_the_memory_left_is_refused_up_front() {
-    let tmp = tempfile::tempdir().unwrap();
-    let config = tmp.path().join("recon.toml");
-    std::fs::write(
-        &config,
+    let (code, stderr, wrote) = recon_within(
+        3 << 20,
         "method = \"gtr\"\n[volume]\nx = [-0.4, 0.4]\ny = [-0.4, 0.4]\nz = [0.2, 0.9]\nshape = [16, 16, 16]\n\
          [gtr]\nprimitives = 1\nepochs = 1\nvirtual-grid = [1024, 1024]\n",
-    )
-    .unwrap();
-    let out = Command::new("sh")
-        .arg("-c")
-        .arg("ulimit -v 3145728 && exec \"$0\" \"$@\"")
-        .arg(env!("CARGO_BIN_EXE_periscope"))
-        .args(["recon", "tests/data/ytal/confocal_xy.hdf5", "--config"])
-        .arg(&config)
-        .arg("--out")
-        .arg(tmp.path().join("out"))
-        .current_dir(concat!(env!("CARGO_MANIFEST_DIR"), "/.."))
-        .output()
-        .expect("periscope runs");
-    let stderr = String::from_utf8_lossy(&out.stderr);
-    assert_eq!(out.status.code(), Some(2), "{stderr}");
+    );
+    assert_eq!(code, Some(2), "{stderr}");
     assert!(
         stderr.contains("recon.toml")
             && stderr.contains("virtual confocal scan")
             && stderr.contains("recon.gtr.virtual-grid"),
         "{stderr}"
     );
-    assert!(!tmp.path().join("out/volume.npy").exists());
+    assert!(!wrote);
 }

@@ -847,30 +847,47 @@ async fn the_bearer_scheme_is_accepted_in_any_case() {
     assert_eq!(s, StatusCode::UNAUTHORIZED);
 }
 
+/// `app` served on a loopback port by the daemon's own connection handling: its address,
+/// the notice that stops it, and the server's task.
+async fn serve(
+    app: axum::Router,
+    limits: periscope_daemon::api::server::ConnectionLimits,
+) -> (
+    std::net::SocketAddr,
+    Arc<tokio::sync::Notify>,
+    tokio::task::JoinHandle<std::io::Result<()>>,
+) {
+    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+    let addr = listener.local_addr().unwrap();
+    let stop = Arc::new(tokio::sync::Notify::new());
+    let server = {
+        let stop = Arc::clone(&stop);
+        tokio::spawn(async move {
+            periscope_daemon::api::server::serve_connections(listener, app, limits, async move {
+                stop.notified().await
+            })
+            .await
+        })
+    };
+    (addr, stop, server)
+}
+
 /// A client that stops reading a response is cut off once no byte has gone out for the
 /// write timeout (`[api] request-timeout-s`, 1 s here): it gets part of a 64 MiB body,
 /// then the end of the connection, not the whole body whenever it resumes reading.
 /// Without it such a client held its socket, and a download or stream slot, forever.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_client_that_stops_reading_is_cut_off_after_the_write_timeout() {
-    use periscope_daemon::api::server::{ConnectionLimits, serve_connections};
+    use periscope_daemon::api::server::ConnectionLimits;
     use tokio::io::{AsyncReadExt, AsyncWriteExt};
     const BODY: usize = 64 << 20;
     let app = axum::Router::new().route("/big", axum::routing::get(|| async { vec![7u8; BODY] }));
-    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
-    let addr = listener.local_addr().unwrap();
     let limits = ConnectionLimits {
         header_timeout: Duration::from_secs(5),
         max_connections: 8,
         write_timeout: Duration::from_secs(1),
     };
-    let stop = Arc::new(tokio::sync::Notify::new());
-    let server = {
-        let stop = Arc::clone(&stop);
-        tokio::spawn(async move {
-            serve_connections(listener, app, limits, async move { stop.notified().await }).await
-        })
-    };
+    let (addr, stop, server) = serve(app, limits).await;
     let mut client = tokio::net::TcpStream::connect(addr).await.unwrap();
     client
         .write_all(b"GET /big HTTP/1.1\r\nhost: localhost\r\n\r\n")
@@ -896,23 +913,15 @@ async fn a_client_that_stops_reading_is_cut_off_after_the_write_timeout() {
 /// no key needed to send headers). A head within it is served.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_request_head_past_the_read_buffer_is_refused_when_it_fills() {
-    use periscope_daemon::api::server::{ConnectionLimits, MAX_BUF, serve_connections};
+    use periscope_daemon::api::server::{ConnectionLimits, MAX_BUF};
     use tokio::io::{AsyncReadExt, AsyncWriteExt};
     let app = axum::Router::new().route("/", axum::routing::get(|| async { "ok" }));
-    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
-    let addr = listener.local_addr().unwrap();
     let limits = ConnectionLimits {
         header_timeout: Duration::from_secs(30),
         max_connections: 8,
         write_timeout: Duration::from_secs(5),
     };
-    let stop = Arc::new(tokio::sync::Notify::new());
-    let server = {
-        let stop = Arc::clone(&stop);
-        tokio::spawn(async move {
-            serve_connections(listener, app, limits, async move { stop.notified().await }).await
-        })
-    };
+    let (addr, stop, server) = serve(app, limits).await;
     // Within the buffer: served.
     let mut client = tokio::net::TcpStream::connect(addr).await.unwrap();
     let head = format!(

@@ -18,6 +18,29 @@ mod small_plan;
 #[allow(unused_imports)] // like the rest of this module, not every test file uses it
 pub(crate) use small_plan::SmallPlan;
 
+/// A runtime of two workers whose blocking pool has one thread, for tests that take it
+/// ([`take_the_blocking_pool`]), as requests timed out while their blocking work goes
+/// on (an export, a stalled disk) can.
+pub(crate) fn one_blocking_thread() -> tokio::runtime::Runtime {
+    tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .max_blocking_threads(1)
+        .enable_all()
+        .build()
+        .unwrap()
+}
+
+/// Takes the blocking pool's thread for `hold`; returns once it is taken.
+pub(crate) fn take_the_blocking_pool(hold: std::time::Duration) -> tokio::task::JoinHandle<()> {
+    let (taken_tx, taken) = std::sync::mpsc::channel();
+    let hog = tokio::task::spawn_blocking(move || {
+        taken_tx.send(()).unwrap();
+        std::thread::sleep(hold);
+    });
+    taken.recv().unwrap();
+    hog
+}
+
 /// The shipped simulated instrument (`configs/instrument/sim.toml`) at `time_scale`,
 /// with its runs in `runs`, `api_lines` added to its `[api]` table and `tail` after it.
 pub(crate) fn sim_instrument(runs: &Path, time_scale: f64, api_lines: &str, tail: &str) -> TomlSource {
