@@ -131,6 +131,20 @@ fn a_missing_instrument_file_is_named() {
         out.stderr
     );
     assert!(Path::new(&repo_path("configs/instrument/sim.toml")).is_file());
+    // A file that is there but is not UTF-8 text is said to be that, not to be looked
+    // for elsewhere (until 2026-12-06: "check the path").
+    let dir = tempfile::tempdir().unwrap();
+    let latin1 = dir.path().join("latin1.toml");
+    std::fs::write(&latin1, b"name = \"caf\xe9\"\n").unwrap();
+    let out = periscope(&["check", latin1.to_str().unwrap()]);
+    assert_eq!(out.code, Some(2), "{out:?}");
+    assert!(
+        out.stderr.contains("latin1.toml")
+            && out.stderr.contains("not UTF-8")
+            && !out.stderr.contains("check the path"),
+        "{}",
+        out.stderr
+    );
 }
 
 #[test]

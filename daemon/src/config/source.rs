@@ -16,6 +16,17 @@ pub enum ConfigError {
         /// Why reading failed.
         source: std::io::Error,
     },
+    /// The file is not UTF-8 text.
+    #[error(
+        "{} is not UTF-8 text ({source}): a TOML file is UTF-8; save it as UTF-8, or check that this is the file you meant",
+        path.display()
+    )]
+    NotText {
+        /// The file.
+        path: PathBuf,
+        /// Where the text stops being UTF-8.
+        source: std::string::FromUtf8Error,
+    },
     /// The file was read but its content is wrong.
     #[error("{location}: {message}")]
     Invalid {
@@ -31,7 +42,7 @@ impl ConfigError {
     pub fn key(&self) -> Option<&str> {
         match self {
             Self::Invalid { location, .. } => location.key.as_deref(),
-            Self::Read { .. } => None,
+            Self::Read { .. } | Self::NotText { .. } => None,
         }
     }
 
@@ -39,7 +50,7 @@ impl ConfigError {
     pub fn line(&self) -> Option<usize> {
         match self {
             Self::Invalid { location, .. } => location.line,
-            Self::Read { .. } => None,
+            Self::Read { .. } | Self::NotText { .. } => None,
         }
     }
 }
@@ -88,8 +99,10 @@ impl TomlSource {
             source,
         };
         let bytes = periscope_recon::io::read_regular_capped(path, MAX_TOML_BYTES).map_err(read)?;
-        let text = String::from_utf8(bytes)
-            .map_err(|e| read(std::io::Error::new(std::io::ErrorKind::InvalidData, e)))?;
+        let text = String::from_utf8(bytes).map_err(|source| ConfigError::NotText {
+            path: path.to_owned(),
+            source,
+        })?;
         Ok(Self::from_text(path, text))
     }
 
