@@ -212,6 +212,15 @@ impl Service {
                 .and_then(|m| m.modified())
                 .is_ok_and(|t| t.elapsed().is_ok_and(|age| age < EXPORT_REFRESH));
         if !fresh && !recent {
+            if let Some(available) = periscope_recon::io::memory_available()
+                && let Err(why) = export_fits(records, available)
+            {
+                return Err(ServiceError::Busy(format!(
+                    "run {id}: {why}; take it with `periscope export {}` (a process of its own), after the run \
+                     if it is capturing",
+                    dir.display()
+                )));
+            }
             let not_yet = |e: &dyn std::fmt::Display| {
                 ServiceError::Conflict(format!("run {id} has no capture to export yet: {e}"))
             };
@@ -382,6 +391,28 @@ fn import_geometry(dir: &Path) -> Result<Geometry, ServiceError> {
 /// How long a running capture's export is served before a download makes it again.
 const EXPORT_REFRESH: Duration = Duration::from_secs(10);
 
+/// Bytes an export holds at once for a byte of the histogram log: the records read
+/// whole (counts as `u32`), the capture's `f32` transients, and the HDF5 writer's copy
+/// of them, with room for its headers.
+const EXPORT_BYTES_PER_LOG_BYTE: u64 = 4;
+
+/// Whether the daemon can make an export of a log of `log_bytes` with `available`
+/// bytes free, leaving half of them to the capture and the requests: the export is
+/// made in the daemon's own memory, and one past it would have the process killed
+/// (the capture with it) for a download an observer asked for.
+fn export_fits(log_bytes: u64, available: u64) -> Result<(), String> {
+    let need = log_bytes.saturating_mul(EXPORT_BYTES_PER_LOG_BYTE);
+    if need <= available / 2 {
+        return Ok(());
+    }
+    let gib = |b: u64| b as f64 / (1u64 << 30) as f64;
+    Err(format!(
+        "the export would need about {:.1} GiB, more than half the {:.1} GiB this daemon has free",
+        gib(need),
+        gib(available)
+    ))
+}
+
 /// The most points of each kind [`Service::geometry`] returns.
 pub const GEOMETRY_POINTS: usize = 20_000;
 
@@ -518,4 +549,20 @@ pub struct VolumeBox {
     pub y: [f64; 2],
     /// z range.
     pub z: [f64; 2],
+}
+
+#[cfg(test)]
+mod tests {
+    /// An export needs about four times its log and may take half of what is free: a
+    /// 1 GiB log with 16 GiB free is made, with 6 GiB free it is refused, naming both
+    /// sizes. Until 2026-12-06 any export was made, whatever it needed.
+    #[test]
+    fn an_export_is_made_only_where_half_the_free_memory_holds_it() {
+        const GIB: u64 = 1 << 30;
+        assert!(super::export_fits(GIB, 16 * GIB).is_ok());
+        let why = super::export_fits(GIB, 6 * GIB).unwrap_err();
+        assert!(why.contains("4.0 GiB") && why.contains("6.0 GiB"), "{why}");
+        assert!(super::export_fits(u64::MAX, u64::MAX).is_err());
+        assert!(super::export_fits(0, 0).is_ok());
+    }
 }
