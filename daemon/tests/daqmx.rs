@@ -262,6 +262,47 @@ fn a_run_stuck_with_the_laser_on_loses_it_to_the_daqs_watchdog_without_an_estop(
     let _ = std::fs::remove_dir_all(dir.parent().unwrap());
 }
 
+/// A gate that will not go low when the run stops (its writes fail: a DAQ whose
+/// digital output hangs) keeps its hardware watchdog armed and unfed, so the watchdog
+/// drives it low within its timeout. Until 2026-12-06 the switch-off cleared the
+/// watchdog whatever the write did, and the laser stayed on with nothing left to end
+/// it (the stand-in's emission stayed on for the whole wait).
+#[test]
+fn a_gate_that_will_not_go_low_is_ended_by_the_daqs_watchdog() {
+    let _one = exclusive();
+    periscope_daemon::signals::install_panic_hook();
+    let stopped: Arc<Mutex<Option<Instant>>> = Arc::new(Mutex::new(None));
+    let at = stopped.clone();
+    let (s, dir, _) = capture_then("watchdog-ms = 200\n", move |s, control| {
+        // Every write of the gate low on the way out fails: the capture's own
+        // switch-off, the run's make-safe, and the driver's close.
+        for _ in 0..3 {
+            s.daq_fail_next("DAQmxWriteDigitalLines", -200_279);
+        }
+        let t = Instant::now();
+        *at.lock().unwrap() = Some(t);
+        control.pause();
+        while s.emission() && t.elapsed() < Duration::from_secs(3) {
+            std::thread::sleep(Duration::from_millis(2));
+        }
+    });
+    let t = stopped.lock().unwrap().unwrap();
+    let log = s.emission_log();
+    let (off_at, _, cause) = *log
+        .iter()
+        .rev()
+        .find(|(at, on, _)| !on && *at > t)
+        .unwrap_or_else(|| panic!("the laser stayed on after the run stopped: {log:?}"));
+    assert_eq!(cause, 1, "the DAQ's watchdog switched it off: {log:?}");
+    let after = off_at.saturating_duration_since(t);
+    assert!(
+        after <= Duration::from_millis(200 + 250),
+        "off {after:?} after the stop"
+    );
+    assert!(!s.emission());
+    let _ = std::fs::remove_dir_all(dir.parent().unwrap());
+}
+
 /// `periscope devices` with the stand-in as NI-DAQmx's library, set up in the child
 /// process from `PERISCOPE_STANDIN_CONFIG` and `PERISCOPE_STANDIN_DAQ_CONFIG`.
 fn devices(dir: &Path, library: &Path) -> (String, bool) {

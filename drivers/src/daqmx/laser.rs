@@ -90,10 +90,13 @@ impl LineState {
     /// Writes the gate low. A line whose watchdog has expired already holds its
     /// expiration state, low, and refuses writes until the expiration is cleared: that
     /// is off too.
+    /// A write that failed leaves the line as it was, so it still reads high.
     fn gate_low(&self) -> Result<(), DaqError> {
-        self.high.store(false, Ordering::SeqCst);
         match self.lib.write_digital_lines(self.gate, &[0], WRITE_TIMEOUT_S) {
-            Ok(_) | Err(code::WRITE_FAILED_BECAUSE_WATCHDOG_EXPIRED) => Ok(()),
+            Ok(_) | Err(code::WRITE_FAILED_BECAUSE_WATCHDOG_EXPIRED) => {
+                self.high.store(false, Ordering::SeqCst);
+                Ok(())
+            }
             Err(c) => Err(failed(&self.lib, &self.who, "DAQmxWriteDigitalLines", c)),
         }
     }
@@ -357,9 +360,15 @@ impl Laser for DaqLaser {
             }
             return self.switch_on();
         }
+        // The keepalive stops first; a gate that would not go low keeps its watchdog
+        // armed and unfed, so the watchdog drives the line low within its timeout
+        // (until 2026-12-06 it was cleared whatever the write did, and a gate stuck
+        // high had nothing left to end its emission).
         self.guard.switching_off();
         let off = self.line.gate_low();
-        self.line.disarm();
+        if off.is_ok() {
+            self.line.disarm();
+        }
         off
     }
 
