@@ -110,6 +110,12 @@ impl Control {
         self.beat();
         self.requested() != Request::Run
     }
+    /// Whether the run is asked to stop, asked from a thread other than the run's own
+    /// (the trainer's): no sign of life, so a capture that hangs with the laser on
+    /// loses the keepalive after `[laser] stall-ms` however busy the trainer is.
+    pub fn stop_requested(&self) -> bool {
+        self.requested() != Request::Run
+    }
     /// The run's sign of life for its laser's keepalive, alive for `limit` after each
     /// checkpoint or stop poll; a new one (just beaten) replaces the last.
     pub fn progress(&self, limit: std::time::Duration) -> periscope_drivers::Progress {
@@ -129,7 +135,7 @@ impl Control {
             .lock()
             .unwrap_or_else(|p| p.into_inner())
             .push(token.clone());
-        if self.stopping() {
+        if self.stop_requested() {
             token.cancel();
         }
     }
@@ -182,5 +188,37 @@ impl Control {
             Request::Pause => Err(PipelineError::Paused(pairs)),
             Request::Abort => Err(PipelineError::Aborted(pairs)),
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::time::Duration;
+
+    /// The trainer asks whether to stop at every event of its fit, from its own
+    /// thread: that is no sign of the run's life, so a capture that hangs with the
+    /// laser on loses the keepalive after its stall limit however often the trainer
+    /// asks. Until 2026-12-06 the trainer's asking beat the run's progress.
+    #[test]
+    fn another_threads_asking_is_no_sign_of_the_runs_life() {
+        let control = Control::new();
+        let progress = control.progress(Duration::from_millis(50));
+        let asking = {
+            let control = control.clone();
+            std::thread::spawn(move || {
+                for _ in 0..30 {
+                    assert!(!control.stop_requested());
+                    std::thread::sleep(Duration::from_millis(5));
+                }
+            })
+        };
+        asking.join().unwrap();
+        assert!(!progress.alive(), "the trainer's asking kept the run alive");
+        // The run's own poll is one.
+        assert!(!control.stopping());
+        assert!(progress.alive());
+        control.pause();
+        assert!(control.stop_requested());
     }
 }

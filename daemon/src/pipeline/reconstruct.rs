@@ -182,7 +182,7 @@ impl Fit {
                     trainer.report_live_model(tx, steps);
                 }
                 let summary = trainer.run(Some(feed), &cancel, &mut |e| {
-                    if control.stopping() {
+                    if control.stop_requested() {
                         cancel.cancel();
                     }
                     events.emit(RunEvent::Train(e.clone()));
@@ -461,7 +461,7 @@ pub fn reconstruct(
             control.watch(&cancel);
             let summary = trainer
                 .run(None, &cancel, &mut |e| {
-                    if control.stopping() {
+                    if control.stop_requested() {
                         cancel.cancel();
                     }
                     events.emit(RunEvent::Train(e.clone()));
