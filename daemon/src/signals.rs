@@ -94,7 +94,17 @@ pub fn install(handler: Arc<dyn OnSignal>, grace: Duration) {
                 "\n{name}: laser off; stopping at the next checkpoint (arms parked, data kept). \
                  Again to exit at once."
             );
-            handler.stop(name);
+            // Winding down may wait for a lock another thread holds over a stalled
+            // disk (the service's, for a run's state): on a thread of its own, so the
+            // grace and a second signal are answered whatever it waits for.
+            let stopper = Arc::clone(&handler);
+            if let Err(e) = std::thread::Builder::new()
+                .name("signals-stop".into())
+                .spawn(move || stopper.stop(name))
+            {
+                tracing::warn!("no thread to wind down on ({e}); winding down on the signal thread");
+                handler.stop(name);
+            }
             tokio::select! {
                 _ = tokio::time::sleep(grace) => {
                     handler.laser_off();
