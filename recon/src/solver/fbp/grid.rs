@@ -79,6 +79,13 @@ impl ConfocalGrid {
             return None;
         }
         let ratio = ratio as usize;
+        // The layout holds `ratio` column phases of `⌈nx / ratio⌉` columns each: past
+        // `nx` phases most are empty, and a relay far finer than the voxels (a pitch of
+        // 5·10⁻⁸ m under 5 cm voxels, ratio 10⁶) asked for 30 GB. The general path
+        // takes such scans.
+        if ratio > nx {
+            return None;
+        }
         let mut cells = vec![usize::MAX; nx * ny];
         for (i, p) in pairs.iter().enumerate() {
             let jx = (((p.xi.x - x0) / px).round() as usize).min(nx - 1);

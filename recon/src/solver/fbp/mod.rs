@@ -1253,6 +1253,16 @@ mod tests {
             !fits(&grid_scan(6, 4, 0.2, 0.0, &mut rng)),
             "a pitch of two voxels"
         );
+        // More column phases than columns: the layout would be mostly empty (a ratio
+        // of 10⁶ asked for 30 GB until 2026-12-06).
+        assert!(
+            !fits(&grid_scan(6, 4, 0.1 / 7.0, 0.0, &mut rng)),
+            "a seventh of a voxel over six columns"
+        );
+        assert!(
+            fits(&grid_scan(7, 4, 0.1 / 7.0, 0.0, &mut rng)),
+            "a seventh of a voxel over seven columns"
+        );
         let axis = *grid_scan(2, 2, 0.1, 0.0, &mut rng).axis();
         let h = vec![1.0f32; axis.bins];
         let rebuilt = |edit: &dyn Fn(usize, Pair) -> Option<Pair>| {
