@@ -718,3 +718,40 @@ fn a_rendered_captures_point_source_laser_falloff_is_divided_out() {
     let stdout = recon(path.to_str().unwrap(), Some(config.to_str().unwrap()), &out);
     assert!(stdout.contains("laser falloff accounted for"), "{stdout}");
 }
+
+/// A volume derived from a capture's relay is a volume a RECON.toml could give: a
+/// relay of 800 m (positions in millimetres read as metres) is refused naming the
+/// span and what to check, where its fit ran for minutes on a volume as wide; a relay
+/// whose points all lie on one spot says that, and to give a `[volume]`, not that a
+/// range nobody set "must be two finite numbers".
+#[test]
+fn a_default_volume_is_refused_over_a_relay_of_no_area_or_hundreds_of_metres() {
+    let file = repo_path("tests/data/ytal/confocal_xy.hdf5");
+    let mut wide = YtalCapture::read(&file).unwrap();
+    for p in wide
+        .sensor_grid
+        .points
+        .iter_mut()
+        .chain(wide.laser_grid.points.iter_mut())
+    {
+        *p *= 1000.0;
+    }
+    let e = wide.default_volume().unwrap_err().to_string();
+    assert!(
+        e.contains("span") && e.contains("metres") && e.contains("[volume]"),
+        "{e}"
+    );
+    let mut spot = YtalCapture::read(&file).unwrap();
+    let at = spot.sensor_grid.points[0];
+    for p in spot
+        .sensor_grid
+        .points
+        .iter_mut()
+        .chain(spot.laser_grid.points.iter_mut())
+    {
+        *p = at;
+    }
+    let e = spot.default_volume().unwrap_err().to_string();
+    assert!(e.contains("span no area") && e.contains("[volume]"), "{e}");
+    assert!(YtalCapture::read(&file).unwrap().default_volume().is_ok());
+}

@@ -17,6 +17,10 @@ const MAX_TRANSIENT_BYTES: u64 = 16 << 30;
 /// bins [`YtalCapture::transients`] reads the ambient level from (the pulse's width).
 pub(crate) const AMBIENT_MARGIN_BINS: f64 = 5.0;
 
+/// The longest side a volume derived from a capture's relay may have, metres (as a
+/// RECON.toml's volume may reach at most 100 m).
+pub(super) const MAX_DEFAULT_SIDE_M: f64 = 100.0;
+
 impl YtalCapture {
     /// Laser and sensor point indices of transient `c`.
     pub fn indices(&self, c: usize) -> (usize, usize) {
@@ -142,7 +146,8 @@ impl YtalCapture {
         }
     }
 
-    /// A reconstruction volume for a capture that comes with none: over the relay
+    /// A reconstruction volume for a capture that comes with none (its sides at most
+    /// `MAX_DEFAULT_SIDE_M`, 100 m): over the relay
     /// points' extent, from 5 cm in front of the relay out to the depth the time axis
     /// reaches (at most 3 m), on the side the normals face.
     pub fn default_volume(&self) -> Result<VolumeGrid, YtalError> {
@@ -188,8 +193,22 @@ impl YtalCapture {
                 }
             }
         }
-        VolumeGrid::new([min.x, max.x], [min.y, max.y], [min.z, max.z], [64, 64, 64])
-            .map_err(|e| self.error(e.to_string()))
+        // A relay of hundreds of metres (a unit error in the file, metres for
+        // millimetres the other way) made a volume as wide, whose fit ran for minutes;
+        // a RECON.toml's volume may reach 100 m at most, and so may this one.
+        let side = (max - min).max_element();
+        if !(side <= MAX_DEFAULT_SIDE_M) {
+            return Err(self.error(format!(
+                "the relay points span {side:.3e} m, and a volume over them would too, past the {MAX_DEFAULT_SIDE_M} m \
+                 a volume may be: check that the positions are in metres, or give a RECON.toml with a [volume]"
+            )));
+        }
+        VolumeGrid::new([min.x, max.x], [min.y, max.y], [min.z, max.z], [64, 64, 64]).map_err(|e| {
+            self.error(format!(
+                "the relay points span no area across their normal ({e}), so no volume over them can be derived: \
+                 give a RECON.toml with a [volume]"
+            ))
+        })
     }
 
     /// A point on the side of the relay the normals face (orients the virtual relay).
