@@ -110,6 +110,25 @@ fn lct_keeps_an_overflow_for_the_finite_check() {
     );
 }
 
+/// A volume behind the relay (against every detection point's normal) is refused by
+/// FBP, as by RSD: no pair sees it, and until 2026-12-06 FBP imaged the point's mirror
+/// there without a word. A volume straddling the relay is still imaged.
+#[test]
+fn fbp_refuses_a_volume_behind_the_relay() {
+    let set = confocal_point_set(axis());
+    let behind = VolumeGrid::new([-0.4, 0.4], [-0.4, 0.4], [-0.75, -0.25], [32, 32, 20]).unwrap();
+    let e = fbp(&set, &behind, &FbpSettings::default())
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("behind the relay") && e.contains("[volume]"), "{e}");
+    let across = VolumeGrid::new([-0.4, 0.4], [-0.4, 0.4], [-0.25, 0.75], [32, 32, 40]).unwrap();
+    assert_peak_at(
+        &fbp(&set, &across, &FbpSettings::default()).unwrap(),
+        POINT,
+        "FBP across the relay",
+    );
+}
+
 #[test]
 fn lct_handles_an_offset_time_axis() {
     // Histograms starting at 0.3037 m (not a whole number of bins) are shifted onto an

@@ -31,6 +31,21 @@ pub use scan::{MAX_REACH_FACTOR, PlanarScan};
 use crate::relay::GeometryError;
 use crate::volume::VolumeError;
 
+/// Whether `grid` lies wholly behind every detection point of `set`, against its
+/// normal (each of the volume's corners checked): no pair sees any of it, and a
+/// backprojection there images the hidden scene's mirror.
+pub(crate) fn behind_every_detection_point(
+    set: &crate::transient::TransientSet,
+    grid: &crate::volume::VolumeGrid,
+) -> bool {
+    let corners: Vec<glam::DVec3> = (0..8)
+        .map(|c: usize| glam::DVec3::new(grid.x[c & 1], grid.y[(c >> 1) & 1], grid.z[(c >> 2) & 1]))
+        .collect();
+    set.pairs()
+        .iter()
+        .all(|p| corners.iter().all(|&c| p.nd.dot(c - p.xd) <= 0.0))
+}
+
 /// The longest wavelet envelope (6 sigma) the phasor solvers (RSD, FBP's phasor
 /// filter) take, in lengths of the time axis: their padding grows with it.
 pub const MAX_ENVELOPE_SPANS: f64 = 8.0;

@@ -417,6 +417,15 @@ pub fn fbp_on(
     if set.is_empty() {
         return Err(SolverError::Empty);
     }
+    // Until 2026-12-06 FBP imaged such a volume without a word (the scene mirrored,
+    // or every column at its far end), where RSD and 3D-GTR refuse it.
+    if super::behind_every_detection_point(set, grid) {
+        return Err(SolverError::Axis(
+            "the volume lies behind the relay, against every detection point's normal: no pair sees it, and \
+             a backprojection there images the hidden scene's mirror; move the [volume] in front of the relay"
+                .into(),
+        ));
+    }
     // Each pair's share of the relay integral: 1 on full grids, the Voronoi cells of
     // scattered or perforated samples.
     let quadrature = settings
