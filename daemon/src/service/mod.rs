@@ -393,12 +393,13 @@ impl Service {
             .filter_map(Result::ok)
             .map(|e| e.file_name().to_string_lossy().into_owned())
             .filter(|id| !queue.contains(id))
-            // A `periscope run` under way in this runs directory is that process's.
-            .filter(|id| !crate::run_dir::RunHold::held(&runs_dir.join(id)))
             .filter(|id| {
                 RunInfo::load(&runs_dir.join(id))
                     .is_ok_and(|i| matches!(i.state, RunState::Queued | RunState::Running))
             })
+            // A `periscope run` under way in this runs directory is that process's (asked
+            // of run directories only: never a lock on the daemon's own files).
+            .filter(|id| !crate::run_dir::RunHold::held(&runs_dir.join(id)))
             .collect();
         orphans.sort();
         let lock_path = runs_dir.join(LOCK_FILE);
