@@ -345,6 +345,36 @@ fn counts_that_would_overflow_the_arithmetic_are_refused() {
     assert!(!dir.path().join("out/volume.npy").exists());
 }
 
+/// Counts under the reader's limit (1e30) but past what the solvers' single precision
+/// holds (1e21 here, with FBP) fail as not finite, and the message says why and what
+/// to do (divide the counts), not only to report a bug, as it did until 2026-12-06.
+#[test]
+fn counts_past_single_precision_are_told_to_be_divided() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut c = capture();
+    let peak = c.h.iter().copied().fold(0.0f32, f32::max);
+    c.h.iter_mut().for_each(|v| *v = *v / peak * 1e21);
+    let file = write(dir.path(), "large.hdf5", &c);
+    let config = dir.path().join("recon.toml");
+    std::fs::write(&config, "method = \"fbp\"\n").unwrap();
+    let o = Command::new(env!("CARGO_BIN_EXE_periscope"))
+        .arg("recon")
+        .arg(&file)
+        .arg("--config")
+        .arg(&config)
+        .arg("--out")
+        .arg(dir.path().join("out"))
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(1), "{err}");
+    assert!(
+        err.contains("not finite") && err.contains("divide the counts"),
+        "{err}"
+    );
+    assert!(!dir.path().join("out/volume.npy").exists());
+}
+
 /// A capture whose `H` fits every size check on its own, but whose reading and
 /// reconstruction need more memory than the process may take (here an address-space
 /// limit a small capture reconstructs within), ends in a clear message naming the file

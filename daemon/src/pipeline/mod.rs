@@ -100,7 +100,9 @@ pub enum ReconError {
     /// overflows the arithmetic): nothing is written.
     #[error(
         "the reconstructed volume has a value that is not finite ({value} at voxel {index}); nothing \
-         was written: check the capture's counts (a huge or degenerate scale) and report it"
+         was written. The solvers compute in single precision: counts of about 1e20 or more (a y-tal file's \
+         `H`, or a capture scaled by a large factor) overflow it, and f-k squares them; divide the counts \
+         by a constant and reconstruct again. If the counts are ordinary, please report it"
     )]
     NotFinite {
         /// The first such voxel (C order).
