@@ -34,10 +34,11 @@ const WATCHDOG: Duration = Duration::from_millis(500);
 /// Scheduling slack on top of a bound (the test polls every millisecond or so).
 const SLACK: Duration = Duration::from_millis(60);
 
-/// A simulated instrument whose laser controller the test hosts.
+/// A simulated instrument whose two galvo controllers (the laser arm's with the laser)
+/// the test hosts.
 struct Bench {
     rig: Rig,
-    _port: ServedPort,
+    _ports: [ServedPort; 2],
     dir: tempfile::TempDir,
     instrument: PathBuf,
     plan: PathBuf,
@@ -56,16 +57,24 @@ fn bench(extra: impl FnOnce(&Path) -> String) -> Bench {
         .rig()
         .clone();
     let port = rig.serve_galvo_port(Arm::Laser).unwrap();
-    let text = text.replace(
-        "[galvo.spad]",
-        &format!("serial = {{ port = {:?} }}\n\n[galvo.spad]", port.path()),
-    );
+    let spad = rig.serve_galvo_port(Arm::Spad).unwrap();
+    let text = text
+        .replacen(
+            "[galvo.spad]",
+            &format!("serial = {{ port = {:?} }}\n\n[galvo.spad]", port.path()),
+            1,
+        )
+        .replacen(
+            "\n[laser]",
+            &format!("serial = {{ port = {:?} }}\n\n[laser]", spad.path()),
+            1,
+        );
     std::fs::write(&path, format!("{text}\n{extra}")).unwrap();
     let plan = dir.path().join("plan.toml");
     std::fs::write(&plan, plan_toml()).unwrap();
     Bench {
         rig,
-        _port: port,
+        _ports: [port, spad],
         dir,
         instrument: path,
         plan,
@@ -251,6 +260,17 @@ fn a_second_signal_exits_at_once_with_the_laser_off() {
     let b = bench(|_| String::new());
     let mut child = b.run();
     b.wait_emitting(&mut child);
+    // The LOS scan points the SPAD arm (on the other port this rig serves) away from
+    // its park position.
+    let scanning = Instant::now();
+    while b.rig.parked().1 {
+        assert!(
+            scanning.elapsed() < Duration::from_secs(5),
+            "the SPAD arm never moved"
+        );
+        std::thread::sleep(Duration::from_millis(2));
+    }
+    assert!(b.rig.emission());
     let t = Instant::now();
     // The second at once, while the first is being handled: the signals are
     // listened for from the start, so it is not lost between two registrations.
@@ -261,6 +281,17 @@ fn a_second_signal_exits_at_once_with_the_laser_off() {
     assert!(off <= Duration::from_millis(50), "{off:?}");
     assert!(exited <= Duration::from_millis(500), "{exited:?}");
     assert_eq!(code, Some(128 + 2));
+    // Exiting without waiting for the run, it parked the arms through the run's own
+    // drivers.
+    let parked = Instant::now();
+    while b.rig.parked() != (true, true) {
+        assert!(
+            parked.elapsed() < Duration::from_millis(500),
+            "the arms were left at {:?}",
+            b.rig.pointing()
+        );
+        std::thread::sleep(Duration::from_millis(2));
+    }
 }
 
 /// Opens an event stream and reads its response head; returns the connection.

@@ -22,6 +22,7 @@ use crate::run_dir::{RunDir, RunDirError};
 use crate::service::ServiceError;
 use crate::ytal::ExportError;
 use crate::{check, offline};
+use periscope_drivers::EmergencyPark;
 use periscope_drivers::galvo::EmergencyOff;
 
 /// Periscope: non-line-of-sight imaging, from galvo scan to reconstructed volume.
@@ -315,13 +316,10 @@ fn calibrate(
     let config = InstrumentConfig::from_source(&src)?;
     crate::logging::notice(&format!("calibrating {}", config.summary()));
     let control = Control::new();
-    let signals = Arc::new(RunSignals {
-        control: control.clone(),
-        laser: Mutex::new(None),
-    });
+    let signals = RunSignals::new(&control);
     crate::signals::install(signals.clone(), crate::signals::SIGNAL_GRACE);
     let calibrator = Calibrator::open(&config, None, control)?;
-    *signals.laser.lock().unwrap_or_else(|p| p.into_inner()) = Some(calibrator.emergency_off());
+    signals.reach(calibrator.emergency_off(), calibrator.emergency_park());
     let measured = calibrator.measure(&settings);
     if let Some(n) = crate::signals::received() {
         crate::logging::notice(&format!(
@@ -473,10 +471,28 @@ fn devices(config: &InstrumentConfig) -> Result<(), CliError> {
     Ok(())
 }
 
-/// What a stop signal does to `run` and `resume`.
+/// What a stop signal does to `run`, `resume` and `calibrate`.
 struct RunSignals {
     control: Control,
     laser: Mutex<Option<EmergencyOff>>,
+    /// The arms' park handles (laser arm, SPAD arm), once the devices are open.
+    park: Mutex<Option<[EmergencyPark; 2]>>,
+}
+
+impl RunSignals {
+    fn new(control: &Control) -> Arc<RunSignals> {
+        Arc::new(RunSignals {
+            control: control.clone(),
+            laser: Mutex::new(None),
+            park: Mutex::new(None),
+        })
+    }
+
+    /// The open devices' direct paths: the laser's off and the arms' park.
+    fn reach(&self, off: EmergencyOff, park: [EmergencyPark; 2]) {
+        *self.laser.lock().unwrap_or_else(|p| p.into_inner()) = Some(off);
+        *self.park.lock().unwrap_or_else(|p| p.into_inner()) = Some(park);
+    }
 }
 
 impl crate::signals::OnSignal for RunSignals {
@@ -487,6 +503,19 @@ impl crate::signals::OnSignal for RunSignals {
             eprintln!("direct laser off failed: {e}");
         }
     }
+    fn park_now(&self) {
+        for handle in self
+            .park
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .iter()
+            .flatten()
+        {
+            if let Err(e) = handle.park() {
+                eprintln!("direct park failed: {e}");
+            }
+        }
+    }
     fn stop(&self, _signal: &'static str) {
         self.control.pause();
     }
@@ -495,13 +524,10 @@ impl crate::signals::OnSignal for RunSignals {
 /// Runs (or resumes) the run in `dir` with a progress display and prints the summary.
 fn execute_run(dir: &Path) -> Result<(), CliError> {
     let control = Control::new();
-    let signals = Arc::new(RunSignals {
-        control: control.clone(),
-        laser: Mutex::new(None),
-    });
+    let signals = RunSignals::new(&control);
     crate::signals::install(signals.clone(), crate::signals::SIGNAL_GRACE);
     let run = Run::open(dir, control, None, None)?;
-    *signals.laser.lock().unwrap_or_else(|p| p.into_inner()) = Some(run.emergency_off());
+    signals.reach(run.emergency_off(), run.emergency_park());
     crate::progress::attach(run.events());
     let result = run.execute();
     if let Some(n) = crate::signals::received() {

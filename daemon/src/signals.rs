@@ -68,6 +68,10 @@ pub trait OnSignal: Send + Sync + 'static {
     /// Asks the work to wind down (pause the run, shut the server down). Called once,
     /// after [`OnSignal::laser_off`].
     fn stop(&self, signal: &'static str);
+    /// Parks the arms through the work's own drivers, without waiting for the work
+    /// (its [`periscope_drivers::EmergencyPark`] handles): called before a forced exit,
+    /// when the run has not reached its checkpoint to park them itself.
+    fn park_now(&self);
 }
 
 /// The signals that stop Periscope and their numbers.
@@ -108,10 +112,12 @@ pub fn install(handler: Arc<dyn OnSignal>, grace: Duration) {
             tokio::select! {
                 _ = tokio::time::sleep(grace) => {
                     handler.laser_off();
+                    handler.park_now();
                     eprintln!("still busy {} s after {name}: exiting with the laser off", grace.as_secs_f64());
                 }
                 again = signals.next() => {
                     handler.laser_off();
+                    handler.park_now();
                     if let Some((name, _)) = again {
                         eprintln!("{name} again: exiting now with the laser off");
                     }

@@ -349,3 +349,17 @@ fn periscope_devices_lists_the_daq_devices_or_says_the_library_is_missing() {
         "{out}"
     );
 }
+
+/// An e-stop while the run is stuck with the DAQ's tasks started: both arms park
+/// through the run's own analog-output tasks, which hold their channels (a second task
+/// on them is refused, as NI-DAQmx refuses it). Until 2026-12-06 the e-stop parked by
+/// opening each arm anew, which the reserved channels refused: the report said not
+/// parked, and the mirrors stayed where the hung run had left them.
+#[test]
+fn an_estop_parks_both_arms_on_the_daq_while_the_run_hangs() {
+    let _one = exclusive();
+    periscope_daemon::signals::install_panic_hook();
+    let tmp = tempfile::tempdir().unwrap();
+    let (s, lab) = bench(tmp.path(), 1.0, "");
+    standin_matrix::estop_while_the_run_hangs(tmp.path(), &s, &lab);
+}

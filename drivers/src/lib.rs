@@ -15,6 +15,7 @@ pub mod error;
 pub mod galvo;
 pub mod geometry;
 pub mod laser_guard;
+pub mod park;
 pub mod picoquant;
 pub mod ports;
 mod resident;
@@ -25,6 +26,7 @@ pub mod traits;
 pub use error::{DeviceError, Error, ErrorKind, ErrorType};
 pub use geometry::{AngleLimits, GalvoPose, OpticalAngles};
 pub use laser_guard::{EmergencyOff, LaserGuard, LaserLine, Progress};
+pub use park::{EmergencyPark, ParkLine};
 pub use selector::{SelectorError, UsbSelector};
 pub use traits::{
     CountRates, DeviceInfo, Erased, GalvoBox, GalvoPair, GalvoStatus, Histogram, HistogramFlags,

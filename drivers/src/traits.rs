@@ -17,6 +17,7 @@ use serde::Serialize;
 use crate::error::{DeviceError, ErrorType};
 use crate::geometry::{AngleLimits, OpticalAngles};
 use crate::laser_guard::{EmergencyOff, Progress};
+use crate::park::EmergencyPark;
 
 /// What a device says about itself.
 #[derive(Clone, Debug, PartialEq, Eq, Serialize)]
@@ -80,6 +81,13 @@ pub trait GalvoPair: ErrorType {
     fn status(&mut self) -> Result<GalvoStatus, Self::Error>;
     /// Moves to the park position and holds there.
     fn park(&mut self) -> Result<(), Self::Error>;
+    /// A handle that parks this pair from any thread, whatever this driver is doing
+    /// or waiting for (the e-stop's path while a run is stuck holding the driver). It
+    /// latches: once used, this driver refuses every move (kind `Interrupted`) for the
+    /// rest of its life; [`GalvoPair::park`] still works. Take it when the driver is
+    /// opened, not when it is needed: a driver behind [`Shared`] hands it out under
+    /// the lock the stuck thread may hold.
+    fn emergency_park(&self) -> EmergencyPark;
 
     /// Moves to `target` and waits until settled there.
     fn move_settled(
@@ -180,6 +188,9 @@ impl<T: GalvoPair> GalvoPair for Shared<T> {
     }
     fn park(&mut self) -> Result<(), Self::Error> {
         self.lock().park()
+    }
+    fn emergency_park(&self) -> EmergencyPark {
+        self.lock().emergency_park()
     }
 }
 
@@ -379,6 +390,9 @@ where
     }
     fn park(&mut self) -> Result<(), DeviceError> {
         self.0.park().map_err(Into::into)
+    }
+    fn emergency_park(&self) -> EmergencyPark {
+        self.0.emergency_park()
     }
     fn move_settled(
         &mut self,

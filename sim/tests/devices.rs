@@ -603,6 +603,79 @@ fn an_emergency_off_lands_while_a_move_is_outstanding() {
     assert!(!laser.laser_state().unwrap().emission);
 }
 
+/// A pair's emergency park from another thread while its driver waits on a settling
+/// move: the out-of-band `PARK` lands at once, and latches the driver, which sends no
+/// move from then on (refused with `Interrupted`, the mirrors left parked); its own
+/// park still works. A closed driver's handle reaches nothing.
+#[test]
+fn an_emergency_park_lands_while_a_move_is_outstanding_and_latches() {
+    let rig = rig();
+    let mut spad = galvo(&rig, Arm::Spad, 20.0);
+    let park = spad.emergency_park();
+    rig.inject(Fault::Galvo(Arm::Spad, GalvoFault::Stall(Duration::from_secs(1))));
+    spad.move_to(angles(0.05, 0.05)).unwrap();
+    let waiter = std::thread::spawn(move || {
+        let r = spad.wait_settled(Duration::from_secs(5));
+        (spad, r)
+    });
+    std::thread::sleep(Duration::from_millis(50));
+    assert!(!rig.parked().1);
+    let pressed = Instant::now();
+    park.park().unwrap();
+    while !rig.parked().1 {
+        assert!(
+            pressed.elapsed() < Duration::from_millis(100),
+            "PARK out of band did not land: {:?}",
+            rig.pointing()
+        );
+        std::thread::sleep(Duration::from_millis(1));
+    }
+    let (mut spad, _) = waiter.join().unwrap();
+    let e = spad.move_to(angles(0.1, 0.1)).unwrap_err();
+    assert_eq!(e.kind(), ErrorKind::Interrupted, "{e}");
+    std::thread::sleep(Duration::from_millis(20));
+    assert!(rig.parked().1, "{:?}", rig.pointing());
+    spad.park().unwrap();
+    drop(spad);
+    assert_eq!(park.park().unwrap_err().kind(), ErrorKind::Disconnected);
+}
+
+/// A port one host holds is refused to a second (the `serialport` crate opens ports
+/// exclusively), and the refusal says the port is held, not that the controller is
+/// unplugged; a path that is not there still says to check the cable and the path.
+#[test]
+fn a_port_another_host_holds_is_refused_as_held() {
+    let rig = rig();
+    let port = rig.serve_galvo_port(Arm::Spad).unwrap();
+    let host = |path: &str| {
+        SerialGalvo::new(
+            SerialGalvoSettings {
+                name: "spad".into(),
+                limits: limits(20.0),
+                timeout: TIMEOUT,
+                settle: Duration::from_micros(300),
+                watchdog: None,
+            },
+            Box::new(PortConnector {
+                path: path.to_owned(),
+                baud: 115_200,
+            }),
+        )
+    };
+    let mut first = host(port.path());
+    first.identify().unwrap();
+    let e = host(port.path()).identify().unwrap_err();
+    assert_eq!(e.kind(), ErrorKind::Disconnected);
+    assert!(
+        e.to_string().contains("another program or process holds it"),
+        "{e}"
+    );
+    let e = host("/dev/periscope-no-such-port").identify().unwrap_err();
+    assert!(e.to_string().contains("plugged in"), "{e}");
+    drop(first);
+    host(port.path()).identify().unwrap();
+}
+
 #[test]
 fn a_served_port_is_opened_by_path_and_outlives_its_hosts() {
     let rig = rig();

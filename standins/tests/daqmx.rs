@@ -184,10 +184,14 @@ fn a_galvo_pair_follows_the_write_voltage_update_sequence_with_slew_limited_move
     );
     drop(g);
     let calls = s.calls();
-    assert!(calls.ends_with(&[
-        "DAQmxStopTask(periscope-galvo-laser)".to_owned(),
-        "DAQmxClearTask(periscope-galvo-laser)".to_owned()
-    ]));
+    assert!(
+        calls.ends_with(&[
+            "DAQmxStopTask(periscope-galvo-laser)".to_owned(),
+            "DAQmxClearTask(periscope-galvo-laser)".to_owned()
+        ]),
+        "{:?}",
+        &calls[calls.len().saturating_sub(4)..]
+    );
 }
 
 #[test]
@@ -327,6 +331,66 @@ fn without_a_hardware_watchdog_emission_needs_a_heartbeat_or_the_configs_accepta
     assert!(s.emission());
     assert!(named(&s.calls(), "DAQmxCreateWatchdogTimerTaskEx").is_empty());
     laser.set_emission(false).unwrap();
+}
+
+/// A pair's emergency park from another thread, while its owner ramps a move: the park
+/// takes the task between two of the owner's writes, ramps to 0 at the slew limit
+/// (no write more than 2° from the one before, whoever wrote it), and latches: the
+/// owner's move ends with `Interrupted` at its next write, and every later move is
+/// refused with nothing written; the owner's own park still works. Once the driver is
+/// closed, the handle reaches nothing, and the channels are free to open again.
+#[test]
+fn an_emergency_park_takes_the_pair_from_its_owner_and_latches() {
+    let _one = exclusive();
+    let tmp = tempfile::tempdir().unwrap();
+    let (s, config) = bench(tmp.path(), "");
+    // 0.1° a write: a 30° move takes 300 writes, 1 ms apart.
+    let settings = AoGalvoSettings {
+        max_slew_deg_per_ms: 0.1,
+        ..galvo_settings(&config)
+    };
+    let mut g = DaqGalvo::open(settings.clone()).unwrap();
+    let park = g.emergency_park();
+    g.park().unwrap();
+    g.move_to(deg(-15.0, 10.0)).unwrap();
+    s.clear_calls();
+    let mover = std::thread::spawn(move || {
+        let e = g.move_to(deg(15.0, -5.0)).unwrap_err();
+        (g, e)
+    });
+    // The park comes in once the move is under way.
+    let t = Instant::now();
+    while writes(&s.calls(), "periscope-galvo-laser").len() < 5 {
+        assert!(t.elapsed() < Duration::from_secs(2), "the move never started");
+        std::thread::sleep(Duration::from_micros(200));
+    }
+    park.park().unwrap();
+    let (mut g, e) = mover.join().unwrap();
+    assert_eq!(e.kind(), ErrorKind::Interrupted, "{e}");
+    assert!(s.parked().0, "{:?}", s.pointing());
+    let w = writes(&s.calls(), "periscope-galvo-laser");
+    assert!(w.len() >= 10 && w.len() < 2 * 300, "{}", w.len());
+    let mut last = [0.1 + 0.4 * -15.0, -0.1 + 0.4 * 10.0];
+    for v in &w {
+        for axis in 0..2 {
+            let step_deg = (v[axis] - last[axis]).abs() / 0.4;
+            assert!(step_deg <= 0.1 + 1e-6, "a {step_deg}° step in {w:?}");
+        }
+        last = [v[0], v[1]];
+    }
+    assert_eq!(last, [0.1, -0.1], "{w:?}");
+    // Latched: refused with nothing written; its own park still answers.
+    s.clear_calls();
+    assert_eq!(
+        g.move_to(deg(1.0, 1.0)).unwrap_err().kind(),
+        ErrorKind::Interrupted
+    );
+    assert!(named(&s.calls(), "DAQmxWriteAnalogF64").is_empty());
+    g.park().unwrap();
+    assert!(s.parked().0);
+    drop(g);
+    assert_eq!(park.park().unwrap_err().kind(), ErrorKind::Disconnected);
+    drop(DaqGalvo::open(settings).unwrap());
 }
 
 #[test]

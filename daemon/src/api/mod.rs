@@ -417,6 +417,9 @@ impl crate::signals::OnSignal for ServeSignals {
     fn laser_off(&self) {
         self.service.laser_off_now();
     }
+    fn park_now(&self) {
+        self.service.park_now();
+    }
     fn stop(&self, _signal: &'static str) {
         // Laser off (again), run paused, event streams ended, worker told to stop;
         // then the server stops accepting and drains.

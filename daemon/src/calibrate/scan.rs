@@ -6,7 +6,7 @@
 //! ([`Devices::make_safe`]), as a run's do.
 use std::time::{Duration, Instant};
 
-use periscope_drivers::{EmergencyOff, Error as _, ErrorKind, OpticalAngles, TdcConfig};
+use periscope_drivers::{EmergencyOff, EmergencyPark, Error as _, ErrorKind, OpticalAngles, TdcConfig};
 use periscope_recon::TimeAxis;
 
 use super::model::Geometry;
@@ -66,6 +66,15 @@ impl Calibrator {
     /// Switches this calibration's laser off from any thread (signals, e-stop).
     pub fn emergency_off(&self) -> EmergencyOff {
         self.devices.laser.emergency_off()
+    }
+
+    /// Parks this calibration's arms (laser arm, SPAD arm) from any thread (a forced
+    /// exit after a signal).
+    pub fn emergency_park(&self) -> [EmergencyPark; 2] {
+        [
+            self.devices.laser_arm.emergency_park(),
+            self.devices.spad.emergency_park(),
+        ]
     }
 
     /// Runs both scans, then makes the instrument safe whatever happened.

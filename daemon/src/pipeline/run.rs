@@ -7,7 +7,7 @@
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
-use periscope_drivers::EmergencyOff;
+use periscope_drivers::{EmergencyOff, EmergencyPark};
 
 use super::{PipelineError, panic_message};
 use crate::capture::RunCapture;
@@ -292,6 +292,16 @@ impl Run {
     /// is doing (the e-stop's and the signal handlers' direct path).
     pub fn emergency_off(&self) -> EmergencyOff {
         self.devices.laser.emergency_off()
+    }
+
+    /// Handles that park this run's arms (laser arm, SPAD arm) from any thread,
+    /// whatever the run is doing: the e-stop's path when the run does not reach its
+    /// checkpoint, since the devices it holds are closed to anyone else.
+    pub fn emergency_park(&self) -> [EmergencyPark; 2] {
+        [
+            self.devices.laser_arm.emergency_park(),
+            self.devices.spad.emergency_park(),
+        ]
     }
 
     /// A checkpoint: the pause or abort asked for, as the error that stops the run.

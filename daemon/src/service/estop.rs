@@ -15,21 +15,36 @@ impl Service {
         }
     }
 
+    /// Parks the running run's arms through its own drivers, if a run holds the
+    /// devices (for a forced exit: the run did not reach its checkpoint in time).
+    /// Latches those drivers: the run moves neither arm again.
+    pub fn park_now(&self) {
+        let park = self.direct().park.clone();
+        for handle in park.iter().flatten() {
+            if let Err(e) = handle.park() {
+                tracing::warn!(error = %e, "direct park failed");
+            }
+        }
+    }
+
     /// Emergency stop. In this order: the laser off through the running run's direct
     /// path (an out-of-band `LASER OFF` to the laser controller that nothing pending
     /// can hold up), the run aborted (it parks both arms on its way out), queued runs
-    /// held as paused. With no run holding the devices, or if the direct path fails,
-    /// the laser controller is opened on its own (neither the SPAD arm nor the
-    /// histogrammer is needed) and switched off, then each arm parked. Nothing stops
+    /// held as paused. A run that does not reach its checkpoint within 2 s has each
+    /// arm parked through its own driver's [`periscope_drivers::EmergencyPark`] (the hardware keeps the
+    /// ports and channels it holds closed to anyone else). With no run holding the
+    /// devices, if the direct path fails, or for an arm not parked that way, the laser
+    /// controller is opened on its own (neither the SPAD arm nor the histogrammer is
+    /// needed) and switched off, then each arm parked. Nothing stops
     /// it half-way: every step is tried, and the report says what was done.
     pub fn estop(&self) -> Result<EstopReport, ServiceError> {
         let t = Instant::now();
         let mut report = EstopReport::default();
         // The stop path's own lock, never the service's, which a request writing
         // files may hold.
-        let (running, direct) = {
+        let (running, direct, park) = {
             let d = self.direct();
-            (d.run.clone(), d.laser_off.clone())
+            (d.run.clone(), d.laser_off.clone(), d.park.clone())
         };
         // 1. The laser, directly. The run is told to abort first (an atomic store), so
         //    that a `LASER ON` the latched switch refuses it reads as the abort.
@@ -104,6 +119,7 @@ impl Service {
         }
         // 4. Wait (bounded) for the run to reach its checkpoint: it parks the arms and
         //    confirms the laser off on its way out.
+        let mut stuck = None;
         if let Some((id, control)) = &running {
             let deadline = Instant::now() + ESTOP_RUN_WAIT;
             let mut s = self.lock();
@@ -115,10 +131,7 @@ impl Service {
                     .0;
             }
             if s.current.as_ref().is_some_and(|(c, _)| c == id) {
-                report.warnings.push(format!(
-                    "run {id} did not reach its checkpoint within {} s; the devices were opened directly",
-                    ESTOP_RUN_WAIT.as_secs_f64()
-                ));
+                stuck = Some(id.clone());
             } else {
                 // Only a run that says it made the instrument safe is believed; one
                 // whose make-safe failed, or that never held the devices, leaves it
@@ -139,28 +152,63 @@ impl Service {
                 }
             }
         }
-        // 5. No run (or one that did not stop): each controller opened on its own (the
-        //    laser's already, above, where no run held it).
+        // 5. A run stuck short of its checkpoint: each arm parked through the run's own
+        //    driver, since the hardware keeps a driver's port or channels closed to
+        //    anyone else while the run holds it (a serial port is opened exclusively, a
+        //    started DAQ task reserves its channels). Then whatever is still not safe
+        //    (no run, one that did not make the instrument safe, a park that failed):
+        //    each controller opened on its own (the laser's already, above, where no
+        //    run held it).
         if !report.parked {
-            let controller = if controller_off {
-                Ok(())
-            } else {
-                self.laser_controller_off()
-            };
-            match controller {
-                Ok(()) => {
-                    if !laser_off {
-                        report.laser = CONTROLLER_OFF.into();
-                        report.laser_off_s = Some(t.elapsed().as_secs_f64());
-                        laser_off = true;
+            // Laser arm, SPAD arm.
+            let mut parked = [false; 2];
+            if let (Some(id), Some(handles)) = (&stuck, &park) {
+                for (done, handle) in parked.iter_mut().zip(handles) {
+                    match handle.park() {
+                        Ok(()) => *done = true,
+                        Err(e) => report.warnings.push(format!(
+                            "{} through run {id}'s own driver: {e}",
+                            handle.describe()
+                        )),
                     }
                 }
-                Err(e) => report.warnings.push(format!("laser controller: {e}")),
             }
-            match self.park_spad() {
-                Ok(()) => report.parked = true,
-                Err(e) => report.warnings.push(format!("SPAD arm: {e}")),
+            if let Some(id) = &stuck {
+                report.warnings.push(format!(
+                    "run {id} did not reach its checkpoint within {} s; {}",
+                    ESTOP_RUN_WAIT.as_secs_f64(),
+                    if parked == [true, true] {
+                        "both arms were sent to park through its own drivers"
+                    } else {
+                        "the devices were opened directly"
+                    }
+                ));
             }
+            if !parked[0] || !laser_off {
+                let controller = if controller_off {
+                    Ok(())
+                } else {
+                    self.laser_controller_off()
+                };
+                match controller {
+                    Ok(()) => {
+                        parked[0] = true;
+                        if !laser_off {
+                            report.laser = CONTROLLER_OFF.into();
+                            report.laser_off_s = Some(t.elapsed().as_secs_f64());
+                            laser_off = true;
+                        }
+                    }
+                    Err(e) => report.warnings.push(format!("laser controller: {e}")),
+                }
+            }
+            if !parked[1] {
+                match self.park_spad() {
+                    Ok(()) => parked[1] = true,
+                    Err(e) => report.warnings.push(format!("SPAD arm: {e}")),
+                }
+            }
+            report.parked = parked == [true, true];
         }
         if !laser_off {
             report.laser = "UNCONFIRMED: no path to the laser controller answered; the controller's watchdog ends emission within its timeout, or switch the laser off at the interlock".into();

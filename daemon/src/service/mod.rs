@@ -33,7 +33,7 @@ use crate::plan::Plan;
 use crate::run_dir::{RunDir, file};
 use crate::run_dir::{RunInfo, RunState};
 use crate::store::write_atomic;
-use periscope_drivers::EmergencyOff;
+use periscope_drivers::{EmergencyOff, EmergencyPark};
 
 mod estop;
 mod import;
@@ -295,6 +295,9 @@ struct Direct {
     run: Option<(String, Control)>,
     /// The running run's direct way to its laser, once its devices are open.
     laser_off: Option<EmergencyOff>,
+    /// The running run's direct way to park its arms (laser arm, SPAD arm), once its
+    /// devices are open.
+    park: Option<[EmergencyPark; 2]>,
 }
 
 /// The service: configuration, queue and worker.
@@ -534,6 +537,7 @@ impl Service {
         let mut d = self.direct();
         if run.is_none() {
             d.laser_off = None;
+            d.park = None;
         }
         d.run.clone_from(&run);
         s.current = run;

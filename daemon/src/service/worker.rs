@@ -224,7 +224,11 @@ impl Service {
             self.execute_import(&dir, control, events)
         } else {
             Run::open(&dir, control, Some(events), Some(self.backend.as_ref())).and_then(|run| {
-                self.direct().laser_off = Some(run.emergency_off());
+                {
+                    let mut d = self.direct();
+                    d.laser_off = Some(run.emergency_off());
+                    d.park = Some(run.emergency_park());
+                }
                 run.execute().map(|_| ())
             })
         };

@@ -7,9 +7,11 @@ use std::path::{Path, PathBuf};
 use std::sync::{Arc, Mutex, OnceLock, mpsc};
 use std::time::{Duration, Instant};
 
+use periscope_daemon::config::TomlSource;
 use periscope_daemon::events::{EventSink, RunEvent, Stage};
 use periscope_daemon::pipeline::{Control, Run};
 use periscope_daemon::run_dir::{RunInfo, RunState};
+use periscope_daemon::service::Service;
 use periscope_daemon::store::read_log;
 use periscope_drivers::EmergencyOff;
 use periscope_drivers::picoquant::Family;
@@ -231,4 +233,73 @@ pub(crate) fn whole_capture(dir: &Path) -> usize {
         .sum();
     assert!(total > 0, "the third bounce and the background reach the counter");
     planned
+}
+
+/// A service on the lab config `lab` (the stand-in `s` behind it): a run stuck in its
+/// capture with the laser on and its devices held, then an e-stop. The laser goes off
+/// through the run's own laser driver, and both arms park through its own galvo
+/// drivers, within the e-stop's wait; the run ends aborted once it comes back, with
+/// nothing moved again.
+pub(crate) fn estop_while_the_run_hangs(tmp: &Path, s: &Standin, lab: &TomlSource) {
+    let runs = tmp.join("runs");
+    std::fs::create_dir(&runs).unwrap();
+    let text = format!("{}\n[api]\nruns-dir = {:?}\n", lab.text(), runs);
+    let svc = Service::open(TomlSource::from_text(lab.path().to_owned(), text), None).unwrap();
+    let worker = svc.start_worker();
+    let id = svc.submit(PLAN.to_owned()).unwrap().id;
+    let start = Instant::now();
+    while !(svc.status(&id).unwrap().stage == "capture" && s.emission()) {
+        assert!(
+            start.elapsed() < Duration::from_secs(60),
+            "run {id} never captured"
+        );
+        std::thread::sleep(Duration::from_millis(5));
+    }
+    // Between pairs the arms point at the relay, away from the park position.
+    let ((lx, ly), (sx, sy)) = s.pointing();
+    assert!(
+        lx.abs() + ly.abs() > 0.1 && sx.abs() + sy.abs() > 0.1,
+        "{:?}",
+        s.pointing()
+    );
+    assert!(svc.inject_hang(Stage::Capture, Duration::from_secs(5)));
+    std::thread::sleep(Duration::from_millis(100));
+    let t = Instant::now();
+    let report = svc.estop().unwrap();
+    assert!(!s.emission(), "{report:?}");
+    assert!(report.laser_off_s.is_some_and(|s| s < 0.05), "{report:?}");
+    assert!(report.parked, "{report:?}");
+    assert!(
+        report
+            .warnings
+            .iter()
+            .any(|w| w.contains("sent to park through its own drivers")),
+        "{report:?}"
+    );
+    assert!(t.elapsed() < Duration::from_secs(4), "{:?}", t.elapsed());
+    // The controller takes its settling time to get there.
+    let parked = Instant::now();
+    while s.parked() != (true, true) {
+        assert!(
+            parked.elapsed() < Duration::from_secs(1),
+            "{:?}: {report:?}",
+            s.pointing()
+        );
+        std::thread::sleep(Duration::from_millis(2));
+    }
+    let ((lx, ly), (sx, sy)) = s.pointing();
+    assert!(
+        lx.abs() + ly.abs() + sx.abs() + sy.abs() < 1e-9,
+        "{:?}",
+        s.pointing()
+    );
+    // The run ends aborted once it comes back, and nothing moved the arms again.
+    while svc.status(&id).unwrap().state != RunState::Aborted {
+        assert!(start.elapsed() < Duration::from_secs(90), "{id} never aborted");
+        std::thread::sleep(Duration::from_millis(10));
+    }
+    assert_eq!(s.parked(), (true, true));
+    assert!(!s.emission());
+    svc.shutdown();
+    worker.join().unwrap();
 }

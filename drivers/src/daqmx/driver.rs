@@ -17,7 +17,7 @@
 //! the last step is written (a 30° move at 1°/ms takes 30 ms); the settling time runs
 //! from then, so two pairs settle together.
 use std::path::{Path, PathBuf};
-use std::sync::Arc;
+use std::sync::{Arc, Mutex, MutexGuard, Weak};
 use std::time::{Duration, Instant};
 
 use tracing::{debug, instrument, warn};
@@ -25,8 +25,9 @@ use tracing::{debug, instrument, warn};
 use super::defin::MAX_AO_VOLTS;
 use super::error::DaqError;
 use super::ffi::{Lib, LoadError, Task};
-use crate::error::{ErrorKind, ErrorType};
+use crate::error::{DeviceError, ErrorKind, ErrorType};
 use crate::geometry::{AngleLimits, OpticalAngles};
+use crate::park::{EmergencyPark, ParkLine};
 use crate::traits::{DeviceInfo, GalvoPair, GalvoStatus, MotionState};
 
 /// Where NI's Linux installer puts the library (Debian and Ubuntu packages; NI's own
@@ -175,15 +176,31 @@ impl AoGalvoSettings {
 
 /// A galvo pair driven by two analog outputs of a DAQ device.
 pub struct DaqGalvo {
+    out: Arc<AoOut>,
+}
+
+/// What the driver and its [`EmergencyPark`] share: the library, the task and where
+/// the mirrors were last sent. Every write holds the state's lock, so the two never
+/// interleave. NI-DAQmx is multithread-safe (NI's documentation, "Multithreading in
+/// NI-DAQmx"), so the e-stop's thread may write to the task the run's thread opened.
+struct AoOut {
     lib: Arc<Lib>,
     settings: AoGalvoSettings,
     device: String,
-    task: Task,
+    state: Mutex<AoState>,
+}
+
+struct AoState {
+    /// The task; `None` once the driver has cleared it (a park handle then reaches
+    /// nothing).
+    task: Option<Task>,
     /// Where the mirrors were last sent (open loop: the only position there is).
     commanded: OpticalAngles,
     parked: bool,
     /// When the last write of the last move went out.
     last_write: Instant,
+    /// An emergency park has taken the pair: every move is refused from then on.
+    latched: bool,
 }
 
 impl ErrorType for DaqGalvo {
@@ -192,6 +209,10 @@ impl ErrorType for DaqGalvo {
 
 /// The park position: both axes at optical angle 0.
 const PARK: OpticalAngles = OpticalAngles { x: 0.0, y: 0.0 };
+
+/// How long an emergency park waits for a write of the driver's own to return: the
+/// library's write timeout, and a margin.
+const PARK_LOCK_WAIT: Duration = Duration::from_millis((WRITE_TIMEOUT_S * 1000.0) as u64 + 500);
 
 impl DaqGalvo {
     /// Loads the library and opens the pair: one task with both channels, created
@@ -214,26 +235,52 @@ impl DaqGalvo {
         let task = lib
             .create_task(&format!("periscope-galvo-{}", settings.name))
             .map_err(|c| failed(&lib, &device, "DAQmxCreateTask", c))?;
-        let mut galvo = DaqGalvo {
-            lib,
-            device,
-            task,
-            commanded: PARK,
-            parked: true,
-            last_write: Instant::now(),
-            settings,
+        let galvo = DaqGalvo {
+            out: Arc::new(AoOut {
+                lib,
+                device,
+                settings,
+                state: Mutex::new(AoState {
+                    task: Some(task),
+                    commanded: PARK,
+                    parked: true,
+                    last_write: Instant::now(),
+                    latched: false,
+                }),
+            }),
         };
-        let channels = galvo.settings.channels.join(",");
-        galvo.call("DAQmxCreateAOVoltageChan", |lib, t| {
+        let out = &galvo.out;
+        let channels = out.settings.channels.join(",");
+        out.call(task, "DAQmxCreateAOVoltageChan", |lib, t| {
             lib.create_ao_voltage_chan(t, &channels, lo, hi)
         })?;
-        galvo.call("DAQmxStartTask", Lib::start_task)?;
-        galvo.write(PARK)?;
+        out.call(task, "DAQmxStartTask", Lib::start_task)?;
+        out.write(&mut out.lock(), PARK)?;
         Ok(galvo)
     }
 
-    fn call<T>(&self, name: &str, f: impl FnOnce(&Lib, Task) -> Result<T, i32>) -> Result<T, DaqError> {
-        let r = f(&self.lib, self.task).map_err(|c| failed(&self.lib, &self.device, name, c));
+    fn err(&self, kind: ErrorKind, message: impl Into<String>) -> DaqError {
+        self.out.err(kind, message)
+    }
+
+    /// The configured settings.
+    pub fn settings(&self) -> &AoGalvoSettings {
+        &self.out.settings
+    }
+}
+
+impl AoOut {
+    fn lock(&self) -> MutexGuard<'_, AoState> {
+        self.state.lock().unwrap_or_else(|p| p.into_inner())
+    }
+
+    fn call<T>(
+        &self,
+        task: Task,
+        name: &str,
+        f: impl FnOnce(&Lib, Task) -> Result<T, i32>,
+    ) -> Result<T, DaqError> {
+        let r = f(&self.lib, task).map_err(|c| failed(&self.lib, &self.device, name, c));
         warn_of(&self.lib, &self.device, name);
         r
     }
@@ -242,8 +289,15 @@ impl DaqGalvo {
         DaqError::new(&self.device, kind, message)
     }
 
-    /// Writes the voltages for `angles` (checked against ±10 V once more).
-    fn write(&mut self, angles: OpticalAngles) -> Result<(), DaqError> {
+    /// Writes the voltages for `angles` (checked against ±10 V once more), holding
+    /// the state's lock.
+    fn write(&self, state: &mut AoState, angles: OpticalAngles) -> Result<(), DaqError> {
+        let task = state.task.ok_or_else(|| {
+            self.err(
+                ErrorKind::Disconnected,
+                "the driver has closed its task; nothing was written",
+            )
+        })?;
         let volts = self.settings.volts(angles);
         if volts.iter().any(|v| !(v.abs() <= MAX_AO_VOLTS)) {
             return Err(self.err(
@@ -251,67 +305,151 @@ impl DaqGalvo {
                 format!("{volts:?} V is outside the card's ±10 V; nothing was written"),
             ));
         }
-        self.call("DAQmxWriteAnalogF64", |lib, t| {
+        self.call(task, "DAQmxWriteAnalogF64", |lib, t| {
             lib.write_analog_f64(t, &volts, WRITE_TIMEOUT_S)
         })?;
-        self.commanded = angles;
-        self.last_write = Instant::now();
+        state.commanded = angles;
+        state.last_write = Instant::now();
         Ok(())
     }
 
-    /// Ramps from the commanded position to `target`, one write per [`STEP_PERIOD`],
-    /// each at most the slew limit from the one before.
-    fn ramp(&mut self, target: OpticalAngles) -> Result<(), DaqError> {
-        let from = self.commanded;
+    /// The `k`th of `steps` positions of the straight ramp from `from` to `target`.
+    fn ramp_step(from: OpticalAngles, target: OpticalAngles, k: u64, steps: u64) -> OpticalAngles {
+        if k == steps {
+            return target;
+        }
+        let f = k as f64 / steps as f64;
+        OpticalAngles {
+            x: from.x + (target.x - from.x) * f,
+            y: from.y + (target.y - from.y) * f,
+        }
+    }
+
+    /// How many writes a ramp from `from` to `target` takes at the slew limit.
+    fn ramp_steps(&self, from: OpticalAngles, target: OpticalAngles) -> u64 {
         let step = self.settings.max_slew_deg_per_ms.to_radians();
         let span = (target.x - from.x).abs().max((target.y - from.y).abs());
-        let steps = ((span / step).ceil() as u64).max(1);
+        ((span / step).ceil() as u64).max(1)
+    }
+
+    /// Ramps from the commanded position to `target`, one write per [`STEP_PERIOD`],
+    /// each at most the slew limit from the one before, taking the lock for each
+    /// write only. Once an emergency park has latched the pair a move is refused; a
+    /// park (`to_park`) whose ramp an emergency park overtook starts again from where
+    /// that left the mirrors.
+    fn ramp(&self, target: OpticalAngles, to_park: bool) -> Result<(), DaqError> {
+        'again: loop {
+            let mut last = self.lock().commanded;
+            let (from, steps) = (last, self.ramp_steps(last, target));
+            let start = Instant::now();
+            for k in 1..=steps {
+                if k > 1 {
+                    let due = start + STEP_PERIOD * (k - 1) as u32;
+                    std::thread::sleep(due.saturating_duration_since(Instant::now()));
+                }
+                let mut state = self.lock();
+                if state.latched && !to_park {
+                    return Err(self.err(
+                        ErrorKind::Interrupted,
+                        "an emergency stop parked this pair, and it stays parked: open the devices again to move it",
+                    ));
+                }
+                if state.commanded != last {
+                    continue 'again;
+                }
+                let at = Self::ramp_step(from, target, k, steps);
+                self.write(&mut state, at)?;
+                last = at;
+            }
+            debug!(steps, "move written");
+            return Ok(());
+        }
+    }
+
+    /// The emergency park: the pair latched, then ramped to the park position with
+    /// the lock held throughout, so no write of the driver's comes between.
+    fn emergency_park(&self) -> Result<(), DaqError> {
+        let deadline = Instant::now() + PARK_LOCK_WAIT;
+        let mut state = loop {
+            match self.state.try_lock() {
+                Ok(s) => break s,
+                Err(std::sync::TryLockError::Poisoned(p)) => break p.into_inner(),
+                Err(std::sync::TryLockError::WouldBlock) if Instant::now() < deadline => {
+                    std::thread::sleep(Duration::from_micros(200));
+                }
+                Err(std::sync::TryLockError::WouldBlock) => {
+                    return Err(self.err(
+                        ErrorKind::Timeout,
+                        format!(
+                            "a write of the run's has not returned for {:.1} s, so the pair could not be parked: \
+                             the DAQ may be hung; switch the galvo drivers off",
+                            PARK_LOCK_WAIT.as_secs_f64()
+                        ),
+                    ));
+                }
+            }
+        };
+        state.latched = true;
+        let from = state.commanded;
+        let steps = self.ramp_steps(from, PARK);
         let start = Instant::now();
         for k in 1..=steps {
-            let f = k as f64 / steps as f64;
-            let at = if k == steps {
-                target
-            } else {
-                OpticalAngles {
-                    x: from.x + (target.x - from.x) * f,
-                    y: from.y + (target.y - from.y) * f,
-                }
-            };
             if k > 1 {
                 let due = start + STEP_PERIOD * (k - 1) as u32;
                 std::thread::sleep(due.saturating_duration_since(Instant::now()));
             }
-            self.write(at)?;
+            self.write(&mut state, Self::ramp_step(from, PARK, k, steps))?;
         }
-        debug!(steps, "move written");
+        state.parked = true;
+        warn!(device = %self.device, steps, "parked by an emergency stop; the pair refuses moves from now on");
         Ok(())
     }
+}
 
-    /// The configured settings.
-    pub fn settings(&self) -> &AoGalvoSettings {
-        &self.settings
+/// A [`DaqGalvo`]'s [`ParkLine`]: its task, reached without its owner.
+struct DaqPark(Weak<AoOut>, String);
+
+impl ParkLine for DaqPark {
+    fn park(&self) -> Result<(), DeviceError> {
+        let out = self.0.upgrade().ok_or_else(|| {
+            DaqError::new(
+                &self.1,
+                ErrorKind::Disconnected,
+                "the driver is closed; open the pair again to park it",
+            )
+        })?;
+        out.emergency_park().map_err(Into::into)
+    }
+
+    fn describe(&self) -> String {
+        self.1.clone()
     }
 }
 
 impl Drop for DaqGalvo {
     fn drop(&mut self) {
-        // The outputs keep their last voltage after the task is cleared.
-        let _ = self.lib.stop_task(self.task);
-        let _ = self.lib.clear_task(self.task);
+        // The outputs keep their last voltage after the task is cleared. Cleared under
+        // the lock, so a park handle writes before it or finds it gone.
+        let mut state = self.out.lock();
+        if let Some(task) = state.task.take() {
+            let _ = self.out.lib.stop_task(task);
+            let _ = self.out.lib.clear_task(task);
+        }
     }
 }
 
 impl GalvoPair for DaqGalvo {
     fn identify(&mut self) -> Result<DeviceInfo, DaqError> {
-        let dev = device_of(&self.settings.channels[0]).to_owned();
-        let model = self
+        let out = &self.out;
+        let dev = device_of(&out.settings.channels[0]).to_owned();
+        let model = out
             .lib
             .dev_product_type(&dev)
-            .map_err(|c| failed(&self.lib, &self.device, "DAQmxGetDevProductType", c))?;
-        let serial = self
+            .map_err(|c| failed(&out.lib, &out.device, "DAQmxGetDevProductType", c))?;
+        let serial = out
             .lib
             .dev_serial_num(&dev)
-            .map_err(|c| failed(&self.lib, &self.device, "DAQmxGetDevSerialNum", c))?;
+            .map_err(|c| failed(&out.lib, &out.device, "DAQmxGetDevSerialNum", c))?;
         Ok(DeviceInfo {
             model: format!("{model} ({dev}, analog outputs)"),
             firmware: "NI-DAQmx".into(),
@@ -321,14 +459,15 @@ impl GalvoPair for DaqGalvo {
     }
 
     fn limits(&self) -> AngleLimits {
-        self.settings.limits
+        self.out.settings.limits
     }
 
     /// Checks the target against the limits and the card's range, then writes the
     /// slew-limited ramp to it.
-    #[instrument(skip(self), fields(arm = %self.settings.name))]
+    #[instrument(skip(self), fields(arm = %self.out.settings.name))]
     fn move_to(&mut self, target: OpticalAngles) -> Result<(), DaqError> {
-        if !target.x.is_finite() || !target.y.is_finite() || !self.settings.limits.contains(target) {
+        let settings = &self.out.settings;
+        if !target.x.is_finite() || !target.y.is_finite() || !settings.limits.contains(target) {
             return Err(self.err(
                 ErrorKind::OutOfRange,
                 format!(
@@ -338,57 +477,70 @@ impl GalvoPair for DaqGalvo {
                 ),
             ));
         }
-        let volts = self.settings.volts(target);
+        let volts = settings.volts(target);
         if volts.iter().any(|v| v.abs() > MAX_AO_VOLTS) {
             return Err(self.err(
                 ErrorKind::OutOfRange,
                 format!("{volts:?} V is outside the card's ±10 V; nothing was written"),
             ));
         }
-        self.parked = false;
-        self.ramp(target)
+        {
+            let mut state = self.out.lock();
+            if !state.latched {
+                state.parked = false;
+            }
+        }
+        self.out.ramp(target, false)
     }
 
     /// Waits out the settling time after the last write and returns the commanded
     /// position (an open-loop galvo reports none of its own).
     fn wait_settled(&mut self, timeout: Duration) -> Result<OpticalAngles, DaqError> {
-        let left = (self.last_write + self.settings.settle).saturating_duration_since(Instant::now());
+        let settle = self.out.settings.settle;
+        let (last_write, commanded) = {
+            let state = self.out.lock();
+            (state.last_write, state.commanded)
+        };
+        let left = (last_write + settle).saturating_duration_since(Instant::now());
         if left > timeout {
             std::thread::sleep(timeout);
             return Err(self.err(
                 ErrorKind::Timeout,
-                format!(
-                    "still settling after {timeout:?} (settle time {:?}): raise the timeout or lower settle-us",
-                    self.settings.settle
-                ),
+                format!("still settling after {timeout:?} (settle time {settle:?}): raise the timeout or lower settle-us"),
             ));
         }
         std::thread::sleep(left);
-        Ok(self.commanded)
+        Ok(commanded)
     }
 
     fn position(&mut self) -> Result<OpticalAngles, DaqError> {
-        Ok(self.commanded)
+        Ok(self.out.lock().commanded)
     }
 
     fn status(&mut self) -> Result<GalvoStatus, DaqError> {
-        let state = if Instant::now() < self.last_write + self.settings.settle {
+        let settle = self.out.settings.settle;
+        let s = self.out.lock();
+        let state = if Instant::now() < s.last_write + settle {
             MotionState::Moving
-        } else if self.parked {
+        } else if s.parked {
             MotionState::Parked
         } else {
             MotionState::Settled
         };
         Ok(GalvoStatus {
             state,
-            position: self.commanded,
+            position: s.commanded,
         })
     }
 
     /// Ramps to optical angle 0 on both axes.
     fn park(&mut self) -> Result<(), DaqError> {
-        self.ramp(PARK)?;
-        self.parked = true;
+        self.out.ramp(PARK, true)?;
+        self.out.lock().parked = true;
         Ok(())
+    }
+
+    fn emergency_park(&self) -> EmergencyPark {
+        EmergencyPark::new(DaqPark(Arc::downgrade(&self.out), self.out.device.clone()))
     }
 }

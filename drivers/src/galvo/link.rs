@@ -82,7 +82,18 @@ impl Connector for PortConnector {
         let port = serialport::new(&self.path, self.baud)
             .timeout(Duration::from_millis(10))
             .open()
-            .map_err(io::Error::from)?;
+            .map_err(|e| {
+                // The crate reports a port another process holds (its `TIOCEXCL` or
+                // its lock) as "no device"; a path that is there is held, not gone.
+                let held =
+                    e.kind == serialport::ErrorKind::NoDevice && std::path::Path::new(&self.path).exists();
+                let e = io::Error::from(e);
+                if held {
+                    io::Error::new(io::ErrorKind::ResourceBusy, e)
+                } else {
+                    e
+                }
+            })?;
         Ok(Box::new(port))
     }
 

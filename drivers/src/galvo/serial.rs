@@ -8,6 +8,7 @@
 //! exchange is retried once, and a broken link is reopened once before the retry.
 //! A second failure is reported with its kind.
 use std::io::Write;
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard, Weak};
 use std::time::{Duration, Instant};
 
@@ -19,6 +20,7 @@ use super::protocol::{self, LineError, MotionState, Reply, Request};
 use crate::error::{DeviceError, Error, ErrorKind, ErrorType};
 use crate::geometry::{AngleLimits, OpticalAngles};
 use crate::laser_guard::{EmergencyOff, GuardedLaser, LaserGuard, LaserLine, Progress};
+use crate::park::{EmergencyPark, ParkLine};
 use crate::traits::{DeviceInfo, GalvoPair, GalvoStatus, Laser, LaserState};
 
 /// How far the settled position may be from the target before the driver refuses it,
@@ -151,6 +153,9 @@ pub struct SerialGalvo {
     oob: OobWriter,
     /// The laser's host-side safety (laser arm): watchdog, keepalive, latch.
     guard: LaserGuard,
+    /// Set (under the writer's lock) once an [`EmergencyPark`] has parked the pair:
+    /// no `MOVE` is sent from then on.
+    park_latch: Arc<AtomicBool>,
 }
 
 impl ErrorType for SerialGalvo {
@@ -183,6 +188,7 @@ impl SerialGalvo {
             pending: None,
             oob,
             guard,
+            park_latch: Arc::new(AtomicBool::new(false)),
         }
     }
 
@@ -247,11 +253,13 @@ impl SerialGalvo {
     fn connect(&mut self) -> Result<(), GalvoError> {
         if self.link.is_none() {
             let link = self.connector.connect().map_err(|e| {
-                self.err(
-                    ErrorKind::Disconnected,
-                    "cannot open the port: check that the controller is plugged in and powered, and the port path in the instrument config",
-                )
-                .with_source(e)
+                let why = if e.kind() == std::io::ErrorKind::ResourceBusy {
+                    "cannot open the port: another program or process holds it (a port is opened by one at a time): \
+                     close it, or stop the other Periscope process (`periscope serve`, `run` or `calibrate`)"
+                } else {
+                    "cannot open the port: check that the controller is plugged in and powered, and the port path in the instrument config"
+                };
+                self.err(ErrorKind::Disconnected, why).with_source(e)
             })?;
             debug!(arm = %self.settings.name, port = %self.port, "connected");
             *lock_writer(&self.oob) = link.out_of_band_writer().ok();
@@ -295,9 +303,15 @@ impl SerialGalvo {
         let sent = {
             let _writing = lock_writer(&self.oob);
             // Checked holding the write lock: an emergency off either latched before
-            // this (refused here) or writes its LASER OFF after this line.
+            // this (refused here) or writes its LASER OFF after this line; an
+            // emergency park likewise with its PARK and a move.
             if req == Request::Laser(true) && self.guard.latched() {
                 None
+            } else if matches!(req, Request::Move(_)) && self.park_latch.load(Ordering::SeqCst) {
+                return Err(self.err(
+                    ErrorKind::Interrupted,
+                    "an emergency stop parked this pair, and it stays parked on this connection: open the devices again to move it",
+                ));
             } else {
                 Some(link.discard_input().and_then(|()| link.send(line.as_bytes())))
             }
@@ -642,6 +656,51 @@ impl GalvoPair for SerialGalvo {
         self.request(Request::Park)?;
         self.target = Some(OpticalAngles { x: 0.0, y: 0.0 });
         Ok(())
+    }
+
+    fn emergency_park(&self) -> EmergencyPark {
+        EmergencyPark::new(SerialPark {
+            writer: Arc::downgrade(&self.oob),
+            latch: self.park_latch.clone(),
+            name: self.settings.name.clone(),
+            port: self.port.clone(),
+        })
+    }
+}
+
+/// The serial controller's [`ParkLine`]: `PARK` out of band (tag `00`), which the
+/// controller acts on at once, even with a `MOVE` settling, through the link's write
+/// side and without the driver. The latch is set holding the writer's lock, so no
+/// `MOVE` of the driver's follows the `PARK`.
+struct SerialPark {
+    writer: Weak<Mutex<Option<Box<dyn Write + Send>>>>,
+    latch: Arc<AtomicBool>,
+    name: String,
+    port: String,
+}
+
+impl ParkLine for SerialPark {
+    fn park(&self) -> Result<(), DeviceError> {
+        let err = |message: &str| GalvoError::new(&self.name, &self.port, ErrorKind::Disconnected, message);
+        let writer = self
+            .writer
+            .upgrade()
+            .ok_or_else(|| err("the driver is closed; open the controller again to park it"))?;
+        let line = protocol::encode_line(protocol::OUT_OF_BAND_TAG, &Request::Park.body());
+        let mut guard = lock_writer(&writer);
+        self.latch.store(true, Ordering::SeqCst);
+        let w = guard
+            .as_mut()
+            .ok_or_else(|| err("the controller is not connected; open it again to park it"))?;
+        w.write_all(line.as_bytes())
+            .and_then(|()| w.flush())
+            .map_err(|e| err("could not write the out-of-band PARK: the link broke").with_source(e))?;
+        warn!(arm = %self.name, port = %self.port, "parked by an emergency stop; the pair refuses moves from now on");
+        Ok(())
+    }
+
+    fn describe(&self) -> String {
+        format!("galvo pair `{}` ({})", self.name, self.port)
     }
 }
 

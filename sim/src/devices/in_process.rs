@@ -12,7 +12,7 @@
 //! overflow and an unplug do reach these). Tests that are about the pipeline, the API
 //! or the safety logic rather than the drivers use them (`sim.devices =
 //! "in-process"`); the wire-level devices keep testing the real drivers.
-use std::sync::{Arc, Weak};
+use std::sync::{Arc, Mutex, Weak};
 use std::time::{Duration, Instant};
 
 use periscope_drivers::galvo::GalvoError;
@@ -21,9 +21,9 @@ use periscope_drivers::laser_guard::GuardedLaser;
 use periscope_drivers::tdc::TdcError;
 use periscope_drivers::tdc::protocol::{self as tdc_protocol, WireConfig, flag};
 use periscope_drivers::{
-    AngleLimits, CountRates, DeviceError, DeviceInfo, EmergencyOff, ErrorKind, ErrorType, GalvoPair,
-    GalvoStatus, Histogram, HistogramFlags, Histogrammer, Laser, LaserGuard, LaserLine, LaserState, Progress,
-    TdcConfig, TdcState, TdcStatus,
+    AngleLimits, CountRates, DeviceError, DeviceInfo, EmergencyOff, EmergencyPark, ErrorKind, ErrorType,
+    GalvoPair, GalvoStatus, Histogram, HistogramFlags, Histogrammer, Laser, LaserGuard, LaserLine,
+    LaserState, ParkLine, Progress, TdcConfig, TdcState, TdcStatus,
 };
 
 use super::rig::{Arm, Rig, Shared};
@@ -39,6 +39,9 @@ pub struct InProcessGalvo {
     /// watchdog armed before each switch-on, the keepalive (here a call into the
     /// controller model), the emergency-off latch.
     guard: LaserGuard,
+    /// Set once an [`EmergencyPark`] has parked the pair; held while a move starts,
+    /// so no move follows the park.
+    park_latch: Arc<Mutex<bool>>,
 }
 
 impl InProcessGalvo {
@@ -67,6 +70,7 @@ impl InProcessGalvo {
             name: name.to_owned(),
             limits,
             guard,
+            park_latch: Arc::new(Mutex::new(false)),
         }
     }
 
@@ -161,6 +165,15 @@ impl GalvoPair for InProcessGalvo {
             x: wire(target.x),
             y: wire(target.y),
         };
+        let latch = self.park_latch.lock().unwrap_or_else(|p| p.into_inner());
+        if *latch {
+            return Err(GalvoError::new(
+                &self.name,
+                &self.port(),
+                ErrorKind::Interrupted,
+                "an emergency stop parked this pair, and it stays parked on this connection: open the devices again to move it",
+            ));
+        }
         self.rig
             .shared
             .start_move(self.arm, target)
@@ -203,6 +216,45 @@ impl GalvoPair for InProcessGalvo {
         self.heard();
         self.rig.shared.park(self.arm);
         Ok(())
+    }
+
+    fn emergency_park(&self) -> EmergencyPark {
+        EmergencyPark::new(InProcessPark {
+            shared: Arc::downgrade(&self.rig.shared),
+            latch: self.park_latch.clone(),
+            arm: self.arm,
+            name: self.name.clone(),
+        })
+    }
+}
+
+/// The in-process controller's [`ParkLine`]: a call into the controller model, the
+/// latch set first.
+struct InProcessPark {
+    shared: Weak<Shared>,
+    latch: Arc<Mutex<bool>>,
+    arm: Arm,
+    name: String,
+}
+
+impl ParkLine for InProcessPark {
+    fn park(&self) -> Result<(), DeviceError> {
+        let mut latch = self.latch.lock().unwrap_or_else(|p| p.into_inner());
+        *latch = true;
+        let shared = self.shared.upgrade().ok_or_else(|| {
+            GalvoError::new(
+                &self.name,
+                &self.describe(),
+                ErrorKind::Disconnected,
+                "the simulated instrument is gone",
+            )
+        })?;
+        shared.park(self.arm);
+        Ok(())
+    }
+
+    fn describe(&self) -> String {
+        format!("simulated {} controller (in process)", self.arm.name())
     }
 }
 
