@@ -1106,16 +1106,61 @@ async fn static_files_and_downloads_are_compressed_and_validated() {
         }
         router.clone().oneshot(req.body(Body::empty()).unwrap())
     };
+    let body = |r: axum::response::Response| async move {
+        axum::body::to_bytes(r.into_body(), usize::MAX)
+            .await
+            .unwrap()
+            .to_vec()
+    };
+    let asset = |name: &str| {
+        periscope_daemon::api::ASSETS
+            .iter()
+            .find(|(n, _, _)| *n == name)
+            .unwrap()
+            .2
+            .as_bytes()
+            .to_vec()
+    };
     for uri in ["/", "/ui/app.js", "/ui/style.css"] {
         let r = get(uri, &[("accept-encoding", "gzip, br")]).await.unwrap();
         assert_eq!(r.status(), StatusCode::OK, "{uri}");
         assert_eq!(r.headers()[header::CONTENT_ENCODING], "br", "{uri}");
+        assert_eq!(r.headers()[header::VARY], "accept-encoding", "{uri}");
         let tag = r.headers()[header::ETAG].to_str().unwrap().to_owned();
-        let r = get(uri, &[("if-none-match", &tag)]).await.unwrap();
+        let r = get(uri, &[("accept-encoding", "gzip, br"), ("if-none-match", &tag)])
+            .await
+            .unwrap();
         assert_eq!(r.status(), StatusCode::NOT_MODIFIED, "{uri}");
+        // Each encoding is a representation of its own, with its own validator.
+        let r = get(uri, &[("if-none-match", &tag)]).await.unwrap();
+        assert_eq!(r.status(), StatusCode::OK, "{uri}");
+        assert!(r.headers().get(header::CONTENT_ENCODING).is_none(), "{uri}");
     }
-    let r = get("/ui/app.js", &[("accept-encoding", "gzip")]).await.unwrap();
+    // Compressed once, each encoding decodes to the file; a refused coding (q=0) is
+    // not sent.
+    let r = get("/ui/app.js", &[("accept-encoding", "br;q=0, gzip;q=0.5")])
+        .await
+        .unwrap();
     assert_eq!(r.headers()[header::CONTENT_ENCODING], "gzip");
+    let mut plain = Vec::new();
+    std::io::Read::read_to_end(&mut flate2::read::GzDecoder::new(&body(r).await[..]), &mut plain).unwrap();
+    assert_eq!(plain, asset("app.js"));
+    let r = get("/ui/app.js", &[("accept-encoding", "br")]).await.unwrap();
+    let packed = body(r).await;
+    let mut plain = Vec::new();
+    std::io::Read::read_to_end(&mut brotli::Decompressor::new(&packed[..], 4096), &mut plain).unwrap();
+    assert_eq!(plain, asset("app.js"));
+    assert!(
+        packed.len() * 3 < plain.len(),
+        "{} of {}",
+        packed.len(),
+        plain.len()
+    );
+    let r = get("/ui/app.js", &[("accept-encoding", "identity")])
+        .await
+        .unwrap();
+    assert!(r.headers().get(header::CONTENT_ENCODING).is_none());
+    assert_eq!(body(r).await, asset("app.js"));
     let r = get("/favicon.ico", &[]).await.unwrap();
     assert_eq!(r.status(), StatusCode::OK);
     assert_eq!(r.headers()[header::CONTENT_TYPE], "image/svg+xml");

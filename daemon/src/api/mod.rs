@@ -433,6 +433,11 @@ impl crate::signals::OnSignal for ServeSignals {
 /// restart), event streams end, and the process exits within 2 s (a second signal
 /// exits at once).
 pub async fn serve(bind: SocketAddr, service: Arc<Service>) -> Result<(), ServeError> {
+    // The dashboard's files compressed before the first page is asked for, off the
+    // runtime's threads.
+    if let Err(e) = tokio::task::spawn_blocking(dashboard::prepare).await {
+        tracing::warn!(error = %e, "the dashboard's files are compressed on first request");
+    }
     let worker = service.start_worker();
     let listener = tokio::net::TcpListener::bind(bind)
         .await
