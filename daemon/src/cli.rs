@@ -504,17 +504,7 @@ impl crate::signals::OnSignal for RunSignals {
         }
     }
     fn park_now(&self) {
-        for handle in self
-            .park
-            .lock()
-            .unwrap_or_else(|p| p.into_inner())
-            .iter()
-            .flatten()
-        {
-            if let Err(e) = handle.park() {
-                eprintln!("direct park failed: {e}");
-            }
-        }
+        crate::signals::park_within(self.park.lock().unwrap_or_else(|p| p.into_inner()).clone());
     }
     fn stop(&self, _signal: &'static str) {
         self.control.pause();

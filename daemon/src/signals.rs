@@ -74,6 +74,36 @@ pub trait OnSignal: Send + Sync + 'static {
     fn park_now(&self);
 }
 
+/// How long a forced exit waits for the arms' direct parks ([`park_within`]).
+pub const PARK_WAIT: Duration = Duration::from_millis(300);
+
+/// Parks each arm through its handle on a thread of its own, waiting at most
+/// [`PARK_WAIT`] for them all (a DAQ park waits for a write of the stuck run's to
+/// return, up to its library's timeout): a forced exit is not held up longer.
+pub fn park_within(handles: Option<[periscope_drivers::EmergencyPark; 2]>) {
+    let Some(handles) = handles else { return };
+    let (tx, rx) = std::sync::mpsc::channel();
+    for handle in handles {
+        let tx = tx.clone();
+        let spawned = std::thread::Builder::new().name("park".into()).spawn(move || {
+            if let Err(e) = handle.park() {
+                eprintln!("direct park of {} failed: {e}", handle.describe());
+            }
+            let _ = tx.send(());
+        });
+        if let Err(e) = spawned {
+            eprintln!("no thread to park an arm on ({e})");
+        }
+    }
+    drop(tx);
+    let deadline = std::time::Instant::now() + PARK_WAIT;
+    while let Some(left) = deadline.checked_duration_since(std::time::Instant::now()) {
+        if rx.recv_timeout(left).is_err() {
+            return;
+        }
+    }
+}
+
 /// The signals that stop Periscope and their numbers.
 #[cfg(unix)]
 const SIGNALS: [(&str, i32); 3] = [("SIGINT", 2), ("SIGTERM", 15), ("SIGHUP", 1)];

@@ -361,5 +361,5 @@ fn an_estop_parks_both_arms_on_the_daq_while_the_run_hangs() {
     periscope_daemon::signals::install_panic_hook();
     let tmp = tempfile::tempdir().unwrap();
     let (s, lab) = bench(tmp.path(), 1.0, "");
-    standin_matrix::estop_while_the_run_hangs(tmp.path(), &s, &lab);
+    standin_matrix::estop_while_the_run_hangs(tmp.path(), &s, &lab, true);
 }

@@ -430,14 +430,15 @@ fn check_names_what_the_multiharp_would_refuse_before_the_run() {
 
 /// An e-stop while the run is stuck holding both controllers' serial ports, which the
 /// driver opens exclusively (`TIOCEXCL`, as the `serialport` crate opens every port):
-/// both arms park through the run's own links, with an out-of-band `PARK`. Until
+/// both arms park through the run's own links, with an out-of-band `PARK` (reported
+/// as sent, unconfirmed: the answers are on the link the stuck run reads). Until
 /// 2026-12-06 the e-stop parked by opening each port anew, which the exclusive opens
-/// refused.
+/// refused, and the arms stayed where the run had left them.
 #[test]
 fn an_estop_parks_both_arms_on_their_serial_ports_while_the_run_hangs() {
     let _one = exclusive();
     periscope_daemon::signals::install_panic_hook();
     let tmp = tempfile::tempdir().unwrap();
     let (s, lab) = bench(tmp.path(), 1.0);
-    standin_matrix::estop_while_the_run_hangs(tmp.path(), &s, &lab);
+    standin_matrix::estop_while_the_run_hangs(tmp.path(), &s, &lab, false);
 }

@@ -26,7 +26,7 @@ pub mod traits;
 pub use error::{DeviceError, Error, ErrorKind, ErrorType};
 pub use geometry::{AngleLimits, GalvoPose, OpticalAngles};
 pub use laser_guard::{EmergencyOff, LaserGuard, LaserLine, Progress};
-pub use park::{EmergencyPark, ParkLine};
+pub use park::{EmergencyPark, ParkLine, Parked};
 pub use selector::{SelectorError, UsbSelector};
 pub use traits::{
     CountRates, DeviceInfo, Erased, GalvoBox, GalvoPair, GalvoStatus, Histogram, HistogramFlags,

@@ -17,12 +17,23 @@ use std::sync::Arc;
 
 use crate::error::DeviceError;
 
+/// What an emergency park could tell of its outcome.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Parked {
+    /// The pair was sent to the park position, and the device said it took the
+    /// command (a DAQ's write returned; an open-loop pair has nothing more to say).
+    Done,
+    /// The command went out, but its answer cannot be read without the driver (a
+    /// serial controller answers on the link the stuck thread reads): unconfirmed.
+    Sent,
+}
+
 /// A driver's way to send its pair to the park position from another thread, without
 /// waiting for the thread that owns the driver.
 pub trait ParkLine: Send + Sync {
     /// Latches the driver (no more moves), then sends the pair to its park position.
     /// Waits for nothing the owning thread holds for longer than one of its writes.
-    fn park(&self) -> Result<(), DeviceError>;
+    fn park(&self) -> Result<Parked, DeviceError>;
     /// The arm and its device, for messages.
     fn describe(&self) -> String;
 }
@@ -39,7 +50,7 @@ impl EmergencyPark {
     }
 
     /// Latches the driver and parks the pair now.
-    pub fn park(&self) -> Result<(), DeviceError> {
+    pub fn park(&self) -> Result<Parked, DeviceError> {
         self.0.park()
     }
 

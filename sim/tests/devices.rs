@@ -10,8 +10,8 @@ use glam::DVec3;
 use periscope_drivers::galvo::{SerialGalvo, SerialGalvoSettings};
 use periscope_drivers::tdc::UsbTdc;
 use periscope_drivers::{
-    AngleLimits, Error, ErrorKind, GalvoPair, GalvoPose, Histogrammer, Laser, OpticalAngles, Progress,
-    TdcConfig,
+    AngleLimits, Error, ErrorKind, GalvoPair, GalvoPose, Histogrammer, Laser, OpticalAngles, Parked,
+    Progress, TdcConfig,
 };
 use periscope_sim::detector::C0;
 use periscope_sim::devices::{Arm, Fault, GalvoFault, Rig, RigSettings, SimTdcTransport, TdcFault};
@@ -604,9 +604,11 @@ fn an_emergency_off_lands_while_a_move_is_outstanding() {
 }
 
 /// A pair's emergency park from another thread while its driver waits on a settling
-/// move: the out-of-band `PARK` lands at once, and latches the driver, which sends no
-/// move from then on (refused with `Interrupted`, the mirrors left parked); its own
-/// park still works. A closed driver's handle reaches nothing.
+/// move: the out-of-band `PARK` lands at once (reported as sent: its answer is on the
+/// link the driver reads), and latches the driver: the move it waited on ends
+/// `Interrupted`, it sends no move from then on (the mirrors left parked), and its own
+/// park still works, without waiting for the overridden move's answer. A closed
+/// driver's handle reaches nothing.
 #[test]
 fn an_emergency_park_lands_while_a_move_is_outstanding_and_latches() {
     let rig = rig();
@@ -621,7 +623,7 @@ fn an_emergency_park_lands_while_a_move_is_outstanding_and_latches() {
     std::thread::sleep(Duration::from_millis(50));
     assert!(!rig.parked().1);
     let pressed = Instant::now();
-    park.park().unwrap();
+    assert_eq!(park.park().unwrap(), Parked::Sent);
     while !rig.parked().1 {
         assert!(
             pressed.elapsed() < Duration::from_millis(100),
@@ -630,7 +632,8 @@ fn an_emergency_park_lands_while_a_move_is_outstanding_and_latches() {
         );
         std::thread::sleep(Duration::from_millis(1));
     }
-    let (mut spad, _) = waiter.join().unwrap();
+    let (mut spad, r) = waiter.join().unwrap();
+    assert_eq!(r.unwrap_err().kind(), ErrorKind::Interrupted);
     let e = spad.move_to(angles(0.1, 0.1)).unwrap_err();
     assert_eq!(e.kind(), ErrorKind::Interrupted, "{e}");
     std::thread::sleep(Duration::from_millis(20));
@@ -638,6 +641,19 @@ fn an_emergency_park_lands_while_a_move_is_outstanding_and_latches() {
     spad.park().unwrap();
     drop(spad);
     assert_eq!(park.park().unwrap_err().kind(), ErrorKind::Disconnected);
+
+    // The driver's own park with the overridden move's answer still to come: sent at
+    // once, not after the move's stall.
+    let mut spad = galvo(&rig, Arm::Spad, 20.0);
+    let park = spad.emergency_park();
+    rig.inject(Fault::Galvo(Arm::Spad, GalvoFault::Stall(Duration::from_secs(2))));
+    spad.move_to(angles(-0.05, 0.05)).unwrap();
+    std::thread::sleep(Duration::from_millis(20));
+    park.park().unwrap();
+    let t = Instant::now();
+    spad.park().unwrap();
+    assert!(t.elapsed() < Duration::from_millis(500), "{:?}", t.elapsed());
+    assert!(rig.parked().1);
 }
 
 /// A port one host holds is refused to a second (the `serialport` crate opens ports

@@ -13,7 +13,7 @@ use std::time::{Duration, Instant};
 use periscope_daemon::config::{GalvoLink, InstrumentConfig};
 use periscope_drivers::daqmx::defin::error;
 use periscope_drivers::daqmx::{AoGalvoSettings, DaqGalvo, DaqLaser, DaqLaserSettings};
-use periscope_drivers::{Error, ErrorKind, GalvoPair, Laser, OpticalAngles, Progress};
+use periscope_drivers::{Error, ErrorKind, GalvoPair, Laser, OpticalAngles, Parked, Progress};
 use periscope_standins::client::{Standin, exclusive};
 
 fn root() -> PathBuf {
@@ -364,7 +364,7 @@ fn an_emergency_park_takes_the_pair_from_its_owner_and_latches() {
         assert!(t.elapsed() < Duration::from_secs(2), "the move never started");
         std::thread::sleep(Duration::from_micros(200));
     }
-    park.park().unwrap();
+    assert_eq!(park.park().unwrap(), Parked::Done);
     let (mut g, e) = mover.join().unwrap();
     assert_eq!(e.kind(), ErrorKind::Interrupted, "{e}");
     assert!(s.parked().0, "{:?}", s.pointing());

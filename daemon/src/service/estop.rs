@@ -2,6 +2,7 @@
 //! through the laser controller opened for the purpose), then both arms parked, then
 //! the queue held. Nothing queued in front of it can block it.
 use super::*;
+use periscope_drivers::Parked;
 
 impl Service {
     /// Switches the running run's laser off through its direct path, if a run holds
@@ -19,12 +20,7 @@ impl Service {
     /// devices (for a forced exit: the run did not reach its checkpoint in time).
     /// Latches those drivers: the run moves neither arm again.
     pub fn park_now(&self) {
-        let park = self.direct().park.clone();
-        for handle in park.iter().flatten() {
-            if let Err(e) = handle.park() {
-                tracing::warn!(error = %e, "direct park failed");
-            }
-        }
+        crate::signals::park_within(self.direct().park.clone());
     }
 
     /// Emergency stop. In this order: the laser off through the running run's direct
@@ -162,23 +158,46 @@ impl Service {
         if !report.parked {
             // Laser arm, SPAD arm.
             let mut parked = [false; 2];
-            if let (Some(id), Some(handles)) = (&stuck, &park) {
-                for (done, handle) in parked.iter_mut().zip(handles) {
+            if let Some(id) = &stuck {
+                // Read again: a run that was still opening its devices at step 1 has
+                // handed out its direct paths since.
+                let (off, park) = {
+                    let d = self.direct();
+                    (d.laser_off.clone(), d.park.clone().or(park))
+                };
+                if !laser_off
+                    && let Some(off) = off
+                    && off.laser_off().is_ok()
+                {
+                    laser_off = true;
+                    report.laser = "off: out-of-band LASER OFF to the laser controller".into();
+                    report.laser_off_s = Some(t.elapsed().as_secs_f64());
+                }
+                let mut sent = 0;
+                for (done, handle) in parked.iter_mut().zip(park.iter().flatten()) {
                     match handle.park() {
-                        Ok(()) => *done = true,
+                        Ok(Parked::Done) => *done = true,
+                        Ok(Parked::Sent) => {
+                            sent += 1;
+                            report.warnings.push(format!(
+                                "{}: PARK sent on run {id}'s own link, unconfirmed (the run's thread holds the \
+                                 controller's answers): check that the arm is parked",
+                                handle.describe()
+                            ));
+                        }
                         Err(e) => report.warnings.push(format!(
                             "{} through run {id}'s own driver: {e}",
                             handle.describe()
                         )),
                     }
                 }
-            }
-            if let Some(id) = &stuck {
                 report.warnings.push(format!(
                     "run {id} did not reach its checkpoint within {} s; {}",
                     ESTOP_RUN_WAIT.as_secs_f64(),
                     if parked == [true, true] {
-                        "both arms were sent to park through its own drivers"
+                        "both arms were parked through its own drivers"
+                    } else if sent > 0 {
+                        "the arms were sent to park through its own drivers, and the devices opened directly to confirm it"
                     } else {
                         "the devices were opened directly"
                     }

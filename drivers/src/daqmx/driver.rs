@@ -27,7 +27,7 @@ use super::error::DaqError;
 use super::ffi::{Lib, LoadError, Task};
 use crate::error::{DeviceError, ErrorKind, ErrorType};
 use crate::geometry::{AngleLimits, OpticalAngles};
-use crate::park::{EmergencyPark, ParkLine};
+use crate::park::{EmergencyPark, ParkLine, Parked};
 use crate::traits::{DeviceInfo, GalvoPair, GalvoStatus, MotionState};
 
 /// Where NI's Linux installer puts the library (Debian and Ubuntu packages; NI's own
@@ -392,6 +392,9 @@ impl AoOut {
         state.latched = true;
         let from = state.commanded;
         let steps = self.ramp_steps(from, PARK);
+        // A step period after the driver's last write, as the ramp it may have been in
+        // would have: the slew limit holds across the two.
+        std::thread::sleep((state.last_write + STEP_PERIOD).saturating_duration_since(Instant::now()));
         let start = Instant::now();
         for k in 1..=steps {
             if k > 1 {
@@ -410,7 +413,7 @@ impl AoOut {
 struct DaqPark(Weak<AoOut>, String);
 
 impl ParkLine for DaqPark {
-    fn park(&self) -> Result<(), DeviceError> {
+    fn park(&self) -> Result<Parked, DeviceError> {
         let out = self.0.upgrade().ok_or_else(|| {
             DaqError::new(
                 &self.1,
@@ -418,7 +421,7 @@ impl ParkLine for DaqPark {
                 "the driver is closed; open the pair again to park it",
             )
         })?;
-        out.emergency_park().map_err(Into::into)
+        out.emergency_park().map(|()| Parked::Done).map_err(Into::into)
     }
 
     fn describe(&self) -> String {

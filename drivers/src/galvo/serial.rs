@@ -20,7 +20,7 @@ use super::protocol::{self, LineError, MotionState, Reply, Request};
 use crate::error::{DeviceError, Error, ErrorKind, ErrorType};
 use crate::geometry::{AngleLimits, OpticalAngles};
 use crate::laser_guard::{EmergencyOff, GuardedLaser, LaserGuard, LaserLine, Progress};
-use crate::park::{EmergencyPark, ParkLine};
+use crate::park::{EmergencyPark, ParkLine, Parked};
 use crate::traits::{DeviceInfo, GalvoPair, GalvoStatus, Laser, LaserState};
 
 /// How far the settled position may be from the target before the driver refuses it,
@@ -233,7 +233,13 @@ impl SerialGalvo {
     /// command is idempotent).
     fn request(&mut self, req: Request) -> Result<Vec<String>, GalvoError> {
         if self.pending.is_some() {
-            self.finish_move(self.settings.settle * 4)?;
+            if self.park_latch.load(Ordering::SeqCst) {
+                // An emergency park overrode the move: its reply, whenever it comes,
+                // is dropped as stale, and nothing waits for it.
+                self.pending = None;
+            } else {
+                self.finish_move(self.settings.settle * 4)?;
+            }
         }
         match self.exchange(req) {
             Ok(fields) => Ok(fields),
@@ -267,6 +273,13 @@ impl SerialGalvo {
             self.rx.clear();
         }
         Ok(())
+    }
+
+    fn parked_by_estop(&self) -> GalvoError {
+        self.err(
+            ErrorKind::Interrupted,
+            "an emergency stop parked this pair, and it stays parked on this connection: open the devices again to move it",
+        )
     }
 
     fn emergency_stopped(&self) -> GalvoError {
@@ -308,10 +321,7 @@ impl SerialGalvo {
             if req == Request::Laser(true) && self.guard.latched() {
                 None
             } else if matches!(req, Request::Move(_)) && self.park_latch.load(Ordering::SeqCst) {
-                return Err(self.err(
-                    ErrorKind::Interrupted,
-                    "an emergency stop parked this pair, and it stays parked on this connection: open the devices again to move it",
-                ));
+                return Err(self.parked_by_estop());
             } else {
                 Some(link.discard_input().and_then(|()| link.send(line.as_bytes())))
             }
@@ -379,6 +389,9 @@ impl SerialGalvo {
         let Some((tag, target)) = self.pending.take() else {
             return Err(self.err(ErrorKind::Device, "no move is outstanding"));
         };
+        if self.park_latch.load(Ordering::SeqCst) {
+            return Err(self.parked_by_estop());
+        }
         let req = Request::Move(target);
         let wait = timeout + self.settings.timeout;
         let fields = match self.receive(req, tag, wait) {
@@ -395,6 +408,11 @@ impl SerialGalvo {
             }
             Err(e) => return Err(e),
         };
+        // An emergency park that came while the move settled overrode it, whatever
+        // its answer says.
+        if self.park_latch.load(Ordering::SeqCst) {
+            return Err(self.parked_by_estop());
+        }
         let status = self.parse_status(req, &fields)?;
         self.check_settled(status, target)
     }
@@ -680,7 +698,7 @@ struct SerialPark {
 }
 
 impl ParkLine for SerialPark {
-    fn park(&self) -> Result<(), DeviceError> {
+    fn park(&self) -> Result<Parked, DeviceError> {
         let err = |message: &str| GalvoError::new(&self.name, &self.port, ErrorKind::Disconnected, message);
         let writer = self
             .writer
@@ -695,8 +713,9 @@ impl ParkLine for SerialPark {
         w.write_all(line.as_bytes())
             .and_then(|()| w.flush())
             .map_err(|e| err("could not write the out-of-band PARK: the link broke").with_source(e))?;
-        warn!(arm = %self.name, port = %self.port, "parked by an emergency stop; the pair refuses moves from now on");
-        Ok(())
+        warn!(arm = %self.name, port = %self.port, "PARK sent by an emergency stop; the pair refuses moves from now on");
+        // Its answer comes on the link's read side, which the driver's own thread holds.
+        Ok(Parked::Sent)
     }
 
     fn describe(&self) -> String {

@@ -23,7 +23,7 @@ use periscope_drivers::tdc::protocol::{self as tdc_protocol, WireConfig, flag};
 use periscope_drivers::{
     AngleLimits, CountRates, DeviceError, DeviceInfo, EmergencyOff, EmergencyPark, ErrorKind, ErrorType,
     GalvoPair, GalvoStatus, Histogram, HistogramFlags, Histogrammer, Laser, LaserGuard, LaserLine,
-    LaserState, ParkLine, Progress, TdcConfig, TdcState, TdcStatus,
+    LaserState, ParkLine, Parked, Progress, TdcConfig, TdcState, TdcStatus,
 };
 
 use super::rig::{Arm, Rig, Shared};
@@ -238,7 +238,7 @@ struct InProcessPark {
 }
 
 impl ParkLine for InProcessPark {
-    fn park(&self) -> Result<(), DeviceError> {
+    fn park(&self) -> Result<Parked, DeviceError> {
         let mut latch = self.latch.lock().unwrap_or_else(|p| p.into_inner());
         *latch = true;
         let shared = self.shared.upgrade().ok_or_else(|| {
@@ -250,7 +250,7 @@ impl ParkLine for InProcessPark {
             )
         })?;
         shared.park(self.arm);
-        Ok(())
+        Ok(Parked::Done)
     }
 
     fn describe(&self) -> String {
