@@ -1045,3 +1045,82 @@ async fn a_running_captures_export_is_not_remade_on_every_download() {
     .await;
     assert_eq!(s, StatusCode::ACCEPTED, "{v}");
 }
+
+/// An event-stream client that never reads: the display-only events it holds (each
+/// epoch's snapshot of the fit, thousands of Gaussians) stop at the streams' budget,
+/// and the events a display cannot do without (stages, epochs, the end) still reach
+/// it. Until 2026-12-06 only the ring's 1,024 events bounded them, whatever their
+/// size: 300 epochs' snapshots of 600 Gaussians held 15 MB here (0.33 MB now), over 100 MB at the
+/// default 2,000 and a longer fit.
+#[test]
+fn a_stream_client_that_never_reads_holds_no_more_than_the_display_budget() {
+    use periscope_daemon::run_dir::RunState;
+    const BUDGET: usize = 256 << 10;
+    let dir = tempfile::tempdir().unwrap();
+    let svc = service(dir.path(), 0.0, Some(TOKEN));
+    svc.set_stream_display_budget(BUDGET);
+    let worker = svc.start_worker();
+    let plan = SmallPlan::named("snapshots")
+        .set("recon.method", "gtr")
+        .set("recon.volume.shape", [16, 16, 16])
+        .set("recon.gtr.primitives", 600)
+        .set("recon.gtr.epochs", 300)
+        .set("recon.gtr.virtual-grid", [16, 16])
+        .toml();
+    let id = svc.submit(plan).unwrap().id;
+    let mut rx = svc.subscribe(&id).unwrap().expect("a queued run has a channel");
+    let (mut most, t) = (0, Instant::now());
+    loop {
+        most = most.max(svc.stream_bytes());
+        let state = svc.status(&id).unwrap().state;
+        if !matches!(state, RunState::Queued | RunState::Running) {
+            assert_eq!(state, RunState::Completed);
+            break;
+        }
+        assert!(t.elapsed() < Duration::from_secs(120), "the run never finished");
+        std::thread::sleep(Duration::from_millis(2));
+    }
+    let (mut snapshots, mut largest, mut essential, mut names) = (0, 0, 0, Vec::new());
+    // The run's last events reach the channel after its state says completed.
+    let read = Instant::now();
+    loop {
+        use tokio::sync::broadcast::error::TryRecvError;
+        let ev = match rx.try_recv() {
+            Ok(ev) => ev,
+            Err(TryRecvError::Lagged(n)) => {
+                names.push(format!("lagged {n}"));
+                continue;
+            }
+            Err(TryRecvError::Empty)
+                if !names.iter().any(|n| n == "completed") && read.elapsed() < Duration::from_secs(10) =>
+            {
+                std::thread::sleep(Duration::from_millis(5));
+                continue;
+            }
+            Err(_) => break,
+        };
+        if &*ev.name == "snapshot" {
+            snapshots += 1;
+            largest = largest.max(ev.json.len());
+        } else if !["histogram", "safety"].contains(&&*ev.name) {
+            essential += ev.json.len();
+        }
+        names.push(ev.name.to_string());
+    }
+    eprintln!("most held {most} B; {snapshots} snapshots of up to {largest} B; {essential} B of the rest");
+    assert!(snapshots >= 2, "{names:?}");
+    // Unbounded, 300 snapshots would have held many times the budget.
+    assert!(300 * largest > 8 * BUDGET, "{largest}");
+    assert!(most <= BUDGET + largest + essential, "{most}");
+    for name in ["stage-started", "epoch", "output", "completed"] {
+        assert!(names.iter().any(|n| n == name), "no {name}: {names:?}");
+    }
+    drop(rx);
+    assert_eq!(
+        svc.stream_bytes(),
+        0,
+        "every event's bytes are let go with the last reader"
+    );
+    svc.shutdown();
+    worker.join().unwrap();
+}

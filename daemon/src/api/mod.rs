@@ -1039,7 +1039,7 @@ async fn events(
     let live = BroadcastStream::new(rx).map(move |item| {
         let _slot = &slot;
         Ok(match item {
-            Ok(StreamEvent { name, json }) => Event::default().event(&*name).data(&*json),
+            Ok(StreamEvent { name, json }) => Event::default().event(&*name).data(&**json),
             Err(BroadcastStreamRecvError::Lagged(n)) => Event::default()
                 .event("lagged")
                 .data(format!("{{\"skipped\":{n}}}")),

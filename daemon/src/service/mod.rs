@@ -18,6 +18,7 @@
 //! execute on the dedicated worker thread, never on the async runtime.
 use std::collections::{HashMap, VecDeque};
 use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::{Arc, Condvar, Mutex, MutexGuard};
 use std::time::{Duration, Instant};
 
@@ -58,10 +59,17 @@ pub const QUEUE_FILE: &str = "queue.json";
 const PAIR_EVENT_INTERVAL: Duration = Duration::from_millis(50);
 
 /// Events buffered per run for slow stream clients before they are told they lagged.
-const EVENT_BUFFER: usize = 1024;
+pub const EVENT_BUFFER: usize = 1024;
 
 /// Events queued from a run to its forwarder thread at most (a few MB of histograms).
 const EVENT_QUEUE: usize = 4096;
+
+/// Bytes of display-only events (a fit's snapshots, histograms, safety readings) the
+/// event streams may hold for clients that have not read them yet, over every run:
+/// past it they are not sent until clients catch up (the next one goes out then). The
+/// events a display cannot do without (stages, progress, epochs, outputs) are always
+/// sent, and the ring of [`EVENT_BUFFER`] bounds them.
+pub const STREAM_DISPLAY_BYTES: usize = 16 << 20;
 
 /// An event as sent to stream clients: its name and JSON.
 #[derive(Clone, Debug)]
@@ -70,7 +78,40 @@ pub struct StreamEvent {
     /// `epoch`, `output`, ...).
     pub name: Arc<str>,
     /// The event as JSON.
-    pub json: Arc<str>,
+    pub json: Arc<HeldJson>,
+}
+
+/// An event's JSON, counted in the service's stream bytes until the last client has
+/// read it (or the ring has dropped it).
+#[derive(Debug)]
+pub struct HeldJson {
+    text: Box<str>,
+    held: Arc<AtomicUsize>,
+}
+
+impl HeldJson {
+    /// `text`, counted in `held` while it lives.
+    fn new(text: String, held: &Arc<AtomicUsize>) -> HeldJson {
+        held.fetch_add(text.len(), Ordering::Relaxed);
+        HeldJson {
+            text: text.into(),
+            held: Arc::clone(held),
+        }
+    }
+}
+
+impl std::ops::Deref for HeldJson {
+    type Target = str;
+
+    fn deref(&self) -> &str {
+        &self.text
+    }
+}
+
+impl Drop for HeldJson {
+    fn drop(&mut self) {
+        self.held.fetch_sub(self.text.len(), Ordering::Relaxed);
+    }
 }
 
 /// A run as the API reports it.
@@ -327,6 +368,11 @@ pub struct Service {
     /// (fsyncs, on a disk that may stall): the e-stop, the signal thread and shutdown
     /// reach the laser without waiting for them.
     direct: Mutex<Direct>,
+    /// Bytes of event JSON the event streams hold for clients yet to read them.
+    stream_bytes: Arc<AtomicUsize>,
+    /// Of which display-only events may hold at most this many
+    /// ([`STREAM_DISPLAY_BYTES`]; tests set less).
+    stream_display_budget: AtomicUsize,
     /// Held while a capture export is written.
     exporting: Mutex<()>,
     /// The geometry of the runs viewed last, each with the stamps of the files it was
@@ -445,6 +491,8 @@ impl Service {
             catalogue,
             indexer: Mutex::new(None),
             metrics: crate::metrics::Metrics::new(),
+            stream_bytes: Arc::new(AtomicUsize::new(0)),
+            stream_display_budget: AtomicUsize::new(STREAM_DISPLAY_BYTES),
             _catalogue_hold: catalogue_hold,
             _runs_hold: runs_hold,
             shared: Mutex::new(Shared {
@@ -508,6 +556,18 @@ impl Service {
     pub fn inject_panic(&self, stage: crate::events::Stage) -> bool {
         let s = self.lock();
         s.current.as_ref().map(|(_, c)| c.inject_panic(stage)).is_some()
+    }
+
+    /// Bytes of event JSON the event streams hold now for clients yet to read them.
+    pub fn stream_bytes(&self) -> usize {
+        self.stream_bytes.load(Ordering::Relaxed)
+    }
+
+    /// Testing aid: display-only events are held back past `bytes` of held events
+    /// instead of [`STREAM_DISPLAY_BYTES`]. Built only with the `test-hooks` feature.
+    #[cfg(feature = "test-hooks")]
+    pub fn set_stream_display_budget(&self, bytes: usize) {
+        self.stream_display_budget.store(bytes, Ordering::Relaxed);
     }
 
     /// Testing aid (fault injection): the running run hangs at its next checkpoint in

@@ -337,12 +337,20 @@ impl Service {
             }
             last_sent[clock] = Instant::now();
         }
+        // Display-only events wait while the streams hold their budget for clients
+        // that do not read (the next one goes out once they catch up or the ring
+        // drops what they did not read); the rest are small and always go.
+        if ev.display_only()
+            && self.stream_bytes.load(Ordering::Relaxed) >= self.stream_display_budget.load(Ordering::Relaxed)
+        {
+            return;
+        }
         let value = serde_json::to_value(ev).unwrap_or_default();
         let name = event_name(&value);
         // A send fails only when no client listens; that is fine.
         let _ = tx.send(StreamEvent {
             name,
-            json: value.to_string().into(),
+            json: Arc::new(HeldJson::new(value.to_string(), &self.stream_bytes)),
         });
     }
 }
