@@ -125,6 +125,25 @@ fn recon_and_export_of_a_run_directory_whole_and_damaged() {
     let out = periscope(&["export", s(&planless), "--out", s(&tmp.path().join("p.hdf5"))]);
     assert_eq!(out.code, Some(1), "{out:?}");
     assert!(out.stderr.contains("pairs.json"), "{}", out.stderr);
+
+    // A pair plan emptied after the capture: named as what is wrong (until 2026-12-06
+    // the run read as holding no measured pairs), the histograms left as they were.
+    let emptied = tmp.path().join("emptied");
+    copy_dir(&run, &emptied);
+    std::fs::write(emptied.join("pairs.json"), "[]").unwrap();
+    for args in [
+        ["recon", s(&emptied), "--out", s(&nowhere)],
+        ["export", s(&emptied), "--out", s(&tmp.path().join("e.hdf5"))],
+    ] {
+        let out = periscope(&args);
+        assert_eq!(out.code, Some(1), "{out:?}");
+        assert!(
+            out.stderr.contains("pairs.json: lists 0 pairs") && out.stderr.contains("damaged or was emptied"),
+            "{}",
+            out.stderr
+        );
+    }
+    assert_eq!(read_log(&emptied).unwrap().records.len(), records.len());
 }
 
 /// `periscope recon CAPTURE --adaptive-replay ORDER` on a y-tal capture: the pairs are

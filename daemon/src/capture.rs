@@ -54,12 +54,39 @@ pub enum CaptureError {
     /// A run that stored no histogram.
     #[error("{} holds no measured pairs", .0.display())]
     NoPairs(PathBuf),
+    /// A run whose `pairs.json` lists none of the pairs its stored histograms are of
+    /// (emptied or cut short after the capture).
+    #[error(
+        "{}: lists {listed} pairs, but every one of the {records} histograms stored is of a pair past them \
+         (up to pair {highest}): the file is damaged or was emptied after the capture; restore it from a \
+         backup (the histograms are kept)",
+        path.display()
+    )]
+    PairsMissing {
+        /// `pairs.json`.
+        path: PathBuf,
+        /// Pairs it lists.
+        listed: usize,
+        /// Histograms stored.
+        records: usize,
+        /// The highest pair index among them.
+        highest: usize,
+    },
     /// A run whose every histogram overflowed.
     #[error("{}: every stored histogram is flagged overflow; nothing to reconstruct from", .0.display())]
     AllOverflowed(PathBuf),
     /// A y-tal capture with no signal inside the volume's time range.
-    #[error("{}: every transient is empty inside the reconstruction volume's time range", .0.display())]
-    NothingInWindow(PathBuf),
+    #[error(
+        "{}: every transient is empty inside the reconstruction volume's time range{}",
+        path.display(),
+        if *overflowed > 0 { format!(" ({overflowed} more are flagged overflow and left out)") } else { String::new() }
+    )]
+    NothingInWindow {
+        /// The capture.
+        path: PathBuf,
+        /// Transients left out because they are flagged overflow.
+        overflowed: usize,
+    },
     /// The transients or their time axis do not fit the volume.
     #[error("{}: {source}", path.display())]
     Transients {
@@ -152,6 +179,32 @@ impl RunCapture {
                 log.damaged.len(),
                 log.records.len(),
                 pairs.len()
+            );
+        }
+        let beyond: Vec<usize> = log
+            .records
+            .iter()
+            .map(|r| r.pair as usize)
+            .filter(|&p| p >= pairs.len())
+            .collect();
+        if !beyond.is_empty() {
+            let highest = beyond.iter().copied().max().unwrap_or(0);
+            if beyond.len() == log.records.len() {
+                return Err(CaptureError::PairsMissing {
+                    path: run.file(file::PAIRS),
+                    listed: pairs.len(),
+                    records: beyond.len(),
+                    highest,
+                });
+            }
+            tracing::warn!(
+                run = %dir.display(),
+                "{} lists {} pairs, but {} of the {} histograms stored are of pairs past them (up to pair {highest}): \
+                 those are left out; the file is damaged or was cut short after the capture",
+                file::PAIRS,
+                pairs.len(),
+                beyond.len(),
+                log.records.len()
             );
         }
         Ok(RunCapture::new(dir, info, plan, instrument, pairs, log.records))
@@ -427,8 +480,16 @@ impl Capture {
             ),
             Capture::Ytal { path, capture } => {
                 let set = capture.transients(volume).map_err(|e| e.at(path))?;
+                let (overflowed, flagged) = capture.overflowed();
                 if set.is_empty() {
-                    return Err(CaptureError::NothingInWindow(path.clone()));
+                    return Err(if overflowed > 0 && overflowed == flagged {
+                        CaptureError::AllOverflowed(path.clone())
+                    } else {
+                        CaptureError::NothingInWindow {
+                            path: path.clone(),
+                            overflowed,
+                        }
+                    });
                 }
                 // The virtual relay spans the relay points: the SPAD's, and the laser's
                 // too where the SPAD stays on fewer than three (a phasor-field capture's
@@ -441,7 +502,7 @@ impl Capture {
                     set,
                     detection_points,
                     viewpoint: capture.viewpoint(),
-                    overflowed: 0,
+                    overflowed,
                     falloff: None,
                 };
                 let why = match capture.rendered_by() {

@@ -246,7 +246,8 @@ pub fn run_axis(
     let Some(range) = recorded_hidden_range(pairs, acq, inst) else {
         return Ok(axis);
     };
-    let kept = clip_to_measured(&axis, range).map_err(|_| {
+    let needed = periscope_recon::transient::paths_needed(&recon_pairs, volume);
+    let kept = clip_to_measured(&axis, range, needed).map_err(|_| {
         TransientError::Window(format!(
             "the TDC window (acquisition.offset-ns {:.3} ns, {} bins of {:.1} ps, less the \
                  system delay) records hidden paths of {:.3} to {:.3} m over the planned pairs, \
@@ -257,8 +258,8 @@ pub fn run_axis(
             acq.bin_width * 1e12,
             range.0,
             range.1,
-            axis.start,
-            axis.start + axis.bins as f64 * axis.width,
+            needed.0,
+            needed.1,
         ))
     })?;
     // Each pair's own window against its own paths: the union above can overlap where

@@ -414,3 +414,65 @@ fn a_capture_larger_than_the_memory_left_is_refused_before_it_is_read() {
 /// debug binary maps about 100 MiB before it reads anything), well short of what the
 /// large capture above needs.
 const LIMIT_FOR_SMALL_RECON_KIB: u64 = 400 << 10;
+
+/// `periscope recon FILE --config CONFIG --out OUT` (when `config` is given, a
+/// `[recon]` table's text); the exit code and stderr.
+fn recon_with(file: &Path, config: Option<&str>, out: &Path) -> (Option<i32>, String) {
+    let mut cmd = Command::new(env!("CARGO_BIN_EXE_periscope"));
+    cmd.arg("recon").arg(file);
+    if let Some(text) = config {
+        let path = file.with_extension("toml");
+        std::fs::write(&path, text).unwrap();
+        cmd.arg("--config").arg(path);
+    }
+    let o = cmd.arg("--out").arg(out).output().unwrap();
+    (o.status.code(), String::from_utf8_lossy(&o.stderr).into_owned())
+}
+
+/// Messages that gave the wrong reason until 2026-12-06, each now naming the real one:
+/// every transient flagged overflow (it said every transient was empty); a confocal
+/// capture with one transient lit in the volume's window under LCT (it said the scan
+/// had "1 points", as if the capture were not a grid); and an output file that is a
+/// symbolic link (named three times in one message).
+#[test]
+fn what_is_wrong_with_a_capture_is_what_the_message_says() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("out");
+
+    let mut c = capture();
+    c.flags = Some(vec![periscope_recon::io::ytal::FLAG_OVERFLOW; 11 * 13]);
+    let file = write(dir.path(), "overflowed.hdf5", &c);
+    let (code, err) = recon_with(&file, None, &out);
+    assert_eq!(code, Some(1), "{err}");
+    assert!(
+        err.contains("every stored histogram is flagged overflow"),
+        "{err}"
+    );
+
+    // One transient holds counts, the rest are zero: LCT cannot find the grid from it,
+    // and says why.
+    let mut c = capture();
+    c.h.iter_mut().for_each(|v| *v = 0.0);
+    for t in 0..7 {
+        c.h[t * 11 * 13] = 3.0;
+    }
+    let file = write(dir.path(), "one-lit.hdf5", &c);
+    let (code, err) = recon_with(&file, Some("method = \"lct\"\n"), &out);
+    assert_eq!(code, Some(2), "a method the capture cannot take: {err}");
+    assert!(
+        err.contains("1 point is fewer than three") && err.contains("only 1 of the capture's 143 transients"),
+        "{err}"
+    );
+
+    // An output file that is a link: refused, the link left, the path named once.
+    let file = write(dir.path(), "ok.hdf5", &capture());
+    let linked = dir.path().join("linked");
+    std::fs::create_dir(&linked).unwrap();
+    let link = linked.join("volume.npy");
+    std::os::unix::fs::symlink(dir.path().join("elsewhere.npy"), &link).unwrap();
+    let (code, err) = recon_with(&file, None, &linked);
+    assert_eq!(code, Some(1), "{err}");
+    assert!(err.contains("not a regular file"), "{err}");
+    assert_eq!(err.matches(&*link.to_string_lossy()).count(), 1, "{err}");
+    assert!(std::fs::symlink_metadata(&link).unwrap().file_type().is_symlink());
+}

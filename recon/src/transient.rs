@@ -185,15 +185,19 @@ pub fn rebin_path(
 /// them as "no light here". The bins kept are those wholly inside `measured`, on the
 /// same grid (`start + k·width`). An error when none is: the capture does not reach
 /// the volume at all.
-pub fn clip_to_measured(axis: &TimeAxis, measured: (f64, f64)) -> Result<TimeAxis, TransientError> {
+/// `needed` is what the volume's paths span ([`paths_needed`]), for the message.
+pub fn clip_to_measured(
+    axis: &TimeAxis,
+    measured: (f64, f64),
+    needed: (f64, f64),
+) -> Result<TimeAxis, TransientError> {
     let (from, to) = measured;
     let Some((first, end)) = bins_within(axis, measured) else {
         return Err(TransientError::Window(format!(
             "the capture recorded hidden path lengths {from:.3} to {to:.3} m, which do not reach the \
              {:.3} to {:.3} m the volume's paths need: check the capture's time window (t_start, \
              delta_t) or give a [volume] the recording covers",
-            axis.start,
-            axis.end()
+            needed.0, needed.1
         )));
     };
     Ok(TimeAxis {
@@ -243,6 +247,19 @@ pub fn path_range(pair: &Pair, volume: &VolumeGrid) -> (f64, f64) {
     )
 }
 
+/// The shortest and longest hidden path any of `pairs` can have through `volume`
+/// ([`path_range`] over the pairs): what a capture must record for the volume. The
+/// axis of [`hidden_axis`] spans it with a few bins to spare on either side.
+pub fn paths_needed(pairs: &[Pair], volume: &VolumeGrid) -> (f64, f64) {
+    let (mut near, mut far) = (f64::INFINITY, 0.0f64);
+    for p in pairs {
+        let (n, f) = path_range(p, volume);
+        near = near.min(n);
+        far = far.max(f);
+    }
+    (near.max(0.0), far)
+}
+
 /// The hidden-path axis all pairs are rebinned to: the TDC's bin width, spanning the
 /// shortest to the longest hidden path any pair can have to the reconstruction volume.
 pub fn hidden_axis(pairs: &[Pair], volume: &VolumeGrid, bin_width: f64) -> Result<TimeAxis, TransientError> {
@@ -252,13 +269,8 @@ pub fn hidden_axis(pairs: &[Pair], volume: &VolumeGrid, bin_width: f64) -> Resul
             "the bin width {bin_width} s is not a positive time"
         )));
     }
-    let (mut near, mut far) = (f64::INFINITY, 0.0f64);
-    for p in pairs {
-        let (n, f) = path_range(p, volume);
-        near = near.min(n);
-        far = far.max(f);
-    }
-    let start = ((near.max(0.0) / width).floor() - 4.0).max(0.0) * width;
+    let (near, far) = paths_needed(pairs, volume);
+    let start = ((near / width).floor() - 4.0).max(0.0) * width;
     // In f64 first: hostile geometry (a tiny bin width, points far away) must be
     // refused, not wrapped or allocated.
     let bins = ((far - start) / width).ceil() + 4.0;
@@ -295,6 +307,9 @@ pub struct TransientSet {
     /// ([`TransientSet::recorded`]): the whole axis unless
     /// [`TransientSet::limit_recorded`] narrowed it.
     recorded: Vec<[u32; 2]>,
+    /// Transients the reader left out because they held no count on the axis
+    /// ([`TransientSet::note_left_out_empty`]).
+    left_out_empty: usize,
 }
 
 impl TransientSet {
@@ -310,7 +325,20 @@ impl TransientSet {
             ambient: (0.0, 0),
             photon_counts: false,
             recorded: Vec::new(),
+            left_out_empty: 0,
         })
+    }
+
+    /// Records that the reader left `n` more transients out because they held no
+    /// count on the axis: a solver that needs the capture's layout (a confocal grid)
+    /// says so when what is left is too little to find it.
+    pub fn note_left_out_empty(&mut self, n: usize) {
+        self.left_out_empty += n;
+    }
+
+    /// Transients the reader left out as empty on the axis.
+    pub fn left_out_empty(&self) -> usize {
+        self.left_out_empty
     }
 
     /// Marks the histograms as detected photons (counts, rebinned or corrected for
@@ -423,6 +451,7 @@ impl TransientSet {
             ambient: self.ambient,
             photon_counts: self.photon_counts,
             recorded: Vec::with_capacity(indices.len()),
+            left_out_empty: self.left_out_empty,
         };
         for &i in indices {
             out.pairs.push(self.pairs[i]);
@@ -643,21 +672,24 @@ mod tests {
             width: 0.005,
             bins: 624,
         };
-        let tail = clip_to_measured(&axis, (0.0, 2.56)).unwrap();
+        let tail = clip_to_measured(&axis, (0.0, 2.56), (0.0, 1.0)).unwrap();
         assert_eq!((tail.start, tail.bins), (0.37, 438), "{tail:?}");
         assert!((tail.end() - 2.56).abs() < 1e-9, "{tail:?}");
-        let both = clip_to_measured(&axis, (1.0, 1.5)).unwrap();
+        let both = clip_to_measured(&axis, (1.0, 1.5), (0.0, 1.0)).unwrap();
         assert!((both.start - 1.0).abs() < 1e-12 && both.bins == 100, "{both:?}");
         // An edge inside a bin drops that bin.
-        let inside = clip_to_measured(&axis, (1.0012, 1.4987)).unwrap();
+        let inside = clip_to_measured(&axis, (1.0012, 1.4987), (0.0, 1.0)).unwrap();
         assert!(
             (inside.start - 1.005).abs() < 1e-12 && inside.bins == 98,
             "{inside:?}"
         );
-        assert_eq!(clip_to_measured(&axis, (-1.0, 10.0)).unwrap(), axis);
+        assert_eq!(clip_to_measured(&axis, (-1.0, 10.0), (0.0, 1.0)).unwrap(), axis);
+        // The message names what the volume's paths need, not the axis's padding.
         for missed in [(5.0, 6.0), (0.0, 0.3), (1.0, 1.003), (f64::NAN, 2.0)] {
-            let e = clip_to_measured(&axis, missed).unwrap_err().to_string();
-            assert!(e.contains("do not reach"), "{missed:?}: {e}");
+            let e = clip_to_measured(&axis, missed, (0.39, 3.47))
+                .unwrap_err()
+                .to_string();
+            assert!(e.contains("do not reach the 0.390 to 3.470 m"), "{missed:?}: {e}");
         }
     }
 

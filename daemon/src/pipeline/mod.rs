@@ -85,8 +85,8 @@ pub enum ReconError {
     /// The volume is not a box.
     #[error(transparent)]
     Roi(#[from] periscope_recon::RoiError),
-    /// An output file could not be written.
-    #[error("{}: {source}", path.display())]
+    /// An output file could not be written (the error names the file).
+    #[error("{source}")]
     Output {
         /// The file.
         path: PathBuf,

@@ -88,7 +88,12 @@ fn write_atomically(
     path: &Path,
     write: impl FnOnce(&mut BufWriter<File>) -> std::io::Result<()>,
 ) -> Result<(), IoError> {
-    refuse_non_regular_target(path).map_err(io_err(path))?;
+    if let Some(why) = non_regular_target(path) {
+        return Err(IoError::Format {
+            path: path.to_path_buf(),
+            message: why.into(),
+        });
+    }
     let tmp = temporary_beside(path);
     let written = (|| {
         let file = File::create(&tmp).map_err(io_err(&tmp))?;
@@ -238,16 +243,24 @@ pub fn write_albedo_png(path: &Path, map: &DepthMap) -> Result<(), IoError> {
 /// over a device node (`/dev/full`), a FIFO, a directory or a symbolic link would
 /// replace that thing with a regular file (as root, a device node too).
 pub fn refuse_non_regular_target(path: &Path) -> std::io::Result<()> {
-    match std::fs::symlink_metadata(path) {
-        Ok(m) if !m.file_type().is_file() => Err(std::io::Error::new(
+    match non_regular_target(path) {
+        Some(why) => Err(std::io::Error::new(
             std::io::ErrorKind::InvalidInput,
-            format!(
-                "{} exists and is not a regular file (a device, FIFO, directory or link): \
-                 it is left as it is; write to another path",
-                path.display()
-            ),
+            format!("{} {why}", path.display()),
         )),
-        _ => Ok(()),
+        None => Ok(()),
+    }
+}
+
+/// Why `path` may not be replaced (see [`refuse_non_regular_target`]), without the
+/// path, for errors that name it themselves; `None` when it may.
+pub(crate) fn non_regular_target(path: &Path) -> Option<&'static str> {
+    match std::fs::symlink_metadata(path) {
+        Ok(m) if !m.file_type().is_file() => Some(
+            "exists and is not a regular file (a device, FIFO, directory or link): it is left as it is; \
+             write to another path",
+        ),
+        _ => None,
     }
 }
 

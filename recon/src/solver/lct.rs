@@ -129,7 +129,20 @@ pub(super) fn confocal_scan(set: &TransientSet, tolerance: f64) -> Result<Planar
     }
     let points: Vec<_> = set.pairs().iter().map(|p| p.xd).collect();
     let hint = set.pairs().iter().map(|p| p.nd).sum();
-    PlanarScan::detect("confocal scan", &points, hint, tolerance)
+    PlanarScan::detect("confocal scan", &points, hint, tolerance).map_err(|e| match e {
+        // The grid is the capture's; what is left of it may be too little to show it.
+        SolverError::NotGrid { what, detail } if set.left_out_empty() > 0 => SolverError::NotGrid {
+            what,
+            detail: format!(
+                "{detail}; only {} of the capture's {} transients hold counts inside the volume's time range \
+                 (the rest are empty there and were left out): check the volume's depth, or the capture's \
+                 t_start and delta_t",
+                set.len(),
+                set.len() + set.left_out_empty()
+            ),
+        },
+        e => e,
+    })
 }
 
 /// LCT on the scan's own grid: a volume with one slice per bin, depth `(t + ½)·w/2`.

@@ -41,7 +41,10 @@ impl PlanarScan {
         }
         let plane = fit_plane(points).ok_or_else(|| SolverError::NotGrid {
             what,
-            detail: format!("{} points are fewer than three or collinear", points.len()),
+            detail: match points.len() {
+                1 => "1 point is fewer than three".to_owned(),
+                n => format!("{n} points are fewer than three or collinear"),
+            },
         })?;
         if plane.rms > tolerance {
             return Err(SolverError::NotPlanar {

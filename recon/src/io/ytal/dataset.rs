@@ -213,9 +213,9 @@ impl Reader<'_> {
             Some((n, nshape)) => {
                 if nshape.iter().product::<usize>() == 3 {
                     // One normal for the whole grid.
-                    vec![to_points(&n)[0].normalize_or_zero(); points.len()]
+                    vec![unit(to_points(&n)[0]); points.len()]
                 } else if nshape == shape {
-                    to_points(&n).into_iter().map(DVec3::normalize_or_zero).collect()
+                    to_points(&n).into_iter().map(unit).collect()
                 } else {
                     return Err(self.format(format!(
                         "dataset `{normals_name}` has shape {nshape:?} but `{xyz_name}` has {shape:?}"
@@ -249,4 +249,36 @@ impl Reader<'_> {
 
 fn to_points(v: &[f64]) -> Vec<DVec3> {
     v.chunks_exact(3).map(|c| DVec3::new(c[0], c[1], c[2])).collect()
+}
+
+/// `n` scaled to unit length, or zero where it has no direction (zero, or not finite).
+/// Scaled by its largest component first: squaring a component of 10³⁰⁰ overflows and
+/// one of 10⁻²⁰⁰ underflows, and either way a valid direction would read as zero.
+fn unit(n: DVec3) -> DVec3 {
+    let m = n.abs().max_element();
+    if m > 0.0 && m.is_finite() {
+        (n / m).normalize_or_zero()
+    } else {
+        DVec3::ZERO
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Normals stored in double precision at any scale are directions (h5py writes
+    /// float64 when asked): until 2026-12-06 one of 10³⁰⁰ or 10⁻²⁰⁰ read as zero (its
+    /// square overflowed or underflowed) and the capture was refused.
+    #[test]
+    fn a_normal_at_any_finite_scale_is_its_direction() {
+        let d = DVec3::new(0.6, 0.0, 0.8);
+        for scale in [1.0, 1e300, 1e-200, 1e-310] {
+            let n = unit(d * scale);
+            assert!((n - d).length() < 1e-12, "{scale:e}: {n}");
+        }
+        assert_eq!(unit(DVec3::ZERO), DVec3::ZERO);
+        assert_eq!(unit(DVec3::new(f64::INFINITY, 0.0, 1.0)), DVec3::ZERO);
+        assert_eq!(unit(DVec3::new(f64::NAN, 0.0, 1.0)), DVec3::ZERO);
+    }
 }

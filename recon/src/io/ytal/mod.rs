@@ -213,6 +213,14 @@ pub const MAX_DATASET_BYTES: u64 = 8 << 30;
 pub const MAX_FILE_BYTES: u64 = 16 << 30;
 
 impl YtalCapture {
+    /// How many transients carry the overflow flag ([`FLAG_OVERFLOW`]), which
+    /// [`YtalCapture::transients`] leaves out, and of how many.
+    pub fn overflowed(&self) -> (usize, usize) {
+        self.flags.as_ref().map_or((0, 0), |f| {
+            (f.iter().filter(|&&b| b & FLAG_OVERFLOW != 0).count(), f.len())
+        })
+    }
+
     /// The renderer that made the capture, if `scene_info` says it was rendered: a
     /// top-level `renderer` entry (mitransient's harnesses), or y-tal's documented
     /// `config` entry, which `tal render` writes (its scene configuration). Measured

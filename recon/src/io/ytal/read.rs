@@ -200,9 +200,17 @@ impl YtalCapture {
             )));
         }
         memory_check(&h_shape, "H").map_err(|m| r.format(m))?;
-        let h = ds
-            .read_f32()
-            .map_err(|e| r.format(format!("dataset `H` is not numeric: {e}")))?;
+        let h = ds.read_f32().map_err(|e| {
+            let half = matches!(ds.dtype(), Ok(hdf5_pure::DType::Other(_)))
+                && ds.element_size().is_ok_and(|n| n == 2);
+            r.format(if half {
+                "dataset `H` holds 16-bit floats (float16), which this reader does not decode: store it as \
+                 float32 (h5py: `f['H'] = f['H'][()].astype('float32')` into a new file)"
+                    .to_owned()
+            } else {
+                format!("dataset `H` is not numeric: {e}")
+            })
+        })?;
         if let Some(i) = h.iter().position(|v| !v.is_finite()) {
             return Err(r.format(format!("`H` value {i} is not finite")));
         }

@@ -6,7 +6,9 @@ use std::path::PathBuf;
 use glam::DVec3;
 
 use super::{FLAG_OVERFLOW, YtalCapture, YtalError};
-use crate::transient::{C0, Pair, TimeAxis, TransientSet, clip_to_measured, hidden_axis, rebin_path};
+use crate::transient::{
+    C0, Pair, TimeAxis, TransientSet, clip_to_measured, hidden_axis, paths_needed, rebin_path,
+};
 use crate::volume::VolumeGrid;
 
 /// Most bytes the rebinned transients of a capture may take in memory (the default
@@ -86,7 +88,8 @@ impl YtalCapture {
             .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), s| {
                 (lo.min(s), hi.max(s + span))
             });
-        let axis = clip_to_measured(&axis, measured).map_err(|e| self.error(e.to_string()))?;
+        let axis = clip_to_measured(&axis, measured, paths_needed(&pairs, volume))
+            .map_err(|e| self.error(e.to_string()))?;
         let bytes = (pairs.len() as u64)
             .saturating_mul(axis.bins as u64)
             .saturating_mul(8);
@@ -130,6 +133,8 @@ impl YtalCapture {
                 // Where the legs differ from pair to pair, so does the part of the axis
                 // each window records.
                 set.limit_recorded(set.len() - 1, (start, start + span));
+            } else {
+                set.note_left_out_empty(1);
             }
         }
         if whole {

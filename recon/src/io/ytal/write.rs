@@ -17,6 +17,12 @@ impl YtalCapture {
             path: path.to_path_buf(),
             message: format!("cannot be encoded: {e}"),
         })?;
+        if let Some(why) = crate::io::non_regular_target(path) {
+            return Err(YtalError::Hdf5 {
+                path: path.to_path_buf(),
+                message: why.into(),
+            });
+        }
         crate::io::write_bytes_atomically(path, &bytes).map_err(|e| YtalError::Hdf5 {
             path: path.to_path_buf(),
             message: format!("cannot be written: {e}"),
