@@ -252,15 +252,17 @@ fn to_points(v: &[f64]) -> Vec<DVec3> {
 }
 
 /// `n` scaled to unit length, or zero where it has no direction (zero, or not finite).
-/// Scaled by its largest component first: squaring a component of 10³⁰⁰ overflows and
-/// one of 10⁻²⁰⁰ underflows, and either way a valid direction would read as zero.
+/// Where the plain normalisation gives zero for a finite, non-zero `n` (squaring a
+/// component of 10³⁰⁰ overflows, one of 10⁻²⁰⁰ underflows), `n` is first divided by
+/// its largest component.
 fn unit(n: DVec3) -> DVec3 {
+    // The plain division where it works, so ordinary normals keep their last bits.
+    let u = n.normalize_or_zero();
     let m = n.abs().max_element();
-    if m > 0.0 && m.is_finite() {
-        (n / m).normalize_or_zero()
-    } else {
-        DVec3::ZERO
+    if u != DVec3::ZERO || !(m > 0.0 && m.is_finite()) {
+        return u;
     }
+    (n / m).normalize_or_zero()
 }
 
 #[cfg(test)]
