@@ -91,6 +91,8 @@ fn daemon() -> Daemon {
             import: None,
             history: Vec::new(),
             adaptive_seconds: 0.0,
+            adaptive_stopped: None,
+            adaptive_batches: 0,
             acting: None,
         }
         .save(&run)

@@ -68,6 +68,8 @@ fn make(root: &Path) {
                 },
             ],
             adaptive_seconds: 0.0,
+            adaptive_stopped: None,
+            adaptive_batches: 0,
             acting: None,
         };
         info.save(&dir).unwrap();

@@ -267,6 +267,34 @@ impl Sizes {
         Self { budget, first, batch }
     }
 
+    /// What [`Sizes::of`] took that `s` did not say, for `candidates` candidates: a
+    /// budget past the candidates (all of them are measured), and a first batch that
+    /// is the whole budget (nothing is chosen), each naming its key.
+    pub fn notes(candidates: usize, s: &AdaptiveSettings) -> Vec<String> {
+        let sizes = Self::of(candidates, s);
+        let mut notes = Vec::new();
+        if s.pairs > candidates {
+            notes.push(format!(
+                "recon.adaptive.pairs = {} is more than the {candidates} candidate pairs: all of them are the budget",
+                s.pairs
+            ));
+        }
+        if s.first > 0 && s.first >= sizes.budget && sizes.budget < candidates {
+            notes.push(format!(
+                "recon.adaptive.first = {} is the whole budget of {} pairs ({}): the fit chooses nothing; \
+                 give a smaller first batch, or set recon.adaptive.pairs",
+                s.first,
+                sizes.budget,
+                if s.pairs == 0 {
+                    "half the candidates"
+                } else {
+                    "recon.adaptive.pairs"
+                }
+            ));
+        }
+        notes
+    }
+
     /// Choices the fit makes when the budget alone ends the capture.
     pub fn rounds(&self) -> usize {
         (self.budget - self.first).div_ceil(self.batch.max(1))
@@ -420,6 +448,17 @@ impl Selector {
                 self.measured.push(i);
             }
         }
+    }
+
+    /// Batches chosen so far (the next one's number).
+    pub fn batches(&self) -> usize {
+        self.batches
+    }
+
+    /// Numbers the next batch on from `n` batches an earlier session chose and
+    /// measured (a resumed capture; see [`Selector::resume`]).
+    pub fn resume_batches(&mut self, n: usize) {
+        self.batches = self.batches.max(n);
     }
 
     /// What is left of the first batch after [`Selector::resume`]: `None` when the
@@ -587,6 +626,39 @@ mod tests {
     use periscope_recon::gtr::{Kernel, RenderOptions};
 
     use super::*;
+
+    /// Sizes the settings did not say are told by key: a budget past the candidates,
+    /// and a first batch that leaves the fit nothing to choose (until 2026-12-06 both
+    /// were taken silently); the defaults say nothing.
+    #[test]
+    fn sizes_the_settings_did_not_say_are_noted_by_key() {
+        let notes = |s: AdaptiveSettings| Sizes::notes(576, &s);
+        assert!(notes(AdaptiveSettings::default()).is_empty());
+        let n = notes(AdaptiveSettings {
+            pairs: 5000,
+            ..AdaptiveSettings::default()
+        });
+        assert!(
+            n.len() == 1 && n[0].contains("recon.adaptive.pairs = 5000"),
+            "{n:?}"
+        );
+        let n = notes(AdaptiveSettings {
+            first: 1000,
+            ..AdaptiveSettings::default()
+        });
+        assert!(
+            n.len() == 1 && n[0].contains("recon.adaptive.first = 1000") && n[0].contains("288"),
+            "{n:?}"
+        );
+        assert!(
+            notes(AdaptiveSettings {
+                pairs: 100,
+                first: 40,
+                ..AdaptiveSettings::default()
+            })
+            .is_empty()
+        );
+    }
 
     fn wall(n: usize) -> Vec<Pair> {
         (0..n * n)

@@ -216,6 +216,9 @@ pub fn check(plan: &Plan, inst: &InstrumentConfig) -> Check {
     );
     let (line, mut warnings) = window(plan, inst);
     warnings.extend(tdc_settings(plan, inst));
+    if plan.adaptive {
+        warnings.extend(crate::adaptive::Sizes::notes(candidates, &plan.recon.adaptive));
+    }
     out.push_str(&line);
     let rc = &plan.recon;
     let v = &rc.volume;

@@ -425,9 +425,22 @@ pub struct RunInfo {
     /// (a resumed capture's time budget, `adaptive.seconds`, counts them all).
     #[serde(default, skip_serializing_if = "is_zero")]
     pub adaptive_seconds: f64,
+    /// Why an adaptive capture ended before its pair budget (its stopping rule or its
+    /// time budget), once it has: a resumed run does not choose again.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub adaptive_stopped: Option<String>,
+    /// Batches an adaptive capture has chosen and measured, over every session: a
+    /// resumed capture numbers its next batch on from them (and seeds its sampling
+    /// with the number), as one session would.
+    #[serde(default, skip_serializing_if = "is_zero_count")]
+    pub adaptive_batches: usize,
     /// Who makes the next state change ([`RunInfo::save`] records it and clears it).
     #[serde(skip)]
     pub acting: Option<String>,
+}
+
+fn is_zero_count(v: &usize) -> bool {
+    *v == 0
 }
 
 fn is_zero(v: &f64) -> bool {

@@ -483,6 +483,74 @@ fn an_adaptive_capture_paused_while_its_fit_chooses_resumes_to_its_budget() {
     seen.dedup();
     assert_eq!(seen.len(), 15, "a pair measured twice");
     assert!(!rig.emission());
+    // The resumed session numbers its batches on from the first's (until 2026-12-06
+    // it began at 0 again, and events.jsonl held two batch 0s).
+    let batches: Vec<u64> = std::fs::read_to_string(dir.join("events.jsonl"))
+        .unwrap()
+        .lines()
+        .filter_map(|l| serde_json::from_str::<serde_json::Value>(l).ok())
+        .filter(|v| v["event"] == "pairs-chosen")
+        .filter_map(|v| v["batch"].as_u64())
+        .collect();
+    assert_eq!(
+        batches,
+        (0..batches.len() as u64).collect::<Vec<_>>(),
+        "{batches:?}"
+    );
+}
+
+/// An adaptive capture its stopping rule ended before the budget stays ended: paused
+/// in its reconstruction and resumed, it chooses and measures nothing more (until
+/// 2026-12-06 the resume went back to choosing, with the rule's reference gain
+/// forgotten, and measured on toward the budget with the laser on again).
+#[test]
+fn an_adaptive_capture_its_stopping_rule_ended_stays_ended_when_resumed() {
+    let _serial = ONE_AT_A_TIME.lock().unwrap_or_else(|p| p.into_inner());
+    let adaptive = plan().replace(
+        "mode = \"confocal\"",
+        "mode = \"adaptive\"\ncandidates = \"confocal\"",
+    ) + "[recon.adaptive]\npairs = 21\nfirst = 6\nbatch = 3\nlive-steps = 16\nstop-gain = 0.999\n";
+    let tmp = tempfile::tempdir().unwrap();
+    let (dir, rig) = prepare(tmp.path(), &adaptive);
+    let control = Control::new();
+    let events = EventSink::open(&dir).unwrap();
+    let c = control.clone();
+    events.listen(move |e| {
+        if let RunEvent::StageStarted {
+            stage: Stage::Reconstruction,
+        } = e
+        {
+            c.pause();
+        }
+    });
+    let r = Run::open(&dir, control, Some(events), Some(&rig))
+        .unwrap()
+        .execute();
+    assert!(r.is_err(), "{r:?}");
+    let info = RunInfo::load(&dir).unwrap();
+    assert_eq!(info.state, RunState::Paused);
+    let why = info
+        .adaptive_stopped
+        .expect("the stopping rule ended the capture");
+    let stored = read_log(&dir).unwrap().records.len();
+    assert!((6..21).contains(&stored), "{stored}: {why}");
+    let chosen = |dir: &Path| {
+        std::fs::read_to_string(dir.join("events.jsonl"))
+            .unwrap()
+            .matches("\"pairs-chosen\"")
+            .count()
+    };
+    let before = chosen(&dir);
+    let emitted = rig.emission_changes().len();
+    execute(&dir, &rig, Control::new(), |_| {}).unwrap();
+    assert_eq!(RunInfo::load(&dir).unwrap().state, RunState::Completed);
+    assert_eq!(
+        read_log(&dir).unwrap().records.len(),
+        stored,
+        "measured after it had ended"
+    );
+    assert_eq!(chosen(&dir), before, "chose after it had ended");
+    assert_eq!(rig.emission_changes().len(), emitted, "the laser went on again");
 }
 
 #[test]

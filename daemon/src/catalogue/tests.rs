@@ -36,6 +36,8 @@ fn make_run(root: &Path, id: &str, plan: &str, state: RunState, created: f64, ta
             },
         ],
         adaptive_seconds: 0.0,
+        adaptive_stopped: None,
+        adaptive_batches: 0,
         acting: None,
     };
     info.save(&dir).unwrap();

@@ -133,9 +133,22 @@ impl Run {
                     .collect(),
             );
             selector.resume(&held.iter().map(|r| r.pair as usize).collect::<Vec<_>>());
+            selector.resume_batches(self.info.adaptive_batches);
+            for note in crate::adaptive::Sizes::notes(pairs.len(), &self.plan.recon.adaptive) {
+                tracing::warn!("{note}");
+            }
             let total = selector.budget();
             self.info.pairs_total = total;
             let live_steps = self.plan.recon.adaptive.live_steps;
+            if let Some(why) = self.info.adaptive_stopped.clone() {
+                // Resumed after the capture had ended before its budget: it stays ended.
+                tracing::info!(
+                    measured = held.len(),
+                    "adaptive capture resumed after it had ended: {why}"
+                );
+                fit.add(&batch)?;
+                return Ok((fit, held));
+            }
             let mut next = selector.first_rest();
             if next.is_none() && selector.measured().len() >= total {
                 // Resumed with the budget already measured: nothing to choose.
@@ -153,6 +166,9 @@ impl Run {
             let spent = move || before + started.elapsed().as_secs_f64();
             loop {
                 if let Some(choice) = next.take() {
+                    // A pause or abort that came while the fit chose is answered before
+                    // the laser goes on for the batch.
+                    self.checkpoint()?;
                     self.events.emit(RunEvent::PairsChosen(choice.clone()));
                     if !prepared {
                         self.prepare_capture(&acq)?;
@@ -176,6 +192,7 @@ impl Run {
                     self.report_laser();
                     log.sync().map_err(|e| PipelineError::storage(log.path(), e))?;
                     self.info.adaptive_seconds = spent();
+                    self.info.adaptive_batches = selector.batches();
                     self.save_info()?;
                 }
                 let full = std::mem::replace(&mut batch, counts()?);
@@ -230,6 +247,7 @@ impl Run {
                     budget = total,
                     "adaptive capture ended before its budget: {why}"
                 );
+                self.info.adaptive_stopped = Some(why.to_owned());
             }
             self.info.adaptive_seconds = spent();
             log.sync().map_err(|e| PipelineError::storage(log.path(), e))?;

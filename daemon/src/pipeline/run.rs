@@ -134,6 +134,8 @@ pub fn prepare(
         import: None,
         history: Vec::new(),
         adaptive_seconds: 0.0,
+        adaptive_stopped: None,
+        adaptive_batches: 0,
         acting: Some(submitted_by.to_owned()),
     };
     info.save(&dir).map_err(|e| PipelineError::storage(&dir, e))?;
@@ -480,7 +482,13 @@ impl Run {
         let mut outputs = output::write_outputs(&self.dir, &result, &self.events)?;
         // The measured histograms as a y-tal capture, for y-tal, h5py and other labs,
         // from what the run holds.
-        let measured = pairs.len();
+        // The pairs measured, not the planned (an adaptive capture measures a budget of
+        // its candidates).
+        let measured = records
+            .iter()
+            .map(|r| r.pair)
+            .collect::<std::collections::HashSet<_>>()
+            .len();
         let p = self.dir.join(crate::ytal::CAPTURE_FILE);
         let capture = RunCapture::new(
             &self.dir,

@@ -249,6 +249,8 @@ impl Service {
                 }),
                 history: Vec::new(),
                 adaptive_seconds: 0.0,
+                adaptive_stopped: None,
+                adaptive_batches: 0,
                 acting: Some(by.to_owned()),
             };
             info.save(&dir)
