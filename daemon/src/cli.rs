@@ -219,6 +219,11 @@ pub fn execute(cli: Cli) -> Result<(), CliError> {
             if out.exists() && !out.is_dir() {
                 return Err(CliError::OutNotFolder(out));
             }
+            if !out.exists()
+                && let Ok(target) = std::fs::read_link(&out)
+            {
+                return Err(CliError::OutBrokenLink { out, target });
+            }
             match adaptive_replay {
                 Some(order) => offline::replay(&capture, config.as_deref(), &out, order)?,
                 None => offline::recon(&capture, config.as_deref(), &out)?,
@@ -314,6 +319,10 @@ fn calibrate(
     settings.validate()?;
     let src = instrument_source(instrument.instrument.as_deref())?;
     let config = InstrumentConfig::from_source(&src)?;
+    if let Some(path) = out {
+        // Before the laser is switched on: a calibration is minutes of scanning.
+        check_calibrate_out(path, src.path())?;
+    }
     crate::logging::notice(&format!("calibrating {}", config.summary()));
     let control = Control::new();
     let signals = RunSignals::new(&control);
@@ -329,6 +338,16 @@ fn calibrate(
     }
     let calibration = calibrate::fit(&config, &measured?, &settings)?;
     print!("{}", calibration.table());
+    // A signal during the fit: nothing written, as a signal during the scans.
+    let stopped = || {
+        if let Some(n) = crate::signals::received() {
+            crate::logging::notice(&format!(
+                "stopped by signal {n}: laser off, arms parked; nothing written"
+            ));
+            std::process::exit(i32::from(crate::signals::exit_code(n)));
+        }
+    };
+    stopped();
     match out {
         Some(path) => {
             let text = calibrate::calibrated_toml(src.text(), &calibration.fitted, src.path(), path)?;
@@ -351,10 +370,49 @@ fn calibrate(
                 return Err(e.into());
             }
             let _ = std::fs::remove_file(&trial);
+            stopped();
             crate::store::write_atomic(path, text.as_bytes()).map_err(io)?;
             println!("wrote {}", path.display());
         }
         None => println!("(give --out FILE to write the calibrated instrument config)"),
+    }
+    Ok(())
+}
+
+/// Refuses a calibration's `--out` that cannot take the calibrated config, before any
+/// scan: the instrument config it was read from (it would be replaced, the configured
+/// poses gone), a folder that does not exist, or something that is not a regular file.
+fn check_calibrate_out(out: &Path, instrument: &Path) -> Result<(), CliError> {
+    use std::os::unix::fs::MetadataExt as _;
+    let refuse = |why: String| CliError::CalibrateOut {
+        path: out.to_owned(),
+        why,
+    };
+    if let (Ok(a), Ok(b)) = (std::fs::metadata(out), std::fs::metadata(instrument))
+        && (a.dev(), a.ino()) == (b.dev(), b.ino())
+    {
+        return Err(refuse(format!(
+            "is the instrument config the calibration reads ({}); it would be replaced and its poses lost: \
+             write the calibrated config to another file",
+            instrument.display()
+        )));
+    }
+    if let Ok(m) = std::fs::symlink_metadata(out)
+        && !m.file_type().is_file()
+    {
+        return Err(refuse(
+            "exists and is not a regular file (a folder, device or link): give a file path".into(),
+        ));
+    }
+    let parent = match out.parent() {
+        Some(p) if !p.as_os_str().is_empty() => p,
+        _ => Path::new("."),
+    };
+    if !parent.is_dir() {
+        return Err(refuse(format!(
+            "is in {}, which is not a folder: make it first, or write elsewhere",
+            parent.display()
+        )));
     }
     Ok(())
 }
@@ -497,7 +555,10 @@ impl RunSignals {
 
 impl crate::signals::OnSignal for RunSignals {
     fn laser_off(&self) {
+        // A driver already closed switched its laser off on its way out (the run or
+        // calibration made the instrument safe before the signal came).
         if let Some(off) = self.laser.lock().unwrap_or_else(|p| p.into_inner()).as_ref()
+            && off.is_open()
             && let Err(e) = off.laser_off()
         {
             eprintln!("direct laser off failed: {e}");
@@ -646,6 +707,27 @@ pub enum CliError {
         .0.display()
     )]
     OutNotFolder(PathBuf),
+    /// `calibrate --out` naming a file that cannot take the calibrated config.
+    #[error("--out {}: {why}", path.display())]
+    CalibrateOut {
+        /// `--out`.
+        path: PathBuf,
+        /// Why not.
+        why: String,
+    },
+    /// `recon --out` naming a symbolic link to nothing.
+    #[error(
+        "{} is a symbolic link to {}, which does not exist: --out names the folder the reconstruction's files go \
+         in; make the folder it points to, or give another",
+        out.display(),
+        target.display()
+    )]
+    OutBrokenLink {
+        /// The link.
+        out: PathBuf,
+        /// Where it points.
+        target: PathBuf,
+    },
     /// The async runtime for `serve` could not start.
     #[error("cannot start the API's runtime: {0}")]
     Runtime(std::io::Error),
@@ -667,7 +749,10 @@ impl CliError {
             CliError::Service(ServiceError::Config(_)) => true,
             CliError::Calibrate(e) => e.is_config(),
             CliError::Admin(crate::admin::AdminError::Config(_) | crate::admin::AdminError::Usage(_)) => true,
-            CliError::OutIsRun(_) | CliError::OutNotFolder(_) => true,
+            CliError::OutIsRun(_)
+            | CliError::OutNotFolder(_)
+            | CliError::OutBrokenLink { .. }
+            | CliError::CalibrateOut { .. } => true,
             // The plan against the instrument's limits, as `run` refuses it.
             CliError::Budget { .. } => true,
             _ => false,

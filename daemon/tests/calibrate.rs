@@ -291,6 +291,29 @@ fn a_laser_at_another_rate_than_configured_stops_the_calibration_before_it_measu
     assert_safe(&sim);
 }
 
+/// A `--target-distance` the ranges contradict (1.6 m, the target at 2.0 m) is
+/// refused after the range scan, naming the key and the depth the ranges measure, the
+/// instrument safe. Until 2026-12-06 it was fitted around, into wrong poses with small
+/// residuals, or the spot search failed blaming the SPAD's gate.
+#[test]
+fn a_target_distance_the_ranges_contradict_is_refused() {
+    let nominal = InstrumentConfig::from_source(&instrument(None, false, None)).unwrap();
+    let config = InstrumentConfig::from_source(&instrument(None, false, Some(misaligned(&nominal)))).unwrap();
+    let sim = backend(&config);
+    let settings = Settings {
+        target_distance: Some(1.6),
+        ..Settings::default()
+    };
+    let err = measure(&config, &sim, &settings).unwrap_err();
+    assert!(matches!(err, CalibrateError::Settings(_)), "{err}");
+    let text = err.to_string();
+    assert!(
+        text.contains("--target-distance 1.6 m") && text.contains("target 2.0"),
+        "{text}"
+    );
+    assert_safe(&sim);
+}
+
 #[test]
 fn a_target_out_of_view_is_a_clear_error() {
     // The SPAD arm looks away from the wall: no return anywhere.

@@ -1,4 +1,5 @@
 //! Exit codes of the binary, which scripts and the CI rely on.
+use std::path::Path;
 use std::process::Command;
 
 fn periscope(args: &[&str]) -> (Option<i32>, String) {
@@ -78,6 +79,22 @@ fn a_stored_run_with_a_broken_plan_is_two() {
         "{stderr}"
     );
     assert_eq!(std::fs::read(&file).unwrap(), b"kept");
+    // A link to nothing as the output folder: named as such (until 2026-12-06 "File
+    // exists (os error 17)"), the link left as it was.
+    let link = tmp.path().join("dangling");
+    std::os::unix::fs::symlink(tmp.path().join("nowhere"), &link).unwrap();
+    let (code, stderr) = periscope(&[
+        "recon",
+        "tests/data/ytal/confocal_xy.hdf5",
+        "--out",
+        link.to_str().unwrap(),
+    ]);
+    assert_eq!(code, Some(2), "{stderr}");
+    assert!(
+        stderr.contains("is a symbolic link to") && stderr.contains("which does not exist"),
+        "{stderr}"
+    );
+    assert!(std::fs::symlink_metadata(&link).unwrap().file_type().is_symlink());
 }
 
 /// A reconstruction the settings cannot do (here LCT, which needs confocal pairs, on a
@@ -174,4 +191,40 @@ fn a_virtual_scan_larger_than_the_memory_left_is_refused_up_front() {
         "{stderr}"
     );
     assert!(!wrote);
+}
+
+/// `periscope calibrate --out` that cannot take the calibrated config is refused
+/// before any scan, exit 2, naming `--out`: the instrument config it reads (until
+/// 2026-12-06 replaced, its poses gone) and a path in a folder that does not exist
+/// (until then found only after the scans, as "No such file or directory").
+#[test]
+fn a_calibration_output_that_cannot_take_the_config_is_refused_before_the_scans() {
+    let tmp = tempfile::tempdir().unwrap();
+    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
+    let text = std::fs::read_to_string(root.join("configs/instrument/sim.toml"))
+        .unwrap()
+        .replace("\"../scenes/", &format!("\"{}/configs/scenes/", root.display()));
+    let config = tmp.path().join("instrument.toml");
+    std::fs::write(&config, &text).unwrap();
+    let c = config.to_str().unwrap();
+    let t = std::time::Instant::now();
+    let (code, stderr) = periscope(&["calibrate", "--instrument", c, "--out", c]);
+    assert_eq!(code, Some(2), "{stderr}");
+    assert!(
+        stderr.contains("--out") && stderr.contains("is the instrument config the calibration reads"),
+        "{stderr}"
+    );
+    assert_eq!(std::fs::read_to_string(&config).unwrap(), text);
+    let missing = tmp.path().join("no-such-folder/calibrated.toml");
+    let (code, stderr) = periscope(&["calibrate", "--instrument", c, "--out", missing.to_str().unwrap()]);
+    assert_eq!(code, Some(2), "{stderr}");
+    assert!(
+        stderr.contains("--out") && stderr.contains("which is not a folder"),
+        "{stderr}"
+    );
+    assert!(
+        t.elapsed() < std::time::Duration::from_secs(10),
+        "{:?}: scanned first?",
+        t.elapsed()
+    );
 }

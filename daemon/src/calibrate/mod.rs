@@ -250,8 +250,15 @@ pub(crate) fn enough_ranges(got: usize, tried: usize) -> Result<(), CalibrateErr
     Ok(())
 }
 
+/// How far `--target-distance` may be from the ranges' median depth, as a share of it
+/// and at least in metres: more than the configured poses' own error moves the depth.
+pub const TARGET_DISTANCE_SLACK: f64 = 0.05;
+/// See [`TARGET_DISTANCE_SLACK`].
+pub const TARGET_DISTANCE_SLACK_M: f64 = 0.05;
+
 /// The configured geometry: the arms as configured, the target as given by its
-/// distance, or else facing the SPAD boresight at the median depth of the ranges.
+/// distance (refused where the ranges' median depth contradicts it by more than
+/// [`TARGET_DISTANCE_SLACK`]), or else facing the SPAD boresight at that median depth.
 pub fn nominal_geometry(
     config: &InstrumentConfig,
     settings: &Settings,
@@ -259,25 +266,34 @@ pub fn nominal_geometry(
 ) -> Result<Geometry, CalibrateError> {
     let (laser, spad) = (config.laser_arm.pose, config.spad_arm.pose);
     let boresight = spad.rotation.z_axis;
-    let distance = match settings.target_distance {
-        Some(d) => d,
-        None => {
-            let mut depths: Vec<f64> = ranges
-                .iter()
-                .filter_map(|r| {
-                    let d = spad.direction(r.spad);
-                    crate::pipeline::first_bounce_range(r.path, laser.origin, spad.origin, d)
-                        .map(|t| t * d.dot(boresight))
-                })
-                .filter(|t| t.is_finite() && *t > 0.0)
-                .collect();
-            if depths.len() < MIN_RANGES {
-                return Err(CalibrateError::Geometry(
-                    "the measured paths are shorter than the laser-to-SPAD baseline",
-                ));
-            }
-            depths.sort_by(f64::total_cmp);
-            depths[depths.len() / 2]
+    let mut depths: Vec<f64> = ranges
+        .iter()
+        .filter_map(|r| {
+            let d = spad.direction(r.spad);
+            crate::pipeline::first_bounce_range(r.path, laser.origin, spad.origin, d)
+                .map(|t| t * d.dot(boresight))
+        })
+        .filter(|t| t.is_finite() && *t > 0.0)
+        .collect();
+    depths.sort_by(f64::total_cmp);
+    let median = (depths.len() >= MIN_RANGES).then(|| depths[depths.len() / 2]);
+    let distance = match (settings.target_distance, median) {
+        // A given distance the ranges contradict (a slip of the tape, the wrong unit)
+        // would be fitted around, into wrong poses with small residuals.
+        (Some(d), Some(m)) if (d - m).abs() > (TARGET_DISTANCE_SLACK * m).max(TARGET_DISTANCE_SLACK_M) => {
+            return Err(CalibrateError::Settings(format!(
+                "--target-distance {d} m is not what the ranges measure: their first-bounce returns put the \
+                 target {m:.3} m along the SPAD arm's boresight (through the configured poses); measure it \
+                 again in metres from the SPAD arm's origin along its boresight, or leave --target-distance \
+                 out to take the ranges'"
+            )));
+        }
+        (Some(d), _) => d,
+        (None, Some(m)) => m,
+        (None, None) => {
+            return Err(CalibrateError::Geometry(
+                "the measured paths are shorter than the laser-to-SPAD baseline",
+            ));
         }
     };
     Ok(Geometry {
