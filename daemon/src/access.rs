@@ -132,6 +132,8 @@ pub struct KeyStore {
     path: PathBuf,
     token: Option<String>,
     cache: Mutex<(Option<FileStamp>, Vec<KeyRecord>)>,
+    /// The read failure last logged (each is logged once, until the file reads).
+    reported: Mutex<Option<String>>,
 }
 
 /// A file's modification time and length: when either changes, it is read again.
@@ -157,12 +159,28 @@ impl KeyStore {
             path: runs_dir.join(KEYS_FILE),
             token,
             cache: Mutex::new((None, Vec::new())),
+            reported: Mutex::new(None),
         }
     }
 
     /// Whether any key or token can be accepted at all.
     pub fn any(&self) -> bool {
         self.token.is_some() || !self.keys().is_empty()
+    }
+
+    /// The keys as the file holds them, or why they cannot be read (a listing must
+    /// not show a damaged file as no keys; [`KeyStore::keys`] accepts none then).
+    pub fn read(&self) -> std::io::Result<Vec<KeyRecord>> {
+        match read_keys(&self.path) {
+            Err(e) if e.kind() != std::io::ErrorKind::NotFound => Err(std::io::Error::new(
+                e.kind(),
+                format!(
+                    "{e}: no API key is accepted while it cannot be read; restore it from a backup, or move \
+                     it aside and create the keys again"
+                ),
+            )),
+            other => other,
+        }
     }
 
     /// The keys as the file holds them now (read again if it changed).
@@ -172,20 +190,28 @@ impl KeyStore {
             .and_then(|m| Some((m.modified().ok()?, m.len())));
         let mut cache = self.cache.lock().unwrap_or_else(|p| p.into_inner());
         if cache.0 != stamp || stamp.is_none() {
+            let mut reported = self.reported.lock().unwrap_or_else(|p| p.into_inner());
             match read_keys(&self.path) {
-                Ok(keys) => *cache = (stamp, keys),
+                Ok(keys) => {
+                    *cache = (stamp, keys);
+                    *reported = None;
+                }
                 Err(e) => {
                     // A file that cannot be read accepts no key (never the old set,
                     // which may hold a revoked one). A damaged file's failure is kept
-                    // for this version of it, so it is read and reported once, not on
-                    // every request, until it changes; any other failure (no file
-                    // descriptor left, a slow disk) is tried again at the next request.
+                    // for this version of it, so it is read once, not on every
+                    // request, until it changes; any other failure (a file the daemon
+                    // may not read, no file descriptor left, a slow disk) is tried
+                    // again at the next request. Each failure is logged once, the
+                    // first included, until the file reads again.
                     let damaged = e.kind() == std::io::ErrorKind::InvalidData;
-                    if damaged || cache.0.is_some() {
+                    let message = e.to_string();
+                    if reported.as_deref() != Some(message.as_str()) {
                         tracing::error!(
                             "{}: {e}; no API key is accepted until it is fixed",
                             self.path.display()
                         );
+                        *reported = Some(message);
                     }
                     *cache = (if damaged { stamp } else { None }, Vec::new());
                 }

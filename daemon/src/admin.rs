@@ -376,12 +376,11 @@ pub fn keys(cmd: KeysCommand) -> Result<(), AdminError> {
                 .transpose()?;
             let (rec, secret) = KeyStore::open(&dir, None).create(&name, role, expires, "cli")?;
             // The key exists now: its secret is printed whatever the audit trail says.
-            let audited = Catalogue::open_unsynced(&dir).and_then(|c| {
-                c.record(
-                    &AuditEntry::new("cli", "admin", "key-create", Some(&rec.name), "ok")
-                        .detail(format!("role {}", rec.role.name())),
-                )
-            });
+            let audited = audit_change(
+                &dir,
+                &AuditEntry::new("cli", "admin", "key-create", Some(&rec.name), "ok")
+                    .detail(format!("role {}", rec.role.name())),
+            );
             if let Err(e) = audited {
                 eprintln!(
                     "warning: the key was made but its creation could not be recorded in the audit trail: {e}"
@@ -402,7 +401,12 @@ pub fn keys(cmd: KeysCommand) -> Result<(), AdminError> {
         }
         KeysCommand::List { instrument } => {
             let dir = runs_dir(&instrument)?;
-            let keys = KeyStore::open(&dir, None).keys();
+            let keys = KeyStore::open(&dir, None)
+                .read()
+                .map_err(|source| AdminError::Io {
+                    path: dir.join(crate::access::KEYS_FILE),
+                    source,
+                })?;
             println!(
                 "{:<24} {:<9} {:<21} {:<21} status",
                 "name", "role", "created", "expires"
@@ -431,17 +435,30 @@ pub fn keys(cmd: KeysCommand) -> Result<(), AdminError> {
         KeysCommand::Revoke { instrument, name } => {
             let dir = runs_dir(&instrument)?;
             let rec = KeyStore::open(&dir, None).revoke(&name)?;
-            Catalogue::open_unsynced(&dir)?.record(&AuditEntry::new(
-                "cli",
-                "admin",
-                "key-revoke",
-                Some(&rec.name),
-                "ok",
-            ))?;
+            // Revoked now, whatever the audit trail says.
             println!("key `{}` revoked", rec.name);
+            audit_change(
+                &dir,
+                &AuditEntry::new("cli", "admin", "key-revoke", Some(&rec.name), "ok"),
+            )?;
             Ok(())
         }
     }
+}
+
+/// Records a change made from the command line: in the audit trail's log first (the
+/// change is done; its record must not depend on the catalogue opening), then in the
+/// catalogue, which, where it cannot be opened now, takes the entry from the log at its
+/// next sync (a warning says so).
+fn audit_change(dir: &Path, entry: &AuditEntry) -> Result<(), AdminError> {
+    crate::catalogue::append_audit(dir, entry)?;
+    if let Err(e) = Catalogue::open_unsynced(dir).and_then(|c| c.catalogue_audit(entry)) {
+        eprintln!(
+            "warning: recorded in the audit trail's log, not yet in the catalogue ({e}); \
+             `periscope catalogue sync` adds it once the catalogue opens"
+        );
+    }
+    Ok(())
 }
 
 /// `periscope audit`.
@@ -456,20 +473,36 @@ pub fn audit(a: AuditArgs) -> Result<(), AdminError> {
         ..AuditQuery::default()
     })?;
     for e in &page.entries {
+        // Entries quote what clients sent (a refused plan's key, a run's name): their
+        // control characters are shown escaped, never sent to the terminal, and an
+        // entry is one line.
         println!(
             "{}  {:<12} {:<9} {:<14} {:<8} {}{}",
             format_time(e.at_unix_s),
-            e.actor,
-            e.role,
-            e.action,
-            e.outcome,
-            e.target.as_deref().unwrap_or("-"),
+            printable(&e.actor),
+            printable(&e.role),
+            printable(&e.action),
+            printable(&e.outcome),
+            printable(e.target.as_deref().unwrap_or("-")),
             e.detail
                 .as_deref()
-                .map(|d| format!("  ({d})"))
+                .map(|d| format!("  ({})", printable(d)))
                 .unwrap_or_default()
         );
     }
     println!("{} of {} entries", page.entries.len(), page.total);
     Ok(())
+}
+
+/// `text` with its control characters escaped (`\u{1b}`, `\n`), for a terminal.
+fn printable(text: &str) -> String {
+    text.chars()
+        .flat_map(|c| {
+            if c.is_control() {
+                c.escape_debug().collect::<Vec<_>>()
+            } else {
+                vec![c]
+            }
+        })
+        .collect()
 }

@@ -748,7 +748,11 @@ impl CliError {
             CliError::Capture(e) => e.is_config(),
             CliError::Service(ServiceError::Config(_)) => true,
             CliError::Calibrate(e) => e.is_config(),
-            CliError::Admin(crate::admin::AdminError::Config(_) | crate::admin::AdminError::Usage(_)) => true,
+            CliError::Admin(
+                crate::admin::AdminError::Config(_)
+                | crate::admin::AdminError::Usage(_)
+                | crate::admin::AdminError::Keys(crate::access::KeysError::Invalid(_)),
+            ) => true,
             CliError::OutIsRun(_)
             | CliError::OutNotFolder(_)
             | CliError::OutBrokenLink { .. }

@@ -1124,3 +1124,55 @@ fn a_stream_client_that_never_reads_holds_no_more_than_the_display_budget() {
     svc.shutdown();
     worker.join().unwrap();
 }
+
+/// After a run the instrument is shown as read after it, never as the reading taken
+/// before it: until the worker reads the devices again the state is unknown. Until
+/// 2026-12-06 the pre-run reading was served, with its true age, which the staleness
+/// rule could still take for current (a laser the run could not switch off showed as
+/// off for up to the rest of the 21 s).
+#[test]
+fn after_a_run_the_instrument_is_never_shown_as_read_before_it() {
+    use periscope_daemon::run_dir::RunState;
+    let dir = tempfile::tempdir().unwrap();
+    let svc = service(dir.path(), 0.0, Some(TOKEN));
+    let worker = svc.start_worker();
+    // The idle reading taken before the run.
+    let t = Instant::now();
+    while svc.instrument_status().reading.is_none() {
+        assert!(t.elapsed() < Duration::from_secs(10), "never read");
+        std::thread::sleep(Duration::from_millis(2));
+    }
+    let before = svc.instrument_status().reading.unwrap().taken_unix_s;
+    let id = svc.submit(SmallPlan::named("reading").toml()).unwrap().id;
+    while svc.status(&id).unwrap().state != RunState::Running {
+        assert!(t.elapsed() < Duration::from_secs(30), "never ran");
+        std::thread::sleep(Duration::from_millis(1));
+    }
+    // Checked as often as the lock allows from the run's end until the worker has
+    // read the devices again and a while after.
+    let mut after_end = 0;
+    while after_end < 300 {
+        let done = svc.status(&id).unwrap().state == RunState::Completed;
+        let status = svc.instrument_status();
+        let safety = svc.safety();
+        // Once the worker has let the run go (its state is saved a moment before).
+        if done && status.run.is_none() {
+            after_end += 1;
+            let taken = status.reading.as_ref().map(|r| r.taken_unix_s);
+            assert!(
+                taken.is_none_or(|t| t > before),
+                "the pre-run reading served after the run"
+            );
+            if safety.source == "idle" && safety.age_s.is_some() {
+                // From the same reading or a newer one, a moment later.
+                let now = svc.instrument_status().reading.map(|r| r.taken_unix_s);
+                assert!(now.is_some_and(|t| t > before), "{now:?}");
+            }
+        }
+        assert!(t.elapsed() < Duration::from_secs(60), "the run never finished");
+        std::thread::sleep(Duration::from_micros(200));
+    }
+    assert!(after_end > 0);
+    svc.shutdown();
+    worker.join().unwrap();
+}

@@ -991,3 +991,87 @@ async fn a_run_another_process_is_writing_is_left_to_it() {
     assert_eq!(std::fs::read(run.join("run.json")).unwrap(), before);
     svc.shutdown();
 }
+
+/// The key and audit commands where their files are in a bad way (each before
+/// 2026-12-06): a damaged keys.json is an error (exit 1) naming it and what to do,
+/// not an empty table and exit 0; a key revoked while the catalogue cannot be opened
+/// is recorded in the audit log (and the command succeeds), not lost with exit 1; an
+/// audit entry quoting control characters prints them escaped, not to the terminal;
+/// revoking a key that does not exist is a usage error (exit 2).
+#[test]
+fn key_and_audit_commands_say_what_is_wrong_with_their_files() {
+    use periscope_daemon::catalogue::{AUDIT_FILE, AuditEntry, append_audit};
+    let dir = tempfile::tempdir().unwrap();
+    let src = common::sim_instrument(dir.path(), 0.0, "", "");
+    let config = dir.path().join("instrument.toml");
+    let scenes = Path::new(env!("CARGO_MANIFEST_DIR")).join("../configs/scenes");
+    std::fs::write(
+        &config,
+        src.text()
+            .replace("\"../scenes/", &format!("\"{}/", scenes.display())),
+    )
+    .unwrap();
+    let periscope = |args: &[&str]| {
+        let out = std::process::Command::new(env!("CARGO_BIN_EXE_periscope"))
+            .args(args)
+            .arg("--instrument")
+            .arg(&config)
+            .output()
+            .unwrap();
+        (
+            out.status.code(),
+            String::from_utf8_lossy(&out.stdout).into_owned(),
+            String::from_utf8_lossy(&out.stderr).into_owned(),
+        )
+    };
+    let (code, _, err) = periscope(&["keys", "create", "carol", "--role", "observer"]);
+    assert_eq!(code, Some(0), "{err}");
+    let (code, _, err) = periscope(&["keys", "revoke", "nobody"]);
+    assert_eq!(code, Some(2), "{err}");
+
+    // The catalogue cannot be opened: the revocation is made and recorded in the log.
+    let catalogue = dir.path().join("catalogue.sqlite");
+    let _ = std::fs::remove_file(&catalogue);
+    for wal in ["catalogue.sqlite-wal", "catalogue.sqlite-shm"] {
+        let _ = std::fs::remove_file(dir.path().join(wal));
+    }
+    std::fs::create_dir(&catalogue).unwrap();
+    let (code, out, err) = periscope(&["keys", "revoke", "carol"]);
+    assert_eq!(code, Some(0), "{err}");
+    assert!(
+        out.contains("revoked") && err.contains("catalogue sync"),
+        "{out} / {err}"
+    );
+    let log = std::fs::read_to_string(dir.path().join(AUDIT_FILE)).unwrap();
+    assert!(
+        log.lines()
+            .any(|l| l.contains("key-revoke") && l.contains("carol")),
+        "{log}"
+    );
+    std::fs::remove_dir(&catalogue).unwrap();
+
+    // Control characters a client sent, printed escaped.
+    append_audit(
+        dir.path(),
+        &AuditEntry::new("mallory", "operator", "submit", Some("x"), "refused")
+            .detail("key \u{1b}]0;pwned\u{7}\u{1b}[31m\nforged line".to_owned()),
+    )
+    .unwrap();
+    let (code, out, err) = periscope(&["audit", "--actor", "mallory"]);
+    assert_eq!(code, Some(0), "{err}");
+    assert!(!out.contains('\u{1b}') && !out.contains('\u{7}'), "{out:?}");
+    assert!(
+        out.contains("\\u{1b}]0;pwned") && !out.contains("\nforged"),
+        "{out}"
+    );
+    // The catalogue, open again, took the revocation from the log.
+    let (code, out, err) = periscope(&["audit", "--action", "key-revoke"]);
+    assert_eq!(code, Some(0), "{err}");
+    assert!(out.contains("carol"), "{out}");
+
+    // A damaged keys file.
+    std::fs::write(dir.path().join("keys.json"), "[{\"name\": ").unwrap();
+    let (code, out, err) = periscope(&["keys", "list"]);
+    assert_eq!(code, Some(1), "{out} / {err}");
+    assert!(err.contains("keys.json") && err.contains("restore it"), "{err}");
+}

@@ -33,6 +33,16 @@ pub mod query;
 pub mod schema;
 
 pub use audit::{AUDIT_FILE, AuditEntry};
+
+/// Appends `entry` to the audit trail's log (`audit.jsonl` in `runs_dir`), the record
+/// of what was done, without the catalogue: a process that cannot open the catalogue
+/// still records, and the catalogue takes the entry from the log at its next sync.
+pub fn append_audit(runs_dir: &Path, entry: &AuditEntry) -> Result<(), CatalogueError> {
+    audit::append(runs_dir, entry).map_err(|source| CatalogueError::Io {
+        path: runs_dir.join(AUDIT_FILE),
+        source,
+    })
+}
 pub use query::{AuditPage, AuditQuery, OutputFile, RunPage, RunQuery, RunRecord, SortKey};
 
 use crate::run_dir::{Annotations, DOWNLOADS, RunDir, RunInfo, file};
@@ -354,10 +364,13 @@ impl Catalogue {
     /// Records an audit entry: appended to audit.jsonl (the lasting record), then
     /// inserted in the catalogue.
     pub fn record(&self, entry: &AuditEntry) -> Result<(), CatalogueError> {
-        audit::append(&self.runs_dir, entry).map_err(|source| CatalogueError::Io {
-            path: self.runs_dir.join(AUDIT_FILE),
-            source,
-        })?;
+        append_audit(&self.runs_dir, entry)?;
+        self.catalogue_audit(entry)
+    }
+
+    /// Puts an entry [`append_audit`] wrote into the catalogue (a sync would too, from
+    /// the log).
+    pub fn catalogue_audit(&self, entry: &AuditEntry) -> Result<(), CatalogueError> {
         let conn = self.conn();
         insert_audit(&conn, entry).map_err(self.sqlite())?;
         Ok(())

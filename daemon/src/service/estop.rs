@@ -236,6 +236,8 @@ impl Service {
         {
             let mut s = self.lock();
             s.last_safe = Some(format!("{} (e-stop)", report.laser));
+            // What was read before the e-stop is not the instrument after it.
+            s.reading = None;
             s.refresh = true;
             self.wake.notify_all();
         }

@@ -96,22 +96,30 @@ impl Service {
             out.source = "run";
             out.run = Some(id.clone());
             out.stale_after_s = RUN_STALE_S;
-            // Until the run reads the laser, nothing is known of it now.
+            // Until the run reads the laser, nothing is known of it now; nor of the
+            // arms and the detector from the idle reading taken before the run.
             out.emission = None;
             out.interlock_closed = None;
             out.diffuser_in = None;
             out.age_s = None;
-            if let Some((state, at, _)) = live.laser {
+            out.laser_deg = None;
+            out.spad_deg = None;
+            out.detector_rate_hz = None;
+            if let Some((state, at, unix_s)) = live.laser {
                 out.emission = Some(state.emission);
                 out.interlock_closed = Some(state.interlock_closed);
                 out.diffuser_in = Some(state.diffuser_in);
-                out.age_s = Some(at.elapsed().as_secs_f64());
+                // Aged from when the run read it, not from when the event reached the
+                // service (its forwarder waits for the service's lock): the older of
+                // the two clocks' ages, so a late event is never taken for a fresh one.
+                let wall = (crate::run_dir::unix_now() - unix_s).max(0.0);
+                out.age_s = Some(at.elapsed().as_secs_f64().max(wall));
             }
             if let Some(h) = live.histogram {
-                out.laser_deg = Some(h.laser_deg);
-                out.spad_deg = Some(h.spad_deg);
                 out.pair = Some(h.pair);
                 if h.at.elapsed().as_secs_f64() < RUN_STALE_S {
+                    out.laser_deg = Some(h.laser_deg);
+                    out.spad_deg = Some(h.spad_deg);
                     out.signal_rate_hz = Some(h.signal_rate);
                     out.counts_per_pulse =
                         Some(h.signal_rate / self.instrument.laser.repetition_rate.max(1.0));

@@ -98,6 +98,10 @@ impl Service {
                 s.stale.insert(id.clone());
             }
             self.set_current(&mut s, None);
+            // The reading from before the run says nothing of the instrument the run
+            // leaves (a run that could not switch its laser off): unknown until the
+            // worker reads it again, at once.
+            s.reading = None;
             s.refresh = true;
             s.channels.remove(&id);
             match &result {
