@@ -603,15 +603,13 @@ async fn metrics_parse_as_prometheus_text() {
     worker.join().unwrap();
 }
 
-/// The command line over the same runs directory as a daemon: a key made by
-/// `periscope keys create` works at once, `periscope runs` finds the daemon's runs by
-/// tag, `periscope keys revoke` stops the key at the next request, and
-/// `periscope catalogue rebuild` and `periscope audit` report what the API did.
-#[tokio::test]
-async fn the_command_line_shares_keys_catalogue_and_audit_with_the_daemon() {
-    let dir = tempfile::tempdir().unwrap();
-    let src = common::sim_instrument(dir.path(), 0.0, &format!("token = \"{TOKEN}\"\n"), "");
-    let config = dir.path().join("instrument.toml");
+/// `periscope ARGS --instrument CONFIG`, CONFIG being `src` written into `dir` (its
+/// scene path absolute): the exit code, stdout and stderr.
+fn cli(
+    dir: &Path,
+    src: &periscope_daemon::config::TomlSource,
+) -> impl Fn(&[&str]) -> (Option<i32>, String, String) + use<> {
+    let config = dir.join("instrument.toml");
     let scenes = Path::new(env!("CARGO_MANIFEST_DIR")).join("../configs/scenes");
     std::fs::write(
         &config,
@@ -619,7 +617,7 @@ async fn the_command_line_shares_keys_catalogue_and_audit_with_the_daemon() {
             .replace("\"../scenes/", &format!("\"{}/", scenes.display())),
     )
     .unwrap();
-    let periscope = |args: &[&str]| {
+    move |args: &[&str]| {
         let out = std::process::Command::new(env!("CARGO_BIN_EXE_periscope"))
             .args(args)
             .arg("--instrument")
@@ -631,7 +629,18 @@ async fn the_command_line_shares_keys_catalogue_and_audit_with_the_daemon() {
             String::from_utf8_lossy(&out.stdout).into_owned(),
             String::from_utf8_lossy(&out.stderr).into_owned(),
         )
-    };
+    }
+}
+
+/// The command line over the same runs directory as a daemon: a key made by
+/// `periscope keys create` works at once, `periscope runs` finds the daemon's runs by
+/// tag, `periscope keys revoke` stops the key at the next request, and
+/// `periscope catalogue rebuild` and `periscope audit` report what the API did.
+#[tokio::test]
+async fn the_command_line_shares_keys_catalogue_and_audit_with_the_daemon() {
+    let dir = tempfile::tempdir().unwrap();
+    let src = common::sim_instrument(dir.path(), 0.0, &format!("token = \"{TOKEN}\"\n"), "");
+    let periscope = cli(dir.path(), &src);
     let svc = Service::open(src, Some(TOKEN.to_owned())).unwrap();
     let router = app(AppState::new(Arc::clone(&svc)));
     let (code, secret, err) = periscope(&["keys", "create", "bob", "--role", "operator", "--expires", "30d"]);
@@ -1003,27 +1012,7 @@ fn key_and_audit_commands_say_what_is_wrong_with_their_files() {
     use periscope_daemon::catalogue::{AUDIT_FILE, AuditEntry, append_audit};
     let dir = tempfile::tempdir().unwrap();
     let src = common::sim_instrument(dir.path(), 0.0, "", "");
-    let config = dir.path().join("instrument.toml");
-    let scenes = Path::new(env!("CARGO_MANIFEST_DIR")).join("../configs/scenes");
-    std::fs::write(
-        &config,
-        src.text()
-            .replace("\"../scenes/", &format!("\"{}/", scenes.display())),
-    )
-    .unwrap();
-    let periscope = |args: &[&str]| {
-        let out = std::process::Command::new(env!("CARGO_BIN_EXE_periscope"))
-            .args(args)
-            .arg("--instrument")
-            .arg(&config)
-            .output()
-            .unwrap();
-        (
-            out.status.code(),
-            String::from_utf8_lossy(&out.stdout).into_owned(),
-            String::from_utf8_lossy(&out.stderr).into_owned(),
-        )
-    };
+    let periscope = cli(dir.path(), &src);
     let (code, _, err) = periscope(&["keys", "create", "carol", "--role", "observer"]);
     assert_eq!(code, Some(0), "{err}");
     let (code, _, err) = periscope(&["keys", "revoke", "nobody"]);

@@ -277,8 +277,11 @@ async function checkEstop() {
 }
 
 // How long the E-STOP waits for the daemon's answer before it tells the operator to
-// use the hardware one.
-const ESTOP_TIMEOUT_MS = 3000;
+// use the hardware one; it goes on waiting for the report, which the daemon may take
+// up to 10 s to give (it waits up to 2 s for a run to park, then parks the arms
+// itself), and shows it when it comes.
+const ESTOP_HINT_MS = 3000;
+const ESTOP_TIMEOUT_MS = 11000;
 
 $('estop').addEventListener('click', async () => {
   const t0 = performance.now();
@@ -286,6 +289,9 @@ $('estop').addEventListener('click', async () => {
   cancelPageRequests();
   probe.cancelledForEstop = (probe.cancelledForEstop || 0) + 1;
   banner('E-STOP sent…', 'error');
+  const hint = setTimeout(() => {
+    banner(`E-STOP: no answer after ${ESTOP_HINT_MS / 1000} s: press the HARDWARE emergency stop on the laser controller now (still waiting for the daemon's report)`);
+  }, ESTOP_HINT_MS);
   try {
     const resp = await fetch('/api/v1/estop', { method: 'POST', headers: headers(), signal: AbortSignal.timeout(ESTOP_TIMEOUT_MS) });
     const r = await resp.json().catch(() => null);
@@ -306,6 +312,8 @@ $('estop').addEventListener('click', async () => {
     } else {
       banner(`E-STOP refused (${e.message}): press the HARDWARE emergency stop on the laser controller now.`);
     }
+  } finally {
+    clearTimeout(hint);
   }
   refresh();
 });
