@@ -53,7 +53,7 @@ impl Service {
             match off.laser_off() {
                 Ok(()) => {
                     laser_off = true;
-                    report.laser = "off: out-of-band LASER OFF to the laser controller".into();
+                    report.laser = DIRECT_OFF.into();
                     report.laser_off_s = Some(t.elapsed().as_secs_f64());
                 }
                 Err(e) => report.warnings.push(format!("direct laser off failed: {e}")),
@@ -170,7 +170,7 @@ impl Service {
                     && off.laser_off().is_ok()
                 {
                     laser_off = true;
-                    report.laser = "off: out-of-band LASER OFF to the laser controller".into();
+                    report.laser = DIRECT_OFF.into();
                     report.laser_off_s = Some(t.elapsed().as_secs_f64());
                 }
                 let mut sent = 0;
@@ -262,6 +262,9 @@ impl Service {
         spad.park().map_err(|e| e.to_string())
     }
 }
+
+/// The report's laser line when the running run's direct path switched it off.
+const DIRECT_OFF: &str = "off: out-of-band LASER OFF to the laser controller";
 
 /// The report's laser line when the e-stop opened the laser controller itself.
 const CONTROLLER_OFF: &str = "off: LASER OFF through the laser controller, opened for the e-stop";
