@@ -269,16 +269,8 @@ fn browser() -> Result<(PathBuf, PathBuf), String> {
     }
 }
 
-/// The API on a loopback socket, and a proxy in front of it the test can cut: the
-/// direct address, the proxy's, its cutter, and the server's task.
-async fn serve_behind_proxy(
-    svc: &Arc<Service>,
-) -> (
-    SocketAddr,
-    SocketAddr,
-    tokio::sync::watch::Sender<u64>,
-    tokio::task::JoinHandle<()>,
-) {
+/// The API on a loopback socket: its address and the server's task.
+async fn serve(svc: &Arc<Service>) -> (SocketAddr, tokio::task::JoinHandle<()>) {
     let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
     let direct = listener.local_addr().unwrap();
     let router = app(AppState::new(Arc::clone(svc)));
@@ -290,6 +282,20 @@ async fn serve_behind_proxy(
         .await
         .unwrap();
     });
+    (direct, server)
+}
+
+/// The API on a loopback socket, and a proxy in front of it the test can cut: the
+/// direct address, the proxy's, its cutter, and the server's task.
+async fn serve_behind_proxy(
+    svc: &Arc<Service>,
+) -> (
+    SocketAddr,
+    SocketAddr,
+    tokio::sync::watch::Sender<u64>,
+    tokio::task::JoinHandle<()>,
+) {
+    let (direct, server) = serve(svc).await;
     let (addr, cut) = cuttable_proxy(direct).await;
     (direct, addr, cut, server)
 }
@@ -377,6 +383,75 @@ async fn cuttable_proxy(target: SocketAddr) -> (SocketAddr, tokio::sync::watch::
         }
     });
     (addr, cut)
+}
+
+/// What [`switchable_proxy`] does with the page's connections.
+#[derive(Clone, Copy, PartialEq, Eq, Debug)]
+enum Link {
+    /// Forwards both ways.
+    Pass,
+    /// Forwards nothing more and closes nothing: the connections open now stay silent
+    /// for good, new ones are accepted and held unanswered (closed when the mode
+    /// changes). A daemon wedged behind its listener, or a network that lost the
+    /// connections without a reset, looks like this to a browser.
+    Stall,
+    /// Closes the open connections and answers each new request `503`, as a daemon
+    /// shedding load does.
+    Busy,
+}
+
+/// A loopback proxy in front of the daemon that the test switches between [`Link`]s.
+async fn switchable_proxy(target: SocketAddr) -> (SocketAddr, tokio::sync::watch::Sender<Link>) {
+    use tokio::io::{AsyncReadExt, AsyncWriteExt};
+    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+    let addr = listener.local_addr().unwrap();
+    let (link, watch) = tokio::sync::watch::channel(Link::Pass);
+    tokio::spawn(async move {
+        while let Ok((mut inbound, _)) = listener.accept().await {
+            let mut watch = watch.clone();
+            let mode = *watch.borrow_and_update();
+            tokio::spawn(async move {
+                match mode {
+                    Link::Busy => {
+                        // The request's head, then the refusal.
+                        let mut head = Vec::new();
+                        let mut buf = [0u8; 4096];
+                        while !head.windows(4).any(|w| w == b"\r\n\r\n") && head.len() < 65536 {
+                            match inbound.read(&mut buf).await {
+                                Ok(0) | Err(_) => return,
+                                Ok(n) => head.extend_from_slice(&buf[..n]),
+                            }
+                        }
+                        let body = r#"{"error":"busy","message":"the daemon is busy: try again"}"#;
+                        let answer = format!(
+                            "HTTP/1.1 503 Service Unavailable\r\ncontent-type: application/json\r\n\
+                             content-length: {}\r\nconnection: close\r\n\r\n{body}",
+                            body.len()
+                        );
+                        let _ = inbound.write_all(answer.as_bytes()).await;
+                        let _ = inbound.shutdown().await;
+                    }
+                    Link::Stall => {
+                        let _ = watch.wait_for(|m| *m != Link::Stall).await;
+                    }
+                    Link::Pass => {
+                        let Ok(mut outbound) = tokio::net::TcpStream::connect(target).await else {
+                            return;
+                        };
+                        let changed = tokio::select! {
+                            _ = tokio::io::copy_bidirectional(&mut inbound, &mut outbound) => None,
+                            m = watch.wait_for(|m| *m != Link::Pass) => m.ok().map(|m| *m),
+                        };
+                        if changed == Some(Link::Stall) {
+                            // Silent for good, both ends held open.
+                            std::future::pending::<()>().await;
+                        }
+                    }
+                }
+            });
+        }
+    });
+    (addr, link)
 }
 
 async fn probe(c: &Client) -> Value {
@@ -677,7 +752,7 @@ async fn an_operator_runs_the_demo_from_the_dashboard_in_chromium() {
     assert!(rig.emission(), "the laser is on during the capture");
     let pressed = Instant::now();
     click(&c, "#estop").await;
-    let note = wait_text(&c, "#banner", limit, |s| s.starts_with("E-STOP done")).await;
+    let note = wait_text(&c, "#estop-text", limit, |s| s.starts_with("E-STOP done")).await;
     let off = rig
         .off_since(pressed)
         .expect("the simulated laser is off after the e-stop");
@@ -1056,7 +1131,7 @@ async fn the_page_stays_true_to_the_instrument_and_to_the_run() {
     assert!(rig.emission(), "the laser is on during the capture");
     let pressed = Instant::now();
     click(&phone, "#estop").await;
-    let note = wait_text(&phone, "#banner", limit, |s| s.starts_with("E-STOP done")).await;
+    let note = wait_text(&phone, "#estop-text", limit, |s| s.starts_with("E-STOP done")).await;
     assert!(rig.off_since(pressed).is_some() && !rig.emission(), "{note}");
     assert!(note.contains(&demo), "{note}");
     phone.close().await.unwrap();
@@ -1082,12 +1157,128 @@ async fn the_page_stays_true_to_the_instrument_and_to_the_run() {
     assert!(text(&c, "#series-alarm").await.starts_with("ALARM"));
     wait_text(&c, "#estop-state", limit, |s| s.contains("UNREACHABLE")).await;
     click(&c, "#estop").await;
-    let note = wait_text(&c, "#banner", limit, |s| s.contains("HARDWARE")).await;
+    let note = wait_text(&c, "#estop-text", limit, |s| s.contains("HARDWARE")).await;
     assert!(note.contains("could not reach the daemon"), "{note}");
     c.execute("window.scrollTo(0, 0);", vec![]).await.unwrap();
     screenshot(&c, &shots, "unknown.png").await;
     c.close().await.unwrap();
     drop(driver);
+    worker.join().unwrap();
+}
+
+/// A daemon that stops answering without closing anything, then one shedding load: the
+/// page says so on the E-STOP's label and the connection pill instead of showing what
+/// it read last, the E-STOP cancels an upload that holds a connection and reports its
+/// own failure where nothing else writes, and the safety stream, silent on a connection
+/// that never closes, is opened again and live once the daemon answers.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_page_says_when_the_daemon_stops_answering() {
+    let Some((chromium, chromedriver)) = browser_or_skip("the dashboard silence test") else {
+        return;
+    };
+    let shots = screenshots_dir();
+    let dir = tempfile::tempdir().unwrap();
+    let svc = service(dir.path(), 0.0);
+    let worker = svc.start_worker();
+    let (direct, server) = serve(&svc).await;
+    let (addr, link) = switchable_proxy(direct).await;
+    let driver = start_chromedriver(&chromedriver).await;
+    let c = session(&driver, &chromium, 1400, 1600).await;
+    let limit = Duration::from_secs(60);
+    c.goto(&format!("http://{addr}/")).await.unwrap();
+    wait_page(&c, "ready", Duration::from_secs(20), |v| v["ready"] == true).await;
+    enter_token(&c, limit).await;
+    wait_text(&c, "#estop-state", limit, |s| s.starts_with("armed")).await;
+    wait_page(&c, "a known laser state", limit, |v| v["safety"] == "known").await;
+    wait_text(&c, "#conn", limit, |s| s == "connected").await;
+    let capture = Path::new(env!("CARGO_MANIFEST_DIR")).join("../recon/tests/data/lct-point.mat");
+    c.find(Locator::Css("#import-file"))
+        .await
+        .unwrap()
+        .send_keys(capture.canonicalize().unwrap().to_str().unwrap())
+        .await
+        .unwrap();
+    let t = Instant::now();
+    while !c
+        .find(Locator::Css("#import-go"))
+        .await
+        .unwrap()
+        .is_enabled()
+        .await
+        .unwrap()
+    {
+        assert!(
+            t.elapsed() < limit,
+            "import never enabled: {}",
+            text(&c, "#import-why").await
+        );
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+
+    // Silence: an upload starts and waits; the E-STOP cancels it, and tells the operator
+    // to use the hardware one when its own request goes unanswered.
+    link.send_replace(Link::Stall);
+    click(&c, "#import-go").await;
+    wait_text(&c, "#import-status", limit, |s| s.starts_with("uploading")).await;
+    click(&c, "#estop").await;
+    let cancelled = wait_text(&c, "#import-status", limit, |s| s.contains("cancelled")).await;
+    assert!(cancelled.contains("check the runs list"), "{cancelled}");
+    let hint = wait_text(&c, "#estop-text", limit, |s| s.contains("no answer after")).await;
+    assert!(hint.contains("HARDWARE"), "{hint}");
+    // The polls give up: the label and the pill no longer say armed and connected.
+    let label = wait_text(&c, "#estop-state", limit, |s| !s.starts_with("armed")).await;
+    assert!(label.contains("NOT ANSWERING"), "{label}");
+    let pill = wait_text(&c, "#conn", limit, |s| s != "connected").await;
+    assert!(pill.contains("not answering"), "{pill}");
+    let report = wait_text(&c, "#estop-text", limit, |s| s.contains("no answer within")).await;
+    assert!(report.contains("HARDWARE"), "{report}");
+    let p = wait_page(&c, "the silent safety stream given up", limit, |v| {
+        v["safetySilences"].as_u64().is_some_and(|n| n >= 1)
+    })
+    .await;
+    assert_eq!(p["safety"], "unknown", "{p}");
+    c.execute("window.scrollTo(0, 0);", vec![]).await.unwrap();
+    screenshot(&c, &shots, "not-answering.png").await;
+
+    // The daemon answers again: all of it live, on new connections (the old ones stay
+    // silent), and the E-STOP's failure still in view.
+    link.send_replace(Link::Pass);
+    wait_page(&c, "the laser state known again", limit, |v| {
+        v["safety"] == "known"
+    })
+    .await;
+    wait_text(&c, "#estop-state", limit, |s| s.starts_with("armed")).await;
+    wait_text(&c, "#conn", limit, |s| s == "connected").await;
+    assert!(text(&c, "#estop-text").await.contains("no answer within"));
+    assert!(
+        c.find(Locator::Css("#estop-report"))
+            .await
+            .unwrap()
+            .is_displayed()
+            .await
+            .unwrap()
+    );
+
+    // Shedding load: a 503 is not a refused key.
+    link.send_replace(Link::Busy);
+    let busy = wait_text(&c, "#estop-state", limit, |s| !s.starts_with("armed")).await;
+    assert!(busy.contains("unknown") && busy.contains("503"), "{busy}");
+    assert!(!busy.contains("NOT armed"), "{busy}");
+    link.send_replace(Link::Pass);
+    wait_text(&c, "#estop-state", limit, |s| s.starts_with("armed")).await;
+    click(&c, "#estop-dismiss").await;
+    assert!(
+        !c.find(Locator::Css("#estop-report"))
+            .await
+            .unwrap()
+            .is_displayed()
+            .await
+            .unwrap()
+    );
+    c.close().await.unwrap();
+    drop(driver);
+    server.abort();
+    svc.shutdown();
     worker.join().unwrap();
 }
 

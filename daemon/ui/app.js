@@ -7,6 +7,10 @@ import { readEvents } from '/ui/sse.js';
 const $ = (id) => document.getElementById(id);
 const TOKEN_KEY = 'periscope-token';
 const POLL_MS = 2000;
+// How long a poll waits for the daemon's answer (headers and body). A daemon that
+// accepts connections and never answers must not leave the page showing what it read
+// last: the E-STOP label and the connection pill say so instead.
+const POLL_TIMEOUT_MS = 6000;
 
 // What the browser test reads.
 const probe = {
@@ -78,14 +82,16 @@ class ApiError extends Error {
 }
 
 // The page's requests other than its two streams, so the E-STOP can cancel them: a
-// browser has six connections per host, and polls waiting on a loaded daemon must not
-// hold the one the E-STOP needs.
+// browser has six connections per host, and polls or an upload waiting on a loaded
+// daemon must not hold the one the E-STOP needs. With `timeoutMs` a request (its body
+// included) fails with a TimeoutError when the daemon has not answered in that time.
 const inflight = new Set();
-async function pageFetch(path, init = {}) {
+async function pageFetch(path, init = {}, timeoutMs = null) {
   const ctl = new AbortController();
+  const signal = timeoutMs == null ? ctl.signal : AbortSignal.any([ctl.signal, AbortSignal.timeout(timeoutMs)]);
   inflight.add(ctl);
   try {
-    return await fetch(path, { ...init, signal: ctl.signal });
+    return await fetch(path, { ...init, signal });
   } finally {
     inflight.delete(ctl);
   }
@@ -94,15 +100,21 @@ function cancelPageRequests() {
   for (const ctl of inflight) ctl.abort();
   inflight.clear();
 }
+// Whether an error is a request given up (cancelled for the E-STOP, or timed out),
+// not an answer.
+const givenUp = (e) => e?.name === 'AbortError' || e?.name === 'TimeoutError';
 
-async function api(method, path, body) {
+// `timeoutMs`: for the polls (POLL_TIMEOUT_MS); a request that changes something, or
+// reads a run's files, waits for its answer.
+async function api(method, path, body, timeoutMs = null) {
   const init = { method, headers: headers(body === undefined ? {} : { 'Content-Type': 'application/toml' }) };
   if (body !== undefined) init.body = body;
-  const r = await pageFetch(path, init);
+  const r = await pageFetch(path, init, timeoutMs);
   let json = null;
   try {
     json = await r.json();
-  } catch {
+  } catch (e) {
+    if (givenUp(e)) throw e;
     json = null;
   }
   if (!r.ok) {
@@ -225,28 +237,31 @@ function renderInstrument() {
 
 async function pollInstrument() {
   try {
-    instrument = await api('GET', '/api/v1/instrument');
+    instrument = await api('GET', '/api/v1/instrument', undefined, POLL_TIMEOUT_MS);
     instrumentFetched = performance.now();
     renderInstrument();
     setConnection(true);
   } catch (e) {
     if (e.name === 'AbortError') return;
-    if (e instanceof TypeError) {
-      setConnection(false);
+    if (e instanceof TypeError || e.name === 'TimeoutError') {
+      const silent = e.name === 'TimeoutError';
+      setConnection(false, silent ? NOT_ANSWERING : undefined);
       // An old reading must not pass for a current one.
       instrument = null;
-      $('inst-body').textContent = 'The daemon cannot be reached: nothing here is current. In doubt, use the hardware emergency stop.';
-        } else {
+      $('inst-body').textContent = `The daemon ${silent ? `has not answered for ${POLL_TIMEOUT_MS / 1000} s` : 'cannot be reached'}: nothing here is current. In doubt, use the hardware emergency stop.`;
+    } else {
       instrument = null;
       $('inst-body').textContent = e.message;
     }
   }
 }
 
-function setConnection(up) {
+const NOT_ANSWERING = `daemon not answering (nothing in ${POLL_TIMEOUT_MS / 1000} s): retrying`;
+function setConnection(up, why = 'daemon unreachable: retrying') {
   const c = $('conn');
-  c.textContent = up ? 'connected' : 'daemon unreachable: retrying';
+  c.textContent = up ? 'connected' : why;
   c.className = `pill ${up ? 'ok' : 'danger'}`;
+  probe.connection = c.textContent;
 }
 
 // Whether the E-STOP will work from this page: from this computer it needs no key; from
@@ -256,20 +271,28 @@ let caller = null; // { name, role } from GET /api/v1/whoami
 async function checkEstop() {
   const st = $('estop-state');
   try {
-    const r = await pageFetch('/api/v1/whoami', { headers: headers() });
+    const r = await pageFetch('/api/v1/whoami', { headers: headers() }, POLL_TIMEOUT_MS);
     if (r.ok) {
       caller = await r.json();
       st.textContent = caller.name === 'loopback' ? 'armed: works from this computer without a key' : `armed: key ${caller.name} (${caller.role})`;
       st.className = 'estop-state armed';
-    } else {
+    } else if (r.status === 401 || r.status === 403) {
       caller = null;
       st.textContent = 'NOT armed from this machine: enter a key (any role) to e-stop from here';
       st.className = 'estop-state disarmed';
+    } else {
+      // Busy (503), timed out on its side (408), or anything else: the key may be
+      // fine, but whether the E-STOP would be heard is not known.
+      caller = null;
+      st.textContent = `E-STOP state unknown: the daemon answered ${r.status}${r.statusText ? ` ${r.statusText}` : ''}; in doubt, use the hardware emergency stop`;
+      st.className = 'estop-state unknown';
     }
   } catch (e) {
     if (e.name === 'AbortError') return;
     caller = null;
-    st.textContent = 'DAEMON UNREACHABLE: use the hardware emergency stop';
+    st.textContent = e.name === 'TimeoutError'
+      ? `DAEMON NOT ANSWERING (nothing in ${POLL_TIMEOUT_MS / 1000} s): use the hardware emergency stop`
+      : 'DAEMON UNREACHABLE: use the hardware emergency stop';
     st.className = 'estop-state unreachable';
   }
   probe.estop = st.className.replace('estop-state ', '');
@@ -283,14 +306,24 @@ async function checkEstop() {
 const ESTOP_HINT_MS = 3000;
 const ESTOP_TIMEOUT_MS = 11000;
 
+// The E-STOP's report has a place of its own, which nothing else on the page writes:
+// a failure stays in view until the operator dismisses it or presses again.
+function estopReport(text, kind = 'error') {
+  $('estop-text').textContent = text;
+  $('estop-report').className = kind;
+  $('estop-report').hidden = !text;
+  probe.estopReport = text;
+}
+$('estop-dismiss').addEventListener('click', () => estopReport(''));
+
 $('estop').addEventListener('click', async () => {
   const t0 = performance.now();
   // Whatever the page is waiting for gives its connection to the E-STOP.
   cancelPageRequests();
   probe.cancelledForEstop = (probe.cancelledForEstop || 0) + 1;
-  banner('E-STOP sent…', 'error');
+  estopReport('E-STOP sent…');
   const hint = setTimeout(() => {
-    banner(`E-STOP: no answer after ${ESTOP_HINT_MS / 1000} s: press the HARDWARE emergency stop on the laser controller now (still waiting for the daemon's report)`);
+    estopReport(`E-STOP: no answer after ${ESTOP_HINT_MS / 1000} s: press the HARDWARE emergency stop on the laser controller now (still waiting for the daemon's report)`);
   }, ESTOP_HINT_MS);
   try {
     const resp = await fetch('/api/v1/estop', { method: 'POST', headers: headers(), signal: AbortSignal.timeout(ESTOP_TIMEOUT_MS) });
@@ -303,14 +336,14 @@ $('estop').addEventListener('click', async () => {
     if (r.warnings?.length) parts.push(`warnings: ${r.warnings.join('; ')}`);
         // Green only when the laser is confirmed off and the arms parked.
     const laserOff = typeof r.laser === 'string' && r.laser.startsWith('off');
-    banner(parts.join(' · '), laserOff && r.parked ? 'notice' : 'error');
+    estopReport(parts.join(' · '), laserOff && r.parked ? 'notice' : 'error');
   } catch (e) {
     if (e.name === 'TimeoutError') {
-      banner(`E-STOP got no answer within ${ESTOP_TIMEOUT_MS / 1000} s: press the HARDWARE emergency stop on the laser controller now.`);
+      estopReport(`E-STOP got no answer within ${ESTOP_TIMEOUT_MS / 1000} s: press the HARDWARE emergency stop on the laser controller now.`);
     } else if (e instanceof TypeError) {
-      banner('E-STOP could not reach the daemon: press the HARDWARE emergency stop on the laser controller now.');
+      estopReport('E-STOP could not reach the daemon: press the HARDWARE emergency stop on the laser controller now.');
     } else {
-      banner(`E-STOP refused (${e.message}): press the HARDWARE emergency stop on the laser controller now.`);
+      estopReport(`E-STOP refused (${e.message}): press the HARDWARE emergency stop on the laser controller now.`);
     }
   } finally {
     clearTimeout(hint);
@@ -418,9 +451,15 @@ $('import-method').addEventListener('change', () => {
 });
 
 // Uploads with XMLHttpRequest, which reports the upload's progress (fetch does not).
+// The E-STOP cancels an upload as it cancels the polls (`inflight`): it holds a
+// connection the E-STOP may need.
 function uploadForm(path, form, onProgress) {
   return new Promise((resolve, reject) => {
     const xhr = new XMLHttpRequest();
+    const ctl = { abort: () => xhr.abort() };
+    inflight.add(ctl);
+    xhr.onloadend = () => inflight.delete(ctl);
+    xhr.onabort = () => reject(new DOMException('cancelled for the E-STOP', 'AbortError'));
     xhr.open('POST', path);
     if (token) xhr.setRequestHeader('Authorization', `Bearer ${token}`);
     xhr.upload.onprogress = (e) => { if (e.lengthComputable) onProgress(e.loaded / e.total); };
@@ -458,8 +497,14 @@ $('import-go').addEventListener('click', async () => {
     select(st.id);
     banner(`${file.name} imported: run ${st.id} queued`, 'notice', st.id);
   } catch (e) {
-    $('import-status').textContent = '';
-    banner(`import refused: ${e.message}`);
+    if (e.name === 'AbortError') {
+      // The file may have reached the daemon before the cancel: the runs list says.
+      $('import-status').textContent = `upload of ${file.name} cancelled by the E-STOP: check the runs list before importing it again`;
+      probe.importCancelled = (probe.importCancelled || 0) + 1;
+    } else {
+      $('import-status').textContent = '';
+      banner(`import refused: ${e.message}`);
+    }
   } finally {
     importing = false;
     progress.hidden = true;
@@ -600,7 +645,7 @@ let runsAsked = 0;
 async function refreshRuns() {
   const asked = ++runsAsked;
   try {
-    const r = await pageFetch(runsQuery(), { headers: headers({}) });
+    const r = await pageFetch(runsQuery(), { headers: headers({}) }, POLL_TIMEOUT_MS);
     if (!r.ok) throw new Error(`runs: ${r.status}`);
     const total = r.headers.get('x-total-count');
     const list = (await r.json()).reverse();
@@ -612,6 +657,7 @@ async function refreshRuns() {
     setConnection(true);
   } catch (e) {
     if (e instanceof TypeError) setConnection(false);
+    else if (e.name === 'TimeoutError') setConnection(false, NOT_ANSWERING);
     return;
   }
   renderRuns();
@@ -632,7 +678,7 @@ async function refreshAudit() {
   if (document.hidden) return;
   let page;
   try {
-    page = await api('GET', '/api/v1/audit?limit=20');
+    page = await api('GET', '/api/v1/audit?limit=20', undefined, POLL_TIMEOUT_MS);
   } catch (e) {
     return;
   }
@@ -1277,7 +1323,7 @@ async function refresh() {
 
 async function checkQueue() {
     try {
-    queueLock = (await api('GET', '/api/v1/queue')).lock;
+    queueLock = (await api('GET', '/api/v1/queue', undefined, POLL_TIMEOUT_MS)).lock;
   } catch (e) {
     if (e.name === 'AbortError') return;
     // Not known: Submit waits until it is.

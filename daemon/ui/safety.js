@@ -7,6 +7,10 @@
 import { readEvents } from '/ui/sse.js';
 
 const STREAM_STALE_MS = 2000;
+// A connection with no event for this long is given up and opened again: the daemon
+// sends one every 0.5 s, and a connection that went silent (a stalled proxy, a network
+// that dropped it without a reset) would otherwise never be noticed.
+const STREAM_SILENT_MS = 4000;
 // Signal counts per laser pulse past which pile-up distorts the histograms (the usual
 // TCSPC rule: keep below 5 %).
 const PILE_UP_ALARM = 0.05;
@@ -92,6 +96,8 @@ export function startSafety({ headers, probe, setConnection }) {
       unknown = 'no live data from the daemon';
     } else if (s.age_s == null || s.emission == null) {
       unknown = 'the laser has not been read yet';
+    } else if (!Number.isFinite(s.age_s) || !Number.isFinite(s.stale_after_s)) {
+      unknown = 'the daemon sent a reading without its age or its limit';
     } else if (s.age_s + (now - last.at) / 1000 > s.stale_after_s) {
       unknown = `the last reading is ${(s.age_s + (now - last.at) / 1000).toFixed(0)} s old (limit ${s.stale_after_s.toFixed(0)} s)${s.note ? `: ${s.note}` : ''}`;
     }
@@ -116,7 +122,7 @@ export function startSafety({ headers, probe, setConnection }) {
       word('sb-emission', s.emission ? 'LASER ON' : 'laser off', s.emission ? 'danger' : 'ok');
             word('sb-interlock', s.interlock_closed == null ? 'interlock ?' : s.interlock_closed ? 'interlock closed' : 'INTERLOCK OPEN', s.interlock_closed === false ? 'danger' : s.interlock_closed ? 'ok' : '');
       word('sb-diffuser', s.diffuser_in == null ? 'diffuser ?' : s.diffuser_in ? 'diffuser in' : 'diffuser out', '');
-      const a = (v) => (v ? `${v[0].toFixed(2)}°, ${v[1].toFixed(2)}°` : '–');
+      const a = (v) => (Array.isArray(v) && v.length === 2 && v.every(Number.isFinite) ? `${v[0].toFixed(2)}°, ${v[1].toFixed(2)}°` : '–');
       word('sb-arms', `laser arm (${a(s.laser_deg)}) · SPAD arm (${a(s.spad_deg)})`, '');
       const rate = s.signal_rate_hz ?? s.detector_rate_hz;
       word('sb-rate', rate == null ? 'rate –' : `${Math.round(rate).toLocaleString()} counts/s${s.signal_rate_hz != null ? ' signal' : ' detector'}`, '');
@@ -139,6 +145,14 @@ export function startSafety({ headers, probe, setConnection }) {
     for (;;) {
       while (document.hidden) await new Promise((ok) => setTimeout(ok, 500));
       abort = new AbortController();
+      const ctl = abort;
+      let heard = performance.now();
+      const watchdog = setInterval(() => {
+        if (performance.now() - heard > STREAM_SILENT_MS) {
+          probe.safetySilences = (probe.safetySilences || 0) + 1;
+          ctl.abort();
+        }
+      }, 500);
       try {
         const r = await fetch('/api/v1/instrument/events', { headers: headers(), signal: abort.signal });
         if (!r.ok) throw new Error(`instrument events: ${r.status}`);
@@ -148,6 +162,7 @@ export function startSafety({ headers, probe, setConnection }) {
         streamUp = true;
         delay = 500;
         await readEvents(r, (name, s) => {
+          heard = performance.now();
           if (name !== 'safety') return;
           last = { s, at: performance.now() };
           push(s);
@@ -155,6 +170,8 @@ export function startSafety({ headers, probe, setConnection }) {
         });
       } catch (e) {
         if (e instanceof TypeError && !document.hidden) setConnection(false);
+      } finally {
+        clearInterval(watchdog);
       }
       abort?.abort();
       streamUp = false;
