@@ -429,17 +429,35 @@ pub fn parse_expiry(s: &str, now_unix_s: f64) -> Result<f64, String> {
         'm' => Some(60.0),
         _ => None,
     };
-    if let Some(scale) = scale
+    let at = if let Some(scale) = scale
         && let Ok(n) = s[..s.len() - 1].parse::<f64>()
         && n.is_finite()
         && n > 0.0
     {
-        return Ok(now_unix_s + n * scale);
+        now_unix_s + n * scale
+    } else {
+        parse_time(s).map_err(|_| {
+            format!("`{s}`: give a duration (90d, 12h, 30m) or a time (2027-01-31 or 2027-01-31T12:00:00Z)")
+        })?
+    };
+    // A time the keys file and `keys list` can hold and show: an overflowing duration
+    // must not become a key that never expires.
+    if at.is_nan() || at > LATEST_EXPIRY_UNIX_S {
+        return Err(format!(
+            "`{s}` ends after 9999-12-31: leave the expiry out for a key that never expires"
+        ));
     }
-    parse_time(s).map_err(|_| {
-        format!("`{s}`: give a duration (90d, 12h, 30m) or a time (2027-01-31 or 2027-01-31T12:00:00Z)")
-    })
+    if at <= now_unix_s {
+        return Err(format!(
+            "`{s}` is already past ({}): give a time to come",
+            format_time(at)
+        ));
+    }
+    Ok(at)
 }
+
+/// 9999-12-31T23:59:59Z: the latest expiry a key may have.
+const LATEST_EXPIRY_UNIX_S: f64 = 253_402_300_799.0;
 
 /// Unix seconds of an RFC 3339 time or a date (midnight UTC).
 pub fn parse_time(s: &str) -> Result<f64, String> {
@@ -544,6 +562,20 @@ mod tests {
         assert_eq!(parse_expiry("1970-01-01T01:00:00Z", 0.0).unwrap(), 3600.0);
         assert!(parse_expiry("soon", 0.0).is_err());
         assert!(parse_expiry("-3d", 0.0).is_err());
+        // Overflowing durations were `inf`, written to keys.json as null: never.
+        for huge in ["1e308d", "1e300h", "4000000d"] {
+            let e = parse_expiry(huge, 1.8e9).unwrap_err();
+            assert!(
+                e.contains("9999-12-31") && e.contains("leave the expiry out"),
+                "{e}"
+            );
+        }
+        assert!(parse_expiry("9999-12-31", 1.8e9).is_ok());
+        let e = parse_expiry("2020-01-01", 1.8e9).unwrap_err();
+        assert!(
+            e.contains("already past") && e.contains("2020-01-01T00:00:00Z"),
+            "{e}"
+        );
         assert_eq!(format_time(86_400.0), "1970-01-02T00:00:00Z");
     }
 }

@@ -181,6 +181,18 @@ pub enum AdminError {
     /// A value on the command line is not acceptable.
     #[error("{0}")]
     Usage(String),
+    /// The runs directory a command reads is not there.
+    #[error(
+        "the runs directory {} {why}: check `[api] runs-dir` in the instrument config \
+         (--instrument); `periscope serve` makes it when it first starts",
+        path.display()
+    )]
+    NoRunsDir {
+        /// The directory the config names.
+        path: PathBuf,
+        /// "does not exist", "is not a directory".
+        why: &'static str,
+    },
     /// A run's files could not be changed.
     #[error("{}: {source}", path.display())]
     Io {
@@ -205,6 +217,25 @@ fn runs_dir(instrument: &crate::config::InstrumentArg) -> Result<PathBuf, AdminE
     Ok(instrument.load()?.api.runs_dir)
 }
 
+/// The runs directory of a command that reads it or changes what is in it: it must be
+/// there already. A mistyped `runs-dir` must not leave a new empty directory behind
+/// and report no runs, no keys and no audit entries as if that were the instrument's.
+fn existing_runs_dir(instrument: &crate::config::InstrumentArg) -> Result<PathBuf, AdminError> {
+    let path = runs_dir(instrument)?;
+    match std::fs::metadata(&path) {
+        Ok(m) if m.is_dir() => Ok(path),
+        Ok(_) => Err(AdminError::NoRunsDir {
+            path,
+            why: "is not a directory",
+        }),
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => Err(AdminError::NoRunsDir {
+            path,
+            why: "does not exist",
+        }),
+        Err(source) => Err(AdminError::Io { path, source }),
+    }
+}
+
 fn time_arg(v: &Option<String>, flag: &str) -> Result<Option<f64>, AdminError> {
     v.as_deref()
         .map(|t| parse_time(t).map_err(|m| AdminError::Usage(format!("--{flag}: {m}"))))
@@ -221,17 +252,17 @@ pub fn runs(args: RunsArgs) -> Result<(), AdminError> {
             remove,
         }) => {
             let (add, rm) = if remove { (vec![], tags) } else { (tags, vec![]) };
-            annotate(&runs_dir(&instrument)?, &id, &add, &rm, None)
+            annotate(&existing_runs_dir(&instrument)?, &id, &add, &rm, None)
         }
         Some(RunsCommand::Note { instrument, id, text }) => {
-            annotate(&runs_dir(&instrument)?, &id, &[], &[], Some(&text))
+            annotate(&existing_runs_dir(&instrument)?, &id, &[], &[], Some(&text))
         }
         None => list(&args.list),
     }
 }
 
 fn list(a: &RunsList) -> Result<(), AdminError> {
-    let dir = runs_dir(&a.instrument)?;
+    let dir = existing_runs_dir(&a.instrument)?;
     let states = match &a.state {
         Some(s) => s
             .split(',')
@@ -329,8 +360,8 @@ fn annotate(
 /// `periscope catalogue`.
 pub fn catalogue(cmd: CatalogueCommand) -> Result<(), AdminError> {
     let (dir, rebuild) = match &cmd {
-        CatalogueCommand::Rebuild { instrument } => (runs_dir(instrument)?, true),
-        CatalogueCommand::Sync { instrument } => (runs_dir(instrument)?, false),
+        CatalogueCommand::Rebuild { instrument } => (existing_runs_dir(instrument)?, true),
+        CatalogueCommand::Sync { instrument } => (existing_runs_dir(instrument)?, false),
     };
     let t = std::time::Instant::now();
     let (cat, report) = if rebuild {
@@ -400,7 +431,7 @@ pub fn keys(cmd: KeysCommand) -> Result<(), AdminError> {
             Ok(())
         }
         KeysCommand::List { instrument } => {
-            let dir = runs_dir(&instrument)?;
+            let dir = existing_runs_dir(&instrument)?;
             let keys = KeyStore::open(&dir, None)
                 .read()
                 .map_err(|source| AdminError::Io {
@@ -433,7 +464,7 @@ pub fn keys(cmd: KeysCommand) -> Result<(), AdminError> {
             Ok(())
         }
         KeysCommand::Revoke { instrument, name } => {
-            let dir = runs_dir(&instrument)?;
+            let dir = existing_runs_dir(&instrument)?;
             let rec = KeyStore::open(&dir, None).revoke(&name)?;
             // Revoked now, whatever the audit trail says.
             println!("key `{}` revoked", rec.name);
@@ -463,7 +494,7 @@ fn audit_change(dir: &Path, entry: &AuditEntry) -> Result<(), AdminError> {
 
 /// `periscope audit`.
 pub fn audit(a: AuditArgs) -> Result<(), AdminError> {
-    let dir = runs_dir(&a.instrument)?;
+    let dir = existing_runs_dir(&a.instrument)?;
     let cat = Catalogue::open(&dir)?;
     let page = cat.audit(&AuditQuery {
         since: time_arg(&a.since, "since")?,

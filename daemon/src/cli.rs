@@ -751,6 +751,7 @@ impl CliError {
             CliError::Admin(
                 crate::admin::AdminError::Config(_)
                 | crate::admin::AdminError::Usage(_)
+                | crate::admin::AdminError::NoRunsDir { .. }
                 | crate::admin::AdminError::Keys(crate::access::KeysError::Invalid(_)),
             ) => true,
             CliError::OutIsRun(_)

@@ -442,10 +442,26 @@ impl Drop for RefusedWrites {
 }
 
 /// Reads a UTF-8 text file of at most `limit` bytes; a larger file is refused before
-/// anything is read, so a file that grew (or was replaced) cannot exhaust memory.
+/// anything is read, so a file that grew (or was replaced) cannot exhaust memory. Only a
+/// regular file is read: a FIFO, a device or a directory in its place is refused at
+/// once (opened without blocking, so a FIFO with no writer cannot hang the caller).
 pub fn read_text_capped(path: &Path, limit: u64) -> io::Result<String> {
-    let file = File::open(path)?;
-    let len = file.metadata()?.len();
+    use std::os::unix::fs::OpenOptionsExt as _;
+    let file = std::fs::OpenOptions::new()
+        .read(true)
+        .custom_flags(libc::O_NONBLOCK)
+        .open(path)?;
+    let meta = file.metadata()?;
+    if !meta.is_file() {
+        return Err(io::Error::new(
+            io::ErrorKind::InvalidInput,
+            format!(
+                "{} is not a regular file (a FIFO, a device or a directory): move it aside",
+                path.display()
+            ),
+        ));
+    }
+    let len = meta.len();
     if len > limit {
         return Err(io::Error::new(
             io::ErrorKind::InvalidData,

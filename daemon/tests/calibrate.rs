@@ -352,6 +352,46 @@ fn a_gated_spad_is_named_when_no_spot_is_seen() {
     assert_safe(&sim);
 }
 
+/// A spot the configured poses place outside the SPAD arm's limits is named so, with
+/// the limits' key, not blamed on a gated SPAD (a review, 2026-12-06).
+#[test]
+fn a_spot_outside_the_spad_arms_limits_names_them() {
+    let text = std::fs::read_to_string(root().join("configs/instrument/sim.toml"))
+        .unwrap()
+        .replace("[sim]\n", "[sim]\ndevices = \"in-process\"\n");
+    // The SPAD arm's limits narrowed to ±1° (its section is the second): the range grid
+    // still sees the wall, but the spots lie a few degrees out.
+    let spad = text.find("[galvo.spad]").expect("sim.toml has [galvo.spad]");
+    let (head, tail) = text.split_at(spad);
+    let tail = tail.replacen(
+        "angle-limits-deg = { x = [-20.0, 20.0], y = [-20.0, 20.0] }",
+        "angle-limits-deg = { x = [-1.0, 1.0], y = [-1.0, 1.0] }",
+        1,
+    );
+    assert!(
+        tail.contains("x = [-1.0, 1.0]"),
+        "the SPAD limits were not narrowed"
+    );
+    let config =
+        InstrumentConfig::from_source(&instrument(Some(&format!("{head}{tail}")), false, None)).unwrap();
+    let sim = backend(&config);
+    let settings = Settings {
+        grid: 4,
+        spot_search: 4e-3,
+        ..Settings::default()
+    };
+    let err = measure(&config, &sim, &settings).unwrap_err();
+    assert!(matches!(err, CalibrateError::SpotOutsideLimits { .. }), "{err}");
+    let text = err.to_string();
+    assert!(
+        text.contains("galvo.spad.angle-limits-deg")
+            && text.contains("x [-1.0, 1.0]")
+            && !text.contains("gated"),
+        "{text}"
+    );
+    assert_safe(&sim);
+}
+
 #[test]
 fn too_few_or_degenerate_measurements_are_refused_by_name() {
     let nominal = InstrumentConfig::from_source(&instrument(None, false, None)).unwrap();

@@ -1063,4 +1063,106 @@ fn key_and_audit_commands_say_what_is_wrong_with_their_files() {
     let (code, out, err) = periscope(&["keys", "list"]);
     assert_eq!(code, Some(1), "{out} / {err}");
     assert!(err.contains("keys.json") && err.contains("restore it"), "{err}");
+
+    // A FIFO in its place: refused at once, not read forever (it hung `keys list`).
+    std::fs::remove_file(dir.path().join("keys.json")).unwrap();
+    let made = std::process::Command::new("mkfifo")
+        .arg(dir.path().join("keys.json"))
+        .status()
+        .unwrap();
+    assert!(made.success());
+    let mut child = std::process::Command::new(env!("CARGO_BIN_EXE_periscope"))
+        .args(["keys", "list", "--instrument"])
+        .arg(dir.path().join("instrument.toml"))
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    let t = Instant::now();
+    while child.try_wait().unwrap().is_none() {
+        if t.elapsed() > Duration::from_secs(20) {
+            child.kill().unwrap();
+            panic!("`periscope keys list` still reading a FIFO keys.json after 20 s");
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    let out = child.wait_with_output().unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(1), "{err}");
+    assert!(
+        err.contains("keys.json") && err.contains("not a regular file"),
+        "{err}"
+    );
+    std::fs::remove_file(dir.path().join("keys.json")).unwrap();
+
+    // An expiry past what a keys file can hold was `inf`, stored as null: never.
+    let (code, _, err) = periscope(&[
+        "keys",
+        "create",
+        "dave",
+        "--role",
+        "observer",
+        "--expires",
+        "1e308d",
+    ]);
+    assert_eq!(code, Some(2), "{err}");
+    assert!(err.contains("--expires") && err.contains("9999-12-31"), "{err}");
+    let (_, out, _) = periscope(&["keys", "list"]);
+    assert!(!out.contains("dave"), "{out}");
+
+    // A runs directory that is not there (a mistyped `runs-dir`): every command that
+    // reads it says so, exit 2, and none makes it.
+    let other = tempfile::tempdir().unwrap();
+    let missing = other.path().join("no-such-runs");
+    let src = common::sim_instrument(&missing, 0.0, "", "");
+    let periscope = cli(other.path(), &src);
+    for args in [
+        &["runs"][..],
+        &["runs", "tag", "some-run", "x"],
+        &["audit"],
+        &["keys", "list"],
+        &["keys", "revoke", "carol"],
+        &["catalogue", "sync"],
+        &["catalogue", "rebuild"],
+    ] {
+        let (code, out, err) = periscope(args);
+        assert_eq!(code, Some(2), "{args:?}: {out} / {err}");
+        assert!(
+            err.contains("does not exist") && err.contains("runs-dir") && err.contains("no-such-runs"),
+            "{args:?}: {err}"
+        );
+        assert!(!missing.exists(), "{args:?} made the runs directory");
+    }
+}
+
+/// The daemon takes the catalogue's lock before it opens the catalogue (a review,
+/// 2026-12-06): a `periscope catalogue rebuild` under way (the lock held exclusively,
+/// the old file removed and a new one being written) finishes first, so the daemon
+/// never keeps a connection to the file the rebuild replaced.
+#[test]
+fn the_daemon_opens_the_catalogue_only_once_it_holds_the_lock() {
+    use periscope_daemon::catalogue::{CATALOGUE_FILE, LOCK_FILE};
+    let dir = tempfile::tempdir().unwrap();
+    let lock = std::fs::File::create(dir.path().join(LOCK_FILE)).unwrap();
+    lock.lock().unwrap();
+    let src = common::sim_instrument(dir.path(), 0.0, "", "");
+    let (tx, rx) = std::sync::mpsc::channel();
+    let opening = std::thread::spawn(move || {
+        let svc = Service::open(src, None);
+        let _ = tx.send(());
+        svc
+    });
+    // Held off while the rebuild holds the lock, and the catalogue left untouched.
+    assert!(
+        rx.recv_timeout(Duration::from_millis(500)).is_err(),
+        "the daemon started while a rebuild held the catalogue"
+    );
+    assert!(
+        !dir.path().join(CATALOGUE_FILE).exists(),
+        "the daemon opened the catalogue before it held the lock"
+    );
+    drop(lock);
+    let svc = opening.join().unwrap().unwrap();
+    assert!(dir.path().join(CATALOGUE_FILE).is_file());
+    svc.shutdown();
 }

@@ -209,6 +209,30 @@ pub enum CalibrateError {
         /// Why.
         why: &'static str,
     },
+    /// A laser spot the configured poses place outside the SPAD arm's limits, where no
+    /// angle within them saw it.
+    #[error(
+        "laser angles ({:.2}°, {:.2}°): the configured poses put the spot at SPAD angles ({:.2}°, {:.2}°), \
+         outside the SPAD arm's limits (`galvo.spad.angle-limits-deg`: x [{:.1}, {:.1}], y [{:.1}, {:.1}]), \
+         and no angle within them saw it: check both arms' `origin` and `boresight`, or widen the SPAD \
+         arm's limits if it can turn that far",
+        laser.x.to_degrees(),
+        laser.y.to_degrees(),
+        expected.x.to_degrees(),
+        expected.y.to_degrees(),
+        limits.x[0].to_degrees(),
+        limits.x[1].to_degrees(),
+        limits.y[0].to_degrees(),
+        limits.y[1].to_degrees()
+    )]
+    SpotOutsideLimits {
+        /// The laser angles.
+        laser: OpticalAngles,
+        /// Where the configured poses put the spot, in SPAD angles.
+        expected: OpticalAngles,
+        /// The SPAD arm's limits.
+        limits: periscope_drivers::AngleLimits,
+    },
     /// Too few spots for the fit.
     #[error("only {0} laser spots were measured; the fit needs at least {MIN_SPOTS}")]
     TooFewSpots(usize),

@@ -322,10 +322,19 @@ impl Calibrator {
                 break;
             }
         }
-        let (mut centre, mut top) = found.ok_or(CalibrateError::NoSpot {
-            laser,
-            why: "no SPAD angle within the search saw it: check that the SPAD is not gated \
-                  and that the configured poses are within a degree or two of the truth",
+        let limits = self.config.spad_arm.limits;
+        let (mut centre, mut top) = found.ok_or(if limits.contains(expected) {
+            CalibrateError::NoSpot {
+                laser,
+                why: "no SPAD angle within the search saw it: check that the SPAD is not gated \
+                      and that the configured poses are within a degree or two of the truth",
+            }
+        } else {
+            CalibrateError::SpotOutsideLimits {
+                laser,
+                expected,
+                limits,
+            }
         })?;
         // The brightest of the neighbours, so the chords run through the spot's body.
         for _ in 0..8 {

@@ -413,8 +413,19 @@ fn lock_file(path: &Path) -> std::io::Result<std::fs::File> {
 /// Holds the catalogue of `runs_dir` shared (a daemon, for its life): a rebuild is
 /// refused meanwhile.
 pub fn hold(runs_dir: &Path) -> std::io::Result<std::fs::File> {
-    let f = lock_file(&runs_dir.join(LOCK_FILE))?;
-    f.lock_shared()?;
+    let path = runs_dir.join(LOCK_FILE);
+    let f = lock_file(&path)?;
+    match f.try_lock_shared() {
+        Ok(()) => {}
+        Err(std::fs::TryLockError::WouldBlock) => {
+            tracing::warn!(
+                "{}: a `periscope catalogue rebuild` is under way; waiting for it to finish",
+                path.display()
+            );
+            f.lock_shared()?;
+        }
+        Err(std::fs::TryLockError::Error(e)) => return Err(e),
+    }
     Ok(f)
 }
 

@@ -468,9 +468,12 @@ impl Service {
             })),
             Err(_) => None,
         };
-        let catalogue = Arc::new(crate::catalogue::Catalogue::open_unsynced(&runs_dir)?);
+        // The hold first: a `periscope catalogue rebuild` under way (it holds the lock
+        // exclusively while it replaces the file) finishes before the daemon opens the
+        // catalogue, so the daemon never keeps a connection to the file it replaced.
         let catalogue_hold = crate::catalogue::hold(&runs_dir)
             .map_err(ServiceError::storage(runs_dir.join(crate::catalogue::LOCK_FILE)))?;
+        let catalogue = Arc::new(crate::catalogue::Catalogue::open_unsynced(&runs_dir)?);
         let keys = crate::access::KeyStore::open(&runs_dir, token);
         for id in orphans {
             let dir = runs_dir.join(&id);
