@@ -329,7 +329,8 @@ pub fn replay(capture: &Path, config: Option<&Path>, out: &Path, order: Order) -
         "batches": batches,
     });
     let path = out.join(ADAPTIVE_JSON);
-    std::fs::write(&path, serde_json::to_vec_pretty(&record).expect("plain data")).map_err(io(&path))?;
+    crate::store::write_atomic(&path, &serde_json::to_vec_pretty(&record).expect("plain data"))
+        .map_err(io(&path))?;
     report(&result, out, clock, &events)?;
     println!("  {}", path.display());
     Ok(())

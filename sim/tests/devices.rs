@@ -656,6 +656,59 @@ fn an_emergency_park_lands_while_a_move_is_outstanding_and_latches() {
     assert!(rig.parked().1);
 }
 
+/// The firmware answers a `MOVE` an out-of-band `PARK` overrode with `ERR 9`, as
+/// docs/protocols/galvo-serial.md asks of a controller, not `OK SETTLED` at a target
+/// the pair never reached; a move no park touched is still answered settled.
+#[test]
+fn a_move_a_park_overrode_is_answered_interrupted() {
+    use periscope_drivers::galvo::protocol::{ErrorCode, Reply, decode_line};
+    let rig = rig();
+    let mut link = rig.galvo_connector(Arm::Spad).connect().unwrap();
+    // Reads lines until one with `tag` comes, for at most 3 s.
+    let mut pending = Vec::new();
+    let mut line_with = |link: &mut Box<dyn periscope_drivers::galvo::Link>, tag: u8| -> String {
+        let t = Instant::now();
+        loop {
+            while let Some(end) = pending.iter().position(|&b| b == b'\n') {
+                let line: Vec<u8> = pending.drain(..=end).collect();
+                let (got, body) = decode_line(&line[..line.len() - 1]).unwrap();
+                if got == tag {
+                    return body.to_owned();
+                }
+            }
+            assert!(
+                t.elapsed() < Duration::from_secs(3),
+                "no answer with tag {tag:02x}"
+            );
+            let mut buf = [0u8; 256];
+            let n = link.receive(&mut buf, Duration::from_millis(100)).unwrap_or(0);
+            pending.extend_from_slice(&buf[..n]);
+        }
+    };
+    rig.inject(Fault::Galvo(
+        Arm::Spad,
+        GalvoFault::Stall(Duration::from_millis(500)),
+    ));
+    link.send(encode_line(0x01, "MOVE 0.0500000 0.0500000").as_bytes())
+        .unwrap();
+    std::thread::sleep(Duration::from_millis(50));
+    link.send(encode_line(0x00, "PARK").as_bytes()).unwrap();
+    assert_eq!(line_with(&mut link, 0x00), "OK");
+    let moved = line_with(&mut link, 0x01);
+    assert_eq!(
+        Reply::parse(&moved),
+        Some(Reply::Err(Some(ErrorCode::Interrupted), "interrupted by park")),
+        "{moved}"
+    );
+    assert!(rig.parked().1);
+    // A move nothing overrode.
+    link.send(encode_line(0x02, "MOVE 0.0500000 0.0500000").as_bytes())
+        .unwrap();
+    let moved = line_with(&mut link, 0x02);
+    assert!(moved.starts_with("OK SETTLED 0.05"), "{moved}");
+    assert!(!rig.parked().1);
+}
+
 /// A port one host holds is refused to a second (the `serialport` crate opens ports
 /// exclusively), and the refusal says the port is held, not that the controller is
 /// unplugged; a path that is not there still says to check the cable and the path.

@@ -228,6 +228,9 @@ pub enum ErrorCode {
     NoLaser = 7,
     /// Internal fault (servo error, over-temperature).
     Fault = 8,
+    /// A `MOVE` an out-of-band `PARK` overrode before it settled: the pair is parked,
+    /// not at the move's target.
+    Interrupted = 9,
 }
 
 impl ErrorCode {
@@ -243,6 +246,7 @@ impl ErrorCode {
             InterlockOpen,
             NoLaser,
             Fault,
+            Interrupted,
         ]
         .into_iter()
         .find(|c| *c as u8 == n)
@@ -259,6 +263,7 @@ impl ErrorCode {
             ErrorCode::InterlockOpen => "interlock open",
             ErrorCode::NoLaser => "no laser on this controller",
             ErrorCode::Fault => "fault",
+            ErrorCode::Interrupted => "interrupted by park",
         }
     }
 
@@ -292,6 +297,10 @@ pub fn refusal(code: Option<ErrorCode>) -> (ErrorKind, &'static str) {
         Some(ErrorCode::Fault) => (
             ErrorKind::Device,
             "the controller reports a fault: power-cycle it",
+        ),
+        Some(ErrorCode::Interrupted) => (
+            ErrorKind::Interrupted,
+            "an emergency park overrode the move: the pair is parked at (0, 0)",
         ),
         Some(ErrorCode::UnknownCommand | ErrorCode::BadArgument) | None => (
             ErrorKind::Protocol,

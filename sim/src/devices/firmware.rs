@@ -170,8 +170,9 @@ impl Firmware {
     fn serve(&self, mut port: TTYPort) {
         let mut rx: Vec<u8> = Vec::with_capacity(protocol::MAX_LINE);
         let mut chunk = [0u8; 256];
-        // Replies waiting for their time (a settling move, an injected stall).
-        let mut due: Vec<(Instant, Vec<u8>)> = Vec::new();
+        // Replies waiting for their time (a settling move, an injected stall); a move's
+        // carries its tag, so that a move a `PARK` overrode meanwhile is answered so.
+        let mut due: Vec<(Instant, Vec<u8>, Option<u8>)> = Vec::new();
         loop {
             {
                 let Some(rig) = self.shared.upgrade() else { return };
@@ -180,16 +181,22 @@ impl Firmware {
                 }
             }
             let now = Instant::now();
-            let (ready, later): (Vec<_>, Vec<_>) = due.drain(..).partition(|(t, _)| *t <= now);
+            let (ready, later): (Vec<_>, Vec<_>) = due.drain(..).partition(|(t, _, _)| *t <= now);
             due = later;
-            for (_, bytes) in ready {
+            for (_, bytes, move_tag) in ready {
+                let bytes = match move_tag {
+                    Some(tag) if self.shared.upgrade().is_some_and(|rig| rig.parked(self.arm)) => {
+                        protocol::encode_line(tag, &ErrorCode::Interrupted.reply()).into_bytes()
+                    }
+                    _ => bytes,
+                };
                 if port.write_all(&bytes).and_then(|()| port.flush()).is_err() {
                     return;
                 }
             }
             let wait = due
                 .iter()
-                .map(|(t, _)| t.saturating_duration_since(now))
+                .map(|(t, _, _)| t.saturating_duration_since(now))
                 .fold(POLL, Duration::min)
                 .max(Duration::from_micros(20));
             let _ = port.set_timeout(wait);
@@ -232,7 +239,10 @@ impl Firmware {
                             return;
                         }
                     }
-                    Outcome::Reply(bytes, delay) => due.push((Instant::now() + delay, bytes)),
+                    Outcome::Reply(bytes, delay) => due.push((Instant::now() + delay, bytes, None)),
+                    Outcome::Move { reply, settle, tag } => {
+                        due.push((Instant::now() + settle, reply, Some(tag)))
+                    }
                     Outcome::Starve(bytes, pause) => {
                         if port.write_all(&bytes).and_then(|()| port.flush()).is_err() {
                             return;
@@ -259,6 +269,13 @@ impl Firmware {
 enum Outcome {
     /// Send these bytes after this long.
     Reply(Vec<u8>, Duration),
+    /// A `MOVE`'s `OK SETTLED`, sent once it has settled, unless an out-of-band `PARK`
+    /// overrode it meanwhile: then `ERR 9` with its tag.
+    Move {
+        reply: Vec<u8>,
+        settle: Duration,
+        tag: u8,
+    },
     /// Send these bytes now, then read nothing for this long.
     Starve(Vec<u8>, Duration),
     Silent,
@@ -275,22 +292,25 @@ fn answer(rig: &Shared, arm: Arm, line: &[u8]) -> Outcome {
     } else {
         rig.lock().arms[arm.index()].faults.pop_front()
     };
-    let (tag, body, mut delay) = match decoded {
+    let (tag, body, mut delay, moving) = match decoded {
         Ok((tag, body)) => {
             if arm == Arm::Laser {
                 // Every correctly framed line feeds the laser watchdog.
                 rig.lock().heard_host(Instant::now());
             }
             let (reply, settle) = handle(rig, arm, body);
-            (tag, reply, settle)
+            let moving = reply.starts_with("OK ") && matches!(Request::parse(body), Ok(Request::Move(_)));
+            (tag, reply, settle, moving)
         }
-        Err(LineError::Checksum(Some(tag))) => (tag, ErrorCode::BadChecksum.reply(), Duration::ZERO),
+        Err(LineError::Checksum(Some(tag))) => (tag, ErrorCode::BadChecksum.reply(), Duration::ZERO, false),
         Err(_) => {
             debug!(?arm, "firmware ignoring garbage");
             return Outcome::Silent;
         }
     };
     let mut reply = protocol::encode_line(tag, &body).into_bytes();
+    // A move's answer is decided when it is sent, unless a fault garbles or drops it.
+    let deferred = moving && matches!(fault, None | Some(GalvoFault::Stall(_)));
     match fault {
         None => {}
         Some(GalvoFault::DropReply) => return Outcome::Silent,
@@ -317,6 +337,13 @@ fn answer(rig: &Shared, arm: Arm, line: &[u8]) -> Outcome {
             }
             return Outcome::Unplug;
         }
+    }
+    if deferred {
+        return Outcome::Move {
+            reply,
+            settle: delay,
+            tag,
+        };
     }
     Outcome::Reply(reply, delay)
 }

@@ -292,6 +292,11 @@ impl Shared {
         a.settled_at = Instant::now() + settle;
     }
 
+    /// Whether an arm's last command was `PARK`.
+    pub(crate) fn parked(&self, arm: Arm) -> bool {
+        self.lock().arms[arm.index()].parked
+    }
+
     /// Motion state and position of an arm, and when it settles.
     pub(crate) fn motion(&self, arm: Arm) -> (MotionState, OpticalAngles, Instant) {
         let s = self.lock();
