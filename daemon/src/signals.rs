@@ -27,8 +27,35 @@ pub fn register_laser(off: EmergencyOff) {
     lasers.push(off);
 }
 
+/// A panic the hook saw: when, in which thread, what it said and where.
+#[derive(Clone, Debug)]
+pub struct PanicNote {
+    /// When the hook ran.
+    pub at: std::time::Instant,
+    /// The panicking thread's name (`unnamed` for a thread without one).
+    pub thread: String,
+    /// The panic's message and its source location.
+    pub message: String,
+}
+
+impl std::fmt::Display for PanicNote {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "a panic in thread `{}`: {}", self.thread, self.message)
+    }
+}
+
+/// The last panic in this process, for a run whose laser the hook switched off.
+static PANICKED: Mutex<Option<PanicNote>> = Mutex::new(None);
+
+/// The last panic in this process, if it came at or after `since`.
+pub fn panicked_since(since: std::time::Instant) -> Option<PanicNote> {
+    let last = PANICKED.lock().unwrap_or_else(|p| p.into_inner());
+    last.as_ref().filter(|p| p.at >= since).cloned()
+}
+
 /// Installs the panic hook (once per process): every registered laser off, then the
-/// usual report. The binary installs it at start; tests that inject panics too.
+/// panic noted ([`panicked_since`]), then the usual report. The binary installs it at
+/// start; tests that inject panics too.
 pub fn install_panic_hook() {
     static ONCE: Once = Once::new();
     ONCE.call_once(|| {
@@ -38,6 +65,24 @@ pub fn install_panic_hook() {
                 for off in lasers.iter() {
                     off.try_laser_off();
                 }
+            }
+            // Only after the lasers: formatting allocates.
+            let payload = info.payload();
+            let text = payload
+                .downcast_ref::<&str>()
+                .map(|s| (*s).to_owned())
+                .or_else(|| payload.downcast_ref::<String>().cloned())
+                .unwrap_or_else(|| "(no message)".into());
+            let note = PanicNote {
+                at: std::time::Instant::now(),
+                thread: std::thread::current().name().unwrap_or("unnamed").to_owned(),
+                message: match info.location() {
+                    Some(l) => format!("{text} (at {}:{})", l.file(), l.line()),
+                    None => text,
+                },
+            };
+            if let Ok(mut last) = PANICKED.try_lock() {
+                *last = Some(note);
             }
             report(info);
         }));

@@ -103,15 +103,19 @@ enum Event {
     Signal,
     DeviceError,
     Panic,
+    /// A panic in another thread of the process (a fit's, an API handler's): the panic
+    /// hook switches the laser off and latches it.
+    PanicElsewhere,
 }
 
-const EVENTS: [Event; 6] = [
+const EVENTS: [Event; 7] = [
     Event::Pause,
     Event::Abort,
     Event::Estop,
     Event::Signal,
     Event::DeviceError,
     Event::Panic,
+    Event::PanicElsewhere,
 ];
 
 /// What one case did.
@@ -146,6 +150,13 @@ fn fire(event: Event, stage: Stage, control: &Control, rig: &Rig, laser: &OnceLo
         }
         Event::DeviceError => rig.unplug_tdc(1_000),
         Event::Panic => control.inject_panic(stage),
+        Event::PanicElsewhere => {
+            let elsewhere = std::thread::Builder::new()
+                .name("elsewhere".into())
+                .spawn(|| panic!("injected in another thread"))
+                .unwrap();
+            assert!(elsewhere.join().is_err());
+        }
     }
 }
 
@@ -247,6 +258,11 @@ fn expected_state(stage: Stage, event: Event) -> RunState {
         // making the instrument safe reports the unplugged device.
         Event::DeviceError if stage == Stage::Reconstruction => RunState::Completed,
         Event::DeviceError | Event::Panic => RunState::Failed,
+        // The latch stops the run where it next needs the laser (at once while it
+        // measures, at the capture's switch-on before then): failed, naming the panic.
+        // After the capture it needs none, and completes.
+        Event::PanicElsewhere if stage == Stage::Reconstruction => RunState::Completed,
+        Event::PanicElsewhere => RunState::Failed,
     }
 }
 
@@ -262,6 +278,11 @@ fn check_stage_on(stage: Stage, devices: Devices) {
     let _serial = ONE_AT_A_TIME.lock().unwrap_or_else(|p| p.into_inner());
     let mut table = String::new();
     for event in EVENTS {
+        // While the run opens, no laser of its is open for the panic hook to switch
+        // off: a panic elsewhere then leaves the run alone.
+        if event == Event::PanicElsewhere && stage == Stage::Opening {
+            continue;
+        }
         let o = run_case(stage, event, devices);
         table.push_str(&format!(
             "{:<15} {:<12} off after {:>6.1} ms, run returned after {:>7.1} ms, state {:?}: {}\n",
@@ -291,6 +312,15 @@ fn check_stage_on(stage: Stage, devices: Devices) {
             let e = o.result.as_ref().unwrap_err();
             assert!(
                 e.contains("internal error in stage") && e.contains(stage.name()),
+                "{e}"
+            );
+        }
+        if event == Event::PanicElsewhere && stage != Stage::Reconstruction {
+            let e = o.result.as_ref().unwrap_err();
+            assert!(
+                e.contains("internal error")
+                    && e.contains("thread `elsewhere`")
+                    && e.contains("injected in another thread"),
                 "{e}"
             );
         }

@@ -36,6 +36,10 @@ pub struct Run {
     /// (a pause, a failure) records the part it ran, so a resumed stage's time is the
     /// sum of its parts.
     pub(super) stage_started: Option<Instant>,
+    /// When the run's laser was registered with the panic hook: a panic elsewhere in
+    /// the process since then, whose hook switched this laser off, fails the run as the
+    /// internal error it is ([`crate::signals::panicked_since`]).
+    pub(super) opened_at: Instant,
     /// The sync as the counter reads it since the laser last went on: from when its
     /// readings show it (the rate meter's latency after the switch-on), and whether
     /// this session has already waited for one and checked it.
@@ -268,6 +272,8 @@ impl Run {
                 return Err(stopped_before_start(dir, &mut info, &events, e));
             }
         };
+        // From here the panic hook can switch this run's laser off.
+        let opened_at = Instant::now();
         crate::signals::register_laser(devices.laser.emergency_off());
         // The laser's keepalive feeds the controller's watchdog only while this run
         // beats (at its checkpoints and stop polls): a run stuck with the laser on
@@ -285,6 +291,7 @@ impl Run {
             control,
             stage: Stage::Opening,
             stage_started: None,
+            opened_at,
             sync: SyncWatch::default(),
             _hold: hold,
         })

@@ -105,6 +105,21 @@ impl Run {
         }
     }
 
+    /// The panic hook switches every laser in the process off and latches its driver,
+    /// whichever thread panicked (a fit's, an API handler's). A laser found off, or a
+    /// switch-on refused, after such a panic is a bug's doing, not the controller's or
+    /// an operator's: the run fails as the internal error it is, naming the panic,
+    /// instead of waiting paused for a laser the latch keeps off.
+    fn panicked_elsewhere(&self) -> Result<(), PipelineError> {
+        match crate::signals::panicked_since(self.opened_at) {
+            Some(p) => Err(PipelineError::Panicked {
+                stage: self.stage.name(),
+                message: format!("{p}; the panic hook switched the laser off"),
+            }),
+            None => Ok(()),
+        }
+    }
+
     /// Switches the laser on to measure. After an emergency off (the e-stop, a signal,
     /// a shutdown) the driver refuses for good, however the two raced: the run then
     /// stops as the stop asked (aborted or paused), or, if nothing asked, is held
@@ -118,6 +133,7 @@ impl Run {
                 // the off): give it a moment to arrive, so the run ends as it asked.
                 self.await_stop_request();
                 self.checkpoint()?;
+                self.panicked_elsewhere()?;
                 Err(PipelineError::Suspended {
                     reason: e.to_string(),
                     pairs: self.info.pairs_done,
@@ -309,6 +325,9 @@ impl Run {
             self.await_stop_request();
         }
         self.checkpoint()?;
+        if matches!(s, Suspension::EmissionLost) {
+            self.panicked_elsewhere()?;
+        }
         let reason = s.reason();
         let mode = self.plan.suspend.resume;
         tracing::warn!(reason = %reason, "suspended: laser off");
