@@ -139,6 +139,19 @@ impl RunDir {
         RunDir { path: path.into() }
     }
 
+    /// The first of a run's data files (its histogram log, the log set aside by
+    /// recovery, its planned pairs, its relay) that `path` holds, if any.
+    pub fn leftover_data(path: &Path) -> Option<&'static str> {
+        [
+            file::HISTOGRAMS,
+            file::HISTOGRAMS_DAMAGED,
+            file::PAIRS,
+            file::RELAY,
+        ]
+        .into_iter()
+        .find(|f| path.join(f).symlink_metadata().is_ok())
+    }
+
     /// Whether `path` holds a run (it has a `run.json`).
     pub fn holds_run(path: &Path) -> bool {
         path.join(file::RUN).is_file()

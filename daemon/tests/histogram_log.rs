@@ -133,3 +133,46 @@ proptest! {
         }
     }
 }
+
+/// A failed sync (a disk that lost a write): the error is reported, no later sync of
+/// that log claims success (Linux reports a writeback error once; a retry would
+/// "succeed" with the data lost), and the next recovery writes the log out afresh from
+/// its records before the run counts them stored (a review, 2026-12-06).
+#[test]
+fn a_failed_sync_is_never_taken_back_and_recovery_writes_the_log_afresh() {
+    use periscope_daemon::store::{FAIL_NEXT_SYNC_IN, UNSYNCED_MARK};
+    let dir = tempfile::tempdir().unwrap();
+    let written: Vec<Record> = (0..6).map(|p| record(p, 16, 3)).collect();
+    let mut log = HistogramLog::create(dir.path()).unwrap();
+    for r in &written[..3] {
+        log.append(r).unwrap();
+    }
+    log.sync().unwrap();
+    for r in &written[3..] {
+        log.append(r).unwrap();
+    }
+    *FAIL_NEXT_SYNC_IN.lock().unwrap() = Some(dir.path().to_owned());
+    let e = log.sync().unwrap_err();
+    assert_eq!(e.raw_os_error(), Some(libc::EIO), "{e}");
+    // The injected failure is spent; a real disk would now let a retry through.
+    let again = log.sync().unwrap_err().to_string();
+    assert!(
+        again.contains("earlier sync") && again.contains("afresh"),
+        "{again}"
+    );
+    assert!(dir.path().join(UNSYNCED_MARK).exists());
+    drop(log);
+    let before = std::fs::metadata(dir.path().join(HISTOGRAM_LOG)).unwrap();
+    let (mut log, got) = HistogramLog::recover(dir.path()).unwrap();
+    assert_eq!(got.records, written);
+    assert!(!dir.path().join(UNSYNCED_MARK).exists());
+    // Written afresh: a new file in the log's place (not the one the failed sync left).
+    let after = std::fs::metadata(dir.path().join(HISTOGRAM_LOG)).unwrap();
+    use std::os::unix::fs::MetadataExt;
+    assert_ne!(before.ino(), after.ino(), "the log was not rewritten");
+    assert!(!dir.path().join(periscope_daemon::store::DAMAGED_LOG).exists());
+    log.append(&record(6, 16, 3)).unwrap();
+    log.sync().unwrap();
+    drop(log);
+    assert_eq!(read_log(dir.path()).unwrap().records.len(), 7);
+}

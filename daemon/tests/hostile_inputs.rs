@@ -150,3 +150,42 @@ fn a_confocal_solver_on_pairs_it_cannot_take_is_refused_with_the_plan() {
     }
     assert!(read(base.replace("method = \"fbp\"", "method = \"rsd\"")).is_ok());
 }
+
+/// A run's data left in a directory without its run.json (deleted, or a copy that left
+/// it out) is refused as a new run's `--out` (a review, 2026-12-06): the new run
+/// recovered that histogram log as its own, kept the old pairs under its own plan and
+/// instrument, and overwrote the old plan's copy. An empty directory, or one holding
+/// unrelated files, still takes a run.
+#[test]
+fn a_new_run_refuses_a_directory_holding_another_runs_data() {
+    use periscope_daemon::pipeline;
+    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
+    let plan = TomlSource::load(&root.join("configs/plans/demo.toml")).unwrap();
+    let inst = TomlSource::load(&root.join("configs/instrument/sim.toml")).unwrap();
+    let tmp = tempfile::tempdir().unwrap();
+    for leftover in [
+        "histograms.bin",
+        "histograms.bin.damaged",
+        "pairs.json",
+        "relay.ply",
+    ] {
+        let out = tmp.path().join(format!("left-{leftover}"));
+        std::fs::create_dir(&out).unwrap();
+        std::fs::write(out.join(leftover), b"the old run's bytes").unwrap();
+        std::fs::write(out.join("plan.toml"), "name = \"the old plan\"\n").unwrap();
+        let e = pipeline::prepare(&plan, &inst, Some(&out), "test").unwrap_err();
+        let text = e.to_string();
+        assert!(text.contains(leftover) && text.contains("no run.json"), "{text}");
+        assert_eq!(std::fs::read(out.join(leftover)).unwrap(), b"the old run's bytes");
+        assert_eq!(
+            std::fs::read_to_string(out.join("plan.toml")).unwrap(),
+            "name = \"the old plan\"\n",
+            "the old plan's copy was overwritten"
+        );
+    }
+    let notes = tmp.path().join("with-notes");
+    std::fs::create_dir(&notes).unwrap();
+    std::fs::write(notes.join("notes.txt"), b"bench set-up").unwrap();
+    pipeline::prepare(&plan, &inst, Some(&notes), "test").unwrap();
+    pipeline::prepare(&plan, &inst, Some(&tmp.path().join("new/nested")), "test").unwrap();
+}

@@ -96,13 +96,27 @@ pub fn prepare(
         .map_err(|m| PipelineError::Config(plan_src.invalid("pairs", m)))?;
     let dir = match out {
         Some(dir) => {
-            std::fs::create_dir_all(dir).map_err(|e| PipelineError::storage(dir, e))?;
+            crate::store::create_dir_durably(dir).map_err(|e| PipelineError::storage(dir, e))?;
             if RunDir::holds_run(dir) {
                 return Err(PipelineError::storage(
                     dir,
                     std::io::Error::new(
                         std::io::ErrorKind::AlreadyExists,
                         "already holds a run: use `periscope resume` to continue it, or choose another --out",
+                    ),
+                ));
+            }
+            // A run's data without its run.json (deleted, or a copy that left it out):
+            // a new run would recover that log as its own and keep pairs it never
+            // measured under another plan's name.
+            if let Some(found) = RunDir::leftover_data(dir) {
+                return Err(PipelineError::storage(
+                    dir,
+                    std::io::Error::new(
+                        std::io::ErrorKind::AlreadyExists,
+                        format!(
+                            "holds a run's data ({found}) but no run.json: a new run would take those records for its own; move them aside or choose another --out"
+                        ),
                     ),
                 ));
             }
