@@ -147,16 +147,40 @@ pub(crate) fn from_mat(mat: &Mat<'_>) -> Result<YtalCapture, YtalError> {
 }
 
 /// A MAT v5 file with its compressed top-level elements inflated in place (at most
-/// `limit` bytes in all), so the parser never inflates without a bound.
-pub fn inflate_elements(bytes: &[u8], limit: u64) -> Result<Vec<u8>, String> {
+/// `limit` bytes in all, or what this process can hold, whichever is less), so the
+/// parser never inflates without a bound, and an index of its top-level arrays. Each
+/// top-level element must be (or inflate to) one MATLAB array whose elements nest at
+/// most [`MAX_NESTING`] deep and hold no compressed element (MATLAB writes none
+/// there; the parser would inflate it without a bound, recursing once a level).
+pub fn inflate_elements(bytes: &[u8], limit: u64) -> Result<Inflated, String> {
     const HEADER: usize = 128;
     if bytes.len() < HEADER || bytes[126..128] != *b"IM" {
         return Err("not a little-endian MATLAB v5 file (MAT v7.3 files are HDF5, and read as such)".into());
     }
+    // The parser copies the inflated bytes and converts the values again: three times
+    // them must fit in what this process can still use.
+    let (limit, held) = match crate::io::memory_available() {
+        Some(available) if available / 3 < limit => (available / 3, true),
+        _ => (limit, false),
+    };
+    let past = || {
+        if held {
+            format!(
+                "its arrays take more than {:.1} GiB once inflated, more than a third of the memory this \
+                 process can still use (the parser holds them about three times over): read it on a machine \
+                 with more memory, or save a smaller capture",
+                limit as f64 / (1u64 << 30) as f64
+            )
+        } else {
+            format!("the compressed elements inflate past {limit} bytes, more than a capture may hold")
+        }
+    };
     let mut out = bytes[..HEADER].to_vec();
+    let mut arrays = Vec::new();
     let mut at = HEADER;
-    let mut inflated = 0u64;
+    let mut plain_bytes = 0u64;
     while at + 8 <= bytes.len() {
+        let start = at;
         let kind = u32::from_le_bytes(bytes[at..at + 4].try_into().expect("4 bytes"));
         let len = u32::from_le_bytes(bytes[at + 4..at + 8].try_into().expect("4 bytes")) as usize;
         let body = at + 8;
@@ -164,38 +188,198 @@ pub fn inflate_elements(bytes: &[u8], limit: u64) -> Result<Vec<u8>, String> {
             .checked_add(len)
             .filter(|&e| e <= bytes.len())
             .ok_or_else(|| format!("an element at byte {at} runs past the end of the file"))?;
-        match kind {
+        let element = match kind {
             MI_COMPRESSED => {
-                let left = limit.saturating_sub(inflated);
+                let left = limit.saturating_sub(plain_bytes);
                 let mut plain = Vec::new();
                 flate2::read::ZlibDecoder::new(&bytes[body..end])
                     .take(left + 1)
                     .read_to_end(&mut plain)
                     .map_err(|e| format!("a compressed element at byte {at} does not inflate: {e}"))?;
                 if plain.len() as u64 > left {
-                    return Err(format!(
-                        "the compressed elements inflate past {limit} bytes, more than a capture may hold"
-                    ));
+                    return Err(past());
                 }
-                inflated += plain.len() as u64;
-                out.extend_from_slice(&plain);
-                // An element written uncompressed is padded to 8 bytes.
-                out.resize(out.len().next_multiple_of(8), 0);
                 at = end;
+                plain
             }
             MI_MATRIX => {
-                out.extend_from_slice(&bytes[at..end]);
-                out.resize(out.len().next_multiple_of(8), 0);
+                let element = bytes[at..end].to_vec();
                 at = end.next_multiple_of(8).min(bytes.len());
+                element
             }
             other => {
                 return Err(format!(
                     "a top-level element of type {other} at byte {at}: not a MATLAB array"
                 ));
             }
+        };
+        plain_bytes += element.len() as u64;
+        if plain_bytes > limit {
+            return Err(past());
+        }
+        arrays.push(top_level_array(&element).map_err(|m| format!("the element at byte {start}: {m}"))?);
+        out.extend_from_slice(&element);
+        // An element written uncompressed is padded to 8 bytes.
+        out.resize(out.len().next_multiple_of(8), 0);
+    }
+    Ok(Inflated { bytes: out, arrays })
+}
+
+/// A MAT v5 file's bytes with its compressed elements inflated, and its arrays.
+pub struct Inflated {
+    /// The file, every top-level element plain.
+    pub bytes: Vec<u8>,
+    /// Its top-level arrays, in file order.
+    pub arrays: Vec<V5Array>,
+}
+
+/// A top-level MATLAB array of a MAT v5 file, as its header says.
+#[derive(Clone, Debug, PartialEq)]
+pub struct V5Array {
+    /// Its name.
+    pub name: String,
+    /// MATLAB's class number (`mxDOUBLE_CLASS` 6, `mxSTRUCT_CLASS` 2, …).
+    pub class: u8,
+    /// Whether it is complex.
+    pub complex: bool,
+    /// Its dims, as MATLAB reports them.
+    pub dims: Vec<usize>,
+}
+
+impl V5Array {
+    /// Whether its class is a numeric one (double, single, the integers).
+    pub fn numeric(&self) -> bool {
+        (6..=15).contains(&self.class)
+    }
+
+    /// Its class as MATLAB names it.
+    pub fn class_name(&self) -> &'static str {
+        match self.class {
+            1 => "cell",
+            2 => "struct",
+            3 => "object",
+            4 => "char",
+            5 => "sparse",
+            6 => "double",
+            7 => "single",
+            8 => "int8",
+            9 => "uint8",
+            10 => "int16",
+            11 => "uint16",
+            12 => "int32",
+            13 => "uint32",
+            14 => "int64",
+            15 => "uint64",
+            _ => "unknown",
         }
     }
-    Ok(out)
+}
+
+/// How deep MATLAB arrays may nest in a file read here (cells of structs of …).
+pub const MAX_NESTING: usize = 64;
+
+/// One tagged data element at `at` of `b`: its type, its data's range, and where the
+/// next element starts. The small form (type and length packed in one word, at most
+/// four bytes of data) is read too.
+fn tag(b: &[u8], at: usize) -> Result<(u32, std::ops::Range<usize>, usize), String> {
+    let word = |i: usize| {
+        b.get(i..i + 4)
+            .map(|w| u32::from_le_bytes(w.try_into().expect("4 bytes")))
+            .ok_or_else(|| format!("an element at byte {at} of an array is cut short"))
+    };
+    let first = word(at)?;
+    if first >> 16 != 0 {
+        let len = (first >> 16) as usize;
+        if len > 4 || at + 8 > b.len() {
+            return Err(format!("a small element at byte {at} of an array is malformed"));
+        }
+        return Ok((first & 0xffff, at + 4..at + 4 + len, at + 8));
+    }
+    let len = word(at + 4)? as usize;
+    let end = (at + 8)
+        .checked_add(len)
+        .filter(|&e| e <= b.len())
+        .ok_or_else(|| format!("an element at byte {at} of an array runs past its end"))?;
+    Ok((first, at + 8..end, end.next_multiple_of(8).min(b.len())))
+}
+
+/// The header of a top-level element (`miMATRIX` tag included), and a walk of every
+/// element nested in it: no compressed element, nesting at most [`MAX_NESTING`] deep
+/// (iterative: a file cannot exhaust the stack here).
+fn top_level_array(element: &[u8]) -> Result<V5Array, String> {
+    let (kind, body, _) = tag(element, 0)?;
+    if kind != MI_MATRIX {
+        return Err(format!(
+            "a compressed element holds an element of type {kind}, not a MATLAB array (MATLAB compresses \
+             only arrays, one an element)"
+        ));
+    }
+    let b = &element[body];
+    // Array flags, dims, name.
+    let (_, flags, next) = tag(b, 0)?;
+    let flags = b
+        .get(flags.start..flags.start + 4)
+        .map(|w| u32::from_le_bytes(w.try_into().expect("4 bytes")))
+        .ok_or("its array flags are cut short")?;
+    let (_, dims_at, next) = tag(b, next)?;
+    let dims = b[dims_at]
+        .chunks_exact(4)
+        .map(|c| usize::try_from(i32::from_le_bytes(c.try_into().expect("4 bytes"))))
+        .collect::<Result<Vec<usize>, _>>()
+        .map_err(|_| "a negative dim".to_owned())?;
+    let (_, name_at, next) = tag(b, next)?;
+    let name = String::from_utf8_lossy(&b[name_at]).into_owned();
+    let class = (flags & 0xff) as u8;
+    let mut stack = vec![(b, 0usize)];
+    while let Some((b, depth)) = stack.pop() {
+        if depth > MAX_NESTING {
+            return Err(format!("arrays nest more than {MAX_NESTING} deep"));
+        }
+        let mut at = 0;
+        while at + 8 <= b.len() {
+            let (kind, data, next) = tag(b, at)?;
+            match kind {
+                MI_COMPRESSED => {
+                    return Err(
+                        "a compressed element inside an array, which MATLAB never writes: the file is damaged \
+                         or not MATLAB's"
+                            .into(),
+                    );
+                }
+                MI_MATRIX => stack.push((&b[data], depth + 1)),
+                _ => {}
+            }
+            at = next;
+        }
+    }
+    // A numeric array's values must be as many as its dims say: the parser checks with
+    // a product that wraps in 32 bits, and its readers allocate from the dims.
+    if (6..=15).contains(&class) && next + 8 <= b.len() {
+        let (kind, real, _) = tag(b, next)?;
+        let size = match kind {
+            1 | 2 => 1,
+            3 | 4 => 2,
+            5..=7 => 4,
+            9 | 12 | 13 => 8,
+            other => {
+                return Err(format!(
+                    "`{name}`'s values are of element type {other}, not a number"
+                ));
+            }
+        };
+        let held = real.len() / size;
+        if dims.iter().try_fold(1usize, |n, &d| n.checked_mul(d)) != Some(held) {
+            return Err(format!(
+                "`{name}` has dims {dims:?} but holds {held} values: the file is damaged"
+            ));
+        }
+    }
+    Ok(V5Array {
+        name,
+        class,
+        complex: flags & 0x0800 != 0,
+        dims,
+    })
 }
 
 #[cfg(test)]
@@ -240,7 +424,7 @@ mod tests {
         // A compressed element that would inflate past the bound is refused, not followed.
         let fixture =
             std::fs::read(Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/lct-point.mat")).unwrap();
-        let e = inflate_elements(&fixture, 1000).unwrap_err();
+        let e = inflate_elements(&fixture, 1000).err().unwrap();
         assert!(e.contains("inflate past 1000 bytes"), "{e}");
         assert!(inflate_elements(&fixture, MAX_INFLATED_BYTES).is_ok());
         // An element claiming more bytes than the file has.
@@ -248,7 +432,8 @@ mod tests {
         cut.truncate(200);
         assert!(
             inflate_elements(&cut, MAX_INFLATED_BYTES)
-                .unwrap_err()
+                .err()
+                .unwrap()
                 .contains("past the end")
         );
     }

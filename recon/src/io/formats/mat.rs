@@ -22,8 +22,11 @@ pub(crate) struct Var<T> {
 pub(crate) enum Mat<'a> {
     /// MAT v5, parsed whole.
     V5 {
-        /// The parsed file.
+        /// The parsed file (its numeric arrays: matfile drops the rest).
         mat: matfile::MatFile,
+        /// Every top-level array as its header says, structs, cells, text and sparse
+        /// arrays included, so messages name what the file holds.
+        arrays: Vec<crate::io::lct::V5Array>,
         /// What messages name.
         path: &'a Path,
     },
@@ -52,7 +55,21 @@ impl Mat<'_> {
     /// `#refs#`/`#subsystem#` left out).
     pub(crate) fn names(&self) -> Vec<String> {
         let mut names: Vec<String> = match self {
-            Mat::V5 { mat, .. } => mat.arrays().iter().map(|a| a.name().to_owned()).collect(),
+            Mat::V5 { arrays, .. } => arrays
+                .iter()
+                .map(|a| {
+                    if a.numeric() && !a.complex {
+                        a.name.clone()
+                    } else {
+                        format!(
+                            "{} ({}{})",
+                            a.name,
+                            if a.complex { "complex " } else { "" },
+                            a.class_name()
+                        )
+                    }
+                })
+                .collect(),
             Mat::V73(r) => {
                 let root = r.file.root();
                 let mut n = root.datasets().unwrap_or_default();
@@ -68,7 +85,7 @@ impl Mat<'_> {
     /// Whether the file has variable (or struct field) `name`.
     pub(crate) fn has(&self, name: &str) -> bool {
         match self {
-            Mat::V5 { mat, .. } => mat.find_by_name(name).is_some(),
+            Mat::V5 { arrays, .. } => arrays.iter().any(|a| a.name == name),
             Mat::V73(r) => r.file.dataset(name).is_ok() || r.file.group(name).is_ok(),
         }
     }
@@ -76,20 +93,16 @@ impl Mat<'_> {
     /// Variable `name` as f64; `None` when absent or empty.
     pub(crate) fn var(&self, name: &str) -> Result<Option<Var<f64>>, YtalError> {
         match self {
-            Mat::V5 { mat, .. } => Ok(mat.find_by_name(name).and_then(|a| {
-                let values = v5_values(a.data(), |v| v);
-                (!values.is_empty()).then(|| Var {
-                    dims: a.size().clone(),
-                    values,
-                })
-            })),
-            Mat::V73(r) => match r.floats(name)? {
-                None => Ok(None),
-                Some((values, shape)) => Ok(Some(Var {
+            Mat::V5 { mat, arrays, .. } => self.v5_var(mat, arrays, name, |v| v),
+            Mat::V73(r) => {
+                if !v73_numeric(r, name).map_err(|m| self.error(m))? {
+                    return Ok(None);
+                }
+                Ok(r.floats(name)?.map(|(values, shape)| Var {
                     dims: matlab_dims(&shape),
                     values,
-                })),
-            },
+                }))
+            }
         }
     }
 
@@ -97,14 +110,11 @@ impl Mat<'_> {
     /// absent or empty.
     pub(crate) fn var_f32(&self, name: &str) -> Result<Option<Var<f32>>, YtalError> {
         match self {
-            Mat::V5 { mat, .. } => Ok(mat.find_by_name(name).and_then(|a| {
-                let values = v5_values(a.data(), |v| v as f32);
-                (!values.is_empty()).then(|| Var {
-                    dims: a.size().clone(),
-                    values,
-                })
-            })),
+            Mat::V5 { mat, arrays, .. } => self.v5_var(mat, arrays, name, |v| v as f32),
             Mat::V73(r) => {
+                if !v73_numeric(r, name).map_err(|m| self.error(m))? {
+                    return Ok(None);
+                }
                 let Ok(ds) = r.file.dataset(name) else {
                     return Ok(None);
                 };
@@ -122,6 +132,48 @@ impl Mat<'_> {
                 }))
             }
         }
+    }
+
+    /// A MAT v5 variable: a full, real, numeric array whose values are as many as its
+    /// dims say (matfile checks that with a product that wraps), converted by `f`, and
+    /// within the memory this process can use; `None` when absent or empty.
+    fn v5_var<T>(
+        &self,
+        mat: &matfile::MatFile,
+        arrays: &[crate::io::lct::V5Array],
+        name: &str,
+        f: impl Fn(f64) -> T,
+    ) -> Result<Option<Var<T>>, YtalError> {
+        let Some(header) = arrays.iter().find(|a| a.name == name) else {
+            return Ok(None);
+        };
+        if !header.numeric() {
+            return Err(self.error(format!(
+                "`{name}` is a {} array; it must be a full numeric array (save it with `full(...)` and \
+                 `double(...)`)",
+                header.class_name()
+            )));
+        }
+        if header.complex {
+            return Err(self.error(format!(
+                "`{name}` is complex; a capture's values are real (save `real(...)`, or the magnitudes, \
+                 if that is what was meant)"
+            )));
+        }
+        let Some(a) = mat.find_by_name(name) else {
+            return Err(self.error(format!("`{name}` cannot be read as a numeric array")));
+        };
+        let dims = a.size().clone();
+        let count = dims.iter().try_fold(1usize, |n, &d| n.checked_mul(d));
+        let held = v5_len(a.data());
+        if count != Some(held) {
+            return Err(self.error(format!(
+                "`{name}` has dims {dims:?} but holds {held} values: the file is damaged"
+            )));
+        }
+        super::super::ytal::memory_check(&dims, name).map_err(|m| self.error(m))?;
+        let values = v5_values(a.data(), f);
+        Ok((!values.is_empty()).then_some(Var { dims, values }))
     }
 
     /// Variable `name`, required.
@@ -149,6 +201,40 @@ impl Mat<'_> {
     }
 }
 
+/// Whether a MAT v7.3 variable `name` is there as a numeric array (`false`: absent);
+/// an error names what it is instead. MATLAB marks each array with its class
+/// (`MATLAB_class`): text is stored as uint16 character codes, a sparse array as a
+/// group, and read as numbers they would pass for a capture's values.
+fn v73_numeric(r: &Reader<'_>, name: &str) -> Result<bool, String> {
+    const NUMERIC: [&str; 11] = [
+        "double", "single", "int8", "uint8", "int16", "uint16", "int32", "uint32", "int64", "uint64",
+        "logical",
+    ];
+    let class = |attrs: std::collections::HashMap<String, hdf5_pure::AttrValue>| {
+        attrs.get("MATLAB_class").and_then(super::text_attr)
+    };
+    if let Ok(ds) = r.file.dataset(name) {
+        return match ds.attrs().ok().and_then(class) {
+            Some(c) if !NUMERIC.contains(&c.as_str()) => Err(format!(
+                "`{name}` is a MATLAB {c} array; it must be a full numeric array"
+            )),
+            _ => Ok(true),
+        };
+    }
+    if let Ok(g) = r.file.group(name) {
+        let attrs = g.attrs().unwrap_or_default();
+        let what = if attrs.contains_key("MATLAB_sparse") {
+            "sparse".to_owned()
+        } else {
+            class(attrs).unwrap_or_else(|| "struct".into())
+        };
+        return Err(format!(
+            "`{name}` is a MATLAB {what} array; it must be a full numeric array (save it with `full(...)`)"
+        ));
+    }
+    Ok(false)
+}
+
 /// MATLAB's dims of an array HDF5 stores with `shape`: reversed, at least two.
 fn matlab_dims(shape: &[usize]) -> Vec<usize> {
     let mut dims: Vec<usize> = shape.iter().rev().copied().collect();
@@ -158,7 +244,24 @@ fn matlab_dims(shape: &[usize]) -> Vec<usize> {
     dims
 }
 
-/// A v5 numeric array's real part, converted by `f`.
+/// How many values a v5 numeric array holds.
+fn v5_len(d: &matfile::NumericData) -> usize {
+    use matfile::NumericData as N;
+    match d {
+        N::Int8 { real, .. } => real.len(),
+        N::UInt8 { real, .. } => real.len(),
+        N::Int16 { real, .. } => real.len(),
+        N::UInt16 { real, .. } => real.len(),
+        N::Int32 { real, .. } => real.len(),
+        N::UInt32 { real, .. } => real.len(),
+        N::Int64 { real, .. } => real.len(),
+        N::UInt64 { real, .. } => real.len(),
+        N::Single { real, .. } => real.len(),
+        N::Double { real, .. } => real.len(),
+    }
+}
+
+/// A v5 numeric array's real part, converted by `f` (a complex one is refused before).
 fn v5_values<T>(d: &matfile::NumericData, f: impl Fn(f64) -> T) -> Vec<T> {
     use matfile::NumericData as N;
     match d {

@@ -41,6 +41,8 @@ pub(crate) const C: f64 = 299_792_458.0;
 enum Container {
     /// MATLAB v5 (`save`, scipy's `savemat`).
     MatV5,
+    /// MATLAB v5 written big-endian: refused by name.
+    MatV5BigEndian,
     /// HDF5, with or without a userblock (MAT v7.3 is HDF5 after 512 bytes).
     Hdf5,
     /// Neither.
@@ -50,6 +52,10 @@ enum Container {
 fn container(head: &[u8]) -> Container {
     if head.len() >= 128 && head[126..128] == *b"IM" && head[124..126] == [0x00, 0x01] {
         return Container::MatV5;
+    }
+    // A MAT v5 file written on a big-endian machine ("MI", version 0x0100).
+    if head.len() >= 128 && head[126..128] == *b"MI" && head[124..126] == [0x01, 0x00] {
+        return Container::MatV5BigEndian;
     }
     const SIGNATURE: &[u8; 8] = b"\x89HDF\r\n\x1a\n";
     // The HDF5 superblock sits at 0, 512, 1024, ... (a userblock before it).
@@ -110,6 +116,7 @@ pub fn read_capture(path: &Path) -> Result<YtalCapture, YtalError> {
             from_hdf5(file, path, meta.len(), path.parent())
         }),
         Container::Unknown => Err(not_a_capture(path)),
+        Container::MatV5BigEndian => Err(big_endian(path)),
     }
 }
 
@@ -128,7 +135,16 @@ pub fn capture_from_bytes(bytes: Vec<u8>, name: &Path) -> Result<YtalCapture, Yt
             })
         }
         Container::Unknown => Err(not_a_capture(name)),
+        Container::MatV5BigEndian => Err(big_endian(name)),
     }
+}
+
+fn big_endian(path: &Path) -> YtalError {
+    hdf5_error(
+        path,
+        "is a MATLAB v5 file written big-endian, which Periscope does not read: save it again with \
+         `save(..., '-v7.3')`, or with scipy's `savemat` (little-endian)",
+    )
 }
 
 fn not_a_capture(path: &Path) -> YtalError {
@@ -141,32 +157,29 @@ fn not_a_capture(path: &Path) -> YtalError {
 
 /// A MAT v5 file: its compressed elements inflated with a bound, parsed, dispatched.
 fn from_v5(bytes: &[u8], path: &Path, dir: Option<&Path>) -> Result<YtalCapture, YtalError> {
-    from_mat(
-        &Mat::V5 {
-            mat: parse_v5(bytes, path)?,
-            path,
-        },
-        dir,
-    )
+    from_mat(&parse_v5(bytes, path)?, dir)
 }
 
 /// Parses a MAT v5 file after inflating its compressed elements with a bound.
-pub(crate) fn parse_v5(bytes: &[u8], path: &Path) -> Result<matfile::MatFile, YtalError> {
+pub(crate) fn parse_v5<'a>(bytes: &[u8], path: &'a Path) -> Result<Mat<'a>, YtalError> {
     let format = |m: String| YtalError::Format {
         path: path.to_owned(),
         message: m,
     };
-    let plain = super::lct::inflate_elements(bytes, super::lct::MAX_INFLATED_BYTES).map_err(format)?;
+    let inflated = super::lct::inflate_elements(bytes, super::lct::MAX_INFLATED_BYTES).map_err(format)?;
+    let arrays = inflated.arrays;
+    let plain = inflated.bytes;
     // matfile is a parser of untrusted bytes this crate does not own: a panic inside it
     // is an unreadable file, not a crash.
-    std::panic::catch_unwind(|| matfile::MatFile::parse(std::io::Cursor::new(plain)))
+    let mat = std::panic::catch_unwind(|| matfile::MatFile::parse(std::io::Cursor::new(plain)))
         .map_err(|_| format("not a MATLAB v5 file matfile can read (its parser gave up)".into()))?
         .map_err(|e| {
             format(format!(
                 "not a MATLAB v5 file matfile can read ({e}); if it holds structs or cells, save it again \
                  with `save(..., '-v7.3')`, which Periscope reads"
             ))
-        })
+        })?;
+    Ok(Mat::V5 { mat, arrays, path })
 }
 
 /// Opens a MATLAB file held in memory (either container) and runs `f` on it.
@@ -176,10 +189,7 @@ pub(crate) fn with_mat<T>(
     f: impl FnOnce(&Mat<'_>) -> Result<T, YtalError>,
 ) -> Result<T, YtalError> {
     match container(&bytes[..bytes.len().min(4096)]) {
-        Container::MatV5 => f(&Mat::V5 {
-            mat: parse_v5(&bytes, path)?,
-            path,
-        }),
+        Container::MatV5 => f(&parse_v5(&bytes, path)?),
         Container::Hdf5 => {
             let file_len = bytes.len() as u64;
             guarded(path, || {
@@ -192,6 +202,7 @@ pub(crate) fn with_mat<T>(
             path,
             "is not a MATLAB .mat file (neither v5 nor v7.3)",
         )),
+        Container::MatV5BigEndian => Err(big_endian(path)),
     }
 }
 
@@ -302,10 +313,65 @@ pub(crate) fn list(points: Vec<glam::DVec3>, normals: Vec<glam::DVec3>) -> Grid 
 }
 
 /// Checks transients as read: finite and non-negative (counts or rendered radiance).
+/// An HDF5 attribute's text, whatever string type holds it (fixed or variable length,
+/// ASCII or UTF-8, sized to its content or padded, the first of an array, or bytes);
+/// `None` for a number.
+pub(crate) fn text_attr(v: &hdf5_pure::AttrValue) -> Option<String> {
+    use hdf5_pure::AttrValue as A;
+    let text = match v {
+        A::String(s) | A::AsciiString(s) | A::VarLenString(s) => s.clone(),
+        A::StringSized { value, .. } | A::AsciiStringSized { value, .. } => value.clone(),
+        A::StringArray(v) | A::AsciiStringArray(v) | A::VarLenAsciiCharArray(v) => v.first()?.clone(),
+        A::StringArraySized { values, .. } | A::AsciiStringArraySized { values, .. } => {
+            values.first()?.clone()
+        }
+        A::U8Array(b) => String::from_utf8(b.clone()).ok()?,
+        A::I8Array(b) => String::from_utf8(b.iter().map(|&c| c as u8).collect()).ok()?,
+        _ => return None,
+    };
+    Some(text.trim_end_matches('\0').trim().to_owned())
+}
+
+/// An HDF5 attribute's number (the first of an array), whatever its numeric type;
+/// `None` for text or an empty array.
+pub(crate) fn number_attr(v: &hdf5_pure::AttrValue) -> Option<f64> {
+    use hdf5_pure::AttrValue as A;
+    Some(match v {
+        A::F32(x) => f64::from(*x),
+        A::F64(x) => *x,
+        A::I8(x) => f64::from(*x),
+        A::I16(x) => f64::from(*x),
+        A::I32(x) => f64::from(*x),
+        A::I64(x) => *x as f64,
+        A::U8(x) => f64::from(*x),
+        A::U16(x) => f64::from(*x),
+        A::U32(x) => f64::from(*x),
+        A::U64(x) => *x as f64,
+        A::F32Array(a) => f64::from(*a.first()?),
+        A::F64Array(a) => *a.first()?,
+        A::I8Array(a) => f64::from(*a.first()?),
+        A::I16Array(a) => f64::from(*a.first()?),
+        A::I32Array(a) => f64::from(*a.first()?),
+        A::I64Array(a) => *a.first()? as f64,
+        A::U8Array(a) => f64::from(*a.first()?),
+        A::U16Array(a) => f64::from(*a.first()?),
+        A::U32Array(a) => f64::from(*a.first()?),
+        A::U64Array(a) => *a.first()? as f64,
+        _ => return None,
+    })
+}
+
+/// Every value a count: finite, non-negative, and at most 10³⁰ (as a y-tal `H`'s: sums
+/// of up to 10⁸ of them stay finite in single precision, where 3·10³⁸ made the
+/// reconstruction overflow to NaN after its whole run).
 pub(crate) fn check_counts(values: &[f32], name: &str) -> Result<(), String> {
-    match values.iter().position(|v| !v.is_finite() || *v < 0.0) {
+    const MAX_COUNT: f32 = 1e30;
+    match values
+        .iter()
+        .position(|v| !v.is_finite() || *v < 0.0 || *v > MAX_COUNT)
+    {
         Some(i) => Err(format!(
-            "`{name}` value {} at index {i} is not a count (finite, non-negative)",
+            "`{name}` value {} at index {i} is not a count (finite, non-negative, at most 1e30)",
             values[i]
         )),
         None => Ok(()),

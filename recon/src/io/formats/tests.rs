@@ -201,3 +201,168 @@ fn frequency_domain_and_unknown_layouts_are_refused_by_name() {
         "{e}"
     );
 }
+
+// ---- Hostile MAT v5 files (a review, 2026-12-06), written byte by byte here --------
+
+/// A MAT v5 data element: tag, data, padding to 8 bytes.
+fn element(kind: u32, data: &[u8]) -> Vec<u8> {
+    let mut e = kind.to_le_bytes().to_vec();
+    e.extend_from_slice(&(data.len() as u32).to_le_bytes());
+    e.extend_from_slice(data);
+    e.resize(e.len().next_multiple_of(8), 0);
+    e
+}
+
+/// A `miMATRIX` element: flags (class, complex), dims, name, then `parts` (the real
+/// part's and imaginary part's elements, or nested arrays).
+fn matrix(name: &str, class: u8, complex: bool, dims: &[i32], parts: &[Vec<u8>]) -> Vec<u8> {
+    let mut body = Vec::new();
+    let flags = u32::from(class) | if complex { 0x0800 } else { 0 };
+    body.extend(element(6, &[flags.to_le_bytes(), 0u32.to_le_bytes()].concat()));
+    body.extend(element(
+        5,
+        &dims.iter().flat_map(|d| d.to_le_bytes()).collect::<Vec<u8>>(),
+    ));
+    body.extend(element(1, name.as_bytes()));
+    for p in parts {
+        body.extend_from_slice(p);
+    }
+    element(14, &body)
+}
+
+fn doubles(v: &[f64]) -> Vec<u8> {
+    element(9, &v.iter().flat_map(|x| x.to_le_bytes()).collect::<Vec<u8>>())
+}
+
+fn compressed(inner: &[u8]) -> Vec<u8> {
+    use std::io::Write as _;
+    let mut z = flate2::write::ZlibEncoder::new(Vec::new(), flate2::Compression::fast());
+    z.write_all(inner).unwrap();
+    // Compressed elements are not padded (MATLAB writes them back to back).
+    let data = z.finish().unwrap();
+    let mut e = 15u32.to_le_bytes().to_vec();
+    e.extend_from_slice(&(data.len() as u32).to_le_bytes());
+    e.extend_from_slice(&data);
+    e
+}
+
+/// A MAT v5 file of these top-level elements.
+fn mat_v5(elements: &[Vec<u8>]) -> Vec<u8> {
+    let mut f = vec![b' '; 116];
+    f[..10].copy_from_slice(b"MATLAB 5.0");
+    f.extend_from_slice(&[0; 8]);
+    f.extend_from_slice(&[0x00, 0x01]);
+    f.extend_from_slice(b"IM");
+    for e in elements {
+        f.extend_from_slice(e);
+    }
+    f
+}
+
+fn read_bytes(bytes: Vec<u8>) -> String {
+    match capture_from_bytes(bytes, Path::new("hostile.mat")) {
+        Ok(_) => panic!("a hostile file was read"),
+        Err(e) => e.to_string(),
+    }
+}
+
+#[test]
+fn hostile_mat_v5_structures_are_refused_by_name_before_they_are_parsed() {
+    let width = matrix("width", 6, false, &[1, 1], &[doubles(&[0.3])]);
+    let rect = matrix("rect_data", 6, false, &[2, 2, 2], &[doubles(&[1.0; 8])]);
+    // A compressed element inside a compressed element: the parser would inflate it
+    // without a bound, recursing once a level.
+    let e = read_bytes(mat_v5(&[compressed(&compressed(&rect)), width.clone()]));
+    assert!(e.contains("type 15, not a MATLAB array"), "{e}");
+    // One inside an array.
+    let inner = matrix(
+        "rect_data",
+        6,
+        false,
+        &[2, 2, 2],
+        &[compressed(&doubles(&[1.0; 8]))],
+    );
+    let e = read_bytes(mat_v5(&[compressed(&inner), width.clone()]));
+    assert!(e.contains("compressed element inside an array"), "{e}");
+    // Cells nested past the limit (iteratively walked: no stack to exhaust).
+    let mut deep = matrix("", 6, false, &[1, 1], &[doubles(&[1.0])]);
+    for _ in 0..200 {
+        deep = matrix("", 1, false, &[1, 1], &[deep]);
+    }
+    let e = read_bytes(mat_v5(&[compressed(&deep), width.clone()]));
+    assert!(e.contains("nest more than 64 deep"), "{e}");
+    // Dims whose product wraps in 32 bits onto the values held (2 × 2^16 × (2^16 + 1)
+    // ≡ 2^17): it allocated 34 GB for a phasor-field file of 2 KB.
+    let wrap = matrix(
+        "rect_data",
+        6,
+        false,
+        &[2, 1 << 16, (1 << 16) + 1],
+        &[doubles(&vec![1.0; 1 << 17])],
+    );
+    let ts = matrix("ts", 6, false, &[1, 1], &[doubles(&[4e-12])]);
+    let e = read_bytes(mat_v5(&[compressed(&wrap), ts]));
+    assert!(
+        e.contains("but holds 131072 values") && e.contains("damaged"),
+        "{e}"
+    );
+    // Complex counts: read as their real part before.
+    let complex = matrix(
+        "rect_data",
+        6,
+        true,
+        &[2, 2, 2],
+        &[doubles(&[1.0; 8]), doubles(&[5.0; 8])],
+    );
+    let e = read_bytes(mat_v5(&[compressed(&complex), width.clone()]));
+    assert!(e.contains("`rect_data` is complex"), "{e}");
+    // Text where a number belongs.
+    let text = matrix("width", 4, false, &[1, 1], &[element(4, &[b'0', 0])]);
+    let e = read_bytes(mat_v5(&[compressed(&rect), compressed(&text)]));
+    assert!(e.contains("`width` is a char array"), "{e}");
+    // A struct `dataset` (the phasor-field 2019 layout) in MAT v5: the documented
+    // advice, not "no variable of a capture format (it has: )".
+    let field = matrix("", 6, false, &[1, 1], &[doubles(&[1.0])]);
+    let names = [element(5, &4i32.to_le_bytes()), element(1, b"t\0\0\0")].concat();
+    let dataset = matrix("dataset", 2, false, &[1, 1], &[names, field]);
+    let e = read_bytes(mat_v5(&[compressed(&dataset)]));
+    assert!(e.contains("-v7.3"), "{e}");
+    // A big-endian file: named, not "neither HDF5 nor a MATLAB .mat file".
+    let mut be = mat_v5(&[]);
+    be[124..128].copy_from_slice(&[0x01, 0x00, b'M', b'I']);
+    let e = read_bytes(be);
+    assert!(e.contains("big-endian"), "{e}");
+    // The same file, well formed, reads.
+    let ok = mat_v5(&[compressed(&rect), compressed(&width)]);
+    assert!(capture_from_bytes(ok, Path::new("fine.mat")).is_ok());
+}
+
+#[test]
+fn attributes_are_read_whatever_type_holds_them() {
+    use hdf5_pure::AttrValue as A;
+    for v in [
+        A::F32Array(vec![2.0]),
+        A::U8Array(vec![2]),
+        A::I16Array(vec![2]),
+        A::U16(2),
+        A::U64Array(vec![2]),
+    ] {
+        assert_eq!(number_attr(&v), Some(2.0), "{v:?}");
+    }
+    assert_eq!(number_attr(&A::String("2".into())), None);
+    for v in [
+        A::AsciiString("row-major\0\0".into()),
+        A::VarLenString("row-major".into()),
+        A::AsciiStringArray(vec!["row-major".into()]),
+        A::ascii_string_sized("row-major", 20).unwrap(),
+    ] {
+        assert_eq!(text_attr(&v).as_deref(), Some("row-major"), "{v:?}");
+    }
+}
+
+#[test]
+fn counts_past_what_single_precision_sums_hold_are_refused() {
+    let e = check_counts(&[1.0, 3e38, 2.0], "rect_data").unwrap_err();
+    assert!(e.contains("index 1") && e.contains("at most 1e30"), "{e}");
+    assert!(check_counts(&[0.0, 1e30], "rect_data").is_ok());
+}

@@ -32,15 +32,30 @@ enum Axis {
 
 /// Reads a ZNLOS capture from an open HDF5 file (it has `data`).
 pub(crate) fn from_reader(r: &Reader<'_>) -> Result<YtalCapture, YtalError> {
-    let row_major = match text_attr(&r.file.root().attrs().unwrap_or_default(), "data order") {
+    // Attributes that cannot be decoded are an error, not an absent `data order`: the
+    // axes would be read in the wrong order.
+    let root = r.file.root().attrs().map_err(|e| {
+        r.format(format!(
+            "the file's root attributes cannot be read ({e}), so its `data order` is unknown"
+        ))
+    })?;
+    let row_major = match root.get("data order") {
         None => false,
-        Some(o) if o.eq_ignore_ascii_case("column-major") => false,
-        Some(o) if o.eq_ignore_ascii_case("row-major") => true,
-        Some(o) => {
-            return Err(r.format(format!(
-                "the root attribute `data order` is {o:?}; ZNLOS files say \"row-major\" or \"column-major\""
-            )));
-        }
+        Some(v) => match super::text_attr(v) {
+            Some(o) if o.eq_ignore_ascii_case("column-major") => false,
+            Some(o) if o.eq_ignore_ascii_case("row-major") => true,
+            Some(o) => {
+                return Err(r.format(format!(
+                    "the root attribute `data order` is {o:?}; ZNLOS files say \"row-major\" or \"column-major\""
+                )));
+            }
+            None => {
+                return Err(r.format(format!(
+                    "the root attribute `data order` is not text ({v:?}); ZNLOS files say \"row-major\" or \
+                     \"column-major\""
+                )));
+            }
+        },
     };
     let ds = r
         .file
@@ -79,14 +94,21 @@ pub(crate) fn from_reader(r: &Reader<'_>) -> Result<YtalCapture, YtalError> {
     let cam = [size(CamY), size(CamX)];
     let las = [size(LasY), size(LasX)];
     let exhaustive = axes.contains(&LasX);
-    let third = match ds
-        .attrs()
-        .ok()
-        .and_then(|a| a.get("third_bounce").and_then(number_attr))
-    {
+    let attrs = ds.attrs().map_err(|e| {
+        r.format(format!(
+            "the attributes of `data` cannot be read ({e}), so its `third_bounce` is unknown"
+        ))
+    })?;
+    let third = match attrs.get("third_bounce").map(|v| (v, super::number_attr(v))) {
         None => 1usize.min(nb - 1),
-        Some(v) if v.fract() == 0.0 && v >= 0.0 && (v as usize) < nb => v as usize,
-        Some(v) => {
+        Some((v, None)) => {
+            return Err(r.format(format!(
+                "`data`'s attribute `third_bounce` is not a number ({v:?}); it must index the bounce axis (0 to {})",
+                nb - 1
+            )));
+        }
+        Some((_, Some(v))) if v.fract() == 0.0 && v >= 0.0 && (v as usize) < nb => v as usize,
+        Some((_, Some(v))) => {
             return Err(r.format(format!(
                 "`data`'s attribute `third_bounce` is {v}; it must index the bounce axis (0 to {})",
                 nb - 1
@@ -258,38 +280,4 @@ fn relay(
         return Err(r.format(format!("`{}` normal {i} is zero", cap("Normals"))));
     }
     Ok((points, normals))
-}
-
-/// A text attribute's value.
-fn text_attr(attrs: &std::collections::HashMap<String, hdf5_pure::AttrValue>, name: &str) -> Option<String> {
-    use hdf5_pure::AttrValue as A;
-    match attrs.get(name)? {
-        A::String(s) | A::AsciiString(s) | A::VarLenString(s) => {
-            Some(s.trim_end_matches('\0').trim().to_owned())
-        }
-        A::StringSized { value, .. } => Some(value.trim().to_owned()),
-        A::StringArray(v) => v.first().map(|s| s.trim().to_owned()),
-        _ => None,
-    }
-}
-
-/// A numeric attribute's value (the first of an array).
-fn number_attr(v: &hdf5_pure::AttrValue) -> Option<f64> {
-    use hdf5_pure::AttrValue as A;
-    Some(match v {
-        A::F32(x) => f64::from(*x),
-        A::F64(x) => *x,
-        A::I8(x) => f64::from(*x),
-        A::I16(x) => f64::from(*x),
-        A::I32(x) => f64::from(*x),
-        A::I64(x) => *x as f64,
-        A::U8(x) => f64::from(*x),
-        A::U16(x) => f64::from(*x),
-        A::U32(x) => f64::from(*x),
-        A::U64(x) => *x as f64,
-        A::I32Array(a) => f64::from(*a.first()?),
-        A::I64Array(a) => *a.first()? as f64,
-        A::F64Array(a) => *a.first()?,
-        _ => return None,
-    })
 }

@@ -302,6 +302,12 @@ impl YtalCapture {
         // Grids stored as (X, Y, 3) must match `H`'s own dimensions, not only in count:
         // a transposed grid would put every transient at the wrong point.
         let dims: Vec<(&str, &Grid, &[usize])> = match self.h_format {
+            // A laser grid with a point per sensor point pairs them by position: a
+            // transposed one of the same count would pair each with another's laser.
+            HFormat::TSxSy if self.laser_grid.points.len() > 1 => vec![
+                ("sensor", &self.sensor_grid, &self.h_shape[1..3]),
+                ("laser", &self.laser_grid, &self.h_shape[1..3]),
+            ],
             HFormat::TSxSy => vec![("sensor", &self.sensor_grid, &self.h_shape[1..3])],
             HFormat::TLxLySxSy => vec![
                 ("laser", &self.laser_grid, &self.h_shape[1..3]),

@@ -168,6 +168,24 @@ fn mismatched_grids_are_refused_with_the_dataset_named() {
     c.laser_grid.points.push(DVec3::ZERO);
     c.laser_grid.normals.push(DVec3::Z);
     assert!(c.check().unwrap_err().contains("laser grid has 3 points"));
+    // `T_Sx_Sy` with a laser point per sensor point: a laser grid of the same count
+    // but transposed shape would pair each transient with another's laser (a review,
+    // 2026-12-06: accepted, the image moved).
+    let c = sample();
+    let both = |laser_shape: Vec<usize>| YtalCapture {
+        h_format: HFormat::TSxSy,
+        h_shape: vec![5, 2, 3],
+        h: vec![0.0; 30],
+        laser_grid: Grid {
+            shape: laser_shape,
+            ..c.sensor_grid.clone()
+        },
+        flags: None,
+        ..c.clone()
+    };
+    assert!(both(vec![2, 3]).check().is_ok());
+    let e = both(vec![3, 2]).check().unwrap_err();
+    assert!(e.contains("laser_grid_xyz") && e.contains("[3, 2]"), "{e}");
 }
 
 #[test]
