@@ -885,6 +885,7 @@ async fn a_client_that_stops_reading_is_cut_off_after_the_write_timeout() {
     let limits = ConnectionLimits {
         header_timeout: Duration::from_secs(5),
         max_connections: 8,
+        max_per_peer: 8,
         write_timeout: Duration::from_secs(1),
     };
     let (addr, stop, server) = serve(app, limits).await;
@@ -919,6 +920,7 @@ async fn a_request_head_past_the_read_buffer_is_refused_when_it_fills() {
     let limits = ConnectionLimits {
         header_timeout: Duration::from_secs(30),
         max_connections: 8,
+        max_per_peer: 8,
         write_timeout: Duration::from_secs(5),
     };
     let (addr, stop, server) = serve(app, limits).await;
@@ -961,4 +963,170 @@ async fn a_request_head_past_the_read_buffer_is_refused_when_it_fills() {
     );
     stop.notify_one();
     server.await.unwrap().unwrap();
+}
+
+/// This machine's address on its route out (a UDP "connection" sends nothing), if it
+/// has one that is not loopback: what a connection to it comes from.
+fn non_loopback_address() -> Option<std::net::IpAddr> {
+    let udp = std::net::UdpSocket::bind("0.0.0.0:0").ok()?;
+    udp.connect("192.0.2.1:9").ok()?;
+    let ip = udp.local_addr().ok()?.ip();
+    (!ip.is_loopback() && !ip.is_unspecified()).then_some(ip)
+}
+
+/// Idle connections from one remote host (a review, 2026-12-06): at most `[api]
+/// max-connections-per-peer` are held, the rest closed at once; and with every
+/// connection slot taken, loopback (the instrument's own computer, whose e-stop needs
+/// no key) still gets a connection from its reserve. Until then the server stopped
+/// accepting at its cap, and a host reconnecting as each idle connection timed out kept
+/// the e-stop and the health check from connecting for a minute.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn one_host_cannot_hold_every_connection_or_keep_loopback_out() {
+    use periscope_daemon::api::server::ConnectionLimits;
+    use tokio::io::{AsyncReadExt, AsyncWriteExt};
+    let Some(remote) = non_loopback_address() else {
+        eprintln!("SKIPPED: this machine has no address but loopback to connect from");
+        return;
+    };
+    let held = |limits: ConnectionLimits| async move {
+        let app = axum::Router::new().route("/api/v1/health", axum::routing::get(|| async { "ok" }));
+        let listener = tokio::net::TcpListener::bind("0.0.0.0:0").await.unwrap();
+        let port = listener.local_addr().unwrap().port();
+        let stop = Arc::new(tokio::sync::Notify::new());
+        let server = {
+            let stop = Arc::clone(&stop);
+            tokio::spawn(async move {
+                periscope_daemon::api::server::serve_connections(listener, app, limits, async move {
+                    stop.notified().await
+                })
+                .await
+            })
+        };
+        // Twenty idle connections from the remote address, opened one after another.
+        let mut idle = Vec::new();
+        for _ in 0..20 {
+            idle.push(tokio::net::TcpStream::connect((remote, port)).await.unwrap());
+        }
+        tokio::time::sleep(Duration::from_millis(300)).await;
+        let mut open = 0;
+        for c in &mut idle {
+            let mut b = [0u8; 1];
+            // Still open: the read waits; closed: it ends at once.
+            if tokio::time::timeout(Duration::from_millis(100), c.read(&mut b))
+                .await
+                .is_err()
+            {
+                open += 1;
+            }
+        }
+        // The health check from loopback, within a second.
+        let t = std::time::Instant::now();
+        let answered = tokio::time::timeout(Duration::from_secs(2), async {
+            let mut c = tokio::net::TcpStream::connect(("127.0.0.1", port)).await.unwrap();
+            c.write_all(b"GET /api/v1/health HTTP/1.1\r\nhost: localhost\r\nconnection: close\r\n\r\n")
+                .await
+                .unwrap();
+            let mut got = Vec::new();
+            c.read_to_end(&mut got).await.unwrap();
+            got
+        })
+        .await;
+        stop.notify_one();
+        drop(idle);
+        let _ = server.await;
+        (
+            open,
+            answered
+                .ok()
+                .filter(|g| g.starts_with(b"HTTP/1.1 200"))
+                .map(|_| t.elapsed()),
+        )
+    };
+    let limits = |per_peer| ConnectionLimits {
+        header_timeout: Duration::from_secs(5),
+        max_connections: 8,
+        max_per_peer: per_peer,
+        write_timeout: Duration::from_secs(5),
+    };
+    let (open, health) = held(limits(4)).await;
+    assert_eq!(
+        open, 4,
+        "idle connections from one host held, with a cap of 4 a host"
+    );
+    assert!(health.is_some(), "loopback's health check was not answered");
+    // The host's cap as high as the server's: it holds every general slot, and
+    // loopback is served from its reserve.
+    let (open, health) = held(limits(8)).await;
+    assert_eq!(open, 8);
+    assert!(
+        health.is_some_and(|t| t < Duration::from_secs(1)),
+        "with every general slot held, loopback waited {health:?}"
+    );
+}
+
+/// A request body trickled in a byte at a time (a review, 2026-12-06) holds its
+/// connection, not one of the API's turns: with one turn (`max-concurrent = 1`) and a
+/// submission's body trickling, a read of the runs list is answered at once, and the
+/// trickle ends 408 at the request timeout. Until then the body was read inside the
+/// turn, and eight such clients held every turn for 30 s.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_trickled_body_holds_no_turn_of_the_api() {
+    use periscope_daemon::api::server::ConnectionLimits;
+    use tokio::io::{AsyncReadExt, AsyncWriteExt};
+    let dir = tempfile::tempdir().unwrap();
+    let svc = service(dir.path(), 0.0, "max-concurrent = 1\nrequest-timeout-s = 3", "");
+    let app = periscope_daemon::api::app(periscope_daemon::api::AppState::new(Arc::clone(&svc)));
+    let limits = ConnectionLimits {
+        header_timeout: Duration::from_secs(10),
+        max_connections: 32,
+        max_per_peer: 32,
+        write_timeout: Duration::from_secs(10),
+    };
+    let (addr, stop, server) = serve(app, limits).await;
+    let mut trickle = tokio::net::TcpStream::connect(addr).await.unwrap();
+    let head = format!(
+        "POST /api/v1/runs HTTP/1.1\r\nhost: localhost\r\nauthorization: Bearer {TOKEN}\r\n\
+         content-type: application/toml\r\ncontent-length: 1000\r\n\r\nname = "
+    );
+    trickle.write_all(head.as_bytes()).await.unwrap();
+    let dripping = tokio::spawn(async move {
+        for _ in 0..40 {
+            tokio::time::sleep(Duration::from_millis(100)).await;
+            if trickle.write_all(b" ").await.is_err() {
+                break;
+            }
+        }
+        let mut got = Vec::new();
+        let _ = tokio::time::timeout(Duration::from_secs(10), trickle.read_to_end(&mut got)).await;
+        got
+    });
+    tokio::time::sleep(Duration::from_millis(300)).await;
+    let t = std::time::Instant::now();
+    let resp = reqwest::Client::new()
+        .get(format!("http://{addr}/api/v1/runs"))
+        .bearer_auth(TOKEN)
+        .timeout(Duration::from_secs(10))
+        .send()
+        .await
+        .unwrap();
+    let waited = t.elapsed();
+    assert_eq!(resp.status(), reqwest::StatusCode::OK);
+    assert!(
+        waited < Duration::from_secs(1),
+        "the runs list waited {waited:?} behind a trickled body"
+    );
+    let got = dripping.await.unwrap();
+    assert!(
+        got.starts_with(b"HTTP/1.1 408"),
+        "{}",
+        String::from_utf8_lossy(&got[..got.len().min(300)])
+    );
+    assert_eq!(
+        run_dirs(dir.path()),
+        0,
+        "a run was made from a body that never arrived"
+    );
+    stop.notify_one();
+    server.await.unwrap().unwrap();
+    svc.shutdown();
 }

@@ -441,11 +441,7 @@ async fn check_key(
         }
     };
     if estop {
-        return Ok(
-            super::own_thread("periscope-estop-auth", &super::ESTOP_SLOTS, check)
-                .await
-                .unwrap_or(unknown),
-        );
+        return Ok(super::estop_key_check(check).await.unwrap_or(unknown));
     }
     let limit = service.instrument().api.request_timeout;
     match tokio::time::timeout(limit, tokio::task::spawn_blocking(check)).await {

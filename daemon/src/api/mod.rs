@@ -370,6 +370,8 @@ pub fn app(state: AppState) -> Router {
         .merge(limited)
         .layer(timeout)
         .layer(middleware::map_response(timeout_as_json))
+        // Outside the groups' turns: a body trickled in holds a connection, not a turn.
+        .layer(middleware::from_fn_with_state(state.clone(), read_body_first))
         .merge(
             exempt
                 .layer(estop_timeout)
@@ -386,6 +388,49 @@ pub fn app(state: AppState) -> Router {
         .layer(DefaultBodyLimit::max(api.body_limit))
         .layer(compression())
         .with_state(state)
+}
+
+/// Reads a request's body whole, within the body limit and `[api] request-timeout-s`,
+/// before the request waits for its group's turn (`[api] max-concurrent`,
+/// `max-checks`): a client trickling a body a byte at a time then holds its
+/// connection, not one of the few turns every other request needs (until 2026-12-06,
+/// eight such clients held every turn for the request timeout, and a read of the runs
+/// list waited 26 s). Requests without a body pass straight on.
+async fn read_body_first(State(state): State<AppState>, req: Request, next: Next) -> Response {
+    use http_body_util::BodyExt as _;
+    let has_body = req.headers().contains_key(header::CONTENT_LENGTH)
+        || req.headers().contains_key(header::TRANSFER_ENCODING);
+    if !has_body {
+        return next.run(req).await;
+    }
+    let api = &state.service.instrument().api;
+    let (parts, body) = req.into_parts();
+    let read = tokio::time::timeout(
+        api.request_timeout,
+        http_body_util::Limited::new(body, api.body_limit).collect(),
+    )
+    .await;
+    match read {
+        Ok(Ok(collected)) => next.run(Request::from_parts(parts, Body::from(collected.to_bytes()))).await,
+        Ok(Err(e)) if e.downcast_ref::<http_body_util::LengthLimitError>().is_some() => ApiError::new(
+            StatusCode::PAYLOAD_TOO_LARGE,
+            "body-too-large",
+            format!(
+                "the body is larger than the daemon accepts ([api] body-limit-kib: {} KiB)",
+                api.body_limit / 1024
+            ),
+        )
+        .into_response(),
+        Ok(Err(e)) => {
+            ApiError::new(StatusCode::BAD_REQUEST, "bad-body", format!("the body could not be read: {e}")).into_response()
+        }
+        Err(_) => ApiError::new(
+            StatusCode::REQUEST_TIMEOUT,
+            "request-timeout",
+            "the request's body did not arrive within the daemon's limit ([api] request-timeout-s); nothing was done",
+        )
+        .into_response(),
+    }
 }
 
 /// The least time the e-stop is given before its request is answered 408: its own
@@ -460,6 +505,7 @@ pub async fn serve(bind: SocketAddr, service: Arc<Service>) -> Result<(), ServeE
     let limits = server::ConnectionLimits {
         header_timeout: api.header_timeout,
         max_connections: server::connection_cap(api.max_connections, server::open_files_limit()),
+        max_per_peer: api.max_connections_per_peer,
         write_timeout: api.request_timeout,
     };
     server::serve_connections(listener, app, limits, async move { notify.notified().await })
@@ -962,6 +1008,38 @@ async fn own_thread<T: Send + 'static>(
     rx.await.ok()
 }
 
+/// Runs the e-stop's key check `f` on the standing key-check thread (started with the
+/// spawner, at the instrument's priority), or on a thread of its own where there is
+/// none or its queue is full. A check is a digest and a lookup, microseconds; a thread
+/// started for each (as until 2026-12-06) let a flood of bogus keys from anyone spend
+/// most of a core at the instrument's priority on starting threads.
+pub(super) async fn estop_key_check<T: Send + 'static>(f: impl FnOnce() -> T + Send + 'static) -> Option<T> {
+    let (tx, rx) = tokio::sync::oneshot::channel();
+    let job: Box<dyn FnOnce() + Send> = Box::new(move || {
+        let _ = tx.send(f());
+    });
+    let job = match KEY_CHECKS.get() {
+        Some(queue) => match queue.try_send(job) {
+            Ok(()) => None,
+            Err(
+                std::sync::mpsc::TrySendError::Full(job) | std::sync::mpsc::TrySendError::Disconnected(job),
+            ) => Some(job),
+        },
+        None => Some(job),
+    };
+    if let Some(job) = job {
+        own_thread("periscope-estop-auth", &ESTOP_SLOTS, job).await?;
+    }
+    rx.await.ok()
+}
+
+/// The standing key-check thread's queue ([`estop_key_check`]).
+static KEY_CHECKS: std::sync::OnceLock<std::sync::mpsc::SyncSender<Box<dyn FnOnce() + Send>>> =
+    std::sync::OnceLock::new();
+
+/// Key checks waiting for the standing thread before one gets a thread of its own.
+const KEY_CHECK_QUEUE: usize = 1024;
+
 /// A thread of the e-stop's path: its name and its work.
 type OwnJob = (&'static str, Box<dyn FnOnce() + Send>);
 
@@ -986,6 +1064,16 @@ pub fn start_own_threads() -> std::io::Result<()> {
             }
         })?;
     let _ = SPAWNER.set(tx);
+    let (checks, queue) = std::sync::mpsc::sync_channel::<Box<dyn FnOnce() + Send>>(KEY_CHECK_QUEUE);
+    std::thread::Builder::new()
+        .name("periscope-estop-auth".into())
+        .spawn(move || {
+            for check in queue {
+                // A check that panics is that request's failure, not the thread's end.
+                let _ = std::panic::catch_unwind(std::panic::AssertUnwindSafe(check));
+            }
+        })?;
+    let _ = KEY_CHECKS.set(checks);
     Ok(())
 }
 

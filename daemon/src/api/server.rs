@@ -7,11 +7,18 @@
 //!   within `[api] header-timeout-s` of the server starting to wait for them. That also
 //!   bounds an idle keep-alive connection (hyper re-arms the timer while it waits for
 //!   the next request) and a client trickling one header line at a time.
-//! - **Connection cap**: at most `[api] max-connections` connections at once, and never
+//! - **Connection caps**: at most `[api] max-connections` connections at once, never
 //!   more than the process's descriptor limit less a reserve for the instrument (run
-//!   files, serial ports, the capture's log): at the cap the server stops accepting
-//!   until a connection closes, and what waits stays in the kernel's backlog, costing
-//!   the process nothing.
+//!   files, serial ports, the capture's log), and at most `[api]
+//!   max-connections-per-peer` from one remote address. Loopback has
+//!   [`LOOPBACK_RESERVE`] more of its own, so the instrument's own computer always
+//!   reaches the e-stop and the health check, whatever other hosts hold. A connection
+//!   past its cap is accepted and closed at once (until 2026-12-06 the server stopped
+//!   accepting at the cap: one remote host holding idle connections, reconnecting as
+//!   each timed out, kept the e-stop from connecting for a minute).
+//! - **Send buffer** ([`SEND_BUFFER`]): fixed, not the kernel's autotuned up to 4 MiB,
+//!   so an event stream a client does not read fills it within minutes and the write
+//!   timeout closes it (with 4 MiB, about two hours on the idle instrument stream).
 //! - **Write timeout** (`tokio-io-timeout`'s `TimeoutStream` under hyper): a
 //!   connection whose client takes none of a response's bytes for `[api]
 //!   request-timeout-s` is closed. `request-timeout-s` itself ends when a response's
@@ -45,6 +52,14 @@ use tower::Service as _;
 /// through it in pieces.
 pub const MAX_BUF: usize = 64 << 10;
 
+/// Connections kept for loopback peers (the instrument's own computer) beyond
+/// `[api] max-connections`.
+pub const LOOPBACK_RESERVE: usize = 16;
+
+/// Each connection's socket send buffer, bytes: 256 KiB keeps a download at LAN speed
+/// (it covers 2 Gb/s at 1 ms round trip) and lets a client that stops reading fill it.
+pub const SEND_BUFFER: usize = 256 << 10;
+
 /// How long connections have to finish after a stop signal.
 const SHUTDOWN_GRACE: Duration = Duration::from_secs(1);
 
@@ -52,13 +67,14 @@ const SHUTDOWN_GRACE: Duration = Duration::from_secs(1);
 /// run's files and log, the serial ports, the USB device, the blocking pool's reads.
 pub const FD_RESERVE: usize = 64;
 
-/// Most connections the server holds at once: `configured`, lowered to the process's
-/// descriptor limit (`nofile`, where it is known) less [`FD_RESERVE`], and at least 8.
+/// Most connections the server holds at once for any peer: `configured`, lowered to
+/// the process's descriptor limit (`nofile`, where it is known) less [`FD_RESERVE`]
+/// and [`LOOPBACK_RESERVE`], and at least 8.
 pub fn connection_cap(configured: usize, nofile: Option<u64>) -> usize {
     let by_fds = nofile.map_or(usize::MAX, |n| {
         usize::try_from(n)
             .unwrap_or(usize::MAX)
-            .saturating_sub(FD_RESERVE)
+            .saturating_sub(FD_RESERVE + LOOPBACK_RESERVE)
     });
     configured.min(by_fds).max(8)
 }
@@ -77,8 +93,10 @@ pub struct ConnectionLimits {
     /// Longest wait for a request's headers (and for the next request on an idle
     /// keep-alive connection).
     pub header_timeout: Duration,
-    /// Most connections at once.
+    /// Most connections at once (loopback has [`LOOPBACK_RESERVE`] more).
     pub max_connections: usize,
+    /// Most connections one remote address holds at once.
+    pub max_per_peer: usize,
     /// Longest a write may wait for the client to take bytes.
     pub write_timeout: Duration,
 }
@@ -92,6 +110,8 @@ pub async fn serve_connections(
     shutdown: impl std::future::Future<Output = ()>,
 ) -> std::io::Result<()> {
     let slots = Arc::new(Semaphore::new(limits.max_connections));
+    let loopback_slots = Arc::new(Semaphore::new(LOOPBACK_RESERVE));
+    let peers = Arc::new(PeerCounts::default());
     let graceful = GracefulShutdown::new();
     let mut make: IntoMakeServiceWithConnectInfo<Router, SocketAddr> =
         app.into_make_service_with_connect_info::<SocketAddr>();
@@ -107,24 +127,6 @@ pub async fn serve_connections(
     tokio::pin!(shutdown);
     let mut warned_full = false;
     loop {
-        // A free slot first: at the cap, connections wait in the kernel's backlog.
-        let permit = tokio::select! {
-            biased;
-            () = &mut shutdown => break,
-            permit = Arc::clone(&slots).acquire_owned() => match permit {
-                Ok(p) => p,
-                Err(_) => break,
-            },
-        };
-        if slots.available_permits() == 0 && !warned_full {
-            tracing::warn!(
-                max = limits.max_connections,
-                "the API holds its most connections; further clients wait until one closes"
-            );
-            warned_full = true;
-        } else if slots.available_permits() > limits.max_connections / 2 {
-            warned_full = false;
-        }
         let (stream, peer) = tokio::select! {
             biased;
             () = &mut shutdown => break,
@@ -139,7 +141,38 @@ pub async fn serve_connections(
                 }
             },
         };
+        // A slot for the peer, or the connection closed at once: a host at its own cap,
+        // or the server at its cap, gives way; loopback takes its reserve after that.
+        let ip = peer.ip().to_canonical();
+        let Some(peer_slot) = PeerSlot::take(&peers, ip, limits.max_per_peer) else {
+            tracing::debug!(peer = %peer, "a connection past its host's cap: closed");
+            continue;
+        };
+        let permit = match Arc::clone(&slots).try_acquire_owned() {
+            Ok(p) => p,
+            Err(_) => match ip
+                .is_loopback()
+                .then(|| Arc::clone(&loopback_slots).try_acquire_owned())
+            {
+                Some(Ok(p)) => p,
+                _ => {
+                    if !warned_full {
+                        tracing::warn!(
+                            max = limits.max_connections,
+                            "the API holds its most connections; further ones are closed until one ends \
+                             (loopback has {LOOPBACK_RESERVE} of its own)"
+                        );
+                        warned_full = true;
+                    }
+                    continue;
+                }
+            },
+        };
+        if slots.available_permits() > limits.max_connections / 2 {
+            warned_full = false;
+        }
         let _ = stream.set_nodelay(true);
+        let _ = socket2::SockRef::from(&stream).set_send_buffer_size(SEND_BUFFER);
         let mut stream = tokio_io_timeout::TimeoutStream::new(stream);
         stream.set_write_timeout(Some(limits.write_timeout));
         let Ok(service) = make.call(peer).await;
@@ -149,6 +182,7 @@ pub async fn serve_connections(
         tokio::spawn(async move {
             // Held until the connection closes.
             let _permit = permit;
+            let _peer_slot = peer_slot;
             if let Err(e) = conn.await {
                 tracing::debug!(peer = %peer, error = %e, "connection closed with an error");
             }
@@ -166,13 +200,59 @@ pub async fn serve_connections(
     Ok(())
 }
 
+/// Open connections by remote address.
+#[derive(Default)]
+struct PeerCounts(std::sync::Mutex<std::collections::HashMap<std::net::IpAddr, usize>>);
+
+/// One connection counted against its peer's cap, given back when dropped.
+struct PeerSlot {
+    peers: Arc<PeerCounts>,
+    ip: std::net::IpAddr,
+}
+
+impl PeerSlot {
+    /// A slot for `ip`, if it holds fewer than `max` (loopback is not counted).
+    fn take(peers: &Arc<PeerCounts>, ip: std::net::IpAddr, max: usize) -> Option<PeerSlot> {
+        if !ip.is_loopback() {
+            let mut counts = peers.0.lock().unwrap_or_else(|p| p.into_inner());
+            let n = counts.entry(ip).or_insert(0);
+            if *n >= max {
+                return None;
+            }
+            *n += 1;
+        }
+        Some(PeerSlot {
+            peers: Arc::clone(peers),
+            ip,
+        })
+    }
+}
+
+impl Drop for PeerSlot {
+    fn drop(&mut self) {
+        if self.ip.is_loopback() {
+            return;
+        }
+        let mut counts = self.peers.0.lock().unwrap_or_else(|p| p.into_inner());
+        if let Some(n) = counts.get_mut(&self.ip) {
+            *n -= 1;
+            if *n == 0 {
+                counts.remove(&self.ip);
+            }
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
 
     #[test]
     fn the_cap_keeps_a_reserve_of_descriptors() {
-        assert_eq!(connection_cap(1024, Some(256)), 256 - FD_RESERVE);
+        assert_eq!(
+            connection_cap(1024, Some(256)),
+            256 - FD_RESERVE - LOOPBACK_RESERVE
+        );
         assert_eq!(connection_cap(100, Some(65_536)), 100);
         assert_eq!(connection_cap(100, None), 100);
         assert_eq!(connection_cap(1024, Some(16)), 8);

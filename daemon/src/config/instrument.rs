@@ -140,6 +140,9 @@ pub struct ApiSettings {
     pub header_timeout: Duration,
     /// Most connections at once (lowered to the descriptor limit less a reserve).
     pub max_connections: usize,
+    /// Most connections one remote address may hold at once (loopback's are not
+    /// counted against it: the instrument's own computer has a reserve of its own).
+    pub max_connections_per_peer: usize,
     /// Most requests answered at once; more wait their turn (the e-stop and the health
     /// check never wait).
     pub max_concurrent: usize,
@@ -163,6 +166,7 @@ impl std::fmt::Debug for ApiSettings {
             .field("request_timeout", &self.request_timeout)
             .field("header_timeout", &self.header_timeout)
             .field("max_connections", &self.max_connections)
+            .field("max_connections_per_peer", &self.max_connections_per_peer)
             .field("max_concurrent", &self.max_concurrent)
             .field("max_checks", &self.max_checks)
             .field("import_limit", &self.import_limit)
@@ -363,6 +367,8 @@ struct RawApi {
     header_timeout_s: f64,
     #[serde(default = "default_max_connections")]
     max_connections: f64,
+    #[serde(default = "default_max_connections_per_peer")]
+    max_connections_per_peer: f64,
     #[serde(default = "default_max_concurrent")]
     max_concurrent: f64,
     #[serde(default = "default_max_checks")]
@@ -388,6 +394,7 @@ impl Default for RawApi {
             request_timeout_s: default_request_timeout_s(),
             header_timeout_s: default_header_timeout_s(),
             max_connections: default_max_connections(),
+            max_connections_per_peer: default_max_connections_per_peer(),
             max_concurrent: default_max_concurrent(),
             max_checks: default_max_checks(),
             import_limit_mib: default_import_limit_mib(),
@@ -410,6 +417,9 @@ fn default_header_timeout_s() -> f64 {
 }
 fn default_max_connections() -> f64 {
     512.0
+}
+fn default_max_connections_per_peer() -> f64 {
+    32.0
 }
 fn default_max_concurrent() -> f64 {
     8.0
@@ -493,6 +503,11 @@ fn api_settings(check: &Check<'_>, raw: RawApi) -> Result<ApiSettings, ConfigErr
             "s",
         )?),
         max_connections: count("api.max-connections", raw.max_connections, 1_000_000.0)?,
+        max_connections_per_peer: count(
+            "api.max-connections-per-peer",
+            raw.max_connections_per_peer,
+            1_000_000.0,
+        )?,
         max_concurrent: count("api.max-concurrent", raw.max_concurrent, 10_000.0)?,
         max_checks: count("api.max-checks", raw.max_checks, 1_000.0)?,
         // The readers take files up to 16 GiB (y-tal's cap).
