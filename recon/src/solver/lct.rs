@@ -269,7 +269,6 @@ fn filter_cube(cube: Vec<f32>, scan: &PlanarScan, m: usize, w: f64, snr: f64, fi
     let mass = cone.mass_norm as f32;
 
     let fft = Fft2::new(py, px);
-    let twiddles = Twiddles::new(pt);
     const SLICES_PER_TASK: usize = 8;
     slices
         .par_chunks_mut(slice_len * SLICES_PER_TASK)
@@ -277,9 +276,11 @@ fn filter_cube(cube: Vec<f32>, scan: &PlanarScan, m: usize, w: f64, snr: f64, fi
         .for_each(|(task, chunk)| {
             let mut scratch = vec![Complex32::default(); fft.scratch_len()];
             let mut psf = vec![Complex32::default(); slice_len];
+            let mut phases = Vec::new();
             for (j, slice) in chunk.chunks_mut(slice_len).enumerate() {
                 let kt = task * SLICES_PER_TASK + j;
-                cone.spectrum(kt, &twiddles, &mut psf);
+                let omega = 2.0 * PI * kt as f64 / pt as f64;
+                cone.spectrum(omega, &mut phases, &mut psf);
                 fft.forward_transposed(&mut psf, &mut scratch);
                 fft.forward_transposed(slice, &mut scratch);
                 match filter {
@@ -399,6 +400,8 @@ struct LightCone {
     cells: Vec<(usize, std::ops::Range<usize>)>,
     /// The runs of consecutive s-bin weights, every cell's in turn.
     weights: Vec<f32>,
+    /// One past the last s-bin any run reaches.
+    reach: usize,
     /// The L2 norm of the cone before its normalisation: of unit mass in every cell
     /// it reaches.
     mass_norm: f64,
@@ -479,52 +482,30 @@ impl LightCone {
             weights.extend(run.iter().map(|w| (w / norm) as f32));
             cells.push((first, start..weights.len()));
         }
+        let reach = cells.iter().map(|(first, r)| first + r.len()).max().unwrap_or(0);
         Self {
             cells,
             weights,
+            reach,
             mass_norm: norm,
         }
     }
 
-    /// The cone's spectrum along s at frequency `kt` of the padded axis `twiddles`
-    /// spans (angular frequency 2π·kt/N radians per bin), one value per cell, written
-    /// into `out`: a dot product of each cell's run with e^{-2πi·kt·k/N}, its phases
-    /// read from the table at k·kt mod N. Nothing is computed per bin a run reaches,
-    /// so a frequency costs the runs' length, not the axis's (until 2026-12-06 every
-    /// frequency took a sine and cosine for each of up to 2M bins: LCT's time grew
-    /// with the square of the bins, 27.6 s at 25,600).
-    fn spectrum(&self, kt: usize, twiddles: &Twiddles, out: &mut [Complex32]) {
-        let n = twiddles.0.len();
-        let step = kt % n;
+    /// The cone's spectrum along s at angular frequency `omega` (radians per bin),
+    /// one value per cell, written into `out`; `phases` is scratch space.
+    fn spectrum(&self, omega: f64, phases: &mut Vec<Complex32>, out: &mut [Complex32]) {
+        // e^{-iωk} for every bin a run reaches, then a dot product per cell.
+        phases.clear();
+        phases.extend((0..self.reach).map(|k| {
+            let z = Complex::from_polar(1.0, -omega * k as f64);
+            Complex32::new(z.re as f32, z.im as f32)
+        }));
         for (o, (first, range)) in out.iter_mut().zip(&self.cells) {
-            let mut at = ((*first as u64 * step as u64) % n as u64) as usize;
-            let mut acc = Complex32::default();
-            for w in &self.weights[range.clone()] {
-                acc += twiddles.0[at] * *w;
-                at += step;
-                if at >= n {
-                    at -= n;
-                }
-            }
-            *o = acc;
+            *o = self.weights[range.clone()]
+                .iter()
+                .zip(&phases[*first..])
+                .fold(Complex32::default(), |acc, (w, p)| acc + p * *w);
         }
-    }
-}
-
-/// e^{-2πi·j/N} for j = 0..N: the phases of every frequency of an axis of N bins, read
-/// at j = k·kt mod N for bin k at frequency kt.
-struct Twiddles(Vec<Complex32>);
-
-impl Twiddles {
-    fn new(n: usize) -> Self {
-        Self(
-            (0..n)
-                .map(|j| {
-                    let z = Complex::from_polar(1.0, -2.0 * PI * j as f64 / n as f64);
-                    Complex32::new(z.re as f32, z.im as f32)
-                })
-                .collect(),
-        )
     }
 }
 
@@ -643,27 +624,20 @@ mod tests {
         assert!((norm - 1.0).abs() < 1e-5, "unit L2 norm: {norm}");
     }
 
-    /// The spectrum is the DFT of each cell's run, at every frequency of the padded
-    /// axis (the table's index k·kt wraps many times at the high ones).
+    /// The spectrum is the DFT of each cell's run.
     #[test]
     fn the_cone_spectrum_is_the_transform_of_its_runs() {
         let cone = LightCone::new([4, 4], [0.1, 0.1], 64, 1.28);
-        let twiddles = Twiddles::new(128);
+        let omega = 2.0 * PI * 5.0 / 128.0;
         let mut out = vec![Complex32::default(); 64];
-        for kt in [0, 1, 5, 63, 64, 65, 127] {
-            let omega = 2.0 * PI * kt as f64 / 128.0;
-            cone.spectrum(kt, &twiddles, &mut out);
-            for (o, (first, range)) in out.iter().zip(&cone.cells) {
-                let direct: Complex<f64> = cone.weights[range.clone()]
-                    .iter()
-                    .enumerate()
-                    .map(|(j, w)| Complex::from_polar(f64::from(*w), -omega * (first + j) as f64))
-                    .sum();
-                assert!(
-                    (o.re as f64 - direct.re).abs() < 1e-6 && (o.im as f64 - direct.im).abs() < 1e-6,
-                    "frequency {kt}: {o} against {direct}"
-                );
-            }
+        cone.spectrum(omega, &mut Vec::new(), &mut out);
+        for (o, (first, range)) in out.iter().zip(&cone.cells) {
+            let direct: Complex<f64> = cone.weights[range.clone()]
+                .iter()
+                .enumerate()
+                .map(|(j, w)| Complex::from_polar(f64::from(*w), -omega * (first + j) as f64))
+                .sum();
+            assert!((o.re as f64 - direct.re).abs() < 1e-6 && (o.im as f64 - direct.im).abs() < 1e-6);
         }
     }
 
