@@ -1166,3 +1166,50 @@ fn the_daemon_opens_the_catalogue_only_once_it_holds_the_lock() {
     assert!(dir.path().join(CATALOGUE_FILE).is_file());
     svc.shutdown();
 }
+
+/// One remote host holds at most `api::STREAMS_PER_PEER` event streams (a review,
+/// 2026-12-06: one host could open all of `[api] max-streams` and read them a byte at a
+/// time); loopback's are not counted, and a closed stream frees its host's slot.
+#[tokio::test]
+async fn one_host_holds_at_most_its_share_of_event_streams() {
+    use periscope_daemon::api::STREAMS_PER_PEER;
+    let dir = tempfile::tempdir().unwrap();
+    let svc = service(dir.path());
+    let router = app(AppState::new(Arc::clone(&svc)));
+    let open = |remote: bool| {
+        let router = router.clone();
+        async move {
+            router
+                .oneshot(request(
+                    &Method::GET,
+                    "/api/v1/instrument/events",
+                    Some(TOKEN),
+                    "",
+                    remote,
+                ))
+                .await
+                .unwrap()
+        }
+    };
+    let mut held = Vec::new();
+    for _ in 0..STREAMS_PER_PEER {
+        let r = open(true).await;
+        assert_eq!(r.status(), StatusCode::OK);
+        held.push(r);
+    }
+    let refused = open(true).await;
+    assert_eq!(refused.status(), StatusCode::SERVICE_UNAVAILABLE);
+    let body = axum::body::to_bytes(refused.into_body(), 1 << 20).await.unwrap();
+    assert!(
+        String::from_utf8_lossy(&body).contains("one host may hold"),
+        "{body:?}"
+    );
+    // Loopback is not counted against it.
+    assert_eq!(open(false).await.status(), StatusCode::OK);
+    // A stream closed frees its host's slot.
+    drop(held.pop());
+    tokio::time::sleep(std::time::Duration::from_millis(50)).await;
+    assert_eq!(open(true).await.status(), StatusCode::OK);
+    drop(held);
+    svc.shutdown();
+}

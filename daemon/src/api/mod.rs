@@ -125,6 +125,8 @@ pub struct AppState {
     service: Arc<Service>,
     /// Event-stream clients connected now.
     streams: Arc<std::sync::atomic::AtomicUsize>,
+    /// Event streams open now by remote address (loopback's are not counted).
+    peer_streams: PeerStreams,
     /// Downloads in flight (a permit per download, held until its body is sent).
     downloads: Arc<tokio::sync::Semaphore>,
     /// The one import that may upload at a time.
@@ -142,6 +144,7 @@ impl AppState {
         AppState {
             service,
             streams: Arc::default(),
+            peer_streams: Arc::default(),
             downloads,
             imports: Arc::new(tokio::sync::Semaphore::new(1)),
             auth_audit: Arc::default(),
@@ -1104,9 +1107,10 @@ const OWN_THREADS: usize = 16;
 )]
 async fn events(
     State(state): State<AppState>,
+    peer: Peer,
     PathParams(id): PathParams<String>,
 ) -> ApiResult<Sse<impl tokio_stream::Stream<Item = Result<Event, Infallible>>>> {
-    let slot = stream_slot(&state, &format!("GET /api/v1/runs/{id}"))?;
+    let slot = stream_slot(&state, peer, &format!("GET /api/v1/runs/{id}"))?;
     let s = Arc::clone(&state.service);
     let (rx, status) = {
         let id = id.clone();
@@ -1136,11 +1140,60 @@ async fn events(
     Ok(Sse::new(head.chain(live)).keep_alive(KeepAlive::default()))
 }
 
-/// One of the capped event-stream slots (`[api] max-streams`), or a 503 that names
-/// what to poll instead.
-fn stream_slot(state: &AppState, instead: &str) -> ApiResult<Slot> {
+/// The client's address where the server gave one (requests put through the router
+/// in tests may have none).
+pub(crate) struct Peer(Option<std::net::IpAddr>);
+
+impl<S: Send + Sync> axum::extract::FromRequestParts<S> for Peer {
+    type Rejection = Infallible;
+
+    async fn from_request_parts(
+        parts: &mut axum::http::request::Parts,
+        _: &S,
+    ) -> Result<Self, Self::Rejection> {
+        Ok(Peer(
+            parts
+                .extensions
+                .get::<axum::extract::ConnectInfo<SocketAddr>>()
+                .map(|c| c.0.ip().to_canonical()),
+        ))
+    }
+}
+
+/// Most event streams one remote address holds at once (loopback's are not counted):
+/// a dashboard tab takes two. A host that opens streams and reads them a byte at a
+/// time could otherwise hold all of `[api] max-streams`.
+pub const STREAMS_PER_PEER: usize = 8;
+
+/// An event-stream slot: one of `[api] max-streams`, and one of its host's
+/// [`STREAMS_PER_PEER`].
+struct StreamSlot {
+    _slot: Slot,
+    peer: Option<(PeerStreams, std::net::IpAddr)>,
+}
+
+/// Event streams open by remote address.
+type PeerStreams = Arc<std::sync::Mutex<std::collections::HashMap<std::net::IpAddr, usize>>>;
+
+impl Drop for StreamSlot {
+    fn drop(&mut self) {
+        if let Some((counts, ip)) = &self.peer {
+            let mut counts = counts.lock().unwrap_or_else(|p| p.into_inner());
+            if let Some(n) = counts.get_mut(ip) {
+                *n -= 1;
+                if *n == 0 {
+                    counts.remove(ip);
+                }
+            }
+        }
+    }
+}
+
+/// One of the capped event-stream slots (`[api] max-streams`, [`STREAMS_PER_PEER`] a
+/// remote host), or a 503 that names what to poll instead.
+fn stream_slot(state: &AppState, peer: Peer, instead: &str) -> ApiResult<StreamSlot> {
     let max = state.service.instrument().api.max_streams;
-    Slot::take(&state.streams, max).ok_or_else(|| {
+    let slot = Slot::take(&state.streams, max).ok_or_else(|| {
         ApiError::new(
             StatusCode::SERVICE_UNAVAILABLE,
             "too-many-streams",
@@ -1149,7 +1202,27 @@ fn stream_slot(state: &AppState, instead: &str) -> ApiResult<Slot> {
                  close one or poll {instead}"
             ),
         )
-    })
+    })?;
+    let peer = match peer.0.filter(|ip| !ip.is_loopback()) {
+        None => None,
+        Some(ip) => {
+            let mut counts = state.peer_streams.lock().unwrap_or_else(|p| p.into_inner());
+            let n = counts.entry(ip).or_insert(0);
+            if *n >= STREAMS_PER_PEER {
+                return Err(ApiError::new(
+                    StatusCode::SERVICE_UNAVAILABLE,
+                    "too-many-streams",
+                    format!(
+                        "this host has {STREAMS_PER_PEER} event streams open, the most one host may hold; \
+                         close one (each dashboard tab holds two) or poll {instead}"
+                    ),
+                ));
+            }
+            *n += 1;
+            Some((Arc::clone(&state.peer_streams), ip))
+        }
+    };
+    Ok(StreamSlot { _slot: slot, peer })
 }
 
 /// How often `GET /api/v1/instrument/events` sends the safety state.
@@ -1171,8 +1244,9 @@ const SAFETY_INTERVAL: std::time::Duration = std::time::Duration::from_millis(50
 )]
 async fn instrument_events(
     State(state): State<AppState>,
+    peer: Peer,
 ) -> ApiResult<Sse<impl tokio_stream::Stream<Item = Result<Event, Infallible>>>> {
-    let slot = stream_slot(&state, "GET /api/v1/instrument")?;
+    let slot = stream_slot(&state, peer, "GET /api/v1/instrument")?;
     let service = Arc::clone(&state.service);
     let ticks = tokio_stream::wrappers::IntervalStream::new(tokio::time::interval(SAFETY_INTERVAL));
     let stream = ticks.then(move |_| {
