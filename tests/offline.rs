@@ -69,6 +69,17 @@ fn recon_and_export_of_a_run_directory_whole_and_damaged() {
             r.pair
         );
     }
+    // Corrected, the counts are no longer whole numbers, but they are photon counts
+    // still: a reconstruction of the export models their noise as the run's own does.
+    assert!(
+        (0..c.len()).any(|k| c.transient(k).any(|v| v.fract() != 0.0)),
+        "pile-up undone leaves fractions"
+    );
+    let volume = c.default_volume().unwrap();
+    assert!(
+        c.transients(&volume).unwrap().is_photon_counts(),
+        "the export's corrected counts read as noise-free data"
+    );
 
     // An export whose --out is one of the run's own files would replace the run's
     // data with the export: refused, naming the file, and the log left as it was.

@@ -359,11 +359,11 @@ impl RunCapture {
         };
         let dwell_s = records.iter().fold(0u64, |a, r| a.saturating_add(r.dwell_us)) as f64 * 1e-6;
         let scene_info = format!(
-            "original_format: periscope\nrun: '{}'\nplan: '{}'\npairs_planned: {}\npairs_measured: {n}\n\
+            "original_format: periscope\nrun: {}\nplan: {}\npairs_planned: {}\npairs_measured: {n}\n\
              dwell_total_s: {dwell_s}\nbin_width_s: {width}\nacquisition_offset_s: {offset}\n\
              system_delay_s: {}\nrepeats: {}\npile_up_corrected: {}\n",
-            self.info.id.replace('\'', "''"),
-            plan.name.replace('\'', "''"),
+            yaml_string(&self.info.id),
+            yaml_string(&plan.name),
             self.pairs.len(),
             inst.tdc.system_delay,
             plan.acquisition.repeats,
@@ -491,6 +491,14 @@ impl Capture {
                         }
                     });
                 }
+                if set.left_out_empty() > 0 {
+                    tracing::info!(
+                        file = %path.display(),
+                        left_out = set.left_out_empty(),
+                        kept = set.len(),
+                        "transients that hold no count on the paths through the volume were left out"
+                    );
+                }
                 // The virtual relay spans the relay points: the SPAD's, and the laser's
                 // too where the SPAD stays on fewer than three (a phasor-field capture's
                 // fixed SPAD and scanned laser: by reciprocity, the scanned side).
@@ -571,5 +579,40 @@ impl Capture {
                 }
             ),
         }
+    }
+}
+
+/// `text` as a YAML double-quoted scalar that any YAML reader takes back as it was:
+/// quotes and backslashes escaped, and every character outside printable ASCII
+/// written as a `\u` or `\U` escape, since YAML readers (y-tal's PyYAML among them)
+/// refuse control characters in a document, and a plan stored before they were
+/// refused may hold one.
+fn yaml_string(text: &str) -> String {
+    let mut out = String::with_capacity(text.len() + 2);
+    out.push('"');
+    for c in text.chars() {
+        match c {
+            '"' => out.push_str("\\\""),
+            '\\' => out.push_str("\\\\"),
+            ' '..='~' => out.push(c),
+            c if u32::from(c) <= 0xFFFF => out.push_str(&format!("\\u{:04x}", u32::from(c))),
+            c => out.push_str(&format!("\\U{:08x}", u32::from(c))),
+        }
+    }
+    out.push('"');
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    /// Names written into an export's `scene_info` come back as they were from a YAML
+    /// reader, whatever they hold (the escapes are YAML's double-quoted ones).
+    #[test]
+    fn scene_info_strings_are_yaml_double_quoted_scalars() {
+        assert_eq!(super::yaml_string("demo"), "\"demo\"");
+        assert_eq!(
+            super::yaml_string("a'b\"c\\d\u{7}\u{e9}\u{1d11e}"),
+            "\"a'b\\\"c\\\\d\\u0007\\u00e9\\U0001d11e\""
+        );
     }
 }

@@ -187,8 +187,9 @@ pub enum PipelineError {
     /// An imported capture's file could not be read, or does not fit its settings.
     #[error("imported capture: {0}")]
     Import(#[from] crate::capture::CaptureError),
-    /// The run directory could not be written or read.
-    #[error("run directory {path}: {source}")]
+    /// A file of the run (or of a reconstruction's output directory) could not be
+    /// written or read.
+    #[error("{path}: {source}")]
     Storage {
         /// The file or directory.
         path: PathBuf,

@@ -1,8 +1,6 @@
 //! Run outputs (`DESIGN.md` §6): `volume.npy` (float32 [nz, ny, nx]), `volume.json`,
 //! `depth.npy` (float32 [ny, nx], metres, NaN where nothing was found), `depth.png`,
 //! `albedo.png`, `gaussians.ply` (3D-GTR only); and the relay point cloud `relay.ply`.
-use std::fs::File;
-use std::io::BufWriter;
 use std::path::Path;
 
 use periscope_recon::io::{write_albedo_png, write_depth_png, write_npy, write_volume};
@@ -141,17 +139,19 @@ pub fn write_outputs(dir: &Path, r: &ReconResult, events: &EventSink) -> Result<
     let p = dir.join(file::ALBEDO_PNG);
     write_albedo_png(&p, &depth).map_err(recon_io(&p))?;
     wrote(file::ALBEDO_PNG, &mut files);
+    let p = dir.join(file::GAUSSIANS);
     if let Some(cloud) = &r.cloud {
-        let p = dir.join(file::GAUSSIANS);
-        let tmp = dir.join("gaussians.ply.tmp");
-        let mut w = BufWriter::new(File::create(&tmp).map_err(io(&tmp))?);
-        periscope_recon::gtr::write_ply(cloud, &mut w).map_err(io(&tmp))?;
-        w.into_inner()
-            .map_err(|e| PipelineError::storage(&tmp, e.into_error()))?
-            .sync_all()
-            .map_err(io(&tmp))?;
-        std::fs::rename(&tmp, &p).map_err(io(&p))?;
+        // Written whole, then atomically like every other output (a temporary file of
+        // its own, synced, renamed, the directory synced; a failed write leaves none).
+        let mut bytes = Vec::new();
+        periscope_recon::gtr::write_ply(cloud, &mut bytes).map_err(io(&p))?;
+        crate::store::write_atomic(&p, &bytes).map_err(io(&p))?;
         wrote(file::GAUSSIANS, &mut files);
+    } else if std::fs::symlink_metadata(&p).is_ok_and(|m| m.file_type().is_file()) {
+        // A reconstruction without primitives into a directory an earlier 3D-GTR
+        // wrote to: its `gaussians.ply` would stand beside a volume it did not make.
+        std::fs::remove_file(&p).map_err(io(&p))?;
+        tracing::info!(path = %p.display(), "removed the gaussians.ply of an earlier reconstruction: this one fits no primitives");
     }
     Ok(RunOutputs {
         files,

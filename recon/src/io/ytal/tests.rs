@@ -282,3 +282,48 @@ fn each_transient_keeps_to_its_own_window_when_the_legs_differ() {
         "the legs differ, so most windows cover part of the axis"
     );
 }
+
+/// A run's own export holds its counts with pile-up and dead time undone: no longer
+/// whole numbers, but each at or a little above one. The reader reads them as counts
+/// (Poisson noise) from the values alone, as it reads whole numbers; values a render
+/// or a processing step leaves are not read as counts.
+#[test]
+fn counts_with_pile_up_undone_are_read_as_photon_counts() {
+    let volume = VolumeGrid::new([-0.1, 0.6], [-0.3, 0.1], [0.2, 0.6], [8, 8, 8]).unwrap();
+    let bins = 200;
+    // Counts 0–5 in a repeating pattern, each bin raised as a first-photon counter's
+    // correction raises it: by a factor growing along the histogram to 1.12.
+    let counted: Vec<f32> = (0..bins * 6).map(|v| ((v * 7 + v / 6) % 6) as f32).collect();
+    let corrected: Vec<f32> = counted
+        .iter()
+        .enumerate()
+        .map(|(v, &n)| n * (1.0 + 0.12 * (v / 6) as f32 / bins as f32))
+        .collect();
+    let counts = |h: Vec<f32>| {
+        let c = confocal_six(bins, 0.0, h);
+        c.check().unwrap();
+        c.transients(&volume).unwrap().is_photon_counts()
+    };
+    assert!(counts(counted.clone()), "whole numbers are counts");
+    assert!(
+        counts(corrected.clone()),
+        "counts raised by at most a quarter are counts"
+    );
+    // A render: values anywhere, most of them under one.
+    let rendered: Vec<f32> = (0..bins * 6).map(|v| 1e-3 * (1.0 + (v % 97) as f32)).collect();
+    assert!(!counts(rendered.clone()), "a render is not counts");
+    // The same render scaled until every value is large: nothing says counts.
+    assert!(
+        !counts(rendered.iter().map(|v| v * 1e6).collect()),
+        "large values alone are not evidence of counts"
+    );
+    // One small value between whole numbers' bands (1.6: neither 1 raised by a
+    // quarter nor 2) is no count.
+    let mut off = corrected;
+    off[6 * 50] = 1.6;
+    assert!(!counts(off), "1.6 is no corrected count");
+    // Nor is a value under one (a background subtracted, a count scaled down).
+    let mut under = counted;
+    under[6 * 50] = 0.5;
+    assert!(!counts(under), "0.5 is no count");
+}

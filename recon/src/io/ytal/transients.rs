@@ -102,14 +102,15 @@ impl YtalCapture {
             )));
         }
         let mut set = TransientSet::new(axis).map_err(|e| self.error(e.to_string()))?;
-        // Whole non-negative numbers throughout: a photon-counting capture.
-        let mut whole = true;
+        // Whole non-negative numbers throughout, or counts corrected for pile-up: a
+        // photon-counting capture.
+        let mut counts_seen = CountEvidence::default();
         let mut ambient = (0.0f64, 0usize);
         for (c, pair) in pairs.into_iter().enumerate() {
             if self.flags.as_ref().is_some_and(|f| f[c] & FLAG_OVERFLOW != 0) {
                 continue;
             }
-            whole &= self.transient(c).all(|v| v >= 0.0 && v.fract() == 0.0);
+            self.transient(c).for_each(|v| counts_seen.see(v));
             // The bins no path through the volume reaches hold the ambient level only.
             let (near, far) = crate::transient::path_range(&pair, volume);
             let margin = AMBIENT_MARGIN_BINS * self.delta_t;
@@ -137,7 +138,7 @@ impl YtalCapture {
                 set.note_left_out_empty(1);
             }
         }
-        if whole {
+        if counts_seen.photon_counts() {
             set.mark_photon_counts();
         }
         set.add_ambient(ambient.0, ambient.1);
@@ -222,5 +223,62 @@ impl YtalCapture {
         let centre = self.sensor_grid.points.iter().fold(DVec3::ZERO, |a, &p| a + p) / n;
         let normal = self.sensor_grid.normals.iter().fold(DVec3::ZERO, |a, &p| a + p) / n;
         centre + normal
+    }
+}
+
+/// The most a correction for pile-up and dead time may raise a count, as a fraction:
+/// a quarter, which Coates' correction alone reaches where one pulse in five has
+/// already been taken (the TDC flags pile-up at one in twenty).
+const MAX_CORRECTION: f32 = 0.25;
+
+/// Values of this size or above say nothing about whether they were counted: every
+/// such value is within [`MAX_CORRECTION`] above some whole number.
+const SMALL_COUNT: f32 = 4.0;
+
+/// How many small values (positive, under [`SMALL_COUNT`]) a capture of corrected
+/// counts must hold for the reader to read it as counts.
+const MIN_SMALL_COUNTS: usize = 32;
+
+/// What a capture's values say of whether they are detected photons, read from the
+/// values themselves (a file's `scene_info` may say nothing, or be wrong).
+///
+/// Counted photons are whole numbers. A counter's histograms with pile-up and dead
+/// time undone (Periscope's own export, `tdc.pile-up-correction`) are not, but each
+/// corrected value is its count raised by a factor from 1 to a little above it
+/// (Coates' correction never lowers a count): no value lies between 0 and 1, and the
+/// small ones sit just above whole numbers, in [n, n·(1 + [`MAX_CORRECTION`])]. A
+/// render or a processed capture holds values anywhere, and so fails one test or the
+/// other; one whose every value is large shows neither, and is not read as counts.
+#[derive(Debug, Clone, Copy)]
+struct CountEvidence {
+    whole: bool,
+    corrected: bool,
+    small: usize,
+}
+
+impl Default for CountEvidence {
+    fn default() -> Self {
+        CountEvidence {
+            whole: true,
+            corrected: true,
+            small: 0,
+        }
+    }
+}
+
+impl CountEvidence {
+    fn see(&mut self, v: f32) {
+        self.whole &= v >= 0.0 && v.fract() == 0.0;
+        if v == 0.0 {
+            return;
+        }
+        if v < SMALL_COUNT {
+            self.small += 1;
+        }
+        self.corrected &= v >= 1.0 && (v >= SMALL_COUNT || v <= v.floor() * (1.0 + MAX_CORRECTION));
+    }
+
+    fn photon_counts(&self) -> bool {
+        self.whole || (self.corrected && self.small >= MIN_SMALL_COUNTS)
     }
 }
