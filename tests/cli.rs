@@ -64,6 +64,60 @@ fn a_missing_run_directory_is_named() {
     assert!(out.stderr.contains("runs/does-not-exist"), "{}", out.stderr);
 }
 
+/// `--log-file` appends to a log and never truncates: pointed at a run's histogram
+/// log or at the plan being read, it emptied them (until 2026-12-06). Such targets,
+/// and a FIFO (which blocked the command for good), are refused before anything runs.
+#[test]
+fn the_log_file_appends_and_never_replaces_data() {
+    let dir = tempfile::tempdir().unwrap();
+    let plan = dir.path().join("plan.toml");
+    std::fs::write(&plan, include_str!("data/plans/small-fbp.toml")).unwrap();
+    let p = |path: &std::path::Path| path.to_str().unwrap().to_owned();
+    // A log is appended to.
+    let log = dir.path().join("periscope.log");
+    std::fs::write(&log, "an earlier line\n").unwrap();
+    for _ in 0..2 {
+        let out = periscope(&["--log-file", &p(&log), "check", &p(&plan)]);
+        assert_eq!(out.code, Some(0), "{out:?}");
+    }
+    let text = std::fs::read_to_string(&log).unwrap();
+    assert!(text.starts_with("an earlier line\n"), "{text}");
+    // The plan, a run's files, and a FIFO are refused, and left as they were.
+    let run = dir.path().join("run");
+    std::fs::create_dir(&run).unwrap();
+    std::fs::write(run.join("run.json"), "{}").unwrap();
+    std::fs::write(run.join("histograms.bin"), b"counts").unwrap();
+    let fifo = dir.path().join("fifo");
+    assert!(
+        std::process::Command::new("mkfifo")
+            .arg(&fifo)
+            .status()
+            .unwrap()
+            .success()
+    );
+    for (target, says) in [
+        (plan.clone(), "named as data"),
+        (run.join("histograms.bin"), "run directory"),
+        (run.join("new.log"), "run directory"),
+        (fifo, "not a regular file"),
+    ] {
+        // (A FIFO is never read here: reading one blocks.)
+        let contents = |t: &std::path::Path| t.is_file().then(|| std::fs::read(t).unwrap());
+        let before = contents(&target);
+        let out = periscope_tests::periscope_with_limit(
+            &["--log-file", &p(&target), "check", &p(&plan)],
+            std::time::Duration::from_secs(60),
+        );
+        assert_eq!(out.code, Some(2), "{target:?}: {out:?}");
+        assert!(
+            out.stderr.contains("--log-file") && out.stderr.contains(says),
+            "{target:?}: {}",
+            out.stderr
+        );
+        assert_eq!(contents(&target), before, "{target:?}");
+    }
+}
+
 #[test]
 fn json_logs_are_json() {
     // A small run logs its stages at info level: every line on stderr must be one JSON

@@ -160,6 +160,17 @@ fn a_broken_scene_names_file_line_and_key() {
     let expected = format!("scene.toml:{line}: key `hidden[0].stroke`");
     assert!(err.contains(&expected), "expected `{expected}` in: {err}");
     assert!(err.contains("does not suit"), "{err}");
+    // An array longer than its key takes is refused, not cut short.
+    let text = std::fs::read_to_string(repo_path("configs/scenes/wall-letter.toml"))
+        .unwrap()
+        .replacen(
+            "position = [0.0, 0.0, 0.6]",
+            "position = [0.0, 0.0, 0.6, 99.0]",
+            1,
+        );
+    std::fs::write(&bad, text).unwrap();
+    let err = load_scene(&bad).unwrap_err().to_string();
+    assert!(err.contains("position") && err.contains("exactly 3"), "{err}");
 }
 
 /// A relay whose albedo varies (`[relay.albedo-variation]`): the albedo stays within
@@ -491,6 +502,41 @@ fn later(out: &str) -> Option<String> {
 /// The LOS scan moves the SPAD arm over its whole grid with the laser on: a scan past
 /// the arm's limits is refused with the plan, naming both keys, not when the run reaches
 /// that corner.
+/// A fixed laser aimed away from the relay: `check` names a target past the laser
+/// arm's limits, and a run whose target the arm reaches but no relay point lies near
+/// fails at planning, naming `pairs.laser`, before anything is measured. Until
+/// 2026-12-06 both passed: the relay point nearest, 70 m away, was lit.
+#[test]
+fn a_fixed_laser_aimed_away_from_the_relay_is_named() {
+    let dir = tempfile::tempdir().unwrap();
+    let text = std::fs::read_to_string(repo_path("configs/plans/wall-letter-fixed-laser.toml")).unwrap();
+    let far = text.replace("laser = [0.05, 0.05, 0.0]", "laser = [50.0, 50.0, 0.0]");
+    assert_ne!(far, text);
+    let plan = dir.path().join("far.toml");
+    std::fs::write(&plan, far).unwrap();
+    let out = periscope(&["check", plan.to_str().unwrap()]);
+    assert!(
+        out.stdout.contains("pairs.laser") && out.stdout.contains("outside the laser arm's limits"),
+        "{out:?}"
+    );
+    // In front of the wall, 30 cm off it: within the arm's reach, near no relay point.
+    let off = text.replace("laser = [0.05, 0.05, 0.0]", "laser = [0.05, 0.05, 0.3]");
+    let plan = dir.path().join("off.toml");
+    std::fs::write(&plan, off).unwrap();
+    let run = dir.path().join("run");
+    let out = periscope(&["run", plan.to_str().unwrap(), "--out", run.to_str().unwrap()]);
+    assert_ne!(out.code, Some(0), "{out:?}");
+    assert!(
+        out.stderr.contains("pairs.laser") && out.stderr.contains("from the nearest relay point"),
+        "{}",
+        out.stderr
+    );
+    assert!(
+        !run.join("histograms.bin").exists()
+            || std::fs::metadata(run.join("histograms.bin")).unwrap().len() == 0
+    );
+}
+
 #[test]
 fn check_refuses_an_los_scan_past_the_spad_arms_limits() {
     let dir = tempfile::tempdir().unwrap();
@@ -527,6 +573,17 @@ fn a_broken_plan_names_file_line_and_key() {
         ),
         ("neighbours = 16", "neighbours = 2", "relay.neighbours"),
         ("grid = [32, 32]", "grid = [3, 3]", "los.grid"),
+        // A control character would break every YAML reader of the run's export.
+        ("name = \"demo\"", "name = \"demo\\u0007bell\"", "name"),
+        // A key the mode does not read does nothing: refused, naming it.
+        (
+            "grid = [24, 24]",
+            "grid = [24, 24]\nlaser = [0.0, 0.0, 0.0]",
+            "pairs.laser",
+        ),
+        ("grid = [24, 24]", "grid = [24, 24]\nseed = 5", "pairs.seed"),
+        // 3D-GTR fits a plane to the detection points: two never make one.
+        ("grid = [24, 24]", "grid = [2, 1]", "pairs.mode"),
     ] {
         let bad = dir.path().join("bad.toml");
         std::fs::write(&bad, text.replace(from, to)).unwrap();
@@ -610,6 +667,19 @@ fn a_broken_adaptive_plan_names_the_key_and_what_to_do() {
             "pairs = 10\nfirst = 20",
             "recon.adaptive.first",
             "budget",
+        ),
+        // An unknown planner is the `candidates` key's fault, not the mode's.
+        (
+            "candidates = \"confocal\"",
+            "candidates = \"bogus\"",
+            "pairs.candidates",
+            "is not a mode",
+        ),
+        (
+            "grid = [24, 24]",
+            "grid = [24, 24]\ncount = 5",
+            "pairs.count",
+            "is not read by candidates `confocal`",
         ),
     ] {
         let bad = dir.path().join("bad.toml");

@@ -176,6 +176,13 @@ pub fn check(plan: &Plan, inst: &InstrumentConfig) -> Check {
             }
         }
     }
+    if let crate::plan::PairMode::FixedLaser { laser, .. } = &plan.pairs
+        && let Some(why) = outside(&inst.laser_arm.pose, &inst.laser_arm.limits, *laser)
+    {
+        problems.push(format!(
+            "pairs.laser: {laser:.3?} is outside the laser arm's limits ({why}): no pair can be measured"
+        ));
+    }
     let candidates = plan.pairs.max_pairs();
     let adaptive = plan
         .adaptive

@@ -162,6 +162,10 @@ pub fn execute(cli: Cli) -> Result<(), CliError> {
         } => {
             let instrument_src = instrument_source(instrument.instrument.as_deref())?;
             let plan_src = TomlSource::load(&plan)?;
+            // The way to the devices, as `check` makes it (nothing opened), before the
+            // run directory is: a simulator's broken scene file is refused naming its
+            // key, and leaves no failed run behind.
+            crate::devices::backend(&crate::config::InstrumentConfig::from_source(&instrument_src)?)?;
             let (dir, plan, config) = pipeline::prepare(&plan_src, &instrument_src, out.as_deref(), "cli")?;
             crate::logging::notice(&format!(
                 "run `{}` on {}\n  run directory: {}",

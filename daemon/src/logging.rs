@@ -42,7 +42,68 @@ pub fn report_error(message: &str) {
     }
 }
 
-/// Installs the global subscriber. Fails only when the log file cannot be created.
+/// Extensions of files Periscope reads or writes as data: an existing file named so is
+/// not taken as a log (appending log lines would corrupt it).
+const DATA_EXTENSIONS: &[&str] = &[
+    "toml", "json", "jsonl", "bin", "hdf5", "h5", "mat", "npy", "ply", "png", "obj", "csv", "py",
+];
+
+/// Opens `path` for `--log-file`: appended to, never truncated, and made if missing.
+/// Refused: anything but a regular file (a FIFO would block the command before it
+/// starts, a device or directory is no log), a file in a run directory (the run's
+/// files are its only copy of what it measured), and an existing file named as data
+/// (`plan.toml`, `capture.hdf5`, ...).
+fn open_log_file(path: &Path) -> std::io::Result<File> {
+    use std::io::{Error, ErrorKind};
+    use std::os::unix::fs::OpenOptionsExt;
+    let refuse = |why: &str| {
+        Error::new(
+            ErrorKind::InvalidInput,
+            format!(
+                "--log-file {}: {why}; give a new file or an existing log",
+                path.display()
+            ),
+        )
+    };
+    let parent = path
+        .parent()
+        .filter(|p| !p.as_os_str().is_empty())
+        .unwrap_or(Path::new("."));
+    if parent.join("run.json").exists() || parent.join("histograms.bin").exists() {
+        return Err(refuse("lies in a run directory, whose files are the run's"));
+    }
+    if let Ok(meta) = std::fs::symlink_metadata(path) {
+        if !meta.file_type().is_file() {
+            return Err(refuse(
+                "exists and is not a regular file (a FIFO, device, directory or link)",
+            ));
+        }
+        let ext = path
+            .extension()
+            .and_then(|e| e.to_str())
+            .unwrap_or("")
+            .to_ascii_lowercase();
+        if DATA_EXTENSIONS.contains(&ext.as_str()) {
+            return Err(refuse(&format!(
+                "exists and is named as data (.{ext}), not a log"
+            )));
+        }
+    }
+    // Without blocking, and checked once open: a FIFO put there since would block.
+    let file = std::fs::OpenOptions::new()
+        .append(true)
+        .create(true)
+        .custom_flags(libc::O_NONBLOCK | libc::O_NOFOLLOW)
+        .open(path)?;
+    if !file.metadata()?.file_type().is_file() {
+        return Err(refuse("is not a regular file"));
+    }
+    Ok(file)
+}
+
+/// Installs the global subscriber. Fails only when the log file cannot be opened:
+/// it is appended to, and refused if it is not a regular file, lies in a run
+/// directory, or exists under a data file's name.
 pub fn init(format: LogFormat, log_file: Option<&Path>) -> std::io::Result<()> {
     JSON.store(format == LogFormat::Json, std::sync::atomic::Ordering::Relaxed);
     let filter = || EnvFilter::try_from_default_env().unwrap_or_else(|_| EnvFilter::new("info"));
@@ -53,7 +114,7 @@ pub fn init(format: LogFormat, log_file: Option<&Path>) -> std::io::Result<()> {
             .boxed(),
         LogFormat::Json => fmt::layer().json().with_writer(std::io::stderr).boxed(),
     };
-    let file = log_file.map(File::create).transpose()?.map(|f| {
+    let file = log_file.map(open_log_file).transpose()?.map(|f| {
         fmt::layer()
             .json()
             .with_ansi(false)

@@ -152,6 +152,30 @@ impl RunDir {
         .find(|f| path.join(f).symlink_metadata().is_ok())
     }
 
+    /// The first file `path` holds under a name a new run writes there (its copies of
+    /// the plan and instrument config, its events, its outputs), if any: a new run in a
+    /// directory without `run.json` would replace a user's own file of that name (an
+    /// instrument config kept beside its plan lost its token to the redacted copy).
+    pub fn file_a_run_would_replace(path: &Path) -> Option<&'static str> {
+        [
+            file::PLAN,
+            file::INSTRUMENT,
+            file::EVENTS,
+            file::VOLUME,
+            file::VOLUME_JSON,
+            file::DEPTH,
+            file::DEPTH_PNG,
+            file::ALBEDO_PNG,
+            file::GAUSSIANS,
+            file::CAPTURE,
+            file::ANNOTATIONS,
+            file::RECON,
+            file::GEOMETRY,
+        ]
+        .into_iter()
+        .find(|f| path.join(f).symlink_metadata().is_ok())
+    }
+
     /// Whether `path` holds a run (it has a `run.json`).
     pub fn holds_run(path: &Path) -> bool {
         path.join(file::RUN).is_file()
@@ -187,9 +211,11 @@ impl RunDir {
                 )),
             ));
         }
+        // Capped and regular files only, as any config is read: a FIFO or a link to
+        // `/dev/zero` put in a run directory must not hang or exhaust a resume.
         let read = |name: &str| {
             let path = self.file(name);
-            std::fs::read_to_string(&path).map_err(io(&path))
+            crate::store::read_text_capped(&path, crate::config::MAX_TOML_BYTES).map_err(io(&path))
         };
         let instrument = InstrumentConfig::from_source(&TomlSource::from_text(
             info.instrument_path.clone(),
@@ -208,7 +234,8 @@ impl RunDir {
         if !path.exists() {
             return Ok(None);
         }
-        let bytes = std::fs::read(&path).map_err(io(&path))?;
+        let bytes =
+            periscope_recon::io::read_regular_capped(&path, MAX_PAIRS_JSON_BYTES).map_err(io(&path))?;
         serde_json::from_slice(&bytes)
             .map(Some)
             .map_err(|e| RunDirError::io(&path, std::io::Error::new(std::io::ErrorKind::InvalidData, e)))
@@ -252,6 +279,16 @@ pub fn write_relay_ply(dir: &Path, relay: &[RelayPoint]) -> Result<(), RunDirErr
     crate::store::write_atomic(&path, &bytes).map_err(io(&path))
 }
 
+/// The most `pairs.json` may hold: 4 Mi pairs (a 2,048² confocal grid) at about 250
+/// bytes each. A larger file is no plan this daemon wrote.
+const MAX_PAIRS_JSON_BYTES: u64 = 1 << 30;
+
+/// The most `relay.ply` may hold: 16 Mi relay points at 24 bytes each, with room.
+const MAX_RELAY_PLY_BYTES: u64 = 1 << 30;
+
+/// The most `run.json` may hold (its adaptive batches and errors included).
+const MAX_RUN_JSON_BYTES: u64 = 64 << 20;
+
 /// Reads `relay.ply` back (resume, the dashboard's 3-D view), or `None` if the run has
 /// none yet.
 pub fn read_relay_ply(dir: &Path) -> Result<Option<Vec<RelayPoint>>, RunDirError> {
@@ -259,7 +296,7 @@ pub fn read_relay_ply(dir: &Path) -> Result<Option<Vec<RelayPoint>>, RunDirError
     if !path.exists() {
         return Ok(None);
     }
-    let bytes = std::fs::read(&path).map_err(io(&path))?;
+    let bytes = periscope_recon::io::read_regular_capped(&path, MAX_RELAY_PLY_BYTES).map_err(io(&path))?;
     parse_relay_ply(&bytes).map(Some).map_err(|m| {
         RunDirError::io(
             &path,
@@ -597,7 +634,7 @@ impl Annotations {
 impl RunInfo {
     /// Reads `run.json` from a run directory.
     pub fn load(dir: &Path) -> io::Result<RunInfo> {
-        let text = fs::read_to_string(dir.join(file::RUN))?;
+        let text = crate::store::read_text_capped(&dir.join(file::RUN), MAX_RUN_JSON_BYTES)?;
         serde_json::from_str(&text).map_err(|e| io::Error::new(io::ErrorKind::InvalidData, e))
     }
 

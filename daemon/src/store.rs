@@ -365,10 +365,28 @@ fn rewrite(dir: &Path, path: &Path, records: &[Record]) -> io::Result<()> {
 /// order, skipping damaged ones (see [`parse_log`]). Later records for a pair already
 /// read are dropped (this writer never produces them, but the reader does not trust
 /// the file).
+/// Only a regular file is read, and only as far as its length when opened: a FIFO
+/// or a link to `/dev/zero` in its place is refused instead of hanging the reader or
+/// filling memory.
 pub fn read_log(dir: &Path) -> io::Result<Recovered> {
+    use std::os::unix::fs::OpenOptionsExt as _;
     let path = dir.join(HISTOGRAM_LOG);
-    let mut bytes = Vec::new();
-    BufReader::new(File::open(&path)?).read_to_end(&mut bytes)?;
+    let file = OpenOptions::new()
+        .read(true)
+        .custom_flags(libc::O_NONBLOCK)
+        .open(&path)?;
+    let meta = file.metadata()?;
+    if !meta.is_file() {
+        return Err(io::Error::new(
+            io::ErrorKind::InvalidInput,
+            format!(
+                "{} is not a regular file (a FIFO, a device or a directory): move it aside",
+                path.display()
+            ),
+        ));
+    }
+    let mut bytes = Vec::with_capacity(meta.len() as usize);
+    BufReader::new(file.take(meta.len())).read_to_end(&mut bytes)?;
     Ok(parse_log(&bytes))
 }
 

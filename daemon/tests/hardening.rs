@@ -236,6 +236,7 @@ async fn plans_over_the_budget_get_422_naming_the_key_and_leave_nothing() {
     let router = app(AppState::new(service(dir.path(), 0.0, "", "")));
     let scanned = SmallPlan::default()
         .set("pairs.mode", "scanned")
+        .unset("pairs.offset-mm")
         .set("pairs.laser-grid", [512, 512])
         .set("pairs.grid", [512, 512]);
     let huge_volume = SmallPlan::default().set("recon.volume.shape", [1024, 1024, 1024]);

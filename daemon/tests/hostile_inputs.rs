@@ -141,10 +141,12 @@ fn a_confocal_solver_on_pairs_it_cannot_take_is_refused_with_the_plan() {
             ))
             .is_ok()
         );
-        let fixed = plan.replace(
-            "mode = \"confocal\"",
-            "mode = \"fixed-laser\"\nlaser = [0.0, 0.0, 0.0]",
-        );
+        let fixed = plan
+            .replace(
+                "mode = \"confocal\"",
+                "mode = \"fixed-laser\"\nlaser = [0.0, 0.0, 0.0]",
+            )
+            .replace("offset-mm = 5.0\n", "");
         let e = read(fixed).unwrap_err();
         assert!(e.contains("recon.method") && e.contains("fixed laser"), "{e}");
     }
@@ -183,9 +185,80 @@ fn a_new_run_refuses_a_directory_holding_another_runs_data() {
             "the old plan's copy was overwritten"
         );
     }
+    // A user's own files under names a run writes (a plan and an instrument config
+    // kept together, with its token) are not replaced by the run's copies.
+    let own = tmp.path().join("own-files");
+    std::fs::create_dir(&own).unwrap();
+    let config = "[api]\ntoken = \"0123456789abcdef0123\"\n";
+    std::fs::write(own.join("instrument.toml"), config).unwrap();
+    let e = pipeline::prepare(&plan, &inst, Some(&own), "test").unwrap_err();
+    let text = e.to_string();
+    assert!(
+        text.contains("instrument.toml") && text.contains("no run.json"),
+        "{text}"
+    );
+    assert_eq!(
+        std::fs::read_to_string(own.join("instrument.toml")).unwrap(),
+        config
+    );
     let notes = tmp.path().join("with-notes");
     std::fs::create_dir(&notes).unwrap();
     std::fs::write(notes.join("notes.txt"), b"bench set-up").unwrap();
     pipeline::prepare(&plan, &inst, Some(&notes), "test").unwrap();
     pipeline::prepare(&plan, &inst, Some(&tmp.path().join("new/nested")), "test").unwrap();
+}
+
+/// A run directory's files are read as any config is: regular files only, within a
+/// size. A FIFO or a link to `/dev/zero` put in place of `plan.toml`, `pairs.json`,
+/// `relay.ply`, `run.json` or the histogram log hung `resume`, `recon` and `export`,
+/// or filled memory (2.9 GB in 2 s), until 2026-12-06.
+#[test]
+fn a_fifo_or_an_endless_device_in_a_run_directory_is_refused_at_once() {
+    use periscope_daemon::pipeline;
+    use periscope_daemon::run_dir::RunDir;
+    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
+    let plan = TomlSource::load(&root.join("configs/plans/demo.toml")).unwrap();
+    let inst = TomlSource::load(&root.join("configs/instrument/sim.toml")).unwrap();
+    let tmp = tempfile::tempdir().unwrap();
+    for (name, endless) in [
+        ("plan.toml", false),
+        ("instrument.toml", true),
+        ("pairs.json", true),
+        ("pairs.json", false),
+        ("relay.ply", true),
+        ("run.json", false),
+        ("histograms.bin", false),
+        ("histograms.bin", true),
+    ] {
+        let dir = tmp.path().join(format!("{name}-{endless}"));
+        pipeline::prepare(&plan, &inst, Some(&dir), "test").unwrap();
+        let path = dir.join(name);
+        let _ = std::fs::remove_file(&path);
+        if endless {
+            std::os::unix::fs::symlink("/dev/zero", &path).unwrap();
+        } else {
+            fifo(&path);
+        }
+        let d = dir.clone();
+        let t = Instant::now();
+        let e = within(Duration::from_secs(5), move || {
+            let run = RunDir::new(&d);
+            match name {
+                "pairs.json" => run.planned_pairs().map(|_| ()).map_err(|e| e.to_string()),
+                "relay.ply" => periscope_daemon::run_dir::read_relay_ply(&d)
+                    .map(|_| ())
+                    .map_err(|e| e.to_string()),
+                "histograms.bin" => periscope_daemon::store::read_log(&d)
+                    .map(|_| ())
+                    .map_err(|e| e.to_string()),
+                _ => run.load().map(|_| ()).map_err(|e| e.to_string()),
+            }
+        })
+        .unwrap_err();
+        assert!(
+            e.contains(name) && e.contains("not a regular file"),
+            "{name} (endless {endless}): {e}"
+        );
+        assert!(t.elapsed() < Duration::from_secs(2), "{name}: {:?}", t.elapsed());
+    }
 }

@@ -938,6 +938,33 @@ fn flagged_frames_and_a_count_rate_above_the_limit_suspend_the_capture() {
     );
     assert_eq!(pairs, 0);
     assert!(!rig.emission());
+
+    // The same limit resumed automatically, with no clear time: it never clears, so
+    // after a few resumes (waiting longer each time) the run waits for the operator.
+    // Until 2026-12-06 it switched the laser on and off about 2,800 times a second, for
+    // good, writing two events each time.
+    let tmp = tempfile::tempdir().unwrap();
+    let (dir, rig) = prepare(
+        tmp.path(),
+        &plan_with("max-count-rate-hz = 1.0\nresume = \"auto\"\nclear-for-s = 0"),
+    );
+    let t = Instant::now();
+    let r = execute(&dir, &rig, Control::new(), |_| {});
+    let Err(PipelineError::Suspended { reason, pairs }) = r else {
+        panic!("{r:?}")
+    };
+    assert!(
+        reason.contains("does not clear") && reason.contains("6 times"),
+        "{reason}"
+    );
+    assert_eq!(pairs, 0);
+    assert!(!rig.emission());
+    let ons = rig.emission_changes().iter().filter(|c| c.on).count();
+    assert!((5..=8).contains(&ons), "{ons} switch-ons");
+    assert!(t.elapsed() >= Duration::from_millis(3750), "{:?}", t.elapsed());
+    let events = std::fs::read_to_string(dir.join("events.jsonl")).unwrap();
+    assert_eq!(events.matches("\"suspend-cleared\"").count(), 5);
+    assert_eq!(RunInfo::load(&dir).unwrap().state, RunState::Paused);
 }
 
 /// An emergency off that the run meets as emission lost, with the stop request
@@ -1367,33 +1394,34 @@ fn a_completed_resume_leaves_no_stale_temporaries_and_no_old_error() {
     assert_eq!(info.error, None, "a completed run kept an earlier stop's error");
 }
 
-/// A 3D-GTR plan whose detection points no plane fits (a fixed laser and a 2 × 1
-/// detection grid) is refused when the capture is about to start, naming `fbp` as the
-/// way to reconstruct it: no pair is measured for a fit that could never render.
+/// A 3D-GTR plan whose detection points no plane can fit (a fixed laser and a 2 × 1
+/// detection grid) is refused when it is read, naming `fbp` as the way to reconstruct
+/// it: no run is made, and nothing measured for a fit that could never render. (Until
+/// 2026-12-06 it was refused only once the LOS scan had found the relay, with the laser
+/// on; three or more points in a line still are, there.)
 #[test]
 fn a_gtr_capture_no_plane_fits_is_refused_before_its_pairs_are_measured() {
-    let _serial = ONE_AT_A_TIME.lock().unwrap_or_else(|p| p.into_inner());
     let tmp = tempfile::tempdir().unwrap();
     let plan = SmallPlan::named("line")
         .set("los.grid", [8, 8])
         .set("los.dwell-ms", 10.0)
         .set("pairs.mode", "fixed-laser")
+        .unset("pairs.offset-mm")
         .set("pairs.laser", [0.0, 0.0, 0.0])
         .set("pairs.grid", [2, 1])
         .set("acquisition.dwell-ms", 30.0)
         .set("recon.method", "gtr")
         .set("recon.volume.shape", [16, 16, 16])
         .toml();
-    let (dir, rig) = prepare_on(tmp.path(), &plan, Devices::InProcess);
-    let r = execute(&dir, &rig, Control::new(), |_| {});
-    let Err(e) = r else {
-        panic!("a line of detection points was reconstructed")
-    };
-    assert!(e.to_string().contains("no plane fits"), "{e}");
-    assert!(e.to_string().contains("fbp"), "{e}");
-    let stored = read_log(&dir).map_or(0, |l| l.records.len());
-    assert_eq!(stored, 0, "pairs were measured for a fit that cannot render");
-    assert!(!rig.emission());
+    let plan_src = TomlSource::from_text(tmp.path().join("plan.toml"), plan);
+    let out = tmp.path().join("run");
+    let e = pipeline::prepare(&plan_src, &instrument_on(Devices::InProcess), Some(&out), "test")
+        .map(drop)
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("pairs.mode") && e.contains("at least three"), "{e}");
+    assert!(e.contains("fbp"), "{e}");
+    assert!(!out.join("run.json").exists(), "a run was made");
 }
 
 /// A pairs grid finer than the relay the LOS scan found: the run measures what the

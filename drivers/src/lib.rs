@@ -12,6 +12,7 @@
 
 pub mod daqmx;
 pub mod error;
+pub mod exact;
 pub mod galvo;
 pub mod geometry;
 pub mod laser_guard;

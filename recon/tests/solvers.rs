@@ -316,6 +316,20 @@ fn fbp_refuses_a_phasor_envelope_longer_than_its_time_axis_can_hold() {
         ..Default::default()
     };
     assert!(fbp(&set, &grid(), &long).is_ok());
+    // Nor a wave shorter than four bins, which was quietly lengthened to them.
+    for short in [1e-300, 1e-6, 3.9 * axis().width] {
+        let short = FbpSettings {
+            wavelength: Some(short),
+            ..Default::default()
+        };
+        let e = fbp(&set, &grid(), &short).unwrap_err().to_string();
+        assert!(e.contains("wavelength") && e.contains("4 bins"), "{e}");
+    }
+    let four = FbpSettings {
+        wavelength: Some(4.0 * axis().width),
+        ..Default::default()
+    };
+    assert!(fbp(&set, &grid(), &four).is_ok());
 }
 
 #[test]

@@ -69,12 +69,13 @@ pub struct RawSurface {
     /// Lambertian albedo in [0, 1].
     pub albedo: f64,
     /// Position of the shape's local origin, metres.
-    #[serde(default)]
+    #[serde(default, deserialize_with = "periscope_drivers::exact::array")]
     pub position: [f64; 3],
     /// Rotation, degrees, applied x then y then z (intrinsic XYZ).
-    #[serde(default)]
+    #[serde(default, deserialize_with = "periscope_drivers::exact::array")]
     pub rotation_deg: [f64; 3],
     /// Width and height, metres.
+    #[serde(default, deserialize_with = "periscope_drivers::exact::option")]
     pub size: Option<[f64; 2]>,
     /// Panel depth amplitude, metres.
     pub amplitude: Option<f64>,
@@ -122,7 +123,10 @@ pub struct RawAlbedoVariation {
     #[serde(default = "unity")]
     pub smooth: f64,
     /// The ramp's direction in the world x–y plane (need not be a unit vector).
-    #[serde(default = "ramp_direction")]
+    #[serde(
+        default = "ramp_direction",
+        deserialize_with = "periscope_drivers::exact::array"
+    )]
     pub direction: [f64; 2],
     /// Each cell's own factor, uniform in [1 − random, 1 + random] (0: none).
     #[serde(default)]

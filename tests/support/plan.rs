@@ -65,6 +65,28 @@ impl SmallPlan {
         self
     }
 
+    /// Removes `key` (dotted, as for [`SmallPlan::set`]) from the plan, if it is there:
+    /// a pair mode that does not read it refuses it (`pairs.offset-mm` beside
+    /// `pairs.mode = "scanned"`).
+    pub fn unset(mut self, key: &str) -> Self {
+        let (table, name) = key.rsplit_once('.').unwrap_or(("", key));
+        let mut current = String::new();
+        let lines: Vec<&str> = self
+            .text
+            .lines()
+            .filter(|l| {
+                let t = l.trim();
+                if let Some(header) = t.strip_prefix('[').and_then(|h| h.strip_suffix(']')) {
+                    current = header.trim().to_owned();
+                    return true;
+                }
+                !(current == table && t.split_once('=').is_some_and(|(k, _)| k.trim() == name))
+            })
+            .collect();
+        self.text = lines.join("\n") + "\n";
+        self
+    }
+
     /// Adds `tables` (TOML text, e.g. a `[suspend]` table) at the end of the plan.
     pub fn with(mut self, tables: &str) -> Self {
         self.text.push_str(tables);

@@ -1,32 +1,6 @@
-//! Fixed-length arrays read exactly: serde reads `[T; N]` by taking the first N items
-//! and ignores any more, so `pairs.grid = [24, 24, 24]` would be taken as `[24, 24]`.
-//! Fields read through these (`#[serde(deserialize_with = "crate::config::exact::array")]`)
-//! refuse any other length, and the error names the key and line like every other.
-use serde::de::{Deserialize, Deserializer, Error};
-
-/// `[T; N]`, refusing arrays of any other length.
-pub(crate) fn array<'de, D, T, const N: usize>(d: D) -> Result<[T; N], D::Error>
-where
-    D: Deserializer<'de>,
-    T: Deserialize<'de>,
-{
-    exactly(Vec::<T>::deserialize(d)?)
-}
-
-/// `Option<[T; N]>`, refusing arrays of any other length (absent: `None`).
-pub(crate) fn option<'de, D, T, const N: usize>(d: D) -> Result<Option<[T; N]>, D::Error>
-where
-    D: Deserializer<'de>,
-    T: Deserialize<'de>,
-{
-    Option::<Vec<T>>::deserialize(d)?.map(exactly).transpose()
-}
-
-fn exactly<E: Error, T, const N: usize>(v: Vec<T>) -> Result<[T; N], E> {
-    let len = v.len();
-    v.try_into()
-        .map_err(|_| E::invalid_length(len, &format!("an array of exactly {N} numbers").as_str()))
-}
+//! Fixed-length arrays read exactly: [`periscope_drivers::exact`], which the scene
+//! files' reader shares; re-exported here for the daemon's configs and plans.
+pub(crate) use periscope_drivers::exact::{array, option};
 
 #[cfg(test)]
 mod tests {

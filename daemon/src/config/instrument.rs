@@ -556,8 +556,11 @@ struct RawGalvo {
     serial: Option<RawSerial>,
     #[serde(default)]
     driver: RawGalvoDriver,
+    #[serde(default, deserialize_with = "crate::config::exact::option")]
     channels: Option<[String; 2]>,
+    #[serde(default, deserialize_with = "crate::config::exact::option")]
     volts_per_deg: Option<[f64; 2]>,
+    #[serde(default, deserialize_with = "crate::config::exact::option")]
     offsets_v: Option<[f64; 2]>,
     max_slew_deg_per_ms: Option<f64>,
     library: Option<PathBuf>,
@@ -1786,6 +1789,25 @@ mod tests {
             "laser-line = \"Dev1/port0/line0\"\n",
         );
         assert_eq!(e.key(), Some("galvo.laser.channels"), "{e}");
+        // Three channels, volts or offsets for a pair of mirrors: refused, not cut to two.
+        for (from, to, key) in [
+            (
+                "\"Dev1/ao1\"]",
+                "\"Dev1/ao1\", \"Dev1/ao2\"]",
+                "galvo.laser.channels",
+            ),
+            ("0.4, 0.4", "0.4, 0.4, 99.0", "galvo.laser.volts-per-deg"),
+        ] {
+            let e = err(
+                &DAQ_GALVO.replace(from, to),
+                "laser-line = \"Dev1/port0/line0\"\n",
+            );
+            assert!(e.to_string().contains("exactly 2"), "{key}: {e}");
+            assert!(
+                e.to_string().contains(key.rsplit('.').next().unwrap()),
+                "{key}: {e}"
+            );
+        }
         let e = err(
             &DAQ_GALVO.replace("max-slew-deg-per-ms = 2.0\n", ""),
             "laser-line = \"Dev1/port0/line0\"\n",

@@ -415,6 +415,7 @@ impl Run {
             .map_err(|e| PipelineError::storage(log.path(), e))?;
         stored.insert(rec.pair);
         self.info.pairs_done = stored.len();
+        self.blind_resumes = 0;
         Ok(())
     }
 

@@ -44,10 +44,43 @@ pub struct Run {
     /// readings show it (the rate meter's latency after the switch-on), and whether
     /// this session has already waited for one and checked it.
     pub(super) sync: SyncWatch,
+    /// Automatic resumes since the last stored pair from a suspension only a new
+    /// measurement can judge (the count rate, flagged frames, emission lost): a
+    /// condition that never clears would otherwise switch the laser on and off for
+    /// good ([`super::safety::MAX_BLIND_RESUMES`]).
+    pub(super) blind_resumes: u32,
     /// This process's hold on the run directory, for as long as the run is open: the
     /// last field, so it is let go after everything else is dropped (the histogram
     /// log synced, the devices closed).
     _hold: crate::run_dir::RunHold,
+}
+
+/// The least distance from the plan's `pairs.laser` the relay point a fixed laser
+/// lights may lie at, metres ([`fixed_laser_reach`]).
+const FIXED_LASER_REACH: f64 = 0.05;
+
+/// How far from the plan's `pairs.laser` the relay point a fixed laser lights may lie:
+/// three of the relay's point spacings (the median distance to the nearest other
+/// point, over up to 256 points spread through the relay), and at least
+/// [`FIXED_LASER_REACH`]. A coarse LOS grid leaves its points far apart; a target
+/// farther off than that is not on the relay.
+fn fixed_laser_reach(points: &[glam::DVec3]) -> f64 {
+    let step = points.len().div_ceil(256).max(1);
+    let mut nearest: Vec<f64> = points
+        .iter()
+        .step_by(step)
+        .map(|a| {
+            points
+                .iter()
+                .filter(|b| *b != a)
+                .map(|b| a.distance(*b))
+                .fold(f64::INFINITY, f64::min)
+        })
+        .filter(|d| d.is_finite())
+        .collect();
+    nearest.sort_by(f64::total_cmp);
+    let spacing = nearest.get(nearest.len() / 2).copied().unwrap_or(0.0);
+    (3.0 * spacing).max(FIXED_LASER_REACH)
 }
 
 /// See [`Run::sync`].
@@ -116,6 +149,17 @@ pub fn prepare(
                         std::io::ErrorKind::AlreadyExists,
                         format!(
                             "holds a run's data ({found}) but no run.json: a new run would take those records for its own; move them aside or choose another --out"
+                        ),
+                    ),
+                ));
+            }
+            if let Some(found) = RunDir::file_a_run_would_replace(dir) {
+                return Err(PipelineError::storage(
+                    dir,
+                    std::io::Error::new(
+                        std::io::ErrorKind::AlreadyExists,
+                        format!(
+                            "holds {found} but no run.json: a new run writes its own {found} there and would replace it; give a new or empty --out"
                         ),
                     ),
                 ));
@@ -307,6 +351,7 @@ impl Run {
             stage_started: None,
             opened_at,
             sync: SyncWatch::default(),
+            blind_resumes: 0,
             _hold: hold,
         })
     }
@@ -554,6 +599,24 @@ impl Run {
                 (&i.spad_arm.pose, &i.spad_arm.limits),
             ],
         );
+        // A fixed laser aims at the relay point nearest the plan's; one far from it is
+        // not what the plan asked for (a point 70 m off the wall lit its corner).
+        if let (crate::plan::PairMode::FixedLaser { laser, .. }, Some(p)) = (&self.plan.pairs, pairs.first())
+            && p.xi.distance(*laser) > fixed_laser_reach(&points)
+        {
+            let path = self.dir.join(file::PLAN);
+            let src = crate::config::TomlSource::load(&path)
+                .unwrap_or_else(|_| crate::config::TomlSource::from_text(path, String::new()));
+            return Err(PipelineError::Config(src.invalid(
+                "pairs.laser",
+                format!(
+                    "{laser:.3?} is {:.3} m from the nearest relay point the scan found ({:.3?}), more than {:.3} m (three of the relay's point spacings, at least {FIXED_LASER_REACH} m): aim it at the relay (relay.illumination permitting)",
+                    p.xi.distance(*laser),
+                    p.xi,
+                    fixed_laser_reach(&points),
+                ),
+            )));
+        }
         let requested = self.plan.pairs.max_pairs();
         self.events.emit(RunEvent::Planned {
             pairs: pairs.len(),

@@ -13,6 +13,18 @@ use crate::plan::SuspendResume;
 /// How often a suspended run looks at its condition and its checkpoint.
 const SUSPENDED_POLL: Duration = Duration::from_millis(20);
 
+/// Automatic resumes running, with no pair stored between them, from a condition only
+/// a new measurement can judge (the count rate, flagged frames, emission lost), after
+/// which the run stops paused for the operator: a limit the scene can never meet (a
+/// count-rate limit under the detector's dark counts) switched the laser on and off
+/// thousands of times a second, for good, filling `events.jsonl`.
+pub(crate) const MAX_BLIND_RESUMES: u32 = 5;
+
+/// The least wait before the second of such resumes running; it doubles with each
+/// after it (0.25, 0.5, 1 and 2 s, whatever `clear-for-s` asks below them), so a
+/// passing condition (someone walking through the beam) has time to pass.
+const BLIND_RESUME_BACKOFF: Duration = Duration::from_millis(250);
+
 /// A condition that suspends measuring.
 #[derive(Clone, Debug, PartialEq)]
 pub(crate) enum Suspension {
@@ -338,12 +350,27 @@ impl Run {
                 SuspendResume::Auto { .. } => "auto".into(),
             },
         });
-        let SuspendResume::Auto { clear_for } = mode else {
+        let SuspendResume::Auto { mut clear_for } = mode else {
             return Err(PipelineError::Suspended {
                 reason,
                 pairs: self.info.pairs_done,
             });
         };
+        if !matches!(s, Suspension::Interlock) {
+            self.blind_resumes += 1;
+            let n = self.blind_resumes;
+            if n > MAX_BLIND_RESUMES {
+                return Err(PipelineError::Suspended {
+                    reason: format!(
+                        "{reason}, {n} times running with no pair stored between: it does not clear, so the run waits for the operator (check the scene, or the plan's [suspend] limits)"
+                    ),
+                    pairs: self.info.pairs_done,
+                });
+            }
+            if n >= 2 {
+                clear_for = clear_for.max(BLIND_RESUME_BACKOFF * (1 << (n - 2)));
+            }
+        }
         let mut clear_since: Option<Instant> = None;
         loop {
             self.checkpoint()?;

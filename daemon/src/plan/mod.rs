@@ -280,6 +280,16 @@ impl Plan {
         if raw.name.trim().is_empty() || raw.name.len() > 64 {
             return Err(src.invalid("name", "must be 1 to 64 bytes long (64 ASCII characters)"));
         }
+        // A run stored before control characters were refused still opens.
+        if let Some(c) = raw.name.chars().find(|c| new && c.is_control()) {
+            return Err(src.invalid(
+                "name",
+                format!(
+                    "holds the control character {:?}: a plan's name is one line of text (it names the run and is written into every export)",
+                    c
+                ),
+            ));
+        }
         let los = {
             let l = &raw.los;
             for (k, r) in [
@@ -389,7 +399,7 @@ impl Plan {
             albedo_from_scan: raw.relay.albedo_from_scan,
         };
         let adaptive = raw.pairs.is_adaptive();
-        let pairs = pairs::pair_mode(src, raw.pairs)?;
+        let pairs = pairs::pair_mode(src, raw.pairs, new)?;
         let a = raw.acquisition;
         let acquisition = Acquisition {
             dwell: dwell(src, "acquisition.dwell-ms", a.dwell_ms)?,
@@ -447,6 +457,18 @@ impl Plan {
         if new {
             confocal_solver_fits(src, &recon, &pairs)?;
             envelope_fits(src, &recon, &acquisition)?;
+            // 3D-GTR's virtual relay is a plane fitted to the detection points: fewer
+            // than three never make one, which the run would learn only after its LOS
+            // scan (three in a line are still refused there, once the relay is known).
+            let points = pairs.max_detection_points();
+            if recon.method == Method::Gtr && points < 3 {
+                return Err(src.invalid(
+                    if adaptive { "pairs.candidates" } else { "pairs.mode" },
+                    format!(
+                        "gives at most {points} detection point(s), but recon.method = \"gtr\" fits a plane to them and needs at least three: give more, or reconstruct with \"fbp\""
+                    ),
+                ));
+            }
         }
         let sus = raw.suspend;
         let suspend = Suspenders {

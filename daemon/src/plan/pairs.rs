@@ -67,6 +67,18 @@ impl PairMode {
         }
     }
 
+    /// Most detection points this layout can use (distinct cells of its detection
+    /// grid, or of the mask).
+    pub fn max_detection_points(&self) -> usize {
+        match self {
+            PairMode::Confocal { grid, .. }
+            | PairMode::FixedLaser { grid, .. }
+            | PairMode::Scanned { grid, .. } => grid[0] * grid[1],
+            PairMode::Random { grid, count, .. } => (grid[0] * grid[1]).min(*count),
+            PairMode::Mask { .. } => self.max_pairs(),
+        }
+    }
+
     /// A short description.
     pub fn describe(&self) -> String {
         match self {
@@ -107,13 +119,11 @@ pub(crate) struct RawPairs {
     grid: Option<[usize; 2]>,
     #[serde(default, deserialize_with = "crate::config::exact::option")]
     laser_grid: Option<[usize; 2]>,
-    #[serde(default)]
-    offset_mm: f64,
+    offset_mm: Option<f64>,
     #[serde(default, deserialize_with = "crate::config::exact::option")]
     laser: Option<[f64; 3]>,
     count: Option<usize>,
-    #[serde(default)]
-    seed: u64,
+    seed: Option<u64>,
     mask: Option<Vec<String>>,
     candidates: Option<String>,
 }
@@ -127,7 +137,10 @@ impl RawPairs {
     }
 }
 
-pub(crate) fn pair_mode(src: &TomlSource, raw: RawPairs) -> Result<PairMode, ConfigError> {
+/// The pair layout a plan's `[pairs]` asks for. A new plan (`new`) is also refused a
+/// key its mode does not read; a stored one (a run made before that was refused) is
+/// read as it was.
+pub(crate) fn pair_mode(src: &TomlSource, raw: RawPairs, new: bool) -> Result<PairMode, ConfigError> {
     let grid = |key: &str, g: Option<[usize; 2]>| -> Result<[usize; 2], ConfigError> {
         let g = g.ok_or_else(|| src.invalid(key, "is required for this mode: give [nx, ny]"))?;
         if g.iter().any(|&n| !(1..=512).contains(&n)) {
@@ -135,10 +148,11 @@ pub(crate) fn pair_mode(src: &TomlSource, raw: RawPairs) -> Result<PairMode, Con
         }
         Ok(g)
     };
-    if !(0.0..=100.0).contains(&raw.offset_mm) {
+    let offset_mm = raw.offset_mm.unwrap_or(0.0);
+    if !(0.0..=100.0).contains(&offset_mm) {
         return Err(src.invalid("pairs.offset-mm", "must be 0 to 100 mm"));
     }
-    let offset = raw.offset_mm * 1e-3;
+    let offset = offset_mm * 1e-3;
     let mode = if raw.is_adaptive() {
         match raw.candidates.as_deref() {
             Some("adaptive") => {
@@ -161,6 +175,46 @@ pub(crate) fn pair_mode(src: &TomlSource, raw: RawPairs) -> Result<PairMode, Con
         }
         raw.mode.as_str()
     };
+    // A key the mode does not read would do nothing, silently (a `count` on a confocal
+    // grid, a `laser` on a scanned one): refused, naming it and the mode.
+    let mode_key = if raw.is_adaptive() {
+        "pairs.candidates"
+    } else {
+        "pairs.mode"
+    };
+    let reads: &[&str] = match mode {
+        "confocal" => &["grid", "offset-mm"],
+        "fixed-laser" => &["laser", "grid"],
+        "scanned" => &["laser-grid", "grid"],
+        "random" => &["laser-grid", "grid", "count", "seed"],
+        "mask" => &["mask", "offset-mm"],
+        other => {
+            return Err(src.invalid(
+                mode_key,
+                format!("`{other}` is not a mode: use \"confocal\", \"fixed-laser\", \"scanned\", \"random\", \"mask\" or \"adaptive\" (with `candidates`, one of the others)"),
+            ));
+        }
+    };
+    for (name, given) in [
+        ("grid", raw.grid.is_some()),
+        ("laser-grid", raw.laser_grid.is_some()),
+        ("offset-mm", raw.offset_mm.is_some()),
+        ("laser", raw.laser.is_some()),
+        ("count", raw.count.is_some()),
+        ("seed", raw.seed.is_some()),
+        ("mask", raw.mask.is_some()),
+    ] {
+        if new && given && !reads.contains(&name) {
+            return Err(src.invalid(
+                &format!("pairs.{name}"),
+                format!(
+                    "is not read by {} `{mode}`, which reads {}: remove it, or choose the mode that uses it",
+                    if raw.is_adaptive() { "candidates" } else { "mode" },
+                    reads.join(", ")
+                ),
+            ));
+        }
+    }
     match mode {
         "confocal" => Ok(PairMode::Confocal {
             grid: grid("pairs.grid", raw.grid)?,
@@ -198,7 +252,7 @@ pub(crate) fn pair_mode(src: &TomlSource, raw: RawPairs) -> Result<PairMode, Con
                 laser_grid,
                 grid: g,
                 count,
-                seed: raw.seed,
+                seed: raw.seed.unwrap_or(0),
             })
         }
         "mask" => {

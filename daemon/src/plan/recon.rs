@@ -455,10 +455,18 @@ pub(crate) fn recon_settings(
     {
         return Err(src.invalid(&key("gtr.virtual-grid"), "must be two counts, 2 to 1024"));
     }
+    // Volumes are bounded at 100 m from the instrument; a virtual relay wider than
+    // that, or narrower than a millimetre, is no scan (1e308 m made an infinite bin
+    // width after the whole capture).
     if let Some(s) = g.virtual_size
-        && !s.iter().all(|v| v.is_finite() && *v > 0.0)
+        && !s.iter().all(|v| v.is_finite() && (1e-3..=200.0).contains(v))
     {
-        return Err(src.invalid(&key("gtr.virtual-size"), "must be two positive lengths in metres"));
+        return Err(src.invalid(
+            &key("gtr.virtual-size"),
+            format!(
+                "{s:?} is out of range: give two lengths in metres, 1 mm to 200 m (the relay's extent, say)"
+            ),
+        ));
     }
     for (name, value) in [("initial-scale", g.initial_scale), ("split-scale", g.split_scale)] {
         if let Some(v) = value
@@ -1051,6 +1059,18 @@ mod tests {
         let src = TomlSource::from_text("recon.toml", "[gtr]\nvirtual-scan = \"rendered\"\n");
         let e = load_recon(&src, Some(volume())).unwrap_err().to_string();
         assert!(e.contains("gtr.virtual-scan") && e.contains("\"render\""), "{e}");
+        // The virtual relay's size within what a scan can be: 1e308 m passed and failed
+        // the run after its capture, with an infinite bin width.
+        for size in ["[1e308, 1e308]", "[1e6, 1.0]", "[1e-300, 1.0]", "[0.0, 1.0]"] {
+            let src = TomlSource::from_text("recon.toml", format!("[gtr]\nvirtual-size = {size}\n"));
+            let e = load_recon(&src, Some(volume())).unwrap_err().to_string();
+            assert!(
+                e.contains("gtr.virtual-size") && e.contains("200 m"),
+                "{size}: {e}"
+            );
+        }
+        let src = TomlSource::from_text("recon.toml", "[gtr]\nvirtual-size = [1.5, 1.5]\n");
+        assert!(load_recon(&src, Some(volume())).is_ok());
     }
 
     #[test]

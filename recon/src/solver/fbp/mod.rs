@@ -445,6 +445,18 @@ pub fn fbp_on(
     }
     let weight = |p: usize| set.weight(p) * quadrature.as_ref().map_or(1.0, |q| q[p] as f32);
     if settings.filter == FbpFilter::Phasor {
+        // A wave set shorter than the axis resolves is refused, not quietly lengthened
+        // (as RSD refuses one): the image would not be the one asked for.
+        let floor = 4.0 * set.axis().width;
+        if let Some(w) = settings.wavelength
+            && w < floor
+        {
+            return Err(SolverError::Setting {
+                name: "wavelength",
+                value: format!("{w} m"),
+                expected: "at least 4 bins of the capture's time axis (a shorter wave aliases between bins): leave it out for the default, or give a longer one",
+            });
+        }
         let lambda = phasor_wavelength(set, grid, settings);
         tracing::info!(
             wavelength = lambda,
