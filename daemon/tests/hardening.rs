@@ -173,6 +173,47 @@ async fn foreign_host_names_and_cross_site_origins_are_refused() {
         assert_eq!(s, StatusCode::FORBIDDEN, "Origin: {origin}");
         assert!(String::from_utf8_lossy(&b).contains("origin-not-allowed"));
     }
+    // A change refused at the door is in the audit trail as what it asked for, as
+    // every refused change is; a refused read is not.
+    let (s, _) = send(
+        &router,
+        request(
+            Method::POST,
+            "/api/v1/runs",
+            true,
+            &[("host", "attacker.example")],
+            PLAN,
+        ),
+    )
+    .await;
+    assert_eq!(s, StatusCode::FORBIDDEN);
+    let (_, audit) = call(
+        &router,
+        Method::GET,
+        "/api/v1/audit?actor=unknown&limit=100",
+        true,
+        "",
+    )
+    .await;
+    let entries = audit["entries"].as_array().unwrap();
+    let count = |action: &str, says: &str| {
+        entries
+            .iter()
+            .filter(|e| {
+                e["action"] == action
+                    && e["outcome"] == "refused"
+                    && e["detail"].as_str().unwrap_or("").contains(says)
+            })
+            .count()
+    };
+    assert_eq!(count("estop", "a page from"), 3, "{audit}");
+    assert_eq!(count("submit", "attacker.example"), 1, "{audit}");
+    assert!(
+        entries
+            .iter()
+            .all(|e| !e["detail"].as_str().unwrap_or("").contains("/health")),
+        "{audit}"
+    );
     for origin in [Some("http://127.0.0.1:8080"), None] {
         let (s, b) = send(&router, estop(origin)).await;
         assert_eq!(
@@ -692,7 +733,14 @@ async fn every_route_enforces_the_token_rules_for_every_client() {
             let need = required_role(&Method::from_bytes(method.as_bytes()).unwrap(), route).unwrap();
             let uri = route.replace("{id}", &id).replace("{name}", "plan.toml");
             for token in [None, Some("wrong-token-wrong-token-wrong"), Some(TOKEN)] {
-                for remote in [false, true] {
+                // Loopback as IPv4, as IPv6, and as an IPv4 client of a dual-stack
+                // listener (`--bind [::]:…`) sees it: all three are this machine.
+                for (peer, remote) in [
+                    ("127.0.0.1:50000", false),
+                    ("[::ffff:127.0.0.1]:50000", false),
+                    ("[::1]:50000", false),
+                    ("192.0.2.7:50000", true),
+                ] {
                     let mut req = Request::builder().method(method).uri(&uri);
                     if let Some(t) = token {
                         req = req.header(header::AUTHORIZATION, format!("Bearer {t}"));
@@ -706,11 +754,7 @@ async fn every_route_enforces_the_token_rules_for_every_client() {
                         req = req.header(header::CONTENT_TYPE, "application/toml");
                     }
                     let mut req = req.body(Body::from(body)).unwrap();
-                    let peer: std::net::SocketAddr = if remote {
-                        "192.0.2.7:50000".parse().unwrap()
-                    } else {
-                        "127.0.0.1:50000".parse().unwrap()
-                    };
+                    let peer: std::net::SocketAddr = peer.parse().unwrap();
                     req.extensions_mut().insert(ConnectInfo(peer));
                     let resp = router.clone().oneshot(req).await.unwrap();
                     let status = resp.status();
@@ -723,9 +767,8 @@ async fn every_route_enforces_the_token_rules_for_every_client() {
                         None => keyless,
                         Some(t) => t == TOKEN || (route == "/api/v1/estop" && !remote),
                     };
-                    let case = format!(
-                        "{method} {route}, token {token:?}, remote {remote}, open-reads {open_reads}"
-                    );
+                    let case =
+                        format!("{method} {route}, token {token:?}, from {peer}, open-reads {open_reads}");
                     if authorised {
                         assert!(
                             status != StatusCode::UNAUTHORIZED && status != StatusCode::FORBIDDEN,

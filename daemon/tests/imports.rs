@@ -602,3 +602,67 @@ async fn an_estop_stops_an_import_and_the_laser_stays_off() {
     svc.shutdown();
     worker.join().unwrap();
 }
+
+/// An import that follows another run reads the instruments at once: the run left no
+/// reading (what it left the laser in is unknown until read), and until 2026-12-06 the
+/// import's first reading came a whole `status-interval-s` later, so the safety bar
+/// read LASER STATE UNKNOWN through an import shorter than that.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn an_import_after_a_run_reads_the_instrument_at_once() {
+    let dir = tempfile::tempdir().unwrap();
+    let svc = service(dir.path(), "status-interval-s = 60\n");
+    let worker = svc.start_worker();
+    let router = app(AppState::new(Arc::clone(&svc)));
+    let lct = std::fs::read(fixture("lct-point.mat")).unwrap();
+    let (s, v) = import(
+        &router,
+        &[
+            Part::File("capture", "lct-point.mat", lct.clone()),
+            Part::Text("recon", "method = \"fbp\"\n"),
+        ],
+    )
+    .await;
+    assert_eq!(s, StatusCode::CREATED, "{v}");
+    let first = v["id"].as_str().unwrap().to_owned();
+    let (s, v) = import(
+        &router,
+        &[
+            Part::File("capture", "lct-point.mat", lct),
+            Part::Text("recon", "method = \"gtr\"\n[gtr]\nepochs = 10000\n"),
+        ],
+    )
+    .await;
+    assert_eq!(s, StatusCode::CREATED, "{v}");
+    let second = v["id"].as_str().unwrap().to_owned();
+    wait_until(&router, &first, Duration::from_secs(60), |v| {
+        v["state"] == "completed"
+    })
+    .await;
+    wait_until(&router, &second, Duration::from_secs(60), |v| {
+        v["stage"] == "reconstruction"
+    })
+    .await;
+    tokio::time::sleep(Duration::from_millis(300)).await;
+    let (_, bytes) = get(&router, "/api/v1/instrument").await;
+    let inst: Value = serde_json::from_slice(&bytes).unwrap();
+    assert!(inst["reading"]["age_s"].as_f64().is_some(), "{inst}");
+    assert_eq!(svc.safety().emission, Some(false));
+    let (s, _) = common::send(
+        &router,
+        common::request(
+            Method::POST,
+            &format!("/api/v1/runs/{second}/abort"),
+            Some(TOKEN),
+            &[],
+            "",
+        ),
+    )
+    .await;
+    assert_eq!(s, StatusCode::ACCEPTED);
+    wait_until(&router, &second, Duration::from_secs(30), |v| {
+        v["state"] == "aborted"
+    })
+    .await;
+    svc.shutdown();
+    worker.join().unwrap();
+}

@@ -247,6 +247,19 @@ async fn the_catalogue_queue_and_audit_follow_a_lab_day() {
         (StatusCode::OK, &json!("alice"), &json!("operator"))
     );
 
+    // A lock key that could not be sent back in its header (eight bytes, but four
+    // characters, none of them ASCII) is refused.
+    let (s, v) = call(
+        &router,
+        Method::POST,
+        "/api/v1/queue/lock",
+        Some(&root),
+        &json!({"reason": "realigning", "key": "\u{e9}\u{e9}\u{e9}\u{e9}"}).to_string(),
+    )
+    .await;
+    assert_eq!(s, StatusCode::UNPROCESSABLE_ENTITY, "{v}");
+    assert!(v["message"].as_str().unwrap().contains("visible ASCII"), "{v}");
+
     // The queue is locked before the worker starts: nothing may start.
     let (s, v) = call(
         &router,

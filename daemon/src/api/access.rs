@@ -73,8 +73,8 @@ pub fn required_role(method: &Method, route: &str) -> Option<Role> {
     if super::dashboard::is_static(route) {
         return None;
     }
-    let admin =
-        route.starts_with("/api/v1/keys") || route.starts_with("/api/v1/queue") && method != Method::GET;
+    let read = method == Method::GET || method == Method::HEAD;
+    let admin = route.starts_with("/api/v1/keys") || route.starts_with("/api/v1/queue") && !read;
     if admin {
         return Some(Role::Admin);
     }
@@ -83,7 +83,7 @@ pub fn required_role(method: &Method, route: &str) -> Option<Role> {
     if route == "/api/v1/estop" || route == "/api/v1/whoami" {
         return Some(Role::Estop);
     }
-    if method == Method::GET || method == Method::HEAD || route == "/api/v1/check" {
+    if read || route == "/api/v1/check" {
         return Some(Role::Observer);
     }
     Some(Role::Operator)
@@ -134,13 +134,20 @@ fn bearer(headers: &HeaderMap) -> Result<Option<&str>, ()> {
         .ok_or(())
 }
 
+/// Whether a request comes from this machine: a loopback peer, whether the socket
+/// reports it as IPv4 or, on a dual-stack listener (`[::]`), as the IPv4-mapped
+/// `::ffff:127.0.0.1`. Requests built in-process (router tests) carry no peer and
+/// count as loopback.
+fn is_local(peer: Option<SocketAddr>) -> bool {
+    peer.is_none_or(|p| p.ip().to_canonical().is_loopback())
+}
+
 /// Authenticates and authorises every request (see `crate::access` for the roles),
 /// and records changing requests, e-stops and failed authentications in the audit
 /// trail.
 pub(super) async fn authorise(State(state): State<AppState>, mut req: Request, next: Next) -> Response {
     let peer = req.extensions().get::<ConnectInfo<SocketAddr>>().map(|c| c.0);
-    // Requests built in-process (router tests) carry no peer and count as loopback.
-    let local = peer.is_none_or(|p| p.ip().is_loopback());
+    let local = is_local(peer);
     let route = req
         .extensions()
         .get::<MatchedPath>()
@@ -462,6 +469,51 @@ pub(super) struct AuditDetail(pub String);
 /// Answers a refused authentication, recording it (rate-limited).
 async fn refused(state: &AppState, e: ApiError, entry: AuditEntry) -> Response {
     state.service.metrics().auth_failed();
+    record_refusal(state, e, entry).await
+}
+
+/// Answers a request refused for its `Host` or `Origin` before any key is read
+/// (`super::check_host`): a changing one (an e-stop or a submission from a cross-site
+/// page, say) is recorded as its action, refused, under the same rate limit as failed
+/// authentications, so a flood of them writes no more; reads are not recorded.
+pub(super) async fn refused_for_its_host(
+    state: &AppState,
+    entry: Option<AuditEntry>,
+    e: ApiError,
+) -> Response {
+    match entry {
+        Some(entry) => record_refusal(state, e, entry).await,
+        None => e.into_response(),
+    }
+}
+
+/// The audit entry of a request refused for its `Host` or `Origin`
+/// ([`refused_for_its_host`]): `None` for a request that changes nothing.
+pub(super) fn host_refusal_entry(req: &Request, why: &str) -> Option<AuditEntry> {
+    let method = req.method();
+    let path = req.uri().path();
+    let route = req
+        .extensions()
+        .get::<MatchedPath>()
+        .map_or_else(|| path.to_owned(), |m| m.as_str().to_owned());
+    let action = action(method, &route)?;
+    let peer = req.extensions().get::<ConnectInfo<SocketAddr>>().map(|c| c.0);
+    let request = crate::catalogue::audit::cut(format!("{method} {path}"), 200);
+    Some(
+        AuditEntry::new(
+            "unknown",
+            "none",
+            action,
+            path_target(&route, path).as_deref(),
+            "refused",
+        )
+        .detail(format!("{request}: {why}"))
+        .peer(peer),
+    )
+}
+
+/// Records a refusal's entry if the rate limit admits it, then answers.
+async fn record_refusal(state: &AppState, e: ApiError, entry: AuditEntry) -> Response {
     let admitted = state
         .auth_audit
         .lock()
@@ -596,8 +648,10 @@ pub(super) async fn keys_list(State(state): State<AppState>) -> ApiResult<axum::
         .map(axum::Json)
 }
 
-/// `POST /api/v1/keys`.
+/// `POST /api/v1/keys`. An unknown field is refused: a misspelt `expires` would
+/// otherwise make a key that never expires.
 #[derive(Debug, serde::Deserialize, utoipa::ToSchema)]
+#[serde(deny_unknown_fields)]
 pub struct NewKey {
     /// Name (1–64 letters, digits, `-`, `_`, `.`, `@`).
     pub name: String,
@@ -736,6 +790,33 @@ pub(super) async fn audit(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A `HEAD` reads as a `GET` does: the queue's order is an observer's to read,
+    /// whatever the method; changing it, and anything of the keys, is an admin's.
+    #[test]
+    fn head_needs_what_get_needs() {
+        for method in [Method::GET, Method::HEAD] {
+            assert_eq!(required_role(&method, "/api/v1/queue"), Some(Role::Observer));
+            assert_eq!(required_role(&method, "/api/v1/runs"), Some(Role::Observer));
+            assert_eq!(required_role(&method, "/api/v1/keys"), Some(Role::Admin));
+        }
+        assert_eq!(required_role(&Method::PUT, "/api/v1/queue"), Some(Role::Admin));
+        assert_eq!(
+            required_role(&Method::POST, "/api/v1/queue/lock"),
+            Some(Role::Admin)
+        );
+    }
+
+    /// A key's body with a field it does not know is refused by name: `expiry` for
+    /// `expires` made a key that never expires.
+    #[test]
+    fn a_new_keys_unknown_field_is_refused() {
+        let e = serde_json::from_str::<NewKey>(r#"{"name":"k","role":"admin","expiry":"1h"}"#)
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("unknown field `expiry`"), "{e}");
+        assert!(serde_json::from_str::<NewKey>(r#"{"name":"k","role":"admin","expires":"1h"}"#).is_ok());
+    }
 
     /// Refusals are recorded 30 a minute and 120 an hour; the rest are counted into the
     /// next recorded one. A day's flood of one refusal a second records 2,880 entries

@@ -270,11 +270,15 @@ impl<S: Send + Sync, T: serde::de::DeserializeOwned> axum::extract::FromRequest<
         match axum::Json::<T>::from_request(req, state).await {
             Ok(axum::Json(v)) => Ok(JsonBody(v)),
             Err(e) => {
-                let status = e.status();
-                let code = match status {
-                    StatusCode::PAYLOAD_TOO_LARGE => "body-too-large",
-                    StatusCode::UNSUPPORTED_MEDIA_TYPE => "unsupported-media-type",
-                    _ => "bad-body",
+                // A body that is JSON but not of the documented shape (a wrong type, a
+                // missing or unknown field: axum's 422) does not parse as the request
+                // either: 400 `bad-body`, as docs/api.md says, like malformed JSON.
+                let (status, code) = match e.status() {
+                    StatusCode::PAYLOAD_TOO_LARGE => (StatusCode::PAYLOAD_TOO_LARGE, "body-too-large"),
+                    StatusCode::UNSUPPORTED_MEDIA_TYPE => {
+                        (StatusCode::UNSUPPORTED_MEDIA_TYPE, "unsupported-media-type")
+                    }
+                    _ => (StatusCode::BAD_REQUEST, "bad-body"),
                 };
                 Err(ApiError::new(
                     status,
@@ -555,6 +559,18 @@ fn is_mutating(req: &Request) -> bool {
 /// cannot make a browser send them for its own origin); further names come from
 /// `[api] hosts`. Clients that send no `Origin` (curl, scripts) are not affected.
 async fn check_host(State(state): State<AppState>, req: Request, next: Next) -> Response {
+    match host_refusal(&state, &req) {
+        Some((e, why)) => {
+            let entry = access::host_refusal_entry(&req, &why);
+            access::refused_for_its_host(&state, entry, e).await
+        }
+        None => next.run(req).await,
+    }
+}
+
+/// Why [`check_host`] refuses `req` (the answer, and a line for the audit trail), if
+/// it does.
+fn host_refusal(state: &AppState, req: &Request) -> Option<(ApiError, String)> {
     let hosts = &state.service.instrument().api.hosts;
     let host = req
         .headers()
@@ -563,17 +579,17 @@ async fn check_host(State(state): State<AppState>, req: Request, next: Next) -> 
     if let Some(h) = host
         && !host_allowed(h, hosts)
     {
-        return ApiError::new(
+        let e = ApiError::new(
             StatusCode::FORBIDDEN,
             "host-not-allowed",
             format!(
                 "this daemon does not answer to the host name `{h}`: reach it by IP address or \
                  localhost, or add the name to [api] hosts in the instrument config"
             ),
-        )
-        .into_response();
+        );
+        return Some((e, format!("host name `{h}` not allowed")));
     }
-    if is_mutating(&req)
+    if is_mutating(req)
         && let Some(origin) = req.headers().get(header::ORIGIN)
     {
         let origin = origin.to_str().unwrap_or("\u{fffd}");
@@ -583,18 +599,18 @@ async fn check_host(State(state): State<AppState>, req: Request, next: Next) -> 
             .unwrap_or("");
         let same = host.is_some_and(|h| h.eq_ignore_ascii_case(authority));
         if !same || !host_allowed(authority, hosts) {
-            return ApiError::new(
+            let e = ApiError::new(
                 StatusCode::FORBIDDEN,
                 "origin-not-allowed",
                 format!(
                     "a page from `{origin}` may not change this instrument: send mutating requests \
                      from the daemon's own pages or from a client that sends no Origin"
                 ),
-            )
-            .into_response();
+            );
+            return Some((e, format!("a page from `{origin}`")));
         }
     }
-    next.run(req).await
+    None
 }
 
 /// Whether `host` (a `Host` header or an origin's authority, with or without port) is
@@ -716,8 +732,12 @@ fn plan_body(headers: &HeaderMap, body: Result<String, StringRejection>) -> ApiR
             format!("the body must be a TOML capture plan (UTF-8, within the size limit): {e}"),
         )
     })?;
+    // Media types are case-insensitive (RFC 9110 §8.3.1): `Application/TOML` is TOML.
     if let Some(ct) = headers.get(header::CONTENT_TYPE).and_then(|v| v.to_str().ok())
-        && !(ct.starts_with("application/toml") || ct.starts_with("text/"))
+        && !({
+            let ct = ct.to_ascii_lowercase();
+            ct.starts_with("application/toml") || ct.starts_with("text/")
+        })
     {
         return Err(ApiError::new(
             StatusCode::UNSUPPORTED_MEDIA_TYPE,

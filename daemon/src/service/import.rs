@@ -321,9 +321,12 @@ impl Service {
         };
         let interval = self.instrument.api.status_interval;
         let result = loop {
+            // At once, then every interval: a run before the import left no reading
+            // (what it left the instrument in is unknown until read).
+            self.take_reading();
             match rx.recv_timeout(interval) {
                 Ok(r) => break r,
-                Err(std::sync::mpsc::RecvTimeoutError::Timeout) => self.take_reading(),
+                Err(std::sync::mpsc::RecvTimeoutError::Timeout) => continue,
                 Err(std::sync::mpsc::RecvTimeoutError::Disconnected) => {
                     break Err(PipelineError::Panicked {
                         stage: "import",

@@ -286,9 +286,12 @@ impl Service {
     /// Locks the queue for maintenance with `key` (needed to unlock it and to change
     /// the queue meanwhile).
     pub fn lock_queue(&self, by: &str, reason: &str, key: &str) -> Result<QueueView, ServiceError> {
-        if key.len() < 8 {
+        // The key travels in a header (`X-Periscope-Lock-Key`), where only visible
+        // ASCII arrives as sent.
+        if key.len() < 8 || !key.bytes().all(|b| b.is_ascii_graphic()) {
             return Err(ServiceError::Invalid(
-                "the lock key must have at least 8 characters".into(),
+                "the lock key must have at least 8 characters, each a visible ASCII one (letters, digits, punctuation; no spaces): it is sent in the X-Periscope-Lock-Key header"
+                    .into(),
             ));
         }
         {
