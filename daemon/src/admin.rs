@@ -494,13 +494,21 @@ fn audit_change(dir: &Path, entry: &AuditEntry) -> Result<(), AdminError> {
 
 /// `periscope audit`.
 pub fn audit(a: AuditArgs) -> Result<(), AdminError> {
+    // As `runs --limit` is (0 was taken as 1).
+    let most = crate::catalogue::query::MAX_PAGE;
+    if !(1..=most).contains(&a.limit) {
+        return Err(AdminError::Usage(format!(
+            "--limit {}: expected 1 to {most}",
+            a.limit
+        )));
+    }
     let dir = existing_runs_dir(&a.instrument)?;
     let cat = Catalogue::open(&dir)?;
     let page = cat.audit(&AuditQuery {
         since: time_arg(&a.since, "since")?,
         actor: a.actor,
         action: a.action,
-        limit: a.limit.max(1),
+        limit: a.limit,
         ..AuditQuery::default()
     })?;
     for e in &page.entries {

@@ -180,7 +180,10 @@ pub fn check(plan: &Plan, inst: &InstrumentConfig) -> Check {
         && let Some(why) = outside(&inst.laser_arm.pose, &inst.laser_arm.limits, *laser)
     {
         problems.push(format!(
-            "pairs.laser: {laser:.3?} is outside the laser arm's limits ({why}): no pair can be measured"
+            "pairs.laser: ({:.3}, {:.3}, {:.3}) m is outside the laser arm's limits ({why}): no pair can be measured",
+            laser.x,
+            laser.y,
+            laser.z
         ));
     }
     let candidates = plan.pairs.max_pairs();
@@ -234,14 +237,14 @@ pub fn check(plan: &Plan, inst: &InstrumentConfig) -> Check {
         "  reconstruction: {}, volume x [{:.2}, {:.2}] y [{:.2}, {:.2}] z [{:.2}, {:.2}] m on {}×{}×{} voxels",
         match rc.method {
             Method::Gtr => format!(
-                "Gtr (K = {}, {} epochs, virtual {} confocal grid, then {})",
+                "3D-GTR (K = {}, {} epochs, virtual {} confocal grid, then {})",
                 rc.train.primitives,
                 rc.train.counted_epochs(pairs),
                 rc.virtual_resolution
                     .map_or("voxel-pitch".to_string(), |[nx, ny]| format!("{nx}×{ny}")),
                 rc.solver
             ),
-            Method::Solver(kind) => format!("{kind:?}"),
+            Method::Solver(kind) => kind.to_string(),
         },
         v.x[0],
         v.x[1],

@@ -1070,6 +1070,10 @@ fn key_and_audit_commands_say_what_is_wrong_with_their_files() {
     let (code, out, err) = periscope(&["audit", "--action", "key-revoke"]);
     assert_eq!(code, Some(0), "{err}");
     assert!(out.contains("carol"), "{out}");
+    // `--limit 0` is refused, as `runs --limit 0` is (it was read as 1).
+    let (code, _, err) = periscope(&["audit", "--limit", "0"]);
+    assert_eq!(code, Some(2), "{err}");
+    assert!(err.contains("--limit 0"), "{err}");
 
     // A damaged keys file.
     std::fs::write(dir.path().join("keys.json"), "[{\"name\": ").unwrap();

@@ -469,9 +469,22 @@ fn api_settings(check: &Check<'_>, raw: RawApi) -> Result<ApiSettings, ConfigErr
             ));
         }
     }
+    // Counts are whole numbers: 1.5 was rounded to 2 without a word.
     let count = |key: &str, v: f64, max: f64| -> Result<usize, ConfigError> {
-        Ok(check.range(key, v, 1.0, max, "")?.round() as usize)
+        let n = check.range(key, v, 1.0, max, "")?;
+        if n.fract() != 0.0 {
+            return Err(check
+                .src
+                .invalid(key, format!("{v} is not a whole number: give a count")));
+        }
+        Ok(n as usize)
     };
+    if raw.runs_dir.as_os_str().is_empty() {
+        return Err(check.src.invalid(
+            "api.runs-dir",
+            "is empty: give the directory runs are kept in (default \"runs\")",
+        ));
+    }
     Ok(ApiSettings {
         token: raw.token,
         hosts: raw.hosts.iter().map(|h| h.to_ascii_lowercase()).collect(),
@@ -487,11 +500,19 @@ fn api_settings(check: &Check<'_>, raw: RawApi) -> Result<ApiSettings, ConfigErr
         max_downloads: count("api.max-downloads", raw.max_downloads, 1_000.0)?,
         runs_dir: raw.runs_dir,
         open_reads: raw.open_reads,
-        body_limit: (check.positive("api.body-limit-kib", raw.body_limit_kib, 1024.0 * 1024.0, "KiB")?
-            * 1024.0) as usize,
-        request_timeout: Duration::from_secs_f64(check.positive(
+        // At least a few KiB (a plan, a JSON body; 0.0001 made a 0-byte limit that
+        // refused every body), and a request at least half a second.
+        body_limit: (check.range(
+            "api.body-limit-kib",
+            raw.body_limit_kib,
+            4.0,
+            1024.0 * 1024.0,
+            "KiB",
+        )? * 1024.0) as usize,
+        request_timeout: Duration::from_secs_f64(check.range(
             "api.request-timeout-s",
             raw.request_timeout_s,
+            0.5,
             3600.0,
             "s",
         )?),
@@ -1589,6 +1610,31 @@ mod tests {
 
     fn load(text: &str) -> Result<InstrumentConfig, ConfigError> {
         InstrumentConfig::from_source(&TomlSource::from_text("test.toml", text))
+    }
+
+    /// `[api]` values that parsed but did not work: a fractional count rounded, a body
+    /// limit of no bytes, a request timeout of nothing, an empty runs directory.
+    #[test]
+    fn api_values_that_cannot_work_are_refused_by_key() {
+        let with = |line: &str| {
+            let text = if SIM.contains("\n[api]\n") {
+                SIM.replacen("\n[api]\n", &format!("\n[api]\n{line}\n"), 1)
+            } else {
+                format!("{SIM}\n[api]\n{line}\n")
+            };
+            load(&text)
+        };
+        for (line, key) in [
+            ("max-queue = 1.5", "api.max-queue"),
+            ("body-limit-kib = 0.0001", "api.body-limit-kib"),
+            ("request-timeout-s = 1e-300", "api.request-timeout-s"),
+            ("runs-dir = \"\"", "api.runs-dir"),
+        ] {
+            let e = with(line).unwrap_err();
+            assert_eq!(e.key(), Some(key), "{line}: {e}");
+        }
+        let ok = with("max-queue = 3.0\nbody-limit-kib = 64\nrequest-timeout-s = 1").unwrap();
+        assert_eq!(ok.api.max_queue, 3);
     }
 
     #[test]

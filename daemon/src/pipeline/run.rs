@@ -610,9 +610,14 @@ impl Run {
             return Err(PipelineError::Config(src.invalid(
                 "pairs.laser",
                 format!(
-                    "{laser:.3?} is {:.3} m from the nearest relay point the scan found ({:.3?}), more than {:.3} m (three of the relay's point spacings, at least {FIXED_LASER_REACH} m): aim it at the relay (relay.illumination permitting)",
+                    "({:.3}, {:.3}, {:.3}) m is {:.3} m from the nearest relay point the scan found ({:.3}, {:.3}, {:.3}), more than {:.3} m (three of the relay's point spacings, at least {FIXED_LASER_REACH} m): aim it at the relay (relay.illumination permitting)",
+                    laser.x,
+                    laser.y,
+                    laser.z,
                     p.xi.distance(*laser),
-                    p.xi,
+                    p.xi.x,
+                    p.xi.y,
+                    p.xi.z,
                     fixed_laser_reach(&points),
                 ),
             )));

@@ -91,7 +91,10 @@ impl PairMode {
                 )
             }
             PairMode::FixedLaser { laser, grid } => {
-                format!("fixed laser at {laser:?}, {}×{} detection grid", grid[0], grid[1])
+                format!(
+                    "fixed laser at ({:.3}, {:.3}, {:.3}) m, {}×{} detection grid",
+                    laser.x, laser.y, laser.z, grid[0], grid[1]
+                )
             }
             PairMode::Scanned { laser_grid, grid } => format!(
                 "scanned: {}×{} laser points × {}×{} detection points",
