@@ -369,12 +369,21 @@ fn rewrite(dir: &Path, path: &Path, records: &[Record]) -> io::Result<()> {
 /// or a link to `/dev/zero` in its place is refused instead of hanging the reader or
 /// filling memory.
 pub fn read_log(dir: &Path) -> io::Result<Recovered> {
+    let (file, len) = open_regular(&dir.join(HISTOGRAM_LOG))?;
+    let mut bytes = Vec::with_capacity(len as usize);
+    BufReader::new(file.take(len)).read_to_end(&mut bytes)?;
+    Ok(parse_log(&bytes))
+}
+
+/// Opens `path` for reading without blocking, and refuses it unless it is a regular
+/// file (a FIFO with no writer would block the reader for good, `/dev/zero` never
+/// ends, a directory is no file): the file and its length when opened.
+fn open_regular(path: &Path) -> io::Result<(File, u64)> {
     use std::os::unix::fs::OpenOptionsExt as _;
-    let path = dir.join(HISTOGRAM_LOG);
     let file = OpenOptions::new()
         .read(true)
         .custom_flags(libc::O_NONBLOCK)
-        .open(&path)?;
+        .open(path)?;
     let meta = file.metadata()?;
     if !meta.is_file() {
         return Err(io::Error::new(
@@ -385,9 +394,7 @@ pub fn read_log(dir: &Path) -> io::Result<Recovered> {
             ),
         ));
     }
-    let mut bytes = Vec::with_capacity(meta.len() as usize);
-    BufReader::new(file.take(meta.len())).read_to_end(&mut bytes)?;
-    Ok(parse_log(&bytes))
+    Ok((file, meta.len()))
 }
 
 /// Decodes a histogram log held in memory: every valid record, in file order. A
@@ -576,22 +583,7 @@ impl Drop for RefusedWrites {
 /// regular file is read: a FIFO, a device or a directory in its place is refused at
 /// once (opened without blocking, so a FIFO with no writer cannot hang the caller).
 pub fn read_text_capped(path: &Path, limit: u64) -> io::Result<String> {
-    use std::os::unix::fs::OpenOptionsExt as _;
-    let file = std::fs::OpenOptions::new()
-        .read(true)
-        .custom_flags(libc::O_NONBLOCK)
-        .open(path)?;
-    let meta = file.metadata()?;
-    if !meta.is_file() {
-        return Err(io::Error::new(
-            io::ErrorKind::InvalidInput,
-            format!(
-                "{} is not a regular file (a FIFO, a device or a directory): move it aside",
-                path.display()
-            ),
-        ));
-    }
-    let len = meta.len();
+    let (file, len) = open_regular(path)?;
     if len > limit {
         return Err(io::Error::new(
             io::ErrorKind::InvalidData,

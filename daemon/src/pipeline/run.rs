@@ -130,38 +130,30 @@ pub fn prepare(
     let dir = match out {
         Some(dir) => {
             crate::store::create_dir_durably(dir).map_err(|e| PipelineError::storage(dir, e))?;
-            if RunDir::holds_run(dir) {
+            // Why `dir` cannot take a new run, if it cannot.
+            let taken = if RunDir::holds_run(dir) {
+                Some(
+                    "already holds a run: use `periscope resume` to continue it, or choose another --out"
+                        .to_owned(),
+                )
+            } else if let Some(found) = RunDir::leftover_data(dir) {
+                // A run's data without its run.json (deleted, or a copy that left it
+                // out): a new run would recover that log as its own and keep pairs it
+                // never measured under another plan's name.
+                Some(format!(
+                    "holds a run's data ({found}) but no run.json: a new run would take those records for its own; move them aside or choose another --out"
+                ))
+            } else {
+                RunDir::file_a_run_would_replace(dir).map(|found| {
+                    format!(
+                        "holds {found} but no run.json: a new run writes its own {found} there and would replace it; give a new or empty --out"
+                    )
+                })
+            };
+            if let Some(why) = taken {
                 return Err(PipelineError::storage(
                     dir,
-                    std::io::Error::new(
-                        std::io::ErrorKind::AlreadyExists,
-                        "already holds a run: use `periscope resume` to continue it, or choose another --out",
-                    ),
-                ));
-            }
-            // A run's data without its run.json (deleted, or a copy that left it out):
-            // a new run would recover that log as its own and keep pairs it never
-            // measured under another plan's name.
-            if let Some(found) = RunDir::leftover_data(dir) {
-                return Err(PipelineError::storage(
-                    dir,
-                    std::io::Error::new(
-                        std::io::ErrorKind::AlreadyExists,
-                        format!(
-                            "holds a run's data ({found}) but no run.json: a new run would take those records for its own; move them aside or choose another --out"
-                        ),
-                    ),
-                ));
-            }
-            if let Some(found) = RunDir::file_a_run_would_replace(dir) {
-                return Err(PipelineError::storage(
-                    dir,
-                    std::io::Error::new(
-                        std::io::ErrorKind::AlreadyExists,
-                        format!(
-                            "holds {found} but no run.json: a new run writes its own {found} there and would replace it; give a new or empty --out"
-                        ),
-                    ),
+                    std::io::Error::new(std::io::ErrorKind::AlreadyExists, why),
                 ));
             }
             dir.to_owned()
