@@ -526,7 +526,7 @@ pub fn create_dir_durably(dir: &Path) -> io::Result<()> {
         .ancestors()
         .take_while(|d| !d.as_os_str().is_empty() && !d.exists())
         .collect();
-    fs::create_dir_all(dir)?;
+    fs::create_dir_all(dir).map_err(|e| not_a_directory(dir, e))?;
     for made in missing.iter().rev() {
         if let Some(parent) = made.parent() {
             sync_dir(if parent.as_os_str().is_empty() {
@@ -537,6 +537,43 @@ pub fn create_dir_durably(dir: &Path) -> io::Result<()> {
         }
     }
     Ok(())
+}
+
+/// `e`, from making `dir`, said in words where a file, or a symbolic link to
+/// nothing, stands at `dir` or above it ("File exists" named neither).
+fn not_a_directory(dir: &Path, e: io::Error) -> io::Error {
+    if !matches!(
+        e.kind(),
+        io::ErrorKind::AlreadyExists | io::ErrorKind::NotADirectory
+    ) {
+        return e;
+    }
+    for d in dir.ancestors().filter(|d| !d.as_os_str().is_empty()) {
+        let Ok(meta) = fs::symlink_metadata(d) else {
+            continue;
+        };
+        let place = if d == dir {
+            "it".to_owned()
+        } else {
+            d.display().to_string()
+        };
+        let why = if meta.file_type().is_symlink() {
+            match fs::metadata(d) {
+                Err(_) => format!(
+                    "{place} is a symbolic link to {}, which does not exist: make that directory or give another path",
+                    fs::read_link(d).map_or_else(|_| "?".to_owned(), |t| t.display().to_string())
+                ),
+                Ok(m) if !m.is_dir() => format!("{place} is a symbolic link to a file, not a directory"),
+                Ok(_) => continue,
+            }
+        } else if !meta.is_dir() {
+            format!("{place} is a file, not a directory")
+        } else {
+            continue;
+        };
+        return io::Error::new(e.kind(), why);
+    }
+    e
 }
 
 fn sync_dir(dir: &Path) {
@@ -628,6 +665,39 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> io::Result<()> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A file, or a symbolic link to nothing, where a directory is to be made is named
+    /// for what it is (it was "File exists (os error 17)").
+    #[test]
+    fn a_directory_that_cannot_be_made_says_what_is_in_the_way() {
+        let tmp = tempfile::tempdir().unwrap();
+        let file = tmp.path().join("a-file");
+        fs::write(&file, b"x").unwrap();
+        let e = create_dir_durably(&file).unwrap_err();
+        assert_eq!(e.to_string(), "it is a file, not a directory");
+        let e = create_dir_durably(&file.join("run")).unwrap_err();
+        assert_eq!(
+            e.to_string(),
+            format!("{} is a file, not a directory", file.display())
+        );
+        let dangling = tmp.path().join("link");
+        std::os::unix::fs::symlink(tmp.path().join("gone"), &dangling).unwrap();
+        let e = create_dir_durably(&dangling).unwrap_err();
+        assert!(
+            e.to_string().starts_with("it is a symbolic link to ")
+                && e.to_string().contains("gone, which does not exist"),
+            "{e}"
+        );
+        let to_file = tmp.path().join("link-to-file");
+        std::os::unix::fs::symlink(&file, &to_file).unwrap();
+        let e = create_dir_durably(&to_file).unwrap_err();
+        assert_eq!(e.to_string(), "it is a symbolic link to a file, not a directory");
+        // A directory, and a link to one, are made or taken as they are.
+        create_dir_durably(&tmp.path().join("new/run")).unwrap();
+        let to_dir = tmp.path().join("link-to-dir");
+        std::os::unix::fs::symlink(tmp.path().join("new"), &to_dir).unwrap();
+        create_dir_durably(&to_dir.join("run2")).unwrap();
+    }
 
     fn rec(pair: u32) -> Record {
         Record {
