@@ -155,6 +155,12 @@ pub struct AuditArgs {
     /// Only entries at or after this date or RFC 3339 time.
     #[arg(long, value_name = "DATE")]
     pub since: Option<String>,
+    /// Only entries before this date or RFC 3339 time.
+    #[arg(long, value_name = "DATE")]
+    pub until: Option<String>,
+    /// Only entries on this run id or key name.
+    #[arg(long)]
+    pub target: Option<String>,
     /// Only entries by this key name.
     #[arg(long)]
     pub actor: Option<String>,
@@ -502,15 +508,20 @@ pub fn audit(a: AuditArgs) -> Result<(), AdminError> {
             a.limit
         )));
     }
-    let dir = existing_runs_dir(&a.instrument)?;
-    let cat = Catalogue::open(&dir)?;
-    let page = cat.audit(&AuditQuery {
+    let q = AuditQuery {
         since: time_arg(&a.since, "since")?,
+        until: time_arg(&a.until, "until")?,
         actor: a.actor,
         action: a.action,
+        target: a.target,
         limit: a.limit,
         ..AuditQuery::default()
-    })?;
+    };
+    q.check()
+        .map_err(|(field, m)| AdminError::Usage(format!("--{field} {m}")))?;
+    let dir = existing_runs_dir(&a.instrument)?;
+    let cat = Catalogue::open(&dir)?;
+    let page = cat.audit(&q)?;
     for e in &page.entries {
         // Entries quote what clients sent (a refused plan's key, a run's name): their
         // control characters are shown escaped, never sent to the terminal, and an
@@ -530,6 +541,22 @@ pub fn audit(a: AuditArgs) -> Result<(), AdminError> {
         );
     }
     println!("{} of {} entries", page.entries.len(), page.total);
+    // An action the trail has never recorded is most often a misspelling: say which
+    // ones it holds (an action not taken yet is a fair filter, so not refused).
+    if let Some(action) = &q.action {
+        let known = cat.audit_actions()?;
+        if !known.contains(action) {
+            eprintln!(
+                "no entry has action `{}`; the trail holds: {}",
+                printable(action),
+                if known.is_empty() {
+                    "nothing yet".to_owned()
+                } else {
+                    known.iter().map(|k| printable(k)).collect::<Vec<_>>().join(", ")
+                }
+            );
+        }
+    }
     Ok(())
 }
 

@@ -156,10 +156,41 @@ async fn health_and_openapi_match_the_routes() {
                 assert_eq!(resp.headers()["content-type"], "text/event-stream");
                 continue;
             }
-            let (s, v) = call(&router, method, &uri, Some(TOKEN), "").await;
+            let (s, v) = call(&router, method.clone(), &uri, Some(TOKEN), "").await;
             if documented.contains(&(m.to_owned(), p.to_owned())) {
                 assert_ne!(v["error"], "not-found", "{m} {uri}: {v}");
                 assert_ne!(v["error"], "method-not-allowed", "{m} {uri}: {v}");
+                // What it answered (an empty body, an unknown run) is documented, and
+                // so are the answers of the layers every route passes: a wrong key,
+                // a Host the daemon does not answer to.
+                let op = &doc["paths"][p.as_str()][m.to_ascii_lowercase()];
+                let documents = |s: StatusCode| op["responses"].get(s.as_str()).is_some();
+                assert!(documents(s), "{m} {p} answered {s}, undocumented: {v}");
+                // (An e-stop from this machine is not refused for its key: docs/safety.md.)
+                let (s, v) = call(&router, method.clone(), &uri, Some("psk_not-a-key"), "").await;
+                assert!(
+                    (s == StatusCode::UNAUTHORIZED || p == "/api/v1/estop")
+                        && documents(StatusCode::UNAUTHORIZED),
+                    "{m} {p} with a wrong key: {s} {v}"
+                );
+                use tower::ServiceExt as _;
+                let req = common::request(method, &uri, Some(TOKEN), &[("host", "evil.example")], "");
+                let resp = router.clone().oneshot(req).await.unwrap();
+                assert!(
+                    resp.status() == StatusCode::FORBIDDEN && documents(resp.status()),
+                    "{m} {p} from another host name: {}",
+                    resp.status()
+                );
+                assert!(documents(StatusCode::REQUEST_TIMEOUT), "{m} {p}");
+                if op.get("requestBody").is_some() {
+                    for s in [
+                        StatusCode::BAD_REQUEST,
+                        StatusCode::PAYLOAD_TOO_LARGE,
+                        StatusCode::UNSUPPORTED_MEDIA_TYPE,
+                    ] {
+                        assert!(documents(s), "{m} {p} takes a body: {s} is not documented");
+                    }
+                }
             } else {
                 assert_eq!(
                     (s, v["error"].as_str()),
@@ -194,8 +225,18 @@ async fn health_and_openapi_match_the_routes() {
         doc["components"]["schemas"]["RunState"]["enum"],
         serde_json::json!(["queued", "running", "paused", "completed", "aborted", "failed"])
     );
+    // Keyless from this machine (an empty requirement beside the bearer one), as the
+    // reads and the plan check are; every other change needs a key.
     assert_eq!(
         doc["paths"]["/api/v1/estop"]["post"]["security"],
+        serde_json::json!([{}, { "bearer": [] }])
+    );
+    assert_eq!(
+        doc["paths"]["/api/v1/runs"]["get"]["security"],
+        serde_json::json!([{}, { "bearer": [] }])
+    );
+    assert_eq!(
+        doc["paths"]["/api/v1/runs/{id}/abort"]["post"]["security"],
         serde_json::json!([{ "bearer": [] }])
     );
     let download = &doc["paths"]["/api/v1/runs/{id}/files/{name}"]["get"];
@@ -311,6 +352,17 @@ async fn bad_requests_get_4xx_and_change_nothing() {
         ("/api/v1/audit?limit=-1", "bad-query", "limit"),
         ("/api/v1/audit?limit=0", "bad-query", "limit"),
         ("/api/v1/audit?limit=5000", "bad-query", "limit"),
+        // A span that holds nothing (until is exclusive): 200 with an empty page before.
+        (
+            "/api/v1/runs?since=2026-12-02&until=2026-12-01",
+            "bad-query",
+            "until: 2026-12-01T00:00:00Z is not after since",
+        ),
+        (
+            "/api/v1/audit?since=2026-12-01&until=2026-12-01",
+            "bad-query",
+            "until: 2026-12-01T00:00:00Z is not after since",
+        ),
         ("/api/v1/runs/%FF", "bad-path", "UTF-8"),
         ("/api/v1/runs/%FF/files/run.json", "bad-path", "UTF-8"),
     ] {

@@ -281,6 +281,12 @@ async fn the_catalogue_queue_and_audit_follow_a_lab_day() {
         v["message"].as_str().unwrap().contains("realigning the SPAD arm"),
         "{v}"
     );
+    // A run that does not exist is not found, locked or not (it was 423).
+    for action in ["resume", "again"] {
+        let path = format!("/api/v1/runs/20200101-000000-none/{action}");
+        let (s, v) = call(&router, Method::POST, &path, Some(&alice), "").await;
+        assert_eq!(s, StatusCode::NOT_FOUND, "{action}: {v}");
+    }
     // A batch with one invalid plan queues none.
     let bad_batch = json!({"plans": [PLAN, "name = 3"]}).to_string();
     let (s, v) = call_locked(&router, Method::POST, "/api/v1/runs/batch", &alice, bad_batch).await;
@@ -719,6 +725,26 @@ async fn the_command_line_shares_keys_catalogue_and_audit_with_the_daemon() {
     let (code, out, _) = periscope(&["audit", "--action", "key-revoke"]);
     assert_eq!(code, Some(0));
     assert!(out.contains("cli") && out.contains("bob"), "{out}");
+    let (code, out, _) = periscope(&["audit", "--target", "bob", "--until", "2999-01-01"]);
+    assert_eq!(code, Some(0));
+    assert!(out.contains("key-revoke") && !out.contains("submit"), "{out}");
+    // A misspelt action: an empty page, and the actions the trail holds.
+    let (code, out, err) = periscope(&["audit", "--action", "key-revok"]);
+    assert_eq!(code, Some(0), "{err}");
+    assert!(out.contains("0 of 0"), "{out}");
+    assert!(
+        err.contains("no entry has action `key-revok`") && err.contains("key-revoke, "),
+        "{err}"
+    );
+    // A span that cannot hold anything is refused, by `runs` and `audit` alike.
+    for cmd in ["runs", "audit"] {
+        let (code, _, err) = periscope(&[cmd, "--since", "2026-12-02", "--until", "2026-12-01"]);
+        assert_eq!(code, Some(2), "{cmd}: {err}");
+        assert!(
+            err.contains("--until 2026-12-01T00:00:00Z is not after since"),
+            "{cmd}: {err}"
+        );
+    }
 }
 
 /// Whether the test must fail rather than skip when Prometheus is missing (`.ci/run`

@@ -777,6 +777,8 @@ pub(super) async fn audit(
         },
         offset: super::catalogue::offset(p.offset)?,
     };
+    q.check()
+        .map_err(|(field, m)| ApiError::new(StatusCode::BAD_REQUEST, "bad-query", format!("{field}: {m}")))?;
     let s = Arc::clone(&state.service);
     blocking(move || {
         s.catalogue()

@@ -222,6 +222,8 @@ pub(super) async fn again(
     let key = lock_key(&headers);
     let s = Arc::clone(&state.service);
     let st = blocking(move || {
+        // A run that does not exist is 404 whether or not the queue is locked.
+        s.status(&id)?;
         s.check_lock(key.as_deref())?;
         s.again(&id, &caller.name)
     })

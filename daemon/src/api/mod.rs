@@ -901,6 +901,7 @@ async fn pause(
         (status = 403, description = status::FORBIDDEN, body = ErrorBody),
         (status = 404, description = status::NOT_FOUND, body = ErrorBody),
         (status = 409, description = status::CONFLICT, body = ErrorBody),
+        (status = 423, description = status::LOCKED, body = ErrorBody),
     )
 )]
 async fn resume(
@@ -915,6 +916,8 @@ async fn resume(
         .map(str::to_owned);
     let s = Arc::clone(&state.service);
     let st = blocking(move || {
+        // A run that does not exist is 404 whether or not the queue is locked.
+        s.status(&id)?;
         s.check_lock(key.as_deref())?;
         s.resume_as(&id, &caller.name)
     })

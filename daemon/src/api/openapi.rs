@@ -57,7 +57,10 @@ pub(super) mod status {
     pub(crate) const NOT_FOUND: &str = "unknown run or file";
     pub(crate) const CONFLICT: &str = "the request does not fit the run's state";
     pub(crate) const TOO_LARGE: &str = "body over the size limit (`[api] body-limit-kib`)";
-    pub(crate) const MEDIA_TYPE: &str = "body is not TOML";
+    pub(crate) const MEDIA_TYPE: &str =
+        "the body's Content-Type is not the one the operation's request body names";
+    pub(crate) const BAD_REQUEST: &str = "a path, query or body that does not parse as the operation's (`bad-path`, `bad-query`, `bad-body`), the value at fault named";
+    pub(crate) const TIMEOUT: &str = "the request, or its body, took longer than `[api] request-timeout-s` (`request-timeout`; the e-stop and health are given at least 10 s)";
     pub(crate) const INVALID_PLAN: &str =
         "invalid capture plan (file, line and key named), or over the run budget (`over-budget`)";
     pub(crate) const QUEUE_FULL: &str = "the queue is full (`[api] max-queue`)";
@@ -90,5 +93,60 @@ pub(super) fn to_json(doc: &utoipa::openapi::OpenApi) -> serde_json::Value {
     if let Some(items) = v.pointer_mut("/components/schemas/RunStatus/properties/files/items") {
         items["enum"] = files.into();
     }
+    if let Some(paths) = v.get_mut("paths").and_then(|p| p.as_object_mut()) {
+        for (path, item) in paths.iter_mut() {
+            let Some(item) = item.as_object_mut() else {
+                continue;
+            };
+            for (method, op) in item.iter_mut() {
+                let Ok(method) = axum::http::Method::from_bytes(method.to_ascii_uppercase().as_bytes())
+                else {
+                    continue;
+                };
+                shared_answers(path, &method, op);
+            }
+        }
+    }
     v
+}
+
+/// What every route's layers add to its operation, which no handler's attribute
+/// says: who may call it without a key, and the errors the layers answer with before
+/// or around the handler (the Host check, the keys, the request timeout, the body's
+/// limit, type and shape).
+fn shared_answers(path: &str, method: &axum::http::Method, op: &mut serde_json::Value) {
+    use serde_json::json;
+    let Some(need) = super::access::required_role(method, path) else {
+        return;
+    };
+    // From this machine a read, a plan check and the e-stop need no key (and reads from
+    // anywhere with `[api] open-reads`): an empty requirement beside the bearer one.
+    op["security"] = if need <= crate::access::Role::Observer {
+        json!([{}, { "bearer": [] }])
+    } else {
+        json!([{ "bearer": [] }])
+    };
+    let takes_body = op.get("requestBody").is_some();
+    let takes_values = takes_body || op["parameters"].as_array().is_some_and(|p| !p.is_empty());
+    let mut shared = vec![
+        ("401", status::UNAUTHORISED),
+        ("403", status::FORBIDDEN),
+        ("408", status::TIMEOUT),
+    ];
+    if takes_values {
+        shared.push(("400", status::BAD_REQUEST));
+    }
+    if takes_body {
+        shared.push(("413", status::TOO_LARGE));
+        shared.push(("415", status::MEDIA_TYPE));
+    }
+    let responses = &mut op["responses"];
+    for (code, description) in shared {
+        if responses.get(code).is_none() {
+            responses[code] = json!({
+                "description": description,
+                "content": { "application/json": { "schema": { "$ref": "#/components/schemas/ErrorBody" } } }
+            });
+        }
+    }
 }

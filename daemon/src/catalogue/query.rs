@@ -165,6 +165,7 @@ impl RunQuery {
         if i64::try_from(self.offset).is_err() {
             return Err(("offset", format!("{}: expected 0 to {}", self.offset, i64::MAX)));
         }
+        check_span(self.since, self.until)?;
         if let Some(q) = &self.text
             && q.len() > MAX_SEARCH_TEXT
         {
@@ -234,6 +235,29 @@ pub struct AuditQuery {
     pub limit: usize,
     /// Entries skipped.
     pub offset: usize,
+}
+
+impl AuditQuery {
+    /// As [`RunQuery::check`], for what the audit trail's filters share with it.
+    pub fn check(&self) -> Result<(), (&'static str, String)> {
+        check_span(self.since, self.until)
+    }
+}
+
+/// A `since` not before `until` matches nothing (`until` is exclusive): that is a
+/// mistake in the query, refused rather than answered with an empty page.
+fn check_span(since: Option<f64>, until: Option<f64>) -> Result<(), (&'static str, String)> {
+    match (since, until) {
+        (Some(a), Some(b)) if a >= b => Err((
+            "until",
+            format!(
+                "{} is not after since ({}): nothing can match (until is exclusive)",
+                crate::access::format_time(b),
+                crate::access::format_time(a)
+            ),
+        )),
+        _ => Ok(()),
+    }
 }
 
 /// One page of the audit trail.
@@ -457,6 +481,21 @@ impl Catalogue {
             offset: q.offset as u64,
             entries,
         })
+    }
+
+    /// The actions the audit trail holds, sorted: what an `action` filter that
+    /// matched nothing could have named.
+    pub fn audit_actions(&self) -> Result<Vec<String>, CatalogueError> {
+        let conn = self.conn();
+        let mut stmt = conn
+            .prepare("SELECT DISTINCT action FROM audit ORDER BY action")
+            .map_err(self.sqlite())?;
+        let actions = stmt
+            .query_map([], |r| r.get(0))
+            .map_err(self.sqlite())?
+            .collect::<Result<_, _>>()
+            .map_err(self.sqlite())?;
+        Ok(actions)
     }
 }
 
