@@ -157,6 +157,28 @@ impl TomlSource {
             message.push_str("; remove it or check its spelling (keys are kebab-case)");
         } else if message.starts_with("missing field") {
             message.push_str("; add it (see the example files in configs/)");
+        } else if message.starts_with("duplicate key") {
+            // The parser names no key: its span covers the one written a second time.
+            let span = err.span();
+            let written = span
+                .clone()
+                .and_then(|span| self.text.get(span))
+                .map(str::trim)
+                .filter(|t| !t.is_empty() && t.len() <= 200 && !t.contains('\n'));
+            // A table header's span is its name, inside the brackets.
+            let header = span.is_some_and(|span| {
+                let start = self.text[..span.start.min(self.text.len())]
+                    .rfind('\n')
+                    .map_or(0, |i| i + 1);
+                self.text[start..].trim_start().starts_with('[')
+            });
+            message = match written {
+                Some(t) if header => format!(
+                    "duplicate table `[{t}]`: it is already written above; move its keys into that one"
+                ),
+                Some(k) => format!("duplicate key `{k}`: it is already set above; keep one"),
+                None => format!("{message}: a key or table is written twice; keep one"),
+            };
         }
         ConfigError::Invalid {
             location: Location {
@@ -246,6 +268,24 @@ mod tests {
     }
 
     const GOOD: &str = "top = 1\n\n[inner]\npair = [1.0, 2.0]\nbin-width = 3.0\n";
+
+    /// The parser's "duplicate key" names no key: the message names the one written
+    /// twice, or the table opened twice.
+    #[test]
+    fn a_key_or_table_written_twice_is_named() {
+        let src = TomlSource::from_text("x.toml", GOOD.replace("bin-width = 3.0", "pair = [3.0, 4.0]"));
+        let err = src.parse::<Raw>().unwrap_err();
+        assert_eq!(err.line(), Some(5), "{err}");
+        assert!(
+            err.to_string()
+                .contains("duplicate key `pair`: it is already set above"),
+            "{err}"
+        );
+        let src = TomlSource::from_text("x.toml", format!("{GOOD}\n[inner]\n"));
+        let err = src.parse::<Raw>().unwrap_err();
+        assert_eq!(err.line(), Some(7), "{err}");
+        assert!(err.to_string().contains("duplicate table `[inner]`"), "{err}");
+    }
 
     #[test]
     fn type_errors_name_line_and_key() {
