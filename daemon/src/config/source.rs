@@ -146,13 +146,13 @@ impl TomlSource {
                 line: self.locate(key).map(|offset| self.line_of(offset)),
                 key: Some(key.to_owned()),
             },
-            message: message.into(),
+            message: short_numbers(&message.into()),
         }
     }
 
     fn toml_error(&self, err: &toml::de::Error, key: Option<String>) -> ConfigError {
         let line = err.span().map(|span| self.line_of(span.start));
-        let mut message = err.message().trim_end().to_owned();
+        let mut message = short_numbers(err.message().trim_end());
         if message.starts_with("unknown field") {
             message.push_str("; remove it or check its spelling (keys are kebab-case)");
         } else if message.starts_with("missing field") {
@@ -247,6 +247,38 @@ fn split_key(key: &str) -> impl Iterator<Item = KeyPart<'_>> {
     })
 }
 
+/// `message` with each number written out past 20 characters (`1e300` as Rust and
+/// serde print it: 301 digits) in scientific notation; shorter ones, whole `u64`s
+/// included, as they are.
+fn short_numbers(message: &str) -> String {
+    let bytes = message.as_bytes();
+    let mut out = String::with_capacity(message.len());
+    let mut i = 0;
+    while i < bytes.len() {
+        // A number starts at a digit not inside a word (`x2`, `v1`).
+        let starts = bytes[i].is_ascii_digit() && (i == 0 || !bytes[i - 1].is_ascii_alphanumeric());
+        if !starts {
+            let c = message[i..].chars().next().unwrap_or_default();
+            out.push(c);
+            i += c.len_utf8().max(1);
+            continue;
+        }
+        let mut j = i;
+        while j < bytes.len() && (bytes[j].is_ascii_digit() || bytes[j] == b'.') {
+            j += 1;
+        }
+        // A sentence's full stop is not part of the number.
+        let text = message[i..j].trim_end_matches('.');
+        let end = i + text.len();
+        match text.parse::<f64>() {
+            Ok(v) if text.len() > 20 => out.push_str(&format!("{v:e}")),
+            _ => out.push_str(text),
+        }
+        i = end;
+    }
+    out
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -285,6 +317,36 @@ mod tests {
         let err = src.parse::<Raw>().unwrap_err();
         assert_eq!(err.line(), Some(7), "{err}");
         assert!(err.to_string().contains("duplicate table `[inner]`"), "{err}");
+    }
+
+    #[test]
+    fn a_huge_float_is_quoted_short() {
+        let src = TomlSource::from_text("x.toml", GOOD.replace("top = 1", "top = 1e300"));
+        let err = src.parse::<Raw>().unwrap_err().to_string();
+        assert!(err.contains("floating point `1e300`, expected u32"), "{err}");
+        for (long, short) in [
+            (
+                "floating point `2.5`, expected u32",
+                "floating point `2.5`, expected u32",
+            ),
+            (
+                "18446744073709551615 is out of range.",
+                "18446744073709551615 is out of range.",
+            ),
+            (
+                &format!("{} is out of range, v2", 1e300),
+                "1e300 is out of range, v2",
+            ),
+            (&format!("{} is too small.", 1.5e-30), "1.5e-30 is too small."),
+            ("run 20261101-100000-wall, é 3", "run 20261101-100000-wall, é 3"),
+        ] {
+            assert_eq!(short_numbers(long), short, "{long}");
+        }
+        let src = TomlSource::from_text("x.toml", GOOD);
+        let err = src
+            .invalid("top", format!("{} is out of range", 1e40))
+            .to_string();
+        assert!(err.ends_with("key `top`: 1e40 is out of range"), "{err}");
     }
 
     #[test]
