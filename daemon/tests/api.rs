@@ -363,6 +363,9 @@ async fn bad_requests_get_4xx_and_change_nothing() {
             "bad-query",
             "until: 2026-12-01T00:00:00Z is not after since",
         ),
+        // A misspelt filter: every run was answered before, as if it had matched.
+        ("/api/v1/runs?stat=paused", "bad-query", "unknown field `stat`"),
+        ("/api/v1/audit?acton=abort", "bad-query", "unknown field `acton`"),
         ("/api/v1/runs/%FF", "bad-path", "UTF-8"),
         ("/api/v1/runs/%FF/files/run.json", "bad-path", "UTF-8"),
     ] {

@@ -724,6 +724,9 @@ pub(super) async fn keys_revoke(
 
 /// `GET /api/v1/audit`'s filters.
 #[derive(Debug, Default, serde::Deserialize, utoipa::IntoParams)]
+// A misspelt filter (`stat=paused`) is refused, not ignored: it would answer with
+// every run as if it had matched.
+#[serde(deny_unknown_fields)]
 pub struct AuditParams {
     /// At or after (RFC 3339 time or date).
     pub since: Option<String>,

@@ -19,6 +19,9 @@ pub const LOCK_KEY_HEADER: &str = "x-periscope-lock-key";
 
 /// The filters, sort and page of `GET /api/v1/runs` and `GET /api/v1/catalogue`.
 #[derive(Debug, Default, serde::Deserialize, utoipa::IntoParams)]
+// A misspelt filter (`stat=paused`) is refused, not ignored: it would answer with
+// every run as if it had matched.
+#[serde(deny_unknown_fields)]
 pub struct RunParams {
     /// States, comma-separated (`completed,failed`).
     pub state: Option<String>,
