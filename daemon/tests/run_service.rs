@@ -315,6 +315,10 @@ async fn the_catalogue_queue_and_audit_follow_a_lab_day() {
     let order = json!({"order": [ids[2], ids[0], ids[1]]}).to_string();
     let (s, v) = call_locked(&router, Method::PUT, "/api/v1/queue", &root, order).await;
     assert_eq!(s, StatusCode::OK, "{v}");
+    // The last moved to the end, where it is: the order stands, the move is audited.
+    let to_end = json!({"run": ids[1], "position": 2}).to_string();
+    let (s, v) = call_locked(&router, Method::POST, "/api/v1/queue/move", &root, to_end).await;
+    assert_eq!(s, StatusCode::OK, "{v}");
     let (s, v) = call(
         &router,
         Method::PUT,
@@ -465,6 +469,12 @@ async fn the_catalogue_queue_and_audit_follow_a_lab_day() {
     assert!(did("alice", "submit-batch", "ok"));
     assert!(did("alice", "submit-batch", "refused"));
     assert!(did("root", "queue-order", "ok"));
+    assert!(
+        entries
+            .iter()
+            .any(|e| e["action"] == "queue-move" && e["target"] == ids[1].as_str()),
+        "a move names the run it moved: {audit}"
+    );
     assert!(did("alice", "queue-order", "refused"), "the operator's reorder");
     assert!(did("root", "queue-unlock", "refused"));
     assert!(did("root", "queue-unlock", "ok"));
@@ -967,6 +977,15 @@ async fn a_keys_file_that_cannot_be_written_is_a_storage_error() {
     std::fs::remove_dir(dir.path().join("keys.lock")).unwrap();
     let (s, v) = call(&router, Method::POST, "/api/v1/keys", Some(TOKEN), &new_key).await;
     assert_eq!(s, StatusCode::CREATED, "{v}");
+    // The key made is its audit entry's target (it was null: the path names no key).
+    let (_, audit) = call(&router, Method::GET, "/api/v1/audit?target=k-new", None, "").await;
+    let actions: Vec<_> = audit["entries"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|e| (e["action"].as_str().unwrap(), e["outcome"].as_str().unwrap()))
+        .collect();
+    assert_eq!(actions, [("key-create", "ok")], "{audit}");
 }
 
 /// One writer a run, one daemon a runs directory. A run directory another process

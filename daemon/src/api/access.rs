@@ -325,14 +325,16 @@ pub(super) async fn authorise(State(state): State<AppState>, mut req: Request, n
             _ => "failed",
         };
         // A new run's id is in Location.
-        let target = target.or_else(|| {
-            response
-                .headers()
-                .get(header::LOCATION)
-                .and_then(|l| l.to_str().ok())
-                .and_then(|l| l.rsplit('/').next())
-                .map(str::to_owned)
-        });
+        let target = target
+            .or_else(|| {
+                response
+                    .headers()
+                    .get(header::LOCATION)
+                    .and_then(|l| l.to_str().ok())
+                    .and_then(|l| l.rsplit('/').next())
+                    .map(str::to_owned)
+            })
+            .or_else(|| response.extensions().get::<AuditTarget>().map(|t| t.0.clone()));
         let mut entry = AuditEntry::new(
             &caller.name,
             caller.role.name(),
@@ -465,6 +467,12 @@ async fn check_key(
 /// extension handlers may set).
 #[derive(Clone, Debug)]
 pub(super) struct AuditDetail(pub String);
+
+/// What a successful changing request acted on, where its path does not name it (a
+/// key made, a run moved in the queue): its audit entry's target, so that `target=`
+/// finds it (a response extension handlers may set).
+#[derive(Clone, Debug)]
+pub(super) struct AuditTarget(pub String);
 
 /// Answers a refused authentication, recording it (rate-limited).
 async fn refused(state: &AppState, e: ApiError, entry: AuditEntry) -> Response {
@@ -702,6 +710,7 @@ pub(super) async fn keys_create(
         .into_response();
     r.extensions_mut()
         .insert(AuditDetail(format!("{target}: {detail}")));
+    r.extensions_mut().insert(AuditTarget(target));
     Ok(r)
 }
 

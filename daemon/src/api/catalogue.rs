@@ -294,6 +294,7 @@ pub(super) async fn move_run(
     let key = lock_key(&headers);
     let s = Arc::clone(&state.service);
     let detail = format!("{run} to place {position}");
+    let target = run.clone();
     let q = blocking(move || {
         s.check_lock(key.as_deref())?;
         s.move_run(&run, position)
@@ -301,6 +302,7 @@ pub(super) async fn move_run(
     .await?;
     let mut r = axum::Json(q).into_response();
     r.extensions_mut().insert(AuditDetail(detail));
+    r.extensions_mut().insert(super::access::AuditTarget(target));
     Ok(r)
 }
 
