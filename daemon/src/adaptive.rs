@@ -291,6 +291,12 @@ impl Sizes {
                     "recon.adaptive.pairs"
                 }
             ));
+        } else if s.first == 0 && sizes.first >= sizes.budget && sizes.budget < candidates {
+            notes.push(format!(
+                "recon.adaptive.pairs = {} is no more than the first batch, which spreads at least {MIN_BATCH} pairs over the candidates: \
+                 the fit chooses nothing; give a larger budget, or measure the candidates' own layout without mode = \"adaptive\"",
+                s.pairs
+            ));
         }
         notes
     }
@@ -654,6 +660,22 @@ mod tests {
             notes(AdaptiveSettings {
                 pairs: 100,
                 first: 40,
+                ..AdaptiveSettings::default()
+            })
+            .is_empty()
+        );
+        // A budget the default first batch takes whole (it spreads at least 8).
+        let n = notes(AdaptiveSettings {
+            pairs: 6,
+            ..AdaptiveSettings::default()
+        });
+        assert!(
+            n.len() == 1 && n[0].contains("recon.adaptive.pairs = 6 is no more than the first batch"),
+            "{n:?}"
+        );
+        assert!(
+            notes(AdaptiveSettings {
+                pairs: 9,
                 ..AdaptiveSettings::default()
             })
             .is_empty()

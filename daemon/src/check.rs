@@ -198,12 +198,16 @@ pub fn check(plan: &Plan, inst: &InstrumentConfig) -> Check {
         Some(s) => {
             let _ = writeln!(
                 out,
-                "  pairs: adaptive, at most {} of the {} (at most {candidates}): {} spread over them first, then batches of {} chosen by the running fit{}",
+                "  pairs: adaptive, at most {} of the {} (at most {candidates}): {} spread over them first, {}{}",
                 s.budget,
                 plan.pairs.describe(),
                 s.first,
-                s.batch,
-                if plan.recon.adaptive.stop_gain > 0.0 {
+                if s.rounds() == 0 {
+                    "and no more (the budget ends there)".to_owned()
+                } else {
+                    format!("then batches of {} chosen by the running fit", s.batch)
+                },
+                if plan.recon.adaptive.stop_gain > 0.0 && s.rounds() > 0 {
                     format!(
                         ", ending early once a batch's expected gain falls below {} of the first's",
                         plan.recon.adaptive.stop_gain

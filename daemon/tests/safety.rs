@@ -1422,6 +1422,24 @@ fn a_gtr_capture_no_plane_fits_is_refused_before_its_pairs_are_measured() {
     assert!(e.contains("pairs.mode") && e.contains("at least three"), "{e}");
     assert!(e.contains("fbp"), "{e}");
     assert!(!out.join("run.json").exists(), "a run was made");
+    // So is an adaptive capture whose budget measures fewer than three points.
+    let plan = SmallPlan::named("two")
+        .set("pairs.mode", "adaptive")
+        .set("pairs.candidates", "confocal")
+        .set("pairs.grid", [4, 4])
+        .set("recon.method", "gtr")
+        .set("recon.adaptive.pairs", 2)
+        .toml();
+    let plan_src = TomlSource::from_text(tmp.path().join("plan.toml"), plan);
+    let e = pipeline::prepare(&plan_src, &instrument_on(Devices::InProcess), Some(&out), "test")
+        .map(drop)
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("recon.adaptive.pairs") && e.contains("a budget of 2 pair(s)"),
+        "{e}"
+    );
+    assert!(!out.join("run.json").exists(), "a run was made");
 }
 
 /// A pairs grid finer than the relay the LOS scan found: the run measures what the

@@ -461,6 +461,15 @@ impl Plan {
             // than three never make one, which the run would learn only after its LOS
             // scan (three in a line are still refused there, once the relay is known).
             let points = pairs.max_detection_points();
+            let budget = recon.adaptive.pairs;
+            if adaptive && (1..3).contains(&budget) && points >= 3 {
+                return Err(src.invalid(
+                    "recon.adaptive.pairs",
+                    format!(
+                        "a budget of {budget} pair(s) measures at most {budget} detection point(s), but 3D-GTR fits a plane to them and needs at least three: give a larger budget, or 0 for half the candidates"
+                    ),
+                ));
+            }
             if recon.method == Method::Gtr && points < 3 {
                 return Err(src.invalid(
                     if adaptive { "pairs.candidates" } else { "pairs.mode" },
