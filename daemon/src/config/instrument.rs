@@ -1120,6 +1120,26 @@ impl InstrumentConfig {
                 ),
             ));
         }
+        // The sync check reads the counter's rate meter, which counts over gates of
+        // 100 ms (Periscope's counter; PicoQuant's are as long): below ten syncs a gate
+        // it reads nothing, and the run would fail blaming the sync cable.
+        let sync_hz = laser.repetition_rate / f64::from(tdc.sync_divider);
+        if sync_hz < MIN_SYNC_RATE_HZ {
+            return Err(src.invalid(
+                if tdc.sync_divider > 1 { "tdc.sync-divider" } else { "laser.rep-rate-mhz" },
+                format!(
+                    "laser.rep-rate-mhz = {} over tdc.sync-divider = {} gives {} of sync, under the {MIN_SYNC_RATE_HZ} Hz a counter's rate meter (100 ms gates) can read: every run would fail its sync check{}",
+                    laser.repetition_rate / 1e6,
+                    tdc.sync_divider,
+                    hz_text(sync_hz),
+                    if tdc.sync_divider > 1 {
+                        " (counters take dividers of 1 to 16)"
+                    } else {
+                        ""
+                    }
+                ),
+            ));
+        }
         let backend = match raw.backend {
             // A config never holds a setting nothing reads: a [sim] table left in a
             // config switched to the hardware would look as if it did something.
@@ -1345,13 +1365,19 @@ fn galvo_arm(check: &Check<'_>, key: &str, raw: RawGalvo, hardware: bool) -> Res
 pub const SYNC_TOLERANCE: f64 = 0.02;
 
 /// A rate in the unit that reads best: MHz, kHz or Hz.
+/// The slowest sync (laser pulses over the divider) a config may give, hertz: ten in
+/// each of the rate meter's 100 ms gates.
+const MIN_SYNC_RATE_HZ: f64 = 100.0;
+
 fn hz_text(hz: f64) -> String {
     if hz >= 1e6 {
         format!("{:.4} MHz", hz * 1e-6)
     } else if hz >= 1e3 {
         format!("{:.3} kHz", hz * 1e-3)
-    } else {
+    } else if hz >= 10.0 {
         format!("{hz:.0} Hz")
+    } else {
+        format!("{hz:.3} Hz")
     }
 }
 
@@ -1925,6 +1951,21 @@ mod tests {
     /// The sync a counter reads is judged against `laser.rep-rate-mhz` over
     /// `tdc.sync-divider` (or the laser's own rate, for a meter that counts before the
     /// divider): within 2 % passes, none or further off is named with both keys.
+    /// A sync too slow for the counter's rate meter to read (until 2026-12-06 any
+    /// divider was taken, and every run failed its sync check blaming the cable).
+    #[test]
+    fn a_sync_too_slow_to_read_is_refused_naming_its_key() {
+        let e = load(&SIM.replace("sync-divider = 1", "sync-divider = 4294967295")).unwrap_err();
+        assert_eq!(e.key(), Some("tdc.sync-divider"), "{e}");
+        assert!(
+            e.to_string().contains("gives 0.002 Hz of sync, under the 100 Hz"),
+            "{e}"
+        );
+        let e = load(&SIM.replace("rep-rate-mhz = 10.0", "rep-rate-mhz = 0.00005")).unwrap_err();
+        assert_eq!(e.key(), Some("laser.rep-rate-mhz"), "{e}");
+        assert!(load(&SIM.replace("sync-divider = 1", "sync-divider = 100000")).is_ok());
+    }
+
     #[test]
     fn a_sync_rate_off_the_configured_one_is_named_with_its_keys() {
         let sim = load(&SIM.replace("sync-divider = 1", "sync-divider = 4")).unwrap();
