@@ -220,3 +220,52 @@ fn without_a_gpu_gpu_is_refused_and_auto_runs_on_the_cpu() {
     assert_eq!(done.code, Some(0), "{}\n{}", done.stdout, done.stderr);
     assert_eq!(compute_of(&out), serde_json::json!({"device": "cpu"}));
 }
+
+/// A capture plan that asks for a GPU where none opens: `periscope check` says so on
+/// the machine that would run it, and `periscope run` fails before its LOS scan (exit
+/// 2, the setting named, the run left resumable) instead of measuring every pair and
+/// failing at the reconstruction, as it did until 2026-12-06.
+#[test]
+fn a_plan_that_asks_for_a_gpu_where_none_opens_fails_before_it_measures() {
+    let dir = tempfile::tempdir().unwrap();
+    let none = [
+        ("VK_ICD_FILENAMES", "/nonexistent.json"),
+        ("VK_DRIVER_FILES", "/nonexistent.json"),
+    ];
+    let plan = dir.path().join("gpu.toml");
+    std::fs::write(
+        &plan,
+        periscope_tests::SmallPlan::named("gpu")
+            .set("recon.compute.device", "gpu")
+            .toml(),
+    )
+    .unwrap();
+    let plan = plan.to_str().unwrap();
+    let checked = periscope_with_env(&["check", plan], &none, Duration::from_secs(120));
+    assert_eq!(checked.code, Some(0), "{}\n{}", checked.stdout, checked.stderr);
+    assert!(
+        checked
+            .stdout
+            .contains("warning: recon.compute.device = \"gpu\": no GPU is usable")
+            && checked.stdout.contains("fails before its LOS scan"),
+        "{}",
+        checked.stdout
+    );
+    let out = dir.path().join("run");
+    let run = periscope_with_env(
+        &["run", plan, "--out", out.to_str().unwrap()],
+        &none,
+        Duration::from_secs(120),
+    );
+    assert_eq!(run.code, Some(2), "{}\n{}", run.stdout, run.stderr);
+    assert!(
+        run.stderr.contains("no GPU is usable") && run.stderr.contains("[compute] device"),
+        "{}",
+        run.stderr
+    );
+    let info: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("run.json")).unwrap()).unwrap();
+    assert_eq!(info["state"], "failed", "{info}");
+    assert!(!out.join("relay.ply").exists(), "the LOS scan ran");
+    assert!(!out.join("pairs.json").exists(), "the pairs were planned");
+}

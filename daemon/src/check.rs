@@ -230,6 +230,15 @@ pub fn check(plan: &Plan, inst: &InstrumentConfig) -> Check {
     );
     let (line, mut warnings) = window(plan, inst);
     warnings.extend(tdc_settings(plan, inst));
+    // A plan that asks for a GPU is run only where one opens (the run checks before
+    // its LOS scan): said here, on the machine that will run it.
+    if plan.recon.compute == periscope_recon::gpu::ComputeDevice::Gpu
+        && let Err(e) = periscope_recon::gpu::Compute::open(periscope_recon::gpu::ComputeDevice::Gpu)
+    {
+        warnings.push(format!(
+            "recon.compute.device = \"gpu\": {e}; a run of this plan fails before its LOS scan"
+        ));
+    }
     if plan.adaptive {
         warnings.extend(crate::adaptive::Sizes::notes(candidates, &plan.recon.adaptive));
     }

@@ -490,6 +490,13 @@ impl Run {
 
     pub(super) fn stages(&mut self) -> Result<RunSummary, PipelineError> {
         self.checkpoint()?;
+        // A plan that asks for a GPU where none opens would measure every pair and fail
+        // at the reconstruction: it fails now, before the laser goes on (the GPU opened
+        // here is the one the reconstruction takes; it is opened once a process).
+        if self.plan.recon.compute == periscope_recon::gpu::ComputeDevice::Gpu {
+            periscope_recon::gpu::Compute::open(periscope_recon::gpu::ComputeDevice::Gpu)
+                .map_err(|e| PipelineError::Recon(super::ReconError::Gpu(e)))?;
+        }
         let relay = match self.load_relay()? {
             Some(r) => r,
             None => {
