@@ -49,13 +49,17 @@ pub struct Item {
     pub bytes: u64,
 }
 
-/// A plan's estimated memory and disk needs.
+/// A plan's estimated memory and disk needs, and how long it keeps the instrument.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Budget {
     /// Memory items.
     pub memory: Vec<Item>,
     /// Disk items.
     pub disk: Vec<Item>,
+    /// The LOS scan's and the capture's seconds at most
+    /// ([`instrument_seconds`]); `None` for an import, which measures
+    /// nothing.
+    pub instrument: Option<(f64, f64)>,
 }
 
 /// `a × b × ...`, saturating (a hostile plan's sizes must not wrap to a small number).
@@ -131,6 +135,85 @@ pub fn recon_items(recon: &ReconSettings, pairs: u64, bins: u64, estimates_gains
     memory
 }
 
+/// Software overhead per measured point (moves, acquisition, storage), seconds; the
+/// driver benchmark measures about 0.2 ms against the simulator, a real 115200-baud
+/// link adds about 3 ms per exchange.
+const OVERHEAD_SIM: f64 = 0.3e-3;
+const OVERHEAD_SERIAL: f64 = 6e-3;
+/// 3D-GTR forward+backward evaluations (pair × primitive) per optimiser step's pairs,
+/// per second, offline after a capture (release, 2 cores: `cargo bench -p
+/// periscope-daemon --bench scaling`, 1,000 to 16,000 pairs at 64³: 14.6–16 million;
+/// docs/recon.md, "How cost grows with the work").
+pub(crate) const GTR_EVALS_PER_S: f64 = 1.5e7;
+/// Synthesis evaluations (virtual point × primitive) per second (`--bench solvers`,
+/// 64 × 64 points × 10,000 primitives in 1.46 s).
+pub(crate) const SYNTH_EVALS_PER_S: f64 = 2.8e7;
+
+/// How long `plan` keeps the instrument, seconds: its LOS scan, its capture at most
+/// and, for an adaptive capture that a stopping rule may end early, at least. The
+/// device time the plan's dwells, settling and each pair's overhead add up to (times
+/// the simulator's time scale), and an adaptive capture's waits for its choices.
+pub fn instrument_seconds(plan: &Plan, inst: &crate::config::InstrumentConfig) -> (f64, f64, Option<f64>) {
+    let (l, a, rc) = (&plan.los, &plan.acquisition, &plan.recon);
+    let candidates = plan.pairs.max_pairs();
+    let adaptive = plan
+        .adaptive
+        .then(|| crate::adaptive::Sizes::of(candidates, &plan.recon.adaptive));
+    let pairs = adaptive.map_or(candidates, |s| s.budget);
+    let sim = matches!(inst.backend, crate::config::Backend::Sim(_));
+    let overhead = if sim { OVERHEAD_SIM } else { OVERHEAD_SERIAL };
+    let scale = match &inst.backend {
+        crate::config::Backend::Sim(s) => s.time_scale,
+        crate::config::Backend::Hardware => 1.0,
+    };
+    let settle = inst.laser_arm.settle.max(inst.spad_arm.settle).as_secs_f64();
+    let los_s = (l.grid[0] * l.grid[1]) as f64 * ((l.dwell.as_secs_f64() + settle) * scale + overhead);
+    let per_pair = (a.dwell.as_secs_f64() * f64::from(a.repeats) + settle) * scale + overhead;
+    let cap_s = pairs as f64 * per_pair;
+    // An adaptive capture waits, laser off, for each choice: the batch's live training
+    // and the scoring of every candidate against every primitive.
+    let choice_s = |rounds: usize| {
+        let k = rc.train.primitives as f64;
+        rounds as f64
+            * (rc.adaptive.live_steps as f64 * rc.train.batch_size as f64 * k / GTR_EVALS_PER_S
+                + candidates as f64 * k / SYNTH_EVALS_PER_S)
+    };
+    let (cap_s, cap_min_s) = match adaptive {
+        None => (cap_s, None),
+        Some(s) => (
+            // A time budget ends the choosing, judged after each batch's live training:
+            // the first batch always runs whole, and the choice and batch under way when
+            // the budget runs out are finished.
+            match rc.adaptive.seconds {
+                t if t > 0.0 => (cap_s + choice_s(s.rounds())).min(
+                    (s.first as f64 * per_pair + choice_s(1))
+                        .max(t + choice_s(1) + s.batch as f64 * per_pair),
+                ),
+                _ => cap_s + choice_s(s.rounds()),
+            },
+            // The stopping rule can end it after the first choice.
+            (rc.adaptive.stop_gain > 0.0 && s.rounds() > 0)
+                .then(|| (s.first + s.batch.min(s.budget - s.first)) as f64 * per_pair + choice_s(1)),
+        ),
+    };
+    (los_s, cap_s, cap_min_s)
+}
+
+/// Seconds as a reader takes them: `45 s`, `12.5 min`, `3.2 h`, `4.1 days`.
+fn span(seconds: f64) -> String {
+    if seconds < 10.0 {
+        format!("{seconds:.2} s")
+    } else if seconds < 60.0 {
+        format!("{seconds:.0} s")
+    } else if seconds < 3600.0 {
+        format!("{:.1} min", seconds / 60.0)
+    } else if seconds < 48.0 * 3600.0 {
+        format!("{:.1} h", seconds / 3600.0)
+    } else {
+        format!("{:.1} days", seconds / 86400.0)
+    }
+}
+
 fn gib(bytes: u64) -> String {
     let g = bytes as f64 / GIB;
     if g >= 0.1 {
@@ -153,11 +236,12 @@ impl Budget {
                 keys: "recon.volume.shape",
                 bytes: mul(&[voxels, 4]),
             }],
+            instrument: None,
         }
     }
 
-    /// The estimate for `plan`.
-    pub fn of_plan(plan: &Plan) -> Budget {
+    /// The estimate for `plan` on `inst`.
+    pub fn of_plan(plan: &Plan, inst: &crate::config::InstrumentConfig) -> Budget {
         let pairs = plan.pairs.max_pairs() as u64;
         let bins = u64::from(plan.acquisition.bins);
         let voxels = mul(&plan.recon.volume.shape.map(|n| n as u64));
@@ -194,7 +278,17 @@ impl Budget {
                 bytes: mul(&[voxels, 4]),
             },
         ];
-        Budget { memory, disk }
+        let (los, capture, _) = instrument_seconds(plan, inst);
+        Budget {
+            memory,
+            disk,
+            instrument: Some((los, capture)),
+        }
+    }
+
+    /// The instrument time, seconds (0 for an import).
+    pub fn instrument_seconds(&self) -> f64 {
+        self.instrument.map_or(0.0, |(los, capture)| los + capture)
     }
 
     /// Total memory, bytes.
@@ -244,6 +338,20 @@ impl Budget {
                 ));
             }
         }
+        if let (Some(hours), Some((los, capture))) = (limits.hours, self.instrument)
+            && los + capture > hours * 3600.0
+        {
+            return Err(format!(
+                "over budget: the plan keeps the instrument about {} (LOS scan {}, capture {} at most), \
+                 more than the instrument's {} (`budget.hours` in the instrument config): fewer pairs \
+                 (pairs grid, laser-grid, count or mask), a shorter acquisition.dwell-ms or fewer \
+                 acquisition.repeats, or a smaller los.grid",
+                span(los + capture),
+                span(los),
+                span(capture),
+                span(hours * 3600.0)
+            ));
+        }
         Ok(())
     }
 
@@ -265,6 +373,25 @@ impl Budget {
                 let _ = writeln!(out, "    {:>10}  {} ({})", gib(i.bytes), i.what, i.keys);
             }
         }
+        if let Some((los, capture)) = self.instrument {
+            let total = los + capture;
+            let _ = writeln!(
+                out,
+                "  instrument time: {} (LOS scan and capture at most) of {}{}",
+                span(total),
+                limits
+                    .hours
+                    .map_or("no budget (`budget.hours` unset)".to_owned(), |h| format!(
+                        "{} budget",
+                        span(h * 3600.0)
+                    )),
+                if limits.hours.is_some_and(|h| total > h * 3600.0) {
+                    " — OVER BUDGET"
+                } else {
+                    ""
+                }
+            );
+        }
         out
     }
 }
@@ -276,15 +403,20 @@ mod tests {
     /// The demo plan (LCT after 3D-GTR, a 64 × 64 virtual grid) with `edit` applied to
     /// its text.
     fn demo_budget(edit: impl Fn(&str) -> String) -> Budget {
+        demo_budget_on("", edit)
+    }
+
+    /// [`demo_budget`] on the simulator with `sim` added to its `[sim]` table.
+    fn demo_budget_on(sim: &str, edit: impl Fn(&str) -> String) -> Budget {
         use crate::config::{InstrumentConfig, TomlSource};
         let instrument = InstrumentConfig::from_source(&TomlSource::from_text(
             "sim.toml",
-            include_str!("../../configs/instrument/sim.toml"),
+            include_str!("../../configs/instrument/sim.toml").replace("[sim]\n", &format!("[sim]\n{sim}\n")),
         ))
         .unwrap();
         let text = edit(include_str!("../../configs/plans/demo.toml"));
         let plan = Plan::from_source(&TomlSource::from_text("demo.toml", &text), &instrument).unwrap();
-        Budget::of_plan(&plan)
+        Budget::of_plan(&plan, &instrument)
     }
 
     fn item(b: &Budget, what: &str) -> Option<u64> {
@@ -377,6 +509,7 @@ mod tests {
                 keys: "k.c",
                 bytes: 1,
             }],
+            instrument: None,
         };
         let e = b.check(&Limits::default()).unwrap_err();
         assert!(e.contains("21.0 GiB of memory"), "{e}");
@@ -385,9 +518,37 @@ mod tests {
         assert!(
             b.check(&Limits {
                 memory: 32 << 30,
-                disk: 1
+                disk: 1,
+                hours: None,
             })
             .is_ok()
         );
+    }
+
+    /// `budget.hours` bounds the time a plan keeps the instrument, by the estimate
+    /// `periscope check` prints (the demo: 576 pairs of 20 ms and 1,024 LOS points of
+    /// 1 ms on the simulator in real time); unset, nothing is refused.
+    #[test]
+    fn a_plan_that_keeps_the_instrument_too_long_is_over_budget() {
+        let real_time = "time-scale = 1.0";
+        let b = demo_budget_on(real_time, |t| t.to_owned());
+        let seconds = b.instrument_seconds();
+        assert!((10.0..60.0).contains(&seconds), "{seconds}");
+        let limits = |hours| Limits {
+            hours,
+            ..Limits::default()
+        };
+        assert!(b.check(&limits(None)).is_ok());
+        assert!(b.check(&limits(Some(seconds / 3600.0 * 1.01))).is_ok());
+        let e = b.check(&limits(Some(seconds / 3600.0 * 0.99))).unwrap_err();
+        assert!(
+            e.contains("budget.hours") && e.contains("acquisition.dwell-ms") && e.contains("LOS scan"),
+            "{e}"
+        );
+        assert!(b.report(&limits(Some(0.001))).contains("OVER BUDGET"));
+        // A dwell of 20 s instead of 20 ms: about 3.2 hours.
+        let long = demo_budget_on(real_time, |t| t.replace("dwell-ms = 20.0", "dwell-ms = 20000.0"));
+        let e = long.check(&limits(Some(1.0))).unwrap_err();
+        assert!(e.contains("about 3.2 h"), "{e}");
     }
 }

@@ -9,22 +9,10 @@ use periscope_recon::relay::Region;
 use periscope_recon::transient::path_range;
 use periscope_recon::{C0, Pair, TimeAxis};
 
+use crate::budget::{GTR_EVALS_PER_S, SYNTH_EVALS_PER_S};
 use crate::config::{InstrumentConfig, TdcDriver};
 use crate::plan::{Method, PairMode, Plan};
 
-/// Software overhead per measured point (moves, acquisition, storage), seconds; the
-/// driver benchmark measures about 0.2 ms against the simulator, a real 115200-baud
-/// link adds about 3 ms per exchange.
-const OVERHEAD_SIM: f64 = 0.3e-3;
-const OVERHEAD_SERIAL: f64 = 6e-3;
-/// 3D-GTR forward+backward evaluations (pair × primitive) per optimiser step's pairs,
-/// per second, offline after a capture (release, 2 cores: `cargo bench -p
-/// periscope-daemon --bench scaling`, 1,000 to 16,000 pairs at 64³: 14.6–16 million;
-/// docs/recon.md, "How cost grows with the work").
-const GTR_EVALS_PER_S: f64 = 1.5e7;
-/// Synthesis evaluations (virtual point × primitive) per second (`--bench solvers`,
-/// 64 × 64 points × 10,000 primitives in 1.46 s).
-const SYNTH_EVALS_PER_S: f64 = 2.8e7;
 /// Forward evaluations (pair × primitive) per second of a round of per-transient gain
 /// estimation, which renders the whole capture (`recon.gtr.pair-gains`): on 2 cores
 /// confocal_sparse's 82 rounds of 300 pairs at 2,000 primitives (49 million, as many as
@@ -271,41 +259,7 @@ pub fn check(plan: &Plan, inst: &InstrumentConfig) -> Check {
     );
     // Duration.
     let sim = matches!(inst.backend, crate::config::Backend::Sim(_));
-    let overhead = if sim { OVERHEAD_SIM } else { OVERHEAD_SERIAL };
-    let scale = match &inst.backend {
-        crate::config::Backend::Sim(s) => s.time_scale,
-        crate::config::Backend::Hardware => 1.0,
-    };
-    let settle = inst.laser_arm.settle.max(inst.spad_arm.settle).as_secs_f64();
-    let los_s = (l.grid[0] * l.grid[1]) as f64 * ((l.dwell.as_secs_f64() + settle) * scale + overhead);
-    let per_pair = (a.dwell.as_secs_f64() * f64::from(a.repeats) + settle) * scale + overhead;
-    let cap_s = pairs as f64 * per_pair;
-    // An adaptive capture waits, laser off, for each choice: the batch's live training
-    // and the scoring of every candidate against every primitive.
-    let choice_s = |rounds: usize| {
-        let k = rc.train.primitives as f64;
-        rounds as f64
-            * (rc.adaptive.live_steps as f64 * rc.train.batch_size as f64 * k / GTR_EVALS_PER_S
-                + candidates as f64 * k / SYNTH_EVALS_PER_S)
-    };
-    let (cap_s, cap_min_s) = match adaptive {
-        None => (cap_s, None),
-        Some(s) => (
-            // A time budget ends the choosing, judged after each batch's live training:
-            // the first batch always runs whole, and the choice and batch under way when
-            // the budget runs out are finished.
-            match rc.adaptive.seconds {
-                t if t > 0.0 => (cap_s + choice_s(s.rounds())).min(
-                    (s.first as f64 * per_pair + choice_s(1))
-                        .max(t + choice_s(1) + s.batch as f64 * per_pair),
-                ),
-                _ => cap_s + choice_s(s.rounds()),
-            },
-            // The stopping rule can end it after the first choice.
-            (rc.adaptive.stop_gain > 0.0 && s.rounds() > 0)
-                .then(|| (s.first + s.batch.min(s.budget - s.first)) as f64 * per_pair + choice_s(1)),
-        ),
-    };
+    let (los_s, cap_s, cap_min_s) = crate::budget::instrument_seconds(plan, inst);
     let gtr_s = |train: &periscope_recon::gtr::TrainConfig| {
         let k = train.primitives as f64;
         let points = virtual_points(rc) as f64;
@@ -359,7 +313,7 @@ pub fn check(plan: &Plan, inst: &InstrumentConfig) -> Check {
             ""
         }
     );
-    let budget = crate::budget::Budget::of_plan(plan);
+    let budget = crate::budget::Budget::of_plan(plan, inst);
     let _ = writeln!(out, "  budget (per run, from the instrument's [budget]):");
     out.push_str(&budget.report(&inst.budget));
     for w in &warnings {

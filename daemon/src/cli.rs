@@ -182,7 +182,7 @@ pub fn execute(cli: Cli) -> Result<(), CliError> {
             crate::devices::backend(&config)?;
             let plan = Plan::load(&plan, &config)?;
             print!("{}", check::report(&plan, &config));
-            crate::budget::Budget::of_plan(&plan)
+            crate::budget::Budget::of_plan(&plan, &config)
                 .check(&config.budget)
                 .map_err(|why| CliError::Budget {
                     plan: plan.name.clone(),

@@ -372,7 +372,7 @@ pub fn plan_toml(data: &[u8]) {
     let src = TomlSource::from_text("fuzz.toml", text);
     let instrument = sim_instrument();
     if let Ok(plan) = Plan::from_source(&src, instrument) {
-        let b = Budget::of_plan(&plan);
+        let b = Budget::of_plan(&plan, instrument);
         let _ = b.check(&Limits::default());
         assert!(b.memory_bytes() >= b.memory.iter().map(|i| i.bytes).max().unwrap_or(0));
         // What `periscope check` and `POST /check` make of it: the durations, the

@@ -309,6 +309,32 @@ async fn plans_over_the_budget_get_422_naming_the_key_and_leave_nothing() {
         .toml();
     let (s, v) = call(&router, Method::POST, "/api/v1/runs", true, &big).await;
     assert_eq!(s, StatusCode::CREATED, "{v}");
+    // A time budget: an hour of instrument time, on the simulator in real time. The
+    // shared plan fits; with a dwell of 2 min a pair it would take 2.1 h, and is refused.
+    let dir3 = tempfile::tempdir().unwrap();
+    let router = app(AppState::new(service(
+        dir3.path(),
+        1.0,
+        "",
+        "[budget]\nhours = 1\n",
+    )));
+    let (s, v) = call(&router, Method::POST, "/api/v1/runs", true, PLAN).await;
+    assert_eq!(s, StatusCode::CREATED, "{v}");
+    let slow = SmallPlan::default().set("acquisition.dwell-ms", 120000.0).toml();
+    let (s, v) = call(&router, Method::POST, "/api/v1/runs", true, &slow).await;
+    assert_eq!(
+        (s, v["error"].as_str()),
+        (StatusCode::UNPROCESSABLE_ENTITY, Some("over-budget")),
+        "{v}"
+    );
+    let m = v["message"].as_str().unwrap();
+    assert!(
+        m.contains("budget.hours")
+            && m.contains("acquisition.dwell-ms")
+            && m.contains("more than the instrument's 1.0 h"),
+        "{m}"
+    );
+    assert_eq!(run_dirs(dir3.path()), 1);
 }
 
 #[tokio::test]

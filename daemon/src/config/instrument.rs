@@ -325,6 +325,7 @@ struct RawInstrument {
 struct RawBudget {
     memory_gib: Option<f64>,
     disk_gib: Option<f64>,
+    hours: Option<f64>,
 }
 
 fn budget_limits(check: &Check<'_>, raw: RawBudget) -> Result<BudgetLimits, ConfigError> {
@@ -338,6 +339,10 @@ fn budget_limits(check: &Check<'_>, raw: RawBudget) -> Result<BudgetLimits, Conf
     Ok(BudgetLimits {
         memory: gib("budget.memory-gib", raw.memory_gib, d.memory, 65_536.0)?,
         disk: gib("budget.disk-gib", raw.disk_gib, d.disk, 1_048_576.0)?,
+        hours: raw
+            .hours
+            .map(|h| check.positive("budget.hours", h, 8784.0, "hours (a year)"))
+            .transpose()?,
     })
 }
 
@@ -1607,22 +1612,27 @@ fn tdc_driver(check: &Check<'_>, raw: &RawTdc, hardware: bool) -> Result<TdcDriv
     }))
 }
 
-/// Memory and disk limits for one run, from the instrument config's `[budget]` table.
+/// Memory, disk and time limits for one run, from the instrument config's `[budget]`
+/// table.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct BudgetLimits {
     /// Most memory one run may need, bytes.
     pub memory: u64,
     /// Most disk one run may write, bytes.
     pub disk: u64,
+    /// Longest one run may keep the instrument (its LOS scan and capture, by the
+    /// plan's estimate), hours; `None`: no limit.
+    pub hours: Option<f64>,
 }
 
 impl Default for BudgetLimits {
     /// 16 GiB of memory (two thirds of a 24 GiB machine, leaving the daemon, the OS and
-    /// the page cache room) and 64 GiB of disk per run.
+    /// the page cache room) and 64 GiB of disk per run, and no limit on time.
     fn default() -> BudgetLimits {
         BudgetLimits {
             memory: 16 << 30,
             disk: 64 << 30,
+            hours: None,
         }
     }
 }

@@ -124,7 +124,7 @@ pub fn prepare(
 ) -> Result<(PathBuf, Plan, InstrumentConfig), PipelineError> {
     let instrument = InstrumentConfig::from_source(instrument_src)?;
     let plan = Plan::from_source(plan_src, &instrument)?;
-    crate::budget::Budget::of_plan(&plan)
+    crate::budget::Budget::of_plan(&plan, &instrument)
         .check(&instrument.budget)
         .map_err(|m| PipelineError::Config(plan_src.invalid("pairs", m)))?;
     let dir = match out {

@@ -396,7 +396,7 @@ impl Service {
         for (i, text) in texts.iter().enumerate() {
             let src = TomlSource::from_text(format!("batch plan {}", i + 1), text.clone());
             let plan = Plan::from_source(&src, &self.instrument).map_err(ServiceError::InvalidPlan)?;
-            crate::budget::Budget::of_plan(&plan)
+            crate::budget::Budget::of_plan(&plan, &self.instrument)
                 .check(&self.instrument.budget)
                 .map_err(|m| ServiceError::OverBudget(format!("batch plan {}: {m}", i + 1)))?;
             plans.push((src, plan));

@@ -96,7 +96,7 @@ impl Service {
     ) -> Result<RunStatus, ServiceError> {
         let src = TomlSource::from_text("request body", text);
         let plan = Plan::from_source(&src, &self.instrument).map_err(ServiceError::InvalidPlan)?;
-        crate::budget::Budget::of_plan(&plan)
+        crate::budget::Budget::of_plan(&plan, &self.instrument)
             .check(&self.instrument.budget)
             .map_err(ServiceError::OverBudget)?;
         // A place in the queue is reserved before the run directory is made, so a
