@@ -171,6 +171,15 @@ pub fn list_usb_devices() -> Result<Vec<UsbDeviceInfo>, TransportError> {
     Ok(out)
 }
 
+/// `t` as libusb must be given it: whole milliseconds, rounded up, and at least one.
+/// rusb passes `t.as_millis()`, and libusb takes 0 as "no timeout": a read of the
+/// last 0.7 ms before a deadline waited for ever on a device that sent nothing, and no
+/// stop was seen (the driver asks between reads).
+fn libusb_timeout(t: Duration) -> Duration {
+    let ms = t.as_nanos().div_ceil(1_000_000).clamp(1, u128::from(u32::MAX));
+    Duration::from_millis(ms as u64)
+}
+
 impl UsbTransport for RusbTransport {
     fn control_in(
         &mut self,
@@ -181,20 +190,20 @@ impl UsbTransport for RusbTransport {
         t: Duration,
     ) -> Result<usize, TransportError> {
         self.handle()?
-            .read_control(REQUEST_TYPE_IN, r, v, i, buf, t)
+            .read_control(REQUEST_TYPE_IN, r, v, i, buf, libusb_timeout(t))
             .map_err(map)
     }
 
     fn control_out(&mut self, r: u8, v: u16, i: u16, data: &[u8], t: Duration) -> Result<(), TransportError> {
         self.handle()?
-            .write_control(REQUEST_TYPE_OUT, r, v, i, data, t)
+            .write_control(REQUEST_TYPE_OUT, r, v, i, data, libusb_timeout(t))
             .map(drop)
             .map_err(map)
     }
 
     fn bulk_in(&mut self, ep: u8, buf: &mut [u8], t: Duration) -> Result<usize, TransportError> {
         let handle = self.handle()?;
-        match handle.read_bulk(ep, buf, t) {
+        match handle.read_bulk(ep, buf, libusb_timeout(t)) {
             Err(rusb::Error::Pipe) => {
                 // A halted endpoint: clear it so the next transfer can go through.
                 let _ = handle.clear_halt(ep);
@@ -207,6 +216,10 @@ impl UsbTransport for RusbTransport {
     fn reopen(&mut self) -> Result<(), TransportError> {
         self.handle = None;
         let devices = context()?.devices().map_err(map)?;
+        // A device of the model that cannot be opened or claimed (another user's, one
+        // without permissions) does not end the search: the selected unit may be the
+        // next one. Its error is the answer only if none is taken.
+        let mut refused = None;
         for dev in devices.iter() {
             let Ok(desc) = dev.device_descriptor() else {
                 continue;
@@ -214,7 +227,13 @@ impl UsbTransport for RusbTransport {
             if desc.vendor_id() != self.selector.vendor_id || desc.product_id() != self.selector.product_id {
                 continue;
             }
-            let handle = dev.open().map_err(map)?;
+            let handle = match dev.open() {
+                Ok(h) => h,
+                Err(e) => {
+                    refused.get_or_insert(map(e));
+                    continue;
+                }
+            };
             let serial = handle.read_serial_number_string_ascii(&desc).ok();
             if !self
                 .selector
@@ -223,17 +242,40 @@ impl UsbTransport for RusbTransport {
                 continue;
             }
             let _ = handle.set_auto_detach_kernel_driver(true);
-            handle.claim_interface(INTERFACE).map_err(map)?;
+            if let Err(e) = handle.claim_interface(INTERFACE) {
+                refused.get_or_insert(map(e));
+                continue;
+            }
             self.handle = Some(handle);
             return Ok(());
         }
-        Err(TransportError::Disconnected(format!(
-            "no USB device matches {}",
-            self.selector
-        )))
+        Err(refused.unwrap_or_else(|| {
+            TransportError::Disconnected(format!("no USB device matches {}", self.selector))
+        }))
     }
 
     fn describe(&self) -> String {
         format!("USB {}", self.selector)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// What libusb is given is never 0 (its "no timeout"), and never shorter than
+    /// asked.
+    #[test]
+    fn a_timeout_under_a_millisecond_is_not_libusbs_forever() {
+        for (asked, given) in [
+            (Duration::ZERO, 1),
+            (Duration::from_micros(700), 1),
+            (Duration::from_micros(1_000), 1),
+            (Duration::from_micros(1_001), 2),
+            (Duration::from_millis(5), 5),
+            (Duration::from_secs(u64::MAX), u64::from(u32::MAX)),
+        ] {
+            assert_eq!(libusb_timeout(asked), Duration::from_millis(given), "{asked:?}");
+        }
     }
 }
