@@ -238,9 +238,7 @@ impl Service {
         };
         // Every event queued so far (and held back) reaches the clients before the
         // worker closes the run's channel.
-        if let Some(mut q) = tx.lock().unwrap_or_else(|p| p.into_inner()).take() {
-            q.flush();
-        }
+        close_queue(&tx);
         if let Some(f) = forwarder {
             let _ = f.join();
         }
@@ -521,6 +519,19 @@ impl EventQueue {
     }
 }
 
+/// Sends everything `queue` holds and closes it (the forwarder then ends). The queue
+/// is taken out under the lock and flushed outside it: a guard held through the flush
+/// (an `if let`'s scrutinee lives through its block, as it did until 2026-12-06) left
+/// the forwarder, which pumps under the same lock between receives, waiting on it
+/// while the flush waited on a full channel only the forwarder drains: the worker
+/// never let the run go.
+fn close_queue(queue: &Mutex<Option<EventQueue>>) {
+    let taken = queue.lock().unwrap_or_else(|p| p.into_inner()).take();
+    if let Some(mut q) = taken {
+        q.flush();
+    }
+}
+
 impl Drop for EventQueue {
     fn drop(&mut self) {
         self.flush();
@@ -642,6 +653,46 @@ mod event_queue_tests {
             matches!(seen.last(), Some(RunEvent::Train(_))),
             "the last training event is kept"
         );
+    }
+
+    /// The run's end with the channel full and events waiting behind it, the
+    /// forwarder pumping under the queue's lock as the worker's does: every event
+    /// arrives and the close returns.
+    #[test]
+    fn closing_a_full_queue_does_not_wait_on_the_forwarder_it_feeds() {
+        let (mut q, rx) = EventQueue::new(2);
+        q.send(&pair(1, 1));
+        q.send(&pair(2, 1));
+        for _ in 0..3 {
+            q.send(&RunEvent::StageStarted {
+                stage: crate::events::Stage::Reconstruction,
+            });
+        }
+        let queue = Arc::new(Mutex::new(Some(q)));
+        let forwarder = {
+            let queue = Arc::clone(&queue);
+            std::thread::spawn(move || {
+                let mut seen = 0;
+                loop {
+                    match rx.recv_timeout(std::time::Duration::from_millis(5)) {
+                        Ok(_) => seen += 1,
+                        Err(std::sync::mpsc::RecvTimeoutError::Timeout) => {}
+                        Err(std::sync::mpsc::RecvTimeoutError::Disconnected) => break seen,
+                    }
+                    if let Some(q) = &mut *queue.lock().unwrap_or_else(|p| p.into_inner()) {
+                        q.pump();
+                    }
+                }
+            })
+        };
+        let (done_tx, done) = std::sync::mpsc::channel();
+        std::thread::spawn(move || {
+            close_queue(&queue);
+            let _ = done_tx.send(());
+        });
+        done.recv_timeout(std::time::Duration::from_secs(10))
+            .expect("the close waited for good on the forwarder");
+        assert_eq!(forwarder.join().unwrap(), 5, "every event");
     }
 
     #[test]
