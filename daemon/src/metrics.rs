@@ -109,6 +109,7 @@ pub struct Metrics {
     requests: Family<RouteLabel, Histogram>,
     errors: Family<ErrorLabel, Counter>,
     auth_failures: Counter,
+    role_refusals: Counter,
     /// Encoding is serialised (the families lock their maps; one scrape at a time is
     /// plenty).
     encoding: Mutex<()>,
@@ -144,6 +145,7 @@ impl Metrics {
             requests: Family::new_with_constructor(|| Histogram::new(exponential_buckets(0.0005, 2.0, 16))),
             errors: Family::default(),
             auth_failures: Counter::default(),
+            role_refusals: Counter::default(),
             encoding: Mutex::new(()),
         };
         registry.register(
@@ -232,6 +234,11 @@ impl Metrics {
             "Requests refused for a missing, unknown, expired or revoked key",
             m.auth_failures.clone(),
         );
+        registry.register(
+            "role_refusals",
+            "Requests refused because the key's role is below what they need (403 forbidden-role)",
+            m.role_refusals.clone(),
+        );
         Metrics { registry, ..m }
     }
 
@@ -270,9 +277,15 @@ impl Metrics {
         }
     }
 
-    /// A request was refused for its key.
+    /// A request was refused for its key (missing, unknown, expired, revoked).
     pub fn auth_failed(&self) {
         self.auth_failures.inc();
+    }
+
+    /// A request was refused for its key's role (a good key of too low a role: a
+    /// dashboard holding an e-stop key reads the status every 2 s and is refused).
+    pub fn role_refused(&self) {
+        self.role_refusals.inc();
     }
 
     /// The metrics as Prometheus text, with the gauges set from `s`.

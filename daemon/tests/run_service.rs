@@ -518,6 +518,15 @@ async fn metrics_parse_as_prometheus_text() {
     let id = v["id"].as_str().unwrap().to_owned();
     wait_state(&router, &id, &["completed"]).await;
     let _ = call(&router, Method::GET, "/api/v1/runs/nope", None, "").await;
+    // A wrong key is an authentication failure; a good key of too low a role (a wall
+    // panel's e-stop key reading the status) is a role refusal, counted apart so that
+    // it cannot fire the failed-authentication alert.
+    let keys = KeyStore::open(dir.path(), None);
+    let (_, panel) = keys.create("panel", Role::Estop, None, "test").unwrap();
+    let (s, _) = call(&router, Method::GET, "/api/v1/runs", Some(&panel), "").await;
+    assert_eq!(s, StatusCode::FORBIDDEN);
+    let (s, _) = call(&router, Method::GET, "/api/v1/runs", Some("psk_wrong"), "").await;
+    assert_eq!(s, StatusCode::UNAUTHORIZED);
     // The runs per state come from the catalogue, which its indexer updates moments
     // after run.json (a clean-clone CI run scraped it still "running").
     let t = Instant::now();
@@ -579,6 +588,8 @@ async fn metrics_parse_as_prometheus_text() {
         "{text}"
     );
     assert!(value("periscope_count_rate_hertz", Some(("channel", "detector"))).is_some());
+    assert_eq!(value("periscope_auth_failures_total", None), Some(1.0), "{text}");
+    assert_eq!(value("periscope_role_refusals_total", None), Some(1.0), "{text}");
     assert!(
         text.contains("periscope_stage_duration_seconds_bucket{") && text.contains("stage=\"capture\""),
         "{text}"

@@ -299,10 +299,10 @@ pub(super) async fn authorise(State(state): State<AppState>, mut req: Request, n
         .peer(peer);
         // A read refused for its role is not recorded (a wall panel's e-stop key
         // polling the status would fill the trail); a refused change is, rate-limited.
+        state.service.metrics().role_refused();
         if audited.is_some() {
-            return refused(&state, e, entry).await;
+            return record_refusal(&state, e, entry).await;
         }
-        state.service.metrics().auth_failed();
         return e.into_response();
     }
     let target = path_target(&route, &path);
