@@ -1060,7 +1060,6 @@ async function follow(id) {
       if (!r.ok) throw new ApiError(r.status, null, `event stream: ${r.status}`);
       probe.streamsOpened += 1;
       setConnection(true);
-      delay = 500;
       await readEvents(r, (name, data) => {
         // A loop another has replaced shows nothing more.
         if (live?.abort !== abort) return;
@@ -1086,6 +1085,10 @@ async function follow(id) {
       return;
     }
     if (st && received) await loadHistory(id);
+    // A stream that brought events was live: the next drop starts the backoff again.
+    // One that closed on its status alone (a run its run.json calls running that the
+    // daemon does not hold) backs off as a refused one does, not every 0.5 s.
+    if (received) delay = 500;
     received = false;
     await new Promise((ok) => setTimeout(ok, delay));
     delay = Math.min(delay * 2, 8000);

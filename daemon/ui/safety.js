@@ -23,9 +23,14 @@ export function startSafety({ headers, probe, setConnection }) {
   let streamUp = false;
   const series = { t: [], signal: [], dark: [], pairs: [], pileUp: [], age: [] };
   let plots = null;
+  // The daemon's clock less this browser's, seconds: the points carry the daemon's
+  // time, and a window drawn on the browser's alone showed nothing (or the wrong
+  // minutes) on a machine whose clock was off by more than its range.
+  let skew = 0;
 
   function push(s) {
     const t = s.unix_ms / 1000;
+    if (Number.isFinite(t)) skew = t - Date.now() / 1000;
     series.t.push(t);
     series.signal.push(s.signal_rate_hz ?? null);
     series.dark.push(s.emission === false && s.source === 'idle' ? s.detector_rate_hz ?? null : null);
@@ -67,7 +72,7 @@ export function startSafety({ headers, probe, setConnection }) {
   function drawSeries() {
     if (!plots) return;
     const range = Number($('series-range').value);
-    const now = Date.now() / 1000;
+    const now = Date.now() / 1000 + skew;
     const x = { min: now - range, max: now };
     plots.rates.setData([series.t, series.signal, series.dark], false);
     plots.rates.setScale('x', x);
