@@ -22,7 +22,7 @@ pub const CONTENT_TYPE: &str = prometheus_client::encoding::prometheus_text::CON
 /// A stage's label.
 #[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
 pub struct StageLabel {
-    /// The stage's name (`los`, `capture`, `reconstruct`, ...).
+    /// The stage's name (`los-scan`, `capture`, `reconstruction`, `reading`, ...).
     pub stage: String,
 }
 

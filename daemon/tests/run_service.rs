@@ -1240,6 +1240,40 @@ fn the_daemon_opens_the_catalogue_only_once_it_holds_the_lock() {
     svc.shutdown();
 }
 
+/// The instrument's event stream ends with the service's shutdown, as a run's does
+/// (until 2026-12-06 it went on, and every shutdown with a dashboard open waited out
+/// the server's grace).
+#[tokio::test]
+async fn the_instrument_stream_ends_when_the_daemon_shuts_down() {
+    let dir = tempfile::tempdir().unwrap();
+    let svc = service(dir.path());
+    let router = app(AppState::new(Arc::clone(&svc)));
+    let resp = router
+        .clone()
+        .oneshot(request(
+            &Method::GET,
+            "/api/v1/instrument/events",
+            None,
+            "",
+            false,
+        ))
+        .await
+        .unwrap();
+    assert_eq!(resp.status(), StatusCode::OK);
+    let mut body = resp.into_body().into_data_stream();
+    use tokio_stream::StreamExt as _;
+    let first = tokio::time::timeout(Duration::from_secs(5), body.next())
+        .await
+        .unwrap();
+    assert!(first.is_some_and(|c| c.is_ok_and(|b| b.starts_with(b"event: safety"))));
+    svc.shutdown();
+    let ended = tokio::time::timeout(Duration::from_secs(5), async {
+        while body.next().await.is_some() {}
+    })
+    .await;
+    assert!(ended.is_ok(), "the stream kept going after the shutdown");
+}
+
 /// One remote host holds at most `api::STREAMS_PER_PEER` event streams (a review,
 /// 2026-12-06: one host could open all of `[api] max-streams` and read them a byte at a
 /// time); loopback's are not counted, and a closed stream frees its host's slot.

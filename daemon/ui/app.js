@@ -642,7 +642,30 @@ function runsQuery() {
 }
 
 let runsAsked = 0;
+let runsInFlight = null;
+let runsAgain = false;
+// One runs request at a time: a keystroke in the filter (or a run's planning) while
+// one is under way asks again once it is in, with the filter as it is then, so typing
+// holds one connection, not one a keystroke.
 async function refreshRuns() {
+  if (runsInFlight) {
+    runsAgain = true;
+    return runsInFlight;
+  }
+  runsInFlight = (async () => {
+    do {
+      runsAgain = false;
+      await fetchRuns();
+    } while (runsAgain);
+  })();
+  try {
+    await runsInFlight;
+  } finally {
+    runsInFlight = null;
+  }
+}
+
+async function fetchRuns() {
   const asked = ++runsAsked;
   try {
     const r = await pageFetch(runsQuery(), { headers: headers({}) }, POLL_TIMEOUT_MS);

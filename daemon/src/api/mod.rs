@@ -1272,20 +1272,27 @@ async fn instrument_events(
     let slot = stream_slot(&state, peer, "GET /api/v1/instrument")?;
     let service = Arc::clone(&state.service);
     let ticks = tokio_stream::wrappers::IntervalStream::new(tokio::time::interval(SAFETY_INTERVAL));
-    let stream = ticks.then(move |_| {
-        let service = Arc::clone(&service);
-        let _slot = &slot;
-        async move {
-            let safety = tokio::task::spawn_blocking(move || service.safety()).await;
-            Ok(match safety {
-                Ok(s) => Event::default()
-                    .event("safety")
-                    .json_data(&s)
-                    .unwrap_or_else(|_| Event::default().event("safety")),
-                Err(_) => Event::default().event("error").data("{}"),
-            })
-        }
-    });
+    let stream = ticks
+        .then(move |_| {
+            let service = Arc::clone(&service);
+            let _slot = &slot;
+            async move {
+                // The stream ends with the service's shutdown, as the runs' streams
+                // do (it went on until the server's grace ran out).
+                let safety =
+                    tokio::task::spawn_blocking(move || (!service.is_shut_down()).then(|| service.safety()))
+                        .await;
+                match safety {
+                    Ok(None) => None,
+                    Ok(Some(s)) => Some(Ok(Event::default()
+                        .event("safety")
+                        .json_data(&s)
+                        .unwrap_or_else(|_| Event::default().event("safety")))),
+                    Err(_) => Some(Ok(Event::default().event("error").data("{}"))),
+                }
+            }
+        })
+        .map_while(|e| e);
     Ok(Sse::new(stream).keep_alive(KeepAlive::default()))
 }
 

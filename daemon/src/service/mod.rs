@@ -546,6 +546,11 @@ impl Service {
         self.wake.notify_all();
     }
 
+    /// Whether [`Service::shutdown`] was called.
+    pub fn is_shut_down(&self) -> bool {
+        self.lock().shutdown
+    }
+
     /// The way to the devices (tests reach the simulated instrument through it:
     /// `devices::sim::rig_of`).
     pub fn backend(&self) -> &dyn DeviceBackend {

@@ -148,7 +148,10 @@ impl Service {
                 // a fresh age (the run's own rate is the capture's counts rate).
                 snap.rates = None;
             }
-            snap.busy = s.current.is_some();
+            // As `GET /instrument` says: an imported capture's run holds no device, and
+            // the worker goes on reading them (so the stale-reading alert, which a
+            // busy instrument silences, keeps watching).
+            snap.busy = s.current.is_some() && !s.live.import;
             if s.current.is_some()
                 && s.live.stage == "capture"
                 && let Some((t0, done0)) = s.live.capture_started
