@@ -233,6 +233,42 @@ fn laser_commands() {
     done(&s);
 }
 
+/// Switching the laser off while a move waits for its reply neither waits for that
+/// reply nor fails with it (a servo fault here): the confirmed `LASER OFF` goes at
+/// once, and settling then polls the status against the move's own target (until
+/// 2026-12-06 the move was finished first, and a fault returned before the laser
+/// went off; and a poll was checked against the last park's target, or nothing).
+#[test]
+fn switching_off_does_not_wait_on_an_outstanding_move() {
+    let target = OpticalAngles { x: 0.1, y: -0.05 };
+    let (mut g, s) = galvo(&[
+        (
+            "01 MOVE 0.1000000 -0.0500000*15\n",
+            "01 OK FAULT 0.0900000 -0.0500000*31\n",
+        ),
+        ("02 LASER OFF*64\n", "02 OK*FE\n"),
+        ("03 STAT*64\n", "03 OK SETTLED 0.1000000 -0.0500000*3E\n"),
+    ]);
+    g.move_to(target).unwrap();
+    g.set_emission(false).unwrap();
+    assert_eq!(g.wait_settled(Duration::from_secs(1)).unwrap(), target);
+    done(&s);
+    // Settled somewhere else: refused, against the move's target.
+    let (mut g, s) = galvo(&[
+        (
+            "01 MOVE 0.1000000 -0.0500000*15\n",
+            "01 OK SETTLED 0.1000000 -0.0500000*06\n",
+        ),
+        ("02 LASER OFF*64\n", "02 OK*FE\n"),
+        ("03 STAT*64\n", "03 OK SETTLED 0.0900000 -0.0500000*6A\n"),
+    ]);
+    g.move_to(target).unwrap();
+    g.set_emission(false).unwrap();
+    let err = g.wait_settled(Duration::from_secs(1)).unwrap_err();
+    assert!(err.to_string().contains("instead of the target"), "{err}");
+    done(&s);
+}
+
 #[test]
 fn switching_on_sets_the_watchdog_first() {
     // With a watchdog configured, `LASER ON` follows a `WDOG` that the controller

@@ -627,6 +627,9 @@ impl GalvoPair for SerialGalvo {
             Err(e) => return Err(e),
         };
         self.pending = Some((tag, target));
+        // What `wait_settled` checks a polled position against when the move's reply
+        // is no longer awaited (it held the last park's target, or none).
+        self.target = Some(target);
         Ok(())
     }
 
@@ -736,6 +739,14 @@ impl Laser for SerialGalvo {
         self.guard.switching_off();
         if let Err(e) = write_out_of_band(&self.oob, Request::Laser(false)) {
             debug!(error = %e, "no out-of-band LASER OFF; sending it in band");
+        }
+        // A move still outstanding neither holds up the confirmed LASER OFF nor, if
+        // it failed, keeps it from being sent (until 2026-12-06 `request` finished the
+        // move first: settle × 4 and a repeat, and a servo fault returned before the
+        // laser went off). Its reply is dropped as stale when it comes; a later
+        // `wait_settled` polls the status against its target.
+        if self.pending.take().is_some() {
+            debug!(arm = %self.settings.name, "switching the laser off without waiting for the outstanding move");
         }
         self.request(Request::Laser(false)).map(drop)
     }
