@@ -253,7 +253,8 @@ pub trait GuardedLaser {
     /// Switches the laser on: refused with [`GuardedLaser::latched_error`] after an
     /// emergency off; then the watchdog is armed (when one is configured), the
     /// keepalive starts feeding it, and the switch-on is sent. If that fails, emission
-    /// is no longer wanted. If an emergency off latched while the switch-on was on its
+    /// is no longer wanted and the laser is switched off through the line (the
+    /// switch-on may have got through unanswered). If an emergency off latched while the switch-on was on its
     /// way, the laser is switched off again and the call fails with
     /// [`GuardedLaser::latched_error`], whichever of the two reached the laser first.
     fn switch_on(&mut self) -> Result<(), Self::Error>
@@ -276,6 +277,14 @@ pub trait GuardedLaser {
                 tracing::warn!(error = %e, "switching the laser off again after a racing emergency off failed");
             }
             result = Err(self.latched_error());
+        } else if result.is_err() {
+            // A switch-on that failed may still have reached the laser (its line went
+            // out, and both answers to it and to its repeat were lost): it is switched
+            // off, or only the controller's watchdog (up to `watchdog-ms`) or the
+            // caller's make-safe would end it.
+            if let Err(e) = guard.line.off() {
+                tracing::warn!(error = %e, "switching the laser off after a failed switch-on failed");
+            }
         }
         if result.is_err() {
             self.guard().state.wanted.store(false, Ordering::SeqCst);
@@ -499,14 +508,17 @@ mod tests {
 
     #[test]
     fn a_failed_arm_or_switch_on_leaves_emission_unwanted() {
-        let (mut d, _) = driver();
+        let (mut d, line) = driver();
         d.fail_arm = true;
         assert_eq!(d.switch_on(), Err(Refused::Arm));
         assert!(!d.guard.wanted());
+        assert_eq!(line.offs.load(Ordering::SeqCst), 0, "nothing was switched on");
         d.fail_arm = false;
         d.fail_on = true;
         assert_eq!(d.switch_on(), Err(Refused::On));
         assert!(!d.guard.wanted());
+        // The switch-on may have got through unanswered: it is switched off.
+        assert_eq!(line.offs.load(Ordering::SeqCst), 1);
         assert!(!d.guard.release());
         d.fail_on = false;
         d.switch_on().unwrap();
