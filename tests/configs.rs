@@ -84,6 +84,12 @@ fn an_instrument_whose_counter_cannot_do_what_it_says_is_refused_by_key() {
         ),
         ("bins = 1024", "bins = 8", "tdc.bins", "between 16 and 65536"),
         (
+            "offset-ns = 12.0 ",
+            "offset-ns = 12.0005 ",
+            "tdc.offset-ns",
+            "whole number of picoseconds",
+        ),
+        (
             "rep-rate-mhz = 10.0",
             "rep-rate-mhz = 80.0",
             "tdc.offset-ns",
@@ -582,6 +588,14 @@ fn a_broken_plan_names_file_line_and_key() {
             "pairs.laser",
         ),
         ("grid = [24, 24]", "grid = [24, 24]\nseed = 5", "pairs.seed"),
+        // Counters time in whole microseconds and place windows in whole picoseconds
+        // (these were rounded and cut where the histogram said otherwise).
+        ("dwell-ms = 20.0", "dwell-ms = 20.0005", "acquisition.dwell-ms"),
+        (
+            "dwell-ms = 20.0",
+            "dwell-ms = 20.0\noffset-ns = 12.3456",
+            "acquisition.offset-ns",
+        ),
         // 3D-GTR fits a plane to the detection points: two never make one.
         ("grid = [24, 24]", "grid = [2, 1]", "pairs.mode"),
     ] {

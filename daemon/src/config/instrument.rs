@@ -1370,6 +1370,13 @@ fn galvo_arm(check: &Check<'_>, key: &str, raw: RawGalvo, hardware: bool) -> Res
 pub const SYNC_TOLERANCE: f64 = 0.02;
 
 /// A rate in the unit that reads best: MHz, kHz or Hz.
+/// `ns` (an offset) in seconds, if it is a whole number of picoseconds: counters place
+/// their window in whole picoseconds.
+pub fn whole_ps_offset(ns: f64) -> Option<f64> {
+    let ps = (ns * 1e3).round();
+    ((ns * 1e3 - ps).abs() <= 1e-6).then_some(ps * 1e-12)
+}
+
 /// The slowest sync (laser pulses over the divider) a config may give, hertz: ten in
 /// each of the rate meter's 100 ms gates.
 const MIN_SYNC_RATE_HZ: f64 = 100.0;
@@ -1448,7 +1455,16 @@ fn tdc_settings(check: &Check<'_>, raw: RawTdc, hardware: bool) -> Result<TdcSet
     Ok(TdcSettings {
         bin_width: check.positive("tdc.bin-width-ps", raw.bin_width_ps, 1e6, "ps")? * 1e-12,
         bins: raw.bins,
-        offset: check.range("tdc.offset-ns", raw.offset_ns, 0.0, 1e6, "ns")? * 1e-9,
+        offset: whole_ps_offset(check.range("tdc.offset-ns", raw.offset_ns, 0.0, 1e6, "ns")?)
+            .ok_or_else(|| {
+                src.invalid(
+                    "tdc.offset-ns",
+                    format!(
+                        "{} ns is not a whole number of picoseconds: counters place the window in whole picoseconds",
+                        raw.offset_ns
+                    ),
+                )
+            })?,
         sync_divider: raw.sync_divider,
         system_delay: check.range("tdc.system-delay-ns", raw.system_delay_ns, -1e3, 1e3, "ns")? * 1e-9,
         pile_up_correction: raw.pile_up_correction,

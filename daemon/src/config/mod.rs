@@ -15,7 +15,7 @@ pub(crate) use instrument::window_past_period;
 pub use instrument::{
     ApiSettings, Backend, BudgetLimits, GalvoArm, GalvoLink, InstrumentConfig, LaserSettings,
     PicoQuantCounter, SYNC_TOLERANCE, SerialLink, SimDevices, SimSettings, SpadSettings, TdcDriver,
-    TdcSettings, redact_secrets,
+    TdcSettings, redact_secrets, whole_ps_offset,
 };
 pub use scene::{DEFAULT_SCENE, load_scene, scene_from_source, sim_scene};
 pub use source::{ConfigError, MAX_TOML_BYTES, TomlSource};

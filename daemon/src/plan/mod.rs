@@ -420,7 +420,12 @@ impl Plan {
             },
             offset: match a.offset_ns {
                 None => instrument.tdc.offset,
-                Some(o) if (0.0..=MAX_OFFSET_NS).contains(&o) => o * 1e-9,
+                Some(o) if (0.0..=MAX_OFFSET_NS).contains(&o) => crate::config::whole_ps_offset(o).ok_or_else(|| {
+                    src.invalid(
+                        "acquisition.offset-ns",
+                        format!("{o} ns is not a whole number of picoseconds: counters place the window in whole picoseconds"),
+                    )
+                })?,
                 Some(_) => return Err(src.invalid("acquisition.offset-ns", "must be 0 to 1,000,000 ns")),
             },
             repeats: match a.repeats {
@@ -609,5 +614,14 @@ fn dwell(src: &TomlSource, key: &str, ms: f64) -> Result<Duration, ConfigError> 
     if !(0.001..=3_600_000.0).contains(&ms) {
         return Err(src.invalid(key, "must be 0.001 ms to 1 hour, in milliseconds"));
     }
-    Ok(Duration::from_secs_f64(ms * 1e-3))
+    // Counters time an acquisition in whole microseconds: a finer dwell would be cut
+    // (Periscope's USB counter refuses it, as its protocol says).
+    let us = (ms * 1e3).round();
+    if (ms * 1e3 - us).abs() > 1e-6 {
+        return Err(src.invalid(
+            key,
+            format!("{ms} ms is not a whole number of microseconds: counters time an acquisition in whole microseconds"),
+        ));
+    }
+    Ok(Duration::from_micros(us as u64))
 }

@@ -83,10 +83,18 @@ impl WireConfig {
     /// when they cannot be expressed so (a zero bin width or acquisition time, or out
     /// of range).
     pub fn from_config(c: &crate::traits::TdcConfig) -> Option<WireConfig> {
+        // Whole within a thousandth of a picosecond (what an f64 of seconds carries of
+        // a whole number), and whole microseconds: anything else is refused, not
+        // rounded behind the caller's back (the histogram reports the config asked for).
         let ps = |s: f64| {
-            let v = (s * 1e12).round();
-            (v.is_finite() && (0.0..=u32::MAX as f64).contains(&v)).then_some(v as u32)
+            let v = s * 1e12;
+            let r = v.round();
+            (r.is_finite() && (v - r).abs() <= 1e-3 && (0.0..=u32::MAX as f64).contains(&r))
+                .then_some(r as u32)
         };
+        if !c.acquisition.subsec_nanos().is_multiple_of(1_000) {
+            return None;
+        }
         let us = c.acquisition.as_micros();
         Some(WireConfig {
             bin_width_ps: ps(c.bin_width).filter(|&p| p > 0)?,
@@ -360,6 +368,27 @@ pub fn decode_frame(b: &[u8]) -> Result<(FrameHeader, Vec<u32>, usize), FrameErr
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Settings are taken in whole picoseconds and microseconds, within what an f64
+    /// of seconds carries of them, and refused otherwise (they were rounded and
+    /// truncated, while the histogram reported the settings asked for).
+    #[test]
+    fn settings_finer_than_the_counter_are_refused_not_rounded() {
+        let config = |offset: f64, acquisition: std::time::Duration| crate::traits::TdcConfig {
+            bin_width: 16e-12,
+            bins: 1024,
+            offset,
+            sync_divider: 1,
+            acquisition,
+        };
+        let ms = std::time::Duration::from_millis;
+        let wire = WireConfig::from_config(&config(12.345e-9, ms(20))).unwrap();
+        assert_eq!((wire.offset_ps, wire.acquisition_us), (12_345, 20_000));
+        assert_eq!(WireConfig::from_config(&config(12.3456e-9, ms(20))), None);
+        let us = std::time::Duration::from_nanos(1_500);
+        assert_eq!(WireConfig::from_config(&config(12e-9, us)), None);
+        assert!(WireConfig::from_config(&config(12e-9, std::time::Duration::from_micros(1))).is_some());
+    }
 
     fn header() -> FrameHeader {
         FrameHeader {
