@@ -63,8 +63,10 @@ fn write_out_of_band(w: &Mutex<Option<Box<dyn Write + Send>>>, req: Request) -> 
             "the controller is not connected",
         )
     })?;
-    writer.write_all(line.as_bytes())?;
-    writer.flush()
+    // Written, not drained: the kernel sends what is queued at the line's rate, and
+    // a drain (`tcdrain`, which has no timeout) would hold this lock, and with it the
+    // e-stop's off and park, behind a controller that stopped reading its input.
+    writer.write_all(line.as_bytes())
 }
 
 /// The serial controller's out-of-band path for the [`LaserGuard`]: `KEEP` and
@@ -82,7 +84,7 @@ impl SerialLine {
     fn write_off(writer: &mut Option<Box<dyn Write + Send>>, line: &str) -> bool {
         writer
             .as_mut()
-            .is_some_and(|w| w.write_all(line.as_bytes()).and_then(|()| w.flush()).is_ok())
+            .is_some_and(|w| w.write_all(line.as_bytes()).is_ok())
     }
 }
 
