@@ -569,7 +569,9 @@ impl crate::signals::OnSignal for RunSignals {
         }
     }
     fn park_now(&self) {
-        crate::signals::park_within(self.park.lock().unwrap_or_else(|p| p.into_inner()).clone());
+        // Cloned out first: the lock is not held through the park's wait.
+        let park = self.park.lock().unwrap_or_else(|p| p.into_inner()).clone();
+        crate::signals::park_within(park);
     }
     fn stop(&self, _signal: &'static str) {
         self.control.pause();

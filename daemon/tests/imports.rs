@@ -579,6 +579,12 @@ async fn an_estop_stops_an_import_and_the_laser_stays_off() {
     assert!(inst["reading"]["age_s"].as_f64().unwrap() < 0.5, "{inst}");
     assert_eq!(svc.safety().source, "idle");
     assert_eq!(svc.safety().emission, Some(false));
+    // The import slow to stop (it hangs at its next checkpoint), as one reading a large
+    // file is: the e-stop must not wait for it to reach the laser.
+    assert!(svc.inject_hang(
+        periscope_daemon::events::Stage::Reconstruction,
+        Duration::from_secs(3)
+    ));
     let t = Instant::now();
     let (s, bytes) = common::send(
         &router,
@@ -597,6 +603,17 @@ async fn an_estop_stops_an_import_and_the_laser_stays_off() {
         rig.off_since(t).is_some(),
         "the laser is on after the e-stop: {report}"
     );
+    // At once, through the laser controller, as with no run: an import holds no
+    // device (its e-stop reached the laser only after waiting up to 2 s for the
+    // import to stop, until 2026-12-06).
+    assert!(
+        report["laser"]
+            .as_str()
+            .unwrap()
+            .contains("opened for the e-stop"),
+        "{report}"
+    );
+    assert!(report["laser_off_s"].as_f64().unwrap() < 0.5, "{report}");
     let v = wait_until(&router, &id, Duration::from_secs(10), |v| v["state"] == "aborted").await;
     assert_eq!(v["error"], Value::Null, "{v}");
     svc.shutdown();

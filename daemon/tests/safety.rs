@@ -1078,6 +1078,9 @@ fn an_idle_estop_reaches_the_laser_with_the_tdc_unplugged_and_the_disk_refusing_
     // The hold holds though its run.json still reads queued: the worker does not start
     // the run (it had, and switched the laser on, once the disk took writes again).
     assert_eq!(report.held, std::slice::from_ref(&queued), "{report:?}");
+    // A resume the disk refuses fails, and leaves the hold in place (it was dropped
+    // before the write, and the run then started by itself once writes came back).
+    assert!(svc.resume(&queued).is_err());
     drop(_refused);
     rig.plug_tdc();
     let worker = svc.start_worker();

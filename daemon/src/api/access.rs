@@ -191,7 +191,7 @@ pub(super) async fn authorise(State(state): State<AppState>, mut req: Request, n
     // A loopback e-stop's refused key, recorded once the laser is off (the audit
     // writes and syncs a file and waits for the catalogue's lock).
     let mut late_refusal: Option<AuditEntry> = None;
-    let checked = match check_key(&service, given, need >= Role::Operator, estop).await {
+    let checked = match check_key(&service, given, need >= Role::Operator, estop, local).await {
         Ok(c) => c,
         Err(e) => return e.into_response(),
     };
@@ -385,7 +385,7 @@ fn end_when_key_lapses(
                     // A check the busy blocking pool holds past the request timeout
                     // is tried again at the next tick.
                     if let Ok(KeyCheck { who: Some(Err(e)), .. }) =
-                        check_key(&service, Some(&secret), false, false).await
+                        check_key(&service, Some(&secret), false, false, false).await
                     {
                         tracing::info!("an event stream ends: {e}");
                         return;
@@ -422,6 +422,7 @@ async fn check_key(
     secret: Option<&str>,
     need_any: bool,
     estop: bool,
+    local: bool,
 ) -> Result<KeyCheck, ApiError> {
     let keys = service.keys();
     if let Some(id) = secret.and_then(|s| keys.token_identity(s)) {
@@ -450,7 +451,19 @@ async fn check_key(
         }
     };
     if estop {
-        return Ok(super::estop_key_check(check).await.unwrap_or(unknown));
+        // Bounded: a check stuck reading keys.json (a stalled disk) held every later
+        // keyed e-stop, which never reached the laser. From this machine the e-stop
+        // then goes ahead as loopback (its key is recorded as refused); from another,
+        // the caller is told to stop the instrument another way.
+        return match tokio::time::timeout(ESTOP_KEY_WAIT, super::estop_key_check(check)).await {
+            Ok(checked) => Ok(checked.unwrap_or(unknown)),
+            Err(_) if local => Ok(unknown),
+            Err(_) => Err(ApiError::new(
+                StatusCode::SERVICE_UNAVAILABLE,
+                "key-check-timeout",
+                "the e-stop's key could not be checked within 2 s (the keys file is not being read): nothing was done; stop the instrument at its own computer or with the hardware e-stop",
+            )),
+        };
     }
     let limit = service.instrument().api.request_timeout;
     match tokio::time::timeout(limit, tokio::task::spawn_blocking(check)).await {
@@ -462,6 +475,9 @@ async fn check_key(
         )),
     }
 }
+
+/// The longest an e-stop waits for its key to be checked ([`check_key`]).
+const ESTOP_KEY_WAIT: std::time::Duration = std::time::Duration::from_secs(2);
 
 /// What a successful changing request did, for its audit entry (a response
 /// extension handlers may set).

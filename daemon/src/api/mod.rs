@@ -518,7 +518,10 @@ pub async fn serve(bind: SocketAddr, service: Arc<Service>) -> Result<(), ServeE
     server::serve_connections(listener, app, limits, async move { notify.notified().await })
         .await
         .map_err(ServeError::Io)?;
-    service.shutdown();
+    // Off the runtime: it takes the service's lock, which a request writing files may
+    // hold.
+    let stopping = Arc::clone(&service);
+    let _ = tokio::task::spawn_blocking(move || stopping.shutdown()).await;
     match tokio::task::spawn_blocking(move || worker.join()).await {
         Ok(Ok(())) => Ok(()),
         Ok(Err(_)) | Err(_) => Err(ServeError::WorkerPanicked),

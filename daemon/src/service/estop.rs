@@ -20,7 +20,9 @@ impl Service {
     /// devices (for a forced exit: the run did not reach its checkpoint in time).
     /// Latches those drivers: the run moves neither arm again.
     pub fn park_now(&self) {
-        crate::signals::park_within(self.direct().park.clone());
+        // Cloned out first: the stop path's lock is not held through the wait.
+        let park = self.direct().park.clone();
+        crate::signals::park_within(park);
     }
 
     /// Emergency stop. In this order: the laser off through the running run's direct
@@ -35,12 +37,15 @@ impl Service {
     /// it half-way: every step is tried, and the report says what was done.
     pub fn estop(&self) -> Result<EstopReport, ServiceError> {
         let t = Instant::now();
+        // No run starts until this e-stop is done (a run queued or resumed meanwhile
+        // raced it for the devices it was opening); the worker looks again after.
+        let _estopping = EstopUnderWay::new(self);
         let mut report = EstopReport::default();
         // The stop path's own lock, never the service's, which a request writing
         // files may hold.
-        let (running, direct, park) = {
+        let (running, direct, park, import) = {
             let d = self.direct();
-            (d.run.clone(), d.laser_off.clone(), d.park.clone())
+            (d.run.clone(), d.laser_off.clone(), d.park.clone(), d.import)
         };
         // 1. The laser, directly. The run is told to abort first (an atomic store), so
         //    that a `LASER ON` the latched switch refuses it reads as the abort.
@@ -59,11 +64,14 @@ impl Service {
                 Err(e) => report.warnings.push(format!("direct laser off failed: {e}")),
             }
         }
-        // With no run holding the devices, the laser controller opened on its own, now,
-        // before anything below waits for the service's lock (step 5 parks the arms).
-        // A running run's devices are its own until it stops (step 4).
+        // With no run holding the devices (none, or one reconstructing an imported
+        // capture), the laser controller opened on its own, now, before anything below
+        // waits for the service's lock (step 5 parks the arms). A running capture's
+        // devices are its own until it stops (step 4). (An import's e-stop switched the
+        // laser off only at step 5, after the lock and up to 2 s of waiting for the
+        // import to stop, until 2026-12-06.)
         let mut controller_off = false;
-        if running.is_none() && !laser_off {
+        if (running.is_none() || import) && !laser_off {
             match self.laser_controller_off() {
                 Ok(()) => {
                     controller_off = true;
@@ -265,6 +273,26 @@ impl Service {
 
 /// The report's laser line when the running run's direct path switched it off.
 const DIRECT_OFF: &str = "off: out-of-band LASER OFF to the laser controller";
+
+/// Counts an e-stop under way in [`Service::estops`] while it lives, and wakes the
+/// worker when it ends.
+struct EstopUnderWay<'a>(&'a Service);
+
+impl<'a> EstopUnderWay<'a> {
+    fn new(service: &'a Service) -> Self {
+        service.estops.fetch_add(1, std::sync::atomic::Ordering::SeqCst);
+        EstopUnderWay(service)
+    }
+}
+
+impl Drop for EstopUnderWay<'_> {
+    fn drop(&mut self) {
+        self.0.estops.fetch_sub(1, std::sync::atomic::Ordering::SeqCst);
+        // Under the lock, so the worker cannot be between its look and its wait.
+        let _s = self.0.lock();
+        self.0.wake.notify_all();
+    }
+}
 
 /// The report's laser line when the e-stop opened the laser controller itself.
 const CONTROLLER_OFF: &str = "off: LASER OFF through the laser controller, opened for the e-stop";

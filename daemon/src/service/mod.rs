@@ -339,6 +339,9 @@ struct Direct {
     /// The running run's direct way to park its arms (laser arm, SPAD arm), once its
     /// devices are open.
     park: Option<[EmergencyPark; 2]>,
+    /// The running run reconstructs an imported capture: it holds no device, so an
+    /// e-stop opens the laser controller at once, as with no run.
+    import: bool,
 }
 
 /// The service: configuration, queue and worker.
@@ -364,6 +367,9 @@ pub struct Service {
     _runs_hold: crate::run_dir::RunHold,
     shared: Mutex<Shared>,
     wake: Condvar,
+    /// E-stops under way: the worker starts no run while one parks the arms and
+    /// switches the laser off (it opens the devices a run would take).
+    estops: std::sync::atomic::AtomicUsize,
     /// The running run's stop path, apart from `shared`, whose holders write files
     /// (fsyncs, on a disk that may stall): the e-stop, the signal thread and shutdown
     /// reach the laser without waiting for them.
@@ -513,6 +519,7 @@ impl Service {
                 shutdown: false,
             }),
             wake: Condvar::new(),
+            estops: std::sync::atomic::AtomicUsize::new(0),
             direct: Mutex::new(Direct::default()),
             exporting: Mutex::new(()),
             geometries: Mutex::default(),
@@ -527,17 +534,30 @@ impl Service {
     /// run paused at its next checkpoint (so it resumes after a restart), every event
     /// stream ended, and the worker told to stop.
     pub fn shutdown(&self) {
-        let mut s = self.lock();
-        s.shutdown = true;
-        if let Some((_, control)) = &s.current {
+        // Through the stop path's own lock, not under the service's (which a request
+        // writing files may hold for a while): the run told to pause first (so a
+        // `LASER ON` the latched switch refuses reads as the pause), then its laser off.
+        let (running, off) = {
+            let d = self.direct();
+            (d.run.clone(), d.laser_off.clone())
+        };
+        if let Some((_, control)) = &running {
             control.set_requested_by("shutdown");
             control.pause();
         }
-        let off = self.direct().laser_off.clone();
         if let Some(off) = off
             && let Err(e) = off.laser_off()
         {
             tracing::warn!(error = %e, "shutdown: direct laser off failed; the run switches it off at its checkpoint");
+        }
+        let mut s = self.lock();
+        s.shutdown = true;
+        // A run the worker took since.
+        if let Some((id, control)) = &s.current
+            && running.as_ref().is_none_or(|(r, _)| r != id)
+        {
+            control.set_requested_by("shutdown");
+            control.pause();
         }
         // Dropping the senders ends every event stream after what it has buffered.
         s.channels.clear();
@@ -606,6 +626,7 @@ impl Service {
         if run.is_none() {
             d.laser_off = None;
             d.park = None;
+            d.import = false;
         }
         d.run.clone_from(&run);
         s.current = run;

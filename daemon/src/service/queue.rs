@@ -268,8 +268,8 @@ impl Service {
             )));
         }
         // A run an e-stop held whose run.json could not record the hold reads queued.
-        let held = s.held.remove(id);
-        let stale = s.stale.remove(id);
+        let held = s.held.contains(id);
+        let stale = s.stale.contains(id);
         match info.state {
             RunState::Paused | RunState::Failed => {}
             RunState::Queued if held || stale => {}
@@ -281,7 +281,12 @@ impl Service {
                 )));
             }
         }
+        // The marks go only once the new state is written: a resume refused by the
+        // disk leaves a held run held (it started by itself once writes came back,
+        // until 2026-12-06) and a stale one resumable.
         self.set_state(id, RunState::Queued, None, by)?;
+        s.held.remove(id);
+        s.stale.remove(id);
         if !s.queue.iter().any(|q| q == id) {
             s.queue.push_back(id.to_owned());
         }

@@ -143,11 +143,15 @@ impl Service {
 
     /// Reads the devices (worker thread only: it owns the instrument between runs).
     pub(super) fn take_reading(&self) {
-        let _devices = self.devices.lock().unwrap_or_else(|p| p.into_inner());
+        let held = self.devices.lock().unwrap_or_else(|p| p.into_inner());
         let devices = crate::devices::Devices::open(self.backend.as_ref(), &|| false)
             .and_then(|mut d| d.report())
             .map(|r| serde_json::to_value(r).unwrap_or_default())
             .map_err(|e| e.to_string());
+        // The devices are closed: let them go before the service's lock is waited for,
+        // which a request writing files may hold (an idle e-stop, which takes them
+        // first, waited for those writes).
+        drop(held);
         let unix_s = std::time::SystemTime::now()
             .duration_since(std::time::UNIX_EPOCH)
             .map_or(0.0, |d| d.as_secs_f64());

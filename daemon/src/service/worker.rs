@@ -27,6 +27,7 @@ impl Service {
                         .queue
                         .iter()
                         .filter(|_| s.lock.is_none())
+                        .filter(|_| self.estops.load(std::sync::atomic::Ordering::SeqCst) == 0)
                         .filter(|q| !s.held.contains(*q))
                         .find(|q| self.info(q).is_ok_and(|i| i.state == RunState::Queued))
                         .cloned();
@@ -212,6 +213,9 @@ impl Service {
                     }
                 }
             });
+        // Closed on every way out, an unwinding one included: the forwarder ends only
+        // once the queue's sender is gone (it polled for ever after a panic here).
+        let closing = CloseQueue(Arc::clone(&tx));
         let forwarder = match forwarder {
             Ok(f) => Some(f),
             Err(e) => {
@@ -222,6 +226,7 @@ impl Service {
         // An imported capture is read and reconstructed without the devices.
         let import = RunInfo::load(&dir).is_ok_and(|i| i.import.is_some());
         self.lock().live.import = import;
+        self.direct().import = import;
         // Run::open records a run that never started (paused, aborted or failed,
         // resumable) itself.
         let result = if import {
@@ -238,7 +243,7 @@ impl Service {
         };
         // Every event queued so far (and held back) reaches the clients before the
         // worker closes the run's channel.
-        close_queue(&tx);
+        drop(closing);
         if let Some(f) = forwarder {
             let _ = f.join();
         }
@@ -529,6 +534,15 @@ fn close_queue(queue: &Mutex<Option<EventQueue>>) {
     let taken = queue.lock().unwrap_or_else(|p| p.into_inner()).take();
     if let Some(mut q) = taken {
         q.flush();
+    }
+}
+
+/// Closes the run's event queue when dropped ([`close_queue`]).
+struct CloseQueue(Arc<Mutex<Option<EventQueue>>>);
+
+impl Drop for CloseQueue {
+    fn drop(&mut self) {
+        close_queue(&self.0);
     }
 }
 
