@@ -578,6 +578,8 @@ fn a_broken_plan_names_file_line_and_key() {
             "recon.volume.shape",
         ),
         ("neighbours = 16", "neighbours = 2", "relay.neighbours"),
+        // A hair-thin axis no solver can step through.
+        ("z = [0.3, 0.9]", "z = [0.3, 0.3000001]", "recon.volume.z"),
         ("grid = [32, 32]", "grid = [3, 3]", "los.grid"),
         // A control character would break every YAML reader of the run's export.
         ("name = \"demo\"", "name = \"demo\\u0007bell\"", "name"),

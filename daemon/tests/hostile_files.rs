@@ -346,8 +346,10 @@ fn counts_that_would_overflow_the_arithmetic_are_refused() {
 }
 
 /// Counts under the reader's limit (1e30) but past what the solvers' single precision
-/// holds (1e21 here, with FBP) fail as not finite, and the message says why and what
-/// to do (divide the counts), not only to report a bug, as it did until 2026-12-06.
+/// holds (1e21 here, with f-k, which squares them; FBP squared them too in its noise
+/// floor until 2026-12-06, and now holds them) fail as not finite, and the message says
+/// why and what to do (divide the counts), not only to report a bug, as it did until
+/// 2026-12-06.
 #[test]
 fn counts_past_single_precision_are_told_to_be_divided() {
     let dir = tempfile::tempdir().unwrap();
@@ -356,7 +358,7 @@ fn counts_past_single_precision_are_told_to_be_divided() {
     c.h.iter_mut().for_each(|v| *v = *v / peak * 1e21);
     let file = write(dir.path(), "large.hdf5", &c);
     let config = dir.path().join("recon.toml");
-    std::fs::write(&config, "method = \"fbp\"\n").unwrap();
+    std::fs::write(&config, "method = \"fk\"\n").unwrap();
     let o = Command::new(env!("CARGO_BIN_EXE_periscope"))
         .arg("recon")
         .arg(&file)
@@ -373,6 +375,20 @@ fn counts_past_single_precision_are_told_to_be_divided() {
         "{err}"
     );
     assert!(!dir.path().join("out/volume.npy").exists());
+    // FBP holds them now: its noise floor squares in f64.
+    std::fs::write(&config, "method = \"fbp\"\n").unwrap();
+    let o = Command::new(env!("CARGO_BIN_EXE_periscope"))
+        .arg("recon")
+        .arg(&file)
+        .arg("--config")
+        .arg(&config)
+        .arg("--out")
+        .arg(dir.path().join("fbp"))
+        .output()
+        .unwrap();
+    assert_eq!(o.status.code(), Some(0), "{}", String::from_utf8_lossy(&o.stderr));
+    let (_, v) = periscope_recon::io::read_npy(&dir.path().join("fbp/volume.npy")).unwrap();
+    assert!(v.iter().all(|x| x.is_finite()) && v.iter().any(|&x| x > 0.0));
 }
 
 /// A capture whose `H` fits every size check on its own, but whose reading and

@@ -193,9 +193,19 @@ pub fn clip_to_measured(
 ) -> Result<TimeAxis, TransientError> {
     let (from, to) = measured;
     let Some((first, end)) = bins_within(axis, measured) else {
+        // Hidden paths that end before they start were made so by the legs taken
+        // out: the laser's and sensor's origins (y-tal `laser_xyz`, `sensor_xyz`), most
+        // often in other units than the relay's, not the time window.
+        let legs = if to <= 0.0 {
+            " (every recorded path is negative once the legs from the laser and to the sensor are taken \
+             out: check the laser's and the sensor's origins, such as y-tal's `laser_xyz` and `sensor_xyz`, \
+             are in the relay's units, metres)"
+        } else {
+            ""
+        };
         return Err(TransientError::Window(format!(
             "the capture recorded hidden path lengths {from:.3} to {to:.3} m, which do not reach the \
-             {:.3} to {:.3} m the volume's paths need: check the capture's time window (t_start, \
+             {:.3} to {:.3} m the volume's paths need{legs}: check the capture's time window (t_start, \
              delta_t) or give a [volume] the recording covers",
             needed.0, needed.1
         )));
@@ -690,7 +700,16 @@ mod tests {
                 .unwrap_err()
                 .to_string();
             assert!(e.contains("do not reach the 0.390 to 3.470 m"), "{missed:?}: {e}");
+            assert!(!e.contains("sensor_xyz"), "{e}");
         }
+        // Every path negative once the legs are out: the origins' units are named.
+        let e = clip_to_measured(&axis, (-2998.0, -2997.0), (0.39, 3.47))
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("`laser_xyz` and `sensor_xyz`") && e.contains("metres"),
+            "{e}"
+        );
     }
 
     fn axis() -> TimeAxis {

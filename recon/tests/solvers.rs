@@ -110,6 +110,72 @@ fn lct_keeps_an_overflow_for_the_finite_check() {
     );
 }
 
+/// FBP's Laplacian filter keeps an overflow for the caller's finite check: its
+/// negatives were clipped with `max`, which turned the NaN of an overflowed region
+/// into zeros, written as an empty volume without a word.
+#[test]
+fn fbp_laplacian_keeps_an_overflow_for_the_finite_check() {
+    let relay = wall(32);
+    let mut set = TransientSet::new(axis()).unwrap();
+    for pair in confocal_pairs(&relay) {
+        set.push(pair, &vec![3.0e38f32; axis().bins]).unwrap();
+    }
+    let settings = FbpSettings {
+        filter: FbpFilter::Laplacian,
+        backprojection: FbpBackprojection::Exact,
+        ..FbpSettings::default()
+    };
+    let v = fbp(&set, &grid(), &settings).unwrap();
+    assert!(
+        v.data.iter().any(|x| !x.is_finite()),
+        "an overflow came out as numbers"
+    );
+}
+
+/// FBP's noise floor squares each voxel in f64: photon counts of about 1e17 a bin
+/// (well under the readers' 1e30 limit) made magnitudes whose f32 square was infinite, and
+/// the run failed after its whole reconstruction. The image is the point's, finite.
+#[test]
+fn fbp_noise_floor_holds_large_counts() {
+    let mut set = TransientSet::new(axis()).unwrap();
+    scatter(&mut set, &confocal_pairs(&wall(32)), &[(POINT, 1e18)]);
+    set.mark_photon_counts();
+    let v = fbp(&set, &grid(), &FbpSettings::default()).unwrap();
+    assert!(v.data.iter().all(|x| x.is_finite()), "a non-finite voxel");
+    assert_peak_at(&v, POINT, "FBP of large photon counts");
+}
+
+/// LCT and f-k refuse a volume behind the relay, as FBP, RSD and 3D-GTR do (they
+/// wrote an all-zero volume for it), and an LCT `snr` past what its filter can hold.
+#[test]
+fn lct_and_fk_refuse_a_volume_behind_the_relay_and_lct_an_endless_snr() {
+    let set = confocal_point_set(axis());
+    let behind = VolumeGrid::new([-0.4, 0.4], [-0.4, 0.4], [-0.75, -0.25], [32, 32, 20]).unwrap();
+    let e = lct(&set, &behind, &LctSettings::default())
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("behind the relay"), "{e}");
+    let e = fk(&set, &behind, &FkSettings::default()).unwrap_err().to_string();
+    assert!(e.contains("behind the relay"), "{e}");
+    let endless = LctSettings {
+        snr: Some(1e39),
+        ..LctSettings::default()
+    };
+    let e = lct(&set, &grid(), &endless).unwrap_err().to_string();
+    assert!(e.contains("snr") && e.contains("1e12"), "{e}");
+}
+
+/// RSD on a volume with one axis far thinner than the others is refused, naming the
+/// volume (its depth count went past usize: a panic in a debug build, a `depths`
+/// nobody set in a release one).
+#[test]
+fn rsd_refuses_a_hair_thin_volume_axis() {
+    let set = confocal_point_set(axis());
+    let thin = VolumeGrid::new([-0.4, 0.4], [0.0, 1e-300], [0.25, 0.75], [32, 32, 20]).unwrap();
+    let e = rsd(&set, &thin, &RsdSettings::default()).unwrap_err().to_string();
+    assert!(e.contains("thinnest axis"), "{e}");
+}
+
 /// A volume behind the relay (against every detection point's normal) is refused by
 /// FBP, as by RSD: no pair sees it, and until 2026-12-06 FBP imaged the point's mirror
 /// there without a word. A volume straddling the relay is still imaged.

@@ -298,6 +298,9 @@ const GRID_SOLVERS_VIRTUAL_GRID: [usize; 2] = [64, 64];
 /// Farthest a volume may reach from the instrument, metres.
 const MAX_EXTENT_M: f64 = 100.0;
 
+/// The narrowest a volume axis may be, metres.
+const MIN_EXTENT_M: f64 = 1e-3;
+
 fn default_primitives() -> usize {
     2000
 }
@@ -382,6 +385,14 @@ pub(crate) fn recon_settings(
                     return Err(src.invalid(
                         &key(&format!("volume.{name}")),
                         format!("{r:?} reaches beyond {MAX_EXTENT_M} m of the instrument; NLOS volumes are metres across"),
+                    ));
+                }
+                // A hair-thin axis (1e-300 m) made voxels no solver can step through
+                // (RSD counted past usize; FBP's Laplacian overflowed).
+                if r[1] - r[0] < MIN_EXTENT_M {
+                    return Err(src.invalid(
+                        &key(&format!("volume.{name}")),
+                        format!("{r:?} is {:.3e} m wide; give each axis at least 1 mm (NLOS volumes are centimetres to metres across)", r[1] - r[0]),
                     ));
                 }
             }

@@ -58,6 +58,8 @@ impl FkSettings {
 /// f-k migration of a confocal capture on a planar grid, resampled onto `grid`.
 pub fn fk(set: &TransientSet, grid: &VolumeGrid, settings: &FkSettings) -> Result<Volume, SolverError> {
     settings.validate()?;
+    // As FBP, RSD and 3D-GTR refuse it (an all-zero volume until 2026-12-06).
+    super::refuse_a_volume_behind(set, grid)?;
     let scan = super::lct::confocal_scan(set, settings.grid_tolerance)?.reaching(grid);
     Ok(fk_frame(set, &scan, settings)?.to_world(grid))
 }

@@ -54,22 +54,31 @@ impl Default for LctSettings {
 impl LctSettings {
     /// Checks every setting is in range.
     pub fn validate(&self) -> Result<(), SolverError> {
+        // Bounded above too: past f32's range (3.4e38) the filter's 1/snr became 0
+        // and the Wiener filter lost its regularisation (a zero of |H|² then NaN).
         if let Some(snr) = self.snr
-            && !(snr.is_finite() && snr > 0.0)
+            && !(snr.is_finite() && snr > 0.0 && snr <= MAX_SNR)
         {
             return Err(SolverError::Setting {
                 name: "snr",
                 value: snr.to_string(),
-                expected: "a positive number",
+                expected: "a positive number, at most 1e12",
             });
         }
         confocal::check_settings(self.falloff, self.grid_tolerance)
     }
 }
 
+/// The largest `snr` taken: a Wiener filter at 1e12 is already the plain inverse
+/// wherever |H|² is above 1e-12 of its peak.
+const MAX_SNR: f64 = 1e12;
+
 /// LCT of a confocal capture on a planar grid, resampled onto `grid`.
 pub fn lct(set: &TransientSet, grid: &VolumeGrid, settings: &LctSettings) -> Result<Volume, SolverError> {
     settings.validate()?;
+    // As FBP, RSD and 3D-GTR refuse it: LCT resamples positive depths only, and wrote
+    // an all-zero volume for it until 2026-12-06.
+    super::refuse_a_volume_behind(set, grid)?;
     let scan = confocal_scan(set, settings.grid_tolerance)?.reaching(grid);
     Ok(lct_frame(set, &scan, settings)?.to_world(grid))
 }

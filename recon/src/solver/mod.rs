@@ -46,6 +46,23 @@ pub(crate) fn behind_every_detection_point(
         .all(|p| corners.iter().all(|&c| p.nd.dot(c - p.xd) <= 0.0))
 }
 
+/// [`SolverError::Axis`] where the volume lies behind the relay
+/// ([`behind_every_detection_point`]): no pair sees it, and an image there is the
+/// hidden scene's mirror, or nothing.
+pub(crate) fn refuse_a_volume_behind(
+    set: &crate::transient::TransientSet,
+    grid: &crate::volume::VolumeGrid,
+) -> Result<(), SolverError> {
+    if behind_every_detection_point(set, grid) {
+        return Err(SolverError::Axis(
+            "the volume lies behind the relay, against every detection point's normal: no pair sees it, and \
+             a backprojection there images the hidden scene's mirror; move the [volume] in front of the relay"
+                .into(),
+        ));
+    }
+    Ok(())
+}
+
 /// The longest wavelet envelope (6 sigma) the phasor solvers (RSD, FBP's phasor
 /// filter) take, in lengths of the time axis: their padding grows with it.
 pub const MAX_ENVELOPE_SPANS: f64 = 8.0;

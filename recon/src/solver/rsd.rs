@@ -151,9 +151,22 @@ pub fn rsd(set: &TransientSet, grid: &VolumeGrid, settings: &RsdSettings) -> Res
         ));
     }
     let start = lo.max(0.5 * step);
-    let depths = ((hi - start) / step).ceil() as usize + 1;
+    // Counted in f64 first: a volume axis far thinner than the others (1e-300 m) gave
+    // a count past usize, which wrapped to 0 (or overflowed in a debug build).
+    let count = ((hi - start) / step).ceil() + 1.0;
+    if !(count.is_finite() && count <= MAX_DEPTHS as f64) {
+        return Err(SolverError::Axis(format!(
+            "the volume's depth along the relay's normal ({:.3} m) over its finest voxel ({step:.3e} m) gives {count:.3e} depth planes, more than {MAX_DEPTHS}: widen the volume's thinnest axis or give it fewer voxels",
+            hi - start
+        )));
+    }
+    let depths = count as usize;
     Ok(rsd_frame(set, &scan, start, step, depths, settings)?.to_world(grid))
 }
+
+/// Most depth planes RSD counts before its memory check judges them (any count past
+/// this is a volume axis far thinner than the others).
+const MAX_DEPTHS: usize = 1 << 32;
 
 /// RSD on the scan's grid at depths `start + k·step`, `k < depths`.
 pub fn rsd_frame(
@@ -245,13 +258,16 @@ pub fn rsd_frame(
     let plane = px * py;
     // The kernels' planes, the field (complex f64 at every depth and cell), each
     // group's spectra (complex f64 per cell and line) and each thread's work planes.
-    check_memory(
-        "RSD",
-        lines.len() * plane * 8
-            + depths * nx * ny * 16
-            + nx * ny * lines.len() * 16
-            + plane * 8 * 4 * rayon::current_num_threads(),
-    )?;
+    let bytes = [
+        [lines.len(), plane, 8],
+        [depths, nx * ny, 16],
+        [nx * ny, lines.len(), 16],
+        [plane, 32, rayon::current_num_threads()],
+    ]
+    .iter()
+    .map(|f| f.iter().fold(1usize, |a, &b| a.saturating_mul(b)))
+    .fold(0usize, usize::saturating_add);
+    check_memory("RSD", bytes)?;
     let fft = Fft2::new(py, px);
     let mut planner = RealFftPlanner::<f64>::new();
     let r2c = planner.plan_fft_forward(padded_bins);

@@ -186,6 +186,10 @@ pub(crate) fn from_reader(r: &Reader<'_>) -> Result<YtalCapture, YtalError> {
             }
         }
     }
+    // Each count was checked; their sum over channels and bounces is checked too, so a
+    // summed `H` keeps the readers' 1e30 promise (three channels at 1e30 made 3e30,
+    // and enough of them infinity, blamed on a pair's histogram).
+    check_counts(&h, "data summed over channels and bounces").map_err(|m| r.format(m))?;
     let h_shape = if exhaustive {
         vec![nt, las[0], las[1], cam[0], cam[1]]
     } else {

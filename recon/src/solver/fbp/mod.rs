@@ -419,13 +419,7 @@ pub fn fbp_on(
     }
     // Until 2026-12-06 FBP imaged such a volume without a word (the scene mirrored,
     // or every column at its far end), where RSD and 3D-GTR refuse it.
-    if super::behind_every_detection_point(set, grid) {
-        return Err(SolverError::Axis(
-            "the volume lies behind the relay, against every detection point's normal: no pair sees it, and \
-             a backprojection there images the hidden scene's mirror; move the [volume] in front of the relay"
-                .into(),
-        ));
-    }
+    super::refuse_a_volume_behind(set, grid)?;
     // Each pair's share of the relay integral: 1 on full grids, the Voronoi cells of
     // scattered or perforated samples.
     let quadrature = settings
@@ -991,7 +985,10 @@ fn negative_laplacian(v: &Volume) -> Volume {
                     v.at(ix, iy, (iz + 1).min(nz - 1)),
                     inv[2],
                 );
-                slice[iy * nx + ix] = lap.max(0.0);
+                // Negatives clipped, a NaN kept for the caller's finite check (`max`
+                // would turn it into 0, and an overflowed region would be written as
+                // zeros), as LCT keeps it.
+                slice[iy * nx + ix] = if lap < 0.0 { 0.0 } else { lap };
             }
         }
     });

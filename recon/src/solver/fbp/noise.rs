@@ -175,12 +175,15 @@ const KEPT_SHARE: f32 = 1.0 / 16.0;
 /// of it (`√max(v² − k·N², v²/16)`), `N²` from `power` and `k` from [`threshold`]
 /// along `normal`.
 pub(super) fn remove(volume: &mut Volume, power: &[f32], normal: DVec3) {
-    let k = threshold(&volume.grid, normal) as f32;
-    volume
-        .data
-        .par_iter_mut()
-        .zip(power)
-        .for_each(|(v, &n2)| *v = (*v * *v - k * n2).max(KEPT_SHARE * *v * *v).sqrt());
+    // Squared in f64: a magnitude past 1.8e19 squared overflows f32, and counts far
+    // under the readers' 1e30 limit reach it (the run then failed after its whole
+    // reconstruction, blaming the counts).
+    let k = threshold(&volume.grid, normal);
+    let kept = f64::from(KEPT_SHARE);
+    volume.data.par_iter_mut().zip(power).for_each(|(v, &n2)| {
+        let x = f64::from(*v);
+        *v = (x * x - k * f64::from(n2)).max(kept * x * x).sqrt() as f32;
+    });
 }
 
 #[cfg(test)]
