@@ -350,43 +350,57 @@ impl Service {
 
     /// Puts the queue's waiting runs in `order`, which must name each of them once.
     pub fn reorder(&self, order: &[String]) -> Result<QueueView, ServiceError> {
-        {
-            let mut s = self.lock();
-            let running = s.current.as_ref().map(|(id, _)| id.clone());
-            let waiting: Vec<String> = s
-                .queue
-                .iter()
-                .filter(|q| Some(*q) != running.as_ref())
-                .cloned()
-                .collect();
-            let mut a = waiting.clone();
-            let mut b = order.to_vec();
-            a.sort();
-            b.sort();
-            if a != b {
-                return Err(ServiceError::Invalid(format!(
-                    "the order must name each waiting run once: {}",
-                    waiting.join(", ")
-                )));
-            }
-            s.queue = running.into_iter().chain(order.iter().cloned()).collect();
-            self.persist_after_change(&s);
-            self.wake.notify_all();
-        }
+        self.reorder_in(&mut self.lock(), order)?;
         Ok(self.queue())
     }
 
-    /// Moves waiting run `id` to `position` (0 = next) among the waiting runs.
-    pub fn move_run(&self, id: &str, position: usize) -> Result<QueueView, ServiceError> {
-        let mut order = self.queue().order;
-        let Some(at) = order.iter().position(|q| q == id) else {
-            return Err(ServiceError::Conflict(format!(
-                "run {id} is not waiting in the queue; only queued or paused runs there can be moved"
+    /// [`Service::reorder`] under the lock the caller holds.
+    fn reorder_in(&self, s: &mut Shared, order: &[String]) -> Result<(), ServiceError> {
+        let running = s.current.as_ref().map(|(id, _)| id.clone());
+        let waiting: Vec<String> = s
+            .queue
+            .iter()
+            .filter(|q| Some(*q) != running.as_ref())
+            .cloned()
+            .collect();
+        let mut a = waiting.clone();
+        let mut b = order.to_vec();
+        a.sort();
+        b.sort();
+        if a != b {
+            return Err(ServiceError::Invalid(format!(
+                "the order must name each waiting run once: {}",
+                waiting.join(", ")
             )));
-        };
-        let run = order.remove(at);
-        order.insert(position.min(order.len()), run);
-        self.reorder(&order)
+        }
+        s.queue = running.into_iter().chain(order.iter().cloned()).collect();
+        self.persist_after_change(s);
+        self.wake.notify_all();
+        Ok(())
+    }
+
+    /// Moves waiting run `id` to `position` (0 = next) among the waiting runs. The
+    /// queue is read and reordered under one lock: a run starting or a submission in
+    /// between made the move fail with "the order must name each waiting run once".
+    pub fn move_run(&self, id: &str, position: usize) -> Result<QueueView, ServiceError> {
+        {
+            let mut s = self.lock();
+            let mut order: Vec<String> = s
+                .queue
+                .iter()
+                .filter(|q| s.current.as_ref().is_none_or(|(c, _)| c != *q))
+                .cloned()
+                .collect();
+            let Some(at) = order.iter().position(|q| q == id) else {
+                return Err(ServiceError::Conflict(format!(
+                    "run {id} is not waiting in the queue; only queued or paused runs there can be moved"
+                )));
+            };
+            let run = order.remove(at);
+            order.insert(position.min(order.len()), run);
+            self.reorder_in(&mut s, &order)?;
+        }
+        Ok(self.queue())
     }
 
     /// Validates every plan, then queues them all in order; one invalid plan refuses
