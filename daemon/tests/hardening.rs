@@ -271,6 +271,17 @@ async fn instrument_status_comes_from_the_worker_and_never_opens_a_device() {
     worker.join().unwrap();
 }
 
+/// Submits `plan`, which must be refused as over budget; the refusal's message.
+async fn over_budget(router: &axum::Router, plan: &str) -> String {
+    let (s, v) = call(router, Method::POST, "/api/v1/runs", true, plan).await;
+    assert_eq!(
+        (s, v["error"].as_str()),
+        (StatusCode::UNPROCESSABLE_ENTITY, Some("over-budget")),
+        "{v}"
+    );
+    v["message"].as_str().unwrap().to_owned()
+}
+
 #[tokio::test]
 async fn plans_over_the_budget_get_422_naming_the_key_and_leave_nothing() {
     let dir = tempfile::tempdir().unwrap();
@@ -282,14 +293,7 @@ async fn plans_over_the_budget_get_422_naming_the_key_and_leave_nothing() {
         .set("pairs.grid", [512, 512]);
     let huge_volume = SmallPlan::default().set("recon.volume.shape", [1024, 1024, 1024]);
     for (plan, names) in [(scanned, "pairs"), (huge_volume, "recon.volume.shape")] {
-        let plan = plan.toml();
-        let (s, v) = call(&router, Method::POST, "/api/v1/runs", true, &plan).await;
-        assert_eq!(
-            (s, v["error"].as_str()),
-            (StatusCode::UNPROCESSABLE_ENTITY, Some("over-budget")),
-            "{v}"
-        );
-        let m = v["message"].as_str().unwrap();
+        let m = over_budget(&router, &plan.toml()).await;
         assert!(
             m.contains(names) && m.contains("GiB") && m.contains("budget.memory-gib"),
             "{m}"
@@ -321,13 +325,7 @@ async fn plans_over_the_budget_get_422_naming_the_key_and_leave_nothing() {
     let (s, v) = call(&router, Method::POST, "/api/v1/runs", true, PLAN).await;
     assert_eq!(s, StatusCode::CREATED, "{v}");
     let slow = SmallPlan::default().set("acquisition.dwell-ms", 120000.0).toml();
-    let (s, v) = call(&router, Method::POST, "/api/v1/runs", true, &slow).await;
-    assert_eq!(
-        (s, v["error"].as_str()),
-        (StatusCode::UNPROCESSABLE_ENTITY, Some("over-budget")),
-        "{v}"
-    );
-    let m = v["message"].as_str().unwrap();
+    let m = over_budget(&router, &slow).await;
     assert!(
         m.contains("budget.hours")
             && m.contains("acquisition.dwell-ms")

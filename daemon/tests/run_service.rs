@@ -927,33 +927,15 @@ async fn an_event_stream_ends_when_its_key_is_revoked() {
     let keys = KeyStore::open(dir.path(), None);
     let (_, secret) = keys.create("screen", Role::Observer, None, "test").unwrap();
     let router = app(AppState::new(Arc::clone(&svc)));
-    let resp = router
-        .clone()
-        .oneshot(request(
-            &Method::GET,
-            "/api/v1/instrument/events",
-            Some(&secret),
-            "",
-            true,
-        ))
-        .await
-        .unwrap();
-    assert_eq!(resp.status(), StatusCode::OK);
-    let mut body = resp.into_body().into_data_stream();
-    use tokio_stream::StreamExt as _;
     // Events flow...
-    let first = tokio::time::timeout(Duration::from_secs(5), body.next())
-        .await
-        .unwrap();
-    assert!(first.is_some_and(|c| c.is_ok_and(|b| b.starts_with(b"event: safety"))));
+    let body = instrument_stream(&router, Some(&secret), true).await;
     keys.revoke("screen").unwrap();
     // ...and stop: the stream ends after the revocation.
     let t = Instant::now();
-    let ended = tokio::time::timeout(Duration::from_secs(10), async {
-        while body.next().await.is_some() {}
-    })
-    .await;
-    assert!(ended.is_ok(), "the stream kept going after the key was revoked");
+    assert!(
+        ends_within(body, Duration::from_secs(10)).await,
+        "the stream kept going after the key was revoked"
+    );
     assert!(t.elapsed() < Duration::from_secs(5), "{:?}", t.elapsed());
     svc.shutdown();
 }
@@ -1248,30 +1230,48 @@ async fn the_instrument_stream_ends_when_the_daemon_shuts_down() {
     let dir = tempfile::tempdir().unwrap();
     let svc = service(dir.path());
     let router = app(AppState::new(Arc::clone(&svc)));
+    let body = instrument_stream(&router, None, false).await;
+    svc.shutdown();
+    assert!(
+        ends_within(body, Duration::from_secs(5)).await,
+        "the stream kept going after the shutdown"
+    );
+}
+
+/// `GET /api/v1/instrument/events` (with `key`, from another host if `remote`), its
+/// first event read: a safety reading.
+async fn instrument_stream(
+    router: &axum::Router,
+    key: Option<&str>,
+    remote: bool,
+) -> axum::body::BodyDataStream {
+    use tokio_stream::StreamExt as _;
     let resp = router
         .clone()
         .oneshot(request(
             &Method::GET,
             "/api/v1/instrument/events",
-            None,
+            key,
             "",
-            false,
+            remote,
         ))
         .await
         .unwrap();
     assert_eq!(resp.status(), StatusCode::OK);
     let mut body = resp.into_body().into_data_stream();
-    use tokio_stream::StreamExt as _;
     let first = tokio::time::timeout(Duration::from_secs(5), body.next())
         .await
         .unwrap();
     assert!(first.is_some_and(|c| c.is_ok_and(|b| b.starts_with(b"event: safety"))));
-    svc.shutdown();
-    let ended = tokio::time::timeout(Duration::from_secs(5), async {
-        while body.next().await.is_some() {}
-    })
-    .await;
-    assert!(ended.is_ok(), "the stream kept going after the shutdown");
+    body
+}
+
+/// Whether `body` ends within `limit`.
+async fn ends_within(mut body: axum::body::BodyDataStream, limit: Duration) -> bool {
+    use tokio_stream::StreamExt as _;
+    tokio::time::timeout(limit, async { while body.next().await.is_some() {} })
+        .await
+        .is_ok()
 }
 
 /// One remote host holds at most `api::STREAMS_PER_PEER` event streams (a review,

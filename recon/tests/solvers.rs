@@ -92,17 +92,27 @@ fn lct_finds_a_point_scatterer() {
     );
 }
 
+/// Confocal pairs over the wall, every bin at 3e38: any sum of them overflows f32.
+fn overflowing_set() -> TransientSet {
+    let mut set = TransientSet::new(axis()).unwrap();
+    for pair in confocal_pairs(&wall(32)) {
+        set.push(pair, &vec![3.0e38f32; axis().bins]).unwrap();
+    }
+    set
+}
+
+/// The test grid mirrored behind the wall (z < 0, against its normal).
+fn behind_the_relay() -> VolumeGrid {
+    VolumeGrid::new([-0.4, 0.4], [-0.4, 0.4], [-0.75, -0.25], [32, 32, 20]).unwrap()
+}
+
 /// Counts that overflow LCT's `f32` FFTs leave non-numbers in its volume, for the
 /// caller's finite check to refuse: until 2026-12-06 the clamp of negative values
 /// (`max(0.0)`) made every NaN a 0, and `periscope recon` wrote an empty volume with
 /// exit 0.
 #[test]
 fn lct_keeps_an_overflow_for_the_finite_check() {
-    let relay = wall(32);
-    let mut set = TransientSet::new(axis()).unwrap();
-    for pair in confocal_pairs(&relay) {
-        set.push(pair, &vec![3.0e38f32; axis().bins]).unwrap();
-    }
+    let set = overflowing_set();
     let v = lct(&set, &grid(), &LctSettings::default()).unwrap();
     assert!(
         v.data.iter().any(|x| !x.is_finite()),
@@ -115,11 +125,7 @@ fn lct_keeps_an_overflow_for_the_finite_check() {
 /// into zeros, written as an empty volume without a word.
 #[test]
 fn fbp_laplacian_keeps_an_overflow_for_the_finite_check() {
-    let relay = wall(32);
-    let mut set = TransientSet::new(axis()).unwrap();
-    for pair in confocal_pairs(&relay) {
-        set.push(pair, &vec![3.0e38f32; axis().bins]).unwrap();
-    }
+    let set = overflowing_set();
     let settings = FbpSettings {
         filter: FbpFilter::Laplacian,
         backprojection: FbpBackprojection::Exact,
@@ -150,7 +156,7 @@ fn fbp_noise_floor_holds_large_counts() {
 #[test]
 fn lct_and_fk_refuse_a_volume_behind_the_relay_and_lct_an_endless_snr() {
     let set = confocal_point_set(axis());
-    let behind = VolumeGrid::new([-0.4, 0.4], [-0.4, 0.4], [-0.75, -0.25], [32, 32, 20]).unwrap();
+    let behind = behind_the_relay();
     let e = lct(&set, &behind, &LctSettings::default())
         .unwrap_err()
         .to_string();
@@ -182,7 +188,7 @@ fn rsd_refuses_a_hair_thin_volume_axis() {
 #[test]
 fn fbp_refuses_a_volume_behind_the_relay() {
     let set = confocal_point_set(axis());
-    let behind = VolumeGrid::new([-0.4, 0.4], [-0.4, 0.4], [-0.75, -0.25], [32, 32, 20]).unwrap();
+    let behind = behind_the_relay();
     let e = fbp(&set, &behind, &FbpSettings::default())
         .unwrap_err()
         .to_string();
