@@ -357,36 +357,16 @@ fn counts_past_single_precision_are_told_to_be_divided() {
     let peak = c.h.iter().copied().fold(0.0f32, f32::max);
     c.h.iter_mut().for_each(|v| *v = *v / peak * 1e21);
     let file = write(dir.path(), "large.hdf5", &c);
-    let config = dir.path().join("recon.toml");
-    std::fs::write(&config, "method = \"fk\"\n").unwrap();
-    let o = Command::new(env!("CARGO_BIN_EXE_periscope"))
-        .arg("recon")
-        .arg(&file)
-        .arg("--config")
-        .arg(&config)
-        .arg("--out")
-        .arg(dir.path().join("out"))
-        .output()
-        .unwrap();
-    let err = String::from_utf8_lossy(&o.stderr);
-    assert_eq!(o.status.code(), Some(1), "{err}");
+    let (code, err) = recon_with(&file, Some("method = \"fk\"\n"), &dir.path().join("out"));
+    assert_eq!(code, Some(1), "{err}");
     assert!(
         err.contains("not finite") && err.contains("divide the counts"),
         "{err}"
     );
     assert!(!dir.path().join("out/volume.npy").exists());
     // FBP holds them now: its noise floor squares in f64.
-    std::fs::write(&config, "method = \"fbp\"\n").unwrap();
-    let o = Command::new(env!("CARGO_BIN_EXE_periscope"))
-        .arg("recon")
-        .arg(&file)
-        .arg("--config")
-        .arg(&config)
-        .arg("--out")
-        .arg(dir.path().join("fbp"))
-        .output()
-        .unwrap();
-    assert_eq!(o.status.code(), Some(0), "{}", String::from_utf8_lossy(&o.stderr));
+    let (code, err) = recon_with(&file, Some("method = \"fbp\"\n"), &dir.path().join("fbp"));
+    assert_eq!(code, Some(0), "{err}");
     let (_, v) = periscope_recon::io::read_npy(&dir.path().join("fbp/volume.npy")).unwrap();
     assert!(v.iter().all(|x| x.is_finite()) && v.iter().any(|&x| x > 0.0));
 }
