@@ -1209,7 +1209,8 @@ function drawMap(canvas, { data, cols, rows, xr, yr, xlabel, ylabel, vmin, vmax,
   }
   ctx.strokeRect(bx, mt, 14, ph);
   ctx.fillStyle = '#222';
-  for (const t of ticks(vmin, vmax, 4)) {
+  // vmin above vmax reverses the bar (a depth map whose relay faces −y: near is dark).
+  for (const t of ticks(Math.min(vmin, vmax), Math.max(vmin, vmax), 4)) {
     const y = mt + ph - ((t - vmin) / (vmax - vmin || 1)) * ph;
     ctx.fillRect(bx + 14, y, 4, 1);
     ctx.fillText(Math.abs(vmax) < 0.01 || Math.abs(vmax) >= 1e4 ? t.toExponential(1) : t.toFixed(2), bx + 20, y + 4);
@@ -1289,9 +1290,13 @@ async function loadResults(id) {
     ]);
     if (id !== selected) return;
     const depth = parseNpy(depthBuf);
+    // The depth map looks along the volume's axis nearest the relay's normal (z for our
+    // walls; volume.json says which, and which way leads away from the relay).
+    const d = vj.depth || { axis: 'z', away: '+', columns: 'x', rows: 'y' };
+    const [near, far] = d.away === '-' ? [vj[d.axis][1], vj[d.axis][0]] : vj[d.axis];
     drawMap($('depth-canvas'), {
-      data: depth.data, cols: depth.shape[1], rows: depth.shape[0], xr: vj.x, yr: vj.y,
-      xlabel: 'x (m)', ylabel: 'y (m)', vmin: vj.z[0], vmax: vj.z[1], stops: VIRIDIS, unit: 'depth z (m)', title: 'depth (grey: no surface)',
+      data: depth.data, cols: depth.shape[1], rows: depth.shape[0], xr: vj[d.columns], yr: vj[d.rows],
+      xlabel: `${d.columns} (m)`, ylabel: `${d.rows} (m)`, vmin: near, vmax: far, stops: VIRIDIS, unit: `depth ${d.axis} (m)`, title: 'depth (grey: no surface)',
     });
     const [nz, ny, nx] = vj.shape_zyx;
     $('results-note').textContent = `${vj.method} with ${vj.solver}, ${vj.pairs.toLocaleString()} pairs, ${nx}×${ny}×${nz} voxels of ${vj.voxel_m.map((v) => (v * 1000).toFixed(1)).join(' × ')} mm${vj.final_loss != null ? `, final loss ${vj.final_loss.toExponential(3)}` : ''}`;
@@ -1313,9 +1318,10 @@ async function loadVolume(id, vj) {
     let max = 0;
     for (const v of vol.data) if (v > max) max = v;
     volume = { nx, ny, nz, data: vol.data, json: vj, max: max || 1 };
-    const mipZ = plane('z');
-    const albedo = mipZ.data.map((v) => Math.max(0, v) / volume.max);
-    drawMap($('albedo-canvas'), { ...mipZ, data: albedo, vmin: 0, vmax: 1, stops: INFERNO, unit: 'relative intensity', title: 'albedo (peak along z)' });
+    const along = vj.depth?.axis || 'z';
+    const mip = plane(along);
+    const albedo = mip.data.map((v) => Math.max(0, v) / volume.max);
+    drawMap($('albedo-canvas'), { ...mip, data: albedo, vmin: 0, vmax: 1, stops: INFERNO, unit: 'relative intensity', title: `albedo (peak along ${along})` });
     for (const axis of ['x', 'y', 'z']) {
       drawMap($(`mip-${axis}`), { ...plane(axis), vmin: 0, vmax: volume.max, stops: INFERNO, unit: 'intensity', title: `max projection along ${axis}` });
     }

@@ -25,4 +25,4 @@ pub mod volume;
 
 pub use roi::{RoiBox, RoiError};
 pub use transient::{C0, Pair, TimeAxis, TransientError, TransientSet};
-pub use volume::{DepthMap, Volume, VolumeGrid};
+pub use volume::{DepthAxis, DepthMap, Volume, VolumeGrid};

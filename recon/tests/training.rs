@@ -1395,6 +1395,7 @@ fn a_coarse_capture_takes_the_coarse_fit() {
     let prior = SurfacePrior {
         spread: SurfacePrior::DEFAULT_SPREAD,
         cell: 0.03,
+        axis: Default::default(),
     };
     let cfg = TrainConfig {
         primitives: 2000,

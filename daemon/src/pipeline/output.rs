@@ -1,8 +1,10 @@
 //! Run outputs (`DESIGN.md` §6): `volume.npy` (float32 [nz, ny, nx]), `volume.json`,
-//! `depth.npy` (float32 [ny, nx], metres, NaN where nothing was found), `depth.png`,
+//! `depth.npy` (float32 [ny, nx] for a relay facing ±z, else over the volume's two
+//! axes across the relay's normal; metres, NaN where nothing was found), `depth.png`,
 //! `albedo.png`, `gaussians.ply` (3D-GTR only); and the relay point cloud `relay.ply`.
 use std::path::Path;
 
+use periscope_recon::DepthAxis;
 use periscope_recon::io::{write_albedo_png, write_depth_png, write_npy, write_volume};
 use serde::Serialize;
 
@@ -59,6 +61,8 @@ struct VolumeJson<'a> {
     pairs: usize,
     max: f32,
     depth_threshold: f64,
+    /// What `depth.npy` and the images look along.
+    depth: DepthJson,
     timings_s: &'a [(String, f64)],
     /// Where the synthesis and the solver ran: `device` ("cpu" or "gpu"), and for a
     /// GPU its adapter, backend and driver.
@@ -70,6 +74,37 @@ struct VolumeJson<'a> {
     /// whether the capture counted as `coarse`, and the `pair_gains` it estimated.
     #[serde(skip_serializing_if = "Option::is_none")]
     fit: Option<FitJson>,
+}
+
+/// [`VolumeJson::depth`]: the depth map's axis (the volume's axis nearest the relay's
+/// normal: `z` for our instrument's walls, `y` for a Zaragoza wall), whether depth away
+/// from the relay grows along it (`away`: `+` or `-`), and its image's axes
+/// (`columns`, then `rows`; row 0 of `depth.npy` is the smallest coordinate).
+#[derive(Serialize)]
+struct DepthJson {
+    axis: &'static str,
+    away: &'static str,
+    columns: &'static str,
+    rows: &'static str,
+}
+
+impl DepthJson {
+    fn of(axis: DepthAxis) -> Self {
+        let name = |a: usize| {
+            DepthAxis {
+                axis: a,
+                positive: true,
+            }
+            .name()
+        };
+        let [c, r] = axis.lateral();
+        Self {
+            axis: axis.name(),
+            away: if axis.positive { "+" } else { "-" },
+            columns: name(c),
+            rows: name(r),
+        }
+    }
 }
 
 /// [`VolumeJson::fit`].
@@ -109,6 +144,7 @@ pub fn write_outputs(dir: &Path, r: &ReconResult, events: &EventSink) -> Result<
         pairs: r.pairs,
         max,
         depth_threshold: r.settings.depth_threshold,
+        depth: DepthJson::of(r.depth_axis),
         timings_s: &r.timings,
         compute: &r.device,
         final_loss: r.train.as_ref().map(|t| t.final_loss).filter(|l| l.is_finite()),
@@ -129,7 +165,9 @@ pub fn write_outputs(dir: &Path, r: &ReconResult, events: &EventSink) -> Result<
     )
     .map_err(io(&p))?;
     wrote(file::VOLUME_JSON, &mut files);
-    let depth = r.volume.depth_map(r.settings.depth_threshold as f32);
+    let depth = r
+        .volume
+        .depth_map_along(r.depth_axis, r.settings.depth_threshold as f32);
     let p = dir.join(file::DEPTH);
     write_npy(&p, &[depth.shape[1], depth.shape[0]], &depth.depth).map_err(recon_io(&p))?;
     wrote(file::DEPTH, &mut files);

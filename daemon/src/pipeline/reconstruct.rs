@@ -10,11 +10,12 @@ use periscope_recon::gpu::{Compute, ComputeDevice, DeviceInfo, GpuError};
 use periscope_recon::gtr::{
     CancelToken, GaussianCloud, Kernel, LiveModel, TrainError, TrainSummary, Trainer, resolvable_separation,
 };
+use periscope_recon::linalg::fit_plane;
 use periscope_recon::relay::VirtualRelay;
 use periscope_recon::solver::{SolverError, SolverKind, SolverSettings};
 use periscope_recon::solver::{lateral_voxel_pitch, phasor_wavelength};
 use periscope_recon::synth::{SynthError, default_axis, splat_lct, synthesise_on};
-use periscope_recon::{RoiBox, TimeAxis, TransientSet, Volume, VolumeGrid};
+use periscope_recon::{DepthAxis, RoiBox, TimeAxis, TransientSet, Volume, VolumeGrid};
 
 use super::{Control, PipelineError, ReconError};
 use crate::events::{EventSink, RunEvent};
@@ -35,6 +36,43 @@ pub struct ReconInput {
     pub viewpoint: DVec3,
 }
 
+impl ReconInput {
+    /// The volume's axis nearest the relay's normal, away from the relay: the normal of
+    /// the plane through the detection points, turned to face the volume's centre (or,
+    /// where no plane fits them, the direction from their centroid to that centre).
+    /// Our instrument's relays face +z; a Zaragoza wall faces −y. The depth map and the
+    /// surface prior look along it.
+    pub fn depth_axis(&self) -> DepthAxis {
+        let g = &self.settings.volume;
+        let centre = 0.5 * (g.min() + g.max());
+        let points = &self.detection_points;
+        let direction = match fit_plane(points) {
+            Some(plane) if plane.normal.dot(centre - plane.centre) < 0.0 => -plane.normal,
+            Some(plane) => plane.normal,
+            None if points.is_empty() => DVec3::Z,
+            None => centre - points.iter().copied().sum::<DVec3>() / points.len() as f64,
+        };
+        DepthAxis::nearest(direction).unwrap_or(DepthAxis::Z)
+    }
+
+    /// This input with its surface prior (and the coarse fit's) looking along the
+    /// relay's depth axis, its columns the volume's voxel pitch across the two others.
+    fn oriented(mut self) -> Self {
+        let axis = self.depth_axis();
+        let voxel = self.settings.volume.voxel();
+        let cell = axis.lateral().map(|a| voxel[a]).into_iter().fold(0.0, f64::max);
+        let train = &mut self.settings.train;
+        let coarse = train.coarse.as_mut().and_then(|c| c.surface.as_mut());
+        for prior in train.surface.as_mut().into_iter().chain(coarse) {
+            if prior.axis != axis {
+                prior.axis = axis;
+                prior.cell = cell;
+            }
+        }
+        self
+    }
+}
+
 /// A finished reconstruction.
 pub struct ReconResult {
     /// The volume.
@@ -51,6 +89,8 @@ pub struct ReconResult {
     pub timings: Vec<(String, f64)>,
     /// Where the synthesis and the solver ran (`[compute] device`).
     pub device: DeviceInfo,
+    /// The axis the depth map looks along ([`ReconInput::depth_axis`]).
+    pub depth_axis: DepthAxis,
 }
 
 /// Opens the device `[compute] device` asks for, and says which it is.
@@ -137,6 +177,7 @@ impl Fit {
     /// plane fits (fewer than three points, all in a line) is refused before the laser
     /// goes on, not after the capture and the fit.
     pub(crate) fn new(input: ReconInput) -> Result<Fit, PipelineError> {
+        let input = input.oriented();
         if input.settings.method == Method::Gtr {
             virtual_relay(&input)?;
         }
@@ -369,6 +410,7 @@ fn finish_gtr(
     };
     Ok(ReconResult {
         device,
+        depth_axis: input.depth_axis(),
         volume,
         cloud: Some(trainer.cloud().clone()),
         train: Some(summary),
@@ -449,6 +491,7 @@ pub fn reconstruct(
     if input.set.is_empty() {
         return Err(ReconError::Empty.into());
     }
+    let input = input.oriented();
     let s = &input.settings;
     let result = match s.method {
         Method::Gtr => {
@@ -478,6 +521,7 @@ pub fn reconstruct(
             let volume = solve_on(kind, &input.set, &s.volume, &s.solvers, s.compute, &mut compute)?;
             Ok(ReconResult {
                 device: compute.info(),
+                depth_axis: input.depth_axis(),
                 volume,
                 cloud: None,
                 train: None,
@@ -511,4 +555,79 @@ fn finite(result: ReconResult) -> Result<ReconResult, PipelineError> {
         );
     }
     Ok(result)
+}
+
+#[cfg(test)]
+mod tests {
+    use periscope_recon::gtr::SurfacePrior;
+    use periscope_recon::{DepthAxis, TimeAxis, TransientSet, VolumeGrid};
+
+    use super::*;
+    use crate::plan::default_recon;
+
+    /// A 5 × 4 grid of detection points on the plane through `origin` spanned by `u`
+    /// and `v`, and settings over `volume` with the surface prior on (and the coarse
+    /// fit's).
+    fn input(origin: DVec3, u: DVec3, v: DVec3, volume: VolumeGrid) -> ReconInput {
+        let mut settings = default_recon(volume);
+        let prior = SurfacePrior {
+            spread: 0.02,
+            cell: 0.5,
+            axis: DepthAxis::Z,
+        };
+        settings.train.surface = Some(prior);
+        if let Some(coarse) = settings.train.coarse.as_mut() {
+            coarse.surface = Some(prior);
+        }
+        let points = (0..20)
+            .map(|i| origin + u * (i % 5) as f64 * 0.1 + v * (i / 5) as f64 * 0.1)
+            .collect();
+        ReconInput {
+            settings,
+            set: TransientSet::new(TimeAxis {
+                start: 0.0,
+                width: 0.01,
+                bins: 64,
+            })
+            .unwrap(),
+            detection_points: points,
+            viewpoint: origin,
+        }
+    }
+
+    /// A Zaragoza wall (the x–z plane, its scene at −y) gives the depth axis −y, and
+    /// the surface prior's columns run along y, a voxel of x and z across; a wall
+    /// facing +z keeps z.
+    #[test]
+    fn the_depth_axis_and_the_prior_follow_the_relays_normal() {
+        let volume = VolumeGrid::new([-0.4, 0.4], [-1.0, -0.1], [-0.3, 0.3], [16, 30, 20]).unwrap();
+        let wall = input(DVec3::new(-0.2, 0.0, -0.15), DVec3::X, DVec3::Z, volume);
+        let want = DepthAxis {
+            axis: 1,
+            positive: false,
+        };
+        assert_eq!(wall.depth_axis(), want);
+        let oriented = wall.oriented();
+        let t = &oriented.settings.train;
+        let priors = [t.surface, t.coarse.and_then(|c| c.surface)];
+        for prior in priors.into_iter().flatten() {
+            assert_eq!(prior.axis, want);
+            assert!(
+                (prior.cell - 0.05).abs() < 1e-12,
+                "x's voxel 0.05 m, z's 0.03 m: {}",
+                prior.cell
+            );
+        }
+        // The normal's sign comes from the volume, not from the order of the points.
+        let flipped = input(DVec3::new(-0.2, 0.0, -0.15), DVec3::Z, DVec3::X, volume);
+        assert_eq!(flipped.depth_axis(), want);
+        // Our instrument's wall, facing +z.
+        let ours = VolumeGrid::new([-0.5, 0.5], [-0.5, 0.5], [0.2, 1.2], [20, 20, 20]).unwrap();
+        let wall = input(DVec3::new(-0.2, -0.15, 0.0), DVec3::X, DVec3::Y, ours);
+        assert_eq!(wall.depth_axis(), DepthAxis::Z);
+        // Points in a line fit no plane: the direction to the volume decides.
+        let mut line = input(DVec3::new(-0.2, 0.0, 0.0), DVec3::X, DVec3::ZERO, volume);
+        line.detection_points.truncate(5);
+        assert_eq!(line.depth_axis(), want);
+    }
 }

@@ -550,11 +550,13 @@ pub(crate) fn recon_settings(
             ));
         }
     };
-    // One surface per pixel of the volume's image.
+    // One surface per pixel of the volume's image: along z until the reconstruction
+    // sees the relay (`ReconInput::depth_axis` turns it to face the relay's normal).
     let prior = |spread: f64| {
         (spread > 0.0).then(|| SurfacePrior {
             spread,
             cell: volume.voxel()[0].max(volume.voxel()[1]),
+            axis: Default::default(),
         })
     };
     let mut train = TrainConfig {
@@ -971,7 +973,13 @@ mod tests {
     #[test]
     fn a_coarse_capture_takes_what_the_plan_leaves_unset() {
         let read = |text: &str| read_gtr(text).unwrap().train;
-        let prior = |spread| Some(SurfacePrior { spread, cell: 0.125 });
+        let prior = |spread| {
+            Some(SurfacePrior {
+                spread,
+                cell: 0.125,
+                axis: Default::default(),
+            })
+        };
         // Unset: batches of 4 without the prior, or 8 with it on a coarse capture;
         // half the primitives at the start, or all of them on a coarse capture or in a
         // plan's own epochs.

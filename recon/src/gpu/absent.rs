@@ -81,7 +81,7 @@ pub fn fit_steps(
     _: &mut dyn FnMut(usize) -> Step,
     _: &TimeAxis,
     _: &RenderOptions,
-    _: Option<&[[f64; 2]]>,
+    _: Option<(usize, &[[f64; 2]])>,
     _: &dyn Fn() -> bool,
 ) -> Result<Steps, GpuError> {
     match gpu.never {}

@@ -230,6 +230,10 @@ struct UpdateParams {
     prims: u32,
     /// The step's pairs, whose losses scale the surface prior's gradient; 0: no prior.
     prior_pairs: u32,
+    /// The centre's coordinate the prior pulls (its depth axis): 0, 1 or 2.
+    prior_axis: u32,
+    /// WGSL rounds the struct's size up to its 16-byte alignment.
+    _pad: [u32; 3],
 }
 
 /// Steps a submission records: the fit checks `stop` and reads the losses back
@@ -245,9 +249,10 @@ const STEPS_PER_SUBMISSION: usize = 32;
 /// between steps but each batch's loss, 32 steps to a submission; `state` is read
 /// back at the end. When `stop()` turns true between submissions, the steps end
 /// there: the losses say how many were taken, and `state` holds the parameters after
-/// them. `prior`, one `[z̄, c]` a primitive ([`crate::gtr::SurfacePrior`]'s terms),
-/// adds the surface prior's gradient c · L · (z − z̄) to each step's, L the step's
-/// loss, as the CPU's steps do with the terms of their own step.
+/// them. `prior`, the depth axis (0, 1, 2: x, y, z) and one `[z̄, c]` a primitive
+/// ([`crate::gtr::SurfacePrior`]'s terms), adds the surface prior's gradient
+/// c · L · (z − z̄) to each step's, z the centre's coordinate along that axis and L the
+/// step's loss, as the CPU's steps do with the terms of their own step.
 #[allow(clippy::too_many_arguments)]
 pub fn fit_steps(
     gpu: &Gpu,
@@ -258,11 +263,12 @@ pub fn fit_steps(
     step: &mut dyn FnMut(usize) -> Step,
     axis: &TimeAxis,
     opt: &RenderOptions,
-    prior: Option<&[[f64; 2]]>,
+    prior: Option<(usize, &[[f64; 2]])>,
     stop: &dyn Fn() -> bool,
 ) -> Result<Steps, GpuError> {
     let (k, bins) = (kernels.len(), axis.bins);
-    if let Some(prior) = prior {
+    if let Some((a, prior)) = prior {
+        assert!(a < 3, "the prior's axis is x, y or z");
         assert_eq!(prior.len(), k, "the prior's terms, one a primitive");
     }
     assert_eq!(state.raw.len(), RAW * k, "{RAW} raw parameters a primitive");
@@ -280,7 +286,7 @@ pub fn fit_steps(
         let mean = gpu.upload("running mean", state.mean.as_deref().unwrap_or(&[]));
         let skipped = gpu.upload("skipped entries", &[0u32; 4]);
         let prior_terms: Vec<[f32; 2]> = match prior {
-            Some(terms) => terms.iter().map(|&[m, c]| [m as f32, c as f32]).collect(),
+            Some((_, terms)) => terms.iter().map(|&[m, c]| [m as f32, c as f32]).collect(),
             None => vec![[0.0; 2]],
         };
         let prior_terms = gpu.upload("surface prior", &prior_terms);
@@ -320,6 +326,8 @@ pub fn fit_steps(
                         mean_weight: s.mean_of.map_or(0.0, |n| 1.0 / n.max(1) as f32),
                         prims: k as u32,
                         prior_pairs: if prior.is_some() { b as u32 } else { 0 },
+                        prior_axis: prior.map_or(2, |(a, _)| a as u32),
+                        _pad: [0; 3],
                     };
                     let uniform = gpu.uniform("update parameters", &params);
                     gpu.dispatch(
@@ -412,6 +420,7 @@ mod tests {
     };
     use crate::roi::RoiBox;
     use crate::transient::TransientSet;
+    use crate::volume::DepthAxis;
 
     /// 200 primitives of every size and orientation, 12 non-confocal and confocal
     /// pairs, and "measurements" that are a distorted copy of their render (peak about
@@ -517,16 +526,39 @@ mod tests {
             Some(SurfacePrior {
                 spread: 0.005,
                 cell: 0.03,
+                axis: DepthAxis::Z,
+            }),
+        );
+    }
+
+    /// The same with the prior's columns along y, as for a relay facing −y (a
+    /// Zaragoza wall): the shader pulls the coordinate the prior names, not z
+    /// (`update.wgsl` pulling z whatever the axis fails this).
+    #[test]
+    fn steps_resident_on_the_gpu_take_the_surface_priors_gradient_along_y() {
+        let Some(gpu) = testing::gpu("steps_resident_on_the_gpu_take_the_surface_priors_gradient_along_y")
+        else {
+            return;
+        };
+        resident_steps_against_the_cpus(
+            &gpu,
+            Some(SurfacePrior {
+                spread: 0.005,
+                cell: 0.03,
+                axis: DepthAxis {
+                    axis: 1,
+                    positive: false,
+                },
             }),
         );
     }
 
     /// The surface prior's gradient at fixed `terms` ([`SurfacePrior::terms`]) on the
     /// CPU, in f64: what `SurfacePrior::add_gradient` adds with the terms of its own step.
-    fn add_prior(cloud: &GaussianCloud, terms: &[[f64; 2]], loss: f64, grads: &mut RawGrads) {
+    fn add_prior(cloud: &GaussianCloud, (a, terms): (usize, &[[f64; 2]]), loss: f64, grads: &mut RawGrads) {
         for (i, k) in cloud.kernels().iter().enumerate() {
             let [mean, c] = terms[i];
-            grads.centres[3 * i + 2] += c * loss * (k.x.z - mean) * cloud.slopes(i).centre.z;
+            grads.centres[3 * i + a] += c * loss * (k.x[a] - mean) * cloud.slopes(i).centre[a];
         }
     }
 
@@ -560,7 +592,7 @@ mod tests {
                         adam: &mut AdamW,
                         i: usize,
                         mean: Option<(&mut GaussianCloud, usize)>,
-                        terms: Option<&[[f64; 2]]>| {
+                        terms: Option<(usize, &[[f64; 2]])>| {
             let mut grads = RawGrads::default();
             let kernels = cloud.kernels();
             let loss = batch_loss_grad(cloud, &kernels, &set, &batches[i], &opt, &mut grads);
@@ -576,29 +608,32 @@ mod tests {
             cpu_step(&mut warm, &mut adam, i, None, None);
         }
         let (start, adam_start) = (warm.clone(), adam.clone());
-        let terms = prior.map(|p| p.terms(&start.kernels(), start.roi()).expect("the prior's terms"));
-        if let Some(terms) = &terms {
+        let terms = prior.map(|p| {
+            let terms = p.terms(&start.kernels(), start.roi()).expect("the prior's terms");
+            (p.axis.axis, terms)
+        });
+        let terms = terms.as_ref().map(|(a, t)| (*a, t.as_slice()));
+        if let Some(terms) = terms {
             // The prior's gradient is a large share of the depths' on this scene.
             let mut data = RawGrads::default();
             let loss = batch_loss_grad(&start, &start.kernels(), &set, &batches[3], &opt, &mut data);
             let mut with = data.clone();
             add_prior(&start, terms, loss, &mut with);
-            let z = |g: &RawGrads| g.centres.iter().skip(2).step_by(3).copied().collect::<Vec<_>>();
+            let z = |g: &RawGrads| {
+                g.centres
+                    .iter()
+                    .skip(terms.0)
+                    .step_by(3)
+                    .copied()
+                    .collect::<Vec<_>>()
+            };
             let share = relative_l2(&z(&with), &z(&data));
             eprintln!("the prior changes the depths' gradient by {share:.2} relative L2");
             assert!(share > 0.3, "{share}");
         }
         let mut cpu_mean = warm.clone();
         let cpu_losses: Vec<f64> = (3..6)
-            .map(|i| {
-                cpu_step(
-                    &mut warm,
-                    &mut adam,
-                    i,
-                    Some((&mut cpu_mean, i - 2)),
-                    terms.as_deref(),
-                )
-            })
+            .map(|i| cpu_step(&mut warm, &mut adam, i, Some((&mut cpu_mean, i - 2)), terms))
             .collect();
 
         let mut state = Resident::of(&start, &adam_start, Some(&start));
@@ -623,7 +658,7 @@ mod tests {
             &mut step,
             set.axis(),
             &opt,
-            terms.as_deref(),
+            terms,
             &|| false,
         )
         .unwrap();

@@ -27,6 +27,8 @@ struct Params {
     // The step's pairs, whose losses (after the gradients in `grads`) scale the
     // surface prior's gradient; 0: no prior.
     prior_pairs: u32,
+    // The centre's coordinate the prior pulls (its depth axis): 0, 1 or 2.
+    prior_axis: u32,
 }
 
 @group(0) @binding(0) var<uniform> p: Params;
@@ -40,7 +42,7 @@ struct Params {
 @group(0) @binding(7) var<storage, read_write> skipped: array<atomic<u32>>;
 // The surface prior's terms (recon/src/gtr/train.rs, `SurfacePrior::terms`), one a
 // primitive: its column's mean depth z̄ and c, so that the step adds c · L · (z − z̄)
-// to the gradient of its centre's z, L the step's loss.
+// to the gradient of its centre's coordinate z along `prior_axis`, L the step's loss.
 @group(0) @binding(8) var<storage, read> prior: array<vec2<f32>>;
 
 const RAW: u32 = 11u;
@@ -100,16 +102,18 @@ fn main(@builtin(global_invocation_id) id: vec3<u32>, @builtin(num_workgroups) n
     let lmin = p.centre.w;
     let lspan = p.half.w;
 
-    // The physical gradient of the centre's z, with the surface prior's where it is on
-    // and the step's loss is positive and finite (`add_prior_gradient`).
-    var gz = grads[go + 2u];
+    // The physical gradient of the centre's coordinate along the prior's axis, with the
+    // surface prior's where it is on and the step's loss is positive and finite
+    // (`SurfacePrior::add_gradient`).
+    let pa = min(p.prior_axis, 2u);
+    var gz = grads[go + pa];
     if (p.prior_pairs > 0u) {
         var loss = 0.0;
         for (var b = 0u; b < p.prior_pairs; b++) {
             loss += grads[p.prims * 16u + b];
         }
         if (finite(loss) && loss > 0.0) {
-            let z = p.centre.z + p.half.z * tanh_f(th[2]);
+            let z = p.centre[pa] + p.half[pa] * tanh_f(th[pa]);
             gz += prior[k].y * loss * (z - prior[k].x);
         }
     }
@@ -118,7 +122,7 @@ fn main(@builtin(global_invocation_id) id: vec3<u32>, @builtin(num_workgroups) n
     var g: array<f32, 11>;
     for (var j = 0u; j < 3u; j++) {
         let t = tanh_f(th[j]);
-        g[j] = select(grads[go + j], gz, j == 2u) * (p.half[j] * (1.0 - t * t));
+        g[j] = select(grads[go + j], gz, j == pa) * (p.half[j] * (1.0 - t * t));
         let sg = sigmoid(th[3u + j]);
         let s = exp(lmin + lspan * sg);
         g[3u + j] = grads[go + 12u + j] * (s * lspan * sg * (1.0 - sg));

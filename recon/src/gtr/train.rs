@@ -29,6 +29,7 @@ use super::render::{batch_loss_grad_with, render_set};
 use crate::gpu::{Gpu, GpuError};
 use crate::roi::RoiBox;
 use crate::transient::{TransientError, TransientSet};
+use crate::volume::DepthAxis;
 
 /// Primitives a parallel work item of the kernels' refresh maps (four at a time).
 const REFRESH_CHUNK: usize = 256;
@@ -339,8 +340,9 @@ impl CoarseFit {
 /// as well by primitives spread in depth along a column as by primitives spread
 /// across the surface at one depth: the former is what an unconstrained fit finds on
 /// a mannequin beside two backs, its torso's light in a column of lumps at the
-/// centre. The prior pulls each primitive's depth (the ROI's z) towards the
-/// weight-weighted mean depth of its column (cells of `cell` metres across x and y),
+/// centre. The prior pulls each primitive's depth (its coordinate along `axis`, z for a
+/// relay facing +z) towards the weight-weighted mean depth of its column (cells of
+/// `cell` metres across the two other axes),
 /// as the gradient of
 ///
 /// P = L̄ / spread² · Σ_cells Σ_{i ∈ cell} w_i (z_i − z̄_cell)² / Σ_i w_i,
@@ -356,9 +358,13 @@ pub struct SurfacePrior {
     /// The depth spread within a column that the prior weighs as much as the data,
     /// metres; smaller pulls harder.
     pub spread: f64,
-    /// The columns' width across x and y, metres (the daemon takes the volume's
-    /// lateral voxel pitch: one surface per pixel of its image).
+    /// The columns' width across the two other axes, metres (the daemon takes the
+    /// volume's lateral voxel pitch: one surface per pixel of its image).
     pub cell: f64,
+    /// The depth axis the columns run along: the volume's axis nearest the relay's
+    /// normal (the daemon sets it from the relay; z when left out).
+    #[serde(default)]
+    pub axis: DepthAxis,
 }
 
 impl SurfacePrior {
@@ -374,15 +380,16 @@ impl SurfacePrior {
             return None;
         }
         let lo = roi.centre - roi.half;
+        let (d, [ca, ra]) = (self.depth_index(), self.axis.lateral());
         // Columns numbered row by row; sorted by column (and index within one), so a
         // column's sums add its primitives in their order, whatever the grid's size:
         // no array of columns, which a fine wide volume would make large.
         let cols =
             |a: usize| ((2.0 * roi.half[a] / self.cell).ceil()).clamp(1.0, f64::from(1u32 << 30)) as u64;
-        let nx = cols(0);
+        let nx = cols(ca);
         let column = |k: &Kernel| {
             let at = |a: usize, n: u64| (((k.x[a] - lo[a]) / self.cell).floor().max(0.0) as u64).min(n - 1);
-            at(1, cols(1)) * nx + at(0, nx)
+            at(ra, cols(ra)) * nx + at(ca, nx)
         };
         let weights: Vec<f64> = kernels.iter().map(Kernel::weight).collect();
         let total: f64 = weights.iter().sum();
@@ -400,19 +407,24 @@ impl SurfacePrior {
             let (mut w, mut wz) = (0.0, 0.0);
             for &(_, i) in members {
                 w += weights[i as usize];
-                wz += weights[i as usize] * kernels[i as usize].x.z;
+                wz += weights[i as usize] * kernels[i as usize].x[d];
             }
             for &(_, i) in members {
-                let z = kernels[i as usize].x.z;
+                let z = kernels[i as usize].x[d];
                 means[i as usize] = if w > 0.0 { wz / w } else { z };
             }
         }
         Some((means, weights, total))
     }
 
+    /// The index of the depth axis among a centre's coordinates: 0, 1 or 2.
+    pub(crate) fn depth_index(&self) -> usize {
+        self.axis.axis.min(2)
+    }
+
     /// Each primitive's term of the prior's gradient, `[z̄, c]`: its column's mean
     /// depth z̄ and c = 2 w / (spread² Σ w), so that a mini-batch of loss L adds
-    /// c · L · (z − z̄) to ∂/∂z of its centre (what [`SurfacePrior::add_gradient`] adds
+    /// c · L · (z − z̄) to ∂/∂z of its centre (z its coordinate along the depth axis) (what [`SurfacePrior::add_gradient`] adds
     /// with each step's terms); `None` where the prior's sizes are not usable. What the
     /// GPU's steps take, once an epoch ([`crate::gpu::fit_steps`]).
     pub(crate) fn terms(&self, kernels: &[Kernel], roi: &RoiBox) -> Option<Vec<[f64; 2]>> {
@@ -428,7 +440,7 @@ impl SurfacePrior {
     }
 
     /// Adds the prior's gradient for a mini-batch of loss `loss` to `grads` (the
-    /// centres' z entries, through the maps' slopes); returns P.
+    /// centres' entries along the depth axis, through the maps' slopes); returns P.
     pub(crate) fn add_gradient(
         &self,
         kernels: &[Kernel],
@@ -444,11 +456,12 @@ impl SurfacePrior {
             return 0.0;
         }
         let lambda = loss / (self.spread * self.spread * total);
+        let a = self.depth_index();
         let mut p = 0.0;
         for (i, k) in kernels.iter().enumerate() {
-            let d = k.x.z - means[i];
+            let d = k.x[a] - means[i];
             p += lambda * weights[i] * d * d;
-            grads.centres[3 * i + 2] += 2.0 * lambda * weights[i] * d * slopes[i].centre.z;
+            grads.centres[3 * i + a] += 2.0 * lambda * weights[i] * d * slopes[i].centre[a];
         }
         p
     }
@@ -1760,10 +1773,10 @@ impl Trainer {
         };
         // The surface prior's terms at the epoch's start: the steps take its gradient
         // with these column means and weights.
-        let prior = self
-            .config
-            .surface
-            .and_then(|p| p.terms(&self.kernels, self.cloud.roi()));
+        let prior = self.config.surface.and_then(|p| {
+            p.terms(&self.kernels, self.cloud.roi())
+                .map(|terms| (p.depth_index(), terms))
+        });
         let done = crate::gpu::fit_steps(
             gpu,
             &self.kernels,
@@ -1773,7 +1786,7 @@ impl Trainer {
             &mut step,
             self.data.axis(),
             &self.options,
-            prior.as_deref(),
+            prior.as_ref().map(|(axis, terms)| (*axis, terms.as_slice())),
             &|| cancel.is_cancelled(),
         )?;
         let taken = done.losses.len();
@@ -2300,12 +2313,35 @@ mod surface_tests {
         (cloud, kernels, slopes)
     }
 
+    /// The depth axes a relay may face along: +z (our instrument's walls), −y (a
+    /// Zaragoza wall) and +x.
+    const AXES: [DepthAxis; 3] = [
+        DepthAxis::Z,
+        DepthAxis {
+            axis: 1,
+            positive: false,
+        },
+        DepthAxis {
+            axis: 0,
+            positive: true,
+        },
+    ];
+
     #[test]
     fn the_surface_priors_gradient_matches_finite_differences() {
-        let prior = SurfacePrior {
-            spread: 0.02,
-            cell: 0.1,
-        };
+        for axis in AXES {
+            priors_gradient_matches_finite_differences(SurfacePrior {
+                spread: 0.02,
+                cell: 0.1,
+                axis,
+            });
+        }
+    }
+
+    /// `prior`'s gradient on a cloud scattered through a box against central
+    /// differences of P, along its axis only.
+    fn priors_gradient_matches_finite_differences(prior: SurfacePrior) {
+        let a = prior.depth_index();
         let (cloud, kernels, slopes) = cloud(40);
         let roi = *cloud.roi();
         let loss = 0.3;
@@ -2321,7 +2357,7 @@ mod surface_tests {
                 .centres
                 .iter()
                 .enumerate()
-                .all(|(j, g)| j % 3 == 2 || *g == 0.0)
+                .all(|(j, g)| j % 3 == a || *g == 0.0)
         );
         assert!(grads.scales.iter().chain(&grads.albedo).all(|g| *g == 0.0));
         let value = |cloud: &GaussianCloud| {
@@ -2333,10 +2369,10 @@ mod surface_tests {
         let mut moved = 0;
         for i in 0..cloud.len() {
             let (mut plus, mut minus) = (cloud.clone(), cloud.clone());
-            plus.centres[3 * i + 2] += h;
-            minus.centres[3 * i + 2] -= h;
+            plus.centres[3 * i + a] += h;
+            minus.centres[3 * i + a] -= h;
             let fd = (value(&plus) - value(&minus)) / (2.0 * h);
-            let g = grads.centres[3 * i + 2];
+            let g = grads.centres[3 * i + a];
             assert!(
                 (fd - g).abs() <= 1e-6 * p.max(1e-12) + 1e-4 * g.abs(),
                 "primitive {i}: {g} against {fd}"
@@ -2348,10 +2384,17 @@ mod surface_tests {
 
     #[test]
     fn the_surface_prior_leaves_a_column_at_one_depth_alone() {
-        let prior = SurfacePrior {
-            spread: 0.02,
-            cell: 0.1,
-        };
+        for axis in AXES {
+            leaves_a_column_at_one_depth_alone(SurfacePrior {
+                spread: 0.02,
+                cell: 0.1,
+                axis,
+            });
+        }
+    }
+
+    fn leaves_a_column_at_one_depth_alone(prior: SurfacePrior) {
+        let a = prior.depth_index();
         let (mut cloud, kernels, _) = cloud(40);
         let roi = *cloud.roi();
         let spread = |kernels: &[Kernel]| {
@@ -2359,7 +2402,7 @@ mod surface_tests {
             kernels
                 .iter()
                 .zip(&means)
-                .map(|(k, m)| (k.x.z - m).abs())
+                .map(|(k, m)| (k.x[a] - m).abs())
                 .fold(0.0, f64::max)
         };
         let before = spread(&kernels);
@@ -2367,7 +2410,7 @@ mod surface_tests {
         // Every primitive moved to its column's mean depth.
         let (means, _, _) = prior.column_means(&kernels, &roi).unwrap();
         for (i, m) in means.iter().enumerate() {
-            cloud.centres[3 * i + 2] = ((m - roi.centre.z) / roi.half.z).atanh();
+            cloud.centres[3 * i + a] = ((m - roi.centre[a]) / roi.half[a]).atanh();
         }
         let after = spread(&cloud.kernels());
         assert!(after < 1e-9, "{after} m between a column's depths at their mean");

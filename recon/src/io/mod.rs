@@ -207,16 +207,16 @@ fn write_png(
     })
 }
 
-/// Depth PNG: near (small z) is dark purple, far is yellow, masked pixels black.
+/// Depth PNG: near the relay is dark purple, far is yellow, masked pixels black; row 0
+/// is the largest coordinate along the map's rows ([`DepthMap::distance_fraction`]).
 pub fn write_depth_png(path: &Path, map: &DepthMap) -> Result<(), IoError> {
     let [nx, ny] = map.shape;
-    let span = (map.z[1] - map.z[0]).max(f64::MIN_POSITIVE);
     let mut pixels = Vec::with_capacity(nx * ny * 3);
     for row in (0..ny).rev() {
         for ix in 0..nx {
             let d = map.depth[row * nx + ix];
             if d.is_finite() {
-                pixels.extend(colour((d as f64 - map.z[0]) / span));
+                pixels.extend(colour(map.distance_fraction(d as f64)));
             } else {
                 pixels.extend([0, 0, 0]);
             }
