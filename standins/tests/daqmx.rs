@@ -291,6 +291,52 @@ fn a_stalled_run_loses_the_laser_to_the_hardware_watchdog_without_an_estop() {
     laser.set_emission(false).unwrap();
 }
 
+/// A watchdog that expired keeps the gate line at its expiration state after its task
+/// is cleared, as NI-DAQmx keeps a device's expiration: a later program that drives
+/// the line without a watchdog of its own is refused with what to do, and one that
+/// starts a watchdog (which clears the expiration) switches on.
+#[test]
+fn an_expired_watchdog_holds_the_line_after_its_task_is_gone() {
+    let _one = exclusive();
+    let tmp = tempfile::tempdir().unwrap();
+    let (s, config) = bench(tmp.path(), "");
+    let mut laser = DaqLaser::open(laser_settings(&config)).unwrap();
+    laser.watch_progress(Progress::new(Duration::from_millis(50)));
+    laser.set_emission(true).unwrap();
+    let t = Instant::now();
+    while s.emission() {
+        assert!(t.elapsed() < Duration::from_secs(2), "the watchdog never expired");
+        std::thread::sleep(Duration::from_millis(5));
+    }
+    // The program ends without clearing the expiration: its tasks are cleared.
+    drop(laser);
+    // Another program, configured without the hardware watchdog, on the same device.
+    let unguarded = tmp.path().join("unguarded.toml");
+    std::fs::write(
+        &unguarded,
+        lab_text(&s.path(), "daq-watchdog = false\naccept-no-watchdog = true\n"),
+    )
+    .unwrap();
+    let unguarded = InstrumentConfig::load(&unguarded).unwrap();
+    let mut laser = DaqLaser::open(laser_settings(&unguarded)).unwrap();
+    let e = laser.set_emission(true).unwrap_err();
+    let text = e.to_string();
+    assert!(
+        text.contains("DAQmxErrorWriteFailedBecauseWatchdogExpired")
+            && text.contains("daq-watchdog = true")
+            && text.contains("Reset Device"),
+        "{text}"
+    );
+    assert!(!s.emission(), "the expired line went high");
+    drop(laser);
+    // With the watchdog, starting its task clears the expiration: on.
+    let mut laser = DaqLaser::open(laser_settings(&config)).unwrap();
+    laser.watch_progress(Progress::new(Duration::from_secs(60)));
+    laser.set_emission(true).unwrap();
+    assert!(s.emission());
+    laser.set_emission(false).unwrap();
+}
+
 #[test]
 fn without_a_hardware_watchdog_emission_needs_a_heartbeat_or_the_configs_acceptance() {
     let _one = exclusive();
@@ -457,6 +503,11 @@ fn error_codes_become_kinds_with_the_librarys_words() {
             "DAQmxErrorSampleValueOutOfRange",
         ),
         (
+            error::INVALID_AO_DATA_WRITE,
+            ErrorKind::OutOfRange,
+            "DAQmxErrorInvalidAODataWrite",
+        ),
+        (
             error::OPERATION_TIMED_OUT,
             ErrorKind::Timeout,
             "DAQmxErrorOperationTimedOut",
@@ -476,8 +527,19 @@ fn error_codes_become_kinds_with_the_librarys_words() {
         let d: periscope_drivers::DeviceError = e.into();
         assert_eq!(d.kind(), kind);
     }
-    // A channel the device does not have: refused when the task is made.
+    // A second driver on the same pair while the first holds it: its task's name is
+    // taken, as NI-DAQmx refuses a duplicate task (another daemon on the device).
+    let e = DaqGalvo::open(settings.clone()).err().unwrap();
+    assert_eq!(e.kind(), ErrorKind::Busy, "{e}");
+    assert!(
+        e.to_string().contains("DAQmxErrorDuplicateTask")
+            && e.to_string().contains("another Periscope daemon"),
+        "{e}"
+    );
+    // A channel the device does not have: refused when the task is made (a pair of
+    // another name: this one's task is still open).
     let mut bad = settings.clone();
+    bad.name = "spare".into();
     bad.channels[1] = "Dev1/ao7".into();
     let e = DaqGalvo::open(bad).err().unwrap();
     assert_eq!(e.kind(), ErrorKind::OutOfRange, "{e}");

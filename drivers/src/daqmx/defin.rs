@@ -48,6 +48,12 @@ pub mod error {
     pub const INVALID_PHYS_CHAN_NAME: i32 = -201237;
     /// `DAQmxErrorSampleValueOutOfRange`.
     pub const SAMPLE_VALUE_OUT_OF_RANGE: i32 = -200490;
+    /// `DAQmxErrorInvalidAODataWrite`: an analog output value outside the range its
+    /// channel was created with (what `DAQmxWriteAnalogF64` answers).
+    pub const INVALID_AO_DATA_WRITE: i32 = -200561;
+    /// `DAQmxErrorDuplicateTask`: a task of that name already exists (in this or
+    /// another program).
+    pub const DUPLICATE_TASK: i32 = -200089;
     /// `DAQmxErrorTimeoutExceeded`.
     pub const TIMEOUT_EXCEEDED: i32 = -200221;
     /// `DAQmxErrorOperationTimedOut`.

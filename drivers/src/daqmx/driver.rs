@@ -157,17 +157,22 @@ impl AoGalvoSettings {
         ]
     }
 
-    /// The lowest and highest voltage any angle within the limits needs (the range
-    /// the channels are created with), or `None` if it leaves the card's ±10 V.
+    /// The lowest and highest voltage any angle within the limits or the park
+    /// position needs (the range the channels are created with: NI-DAQmx refuses a
+    /// write outside it, and the pair parks at (0°, 0°) whatever the limits), or
+    /// `None` if it leaves the card's ±10 V.
     pub fn volt_range(&self) -> Option<(f64, f64)> {
         let mut lo = f64::INFINITY;
         let mut hi = f64::NEG_INFINITY;
-        for x in self.limits.x {
-            for y in self.limits.y {
-                for v in self.volts(OpticalAngles { x, y }) {
-                    lo = lo.min(v);
-                    hi = hi.max(v);
-                }
+        let corners = self
+            .limits
+            .x
+            .into_iter()
+            .flat_map(|x| self.limits.y.map(|y| OpticalAngles { x, y }));
+        for angles in corners.chain([PARK]) {
+            for v in self.volts(angles) {
+                lo = lo.min(v);
+                hi = hi.max(v);
             }
         }
         (lo >= -MAX_AO_VOLTS && hi <= MAX_AO_VOLTS && lo < hi).then_some((lo, hi))
@@ -545,5 +550,38 @@ impl GalvoPair for DaqGalvo {
 
     fn emergency_park(&self) -> EmergencyPark {
         EmergencyPark::new(DaqPark(Arc::downgrade(&self.out), self.out.device.clone()))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Limits that leave out 0° still give channels that can park: NI-DAQmx refuses a
+    /// write outside the range a channel was created with, and the pair parks at 0°.
+    #[test]
+    fn the_channels_range_holds_the_park_position_whatever_the_limits() {
+        let settings = |x: [f64; 2]| AoGalvoSettings {
+            name: "laser".into(),
+            library: PathBuf::new(),
+            channels: ["Dev1/ao0".into(), "Dev1/ao1".into()],
+            volts_per_deg: [0.4, 0.4],
+            offsets_v: [0.1, -0.1],
+            limits: AngleLimits {
+                x: x.map(f64::to_radians),
+                y: [-5f64.to_radians(), 5f64.to_radians()],
+            },
+            max_slew_deg_per_ms: 2.0,
+            settle: Duration::from_millis(1),
+        };
+        let (lo, hi) = settings([5.0, 20.0]).volt_range().unwrap();
+        let park = settings([5.0, 20.0]).volts(PARK);
+        for v in park {
+            assert!((lo..=hi).contains(&v), "park at {v} V outside {lo}..{hi} V");
+        }
+        assert!((hi - (0.1 + 0.4 * 20.0)).abs() < 1e-9, "{hi}");
+        // Limits around 0°: the corners alone, as before (x's −10° and +10°).
+        let (lo, hi) = settings([-10.0, 10.0]).volt_range().unwrap();
+        assert!((lo - (0.1 - 0.4 * 10.0)).abs() < 1e-9 && (hi - (0.1 + 0.4 * 10.0)).abs() < 1e-9);
     }
 }

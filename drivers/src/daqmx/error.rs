@@ -32,18 +32,29 @@ impl DaqError {
     /// error information, or the error string when that is empty).
     pub(crate) fn library(device: &str, call: &str, code: i32, text: &str) -> DaqError {
         let kind = kind_of(code);
-        let advice = match kind {
-            ErrorKind::Disconnected => {
-                "the DAQ device is gone or cannot be reached: check its cable and power, then `periscope devices`"
+        let advice = match (code, kind) {
+            (code::WRITE_FAILED_BECAUSE_WATCHDOG_EXPIRED, _) => {
+                "a hardware watchdog on this device expired (this program's, or an earlier one's) and holds the line at its \
+                 expiration state: starting a watchdog task clears it, so set `laser.daq-watchdog = true`, or reset the \
+                 device (NI MAX, Reset Device) and try again"
             }
-            ErrorKind::Busy => {
-                "another task or program holds these lines: close it (NI MAX test panels, another daemon)"
+            (code::DUPLICATE_TASK, _) => {
+                "a task of that name exists already: another Periscope daemon (or a test panel) has this device open; \
+                 close it"
             }
-            ErrorKind::OutOfRange => {
-                "the instrument config names a channel or a value the device refuses: check the channel names against `periscope devices`"
-            }
-            ErrorKind::Timeout => "the device did not complete the operation in time",
-            _ => "see NI-DAQmx's error reference for this code",
+            (_, kind) => match kind {
+                ErrorKind::Disconnected => {
+                    "the DAQ device is gone or cannot be reached: check its cable and power, then `periscope devices`"
+                }
+                ErrorKind::Busy => {
+                    "another task or program holds these lines: close it (NI MAX test panels, another daemon)"
+                }
+                ErrorKind::OutOfRange => {
+                    "the instrument config names a channel or a value the device refuses: check the channel names against `periscope devices`"
+                }
+                ErrorKind::Timeout => "the device did not complete the operation in time",
+                _ => "see NI-DAQmx's error reference for this code",
+            },
         };
         let text = if text.is_empty() { "(no description)" } else { text };
         DaqError {
@@ -73,12 +84,15 @@ pub fn kind_of(c: i32) -> ErrorKind {
         | code::DEV_CANNOT_BE_ACCESSED
         | code::INVALID_DEVICE_ID
         | code::PAL_USB_TRANSACTION_ERROR => ErrorKind::Disconnected,
-        code::RESOURCE_ALREADY_RESERVED | code::PAL_RESOURCE_RESERVED => ErrorKind::Busy,
+        code::RESOURCE_ALREADY_RESERVED | code::PAL_RESOURCE_RESERVED | code::DUPLICATE_TASK => {
+            ErrorKind::Busy
+        }
         code::INVALID_ATTRIBUTE_VALUE
         | code::MIN_NOT_LESS_THAN_MAX
         | code::PHYSICAL_CHAN_DOES_NOT_EXIST
         | code::INVALID_PHYS_CHAN_NAME
         | code::SAMPLE_VALUE_OUT_OF_RANGE
+        | code::INVALID_AO_DATA_WRITE
         | code::WRITE_NUM_CHANS_MISMATCH => ErrorKind::OutOfRange,
         code::TIMEOUT_EXCEEDED | code::OPERATION_TIMED_OUT => ErrorKind::Timeout,
         _ => ErrorKind::Device,

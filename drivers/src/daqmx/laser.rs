@@ -230,9 +230,10 @@ impl DaqLaser {
                 .create_task(&format!("periscope-{name}"))
                 .map_err(|c| fail("DAQmxCreateTask", c))?;
             lib.create_do_chan(task, line)
-                .and_then(|()| lib.start_task(task))
-                .map_err(|c| {
-                    let e = fail("DAQmxCreateDOChan", c);
+                .map_err(|c| ("DAQmxCreateDOChan", c))
+                .and_then(|()| lib.start_task(task).map_err(|c| ("DAQmxStartTask", c)))
+                .map_err(|(call, c)| {
+                    let e = fail(call, c);
                     let _ = lib.clear_task(task);
                     e
                 })?;
@@ -283,8 +284,8 @@ impl DaqLaser {
                 .map_err(|c| fail("DAQmxCreateTask", c))?;
             laser.interlock = Some(task);
             lib.create_di_chan(task, &l)
-                .and_then(|()| lib.start_task(task))
                 .map_err(|c| fail("DAQmxCreateDIChan", c))?;
+            lib.start_task(task).map_err(|c| fail("DAQmxStartTask", c))?;
         } else {
             warn!("laser.interlock-line is not set: the interlock is not read and counts as closed");
         }

@@ -96,6 +96,13 @@ pub(crate) struct Daq {
     diffuser_line: Option<String>,
     heartbeat_line: Option<String>,
     tasks: BTreeMap<usize, Task>,
+    /// Lines an expired watchdog task left in their expiration states when it was
+    /// cleared: NI-DAQmx keeps a device's expiration past the task until a watchdog
+    /// task starts on the device or the device is reset ("WriteDigChan-WatchdogTimer.c":
+    /// "If the watchdog timer expires it will stay in the expired state after
+    /// execution stops … Starting a watchdog task on the device also clears
+    /// expiration."). Writes to them fail as to a live expired task's.
+    expired_lines: Vec<String>,
     /// The voltage last written to each analog output.
     volts: BTreeMap<String, f64>,
     /// Writes that sent an arm outside the rig's hard limits (a driver bug: the
@@ -155,6 +162,7 @@ impl Daq {
             diffuser_line: lines.as_ref().and_then(|l| l.diffuser_line.clone()),
             heartbeat_line: lines.and_then(|l| l.heartbeat_line),
             tasks: BTreeMap::new(),
+            expired_lines: Vec::new(),
             volts: BTreeMap::new(),
             overdriven: 0,
             heartbeats: 0,
@@ -234,6 +242,11 @@ impl Daq {
     }
 
     pub(crate) fn create_task(&mut self, name: &str) -> Result<usize, Code> {
+        // Task names are unique among the tasks that exist (NI-DAQmx answers
+        // `DAQmxErrorDuplicateTask`); an empty name gets a unique one.
+        if !name.is_empty() && self.tasks.values().any(|t| t.name.eq_ignore_ascii_case(name)) {
+            return Err(error::DUPLICATE_TASK);
+        }
         let handle = NEXT_HANDLE.fetch_add(1, Ordering::Relaxed);
         let name = if name.is_empty() {
             format!("task{handle:#x}")
@@ -312,6 +325,13 @@ impl Daq {
         }
         let rig = self.rig.clone();
         let laser = self.laser_line.clone();
+        if matches!(
+            self.tasks.get(&handle).map(|t| &t.kind),
+            Some(Kind::Watchdog { .. })
+        ) {
+            // A watchdog task starting clears the device's expiration.
+            self.expired_lines.clear();
+        }
         let t = self.task(handle)?;
         t.started = true;
         if let Kind::Watchdog {
@@ -356,19 +376,28 @@ impl Daq {
 
     pub(crate) fn clear(&mut self, handle: usize) -> Result<(), Code> {
         self.stop(handle)?;
-        self.tasks.remove(&handle);
+        if let Some(Task {
+            kind: Kind::Watchdog { lines, clock, .. },
+            ..
+        }) = self.tasks.remove(&handle)
+            && clock.lock().unwrap_or_else(|p| p.into_inner()).expired
+        {
+            self.expired_lines.extend(lines.into_iter().map(|(l, _)| l));
+        }
         Ok(())
     }
 
-    /// An expired watchdog task holding `line` (writes to it are refused).
+    /// An expired watchdog task holding `line`, or one cleared since it expired
+    /// (writes to it are refused).
     fn held_by_watchdog(&self, line: &str) -> bool {
-        self.tasks.values().any(|t| match &t.kind {
-            Kind::Watchdog { lines, clock, .. } => {
-                lines.iter().any(|(l, _)| l == line)
-                    && clock.lock().unwrap_or_else(|p| p.into_inner()).expired
-            }
-            _ => false,
-        })
+        self.expired_lines.iter().any(|l| l == line)
+            || self.tasks.values().any(|t| match &t.kind {
+                Kind::Watchdog { lines, clock, .. } => {
+                    lines.iter().any(|(l, _)| l == line)
+                        && clock.lock().unwrap_or_else(|p| p.into_inner()).expired
+                }
+                _ => false,
+            })
     }
 
     pub(crate) fn write_ao(
@@ -390,7 +419,9 @@ impl Daq {
         }
         for ((_, lo, hi), v) in channels.iter().zip(volts) {
             if !(*lo..=*hi).contains(v) {
-                return Err(error::SAMPLE_VALUE_OUT_OF_RANGE);
+                // What `DAQmxWriteAnalogF64` answers for a value outside the range the
+                // channel was created with (NI's AO.Max property page).
+                return Err(error::INVALID_AO_DATA_WRITE);
             }
         }
         let names: Vec<String> = channels.iter().map(|(c, _, _)| c.clone()).collect();
@@ -538,6 +569,10 @@ pub(crate) fn error_name(code: Code) -> Option<&'static str> {
         error::SAMPLE_VALUE_OUT_OF_RANGE => {
             "DAQmxErrorSampleValueOutOfRange: sample value is outside the channel's range"
         }
+        error::INVALID_AO_DATA_WRITE => {
+            "DAQmxErrorInvalidAODataWrite: attempted writing analog data that is too large or too small"
+        }
+        error::DUPLICATE_TASK => "DAQmxErrorDuplicateTask: a task with this name already exists",
         error::RESOURCE_ALREADY_RESERVED => {
             "DAQmxErrorResourceAlreadyReserved: the resource is reserved by another task"
         }
