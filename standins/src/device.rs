@@ -404,11 +404,13 @@ impl Device {
         Ok(rate)
     }
 
+    /// The sync's reading: the laser's rate, undivided, as the libraries' manuals say
+    /// theirs is ("corrected for the divider setting").
     fn shown_sync_rate(&self) -> i32 {
         if Instant::now() < self.meter.0 {
             self.meter.1
         } else {
-            (self.repetition_rate / f64::from(self.sync_div)) as i32
+            self.repetition_rate as i32
         }
     }
 
@@ -435,6 +437,9 @@ impl Device {
             }
             if self.sync_div > 1 {
                 w |= warning::DIVIDER_GREATER_ONE;
+            }
+            if f64::from(sync) / f64::from(self.sync_div) > self.family.max_sync_rate_hz() {
+                w |= warning::SYNC_RATE_TOO_HIGH;
             }
             if let Some(input) = self.read_rates.1
                 && f64::from(input) > 0.05 * f64::from(sync)

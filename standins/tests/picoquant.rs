@@ -525,7 +525,9 @@ fn a_missing_library_says_which_path_was_tried_and_what_to_install() {
 
 /// The rate meter as the vendor's demos describe it: for 400 ms after `Initialize` the
 /// sync reads 0, and for 400 ms after `SetSyncDiv` the rate from before; then the
-/// laser's rate over the divider. The driver's `rate_latency` is that time.
+/// laser's own rate, whatever the divider ("corrected for the divider setting", the
+/// manuals' `SetSyncDiv`), which the driver says. The driver's `rate_latency` is that
+/// time.
 #[test]
 fn the_sync_rate_meter_lags_initialise_and_set_sync_div() {
     let _one = exclusive();
@@ -552,7 +554,8 @@ fn the_sync_rate_meter_lags_initialise_and_set_sync_div() {
         "read at once after SetSyncDiv"
     );
     std::thread::sleep(tdc.rate_latency());
-    assert_eq!(tdc.status().unwrap().rates.sync, 5e6);
+    assert_eq!(tdc.status().unwrap().rates.sync, 10e6, "the undivided rate");
+    assert_eq!(tdc.sync_after_divider(), Some(false));
 }
 
 /// Within 400 ms of `SetSyncDiv` the rate meters read nothing true (a sync of 0 after

@@ -1145,6 +1145,32 @@ impl InstrumentConfig {
                 ),
             ));
         }
+        // PicoQuant's inputs take the sync up to a rate after the divider (HHLib's and
+        // MHLib's manuals, `SetSyncDiv`): above it the timing is not what the manual
+        // specifies, whatever the check of the rate says.
+        if let TdcDriver::PicoQuant(counter) = &tdc.driver {
+            let most = counter.family.max_sync_rate_hz();
+            if sync_hz > most {
+                let least = (1..=16u32)
+                    .filter(|&d| counter.family.sync_divider_ok(d))
+                    .find(|&d| laser.repetition_rate / f64::from(d) <= most);
+                return Err(src.invalid(
+                    if tdc.sync_divider > 1 { "tdc.sync-divider" } else { "laser.rep-rate-mhz" },
+                    format!(
+                        "laser.rep-rate-mhz = {} over tdc.sync-divider = {} gives {} of sync, above the {} the {}'s sync input takes after its divider (its manual, SetSyncDiv): {}",
+                        laser.repetition_rate / 1e6,
+                        tdc.sync_divider,
+                        hz_text(sync_hz),
+                        hz_text(most),
+                        counter.family,
+                        match least {
+                            Some(d) => format!("set tdc.sync-divider = {d} or more"),
+                            None => "no divider brings it down: use a slower laser".to_owned(),
+                        }
+                    ),
+                ));
+            }
+        }
         let backend = match raw.backend {
             // A config never holds a setting nothing reads: a [sim] table left in a
             // config switched to the hardware would look as if it did something.
@@ -1804,6 +1830,25 @@ mod tests {
         }
         let text = lab_with("driver = \"hydraharp\"").replace("sync-divider = 1", "sync-divider = 3");
         assert_eq!(load(&text).unwrap_err().key(), Some("tdc.sync-divider"));
+        // A sync faster than the counter's input takes after its divider (12.5 MHz on
+        // the HydraHarp, 78 MHz on the MultiHarp): the divider that brings it down.
+        let fast = |driver: &str, divider: u32| {
+            lab_with(&format!("driver = \"{driver}\""))
+                .replace("rep-rate-mhz = 10.0", "rep-rate-mhz = 40.0")
+                .replace("sync-divider = 1", &format!("sync-divider = {divider}"))
+        };
+        let e = load(&fast("hydraharp", 1)).unwrap_err();
+        assert_eq!(e.key(), Some("laser.rep-rate-mhz"), "{e}");
+        assert!(
+            e.to_string()
+                .contains("above the 12.5000 MHz the HydraHarp's sync input takes")
+                && e.to_string().contains("set tdc.sync-divider = 4 or more"),
+            "{e}"
+        );
+        let e = load(&fast("hydraharp", 2)).unwrap_err();
+        assert_eq!(e.key(), Some("tdc.sync-divider"), "{e}");
+        assert!(load(&fast("hydraharp", 4)).is_ok());
+        assert!(load(&fast("multiharp", 1)).is_ok());
         // The simulated instrument has its own histogrammer.
         let text = SIM.replace("[tdc]\n", "[tdc]\ndriver = \"multiharp\"\n");
         let err = load(&text).unwrap_err();

@@ -683,9 +683,12 @@ impl Histogrammer for PicoQuantTdc {
         RATE_SETTLE
     }
 
-    /// MHLib's and HHLib's documents do not say whether `GetSyncRate` counts before or
-    /// after the divider (the stand-in counts after it).
+    /// Before: "the readings obtained with GetCountRate are internally corrected for
+    /// the divider setting and deliver the external (undivided) rate" (the
+    /// `SetSyncDiv` entries of MHLib's, HHLib's, PHLib's and TH260Lib's manuals, as
+    /// QuTech's QMI and Ulm's qudi quote them; the sync's reading is the one a
+    /// divider acts on).
     fn sync_after_divider(&self) -> Option<bool> {
-        None
+        Some(false)
     }
 }

@@ -121,11 +121,23 @@ impl Family {
     }
 
     /// Whether the sync divider `div` is one the device takes: 1 to 16 on the
-    /// MultiHarp, a power of two up to 16 on the HydraHarp.
+    /// MultiHarp, a power of two up to 16 on the HydraHarp. (Wrappers of the
+    /// libraries disagree on the MultiHarp: QuTech's QMI takes 1 to 16, Ulm's qudi
+    /// powers of two; MHLib's header gives only `SYNCDIVMAX` 16.)
     pub fn sync_divider_ok(self, div: u32) -> bool {
         match self {
             Family::MultiHarp => (1..=16).contains(&div),
             Family::HydraHarp => div.is_power_of_two() && div <= 16,
+        }
+    }
+
+    /// The highest sync rate after the divider the inputs take, Hz: "the sync divider
+    /// must be used to keep the effective sync rate at values ≤ 12.5 MHz" (HHLib's
+    /// manual, `HH_SetSyncDiv`) and "< 78 MHz" (MHLib's, `MH_SetSyncDiv`).
+    pub fn max_sync_rate_hz(self) -> f64 {
+        match self {
+            Family::MultiHarp => 78e6,
+            Family::HydraHarp => 12.5e6,
         }
     }
 
