@@ -8,7 +8,7 @@ use std::path::{Path, PathBuf};
 use glam::DVec3;
 use periscope_recon::io::ytal::{
     FLAG_OVERFLOW, FLAG_SATURATED, Grid, GridFormat, HFormat, MAX_DATASET_BYTES, YtalCapture, YtalError,
-    is_hdf5_path,
+    is_hdf5_path, yaml_string,
 };
 use periscope_recon::transient::rebin_path;
 use periscope_recon::{TimeAxis, TransientError, TransientSet, VolumeGrid};
@@ -580,27 +580,6 @@ impl Capture {
             ),
         }
     }
-}
-
-/// `text` as a YAML double-quoted scalar that any YAML reader takes back as it was:
-/// quotes and backslashes escaped, and every character outside printable ASCII
-/// written as a `\u` or `\U` escape, since YAML readers (y-tal's PyYAML among them)
-/// refuse control characters in a document, and a plan stored before they were
-/// refused may hold one.
-fn yaml_string(text: &str) -> String {
-    let mut out = String::with_capacity(text.len() + 2);
-    out.push('"');
-    for c in text.chars() {
-        match c {
-            '"' => out.push_str("\\\""),
-            '\\' => out.push_str("\\\\"),
-            ' '..='~' => out.push(c),
-            c if u32::from(c) <= 0xFFFF => out.push_str(&format!("\\u{:04x}", u32::from(c))),
-            c => out.push_str(&format!("\\U{:08x}", u32::from(c))),
-        }
-    }
-    out.push('"');
-    out
 }
 
 #[cfg(test)]

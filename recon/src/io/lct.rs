@@ -136,11 +136,11 @@ pub(crate) fn from_mat(mat: &Mat<'_>) -> Result<YtalCapture, YtalError> {
         [nt, nx, ny],
         points,
         C * BIN_S,
-        format!(
-            "source: Stanford confocal LCT capture ({}), {nx} x {ny} points over [-{width}, {width}] m, \
+        crate::io::formats::source_info(format!(
+            "Stanford confocal LCT capture ({}), {nx} x {ny} points over [-{width}, {width}] m, \
          {nt} bins of 4 ps from the wall",
             path.display()
-        ),
+        )),
     );
     capture.check().map_err(|m| format_error(path, m))?;
     Ok(capture)

@@ -108,8 +108,8 @@ pub(crate) fn from_mat(mat: &Mat<'_>, dir: Option<&Path>) -> Result<YtalCapture,
         [bins, ny, nx],
         points,
         C * BIN_S,
-        format!(
-            "source: Stanford f-k capture ({}), {ny} x {nx} confocal points over [-{width}, {width}] m{}, \
+        super::source_info(format!(
+            "Stanford f-k capture ({}), {ny} x {nx} confocal points over [-{width}, {width}] m{}, \
          rectified with `tofgrid` from {tof_from} (shifts of {} to {max_shift} bins), {bins} bins of 32 ps \
          from the wall",
             mat.path().display(),
@@ -119,7 +119,7 @@ pub(crate) fn from_mat(mat: &Mat<'_>, dir: Option<&Path>) -> Result<YtalCapture,
                 " (the release's 2 m scan)"
             },
             shifts.iter().min().copied().unwrap_or(0),
-        ),
+        )),
     );
     capture.check().map_err(|m| mat.error(m))?;
     Ok(capture)

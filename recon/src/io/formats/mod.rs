@@ -274,6 +274,13 @@ pub(crate) fn grid(points: Vec<glam::DVec3>, normals: Vec<glam::DVec3>, shape: [
     }
 }
 
+/// A `scene_info` naming where a capture came from: `source: "…"`, the text a YAML
+/// double-quoted scalar, so a path holding `: ` or ` #` reads back whole (y-tal's
+/// PyYAML refused the first and cut the second short).
+pub(crate) fn source_info(text: String) -> String {
+    format!("source: {}", super::ytal::yaml_string(&text))
+}
+
 /// A confocal capture on a planar wall (normals +z, toward the hidden scene), its
 /// transients `h` of shape `[bins, a, b]` in C order with `points` flattened the same
 /// way (`b` fastest), bins of `delta_t` metres of hidden path from the wall: the

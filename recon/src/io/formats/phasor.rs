@@ -121,11 +121,11 @@ pub(crate) fn from_dataset(mat: &Mat<'_>) -> Result<YtalCapture, YtalError> {
         delta_t: deltat,
         t_start: t0,
         t_accounts_first_and_last_bounces: true,
-        scene_info: Some(format!(
-            "source: phasor-field capture, 2019 `dataset` layout ({}), {nl} laser points by {ns} SPAD points, \
+        scene_info: Some(super::source_info(format!(
+            "phasor-field capture, 2019 `dataset` layout ({}), {nl} laser points by {ns} SPAD points, \
              {nt} bins of {deltat} m from {t0} m (laser origin to SPAD origin)",
             mat.path().display()
-        )),
+        ))),
         flags: None,
     };
     capture.check().map_err(|m| mat.error(m))?;
@@ -218,14 +218,14 @@ pub(crate) fn from_rect_data(mat: &Mat<'_>) -> Result<YtalCapture, YtalError> {
         delta_t: C * ts,
         t_start: 0.0,
         t_accounts_first_and_last_bounces: false,
-        scene_info: Some(format!(
-            "source: phasor-field capture, 2020 `rect_data` layout ({}), laser over {m} x {n} points at {spacing} \
+        scene_info: Some(super::source_info(format!(
+            "phasor-field capture, 2020 `rect_data` layout ({}), laser over {m} x {n} points at {spacing} \
              m, SPAD at grid point ({}, {}), {nt} bins of {} ps from the wall",
             mat.path().display(),
             sx + 1,
             sy + 1,
             ts * 1e12
-        )),
+        ))),
         flags: None,
     };
     capture.check().map_err(|e| mat.error(e))?;

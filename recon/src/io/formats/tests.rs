@@ -366,3 +366,22 @@ fn counts_past_what_single_precision_sums_hold_are_refused() {
     assert!(e.contains("index 1") && e.contains("at most 1e30"), "{e}");
     assert!(check_counts(&[0.0, 1e30], "rect_data").is_ok());
 }
+
+/// The `scene_info` a format reader writes names the source file as a YAML
+/// double-quoted scalar: a path holding `: ` or ` #` made PyYAML refuse the export of
+/// an import run (`mapping values are not allowed`) or cut it short, until 2026-12-07.
+#[test]
+fn the_source_path_in_scene_info_is_one_quoted_yaml_scalar() {
+    let dir = tempfile::tempdir().unwrap();
+    let odd = dir.path().join("bench: take 2 #3.hdf5");
+    std::fs::copy(fixture("znlos-point.hdf5"), &odd).unwrap();
+    let c = read_capture(&odd).unwrap();
+    let info = c.scene_info.expect("a scene_info");
+    let value = info.strip_prefix("source: \"").expect(&info);
+    assert!(
+        value.ends_with('"') && !value[..value.len() - 1].contains('"'),
+        "{info}"
+    );
+    assert!(value.contains("bench: take 2 #3.hdf5"), "{info}");
+    assert!(!info.contains('\n'), "one line: {info}");
+}

@@ -210,8 +210,8 @@ pub(crate) fn from_reader(r: &Reader<'_>) -> Result<YtalCapture, YtalError> {
         delta_t,
         t_start: t0,
         t_accounts_first_and_last_bounces: true,
-        scene_info: Some(format!(
-            "source: ZNLOS capture ({}), {} {} x {} camera points{}, {nt} bins of {delta_t} m from {t0} m \
+        scene_info: Some(super::source_info(format!(
+            "ZNLOS capture ({}), {} {} x {} camera points{}, {nt} bins of {delta_t} m from {t0} m \
              (laser origin to SPAD origin), bounces {} to {} summed",
             r.path.display(),
             if confocal { "confocal" } else { "non-confocal" },
@@ -224,7 +224,7 @@ pub(crate) fn from_reader(r: &Reader<'_>) -> Result<YtalCapture, YtalError> {
             },
             3,
             nb - 1 - third + 3,
-        )),
+        ))),
         flags: None,
     };
     capture.check().map_err(|m| r.format(m))?;

@@ -214,11 +214,14 @@ impl Reader<'_> {
                 if nshape.iter().product::<usize>() == 3 {
                     // One normal for the whole grid.
                     vec![unit(to_points(&n)[0]); points.len()]
-                } else if nshape == shape {
+                } else if squeezed(&nshape) == squeezed(&shape) {
+                    // One a point, the same shape but for axes of length 1: y-tal's
+                    // converter of phasor-field files writes (N, 1, 3) beside (N, 3).
                     to_points(&n).into_iter().map(unit).collect()
                 } else {
                     return Err(self.format(format!(
-                        "dataset `{normals_name}` has shape {nshape:?} but `{xyz_name}` has {shape:?}"
+                        "dataset `{normals_name}` has shape {nshape:?} but `{xyz_name}` has {shape:?}: one normal a \
+                         point (or one for all) is needed"
                     )));
                 }
             }
@@ -263,6 +266,11 @@ fn unit(n: DVec3) -> DVec3 {
         return u;
     }
     (n / m).normalize_or_zero()
+}
+
+/// A shape without its axes of length 1.
+fn squeezed(shape: &[usize]) -> Vec<usize> {
+    shape.iter().copied().filter(|&d| d != 1).collect()
 }
 
 #[cfg(test)]

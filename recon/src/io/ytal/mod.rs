@@ -98,6 +98,28 @@ impl YtalError {
 
 /// What a capture's own errors call it until the caller names the file
 /// ([`YtalError::at`]).
+/// `text` as a YAML double-quoted scalar that any YAML reader takes back as it was
+/// (what goes into a `scene_info`):
+/// quotes and backslashes escaped, and every character outside printable ASCII
+/// written as a `\u` or `\U` escape, since YAML readers (y-tal's PyYAML among them)
+/// refuse control characters in a document, and a plan stored before they were
+/// refused may hold one.
+pub fn yaml_string(text: &str) -> String {
+    let mut out = String::with_capacity(text.len() + 2);
+    out.push('"');
+    for c in text.chars() {
+        match c {
+            '"' => out.push_str("\\\""),
+            '\\' => out.push_str("\\\\"),
+            ' '..='~' => out.push(c),
+            c if u32::from(c) <= 0xFFFF => out.push_str(&format!("\\u{:04x}", u32::from(c))),
+            c => out.push_str(&format!("\\U{:08x}", u32::from(c))),
+        }
+    }
+    out.push('"');
+    out
+}
+
 pub(crate) const UNNAMED: &str = "<capture>";
 
 /// How `H` is laid out (y-tal's `HFormat`).

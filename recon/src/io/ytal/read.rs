@@ -9,16 +9,35 @@ use super::dataset::Reader;
 use super::{FLAG_KEYS, Grid, GridFormat, HFormat, MAX_FILE_BYTES, YtalCapture, YtalError};
 
 /// Splits the flag lists out of a `scene_info` text: the text without them, and the
-/// (index, bit) pairs they name. `Err` names a malformed list.
+/// (index, bit) pairs they name. A list is read in YAML's flow style, as Periscope
+/// writes it (`periscope_overflow: [3, 17]`), or its block style, as y-tal writes it
+/// back after reading the file (PyYAML's `yaml.dump`: the key alone, then one `- 3`
+/// line an item). `Err` names a malformed list.
 fn take_flags(info: &str) -> Result<(String, Vec<(usize, u8)>), String> {
     let mut rest = String::new();
     let mut marks = Vec::new();
-    for line in info.lines() {
+    let index = |key: &str, item: &str| {
+        item.parse::<usize>()
+            .map_err(|_| format!("`scene_info` key `{key}` lists {item:?}, not a transient index"))
+    };
+    let mut lines = info.lines().peekable();
+    while let Some(line) = lines.next() {
         match FLAG_KEYS.iter().find_map(|(key, bit)| {
             line.strip_prefix(key)
                 .and_then(|l| l.strip_prefix(':'))
                 .map(|l| (key, *bit, l))
         }) {
+            Some((key, bit, list)) if list.trim().is_empty() => {
+                // Block style: the items follow, each `- N`, at most indented.
+                while let Some(item) = lines
+                    .peek()
+                    .and_then(|l| l.trim_start().strip_prefix('-'))
+                    .map(str::trim)
+                {
+                    marks.push((index(key, item)?, bit));
+                    lines.next();
+                }
+            }
             Some((key, bit, list)) => {
                 let inner = list
                     .trim()
@@ -28,10 +47,7 @@ fn take_flags(info: &str) -> Result<(String, Vec<(usize, u8)>), String> {
                         format!("`scene_info` key `{key}` should be a list like [3, 17], it is {list:?}")
                     })?;
                 for item in inner.split(',').map(str::trim).filter(|s| !s.is_empty()) {
-                    let i = item.parse::<usize>().map_err(|_| {
-                        format!("`scene_info` key `{key}` lists {item:?}, not a transient index")
-                    })?;
-                    marks.push((i, bit));
+                    marks.push((index(key, item)?, bit));
                 }
             }
             None => {
@@ -41,6 +57,13 @@ fn take_flags(info: &str) -> Result<(String, Vec<(usize, u8)>), String> {
         }
     }
     Ok((rest, marks))
+}
+
+/// A `scene_info` that says nothing (empty, or the empty mapping `{}` the writer puts
+/// where there is none) reads as none.
+fn says_something(info: String) -> Option<String> {
+    let t = info.trim();
+    (!t.is_empty() && t != "{}").then_some(info)
 }
 
 /// Runs a decode, turning a panic inside the HDF5 or MAT layer into an error that names the
@@ -193,6 +216,15 @@ impl YtalCapture {
             HFormat::TSi => 2,
             HFormat::TLxLySxSy => 5,
         };
+        if h_shape.len() == rank + 1 && h_shape[rank] == 4 && !h_shape.contains(&0) {
+            // y-tal's polarised renders keep the Stokes parameters on a last axis.
+            return Err(r.format(format!(
+                "`H` has shape {h_shape:?}: `H_format` {} with a last axis of 4, a polarised render (its Stokes \
+                 parameters); Periscope reconstructs intensity: keep the first (h5py: `f['H'] = f['H'][..., 0]` \
+                 into a new file), as y-tal's reader says to",
+                h_format.name()
+            )));
+        }
         if h_shape.len() != rank || h_shape.contains(&0) {
             return Err(r.format(format!(
                 "`H` has shape {h_shape:?} but `H_format` {} needs {rank} non-empty dimensions",
@@ -259,7 +291,8 @@ impl YtalCapture {
             .ok()
             .filter(|d| r.checked_shape(d, "scene_info", 1 << 16).is_ok())
             .and_then(|d| d.read_string().ok())
-            .and_then(|v| v.into_iter().next());
+            .and_then(|v| v.into_iter().next())
+            .and_then(says_something);
         let mut capture = YtalCapture {
             h,
             h_shape,
@@ -286,7 +319,7 @@ impl YtalCapture {
                 })?;
                 *f |= bit;
             }
-            capture.scene_info = Some(rest);
+            capture.scene_info = says_something(rest);
             capture.flags = Some(flags);
         }
         capture.check().map_err(|m| r.format(m))?;

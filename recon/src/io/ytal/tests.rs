@@ -327,3 +327,122 @@ fn counts_with_pile_up_undone_are_read_as_photon_counts() {
     under[6 * 50] = 0.5;
     assert!(!counts(under), "0.5 is no count");
 }
+
+/// A capture's flags and `scene_info` come back as they were written, and a capture
+/// with no `scene_info` stores the empty mapping (y-tal's reader fails on a file
+/// without one) and reads back as having none.
+#[test]
+fn flags_and_an_absent_scene_info_read_back_as_written() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("c.hdf5");
+    let c = sample();
+    c.write(&path).unwrap();
+    let back = YtalCapture::read(&path).unwrap();
+    assert_eq!(back.flags, c.flags);
+    assert_eq!(back.scene_info, c.scene_info);
+    for flags in [None, c.flags.clone()] {
+        let bare = YtalCapture {
+            scene_info: None,
+            flags: flags.clone(),
+            ..sample()
+        };
+        bare.write(&path).unwrap();
+        let back = YtalCapture::read(&path).unwrap();
+        assert_eq!(back.scene_info, None, "flags {flags:?}");
+        assert_eq!(back.flags, flags);
+        let file = hdf5_pure::File::open(&path).unwrap();
+        let text = file.dataset("scene_info").unwrap().read_string().unwrap();
+        assert!(!text[0].trim().is_empty(), "scene_info left empty: {text:?}");
+    }
+}
+
+/// y-tal reads `scene_info` into a dict and writes it back with PyYAML's `yaml.dump`,
+/// which puts a non-empty list one item a line (checked with PyYAML 6.0.4 on a file
+/// of ours): those flags read as the flow-style ones do. Until 2026-12-07 such a file
+/// was refused ("should be a list like [3, 17]").
+#[test]
+fn flags_in_yamls_block_style_are_read() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("c.hdf5");
+    let dumped = YtalCapture {
+        scene_info: Some(
+            "original_format: test\nperiscope_overflow:\n- 3\n- 11\nperiscope_saturated: []\nrun: demo\n"
+                .into(),
+        ),
+        flags: None,
+        ..sample()
+    };
+    dumped.write(&path).unwrap();
+    let back = YtalCapture::read(&path).unwrap();
+    let mut want = vec![0u8; 12];
+    want[3] = FLAG_OVERFLOW;
+    want[11] = FLAG_OVERFLOW;
+    assert_eq!(back.flags, Some(want));
+    assert_eq!(
+        back.scene_info.as_deref(),
+        Some("original_format: test\nrun: demo\n")
+    );
+    // An item that is not an index is named.
+    let bad = YtalCapture {
+        scene_info: Some("periscope_saturated:\n  - 2\n  - x\n".into()),
+        flags: None,
+        ..sample()
+    };
+    bad.write(&path).unwrap();
+    let e = YtalCapture::read(&path).unwrap_err().to_string();
+    assert!(e.contains("`periscope_saturated` lists \"x\""), "{e}");
+}
+
+/// A capture file written the way y-tal's converter writes one from a phasor-field
+/// `.mat` with a single normal: the points `(N, 3)`, their normals `(N, 1, 3)`; and a
+/// polarised render's `H` with its Stokes axis last.
+fn hand_written(normals_shape: &[u64], h_shape: &[u64]) -> Vec<u8> {
+    let mut b = FileBuilder::new();
+    let n = 3usize;
+    let h_len: u64 = h_shape.iter().product();
+    b.create_dataset("H")
+        .with_f32_data(&vec![1.0; h_len as usize])
+        .with_shape(h_shape);
+    b.create_dataset("H_format").with_i32_data(&[3]);
+    let points: Vec<f32> = (0..n).flat_map(|i| [0.1 * i as f32, 0.0, 0.0]).collect();
+    let count = normals_shape.iter().product::<u64>() as usize / 3;
+    let normals: Vec<f32> = (0..count).flat_map(|_| [0.0, 0.0, 1.0]).collect();
+    for side in ["sensor", "laser"] {
+        b.create_dataset(&format!("{side}_grid_xyz"))
+            .with_f32_data(&points)
+            .with_shape(&[n as u64, 3]);
+        b.create_dataset(&format!("{side}_grid_normals"))
+            .with_f32_data(&normals)
+            .with_shape(normals_shape);
+        b.create_dataset(&format!("{side}_grid_format"))
+            .with_i32_data(&[1]);
+    }
+    b.create_dataset("delta_t").with_f64_data(&[0.01]).with_shape(&[]);
+    b.create_dataset("t_start").with_f64_data(&[0.5]).with_shape(&[]);
+    b.create_dataset("t_accounts_first_and_last_bounces")
+        .with_i32_data(&[0])
+        .with_shape(&[]);
+    b.finish().unwrap()
+}
+
+#[test]
+fn normals_with_an_axis_of_one_and_a_polarised_h_are_read_or_named() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("c.hdf5");
+    std::fs::write(&path, hand_written(&[3, 1, 3], &[4, 3])).unwrap();
+    let c = YtalCapture::read(&path).unwrap();
+    assert_eq!(c.sensor_grid.normals, vec![DVec3::Z; 3]);
+    std::fs::write(&path, hand_written(&[1, 3, 3], &[4, 3])).unwrap();
+    assert!(YtalCapture::read(&path).is_ok(), "(1, N, 3) is (N, 3) too");
+    // Normals of another count are still refused, naming both datasets.
+    std::fs::write(&path, hand_written(&[2, 3], &[4, 3])).unwrap();
+    let e = YtalCapture::read(&path).unwrap_err().to_string();
+    assert!(
+        e.contains("`sensor_grid_normals` has shape [2, 3] but `sensor_grid_xyz` has [3, 3]"),
+        "{e}"
+    );
+    // A polarised render: its Stokes parameters on a last axis of 4.
+    std::fs::write(&path, hand_written(&[3, 3], &[4, 3, 4])).unwrap();
+    let e = YtalCapture::read(&path).unwrap_err().to_string();
+    assert!(e.contains("polarised") && e.contains("f['H'][..., 0]"), "{e}");
+}

@@ -100,11 +100,12 @@ impl YtalCapture {
                 text.push_str(&format!("{key}: [{}]\n", list.join(", ")));
             }
         }
-        if let Some(info) = &info {
-            b.create_dataset("scene_info")
-                .with_vlen_strings(&[info])
-                .with_shape(&[]);
-        }
+        // Always written, `{}` where there is nothing to say: y-tal's reader (since
+        // 0.21, `is_polarized`) looks into `scene_info` and fails on a file without one.
+        let info = info.unwrap_or_else(|| "{}\n".to_owned());
+        b.create_dataset("scene_info")
+            .with_vlen_strings(&[&info])
+            .with_shape(&[]);
         b.finish()
     }
 }
