@@ -19,7 +19,7 @@
 //! | wall + letter on a patchy wall, gains from the relay scan | 0.38 mm | 0.80 mm | 0.806 | 0.5 mm, 1.0 mm, 0.78 |
 //! | the same, gains from the fit instead | 0.33 mm | 0.86 mm | 0.806 | 0.5 mm, 1.0 mm, 0.78 |
 //! | S relay + letter | 0.59 mm | 1.62 mm | 0.866 | 1.0 mm, 2.5 mm, 0.845 |
-//! | torso pair + mannequin (the middle of seeds 0–2 by IoU) | 1.90 mm | 8.33 mm | 0.674 | 2.5 mm, 10 mm, 0.65 |
+//! | torso pair + mannequin (the middle of seeds 0–2 by IoU) | 3.59 mm | 11.3 mm | 0.594 | 4.8 mm, 13.6 mm, 0.57 |
 //!
 //! Since the relay scan's albedo gives each transient its known gain
 //! (`relay.albedo-from-scan`, docs/recon.md; 2026-12-02) the rows moved: the confocal
@@ -33,7 +33,12 @@
 //! defaults' schedule (8,192 steps, growing from half its primitives, half the batch
 //! in its averaged epochs): seeds 0–2 0.667, 0.688, 0.674 (with its own 16 epochs: 0.569, 0.643, 0.608), the
 //! middle one's depth errors 1.90 mm and 8.33 mm, and its bounds were tightened from
-//! 3.5 mm, 16 mm, 0.585 to the row above.
+//! 3.5 mm, 16 mm, 0.585 to 2.5 mm, 10 mm, 0.65. On 2026-12-07 the simulator's
+//! mannequin got the limbs its scene names (`Mesh::cylinder` took a non-unit axis:
+//! arms 15 mm in radius instead of 35, legs 20 instead of 48, each ring tilted
+//! ±30–40 mm along the limb). The truth gained limb pixels the 194 pairs see
+//! obliquely: seeds 0–2 0.594, 0.600, 0.500 (were 0.667, 0.688, 0.674), the middle
+//! one's depth errors 3.59 mm and 11.3 mm, and the bounds moved to the row above.
 //!
 //! The margins (about 0.02 of IoU, a third of the median error, a sixth of the 90th
 //! percentile) cover only what changes between machines: another CPU's floating-point
@@ -366,7 +371,7 @@ fn torso_pair_mannequin_matches_the_truth() {
         fits[0]
     );
     fits.sort_by(|a, b| a.iou.total_cmp(&b.iou));
-    fits[1].assert_within(2.5e-3, 10e-3, 0.65);
+    fits[1].assert_within(4.8e-3, 13.6e-3, 0.57);
 }
 
 /// The paper's resolution test: three 2 cm bars, 2 cm apart, 0.5 m in front of the

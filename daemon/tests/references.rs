@@ -165,8 +165,11 @@ fn relay_against_truth(instrument_file: &str, plan_file: &str, tdc_extra: &str) 
     let run = pipeline::Run::open(&dir, control, Some(events), Some(&rig)).unwrap();
     let _ = run.execute();
     let relay = parse_relay_ply(&std::fs::read(dir.join(pipeline::RELAY_PLY)).unwrap()).unwrap();
+    // Enough points to judge: the walls give 830–860; the two backs 94, the
+    // mannequin in front of them shading their inner halves from the SPAD and the
+    // laser (247 while its limbs were too thin, before 2026-12-07).
     assert!(
-        relay.len() > 100,
+        relay.len() > 80,
         "{instrument_file}: {} relay points",
         relay.len()
     );
@@ -221,8 +224,9 @@ fn check_relay(instrument_file: &str, plan_file: &str, bounds: [f64; 4]) {
 
 // Bounds: [median, 95th percentile] of the position error (mm), then of the normal
 // error (degrees). The simulator is seeded, so the figures repeat run to run (measured:
-// wall 0.16/0.48 mm, 0.13/0.28°; S panel 0.16/0.48 mm, 0.46/1.72°; torsos 0.18/0.54 mm,
-// 0.77/4.51°); the margins absorb a different noise draw after unrelated simulator
+// wall 0.16/0.48 mm, 0.13/0.28°; S panel 0.16/0.48 mm, 0.46/1.72°; torsos 0.21/0.65 mm,
+// 0.90/7.33°, since 2026-12-07 94 points of backs the mannequin shades in part, whose
+// normals at the shadows' edges are the worst; 0.18/0.54 mm, 0.77/4.51° before); the margins absorb a different noise draw after unrelated simulator
 // changes. A half-bin slip in the path convention moves every point by about 1.2 mm
 // (half of 16 ps of path, halved again on the way to a range), so the position medians
 // sit well under it; a sign error in the system delay moves them by metres.
@@ -246,7 +250,7 @@ fn torso_pair_relay_matches_the_truth() {
     check_relay(
         "sim-torsos-mannequin.toml",
         "torsos-mannequin.toml",
-        [0.5, 1.5, 2.0, 7.0],
+        [0.5, 1.5, 2.0, 9.0],
     );
 }
 

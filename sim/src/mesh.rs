@@ -127,8 +127,12 @@ impl Mesh {
     /// are hidden inside the figures that use it or too small to matter).
     pub fn cylinder(a: DVec3, b: DVec3, radius: f64, n: usize) -> Mesh {
         let axis = b - a;
-        let u = axis.any_orthonormal_vector();
-        let v = axis.normalize().cross(u);
+        // glam's `any_orthonormal_vector` wants a unit vector: given the axis itself,
+        // it tilted each ring and shrank the radius (a mannequin's arm 15 mm across
+        // instead of 35 until 2026-12-07).
+        let dir = axis.normalize();
+        let u = dir.any_orthonormal_vector();
+        let v = dir.cross(u);
         Mesh::parametric(n, 1, |s, t| {
             let phi = s * std::f64::consts::TAU;
             a + axis * t + (u * phi.cos() + v * phi.sin()) * radius
@@ -383,6 +387,27 @@ fn ply_elements_fit(bytes: &[u8], header: &ply_rs_bw::ply::Header) -> Result<(),
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Every vertex of a cylinder lies at its radius from the axis, each ring across
+    /// the axis, whatever the axis's length and direction (a limb of the mannequin:
+    /// until 2026-12-07 a non-unit axis gave a 15 mm radius for 35 and tilted rings).
+    #[test]
+    fn a_cylinder_is_round_and_square_to_its_axis() {
+        for (a, b, r) in [
+            (DVec3::ZERO, DVec3::new(0.0, 0.0, 0.45), 0.035),
+            (DVec3::new(0.1, 0.3, -0.2), DVec3::new(-0.3, 0.8, 0.25), 0.048),
+        ] {
+            let m = Mesh::cylinder(a, b, r, 16);
+            let dir = (b - a).normalize();
+            for v in &m.vertices {
+                let along = (*v - a).dot(dir);
+                let across = (*v - a - dir * along).length();
+                assert!((across - r).abs() < 1e-12, "radius {across} for {r}");
+                let end = if along < 0.5 * (b - a).length() { 0.0 } else { (b - a).length() };
+                assert!((along - end).abs() < 1e-12, "a ring {along} along the axis, not at {end}");
+            }
+        }
+    }
 
     #[test]
     fn an_obj_keeps_its_positions_and_faces_without_its_texture_coordinates_and_normals() {
