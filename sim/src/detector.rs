@@ -41,6 +41,10 @@ pub struct Detector {
     pub wavelength: f64,
     /// Pulse repetition rate, Hz.
     pub repetition_rate: f64,
+    /// Laser pulses a TDC cycle spans (the sync divider): the counter times each
+    /// photon from the last of every `sync_divider` syncs, so a cycle's window holds
+    /// the light of each of its pulses, the k-th `k / repetition_rate` later. 1: one.
+    pub sync_divider: u32,
     /// Collection aperture area, m².
     pub aperture_area: f64,
     /// Area of the relay spot the SPAD sees (and the laser spot's size), m².
@@ -77,6 +81,7 @@ impl Detector {
             laser_power: 0.4,
             wavelength: 532e-9,
             repetition_rate: 10e6,
+            sync_divider: 1,
             aperture_area: std::f64::consts::PI * 0.005f64.powi(2),
             spot_area: std::f64::consts::PI * 0.0025f64.powi(2),
             diffuser_solid_angle: 2.0 * std::f64::consts::PI * (1.0 - half_angle.cos()),
@@ -91,14 +96,35 @@ impl Detector {
         self.laser_power / self.repetition_rate / (HC / self.wavelength)
     }
 
-    /// Pulses during `dwell` seconds.
-    pub fn pulses(&self, dwell: f64) -> f64 {
-        dwell * self.repetition_rate
+    /// TDC cycles (syncs after the divider) during `dwell` seconds.
+    pub fn cycles(&self, dwell: f64) -> f64 {
+        dwell * self.repetition_rate / f64::from(self.sync_divider.max(1))
     }
 
-    /// Fractional bin of an arrival with total path length `path` (metres).
+    /// Fractional bin of an arrival with total path length `path` (metres), from the
+    /// cycle's first pulse.
     pub fn bin_of_path(&self, path: f64) -> f64 {
         (path / C0 + self.system_delay - self.offset) / self.bin_width
+    }
+
+    /// The fractional bins an arrival of path `path` lands in within one cycle: one a
+    /// pulse of the cycle, a pulse period apart ([`Detector::sync_divider`]).
+    pub fn bins_of_path(&self, path: f64) -> impl Iterator<Item = f64> {
+        let (first, period) = (
+            self.bin_of_path(path),
+            1.0 / self.repetition_rate / self.bin_width,
+        );
+        (0..self.sync_divider.max(1)).map(move |k| first + f64::from(k) * period)
+    }
+
+    /// Whether the SPAD's dead time after a detection in one cycle's window can reach
+    /// into the next cycle's window: the dead time longer than the cycle's period less
+    /// the window's span. Otherwise a first-photon TDC loses nothing to it beyond what
+    /// Coates' model counts (one detection a cycle), and `sim.toml`'s 50 ns dead time
+    /// against a 100 ns cycle and a 16 ns window loses nothing.
+    pub fn dead_time_reaches_next_cycle(&self) -> bool {
+        let period = f64::from(self.sync_divider.max(1)) / self.repetition_rate;
+        self.dead_time > period - self.bins as f64 * self.bin_width
     }
 
     /// Jitter standard deviation in bins.
@@ -154,7 +180,7 @@ impl Detector {
                 *r *= (b as f64 + 1.0 - g).clamp(0.0, 1.0);
             }
         }
-        let pulses = self.pulses(dwell);
+        let pulses = self.cycles(dwell);
         if !self.pile_up {
             return rate.iter().map(|r| r * pulses).collect();
         }
@@ -168,10 +194,13 @@ impl Detector {
                 p * pulses
             })
             .collect();
-        // Non-paralysable dead time on the total count rate.
-        let total_rate: f64 = out.iter().sum::<f64>() / dwell.max(1e-12);
-        let loss = 1.0 / (1.0 + total_rate * self.dead_time);
-        out.iter_mut().for_each(|v| *v *= loss);
+        // Non-paralysable dead time on the total count rate, where it reaches from one
+        // cycle's window into the next (else Coates has counted all it loses).
+        if self.dead_time_reaches_next_cycle() {
+            let total_rate: f64 = out.iter().sum::<f64>() / dwell.max(1e-12);
+            let loss = 1.0 / (1.0 + total_rate * self.dead_time);
+            out.iter_mut().for_each(|v| *v *= loss);
+        }
         out
     }
 }

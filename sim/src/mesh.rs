@@ -403,8 +403,15 @@ mod tests {
                 let along = (*v - a).dot(dir);
                 let across = (*v - a - dir * along).length();
                 assert!((across - r).abs() < 1e-12, "radius {across} for {r}");
-                let end = if along < 0.5 * (b - a).length() { 0.0 } else { (b - a).length() };
-                assert!((along - end).abs() < 1e-12, "a ring {along} along the axis, not at {end}");
+                let end = if along < 0.5 * (b - a).length() {
+                    0.0
+                } else {
+                    (b - a).length()
+                };
+                assert!(
+                    (along - end).abs() < 1e-12,
+                    "a ring {along} along the axis, not at {end}"
+                );
             }
         }
     }

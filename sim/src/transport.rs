@@ -226,7 +226,7 @@ impl World {
         let photons = irradiance * self.collection(&hit, inst.spad, det);
         let path = dl2.sqrt() + hit.distance;
         let mut fine = vec![0.0; det.bins * OVERSAMPLE];
-        deposit(&mut fine, det.bin_of_path(path), photons);
+        deposit_pulses(&mut fine, det, path, photons);
         let signal = det.blur(&fine);
         Some((hit, det.expected_counts(&signal, None, dwell)))
     }
@@ -314,11 +314,7 @@ impl World {
                 continue;
             }
             let photons = scale * ci * cd * cy1.abs() * cy2.abs() * s.weight / (r1 * r1 * r2 * r2);
-            deposit(
-                &mut fine,
-                det.bin_of_path(first_leg + r1 + r2 + last_leg),
-                photons,
-            );
+            deposit_pulses(&mut fine, det, first_leg + r1 + r2 + last_leg, photons);
         }
         // The direct return when the SPAD looks at the laser spot (confocal pairs).
         let spot_radius = (det.spot_area / std::f64::consts::PI).sqrt();
@@ -329,11 +325,7 @@ impl World {
             let overlap = 2.0 / std::f64::consts::PI * (d.acos() - d * (1.0 - d * d).sqrt());
             let direct =
                 det.photons_per_pulse() * overlap * self.collection(&xi, inst.spad, det) / det.spot_area;
-            deposit(
-                &mut fine,
-                det.bin_of_path(first_leg + xi.point.distance(inst.spad)),
-                direct,
-            );
+            deposit_pulses(&mut fine, det, first_leg + xi.point.distance(inst.spad), direct);
         }
         let signal = det.blur(&fine);
         let gate = det
@@ -354,6 +346,14 @@ fn is_planar(mesh: &Mesh) -> bool {
 
 /// Adds `value` at fractional bin `f` into the oversampled histogram, split linearly
 /// between the two nearest sub-bin centres (the mean arrival time is kept exactly).
+/// [`deposit`]s an arrival of path `path` once for each pulse of a TDC cycle
+/// ([`Detector::bins_of_path`]): with a sync divider of N the window sees N pulses.
+fn deposit_pulses(fine: &mut [f64], det: &Detector, path: f64, value: f64) {
+    for f in det.bins_of_path(path) {
+        deposit(fine, f, value);
+    }
+}
+
 fn deposit(fine: &mut [f64], f: f64, value: f64) {
     let u = f * OVERSAMPLE as f64 - 0.5;
     if !(u.is_finite() && value > 0.0) || u < -1.0 || u >= fine.len() as f64 {

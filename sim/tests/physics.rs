@@ -22,6 +22,7 @@ fn detector() -> Detector {
         laser_power: 0.4,
         wavelength: 532e-9,
         repetition_rate: 10e6,
+        sync_divider: 1,
         aperture_area: 2e-4,
         spot_area: 2e-5,
         diffuser_solid_angle: 0.6,
@@ -245,7 +246,7 @@ fn pile_up_only_removes_counts_and_weighs_on_late_bins() {
     assert!(with.iter().zip(&without).all(|(a, b)| *a <= *b + 1e-9));
     // The later peak is shadowed by the earlier one.
     assert!(with[600] < 0.9 * with[100], "{} vs {}", with[600], with[100]);
-    assert!(with.iter().sum::<f64>() <= det.pulses(1e-3));
+    assert!(with.iter().sum::<f64>() <= det.cycles(1e-3));
 }
 
 #[test]
@@ -271,4 +272,93 @@ fn a_plate_in_front_shadows_the_patch_behind_it() {
         0.0,
         "the plate must block the patch behind it"
     );
+}
+
+/// A sync divider of N leaves each pulse's photons as they are: a TDC cycle then
+/// spans N pulses, so the window holds each pulse's return a pulse period apart, and
+/// the dwell has N times fewer cycles. Until 2026-12-07 the divider divided the
+/// repetition rate, which multiplied each pulse's photons by N: the same total, one
+/// peak, the signal N times a real counter's.
+#[test]
+fn a_sync_divider_shows_each_pulse_of_a_cycle_and_keeps_its_photons() {
+    let centre = DVec3::new(0.1, -0.05, 0.6);
+    let world = World::new(scene(vec![patch(centre)]), 0.001, 1);
+    // 100 MHz: a pulse every 10 ns, 625 bins of 16 ps, within a 2048-bin window.
+    let det = Detector {
+        repetition_rate: 100e6,
+        bins: 2048,
+        ..hidden_only(&detector())
+    };
+    let pair = [SpotPair {
+        illumination: spot(-0.2, 0.1),
+        detection: spot(0.3, -0.2),
+    }];
+    let one = world.third_bounce(&INST, &pair, &det, 1e-3).pop().unwrap();
+    let two = world
+        .third_bounce(
+            &INST,
+            &pair,
+            &Detector {
+                sync_divider: 2,
+                ..det
+            },
+            1e-3,
+        )
+        .pop()
+        .unwrap();
+    let peak = one
+        .iter()
+        .enumerate()
+        .max_by(|a, b| a.1.total_cmp(b.1))
+        .map(|(b, _)| b)
+        .unwrap();
+    assert!(
+        peak + 625 + 10 < det.bins,
+        "the second pulse's return in the window"
+    );
+    let around = |h: &[f64], at: usize| h[at - 10..at + 10].iter().sum::<f64>();
+    let (first, second, whole) = (around(&two, peak), around(&two, peak + 625), around(&one, peak));
+    // Half the cycles, each holding the first pulse's photons: half the counts there.
+    assert!((first / whole - 0.5).abs() < 1e-9, "{first} against {whole}");
+    // The second pulse's return, a period later, as large.
+    assert!((second / first - 1.0).abs() < 0.02, "{second} against {first}");
+    // Without pile-up the total is the same: as many pulses over the dwell.
+    let (t1, t2) = (one.iter().sum::<f64>(), two.iter().sum::<f64>());
+    assert!((t2 / t1 - 1.0).abs() < 0.02, "{t2} against {t1}");
+}
+
+/// The SPAD's dead time costs counts beyond Coates' first-photon model only where it
+/// can reach from one cycle's window into the next: `detector()`'s 50 ns against a
+/// 100 ns cycle and a 16 ns window cannot, 50 ns against a 40 ns cycle can.
+#[test]
+fn dead_time_costs_counts_only_where_it_reaches_the_next_window() {
+    let det = Detector {
+        pile_up: true,
+        ..detector()
+    };
+    let mut signal = vec![0.0; det.bins];
+    signal[100] = 0.3;
+    let coates = |det: &Detector| {
+        let (mut survive, mut sum) = (1.0, 0.0);
+        for &s in &signal {
+            let r = det.efficiency * det.transmission * s + det.dark_count_rate * det.bin_width;
+            sum += survive * (1.0 - (-r).exp());
+            survive *= (-r).exp();
+        }
+        sum * det.cycles(1e-3)
+    };
+    assert!(!det.dead_time_reaches_next_cycle());
+    let total: f64 = det.expected_counts(&signal, None, 1e-3).iter().sum();
+    assert!(
+        (total / coates(&det) - 1.0).abs() < 1e-9,
+        "{total} against {}",
+        coates(&det)
+    );
+    let fast = Detector {
+        repetition_rate: 25e6,
+        ..det
+    };
+    assert!(fast.dead_time_reaches_next_cycle());
+    let total: f64 = fast.expected_counts(&signal, None, 1e-3).iter().sum();
+    assert!(total < 0.99 * coates(&fast), "{total} against {}", coates(&fast));
 }

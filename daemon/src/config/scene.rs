@@ -51,6 +51,7 @@ impl InstrumentConfig {
             wavelength: self.laser.wavelength,
             // The laser as it really pulses, which a run checks the config against.
             repetition_rate: sim.true_repetition_rate,
+            sync_divider: self.tdc.sync_divider.max(1),
             aperture_area: std::f64::consts::PI * (0.5 * sim.aperture).powi(2),
             spot_area: std::f64::consts::PI * (0.5 * sim.spot).powi(2),
             diffuser_solid_angle: 2.0 * std::f64::consts::PI * (1.0 - half.cos()),

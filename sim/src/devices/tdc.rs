@@ -172,7 +172,10 @@ fn expected(shared: &Shared, cfg: WireConfig) -> Vec<f64> {
         det.repetition_rate = s.repetition_rate;
         (s.arms[0].target, s.arms[1].target, s.emission(), s.diffuser_in)
     };
-    det.repetition_rate /= f64::from(cfg.sync_divider.max(1));
+    // The laser pulses at its own rate whatever the divider; the counter's cycle
+    // spans `sync_divider` pulses (until 2026-12-07 the rate was divided, which
+    // multiplied each pulse's photons by the divider).
+    det.sync_divider = cfg.sync_divider.max(1);
     let background = det;
     let dark = || background.expected_counts(&vec![0.0; background.bins], None, dwell);
     let Some(world) = shared.world.as_ref().filter(|_| emission) else {
