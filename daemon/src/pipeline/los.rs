@@ -159,51 +159,66 @@ impl Run {
         Ok(out)
     }
 
-    /// Thresholds, outlier removal and normals.
+    /// Thresholds, outlier removal and normals ([`relay_points`]).
     pub(crate) fn extract_relay(&self, returns: &[(DVec3, f64)]) -> Result<Vec<RelayPoint>, PipelineError> {
-        let r = &self.plan.relay;
         let s = self.instrument.spad_arm.pose.origin;
-        let brightest = returns.iter().map(|p| p.1).fold(0.0, f64::max);
-        let kept: Vec<(DVec3, f64)> = returns
-            .iter()
-            .copied()
-            .filter(|(p, i)| {
-                let depth = p.distance(s);
-                depth >= r.depth[0] && depth <= r.depth[1] && *i >= r.min_intensity * brightest
-            })
-            .collect();
-        if kept.len() < r.neighbours.max(8) {
-            return Err(RelayError::TooFewPoints {
-                kept: kept.len(),
-                total: returns.len(),
-                depth: r.depth,
-                min_intensity: r.min_intensity,
-            }
-            .into());
-        }
-        let points: Vec<DVec3> = kept.iter().map(|p| p.0).collect();
-        let keep = reject_isolated(&points, 8.min(points.len() - 1), 3.0).map_err(RelayError::from)?;
-        let points: Vec<(DVec3, f64)> = kept
-            .into_iter()
-            .zip(keep)
-            .filter(|(_, k)| *k)
-            .map(|(p, _)| p)
-            .collect();
-        let xs: Vec<DVec3> = points.iter().map(|p| p.0).collect();
         let view = 0.5 * (self.instrument.laser_arm.pose.origin + s);
-        let normals = estimate_normals(&xs, r.neighbours.min(xs.len()), view).map_err(RelayError::from)?;
-        Ok(points
-            .iter()
-            .zip(normals)
-            .filter_map(|(&(x, intensity), n)| {
-                n.map(|n| RelayPoint {
-                    x,
-                    n: n.normal,
-                    intensity,
-                })
-            })
-            .collect())
+        relay_points(returns, &self.plan.relay, s, view)
     }
+}
+
+/// The relay from the LOS scan's `returns` (point, photons): those within the depth
+/// window from the SPAD `spad` and at least `min-intensity` of the brightest among
+/// them, isolated points removed, normals estimated facing `view`.
+pub(crate) fn relay_points(
+    returns: &[(DVec3, f64)],
+    r: &crate::plan::RelayStage,
+    spad: DVec3,
+    view: DVec3,
+) -> Result<Vec<RelayPoint>, PipelineError> {
+    // The brightest return within the relay's depths: something nearer the instrument
+    // (it returns more light) must not raise the threshold the relay is held to. Until
+    // 2026-12-07 it was the brightest of all returns.
+    let in_depth: Vec<(DVec3, f64)> = returns
+        .iter()
+        .copied()
+        .filter(|(p, _)| (r.depth[0]..=r.depth[1]).contains(&p.distance(spad)))
+        .collect();
+    let brightest = in_depth.iter().map(|p| p.1).fold(0.0, f64::max);
+    let kept: Vec<(DVec3, f64)> = in_depth
+        .into_iter()
+        .filter(|(_, i)| *i >= r.min_intensity * brightest)
+        .collect();
+    if kept.len() < r.neighbours.max(8) {
+        return Err(RelayError::TooFewPoints {
+            kept: kept.len(),
+            total: returns.len(),
+            depth: r.depth,
+            min_intensity: r.min_intensity,
+        }
+        .into());
+    }
+    let points: Vec<DVec3> = kept.iter().map(|p| p.0).collect();
+    let keep = reject_isolated(&points, 8.min(points.len() - 1), 3.0).map_err(RelayError::from)?;
+    let points: Vec<(DVec3, f64)> = kept
+        .into_iter()
+        .zip(keep)
+        .filter(|(_, k)| *k)
+        .map(|(p, _)| p)
+        .collect();
+    let xs: Vec<DVec3> = points.iter().map(|p| p.0).collect();
+    let normals = estimate_normals(&xs, r.neighbours.min(xs.len()), view).map_err(RelayError::from)?;
+    Ok(points
+        .iter()
+        .zip(normals)
+        .filter_map(|(&(x, intensity), n)| {
+            n.map(|n| RelayPoint {
+                x,
+                n: n.normal,
+                intensity,
+            })
+        })
+        .collect())
 }
 
 #[cfg(test)]
@@ -242,6 +257,42 @@ mod tests {
             "{photons:?}"
         );
         assert!(spread(&peaks) > 0.04, "the peak bins {peaks:?}");
+    }
+
+    /// A return nearer the instrument than the relay's depth window (an object that
+    /// sends back far more light) does not raise the threshold the relay's returns are
+    /// held to: a 20 × 20 wall 2 m away at 1,000 photons a point, its edge rows at 300,
+    /// beside one return of 10⁶ at 1 m. Until 2026-12-07 the threshold was 5 % of that
+    /// one, and every wall point fell under it.
+    #[test]
+    fn a_bright_return_outside_the_depth_window_leaves_the_relays_threshold_alone() {
+        let spad = DVec3::new(0.0, 0.0, 2.0);
+        let mut returns: Vec<(DVec3, f64)> = (0..400)
+            .map(|i| {
+                let (x, y) = ((i % 20) as f64 * 0.05 - 0.5, (i / 20) as f64 * 0.05 - 0.5);
+                let edge = i % 20 == 0 || i % 20 == 19;
+                (DVec3::new(x, y, 0.0), if edge { 300.0 } else { 1000.0 })
+            })
+            .collect();
+        returns.push((DVec3::new(0.0, 0.0, 1.0), 1e6));
+        let stage = crate::plan::RelayStage {
+            depth: [1.5, 3.0],
+            min_intensity: 0.05,
+            neighbours: 16,
+            illumination: periscope_recon::relay::Region::All,
+            detection: periscope_recon::relay::Region::All,
+            albedo_from_scan: true,
+        };
+        let relay = relay_points(&returns, &stage, spad, spad).unwrap();
+        assert!(relay.len() >= 390, "{} of 400 wall points kept", relay.len());
+        assert!(relay.iter().all(|p| p.x.z == 0.0), "the near return is not relay");
+        // 0.35 of the brightest within the window: the edge rows (0.3) go.
+        let strict = crate::plan::RelayStage {
+            min_intensity: 0.35,
+            ..stage.clone()
+        };
+        let relay = relay_points(&returns, &strict, spad, spad).unwrap();
+        assert!(relay.len() <= 360 && relay.len() >= 340, "{}", relay.len());
     }
 
     #[test]
