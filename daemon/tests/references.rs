@@ -113,6 +113,16 @@ fn the_first_bounce_range_matches_closed_forms() {
         None
     );
     assert_eq!(first_bounce_range(f64::NAN, o, o, DVec3::Z), None);
+    // Nor a negative one: with a 0.2 m baseline across the ray, ℓ = −0.05 m (a count
+    // early in a window that opens before the light leaves) gave r = 0.375 m, whose
+    // path is 0.8 m, and ℓ = −0.02 m the point of ℓ = 2 m.
+    let (l, s) = (DVec3::new(-0.1, 0.0, 0.0), DVec3::new(0.1, 0.0, 0.0));
+    for ell in [-0.05, -0.02, 0.0, 0.1, 0.2] {
+        assert_eq!(first_bounce_range(ell, l, s, DVec3::Z), None, "ℓ = {ell}");
+    }
+    let r = first_bounce_range(2.0, l, s, DVec3::Z).unwrap();
+    let p = s + DVec3::Z * r;
+    assert!((p.distance(l) + r - 2.0).abs() < 1e-12, "{r}");
 }
 
 /// Bin k covers [k, k + 1) bin widths after the offset: a return wholly inside one bin

@@ -77,7 +77,21 @@ pub struct FittedPlane {
     pub rms: f64,
 }
 
-/// Fits a plane to `points`; `None` for fewer than three points or collinear ones.
+/// The spread across a set's main direction must be this many times its spread out of
+/// the plane (as variances, the second eigenvalue against the smallest) for the plane
+/// to be defined: points along a line with noise fit no plane, where the noise alone
+/// would set its tilt. A relay of two backs, its depth a third of its height, has
+/// about 10.
+const PLANE_SPREAD_RATIO: f64 = 3.0;
+
+/// And at least this fraction of its spread along it (as variances: a strip 1 m long
+/// must be 1 cm wide): a line scan's depth noise alone, 1 mm on a metre (1.3e-5),
+/// does not make a plane.
+const PLANE_ASPECT: f64 = 1e-4;
+
+/// Fits a plane to `points`; `None` for fewer than three points, collinear ones, or
+/// ones along a line but for noise: a spread across the line under a hundredth of the
+/// spread along it (as variances), or under √3 times the spread out of any plane.
 pub fn fit_plane(points: &[DVec3]) -> Option<FittedPlane> {
     if points.len() < 3 {
         return None;
@@ -86,7 +100,10 @@ pub fn fit_plane(points: &[DVec3]) -> Option<FittedPlane> {
     let centre = points.iter().copied().sum::<DVec3>() / n;
     let cov = covariance(points.iter().map(|p| *p - centre)) * (1.0 / n);
     let e = sym_eigen(cov);
-    if !(e.values[1] > 1e-12 * e.values[2].max(f64::MIN_POSITIVE)) || !e.values[2].is_finite() {
+    if !(e.values[1] > PLANE_ASPECT * e.values[2].max(f64::MIN_POSITIVE))
+        || !(e.values[1] > PLANE_SPREAD_RATIO * e.values[0].max(0.0))
+        || !e.values[2].is_finite()
+    {
         return None;
     }
     let normal = e.vectors[0];
@@ -176,5 +193,44 @@ mod tests {
         let line: Vec<DVec3> = (0..10).map(|i| DVec3::splat(i as f64)).collect();
         assert!(fit_plane(&line).is_none());
         assert!(fit_plane(&line[..2]).is_none());
+    }
+
+    /// A line scan with noise fits no plane (its tilt would be the noise's: 1 mm of
+    /// noise on 100 points along x gave a normal of (0, 0.88, 0.48) until 2026-12-07);
+    /// a strip 1 m by 2 cm, and a relay as deep as a third of its height, do.
+    #[test]
+    fn a_noisy_line_fits_no_plane_and_a_narrow_strip_does() {
+        // Deterministic noise: a low-discrepancy sequence in [−1, 1].
+        let noise = |i: usize, k: f64| ((i as f64 * k).fract() * 2.0 - 1.0) * 1e-3;
+        let line: Vec<DVec3> = (0..100)
+            .map(|i| DVec3::new(i as f64 * 0.01, noise(i, 0.618_034), noise(i, 0.414_214)))
+            .collect();
+        assert!(fit_plane(&line).is_none());
+        // Depth noise alone: the points lie in the x–z plane, but a line scan's.
+        let scan: Vec<DVec3> = (0..100)
+            .map(|i| DVec3::new(i as f64 * 0.01, 0.0, noise(i, 0.414_214)))
+            .collect();
+        assert!(fit_plane(&scan).is_none());
+        let strip: Vec<DVec3> = (0..100)
+            .map(|i| {
+                DVec3::new(
+                    (i / 2) as f64 * 0.02,
+                    (i % 2) as f64 * 0.02,
+                    noise(i, 0.618_034) * 0.1,
+                )
+            })
+            .collect();
+        let plane = fit_plane(&strip).expect("a strip is a plane");
+        assert!(plane.normal.z.abs() > 0.99, "{}", plane.normal);
+        // Two backs: 0.9 m wide, 0.65 m tall, 0.24 m deep, as curved caps.
+        let backs: Vec<DVec3> = (0..400)
+            .map(|i| {
+                let (u, v) = ((i % 20) as f64 / 19.0 - 0.5, (i / 20) as f64 / 19.0 - 0.5);
+                let cap = |x: f64| 0.24 * (1.0 - (2.0 * ((x.abs() - 0.25) / 0.45)).powi(2)).max(0.0);
+                DVec3::new(0.9 * u, 0.65 * v, cap(0.9 * u))
+            })
+            .collect();
+        let plane = fit_plane(&backs).expect("two backs");
+        assert!(plane.normal.z.abs() > 0.9, "{}", plane.normal);
     }
 }

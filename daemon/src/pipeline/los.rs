@@ -76,6 +76,12 @@ pub(crate) fn return_photons(counts: &[f32], at: f64, half_width: usize) -> f64 
 /// in front of the SPAD has that path (ℓ shorter than the baseline, or not finite).
 pub fn first_bounce_range(ell: f64, laser: DVec3, spad: DVec3, d: DVec3) -> Option<f64> {
     let d_ls = spad - laser;
+    // A path no longer than the baseline reaches no point (numerator and denominator
+    // both negative once ℓ + D·d < 0 gave a point r > 0 whose path is not ℓ: an early
+    // stray count in a window that starts before the light leaves, until 2026-12-07).
+    if !(ell > d_ls.length()) {
+        return None;
+    }
     let r = (ell * ell - d_ls.length_squared()) / (2.0 * (ell + d_ls.dot(d)));
     (r.is_finite() && r > 0.0).then_some(r)
 }

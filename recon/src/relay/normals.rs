@@ -23,8 +23,18 @@ use super::{GeometryError, check_finite};
 use crate::linalg::{covariance, solve, sym_eigen};
 
 /// A neighbourhood whose second eigenvalue is below this fraction of the largest is
-/// treated as a line (no normal).
-const LINE_RATIO: f64 = 1e-6;
+/// treated as a line (no normal): its spread across its main direction under a tenth
+/// of its spread along it. A LOS scan whose 16 nearest neighbours lie in one row
+/// (64 × 8 points over a square metre, 1 mm of depth noise) spans only the row and
+/// the noise, and its normal, the direction across the row, lay in the relay's plane,
+/// 90° off, until 2026-12-07 (the ratio was 1e-6, which noise always passes).
+const LINE_RATIO: f64 = 1e-2;
+
+/// A neighbourhood spans a plane only where its spread across its main direction is
+/// clearly more than its spread out of any plane: the second eigenvalue at least this
+/// many times the smallest (a spread √10 ≈ 3.2 times the thickness). Points along a
+/// line with noise in every direction have the two alike.
+const PLANE_RATIO: f64 = 10.0;
 
 /// F statistic (3 and n − 6 degrees of freedom) above which the quadratic terms count as
 /// real curvature rather than noise; noise alone exceeds 30 with probability < 1e-4.
@@ -79,7 +89,8 @@ pub fn estimate_normals(
             let centre = hood.iter().copied().sum::<DVec3>() / hood.len() as f64;
             let e = sym_eigen(covariance(hood.iter().map(|p| *p - centre)));
             let total = e.values.iter().sum::<f64>();
-            if !(e.values[1] > LINE_RATIO * e.values[2]) || !(total > 0.0) {
+            let plane = e.values[1] > LINE_RATIO * e.values[2] && e.values[1] > PLANE_RATIO * e.values[0];
+            if !(plane && total > 0.0) {
                 return None;
             }
             let mut normal = refine(x, &hood, e.vectors[0], e.vectors[1], e.vectors[2]);
@@ -146,5 +157,16 @@ fn refine(x: DVec3, hood: &[DVec3], n: DVec3, t1: DVec3, t2: DVec3) -> DVec3 {
         return n;
     }
     // The surface h(s, t) has gradient (b, c) at the point; its normal is n − b·t1 − c·t2.
-    (n - t1 * c[1] - t2 * c[2]).try_normalize().unwrap_or(n)
+    let refined = (n - t1 * c[1] - t2 * c[2]).try_normalize().unwrap_or(n);
+    // A quadric that turns the normal more than this within its own neighbourhood is
+    // one the points do not pin down: a neighbourhood of one row of a LOS scan and a
+    // few points of the next fitted a slope across the rows that turned the plane's
+    // normal 90° (until 2026-12-07).
+    if refined.dot(n) < MAX_REFINEMENT_COS {
+        return n;
+    }
+    refined
 }
+
+/// The cosine of the most the quadric may turn a neighbourhood's plane normal: 30°.
+const MAX_REFINEMENT_COS: f64 = 0.866;
