@@ -168,7 +168,10 @@ pub fn instrument_seconds(plan: &Plan, inst: &crate::config::InstrumentConfig) -
     };
     let settle = inst.laser_arm.settle.max(inst.spad_arm.settle).as_secs_f64();
     let los_s = (l.grid[0] * l.grid[1]) as f64 * ((l.dwell.as_secs_f64() + settle) * scale + overhead);
-    let per_pair = (a.dwell.as_secs_f64() * f64::from(a.repeats) + settle) * scale + overhead;
+    // Each repeat is an acquisition of its own (a checkpoint and the counter's round
+    // trip), so the overhead is a repeat's.
+    let per_pair =
+        (a.dwell.as_secs_f64() * f64::from(a.repeats) + settle) * scale + overhead * f64::from(a.repeats);
     let cap_s = pairs as f64 * per_pair;
     // An adaptive capture waits, laser off, for each choice: the batch's live training
     // and the scoring of every candidate against every primitive.
@@ -191,9 +194,12 @@ pub fn instrument_seconds(plan: &Plan, inst: &crate::config::InstrumentConfig) -
                 ),
                 _ => cap_s + choice_s(s.rounds()),
             },
-            // The stopping rule can end it after the first choice.
-            (rc.adaptive.stop_gain > 0.0 && s.rounds() > 0)
-                .then(|| (s.first + s.batch.min(s.budget - s.first)) as f64 * per_pair + choice_s(1)),
+            // The stopping rule can end it at the second choice: the first sets the
+            // reference its gain is judged against (a relative gain of 1), so one
+            // chosen batch is always measured.
+            (rc.adaptive.stop_gain > 0.0 && s.rounds() > 0).then(|| {
+                (s.first + s.batch.min(s.budget - s.first)) as f64 * per_pair + choice_s(s.rounds().min(2))
+            }),
         ),
     };
     (los_s, cap_s, cap_min_s)
@@ -546,6 +552,16 @@ mod tests {
             "{e}"
         );
         assert!(b.report(&limits(Some(0.001))).contains("OVER BUDGET"));
+        // A thousand repeats of a microsecond: each is an acquisition of its own, with
+        // its overhead (0.3 ms on the simulator), so 576 pairs take at least 173 s more;
+        // the estimate took the overhead once a pair until 2026-12-07.
+        let repeated = demo_budget_on(real_time, |t| {
+            t.replace("dwell-ms = 20.0", "dwell-ms = 0.001")
+                .replace("repeats = 1 ", "repeats = 1000 ")
+        });
+        let short = demo_budget_on(real_time, |t| t.replace("dwell-ms = 20.0", "dwell-ms = 0.001"));
+        let more = repeated.instrument_seconds() - short.instrument_seconds();
+        assert!(more >= 576.0 * 999.0 * 0.3e-3, "{more} s");
         // A dwell of 20 s instead of 20 ms: about 3.2 hours.
         let long = demo_budget_on(real_time, |t| t.replace("dwell-ms = 20.0", "dwell-ms = 20000.0"));
         let e = long.check(&limits(Some(1.0))).unwrap_err();

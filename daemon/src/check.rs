@@ -86,8 +86,8 @@ pub struct Duration {
     pub los: f64,
     /// NLOS capture (an adaptive one: at its whole budget).
     pub capture: f64,
-    /// An adaptive capture's shortest: its stopping rule ending it after the first
-    /// choice (`None`: not adaptive, or no `stop-gain`).
+    /// An adaptive capture's shortest: its stopping rule ending it at the second
+    /// choice, one chosen batch measured (`None`: not adaptive, or no `stop-gain`).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub capture_min: Option<f64>,
     /// Reconstruction after the capture.

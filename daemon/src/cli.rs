@@ -284,7 +284,10 @@ pub fn execute(cli: Cli) -> Result<(), CliError> {
                 .enable_all()
                 .max_blocking_threads(blocking)
                 .on_thread_start(|| {
-                    if let Err(e) = crate::priority::lower_current_thread(crate::priority::API_NICE) {
+                    // Ten below the process's own (the instrument's), whatever it started
+                    // at: an absolute 10 raised a daemon started at nice 15 where it may.
+                    let nice = (crate::priority::current_nice() + crate::priority::API_NICE).min(19);
+                    if let Err(e) = crate::priority::lower_current_thread(nice) {
                         tracing::debug!(error = %e, "the API thread keeps the instrument's priority");
                     }
                 })

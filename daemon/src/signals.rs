@@ -61,9 +61,28 @@ pub fn install_panic_hook() {
     ONCE.call_once(|| {
         let report = std::panic::take_hook();
         std::panic::set_hook(Box::new(move |info| {
-            if let Ok(lasers) = LASERS.try_lock() {
-                for off in lasers.iter() {
-                    off.try_laser_off();
+            // The list is locked only to add or drop a laser, briefly: wait up to 50 ms
+            // for it rather than skip the lasers (a run registering its laser on another
+            // thread at the moment of a panic), never for ever (a panic while it is held).
+            let deadline = std::time::Instant::now() + std::time::Duration::from_millis(50);
+            loop {
+                match LASERS.try_lock() {
+                    Ok(lasers) => {
+                        for off in lasers.iter() {
+                            off.try_laser_off();
+                        }
+                        break;
+                    }
+                    Err(std::sync::TryLockError::Poisoned(p)) => {
+                        for off in p.into_inner().iter() {
+                            off.try_laser_off();
+                        }
+                        break;
+                    }
+                    Err(std::sync::TryLockError::WouldBlock) if std::time::Instant::now() < deadline => {
+                        std::thread::yield_now();
+                    }
+                    Err(std::sync::TryLockError::WouldBlock) => break,
                 }
             }
             // Only after the lasers: formatting allocates.
