@@ -518,16 +518,9 @@ mod tests {
     /// depths' gradient is large (leaving it out of `update.wgsl` fails this).
     #[test]
     fn steps_resident_on_the_gpu_take_the_surface_priors_gradient() {
-        let Some(gpu) = testing::gpu("steps_resident_on_the_gpu_take_the_surface_priors_gradient") else {
-            return;
-        };
-        resident_steps_against_the_cpus(
-            &gpu,
-            Some(SurfacePrior {
-                spread: 0.005,
-                cell: 0.03,
-                axis: DepthAxis::Z,
-            }),
+        resident_steps_with_a_prior_along(
+            "steps_resident_on_the_gpu_take_the_surface_priors_gradient",
+            DepthAxis::Z,
         );
     }
 
@@ -536,21 +529,27 @@ mod tests {
     /// (`update.wgsl` pulling z whatever the axis fails this).
     #[test]
     fn steps_resident_on_the_gpu_take_the_surface_priors_gradient_along_y() {
-        let Some(gpu) = testing::gpu("steps_resident_on_the_gpu_take_the_surface_priors_gradient_along_y")
-        else {
+        resident_steps_with_a_prior_along(
+            "steps_resident_on_the_gpu_take_the_surface_priors_gradient_along_y",
+            DepthAxis {
+                axis: 1,
+                positive: false,
+            },
+        );
+    }
+
+    /// [`resident_steps_against_the_cpus`] with a prior of 5 mm spread on 3 cm columns
+    /// along `axis`, where a GPU opens for `test`.
+    fn resident_steps_with_a_prior_along(test: &str, axis: DepthAxis) {
+        let Some(gpu) = testing::gpu(test) else {
             return;
         };
-        resident_steps_against_the_cpus(
-            &gpu,
-            Some(SurfacePrior {
-                spread: 0.005,
-                cell: 0.03,
-                axis: DepthAxis {
-                    axis: 1,
-                    positive: false,
-                },
-            }),
-        );
+        let prior = SurfacePrior {
+            spread: 0.005,
+            cell: 0.03,
+            axis,
+        };
+        resident_steps_against_the_cpus(&gpu, Some(prior));
     }
 
     /// The surface prior's gradient at fixed `terms` ([`SurfacePrior::terms`]) on the

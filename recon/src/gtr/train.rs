@@ -2327,15 +2327,18 @@ mod surface_tests {
         },
     ];
 
+    /// A prior of 2 cm spread on 10 cm columns along each of [`AXES`].
+    fn priors() -> impl Iterator<Item = SurfacePrior> {
+        AXES.into_iter().map(|axis| SurfacePrior {
+            spread: 0.02,
+            cell: 0.1,
+            axis,
+        })
+    }
+
     #[test]
     fn the_surface_priors_gradient_matches_finite_differences() {
-        for axis in AXES {
-            priors_gradient_matches_finite_differences(SurfacePrior {
-                spread: 0.02,
-                cell: 0.1,
-                axis,
-            });
-        }
+        priors().for_each(priors_gradient_matches_finite_differences);
     }
 
     /// `prior`'s gradient on a cloud scattered through a box against central
@@ -2384,13 +2387,7 @@ mod surface_tests {
 
     #[test]
     fn the_surface_prior_leaves_a_column_at_one_depth_alone() {
-        for axis in AXES {
-            leaves_a_column_at_one_depth_alone(SurfacePrior {
-                spread: 0.02,
-                cell: 0.1,
-                axis,
-            });
-        }
+        priors().for_each(leaves_a_column_at_one_depth_alone);
     }
 
     fn leaves_a_column_at_one_depth_alone(prior: SurfacePrior) {
