@@ -1129,14 +1129,23 @@ impl InstrumentConfig {
         // 100 ms (Periscope's counter; PicoQuant's are as long): below ten syncs a gate
         // it reads nothing, and the run would fail blaming the sync cable.
         let sync_hz = laser.repetition_rate / f64::from(tdc.sync_divider);
+        // A sync out of range names the divider where there is one, else the laser.
+        let sync_key = if tdc.sync_divider > 1 {
+            "tdc.sync-divider"
+        } else {
+            "laser.rep-rate-mhz"
+        };
+        let sync_is = format!(
+            "laser.rep-rate-mhz = {} over tdc.sync-divider = {} gives {} of sync",
+            laser.repetition_rate / 1e6,
+            tdc.sync_divider,
+            hz_text(sync_hz)
+        );
         if sync_hz < MIN_SYNC_RATE_HZ {
             return Err(src.invalid(
-                if tdc.sync_divider > 1 { "tdc.sync-divider" } else { "laser.rep-rate-mhz" },
+                sync_key,
                 format!(
-                    "laser.rep-rate-mhz = {} over tdc.sync-divider = {} gives {} of sync, under the {MIN_SYNC_RATE_HZ} Hz a counter's rate meter (100 ms gates) can read: every run would fail its sync check{}",
-                    laser.repetition_rate / 1e6,
-                    tdc.sync_divider,
-                    hz_text(sync_hz),
+                    "{sync_is}, under the {MIN_SYNC_RATE_HZ} Hz a counter's rate meter (100 ms gates) can read: every run would fail its sync check{}",
                     if tdc.sync_divider > 1 {
                         " (counters take dividers of 1 to 16)"
                     } else {
@@ -1155,12 +1164,9 @@ impl InstrumentConfig {
                     .filter(|&d| counter.family.sync_divider_ok(d))
                     .find(|&d| laser.repetition_rate / f64::from(d) <= most);
                 return Err(src.invalid(
-                    if tdc.sync_divider > 1 { "tdc.sync-divider" } else { "laser.rep-rate-mhz" },
+                    sync_key,
                     format!(
-                        "laser.rep-rate-mhz = {} over tdc.sync-divider = {} gives {} of sync, above the {} the {}'s sync input takes after its divider (its manual, SetSyncDiv): {}",
-                        laser.repetition_rate / 1e6,
-                        tdc.sync_divider,
-                        hz_text(sync_hz),
+                        "{sync_is}, above the {} the {}'s sync input takes after its divider (its manual, SetSyncDiv): {}",
                         hz_text(most),
                         counter.family,
                         match least {
