@@ -77,6 +77,33 @@ pub struct FittedPlane {
     pub rms: f64,
 }
 
+impl FittedPlane {
+    /// The same plane in a frame the world fixes rather than the points: its normal
+    /// turned to the side of `facing` (kept as fitted if `facing` is zero or in the
+    /// plane), `u` along world x projected into the plane (world y where the normal is
+    /// within about 26° of x), `v = normal × u`. Seen from the side the normal faces, a
+    /// wall facing +z has u along +x and v along +y, and a wall facing −y (ZNLOS's) u
+    /// along +x and v along +z. The fitted `u`'s direction and sign come from the
+    /// points' spread and from the eigen-solver, so grids laid along it turn and mirror
+    /// from one scan of the same relay to the next.
+    pub fn world_oriented(&self, facing: DVec3) -> FittedPlane {
+        let normal = if self.normal.dot(facing) < 0.0 {
+            -self.normal
+        } else {
+            self.normal
+        };
+        let hint = if normal.x.abs() < 0.9 { DVec3::X } else { DVec3::Y };
+        let u = (hint - normal * hint.dot(normal)).normalize();
+        FittedPlane {
+            centre: self.centre,
+            normal,
+            u,
+            v: normal.cross(u),
+            rms: self.rms,
+        }
+    }
+}
+
 /// The spread across a set's main direction must be this many times its spread out of
 /// the plane (as variances, the second eigenvalue against the smallest) for the plane
 /// to be defined: points along a line with noise fit no plane, where the noise alone

@@ -87,12 +87,9 @@ impl VirtualRelay {
     ) -> Result<Self, GeometryError> {
         check_finite(points)?;
         let plane = fit_plane(points).ok_or(GeometryError::NoPlane { points: points.len() })?;
-        let mut normal = plane.normal;
-        if normal.dot(viewpoint - plane.centre) < 0.0 {
-            normal = -normal;
-        }
-        let hint = if normal.x.abs() < 0.9 { DVec3::X } else { DVec3::Y };
-        let provisional = Self::new(plane.centre, normal, hint, [1.0, 1.0], [2, 2])?;
+        let plane = plane.world_oriented(viewpoint - plane.centre);
+        let normal = plane.normal;
+        let provisional = Self::new(plane.centre, normal, plane.u, [1.0, 1.0], [2, 2])?;
         let (mut lo, mut hi) = ([f64::INFINITY; 2], [f64::NEG_INFINITY; 2]);
         for p in points {
             let d = *p - plane.centre;
