@@ -88,10 +88,10 @@ fn on_gpu(dir: &Path, name: &str, config: &str) -> Option<std::path::PathBuf> {
             "PERISCOPE_REQUIRE_GPU is set but: {}",
             done.stderr
         );
-        eprintln!(
-            "SKIPPED a_reconstruction_on_the_gpu_is_the_cpus: {}",
+        periscope_tests::skipped(format_args!(
+            "a_reconstruction_on_the_gpu_is_the_cpus: {}",
             done.stderr.trim()
-        );
+        ));
         return None;
     }
     assert_eq!(

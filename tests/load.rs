@@ -289,7 +289,9 @@ fn count(answers: &[u16], status: u16) -> usize {
 #[test]
 fn a_capture_keeps_its_pace_under_read_floods_idle_connections_and_concurrent_checks() {
     if !cfg!(target_os = "linux") {
-        eprintln!("SKIPPED the load suite: it reads /proc and sets the child's limits with sh");
+        periscope_tests::skipped(format_args!(
+            "the load suite: it reads /proc and sets the child's limits with sh"
+        ));
         return;
     }
     let d = daemon();

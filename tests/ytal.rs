@@ -575,10 +575,10 @@ fn ytal_python() -> Option<String> {
 #[test]
 fn y_tal_reads_our_export() {
     let Some(python) = ytal_python() else {
-        eprintln!(
-            "SKIPPED y_tal_reads_our_export: y-tal is not installed (no `import tal` in \
+        periscope_tests::skipped(format_args!(
+            "y_tal_reads_our_export: y-tal is not installed (no `import tal` in \
              $PERISCOPE_YTAL_PYTHON or python3); .ci/run installs it"
-        );
+        ));
         return;
     };
     let dir = tempfile::tempdir().unwrap();

@@ -29,7 +29,10 @@ fn every_committed_seed_passes_its_target() {
         }
         total += seeds.len();
     }
-    eprintln!(
+    // Not `eprintln!`, which libtest hides from a test that passes.
+    use std::io::Write;
+    let _ = writeln!(
+        std::io::stderr(),
         "replayed {total} committed fuzz seeds over {} targets; fuzzing itself runs in .ci/fuzz \
          (cargo-fuzz), not in cargo test",
         TARGETS.len()

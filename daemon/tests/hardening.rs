@@ -1053,7 +1053,9 @@ async fn one_host_cannot_hold_every_connection_or_keep_loopback_out() {
     use periscope_daemon::api::server::ConnectionLimits;
     use tokio::io::{AsyncReadExt, AsyncWriteExt};
     let Some(remote) = non_loopback_address() else {
-        eprintln!("SKIPPED: this machine has no address but loopback to connect from");
+        common::skipped(format_args!(
+            "one_host_cannot_hold_every_connection_or_keep_loopback_out: this machine has no address but loopback to connect from"
+        ));
         return;
     };
     let held = |limits: ConnectionLimits| async move {

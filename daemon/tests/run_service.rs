@@ -792,9 +792,9 @@ async fn a_real_prometheus_scrapes_the_daemon_and_accepts_the_shipped_config() {
             !prometheus_required(),
             "PERISCOPE_REQUIRE_PROMETHEUS is set but prometheus or promtool is not on PATH (apt-get install prometheus)"
         );
-        eprintln!(
-            "SKIPPED: prometheus/promtool not on PATH; `.ci/run` installs Debian's prometheus for this test"
-        );
+        common::skipped(format_args!(
+            "the Prometheus scrape: prometheus/promtool not on PATH; `.ci/run` installs Debian's prometheus for this test"
+        ));
         return;
     };
     let docs = Path::new(env!("CARGO_MANIFEST_DIR")).join("../docs");

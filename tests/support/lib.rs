@@ -17,7 +17,9 @@ use periscope_sim::World;
 use periscope_sim::truth::depth_truth;
 
 mod plan;
+mod skip;
 pub use plan::SmallPlan;
+pub use skip::skipped;
 
 /// The repository root.
 pub fn repo_root() -> PathBuf {

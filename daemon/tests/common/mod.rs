@@ -18,6 +18,12 @@ mod small_plan;
 #[allow(unused_imports)] // like the rest of this module, not every test file uses it
 pub(crate) use small_plan::SmallPlan;
 
+#[allow(unreachable_pub)]
+#[path = "../../../tests/support/skip.rs"]
+mod skip;
+#[allow(unused_imports)]
+pub(crate) use skip::skipped;
+
 /// A runtime of two workers whose blocking pool has one thread, for tests that take it
 /// ([`take_the_blocking_pool`]), as requests timed out while their blocking work goes
 /// on (an export, a stalled disk) can.

@@ -533,7 +533,9 @@ pub mod testing {
         match shared(true) {
             Ok(g) => Some(g),
             Err(e) if std::env::var_os("PERISCOPE_REQUIRE_GPU").is_none() => {
-                eprintln!("SKIPPED {test}: {e}");
+                // Not `eprintln!`: libtest hides that from a test that passes.
+                use std::io::Write;
+                let _ = writeln!(std::io::stderr(), "SKIPPED {test}: {e}");
                 None
             }
             Err(e) => panic!("{test}: PERISCOPE_REQUIRE_GPU is set but {e}"),
