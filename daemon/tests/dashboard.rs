@@ -80,12 +80,16 @@ async fn the_page_and_its_files_are_served_from_the_binary() {
         assert_eq!(bytes, body.as_bytes(), "{name}");
         assert!(!media.is_empty());
     }
-    for src in html.split(['"', '\'']).filter(|s| s.starts_with("/ui/")) {
-        let name = src.trim_start_matches("/ui/");
-        assert!(
-            ASSETS.iter().any(|(n, _, _)| *n == name),
-            "index.html names {src}, which is not embedded"
-        );
+    // And every file the page or its scripts name (a worker the script starts).
+    let scripts = ASSETS.iter().map(|(name, _, body)| (*name, *body));
+    for (page, text) in [("index.html", html.as_str())].into_iter().chain(scripts) {
+        for src in text.split(['"', '\'', '`']).filter(|s| s.starts_with("/ui/")) {
+            let name = src.trim_start_matches("/ui/");
+            assert!(
+                ASSETS.iter().any(|(n, _, _)| *n == name),
+                "{page} names {src}, which is not embedded"
+            );
+        }
     }
     assert!(
         !html.contains("http://") && !html.contains("https://"),
@@ -310,9 +314,9 @@ fn browser_or_skip(what: &str) -> Option<(PathBuf, PathBuf)> {
                 std::env::var_os("PERISCOPE_REQUIRE_BROWSER").is_none(),
                 "PERISCOPE_REQUIRE_BROWSER is set but {what} cannot run: {why}"
             );
-            eprintln!(
-                "SKIPPED {what}: {why} (Debian: apt-get install chromium chromium-driver; .ci/run installs them)"
-            );
+            common::skipped(format_args!(
+                "{what}: {why} (Debian: apt-get install chromium chromium-driver; .ci/run installs them)"
+            ));
             None
         }
     }

@@ -11,6 +11,11 @@ const POLL_MS = 2000;
 // accepts connections and never answers must not leave the page showing what it read
 // last: the E-STOP label and the connection pill say so instead.
 const POLL_TIMEOUT_MS = 6000;
+// A run's event stream with nothing on it for this long, not even the daemon's
+// keep-alive comment (sent after 15 s without an event), is given up and opened
+// again: a connection gone silent (a stalled proxy, a network that dropped it without
+// a reset) would otherwise show a live run as frozen for good.
+const RUN_STREAM_SILENT_MS = 40000;
 
 // What the browser test reads.
 const probe = {
@@ -85,13 +90,16 @@ class ApiError extends Error {
 // browser has six connections per host, and polls or an upload waiting on a loaded
 // daemon must not hold the one the E-STOP needs. With `timeoutMs` a request (its body
 // included) fails with a TimeoutError when the daemon has not answered in that time.
+// With `read` (a function of the response), the request stays cancellable until
+// `read` has read the body, and its result is returned.
 const inflight = new Set();
-async function pageFetch(path, init = {}, timeoutMs = null) {
+async function pageFetch(path, init = {}, timeoutMs = null, read = null) {
   const ctl = new AbortController();
   const signal = timeoutMs == null ? ctl.signal : AbortSignal.any([ctl.signal, AbortSignal.timeout(timeoutMs)]);
   inflight.add(ctl);
   try {
-    return await fetch(path, { ...init, signal });
+    const r = await fetch(path, { ...init, signal });
+    return read ? await read(r) : r;
   } finally {
     inflight.delete(ctl);
   }
@@ -131,12 +139,72 @@ async function api(method, path, body, timeoutMs = null) {
   return json;
 }
 
-async function fetchBytes(path) {
+// A file larger than a caller's limit (`fetchBytes`), refused before its body is read
+// where its length is given; `bytes` is null where it was not.
+class TooLarge extends Error {
+  constructor(name, bytes, limit) {
+    super(`${name} is ${bytes == null ? 'larger than' : `${fmtBytes(bytes)}, over`} the ${fmtBytes(limit)} this page loads`);
+    this.name = 'TooLarge';
+  }
+}
+
+// A run file's bytes; the E-STOP cancels the download, body included. A file over
+// `limit` bytes is refused with TooLarge: from its Content-Length before its body is
+// read, or, where the length is not given (a compressed body), as soon as more has
+// come. With a limit the body is read piece by piece into one buffer: Chromium's
+// `arrayBuffer()` assembles a large body in one task of the page's thread (150 ms for
+// 192 MiB), during which the E-STOP button does not answer.
+async function fetchBytes(path, limit = Infinity) {
   const name = path.split('/').pop();
   probe.fetched[name] = (probe.fetched[name] || 0) + 1;
-  const r = await pageFetch(path, { headers: headers() });
-  if (!r.ok) throw new ApiError(r.status, null, `${path}: ${r.status} ${r.statusText}`);
-  return r.arrayBuffer();
+  return pageFetch(path, { headers: headers() }, null, async (r) => {
+    if (!r.ok) {
+      r.body?.cancel().catch(() => {});
+      throw new ApiError(r.status, null, `${path}: ${r.status} ${r.statusText}`);
+    }
+    if (limit === Infinity) return r.arrayBuffer();
+    const given = r.headers.get('Content-Encoding') ? null : r.headers.get('Content-Length');
+    const length = given == null ? null : Number(given);
+    if (length > limit) {
+      r.body?.cancel().catch(() => {});
+      throw new TooLarge(name, length, limit);
+    }
+    return readBody(r.body.getReader(), name, length, limit);
+  });
+}
+
+// A body's bytes, into one buffer of `length` where it is known (no copy but the one
+// from each piece), else gathered and joined; more than `limit` bytes is TooLarge.
+async function readBody(reader, name, length, limit) {
+  const out = length == null ? null : new Uint8Array(length);
+  const pieces = [];
+  let at = 0;
+  try {
+    for (;;) {
+      const { value, done } = await reader.read();
+      if (done) break;
+      if (at + value.byteLength > (length ?? limit)) {
+        throw length == null ? new TooLarge(name, null, limit) : new Error(`${name} sent more than the ${length} bytes it announced`);
+      }
+      if (out) out.set(value, at);
+      else pieces.push(value);
+      at += value.byteLength;
+    }
+  } catch (e) {
+    reader.cancel().catch(() => {});
+    throw e;
+  }
+  if (out) {
+    if (at !== length) throw new Error(`${name} was cut short: ${at} of ${length} bytes came`);
+    return out.buffer;
+  }
+  const joined = new Uint8Array(at);
+  let to = 0;
+  for (const p of pieces) {
+    joined.set(p, to);
+    to += p.byteLength;
+  }
+  return joined.buffer;
 }
 
 // A banner; one about a run (`run` set) clears when another run is selected.
@@ -178,6 +246,19 @@ function cmap(stops, t) {
   return stops[i].map((c, k) => Math.round(c + (stops[i + 1][k] - c) * f));
 }
 const css = (rgb) => `rgb(${rgb[0]},${rgb[1]},${rgb[2]})`;
+
+// The smallest and largest of `values`, by a loop: spreading an array into Math.min
+// passes each element as an argument, and throws past about 125,000. [Infinity,
+// -Infinity] for none.
+function extent(values) {
+  let lo = Infinity;
+  let hi = -Infinity;
+  for (const v of values) {
+    if (v < lo) lo = v;
+    if (v > hi) hi = v;
+  }
+  return [lo, hi];
+}
 
 // ---------------------------------------------------------------- instrument panel
 
@@ -788,6 +869,8 @@ function select(id) {
   $('run-actions').dataset.key = '';
   downloadsKey = null;
   volume = null;
+  // The last choice's array work is of no use now: stop it rather than wait for it.
+  if (jobs.size) stopWorker(Object.assign(new Error(`run ${id} was chosen`), { name: 'Superseded' }));
   if (bannerRun && bannerRun !== id) banner('');
   renderRuns();
   loadHistory(id);
@@ -839,7 +922,7 @@ function renderDownloads(st) {
         a.click();
         setTimeout(() => URL.revokeObjectURL(a.href), 60000);
       } catch (e) {
-        banner(`download failed: ${e.message}`);
+        banner(givenUp(e) ? `download of ${f} cancelled (for the E-STOP): press it again to download` : `download failed: ${e.message}`);
       }
     },
   }, f)));
@@ -908,8 +991,7 @@ async function loadGeometry(id) {
     }
     const vp = g.viewpoint;
     const dist = g.relay.map((p) => Math.hypot(p[0] - vp[0], p[1] - vp[1], p[2] - vp[2]));
-    const lo = Math.min(...dist);
-    const hi = Math.max(...dist);
+    const [lo, hi] = extent(dist);
     view.setPoints('relay', g.relay, { colour: (i) => css(cmap(VIRIDIS, (dist[i] - lo) / (hi - lo || 1))), size: 1.6 });
     view.setPoints('illumination', g.illumination, { colour: '#e74c3c', size: 2.2, alpha: 0.8 });
     view.setPoints('detection', g.detection, { colour: '#1abc9c', size: 1.6, alpha: 0.8 });
@@ -923,7 +1005,10 @@ async function loadGeometry(id) {
     $('cb-lo').textContent = `${lo.toFixed(2)} m`;
     $('cb-hi').textContent = `${hi.toFixed(2)} m from the instrument`;
     $('view-colourbar').hidden = g.relay.length === 0;
-    $('view-caption').textContent = `${g.relay.length.toLocaleString()} relay points coloured by distance (${lo.toFixed(2)}–${hi.toFixed(2)} m) · ${g.illumination.length} illumination (red), ${g.detection.length} detection (green) points · volume box`;
+    const relay = g.relay.length
+      ? `${g.relay.length.toLocaleString()} relay points coloured by distance (${lo.toFixed(2)}–${hi.toFixed(2)} m)`
+      : 'no relay points';
+    $('view-caption').textContent = `${relay} · ${g.illumination.length} illumination (red), ${g.detection.length} detection (green) points · volume box`;
     probe.geometry = { relay: g.relay.length, illumination: g.illumination.length, detection: g.detection.length };
     } catch (e) {
     // Cancelled for the E-STOP: loaded again at the next status.
@@ -973,7 +1058,7 @@ function drawChosen() {
       gains.push(b.gains[i]);
     });
   }
-  const gmax = Math.max(...gains, 1e-30);
+  const gmax = Math.max(extent(gains)[1], 1e-30);
   view.setPoints('chosen', points, {
     colour: (i) => (gains[i] > 0 ? css(cmap(INFERNO, 0.25 + 0.75 * gains[i] / gmax)) : '#9aa0a6'),
     size: 4,
@@ -988,7 +1073,7 @@ function drawChosen() {
 }
 
 function onSnapshot(s) {
-  const wmax = Math.max(...s.weights, 1e-30);
+  const wmax = Math.max(extent(s.weights)[1], 1e-30);
   view.setPoints('gaussians', s.centres, {
     colour: '#f39c12',
     size: (i) => 1 + 3 * Math.sqrt(Math.max(0, s.weights[i]) / wmax),
@@ -1078,8 +1163,22 @@ async function follow(id) {
   // event log hold more than the page already loaded.
   let received = false;
   while (!abort.signal.aborted && selected === id) {
+    // This connection's own end: however the stream ends (the daemon closes it, a
+    // handler throws, the watchdog gives up on it), it is closed before another opens,
+    // so none is left holding one of the browser's six connections to the daemon.
+    const conn = new AbortController();
+    // A handler's own failure and its event, told apart from the network's failures
+    // (both may be TypeErrors).
+    let broke = null;
+    let heard = performance.now();
+    const watchdog = setInterval(() => {
+      if (performance.now() - heard > RUN_STREAM_SILENT_MS) {
+        probe.runStreamSilences = (probe.runStreamSilences || 0) + 1;
+        conn.abort();
+      }
+    }, 1000);
     try {
-      const r = await fetch(`/api/v1/runs/${id}/events`, { headers: headers(), signal: abort.signal });
+      const r = await fetch(`/api/v1/runs/${id}/events`, { headers: headers(), signal: AbortSignal.any([abort.signal, conn.signal]) });
       if (!r.ok) throw new ApiError(r.status, null, `event stream: ${r.status}`);
       probe.streamsOpened += 1;
       setConnection(true);
@@ -1087,11 +1186,20 @@ async function follow(id) {
         // A loop another has replaced shows nothing more.
         if (live?.abort !== abort) return;
         if (name !== 'status') received = true;
-        onEvent(name, data);
-      });
+        try {
+          onEvent(name, data);
+        } catch (e) {
+          broke = { e, name };
+          throw e;
+        }
+      }, () => { heard = performance.now(); });
     } catch (e) {
       if (abort.signal.aborted) return;
-      if (e instanceof TypeError) setConnection(false);
+      if (e === broke?.e) console.error(`run ${id}: showing a \`${broke.name}\` event failed; the stream is opened again`, e);
+      else if (e instanceof TypeError) setConnection(false);
+    } finally {
+      clearInterval(watchdog);
+      conn.abort();
     }
     // The stream ended: the run stopped, or the connection dropped. Catch up.
     let st = null;
@@ -1120,22 +1228,53 @@ async function follow(id) {
 
 // ---------------------------------------------------------------- results
 
-function parseNpy(buf) {
-  const bytes = new Uint8Array(buf);
-  const magic = String.fromCharCode(...bytes.slice(1, 6));
-  if (bytes[0] !== 0x93 || magic !== 'NUMPY') throw new Error('not a .npy file');
-  const dv = new DataView(buf);
-  const major = bytes[6];
-  const headerLen = major >= 2 ? dv.getUint32(8, true) : dv.getUint16(8, true);
-  const start = major >= 2 ? 12 : 10;
-  const header = new TextDecoder().decode(bytes.slice(start, start + headerLen));
-  const descr = /'descr':\s*'([^']+)'/.exec(header)?.[1];
-  const shape = (/'shape':\s*\(([^)]*)\)/.exec(header)?.[1] || '').split(',').map((s) => s.trim()).filter(Boolean).map(Number);
-  if (/'fortran_order':\s*True/.test(header)) throw new Error('Fortran-order .npy is not supported');
-  const body = buf.slice(start + headerLen);
-  const data = descr === '<f4' ? new Float32Array(body) : descr === '<f8' ? new Float64Array(body) : null;
-  if (!data) throw new Error(`.npy dtype ${descr} is not supported`);
-  return { shape, data };
+// The largest volume.npy the page loads: 256 MiB of voxels (a 512×512×256 float32
+// volume) and room for its header. A larger one would hold the tab's memory for what a
+// screen cannot show; its depth.png and albedo.png are offered as downloads instead.
+const VOLUME_LIMIT_BYTES = 256 * 2 ** 20 + 64 * 2 ** 10;
+
+// The plane a view across `axis` is drawn in, as [columns, rows]: the other two axes in
+// x, y, z order, as volume.json's `depth` names them for the depth map (recon's
+// `DepthAxis::lateral`), so the albedo and the projection along the depth axis lie as
+// the depth map does.
+const LATERAL = { x: ['y', 'z'], y: ['x', 'z'], z: ['x', 'y'] };
+
+// volume.json's depth map: the axis it looks along, which way leads away from the
+// relay, and its columns and rows (older runs' volume.json had none: z for our walls).
+const depthOf = (vj) => vj.depth || { axis: 'z', away: '+', columns: 'x', rows: 'y' };
+
+// The array work (.npy parsing; the volume, its projections and slices) runs in a
+// worker (volume-worker.js), off the thread that also runs the E-STOP button. It
+// answers in order; choosing another run while it works stops it (`stopWorker`).
+let worker = null;
+const jobs = new Map(); // request id → { resolve, reject }
+let jobsAsked = 0;
+function stopWorker(why) {
+  worker?.terminate();
+  worker = null;
+  for (const job of jobs.values()) job.reject(why);
+  jobs.clear();
+}
+function inWorker(request, transfer = []) {
+  if (!worker) {
+    worker = new Worker('/ui/volume-worker.js');
+    worker.onmessage = ({ data }) => {
+      const job = jobs.get(data.id);
+      jobs.delete(data.id);
+      if (data.error) job?.reject(new Error(data.error));
+      else job?.resolve(data);
+    };
+    // A worker that did not load (or broke): every request waiting on it fails.
+    worker.onerror = (e) => {
+      e.preventDefault();
+      stopWorker(new Error(`the page's volume worker (/ui/volume-worker.js) ${e.message ? `failed: ${e.message}` : 'did not start'}`));
+    };
+  }
+  const id = ++jobsAsked;
+  return new Promise((resolve, reject) => {
+    jobs.set(id, { resolve, reject });
+    worker.postMessage({ ...request, id }, transfer);
+  });
 }
 
 const niceStep = (span, n) => {
@@ -1153,6 +1292,8 @@ const ticks = (lo, hi, n) => {
 // Draws a 2-D map (row-major [rows][cols], row 0 at the bottom) with metric axes and a
 // colour bar. NaN pixels are left grey.
 function drawMap(canvas, { data, cols, rows, xr, yr, xlabel, ylabel, vmin, vmax, stops, unit, title }) {
+  const f = (v) => (v !== 0 && (Math.abs(v) < 0.01 || Math.abs(v) >= 1e4) ? v.toExponential(1) : v.toFixed(2));
+  canvas.setAttribute('aria-label', `${title}: ${cols} by ${rows} pixels, ${xlabel} from ${f(xr[0])} to ${f(xr[1])} across, ${ylabel} from ${f(yr[0])} to ${f(yr[1])} upwards, ${unit} coloured from ${f(vmin)} to ${f(vmax)}`);
   const scale = Math.max(1, Math.floor(320 / Math.max(cols, rows)));
   const [pw, ph] = [cols * scale, rows * scale];
   const [ml, mt, mb, mr] = [56, 22, 42, 100];
@@ -1162,12 +1303,19 @@ function drawMap(canvas, { data, cols, rows, xr, yr, xlabel, ylabel, vmin, vmax,
   ctx.fillStyle = '#fff';
   ctx.fillRect(0, 0, canvas.width, canvas.height);
   const img = ctx.createImageData(cols, rows);
+  // The colour map in 256 steps, as many as a channel holds.
+  const lut = Array.from({ length: 256 }, (_, i) => cmap(stops, i / 255));
+  const span = vmax - vmin || 1;
   for (let r = 0; r < rows; r++) {
     for (let c = 0; c < cols; c++) {
       const v = data[r * cols + c];
       const o = ((rows - 1 - r) * cols + c) * 4;
-      const rgb = Number.isFinite(v) ? cmap(stops, (v - vmin) / (vmax - vmin || 1)) : [200, 200, 200];
-      img.data.set([...rgb, 255], o);
+      const t = (v - vmin) / span;
+      const rgb = Number.isFinite(v) ? lut[t > 0 ? (t < 1 ? Math.round(255 * t) : 255) : 0] : [200, 200, 200];
+      img.data[o] = rgb[0];
+      img.data[o + 1] = rgb[1];
+      img.data[o + 2] = rgb[2];
+      img.data[o + 3] = 255;
     }
   }
   const tmp = document.createElement('canvas');
@@ -1223,42 +1371,47 @@ function drawMap(canvas, { data, cols, rows, xr, yr, xlabel, ylabel, vmin, vmax,
   ctx.restore();
 }
 
-let volume = null; // { nx, ny, nz, data, json }
+// The shown volume (the worker holds its voxels): { id, nx, ny, nz, json, max }.
+let volume = null;
 
-// A 2-D view of the volume: `axis` is the one collapsed (max projection) or sliced.
-function plane(axis, index) {
-  const { nx, ny, nz, data, json } = volume;
-  const at = (ix, iy, iz) => data[(iz * ny + iy) * nx + ix];
-  const dims = { x: [nz, ny, 'z (m)', 'y (m)', json.z, json.y], y: [nx, nz, 'x (m)', 'z (m)', json.x, json.z], z: [nx, ny, 'x (m)', 'y (m)', json.x, json.y] }[axis];
-  const [cols, rows] = dims;
-  const out = new Float32Array(cols * rows);
-  for (let r = 0; r < rows; r++) {
-    for (let c = 0; c < cols; c++) {
-      let v = -Infinity;
-      const n = axis === 'x' ? nx : axis === 'y' ? ny : nz;
-      const [from, to] = index == null ? [0, n] : [index, index + 1];
-      for (let k = from; k < to; k++) {
-        const s = axis === 'x' ? at(k, r, c) : axis === 'y' ? at(c, k, r) : at(c, r, k);
-        if (s > v) v = s;
-      }
-      out[r * cols + c] = v;
-    }
-  }
-  return { data: out, cols, rows, xlabel: dims[2], ylabel: dims[3], xr: dims[4], yr: dims[5] };
+// Metric axes for a plane of the volume across `along` (volume.json's ranges).
+function axesOf(along, json) {
+  const [columns, rows] = LATERAL[along];
+  return { xlabel: `${columns} (m)`, ylabel: `${rows} (m)`, xr: json[columns], yr: json[rows] };
 }
 
-function drawSlice() {
+// The slice the slider and the axis menu choose, from the worker: one at a time, and
+// a choice made while one is under way drawn when it is in.
+let sliceBusy = false;
+let sliceAgain = false;
+async function drawSlice() {
   if (!volume) return;
-  const axis = $('slice-axis').value;
-  const n = { x: volume.nx, y: volume.ny, z: volume.nz }[axis];
-  const slider = $('slice');
-  slider.max = n - 1;
-  const i = Math.min(Number(slider.value), n - 1);
-  const range = volume.json[axis];
-  const pos = range[0] + ((i + 0.5) * (range[1] - range[0])) / n;
-  const p = plane(axis, i);
-  drawMap($('slice-canvas'), { ...p, vmin: 0, vmax: volume.max, stops: INFERNO, unit: 'intensity', title: `slice ${axis} = ${pos.toFixed(3)} m (${i + 1}/${n})` });
-  probe.sliceShown = true;
+  if (sliceBusy) {
+    sliceAgain = true;
+    return;
+  }
+  sliceBusy = true;
+  sliceAgain = false;
+  const v = volume;
+  try {
+    const axis = $('slice-axis').value;
+    const n = { x: v.nx, y: v.ny, z: v.nz }[axis];
+    const slider = $('slice');
+    slider.max = n - 1;
+    const i = Math.min(Number(slider.value), n - 1);
+    const [columns, rows] = LATERAL[axis];
+    const p = await inWorker({ op: 'slice', along: axis, columns, rows, index: i });
+    if (volume !== v) return;
+    const range = v.json[axis];
+    const pos = range[0] + ((i + 0.5) * (range[1] - range[0])) / n;
+    drawMap($('slice-canvas'), { ...p, ...axesOf(axis, v.json), vmin: 0, vmax: v.max, stops: INFERNO, unit: 'intensity', title: `slice ${axis} = ${pos.toFixed(3)} m (${i + 1}/${n})` });
+    probe.sliceShown = true;
+  } catch (e) {
+    if (volume === v && e.name !== 'Superseded') $('volume-note').textContent = `the slice could not be shown: ${e.message}`;
+  } finally {
+    sliceBusy = false;
+    if (sliceAgain) drawSlice();
+  }
 }
 $('slice').addEventListener('input', drawSlice);
 $('slice-axis').addEventListener('change', () => {
@@ -1289,10 +1442,12 @@ async function loadResults(id) {
       fetchBytes(`/api/v1/runs/${id}/files/depth.npy`),
     ]);
     if (id !== selected) return;
-    const depth = parseNpy(depthBuf);
+    const depth = await inWorker({ op: 'parse', buffer: depthBuf }, [depthBuf]);
+    if (id !== selected) return;
+    if (depth.shape.length !== 2) throw new Error(`depth.npy has shape (${depth.shape.join(', ')}), not rows and columns`);
     // The depth map looks along the volume's axis nearest the relay's normal (z for our
     // walls; volume.json says which, and which way leads away from the relay).
-    const d = vj.depth || { axis: 'z', away: '+', columns: 'x', rows: 'y' };
+    const d = depthOf(vj);
     const [near, far] = d.away === '-' ? [vj[d.axis][1], vj[d.axis][0]] : vj[d.axis];
     drawMap($('depth-canvas'), {
       data: depth.data, cols: depth.shape[1], rows: depth.shape[0], xr: vj[d.columns], yr: vj[d.rows],
@@ -1304,35 +1459,68 @@ async function loadResults(id) {
     $('results-body').hidden = false;
     probe.resultsShown = true;
     whenVisible($('volume-part'), () => loadVolume(id, vj));
-    } catch (e) {
-    if (e.name === 'AbortError') resultsFor = null;
-    else if (id === selected) $('results-note').textContent = `results could not be shown: ${e.message}`;
+  } catch (e) {
+    // Cancelled for the E-STOP: loaded again at the next status. Superseded: the run
+    // was chosen again, and its results are loading anew.
+    if (e.name === 'Superseded') return;
+    if (e.name === 'AbortError') {
+      if (resultsFor === id) resultsFor = null;
+    } else if (id === selected) {
+      $('results-note').textContent = `results could not be shown: ${e.message}`;
+    }
   }
 }
 
+// The volume: fetched (at most VOLUME_LIMIT_BYTES), handed to the worker, which
+// keeps it and sends back its maximum and projections; slices are asked for as shown.
 async function loadVolume(id, vj) {
+  const note = $('volume-note');
   try {
-    const vol = parseNpy(await fetchBytes(`/api/v1/runs/${id}/files/volume.npy`));
+    note.textContent = 'loading the volume…';
+    const buffer = await fetchBytes(`/api/v1/runs/${id}/files/volume.npy`, VOLUME_LIMIT_BYTES);
     if (id !== selected) return;
-    const [nz, ny, nx] = vol.shape;
-    let max = 0;
-    for (const v of vol.data) if (v > max) max = v;
-    volume = { nx, ny, nz, data: vol.data, json: vj, max: max || 1 };
-    const along = vj.depth?.axis || 'z';
-    const mip = plane(along);
-    const albedo = mip.data.map((v) => Math.max(0, v) / volume.max);
-    drawMap($('albedo-canvas'), { ...mip, data: albedo, vmin: 0, vmax: 1, stops: INFERNO, unit: 'relative intensity', title: `albedo (peak along ${along})` });
-    for (const axis of ['x', 'y', 'z']) {
-      drawMap($(`mip-${axis}`), { ...plane(axis), vmin: 0, vmax: volume.max, stops: INFERNO, unit: 'intensity', title: `max projection along ${axis}` });
+    note.textContent = 'projecting the volume…';
+    // The projections along z, y and x, and the albedo: the peak along the depth map's
+    // axis, in the depth map's columns and rows (the same view as one of the three).
+    const d = depthOf(vj);
+    const views = ['z', 'y', 'x'].map((along) => ({ along, columns: LATERAL[along][0], rows: LATERAL[along][1] }));
+    let a = views.findIndex((v) => v.along === d.axis && v.columns === d.columns && v.rows === d.rows);
+    if (a < 0) a = views.push({ along: d.axis, columns: d.columns, rows: d.rows }) - 1;
+    const got = await inWorker({ op: 'load', buffer, views }, [buffer]);
+    if (id !== selected) return;
+    const [nz, ny, nx] = got.shape;
+    volume = { id, nx, ny, nz, json: vj, max: got.max || 1 };
+    const albedo = got.planes[a];
+    // One map a task (a 512×512 one takes some 40 ms to colour): a click on the E-STOP
+    // between them is handled at once.
+    const yieldToPage = () => new Promise((ok) => setTimeout(ok, 0));
+    drawMap($('albedo-canvas'), {
+      ...albedo, xlabel: `${d.columns} (m)`, ylabel: `${d.rows} (m)`, xr: vj[d.columns], yr: vj[d.rows],
+      data: albedo.data.map((v) => Math.max(0, v) / volume.max), vmin: 0, vmax: 1, stops: INFERNO, unit: 'relative intensity', title: `albedo (peak along ${d.axis})`,
+    });
+    for (const [i, { along }] of views.slice(0, 3).entries()) {
+      await yieldToPage();
+      if (id !== selected) return;
+      drawMap($(`mip-${along}`), { ...got.planes[i], ...axesOf(along, vj), vmin: 0, vmax: volume.max, stops: INFERNO, unit: 'intensity', title: `max projection along ${along}` });
     }
     $('slice-axis').value = 'z';
     $('slice').max = nz - 1;
     $('slice').value = Math.floor(nz / 2);
     drawSlice();
-    $('volume-note').textContent = `${nx}×${ny}×${nz} voxels, maximum ${volume.max.toExponential(2)}`;
-    } catch (e) {
-    if (e.name === 'AbortError') resultsFor = null;
-    else if (id === selected) $('volume-note').textContent = `the volume could not be shown: ${e.message}`;
+    const odd = got.nonFinite ? `; ${got.nonFinite.toLocaleString()} voxels are NaN or infinite (left out of the maximum)` : '';
+    note.textContent = `${nx}×${ny}×${nz} voxels, maximum ${volume.max.toExponential(2)}${odd}`;
+  } catch (e) {
+    if (e.name === 'Superseded') return;
+    if (e.name === 'AbortError') {
+      // Cancelled for the E-STOP: loaded again at the next status.
+      if (resultsFor === id) resultsFor = null;
+    } else if (id !== selected) {
+      // Another run's volume: nothing to say.
+    } else if (e.name === 'TooLarge') {
+      note.textContent = `${e.message}: the albedo, the projections and the slices are not drawn here. Download depth.png and albedo.png below (or volume.npy, to open it with numpy).`;
+    } else {
+      note.textContent = `the volume could not be shown: ${e.message}`;
+    }
   }
 }
 

@@ -15,6 +15,10 @@ const STREAM_SILENT_MS = 4000;
 // TCSPC rule: keep below 5 %).
 const PILE_UP_ALARM = 0.05;
 const HOUR_S = 3600;
+// A change of the bar's state is said to screen readers once it has held this long,
+// so a reading on the edge of its age limit does not chatter; the laser turning on is
+// said at once.
+const ANNOUNCE_HOLD_MS = 1000;
 
 const $ = (id) => document.getElementById(id);
 
@@ -93,6 +97,24 @@ export function startSafety({ headers, probe, setConnection }) {
     return out;
   }
 
+  // The bar's state in words (#sb-announce, the bar's one live region): said when it
+  // changes, never the ticking age or rates, which would be read out four times a
+  // second and bury a change to LASER ON.
+  let said = null;
+  let change = null; // { key, since }
+  function announce(key, text, now, urgent) {
+    if (key === said) {
+      change = null;
+      return;
+    }
+    if (change?.key !== key) change = { key, since: now };
+    if (!urgent && now - change.since < ANNOUNCE_HOLD_MS) return;
+    $('sb-announce').textContent = text;
+    said = key;
+    change = null;
+    probe.announced = text;
+  }
+
   function render() {
     const now = performance.now();
     const s = last?.s;
@@ -121,6 +143,7 @@ export function startSafety({ headers, probe, setConnection }) {
       word('sb-arms', 'arms ?', '');
       word('sb-rate', 'rate ?', '');
       $('sb-age').textContent = `${unknown}. In doubt, use the hardware emergency stop.`;
+      announce('unknown', `Laser state unknown: ${unknown}. In doubt, use the hardware emergency stop.`, now, false);
     } else {
       bar.className = `safety ${s.emission ? 'emitting' : 'safe'}`;
       word('sb-state', s.source === 'run' ? `run ${s.run}` : 'idle', '');
@@ -132,6 +155,10 @@ export function startSafety({ headers, probe, setConnection }) {
       const rate = s.signal_rate_hz ?? s.detector_rate_hz;
       word('sb-rate', rate == null ? 'rate –' : `${Math.round(rate).toLocaleString()} counts/s${s.signal_rate_hz != null ? ' signal' : ' detector'}`, '');
       $('sb-age').textContent = `read ${(s.age_s + (now - last.at) / 1000).toFixed(1)} s ago (stale after ${s.stale_after_s.toFixed(0)} s)`;
+      const open = s.interlock_closed === false;
+      const who = s.source === 'run' ? `run ${s.run}` : 'idle';
+      announce(`${s.emission ? 'on' : 'off'} ${open ? 'open' : ''} ${who}`,
+        `${s.emission ? 'LASER ON' : 'Laser off'}${open ? ', INTERLOCK OPEN' : ''}, ${who}.`, now, Boolean(s.emission));
     }
     const list = alarms(s, unknown);
     const al = $('series-alarm');

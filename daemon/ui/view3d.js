@@ -77,22 +77,31 @@ export class View3D {
     });
   }
 
-  // World to screen: orbit about the centre, then a perspective divide. Returns
-  // [x, y, depth] with depth growing away from the viewer.
+  // World to screen: orbit about the centre, then a perspective divide. The camera
+  // frame is right-handed (x right, y up, z towards the viewer) and the camera looks
+  // along its −z: at yaw 0 and pitch 0 the world is seen along −z with x to the right
+  // and y up, as the instrument sees a relay wall at z = 0 from z = 2 m, and as the
+  // depth map draws it. (A camera whose depth grows along +z is a left-handed frame: it
+  // draws the world mirrored.) Returns [x, y, depth] with depth growing away from the
+  // viewer.
   project(p) {
     const [w, h] = [this.canvas.width, this.canvas.height];
     const x = p[0] - this.centre[0];
     const y = p[1] - this.centre[1];
     const z = p[2] - this.centre[2];
+    // Yaw about y, then pitch about x: both proper rotations.
     const cy = Math.cos(this.yaw), sy = Math.sin(this.yaw);
     const cp = Math.cos(this.pitch), sp = Math.sin(this.pitch);
     const x1 = cy * x + sy * z;
     const z1 = -sy * x + cy * z;
     const y2 = cp * y - sp * z1;
     const z2 = sp * y + cp * z1;
+    // The eye sits at z = dist in the rotated frame: a point's distance from it along
+    // the view is dist − z2.
     const dist = 3 * this.radius;
-    const f = (0.45 * Math.min(w, h) * this.zoom * dist) / this.radius / Math.max(dist + z2, 1e-3 * dist);
-    return [w / 2 + x1 * f, h / 2 - y2 * f, z2];
+    const away = dist - z2;
+    const f = (0.45 * Math.min(w, h) * this.zoom * dist) / this.radius / Math.max(away, 1e-3 * dist);
+    return [w / 2 + x1 * f, h / 2 - y2 * f, -z2];
   }
 
   draw() {

@@ -31,6 +31,13 @@ pub const ASSETS: &[(&str, &str, &str)] = &[
         "text/javascript; charset=utf-8",
         include_str!("../../ui/sse.js"),
     ),
+    // Started by app.js, not named in index.html: parses volume.npy and draws its
+    // projections off the page's thread.
+    (
+        "volume-worker.js",
+        "text/javascript; charset=utf-8",
+        include_str!("../../ui/volume-worker.js"),
+    ),
     (
         "style.css",
         "text/css; charset=utf-8",
