@@ -342,6 +342,40 @@ fn rsd_finds_a_point_scatterer_confocal() {
     );
 }
 
+/// An offset confocal scan (the laser's and the SPAD's spots 5 mm apart, as every
+/// shipped plan captures against pile-up) is confocal at the spots' midpoints: the same
+/// image as the confocal scan of those midpoints. Taken as non-confocal it was one
+/// illumination group per pair, each cube one cell that the cell weights counted 4 to
+/// 9 times over.
+#[test]
+fn rsd_takes_an_offset_confocal_scan_as_confocal_at_its_midpoints() {
+    let relay = wall(16);
+    let half = DVec3::new(0.0025, 0.0, 0.0);
+    let offset: Vec<Pair> = relay
+        .points()
+        .into_iter()
+        .map(|x| Pair {
+            xi: x - half,
+            ni: DVec3::Z,
+            xd: x + half,
+            nd: DVec3::Z,
+        })
+        .collect();
+    let mut set = TransientSet::new(axis()).unwrap();
+    scatter(&mut set, &offset, &[(POINT, 1.0)]);
+    let mut confocal = TransientSet::new(axis()).unwrap();
+    scatter(&mut confocal, &confocal_pairs(&relay), &[(POINT, 1.0)]);
+    let g = grid();
+    let image = rsd(&set, &g, &RsdSettings::default()).unwrap();
+    assert_peak_at(&image, POINT, "RSD, offset confocal");
+    let reference = rsd(&confocal, &g, &RsdSettings::default()).unwrap();
+    let difference = relative_l2(&image, &reference);
+    assert!(
+        difference < 0.01,
+        "the offset scan's image is {difference} (relative L2) from the confocal scan's"
+    );
+}
+
 /// An envelope many times the time axis is refused, naming `cycles`, before its
 /// padding is allocated: 10⁹ cycles asked for 64 GB and aborted `periscope recon`.
 #[test]
@@ -1343,6 +1377,18 @@ fn the_sampling_pitch_of_a_grid_is_its_spacing_and_of_scattered_points_their_mea
     let pitch = sampling_pitch(&scattered).unwrap();
     assert!((pitch - 0.05).abs() < 0.005, "{pitch}");
     assert_eq!(sampling_pitch(&grid[..2]), None, "two points have no pitch");
+    // A long, narrow grid gives its spacing too (the old square-grid rule gave 0.92 of
+    // it for 64 × 4). A detection point of four lasers counts four times: the pitch
+    // of every pair's point is half the grid's, the shorter wave FBP keeps for such
+    // captures (docs/recon.md).
+    let strip = VirtualRelay::new(DVec3::ZERO, DVec3::Z, DVec3::X, [1.6, 0.1], [64, 4])
+        .unwrap()
+        .points();
+    let pitch = sampling_pitch(&strip).unwrap();
+    assert!((pitch - 0.025).abs() < 1e-9, "{pitch}");
+    let four_lasers: Vec<DVec3> = grid.iter().flat_map(|p| [*p; 4]).collect();
+    let pitch = sampling_pitch(&four_lasers).unwrap();
+    assert!((pitch / (0.5 / 32.0) - 1.0).abs() < 0.03, "{pitch}");
 }
 
 #[test]

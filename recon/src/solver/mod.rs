@@ -25,7 +25,7 @@ pub use fk::{FkSettings, fk, fk_frame, fk_work_bytes};
 pub use frame::FrameVolume;
 pub use lct::{LctSettings, VIRTUAL_SCAN_SNR, default_snr, lct, lct_frame, lct_of_apexes, lct_work_bytes};
 pub use quadrature::{REACH_PITCHES, pair_weights, relay_areas};
-pub use rsd::{RsdSettings, rsd, rsd_frame};
+pub use rsd::{RSD_CONFOCAL_OFFSET, RsdSettings, rsd, rsd_frame};
 pub use scan::{MAX_REACH_FACTOR, PlanarScan};
 
 use crate::relay::GeometryError;

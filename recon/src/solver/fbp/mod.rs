@@ -227,21 +227,21 @@ impl FbpSettings {
     }
 }
 
-/// The sampling pitch of a set of relay points: √(area / count), with the area of
-/// their bounding rectangle in their best-fit plane. A regular grid gives its spacing,
-/// scattered points their mean spacing. `None` for fewer than 3 points or a degenerate
-/// set.
+/// The sampling pitch of a set of relay points: the spacing `p` of a regular grid
+/// whose bounding rectangle (in the points' best-fit plane), widened by one `p` along
+/// each side, holds one cell of `p²` per point: `(W + p)(H + p) = n·p²`. A regular
+/// grid of any aspect gives exactly its spacing, scattered points their mean spacing.
+/// A point listed k times counts k times (FBP's wavelength: see
+/// [`phasor_wavelength`]). `None` for fewer than 3 points or a degenerate set.
 pub fn sampling_pitch(points: &[glam::DVec3]) -> Option<f64> {
     if points.len() < 3 {
         return None;
     }
     let centre = points.iter().copied().sum::<glam::DVec3>() / points.len() as f64;
     let relay = crate::relay::VirtualRelay::fitted(points, centre + glam::DVec3::Z, None, [2, 2]).ok()?;
-    let n = points.len() as f64;
-    // The bounding rectangle through the outermost points spans (√n − 1) pitches per
-    // side on a square grid: widen by one pitch so a grid gives exactly its spacing.
-    let side = (relay.size[0] * relay.size[1]).sqrt();
-    let pitch = side / (n.sqrt() - 1.0).max(1.0);
+    // (n − 1)p² − (W + H)p − WH = 0, its positive root.
+    let (w, h, n) = (relay.size[0], relay.size[1], points.len() as f64);
+    let pitch = ((w + h) + ((w + h).powi(2) + 4.0 * (n - 1.0) * w * h).sqrt()) / (2.0 * (n - 1.0));
     (pitch.is_finite() && pitch > 0.0).then_some(pitch)
 }
 
@@ -263,7 +263,10 @@ pub fn lateral_voxel_pitch(grid: &VolumeGrid, normal: glam::DVec3) -> f64 {
 /// ([`lateral_voxel_pitch`]), at least 4 bins.
 ///
 /// The relay's pitch bounds what the data resolve (a shorter wave aliases across the
-/// relay); the voxel pitch bounds what the volume can hold. A wave shorter than 2.5
+/// relay); the voxel pitch bounds what the volume can hold. Every pair's detection
+/// point counts, so k lasers sharing a detection grid shorten the wave √k-fold: the
+/// lasers sample the aperture too, and on y-tal's exhaustive fixture the detection
+/// grid's own pitch (each point once) blurred the silhouette from IoU 0.82 to 0.56. A wave shorter than 2.5
 /// voxels builds detail finer than the voxels, which sampling at their centres turns
 /// into speckle: on the virtual scan after 3D-GTR, whose pitch is half a voxel, the
 /// fitted primitives' scatter in depth (a few millimetres to centimetres where the
