@@ -450,11 +450,27 @@ fn too_few_or_degenerate_measurements_are_refused_by_name() {
         Ok(c) => assert!(c.fitted.laser.origin.is_finite() && c.fitted.spad.rotation.is_finite()),
     }
 
-    let bad = Settings {
-        grid: 2,
-        ..settings.clone()
-    };
-    assert!(matches!(bad.validate().unwrap_err(), CalibrateError::Settings(_)));
+    // A 3 × 3 grid holds 9 angles, fewer than the fit's 12 ranges: refused before the
+    // laser scans them, not after (it was accepted, and every run of it failed).
+    for grid in [2, 3] {
+        let bad = Settings {
+            grid,
+            ..settings.clone()
+        };
+        let e = bad.validate().unwrap_err();
+        assert!(
+            matches!(e, CalibrateError::Settings(ref why) if why.contains("--grid")),
+            "{e}"
+        );
+    }
+    assert!(
+        Settings {
+            grid: 4,
+            ..settings.clone()
+        }
+        .validate()
+        .is_ok()
+    );
     let bad = Settings {
         target_distance: Some(f64::NAN),
         ..settings

@@ -52,6 +52,10 @@ use model::{PARAMETERS, Parameters};
 
 /// Fewest range samples a fit accepts (the range-only parameters are six).
 pub const MIN_RANGES: usize = 12;
+
+/// The smallest `--grid` whose square holds [`MIN_RANGES`] angles.
+pub const MIN_RANGE_GRID: usize = 4;
+const _: () = assert!(MIN_RANGE_GRID * MIN_RANGE_GRID >= MIN_RANGES);
 /// Fewest laser spots a fit accepts (each gives two angles; the laser's rotation and
 /// the parallax of its origin need three spots off one line).
 pub const MIN_SPOTS: usize = 3;
@@ -59,7 +63,7 @@ pub const MIN_SPOTS: usize = 3;
 /// How the calibration scans.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Settings {
-    /// The SPAD range grid is `grid` × `grid` angles (at least 3).
+    /// The SPAD range grid is `grid` × `grid` angles (at least [`MIN_RANGE_GRID`]).
     pub grid: usize,
     /// Fraction of the SPAD arm's angle limits the range grid spans (centred).
     pub span: f64,
@@ -104,8 +108,13 @@ impl Settings {
     /// Refuses settings no scan can use.
     pub fn validate(&self) -> Result<(), CalibrateError> {
         let bad = |why: String| Err(CalibrateError::Settings(why));
-        if !(3..=101).contains(&self.grid) {
-            return bad(format!("--grid {} must lie between 3 and 101", self.grid));
+        // A grid of fewer than MIN_RANGES angles cannot be fitted even if every angle
+        // returns: refused before the laser is switched on, not after its scan.
+        if !(MIN_RANGE_GRID..=101).contains(&self.grid) {
+            return bad(format!(
+                "--grid {} must lie between {MIN_RANGE_GRID} and 101 (the fit needs at least {MIN_RANGES} ranges: {MIN_RANGE_GRID} × {MIN_RANGE_GRID} angles)",
+                self.grid
+            ));
         }
         if !(2..=11).contains(&self.spots) {
             return bad(format!("{} spots per side must lie between 2 and 11", self.spots));
