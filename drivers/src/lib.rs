@@ -25,7 +25,7 @@ pub mod tdc;
 pub mod traits;
 
 pub use error::{DeviceError, Error, ErrorKind, ErrorType};
-pub use geometry::{AngleLimits, GalvoPose, OpticalAngles};
+pub use geometry::{AngleLimits, GalvoPose, OpticalAngles, Scanner};
 pub use laser_guard::{EmergencyOff, LaserGuard, LaserLine, Progress};
 pub use park::{EmergencyPark, ParkLine, Parked};
 pub use selector::{SelectorError, UsbSelector};

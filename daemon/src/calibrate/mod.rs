@@ -544,7 +544,31 @@ fn residuals(g: &Geometry, m: &Measurements, sp: f64, sa: f64) -> Option<Vec<f64
     Some(out)
 }
 
+/// A fitted position whose 1σ uncertainty is above this, metres, is named as poorly
+/// determined: a millimetre of path is 3.3 ps, and relay points are placed from it.
+pub const WEAK_POSITION: f64 = 2e-3;
+
+/// A fitted rotation or tilt whose 1σ uncertainty is above this, radians: 2 mm at 1 m.
+pub const WEAK_ROTATION: f64 = 2e-3;
+
 impl Calibration {
+    /// The fitted parameters the scans determine only loosely (1σ above
+    /// [`WEAK_POSITION`] or [`WEAK_ROTATION`]), with their uncertainty. Only an exactly
+    /// free one is refused (`Unconstrained`); these are fitted and written, and named
+    /// in the table with what to do. With bench-like noise (1 mm of path, 0.05 mrad a
+    /// spot) SPAD limits of ±5° leave the laser's lateral origin at 12 mm and its
+    /// rotation at 3 mrad, where ±20° gives 1 mm and 0.3 mrad.
+    pub fn weakly_determined(&self) -> Vec<(&'static str, f64)> {
+        self.uncertainty
+            .iter()
+            .filter(|(name, s)| {
+                let angular = name.contains("rotation") || name.contains("tilt");
+                !(*s <= if angular { WEAK_ROTATION } else { WEAK_POSITION })
+            })
+            .copied()
+            .collect()
+    }
+
     /// The table `periscope calibrate` prints: configured and fitted values, their
     /// change, the uncertainties and the residuals before and after.
     pub fn table(&self) -> String {
@@ -614,6 +638,21 @@ impl Calibration {
                 (s * 1e3, "mm")
             };
             let _ = writeln!(t, "  {name:<46}{value:>10.4} {unit}");
+        }
+        let weak = self.weakly_determined();
+        if !weak.is_empty() {
+            let names: Vec<&str> = weak.iter().map(|(n, _)| *n).collect();
+            let _ = writeln!(
+                t,
+                "warning: the scans determine {} only to more than {:.0} mm or {:.0} mrad (1σ): \
+                 widen the range grid's angles (the SPAD arm's angle-limits-deg) or give \
+                 --target-distance, and calibrate again before relying on these poses (with \
+                 millimetres of range residual below, check galvo.*.scanner too: a galvo \
+                 pair is \"two-mirror\")",
+                names.join(", "),
+                WEAK_POSITION * 1e3,
+                WEAK_ROTATION * 1e3
+            );
         }
         let row = |r: &Residuals| {
             format!(

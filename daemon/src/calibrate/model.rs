@@ -136,6 +136,7 @@ impl Parameters {
         let laser = GalvoPose {
             origin: n0.laser.origin + DVec3::new(p[3], p[4], p[5]),
             rotation: rotation(DVec3::new(p[6], p[7], p[8])) * n0.laser.rotation,
+            ..n0.laser
         };
         Geometry { laser, spad, target }
     }
@@ -170,6 +171,7 @@ pub fn in_gauge(truth: &Geometry, nominal: &Geometry, known_target: bool) -> Geo
     let pose = |g: &GalvoPose| GalvoPose {
         origin: turn * g.origin + shift,
         rotation: turn * g.rotation,
+        ..*g
     };
     Geometry {
         laser: pose(&truth.laser),

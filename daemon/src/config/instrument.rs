@@ -576,6 +576,8 @@ struct RawGalvo {
     boresight: [f64; 3],
     #[serde(deserialize_with = "crate::config::exact::array", default = "default_up")]
     up: [f64; 3],
+    #[serde(default)]
+    scanner: periscope_drivers::Scanner,
     angle_limits_deg: RawLimits,
     #[serde(default)]
     settle_us: f64,
@@ -764,6 +766,10 @@ struct RawTruePose {
     boresight: Option<[f64; 3]>,
     #[serde(default, deserialize_with = "crate::config::exact::option")]
     up: Option<[f64; 3]>,
+    /// The kinematics the simulated pair really has (a config's `scanner` that is
+    /// not the pair's shows as calibration residuals and misplaced relay points).
+    #[serde(default)]
+    scanner: Option<periscope_drivers::Scanner>,
 }
 
 fn default_aperture_mm() -> f64 {
@@ -814,12 +820,14 @@ fn true_pose(
     let origin = vector("origin", raw.origin, configured.origin)?;
     let boresight = vector("boresight", raw.boresight, r.z_axis)?;
     let up = vector("up", raw.up, r.y_axis)?;
-    GalvoPose::looking(origin, boresight, up).ok_or_else(|| {
-        check.src.invalid(
-            &format!("{key}.boresight"),
-            "must be a non-zero direction that is not parallel to `up`",
-        )
-    })
+    GalvoPose::looking(origin, boresight, up)
+        .map(|pose| pose.with_scanner(raw.scanner.unwrap_or(configured.scanner)))
+        .ok_or_else(|| {
+            check.src.invalid(
+                &format!("{key}.boresight"),
+                "must be a non-zero direction that is not parallel to `up`",
+            )
+        })
 }
 
 fn sim_settings(
@@ -1295,12 +1303,14 @@ fn galvo_arm(check: &Check<'_>, key: &str, raw: RawGalvo, hardware: bool) -> Res
     let origin = check.finite3(&format!("{key}.origin"), raw.origin)?;
     let boresight = check.finite3(&format!("{key}.boresight"), raw.boresight)?;
     let up = check.finite3(&format!("{key}.up"), raw.up)?;
-    let pose = GalvoPose::looking(origin, boresight, up).ok_or_else(|| {
-        src.invalid(
-            &format!("{key}.boresight"),
-            "must be a non-zero direction that is not parallel to `up`",
-        )
-    })?;
+    let pose = GalvoPose::looking(origin, boresight, up)
+        .ok_or_else(|| {
+            src.invalid(
+                &format!("{key}.boresight"),
+                "must be a non-zero direction that is not parallel to `up`",
+            )
+        })?
+        .with_scanner(raw.scanner);
     let mut limits = [[0.0; 2]; 2];
     for (axis, name, range) in [(0, "x", raw.angle_limits_deg.x), (1, "y", raw.angle_limits_deg.y)] {
         let k = format!("{key}.angle-limits-deg.{name}");
@@ -1728,6 +1738,16 @@ mod tests {
         let lab = load(LAB).unwrap();
         assert_eq!(lab.backend, Backend::Hardware);
         assert!(lab.tdc.usb.is_some() && lab.laser_arm.serial().is_some());
+        // The lab's pairs are galvo pairs; the simulator's the ideal pivot.
+        use periscope_drivers::Scanner;
+        assert_eq!(lab.laser_arm.pose.scanner, Scanner::TwoMirror);
+        assert_eq!(lab.spad_arm.pose.scanner, Scanner::TwoMirror);
+        assert_eq!(sim.laser_arm.pose.scanner, Scanner::Pivot);
+        let e = load(&LAB.replacen("scanner = \"two-mirror\"", "scanner = \"three-mirror\"", 1)).unwrap_err();
+        assert!(
+            e.to_string().contains("scanner") && e.to_string().contains("two-mirror"),
+            "{e}"
+        );
     }
 
     #[test]
