@@ -73,6 +73,9 @@ fn the_token_is_cut_from_config_text_in_every_layout() {
         "api = { token = \"s3cr3t-s3cr3t-s3cr3t\", open-reads = true }\n",
         "[api]\ntoken = \"\"\"\ns3cr3t-s3cr3t-s3cr3t\n\"\"\"\n",
         "[api\ntoken = \"s3cr3t-s3cr3t-s3cr3t\"\n",
+        // A multi-line literal whose second line reads as a key of its own once the
+        // first is cut: the line cut left `api.s3cr3t-s3cr3t-s3cr3t = 1` behind.
+        "[api]\ntoken = '''\ns3cr3t-s3cr3t-s3cr3t=1#'''\nruns-dir = \"r\"\n",
     ];
     for text in cases {
         let out = redact_secrets(text);

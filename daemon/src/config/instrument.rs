@@ -986,8 +986,24 @@ pub fn redact_secrets(text: &str) -> String {
             .and_then(|a| a.as_table())
             .is_some_and(|a| a.contains_key("token"))
     };
+    // The cut can leave part of a multi-line token behind, parsing as some other key
+    // (`token = '''` then `abcdefghijklmnop=1#'''` left `api.abcdefghijklmnop`): the
+    // cut text is kept only if no trace of the token's value is left in it.
+    let value = text.parse::<toml::Table>().ok().and_then(|t| {
+        t.get("api")
+            .and_then(|a| a.get("token"))
+            .and_then(|v| v.as_str().map(str::to_owned))
+    });
+    let traces = |s: &str| {
+        value.as_deref().is_some_and(|v| {
+            v.lines()
+                .map(str::trim)
+                .filter(|piece| !piece.is_empty())
+                .any(|piece| s.contains(piece))
+        })
+    };
     match (out.parse::<toml::Table>(), text.parse::<toml::Table>()) {
-        (Ok(cut), _) if !has_token(&cut) => out,
+        (Ok(cut), _) if !has_token(&cut) && !traces(&out) => out,
         (_, Ok(mut whole)) => {
             if let Some(api) = whole.get_mut("api").and_then(|a| a.as_table_mut()) {
                 api.remove("token");
