@@ -4,4 +4,7 @@
 //! bin count, and never panics.
 #![no_main]
 
+// The allocator that refuses what the fuzz limit does not allow (fuzz/src/lib.rs).
+use periscope_fuzz as _;
+
 libfuzzer_sys::fuzz_target!(|data: &[u8]| periscope_daemon::fuzz::tdc_receive(data));

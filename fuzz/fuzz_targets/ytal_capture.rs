@@ -3,4 +3,7 @@
 //! or an allocation beyond the readers' limits.
 #![no_main]
 
+// The allocator that refuses what the fuzz limit does not allow (fuzz/src/lib.rs).
+use periscope_fuzz as _;
+
 libfuzzer_sys::fuzz_target!(|data: &[u8]| periscope_daemon::fuzz::ytal_capture(data));
