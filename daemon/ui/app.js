@@ -2,7 +2,7 @@
 // through the JSON API at /api/v1 with the token the operator types once per tab.
 import { View3D, boxEdges } from '/ui/view3d.js';
 import { startSafety } from '/ui/safety.js';
-import { readEvents } from '/ui/sse.js';
+import { readEvents, silenceWatchdog } from '/ui/sse.js';
 
 const $ = (id) => document.getElementById(id);
 const TOKEN_KEY = 'periscope-token';
@@ -1170,13 +1170,10 @@ async function follow(id) {
     // A handler's own failure and its event, told apart from the network's failures
     // (both may be TypeErrors).
     let broke = null;
-    let heard = performance.now();
-    const watchdog = setInterval(() => {
-      if (performance.now() - heard > RUN_STREAM_SILENT_MS) {
-        probe.runStreamSilences = (probe.runStreamSilences || 0) + 1;
-        conn.abort();
-      }
-    }, 1000);
+    const watchdog = silenceWatchdog(RUN_STREAM_SILENT_MS, 1000, () => {
+      probe.runStreamSilences = (probe.runStreamSilences || 0) + 1;
+      conn.abort();
+    });
     try {
       const r = await fetch(`/api/v1/runs/${id}/events`, { headers: headers(), signal: AbortSignal.any([abort.signal, conn.signal]) });
       if (!r.ok) throw new ApiError(r.status, null, `event stream: ${r.status}`);
@@ -1192,13 +1189,13 @@ async function follow(id) {
           broke = { e, name };
           throw e;
         }
-      }, () => { heard = performance.now(); });
+      }, watchdog.heard);
     } catch (e) {
       if (abort.signal.aborted) return;
       if (e === broke?.e) console.error(`run ${id}: showing a \`${broke.name}\` event failed; the stream is opened again`, e);
       else if (e instanceof TypeError) setConnection(false);
     } finally {
-      clearInterval(watchdog);
+      watchdog.stop();
       conn.abort();
     }
     // The stream ended: the run stopped, or the connection dropped. Catch up.

@@ -4,7 +4,7 @@
 // or the reading is older than the daemon's stated limit (`stale_after_s`); nothing on
 // it is ever shown as known when it is not.
 
-import { readEvents } from '/ui/sse.js';
+import { readEvents, silenceWatchdog } from '/ui/sse.js';
 
 const STREAM_STALE_MS = 2000;
 // A connection with no event for this long is given up and opened again: the daemon
@@ -178,13 +178,10 @@ export function startSafety({ headers, probe, setConnection }) {
       while (document.hidden) await new Promise((ok) => setTimeout(ok, 500));
       abort = new AbortController();
       const ctl = abort;
-      let heard = performance.now();
-      const watchdog = setInterval(() => {
-        if (performance.now() - heard > STREAM_SILENT_MS) {
-          probe.safetySilences = (probe.safetySilences || 0) + 1;
-          ctl.abort();
-        }
-      }, 500);
+      const watchdog = silenceWatchdog(STREAM_SILENT_MS, 500, () => {
+        probe.safetySilences = (probe.safetySilences || 0) + 1;
+        ctl.abort();
+      });
       try {
         const r = await fetch('/api/v1/instrument/events', { headers: headers(), signal: abort.signal });
         if (!r.ok) throw new Error(`instrument events: ${r.status}`);
@@ -194,7 +191,7 @@ export function startSafety({ headers, probe, setConnection }) {
         streamUp = true;
         delay = 500;
         await readEvents(r, (name, s) => {
-          heard = performance.now();
+          watchdog.heard();
           if (name !== 'safety') return;
           last = { s, at: performance.now() };
           push(s);
@@ -203,7 +200,7 @@ export function startSafety({ headers, probe, setConnection }) {
       } catch (e) {
         if (e instanceof TypeError && !document.hidden) setConnection(false);
       } finally {
-        clearInterval(watchdog);
+        watchdog.stop();
       }
       abort?.abort();
       streamUp = false;

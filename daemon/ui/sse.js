@@ -47,6 +47,20 @@ export function eventParser(onEvent) {
   };
 }
 
+// Calls onSilent() at each check (every checkMs) once nothing has been heard for
+// limitMs: heard() says something arrived, stop() ends the watch. The event streams'
+// guard against a connection that went quiet without closing.
+export function silenceWatchdog(limitMs, checkMs, onSilent) {
+  let last = performance.now();
+  const timer = setInterval(() => {
+    if (performance.now() - last > limitMs) onSilent();
+  }, checkMs);
+  return {
+    heard: () => { last = performance.now(); },
+    stop: () => clearInterval(timer),
+  };
+}
+
 // Calls onEvent(name, json) for each event with data until the stream ends, and
 // onBytes() whenever anything arrives, keep-alive comments included (for a silence
 // watchdog). The response's body is cancelled however this returns, so a handler that
