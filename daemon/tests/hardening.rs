@@ -76,6 +76,9 @@ fn the_token_is_cut_from_config_text_in_every_layout() {
         // A multi-line literal whose second line reads as a key of its own once the
         // first is cut: the line cut left `api.s3cr3t-s3cr3t-s3cr3t = 1` behind.
         "[api]\ntoken = '''\ns3cr3t-s3cr3t-s3cr3t=1#'''\nruns-dir = \"r\"\n",
+        // And one whose pieces a line-ending backslash joins, so no line of its value
+        // is a line of the text.
+        "[api]\ntoken = \"\"\"\ns3cr3t-s3cr3t=1#\\\ns3cr3t-s3cr3u=2#\"\"\"\nruns-dir = \"r\"\n",
     ];
     for text in cases {
         let out = redact_secrets(text);

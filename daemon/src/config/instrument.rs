@@ -981,35 +981,19 @@ pub fn redact_secrets(text: &str) -> String {
             out.push_str(line);
         }
     }
-    let has_token = |t: &toml::Table| {
-        t.get("api")
-            .and_then(|a| a.as_table())
-            .is_some_and(|a| a.contains_key("token"))
-    };
-    // The cut can leave part of a multi-line token behind, parsing as some other key
-    // (`token = '''` then `abcdefghijklmnop=1#'''` left `api.abcdefghijklmnop`): the
-    // cut text is kept only if no trace of the token's value is left in it.
-    let value = text.parse::<toml::Table>().ok().and_then(|t| {
-        t.get("api")
-            .and_then(|a| a.get("token"))
-            .and_then(|v| v.as_str().map(str::to_owned))
-    });
-    let traces = |s: &str| {
-        value.as_deref().is_some_and(|v| {
-            v.lines()
-                .map(str::trim)
-                .filter(|piece| !piece.is_empty())
-                .any(|piece| s.contains(piece))
-        })
-    };
-    match (out.parse::<toml::Table>(), text.parse::<toml::Table>()) {
-        (Ok(cut), _) if !has_token(&cut) && !traces(&out) => out,
-        (_, Ok(mut whole)) => {
-            if let Some(api) = whole.get_mut("api").and_then(|a| a.as_table_mut()) {
-                api.remove("token");
-            }
-            format!("{NOTE}\n{}", toml::to_string(&whole).unwrap_or_default())
+    // The cut text is kept only if it means exactly the config without its token: a
+    // multi-line token can leave part of itself behind, parsing as some other key
+    // (`token = '''` then `abcdefghijklmnop=1#'''` left `api.abcdefghijklmnop`; a
+    // backslash-joined `"""` string hides its pieces from any search for its lines).
+    let without_token = text.parse::<toml::Table>().map(|mut whole| {
+        if let Some(api) = whole.get_mut("api").and_then(|a| a.as_table_mut()) {
+            api.remove("token");
         }
+        whole
+    });
+    match (out.parse::<toml::Table>(), without_token) {
+        (Ok(cut), Ok(whole)) if cut == whole => out,
+        (_, Ok(whole)) => format!("{NOTE}\n{}", toml::to_string(&whole).unwrap_or_default()),
         (_, Err(_)) => text
             .lines()
             .filter(|l| !l.contains("token"))
