@@ -362,6 +362,18 @@ fn grid_sample(
     grid: [usize; 2],
     layout: Layout,
 ) -> Vec<(usize, usize)> {
+    grid_sample_skipping(relay, candidates, grid, layout, None)
+}
+
+/// [`grid_sample`] with the point `skip` laid out with the others (the grid's frame
+/// and extent are theirs) but never picked.
+fn grid_sample_skipping(
+    relay: &RelayView<'_>,
+    candidates: &[usize],
+    grid: [usize; 2],
+    layout: Layout,
+    skip: Option<usize>,
+) -> Vec<(usize, usize)> {
     let Some(plane) = relay_frame(relay, candidates, layout) else {
         return Vec::new();
     };
@@ -380,6 +392,9 @@ fn grid_sample(
     let cell = [(hi[0] - lo[0]) / grid[0] as f64, (hi[1] - lo[1]) / grid[1] as f64];
     let mut best: Vec<Option<(f64, usize)>> = vec![None; grid[0] * grid[1]];
     for (k, &(u, v)) in uv.iter().enumerate() {
+        if Some(candidates[k]) == skip {
+            continue;
+        }
         let cx = (((u - lo[0]) / cell[0].max(1e-12)) as usize).min(grid[0] - 1);
         let cy = (((hi[1] - v) / cell[1].max(1e-12)) as usize).min(grid[1] - 1);
         let centre = (
@@ -476,9 +491,9 @@ pub fn plan_pairs(
                     .total_cmp(&relay.points[b].distance(*laser))
             }) {
                 // The laser's own spot is no detection point: its direct return
-                // would swamp the counter. Its cell takes the next point in it.
-                let det: Vec<usize> = det.iter().copied().filter(|&d| d != li).collect();
-                for (_, d) in grid_sample(relay, &det, *grid, Layout::Fitted) {
+                // would swamp the counter. Its cell takes the next point in it; the
+                // grid itself is laid out over every detection point, as without it.
+                for (_, d) in grid_sample_skipping(relay, &det, *grid, Layout::Fitted, Some(li)) {
                     raw.push((
                         relay.points[li],
                         relay.normals[li],
