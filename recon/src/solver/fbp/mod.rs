@@ -230,7 +230,9 @@ impl FbpSettings {
 /// The sampling pitch of a set of relay points: the spacing `p` of a regular grid
 /// whose bounding rectangle (in the points' best-fit plane), widened by one `p` along
 /// each side, holds one cell of `p²` per point: `(W + p)(H + p) = n·p²`. A regular
-/// grid of any aspect gives exactly its spacing, scattered points their mean spacing.
+/// grid of any aspect whose rows run along world x (the rectangle's frame, as
+/// [`crate::relay::VirtualRelay::fitted`] lays it) gives exactly its spacing; one turned
+/// from it, somewhat more; scattered points their mean spacing.
 /// A point listed k times counts k times (FBP's wavelength: see
 /// [`phasor_wavelength`]). `None` for fewer than 3 points or a degenerate set.
 pub fn sampling_pitch(points: &[glam::DVec3]) -> Option<f64> {
