@@ -185,7 +185,17 @@ fn run_on(
     // Every parameter is well determined here, and the table warns of none; inflated
     // to 3 mm and 5 mrad, two are named with what to do.
     assert!(cal.weakly_determined().is_empty(), "{}", cal.table());
+    assert!(cal.converged, "{}", cal.table());
     assert!(!cal.table().contains("warning"), "{}", cal.table());
+    let unfinished = Calibration {
+        converged: false,
+        ..cal.clone()
+    };
+    assert!(
+        unfinished.table().contains("had not converged after"),
+        "{}",
+        unfinished.table()
+    );
     let mut loose = cal.clone();
     loose.uncertainty[0].1 = 3e-3;
     let last = loose.uncertainty.len() - 1;

@@ -407,6 +407,10 @@ pub struct Calibration {
     pub outliers: usize,
     /// The fitted parameters' names and standard uncertainties (metres or radians).
     pub uncertainty: Vec<(&'static str, f64)>,
+    /// Whether the final fit converged: `false` when its iterations ran out
+    /// (`solve::MAX_ITERATIONS`) with each step still lowering the residuals, so the
+    /// poses may not be the best the scans allow; the table says so.
+    pub converged: bool,
 }
 
 /// A priori measurement uncertainties that weigh the two kinds of residual in the first
@@ -484,6 +488,7 @@ pub fn fit(
         after: Residuals::of(&fitted, &kept),
         outliers,
         uncertainty,
+        converged: solution.converged,
     })
 }
 
@@ -652,6 +657,16 @@ impl Calibration {
                 names.join(", "),
                 WEAK_POSITION * 1e3,
                 WEAK_ROTATION * 1e3
+            );
+        }
+        if !self.converged {
+            let _ = writeln!(
+                t,
+                "warning: the fit had not converged after {} iterations (each still lowered the \
+                 residuals), so these poses may not be the best the scans allow: check the \
+                 configured poses are within a few centimetres and degrees of the arms, and \
+                 calibrate again",
+                solve::MAX_ITERATIONS
             );
         }
         let row = |r: &Residuals| {

@@ -18,21 +18,25 @@ pub(crate) enum SolveError {
     },
 }
 
-/// A solution: the parameters, the final cost ½‖r‖², and the normal matrix JᵀJ at
-/// the solution (for the parameters' uncertainties).
+/// A solution: the parameters, the final residuals, the normal matrix JᵀJ at the
+/// solution (for the parameters' uncertainties), and whether the iterations ended
+/// because no step lowered the cost any further (`false`: they ran out at
+/// [`MAX_ITERATIONS`] with the last step still lowering it).
 #[derive(Debug, Clone)]
 pub(crate) struct Solution {
     pub x: Vec<f64>,
     pub residuals: Vec<f64>,
     pub normal: Vec<Vec<f64>>,
+    pub converged: bool,
 }
 
 /// Finite-difference step, in the parameters' units (metres and radians): a micron
 /// and a microradian, well above rounding in f64 and well below what the model's
 /// curvature notices.
 const STEP: f64 = 1e-6;
-/// Most iterations before giving up improving further.
-const MAX_ITERATIONS: usize = 200;
+/// Most iterations before giving up improving further: a well-posed calibration takes
+/// a few dozen; one still improving at this count has not converged, and says so.
+pub(crate) const MAX_ITERATIONS: usize = 200;
 /// Smallest pivot, relative to its diagonal element, of a normal matrix that counts
 /// as constraining every parameter: a smaller one means a parameter is (almost) a
 /// combination of the others.
@@ -44,6 +48,15 @@ pub(crate) fn least_squares(
     f: &dyn Fn(&[f64]) -> Option<Vec<f64>>,
     x0: &[f64],
 ) -> Result<Solution, SolveError> {
+    least_squares_within(f, x0, MAX_ITERATIONS)
+}
+
+/// [`least_squares`] with at most `max_iterations` iterations.
+fn least_squares_within(
+    f: &dyn Fn(&[f64]) -> Option<Vec<f64>>,
+    x0: &[f64],
+    max_iterations: usize,
+) -> Result<Solution, SolveError> {
     let n = x0.len();
     let mut x = x0.to_vec();
     let mut r = f(&x)
@@ -52,7 +65,8 @@ pub(crate) fn least_squares(
     let mut cost = half_norm(&r);
     let mut lambda = 1e-3;
     let mut normal = Vec::new();
-    for _ in 0..MAX_ITERATIONS {
+    let mut converged = false;
+    for _ in 0..max_iterations {
         let j = jacobian(f, &x, &r).ok_or(SolveError::Start)?;
         let (a, g) = normal_equations(&j, &r, n);
         check_constrained(&a)?;
@@ -83,6 +97,7 @@ pub(crate) fn least_squares(
             }
         }
         if !improved {
+            converged = true;
             break;
         }
     }
@@ -94,6 +109,7 @@ pub(crate) fn least_squares(
         x,
         residuals: r,
         normal,
+        converged,
     })
 }
 
@@ -213,6 +229,22 @@ mod tests {
         for (i, (got, want)) in s.x.iter().zip(truth).enumerate() {
             assert!((got - want).abs() < 1e-8, "parameter {i}: {got} vs {want}");
         }
+    }
+
+    #[test]
+    fn iterations_that_run_out_while_still_improving_are_not_converged() {
+        // Rosenbrock's valley as least squares: from (−1.2, 1) it takes more than a
+        // few steps to reach (1, 1).
+        let f = |p: &[f64]| Some(vec![10.0 * (p[1] - p[0] * p[0]), 1.0 - p[0]]);
+        let cut = least_squares_within(&f, &[-1.2, 1.0], 3).unwrap();
+        assert!(!cut.converged, "stopped after 3 iterations at {:?}", cut.x);
+        let whole = least_squares(&f, &[-1.2, 1.0]).unwrap();
+        assert!(whole.converged);
+        assert!(
+            (whole.x[0] - 1.0).abs() < 1e-8 && (whole.x[1] - 1.0).abs() < 1e-8,
+            "{:?}",
+            whole.x
+        );
     }
 
     #[test]
