@@ -626,6 +626,66 @@ async fn a_run_completes_and_its_results_download() {
             "{done}"
         );
     }
+    // A range of a file is served as it is; one past its end is the API's JSON error,
+    // with the length it asks within (until 2026-12-07 an empty body typed as the file).
+    let (volume_len, range) = {
+        let (_, whole) = call_raw(
+            &router,
+            Method::GET,
+            &format!("/api/v1/runs/{id}/files/volume.npy"),
+            None,
+            "",
+        )
+        .await;
+        (whole.len(), whole[10..21].to_vec())
+    };
+    let uri = format!("/api/v1/runs/{id}/files/volume.npy");
+    let (s, bytes) = common::send(
+        &router,
+        common::request(Method::GET, &uri, None, &[("range", "bytes=10-20")], ""),
+    )
+    .await;
+    assert_eq!((s, bytes), (StatusCode::PARTIAL_CONTENT, range));
+    use tower::ServiceExt as _;
+    let resp = router
+        .clone()
+        .oneshot(common::request(
+            Method::GET,
+            &uri,
+            None,
+            &[("range", &format!("bytes={volume_len}-"))],
+            "",
+        ))
+        .await
+        .unwrap();
+    assert_eq!(resp.status(), StatusCode::RANGE_NOT_SATISFIABLE);
+    assert_eq!(
+        resp.headers()[axum::http::header::CONTENT_RANGE],
+        format!("bytes */{volume_len}").as_str()
+    );
+    assert_eq!(
+        resp.headers()[axum::http::header::CONTENT_TYPE],
+        "application/json"
+    );
+    let v: Value =
+        serde_json::from_slice(&axum::body::to_bytes(resp.into_body(), 1 << 20).await.unwrap()).unwrap();
+    assert_eq!(v["error"], "range-not-satisfiable", "{v}");
+    assert!(
+        v["message"].as_str().unwrap().contains(&volume_len.to_string()),
+        "{v}"
+    );
+    // tower-http answers a range it cannot parse as one it cannot satisfy: the same error.
+    let (s, bytes) = common::send(
+        &router,
+        common::request(Method::GET, &uri, None, &[("range", "bytes=10-20t")], ""),
+    )
+    .await;
+    let v: Value = serde_json::from_slice(&bytes).unwrap();
+    assert_eq!(
+        (s, v["error"].as_str()),
+        (StatusCode::RANGE_NOT_SATISFIABLE, Some("range-not-satisfiable"))
+    );
+    assert!(v["message"].as_str().unwrap().contains("`bytes=10-20t`"), "{v}");
     // A finished run's event stream is its status, then the end.
     let (s, bytes) = call_raw(
         &router,

@@ -1312,7 +1312,9 @@ async fn instrument_events(
     ),
     responses(
         (status = 200, description = "the file, with its media type (`application/octet-stream` for .npy and .ply, `image/png`, `application/x-hdf5`, `application/json`, `application/toml`, `application/x-ndjson`)", content_type = "application/octet-stream", body = [u8]),
+        (status = 206, description = "the bytes a `Range` header asks for", content_type = "application/octet-stream", body = [u8]),
         (status = 404, description = status::NOT_FOUND, body = ErrorBody),
+        (status = 416, description = "the `Range` header asks for bytes outside the file (`range-not-satisfiable`; `Content-Range: bytes */length` says its length)", body = ErrorBody),
         (status = 503, description = status::DOWNLOADS, body = ErrorBody),
     )
 )]
@@ -1321,7 +1323,7 @@ async fn file(
     PathParams((id, name)): PathParams<(String, String)>,
     request: Request,
 ) -> ApiResult<Response> {
-    let Some((_, media)) = DOWNLOADS.iter().find(|(n, _)| *n == name) else {
+    let Some((known, media)) = DOWNLOADS.iter().find(|(n, _)| *n == name) else {
         return Err(ApiError::new(
             StatusCode::NOT_FOUND,
             "unknown-file",
@@ -1362,7 +1364,14 @@ async fn file(
             // so a second view of the same result is a 304), ranges and HEAD. The permit
             // lives as long as the body: a slow client holds its slot.
             use tower::ServiceExt as _;
-            let Ok(response) = tower_http::services::ServeFile::new(path).oneshot(request).await;
+            let asked = request
+                .headers()
+                .get(header::RANGE)
+                .map(|r| String::from_utf8_lossy(r.as_bytes()).into_owned());
+            let Ok(response) = tower_http::services::ServeFile::new(&path).oneshot(request).await;
+            if let Some(refused) = serve_file_error(&response, known, &path, asked.as_deref()) {
+                return Ok(refused);
+            }
             let (mut parts, body) = response.into_parts();
             parts
                 .headers
@@ -1377,6 +1386,53 @@ async fn file(
             Ok(Response::from_parts(parts, Body::from_stream(stream)))
         }
     }
+}
+
+/// The API's JSON error for a run file that tower-http's `ServeFile` refused (it answers
+/// with an empty body, which the caller would label with the file's media type): a
+/// `Range` header it cannot satisfy, `asked` (416, keeping the
+/// `Content-Range: bytes */length` it gives; tower-http answers so a range past the end
+/// and one it cannot parse alike), a file gone since it was found (404), or one that
+/// could not be read (500). `None` for a file served.
+fn serve_file_error<B>(
+    response: &Response<B>,
+    name: &str,
+    path: &std::path::Path,
+    asked: Option<&str>,
+) -> Option<Response> {
+    let status = response.status();
+    if !(status.is_client_error() || status.is_server_error()) {
+        return None;
+    }
+    let error = match status {
+        StatusCode::RANGE_NOT_SATISFIABLE => {
+            let length = std::fs::metadata(path).map_or_else(|_| "?".to_owned(), |m| m.len().to_string());
+            ApiError::new(
+                status,
+                "range-not-satisfiable",
+                format!(
+                    "the Range header `{}` is not a range of `{name}`, which holds {length} bytes: ask for \
+                     `bytes=first-last` within them, or leave Range out for the whole file",
+                    asked.unwrap_or_default().chars().take(100).collect::<String>()
+                ),
+            )
+        }
+        StatusCode::NOT_FOUND => ApiError::new(
+            status,
+            "file-not-ready",
+            format!("`{name}` is gone from the run since it was asked for; ask again"),
+        ),
+        _ => ApiError::new(
+            StatusCode::INTERNAL_SERVER_ERROR,
+            "storage",
+            format!("`{name}` could not be read from the run directory ({status})"),
+        ),
+    };
+    let mut refused = error.into_response();
+    if let Some(range) = response.headers().get(header::CONTENT_RANGE) {
+        refused.headers_mut().insert(header::CONTENT_RANGE, range.clone());
+    }
+    Some(refused)
 }
 
 #[cfg(test)]
