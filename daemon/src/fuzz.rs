@@ -39,6 +39,7 @@ pub const TARGETS: &[(&str, Target)] = &[
     ("config_toml", config_toml),
     ("mesh", mesh),
     ("capture_file", capture_file),
+    ("http_request", http_request),
 ];
 
 /// Capture files of every public format (files downloaded from papers): told apart by
@@ -418,4 +419,242 @@ pub fn mesh(data: &[u8]) {
         );
         assert!(m.vertices.iter().all(|v| v.is_finite()));
     }
+}
+
+/// What [`http_request`] sends its requests to: the API's router over the simulated
+/// instrument, its runs in a directory of its own holding one finished run, and the
+/// secret of an observer's key.
+struct HttpTarget {
+    runtime: tokio::runtime::Runtime,
+    router: axum::Router,
+    run: String,
+    observer: String,
+}
+
+/// The router [`http_request`] fuzzes, made once a process: the shipped simulated
+/// instrument at time-scale 0 with its runs in a fresh directory under the system's
+/// temporary one, a finished run of the tests' small plan (so that the run's routes
+/// and files answer), and an observer's key. The fuzzer never holds the admin token,
+/// so no input can start or delete a run.
+fn http_target() -> &'static HttpTarget {
+    use axum::http::{Method, header};
+    use tower::ServiceExt as _;
+    static TARGET: std::sync::OnceLock<HttpTarget> = std::sync::OnceLock::new();
+    TARGET.get_or_init(|| {
+        let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
+        // Each fuzzing process's own runs, and those of earlier ones that have ended.
+        let prefix = "periscope-fuzz-http-";
+        for entry in std::fs::read_dir(std::env::temp_dir())
+            .into_iter()
+            .flatten()
+            .flatten()
+        {
+            let name = entry.file_name();
+            if let Some(pid) = name.to_str().and_then(|n| n.strip_prefix(prefix))
+                && !std::path::Path::new("/proc").join(pid).exists()
+            {
+                let _ = std::fs::remove_dir_all(entry.path());
+            }
+        }
+        let runs = std::env::temp_dir().join(format!("{prefix}{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&runs);
+        let path = root.join("configs/instrument/sim.toml");
+        let token = "fuzz-admin-token-0123456789abcdef";
+        let text = std::fs::read_to_string(&path)
+            .expect("configs/instrument/sim.toml")
+            .replace("[sim]\n", "[sim]\ntime-scale = 0.0\n")
+            + &format!(
+                "\n[api]\nruns-dir = \"{}\"\ntoken = \"{token}\"\nbody-limit-kib = 64\n",
+                runs.display()
+            );
+        let service =
+            crate::service::Service::open(TomlSource::from_text(path, text), Some(token.to_owned()))
+                .expect("the simulated instrument's service");
+        // Detached: the worker runs the one run, then waits for runs no input can submit.
+        drop(service.start_worker());
+        let (_, observer) = crate::access::KeyStore::open(&runs, None)
+            .create("fuzz", crate::access::Role::Observer, None, "fuzz")
+            .expect("an observer's key");
+        let runtime = tokio::runtime::Builder::new_multi_thread()
+            .worker_threads(2)
+            .enable_all()
+            .build()
+            .expect("a tokio runtime");
+        let router = crate::api::app(crate::api::AppState::new(service));
+        let plan =
+            std::fs::read_to_string(root.join("tests/data/plans/small-fbp.toml")).expect("the small plan");
+        let run = runtime.block_on(async {
+            let call = |method: Method, uri: String, body: String| {
+                let req = axum::http::Request::builder()
+                    .method(method)
+                    .uri(uri)
+                    .header(header::AUTHORIZATION, format!("Bearer {token}"))
+                    .header(header::CONTENT_TYPE, "application/toml")
+                    .body(axum::body::Body::from(body))
+                    .expect("a request");
+                let router = router.clone();
+                async move {
+                    let resp = router.oneshot(req).await.expect("the router answers");
+                    let bytes = axum::body::to_bytes(resp.into_body(), 1 << 20)
+                        .await
+                        .expect("a body");
+                    serde_json::from_slice::<serde_json::Value>(&bytes).expect("JSON")
+                }
+            };
+            // The dashboard's compressed files are made at their first request (seconds
+            // in an unoptimised build): made here, not in a timed input.
+            let page = axum::http::Request::builder()
+                .uri("/")
+                .body(axum::body::Body::empty())
+                .expect("a request");
+            let _ = router.clone().oneshot(page).await;
+            let submitted = call(Method::POST, "/api/v1/runs".into(), plan).await;
+            let id = submitted["id"].as_str().expect("a run id").to_owned();
+            let started = std::time::Instant::now();
+            loop {
+                let v = call(Method::GET, format!("/api/v1/runs/{id}"), String::new()).await;
+                if v["state"] == "completed" {
+                    break id;
+                }
+                assert!(
+                    v["state"] != "failed" && started.elapsed() < Duration::from_secs(120),
+                    "the fuzz target's run did not complete: {v}"
+                );
+                tokio::time::sleep(Duration::from_millis(50)).await;
+            }
+        });
+        HttpTarget {
+            runtime,
+            router,
+            run,
+            observer,
+        }
+    })
+}
+
+/// Makes [`http_request`]'s router and its finished run (seconds in an unoptimised
+/// build): the fuzz target calls it at libFuzzer's initialisation, so the first input
+/// is not timed with it; [`http_request`] makes them itself where it was not called.
+pub fn http_request_init() {
+    http_target();
+}
+
+/// The HTTP API through its router, as `daemon/tests/api.rs` drives it (no socket):
+/// any method, path, query, headers and body, from this machine or another, with no
+/// key or an observer's, is answered within the request timeout, never with a 500
+/// (a panic in a handler on the blocking pool comes back as one), and every error
+/// as the API's JSON (`{"error": code, "message": ...}`).
+///
+/// The input: a first byte (bits 0–2 the method of GET, POST, PUT, PATCH, DELETE,
+/// HEAD, OPTIONS and PURGE; bit 3 the observer's key as a bearer token; bit 4 a peer on
+/// another machine), then the request target up to the first newline (`{run}` stands
+/// for the finished run's id), header lines `name: value` up to an empty line, and the
+/// body.
+pub fn http_request(data: &[u8]) {
+    use axum::http::{HeaderName, HeaderValue, Method, Request, StatusCode, header};
+    use tower::ServiceExt as _;
+    let Some((&flags, rest)) = data.split_first() else {
+        return;
+    };
+    let target = http_target();
+    let method = [
+        Method::GET,
+        Method::POST,
+        Method::PUT,
+        Method::PATCH,
+        Method::DELETE,
+        Method::HEAD,
+        Method::OPTIONS,
+        Method::from_bytes(b"PURGE").expect("a method"),
+    ][usize::from(flags & 7)]
+    .clone();
+    let (line, rest) = match rest.iter().position(|&b| b == b'\n') {
+        Some(i) => (&rest[..i], &rest[i + 1..]),
+        None => (rest, &[][..]),
+    };
+    let Ok(uri) = std::str::from_utf8(line) else {
+        return;
+    };
+    let uri = uri.replace("{run}", &target.run);
+    let mut req = Request::builder().method(method.clone()).uri(uri.as_str());
+    let mut body = rest;
+    loop {
+        let (line, after) = match body.iter().position(|&b| b == b'\n') {
+            Some(i) => (&body[..i], &body[i + 1..]),
+            None => (body, &[][..]),
+        };
+        body = after;
+        if line.is_empty() {
+            break;
+        }
+        let Some(colon) = line.iter().position(|&b| b == b':') else {
+            return;
+        };
+        let (Ok(name), Ok(value)) = (
+            HeaderName::from_bytes(&line[..colon]),
+            HeaderValue::from_bytes(line[colon + 1..].trim_ascii()),
+        ) else {
+            return;
+        };
+        req = req.header(name, value);
+    }
+    if flags & 8 != 0 {
+        req = req.header(header::AUTHORIZATION, format!("Bearer {}", target.observer));
+    }
+    let Ok(mut req) = req.body(axum::body::Body::from(body.to_vec())) else {
+        return;
+    };
+    if flags & 16 != 0 {
+        req.extensions_mut()
+            .insert(axum::extract::ConnectInfo(std::net::SocketAddr::from((
+                [192, 0, 2, 7],
+                40_000,
+            ))));
+    }
+    target.runtime.block_on(async {
+        // The request timeout (30 s) answers a request that hangs; past it, the router
+        // itself hangs.
+        let resp = tokio::time::timeout(Duration::from_secs(40), target.router.clone().oneshot(req))
+            .await
+            .unwrap_or_else(|_| panic!("{method} {uri}: no answer within 40 s"))
+            .expect("the router is infallible");
+        let status = resp.status();
+        let encoded = resp.headers().contains_key(header::CONTENT_ENCODING);
+        let streamed = resp
+            .headers()
+            .get(header::CONTENT_TYPE)
+            .is_some_and(|t| t.as_bytes().starts_with(b"text/event-stream"));
+        if streamed {
+            return;
+        }
+        let bytes = tokio::time::timeout(
+            Duration::from_secs(40),
+            axum::body::to_bytes(resp.into_body(), 256 << 20),
+        )
+        .await
+        .unwrap_or_else(|_| panic!("{method} {uri}: {status}, its body unfinished after 40 s"));
+        let text = |b: &[u8]| String::from_utf8_lossy(&b[..b.len().min(500)]).into_owned();
+        let bytes = match bytes {
+            Ok(b) => b,
+            Err(e) => panic!("{method} {uri}: {status}, its body failed: {e}"),
+        };
+        assert_ne!(
+            status,
+            StatusCode::INTERNAL_SERVER_ERROR,
+            "{method} {uri}: {}",
+            text(&bytes)
+        );
+        if (status.is_client_error() || status.is_server_error()) && method != Method::HEAD && !encoded {
+            let v: serde_json::Value = serde_json::from_slice(&bytes).unwrap_or_else(|e| {
+                panic!(
+                    "{method} {uri}: {status} with a body that is not JSON ({e}): {}",
+                    text(&bytes)
+                )
+            });
+            assert!(
+                v["error"].is_string() && v["message"].is_string(),
+                "{method} {uri}: {status} without the API's error fields: {v}"
+            );
+        }
+    });
 }
