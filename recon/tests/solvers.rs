@@ -603,13 +603,7 @@ fn every_solver_puts_a_point_at_its_depth_within_a_millimetre() {
     let set = confocal_point_set(axis());
     // Voxel centres on the point laterally; its depth on a slice boundary.
     let g = VolumeGrid::new([0.005, 0.155], [-0.195, -0.045], [0.45, 0.55], [15, 15, 40]).unwrap();
-    let solvers: [(&str, Volume, f64); 4] = [
-        ("LCT", lct(&set, &g, &LctSettings::default()).unwrap(), 1e-3),
-        ("f-k", fk(&set, &g, &FkSettings::default()).unwrap(), 1e-3),
-        ("RSD", rsd(&set, &g, &RsdSettings::default()).unwrap(), 2e-3),
-        ("FBP", fbp(&set, &g, &FbpSettings::default()).unwrap(), 1e-3),
-    ];
-    for (name, volume, bound) in solvers {
+    for (name, volume, bound) in every_solver(&set, &g) {
         let (at, _) = volume.argmax();
         let lateral = DVec3::new(at.x - POINT.x, at.y - POINT.y, 0.0).length();
         let depth = peak_depth(&volume);
@@ -627,6 +621,66 @@ fn every_solver_puts_a_point_at_its_depth_within_a_millimetre() {
             "{name}: the point's depth {depth:.5} m against {} m (bound {bound} m)",
             POINT.z
         );
+    }
+}
+
+/// Each solver on `set` onto `g`: its name, volume and depth bound (RSD's wave puts
+/// its peak up to 2 mm off, above).
+fn every_solver(set: &TransientSet, g: &VolumeGrid) -> [(&'static str, Volume, f64); 4] {
+    [
+        ("LCT", lct(set, g, &LctSettings::default()).unwrap(), 1e-3),
+        ("f-k", fk(set, g, &FkSettings::default()).unwrap(), 1e-3),
+        ("RSD", rsd(set, g, &RsdSettings::default()).unwrap(), 2e-3),
+        ("FBP", fbp(set, g, &FbpSettings::default()).unwrap(), 1e-3),
+    ]
+}
+
+/// A confocal grid whose pitches differ across and down (31 mm over 32 columns, 50 mm
+/// over 12 rows), the point off the centre both ways: a pitch or a count taken from the
+/// wrong axis (the cone's, Stolt's or the kernel's), or the axes swapped, moves the
+/// peak off the point. Before 2026-12-07 every solver test scanned a square grid.
+#[test]
+fn every_solver_finds_a_point_on_a_grid_of_unequal_pitches() {
+    let relay = VirtualRelay::new(DVec3::ZERO, DVec3::Z, DVec3::X, [1.0, 0.6], [32, 12]).unwrap();
+    let mut set = TransientSet::new(axis()).unwrap();
+    scatter(&mut set, &confocal_pairs(&relay), &[(POINT, 1.0)]);
+    let g = VolumeGrid::new([0.005, 0.155], [-0.195, -0.045], [0.45, 0.55], [15, 15, 40]).unwrap();
+    for (name, volume, bound) in every_solver(&set, &g) {
+        let (at, _) = volume.argmax();
+        let depth = peak_depth(&volume);
+        eprintln!(
+            "{name}: at ({:.1}, {:.1}) mm from the point across, depth {:.2} mm off",
+            (at.x - POINT.x) * 1e3,
+            (at.y - POINT.y) * 1e3,
+            (depth - POINT.z) * 1e3
+        );
+        assert!(
+            (at.x - POINT.x).abs() <= 0.0105 && (at.y - POINT.y).abs() <= 0.0105,
+            "{name}: the peak at {at:?} is off the point {POINT:?} across"
+        );
+        assert!(
+            (depth - POINT.z).abs() <= bound,
+            "{name}: the point's depth {depth:.5} m against {} m (bound {bound} m)",
+            POINT.z
+        );
+    }
+}
+
+/// A relay that faces −y (a wall in the x–z plane, as ZNLOS's and y-tal's scenes
+/// stand), the point 0.5 m in front of it and off its centre both ways: every solver
+/// finds it where it is in the world's axes. Before 2026-12-07 no solver test used a
+/// relay that does not face +z.
+#[test]
+fn every_solver_finds_a_point_in_front_of_a_wall_facing_minus_y() {
+    let relay = VirtualRelay::new(DVec3::ZERO, DVec3::NEG_Y, DVec3::X, [1.0, 1.0], [32, 32]).unwrap();
+    let point = DVec3::new(0.08, -0.5, -0.12);
+    let mut set = TransientSet::new(axis()).unwrap();
+    scatter(&mut set, &confocal_pairs(&relay), &[(point, 1.0)]);
+    let g = VolumeGrid::new([-0.4, 0.4], [-0.75, -0.25], [-0.4, 0.4], [32, 20, 32]).unwrap();
+    for (name, volume, _) in every_solver(&set, &g) {
+        let (at, _) = volume.argmax();
+        eprintln!("{name}: peak {:.1} mm off", (at - point).length() * 1e3);
+        assert_peak_at(&volume, point, name);
     }
 }
 
