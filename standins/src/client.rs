@@ -135,6 +135,12 @@ impl Standin {
         Self::ok("FlagNext", f(family_id(family), index, flags));
     }
 
+    /// `PERISCOPE_STANDIN_SyncStops`.
+    pub fn sync_stops(&self, family: Family, index: i32) {
+        let f: extern "C" fn(c_int, c_int) -> c_int = self.get("PERISCOPE_STANDIN_SyncStops");
+        Self::ok("SyncStops", f(family_id(family), index));
+    }
+
     /// `PERISCOPE_STANDIN_Vanish`.
     pub fn vanish(&self, family: Family, index: i32, refused_reopens: u32) {
         let f: extern "C" fn(c_int, c_int, c_uint) -> c_int = self.get("PERISCOPE_STANDIN_Vanish");

@@ -142,6 +142,20 @@ pub extern "C" fn PERISCOPE_STANDIN_FlagNext(family_id: c_int, index: c_int, fla
     })
 }
 
+/// The laser's sync into the counter at `index` stops once its next measurement has
+/// ended: that histogram and its flags are whole, the rate meter then reads 0, and
+/// every later measurement ends with `FLAG_SYNC_LOST` and no counts.
+#[unsafe(no_mangle)]
+pub extern "C" fn PERISCOPE_STANDIN_SyncStops(family_id: c_int, index: c_int) -> c_int {
+    control("SyncStops", |s| {
+        let d = s
+            .device(family(family_id)?, index)
+            .map_err(|c| format!("no counter at {index} ({c})"))?;
+        d.sync_stops_after_next = true;
+        Ok(0)
+    })
+}
+
 /// The counter at `index` vanishes from the bus now (mid-acquisition if one runs):
 /// every call on it fails with `ERROR_USB_VCMD_FAIL`, and `refused_reopens` opens of
 /// its index fail before it is back (`u32::MAX`: gone for good).

@@ -51,6 +51,9 @@ pub(crate) struct Device {
     elapsed_ms: f64,
     /// Flags the next measurement ends with (test control).
     pub next_flags: i32,
+    /// The laser's sync stops once the next measurement has ended (test control): its
+    /// histogram and flags are whole, the rate meter then reads 0.
+    pub sync_stops_after_next: bool,
     /// Rates the library last measured, Hz.
     rates: (i32, i32),
     /// Rates last read by the host (`GetSyncRate`, `GetCountRate`): warnings come
@@ -107,6 +110,7 @@ impl Device {
             flags: 0,
             elapsed_ms: 0.0,
             next_flags: 0,
+            sync_stops_after_next: false,
             rates: (0, 0),
             read_rates: (None, None),
             vanished: false,
@@ -342,6 +346,14 @@ impl Device {
             }
         }
         self.flags |= std::mem::take(&mut self.next_flags);
+        if self.repetition_rate == 0.0 {
+            // No sync for the whole measurement: nothing to time photons against.
+            self.flags |= flag::SYNC_LOST;
+            self.memory.iter_mut().for_each(|c| *c = 0);
+        }
+        if std::mem::take(&mut self.sync_stops_after_next) {
+            self.repetition_rate = 0.0;
+        }
         self.tdc = Some(tdc);
     }
 

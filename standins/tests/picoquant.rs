@@ -348,6 +348,33 @@ fn overflow_fifo_and_dropped_counts_flag_the_histogram_and_a_lost_sync_fails_it(
     tdc.acquire().unwrap();
 }
 
+/// A laser whose sync stops just after a measurement: the counter's flags say nothing
+/// (the measurement had its sync), but its rate meter reads a sync of 0, which makes
+/// the detector's rate over it infinite. That is no pile-up: the acquisition fails
+/// naming the sync (until 2026-12-07 the histogram came back flagged saturated, and
+/// enough of them suspended the capture blaming the light), and so does the next, on
+/// the lost sync.
+#[test]
+fn a_sync_that_stops_after_a_measurement_is_named_not_taken_for_pile_up() {
+    let _one = exclusive();
+    let tmp = tempfile::tempdir().unwrap();
+    let s = standin(tmp.path(), 0.0);
+    let f = Family::MultiHarp;
+    let mut tdc = PicoQuantTdc::open(settings(f, s.path())).unwrap();
+    tdc.configure(&config(20.0, 10)).unwrap();
+    // Past the rate meters' settling after the configuration.
+    std::thread::sleep(Duration::from_millis(450));
+    let h = tdc.acquire().unwrap();
+    assert!(!h.flags.saturated && !h.flags.overflow);
+    s.sync_stops(f, 0);
+    let e = tdc.acquire().unwrap_err();
+    assert_eq!(e.kind(), ErrorKind::Device, "{e}");
+    assert!(e.to_string().contains("sync input reads 0 Hz"), "{e}");
+    let e = tdc.acquire().unwrap_err();
+    assert_eq!(e.kind(), ErrorKind::Device, "{e}");
+    assert!(e.to_string().contains("sync signal was lost"), "{e}");
+}
+
 #[test]
 fn a_counter_that_vanishes_mid_acquisition_is_reopened_or_reported_gone() {
     let _one = exclusive();

@@ -490,8 +490,23 @@ impl PicoQuantTdc {
         // Warnings come from the rate meters, which read nothing true for a while after
         // the counter was (re)initialised or its divider set: a sync of 0 then would
         // flag every histogram as piled up.
-        let saturated = Instant::now() >= self.rates_from
-            && self.warnings()? & (warning::INPT_RATE_RATIO | warning::INPT_RATE_TOO_HIGH) != 0;
+        let warnings = if Instant::now() >= self.rates_from {
+            self.warnings()?
+        } else {
+            0
+        };
+        // A sync that stopped after the measurement (no SYNC_LOST above) makes the
+        // detector's rate over the sync's infinite: that is no pile-up, and every later
+        // measurement would fail on the lost sync anyway.
+        if warnings & warning::SYNC_RATE_ZERO != 0 {
+            return Err(self.err(
+                ErrorKind::Device,
+                "the sync input reads 0 Hz since the acquisition: the laser has stopped pulsing or its sync \
+                 cable is out; check both; the histogram was discarded (its pile-up cannot be judged \
+                 without a sync rate)",
+            ));
+        }
+        let saturated = warnings & (warning::INPT_RATE_RATIO | warning::INPT_RATE_TOO_HIGH) != 0;
         self.sequence = self.sequence.wrapping_add(1);
         self.acquisitions = self.acquisitions.wrapping_add(1);
         Ok(Histogram {
