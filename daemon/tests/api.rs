@@ -686,6 +686,24 @@ async fn a_run_completes_and_its_results_download() {
         (StatusCode::RANGE_NOT_SATISFIABLE, Some("range-not-satisfiable"))
     );
     assert!(v["message"].as_str().unwrap().contains("`bytes=10-20t`"), "{v}");
+    // A file changed since the client's If-Unmodified-Since: 412, the API's JSON (until
+    // 2026-12-07's first fix of the above, a 500 `storage`).
+    let (s, bytes) = common::send(
+        &router,
+        common::request(
+            Method::GET,
+            &uri,
+            None,
+            &[("if-unmodified-since", "Thu, 01 Jan 1970 00:00:00 GMT")],
+            "",
+        ),
+    )
+    .await;
+    let v: Value = serde_json::from_slice(&bytes).unwrap();
+    assert_eq!(
+        (s, v["error"].as_str()),
+        (StatusCode::PRECONDITION_FAILED, Some("precondition-failed"))
+    );
     // A finished run's event stream is its status, then the end.
     let (s, bytes) = call_raw(
         &router,

@@ -1314,7 +1314,8 @@ async fn instrument_events(
         (status = 200, description = "the file, with its media type (`application/octet-stream` for .npy and .ply, `image/png`, `application/x-hdf5`, `application/json`, `application/toml`, `application/x-ndjson`)", content_type = "application/octet-stream", body = [u8]),
         (status = 206, description = "the bytes a `Range` header asks for", content_type = "application/octet-stream", body = [u8]),
         (status = 404, description = status::NOT_FOUND, body = ErrorBody),
-        (status = 416, description = "the `Range` header asks for bytes outside the file (`range-not-satisfiable`; `Content-Range: bytes */length` says its length)", body = ErrorBody),
+        (status = 412, description = "the file changed since the `If-Unmodified-Since` time (`precondition-failed`)", body = ErrorBody),
+        (status = 416, description = "the `Range` header asks for no one range inside the file: past its end, unparsable, or several ranges (`range-not-satisfiable`; `Content-Range: bytes */length` says its length)", body = ErrorBody),
         (status = 503, description = status::DOWNLOADS, body = ErrorBody),
     )
 )]
@@ -1369,7 +1370,9 @@ async fn file(
                 .get(header::RANGE)
                 .map(|r| String::from_utf8_lossy(r.as_bytes()).into_owned());
             let Ok(response) = tower_http::services::ServeFile::new(&path).oneshot(request).await;
-            if let Some(refused) = serve_file_error(&response, known, &path, asked.as_deref()) {
+            let gone = response.status() == StatusCode::NOT_FOUND
+                && matches!(tokio::fs::metadata(&path).await, Err(e) if e.kind() == std::io::ErrorKind::NotFound);
+            if let Some(refused) = serve_file_error(&response, known, gone, asked.as_deref()) {
                 return Ok(refused);
             }
             let (mut parts, body) = response.into_parts();
@@ -1389,15 +1392,17 @@ async fn file(
 }
 
 /// The API's JSON error for a run file that tower-http's `ServeFile` refused (it answers
-/// with an empty body, which the caller would label with the file's media type): a
-/// `Range` header it cannot satisfy, `asked` (416, keeping the
-/// `Content-Range: bytes */length` it gives; tower-http answers so a range past the end
-/// and one it cannot parse alike), a file gone since it was found (404), or one that
-/// could not be read (500). `None` for a file served.
+/// with an empty body, which the caller would label with the file's media type), with
+/// its status: a `Range` header, `asked`, that it does not serve (416, keeping the
+/// `Content-Range: bytes */length` it gives: a range past the end, one it cannot parse
+/// and several ranges alike), a file changed since an `If-Unmodified-Since` (412), a
+/// file gone since it was found (404, `gone`: the caller found no file there; any other
+/// 404, a file it may not read, is 500), any other request it refuses (its 4xx), or a
+/// file it could not read (500). `None` for a file served.
 fn serve_file_error<B>(
     response: &Response<B>,
     name: &str,
-    path: &std::path::Path,
+    gone: bool,
     asked: Option<&str>,
 ) -> Option<Response> {
     let status = response.status();
@@ -1406,21 +1411,37 @@ fn serve_file_error<B>(
     }
     let error = match status {
         StatusCode::RANGE_NOT_SATISFIABLE => {
-            let length = std::fs::metadata(path).map_or_else(|_| "?".to_owned(), |m| m.len().to_string());
+            let length = response
+                .headers()
+                .get(header::CONTENT_RANGE)
+                .and_then(|v| v.to_str().ok())
+                .and_then(|v| v.strip_prefix("bytes */"))
+                .unwrap_or("?");
             ApiError::new(
                 status,
                 "range-not-satisfiable",
                 format!(
-                    "the Range header `{}` is not a range of `{name}`, which holds {length} bytes: ask for \
-                     `bytes=first-last` within them, or leave Range out for the whole file",
+                    "the Range header `{}` asks for no one range of `{name}`, which holds {length} bytes (a \
+                     range past its end, one that does not parse, or several, which are not served): ask \
+                     for one `bytes=first-last` within them, or leave Range out for the whole file",
                     asked.unwrap_or_default().chars().take(100).collect::<String>()
                 ),
             )
         }
-        StatusCode::NOT_FOUND => ApiError::new(
+        StatusCode::PRECONDITION_FAILED => ApiError::new(
+            status,
+            "precondition-failed",
+            format!("`{name}` has changed since the If-Unmodified-Since time: download it again whole"),
+        ),
+        StatusCode::NOT_FOUND if gone => ApiError::new(
             status,
             "file-not-ready",
             format!("`{name}` is gone from the run since it was asked for; ask again"),
+        ),
+        s if s.is_client_error() && s != StatusCode::NOT_FOUND => ApiError::new(
+            s,
+            "bad-request",
+            format!("`{name}` could not be served as the request asks ({s})"),
         ),
         _ => ApiError::new(
             StatusCode::INTERNAL_SERVER_ERROR,
