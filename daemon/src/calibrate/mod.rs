@@ -407,9 +407,11 @@ pub struct Calibration {
     pub outliers: usize,
     /// The fitted parameters' names and standard uncertainties (metres or radians).
     pub uncertainty: Vec<(&'static str, f64)>,
-    /// Whether the final fit converged: `false` when its iterations ran out
-    /// (`solve::MAX_ITERATIONS`) with each step still lowering the residuals, so the
-    /// poses may not be the best the scans allow; the table says so.
+    /// Whether both full fits (the first, which chooses the outliers, and the final
+    /// one) ended because no step lowered the residuals any further: `false` when the
+    /// iterations of either ran out (`solve::MAX_ITERATIONS`) with each step still
+    /// lowering them, so the poses may not be the best the scans allow; the table says
+    /// so.
     pub converged: bool,
 }
 
@@ -488,7 +490,9 @@ pub fn fit(
         after: Residuals::of(&fitted, &kept),
         outliers,
         uncertainty,
-        converged: solution.converged,
+        // The first pass chose the outliers the final one leaves out: both must have
+        // converged for the poses to be the best the scans allow.
+        converged: first.converged && solution.converged,
     })
 }
 

@@ -20,8 +20,9 @@ pub(crate) enum SolveError {
 
 /// A solution: the parameters, the final residuals, the normal matrix JᵀJ at the
 /// solution (for the parameters' uncertainties), and whether the iterations ended
-/// because no step lowered the cost any further (`false`: they ran out at
-/// [`MAX_ITERATIONS`] with the last step still lowering it).
+/// because no step lowered the cost any further, however damped (a minimum to the
+/// model's precision, or a point past which the model cannot be evaluated; `false`:
+/// they ran out at [`MAX_ITERATIONS`] with the last step still lowering it).
 #[derive(Debug, Clone)]
 pub(crate) struct Solution {
     pub x: Vec<f64>,
