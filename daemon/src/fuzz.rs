@@ -458,6 +458,15 @@ fn http_target() -> &'static HttpTarget {
         }
         let runs = std::env::temp_dir().join(format!("{prefix}{}", std::process::id()));
         let _ = std::fs::remove_dir_all(&runs);
+        // Made here, not found: one another user made first (the name is predictable)
+        // fails the setup instead of holding the runs.
+        {
+            use std::os::unix::fs::DirBuilderExt as _;
+            std::fs::DirBuilder::new()
+                .mode(0o700)
+                .create(&runs)
+                .unwrap_or_else(|e| panic!("{}: {e}", runs.display()));
+        }
         let path = root.join("configs/instrument/sim.toml");
         let token = "fuzz-admin-token-0123456789abcdef";
         let text = std::fs::read_to_string(&path)
@@ -542,8 +551,14 @@ pub fn http_request_init() {
 /// The HTTP API through its router, as `daemon/tests/api.rs` drives it (no socket):
 /// any method, path, query, headers and body, from this machine or another, with no
 /// key or an observer's, is answered within the request timeout, never with a 500
-/// (a panic in a handler on the blocking pool comes back as one), and every error
-/// as the API's JSON (`{"error": code, "message": ...}`).
+/// (the API's `storage` and `internal` errors, which no request should cause on a
+/// healthy disk; a panic anywhere aborts under libFuzzer, and where the seeds are
+/// replayed by `cargo test`, one in a handler on the blocking pool comes back as a
+/// 500), and every error as the API's JSON (`{"error": code, "message": ...}`).
+///
+/// Inputs share the service: an e-stop (any key, or none from this machine, may send
+/// one) latches, and each adds to the audit trail that later reads list, so an input's
+/// coverage can depend on those before it; none can start, change or delete a run.
 ///
 /// The input: a first byte (bits 0–2 the method of GET, POST, PUT, PATCH, DELETE,
 /// HEAD, OPTIONS and PURGE; bit 3 the observer's key as a bearer token; bit 4 a peer on
@@ -613,8 +628,9 @@ pub fn http_request(data: &[u8]) {
     }
     target.runtime.block_on(async {
         // The request timeout (30 s) answers a request that hangs; past it, the router
-        // itself hangs.
-        let resp = tokio::time::timeout(Duration::from_secs(40), target.router.clone().oneshot(req))
+        // itself hangs. One deadline for the answer and its body, under .ci/fuzz's 60 s.
+        let deadline = tokio::time::Instant::now() + Duration::from_secs(40);
+        let resp = tokio::time::timeout_at(deadline, target.router.clone().oneshot(req))
             .await
             .unwrap_or_else(|_| panic!("{method} {uri}: no answer within 40 s"))
             .expect("the router is infallible");
@@ -627,12 +643,11 @@ pub fn http_request(data: &[u8]) {
         if streamed {
             return;
         }
-        let bytes = tokio::time::timeout(
-            Duration::from_secs(40),
-            axum::body::to_bytes(resp.into_body(), 256 << 20),
-        )
-        .await
-        .unwrap_or_else(|_| panic!("{method} {uri}: {status}, its body unfinished after 40 s"));
+        let bytes = tokio::time::timeout_at(deadline, axum::body::to_bytes(resp.into_body(), 256 << 20))
+            .await
+            .unwrap_or_else(|_| {
+                panic!("{method} {uri}: {status}, its body unfinished 40 s after the request")
+            });
         let text = |b: &[u8]| String::from_utf8_lossy(&b[..b.len().min(500)]).into_owned();
         let bytes = match bytes {
             Ok(b) => b,
