@@ -388,13 +388,30 @@ pub fn plan_toml(data: &[u8]) {
     }
 }
 
-/// Instrument configs and RECON.toml files: a config or an error naming the key.
+/// Instrument configs and RECON.toml files: a config or an error naming the key; a
+/// config that loads has a summary, and its text with the token cut out (what a run
+/// stores and serves as `instrument.toml`) loads as the same instrument without it.
 pub fn config_toml(data: &[u8]) {
     let Ok(text) = std::str::from_utf8(data) else {
         return;
     };
     let src = TomlSource::from_text("fuzz.toml", text);
-    let _ = InstrumentConfig::from_source(&src);
+    if let Ok(config) = InstrumentConfig::from_source(&src) {
+        let _ = config.summary();
+        // What a run stores and serves as its `instrument.toml`: the same instrument,
+        // without its token.
+        let redacted = crate::config::redact_secrets(text);
+        let again = InstrumentConfig::from_source(&TomlSource::from_text("fuzz.toml", redacted.as_str()));
+        let mut expected = config;
+        expected.api.token = None;
+        match again {
+            Ok(again) => assert!(
+                again == expected,
+                "the redacted config is another instrument:\n{redacted}"
+            ),
+            Err(e) => panic!("the redacted config does not load ({e}):\n{redacted}"),
+        }
+    }
     let _ = load_recon(&src, None);
 }
 
