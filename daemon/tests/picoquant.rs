@@ -244,6 +244,48 @@ fn a_multiharp_reopened_mid_capture_is_not_taken_for_a_lost_sync() {
     assert_eq!(s.parked(), (true, true));
 }
 
+/// The laser's sync stops in the middle of a capture (the stand-in's `SyncStops`: the
+/// pair being measured is whole, the rate meter then reads 0): the run's own sync check
+/// after the pair stops it with an error naming the sync cable, the laser off and both
+/// arms parked; every pair before is kept (the one measured under the reading of 0 is
+/// measured again on resume, as `sync_verdict` does with any reading off). The same
+/// with the driver before 2026-12-07, whose histogram was flagged saturated: this holds
+/// the daemon's end of it through the production loader.
+#[test]
+fn a_sync_that_stops_mid_capture_stops_the_run_laser_off_and_keeps_its_pairs() {
+    use periscope_daemon::events::{EventSink, RunEvent};
+    use periscope_drivers::picoquant::Family;
+    let _one = exclusive();
+    let tmp = tempfile::tempdir().unwrap();
+    let (s, lab) = bench(tmp.path(), 1.0);
+    let dir = prepare(tmp.path(), &lab, PLAN);
+    let events = EventSink::open(&dir).unwrap();
+    let s2 = s;
+    events.listen(move |e| {
+        // Past the meter's 400 ms with the laser on, as above.
+        if let RunEvent::Pair { done: 14, .. } = e {
+            s2.sync_stops(Family::MultiHarp, 0);
+        }
+    });
+    let run = periscope_daemon::pipeline::Run::open(
+        &dir,
+        periscope_daemon::pipeline::Control::new(),
+        Some(events),
+        None,
+    )
+    .unwrap();
+    let e = run.execute().unwrap_err().to_string();
+    assert!(e.contains("sync"), "{e}");
+    assert!(!e.contains("saturated"), "{e}");
+    assert!(!s.emission());
+    assert_eq!(s.parked(), (true, true));
+    let log = periscope_daemon::store::read_log(&dir).unwrap();
+    assert!(log.records.len() >= 14, "{} pairs kept", log.records.len());
+    let info = periscope_daemon::run_dir::RunInfo::load(&dir).unwrap();
+    assert_ne!(info.state, periscope_daemon::run_dir::RunState::Completed);
+    eprintln!("state {:?}, {} pairs kept: {e}", info.state, log.records.len());
+}
+
 /// A pause during the wait for the rate meter (400 ms with the laser on, before the
 /// first LOS point) is answered within the wait's 20 ms poll: the laser is off within
 /// the docs' 50 ms and the run ends paused, having measured nothing.

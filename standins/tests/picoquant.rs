@@ -350,10 +350,9 @@ fn overflow_fifo_and_dropped_counts_flag_the_histogram_and_a_lost_sync_fails_it(
 
 /// A laser whose sync stops just after a measurement: the counter's flags say nothing
 /// (the measurement had its sync), but its rate meter reads a sync of 0, which makes
-/// the detector's rate over it infinite. That is no pile-up: the acquisition fails
-/// naming the sync (until 2026-12-07 the histogram came back flagged saturated, and
-/// enough of them suspended the capture blaming the light), and so does the next, on
-/// the lost sync.
+/// the detector's rate over it infinite. That is no pile-up: the histogram is kept
+/// unflagged (until 2026-12-07 it came back flagged saturated), and the next
+/// acquisition fails on the lost sync, naming it.
 #[test]
 fn a_sync_that_stops_after_a_measurement_is_named_not_taken_for_pile_up() {
     let _one = exclusive();
@@ -367,9 +366,12 @@ fn a_sync_that_stops_after_a_measurement_is_named_not_taken_for_pile_up() {
     let h = tdc.acquire().unwrap();
     assert!(!h.flags.saturated && !h.flags.overflow);
     s.sync_stops(f, 0);
-    let e = tdc.acquire().unwrap_err();
-    assert_eq!(e.kind(), ErrorKind::Device, "{e}");
-    assert!(e.to_string().contains("sync input reads 0 Hz"), "{e}");
+    let last = tdc.acquire().unwrap();
+    assert!(
+        !last.flags.saturated && last.counts.iter().any(|&c| c > 0),
+        "{:?}",
+        last.flags
+    );
     let e = tdc.acquire().unwrap_err();
     assert_eq!(e.kind(), ErrorKind::Device, "{e}");
     assert!(e.to_string().contains("sync signal was lost"), "{e}");

@@ -495,18 +495,20 @@ impl PicoQuantTdc {
         } else {
             0
         };
-        // A sync that stopped after the measurement (no SYNC_LOST above) makes the
-        // detector's rate over the sync's infinite: that is no pile-up, and every later
-        // measurement would fail on the lost sync anyway.
-        if warnings & warning::SYNC_RATE_ZERO != 0 {
-            return Err(self.err(
-                ErrorKind::Device,
-                "the sync input reads 0 Hz since the acquisition: the laser has stopped pulsing or its sync \
-                 cable is out; check both; the histogram was discarded (its pile-up cannot be judged \
-                 without a sync rate)",
-            ));
+        // A sync that stopped once the measurement had ended (no SYNC_LOST above: the
+        // histogram had its sync throughout, and is kept) makes the detector's rate over
+        // the sync's infinite: that is no pile-up, so it is not judged; the next
+        // acquisition fails on the lost sync, naming it.
+        let sync_gone = warnings & warning::SYNC_RATE_ZERO != 0;
+        if sync_gone {
+            warn!(
+                device = %self.device,
+                "the sync input reads 0 Hz since the last acquisition: the laser has stopped pulsing or its sync \
+                 cable is out; that histogram is kept, unjudged for pile-up"
+            );
         }
-        let saturated = warnings & (warning::INPT_RATE_RATIO | warning::INPT_RATE_TOO_HIGH) != 0;
+        let saturated =
+            !sync_gone && warnings & (warning::INPT_RATE_RATIO | warning::INPT_RATE_TOO_HIGH) != 0;
         self.sequence = self.sequence.wrapping_add(1);
         self.acquisitions = self.acquisitions.wrapping_add(1);
         Ok(Histogram {
