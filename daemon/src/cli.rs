@@ -576,8 +576,8 @@ impl crate::signals::OnSignal for RunSignals {
         let park = self.park.lock().unwrap_or_else(|p| p.into_inner()).clone();
         crate::signals::park_within(park);
     }
-    fn stop(&self, _signal: &'static str) {
-        self.control.pause();
+    fn stop(&self, signal: &'static str) {
+        self.control.pause_by(signal);
     }
 }
 

@@ -991,8 +991,7 @@ fn an_emergency_off_met_as_emission_lost_ends_the_run_as_the_stop_asked() {
             }
             RunEvent::Safety { emission: false, .. } if !aborted && off_at.lock().unwrap().is_some() => {
                 aborted = true;
-                control.set_requested_by("estop");
-                control.abort();
+                control.abort_by("estop");
             }
             _ => {}
         });

@@ -86,15 +86,47 @@ impl Control {
             .clone()
     }
 
-    /// Records who asks the run to stop (the next pause or abort).
-    pub fn set_requested_by(&self, by: &str) {
-        *self.0.requested_by.lock().unwrap_or_else(|p| p.into_inner()) = Some(by.to_owned());
+    /// [`Control::pause`] asked by `by` (a key's name, `estop`, `shutdown`, a signal's
+    /// name), recorded only if this request is the one that pauses the run: a pause
+    /// asked of a run already asked to pause or abort changes nothing, and so does not
+    /// take the stop from whoever asked first. The request and its record change
+    /// together (under the record's lock), so a pause and an abort asked at once from
+    /// two threads leave the abort's requester with the abort. Returns whether it
+    /// paused the run.
+    pub fn pause_by(&self, by: &str) -> bool {
+        let mut who = self.0.requested_by.lock().unwrap_or_else(|p| p.into_inner());
+        let paused = self
+            .0
+            .state
+            .compare_exchange(Self::RUN, Self::PAUSE, Ordering::SeqCst, Ordering::SeqCst)
+            .is_ok();
+        if paused {
+            *who = Some(by.to_owned());
+        }
+        drop(who);
+        self.cancel_optimisers();
+        paused
     }
 
     /// Asks the run to abort at the next checkpoint.
     pub fn abort(&self) {
         self.0.state.store(Self::ABORT, Ordering::SeqCst);
         self.cancel_optimisers();
+    }
+
+    /// [`Control::abort`] asked by `by`, recorded unless the run was already asked to
+    /// abort (an abort overrides a pause, and its requester the pause's). Returns
+    /// whether this request changed what the run is asked to do.
+    pub fn abort_by(&self, by: &str) -> bool {
+        let mut who = self.0.requested_by.lock().unwrap_or_else(|p| p.into_inner());
+        let before = self.0.state.swap(Self::ABORT, Ordering::SeqCst);
+        let changed = before != Self::ABORT;
+        if changed {
+            *who = Some(by.to_owned());
+        }
+        drop(who);
+        self.cancel_optimisers();
+        changed
     }
     /// What the run is asked to do.
     pub fn requested(&self) -> Request {
@@ -195,6 +227,59 @@ impl Control {
 mod tests {
     use super::*;
     use std::time::Duration;
+
+    /// The record names whoever stopped the run. Until 2026-12-07 every request
+    /// overwrote it, taken or not: an abort followed by another key's pause (which the
+    /// aborting run ignores) was recorded as that key's abort.
+    #[test]
+    fn the_requester_recorded_is_the_one_whose_request_was_taken() {
+        let control = Control::new();
+        assert!(control.abort_by("alice"));
+        assert!(!control.pause_by("bob"));
+        assert!(!control.abort_by("carol"));
+        assert_eq!(control.requested(), Request::Abort);
+        assert_eq!(control.requested_by().as_deref(), Some("alice"));
+
+        // A pause's requester stays against a second pause; an abort takes over both.
+        let control = Control::new();
+        assert!(control.pause_by("alice"));
+        assert!(!control.pause_by("shutdown"));
+        assert_eq!(control.requested(), Request::Pause);
+        assert_eq!(control.requested_by().as_deref(), Some("alice"));
+        assert!(control.abort_by("estop"));
+        assert_eq!(control.requested(), Request::Abort);
+        assert_eq!(control.requested_by().as_deref(), Some("estop"));
+    }
+
+    /// A pause and an abort asked at once, from many threads: whatever the order, the
+    /// run is asked to abort and the record is an abort's requester.
+    #[test]
+    fn a_pause_racing_an_abort_never_takes_the_aborts_record() {
+        for _ in 0..200 {
+            let control = Control::new();
+            let barrier = std::sync::Arc::new(std::sync::Barrier::new(4));
+            let threads: Vec<_> = ["pauser-1", "aborter-1", "pauser-2", "aborter-2"]
+                .into_iter()
+                .map(|who| {
+                    let (control, barrier) = (control.clone(), barrier.clone());
+                    std::thread::spawn(move || {
+                        barrier.wait();
+                        if who.starts_with("pauser") {
+                            control.pause_by(who);
+                        } else {
+                            control.abort_by(who);
+                        }
+                    })
+                })
+                .collect();
+            for t in threads {
+                t.join().unwrap();
+            }
+            assert_eq!(control.requested(), Request::Abort);
+            let by = control.requested_by().unwrap();
+            assert!(by.starts_with("aborter"), "recorded {by} for an abort");
+        }
+    }
 
     /// The trainer asks whether to stop at every event of its fit, from its own
     /// thread: that is no sign of the run's life, so a capture that hangs with the

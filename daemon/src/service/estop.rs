@@ -50,8 +50,7 @@ impl Service {
         // 1. The laser, directly. The run is told to abort first (an atomic store), so
         //    that a `LASER ON` the latched switch refuses it reads as the abort.
         if let Some((_, control)) = &running {
-            control.set_requested_by("estop");
-            control.abort();
+            control.abort_by("estop");
         }
         let mut laser_off = false;
         if let Some(off) = &direct {
@@ -95,7 +94,7 @@ impl Service {
             if let Some((id, control)) = s.current.as_ref()
                 && running.as_ref().is_none_or(|(r, _)| r != id)
             {
-                control.pause();
+                control.pause_by("estop");
                 report.held.push(id.clone());
             }
             let running_id = s.current.as_ref().map(|(id, _)| id.clone());

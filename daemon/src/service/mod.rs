@@ -542,8 +542,7 @@ impl Service {
             (d.run.clone(), d.laser_off.clone())
         };
         if let Some((_, control)) = &running {
-            control.set_requested_by("shutdown");
-            control.pause();
+            control.pause_by("shutdown");
         }
         if let Some(off) = off
             && let Err(e) = off.laser_off()
@@ -556,8 +555,7 @@ impl Service {
         if let Some((id, control)) = &s.current
             && running.as_ref().is_none_or(|(r, _)| r != id)
         {
-            control.set_requested_by("shutdown");
-            control.pause();
+            control.pause_by("shutdown");
         }
         // Dropping the senders ends every event stream after what it has buffered.
         s.channels.clear();

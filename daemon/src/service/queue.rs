@@ -235,8 +235,7 @@ impl Service {
             let info = self.info(id)?;
             match &s.current {
                 Some((c, control)) if c == id => {
-                    control.set_requested_by(by);
-                    control.pause();
+                    control.pause_by(by);
                 }
                 _ => {
                     return Err(ServiceError::Conflict(format!(
@@ -339,8 +338,7 @@ impl Service {
         if let Some((c, control)) = &s.current
             && c == id
         {
-            control.set_requested_by(by);
-            control.abort();
+            control.abort_by(by);
             drop(s);
             return self.status(id);
         }
