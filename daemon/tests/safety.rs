@@ -1475,3 +1475,32 @@ fn a_pairs_grid_finer_than_the_relay_is_planned_short_and_says_so() {
     assert!(pairs > 0 && pairs <= 36, "{planned}");
     assert_each_pair_once(&dir);
 }
+
+/// A run paused or aborted while it opens its devices (an e-stop's hold lands there:
+/// the worker has just taken the run) names who stopped it in its state history, as a
+/// stop at any later checkpoint does. Until 2026-12-07 such a stop recorded nobody.
+#[test]
+fn a_run_stopped_while_opening_names_who_stopped_it() {
+    for (ask, state) in [("pause", RunState::Paused), ("abort", RunState::Aborted)] {
+        let tmp = tempfile::tempdir().unwrap();
+        let (dir, rig) = prepare(tmp.path(), &plan());
+        let control = Control::new();
+        match ask {
+            "pause" => assert!(control.pause_by("estop")),
+            _ => assert!(control.abort_by("alice")),
+        }
+        let r = Run::open(&dir, control, None, Some(&rig));
+        assert!(
+            matches!(r, Err(PipelineError::Paused(_) | PipelineError::Aborted(_))),
+            "{ask}: {:?}",
+            r.err()
+        );
+        let info = RunInfo::load(&dir).unwrap();
+        assert_eq!(info.state, state);
+        let last = info.history.last().unwrap();
+        assert_eq!(last.state, state);
+        let want = if ask == "pause" { "estop" } else { "alice" };
+        assert_eq!(last.by.as_deref(), Some(want), "{ask}: {:?}", info.history);
+        assert!(!rig.emission());
+    }
+}

@@ -39,9 +39,20 @@ struct ControlInner {
     /// The run's sign of life for the laser's keepalive, beaten at every checkpoint
     /// and stop poll ([`Control::progress`]).
     progress: Mutex<Option<periscope_drivers::Progress>>,
-    /// Who asked the run to pause or abort (a key's name, `estop`, `shutdown`): the
-    /// run records it with the state it stops in.
-    requested_by: Mutex<Option<String>>,
+    /// Who asked the run to pause or abort (a key's name, `estop`, `shutdown`), and
+    /// whether the run has taken the request at a checkpoint: the run records it with
+    /// the state it stops in.
+    requested_by: Mutex<Requester>,
+}
+
+/// Who asked the run to stop, and whether the run has taken the request.
+#[derive(Default)]
+struct Requester {
+    by: Option<String>,
+    /// A checkpoint has turned the request into the run's stop ([`Control::check`]):
+    /// from then on the run is winding down to the state it names, and a later
+    /// request would be answered as taken when it is not.
+    taken: bool,
 }
 
 /// Operator requests a running pipeline honours at its checkpoints: between devices
@@ -69,13 +80,10 @@ impl Control {
     pub(super) fn record_made_safe(&self, result: Result<(), String>) {
         *self.0.made_safe.lock().unwrap_or_else(|p| p.into_inner()) = Some(result);
     }
-    /// Asks the run to pause at the next checkpoint.
+    /// Asks the run to pause at the next checkpoint ([`Control::pause_by`] with nobody
+    /// named).
     pub fn pause(&self) {
-        let _ = self
-            .0
-            .state
-            .compare_exchange(Self::RUN, Self::PAUSE, Ordering::SeqCst, Ordering::SeqCst);
-        self.cancel_optimisers();
+        self.ask(Self::PAUSE, None);
     }
     /// Who asked the run to stop, if recorded.
     pub fn requested_by(&self) -> Option<String> {
@@ -83,7 +91,20 @@ impl Control {
             .requested_by
             .lock()
             .unwrap_or_else(|p| p.into_inner())
+            .by
             .clone()
+    }
+
+    /// Whether the run has taken a pause or abort at a checkpoint and is winding down
+    /// to it (making the instrument safe, writing its state): [`Control::pause_by`] and
+    /// [`Control::abort_by`] then change nothing, and a caller that must see its request
+    /// through waits for the run to be handed back and acts on its stored state.
+    pub fn stop_taken(&self) -> bool {
+        self.0
+            .requested_by
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .taken
     }
 
     /// [`Control::pause`] asked by `by` (a key's name, `estop`, `shutdown`, a signal's
@@ -94,35 +115,40 @@ impl Control {
     /// two threads leave the abort's requester with the abort. Returns whether it
     /// paused the run.
     pub fn pause_by(&self, by: &str) -> bool {
-        let mut who = self.0.requested_by.lock().unwrap_or_else(|p| p.into_inner());
-        let paused = self
-            .0
-            .state
-            .compare_exchange(Self::RUN, Self::PAUSE, Ordering::SeqCst, Ordering::SeqCst)
-            .is_ok();
-        if paused {
-            *who = Some(by.to_owned());
-        }
-        drop(who);
-        self.cancel_optimisers();
-        paused
+        self.ask(Self::PAUSE, Some(by))
     }
 
-    /// Asks the run to abort at the next checkpoint.
+    /// Asks the run to abort at the next checkpoint ([`Control::abort_by`] with nobody
+    /// named).
     pub fn abort(&self) {
-        self.0.state.store(Self::ABORT, Ordering::SeqCst);
-        self.cancel_optimisers();
+        self.ask(Self::ABORT, None);
     }
 
     /// [`Control::abort`] asked by `by`, recorded unless the run was already asked to
-    /// abort (an abort overrides a pause, and its requester the pause's). Returns
-    /// whether this request changed what the run is asked to do.
+    /// abort (an abort overrides a pause, and its requester the pause's) or has taken a
+    /// pause at a checkpoint ([`Control::stop_taken`]: it stops paused, and the abort
+    /// is the caller's to apply to the paused run). Returns whether this request
+    /// changed what the run is asked to do.
     pub fn abort_by(&self, by: &str) -> bool {
+        self.ask(Self::ABORT, Some(by))
+    }
+
+    /// Moves the request on to `to` (a pause only from running, an abort from anything
+    /// short of an abort) unless the run has taken its stop, recording `by` with the
+    /// change; the request and its record change together, under the record's lock.
+    fn ask(&self, to: u8, by: Option<&str>) -> bool {
         let mut who = self.0.requested_by.lock().unwrap_or_else(|p| p.into_inner());
-        let before = self.0.state.swap(Self::ABORT, Ordering::SeqCst);
-        let changed = before != Self::ABORT;
+        let changed = !who.taken
+            && match to {
+                Self::PAUSE => self
+                    .0
+                    .state
+                    .compare_exchange(Self::RUN, Self::PAUSE, Ordering::SeqCst, Ordering::SeqCst)
+                    .is_ok(),
+                _ => self.0.state.swap(Self::ABORT, Ordering::SeqCst) != Self::ABORT,
+            };
         if changed {
-            *who = Some(by.to_owned());
+            who.by = by.map(str::to_owned);
         }
         drop(who);
         self.cancel_optimisers();
@@ -215,6 +241,13 @@ impl Control {
         #[cfg(not(feature = "test-hooks"))]
         let _ = stage;
         self.beat();
+        if self.requested() == Request::Run {
+            return Ok(());
+        }
+        // Taken under the requester's lock, so no request slips between the state read
+        // and the mark: the run stops as this says, recorded with this requester.
+        let mut who = self.0.requested_by.lock().unwrap_or_else(|p| p.into_inner());
+        who.taken = true;
         match self.requested() {
             Request::Run => Ok(()),
             Request::Pause => Err(PipelineError::Paused(pairs)),
@@ -249,6 +282,33 @@ mod tests {
         assert!(control.abort_by("estop"));
         assert_eq!(control.requested(), Request::Abort);
         assert_eq!(control.requested_by().as_deref(), Some("estop"));
+    }
+
+    /// Once a checkpoint has turned a pause into the run's stop, the run winds down
+    /// paused whatever is asked after: a later abort changes nothing and says so (the
+    /// service then waits for the paused run and aborts it as stored), and the record
+    /// keeps the pause's requester. Until 2026-12-07 an abort in that window was
+    /// accepted, recorded as the pause's author, and lost.
+    #[test]
+    fn a_request_after_the_run_has_taken_its_stop_changes_nothing() {
+        let control = Control::new();
+        assert!(control.check(Stage::Capture, 3).is_ok());
+        assert!(!control.stop_taken());
+        assert!(control.pause_by("alice"));
+        assert!(matches!(
+            control.check(Stage::Capture, 3),
+            Err(PipelineError::Paused(3))
+        ));
+        assert!(control.stop_taken());
+        assert!(!control.abort_by("bob"));
+        control.abort();
+        assert_eq!(control.requested(), Request::Pause);
+        assert_eq!(control.requested_by().as_deref(), Some("alice"));
+        // The checkpoint the fit's cancellation asks again says the same.
+        assert!(matches!(
+            control.check(Stage::Reconstruction, 3),
+            Err(PipelineError::Paused(3))
+        ));
     }
 
     /// A pause and an abort asked at once, from many threads: whatever the order, the

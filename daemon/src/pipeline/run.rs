@@ -202,11 +202,21 @@ fn stopped_before_start(
     dir: &Path,
     info: &mut RunInfo,
     events: &EventSink,
+    control: &Control,
     e: PipelineError,
 ) -> PipelineError {
     match &e {
-        PipelineError::Paused(_) => info.state = RunState::Paused,
-        PipelineError::Aborted(_) => info.state = RunState::Aborted,
+        // Named in the state history as a stop at a later checkpoint is (until
+        // 2026-12-07 a run paused or aborted while opening, an e-stop's hold the most
+        // common, recorded nobody).
+        PipelineError::Paused(_) => {
+            info.state = RunState::Paused;
+            info.acting = control.requested_by();
+        }
+        PipelineError::Aborted(_) => {
+            info.state = RunState::Aborted;
+            info.acting = control.requested_by();
+        }
         e => {
             info.state = RunState::Failed;
             info.error = Some(e.to_string());
@@ -286,6 +296,7 @@ impl Run {
                 dir,
                 &mut info,
                 &events,
+                &control,
                 PipelineError::storage(dir, e),
             ));
         }
@@ -313,13 +324,13 @@ impl Run {
         }));
         let mut devices = match opened {
             Ok(Ok(devices)) => devices,
-            Ok(Err(e)) => return Err(stopped_before_start(dir, &mut info, &events, e)),
+            Ok(Err(e)) => return Err(stopped_before_start(dir, &mut info, &events, &control, e)),
             Err(payload) => {
                 let e = PipelineError::Panicked {
                     stage: Stage::Opening.name(),
                     message: panic_message(payload.as_ref()),
                 };
-                return Err(stopped_before_start(dir, &mut info, &events, e));
+                return Err(stopped_before_start(dir, &mut info, &events, &control, e));
             }
         };
         // From here the panic hook can switch this run's laser off.

@@ -81,9 +81,14 @@ impl Service {
                 Err(e) => report.warnings.push(format!("laser controller: {e}")),
             }
         }
-        // 2. The run (asked above).
-        if let Some((id, _)) = &running {
-            report.aborted = Some(id.clone());
+        // 2. The run (asked above). One that had already taken a pause at its
+        //    checkpoint stops paused, as it was going to: held, not aborted.
+        if let Some((id, control)) = &running {
+            if control.requested() == crate::pipeline::Request::Abort {
+                report.aborted = Some(id.clone());
+            } else {
+                report.held.push(id.clone());
+            }
         }
         // 3. Queued runs are held (under the lock, so no resume or worker pick races it).
         //    A run the worker took from the queue since step 1 is held through its
@@ -311,7 +316,8 @@ pub struct EstopReport {
     pub laser_off_s: Option<f64>,
     /// Whether both arms were parked.
     pub parked: bool,
-    /// Queued runs held as paused.
+    /// Runs held as paused: the queued ones, one the worker took while the e-stop
+    /// ran, and a running one that had already taken a pause at its checkpoint.
     pub held: Vec<String>,
     /// Steps that failed (each was tried regardless).
     pub warnings: Vec<String>,

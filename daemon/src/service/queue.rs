@@ -300,17 +300,19 @@ impl Service {
     /// state on its way out, before the worker takes the lock to let the run go. A
     /// request in that gap saw the run `paused` in its status yet was refused as
     /// running (resume), or was sent to a pipeline that had already stopped and lost
-    /// (abort).
+    /// (abort). It waits, too, for a run that has taken a stop at its checkpoint and is
+    /// still `running` while it makes the instrument safe ([`Control::stop_taken`]): a
+    /// request then would reach a pipeline that no longer listens.
     pub(super) fn await_hand_back<'a>(
         &'a self,
         mut s: MutexGuard<'a, Shared>,
         id: &str,
     ) -> MutexGuard<'a, Shared> {
         let deadline = Instant::now() + HAND_BACK_WAIT;
-        while s.current.as_ref().is_some_and(|(c, _)| c == id)
-            && self
-                .info(id)
-                .is_ok_and(|i| !matches!(i.state, RunState::Running | RunState::Queued))
+        while s
+            .current
+            .as_ref()
+            .is_some_and(|(c, control)| c == id && (control.stop_taken() || self.has_stopped(id)))
             && Instant::now() < deadline
         {
             s = self
@@ -338,7 +340,18 @@ impl Service {
         if let Some((c, control)) = &s.current
             && c == id
         {
-            control.abort_by(by);
+            // Refused only by a run that took a pause at its checkpoint and has not
+            // been handed back within the wait: answered as a conflict, not as an
+            // abort under way that never happens (until 2026-12-07 it was accepted,
+            // and the run stopped paused).
+            if !control.abort_by(by)
+                && control.stop_taken()
+                && control.requested() != crate::pipeline::Request::Abort
+            {
+                return Err(ServiceError::Conflict(format!(
+                    "run {id} is pausing (it is making the instrument safe and writing its state): abort it again once it is paused"
+                )));
+            }
             drop(s);
             return self.status(id);
         }
@@ -387,6 +400,14 @@ pub(super) fn hold_interrupted(dir: &Path, id: &str, info: &mut RunInfo) -> Resu
         info.stage
     ));
     info.save(dir).map_err(ServiceError::storage(dir.join(file::RUN)))
+}
+
+impl Service {
+    /// Whether run `id`'s stored state is no longer `running` or `queued`.
+    fn has_stopped(&self, id: &str) -> bool {
+        self.info(id)
+            .is_ok_and(|i| !matches!(i.state, RunState::Running | RunState::Queued))
+    }
 }
 
 /// How long a resume or abort waits for a run that has stopped at its checkpoint to be
