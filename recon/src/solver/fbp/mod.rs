@@ -292,6 +292,12 @@ pub fn phasor_wavelength(set: &TransientSet, grid: &VolumeGrid, settings: &FbpSe
 /// padding before and after, and the path-length part of the falloff weight. The FFT
 /// plans are made once and shared by every histogram (making one costs more than
 /// using it).
+///
+/// The FFT runs over the padded histogram and a further `2·lead` bins after it
+/// ([`PhasorFilter::join`]) that are not returned: a raised cosine from the last value
+/// back to the first. The FFT is circular, and without them the padding's last bin
+/// met its first in a step of the histogram's two ends, whose wavelet the bins
+/// outside the recorded window read (until 2026-12-07).
 struct PhasorFilter {
     fwd: Arc<dyn Fft<f32>>,
     inv: Arc<dyn Fft<f32>>,
@@ -302,12 +308,15 @@ struct PhasorFilter {
     /// FFT length).
     falloff: Option<(Vec<f32>, Vec<f32>)>,
     lead: usize,
+    /// Bins returned: the histogram and its padding, `bins + 2·lead`.
+    padded: usize,
 }
 
 impl PhasorFilter {
     fn new(axis: &crate::transient::TimeAxis, lambda: f64, sigma: f64, lead: usize, falloff: f64) -> Self {
         let (bins, width) = (axis.bins, axis.width);
-        let n = bins + 2 * lead;
+        let padded = bins + 2 * lead;
+        let n = padded + Self::join(lead);
         let mut planner = FftPlanner::<f32>::new();
         // exp(−t²/2σ²)·exp(2πi t/λ) ⇒ a Gaussian of std 1/(2πσ) around f = 1/λ, positive
         // frequencies only (an analytic signal); normalised to unit gain at 1/λ.
@@ -327,7 +336,10 @@ impl PhasorFilter {
         // The low-pass: a Gaussian of σ = 3λ along path length (LOW_PASS_WAVELENGTHS),
         // which holds the histogram's slow part (ambient light) and nothing of the band.
         let falloff = (falloff != 0.0).then(|| {
-            let weights = path_falloff(axis, falloff, lead);
+            let mut weights = path_falloff(axis, falloff, lead);
+            // Across the join, the weights go back as the values do.
+            let (first, last) = (weights[0], weights[padded - 1]);
+            weights.extend((0..Self::join(lead)).map(|i| Self::joined(last, first, i, Self::join(lead))));
             let sl = 1.0 / (2.0 * std::f64::consts::PI * LOW_PASS_WAVELENGTHS * lambda);
             let low = (0..n)
                 .map(|k| ((-0.5 * (freq(k) / sl).powi(2)).exp() * scale) as f32)
@@ -340,7 +352,25 @@ impl PhasorFilter {
             gain,
             falloff,
             lead,
+            padded,
         }
+    }
+
+    /// Bins after the padding, not returned, over which the FFT's circular buffer goes
+    /// from the last value back to the first: two envelopes' worth of three widths
+    /// (the padding's own length twice), so neither end's wavelet reaches the other
+    /// end's change and the change is smooth on the band's scale (its spectrum at the
+    /// band's centre is under 1 % of a step's).
+    fn join(lead: usize) -> usize {
+        2 * lead
+    }
+
+    /// The `i`-th of `len` bins of a raised cosine from `from` to `to`, both ends left
+    /// out (they are the neighbouring bins' values).
+    fn joined(from: f32, to: f32, i: usize, len: usize) -> f32 {
+        let t = (i + 1) as f64 / (len + 1) as f64;
+        let up = 0.5 * (1.0 - (std::f64::consts::PI * t).cos());
+        (f64::from(from) + (f64::from(to) - f64::from(from)) * up) as f32
     }
 
     /// The power white noise of unit variance a bin has after the band-pass, as the
@@ -377,12 +407,15 @@ impl PhasorFilter {
             h.first().copied().unwrap_or(0.0),
             h.last().copied().unwrap_or(0.0),
         );
-        let mut buf = vec![Complex::<f32>::default(); self.gain.len()];
+        let n = self.gain.len();
+        let mut buf = vec![Complex::<f32>::default(); n];
         for (i, b) in buf.iter_mut().enumerate() {
             b.re = if i < lead {
                 first
-            } else {
+            } else if i < self.padded {
                 h.get(i - lead).copied().unwrap_or(last)
+            } else {
+                Self::joined(last, first, i - self.padded, n - self.padded)
             };
         }
         if let Some((weights, low)) = &self.falloff {
@@ -401,7 +434,7 @@ impl PhasorFilter {
             *b *= g;
         }
         self.inv.process(&mut buf);
-        buf.iter().flat_map(|c| [c.re, c.im]).collect()
+        buf[..self.padded].iter().flat_map(|c| [c.re, c.im]).collect()
     }
 }
 
@@ -478,7 +511,7 @@ pub fn fbp_on(
                 expected: "an envelope (6 sigma) at most 8 times the time axis's length: a shorter [fbp] wavelength (recon.fbp.wavelength in a plan), or, where it is left to the default (2.5 times the coarser of the relay's sampling pitch and the voxels' lateral pitch), finer voxels across ([volume] shape, recon.volume.shape in a plan); a run's capture is kept, and `periscope recon RUN_DIR --config RECON.toml` reconstructs it again",
             });
         }
-        // Three envelope widths of zeros each side: the wavelet's support.
+        // Three envelope widths each side: the wavelet's support.
         let lead = (3.0 * sigma / set.axis().width).ceil() as usize + 1;
         // Real and imaginary parts interleaved, so one backprojection pass computes
         // each voxel's path length once and gathers both from one place.
@@ -1048,6 +1081,46 @@ mod tests {
             }
         }
         out
+    }
+
+    /// The phasor filter's FFT is circular. Until 2026-12-07 the padding's last bin
+    /// (the histogram's last value) met its first bin (the first value) there, and a
+    /// histogram whose ends differ (ambient light rising over the window, a cropped
+    /// return) put the wavelet of that step on the bins outside the recorded window,
+    /// which voxels nearer or farther than the window read. Here the histogram is zero
+    /// for its first three quarters and one after (a level that runs off its end): the
+    /// filtered bins a padding's width before the window hold only the far tail of the
+    /// wavelet of the step inside it, under 1 % of that wavelet's peak, with and without
+    /// the falloff weight.
+    #[test]
+    fn the_filters_padding_does_not_wrap_one_end_onto_the_other() {
+        let axis = TimeAxis {
+            start: 1.0,
+            width: 0.01,
+            bins: 256,
+        };
+        let lambda = 0.2;
+        let sigma = SIGMA_PER_WAVELENGTH * lambda;
+        let lead = (3.0 * sigma / axis.width).ceil() as usize + 1;
+        let h: Vec<f32> = (0..axis.bins).map(|b| if b < 192 { 0.0 } else { 1.0 }).collect();
+        for falloff in [0.0, 1.0] {
+            let filter = PhasorFilter::new(&axis, lambda, sigma, lead, falloff);
+            let out = filter.apply(&h);
+            assert_eq!(out.len(), 2 * (axis.bins + 2 * lead));
+            let magnitude = |i: usize| f64::from(out[2 * i]).hypot(f64::from(out[2 * i + 1]));
+            // The step inside the window, at padded bin lead + 192.
+            let peak = (lead + 150..lead + 240).map(magnitude).fold(0.0, f64::max);
+            assert!(
+                peak > 0.1,
+                "falloff {falloff}: the step's wavelet peaks at {peak}"
+            );
+            // The padding before the window's zeros: 192 bins (over 13 σ) from the step.
+            let before = (0..lead).map(magnitude).fold(0.0, f64::max);
+            assert!(
+                before < 0.01 * peak,
+                "falloff {falloff}: {before} before the window against the step's {peak}"
+            );
+        }
     }
 
     /// The largest difference between `got` and `want`, and `want`'s largest magnitude.
