@@ -512,6 +512,18 @@ pub struct ImportSource {
     pub recon: bool,
 }
 
+/// Whether `name` is one plain path component (no separator, not `.` or `..`, not
+/// hidden, not empty): a file directly inside the folder it is joined to.
+fn is_plain_file_name(name: &str) -> bool {
+    !name.is_empty()
+        && !name.starts_with('.')
+        && !name.contains(['/', '\\', '\0'])
+        && matches!(
+            Path::new(name).components().collect::<Vec<_>>().as_slice(),
+            [std::path::Component::Normal(_)]
+        )
+}
+
 /// One change of a run's state.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct StateChange {
@@ -635,7 +647,27 @@ impl RunInfo {
     /// Reads `run.json` from a run directory.
     pub fn load(dir: &Path) -> io::Result<RunInfo> {
         let text = crate::store::read_text_capped(&dir.join(file::RUN), MAX_RUN_JSON_BYTES)?;
-        serde_json::from_str(&text).map_err(|e| io::Error::new(io::ErrorKind::InvalidData, e))
+        let info: RunInfo =
+            serde_json::from_str(&text).map_err(|e| io::Error::new(io::ErrorKind::InvalidData, e))?;
+        // An imported capture's files are read from `import/` by these names: each must
+        // name a file there (the daemon stores plain names), not a path out of the run
+        // (`..`, an absolute path) in a run.json edited or copied in from elsewhere.
+        if let Some(source) = &info.import
+            && let Some(bad) = std::iter::once(&source.capture)
+                .chain(&source.sidecars)
+                .find(|n| !is_plain_file_name(n))
+        {
+            return Err(io::Error::new(
+                io::ErrorKind::InvalidData,
+                format!(
+                    "{}: `import` names `{bad}`, not a plain file name under {}/: the file was edited or \
+                     damaged; give the name of the capture file stored there",
+                    dir.join(file::RUN).display(),
+                    file::IMPORT_DIR
+                ),
+            ));
+        }
+        Ok(info)
     }
 
     /// Writes `run.json` atomically, first recording a state change in `history`

@@ -275,6 +275,30 @@ async fn imported_captures_of_every_kind_become_runs_with_their_results() {
         stderr.contains("is an imported capture") && stderr.contains("periscope recon"),
         "{stderr}"
     );
+    // A run.json edited to name a path out of `import/` (here the run directory
+    // itself, which made `periscope recon` open it again some 400 levels deep until
+    // 2026-12-07) is refused, naming the file and the field.
+    let copy = dir.path().join("edited");
+    std::fs::create_dir_all(copy.join("import")).unwrap();
+    let text = std::fs::read_to_string(dir.path().join(&ids[1]).join("run.json")).unwrap();
+    let mut info: Value = serde_json::from_str(&text).unwrap();
+    for bad in ["..", "/etc/passwd", "sub/capture.mat"] {
+        info["import"]["capture"] = Value::from(bad);
+        std::fs::write(copy.join("run.json"), info.to_string()).unwrap();
+        let status = std::process::Command::new(env!("CARGO_BIN_EXE_periscope"))
+            .arg("recon")
+            .arg(&copy)
+            .arg("--out")
+            .arg(dir.path().join("edited-out"))
+            .output()
+            .unwrap();
+        let stderr = String::from_utf8_lossy(&status.stderr);
+        assert!(!status.status.success(), "{bad}: {stderr}");
+        assert!(
+            stderr.contains("not a plain file name") && stderr.contains("run.json"),
+            "{bad}: {stderr}"
+        );
+    }
     svc.shutdown();
     worker.join().unwrap();
 }

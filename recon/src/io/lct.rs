@@ -62,7 +62,8 @@ pub fn read_lct(path: &Path) -> Result<YtalCapture, YtalError> {
         path: path.to_owned(),
         message: e.to_string(),
     })?;
-    lct_from_bytes(&bytes, path)
+    // Handed over, not copied: the file is held once.
+    super::formats::with_mat(bytes, path, from_mat)
 }
 
 /// Decodes a Stanford LCT capture held in memory (`path` names it in errors).
@@ -86,10 +87,13 @@ pub(crate) fn from_mat(mat: &Mat<'_>) -> Result<YtalCapture, YtalError> {
     let width = mat
         .scalar("width")?
         .ok_or_else(|| format_error(path, "no scalar `width` (half the scanned side, metres)"))?;
-    if !(width.is_finite() && width > 0.0) {
+    if !(width.is_finite() && width > 0.0 && width <= super::formats::MAX_HALF_SIDE_M) {
         return Err(format_error(
             path,
-            format!("`width` is {width}: it must be a positive length in metres"),
+            format!(
+                "`width` is {width}: it must be a positive length in metres, at most {} (half the scanned side)",
+                super::formats::MAX_HALF_SIDE_M
+            ),
         ));
     }
     let &[nx, ny, nt] = rect.dims.as_slice() else {

@@ -136,31 +136,94 @@ pub fn read_npy(path: &Path) -> Result<(Vec<usize>, Vec<f32>), IoError> {
         path: path.to_path_buf(),
         message,
     };
-    let file = File::open(path).map_err(io_err(path))?;
-    let npy =
-        npyz::NpyFile::new(BufReader::new(file)).map_err(|e| format(format!("not an .npy file: {e}")))?;
+    // Looked at before it is opened: opening a FIFO waits for a writer.
+    let meta = std::fs::metadata(path).map_err(io_err(path))?;
+    if !meta.is_file() {
+        return Err(format(
+            "not a regular file (a FIFO, device or directory): give an .npy file".into(),
+        ));
+    }
+    let mut reader = BufReader::new(File::open(path).map_err(io_err(path))?);
+    // The header's shape is checked before the npy layer parses it: it multiplies the
+    // dimensions unchecked (a panic in a debug build, an empty array in a release one).
+    if let Some(shape) = npy_header_shape(&mut reader)
+        && shape.iter().try_fold(1u64, |a, &d| a.checked_mul(d)).is_none()
+    {
+        return Err(format(format!("its shape {shape:?} overflows")));
+    }
+    let npy = npyz::NpyFile::new(reader).map_err(|e| format(format!("not an .npy file: {e}")))?;
     if npy.order() != npyz::Order::C && npy.shape().len() > 1 {
         return Err(format(
             "Fortran-order arrays are not supported; save with C order".into(),
         ));
     }
-    let shape: Vec<usize> = npy.shape().iter().map(|&n| n as usize).collect();
+    // The header's shape against the file before anything is allocated for it (the
+    // product wraps in the npy layer: a shape of (2^32, 2^32) read as empty).
+    let declared = npy.shape().to_vec();
+    let elements = declared
+        .iter()
+        .try_fold(1u64, |a, &d| a.checked_mul(d))
+        .filter(|&n| usize::try_from(n).is_ok())
+        .ok_or_else(|| format(format!("its shape {declared:?} overflows")))?;
     let dtype = npy.dtype().descr();
-    let data = match dtype.as_str() {
-        "'<f4'" => npy.into_vec::<f32>().map_err(io_err(path))?,
-        "'<f8'" => npy
-            .into_vec::<f64>()
-            .map_err(io_err(path))?
-            .into_iter()
-            .map(|v| v as f32)
-            .collect(),
+    let width = match dtype.as_str() {
+        "'<f4'" => 4,
+        "'<f8'" => 8,
         other => {
             return Err(format(format!(
                 "dtype {other} is not little-endian float32 or float64"
             )));
         }
     };
+    if elements.saturating_mul(width) > meta.len() {
+        return Err(format(format!(
+            "its shape {declared:?} declares {} bytes of data but the file has {}: it is truncated or damaged",
+            elements.saturating_mul(width),
+            meta.len()
+        )));
+    }
+    let shape: Vec<usize> = declared.iter().map(|&n| n as usize).collect();
+    let data = if width == 4 {
+        npy.into_vec::<f32>().map_err(io_err(path))?
+    } else {
+        npy.into_vec::<f64>()
+            .map_err(io_err(path))?
+            .into_iter()
+            .map(|v| v as f32)
+            .collect()
+    };
+    if data.len() as u64 != elements {
+        return Err(format(format!(
+            "its shape {declared:?} holds {elements} values but {} were read: it is truncated or damaged",
+            data.len()
+        )));
+    }
     Ok((shape, data))
+}
+
+/// The `shape` an `.npy` header declares, read without consuming `reader`'s data (it
+/// stays buffered); `None` where the header is not one this can read, for the npy layer
+/// to name.
+fn npy_header_shape(reader: &mut BufReader<File>) -> Option<Vec<u64>> {
+    use std::io::BufRead;
+    let head = reader.fill_buf().ok()?;
+    let (len, start): (usize, usize) = match head.get(6)? {
+        1 => (u16::from_le_bytes([*head.get(8)?, *head.get(9)?]) as usize, 10),
+        _ => (
+            u32::from_le_bytes([*head.get(8)?, *head.get(9)?, *head.get(10)?, *head.get(11)?]) as usize,
+            12,
+        ),
+    };
+    let text = std::str::from_utf8(head.get(start..start.checked_add(len)?)?).ok()?;
+    let after = &text[text.find("'shape'")? + "'shape'".len()..];
+    let tuple = &after[after.find('(')? + 1..];
+    let tuple = &tuple[..tuple.find(')')?];
+    tuple
+        .split(',')
+        .map(str::trim)
+        .filter(|d| !d.is_empty())
+        .map(|d| d.trim_end_matches('L').parse::<u64>().ok())
+        .collect()
 }
 
 /// Writes a volume as `.npy` of shape `[nz, ny, nx]`.
@@ -299,7 +362,30 @@ pub fn read_regular_capped(path: &Path, limit: u64) -> std::io::Result<Vec<u8>> 
     if !file.metadata()?.is_file() {
         return Err(not_regular());
     }
-    let mut bytes = Vec::with_capacity(usize::try_from(meta.len()).unwrap_or(0));
+    // Reserved fallibly, and against what this process can still take: an
+    // infallible reservation of a file the size of the limit (4 GiB by default for an
+    // upload) aborts the process where memory is short, and no caller can catch that.
+    let no_memory = |what: String| {
+        std::io::Error::new(
+            std::io::ErrorKind::OutOfMemory,
+            format!(
+                "{} is {} bytes; reading it {what}: read it on a machine with more free memory",
+                path.display(),
+                meta.len()
+            ),
+        )
+    };
+    if let Some(available) = memory_available()
+        && meta.len() > available
+    {
+        return Err(no_memory(format!(
+            "takes more than the {available} bytes this process can still use"
+        )));
+    }
+    let mut bytes = Vec::new();
+    bytes
+        .try_reserve_exact(usize::try_from(meta.len()).unwrap_or(usize::MAX))
+        .map_err(|e| no_memory(format!("could not be reserved ({e})")))?;
     file.take(limit + 1).read_to_end(&mut bytes)?;
     if bytes.len() as u64 > limit {
         return Err(too_large(bytes.len() as u64));
@@ -307,9 +393,11 @@ pub fn read_regular_capped(path: &Path, limit: u64) -> std::io::Result<Vec<u8>> 
     Ok(bytes)
 }
 
-/// Memory this process can still take, bytes: the smaller of the system's available
-/// memory (`MemAvailable`) and what its address-space limit leaves. `None` where that
-/// cannot be read (not Linux).
+/// Memory this process can still take, bytes: the smallest of the system's available
+/// memory (`MemAvailable`), what its address-space limit leaves, and what the memory
+/// limits of its control group and the groups above it leave (cgroup v2 `memory.max`
+/// less `memory.current`: a container's or a systemd unit's `MemoryMax`, where
+/// `MemAvailable` reports the host's). `None` where that cannot be read (not Linux).
 pub fn memory_available() -> Option<u64> {
     let kib = |text: &str, key: &str| -> Option<u64> {
         text.lines()
@@ -328,15 +416,88 @@ pub fn memory_available() -> Option<u64> {
         .ok()
         .and_then(|t| kib(&t, "VmSize:"))
         .unwrap_or(0);
-    Some(match limit {
+    let available = match limit {
         Some(l) => available.min(l.saturating_sub(used)),
         None => available,
+    };
+    Some(match cgroup_memory_left() {
+        Some(left) => available.min(left),
+        None => available,
     })
+}
+
+/// What the memory limits of this process's cgroup (v2) and every group above it
+/// leave, bytes; `None` with no limit, or no cgroup v2 to read.
+fn cgroup_memory_left() -> Option<u64> {
+    let own = std::fs::read_to_string("/proc/self/cgroup").ok()?;
+    // The unified hierarchy's line: `0::/path`.
+    let path = own.lines().find_map(|l| l.strip_prefix("0::"))?.trim();
+    cgroup_left_under(Path::new("/sys/fs/cgroup"), path)
+}
+
+/// [`cgroup_memory_left`] for group `path` of the hierarchy mounted at `root`.
+fn cgroup_left_under(root: &Path, path: &str) -> Option<u64> {
+    let read = |dir: &Path, file: &str| std::fs::read_to_string(dir.join(file)).ok();
+    let mut left: Option<u64> = None;
+    let mut dir = root.join(path.trim_start_matches('/'));
+    loop {
+        if let Some(max) = read(&dir, "memory.max").and_then(|t| t.trim().parse::<u64>().ok()) {
+            let current = read(&dir, "memory.current")
+                .and_then(|t| t.trim().parse::<u64>().ok())
+                .unwrap_or(0);
+            let here = max.saturating_sub(current);
+            left = Some(left.map_or(here, |l| l.min(here)));
+        }
+        if dir == root || !dir.pop() || !dir.starts_with(root) {
+            break;
+        }
+    }
+    left
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A container's or unit's memory limit caps what the memory checks believe is
+    /// left, at whichever level of the hierarchy sets the tightest one. Until
+    /// 2026-12-07 only the host's `MemAvailable` and the address-space limit counted,
+    /// so under a 2 GiB `MemoryMax` a 3 GiB read passed every check.
+    #[test]
+    fn a_cgroup_limit_caps_the_memory_left() {
+        let root = tempfile::tempdir().unwrap();
+        let unit = root.path().join("system.slice/periscope.service");
+        std::fs::create_dir_all(&unit).unwrap();
+        let write = |dir: &Path, file: &str, text: &str| std::fs::write(dir.join(file), text).unwrap();
+        // No limit anywhere ("max"), as on a host's root group.
+        write(root.path(), "memory.max", "max\n");
+        write(&unit, "memory.max", "max\n");
+        assert_eq!(
+            cgroup_left_under(root.path(), "/system.slice/periscope.service"),
+            None
+        );
+        // The unit's own limit.
+        write(&unit, "memory.max", "2147483648\n");
+        write(&unit, "memory.current", "536870912\n");
+        assert_eq!(
+            cgroup_left_under(root.path(), "/system.slice/periscope.service"),
+            Some(1_610_612_736)
+        );
+        // A tighter one on the slice above it.
+        let slice = root.path().join("system.slice");
+        write(&slice, "memory.max", "1073741824\n");
+        write(&slice, "memory.current", "805306368\n");
+        assert_eq!(
+            cgroup_left_under(root.path(), "/system.slice/periscope.service"),
+            Some(268_435_456)
+        );
+        // A group over its limit has nothing left, not a wrapped-around figure.
+        write(&unit, "memory.current", "4294967296\n");
+        assert_eq!(
+            cgroup_left_under(root.path(), "/system.slice/periscope.service"),
+            Some(0)
+        );
+    }
 
     #[test]
     fn npy_round_trip() {
@@ -353,6 +514,49 @@ mod tests {
         );
         assert_eq!(read_npy(&path).unwrap(), (vec![2, 3, 4], data));
         assert!(write_npy(&path, &[5], &[1.0]).is_err());
+    }
+
+    /// A header whose shape overflows, or declares more than the file holds, is
+    /// refused before anything is allocated for it; a FIFO is refused, not waited on.
+    /// Until 2026-12-07 a shape of (2^32, 2^32) read as an empty array (the npy layer's
+    /// product wraps) and a truncated file's shape was returned with fewer values.
+    #[test]
+    fn npy_headers_that_lie_are_refused() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("a.npy");
+        // Version 1.0: magic, version, header length (u16 LE), the header padded with
+        // spaces and a newline to a multiple of 64 bytes, then 24 float32 values.
+        let with_shape = |shape: &str| {
+            let mut header = format!("{{'descr': '<f4', 'fortran_order': False, 'shape': {shape}, }}");
+            while (10 + header.len() + 1) % 64 != 0 {
+                header.push(' ');
+            }
+            header.push('\n');
+            let mut bytes = b"\x93NUMPY\x01\x00".to_vec();
+            bytes.extend_from_slice(&(header.len() as u16).to_le_bytes());
+            bytes.extend_from_slice(header.as_bytes());
+            bytes.extend(std::iter::repeat_n(0.5f32.to_le_bytes(), 24).flatten());
+            bytes
+        };
+        std::fs::write(&path, with_shape("(2, 3, 4)")).unwrap();
+        assert_eq!(read_npy(&path).unwrap(), (vec![2, 3, 4], vec![0.5; 24]));
+        for (shape, says) in [
+            ("(4294967296, 4294967296)", "overflows"),
+            ("(2, 3, 40)", "truncated"),
+        ] {
+            std::fs::write(&path, with_shape(shape)).unwrap();
+            let e = read_npy(&path).unwrap_err().to_string();
+            assert!(e.contains(says) && e.contains("a.npy"), "{shape}: {e}");
+        }
+        #[cfg(unix)]
+        {
+            let fifo = dir.path().join("fifo.npy");
+            let made = std::process::Command::new("mkfifo").arg(&fifo).status();
+            if made.is_ok_and(|s| s.success()) {
+                let e = read_npy(&fifo).unwrap_err().to_string();
+                assert!(e.contains("not a regular file"), "{e}");
+            }
+        }
     }
 
     #[test]

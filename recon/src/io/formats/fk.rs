@@ -79,10 +79,11 @@ pub(crate) fn from_mat(mat: &Mat<'_>, dir: Option<&Path>) -> Result<YtalCapture,
     let max_shift = shifts.iter().copied().max().unwrap_or(0);
     let bins = nt - max_shift;
     let width = match mat.scalar("width")? {
-        Some(w) if w.is_finite() && w > 0.0 => w,
+        Some(w) if w.is_finite() && w > 0.0 && w <= super::MAX_HALF_SIDE_M => w,
         Some(w) => {
             return Err(mat.error(format!(
-                "`width` is {w}: it must be a positive half side in metres"
+                "`width` is {w}: it must be a positive half side in metres, at most {}",
+                super::MAX_HALF_SIDE_M
             )));
         }
         None => DEFAULT_WIDTH_M,

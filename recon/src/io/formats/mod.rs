@@ -36,6 +36,12 @@ pub const MAX_FILE_BYTES: u64 = super::ytal::MAX_FILE_BYTES;
 /// Speed of light, m/s (the formats that give bins in seconds).
 pub(crate) const C: f64 = 299_792_458.0;
 
+/// The largest half side, metres, a Stanford capture's `width` may give its scanned
+/// square (the phasor layouts' `spacing` is bounded by 10 m the same way): a relay
+/// wider than a building is a damaged header, and a huge one makes its grid's points
+/// infinite (`2·width` overflows at 1e308).
+pub(crate) const MAX_HALF_SIDE_M: f64 = 50.0;
+
 /// What a file's first bytes say it is.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 enum Container {

@@ -19,7 +19,7 @@ use glam::DVec3;
 
 use super::mat::{Mat, points};
 use super::{C, check_counts, grid, list};
-use crate::io::ytal::{HFormat, YtalCapture, YtalError};
+use crate::io::ytal::{HFormat, YtalCapture, YtalError, unit};
 
 /// Reads the 2019 `dataset` layout.
 pub(crate) fn from_dataset(mat: &Mat<'_>) -> Result<YtalCapture, YtalError> {
@@ -83,8 +83,10 @@ pub(crate) fn from_dataset(mat: &Mat<'_>) -> Result<YtalCapture, YtalError> {
             None => vec![DVec3::Z],
         };
         let normals: Vec<DVec3> = match normals.len() {
-            1 => vec![normals[0].normalize_or_zero(); n],
-            k if k == n => normals.into_iter().map(DVec3::normalize_or_zero).collect(),
+            // Scaled first, as y-tal's normals are: one stored at 1e-200 or 1e200 is
+            // a direction, not a zero.
+            1 => vec![unit(normals[0]); n],
+            k if k == n => normals.into_iter().map(unit).collect(),
             k => {
                 return Err(mat.error(format!("`dataset.{norm}` has {k} normals for {n} points")));
             }

@@ -335,6 +335,13 @@ fn hostile_mat_v5_structures_are_refused_by_name_before_they_are_parsed() {
     // The same file, well formed, reads.
     let ok = mat_v5(&[compressed(&rect), compressed(&width)]);
     assert!(capture_from_bytes(ok, Path::new("fine.mat")).is_ok());
+    // A `width` past any relay: at 1e308 the grid's points were infinite (2·width
+    // overflows) and read as a capture until 2026-12-07.
+    for w in [1e308, 51.0] {
+        let huge = matrix("width", 6, false, &[1, 1], &[doubles(&[w])]);
+        let e = read_bytes(mat_v5(&[compressed(&rect), compressed(&huge)]));
+        assert!(e.contains("`width` is") && e.contains("at most 50"), "{w}: {e}");
+    }
 }
 
 #[test]

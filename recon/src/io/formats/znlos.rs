@@ -15,7 +15,7 @@
 use glam::DVec3;
 
 use super::{check_counts, grid};
-use crate::io::ytal::{HFormat, Reader, YtalCapture, YtalError, memory_check};
+use crate::io::ytal::{HFormat, Reader, YtalCapture, YtalError, memory_check, unit};
 
 /// The logical axes of `data`, in the order a column-major file's h5py shape lists
 /// them.
@@ -153,7 +153,10 @@ pub(crate) fn from_reader(r: &Reader<'_>) -> Result<YtalCapture, YtalError> {
         grid(p, n, las)
     } else if r.has("laserGridPositions") {
         // Confocal data: the laser's points are the camera's, or one fixed point.
-        let one = r.floats("laserGridPositions")?.is_some_and(|(v, _)| v.len() == 3);
+        // From its shape: the positions themselves are read with the relay's.
+        let one = r
+            .shape_of("laserGridPositions")?
+            .is_some_and(|s| s.iter().product::<usize>() == 3);
         let shape = if one { [1, 1] } else { cam };
         let (p, n) = relay(r, "laser", shape, row_major)?;
         grid(p, n, shape)
@@ -276,10 +279,7 @@ fn relay(
     };
     let cap = |s: &str| format!("{side}Grid{s}");
     let points = read(cap("Positions"))?;
-    let normals: Vec<DVec3> = read(cap("Normals"))?
-        .into_iter()
-        .map(DVec3::normalize_or_zero)
-        .collect();
+    let normals: Vec<DVec3> = read(cap("Normals"))?.into_iter().map(unit).collect();
     if let Some(i) = normals.iter().position(|n| *n == DVec3::ZERO) {
         return Err(r.format(format!("`{}` normal {i} is zero", cap("Normals"))));
     }

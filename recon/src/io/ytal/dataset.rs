@@ -145,16 +145,50 @@ impl Reader<'_> {
         }
     }
 
+    /// A dataset's checked shape ([`Reader::checked_shape`]), without reading it;
+    /// `None` when it is missing.
+    pub(crate) fn shape_of(&self, name: &str) -> Result<Option<Vec<usize>>, YtalError> {
+        match self.file.dataset(name) {
+            Ok(ds) => self.checked_shape(&ds, name, 8).map(Some),
+            Err(_) => Ok(None),
+        }
+    }
+
     pub(crate) fn has(&self, name: &str) -> bool {
         self.file.dataset(name).is_ok()
     }
 
-    /// Values and shape; `None` for a missing or empty (null) dataset.
+    /// Values and shape; `None` for a missing or empty (null) dataset. Its values (as
+    /// f64) must fit the memory this process can still take: a chunked dataset of
+    /// zeros compresses a thousandfold, so a file of a few MB can declare GiBs that
+    /// pass every check on the file and would be allocated whole.
     pub(crate) fn floats(&self, name: &str) -> Result<Option<Values>, YtalError> {
+        self.floats_within(name, None)
+    }
+
+    /// [`Reader::floats`] of a dataset expected to hold at most `most` values (a
+    /// scalar, a point): a larger one is refused from its shape, before it is read.
+    fn floats_within(&self, name: &str, most: Option<(u64, &str)>) -> Result<Option<Values>, YtalError> {
         let Ok(ds) = self.file.dataset(name) else {
             return Ok(None);
         };
         let shape = self.checked_shape(&ds, name, 8)?;
+        let elements = shape.iter().map(|&d| d as u64).product::<u64>();
+        if let Some((most, what)) = most
+            && elements > most
+        {
+            return Err(self.format(format!(
+                "dataset `{name}` should hold {what}, its shape {shape:?} holds {elements} values"
+            )));
+        }
+        let need = elements.saturating_mul(8);
+        if let Some(available) = crate::io::memory_available()
+            && need > available
+        {
+            return Err(self.format(format!(
+                "dataset `{name}` (shape {shape:?}) takes {need} bytes to read, more than the {available} this process can still use: read it on a machine with more memory"
+            )));
+        }
         let values = ds
             .read_f64()
             .map_err(|e| self.format(format!("dataset `{name}` is not numeric: {e}")))?;
@@ -165,7 +199,7 @@ impl Reader<'_> {
     }
 
     pub(crate) fn scalar(&self, name: &str) -> Result<Option<f64>, YtalError> {
-        match self.floats(name)? {
+        match self.floats_within(name, Some((1, "one value")))? {
             None => Ok(None),
             Some((v, _)) if v.len() == 1 => Ok(Some(v[0])),
             Some((v, _)) => Err(self.format(format!(
@@ -181,7 +215,7 @@ impl Reader<'_> {
     }
 
     pub(crate) fn point(&self, name: &str) -> Result<Option<DVec3>, YtalError> {
-        match self.floats(name)? {
+        match self.floats_within(name, Some((3, "a point (3 finite values)")))? {
             None => Ok(None),
             Some((v, _)) if v.len() == 3 && v.iter().all(|x| x.is_finite()) => {
                 Ok(Some(DVec3::new(v[0], v[1], v[2])))
@@ -258,7 +292,7 @@ fn to_points(v: &[f64]) -> Vec<DVec3> {
 /// Where the plain normalisation gives zero for a finite, non-zero `n` (squaring a
 /// component of 10³⁰⁰ overflows, one of 10⁻²⁰⁰ underflows), `n` is first divided by
 /// its largest component.
-fn unit(n: DVec3) -> DVec3 {
+pub(crate) fn unit(n: DVec3) -> DVec3 {
     // The plain division where it works, so ordinary normals keep their last bits.
     let u = n.normalize_or_zero();
     let m = n.abs().max_element();

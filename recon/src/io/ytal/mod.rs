@@ -53,7 +53,7 @@ use glam::DVec3;
 mod dataset;
 mod read;
 
-pub(crate) use dataset::Reader;
+pub(crate) use dataset::{Reader, unit};
 pub(crate) use read::{guarded, memory_check};
 mod transients;
 mod write;

@@ -326,8 +326,31 @@ impl YtalCapture {
         Ok(capture)
     }
 
-    /// Checks that `H`, the grids and the origins fit together.
+    /// Checks that `H`, the grids and the origins fit together, and that every point,
+    /// normal and origin is finite (a reader that derives them from a header value,
+    /// as the LCT and f-k readers do from `width`, hands on what that value makes).
     pub(crate) fn check(&self) -> Result<(), String> {
+        for (side, grid) in [("laser", &self.laser_grid), ("sensor", &self.sensor_grid)] {
+            if let Some(i) = grid.points.iter().position(|p| !p.is_finite()) {
+                return Err(format!(
+                    "point {i} of the {side} grid is {}: every relay point must be finite",
+                    grid.points[i]
+                ));
+            }
+            if let Some(i) = grid.normals.iter().position(|n| !n.is_finite()) {
+                return Err(format!(
+                    "normal {i} of the {side} grid is {}: every normal must be finite",
+                    grid.normals[i]
+                ));
+            }
+        }
+        for (name, origin) in [("laser_xyz", self.laser_xyz), ("sensor_xyz", self.sensor_xyz)] {
+            if let Some(o) = origin
+                && !o.is_finite()
+            {
+                return Err(format!("`{name}` is {o}: it must be a finite point"));
+            }
+        }
         let columns: usize = self.h_shape[1..]
             .iter()
             .try_fold(1usize, |a, &d| a.checked_mul(d))

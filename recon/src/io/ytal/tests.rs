@@ -203,6 +203,33 @@ fn files_that_are_not_y_tal_captures_get_a_clear_message() {
     assert!(e.contains("no dataset `H`") && e.contains("`data`"), "{e}");
 }
 
+/// A dataset read as one value (`H_format`, `delta_t`) or a point is refused from its
+/// shape, before it is read: a chunked, deflated run of zeros takes a thousandth of its
+/// size in the file, so a few MB could declare GiBs that every check on the file lets
+/// through. Here 4 M values in about 20 KB; until 2026-12-07 all of them were read (32
+/// MiB here, 8 GiB at the limit) before the count was looked at.
+#[test]
+fn a_scalar_declared_huge_is_refused_from_its_shape() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("huge-format.hdf5");
+    let n = 1usize << 22;
+    let mut b = FileBuilder::new();
+    b.create_dataset("H").with_f32_data(&[0.0; 4]);
+    b.create_dataset("H_format")
+        .with_f64_data(&vec![0.0; n])
+        .with_shape(&[n as u64])
+        .with_chunks(&[1 << 16])
+        .with_deflate(9);
+    let bytes = b.finish().unwrap();
+    assert!(bytes.len() < n / 64, "{} bytes", bytes.len());
+    std::fs::write(&path, bytes).unwrap();
+    let e = YtalCapture::read(&path).unwrap_err().to_string();
+    assert!(
+        e.contains("`H_format` should hold one value") && e.contains(&format!("holds {n} values")),
+        "{e}"
+    );
+}
+
 /// The bins outside every path through the volume, which the transients are cut away
 /// from, are counted as the ambient level's evidence: here 2 counts in each bin before
 /// the volume's shortest path (less 5 bins of margin), 9 in the rest.
