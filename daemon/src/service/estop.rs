@@ -94,13 +94,18 @@ impl Service {
         //    A run the worker took from the queue since step 1 is held through its
         //    control (it stops at its next checkpoint, paused): its pipeline alone writes
         //    its run.json, and a state written here would race the pipeline's own.
+        let mut picked = None;
         {
             let mut s = self.lock();
+            // A submission between its reserved place and the queue (its run already
+            // `queued` on disk) is held when it arrives (`queue_admitted`).
+            s.estop_holds += 1;
             if let Some((id, control)) = s.current.as_ref()
                 && running.as_ref().is_none_or(|(r, _)| r != id)
             {
                 control.pause_by("estop");
                 report.held.push(id.clone());
+                picked = Some((id.clone(), control.clone()));
             }
             let running_id = s.current.as_ref().map(|(id, _)| id.clone());
             let queued: Vec<String> = s
@@ -127,8 +132,11 @@ impl Service {
         }
         // 4. Wait (bounded) for the run to reach its checkpoint: it parks the arms and
         //    confirms the laser off on its way out.
+        //    A run the worker took since step 1 is waited for the same way: it may
+        //    hold the controllers' ports while it opens them, and step 5 opens them
+        //    (until 2026-12-07 it did so at once, racing the run for them).
         let mut stuck = None;
-        if let Some((id, control)) = &running {
+        if let Some((id, control)) = running.as_ref().or(picked.as_ref()) {
             let deadline = Instant::now() + ESTOP_RUN_WAIT;
             let mut s = self.lock();
             while s.current.as_ref().is_some_and(|(c, _)| c == id) && Instant::now() < deadline {

@@ -315,6 +315,10 @@ struct Shared {
     refresh: bool,
     /// Submissions between their queue-length check and their place in the queue.
     admitting: usize,
+    /// E-stops that have held the queue so far: a submission notes it when it reserves
+    /// its place and is held too if another has held the queue before the run is
+    /// queued ([`Service::queue_admitted`]).
+    estop_holds: u64,
     /// Queued runs an e-stop held (as `paused` in their run.json, where the store
     /// lets it): the worker skips them whatever their run.json says, until an operator
     /// resumes or aborts them, so a hold the disk refused still holds.
@@ -513,6 +517,7 @@ impl Service {
                 reading: None,
                 refresh: true,
                 admitting: 0,
+                estop_holds: 0,
                 held: Default::default(),
                 stale: Default::default(),
                 lock,
@@ -698,6 +703,74 @@ mod tests {
         assert!(matches!(svc.resume(&id), Err(ServiceError::Conflict(_))));
         assert!(t.elapsed() < Duration::from_millis(250));
         worker.join().unwrap();
+    }
+
+    /// A run that has taken a pause at its checkpoint still reads `running` while it
+    /// makes the instrument safe; an abort then waits for the paused run and aborts it.
+    /// Until 2026-12-07 it was answered as under way and lost: the run stopped paused.
+    #[test]
+    fn an_abort_while_a_run_winds_down_to_its_pause_aborts_the_paused_run() {
+        let dir = tempfile::tempdir().unwrap();
+        let svc = service(dir.path());
+        let plan = include_str!("../../../tests/data/plans/small-fbp.toml");
+        let id = svc.submit(plan.to_owned()).unwrap().id;
+        svc.set_state(&id, RunState::Running, None, "test").unwrap();
+        let control = Control::new();
+        assert!(control.pause_by("alice"));
+        assert!(control.check(crate::events::Stage::Capture, 4).is_err());
+        svc.set_current(&mut svc.lock(), Some((id.clone(), control.clone())));
+        // The pipeline's wind-down: its state written after 100 ms, handed back after.
+        let worker = {
+            let (svc, id) = (Arc::clone(&svc), id.clone());
+            std::thread::spawn(move || {
+                std::thread::sleep(Duration::from_millis(100));
+                svc.set_state(&id, RunState::Paused, None, "alice").unwrap();
+                std::thread::sleep(Duration::from_millis(50));
+                svc.set_current(&mut svc.lock(), None);
+                svc.wake.notify_all();
+            })
+        };
+        let st = svc.abort_as(&id, "bob").unwrap();
+        worker.join().unwrap();
+        assert_eq!(st.state, RunState::Aborted);
+        let info = crate::run_dir::RunInfo::load(&svc.dir(&id).unwrap()).unwrap();
+        let by: Vec<_> = info
+            .history
+            .iter()
+            .map(|c| (state_name(c.state), c.by.clone().unwrap_or_default()))
+            .collect();
+        assert_eq!(
+            by[by.len() - 2..],
+            [("paused", "alice".to_owned()), ("aborted", "bob".to_owned())],
+            "{by:?}"
+        );
+    }
+
+    /// A submission whose place was reserved before an e-stop and which reaches the
+    /// queue after it (its run already `queued` on disk when the e-stop held the
+    /// queue) is held as the e-stop held the others, not started right after it.
+    #[test]
+    fn a_submission_in_flight_during_an_estop_is_held() {
+        let dir = tempfile::tempdir().unwrap();
+        let svc = service(dir.path());
+        let text = include_str!("../../../tests/data/plans/small-fbp.toml");
+        let src = TomlSource::from_text("request body", text.to_owned());
+        let plan = crate::plan::Plan::from_source(&src, &svc.instrument).unwrap();
+        let seen = svc.reserve_place().unwrap();
+        let id = svc.admit(&src, &plan, "alice", None).unwrap();
+        svc.estop().unwrap();
+        let held = {
+            let mut s = svc.lock();
+            s.admitting -= 1;
+            svc.queue_admitted(&mut s, &id, seen)
+        };
+        assert!(held);
+        assert!(svc.lock().held.contains(&id));
+        assert_eq!(svc.status(&id).unwrap().state, RunState::Paused);
+        // One submitted after the e-stop is queued as usual.
+        let after = svc.submit(text.to_owned()).unwrap();
+        assert_eq!(after.state, RunState::Queued);
+        assert!(!svc.lock().held.contains(&after.id));
     }
 
     #[test]

@@ -420,7 +420,7 @@ impl Service {
         }
         // The whole batch's places are reserved at once, so no submission in between
         // can make it fail half-way for want of room.
-        {
+        let seen = {
             let mut s = self.lock();
             let max = self.instrument.api.max_queue;
             if s.queue.len() + s.admitting + plans.len() > max {
@@ -431,7 +431,8 @@ impl Service {
                 )));
             }
             s.admitting += plans.len();
-        }
+            s.estop_holds
+        };
         let mut ids = Vec::with_capacity(plans.len());
         let mut failed = None;
         for (src, plan) in &plans {
@@ -444,7 +445,7 @@ impl Service {
             s.admitting -= 1;
             match admitted {
                 Ok(id) => {
-                    s.queue.push_back(id.clone());
+                    self.queue_admitted(&mut s, &id, seen);
                     ids.push(id);
                 }
                 Err(e) => {

@@ -66,8 +66,9 @@ impl Service {
     }
 
     /// Holds a place in the queue for a run about to be made (released by decrementing
-    /// `admitting` once it is queued or refused): 429 when the queue is full.
-    pub(super) fn reserve_place(&self) -> Result<(), ServiceError> {
+    /// `admitting` once it is queued or refused): 429 when the queue is full. Returns
+    /// the e-stops' count as it is now, for [`Service::queue_admitted`].
+    pub(super) fn reserve_place(&self) -> Result<u64, ServiceError> {
         let mut s = self.lock();
         let max = self.instrument.api.max_queue;
         if s.queue.len() + s.admitting >= max {
@@ -77,7 +78,30 @@ impl Service {
             )));
         }
         s.admitting += 1;
-        Ok(())
+        Ok(s.estop_holds)
+    }
+
+    /// Queues run `id`, admitted since its place was reserved when the e-stops' count
+    /// was `seen`. An e-stop in between held every queued run, and would have held
+    /// this one, already `queued` on disk, had it been in the queue: it is held now,
+    /// as the e-stop would have held it, so no capture starts after an e-stop until an
+    /// operator resumes it (until 2026-12-07 a submission in flight started right
+    /// after one). Returns whether it was held.
+    pub(super) fn queue_admitted(&self, s: &mut Shared, id: &str, seen: u64) -> bool {
+        s.queue.push_back(id.to_owned());
+        if s.estop_holds == seen {
+            return false;
+        }
+        s.held.insert(id.to_owned());
+        if let Err(e) = self.set_state(
+            id,
+            RunState::Paused,
+            Some("held by an emergency stop pressed while it was submitted; resume it to run".into()),
+            "estop",
+        ) {
+            tracing::warn!(run = %id, error = %e, "a run submitted during an e-stop is held (the worker will not start it), but its run.json could not record it");
+        }
+        true
     }
 
     /// Validates a plan (TOML text) and queues it. Returns the new run's status.
@@ -101,12 +125,12 @@ impl Service {
             .map_err(ServiceError::OverBudget)?;
         // A place in the queue is reserved before the run directory is made, so a
         // flood of submissions never makes more directories than the queue takes.
-        self.reserve_place()?;
+        let seen = self.reserve_place()?;
         let admitted = self.admit(&src, &plan, by, again_of);
         let mut s = self.lock();
         s.admitting -= 1;
         let id = admitted?;
-        s.queue.push_back(id.clone());
+        self.queue_admitted(&mut s, &id, seen);
         self.persist_after_change(&s);
         self.wake.notify_all();
         drop(s);
