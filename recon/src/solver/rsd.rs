@@ -230,7 +230,10 @@ pub fn rsd_frame(
 
     // Spectral lines of the virtual wave, over the transients padded with three
     // envelope widths each side (repeating their end values) so the wave does not
-    // wrap around the time axis.
+    // wrap around the time axis, and twice that after them over which a raised cosine
+    // takes the last value back to the first: the FFT is circular, and without it the
+    // two ends met in a step whose wave the depths outside the window read (FBP's
+    // phasor filter joins its padding the same way).
     let bins = axis.bins;
     let sigma = settings.cycles * lambda / 6.0;
     // The envelope (cycles wavelengths, 6σ) pads the transients by half its length
@@ -249,7 +252,8 @@ pub fn rsd_frame(
         });
     }
     let pad = (3.0 * sigma / axis.width).ceil() as usize + 1;
-    let padded_bins = bins + 2 * pad;
+    let join = 2 * pad;
+    let padded_bins = bins + 2 * pad + join;
     let kc = 2.0 * PI / lambda;
     let lines: Vec<(usize, f64, f64)> = (0..=padded_bins / 2)
         .map(|j| (j, 2.0 * PI * j as f64 / (padded_bins as f64 * axis.width)))
@@ -323,9 +327,14 @@ pub fn rsd_frame(
                     })
                     .collect();
                 let (first, last) = (weighted[0], weighted[bins - 1]);
+                let back = (1..=join).map(|i| {
+                    let t = i as f64 / (join + 1) as f64;
+                    last + (first - last) * 0.5 * (1.0 - (PI * t).cos())
+                });
                 let mut input: Vec<f64> = std::iter::repeat_n(first, pad)
                     .chain(weighted.iter().copied())
                     .chain(std::iter::repeat_n(last, pad))
+                    .chain(back)
                     .collect();
                 let mut out = r2c.make_output_vec();
                 r2c.process(&mut input, &mut out)
