@@ -24,6 +24,8 @@ pub struct ImportTicket {
     service: Arc<Service>,
     staging: PathBuf,
     admitted: bool,
+    /// The e-stops' count when the place was reserved ([`Service::queue_admitted`]).
+    seen: u64,
 }
 
 impl ImportTicket {
@@ -126,13 +128,14 @@ impl Service {
     pub fn begin_import(self: &Arc<Self>, lock_key: Option<&str>) -> Result<ImportTicket, ServiceError> {
         static NEXT: AtomicU64 = AtomicU64::new(0);
         self.check_lock(lock_key)?;
-        self.reserve_place()?;
+        let seen = self.reserve_place()?;
         let staging = self.runs_dir.join(STAGING_DIR).join(format!(
             "{}-{}",
             std::process::id(),
             NEXT.fetch_add(1, Ordering::Relaxed)
         ));
         let ticket = ImportTicket {
+            seen,
             service: Arc::clone(self),
             staging,
             admitted: false,
@@ -272,7 +275,7 @@ impl Service {
         ticket.admitted = true;
         // The upload's directory is empty now (its files moved into the run).
         remove_staging(&std::mem::take(&mut ticket.staging));
-        s.queue.push_back(id.clone());
+        self.queue_admitted(&mut s, &id, ticket.seen);
         self.persist_after_change(&s);
         self.wake.notify_all();
         drop(s);

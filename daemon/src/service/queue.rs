@@ -89,7 +89,9 @@ impl Service {
     /// after one). Returns whether it was held.
     pub(super) fn queue_admitted(&self, s: &mut Shared, id: &str, seen: u64) -> bool {
         s.queue.push_back(id.to_owned());
-        if s.estop_holds == seen {
+        // An e-stop still under way (waiting for its run, parking the arms) holds
+        // what reaches the queue meanwhile, too.
+        if s.estop_holds == seen && self.estops.load(std::sync::atomic::Ordering::SeqCst) == 0 {
             return false;
         }
         s.held.insert(id.to_owned());
@@ -336,7 +338,7 @@ impl Service {
         while s
             .current
             .as_ref()
-            .is_some_and(|(c, control)| c == id && (control.stop_taken() || self.has_stopped(id)))
+            .is_some_and(|(c, control)| c == id && (pausing(control) || self.has_stopped(id)))
             && Instant::now() < deadline
         {
             s = self
@@ -368,10 +370,7 @@ impl Service {
             // been handed back within the wait: answered as a conflict, not as an
             // abort under way that never happens (until 2026-12-07 it was accepted,
             // and the run stopped paused).
-            if !control.abort_by(by)
-                && control.stop_taken()
-                && control.requested() != crate::pipeline::Request::Abort
-            {
+            if !control.abort_by(by) && pausing(control) {
                 return Err(ServiceError::Conflict(format!(
                     "run {id} is pausing (it is making the instrument safe and writing its state): abort it again once it is paused"
                 )));
@@ -424,6 +423,12 @@ pub(super) fn hold_interrupted(dir: &Path, id: &str, info: &mut RunInfo) -> Resu
         info.stage
     ));
     info.save(dir).map_err(ServiceError::storage(dir.join(file::RUN)))
+}
+
+/// Whether the run has taken a pause at its checkpoint and is winding down to it (a
+/// taken abort needs nobody's wait: it ends aborted whatever is asked).
+fn pausing(control: &Control) -> bool {
+    control.stop_taken() && control.requested() == crate::pipeline::Request::Pause
 }
 
 impl Service {

@@ -146,11 +146,13 @@ pub fn read_npy(path: &Path) -> Result<(Vec<usize>, Vec<f32>), IoError> {
     let mut reader = BufReader::new(File::open(path).map_err(io_err(path))?);
     // The header's shape is checked before the npy layer parses it: it multiplies the
     // dimensions unchecked (a panic in a debug build, an empty array in a release one).
-    if let Some(shape) = npy_header_shape(&mut reader)
+    let (declared_shape, header_bytes) = npy_header_shape(&mut reader).unzip();
+    if let Some(shape) = &declared_shape
         && shape.iter().try_fold(1u64, |a, &d| a.checked_mul(d)).is_none()
     {
         return Err(format(format!("its shape {shape:?} overflows")));
     }
+    let header_bytes = header_bytes.unwrap_or(0);
     let npy = npyz::NpyFile::new(reader).map_err(|e| format(format!("not an .npy file: {e}")))?;
     if npy.order() != npyz::Order::C && npy.shape().len() > 1 {
         return Err(format(
@@ -175,7 +177,7 @@ pub fn read_npy(path: &Path) -> Result<(Vec<usize>, Vec<f32>), IoError> {
             )));
         }
     };
-    if elements.saturating_mul(width) > meta.len() {
+    if elements.saturating_mul(width) > meta.len().saturating_sub(header_bytes) {
         return Err(format(format!(
             "its shape {declared:?} declares {} bytes of data but the file has {}: it is truncated or damaged",
             elements.saturating_mul(width),
@@ -201,10 +203,10 @@ pub fn read_npy(path: &Path) -> Result<(Vec<usize>, Vec<f32>), IoError> {
     Ok((shape, data))
 }
 
-/// The `shape` an `.npy` header declares, read without consuming `reader`'s data (it
-/// stays buffered); `None` where the header is not one this can read, for the npy layer
-/// to name.
-fn npy_header_shape(reader: &mut BufReader<File>) -> Option<Vec<u64>> {
+/// The `shape` an `.npy` header declares and the bytes before the data, read without
+/// consuming `reader`'s data (it stays buffered); `None` where the header is not one
+/// this can read, for the npy layer to name.
+fn npy_header_shape(reader: &mut BufReader<File>) -> Option<(Vec<u64>, u64)> {
     use std::io::BufRead;
     let head = reader.fill_buf().ok()?;
     let (len, start): (usize, usize) = match head.get(6)? {
@@ -218,12 +220,13 @@ fn npy_header_shape(reader: &mut BufReader<File>) -> Option<Vec<u64>> {
     let after = &text[text.find("'shape'")? + "'shape'".len()..];
     let tuple = &after[after.find('(')? + 1..];
     let tuple = &tuple[..tuple.find(')')?];
-    tuple
+    let shape = tuple
         .split(',')
         .map(str::trim)
         .filter(|d| !d.is_empty())
         .map(|d| d.trim_end_matches('L').parse::<u64>().ok())
-        .collect()
+        .collect::<Option<Vec<u64>>>()?;
+    Some((shape, (start + len) as u64))
 }
 
 /// Writes a volume as `.npy` of shape `[nz, ny, nx]`.
@@ -369,7 +372,7 @@ pub fn read_regular_capped(path: &Path, limit: u64) -> std::io::Result<Vec<u8>> 
         std::io::Error::new(
             std::io::ErrorKind::OutOfMemory,
             format!(
-                "{} is {} bytes; reading it {what}: read it on a machine with more free memory",
+                "{} is {} bytes; reading it {what}: read it where more memory is free (or raise the memory limit of the container or service it runs in)",
                 path.display(),
                 meta.len()
             ),
@@ -396,7 +399,8 @@ pub fn read_regular_capped(path: &Path, limit: u64) -> std::io::Result<Vec<u8>> 
 /// Memory this process can still take, bytes: the smallest of the system's available
 /// memory (`MemAvailable`), what its address-space limit leaves, and what the memory
 /// limits of its control group and the groups above it leave (cgroup v2 `memory.max`
-/// less `memory.current`: a container's or a systemd unit's `MemoryMax`, where
+/// less the group's working set, `memory.current` without its inactive file cache,
+/// as the kubelet counts it: a container's or a systemd unit's `MemoryMax`, where
 /// `MemAvailable` reports the host's). `None` where that cannot be read (not Linux).
 pub fn memory_available() -> Option<u64> {
     let kib = |text: &str, key: &str| -> Option<u64> {
@@ -445,7 +449,17 @@ fn cgroup_left_under(root: &Path, path: &str) -> Option<u64> {
             let current = read(&dir, "memory.current")
                 .and_then(|t| t.trim().parse::<u64>().ok())
                 .unwrap_or(0);
-            let here = max.saturating_sub(current);
+            // The page cache of files not recently used is reclaimed before the limit
+            // bites: a daemon that has written gigabytes of histograms sits near its
+            // limit in `memory.current` with most of it free to take.
+            let reclaimable = read(&dir, "memory.stat")
+                .and_then(|t| {
+                    t.lines()
+                        .find_map(|l| l.strip_prefix("inactive_file "))
+                        .and_then(|v| v.trim().parse::<u64>().ok())
+                })
+                .unwrap_or(0);
+            let here = max.saturating_sub(current.saturating_sub(reclaimable));
             left = Some(left.map_or(here, |l| l.min(here)));
         }
         if dir == root || !dir.pop() || !dir.starts_with(root) {
@@ -497,6 +511,19 @@ mod tests {
             cgroup_left_under(root.path(), "/system.slice/periscope.service"),
             Some(0)
         );
+        // Its inactive page cache is counted as free: 1.5 GiB of 1.75 GiB in use is
+        // cache of files written and not read since.
+        write(&unit, "memory.current", "1879048192\n");
+        write(
+            &unit,
+            "memory.stat",
+            "anon 268435456\nfile 1610612736\ninactive_file 1610612736\n",
+        );
+        write(&slice, "memory.max", "max\n");
+        assert_eq!(
+            cgroup_left_under(root.path(), "/system.slice/periscope.service"),
+            Some(1_879_048_192)
+        );
     }
 
     #[test]
@@ -543,6 +570,7 @@ mod tests {
         for (shape, says) in [
             ("(4294967296, 4294967296)", "overflows"),
             ("(2, 3, 40)", "truncated"),
+            ("(2, 3, 5)", "truncated"),
         ] {
             std::fs::write(&path, with_shape(shape)).unwrap();
             let e = read_npy(&path).unwrap_err().to_string();

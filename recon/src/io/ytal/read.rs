@@ -122,9 +122,9 @@ pub(crate) fn memory_check(shape: &[usize], name: &str) -> Result<(), String> {
     match crate::io::memory_available() {
         Some(available) if need > available => Err(format!(
             "`{name}` holds {values} values (shape {shape:?}): reading and reconstructing it takes about \
-             {:.1} GiB, more than the {:.1} GiB this process can still use (free memory, and its \
-             address-space limit): reconstruct it on a machine with more memory, or crop it (fewer \
-             bins or relay points) first",
+             {:.1} GiB, more than the {:.1} GiB this process can still use (free memory, its \
+             address-space limit, and the memory limit of the container or service it runs in): \
+             reconstruct it where more is free, or crop it (fewer bins or relay points) first",
             need as f64 / GIB,
             available as f64 / GIB
         )),
