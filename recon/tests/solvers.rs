@@ -342,6 +342,66 @@ fn rsd_finds_a_point_scatterer_confocal() {
     );
 }
 
+/// RSD's wave is filtered by a circular FFT over each transient padded with its end
+/// values. Until 2026-12-07 the padding's last value met its first there in a step,
+/// and the wave of that step imaged on the depths whose paths fall just before the
+/// recorded window. Here the window starts at 0.8 m of path (0.4 m deep) and a level
+/// as bright as the point's pulse runs off its end (bins 300 on, a 1.6 m deep return
+/// the volume does not reach): the volume's shallow depths, before the window, must
+/// not change by more than 3 % of the point's peak when the level is added (1.6 %
+/// measured, the far tail of the join's raised cosine; 94 % before the join).
+#[test]
+fn rsd_does_not_wrap_a_level_at_the_windows_end_onto_its_start() {
+    let axis = TimeAxis { start: 0.8, ..axis() };
+    let relay = wall(32);
+    let pairs = confocal_pairs(&relay);
+    let mut plain = TransientSet::new(axis).unwrap();
+    scatter(&mut plain, &pairs, &[(POINT, 1.0)]);
+    let brightest = (0..plain.len())
+        .flat_map(|p| plain.measured(p).iter().copied().collect::<Vec<f32>>())
+        .fold(0.0f32, f32::max);
+    let mut level = TransientSet::new(axis).unwrap();
+    for (p, pair) in pairs.iter().enumerate() {
+        let h: Vec<f32> = plain
+            .measured(p)
+            .iter()
+            .enumerate()
+            .map(|(b, &v)| if b >= 300 { v + brightest } else { v })
+            .collect();
+        level.push(*pair, &h).unwrap();
+    }
+    let g = VolumeGrid::new([-0.4, 0.4], [-0.4, 0.4], [0.1, 0.9], [16, 16, 32]).unwrap();
+    let (a, b) = (
+        rsd(&plain, &g, &RsdSettings::default()).unwrap(),
+        rsd(&level, &g, &RsdSettings::default()).unwrap(),
+    );
+    assert_peak_at(&a, POINT, "RSD without the level");
+    let peak = a.argmax().1;
+    let [nx, ny, nz] = g.shape;
+    let mut worst = (0.0f32, 0.0);
+    for iz in 0..nz {
+        let z = g.centre(0, 0, iz).z;
+        if z >= 0.35 {
+            continue;
+        }
+        for iy in 0..ny {
+            for ix in 0..nx {
+                let i = g.index(ix, iy, iz);
+                let d = (b.data[i] - a.data[i]).abs();
+                if d > worst.0 {
+                    worst = (d, z);
+                }
+            }
+        }
+    }
+    assert!(
+        worst.0 <= 0.03 * peak,
+        "the level changed depth {:.3} m by {} against the point's peak {peak}",
+        worst.1,
+        worst.0
+    );
+}
+
 /// An offset confocal scan (the laser's and the SPAD's spots 5 mm apart, as every
 /// shipped plan captures against pile-up) is confocal at the spots' midpoints: the same
 /// image as the confocal scan of those midpoints. Taken as non-confocal it was one
