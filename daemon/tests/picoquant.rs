@@ -193,25 +193,22 @@ fn a_sync_rate_the_config_does_not_expect_fails_the_run_before_the_multiharp_mea
     assert_eq!(s.parked(), (true, true));
 }
 
-/// The MultiHarp drops off the bus in the middle of a capture and is back at once: its
-/// driver reopens it (initialised again, its rate meter showing no sync for 400 ms),
-/// and the run reads the sync again after that latency instead of failing on the
-/// first reading, and completes with every pair.
-#[test]
-fn a_multiharp_reopened_mid_capture_is_not_taken_for_a_lost_sync() {
+/// A capture of [`PLAN`] on the stand-in bench in real time, with `fault` done to the
+/// stand-in once the 14th pair is measured: late enough that the capture's laser has
+/// been on for the rate meter's 400 ms, so the pair after the fault is judged (19
+/// pairs of 30 ms). The stand-in's call log is cleared before the run opens.
+fn capture_with_a_fault(
+    tmp: &Path,
+    fault: impl Fn(&Standin) + Send + Sync + 'static,
+) -> (Standin, PathBuf, Result<(), pipeline::PipelineError>) {
     use periscope_daemon::events::{EventSink, RunEvent};
-    use periscope_drivers::picoquant::Family;
-    let _one = exclusive();
-    let tmp = tempfile::tempdir().unwrap();
-    let (s, lab) = bench(tmp.path(), 1.0);
-    let dir = prepare(tmp.path(), &lab, PLAN);
+    let (s, lab) = bench(tmp, 1.0);
+    let dir = prepare(tmp, &lab, PLAN);
     let events = EventSink::open(&dir).unwrap();
     let s2 = s;
     events.listen(move |e| {
-        // Late enough that the capture's laser has been on for the meter's 400 ms, so
-        // the pair after the reopen is judged (19 pairs of 30 ms, in real time).
         if let RunEvent::Pair { done: 14, .. } = e {
-            s2.vanish(Family::MultiHarp, 0, 0);
+            fault(&s2);
         }
     });
     s.clear_calls();
@@ -222,7 +219,21 @@ fn a_multiharp_reopened_mid_capture_is_not_taken_for_a_lost_sync() {
         None,
     )
     .unwrap();
-    run.execute().unwrap();
+    let result = run.execute().map(drop);
+    (s, dir, result)
+}
+
+/// The MultiHarp drops off the bus in the middle of a capture and is back at once: its
+/// driver reopens it (initialised again, its rate meter showing no sync for 400 ms),
+/// and the run reads the sync again after that latency instead of failing on the
+/// first reading, and completes with every pair.
+#[test]
+fn a_multiharp_reopened_mid_capture_is_not_taken_for_a_lost_sync() {
+    use periscope_drivers::picoquant::Family;
+    let _one = exclusive();
+    let tmp = tempfile::tempdir().unwrap();
+    let (s, dir, result) = capture_with_a_fault(tmp.path(), |s| s.vanish(Family::MultiHarp, 0, 0));
+    result.unwrap();
     let calls = s.calls();
     let inits = calls.iter().filter(|c| c.starts_with("MH_Initialize(")).count();
     assert!(inits >= 2, "the counter was not reopened: {calls:?}");
@@ -253,28 +264,11 @@ fn a_multiharp_reopened_mid_capture_is_not_taken_for_a_lost_sync() {
 /// the daemon's end of it through the production loader.
 #[test]
 fn a_sync_that_stops_mid_capture_stops_the_run_laser_off_and_keeps_its_pairs() {
-    use periscope_daemon::events::{EventSink, RunEvent};
     use periscope_drivers::picoquant::Family;
     let _one = exclusive();
     let tmp = tempfile::tempdir().unwrap();
-    let (s, lab) = bench(tmp.path(), 1.0);
-    let dir = prepare(tmp.path(), &lab, PLAN);
-    let events = EventSink::open(&dir).unwrap();
-    let s2 = s;
-    events.listen(move |e| {
-        // Past the meter's 400 ms with the laser on, as above.
-        if let RunEvent::Pair { done: 14, .. } = e {
-            s2.sync_stops(Family::MultiHarp, 0);
-        }
-    });
-    let run = periscope_daemon::pipeline::Run::open(
-        &dir,
-        periscope_daemon::pipeline::Control::new(),
-        Some(events),
-        None,
-    )
-    .unwrap();
-    let e = run.execute().unwrap_err().to_string();
+    let (s, dir, result) = capture_with_a_fault(tmp.path(), |s| s.sync_stops(Family::MultiHarp, 0));
+    let e = result.unwrap_err().to_string();
     assert!(e.contains("sync"), "{e}");
     assert!(!e.contains("saturated"), "{e}");
     assert!(!s.emission());

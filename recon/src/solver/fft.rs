@@ -74,6 +74,16 @@ fn transpose(input: &[Complex32], out: &mut [Complex32], rows: usize, cols: usiz
     }
 }
 
+/// The `i`-th of `len` values of a raised cosine from `from` to `to`, both ends left
+/// out (they are the neighbouring bins' values): what a padded transient's circular
+/// FFT buffer holds after its last bin, so that it comes back to its first smoothly
+/// instead of in a step (FBP's phasor filter and RSD's propagation both pad so).
+pub(crate) fn raised_cosine(from: f64, to: f64, i: usize, len: usize) -> f64 {
+    let t = (i + 1) as f64 / (len + 1) as f64;
+    let up = 0.5 * (1.0 - (std::f64::consts::PI * t).cos());
+    from + (to - from) * up
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

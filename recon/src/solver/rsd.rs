@@ -27,7 +27,7 @@ use rayon::prelude::*;
 use realfft::RealFftPlanner;
 use rustfft::num_complex::{Complex, Complex32};
 
-use super::fft::Fft2;
+use super::fft::{Fft2, raised_cosine};
 use super::scan::gather_cube;
 use super::{FrameVolume, PlanarScan, SolverError, check_memory};
 use crate::transient::TransientSet;
@@ -327,10 +327,7 @@ pub fn rsd_frame(
                     })
                     .collect();
                 let (first, last) = (weighted[0], weighted[bins - 1]);
-                let back = (1..=join).map(|i| {
-                    let t = i as f64 / (join + 1) as f64;
-                    last + (first - last) * 0.5 * (1.0 - (PI * t).cos())
-                });
+                let back = (0..join).map(|i| raised_cosine(last, first, i, join));
                 let mut input: Vec<f64> = std::iter::repeat_n(first, pad)
                     .chain(weighted.iter().copied())
                     .chain(std::iter::repeat_n(last, pad))

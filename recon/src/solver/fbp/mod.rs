@@ -368,9 +368,7 @@ impl PhasorFilter {
     /// The `i`-th of `len` bins of a raised cosine from `from` to `to`, both ends left
     /// out (they are the neighbouring bins' values).
     fn joined(from: f32, to: f32, i: usize, len: usize) -> f32 {
-        let t = (i + 1) as f64 / (len + 1) as f64;
-        let up = 0.5 * (1.0 - (std::f64::consts::PI * t).cos());
-        (f64::from(from) + (f64::from(to) - f64::from(from)) * up) as f32
+        super::fft::raised_cosine(f64::from(from), f64::from(to), i, len) as f32
     }
 
     /// The power white noise of unit variance a bin has after the band-pass, as the
