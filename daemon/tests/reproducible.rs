@@ -227,7 +227,7 @@ fn an_adaptive_capture_stops_choosing_at_its_time_budget() {
         "mode = \"adaptive\"\ncandidates = \"confocal\"",
     ) + "[recon.adaptive]\npairs = 60\nfirst = 24\nbatch = 12\nlive-steps = 32\nseconds = 0.001\n";
     let tmp = tempfile::tempdir().unwrap();
-    let (dir, _, choices) = run_plan(tmp.path(), "timed", Duration::ZERO, "wire", &adaptive);
+    let (dir, live, choices) = run_plan(tmp.path(), "timed", Duration::ZERO, "wire", &adaptive);
     assert_eq!(choices.batches, 1, "{choices:?}");
     let stored = periscope_daemon::store::HistogramLog::recover(&dir)
         .unwrap()
@@ -235,6 +235,41 @@ fn an_adaptive_capture_stops_choosing_at_its_time_budget() {
         .records
         .len();
     assert_eq!(stored, 24, "the first batch, whole");
+    assert!(dir.join("volume.npy").is_file());
+    // Out of time before the first choice: no live training is waited for, and
+    // run.json says what ended the capture.
+    assert_eq!(live, 0, "live trainings started");
+    let info = periscope_daemon::run_dir::RunInfo::load(&dir).unwrap();
+    let why = info.adaptive_stopped.expect("the time budget ended the capture");
+    assert!(why.contains("adaptive.seconds"), "{why}");
+}
+
+/// A capture whose batch fills its pair budget ends there: no live training is waited
+/// for after it (no choice needs one), and however long it took, no stop before the
+/// budget is recorded. Before 2026-12-07 it waited for the live training and then,
+/// past `seconds`, recorded the time budget as having ended a capture that had
+/// measured every pair.
+#[test]
+fn an_adaptive_capture_that_measures_its_budget_is_not_recorded_as_stopped_early() {
+    let adaptive = plan().replace(
+        "mode = \"confocal\"",
+        "mode = \"adaptive\"\ncandidates = \"confocal\"",
+    ) + "[recon.adaptive]\npairs = 24\nfirst = 24\nbatch = 12\nlive-steps = 32\nseconds = 0.001\n";
+    let tmp = tempfile::tempdir().unwrap();
+    let (dir, live, choices) = run_plan(tmp.path(), "whole", Duration::ZERO, "wire", &adaptive);
+    assert_eq!(
+        (choices.batches, live),
+        (1, 0),
+        "{choices:?}, live trainings {live}"
+    );
+    let stored = periscope_daemon::store::HistogramLog::recover(&dir)
+        .unwrap()
+        .1
+        .records
+        .len();
+    assert_eq!(stored, 24);
+    let info = periscope_daemon::run_dir::RunInfo::load(&dir).unwrap();
+    assert_eq!(info.adaptive_stopped, None);
     assert!(dir.join("volume.npy").is_file());
 }
 

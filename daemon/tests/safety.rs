@@ -529,6 +529,51 @@ fn an_adaptive_capture_paused_while_its_fit_chooses_resumes_to_its_budget() {
     );
 }
 
+/// The time budget holds while nothing can be fitted: with every histogram flagged
+/// (overflowed, so left out of the fit) and the flagged-frames suspender off, each
+/// next batch is spread, not chosen, and the budget's check comes before it. Until
+/// 2026-12-07 only a fitted model's arrival was checked against `seconds`, so such a
+/// capture measured its whole pair budget with the laser on, whatever the time said.
+#[test]
+fn an_adaptive_capture_with_nothing_to_fit_still_stops_at_its_time_budget() {
+    let _serial = ONE_AT_A_TIME.lock().unwrap_or_else(|p| p.into_inner());
+    let adaptive = plan().replace(
+        "mode = \"confocal\"",
+        "mode = \"adaptive\"\ncandidates = \"confocal\"",
+    ) + "[recon.adaptive]\npairs = 30\nfirst = 6\nbatch = 6\nlive-steps = 16\nseconds = 0.001\n"
+        + "[suspend]\nflagged-frames = 0\n";
+    let tmp = tempfile::tempdir().unwrap();
+    let (dir, rig) = prepare(tmp.path(), &adaptive);
+    let events = EventSink::open(&dir).unwrap();
+    let r2 = rig.clone();
+    events.listen(move |e| {
+        if let RunEvent::StageStarted {
+            stage: Stage::Capture,
+        } = e
+        {
+            for _ in 0..200 {
+                r2.inject(periscope_sim::devices::Fault::Tdc(
+                    periscope_sim::devices::TdcFault::Overflow,
+                ));
+            }
+        }
+    });
+    // Nothing fitted, nothing to reconstruct: how the run ends after the capture is
+    // not what is asked here.
+    let _ = Run::open(&dir, Control::new(), Some(events), Some(&rig))
+        .unwrap()
+        .execute();
+    let log = read_log(&dir).unwrap();
+    assert!(log.records.iter().all(|r| r.flags.overflow));
+    assert_eq!(log.records.len(), 6, "the first batch and no more");
+    let why = RunInfo::load(&dir).unwrap().adaptive_stopped;
+    assert!(
+        why.as_deref().is_some_and(|w| w.contains("adaptive.seconds")),
+        "{why:?}"
+    );
+    assert!(!rig.emission());
+}
+
 /// An adaptive capture its stopping rule ended before the budget stays ended: paused
 /// in its reconstruction and resumed, it chooses and measures nothing more (until
 /// 2026-12-06 the resume went back to choosing, with the rule's reference gain

@@ -196,6 +196,20 @@ impl Run {
                     self.save_info()?;
                 }
                 let full = std::mem::replace(&mut batch, counts()?);
+                let budget_s = self.plan.recon.adaptive.seconds;
+                let out_of_time = |spent: f64| budget_s > 0.0 && spent >= budget_s;
+                let measured_all = selector.measured().len() >= total;
+                if measured_all || out_of_time(spent()) {
+                    // Nothing more is chosen: the last batch goes to the refit as it
+                    // is, not through a live training that no choice needs. Once the
+                    // budget is measured that is no stop before the budget, however
+                    // long the capture took.
+                    if !measured_all {
+                        selector.stop(over_time(spent(), budget_s));
+                    }
+                    fit.add(&full)?;
+                    break;
+                }
                 if start.is_some() && full.is_empty() {
                     // Nothing to fit yet (every histogram flagged and left out): spread
                     // another batch instead of waiting for a fit that cannot start.
@@ -229,12 +243,9 @@ impl Run {
                     }
                 };
                 let Some(model) = model else { break };
-                let budget_s = self.plan.recon.adaptive.seconds;
-                if budget_s > 0.0 && spent() >= budget_s {
-                    selector.stop(format!(
-                        "the capture has run {:.0} s, its time budget (adaptive.seconds = {budget_s})",
-                        spent()
-                    ));
+                if out_of_time(spent()) {
+                    // The live training ran the time out: this batch is the last.
+                    selector.stop(over_time(spent(), budget_s));
                 }
                 match selector.next(&model, &axis) {
                     Some(c) => next = Some(c),
@@ -329,6 +340,11 @@ impl Run {
         }
         Ok((fit, held))
     }
+}
+
+/// Why an adaptive capture that ran `spent` seconds against its time budget ended.
+fn over_time(spent: f64, budget_s: f64) -> String {
+    format!("the capture has run {spent:.0} s, its time budget (adaptive.seconds = {budget_s})")
 }
 
 /// How often a capture waiting for the fit's choice checks for a stop or pause.

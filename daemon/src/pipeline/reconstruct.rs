@@ -192,7 +192,8 @@ impl Fit {
         self.trainer.is_some()
     }
 
-    /// Adds transients that will not be streamed (stored pairs when not training).
+    /// Adds transients that will not be streamed: stored pairs when not training, or
+    /// an adaptive capture's last batch, which goes to [`Fit::refit`] directly.
     pub(crate) fn add(&mut self, more: &TransientSet) -> Result<(), PipelineError> {
         Ok(self.input.set.extend(more).map_err(ReconError::from)?)
     }
@@ -279,7 +280,10 @@ impl Fit {
                     .join()
                     .map_err(|_| ReconError::Thread("panicked".into()))?
                     .map_err(ReconError::from)?;
-                trainer.data().clone()
+                // What was streamed, and what was added without being streamed.
+                let mut set = trainer.data().clone();
+                set.extend(&self.input.set).map_err(ReconError::from)?;
+                set
             }
             None => {
                 let empty = TransientSet::new(*self.input.set.axis()).map_err(ReconError::from)?;
