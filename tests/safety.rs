@@ -188,6 +188,41 @@ fn a_killed_run_leaves_the_laser_off_within_the_watchdog_timeout() {
 #[test]
 fn opening_the_instrument_switches_off_a_laser_a_killed_run_left_on() {
     let b = bench(|_| String::new());
+    let stderr = open_after_a_killed_run_left_the_laser_on(&b, |text| text, true);
+    assert!(
+        stderr.contains("the laser was emitting when Periscope opened its controller"),
+        "{stderr}"
+    );
+}
+
+/// The same, with the instrument config changed after the kill so that opening the
+/// laser arm is refused (its angle limits now reach past the controller's own): the
+/// laser is switched off before the refusal. Before 2026-12-07 the limits were checked
+/// first, and every refused open (`serve` retries every `status-interval-s`) fed the
+/// watchdog of a laser it never switched off.
+#[test]
+fn opening_the_instrument_switches_the_laser_off_before_it_refuses_the_config() {
+    let b = bench(|_| String::new());
+    let widen = |text: String| {
+        let (head, tail) = text.split_once("[galvo.laser]").unwrap();
+        let from = "angle-limits-deg = { x = [-20.0, 20.0], y = [-20.0, 20.0] }";
+        assert!(tail.contains(from), "the sim's laser arm limits");
+        let to = "angle-limits-deg = { x = [-25.0, 25.0], y = [-20.0, 20.0] }";
+        format!("{head}[galvo.laser]{}", tail.replacen(from, to, 1))
+    };
+    let stderr = open_after_a_killed_run_left_the_laser_on(&b, widen, false);
+    assert!(stderr.contains("galvo.laser.angle-limits-deg"), "{stderr}");
+}
+
+/// Kills a run on bench `b` (its laser's watchdog set to 30 s) while the laser is on,
+/// rewrites the instrument config through `edit`, then runs `periscope devices`, which
+/// must succeed or fail as `opens` says, and asserts the laser went off by the host's
+/// command within 10 s of it. Returns what `periscope devices` wrote to stderr.
+fn open_after_a_killed_run_left_the_laser_on(
+    b: &Bench,
+    edit: impl FnOnce(String) -> String,
+    opens: bool,
+) -> String {
     let text = std::fs::read_to_string(&b.instrument).unwrap();
     assert!(text.contains("[laser]\n"));
     std::fs::write(
@@ -200,11 +235,13 @@ fn opening_the_instrument_switches_off_a_laser_a_killed_run_left_on() {
     child.kill().unwrap(); // SIGKILL: no handler, no unwinding, no drop.
     child.wait().unwrap();
     assert!(b.rig.emission(), "the 30 s watchdog cannot have tripped yet");
+    let text = std::fs::read_to_string(&b.instrument).unwrap();
+    std::fs::write(&b.instrument, edit(text)).unwrap();
     let t = Instant::now();
     let devices = b.spawn(&["devices", "--instrument", b.instrument.to_str().unwrap()]);
     let out = devices.wait_with_output().unwrap();
-    let stderr = String::from_utf8_lossy(&out.stderr);
-    assert!(out.status.success(), "periscope devices failed: {stderr}");
+    let stderr = String::from_utf8_lossy(&out.stderr).into_owned();
+    assert_eq!(out.status.success(), opens, "periscope devices: {stderr}");
     let off = b
         .rig
         .off_since(t)
@@ -222,10 +259,7 @@ fn opening_the_instrument_switches_off_a_laser_a_killed_run_left_on() {
     );
     assert!(!b.rig.emission());
     assert!(off < Duration::from_secs(10), "{off:?}");
-    assert!(
-        stderr.contains("the laser was emitting when Periscope opened its controller"),
-        "{stderr}"
-    );
+    stderr
 }
 
 #[test]

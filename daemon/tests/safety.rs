@@ -634,7 +634,8 @@ fn a_histogrammer_unplugged_for_good_fails_the_capture_keeps_its_pairs_and_resum
     let tmp = tempfile::tempdir().unwrap();
     let (dir, rig) = prepare(tmp.path(), &plan());
     let r2 = rig.clone();
-    let r = execute(&dir, &rig, Control::new(), move |done| {
+    let control = Control::new();
+    let r = execute(&dir, &rig, control.clone(), move |done| {
         if done == 8 {
             r2.unplug_tdc(u32::MAX);
         }
@@ -644,6 +645,11 @@ fn a_histogrammer_unplugged_for_good_fails_the_capture_keeps_its_pairs_and_resum
         .to_string();
     assert!(e.contains("histogrammer") || e.contains("TDC"), "{e}");
     assert!(!rig.emission());
+    // The laser off and both arms parked are the safe state, and the run says so: the
+    // histogrammer's failed abort is only a warning (until 2026-12-07 it made the run
+    // report the instrument unsafe, with "switch the laser off by hand").
+    assert_eq!(rig.parked(), (true, true));
+    assert_eq!(control.made_safe(), Some(Ok(())));
     let info = RunInfo::load(&dir).unwrap();
     assert_eq!(info.state, RunState::Failed);
     let kept = read_log(&dir).unwrap();

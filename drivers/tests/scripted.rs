@@ -269,6 +269,27 @@ fn switching_off_does_not_wait_on_an_outstanding_move() {
     done(&s);
 }
 
+/// Parking while a move waits for its reply does the same: the `PARK` goes at once,
+/// neither held up by the move's reply nor kept from the wire by its failure (a servo
+/// fault here), and the stale reply is dropped when it comes. Until 2026-12-07 `park`
+/// finished the move first, and a failed move (or its repeat) returned before `PARK`
+/// was sent, leaving the arm at the move's target as the instrument was made safe.
+#[test]
+fn parking_does_not_wait_on_an_outstanding_move() {
+    let (mut g, s) = galvo(&[
+        (
+            "01 MOVE 0.1000000 -0.0500000*15\n",
+            "01 OK FAULT 0.0900000 -0.0500000*31\n",
+        ),
+        ("02 PARK*20\n", "02 OK*FE\n"),
+        ("03 STAT*64\n", "03 OK PARKED 0.0000000 0.0000000*8F\n"),
+    ]);
+    g.move_to(OpticalAngles { x: 0.1, y: -0.05 }).unwrap();
+    g.park().unwrap();
+    g.wait_settled(Duration::from_secs(1)).unwrap();
+    done(&s);
+}
+
 #[test]
 fn switching_on_sets_the_watchdog_first() {
     // With a watchdog configured, `LASER ON` follows a `WDOG` that the controller

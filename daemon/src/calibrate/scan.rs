@@ -87,7 +87,7 @@ impl Calibrator {
             });
         let safe = self.devices.make_safe();
         if let Err(e) = &safe {
-            tracing::error!(error = %e, "could not make the instrument safe: switch the laser off by hand");
+            tracing::error!("could not make the instrument safe: {e}");
         }
         let measured = result?;
         safe?;

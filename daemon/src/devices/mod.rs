@@ -66,6 +66,16 @@ pub enum OpenError {
     /// A device failed or did not answer.
     #[error(transparent)]
     Device(#[from] DeviceError),
+    /// A step of making the instrument safe failed ([`Devices::make_safe`]).
+    #[error("{step}: {source}; {remedy}")]
+    Unsafe {
+        /// Which step, in words.
+        step: &'static str,
+        /// What the operator should do.
+        remedy: &'static str,
+        /// The device's error.
+        source: DeviceError,
+    },
     /// Opening was interrupted (pause, abort or e-stop) before every device was open.
     #[error("opening the devices was interrupted")]
     Interrupted,
@@ -104,6 +114,9 @@ fn within_hard_limits(name: &str, arm: &mut GalvoBox) -> Result<(), OpenError> {
         deg(hard.y)
     )))
 }
+
+/// What to do about an arm that did not park as the instrument was made safe.
+const PARK_BY_HAND: &str = "the laser is off; park the arm with the e-stop (`POST /api/v1/estop`, the dashboard's button) or at its controller";
 
 /// The instrument's devices, opened.
 pub struct Devices {
@@ -149,21 +162,29 @@ impl Devices {
             arm: mut laser_arm,
             mut laser,
         } = backend.laser_arm()?;
+        // Opening the instrument leaves the laser off, and sees to it before anything
+        // that can refuse the controller. A laser found emitting was left on by a
+        // process that ended without switching it off (a crash or `kill -9` with a
+        // watchdog longer than the restart took, or another program); every request
+        // feeds the controller's watchdog, so without this the idle worker's readings
+        // (or its retries of an open the config's limits refuse) would keep such a
+        // laser on for as long as the daemon runs. A state that cannot be read is
+        // switched off all the same.
+        let found = laser.laser_state();
+        if !matches!(found, Ok(ref s) if !s.emission) {
+            if found.is_ok() {
+                tracing::warn!(
+                    "the laser was emitting when Periscope opened its controller, with no run of \
+                     this process measuring (left on by a process that ended without switching \
+                     it off?); switching it off"
+                );
+            }
+            let off = laser.set_emission(false);
+            found?;
+            off?;
+        }
         laser_arm.identify()?;
         within_hard_limits("laser", &mut laser_arm)?;
-        // Opening the instrument leaves the laser off. A laser found emitting was left
-        // on by a process that ended without switching it off (a crash or `kill -9`
-        // with a watchdog longer than the restart took, or another program); every
-        // request feeds the controller's watchdog, so without this the idle worker's
-        // readings would keep such a laser on for as long as the daemon runs.
-        if laser.laser_state()?.emission {
-            tracing::warn!(
-                "the laser was emitting when Periscope opened its controller, with no run of this \
-                 process measuring (left on by a process that ended without switching it off?); \
-                 switching it off"
-            );
-            laser.set_emission(false)?;
-        }
         interrupted()?;
         let mut spad = backend.spad_arm()?;
         spad.identify()?;
@@ -195,16 +216,31 @@ impl Devices {
 
     /// Laser off and both pairs parked: the safe state. The laser goes first (out of
     /// band, then confirmed), every step is tried even if an earlier one fails, and the
-    /// first failure is returned.
+    /// first failure is returned, naming the step and what to do. The histogrammer's
+    /// measurement is stopped last and is not part of the safe state: a counter gone
+    /// from the bus (whose abort waits out its timeout) neither delays the parks nor
+    /// makes a laser that is off and arms that are parked read as unsafe; its failure
+    /// is a warning.
     pub fn make_safe(&mut self) -> Result<(), OpenError> {
         let off = self.laser.set_emission(false);
-        let abort = self.tdc.abort();
         let lp = self.laser_arm.park();
         let sp = self.spad.park();
-        off?;
-        lp?;
-        sp?;
-        abort?;
+        if let Err(e) = self.tdc.abort() {
+            tracing::warn!(
+                error = %e,
+                "the histogrammer was not told to stop measuring as the instrument was made safe \
+                 (the laser and the arms do not depend on it); check it with `periscope devices`"
+            );
+        }
+        let unsafe_at = |step: &'static str, remedy: &'static str| {
+            move |source| OpenError::Unsafe { step, remedy, source }
+        };
+        off.map_err(unsafe_at(
+            "the laser did not confirm it switched off",
+            "switch it off by hand (its key switch or the interlock) and check its controller",
+        ))?;
+        lp.map_err(unsafe_at("the laser arm did not park", PARK_BY_HAND))?;
+        sp.map_err(unsafe_at("the SPAD arm did not park", PARK_BY_HAND))?;
         Ok(())
     }
 }

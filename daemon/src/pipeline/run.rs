@@ -483,7 +483,7 @@ impl Run {
             }
         }
         if let Err(e) = safe {
-            tracing::error!(error = %e, "could not make the instrument safe: switch the laser off by hand");
+            tracing::error!("could not make the instrument safe: {e}");
         }
         // A run that stopped keeps its own error if its state cannot be recorded (the
         // API's worker records it then, or holds it at the next start).

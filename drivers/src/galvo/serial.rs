@@ -675,7 +675,15 @@ impl GalvoPair for SerialGalvo {
         self.parse_status(Request::Status, &fields)
     }
 
+    /// `PARK`, sent at once: a move still outstanding neither holds it up nor, if it
+    /// failed, keeps it from being sent (as for `LASER OFF`); its reply is dropped as
+    /// stale when it comes, and the controller, taking requests in order, parks after
+    /// the move. Until 2026-12-07 the move was finished first (settle × 4 and a
+    /// repeat), and a fault returned before the park was sent.
     fn park(&mut self) -> Result<(), GalvoError> {
+        if self.pending.take().is_some() {
+            debug!(arm = %self.settings.name, "parking without waiting for the outstanding move");
+        }
         self.request(Request::Park)?;
         self.target = Some(OpticalAngles { x: 0.0, y: 0.0 });
         Ok(())

@@ -1,5 +1,5 @@
-//! The vendor library, loaded at run time: the one module of the workspace's drivers
-//! with `unsafe` code. It looks up each C function of the histogram-mode API by its
+//! The vendor library, loaded at run time: PicoQuant's one module with `unsafe` code
+//! (NI-DAQmx's is `daqmx/ffi.rs`). It looks up each C function of the histogram-mode API by its
 //! documented name (`MH_…` or `HH_…`) with the prototype of the vendor's header
 //! (`mhlib.h` 3.1, `hhlib.h` 3.0), and wraps each call in a safe method that owns every
 //! buffer the library writes into. Return codes come back unchanged (`Err(code)` for a
