@@ -688,7 +688,9 @@ impl RunInfo {
 
 /// A fresh run id: plan name and UTC time, made unique within `root`.
 pub fn new_run_dir(root: &Path, plan: &str) -> io::Result<PathBuf> {
-    fs::create_dir_all(root)?;
+    // The root made durable too: the first run on a fresh machine made `runs/` as
+    // well, and a power cut that forgot that entry lost the run with it.
+    crate::store::create_dir_durably(root)?;
     let secs = std::time::SystemTime::now()
         .duration_since(std::time::UNIX_EPOCH)
         .map_or(0, |d| d.as_secs());
@@ -721,9 +723,7 @@ pub fn new_run_dir(root: &Path, plan: &str) -> io::Result<PathBuf> {
             Ok(()) => {
                 // The new directory's entry is made durable before anything in it
                 // is: a log synced inside a directory a power cut forgot is lost.
-                if let Ok(r) = fs::File::open(root) {
-                    let _ = r.sync_all();
-                }
+                periscope_recon::io::sync_directory(root)?;
                 return Ok(dir);
             }
             Err(e) if e.kind() == io::ErrorKind::AlreadyExists => continue,

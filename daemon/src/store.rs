@@ -127,10 +127,14 @@ fn is_torn_tail(tail: &[u8], last: Option<&Record>) -> bool {
 }
 
 /// Whether `tail` is a record's first bytes and no more: a prefix of the magic, or a
-/// header whose own length runs past the bytes there are. Where the header is whole
-/// and a record comes before it, its bins and bin width must be that record's (a run
-/// records every pair on one axis): a flipped bit that makes a whole last record claim
-/// more bins than it holds reads as damage, kept as found, not as a torn append to cut.
+/// header whose own length runs past the bytes there are. Where the header is whole,
+/// a record must come before it, with the same bins and bin width (a run records
+/// every pair on one axis): a flipped bit that makes a whole last record claim more
+/// bins than it holds reads as damage, kept as found, not as a torn append to cut.
+/// With no record before it there is nothing to check the header against, so a whole
+/// header reads as damage too (until 2026-12-07 a log's only record, its bins field
+/// flipped, was cut with nothing kept); a first append torn past its header is then
+/// kept aside as well, which costs one record's bytes.
 fn is_torn_record(tail: &[u8], last: Option<&Record>) -> bool {
     let m = tail.len().min(MAGIC.len());
     if tail[..m] != MAGIC[..m] {
@@ -140,10 +144,9 @@ fn is_torn_record(tail: &[u8], last: Option<&Record>) -> bool {
         return true;
     }
     let bins = u32_at(tail, 12) as usize;
-    if let Some(last) = last
-        && (bins != last.counts.len() || u32_at(tail, 16) != last.bin_width_ps)
-    {
-        return false;
+    match last {
+        Some(last) if bins == last.counts.len() && u32_at(tail, 16) == last.bin_width_ps => {}
+        _ => return false,
     }
     (1..=MAX_RECORD_BINS).contains(&bins) && tail.len() < HEADER + 4 * bins + 4
 }
@@ -161,7 +164,7 @@ impl HistogramLog {
     pub fn create(dir: &Path) -> io::Result<HistogramLog> {
         let path = dir.join(HISTOGRAM_LOG);
         let file = OpenOptions::new().create_new(true).append(true).open(&path)?;
-        sync_dir(dir);
+        sync_dir(dir)?;
         Ok(HistogramLog {
             file,
             path,
@@ -207,7 +210,7 @@ impl HistogramLog {
         }
         if unsynced.exists() {
             fs::remove_file(&unsynced)?;
-            sync_dir(dir);
+            sync_dir(dir)?;
         }
         let file = OpenOptions::new().append(true).open(&path)?;
         if got.damage_is_tail_only() && got.discarded_bytes > 0 {
@@ -274,7 +277,7 @@ impl HistogramLog {
                         .and_then(|f| f.sync_all())
                         .is_ok()
                     {
-                        sync_dir(dir);
+                        let _ = sync_dir(dir);
                     }
                 }
                 return Err(e);
@@ -328,9 +331,9 @@ fn set_aside_and_rewrite(dir: &Path, path: &Path, records: &[Record]) -> io::Res
     let copied = fs::copy(path, &partial).and_then(|_| File::open(&partial)?.sync_all());
     if let Err(e) = copied.and_then(|()| fs::rename(&partial, &keep)) {
         let _ = fs::remove_file(&partial);
-        return Err(e);
+        return Err(in_words(e, "keeping the damaged log as found", &keep));
     }
-    sync_dir(dir);
+    sync_dir(dir).map_err(|e| in_words(e, "syncing the directory of", &keep))?;
     rewrite(dir, path, records)?;
     tracing::warn!(
         log = %path.display(),
@@ -356,9 +359,15 @@ fn rewrite(dir: &Path, path: &Path, records: &[Record]) -> io::Result<()> {
     if written.is_err() {
         let _ = fs::remove_file(&tmp);
     }
-    written?;
-    sync_dir(dir);
-    Ok(())
+    written.map_err(|e| in_words(e, "rewriting the log from its valid records through", &tmp))?;
+    sync_dir(dir).map_err(|e| in_words(e, "syncing the directory of", path))
+}
+
+/// `e`, of the kind it is, with what was being done to which file said first: a
+/// repair's failure reads "keeping the damaged log as found as …: No space left on
+/// device", not the run directory alone.
+fn in_words(e: io::Error, doing: &str, path: &Path) -> io::Error {
+    io::Error::new(e.kind(), format!("{doing} {}: {e}", path.display()))
 }
 
 /// Reads a run's histogram log without changing it: every valid record, in file
@@ -533,7 +542,7 @@ pub fn create_dir_durably(dir: &Path) -> io::Result<()> {
                 Path::new(".")
             } else {
                 parent
-            });
+            })?;
         }
     }
     Ok(())
@@ -576,10 +585,8 @@ fn not_a_directory(dir: &Path, e: io::Error) -> io::Error {
     e
 }
 
-fn sync_dir(dir: &Path) {
-    if let Ok(d) = File::open(dir) {
-        let _ = d.sync_all();
-    }
+fn sync_dir(dir: &Path) -> io::Result<()> {
+    periscope_recon::io::sync_directory(dir)
 }
 
 #[cfg(feature = "test-hooks")]
@@ -804,7 +811,12 @@ mod tests {
         assert_eq!(fs::metadata(&path).unwrap().len(), 2 * one as u64);
         let mut only = rec(7).encode();
         only[HEADER] ^= 1;
-        for found in [only, b"PHR2 a log of a later version".to_vec()] {
+        // The only record, its bins field raised by a flipped bit (8 → 264): with no
+        // record before it to check it against, it reads as damage, not as a torn
+        // first append (until 2026-12-07 it was cut, nothing kept).
+        let mut only_bins = rec(7).encode();
+        only_bins[13] ^= 1;
+        for found in [only, only_bins, b"PHR2 a log of a later version".to_vec()] {
             fs::write(&path, &found).unwrap();
             let (_, got) = HistogramLog::recover(dir.path()).unwrap();
             assert!(got.records.is_empty());
@@ -816,17 +828,19 @@ mod tests {
             assert_eq!(fs::read(kept).unwrap(), found);
             assert_eq!(fs::metadata(&path).unwrap().len(), 0);
         }
-        // An append cut short anywhere in its record, the first one included, and a
-        // tail of zeros are only cut: nothing is kept. A tail in which a second record
-        // starts is not one torn append.
+        // An append cut short anywhere in its record and a tail of zeros are only
+        // cut: nothing is kept. So is a first append cut short within its header; one
+        // cut past it has no record to check its header against, and is kept aside.
+        // A tail in which a second record starts is not one torn append.
         let whole = rec(9).encode();
         for cut in [1, 3, HEADER - 1, HEADER, HEADER + 5, whole.len() - 1] {
             let mut bytes = rec(0).encode();
             bytes.extend_from_slice(&whole[..cut]);
             let torn = parse_log(&bytes);
             assert!(torn.torn_tail && torn.damage_is_tail_only(), "cut at {cut}");
-            assert!(
+            assert_eq!(
                 parse_log(&whole[..cut]).torn_tail,
+                cut < HEADER,
                 "cut at {cut}, no record before"
             );
         }

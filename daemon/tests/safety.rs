@@ -1384,6 +1384,28 @@ fn a_submission_the_queue_file_misses_is_queued_and_survives_a_restart() {
     assert_eq!(again.status(&status.id).unwrap().queue_position, Some(0));
 }
 
+/// A run the disk refuses to write (full, as `refuse_writes_in` makes it) fails
+/// naming the file it could not write and what to do: free space, then resume; the
+/// laser is off. Until 2026-12-07 it named the run's directory only, with the bare
+/// "No space left on device".
+#[test]
+fn a_full_disk_names_the_file_and_the_remedy() {
+    let _serial = ONE_AT_A_TIME.lock().unwrap_or_else(|p| p.into_inner());
+    let tmp = tempfile::tempdir().unwrap();
+    let (dir, rig) = prepare(tmp.path(), &plan());
+    let refused = periscope_daemon::store::refuse_writes_in(&dir);
+    let e = execute(&dir, &rig, Control::new(), |_| {})
+        .expect_err("a run whose files cannot be written")
+        .to_string();
+    drop(refused);
+    assert!(e.contains("run.json"), "{e}");
+    assert!(
+        e.contains("the disk is full: free space on it, then resume the run"),
+        "{e}"
+    );
+    assert!(!rig.emission());
+}
+
 /// A run whose end neither its pipeline nor the worker could record (the disk refused
 /// every write in its directory) still reads `queued` with nothing working on it: once
 /// the disk takes writes again it can be resumed (and runs), where it was refused as

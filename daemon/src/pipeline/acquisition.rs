@@ -15,7 +15,7 @@ use crate::events::RunEvent;
 use crate::plan::{Acquisition, Method, PlannedPair};
 use crate::record::{push_record, recorded_bins, relay_gains, run_axis};
 use crate::run_dir::RelayPoint;
-use crate::store::{HistogramLog, Record};
+use crate::store::{HISTOGRAM_LOG, HistogramLog, Record};
 
 /// Fewest pairs per batch sent to the optimiser; a batch is also at least an eighth of
 /// the plan, so a fit streams in at most a handful of batches and its live epochs (one
@@ -45,8 +45,8 @@ impl Run {
         pairs: &[PlannedPair],
         relay: &[RelayPoint],
     ) -> Result<(Fit, Vec<Record>), PipelineError> {
-        let (mut log, recovered) =
-            HistogramLog::recover(&self.dir).map_err(|e| PipelineError::storage(&self.dir, e))?;
+        let (mut log, recovered) = HistogramLog::recover(&self.dir)
+            .map_err(|e| PipelineError::storage(&self.dir.join(HISTOGRAM_LOG), e))?;
         if recovered.discarded_bytes > 0 {
             tracing::warn!(
                 bytes = recovered.discarded_bytes,

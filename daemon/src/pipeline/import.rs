@@ -40,7 +40,7 @@ pub struct ImportGeometry {
 /// resumed). Its stored files are never changed: a failure leaves the upload as it
 /// came.
 pub fn execute_import(dir: &Path, control: Control, events: EventSink) -> Result<(), PipelineError> {
-    let mut info = RunInfo::load(dir).map_err(|e| PipelineError::storage(&dir.join(file::RUN), e))?;
+    let mut info = RunInfo::load(dir).map_err(|e| PipelineError::run_json(dir, e))?;
     let mut timings = std::mem::take(&mut info.timings);
     let mut stage = Stage::Reading;
     let mut started: Option<Instant> = None;
@@ -89,7 +89,7 @@ pub fn execute_import(dir: &Path, control: Control, events: EventSink) -> Result
     if let Err(e) = info.save(dir) {
         tracing::error!(error = %e, "could not record the imported capture's end in {}", dir.display());
         if result.is_ok() {
-            return Err(PipelineError::storage(dir, e));
+            return Err(PipelineError::run_json(dir, e));
         }
     }
     if result.is_ok() {
@@ -132,7 +132,7 @@ fn stages(
         info.stage = next.name().into();
         info.state = RunState::Running;
         info.timings = timings.clone();
-        info.save(dir).map_err(|e| PipelineError::storage(dir, e))?;
+        info.save(dir).map_err(|e| PipelineError::run_json(dir, e))?;
         events.emit(RunEvent::StageStarted { stage: next });
         Ok::<(), PipelineError>(())
     };

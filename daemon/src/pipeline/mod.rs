@@ -189,7 +189,7 @@ pub enum PipelineError {
     Import(#[from] crate::capture::CaptureError),
     /// A file of the run (or of a reconstruction's output directory) could not be
     /// written or read.
-    #[error("{path}: {source}")]
+    #[error("{}: {source}{}", path.display(), storage_remedy(source))]
     Storage {
         /// The file or directory.
         path: PathBuf,
@@ -249,10 +249,34 @@ impl From<crate::run_dir::RunDirError> for PipelineError {
 }
 
 impl PipelineError {
+    /// The run's `run.json` in `dir` could not be written (or read).
+    pub(crate) fn run_json(dir: &Path, source: std::io::Error) -> PipelineError {
+        PipelineError::storage(&dir.join(crate::run_dir::file::RUN), source)
+    }
+
     pub(crate) fn storage(path: &Path, source: std::io::Error) -> PipelineError {
         PipelineError::Storage {
             path: path.to_owned(),
             source,
         }
+    }
+}
+
+/// What to do about a file the disk would not write, where the error says enough to
+/// know: a full disk, a read-only file system, a directory the daemon may not write.
+/// Nothing already stored is lost by such an error (histograms are appended and
+/// synced, every other file replaced atomically), so the remedy ends in trying again.
+fn storage_remedy(e: &std::io::Error) -> &'static str {
+    match e.kind() {
+        std::io::ErrorKind::StorageFull | std::io::ErrorKind::QuotaExceeded => {
+            "; the disk is full: free space on it, then resume the run (or run the command again); what was stored before is kept"
+        }
+        std::io::ErrorKind::ReadOnlyFilesystem => {
+            "; the file system is read-only: remount it writable, then resume the run (or run the command again); what was stored before is kept"
+        }
+        std::io::ErrorKind::PermissionDenied => {
+            "; Periscope may not write there: give its user write access, then resume the run (or run the command again)"
+        }
+        _ => "",
     }
 }

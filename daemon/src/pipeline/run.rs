@@ -192,7 +192,7 @@ pub fn prepare(
         adaptive_batches: 0,
         acting: Some(submitted_by.to_owned()),
     };
-    info.save(&dir).map_err(|e| PipelineError::storage(&dir, e))?;
+    info.save(&dir).map_err(|e| PipelineError::run_json(&dir, e))?;
     Ok((dir, plan, instrument))
 }
 
@@ -297,7 +297,7 @@ impl Run {
                 &mut info,
                 &events,
                 &control,
-                PipelineError::storage(dir, e),
+                PipelineError::run_json(dir, e),
             ));
         }
         events.emit(RunEvent::StageStarted {
@@ -415,7 +415,7 @@ impl Run {
     pub(super) fn save_info(&mut self) -> Result<(), PipelineError> {
         self.info
             .save(&self.dir)
-            .map_err(|e| PipelineError::storage(&self.dir, e))
+            .map_err(|e| PipelineError::run_json(&self.dir, e))
     }
 
     pub(super) fn finish_stage(&mut self, stage: Stage, started: Instant) {

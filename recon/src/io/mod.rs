@@ -73,12 +73,23 @@ pub fn write_bytes_atomically(path: &Path, bytes: &[u8]) -> std::io::Result<()> 
         let _ = std::fs::remove_file(&tmp);
         return Err(e);
     }
-    if let Some(dir) = path.parent()
-        && let Ok(d) = File::open(dir)
-    {
-        let _ = d.sync_all();
+    match path.parent() {
+        Some(dir) if !dir.as_os_str().is_empty() => sync_directory(dir),
+        _ => sync_directory(Path::new(".")),
     }
-    Ok(())
+}
+
+/// Syncs directory `dir`, so that the names made, renamed or removed in it survive a
+/// power cut. A file system that cannot sync a directory at all (`EINVAL`: some
+/// network and FUSE ones) is taken as having nothing to sync, as PostgreSQL takes it;
+/// any other failure (an `EIO` from a failing disk) is returned, since what was
+/// written under those names may not survive a crash. Until 2026-12-07 every failure
+/// was ignored.
+pub fn sync_directory(dir: &Path) -> std::io::Result<()> {
+    match File::open(dir)?.sync_all() {
+        Err(e) if e.kind() == std::io::ErrorKind::InvalidInput => Ok(()),
+        done => done,
+    }
 }
 
 /// Writes through `write` into a temporary file of its own beside `path`
