@@ -119,8 +119,8 @@ pub fn ytal_capture(data: &[u8]) {
 
 /// The histogram log (`histograms.bin`), read back on resume and export: the kept
 /// and the discarded bytes add up to the input, the damaged ranges are ordered,
-/// disjoint and cover exactly the discarded bytes, and every record kept has sane
-/// settings and a pair of its own.
+/// disjoint and cover exactly the discarded bytes, and every record kept (whole or a
+/// partial sum) has sane settings and a pair of its own.
 pub fn histogram_log(data: &[u8]) {
     let got = crate::store::parse_log(data);
     assert_eq!(got.valid_bytes + got.discarded_bytes, data.len() as u64);
@@ -134,6 +134,13 @@ pub fn histogram_log(data: &[u8]) {
     let mut pairs = std::collections::HashSet::new();
     for r in &got.records {
         assert!(!r.counts.is_empty() && r.counts.len() <= 1 << 20 && r.bin_width_ps > 0);
+        assert!(!r.partial);
+        assert!(pairs.insert(r.pair), "pair {} kept twice", r.pair);
+    }
+    // A partial sum only for a pair with no whole record, and one a pair.
+    for r in &got.partial {
+        assert!(!r.counts.is_empty() && r.counts.len() <= 1 << 20 && r.bin_width_ps > 0);
+        assert!(r.partial);
         assert!(pairs.insert(r.pair), "pair {} kept twice", r.pair);
     }
 }

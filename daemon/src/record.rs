@@ -404,6 +404,7 @@ mod tests {
             bin_width_ps: 16,
             offset_ps: 12_000,
             dwell_us: 20_000,
+            partial: false,
         };
         let h = record_transient(&flat(2), &pairs[2], &inst, &clipped).unwrap();
         assert!(h.iter().all(|&v| v > 0.0), "{h:?}");

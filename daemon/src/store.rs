@@ -12,7 +12,9 @@
 //! rewritten from the valid records. Capture
 //! then measures every pair that has no valid record. So a `kill -9` loses at most the
 //! unsynced tail, a flipped bit at most the record it sits in, both are measured again,
-//! and no pair is ever stored twice.
+//! and no pair is ever stored twice. A pause in the middle of a pair's repeats keeps
+//! their sum as a partial record ([`Record::partial`]), which the pair's whole record,
+//! measured on top of it on resume, supersedes.
 use std::fs::{self, File, OpenOptions};
 use std::io::{self, BufReader, Read, Write};
 use std::path::{Path, PathBuf};
@@ -47,6 +49,12 @@ pub struct Record {
     pub dwell_us: u64,
     /// Counts.
     pub counts: Vec<u32>,
+    /// Only some of the plan's repeats are summed in it (`dwell_us` says how many):
+    /// kept when the run was paused or aborted in the middle of the pair, so the
+    /// repeats measured are not lost. A resume measures the rest on top of it and
+    /// appends the whole sum, which supersedes it; reconstructions and exports leave it
+    /// out ([`Recovered::partial`]). Flag bit 2.
+    pub partial: bool,
 }
 
 impl Record {
@@ -54,7 +62,9 @@ impl Record {
         let mut b = Vec::with_capacity(HEADER + 4 * self.counts.len() + 4);
         b.extend_from_slice(&MAGIC);
         b.extend_from_slice(&self.pair.to_le_bytes());
-        let flags = u32::from(self.flags.overflow) | (u32::from(self.flags.saturated) << 1);
+        let flags = u32::from(self.flags.overflow)
+            | (u32::from(self.flags.saturated) << 1)
+            | (u32::from(self.partial) << 2);
         b.extend_from_slice(&flags.to_le_bytes());
         b.extend_from_slice(&(self.counts.len() as u32).to_le_bytes());
         b.extend_from_slice(&self.bin_width_ps.to_le_bytes());
@@ -91,8 +101,12 @@ pub const UNSYNCED_MARK: &str = "histograms.bin.unsynced";
 /// What reading a log back found.
 #[derive(Debug)]
 pub struct Recovered {
-    /// The valid records, in file order.
+    /// The valid whole records, each pair's first, in file order.
     pub records: Vec<Record>,
+    /// Partial sums ([`Record::partial`]) of pairs with no whole record: each pair's
+    /// last, in file order. A later record of a pair supersedes its partial sum
+    /// (which the later one holds), and counts as valid, as the superseded one does.
+    pub partial: Vec<Record>,
     /// Bytes in the records kept.
     pub valid_bytes: u64,
     /// Bytes in nothing kept: damaged or incomplete records, and later copies of a
@@ -106,6 +120,11 @@ pub struct Recovered {
 }
 
 impl Recovered {
+    /// Every record a repair keeps: the whole ones, then the partial sums.
+    fn kept(&self) -> impl Iterator<Item = &Record> + Clone {
+        self.records.iter().chain(&self.partial)
+    }
+
     /// Whether all that is discarded is a torn append at the end, which cutting the
     /// file removes without losing a whole record. Anything else (damage between
     /// records, or a tail that holds or held whole records: a flipped bit in the last
@@ -178,9 +197,10 @@ impl HistogramLog {
     /// of one record, cut short) is cut off; any other damage (a flipped bit, a
     /// copied-over block, between records or in the last ones) is repaired by keeping
     /// the file as found under [`DAMAGED_LOG`] and replacing the log, atomically, with
-    /// its valid records. Later records for a pair already
-    /// stored are dropped (cannot happen with this writer, but the reader does not
-    /// trust the file).
+    /// its valid records (whole records, then partial sums). Later records for a pair
+    /// already stored whole are dropped (cannot happen with this writer, but the reader
+    /// does not trust the file); a later record of a pair whose record so far is a
+    /// partial sum supersedes it.
     pub fn recover(dir: &Path) -> io::Result<(HistogramLog, Recovered)> {
         let path = dir.join(HISTOGRAM_LOG);
         if !path.exists() {
@@ -188,6 +208,7 @@ impl HistogramLog {
                 HistogramLog::create(dir)?,
                 Recovered {
                     records: Vec::new(),
+                    partial: Vec::new(),
                     valid_bytes: 0,
                     discarded_bytes: 0,
                     damaged: Vec::new(),
@@ -198,10 +219,10 @@ impl HistogramLog {
         let got = read_log(dir)?;
         let unsynced = dir.join(UNSYNCED_MARK);
         if !got.damage_is_tail_only() {
-            set_aside_and_rewrite(dir, &path, &got.records)?;
+            set_aside_and_rewrite(dir, &path, got.kept())?;
         } else if unsynced.exists() {
             // An earlier session's sync failed: its records may be in memory only.
-            rewrite(dir, &path, &got.records)?;
+            rewrite(dir, &path, got.kept())?;
             tracing::warn!(
                 log = %path.display(),
                 records = got.records.len(),
@@ -318,7 +339,11 @@ impl Drop for HistogramLog {
 /// with `records` (written to a temporary file, synced, renamed over the log), so a
 /// crash at any point leaves either the old log or the new one, and the original
 /// bytes stay on disk for whoever wants to look at them.
-fn set_aside_and_rewrite(dir: &Path, path: &Path, records: &[Record]) -> io::Result<()> {
+fn set_aside_and_rewrite<'a>(
+    dir: &Path,
+    path: &Path,
+    records: impl Iterator<Item = &'a Record> + Clone,
+) -> io::Result<()> {
     let mut keep = dir.join(DAMAGED_LOG);
     let mut n = 0;
     while keep.exists() {
@@ -334,11 +359,11 @@ fn set_aside_and_rewrite(dir: &Path, path: &Path, records: &[Record]) -> io::Res
         return Err(in_words(e, "keeping the damaged log as found", &keep));
     }
     sync_dir(dir).map_err(|e| in_words(e, "syncing the directory of", &keep))?;
-    rewrite(dir, path, records)?;
+    rewrite(dir, path, records.clone())?;
     tracing::warn!(
         log = %path.display(),
         kept = %keep.display(),
-        records = records.len(),
+        records = records.count(),
         "the histogram log was damaged (not only a torn last append); the file as found was kept and the log rewritten from its valid records"
     );
     Ok(())
@@ -346,7 +371,7 @@ fn set_aside_and_rewrite(dir: &Path, path: &Path, records: &[Record]) -> io::Res
 
 /// Replaces the log at `path` with `records`: written to a temporary file, synced,
 /// renamed over it, the directory synced.
-fn rewrite(dir: &Path, path: &Path, records: &[Record]) -> io::Result<()> {
+fn rewrite<'a>(dir: &Path, path: &Path, records: impl Iterator<Item = &'a Record>) -> io::Result<()> {
     let tmp = dir.join(format!("{HISTOGRAM_LOG}.rewrite"));
     let written = (|| {
         let mut f = File::create(&tmp)?;
@@ -413,8 +438,9 @@ fn open_regular(path: &Path) -> io::Result<(File, u64)> {
 /// its length (the search after damage checks at most [`RESYNC_BUDGET`] times the
 /// input's length in candidate records); nothing here panics.
 pub fn parse_log(bytes: &[u8]) -> Recovered {
-    let mut records = Vec::new();
-    let mut seen = std::collections::HashSet::new();
+    let mut records: Vec<Record> = Vec::new();
+    // Each pair's place in `records`.
+    let mut seen = std::collections::HashMap::new();
     let mut damaged: Vec<std::ops::Range<u64>> = Vec::new();
     let mut valid = 0u64;
     let mut budget = RESYNC_BUDGET.saturating_mul(bytes.len()).saturating_add(1 << 20);
@@ -438,11 +464,18 @@ pub fn parse_log(bytes: &[u8]) -> Recovered {
                 if let Some(from) = skip_from.take() {
                     damaged.push(from as u64..at as u64);
                 }
-                if seen.insert(rec.pair) {
-                    records.push(rec);
-                    valid += len as u64;
-                } else {
-                    damaged.push(at as u64..(at + len) as u64);
+                match seen.get(&rec.pair).copied() {
+                    None => {
+                        seen.insert(rec.pair, records.len());
+                        records.push(rec);
+                        valid += len as u64;
+                    }
+                    // A partial sum, then the pair's longer sum: this one holds it.
+                    Some(i) if records[i].partial => {
+                        records[i] = rec;
+                        valid += len as u64;
+                    }
+                    Some(_) => damaged.push(at as u64..(at + len) as u64),
                 }
                 at += len;
             }
@@ -475,8 +508,10 @@ pub fn parse_log(bytes: &[u8]) -> Recovered {
         [only] => is_torn_tail(&bytes[only.start as usize..], records.last()),
         _ => damaged.is_empty(),
     };
+    let (partial, records) = records.into_iter().partition(|r| r.partial);
     Recovered {
         records,
+        partial,
         valid_bytes: valid,
         discarded_bytes: bytes.len() as u64 - valid,
         damaged,
@@ -517,6 +552,7 @@ fn decode_at(bytes: &[u8], at: usize, budget: &mut usize) -> Option<(Record, usi
             .chunks_exact(4)
             .map(|c| u32::from_le_bytes(c.try_into().expect("4")))
             .collect(),
+        partial: flags & 4 != 0,
     };
     Some((rec, len))
 }
@@ -717,6 +753,7 @@ mod tests {
             offset_ps: 12_000,
             dwell_us: 1000,
             counts: (0..8).map(|k| k * pair).collect(),
+            partial: false,
         }
     }
 
@@ -868,6 +905,45 @@ mod tests {
                 "byte {byte} bit {bit}"
             );
         }
+    }
+
+    /// A pair's partial sum (a run paused in the middle of its repeats) is kept apart
+    /// from the whole records until a later record of the pair (its longer sum, or the
+    /// whole one) supersedes it; both count as valid bytes, so a resume that appends the
+    /// whole sum repairs nothing. A partial sum after a whole record is a duplicate.
+    #[test]
+    fn a_partial_sum_is_kept_until_the_pairs_longer_sum_supersedes_it() {
+        let part = |pair: u32, k: u32| Record {
+            partial: true,
+            dwell_us: u64::from(k) * 1000,
+            ..rec(pair)
+        };
+        let mut bytes = rec(0).encode();
+        bytes.extend_from_slice(&part(1, 1).encode());
+        bytes.extend_from_slice(&part(2, 1).encode());
+        bytes.extend_from_slice(&part(2, 3).encode());
+        bytes.extend_from_slice(&rec(1).encode());
+        let got = parse_log(&bytes);
+        assert_eq!(got.records, vec![rec(0), rec(1)]);
+        assert_eq!(got.partial, vec![part(2, 3)]);
+        assert_eq!(got.discarded_bytes, 0);
+        assert!(got.damaged.is_empty() && got.damage_is_tail_only());
+        let mut late = bytes.clone();
+        late.extend_from_slice(&part(0, 1).encode());
+        let got = parse_log(&late);
+        assert_eq!(got.records, vec![rec(0), rec(1)]);
+        assert_eq!(got.discarded_bytes, part(0, 1).encode().len() as u64);
+        // Through a repair (a flipped bit in pair 0's record): the partial sum is
+        // written back with the whole records.
+        let dir = tempfile::tempdir().unwrap();
+        bytes[HEADER + 1] ^= 1;
+        fs::write(dir.path().join(HISTOGRAM_LOG), &bytes).unwrap();
+        let (_, got) = HistogramLog::recover(dir.path()).unwrap();
+        assert_eq!((got.records.len(), got.partial.len()), (1, 1));
+        let again = read_log(dir.path()).unwrap();
+        assert_eq!(again.records, vec![rec(1)]);
+        assert_eq!(again.partial, vec![part(2, 3)]);
+        assert_eq!(again.discarded_bytes, 0);
     }
 
     #[test]

@@ -20,6 +20,7 @@ fn record(pair: u32, bins: usize, seed: u32) -> Record {
         counts: (0..bins as u32)
             .map(|b| b.wrapping_mul(seed).wrapping_add(pair) % 1000)
             .collect(),
+        partial: false,
     }
 }
 

@@ -31,6 +31,11 @@ const TRAINER_BOUND: Duration = Duration::from_secs(2);
 
 /// Small and real-time: 64 LOS points of 10 ms, 25 pairs of 30 ms, a tiny fit.
 fn plan() -> String {
+    small_plan().toml()
+}
+
+/// [`plan`], to set more on.
+fn small_plan() -> SmallPlan {
     SmallPlan::named("safety")
         .set("los.grid", [8, 8])
         .set("los.dwell-ms", 10.0)
@@ -41,7 +46,6 @@ fn plan() -> String {
         .set("recon.gtr.primitives", 200)
         .set("recon.gtr.epochs", 40)
         .set("recon.gtr.virtual-grid", [16, 16])
-        .toml()
 }
 
 fn root() -> PathBuf {
@@ -526,6 +530,103 @@ fn an_adaptive_capture_paused_while_its_fit_chooses_resumes_to_its_budget() {
         batches,
         (0..batches.len() as u64).collect::<Vec<_>>(),
         "{batches:?}"
+    );
+}
+
+/// Runs a capture of four 30 ms repeats a pair and, 75 ms into the pair after the
+/// third (its second or third repeat), calls `stop` with the run's control and its
+/// laser's direct off. Returns the run's directory and the rig.
+fn stopped_mid_repeats(
+    tmp: &Path,
+    stop: impl Fn(&Control, &EmergencyOff) + Send + Sync + 'static,
+) -> (PathBuf, SimBackend) {
+    let repeats = small_plan().set("acquisition.repeats", 4).toml();
+    let (dir, rig) = prepare(tmp, &repeats);
+    let control = Control::new();
+    let events = EventSink::open(&dir).unwrap();
+    let laser: Arc<OnceLock<EmergencyOff>> = Arc::new(OnceLock::new());
+    let stop = Arc::new(stop);
+    {
+        let (control, laser) = (control.clone(), laser.clone());
+        events.listen(move |e| {
+            if let RunEvent::Pair { done: 3, .. } = e {
+                let (control, laser, stop) = (control.clone(), laser.clone(), stop.clone());
+                std::thread::spawn(move || {
+                    std::thread::sleep(Duration::from_millis(75));
+                    stop(&control, laser.get().unwrap());
+                });
+            }
+        });
+    }
+    let run = Run::open(&dir, control, Some(events), Some(&rig)).unwrap();
+    let _ = laser.set(run.emergency_off());
+    assert!(run.execute().is_err(), "the run went on after the stop");
+    assert!(!rig.emission());
+    (dir, rig)
+}
+
+/// A pause in the middle of a pair's repeats keeps the repeats summed so far as a
+/// partial record, and the resume measures only the rest on top of them: the pair's
+/// whole record holds the partial sum bin for bin, and every pair is stored whole
+/// once. Until 2026-12-07 the sum so far was dropped and the pair measured from its
+/// first repeat again (at the plan's limits, up to 999 dwells of an hour lost).
+#[test]
+fn a_pause_in_the_middle_of_a_pairs_repeats_keeps_those_summed() {
+    let _serial = ONE_AT_A_TIME.lock().unwrap_or_else(|p| p.into_inner());
+    let tmp = tempfile::tempdir().unwrap();
+    let (dir, rig) = stopped_mid_repeats(tmp.path(), |control, _| control.pause());
+    assert_eq!(RunInfo::load(&dir).unwrap().state, RunState::Paused);
+    let stopped = read_log(&dir).unwrap();
+    assert_eq!(stopped.records.len(), 3, "the pairs before the stop");
+    let [part] = stopped.partial.as_slice() else {
+        panic!("no partial sum kept: {:?}", stopped.partial)
+    };
+    assert!(
+        [30_000, 60_000, 90_000].contains(&part.dwell_us),
+        "{} µs summed",
+        part.dwell_us
+    );
+    execute(&dir, &rig, Control::new(), |_| {}).unwrap();
+    assert_each_pair_once(&dir);
+    let log = read_log(&dir).unwrap();
+    assert!(log.partial.is_empty() && log.discarded_bytes == 0);
+    let whole = log.records.iter().find(|r| r.pair == part.pair).unwrap();
+    assert_eq!(whole.dwell_us, 120_000);
+    assert!(
+        whole.counts.iter().zip(&part.counts).all(|(w, p)| w >= p),
+        "the whole sum does not hold the partial one"
+    );
+    let more: u64 = whole
+        .counts
+        .iter()
+        .zip(&part.counts)
+        .map(|(w, p)| u64::from(w - p))
+        .sum();
+    assert!(more > 0, "nothing measured on top of the partial sum");
+}
+
+/// A stop that switches the laser off out of band before it asks the run to pause
+/// (a signal's order) keeps no partial sum: a repeat that ended between the two may
+/// have been partly dark, so the pair is measured again from its first repeat.
+#[test]
+fn a_signals_stop_in_the_middle_of_a_pairs_repeats_keeps_no_partial_sum() {
+    let _serial = ONE_AT_A_TIME.lock().unwrap_or_else(|p| p.into_inner());
+    let tmp = tempfile::tempdir().unwrap();
+    let (dir, rig) = stopped_mid_repeats(tmp.path(), |control, off| {
+        off.laser_off().unwrap();
+        std::thread::sleep(Duration::from_millis(1));
+        control.pause();
+    });
+    let stopped = read_log(&dir).unwrap();
+    assert!(stopped.partial.is_empty(), "{:?}", stopped.partial);
+    execute(&dir, &rig, Control::new(), |_| {}).unwrap();
+    assert_each_pair_once(&dir);
+    assert!(
+        read_log(&dir)
+            .unwrap()
+            .records
+            .iter()
+            .all(|r| r.dwell_us == 120_000)
     );
 }
 

@@ -55,7 +55,7 @@ impl Run {
                 "the histogram log held incomplete or corrupted records; they were skipped and their pairs are measured again"
             );
         }
-        let result = self.capture_into(&mut log, recovered.records, pairs, relay);
+        let result = self.capture_into(&mut log, recovered.records, recovered.partial, pairs, relay);
         if result.is_err() {
             // A stop, a device error or a full disk: the laser goes off before the log
             // is synced and closed (its drop syncs, which on a stalling disk takes
@@ -74,9 +74,14 @@ impl Run {
         &mut self,
         log: &mut HistogramLog,
         recovered: Vec<Record>,
+        partial: Vec<Record>,
         pairs: &[PlannedPair],
         relay: &[RelayPoint],
     ) -> Result<(Fit, Vec<Record>), PipelineError> {
+        // Partial sums an earlier session kept when it stopped in the middle of a
+        // pair's repeats: the pair's rest is measured on top of them.
+        let mut partial: std::collections::HashMap<u32, Record> =
+            partial.into_iter().map(|r| (r.pair, r)).collect();
         let acq: Acquisition = self.plan.acquisition.clone();
         let (l, s) = (
             self.instrument.laser_arm.pose.origin,
@@ -180,7 +185,8 @@ impl Run {
                             continue;
                         }
                         let p = &pairs[i];
-                        let rec = self.measure(i, p, &acq, settle, &mut flagged, log)?;
+                        let carried = partial.remove(&(i as u32));
+                        let rec = self.measure(i, p, &acq, settle, &mut flagged, log, carried)?;
                         self.store(log, &mut stored, &rec)?;
                         push(&mut batch, &rec)?;
                         self.announce(i, p, &rec, &acq, stored.len(), total);
@@ -312,7 +318,8 @@ impl Run {
                 if stored.contains(&(i as u32)) {
                     continue;
                 }
-                let rec = self.measure(i, p, &acq, settle, &mut flagged, log)?;
+                let carried = partial.remove(&(i as u32));
+                let rec = self.measure(i, p, &acq, settle, &mut flagged, log, carried)?;
                 self.store(log, &mut stored, &rec)?;
                 push(&mut batch, &rec)?;
                 self.announce(i, p, &rec, &acq, stored.len(), total);
@@ -342,6 +349,11 @@ impl Run {
     }
 }
 
+/// How many of the plan's dwells partial sum `r` holds.
+fn repeats_in(r: &Record, acq: &Acquisition) -> u32 {
+    (r.dwell_us / (acq.dwell.as_micros() as u64).max(1)) as u32
+}
+
 /// Why an adaptive capture that ran `spent` seconds against its time budget ended.
 fn over_time(spent: f64, budget_s: f64) -> String {
     format!("the capture has run {spent:.0} s, its time budget (adaptive.seconds = {budget_s})")
@@ -368,8 +380,11 @@ impl Run {
         Ok(())
     }
 
-    /// Measures pair `i` (`p`): both arms moved and settled, the plan's repeats summed;
-    /// measured again after a suspension that cleared by itself.
+    /// Measures pair `i` (`p`): both arms moved and settled, the plan's repeats summed
+    /// (on top of `carried`, an earlier session's partial sum of them, where it fits
+    /// the plan); measured again after a suspension that cleared by itself. A pause or
+    /// abort in the middle of the repeats keeps those summed ([`Run::keep_partial`]).
+    #[allow(clippy::too_many_arguments)]
     fn measure(
         &mut self,
         i: usize,
@@ -378,7 +393,9 @@ impl Run {
         settle: Duration,
         flagged: &mut FlagRun,
         log: &mut HistogramLog,
+        carried: Option<Record>,
     ) -> Result<Record, PipelineError> {
+        let carried = carried.filter(|r| self.fits_the_plan(r, acq));
         let (counts, flags) = loop {
             self.checkpoint()?;
             // Both arms move at once; each wait accepts only its commanded target.
@@ -386,11 +403,15 @@ impl Run {
             self.devices.spad.move_to(p.spad)?;
             self.devices.laser_arm.wait_settled(settle)?;
             self.devices.spad.wait_settled(settle)?;
-            let mut counts = vec![0u32; acq.bins as usize];
-            let mut flags = HistogramFlags::default();
-            for _ in 0..acq.repeats {
-                self.checkpoint()?;
-                let h = self.acquire()?;
+            let (mut counts, mut flags, done) = match &carried {
+                Some(r) => (r.counts.clone(), r.flags, repeats_in(r, acq)),
+                None => (vec![0u32; acq.bins as usize], HistogramFlags::default(), 0),
+            };
+            for summed in done..acq.repeats {
+                let h = match self.checkpoint().and_then(|()| self.acquire()) {
+                    Ok(h) => h,
+                    Err(e) => return Err(self.keep_partial(i, acq, (counts, flags), (summed, done), e, log)),
+                };
                 // A sum past a bin's 2³² − 1 is clipped, and the histogram flagged as
                 // overflowed like a counter's own (its counts only a lower bound).
                 for (c, v) in counts.iter_mut().zip(&h.counts) {
@@ -410,14 +431,99 @@ impl Run {
                 PairVerdict::Suspend(s) => self.suspend(s, Some(&mut *log))?,
             }
         };
-        Ok(Record {
+        Ok(self.record(i, acq, counts, flags, acq.repeats, false))
+    }
+
+    /// Pair `i`'s record of `counts` summed over `repeats` dwells.
+    fn record(
+        &self,
+        i: usize,
+        acq: &Acquisition,
+        counts: Vec<u32>,
+        flags: HistogramFlags,
+        repeats: u32,
+        partial: bool,
+    ) -> Record {
+        Record {
             pair: i as u32,
             flags,
             bin_width_ps: (acq.bin_width * 1e12).round() as u32,
             offset_ps: (acq.offset * 1e12).round() as u32,
-            dwell_us: (acq.dwell.as_micros() as u64) * u64::from(acq.repeats),
+            dwell_us: (acq.dwell.as_micros() as u64) * u64::from(repeats),
             counts,
-        })
+            partial,
+        }
+    }
+
+    /// Whether an earlier session's partial sum `r` can be continued under the plan:
+    /// its bins, bin width and offset the plan's, and a whole number of the plan's
+    /// dwells, fewer than its repeats. One that cannot is left in the log, and the
+    /// pair's whole record, measured afresh, supersedes it.
+    fn fits_the_plan(&self, r: &Record, acq: &Acquisition) -> bool {
+        let blank = self.record(
+            r.pair as usize,
+            acq,
+            Vec::new(),
+            HistogramFlags::default(),
+            0,
+            true,
+        );
+        let dwell_us = acq.dwell.as_micros() as u64;
+        let fits = r.counts.len() == acq.bins as usize
+            && (r.bin_width_ps, r.offset_ps) == (blank.bin_width_ps, blank.offset_ps)
+            && dwell_us > 0
+            && r.dwell_us.is_multiple_of(dwell_us)
+            && (1..u64::from(acq.repeats)).contains(&(r.dwell_us / dwell_us));
+        if !fits {
+            tracing::warn!(
+                pair = r.pair,
+                "the pair's partial sum from an earlier session does not fit the plan's acquisition; it stays in the log and the pair is measured afresh"
+            );
+        }
+        fits
+    }
+
+    /// A stop `e` that came after `summed` of pair `i`'s repeats, `done` of them an
+    /// earlier session's: where this session summed some and the stop is the
+    /// operator's pause or abort, the sum so far is appended as a partial record
+    /// ([`Record::partial`]) and a resume measures the rest on top of it. Kept only
+    /// while the laser is still on with the interlock closed: only the run switches
+    /// it on, so then every repeat summed was lit throughout; an e-stop or a signal
+    /// switches it off out of band as it asks the stop, and a dwell that ended in
+    /// between may have been partly dark, so those sums are measured again, as are a
+    /// device error's (until 2026-12-07 every stop in the middle of a pair dropped
+    /// the repeats summed). Returns `e`.
+    fn keep_partial(
+        &mut self,
+        i: usize,
+        acq: &Acquisition,
+        (counts, flags): (Vec<u32>, HistogramFlags),
+        (summed, done): (u32, u32),
+        e: PipelineError,
+        log: &mut HistogramLog,
+    ) -> PipelineError {
+        if summed == done || !matches!(e, PipelineError::Paused(_) | PipelineError::Aborted(_)) {
+            return e;
+        }
+        match self.devices.laser.laser_state() {
+            Ok(s) if s.emission && s.interlock_closed => {}
+            _ => return e,
+        }
+        let rec = self.record(i, acq, counts, flags, summed, true);
+        match log.append(&rec) {
+            Ok(()) => tracing::info!(
+                pair = i,
+                summed,
+                repeats = acq.repeats,
+                "stopped in the middle of a pair's repeats: those summed are kept, and a resume measures the rest on top of them"
+            ),
+            Err(err) => tracing::warn!(
+                pair = i,
+                error = %err,
+                "stopped in the middle of a pair's repeats, and their sum could not be kept: a resume measures the pair again"
+            ),
+        }
+        e
     }
 
     /// Appends a measured pair's record to the histogram log and counts it stored.
