@@ -30,6 +30,8 @@ pub mod file {
     pub const HISTOGRAMS_DAMAGED: &str = crate::store::DAMAGED_LOG;
     /// The relay point cloud with normals (binary PLY).
     pub const RELAY: &str = "relay.ply";
+    /// The LOS scan's returns, row by row as measured ([`crate::pipeline`]'s LOS log).
+    pub const LOS: &str = "los.jsonl";
     /// The reconstructed volume (`.npy`, C order `[nz, ny, nx]`).
     pub const VOLUME: &str = "volume.npy";
     /// The volume's grid, method and timings.
@@ -140,13 +142,15 @@ impl RunDir {
     }
 
     /// The first of a run's data files (its histogram log, the log set aside by
-    /// recovery, its planned pairs, its relay) that `path` holds, if any.
+    /// recovery, its planned pairs, its relay, its LOS scan's rows) that `path` holds,
+    /// if any.
     pub fn leftover_data(path: &Path) -> Option<&'static str> {
         [
             file::HISTOGRAMS,
             file::HISTOGRAMS_DAMAGED,
             file::PAIRS,
             file::RELAY,
+            file::LOS,
         ]
         .into_iter()
         .find(|f| path.join(f).symlink_metadata().is_ok())

@@ -533,6 +533,59 @@ fn an_adaptive_capture_paused_while_its_fit_chooses_resumes_to_its_budget() {
     );
 }
 
+/// A pause in the middle of the LOS scan keeps the rows it measured (`los.jsonl`),
+/// and the resume scans only the rest: its first LOS progress is past the kept rows,
+/// and the relay comes from all of them. Until 2026-12-07 the scan's returns lived in
+/// memory only, and every resume scanned the whole grid again with the laser on.
+#[test]
+fn a_pause_in_the_los_scan_keeps_its_rows_and_the_resume_scans_the_rest() {
+    let _serial = ONE_AT_A_TIME.lock().unwrap_or_else(|p| p.into_inner());
+    let tmp = tempfile::tempdir().unwrap();
+    let (dir, rig) = prepare(tmp.path(), &plan());
+    let control = Control::new();
+    let events = EventSink::open(&dir).unwrap();
+    let c = control.clone();
+    events.listen(move |e| {
+        if let RunEvent::LosPoint { done: 24, .. } = e {
+            c.pause();
+        }
+    });
+    let r = Run::open(&dir, control, Some(events), Some(&rig))
+        .unwrap()
+        .execute();
+    assert!(matches!(r, Err(PipelineError::Paused(0))), "{r:?}");
+    assert!(!rig.emission());
+    assert!(!dir.join("relay.ply").exists());
+    let lines = || {
+        std::fs::read_to_string(dir.join("los.jsonl"))
+            .unwrap()
+            .lines()
+            .count()
+    };
+    assert_eq!(lines(), 3, "the rows measured before the pause");
+    let events = EventSink::open(&dir).unwrap();
+    let progress = Arc::new(Mutex::new(Vec::new()));
+    let seen = progress.clone();
+    events.listen(move |e| {
+        if let RunEvent::LosPoint { done, .. } = e {
+            seen.lock().unwrap().push(*done);
+        }
+    });
+    Run::open(&dir, Control::new(), Some(events), Some(&rig))
+        .unwrap()
+        .execute()
+        .unwrap();
+    assert_eq!(
+        *progress.lock().unwrap(),
+        [32, 40, 48, 56, 64],
+        "rows scanned on resume"
+    );
+    assert_eq!(lines(), 8);
+    assert!(dir.join("relay.ply").is_file());
+    assert_each_pair_once(&dir);
+    assert!(!rig.emission());
+}
+
 /// Runs a capture of four 30 ms repeats a pair and, 75 ms into the pair after the
 /// third (its second or third repeat), calls `stop` with the run's control and its
 /// laser's direct off. Returns the run's directory and the rig.

@@ -1,6 +1,10 @@
 //! The LOS stage: the SPAD arm sweeps the relay under the diffused laser; each
 //! histogram's first-bounce peak gives a range along the SPAD ray, hence a relay point.
 //! Then thresholds, outlier removal and normals turn the points into the relay.
+use std::collections::BTreeMap;
+use std::fs::{File, OpenOptions};
+use std::io::{self, Write};
+use std::path::Path;
 use std::time::Duration;
 
 use glam::DVec3;
@@ -10,7 +14,7 @@ use periscope_recon::relay::{estimate_normals, reject_isolated};
 
 use super::{PipelineError, RelayError, Run};
 use crate::events::RunEvent;
-use crate::run_dir::RelayPoint;
+use crate::run_dir::{RelayPoint, file};
 
 /// Fewest counts in the peak bin that count as a return.
 const MIN_PEAK_COUNTS: f64 = 8.0;
@@ -87,38 +91,83 @@ pub fn first_bounce_range(ell: f64, laser: DVec3, spad: DVec3, d: DVec3) -> Opti
 }
 
 impl Run {
-    /// Scans the relay; returns the raw returns (point, the return's photons).
+    /// Scans the relay; returns the raw returns (point, the return's photons). Each
+    /// row's returns are appended to the run's [`LosLog`] as the row is done, so a
+    /// resumed scan measures only the rows it lacks (and none, with the laser never
+    /// on, where every row is there).
     pub(crate) fn los_scan(&mut self) -> Result<Vec<(DVec3, f64)>, PipelineError> {
+        let (mut log, rows) =
+            LosLog::open(&self.dir).map_err(|e| PipelineError::storage(&self.dir.join(file::LOS), e))?;
+        let result = self.los_rows(&mut log, rows);
+        if result.is_err() {
+            // A stop or a failure: the laser goes off before the log is synced, as the
+            // capture's does; the run's `make_safe` parks the arms after.
+            if let Err(e) = self.devices.laser.set_emission(false) {
+                tracing::warn!(error = %e, "switching the laser off as the LOS scan stopped failed; the run's shutdown tries again");
+            }
+        }
+        let synced = log
+            .sync()
+            .map_err(|e| PipelineError::storage(&self.dir.join(file::LOS), e));
+        let out = result?;
+        synced?;
+        Ok(out)
+    }
+
+    /// [`Run::los_scan`]'s work, with `stored` the rows an earlier session kept.
+    fn los_rows(
+        &mut self,
+        log: &mut LosLog,
+        mut stored: LosRows,
+    ) -> Result<Vec<(DVec3, f64)>, PipelineError> {
         let los = self.plan.los.clone();
         let acq = self.plan.acquisition.clone();
         let tdc = self.instrument.tdc.clone();
-        let devices = &mut self.devices;
-        devices.tdc.configure(&TdcConfig {
-            bin_width: acq.bin_width,
-            bins: acq.bins,
-            offset: acq.offset,
-            sync_divider: tdc.sync_divider,
-            acquisition: los.dwell,
-        })?;
-        devices.laser_arm.park()?;
-        devices.laser_arm.wait_settled(Duration::from_secs(2))?;
-        devices.laser.set_diffuser(true)?;
-        self.checkpoint()?;
-        // The histogrammer must answer before the laser goes on.
-        self.devices.tdc.status()?;
-        // Emission only while measuring: on here, off as soon as the last point is in
-        // (every error path switches it off too).
-        self.laser_on()?;
-        let spad_pose = self.instrument.spad_arm.pose;
-        let (l, s) = (self.instrument.laser_arm.pose.origin, spad_pose.origin);
         let [nx, ny] = los.grid;
         let total = nx * ny;
+        // Rows past the grid are not this plan's (a log the reader does not trust).
+        stored.retain(|&row, _| row < ny);
+        if !stored.is_empty() {
+            tracing::info!(
+                rows = stored.len(),
+                of = ny,
+                "the LOS scan resumes with the rows an earlier session measured"
+            );
+        }
         let mut out = Vec::new();
+        if stored.len() < ny {
+            let devices = &mut self.devices;
+            devices.tdc.configure(&TdcConfig {
+                bin_width: acq.bin_width,
+                bins: acq.bins,
+                offset: acq.offset,
+                sync_divider: tdc.sync_divider,
+                acquisition: los.dwell,
+            })?;
+            devices.laser_arm.park()?;
+            devices.laser_arm.wait_settled(Duration::from_secs(2))?;
+            devices.laser.set_diffuser(true)?;
+            self.checkpoint()?;
+            // The histogrammer must answer before the laser goes on.
+            self.devices.tdc.status()?;
+            // Emission only while measuring: on here, off as soon as the last point is
+            // in (every error path switches it off too).
+            self.laser_on()?;
+        }
+        let spad_pose = self.instrument.spad_arm.pose;
+        let (l, s) = (self.instrument.laser_arm.pose.origin, spad_pose.origin);
         let settle = self.settle_timeout();
         // The return's bins: ±1.3 jitter FWHM (±3σ) about its peak, and one more.
         let half_width =
             ((1.3 * self.instrument.spad.jitter_fwhm / acq.bin_width).ceil() as usize + 1).max(2);
-        for iy in 0..ny {
+        let mut iy = 0;
+        while iy < ny {
+            if let Some(row) = stored.remove(&iy) {
+                out.extend(row);
+                iy += 1;
+                continue;
+            }
+            let mut row = Vec::new();
             for jx in 0..nx {
                 // Serpentine: no long fly-back between rows.
                 let ix = if iy % 2 == 0 { jx } else { nx - 1 - jx };
@@ -139,7 +188,7 @@ impl Run {
                         TimeAxis::of_tdc(acq.offset, acq.bin_width, counts.len(), tdc.system_delay).centre(b);
                     let dir = spad_pose.direction(angles);
                     if let Some(r) = first_bounce_range(ell, l, s, dir) {
-                        out.push((s + dir * r, return_photons(&counts, b, half_width)));
+                        row.push((s + dir * r, return_photons(&counts, b, half_width)));
                     }
                 }
                 let done = iy * nx + jx + 1;
@@ -147,7 +196,17 @@ impl Run {
                     self.events.emit(RunEvent::LosPoint { done, total });
                 }
             }
-            self.watch_interlock()?;
+            if let Some(s) = self.laser_suspension()? {
+                // The light changed under this row (the interlock opened, emission
+                // was lost): it is measured again once the suspension has cleared
+                // (until 2026-12-07 it was kept).
+                self.suspend(s, None)?;
+                continue;
+            }
+            log.append(iy, &row)
+                .map_err(|e| PipelineError::storage(&self.dir.join(file::LOS), e))?;
+            out.extend(row);
+            iy += 1;
         }
         self.devices.laser.set_emission(false)?;
         self.devices.laser.set_diffuser(false)?;
@@ -225,6 +284,110 @@ pub(crate) fn relay_points(
             })
         })
         .collect())
+}
+
+/// The LOS scan's returns as measured, row by row (`los.jsonl` in the run directory):
+/// one line a finished grid row, `CRC-32 (8 hex digits), a space, the row as JSON`
+/// (`{"row": iy, "returns": [[x, y, z, photons], …]}`; JSON's shortest round-trip
+/// numbers give the same f64s back). Appended as each row is done and synced when the
+/// scan stops; a resumed scan takes the rows whose lines are whole and check out, and
+/// measures the others (a line cut short or damaged is measured again, never trusted).
+pub(crate) struct LosLog {
+    file: File,
+}
+
+/// The rows a [`LosLog`] holds: each row's returns (point, photons), by row.
+pub(crate) type LosRows = BTreeMap<usize, Vec<(DVec3, f64)>>;
+
+#[derive(serde::Serialize, serde::Deserialize)]
+struct LosRow {
+    row: usize,
+    returns: Vec<[f64; 4]>,
+}
+
+/// Largest `los.jsonl` read back (a 256 × 256 grid of returns takes about 5 MB).
+const MAX_LOS_LOG: u64 = 64 << 20;
+
+impl LosLog {
+    /// Opens (or makes) the run's LOS log in `dir` for appending, with the rows it
+    /// holds: each row's first whole line, in row order.
+    pub(crate) fn open(dir: &Path) -> io::Result<(LosLog, LosRows)> {
+        let path = dir.join(file::LOS);
+        let mut rows = BTreeMap::new();
+        match std::fs::symlink_metadata(&path) {
+            Ok(m) if !m.is_file() => {
+                return Err(io::Error::new(
+                    io::ErrorKind::InvalidInput,
+                    "not a regular file (a link, a FIFO or a directory): move it aside",
+                ));
+            }
+            Ok(m) if m.len() > MAX_LOS_LOG => {
+                return Err(io::Error::new(
+                    io::ErrorKind::InvalidData,
+                    format!(
+                        "{} bytes, more than any LOS scan writes ({MAX_LOS_LOG}): move it aside",
+                        m.len()
+                    ),
+                ));
+            }
+            Ok(_) => {
+                let bytes = std::fs::read(&path)?;
+                for line in bytes.split(|&b| b == b'\n') {
+                    if let Some(r) = parse_los_line(line) {
+                        rows.entry(r.row).or_insert_with(|| {
+                            r.returns
+                                .iter()
+                                .map(|&[x, y, z, photons]| (DVec3::new(x, y, z), photons))
+                                .collect()
+                        });
+                    }
+                }
+            }
+            Err(e) if e.kind() == io::ErrorKind::NotFound => {}
+            Err(e) => return Err(e),
+        }
+        let file = OpenOptions::new().create(true).append(true).open(&path)?;
+        // A line a crash cut short is ended, so the next row's line starts whole.
+        let len = file.metadata()?.len();
+        let mut log = LosLog { file };
+        if len > 0 && std::fs::read(&path)?.last() != Some(&b'\n') {
+            log.file.write_all(b"\n")?;
+        }
+        Ok((log, rows))
+    }
+
+    /// Appends row `row`'s `returns`.
+    fn append(&mut self, row: usize, returns: &[(DVec3, f64)]) -> io::Result<()> {
+        let json = serde_json::to_string(&LosRow {
+            row,
+            returns: returns
+                .iter()
+                .map(|(p, photons)| [p.x, p.y, p.z, *photons])
+                .collect(),
+        })
+        .map_err(io::Error::other)?;
+        let line = format!("{:08x} {json}\n", crc32fast::hash(json.as_bytes()));
+        self.file.write_all(line.as_bytes())
+    }
+
+    fn sync(&mut self) -> io::Result<()> {
+        self.file.sync_data()
+    }
+}
+
+/// A `los.jsonl` line's row, if the line is whole and its CRC checks out.
+fn parse_los_line(line: &[u8]) -> Option<LosRow> {
+    let (crc, json) = line.split_at_checked(8)?;
+    let json = json.strip_prefix(b" ")?;
+    let crc = u32::from_str_radix(std::str::from_utf8(crc).ok()?, 16).ok()?;
+    if crc32fast::hash(json) != crc {
+        return None;
+    }
+    let row: LosRow = serde_json::from_slice(json).ok()?;
+    row.returns
+        .iter()
+        .all(|r| r.iter().all(|v| v.is_finite()))
+        .then_some(row)
 }
 
 #[cfg(test)]
@@ -312,5 +475,60 @@ mod tests {
         let (b, _) = peak(&h).unwrap();
         assert!(b > 11.0 && b < 11.5, "{b}");
         assert_eq!(peak(&[0u32, 3, 1]), None, "too few counts is no return");
+    }
+}
+
+#[cfg(test)]
+mod log_tests {
+    use super::*;
+
+    /// Rows read back are the rows appended, to the bit; a line a crash cut short or a
+    /// flipped digit is not taken (its row is measured again), and the next append
+    /// after a cut line starts a line of its own.
+    #[test]
+    fn the_los_log_gives_back_whole_rows_only() {
+        let dir = tempfile::tempdir().unwrap();
+        let row = |k: f64| {
+            vec![
+                (DVec3::new(0.1 * k, -0.2, 1.0 / 3.0), 17.25 * k),
+                (DVec3::new(k, k, k), 0.0),
+            ]
+        };
+        {
+            let (mut log, rows) = LosLog::open(dir.path()).unwrap();
+            assert!(rows.is_empty());
+            log.append(0, &row(1.0)).unwrap();
+            log.append(1, &row(2.0)).unwrap();
+            log.append(2, &[]).unwrap();
+            log.sync().unwrap();
+        }
+        let path = dir.path().join(file::LOS);
+        let mut bytes = std::fs::read(&path).unwrap();
+        let (_, rows) = LosLog::open(dir.path()).unwrap();
+        assert_eq!(rows.len(), 3);
+        assert_eq!(rows[&0], row(1.0));
+        assert_eq!(rows[&1], row(2.0));
+        assert!(rows[&2].is_empty());
+        // Row 1's line damaged (a digit changed), and row 3's cut short.
+        let second = bytes.iter().position(|&b| b == b'\n').unwrap() + 1;
+        let digit = second + bytes[second..].iter().position(|&b| b == b'2').unwrap();
+        bytes[digit] = b'3';
+        let mut torn = bytes.clone();
+        let whole = {
+            let mut log = LosLog {
+                file: File::create(dir.path().join("scratch")).unwrap(),
+            };
+            log.append(3, &row(3.0)).unwrap();
+            std::fs::read(dir.path().join("scratch")).unwrap()
+        };
+        torn.extend_from_slice(&whole[..whole.len() / 2]);
+        std::fs::write(&path, &torn).unwrap();
+        let (mut log, rows) = LosLog::open(dir.path()).unwrap();
+        assert_eq!(rows.keys().copied().collect::<Vec<_>>(), [0, 2]);
+        log.append(1, &row(2.0)).unwrap();
+        drop(log);
+        let (_, rows) = LosLog::open(dir.path()).unwrap();
+        assert_eq!(rows.keys().copied().collect::<Vec<_>>(), [0, 1, 2]);
+        assert_eq!(rows[&1], row(2.0));
     }
 }

@@ -231,14 +231,6 @@ impl Run {
         }
     }
 
-    /// Checks the interlock and that emission is still on; suspends if not.
-    pub(crate) fn watch_interlock(&mut self) -> Result<(), PipelineError> {
-        if let Some(s) = self.laser_suspension()? {
-            self.suspend(s, None)?;
-        }
-        Ok(())
-    }
-
     /// Reads the laser's state and reports it to the live displays (errors are left
     /// to the next check that needs the state).
     pub(crate) fn report_laser(&mut self) {
@@ -256,7 +248,7 @@ impl Run {
         });
     }
 
-    fn laser_suspension(&mut self) -> Result<Option<Suspension>, PipelineError> {
+    pub(crate) fn laser_suspension(&mut self) -> Result<Option<Suspension>, PipelineError> {
         let state = self.devices.laser.laser_state()?;
         self.emit_safety(state);
         Ok(if !state.interlock_closed {
