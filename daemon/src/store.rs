@@ -2,7 +2,8 @@
 //! pair plan, events and outputs.
 //!
 //! The histogram log is the only copy of what the instrument measured, so it is
-//! written for crashes: one self-describing record per pair (its pair index, flags,
+//! written for crashes: one self-describing record per pair, or a pair's partial sum
+//! before it (its pair index, flags,
 //! settings and counts, then a CRC-32 of all of it), appended and fsynced in batches.
 //! On resume, every valid record is read back: a record that is incomplete or fails its
 //! CRC is skipped and reading picks up at the next valid record, so damage in the
@@ -259,6 +260,15 @@ impl HistogramLog {
         if self.unsynced >= SYNC_EVERY || self.last_sync.elapsed() >= SYNC_INTERVAL {
             self.sync()?;
         }
+        Ok(())
+    }
+
+    /// Appends `record` without syncing, whatever the time since the last sync: for a
+    /// stop's last record, written with the laser on and synced once it is off (by
+    /// [`HistogramLog::sync`] or the log's drop).
+    pub fn append_unsynced(&mut self, record: &Record) -> io::Result<()> {
+        self.file.write_all(&record.encode())?;
+        self.unsynced += 1;
         Ok(())
     }
 

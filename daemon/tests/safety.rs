@@ -586,27 +586,50 @@ fn a_pause_in_the_los_scan_keeps_its_rows_and_the_resume_scans_the_rest() {
     assert!(!rig.emission());
 }
 
-/// Runs a capture of four 30 ms repeats a pair and, 75 ms into the pair after the
-/// third (its second or third repeat), calls `stop` with the run's control and its
-/// laser's direct off. Returns the run's directory and the rig.
+/// A scan whose rows make no relay (here the plan's depth window holds none of the
+/// wall's returns: too few points) sets its rows aside, so a resume scans again
+/// instead of failing on the same rows for good once the cause is put right; each
+/// failed scan's rows are kept under a name of their own.
+#[test]
+fn a_scan_that_makes_no_relay_keeps_its_rows_aside_and_a_resume_scans_again() {
+    let _serial = ONE_AT_A_TIME.lock().unwrap_or_else(|p| p.into_inner());
+    let tmp = tempfile::tempdir().unwrap();
+    let (dir, rig) = prepare(tmp.path(), &small_plan().set("relay.depth-m", [0.1, 0.2]).toml());
+    let lines = |name: &str| std::fs::read_to_string(dir.join(name)).unwrap().lines().count();
+    for kept in ["los.jsonl.failed", "los.jsonl.failed.1"] {
+        let e = execute(&dir, &rig, Control::new(), |_| {}).unwrap_err();
+        assert!(matches!(e, PipelineError::Relay(_)), "{e}");
+        assert!(!rig.emission());
+        assert!(!dir.join("los.jsonl").exists());
+        assert_eq!(lines(kept), 8, "{kept}: the failed scan's rows");
+    }
+}
+
+/// Runs a capture of four repeats of `dwell_ms` a pair and, 2.5 dwells into the pair
+/// after the third (its third repeat), calls `stop` with the run's control, its
+/// laser's direct off and the rig. Returns the run's directory and the rig.
 fn stopped_mid_repeats(
     tmp: &Path,
-    stop: impl Fn(&Control, &EmergencyOff) + Send + Sync + 'static,
+    dwell_ms: u64,
+    stop: impl Fn(&Control, &EmergencyOff, &SimBackend) + Send + Sync + 'static,
 ) -> (PathBuf, SimBackend) {
-    let repeats = small_plan().set("acquisition.repeats", 4).toml();
+    let repeats = small_plan()
+        .set("acquisition.repeats", 4)
+        .set("acquisition.dwell-ms", dwell_ms as f64)
+        .toml();
     let (dir, rig) = prepare(tmp, &repeats);
     let control = Control::new();
     let events = EventSink::open(&dir).unwrap();
     let laser: Arc<OnceLock<EmergencyOff>> = Arc::new(OnceLock::new());
     let stop = Arc::new(stop);
     {
-        let (control, laser) = (control.clone(), laser.clone());
+        let (control, laser, rig) = (control.clone(), laser.clone(), rig.clone());
         events.listen(move |e| {
             if let RunEvent::Pair { done: 3, .. } = e {
-                let (control, laser, stop) = (control.clone(), laser.clone(), stop.clone());
+                let (control, laser, stop, rig) = (control.clone(), laser.clone(), stop.clone(), rig.clone());
                 std::thread::spawn(move || {
-                    std::thread::sleep(Duration::from_millis(75));
-                    stop(&control, laser.get().unwrap());
+                    std::thread::sleep(Duration::from_millis(dwell_ms * 5 / 2));
+                    stop(&control, laser.get().unwrap(), &rig);
                 });
             }
         });
@@ -622,12 +645,27 @@ fn stopped_mid_repeats(
 /// partial record, and the resume measures only the rest on top of them: the pair's
 /// whole record holds the partial sum bin for bin, and every pair is stored whole
 /// once. Until 2026-12-07 the sum so far was dropped and the pair measured from its
-/// first repeat again (at the plan's limits, up to 999 dwells of an hour lost).
+/// first repeat again (at the plan's limits, up to 999 dwells of an hour lost). With
+/// the disk stalling every sync by 400 ms, the laser is still off within the bound:
+/// the partial record is written after it goes off, and synced after that (dwells of
+/// 200 ms, so the stop comes more than the log's 0.5 s after its last sync, when an
+/// append syncs).
 #[test]
 fn a_pause_in_the_middle_of_a_pairs_repeats_keeps_those_summed() {
+    use std::sync::atomic::Ordering;
     let _serial = ONE_AT_A_TIME.lock().unwrap_or_else(|p| p.into_inner());
     let tmp = tempfile::tempdir().unwrap();
-    let (dir, rig) = stopped_mid_repeats(tmp.path(), |control, _| control.pause());
+    let paused: Arc<OnceLock<Instant>> = Arc::default();
+    let at = paused.clone();
+    periscope_daemon::store::SLOW_SYNC_MS.store(400, Ordering::SeqCst);
+    let (dir, rig) = stopped_mid_repeats(tmp.path(), 200, move |control, _, _| {
+        let _ = at.set(Instant::now());
+        control.pause();
+    });
+    periscope_daemon::store::SLOW_SYNC_MS.store(0, Ordering::SeqCst);
+    let t = *paused.get().unwrap();
+    let off = rig.off_since(t).expect("off") - t;
+    assert!(off <= EMISSION_BOUND, "emission lasted {off:?} after the pause");
     assert_eq!(RunInfo::load(&dir).unwrap().state, RunState::Paused);
     let stopped = read_log(&dir).unwrap();
     assert_eq!(stopped.records.len(), 3, "the pairs before the stop");
@@ -635,7 +673,7 @@ fn a_pause_in_the_middle_of_a_pairs_repeats_keeps_those_summed() {
         panic!("no partial sum kept: {:?}", stopped.partial)
     };
     assert!(
-        [30_000, 60_000, 90_000].contains(&part.dwell_us),
+        [200_000, 400_000, 600_000].contains(&part.dwell_us),
         "{} µs summed",
         part.dwell_us
     );
@@ -644,7 +682,7 @@ fn a_pause_in_the_middle_of_a_pairs_repeats_keeps_those_summed() {
     let log = read_log(&dir).unwrap();
     assert!(log.partial.is_empty() && log.discarded_bytes == 0);
     let whole = log.records.iter().find(|r| r.pair == part.pair).unwrap();
-    assert_eq!(whole.dwell_us, 120_000);
+    assert_eq!(whole.dwell_us, 800_000);
     assert!(
         whole.counts.iter().zip(&part.counts).all(|(w, p)| w >= p),
         "the whole sum does not hold the partial one"
@@ -665,7 +703,7 @@ fn a_pause_in_the_middle_of_a_pairs_repeats_keeps_those_summed() {
 fn a_signals_stop_in_the_middle_of_a_pairs_repeats_keeps_no_partial_sum() {
     let _serial = ONE_AT_A_TIME.lock().unwrap_or_else(|p| p.into_inner());
     let tmp = tempfile::tempdir().unwrap();
-    let (dir, rig) = stopped_mid_repeats(tmp.path(), |control, off| {
+    let (dir, rig) = stopped_mid_repeats(tmp.path(), 30, |control, off, _| {
         off.laser_off().unwrap();
         std::thread::sleep(Duration::from_millis(1));
         control.pause();
@@ -681,6 +719,24 @@ fn a_signals_stop_in_the_middle_of_a_pairs_repeats_keeps_no_partial_sum() {
             .iter()
             .all(|r| r.dwell_us == 120_000)
     );
+}
+
+/// Nor does a pause that finds the pair's own checks failing: here the laser's sync
+/// has changed rate under the repeats (another preset), which the pair's verdict would
+/// have measured again, so the partial sum is not kept either.
+#[test]
+fn a_pause_under_a_sync_the_pair_would_refuse_keeps_no_partial_sum() {
+    let _serial = ONE_AT_A_TIME.lock().unwrap_or_else(|p| p.into_inner());
+    let tmp = tempfile::tempdir().unwrap();
+    let (dir, rig) = stopped_mid_repeats(tmp.path(), 30, |control, _, rig| {
+        rig.set_repetition_rate(12e6);
+        std::thread::sleep(Duration::from_millis(5));
+        control.pause();
+    });
+    rig.set_repetition_rate(10e6);
+    let stopped = read_log(&dir).unwrap();
+    assert!(stopped.partial.is_empty(), "{:?}", stopped.partial);
+    assert_eq!(stopped.records.len(), 3);
 }
 
 /// The time budget holds while nothing can be fitted: with every histogram flagged

@@ -180,6 +180,12 @@ impl Devices {
                 );
             }
             let off = laser.set_emission(false);
+            if found.is_err() || off.is_err() {
+                // A controller that does not answer as this protocol expects is most
+                // often one of another version: identifying it says so, with what to
+                // do, where the state's parse error would not.
+                laser_arm.identify()?;
+            }
             found?;
             off?;
         }

@@ -486,13 +486,18 @@ impl Run {
     /// A stop `e` that came after `summed` of pair `i`'s repeats, `done` of them an
     /// earlier session's: where this session summed some and the stop is the
     /// operator's pause or abort, the sum so far is appended as a partial record
-    /// ([`Record::partial`]) and a resume measures the rest on top of it. Kept only
-    /// while the laser is still on with the interlock closed: only the run switches
-    /// it on, so then every repeat summed was lit throughout; an e-stop or a signal
-    /// switches it off out of band as it asks the stop, and a dwell that ended in
-    /// between may have been partly dark, so those sums are measured again, as are a
-    /// device error's (until 2026-12-07 every stop in the middle of a pair dropped
-    /// the repeats summed). Returns `e`.
+    /// ([`Record::partial`]) and a resume measures the rest on top of it (until
+    /// 2026-12-07 every stop in the middle of a pair dropped the repeats summed).
+    /// Kept only where the pair's own checks would keep it so far
+    /// ([`Run::capture_suspension`]'s, read now): the laser still on with the interlock
+    /// closed (only the run switches it on, so then every repeat summed was lit
+    /// throughout; an e-stop or a signal switches it off out of band as it asks the
+    /// stop, and a dwell that ended in between may have been partly dark), the
+    /// detector's rate within `suspend.max-count-rate-hz`, and the sync as the config
+    /// says once the rate meter shows it; else, as after a device error, the pair is
+    /// measured again whole. The laser goes off before the record is written, and the
+    /// record is synced with the log after (never waiting on the disk with the laser
+    /// on). Returns `e`.
     fn keep_partial(
         &mut self,
         i: usize,
@@ -505,12 +510,25 @@ impl Run {
         if summed == done || !matches!(e, PipelineError::Paused(_) | PipelineError::Aborted(_)) {
             return e;
         }
-        match self.devices.laser.laser_state() {
-            Ok(s) if s.emission && s.interlock_closed => {}
-            _ => return e,
+        let lit = matches!(self.devices.laser.laser_state(), Ok(s) if s.emission && s.interlock_closed);
+        let rates = lit
+            .then(|| self.devices.tdc.status())
+            .and_then(Result::ok)
+            .map(|s| s.rates);
+        let after = self.devices.tdc.sync_after_divider();
+        let sync_shown = self.sync.from.is_some_and(|t| std::time::Instant::now() >= t);
+        let keep = rates.is_some_and(|r| {
+            r.detector <= self.plan.suspend.max_count_rate
+                && (!sync_shown || self.instrument.sync_fault(r.sync, after).is_none())
+        });
+        if let Err(err) = self.devices.laser.set_emission(false) {
+            tracing::warn!(error = %err, "switching the laser off as the capture stopped failed; the run's shutdown tries again");
+        }
+        if !keep {
+            return e;
         }
         let rec = self.record(i, acq, counts, flags, summed, true);
-        match log.append(&rec) {
+        match log.append_unsynced(&rec) {
             Ok(()) => tracing::info!(
                 pair = i,
                 summed,

@@ -96,8 +96,8 @@ impl Run {
     /// resumed scan measures only the rows it lacks (and none, with the laser never
     /// on, where every row is there).
     pub(crate) fn los_scan(&mut self) -> Result<Vec<(DVec3, f64)>, PipelineError> {
-        let (mut log, rows) =
-            LosLog::open(&self.dir).map_err(|e| PipelineError::storage(&self.dir.join(file::LOS), e))?;
+        let (mut log, rows) = LosLog::open(&self.dir, self.plan.los.grid)
+            .map_err(|e| PipelineError::storage(&self.dir.join(file::LOS), e))?;
         let result = self.los_rows(&mut log, rows);
         if result.is_err() {
             // A stop or a failure: the laser goes off before the log is synced, as the
@@ -224,6 +224,32 @@ impl Run {
         Ok(out)
     }
 
+    /// Keeps the LOS scan's rows aside (`los.jsonl.failed`, `.1`, … for later ones)
+    /// after the relay could not be made from them (no returns, too few points): the
+    /// rows stay on disk, and a resume scans the relay again instead of failing on the
+    /// same rows for good once the cause (a capped lens, a SPAD off, a moved relay) is
+    /// put right.
+    pub(crate) fn set_aside_los_rows(&self) {
+        let from = self.dir.join(file::LOS);
+        let mut to = self.dir.join(format!("{}.failed", file::LOS));
+        let mut n = 0;
+        while to.symlink_metadata().is_ok() {
+            n += 1;
+            to = self.dir.join(format!("{}.failed.{n}", file::LOS));
+        }
+        match std::fs::rename(&from, &to).and_then(|()| periscope_recon::io::sync_directory(&self.dir)) {
+            Ok(()) => tracing::warn!(
+                kept = %to.display(),
+                "no relay could be made from the LOS scan's rows; they were kept aside, and a resume scans the relay again"
+            ),
+            Err(e) => tracing::warn!(
+                error = %e,
+                "no relay could be made from the LOS scan's rows, and they could not be kept aside: move {} aside before resuming, or the resume fails on the same rows",
+                from.display()
+            ),
+        }
+    }
+
     /// Thresholds, outlier removal and normals ([`relay_points`]).
     pub(crate) fn extract_relay(&self, returns: &[(DVec3, f64)]) -> Result<Vec<RelayPoint>, PipelineError> {
         let s = self.instrument.spad_arm.pose.origin;
@@ -305,33 +331,46 @@ struct LosRow {
     returns: Vec<[f64; 4]>,
 }
 
-/// Largest `los.jsonl` read back (a 256 × 256 grid of returns takes about 5 MB).
-const MAX_LOS_LOG: u64 = 64 << 20;
+/// Most bytes a `los.jsonl` line takes a grid point (four f64s as JSON's shortest
+/// round-trip numbers take at most 24 characters each, with their brackets and
+/// commas); a row's own header and CRC are within [`LOS_LOG_SLACK`].
+const LOS_LOG_POINT_BYTES: u64 = 128;
+
+/// Bytes a `los.jsonl` may hold beyond its points': rows' headers and CRCs, and lines
+/// a crash cut short that a resumed scan wrote again.
+const LOS_LOG_SLACK: u64 = 16 << 20;
 
 impl LosLog {
     /// Opens (or makes) the run's LOS log in `dir` for appending, with the rows it
-    /// holds: each row's first whole line, in row order.
-    pub(crate) fn open(dir: &Path) -> io::Result<(LosLog, LosRows)> {
+    /// holds: each row's first whole line, in row order. A file larger than a scan of
+    /// `grid` ([nx, ny]) writes is refused before it is read.
+    pub(crate) fn open(dir: &Path, grid: [usize; 2]) -> io::Result<(LosLog, LosRows)> {
         let path = dir.join(file::LOS);
+        let most = (grid[0] as u64 * grid[1] as u64).saturating_mul(LOS_LOG_POINT_BYTES) + LOS_LOG_SLACK;
         let mut rows = BTreeMap::new();
-        match std::fs::symlink_metadata(&path) {
+        // Whether the file ends in a line a crash cut short.
+        let mut open_line = false;
+        let made = match std::fs::symlink_metadata(&path) {
             Ok(m) if !m.is_file() => {
                 return Err(io::Error::new(
                     io::ErrorKind::InvalidInput,
                     "not a regular file (a link, a FIFO or a directory): move it aside",
                 ));
             }
-            Ok(m) if m.len() > MAX_LOS_LOG => {
+            Ok(m) if m.len() > most => {
                 return Err(io::Error::new(
                     io::ErrorKind::InvalidData,
                     format!(
-                        "{} bytes, more than any LOS scan writes ({MAX_LOS_LOG}): move it aside",
-                        m.len()
+                        "{} bytes, more than a scan of {} × {} points writes ({most}): not this run's; move it aside",
+                        m.len(),
+                        grid[0],
+                        grid[1]
                     ),
                 ));
             }
             Ok(_) => {
                 let bytes = std::fs::read(&path)?;
+                open_line = bytes.last().is_some_and(|&b| b != b'\n');
                 for line in bytes.split(|&b| b == b'\n') {
                     if let Some(r) = parse_los_line(line) {
                         rows.entry(r.row).or_insert_with(|| {
@@ -342,15 +381,20 @@ impl LosLog {
                         });
                     }
                 }
+                false
             }
-            Err(e) if e.kind() == io::ErrorKind::NotFound => {}
+            Err(e) if e.kind() == io::ErrorKind::NotFound => true,
             Err(e) => return Err(e),
+        };
+        let mut log = LosLog {
+            file: OpenOptions::new().create(true).append(true).open(&path)?,
+        };
+        if made {
+            // Its entry made durable with the run directory, as the histogram log's.
+            periscope_recon::io::sync_directory(dir)?;
         }
-        let file = OpenOptions::new().create(true).append(true).open(&path)?;
-        // A line a crash cut short is ended, so the next row's line starts whole.
-        let len = file.metadata()?.len();
-        let mut log = LosLog { file };
-        if len > 0 && std::fs::read(&path)?.last() != Some(&b'\n') {
+        if open_line {
+            // A line a crash cut short is ended, so the next row's line starts whole.
             log.file.write_all(b"\n")?;
         }
         Ok((log, rows))
@@ -482,6 +526,8 @@ mod tests {
 mod log_tests {
     use super::*;
 
+    const GRID: [usize; 2] = [4, 4];
+
     /// Rows read back are the rows appended, to the bit; a line a crash cut short or a
     /// flipped digit is not taken (its row is measured again), and the next append
     /// after a cut line starts a line of its own.
@@ -495,7 +541,7 @@ mod log_tests {
             ]
         };
         {
-            let (mut log, rows) = LosLog::open(dir.path()).unwrap();
+            let (mut log, rows) = LosLog::open(dir.path(), GRID).unwrap();
             assert!(rows.is_empty());
             log.append(0, &row(1.0)).unwrap();
             log.append(1, &row(2.0)).unwrap();
@@ -504,7 +550,7 @@ mod log_tests {
         }
         let path = dir.path().join(file::LOS);
         let mut bytes = std::fs::read(&path).unwrap();
-        let (_, rows) = LosLog::open(dir.path()).unwrap();
+        let (_, rows) = LosLog::open(dir.path(), GRID).unwrap();
         assert_eq!(rows.len(), 3);
         assert_eq!(rows[&0], row(1.0));
         assert_eq!(rows[&1], row(2.0));
@@ -523,11 +569,11 @@ mod log_tests {
         };
         torn.extend_from_slice(&whole[..whole.len() / 2]);
         std::fs::write(&path, &torn).unwrap();
-        let (mut log, rows) = LosLog::open(dir.path()).unwrap();
+        let (mut log, rows) = LosLog::open(dir.path(), GRID).unwrap();
         assert_eq!(rows.keys().copied().collect::<Vec<_>>(), [0, 2]);
         log.append(1, &row(2.0)).unwrap();
         drop(log);
-        let (_, rows) = LosLog::open(dir.path()).unwrap();
+        let (_, rows) = LosLog::open(dir.path(), GRID).unwrap();
         assert_eq!(rows.keys().copied().collect::<Vec<_>>(), [0, 1, 2]);
         assert_eq!(rows[&1], row(2.0));
     }

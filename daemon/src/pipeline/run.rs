@@ -513,11 +513,17 @@ impl Run {
             None => {
                 let t = Instant::now();
                 self.set_stage(Stage::LosScan)?;
-                let returns = self.los_scan()?;
+                let returns = self.los_scan().inspect_err(|e| {
+                    if matches!(e, PipelineError::Relay(_)) {
+                        self.set_aside_los_rows();
+                    }
+                })?;
                 self.finish_stage(Stage::LosScan, t);
                 let t = Instant::now();
                 self.set_stage(Stage::Relay)?;
-                let relay = self.extract_relay(&returns)?;
+                let relay = self
+                    .extract_relay(&returns)
+                    .inspect_err(|_| self.set_aside_los_rows())?;
                 self.checkpoint()?;
                 self.events.emit(RunEvent::Relay {
                     returns: returns.len(),
