@@ -212,7 +212,9 @@ pub(crate) fn adaptive_settings(
 pub struct BatchChoice {
     /// The batch's index (0: the first batch).
     pub batch: usize,
-    /// How it was chosen: `spread`, `adaptive`, `uniform` or `random`.
+    /// How it was chosen: `spread`, `adaptive`, `uniform` or `random`; `resumed` for
+    /// a resumed capture's first batch that finishes pairs an earlier session stopped
+    /// in the middle of ([`Selector::resumed_batch`]).
     pub how: String,
     /// The candidates chosen, in the order they are measured.
     pub pairs: Vec<usize>,
@@ -470,13 +472,38 @@ impl Selector {
     /// What is left of the first batch after [`Selector::resume`]: `None` when the
     /// pairs already measured cover it.
     pub fn first_rest(&mut self) -> Option<BatchChoice> {
-        let n = self.sizes.first.saturating_sub(self.measured.len());
-        if n == 0 {
+        self.resumed_batch(&[])
+    }
+
+    /// A resumed capture's first batch (after [`Selector::resume`]): the candidates
+    /// in `carried` an earlier session stopped in the middle of (their partial sums
+    /// hold laser time already spent; as many as the budget has room for, in index
+    /// order), then what is left of the first batch spread around every pair taken.
+    /// Its `how` is `resumed` where it carries any, else `spread`. `None` when there
+    /// is neither.
+    pub fn resumed_batch(&mut self, carried: &[usize]) -> Option<BatchChoice> {
+        let mut batch: Vec<usize> = carried
+            .iter()
+            .copied()
+            .filter(|&i| i < self.candidates.len() && !self.is_measured[i])
+            .collect();
+        batch.sort_unstable();
+        batch.dedup();
+        batch.truncate(self.sizes.budget.saturating_sub(self.measured.len()));
+        let n = self.sizes.first.saturating_sub(self.measured.len() + batch.len());
+        let mut coverage = self.coverage.clone();
+        for &i in &batch {
+            coverage.take(&self.candidates, i);
+        }
+        let how = if batch.is_empty() { "spread" } else { "resumed" };
+        let spread = farthest_points_from(&self.candidates, &coverage, n);
+        let explored = spread.len();
+        batch.extend(spread);
+        if batch.is_empty() {
             return None;
         }
-        let batch = farthest_points_from(&self.candidates, &self.coverage, n);
         let k = batch.len();
-        Some(self.take(batch, vec![0.0; k], k, "spread", None))
+        Some(self.take(batch, vec![0.0; k], explored, how, None))
     }
 
     /// Another batch spread around what was measured: for a fit that has nothing to
@@ -773,6 +800,45 @@ mod tests {
             assert_eq!(&measured[..stored.len()], &stored[..], "{order}");
             assert_eq!(distinct(&measured), 60, "{order}: a candidate measured twice");
         }
+    }
+
+    /// A resumed capture's first batch finishes the pairs stopped in the middle of
+    /// (those not measured, as many as the budget has room for) and spreads what is
+    /// left of the first batch around them and the pairs stored; past the first batch
+    /// it is those pairs alone, and with none it is `first_rest`'s spread.
+    #[test]
+    fn a_resumed_batch_finishes_the_pairs_stopped_in_first() {
+        let settings = |pairs, first| AdaptiveSettings {
+            pairs,
+            first,
+            batch: 16,
+            ..Default::default()
+        };
+        let resumed = |pairs, first, stored: &[usize], carried: &[usize]| {
+            let mut s = Selector::new(wall(12), settings(pairs, first), Order::Adaptive);
+            s.resume(stored);
+            s.resumed_batch(carried)
+        };
+        // Inside the first batch: the carried pair (stored ones and out-of-range
+        // indices ignored), then the spread, none of it stored.
+        let b = resumed(60, 10, &[0, 143], &[143, 77, 77, 500]).unwrap();
+        assert_eq!((b.how.as_str(), b.pairs.len(), b.explored), ("resumed", 8, 7));
+        assert!(b.pairs.contains(&77) && !b.pairs.contains(&0) && !b.pairs.contains(&143));
+        assert_eq!(distinct(&b.pairs), 8);
+        // Past the first batch: the carried pairs alone, as many as the budget allows.
+        let b = resumed(12, 10, &(0..10).collect::<Vec<_>>(), &[40, 30, 20]).unwrap();
+        assert_eq!((b.how.as_str(), b.explored), ("resumed", 0));
+        let mut pairs = b.pairs.clone();
+        pairs.sort_unstable();
+        assert_eq!(
+            pairs,
+            vec![20, 30],
+            "the two the budget has room for, lowest first"
+        );
+        // Nothing carried: first_rest's spread, or nothing once the first batch is in.
+        let b = resumed(60, 10, &[5], &[]).unwrap();
+        assert_eq!((b.how.as_str(), b.pairs.len(), b.explored), ("spread", 9, 9));
+        assert!(resumed(60, 10, &(0..10).collect::<Vec<_>>(), &[]).is_none());
     }
 
     /// A first batch of 16, then one of 32 chosen by gain alone (nothing taken for

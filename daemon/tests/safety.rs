@@ -613,7 +613,18 @@ fn stopped_mid_repeats(
     dwell_ms: u64,
     stop: impl Fn(&Control, &EmergencyOff, &SimBackend) + Send + Sync + 'static,
 ) -> (PathBuf, SimBackend) {
-    let repeats = small_plan()
+    stopped_mid_repeats_of(tmp, small_plan(), 3, dwell_ms, stop)
+}
+
+/// [`stopped_mid_repeats`] of `plan`, 2.5 dwells into the pair after the `after`th.
+fn stopped_mid_repeats_of(
+    tmp: &Path,
+    plan: SmallPlan,
+    after: usize,
+    dwell_ms: u64,
+    stop: impl Fn(&Control, &EmergencyOff, &SimBackend) + Send + Sync + 'static,
+) -> (PathBuf, SimBackend) {
+    let repeats = plan
         .set("acquisition.repeats", 4)
         .set("acquisition.dwell-ms", dwell_ms as f64)
         .toml();
@@ -625,7 +636,7 @@ fn stopped_mid_repeats(
     {
         let (control, laser, rig) = (control.clone(), laser.clone(), rig.clone());
         events.listen(move |e| {
-            if let RunEvent::Pair { done: 3, .. } = e {
+            if matches!(e, RunEvent::Pair { done, .. } if *done == after) {
                 let (control, laser, stop, rig) = (control.clone(), laser.clone(), stop.clone(), rig.clone());
                 std::thread::spawn(move || {
                     std::thread::sleep(Duration::from_millis(dwell_ms * 5 / 2));
@@ -694,6 +705,67 @@ fn a_pause_in_the_middle_of_a_pairs_repeats_keeps_those_summed() {
         .map(|(w, p)| u64::from(w - p))
         .sum();
     assert!(more > 0, "nothing measured on top of the partial sum");
+}
+
+/// An adaptive capture paused in the middle of a pair's repeats, in a batch the fit
+/// chose, finishes that pair first when it resumes, on top of its partial sum: the
+/// resumed session's first batch (`resumed`) holds it, and no partial sum is left
+/// unused in the log. Until 2026-12-07 the resume chose afresh from a new fit, which
+/// need not choose that pair again (here, and in every case tried, it did: the pair
+/// is finished now by rule, not by what a fit on fewer pairs happens to choose).
+#[test]
+fn a_resumed_adaptive_capture_finishes_the_pair_it_stopped_in_the_middle_of() {
+    let _serial = ONE_AT_A_TIME.lock().unwrap_or_else(|p| p.into_inner());
+    let tmp = tempfile::tempdir().unwrap();
+    let adaptive = small_plan()
+        .set("pairs.mode", "adaptive")
+        .set("pairs.candidates", "confocal")
+        .set("recon.adaptive.pairs", 12)
+        .set("recon.adaptive.first", 6)
+        .set("recon.adaptive.batch", 3)
+        .set("recon.adaptive.live-steps", 16);
+    let (dir, rig) = stopped_mid_repeats_of(tmp.path(), adaptive, 7, 30, |control, _, _| control.pause());
+    assert_eq!(RunInfo::load(&dir).unwrap().state, RunState::Paused);
+    let stopped = read_log(&dir).unwrap();
+    assert_eq!(stopped.records.len(), 7, "the pairs before the stop");
+    let [part] = stopped.partial.as_slice() else {
+        panic!("no partial sum kept: {:?}", stopped.partial)
+    };
+    let events = EventSink::open(&dir).unwrap();
+    let chosen = Arc::new(Mutex::new(Vec::new()));
+    {
+        let chosen = chosen.clone();
+        events.listen(move |e| {
+            if let RunEvent::PairsChosen(c) = e {
+                chosen.lock().unwrap().push((c.how.clone(), c.pairs.clone()));
+            }
+        });
+    }
+    Run::open(&dir, Control::new(), Some(events), Some(&rig))
+        .unwrap()
+        .execute()
+        .unwrap();
+    let log = read_log(&dir).unwrap();
+    assert!(
+        log.partial.is_empty(),
+        "a partial sum left unused: {:?}",
+        log.partial
+    );
+    let mut stored: Vec<u32> = log.records.iter().map(|r| r.pair).collect();
+    stored.sort_unstable();
+    stored.dedup();
+    assert_eq!(stored.len(), 12, "the budget, each pair once");
+    let whole = log.records.iter().find(|r| r.pair == part.pair).unwrap();
+    assert_eq!(whole.dwell_us, 120_000);
+    assert!(whole.counts.iter().zip(&part.counts).all(|(w, p)| w >= p));
+    let chosen = chosen.lock().unwrap();
+    let (how, first) = &chosen[0];
+    assert_eq!(how, "resumed");
+    assert_eq!(
+        first,
+        &[part.pair as usize],
+        "the resumed batch: the pair stopped in"
+    );
 }
 
 /// A stop that switches the laser off out of band before it asks the run to pause

@@ -80,9 +80,14 @@ impl Run {
     ) -> Result<(Fit, Vec<Record>), PipelineError> {
         // Partial sums an earlier session kept when it stopped in the middle of a
         // pair's repeats: the pair's rest is measured on top of them.
-        let mut partial: std::collections::HashMap<u32, Record> =
-            partial.into_iter().map(|r| (r.pair, r)).collect();
+        // One that does not fit the plan stays in the log, and its pair is measured
+        // afresh.
         let acq: Acquisition = self.plan.acquisition.clone();
+        let mut partial: std::collections::HashMap<u32, Record> = partial
+            .into_iter()
+            .filter(|r| (r.pair as usize) < pairs.len() && self.fits_the_plan(r, &acq))
+            .map(|r| (r.pair, r))
+            .collect();
         let (l, s) = (
             self.instrument.laser_arm.pose.origin,
             self.instrument.spad_arm.pose.origin,
@@ -154,7 +159,12 @@ impl Run {
                 fit.add(&batch)?;
                 return Ok((fit, held));
             }
-            let mut next = selector.first_rest();
+            // Pairs an earlier session stopped in the middle of are finished first:
+            // their partial sums are laser time spent, which a new choice would leave
+            // unused in the log.
+            let mut carried: Vec<usize> = partial.keys().map(|&i| i as usize).collect();
+            carried.retain(|&i| !stored.contains(&(i as u32)));
+            let mut next = selector.resumed_batch(&carried);
             if next.is_none() && selector.measured().len() >= total {
                 // Resumed with the budget already measured: nothing to choose.
                 fit.add(&batch)?;
@@ -381,8 +391,8 @@ impl Run {
     }
 
     /// Measures pair `i` (`p`): both arms moved and settled, the plan's repeats summed
-    /// (on top of `carried`, an earlier session's partial sum of them, where it fits
-    /// the plan); measured again after a suspension that cleared by itself. A pause or
+    /// (on top of `carried`, an earlier session's partial sum of them, which
+    /// [`Run::fits_the_plan`]); measured again after a suspension that cleared by itself. A pause or
     /// abort in the middle of the repeats keeps those summed ([`Run::keep_partial`]).
     #[allow(clippy::too_many_arguments)]
     fn measure(
@@ -395,7 +405,6 @@ impl Run {
         log: &mut HistogramLog,
         carried: Option<Record>,
     ) -> Result<Record, PipelineError> {
-        let carried = carried.filter(|r| self.fits_the_plan(r, acq));
         let (counts, flags) = loop {
             self.checkpoint()?;
             // Both arms move at once; each wait accepts only its commanded target.
