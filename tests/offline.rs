@@ -87,7 +87,7 @@ fn recon_and_export_of_a_run_directory_whole_and_damaged() {
     for own in [HISTOGRAM_LOG, "run.json"] {
         let out = periscope(&["export", s(&run), "--out", s(&run.join(own))]);
         assert_eq!(out.code, Some(1), "{out:?}");
-        assert!(out.stderr.contains("is a file of a run directory"), "{out:?}");
+        assert!(out.stderr.contains("is in a run directory"), "{out:?}");
     }
     assert_eq!(std::fs::read(run.join(HISTOGRAM_LOG)).unwrap(), before);
 
@@ -114,14 +114,38 @@ fn recon_and_export_of_a_run_directory_whole_and_damaged() {
     );
     // Nor another run's files: its log is its only copy of what it measured, and its
     // capture.hdf5 would hold this run's (until 2026-12-06 only the exported run's own
-    // files were refused). The default, the run's own capture.hdf5, is not refused.
-    for other in [HISTOGRAM_LOG, "run.json", "capture.hdf5"] {
-        std::fs::write(damaged.join("capture.hdf5"), b"an earlier export").unwrap();
+    // files were refused). Nor a file it has not written yet (a run still capturing
+    // would take that capture.hdf5 as its own), nor one in its folders (`import/`
+    // holds an imported run's only copy of its capture): until 2026-12-07 both were
+    // written. The default, the run's own capture.hdf5, is not refused.
+    let _ = std::fs::remove_file(damaged.join("capture.hdf5"));
+    std::fs::create_dir(damaged.join("import")).unwrap();
+    std::fs::write(damaged.join("import/scene.hdf5"), b"the imported capture").unwrap();
+    for other in [
+        "capture.hdf5",
+        HISTOGRAM_LOG,
+        "run.json",
+        "import/scene.hdf5",
+        "import/new.hdf5",
+    ] {
         let out = periscope(&["export", s(&run), "--out", s(&damaged.join(other))]);
         assert_eq!(out.code, Some(1), "{other}: {out:?}");
-        assert!(out.stderr.contains("is a file of a run directory"), "{out:?}");
+        assert!(out.stderr.contains("is in a run directory"), "{out:?}");
+        if other == "capture.hdf5" {
+            assert!(!damaged.join(other).exists(), "written before the run had one");
+            std::fs::write(damaged.join(other), b"an earlier export").unwrap();
+        }
     }
     assert_eq!(std::fs::read(&log).unwrap(), bytes);
+    assert_eq!(
+        std::fs::read(damaged.join("capture.hdf5")).unwrap(),
+        b"an earlier export"
+    );
+    assert_eq!(
+        std::fs::read(damaged.join("import/scene.hdf5")).unwrap(),
+        b"the imported capture"
+    );
+    assert!(!damaged.join("import/new.hdf5").exists());
     let out = periscope(&["export", s(&run), "--out", s(&run.join("capture.hdf5"))]);
     assert_eq!(out.code, Some(0), "{out:?}");
 
@@ -133,6 +157,7 @@ fn recon_and_export_of_a_run_directory_whole_and_damaged() {
     let out = periscope(&["recon", s(&planless), "--out", s(&nowhere)]);
     assert_eq!(out.code, Some(1), "{out:?}");
     assert!(out.stderr.contains("pairs.json"), "{}", out.stderr);
+    assert!(!nowhere.exists(), "an output directory for a refused recon");
     let out = periscope(&["export", s(&planless), "--out", s(&tmp.path().join("p.hdf5"))]);
     assert_eq!(out.code, Some(1), "{out:?}");
     assert!(out.stderr.contains("pairs.json"), "{}", out.stderr);
@@ -238,9 +263,15 @@ fn an_adaptive_replay_reveals_its_budget_and_records_each_choice() {
         "{}",
         done.stderr
     );
+    assert!(!out.exists(), "an output directory for a refused replay");
     // The uniform order works for a solver too: it needs no fit.
     let out = tmp.path().join("fbp-uniform");
     let done = replay(&out, Some("uniform"));
     assert_eq!(done.code, Some(0), "{done:?}");
     assert_eq!(record(&out)["measured"], 40);
+    // A plain recon into the same folder leaves no replay's record beside its volume
+    // (until 2026-12-07 the replay's stayed, as if it had chosen the new volume's pairs).
+    let done = periscope(&["recon", s(&capture), "--config", s(&config), "--out", s(&out)]);
+    assert_eq!(done.code, Some(0), "{done:?}");
+    assert!(out.join("volume.npy").is_file() && !out.join("adaptive.json").exists());
 }

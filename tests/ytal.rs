@@ -710,6 +710,10 @@ fn a_rendered_captures_point_source_laser_falloff_is_divided_out() {
         msg.contains("no-laser.hdf5") && msg.contains("laser-falloff") && msg.contains("laser_xyz"),
         "{msg}"
     );
+    // `auto` on it takes the counts as they are, with a warning, as for a geometry
+    // that does not support the correction (until 2026-12-07 it was refused too).
+    let auto = open(&bare).transients(&volume, LaserFalloff::Auto).unwrap();
+    assert!(auto.falloff.is_none());
 
     // `periscope recon` says what it did.
     let config = dir.path().join("fbp.toml");
@@ -740,6 +744,19 @@ fn a_default_volume_is_refused_over_a_relay_of_no_area_or_hundreds_of_metres() {
     assert!(
         e.contains("span") && e.contains("metres") && e.contains("[volume]"),
         "{e}"
+    );
+    // The same reason through a RECON.toml that leaves the volume to the capture
+    // (until 2026-12-07: only "`volume` is required").
+    let dir = tempfile::tempdir().unwrap();
+    let (path, config) = (dir.path().join("mm.hdf5"), dir.path().join("fbp.toml"));
+    wide.write(&path).unwrap();
+    std::fs::write(&config, "method = \"fbp\"\n").unwrap();
+    let done = try_recon(path.to_str().unwrap(), config.to_str(), &dir.path().join("out"));
+    assert_eq!(done.code, Some(1), "{done:?}");
+    assert!(
+        done.stderr.contains("mm.hdf5") && done.stderr.contains("metres"),
+        "{}",
+        done.stderr
     );
     let mut spot = YtalCapture::read(&file).unwrap();
     let at = spot.sensor_grid.points[0];

@@ -13,8 +13,8 @@ use periscope_recon::io::ytal::{
 use periscope_recon::transient::rebin_path;
 use periscope_recon::{TimeAxis, TransientError, TransientSet, VolumeGrid};
 
-use crate::config::InstrumentConfig;
-use crate::plan::{LaserFalloff, Plan, PlannedPair, ReconSettings, default_recon};
+use crate::config::{ConfigError, InstrumentConfig, TomlSource};
+use crate::plan::{LaserFalloff, Plan, PlannedPair, ReconSettings, check_recon, default_recon, load_recon};
 use crate::record::{push_record, record_axis, record_counts, relay_gains, run_axis};
 use crate::run_dir::RunInfo;
 use crate::run_dir::{RunDir, RunDirError, file};
@@ -456,6 +456,25 @@ impl Capture {
         }
     }
 
+    /// The reconstruction settings RECON.toml `src` gives for this capture, its volume
+    /// the capture's own ([`Capture::default_volume`]) where the file gives none. Where
+    /// neither does, the capture's reason (naming its file: positions not in metres,
+    /// say), not only that the file lacks a `volume`.
+    pub fn recon_from<E: From<ConfigError> + From<CaptureError>>(
+        &self,
+        src: &TomlSource,
+    ) -> Result<ReconSettings, E> {
+        let default = self.default_volume();
+        match load_recon(src, default.as_ref().ok().copied()) {
+            Ok(s) => Ok(s),
+            // The file is sound but for the volume it leaves to the capture.
+            Err(e) => match default {
+                Err(why) if check_recon(src).is_ok() => Err(why.into()),
+                _ => Err(e.into()),
+            },
+        }
+    }
+
     /// The reconstruction settings to use without a RECON.toml: the run's plan's, or
     /// the defaults derived for a y-tal capture's volume.
     pub fn default_recon(&self) -> Result<ReconSettings, CaptureError> {
@@ -533,6 +552,15 @@ impl Capture {
         };
         let path = self.path().to_path_buf();
         let Some(laser) = laser else {
+            if falloff == LaserFalloff::Auto {
+                // As for a geometry that does not support it: the counts as they are.
+                tracing::warn!(
+                    capture = %path.display(),
+                    "laser falloff not compensated: the capture gives no laser origin (`laser_xyz` is empty); \
+                     set laser-falloff = \"none\" to say so"
+                );
+                return Ok(t);
+            }
             return Err(CaptureError::LaserFalloff {
                 path,
                 reason: "the capture gives no laser origin (`laser_xyz` is empty)".into(),

@@ -427,18 +427,32 @@ fn check_calibrate_out(out: &Path, instrument: &Path) -> Result<(), CliError> {
 /// Refuses an export's `out` that is one of the run's own files (its histograms,
 /// `run.json`, the plan): the export replaces `out` whole, and the run's data would be
 /// gone. `capture.hdf5` in the run directory (the default) is the export's own file.
-/// Nor a file of another run's directory (its histogram log is its only copy of the
-/// measurements), its `capture.hdf5` included, which would then hold this run's.
+/// Nor anything inside another run's directory, its subfolders included (its histogram
+/// log is its only copy of the measurements, `import/` an imported run's only copy of
+/// its capture), whether the file is there yet or not: a run that has not finished
+/// would take a `capture.hdf5` written there as its own.
 fn refuse_run_file(run_dir: &Path, out: &Path) -> Result<(), CliError> {
-    let (Ok(dir), Ok(target)) = (run_dir.canonicalize(), out.canonicalize()) else {
-        return Ok(()); // `out` does not exist yet: nothing to overwrite.
-    };
-    let Some(parent) = target.parent() else {
+    let Ok(dir) = run_dir.canonicalize() else {
         return Ok(());
     };
-    let export = parent == dir.as_path()
+    // Where `out` is, links resolved: itself where it exists, else its folder's.
+    let target = match out.canonicalize() {
+        Ok(t) => t,
+        Err(_) => {
+            let parent = match out.parent() {
+                Some(p) if !p.as_os_str().is_empty() => p,
+                _ => Path::new("."),
+            };
+            match (parent.canonicalize(), out.file_name()) {
+                (Ok(p), Some(name)) => p.join(name),
+                // No such folder: the write fails, naming it.
+                _ => return Ok(()),
+            }
+        }
+    };
+    let export = target.parent() == Some(dir.as_path())
         && target.file_name() == Some(std::ffi::OsStr::new(crate::ytal::CAPTURE_FILE));
-    if RunDir::holds_run(parent) && !export {
+    if !export && target.ancestors().skip(1).any(RunDir::holds_run) {
         return Err(CliError::RunFile(out.to_path_buf()));
     }
     Ok(())
@@ -695,10 +709,10 @@ pub enum CliError {
         /// Why.
         source: std::io::Error,
     },
-    /// `export --out` naming one of the run's own files.
+    /// `export --out` naming a file in a run directory (not the run's own capture.hdf5).
     #[error(
-        "{} is a file of a run directory and the export would replace it; give --out a new file \
-         outside the run directories (or leave it out: RUN_DIR/capture.hdf5)",
+        "{} is in a run directory, and the export would replace or add to that run's files; give \
+         --out a new file outside the run directories (or leave it out: RUN_DIR/capture.hdf5)",
         .0.display()
     )]
     RunFile(PathBuf),

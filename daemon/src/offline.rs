@@ -13,7 +13,7 @@ use crate::capture::{Capture, CaptureError, Transients};
 use crate::config::{ConfigError, TomlSource};
 use crate::events::{EventSink, RunEvent};
 use crate::pipeline::{self, Control, Fit, PipelineError, ReconError, ReconInput};
-use crate::plan::{Method, ReconSettings, load_recon};
+use crate::plan::{Method, ReconSettings};
 
 /// Why `periscope recon CAPTURE` failed; every variant names the capture or file.
 #[derive(Debug, thiserror::Error)]
@@ -131,7 +131,7 @@ fn load(capture: &Path, config: Option<&Path>) -> Result<(ReconSettings, Transie
     let capture_path = capture;
     let capture = Capture::open(capture)?;
     let settings = match config {
-        Some(path) => load_recon(&TomlSource::load(path)?, capture.default_volume().ok())?,
+        Some(path) => capture.recon_from::<OfflineError>(&TomlSource::load(path)?)?,
         None => capture.default_recon()?,
     };
     volume_fits(&settings, config.unwrap_or(capture_path))?;
@@ -354,7 +354,13 @@ fn finish(input: ReconInput, out: &Path) -> Result<(), OfflineError> {
     crate::progress::attach(&events);
     let t = std::time::Instant::now();
     let result = pipeline::reconstruct(input, &events, &Control::new())?;
-    report(&result, out, t, &events)
+    report(&result, out, t, &events)?;
+    // An earlier replay's record into the same folder is not this volume's.
+    let stale = out.join(ADAPTIVE_JSON);
+    match std::fs::remove_file(&stale) {
+        Err(e) if e.kind() != std::io::ErrorKind::NotFound => Err(io(&stale)(e)),
+        _ => Ok(()),
+    }
 }
 
 /// Writes the outputs of `result` to `out` and says what took how long.

@@ -12,7 +12,6 @@ use super::{Control, PipelineError, ReconInput, panic_message, reconstruct, writ
 use crate::capture::Capture;
 use crate::config::TomlSource;
 use crate::events::{EventSink, RunEvent, Stage};
-use crate::plan::load_recon;
 use crate::run_dir::{RunInfo, RunState, file};
 
 /// An imported capture's geometry for 3-D views (`geometry.json`, written when the
@@ -141,7 +140,7 @@ fn stages(
     let capture = Capture::open(&path)?;
     let settings = if source.recon {
         let src = TomlSource::load(&dir.join(file::RECON))?;
-        load_recon(&src, capture.default_volume().ok())?
+        capture.recon_from::<PipelineError>(&src)?
     } else {
         capture.default_recon()?
     };
