@@ -406,6 +406,29 @@ fn a_capture_larger_than_the_memory_left_is_refused_before_it_is_read() {
     );
 }
 
+/// An HDF5 file larger than the memory left (a small capture padded to 1 GiB, sparse
+/// on the disk) is refused before it is read, naming the file and what to do: the
+/// HDF5 layer reads a file whole. Until 2026-12-07 the read was tried: under an
+/// address-space limit it failed as "I/O error: out of memory", and where what is left
+/// is a container's memory limit the kernel would kill the process instead.
+#[test]
+fn an_hdf5_file_larger_than_the_memory_left_is_refused_before_it_is_read() {
+    let dir = tempfile::tempdir().unwrap();
+    let file = write(dir.path(), "padded.hdf5", &capture());
+    std::fs::OpenOptions::new()
+        .write(true)
+        .open(&file)
+        .unwrap()
+        .set_len(1 << 30)
+        .unwrap();
+    let (code, err) = recon_within(LIMIT_FOR_SMALL_RECON_KIB, &file, &dir.path().join("out"));
+    assert_eq!(code, Some(1), "{err}");
+    assert!(
+        err.contains("padded.hdf5") && err.contains("read whole into memory"),
+        "{err}"
+    );
+}
+
 /// An address-space limit `periscope recon` on a small capture runs within (the
 /// debug binary maps about 100 MiB before it reads anything), well short of what the
 /// large capture above needs.

@@ -116,11 +116,14 @@ pub fn read_capture(path: &Path) -> Result<YtalCapture, YtalError> {
             // A fault a hostile file finds in a decoder is the file's error, as for HDF5.
             guarded(path, || from_v5(&bytes, path, path.parent()))
         }
-        Container::Hdf5 => guarded(path, || {
-            let file =
-                File::open(path).map_err(|e| hdf5_error(path, format!("cannot be read as HDF5 ({e})")))?;
-            from_hdf5(file, path, meta.len(), path.parent())
-        }),
+        Container::Hdf5 => {
+            super::ytal::file_memory_check(meta.len()).map_err(|m| hdf5_error(path, m))?;
+            guarded(path, || {
+                let file = File::open(path)
+                    .map_err(|e| hdf5_error(path, format!("cannot be read as HDF5 ({e})")))?;
+                from_hdf5(file, path, meta.len(), path.parent())
+            })
+        }
         Container::Unknown => Err(not_a_capture(path)),
         Container::MatV5BigEndian => Err(big_endian(path)),
     }

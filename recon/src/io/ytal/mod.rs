@@ -54,7 +54,7 @@ mod dataset;
 mod read;
 
 pub(crate) use dataset::{Reader, unit};
-pub(crate) use read::{guarded, memory_check};
+pub(crate) use read::{file_memory_check, guarded, memory_check};
 mod transients;
 mod write;
 

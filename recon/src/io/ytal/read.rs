@@ -113,19 +113,38 @@ fn frequency_format(code: f64) -> Option<&'static str> {
 const GIB: f64 = (1u64 << 30) as f64;
 
 /// Whether reading and reconstructing a transient array of `shape` (dataset `name`)
-/// fits what this process can still allocate. Each size check on a dataset holds on
-/// its own; what the whole read takes must fit too, or the read would abort the
-/// process instead of failing. `Err` says how much it needs and what to do.
-pub(crate) fn memory_check(shape: &[usize], name: &str) -> Result<(), String> {
+/// fits what this process can still allocate, with `held` bytes (the file, read whole
+/// to decode) held beside it. Each size check on a dataset holds on its own; what the
+/// whole read takes must fit too, or the read would abort the process instead of
+/// failing. `Err` says how much it needs and what to do.
+pub(crate) fn memory_check(shape: &[usize], name: &str, held: u64) -> Result<(), String> {
     let values = shape.iter().map(|&d| d as u64).product::<u64>();
-    let need = values.saturating_mul(BYTES_PER_H_VALUE);
+    let need = values.saturating_mul(BYTES_PER_H_VALUE).saturating_add(held);
     match crate::io::memory_available() {
         Some(available) if need > available => Err(format!(
             "`{name}` holds {values} values (shape {shape:?}): reading and reconstructing it takes about \
-             {:.1} GiB, more than the {:.1} GiB this process can still use (free memory, its \
-             address-space limit, and the memory limit of the container or service it runs in): \
-             reconstruct it where more is free, or crop it (fewer bins or relay points) first",
+             {:.1} GiB, the file's {:.1} GiB included, more than the {:.1} GiB this process can still use \
+             (free memory, its address-space limit, and the memory limit of the container or service it \
+             runs in): reconstruct it where more is free, or crop it (fewer bins or relay points) first",
             need as f64 / GIB,
+            held as f64 / GIB,
+            available as f64 / GIB
+        )),
+        _ => Ok(()),
+    }
+}
+
+/// Whether an HDF5 file of `len` bytes, which the reader holds whole in memory while it
+/// decodes, fits what this process can still allocate: checked before it is read, so
+/// that a file larger than the memory left fails with this message instead of the
+/// process being killed. `Err` says what to do.
+pub(crate) fn file_memory_check(len: u64) -> Result<(), String> {
+    match crate::io::memory_available() {
+        Some(available) if len > available => Err(format!(
+            "is {:.1} GiB, which is read whole into memory to be decoded, more than the {:.1} GiB this \
+             process can still use (free memory, its address-space limit, and the memory limit of the \
+             container or service it runs in): reconstruct it where more is free, or crop it first",
+            len as f64 / GIB,
             available as f64 / GIB
         )),
         _ => Ok(()),
@@ -153,6 +172,10 @@ impl YtalCapture {
                 ),
             });
         }
+        file_memory_check(file_len).map_err(|message| YtalError::Hdf5 {
+            path: path.to_path_buf(),
+            message,
+        })?;
         guarded(path, || {
             let file = File::open(path).map_err(|e| YtalError::Hdf5 {
                 path: path.to_path_buf(),
@@ -231,7 +254,7 @@ impl YtalCapture {
                 h_format.name()
             )));
         }
-        memory_check(&h_shape, "H").map_err(|m| r.format(m))?;
+        memory_check(&h_shape, "H", r.file_len).map_err(|m| r.format(m))?;
         let h = ds.read_f32().map_err(|e| {
             let half = matches!(ds.dtype(), Ok(hdf5_pure::DType::Other(_)))
                 && ds.element_size().is_ok_and(|n| n == 2);
