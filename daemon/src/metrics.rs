@@ -74,6 +74,8 @@ pub struct Snapshot {
     pub rates: Option<(f64, f64)>,
     /// Age of the device reading (s).
     pub reading_age_s: Option<f64>,
+    /// Seconds between the idle worker's device readings (`[api] status-interval-s`).
+    pub status_interval_s: f64,
     /// Whether a run holds the instrument.
     pub busy: bool,
     /// Pairs per second of the running capture.
@@ -88,6 +90,13 @@ pub struct Snapshot {
     pub runs: Vec<(String, u64)>,
 }
 
+/// Buckets of the stage-duration histograms: doubling from 0.05 s to 29 h (22
+/// buckets), since captures and reconstructions run for hours (until 2026-12-07 they
+/// stopped at 27 min, and every longer stage fell in `+Inf`).
+fn stage_buckets() -> impl Iterator<Item = f64> {
+    exponential_buckets(0.05, 2.0, 22)
+}
+
 /// The daemon's metrics.
 pub struct Metrics {
     registry: Registry,
@@ -97,6 +106,7 @@ pub struct Metrics {
     reading_known: Gauge,
     rates: Family<RateLabel, Gauge<f64, std::sync::atomic::AtomicU64>>,
     reading_age: Gauge<f64, std::sync::atomic::AtomicU64>,
+    status_interval: Gauge<f64, std::sync::atomic::AtomicU64>,
     busy: Gauge,
     pair_rate: Gauge<f64, std::sync::atomic::AtomicU64>,
     counts_rate: Gauge<f64, std::sync::atomic::AtomicU64>,
@@ -133,14 +143,15 @@ impl Metrics {
             reading_known: Gauge::default(),
             rates: Family::default(),
             reading_age: Gauge::default(),
+            status_interval: Gauge::default(),
             busy: Gauge::default(),
             pair_rate: Gauge::default(),
             counts_rate: Gauge::default(),
             queue_length: Gauge::default(),
             queue_locked: Gauge::default(),
             runs: Family::default(),
-            stages: Family::new_with_constructor(|| Histogram::new(exponential_buckets(0.05, 2.0, 16))),
-            recon: Histogram::new(exponential_buckets(0.05, 2.0, 16)),
+            stages: Family::new_with_constructor(|| Histogram::new(stage_buckets())),
+            recon: Histogram::new(stage_buckets()),
             runs_finished: Family::default(),
             requests: Family::new_with_constructor(|| Histogram::new(exponential_buckets(0.0005, 2.0, 16))),
             errors: Family::default(),
@@ -177,6 +188,11 @@ impl Metrics {
             "reading_age_seconds",
             "Seconds since the devices were last read (a run holds them while it runs)",
             m.reading_age.clone(),
+        );
+        registry.register(
+            "status_interval_seconds",
+            "Seconds between the idle worker's device readings ([api] status-interval-s): the stale-reading alert's scale",
+            m.status_interval.clone(),
         );
         registry.register(
             "instrument_busy",
@@ -308,6 +324,7 @@ impl Metrics {
             })
             .set(det);
         self.reading_age.set(s.reading_age_s.unwrap_or(f64::INFINITY));
+        self.status_interval.set(s.status_interval_s);
         self.busy.set(i64::from(s.busy));
         self.pair_rate.set(s.pair_rate);
         self.counts_rate.set(s.capture_counts_rate);

@@ -41,7 +41,10 @@ fn sim_text(time_scale: f64) -> String {
 fn lab_text(time_scale: f64, ports: (&str, &str), library: &Path) -> String {
     let text = sim_text(time_scale);
     let text = text[..text.find("[sim]").unwrap()].to_owned();
-    let serial = |port: &str| format!("serial = {{ port = \"{port}\", baud = 115200, timeout-ms = 500 }}\n");
+    // The simulator's arms turn their rays about one pivot.
+    let serial = |port: &str| {
+        format!("scanner = \"pivot\"\nserial = {{ port = \"{port}\", baud = 115200, timeout-ms = 500 }}\n")
+    };
     let mut out = String::new();
     for line in text.lines() {
         let line = match line {

@@ -574,9 +574,17 @@ async fn metrics_parse_as_prometheus_text() {
         "periscope_queue_length",
         "periscope_queue_locked",
         "periscope_instrument_busy",
+        "periscope_status_interval_seconds",
     ] {
         assert!(value(name, None).is_some(), "{name} missing:\n{text}");
     }
+    // Captures run for hours: the stage buckets reach a day (until 2026-12-07 they
+    // stopped at 1638.4 s).
+    assert!(
+        text.contains("periscope_stage_duration_seconds_bucket{le=\"104857.6\",stage=\"capture\"}")
+            || text.contains("periscope_stage_duration_seconds_bucket{stage=\"capture\",le=\"104857.6\"}"),
+        "{text}"
+    );
     assert_eq!(
         value("periscope_runs", Some(("state", "completed"))),
         Some(1.0),
@@ -901,6 +909,19 @@ async fn a_real_prometheus_scrapes_the_daemon_and_accepts_the_shipped_config() {
     }
     assert_eq!(query("periscope_interlock_closed").await, Some(1.0));
     assert_eq!(query("periscope_laser_emission").await, Some(0.0));
+    // The stale-reading alert's comparison matches its two series, and a fresh reading
+    // is inside it; nor does the failing-reading alert's condition hold.
+    assert!(
+        query("periscope_status_interval_seconds")
+            .await
+            .is_some_and(|s| s > 0.0)
+    );
+    assert!(
+        query("periscope_reading_age_seconds < 3 * periscope_status_interval_seconds + 60")
+            .await
+            .is_some()
+    );
+    assert_eq!(query("periscope_reading_valid == 0").await, None);
     // The first scrape's own latency appears from the second scrape on: Prometheus
     // ingests the histograms too.
     while query("sum(periscope_http_request_duration_seconds_count{route=\"/metrics\"})")

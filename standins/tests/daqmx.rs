@@ -45,12 +45,12 @@ fn lab_text(library: &Path, laser_extra: &str) -> String {
         out.push('\n');
         if line.starts_with("[galvo.laser]") {
             out.push_str(&format!(
-                "driver = \"daqmx\"\nlibrary = \"{lib}\"\nchannels = [\"Dev1/ao0\", \"Dev1/ao1\"]\n\
+                "scanner = \"pivot\"\ndriver = \"daqmx\"\nlibrary = \"{lib}\"\nchannels = [\"Dev1/ao0\", \"Dev1/ao1\"]\n\
                  volts-per-deg = [0.4, 0.4]\noffsets-v = [0.1, -0.1]\nmax-slew-deg-per-ms = 2.0\n"
             ));
         } else if line.starts_with("[galvo.spad]") {
             out.push_str(&format!(
-                "driver = \"daqmx\"\nlibrary = \"{lib}\"\nchannels = [\"Dev1/ao2\", \"Dev1/ao3\"]\n\
+                "scanner = \"pivot\"\ndriver = \"daqmx\"\nlibrary = \"{lib}\"\nchannels = [\"Dev1/ao2\", \"Dev1/ao3\"]\n\
                  volts-per-deg = [0.4, -0.4]\nmax-slew-deg-per-ms = 2.0\n"
             ));
         } else if line.starts_with("[laser]") {

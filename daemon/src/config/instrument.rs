@@ -577,7 +577,7 @@ struct RawGalvo {
     #[serde(deserialize_with = "crate::config::exact::array", default = "default_up")]
     up: [f64; 3],
     #[serde(default)]
-    scanner: periscope_drivers::Scanner,
+    scanner: Option<periscope_drivers::Scanner>,
     angle_limits_deg: RawLimits,
     #[serde(default)]
     settle_us: f64,
@@ -1310,7 +1310,7 @@ fn galvo_arm(check: &Check<'_>, key: &str, raw: RawGalvo, hardware: bool) -> Res
                 "must be a non-zero direction that is not parallel to `up`",
             )
         })?
-        .with_scanner(raw.scanner);
+        .with_scanner(raw.scanner.unwrap_or_default());
     let mut limits = [[0.0; 2]; 2];
     for (axis, name, range) in [(0, "x", raw.angle_limits_deg.x), (1, "y", raw.angle_limits_deg.y)] {
         let k = format!("{key}.angle-limits-deg.{name}");
@@ -1380,6 +1380,14 @@ fn galvo_arm(check: &Check<'_>, key: &str, raw: RawGalvo, hardware: bool) -> Res
                             src.invalid(&format!("{key}.serial.timeout-ms"), "must be 1 to 60,000 ms")
                         );
                     }
+                    if !(300..=4_000_000).contains(&s.baud) {
+                        // 0 would hang the line up on POSIX; a rate the adapter cannot
+                        // make shows only as timeouts.
+                        return Err(src.invalid(
+                            &format!("{key}.serial.baud"),
+                            "must be 300 to 4,000,000 baud: the controller's rate (docs/protocols/galvo-serial.md)",
+                        ));
+                    }
                     Ok(GalvoLink::Serial(SerialLink {
                         port: s.port,
                         baud: s.baud,
@@ -1396,6 +1404,16 @@ fn galvo_arm(check: &Check<'_>, key: &str, raw: RawGalvo, hardware: bool) -> Res
                 "backend = \"hardware\" needs a [{key}.serial] table with the controller's `port`, \
                  or driver = \"daqmx\" with the pair's analog output channels"
             ),
+        ));
+    }
+    if hardware && raw.scanner.is_none() {
+        // The default (one pivot) is the simulator's: on a real galvo pair it places
+        // relay points millimetres off, with nothing to say so.
+        return Err(src.invalid(
+            &format!("{key}.scanner"),
+            "is required with backend = \"hardware\": \"two-mirror\" for a galvo pair (the x mirror first, \
+             then the y mirror), or \"pivot\" for a scanner with one pivot for both angles; the two place a \
+             relay point millimetres apart (docs/configuration.md)",
         ));
     }
     Ok(GalvoArm {
@@ -1765,6 +1783,26 @@ mod tests {
         let err = load(&text).unwrap_err();
         assert_eq!(err.key(), Some("spad.efficiency"), "{err}");
         assert_eq!(err.line(), Some(line), "{err}");
+    }
+
+    /// A hardware arm must say how its mirrors turn the ray: the default pivot is
+    /// the simulator's, and on a galvo pair it places relay points millimetres off
+    /// (until 2026-12-07 a lab config without `scanner` took it silently). Nor is a
+    /// serial rate of 0 (a hang-up on POSIX) taken.
+    #[test]
+    fn a_hardware_arm_names_its_scanner_and_a_real_baud_rate() {
+        let e = load(&LAB.replacen("scanner = \"two-mirror\"", "", 1)).unwrap_err();
+        assert_eq!(e.key(), Some("galvo.laser.scanner"), "{e}");
+        assert!(
+            e.to_string().contains("two-mirror") && e.to_string().contains("pivot"),
+            "{e}"
+        );
+        assert!(load(&LAB.replacen("scanner = \"two-mirror\"", "scanner = \"pivot\"", 1)).is_ok());
+        for baud in ["0", "10000000"] {
+            let e = load(&LAB.replacen("baud = 115200", &format!("baud = {baud}"), 1)).unwrap_err();
+            assert_eq!(e.key(), Some("galvo.laser.serial.baud"), "{baud}: {e}");
+        }
+        assert!(load(&LAB.replacen("baud = 115200", "baud = 921600", 1)).is_ok());
     }
 
     #[test]

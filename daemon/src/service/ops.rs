@@ -118,7 +118,10 @@ impl Service {
     /// The metrics as Prometheus text, with the gauges read off the service's state
     /// now.
     pub fn metrics_text(&self) -> String {
-        let mut snap = crate::metrics::Snapshot::default();
+        let mut snap = crate::metrics::Snapshot {
+            status_interval_s: self.instrument.api.status_interval.as_secs_f64(),
+            ..Default::default()
+        };
         {
             let s = self.lock();
             if let Some(r) = &s.reading {
