@@ -29,11 +29,29 @@ impl Aabb {
     }
 
     /// Entry distance of the ray into the box within [0, t_max], if it hits.
+    ///
+    /// Slab by slab. Along an axis the ray does not move in (its direction component
+    /// zero, the reciprocal infinite) the slab is passed or missed whole: passed where
+    /// the origin lies within it, its faces included. The vector form computed
+    /// 0 · ∞ = NaN there when the origin lay on a face, and glam's `min`/`max` kept
+    /// NaN or the infinite side by the order of their operands, so a box was missed
+    /// by a ray lying in its face: an axis-aligned ray down a wall's grid line (where
+    /// leaves' boxes meet) or along its edge went through it.
     fn hit(&self, origin: DVec3, inv_dir: DVec3, t_max: f64) -> Option<f64> {
-        let t0 = (self.min - origin) * inv_dir;
-        let t1 = (self.max - origin) * inv_dir;
-        let near = t0.min(t1).max_element().max(0.0);
-        let far = t0.max(t1).min_element().min(t_max);
+        let (mut near, mut far) = (0.0f64, t_max);
+        for axis in 0..3 {
+            let (o, inv) = (origin[axis], inv_dir[axis]);
+            let (lo, hi) = (self.min[axis], self.max[axis]);
+            if inv.is_infinite() {
+                if !(lo <= o && o <= hi) {
+                    return None;
+                }
+                continue;
+            }
+            let (t0, t1) = ((lo - o) * inv, (hi - o) * inv);
+            near = near.max(t0.min(t1));
+            far = far.min(t0.max(t1));
+        }
         (near <= far).then_some(near)
     }
 }
@@ -243,6 +261,41 @@ mod tests {
                 bvh.occluded(origin, origin + dir * 10.0, 1e-9),
                 brute.is_some_and(|b| b.0 < 10.0 - 1e-9)
             );
+        }
+    }
+
+    /// An axis-aligned ray lying exactly in a box's face still enters the box and hits
+    /// the triangle there: rays along −z through an axis-aligned wall, down its grid
+    /// lines (where the leaves' boxes meet) and along its outer edges (the root box's
+    /// faces), with both signs of the zero direction components. The slab test made
+    /// NaN of 0 · ∞ on a face, and such rays went through the wall; its edge at
+    /// x = −0.5 was missed altogether.
+    #[test]
+    fn an_axis_aligned_ray_in_a_box_face_hits_the_triangle_there() {
+        // 8 × 8 quads over [−0.5, 0.5]² at z = 0: 128 triangles, many leaves. Dyadic
+        // coordinates keep every edge hit exact.
+        let wall = Mesh::parametric(8, 8, |u, v| DVec3::new(u - 0.5, v - 0.5, 0.0));
+        let bvh = Bvh::new(&wall);
+        let line = |i: u32| f64::from(i) / 8.0 - 0.5;
+        for zero in [0.0, -0.0] {
+            let dir = DVec3::new(zero, zero, -1.0);
+            for i in 0..=8 {
+                for j in 0..8 {
+                    // Between two grid lines of the other axis, off the wall's vertices.
+                    let between = line(j) + 1.0 / 32.0;
+                    for origin in [
+                        DVec3::new(line(i), between, 1.0),
+                        DVec3::new(between, line(i), 1.0),
+                    ] {
+                        let hit = bvh.closest(origin, dir, 1e-9, f64::INFINITY);
+                        assert_eq!(hit.map(|h| h.t), Some(1.0), "from {origin} along {dir}");
+                        assert!(
+                            bvh.occluded(origin, origin + 2.0 * dir, 1e-9),
+                            "from {origin} along {dir}"
+                        );
+                    }
+                }
+            }
         }
     }
 }

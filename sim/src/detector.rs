@@ -54,7 +54,8 @@ pub struct Detector {
     /// Overall optical transmission (filters, lenses, galvo mirrors), 0..1.
     pub transmission: f64,
     /// Gate: photons arriving before the pair's direct path plus this path-length
-    /// margin (metres) are blocked; `None` = no gating.
+    /// margin (metres) are blocked, for each pulse of a cycle
+    /// ([`Detector::expected_counts`]); `None` = no gating.
     pub gate_margin: Option<f64>,
     /// Model pile-up (Coates) and dead time.
     pub pile_up: bool,
@@ -127,6 +128,50 @@ impl Detector {
         self.dead_time > period - self.bins as f64 * self.bin_width
     }
 
+    /// The fraction of each of `len` bins the gate leaves open, the gate opening at
+    /// `gate_bin` for the cycle's first pulse. A gated SPAD is gated on every laser
+    /// pulse, not once a cycle: with a sync divider of N the k-th pulse's light comes k
+    /// periods later ([`Detector::bins_of_path`]), and so does its gate. The first
+    /// pulse's gate is shut from the window's start to `gate_bin`; each later pulse's
+    /// the same span k periods on, reaching back to the pair's direct path (`gate_bin`
+    /// less the margin) where that lies before the window's start, so that every
+    /// pulse's direct return is blocked. Until 2026-12-07 the gate opened once a cycle,
+    /// and with a window longer than a period the later pulses' direct returns passed
+    /// ungated.
+    fn gate_open(&self, gate_bin: f64, len: usize) -> Vec<f64> {
+        let bins = len as f64;
+        let period = 1.0 / self.repetition_rate / self.bin_width;
+        let direct = gate_bin - self.gate_margin.map_or(0.0, |m| m / C0 / self.bin_width);
+        // The shut spans in bins, in order, merged where they overlap (a gate that
+        // opens more than a period into its pulse's span is shut until the next opens).
+        let mut shut: Vec<(f64, f64)> = Vec::new();
+        for k in 0..self.sync_divider.max(1) {
+            let shift = if k == 0 { 0.0 } else { f64::from(k) * period };
+            let (lo, hi) = (shift + direct.min(0.0), shift + gate_bin);
+            if !(lo < bins) {
+                break;
+            }
+            match shut.last_mut() {
+                Some(last) if lo <= last.1 => last.1 = last.1.max(hi),
+                _ => shut.push((lo, hi)),
+            }
+        }
+        let mut open = vec![1.0; len];
+        for (lo, hi) in shut {
+            let first = lo.max(0.0) as usize;
+            for (b, o) in open.iter_mut().enumerate().skip(first) {
+                let b = b as f64;
+                if b >= hi {
+                    break;
+                }
+                // The part of the bin [b, b + 1) the span covers.
+                *o -= (hi.min(b + 1.0) - lo.max(b)).max(0.0);
+            }
+        }
+        open.iter_mut().for_each(|o| *o = f64::clamp(*o, 0.0, 1.0));
+        open
+    }
+
     /// Jitter standard deviation in bins.
     fn sigma_bins(&self) -> f64 {
         self.jitter_fwhm / (2.0 * (2.0 * std::f64::consts::LN_2).sqrt()) / self.bin_width
@@ -167,7 +212,9 @@ impl Detector {
     }
 
     /// Expected counts per bin over `dwell`, from the signal photons per pulse arriving
-    /// in each bin (before efficiency) and the bin where the gate opens.
+    /// in each bin (before efficiency) and the bin where the gate opens for the cycle's
+    /// first pulse. The gate shuts and opens again for each later pulse of the cycle,
+    /// a pulse period on ([`Detector::sync_divider`]).
     pub fn expected_counts(&self, signal: &[f64], gate_bin: Option<f64>, dwell: f64) -> Vec<f64> {
         let noise = (self.dark_count_rate + self.ambient_rate) * self.bin_width;
         let mut rate: Vec<f64> = signal
@@ -175,9 +222,9 @@ impl Detector {
             .map(|s| self.efficiency * self.transmission * s + noise)
             .collect();
         if let Some(g) = gate_bin {
-            for (b, r) in rate.iter_mut().enumerate() {
-                // Fraction of the bin after the gate opens.
-                *r *= (b as f64 + 1.0 - g).clamp(0.0, 1.0);
+            let open = self.gate_open(g, rate.len());
+            for (r, fraction) in rate.iter_mut().zip(open) {
+                *r *= fraction;
             }
         }
         let pulses = self.cycles(dwell);
@@ -228,7 +275,10 @@ fn small_poisson(l: f64, p0: f64, rng: &mut ChaCha8Rng) -> u32 {
 }
 
 /// Poisson draws of `expected`, reproducible from `seed` and `stream` (e.g. the pair
-/// index), independent of thread count.
+/// index), independent of thread count. A mean a 32-bit bin counter cannot hold
+/// (`u32::MAX` or more, infinite included) gives a full counter, `u32::MAX`, which the
+/// devices flag as overflow, as they do a draw that reaches it; until 2026-12-07 a mean
+/// beyond the Poisson sampler's range (1.8·10¹⁹) gave 0 counts and no flag.
 pub fn sample_counts(expected: &[f64], seed: u64, stream: u64) -> Vec<u32> {
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
     rng.set_stream(stream);
@@ -237,15 +287,19 @@ pub fn sample_counts(expected: &[f64], seed: u64, stream: u64) -> Vec<u32> {
     expected
         .iter()
         .map(|&l| {
-            if !(l > 0.0 && l.is_finite()) {
+            if !(l > 0.0) {
                 0
+            } else if l >= f64::from(u32::MAX) {
+                u32::MAX
             } else if l < SMALL_MEAN {
                 if l != last.0 {
                     last = (l, (-l).exp());
                 }
                 small_poisson(l, last.1, &mut rng)
             } else {
-                Poisson::new(l).map_or(0, |p| p.sample(&mut rng).min(u32::MAX as f64) as u32)
+                // Below u32::MAX no Poisson::new fails; were it to, the counter is
+                // reported full rather than empty.
+                Poisson::new(l).map_or(u32::MAX, |p| p.sample(&mut rng).min(u32::MAX as f64) as u32)
             }
         })
         .collect()

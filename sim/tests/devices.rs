@@ -144,6 +144,53 @@ fn targets_outside_the_limits_never_move_the_mirrors() {
     );
 }
 
+/// `LIM` reports the firmware's limits with the seven decimals the wire carries, and
+/// the firmware holds moves to what it reports: a move to the reported limit is
+/// accepted, and so is one to the host's own limit of the same angle (sent rounded
+/// onto it); one a reported digit beyond is refused. On the wire and in process
+/// alike. Until 2026-12-07 the firmware checked the unrounded limits, and refused
+/// `MOVE 0.3490659`, the ±20° it reported, with `ERR 4`.
+#[test]
+fn a_move_at_the_reported_limit_is_accepted() {
+    let rig = rig();
+    let twenty = 20f64.to_radians();
+    // A driver configured wider than the firmware, so that the firmware decides.
+    let mut wide = galvo(&rig, Arm::Spad, 40.0);
+    let reported = wide.hard_limits().unwrap();
+    assert_eq!(reported.x, [-0.3490659, 0.3490659], "±20° to seven decimals");
+    assert!(reported.x[1] > twenty, "the premise: 20° rounds outward");
+    let corner = angles(reported.x[1], reported.y[0]);
+    assert_eq!(wide.move_settled(corner, Duration::from_secs(1)).unwrap(), corner);
+    assert_eq!(rig.pointing().1, corner);
+    let beyond = angles(reported.x[1] + 1e-7, 0.0);
+    wide.move_to(beyond).unwrap();
+    let err = wide.wait_settled(Duration::from_secs(1)).unwrap_err();
+    assert_eq!(err.kind(), ErrorKind::OutOfRange, "{err}");
+    assert_eq!(rig.pointing().1, corner);
+    drop(wide);
+    // A driver whose limits are the firmware's, moving to its exact limit: the wire
+    // carries it as the reported one.
+    let mut spad = galvo(&rig, Arm::Spad, 20.0);
+    spad.park().unwrap();
+    assert_eq!(rig.pointing().1, angles(0.0, 0.0));
+    spad.move_settled(angles(twenty, -twenty), Duration::from_secs(1))
+        .unwrap();
+    assert_eq!(rig.pointing().1, corner);
+    drop(spad);
+    // In process: the same, the target rounded as the wire would carry it.
+    let mut local = rig.in_process_galvo(Arm::Spad, limits(20.0), None);
+    local.park().unwrap();
+    local
+        .move_settled(angles(twenty, -twenty), Duration::from_secs(1))
+        .unwrap();
+    assert_eq!(rig.pointing().1, corner);
+    let mut local_wide = rig.in_process_galvo(Arm::Spad, limits(40.0), None);
+    local_wide.park().unwrap();
+    let err = local_wide.move_to(beyond).unwrap_err();
+    assert_eq!(err.kind(), ErrorKind::OutOfRange, "{err}");
+    assert_eq!(rig.pointing().1, angles(0.0, 0.0));
+}
+
 #[test]
 fn the_interlock_gates_the_laser() {
     let rig = rig();
@@ -470,6 +517,46 @@ fn a_host_that_goes_silent_is_cut_off_by_the_watchdog() {
         "tripped {after:?} after the last line; the timeout is 500 ms"
     );
     assert_eq!(rig.watchdog().1, 1);
+}
+
+/// `WDOG` counts the watchdog's trips since power-up (docs/protocols/galvo-serial.md):
+/// a controller that loses power comes back counting from 0, as it comes back with
+/// emission off and the 500 ms timeout. Until 2026-12-07 the trips from before the
+/// power loss were still counted.
+#[test]
+fn a_power_loss_resets_the_watchdog_trip_count() {
+    use periscope_drivers::galvo::protocol::decode_line;
+    let rig = rig();
+    // A bare link: a 50 ms watchdog, the laser on, then silence until it trips.
+    let mut link = rig.galvo_connector(Arm::Laser).connect().unwrap();
+    let mut ask = |tag: u8, body: &str| {
+        let reply = exchange(link.as_mut(), encode_line(tag, body).trim_end());
+        let (_, answer) = decode_line(reply.as_bytes()).unwrap();
+        answer.to_owned()
+    };
+    assert_eq!(ask(0x01, "WDOG 50"), "OK 50 0");
+    assert_eq!(ask(0x02, "LASER ON"), "OK");
+    let on = Instant::now();
+    while rig.emission() {
+        assert!(
+            on.elapsed() < Duration::from_secs(2),
+            "the watchdog never tripped"
+        );
+        std::thread::sleep(Duration::from_millis(5));
+    }
+    assert_eq!(rig.watchdog(), (Duration::from_millis(50), 1));
+    drop(link);
+    // The controller loses power at a host's next request; the driver reconnects and
+    // asks again.
+    let mut laser = galvo(&rig, Arm::Laser, 20.0);
+    laser.identify().unwrap();
+    rig.inject(Fault::Galvo(
+        Arm::Laser,
+        GalvoFault::Disconnect { refused_connects: 0 },
+    ));
+    assert_eq!(laser.watchdog().unwrap(), (Duration::from_millis(500), 0));
+    assert_eq!(rig.watchdog(), (Duration::from_millis(500), 0));
+    assert!(!rig.emission());
 }
 
 /// The serial laser driver on `rig`'s laser controller, with a 100 ms watchdog.
@@ -940,6 +1027,50 @@ fn the_simulated_histogrammer_answers_the_documented_requests() {
     let mut zero_divider = CONFIG;
     zero_divider[12] = 0;
     assert!(usb.control_out(0x02, 0, 0, &zero_divider, t).is_err());
+}
+
+/// `GET_STATUS` reports the state docs/protocols/tdc-usb.md defines: 1 (acquiring)
+/// while a `START`'s dwell runs, 0 (idle) before it, after an `ABORT`, and once the
+/// dwell has ended with its frame waiting to be read. Until 2026-12-07 it always
+/// reported idle.
+#[test]
+fn the_histogrammer_reports_acquiring_while_a_dwell_runs() {
+    use periscope_drivers::tdc::UsbTransport;
+    use periscope_drivers::tdc::protocol::WireConfig;
+    let rig = rig();
+    let mut usb = rig.tdc_transport();
+    let t = Duration::from_millis(100);
+    // 4 bins, a 500 ms dwell.
+    let config = WireConfig {
+        bin_width_ps: 16,
+        bins: 4,
+        offset_ps: 12_000,
+        sync_divider: 1,
+        acquisition_us: 500_000,
+    };
+    usb.control_out(0x02, 0, 0, &config.encode(), t).unwrap();
+    let state = |usb: &mut SimTdcTransport| {
+        let mut status = [0u8; 16];
+        assert_eq!(usb.control_in(0x05, 0, 0, &mut status, t).unwrap(), 16);
+        status[0]
+    };
+    assert_eq!(state(&mut usb), 0, "idle before START");
+    usb.control_out(0x04, 1, 0, &[], t).unwrap();
+    assert_eq!(state(&mut usb), 1, "acquiring while the dwell runs");
+    usb.control_out(0x06, 0, 0, &[], t).unwrap();
+    assert_eq!(state(&mut usb), 0, "idle after ABORT");
+    usb.control_out(0x04, 2, 0, &[], t).unwrap();
+    assert_eq!(state(&mut usb), 1, "acquiring while the dwell runs");
+    std::thread::sleep(Duration::from_millis(600));
+    assert_eq!(state(&mut usb), 0, "idle once the dwell has ended");
+    // Its frame waits to be read, whole.
+    let mut frame = [0u8; 512];
+    assert_eq!(usb.bulk_in(0x81, &mut frame, t).unwrap(), 52);
+    assert_eq!(
+        u32::from_le_bytes(frame[8..12].try_into().unwrap()),
+        2,
+        "sequence"
+    );
 }
 
 // ---- In process ------------------------------------------------------------------

@@ -184,6 +184,19 @@ fn noise_is_poisson_and_reproducible() {
     assert_eq!(sample_counts(&[0.0, f64::NAN, -1.0], 1, 1), vec![0, 0, 0]);
 }
 
+/// A mean a 32-bit bin counter cannot hold fills it: `u32::MAX`, which the devices
+/// flag as overflow, however far past it the mean lies (infinite included). Until
+/// 2026-12-07 a mean beyond the Poisson sampler's range (about 1.8·10¹⁹) gave 0 counts
+/// and no flag.
+#[test]
+fn a_mean_beyond_what_a_counter_holds_fills_it() {
+    let means = [f64::from(u32::MAX), 5e9, 1e20, f64::INFINITY, 1e6];
+    let counts = sample_counts(&means, 2, 1);
+    assert_eq!(counts[..4], [u32::MAX; 4]);
+    // A large mean a counter holds is still drawn: within 5 σ of it.
+    assert!((f64::from(counts[4]) - 1e6).abs() < 5e3, "{}", counts[4]);
+}
+
 #[test]
 fn first_bounce_locates_the_relay() {
     let world = World::new(scene(vec![patch(DVec3::new(0.0, 0.0, 0.6))]), 0.005, 1);
@@ -325,6 +338,63 @@ fn a_sync_divider_shows_each_pulse_of_a_cycle_and_keeps_its_photons() {
     // Without pile-up the total is the same: as many pulses over the dwell.
     let (t1, t2) = (one.iter().sum::<f64>(), two.iter().sum::<f64>());
     assert!((t2 / t1 - 1.0).abs() < 0.02, "{t2} against {t1}");
+}
+
+/// A gated SPAD is gated on every laser pulse, not once a cycle: with a sync divider
+/// of 2 and a window longer than a period, a confocal pair's direct return is blocked
+/// for both pulses, the second a period after the first, while each pulse's hidden
+/// return passes whole. Until 2026-12-07 the gate opened once, at the first pulse's
+/// direct path, and the second pulse's direct return passed ungated.
+#[test]
+fn the_gate_blocks_the_direct_return_of_every_pulse_of_a_cycle() {
+    let centre = DVec3::new(0.0, 0.0, 0.6);
+    let world = World::new(scene(vec![patch(centre)]), 0.002, 1);
+    let pair = SpotPair {
+        illumination: spot(0.1, 0.1),
+        detection: spot(0.1, 0.1),
+    };
+    // 100 MHz: a pulse every 10 ns, 625 bins of 16 ps, within a 2048-bin window.
+    let period = 625;
+    let gated = Detector {
+        repetition_rate: 100e6,
+        bins: 2048,
+        sync_divider: 2,
+        ..hidden_only(&detector())
+    };
+    let ungated = Detector {
+        gate_margin: None,
+        ..gated
+    };
+    let with_gate = world.third_bounce(&INST, &[pair], &gated, 1.0).pop().unwrap();
+    let without = world.third_bounce(&INST, &[pair], &ungated, 1.0).pop().unwrap();
+    let xi = pair.illumination.point;
+    let (first_leg, last_leg) = (INST.laser.distance(xi), xi.distance(INST.spad));
+    let direct = gated.bin_of_path(first_leg + last_leg) as usize;
+    let hidden = gated.bin_of_path(first_leg + 2.0 * xi.distance(centre) + last_leg) as usize;
+    assert!(
+        direct >= 10 && hidden + period + 10 < gated.bins,
+        "both pulses' returns in the window"
+    );
+    let around = |h: &[f64], at: usize| h[at - 10..at + 10].iter().sum::<f64>();
+    for pulse in [0, period] {
+        assert!(
+            around(&without, direct + pulse) > 1e3 * around(&with_gate, hidden + pulse),
+            "the direct return {pulse} bins on, without the gate"
+        );
+        assert_eq!(
+            around(&with_gate, direct + pulse),
+            0.0,
+            "the gate must block the direct return {pulse} bins on"
+        );
+        let (passed, all) = (
+            around(&with_gate, hidden + pulse),
+            around(&without, hidden + pulse),
+        );
+        assert!(
+            all > 0.0 && (passed / all - 1.0).abs() < 1e-12,
+            "the hidden return {pulse} bins on: {passed} of {all}"
+        );
+    }
 }
 
 /// The SPAD's dead time costs counts beyond Coates' first-photon model only where it

@@ -10,6 +10,7 @@ use periscope_drivers::galvo::Connector;
 use periscope_drivers::{Erased, GalvoBox, HistogrammerBox};
 use periscope_sim::World;
 use periscope_sim::devices::{Arm, Rig, RigSettings};
+use periscope_sim::transport::samples_needed;
 
 use super::hardware::{Role, laser_arm, serial_galvo, usb_histogrammer};
 use super::{DeviceBackend, LaserArm, OpenError};
@@ -36,15 +37,17 @@ impl SimBackend {
         let scene = sim_scene(sim)?;
         // The third bounce samples hidden surfaces every `sample-spacing`: bound the
         // count before anything is allocated (a scene file is a file from someone else).
+        // The sampler's own count, not the area over spacing²: every triangle gets at
+        // least one sample, so a mesh of many small triangles needs far more.
         let area: f64 = scene.hidden.iter().map(|s| s.mesh.total_area()).sum();
-        let samples = area / (sim.sample_spacing * sim.sample_spacing);
+        let samples = samples_needed(&scene, sim.sample_spacing) as f64;
         if !(samples <= MAX_HIDDEN_SAMPLES) {
             let path = sim.scene.clone().unwrap_or_else(|| "<built-in scene>".into());
             return Err(TomlSource::from_text(path, "").invalid(
                 "sim.sample-spacing-mm",
                 format!(
                     "the hidden surfaces ({area:.3e} m²) need {samples:.3e} samples at {} mm, more than {MAX_HIDDEN_SAMPLES:.0e}: \
-                     use a coarser spacing or smaller hidden objects",
+                     use a coarser spacing, smaller hidden objects or meshes of fewer triangles",
                     sim.sample_spacing * 1e3
                 ),
             ));

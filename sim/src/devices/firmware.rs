@@ -330,10 +330,12 @@ fn answer(rig: &Shared, arm: Arm, line: &[u8]) -> Outcome {
             let mut s = rig.lock();
             s.arms[arm.index()].refused_connects = refused_connects;
             // A controller that loses power forgets its laser state (fail-safe off)
-            // and comes back with its power-up watchdog.
+            // and comes back with its power-up watchdog: the 500 ms timeout, and no
+            // trips (`WDOG` counts them since power-up).
             if arm == Arm::Laser {
                 s.set_emission(false, EmissionCause::PowerLoss, Instant::now());
                 s.watchdog.timeout = Duration::from_millis(u64::from(protocol::WATCHDOG_DEFAULT_MS));
+                s.watchdog.trips = 0;
             }
             return Outcome::Unplug;
         }

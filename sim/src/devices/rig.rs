@@ -5,7 +5,7 @@ use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::{Duration, Instant};
 
 use glam::DVec3;
-use periscope_drivers::galvo::protocol::{ErrorCode, MotionState};
+use periscope_drivers::galvo::protocol::{self, ErrorCode, MotionState};
 use periscope_drivers::{AngleLimits, GalvoPose, OpticalAngles};
 
 use crate::detector::Detector;
@@ -239,6 +239,20 @@ impl RigState {
     }
 }
 
+/// Hard limits as the firmware reports them in `LIM` and holds moves to: seven
+/// decimals of a radian, what the wire carries. A host that moves to the limit it read
+/// (`MOVE 0.3490659` for ±20°), or to its own limit of the same angle, which the wire
+/// rounds onto it, is not refused for a digit it was never shown; one a reported digit
+/// beyond is. Until 2026-12-07 moves were checked against the unrounded limits, and
+/// both were refused with `ERR 4` wherever the rounding went outward.
+pub(crate) fn as_reported(limits: AngleLimits) -> AngleLimits {
+    let wire = |a: f64| protocol::parse_angle(&protocol::fmt_angle(a)).unwrap_or(a);
+    AngleLimits {
+        x: limits.x.map(wire),
+        y: limits.y.map(wire),
+    }
+}
+
 pub(crate) struct Shared {
     pub settings: RigSettings,
     pub world: Option<World>,
@@ -268,9 +282,10 @@ impl Shared {
     // these, and the in-process devices call them directly.
 
     /// Starts a move to `target`; returns how long the pair takes to settle. A target
-    /// outside the firmware's hard limits is refused.
+    /// outside the firmware's hard limits, as `LIM` reports them ([`as_reported`]), is
+    /// refused.
     pub(crate) fn start_move(&self, arm: Arm, target: OpticalAngles) -> Result<Duration, ErrorCode> {
-        if !self.settings.limits[arm.index()].contains(target) {
+        if !as_reported(self.settings.limits[arm.index()]).contains(target) {
             return Err(ErrorCode::OutOfRange);
         }
         let settle = self.scaled(self.settings.settle[arm.index()]);

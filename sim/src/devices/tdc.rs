@@ -66,6 +66,15 @@ impl SimTdcTransport {
             .map(|(_, c)| c.as_slice())
     }
 
+    /// Whether a `START`'s dwell is still running: its frame is queued and not ready
+    /// yet (`GET_STATUS` state 1, docs/protocols/tdc-usb.md). An `ABORT`, an unplug or
+    /// a reopen drops the frame and with it the acquisition; a frame whose dwell has
+    /// ended waits to be read with the device idle.
+    fn acquiring(&self) -> bool {
+        let now = Instant::now();
+        self.out.iter().any(|(ready, _)| *ready > now)
+    }
+
     fn check_present(&mut self) -> Result<(), TransportError> {
         if std::mem::take(&mut self.rig.shared.lock().tdc_unplugged) {
             self.disconnected = true;
@@ -220,10 +229,12 @@ pub(crate) fn measure(shared: &Shared, cfg: WireConfig, n: u64) -> Measurement {
         expected
             .iter()
             .map(|&l| {
-                if l.is_finite() {
-                    l.round().clamp(0.0, f64::from(u32::MAX)) as u32
-                } else {
+                // A mean beyond a 32-bit counter (infinite included) fills it, as a
+                // Poisson draw of it does (`sample_counts`), and is flagged below.
+                if l.is_nan() {
                     0
+                } else {
+                    l.round().clamp(0.0, f64::from(u32::MAX)) as u32
                 }
             })
             .collect()
@@ -271,7 +282,11 @@ impl UsbTransport for SimTdcTransport {
             Some(ControlRequest::GetStatus) => {
                 let sync = self.config.map_or(0.0, |c| sync_rate(&self.rig.shared, c));
                 WireStatus {
-                    state: state::IDLE,
+                    state: if self.acquiring() {
+                        state::ACQUIRING
+                    } else {
+                        state::IDLE
+                    },
                     error: 0,
                     sync_rate_hz: sync as u32,
                     input_rate_hz: self.last_rate.min(f64::from(u32::MAX)) as u32,
