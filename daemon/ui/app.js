@@ -91,14 +91,23 @@ class ApiError extends Error {
 // daemon must not hold the one the E-STOP needs. With `timeoutMs` a request (its body
 // included) fails with a TimeoutError when the daemon has not answered in that time.
 // With `read` (a function of the response), the request stays cancellable until
-// `read` has read the body, and its result is returned.
+// `read` has read the body, and its result is returned. A `signal` in `init` cancels
+// it too (the selected run's loads, when another run is chosen).
 const inflight = new Set();
+// When the daemon last answered one of the page's requests (its status and headers
+// came, whatever the status): a poll that times out says the daemon is not answering
+// only if nothing was answered after it went out (`pollTimedOut`).
+let answeredAt = -Infinity;
 async function pageFetch(path, init = {}, timeoutMs = null, read = null) {
   const ctl = new AbortController();
-  const signal = timeoutMs == null ? ctl.signal : AbortSignal.any([ctl.signal, AbortSignal.timeout(timeoutMs)]);
+  const signals = [ctl.signal];
+  if (init.signal) signals.push(init.signal);
+  if (timeoutMs != null) signals.push(AbortSignal.timeout(timeoutMs));
+  const signal = signals.length === 1 ? ctl.signal : AbortSignal.any(signals);
   inflight.add(ctl);
   try {
     const r = await fetch(path, { ...init, signal });
+    answeredAt = performance.now();
     return read ? await read(r) : r;
   } finally {
     inflight.delete(ctl);
@@ -112,30 +121,49 @@ function cancelPageRequests() {
 // not an answer.
 const givenUp = (e) => e?.name === 'AbortError' || e?.name === 'TimeoutError';
 
-// `timeoutMs`: for the polls (POLL_TIMEOUT_MS); a request that changes something, or
-// reads a run's files, waits for its answer.
-async function api(method, path, body, timeoutMs = null) {
-  const init = { method, headers: headers(body === undefined ? {} : { 'Content-Type': 'application/toml' }) };
-  if (body !== undefined) init.body = body;
-  const r = await pageFetch(path, init, timeoutMs);
-  let json = null;
+// A 401 to a request sent with the key `sent` (null: none): the page asks for the key
+// again, and forgets `sent` if it is still the key in use. A 401 that comes late, to a
+// request sent before the operator entered another key, leaves the new key alone: its
+// own requests say whether it is good.
+function unauthorized(sent, message) {
+  if (token !== sent) return;
+  if (token) {
+    token = null;
+    sessionStorage.removeItem(TOKEN_KEY);
+  }
+  showTokenState(`the daemon wants the API token: ${message}`);
+}
+
+// The error for a refused request, with the daemon's own words where its body is the
+// API's JSON error (`{error, message}`); a 401 asks for the key (`unauthorized`).
+function refusal(r, json, sent) {
+  const message = json?.message || `${r.status} ${r.statusText}`;
+  if (r.status === 401) unauthorized(sent, message);
+  return new ApiError(r.status, json?.error, message);
+}
+
+// A response's JSON body, or null where it has none (or it does not parse); a request
+// given up while its body was read throws.
+async function jsonBody(r) {
   try {
-    json = await r.json();
+    return await r.json();
   } catch (e) {
     if (givenUp(e)) throw e;
-    json = null;
+    return null;
   }
-  if (!r.ok) {
-    const message = json?.message || `${r.status} ${r.statusText}`;
-    if (r.status === 401) {
-      if (token) {
-        token = null;
-        sessionStorage.removeItem(TOKEN_KEY);
-      }
-      showTokenState(`the daemon wants the API token: ${message}`);
-    }
-    throw new ApiError(r.status, json?.error, message);
-  }
+}
+
+// `timeoutMs`: for the polls (POLL_TIMEOUT_MS); a request that changes something, or
+// reads a run's files, waits for its answer. `signal`: cancels it (another run chosen).
+async function api(method, path, body, timeoutMs = null, signal = null) {
+  // The key this request goes out with, for its 401 (`unauthorized`).
+  const sent = token;
+  const init = { method, headers: headers(body === undefined ? {} : { 'Content-Type': 'application/toml' }) };
+  if (body !== undefined) init.body = body;
+  if (signal) init.signal = signal;
+  const r = await pageFetch(path, init, timeoutMs);
+  const json = await jsonBody(r);
+  if (!r.ok) throw refusal(r, json, sent);
   return json;
 }
 
@@ -148,29 +176,63 @@ class TooLarge extends Error {
   }
 }
 
-// A run file's bytes; the E-STOP cancels the download, body included. A file over
-// `limit` bytes is refused with TooLarge: from its Content-Length before its body is
-// read, or, where the length is not given (a compressed body), as soon as more has
-// come. With a limit the body is read piece by piece into one buffer: Chromium's
-// `arrayBuffer()` assembles a large body in one task of the page's thread (150 ms for
-// 192 MiB), during which the E-STOP button does not answer.
-async function fetchBytes(path, limit = Infinity) {
+// A run file's bytes; the E-STOP cancels the download, body included, and so does
+// `signal`. A file over `limit` bytes is refused with TooLarge: from its
+// Content-Length before its body is read, or, where the length is not given (a
+// compressed body), as soon as more has come. With a limit the body is read piece by
+// piece into one buffer: Chromium's `arrayBuffer()` assembles a large body in one task
+// of the page's thread (150 ms for 192 MiB), during which the E-STOP button does not
+// answer. A refusal carries the daemon's own message (a 503 `too-many-downloads` says
+// to retry shortly), and a 401 asks for the key as `api` does.
+//
+// With `from` above 0 only the bytes from there on are asked for (`Range: bytes=N-`,
+// the event log read on from where the page left it). The answer is { bytes, from,
+// length, pastEnd }: `from` where `bytes` start in the file (0 where the daemon sent
+// the whole file, a 200), and `length` the file's length where the daemon gave it. A
+// range that starts at or past the file's end is 416 with `Content-Range: bytes
+// */length`, returned with `pastEnd` and no bytes: nothing new where `length` is
+// `from`, a shorter file (written anew) where it is less.
+async function fetchFile(path, { limit = Infinity, from = 0, signal = null } = {}) {
   const name = path.split('/').pop();
   probe.fetched[name] = (probe.fetched[name] || 0) + 1;
-  return pageFetch(path, { headers: headers() }, null, async (r) => {
+  // The key this request goes out with, for its 401 (`unauthorized`).
+  const sent = token;
+  // A range is read past the browser's cache: the daemon's answer is the file now.
+  const init = from > 0 ? { headers: headers({ Range: `bytes=${from}-` }), cache: 'no-store' } : { headers: headers() };
+  if (signal) init.signal = signal;
+  return pageFetch(path, init, null, async (r) => {
+    if (from > 0 && r.status === 416) {
+      r.body?.cancel().catch(() => {});
+      const m = /^bytes \*\/(\d+)$/.exec(r.headers.get('Content-Range') || '');
+      return { bytes: new ArrayBuffer(0), from, length: m ? Number(m[1]) : null, pastEnd: true };
+    }
     if (!r.ok) {
-      r.body?.cancel().catch(() => {});
-      throw new ApiError(r.status, null, `${path}: ${r.status} ${r.statusText}`);
+      const json = await jsonBody(r);
+      const e = refusal(r, json, sent);
+      e.message = `${name}: ${e.message}`;
+      throw e;
     }
-    if (limit === Infinity) return r.arrayBuffer();
+    let start = 0;
+    let length = null;
+    if (r.status === 206) {
+      const m = /^bytes (\d+)-\d+\/(\d+)$/.exec(r.headers.get('Content-Range') || '');
+      start = m ? Number(m[1]) : from;
+      length = m ? Number(m[2]) : null;
+    }
+    if (limit === Infinity) return { bytes: await r.arrayBuffer(), from: start, length };
     const given = r.headers.get('Content-Encoding') ? null : r.headers.get('Content-Length');
-    const length = given == null ? null : Number(given);
-    if (length > limit) {
+    const size = given == null ? null : Number(given);
+    if (size > limit) {
       r.body?.cancel().catch(() => {});
-      throw new TooLarge(name, length, limit);
+      throw new TooLarge(name, size, limit);
     }
-    return readBody(r.body.getReader(), name, length, limit);
+    return { bytes: await readBody(r.body.getReader(), name, size, limit), from: start, length };
   });
+}
+
+// A whole run file's bytes (`fetchFile`).
+async function fetchBytes(path, limit = Infinity, signal = null) {
+  return (await fetchFile(path, { limit, signal })).bytes;
 }
 
 // A body's bytes, into one buffer of `length` where it is known (no copy but the one
@@ -317,6 +379,7 @@ function renderInstrument() {
 }
 
 async function pollInstrument() {
+  const sentAt = performance.now();
   try {
     instrument = await api('GET', '/api/v1/instrument', undefined, POLL_TIMEOUT_MS);
     instrumentFetched = performance.now();
@@ -326,7 +389,8 @@ async function pollInstrument() {
     if (e.name === 'AbortError') return;
     if (e instanceof TypeError || e.name === 'TimeoutError') {
       const silent = e.name === 'TimeoutError';
-      setConnection(false, silent ? NOT_ANSWERING : undefined);
+      if (silent) pollTimedOut(sentAt);
+      else setConnection(false);
       // An old reading must not pass for a current one.
       instrument = null;
       $('inst-body').textContent = `The daemon ${silent ? `has not answered for ${POLL_TIMEOUT_MS / 1000} s` : 'cannot be reached'}: nothing here is current. In doubt, use the hardware emergency stop.`;
@@ -343,6 +407,26 @@ function setConnection(up, why = 'daemon unreachable: retrying') {
   c.textContent = up ? 'connected' : why;
   c.className = `pill ${up ? 'ok' : 'danger'}`;
   probe.connection = c.textContent;
+}
+
+// A poll sent at `sentAt` got no answer in POLL_TIMEOUT_MS. The pill says so, and so
+// does the E-STOP's label at once: the polls go one after another, each waiting up to
+// 6 s, and the label must not read "armed" until the caller check's turn comes round.
+// Unless the daemon has answered another request since this one went out: then this
+// silence is its connection's (one dropped without a close), not the daemon's, and
+// the label waits for its own check.
+function pollTimedOut(sentAt) {
+  setConnection(false, NOT_ANSWERING);
+  if (answeredAt > sentAt) return;
+  estopNotAnswering();
+}
+
+// The E-STOP's label when the daemon does not answer.
+function estopNotAnswering() {
+  const st = $('estop-state');
+  st.textContent = `DAEMON NOT ANSWERING (nothing in ${POLL_TIMEOUT_MS / 1000} s): use the hardware emergency stop`;
+  st.className = 'estop-state unreachable';
+  probe.estop = 'unreachable';
 }
 
 // Whether the E-STOP will work from this page: from this computer it needs no key; from
@@ -371,10 +455,12 @@ async function checkEstop() {
   } catch (e) {
     if (e.name === 'AbortError') return;
     caller = null;
-    st.textContent = e.name === 'TimeoutError'
-      ? `DAEMON NOT ANSWERING (nothing in ${POLL_TIMEOUT_MS / 1000} s): use the hardware emergency stop`
-      : 'DAEMON UNREACHABLE: use the hardware emergency stop';
-    st.className = 'estop-state unreachable';
+    if (e.name === 'TimeoutError') {
+      estopNotAnswering();
+    } else {
+      st.textContent = 'DAEMON UNREACHABLE: use the hardware emergency stop';
+      st.className = 'estop-state unreachable';
+    }
   }
   probe.estop = st.className.replace('estop-state ', '');
   updateSubmit();
@@ -447,9 +533,23 @@ function planLoading() {
 
 $('load-demo').addEventListener('click', async () => {
   planLoading();
-  const r = await fetch('/ui/plans/demo.toml');
-  $('plan').value = await r.text();
-  planEdited();
+  try {
+    // Through `pageFetch`, so the E-STOP can take its connection as it takes the polls'.
+    const text = await pageFetch('/ui/plans/demo.toml', {}, null, async (r) => {
+      if (!r.ok) {
+        const json = await jsonBody(r);
+        throw new ApiError(r.status, json?.error, json?.message || `${r.status} ${r.statusText}`);
+      }
+      return r.text();
+    });
+    $('plan').value = text;
+    planEdited();
+  } catch (e) {
+    // The editor keeps what it held, unchecked: Check (or an edit) checks it.
+    const why = e.name === 'AbortError' ? 'cancelled by the E-STOP: press it again'
+      : e instanceof TypeError ? 'the daemon could not be reached' : e.message;
+    $('check-summary').replaceChildren(el('span', { class: 'danger' }, `the demo plan could not be loaded: ${why}`));
+  }
 });
 
 $('plan-file').addEventListener('change', async (e) => {
@@ -542,13 +642,15 @@ function uploadForm(path, form, onProgress) {
     xhr.onloadend = () => inflight.delete(ctl);
     xhr.onabort = () => reject(new DOMException('cancelled for the E-STOP', 'AbortError'));
     xhr.open('POST', path);
+    // The key this upload goes out with, for its 401 (`unauthorized`).
+    const sent = token;
     if (token) xhr.setRequestHeader('Authorization', `Bearer ${token}`);
     xhr.upload.onprogress = (e) => { if (e.lengthComputable) onProgress(e.loaded / e.total); };
     xhr.onload = () => {
       let json = null;
       try { json = JSON.parse(xhr.responseText); } catch { json = null; }
       if (xhr.status >= 200 && xhr.status < 300) resolve(json);
-      else reject(new ApiError(xhr.status, json?.error, json?.message || `${xhr.status} ${xhr.statusText}`));
+      else reject(refusal(xhr, json, sent));
     };
     xhr.onerror = () => reject(new ApiError(0, null, 'the daemon could not be reached'));
     xhr.send(form);
@@ -616,8 +718,12 @@ async function checkPlan() {
     out.textContent = '';
     return;
   }
+  // Whether the daemon answered: a refusal (422 `invalid-plan`) is a verdict on the
+  // plan, a check cancelled or never delivered is none.
+  let answered = false;
   try {
     const c = await api('POST', '/api/v1/check', text);
+    answered = true;
     if ($('plan').value !== text) return;
     out.textContent = c.report;
     const d = c.duration_s;
@@ -642,6 +748,16 @@ async function checkPlan() {
     updateSubmit();
   } catch (e) {
     if ($('plan').value !== text) return;
+    if (!answered && !(e instanceof ApiError)) {
+      // No verdict on the plan: the check was cancelled (the E-STOP takes the page's
+      // connections) or never reached the daemon. The plan is left unchecked, not
+      // called invalid, and Check asks again. A plan checked valid before keeps that.
+      const why = givenUp(e) ? 'the check was cancelled by the E-STOP' : 'the daemon could not be reached';
+      summary.replaceChildren(el('span', { class: 'warn' }, `not checked: ${why}; press check`));
+      planOk = checkedText === text;
+      updateSubmit();
+      return;
+    }
     summary.replaceChildren(el('span', { class: 'danger' }, 'invalid'));
     out.textContent = e.message;
     showProblem(e.message);
@@ -655,13 +771,25 @@ $('submit').addEventListener('click', async () => {
   const text = $('plan').value;
   if (text !== checkedText) return;
   $('submit').disabled = true;
+  // Whether the daemon answered the submission (a refusal is an answer).
+  let answered = false;
   try {
     const st = await api('POST', '/api/v1/runs', text);
+    answered = true;
     await refreshRuns();
     select(st.id);
     banner(`run ${st.id} queued`, 'notice', st.id);
   } catch (e) {
-    banner(`submit refused: ${e.message}`);
+    if (!answered && e.name === 'AbortError') {
+      // Not a refusal: the plan may have reached the daemon before the cancel (its run
+      // then held by the e-stop), as an import's upload may.
+      banner('submit cancelled by the E-STOP: check the runs list before submitting the plan again');
+      probe.submitCancelled = (probe.submitCancelled || 0) + 1;
+    } else if (!answered && e instanceof TypeError) {
+      banner('submit failed: the daemon could not be reached (check the runs list before submitting the plan again)');
+    } else {
+      banner(`submit refused: ${e.message}`);
+    }
   } finally {
     updateSubmit();
   }
@@ -676,16 +804,31 @@ async function action(id, verb) {
   try {
     await api('POST', `/api/v1/runs/${id}/${verb}`);
   } catch (e) {
-    banner(`${verb} refused: ${e.message}`);
+    if (e.name === 'AbortError') {
+      // Not a refusal: the request may have reached the daemon before the cancel.
+      banner(`${verb} of run ${id} cancelled by the E-STOP: check the runs list`);
+    } else if (e instanceof TypeError) {
+      banner(`${verb} of run ${id} failed: the daemon could not be reached (check the runs list)`);
+    } else {
+      banner(`${verb} refused: ${e.message}`);
+    }
   }
   await refreshRuns();
+}
+
+// Abort cannot be undone, and the runs table is rebuilt as runs change state (a row
+// can move under the pointer between aiming and clicking): the operator confirms it,
+// the run named.
+function confirmAbort(r) {
+  const what = `run ${r.id}${r.plan ? ` (plan “${r.plan}”)` : ''}, now ${r.state}`;
+  if (window.confirm(`Abort ${what}? Its captured pairs are kept, but it cannot be resumed.`)) action(r.id, 'abort');
 }
 
 function actionButtons(r) {
   const buttons = [];
   if (r.state === 'running') buttons.push(el('button', { class: 'act-pause', onclick: () => action(r.id, 'pause') }, 'pause'));
   if (r.state === 'paused' || r.state === 'failed') buttons.push(el('button', { class: 'act-resume', onclick: () => action(r.id, 'resume') }, 'resume'));
-  if (['queued', 'running', 'paused', 'failed'].includes(r.state)) buttons.push(el('button', { class: 'act-abort', onclick: () => action(r.id, 'abort') }, 'abort'));
+  if (['queued', 'running', 'paused', 'failed'].includes(r.state)) buttons.push(el('button', { class: 'act-abort', title: `abort run ${r.id} (asks first)`, onclick: () => confirmAbort(r) }, 'abort'));
   return buttons;
 }
 
@@ -746,11 +889,25 @@ async function refreshRuns() {
   }
 }
 
+// Why the runs list shown is not the answer to the filter as it is (empty: it is),
+// beside the filter.
+function runsProblem(text) {
+  $('runs-problem').textContent = text;
+  $('runs-problem').hidden = !text;
+  probe.runsProblem = text;
+}
+
 async function fetchRuns() {
   const asked = ++runsAsked;
+  // The key this request goes out with, for its 401 (`unauthorized`).
+  const sent = token;
+  const sentAt = performance.now();
   try {
     const r = await pageFetch(runsQuery(), { headers: headers({}) }, POLL_TIMEOUT_MS);
-    if (!r.ok) throw new Error(`runs: ${r.status}`);
+    // A refusal (400 `bad-query`: a search over 128 bytes; a 500 from the catalogue)
+    // is said beside the filter, in the daemon's words, and a 401 asks for the key as
+    // every other request does.
+    if (!r.ok) throw refusal(r, await jsonBody(r), sent);
     const total = r.headers.get('x-total-count');
     const list = (await r.json()).reverse();
     // An answer to an older query (the filter changed since) is dropped.
@@ -758,10 +915,12 @@ async function fetchRuns() {
     // Oldest first, as the rest of the page expects.
     runs = list;
     $('runs-count').textContent = total != null ? `${runs.length} of ${total}` : '';
+    runsProblem('');
     setConnection(true);
   } catch (e) {
     if (e instanceof TypeError) setConnection(false);
-    else if (e.name === 'TimeoutError') setConnection(false, NOT_ANSWERING);
+    else if (e.name === 'TimeoutError') pollTimedOut(sentAt);
+    else if (e instanceof ApiError && asked === runsAsked) runsProblem(`runs not updated (the list below is the last one read): ${e.message}`);
     return;
   }
   renderRuns();
@@ -780,10 +939,12 @@ let auditRendered = '';
 
 async function refreshAudit() {
   if (document.hidden) return;
+  const sentAt = performance.now();
   let page;
   try {
     page = await api('GET', '/api/v1/audit?limit=20', undefined, POLL_TIMEOUT_MS);
   } catch (e) {
+    if (e.name === 'TimeoutError') pollTimedOut(sentAt);
     return;
   }
   const key = JSON.stringify(page.entries.map((e) => e.id));
@@ -814,6 +975,40 @@ let status = null;
 let statusAt = 0;
 let geometryStage = null;
 let resultsFor = null;
+// The selected run's loads (its event log, geometry, results and volume) are
+// cancelled when another run is chosen: files of a run no longer shown must not hold
+// the browser's connections, nor the daemon's download slots (503
+// `too-many-downloads`), while the new run's files load.
+let selection = new AbortController();
+
+// A load that failed for a reason that may pass (the daemon busy: 503
+// `too-many-downloads`; no answer; a 500) is tried again at a poll, first after
+// RETRY_MIN_MS, then twice as long each time up to RETRY_MAX_MS, so a failing file is
+// not asked for every 2 s. The page's own failure to read a file it got is not
+// retried (it would fail again); choosing the run again starts afresh.
+const RETRY_MIN_MS = 5000;
+const RETRY_MAX_MS = 60000;
+const retryDelay = (failures) => Math.min(RETRY_MIN_MS * 2 ** failures, RETRY_MAX_MS);
+const mayPass = (e) => givenUp(e) || e instanceof TypeError || e instanceof ApiError;
+// The results' (volume.json and depth.npy) failed tries, and when to try again.
+let resultsFailures = 0;
+let resultsRetryAt = 0;
+// The volume's failed tries, and the timer that tries again.
+let volumeFailures = 0;
+let volumeRetry = null;
+
+// A suspender holding the selected run (its `suspended` event: `reason`, `resume`),
+// until its `suspend-cleared`, a measured pair, or the run no longer running; and
+// when a live event last set it (`loadHistory` does not undo what the stream said
+// after its request went out).
+let suspension = null;
+let suspensionLiveAt = -Infinity;
+
+// How much of the selected run's events.jsonl the page has read: `offset`, the byte
+// just past the last whole line taken (a line still being written is read again with
+// what follows it); `failures` and `retryAt` for a read that failed (Infinity: none
+// waiting).
+let eventLog = { id: null, offset: 0, failures: 0, retryAt: Infinity };
 
 function makePlots() {
   histPlot?.destroy();
@@ -844,9 +1039,23 @@ function select(id) {
   selected = id;
   if (live) live.abort.abort();
   live = null;
+  // The last run's loads still under way are cancelled (their connections and the
+  // daemon's download slots are the new run's), and its volume waits no more to be
+  // scrolled into view.
+  selection.abort();
+  selection = new AbortController();
+  resultsObserver?.disconnect();
+  clearTimeout(volumeRetry);
+  volumeRetry = null;
   status = null;
   geometryStage = null;
   resultsFor = null;
+  resultsFailures = 0;
+  resultsRetryAt = 0;
+  volumeFailures = 0;
+  suspension = null;
+  suspensionLiveAt = -Infinity;
+  eventLog = { id, offset: 0, failures: 0, retryAt: Infinity };
   lossSteps = new Map();
   chosenBatches = new Map();
   makePlots();
@@ -861,7 +1070,7 @@ function select(id) {
   $('gauss-caption').textContent = '';
   $('chosen-caption').textContent = '';
   $('view-colourbar').hidden = true;
-    $('run-error').textContent = '';
+  $('run-error').textContent = '';
   for (const c of ['depth-canvas', 'albedo-canvas', 'mip-x', 'mip-y', 'mip-z', 'slice-canvas']) $(c).width = 0;
   for (const f of ['run-state', 'run-stage', 'run-pairs', 'run-eta', 'run-loss']) $(f).textContent = '';
   $('run-progress').value = 0;
@@ -883,6 +1092,12 @@ function onStatus(st) {
   if (st.id !== selected) return;
   status = st;
   statusAt = performance.now();
+  // A suspender holds a running run; one that stopped (paused by a suspender whose
+  // `resume` is the operator's, aborted, e-stopped) shows its state and error instead.
+  if (st.state !== 'running' && suspension) {
+    suspension = null;
+    suspensionLiveAt = performance.now();
+  }
   renderSummary();
   // A run resumed or started after its page stopped following it: follow it again.
   if (['running', 'queued'].includes(st.state) && !live) follow(st.id);
@@ -893,10 +1108,18 @@ function onStatus(st) {
     loadGeometry(st.id);
   }
   renderDownloads(st);
-  // Results for any run that has them: completed, or stopped after its outputs.
+  // The event log, read again once a failed read's wait is over.
+  if (eventLog.id === st.id && performance.now() >= eventLog.retryAt) {
+    eventLog.retryAt = Infinity;
+    loadHistory(st.id);
+  }
+  // Results for any run that has them: completed, or stopped after its outputs (and
+  // again after a failed load, once its wait is over).
   if (st.files.includes('volume.npy') && st.files.includes('depth.npy') && resultsFor !== st.id) {
-    resultsFor = st.id;
-    loadResults(st.id);
+    if (performance.now() >= resultsRetryAt) {
+      resultsFor = st.id;
+      loadResults(st.id);
+    }
   } else if (!st.files.includes('volume.npy') && ['aborted', 'failed', 'paused'].includes(st.state)) {
     $('results-note').textContent = `run ${st.state} before it was reconstructed: its ${st.pairs_done.toLocaleString()} captured pairs are kept (download capture.hdf5 below, or reconstruct it offline with periscope recon)`;
   }
@@ -941,7 +1164,13 @@ function renderSummary() {
   const capturing = st.state === 'running' && st.stage === 'capture';
   $('run-eta').textContent = capturing && eta != null && eta > 0.5 ? `capture ends in about ${fmtS(eta)}` : '';
   $('run-loss').textContent = st.loss == null ? '' : `${st.state === 'completed' ? 'final loss' : 'loss'} ${st.loss.toExponential(3)}`;
-  $('run-error').textContent = st.error || '';
+  // A suspender holding the run says why (the laser is off until it clears): with
+  // `resume = "auto"` the run waits, running, with no error of its own.
+  const held = suspension && st.state === 'running'
+    ? `held, laser off: ${suspension.reason} (${suspension.resume === 'auto' ? 'it goes on by itself once that clears' : 'it pauses: resume it once that is dealt with'})`
+    : '';
+  $('run-error').textContent = [held, st.error].filter(Boolean).join(' · ');
+  probe.suspended = held || null;
   // Buttons are rebuilt only when they change, so a click never lands on a replaced one.
   const key = `${st.id}:${st.state}`;
   if ($('run-actions').dataset.key !== key) {
@@ -950,26 +1179,76 @@ function renderSummary() {
   }
 }
 
-// Past optimiser steps from events.jsonl, so a page opened mid-run (or after a dropped
-// stream) shows the whole loss curve.
+// Past optimiser steps, an adaptive capture's choices and a suspender's hold, from
+// events.jsonl, so a page opened mid-run (or after a dropped stream, or a `lagged`
+// event) shows the whole loss curve. The log is read on from where the last read
+// ended (`Range: bytes=N-`, answered 206), not downloaded whole at every drop: a long
+// run's log is megabytes. A daemon that sends the whole file instead (200) has it read
+// from the start (steps and batches are keyed by number: a line read twice changes
+// nothing); a log shorter than what was read (416 naming a smaller length) is read
+// again whole. A failed read is tried again at a later status (`onStatus`).
 async function loadHistory(id) {
+  if (eventLog.id !== id) eventLog = { id, offset: 0, failures: 0, retryAt: Infinity };
+  const log = eventLog;
+  const signal = selection.signal;
+  const path = `/api/v1/runs/${id}/files/events.jsonl`;
+  // Lines the stream delivered before this moment are in the file this read gets (the
+  // daemon writes each event's line before it sends it).
+  const asked = performance.now();
   try {
-    const buf = await fetchBytes(`/api/v1/runs/${id}/files/events.jsonl`);
-    if (id !== selected) return;
-    for (const line of new TextDecoder().decode(buf).split('\n')) {
-      if (!line.includes('"epoch"') && !line.includes('"pairs-chosen"')) continue;
-      try {
-        const e = JSON.parse(line);
-        if (e.event === 'epoch') lossSteps.set(e.step, e.loss);
-        if (e.event === 'pairs-chosen') chosenBatches.set(e.batch, e);
-      } catch {
-        // A line cut short by a crash: skip it.
+    let got = await fetchFile(path, { from: log.offset, signal });
+    if (got.pastEnd) {
+      // Nothing past what was read: nothing new.
+      if (got.length === got.from) {
+        log.failures = 0;
+        return;
       }
+      log.offset = 0;
+      got = await fetchFile(path, { signal });
+    }
+    if (log !== eventLog || id !== selected) return;
+    const bytes = new Uint8Array(got.bytes);
+    // Whole lines only: a line still being written is read with what follows it.
+    const end = bytes.lastIndexOf(10);
+    // What the lines say of a suspender: undefined where they say nothing.
+    let held;
+    if (end >= 0) {
+      for (const line of new TextDecoder().decode(bytes.subarray(0, end + 1)).split('\n')) {
+        // A measured pair: no suspender held the run after it (cheaply, without
+        // parsing every pair's line).
+        if (line.includes('"event":"pair"')) {
+          held = null;
+          continue;
+        }
+        const suspender = line.includes('"event":"suspended"') || line.includes('"event":"suspend-cleared"');
+        if (!suspender && !line.includes('"epoch"') && !line.includes('"pairs-chosen"')) continue;
+        try {
+          const e = JSON.parse(line);
+          if (e.event === 'epoch') lossSteps.set(e.step, e.loss);
+          if (e.event === 'pairs-chosen') chosenBatches.set(e.batch, e);
+          if (e.event === 'suspended') held = { reason: e.reason, resume: e.resume };
+          if (e.event === 'suspend-cleared') held = null;
+        } catch {
+          // A line cut short by a crash: skip it.
+        }
+      }
+      log.offset = Math.max(log.offset, got.from + end + 1);
+    }
+    log.failures = 0;
+    // The log's word on a suspender, unless the stream said something since this read
+    // went out, or the run is not running (`onStatus`).
+    if (held !== undefined && asked > suspensionLiveAt && (!status || status.state === 'running')) {
+      suspension = held;
+      renderSummary();
     }
     drawLoss();
     drawChosen();
-  } catch {
-    // No events yet.
+  } catch (e) {
+    // Another run chosen: nothing to say. No log yet (404: a queued run): its
+    // stream brings the events. Otherwise ask again later.
+    if (signal.aborted || log !== eventLog) return;
+    if (e instanceof ApiError && e.status === 404) return;
+    if (mayPass(e)) log.retryAt = performance.now() + retryDelay(log.failures++);
   }
 }
 
@@ -982,8 +1261,9 @@ function drawLoss() {
 let geometryRetry = null;
 async function loadGeometry(id) {
   clearTimeout(geometryRetry);
+  const signal = selection.signal;
   try {
-    const g = await api('GET', `/api/v1/runs/${id}/geometry`);
+    const g = await api('GET', `/api/v1/runs/${id}/geometry`, undefined, null, signal);
     if (id !== selected) return;
     // Planned but the pairs not stored yet: ask again shortly.
     if (status?.pairs_total > 0 && g.illumination.length === 0) {
@@ -1010,10 +1290,12 @@ async function loadGeometry(id) {
       : 'no relay points';
     $('view-caption').textContent = `${relay} · ${g.illumination.length} illumination (red), ${g.detection.length} detection (green) points · volume box`;
     probe.geometry = { relay: g.relay.length, illumination: g.illumination.length, detection: g.detection.length };
-    } catch (e) {
-    // Cancelled for the E-STOP: loaded again at the next status.
+  } catch (e) {
+    // Another run chosen: nothing to say. Cancelled for the E-STOP: loaded again at
+    // the next status.
+    if (signal.aborted || id !== selected) return;
     if (e.name === 'AbortError') geometryStage = null;
-    else if (id === selected) $('view-caption').textContent = e.message;
+    else $('view-caption').textContent = e.message;
   }
 }
 
@@ -1102,12 +1384,30 @@ function onEvent(name, data) {
       if (data.stage === 'capture') loadGeometry(selected);
       break;
     case 'pair':
+      // A pair measured: no suspender holds the run now (its `suspend-cleared` may
+      // have been among events skipped for a slow page).
+      if (suspension) {
+        suspension = null;
+        suspensionLiveAt = performance.now();
+      }
       if (status) {
         status.pairs_done = data.done;
         status.pairs_total = data.total;
         status.progress = data.done / data.total;
         renderSummary();
       }
+      break;
+    case 'suspended':
+      // A suspender tripped (the interlock opened, a count rate over the plan's
+      // limit, ...): the laser is off and the run waits, or pauses, until it clears.
+      suspension = { reason: data.reason, resume: data.resume };
+      suspensionLiveAt = performance.now();
+      renderSummary();
+      break;
+    case 'suspend-cleared':
+      suspension = null;
+      suspensionLiveAt = performance.now();
+      renderSummary();
       break;
     case 'planned':
     case 'relay':
@@ -1128,7 +1428,7 @@ function onEvent(name, data) {
     case 'pairs-chosen':
       onPairsChosen(data);
       break;
-        case 'failed':
+    case 'failed':
       banner(`run ${selected} failed: ${data.message}`, 'error', selected);
       break;
     case 'lagged':
@@ -1176,6 +1476,7 @@ async function follow(id) {
     });
     try {
       const r = await fetch(`/api/v1/runs/${id}/events`, { headers: headers(), signal: AbortSignal.any([abort.signal, conn.signal]) });
+      answeredAt = performance.now();
       if (!r.ok) throw new ApiError(r.status, null, `event stream: ${r.status}`);
       probe.streamsOpened += 1;
       setConnection(true);
@@ -1433,10 +1734,11 @@ function whenVisible(target, f) {
 }
 
 async function loadResults(id) {
+  const signal = selection.signal;
   try {
     const [vj, depthBuf] = await Promise.all([
-      api('GET', `/api/v1/runs/${id}/files/volume.json`),
-      fetchBytes(`/api/v1/runs/${id}/files/depth.npy`),
+      api('GET', `/api/v1/runs/${id}/files/volume.json`, undefined, null, signal),
+      fetchBytes(`/api/v1/runs/${id}/files/depth.npy`, Infinity, signal),
     ]);
     if (id !== selected) return;
     const depth = await inWorker({ op: 'parse', buffer: depthBuf }, [depthBuf]);
@@ -1455,14 +1757,23 @@ async function loadResults(id) {
     $('volume-note').textContent = 'the volume loads when this part of the page is shown';
     $('results-body').hidden = false;
     probe.resultsShown = true;
-    whenVisible($('volume-part'), () => loadVolume(id, vj));
+    resultsFailures = 0;
+    whenVisible($('volume-part'), () => loadVolume(id, vj, signal));
   } catch (e) {
-    // Cancelled for the E-STOP: loaded again at the next status. Superseded: the run
-    // was chosen again, and its results are loading anew.
-    if (e.name === 'Superseded') return;
+    // Superseded, or cancelled with its selection: another run was chosen (or this
+    // one again), and nothing is to be said of this load.
+    if (e.name === 'Superseded' || signal.aborted || id !== selected) return;
     if (e.name === 'AbortError') {
+      // Cancelled for the E-STOP: loaded again at the next status.
       if (resultsFor === id) resultsFor = null;
-    } else if (id === selected) {
+    } else if (mayPass(e)) {
+      // The daemon busy (503 `too-many-downloads`), failing or out of reach: loaded
+      // again at a status once the wait is over (`onStatus`).
+      const wait = retryDelay(resultsFailures++);
+      if (resultsFor === id) resultsFor = null;
+      resultsRetryAt = performance.now() + wait;
+      $('results-note').textContent = `results could not be loaded: ${e.message} (trying again in ${wait / 1000} s)`;
+    } else {
       $('results-note').textContent = `results could not be shown: ${e.message}`;
     }
   }
@@ -1470,11 +1781,13 @@ async function loadResults(id) {
 
 // The volume: fetched (at most VOLUME_LIMIT_BYTES), handed to the worker, which
 // keeps it and sends back its maximum and projections; slices are asked for as shown.
-async function loadVolume(id, vj) {
+async function loadVolume(id, vj, signal) {
+  // Another run chosen since this one's results were drawn: not its volume.
+  if (signal.aborted) return;
   const note = $('volume-note');
   try {
     note.textContent = 'loading the volume…';
-    const buffer = await fetchBytes(`/api/v1/runs/${id}/files/volume.npy`, VOLUME_LIMIT_BYTES);
+    const buffer = await fetchBytes(`/api/v1/runs/${id}/files/volume.npy`, VOLUME_LIMIT_BYTES, signal);
     if (id !== selected) return;
     note.textContent = 'projecting the volume…';
     // The projections along z, y and x, and the albedo: the peak along the depth map's
@@ -1506,15 +1819,25 @@ async function loadVolume(id, vj) {
     drawSlice();
     const odd = got.nonFinite ? `; ${got.nonFinite.toLocaleString()} voxels are NaN or infinite (left out of the maximum)` : '';
     note.textContent = `${nx}×${ny}×${nz} voxels, maximum ${volume.max.toExponential(2)}${odd}`;
+    volumeFailures = 0;
   } catch (e) {
-    if (e.name === 'Superseded') return;
+    // Superseded or cancelled with its selection: another run's volume, nothing to say.
+    if (e.name === 'Superseded' || signal.aborted || id !== selected) return;
     if (e.name === 'AbortError') {
       // Cancelled for the E-STOP: loaded again at the next status.
       if (resultsFor === id) resultsFor = null;
-    } else if (id !== selected) {
-      // Another run's volume: nothing to say.
     } else if (e.name === 'TooLarge') {
       note.textContent = `${e.message}: the albedo, the projections and the slices are not drawn here. Download depth.png and albedo.png below (or volume.npy, to open it with numpy).`;
+    } else if (mayPass(e)) {
+      // The daemon busy (503 `too-many-downloads`), failing or out of reach: the
+      // volume alone is asked for again after a wait, when its part is shown.
+      const wait = retryDelay(volumeFailures++);
+      note.textContent = `the volume could not be loaded: ${e.message} (trying again in ${wait / 1000} s)`;
+      clearTimeout(volumeRetry);
+      volumeRetry = setTimeout(() => {
+        volumeRetry = null;
+        if (!signal.aborted) whenVisible($('volume-part'), () => loadVolume(id, vj, signal));
+      }, wait);
     } else {
       note.textContent = `the volume could not be shown: ${e.message}`;
     }
@@ -1531,18 +1854,22 @@ async function refresh() {
   if (refreshing || document.hidden) return;
   refreshing = true;
   try {
-    // One after another: one connection for the polls, beside the two streams.
-    for (const poll of [pollInstrument, refreshRuns, checkEstop, checkQueue]) await poll();
+    // One after another: one connection for the polls, beside the two streams. The
+    // E-STOP's check first, so its label is the freshest thing on the page (a daemon
+    // that stops answering holds each poll for up to 6 s).
+    for (const poll of [checkEstop, pollInstrument, refreshRuns, checkQueue]) await poll();
   } finally {
     refreshing = false;
   }
 }
 
 async function checkQueue() {
-    try {
+  const sentAt = performance.now();
+  try {
     queueLock = (await api('GET', '/api/v1/queue', undefined, POLL_TIMEOUT_MS)).lock;
   } catch (e) {
     if (e.name === 'AbortError') return;
+    if (e.name === 'TimeoutError') pollTimedOut(sentAt);
     // Not known: Submit waits until it is.
     queueLock = { by: 'unknown', reason: 'the queue could not be read' };
   }
@@ -1565,7 +1892,7 @@ async function start() {
   showTokenState();
   makePlots();
   drawLines();
-  startSafety({ headers, probe, setConnection });
+  startSafety({ headers, probe, setConnection, answered: () => { answeredAt = performance.now(); } });
   $('runs-filter').addEventListener('input', () => refreshRuns());
   $('runs-state').addEventListener('change', () => refreshRuns());
   await refresh();

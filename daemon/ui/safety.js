@@ -22,9 +22,14 @@ const ANNOUNCE_HOLD_MS = 1000;
 
 const $ = (id) => document.getElementById(id);
 
-export function startSafety({ headers, probe, setConnection }) {
+export function startSafety({ headers, probe, setConnection, answered = () => {} }) {
   let last = null; // { s: safety event, at: performance.now() }
   let streamUp = false;
+  // The daemon's refusal of the stream's last request, in words (its status and its
+  // message: a 401 key, a 403 role or host, a 503 at the stream cap), shown with the
+  // UNKNOWN state: the reason is the operator's to fix, not the network's. Null when the
+  // last try was not refused.
+  let refused = null;
   const series = { t: [], signal: [], dark: [], pairs: [], pileUp: [], age: [] };
   let plots = null;
   // The daemon's clock less this browser's, seconds: the points carry the daemon's
@@ -120,7 +125,7 @@ export function startSafety({ headers, probe, setConnection }) {
     const s = last?.s;
     let unknown = null;
     if (!streamUp || !last || now - last.at > STREAM_STALE_MS) {
-      unknown = 'no live data from the daemon';
+      unknown = `no live data from the daemon${!streamUp && refused ? `: it refused the live stream, ${refused}` : ''}`;
     } else if (s.age_s == null || s.emission == null) {
       unknown = 'the laser has not been read yet';
     } else if (!Number.isFinite(s.age_s) || !Number.isFinite(s.stale_after_s)) {
@@ -148,7 +153,7 @@ export function startSafety({ headers, probe, setConnection }) {
       bar.className = `safety ${s.emission ? 'emitting' : 'safe'}`;
       word('sb-state', s.source === 'run' ? `run ${s.run}` : 'idle', '');
       word('sb-emission', s.emission ? 'LASER ON' : 'laser off', s.emission ? 'danger' : 'ok');
-            word('sb-interlock', s.interlock_closed == null ? 'interlock ?' : s.interlock_closed ? 'interlock closed' : 'INTERLOCK OPEN', s.interlock_closed === false ? 'danger' : s.interlock_closed ? 'ok' : '');
+      word('sb-interlock', s.interlock_closed == null ? 'interlock ?' : s.interlock_closed ? 'interlock closed' : 'INTERLOCK OPEN', s.interlock_closed === false ? 'danger' : s.interlock_closed ? 'ok' : '');
       word('sb-diffuser', s.diffuser_in == null ? 'diffuser ?' : s.diffuser_in ? 'diffuser in' : 'diffuser out', '');
       const a = (v) => (Array.isArray(v) && v.length === 2 && v.every(Number.isFinite) ? `${v[0].toFixed(2)}°, ${v[1].toFixed(2)}°` : '–');
       word('sb-arms', `laser arm (${a(s.laser_deg)}) · SPAD arm (${a(s.spad_deg)})`, '');
@@ -169,7 +174,7 @@ export function startSafety({ headers, probe, setConnection }) {
     probe.alarms = list;
   }
 
-    // The stream, closed while the tab is hidden (its connection is given back; the bar
+  // The stream, closed while the tab is hidden (its connection is given back; the bar
   // is not seen then anyway) and opened again when it is shown.
   let abort = null;
   async function stream() {
@@ -184,7 +189,16 @@ export function startSafety({ headers, probe, setConnection }) {
       });
       try {
         const r = await fetch('/api/v1/instrument/events', { headers: headers(), signal: abort.signal });
-        if (!r.ok) throw new Error(`instrument events: ${r.status}`);
+        answered();
+        if (!r.ok) {
+          // The API's JSON error, `{error, message}`, where the body is one.
+          const body = await r.json().catch(() => null);
+          refused = `${r.status}${r.statusText ? ` ${r.statusText}` : ''}${body?.message ? `: ${body.message}` : ''}`;
+          probe.safetyRefused = refused;
+          throw new Error(`instrument events: ${refused}`);
+        }
+        refused = null;
+        probe.safetyRefused = null;
         // Live only from the first event of this connection on: an event from before a
         // drop is not shown as current again.
         last = null;
@@ -198,7 +212,11 @@ export function startSafety({ headers, probe, setConnection }) {
           probe.safetyEvents = (probe.safetyEvents || 0) + 1;
         });
       } catch (e) {
-        if (e instanceof TypeError && !document.hidden) setConnection(false);
+        if (e instanceof TypeError && !document.hidden) {
+          // Not reached at all: no refusal to show.
+          refused = null;
+          setConnection(false);
+        }
       } finally {
         watchdog.stop();
       }
@@ -210,7 +228,7 @@ export function startSafety({ headers, probe, setConnection }) {
     }
   }
 
-    document.addEventListener('visibilitychange', () => {
+  document.addEventListener('visibilitychange', () => {
     if (document.hidden) abort?.abort();
   });
   makePlots();
