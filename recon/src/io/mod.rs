@@ -73,9 +73,40 @@ pub fn write_bytes_atomically(path: &Path, bytes: &[u8]) -> std::io::Result<()> 
         let _ = std::fs::remove_file(&tmp);
         return Err(e);
     }
-    match path.parent() {
-        Some(dir) if !dir.as_os_str().is_empty() => sync_directory(dir),
-        _ => sync_directory(Path::new(".")),
+    let dir = match path.parent() {
+        Some(dir) if !dir.as_os_str().is_empty() => dir,
+        _ => Path::new("."),
+    };
+    // The file is in place by now: a failure here is said as the directory's
+    // ([`FolderNotSynced`]), so a message does not call a file that is there unwritten.
+    sync_directory(dir).map_err(|source| {
+        std::io::Error::new(
+            source.kind(),
+            FolderNotSynced {
+                dir: dir.to_path_buf(),
+                source,
+            },
+        )
+    })
+}
+
+/// [`write_bytes_atomically`]'s error where the file was written and renamed into
+/// place but its folder could not be synced: the file is there, its name may not
+/// survive a power cut. [`FolderNotSynced::of`] finds it in an `io::Error`.
+#[derive(Debug, thiserror::Error)]
+#[error("written, but its folder {} could not be synced ({source}), so the new name may not survive a power cut", .dir.display())]
+pub struct FolderNotSynced {
+    /// The folder.
+    pub dir: PathBuf,
+    /// Why its sync failed.
+    pub source: std::io::Error,
+}
+
+impl FolderNotSynced {
+    /// The folder-sync failure `e` carries, if that is what it is.
+    pub fn of(e: &std::io::Error) -> Option<&FolderNotSynced> {
+        e.get_ref()
+            .and_then(|inner| inner.downcast_ref::<FolderNotSynced>())
     }
 }
 
@@ -483,6 +514,23 @@ fn cgroup_left_under(root: &Path, path: &str) -> Option<u64> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A folder-sync failure after the rename is told apart from a failed write: it
+    /// says the file was written, and names the folder and the cause.
+    #[test]
+    fn a_folder_not_synced_is_told_from_a_file_not_written() {
+        let e = std::io::Error::other(FolderNotSynced {
+            dir: PathBuf::from("/data/runs"),
+            source: std::io::Error::from_raw_os_error(5),
+        });
+        let found = FolderNotSynced::of(&e).expect("found in the io::Error");
+        let text = found.to_string();
+        assert!(
+            text.starts_with("written, but its folder /data/runs") && text.contains("os error 5"),
+            "{text}"
+        );
+        assert!(FolderNotSynced::of(&std::io::Error::from_raw_os_error(28)).is_none());
+    }
 
     /// A container's or unit's memory limit caps what the memory checks believe is
     /// left, at whichever level of the hierarchy sets the tightest one. Until

@@ -308,14 +308,27 @@ impl YtalCapture {
             }
             None => 0.0,
         };
-        let scene_info = r
-            .file
-            .dataset("scene_info")
-            .ok()
-            .filter(|d| r.checked_shape(d, "scene_info", 1 << 16).is_ok())
-            .and_then(|d| d.read_string().ok())
-            .and_then(|v| v.into_iter().next())
-            .and_then(says_something);
+        // A `scene_info` that is there but cannot be read is said: the histogram flags
+        // (overflowed transients, left out of the fit) are kept in it, and without
+        // them every transient is taken as good.
+        let scene_info = match r.file.dataset("scene_info") {
+            Err(_) => None,
+            Ok(d) => match r
+                .checked_shape(&d, "scene_info", 1 << 16)
+                .map_err(|e| e.to_string())
+                .and_then(|_| d.read_string().map_err(|e| e.to_string()))
+            {
+                Ok(v) => v.into_iter().next().and_then(says_something),
+                Err(e) => {
+                    tracing::warn!(
+                        capture = %r.path.display(),
+                        "`scene_info` cannot be read as text ({e}): the capture's provenance and any \
+                         histogram flags it holds are not used, so every transient is taken as good"
+                    );
+                    None
+                }
+            },
+        };
         let mut capture = YtalCapture {
             h,
             h_shape,
@@ -353,6 +366,9 @@ impl YtalCapture {
     /// normal and origin is finite (a reader that derives them from a header value,
     /// as the LCT and f-k readers do from `width`, hands on what that value makes).
     pub(crate) fn check(&self) -> Result<(), String> {
+        if self.h_shape.is_empty() {
+            return Err("`H` has no shape: it needs a time axis and the relay's".into());
+        }
         for (side, grid) in [("laser", &self.laser_grid), ("sensor", &self.sensor_grid)] {
             if let Some(i) = grid.points.iter().position(|p| !p.is_finite()) {
                 return Err(format!(

@@ -103,6 +103,56 @@ fn a_written_capture_reads_back_identically() {
     assert_eq!(back.scene_info, c.scene_info);
 }
 
+/// The legs in the times, with both origins, and normals off the axes: the flag, the
+/// origins and the normals (through f32, renormalised) read back as written, and with
+/// them each transient's hidden start.
+#[test]
+fn a_capture_with_its_legs_and_tilted_normals_reads_back_as_written() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("legs.hdf5");
+    let mut c = sample();
+    c.t_accounts_first_and_last_bounces = true;
+    c.laser_xyz = Some(DVec3::new(-0.3, 0.1, 1.2));
+    let tilt = DVec3::new(0.3, -0.2, 1.0).normalize();
+    c.sensor_grid.normals = vec![tilt; c.sensor_grid.points.len()];
+    c.write(&path).unwrap();
+    let back = YtalCapture::read(&path).unwrap();
+    assert!(back.t_accounts_first_and_last_bounces);
+    assert_eq!(back.laser_xyz, c.laser_xyz.map(|p| p.as_vec3().as_dvec3()));
+    for n in &back.sensor_grid.normals {
+        assert!(n.distance(tilt) < 1e-6, "{n} against {tilt}");
+    }
+    for i in 0..c.len() {
+        assert!(
+            (back.hidden_start(i) - c.hidden_start(i)).abs() < 1e-6,
+            "transient {i}"
+        );
+    }
+}
+
+/// What the reader would refuse is not written (until 2026-12-07 the writer checked
+/// nothing: flags of the wrong length wrote a file our own reader refuses, an empty
+/// shape panicked), and nothing is left under the name.
+#[test]
+fn a_capture_that_does_not_fit_together_is_not_written() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("bad.hdf5");
+    let mut flags = sample();
+    flags.flags = Some(vec![0; 3]);
+    let mut legs = sample();
+    legs.t_accounts_first_and_last_bounces = true;
+    let mut shapeless = sample();
+    shapeless.h_shape.clear();
+    for (c, says) in [(flags, "flags"), (legs, "laser_xyz"), (shapeless, "no shape")] {
+        let e = c.write(&path).unwrap_err().to_string();
+        assert!(
+            e.contains("bad.hdf5") && e.contains("not written") && e.contains(says),
+            "{e}"
+        );
+        assert!(!path.exists());
+    }
+}
+
 #[test]
 fn transients_are_indexed_laser_major_and_time_first() {
     let c = sample();

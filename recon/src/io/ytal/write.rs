@@ -12,10 +12,14 @@ impl YtalCapture {
     /// Writes the capture in y-tal's own layout (what `tal.io.write_capture` writes), so
     /// y-tal and h5py read it. The file is replaced atomically and durably
     /// ([`crate::io::write_bytes_atomically`]).
+    ///
+    /// The capture is checked as the reader checks it first (`H` against its shape, the
+    /// grids, the flags and the origins), and the target before the encoding (minutes
+    /// for a large `H`): what the reader would refuse is not written.
     pub fn write(&self, path: &Path) -> Result<(), YtalError> {
-        let bytes = self.to_bytes().map_err(|e| YtalError::Hdf5 {
+        self.check().map_err(|message| YtalError::Format {
             path: path.to_path_buf(),
-            message: format!("cannot be encoded: {e}"),
+            message: format!("not written: {message}"),
         })?;
         if let Some(why) = crate::io::non_regular_target(path) {
             return Err(YtalError::Hdf5 {
@@ -23,9 +27,16 @@ impl YtalCapture {
                 message: why.into(),
             });
         }
+        let bytes = self.to_bytes().map_err(|e| YtalError::Hdf5 {
+            path: path.to_path_buf(),
+            message: format!("cannot be encoded: {e}"),
+        })?;
         crate::io::write_bytes_atomically(path, &bytes).map_err(|e| YtalError::Hdf5 {
             path: path.to_path_buf(),
-            message: format!("cannot be written: {e}"),
+            message: match crate::io::FolderNotSynced::of(&e) {
+                Some(done) => done.to_string(),
+                None => format!("cannot be written: {e}"),
+            },
         })
     }
 
