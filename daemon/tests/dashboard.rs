@@ -589,6 +589,24 @@ async fn enter_token(c: &Client, limit: Duration) {
     wait_text(c, "#token-state", limit, |s| s.contains("token set")).await;
 }
 
+/// Runs the script `js` (with `args`) until its value is neither null nor false, and
+/// returns that value.
+async fn wait_js(c: &Client, what: &str, limit: Duration, js: &str, args: Vec<Value>) -> Value {
+    let t = Instant::now();
+    loop {
+        let v = c.execute(js, args.clone()).await.unwrap();
+        if !v.is_null() && v != Value::Bool(false) {
+            return v;
+        }
+        assert!(
+            t.elapsed() < limit,
+            "the page never showed {what} (probe {})",
+            probe(c).await
+        );
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+}
+
 fn percentile(v: &mut [f64], q: f64) -> f64 {
     v.sort_by(f64::total_cmp);
     v[((v.len() - 1) as f64 * q).round() as usize]
@@ -1279,6 +1297,419 @@ async fn the_page_says_when_the_daemon_stops_answering() {
             .await
             .unwrap()
     );
+    c.close().await.unwrap();
+    drop(driver);
+    server.abort();
+    svc.shutdown();
+    worker.join().unwrap();
+}
+
+/// The E-STOP's report is on screen however far the page is scrolled: beside the
+/// button, in the sticky header on a desktop and pinned with the button to the corner
+/// of a phone's screen. Pressed at the bottom of the page, on a desktop-sized and on a
+/// phone-sized tab, the report is inside the viewport and nothing covers it. Until
+/// 683df1a the report sat below the header in the page's flow, outside the part that
+/// stays on screen: at the bottom of the page it was scrolled off the top, and an
+/// operator who pressed the E-STOP there saw no word of whether it worked.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_estop_report_is_on_screen_however_far_the_page_is_scrolled() {
+    let Some((chromium, chromedriver)) = browser_or_skip("the dashboard E-STOP report test") else {
+        return;
+    };
+    let shots = screenshots_dir();
+    let dir = tempfile::tempdir().unwrap();
+    let svc = service(dir.path(), 0.0);
+    let worker = svc.start_worker();
+    let (addr, server) = serve(&svc).await;
+    let driver = start_chromedriver(&chromedriver).await;
+    let limit = Duration::from_secs(20);
+    // The bottom of the page, a screen or more below the header: a spacer at the end
+    // makes the page two screens tall, should it be shorter.
+    let to_bottom = "const d = document.documentElement; \
+                     if (d.scrollHeight < 2 * innerHeight) { \
+                       const s = document.createElement('div'); \
+                       s.style.height = `${2 * innerHeight}px`; document.body.append(s); } \
+                     window.scrollTo(0, d.scrollHeight); \
+                     return { scrollY, inner: innerHeight };";
+    // Where the report is, scrolled to the bottom again (its own height may have made
+    // the page longer), and whether it is what is seen at its centre.
+    let report_at = "window.scrollTo(0, document.documentElement.scrollHeight); \
+                     const e = document.getElementById('estop-report'); \
+                     const r = e.getBoundingClientRect(); \
+                     const hit = document.elementFromPoint((r.left + r.right) / 2, (r.top + r.bottom) / 2); \
+                     return { top: r.top, bottom: r.bottom, left: r.left, right: r.right, \
+                              inner: innerHeight, width: innerWidth, scrollY, \
+                              shown: !e.hidden && r.height > 0, onTop: !!hit && e.contains(hit) };";
+    for (w, h, name) in [(1200, 600, "desktop"), (390, 844, "phone")] {
+        let c = session(&driver, &chromium, w, h).await;
+        c.goto(&format!("http://{addr}/")).await.unwrap();
+        wait_page(&c, "ready", limit, |v| v["ready"] == true).await;
+        wait_text(&c, "#estop-state", limit, |s| s.starts_with("armed")).await;
+        let at = c.execute(to_bottom, vec![]).await.unwrap();
+        assert!(
+            at["scrollY"].as_f64().unwrap() >= at["inner"].as_f64().unwrap() / 2.0,
+            "{name}: the page did not scroll far: {at}"
+        );
+        click(&c, "#estop").await;
+        let note = wait_text(&c, "#estop-text", limit, |s| s.starts_with("E-STOP done")).await;
+        let r = c.execute(report_at, vec![]).await.unwrap();
+        let f = |k: &str| r[k].as_f64().unwrap();
+        assert!(
+            f("scrollY") >= f("inner") / 2.0,
+            "{name}: the page is no longer scrolled down: {r}"
+        );
+        assert_eq!(r["shown"], true, "{name}: the report is hidden: {r} ({note})");
+        assert!(
+            f("top") >= -0.5
+                && f("bottom") <= f("inner") + 0.5
+                && f("left") >= -0.5
+                && f("right") <= f("width") + 0.5,
+            "{name}: the E-STOP's report is off screen at the bottom of the page: {r}"
+        );
+        assert_eq!(
+            r["onTop"], true,
+            "{name}: something covers the E-STOP's report: {r}"
+        );
+        screenshot(&c, &shots, &format!("estop-report-{name}.png")).await;
+        c.close().await.unwrap();
+    }
+    drop(driver);
+    server.abort();
+    svc.shutdown();
+    worker.join().unwrap();
+}
+
+/// A 401 that comes late, to a request sent with a key the operator has since
+/// replaced, leaves the new key alone. The page is given a wrong key, and the answers
+/// to its requests made with that key (all but the E-STOP's check, whose 401 asks for
+/// nothing) are held back in the page (its `fetch` wrapped) until the right key has
+/// been entered while one of the polls whose 401 asks for the key again (the
+/// instrument's, the queue's, the audit's) is waiting; then the 401s arrive, the page
+/// reads them, and the right key is still the one in use: kept for the tab, the token
+/// form saying so, the E-STOP's label naming it. Until 683df1a any 401 wiped whatever
+/// key was in use when it came, so a slow answer to the old key's request threw away
+/// the key just typed (from another machine, the E-STOP was then unarmed).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_late_401_to_an_old_key_leaves_the_key_just_entered() {
+    let Some((chromium, chromedriver)) = browser_or_skip("the dashboard late-401 test") else {
+        return;
+    };
+    const WRONG: &str = "not-the-daemon-key-0123456789";
+    let dir = tempfile::tempdir().unwrap();
+    let svc = service(dir.path(), 0.0);
+    let worker = svc.start_worker();
+    let (addr, server) = serve(&svc).await;
+    let driver = start_chromedriver(&chromedriver).await;
+    let c = session(&driver, &chromium, 1400, 1200).await;
+    let limit = Duration::from_secs(20);
+    c.goto(&format!("http://{addr}/")).await.unwrap();
+    wait_page(&c, "ready", limit, |v| v["ready"] == true).await;
+    // Answers to requests sent with the wrong key are held until `release`, or until
+    // the request is given up (a poll's 6 s limit), as a slow daemon's would be. `held`
+    // counts those held now, `heldApi` those of them whose 401 asks for the key, `api`
+    // has those answers' statuses once let through, and `read` counts their bodies read
+    // by the page (a 401 is acted on once its body is read).
+    c.execute(
+        "const key = arguments[0]; const orig = window.fetch; \
+         const w = window.lateKey = { held: 0, heldApi: 0, api: [], read: 0, release: false }; \
+         const isApi = (p) => p === '/api/v1/instrument' || p === '/api/v1/queue' || p.startsWith('/api/v1/audit'); \
+         window.fetch = async function (input, init) { \
+           const auth = init && init.headers && init.headers.Authorization; \
+           const path = typeof input === 'string' ? input : input.url; \
+           if (auth !== `Bearer ${key}` || path.startsWith('/api/v1/whoami')) return orig.call(window, input, init); \
+           const api = isApi(path); \
+           const signal = init && init.signal; \
+           w.held += 1; if (api) w.heldApi += 1; \
+           try { \
+             const r = await orig.call(window, input, init); \
+             while (!w.release) { \
+               if (signal && signal.aborted) throw signal.reason; \
+               await new Promise((res) => setTimeout(res, 20)); \
+             } \
+             if (api) { \
+               w.api.push(r.status); \
+               const json = r.json.bind(r); \
+               r.json = () => json().then((v) => { w.read += 1; return v; }); \
+             } \
+             return r; \
+           } finally { w.held -= 1; if (api) w.heldApi -= 1; } \
+         };",
+        vec![Value::from(WRONG)],
+    )
+    .await
+    .unwrap();
+    // The wrong key; a poll goes out with it, and its answer is held.
+    c.find(Locator::Css("#token"))
+        .await
+        .unwrap()
+        .send_keys(WRONG)
+        .await
+        .unwrap();
+    click(&c, "#token-form button").await;
+    wait_js(
+        &c,
+        "a poll sent with the wrong key",
+        limit,
+        "return window.lateKey.heldApi > 0 || null;",
+        vec![],
+    )
+    .await;
+    // The right key, entered while that answer is still on its way.
+    type_token(&c).await;
+    let now = c
+        .execute(
+            "return { heldApi: window.lateKey.heldApi, key: sessionStorage.getItem('periscope-token') };",
+            vec![],
+        )
+        .await
+        .unwrap();
+    assert_eq!(now["key"], TOKEN, "the right key was not taken: {now}");
+    assert!(
+        now["heldApi"].as_u64().is_some_and(|n| n >= 1),
+        "no answer to the wrong key was still held when the right one was entered: {now}"
+    );
+    // The late answers: 401s, read by the page.
+    c.execute("window.lateKey.release = true;", vec![]).await.unwrap();
+    let w = wait_js(
+        &c,
+        "the held answers delivered and read",
+        limit,
+        "const w = window.lateKey; return w.held === 0 && w.read > 0 ? w : null;",
+        vec![],
+    )
+    .await;
+    let statuses = w["api"].as_array().unwrap();
+    assert!(
+        !statuses.is_empty() && statuses.iter().all(|s| s.as_u64() == Some(401)),
+        "the wrong key's polls were not answered 401: {w}"
+    );
+    // Time for the page to act on them.
+    tokio::time::sleep(Duration::from_millis(500)).await;
+    let key = c
+        .execute("return sessionStorage.getItem('periscope-token');", vec![])
+        .await
+        .unwrap();
+    assert_eq!(
+        key,
+        TOKEN,
+        "a late 401 to the old key wiped the new one (token form: {:?})",
+        text(&c, "#token-state").await
+    );
+    assert_eq!(text(&c, "#token-state").await, "token set for this tab");
+    // The new key's own requests go on with it: the E-STOP's label names it.
+    wait_text(&c, "#estop-state", limit, |s| s.starts_with("armed: key")).await;
+    assert_eq!(
+        c.execute("return sessionStorage.getItem('periscope-token');", vec![])
+            .await
+            .unwrap(),
+        TOKEN
+    );
+    c.close().await.unwrap();
+    drop(driver);
+    server.abort();
+    svc.shutdown();
+    worker.join().unwrap();
+}
+
+/// The runs table asks before it aborts, naming the run, and says when the daemon
+/// refuses its search. Abort: the page's `confirm` stubbed to record its question;
+/// answered no, the queued run stays queued; answered yes, it is aborted. The search:
+/// one over the daemon's 128 bytes is refused (400 `bad-query`), and the page says so
+/// beside the filter, in the daemon's words, until the filter is cleared. Until 683df1a
+/// abort went ahead at once, unasked (the table is rebuilt as runs change state, and a
+/// row can move under the pointer), and a refused search left the last list on screen
+/// as if it answered the filter, with nothing said.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_runs_table_asks_before_an_abort_and_says_a_refused_search() {
+    let Some((chromium, chromedriver)) = browser_or_skip("the dashboard runs-table test") else {
+        return;
+    };
+    let dir = tempfile::tempdir().unwrap();
+    // No worker: the run stays queued for as long as the test needs.
+    let svc = service(dir.path(), 0.0);
+    let id = svc.submit(SMALL.to_owned()).unwrap().id;
+    let (addr, server) = serve(&svc).await;
+    let driver = start_chromedriver(&chromedriver).await;
+    let c = session(&driver, &chromium, 1400, 1200).await;
+    let limit = Duration::from_secs(20);
+    c.goto(&format!("http://{addr}/")).await.unwrap();
+    wait_page(&c, "ready", limit, |v| v["ready"] == true).await;
+    enter_token(&c, limit).await;
+    let abort = format!("tr[data-run=\"{id}\"] .act-abort");
+    wait_js(
+        &c,
+        "the queued run's abort button",
+        limit,
+        "return document.querySelector(arguments[0]) !== null || null;",
+        vec![Value::from(abort.as_str())],
+    )
+    .await;
+
+    // Answered no: asked, naming the run, and nothing done.
+    c.execute(
+        "window.asked = []; window.confirm = (m) => { window.asked.push(m); return false; };",
+        vec![],
+    )
+    .await
+    .unwrap();
+    click(&c, &abort).await;
+    // Time for an abort the page would send unasked to reach the daemon.
+    tokio::time::sleep(Duration::from_millis(1500)).await;
+    let asked = c.execute("return window.asked;", vec![]).await.unwrap();
+    let state = svc.status(&id).unwrap().state;
+    assert_eq!(
+        asked.as_array().map(Vec::len),
+        Some(1),
+        "abort asked {asked}; the run is {state:?}"
+    );
+    let question = asked[0].as_str().unwrap();
+    assert!(
+        question.starts_with("Abort") && question.contains(&id),
+        "the question does not name the run {id}: {question}"
+    );
+    assert_eq!(
+        state,
+        periscope_daemon::run_dir::RunState::Queued,
+        "aborted though the operator said no"
+    );
+
+    // Answered yes: aborted.
+    c.execute(
+        "window.confirm = (m) => { window.asked.push(m); return true; };",
+        vec![],
+    )
+    .await
+    .unwrap();
+    click(&c, &abort).await;
+    let t = Instant::now();
+    while svc.status(&id).unwrap().state != periscope_daemon::run_dir::RunState::Aborted {
+        assert!(
+            t.elapsed() < limit,
+            "the run was not aborted when the operator said yes: {:?}",
+            svc.status(&id).unwrap().state
+        );
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+    let asked = c.execute("return window.asked;", vec![]).await.unwrap();
+    assert_eq!(asked.as_array().map(Vec::len), Some(2), "{asked}");
+    wait_text(&c, &format!("tr[data-run=\"{id}\"]"), limit, |s| {
+        s.contains("aborted")
+    })
+    .await;
+
+    // A search of 200 bytes, over the daemon's 128: refused, and said beside the filter.
+    let filter = "const f = document.getElementById('runs-filter'); f.value = arguments[0]; \
+                  f.dispatchEvent(new Event('input'));";
+    c.execute(filter, vec![Value::from("x".repeat(200))])
+        .await
+        .unwrap();
+    let problem = wait_js(
+        &c,
+        "the refused search said",
+        limit,
+        "const p = document.getElementById('runs-problem'); \
+         return p && !p.hidden && p.textContent ? p.textContent : null;",
+        vec![],
+    )
+    .await;
+    let problem = problem.as_str().unwrap();
+    assert!(
+        problem.contains("200 bytes") && problem.contains("at most 128"),
+        "{problem}"
+    );
+    assert!(
+        c.find(Locator::Css("#runs-problem"))
+            .await
+            .unwrap()
+            .is_displayed()
+            .await
+            .unwrap()
+    );
+    // The list shown is the last one read.
+    assert!(text(&c, "#runs-body").await.contains(&id));
+    // The filter cleared: answered, and nothing more to say.
+    c.execute(filter, vec![Value::from("")]).await.unwrap();
+    wait_js(
+        &c,
+        "the refusal gone once the filter is cleared",
+        limit,
+        "return document.getElementById('runs-problem').hidden || null;",
+        vec![],
+    )
+    .await;
+    c.close().await.unwrap();
+    drop(driver);
+    server.abort();
+    svc.shutdown();
+}
+
+/// A plan check the E-STOP cancels is no verdict on the plan: the page says the plan was
+/// not checked and why, shows no problem with it, and Check asks again. The daemon's
+/// answer to the check is held back in the page (its `fetch` wrapped for
+/// `/api/v1/check`), so the check is still waiting when the E-STOP takes the page's
+/// connections. Until 683df1a the cancelled check read as the daemon's refusal: a valid
+/// plan was marked invalid, with the cancellation as its problem.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_check_the_estop_cancels_does_not_call_the_plan_invalid() {
+    let Some((chromium, chromedriver)) = browser_or_skip("the dashboard cancelled-check test") else {
+        return;
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let svc = service(dir.path(), 0.0);
+    let worker = svc.start_worker();
+    let (addr, server) = serve(&svc).await;
+    let driver = start_chromedriver(&chromedriver).await;
+    let c = session(&driver, &chromium, 1400, 1200).await;
+    let limit = Duration::from_secs(20);
+    c.goto(&format!("http://{addr}/")).await.unwrap();
+    wait_page(&c, "ready", limit, |v| v["ready"] == true).await;
+    wait_text(&c, "#estop-state", limit, |s| s.starts_with("armed")).await;
+    click(&c, "#load-demo").await;
+    wait_text(&c, "#check-summary", limit, |s| s.starts_with("valid")).await;
+    // Checks wait for an answer that does not come, until cancelled (as a fetch is).
+    c.execute(
+        "const orig = window.fetch; window.heldChecks = 0; window.holdChecks = true; \
+         window.fetch = function (input, init) { \
+           const path = typeof input === 'string' ? input : input.url; \
+           if (!window.holdChecks || path !== '/api/v1/check') return orig.call(window, input, init); \
+           window.heldChecks += 1; \
+           const signal = init && init.signal; \
+           return new Promise((resolve, reject) => { \
+             if (signal) signal.addEventListener('abort', () => reject(signal.reason), { once: true }); \
+           }); \
+         };",
+        vec![],
+    )
+    .await
+    .unwrap();
+    click(&c, "#check").await;
+    wait_js(
+        &c,
+        "the check waiting",
+        limit,
+        "return window.heldChecks > 0 || null;",
+        vec![],
+    )
+    .await;
+    click(&c, "#estop").await;
+    let summary = wait_text(&c, "#check-summary", limit, |s| !s.starts_with("valid")).await;
+    assert!(
+        summary.starts_with("not checked") && summary.contains("cancelled by the E-STOP"),
+        "the cancelled check judged the plan: {summary}"
+    );
+    let problem = c
+        .execute(
+            "return document.getElementById('check-problem').textContent;",
+            vec![],
+        )
+        .await
+        .unwrap();
+    assert_eq!(problem, "", "the cancelled check showed a problem");
+    wait_text(&c, "#estop-text", limit, |s| s.starts_with("E-STOP done")).await;
+    // Check asks again, and is answered.
+    c.execute("window.holdChecks = false;", vec![]).await.unwrap();
+    click(&c, "#check").await;
+    wait_text(&c, "#check-summary", limit, |s| s.starts_with("valid")).await;
     c.close().await.unwrap();
     drop(driver);
     server.abort();
