@@ -156,7 +156,7 @@ pub(super) fn galvo(
         channel(src, &k("channels[0]"), &channels[0], "analog output")?,
         channel(src, &k("channels[1]"), &channels[1], "analog output")?,
     ];
-    if channels[0] == channels[1] {
+    if channels[0].eq_ignore_ascii_case(&channels[1]) {
         return Err(src.invalid(&k("channels"), "x and y must be two different analog outputs"));
     }
     let volts_per_deg = raw.volts_per_deg.ok_or_else(|| {

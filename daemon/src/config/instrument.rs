@@ -328,12 +328,44 @@ struct RawBudget {
     hours: Option<f64>,
 }
 
+/// Refuses two arms on one serial port or on one analog output (NI-DAQmx names its
+/// channels without regard to case, and so does this): they load, and then fail as
+/// the devices open with a vendor's resource error that names neither key. Within an
+/// arm, its own two outputs are checked where they are read.
+fn arms_apart(src: &TomlSource, laser: &GalvoArm, spad: &GalvoArm) -> Result<(), ConfigError> {
+    match (&laser.link, &spad.link) {
+        (Some(GalvoLink::Serial(a)), Some(GalvoLink::Serial(b))) if a.port == b.port => Err(src.invalid(
+            "galvo.spad.serial.port",
+            format!(
+                "`{}` is galvo.laser.serial.port too: each pair has a controller and a port of its own",
+                b.port
+            ),
+        )),
+        (Some(GalvoLink::Daqmx(a)), Some(GalvoLink::Daqmx(b))) => {
+            for (i, ch) in b.channels.iter().enumerate() {
+                if let Some(j) = a.channels.iter().position(|c| c.eq_ignore_ascii_case(ch)) {
+                    return Err(src.invalid(
+                        &format!("galvo.spad.channels[{i}]"),
+                        format!("`{ch}` is galvo.laser.channels[{j}] too: each axis needs an analog output of its own"),
+                    ));
+                }
+            }
+            Ok(())
+        }
+        _ => Ok(()),
+    }
+}
+
+/// The smallest memory or disk budget a config may give, GiB (a MiB).
+const MIN_BUDGET_GIB: f64 = 1.0 / 1024.0;
+
 fn budget_limits(check: &Check<'_>, raw: RawBudget) -> Result<BudgetLimits, ConfigError> {
     let d = BudgetLimits::default();
     let gib = |key: &str, v: Option<f64>, default: u64, max: f64| -> Result<u64, ConfigError> {
         match v {
             None => Ok(default),
-            Some(g) => Ok((check.positive(key, g, max, "GiB")? * (1u64 << 30) as f64) as u64),
+            // At least a MiB: a tiny positive value made 0 bytes, which refused every plan.
+            Some(g) => Ok((check.range(key, g, MIN_BUDGET_GIB, max, "GiB")? * (1u64 << 30) as f64) as u64),
         }
     };
     Ok(BudgetLimits {
@@ -537,9 +569,11 @@ fn api_settings(check: &Check<'_>, raw: RawApi) -> Result<ApiSettings, ConfigErr
         max_concurrent: count("api.max-concurrent", raw.max_concurrent, 10_000.0)?,
         max_checks: count("api.max-checks", raw.max_checks, 1_000.0)?,
         // The readers take files up to 16 GiB (y-tal's cap).
-        import_limit: (check.positive(
+        // At least a MiB: a tiny positive value made 0 bytes, which refused every import.
+        import_limit: (check.range(
             "api.import-limit-mib",
             raw.import_limit_mib,
+            1.0,
             (periscope_recon::io::formats::MAX_FILE_BYTES >> 20) as f64,
             "MiB",
         )? * 1_048_576.0) as u64,
@@ -1018,6 +1052,7 @@ impl InstrumentConfig {
         let hardware = raw.backend == RawBackend::Hardware;
         let laser_arm = galvo_arm(&check, "galvo.laser", raw.galvo.laser, hardware)?;
         let spad_arm = galvo_arm(&check, "galvo.spad", raw.galvo.spad, hardware)?;
+        arms_apart(src, &laser_arm, &spad_arm)?;
         let raw_daq_laser = RawDaqLaser {
             laser_line: raw.laser.laser_line.clone(),
             interlock_line: raw.laser.interlock_line.clone(),
@@ -1154,8 +1189,8 @@ impl InstrumentConfig {
                 sync_key,
                 format!(
                     "{sync_is}, under the {MIN_SYNC_RATE_HZ} Hz a counter's rate meter (100 ms gates) can read: every run would fail its sync check{}",
-                    if tdc.sync_divider > 1 {
-                        " (counters take dividers of 1 to 16)"
+                    if tdc.sync_divider > 1 && matches!(tdc.driver, TdcDriver::PicoQuant(_)) {
+                        " (PicoQuant counters take dividers of 1 to 16)"
                     } else {
                         ""
                     }
@@ -1654,7 +1689,7 @@ fn tdc_driver(check: &Check<'_>, raw: &RawTdc, hardware: bool) -> Result<TdcDriv
         Some(c) => {
             return Err(src.invalid(
                 "tdc.channel",
-                format!("{c} is not an input: inputs are numbered from 1, as on the front panel"),
+                format!("{c} is not an input: inputs are numbered 1 to 64, from 1 as on the front panel"),
             ));
         }
     };
@@ -1741,6 +1776,8 @@ mod tests {
             ("body-limit-kib = 0.0001", "api.body-limit-kib"),
             ("request-timeout-s = 1e-300", "api.request-timeout-s"),
             ("runs-dir = \"\"", "api.runs-dir"),
+            // Positive but under a MiB: 0 bytes, every import refused (until 2026-12-07).
+            ("import-limit-mib = 1e-7", "api.import-limit-mib"),
         ] {
             let e = with(line).unwrap_err();
             assert_eq!(e.key(), Some(key), "{line}: {e}");
@@ -1803,6 +1840,18 @@ mod tests {
             assert_eq!(e.key(), Some("galvo.laser.serial.baud"), "{baud}: {e}");
         }
         assert!(load(&LAB.replacen("baud = 115200", "baud = 921600", 1)).is_ok());
+    }
+
+    /// A budget under a MiB is refused by key (until 2026-12-07 `memory-gib = 1e-10`
+    /// made a budget of 0 bytes, which refused every plan as over it).
+    #[test]
+    fn a_budget_under_a_mib_is_refused_by_key() {
+        for key in ["memory-gib", "disk-gib"] {
+            let e = load(&format!("{SIM}\n[budget]\n{key} = 1e-10\n")).unwrap_err();
+            assert_eq!(e.key(), Some(format!("budget.{key}").as_str()), "{e}");
+        }
+        let ok = load(&format!("{SIM}\n[budget]\nmemory-gib = 0.5\n")).unwrap();
+        assert_eq!(ok.budget.memory, 1 << 29);
     }
 
     #[test]
@@ -1954,6 +2003,29 @@ mod tests {
 
     const DAQ_GALVO: &str = "driver = \"daqmx\"\nchannels = [\"Dev1/ao0\", \"Dev1/ao1\"]\n\
                              volts-per-deg = [0.4, 0.4]\nmax-slew-deg-per-ms = 2.0\n";
+
+    /// Two arms on one serial port, or on one analog output (NI-DAQmx's names read
+    /// without regard to case), are refused by key: until 2026-12-07 they loaded and
+    /// failed as the devices opened, with a resource error naming neither.
+    #[test]
+    fn two_arms_on_one_port_or_output_are_refused_by_key() {
+        let e = load(&LAB.replacen("/dev/ttyUSB1", "/dev/ttyUSB0", 1)).unwrap_err();
+        assert_eq!(e.key(), Some("galvo.spad.serial.port"), "{e}");
+        let line = "laser-line = \"Dev1/port0/line0\"\n";
+        let spad_serial = "serial = { port = \"/dev/ttyUSB1\", baud = 115200, timeout-ms = 200 }\n";
+        let both = |spad: &str| daq_lab(DAQ_GALVO, line).replacen(spad_serial, spad, 1);
+        let e = load(&both(
+            &DAQ_GALVO
+                .replace("Dev1/ao0", "dev1/AO1")
+                .replace("\"Dev1/ao1\"", "\"Dev1/ao2\""),
+        ))
+        .unwrap_err();
+        assert_eq!(e.key(), Some("galvo.spad.channels[0]"), "{e}");
+        assert!(e.to_string().contains("galvo.laser.channels[1]"), "{e}");
+        assert!(load(&both(&DAQ_GALVO.replace("ao0", "ao2").replace("ao1", "ao3"))).is_ok());
+        let e = load(&daq_lab(&DAQ_GALVO.replace("\"Dev1/ao1\"", "\"dev1/AO0\""), line)).unwrap_err();
+        assert_eq!(e.key(), Some("galvo.laser.channels"), "{e}");
+    }
 
     /// A setting the backend does not read is refused by key, not ignored: the
     /// simulator's table in a hardware config, a USB histogrammer in a simulated one.
