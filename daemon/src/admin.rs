@@ -425,13 +425,17 @@ pub fn keys(cmd: KeysCommand) -> Result<(), AdminError> {
             }
             // The secret alone on stdout, so `KEY=$(periscope keys create …)` works; the
             // rest on stderr.
+            // Where it is kept, whole: a relative `runs-dir` is taken from the directory
+            // the command runs in, and a daemon started elsewhere would not know it.
+            let kept = dir.canonicalize().unwrap_or_else(|_| dir.clone());
             eprintln!(
-                "key `{}` ({}){}: send it as `Authorization: Bearer <secret>`; it is shown only now",
+                "key `{}` ({}){} kept in {}: send it as `Authorization: Bearer <secret>`; it is shown only now",
                 rec.name,
                 rec.role.name(),
                 rec.expires_unix_s
                     .map(|e| format!(", expires {}", format_time(e)))
-                    .unwrap_or_default()
+                    .unwrap_or_default(),
+                kept.join(crate::access::KEYS_FILE).display()
             );
             println!("{secret}");
             Ok(())

@@ -698,6 +698,10 @@ async fn the_command_line_shares_keys_catalogue_and_audit_with_the_daemon() {
         secret.starts_with("psk_") && err.contains("bob"),
         "{secret} / {err}"
     );
+    // Where the key is kept, whole: a daemon started from another directory on a
+    // relative runs-dir would not find it.
+    let keys = dir.path().canonicalize().unwrap().join("keys.json");
+    assert!(err.contains(&format!("kept in {}", keys.display())), "{err}");
     let (s, v) = call(&router, Method::POST, "/api/v1/runs", Some(&secret), PLAN).await;
     assert_eq!(s, StatusCode::CREATED, "{v}");
     let id = v["id"].as_str().unwrap().to_owned();
