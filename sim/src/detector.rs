@@ -216,6 +216,39 @@ impl Detector {
     /// first pulse. The gate shuts and opens again for each later pulse of the cycle,
     /// a pulse period on ([`Detector::sync_divider`]).
     pub fn expected_counts(&self, signal: &[f64], gate_bin: Option<f64>, dwell: f64) -> Vec<f64> {
+        self.expected_counts_after(signal, 0.0, gate_bin, dwell)
+    }
+
+    /// Detections a cycle expects between its sync and its window's start, which take
+    /// the cycle's one recorded detection (Coates) before the window opens: the dark
+    /// and ambient counts over that time (`offset` after the sync), and `before`, the
+    /// signal photons a cycle that arrive then (before efficiency: an ungated SPAD's
+    /// confocal direct return, with the window set past it). A gate shut until
+    /// `gate_bin` blocks them, but for the noise after it opens where that is before
+    /// the window.
+    fn before_window(&self, before: f64, gate_bin: Option<f64>) -> f64 {
+        let noise_rate = self.dark_count_rate + self.ambient_rate;
+        let since_sync = self.offset.max(0.0);
+        match gate_bin {
+            None => self.efficiency * self.transmission * before.max(0.0) + noise_rate * since_sync,
+            Some(g) => noise_rate * (-g * self.bin_width).clamp(0.0, since_sync),
+        }
+    }
+
+    /// [`Detector::expected_counts`] with `before` signal photons a cycle arriving
+    /// between the sync and the window's start ([`Detector::before_window`]): with
+    /// pile-up on, a detection then is the cycle's one, and the window records nothing
+    /// that cycle, so each bin is scaled by the chance that none came. Until 2026-12-07
+    /// arrivals before the window were dropped, and an ungated SPAD whose window was
+    /// set past the confocal direct return showed clean hidden returns where a real
+    /// one is blinded.
+    pub fn expected_counts_after(
+        &self,
+        signal: &[f64],
+        before: f64,
+        gate_bin: Option<f64>,
+        dwell: f64,
+    ) -> Vec<f64> {
         let noise = (self.dark_count_rate + self.ambient_rate) * self.bin_width;
         let mut rate: Vec<f64> = signal
             .iter()
@@ -231,8 +264,9 @@ impl Detector {
         if !self.pile_up {
             return rate.iter().map(|r| r * pulses).collect();
         }
-        // Coates: the first detection in a cycle is the one recorded.
-        let mut survive = 1.0;
+        // Coates: the first detection in a cycle is the one recorded, those before the
+        // window included.
+        let mut survive = (-self.before_window(before, gate_bin)).exp();
         let mut out: Vec<f64> = rate
             .iter()
             .map(|&r| {

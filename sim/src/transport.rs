@@ -226,9 +226,9 @@ impl World {
         let photons = irradiance * self.collection(&hit, inst.spad, det);
         let path = dl2.sqrt() + hit.distance;
         let mut fine = vec![0.0; det.bins * OVERSAMPLE];
-        deposit_pulses(&mut fine, det, path, photons);
+        let before = deposit_pulses(&mut fine, det, path, photons);
         let signal = det.blur(&fine);
-        Some((hit, det.expected_counts(&signal, None, dwell)))
+        Some((hit, det.expected_counts_after(&signal, before, None, dwell)))
     }
 
     /// Where the laser and SPAD rays land: the pair the instrument measures, if both
@@ -299,6 +299,8 @@ impl World {
         let scale =
             det.photons_per_pulse() * xi.albedo / std::f64::consts::PI * self.collection(&xd, inst.spad, det);
         let mut fine = vec![0.0; det.bins * OVERSAMPLE];
+        // Signal photons a cycle arriving before the window (an ungated direct return).
+        let mut before = 0.0;
         for s in &self.samples {
             if !(vis_i[s.tri as usize] && vis_d[s.tri as usize]) {
                 continue;
@@ -314,7 +316,7 @@ impl World {
                 continue;
             }
             let photons = scale * ci * cd * cy1.abs() * cy2.abs() * s.weight / (r1 * r1 * r2 * r2);
-            deposit_pulses(&mut fine, det, first_leg + r1 + r2 + last_leg, photons);
+            before += deposit_pulses(&mut fine, det, first_leg + r1 + r2 + last_leg, photons);
         }
         // The direct return when the SPAD looks at the laser spot (confocal pairs).
         let spot_radius = (det.spot_area / std::f64::consts::PI).sqrt();
@@ -325,13 +327,13 @@ impl World {
             let overlap = 2.0 / std::f64::consts::PI * (d.acos() - d * (1.0 - d * d).sqrt());
             let direct =
                 det.photons_per_pulse() * overlap * self.collection(&xi, inst.spad, det) / det.spot_area;
-            deposit_pulses(&mut fine, det, first_leg + xi.point.distance(inst.spad), direct);
+            before += deposit_pulses(&mut fine, det, first_leg + xi.point.distance(inst.spad), direct);
         }
         let signal = det.blur(&fine);
         let gate = det
             .gate_margin
             .map(|m| det.bin_of_path(first_leg + separation + last_leg + m));
-        det.expected_counts(&signal, gate, dwell)
+        det.expected_counts_after(&signal, before, gate, dwell)
     }
 }
 
@@ -375,26 +377,35 @@ fn is_planar(mesh: &Mesh) -> bool {
 /// between the two nearest sub-bin centres (the mean arrival time is kept exactly).
 /// [`deposit`]s an arrival of path `path` once for each pulse of a TDC cycle
 /// ([`Detector::bins_of_path`]): with a sync divider of N the window sees N pulses.
-fn deposit_pulses(fine: &mut [f64], det: &Detector, path: f64, value: f64) {
-    for f in det.bins_of_path(path) {
-        deposit(fine, f, value);
-    }
+/// Returns what of `value` arrives before the window ([`deposit`]).
+fn deposit_pulses(fine: &mut [f64], det: &Detector, path: f64, value: f64) -> f64 {
+    det.bins_of_path(path).map(|f| deposit(fine, f, value)).sum()
 }
 
-fn deposit(fine: &mut [f64], f: f64, value: f64) {
+/// Returns the part of `value` that arrives before the window's first sub-bin (for
+/// [`Detector::expected_counts_after`]: a detection then takes the cycle's one);
+/// what arrives after the window is dropped.
+fn deposit(fine: &mut [f64], f: f64, value: f64) -> f64 {
     let u = f * OVERSAMPLE as f64 - 0.5;
-    if !(u.is_finite() && value > 0.0) || u < -1.0 || u >= fine.len() as f64 {
-        return;
+    if !(u.is_finite() && value > 0.0) || u >= fine.len() as f64 {
+        return 0.0;
+    }
+    if u < -1.0 {
+        return value;
     }
     let j = u.floor();
     let t = u - j;
     let j = j as isize;
+    let mut early = 0.0;
     if j >= 0 {
         fine[j as usize] += value * (1.0 - t);
+    } else {
+        early = value * (1.0 - t);
     }
     if ((j + 1) as usize) < fine.len() {
         fine[(j + 1) as usize] += value * t;
     }
+    early
 }
 
 #[cfg(test)]
