@@ -120,6 +120,8 @@ pub struct Metrics {
     errors: Family<ErrorLabel, Counter>,
     auth_failures: Counter,
     role_refusals: Counter,
+    capture_pairs: Counter,
+    capture_photons: Counter,
     /// Encoding is serialised (the families lock their maps; one scrape at a time is
     /// plenty).
     encoding: Mutex<()>,
@@ -157,6 +159,8 @@ impl Metrics {
             errors: Family::default(),
             auth_failures: Counter::default(),
             role_refusals: Counter::default(),
+            capture_pairs: Counter::default(),
+            capture_photons: Counter::default(),
             encoding: Mutex::new(()),
         };
         registry.register(
@@ -255,7 +259,23 @@ impl Metrics {
             "Requests refused because the key's role is below what they need (403 forbidden-role)",
             m.role_refusals.clone(),
         );
+        registry.register(
+            "capture_pairs",
+            "Pairs measured and stored by every capture since the daemon started (rate() gives pairs per second over any window)",
+            m.capture_pairs.clone(),
+        );
+        registry.register(
+            "capture_photons",
+            "Photon counts in the histograms of those pairs",
+            m.capture_photons.clone(),
+        );
         Metrics { registry, ..m }
+    }
+
+    /// A capture stored `pairs` more pairs, whose histograms hold `counts` photons.
+    pub fn pairs_measured(&self, pairs: u64, counts: u64) {
+        self.capture_pairs.inc_by(pairs);
+        self.capture_photons.inc_by(counts);
     }
 
     /// A stage finished after `seconds`.

@@ -596,6 +596,28 @@ async fn metrics_parse_as_prometheus_text() {
         "{text}"
     );
     assert!(value("periscope_count_rate_hertz", Some(("channel", "detector"))).is_some());
+    // Every pair the run stored, counted for rate(): the live events may come
+    // coalesced, and the counter goes by how far the run's count moved.
+    let (s, run) = call(
+        &router,
+        Method::GET,
+        &format!("/api/v1/runs/{id}"),
+        Some(TOKEN),
+        "",
+    )
+    .await;
+    assert_eq!(s, StatusCode::OK);
+    let stored = run["pairs_done"].as_f64().unwrap();
+    assert!(stored > 0.0, "{run}");
+    assert_eq!(
+        value("periscope_capture_pairs_total", None),
+        Some(stored),
+        "{text}"
+    );
+    assert!(
+        value("periscope_capture_photons_total", None).is_some_and(|c| c > 0.0),
+        "{text}"
+    );
     assert_eq!(value("periscope_auth_failures_total", None), Some(1.0), "{text}");
     assert_eq!(value("periscope_role_refusals_total", None), Some(1.0), "{text}");
     assert!(

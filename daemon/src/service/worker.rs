@@ -274,6 +274,10 @@ impl Service {
                 RunEvent::Pair {
                     done, total, counts, ..
                 } => {
+                    // Pair events may come coalesced (their counts summed): the pairs
+                    // are counted by how far `done` moved.
+                    self.metrics
+                        .pairs_measured(done.saturating_sub(live.pairs_done) as u64, *counts);
                     live.counts += counts;
                     live.pairs_done = *done;
                     live.pairs_total = *total;
