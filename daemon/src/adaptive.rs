@@ -39,6 +39,15 @@ const MIN_BATCH: usize = 8;
 /// terms, and at most 16 MB of strengths for the prior however many were measured.
 const MAX_SCORED: usize = 8192;
 
+/// What one choice holds at most beside the fit, bytes, for the plan's budget: the
+/// scored candidates' terms (about 170 MB, [`MAX_SCORED`]) and the strengths for the
+/// prior (16 MB), with the information sums over the fit's `primitives`, their
+/// inverse and a copy (about 72 B each a primitive).
+pub fn choice_bytes(primitives: usize) -> u64 {
+    let terms = (MAX_SCORED * periscope_recon::adaptive::MAX_TERMS * 40) as u64;
+    terms + (16 << 20) + 3 * 72 * primitives as u64
+}
+
 /// The default share of each chosen batch taken by distance instead of by gain. Half:
 /// measured against a quarter, three quarters and none on the validation captures
 /// (three seeds, half or an eighth of their pairs; docs/adaptive.md).

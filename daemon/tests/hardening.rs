@@ -292,11 +292,31 @@ async fn over_budget(router: &axum::Router, plan: &str) -> String {
 async fn plans_over_the_budget_get_422_naming_the_key_and_leave_nothing() {
     let dir = tempfile::tempdir().unwrap();
     let router = app(AppState::new(service(dir.path(), 0.0, "", "")));
-    let scanned = SmallPlan::default()
-        .set("pairs.mode", "scanned")
-        .unset("pairs.offset-mm")
-        .set("pairs.laser-grid", [512, 512])
-        .set("pairs.grid", [512, 512]);
+    let scanned = |grid: [usize; 2]| {
+        SmallPlan::default()
+            .set("pairs.mode", "scanned")
+            .unset("pairs.offset-mm")
+            .set("pairs.laser-grid", grid)
+            .set("pairs.grid", grid)
+    };
+    // 512⁴ pairs is past what a run may hold at all (its pairs.json must be read back):
+    // refused as an invalid plan, naming the grid, before any budget.
+    let (s, v) = call(
+        &router,
+        Method::POST,
+        "/api/v1/runs",
+        true,
+        &scanned([512, 512]).toml(),
+    )
+    .await;
+    assert_eq!(
+        (s, v["error"].as_str()),
+        (StatusCode::UNPROCESSABLE_ENTITY, Some("invalid-plan")),
+        "{v}"
+    );
+    assert!(v["message"].as_str().unwrap().contains("pairs.grid"), "{v}");
+    // 32⁴, a million pairs, is a layout a run may hold, and over the memory budget.
+    let scanned = scanned([32, 32]);
     let huge_volume = SmallPlan::default().set("recon.volume.shape", [1024, 1024, 1024]);
     for (plan, names) in [(scanned, "pairs"), (huge_volume, "recon.volume.shape")] {
         let m = over_budget(&router, &plan.toml()).await;

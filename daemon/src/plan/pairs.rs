@@ -283,6 +283,34 @@ pub(crate) fn pair_mode(src: &TomlSource, raw: RawPairs, new: bool) -> Result<Pa
     }
 }
 
+/// The most pairs a plan may lay out (2 Mi). Its `pairs.json` holds each at up to
+/// about 420 bytes, and the run reads it back at resume, reconstruction and export
+/// under a cap of 1 GiB (`run_dir`): a layout past that finished a first session and
+/// left its data unreadable after any pause. A 512 × 512 confocal grid is 256 Ki.
+pub(crate) const MAX_PLANNED_PAIRS: usize = 1 << 21;
+
+/// Refuses a layout of more than [`MAX_PLANNED_PAIRS`], naming the key that sets its
+/// size and the most it may have.
+pub(crate) fn refuse_too_many(src: &TomlSource, mode: &PairMode) -> Result<(), ConfigError> {
+    let n = mode.max_pairs();
+    if n <= MAX_PLANNED_PAIRS {
+        return Ok(());
+    }
+    let key = match mode {
+        PairMode::Random { .. } => "pairs.count",
+        PairMode::Scanned { .. } => "pairs.grid",
+        PairMode::Mask { .. } => "pairs.mask",
+        PairMode::Confocal { .. } | PairMode::FixedLaser { .. } => "pairs.grid",
+    };
+    Err(src.invalid(
+        key,
+        format!(
+            "lays out {n} pairs, more than the {MAX_PLANNED_PAIRS} a run may hold (its pair plan, pairs.json, \
+             must stay readable to resume, reconstruct and export it): use coarser grids, or fewer pairs"
+        ),
+    ))
+}
+
 /// One planned measurement.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct PlannedPair {
