@@ -427,7 +427,7 @@ fn check_calibrate_out(out: &Path, instrument: &Path) -> Result<(), CliError> {
 /// Refuses an export's `out` that is one of the run's own files (its histograms,
 /// `run.json`, the plan): the export replaces `out` whole, and the run's data would be
 /// gone. `capture.hdf5` in the run directory (the default) is the export's own file.
-/// Nor anything inside another run's directory, its subfolders included (its histogram
+/// Nor anything inside another run's directory or its folders (its histogram
 /// log is its only copy of the measurements, `import/` an imported run's only copy of
 /// its capture), whether the file is there yet or not: a run that has not finished
 /// would take a `capture.hdf5` written there as its own.
@@ -452,7 +452,10 @@ fn refuse_run_file(run_dir: &Path, out: &Path) -> Result<(), CliError> {
     };
     let export = target.parent() == Some(dir.as_path())
         && target.file_name() == Some(std::ffi::OsStr::new(crate::ytal::CAPTURE_FILE));
-    if !export && target.ancestors().skip(1).any(RunDir::holds_run) {
+    // The folder `out` is in, and the one above (a run's own folders, `import/`): not
+    // every ancestor, or a stray run.json in a home or a mount root would refuse every
+    // export beneath it.
+    if !export && target.ancestors().skip(1).take(2).any(RunDir::holds_run) {
         return Err(CliError::RunFile(out.to_path_buf()));
     }
     Ok(())

@@ -483,9 +483,9 @@ pub struct RunInfo {
     /// time budget), once it has: a resumed run does not choose again.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub adaptive_stopped: Option<String>,
-    /// Batches an adaptive capture has chosen and measured, over every session: a
-    /// resumed capture numbers its next batch on from them (and seeds its sampling
-    /// with the number), as one session would.
+    /// Batches an adaptive capture has chosen, over every session (a batch stopped in
+    /// its middle included): a resumed capture numbers its next batch on from them
+    /// (and seeds its sampling with the number), as one session would.
     #[serde(default, skip_serializing_if = "is_zero_count")]
     pub adaptive_batches: usize,
     /// Who makes the next state change ([`RunInfo::save`] records it and clears it).

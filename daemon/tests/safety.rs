@@ -737,7 +737,10 @@ fn a_resumed_adaptive_capture_finishes_the_pair_it_stopped_in_the_middle_of() {
         let chosen = chosen.clone();
         events.listen(move |e| {
             if let RunEvent::PairsChosen(c) = e {
-                chosen.lock().unwrap().push((c.how.clone(), c.pairs.clone()));
+                chosen
+                    .lock()
+                    .unwrap()
+                    .push((c.batch, c.how.clone(), c.pairs.clone()));
             }
         });
     }
@@ -759,13 +762,16 @@ fn a_resumed_adaptive_capture_finishes_the_pair_it_stopped_in_the_middle_of() {
     assert_eq!(whole.dwell_us, 120_000);
     assert!(whole.counts.iter().zip(&part.counts).all(|(w, p)| w >= p));
     let chosen = chosen.lock().unwrap();
-    let (how, first) = &chosen[0];
+    let (number, how, first) = &chosen[0];
     assert_eq!(how, "resumed");
     assert_eq!(
         first,
         &[part.pair as usize],
         "the resumed batch: the pair stopped in"
     );
+    // Numbered on past the batch it stopped in (the first batch, 0, then batch 1 of
+    // three pairs, stopped in its second), as the dashboard keys batches by number.
+    assert_eq!(*number, 2, "the resumed batch's number");
 }
 
 /// A stop that switches the laser off out of band before it asks the run to pause

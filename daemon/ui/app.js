@@ -718,8 +718,7 @@ async function checkPlan() {
     out.textContent = '';
     return;
   }
-  // Whether the daemon answered: a refusal (422 `invalid-plan`) is a verdict on the
-  // plan, a check cancelled or never delivered is none.
+  // Whether the daemon's report came (a refusal throws before this is set).
   let answered = false;
   try {
     const c = await api('POST', '/api/v1/check', text);
@@ -748,11 +747,18 @@ async function checkPlan() {
     updateSubmit();
   } catch (e) {
     if ($('plan').value !== text) return;
-    if (!answered && !(e instanceof ApiError)) {
+    // A verdict on the plan is a 422 (`invalid-plan`) or a 413 (a plan over the body
+    // limit); anything else (a 401 key, a 403 role, a 429 or 503 of a busy daemon)
+    // says nothing of the plan.
+    const verdict = e instanceof ApiError && (e.status === 422 || e.status === 413);
+    if (!verdict && !answered) {
       // No verdict on the plan: the check was cancelled (the E-STOP takes the page's
-      // connections) or never reached the daemon. The plan is left unchecked, not
-      // called invalid, and Check asks again. A plan checked valid before keeps that.
-      const why = givenUp(e) ? 'the check was cancelled by the E-STOP' : 'the daemon could not be reached';
+      // connections), never reached the daemon, or was refused for something else.
+      // The plan is left unchecked, not called invalid, and Check asks again. A plan
+      // checked valid before keeps that.
+      const why = givenUp(e) ? 'the check was cancelled by the E-STOP'
+        : e instanceof ApiError ? `the daemon did not check it: ${e.message}`
+          : 'the daemon could not be reached';
       summary.replaceChildren(el('span', { class: 'warn' }, `not checked: ${why}; press check`));
       planOk = checkedText === text;
       updateSubmit();
@@ -1214,9 +1220,10 @@ async function loadHistory(id) {
     let held;
     if (end >= 0) {
       for (const line of new TextDecoder().decode(bytes.subarray(0, end + 1)).split('\n')) {
-        // A measured pair: no suspender held the run after it (cheaply, without
-        // parsing every pair's line).
-        if (line.includes('"event":"pair"')) {
+        // A measured pair, or a stage started (a session resumed after a suspender
+        // paused the run, which says no `suspend-cleared`): no suspender held the run
+        // after it (cheaply, without parsing every pair's line).
+        if (line.includes('"event":"pair"') || line.includes('"event":"stage-started"')) {
           held = null;
           continue;
         }
@@ -1376,6 +1383,12 @@ function onEvent(name, data) {
       onStatus(data);
       break;
     case 'stage-started':
+      // A stage started: whatever suspender held the run has let it go (a run paused
+      // by one and resumed by the operator says no `suspend-cleared`).
+      if (suspension) {
+        suspension = null;
+        suspensionLiveAt = performance.now();
+      }
       if (status) {
         status.stage = data.stage;
         renderSummary();
@@ -1735,6 +1748,10 @@ function whenVisible(target, f) {
 
 async function loadResults(id) {
   const signal = selection.signal;
+  // A retry of an earlier volume load that failed is this load's to make now: two
+  // would hold two of the daemon's download slots.
+  clearTimeout(volumeRetry);
+  volumeRetry = null;
   try {
     const [vj, depthBuf] = await Promise.all([
       api('GET', `/api/v1/runs/${id}/files/volume.json`, undefined, null, signal),

@@ -569,11 +569,11 @@ fn api_settings(check: &Check<'_>, raw: RawApi) -> Result<ApiSettings, ConfigErr
         max_concurrent: count("api.max-concurrent", raw.max_concurrent, 10_000.0)?,
         max_checks: count("api.max-checks", raw.max_checks, 1_000.0)?,
         // The readers take files up to 16 GiB (y-tal's cap).
-        // At least a MiB: a tiny positive value made 0 bytes, which refused every import.
+        // At least a KiB: a tiny positive value made 0 bytes, which refused every import.
         import_limit: (check.range(
             "api.import-limit-mib",
             raw.import_limit_mib,
-            1.0,
+            1.0 / 1024.0,
             (periscope_recon::io::formats::MAX_FILE_BYTES >> 20) as f64,
             "MiB",
         )? * 1_048_576.0) as u64,
@@ -1776,7 +1776,7 @@ mod tests {
             ("body-limit-kib = 0.0001", "api.body-limit-kib"),
             ("request-timeout-s = 1e-300", "api.request-timeout-s"),
             ("runs-dir = \"\"", "api.runs-dir"),
-            // Positive but under a MiB: 0 bytes, every import refused (until 2026-12-07).
+            // Positive but under a KiB: 0 bytes, every import refused (until 2026-12-07).
             ("import-limit-mib = 1e-7", "api.import-limit-mib"),
         ] {
             let e = with(line).unwrap_err();

@@ -185,6 +185,9 @@ impl Run {
                     // the laser goes on for the batch.
                     self.checkpoint()?;
                     self.events.emit(RunEvent::PairsChosen(choice.clone()));
+                    // Counted as chosen, so that a stop in its middle (whose run.json
+                    // is saved as the run stops) resumes numbering on past it.
+                    self.info.adaptive_batches = selector.batches();
                     if !prepared {
                         self.prepare_capture(&acq)?;
                         prepared = true;

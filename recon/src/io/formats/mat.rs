@@ -119,7 +119,7 @@ impl Mat<'_> {
                     return Ok(None);
                 };
                 let shape = r.checked_shape(&ds, name, 4)?;
-                super::super::ytal::memory_check(&shape, name, r.file_len).map_err(|m| self.error(m))?;
+                super::super::ytal::memory_check(&shape, name).map_err(|m| self.error(m))?;
                 let values = ds
                     .read_f32()
                     .map_err(|e| self.error(format!("`{name}` is not numeric: {e}")))?;
@@ -171,8 +171,7 @@ impl Mat<'_> {
                 "`{name}` has dims {dims:?} but holds {held} values: the file is damaged"
             )));
         }
-        // The file itself was held to the memory left as it was read (`read_regular_capped`).
-        super::super::ytal::memory_check(&dims, name, 0).map_err(|m| self.error(m))?;
+        super::super::ytal::memory_check(&dims, name).map_err(|m| self.error(m))?;
         let values = v5_values(a.data(), f);
         Ok((!values.is_empty()).then_some(Var { dims, values }))
     }

@@ -124,7 +124,7 @@ pub(crate) fn from_reader(r: &Reader<'_>) -> Result<YtalCapture, YtalError> {
             if row_major { "row-major" } else { "column-major" }
         )));
     }
-    memory_check(&shape, "data", r.file_len).map_err(|m| r.format(m))?;
+    memory_check(&shape, "data").map_err(|m| r.format(m))?;
     let data = ds
         .read_f32()
         .map_err(|e| r.format(format!("dataset `data` is not numeric: {e}")))?;

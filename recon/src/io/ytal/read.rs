@@ -113,21 +113,22 @@ fn frequency_format(code: f64) -> Option<&'static str> {
 const GIB: f64 = (1u64 << 30) as f64;
 
 /// Whether reading and reconstructing a transient array of `shape` (dataset `name`)
-/// fits what this process can still allocate, with `held` bytes (the file, read whole
-/// to decode) held beside it. Each size check on a dataset holds on its own; what the
-/// whole read takes must fit too, or the read would abort the process instead of
-/// failing. `Err` says how much it needs and what to do.
-pub(crate) fn memory_check(shape: &[usize], name: &str, held: u64) -> Result<(), String> {
+/// fits what this process can still allocate. Each size check on a dataset holds on
+/// its own; what the whole read takes must fit too, or the read would abort the
+/// process instead of failing. The file, which the HDF5 layer holds whole while it
+/// decodes, is already read by then, so what is left has counted it
+/// ([`file_memory_check`] judged it before the read). `Err` says how much it needs and
+/// what to do.
+pub(crate) fn memory_check(shape: &[usize], name: &str) -> Result<(), String> {
     let values = shape.iter().map(|&d| d as u64).product::<u64>();
-    let need = values.saturating_mul(BYTES_PER_H_VALUE).saturating_add(held);
+    let need = values.saturating_mul(BYTES_PER_H_VALUE);
     match crate::io::memory_available() {
         Some(available) if need > available => Err(format!(
             "`{name}` holds {values} values (shape {shape:?}): reading and reconstructing it takes about \
-             {:.1} GiB, the file's {:.1} GiB included, more than the {:.1} GiB this process can still use \
-             (free memory, its address-space limit, and the memory limit of the container or service it \
-             runs in): reconstruct it where more is free, or crop it (fewer bins or relay points) first",
+             {:.1} GiB, more than the {:.1} GiB this process can still use (free memory, its \
+             address-space limit, and the memory limit of the container or service it runs in): \
+             reconstruct it where more is free, or crop it (fewer bins or relay points) first",
             need as f64 / GIB,
-            held as f64 / GIB,
             available as f64 / GIB
         )),
         _ => Ok(()),
@@ -254,7 +255,7 @@ impl YtalCapture {
                 h_format.name()
             )));
         }
-        memory_check(&h_shape, "H", r.file_len).map_err(|m| r.format(m))?;
+        memory_check(&h_shape, "H").map_err(|m| r.format(m))?;
         let h = ds.read_f32().map_err(|e| {
             let half = matches!(ds.dtype(), Ok(hdf5_pure::DType::Other(_)))
                 && ds.element_size().is_ok_and(|n| n == 2);
