@@ -291,6 +291,17 @@ impl Gpu {
     /// Opens the most preferred adapter (discrete over integrated over virtual; software
     /// ones only when `allow_software`) with every limit it offers.
     pub fn open(allow_software: bool) -> Result<Gpu, GpuError> {
+        Gpu::open_limited(allow_software, |l| l)
+    }
+
+    /// [`Gpu::open`] with the device's limits `limit` makes of the adapter's (tests
+    /// open one with small limits, to reach what a large capture reaches on a real
+    /// device).
+    #[doc(hidden)]
+    pub fn open_limited(
+        allow_software: bool,
+        limit: impl FnOnce(wgpu::Limits) -> wgpu::Limits,
+    ) -> Result<Gpu, GpuError> {
         let instance = wgpu::Instance::new(wgpu::InstanceDescriptor::new_without_display_handle_from_env());
         let adapters = pollster::block_on(
             instance
@@ -318,7 +329,7 @@ impl Gpu {
             });
         };
         let info = adapter.get_info();
-        let limits = adapter.limits();
+        let limits = limit(adapter.limits());
         let (device, queue) = pollster::block_on(adapter.request_device(&wgpu::DeviceDescriptor {
             label: Some("periscope-recon"),
             required_limits: limits.clone(),
@@ -377,28 +388,45 @@ impl Gpu {
 
     /// A storage buffer holding `data`.
     fn upload<T: bytemuck::Pod>(&self, label: &str, data: &[T]) -> wgpu::Buffer {
-        use wgpu::util::DeviceExt;
         // A zero-length binding is invalid: an empty slice gets zeros enough for any element.
         let bytes: &[u8] = if data.is_empty() {
             &[0; 256]
         } else {
             bytemuck::cast_slice(data)
         };
-        self.device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
-            label: Some(label),
-            contents: bytes,
-            usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC,
-        })
+        self.filled(
+            label,
+            bytes,
+            wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC,
+        )
     }
 
     /// A uniform buffer holding `value`.
     fn uniform<T: bytemuck::Pod>(&self, label: &str, value: &T) -> wgpu::Buffer {
-        use wgpu::util::DeviceExt;
-        self.device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+        self.filled(label, bytemuck::bytes_of(value), wgpu::BufferUsages::UNIFORM)
+    }
+
+    /// A buffer of `usage` holding `bytes` (padded with zeros to whole words), written
+    /// through the queue. Not `create_buffer_init`: it maps the new buffer and panics
+    /// where the buffer could not be made (out of memory, past the device's
+    /// `max_buffer_size`, a lost device), where this leaves the error to the step's
+    /// error scope ([`Gpu::scoped`]), which returns it, and `auto` goes on on the CPU.
+    fn filled(&self, label: &str, bytes: &[u8], usage: wgpu::BufferUsages) -> wgpu::Buffer {
+        let size = bytes.len().div_ceil(4) * 4;
+        let buffer = self.device.create_buffer(&wgpu::BufferDescriptor {
             label: Some(label),
-            contents: bytemuck::bytes_of(value),
-            usage: wgpu::BufferUsages::UNIFORM,
-        })
+            size: size as u64,
+            usage: usage | wgpu::BufferUsages::COPY_DST,
+            mapped_at_creation: false,
+        });
+        if size == bytes.len() {
+            self.queue.write_buffer(&buffer, 0, bytes);
+        } else {
+            let mut padded = bytes.to_vec();
+            padded.resize(size, 0);
+            self.queue.write_buffer(&buffer, 0, &padded);
+        }
+        buffer
     }
 
     /// A zeroed storage buffer of `len` f32 the shaders write (wgpu zeroes new buffers).
@@ -540,5 +568,47 @@ pub mod testing {
             }
             Err(e) => panic!("{test}: PERISCOPE_REQUIRE_GPU is set but {e}"),
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A buffer the device cannot make (here past a `max_buffer_size` set small, as a
+    /// large capture's is on a real device, or out of its memory) is the step's error,
+    /// which `auto` answers by going on on the CPU, not a panic: until 2026-12-07 the
+    /// uploads went through `create_buffer_init`, which maps the new buffer and panics
+    /// where it could not be made.
+    #[test]
+    fn a_buffer_past_the_devices_limit_is_the_steps_error_not_a_panic() {
+        let small = |l: wgpu::Limits| wgpu::Limits {
+            max_buffer_size: 1 << 12,
+            max_storage_buffer_binding_size: 1 << 12,
+            ..l
+        };
+        let gpu = match Gpu::open_limited(true, small) {
+            Ok(g) => g,
+            Err(e) if std::env::var_os("PERISCOPE_REQUIRE_GPU").is_none() => {
+                use std::io::Write;
+                let _ = writeln!(
+                    std::io::stderr(),
+                    "SKIPPED a_buffer_past_the_devices_limit_is_the_steps_error_not_a_panic: {e}"
+                );
+                return;
+            }
+            Err(e) => panic!("PERISCOPE_REQUIRE_GPU is set but {e}"),
+        };
+        let past = gpu.scoped("an upload past the limit", || {
+            let _b = gpu.upload("big", &vec![1.0f32; 2048]);
+            Ok(())
+        });
+        assert!(matches!(past, Err(GpuError::Run { .. })), "{past:?}");
+        let within = gpu.scoped("an upload within it", || {
+            let _b = gpu.upload("small", &[1.0f32; 16]);
+            let _u = gpu.uniform("one", &[1u32, 2, 3]);
+            Ok(())
+        });
+        assert!(within.is_ok(), "{within:?}");
     }
 }
