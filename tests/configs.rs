@@ -4,7 +4,7 @@ use std::path::Path;
 
 use periscope_daemon::config::{InstrumentConfig, load_scene};
 use periscope_daemon::plan::Plan;
-use periscope_tests::{SmallPlan, config_files, periscope, repo_path};
+use periscope_tests::{config_files, periscope, repo_path};
 
 #[test]
 fn every_config_file_loads() {
@@ -289,35 +289,6 @@ fn check_refuses_a_plan_over_the_budget_naming_the_key() {
         "{}",
         out.stderr
     );
-}
-
-/// A solver run on the measured pairs holds its own arrays beside the capture: a direct
-/// LCT whose cube would pass the solver's cap is refused by `check` before any capture,
-/// naming the grid (until 2026-12-07 the plan passed, the capture ran, and LCT refused
-/// after it), and a grid it can take is checked with the cube in the budget.
-#[test]
-fn a_direct_solver_past_its_memory_cap_is_refused_before_the_capture() {
-    let dir = tempfile::tempdir().unwrap();
-    let plan = dir.path().join("lct.toml");
-    let lct = |grid: [usize; 2]| {
-        SmallPlan::named("lct")
-            .set("recon.method", "lct")
-            .set("pairs.offset-mm", 0.0)
-            .set("pairs.grid", grid)
-            .toml()
-    };
-    std::fs::write(&plan, lct([512, 512])).unwrap();
-    let out = periscope(&["check", plan.to_str().unwrap()]);
-    assert_eq!(out.code, Some(2), "{out:?}");
-    assert!(
-        out.stderr.contains("pairs.grid") && out.stderr.contains("MiB a solver may use"),
-        "{}",
-        out.stderr
-    );
-    std::fs::write(&plan, lct([64, 64])).unwrap();
-    let out = periscope(&["check", plan.to_str().unwrap()]);
-    assert_eq!(out.code, Some(0), "{out:?}");
-    assert!(out.stdout.contains("LCT on the measured grid"), "{}", out.stdout);
 }
 
 /// `periscope check` judges the TDC window against the total paths the run needs it to

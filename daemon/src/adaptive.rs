@@ -40,11 +40,11 @@ const MIN_BATCH: usize = 8;
 const MAX_SCORED: usize = 8192;
 
 /// What one choice holds at most beside the fit, bytes, for the plan's budget: the
-/// scored candidates' terms (about 170 MB, [`MAX_SCORED`]) and the strengths for the
-/// prior (16 MB), with the information sums over the fit's `primitives`, their
-/// inverse and a copy (about 72 B each a primitive).
-pub fn choice_bytes(primitives: usize) -> u64 {
-    let terms = (MAX_SCORED * periscope_recon::adaptive::MAX_TERMS * 40) as u64;
+/// scored candidates' terms (of `candidates`, at most [`MAX_SCORED`]: about 170 MB)
+/// and the strengths for the prior (16 MB), with the information sums over the fit's
+/// `primitives`, their inverse and a copy (about 72 B each a primitive).
+pub fn choice_bytes(candidates: usize, primitives: usize) -> u64 {
+    let terms = (candidates.min(MAX_SCORED) * periscope_recon::adaptive::MAX_TERMS * 40) as u64;
     terms + (16 << 20) + 3 * 72 * primitives as u64
 }
 

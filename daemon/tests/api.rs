@@ -796,6 +796,20 @@ async fn pause_resume_abort_and_estop_keep_the_data() {
     assert_eq!(s, StatusCode::ACCEPTED, "{v}");
     let fin = wait_for(&router, &a, "completed", limit, |v| v["state"] == "completed").await;
     assert_eq!(fin["pairs_done"], fin["pairs_total"], "{fin}");
+    // The pairs counter counts each pair once over both sessions (until 2026-12-07 the
+    // resume counted the first session's again), as the pair rate and ETA do.
+    let (_, text) = call_raw(&router, Method::GET, "/metrics", None, "").await;
+    let text = String::from_utf8(text).unwrap();
+    let pairs_counted = text
+        .lines()
+        .find_map(|l| {
+            l.strip_prefix("periscope_capture_pairs_total ")?
+                .trim()
+                .parse::<f64>()
+                .ok()
+        })
+        .unwrap_or_else(|| panic!("no pairs counter in {text}"));
+    assert_eq!(pairs_counted, total as f64, "{text}");
     // ...and the capture's time is the sum of its parts, not its last part.
     let whole = timing(&fin, "capture").unwrap();
     assert!(

@@ -490,7 +490,8 @@ async fn bad_imports_are_refused_with_their_reason_and_leave_nothing() {
                 Body::from(form(&[Part::File("capture", "big.mat", vec![0u8; 300 << 10])])),
             ),
             StatusCode::PAYLOAD_TOO_LARGE,
-            "import-limit-mib",
+            // A limit under a MiB said as it is, not as 0 MiB.
+            "over 256 KiB, the most this daemon takes ([api] import-limit-mib)",
         ),
     ];
     for (what, req, status, says) in cases {

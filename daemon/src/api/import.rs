@@ -224,9 +224,14 @@ fn too_large(limit: u64) -> ApiError {
         StatusCode::PAYLOAD_TOO_LARGE,
         "body-too-large",
         format!(
-            "the upload is over {} MiB, the most this daemon takes ([api] import-limit-mib): raise the limit, \
+            "the upload is over {}, the most this daemon takes ([api] import-limit-mib): raise the limit, \
              or reconstruct the file where it is with `periscope recon`",
-            limit >> 20
+            // A limit under a MiB (the config takes a KiB) is not said as 0 MiB.
+            if limit >= 1 << 20 {
+                format!("{} MiB", limit >> 20)
+            } else {
+                format!("{} KiB", limit >> 10)
+            }
         ),
     )
 }

@@ -463,7 +463,7 @@ impl Plan {
             ));
         }
         if new {
-            confocal_solver_fits(src, &recon, &pairs, &acquisition)?;
+            confocal_solver_fits(src, &recon, &pairs)?;
             envelope_fits(src, &recon, &acquisition)?;
             // 3D-GTR's virtual relay is a plane fitted to the detection points: fewer
             // than three never make one, which the run would learn only after its LOS
@@ -586,40 +586,13 @@ fn confocal_solver_fits(
     src: &TomlSource,
     recon: &ReconSettings,
     pairs: &PairMode,
-    acquisition: &Acquisition,
 ) -> Result<(), ConfigError> {
-    use periscope_recon::solver::{MEMORY_CAP_MIB, SolverKind, fk_work_bytes, lct_work_bytes};
+    use periscope_recon::solver::SolverKind;
     let (name, tolerance) = match recon.method {
         Method::Solver(SolverKind::Lct) => ("lct", recon.solvers.lct.grid_tolerance),
         Method::Solver(SolverKind::Fk) => ("fk", recon.solvers.fk.grid_tolerance),
         _ => return Ok(()),
     };
-    // The solver's cube: a bin for each path length from 0 to the window's end at
-    // most, for each grid cell. Over the solver's own cap it would refuse after the
-    // capture (until 2026-12-07 nothing said so before).
-    let m = (acquisition.offset.max(0.0) / acquisition.bin_width).ceil() as usize + acquisition.bins as usize;
-    let cells = pairs.max_detection_points();
-    let work = if name == "lct" {
-        lct_work_bytes(cells, m)
-    } else {
-        fk_work_bytes(cells, m)
-    };
-    if work.div_ceil(1 << 20) > MEMORY_CAP_MIB {
-        let key = if matches!(pairs, PairMode::Mask { .. }) {
-            "pairs.mask"
-        } else {
-            "pairs.grid"
-        };
-        return Err(src.invalid(
-            key,
-            format!(
-                "{cells} grid cells over up to {m} bins from path length 0 (acquisition.bins and offset-ns) take {name} \
-                 about {} MiB, past the {MEMORY_CAP_MIB} MiB a solver may use: a coarser grid, fewer or wider bins, or \
-                 \"gtr\" (which runs {name} on its virtual scan)",
-                work.div_ceil(1 << 20)
-            ),
-        ));
-    }
     match pairs {
         PairMode::Confocal { offset, .. } | PairMode::Mask { offset, .. } if *offset > tolerance => Err(src.invalid(
             "pairs.offset-mm",

@@ -298,6 +298,7 @@ pub(crate) fn refuse_too_many(src: &TomlSource, mode: &PairMode) -> Result<(), C
     }
     let key = match mode {
         PairMode::Random { .. } => "pairs.count",
+        // Laser grid × detection grid: named by the second, the message says both.
         PairMode::Scanned { .. } => "pairs.grid",
         PairMode::Mask { .. } => "pairs.mask",
         PairMode::Confocal { .. } | PairMode::FixedLaser { .. } => "pairs.grid",
@@ -305,7 +306,7 @@ pub(crate) fn refuse_too_many(src: &TomlSource, mode: &PairMode) -> Result<(), C
     Err(src.invalid(
         key,
         format!(
-            "lays out {n} pairs, more than the {MAX_PLANNED_PAIRS} a run may hold (its pair plan, pairs.json, \
+            "lays out {n} pairs (the laser grid × the detection grid, or the count), more than the {MAX_PLANNED_PAIRS} a run may hold (its pair plan, pairs.json, \
              must stay readable to resume, reconstruct and export it): use coarser grids, or fewer pairs"
         ),
     ))

@@ -172,6 +172,17 @@ impl Service {
 
     pub(super) fn execute(self: &Arc<Self>, id: &str, control: Control) -> Result<(), PipelineError> {
         let dir = self.runs_dir.join(id);
+        // A resumed run's pairs stored before: the live count starts from them, so the
+        // pairs counter (by how far the count moves), the pair rate and the ETA count
+        // only what this session measures (until 2026-12-07 each resume counted the
+        // earlier sessions' pairs again).
+        if let Ok(info) = RunInfo::load(&dir) {
+            let mut s = self.lock();
+            if s.live.id == id {
+                s.live.pairs_done = info.pairs_done;
+                s.live.pairs_total = info.pairs_total;
+            }
+        }
         let events = EventSink::open(&dir).map_err(|e| PipelineError::Storage {
             path: dir.clone(),
             source: e,
