@@ -40,7 +40,7 @@ const MIN_BATCH: usize = 8;
 const MAX_SCORED: usize = 8192;
 
 /// What one choice holds at most beside the fit, bytes, for the plan's budget: the
-/// scored candidates' terms (of `candidates`, at most [`MAX_SCORED`]: about 170 MB)
+/// scored candidates' terms (of `candidates`, at most 8,192: about 170 MB)
 /// and the strengths for the prior (16 MB), with the information sums over the fit's
 /// `primitives`, their inverse and a copy (about 72 B each a primitive).
 pub fn choice_bytes(candidates: usize, primitives: usize) -> u64 {

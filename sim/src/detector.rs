@@ -236,7 +236,7 @@ impl Detector {
     }
 
     /// [`Detector::expected_counts`] with `before` signal photons a cycle arriving
-    /// between the sync and the window's start ([`Detector::before_window`]): with
+    /// between the sync and the window's start (`Detector::before_window`): with
     /// pile-up on, a detection then is the cycle's one, and the window records nothing
     /// that cycle, so each bin is scaled by the chance that none came. Until 2026-12-07
     /// arrivals before the window were dropped, and an ungated SPAD whose window was
