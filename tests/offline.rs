@@ -146,6 +146,20 @@ fn recon_and_export_of_a_run_directory_whole_and_damaged() {
         b"the imported capture"
     );
     assert!(!damaged.join("import/new.hdf5").exists());
+    // Nor the daemon's own files in a runs directory (told by another of them beside
+    // it): until 2026-12-07 an export could replace the keys or the queue.
+    let runs = tmp.path().join("runs");
+    std::fs::create_dir(&runs).unwrap();
+    std::fs::write(runs.join("queue.json"), b"[]").unwrap();
+    std::fs::write(runs.join("keys.json"), b"the keys").unwrap();
+    let out = periscope(&["export", s(&run), "--out", s(&runs.join("keys.json"))]);
+    assert_eq!(out.code, Some(1), "{out:?}");
+    assert!(out.stderr.contains("one of the daemon's files"), "{out:?}");
+    assert_eq!(std::fs::read(runs.join("keys.json")).unwrap(), b"the keys");
+    // A file of that name anywhere else is the user's to write.
+    let mine = tmp.path().join("keys.json");
+    let out = periscope(&["export", s(&run), "--out", s(&mine)]);
+    assert_eq!(out.code, Some(0), "{out:?}");
     let out = periscope(&["export", s(&run), "--out", s(&run.join("capture.hdf5"))]);
     assert_eq!(out.code, Some(0), "{out:?}");
 

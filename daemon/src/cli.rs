@@ -458,6 +458,20 @@ fn refuse_run_file(run_dir: &Path, out: &Path) -> Result<(), CliError> {
     if !export && target.ancestors().skip(1).take(2).any(RunDir::holds_run) {
         return Err(CliError::RunFile(out.to_path_buf()));
     }
+    // Nor the daemon's own files in a runs directory (its keys, queue, audit trail and
+    // catalogue), told by a folder that holds another of them.
+    let daemon_files = [
+        crate::access::KEYS_FILE,
+        crate::service::QUEUE_FILE,
+        crate::catalogue::audit::AUDIT_FILE,
+        crate::catalogue::CATALOGUE_FILE,
+    ];
+    if let (Some(folder), Some(name)) = (target.parent(), target.file_name())
+        && daemon_files.iter().any(|f| name == *f)
+        && daemon_files.iter().any(|f| *f != name && folder.join(f).exists())
+    {
+        return Err(CliError::RunsDirFile(out.to_path_buf()));
+    }
     Ok(())
 }
 
@@ -719,6 +733,13 @@ pub enum CliError {
         .0.display()
     )]
     RunFile(PathBuf),
+    /// `export --out` naming one of the daemon's files in a runs directory.
+    #[error(
+        "{} is one of the daemon's files in a runs directory (its keys, queue, audit trail or catalogue), \
+         and the export would replace it; give --out a new file outside the run directories",
+        .0.display()
+    )]
+    RunsDirFile(PathBuf),
     /// `recon --out` naming a run directory.
     #[error(
         "{} is a run directory: the reconstruction would replace the run's own results and add to its \
