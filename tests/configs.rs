@@ -543,6 +543,49 @@ fn a_fixed_laser_aimed_away_from_the_relay_is_named() {
     );
 }
 
+/// A direct LCT of confocal pairs on the S-shaped panel would measure every pair and
+/// then fail (no plane fits the pairs within LCT's grid tolerance): the run fails once
+/// the pairs are planned on the relay the LOS scan found, before the first is
+/// measured, naming the method and the solver's reason, with exit code 2. Until
+/// 2026-12-08 only the reconstruction found it, after the whole capture.
+#[test]
+fn a_direct_solver_that_cannot_take_the_planned_pairs_is_refused_before_the_capture() {
+    let dir = tempfile::tempdir().unwrap();
+    let plan = dir.path().join("lct.toml");
+    let text = periscope_tests::SmallPlan::named("lct-on-s")
+        .set("recon.method", "lct")
+        .set("pairs.offset-mm", 0.0)
+        .toml();
+    std::fs::write(&plan, text).unwrap();
+    let run = dir.path().join("run");
+    let instrument = repo_path("configs/instrument/sim-s-wall-letter.toml");
+    let out = periscope(&[
+        "run",
+        plan.to_str().unwrap(),
+        "--instrument",
+        instrument.to_str().unwrap(),
+        "--out",
+        run.to_str().unwrap(),
+    ]);
+    assert_eq!(out.code, Some(2), "{out:?}");
+    assert!(
+        out.stderr
+            .contains("recon.method = \"lct\" cannot reconstruct the 33 pairs planned")
+            && out.stderr.contains("not planar"),
+        "{}",
+        out.stderr
+    );
+    assert!(
+        !run.join("histograms.bin").exists()
+            || std::fs::metadata(run.join("histograms.bin")).unwrap().len() == 0,
+        "no pair was measured"
+    );
+    // The same plan on the flat wall runs.
+    let flat = dir.path().join("flat");
+    let out = periscope(&["run", plan.to_str().unwrap(), "--out", flat.to_str().unwrap()]);
+    assert_eq!(out.code, Some(0), "{out:?}");
+}
+
 #[test]
 fn check_refuses_an_los_scan_past_the_spad_arms_limits() {
     let dir = tempfile::tempdir().unwrap();

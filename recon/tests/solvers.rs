@@ -2063,3 +2063,79 @@ fn rsd_keeps_depth_on_a_coarse_grid() {
         fbp_error * 1e3
     );
 }
+
+/// `check_layout` refuses, with the same error, what each solver refuses before it
+/// reads a count, and passes what it solves: the daemon runs it on the planned pairs
+/// to refuse a capture whose reconstruction would fail after every pair was measured
+/// (a direct LCT over a fine grid far from the relay; RSD on a curved relay).
+#[test]
+fn the_layout_check_refuses_what_each_solver_refuses() {
+    use periscope_recon::solver::SolverKind;
+    let all = [SolverKind::Lct, SolverKind::Fk, SolverKind::Rsd, SolverKind::Fbp];
+    let confocal = confocal_pairs(&wall(32));
+    let curved: Vec<Pair> = confocal
+        .iter()
+        .map(|p| {
+            let bend = 0.4 * (p.xd.x * p.xd.x + p.xd.y * p.xd.y);
+            let x = p.xd + DVec3::Z * bend;
+            Pair::confocal(x, DVec3::Z)
+        })
+        .collect();
+    let lit = lit_from(&wall(32), DVec3::new(0.1, 0.0, 0.0));
+    // 320 × 320 cells on 3,017 bins from path length 0: LCT's and f-k's spectra
+    // would pass the 8 GiB cap; RSD and FBP are not run on it (they would solve it).
+    let fine =
+        confocal_pairs(&VirtualRelay::new(DVec3::ZERO, DVec3::Z, DVec3::X, [1.0, 1.0], [320, 320]).unwrap());
+    let far = TimeAxis {
+        start: 30.0,
+        width: 0.01,
+        bins: 16,
+    };
+    type Case<'a> = (&'a str, &'a [Pair], TimeAxis, VolumeGrid, &'a [SolverKind]);
+    let cases: [Case<'_>; 5] = [
+        ("a confocal grid", &confocal, axis(), grid(), &all),
+        (
+            "a volume behind the relay",
+            &confocal,
+            axis(),
+            behind_the_relay(),
+            &all,
+        ),
+        ("a curved relay", &curved, axis(), grid(), &all),
+        ("one laser spot", &lit, axis(), grid(), &all),
+        (
+            "a fine grid far away",
+            &fine,
+            far,
+            grid(),
+            &[SolverKind::Lct, SolverKind::Fk],
+        ),
+    ];
+    let settings = SolverSettings::default();
+    let mut refused = 0;
+    for (what, pairs, axis, volume, kinds) in cases {
+        let mut set = TransientSet::new(axis).unwrap();
+        if pairs.len() < 2000 {
+            scatter(&mut set, pairs, &[(POINT, 1.0)]);
+        } else {
+            for p in pairs {
+                set.push(*p, &vec![1.0; axis.bins]).unwrap();
+            }
+        }
+        for &kind in kinds {
+            let checked = kind.check_layout(pairs, &axis, &volume, &settings);
+            let solved = kind.solve(&set, &volume, &settings).map(|_| ());
+            match (&checked, &solved) {
+                (Ok(()), Ok(())) => {}
+                (Err(c), Err(s)) => {
+                    assert_eq!(c.to_string(), s.to_string(), "{kind} on {what}");
+                    refused += 1;
+                }
+                _ => panic!("{kind} on {what}: the check says {checked:?}, the solver {solved:?}"),
+            }
+        }
+    }
+    // Behind: LCT, f-k and FBP (RSD's own words); curved: LCT, f-k, RSD; one spot:
+    // LCT, f-k; far: LCT, f-k.
+    assert_eq!(refused, 4 + 3 + 2 + 2, "every case the solvers refuse");
+}

@@ -127,6 +127,21 @@ impl Run {
             }
         }
         self.info.pairs_done = stored.len();
+        // A direct solver whose checks of the layout fail on the planned pairs would
+        // fail after measuring every one of them: refused before the first (a
+        // resumed run's stored pairs are reconstructed, or refused, by the solver).
+        if let Method::Solver(solver) = self.plan.recon.method
+            && stored.len() < pairs.len()
+        {
+            let s = &self.plan.recon;
+            solver
+                .check_layout(&recon_pairs, &axis, &s.volume, &s.solvers)
+                .map_err(|source| ReconError::Unsuited {
+                    solver,
+                    pairs: pairs.len(),
+                    source,
+                })?;
+        }
         if self.plan.adaptive && self.plan.recon.method == Method::Gtr {
             // An adaptive capture: the planned pairs are candidates; a first batch
             // spread over them, then each batch chosen by the fit after the last one's

@@ -116,6 +116,20 @@ pub enum ReconError {
     /// `[compute] device = "gpu"` and no GPU is usable, or the GPU failed.
     #[error(transparent)]
     Gpu(#[from] periscope_recon::gpu::GpuError),
+    /// The plan's solver cannot reconstruct the pairs planned on the relay the LOS scan
+    /// found: refused before they are measured.
+    #[error(
+        "recon.method = \"{solver}\" cannot reconstruct the {pairs} pairs planned on the relay the LOS scan \
+         found, so none was measured: {source}"
+    )]
+    Unsuited {
+        /// The plan's solver.
+        solver: periscope_recon::solver::SolverKind,
+        /// Pairs planned.
+        pairs: usize,
+        /// What the solver's check found.
+        source: periscope_recon::solver::SolverError,
+    },
 }
 
 impl ReconError {
@@ -138,7 +152,7 @@ impl ReconError {
                 TrainError::Config(_) | TrainError::NothingVisible | TrainError::NegativeTotal { .. }
             ),
             ReconError::Geometry(e) => matches!(e, GeometryError::NoPlane { .. }),
-            ReconError::Roi(_) | ReconError::Empty => true,
+            ReconError::Roi(_) | ReconError::Empty | ReconError::Unsuited { .. } => true,
             ReconError::Transient(_)
             | ReconError::Output { .. }
             | ReconError::Thread(_)

@@ -7,7 +7,7 @@ use rustfft::num_complex::Complex32;
 
 use super::scan::gather_cube;
 use super::{FrameVolume, PlanarScan, SolverError};
-use crate::transient::TransientSet;
+use crate::transient::{TimeAxis, TransientSet};
 
 /// Checks the settings LCT and f-k migration share: the radiometric exponent (0 to 8)
 /// and the grid tolerance (a positive length).
@@ -29,10 +29,9 @@ pub(super) fn check_settings(falloff: f64, grid_tolerance: f64) -> Result<(), So
     Ok(())
 }
 
-/// Bins from path length 0 to the end of `set`'s data; an error naming `solver` when
+/// Bins from path length 0 to the end of `axis`; an error naming `solver` when
 /// the data end at or before path length 0.
-pub(super) fn bins_from_zero(set: &TransientSet, solver: &str) -> Result<usize, SolverError> {
-    let axis = set.axis();
+pub(super) fn bins_from_zero(axis: &TimeAxis, solver: &str) -> Result<usize, SolverError> {
     if axis.end() <= 0.0 {
         return Err(SolverError::Axis(format!(
             "the histograms end at path length {:.3} m; {solver} needs positive path lengths",

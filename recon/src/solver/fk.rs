@@ -18,7 +18,7 @@ use rustfft::num_complex::Complex32;
 
 use super::fft::Fft2;
 use super::{FrameVolume, PlanarScan, SolverError, check_memory, confocal};
-use crate::transient::TransientSet;
+use crate::transient::{TimeAxis, TransientSet};
 use crate::volume::{Volume, VolumeGrid};
 
 /// f-k migration settings.
@@ -59,7 +59,7 @@ impl FkSettings {
 pub fn fk(set: &TransientSet, grid: &VolumeGrid, settings: &FkSettings) -> Result<Volume, SolverError> {
     settings.validate()?;
     // As FBP, RSD and 3D-GTR refuse it (an all-zero volume until 2026-12-06).
-    super::refuse_a_volume_behind(set, grid)?;
+    super::refuse_a_volume_behind(set.pairs(), grid)?;
     let scan = super::lct::confocal_scan(set, settings.grid_tolerance)?.reaching(grid);
     Ok(fk_frame(set, &scan, settings)?.to_world(grid))
 }
@@ -76,6 +76,15 @@ pub fn fk_work_bytes(cells: usize, m: usize) -> usize {
     spectra.saturating_add(cells.saturating_mul(m).saturating_mul(4))
 }
 
+/// f-k migration's bins from path length 0 over `axis` on `scan`'s grid, once its
+/// memory is known to fit.
+pub(super) fn fk_bins(scan: &PlanarScan, axis: &TimeAxis) -> Result<usize, SolverError> {
+    let [nx, ny] = scan.relay.resolution;
+    let m = confocal::bins_from_zero(axis, "f-k migration")?;
+    check_memory("f-k migration", fk_work_bytes(nx * ny, m))?;
+    Ok(m)
+}
+
 /// f-k migration on the scan's own grid: a volume with one slice per bin, depth
 /// `(t + ½)·w/2`.
 pub fn fk_frame(
@@ -86,10 +95,9 @@ pub fn fk_frame(
     settings.validate()?;
     let [nx, ny] = scan.relay.resolution;
     let w = set.axis().width;
-    let m = confocal::bins_from_zero(set, "f-k migration")?;
+    let m = fk_bins(scan, set.axis())?;
     let (px, py, pt) = (2 * nx, 2 * ny, 2 * m);
     let slice_len = px * py;
-    check_memory("f-k migration", fk_work_bytes(nx * ny, m))?;
 
     // Weight by path length, then the real FFT along t (padded to 2M), scattered into
     // slices [kt][Y][X] of the laterally padded grid.

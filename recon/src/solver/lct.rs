@@ -18,7 +18,7 @@ use rustfft::num_complex::{Complex, Complex32};
 
 use super::fft::Fft2;
 use super::{FrameVolume, PlanarScan, SolverError, check_memory, confocal};
-use crate::transient::TransientSet;
+use crate::transient::{Pair, TimeAxis, TransientSet};
 use crate::volume::{Volume, VolumeGrid};
 
 /// LCT settings.
@@ -78,7 +78,7 @@ pub fn lct(set: &TransientSet, grid: &VolumeGrid, settings: &LctSettings) -> Res
     settings.validate()?;
     // As FBP, RSD and 3D-GTR refuse it: LCT resamples positive depths only, and wrote
     // an all-zero volume for it until 2026-12-06.
-    super::refuse_a_volume_behind(set, grid)?;
+    super::refuse_a_volume_behind(set.pairs(), grid)?;
     let scan = confocal_scan(set, settings.grid_tolerance)?.reaching(grid);
     Ok(lct_frame(set, &scan, settings)?.to_world(grid))
 }
@@ -122,12 +122,22 @@ pub fn default_snr(set: &TransientSet) -> f64 {
     (10.0 * (squares / sum - 1.0)).clamp(0.8, MODEL_SNR)
 }
 
-/// Checks every pair is confocal and finds the grid (LCT and f-k migration).
+/// Checks every pair is confocal and finds the grid (LCT and f-k migration) of
+/// `set`'s pairs.
 pub(super) fn confocal_scan(set: &TransientSet, tolerance: f64) -> Result<PlanarScan, SolverError> {
-    if set.is_empty() {
+    confocal_grid(set.pairs(), set.left_out_empty(), tolerance)
+}
+
+/// [`confocal_scan`] of `pairs`, of which a reader left `left_out` more out as empty.
+pub(super) fn confocal_grid(
+    pairs: &[Pair],
+    left_out: usize,
+    tolerance: f64,
+) -> Result<PlanarScan, SolverError> {
+    if pairs.is_empty() {
         return Err(SolverError::Empty);
     }
-    for (i, p) in set.pairs().iter().enumerate() {
+    for (i, p) in pairs.iter().enumerate() {
         let d = p.xi.distance(p.xd);
         if d > tolerance {
             return Err(SolverError::NotConfocal {
@@ -136,22 +146,31 @@ pub(super) fn confocal_scan(set: &TransientSet, tolerance: f64) -> Result<Planar
             });
         }
     }
-    let points: Vec<_> = set.pairs().iter().map(|p| p.xd).collect();
-    let hint = set.pairs().iter().map(|p| p.nd).sum();
+    let points: Vec<_> = pairs.iter().map(|p| p.xd).collect();
+    let hint = pairs.iter().map(|p| p.nd).sum();
     PlanarScan::detect("confocal scan", &points, hint, tolerance).map_err(|e| match e {
         // The grid is the capture's; what is left of it may be too little to show it.
-        SolverError::NotGrid { what, detail } if set.left_out_empty() > 0 => SolverError::NotGrid {
+        SolverError::NotGrid { what, detail } if left_out > 0 => SolverError::NotGrid {
             what,
             detail: format!(
                 "{detail}; only {} of the capture's {} transients hold counts inside the volume's time range \
                  (the rest are empty there and were left out): check the volume's depth, or the capture's \
                  t_start and delta_t",
-                set.len(),
-                set.len() + set.left_out_empty()
+                pairs.len(),
+                pairs.len() + left_out
             ),
         },
         e => e,
     })
+}
+
+/// LCT's bins from path length 0 over `axis` on `scan`'s grid, once its memory is
+/// known to fit.
+pub(super) fn lct_bins(scan: &PlanarScan, axis: &TimeAxis) -> Result<usize, SolverError> {
+    let [nx, ny] = scan.relay.resolution;
+    let m = confocal::bins_from_zero(axis, "LCT")?;
+    check_memory("LCT", lct_work_bytes(nx * ny, m))?;
+    Ok(m)
 }
 
 /// LCT on the scan's own grid: a volume with one slice per bin, depth `(t + ½)·w/2`.
@@ -161,10 +180,8 @@ pub fn lct_frame(
     settings: &LctSettings,
 ) -> Result<FrameVolume, SolverError> {
     settings.validate()?;
-    let [nx, ny] = scan.relay.resolution;
     let w = set.axis().width;
-    let m = confocal::bins_from_zero(set, "LCT")?;
-    check_memory("LCT", lct_work_bytes(nx * ny, m))?;
+    let m = lct_bins(scan, set.axis())?;
     let mut cube = confocal::cube(set, scan, m, settings.relay_weights);
 
     // Radiometric weight and ℓ → s resampling.

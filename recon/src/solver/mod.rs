@@ -31,17 +31,14 @@ pub use scan::{MAX_REACH_FACTOR, PlanarScan};
 use crate::relay::GeometryError;
 use crate::volume::VolumeError;
 
-/// Whether `grid` lies wholly behind every detection point of `set`, against its
+/// Whether `grid` lies wholly behind every detection point of `pairs`, against its
 /// normal (each of the volume's corners checked): no pair sees any of it, and a
 /// backprojection there images the hidden scene's mirror.
-pub(crate) fn behind_every_detection_point(
-    set: &crate::transient::TransientSet,
-    grid: &crate::volume::VolumeGrid,
-) -> bool {
+pub(crate) fn behind_every_detection_point(pairs: &[crate::Pair], grid: &crate::volume::VolumeGrid) -> bool {
     let corners: Vec<glam::DVec3> = (0..8)
         .map(|c: usize| glam::DVec3::new(grid.x[c & 1], grid.y[(c >> 1) & 1], grid.z[(c >> 2) & 1]))
         .collect();
-    set.pairs()
+    pairs
         .iter()
         .all(|p| corners.iter().all(|&c| p.nd.dot(c - p.xd) <= 0.0))
 }
@@ -50,10 +47,10 @@ pub(crate) fn behind_every_detection_point(
 /// ([`behind_every_detection_point`]): no pair sees it, and an image there is the
 /// hidden scene's mirror, or nothing.
 pub(crate) fn refuse_a_volume_behind(
-    set: &crate::transient::TransientSet,
+    pairs: &[crate::Pair],
     grid: &crate::volume::VolumeGrid,
 ) -> Result<(), SolverError> {
-    if behind_every_detection_point(set, grid) {
+    if behind_every_detection_point(pairs, grid) {
         return Err(SolverError::Axis(
             "the volume lies behind the relay, against every detection point's normal: no pair sees it, and \
              a backprojection there images the hidden scene's mirror; move the [volume] in front of the relay"
@@ -106,6 +103,46 @@ impl SolverKind {
             SolverKind::Rsd => rsd(set, grid, &settings.rsd),
             SolverKind::Fbp => fbp_on(set, grid, &settings.fbp, &settings.compute),
         }
+    }
+
+    /// Every check this solver makes before it reads a count, on the `pairs` a capture
+    /// will measure, its time `axis` and the volume `grid`: the pairs' layout (confocal,
+    /// on a plane, on a grid), the volume's side of the relay, the settings, and the
+    /// working memory of LCT, f-k migration and RSD (which grows with the grid the
+    /// pairs span and the bins from path length 0). A capture that would measure every
+    /// pair and then fail here can be refused before the laser goes on. Passing it does
+    /// not promise the solve: a reader may leave empty transients out.
+    pub fn check_layout(
+        self,
+        pairs: &[crate::Pair],
+        axis: &crate::TimeAxis,
+        grid: &crate::VolumeGrid,
+        settings: &SolverSettings,
+    ) -> Result<(), SolverError> {
+        match self {
+            SolverKind::Lct | SolverKind::Fk => {
+                let tolerance = if self == SolverKind::Lct {
+                    settings.lct.validate()?;
+                    settings.lct.grid_tolerance
+                } else {
+                    settings.fk.validate()?;
+                    settings.fk.grid_tolerance
+                };
+                refuse_a_volume_behind(pairs, grid)?;
+                let scan = lct::confocal_grid(pairs, 0, tolerance)?.reaching(grid);
+                if self == SolverKind::Lct {
+                    lct::lct_bins(&scan, axis)?;
+                } else {
+                    fk::fk_bins(&scan, axis)?;
+                }
+            }
+            SolverKind::Rsd => rsd::rsd_layout(pairs, axis, grid, &settings.rsd)?,
+            SolverKind::Fbp => {
+                settings.fbp.validate()?;
+                refuse_a_volume_behind(pairs, grid)?;
+            }
+        }
+        Ok(())
     }
 }
 

@@ -30,7 +30,7 @@ use rustfft::num_complex::{Complex, Complex32};
 use super::fft::{Fft2, raised_cosine};
 use super::scan::gather_cube;
 use super::{FrameVolume, PlanarScan, SolverError, check_memory};
-use crate::transient::TransientSet;
+use crate::transient::{Pair, TimeAxis, TransientSet};
 use crate::volume::{Volume, VolumeGrid};
 
 /// RSD settings.
@@ -134,28 +134,38 @@ impl RsdSettings {
 /// cell weights then counted 4 to 9 times over.
 pub const RSD_CONFOCAL_OFFSET: f64 = 0.01;
 
-/// Whether `set` is a confocal scan for RSD: every pair's spots within
+/// Whether `pairs` are a confocal scan for RSD: every pair's spots within
 /// [`RSD_CONFOCAL_OFFSET`] (or `tolerance`, if larger) of each other.
-fn confocal_scan(set: &TransientSet, tolerance: f64) -> bool {
+fn confocal_scan(pairs: &[Pair], tolerance: f64) -> bool {
     let within = tolerance.max(RSD_CONFOCAL_OFFSET);
-    set.pairs().iter().all(|p| p.xi.distance(p.xd) <= within)
+    pairs.iter().all(|p| p.xi.distance(p.xd) <= within)
 }
 
 /// RSD reconstruction resampled onto `grid` (depth slices spaced by the grid's
 /// smallest voxel edge, covering the grid's extent along the relay normal).
 pub fn rsd(set: &TransientSet, grid: &VolumeGrid, settings: &RsdSettings) -> Result<Volume, SolverError> {
+    let (scan, start, step, depths) = rsd_depths(set.pairs(), grid, settings)?;
+    Ok(rsd_frame(set, &scan, start, step, depths, settings)?.to_world(grid))
+}
+
+/// [`rsd`]'s grid and depths for `pairs` and `grid`: the scan, the first depth, the
+/// step and the count.
+pub(super) fn rsd_depths(
+    pairs: &[Pair],
+    grid: &VolumeGrid,
+    settings: &RsdSettings,
+) -> Result<(PlanarScan, f64, f64, usize), SolverError> {
     settings.validate()?;
-    if set.is_empty() {
+    if pairs.is_empty() {
         return Err(SolverError::Empty);
     }
     // A confocal scan's grid is its spots' midpoints; any other's, its detection points.
-    let confocal = confocal_scan(set, settings.grid_tolerance);
-    let points: Vec<DVec3> = set
-        .pairs()
+    let confocal = confocal_scan(pairs, settings.grid_tolerance);
+    let points: Vec<DVec3> = pairs
         .iter()
         .map(|p| if confocal { 0.5 * (p.xi + p.xd) } else { p.xd })
         .collect();
-    let hint = set.pairs().iter().map(|p| p.nd).sum();
+    let hint = pairs.iter().map(|p| p.nd).sum();
     let scan = PlanarScan::detect("detection", &points, hint, settings.grid_tolerance)?.reaching(grid);
     let (mut lo, mut hi) = (f64::INFINITY, f64::NEG_INFINITY);
     for corner in 0..8 {
@@ -184,8 +194,19 @@ pub fn rsd(set: &TransientSet, grid: &VolumeGrid, settings: &RsdSettings) -> Res
             hi - start
         )));
     }
-    let depths = count as usize;
-    Ok(rsd_frame(set, &scan, start, step, depths, settings)?.to_world(grid))
+    Ok((scan, start, step, count as usize))
+}
+
+/// [`rsd`]'s checks of `pairs`, `axis` and `grid` before it reads a count
+/// ([`super::SolverKind::check_layout`]).
+pub(super) fn rsd_layout(
+    pairs: &[Pair],
+    axis: &TimeAxis,
+    grid: &VolumeGrid,
+    settings: &RsdSettings,
+) -> Result<(), SolverError> {
+    let (scan, _, _, depths) = rsd_depths(pairs, grid, settings)?;
+    spectral(pairs, axis, &scan, depths, settings).map(|_| ())
 }
 
 /// Most depth planes RSD counts before its memory check judges them (any count past
@@ -218,83 +239,17 @@ pub fn rsd_frame(
     let relay = scan.relay;
     let [nx, ny] = relay.resolution;
     let [sx, sy] = relay.spacing();
-    let confocal = confocal_scan(set, settings.grid_tolerance);
-    // λ is a wavelength in path length for confocal data too, whose kernel's phase is
-    // 2kr: its wave across the relay is λ/2, 1.25 pitches, which aliases beyond about
-    // 40° off the normal. Twice the wavelength (no aliasing up to grazing angles) was
-    // the default until measured: on the validation confocal grid it scored IoU 0.70
-    // against 0.87 at 2.5 pitches, y-tal `pf`'s setting and figure (docs/recon.md).
-    let lambda = settings
-        .wavelength
-        .unwrap_or((super::PHASOR_PITCHES * sx.max(sy)).max(4.0 * axis.width));
-
-    // Spectral lines of the virtual wave, over the transients padded with three
-    // envelope widths each side (repeating their end values) so the wave does not
-    // wrap around the time axis, and twice that after them over which a raised cosine
-    // takes the last value back to the first: the FFT is circular, and without it the
-    // two ends met in a step whose wave the depths outside the window read (FBP's
-    // phasor filter joins its padding the same way).
+    let Spectral {
+        confocal,
+        pad,
+        join,
+        padded_bins,
+        lines,
+        groups,
+    } = spectral(set.pairs(), &axis, scan, depths, settings)?;
     let bins = axis.bins;
-    let sigma = settings.cycles * lambda / 6.0;
-    // The envelope (cycles wavelengths, 6σ) pads the transients by half its length
-    // each side: one many times longer than the time axis filters nothing the axis
-    // holds, and its padding (10⁹ cycles asked for 64 GB) would not fit in memory.
-    let span = axis.bins as f64 * axis.width;
-    if !(6.0 * sigma <= super::MAX_ENVELOPE_SPANS * span) {
-        return Err(SolverError::Setting {
-            name: "cycles",
-            value: format!(
-                "{} (with a wavelength of {lambda} m, an envelope of {} m against a time axis of {span} m)",
-                settings.cycles,
-                6.0 * sigma
-            ),
-            expected: "an envelope (cycles × wavelength) at most 8 times the time axis's length: fewer [rsd] cycles or a shorter [rsd] wavelength (recon.rsd.* in a plan); a run's capture is kept, and `periscope recon RUN_DIR --config RECON.toml` reconstructs it again",
-        });
-    }
-    let pad = (3.0 * sigma / axis.width).ceil() as usize + 1;
-    let join = 2 * pad;
-    let padded_bins = bins + 2 * pad + join;
-    let kc = 2.0 * PI / lambda;
-    let lines: Vec<(usize, f64, f64)> = (0..=padded_bins / 2)
-        .map(|j| (j, 2.0 * PI * j as f64 / (padded_bins as f64 * axis.width)))
-        .map(|(j, k)| (j, k, (-(k - kc).powi(2) * sigma * sigma / 2.0).exp()))
-        .filter(|(_, _, w)| *w >= settings.spectral_cutoff)
-        .collect();
-    if lines.is_empty() {
-        return Err(SolverError::Setting {
-            name: "wavelength",
-            value: lambda.to_string(),
-            expected: "a wavelength the time axis resolves (longer than two bins, shorter than the axis)",
-        });
-    }
-
-    // Illumination groups (one for confocal data: its phase lives in the kernel).
-    let mut groups: Vec<(DVec3, Vec<usize>)> = Vec::new();
-    for (i, p) in set.pairs().iter().enumerate() {
-        let key = if confocal { DVec3::ZERO } else { p.xi };
-        match groups
-            .iter_mut()
-            .find(|(x, _)| x.distance(key) <= settings.grid_tolerance)
-        {
-            Some((_, members)) => members.push(i),
-            None => groups.push((key, vec![i])),
-        }
-    }
-
     let (px, py) = (2 * nx, 2 * ny);
     let plane = px * py;
-    // The kernels' planes, the field (complex f64 at every depth and cell), each
-    // group's spectra (complex f64 per cell and line) and each thread's work planes.
-    let bytes = [
-        [lines.len(), plane, 8],
-        [depths, nx * ny, 16],
-        [nx * ny, lines.len(), 16],
-        [plane, 32, rayon::current_num_threads()],
-    ]
-    .iter()
-    .map(|f| f.iter().fold(1usize, |a, &b| a.saturating_mul(b)))
-    .fold(0usize, usize::saturating_add);
-    check_memory("RSD", bytes)?;
     let fft = Fft2::new(py, px);
     let mut planner = RealFftPlanner::<f64>::new();
     let r2c = planner.plan_fft_forward(padded_bins);
@@ -418,6 +373,120 @@ pub fn rsd_frame(
         depth_step: step,
         depths,
         data: field.iter().map(|v| v.norm() as f32).collect(),
+    })
+}
+
+/// What [`rsd_frame`] works with before it reads a count: whether the scan is
+/// confocal, the padding, the spectral lines and the illumination groups.
+struct Spectral {
+    confocal: bool,
+    /// Bins repeated at either end of a transient.
+    pad: usize,
+    /// Bins over which the padding's end returns to its start.
+    join: usize,
+    padded_bins: usize,
+    /// Each line's FFT index, wavenumber and weight.
+    lines: Vec<(usize, f64, f64)>,
+    /// Each illumination spot (zero for a confocal scan) and its pairs.
+    groups: Vec<(DVec3, Vec<usize>)>,
+}
+
+/// [`rsd_frame`]'s spectral plan for `pairs` on `axis` and `scan`, once its memory is
+/// known to fit.
+fn spectral(
+    pairs: &[Pair],
+    axis: &TimeAxis,
+    scan: &PlanarScan,
+    depths: usize,
+    settings: &RsdSettings,
+) -> Result<Spectral, SolverError> {
+    let relay = scan.relay;
+    let [nx, ny] = relay.resolution;
+    let [sx, sy] = relay.spacing();
+    let confocal = confocal_scan(pairs, settings.grid_tolerance);
+    // λ is a wavelength in path length for confocal data too, whose kernel's phase is
+    // 2kr: its wave across the relay is λ/2, 1.25 pitches, which aliases beyond about
+    // 40° off the normal. Twice the wavelength (no aliasing up to grazing angles) was
+    // the default until measured: on the validation confocal grid it scored IoU 0.70
+    // against 0.87 at 2.5 pitches, y-tal `pf`'s setting and figure (docs/recon.md).
+    let lambda = settings
+        .wavelength
+        .unwrap_or((super::PHASOR_PITCHES * sx.max(sy)).max(4.0 * axis.width));
+
+    // Spectral lines of the virtual wave, over the transients padded with three
+    // envelope widths each side (repeating their end values) so the wave does not
+    // wrap around the time axis, and twice that after them over which a raised cosine
+    // takes the last value back to the first: the FFT is circular, and without it the
+    // two ends met in a step whose wave the depths outside the window read (FBP's
+    // phasor filter joins its padding the same way).
+    let bins = axis.bins;
+    let sigma = settings.cycles * lambda / 6.0;
+    // The envelope (cycles wavelengths, 6σ) pads the transients by half its length
+    // each side: one many times longer than the time axis filters nothing the axis
+    // holds, and its padding (10⁹ cycles asked for 64 GB) would not fit in memory.
+    let span = axis.bins as f64 * axis.width;
+    if !(6.0 * sigma <= super::MAX_ENVELOPE_SPANS * span) {
+        return Err(SolverError::Setting {
+            name: "cycles",
+            value: format!(
+                "{} (with a wavelength of {lambda} m, an envelope of {} m against a time axis of {span} m)",
+                settings.cycles,
+                6.0 * sigma
+            ),
+            expected: "an envelope (cycles × wavelength) at most 8 times the time axis's length: fewer [rsd] cycles or a shorter [rsd] wavelength (recon.rsd.* in a plan); a run's capture is kept, and `periscope recon RUN_DIR --config RECON.toml` reconstructs it again",
+        });
+    }
+    let pad = (3.0 * sigma / axis.width).ceil() as usize + 1;
+    let join = 2 * pad;
+    let padded_bins = bins + 2 * pad + join;
+    let kc = 2.0 * PI / lambda;
+    let lines: Vec<(usize, f64, f64)> = (0..=padded_bins / 2)
+        .map(|j| (j, 2.0 * PI * j as f64 / (padded_bins as f64 * axis.width)))
+        .map(|(j, k)| (j, k, (-(k - kc).powi(2) * sigma * sigma / 2.0).exp()))
+        .filter(|(_, _, w)| *w >= settings.spectral_cutoff)
+        .collect();
+    if lines.is_empty() {
+        return Err(SolverError::Setting {
+            name: "wavelength",
+            value: lambda.to_string(),
+            expected: "a wavelength the time axis resolves (longer than two bins, shorter than the axis)",
+        });
+    }
+
+    // Illumination groups (one for confocal data: its phase lives in the kernel).
+    let mut groups: Vec<(DVec3, Vec<usize>)> = Vec::new();
+    for (i, p) in pairs.iter().enumerate() {
+        let key = if confocal { DVec3::ZERO } else { p.xi };
+        match groups
+            .iter_mut()
+            .find(|(x, _)| x.distance(key) <= settings.grid_tolerance)
+        {
+            Some((_, members)) => members.push(i),
+            None => groups.push((key, vec![i])),
+        }
+    }
+
+    let (px, py) = (2 * nx, 2 * ny);
+    let plane = px * py;
+    // The kernels' planes, the field (complex f64 at every depth and cell), each
+    // group's spectra (complex f64 per cell and line) and each thread's work planes.
+    let bytes = [
+        [lines.len(), plane, 8],
+        [depths, nx * ny, 16],
+        [nx * ny, lines.len(), 16],
+        [plane, 32, rayon::current_num_threads()],
+    ]
+    .iter()
+    .map(|f| f.iter().fold(1usize, |a, &b| a.saturating_mul(b)))
+    .fold(0usize, usize::saturating_add);
+    check_memory("RSD", bytes)?;
+    Ok(Spectral {
+        confocal,
+        pad,
+        join,
+        padded_bins,
+        lines,
+        groups,
     })
 }
 

@@ -455,7 +455,7 @@ pub fn fbp_on(
     }
     // Until 2026-12-06 FBP imaged such a volume without a word (the scene mirrored,
     // or every column at its far end), where RSD and 3D-GTR refuse it.
-    super::refuse_a_volume_behind(set, grid)?;
+    super::refuse_a_volume_behind(set.pairs(), grid)?;
     // Each pair's share of the relay integral: 1 on full grids, the Voronoi cells of
     // scattered or perforated samples.
     let quadrature = settings
