@@ -1212,7 +1212,8 @@ async fn metrics_give_the_runs_own_laser_reading_during_a_capture() {
 /// A running capture's export is made again at most every 10 s, however often it is
 /// downloaded: a client looping on `capture.hdf5` cannot keep a core and the disk
 /// re-exporting while the instrument measures. Two downloads half a second apart,
-/// with pairs stored in between, get the same file.
+/// with pairs stored in between, get the same file; the run's own capture replaces it
+/// when the run completes.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_running_captures_export_is_not_remade_on_every_download() {
     let dir = tempfile::tempdir().unwrap();
@@ -1237,15 +1238,26 @@ async fn a_running_captures_export_is_not_remade_on_every_download() {
         "the export was made again {} pairs later",
         later["pairs_done"]
     );
-    let (s, v) = call(
-        &router,
-        Method::POST,
-        &format!("/api/v1/runs/{id}/abort"),
-        Some(TOKEN),
-        "",
-    )
-    .await;
-    assert_eq!(s, StatusCode::ACCEPTED, "{v}");
+    // Once the run has written the whole capture, the export of it unfinished is
+    // removed: until 2026-12-08 it stayed beside it, as large, for good.
+    let cache = dir
+        .path()
+        .join(&id)
+        .join(periscope_daemon::run_dir::file::EXPORT_CACHE);
+    assert!(cache.is_file());
+    let done = wait_for(&router, &id, "completed", limit, |v| v["state"] != "running").await;
+    assert_eq!(done["state"], "completed", "{done}");
+    let stamp = cache.with_file_name(".capture-export.hdf5.stamp");
+    assert!(
+        !cache.exists() && !stamp.exists(),
+        "the unfinished capture's export is left"
+    );
+    let (s, whole) = call_raw(&router, Method::GET, &url, Some(TOKEN), "").await;
+    assert_eq!(s, StatusCode::OK);
+    assert_eq!(
+        whole,
+        std::fs::read(dir.path().join(&id).join("capture.hdf5")).unwrap()
+    );
 }
 
 /// An event-stream client that never reads: the display-only events it holds (each

@@ -588,6 +588,21 @@ impl Run {
             name: crate::ytal::CAPTURE_FILE.into(),
         });
         outputs.files.push(crate::ytal::CAPTURE_FILE.into());
+        // The API's export of the capture while it ran is superseded by the whole
+        // capture beside it, and would otherwise hold as much disk again for good
+        // (a download reading it keeps its open file).
+        for cache in [
+            file::EXPORT_CACHE.to_owned(),
+            format!("{}.stamp", file::EXPORT_CACHE),
+        ] {
+            match std::fs::remove_file(self.dir.join(&cache)) {
+                Ok(()) => {}
+                Err(e) if e.kind() == std::io::ErrorKind::NotFound => {}
+                Err(e) => {
+                    tracing::warn!(file = %self.dir.join(&cache).display(), error = %e, "could not remove the superseded export of the unfinished capture")
+                }
+            }
+        }
         self.finish_stage(Stage::Outputs, t);
         Ok(RunSummary {
             dir: self.dir.clone(),

@@ -47,6 +47,34 @@ pub(crate) fn take_the_blocking_pool(hold: std::time::Duration) -> tokio::task::
     hog
 }
 
+/// Whether the caller, the test `name` of this test binary, is to run its body here:
+/// true in a process of the binary running that test alone, which this starts (and
+/// whose failure fails the caller) when called from the harness's own process, where
+/// it returns false. A whole-process figure (memory, open files) then counts this test
+/// alone, not the others the harness runs beside it on other threads.
+pub(crate) fn in_own_process(name: &str) -> bool {
+    const ALONE: &str = "PERISCOPE_TEST_ALONE";
+    if std::env::var_os(ALONE).is_some_and(|n| n == name) {
+        return true;
+    }
+    let out = std::process::Command::new(std::env::current_exe().expect("the test binary's path"))
+        .args([name, "--exact", "--nocapture", "--test-threads=1"])
+        .env(ALONE, name)
+        .output()
+        .expect("the test binary runs again");
+    let (stdout, stderr) = (
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr),
+    );
+    assert!(
+        out.status.success() && stdout.contains("1 passed"),
+        "{name}, in a process of its own, failed ({}):\n{stdout}\n{stderr}",
+        out.status
+    );
+    eprint!("{stderr}");
+    false
+}
+
 /// The shipped simulated instrument (`configs/instrument/sim.toml`) at `time_scale`,
 /// with its runs in `runs`, `api_lines` added to its `[api]` table and `tail` after it.
 pub(crate) fn sim_instrument(runs: &Path, time_scale: f64, api_lines: &str, tail: &str) -> TomlSource {
