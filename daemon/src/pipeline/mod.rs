@@ -120,7 +120,7 @@ pub enum ReconError {
     /// found: refused before they are measured.
     #[error(
         "recon.method = \"{solver}\" cannot reconstruct the {pairs} pairs planned on the relay the LOS scan \
-         found, so none was measured: {source}"
+         found, and the capture stopped before measuring any more of them: {source}"
     )]
     Unsuited {
         /// The plan's solver.
@@ -152,7 +152,10 @@ impl ReconError {
                 TrainError::Config(_) | TrainError::NothingVisible | TrainError::NegativeTotal { .. }
             ),
             ReconError::Geometry(e) => matches!(e, GeometryError::NoPlane { .. }),
-            ReconError::Roi(_) | ReconError::Empty | ReconError::Unsuited { .. } => true,
+            ReconError::Unsuited { source, .. } => {
+                !matches!(source, SolverError::Volume(_) | SolverError::Gpu(_))
+            }
+            ReconError::Roi(_) | ReconError::Empty => true,
             ReconError::Transient(_)
             | ReconError::Output { .. }
             | ReconError::Thread(_)

@@ -139,7 +139,13 @@ impl SolverKind {
             SolverKind::Rsd => rsd::rsd_layout(pairs, axis, grid, &settings.rsd)?,
             SolverKind::Fbp => {
                 settings.fbp.validate()?;
+                if pairs.is_empty() {
+                    return Err(SolverError::Empty);
+                }
                 refuse_a_volume_behind(pairs, grid)?;
+                if settings.fbp.filter == FbpFilter::Phasor {
+                    fbp::phasor_envelope(pairs, axis, grid, &settings.fbp)?;
+                }
             }
         }
         Ok(())

@@ -41,7 +41,7 @@ use rustfft::{Fft, FftPlanner};
 
 use super::SolverError;
 use crate::gpu::Compute;
-use crate::transient::TransientSet;
+use crate::transient::{TimeAxis, TransientSet};
 use crate::volume::{Volume, VolumeGrid};
 
 mod grid;
@@ -275,12 +275,17 @@ pub fn lateral_voxel_pitch(grid: &VolumeGrid, normal: glam::DVec3) -> f64 {
 /// relay saw a surface obliquely) then interferes within a pixel and dims whole
 /// surfaces (docs/recon.md, "The phasor wavelength after 3D-GTR").
 pub fn phasor_wavelength(set: &TransientSet, grid: &VolumeGrid, settings: &FbpSettings) -> f64 {
-    let floor = 4.0 * set.axis().width;
+    wavelength_of(set.pairs(), set.axis(), grid, settings)
+}
+
+/// [`phasor_wavelength`] of `pairs` on `axis`.
+fn wavelength_of(pairs: &[crate::Pair], axis: &TimeAxis, grid: &VolumeGrid, settings: &FbpSettings) -> f64 {
+    let floor = 4.0 * axis.width;
     settings
         .wavelength
         .unwrap_or_else(|| {
-            let points: Vec<glam::DVec3> = set.pairs().iter().map(|p| p.xd).collect();
-            let normal: glam::DVec3 = set.pairs().iter().map(|p| p.nd).sum();
+            let points: Vec<glam::DVec3> = pairs.iter().map(|p| p.xd).collect();
+            let normal: glam::DVec3 = pairs.iter().map(|p| p.nd).sum();
             let image = lateral_voxel_pitch(grid, normal);
             PHASOR_PITCHES * sampling_pitch(&points).map_or(image, |d| d.max(image))
         })
@@ -475,40 +480,11 @@ pub fn fbp_on(
     }
     let weight = |p: usize| set.weight(p) * quadrature.as_ref().map_or(1.0, |q| q[p] as f32);
     if settings.filter == FbpFilter::Phasor {
-        // A wave set shorter than the axis resolves is refused, not quietly lengthened
-        // (as RSD refuses one): the image would not be the one asked for.
-        let floor = 4.0 * set.axis().width;
-        if let Some(w) = settings.wavelength
-            && w < floor
-        {
-            return Err(SolverError::Setting {
-                name: "wavelength",
-                value: format!("{w} m"),
-                expected: "at least 4 bins of the capture's time axis (a shorter wave aliases between bins): leave it out for the default, or give a longer one",
-            });
-        }
-        let lambda = phasor_wavelength(set, grid, settings);
+        let (lambda, sigma) = phasor_envelope(set.pairs(), set.axis(), grid, settings)?;
         tracing::info!(
             wavelength = lambda,
             "FBP phasor wavelength (2.5 x the coarser of the relay's sampling pitch and the voxels' lateral pitch; [fbp] wavelength sets it)"
         );
-        let sigma = settings.sigma_per_wavelength.unwrap_or(SIGMA_PER_WAVELENGTH) * lambda;
-        // The wavelet's support is padded each side of every histogram, all held at
-        // once: one many times longer than the time axis filters nothing the axis holds,
-        // and its padding would not fit in memory (`wavelength = 10.0`, a typo for 0.10,
-        // asked for 4.8 GB on a 128 × 128 capture of 4 ps bins).
-        let span = set.axis().bins as f64 * set.axis().width;
-        if !(6.0 * sigma <= super::MAX_ENVELOPE_SPANS * span) {
-            return Err(SolverError::Setting {
-                name: "wavelength",
-                value: format!(
-                    "{lambda} (an envelope of {} m with sigma-per-wavelength {}, against a time axis of {span} m)",
-                    6.0 * sigma,
-                    sigma / lambda
-                ),
-                expected: "an envelope (6 sigma) at most 8 times the time axis's length: a shorter [fbp] wavelength (recon.fbp.wavelength in a plan), or, where it is left to the default (2.5 times the coarser of the relay's sampling pitch and the voxels' lateral pitch), finer voxels across ([volume] shape, recon.volume.shape in a plan); a run's capture is kept, and `periscope recon RUN_DIR --config RECON.toml` reconstructs it again",
-            });
-        }
         // Three envelope widths each side: the wavelet's support.
         let lead = (3.0 * sigma / set.axis().width).ceil() as usize + 1;
         // Real and imaginary parts interleaved, so one backprojection pass computes
@@ -631,6 +607,48 @@ pub fn fbp_on(
         volume = negative_laplacian(&volume);
     }
     Ok(volume)
+}
+
+/// The phasor filter's wavelength and envelope sigma for `pairs` on `axis`, once the
+/// two are known to suit it: a wave set at least 4 bins long, an envelope at most
+/// [`super::MAX_ENVELOPE_SPANS`] time axes.
+pub(super) fn phasor_envelope(
+    pairs: &[crate::Pair],
+    axis: &TimeAxis,
+    grid: &VolumeGrid,
+    settings: &FbpSettings,
+) -> Result<(f64, f64), SolverError> {
+    // A wave set shorter than the axis resolves is refused, not quietly lengthened
+    // (as RSD refuses one): the image would not be the one asked for.
+    let floor = 4.0 * axis.width;
+    if let Some(w) = settings.wavelength
+        && w < floor
+    {
+        return Err(SolverError::Setting {
+            name: "wavelength",
+            value: format!("{w} m"),
+            expected: "at least 4 bins of the capture's time axis (a shorter wave aliases between bins): leave it out for the default, or give a longer one",
+        });
+    }
+    let lambda = wavelength_of(pairs, axis, grid, settings);
+    let sigma = settings.sigma_per_wavelength.unwrap_or(SIGMA_PER_WAVELENGTH) * lambda;
+    // The wavelet's support is padded each side of every histogram, all held at
+    // once: one many times longer than the time axis filters nothing the axis holds,
+    // and its padding would not fit in memory (`wavelength = 10.0`, a typo for 0.10,
+    // asked for 4.8 GB on a 128 × 128 capture of 4 ps bins).
+    let span = axis.bins as f64 * axis.width;
+    if !(6.0 * sigma <= super::MAX_ENVELOPE_SPANS * span) {
+        return Err(SolverError::Setting {
+            name: "wavelength",
+            value: format!(
+                "{lambda} (an envelope of {} m with sigma-per-wavelength {}, against a time axis of {span} m)",
+                6.0 * sigma,
+                sigma / lambda
+            ),
+            expected: "an envelope (6 sigma) at most 8 times the time axis's length: a shorter [fbp] wavelength (recon.fbp.wavelength in a plan), or, where it is left to the default (2.5 times the coarser of the relay's sampling pitch and the voxels' lateral pitch), finer voxels across ([volume] shape, recon.volume.shape in a plan); a run's capture is kept, and `periscope recon RUN_DIR --config RECON.toml` reconstructs it again",
+        });
+    }
+    Ok((lambda, sigma))
 }
 
 /// The part of the falloff weight (d_i·d_d)^`falloff` that depends on path length
