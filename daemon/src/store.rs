@@ -219,6 +219,10 @@ impl HistogramLog {
         }
         let got = read_log(dir)?;
         let unsynced = dir.join(UNSYNCED_MARK);
+        // A rewritten log holds the valid records alone, and is shorter than the valid
+        // prefix where that held a superseded partial sum: cut to that prefix's length,
+        // it was padded with zeros the next recovery took for damage.
+        let rewritten = !got.damage_is_tail_only() || unsynced.exists();
         if !got.damage_is_tail_only() {
             set_aside_and_rewrite(dir, &path, got.kept())?;
         } else if unsynced.exists() {
@@ -235,7 +239,7 @@ impl HistogramLog {
             sync_dir(dir)?;
         }
         let file = OpenOptions::new().append(true).open(&path)?;
-        if got.damage_is_tail_only() && got.discarded_bytes > 0 {
+        if !rewritten && got.discarded_bytes > 0 {
             // Cut at the end of the valid prefix as read (not "length minus tail",
             // which a file that changed in between would make wrong).
             file.set_len(got.valid_bytes)?;
@@ -954,6 +958,36 @@ mod tests {
         assert_eq!(again.records, vec![rec(1)]);
         assert_eq!(again.partial, vec![part(2, 3)]);
         assert_eq!(again.discarded_bytes, 0);
+    }
+
+    /// A log rewritten after a failed sync, holding a superseded partial sum and a
+    /// torn tail, is the valid records alone, and the next record follows them: until
+    /// 2026-12-08 it was then cut to the valid prefix's longer length (the superseded
+    /// sum's bytes counted), padding it with zeros the next recovery set aside as
+    /// damage.
+    #[test]
+    fn a_log_rewritten_after_a_failed_sync_is_not_padded() {
+        let dir = tempfile::tempdir().unwrap();
+        let part = Record {
+            partial: true,
+            dwell_us: 1000,
+            ..rec(1)
+        };
+        let mut bytes = rec(0).encode();
+        bytes.extend_from_slice(&part.encode());
+        bytes.extend_from_slice(&rec(1).encode());
+        let torn = rec(2).encode();
+        bytes.extend_from_slice(&torn[..torn.len() / 2]);
+        fs::write(dir.path().join(HISTOGRAM_LOG), &bytes).unwrap();
+        fs::write(dir.path().join(UNSYNCED_MARK), b"").unwrap();
+        let (mut log, got) = HistogramLog::recover(dir.path()).unwrap();
+        assert_eq!(got.records, vec![rec(0), rec(1)]);
+        log.append(&rec(2)).unwrap();
+        drop(log);
+        let (_, again) = HistogramLog::recover(dir.path()).unwrap();
+        assert_eq!(again.records, vec![rec(0), rec(1), rec(2)]);
+        assert_eq!(again.discarded_bytes, 0);
+        assert!(!dir.path().join(DAMAGED_LOG).exists());
     }
 
     #[test]

@@ -462,6 +462,35 @@ fn a_paused_and_a_panicked_capture_resume_with_every_pair_once() {
     }
 }
 
+/// A run that stops for a reason of its own (here a panic) as it is asked to abort ends
+/// aborted, not failed and resumable: the abort was answered as under way. Until
+/// 2026-12-08 only a stop taken at a checkpoint honoured it.
+#[test]
+fn a_run_that_fails_as_it_is_asked_to_abort_ends_aborted() {
+    let _serial = ONE_AT_A_TIME.lock().unwrap_or_else(|p| p.into_inner());
+    periscope_daemon::signals::install_panic_hook();
+    let tmp = tempfile::tempdir().unwrap();
+    let (dir, rig) = prepare(tmp.path(), &plan());
+    let control = Control::new();
+    let c = control.clone();
+    let r = execute(&dir, &rig, control.clone(), move |done| {
+        if done == 6 {
+            // The panic comes first at the next checkpoint, before the abort is read.
+            c.inject_panic(Stage::Capture);
+            assert!(c.abort_by("bob"));
+        }
+    });
+    assert!(r.is_err());
+    assert!(!rig.emission());
+    let info = RunInfo::load(&dir).unwrap();
+    assert_eq!(info.state, RunState::Aborted, "{r:?}");
+    let last = info.history.last().unwrap();
+    assert_eq!((last.state, last.by.as_deref()), (RunState::Aborted, Some("bob")));
+    // The stop is taken: a later abort changes nothing, and is the caller's to apply.
+    assert!(control.stop_taken() && !control.abort_by("carol"));
+    assert!((6..=7).contains(&read_log(&dir).unwrap().records.len()));
+}
+
 /// An adaptive capture waits for its fit to choose each batch with the laser off; a
 /// pause while it waits ends the run paused within the poll (the laser already off),
 /// and the resumed run measures the rest of its budget, each pair once.

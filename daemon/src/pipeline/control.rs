@@ -233,6 +233,15 @@ impl Control {
             std::thread::sleep(duration);
         }
     }
+    /// Marks the run's stop taken when it stops for a reason of its own (a suspension,
+    /// a device error, a panic), not at a checkpoint, and says what it is asked to do
+    /// then: an abort asked before this is the run's to record, one asked after it
+    /// is the caller's to apply to the stored run ([`Control::stop_taken`]).
+    pub(crate) fn take_stop(&self) -> Request {
+        let mut who = self.0.requested_by.lock().unwrap_or_else(|p| p.into_inner());
+        who.taken = true;
+        self.requested()
+    }
     /// The error a checkpoint returns for the current request, if any.
     pub(crate) fn check(&self, stage: Stage, pairs: usize) -> Result<(), PipelineError> {
         #[cfg(feature = "test-hooks")]

@@ -448,6 +448,23 @@ impl Run {
                 message: panic_message(payload.as_ref()),
             }),
         };
+        // A stop of the run's own (a suspension, a device error, a panic) is taken now,
+        // as a checkpoint takes a pause: an abort asked before it (an operator's, the
+        // e-stop's, as the run wound down) ends the run aborted, and one asked after it
+        // finds the stop taken and is applied to the run as stored. Until 2026-12-08
+        // such an abort was answered as under way while the run stopped paused, or
+        // failed, and stayed resumable.
+        let result = match result {
+            Err(e) if !matches!(e, PipelineError::Paused(_) | PipelineError::Aborted(_)) => {
+                if self.control.take_stop() == super::Request::Abort {
+                    tracing::warn!(error = %e, "the run stopped as it was asked to abort: it ends aborted");
+                    Err(PipelineError::Aborted(self.info.pairs_done))
+                } else {
+                    Err(e)
+                }
+            }
+            r => r,
+        };
         // The part of the stage that ran before the run stopped in it.
         if let Some(t) = self.stage_started.take() {
             self.add_timing(self.stage, t.elapsed().as_secs_f64());

@@ -746,6 +746,36 @@ mod tests {
         );
     }
 
+    /// The same for a run that stopped for a reason of its own (a suspension, a device
+    /// error) and winds down to paused: the abort waits for it and aborts the stored
+    /// run, which leaves the queue. Until 2026-12-08 it was answered as under way and
+    /// the run stayed paused and queued, to be resumed.
+    #[test]
+    fn an_abort_while_a_run_winds_down_from_a_stop_of_its_own_aborts_the_stored_run() {
+        let dir = tempfile::tempdir().unwrap();
+        let svc = service(dir.path());
+        let plan = include_str!("../../../tests/data/plans/small-fbp.toml");
+        let id = svc.submit(plan.to_owned()).unwrap().id;
+        svc.set_state(&id, RunState::Running, None, "test").unwrap();
+        let control = Control::new();
+        assert_eq!(control.take_stop(), crate::pipeline::Request::Run);
+        svc.set_current(&mut svc.lock(), Some((id.clone(), control.clone())));
+        let worker = {
+            let (svc, id) = (Arc::clone(&svc), id.clone());
+            std::thread::spawn(move || {
+                std::thread::sleep(Duration::from_millis(100));
+                svc.set_state(&id, RunState::Paused, None, "interlock").unwrap();
+                std::thread::sleep(Duration::from_millis(50));
+                svc.set_current(&mut svc.lock(), None);
+                svc.wake.notify_all();
+            })
+        };
+        let st = svc.abort_as(&id, "bob").unwrap();
+        worker.join().unwrap();
+        assert_eq!(st.state, RunState::Aborted);
+        assert!(!svc.queue().order.contains(&id), "{:?}", svc.queue().order);
+    }
+
     /// A submission whose place was reserved before an e-stop and which reaches the
     /// queue after it (its run already `queued` on disk when the e-stop held the
     /// queue) is held as the e-stop held the others, not started right after it.

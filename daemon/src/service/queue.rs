@@ -338,7 +338,7 @@ impl Service {
         while s
             .current
             .as_ref()
-            .is_some_and(|(c, control)| c == id && (pausing(control) || self.has_stopped(id)))
+            .is_some_and(|(c, control)| c == id && (stopping_short_of_abort(control) || self.has_stopped(id)))
             && Instant::now() < deadline
         {
             s = self
@@ -370,9 +370,9 @@ impl Service {
             // been handed back within the wait: answered as a conflict, not as an
             // abort under way that never happens (until 2026-12-07 it was accepted,
             // and the run stopped paused).
-            if !control.abort_by(by) && pausing(control) {
+            if !control.abort_by(by) && stopping_short_of_abort(control) {
                 return Err(ServiceError::Conflict(format!(
-                    "run {id} is pausing (it is making the instrument safe and writing its state): abort it again once it is paused"
+                    "run {id} is stopping (it is making the instrument safe and writing its state): abort it again once it has stopped"
                 )));
             }
             drop(s);
@@ -425,10 +425,12 @@ pub(super) fn hold_interrupted(dir: &Path, id: &str, info: &mut RunInfo) -> Resu
     info.save(dir).map_err(ServiceError::storage(dir.join(file::RUN)))
 }
 
-/// Whether the run has taken a pause at its checkpoint and is winding down to it (a
-/// taken abort needs nobody's wait: it ends aborted whatever is asked).
-fn pausing(control: &Control) -> bool {
-    control.stop_taken() && control.requested() == crate::pipeline::Request::Pause
+/// Whether the run has taken a stop other than an abort (a pause at its checkpoint, a
+/// suspension, a failure) and is winding down to it: an abort is then applied to the
+/// run as stored, once it is handed back (a taken abort needs nobody's wait: it ends
+/// aborted whatever is asked).
+fn stopping_short_of_abort(control: &Control) -> bool {
+    control.stop_taken() && control.requested() != crate::pipeline::Request::Abort
 }
 
 impl Service {
