@@ -171,9 +171,18 @@ fn capture_then(
     laser_extra: &str,
     during: impl FnOnce(&Standin, &Control) + Send + 'static,
 ) -> (Standin, PathBuf, Result<(), String>) {
+    capture_plan_then(PLAN, laser_extra, during)
+}
+
+/// [`capture_then`] with `plan`.
+fn capture_plan_then(
+    plan: &str,
+    laser_extra: &str,
+    during: impl FnOnce(&Standin, &Control) + Send + 'static,
+) -> (Standin, PathBuf, Result<(), String>) {
     let tmp = tempfile::tempdir().unwrap();
     let (s, lab) = bench(tmp.path(), 1.0, laser_extra);
-    let dir = prepare(tmp.path(), &lab, PLAN);
+    let dir = prepare(tmp.path(), &lab, plan);
     let control = Control::new();
     let events = EventSink::open(&dir).unwrap();
     let (tx, rx) = mpsc::channel::<()>();
@@ -219,6 +228,40 @@ fn a_daq_that_vanishes_mid_capture_drops_the_gate_and_fails_the_run() {
         "the gate dropped with the device's power: {log:?}"
     );
     assert_eq!(RunInfo::load(&dir).unwrap().state, RunState::Failed);
+    let _ = std::fs::remove_dir_all(dir.parent().unwrap());
+}
+
+/// The interlock loop opened for 60 ms and closed again inside a pair's 300 ms dwell,
+/// so the run's own reading after the pair finds it closed: the DAQ's gate stays high
+/// throughout, and the driver latches it low when its keepalive reads the loop open,
+/// so the run finds the emission lost and suspends, to measure that pair again. Until
+/// 2026-12-08 the gate stayed high, the driver read emission on, and the stand-in's
+/// laser (latched off by the loop, as the serial controller's is) left that pair and
+/// every one after it dark and stored as whole.
+#[test]
+fn an_interlock_opened_and_closed_mid_capture_latches_the_daq_gate_low() {
+    let _one = exclusive();
+    periscope_daemon::signals::install_panic_hook();
+    let blip: Arc<Mutex<Option<Instant>>> = Arc::new(Mutex::new(None));
+    let b = blip.clone();
+    // The keepalive reads the loop every 25 ms.
+    let plan = PLAN.replace("dwell-ms = 30.0", "dwell-ms = 300.0");
+    assert_ne!(plan, PLAN);
+    let (s, dir, result) = capture_plan_then(&plan, "watchdog-ms = 100\n", move |s, _| {
+        std::thread::sleep(Duration::from_millis(20));
+        *b.lock().unwrap() = Some(Instant::now());
+        s.set_interlock(false);
+        std::thread::sleep(Duration::from_millis(60));
+        s.set_interlock(true);
+    });
+    let e = result.expect_err("the run went on after the loop opened");
+    assert!(e.contains("emission"), "{e}");
+    assert_eq!(RunInfo::load(&dir).unwrap().state, RunState::Paused);
+    assert!(!s.emission());
+    // Nothing gated the laser on after the loop opened.
+    let opened = blip.lock().unwrap().unwrap();
+    let log = s.emission_log();
+    assert!(log.iter().all(|(at, on, _)| !on || *at < opened), "{log:?}");
     let _ = std::fs::remove_dir_all(dir.parent().unwrap());
 }
 

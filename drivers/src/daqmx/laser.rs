@@ -20,7 +20,7 @@
 //! switched on (docs/safety.md says what to wire).
 use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::{Arc, Mutex, MutexGuard, Weak};
+use std::sync::{Arc, Mutex, MutexGuard, OnceLock, Weak};
 use std::time::Duration;
 
 use tracing::warn;
@@ -80,6 +80,9 @@ struct LineState {
     watchdog: Mutex<Option<Task>>,
     /// The heartbeat line's task and its level.
     heartbeat: Option<(Task, AtomicBool)>,
+    /// The interlock loop's input task, when its line is configured: read by the
+    /// keepalive too, which latches the gate low when it finds the loop open.
+    interlock: OnceLock<Task>,
 }
 
 impl LineState {
@@ -113,6 +116,33 @@ impl LineState {
         Ok(())
     }
 
+    /// Whether the interlock loop reads closed (no line configured: closed).
+    fn interlock_closed(&self) -> Result<bool, DaqError> {
+        let Some(&task) = self.interlock.get() else {
+            return Ok(true);
+        };
+        let mut level = [0u8; 1];
+        self.lib
+            .read_digital_lines(task, &mut level, WRITE_TIMEOUT_S)
+            .map_err(|c| failed(&self.lib, &self.who, "DAQmxReadDigitalLines (interlock)", c))?;
+        Ok(level[0] != 0)
+    }
+
+    /// Writes the gate low when it is high and the interlock loop reads open, as the
+    /// serial controller latches emission off when its loop opens: the loop (wired to
+    /// cut the laser itself) gives emission back when it closes, with the gate still
+    /// high, and a pair measured across the opening would read as whole. Latched, the
+    /// laser reads off ([`Laser::laser_state`]) and emits again only when switched on,
+    /// which the open loop refuses. Returns whether it latched.
+    fn latch_if_interlock_open(&self) -> Result<bool, DaqError> {
+        if !self.high.load(Ordering::SeqCst) || self.interlock_closed()? {
+            return Ok(false);
+        }
+        self.gate_low()?;
+        warn!(laser = %self.who, "the interlock loop opened with the laser gated on: the gate is latched low until the laser is switched on again");
+        Ok(true)
+    }
+
     /// Stops and clears the watchdog task, if one is armed.
     fn disarm(&self) {
         if let Some(task) = self.watchdog().take() {
@@ -129,7 +159,9 @@ impl Drop for LineState {
         if self.gate_low().is_ok() {
             self.disarm();
         }
-        let tasks = std::iter::once(self.gate).chain(self.heartbeat.as_ref().map(|(t, _)| *t));
+        let tasks = std::iter::once(self.gate)
+            .chain(self.heartbeat.as_ref().map(|(t, _)| *t))
+            .chain(self.interlock.get().copied());
         for task in tasks {
             let _ = self.lib.stop_task(task);
             let _ = self.lib.clear_task(task);
@@ -157,6 +189,9 @@ impl LaserLine for DaqLine {
         let s = self
             .state()
             .ok_or_else(|| std::io::Error::new(std::io::ErrorKind::NotConnected, "the driver is closed"))?;
+        // Read at every feed (a quarter of the watchdog's timeout): an opening
+        // shorter than that can go unseen (docs/configuration.md).
+        s.latch_if_interlock_open().map_err(std::io::Error::other)?;
         if let Some(task) = *s.watchdog() {
             s.lib
                 .control_watchdog_task(task, VAL_RESET_TIMER)
@@ -197,7 +232,6 @@ pub struct DaqLaser {
     line: Arc<LineState>,
     guard: LaserGuard,
     settings: DaqLaserSettings,
-    interlock: Option<Task>,
     diffuser: Option<Task>,
     diffuser_in: bool,
     mode: WatchdogMode,
@@ -261,6 +295,7 @@ impl DaqLaser {
             high: AtomicBool::new(false),
             watchdog: Mutex::new(None),
             heartbeat,
+            interlock: OnceLock::new(),
         });
         state.gate_low()?;
         let guard = LaserGuard::new(
@@ -272,7 +307,6 @@ impl DaqLaser {
         let mut laser = DaqLaser {
             line: state,
             guard,
-            interlock: None,
             diffuser: None,
             diffuser_in: false,
             mode,
@@ -282,7 +316,8 @@ impl DaqLaser {
             let task = lib
                 .create_task("periscope-interlock")
                 .map_err(|c| fail("DAQmxCreateTask", c))?;
-            laser.interlock = Some(task);
+            // Cleared with the line's other tasks, which the keepalive may be reading.
+            let _ = laser.line.interlock.set(task);
             lib.create_di_chan(task, &l)
                 .map_err(|c| fail("DAQmxCreateDIChan", c))?;
             lib.start_task(task).map_err(|c| fail("DAQmxStartTask", c))?;
@@ -340,7 +375,7 @@ impl Drop for DaqLaser {
         {
             warn!(error = %e, "switching the laser off on closing failed");
         }
-        for task in [self.interlock, self.diffuser].into_iter().flatten() {
+        if let Some(task) = self.diffuser {
             let _ = self.lib().stop_task(task);
             let _ = self.lib().clear_task(task);
         }
@@ -374,6 +409,7 @@ impl Laser for DaqLaser {
     }
 
     fn laser_state(&mut self) -> Result<LaserState, DaqError> {
+        self.line.latch_if_interlock_open()?;
         let expired = match *self.line.watchdog() {
             Some(task) => self
                 .lib()
@@ -389,14 +425,7 @@ impl Laser for DaqLaser {
     }
 
     fn interlock_closed(&mut self) -> Result<bool, DaqError> {
-        let Some(task) = self.interlock else {
-            return Ok(true);
-        };
-        let mut level = [0u8; 1];
-        self.lib()
-            .read_digital_lines(task, &mut level, WRITE_TIMEOUT_S)
-            .map_err(|c| failed(self.lib(), self.who(), "DAQmxReadDigitalLines (interlock)", c))?;
-        Ok(level[0] != 0)
+        self.line.interlock_closed()
     }
 
     fn set_diffuser(&mut self, inserted: bool) -> Result<(), DaqError> {
