@@ -486,6 +486,13 @@ fn a_run_that_fails_as_it_is_asked_to_abort_ends_aborted() {
     assert_eq!(info.state, RunState::Aborted, "{r:?}");
     let last = info.history.last().unwrap();
     assert_eq!((last.state, last.by.as_deref()), (RunState::Aborted, Some("bob")));
+    assert!(
+        info.error
+            .as_deref()
+            .is_some_and(|e| e.contains("injected panic")),
+        "{:?}",
+        info.error
+    );
     // The stop is taken: a later abort changes nothing, and is the caller's to apply.
     assert!(control.stop_taken() && !control.abort_by("carol"));
     assert!((6..=7).contains(&read_log(&dir).unwrap().records.len()));

@@ -231,8 +231,14 @@ fn the_laser_follows_the_watchdog_timer_sequence_and_the_keepalive_holds_it() {
     s.clear_calls();
     laser.set_emission(false).unwrap();
     assert!(!s.emission());
+    // A keepalive feed (its watchdog reset and interlock read) may land among them.
+    let calls: Vec<String> = s
+        .calls()
+        .into_iter()
+        .filter(|c| c != "DAQmxControlWatchdogTask(0)" && c != "DAQmxReadDigitalLines(periscope-interlock)")
+        .collect();
     assert_eq!(
-        s.calls(),
+        calls,
         [
             "DAQmxWriteDigitalLines(periscope-laser-gate, [0])",
             "DAQmxStopTask(watchdog)",

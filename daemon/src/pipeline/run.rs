@@ -197,7 +197,8 @@ pub fn prepare(
 }
 
 /// Records why a run stopped before its devices were open (a pause, an abort, a
-/// device that would not open, a panic): the run stays resumable.
+/// device that would not open, a panic): the run stays resumable, unless it was
+/// asked to abort.
 fn stopped_before_start(
     dir: &Path,
     info: &mut RunInfo,
@@ -205,6 +206,16 @@ fn stopped_before_start(
     control: &Control,
     e: PipelineError,
 ) -> PipelineError {
+    // As [`Run::execute`] takes a stop of the run's own: an abort asked before it ends
+    // the run aborted, keeping the error.
+    let e = match e {
+        e @ (PipelineError::Paused(_) | PipelineError::Aborted(_)) => e,
+        e if control.take_stop() == super::Request::Abort => {
+            info.error = Some(e.to_string());
+            PipelineError::Aborted(info.pairs_done)
+        }
+        e => e,
+    };
     match &e {
         // Named in the state history as a stop at a later checkpoint is (until
         // 2026-12-07 a run paused or aborted while opening, an e-stop's hold the most
@@ -454,10 +465,13 @@ impl Run {
         // finds the stop taken and is applied to the run as stored. Until 2026-12-08
         // such an abort was answered as under way while the run stopped paused, or
         // failed, and stayed resumable.
+        // The error that stopped it is kept with the abort.
+        let mut stopped_by = None;
         let result = match result {
             Err(e) if !matches!(e, PipelineError::Paused(_) | PipelineError::Aborted(_)) => {
                 if self.control.take_stop() == super::Request::Abort {
                     tracing::warn!(error = %e, "the run stopped as it was asked to abort: it ends aborted");
+                    stopped_by = Some(e.to_string());
                     Err(PipelineError::Aborted(self.info.pairs_done))
                 } else {
                     Err(e)
@@ -490,6 +504,9 @@ impl Run {
             Err(PipelineError::Aborted(_)) => {
                 self.info.state = RunState::Aborted;
                 self.info.acting = self.control.requested_by();
+                if let Some(e) = stopped_by {
+                    self.info.error = Some(e);
+                }
             }
             Err(e) => {
                 self.info.state = RunState::Failed;

@@ -83,6 +83,10 @@ struct LineState {
     /// The interlock loop's input task, when its line is configured: read by the
     /// keepalive too, which latches the gate low when it finds the loop open.
     interlock: OnceLock<Task>,
+    /// Held across the keepalive's latch (the gate's level read, the loop read, the
+    /// gate written low) and a switch-on's write high, so neither lands between the
+    /// other's read and write. Never by an off, which waits for nothing.
+    switching: Mutex<()>,
 }
 
 impl LineState {
@@ -135,6 +139,7 @@ impl LineState {
     /// laser reads off ([`Laser::laser_state`]) and emits again only when switched on,
     /// which the open loop refuses. Returns whether it latched.
     fn latch_if_interlock_open(&self) -> Result<bool, DaqError> {
+        let _switching = self.switching.lock().unwrap_or_else(|p| p.into_inner());
         if !self.high.load(Ordering::SeqCst) || self.interlock_closed()? {
             return Ok(false);
         }
@@ -189,15 +194,22 @@ impl LaserLine for DaqLine {
         let s = self
             .state()
             .ok_or_else(|| std::io::Error::new(std::io::ErrorKind::NotConnected, "the driver is closed"))?;
-        // Read at every feed (a quarter of the watchdog's timeout): an opening
-        // shorter than that can go unseen (docs/configuration.md).
-        s.latch_if_interlock_open().map_err(std::io::Error::other)?;
         if let Some(task) = *s.watchdog() {
             s.lib
                 .control_watchdog_task(task, VAL_RESET_TIMER)
                 .map_err(|c| std::io::Error::other(failed(&s.lib, &s.who, "DAQmxControlWatchdogTask", c)))?;
         }
-        s.beat().map_err(std::io::Error::other)
+        s.beat().map_err(std::io::Error::other)?;
+        // Read at every feed (a quarter of the watchdog's timeout): an opening
+        // shorter than that can go unseen (docs/configuration.md). A loop that cannot
+        // be read is not known closed: the gate goes low, as the watchdog would take
+        // it low if the feeds failed.
+        if let Err(e) = s.latch_if_interlock_open() {
+            warn!(error = %e, "the interlock loop could not be read with the laser gated on: the gate is written low");
+            s.gate_low().map_err(std::io::Error::other)?;
+            return Err(std::io::Error::other(e));
+        }
+        Ok(())
     }
 
     /// A closed driver's line cannot be written: as the serial laser's off switch, this
@@ -296,6 +308,7 @@ impl DaqLaser {
             watchdog: Mutex::new(None),
             heartbeat,
             interlock: OnceLock::new(),
+            switching: Mutex::new(()),
         });
         state.gate_low()?;
         let guard = LaserGuard::new(
@@ -516,6 +529,7 @@ impl GuardedLaser for DaqLaser {
     /// The gate written high.
     fn send_on(&mut self) -> Result<(), DaqError> {
         let s = &self.line;
+        let _switching = s.switching.lock().unwrap_or_else(|p| p.into_inner());
         s.lib
             .write_digital_lines(s.gate, &[1], WRITE_TIMEOUT_S)
             .map_err(|c| failed(&s.lib, &s.who, "DAQmxWriteDigitalLines", c))?;
