@@ -705,6 +705,27 @@ mod tests {
         worker.join().unwrap();
     }
 
+    /// Run `id` running under `control`, which has taken its stop, and the pipeline's
+    /// wind-down on a thread: its state written paused by `by` after 100 ms, the run
+    /// handed back 50 ms after that.
+    fn winding_down_to_paused(
+        svc: &Arc<Service>,
+        id: &str,
+        control: Control,
+        by: &'static str,
+    ) -> std::thread::JoinHandle<()> {
+        svc.set_state(id, RunState::Running, None, "test").unwrap();
+        svc.set_current(&mut svc.lock(), Some((id.to_owned(), control)));
+        let (svc, id) = (Arc::clone(svc), id.to_owned());
+        std::thread::spawn(move || {
+            std::thread::sleep(Duration::from_millis(100));
+            svc.set_state(&id, RunState::Paused, None, by).unwrap();
+            std::thread::sleep(Duration::from_millis(50));
+            svc.set_current(&mut svc.lock(), None);
+            svc.wake.notify_all();
+        })
+    }
+
     /// A run that has taken a pause at its checkpoint still reads `running` while it
     /// makes the instrument safe; an abort then waits for the paused run and aborts it.
     /// Until 2026-12-07 it was answered as under way and lost: the run stopped paused.
@@ -714,22 +735,10 @@ mod tests {
         let svc = service(dir.path());
         let plan = include_str!("../../../tests/data/plans/small-fbp.toml");
         let id = svc.submit(plan.to_owned()).unwrap().id;
-        svc.set_state(&id, RunState::Running, None, "test").unwrap();
         let control = Control::new();
         assert!(control.pause_by("alice"));
         assert!(control.check(crate::events::Stage::Capture, 4).is_err());
-        svc.set_current(&mut svc.lock(), Some((id.clone(), control.clone())));
-        // The pipeline's wind-down: its state written after 100 ms, handed back after.
-        let worker = {
-            let (svc, id) = (Arc::clone(&svc), id.clone());
-            std::thread::spawn(move || {
-                std::thread::sleep(Duration::from_millis(100));
-                svc.set_state(&id, RunState::Paused, None, "alice").unwrap();
-                std::thread::sleep(Duration::from_millis(50));
-                svc.set_current(&mut svc.lock(), None);
-                svc.wake.notify_all();
-            })
-        };
+        let worker = winding_down_to_paused(&svc, &id, control, "alice");
         let st = svc.abort_as(&id, "bob").unwrap();
         worker.join().unwrap();
         assert_eq!(st.state, RunState::Aborted);
@@ -756,20 +765,9 @@ mod tests {
         let svc = service(dir.path());
         let plan = include_str!("../../../tests/data/plans/small-fbp.toml");
         let id = svc.submit(plan.to_owned()).unwrap().id;
-        svc.set_state(&id, RunState::Running, None, "test").unwrap();
         let control = Control::new();
         assert_eq!(control.take_stop(), crate::pipeline::Request::Run);
-        svc.set_current(&mut svc.lock(), Some((id.clone(), control.clone())));
-        let worker = {
-            let (svc, id) = (Arc::clone(&svc), id.clone());
-            std::thread::spawn(move || {
-                std::thread::sleep(Duration::from_millis(100));
-                svc.set_state(&id, RunState::Paused, None, "interlock").unwrap();
-                std::thread::sleep(Duration::from_millis(50));
-                svc.set_current(&mut svc.lock(), None);
-                svc.wake.notify_all();
-            })
-        };
+        let worker = winding_down_to_paused(&svc, &id, control, "interlock");
         let st = svc.abort_as(&id, "bob").unwrap();
         worker.join().unwrap();
         assert_eq!(st.state, RunState::Aborted);
