@@ -708,3 +708,44 @@ async fn an_import_after_a_run_reads_the_instrument_at_once() {
     svc.shutdown();
     worker.join().unwrap();
 }
+
+/// An import that fails as it is asked to abort ends aborted, its error kept, as a
+/// capture run does (`safety.rs`): until 2026-12-08 it ended failed and resumable, and
+/// the abort, answered as under way, was lost.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn an_import_that_fails_as_it_is_asked_to_abort_ends_aborted() {
+    use periscope_daemon::events::{EventSink, Stage};
+    use periscope_daemon::pipeline::{Control, PipelineError, execute_import};
+    use periscope_daemon::run_dir::{RunInfo, RunState};
+    let dir = tempfile::tempdir().unwrap();
+    let svc = service(dir.path(), "");
+    let router = app(AppState::new(Arc::clone(&svc)));
+    let lct = std::fs::read(fixture("lct-point.mat")).unwrap();
+    let (s, v) = import(&router, &[Part::File("capture", "lct-point.mat", lct)]).await;
+    assert_eq!(s, StatusCode::CREATED, "{v}");
+    let run = svc.runs_dir().join(v["id"].as_str().unwrap());
+    // No worker: the import runs here, and its first checkpoint panics before it
+    // reads the abort, as a failure that comes first does.
+    let control = Control::new();
+    control.inject_panic(Stage::Reading);
+    assert!(control.abort_by("bob"));
+    let events = EventSink::open(&run).unwrap();
+    let (d, c) = (run.clone(), control.clone());
+    let r = tokio::task::spawn_blocking(move || execute_import(&d, c, events))
+        .await
+        .unwrap();
+    assert!(matches!(r, Err(PipelineError::Aborted(_))), "{r:?}");
+    let info = RunInfo::load(&run).unwrap();
+    assert_eq!(info.state, RunState::Aborted, "{:?}", info.error);
+    let last = info.history.last().unwrap();
+    assert_eq!((last.state, last.by.as_deref()), (RunState::Aborted, Some("bob")));
+    assert!(
+        info.error
+            .as_deref()
+            .is_some_and(|e| e.contains("injected panic")),
+        "{:?}",
+        info.error
+    );
+    // The stop is taken: a later abort is the caller's to apply to the stored run.
+    assert!(control.stop_taken() && !control.abort_by("carol"));
+}

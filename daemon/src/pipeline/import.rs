@@ -60,6 +60,24 @@ pub fn execute_import(dir: &Path, control: Control, events: EventSink) -> Result
             message: panic_message(payload.as_ref()),
         })
     });
+    // As [`super::Run::execute`] takes a stop of the run's own (a failure, a panic): an
+    // abort asked before it ends the import aborted, with the error kept, and one asked
+    // after it is the caller's to apply to the stored run. Until 2026-12-08 an abort
+    // that reached an import as it failed was answered as under way, and the import
+    // stayed failed and resumable.
+    let mut stopped_by = None;
+    let result = match result {
+        Err(e) if !matches!(e, PipelineError::Paused(_) | PipelineError::Aborted(_)) => {
+            if control.take_stop() == super::Request::Abort {
+                tracing::warn!(error = %e, "the import stopped as it was asked to abort: it ends aborted");
+                stopped_by = Some(e.to_string());
+                Err(PipelineError::Aborted(0))
+            } else {
+                Err(e)
+            }
+        }
+        r => r,
+    };
     if let Some(t) = started {
         add_timing(&mut timings, stage, t.elapsed().as_secs_f64());
     }
@@ -76,6 +94,9 @@ pub fn execute_import(dir: &Path, control: Control, events: EventSink) -> Result
         Err(PipelineError::Aborted(_)) => {
             info.state = RunState::Aborted;
             info.acting = control.requested_by();
+            if let Some(e) = stopped_by {
+                info.error = Some(e);
+            }
         }
         Err(e) => {
             info.state = RunState::Failed;
