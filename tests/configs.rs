@@ -278,7 +278,7 @@ fn check_refuses_a_plan_over_the_budget_naming_the_key() {
     let huge = text.replace("shape = [64, 64, 128]", "shape = [1024, 1024, 1024]");
     assert_ne!(huge, text);
     let plan = dir.path().join("huge.toml");
-    std::fs::write(&plan, huge).unwrap();
+    std::fs::write(&plan, &huge).unwrap();
     let out = periscope(&["check", plan.to_str().unwrap()]);
     // Exit 2, a configuration fault, as `periscope run` refuses the same plan (it
     // was 1 until 2026-12-06).
@@ -289,6 +289,16 @@ fn check_refuses_a_plan_over_the_budget_naming_the_key() {
         "{}",
         out.stderr
     );
+    // `periscope run` refuses it before making a run directory, its message located
+    // at the key that sizes the largest part (until 2026-12-08 every refusal was
+    // located at `pairs`, whatever was over).
+    let line = 1 + huge.lines().position(|l| l.starts_with("shape = [1024")).unwrap();
+    let out_dir = dir.path().join("run");
+    let out = periscope(&["run", plan.to_str().unwrap(), "--out", out_dir.to_str().unwrap()]);
+    assert_eq!(out.code, Some(2), "{out:?}");
+    let at = format!("huge.toml:{line}: key `recon.volume.shape`: over budget");
+    assert!(out.stderr.contains(&at), "want `{at}`:\n{}", out.stderr);
+    assert!(!out_dir.exists());
 }
 
 /// `periscope check` judges the TDC window against the total paths the run needs it to

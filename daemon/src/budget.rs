@@ -51,6 +51,31 @@ pub struct Item {
     pub bytes: u64,
 }
 
+impl Item {
+    /// The first plan key that sizes it (`keys` up to its first space, comma or
+    /// parenthesis): where a plan over budget is located in its file.
+    pub fn plan_key(&self) -> &'static str {
+        let end = self.keys.find([' ', ',', '(']).unwrap_or(self.keys.len());
+        &self.keys[..end]
+    }
+}
+
+/// A plan over its budget ([`Budget::check`]).
+#[derive(Clone, Debug, PartialEq)]
+pub struct OverBudget {
+    /// The plan key that sizes the largest part of what is over: the plan file's
+    /// error is located there.
+    pub key: &'static str,
+    /// What is over, by how much, and what to reduce.
+    pub message: String,
+}
+
+impl std::fmt::Display for OverBudget {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(&self.message)
+    }
+}
+
 /// A plan's estimated memory and disk needs, and how long it keeps the instrument.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Budget {
@@ -351,7 +376,7 @@ impl Budget {
 
     /// Refuses a plan over `limits`, naming the largest item, its plan keys and the
     /// numbers.
-    pub fn check(&self, limits: &Limits) -> Result<(), String> {
+    pub fn check(&self, limits: &Limits) -> Result<(), OverBudget> {
         for (kind, items, total, limit, key) in [
             (
                 "memory",
@@ -373,32 +398,39 @@ impl Budget {
                     .iter()
                     .max_by_key(|i| i.bytes)
                     .expect("items are never empty");
-                return Err(format!(
-                    "over budget: the plan needs {} of {kind}, more than the instrument's {} \
-                     (`{}` in the instrument config); the largest part is the {} ({}), sized by {}: \
-                     reduce those",
-                    gib(total),
-                    gib(limit),
-                    key,
-                    top.what,
-                    gib(top.bytes),
-                    top.keys
-                ));
+                return Err(OverBudget {
+                    key: top.plan_key(),
+                    message: format!(
+                        "over budget: the plan needs {} of {kind}, more than the instrument's {} \
+                         (`{}` in the instrument config); the largest part is the {} ({}), sized by {}: \
+                         reduce those",
+                        gib(total),
+                        gib(limit),
+                        key,
+                        top.what,
+                        gib(top.bytes),
+                        top.keys
+                    ),
+                });
             }
         }
         if let (Some(hours), Some((los, capture))) = (limits.hours, self.instrument)
             && los + capture > hours * 3600.0
         {
-            return Err(format!(
-                "over budget: the plan keeps the instrument about {} (LOS scan {}, capture {} at most), \
-                 more than the instrument's {} (`budget.hours` in the instrument config): fewer pairs \
-                 (pairs grid, laser-grid, count or mask), a shorter acquisition.dwell-ms or fewer \
-                 acquisition.repeats, or a smaller los.grid",
-                span(los + capture),
-                span(los),
-                span(capture),
-                span(hours * 3600.0)
-            ));
+            return Err(OverBudget {
+                // Where the longer part is sized.
+                key: if los > capture { "los.grid" } else { "pairs" },
+                message: format!(
+                    "over budget: the plan keeps the instrument about {} (LOS scan {}, capture {} at most), \
+                     more than the instrument's {} (`budget.hours` in the instrument config): fewer pairs \
+                     (pairs grid, laser-grid, count or mask), a shorter acquisition.dwell-ms or fewer \
+                     acquisition.repeats, or a smaller los.grid",
+                    span(los + capture),
+                    span(los),
+                    span(capture),
+                    span(hours * 3600.0)
+                ),
+            });
         }
         Ok(())
     }
@@ -597,7 +629,9 @@ mod tests {
             }],
             instrument: None,
         };
-        let e = b.check(&Limits::default()).unwrap_err();
+        let over = b.check(&Limits::default()).unwrap_err();
+        assert_eq!(over.key, "k.b");
+        let e = over.to_string();
         assert!(e.contains("21.0 GiB of memory"), "{e}");
         assert!(e.contains("budget.memory-gib"), "{e}");
         assert!(e.contains("k.b") && !e.contains("k.a"), "{e}");
@@ -609,6 +643,37 @@ mod tests {
             })
             .is_ok()
         );
+    }
+
+    /// Every item's plan key is a key a plan file can hold, so an error located there
+    /// points at a line of the plan (or its table).
+    #[test]
+    fn every_items_plan_key_is_a_plan_key() {
+        let b = demo_budget(|t| {
+            t.replace(
+                "mode = \"confocal\"",
+                "mode = \"adaptive\"\ncandidates = \"confocal\"",
+            )
+        });
+        let keys: Vec<&str> = b.memory.iter().chain(&b.disk).map(Item::plan_key).collect();
+        for key in &keys {
+            assert!(
+                !key.is_empty()
+                    && key
+                        .chars()
+                        .all(|c| c.is_ascii_lowercase() || c == '.' || c == '-'),
+                "{key:?} in {keys:?}"
+            );
+        }
+        for want in [
+            "pairs",
+            "los.grid",
+            "recon.volume.shape",
+            "recon.gtr.primitives",
+            "pairs.mode",
+        ] {
+            assert!(keys.contains(&want), "no {want} in {keys:?}");
+        }
     }
 
     /// `budget.hours` bounds the time a plan keeps the instrument, by the estimate
@@ -626,7 +691,10 @@ mod tests {
         };
         assert!(b.check(&limits(None)).is_ok());
         assert!(b.check(&limits(Some(seconds / 3600.0 * 1.01))).is_ok());
-        let e = b.check(&limits(Some(seconds / 3600.0 * 0.99))).unwrap_err();
+        let over = b.check(&limits(Some(seconds / 3600.0 * 0.99))).unwrap_err();
+        // The capture is the longer part: the plan file's error is located at `pairs`.
+        assert_eq!(over.key, "pairs");
+        let e = over.to_string();
         assert!(
             e.contains("budget.hours") && e.contains("acquisition.dwell-ms") && e.contains("LOS scan"),
             "{e}"
@@ -644,7 +712,7 @@ mod tests {
         assert!(more >= 576.0 * 999.0 * 0.3e-3, "{more} s");
         // A dwell of 20 s instead of 20 ms: about 3.2 hours.
         let long = demo_budget_on(real_time, |t| t.replace("dwell-ms = 20.0", "dwell-ms = 20000.0"));
-        let e = long.check(&limits(Some(1.0))).unwrap_err();
+        let e = long.check(&limits(Some(1.0))).unwrap_err().to_string();
         assert!(e.contains("about 3.2 h"), "{e}");
     }
 }

@@ -348,7 +348,7 @@ pub fn check(plan: &Plan, inst: &InstrumentConfig) -> Check {
         disk_bytes: budget.disk_bytes(),
         memory_limit: inst.budget.memory,
         disk_limit: inst.budget.disk,
-        over_budget: budget.check(&inst.budget).err(),
+        over_budget: budget.check(&inst.budget).err().map(|over| over.message),
         problems: listed,
         warnings,
     }

@@ -184,9 +184,9 @@ pub fn execute(cli: Cli) -> Result<(), CliError> {
             print!("{}", check::report(&plan, &config));
             crate::budget::Budget::of_plan(&plan, &config)
                 .check(&config.budget)
-                .map_err(|why| CliError::Budget {
+                .map_err(|over| CliError::Budget {
                     plan: plan.name.clone(),
-                    why,
+                    why: over.message,
                 })
         }
         Command::Resume { run_dir } => {

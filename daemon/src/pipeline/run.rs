@@ -126,7 +126,7 @@ pub fn prepare(
     let plan = Plan::from_source(plan_src, &instrument)?;
     crate::budget::Budget::of_plan(&plan, &instrument)
         .check(&instrument.budget)
-        .map_err(|m| PipelineError::Config(plan_src.invalid("pairs", m)))?;
+        .map_err(|over| PipelineError::Config(plan_src.invalid(over.key, over.message)))?;
     let dir = match out {
         Some(dir) => {
             crate::store::create_dir_durably(dir).map_err(|e| PipelineError::storage(dir, e))?;

@@ -200,7 +200,7 @@ impl Service {
             // Its volume and fit are held in the daemon's memory as a run's are.
             crate::budget::Budget::of_import(&recon)
                 .check(&self.instrument.budget)
-                .map_err(ServiceError::OverBudget)?;
+                .map_err(|over| ServiceError::OverBudget(over.message))?;
         }
         Ok(capture)
     }

@@ -124,7 +124,7 @@ impl Service {
         let plan = Plan::from_source(&src, &self.instrument).map_err(ServiceError::InvalidPlan)?;
         crate::budget::Budget::of_plan(&plan, &self.instrument)
             .check(&self.instrument.budget)
-            .map_err(ServiceError::OverBudget)?;
+            .map_err(|over| ServiceError::OverBudget(over.message))?;
         // A place in the queue is reserved before the run directory is made, so a
         // flood of submissions never makes more directories than the queue takes.
         let seen = self.reserve_place()?;
