@@ -233,6 +233,10 @@ async fn geometry_lists_the_relay_pairs_and_volume_of_a_run() {
 struct Chromedriver {
     child: Child,
     url: String,
+    /// chromedriver's and Chromium's TMPDIR, removed after them: killed, Chromium
+    /// leaves its `org.chromium.Chromium.*` directories (up to 8 MB each, a dozen a
+    /// test run) where it made them, which was /tmp until 2026-12-08.
+    tmp: tempfile::TempDir,
 }
 
 impl Drop for Chromedriver {
@@ -328,8 +332,10 @@ async fn start_chromedriver(path: &Path) -> Chromedriver {
         .local_addr()
         .unwrap()
         .port();
+    let tmp = tempfile::tempdir().unwrap();
     let child = Command::new(path)
         .arg(format!("--port={port}"))
+        .env("TMPDIR", tmp.path())
         .process_group(0)
         .stdout(Stdio::null())
         .stderr(Stdio::null())
@@ -338,6 +344,7 @@ async fn start_chromedriver(path: &Path) -> Chromedriver {
     let driver = Chromedriver {
         child,
         url: format!("http://127.0.0.1:{port}"),
+        tmp,
     };
     // Ready when its WebDriver status says so: a listening port alone is not enough
     // (on a clean-clone CI run the session request's connection was reset, most likely
@@ -790,6 +797,13 @@ async fn an_operator_runs_the_demo_from_the_dashboard_in_chromium() {
         load_wall.as_secs_f64() * 1e3,
         shots.display()
     );
+    // Chromium's temporary directories are in the driver's, removed with it.
+    let chromiums = std::fs::read_dir(driver.tmp.path())
+        .unwrap()
+        .filter_map(Result::ok)
+        .filter(|e| e.file_name().to_string_lossy().starts_with("org.chromium."))
+        .count();
+    assert!(chromiums > 0, "Chromium made no directory in its TMPDIR");
     c.close().await.unwrap();
     drop(driver);
     server.abort();
