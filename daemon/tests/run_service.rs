@@ -1035,8 +1035,23 @@ async fn a_keys_file_that_cannot_be_written_is_a_storage_error() {
 /// does not queue it, and a second daemon on the same runs directory is refused.
 /// Before 2026-12-06 each of them went ahead: two processes appended to one
 /// histogram log, and the second's recovery cut records the first had counted.
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn a_run_another_process_is_writing_is_left_to_it() {
+///
+/// In a process of its own: the holds are `flock`s, which a child process that another
+/// test starts shares from its fork until it executes its program, so a daemon opened
+/// again at that moment found the runs directory still held (`RunsDirInUse`, rarely).
+#[test]
+fn a_run_another_process_is_writing_is_left_to_it() {
+    if common::in_own_process("a_run_another_process_is_writing_is_left_to_it") {
+        tokio::runtime::Builder::new_multi_thread()
+            .worker_threads(2)
+            .enable_all()
+            .build()
+            .unwrap()
+            .block_on(another_process_writes_a_run());
+    }
+}
+
+async fn another_process_writes_a_run() {
     use periscope_daemon::run_dir::RunHold;
     let dir = tempfile::tempdir().unwrap();
     let svc = service(dir.path());
