@@ -614,14 +614,11 @@ async fn concurrent_clients_leave_consistent_states() {
 /// runs beside it on other threads once added 105 MiB to it.
 #[test]
 fn a_submission_flood_gets_429_and_does_not_slow_the_capture() {
-    if common::in_own_process("a_submission_flood_gets_429_and_does_not_slow_the_capture") {
-        tokio::runtime::Builder::new_multi_thread()
-            .worker_threads(2)
-            .enable_all()
-            .build()
-            .unwrap()
-            .block_on(submission_flood());
-    }
+    common::alone(
+        "a_submission_flood_gets_429_and_does_not_slow_the_capture",
+        2,
+        submission_flood(),
+    );
 }
 
 async fn submission_flood() {

@@ -233,8 +233,15 @@ async fn wait_state(router: &axum::Router, id: &str, states: &[&str]) -> Value {
 /// A lab day through the API: keys of two people, a batch, a locked queue that starts
 /// nothing, reorder and move, a run again, tags and a note; the catalogue answers
 /// each filter, and the audit trail names who did what.
-#[tokio::test]
-async fn the_catalogue_queue_and_audit_follow_a_lab_day() {
+///
+/// In a process of its own ([`common::alone`]): the rebuild takes the catalogue's lock
+/// the moment the daemon lets it go.
+#[test]
+fn the_catalogue_queue_and_audit_follow_a_lab_day() {
+    common::alone("the_catalogue_queue_and_audit_follow_a_lab_day", 0, lab_day());
+}
+
+async fn lab_day() {
     let dir = tempfile::tempdir().unwrap();
     let svc = service(dir.path());
     let keys = KeyStore::open(dir.path(), None);
@@ -706,8 +713,19 @@ fn cli(
 /// `periscope keys create` works at once, `periscope runs` finds the daemon's runs by
 /// tag, `periscope keys revoke` stops the key at the next request, and
 /// `periscope catalogue rebuild` and `periscope audit` report what the API did.
-#[tokio::test]
-async fn the_command_line_shares_keys_catalogue_and_audit_with_the_daemon() {
+///
+/// In a process of its own ([`common::alone`]): the rebuild takes the catalogue's lock
+/// the moment the daemon lets it go.
+#[test]
+fn the_command_line_shares_keys_catalogue_and_audit_with_the_daemon() {
+    common::alone(
+        "the_command_line_shares_keys_catalogue_and_audit_with_the_daemon",
+        0,
+        command_line_beside_the_daemon(),
+    );
+}
+
+async fn command_line_beside_the_daemon() {
     let dir = tempfile::tempdir().unwrap();
     let src = common::sim_instrument(dir.path(), 0.0, &format!("token = \"{TOKEN}\"\n"), "");
     let periscope = cli(dir.path(), &src);
@@ -1036,19 +1054,15 @@ async fn a_keys_file_that_cannot_be_written_is_a_storage_error() {
 /// Before 2026-12-06 each of them went ahead: two processes appended to one
 /// histogram log, and the second's recovery cut records the first had counted.
 ///
-/// In a process of its own: the holds are `flock`s, which a child process that another
-/// test starts shares from its fork until it executes its program, so a daemon opened
-/// again at that moment found the runs directory still held (`RunsDirInUse`, rarely).
+/// In a process of its own ([`common::alone`]): a daemon opened again at once found the
+/// runs directory still held (`RunsDirInUse`, rarely).
 #[test]
 fn a_run_another_process_is_writing_is_left_to_it() {
-    if common::in_own_process("a_run_another_process_is_writing_is_left_to_it") {
-        tokio::runtime::Builder::new_multi_thread()
-            .worker_threads(2)
-            .enable_all()
-            .build()
-            .unwrap()
-            .block_on(another_process_writes_a_run());
-    }
+    common::alone(
+        "a_run_another_process_is_writing_is_left_to_it",
+        2,
+        another_process_writes_a_run(),
+    );
 }
 
 async fn another_process_writes_a_run() {

@@ -153,10 +153,11 @@ fn gtr(c: &mut Criterion) {
         b.iter_custom(|iters| forward.time(iters, || render_set(&kernels, &geometry, &opt)))
     });
 
-    // The loss gradient alone, over the same mini-batches an epoch takes (the
-    // optimiser's and the kernel refresh's share is the epoch's time minus this). On a
-    // worker of the pool, as `Trainer::epoch` runs: called from outside it, each of a
-    // step's parallel regions would be injected into the pool while this thread slept.
+    // The loss gradient alone, over the same mini-batches an epoch takes. On a worker
+    // of the pool, as `Trainer::epoch` runs: called from outside it, each of a step's
+    // parallel regions would be injected into the pool while this thread slept. Its
+    // other workers sleep between the regions here, where the epoch keeps them awake
+    // (`keep_warm`), so the epoch's time minus this is not the optimiser's share alone.
     let mut grads = periscope_recon::gtr::RawGrads::zeros(cloud.len());
     let order: Vec<usize> = (0..data.len()).collect();
     let gradient = LastSample::default();

@@ -71,7 +71,7 @@ pub fn execute_import(dir: &Path, control: Control, events: EventSink) -> Result
             if control.take_stop() == super::Request::Abort {
                 tracing::warn!(error = %e, "the import stopped as it was asked to abort: it ends aborted");
                 stopped_by = Some(e.to_string());
-                Err(PipelineError::Aborted(0))
+                Err(PipelineError::Aborted(info.pairs_done))
             } else {
                 Err(e)
             }

@@ -75,6 +75,26 @@ pub(crate) fn in_own_process(name: &str) -> bool {
     false
 }
 
+/// Runs `body`, the test `name`, in a process of its own ([`in_own_process`]) on a
+/// tokio runtime of `threads` workers (0: one current-thread runtime, as
+/// `#[tokio::test]`). For a whole-process figure, and for a test that drops a daemon
+/// or a catalogue and takes its `flock` again at once: a child process another test
+/// starts shares the lock from its fork until it executes its program, and the second
+/// take found it held.
+pub(crate) fn alone(name: &str, threads: usize, body: impl std::future::Future<Output = ()>) {
+    if in_own_process(name) {
+        let mut rt = if threads == 0 {
+            tokio::runtime::Builder::new_current_thread()
+        } else {
+            tokio::runtime::Builder::new_multi_thread()
+        };
+        if threads > 0 {
+            rt.worker_threads(threads);
+        }
+        rt.enable_all().build().unwrap().block_on(body);
+    }
+}
+
 /// The shipped simulated instrument (`configs/instrument/sim.toml`) at `time_scale`,
 /// with its runs in `runs`, `api_lines` added to its `[api]` table and `tail` after it.
 pub(crate) fn sim_instrument(runs: &Path, time_scale: f64, api_lines: &str, tail: &str) -> TomlSource {
