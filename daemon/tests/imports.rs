@@ -716,7 +716,6 @@ async fn an_import_after_a_run_reads_the_instrument_at_once() {
 async fn an_import_that_fails_as_it_is_asked_to_abort_ends_aborted() {
     use periscope_daemon::events::{EventSink, Stage};
     use periscope_daemon::pipeline::{Control, PipelineError, execute_import};
-    use periscope_daemon::run_dir::{RunInfo, RunState};
     let dir = tempfile::tempdir().unwrap();
     let svc = service(dir.path(), "");
     let router = app(AppState::new(Arc::clone(&svc)));
@@ -735,17 +734,5 @@ async fn an_import_that_fails_as_it_is_asked_to_abort_ends_aborted() {
         .await
         .unwrap();
     assert!(matches!(r, Err(PipelineError::Aborted(_))), "{r:?}");
-    let info = RunInfo::load(&run).unwrap();
-    assert_eq!(info.state, RunState::Aborted, "{:?}", info.error);
-    let last = info.history.last().unwrap();
-    assert_eq!((last.state, last.by.as_deref()), (RunState::Aborted, Some("bob")));
-    assert!(
-        info.error
-            .as_deref()
-            .is_some_and(|e| e.contains("injected panic")),
-        "{:?}",
-        info.error
-    );
-    // The stop is taken: a later abort is the caller's to apply to the stored run.
-    assert!(control.stop_taken() && !control.abort_by("carol"));
+    common::assert_aborted_keeping_error(&run, &control, "bob", "injected panic");
 }

@@ -480,21 +480,9 @@ fn a_run_that_fails_as_it_is_asked_to_abort_ends_aborted() {
             assert!(c.abort_by("bob"));
         }
     });
-    assert!(r.is_err());
+    assert!(r.is_err(), "{r:?}");
     assert!(!rig.emission());
-    let info = RunInfo::load(&dir).unwrap();
-    assert_eq!(info.state, RunState::Aborted, "{r:?}");
-    let last = info.history.last().unwrap();
-    assert_eq!((last.state, last.by.as_deref()), (RunState::Aborted, Some("bob")));
-    assert!(
-        info.error
-            .as_deref()
-            .is_some_and(|e| e.contains("injected panic")),
-        "{:?}",
-        info.error
-    );
-    // The stop is taken: a later abort changes nothing, and is the caller's to apply.
-    assert!(control.stop_taken() && !control.abort_by("carol"));
+    common::assert_aborted_keeping_error(&dir, &control, "bob", "injected panic");
     assert!((6..=7).contains(&read_log(&dir).unwrap().records.len()));
 }
 

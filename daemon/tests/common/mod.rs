@@ -95,6 +95,28 @@ pub(crate) fn alone(name: &str, threads: usize, body: impl std::future::Future<O
     }
 }
 
+/// The run at `dir` ended aborted by `by`, keeping the error (naming `error`) that
+/// stopped it as the abort came, and `control` has taken its stop: a later abort is
+/// the caller's to apply to the stored run.
+pub(crate) fn assert_aborted_keeping_error(
+    dir: &Path,
+    control: &periscope_daemon::pipeline::Control,
+    by: &str,
+    error: &str,
+) {
+    use periscope_daemon::run_dir::{RunInfo, RunState};
+    let info = RunInfo::load(dir).unwrap();
+    assert_eq!(info.state, RunState::Aborted, "{:?}", info.error);
+    let last = info.history.last().unwrap();
+    assert_eq!((last.state, last.by.as_deref()), (RunState::Aborted, Some(by)));
+    assert!(
+        info.error.as_deref().is_some_and(|e| e.contains(error)),
+        "{:?}",
+        info.error
+    );
+    assert!(control.stop_taken() && !control.abort_by("carol"));
+}
+
 /// The shipped simulated instrument (`configs/instrument/sim.toml`) at `time_scale`,
 /// with its runs in `runs`, `api_lines` added to its `[api]` table and `tail` after it.
 pub(crate) fn sim_instrument(runs: &Path, time_scale: f64, api_lines: &str, tail: &str) -> TomlSource {
