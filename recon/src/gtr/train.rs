@@ -1649,8 +1649,9 @@ impl Trainer {
     /// between them. A sleeping worker woke late to every region: a fit on two
     /// threads kept them 1.78 busy, and took 7 % longer (`periscope recon`,
     /// confocal_planar, 2026-12-08), for the same bits. [`Trainer::run`] keeps them
-    /// warm only once the capture has ended: while it runs, a core the fit leaves idle
-    /// is the capture's.
+    /// warm once the capture has ended, and in an adaptive capture's live epochs,
+    /// which run while the capture waits for them; not in a streamed capture's live
+    /// epochs, where a core the fit leaves idle is the capture's.
     fn epoch_kept_warm(&mut self, cancel: &CancelToken, warm: bool) -> Option<f64> {
         // On a worker of the thread pool, so that the step's parallel regions hand work
         // to the other workers without waking this thread up each time (a call from
@@ -1936,7 +1937,12 @@ impl Trainer {
             {
                 self.average = Some((self.cloud.clone(), 0));
             }
-            let Some(loss) = self.epoch_kept_warm(cancel, feed.is_none()) else {
+            // Nothing competes for the cores once the capture has ended, nor while an
+            // adaptive capture waits, laser off, for the model this training makes
+            // (its live epochs run only then: the fit waits for the next batch while
+            // the capture measures it).
+            let warm = feed.is_none() || self.live_model.is_some();
+            let Some(loss) = self.epoch_kept_warm(cancel, warm) else {
                 if let Some(e) = self.gpu_failure.take() {
                     return Err(e.into());
                 }
