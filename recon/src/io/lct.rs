@@ -318,6 +318,17 @@ fn top_level_array(element: &[u8]) -> Result<V5Array, String> {
              only arrays, one an element)"
         ));
     }
+    // Whatever follows the array would reach the parser as more top-level elements,
+    // compressed ones included, which it inflates without a bound. MATLAB writes one
+    // array a compressed element, padded at most to 8 bytes.
+    let rest = &element[body.end..];
+    if rest.len() >= 8 || rest.iter().any(|&b| b != 0) {
+        return Err(format!(
+            "a compressed element holds {} more bytes after its MATLAB array (MATLAB compresses one \
+             array an element): the file is damaged or was not written by MATLAB",
+            rest.len()
+        ));
+    }
     let b = &element[body];
     // Array flags, dims, name.
     let (_, flags, next) = tag(b, 0)?;

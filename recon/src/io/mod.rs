@@ -259,9 +259,14 @@ fn npy_header_shape(reader: &mut BufReader<File>) -> Option<(Vec<u64>, u64)> {
         ),
     };
     let text = std::str::from_utf8(head.get(start..start.checked_add(len)?)?).ok()?;
-    let after = &text[text.find("'shape'")? + "'shape'".len()..];
-    let tuple = &after[after.find('(')? + 1..];
-    let tuple = &tuple[..tuple.find(')')?];
+    // As the npy layer reads it (a Python literal): the key in either quote, the
+    // shape a tuple or a list.
+    let key = text.find("'shape'").or_else(|| text.find("\"shape\""))?;
+    let after = &text[key + "'shape'".len()..];
+    let open = after.find(['(', '['])?;
+    let close = if after.as_bytes()[open] == b'(' { ')' } else { ']' };
+    let tuple = &after[open + 1..];
+    let tuple = &tuple[..tuple.find(close)?];
     let shape = tuple
         .split(',')
         .map(str::trim)
@@ -626,6 +631,20 @@ mod tests {
         };
         std::fs::write(&path, with_shape("(2, 3, 4)")).unwrap();
         assert_eq!(read_npy(&path).unwrap(), (vec![2, 3, 4], vec![0.5; 24]));
+        // The npy layer reads the shape as a list too, and the keys in double quotes:
+        // the check before it passed over both, and the layer's unchecked product
+        // panicked in a debug build (until 2026-12-08).
+        for shape in ["[4294967296, 4294967296]", "(4294967296, 4294967296)"] {
+            let quoted: Vec<u8> = with_shape(shape)
+                .into_iter()
+                .map(|b| if b == b'\'' { b'"' } else { b })
+                .collect();
+            for b in [with_shape(shape), quoted] {
+                std::fs::write(&path, b).unwrap();
+                let e = read_npy(&path).unwrap_err().to_string();
+                assert!(e.contains("overflows"), "{shape}: {e}");
+            }
+        }
         for (shape, says) in [
             ("(4294967296, 4294967296)", "overflows"),
             ("(2, 3, 40)", "truncated"),

@@ -206,7 +206,7 @@ pf2019()
 # SPAD at grid point SPAD_index ([x y], 1-based), ts the bin in seconds, bin 0 at the
 # wall (paths laser point -> scene -> SPAD point). Each return spread over five bins, so
 # that backprojection on this grid is not aliased.
-def pf2020():
+def pf2020(name="pf2020-point.mat", empty_spacing=False):
     m, n, nt = 16, 12, 1024
     ts, spacing = 8e-12, 0.025
     spad = (7, 5)
@@ -221,16 +221,19 @@ def pf2020():
             k = int(d // (C * ts))
             # The laser pulse and the SPAD's jitter spread each return over a few bins.
             rect[i, j, k - 2:k + 3] = np.array([0.25, 0.6, 1.0, 0.6, 0.25]) * (100 + 10 * i + j)
-    savemat73(out("pf2020-point.mat"), {
+    savemat73(out(name), {
         "rect_data": rect,
         "ts": np.array([[ts]]),
-        "sampling_spacing": np.array([[spacing]]),
+        # Empty (`[]`, which MATLAB stores as its dims marked MATLAB_empty): the pitch
+        # then comes from aperturefullsize, as it does for a v5 file.
+        "sampling_spacing": np.zeros((0, 0)) if empty_spacing else np.array([[spacing]]),
         "aperturefullsize": np.array([[(m - 1) * spacing, (n - 1) * spacing]]),
         "SPAD_index": np.array([[float(spad[0]), float(spad[1])]]),
     })
 
 
 pf2020()
+pf2020("pf2020-empty-spacing.mat", empty_spacing=True)
 
 
 # --- y-tal frequency-domain H (tal >= 0.21, H_format F_Sx_Sy = 10) -------------------
@@ -241,7 +244,7 @@ def ytal_frequency():
              "F_Sx_Sy": 10, "F_Lx_Ly_Sx_Sy": 11, "F_Si": 12, "F_Li_Si": 13}
     n = 4
     xs = (np.arange(n) * 2 + 1) / (2 * n) - 0.5
-    grid = np.stack(np.meshgrid(xs, xs, indexing="ij") + [np.zeros((n, n))], -1).astype(np.float32)
+    grid = np.stack(list(np.meshgrid(xs, xs, indexing="ij")) + [np.zeros((n, n))], -1).astype(np.float32)
     with h5py.File(out("ytal-frequency.hdf5"), "w") as f:
         f["H"] = (np.ones((9, n, n)) * (1 + 1j)).astype(np.complex64)
         f.create_dataset("H_format", data=np.array([10], np.int64), dtype=h5py.enum_dtype(names, basetype="i8"))

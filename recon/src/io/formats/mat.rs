@@ -214,7 +214,13 @@ fn v73_numeric(r: &Reader<'_>, name: &str) -> Result<bool, String> {
         attrs.get("MATLAB_class").and_then(super::text_attr)
     };
     if let Ok(ds) = r.file.dataset(name) {
-        return match ds.attrs().ok().and_then(class) {
+        let attrs = ds.attrs().unwrap_or_default();
+        // An empty array is stored as its dims (uint64) marked `MATLAB_empty`: read as
+        // values, `t0 = []` was two numbers where v5's empty array reads as absent.
+        if attrs.get("MATLAB_empty").is_some_and(truthy) {
+            return Ok(false);
+        }
+        return match class(attrs) {
             Some(c) if !NUMERIC.contains(&c.as_str()) => Err(format!(
                 "`{name}` is a MATLAB {c} array; it must be a full numeric array"
             )),
@@ -233,6 +239,31 @@ fn v73_numeric(r: &Reader<'_>, name: &str) -> Result<bool, String> {
         ));
     }
     Ok(false)
+}
+
+/// Whether an attribute holds a true flag (MATLAB writes `MATLAB_empty` as a uint8
+/// or uint32 1, hdf5storage as whatever integer its options say).
+fn truthy(v: &hdf5_pure::AttrValue) -> bool {
+    use hdf5_pure::AttrValue as A;
+    match v {
+        A::U8(x) => *x != 0,
+        A::U16(x) => *x != 0,
+        A::U32(x) => *x != 0,
+        A::U64(x) => *x != 0,
+        A::I8(x) => *x != 0,
+        A::I16(x) => *x != 0,
+        A::I32(x) => *x != 0,
+        A::I64(x) => *x != 0,
+        A::U8Array(x) => x.iter().any(|&x| x != 0),
+        A::U16Array(x) => x.iter().any(|&x| x != 0),
+        A::U32Array(x) => x.iter().any(|&x| x != 0),
+        A::U64Array(x) => x.iter().any(|&x| x != 0),
+        A::I8Array(x) => x.iter().any(|&x| x != 0),
+        A::I16Array(x) => x.iter().any(|&x| x != 0),
+        A::I32Array(x) => x.iter().any(|&x| x != 0),
+        A::I64Array(x) => x.iter().any(|&x| x != 0),
+        _ => false,
+    }
 }
 
 /// MATLAB's dims of an array HDF5 stores with `shape`: reversed, at least two.

@@ -149,6 +149,18 @@ fn phasor_field_2020_rect_data_puts_the_spad_on_its_grid_point() {
     });
 }
 
+/// An empty `sampling_spacing` (`[]`, stored in MAT v7.3 as its dims marked
+/// `MATLAB_empty`) is absent, as in a v5 file: the pitch comes from
+/// `aperturefullsize`. It was read as the two numbers of its dims and refused.
+#[test]
+fn an_empty_mat_v73_array_is_read_as_absent() {
+    let c = read_capture(&fixture("pf2020-empty-spacing.mat")).unwrap();
+    let whole = read_capture(&fixture("pf2020-point.mat")).unwrap();
+    assert_eq!(c.laser_grid, whole.laser_grid);
+    assert_eq!(c.sensor_grid, whole.sensor_grid);
+    assert_eq!(c.h, whole.h);
+}
+
 #[test]
 fn the_lct_release_layout_reads_through_the_same_entry() {
     let c = read_capture(&fixture("lct-point.mat")).unwrap();
@@ -274,6 +286,12 @@ fn hostile_mat_v5_structures_are_refused_by_name_before_they_are_parsed() {
     // without a bound, recursing once a level.
     let e = read_bytes(mat_v5(&[compressed(&compressed(&rect)), width.clone()]));
     assert!(e.contains("type 15, not a MATLAB array"), "{e}");
+    // The same hidden after a well-formed array in one compressed element: the
+    // parser read the bytes past the array as more top-level elements and inflated
+    // them without a bound.
+    let hidden = [rect.clone(), compressed(&compressed(&rect))].concat();
+    let e = read_bytes(mat_v5(&[compressed(&hidden), width.clone()]));
+    assert!(e.contains("more bytes after its MATLAB array"), "{e}");
     // One inside an array.
     let inner = matrix(
         "rect_data",
