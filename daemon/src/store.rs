@@ -416,9 +416,34 @@ fn in_words(e: io::Error, doing: &str, path: &Path) -> io::Error {
 /// Only a regular file is read, and only as far as its length when opened: a FIFO
 /// or a link to `/dev/zero` in its place is refused instead of hanging the reader or
 /// filling memory.
+/// The log is held in memory twice while it is decoded (its bytes and its records),
+/// so it is refused, with the file named, where this process cannot take that: an
+/// infallible allocation of its length (a sparse file of 100 GB, say) would abort the
+/// process instead.
 pub fn read_log(dir: &Path) -> io::Result<Recovered> {
-    let (file, len) = open_regular(&dir.join(HISTOGRAM_LOG))?;
-    let mut bytes = Vec::with_capacity(len as usize);
+    let path = dir.join(HISTOGRAM_LOG);
+    let (file, len) = open_regular(&path)?;
+    let no_memory = |what: String| {
+        io::Error::new(
+            io::ErrorKind::OutOfMemory,
+            format!(
+                "{} is {len} bytes, and reading it {what}: read it where more memory is free (or raise \
+                 the memory limit of the container or service it runs in); the file is left as it is",
+                path.display()
+            ),
+        )
+    };
+    if let Some(available) = periscope_recon::io::memory_available()
+        && len.saturating_mul(2) > available
+    {
+        return Err(no_memory(format!(
+            "takes twice that, more than the {available} bytes this process can still use"
+        )));
+    }
+    let mut bytes = Vec::new();
+    bytes
+        .try_reserve_exact(usize::try_from(len).unwrap_or(usize::MAX))
+        .map_err(|e| no_memory(format!("could not be reserved ({e})")))?;
     BufReader::new(file.take(len)).read_to_end(&mut bytes)?;
     Ok(parse_log(&bytes))
 }
@@ -769,6 +794,29 @@ mod tests {
             counts: (0..8).map(|k| k * pair).collect(),
             partial: false,
         }
+    }
+
+    /// A log longer than the memory this process can take (here a sparse file of a
+    /// TiB) is refused by name, for a reader and for a resume, and left as it is: its
+    /// length was reserved infallibly, which aborts the process, until 2026-12-08.
+    #[test]
+    fn a_log_larger_than_the_memory_left_is_refused_not_allocated() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join(HISTOGRAM_LOG);
+        File::create(&path).unwrap().set_len(1 << 40).unwrap();
+        for e in [
+            read_log(dir.path()).err(),
+            HistogramLog::recover(dir.path()).err(),
+        ] {
+            let e = e.expect("a TiB log was read");
+            assert_eq!(e.kind(), io::ErrorKind::OutOfMemory, "{e}");
+            let text = e.to_string();
+            assert!(
+                text.contains(&path.display().to_string()) && text.contains("memory"),
+                "{text}"
+            );
+        }
+        assert_eq!(fs::metadata(&path).unwrap().len(), 1 << 40);
     }
 
     #[test]
