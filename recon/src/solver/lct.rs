@@ -18,6 +18,7 @@ use rustfft::num_complex::{Complex, Complex32};
 
 use super::fft::Fft2;
 use super::{FrameVolume, PlanarScan, SolverError, check_memory, confocal};
+use crate::gtr::estimate_background;
 use crate::transient::{Pair, TimeAxis, TransientSet};
 use crate::volume::{Volume, VolumeGrid};
 
@@ -95,8 +96,14 @@ pub const VIRTUAL_SCAN_SNR: f64 = 0.8;
 /// The Wiener filter's signal-to-noise ratio when `[lct] snr` is not set.
 ///
 /// Photon counts ([`TransientSet::is_photon_counts`]): 10·R within [0.8, 100], with
-/// R = Σc²/Σc − 1 the photon-weighted mean count of a bin (the expected count of the
-/// bin a photon lands in; its square root is that bin's signal-to-noise ratio).
+/// R = Σ((c − b)² − c)/Σc, b the background a bin ([`estimate_background`]): an
+/// unbiased estimate of Σs²/Σ(s + b) over the bins' signals s, each bin's squared
+/// signal-to-noise ratio s²/(s + b) weighted by the photons it holds. Without
+/// background it is the photon-weighted mean count of a bin, Σc²/Σc − 1 (the expected
+/// count of the bin a photon lands in; its square root is that bin's signal-to-noise
+/// ratio). Ambient and dark counts count as noise: taken as signal (until 2026-12-08)
+/// they made the filter trust the data more the more ambient light it held, up to
+/// the cap on background alone.
 /// Anything else (rendered or processed transients): 100, about the level of the
 /// cone's own discretisation error, which bounds how far the filter should trust the
 /// model. Measured on the validation capture confocal_planar with Poisson noise drawn
@@ -108,18 +115,19 @@ pub fn default_snr(set: &TransientSet) -> f64 {
     if !set.is_photon_counts() {
         return MODEL_SNR;
     }
-    let (mut sum, mut squares) = (0.0f64, 0.0f64);
+    let background = estimate_background(set, None);
+    let (mut sum, mut signal) = (0.0f64, 0.0f64);
     for i in 0..set.len() {
         for &c in set.measured(i).iter() {
             let c = f64::from(c.max(0.0));
             sum += c;
-            squares += c * c;
+            signal += (c - background).powi(2) - c;
         }
     }
     if sum <= 0.0 {
         return MODEL_SNR;
     }
-    (10.0 * (squares / sum - 1.0)).clamp(0.8, MODEL_SNR)
+    (10.0 * signal / sum).clamp(0.8, MODEL_SNR)
 }
 
 /// Checks every pair is confocal and finds the grid (LCT and f-k migration) of
@@ -681,8 +689,29 @@ mod tests {
         set.push(pair, &[0.0, 3.0, 1.0, 0.0]).unwrap();
         assert_eq!(default_snr(&set), 100.0);
         set.mark_photon_counts();
-        // R = (9 + 1)/4 − 1 = 1.5.
-        assert!((default_snr(&set) - 15.0).abs() < 1e-12);
+        // R = (9 + 1)/4 − 1 = 1.5 (less a little: the background is read as at least
+        // 1e-3 of the peak).
+        assert!((default_snr(&set) - 15.0).abs() < 0.1, "{}", default_snr(&set));
+        // Ambient alone, 20 counts a bin over many pairs: no signal, the filter's
+        // lowest snr (it was the cap, 100, and the more ambient the higher).
+        let mut ambient = TransientSet::new(axis).unwrap();
+        ambient.mark_photon_counts();
+        for _ in 0..600 {
+            ambient.push(pair, &[20.0; 4]).unwrap();
+        }
+        assert_eq!(default_snr(&ambient), 0.8);
+        // The same signal with ambient under it is trusted less, not more.
+        let with_ambient = |b: f32| {
+            let mut s = TransientSet::new(axis).unwrap();
+            s.mark_photon_counts();
+            for k in 0..600 {
+                let signal = if k % 2 == 0 { 4.0 } else { 3.0 };
+                s.push(pair, &[b, signal + b, b, b]).unwrap();
+            }
+            default_snr(&s)
+        };
+        let (clean, lit) = (with_ambient(0.0), with_ambient(2.0));
+        assert!(lit < clean, "{lit} against {clean}");
         let mut bright = TransientSet::new(axis).unwrap();
         bright.mark_photon_counts();
         bright.push(pair, &[0.0, 3000.0, 10.0, 0.0]).unwrap();
