@@ -1396,3 +1396,28 @@ async fn one_host_holds_at_most_its_share_of_event_streams() {
     drop(held);
     svc.shutdown();
 }
+
+/// A daemon that cannot listen (the port is taken) takes up no queued run: its worker
+/// started before the bind until 2026-12-08, so the run was opened, its devices with
+/// it, and left interrupted when the process exited on the error.
+#[tokio::test]
+async fn a_daemon_that_cannot_listen_takes_up_no_queued_run() {
+    let runs = tempfile::tempdir().unwrap();
+    let svc = service(runs.path());
+    let queued = svc.submit(PLAN.to_owned()).unwrap();
+    let taken = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+    let addr = taken.local_addr().unwrap();
+    let e = periscope_daemon::api::serve(addr, Arc::clone(&svc))
+        .await
+        .unwrap_err();
+    assert!(matches!(e, periscope_daemon::api::ServeError::Bind { .. }), "{e}");
+    // A simulated run at time scale 0 would be well under way by now.
+    tokio::time::sleep(std::time::Duration::from_secs(1)).await;
+    let status = svc.status(&queued.id).unwrap();
+    assert_eq!(
+        status.state,
+        periscope_daemon::run_dir::RunState::Queued,
+        "{status:?}"
+    );
+    assert_eq!(status.pairs_done, 0);
+}

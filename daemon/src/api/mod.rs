@@ -490,7 +490,8 @@ pub async fn serve(bind: SocketAddr, service: Arc<Service>) -> Result<(), ServeE
     if let Err(e) = tokio::task::spawn_blocking(dashboard::prepare).await {
         tracing::warn!(error = %e, "the dashboard's files are compressed on first request");
     }
-    let worker = service.start_worker();
+    // Bound before the worker starts: a queued run taken up by a daemon that then fails
+    // to listen was left half-opened, its devices opened and its run interrupted.
     let listener = tokio::net::TcpListener::bind(bind)
         .await
         .map_err(|source| ServeError::Bind { bind, source })?;
@@ -508,6 +509,7 @@ pub async fn serve(bind: SocketAddr, service: Arc<Service>) -> Result<(), ServeE
         }),
         crate::signals::SIGNAL_GRACE,
     );
+    let worker = service.start_worker();
     let api = &service.instrument().api;
     let limits = server::ConnectionLimits {
         header_timeout: api.header_timeout,
