@@ -1358,6 +1358,47 @@ fn a_capture_places_points_as_finely_as_its_gradients_spread() {
     );
 }
 
+/// The separation is the capture's, not its frame's: the same pairs and point turned
+/// together about the mean gradient give the same figure. It looked across four fixed
+/// directions (two axes and their diagonals) until 2026-12-08, so the two backs turned
+/// by 22.5° read about 40 % finer, and a line of pairs resolved nothing across only
+/// when it lay along an axis.
+#[test]
+fn the_separation_does_not_depend_on_how_the_relay_is_turned() {
+    let at = DVec3::new(0.0, 0.0, 0.5);
+    let patch = grid(16, [0.07, 0.37], [-0.27, 0.27]);
+    let laser = DVec3::new(-0.22, 0.0, 0.0);
+    let line: Vec<DVec3> = (0..32)
+        .map(|k| DVec3::new(-0.5 + k as f64 / 31.0, 0.0, 0.0))
+        .collect();
+    let backs = |turn: f64| {
+        let q = glam::DQuat::from_rotation_z(turn);
+        geometry(patch.iter().map(|&x| pair(q * laser, q * x)))
+    };
+    let confocal_line = |turn: f64| {
+        let q = glam::DQuat::from_rotation_z(turn);
+        geometry(line.iter().map(|&x| pair(q * x, q * x)))
+    };
+    let straight = resolvable_separation(&backs(0.0), at, 0.0).unwrap();
+    for degrees in [10.0f64, 22.5, 45.0, 67.5, 137.0] {
+        let turned = resolvable_separation(&backs(degrees.to_radians()), at, 0.0).unwrap();
+        assert!(
+            (turned / straight - 1.0).abs() < 1e-6,
+            "turned {degrees}°: {turned} against {straight}"
+        );
+        let across = resolvable_separation(&confocal_line(degrees.to_radians()), at, 0.0).unwrap();
+        assert_eq!(
+            across,
+            f64::INFINITY,
+            "a line turned {degrees}° resolves nothing across it"
+        );
+    }
+    assert_eq!(
+        resolvable_separation(&confocal_line(0.0), at, 0.0),
+        Some(f64::INFINITY)
+    );
+}
+
 #[test]
 fn splits_stop_where_the_capture_stops_placing_points() {
     let roi = RoiBox::from_bounds(DVec3::new(-0.5, -0.5, 0.2), DVec3::new(0.5, 0.5, 1.2)).unwrap();

@@ -1139,27 +1139,66 @@ pub fn resolvable_separation(set: &TransientSet, at: DVec3, jitter: f64) -> Opti
     if mean == DVec3::ZERO {
         return None;
     }
-    let spread = |e: DVec3| {
-        let (lo, hi) = gradients
-            .iter()
-            .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), g| {
-                (lo.min(g.dot(e)), hi.max(g.dot(e)))
-            });
-        hi - lo
-    };
-    // The two axes across the mean and their diagonals, so that the narrowest
-    // direction is not missed when it lies between the axes.
+    // The gradients across the mean, and their width on the narrowest direction:
+    // the same whichever way the relay is turned.
     let (a, b) = mean.any_orthonormal_pair();
-    let narrowest = [a, b, (a + b).normalize(), (a - b).normalize()]
-        .into_iter()
-        .map(spread)
-        .fold(f64::INFINITY, f64::min);
+    let across: Vec<[f64; 2]> = gradients.iter().map(|g| [g.dot(a), g.dot(b)]).collect();
+    let narrowest = minimum_width(&across);
     let w = set.axis().width.max(2.0 * (2.0 * 2f64.ln()).sqrt() * jitter);
     Some(if narrowest > 0.0 {
         SEPARATION_BINS * w / narrowest
     } else {
         f64::INFINITY
     })
+}
+
+/// The width of a set of points in the plane on its narrowest direction (0 for fewer
+/// than three points or points on a line): the least, over the edges of their convex
+/// hull, of the farthest hull point's distance from the edge's line, which is where
+/// the narrowest direction lies (a set's width is least across one of its hull's
+/// edges).
+fn minimum_width(points: &[[f64; 2]]) -> f64 {
+    let mut p: Vec<[f64; 2]> = points.to_vec();
+    p.sort_by(|u, v| u[0].total_cmp(&v[0]).then(u[1].total_cmp(&v[1])));
+    p.dedup();
+    if p.len() < 3 {
+        return 0.0;
+    }
+    let cross =
+        |o: [f64; 2], u: [f64; 2], v: [f64; 2]| (u[0] - o[0]) * (v[1] - o[1]) - (u[1] - o[1]) * (v[0] - o[0]);
+    // Andrew's monotone chain: the lower hull, then the upper.
+    let mut hull: Vec<[f64; 2]> = Vec::with_capacity(2 * p.len());
+    for pass in [false, true] {
+        let start = hull.len();
+        let points: Box<dyn Iterator<Item = &[f64; 2]>> = if pass {
+            Box::new(p.iter().rev())
+        } else {
+            Box::new(p.iter())
+        };
+        for &q in points {
+            while hull.len() >= start + 2 && cross(hull[hull.len() - 2], hull[hull.len() - 1], q) <= 0.0 {
+                hull.pop();
+            }
+            hull.push(q);
+        }
+        hull.pop();
+    }
+    if hull.len() < 3 {
+        return 0.0;
+    }
+    let width = (0..hull.len())
+        .map(|i| {
+            let (u, v) = (hull[i], hull[(i + 1) % hull.len()]);
+            let length = (v[0] - u[0]).hypot(v[1] - u[1]);
+            hull.iter().map(|&q| cross(u, v, q).abs()).fold(0.0f64, f64::max) / length
+        })
+        .fold(f64::INFINITY, f64::min);
+    // Points on a line not along an axis keep a width of their rounding.
+    let extent = hull
+        .iter()
+        .map(|q| (q[0] - hull[0][0]).hypot(q[1] - hull[0][1]))
+        .fold(0.0f64, f64::max);
+    if width <= 1e-9 * extent { 0.0 } else { width }
 }
 
 impl Default for TrainConfig {
