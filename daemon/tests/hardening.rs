@@ -429,6 +429,50 @@ async fn stream_and_download_caps_answer_503_until_a_slot_frees() {
     assert_eq!(s, StatusCode::OK, "the download slot was not given back");
 }
 
+/// One remote host holds at most half the download slots: a host that reads its
+/// downloads slowly held all of them until 2026-12-08, and the operator's own
+/// downloads got 503 until it let go.
+#[tokio::test]
+async fn one_remote_host_holds_at_most_half_the_download_slots() {
+    let dir = tempfile::tempdir().unwrap();
+    let svc = service(dir.path(), 0.0, "max-downloads = 4", "");
+    let router = app(AppState::new(Arc::clone(&svc)));
+    let (_, v) = call(&router, Method::POST, "/api/v1/runs", true, PLAN).await;
+    let id = v["id"].as_str().unwrap().to_owned();
+    let plan = format!("/api/v1/runs/{id}/files/plan.toml");
+    let from = |host: &str| {
+        let mut req = request(Method::GET, &plan, true, &[], "");
+        req.extensions_mut().insert(axum::extract::ConnectInfo(
+            format!("{host}:50000").parse::<std::net::SocketAddr>().unwrap(),
+        ));
+        req
+    };
+    // Bodies not read: each holds its slot.
+    let mut held = Vec::new();
+    for _ in 0..2 {
+        let resp = router.clone().oneshot(from("192.0.2.7")).await.unwrap();
+        assert_eq!(resp.status(), StatusCode::OK);
+        held.push(resp);
+    }
+    let (s, body) = send(&router, from("192.0.2.7")).await;
+    let v: Value = serde_json::from_slice(&body).unwrap();
+    assert_eq!(
+        (s, v["error"].as_str()),
+        (StatusCode::SERVICE_UNAVAILABLE, Some("too-many-downloads")),
+        "{v}"
+    );
+    assert!(v["message"].as_str().unwrap().contains("this host"), "{v}");
+    // Another host and loopback are served beside it.
+    let (s, _) = send(&router, from("192.0.2.8")).await;
+    assert_eq!(s, StatusCode::OK);
+    let (s, _) = send(&router, from("127.0.0.1")).await;
+    assert_eq!(s, StatusCode::OK);
+    // Its slots come back as its bodies end.
+    drop(held);
+    let (s, _) = send(&router, from("192.0.2.7")).await;
+    assert_eq!(s, StatusCode::OK, "the host's slots were not given back");
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn aborting_a_queued_run_ends_its_event_stream() {
     let dir = tempfile::tempdir().unwrap();

@@ -126,9 +126,11 @@ pub struct AppState {
     /// Event-stream clients connected now.
     streams: Arc<std::sync::atomic::AtomicUsize>,
     /// Event streams open now by remote address (loopback's are not counted).
-    peer_streams: PeerStreams,
+    peer_streams: PeerCounts,
     /// Downloads in flight (a permit per download, held until its body is sent).
     downloads: Arc<tokio::sync::Semaphore>,
+    /// Downloads in flight by remote address (loopback's are not counted).
+    peer_downloads: PeerCounts,
     /// The one import that may upload at a time.
     imports: Arc<tokio::sync::Semaphore>,
     /// The rate limit on recording failed authentications.
@@ -146,6 +148,7 @@ impl AppState {
             streams: Arc::default(),
             peer_streams: Arc::default(),
             downloads,
+            peer_downloads: Arc::default(),
             imports: Arc::new(tokio::sync::Semaphore::new(1)),
             auth_audit: Arc::default(),
         }
@@ -1197,21 +1200,45 @@ pub const STREAMS_PER_PEER: usize = 8;
 /// [`STREAMS_PER_PEER`].
 struct StreamSlot {
     _slot: Slot,
-    peer: Option<(PeerStreams, std::net::IpAddr)>,
+    _peer: Option<PeerSlot>,
 }
 
-/// Event streams open by remote address.
-type PeerStreams = Arc<std::sync::Mutex<std::collections::HashMap<std::net::IpAddr, usize>>>;
+/// Slots held by remote address: event streams, downloads.
+type PeerCounts = Arc<std::sync::Mutex<std::collections::HashMap<std::net::IpAddr, usize>>>;
 
-impl Drop for StreamSlot {
+/// One of a remote host's slots of a kind, given back when dropped.
+struct PeerSlot {
+    counts: PeerCounts,
+    ip: std::net::IpAddr,
+}
+
+impl PeerSlot {
+    /// One of `peer`'s at most `limit` slots in `counts`: `Ok(None)` for loopback and
+    /// unknown peers (not counted), `Err(())` when the host holds `limit` already.
+    fn take(counts: &PeerCounts, peer: &Peer, limit: usize) -> Result<Option<PeerSlot>, ()> {
+        let Some(ip) = peer.0.filter(|ip| !ip.is_loopback()) else {
+            return Ok(None);
+        };
+        let mut held = counts.lock().unwrap_or_else(|p| p.into_inner());
+        let n = held.entry(ip).or_insert(0);
+        if *n >= limit {
+            return Err(());
+        }
+        *n += 1;
+        Ok(Some(PeerSlot {
+            counts: Arc::clone(counts),
+            ip,
+        }))
+    }
+}
+
+impl Drop for PeerSlot {
     fn drop(&mut self) {
-        if let Some((counts, ip)) = &self.peer {
-            let mut counts = counts.lock().unwrap_or_else(|p| p.into_inner());
-            if let Some(n) = counts.get_mut(ip) {
-                *n -= 1;
-                if *n == 0 {
-                    counts.remove(ip);
-                }
+        let mut counts = self.counts.lock().unwrap_or_else(|p| p.into_inner());
+        if let Some(n) = counts.get_mut(&self.ip) {
+            *n -= 1;
+            if *n == 0 {
+                counts.remove(&self.ip);
             }
         }
     }
@@ -1231,26 +1258,28 @@ fn stream_slot(state: &AppState, peer: Peer, instead: &str) -> ApiResult<StreamS
             ),
         )
     })?;
-    let peer = match peer.0.filter(|ip| !ip.is_loopback()) {
-        None => None,
-        Some(ip) => {
-            let mut counts = state.peer_streams.lock().unwrap_or_else(|p| p.into_inner());
-            let n = counts.entry(ip).or_insert(0);
-            if *n >= STREAMS_PER_PEER {
-                return Err(ApiError::new(
-                    StatusCode::SERVICE_UNAVAILABLE,
-                    "too-many-streams",
-                    format!(
-                        "this host has {STREAMS_PER_PEER} event streams open, the most one host may hold; \
-                         close one (each dashboard tab holds two) or poll {instead}"
-                    ),
-                ));
-            }
-            *n += 1;
-            Some((Arc::clone(&state.peer_streams), ip))
-        }
-    };
-    Ok(StreamSlot { _slot: slot, peer })
+    let peer = PeerSlot::take(&state.peer_streams, &peer, STREAMS_PER_PEER).map_err(|()| {
+        ApiError::new(
+            StatusCode::SERVICE_UNAVAILABLE,
+            "too-many-streams",
+            format!(
+                "this host has {STREAMS_PER_PEER} event streams open, the most one host may hold; \
+                 close one (each dashboard tab holds two) or poll {instead}"
+            ),
+        )
+    })?;
+    Ok(StreamSlot {
+        _slot: slot,
+        _peer: peer,
+    })
+}
+
+/// Most downloads one remote address has in flight at once: half of `[api]
+/// max-downloads`, at least one (loopback's are not counted). A host that reads its
+/// downloads a little at a time, just inside the write timeout, could otherwise hold
+/// every slot and leave the operator's results unserved.
+pub fn downloads_per_peer(max_downloads: usize) -> usize {
+    (max_downloads / 2).max(1)
 }
 
 /// How often `GET /api/v1/instrument/events` sends the safety state.
@@ -1324,6 +1353,7 @@ async fn instrument_events(
 async fn file(
     State(state): State<AppState>,
     PathParams((id, name)): PathParams<(String, String)>,
+    peer: Peer,
     request: Request,
 ) -> ApiResult<Response> {
     let Some((known, media)) = DOWNLOADS.iter().find(|(n, _)| *n == name) else {
@@ -1337,6 +1367,17 @@ async fn file(
         ));
     };
     let max = state.service.instrument().api.max_downloads;
+    let per_peer = downloads_per_peer(max);
+    let Ok(peer_slot) = PeerSlot::take(&state.peer_downloads, &peer, per_peer) else {
+        return Err(ApiError::new(
+            StatusCode::SERVICE_UNAVAILABLE,
+            "too-many-downloads",
+            format!(
+                "this host has {per_peer} downloads in flight, the most one host may ([api] max-downloads / 2); \
+                 finish one, then retry"
+            ),
+        ));
+    };
     let Ok(permit) = Arc::clone(&state.downloads).try_acquire_owned() else {
         return Err(ApiError::new(
             StatusCode::SERVICE_UNAVAILABLE,
@@ -1356,7 +1397,7 @@ async fn file(
     })?;
     match source {
         crate::service::Download::Bytes(bytes) => {
-            drop(permit);
+            drop((permit, peer_slot));
             Response::builder()
                 .header(header::CONTENT_TYPE, *media)
                 .body(Body::from(bytes))
@@ -1385,7 +1426,7 @@ async fn file(
                 .headers
                 .insert(header::CACHE_CONTROL, HeaderValue::from_static("no-cache"));
             let stream = Body::new(body).into_data_stream().map(move |chunk| {
-                let _permit = &permit;
+                let _held = (&permit, &peer_slot);
                 chunk
             });
             Ok(Response::from_parts(parts, Body::from_stream(stream)))

@@ -67,7 +67,7 @@ pub(super) mod status {
     pub(crate) const STORAGE: &str = "a file under the runs directory could not be read or written (`storage`, the path named), or the instrument config is invalid";
     pub(crate) const UNAVAILABLE: &str = "the instrument could not be reached";
     pub(crate) const STREAMS: &str = "the cap on event streams is reached (`[api] max-streams`)";
-    pub(crate) const DOWNLOADS: &str = "the cap on downloads in flight is reached (`[api] max-downloads`)";
+    pub(crate) const DOWNLOADS: &str = "the cap on downloads in flight is reached (`[api] max-downloads`, or half of it for one remote host)";
 }
 
 /// The generated document as JSON, with the download names filled in where the
