@@ -1339,6 +1339,106 @@ fn a_stream_client_that_never_reads_holds_no_more_than_the_display_budget() {
     worker.join().unwrap();
 }
 
+/// The same over HTTP with a key, as every remote dashboard reads: the check that ends
+/// a keyed stream when its key lapses ran as a task that took the stream's events
+/// ahead of the client, 16 more a stream outside the display budget, until
+/// 2026-12-08. A client that reads nothing until the run ends now gets no more
+/// snapshots than the budget keeps.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_keyed_stream_that_is_not_read_gets_no_more_than_the_display_budget() {
+    use periscope_daemon::run_dir::RunState;
+    const BUDGET: usize = 256 << 10;
+    let dir = tempfile::tempdir().unwrap();
+    let svc = service(dir.path(), 0.0, Some(TOKEN));
+    svc.set_stream_display_budget(BUDGET);
+    let plan = SmallPlan::named("snapshots")
+        .set("recon.method", "gtr")
+        .set("recon.volume.shape", [16, 16, 16])
+        .set("recon.gtr.primitives", 600)
+        .set("recon.gtr.epochs", 300)
+        .set("recon.gtr.virtual-grid", [16, 16])
+        .toml();
+    let id = svc.submit(plan).unwrap().id;
+    let router = app(AppState::new(Arc::clone(&svc)));
+    let events = format!("/api/v1/runs/{id}/events");
+    let resp = tower::ServiceExt::oneshot(
+        router.clone(),
+        common::request(Method::GET, &events, Some(TOKEN), &[], ""),
+    )
+    .await
+    .unwrap();
+    assert_eq!(resp.status(), StatusCode::OK);
+    let worker = svc.start_worker();
+    use tokio_stream::StreamExt as _;
+    let mut body = resp.into_body().into_data_stream();
+    let mut text = String::new();
+    let stopped;
+    loop {
+        // Read as events come until the fit's first snapshot, then no more until the
+        // run has ended.
+        if let Some(at) = text.find("event: snapshot") {
+            stopped = at;
+            break;
+        }
+        let chunk = tokio::time::timeout(Duration::from_secs(120), body.next())
+            .await
+            .expect("no snapshot came")
+            .expect("the stream ended before a snapshot")
+            .unwrap();
+        text.push_str(&String::from_utf8_lossy(&chunk));
+    }
+    let t = Instant::now();
+    loop {
+        let state = svc.status(&id).unwrap().state;
+        if !matches!(state, RunState::Queued | RunState::Running) {
+            assert_eq!(state, RunState::Completed);
+            break;
+        }
+        assert!(t.elapsed() < Duration::from_secs(120), "the run never finished");
+        tokio::time::sleep(Duration::from_millis(5)).await;
+    }
+    let rest = tokio::time::timeout(Duration::from_secs(30), async {
+        let mut rest = Vec::new();
+        while let Some(chunk) = body.next().await {
+            rest.extend_from_slice(&chunk.unwrap());
+        }
+        rest
+    })
+    .await
+    .expect("the stream ends with the run");
+    text.push_str(&String::from_utf8_lossy(&rest));
+    // The snapshots the client was sent from the one it stopped reading at.
+    let (mut snapshots, mut bytes, mut largest) = (0, 0, 0);
+    for event in text[stopped..].split("\n\n") {
+        if event.lines().any(|l| l == "event: snapshot") {
+            let data: usize = event
+                .lines()
+                .filter_map(|l| l.strip_prefix("data:"))
+                .map(str::len)
+                .sum();
+            snapshots += 1;
+            bytes += data;
+            largest = largest.max(data);
+        }
+    }
+    eprintln!("{snapshots} snapshots, {bytes} B, the largest {largest} B");
+    assert!(
+        text.contains("event: completed"),
+        "{}",
+        &text[text.len().saturating_sub(400)..]
+    );
+    assert!(
+        snapshots >= 1 && 20 * largest > BUDGET,
+        "{snapshots} of up to {largest} B"
+    );
+    // The budget's worth, the one it stopped at and at most one more in flight.
+    assert!(bytes <= BUDGET + 2 * largest, "{bytes} B of snapshots");
+    svc.shutdown();
+    tokio::task::spawn_blocking(move || worker.join().unwrap())
+        .await
+        .unwrap();
+}
+
 /// After a run the instrument is shown as read after it, never as the reading taken
 /// before it: until the worker reads the devices again the state is unknown. Until
 /// 2026-12-06 the pre-run reading was served, with its true age, which the staleness

@@ -358,47 +358,50 @@ const KEY_RECHECK: Duration = Duration::from_secs(2);
 
 /// An event stream opened with a key ends when the key stops working (revoked,
 /// expired, its file damaged): it was authorised once, at its start, and may run for
-/// hours.
+/// hours. The check runs beside the stream, not in front of it: the stream's events
+/// are taken only as the client reads them, so a client that stops reading holds no
+/// more than the display budget lets the service keep (a task that forwarded them
+/// held 16 more a stream, outside the budget, until 2026-12-08).
 fn end_when_key_lapses(
     response: Response,
     service: Arc<crate::service::Service>,
     secret: String,
 ) -> Response {
     use tokio_stream::StreamExt as _;
+    enum Next {
+        Chunk(Result<axum::body::Bytes, axum::Error>),
+        End,
+    }
     let (parts, body) = response.into_parts();
-    let mut data = body.into_data_stream();
-    let (tx, rx) = tokio::sync::mpsc::channel::<Result<axum::body::Bytes, axum::Error>>(16);
-    tokio::spawn(async move {
-        let mut check = tokio::time::interval(KEY_RECHECK);
-        check.tick().await;
-        loop {
-            tokio::select! {
-                chunk = data.next() => match chunk {
-                    Some(c) => {
-                        if tx.send(c).await.is_err() {
-                            return;
-                        }
-                    }
-                    None => return,
-                },
-                _ = check.tick() => {
-                    // A check the busy blocking pool holds past the request timeout
-                    // is tried again at the next tick.
-                    if let Ok(KeyCheck { who: Some(Err(e)), .. }) =
-                        check_key(&service, Some(&secret), false, false, false).await
-                    {
-                        tracing::info!("an event stream ends: {e}");
-                        return;
-                    }
+    let data = body
+        .into_data_stream()
+        .map(Next::Chunk)
+        .chain(tokio_stream::once(Next::End));
+    let lapsed = tokio_stream::once(()).then(move |()| {
+        let (service, secret) = (Arc::clone(&service), secret.clone());
+        async move {
+            let mut check = tokio::time::interval(KEY_RECHECK);
+            check.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+            check.tick().await;
+            loop {
+                check.tick().await;
+                // A check the busy blocking pool holds past the request timeout is tried
+                // again at the next tick.
+                if let Ok(KeyCheck {
+                    who: Some(Err(e)), ..
+                }) = check_key(&service, Some(&secret), false, false, false).await
+                {
+                    tracing::info!("an event stream ends: {e}");
+                    return Next::End;
                 }
-                () = tx.closed() => return,
             }
         }
     });
-    Response::from_parts(
-        parts,
-        axum::body::Body::from_stream(tokio_stream::wrappers::ReceiverStream::new(rx)),
-    )
+    let stream = data.merge(lapsed).map_while(|next| match next {
+        Next::Chunk(c) => Some(c),
+        Next::End => None,
+    });
+    Response::from_parts(parts, axum::body::Body::from_stream(stream))
 }
 
 /// What the key store says of a request's key.
