@@ -1166,23 +1166,21 @@ fn minimum_width(points: &[[f64; 2]]) -> f64 {
     }
     let cross =
         |o: [f64; 2], u: [f64; 2], v: [f64; 2]| (u[0] - o[0]) * (v[1] - o[1]) - (u[1] - o[1]) * (v[0] - o[0]);
-    // Andrew's monotone chain: the lower hull, then the upper.
-    let mut hull: Vec<[f64; 2]> = Vec::with_capacity(2 * p.len());
-    for pass in [false, true] {
-        let start = hull.len();
-        let points: Box<dyn Iterator<Item = &[f64; 2]>> = if pass {
-            Box::new(p.iter().rev())
-        } else {
-            Box::new(p.iter())
-        };
-        for &q in points {
-            while hull.len() >= start + 2 && cross(hull[hull.len() - 2], hull[hull.len() - 1], q) <= 0.0 {
-                hull.pop();
+    // Andrew's monotone chain: the lower hull, then the upper, each without its last
+    // point (the other's first).
+    let chain = |points: &mut dyn Iterator<Item = [f64; 2]>| {
+        let mut chain: Vec<[f64; 2]> = Vec::new();
+        for q in points {
+            while chain.len() >= 2 && cross(chain[chain.len() - 2], chain[chain.len() - 1], q) <= 0.0 {
+                chain.pop();
             }
-            hull.push(q);
+            chain.push(q);
         }
-        hull.pop();
-    }
+        chain.pop();
+        chain
+    };
+    let mut hull = chain(&mut p.iter().copied());
+    hull.extend(chain(&mut p.iter().rev().copied()));
     if hull.len() < 3 {
         return 0.0;
     }
@@ -2512,5 +2510,43 @@ mod surface_tests {
         let mut grads = RawGrads::zeros(cloud.len());
         let p = prior.add_gradient(&kernels, &slopes, cloud.roi(), 0.3, &mut grads);
         assert!(p < 1e-12 && grads.centres.iter().all(|g| g.abs() < 1e-6), "{p}");
+    }
+}
+
+#[cfg(test)]
+mod width_tests {
+    use super::minimum_width;
+
+    /// The least width of known shapes, whatever their order or turn.
+    #[test]
+    fn the_least_width_of_known_shapes() {
+        let turn = |p: &[[f64; 2]], a: f64| -> Vec<[f64; 2]> {
+            p.iter()
+                .map(|q| [q[0] * a.cos() - q[1] * a.sin(), q[0] * a.sin() + q[1] * a.cos()])
+                .collect()
+        };
+        // A 1 × 3 rectangle with points inside and on its edges.
+        let rectangle = [
+            [0.0, 0.0],
+            [3.0, 0.0],
+            [3.0, 1.0],
+            [0.0, 1.0],
+            [1.5, 0.5],
+            [1.0, 0.0],
+            [2.0, 1.0],
+        ];
+        // An equilateral triangle of side 1: its height.
+        let triangle = [[0.0, 0.0], [1.0, 0.0], [0.5, 3f64.sqrt() / 2.0]];
+        for a in [0.0, 0.3, 1.0, 2.5] {
+            assert!((minimum_width(&turn(&rectangle, a)) - 1.0).abs() < 1e-12, "{a}");
+            assert!(
+                (minimum_width(&turn(&triangle, a)) - 3f64.sqrt() / 2.0).abs() < 1e-12,
+                "{a}"
+            );
+            let line = turn(&[[0.0, 0.0], [1.0, 0.0], [2.5, 0.0], [4.0, 0.0]], a);
+            assert_eq!(minimum_width(&line), 0.0, "{a}");
+        }
+        assert_eq!(minimum_width(&[[0.0, 0.0], [1.0, 1.0]]), 0.0);
+        assert_eq!(minimum_width(&[[2.0, 2.0]; 5]), 0.0);
     }
 }
