@@ -1260,6 +1260,18 @@ async fn a_running_captures_export_is_not_remade_on_every_download() {
     );
 }
 
+/// A gtr plan that streams a fit snapshot of 600 primitives after each of its 300
+/// epochs: far more than a display budget of 256 KiB holds.
+fn snapshot_plan() -> String {
+    SmallPlan::named("snapshots")
+        .set("recon.method", "gtr")
+        .set("recon.volume.shape", [16, 16, 16])
+        .set("recon.gtr.primitives", 600)
+        .set("recon.gtr.epochs", 300)
+        .set("recon.gtr.virtual-grid", [16, 16])
+        .toml()
+}
+
 /// An event-stream client that never reads: the display-only events it holds (each
 /// epoch's snapshot of the fit, thousands of Gaussians) stop at the streams' budget,
 /// and the events a display cannot do without (stages, epochs, the end) still reach
@@ -1274,14 +1286,7 @@ fn a_stream_client_that_never_reads_holds_no_more_than_the_display_budget() {
     let svc = service(dir.path(), 0.0, Some(TOKEN));
     svc.set_stream_display_budget(BUDGET);
     let worker = svc.start_worker();
-    let plan = SmallPlan::named("snapshots")
-        .set("recon.method", "gtr")
-        .set("recon.volume.shape", [16, 16, 16])
-        .set("recon.gtr.primitives", 600)
-        .set("recon.gtr.epochs", 300)
-        .set("recon.gtr.virtual-grid", [16, 16])
-        .toml();
-    let id = svc.submit(plan).unwrap().id;
+    let id = svc.submit(snapshot_plan()).unwrap().id;
     let mut rx = svc.subscribe(&id).unwrap().expect("a queued run has a channel");
     let (mut most, t) = (0, Instant::now());
     loop {
@@ -1351,14 +1356,7 @@ async fn a_keyed_stream_that_is_not_read_gets_no_more_than_the_display_budget() 
     let dir = tempfile::tempdir().unwrap();
     let svc = service(dir.path(), 0.0, Some(TOKEN));
     svc.set_stream_display_budget(BUDGET);
-    let plan = SmallPlan::named("snapshots")
-        .set("recon.method", "gtr")
-        .set("recon.volume.shape", [16, 16, 16])
-        .set("recon.gtr.primitives", 600)
-        .set("recon.gtr.epochs", 300)
-        .set("recon.gtr.virtual-grid", [16, 16])
-        .toml();
-    let id = svc.submit(plan).unwrap().id;
+    let id = svc.submit(snapshot_plan()).unwrap().id;
     let router = app(AppState::new(Arc::clone(&svc)));
     let events = format!("/api/v1/runs/{id}/events");
     let resp = tower::ServiceExt::oneshot(
